@@ -1,0 +1,152 @@
+"""The ``sofast-station`` command."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+from . import __version__
+from .errors import StationError
+
+log = logging.getLogger("sofast_station")
+
+
+def _default_config() -> str:
+    """station.toml in the current folder, else the one beside the package (a source checkout)."""
+    here = Path("station.toml")
+    if here.exists():
+        return str(here)
+    return str(Path(__file__).resolve().parents[1] / "station.toml")
+
+
+def _json_safe(obj):
+    """Replace NaN and infinities by None: JSON has no Infinity (SPEC.md: infinite f is null)."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_safe(v) for v in obj]
+    if hasattr(obj, "item"):          # numpy scalar
+        return _json_safe(obj.item())
+    return obj
+
+
+def write_json_atomic(path: Path, data: dict) -> None:
+    """Write JSON to a temporary file in the same folder, flush it to disk, then rename it into place."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as fh:
+            json.dump(data, fh, indent=1)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _fmt(v, unit="", digits=4):
+    if v is None:
+        return "inf" if unit == " m" else "-"
+    return f"{v:.{digits}f}{unit}"
+
+
+def summary_text(rec: dict) -> str:
+    """A readable summary of one result record."""
+    lines = [f"Facet {rec['serial']} ({rec['facet']}) on {rec['station']}, {rec['time']}"]
+    truth = rec.get("truth")
+
+    def row(label, key, unit="", digits=4, scale=1.0):
+        v = rec.get(key)
+        v = None if v is None else v * scale
+        t = None if not truth or truth.get(key) is None else truth[key] * scale
+        extra = f"   (truth {_fmt(t, unit, digits)})" if truth is not None else ""
+        lines.append(f"  {label:<26}{_fmt(v, unit, digits):>14}{extra}")
+
+    row("focal length x", "focal_length_x_m", " m")
+    row("focal length y", "focal_length_y_m", " m")
+    row("twist", "twist_mrad_per_m", " mrad/m")
+    row("twist E1 / E2", "twist_e1_mrad_per_m", " mrad/m")
+    row("", "twist_e2_mrad_per_m", " mrad/m")
+    lines.append("  slope error RMS (mrad)        x        y   magnitude")
+    for model, rms in rec["slope_rms_mrad"].items():
+        t = truth["slope_rms_mrad"].get(model) if truth else None
+        text = f"    {model:<22}{_fmt(rms['x'], '', 3):>9}{_fmt(rms['y'], '', 3):>9}{_fmt(rms['magnitude'], '', 3):>12}"
+        if t:
+            text += f"   (truth {t['x']:.3f} {t['y']:.3f} {t['magnitude']:.3f})"
+        lines.append(text)
+    lines.append(f"  points                    {rec['n_points']:>14,}   ({100 * rec['valid_fraction']:.1f} % of the facet's pixels)")
+    lines.append(f"  median modulation         {rec['median_modulation_dn']:>11.1f} DN")
+    it = rec["iterations"]
+    lines.append(f"  shape iterations          {it['shape']:>14}   ({'converged' if it['converged'] else 'NOT converged'})")
+    t = rec["timings_s"]
+    lines.append(f"  time: capture {t['capture']:.2f} s, analysis {t['analysis']:.2f} s, total {t['total']:.2f} s")
+    return "\n".join(lines)
+
+
+def cmd_inspect(args) -> int:
+    from .config import load_config
+    from .station.inspect import inspect, open_station
+
+    config = load_config(args.config)
+    log.info("station %s (%s), facet %s", config.name, config.backend, config.design.name)
+    log.info("preparing the station (simulated stations trace the twin once)...")
+    station = open_station(config, seed=args.seed, noise=not args.noise_free)
+    try:
+        def progress(i, n):
+            if i == n or i % 6 == 0:
+                log.info("captured %d/%d frames", i, n)
+        rec = inspect(station, args.serial, progress=progress)
+    finally:
+        station.close()
+    rec = _json_safe(rec)
+    out = config.data_dir / "inspections" / f"{rec['serial']}-{rec['time'][:19].replace(':', '')}.json"
+    write_json_atomic(out, rec)
+    log.info("result written to %s", out)
+    if args.json:
+        json.dump(rec, sys.stdout, indent=1)
+        sys.stdout.write("\n")
+    else:
+        print(summary_text(rec))
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="sofast-station", description=__doc__)
+    p.add_argument("--version", action="version", version=f"sofast-station {__version__}")
+    p.add_argument("-v", "--verbose", action="store_true", help="log debugging detail")
+    sub = p.add_subparsers(dest="command", required=True)
+    ins = sub.add_parser("inspect", help="measure the facet in the fixture once and print its figures")
+    ins.add_argument("--config", default=_default_config(), help="station file (default: ./station.toml)")
+    ins.add_argument("--serial", default="SIM-0001", help="facet serial number")
+    ins.add_argument("--json", action="store_true", help="print one JSON object and nothing else on stdout")
+    ins.add_argument("--seed", type=int, default=None, help="simulated station: noise seed")
+    ins.add_argument("--noise-free", action="store_true", help="simulated station: no sensor noise")
+    ins.set_defaults(func=cmd_inspect)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, stream=sys.stderr,
+                        format="%(asctime)s %(levelname)s %(message)s", datefmt="%H:%M:%S")
+    try:
+        return args.func(args)
+    except StationError as exc:
+        log.error("%s", exc)
+        return 2
+    except KeyboardInterrupt:
+        log.error("interrupted")
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,137 @@
+"""station.toml -> a validated :class:`StationConfig`.
+
+Every error names the file and the key. Relative paths in the file are relative to the file's folder.
+``data_dir`` (where everything the station writes goes) may start with ``~`` and may be overridden by the
+environment variable ``SOFAST_DATA_DIR``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import tomllib
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+
+import numpy as np
+
+from .errors import ConfigError
+from .facet import FacetDesign, load_facet
+from .fringes import FringeSet
+from .geometry import CameraIntrinsics, ScreenSpec, StationGeometry
+from .layout import layout_station
+from .measure.pipeline import AnalysisSettings
+
+_SECTIONS = {"station", "camera", "screen", "layout", "fringes", "analysis", "calibration", "simulation"}
+_STATION_KEYS = {"name", "data_dir", "backend", "facet"}
+_CAMERA_KEYS = {"width_px", "height_px", "focal_length_px", "principal_point_px", "distortion"}
+_LAYOUT_KEYS = {"separation_m", "separation_axis"}
+_BACKENDS = ("simulated",)
+
+
+def _check_keys(table: dict, allowed: set, where: str) -> None:
+    unknown = sorted(set(table) - allowed)
+    if unknown:
+        raise ConfigError(f"{where} has unknown key(s) {', '.join(unknown)}; allowed: {', '.join(sorted(allowed))}")
+
+
+def _need(table: dict, key: str, where: str):
+    if key not in table:
+        raise ConfigError(f"{where} is missing the key {key!r}")
+    return table[key]
+
+
+@dataclass(frozen=True)
+class StationConfig:
+    """A loaded station.toml.
+
+    ``simulation`` holds the raw ``[simulation]`` table; the simulated backend turns it into the twin's
+    own records, so nothing here depends on the twin.
+    """
+
+    path: Path
+    name: str
+    data_dir: Path
+    backend: str
+    facet_path: Path
+    design: FacetDesign
+    geometry: StationGeometry
+    fringes: FringeSet
+    analysis: AnalysisSettings
+    radiometric_path: Path | None
+    simulation: dict = field(default_factory=dict)
+    raw: dict = field(default_factory=dict)
+
+    @property
+    def config_hash(self) -> str:
+        """SHA-256 (first 16 hex digits) of the station file and the facet file as loaded."""
+        blob = json.dumps({"station": self.raw, "facet": self.design.to_dict()}, sort_keys=True).encode()
+        return hashlib.sha256(blob).hexdigest()[:16]
+
+
+def _camera(table: dict, where: str) -> CameraIntrinsics:
+    _check_keys(table, _CAMERA_KEYS, where)
+    w = _need(table, "width_px", where)
+    h = _need(table, "height_px", where)
+    f = _need(table, "focal_length_px", where)
+    fx, fy = (f, f) if np.isscalar(f) else tuple(f)
+    cx, cy = table.get("principal_point_px", [(w - 1) / 2.0, (h - 1) / 2.0])
+    dist = table.get("distortion", [0.0] * 5)
+    try:
+        return CameraIntrinsics(w, h, [[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dist)
+    except ConfigError as exc:
+        raise ConfigError(f"{where}: {exc}") from None
+
+
+def load_config(path: str | Path) -> StationConfig:
+    """Read and validate a station file."""
+    path = Path(path).expanduser().resolve()
+    try:
+        raw = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"station file {path} does not exist; pass --config or run from the project folder") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"station file {path} is not valid TOML: {exc}") from None
+    where = str(path)
+    _check_keys(raw, _SECTIONS, where)
+    base = path.parent
+    st = raw.get("station", {})
+    _check_keys(st, _STATION_KEYS, f"{where} [station]")
+    backend = st.get("backend", "simulated")
+    if backend not in _BACKENDS:
+        raise ConfigError(f"{where} [station] backend must be one of {_BACKENDS}, got {backend!r}")
+    data_dir = Path(os.environ.get("SOFAST_DATA_DIR") or st.get("data_dir", "~/sofast-station-data")).expanduser()
+    if not data_dir.is_absolute():
+        data_dir = base / data_dir
+    facet_path = base / _need(st, "facet", f"{where} [station]")
+    design = load_facet(facet_path)
+    camera = _camera(raw.get("camera", {}), f"{where} [camera]")
+    scr = raw.get("screen", {})
+    _check_keys(scr, {"width_px", "height_px", "pitch_m"}, f"{where} [screen]")
+    try:
+        screen = ScreenSpec(_need(scr, "width_px", f"{where} [screen]"), _need(scr, "height_px", f"{where} [screen]"),
+                            _need(scr, "pitch_m", f"{where} [screen]"))
+    except ConfigError as exc:
+        raise ConfigError(f"{where} [screen]: {exc}") from None
+    lay = raw.get("layout", {})
+    _check_keys(lay, _LAYOUT_KEYS, f"{where} [layout]")
+    try:
+        geometry = layout_station(design, camera, screen, float(_need(lay, "separation_m", f"{where} [layout]")),
+                                  lay.get("separation_axis", "x"))
+    except ConfigError as exc:
+        raise ConfigError(f"{where} [layout]: {exc}") from None
+    try:
+        fringes = FringeSet.from_dict(raw.get("fringes", {}))
+    except (ConfigError, TypeError) as exc:
+        raise ConfigError(f"{where} [fringes]: {exc}") from None
+    an = raw.get("analysis", {})
+    _check_keys(an, {f.name for f in fields(AnalysisSettings)}, f"{where} [analysis]")
+    analysis = AnalysisSettings(**an)
+    cal = raw.get("calibration", {})
+    _check_keys(cal, {"radiometric"}, f"{where} [calibration]")
+    radiometric = base / cal["radiometric"] if "radiometric" in cal else None
+    return StationConfig(path=path, name=str(st.get("name", path.stem)), data_dir=data_dir, backend=backend,
+                         facet_path=facet_path, design=design, geometry=geometry, fringes=fringes,
+                         analysis=analysis, radiometric_path=radiometric, simulation=raw.get("simulation", {}),
+                         raw=raw)

@@ -1,0 +1,36 @@
+"""The station's error hierarchy.
+
+Every error a user can cause or meet derives from :class:`StationError` and says what was wrong and
+what to do about it. Callers that must keep the line running catch ``StationError``; anything else is a
+bug in this software.
+"""
+
+from __future__ import annotations
+
+
+class StationError(Exception):
+    """Base of every error the station reports to its users."""
+
+
+class ConfigError(StationError):
+    """The configuration (station.toml, a facet file, a calibration record) is missing or invalid."""
+
+
+class CaptureError(StationError):
+    """The frames handed to the analysis are not a usable capture (wrong count, size, dark, saturated)."""
+
+
+class FacetNotFoundError(CaptureError):
+    """No facet, or not the whole facet, is visible in the capture."""
+
+
+class DisplayError(StationError):
+    """The fringe display could not be created or did not show what was asked."""
+
+
+class GeometryError(StationError):
+    """The station geometry, the facet pose or the measured distance are inconsistent."""
+
+
+class AnalysisError(StationError):
+    """The analysis could not produce a trustworthy result from otherwise valid frames."""

@@ -1,0 +1,137 @@
+"""The design of a facet: its shape, outline and named points, in the facet frame.
+
+A facet file (TOML, in ``fixtures/facets/``) holds one ``[facet]`` table::
+
+    [facet]
+    name = "dish-5.33"
+    kind = "dish"                    # dish | gore | heliostat
+    focal_length_m = 5.33            # design paraboloid of revolution z = (x^2 + y^2) / (4 f)
+    outline_m = [[0.3, -0.3], [0.3, 0.3], [-0.3, 0.3], [-0.3, -0.3]]   # corners, counter-clockwise
+    measure_point_m = [0.0, 0.0]     # where the range finder's distance is taken to
+    alignment_point_m = [0.0, 0.0]   # the electronic boresight's alignment point
+
+The facet frame's origin is the paraboloid vertex: the facet centre for on-axis facets, a point off the
+facet for gore facets (SPEC.md, "Facet frames").
+"""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import ConfigError
+
+KINDS = ("dish", "gore", "heliostat")
+
+
+@dataclass(frozen=True)
+class FacetDesign:
+    """Design shape and outline of a facet (all lengths in metres, facet frame).
+
+    Attributes
+    ----------
+    focal_length_m : float
+        Design focal length of the paraboloid of revolution ``z = (x^2 + y^2) / (4 f)``.
+    outline_m : (N, 2) array
+        Corner points (x, y) of the reflective outline, counter-clockwise seen from +z.
+    measure_point_m, alignment_point_m : (2,) arrays
+        (x, y) of the range-finder point and of the boresight alignment point.
+    """
+
+    name: str
+    kind: str
+    focal_length_m: float
+    outline_m: np.ndarray
+    measure_point_m: np.ndarray
+    alignment_point_m: np.ndarray
+    layout: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        where = f"facet {self.name!r}"
+        if self.kind not in KINDS:
+            raise ConfigError(f"{where}: kind must be one of {KINDS}, got {self.kind!r}")
+        f = float(self.focal_length_m)
+        if not (np.isfinite(f) and f > 0):
+            raise ConfigError(f"{where}: focal_length_m must be a positive number of metres, got {f}")
+        object.__setattr__(self, "focal_length_m", f)
+        outline = np.array(self.outline_m, dtype=np.float64)
+        if outline.ndim != 2 or outline.shape[1] != 2 or outline.shape[0] < 3 or not np.all(np.isfinite(outline)):
+            raise ConfigError(f"{where}: outline_m must be a list of at least 3 finite [x, y] corners")
+        x, y = outline[:, 0], outline[:, 1]
+        area2 = float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
+        if area2 <= 0:
+            raise ConfigError(f"{where}: outline_m corners must run counter-clockwise seen from +z")
+        outline.setflags(write=False)
+        object.__setattr__(self, "outline_m", outline)
+        for key in ("measure_point_m", "alignment_point_m"):
+            p = np.array(getattr(self, key), dtype=np.float64)
+            if p.shape != (2,) or not np.all(np.isfinite(p)):
+                raise ConfigError(f"{where}: {key} must be a finite [x, y] pair in metres")
+            p.setflags(write=False)
+            object.__setattr__(self, key, p)
+
+    @property
+    def curvature_per_m(self) -> float:
+        """Design focal power kappa = 1/f, 1/m."""
+        return 1.0 / self.focal_length_m
+
+    @property
+    def coefficients(self) -> np.ndarray:
+        """Design surface as (A, B, C, D, E, F) of z = A x^2 + B y^2 + C x + D y + E xy + F."""
+        a = 1.0 / (4.0 * self.focal_length_m)
+        return np.array([a, a, 0.0, 0.0, 0.0, 0.0])
+
+    def z(self, x, y):
+        """Design surface height (metres) at facet-frame (x, y)."""
+        return (np.asarray(x) ** 2 + np.asarray(y) ** 2) / (4.0 * self.focal_length_m)
+
+    @property
+    def centroid_m(self) -> np.ndarray:
+        """Area centroid (x, y) of the outline polygon, metres."""
+        x, y = self.outline_m[:, 0], self.outline_m[:, 1]
+        xn, yn = np.roll(x, -1), np.roll(y, -1)
+        cross = x * yn - xn * y
+        area = cross.sum() / 2.0
+        return np.array([((x + xn) * cross).sum(), ((y + yn) * cross).sum()]) / (6.0 * area)
+
+    def corners_3d(self) -> np.ndarray:
+        """Outline corners on the design surface, (N, 3) metres."""
+        x, y = self.outline_m[:, 0], self.outline_m[:, 1]
+        return np.column_stack([x, y, self.z(x, y)])
+
+    def to_dict(self) -> dict:
+        return {"name": self.name, "kind": self.kind, "focal_length_m": self.focal_length_m,
+                "outline_m": self.outline_m.tolist(), "measure_point_m": self.measure_point_m.tolist(),
+                "alignment_point_m": self.alignment_point_m.tolist(), "layout": dict(self.layout)}
+
+    @classmethod
+    def from_dict(cls, d: dict, source: str = "facet") -> "FacetDesign":
+        missing = [k for k in ("name", "kind", "focal_length_m", "outline_m") if k not in d]
+        if missing:
+            raise ConfigError(f"{source}: [facet] is missing {', '.join(missing)}")
+        outline = np.asarray(d["outline_m"], dtype=np.float64)
+        centre = outline.mean(axis=0).tolist() if outline.ndim == 2 else [0.0, 0.0]
+        return cls(name=str(d["name"]), kind=str(d["kind"]), focal_length_m=d["focal_length_m"],
+                   outline_m=outline, measure_point_m=d.get("measure_point_m", centre),
+                   alignment_point_m=d.get("alignment_point_m", centre), layout=dict(d.get("layout", {})))
+
+
+def load_facet(path: str | Path) -> FacetDesign:
+    """Read a facet file (see the module docstring); errors name the file."""
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"facet file {path} does not exist") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"facet file {path} is not valid TOML: {exc}") from None
+    if "facet" not in data:
+        raise ConfigError(f"facet file {path} has no [facet] table")
+    try:
+        return FacetDesign.from_dict(data["facet"], source=str(path))
+    except ConfigError as exc:
+        msg = str(exc)
+        raise ConfigError(msg if str(path) in msg else f"{path}: {msg}") from None

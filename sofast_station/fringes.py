@@ -1,0 +1,92 @@
+"""The fringe definition: which images the display shows, in which order (configuration data).
+
+A capture is a dark frame, a white frame, then for x and then y each period count in increasing order,
+``phase_steps`` images with shifts d_k = 2 pi k / phase_steps. With the defaults (periods 1 and 4, four
+steps) that is 2 + 16 = 18 frames. Image k of a set shows I_k = a + b cos(phi - d_k), phi = 2 pi p u / L
+(SPEC.md, "Conventions").
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from .errors import ConfigError
+
+
+@dataclass(frozen=True)
+class Pattern:
+    """One display image.
+
+    ``kind == "uniform"``: every pixel shows ``command`` (0..255).
+    ``kind == "fringe"``: a sinusoid along ``axis`` with ``periods`` cycles across the screen, shifted by
+    ``shift_rad``, spanning the calibrated floor..maximum through the linearising lookup table.
+    """
+
+    kind: str
+    axis: str = ""
+    periods: float = 0.0
+    shift_rad: float = 0.0
+    command: int = 0
+
+    @property
+    def label(self) -> str:
+        if self.kind == "uniform":
+            return {0: "dark", 255: "white"}.get(self.command, f"uniform {self.command}")
+        return f"{self.axis} p={self.periods:g} shift={self.shift_rad:.4f}"
+
+
+@dataclass(frozen=True)
+class FringeSet:
+    """Periods (cycles across the active extent) per axis, increasing, and the number of phase steps."""
+
+    periods_x: tuple[float, ...] = (1.0, 4.0)
+    periods_y: tuple[float, ...] = (1.0, 4.0)
+    phase_steps: int = 4
+
+    def __post_init__(self):
+        for name in ("periods_x", "periods_y"):
+            p = tuple(float(v) for v in getattr(self, name))
+            if not p or any(not (math.isfinite(v) and v > 0) for v in p):
+                raise ConfigError(f"fringes.{name} must be a non-empty list of positive periods, got {list(p)}")
+            if any(b <= a for a, b in zip(p, p[1:])):
+                raise ConfigError(f"fringes.{name} must increase (coarse to fine), got {list(p)}")
+            object.__setattr__(self, name, p)
+        if int(self.phase_steps) != 4:
+            raise ConfigError(f"fringes.phase_steps must be 4 (the phase and consistency formulas assume "
+                              f"quarter-period shifts), got {self.phase_steps}")
+        object.__setattr__(self, "phase_steps", int(self.phase_steps))
+
+    @property
+    def n_frames(self) -> int:
+        return 2 + self.phase_steps * (len(self.periods_x) + len(self.periods_y))
+
+    def patterns(self) -> list[Pattern]:
+        """The display images in capture order."""
+        out = [Pattern("uniform", command=0), Pattern("uniform", command=255)]
+        for axis, periods in (("x", self.periods_x), ("y", self.periods_y)):
+            for p in periods:
+                for k in range(self.phase_steps):
+                    out.append(Pattern("fringe", axis=axis, periods=p, shift_rad=2 * math.pi * k / self.phase_steps))
+        return out
+
+    def slices(self) -> dict[str, list[slice]]:
+        """Frame index ranges of each phase-step set, per axis, in the order of ``periods_*``."""
+        out: dict[str, list[slice]] = {"x": [], "y": []}
+        i = 2
+        for axis, periods in (("x", self.periods_x), ("y", self.periods_y)):
+            for _ in periods:
+                out[axis].append(slice(i, i + self.phase_steps))
+                i += self.phase_steps
+        return out
+
+    def to_dict(self) -> dict:
+        return {"periods_x": list(self.periods_x), "periods_y": list(self.periods_y),
+                "phase_steps": self.phase_steps}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "FringeSet":
+        unknown = set(d) - {"periods_x", "periods_y", "phase_steps"}
+        if unknown:
+            raise ConfigError(f"[fringes] has unknown keys: {', '.join(sorted(unknown))}")
+        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})

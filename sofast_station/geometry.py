@@ -1,0 +1,181 @@
+"""Plain data describing a station's geometry: camera intrinsics, screen, and the poses that join them.
+
+These are records, not computations: both the measurement pipeline (as calibration) and the digital twin
+(as the true geometry) read them. Frames follow OpenCSP's naming habit: ``screen_to_camera`` maps a point
+given in the screen frame to the camera frame.
+
+Frames
+------
+camera
+    OpenCV: origin at the pinhole, +z along the optical axis, +x along image columns, +y down the rows.
+screen
+    Metres; origin at the centre of the active area, +x along increasing display column, +y up
+    (decreasing display row), +z out of the screen toward the facet (SPEC.md, "Conventions").
+fixture
+    The nominal facet frame: where the facet frame lies when the facet sits perfectly in the fixture.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import ConfigError
+
+
+def _finite_array(name: str, value, shape: tuple[int, ...]) -> np.ndarray:
+    arr = np.array(value, dtype=np.float64)
+    if arr.shape != shape:
+        raise ConfigError(f"{name} must have shape {shape}, got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ConfigError(f"{name} contains a non-finite value ({arr.ravel().tolist()}); "
+                          "recalibrate or correct the record")
+    arr.setflags(write=False)
+    return arr
+
+
+@dataclass(frozen=True)
+class Pose:
+    """A rigid motion mapping points of frame *a* into frame *b*: ``x_b = rotation @ x_a + translation``.
+
+    Parameters
+    ----------
+    rotation : (3, 3) array
+        Proper rotation matrix.
+    translation : (3,) array
+        Origin of frame *a* expressed in frame *b*, metres.
+    """
+
+    rotation: np.ndarray
+    translation: np.ndarray
+
+    def __post_init__(self):
+        r = _finite_array("pose rotation", self.rotation, (3, 3))
+        t = _finite_array("pose translation", self.translation, (3,))
+        if not np.allclose(r @ r.T, np.eye(3), atol=1e-9) or np.linalg.det(r) < 0:
+            raise ConfigError("pose rotation is not a proper rotation matrix (R R^T != I or det < 0)")
+        object.__setattr__(self, "rotation", r)
+        object.__setattr__(self, "translation", t)
+
+    def apply(self, points: np.ndarray) -> np.ndarray:
+        """Map points (..., 3) from frame *a* to frame *b*."""
+        return points @ self.rotation.T + self.translation
+
+    def apply_vector(self, vectors: np.ndarray) -> np.ndarray:
+        """Rotate direction vectors (..., 3) from frame *a* to frame *b* (no translation)."""
+        return vectors @ self.rotation.T
+
+    def inverse(self) -> "Pose":
+        """The motion from frame *b* back to frame *a*."""
+        r_t = self.rotation.T
+        return Pose(r_t, -r_t @ self.translation)
+
+    def compose(self, first: "Pose") -> "Pose":
+        """The motion ``self ∘ first``: apply *first*, then *self*."""
+        return Pose(self.rotation @ first.rotation, self.rotation @ first.translation + self.translation)
+
+    def to_dict(self) -> dict:
+        return {"rotation": self.rotation.tolist(), "translation": self.translation.tolist()}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Pose":
+        return cls(np.asarray(d["rotation"], float), np.asarray(d["translation"], float))
+
+
+@dataclass(frozen=True)
+class CameraIntrinsics:
+    """OpenCV pinhole camera with the 5-term distortion model (k1, k2, p1, p2, k3).
+
+    Pixel (column u, row v) has its centre at image coordinates (u, v), as in OpenCV.
+    """
+
+    width_px: int
+    height_px: int
+    matrix: np.ndarray
+    distortion: np.ndarray
+
+    def __post_init__(self):
+        if int(self.width_px) <= 0 or int(self.height_px) <= 0:
+            raise ConfigError(f"camera size must be positive, got {self.width_px} x {self.height_px}")
+        object.__setattr__(self, "width_px", int(self.width_px))
+        object.__setattr__(self, "height_px", int(self.height_px))
+        k = _finite_array("camera matrix", self.matrix, (3, 3))
+        if k[0, 0] <= 0 or k[1, 1] <= 0:
+            raise ConfigError(f"camera focal lengths must be positive pixels, got fx={k[0, 0]}, fy={k[1, 1]}")
+        object.__setattr__(self, "matrix", k)
+        object.__setattr__(self, "distortion", _finite_array("camera distortion", self.distortion, (5,)))
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """Image shape (rows, columns)."""
+        return (self.height_px, self.width_px)
+
+    def to_dict(self) -> dict:
+        return {"width_px": self.width_px, "height_px": self.height_px, "matrix": self.matrix.tolist(),
+                "distortion": self.distortion.tolist()}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "CameraIntrinsics":
+        return cls(d["width_px"], d["height_px"], np.asarray(d["matrix"], float),
+                   np.asarray(d["distortion"], float))
+
+
+@dataclass(frozen=True)
+class ScreenSpec:
+    """A flat display: native resolution and pixel pitch (metres per display pixel)."""
+
+    width_px: int
+    height_px: int
+    pitch_m: float
+
+    def __post_init__(self):
+        if int(self.width_px) <= 0 or int(self.height_px) <= 0:
+            raise ConfigError(f"screen size must be positive, got {self.width_px} x {self.height_px}")
+        if not (np.isfinite(self.pitch_m) and 0 < self.pitch_m < 0.1):
+            raise ConfigError(f"screen pitch_m must be a positive length in metres, got {self.pitch_m}")
+        object.__setattr__(self, "width_px", int(self.width_px))
+        object.__setattr__(self, "height_px", int(self.height_px))
+        object.__setattr__(self, "pitch_m", float(self.pitch_m))
+
+    @property
+    def width_m(self) -> float:
+        """Active width W, metres."""
+        return self.width_px * self.pitch_m
+
+    @property
+    def height_m(self) -> float:
+        """Active height H, metres."""
+        return self.height_px * self.pitch_m
+
+    def to_dict(self) -> dict:
+        return {"width_px": self.width_px, "height_px": self.height_px, "pitch_m": self.pitch_m}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "ScreenSpec":
+        return cls(d["width_px"], d["height_px"], d["pitch_m"])
+
+
+@dataclass(frozen=True)
+class StationGeometry:
+    """Everything geometric the analysis needs besides the facet design.
+
+    ``screen_to_camera`` is the fixed camera/screen assembly; ``fixture_to_camera`` is where the facet
+    frame sits when the facet is perfectly placed (used to order the detected corners and to start the
+    pose search).
+    """
+
+    camera: CameraIntrinsics
+    screen: ScreenSpec
+    screen_to_camera: Pose
+    fixture_to_camera: Pose
+
+    def to_dict(self) -> dict:
+        return {"camera": self.camera.to_dict(), "screen": self.screen.to_dict(),
+                "screen_to_camera": self.screen_to_camera.to_dict(),
+                "fixture_to_camera": self.fixture_to_camera.to_dict()}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "StationGeometry":
+        return cls(CameraIntrinsics.from_dict(d["camera"]), ScreenSpec.from_dict(d["screen"]),
+                   Pose.from_dict(d["screen_to_camera"]), Pose.from_dict(d["fixture_to_camera"]))

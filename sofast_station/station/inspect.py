@@ -1,0 +1,127 @@
+"""One inspection: capture the fringe sequence, analyse it, and assemble the facet's result.
+
+The station object holds the devices behind their protocols; ``inspect`` cannot tell a simulated camera
+from a real one. On the simulated station the result also carries ``truth``, the twin's ground truth for
+the pixels the analysis kept.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .. import __version__
+from ..calibrate.records import RadiometricRecord, load_radiometric
+from ..config import StationConfig
+from ..devices.protocols import Camera, Display, RangeFinder
+from ..measure.camera import ray_grid
+from ..measure.pipeline import Analysis, analyse
+
+log = logging.getLogger(__name__)
+
+#: Figures copied from an analysis into the result (and compared with truth).
+FIGURE_KEYS = ("focal_length_x_m", "focal_length_y_m", "curvature_x_per_m", "curvature_y_per_m",
+               "twist_mrad_per_m", "twist_e1_mrad_per_m", "twist_e2_mrad_per_m", "principal_focal_lengths_m",
+               "axis_angle_rad", "slope_rms_mrad", "n_points")
+
+
+@dataclass
+class Station:
+    """A ready station: devices, configuration, calibration, and per-camera precomputation."""
+
+    config: StationConfig
+    display: Display
+    camera: Camera
+    range_finder: RangeFinder
+    radiometric: RadiometricRecord
+    twin: object | None = None
+    _rays: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def rays_cam(self) -> np.ndarray:
+        """Unit pixel rays of the calibrated camera, computed once."""
+        if self._rays is None:
+            self._rays = ray_grid(self.config.geometry.camera)
+        return self._rays
+
+    def close(self) -> None:
+        for dev in (self.camera, self.display):
+            try:
+                dev.close()
+            except Exception:  # closing must not hide the error that made us close
+                log.exception("error while closing %s", type(dev).__name__)
+
+
+def open_station(config: StationConfig, seed: int | None = None, noise: bool = True) -> Station:
+    """Connect the devices named in the configuration (only the simulated station exists yet)."""
+    radiometric = load_radiometric(config.radiometric_path) if config.radiometric_path else None
+    if radiometric is None:
+        from ..devices.renderer import identity_lut
+        radiometric = RadiometricRecord("none", "", "no calibration: linear display assumed", identity_lut(),
+                                        0.0, 1.0, 1 / 60, 1.0)
+    if config.backend == "simulated":
+        from .simulated import open_simulated
+        return open_simulated(config, radiometric, seed=seed, noise=noise)
+    raise NotImplementedError(f"backend {config.backend!r}")  # config validation rejects others
+
+
+def capture(station: Station, progress=None) -> tuple[np.ndarray, float]:
+    """Show every pattern and grab a frame for each; returns (frames, measured distance in metres)."""
+    patterns = station.config.fringes.patterns()
+    frames = None
+    for i, pattern in enumerate(patterns):
+        station.display.show(pattern)
+        frame = station.camera.grab()
+        if frames is None:
+            frames = np.empty((len(patterns), *frame.shape), dtype=frame.dtype)
+        frames[i] = frame
+        if progress:
+            progress(i + 1, len(patterns))
+    distance = float(station.range_finder.measure())
+    return frames, distance
+
+
+def now_iso() -> str:
+    """Local date and time with its UTC offset, ISO 8601, to the millisecond."""
+    return _dt.datetime.now().astimezone().isoformat(timespec="milliseconds")
+
+
+def result_record(station: Station, serial: str, analysis: Analysis, timings: dict) -> dict:
+    """The facet's result as a JSON-ready dict (SPEC.md, "Reported figures")."""
+    fig = analysis.figures
+    out = {"serial": serial, "time": now_iso()}
+    out.update({k: fig[k] for k in FIGURE_KEYS})
+    out.update({k: v for k, v in fig.items() if k not in FIGURE_KEYS and k != "timings_s"})
+    out["camera"] = {"exposure_s": station.radiometric.exposure_s, "gain": station.radiometric.gain}
+    out["calibration"] = {"radiometric": station.radiometric.record_id}
+    out["software_version"] = __version__
+    out["config_hash"] = station.config.config_hash
+    out["station"] = station.config.name
+    out["facet"] = station.config.design.name
+    out["timings_s"] = timings
+    return out
+
+
+def inspect(station: Station, serial: str, progress=None) -> dict:
+    """Measure the facet in the fixture and return its result record (with ``truth`` on the twin)."""
+    t0 = time.perf_counter()
+    frames, distance = capture(station, progress)
+    t_capture = time.perf_counter() - t0
+    rays = station.rays_cam
+    t1 = time.perf_counter()
+    analysis = analyse(frames, station.config.fringes, station.config.geometry, station.config.design, distance,
+                       station.config.analysis, rays_cam=rays)
+    t_analysis = time.perf_counter() - t1
+    timings = {"capture": t_capture, **{f"analysis_{k}": v for k, v in analysis.timings_s.items()},
+               "analysis": t_analysis}
+    record = result_record(station, serial, analysis, timings)
+    if station.twin is not None:
+        from ..twin.truth import ground_truth
+        truth = ground_truth(station.twin, analysis.valid)
+        record["truth"] = {k: truth[k] for k in FIGURE_KEYS if k in truth}
+    record["timings_s"]["total"] = time.perf_counter() - t0
+    return record

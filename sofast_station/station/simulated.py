@@ -1,0 +1,48 @@
+"""Assemble the simulated station from station.toml's ``[simulation]`` table."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..calibrate.records import RadiometricRecord
+from ..config import StationConfig
+from ..devices.renderer import FringeRenderer
+from ..devices.simulated import SimulatedCamera, SimulatedDisplay, SimulatedRangeFinder
+from ..errors import ConfigError
+from .inspect import Station
+
+_SIM_KEYS = {"seed", "facet", "optics", "distance_error_m"}
+
+
+def build_twin(config: StationConfig, noise: bool = True):
+    """The digital twin described by ``[simulation]`` (true facet and optics) in the station's geometry."""
+    from ..twin.config import TrueFacet, TwinOptics
+    from ..twin.station import TwinStation
+
+    sim = config.simulation
+    unknown = sorted(set(sim) - _SIM_KEYS)
+    if unknown:
+        raise ConfigError(f"{config.path} [simulation] has unknown key(s) {', '.join(unknown)}")
+    try:
+        facet = TrueFacet.from_dict(sim.get("facet", {}))
+        optics = TwinOptics.from_dict(sim.get("optics", {}))
+    except ConfigError as exc:
+        raise ConfigError(f"{config.path} [simulation]: {exc}") from None
+    if not noise:
+        optics = optics.noise_free()
+    return TwinStation(config.geometry, config.design, facet, optics)
+
+
+def open_simulated(config: StationConfig, radiometric: RadiometricRecord, seed: int | None = None,
+                   noise: bool = True) -> Station:
+    """Simulated display (offscreen renderer), twin camera and twin range finder."""
+    twin = build_twin(config, noise=noise)
+    scr = config.geometry.screen
+    renderer = FringeRenderer(scr.width_px, scr.height_px, lut=radiometric.lut,
+                              floor_level=radiometric.floor_level, max_level=radiometric.max_level)
+    display = SimulatedDisplay(renderer)
+    seed = config.simulation.get("seed", 0) if seed is None else seed
+    camera = SimulatedCamera(twin, display, np.random.default_rng(seed) if noise else None)
+    rangefinder = SimulatedRangeFinder(twin, float(config.simulation.get("distance_error_m", 0.0)))
+    return Station(config=config, display=display, camera=camera, range_finder=rangefinder,
+                   radiometric=radiometric, twin=twin)
