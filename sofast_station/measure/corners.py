@@ -1,0 +1,195 @@
+"""Facet corners from the mask: rough outline, sub-pixel edge lines, their intersections.
+
+The white-minus-dark contrast of a pixel straddling the facet edge is proportional to the part of the
+pixel the facet covers. Summed across the edge along one image row (or column), the covered fractions
+give the edge position to a small fraction of a pixel, whatever the blur; a line through a few hundred
+such positions locates each side to about a hundredth of a pixel.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ..errors import FacetNotFoundError
+
+#: Half-width (pixels) of the window across an edge over which coverage is summed.
+EDGE_HALF_WIDTH_PX = 5
+#: Plateau and background are read this far (pixels) from the rough edge, on either side.
+PLATEAU_RANGE_PX = (8, 14)
+#: Fraction of each side left out at either end, away from the corners' rounding.
+SIDE_TRIM = 0.12
+
+
+@dataclass(frozen=True)
+class OutlineFit:
+    """Sub-pixel outline of the facet in the image.
+
+    Attributes
+    ----------
+    corners_px : (N, 2) float array
+        Corner image positions (column, row), in the order of the rough outline.
+    lines : (N, 3) float array
+        Side i as a x + b y = c with (a, b) a unit normal; side i runs from corner i to corner i+1.
+    edge_rms_px : (N,) float array
+        RMS distance of each side's edge points from its fitted line, pixels.
+    n_edge_points : (N,) int array
+    """
+
+    corners_px: np.ndarray
+    lines: np.ndarray
+    edge_rms_px: np.ndarray
+    n_edge_points: np.ndarray
+
+
+def rough_outline(region: np.ndarray, n_corners: int) -> np.ndarray:
+    """Integer-pixel polygon with *n_corners* vertices approximating the region's outer contour.
+
+    Raises
+    ------
+    FacetNotFoundError
+        When the region is empty or no simplification of its contour has *n_corners* vertices.
+    """
+    contours, _ = cv2.findContours(region.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    if not contours:
+        raise FacetNotFoundError("no facet outline found in the mask; check that a facet is in the fixture "
+                                 "and the screen lights it")
+    contour = max(contours, key=cv2.contourArea)
+    perimeter = cv2.arcLength(contour, True)
+    counts = []
+    for frac in (0.01, 0.005, 0.015, 0.02, 0.03, 0.04, 0.05, 0.003):
+        poly = cv2.approxPolyDP(contour, frac * perimeter, True)
+        counts.append(len(poly))
+        if len(poly) == n_corners:
+            return poly.reshape(-1, 2).astype(np.float64)
+    raise FacetNotFoundError(
+        f"the facet's outline in the mask does not have the design's {n_corners} corners (simplified "
+        f"outlines had {sorted(set(counts))}); the facet may be partly lit, partly hidden or not the "
+        "recipe's facet type")
+
+
+def _edge_points(contrast: np.ndarray, p0: np.ndarray, p1: np.ndarray, inside_sign: float) -> np.ndarray:
+    """Sub-pixel edge positions along the rough side p0 -> p1, (M, 2) (column, row)."""
+    h, w = contrast.shape
+    d = p1 - p0
+    along_x = abs(d[0]) >= abs(d[1])          # near-horizontal side: one edge point per column
+    a0, a1 = (p0[0], p1[0]) if along_x else (p0[1], p1[1])
+    lo, hi = sorted((a0, a1))
+    span = hi - lo
+    s = np.arange(np.ceil(lo + SIDE_TRIM * span), np.floor(hi - SIDE_TRIM * span) + 1)
+    if s.size < 3:
+        return np.empty((0, 2))
+    # Rough edge crossing of each row/column, from the rough line.
+    slope = (d[1] / d[0]) if along_x else (d[0] / d[1])
+    base = p0[1] if along_x else p0[0]
+    start = p0[0] if along_x else p0[1]
+    cross = base + slope * (s - start)
+    centre = np.round(cross).astype(np.int64)
+    k = np.arange(-EDGE_HALF_WIDTH_PX, EDGE_HALF_WIDTH_PX + 1)
+    far = np.arange(PLATEAU_RANGE_PX[0], PLATEAU_RANGE_PX[1] + 1)
+    limit = (h if along_x else w) - 1
+    ok = (centre - far[-1] >= 0) & (centre + far[-1] <= limit)
+    s, centre = s[ok].astype(np.int64), centre[ok]
+    if s.size < 3:
+        return np.empty((0, 2))
+
+    def sample(offsets):
+        idx = centre[:, None] + offsets[None, :]
+        return contrast[idx, s[:, None]] if along_x else contrast[s[:, None], idx]
+
+    window = sample(k)
+    inside = np.median(sample(inside_sign * far), axis=1)
+    outside = np.median(sample(-inside_sign * far), axis=1)
+    scale = inside - outside
+    good = scale > 0.25 * np.median(scale)
+    coverage = (window - outside[:, None]) / np.where(good, scale, 1.0)[:, None]
+    total = coverage.sum(axis=1)
+    if inside_sign > 0:   # facet on the high side: edge = last window pixel's upper boundary - covered
+        edge = centre + EDGE_HALF_WIDTH_PX + 0.5 - total
+    else:                 # facet on the low side: edge = first window pixel's lower boundary + covered
+        edge = centre - EDGE_HALF_WIDTH_PX - 0.5 + total
+    edge, s = edge[good], s[good]
+    return np.column_stack([s, edge]) if along_x else np.column_stack([edge, s])
+
+
+def _fit_line(points: np.ndarray, rounds: int = 3) -> tuple[np.ndarray, float, int]:
+    """Total-least-squares line a x + b y = c (unit normal) with robust rejection of stray points."""
+    keep = np.ones(len(points), dtype=bool)
+    for _ in range(rounds + 1):
+        p = points[keep]
+        centre = p.mean(axis=0)
+        _, _, vt = np.linalg.svd(p - centre, full_matrices=False)
+        normal = vt[1]
+        dist = (points - centre) @ normal
+        sigma = 1.4826 * np.median(np.abs(dist[keep])) + 1e-6
+        new_keep = np.abs(dist) < max(4.0 * sigma, 0.05)
+        if np.array_equal(new_keep, keep) or new_keep.sum() < 3:
+            break
+        keep = new_keep
+    rms = float(np.sqrt(np.mean(dist[keep] ** 2)))
+    return np.array([normal[0], normal[1], normal @ centre]), rms, int(keep.sum())
+
+
+def fit_outline(contrast: np.ndarray, region: np.ndarray, n_corners: int) -> OutlineFit:
+    """Sub-pixel corners of the facet outline.
+
+    Parameters
+    ----------
+    contrast : (H, W) float array
+        White minus dark, DN.
+    region : (H, W) bool array
+        The facet region (see :func:`~sofast_station.measure.mask.facet_region`).
+    n_corners : int
+        Corners of the design outline.
+    """
+    rough = rough_outline(region, n_corners)
+    centroid = rough.mean(axis=0)
+    lines, rms, counts = [], [], []
+    for i in range(n_corners):
+        p0, p1 = rough[i], rough[(i + 1) % n_corners]
+        d = p1 - p0
+        along_x = abs(d[0]) >= abs(d[1])
+        mid = 0.5 * (p0 + p1)
+        # Which way across the edge (increasing row for a near-horizontal side) is the facet?
+        inside_sign = np.sign((centroid - mid)[1] if along_x else (centroid - mid)[0])
+        pts = _edge_points(contrast.astype(np.float64, copy=False), p0, p1, inside_sign)
+        if len(pts) < 10:
+            raise FacetNotFoundError(
+                f"side {i + 1} of the facet outline is too short or too close to the image border to locate "
+                "(the facet may be cut off or too small in the image)")
+        line, r, n = _fit_line(pts)
+        lines.append(line)
+        rms.append(r)
+        counts.append(n)
+    lines = np.array(lines)
+    corners = np.empty((n_corners, 2))
+    for i in range(n_corners):
+        a = lines[i - 1]
+        b = lines[i]
+        m = np.array([a[:2], b[:2]])
+        det = np.linalg.det(m)
+        if abs(det) < 1e-6:
+            raise FacetNotFoundError(f"sides {i} and {i + 1} of the facet outline are parallel; the outline "
+                                     "does not look like the design")
+        corners[i] = np.linalg.solve(m, np.array([a[2], b[2]]))
+    return OutlineFit(corners, lines, np.array(rms), np.array(counts))
+
+
+def match_corners(found_px: np.ndarray, expected_px: np.ndarray, tolerance_px: float) -> np.ndarray:
+    """Reorder *found_px* to correspond to *expected_px* (the design corners projected nominally).
+
+    Raises
+    ------
+    FacetNotFoundError
+        When a found corner is farther than *tolerance_px* from every expected one or two share one.
+    """
+    dist = np.linalg.norm(found_px[None, :, :] - expected_px[:, None, :], axis=2)
+    order = np.argmin(dist, axis=1)
+    worst = float(dist[np.arange(len(expected_px)), order].max())
+    if len(set(order.tolist())) != len(expected_px) or worst > tolerance_px:
+        raise FacetNotFoundError(
+            f"the facet's corners are up to {worst:.0f} px from where the fixture puts them (tolerance "
+            f"{tolerance_px:.0f} px); the facet is misplaced in the fixture or the station geometry is wrong")
+    return found_px[order]

@@ -1,0 +1,47 @@
+"""Reported figures: slope residuals as angles, focal lengths, principal axes (SPEC.md, "Conventions")."""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: |kappa| below this (1/m) means an infinite focal length.
+FLAT_CURVATURE_PER_M = 4e-9
+
+
+def slope_residuals_mrad(s_x: np.ndarray, s_y: np.ndarray, model_x: np.ndarray, model_y: np.ndarray
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """Residual angles e = atan(s_measured) - atan(s_model), mrad, per axis.
+
+    Slope units and angles differ by up to 15 % at the slopes of a gore facet, so residuals are never
+    taken as slope differences.
+    """
+    return 1000.0 * (np.arctan(s_x) - np.arctan(model_x)), 1000.0 * (np.arctan(s_y) - np.arctan(model_y))
+
+
+def rms_summary(e_x_mrad: np.ndarray, e_y_mrad: np.ndarray) -> dict:
+    """RMS of e_x, of e_y, and the magnitude RMS sqrt(mean(e_x^2 + e_y^2)), mrad."""
+    n = e_x_mrad.size
+    if n == 0:
+        return {"x": None, "y": None, "magnitude": None}
+    sx = float(np.sum(e_x_mrad * e_x_mrad)) / n
+    sy = float(np.sum(e_y_mrad * e_y_mrad)) / n
+    return {"x": float(np.sqrt(sx)), "y": float(np.sqrt(sy)), "magnitude": float(np.sqrt(sx + sy))}
+
+
+def focal_length_m(curvature_per_m: float) -> float | None:
+    """f = 1/kappa, metres; None (JSON null) when |kappa| < 4e-9 /m. Negative for a convex facet."""
+    if abs(curvature_per_m) < FLAT_CURVATURE_PER_M:
+        return None
+    return 1.0 / curvature_per_m
+
+
+def principal_axes(a: float, b: float, e: float) -> tuple[list, float]:
+    """Principal focal lengths (shorter first, metres or None) and the axis angle of the shorter, radians.
+
+    From the eigenvalues lambda of [[A, E/2], [E/2, B]], f = 1/(4 lambda); the angle
+    (1/2) atan2(E, A - B) is measured from +x toward +y.
+    """
+    mean = 0.5 * (a + b)
+    half = np.hypot(0.5 * (a - b), 0.5 * e)
+    lambdas = (mean + half, mean - half)      # larger lambda = shorter positive focal length
+    return [focal_length_m(4.0 * lam) for lam in lambdas], float(0.5 * np.arctan2(e, a - b))

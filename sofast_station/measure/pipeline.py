@@ -1,0 +1,303 @@
+"""From captured frames to reported figures: the data reduction of seeds/004, as pure functions.
+
+``analyse`` takes arrays and plain records and returns a :class:`Analysis`; it reads no file, touches no
+hardware and keeps no state, so a data dump reprocesses to the same bits.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import AnalysisError, CaptureError, FacetNotFoundError
+from ..facet import FacetDesign
+from ..fringes import FringeSet
+from ..geometry import Pose, StationGeometry
+from . import corners as corners_mod
+from .camera import pixel_rays, project
+from .fit import ParabolaFit, fit_parabola
+from .mask import facet_region
+from .metrics import focal_length_m, principal_axes, rms_summary, slope_residuals_mrad
+from .phase import intensity_noise_dn, phase_and_modulation, position_sigma_m, unwrap_positions
+from .pose import fix_range, solve_corner_pose
+from .screen import FlatScreen, ScreenModel
+from .surface import intersect_quadratic, normal_slopes, surface_slopes, surface_z
+
+
+@dataclass(frozen=True)
+class AnalysisSettings:
+    """Thresholds and limits of the analysis (``[analysis]`` in station.toml).
+
+    Attributes
+    ----------
+    mask_threshold_dn : float
+        A pixel belongs to the facet when white - dark exceeds this, DN.
+    min_modulation_dn : float
+        Pixels whose fringe amplitude b is below this in any set are dropped, DN.
+    consistency_sigmas : float
+        A pixel fails the I_0 + I_2 = I_1 + I_3 check when the residual exceeds this many of its noise
+        standard deviations (2 sigma_I) plus one DN of quantisation allowance.
+    guard_sigmas : float
+        Screen-edge guard band in units of the finest position noise (>= 4).
+    subsample_step : int
+        Every n-th valid pixel in raster order is used while iterating.
+    max_iterations : int
+    max_range_shift_m : float
+        Largest accepted disagreement between the corner pose's range and the measured distance, metres.
+    corner_tolerance_px : float
+        Largest accepted distance of a found corner from its nominal image position, pixels.
+    max_hole_px : int
+        Holes in the facet region up to this area are filled, pixels.
+    """
+
+    mask_threshold_dn: float = 20.0
+    min_modulation_dn: float = 4.0
+    consistency_sigmas: float = 6.0
+    guard_sigmas: float = 4.0
+    subsample_step: int = 10
+    max_iterations: int = 20
+    max_range_shift_m: float = 0.25
+    corner_tolerance_px: float = 80.0
+    max_hole_px: int = 2000
+
+    def to_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+@dataclass
+class Analysis:
+    """The result of one analysis: reported figures plus the per-pixel data behind them.
+
+    ``figures`` is JSON-ready (SPEC.md, "Reported figures"); arrays are for plots and re-analysis.
+    Per-point arrays follow the raster order of ``valid``.
+    """
+
+    figures: dict
+    valid: np.ndarray
+    points_facet_m: np.ndarray
+    slopes: np.ndarray
+    residuals_mrad: dict
+    facet_to_camera: Pose
+    corners_px: np.ndarray
+    coefficients: np.ndarray
+    timings_s: dict = field(default_factory=dict)
+
+
+class _Timer:
+    def __init__(self):
+        self.timings: dict[str, float] = {}
+        self._t = time.perf_counter()
+
+    def lap(self, name: str) -> None:
+        now = time.perf_counter()
+        self.timings[name] = self.timings.get(name, 0.0) + (now - self._t)
+        self._t = now
+
+
+def check_frames(frames: np.ndarray, fringes: FringeSet, shape: tuple[int, int]) -> None:
+    """Raise :class:`CaptureError` unless *frames* is a (n_frames, rows, columns) integer stack."""
+    if not isinstance(frames, np.ndarray):
+        raise CaptureError(f"frames must be a numpy array, got {type(frames).__name__}")
+    expected = (fringes.n_frames, *shape)
+    if frames.ndim != 3 or frames.shape[0] != fringes.n_frames:
+        raise CaptureError(f"expected {fringes.n_frames} frames (dark, white, then {fringes.n_frames - 2} "
+                           f"fringe frames) of {shape[1]} x {shape[0]} pixels, got an array of shape "
+                           f"{frames.shape}; capture the whole sequence")
+    if frames.shape[1:] != shape:
+        raise CaptureError(f"frames are {frames.shape[2]} x {frames.shape[1]} pixels but the camera "
+                           f"calibration is for {shape[1]} x {shape[0]}; use the calibration of this camera")
+    if not np.issubdtype(frames.dtype, np.integer):
+        raise CaptureError(f"frames must hold integer camera counts, got dtype {frames.dtype}")
+    del expected
+
+
+def _positions(stack: np.ndarray, sets: list[slice], periods, length_m: float, settings: AnalysisSettings):
+    """Phase sets of one axis -> positions (metres), validity and diagnostics, for the gathered pixels."""
+    phases, mods, cons = [], [], []
+    for sl in sets:
+        phi, b, r = phase_and_modulation(stack[sl])
+        phases.append(phi)
+        mods.append(b)
+        cons.append(r)
+    return phases, mods, cons
+
+
+def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, design: FacetDesign,
+            measured_distance_m: float, settings: AnalysisSettings = AnalysisSettings(),
+            screen: ScreenModel | None = None, rays_cam: np.ndarray | None = None) -> Analysis:
+    """Reduce one capture to the reported figures (SPEC.md, "Measurement sequence", "Data reduction").
+
+    Parameters
+    ----------
+    frames : (n, rows, columns) integer array
+        Dark, white, then the fringe frames in the order of ``fringes.patterns()``, camera counts (DN).
+    fringes : FringeSet
+    geometry : StationGeometry
+        Camera intrinsics, camera/screen assembly, and the fixture's nominal facet pose.
+    design : FacetDesign
+    measured_distance_m : float
+        Range finder's distance from the screen centre to ``design.measure_point_m``, metres.
+    settings : AnalysisSettings
+    screen : ScreenModel, optional
+        Screen positions -> camera-frame points; the flat screen of ``geometry`` by default.
+    rays_cam : (rows, columns, 3) array, optional
+        Precomputed unit pixel rays (:func:`~sofast_station.measure.camera.ray_grid`); computed for the
+        valid pixels when absent.
+
+    Returns
+    -------
+    Analysis
+    """
+    timer = _Timer()
+    cam = geometry.camera
+    check_frames(frames, fringes, cam.shape)
+    if screen is None:
+        screen = FlatScreen(geometry.screen.width_m, geometry.screen.height_m, geometry.screen_to_camera)
+
+    # 1. Facet region from dark and white.
+    dark, white = frames[0], frames[1]
+    region = facet_region(dark, white, settings.mask_threshold_dn, settings.max_hole_px)
+    if region.sum() < 1000:
+        raise FacetNotFoundError(f"only {int(region.sum())} pixels respond to the screen (white - dark > "
+                                 f"{settings.mask_threshold_dn} DN); no facet is in view or the screen is off")
+    timer.lap("mask")
+
+    # 2-4. Phase, modulation, consistency and unwrapping for the facet's pixels.
+    idx = np.flatnonzero(region)
+    stack = frames.reshape(frames.shape[0], -1)[:, idx]
+    slices = fringes.slices()
+    raw = {axis: _positions(stack, slices[axis], getattr(fringes, f"periods_{axis}"),
+                            screen.width_m if axis == "x" else screen.height_m, settings)
+           for axis in ("x", "y")}
+    noise_dn = intensity_noise_dn(np.concatenate([np.concatenate(raw[a][2]) for a in ("x", "y")]))
+    ok = np.ones(idx.size, dtype=bool)
+    min_mod = np.full(idx.size, np.inf)
+    inconsistent = np.zeros(idx.size, dtype=bool)
+    cons_limit = settings.consistency_sigmas * 2.0 * noise_dn + 1.0
+    for axis in ("x", "y"):
+        for b, r in zip(raw[axis][1], raw[axis][2]):
+            min_mod = np.minimum(min_mod, b)
+            inconsistent |= np.abs(r) > cons_limit
+    low_mod = min_mod < settings.min_modulation_dn
+    ok &= ~low_mod & ~inconsistent
+    positions, unwrap_stats = {}, {}
+    for axis in ("x", "y"):
+        periods = getattr(fringes, f"periods_{axis}")
+        length = screen.width_m if axis == "x" else screen.height_m
+        sigma = position_sigma_m(raw[axis][1][-1], noise_dn, periods[-1], length)
+        res = unwrap_positions(raw[axis][0], periods, length, sigma, settings.guard_sigmas)
+        positions[axis] = res.position_m
+        unwrap_stats[axis] = res
+        ok &= res.valid
+    timer.lap("phase")
+
+    # Corners and pose.
+    contrast = white.astype(np.float32) - dark.astype(np.float32)
+    outline = corners_mod.fit_outline(contrast, region, len(design.outline_m))
+    corners_3d = design.corners_3d()
+    expected = project(cam, geometry.fixture_to_camera, corners_3d)
+    found = corners_mod.match_corners(outline.corners_px, expected, settings.corner_tolerance_px)
+    corner_pose = solve_corner_pose(cam, found, corners_3d, geometry.fixture_to_camera)
+    measure_point = np.array([*design.measure_point_m, float(design.z(*design.measure_point_m))])
+    screen_centre_cam = screen.points_camera(np.array([0.5 * screen.width_m]),
+                                             np.array([0.5 * screen.height_m]))[0]
+    facet_to_camera, range_shift = fix_range(corner_pose.facet_to_camera, measure_point, screen_centre_cam,
+                                             measured_distance_m, settings.max_range_shift_m)
+    timer.lap("pose")
+
+    # Rays and screen points in the facet frame, valid pixels only (raster order).
+    vidx = idx[ok]
+    if vidx.size < 1000:
+        raise AnalysisError(f"only {vidx.size} pixels have a valid screen position (of {idx.size} facet "
+                            "pixels); check fringe contrast, exposure and the display")
+    rows, cols = np.divmod(vidx, cam.width_px)
+    if rays_cam is None:
+        rays = pixel_rays(cam, cols, rows)
+    else:
+        if rays_cam.shape != (*cam.shape, 3):
+            raise CaptureError(f"precomputed rays have shape {rays_cam.shape}, expected {(*cam.shape, 3)}")
+        rays = rays_cam.reshape(-1, 3)[vidx]
+    camera_to_facet = facet_to_camera.inverse()
+    rays_f = camera_to_facet.apply_vector(rays)
+    cam_f = camera_to_facet.translation
+    screen_f = camera_to_facet.apply(screen.points_camera(positions["x"][ok], positions["y"][ok]))
+    timer.lap("rays")
+
+    # Shape iteration on the subsample, then all points.
+    z_measure = float(measure_point[2])
+
+    def with_piston(fit: ParabolaFit) -> np.ndarray:
+        c = fit.coefficients()
+        c[5] = z_measure - surface_z(c, measure_point[0], measure_point[1])
+        return c
+
+    coeffs = design.coefficients.copy()
+    coeffs[5] = z_measure - surface_z(coeffs, measure_point[0], measure_point[1])
+    sub = slice(None, None, settings.subsample_step)
+    rays_sub, screen_sub = rays_f[sub], screen_f[sub]
+    converged = False
+    iterations = 0
+    for iterations in range(1, settings.max_iterations + 1):
+        pts = intersect_quadratic(coeffs, cam_f, rays_sub)
+        sx, sy = normal_slopes(pts, cam_f, screen_sub)
+        new = with_piston(fit_parabola(pts[:, 0], pts[:, 1], sx, sy))
+        dk = 4.0 * np.abs(new[:2] - coeffs[:2])
+        kappa = 4.0 * np.abs(new[:2])
+        coeffs = new
+        if np.all(dk < 1e-6 * np.maximum(kappa, 1e-3)):
+            converged = True
+            break
+    timer.lap("iterate")
+
+    points = intersect_quadratic(coeffs, cam_f, rays_f)
+    s_x, s_y = normal_slopes(points, cam_f, screen_f)
+    finite = np.isfinite(s_x) & np.isfinite(s_y)
+    if not np.all(finite):
+        raise AnalysisError(f"{int((~finite).sum())} pixel rays miss the fitted surface; the fit diverged")
+    fit = fit_parabola(points[:, 0], points[:, 1], s_x, s_y)
+    coeffs = with_piston(fit)
+    x, y = points[:, 0], points[:, 1]
+    dx, dy = surface_slopes(design.coefficients, x, y)
+    px, py = surface_slopes(coeffs, x, y)
+    residuals = {"design": slope_residuals_mrad(s_x, s_y, dx, dy),
+                 "parabola": slope_residuals_mrad(s_x, s_y, px, py)}
+    timer.lap("fit")
+
+    valid = np.zeros(cam.shape, dtype=bool)
+    valid.ravel()[vidx] = True
+    kx, ky = 4.0 * fit.a, 4.0 * fit.b
+    principal, angle = principal_axes(fit.a, fit.b, fit.e)
+    figures = {
+        "focal_length_x_m": focal_length_m(kx),
+        "focal_length_y_m": focal_length_m(ky),
+        "curvature_x_per_m": kx,
+        "curvature_y_per_m": ky,
+        "twist_mrad_per_m": 1000.0 * fit.e,
+        "twist_e1_mrad_per_m": 1000.0 * fit.e1,
+        "twist_e2_mrad_per_m": 1000.0 * fit.e2,
+        "principal_focal_lengths_m": principal,
+        "axis_angle_rad": angle,
+        "coefficients": {"A": coeffs[0], "B": coeffs[1], "C": coeffs[2], "D": coeffs[3], "E": coeffs[4],
+                         "F": coeffs[5]},
+        "slope_rms_mrad": {name: rms_summary(*e) for name, e in residuals.items()},
+        "n_points": int(vidx.size),
+        "valid_fraction": float(vidx.size / idx.size),
+        "facet_pixels": int(idx.size),
+        "median_modulation_dn": float(np.median(min_mod[ok])),
+        "intensity_noise_dn": noise_dn,
+        "dropped": {"low_modulation": int(low_mod.sum()), "inconsistent_frames": int(inconsistent.sum()),
+                    **{f"{k}_{a}": getattr(unwrap_stats[a], k) for a in ("x", "y")
+                       for k in ("coarse_out_of_range", "disagreements", "edge_guard")}},
+        "unwrap_disagreements": int(unwrap_stats["x"].disagreements + unwrap_stats["y"].disagreements),
+        "iterations": {"shape": iterations, "converged": converged},
+        "corner_reprojection_rms_px": corner_pose.reprojection_rms_px,
+        "range_correction_m": range_shift,
+        "measured_distance_m": float(measured_distance_m),
+    }
+    timer.lap("report")
+    figures["timings_s"] = dict(timer.timings)
+    return Analysis(figures=figures, valid=valid, points_facet_m=points, slopes=np.column_stack([s_x, s_y]),
+                    residuals_mrad=residuals, facet_to_camera=facet_to_camera, corners_px=found,
+                    coefficients=coeffs, timings_s=dict(timer.timings))

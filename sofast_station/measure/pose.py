@@ -1,0 +1,101 @@
+"""The facet's pose relative to the camera: corners by solvePnP, range by the measured distance."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ..errors import GeometryError
+from ..geometry import CameraIntrinsics, Pose
+from .camera import project
+
+
+@dataclass(frozen=True)
+class CornerPose:
+    """Facet pose from the corners.
+
+    Attributes
+    ----------
+    facet_to_camera : Pose
+    reprojection_rms_px : float
+        RMS distance between found corners and the design corners projected with the pose.
+    """
+
+    facet_to_camera: Pose
+    reprojection_rms_px: float
+
+
+def solve_corner_pose(camera: CameraIntrinsics, corners_px: np.ndarray, corners_facet_m: np.ndarray,
+                      initial: Pose) -> CornerPose:
+    """Camera-from-facet pose that projects the design corners onto the found ones (OpenCV solvePnP).
+
+    Parameters
+    ----------
+    corners_px : (N, 2) array
+        Found corners (column, row), pixels, in the order of *corners_facet_m*.
+    corners_facet_m : (N, 3) array
+        Design corners on the design surface, facet frame, metres.
+    initial : Pose
+        Starting pose (the fixture's nominal one); Levenberg-Marquardt refines it, which keeps the
+        near-planar corner set from flipping to its mirror solution.
+    """
+    rvec0, _ = cv2.Rodrigues(initial.rotation)
+    ok, rvec, tvec = cv2.solvePnP(np.asarray(corners_facet_m, np.float64).reshape(-1, 1, 3),
+                                  np.asarray(corners_px, np.float64).reshape(-1, 1, 2),
+                                  camera.matrix, camera.distortion, rvec=rvec0.copy(),
+                                  tvec=initial.translation.reshape(3, 1).copy(), useExtrinsicGuess=True,
+                                  flags=cv2.SOLVEPNP_ITERATIVE)
+    if not ok or not np.all(np.isfinite(rvec)) or not np.all(np.isfinite(tvec)):
+        raise GeometryError("solvePnP found no camera pose for the facet corners; check the facet design's "
+                            "outline and the camera calibration")
+    pose = Pose(cv2.Rodrigues(rvec)[0], tvec.ravel())
+    rms = float(np.sqrt(np.mean(np.sum((project(camera, pose, corners_facet_m) - corners_px) ** 2, axis=1))))
+    return CornerPose(pose, rms)
+
+
+def fix_range(facet_to_camera: Pose, measure_point_facet_m: np.ndarray, screen_centre_cam_m: np.ndarray,
+              distance_m: float, max_shift_m: float) -> tuple[Pose, float]:
+    """Slide the facet along the camera's line of sight to the measure point until the screen centre is
+    *distance_m* from it.
+
+    The corner pose fixes directions well but range poorly; the range finder's distance fixes range.
+    Moving the facet along the ray through the measure point keeps that point's image where it is.
+
+    Parameters
+    ----------
+    measure_point_facet_m : (3,) array
+        The range finder's target on the design surface, facet frame, metres.
+    screen_centre_cam_m : (3,) array
+        Screen centre in the camera frame, metres.
+    distance_m : float
+        Measured distance from the screen centre to the measure point, metres.
+    max_shift_m : float
+        Largest plausible correction of the corner pose's range, metres.
+
+    Returns
+    -------
+    (Pose, float)
+        The corrected facet-to-camera pose and the shift applied along the line of sight, metres.
+    """
+    if not (np.isfinite(distance_m) and distance_m > 0):
+        raise GeometryError(f"measured distance must be a positive number of metres, got {distance_m}; "
+                            "re-enter or re-measure it")
+    p_cam = facet_to_camera.apply(np.asarray(measure_point_facet_m, np.float64))
+    u = p_cam / np.linalg.norm(p_cam)
+    w = np.asarray(screen_centre_cam_m, np.float64) - p_cam
+    uw = float(u @ w)
+    disc = uw * uw - float(w @ w) + distance_m * distance_m
+    corner_range = float(np.linalg.norm(w))
+    if disc < 0:
+        raise GeometryError(f"measured distance {distance_m:.4f} m cannot be met along the line of sight "
+                            f"(the corner pose puts the measure point {corner_range:.4f} m from the screen "
+                            "centre); re-measure the distance or check the facet recipe")
+    roots = (uw - np.sqrt(disc), uw + np.sqrt(disc))
+    mu = min(roots, key=abs)
+    if abs(mu) > max_shift_m:
+        raise GeometryError(f"measured distance {distance_m:.4f} m differs from the corner pose's "
+                            f"{corner_range:.4f} m by more than {max_shift_m} m; re-measure the distance or "
+                            "check the facet recipe")
+    return Pose(facet_to_camera.rotation, facet_to_camera.translation + mu * u), float(mu)

@@ -1,0 +1,49 @@
+"""Slope fits: slopes from a known paraboloid give its coefficients back."""
+
+import numpy as np
+import pytest
+
+from sofast_station.errors import AnalysisError
+from sofast_station.measure.fit import fit_parabola
+from sofast_station.measure.metrics import focal_length_m, principal_axes, rms_summary, slope_residuals_mrad
+
+
+@pytest.mark.parametrize("x0, half", [(0.0, 0.3), (3.0, 1.5)], ids=["dish", "gore-like offset"])
+def test_fit_round_trip(x0, half):
+    rng = np.random.default_rng(1)
+    x = x0 + rng.uniform(-half, half, 50_000)
+    y = rng.uniform(-0.3, 0.3, 50_000)
+    a, b, c, d, e1, e2 = 1 / (4 * 5.42), 1 / (4 * 5.35), 2e-3, -1e-3, 1.3e-4, 0.7e-4
+    fit = fit_parabola(x, y, 2 * a * x + c + e1 * y, 2 * b * y + d + e2 * x)
+    got = np.array([fit.a, fit.b, fit.c, fit.d, fit.e1, fit.e2])
+    assert np.allclose(got, [a, b, c, d, e1, e2], rtol=1e-10, atol=1e-13)
+    assert fit.e == pytest.approx(0.5 * (e1 + e2))
+
+
+def test_fit_is_bitwise_repeatable():
+    rng = np.random.default_rng(2)
+    x, y = rng.uniform(-0.3, 0.3, (2, 100_000))
+    sx, sy = 0.05 * x + rng.normal(0, 1e-3, x.size), 0.05 * y + rng.normal(0, 1e-3, x.size)
+    assert fit_parabola(x, y, sx, sy) == fit_parabola(x.copy(), y.copy(), sx.copy(), sy.copy())
+
+
+def test_fit_refuses_degenerate_points():
+    x = np.linspace(0, 1, 100)
+    with pytest.raises(AnalysisError, match="too few|singular|ill-conditioned|span"):
+        fit_parabola(x, np.zeros_like(x), x, x)
+
+
+def test_residuals_are_angles_not_slope_differences():
+    ex, _ = slope_residuals_mrad(np.array([0.4]), np.array([0.0]), np.array([0.39]), np.array([0.0]))
+    assert ex[0] == pytest.approx(1000 * (np.arctan(0.4) - np.arctan(0.39)))
+    assert ex[0] < 0.9 * 10.0       # 0.01 in slope units is only ~8.6 mrad at slope 0.4
+
+
+def test_rms_summary_and_focal_lengths():
+    s = rms_summary(np.array([3.0, -3.0]), np.array([4.0, 4.0]))
+    assert s == {"x": 3.0, "y": 4.0, "magnitude": 5.0}
+    assert focal_length_m(1e-9) is None and focal_length_m(-0.5) == -2.0
+    f, angle = principal_axes(1 / (4 * 5.0), 1 / (4 * 6.0), 0.0)
+    assert f == pytest.approx([5.0, 6.0]) and angle == 0.0
+    f, angle = principal_axes(1 / (4 * 6.0), 1 / (4 * 5.0), 0.0)   # shorter along y
+    assert f == pytest.approx([5.0, 6.0]) and angle == pytest.approx(np.pi / 2)

@@ -1,0 +1,131 @@
+"""Phase retrieval and temporal unwrapping: round trips from a forward model."""
+
+import numpy as np
+import pytest
+
+from sofast_station.devices.renderer import FringeRenderer
+from sofast_station.fringes import FringeSet
+from sofast_station.measure.phase import (QUANTISATION_NOISE_DN, intensity_noise_dn, phase_and_modulation,
+                                          position_sigma_m, unwrap_positions, wrap_phase)
+
+WIDTH_PX, HEIGHT_PX, PITCH_M = 1920, 1080, 0.000275
+
+
+def test_phase_convention_quarter_shifts():
+    phi = np.linspace(0, 2 * np.pi, 1000, endpoint=False)
+    frames = np.stack([100 + 50 * np.cos(phi - k * np.pi / 2) for k in range(4)])
+    got, mod, cons = phase_and_modulation(frames)
+    assert np.abs(got - phi).max() < 1e-12
+    assert np.allclose(mod, 50) and np.abs(cons).max() < 1e-9
+    assert got.min() >= 0 and got.max() < 2 * np.pi
+
+
+def test_wrap_phase_never_returns_two_pi():
+    # np.mod(-1e-17, 2 pi) rounds to exactly 2 pi; the convention maps it to 0
+    assert np.mod(np.array([-1e-17]), 2 * np.pi)[0] == 2 * np.pi
+    assert wrap_phase(np.array([-1e-17]))[0] == 0.0
+
+
+def test_noise_estimate_from_consistency():
+    rng = np.random.default_rng(3)
+    r = rng.normal(0, 2 * 1.7, 200_000)          # residual of four frames with sigma 1.7 DN
+    assert intensity_noise_dn(r) == pytest.approx(1.7, rel=0.02)
+    assert intensity_noise_dn(np.zeros(10)) == QUANTISATION_NOISE_DN
+
+
+def _sample_display(rows_of_frames: np.ndarray, u: np.ndarray, pitch: float) -> np.ndarray:
+    """What a camera pixel sees at position u (metres along the axis) of a displayed line of pixels:
+    linear interpolation between display pixel centres (a slightly defocused view), clamped at the edge."""
+    n = rows_of_frames.shape[1]
+    centres = (np.arange(n) + 0.5) * pitch
+    return np.stack([np.interp(u, centres, line.astype(float)) for line in rows_of_frames])
+
+
+@pytest.fixture(scope="module")
+def displayed():
+    """The real renderer's 8-bit fringe images (identity lookup table)."""
+    with FringeRenderer(WIDTH_PX, HEIGHT_PX) as r:
+        return FringeSet(), r.render_all(FringeSet().patterns())
+
+
+@pytest.mark.parametrize("axis", ["x", "y"])
+def test_round_trip_through_the_renderer_edges_and_period_boundaries(displayed, axis):
+    fringes, imgs = displayed
+    length = (WIDTH_PX if axis == "x" else HEIGHT_PX) * PITCH_M
+    periods = getattr(fringes, f"periods_{axis}")
+    # Positions within 1 % of each edge, and around every period boundary of every pattern.
+    near_edges = np.concatenate([np.linspace(0.0005, 0.01, 40), 1 - np.linspace(0.0005, 0.01, 40)]) * length
+    boundaries = np.array([k / p for p in periods for k in range(1, int(p))]) * length
+    offsets = np.array([-3, -1, -0.25, 0, 0.25, 1, 3]) * PITCH_M
+    u_true = np.concatenate([near_edges, (boundaries[:, None] + offsets).ravel()])
+    phases, mods = [], []
+    for sl in fringes.slices()[axis]:
+        frames = imgs[sl]
+        # the line of display pixels along the axis, ordered by increasing u
+        lines = frames[:, 0, :] if axis == "x" else frames[:, ::-1, 0]
+        phi, b, _ = phase_and_modulation(_sample_display(lines, u_true, PITCH_M))
+        phases.append(phi)
+        mods.append(b)
+    sigma = position_sigma_m(mods[-1], QUANTISATION_NOISE_DN, periods[-1], length)
+    res = unwrap_positions(phases, periods, length, sigma)
+    err = np.abs(res.position_m - u_true)
+    # 8-bit display levels move the phase by at most ~0.5/127 rad: 0.08 mm at 4 periods; allow 0.4 pitch
+    print(f"{axis}: max position error {np.nanmax(err) * 1e3:.4f} mm, {(~res.valid).sum()} dropped at edges")
+    assert np.nanmax(err) < 0.4 * PITCH_M, f"max error {np.nanmax(err) * 1e3:.4f} mm"
+    # nothing is ever a screen width off, and only pixels inside the guard band may be dropped
+    guard = 4 * sigma
+    dropped = ~res.valid
+    assert np.all((u_true[dropped] < guard[dropped]) | (u_true[dropped] > length - guard[dropped]))
+    assert res.valid.mean() > 0.95
+    assert res.disagreements == 0
+
+
+def test_last_columns_are_not_a_screen_width_off():
+    """Regression: a noise-free 8-bit capture must not put the last screen columns at the left edge."""
+    length, periods = 0.528, [1.0, 4.0]
+    u = length - np.array([0.1, 0.3, 0.6, 1.0, 2.0]) * 1e-3
+    phases = []
+    for p in periods:
+        frames = np.stack([np.round(127.5 + 127.5 * np.cos(2 * np.pi * p * u / length - k * np.pi / 2))
+                           for k in range(4)])
+        phases.append(phase_and_modulation(frames)[0])
+    res = unwrap_positions(phases, periods, length, position_sigma_m(127.5, 0.29, 4.0, length))
+    assert np.all(res.position_m[res.valid] > length / 2)
+    assert np.nanmax(np.abs(res.position_m - u)) < 1e-4
+
+
+def test_non_integer_periods_like_opencsp():
+    """OpenCSP shows 0.9, 3.9, 15.9, 63.9 periods; positions past the coarse pattern's end are invalid."""
+    length, periods = 1.0, [0.9, 3.9, 15.9, 63.9]
+    u = np.linspace(0.0005, 0.9995, 5001)
+    phases = [wrap_phase(2 * np.pi * p * u / length) for p in periods]
+    res = unwrap_positions(phases, periods, length)
+    assert np.all(res.valid)
+    assert np.abs(res.position_m - u).max() < 1e-12
+    # a pixel whose coarse phase says u > L (only possible with p_1 < 1) is dropped and counted
+    u_bad = np.array([0.5 / 0.9 * 1.0])          # phase of 0.9 periods at 1.05 L
+    phases = [wrap_phase(np.array([2 * np.pi * 0.9 * 1.05])) for _ in periods]
+    res = unwrap_positions(phases, periods, length)
+    assert res.coarse_out_of_range == 1 and not res.valid[0]
+    del u_bad
+
+
+def test_disagreement_is_dropped_and_counted():
+    length, periods = 1.0, [1.0, 4.0]
+    u = np.array([0.30, 0.60])
+    phases = [wrap_phase(2 * np.pi * p * u / length) for p in periods]
+    # coarse phase 0.12 L (half a fine period) off for the second pixel: the fine phase cannot agree
+    phases[0] = phases[0] + np.array([0.0, 2 * np.pi * 0.12])
+    phases[0] = wrap_phase(phases[0])
+    res = unwrap_positions(phases, periods, length)
+    assert res.valid.tolist() == [True, False] and res.disagreements == 1
+    assert np.isnan(res.position_m[1])
+
+
+def test_bad_arguments_name_the_problem():
+    with pytest.raises(ValueError, match="increasing"):
+        unwrap_positions([np.zeros(2)] * 2, [4, 1], 1.0)
+    with pytest.raises(ValueError, match="one phase per period"):
+        unwrap_positions([np.zeros(2)], [1, 4], 1.0)
+    with pytest.raises(ValueError, match="guard_sigmas"):
+        unwrap_positions([np.zeros(2)] * 2, [1, 4], 1.0, guard_sigmas=2)
