@@ -70,7 +70,7 @@ def rough_outline(region: np.ndarray, n_corners: int) -> np.ndarray:
         "recipe's facet type")
 
 
-def _edge_points(contrast: np.ndarray, p0: np.ndarray, p1: np.ndarray, inside_sign: float) -> np.ndarray:
+def _edge_points(contrast: np.ndarray, p0: np.ndarray, p1: np.ndarray, inside_sign: int) -> np.ndarray:
     """Sub-pixel edge positions along the rough side p0 -> p1, (M, 2) (column, row)."""
     h, w = contrast.shape
     d = p1 - p0
@@ -153,7 +153,7 @@ def fit_outline(contrast: np.ndarray, region: np.ndarray, n_corners: int) -> Out
         along_x = abs(d[0]) >= abs(d[1])
         mid = 0.5 * (p0 + p1)
         # Which way across the edge (increasing row for a near-horizontal side) is the facet?
-        inside_sign = np.sign((centroid - mid)[1] if along_x else (centroid - mid)[0])
+        inside_sign = 1 if ((centroid - mid)[1] if along_x else (centroid - mid)[0]) > 0 else -1
         pts = _edge_points(contrast.astype(np.float64, copy=False), p0, p1, inside_sign)
         if len(pts) < 10:
             raise FacetNotFoundError(

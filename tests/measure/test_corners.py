@@ -1,0 +1,56 @@
+"""Sub-pixel facet corners from an anti-aliased quadrilateral drawn in the test."""
+
+import numpy as np
+import pytest
+
+from sofast_station.errors import FacetNotFoundError
+from sofast_station.measure.corners import fit_outline, match_corners
+
+
+def coverage_image(corners, shape, ss=16):
+    """Fraction of each pixel inside the convex polygon *corners* (column, row), by ss x ss supersampling."""
+    h, w = shape
+    off = (np.arange(ss) + 0.5) / ss - 0.5
+    cov = np.zeros(shape)
+    rows, cols = np.mgrid[0:h, 0:w].astype(float)
+    n = len(corners)
+    for dy in off:
+        for dx in off:
+            x, y = cols + dx, rows + dy
+            inside = np.ones(shape, dtype=bool)
+            for i in range(n):
+                (x0, y0), (x1, y1) = corners[i], corners[(i + 1) % n]
+                inside &= (x1 - x0) * (y - y0) - (y1 - y0) * (x - x0) >= 0
+            cov += inside
+    return cov / ss**2
+
+
+@pytest.mark.parametrize("angle_deg", [0.0, 0.7, 12.0])
+def test_corners_to_a_small_fraction_of_a_pixel(angle_deg):
+    c, s = np.cos(np.radians(angle_deg)), np.sin(np.radians(angle_deg))
+    half = np.array([[-60.3, -50.2], [61.1, -48.7], [59.4, 52.6], [-58.8, 50.9]])   # a slightly irregular quad
+    true = half @ np.array([[c, s], [-s, c]]) + [100.37, 90.81]
+    # order the polygon so that the interior test above sees it counter-clockwise in image coordinates
+    cov = coverage_image(true, (180, 200))
+    rng = np.random.default_rng(0)
+    contrast = 180.0 * cov + rng.normal(0, 1.0, cov.shape)
+    region = cov > 0.1
+    fit = fit_outline(contrast, region, 4)
+    got = match_corners(fit.corners_px, true, tolerance_px=5)
+    err = np.linalg.norm(got - true, axis=1)
+    # the test image's own 16 x 16 supersampling quantises an axis-aligned edge to 1/16 px (error <= 1/32)
+    assert err.max() < 0.03, err
+    assert np.all(fit.edge_rms_px < 0.2)
+
+
+def test_a_triangle_is_not_a_four_cornered_facet():
+    cov = coverage_image(np.array([[20.0, 20.0], [150.0, 30.0], [80.0, 150.0]]), (180, 200))
+    with pytest.raises(FacetNotFoundError, match="4 corners"):
+        fit_outline(180.0 * cov, cov > 0.1, 4)
+
+
+def test_corners_far_from_the_fixture_are_refused():
+    found = np.array([[10.0, 10.0], [110.0, 10.0], [110.0, 110.0], [10.0, 110.0]])
+    with pytest.raises(FacetNotFoundError, match="misplaced"):
+        match_corners(found, found + 200.0, tolerance_px=50)
+    assert np.array_equal(match_corners(found[[2, 3, 0, 1]], found, 5), found)
