@@ -1,0 +1,26 @@
+"""The digital twin: true facet surfaces, ray tracing, image formation and ground truth.
+
+It imports only numpy, scipy, the standard library and ``sofast_station.geometry``, ``.facet`` and
+``.errors``: it shares no code with the measurement pipeline it is the oracle for.
+
+Public API
+----------
+TrueFacet, TwinOptics
+    Configuration: the true shape and placement, and the optical nonidealities.
+TrueSurface
+    The true surface z(x, y) with exact slopes, true facet frame.
+TwinCamera
+    OpenCV pinhole + 5-term distortion: ``project`` and ``pixel_rays``.
+TwinStation
+    The traced station: ``capture(display_image, rng)`` and the test-support accessors.
+ground_truth
+    The SPEC's fit definitions applied to the exact true surface at the kept pixels.
+"""
+
+from .camera import TwinCamera
+from .config import TrueFacet, TwinOptics
+from .station import TwinStation
+from .surface import TrueSurface
+from .truth import ground_truth
+
+__all__ = ["TrueFacet", "TwinOptics", "TrueSurface", "TwinCamera", "TwinStation", "ground_truth"]

@@ -1,0 +1,469 @@
+"""The ray-traced station: which screen point every camera pixel sees in the facet, and the frames it takes.
+
+Frames (see :mod:`sofast_station.geometry`): camera (OpenCV), screen (metres, origin at the active area's
+centre, +z toward the facet), fixture (the design's nominal facet frame) and the *true facet frame*, where
+the facet really is: ``x_fixture = R (x_facet - P_mid) + P_mid + t`` (:class:`TrueFacet`). The trace works
+in the true facet frame.
+
+Screen coordinates (SPEC.md, "Conventions"): ``u_x`` in [0, W) metres from the left edge, ``u_y`` in
+[0, H) from the bottom edge; display column c is centred at ``u_x = (c + 1/2) pitch``, row r (0 = top) at
+``u_y = H - (r + 1/2) pitch``; screen-frame ``x = u_x - W/2``, ``y = u_y - H/2``.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import time
+from functools import cached_property
+
+import numpy as np
+
+from ..errors import DisplayError, GeometryError
+from ..facet import FacetDesign
+from ..geometry import Pose, StationGeometry
+from .camera import TwinCamera
+from .config import TrueFacet, TwinOptics
+from .outline import inside_outline, signed_distance_to_outline
+from .surface import TrueSurface
+
+#: Sub-rays per edge pixel are processed in chunks of this many pixels (bounds the memory used).
+_EDGE_CHUNK_PX = 4096
+
+
+def rotation_zyx(rx_rad: float, ry_rad: float, rz_rad: float) -> np.ndarray:
+    """Rotation matrix R = R_z(rz) R_y(ry) R_x(rx), angles in radians."""
+    cx, sx = math.cos(rx_rad), math.sin(rx_rad)
+    cy, sy = math.cos(ry_rad), math.sin(ry_rad)
+    cz, sz = math.cos(rz_rad), math.sin(rz_rad)
+    r_x = np.array([[1.0, 0.0, 0.0], [0.0, cx, -sx], [0.0, sx, cx]])
+    r_y = np.array([[cy, 0.0, sy], [0.0, 1.0, 0.0], [-sy, 0.0, cy]])
+    r_z = np.array([[cz, -sz, 0.0], [sz, cz, 0.0], [0.0, 0.0, 1.0]])
+    return r_z @ r_y @ r_x
+
+
+def facet_to_fixture_pose(facet: TrueFacet, design: FacetDesign) -> Pose:
+    """The true facet frame's placement in the fixture frame (:class:`TrueFacet` placement rule)."""
+    cx, cy = (float(c) for c in design.centroid_m)
+    p_mid_facet = np.array([cx, cy, float(design.z(cx, cy))])
+    r_facet_fix = rotation_zyx(*(1e-3 * np.array(facet.placement_mrad)))
+    t_fix_m = 1e-3 * np.array(facet.placement_mm)
+    return Pose(r_facet_fix, p_mid_facet - r_facet_fix @ p_mid_facet + t_fix_m)
+
+
+def rook_lattice(n: int) -> np.ndarray:
+    """``n*n`` sub-pixel sample offsets in (-1/2, 1/2)^2, one per row and per column of an n^2 x n^2 grid.
+
+    A rank-1 lattice ``((j + 1/2) / N, ((g j) mod N + 1/2) / N)``, N = n^2, with the generator g that
+    maximises the smallest toroidal distance between samples. Every sample has its own column and row, so
+    a nearly axis-aligned edge is located to 1/(2N) pixel (a plain n x n grid: 1/(2n)).
+
+    Returns
+    -------
+    (N, 2) array of (du, dv) offsets, pixels.
+    """
+    count = n * n
+    j = np.arange(count)
+    best_g, best_d = 1, -1.0
+    for g in range(1, count):
+        if math.gcd(g, count) != 1:
+            continue
+        pts = np.column_stack([j, (g * j) % count]) / count
+        diff = np.abs(pts[:, None, :] - pts[None, :, :])
+        diff = np.minimum(diff, 1.0 - diff)
+        dist = np.hypot(diff[..., 0], diff[..., 1])
+        np.fill_diagonal(dist, np.inf)
+        if dist.min() > best_d + 1e-12:
+            best_g, best_d = g, float(dist.min())
+    return np.column_stack([(j + 0.5) / count - 0.5, ((best_g * j) % count + 0.5) / count - 0.5])
+
+
+class TwinStation:
+    """Digital twin of the station: camera, LCD and the true facet, ray traced once, captured many times.
+
+    Construction traces every camera pixel centre: intersection with the true surface (first hit from the
+    camera), the outline test (true facet frame), reflection about the exact true normal, and the screen
+    point. Pixels within ``edge_band_px`` of the outline's image get their area coverage from
+    ``supersample**2`` sub-rays on a rook lattice; they keep their centre ray's screen point (the analytic
+    surface continues past the outline). Display sampling indices and weights are precomputed, so
+    :meth:`capture` is a few vector operations.
+
+    Parameters
+    ----------
+    geometry : StationGeometry
+        Camera intrinsics, screen, and the true camera/screen/fixture poses.
+    design : FacetDesign
+        The facet design (outline, centroid, measure point).
+    facet : TrueFacet
+        The true shape and placement.
+    optics : TwinOptics
+        Display, reflection, ambient, camera response, noise, vignetting.
+    supersample : int
+        Sub-rays per edge pixel are ``supersample**2`` (at least 8, i.e. 64 sub-rays).
+    edge_band_px : float
+        Half-width of the band around the outline's image that is supersampled, pixels (at least 1).
+
+    Attributes
+    ----------
+    camera : TwinCamera
+    surface : TrueSurface
+    facet_to_fixture, facet_to_camera, facet_to_screen, camera_to_facet, screen_to_facet : Pose
+        Where the true facet frame lies relative to the others.
+    gain_dn : float
+        DN per unit radiance (fraction of white) at vignetting factor 1.
+    trace_seconds : float
+        Wall time of the trace, seconds.
+    """
+
+    def __init__(self, geometry: StationGeometry, design: FacetDesign, facet: TrueFacet = TrueFacet(),
+                 optics: TwinOptics = TwinOptics(), supersample: int = 8, edge_band_px: float = 2.0):
+        if int(supersample) < 8:
+            raise GeometryError(f"supersample must be at least 8 (64 sub-rays per edge pixel), got {supersample}")
+        if not edge_band_px >= 1.0:
+            raise GeometryError(f"edge_band_px must be at least 1 pixel, got {edge_band_px}")
+        self.geometry = geometry
+        self.design = design
+        self.facet = facet
+        self.optics = optics
+        self.camera = TwinCamera(geometry.camera)
+        self.surface = TrueSurface(facet, design)
+        self.facet_to_fixture = facet_to_fixture_pose(facet, design)
+        self.facet_to_camera = geometry.fixture_to_camera.compose(self.facet_to_fixture)
+        self.camera_to_facet = self.facet_to_camera.inverse()
+        self.screen_to_facet = self.camera_to_facet.compose(geometry.screen_to_camera)
+        self.facet_to_screen = self.screen_to_facet.inverse()
+        self._supersample = int(supersample)
+        self._edge_band_px = float(edge_band_px)
+        start = time.perf_counter()
+        self._trace()
+        self._prepare_sampling()
+        self._prepare_photometry()
+        self.trace_seconds = time.perf_counter() - start
+
+    # ------------------------------------------------------------------ trace
+    def _facet_window(self) -> tuple[int, int, int, int]:
+        """Image window (u0, u1, v0, v1), inclusive, that holds the facet's image and its edge band.
+
+        The bounding box of the projected outline (densely sampled on the true surface), widened by the
+        edge band plus a few pixels; the whole image if the outline does not project (behind the camera).
+        """
+        height, width = self.geometry.camera.shape
+        corners = self.design.outline_m
+        steps = np.linspace(0.0, 1.0, 512, endpoint=False)[:, None]
+        xy = np.concatenate([c0 + steps * (c1 - c0) for c0, c1 in zip(corners, np.roll(corners, -1, axis=0))])
+        boundary_facet = np.column_stack([xy, self.surface.height(xy[:, 0], xy[:, 1])])
+        uv = self.camera.project(self.facet_to_camera.apply(boundary_facet))
+        if not np.all(np.isfinite(uv)):
+            return 0, width - 1, 0, height - 1
+        pad = self._edge_band_px + 4.0
+        u0 = int(np.clip(np.floor(uv[:, 0].min() - pad), 0, width - 1))
+        u1 = int(np.clip(np.ceil(uv[:, 0].max() + pad), 0, width - 1))
+        v0 = int(np.clip(np.floor(uv[:, 1].min() - pad), 0, height - 1))
+        v1 = int(np.clip(np.ceil(uv[:, 1].max() + pad), 0, height - 1))
+        return u0, u1, v0, v1
+
+    def _trace(self) -> None:
+        """Trace the pixel centres of the facet's window; fill the coverage and per-seen-pixel arrays."""
+        height, width = self.geometry.camera.shape
+        n_px = height * width
+        v_cam_facet = self.camera_to_facet.translation
+        u0, u1, v0, v1 = self._facet_window()
+        win_h, win_w = v1 - v0 + 1, u1 - u0 + 1
+        u_px, v_px = np.meshgrid(np.arange(u0, u1 + 1, dtype=np.float64), np.arange(v0, v1 + 1, dtype=np.float64))
+        pixel_idx = (v_px.astype(np.int64) * width + u_px.astype(np.int64)).ravel()     # full-image flat index
+        rays_facet = self.camera_to_facet.apply_vector(self.camera.pixel_rays(u_px.ravel(), v_px.ravel()))
+
+        # Quadratic part first: where does each ray land, and how big is a pixel there (metres)?
+        t0 = self.surface.paraboloid_hits(v_cam_facet, rays_facet)
+        x0 = (v_cam_facet[0] + t0 * rays_facet[:, 0]).reshape(win_h, win_w)
+        y0 = (v_cam_facet[1] + t0 * rays_facet[:, 1]).reshape(win_h, win_w)
+        footprint_m = np.full((win_h, win_w), np.nan)
+        if win_h > 1 and win_w > 1:
+            dx_du, dx_dv = np.gradient(x0, axis=1), np.gradient(x0, axis=0)
+            dy_du, dy_dv = np.gradient(y0, axis=1), np.gradient(y0, axis=0)
+            footprint_m = np.maximum(np.hypot(dx_du, dy_du), np.hypot(dx_dv, dy_dv))
+        footprint_m = footprint_m.ravel()
+        x0, y0 = x0.ravel(), y0.ravel()
+
+        # Candidates: inside the outline or within the edge band (+1 px for the shape terms' shift).
+        reach_m = (self._edge_band_px + 1.0) * footprint_m
+        lo = self.design.outline_m.min(axis=0)
+        hi = self.design.outline_m.max(axis=0)
+        with np.errstate(invalid="ignore"):
+            near = np.isfinite(t0) & np.isfinite(footprint_m) \
+                & (x0 > lo[0] - reach_m) & (x0 < hi[0] + reach_m) & (y0 > lo[1] - reach_m) & (y0 < hi[1] + reach_m)
+        near_idx = np.flatnonzero(near)
+        sd0 = signed_distance_to_outline(x0[near_idx], y0[near_idx], self.design.outline_m)
+        rel_pos = near_idx[sd0 < reach_m[near_idx]]          # positions in the window
+        rel_idx = pixel_idx[rel_pos]                          # full-image flat indices
+
+        # Full surface for the candidates.
+        d_rel = rays_facet[rel_pos]
+        t_rel = self.surface.intersect(v_cam_facet, d_rel)
+        x_rel = v_cam_facet + t_rel[:, None] * d_rel
+        sd = signed_distance_to_outline(x_rel[:, 0], x_rel[:, 1], self.design.outline_m)
+        in_band = np.abs(sd) < self._edge_band_px * footprint_m[rel_pos]
+        coverage_rel = np.where(sd <= 0, 1.0, 0.0)
+        band_pos = np.flatnonzero(in_band)
+        coverage_rel[band_pos] = self._edge_coverage(rel_idx[band_pos], width)
+
+        coverage = np.zeros(n_px)
+        coverage[rel_idx] = coverage_rel
+        self._coverage = coverage.reshape(height, width)
+        seen = coverage_rel > 0
+        self._seen_idx = rel_idx[seen]
+        x_facet = x_rel[seen]
+        d_in_facet = d_rel[seen]
+
+        # Reflection about the exact true normal, then the screen plane.
+        _, zx, zy = self.surface.height_and_slopes(x_facet[:, 0], x_facet[:, 1])
+        normal = np.column_stack([-zx, -zy, np.ones_like(zx)])
+        normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+        d_out_facet = d_in_facet - 2.0 * np.sum(d_in_facet * normal, axis=1, keepdims=True) * normal
+        x_scr = self.facet_to_screen.apply(x_facet)
+        d_out_scr = self.facet_to_screen.apply_vector(d_out_facet)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            path_m = -x_scr[:, 2] / d_out_scr[:, 2]
+        hits_plane = np.isfinite(path_m) & (path_m > 0)
+        path_m = np.where(hits_plane, path_m, np.nan)
+        t_scr = x_scr + path_m[:, None] * d_out_scr
+        screen = self.geometry.screen
+        u_scr_m = np.column_stack([t_scr[:, 0] + 0.5 * screen.width_m, t_scr[:, 1] + 0.5 * screen.height_m])
+        with np.errstate(invalid="ignore"):
+            on_screen = hits_plane & (u_scr_m[:, 0] >= 0) & (u_scr_m[:, 0] < screen.width_m) \
+                & (u_scr_m[:, 1] >= 0) & (u_scr_m[:, 1] < screen.height_m)
+
+        self._x_facet_m = x_facet
+        self._slope = np.column_stack([zx, zy])
+        self._u_scr_m = u_scr_m
+        self._path_m = path_m
+        self._on_screen = on_screen
+
+    def _edge_coverage(self, pixel_idx: np.ndarray, width: int) -> np.ndarray:
+        """Area coverage of edge pixels by the outline, from sub-rays on a rook lattice."""
+        offsets = rook_lattice(self._supersample)
+        v_cam_facet = self.camera_to_facet.translation
+        coverage = np.empty(pixel_idx.size)
+        for start in range(0, pixel_idx.size, _EDGE_CHUNK_PX):
+            chunk = pixel_idx[start:start + _EDGE_CHUNK_PX]
+            u = (chunk % width).astype(np.float64)[:, None] + offsets[None, :, 0]
+            v = (chunk // width).astype(np.float64)[:, None] + offsets[None, :, 1]
+            rays = self.camera_to_facet.apply_vector(self.camera.pixel_rays(u.ravel(), v.ravel()))
+            t = self.surface.intersect(v_cam_facet, rays)
+            hit = v_cam_facet + t[:, None] * rays
+            inside = inside_outline(hit[:, 0], hit[:, 1], self.design.outline_m) & np.isfinite(t)
+            coverage[start:start + chunk.size] = inside.reshape(chunk.size, -1).mean(axis=1)
+        return coverage
+
+    # ------------------------------------------------------------- precompute
+    def _prepare_sampling(self) -> None:
+        """Bilinear sampling indices/weights into a zero-padded window of the display luminance."""
+        screen = self.geometry.screen
+        pitch = screen.pitch_m
+        with np.errstate(invalid="ignore"):
+            col = self._u_scr_m[:, 0] / pitch - 0.5                       # continuous display column
+            row = (screen.height_m - self._u_scr_m[:, 1]) / pitch - 0.5    # continuous display row
+            good = np.isfinite(col) & np.isfinite(row) & (col > -1) & (col < screen.width_px) \
+                & (row > -1) & (row < screen.height_px)
+        col0 = np.floor(np.where(good, col, 0.0))
+        row0 = np.floor(np.where(good, row, 0.0))
+        frac_c = np.where(good, col - col0, 0.0)
+        frac_r = np.where(good, row - row0, 0.0)
+        pad_c = col0.astype(np.int64) + 1          # padded index: display index + 1 (0 = bezel)
+        pad_r = row0.astype(np.int64) + 1
+        if np.any(good):
+            self._win_r0, self._win_r1 = int(pad_r[good].min()), int(pad_r[good].max()) + 1
+            self._win_c0, self._win_c1 = int(pad_c[good].min()), int(pad_c[good].max()) + 1
+        else:
+            self._win_r0 = self._win_r1 = self._win_c0 = self._win_c1 = 0
+        win_w = self._win_c1 - self._win_c0 + 1
+        base = np.where(good, (pad_r - self._win_r0) * win_w + (pad_c - self._win_c0), 0)
+        self._sample_idx = np.stack([base, base + 1, base + win_w, base + win_w + 1]).astype(np.intp)
+        weights = np.stack([(1 - frac_r) * (1 - frac_c), (1 - frac_r) * frac_c,
+                            frac_r * (1 - frac_c), frac_r * frac_c])
+        self._sample_w = np.where(good, weights, 0.0).astype(np.float32)
+
+    def _prepare_photometry(self) -> None:
+        """Vignetting, gain, and the per-pixel affine terms of the linear response."""
+        optics = self.optics
+        height, width = self.geometry.camera.shape
+        cx, cy = self.camera.cx, self.camera.cy
+        v_px, u_px = np.mgrid[0:height, 0:width].astype(np.float64)
+        r2 = (u_px - cx) ** 2 + (v_px - cy) ** 2
+        r2_corner = max((u - cx) ** 2 + (v - cy) ** 2 for u in (0, width - 1) for v in (0, height - 1))
+        self._vignetting = 1.0 - optics.vignetting * r2 / r2_corner if r2_corner > 0 else np.ones_like(r2)
+        full = self._coverage >= 1.0
+        some = self._coverage > 0
+        vig_max = float(self._vignetting[full].max() if full.any()
+                        else self._vignetting[some].max() if some.any() else 1.0)
+        self.gain_dn = (optics.white_dn - optics.camera_offset_dn) / ((optics.reflectance + optics.ambient) * vig_max)
+        scale = self.gain_dn * self._vignetting
+        self._dn_base = (optics.camera_offset_dn + scale * (1.0 - self._coverage) * optics.background).astype(np.float32)
+        self._dn_per_ambient = (scale * self._coverage).astype(np.float32)
+        self._dn_per_luminance = (self._dn_per_ambient.ravel()[self._seen_idx] * optics.reflectance).astype(np.float32)
+        levels = np.arange(256, dtype=np.float64) / 255.0
+        self._luminance_lut = (optics.display_floor
+                               + (1.0 - optics.display_floor) * levels ** optics.display_gamma).astype(np.float32)
+
+    def with_optics(self, optics: TwinOptics) -> "TwinStation":
+        """The same traced station with other optics (exposure, noise, display): no new trace.
+
+        The returned station shares the trace's (read-only) arrays with this one.
+        """
+        twin = copy.copy(self)
+        twin.optics = optics
+        twin._prepare_photometry()
+        for name in ("screen_position_m", "surface_point_facet_m", "slope_true", "on_screen"):
+            twin.__dict__.pop(name, None)
+        return twin
+
+    # ---------------------------------------------------------------- capture
+    def capture(self, display_image: np.ndarray, rng: np.random.Generator | None = None) -> np.ndarray:
+        """The camera frame while the display shows *display_image*.
+
+        Parameters
+        ----------
+        display_image : (screen height_px, screen width_px) uint8 array
+            Command values the display shows, row 0 = top row.
+        rng : numpy Generator or None
+            Source of the ambient jitter and the sensor noise; None gives the noise-free frame.
+
+        Returns
+        -------
+        (camera height_px, camera width_px) uint8 array
+        """
+        screen = self.geometry.screen
+        image = np.asarray(display_image)
+        if image.dtype != np.uint8 or image.shape != (screen.height_px, screen.width_px):
+            raise DisplayError(f"display image must be uint8 of shape {(screen.height_px, screen.width_px)} "
+                               f"(rows, columns of the screen), got {image.dtype} {image.shape}")
+        optics = self.optics
+        sample = np.zeros(self._seen_idx.size, dtype=np.float32)
+        if self._win_r1 > self._win_r0:
+            window = np.zeros((self._win_r1 - self._win_r0 + 1, self._win_c1 - self._win_c0 + 1), np.float32)
+            r_lo, r_hi = max(self._win_r0, 1), min(self._win_r1, screen.height_px)
+            c_lo, c_hi = max(self._win_c0, 1), min(self._win_c1, screen.width_px)
+            if r_hi >= r_lo and c_hi >= c_lo:
+                window[r_lo - self._win_r0:r_hi - self._win_r0 + 1, c_lo - self._win_c0:c_hi - self._win_c0 + 1] = \
+                    self._luminance_lut[image[r_lo - 1:r_hi, c_lo - 1:c_hi]]
+            flat = window.ravel()
+            for k in range(4):
+                sample += self._sample_w[k] * flat[self._sample_idx[k]]
+        ambient = optics.ambient
+        if rng is not None and optics.ambient_jitter > 0:
+            ambient = max(0.0, ambient * (1.0 + optics.ambient_jitter * float(rng.standard_normal())))
+        dn = self._dn_base + np.float32(ambient) * self._dn_per_ambient
+        dn.ravel()[self._seen_idx] += self._dn_per_luminance * sample
+        if rng is not None and (optics.read_noise_dn > 0 or optics.electrons_per_dn > 0):
+            variance = np.full(dn.shape, optics.read_noise_dn ** 2, dtype=np.float32)
+            if optics.electrons_per_dn > 0:
+                variance += np.maximum(dn - np.float32(optics.camera_offset_dn), 0) / np.float32(optics.electrons_per_dn)
+            dn += np.sqrt(variance) * rng.standard_normal(dn.shape, dtype=np.float32)
+        if optics.knee_dn is not None:
+            knee = np.float32(optics.knee_dn)
+            room = np.float32(255.0 - optics.knee_dn)
+            over = dn > knee
+            dn[over] = knee + room * -np.expm1(-(dn[over] - knee) / room)
+        return np.clip(np.rint(dn), 0, 255).astype(np.uint8)
+
+    # ------------------------------------------------------------- geometry
+    def measured_distance_m(self) -> float:
+        """Distance (m) from the true screen centre to the true surface point at ``design.measure_point_m``."""
+        x, y = (float(c) for c in self.design.measure_point_m)
+        point_facet = np.array([x, y, float(self.surface.height(x, y))])
+        return float(np.linalg.norm(point_facet - self.screen_to_facet.translation))
+
+    def corner_pixels(self) -> np.ndarray:
+        """Image positions (N, 2) = (u, v) pixels of the true outline corners on the true surface."""
+        xy = self.design.outline_m
+        corners_facet = np.column_stack([xy, self.surface.height(xy[:, 0], xy[:, 1])])
+        return self.camera.project(self.facet_to_camera.apply(corners_facet))
+
+    def footprint_check(self, max_slope_error_mrad: float) -> dict:
+        """Check that the facet's reflected footprint, widened for slope errors, lies on the screen.
+
+        Each facet pixel's screen point is widened by ``2 * max_slope_error * path length`` (a slope error
+        turns the reflected ray by twice its angle).
+
+        Parameters
+        ----------
+        max_slope_error_mrad : float
+            Largest slope error to allow for, mrad.
+
+        Returns
+        -------
+        dict
+            ``min_margin_m`` (smallest distance from a widened point to the screen edge, metres),
+            ``max_widening_m`` and ``n_pixels``.
+
+        Raises
+        ------
+        GeometryError
+            If the facet is not in view, a reflected ray misses the screen plane, or the widened
+            footprint leaves the screen.
+        """
+        if self._seen_idx.size == 0:
+            raise GeometryError("the facet is not in the camera's view: check the layout and the facet placement")
+        if not np.all(np.isfinite(self._path_m)):
+            raise GeometryError(f"{int(np.sum(~np.isfinite(self._path_m)))} facet pixels reflect rays that never "
+                                "reach the screen plane: the screen does not face the facet; check the layout")
+        screen = self.geometry.screen
+        widening_m = 2.0 * 1e-3 * float(max_slope_error_mrad) * self._path_m
+        u_x, u_y = self._u_scr_m[:, 0], self._u_scr_m[:, 1]
+        margins = {"left": u_x - widening_m, "right": screen.width_m - u_x - widening_m,
+                   "bottom": u_y - widening_m, "top": screen.height_m - u_y - widening_m}
+        worst_side = min(margins, key=lambda side: float(margins[side].min()))
+        worst_m = float(margins[worst_side].min())
+        if worst_m < 0:
+            raise GeometryError(
+                f"the facet's reflected footprint, widened by 2 x {max_slope_error_mrad} mrad x distance "
+                f"(up to {1e3 * float(widening_m.max()):.1f} mm), leaves the screen by {1e3 * -worst_m:.1f} mm "
+                f"at its {worst_side} edge: use a larger screen, move camera and screen closer together, "
+                "or correct the layout distance")
+        return {"min_margin_m": worst_m, "max_widening_m": float(widening_m.max()),
+                "n_pixels": int(self._seen_idx.size)}
+
+    # ------------------------------------------------------- test support
+    def _image(self, values: np.ndarray, fill) -> np.ndarray:
+        """Scatter per-seen-pixel values into a read-only image-shaped array."""
+        height, width = self.geometry.camera.shape
+        extra = values.shape[1:]
+        out = np.full((height * width,) + extra, fill, dtype=values.dtype)
+        out[self._seen_idx] = values
+        out = out.reshape((height, width) + extra)
+        out.setflags(write=False)
+        return out
+
+    @property
+    def coverage(self) -> np.ndarray:
+        """Fraction (H, W) of each pixel's area covered by the facet (0 outside, 1 inside)."""
+        out = self._coverage.view()
+        out.setflags(write=False)
+        return out
+
+    @cached_property
+    def screen_position_m(self) -> np.ndarray:
+        """Screen coordinates (H, W, 2) = (u_x, u_y) metres of each facet pixel's centre ray; NaN elsewhere."""
+        return self._image(self._u_scr_m, np.nan)
+
+    @cached_property
+    def surface_point_facet_m(self) -> np.ndarray:
+        """True surface point (H, W, 3), true facet frame, metres, of each facet pixel's centre ray; NaN elsewhere."""
+        return self._image(self._x_facet_m, np.nan)
+
+    @cached_property
+    def slope_true(self) -> np.ndarray:
+        """Exact slopes (H, W, 2) = (dz/dx, dz/dy) of the true surface at :attr:`surface_point_facet_m`."""
+        return self._image(self._slope, np.nan)
+
+    @cached_property
+    def on_screen(self) -> np.ndarray:
+        """Whether (H, W) a facet pixel's centre ray lands on the screen's active area."""
+        return self._image(self._on_screen, False)
+
+    @property
+    def vignetting_factor(self) -> np.ndarray:
+        """Relative irradiance (H, W) after vignetting, 1 at the principal point."""
+        out = self._vignetting.view()
+        out.setflags(write=False)
+        return out
