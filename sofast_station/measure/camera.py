@@ -23,15 +23,13 @@ def pixel_rays(camera: CameraIntrinsics, columns: np.ndarray, rows: np.ndarray) 
 
     Returns
     -------
-    (N, 3) float64 array of unit vectors with z > 0.
+    (3, N) float64 array of unit vectors with z > 0 (components in rows).
     """
     pts = np.column_stack([columns, rows]).astype(np.float64).reshape(-1, 1, 2)
     norm = _undistort(pts, camera.matrix, camera.distortion, None, np.eye(3), np.eye(3), _UNDISTORT_CRITERIA).reshape(-1, 2)
-    rays = np.empty((norm.shape[0], 3))
-    rays[:, :2] = norm
-    rays[:, 2] = 1.0
-    rays /= np.sqrt(np.einsum("ij,ij->i", rays, rays))[:, None]
-    return rays
+    x, y = norm[:, 0], norm[:, 1]
+    inv = 1.0 / np.sqrt(x * x + y * y + 1.0)
+    return np.stack([x * inv, y * inv, inv])
 
 
 def project(camera: CameraIntrinsics, pose: Pose, points: np.ndarray) -> np.ndarray:
@@ -43,10 +41,21 @@ def project(camera: CameraIntrinsics, pose: Pose, points: np.ndarray) -> np.ndar
 
 
 def ray_grid(camera: CameraIntrinsics) -> np.ndarray:
-    """Unit rays of every pixel of the camera, (height, width, 3), camera frame.
+    """Unit rays of every pixel of the camera, (3, height, width), camera frame.
 
     Undistorting two million points takes about a second; a station computes this once per camera
     calibration and hands it to every analysis (:func:`pixel_rays` gives the same rays for a subset).
     """
     rows, cols = np.mgrid[0:camera.height_px, 0:camera.width_px]
-    return pixel_rays(camera, cols.ravel(), rows.ravel()).reshape(camera.height_px, camera.width_px, 3)
+    return pixel_rays(camera, cols.ravel(), rows.ravel()).reshape(3, camera.height_px, camera.width_px)
+
+
+def to_frame(pose: Pose, v: np.ndarray, translate: bool = True) -> np.ndarray:
+    """Apply *pose* to (3, N) points (or, with ``translate=False``, directions), component by component.
+
+    Written out rather than as a matrix product: (N, 3) @ (3, 3) is slow in numpy for long N, and
+    explicit sums cannot depend on BLAS threading.
+    """
+    r, t = pose.rotation, pose.translation
+    return np.stack([r[i, 0] * v[0] + r[i, 1] * v[1] + r[i, 2] * v[2] + (t[i] if translate else 0.0)
+                     for i in range(3)])

@@ -1,8 +1,8 @@
-"""Facet corners from the mask: rough outline, sub-pixel edge lines, their intersections.
+"""Facet corners from the mask: rough outline, sub-pixel edges, their intersections.
 
 The white-minus-dark contrast of a pixel straddling the facet edge is proportional to the part of the
 pixel the facet covers. Summed across the edge along one image row (or column), the covered fractions
-give the edge position to a small fraction of a pixel, whatever the blur; a line through a few hundred
+give the edge position to a small fraction of a pixel, whatever the blur; a curve through a few hundred
 such positions locates each side to about a hundredth of a pixel.
 """
 
@@ -31,15 +31,16 @@ class OutlineFit:
     ----------
     corners_px : (N, 2) float array
         Corner image positions (column, row), in the order of the rough outline.
-    lines : (N, 3) float array
-        Side i as a x + b y = c with (a, b) a unit normal; side i runs from corner i to corner i+1.
+    sides : (N, 7) float array
+        Side i (from corner i to corner i+1) as the curve (o_x, o_y, t_x, t_y, a, b, c): points
+        o + s t + (a + b s + c s^2) n with n = (-t_y, t_x).
     edge_rms_px : (N,) float array
-        RMS distance of each side's edge points from its fitted line, pixels.
+        RMS distance of each side's edge points from its fitted curve, pixels.
     n_edge_points : (N,) int array
     """
 
     corners_px: np.ndarray
-    lines: np.ndarray
+    sides: np.ndarray
     edge_rms_px: np.ndarray
     n_edge_points: np.ndarray
 
@@ -114,22 +115,71 @@ def _edge_points(contrast: np.ndarray, p0: np.ndarray, p1: np.ndarray, inside_si
     return np.column_stack([s, edge]) if along_x else np.column_stack([edge, s])
 
 
-def _fit_line(points: np.ndarray, rounds: int = 3) -> tuple[np.ndarray, float, int]:
-    """Total-least-squares line a x + b y = c (unit normal) with robust rejection of stray points."""
+def _fit_side(points: np.ndarray, rounds: int = 4) -> tuple[np.ndarray, float, int]:
+    """Quadratic curve through one side's edge points, with robust rejection of stray points.
+
+    A straight edge on a curved facet is a curve in space: its corners stand nearer the camera than its
+    middle, so its image bows by a tenth of a pixel or so. A quadratic d = a + b s + c s^2 across the
+    side's chord (s along it, d across it) follows that bow, where a line would put the corners inside
+    the true ones.
+
+    Returns
+    -------
+    curve : (7,) array
+        (o_x, o_y, t_x, t_y, a, b, c): origin o, unit direction t along the side, normal n = (-t_y, t_x).
+    rms : float
+        RMS distance of the kept points from the curve, pixels.
+    n_kept : int
+    """
+    centre = points.mean(axis=0)
+    _, _, vt = np.linalg.svd(points - centre, full_matrices=False)
+    t = vt[0]
+    n = np.array([-t[1], t[0]])
+    s = (points - centre) @ t
+    d = (points - centre) @ n
     keep = np.ones(len(points), dtype=bool)
-    for _ in range(rounds + 1):
-        p = points[keep]
-        centre = p.mean(axis=0)
-        _, _, vt = np.linalg.svd(p - centre, full_matrices=False)
-        normal = vt[1]
-        dist = (points - centre) @ normal
-        sigma = 1.4826 * np.median(np.abs(dist[keep])) + 1e-6
-        new_keep = np.abs(dist) < max(4.0 * sigma, 0.05)
-        if np.array_equal(new_keep, keep) or new_keep.sum() < 3:
+    design = np.column_stack([np.ones_like(s), s, s * s])
+    for _ in range(rounds):
+        coef = np.linalg.lstsq(design[keep], d[keep], rcond=None)[0]
+        res = d - design @ coef
+        sigma = 1.4826 * np.median(np.abs(res[keep])) + 1e-6
+        new_keep = np.abs(res) < max(4.0 * sigma, 0.05)
+        if np.array_equal(new_keep, keep) or new_keep.sum() < 10:
             break
         keep = new_keep
-    rms = float(np.sqrt(np.mean(dist[keep] ** 2)))
-    return np.array([normal[0], normal[1], normal @ centre]), rms, int(keep.sum())
+    rms = float(np.sqrt(np.mean(res[keep] ** 2)))
+    return np.array([centre[0], centre[1], t[0], t[1], *coef]), rms, int(keep.sum())
+
+
+def _side_residual(curve: np.ndarray, p: np.ndarray) -> tuple[float, np.ndarray]:
+    """Signed distance-like residual of point *p* from a side curve, and its gradient."""
+    o, t = curve[:2], curve[2:4]
+    n = np.array([-t[1], t[0]])
+    a, b, c = curve[4:]
+    s = (p - o) @ t
+    return float((p - o) @ n - (a + b * s + c * s * s)), n - (b + 2 * c * s) * t
+
+
+def _intersect_sides(c1: np.ndarray, c2: np.ndarray) -> np.ndarray:
+    """Point on both side curves, by Newton's method from the intersection of their chords."""
+    p = None
+    for k in range(12):
+        f1, g1 = _side_residual(c1, p if p is not None else c1[:2])
+        f2, g2 = _side_residual(c2, p if p is not None else c2[:2])
+        if p is None:
+            # chords: n.(p - o) = a  (straight-line start)
+            m = np.array([[-c1[3], c1[2]], [-c2[3], c2[2]]])
+            rhs = np.array([m[0] @ c1[:2] + c1[4], m[1] @ c2[:2] + c2[4]])
+            if abs(np.linalg.det(m)) < 1e-6:
+                raise FacetNotFoundError("two neighbouring sides of the facet outline are parallel; the outline "
+                                         "does not look like the design")
+            p = np.linalg.solve(m, rhs)
+            continue
+        step = np.linalg.solve(np.array([g1, g2]), -np.array([f1, f2]))
+        p = p + step
+        if np.hypot(*step) < 1e-9:
+            break
+    return p
 
 
 def fit_outline(contrast: np.ndarray, region: np.ndarray, n_corners: int) -> OutlineFit:
@@ -146,7 +196,8 @@ def fit_outline(contrast: np.ndarray, region: np.ndarray, n_corners: int) -> Out
     """
     rough = rough_outline(region, n_corners)
     centroid = rough.mean(axis=0)
-    lines, rms, counts = [], [], []
+    contrast = contrast.astype(np.float64, copy=False)
+    curves, rms, counts = [], [], []
     for i in range(n_corners):
         p0, p1 = rough[i], rough[(i + 1) % n_corners]
         d = p1 - p0
@@ -154,27 +205,17 @@ def fit_outline(contrast: np.ndarray, region: np.ndarray, n_corners: int) -> Out
         mid = 0.5 * (p0 + p1)
         # Which way across the edge (increasing row for a near-horizontal side) is the facet?
         inside_sign = 1 if ((centroid - mid)[1] if along_x else (centroid - mid)[0]) > 0 else -1
-        pts = _edge_points(contrast.astype(np.float64, copy=False), p0, p1, inside_sign)
+        pts = _edge_points(contrast, p0, p1, inside_sign)
         if len(pts) < 10:
             raise FacetNotFoundError(
                 f"side {i + 1} of the facet outline is too short or too close to the image border to locate "
                 "(the facet may be cut off or too small in the image)")
-        line, r, n = _fit_line(pts)
-        lines.append(line)
+        curve, r, n = _fit_side(pts)
+        curves.append(curve)
         rms.append(r)
         counts.append(n)
-    lines = np.array(lines)
-    corners = np.empty((n_corners, 2))
-    for i in range(n_corners):
-        a = lines[i - 1]
-        b = lines[i]
-        m = np.array([a[:2], b[:2]])
-        det = np.linalg.det(m)
-        if abs(det) < 1e-6:
-            raise FacetNotFoundError(f"sides {i} and {i + 1} of the facet outline are parallel; the outline "
-                                     "does not look like the design")
-        corners[i] = np.linalg.solve(m, np.array([a[2], b[2]]))
-    return OutlineFit(corners, lines, np.array(rms), np.array(counts))
+    corners = np.array([_intersect_sides(curves[i - 1], curves[i]) for i in range(n_corners)])
+    return OutlineFit(corners, np.array(curves), np.array(rms), np.array(counts))
 
 
 def match_corners(found_px: np.ndarray, expected_px: np.ndarray, tolerance_px: float) -> np.ndarray:

@@ -43,7 +43,9 @@ def phase_and_modulation(frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, np
     frames = np.asarray(frames)
     if frames.shape[0] != 4:
         raise ValueError(f"frames must hold 4 phase steps along axis 0, got shape {frames.shape}")
-    i0, i1, i2, i3 = (frames[k].astype(np.float64) for k in range(4))
+    # Integer counts convert exactly to float32, and float32 phase resolves 1e-6 rad: ample, and faster.
+    work = np.float32 if np.issubdtype(frames.dtype, np.integer) and frames.itemsize <= 2 else np.float64
+    i0, i1, i2, i3 = (frames[k].astype(work) for k in range(4))
     s = i1 - i3
     c = i0 - i2
     phase = wrap_phase(np.arctan2(s, c))
@@ -60,6 +62,8 @@ def intensity_noise_dn(consistency: np.ndarray) -> float:
     half-drawn frame spoils. Never below 8-bit quantisation noise.
     """
     r = np.asarray(consistency, dtype=np.float64).ravel()
+    if r.size > 400_000:     # a fixed stride keeps the estimate deterministic and fast
+        r = r[:: r.size // 200_000]
     if r.size == 0:
         return QUANTISATION_NOISE_DN
     mad = np.median(np.abs(r - np.median(r)))

@@ -16,7 +16,7 @@ from ..facet import FacetDesign
 from ..fringes import FringeSet
 from ..geometry import Pose, StationGeometry
 from . import corners as corners_mod
-from .camera import pixel_rays, project
+from .camera import pixel_rays, project, to_frame
 from .fit import ParabolaFit, fit_parabola
 from .mask import facet_region
 from .metrics import focal_length_m, principal_axes, rms_summary, slope_residuals_mrad
@@ -71,7 +71,8 @@ class Analysis:
     """The result of one analysis: reported figures plus the per-pixel data behind them.
 
     ``figures`` is JSON-ready (SPEC.md, "Reported figures"); arrays are for plots and re-analysis.
-    Per-point arrays follow the raster order of ``valid``.
+    Per-point arrays follow the raster order of ``valid``; points (3, N) and slopes (2, N) hold their
+    components in rows.
     """
 
     figures: dict
@@ -142,7 +143,7 @@ def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, d
     settings : AnalysisSettings
     screen : ScreenModel, optional
         Screen positions -> camera-frame points; the flat screen of ``geometry`` by default.
-    rays_cam : (rows, columns, 3) array, optional
+    rays_cam : (3, rows, columns) array, optional
         Precomputed unit pixel rays (:func:`~sofast_station.measure.camera.ray_grid`); computed for the
         valid pixels when absent.
 
@@ -202,7 +203,7 @@ def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, d
     corner_pose = solve_corner_pose(cam, found, corners_3d, geometry.fixture_to_camera)
     measure_point = np.array([*design.measure_point_m, float(design.z(*design.measure_point_m))])
     screen_centre_cam = screen.points_camera(np.array([0.5 * screen.width_m]),
-                                             np.array([0.5 * screen.height_m]))[0]
+                                             np.array([0.5 * screen.height_m]))[:, 0]
     facet_to_camera, range_shift = fix_range(corner_pose.facet_to_camera, measure_point, screen_centre_cam,
                                              measured_distance_m, settings.max_range_shift_m)
     timer.lap("pose")
@@ -216,13 +217,13 @@ def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, d
     if rays_cam is None:
         rays = pixel_rays(cam, cols, rows)
     else:
-        if rays_cam.shape != (*cam.shape, 3):
-            raise CaptureError(f"precomputed rays have shape {rays_cam.shape}, expected {(*cam.shape, 3)}")
-        rays = rays_cam.reshape(-1, 3)[vidx]
+        if rays_cam.shape != (3, *cam.shape):
+            raise CaptureError(f"precomputed rays have shape {rays_cam.shape}, expected {(3, *cam.shape)}")
+        rays = rays_cam.reshape(3, -1)[:, vidx]
     camera_to_facet = facet_to_camera.inverse()
-    rays_f = camera_to_facet.apply_vector(rays)
+    rays_f = to_frame(camera_to_facet, rays, translate=False)
     cam_f = camera_to_facet.translation
-    screen_f = camera_to_facet.apply(screen.points_camera(positions["x"][ok], positions["y"][ok]))
+    screen_f = to_frame(camera_to_facet, screen.points_camera(positions["x"][ok], positions["y"][ok]))
     timer.lap("rays")
 
     # Shape iteration on the subsample, then all points.
@@ -236,13 +237,13 @@ def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, d
     coeffs = design.coefficients.copy()
     coeffs[5] = z_measure - surface_z(coeffs, measure_point[0], measure_point[1])
     sub = slice(None, None, settings.subsample_step)
-    rays_sub, screen_sub = rays_f[sub], screen_f[sub]
+    rays_sub, screen_sub = rays_f[:, sub], screen_f[:, sub]
     converged = False
     iterations = 0
     for iterations in range(1, settings.max_iterations + 1):
         pts = intersect_quadratic(coeffs, cam_f, rays_sub)
         sx, sy = normal_slopes(pts, cam_f, screen_sub)
-        new = with_piston(fit_parabola(pts[:, 0], pts[:, 1], sx, sy))
+        new = with_piston(fit_parabola(pts[0], pts[1], sx, sy))
         dk = 4.0 * np.abs(new[:2] - coeffs[:2])
         kappa = 4.0 * np.abs(new[:2])
         coeffs = new
@@ -256,9 +257,9 @@ def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, d
     finite = np.isfinite(s_x) & np.isfinite(s_y)
     if not np.all(finite):
         raise AnalysisError(f"{int((~finite).sum())} pixel rays miss the fitted surface; the fit diverged")
-    fit = fit_parabola(points[:, 0], points[:, 1], s_x, s_y)
+    fit = fit_parabola(points[0], points[1], s_x, s_y)
     coeffs = with_piston(fit)
-    x, y = points[:, 0], points[:, 1]
+    x, y = points[0], points[1]
     dx, dy = surface_slopes(design.coefficients, x, y)
     px, py = surface_slopes(coeffs, x, y)
     residuals = {"design": slope_residuals_mrad(s_x, s_y, dx, dy),
@@ -298,6 +299,6 @@ def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, d
     }
     timer.lap("report")
     figures["timings_s"] = dict(timer.timings)
-    return Analysis(figures=figures, valid=valid, points_facet_m=points, slopes=np.column_stack([s_x, s_y]),
+    return Analysis(figures=figures, valid=valid, points_facet_m=points, slopes=np.stack([s_x, s_y]),
                     residuals_mrad=residuals, facet_to_camera=facet_to_camera, corners_px=found,
                     coefficients=coeffs, timings_s=dict(timer.timings))

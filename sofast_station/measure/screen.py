@@ -21,7 +21,7 @@ class ScreenModel(Protocol):
     height_m: float
 
     def points_camera(self, u_x_m: np.ndarray, u_y_m: np.ndarray) -> np.ndarray:
-        """(N, 3) camera-frame points, metres, of screen positions u_x (from left), u_y (from bottom)."""
+        """(3, N) camera-frame points, metres, of screen positions u_x (from left), u_y (from bottom)."""
 
 
 @dataclass(frozen=True)
@@ -44,9 +44,10 @@ class FlatScreen:
         u_x_m = np.asarray(u_x_m, dtype=np.float64)
         u_y_m = np.asarray(u_y_m, dtype=np.float64)
         r = self.screen_to_camera.rotation
+        t = self.screen_to_camera.translation
         x = u_x_m - 0.5 * self.width_m
         y = u_y_m - 0.5 * self.height_m
-        return (x[:, None] * r[:, 0] + y[:, None] * r[:, 1]) + self.screen_to_camera.translation
+        return np.stack([r[i, 0] * x + r[i, 1] * y + t[i] for i in range(3)])
 
     def centre_camera(self) -> np.ndarray:
         """The screen centre in the camera frame, metres."""

@@ -32,17 +32,17 @@ def intersect_quadratic(coeffs: np.ndarray, origin: np.ndarray, directions: np.n
     coeffs : (6,) array
     origin : (3,) array
         Ray origin (the camera centre), facet frame, metres.
-    directions : (N, 3) array
-        Unit ray directions, facet frame.
+    directions : (3, N) array
+        Unit ray directions, facet frame (components in rows: fast for long arrays).
 
     Returns
     -------
-    (N, 3) array
-        Intersection points, metres; NaN rows where a ray misses.
+    (3, N) array
+        Intersection points, metres; NaN columns where a ray misses.
     """
     a_, b_, c_, d_, e_, f_ = (float(v) for v in coeffs)
     ox, oy, oz = (float(v) for v in origin)
-    ux, uy, uz = directions[:, 0], directions[:, 1], directions[:, 2]
+    ux, uy, uz = directions
     qa = a_ * ux * ux + b_ * uy * uy + e_ * ux * uy
     qb = (2.0 * a_ * ox + c_ + e_ * oy) * ux + (2.0 * b_ * oy + d_ + e_ * ox) * uy - uz
     qc = a_ * ox * ox + b_ * oy * oy + c_ * ox + d_ * oy + e_ * ox * oy + f_ - oz
@@ -57,7 +57,7 @@ def intersect_quadratic(coeffs: np.ndarray, origin: np.ndarray, directions: np.n
     t2 = np.where(t2 > 0, t2, np.inf)
     t = np.minimum(t1, t2)
     t = np.where(miss | ~np.isfinite(t), np.nan, t)
-    return origin + t[:, None] * directions
+    return np.stack([ox + t * ux, oy + t * uy, oz + t * uz])
 
 
 def normal_slopes(points: np.ndarray, camera_m: np.ndarray, screen_points_m: np.ndarray
@@ -69,16 +69,19 @@ def normal_slopes(points: np.ndarray, camera_m: np.ndarray, screen_points_m: np.
 
     Parameters
     ----------
-    points : (N, 3) array
+    points : (3, N) array
         Surface points X, facet frame, metres.
     camera_m : (3,) array
         Camera centre C, facet frame, metres.
-    screen_points_m : (N, 3) array
+    screen_points_m : (3, N) array
         Screen points T seen at each X, facet frame, metres.
     """
-    to_cam = camera_m - points
-    to_cam /= np.sqrt(np.einsum("ij,ij->i", to_cam, to_cam))[:, None]
-    to_scr = screen_points_m - points
-    to_scr /= np.sqrt(np.einsum("ij,ij->i", to_scr, to_scr))[:, None]
-    n = to_cam + to_scr   # its length does not matter for the slope ratios
-    return -n[:, 0] / n[:, 2], -n[:, 1] / n[:, 2]
+    cx, cy, cz = (float(v) for v in camera_m)
+    px, py, pz = points
+    ax, ay, az = cx - px, cy - py, cz - pz
+    la = np.sqrt(ax * ax + ay * ay + az * az)
+    bx, by, bz = screen_points_m[0] - px, screen_points_m[1] - py, screen_points_m[2] - pz
+    lb = np.sqrt(bx * bx + by * by + bz * bz)
+    # n = a/|a| + b/|b|, scaled by |a||b| (its length does not matter for the slope ratios)
+    nx, ny, nz = ax * lb + bx * la, ay * lb + by * la, az * lb + bz * la
+    return -nx / nz, -ny / nz

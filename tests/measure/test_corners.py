@@ -28,10 +28,9 @@ def coverage_image(corners, shape, ss=16):
 @pytest.mark.parametrize("angle_deg", [0.0, 0.7, 12.0])
 def test_corners_to_a_small_fraction_of_a_pixel(angle_deg):
     c, s = np.cos(np.radians(angle_deg)), np.sin(np.radians(angle_deg))
-    half = np.array([[-60.3, -50.2], [61.1, -48.7], [59.4, 52.6], [-58.8, 50.9]])   # a slightly irregular quad
-    true = half @ np.array([[c, s], [-s, c]]) + [100.37, 90.81]
-    # order the polygon so that the interior test above sees it counter-clockwise in image coordinates
-    cov = coverage_image(true, (180, 200))
+    half = np.array([[-120.3, -100.2], [121.1, -98.7], [119.4, 102.6], [-118.8, 100.9]])   # irregular quad
+    true = half @ np.array([[c, s], [-s, c]]) + [160.37, 140.81]
+    cov = coverage_image(true, (280, 320))
     rng = np.random.default_rng(0)
     contrast = 180.0 * cov + rng.normal(0, 1.0, cov.shape)
     region = cov > 0.1

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from sofast_station.geometry import Pose
+from sofast_station.measure.camera import to_frame
 from sofast_station.measure.screen import FlatScreen
 from sofast_station.measure.surface import intersect_quadratic, normal_slopes, surface_z
 
@@ -49,14 +50,14 @@ def test_flat_mirror_at_known_distance_and_tilt():
     x_cam = rays * ((p0_cam @ n_cam) / (rays @ n_cam))[:, None]
 
     # Pipeline: screen model, then everything in the facet frame.
-    assert np.abs(screen.points_camera(u_x, u_y) - t_cam).max() < 1e-12
+    assert np.abs(screen.points_camera(u_x, u_y).T - t_cam).max() < 1e-12
     cam_to_facet = facet_to_camera.inverse()
     cam_f = cam_to_facet.translation
-    rays_f = cam_to_facet.apply_vector(rays)
+    rays_f = to_frame(cam_to_facet, rays.T, translate=False)
     coeffs = np.array([0, 0, slope_x, slope_y, 0, 0.0])
     x_f = intersect_quadratic(coeffs, cam_f, rays_f)
-    assert np.abs(x_f - cam_to_facet.apply(x_cam)).max() < 1e-12
-    sx, sy = normal_slopes(x_f, cam_f, cam_to_facet.apply(screen.points_camera(u_x, u_y)))
+    assert np.abs(x_f.T - cam_to_facet.apply(x_cam)).max() < 1e-12
+    sx, sy = normal_slopes(x_f, cam_f, to_frame(cam_to_facet, screen.points_camera(u_x, u_y)))
     assert np.abs(sx - slope_x).max() < 1e-12 and np.abs(sy - slope_y).max() < 1e-12
 
 
@@ -66,10 +67,10 @@ def test_intersection_is_stable_for_a_nearly_flat_surface():
     dirs = unit(np.array([[0.01, 0.02, -1.0], [-0.03, 0.0, -1.0]]))
     for a in (1e-3, 1e-9, 1e-14, 0.0):
         coeffs = np.array([a, a, 0.0, 0.0, 0.0, 0.0])
-        pts = intersect_quadratic(coeffs, origin, dirs)
-        assert np.abs(pts[:, 2] - surface_z(coeffs, pts[:, 0], pts[:, 1])).max() < 1e-12
-    flat = intersect_quadratic(np.zeros(6), origin, dirs)
-    tiny = intersect_quadratic(np.array([1e-14, 1e-14, 0, 0, 0, 0]), origin, dirs)
+        pts = intersect_quadratic(coeffs, origin, dirs.T)
+        assert np.abs(pts[2] - surface_z(coeffs, pts[0], pts[1])).max() < 1e-12
+    flat = intersect_quadratic(np.zeros(6), origin, dirs.T)
+    tiny = intersect_quadratic(np.array([1e-14, 1e-14, 0, 0, 0, 0]), origin, dirs.T)
     assert np.abs(flat - tiny).max() < 1e-11
 
 
@@ -77,7 +78,7 @@ def test_intersection_takes_the_first_hit_and_reports_misses():
     coeffs = np.array([1 / (4 * 5.33), 1 / (4 * 5.33), 0, 0, 0, 0])
     origin = np.array([0.0, 0.0, 10.66])
     dirs = unit(np.array([[0.02, 0.0, -1.0], [0.0, 0.0, 1.0]]))   # second ray points away from it
-    pts = intersect_quadratic(coeffs, origin, dirs)
+    pts = intersect_quadratic(coeffs, origin, dirs.T).T
     assert pts[0, 2] == pytest.approx(surface_z(coeffs, pts[0, 0], pts[0, 1]), abs=1e-12)
     assert 0 < pts[0, 2] < 0.01
     assert np.all(np.isnan(pts[1]))
