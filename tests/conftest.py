@@ -18,3 +18,47 @@ def repo_root() -> Path:
 def _data_dir(tmp_path, monkeypatch):
     """Every test's station data (journal, results, records) goes to its own temporary folder."""
     monkeypatch.setenv("SOFAST_DATA_DIR", str(tmp_path / "station-data"))
+
+
+SMALL_STATION = """
+[station]
+name = "Small simulated dish station (tests)"
+backend = "simulated"
+data_dir = "{data_dir}"
+facet = "{facet}"
+
+[camera]
+width_px = 400
+height_px = 300
+focal_length_px = 3409.0
+distortion = [-0.05, 0.1, 0.0002, -0.0001, 0.0]
+
+[screen]
+width_px = 1920
+height_px = 1080
+pitch_m = 0.000275
+
+[layout]
+separation_m = 0.34
+
+[calibration]
+radiometric = "{radiometric}"
+
+[simulation]
+seed = 3
+
+[simulation.facet]
+focal_length_x_m = 5.42
+focal_length_y_m = 5.35
+twist_mrad_per_m = 0.1
+slope_error_rms_mrad = 0.5
+"""
+
+
+@pytest.fixture
+def small_station_toml(tmp_path) -> Path:
+    """A quarter-resolution simulated dish station for mechanics tests (CLI, configuration)."""
+    path = tmp_path / "station.toml"
+    path.write_text(SMALL_STATION.format(data_dir=tmp_path / "data", facet=ROOT / "fixtures/facets/dish_5m33.toml",
+                                         radiometric=ROOT / "calibration/simulated_radiometric.json"))
+    return path
