@@ -83,3 +83,89 @@ def fit_parabola(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray)
     c = kx[1] - 2.0 * a * xm - e1 * ym
     d = ky[1] - 2.0 * b * ym - e2 * xm
     return ParabolaFit(float(a), float(b), float(c), float(d), float(e1), float(e2))
+
+
+#: Terms (i, j) of the higher-order model z = sum c_ij x^i y^j, 1 <= i + j <= 3 (the constant is free).
+CUBIC_TERMS = ((1, 0), (0, 1), (2, 0), (1, 1), (0, 2), (3, 0), (2, 1), (1, 2), (0, 3))
+# Monomials u^a v^b of degree <= 2 that the slopes of those terms are made of.
+_BASE = ((0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2))
+
+
+@dataclass(frozen=True)
+class CubicFit:
+    """Higher-order model (3rd order in z, 2nd order in slope) in centred, scaled coordinates.
+
+    z = sum_k c_k u^i_k v^j_k with u = (x - x0)/h, v = (y - y0)/h and (i_k, j_k) = CUBIC_TERMS[k].
+    """
+
+    coefficients: np.ndarray
+    x0: float
+    y0: float
+    h: float
+
+    def slopes(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Model slopes dz/dx, dz/dy at facet-frame (x, y), metres."""
+        u, v = (x - self.x0) / self.h, (y - self.y0) / self.h
+        base = _monomials(u, v)
+        sx = np.zeros_like(u)
+        sy = np.zeros_like(u)
+        for c, (i, j) in zip(self.coefficients, CUBIC_TERMS):
+            if i:
+                sx = sx + (c * i / self.h) * base[_BASE.index((i - 1, j))]
+            if j:
+                sy = sy + (c * j / self.h) * base[_BASE.index((i, j - 1))]
+        return sx, sy
+
+    def to_dict(self) -> dict:
+        return {"terms": [f"u^{i} v^{j}" for i, j in CUBIC_TERMS], "coefficients": self.coefficients.tolist(),
+                "u": f"(x - {self.x0!r}) / {self.h!r}", "v": f"(y - {self.y0!r}) / {self.h!r}"}
+
+
+def _monomials(u: np.ndarray, v: np.ndarray) -> list[np.ndarray]:
+    one = np.ones_like(u)
+    return [one, u, v, u * u, u * v, v * v]
+
+
+def fit_cubic(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray) -> CubicFit:
+    """Fit the higher-order model: both slope equations stacked, with shared coefficients.
+
+    The slopes of every term are multiples of the six monomials of degree <= 2, so the normal equations
+    are assembled from their 21 pairwise sums instead of a (2N x 9) design matrix.
+    """
+    if x.size < 30:
+        raise AnalysisError(f"only {x.size} valid points: too few to fit the higher-order model")
+    x0 = float(np.sum(x) / x.size)
+    y0 = float(np.sum(y) / y.size)
+    h = float(max(np.max(np.abs(x - x0)), np.max(np.abs(y - y0)), 1e-9))
+    u, v = (x - x0) / h, (y - y0) / h
+    base = _monomials(u, v)
+    nb = len(_BASE)
+    gram_b = np.empty((nb, nb))
+    for a in range(nb):
+        for b in range(a, nb):
+            gram_b[a, b] = gram_b[b, a] = np.sum(base[a] * base[b])
+    rhs_x = np.array([np.sum(m * s_x) for m in base])
+    rhs_y = np.array([np.sum(m * s_y) for m in base])
+    n = len(CUBIC_TERMS)
+    gram = np.zeros((n, n))
+    rhs = np.zeros(n)
+    for k, (ik, jk) in enumerate(CUBIC_TERMS):
+        ax = _BASE.index((ik - 1, jk)) if ik else None
+        ay = _BASE.index((ik, jk - 1)) if jk else None
+        if ax is not None:
+            rhs[k] += ik / h * rhs_x[ax]
+        if ay is not None:
+            rhs[k] += jk / h * rhs_y[ay]
+        for l, (il, jl) in enumerate(CUBIC_TERMS):
+            bx = _BASE.index((il - 1, jl)) if il else None
+            by = _BASE.index((il, jl - 1)) if jl else None
+            if ax is not None and bx is not None:
+                gram[k, l] += ik * il / h**2 * gram_b[ax, bx]
+            if ay is not None and by is not None:
+                gram[k, l] += jk * jl / h**2 * gram_b[ay, by]
+    scale = np.sqrt(np.diag(gram))
+    g = gram / np.outer(scale, scale)
+    if np.linalg.cond(g) > 1e12:
+        raise AnalysisError("the higher-order fit is ill-conditioned: the valid points cover too little of the facet")
+    coef = np.linalg.solve(g, rhs / scale) / scale
+    return CubicFit(coef, x0, y0, h)

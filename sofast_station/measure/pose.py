@@ -99,3 +99,21 @@ def fix_range(facet_to_camera: Pose, measure_point_facet_m: np.ndarray, screen_c
                             f"{corner_range:.4f} m by more than {max_shift_m} m; re-measure the distance or "
                             "check the facet recipe")
     return Pose(facet_to_camera.rotation, facet_to_camera.translation + mu * u), float(mu)
+
+
+def placement(fixture_to_camera: Pose, facet_to_camera: Pose, design) -> dict:
+    """The facet's placement in the fixture, as found by the corner pose.
+
+    Expressed like the fixture's tolerance: a rotation R = R_z(rz) R_y(ry) R_x(rx) about the facet's
+    middle P_mid = (cx, cy, z_design(cx, cy)) and a translation t, with
+    ``x_fixture = R (x_facet - P_mid) + P_mid + t``. Returns ``{"mm": [tx, ty, tz], "mrad": [rx, ry, rz]}``.
+    """
+    facet_to_fixture = fixture_to_camera.inverse().compose(facet_to_camera)
+    r = facet_to_fixture.rotation
+    cx, cy = (float(v) for v in design.centroid_m)
+    p_mid = np.array([cx, cy, float(design.z(cx, cy))])
+    t = facet_to_fixture.apply(p_mid) - p_mid
+    ry = -np.arcsin(np.clip(r[2, 0], -1.0, 1.0))
+    rx = np.arctan2(r[2, 1], r[2, 2])
+    rz = np.arctan2(r[1, 0], r[0, 0])
+    return {"mm": (1000.0 * t).tolist(), "mrad": [1000.0 * float(rx), 1000.0 * float(ry), 1000.0 * float(rz)]}

@@ -47,3 +47,22 @@ def test_rms_summary_and_focal_lengths():
     assert f == pytest.approx([5.0, 6.0]) and angle == 0.0
     f, angle = principal_axes(1 / (4 * 6.0), 1 / (4 * 5.0), 0.0)   # shorter along y
     assert f == pytest.approx([5.0, 6.0]) and angle == pytest.approx(np.pi / 2)
+
+
+@pytest.mark.parametrize("x0, half", [(0.0, 0.3), (3.0, 1.5)], ids=["dish", "gore-like offset"])
+def test_higher_order_round_trip(x0, half):
+    """Slopes of a known cubic surface (evaluated here, by hand) give a zero residual and the same slopes."""
+    from sofast_station.measure.fit import fit_cubic
+    rng = np.random.default_rng(4)
+    x = x0 + rng.uniform(-half, half, 40_000)
+    y = rng.uniform(-0.4, 0.4, 40_000)
+    # z = 0.05 x^2 + 0.045 y^2 + 1e-4 xy + 2e-3 x - 1e-3 y + 3e-4 x^3 - 2e-4 x^2 y + 1e-4 x y^2 + 5e-5 y^3
+    sx = 0.1 * x + 1e-4 * y + 2e-3 + 9e-4 * x**2 - 4e-4 * x * y + 1e-4 * y**2
+    sy = 0.09 * y + 1e-4 * x - 1e-3 - 2e-4 * x**2 + 2e-4 * x * y + 1.5e-4 * y**2
+    fit = fit_cubic(x, y, sx, sy)
+    mx, my = fit.slopes(x, y)
+    assert np.abs(mx - sx).max() < 1e-12 and np.abs(my - sy).max() < 1e-12
+    # fresh points: the model is the surface, not just a good fit at the samples
+    xt, yt = np.array([x0 - half, x0 + half]), np.array([0.3, -0.2])
+    ex = 0.1 * xt + 1e-4 * yt + 2e-3 + 9e-4 * xt**2 - 4e-4 * xt * yt + 1e-4 * yt**2
+    assert np.allclose(fit.slopes(xt, yt)[0], ex, atol=1e-12)

@@ -1,0 +1,185 @@
+"""Shape fit nested with the electronic boresight (SPEC.md, "Data reduction", "Iteration").
+
+The camera/screen assembly, known in the facet frame from the corner pose, is moved rigidly by
+R = R_y(beta) R_x(alpha) about the alignment point P_a = (x_a, y_a, z_design(x_a, y_a)) and then by t_z
+along z; no x or y translation and no rotation about z (those stay where the corner pose put them).
+Four unknowns meet four conditions:
+
+* F (the model's constant) gives the design z at (x_a, y_a);
+* t_z keeps the measured distance from the screen centre to the measure point on the model;
+* (alpha, beta) make the fitted parabola's normal at (x_a, y_a) the design normal.
+
+Shape and boresight are iterated alternately: each outer step re-fits the shape to convergence for the
+current assembly position, then corrects (alpha, beta) by the angle between fitted and design normals
+(rotating the assembly by R_y(beta) lowers every measured atan(s_x) by beta; R_x(alpha) raises
+atan(s_y) by alpha), then solves t_z.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import GeometryError
+from ..facet import FacetDesign
+from .fit import fit_parabola
+from .surface import intersect_quadratic, normal_slopes, surface_slopes, surface_z
+
+
+def rotation_yx(alpha_rad: float, beta_rad: float) -> np.ndarray:
+    """R = R_y(beta) @ R_x(alpha)."""
+    ca, sa = np.cos(alpha_rad), np.sin(alpha_rad)
+    cb, sb = np.cos(beta_rad), np.sin(beta_rad)
+    r_x = np.array([[1.0, 0.0, 0.0], [0.0, ca, -sa], [0.0, sa, ca]])
+    r_y = np.array([[cb, 0.0, sb], [0.0, 1.0, 0.0], [-sb, 0.0, cb]])
+    return r_y @ r_x
+
+
+@dataclass(frozen=True)
+class Assembly:
+    """The measurement's geometry in the facet frame: what the boresight moves.
+
+    Attributes
+    ----------
+    camera_m : (3,) array
+        Camera centre, metres.
+    rays : (3, N) array
+        Unit pixel rays.
+    screen_m : (3, N) array
+        Screen point seen by each pixel, metres.
+    screen_centre_m : (3,) array
+        Screen centre (the range finder's origin), metres.
+    """
+
+    camera_m: np.ndarray
+    rays: np.ndarray
+    screen_m: np.ndarray
+    screen_centre_m: np.ndarray
+
+    def subset(self, sl) -> "Assembly":
+        return Assembly(self.camera_m, self.rays[:, sl], self.screen_m[:, sl], self.screen_centre_m)
+
+    def moved(self, motion: "Motion") -> "Assembly":
+        return Assembly(motion.point(self.camera_m), motion.vectors(self.rays), motion.points(self.screen_m),
+                        motion.point(self.screen_centre_m))
+
+
+@dataclass(frozen=True)
+class Motion:
+    """The boresight motion: rotate by R_y(beta) R_x(alpha) about *pivot_m*, then shift by t_z along z."""
+
+    alpha_rad: float
+    beta_rad: float
+    t_z_m: float
+    pivot_m: np.ndarray
+
+    @property
+    def rotation(self) -> np.ndarray:
+        return rotation_yx(self.alpha_rad, self.beta_rad)
+
+    def vectors(self, v: np.ndarray) -> np.ndarray:
+        r = self.rotation
+        return np.stack([r[i, 0] * v[0] + r[i, 1] * v[1] + r[i, 2] * v[2] for i in range(3)])
+
+    def points(self, p: np.ndarray) -> np.ndarray:
+        q = self.vectors(p - self.pivot_m[:, None]) + self.pivot_m[:, None]
+        q[2] += self.t_z_m
+        return q
+
+    def point(self, p: np.ndarray) -> np.ndarray:
+        return self.points(np.asarray(p, np.float64)[:, None])[:, 0]
+
+
+@dataclass(frozen=True)
+class ShapeSolution:
+    """Converged shape model and assembly position.
+
+    Attributes
+    ----------
+    coefficients : (6,) array
+        (A, B, C, D, E, F) of the parabola fitted on the subsample, E = (E1 + E2)/2.
+    motion : Motion
+    shape_iterations : int
+        Shape fits done, over all boresight steps.
+    boresight_iterations : int
+    converged : bool
+    """
+
+    coefficients: np.ndarray
+    motion: Motion
+    shape_iterations: int
+    boresight_iterations: int
+    converged: bool
+
+
+def _solve_t_z(assembly: Assembly, rotation_only: Motion, measure_point_m: np.ndarray, distance_m: float) -> float:
+    """t_z that puts the moved screen centre *distance_m* from the measure point."""
+    w = rotation_only.point(assembly.screen_centre_m) - measure_point_m
+    disc = w[2] * w[2] - float(w @ w) + distance_m * distance_m
+    if disc < 0:
+        raise GeometryError(f"the measured distance {distance_m:.4f} m cannot be met by moving the station along "
+                            f"the facet axis (closest approach {np.hypot(w[0], w[1]):.4f} m); re-measure the "
+                            "distance or check the facet recipe's measure point")
+    roots = (-w[2] + np.sqrt(disc), -w[2] - np.sqrt(disc))
+    return float(min(roots, key=abs))
+
+
+def kappa_converged(new: np.ndarray, old: np.ndarray) -> bool:
+    """|delta kappa| < 1e-6 max(|kappa|, 1e-3 /m) for both kappa_x = 4A and kappa_y = 4B."""
+    dk = 4.0 * np.abs(new[:2] - old[:2])
+    return bool(np.all(dk < 1e-6 * np.maximum(4.0 * np.abs(new[:2]), 1e-3)))
+
+
+def solve_shape(assembly: Assembly, design: FacetDesign, measured_distance_m: float,
+                max_iterations: int = 20) -> ShapeSolution:
+    """Iterate shape fit and boresight to convergence (SPEC.md, "Iteration").
+
+    Parameters
+    ----------
+    assembly : Assembly
+        The subsample's geometry in the corner-pose facet frame.
+    design : FacetDesign
+    measured_distance_m : float
+        Screen centre to the measure point, metres.
+    max_iterations : int
+        Limit for the shape loop inside each boresight step, and for the boresight steps.
+    """
+    xa, ya = (float(v) for v in design.alignment_point_m)
+    xm, ym = (float(v) for v in design.measure_point_m)
+    z_align = float(design.z(xa, ya))
+    pivot = np.array([xa, ya, z_align])
+    design_sx, design_sy = (float(v) for v in surface_slopes(design.coefficients, xa, ya))
+    coeffs = design.coefficients.copy()
+    coeffs[5] = z_align - surface_z(coeffs, xa, ya)
+    alpha = beta = t_z = 0.0
+    shape_total = 0
+    converged = False
+    outer = 0
+    for outer in range(1, max_iterations + 1):
+        motion = Motion(alpha, beta, t_z, pivot)
+        moved = assembly.moved(motion)
+        shape_done = False
+        for inner in range(1, max_iterations + 1):
+            pts = intersect_quadratic(coeffs, moved.camera_m, moved.rays)
+            sx, sy = normal_slopes(pts, moved.camera_m, moved.screen_m)
+            new = fit_parabola(pts[0], pts[1], sx, sy).coefficients()
+            new[5] = z_align - surface_z(new, xa, ya)
+            shape_total += 1
+            stable = kappa_converged(new, coeffs)
+            coeffs = new
+            if stable:
+                shape_done = True
+                break
+        fx, fy = surface_slopes(coeffs, xa, ya)
+        d_beta = float(np.arctan(fx) - np.arctan(design_sx))
+        d_alpha = -float(np.arctan(fy) - np.arctan(design_sy))
+        alpha += d_alpha
+        beta += d_beta
+        z_measure = float(surface_z(coeffs, xm, ym))
+        t_z = _solve_t_z(assembly, Motion(alpha, beta, 0.0, pivot), np.array([xm, ym, z_measure]),
+                         measured_distance_m)
+        if shape_done and inner == 1 and max(abs(d_alpha), abs(d_beta)) < 1e-6:
+            converged = True
+            break
+    return ShapeSolution(coeffs, Motion(alpha, beta, t_z, pivot), shape_total, outer, converged)
