@@ -24,6 +24,10 @@ class FacetNotFoundError(CaptureError):
     """No facet, or not the whole facet, is visible in the capture."""
 
 
+class DisplayNotShowingError(CaptureError):
+    """The white and dark frames are the same: the display shows nothing the camera can see."""
+
+
 class DisplayError(StationError):
     """The fringe display could not be created or did not show what was asked."""
 

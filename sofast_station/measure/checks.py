@@ -1,0 +1,144 @@
+"""Checks that turn bad captures into clear errors instead of silent wrong answers.
+
+Each check names what is wrong and what to do. They run inside :func:`~sofast_station.measure.pipeline.analyse`
+at the point where the quantity they need exists.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from ..errors import CaptureError, DisplayNotShowingError, FacetNotFoundError
+from ..fringes import FringeSet
+
+
+def check_frames(frames: np.ndarray, fringes: FringeSet, shape: tuple[int, int]) -> None:
+    """Raise :class:`CaptureError` unless *frames* is a (n_frames, rows, columns) integer stack."""
+    if not isinstance(frames, np.ndarray):
+        raise CaptureError(f"frames must be a numpy array, got {type(frames).__name__}")
+    if frames.ndim != 3 or frames.shape[0] != fringes.n_frames:
+        raise CaptureError(f"expected {fringes.n_frames} frames (dark, white, then {fringes.n_frames - 2} "
+                           f"fringe frames) of {shape[1]} x {shape[0]} pixels, got an array of shape "
+                           f"{frames.shape}; capture the whole sequence")
+    if frames.shape[1:] != shape:
+        raise CaptureError(f"frames are {frames.shape[2]} x {frames.shape[1]} pixels but the camera "
+                           f"calibration is for {shape[1]} x {shape[0]}; use the calibration of this camera")
+    if not np.issubdtype(frames.dtype, np.integer):
+        raise CaptureError(f"frames must hold integer camera counts, got dtype {frames.dtype}")
+
+
+def check_response(dark: np.ndarray, white: np.ndarray, threshold_dn: float) -> None:
+    """Something must respond to the screen: tell a dark scene from a display that shows nothing."""
+    brightest = int(white.max())
+    if brightest <= threshold_dn:
+        raise FacetNotFoundError(
+            f"the white frame is dark everywhere (brightest pixel {brightest} DN): no facet in view, the lens "
+            "is covered or there is no light; put a facet in the fixture and check the camera")
+    diff = white.astype(np.int32) - dark.astype(np.int32)
+    if int(diff.max()) <= threshold_dn:
+        raise DisplayNotShowingError(
+            f"the white frame equals the dark frame (largest difference {int(diff.max())} DN, threshold "
+            f"{threshold_dn:g} DN): the display is not showing the patterns (off, unplugged or the wrong "
+            "monitor), or nothing in view reflects it")
+
+
+def check_region(region: np.ndarray, expected_area_px: float, min_area_fraction: float = 0.5) -> None:
+    """The facet region must be whole: not cut off at the image border, not much smaller than expected."""
+    area = int(region.sum())
+    if area < min_area_fraction * expected_area_px:
+        raise FacetNotFoundError(
+            f"the facet covers only {area} pixels where the design in the fixture should cover about "
+            f"{expected_area_px:.0f}: the facet is too small in the image, partly hidden, not the recipe's "
+            "facet type, or not in the fixture")
+    h, w = region.shape
+    sides = {"top": region[0].any(), "bottom": region[h - 1].any(), "left": region[:, 0].any(),
+             "right": region[:, w - 1].any()}
+    cut = [name for name, touches in sides.items() if touches]
+    if cut:
+        raise FacetNotFoundError(
+            f"the facet is cut off at the image's {' and '.join(cut)} edge: it is misplaced in the fixture or the "
+            "camera is aimed wrongly; the whole outline must be in view")
+
+
+def check_saturation(frames: np.ndarray, idx: np.ndarray, max_fraction: float) -> None:
+    """Too many facet pixels at the camera's top count make phases wrong: refuse the capture."""
+    top = np.iinfo(frames.dtype).max if frames.dtype != np.uint8 else 255
+    flat = frames.reshape(frames.shape[0], -1)
+    for k in range(1, frames.shape[0]):     # the dark frame (0) cannot saturate meaningfully
+        frac = float(np.count_nonzero(flat[k, idx] >= top)) / max(idx.size, 1)
+        if frac > max_fraction:
+            what = "white frame" if k == 1 else f"fringe frame {k}"
+            raise CaptureError(
+                f"{100 * frac:.1f} % of the facet's pixels are saturated ({top} DN) in the {what}: lower the "
+                "exposure or gain (rerun the radiometric calibration), or dim the room light")
+
+
+def check_order(frames: np.ndarray, fringes: FringeSet) -> None:
+    """The dark frame must be the darkest and the white frame the brightest of the sequence.
+
+    Judged on image-wide means (a fixed stride of pixels), before anything else, so that swapped or
+    shifted frames are reported as such rather than as a dark scene. When no frame differs from another
+    (nothing responds to the screen) there is no order to judge; :func:`check_response` reports that.
+    """
+    flat = frames.reshape(frames.shape[0], -1)
+    sample = flat[:, :: max(1, flat.shape[1] // 200_000)].astype(np.float32)
+    means = sample.mean(axis=1)
+    if float(means.max() - means.min()) < 0.5:
+        return
+    labels = [p.label for p in fringes.patterns()]
+    darkest, brightest = int(np.argmin(means)), int(np.argmax(means))
+    tie = 0.02 * float(means.max() - means.min())      # a saturated white may tie with a fringe peak
+    if means[0] > means[darkest] + tie or means[1] < means[brightest] - tie:
+        raise CaptureError(
+            f"the frames are out of order: the darkest is frame {darkest} ({labels[darkest]}) and the brightest "
+            f"frame {brightest} ({labels[brightest]}), where the dark and white frames must come first; capture "
+            "the sequence in the fringe definition's order (a display lagging by a frame also does this: "
+            "lengthen the settle time)")
+
+
+def check_repeats(frames: np.ndarray, idx: np.ndarray, fringes: FringeSet, noise_dn: float) -> None:
+    """No frame may repeat its predecessor over the facet (a stuck or lagging display): consecutive
+    displayed images differ everywhere by far more than the noise."""
+    stack = frames.reshape(frames.shape[0], -1)[:, idx]
+    sample = stack[:, :: max(1, idx.size // 50_000)].astype(np.float32)
+    contrast = float(np.median(sample[1] - sample[0]))
+    labels = [p.label for p in fringes.patterns()]
+    for k in range(1, frames.shape[0]):
+        change = float(np.median(np.abs(sample[k] - sample[k - 1])))
+        if change < max(3.0 * noise_dn, 0.01 * contrast):
+            raise CaptureError(
+                f"frame {k} ({labels[k]}) repeats frame {k - 1} ({labels[k - 1]}): median change {change:.1f} DN, "
+                f"about the noise: the display is stuck or too slow for the capture; check the display and its "
+                "settle time")
+
+
+def check_phase_sets(inconsistent_fraction: dict, disagreement_fraction: dict, limit: float = 0.5) -> None:
+    """Whole sets failing the four-step check, or coarse and fine phases disagreeing almost everywhere,
+    mean frames shown out of order or not finished, not a poor facet."""
+    for name, frac in inconsistent_fraction.items():
+        if frac > limit:
+            raise CaptureError(
+                f"the {name} fringe set fails the check I0 + I2 = I1 + I3 at {100 * frac:.0f} % of the facet: a frame "
+                "was captured before the display finished showing it, or the frames are out of order; "
+                "lengthen the settle time or check the sequence")
+    for axis, frac in disagreement_fraction.items():
+        if frac > limit:
+            raise CaptureError(
+                f"coarse and fine {axis} phases disagree at {100 * frac:.0f} % of the facet: the fringe sets are "
+                "out of order or the period list does not match the frames; check the fringe definition")
+
+
+def projected_outline_mask(shape: tuple[int, int], outline_px: np.ndarray) -> np.ndarray:
+    """Filled polygon of the outline's image points (column, row), as a bool mask."""
+    mask = np.zeros(shape, dtype=np.uint8)
+    pts = np.round(outline_px * 16).astype(np.int32).reshape(-1, 1, 2)
+    cv2.fillPoly(mask, [pts], 1, lineType=cv2.LINE_8, shift=4)
+    return mask.astype(bool)
+
+
+def outline_agreement(region: np.ndarray, outline_px: np.ndarray) -> float:
+    """Intersection over union of the facet region and the design outline projected with the pose."""
+    proj = projected_outline_mask(region.shape, outline_px)
+    union = np.count_nonzero(region | proj)
+    return float(np.count_nonzero(region & proj) / union) if union else 0.0
