@@ -61,7 +61,8 @@ def _fmt(v, unit="", digits=4):
 
 def summary_text(rec: dict) -> str:
     """A readable summary of one result record."""
-    lines = [f"Facet {rec['serial']} ({rec['facet']}) on {rec['station']}, {rec['time']}"]
+    lines = [f"Facet {rec['serial']} ({rec['facet']}) on {rec['station']}, {rec['time']}",
+             f"  verdict: {rec['verdict'].upper()}" + "".join(f"\n    - {r}" for r in rec.get("reasons", []))]
     truth = rec.get("truth")
 
     def row(label, key, unit="", digits=4, scale=1.0):
@@ -83,10 +84,20 @@ def summary_text(rec: dict) -> str:
         if t:
             text += f"   (truth {t['x']:.3f} {t['y']:.3f} {t['magnitude']:.3f})"
         lines.append(text)
+    b = rec.get("boresight_mrad")
+    if b:
+        tb = truth.get("boresight_mrad") if truth else None
+        extra = f"   (truth {tb['x']:.3f}, {tb['y']:.3f})" if tb else ""
+        lines.append(f"  boresight rotation (x, y)   {b['x']:7.3f}, {b['y']:.3f} mrad{extra}")
+    pl = rec.get("placement")
+    if pl:
+        lines.append("  placement in fixture       " + ", ".join(f"{v:.2f}" for v in pl["mm"]) + " mm, "
+                     + ", ".join(f"{v:.2f}" for v in pl["mrad"]) + " mrad")
     lines.append(f"  points                    {rec['n_points']:>14,}   ({100 * rec['valid_fraction']:.1f} % of the facet's pixels)")
     lines.append(f"  median modulation         {rec['median_modulation_dn']:>11.1f} DN")
     it = rec["iterations"]
-    lines.append(f"  shape iterations          {it['shape']:>14}   ({'converged' if it['converged'] else 'NOT converged'})")
+    lines.append(f"  iterations                {it['shape']:>9} shape, {it['boresight']} boresight "
+                 f"({'converged' if it['converged'] else 'NOT converged'})")
     t = rec["timings_s"]
     lines.append(f"  time: capture {t['capture']:.2f} s, analysis {t['analysis']:.2f} s, total {t['total']:.2f} s")
     return "\n".join(lines)

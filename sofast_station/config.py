@@ -22,8 +22,10 @@ from .fringes import FringeSet
 from .geometry import CameraIntrinsics, ScreenSpec, StationGeometry
 from .layout import layout_station
 from .measure.pipeline import AnalysisSettings
+from .station.verdict import Limits, Quality, limits_from_table, quality_from_table
 
-_SECTIONS = {"station", "camera", "screen", "layout", "fringes", "analysis", "calibration", "simulation"}
+_SECTIONS = {"station", "camera", "screen", "layout", "fringes", "analysis", "limits", "quality", "calibration",
+             "simulation"}
 _STATION_KEYS = {"name", "data_dir", "backend", "facet"}
 _CAMERA_KEYS = {"width_px", "height_px", "focal_length_px", "principal_point_px", "distortion"}
 _LAYOUT_KEYS = {"separation_m", "separation_axis"}
@@ -59,6 +61,8 @@ class StationConfig:
     geometry: StationGeometry
     fringes: FringeSet
     analysis: AnalysisSettings
+    limits: Limits
+    quality: Quality
     radiometric_path: Path | None
     simulation: dict = field(default_factory=dict)
     raw: dict = field(default_factory=dict)
@@ -128,10 +132,12 @@ def load_config(path: str | Path) -> StationConfig:
     an = raw.get("analysis", {})
     _check_keys(an, {f.name for f in fields(AnalysisSettings)}, f"{where} [analysis]")
     analysis = AnalysisSettings(**an)
+    limits = limits_from_table(raw.get("limits", {}), f"{where} [limits]")
+    quality = quality_from_table(raw.get("quality", {}), f"{where} [quality]")
     cal = raw.get("calibration", {})
     _check_keys(cal, {"radiometric"}, f"{where} [calibration]")
     radiometric = base / cal["radiometric"] if "radiometric" in cal else None
     return StationConfig(path=path, name=str(st.get("name", path.stem)), data_dir=data_dir, backend=backend,
                          facet_path=facet_path, design=design, geometry=geometry, fringes=fringes,
-                         analysis=analysis, radiometric_path=radiometric, simulation=raw.get("simulation", {}),
+                         analysis=analysis, limits=limits, quality=quality, radiometric_path=radiometric, simulation=raw.get("simulation", {}),
                          raw=raw)

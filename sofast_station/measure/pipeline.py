@@ -15,14 +15,17 @@ from ..errors import AnalysisError, CaptureError, FacetNotFoundError
 from ..facet import FacetDesign
 from ..fringes import FringeSet
 from ..geometry import Pose, StationGeometry
+from . import checks
 from . import corners as corners_mod
 from .camera import pixel_rays, project, to_frame
-from .fit import ParabolaFit, fit_parabola
+from .boresight import Assembly, solve_shape
+from .fit import fit_cubic, fit_parabola
 from .mask import facet_region
 from .metrics import focal_length_m, principal_axes, rms_summary, slope_residuals_mrad
 from .phase import intensity_noise_dn, phase_and_modulation, position_sigma_m, unwrap_positions
 from .pose import fix_range, solve_corner_pose
 from .screen import FlatScreen, ScreenModel
+from .pose import placement
 from .surface import intersect_quadratic, normal_slopes, surface_slopes, surface_z
 
 
@@ -50,6 +53,10 @@ class AnalysisSettings:
         Largest accepted distance of a found corner from its nominal image position, pixels.
     max_hole_px : int
         Holes in the facet region up to this area are filled, pixels.
+    max_saturated_fraction : float
+        A capture with more of the facet's pixels at the camera's top count than this is refused.
+    max_corner_rms_px : float
+        Corners farther than this (RMS, pixels) from the design outline under the best pose are refused.
     """
 
     mask_threshold_dn: float = 20.0
@@ -61,6 +68,8 @@ class AnalysisSettings:
     max_range_shift_m: float = 0.25
     corner_tolerance_px: float = 80.0
     max_hole_px: int = 2000
+    max_saturated_fraction: float = 0.005
+    max_corner_rms_px: float = 2.0
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)
@@ -97,32 +106,20 @@ class _Timer:
         self._t = now
 
 
-def check_frames(frames: np.ndarray, fringes: FringeSet, shape: tuple[int, int]) -> None:
-    """Raise :class:`CaptureError` unless *frames* is a (n_frames, rows, columns) integer stack."""
-    if not isinstance(frames, np.ndarray):
-        raise CaptureError(f"frames must be a numpy array, got {type(frames).__name__}")
-    expected = (fringes.n_frames, *shape)
-    if frames.ndim != 3 or frames.shape[0] != fringes.n_frames:
-        raise CaptureError(f"expected {fringes.n_frames} frames (dark, white, then {fringes.n_frames - 2} "
-                           f"fringe frames) of {shape[1]} x {shape[0]} pixels, got an array of shape "
-                           f"{frames.shape}; capture the whole sequence")
-    if frames.shape[1:] != shape:
-        raise CaptureError(f"frames are {frames.shape[2]} x {frames.shape[1]} pixels but the camera "
-                           f"calibration is for {shape[1]} x {shape[0]}; use the calibration of this camera")
-    if not np.issubdtype(frames.dtype, np.integer):
-        raise CaptureError(f"frames must hold integer camera counts, got dtype {frames.dtype}")
-    del expected
+def _phase_sets(stack: np.ndarray, sets: list[slice]):
+    """Phase, modulation and consistency residual of each four-step set of one axis (gathered pixels)."""
+    out = [phase_and_modulation(stack[sl]) for sl in sets]
+    return [o[0] for o in out], [o[1] for o in out], [o[2] for o in out]
 
 
-def _positions(stack: np.ndarray, sets: list[slice], periods, length_m: float, settings: AnalysisSettings):
-    """Phase sets of one axis -> positions (metres), validity and diagnostics, for the gathered pixels."""
-    phases, mods, cons = [], [], []
-    for sl in sets:
-        phi, b, r = phase_and_modulation(stack[sl])
-        phases.append(phi)
-        mods.append(b)
-        cons.append(r)
-    return phases, mods, cons
+def outline_image_points(design: FacetDesign, camera, facet_to_camera: Pose, per_side: int = 64) -> np.ndarray:
+    """Image points (column, row) along the design outline on the design surface, *per_side* per side."""
+    corners = design.outline_m
+    t = np.linspace(0.0, 1.0, per_side, endpoint=False)[:, None]
+    xy = np.concatenate([corners[i] + t * (corners[(i + 1) % len(corners)] - corners[i])
+                         for i in range(len(corners))])
+    pts = np.column_stack([xy, design.z(xy[:, 0], xy[:, 1])])
+    return project(camera, facet_to_camera, pts)
 
 
 def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, design: FacetDesign,
@@ -153,34 +150,38 @@ def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, d
     """
     timer = _Timer()
     cam = geometry.camera
-    check_frames(frames, fringes, cam.shape)
+    checks.check_frames(frames, fringes, cam.shape)
     if screen is None:
         screen = FlatScreen(geometry.screen.width_m, geometry.screen.height_m, geometry.screen_to_camera)
 
     # 1. Facet region from dark and white.
     dark, white = frames[0], frames[1]
+    checks.check_order(frames, fringes)
+    checks.check_response(dark, white, settings.mask_threshold_dn)
     region = facet_region(dark, white, settings.mask_threshold_dn, settings.max_hole_px)
-    if region.sum() < 1000:
-        raise FacetNotFoundError(f"only {int(region.sum())} pixels respond to the screen (white - dark > "
-                                 f"{settings.mask_threshold_dn} DN); no facet is in view or the screen is off")
+    nominal_outline = outline_image_points(design, cam, geometry.fixture_to_camera)
+    checks.check_region(region, float(checks.projected_outline_mask(cam.shape, nominal_outline).sum()))
     timer.lap("mask")
 
     # 2-4. Phase, modulation, consistency and unwrapping for the facet's pixels.
     idx = np.flatnonzero(region)
+    checks.check_saturation(frames, idx, settings.max_saturated_fraction)
     stack = frames.reshape(frames.shape[0], -1)[:, idx]
     slices = fringes.slices()
-    raw = {axis: _positions(stack, slices[axis], getattr(fringes, f"periods_{axis}"),
-                            screen.width_m if axis == "x" else screen.height_m, settings)
-           for axis in ("x", "y")}
+    raw = {axis: _phase_sets(stack, slices[axis]) for axis in ("x", "y")}
     noise_dn = intensity_noise_dn(np.concatenate([np.concatenate(raw[a][2]) for a in ("x", "y")]))
+    checks.check_repeats(frames, idx, fringes, noise_dn)
     ok = np.ones(idx.size, dtype=bool)
     min_mod = np.full(idx.size, np.inf)
     inconsistent = np.zeros(idx.size, dtype=bool)
     cons_limit = settings.consistency_sigmas * 2.0 * noise_dn + 1.0
+    inconsistent_fraction = {}
     for axis in ("x", "y"):
-        for b, r in zip(raw[axis][1], raw[axis][2]):
+        for p, b, r in zip(getattr(fringes, f"periods_{axis}"), raw[axis][1], raw[axis][2]):
             min_mod = np.minimum(min_mod, b)
-            inconsistent |= np.abs(r) > cons_limit
+            bad = np.abs(r) > cons_limit
+            inconsistent_fraction[f"{axis} p={p:g}"] = float(np.count_nonzero(bad)) / idx.size
+            inconsistent |= bad
     low_mod = min_mod < settings.min_modulation_dn
     ok &= ~low_mod & ~inconsistent
     positions, unwrap_stats = {}, {}
@@ -192,6 +193,8 @@ def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, d
         positions[axis] = res.position_m
         unwrap_stats[axis] = res
         ok &= res.valid
+    checks.check_phase_sets(inconsistent_fraction,
+                            {a: unwrap_stats[a].disagreements / idx.size for a in ("x", "y")})
     timer.lap("phase")
 
     # Corners and pose.
@@ -201,11 +204,16 @@ def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, d
     expected = project(cam, geometry.fixture_to_camera, corners_3d)
     found = corners_mod.match_corners(outline.corners_px, expected, settings.corner_tolerance_px)
     corner_pose = solve_corner_pose(cam, found, corners_3d, geometry.fixture_to_camera)
+    if corner_pose.reprojection_rms_px > settings.max_corner_rms_px:
+        raise FacetNotFoundError(
+            f"the corners found in the mask do not fit the design outline ({corner_pose.reprojection_rms_px:.1f} px "
+            "RMS): the facet is partly lit or obstructed, or it is not the recipe's facet type")
     measure_point = np.array([*design.measure_point_m, float(design.z(*design.measure_point_m))])
     screen_centre_cam = screen.points_camera(np.array([0.5 * screen.width_m]),
                                              np.array([0.5 * screen.height_m]))[:, 0]
     facet_to_camera, range_shift = fix_range(corner_pose.facet_to_camera, measure_point, screen_centre_cam,
                                              measured_distance_m, settings.max_range_shift_m)
+    agreement = checks.outline_agreement(region, outline_image_points(design, cam, facet_to_camera))
     timer.lap("pose")
 
     # Rays and screen points in the facet frame, valid pixels only (raster order).
@@ -226,44 +234,28 @@ def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, d
     screen_f = to_frame(camera_to_facet, screen.points_camera(positions["x"][ok], positions["y"][ok]))
     timer.lap("rays")
 
-    # Shape iteration on the subsample, then all points.
-    z_measure = float(measure_point[2])
-
-    def with_piston(fit: ParabolaFit) -> np.ndarray:
-        c = fit.coefficients()
-        c[5] = z_measure - surface_z(c, measure_point[0], measure_point[1])
-        return c
-
-    coeffs = design.coefficients.copy()
-    coeffs[5] = z_measure - surface_z(coeffs, measure_point[0], measure_point[1])
-    sub = slice(None, None, settings.subsample_step)
-    rays_sub, screen_sub = rays_f[:, sub], screen_f[:, sub]
-    converged = False
-    iterations = 0
-    for iterations in range(1, settings.max_iterations + 1):
-        pts = intersect_quadratic(coeffs, cam_f, rays_sub)
-        sx, sy = normal_slopes(pts, cam_f, screen_sub)
-        new = with_piston(fit_parabola(pts[0], pts[1], sx, sy))
-        dk = 4.0 * np.abs(new[:2] - coeffs[:2])
-        kappa = 4.0 * np.abs(new[:2])
-        coeffs = new
-        if np.all(dk < 1e-6 * np.maximum(kappa, 1e-3)):
-            converged = True
-            break
+    # Shape and boresight iterated on the subsample, then all points.
+    full = Assembly(cam_f, rays_f, screen_f, to_frame(camera_to_facet, screen_centre_cam[:, None])[:, 0])
+    solution = solve_shape(full.subset(slice(None, None, settings.subsample_step)), design, measured_distance_m,
+                           settings.max_iterations)
     timer.lap("iterate")
 
-    points = intersect_quadratic(coeffs, cam_f, rays_f)
-    s_x, s_y = normal_slopes(points, cam_f, screen_f)
+    moved = full.moved(solution.motion)
+    points = intersect_quadratic(solution.coefficients, moved.camera_m, moved.rays)
+    s_x, s_y = normal_slopes(points, moved.camera_m, moved.screen_m)
     finite = np.isfinite(s_x) & np.isfinite(s_y)
     if not np.all(finite):
         raise AnalysisError(f"{int((~finite).sum())} pixel rays miss the fitted surface; the fit diverged")
-    fit = fit_parabola(points[0], points[1], s_x, s_y)
-    coeffs = with_piston(fit)
     x, y = points[0], points[1]
+    fit = fit_parabola(x, y, s_x, s_y)
+    coeffs = fit.coefficients()
+    coeffs[5] = float(design.z(*design.alignment_point_m)) - surface_z(coeffs, *design.alignment_point_m)
+    cubic = fit_cubic(x, y, s_x, s_y)
     dx, dy = surface_slopes(design.coefficients, x, y)
     px, py = surface_slopes(coeffs, x, y)
     residuals = {"design": slope_residuals_mrad(s_x, s_y, dx, dy),
-                 "parabola": slope_residuals_mrad(s_x, s_y, px, py)}
+                 "parabola": slope_residuals_mrad(s_x, s_y, px, py),
+                 "higher_order": slope_residuals_mrad(s_x, s_y, *cubic.slopes(x, y))}
     timer.lap("fit")
 
     valid = np.zeros(cam.shape, dtype=bool)
@@ -292,8 +284,14 @@ def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, d
                     **{f"{k}_{a}": getattr(unwrap_stats[a], k) for a in ("x", "y")
                        for k in ("coarse_out_of_range", "disagreements", "edge_guard")}},
         "unwrap_disagreements": int(unwrap_stats["x"].disagreements + unwrap_stats["y"].disagreements),
-        "iterations": {"shape": iterations, "converged": converged},
+        "iterations": {"shape": solution.shape_iterations, "boresight": solution.boresight_iterations,
+                       "converged": solution.converged},
+        "boresight_mrad": {"x": 1000.0 * solution.motion.alpha_rad, "y": 1000.0 * solution.motion.beta_rad},
+        "boresight_shift_z_m": solution.motion.t_z_m,
+        "placement": placement(geometry.fixture_to_camera, facet_to_camera, design),
+        "higher_order": cubic.to_dict(),
         "corner_reprojection_rms_px": corner_pose.reprojection_rms_px,
+        "outline_agreement": agreement,
         "range_correction_m": range_shift,
         "measured_distance_m": float(measured_distance_m),
     }

@@ -20,13 +20,14 @@ from ..config import StationConfig
 from ..devices.protocols import Camera, Display, RangeFinder
 from ..measure.camera import ray_grid
 from ..measure.pipeline import Analysis, analyse
+from .verdict import judge
 
 log = logging.getLogger(__name__)
 
 #: Figures copied from an analysis into the result (and compared with truth).
 FIGURE_KEYS = ("focal_length_x_m", "focal_length_y_m", "curvature_x_per_m", "curvature_y_per_m",
                "twist_mrad_per_m", "twist_e1_mrad_per_m", "twist_e2_mrad_per_m", "principal_focal_lengths_m",
-               "axis_angle_rad", "slope_rms_mrad", "n_points")
+               "axis_angle_rad", "slope_rms_mrad", "n_points", "boresight_mrad")
 
 
 @dataclass
@@ -119,6 +120,7 @@ def inspect(station: Station, serial: str, progress=None) -> dict:
     timings = {"capture": t_capture, **{f"analysis_{k}": v for k, v in analysis.timings_s.items()},
                "analysis": t_analysis}
     record = result_record(station, serial, analysis, timings)
+    record.update(judge(analysis.figures, station.config.design, station.config.limits, station.config.quality))
     if station.twin is not None:
         from ..twin.truth import ground_truth
         truth = ground_truth(station.twin, analysis.valid)

@@ -1,0 +1,117 @@
+"""Pass, fail or invalid: the facet's figures against configured limits.
+
+*invalid* means the measurement itself cannot be trusted (too few valid points, poor fringe contrast,
+many unwrap disagreements, a corner pose that does not match the mask, an iteration that did not
+converge); it is decided first, because limits applied to an untrustworthy figure mean nothing.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields
+
+from ..errors import ConfigError
+from ..facet import FacetDesign
+
+#: Above this design focal length (metres) limits are stated on curvature (SPEC.md, "Conventions").
+LONG_FOCAL_LENGTH_M = 20.0
+
+
+@dataclass(frozen=True)
+class Limits:
+    """Acceptance limits (``[limits]`` in station.toml).
+
+    Attributes
+    ----------
+    focal_length_tolerance : float
+        Largest relative deviation |f / f_design - 1| of f_x and f_y, for design f up to 20 m.
+    curvature_tolerance_per_m : float
+        Largest |kappa - kappa_design| (1/m) of kappa_x and kappa_y, for design f above 20 m.
+    max_twist_mrad_per_m : float
+        Largest |twist|, mrad/m.
+    max_slope_rms_mrad : dict
+        Largest magnitude RMS residual per model ("design", "parabola", "higher_order"), mrad.
+    """
+
+    focal_length_tolerance: float = 0.02
+    curvature_tolerance_per_m: float = 2e-4
+    max_twist_mrad_per_m: float = 1.0
+    max_slope_rms_mrad: dict = field(default_factory=lambda: {"design": 3.0, "parabola": 2.0})
+
+
+@dataclass(frozen=True)
+class Quality:
+    """When a measurement is *invalid* (``[quality]`` in station.toml)."""
+
+    min_valid_fraction: float = 0.9
+    min_median_modulation_dn: float = 10.0
+    max_unwrap_disagreement_fraction: float = 0.01
+    min_outline_agreement: float = 0.95
+    max_corner_reprojection_px: float = 1.0
+
+
+def _from_table(cls, table: dict, where: str):
+    known = {f.name for f in fields(cls)}
+    unknown = sorted(set(table) - known)
+    if unknown:
+        raise ConfigError(f"{where} has unknown key(s) {', '.join(unknown)}; allowed: {', '.join(sorted(known))}")
+    return cls(**table)
+
+
+def limits_from_table(table: dict, where: str) -> Limits:
+    lim = _from_table(Limits, table, where)
+    models = {"design", "parabola", "higher_order"}
+    if not set(lim.max_slope_rms_mrad) <= models:
+        raise ConfigError(f"{where}.max_slope_rms_mrad keys must be among {sorted(models)}")
+    return lim
+
+
+def quality_from_table(table: dict, where: str) -> Quality:
+    return _from_table(Quality, table, where)
+
+
+def judge(fig: dict, design: FacetDesign, limits: Limits, quality: Quality) -> dict:
+    """``{"verdict": "pass" | "fail" | "invalid", "reasons": [...]}`` for one facet's figures."""
+    invalid = []
+    if fig["valid_fraction"] < quality.min_valid_fraction:
+        invalid.append(f"only {100 * fig['valid_fraction']:.1f} % of the facet's pixels are valid "
+                       f"(minimum {100 * quality.min_valid_fraction:.0f} %)")
+    if fig["median_modulation_dn"] < quality.min_median_modulation_dn:
+        invalid.append(f"fringe contrast too low: median modulation {fig['median_modulation_dn']:.1f} DN "
+                       f"(minimum {quality.min_median_modulation_dn:g})")
+    disagree = fig["unwrap_disagreements"] / max(fig["facet_pixels"], 1)
+    if disagree > quality.max_unwrap_disagreement_fraction:
+        invalid.append(f"{100 * disagree:.2f} % of pixels disagree between coarse and fine phase "
+                       f"(maximum {100 * quality.max_unwrap_disagreement_fraction:g} %)")
+    if fig["outline_agreement"] < quality.min_outline_agreement:
+        invalid.append(f"the corner pose does not match the mask (outline agreement {fig['outline_agreement']:.3f}, "
+                       f"minimum {quality.min_outline_agreement}): partly lit or obstructed facet?")
+    if fig["corner_reprojection_rms_px"] > quality.max_corner_reprojection_px:
+        invalid.append(f"corners do not fit the design outline ({fig['corner_reprojection_rms_px']:.2f} px RMS)")
+    if not fig["iterations"]["converged"]:
+        invalid.append(f"shape and boresight iteration did not converge in {fig['iterations']['boresight']} steps")
+    if invalid:
+        return {"verdict": "invalid", "reasons": invalid}
+
+    fail = []
+    f_design = design.focal_length_m
+    for axis in ("x", "y"):
+        kappa = fig[f"curvature_{axis}_per_m"]
+        if f_design > LONG_FOCAL_LENGTH_M:
+            dk = kappa - 1.0 / f_design
+            if abs(dk) > limits.curvature_tolerance_per_m:
+                fail.append(f"curvature {axis} {kappa:.6f} /m is {dk:+.2e} /m from design "
+                            f"(limit {limits.curvature_tolerance_per_m:g})")
+        else:
+            f = fig[f"focal_length_{axis}_m"]
+            rel = float("inf") if f is None else f / f_design - 1.0
+            if abs(rel) > limits.focal_length_tolerance:
+                shown = "infinite" if f is None else f"{f:.4f} m"
+                fail.append(f"focal length {axis} {shown} is {100 * rel:+.2f} % from design "
+                            f"(limit {100 * limits.focal_length_tolerance:g} %)")
+    if abs(fig["twist_mrad_per_m"]) > limits.max_twist_mrad_per_m:
+        fail.append(f"twist {fig['twist_mrad_per_m']:.3f} mrad/m (limit {limits.max_twist_mrad_per_m:g})")
+    for model, limit in limits.max_slope_rms_mrad.items():
+        rms = fig["slope_rms_mrad"][model]["magnitude"]
+        if rms > limit:
+            fail.append(f"{model} slope error {rms:.3f} mrad RMS (limit {limit:g})")
+    return {"verdict": "fail" if fail else "pass", "reasons": fail}
