@@ -89,6 +89,11 @@ class FacetDesign:
         return (np.asarray(x) ** 2 + np.asarray(y) ** 2) / (4.0 * self.focal_length_m)
 
     @property
+    def middle_m(self) -> np.ndarray:
+        """Centre (x, y) of the outline's bounding box, metres: where the station aims."""
+        return 0.5 * (self.outline_m.min(axis=0) + self.outline_m.max(axis=0))
+
+    @property
     def centroid_m(self) -> np.ndarray:
         """Area centroid (x, y) of the outline polygon, metres."""
         x, y = self.outline_m[:, 0], self.outline_m[:, 1]

@@ -28,8 +28,8 @@ def _perpendicular_part(v: np.ndarray, n: np.ndarray) -> np.ndarray:
 def layout_distance_m(design: FacetDesign) -> float:
     """Distance (metres) from the facet's middle to the point halfway between camera and screen.
 
-    The mean of the meridional and sagittal radii of curvature of the design paraboloid at the outline
-    centroid, unless the facet file sets ``layout.distance_m`` (nearly flat facets).
+    The mean of the meridional and sagittal radii of curvature of the design paraboloid at the facet's
+    middle (the centre of its outline's bounding box), unless the facet file sets ``layout.distance_m`` (nearly flat facets).
     """
     if "distance_m" in design.layout:
         d = float(design.layout["distance_m"])
@@ -37,7 +37,7 @@ def layout_distance_m(design: FacetDesign) -> float:
             raise ConfigError(f"facet {design.name!r}: layout.distance_m must be positive, got {d}")
         return d
     f = design.focal_length_m
-    rho2 = float(np.sum(design.centroid_m ** 2))
+    rho2 = float(np.sum(design.middle_m ** 2))
     stretch = 1.0 + rho2 / (4.0 * f * f)
     r_meridional = 2.0 * f * stretch ** 1.5
     r_sagittal = 2.0 * f * stretch ** 0.5
@@ -61,7 +61,7 @@ def layout_station(design: FacetDesign, camera: CameraIntrinsics, screen: Screen
     if not separation_m > half_extent:
         raise ConfigError(f"layout separation_m = {separation_m} m puts the camera inside the screen: it must "
                           f"exceed half the screen's extent along {separation_axis} ({half_extent:.3f} m)")
-    centre_xy = design.centroid_m
+    centre_xy = design.middle_m
     p_mid_fix = np.array([centre_xy[0], centre_xy[1], float(design.z(*centre_xy))])
     f = design.focal_length_m
     n_mid_fix = _unit(np.array([-centre_xy[0] / (2 * f), -centre_xy[1] / (2 * f), 1.0]))
