@@ -28,7 +28,7 @@ _SECTIONS = {"station", "camera", "screen", "layout", "fringes", "analysis", "li
              "simulation"}
 _STATION_KEYS = {"name", "data_dir", "backend", "facet"}
 _CAMERA_KEYS = {"width_px", "height_px", "focal_length_px", "principal_point_px", "distortion"}
-_LAYOUT_KEYS = {"separation_m", "separation_axis"}
+_LAYOUT_KEYS = {"separation_m", "separation_axis", "screen_offset_m"}
 _BACKENDS = ("simulated",)
 
 
@@ -121,8 +121,11 @@ def load_config(path: str | Path) -> StationConfig:
     lay = raw.get("layout", {})
     _check_keys(lay, _LAYOUT_KEYS, f"{where} [layout]")
     try:
+        offset = lay.get("screen_offset_m", [0.0, 0.0])
+        if len(offset) != 2 or not all(isinstance(v, (int, float)) for v in offset):
+            raise ConfigError("screen_offset_m must be [x, y] in metres")
         geometry = layout_station(design, camera, screen, float(_need(lay, "separation_m", f"{where} [layout]")),
-                                  lay.get("separation_axis", "x"))
+                                  lay.get("separation_axis", "x"), (float(offset[0]), float(offset[1])))
     except ConfigError as exc:
         raise ConfigError(f"{where} [layout]: {exc}") from None
     try:

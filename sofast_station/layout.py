@@ -45,7 +45,8 @@ def layout_distance_m(design: FacetDesign) -> float:
 
 
 def layout_station(design: FacetDesign, camera: CameraIntrinsics, screen: ScreenSpec,
-                   separation_m: float, separation_axis: str = "x") -> StationGeometry:
+                   separation_m: float, separation_axis: str = "x",
+                   screen_offset_m: tuple[float, float] = (0.0, 0.0)) -> StationGeometry:
     """Place camera and screen for *design* by the layout rule.
 
     Parameters
@@ -54,6 +55,10 @@ def layout_station(design: FacetDesign, camera: CameraIntrinsics, screen: Screen
         Camera-to-screen-centre distance, metres. Must keep the camera outside the screen.
     separation_axis : {"x", "y"}
         Facet axis along which camera and screen sit side by side.
+    screen_offset_m : (float, float)
+        Shift of the screen within its own plane (screen x, y), metres, after the rule has placed it.
+        An off-axis facet's reflection is not centred on the point the rule aims at (a 3 m gore's
+        footprint lies to one side of it); the shift centres it, which the twin's footprint check confirms.
     """
     if separation_axis not in _AXES:
         raise ConfigError(f"layout separation_axis must be 'x' or 'y', got {separation_axis!r}")
@@ -82,6 +87,10 @@ def layout_station(design: FacetDesign, camera: CameraIntrinsics, screen: Screen
     y_scr = _perpendicular_part(_AXES["y"], z_scr)
     x_scr = np.cross(y_scr, z_scr)
     r_scr_fix = np.column_stack([x_scr, y_scr, z_scr])      # columns: screen axes in the fixture frame
+    v_screen_fix = v_screen_fix + screen_offset_m[0] * x_scr + screen_offset_m[1] * y_scr
+    if np.linalg.norm(v_screen_fix - v_cam_fix) <= half_extent:
+        raise ConfigError("layout screen_offset_m moves the screen in front of the camera; the camera must "
+                          "stay beside the screen")
     screen_to_fixture = Pose(r_scr_fix, v_screen_fix)
     return StationGeometry(camera=camera, screen=screen,
                            screen_to_camera=fixture_to_camera.compose(screen_to_fixture),

@@ -23,6 +23,7 @@ import numpy as np
 
 from ..errors import GeometryError
 from ..facet import FacetDesign
+from ..geometry import Pose
 from .fit import fit_parabola
 from .surface import intersect_quadratic, normal_slopes, surface_slopes, surface_z
 
@@ -89,6 +90,11 @@ class Motion:
 
     def point(self, p: np.ndarray) -> np.ndarray:
         return self.points(np.asarray(p, np.float64)[:, None])[:, 0]
+
+    def as_pose(self) -> Pose:
+        """The motion as a Pose acting on facet-frame points."""
+        r = self.rotation
+        return Pose(r, self.pivot_m - r @ self.pivot_m + np.array([0.0, 0.0, self.t_z_m]))
 
 
 @dataclass(frozen=True)
@@ -183,3 +189,4 @@ def solve_shape(assembly: Assembly, design: FacetDesign, measured_distance_m: fl
             converged = True
             break
     return ShapeSolution(coeffs, Motion(alpha, beta, t_z, pivot), shape_total, outer, converged)
+

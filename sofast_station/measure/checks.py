@@ -61,12 +61,14 @@ def check_region(region: np.ndarray, expected_area_px: float, min_area_fraction:
             "camera is aimed wrongly; the whole outline must be in view")
 
 
-def check_saturation(frames: np.ndarray, idx: np.ndarray, max_fraction: float) -> None:
-    """Too many facet pixels at the camera's top count make phases wrong: refuse the capture."""
-    top = np.iinfo(frames.dtype).max if frames.dtype != np.uint8 else 255
-    flat = frames.reshape(frames.shape[0], -1)
-    for k in range(1, frames.shape[0]):     # the dark frame (0) cannot saturate meaningfully
-        frac = float(np.count_nonzero(flat[k, idx] >= top)) / max(idx.size, 1)
+def check_saturation(stack: np.ndarray, max_fraction: float) -> None:
+    """Too many facet pixels at the camera's top count make phases wrong: refuse the capture.
+
+    *stack* holds the facet's pixels of every frame, (n_frames, n_pixels).
+    """
+    top = np.iinfo(stack.dtype).max
+    for k in range(1, stack.shape[0]):     # the dark frame (0) cannot saturate meaningfully
+        frac = float(np.count_nonzero(stack[k] >= top)) / max(stack.shape[1], 1)
         if frac > max_fraction:
             what = "white frame" if k == 1 else f"fringe frame {k}"
             raise CaptureError(
@@ -97,14 +99,13 @@ def check_order(frames: np.ndarray, fringes: FringeSet) -> None:
             "lengthen the settle time)")
 
 
-def check_repeats(frames: np.ndarray, idx: np.ndarray, fringes: FringeSet, noise_dn: float) -> None:
+def check_repeats(stack: np.ndarray, fringes: FringeSet, noise_dn: float) -> None:
     """No frame may repeat its predecessor over the facet (a stuck or lagging display): consecutive
-    displayed images differ everywhere by far more than the noise."""
-    stack = frames.reshape(frames.shape[0], -1)[:, idx]
-    sample = stack[:, :: max(1, idx.size // 50_000)].astype(np.float32)
+    displayed images differ everywhere by far more than the noise. *stack*: (n_frames, n_facet_pixels)."""
+    sample = stack[:, :: max(1, stack.shape[1] // 20_000)].astype(np.float32)
     contrast = float(np.median(sample[1] - sample[0]))
     labels = [p.label for p in fringes.patterns()]
-    for k in range(1, frames.shape[0]):
+    for k in range(1, stack.shape[0]):
         change = float(np.median(np.abs(sample[k] - sample[k - 1])))
         if change < max(3.0 * noise_dn, 0.01 * contrast):
             raise CaptureError(

@@ -165,12 +165,12 @@ def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, d
 
     # 2-4. Phase, modulation, consistency and unwrapping for the facet's pixels.
     idx = np.flatnonzero(region)
-    checks.check_saturation(frames, idx, settings.max_saturated_fraction)
     stack = frames.reshape(frames.shape[0], -1)[:, idx]
+    checks.check_saturation(stack, settings.max_saturated_fraction)
     slices = fringes.slices()
     raw = {axis: _phase_sets(stack, slices[axis]) for axis in ("x", "y")}
     noise_dn = intensity_noise_dn(np.concatenate([np.concatenate(raw[a][2]) for a in ("x", "y")]))
-    checks.check_repeats(frames, idx, fringes, noise_dn)
+    checks.check_repeats(stack, fringes, noise_dn)
     ok = np.ones(idx.size, dtype=bool)
     min_mod = np.full(idx.size, np.inf)
     inconsistent = np.zeros(idx.size, dtype=bool)
@@ -197,7 +197,24 @@ def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, d
                             {a: unwrap_stats[a].disagreements / idx.size for a in ("x", "y")})
     timer.lap("phase")
 
-    # Corners and pose.
+    # Valid pixels (raster order): their rays and screen points in the camera frame.
+    vidx = idx[ok]
+    if vidx.size < 1000:
+        raise AnalysisError(f"only {vidx.size} pixels have a valid screen position (of {idx.size} facet "
+                            "pixels); check fringe contrast, exposure and the display")
+    if rays_cam is None:
+        rows, cols = np.divmod(vidx, cam.width_px)
+        rays = pixel_rays(cam, cols, rows)
+    else:
+        if rays_cam.shape != (3, *cam.shape):
+            raise CaptureError(f"precomputed rays have shape {rays_cam.shape}, expected {(3, *cam.shape)}")
+        rays = rays_cam.reshape(3, -1)[:, vidx]
+    screen_cam = screen.points_camera(positions["x"][ok], positions["y"][ok])
+    screen_centre_cam = screen.points_camera(np.array([0.5 * screen.width_m]),
+                                             np.array([0.5 * screen.height_m]))[:, 0]
+    timer.lap("rays")
+
+    # Corners and pose, then shape and boresight on the subsample.
     contrast = white.astype(np.float32) - dark.astype(np.float32)
     outline = corners_mod.fit_outline(contrast, region, len(design.outline_m))
     corners_3d = design.corners_3d()
@@ -209,33 +226,14 @@ def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, d
             f"the corners found in the mask do not fit the design outline ({corner_pose.reprojection_rms_px:.1f} px "
             "RMS): the facet is partly lit or obstructed, or it is not the recipe's facet type")
     measure_point = np.array([*design.measure_point_m, float(design.z(*design.measure_point_m))])
-    screen_centre_cam = screen.points_camera(np.array([0.5 * screen.width_m]),
-                                             np.array([0.5 * screen.height_m]))[:, 0]
     facet_to_camera, range_shift = fix_range(corner_pose.facet_to_camera, measure_point, screen_centre_cam,
                                              measured_distance_m, settings.max_range_shift_m)
     agreement = checks.outline_agreement(region, outline_image_points(design, cam, facet_to_camera))
     timer.lap("pose")
 
-    # Rays and screen points in the facet frame, valid pixels only (raster order).
-    vidx = idx[ok]
-    if vidx.size < 1000:
-        raise AnalysisError(f"only {vidx.size} pixels have a valid screen position (of {idx.size} facet "
-                            "pixels); check fringe contrast, exposure and the display")
-    rows, cols = np.divmod(vidx, cam.width_px)
-    if rays_cam is None:
-        rays = pixel_rays(cam, cols, rows)
-    else:
-        if rays_cam.shape != (3, *cam.shape):
-            raise CaptureError(f"precomputed rays have shape {rays_cam.shape}, expected {(3, *cam.shape)}")
-        rays = rays_cam.reshape(3, -1)[:, vidx]
     camera_to_facet = facet_to_camera.inverse()
-    rays_f = to_frame(camera_to_facet, rays, translate=False)
-    cam_f = camera_to_facet.translation
-    screen_f = to_frame(camera_to_facet, screen.points_camera(positions["x"][ok], positions["y"][ok]))
-    timer.lap("rays")
-
-    # Shape and boresight iterated on the subsample, then all points.
-    full = Assembly(cam_f, rays_f, screen_f, to_frame(camera_to_facet, screen_centre_cam[:, None])[:, 0])
+    full = Assembly(camera_to_facet.translation, to_frame(camera_to_facet, rays, translate=False),
+                    to_frame(camera_to_facet, screen_cam), to_frame(camera_to_facet, screen_centre_cam[:, None])[:, 0])
     solution = solve_shape(full.subset(slice(None, None, settings.subsample_step)), design, measured_distance_m,
                            settings.max_iterations)
     timer.lap("iterate")
@@ -253,9 +251,10 @@ def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, d
     cubic = fit_cubic(x, y, s_x, s_y)
     dx, dy = surface_slopes(design.coefficients, x, y)
     px, py = surface_slopes(coeffs, x, y)
-    residuals = {"design": slope_residuals_mrad(s_x, s_y, dx, dy),
-                 "parabola": slope_residuals_mrad(s_x, s_y, px, py),
-                 "higher_order": slope_residuals_mrad(s_x, s_y, *cubic.slopes(x, y))}
+    angles = (np.arctan(s_x), np.arctan(s_y))
+    residuals = {"design": slope_residuals_mrad(s_x, s_y, dx, dy, angles),
+                 "parabola": slope_residuals_mrad(s_x, s_y, px, py, angles),
+                 "higher_order": slope_residuals_mrad(s_x, s_y, *cubic.slopes(x, y), angles)}
     timer.lap("fit")
 
     valid = np.zeros(cam.shape, dtype=bool)
@@ -287,7 +286,6 @@ def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, d
         "iterations": {"shape": solution.shape_iterations, "boresight": solution.boresight_iterations,
                        "converged": solution.converged},
         "boresight_mrad": {"x": 1000.0 * solution.motion.alpha_rad, "y": 1000.0 * solution.motion.beta_rad},
-        "boresight_shift_z_m": solution.motion.t_z_m,
         "placement": placement(geometry.fixture_to_camera, facet_to_camera, design),
         "higher_order": cubic.to_dict(),
         "corner_reprojection_rms_px": corner_pose.reprojection_rms_px,
@@ -298,5 +296,6 @@ def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, d
     timer.lap("report")
     figures["timings_s"] = dict(timer.timings)
     return Analysis(figures=figures, valid=valid, points_facet_m=points, slopes=np.stack([s_x, s_y]),
-                    residuals_mrad=residuals, facet_to_camera=facet_to_camera, corners_px=found,
+                    residuals_mrad=residuals,
+                    facet_to_camera=solution.motion.as_pose().compose(camera_to_facet).inverse(), corners_px=found,
                     coefficients=coeffs, timings_s=dict(timer.timings))
