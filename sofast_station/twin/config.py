@@ -57,12 +57,15 @@ class TrueFacet:
 
     The true surface, in the true facet frame (origin at the paraboloid vertex, as for the design), is ::
 
-        z = x^2 / (4 f_x) + y^2 / (4 f_y) + E x y
+        z = x^2 / (4 f_x) + y^2 / (4 f_y) + E x y + l_x x + l_y y + c
             + c30 u^3 + c21 u^2 v + c12 u v^2 + c03 v^3          (u, v) = (x - cx, y - cy)
             + sum of dents  depth * exp(-r^2 / (2 radius^2))
             + random small-scale height field
 
-    with (cx, cy) the design outline's centroid.
+    with (cx, cy) the design outline's centroid, and l_x, l_y, c such that the quadratic part touches the
+    design surface at (cx, cy) with the same height and normal: placed perfectly, a facet sits in the
+    fixture on its middle, and its focal-length error and twist grow away from there. (For an on-axis
+    facet, whose middle is the vertex, they vanish.)
 
     Parameters
     ----------

@@ -1,8 +1,9 @@
 """The true facet surface: height z(x, y) and its exact slopes, in the true facet frame.
 
-The surface is ``z = a x^2 + b y^2 + E x y + cubic(u, v) + dents(x, y) + random(x, y)`` with
-``a = 1/(4 f_x)``, ``b = 1/(4 f_y)``, ``(u, v) = (x - cx, y - cy)`` and (cx, cy) the design outline's
-centroid (see :class:`~sofast_station.twin.config.TrueFacet`). Every term has an analytic derivative;
+The surface is ``z = a x^2 + b y^2 + E x y + l_x x + l_y y + c + cubic(u, v) + dents(x, y) + random(x, y)``
+with ``a = 1/(4 f_x)``, ``b = 1/(4 f_y)``, ``(u, v) = (x - cx, y - cy)`` and (cx, cy) the design outline's
+centroid (see :class:`~sofast_station.twin.config.TrueFacet`); l_x, l_y and c make the quadratic part
+touch the design at (cx, cy), so an off-axis facet's focal-length error does not also tilt it. Every term has an analytic derivative;
 the random term is a bicubic spline, differentiated exactly.
 """
 
@@ -184,6 +185,17 @@ class TrueSurface:
         self.b_per_m = 1.0 / (4.0 * f_y)
         self.e_per_m = 1e-3 * facet.twist_mrad_per_m
         self.centroid_m = np.array(design.centroid_m, dtype=np.float64)
+        # Linear and constant terms that make the quadratic part touch the design surface at the facet's
+        # middle (same height and normal): a facet made with another focal length or with twist sits in
+        # the fixture on its middle, and its shape error grows away from there. For an on-axis facet (middle
+        # at the vertex) they are zero.
+        cx, cy = (float(c) for c in self.centroid_m)
+        a_d = 1.0 / (4.0 * design.focal_length_m)
+        a, b, e = self.a_per_m, self.b_per_m, self.e_per_m
+        self.lin_x = 2.0 * (a_d - a) * cx - e * cy
+        self.lin_y = 2.0 * (a_d - b) * cy - e * cx
+        self.const_m = a_d * (cx * cx + cy * cy) - (a * cx * cx + b * cy * cy + e * cx * cy
+                                                     + self.lin_x * cx + self.lin_y * cy)
         self._cubic = np.array(facet.cubic_per_m2, dtype=np.float64)
         self._dents = np.array([[d["x_m"], d["y_m"], d["depth_m"], d["radius_m"]] for d in facet.dents],
                                dtype=np.float64).reshape(-1, 4)
@@ -197,9 +209,9 @@ class TrueSurface:
         x = np.asarray(x_m, dtype=np.float64)
         y = np.asarray(y_m, dtype=np.float64)
         a, b, e = self.a_per_m, self.b_per_m, self.e_per_m
-        z = a * x * x + b * y * y + e * x * y
-        zx = 2.0 * a * x + e * y
-        zy = 2.0 * b * y + e * x
+        z = a * x * x + b * y * y + e * x * y + self.lin_x * x + self.lin_y * y + self.const_m
+        zx = 2.0 * a * x + e * y + self.lin_x
+        zy = 2.0 * b * y + e * x + self.lin_y
         c30, c21, c12, c03 = self._cubic
         if np.any(self._cubic != 0):
             u = x - self.centroid_m[0]
@@ -233,7 +245,7 @@ class TrueSurface:
         return n / np.linalg.norm(n, axis=-1, keepdims=True)
 
     def paraboloid_hits(self, origin_m: np.ndarray, directions: np.ndarray) -> np.ndarray:
-        """Ray parameter of the first hit of the quadratic part ``a x^2 + b y^2 + e x y``.
+        """Ray parameter of the first hit of the quadratic part ``a x^2 + b y^2 + e x y + l_x x + l_y y + c``.
 
         Uses the numerically stable roots of the ray/quadric quadratic and keeps the smallest positive.
 
@@ -253,8 +265,9 @@ class TrueSurface:
         ox, oy, oz = (float(c) for c in origin_m)
         dx, dy, dz = directions[:, 0], directions[:, 1], directions[:, 2]
         alpha = a * dx * dx + b * dy * dy + e * dx * dy
-        beta = 2.0 * a * ox * dx + 2.0 * b * oy * dy + e * (ox * dy + oy * dx) - dz
-        gamma = a * ox * ox + b * oy * oy + e * ox * oy - oz
+        lx, ly = self.lin_x, self.lin_y
+        beta = 2.0 * a * ox * dx + 2.0 * b * oy * dy + e * (ox * dy + oy * dx) + lx * dx + ly * dy - dz
+        gamma = a * ox * ox + b * oy * oy + e * ox * oy + lx * ox + ly * oy + self.const_m - oz
         disc = beta * beta - 4.0 * alpha * gamma
         with np.errstate(invalid="ignore", divide="ignore"):
             q = -0.5 * (beta + np.copysign(np.sqrt(disc), beta))
