@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 
 from ..calibrate.records import RadiometricRecord
@@ -12,6 +14,8 @@ from ..errors import ConfigError
 from .inspect import Station
 
 _SIM_KEYS = {"seed", "facet", "optics", "distance_error_m"}
+
+log = logging.getLogger(__name__)
 
 
 def build_twin(config: StationConfig, noise: bool = True):
@@ -37,6 +41,10 @@ def open_simulated(config: StationConfig, radiometric: RadiometricRecord, seed: 
                    noise: bool = True) -> Station:
     """Simulated display (offscreen renderer), twin camera and twin range finder."""
     twin = build_twin(config, noise=noise)
+    # SPEC.md "Station layout": the facet's reflection, widened for its largest slope error, must lie on
+    # the screen, or the edge of the facet would be measured against the bezel.
+    margin = twin.footprint_check(float(config.design.layout.get("max_slope_error_mrad", 3.0)))
+    log.debug("reflected footprint fits the screen with %.0f mm to spare", 1e3 * margin["min_margin_m"])
     scr = config.geometry.screen
     renderer = FringeRenderer(scr.width_px, scr.height_px, lut=radiometric.lut,
                               floor_level=radiometric.floor_level, max_level=radiometric.max_level)

@@ -1,0 +1,13 @@
+"""The benchmarks run once in quick mode so they cannot rot; their numbers are printed, never asserted."""
+
+import subprocess
+import sys
+
+
+def test_analysis_benchmark_quick(repo_root, small_station_toml):
+    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "analysis.py"), "--quick", "--config",
+                           str(small_station_toml)], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    print(proc.stdout)
+    for line in ("camera: 400 x 300", "valid pixels:", "total", "memory: peak resident"):
+        assert line in proc.stdout
