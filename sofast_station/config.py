@@ -10,7 +10,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import tomllib
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
@@ -18,6 +17,7 @@ import numpy as np
 
 from .errors import ConfigError
 from .facet import FacetDesign, load_facet
+from .files import read_toml
 from .fringes import FringeSet
 from .geometry import CameraIntrinsics, ScreenSpec, StationGeometry
 from .layout import layout_station
@@ -91,12 +91,7 @@ def _camera(table: dict, where: str) -> CameraIntrinsics:
 def load_config(path: str | Path) -> StationConfig:
     """Read and validate a station file."""
     path = Path(path).expanduser().resolve()
-    try:
-        raw = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise ConfigError(f"station file {path} does not exist; pass --config or run from the project folder") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"station file {path} is not valid TOML: {exc}") from None
+    raw = read_toml(path, "station file", "pass --config or run from the project folder")
     where = str(path)
     _check_keys(raw, _SECTIONS, where)
     base = path.parent

@@ -16,13 +16,13 @@ facet for gore facets (SPEC.md, "Facet frames").
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from .errors import ConfigError
+from .files import read_toml
 
 KINDS = ("dish", "gore", "heliostat")
 
@@ -127,12 +127,7 @@ class FacetDesign:
 def load_facet(path: str | Path) -> FacetDesign:
     """Read a facet file (see the module docstring); errors name the file."""
     path = Path(path)
-    try:
-        data = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise ConfigError(f"facet file {path} does not exist") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"facet file {path} is not valid TOML: {exc}") from None
+    data = read_toml(path, "facet file")
     if "facet" not in data:
         raise ConfigError(f"facet file {path} has no [facet] table")
     try:
