@@ -38,3 +38,27 @@ class GeometryError(StationError):
 
 class AnalysisError(StationError):
     """The analysis could not produce a trustworthy result from otherwise valid frames."""
+
+
+class CameraError(StationError):
+    """The camera failed: no frame in time, gone from the bus, or frames of the wrong size."""
+
+
+class CameraTimeoutError(CameraError):
+    """No frame arrived within the timeout."""
+
+
+class CameraDisconnectedError(CameraError):
+    """The camera went away (unplugged, power, network); it must be reopened."""
+
+
+class TriggerError(StationError):
+    """The robot/PLC handshake failed: disconnected, no acknowledgement, or a protocol violation."""
+
+
+class ArchiveError(StationError):
+    """A journal, workbook or dump could not be read or written."""
+
+
+class DumpError(ArchiveError):
+    """A data dump is unreadable, truncated, foreign, or of an unknown schema."""

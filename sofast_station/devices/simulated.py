@@ -49,7 +49,7 @@ class SimulatedCamera:
     def set_gain(self, gain: float) -> None:
         self.gain = float(gain)
 
-    def grab(self) -> np.ndarray:
+    def grab(self, timeout_s: float = 2.0) -> np.ndarray:
         return self.twin.capture(self.display.image, self.rng)
 
     def close(self) -> None:
