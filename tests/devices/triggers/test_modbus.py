@@ -1,0 +1,290 @@
+"""The Modbus TCP trigger against a scripted PLC (pymodbus server) in a separate process on 127.0.0.1."""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import queue
+import signal
+import time
+
+import pytest
+
+pytest.importorskip("pymodbus")
+
+from pymodbus.client import ModbusTcpClient  # noqa: E402
+
+from sofast_station.devices.protocols import FAULT_CODES  # noqa: E402
+from sofast_station.devices.triggers import modbus  # noqa: E402
+from sofast_station.devices.triggers.modbus import ModbusTrigger, RegisterMap, decode_ascii, encode_ascii  # noqa: E402
+from sofast_station.errors import TriggerError  # noqa: E402
+
+from .fake_plc import MAP, free_port, plc_block, run_plc  # noqa: E402
+
+SPAWN = mp.get_context("spawn")
+
+
+class Plc:
+    """A scripted PLC process; ``events`` is what it reported."""
+
+    def __init__(self, script: dict, port: int | None = None):
+        self.port = port or free_port()
+        self.events = SPAWN.Queue()
+        self.proc = SPAWN.Process(target=run_plc, args=(self.port, script, self.events), daemon=True)
+        self.proc.start()
+        kind, _ = self.next("listening", timeout=20)
+
+    def next(self, kind: str, timeout: float = 5.0):
+        """The next event of ``kind`` (earlier events of other kinds are kept in ``seen``)."""
+        deadline = time.monotonic() + timeout
+        while True:
+            try:
+                event = self.events.get(timeout=max(0.01, deadline - time.monotonic()))
+            except queue.Empty:
+                raise AssertionError(f"the PLC reported no {kind!r} within {timeout} s") from None
+            if event[0] == kind:
+                return event
+            if event[0] == "error":
+                raise AssertionError(f"PLC error: {event[1]}")
+
+    def kill(self) -> None:
+        if self.proc.is_alive():
+            self.proc.kill()
+        self.proc.join(5)
+
+
+@pytest.fixture
+def plcs():
+    """Start scripted PLCs with ``plcs(script)``; every one is killed at the end."""
+    started: list[Plc] = []
+
+    def start(script: dict, port: int | None = None) -> Plc:
+        plc = Plc(script, port)
+        started.append(plc)
+        return plc
+
+    yield start
+    for plc in started:
+        if plc.proc.is_alive():
+            os.kill(plc.proc.pid, signal.SIGCONT)  # a frozen one must run to die
+        plc.kill()
+        plc.events.close()
+        plc.events.join_thread()
+
+
+class Observer:
+    """An HMI-like second client: reads and writes the PLC's registers directly."""
+
+    def __init__(self, port: int):
+        self.client = ModbusTcpClient("127.0.0.1", port=port, timeout=2)
+        assert self.client.connect()
+
+    def station(self) -> list[int]:
+        return self.client.read_holding_registers(MAP.station_base, count=modbus.STATION_REGISTERS,
+                                                  device_id=1).registers
+
+    def write_plc(self, block: list[int]) -> None:
+        assert not self.client.write_registers(MAP.plc_base, block, device_id=1).isError()
+
+    def close(self):
+        self.client.close()
+
+
+def _wait_request(trigger: ModbusTrigger, timeout_s: float = 5.0):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        request = trigger.wait_for_facet(0.2)
+        if request is not None:
+            return request
+        trigger.heartbeat()
+    raise AssertionError("no facet request")
+
+
+def test_register_map_is_the_documented_one():
+    m = RegisterMap()
+    assert (m.station_base, m.plc_base, m.serial_registers, m.recipe_name_registers) == (0, 100, 10, 8)
+    assert (modbus.STATUS, modbus.VERDICT, modbus.FAULT_CODE, modbus.HEARTBEAT, modbus.CYCLE,
+            modbus.SEQUENCE_ECHO) == (0, 1, 2, 3, 4, 5)
+    assert (modbus.FACET_PRESENT, modbus.ACK, modbus.DUMP_REQUEST, modbus.RECIPE_CODE, modbus.SEQUENCE,
+            modbus.SERIAL, m.recipe_name_offset, m.plc_registers) == (0, 1, 2, 3, 4, 5, 15, 23)
+    with pytest.raises(ValueError, match="overlaps"):
+        RegisterMap(station_base=100, plc_base=95)
+
+
+def test_ascii_packing_high_byte_first():
+    regs = encode_ascii("AB-12345", 5)
+    assert regs[:4] == [0x4142, 0x2D31, 0x3233, 0x3435] and regs[4] == 0
+    assert decode_ascii(regs) == "AB-12345"
+    assert decode_ascii([0x4120, 0x2020]) == "A"           # space padding
+    assert decode_ascii([0x41FF, 0x0042]) == "A?"          # not ASCII -> "?", NUL ends it
+    with pytest.raises(ValueError):
+        encode_ascii("X" * 21, 10)
+
+
+def test_full_multi_facet_handshake(plcs):
+    facets = [{"serial": "MF-2024-0001", "recipe_code": 2},
+              {"serial": "MF-2024-0002", "recipe_name": "gore-inner", "dump": True},
+              {"serial": "MF-2024-0003", "recipe_code": 7},
+              {"serial": "MF-2024-0004"}]
+    plc = plcs({"facets": facets, "ack_delay_s": 0.02})
+    trigger = ModbusTrigger("127.0.0.1", plc.port, recipes={2: "dish-5m33"})
+    answers = [("done", "pass"), ("done", "fail"), ("fault", FAULT_CODES["capture"]), ("done", "invalid")]
+    requests = []
+    for answer in answers:
+        trigger.ready()
+        request = _wait_request(trigger)
+        requests.append(request)
+        trigger.busy()
+        t0 = time.monotonic()
+        if answer[0] == "done":
+            trigger.done(answer[1])
+        else:
+            trigger.fault(answer[1], "dark frame")
+        assert 0.015 < time.monotonic() - t0 < 2.0  # returned on the PLC's (delayed) acknowledgement
+    assert [r.serial for r in requests] == [f["serial"] for f in facets]
+    assert [r.recipe for r in requests] == ["dish-5m33", "gore-inner", "7", ""]
+    assert [r.dump for r in requests] == [False, True, False, False]
+    assert [r.extra["sequence"] for r in requests] == [1000, 1001, 1002, 1003]
+    reported = [plc.next("answer")[1] for _ in facets]
+    assert [(a["status"], a["verdict"], a["fault_code"]) for a in reported] == [
+        (modbus.STATUS_DONE, 1, 0), (modbus.STATUS_DONE, 2, 0), (modbus.STATUS_FAULT, 0, 3),
+        (modbus.STATUS_DONE, 3, 0)]
+    assert [a["echo"] for a in reported] == [a["sequence"] for a in reported]
+    assert [a["cycle"] for a in reported] == [1, 2, 3, 4]
+    trigger.ready()  # the PLC clears ACK once the station is ready again, then it has no more facets
+    plc.next("finished")
+    assert trigger.wait_for_facet(0.1) is None
+    trigger.close()
+    obs = Observer(plc.port)
+    assert obs.station()[modbus.STATUS] == modbus.OFFLINE
+    obs.close()
+
+
+def test_plc_killed_mid_cycle_raises_quickly_and_a_new_trigger_reconnects(plcs):
+    plc = plcs({"facets": [{"serial": "K-1"}]})
+    trigger = ModbusTrigger("127.0.0.1", plc.port, timeout_s=2.0)
+    trigger.ready()
+    assert _wait_request(trigger).serial == "K-1"
+    trigger.busy()
+    plc.kill()  # SIGKILL: the PLC's sockets close under the station
+    t0 = time.monotonic()
+    with pytest.raises(TriggerError, match="failed") as err:
+        trigger.done("pass")
+    assert time.monotonic() - t0 < 1.0
+    assert "reconnects" in str(err.value)
+    with pytest.raises(TriggerError, match="closed"):
+        trigger.heartbeat()
+    trigger.close()  # no error on a dead connection
+    t0 = time.monotonic()
+    with pytest.raises(TriggerError, match="cannot connect"):
+        trigger.reopen()  # the station's recovery, while the PLC is still down
+    with pytest.raises(TriggerError, match="cannot connect"):
+        ModbusTrigger("127.0.0.1", plc.port, timeout_s=1.0)
+    assert time.monotonic() - t0 < 1.5
+    # The PLC comes back on the same port: the same trigger reconnects and works.
+    plcs({"facets": [{"serial": "K-2"}]}, port=plc.port)
+    assert trigger.reopen() is trigger
+    trigger.ready()
+    assert _wait_request(trigger).serial == "K-2"
+    trigger.busy()
+    trigger.done("pass")
+    trigger.close()
+
+
+def test_frozen_plc_raises_after_the_request_timeout(plcs):
+    plc = plcs({"facets": []})
+    trigger = ModbusTrigger("127.0.0.1", plc.port, timeout_s=0.3)
+    trigger.ready()
+    os.kill(plc.proc.pid, signal.SIGSTOP)  # connection open, nobody answers
+    t0 = time.monotonic()
+    with pytest.raises(TriggerError):
+        trigger.wait_for_facet(5.0)
+    assert time.monotonic() - t0 < 2.0
+    trigger.close()
+
+
+def test_plc_that_never_acknowledges(plcs):
+    plc = plcs({"facets": [{"serial": "NA-1"}], "ack": False})
+    trigger = ModbusTrigger("127.0.0.1", plc.port, ack_timeout_s=0.6, heartbeat_interval_s=0.1)
+    obs = Observer(plc.port)
+    trigger.ready()
+    assert _wait_request(trigger).serial == "NA-1"
+    trigger.busy()
+    beat0 = obs.station()[modbus.HEARTBEAT]
+    t0 = time.monotonic()
+    with pytest.raises(TriggerError, match="PLC did not acknowledge the done \\(fail\\) answer for facet NA-1"):
+        trigger.done("fail")
+    assert 0.55 < time.monotonic() - t0 < 2.0
+    answer = plc.next("answer")[1]
+    assert (answer["status"], answer["verdict"]) == (modbus.STATUS_DONE, 2)
+    # The trigger kept the heartbeat going while it waited.
+    assert (obs.station()[modbus.HEARTBEAT] - beat0) % 65536 >= 3
+    # The station's recovery: close (STATUS offline) and open a new trigger.
+    trigger.close()
+    assert obs.station()[modbus.STATUS] == modbus.OFFLINE
+    trigger = ModbusTrigger("127.0.0.1", plc.port)
+    trigger.ready()
+    # FACET_PRESENT is still 1 from the unacknowledged cycle: not a new request.
+    assert trigger.wait_for_facet(0.2) is None
+    trigger.close()
+    obs.close()
+
+
+def test_heartbeat_counter_increments_and_continues_across_reconnects(plcs):
+    plc = plcs({"facets": []})
+    obs = Observer(plc.port)
+    trigger = ModbusTrigger("127.0.0.1", plc.port, heartbeat_interval_s=60)
+    seen = [obs.station()[modbus.HEARTBEAT]]
+    for _ in range(5):
+        trigger.heartbeat()
+        seen.append(obs.station()[modbus.HEARTBEAT])
+    assert [b - a for a, b in zip(seen, seen[1:])] == [1] * 5
+    trigger._regs[modbus.HEARTBEAT] = 0xFFFF  # wraps at 16 bits
+    trigger.heartbeat()
+    assert obs.station()[modbus.HEARTBEAT] == 0
+    trigger.heartbeat()
+    trigger.close()
+    trigger = ModbusTrigger("127.0.0.1", plc.port, heartbeat_interval_s=60)
+    trigger.heartbeat()
+    assert obs.station()[modbus.HEARTBEAT] == 2  # the new connection counts on
+    trigger.close()
+    obs.close()
+
+
+def test_stale_request_waits_for_a_new_rising_edge(plcs):
+    plc = plcs({"facets": []})  # the test drives the PLC block itself
+    obs = Observer(plc.port)
+    obs.write_plc(plc_block({"serial": "OLD-1"}, 1))  # left over from an interrupted cycle
+    trigger = ModbusTrigger("127.0.0.1", plc.port)
+    trigger.ready()
+    assert trigger.wait_for_facet(0.15) is None
+    obs.write_plc(plc_block({"serial": "OLD-1"}, 1, present=0))
+    assert trigger.wait_for_facet(0.1) is None
+    obs.write_plc(plc_block({"serial": "NEW-2"}, 2))
+    request = trigger.wait_for_facet(1.0)
+    assert request is not None and request.serial == "NEW-2"
+    trigger.busy()
+    assert obs.station()[modbus.STATUS] == modbus.STATUS_BUSY
+    assert obs.station()[modbus.SEQUENCE_ECHO] == 2
+    trigger.close()
+    obs.close()
+
+
+def test_register_map_the_plc_does_not_serve_is_reported(plcs):
+    plc = plcs({"facets": []})
+    with pytest.raises(TriggerError, match="check the register map"):
+        ModbusTrigger("127.0.0.1", plc.port, register_map=RegisterMap(plc_base=190))
+
+
+def test_empty_serial_gets_a_station_made_one(plcs, caplog):
+    plc = plcs({"facets": []})
+    obs = Observer(plc.port)
+    trigger = ModbusTrigger("127.0.0.1", plc.port)
+    trigger.ready()
+    obs.write_plc(plc_block({"serial": "", "recipe_code": 1}, 42))
+    request = trigger.wait_for_facet(1.0)
+    assert request is not None and request.serial.startswith("PLC-NOSERIAL-") and request.serial.endswith("-00042")
+    assert request.extra["serial_missing"] and request.recipe == "1"
+    assert "empty SERIAL" in caplog.text
+    trigger.close()
+    obs.close()
