@@ -1,0 +1,198 @@
+"""Small helpers shared by the journal, the workbooks and the dumps.
+
+Atomic files, JSON that never holds NaN or Infinity, ISO 8601 times, and the named fault-injection
+points the crash tests use.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import logging
+import math
+import os
+import re
+import secrets
+import signal
+import time
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+#: Environment variable naming the fault-injection point at which the process SIGKILLs itself.
+FAULT_ENV = "SOFAST_FAULT"
+
+#: The named fault-injection points (see :func:`fault_point`).
+FAULT_POINTS = ("journal-append", "workbook-temp-written", "workbook-renamed", "dump-mid-write")
+
+#: Temporary files are ``.<final name>.<pid>.<random>.tmp`` in the final file's folder.
+_TEMP_RE = re.compile(r"^\..+\.(\d+)\.[0-9a-f]{8}\.tmp$")
+
+
+def fault_point(name: str) -> None:
+    """Kill this process with SIGKILL when ``SOFAST_FAULT`` names this point (crash tests only).
+
+    Parameters
+    ----------
+    name : str
+        One of :data:`FAULT_POINTS`.
+    """
+    if os.environ.get(FAULT_ENV) == name:
+        log.critical("fault injection: %s=%s, killing process %d", FAULT_ENV, name, os.getpid())
+        sig = getattr(signal, "SIGKILL", None)
+        if sig is None:      # Windows: no SIGKILL; an immediate exit is the nearest equivalent
+            os._exit(137)
+        os.kill(os.getpid(), sig)
+
+
+def json_ready(obj):
+    """A copy of *obj* that :func:`json.dumps` accepts with ``allow_nan=False``.
+
+    NaN and infinities become ``None`` (SPEC.md: an infinite focal length is JSON null), numpy scalars
+    and arrays become Python numbers and lists, tuples become lists, paths become strings.
+    """
+    if isinstance(obj, bool) or obj is None or isinstance(obj, str):
+        return obj
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, int):
+        return obj
+    if isinstance(obj, dict):
+        return {str(k): json_ready(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_ready(v) for v in obj]
+    if isinstance(obj, Path):
+        return str(obj)
+    if hasattr(obj, "tolist"):          # numpy scalar or array
+        return json_ready(obj.tolist())
+    raise TypeError(f"cannot store a {type(obj).__name__} in a result record: {obj!r}")
+
+
+def to_json(obj, indent: int | None = None) -> str:
+    """JSON text of *obj* after :func:`json_ready` (no NaN, no Infinity)."""
+    return json.dumps(json_ready(obj), allow_nan=False, indent=indent, ensure_ascii=False)
+
+
+def parse_time(value) -> _dt.datetime:
+    """A time-zone-aware datetime from an ISO 8601 string or a datetime.
+
+    A value without a UTC offset is taken as the machine's local time.
+
+    Raises
+    ------
+    ValueError
+        When *value* is not an ISO 8601 date or date and time.
+    """
+    if isinstance(value, _dt.datetime):
+        dt = value
+    elif isinstance(value, _dt.date):
+        dt = _dt.datetime(value.year, value.month, value.day)
+    else:
+        dt = _dt.datetime.fromisoformat(str(value))
+    if dt.tzinfo is None:
+        dt = dt.astimezone()
+    return dt
+
+
+def utc_key(value) -> str:
+    """A string that sorts like the instant *value* denotes: UTC, ``YYYY-MM-DDTHH:MM:SS.ffffffZ``."""
+    return parse_time(value).astimezone(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%S.%fZ")
+
+
+def now_iso() -> str:
+    """Local date and time with its UTC offset, ISO 8601, to the millisecond."""
+    return _dt.datetime.now().astimezone().isoformat(timespec="milliseconds")
+
+
+def safe_name(text: str, limit: int = 80) -> str:
+    """*text* reduced to characters safe in file names on every platform (letters, digits, ``-_.``)."""
+    out = re.sub(r"[^A-Za-z0-9._-]+", "_", str(text)).strip("._") or "x"
+    return out[:limit]
+
+
+def temp_path_for(final: Path) -> Path:
+    """A fresh hidden temporary name in *final*'s folder, recognisable by :func:`is_temp_file`."""
+    return final.parent / f".{final.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp"
+
+
+def is_temp_file(path: Path) -> bool:
+    """Whether *path* is named like a temporary file of :func:`temp_path_for`."""
+    return _TEMP_RE.match(Path(path).name) is not None
+
+
+def fsync_file(path: Path) -> None:
+    """Flush a closed file's data to the disk."""
+    fd = os.open(path, os.O_RDWR | getattr(os, "O_BINARY", 0))
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def fsync_dir(folder: Path) -> None:
+    """Make a rename in *folder* durable (POSIX; Windows has no directory handles to flush)."""
+    if os.name != "posix":
+        return
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    except OSError as exc:       # some network file systems refuse; the rename itself has happened
+        log.debug("could not fsync folder %s: %s", folder, exc)
+    finally:
+        os.close(fd)
+
+
+def _pid_alive(pid: int) -> bool:
+    if os.name != "posix":
+        return True              # no safe liveness probe (os.kill terminates on Windows): go by age
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def remove_stale_temp_files(folder: Path, max_age_s: float = 3600.0, recursive: bool = False) -> list[Path]:
+    """Remove temporary files left by a crashed writer.
+
+    A temporary file is stale when the process that made it no longer runs, or when it is older than
+    *max_age_s* seconds. Temporary files of this process are never touched.
+
+    Parameters
+    ----------
+    folder : Path
+    max_age_s : float
+        Age, seconds, beyond which any temporary file is stale.
+    recursive : bool
+        Also look into sub-folders.
+
+    Returns
+    -------
+    list of Path
+        The files removed.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    removed = []
+    now = time.time()
+    for path in (folder.rglob(".*.tmp") if recursive else folder.glob(".*.tmp")):
+        m = _TEMP_RE.match(path.name)
+        if not m:
+            continue
+        pid = int(m.group(1))
+        if pid == os.getpid():
+            continue
+        try:
+            age = now - path.stat().st_mtime
+            if not _pid_alive(pid) or age > max_age_s:
+                path.unlink()
+                removed.append(path)
+                log.info("removed the temporary file %s left by a stopped writer (process %d)", path, pid)
+        except FileNotFoundError:
+            pass
+        except OSError as exc:
+            log.warning("could not remove the stale temporary file %s: %s", path, exc)
+    return removed

@@ -1,0 +1,365 @@
+"""The archiver: turns journaled cycles into workbook rows and spools into HDF5 dumps, in the background.
+
+The station's part of a cycle is :meth:`Archiver.submit` (or the same two steps by hand): spool the
+facet's cropped frames and metadata when a dump is wanted, then append the result to the journal, which
+is durable when it returns; then the robot may go. Everything after that is the archiver's:
+
+1. workbook: every pending journal row goes into its period's workbook (one atomic save per book), and
+   is marked;
+2. dumps: every pending dump is written from its spool (atomically), the journal is marked, and only
+   then is the spool deleted;
+3. housekeeping: spools whose dump is done are deleted, temporary files of crashed writers removed, the
+   dump retention rule applied, free disk space watched.
+
+Every step re-checks what is already done, so :meth:`Archiver.run_once` is idempotent and a crash (even
+SIGKILL) at any point loses and duplicates nothing: rerunning finishes the work.
+
+The background thread (:meth:`start`, :meth:`stop`) calls :meth:`run_once` every ``poll_interval_s``
+(the workbook at most every ``workbook_interval_s``, because openpyxl rewrites the whole book on each save);
+:meth:`wake` asks for a run now. It never raises: problems are logged and retried.
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from ..errors import ArchiveError
+from ._common import parse_time, remove_stale_temp_files
+from .dumps import COMPRESSION_LEVEL, DumpContent, disk_ok, dump_path_for, prune_dumps, read_dump, write_dump
+from .journal import Journal
+from .spool import spool_get, spool_list, spool_path, spool_put
+from .workbook import WorkbookSettings, write_pending
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ArchiverSettings:
+    """How the archiver works.
+
+    Attributes
+    ----------
+    workbook : WorkbookSettings
+        Period (day or shift) and naming of the workbooks.
+    poll_interval_s : float
+        Background thread: time between runs, seconds.
+    workbook_interval_s : float
+        Background thread: least time between workbook saves, seconds (rows wait in the journal meanwhile).
+    dump_keep_days : float or None
+        Retention: largest age of a dump, days; None keeps them forever.
+    dump_max_total_gb : float or None
+        Retention: largest total size of the dumps, GB; None: no limit.
+    min_free_gb : float
+        Dumps wait in the spool while the dump disk has less free space than this, GB (after pruning).
+    prune_interval_s : float
+        Time between retention passes, seconds.
+    missing_spool_grace_s : float
+        A pending dump whose spool is still missing this long after its row was journaled is marked
+        failed, seconds.
+    orphan_spool_age_s : float
+        A spool without a journal row (the station stopped between spooling and journaling) older than
+        this is moved to ``spool/orphaned/``, seconds.
+    compression_level : int
+        gzip level of the dumped frames.
+    """
+
+    workbook: WorkbookSettings = field(default_factory=WorkbookSettings)
+    poll_interval_s: float = 2.0
+    workbook_interval_s: float = 60.0
+    dump_keep_days: float | None = 90.0
+    dump_max_total_gb: float | None = 100.0
+    min_free_gb: float = 2.0
+    prune_interval_s: float = 600.0
+    missing_spool_grace_s: float = 300.0
+    orphan_spool_age_s: float = 3600.0
+    compression_level: int = COMPRESSION_LEVEL
+
+
+@dataclass
+class ArchiveReport:
+    """What one :meth:`Archiver.run_once` did.
+
+    Attributes
+    ----------
+    workbook_rows : int
+        Rows added to workbooks.
+    workbook_waiting : int
+        Rows left pending (a book could not be saved).
+    workbook_errors : dict
+        Workbook -> error.
+    dumps_written : list of Path
+    dumps_failed : dict
+        Cycle id -> reason (marked failed in the journal).
+    dumps_waiting : int
+        Pending dumps left for later (write error, low disk, stop requested).
+    spools_removed : int
+    pruned : list of Path
+        Dumps removed by the retention rule.
+    """
+
+    workbook_rows: int = 0
+    workbook_waiting: int = 0
+    workbook_errors: dict = field(default_factory=dict)
+    dumps_written: list = field(default_factory=list)
+    dumps_failed: dict = field(default_factory=dict)
+    dumps_waiting: int = 0
+    spools_removed: int = 0
+    pruned: list = field(default_factory=list)
+
+
+class Archiver:
+    """Drains the journal into workbooks and the spool into dumps.
+
+    Parameters
+    ----------
+    journal : Journal
+    data_dir : str or Path
+        The station's data folder: workbooks go to ``archive/``, dumps to ``dumps/<date>/``, spools to
+        ``spool/``.
+    settings : ArchiverSettings, optional
+    """
+
+    def __init__(self, journal: Journal, data_dir: str | Path, settings: ArchiverSettings | None = None):
+        self.journal = journal
+        self.data_dir = Path(data_dir)
+        self.settings = settings or ArchiverSettings()
+        self.archive_dir = self.data_dir / "archive"
+        self.dumps_dir = self.data_dir / "dumps"
+        self.spool_dir = self.data_dir / "spool"
+        self._stop = threading.Event()
+        self._wake = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._run_lock = threading.Lock()
+        self._last_workbook = float("-inf")
+        self._last_prune = float("-inf")
+        self._cleaned = False
+        self._low_disk_logged = False
+
+    # -- the station's side -----------------------------------------------------------------------------
+    def submit(self, cycle_id: str, record: dict, content: DumpContent | None = None) -> bool:
+        """Spool the dump content (if any), then journal the record (durable on return), then wake the thread.
+
+        Call before releasing the robot. Returns False when the cycle was already journaled.
+        """
+        if content is not None:
+            arrays, meta = content.to_spool()
+            spool_put(self.spool_dir, cycle_id, arrays, meta)
+        added = self.journal.append(cycle_id, record, dump_requested=content is not None)
+        self.wake()
+        return added
+
+    # -- one pass ---------------------------------------------------------------------------------------
+    def run_once(self, workbook: bool = True, dumps: bool = True) -> ArchiveReport:
+        """Do all pending work once; idempotent, and safe to rerun after a crash at any point.
+
+        Parameters
+        ----------
+        workbook, dumps : bool
+            Which kinds of work to do.
+
+        Returns
+        -------
+        ArchiveReport
+        """
+        with self._run_lock:
+            report = ArchiveReport()
+            if not self._cleaned:
+                for folder, recursive in ((self.archive_dir, False), (self.dumps_dir, True), (self.spool_dir, False)):
+                    remove_stale_temp_files(folder, recursive=recursive)
+                self._cleaned = True
+            if workbook and not self._stop_requested():
+                self._workbook_step(report)
+            if dumps:
+                self._dump_step(report)
+                self._spool_cleanup(report)
+            if time.monotonic() - self._last_prune >= self.settings.prune_interval_s and not self._stop_requested():
+                self._prune(report)
+            return report
+
+    def _stop_requested(self) -> bool:
+        return self._stop.is_set() and threading.current_thread() is self._thread
+
+    def _workbook_step(self, report: ArchiveReport) -> None:
+        wb = write_pending(self.journal, self.archive_dir, self.settings.workbook)
+        self._last_workbook = time.monotonic()
+        report.workbook_rows += wb.rows_written
+        report.workbook_waiting += wb.waiting
+        report.workbook_errors.update(wb.errors)
+
+    def _prune(self, report: ArchiveReport) -> None:
+        s = self.settings
+        if s.dump_keep_days is not None or s.dump_max_total_gb is not None:
+            report.pruned.extend(prune_dumps(self.dumps_dir, s.dump_keep_days, s.dump_max_total_gb))
+        self._last_prune = time.monotonic()
+
+    def _disk_ok(self, report: ArchiveReport) -> bool:
+        ok, free = disk_ok(self.dumps_dir, self.settings.min_free_gb)
+        if not ok:
+            self._prune(report)
+            ok, free = disk_ok(self.dumps_dir, self.settings.min_free_gb)
+        if not ok:
+            if not self._low_disk_logged:
+                log.warning("only %.2f GB free for dumps under %s (need %.2f GB): dumps wait in the spool; free "
+                            "disk space or lower the retention limits", free, self.dumps_dir,
+                            self.settings.min_free_gb)
+                self._low_disk_logged = True
+        else:
+            self._low_disk_logged = False
+        return ok
+
+    def _dump_step(self, report: ArchiveReport) -> None:
+        pending = self.journal.pending_dumps()
+        for i, row in enumerate(pending):
+            if self._stop_requested():
+                report.dumps_waiting += len(pending) - i
+                return
+            final = dump_path_for(self.dumps_dir, row.serial, row.time, row.cycle_id)
+            spool = spool_path(self.spool_dir, row.cycle_id)
+            # Done before a crash? (renamed into place, journal not yet marked)
+            if final.exists():
+                try:
+                    done = read_dump(final, load_frames=False).cycle_id == row.cycle_id
+                except ArchiveError as exc:
+                    log.warning("replacing %s, which is unreadable (%s)", final, exc)
+                    done = False
+                if done:
+                    self.journal.mark_dump(row.cycle_id, final)
+                    self._remove_spool(spool, report)
+                    report.dumps_written.append(final)
+                    continue
+            if not spool.exists():
+                age = time.time() - parse_time(row.journaled_at).timestamp()
+                if age > self.settings.missing_spool_grace_s:
+                    reason = ("no spool: the station stopped before spooling the frames, or the spool was "
+                              f"deleted ({spool})")
+                    self.journal.mark_dump(row.cycle_id, None, error=reason)
+                    report.dumps_failed[row.cycle_id] = reason
+                    log.error("dump of cycle %s (serial %s) failed: %s", row.cycle_id, row.serial, reason)
+                else:
+                    report.dumps_waiting += 1
+                continue
+            if not self._disk_ok(report):
+                report.dumps_waiting += len(pending) - i
+                return
+            try:
+                content = DumpContent.from_spool(*spool_get(spool))
+            except ArchiveError as exc:
+                reason = f"unusable spool: {exc}"
+                self.journal.mark_dump(row.cycle_id, None, error=reason)
+                report.dumps_failed[row.cycle_id] = reason
+                self._quarantine_spool(spool, "bad")
+                log.error("dump of cycle %s (serial %s) failed: %s", row.cycle_id, row.serial, reason)
+                continue
+            try:
+                write_dump(final, content, self.settings.compression_level)
+            except ArchiveError as exc:
+                report.dumps_waiting += 1
+                log.warning("dump of cycle %s waits in the spool: %s", row.cycle_id, exc)
+                continue
+            self.journal.mark_dump(row.cycle_id, final)
+            self._remove_spool(spool, report)
+            report.dumps_written.append(final)
+
+    def _remove_spool(self, spool: Path, report: ArchiveReport) -> None:
+        try:
+            spool.unlink()
+            report.spools_removed += 1
+        except FileNotFoundError:
+            pass
+        except OSError as exc:
+            log.warning("could not remove the spool %s: %s", spool, exc)
+
+    def _quarantine_spool(self, spool: Path, why: str) -> None:
+        target = self.spool_dir / why
+        try:
+            target.mkdir(parents=True, exist_ok=True)
+            shutil.move(str(spool), str(target / spool.name))
+        except OSError as exc:
+            log.warning("could not move the spool %s to %s: %s", spool, target, exc)
+
+    def _spool_cleanup(self, report: ArchiveReport) -> None:
+        """Delete spools whose dump is done (a crash after the journal mark); set orphans aside."""
+        for spool in spool_list(self.spool_dir):
+            if self._stop_requested():
+                return
+            # the file name is the file-name-safe cycle id; find the row by the id stored inside when needed
+            row = self.journal.get(spool.stem)
+            if row is None:
+                try:
+                    age = time.time() - spool.stat().st_mtime
+                except FileNotFoundError:
+                    continue
+                if age < self.settings.orphan_spool_age_s:
+                    continue
+                try:
+                    cycle_id = spool_get(spool)[1].get("cycle_id", spool.stem)
+                except ArchiveError:
+                    cycle_id = None
+                row = self.journal.get(cycle_id) if cycle_id else None
+                if row is None:
+                    log.warning("spool %s has no journal row (the station stopped between spooling and "
+                                "journaling); moved to %s", spool, self.spool_dir / "orphaned")
+                    self._quarantine_spool(spool, "orphaned")
+                    continue
+            if row.dump_status in ("written", "failed", "not requested"):
+                self._remove_spool(spool, report)
+
+    # -- background thread --------------------------------------------------------------------------------
+    def start(self) -> None:
+        """Run :meth:`run_once` in a background thread until :meth:`stop`."""
+        if self._thread is not None and self._thread.is_alive():
+            return
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._loop, name="sofast-archiver", daemon=True)
+        self._thread.start()
+
+    def wake(self) -> None:
+        """Ask the background thread for a run now."""
+        self._wake.set()
+
+    def stop(self, timeout_s: float | None = None, drain: bool = False) -> bool:
+        """Stop the background thread after its current step (one workbook save or one dump).
+
+        Parameters
+        ----------
+        timeout_s : float, optional
+            Longest wait for the thread, seconds; None waits until it ends.
+        drain : bool
+            After the thread has ended, do all remaining work once in the calling thread (shutdown).
+
+        Returns
+        -------
+        bool
+            True when the thread has ended (False: still busy after *timeout_s* seconds).
+        """
+        self._stop.set()
+        self._wake.set()
+        t = self._thread
+        ended = True
+        if t is not None:
+            t.join(timeout_s)
+            ended = not t.is_alive()
+        if drain and ended:
+            self.run_once()
+        return ended
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def _loop(self) -> None:
+        log.debug("archiver thread started (%s)", self.data_dir)
+        while not self._stop.is_set():
+            due = time.monotonic() - self._last_workbook >= self.settings.workbook_interval_s
+            try:
+                self.run_once(workbook=due)
+            except Exception:       # never stop archiving: log and retry on the next pass
+                log.exception("archiver pass failed; retrying in %.0f s", self.settings.poll_interval_s)
+            self._wake.wait(self.settings.poll_interval_s)
+            self._wake.clear()
+        log.debug("archiver thread stopped")

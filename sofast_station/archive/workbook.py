@@ -1,0 +1,543 @@
+"""Excel workbooks: one row per facet, one workbook per day (or shift), written atomically.
+
+A workbook lives in ``data_dir/archive/`` and is named from the record's local date (the date in the
+record's own UTC offset): ``results-2026-11-25.xlsx``, or per shift ``results-2026-11-25-shift0600.xlsx``
+(a night shift that crosses midnight belongs to the day it started). When a workbook reaches Excel's row
+limit (1,048,576 rows with the header) the rows continue in ``results-2026-11-25-part2.xlsx`` and so on.
+
+Every row holds ``cycle_id``, ``serial``, ``time``, ``verdict``, ``reasons``, then every other figure of
+the record flattened to dotted column names (``slope_rms_mrad.design.x``); lists are JSON text, a missing
+or null value is an empty cell. A record with a figure the book has no column for adds the column at the
+right.
+
+Safety (SPEC.md, "Archives"):
+
+- a save writes a temporary file in the same folder, flushes and fsyncs it, renames it over the book
+  (``os.replace``) and fsyncs the folder: the book under its name is always a complete, valid file;
+- before appending, the cycle ids the book already holds are read, so a crash after the rename but before
+  the journal was marked never duplicates a row;
+- when a save fails (the book is open in Excel on a share: ``PermissionError``; the disk is full:
+  ``OSError ENOSPC``) the temporary file is removed and the rows stay pending in the journal for the next
+  attempt;
+- all pending rows of a book go in one save (openpyxl rewrites the whole book on every save).
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import logging
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from ..errors import ArchiveError
+from ._common import fault_point, fsync_dir, json_ready, parse_time, safe_name, temp_path_for
+from .journal import Journal, JournalRow
+
+log = logging.getLogger(__name__)
+
+#: Excel's row limit per sheet, header included (monkeypatched small by the rollover test).
+EXCEL_MAX_ROWS = 1_048_576
+
+#: The columns every workbook starts with, in this order.
+FIRST_COLUMNS = ("cycle_id", "serial", "time", "verdict", "reasons")
+
+#: Title of the results sheet.
+SHEET_TITLE = "results"
+
+#: Excel refuses cells longer than this many characters.
+_MAX_CELL_CHARS = 32_767
+
+_PERIODS = ("day", "shift")
+
+
+@dataclass(frozen=True)
+class WorkbookSettings:
+    """How results are split into workbooks.
+
+    Attributes
+    ----------
+    period : str
+        ``"day"`` (one book per local date) or ``"shift"`` (one per shift).
+    shift_starts_h : tuple of float
+        Local hours at which shifts start, increasing, within [0, 24); used when ``period == "shift"``.
+    prefix : str
+        File name prefix.
+    max_rows : int or None
+        Data rows per workbook part; None: Excel's limit minus the header row.
+    """
+
+    period: str = "day"
+    shift_starts_h: tuple[float, ...] = (6.0, 14.0, 22.0)
+    prefix: str = "results"
+    max_rows: int | None = None
+
+    def __post_init__(self):
+        if self.period not in _PERIODS:
+            raise ArchiveError(f"workbook period must be one of {_PERIODS}, got {self.period!r}")
+        starts = tuple(float(h) for h in self.shift_starts_h)
+        if not starts or any(not 0 <= h < 24 for h in starts) or any(b <= a for a, b in zip(starts, starts[1:])):
+            raise ArchiveError(f"shift_starts_h must be increasing local hours in [0, 24), got {list(starts)}")
+        object.__setattr__(self, "shift_starts_h", starts)
+        if self.max_rows is not None and int(self.max_rows) < 1:
+            raise ArchiveError(f"workbook max_rows must be at least 1, got {self.max_rows}")
+
+    def rows_per_part(self) -> int:
+        """Data rows a workbook part may hold."""
+        limit = EXCEL_MAX_ROWS - 1
+        return min(int(self.max_rows), limit) if self.max_rows else limit
+
+
+@dataclass
+class WorkbookReport:
+    """What one :func:`write_pending` call did.
+
+    Attributes
+    ----------
+    written : dict
+        Workbook path -> number of rows added.
+    already_present : int
+        Pending rows found already in their book (a crash after the rename) and only marked.
+    waiting : int
+        Rows left pending because their book could not be saved.
+    errors : dict
+        Workbook path -> the error that kept its rows pending.
+    """
+
+    written: dict = field(default_factory=dict)
+    already_present: int = 0
+    waiting: int = 0
+    errors: dict = field(default_factory=dict)
+
+    @property
+    def rows_written(self) -> int:
+        return sum(self.written.values())
+
+
+# -- rows -------------------------------------------------------------------------------------------
+def _flatten(prefix: str, value, out: dict) -> None:
+    if isinstance(value, dict):
+        if not value and prefix:
+            out[prefix] = None
+        for k, v in value.items():
+            _flatten(f"{prefix}.{k}" if prefix else str(k), v, out)
+    else:
+        out[prefix] = value
+
+
+def flatten_record(cycle_id: str, record: dict) -> dict:
+    """The workbook row of a record: column name -> cell value.
+
+    ``cycle_id``, ``serial``, ``time``, ``verdict``, ``reasons`` come first, then every other entry in
+    record order, nested dicts flattened to dotted names. Lists become JSON text, NaN, infinities and
+    None become None (an empty cell).
+    """
+    rec = json_ready(record)
+    flat: dict = {}
+    _flatten("", {k: v for k, v in rec.items() if k not in FIRST_COLUMNS}, flat)
+    row = {"cycle_id": cycle_id, "serial": rec.get("serial"), "time": rec.get("time"),
+           "verdict": rec.get("verdict"), "reasons": rec.get("reasons", [])}
+    row.update(flat)
+    return {k: (json.dumps(v, ensure_ascii=False) if isinstance(v, list) else v) for k, v in row.items()}
+
+
+def number_format(column: str, value) -> str | None:
+    """Excel number format for a cell of *column* holding *value* (None: leave General)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return None
+    if isinstance(value, int):
+        return "0"
+    name = column.lower()
+    if name.startswith("timings_s."):
+        return "0.000"
+    if "coefficients" in name:
+        return "0.000000E+00"
+    if "curvature" in name:
+        return "0.000000"
+    if "mrad" in name:
+        return "0.0000"
+    if "fraction" in name or "agreement" in name:
+        return "0.0000"
+    if name.endswith("_dn"):
+        return "0.00"
+    if name.endswith("_m") or "_m." in name or name.endswith("exposure_s"):
+        return "0.000000"
+    if name.endswith("_px") or name.endswith("_s"):
+        return "0.000"
+    return "0.000000" if 1e-3 <= abs(value) < 1e6 or value == 0 else "0.000000E+00"
+
+
+def _cell_value(value):
+    if isinstance(value, str):
+        from openpyxl.cell.cell import ILLEGAL_CHARACTERS_RE
+        value = ILLEGAL_CHARACTERS_RE.sub("\N{REPLACEMENT CHARACTER}", value)
+        if len(value) > _MAX_CELL_CHARS:
+            value = value[:_MAX_CELL_CHARS - 1] + "\N{HORIZONTAL ELLIPSIS}"
+    return value
+
+
+# -- naming -----------------------------------------------------------------------------------------
+def period_key(time_iso: str, settings: WorkbookSettings = WorkbookSettings()) -> str:
+    """The period a record belongs to, from its local date and time: ``2026-11-25`` or
+    ``2026-11-25-shift0600``."""
+    t = parse_time(time_iso)
+    if settings.period == "day":
+        return t.date().isoformat()
+    hours = t.hour + t.minute / 60 + t.second / 3600 + t.microsecond / 3.6e9
+    starts = settings.shift_starts_h
+    before = [h for h in starts if h <= hours]
+    if before:
+        start, day = before[-1], t.date()
+    else:                                    # before the first shift: the previous day's last shift
+        start, day = starts[-1], t.date() - _dt.timedelta(days=1)
+    hh, mm = int(start), int(round((start - int(start)) * 60))
+    return f"{day.isoformat()}-shift{hh:02d}{mm:02d}"
+
+
+def workbook_path(folder: Path, key: str, part: int = 1, prefix: str = "results") -> Path:
+    """File of part *part* (1, 2, ...) of the workbook of period *key*."""
+    base = f"{safe_name(prefix)}-{key}"
+    return Path(folder) / (f"{base}.xlsx" if part == 1 else f"{base}-part{part}.xlsx")
+
+
+def workbook_parts(folder: Path, key: str, prefix: str = "results") -> list[Path]:
+    """The existing parts of a period's workbook, in part order."""
+    parts = []
+    part = 1
+    while True:
+        path = workbook_path(folder, key, part, prefix)
+        if not path.exists():
+            # a missing part in the middle would hide later ones: look a little further
+            if not any(workbook_path(folder, key, p, prefix).exists() for p in range(part + 1, part + 4)):
+                break
+        else:
+            parts.append(path)
+        part += 1
+    return parts
+
+
+def _part_number(folder: Path, key: str, prefix: str, path: Path) -> int:
+    part = 1
+    while workbook_path(folder, key, part, prefix) != path:
+        part += 1
+    return part
+
+
+# -- files ------------------------------------------------------------------------------------------
+class _Book:
+    """An openpyxl workbook with its results sheet, header map and the cycle ids it holds."""
+
+    def __init__(self, wb, path: Path):
+        self.wb = wb
+        self.path = path
+        self.ws = wb[SHEET_TITLE] if SHEET_TITLE in wb.sheetnames else wb.worksheets[0]
+        header = [c.value for c in self.ws[1]] if self.ws.max_row >= 1 else []
+        self.header = [h for h in header if h is not None]
+        if not self.header or self.header[0] != "cycle_id":
+            raise ArchiveError(f"workbook {path} does not start with a cycle_id column; it is not a results "
+                               "workbook of this station")
+        self.columns = {name: i + 1 for i, name in enumerate(self.header)}
+        self.ids = {v for (v,) in self.ws.iter_rows(min_row=2, max_col=1, values_only=True) if v is not None}
+        self.next_row = max(self.ws.max_row, 1) + 1
+
+    @property
+    def n_rows(self) -> int:
+        """Data rows the sheet uses (blank rows included)."""
+        return self.next_row - 2
+
+    @classmethod
+    def new(cls, path: Path) -> "_Book":
+        from openpyxl import Workbook
+        from openpyxl.styles import Font
+
+        wb = Workbook()
+        ws = wb.active
+        ws.title = SHEET_TITLE
+        for i, name in enumerate(FIRST_COLUMNS, start=1):
+            cell = ws.cell(row=1, column=i, value=name)
+            cell.font = Font(bold=True)
+        ws.freeze_panes = "B2"
+        for col, width in zip("ABCDE", (30, 14, 30, 9, 40)):
+            ws.column_dimensions[col].width = width
+        return cls(wb, path)
+
+    def add_column(self, name: str) -> int:
+        from openpyxl.styles import Font
+
+        col = len(self.header) + 1
+        self.ws.cell(row=1, column=col, value=name).font = Font(bold=True)
+        self.header.append(name)
+        self.columns[name] = col
+        return col
+
+    def append(self, cycle_id: str, record: dict) -> None:
+        flat = flatten_record(cycle_id, record)
+        for name in flat:
+            if name not in self.columns:
+                self.add_column(name)
+        row = self.next_row
+        for name, value in flat.items():
+            if value is None:
+                continue
+            cell = self.ws.cell(row=row, column=self.columns[name], value=_cell_value(value))
+            fmt = number_format(name, value)
+            if fmt:
+                cell.number_format = fmt
+        self.ids.add(cycle_id)
+        self.next_row += 1
+
+    def save(self) -> None:
+        from openpyxl.utils import get_column_letter
+
+        self.ws.auto_filter.ref = f"A1:{get_column_letter(max(len(self.header), 1))}{self.n_rows + 1}"
+        save_atomic(self.wb, self.path)
+
+
+def _save_to(wb, fileobj) -> None:
+    """Serialise *wb* into an open binary file (a seam for the disk-full test)."""
+    wb.save(fileobj)
+
+
+def save_atomic(wb, path: Path) -> None:
+    """Save an openpyxl workbook so that *path* is always either the old or the new complete file.
+
+    Writes ``.<name>.<pid>.<random>.tmp`` in the same folder, flushes and fsyncs it, renames it over
+    *path* and fsyncs the folder. On any failure the temporary file is removed and the error raised.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = temp_path_for(path)
+    try:
+        with open(tmp, "wb") as fh:
+            _save_to(wb, fh)
+            fh.flush()
+            os.fsync(fh.fileno())
+        fault_point("workbook-temp-written")
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            tmp.unlink(missing_ok=True)
+        except OSError as exc:
+            log.warning("could not remove the temporary workbook %s: %s", tmp, exc)
+        raise
+    fsync_dir(path.parent)
+    fault_point("workbook-renamed")
+
+
+def load_book(path: Path) -> "_Book":
+    """Open an existing results workbook.
+
+    Raises
+    ------
+    OSError
+        When the file cannot be read (permissions, a share that went away): a transient condition.
+    ArchiveError
+        When the file is not a readable results workbook.
+    """
+    from openpyxl import load_workbook
+
+    try:
+        wb = load_workbook(path)
+    except OSError:
+        raise
+    except Exception as exc:    # zipfile.BadZipFile, KeyError, InvalidFileException, XML errors...
+        raise ArchiveError(f"workbook {path} is not a readable .xlsx file ({type(exc).__name__}: {exc})") from exc
+    return _Book(wb, path)
+
+
+def read_workbook(path: str | Path) -> list[dict]:
+    """The data rows of a results workbook as dicts (column name -> value; empty cells omitted)."""
+    from openpyxl import load_workbook
+
+    path = Path(path)
+    try:
+        wb = load_workbook(path, read_only=True)
+    except OSError:
+        raise
+    except Exception as exc:
+        raise ArchiveError(f"workbook {path} is not a readable .xlsx file ({type(exc).__name__}: {exc})") from exc
+    try:
+        ws = wb[SHEET_TITLE] if SHEET_TITLE in wb.sheetnames else wb.worksheets[0]
+        rows = ws.iter_rows(values_only=True)
+        header = list(next(rows, ()))
+        out = []
+        for values in rows:
+            if not values or values[0] is None:
+                continue
+            out.append({h: v for h, v in zip(header, values) if h is not None and v is not None})
+        return out
+    finally:
+        wb.close()
+
+
+# -- writing rows -----------------------------------------------------------------------------------
+def _quarantine(path: Path) -> Path:
+    stamp = _dt.datetime.now().strftime("%Y%m%dT%H%M%S")
+    aside = path.with_name(f"{path.stem}.corrupt-{stamp}{path.suffix}")
+    os.replace(path, aside)
+    log.error("workbook %s was unreadable; moved aside to %s and rebuilt from the journal", path, aside)
+    return aside
+
+
+def _rebuild(path: Path, journal: Journal) -> _Book:
+    """Set a damaged part aside and rebuild it from the journal rows recorded as written to it."""
+    _quarantine(path)
+    book = _Book.new(path)
+    for row in journal.rows_in_workbook(path):
+        book.append(row.cycle_id, row.record)
+    book.save()
+    return book
+
+
+def _open_part(path: Path, journal: Journal | None) -> _Book:
+    """Load a part for appending; a damaged one (by something else than this software) is rebuilt."""
+    try:
+        return load_book(path)
+    except ArchiveError:
+        if journal is None:
+            raise
+        return _rebuild(path, journal)
+
+
+def _part_ids(path: Path, journal: Journal | None) -> set:
+    """The cycle ids of a full (earlier) part, read in streaming mode (a part may hold a million rows)."""
+    try:
+        return {r["cycle_id"] for r in read_workbook(path) if "cycle_id" in r}
+    except ArchiveError:
+        if journal is None:
+            raise
+        return set(_rebuild(path, journal).ids)
+
+
+def append_rows(folder: Path, key: str, rows: list[JournalRow], settings: WorkbookSettings = WorkbookSettings(),
+                journal: Journal | None = None) -> dict[Path, list[str]]:
+    """Add *rows* (of one period) to that period's workbook, skipping cycle ids it already holds.
+
+    Each part that receives rows is saved once, atomically; when *journal* is given, the rows are marked
+    as written to their part right after its save, and rows found already present are marked too.
+
+    Returns
+    -------
+    dict
+        Part path -> cycle ids added to it.
+
+    Raises
+    ------
+    OSError
+        A save or load failed (book open elsewhere, disk full); nothing was marked for the failing part.
+    """
+    folder = Path(folder)
+    limit = settings.rows_per_part()
+    parts = workbook_parts(folder, key, settings.prefix)
+    # the last part is loaded to append to; earlier (full) parts are only scanned for their ids
+    book = _open_part(parts[-1], journal) if parts else None
+    held_by = {p: _part_ids(p, journal) for p in parts[:-1]}
+    if book is not None:
+        held_by[book.path] = book.ids
+    present: dict[Path, list[str]] = {}
+    for path, ids in held_by.items():
+        for r in rows:
+            if r.cycle_id in ids:
+                present.setdefault(path, []).append(r.cycle_id)
+    if journal is not None:
+        for path, ids in present.items():
+            log.info("%d row(s) were already in %s (saved before a crash); marking them", len(ids), path)
+            journal.mark_workbook(ids, path)
+    held = {i for ids in present.values() for i in ids}
+    todo = [r for r in rows if r.cycle_id not in held]
+    # a row twice in *rows* (cannot happen from the journal, whose ids are unique) would be written once
+    seen: set[str] = set()
+    todo = [r for r in todo if not (r.cycle_id in seen or seen.add(r.cycle_id))]
+    added: dict[Path, list[str]] = {}
+    while todo:
+        if book is None or book.n_rows >= limit:
+            part = 1 if book is None else _part_number(folder, key, settings.prefix, book.path) + 1
+            book = _Book.new(workbook_path(folder, key, part, settings.prefix))
+        chunk, todo = todo[:limit - book.n_rows], todo[limit - book.n_rows:]
+        for r in chunk:
+            book.append(r.cycle_id, r.record)
+        t0 = time.perf_counter()
+        book.save()
+        ids = [r.cycle_id for r in chunk]
+        log.debug("saved %s with %d new row(s) in %.2f s", book.path, len(ids), time.perf_counter() - t0)
+        added[book.path] = ids
+        if journal is not None:
+            journal.mark_workbook(ids, book.path)
+    return added
+
+
+def write_pending(journal: Journal, folder: Path, settings: WorkbookSettings = WorkbookSettings()) -> WorkbookReport:
+    """Write every row the journal holds pending into its period's workbook under *folder*.
+
+    A workbook that cannot be saved now (open in Excel on a share, disk full) keeps its rows pending;
+    the others are still written. Never raises for such conditions: see the report.
+    """
+    report = WorkbookReport()
+    pending = journal.pending_workbook()
+    if not pending:
+        return report
+    groups: dict[str, list[JournalRow]] = {}
+    for r in pending:
+        groups.setdefault(period_key(r.time, settings), []).append(r)
+    for key, rows in groups.items():
+        try:
+            added = append_rows(folder, key, rows, settings, journal)
+        except (OSError, ArchiveError) as exc:
+            target = workbook_path(folder, key, 1, settings.prefix)
+            done = {r.cycle_id for r in rows} - {r.cycle_id for r in journal.pending_workbook()}
+            waiting = len(rows) - len(done)
+            report.waiting += waiting
+            report.errors[str(target)] = f"{type(exc).__name__}: {exc}"
+            hint = ("is it open in Excel?" if isinstance(exc, PermissionError) else
+                    "is the disk full?" if getattr(exc, "errno", None) == 28 else "")
+            log.warning("could not save workbook rows for %s (%s: %s) %s; %d row(s) wait in the journal for "
+                        "the next attempt", target, type(exc).__name__, exc, hint, waiting)
+            continue
+        for path, ids in added.items():
+            report.written[str(path)] = report.written.get(str(path), 0) + len(ids)
+        report.already_present += len(rows) - sum(len(ids) for ids in added.values())
+    return report
+
+
+def export_workbook(journal: Journal, since, until, path: str | Path, max_rows: int | None = None) -> list[Path]:
+    """Write the journal's rows with time in ``[since, until)`` to a new workbook at *path*.
+
+    More rows than fit one sheet continue in ``<stem>-part2.xlsx`` and so on. Each file is saved
+    atomically; the journal is not changed.
+
+    Parameters
+    ----------
+    journal : Journal
+    since, until : str, datetime, date or None
+        ISO 8601 bounds (local time when without offset); None is open.
+    path : str or Path
+        The ``.xlsx`` file to write (replaced when it exists).
+    max_rows : int, optional
+        Data rows per file; Excel's limit by default.
+
+    Returns
+    -------
+    list of Path
+        The files written (at least one, perhaps with only the header).
+    """
+    path = Path(path)
+    limit = WorkbookSettings(max_rows=max_rows).rows_per_part()
+    rows = journal.rows(since, until)
+    total = len(rows)
+    out = []
+    part = 1
+    while True:
+        target = path if part == 1 else path.with_name(f"{path.stem}-part{part}{path.suffix}")
+        book = _Book.new(target)
+        chunk, rows = rows[:limit], rows[limit:]
+        for r in chunk:
+            book.append(r.cycle_id, r.record)
+        book.save()
+        out.append(target)
+        if not rows:
+            break
+        part += 1
+    log.info("exported %d row(s) to %s", total, ", ".join(str(p) for p in out))
+    return out

@@ -1,0 +1,164 @@
+"""The archiver: one pass drains journal and spool, reruns are no-ops, problems wait or are recorded."""
+
+from __future__ import annotations
+
+import errno
+import os
+import time
+
+import numpy as np
+import pytest
+
+from sofast_station.archive import archiver as amod
+from sofast_station.archive import dumps as dmod
+from sofast_station.archive.archiver import Archiver, ArchiverSettings
+from sofast_station.archive.dumps import dump_path_for, list_dumps, read_dump, write_dump
+from sofast_station.archive.journal import Journal
+from sofast_station.archive.spool import spool_list, spool_path, spool_put
+from sofast_station.archive.workbook import read_workbook, workbook_path
+
+from .conftest import make_record, synthetic_content
+
+
+@pytest.fixture
+def setup(tmp_path):
+    with Journal(tmp_path / "journal.sqlite") as j:
+        yield j, tmp_path / "data"
+
+
+def test_one_pass_writes_rows_and_dumps_and_a_second_pass_does_nothing(setup, small_config):
+    journal, data = setup
+    arch = Archiver(journal, data, ArchiverSettings(min_free_gb=0.0))
+    contents = [synthetic_content(small_config, f"c{i}", make_record(f"S{i}"), seed=i) for i in range(3)]
+    arch.submit("c0", contents[0].record, contents[0])
+    arch.submit("c1", contents[1].record)                     # no dump requested
+    arch.submit("c2", contents[2].record, contents[2])
+    assert len(spool_list(data / "spool")) == 2
+    report = arch.run_once()
+    assert report.workbook_rows == 3 and len(report.dumps_written) == 2 and report.spools_removed == 2
+    book = workbook_path(data / "archive", "2026-03-02")
+    assert [r["cycle_id"] for r in read_workbook(book)] == ["c0", "c1", "c2"]
+    for c in (contents[0], contents[2]):
+        row = journal.get(c.cycle_id)
+        assert row.dump_status == "written"
+        assert row.dump_path == str(dump_path_for(data / "dumps", c.serial, c.time, c.cycle_id))
+        assert np.array_equal(read_dump(row.dump_path).frames_cropped, c.frames_cropped)
+    assert journal.get("c1").dump_status == "not requested"
+    assert spool_list(data / "spool") == []
+    stamps = {p: p.stat().st_mtime_ns for p in [book, *list_dumps(data / "dumps")]}
+    again = arch.run_once()
+    assert again.workbook_rows == 0 and again.dumps_written == [] and again.dumps_failed == {}
+    assert {p: p.stat().st_mtime_ns for p in stamps} == stamps
+
+
+def test_a_dump_renamed_before_the_journal_mark_is_not_rewritten(setup, small_config):
+    journal, data = setup
+    arch = Archiver(journal, data, ArchiverSettings(min_free_gb=0.0))
+    c = synthetic_content(small_config, "c0")
+    arch.submit("c0", c.record, c)
+    final = dump_path_for(data / "dumps", c.serial, c.time, c.cycle_id)
+    write_dump(final, c)                                      # as if the archiver died right after the rename
+    before = final.stat().st_mtime_ns
+    report = arch.run_once()
+    assert report.dumps_written == [final] and final.stat().st_mtime_ns == before
+    assert journal.get("c0").dump_path == str(final) and spool_list(data / "spool") == []
+
+
+def test_a_spool_left_after_the_mark_is_removed(setup, small_config):
+    journal, data = setup
+    arch = Archiver(journal, data, ArchiverSettings(min_free_gb=0.0))
+    c = synthetic_content(small_config, "c0")
+    arch.submit("c0", c.record, c)
+    journal.mark_dump("c0", data / "somewhere.h5")            # as if the archiver died before deleting the spool
+    report = arch.run_once()
+    assert report.spools_removed == 1 and spool_list(data / "spool") == []
+
+
+def test_missing_bad_and_orphaned_spools(setup, small_config):
+    journal, data = setup
+    settings = ArchiverSettings(min_free_gb=0.0, missing_spool_grace_s=3600, orphan_spool_age_s=3600)
+    journal.append("lost", make_record("S-LOST"), dump_requested=True)       # the station died before spooling
+    report = Archiver(journal, data, settings).run_once()
+    assert report.dumps_waiting == 1 and journal.get("lost").dump_status == "pending"   # still within the grace
+    settings = ArchiverSettings(min_free_gb=0.0, missing_spool_grace_s=0, orphan_spool_age_s=0)
+    (data / "spool").mkdir(parents=True)
+    bad = spool_path(data / "spool", "bad")
+    bad.write_bytes(b"not an npz")
+    journal.append("bad", make_record("S-BAD"), dump_requested=True)
+    c = synthetic_content(small_config, "orphan")
+    spool_put(data / "spool", "orphan", *c.to_spool())                       # spooled, never journaled
+    report = Archiver(journal, data, settings).run_once()
+    assert set(report.dumps_failed) == {"lost", "bad"}
+    assert "no spool" in journal.get("lost").dump_error
+    assert "unusable spool" in journal.get("bad").dump_error and "not an .npz" in journal.get("bad").dump_error
+    assert (data / "spool" / "bad" / "bad.npz").exists()
+    assert (data / "spool" / "orphaned" / "orphan.npz").exists()
+    assert spool_list(data / "spool") == [] and journal.pending_dumps() == []
+
+
+def test_dumps_wait_while_the_disk_is_short_or_full(setup, small_config, monkeypatch):
+    journal, data = setup
+    arch = Archiver(journal, data, ArchiverSettings(min_free_gb=5.0))
+    c = synthetic_content(small_config, "c0")
+    arch.submit("c0", c.record, c)
+    monkeypatch.setattr(amod, "disk_ok", lambda folder, min_free_gb: (False, 0.5))
+    report = arch.run_once()
+    assert report.dumps_waiting == 1 and report.dumps_written == [] and len(spool_list(data / "spool")) == 1
+    monkeypatch.setattr(amod, "disk_ok", lambda folder, min_free_gb: (True, 50.0))
+
+    def full(record):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    with monkeypatch.context() as m:
+        m.setattr(dmod, "_flat_figures", full)                                   # fails while writing
+        report = arch.run_once()
+    assert report.dumps_waiting == 1 and journal.get("c0").dump_status == "pending"
+    assert list_dumps(data / "dumps") == [] and not list((data / "dumps").rglob("*.tmp"))
+    report = arch.run_once()
+    assert len(report.dumps_written) == 1 and spool_list(data / "spool") == []
+
+
+def test_background_thread_drains_and_stops(setup, small_config):
+    journal, data = setup
+    arch = Archiver(journal, data, ArchiverSettings(min_free_gb=0.0, poll_interval_s=0.05, workbook_interval_s=0.0))
+    arch.start()
+    try:
+        assert arch.running
+        for i in range(4):
+            c = synthetic_content(small_config, f"c{i}", make_record(f"S{i}"), seed=i)
+            arch.submit(c.cycle_id, c.record, c if i % 2 else None)
+        deadline = time.monotonic() + 30
+        while (journal.pending_workbook() or journal.pending_dumps()) and time.monotonic() < deadline:
+            time.sleep(0.05)
+    finally:
+        t0 = time.monotonic()
+        assert arch.stop(timeout_s=30)
+    assert time.monotonic() - t0 < 10 and not arch.running
+    assert journal.pending_workbook() == [] and journal.pending_dumps() == []
+    assert len(read_workbook(workbook_path(data / "archive", "2026-03-02"))) == 4
+    assert len(list_dumps(data / "dumps")) == 2
+
+
+def test_stale_temp_files_of_dead_writers_are_removed(setup):
+    journal, data = setup
+    (data / "archive").mkdir(parents=True)
+    dead = data / "archive" / ".results-2026-03-02.xlsx.999999999.0123abcd.tmp"   # no such process
+    mine = data / "archive" / f".results-2026-03-02.xlsx.{os.getpid()}.0123abcd.tmp"
+    dead.write_bytes(b"x")
+    mine.write_bytes(b"x")
+    Archiver(journal, data).run_once()
+    assert not dead.exists() and mine.exists()
+
+
+def test_thread_batches_workbook_saves_and_stop_can_drain(setup):
+    journal, data = setup
+    arch = Archiver(journal, data, ArchiverSettings(min_free_gb=0.0, poll_interval_s=0.02, workbook_interval_s=3600))
+    arch.start()
+    time.sleep(0.3)                                           # the first pass (workbook due) has run
+    arch.submit("c0", make_record("S0"))
+    arch.submit("c1", make_record("S1"))
+    time.sleep(0.3)
+    assert len(journal.pending_workbook()) == 2               # not due for an hour: the rows wait, safely
+    assert arch.stop(timeout_s=30, drain=True)
+    assert journal.pending_workbook() == []
+    assert [r["cycle_id"] for r in read_workbook(workbook_path(data / "archive", "2026-03-02"))] == ["c0", "c1"]

@@ -1,0 +1,306 @@
+"""HDF5 data dumps: bit-exact round trip, re-analysis, self-description, bad files, size, retention."""
+
+from __future__ import annotations
+
+import dataclasses
+import errno
+import os
+import time
+
+import h5py
+import numpy as np
+import pytest
+
+from sofast_station.archive import dumps as dmod
+from sofast_station.archive._common import json_ready
+from sofast_station.archive.dumps import (SCHEMA_V1, crop_to_facet, disk_ok, prune_dumps, read_dump, restore_frames,
+                                          write_dump)
+from sofast_station.archive.spool import spool_get, spool_list, spool_put
+from sofast_station.errors import ArchiveError, DumpError
+
+from .conftest import ROOT, make_record, synthetic_content
+
+
+def assert_same_content(a, b):
+    for f in dataclasses.fields(a):
+        if f.name in ("created", "path"):
+            continue
+        x, y = getattr(a, f.name), getattr(b, f.name)
+        if isinstance(x, np.ndarray):
+            assert x.dtype == y.dtype and x.shape == y.shape and np.array_equal(x, y), f.name
+        else:
+            assert x == y, f.name
+            assert type(x) is type(y) or isinstance(x, (tuple, list)), f.name
+
+
+@pytest.fixture
+def dump_file(small_config, tmp_path):
+    content = synthetic_content(small_config)
+    path = tmp_path / "dumps" / "d.h5"
+    write_dump(path, content)
+    return path, content
+
+
+def test_round_trip_is_bit_exact(dump_file, small_config):
+    path, content = dump_file
+    back = read_dump(path)
+    assert_same_content(content, back)
+    assert back.path == path and back.created and back.schema_version == 1
+    # the typed records come back equal to the configuration's
+    assert back.station_geometry().to_dict() == small_config.geometry.to_dict()
+    assert back.fringe_set() == small_config.fringes
+    assert back.facet_design().to_dict() == small_config.design.to_dict()
+    assert back.analysis_settings() == small_config.analysis
+    rad = back.radiometric_record()
+    assert rad.record_id == "simulated-default" and rad.lut.dtype == np.float64
+    assert back.station_toml == small_config.path.read_text()
+    assert back.facet_toml == small_config.facet_path.read_text()
+    assert back.config_hash == small_config.config_hash and back.software_version == "0.1.0"
+    assert back.record == json_ready(make_record())
+    meta_only = read_dump(path, load_frames=False)
+    assert meta_only.frames_cropped is None and meta_only.cycle_id == content.cycle_id
+    with h5py.File(path) as f:
+        res = f["result"].attrs
+        assert res["verdict"] == "pass" and res["n_points"] == make_record()["n_points"]
+        assert res["slope_rms_mrad.design.magnitude"] == make_record()["slope_rms_mrad"]["design"]["magnitude"]
+        ds = f["capture/frames"]
+        assert ds.chunks == (1, 120, 160) and ds.compression == "gzip" and ds.compression_opts == 4
+        assert ds.shuffle
+        assert np.array_equal(ds[()], content.frames_cropped)          # plain HDF5 decoding
+
+
+def test_every_group_and_dataset_is_described(dump_file):
+    path, _ = dump_file
+    seen = []
+
+    def check(name, obj):
+        seen.append(name)
+        desc = obj.attrs.get("description")
+        assert isinstance(desc, str) and desc and "not described" not in desc, name
+        assert "units" in obj.attrs, name
+
+    with h5py.File(path) as f:
+        assert f.attrs["schema"] == "sofast-station-dump" and f.attrs["schema_version"] == 1
+        f.visititems(check)
+        for p, kind, *_ in SCHEMA_V1:
+            if kind == "attribute" and p != "/@station" and p != "/@facet":
+                assert p[2:] in f.attrs, p
+    assert "capture/frames" in seen and "geometry/camera/matrix" in seen
+    doc = (ROOT / "docs" / "dump-schema.md").read_text()
+    for p, *_ in SCHEMA_V1:
+        name = p[2:] if p.startswith("/@") else p
+        assert f"`{name}`" in doc, f"docs/dump-schema.md does not describe {p}"
+
+
+def test_restore_frames_and_crop():
+    rng = np.random.default_rng(1)
+    full = rng.integers(0, 10, size=(18, 60, 80), dtype=np.uint8)       # ambient light everywhere
+    full[1, 20:30, 30:50] += 200                                          # the facet lights up in white
+    crop, box, shape = crop_to_facet(full, threshold_dn=20, margin_px=3)
+    assert box == (17, 27) and shape == (60, 80) and crop.shape == (18, 16, 26)
+    back = restore_frames(crop, box, shape)
+    assert np.array_equal(back[:, 17:33, 27:53], full[:, 17:33, 27:53])
+    outside = np.ones(shape, bool)
+    outside[17:33, 27:53] = False
+    assert not back[:, outside].any()                                     # zero outside the crop, by definition
+    assert np.array_equal(restore_frames(crop, (17, 27, 33, 53), shape), back)    # (row0, col0, row1, col1)
+    with pytest.raises(DumpError, match="does not fit"):
+        restore_frames(crop, (50, 0), shape)
+    with pytest.raises(ArchiveError, match="does not match"):
+        restore_frames(crop, (17, 27, 33, 54), shape)
+    dark = np.zeros((18, 60, 80), np.uint8)
+    crop, box, shape = crop_to_facet(dark)
+    assert box == (0, 0) and crop.shape == dark.shape                     # nothing responds: keep everything
+
+
+@pytest.fixture(scope="module")
+def small_capture(tmp_path_factory):
+    """One noisy capture of the small simulated station, its analysis and result record."""
+    from sofast_station.config import load_config
+    from sofast_station.measure.pipeline import analyse
+    from sofast_station.station.inspect import capture, open_station, result_record
+    from tests.conftest import SMALL_STATION
+
+    d = tmp_path_factory.mktemp("small")
+    path = d / "station.toml"
+    path.write_text(SMALL_STATION.format(data_dir=d / "data", facet=ROOT / "fixtures/facets/dish_5m33.toml",
+                                         radiometric=ROOT / "calibration/simulated_radiometric.json"))
+    station = open_station(load_config(path), seed=4)
+    try:
+        frames, distance = capture(station)
+    finally:
+        station.close()
+    cfg = station.config
+    analysis = analyse(frames, cfg.fringes, cfg.geometry, cfg.design, distance, cfg.analysis)
+    record = result_record(station, "SIM-RE", analysis, {"total": 1.0})
+    return station, frames, distance, analysis, record
+
+
+def test_reanalysing_a_dump_gives_the_archived_figures_exactly(small_capture, tmp_path):
+    from sofast_station.archive.dumps import DumpContent
+
+    station, frames, distance, analysis, record = small_capture
+    crop, box, shape = crop_to_facet(frames, station.config.analysis.mask_threshold_dn)
+    assert crop.size < frames.size
+    content = DumpContent.from_station(station, cycle_id="re-1", record=record, frames_cropped=crop, crop_box=box,
+                                       full_shape=shape, measured_distance_m=distance)
+    write_dump(tmp_path / "re.h5", content)
+    back = read_dump(tmp_path / "re.h5")
+    again = back.analyse()
+    figures = {k: v for k, v in again.figures.items() if k != "timings_s"}
+    archived = {k: back.record[k] for k in figures}
+    assert json_ready(figures) == archived                                # every measured figure, exactly
+    assert np.array_equal(again.slopes, analysis.slopes)
+
+
+def test_full_resolution_dump_of_twin_frames_is_small_and_fast(tmp_path):
+    from sofast_station.archive.dumps import DumpContent
+    from sofast_station.config import load_config
+    from sofast_station.station.inspect import capture, open_station
+
+    config = load_config(ROOT / "station.toml")
+    station = open_station(config, seed=1)
+    try:
+        frames, distance = capture(station)
+    finally:
+        station.close()
+    assert frames.shape == (18, 1200, 1600)
+    crop, box, shape = crop_to_facet(frames, config.analysis.mask_threshold_dn)
+    content = DumpContent.from_station(station, cycle_id="full-1", record=make_record(), frames_cropped=crop,
+                                       crop_box=box, full_shape=shape, measured_distance_m=distance)
+    stats = write_dump(tmp_path / "full.h5", content)
+    t0 = time.perf_counter()
+    back = read_dump(tmp_path / "full.h5")
+    t_read = time.perf_counter() - t0
+    print(f"\nfull-resolution dump: crop {crop.shape[1]} x {crop.shape[2]} of {shape[0]} x {shape[1]}, "
+          f"{stats.size_bytes / 1e6:.2f} MB (frames {stats.raw_bytes / 1e6:.1f} MB raw, full stack "
+          f"{frames.nbytes / 1e6:.1f} MB), write {stats.seconds:.2f} s, read {t_read:.2f} s")
+    assert np.array_equal(back.frames()[:, box[0]:box[0] + crop.shape[1], box[1]:box[1] + crop.shape[2]], crop)
+    assert stats.size_bytes < 10e6
+    assert stats.seconds < 3.0                        # about 0.4 s on a quiet 2-core machine
+
+
+# -- bad files ------------------------------------------------------------------------------------------
+def _zero(p, good):
+    p.write_bytes(b"")
+
+
+def _png(p, good):
+    p.write_bytes(b"\x89PNG\r\n\x1a\n" + b"\x00" * 200)
+
+
+def _truncated(p, good):
+    p.write_bytes(good.read_bytes()[: good.stat().st_size * 6 // 10])
+
+
+def _corrupt(p, good):
+    data = bytearray(good.read_bytes())
+    mid = len(data) // 2
+    data[mid:mid + 64] = bytes(b ^ 0xFF for b in data[mid:mid + 64])
+    p.write_bytes(bytes(data))
+
+
+def _tampered(p, good):                     # a valid chunk with other pixels: only the digest notices
+    import zlib
+    p.write_bytes(good.read_bytes())
+    with h5py.File(p, "r+") as f:
+        ds = f["capture/frames"]
+        frame = ds[3]
+        frame[0, 0] ^= 1
+        ds.id.write_direct_chunk((3, 0, 0), zlib.compress(frame.tobytes(), 4), 0)
+
+
+def _foreign(p, good):
+    with h5py.File(p, "w") as f:
+        f.create_dataset("images", data=np.zeros((2, 3)))
+
+
+def _newer(p, good):
+    p.write_bytes(good.read_bytes())
+    with h5py.File(p, "r+") as f:
+        f.attrs["schema_version"] = np.int64(2)
+
+
+def _missing(p, good):
+    p.write_bytes(good.read_bytes())
+    with h5py.File(p, "r+") as f:
+        del f["geometry/camera/matrix"]
+
+
+@pytest.mark.parametrize("make, problem", [
+    (_zero, "is empty (0 bytes)"),
+    (_png, "is not an HDF5 file (it looks like a PNG image)"),
+    (_truncated, "is truncated"),
+    (_corrupt, "corrupt"),
+    (_tampered, "is corrupt: frame 3 does not match its SHA-256 digest"),
+    (_foreign, "is an HDF5 file but not a sofast-station dump"),
+    (_newer, "written by a newer sofast-station"),
+    (_missing, "lacks the dataset(s) geometry/camera/matrix"),
+], ids=["zero-byte", "png", "truncated", "corrupt", "tampered", "foreign", "newer", "missing"])
+def test_bad_files_raise_dump_errors_naming_file_and_problem(dump_file, tmp_path, make, problem):
+    good, _ = dump_file
+    bad = tmp_path / f"bad-{make.__name__}.h5"
+    make(bad, good)
+    with pytest.raises(DumpError) as info:
+        read_dump(bad)
+    msg = str(info.value)
+    assert str(bad) in msg and problem in msg, msg
+    if make is _newer:
+        assert "upgrade" in msg
+
+
+def test_a_failed_write_leaves_neither_dump_nor_temp_file(small_config, tmp_path, monkeypatch):
+    content = synthetic_content(small_config)
+
+    def full(record):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(dmod, "_flat_figures", full)
+    with pytest.raises(ArchiveError, match="No space left"):
+        write_dump(tmp_path / "out" / "d.h5", content)
+    assert list((tmp_path / "out").iterdir()) == []
+
+
+def test_spool_round_trip(small_config, tmp_path):
+    from sofast_station.archive.dumps import DumpContent
+
+    content = synthetic_content(small_config, cycle_id="20260302T101500-abc")
+    t0 = time.perf_counter()
+    path = spool_put(tmp_path / "spool", content.cycle_id, *content.to_spool())
+    dt = time.perf_counter() - t0
+    assert path.name == "20260302T101500-abc.npz" and dt < 1.0
+    assert spool_list(tmp_path / "spool") == [path]
+    back = DumpContent.from_spool(*spool_get(path))
+    assert_same_content(content, back)
+    assert back.cycle_id == content.cycle_id
+    with pytest.raises(ArchiveError, match="does not exist"):
+        spool_get(tmp_path / "spool" / "nope.npz")
+
+
+# -- retention and disk ---------------------------------------------------------------------------------
+def test_prune_removes_the_oldest_first(tmp_path):
+    now = time.time()
+    files = []
+    for i in range(6):                                  # day folders, 1 MB each, 0..5 days old, oldest first
+        p = tmp_path / f"2026-03-0{i + 1}" / f"d{i}.h5"
+        p.parent.mkdir()
+        p.write_bytes(b"\0" * 1_000_000)
+        age_days = 5 - i
+        os.utime(p, (now - age_days * 86400 - 60, now - age_days * 86400 - 60))
+        files.append(p)
+    temp = tmp_path / "2026-03-01" / ".d9.h5.123.abcdef01.tmp"
+    temp.write_bytes(b"x")
+    assert prune_dumps(tmp_path, keep_days=3.5, max_total_gb=None) == files[:2]     # 5 and 4 days old
+    assert not files[0].exists() and files[2].exists()
+    assert temp.exists() and (tmp_path / "2026-03-01").exists()                     # not a dump; folder kept
+    assert not (tmp_path / "2026-03-02").exists()                                   # emptied folder removed
+    assert prune_dumps(tmp_path, keep_days=None, max_total_gb=0.0025) == files[2:4]  # 4 MB -> 2 MB
+    assert [p.exists() for p in files] == [False] * 4 + [True] * 2
+    assert prune_dumps(tmp_path, keep_days=30, max_total_gb=1) == []
+
+
+def test_disk_watch(tmp_path, monkeypatch):
+    ok, free = disk_ok(tmp_path / "not" / "yet" / "made", 0.0)
+    assert ok and free > 0
+    ok, free2 = disk_ok(tmp_path, 1e9)                   # an exabyte: never
+    assert not ok and free2 == pytest.approx(free, rel=0.1)

@@ -1,0 +1,212 @@
+"""Excel workbooks: every figure flattened, one book per period, atomic saves, rows never lost or doubled."""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+
+import pytest
+from openpyxl import load_workbook
+
+from sofast_station.archive import workbook as wbmod
+from sofast_station.archive.journal import Journal
+from sofast_station.archive.workbook import (FIRST_COLUMNS, WorkbookSettings, export_workbook, period_key,
+                                             read_workbook, workbook_path, write_pending)
+
+from .conftest import SAMPLE_RECORD, make_record
+
+
+def leaves(prefix, value, out):
+    """Independent flattening: dotted names of every non-dict leaf."""
+    if isinstance(value, dict):
+        for k, v in value.items():
+            leaves(f"{prefix}.{k}" if prefix else k, v, out)
+    else:
+        out[prefix] = value
+    return out
+
+
+def temp_files(folder):
+    return [p for p in folder.iterdir() if p.name.endswith(".tmp")]
+
+
+@pytest.fixture
+def journal(tmp_path):
+    with Journal(tmp_path / "journal.sqlite") as j:
+        yield j
+
+
+def test_a_row_holds_every_figure_of_the_record(journal, tmp_path):
+    folder = tmp_path / "archive"
+    journal.append("cycle-1", SAMPLE_RECORD)
+    report = write_pending(journal, folder)
+    book = workbook_path(folder, "2026-11-25")
+    assert report.written == {str(book): 1} and journal.pending_workbook() == []
+    assert journal.get("cycle-1").workbook_path == str(book)
+    header = [c.value for c in load_workbook(book)["results"][1]]
+    assert tuple(header[:5]) == FIRST_COLUMNS
+    (row,) = read_workbook(book)
+    expected = leaves("", SAMPLE_RECORD, {})
+    assert "slope_rms_mrad.design.x" in expected and "truth.slope_rms_mrad.parabola.magnitude" in expected
+    assert row["cycle_id"] == "cycle-1"
+    for name, value in expected.items():
+        assert name in header, name
+        if isinstance(value, list):
+            assert json.loads(row[name]) == value, name          # lists as JSON text
+        elif isinstance(value, float):
+            assert row[name] == float("%.16g" % value), name     # openpyxl writes 16 significant digits
+        else:
+            assert row[name] == value, name
+    assert len(header) == len(expected) + 1                       # + cycle_id
+
+
+def test_number_formats_and_header(journal, tmp_path):
+    journal.append("c1", make_record())
+    write_pending(journal, tmp_path)
+    ws = load_workbook(workbook_path(tmp_path, "2026-03-02"))["results"]
+    cols = {c.value: c.column for c in ws[1]}
+    assert ws.cell(1, 1).font.b and ws.freeze_panes == "B2"
+    assert ws.cell(2, cols["slope_rms_mrad.design.x"]).number_format == "0.0000"
+    assert ws.cell(2, cols["focal_length_x_m"]).number_format == "0.000000"
+    assert ws.cell(2, cols["n_points"]).number_format == "0"
+    assert ws.cell(2, cols["coefficients.C"]).number_format == "0.000000E+00"
+
+
+def test_one_book_per_local_day_and_per_shift(journal, tmp_path):
+    late = make_record("A", "2026-03-01T23:30:00.000+01:00")       # 22:30 UTC, but the 1st locally
+    early = make_record("B", "2026-03-02T00:10:00.000+01:00")      # 23:10 UTC on the 1st, the 2nd locally
+    journal.append("late", late)
+    journal.append("early", early)
+    write_pending(journal, tmp_path / "day")
+    assert [r["serial"] for r in read_workbook(workbook_path(tmp_path / "day", "2026-03-01"))] == ["A"]
+    assert [r["serial"] for r in read_workbook(workbook_path(tmp_path / "day", "2026-03-02"))] == ["B"]
+    shifts = WorkbookSettings(period="shift")
+    assert period_key("2026-03-02T05:59:00+01:00", shifts) == "2026-03-01-shift2200"   # night shift of the 1st
+    assert period_key("2026-03-02T06:00:00+01:00", shifts) == "2026-03-02-shift0600"
+    assert period_key("2026-03-02T21:59:59+01:00", shifts) == "2026-03-02-shift1400"
+    assert period_key("2026-03-02T23:00:00+01:00", shifts) == "2026-03-02-shift2200"
+
+
+def test_rows_already_in_the_book_are_not_written_twice(journal, tmp_path):
+    for i in range(3):
+        journal.append(f"c{i}", make_record(f"S{i}"))
+    write_pending(journal, tmp_path)
+    # a crash after the rename, before the journal mark: the journal still says pending
+    journal._db.execute("UPDATE cycles SET workbook_path = NULL WHERE cycle_id IN ('c1', 'c2')")
+    journal.append("c3", make_record("S3"))
+    report = write_pending(journal, tmp_path)
+    assert report.already_present == 2 and report.rows_written == 1
+    rows = read_workbook(workbook_path(tmp_path, "2026-03-02"))
+    assert [r["cycle_id"] for r in rows] == ["c0", "c1", "c2", "c3"]
+    assert journal.pending_workbook() == []
+    assert {r.workbook_path for r in journal.rows()} == {str(workbook_path(tmp_path, "2026-03-02"))}
+
+
+def _two_then_blocked(journal, tmp_path, monkeypatch, fail):
+    """Write two rows, then two more under a failing save; return the book."""
+    journal.append("c0", make_record("S0"))
+    journal.append("c1", make_record("S1"))
+    write_pending(journal, tmp_path)
+    book = workbook_path(tmp_path, "2026-03-02")
+    before = book.read_bytes()
+    journal.append("c2", make_record("S2"))
+    journal.append("c3", make_record("S3"))
+    with monkeypatch.context() as m:
+        fail(m)
+        report = write_pending(journal, tmp_path)
+        assert report.rows_written == 0 and report.waiting == 2 and str(book) in report.errors
+        assert [r.cycle_id for r in journal.pending_workbook()] == ["c2", "c3"]
+        report = write_pending(journal, tmp_path)          # still failing: still waiting, nothing lost
+        assert report.waiting == 2
+    assert book.read_bytes() == before                      # the old book untouched
+    assert temp_files(tmp_path) == []                       # no temporary file left behind
+    assert [r["cycle_id"] for r in read_workbook(book)] == ["c0", "c1"]
+    report = write_pending(journal, tmp_path)                # the condition is gone: the rows land
+    assert report.rows_written == 2 and journal.pending_workbook() == []
+    assert [r["cycle_id"] for r in read_workbook(book)] == ["c0", "c1", "c2", "c3"]
+    assert temp_files(tmp_path) == []
+    return book
+
+
+def test_a_book_open_in_excel_keeps_rows_pending(journal, tmp_path, monkeypatch):
+    real_replace = os.replace
+
+    def locked(src, dst, *a, **k):
+        if str(dst).endswith(".xlsx"):
+            raise PermissionError(13, "The process cannot access the file because it is being used by another "
+                                      "process", str(dst))
+        return real_replace(src, dst, *a, **k)
+
+    _two_then_blocked(journal, tmp_path, monkeypatch, lambda m: m.setattr(os, "replace", locked))
+
+
+def test_a_full_disk_keeps_rows_pending(journal, tmp_path, monkeypatch):
+    def disk_full(wb, fh):
+        fh.write(b"PK\x03\x04 half a zip file")
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    _two_then_blocked(journal, tmp_path, monkeypatch, lambda m: m.setattr(wbmod, "_save_to", disk_full))
+
+
+def test_rollover_to_a_new_part_before_the_row_limit(journal, tmp_path, monkeypatch):
+    monkeypatch.setattr(wbmod, "EXCEL_MAX_ROWS", 4)          # header + 3 rows per part
+    for i in range(8):
+        journal.append(f"c{i}", make_record(f"S{i}"))
+    report = write_pending(journal, tmp_path)
+    parts = [workbook_path(tmp_path, "2026-03-02", p) for p in (1, 2, 3)]
+    assert parts[1].name == "results-2026-03-02-part2.xlsx"
+    assert report.written == {str(parts[0]): 3, str(parts[1]): 3, str(parts[2]): 2}
+    assert [[r["cycle_id"] for r in read_workbook(p)] for p in parts] == \
+        [["c0", "c1", "c2"], ["c3", "c4", "c5"], ["c6", "c7"]]
+    assert journal.get("c4").workbook_path == str(parts[1])
+    journal._db.execute("UPDATE cycles SET workbook_path = NULL WHERE cycle_id = 'c1'")   # crash before a mark
+    for i in (8, 9):
+        journal.append(f"c{i}", make_record(f"S{i}"))
+    write_pending(journal, tmp_path)
+    part4 = workbook_path(tmp_path, "2026-03-02", 4)
+    assert [r["cycle_id"] for r in read_workbook(parts[2])] == ["c6", "c7", "c8"]
+    assert [r["cycle_id"] for r in read_workbook(part4)] == ["c9"]
+    assert [r["cycle_id"] for r in read_workbook(parts[0])] == ["c0", "c1", "c2"]          # c1 not doubled
+    assert journal.get("c1").workbook_path == str(parts[0]) and journal.pending_workbook() == []
+    assert all(load_workbook(p)["results"].max_row <= 4 for p in [*parts, part4])
+
+
+def test_export_of_a_period(journal, tmp_path):
+    for day in (1, 2, 3):
+        for k in range(3):
+            journal.append(f"d{day}-{k}", make_record(f"S{day}{k}", f"2026-03-0{day}T1{k}:00:00.000+01:00"))
+    out = export_workbook(journal, "2026-03-02T00:00:00+01:00", "2026-03-03T00:00:00+01:00", tmp_path / "x.xlsx")
+    assert out == [tmp_path / "x.xlsx"]
+    assert [r["cycle_id"] for r in read_workbook(out[0])] == ["d2-0", "d2-1", "d2-2"]
+    out = export_workbook(journal, None, "2026-03-03T11:00:00+01:00", tmp_path / "y.xlsx", max_rows=4)
+    assert [p.name for p in out] == ["y.xlsx", "y-part2.xlsx"]
+    assert sum(len(read_workbook(p)) for p in out) == 7
+    assert journal.pending_workbook() != []                  # exporting marks nothing
+    empty = export_workbook(journal, "2030-01-01", "2030-01-02", tmp_path / "empty.xlsx")
+    assert read_workbook(empty[0]) == []
+
+
+def test_a_new_figure_adds_a_column(journal, tmp_path):
+    journal.append("c0", make_record("S0"))
+    write_pending(journal, tmp_path)
+    journal.append("c1", make_record("S1", new_figure_mrad=1.25))
+    write_pending(journal, tmp_path)
+    book = workbook_path(tmp_path, "2026-03-02")
+    header = [c.value for c in load_workbook(book)["results"][1]]
+    assert header[-1] == "new_figure_mrad"
+    rows = read_workbook(book)
+    assert "new_figure_mrad" not in rows[0] and rows[1]["new_figure_mrad"] == 1.25
+
+
+def test_a_book_damaged_elsewhere_is_set_aside_and_rebuilt_from_the_journal(journal, tmp_path):
+    journal.append("c0", make_record("S0"))
+    journal.append("c1", make_record("S1"))
+    write_pending(journal, tmp_path)
+    book = workbook_path(tmp_path, "2026-03-02")
+    book.write_bytes(b"someone saved garbage here")
+    journal.append("c2", make_record("S2"))
+    write_pending(journal, tmp_path)
+    assert [r["cycle_id"] for r in read_workbook(book)] == ["c0", "c1", "c2"]
+    aside = list(tmp_path.glob("results-2026-03-02.corrupt-*.xlsx"))
+    assert len(aside) == 1 and aside[0].read_bytes() == b"someone saved garbage here"
