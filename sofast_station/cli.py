@@ -130,6 +130,73 @@ def cmd_inspect(args) -> int:
     return 0
 
 
+def cmd_run(args) -> int:
+    import signal
+
+    from .config import load_config
+    from .station.service import Service, setup_logging
+
+    config = load_config(args.config)
+    log_path = setup_logging(config.data_dir, args.verbose)
+    log.info("station %s (%s); data in %s; log %s", config.name, config.backend, config.data_dir, log_path)
+    service = Service(config, simulated_facets=args.facets, seed=args.seed)
+    stop_signals = {"count": 0}
+
+    def on_signal(signum, frame):
+        stop_signals["count"] += 1
+        if stop_signals["count"] == 1:
+            log.warning("stop requested (%s): finishing the current facet", signal.Signals(signum).name)
+            service.runner.stop()
+        else:
+            raise KeyboardInterrupt
+
+    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    counts: dict[str, int] = {}
+    try:
+        print(f"{'serial':<14} {'focal lengths':^30} {'slope error RMS':^30} verdict  cycle", flush=True)
+        for outcome in service.runner.run(max_cycles=args.max_cycles):
+            counts[outcome.answer] = counts.get(outcome.answer, 0) + 1
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+        log.info("stopping: waiting for the archiver to write pending rows and dumps")
+        service.close()
+    total = sum(counts.values())
+    print(f"{total} facet(s): " + ", ".join(f"{n} {k}" for k, n in sorted(counts.items())), flush=True)
+    return 0
+
+
+def cmd_archive_export(args) -> int:
+    from .archive import Journal, export_workbook
+    from .config import load_config
+
+    config = load_config(args.config)
+    path = config.data_dir / "journal.sqlite3"
+    if not path.exists():
+        raise StationError(f"no journal at {path}: this station has not measured anything yet")
+    journal = Journal(path)
+    try:
+        out = Path(args.out) if args.out else config.data_dir / "exports" / \
+            f"sofast-{args.since or 'start'}-{args.until or 'now'}.xlsx".replace(":", "")
+        files = export_workbook(journal, args.since, args.until, out)
+    finally:
+        journal.close()
+    for f in files:
+        print(f)
+    return 0
+
+
+def cmd_dump_next(args) -> int:
+    from .config import load_config
+
+    config = load_config(args.config)
+    flag = config.data_dir / "dump-next"
+    flag.parent.mkdir(parents=True, exist_ok=True)
+    flag.touch()
+    print(f"the next facet will be dumped ({flag})")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="sofast-station", description=__doc__)
     p.add_argument("--version", action="version", version=f"sofast-station {__version__}")
@@ -142,6 +209,24 @@ def build_parser() -> argparse.ArgumentParser:
     ins.add_argument("--seed", type=int, default=None, help="simulated station: noise seed")
     ins.add_argument("--noise-free", action="store_true", help="simulated station: no sensor noise")
     ins.set_defaults(func=cmd_inspect)
+    run = sub.add_parser("run", help="run the production loop: robot-triggered inspections until stopped")
+    run.add_argument("--config", default=_default_config(), help="station file (default: ./station.toml)")
+    run.add_argument("--facets", type=int, default=None,
+                     help="simulated robot: how many facets to place (default 20)")
+    run.add_argument("--max-cycles", type=int, default=None, help="stop after this many facets")
+    run.add_argument("--seed", type=int, default=None, help="simulated station: noise seed")
+    run.set_defaults(func=cmd_run)
+    arch = sub.add_parser("archive", help="the archive: export a period to a workbook")
+    arch_sub = arch.add_subparsers(dest="archive_command", required=True)
+    exp = arch_sub.add_parser("export", help="write a workbook of the journal's rows in a period")
+    exp.add_argument("--config", default=_default_config())
+    exp.add_argument("--from", dest="since", default=None, help="ISO date/time, inclusive (default: the start)")
+    exp.add_argument("--to", dest="until", default=None, help="ISO date/time, exclusive (default: now)")
+    exp.add_argument("--out", default=None, help="the .xlsx to write (default: data_dir/exports/...)")
+    exp.set_defaults(func=cmd_archive_export)
+    dn = sub.add_parser("dump-next", help="write a data dump of the next facet measured")
+    dn.add_argument("--config", default=_default_config())
+    dn.set_defaults(func=cmd_dump_next)
     return p
 
 

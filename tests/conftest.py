@@ -62,3 +62,8 @@ def small_station_toml(tmp_path) -> Path:
     path.write_text(SMALL_STATION.format(data_dir=tmp_path / "data", facet=ROOT / "fixtures/facets/dish_5m33.toml",
                                          radiometric=ROOT / "calibration/simulated_radiometric.json"))
     return path
+
+
+# The camera tests' --camera-serial / --camera-kind / --camera-shape options (real hardware, opt-in)
+# must be known wherever pytest starts.
+from tests.devices.cameras.conftest import pytest_addoption  # noqa: E402,F401

@@ -11,3 +11,12 @@ def test_analysis_benchmark_quick(repo_root, small_station_toml):
     print(proc.stdout)
     for line in ("camera: 400 x 300", "valid pixels:", "total", "memory: peak resident"):
         assert line in proc.stdout
+
+
+def test_cycle_benchmark_quick(repo_root, small_station_toml):
+    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "cycle.py"), "--quick", "--config",
+                           str(small_station_toml)], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    print(proc.stdout)
+    for line in ("camera 400 x 300", "answers: 3 pass", "trigger -> release", "render and image one capture"):
+        assert line in proc.stdout

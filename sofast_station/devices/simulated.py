@@ -6,8 +6,11 @@ simulated camera looks at whatever the display currently shows through the twin'
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 
+from ..errors import CameraDisconnectedError, CameraTimeoutError
 from ..fringes import Pattern
 from .renderer import FringeRenderer
 
@@ -42,6 +45,9 @@ class SimulatedCamera:
         self.shape = (twin.geometry.camera.height_px, twin.geometry.camera.width_px)
         self.exposure_s = 1 / 60
         self.gain = 1.0
+        #: Injected fault for the current facet (tests of the production loop), see SimulatedStation.
+        self.fault: str | None = None
+        self._unhang = threading.Event()
 
     def set_exposure(self, seconds: float) -> None:
         self.exposure_s = float(seconds)
@@ -50,7 +56,25 @@ class SimulatedCamera:
         self.gain = float(gain)
 
     def grab(self, timeout_s: float = 2.0) -> np.ndarray:
-        return self.twin.capture(self.display.image, self.rng)
+        fault = self.fault
+        if fault == "camera-timeout":
+            raise CameraTimeoutError(f"no frame from the simulated camera within {timeout_s:g} s (injected fault)")
+        if fault == "camera-disconnect":
+            raise CameraDisconnectedError("the simulated camera went away (injected fault); reopen it")
+        if fault == "hung-capture":
+            self.fault = None
+            self._unhang.clear()
+            self._unhang.wait(60.0)               # a driver that blocks far past any timeout
+        if fault == "dark":
+            return self.twin.capture(np.zeros_like(self.display.image), self.rng)
+        frame = self.twin.capture(self.display.image, self.rng)
+        if fault == "misplaced":
+            frame = np.roll(frame, 220, axis=1)   # the facet far from where the fixture should hold it
+        return frame
+
+    def release_hang(self) -> None:
+        """Let a hung grab return (the station reopening the camera)."""
+        self._unhang.set()
 
     def close(self) -> None:
         pass

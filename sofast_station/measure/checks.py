@@ -76,18 +76,21 @@ def check_saturation(stack: np.ndarray, max_fraction: float) -> None:
                 "exposure or gain (rerun the radiometric calibration), or dim the room light")
 
 
-def check_order(frames: np.ndarray, fringes: FringeSet) -> None:
+def check_order(frames: np.ndarray, fringes: FringeSet, threshold_dn: float) -> None:
     """The dark frame must be the darkest and the white frame the brightest of the sequence.
 
-    Judged on image-wide means (a fixed stride of pixels), before anything else, so that swapped or
-    shifted frames are reported as such rather than as a dark scene. When no frame differs from another
-    (nothing responds to the screen) there is no order to judge; :func:`check_response` reports that.
+    Judged before anything else, so that swapped or shifted frames are reported as such rather than as a
+    dark scene, on the pixels (a fixed stride of them) whose value changes by more than *threshold_dn*
+    over the sequence: room light drifting between frames moves every pixel a little and must not
+    decide the order. When too few pixels respond there is no order to judge; :func:`check_response`
+    reports that.
     """
     flat = frames.reshape(frames.shape[0], -1)
     sample = flat[:, :: max(1, flat.shape[1] // 200_000)].astype(np.float32)
-    means = sample.mean(axis=1)
-    if float(means.max() - means.min()) < 0.5:
+    responsive = (sample.max(axis=0) - sample.min(axis=0)) > threshold_dn
+    if np.count_nonzero(responsive) < 50:
         return
+    means = sample[:, responsive].mean(axis=1)
     labels = [p.label for p in fringes.patterns()]
     darkest, brightest = int(np.argmin(means)), int(np.argmax(means))
     tie = 0.02 * float(means.max() - means.min())      # a saturated white may tie with a fringe peak

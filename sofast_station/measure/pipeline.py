@@ -156,7 +156,7 @@ def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, d
 
     # 1. Facet region from dark and white.
     dark, white = frames[0], frames[1]
-    checks.check_order(frames, fringes)
+    checks.check_order(frames, fringes, settings.mask_threshold_dn)
     checks.check_response(dark, white, settings.mask_threshold_dn)
     region = facet_region(dark, white, settings.mask_threshold_dn, settings.max_hole_px)
     nominal_outline = outline_image_points(design, cam, geometry.fixture_to_camera)

@@ -40,6 +40,7 @@ class Station:
     range_finder: RangeFinder
     radiometric: RadiometricRecord
     twin: object | None = None
+    camera_factory: object | None = field(default=None, repr=False)
     _rays: np.ndarray | None = field(default=None, repr=False)
 
     @property
@@ -48,6 +49,16 @@ class Station:
         if self._rays is None:
             self._rays = ray_grid(self.config.geometry.camera)
         return self._rays
+
+    def reopen_camera(self) -> None:
+        """Close the camera (which aborts a blocked grab) and open it again."""
+        if self.camera_factory is None:
+            return
+        try:
+            self.camera.close()
+        except Exception:
+            log.exception("error while closing the camera")
+        self.camera = self.camera_factory()
 
     def close(self) -> None:
         for dev in (self.camera, self.display):
@@ -67,7 +78,69 @@ def open_station(config: StationConfig, seed: int | None = None, noise: bool = T
     if config.backend == "simulated":
         from .simulated import open_simulated
         return open_simulated(config, radiometric, seed=seed, noise=noise)
-    raise NotImplementedError(f"backend {config.backend!r}")  # config validation rejects others
+    return open_hardware(config, radiometric)
+
+
+class FixedRangeFinder:
+    """A distance entered by the operator (metres), for stations without a laser range finder."""
+
+    def __init__(self, distance_m: float):
+        if not (np.isfinite(distance_m) and distance_m > 0):
+            from ..errors import ConfigError
+            raise ConfigError(f"[devices] range_finder_options.distance_m must be a positive distance in metres, "
+                              f"got {distance_m}")
+        self.distance_m = float(distance_m)
+
+    def measure(self) -> float:
+        return self.distance_m
+
+
+def open_hardware(config: StationConfig, radiometric: RadiometricRecord) -> Station:
+    """The real station of ``[devices]``: an LCD window, a camera backend, a range finder.
+
+    ::
+
+        [devices]
+        display_options = { monitor = "DP-1", settle_s = 0.05 }
+        camera = "basler"                       # basler | aravis | replay
+        camera_options = { serial = "40012345" }
+        range_finder_options = { distance_m = 10.6612 }
+    """
+    from ..devices.cameras import open_camera
+    from ..devices.lcd import LcdDisplay
+    from ..errors import ConfigError
+
+    dev = config.raw.get("devices", {})
+    where = f"{config.path} [devices]"
+    scr, cam = config.geometry.screen, config.geometry.camera
+    disp = dict(dev.get("display_options", {}))
+    if "monitor" not in disp:
+        raise ConfigError(f"{where}: display_options.monitor must name the LCD's monitor (see xrandr)")
+    display = LcdDisplay(disp["monitor"], scr.width_px, scr.height_px, radiometric.lut, radiometric.floor_level,
+                         radiometric.max_level, float(disp.get("settle_s", 0.05)))
+    try:
+        kind = dev.get("camera", "basler")
+        options = dict(dev.get("camera_options", {}))
+        if kind == "replay" and "dump" in options:      # serve a data dump's frames, as captured
+            from ..archive import read_dump
+            options = {"frames": read_dump(options.pop("dump")).frames(), "loop": True, **options}
+        elif kind != "replay":
+            options.setdefault("expected_shape", cam.shape)
+
+        def camera_factory():
+            camera = open_camera(kind, **options)
+            camera.set_exposure(radiometric.exposure_s)
+            camera.set_gain(radiometric.gain)
+            return camera
+
+        camera = camera_factory()
+        rf = dict(dev.get("range_finder_options", {}))
+        range_finder = FixedRangeFinder(float(rf.get("distance_m", float("nan"))))
+    except BaseException:
+        display.close()
+        raise
+    return Station(config=config, display=display, camera=camera, range_finder=range_finder,
+                   radiometric=radiometric, camera_factory=camera_factory)
 
 
 def capture(station: Station, progress=None) -> tuple[np.ndarray, float]:

@@ -13,7 +13,10 @@ from ..devices.simulated import SimulatedCamera, SimulatedDisplay, SimulatedRang
 from ..errors import ConfigError
 from .inspect import Station
 
-_SIM_KEYS = {"seed", "facet", "optics", "distance_error_m"}
+_SIM_KEYS = {"seed", "facet", "optics", "distance_error_m", "faults", "hang_s"}
+
+#: Faults the simulated station can inject for a given serial ([simulation.faults] SERIAL = KIND).
+FAULT_KINDS = ("dark", "camera-timeout", "misplaced", "hung-analysis", "hung-capture", "camera-disconnect")
 
 log = logging.getLogger(__name__)
 
@@ -37,6 +40,22 @@ def build_twin(config: StationConfig, noise: bool = True):
     return TwinStation(config.geometry, config.design, facet, optics)
 
 
+class SimulatedStation(Station):
+    """The simulated station, with faults injected per serial for tests of the production loop."""
+
+    def inject(self, serial: str) -> float:
+        """Arm this cycle's fault (if [simulation.faults] names the serial); returns the seconds the
+        analysis must hang (for "hung-analysis"), else 0."""
+        kind = self.config.simulation.get("faults", {}).get(serial)
+        self.camera.fault = kind if kind in ("dark", "camera-timeout", "misplaced", "hung-capture",
+                                             "camera-disconnect") else None
+        return self.config.simulation.get("hang_s", 3600.0) if kind == "hung-analysis" else 0.0
+
+    def reopen_camera(self) -> None:
+        self.camera.fault = None
+        self.camera.release_hang()
+
+
 def open_simulated(config: StationConfig, radiometric: RadiometricRecord, seed: int | None = None,
                    noise: bool = True) -> Station:
     """Simulated display (offscreen renderer), twin camera and twin range finder."""
@@ -52,5 +71,9 @@ def open_simulated(config: StationConfig, radiometric: RadiometricRecord, seed: 
     seed = config.simulation.get("seed", 0) if seed is None else seed
     camera = SimulatedCamera(twin, display, np.random.default_rng(seed) if noise else None)
     rangefinder = SimulatedRangeFinder(twin, float(config.simulation.get("distance_error_m", 0.0)))
-    return Station(config=config, display=display, camera=camera, range_finder=rangefinder,
-                   radiometric=radiometric, twin=twin)
+    faults = config.simulation.get("faults", {})
+    bad = {k: v for k, v in faults.items() if v not in FAULT_KINDS}
+    if bad:
+        raise ConfigError(f"{config.path} [simulation.faults]: unknown fault kind(s) {bad}; use {FAULT_KINDS}")
+    return SimulatedStation(config=config, display=display, camera=camera, range_finder=rangefinder,
+                            radiometric=radiometric, twin=twin)

@@ -10,7 +10,7 @@ import time
 
 import pytest
 
-pytest.importorskip("pymodbus")
+import pymodbus  # noqa: F401  (a dependency: its absence must fail, not skip)
 
 from pymodbus.client import ModbusTcpClient  # noqa: E402
 

@@ -38,7 +38,7 @@ def test_missing_package_is_named(monkeypatch, kind, package, hint):
 
 
 def test_modbus_to_nothing_is_a_trigger_error():
-    pytest.importorskip("pymodbus")
+    import pymodbus  # noqa: F401
     from .fake_plc import free_port
 
     with pytest.raises(TriggerError, match="cannot connect"):
@@ -46,7 +46,7 @@ def test_modbus_to_nothing_is_a_trigger_error():
 
 
 def test_usb_through_open_trigger_on_the_virtual_bus():
-    pytest.importorskip("usb")
+    import usb  # noqa: F401
     from .virtual_ftdi import VirtualFtdi, VirtualUsbBackend
 
     trigger = open_trigger("usb", backend=VirtualUsbBackend(VirtualFtdi()), ack_timeout_s=1.0)

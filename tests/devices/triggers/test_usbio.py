@@ -9,7 +9,7 @@ from datetime import datetime
 
 import pytest
 
-pytest.importorskip("usb")
+import usb  # noqa: F401  (a dependency: its absence must fail, not skip)
 
 from sofast_station.devices.protocols import FAULT_CODES  # noqa: E402
 from sofast_station.devices.triggers import _handshake, usbio  # noqa: E402

@@ -1,0 +1,120 @@
+"""Benchmark: the production cycle, trigger -> robot release, stage by stage, over 20 facets.
+
+    .venv/bin/python benchmarks/cycle.py               # default full-resolution station, 20 facets
+    .venv/bin/python benchmarks/cycle.py --quick       # the test suite's smoke run: 3 facets
+
+So that the figure is what real hardware would see, the camera replays one capture rendered by the
+digital twin beforehand (its render time is reported separately), waiting per frame for a modelled
+display settle (``--settle-frames`` refreshes at ``--refresh-hz``) plus the exposure
+(``--exposure-frames`` refreshes). Everything else is the station's real loop: busy, capture,
+four-step check, crop, analysis in the worker process, verdict, journal (SQLite, synchronous), spool
+of every 5th facet's frames, answer; the archiver writes workbook and dumps in its own process, off the
+critical path. Prints the median and the worst of each stage. Nothing is asserted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+
+class NullDisplay:
+    """The display is modelled by the replay camera's per-frame delay."""
+
+    def show(self, pattern) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+class FixedRangeFinder:
+    def __init__(self, distance_m: float):
+        self.distance_m = distance_m
+
+    def measure(self) -> float:
+        return self.distance_m
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--config", default=str(ROOT / "station.toml"))
+    p.add_argument("--facets", type=int, default=20)
+    p.add_argument("--refresh-hz", type=float, default=60.0)
+    p.add_argument("--settle-frames", type=float, default=2.0, help="display refreshes before the exposure")
+    p.add_argument("--exposure-frames", type=float, default=1.0, help="exposure, in display refreshes")
+    p.add_argument("--quick", action="store_true", help="3 facets (the test suite's smoke run)")
+    args = p.parse_args(argv)
+    n = 3 if args.quick else args.facets
+
+    import logging
+    logging.basicConfig(level=logging.WARNING)
+    from sofast_station.calibrate.records import load_radiometric
+    from sofast_station.config import load_config
+    from sofast_station.devices.cameras.replay import ReplayCamera
+    from sofast_station.station.inspect import Station, capture, open_station
+    from sofast_station.station.service import Service
+
+    cfg = load_config(args.config)
+    cam = cfg.geometry.camera
+    t = time.perf_counter()
+    twin_station = open_station(cfg, seed=1)
+    t_trace = time.perf_counter() - t
+    try:
+        t = time.perf_counter()
+        frames, distance = capture(twin_station)
+        t_render = time.perf_counter() - t
+    finally:
+        twin_station.close()
+    frame_delay = (args.settle_frames + args.exposure_frames) / args.refresh_hz
+    print(f"station: {cfg.name}; camera {cam.width_px} x {cam.height_px}; {n} facets")
+    print(f"digital twin (not in the cycle): trace {t_trace:.2f} s, render and image one capture {t_render:.2f} s")
+    print(f"modelled per frame: {args.settle_frames:g} + {args.exposure_frames:g} refreshes at {args.refresh_hz:g} Hz "
+          f"= {1000 * frame_delay:.0f} ms, {frames.shape[0]} frames = {frames.shape[0] * frame_delay:.2f} s")
+
+    with tempfile.TemporaryDirectory() as tmp:
+        raw = dict(cfg.raw, run={"dump_every_n": 5}, archive={"workbook_interval_s": 5.0})
+        bench_cfg = dataclasses.replace(cfg, data_dir=Path(tmp), raw=raw, simulation={})
+        lines: list[str] = []
+        service = Service.__new__(Service)           # the real service, with replay hardware
+        service_init_devices = Station(config=bench_cfg, display=NullDisplay(),
+                                       camera=ReplayCamera(frames, frame_delay_s=frame_delay, loop=True),
+                                       range_finder=FixedRangeFinder(distance),
+                                       radiometric=load_radiometric(cfg.radiometric_path), twin=None)
+        t = time.perf_counter()
+        Service.__init__(service, bench_cfg, simulated_facets=n, console=lines.append, station=service_init_devices)
+        t_start = time.perf_counter() - t
+        try:
+            outcomes = service.runner.run()
+        finally:
+            t = time.perf_counter()
+            service.close()
+            t_close = time.perf_counter() - t
+    print(f"station start (worker process, pixel rays, archiver process): {t_start:.2f} s; shutdown with archive "
+          f"drained: {t_close:.2f} s")
+    answers = {}
+    for o in outcomes:
+        answers[o.answer] = answers.get(o.answer, 0) + 1
+    print("answers: " + ", ".join(f"{v} {k}" for k, v in sorted(answers.items())))
+    rows = []
+    for o in outcomes:
+        ts = o.record.get("timings_s", {})
+        rows.append({"capture": ts.get("capture", float("nan")), "analysis": ts.get("analysis", float("nan")),
+                     "until journal": ts.get("until_journal", float("nan")), "trigger -> release": o.cycle_s})
+    print("seconds per facet: median   worst")
+    for key in rows[0]:
+        v = [r[key] for r in rows]
+        print(f"  {key:<20} {statistics.median(v):6.3f} {max(v):7.3f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

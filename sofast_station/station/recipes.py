@@ -1,0 +1,82 @@
+"""Facet recipes: which design, alignment point, analysis settings and limits apply to a facet.
+
+The PLC names the recipe, or the serial number picks it by pattern, or the station's default applies.
+In station.toml::
+
+    [recipes.gore-a]
+    facet = "fixtures/facets/gore_5m33.toml"
+    serial_pattern = "^GA-"                 # regular expression on the serial
+    alignment_point_m = [3.8, 0.0]          # overrides the facet file's
+    limits = { focal_length_tolerance = 0.01 }
+    quality = { min_valid_fraction = 0.85 }
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+from dataclasses import dataclass
+
+from ..devices.protocols import FacetRequest
+from ..errors import ConfigError
+from ..facet import FacetDesign, load_facet
+from ..measure.pipeline import AnalysisSettings
+from .verdict import Limits, Quality, limits_from_table, quality_from_table
+
+_KEYS = {"facet", "serial_pattern", "alignment_point_m", "measure_point_m", "limits", "quality", "analysis"}
+
+
+@dataclass(frozen=True)
+class Recipe:
+    name: str
+    design: FacetDesign
+    analysis: AnalysisSettings
+    limits: Limits
+    quality: Quality
+    serial_pattern: re.Pattern | None = None
+
+
+def default_recipe(config) -> Recipe:
+    """The station's own facet, settings and limits, under the name "default"."""
+    return Recipe("default", config.design, config.analysis, config.limits, config.quality)
+
+
+def recipes_from_config(config) -> dict[str, Recipe]:
+    """The station's recipes: "default" plus every ``[recipes.NAME]`` table of station.toml."""
+    out = {"default": default_recipe(config)}
+    for name, table in config.raw.get("recipes", {}).items():
+        where = f"{config.path} [recipes.{name}]"
+        if not isinstance(table, dict):
+            raise ConfigError(f"{where} must be a table")
+        unknown = sorted(set(table) - _KEYS)
+        if unknown:
+            raise ConfigError(f"{where} has unknown key(s) {', '.join(unknown)}; allowed: {', '.join(sorted(_KEYS))}")
+        design = load_facet(config.path.parent / table["facet"]) if "facet" in table else config.design
+        overrides = {k: table[k] for k in ("alignment_point_m", "measure_point_m") if k in table}
+        if overrides:
+            design = FacetDesign.from_dict({**design.to_dict(), **overrides}, source=where)
+        analysis = dataclasses.replace(config.analysis, **table.get("analysis", {}))
+        limits = limits_from_table({**dataclasses.asdict(config.limits), **table.get("limits", {})}, f"{where}.limits")
+        quality = quality_from_table({**dataclasses.asdict(config.quality), **table.get("quality", {})},
+                                     f"{where}.quality")
+        pattern = None
+        if "serial_pattern" in table:
+            try:
+                pattern = re.compile(table["serial_pattern"])
+            except re.error as exc:
+                raise ConfigError(f"{where}: serial_pattern is not a valid regular expression: {exc}") from None
+        out[name] = Recipe(name, design, analysis, limits, quality, pattern)
+    return out
+
+
+def choose_recipe(recipes: dict[str, Recipe], request: FacetRequest) -> Recipe:
+    """The PLC's recipe if it names one, else the first whose serial pattern matches, else "default"."""
+    if request.recipe:
+        if request.recipe not in recipes:
+            raise ConfigError(f"the PLC asked for recipe {request.recipe!r}, which station.toml does not define "
+                              f"(known: {', '.join(sorted(recipes))})")
+        return recipes[request.recipe]
+    for recipe in recipes.values():
+        if recipe.serial_pattern is not None and recipe.serial_pattern.search(request.serial):
+            return recipe
+    return recipes["default"]

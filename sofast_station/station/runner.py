@@ -1,0 +1,392 @@
+"""The production loop: trigger -> busy -> capture -> analyse -> verdict -> journal -> answer -> archive.
+
+One facet at a time. Before the robot is released the facet's row is in the journal (and, when a dump is
+due, its cropped frames are spooled), so nothing is lost if the station dies the next instant; workbook
+rows and HDF5 dumps are written afterwards by the archiver, off the critical path.
+
+A hard deadline guards every cycle. The analysis runs in a killable worker process and is abandoned when
+the remaining time runs out; a capture that hangs past the deadline is abandoned by a watchdog thread,
+which answers the robot "fault: timeout" and journals the fault while the station's thread is still stuck,
+and the station reopens its camera when that thread comes back. Any StationError in a cycle becomes a
+fault answer with its reason code; the loop then takes the next facet.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import logging
+import threading
+import time
+import uuid
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .. import __version__
+from ..devices.protocols import FAULT_CODES, FacetRequest
+from ..errors import (CameraError, CaptureError, ConfigError, DisplayError, GeometryError, StationError,
+                      TriggerError)
+from .frames import capture_sequence, crop, crop_box, restore
+from .inspect import FIGURE_KEYS, Station, now_iso
+from .recipes import Recipe, choose_recipe
+from .verdict import judge
+from .worker import AnalysisTimeout, AnalysisWorker
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class RunSettings:
+    """``[run]`` in station.toml.
+
+    Attributes
+    ----------
+    deadline_s : float
+        Hard limit from trigger to answer; past it the robot gets "fault: timeout".
+    dump_every_n : int
+        Dump every n-th facet (0: never on a schedule).
+    dump_failed : bool
+        Dump every failed, invalid or faulted facet whose frames exist.
+    heartbeat_s : float
+        Heartbeat period toward the robot/PLC.
+    poll_s : float
+        How long one wait for a facet lasts before the loop looks at its stop flag.
+    camera_timeout_s : float
+        Longest wait for one frame.
+    min_free_gb : float
+        Below this much free space in data_dir no dump is written (the row still is), and the log warns.
+    dump_keep_days, dump_max_gb : float
+        Retention of dumps: older or beyond the total size, the oldest go first.
+    """
+
+    deadline_s: float = 10.0
+    dump_every_n: int = 0
+    dump_failed: bool = True
+    heartbeat_s: float = 1.0
+    poll_s: float = 0.5
+    camera_timeout_s: float = 2.0
+    min_free_gb: float = 2.0
+    dump_keep_days: float = 90.0
+    dump_max_gb: float = 50.0
+
+
+@dataclass
+class CycleOutcome:
+    """One facet's cycle, as answered to the robot and journaled."""
+
+    cycle_id: str
+    serial: str
+    answer: str                       # pass | fail | invalid | fault
+    record: dict
+    fault_code: int = 0
+    cycle_s: float = 0.0
+    dumped: bool = False
+    frames: np.ndarray | None = field(default=None, repr=False)
+
+
+def new_cycle_id() -> str:
+    """Sortable and unique: UTC time to the millisecond plus 8 random hex digits."""
+    return _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%S%fZ")[:-4] + "-" + uuid.uuid4().hex[:8]
+
+
+def fault_code_for(exc: BaseException) -> tuple[int, str]:
+    """Reason code and kind for an exception that ended a cycle."""
+    if isinstance(exc, AnalysisTimeout):
+        return FAULT_CODES["timeout"], "timeout"
+    if isinstance(exc, CameraError):
+        return FAULT_CODES["camera"], "camera"
+    if isinstance(exc, DisplayError):
+        return FAULT_CODES["display"], "display"
+    if isinstance(exc, CaptureError):
+        return FAULT_CODES["capture"], "capture"
+    if isinstance(exc, GeometryError):
+        return FAULT_CODES["geometry"], "geometry"
+    if isinstance(exc, StationError):
+        return FAULT_CODES["analysis"], "analysis"
+    return FAULT_CODES["internal"], "internal"
+
+
+class LockedTrigger:
+    """The trigger shared by the loop, the heartbeat thread and the watchdog."""
+
+    def __init__(self, trigger):
+        self.trigger = trigger
+        self.lock = threading.RLock()
+
+    def __getattr__(self, name):
+        method = getattr(self.trigger, name)
+
+        def call(*args, **kwargs):
+            with self.lock:
+                return method(*args, **kwargs)
+        return call
+
+
+class StationRunner:
+    """Runs cycles until stopped.
+
+    Parameters
+    ----------
+    station : Station
+        Devices, configuration and calibration (camera, display, range finder).
+    trigger :
+        The robot/PLC handshake (Trigger protocol).
+    journal : Journal
+        The append-only journal (thread-safe).
+    archiver :
+        The archiver (woken after each cycle), or None.
+    recipes : dict[str, Recipe]
+    settings : RunSettings
+    submit : callable
+        ``submit(cycle_id, record, dump)`` journals the record durably, first spooling *dump* (a dict
+        with the cropped frames, crop box, full shape and measured distance) when it is not None.
+    """
+
+    def __init__(self, station: Station, trigger, journal, archiver, recipes: dict[str, Recipe],
+                 settings: RunSettings, submit, console=print):
+        self.station = station
+        self.trigger = LockedTrigger(trigger)
+        self.journal = journal
+        self.archiver = archiver
+        self.recipes = recipes
+        self.settings = settings
+        self.submit = submit
+        self.console = console
+        self.stop_event = threading.Event()
+        self.cycles = 0
+        cam = station.config.geometry.camera
+        self.worker = AnalysisWorker(station.config.geometry, station.config.fringes, cam.shape)
+        self._heartbeat_thread = threading.Thread(target=self._heartbeat, name="heartbeat", daemon=True)
+        self._answer_lock = threading.Lock()
+
+    # ------------------------------------------------------------------ loop
+    def _heartbeat(self) -> None:
+        while not self.stop_event.wait(self.settings.heartbeat_s):
+            if getattr(self.trigger.trigger, "finished", False):
+                continue                     # the simulated robot has placed its last facet
+            try:
+                self.trigger.heartbeat()
+            except StationError as exc:
+                log.warning("heartbeat failed: %s", exc)
+
+    def stop(self) -> None:
+        """Finish the current facet, then stop."""
+        self.stop_event.set()
+
+    def run(self, max_cycles: int | None = None) -> list[CycleOutcome]:
+        """Take facets until stopped, *max_cycles* are done, or the (simulated) robot has no more."""
+        outcomes = []
+        self._heartbeat_thread.start()
+        try:
+            while not self.stop_event.is_set():
+                if max_cycles is not None and self.cycles >= max_cycles:
+                    break
+                try:
+                    self.trigger.ready()
+                    request = self.trigger.wait_for_facet(self.settings.poll_s)
+                except TriggerError as exc:
+                    log.error("robot/PLC handshake failed: %s; reconnecting", exc)
+                    self._reopen_trigger()
+                    continue
+                if request is None:
+                    if getattr(self.trigger.trigger, "finished", False):
+                        break
+                    continue
+                outcomes.append(self.cycle(request))
+        finally:
+            self.stop_event.set()
+        return outcomes
+
+    def _reopen_trigger(self) -> None:
+        reopen = getattr(self.trigger.trigger, "reopen", None)
+        if reopen:
+            try:
+                reopen()
+            except StationError as exc:
+                log.error("could not reconnect to the robot/PLC: %s", exc)
+        time.sleep(min(1.0, self.settings.poll_s))
+
+    # ------------------------------------------------------------------ one cycle
+    def cycle(self, request: FacetRequest) -> CycleOutcome:
+        t0 = time.perf_counter()
+        cycle_id = new_cycle_id()
+        self.cycles += 1
+        serial = request.serial
+        state = {"answered": False, "stage": "start"}
+        timings: dict[str, float] = {}
+        try:
+            self.trigger.busy()
+        except TriggerError as exc:
+            log.error("%s: could not signal busy: %s", serial, exc)
+        watchdog = threading.Timer(self.settings.deadline_s + 0.25, self._expire,
+                                   args=(cycle_id, request, state, t0))
+        watchdog.daemon = True
+        watchdog.start()
+        frames = raw_shape = box = distance = None
+        outcome = None
+        try:
+            recipe = choose_recipe(self.recipes, request)
+            inject = getattr(self.station, "inject", None)
+            hang_s = inject(serial) if inject else 0.0
+            t = time.perf_counter()
+            state["stage"] = "capture"
+            raw, notes = capture_sequence(self.station.display, self.station.camera, self.station.config.fringes,
+                                          recipe.analysis.mask_threshold_dn, timeout_s=self.settings.camera_timeout_s)
+            distance = float(self.station.range_finder.measure())
+            timings["capture"] = time.perf_counter() - t
+            box = crop_box(raw[0], raw[1], recipe.analysis.mask_threshold_dn)
+            frames, raw_shape = crop(raw, box), raw.shape[1:]
+            remaining = self.settings.deadline_s - (time.perf_counter() - t0) - 0.3
+            if state["answered"] or remaining <= 0:     # the watchdog gave up on this cycle already
+                raise AnalysisTimeout(f"the capture took {timings['capture']:.1f} s, past the "
+                                      f"{self.settings.deadline_s:g} s deadline")
+            t = time.perf_counter()
+            state["stage"] = "analysis"
+            res = self.worker.analyse(restore(frames, box, raw_shape), recipe.design, recipe.analysis,
+                                      distance, timeout_s=remaining, hang_s=hang_s)
+            timings["analysis"] = time.perf_counter() - t
+            record = self._record(cycle_id, request, recipe, res.figures, distance, notes, timings)
+            record.update(judge(res.figures, recipe.design, recipe.limits, recipe.quality))
+            if self.station.twin is not None and recipe.design.name == self.station.config.design.name:
+                from ..twin.truth import ground_truth
+                truth = ground_truth(self.station.twin, res.valid)
+                record["truth"] = {k: truth[k] for k in FIGURE_KEYS if k in truth}
+            outcome = CycleOutcome(cycle_id, serial, record["verdict"], record)
+        except Exception as exc:          # a bad facet must never stop the line
+            code, kind = fault_code_for(exc)
+            if kind == "internal":
+                log.exception("%s: internal error", serial)
+            reason = f"{kind}: {exc}"
+            record = self._fault_record(cycle_id, request, code, reason, timings)
+            outcome = CycleOutcome(cycle_id, serial, "fault", record, fault_code=code)
+            if isinstance(exc, CameraError):
+                self._reopen_camera()
+        finally:
+            watchdog.cancel()
+        outcome.frames = frames
+        if frames is not None:
+            outcome.record["crop_box"] = list(box)
+        with self._answer_lock:
+            if state["answered"]:
+                log.error("%s: cycle %s finished after the watchdog answered timeout; result discarded",
+                          serial, cycle_id)
+                self._reopen_camera()
+                outcome.answer = "fault"
+                return outcome
+            state["answered"] = True
+            self._finish(outcome, request, t0, raw_shape=raw_shape, box=box, distance=distance)
+        return outcome
+
+    def _expire(self, cycle_id: str, request: FacetRequest, state: dict, t0: float) -> None:
+        """Watchdog: the cycle passed its deadline with its thread still busy (a hung capture)."""
+        with self._answer_lock:
+            if state["answered"]:
+                return
+            state["answered"] = True
+        reason = (f"timeout: no result within the {self.settings.deadline_s:g} s cycle deadline "
+                  f"({state['stage']} did not return)")
+        log.error("%s: %s", request.serial, reason)
+        record = self._fault_record(cycle_id, request, FAULT_CODES["timeout"], reason, {})
+        record["timings_s"]["until_journal"] = time.perf_counter() - t0
+        self.submit(cycle_id, record, None)
+        try:
+            self.trigger.fault(FAULT_CODES["timeout"], reason)
+        except TriggerError as exc:
+            log.error("could not answer the robot: %s", exc)
+        self.console(self._console_line(record, "fault", time.perf_counter() - t0))
+        # Closing the camera is how a blocked grab is aborted; the station's thread then comes back.
+        self._reopen_camera()
+
+    def _dump_due(self, outcome: CycleOutcome, request: FacetRequest) -> bool:
+        s = self.settings
+        if outcome.frames is None:
+            return False
+        flag = self.station.config.data_dir / "dump-next"
+        if flag.exists():
+            flag.unlink(missing_ok=True)
+            return True
+        return bool(request.dump or (s.dump_every_n and self.cycles % s.dump_every_n == 0)
+                    or (s.dump_failed and outcome.answer in ("fail", "invalid", "fault")))
+
+    def _finish(self, outcome: CycleOutcome, request: FacetRequest, t0: float, raw_shape, box, distance) -> None:
+        """Journal (and spool), then answer the robot: in that order."""
+        record = outcome.record
+        dump = None
+        if self._dump_due(outcome, request):
+            dump = {"frames": outcome.frames, "crop_box": box, "full_shape": raw_shape,
+                    "measured_distance_m": distance}
+        record["timings_s"]["until_journal"] = time.perf_counter() - t0
+        try:
+            self.submit(outcome.cycle_id, record, dump)
+            outcome.dumped = dump is not None
+        except (OSError, StationError) as exc:
+            if dump is None:
+                raise
+            # The row matters more than the dump: keep the row, say why the dump is missing.
+            log.error("%s: the frames for the dump could not be spooled (%s); journaling the row without",
+                      outcome.serial, exc)
+            record.setdefault("reasons", []).append(f"dump not written: {exc}")
+            self.submit(outcome.cycle_id, record, None)
+        try:
+            if outcome.answer == "fault":
+                self.trigger.fault(outcome.fault_code, record["reasons"][0] if record.get("reasons") else "fault")
+            else:
+                self.trigger.done(outcome.answer)
+        except TriggerError as exc:
+            log.error("%s: could not answer the robot: %s", outcome.serial, exc)
+            self._reopen_trigger()
+        outcome.cycle_s = time.perf_counter() - t0
+        self.console(self._console_line(record, outcome.answer, outcome.cycle_s))
+        if self.archiver is not None:
+            self.archiver.wake()
+
+    def _reopen_camera(self) -> None:
+        reopen = getattr(self.station, "reopen_camera", None)
+        if reopen:
+            try:
+                reopen()
+            except StationError as exc:
+                log.error("could not reopen the camera: %s", exc)
+
+    # ------------------------------------------------------------------ records
+    def _base(self, cycle_id: str, request: FacetRequest, recipe_name: str) -> dict:
+        cfg = self.station.config
+        return {"cycle_id": cycle_id, "serial": request.serial, "time": now_iso(), "recipe": recipe_name,
+                "station": cfg.name, "software_version": __version__, "config_hash": cfg.config_hash,
+                "calibration": {"radiometric": self.station.radiometric.record_id},
+                "camera": {"exposure_s": self.station.radiometric.exposure_s, "gain": self.station.radiometric.gain},
+                "request": {"recipe": request.recipe, "dump": request.dump, **request.extra}}
+
+    def _record(self, cycle_id, request, recipe, figures, distance, notes, timings) -> dict:
+        rec = self._base(cycle_id, request, recipe.name)
+        rec["facet"] = recipe.design.name
+        rec.update({k: figures[k] for k in FIGURE_KEYS})
+        rec.update({k: v for k, v in figures.items() if k not in FIGURE_KEYS and k != "timings_s"})
+        rec["measured_distance_m"] = distance
+        rec["capture_notes"] = notes
+        rec["timings_s"] = {**timings, **{f"analysis_{k}": v for k, v in figures.get("timings_s", {}).items()}}
+        return rec
+
+    def _fault_record(self, cycle_id, request, code, reason, timings) -> dict:
+        recipe = request.recipe or ""
+        rec = self._base(cycle_id, request, recipe)
+        rec.update({"verdict": "fault", "fault_code": code, "reasons": [reason], "timings_s": dict(timings)})
+        return rec
+
+    @staticmethod
+    def _console_line(record: dict, answer: str, cycle_s: float) -> str:
+        def f(v, fmt):
+            return "-" if v is None else format(v, fmt)
+        rms = record.get("slope_rms_mrad", {})
+        design = rms.get("design", {}).get("magnitude")
+        parab = rms.get("parabola", {}).get("magnitude")
+        text = (f"{record['serial']:<14} f_x {f(record.get('focal_length_x_m'), '8.4f')} m  "
+                f"f_y {f(record.get('focal_length_y_m'), '8.4f')} m  slope RMS design {f(design, '5.2f')} "
+                f"parabola {f(parab, '5.2f')} mrad  {answer.upper():<7} {cycle_s:5.2f} s")
+        if answer in ("fault", "invalid", "fail") and record.get("reasons"):
+            text += f"  ({record['reasons'][0]})"
+        return text
+
+    def close(self) -> None:
+        self.stop_event.set()
+        self.worker.close()

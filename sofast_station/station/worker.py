@@ -1,0 +1,146 @@
+"""The analysis in a separate, killable process.
+
+A hung analysis must not hang the line: the station runs :func:`~sofast_station.measure.pipeline.analyse`
+in one long-lived worker process (spawned, so it shares no OpenGL or thread state with the station),
+hands it the frames through shared memory (no 35 MB pickle per facet), waits with a deadline, and kills
+and restarts the worker when the deadline passes. The worker computes the camera's pixel rays once.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import threading
+import time
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import TimeoutError as FutureTimeout
+from dataclasses import dataclass
+from multiprocessing.shared_memory import SharedMemory
+
+import numpy as np
+
+from ..errors import StationError
+
+log = logging.getLogger(__name__)
+
+
+class AnalysisTimeout(StationError):
+    """The analysis did not finish before the cycle's deadline; the worker was restarted."""
+
+
+@dataclass
+class WorkerResult:
+    """What comes back from the worker: the figures and the pixels the analysis kept."""
+
+    figures: dict
+    valid: np.ndarray
+    seconds: float
+
+
+# --- worker process side -------------------------------------------------------------------------
+_STATE: dict = {}
+
+
+def _init(shm_name: str, shape: tuple[int, int, int], geometry: dict, fringes: dict) -> None:
+    from ..fringes import FringeSet
+    from ..geometry import StationGeometry
+    from ..measure.camera import ray_grid
+
+    shm = SharedMemory(name=shm_name)
+    _STATE["shm"] = shm
+    _STATE["frames"] = np.ndarray(shape, dtype=np.uint8, buffer=shm.buf)
+    _STATE["geometry"] = StationGeometry.from_dict(geometry)
+    _STATE["fringes"] = FringeSet.from_dict(fringes)
+    _STATE["rays"] = ray_grid(_STATE["geometry"].camera)
+
+
+def _run(design: dict, settings: dict, distance_m: float, hang_s: float):
+    from ..facet import FacetDesign
+    from ..measure.pipeline import AnalysisSettings, analyse
+
+    if hang_s > 0:                       # fault injection for tests: an analysis that hangs
+        time.sleep(hang_s)
+    t = time.perf_counter()
+    frames = np.array(_STATE["frames"])  # a private copy: the station may refill the buffer after a timeout
+    a = analyse(frames, _STATE["fringes"], _STATE["geometry"], FacetDesign.from_dict(design), distance_m,
+                AnalysisSettings(**settings), rays_cam=_STATE["rays"])
+    return a.figures, np.packbits(a.valid), a.valid.shape, time.perf_counter() - t
+
+
+def _ping() -> bool:
+    return "rays" in _STATE
+
+
+# --- station side -------------------------------------------------------------------------------------
+class AnalysisWorker:
+    """One analysis process with a shared frame buffer.
+
+    Parameters
+    ----------
+    geometry, fringes :
+        The station's geometry and fringe definition (fixed for the worker's life).
+    n_frames, shape :
+        Size of the frame stack it analyses.
+    """
+
+    def __init__(self, geometry, fringes, shape: tuple[int, int]):
+        self._geometry = geometry.to_dict()
+        self._fringes = fringes.to_dict()
+        self._shape = (fringes.n_frames, *shape)
+        self._shm = SharedMemory(create=True, size=int(np.prod(self._shape)))
+        self._frames = np.ndarray(self._shape, dtype=np.uint8, buffer=self._shm.buf)
+        self._pool = None
+        self._restarting: threading.Thread | None = None
+        self._start()
+
+    def _start(self) -> None:
+        t = time.perf_counter()
+        ctx = multiprocessing.get_context("spawn")
+        self._pool = ProcessPoolExecutor(max_workers=1, mp_context=ctx, initializer=_init,
+                                         initargs=(self._shm.name, self._shape, self._geometry, self._fringes))
+        self._pool.submit(_ping).result(timeout=120)
+        log.info("analysis worker ready in %.1f s", time.perf_counter() - t)
+
+    def analyse(self, frames: np.ndarray, design, settings, distance_m: float, timeout_s: float,
+                hang_s: float = 0.0) -> WorkerResult:
+        """Analyse *frames* in the worker; :class:`AnalysisTimeout` after *timeout_s* (worker restarted).
+
+        Errors raised by the analysis (StationError subclasses) come back as themselves.
+        """
+        if frames.shape != self._shape or frames.dtype != np.uint8:
+            from ..errors import CaptureError
+            raise CaptureError(f"the capture is {frames.dtype} {frames.shape}, the station expects uint8 "
+                               f"{self._shape}; check the camera's pixel format and size")
+        if self._restarting is not None:           # a restart after a timeout: wait for the new worker
+            self._restarting.join()
+            self._restarting = None
+        np.copyto(self._frames, frames)
+        fut = self._pool.submit(_run, design.to_dict(), settings.to_dict(), float(distance_m), float(hang_s))
+        try:
+            figures, packed, shape, seconds = fut.result(timeout=max(timeout_s, 0.01))
+        except FutureTimeout:
+            log.error("analysis exceeded its %.1f s budget: restarting the analysis worker", timeout_s)
+            self._kill()
+            # The new worker starts in the background: the robot gets its answer now, not after the start.
+            self._restarting = threading.Thread(target=self._start, name="analysis-worker-restart", daemon=True)
+            self._restarting.start()
+            raise AnalysisTimeout(f"the analysis did not finish within {timeout_s:.1f} s; the worker was "
+                                  "restarted") from None
+        valid = np.unpackbits(packed, count=int(np.prod(shape))).astype(bool).reshape(shape)
+        return WorkerResult(figures, valid, seconds)
+
+    def _kill(self) -> None:
+        pool, self._pool = self._pool, None
+        if pool is not None:
+            for proc in list((getattr(pool, "_processes", None) or {}).values()):
+                proc.kill()
+            pool.shutdown(wait=False, cancel_futures=True)
+
+    def close(self) -> None:
+        if self._restarting is not None:
+            self._restarting.join()
+            self._restarting = None
+        self._kill()
+        self._frames = None
+        self._shm.close()
+        self._shm.unlink()

@@ -1,0 +1,129 @@
+"""Issue 5: the production loop on the simulated station.
+
+Twenty facets on the full-resolution default station with four injected faults (a dark capture, a camera
+timeout, a misplaced facet, a hung analysis): twenty answers to the robot, every good facet within the
+core's tolerances of the twin's truth, every fault with its reason and the next facet measured, twenty rows
+in the journal and the workbook, the requested dumps present, and a dump that reprocesses to exactly its
+archived figures.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from sofast_station.archive import Journal, read_dump, read_workbook
+from sofast_station.config import load_config
+from sofast_station.station.inspect import FIGURE_KEYS
+from sofast_station.station.service import Service
+from tests.station.test_facets import FACETS, check_against_truth
+
+FAULTS = {"SIM-0004": "dark", "SIM-0008": "camera-timeout", "SIM-0012": "misplaced", "SIM-0016": "hung-analysis"}
+
+
+@pytest.fixture(scope="module")
+def twenty(repo_root, tmp_path_factory):
+    data = tmp_path_factory.mktemp("run")
+    cfg = load_config(repo_root / "station.toml")
+    raw = dict(cfg.raw, run={"deadline_s": 10.0, "dump_every_n": 5},
+               archive={"workbook_interval_s": 1.0})
+    cfg = dataclasses.replace(cfg, data_dir=data, raw=raw,
+                              simulation={"seed": 3, "facet": FACETS["dish"][1], "faults": FAULTS,
+                                          "hang_s": 30.0})
+    lines: list[str] = []
+    service = Service(cfg, simulated_facets=20, console=lines.append)
+    robot = service.trigger
+    try:
+        outcomes = service.runner.run()
+    finally:
+        service.close()                      # waits for the archiver to drain
+    return cfg, robot, outcomes, lines
+
+
+def test_twenty_answers_and_the_line_goes_on(twenty):
+    cfg, robot, outcomes, lines = twenty
+    finals = [a for a in robot.answers if a.kind in ("done", "fault")]
+    assert [a.serial for a in finals] == [f"SIM-{i:04d}" for i in range(1, 21)]
+    assert len(lines) == 20
+    for a in finals:
+        if a.serial in FAULTS:
+            assert a.kind == "fault" and a.reason, a
+        else:
+            assert a.kind == "done" and a.verdict in ("pass", "fail", "invalid"), a
+    by_serial = {a.serial: a for a in finals}
+    assert "dark everywhere" in by_serial["SIM-0004"].reason
+    assert "camera" in by_serial["SIM-0008"].reason
+    assert "cut off" in by_serial["SIM-0012"].reason or "misplaced" in by_serial["SIM-0012"].reason
+    assert "timeout" in by_serial["SIM-0016"].reason
+    assert by_serial["SIM-0017"].kind == "done"          # the facet after the hung analysis is measured
+
+
+def test_good_facets_meet_the_core_tolerances(twenty):
+    _, _, outcomes, _ = twenty
+    good = [o for o in outcomes if o.answer != "fault"]
+    assert len(good) == 16
+    for o in good:
+        check_against_truth(o.record, long_focus=False)
+        assert o.record["verdict"] == "pass", o.record["reasons"]
+
+
+def test_journal_workbook_and_dumps(twenty):
+    cfg, _, outcomes, _ = twenty
+    journal = Journal(cfg.data_dir / "journal.sqlite3")
+    try:
+        rows = journal.rows()
+        assert [r.serial for r in rows] == [f"SIM-{i:04d}" for i in range(1, 21)]
+        assert all(r.workbook_path for r in rows), "every row reached a workbook"
+        books = sorted((cfg.data_dir / "archive").glob("*.xlsx"))
+        assert books and sum(len(read_workbook(b)) for b in books) == 20
+        # dumps: every 5th facet, and every faulted one that has frames (dark, misplaced, hung analysis)
+        wanted = {"SIM-0005", "SIM-0010", "SIM-0015", "SIM-0020", "SIM-0004", "SIM-0012", "SIM-0016"}
+        dumped = {r.serial for r in rows if r.dump_status == "written"}
+        assert dumped == wanted
+        for r in rows:
+            if r.dump_status == "written":
+                assert read_dump(r.dump_path, load_frames=False).cycle_id == r.cycle_id
+    finally:
+        journal.close()
+
+
+def test_a_dump_reprocesses_to_exactly_its_archived_figures(twenty):
+    cfg, _, outcomes, _ = twenty
+    journal = Journal(cfg.data_dir / "journal.sqlite3")
+    try:
+        row = next(r for r in journal.rows() if r.serial == "SIM-0010")
+    finally:
+        journal.close()
+    archived = json.loads(json.dumps(row.record))
+    again = read_dump(row.dump_path).analyse().figures
+    for k in FIGURE_KEYS + ("coefficients", "placement", "valid_fraction", "iterations", "higher_order"):
+        got = json.loads(json.dumps(again[k]))
+        assert got == archived[k], k
+
+
+def test_sigterm_finishes_the_current_facet(small_station_toml, tmp_path):
+    """`sofast-station run` stops on SIGTERM after the facet in progress; its row is journaled."""
+    proc = subprocess.Popen([sys.executable, "-m", "sofast_station", "run", "--config", str(small_station_toml),
+                             "--facets", "200"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    first = proc.stdout.readline()                  # the header
+    second = proc.stdout.readline()                 # the first facet's line
+    assert first.startswith("serial") and second.startswith("SIM-0001"), (first, second)
+    proc.send_signal(signal.SIGTERM)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 0, err
+    facet_lines = [ln for ln in (second + out).splitlines() if ln.startswith("SIM-")]
+    summary = out.strip().splitlines()[-1]
+    assert summary.startswith(f"{len(facet_lines)} facet(s)")
+    assert len(facet_lines) < 200
+    journal = Journal(tmp_path / "station-data" / "journal.sqlite3")
+    try:
+        assert journal.count() == len(facet_lines)
+    finally:
+        journal.close()
