@@ -227,6 +227,8 @@ def build_parser() -> argparse.ArgumentParser:
     dn = sub.add_parser("dump-next", help="write a data dump of the next facet measured")
     dn.add_argument("--config", default=_default_config())
     dn.set_defaults(func=cmd_dump_next)
+    from .interop.cli import register as register_interop
+    register_interop(sub)
     return p
 
 

@@ -138,7 +138,7 @@ def kappa_converged(new: np.ndarray, old: np.ndarray) -> bool:
 
 
 def solve_shape(assembly: Assembly, design: FacetDesign, measured_distance_m: float,
-                max_iterations: int = 20) -> ShapeSolution:
+                max_iterations: int = 20, robust: bool = False) -> ShapeSolution:
     """Iterate shape fit and boresight to convergence (SPEC.md, "Iteration").
 
     Parameters
@@ -150,6 +150,8 @@ def solve_shape(assembly: Assembly, design: FacetDesign, measured_distance_m: fl
         Screen centre to the measure point, metres.
     max_iterations : int
         Limit for the shape loop inside each boresight step, and for the boresight steps.
+    robust : bool
+        Bisquare-weighted slope fits (see :func:`~sofast_station.measure.fit.fit_parabola`).
     """
     xa, ya = (float(v) for v in design.alignment_point_m)
     xm, ym = (float(v) for v in design.measure_point_m)
@@ -169,7 +171,7 @@ def solve_shape(assembly: Assembly, design: FacetDesign, measured_distance_m: fl
         for inner in range(1, max_iterations + 1):
             pts = intersect_quadratic(coeffs, moved.camera_m, moved.rays)
             sx, sy = normal_slopes(pts, moved.camera_m, moved.screen_m)
-            new = fit_parabola(pts[0], pts[1], sx, sy).coefficients()
+            new = fit_parabola(pts[0], pts[1], sx, sy, robust=robust).coefficients()
             new[5] = z_align - surface_z(new, xa, ya)
             shape_total += 1
             stable = kappa_converged(new, coeffs)

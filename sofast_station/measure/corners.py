@@ -15,10 +15,10 @@ import numpy as np
 
 from ..errors import FacetNotFoundError
 
-#: Half-width (pixels) of the window across an edge over which coverage is summed.
+#: Half-width (pixels) of the window across an edge over which coverage is summed (default).
 EDGE_HALF_WIDTH_PX = 5
-#: Plateau and background are read this far (pixels) from the rough edge, on either side.
-PLATEAU_RANGE_PX = (8, 14)
+#: Plateau and background are read this far beyond the window (pixels), on either side.
+PLATEAU_RANGE_PX = (3, 9)
 #: Fraction of each side left out at either end, away from the corners' rounding.
 SIDE_TRIM = 0.12
 
@@ -71,7 +71,8 @@ def rough_outline(region: np.ndarray, n_corners: int) -> np.ndarray:
         "recipe's facet type")
 
 
-def _edge_points(contrast: np.ndarray, p0: np.ndarray, p1: np.ndarray, inside_sign: int) -> np.ndarray:
+def _edge_points(contrast: np.ndarray, p0: np.ndarray, p1: np.ndarray, inside_sign: int,
+                 half_width: int = EDGE_HALF_WIDTH_PX) -> np.ndarray:
     """Sub-pixel edge positions along the rough side p0 -> p1, (M, 2) (column, row)."""
     h, w = contrast.shape
     d = p1 - p0
@@ -88,8 +89,8 @@ def _edge_points(contrast: np.ndarray, p0: np.ndarray, p1: np.ndarray, inside_si
     start = p0[0] if along_x else p0[1]
     cross = base + slope * (s - start)
     centre = np.round(cross).astype(np.int64)
-    k = np.arange(-EDGE_HALF_WIDTH_PX, EDGE_HALF_WIDTH_PX + 1)
-    far = np.arange(PLATEAU_RANGE_PX[0], PLATEAU_RANGE_PX[1] + 1)
+    k = np.arange(-half_width, half_width + 1)
+    far = np.arange(half_width + PLATEAU_RANGE_PX[0], half_width + PLATEAU_RANGE_PX[1] + 1)
     limit = (h if along_x else w) - 1
     ok = (centre - far[-1] >= 0) & (centre + far[-1] <= limit)
     s, centre = s[ok].astype(np.int64), centre[ok]
@@ -108,9 +109,9 @@ def _edge_points(contrast: np.ndarray, p0: np.ndarray, p1: np.ndarray, inside_si
     coverage = (window - outside[:, None]) / np.where(good, scale, 1.0)[:, None]
     total = coverage.sum(axis=1)
     if inside_sign > 0:   # facet on the high side: edge = last window pixel's upper boundary - covered
-        edge = centre + EDGE_HALF_WIDTH_PX + 0.5 - total
+        edge = centre + half_width + 0.5 - total
     else:                 # facet on the low side: edge = first window pixel's lower boundary + covered
-        edge = centre - EDGE_HALF_WIDTH_PX - 0.5 + total
+        edge = centre - half_width - 0.5 + total
     edge, s = edge[good], s[good]
     return np.column_stack([s, edge]) if along_x else np.column_stack([edge, s])
 
@@ -182,7 +183,8 @@ def _intersect_sides(c1: np.ndarray, c2: np.ndarray) -> np.ndarray:
     return p
 
 
-def fit_outline(contrast: np.ndarray, region: np.ndarray, n_corners: int) -> OutlineFit:
+def fit_outline(contrast: np.ndarray, region: np.ndarray, n_corners: int,
+                half_width_px: int = EDGE_HALF_WIDTH_PX) -> OutlineFit:
     """Sub-pixel corners of the facet outline.
 
     Parameters
@@ -193,6 +195,9 @@ def fit_outline(contrast: np.ndarray, region: np.ndarray, n_corners: int) -> Out
         The facet region (see :func:`~sofast_station.measure.mask.facet_region`).
     n_corners : int
         Corners of the design outline.
+    half_width_px : int
+        Half-width of the window summed across each edge: wide enough for the rough outline's error and the
+        edge's blur; plateau and background are read from 3 to 9 px beyond it.
     """
     rough = rough_outline(region, n_corners)
     centroid = rough.mean(axis=0)
@@ -205,7 +210,7 @@ def fit_outline(contrast: np.ndarray, region: np.ndarray, n_corners: int) -> Out
         mid = 0.5 * (p0 + p1)
         # Which way across the edge (increasing row for a near-horizontal side) is the facet?
         inside_sign = 1 if ((centroid - mid)[1] if along_x else (centroid - mid)[0]) > 0 else -1
-        pts = _edge_points(contrast, p0, p1, inside_sign)
+        pts = _edge_points(contrast, p0, p1, inside_sign, half_width_px)
         if len(pts) < 10:
             raise FacetNotFoundError(
                 f"side {i + 1} of the facet outline is too short or too close to the image border to locate "

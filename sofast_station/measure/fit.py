@@ -13,24 +13,26 @@ import numpy as np
 from ..errors import AnalysisError
 
 
-def solve_normal_equations(columns: list[np.ndarray], target: np.ndarray) -> np.ndarray:
-    """Coefficients k minimising |sum_j k_j columns[j] - target|^2, deterministically.
+def solve_normal_equations(columns: list[np.ndarray], target: np.ndarray,
+                           weights: np.ndarray | None = None) -> np.ndarray:
+    """Coefficients k minimising sum_i w_i (sum_j k_j columns[j]_i - target_i)^2, deterministically.
 
     Columns are scaled to unit RMS before the Gram matrix is formed, which keeps it well conditioned
-    for any sensible choice of units.
+    for any sensible choice of units. Without *weights* every point weighs 1.
     """
     scale = np.array([np.sqrt(np.sum(c * c) / c.size) for c in columns])
     if np.any(scale == 0) or not np.all(np.isfinite(scale)):
         raise AnalysisError("the fit's points do not span the facet (a design column is zero or not finite); "
                             "too few valid points")
     cols = [c / s for c, s in zip(columns, scale)]
+    wcols = cols if weights is None else [c * weights for c in cols]
     k = len(cols)
     gram = np.empty((k, k))
     rhs = np.empty(k)
     for i in range(k):
-        rhs[i] = np.sum(cols[i] * target)
+        rhs[i] = np.sum(wcols[i] * target)
         for j in range(i, k):
-            gram[i, j] = gram[j, i] = np.sum(cols[i] * cols[j])
+            gram[i, j] = gram[j, i] = np.sum(wcols[i] * cols[j])
     try:
         sol = np.linalg.solve(gram, rhs)
     except np.linalg.LinAlgError:
@@ -64,11 +66,55 @@ class ParabolaFit:
         return np.array([self.a, self.b, self.c, self.d, self.e, f])
 
 
-def fit_parabola(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray) -> ParabolaFit:
+#: Tukey bisquare tuning constant (95 % efficiency for normal errors) and the MAD-to-sigma factor.
+BISQUARE_C = 4.685
+MAD_TO_SIGMA = 0.6745
+
+
+def robust_weights(columns: list[np.ndarray], target: np.ndarray, max_iterations: int = 50,
+                   tolerance: float = 1e-9) -> tuple[np.ndarray, np.ndarray]:
+    """Iteratively reweighted least squares with Tukey's bisquare (as in robust regression texts).
+
+    Residuals are adjusted for leverage (r / sqrt(1 - h)), scaled by their median absolute deviation,
+    and weighted (1 - u^2)^2 for |u| < 1, else 0, with u = r_adj / (4.685 sigma). Stops when the mean
+    squared residual changes by less than *tolerance* (relative) or after *max_iterations*.
+
+    Returns
+    -------
+    (coefficients, weights)
+    """
+    w = np.ones_like(target)
+    prev = None
+    k = None
+    for _ in range(max_iterations):
+        k = solve_normal_equations(columns, target, w)
+        model = sum(c * kk for c, kk in zip(columns, k))
+        r = target - model
+        ms = float(np.sum(w * r * r) / max(np.sum(w), 1.0))
+        if prev is not None and abs(ms - prev) <= tolerance * max(prev, 1e-30):
+            break
+        prev = ms
+        # leverage of each point under the current weights: h_i = w_i x_i^T (X^T W X)^-1 x_i
+        gram = np.array([[np.sum(w * a * b) for b in columns] for a in columns])
+        inv = np.linalg.inv(gram)
+        h = w * sum(columns[i] * columns[j] * inv[i, j] for i in range(len(columns)) for j in range(len(columns)))
+        r_adj = r / np.sqrt(np.clip(1.0 - h, 1e-12, None))
+        mad = float(np.median(np.abs(r_adj - np.median(r_adj))))
+        if mad == 0.0:
+            break
+        u = r_adj / (BISQUARE_C * mad / MAD_TO_SIGMA)
+        w = np.where(np.abs(u) < 1.0, (1.0 - u * u) ** 2, 0.0)
+    return k, w
+
+
+def fit_parabola(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray,
+                 robust: bool = False) -> ParabolaFit:
     """Fit the two slope equations separately (metres in, slopes dimensionless).
 
     Positions are centred on their mean before fitting (the constant terms are restored exactly), so a
-    gore facet far from its frame's origin fits as well as a centred one.
+    gore facet far from its frame's origin fits as well as a centred one. With *robust*, each equation
+    is fitted by bisquare-weighted least squares (:func:`robust_weights`), which keeps outliers (edge
+    pixels seeing past the screen, dust) from pulling the shape.
     """
     if x.size < 10:
         raise AnalysisError(f"only {x.size} valid points: too few to fit a shape")
@@ -76,8 +122,12 @@ def fit_parabola(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray)
     ym = float(np.sum(y) / y.size)
     xc, yc = x - xm, y - ym
     one = np.ones_like(xc)
-    kx = solve_normal_equations([xc, one, yc], s_x)      # 2A, C', E1
-    ky = solve_normal_equations([yc, one, xc], s_y)      # 2B, D', E2
+    if robust:
+        kx = robust_weights([xc, one, yc], s_x)[0]
+        ky = robust_weights([yc, one, xc], s_y)[0]
+    else:
+        kx = solve_normal_equations([xc, one, yc], s_x)      # 2A, C', E1
+        ky = solve_normal_equations([yc, one, xc], s_y)      # 2B, D', E2
     a, e1 = 0.5 * kx[0], kx[2]
     b, e2 = 0.5 * ky[0], ky[2]
     c = kx[1] - 2.0 * a * xm - e1 * ym

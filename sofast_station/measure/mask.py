@@ -25,7 +25,8 @@ def facet_region(dark: np.ndarray, white: np.ndarray, threshold_dn: float,
     (H, W) bool array
         Empty when nothing responds.
     """
-    responsive = (white.astype(np.int16) - dark.astype(np.int16)) > threshold_dn
+    wide = np.int16 if white.dtype == np.uint8 else np.int64       # no overflow for 16-bit counts
+    responsive = (white.astype(wide) - dark.astype(wide)) > threshold_dn
     n, labels, stats, _ = cv2.connectedComponentsWithStats(responsive.view(np.uint8), connectivity=8)
     if n <= 1:
         return np.zeros(responsive.shape, dtype=bool)

@@ -57,6 +57,11 @@ class AnalysisSettings:
         A capture with more of the facet's pixels at the camera's top count than this is refused.
     max_corner_rms_px : float
         Corners farther than this (RMS, pixels) from the design outline under the best pose are refused.
+    edge_window_px : int
+        Half-width of the window summed across a facet edge to locate it, pixels (smaller for small images).
+    robust_fit : bool
+        Fit the parabola by bisquare-weighted least squares, so outlying pixels (a facet edge that saw
+        past the screen) do not pull the shape; residuals are still reported over every point.
     """
 
     mask_threshold_dn: float = 20.0
@@ -70,6 +75,8 @@ class AnalysisSettings:
     max_hole_px: int = 2000
     max_saturated_fraction: float = 0.005
     max_corner_rms_px: float = 2.0
+    robust_fit: bool = False
+    edge_window_px: int = 5
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)
@@ -124,7 +131,8 @@ def outline_image_points(design: FacetDesign, camera, facet_to_camera: Pose, per
 
 def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, design: FacetDesign,
             measured_distance_m: float, settings: AnalysisSettings = AnalysisSettings(),
-            screen: ScreenModel | None = None, rays_cam: np.ndarray | None = None) -> Analysis:
+            screen: ScreenModel | None = None, rays_cam: np.ndarray | None = None,
+            pixel_mask: np.ndarray | None = None) -> Analysis:
     """Reduce one capture to the reported figures (SPEC.md, "Measurement sequence", "Data reduction").
 
     Parameters
@@ -143,6 +151,9 @@ def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, d
     rays_cam : (3, rows, columns) array, optional
         Precomputed unit pixel rays (:func:`~sofast_station.measure.camera.ray_grid`); computed for the
         valid pixels when absent.
+    pixel_mask : (rows, columns) bool array, optional
+        Only these pixels may be used for the shape (to exclude a region, or to compare with another
+        program on its own pixels); the facet region and corners still come from the whole image.
 
     Returns
     -------
@@ -170,7 +181,7 @@ def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, d
     slices = fringes.slices()
     raw = {axis: _phase_sets(stack, slices[axis]) for axis in ("x", "y")}
     noise_dn = intensity_noise_dn(np.concatenate([np.concatenate(raw[a][2]) for a in ("x", "y")]))
-    checks.check_repeats(stack, fringes, noise_dn)
+    checks.check_repeats(stack, fringes)
     ok = np.ones(idx.size, dtype=bool)
     min_mod = np.full(idx.size, np.inf)
     inconsistent = np.zeros(idx.size, dtype=bool)
@@ -184,6 +195,13 @@ def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, d
             inconsistent |= bad
     low_mod = min_mod < settings.min_modulation_dn
     ok &= ~low_mod & ~inconsistent
+    excluded = 0
+    if pixel_mask is not None:
+        if pixel_mask.shape != cam.shape:
+            raise CaptureError(f"pixel_mask has shape {pixel_mask.shape}, expected the camera's {cam.shape}")
+        allowed = pixel_mask.ravel()[idx]
+        excluded = int(np.count_nonzero(ok & ~allowed))
+        ok &= allowed
     positions, unwrap_stats = {}, {}
     for axis in ("x", "y"):
         periods = getattr(fringes, f"periods_{axis}")
@@ -197,7 +215,15 @@ def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, d
                             {a: unwrap_stats[a].disagreements / idx.size for a in ("x", "y")})
     timer.lap("phase")
 
-    # Valid pixels (raster order): their rays and screen points in the camera frame.
+    # Screen points in the camera frame; a measured screen model may not cover every position.
+    screen_cam = screen.points_camera(positions["x"][ok], positions["y"][ok])
+    covered = np.all(np.isfinite(screen_cam), axis=0)
+    off_model = int(np.count_nonzero(~covered))
+    if off_model:
+        ok[np.flatnonzero(ok)[~covered]] = False
+        screen_cam = screen_cam[:, covered]
+
+    # Valid pixels (raster order) and their rays.
     vidx = idx[ok]
     if vidx.size < 1000:
         raise AnalysisError(f"only {vidx.size} pixels have a valid screen position (of {idx.size} facet "
@@ -209,14 +235,12 @@ def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, d
         if rays_cam.shape != (3, *cam.shape):
             raise CaptureError(f"precomputed rays have shape {rays_cam.shape}, expected {(3, *cam.shape)}")
         rays = rays_cam.reshape(3, -1)[:, vidx]
-    screen_cam = screen.points_camera(positions["x"][ok], positions["y"][ok])
-    screen_centre_cam = screen.points_camera(np.array([0.5 * screen.width_m]),
-                                             np.array([0.5 * screen.height_m]))[:, 0]
+    screen_centre_cam = screen.centre_camera()
     timer.lap("rays")
 
     # Corners and pose, then shape and boresight on the subsample.
     contrast = white.astype(np.float32) - dark.astype(np.float32)
-    outline = corners_mod.fit_outline(contrast, region, len(design.outline_m))
+    outline = corners_mod.fit_outline(contrast, region, len(design.outline_m), settings.edge_window_px)
     corners_3d = design.corners_3d()
     expected = project(cam, geometry.fixture_to_camera, corners_3d)
     found = corners_mod.match_corners(outline.corners_px, expected, settings.corner_tolerance_px)
@@ -235,7 +259,7 @@ def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, d
     full = Assembly(camera_to_facet.translation, to_frame(camera_to_facet, rays, translate=False),
                     to_frame(camera_to_facet, screen_cam), to_frame(camera_to_facet, screen_centre_cam[:, None])[:, 0])
     solution = solve_shape(full.subset(slice(None, None, settings.subsample_step)), design, measured_distance_m,
-                           settings.max_iterations)
+                           settings.max_iterations, robust=settings.robust_fit)
     timer.lap("iterate")
 
     moved = full.moved(solution.motion)
@@ -245,7 +269,7 @@ def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, d
     if not np.all(finite):
         raise AnalysisError(f"{int((~finite).sum())} pixel rays miss the fitted surface; the fit diverged")
     x, y = points[0], points[1]
-    fit = fit_parabola(x, y, s_x, s_y)
+    fit = fit_parabola(x, y, s_x, s_y, robust=settings.robust_fit)
     coeffs = fit.coefficients()
     coeffs[5] = float(design.z(*design.alignment_point_m)) - surface_z(coeffs, *design.alignment_point_m)
     cubic = fit_cubic(x, y, s_x, s_y)
@@ -280,6 +304,7 @@ def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, d
         "median_modulation_dn": float(np.median(min_mod[ok])),
         "intensity_noise_dn": noise_dn,
         "dropped": {"low_modulation": int(low_mod.sum()), "inconsistent_frames": int(inconsistent.sum()),
+                    "outside_screen_model": off_model, "excluded_by_pixel_mask": excluded,
                     **{f"{k}_{a}": getattr(unwrap_stats[a], k) for a in ("x", "y")
                        for k in ("coarse_out_of_range", "disagreements", "edge_guard")}},
         "unwrap_disagreements": int(unwrap_stats["x"].disagreements + unwrap_stats["y"].disagreements),
@@ -288,6 +313,11 @@ def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, d
         "boresight_mrad": {"x": 1000.0 * solution.motion.alpha_rad, "y": 1000.0 * solution.motion.beta_rad},
         "placement": placement(geometry.fixture_to_camera, facet_to_camera, design),
         "higher_order": cubic.to_dict(),
+        # The converged fit on the subsample (every n-th valid pixel), before the all-points fit: what
+        # programs that stop there (OpenCSP's SOFAST) report.
+        "subsample_fit": {"focal_length_x_m": focal_length_m(4.0 * float(solution.coefficients[0])),
+                          "focal_length_y_m": focal_length_m(4.0 * float(solution.coefficients[1])),
+                          "n_points": int(-(-vidx.size // settings.subsample_step))},
         "corner_reprojection_rms_px": corner_pose.reprojection_rms_px,
         "outline_agreement": agreement,
         "range_correction_m": range_shift,

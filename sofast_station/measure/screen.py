@@ -17,11 +17,20 @@ from ..geometry import Pose
 
 
 class ScreenModel(Protocol):
+    """Screen positions -> camera-frame points.
+
+    ``width_m`` and ``height_m`` are the extents L the fringe periods are counted over (positions run
+    over [0, L)); ``points_camera`` returns NaN for positions the model does not cover.
+    """
+
     width_m: float
     height_m: float
 
     def points_camera(self, u_x_m: np.ndarray, u_y_m: np.ndarray) -> np.ndarray:
         """(3, N) camera-frame points, metres, of screen positions u_x (from left), u_y (from bottom)."""
+
+    def centre_camera(self) -> np.ndarray:
+        """The point the range finder measures from (the screen centre), camera frame, metres."""
 
 
 @dataclass(frozen=True)
@@ -52,3 +61,56 @@ class FlatScreen:
     def centre_camera(self) -> np.ndarray:
         """The screen centre in the camera frame, metres."""
         return self.screen_to_camera.translation.copy()
+
+
+class InterpolatedScreen:
+    """A measured screen shape: a grid of screen positions with the 3-D point each one lies at.
+
+    For projection screens and other displays that are not a flat rectangle of known pitch (OpenCSP's
+    "distorted" display models). Positions between grid nodes are interpolated linearly over the grid's
+    triangulation; positions outside it give NaN (those pixels are dropped and counted).
+
+    Parameters
+    ----------
+    width_m, height_m : float
+        Extents the fringe periods span (the unit of the positions; 1.0 for fractional screens).
+    nodes_uv : (M, 2) array
+        Grid positions (u_x, u_y), in the units of width_m/height_m.
+    nodes_screen_m : (M, 3) array
+        The screen-frame points of the nodes, metres (z = 0 for a flat but distorted image).
+    screen_to_camera : Pose
+    centre_screen_m : (3,) array
+        The range finder's origin in the screen frame, metres.
+    v_from_top : bool
+        The grid's second coordinate counts from the top edge (height - u_y), as in OpenCSP's display
+        models. The grid is triangulated in its own coordinates, so where a grid cell's two diagonals are
+        equally good the interpolation matches the program that measured it.
+    """
+
+    def __init__(self, width_m: float, height_m: float, nodes_uv: np.ndarray, nodes_screen_m: np.ndarray,
+                 screen_to_camera: Pose, centre_screen_m=(0.0, 0.0, 0.0), v_from_top: bool = False):
+        from scipy.interpolate import LinearNDInterpolator
+
+        nodes_uv = np.asarray(nodes_uv, np.float64)
+        nodes_screen_m = np.asarray(nodes_screen_m, np.float64)
+        if nodes_uv.ndim != 2 or nodes_uv.shape[1] != 2 or nodes_screen_m.shape != (nodes_uv.shape[0], 3):
+            raise ValueError(f"need (M, 2) grid positions and (M, 3) points, got {nodes_uv.shape} and "
+                             f"{nodes_screen_m.shape}")
+        if nodes_uv.shape[0] < 3 or not (np.all(np.isfinite(nodes_uv)) and np.all(np.isfinite(nodes_screen_m))):
+            raise ValueError("the screen model needs at least 3 finite grid nodes")
+        self.width_m, self.height_m = float(width_m), float(height_m)
+        self.screen_to_camera = screen_to_camera
+        self._interp = LinearNDInterpolator(nodes_uv, nodes_screen_m)
+        self._centre = np.asarray(centre_screen_m, np.float64)
+        self._v_from_top = bool(v_from_top)
+
+    def points_camera(self, u_x_m: np.ndarray, u_y_m: np.ndarray) -> np.ndarray:
+        v = np.asarray(u_y_m, np.float64)
+        if self._v_from_top:
+            v = self.height_m - v
+        pts = self._interp(np.column_stack([np.asarray(u_x_m, np.float64), v]))
+        r, t = self.screen_to_camera.rotation, self.screen_to_camera.translation
+        return np.stack([r[i, 0] * pts[:, 0] + r[i, 1] * pts[:, 1] + r[i, 2] * pts[:, 2] + t[i] for i in range(3)])
+
+    def centre_camera(self) -> np.ndarray:
+        return self.screen_to_camera.apply(self._centre)

@@ -66,3 +66,19 @@ def test_higher_order_round_trip(x0, half):
     xt, yt = np.array([x0 - half, x0 + half]), np.array([0.3, -0.2])
     ex = 0.1 * xt + 1e-4 * yt + 2e-3 + 9e-4 * xt**2 - 4e-4 * xt * yt + 1e-4 * yt**2
     assert np.allclose(fit.slopes(xt, yt)[0], ex, atol=1e-12)
+
+
+def test_robust_fit_ignores_outliers_that_pull_the_plain_fit():
+    rng = np.random.default_rng(7)
+    x, y = rng.uniform(-0.6, 0.6, (2, 20_000))
+    a, b = 1 / (4 * 110.0), 1 / (4 * 105.0)
+    sx = 2 * a * x + rng.normal(0, 1e-4, x.size)
+    sy = 2 * b * y + rng.normal(0, 1e-4, x.size)
+    edge = np.abs(x) > 0.57                      # edge pixels that saw past the screen: wild slopes
+    sx[edge] += 0.02 * np.sign(x[edge])
+    plain = fit_parabola(x, y, sx, sy)
+    robust = fit_parabola(x, y, sx, sy, robust=True)
+    assert abs(1 / (4 * plain.a) / 110.0 - 1) > 0.05            # the outliers move the plain fit a lot
+    assert abs(1 / (4 * robust.a) / 110.0 - 1) < 2e-3
+    assert abs(1 / (4 * robust.b) / 105.0 - 1) < 2e-3
+    assert fit_parabola(x, y, sx, sy, robust=True) == robust    # deterministic

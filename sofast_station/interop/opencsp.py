@@ -1,0 +1,284 @@
+"""Read a SOFAST fringe measurement from Sandia's OpenCSP and analyse it with our pipeline.
+
+OpenCSP's files (``opencsp/app/sofast``): the measurement (``MeasurementSofastFringe``: dark and light
+mask images, fringe images, fringe periods, optic-to-screen distance, measure point), the camera
+(``Camera``), the display shape (``DisplayShape``: rectangular2D, distorted2D or distorted3D), the
+spatial orientation (``SpatialOrientation``: camera/screen), the image calibration
+(``ImageCalibrationScaling``: camera -> display value response) and the facet definition (JSON corners).
+
+Their conventions differ from ours; each conversion is a function of its own here, and has a test:
+
+* **fringe order**: OpenCSP stores the y sets first, then x; we capture x first (:func:`reorder_frames`);
+* **period list**: 0.9, 3.9, 15.9, 63.9 fractional screens (the first just below one, to avoid the edge
+  ambiguity); our unwrapping takes any increasing list;
+* **phase direction**: OpenCSP shows ``cos(theta - k pi/2)`` with ``theta = 2 pi p (1 - i/(N-1))`` for
+  display pixel i (decreasing across the screen, pixel centres at i/(N-1)); our phase formula is the
+  same, so our decoded position u = theta / (2 pi p) is OpenCSP's fractional x, and 1 - its fractional
+  y (OpenCSP flips y after unwrapping); the screen model is built on OpenCSP's fractions with
+  ``v_from_top`` (:func:`screen_nodes`);
+* **screen axes and pose**: OpenCSP's screen points come from its display model in its screen frame,
+  and ``r_cam_screen`` (a rotation vector) turns camera-frame vectors into the screen frame, so
+  screen -> camera is its inverse plus ``v_cam_screen_cam`` (:func:`screen_to_camera`);
+* **camera matrix**: OpenCSP's downsampled camera divides the whole matrix by 8, leaving K[2,2] = 1/8,
+  which OpenCV ignores; we keep fx, fy, cx, cy and set K[2,2] = 1 (:func:`camera_from_opencsp`);
+* **facet corners**: listed clockwise seen from the mirror side; our outline runs counter-clockwise.
+
+The camera frames are passed through OpenCSP's image calibration (camera values -> display values, the
+interpolated response curve) and scaled by 256 into integer counts, so our checks and thresholds work
+unchanged (thresholds scaled likewise).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from ..errors import ConfigError
+from ..facet import FacetDesign
+from ..fringes import FringeSet
+from ..geometry import CameraIntrinsics, Pose, ScreenSpec, StationGeometry
+from ..measure.camera import pixel_rays
+from ..measure.pipeline import Analysis, AnalysisSettings, analyse
+from ..measure.screen import InterpolatedScreen
+
+log = logging.getLogger(__name__)
+
+#: Calibrated display values (0..255) are stored as integer counts times this.
+COUNT_SCALE = 256
+
+
+def _read(path: Path, key: str):
+    try:
+        with h5py.File(path, "r") as h:
+            if key not in h:
+                raise ConfigError(f"{path} has no dataset {key!r}: is it the right OpenCSP file?")
+            value = h[key][()]
+    except OSError as exc:
+        raise ConfigError(f"{path} is not a readable HDF5 file ({exc})") from None
+    return value.decode() if isinstance(value, bytes) else value
+
+
+def _rotvec_to_matrix(rotvec: np.ndarray) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+    return Rotation.from_rotvec(np.asarray(rotvec, np.float64).ravel()).as_matrix()
+
+
+def camera_from_opencsp(path: Path) -> CameraIntrinsics:
+    """OpenCSP ``Camera``: the intrinsic matrix with K[2,2] normalised to 1 (see module docstring)."""
+    k = np.array(_read(path, "Camera/intrinsic_mat"), dtype=np.float64)
+    w, h = (int(v) for v in _read(path, "Camera/image_shape_xy"))
+    matrix = np.array([[k[0, 0], k[0, 1], k[0, 2]], [0.0, k[1, 1], k[1, 2]], [0.0, 0.0, 1.0]])
+    return CameraIntrinsics(w, h, matrix, np.array(_read(path, "Camera/distortion_coef"), np.float64))
+
+
+def screen_to_camera(path: Path) -> Pose:
+    """OpenCSP ``SpatialOrientation``: screen frame -> camera frame."""
+    r_cam_screen = _rotvec_to_matrix(_read(path, "SpatialOrientation/r_cam_screen"))
+    v_cam_screen_cam = np.array(_read(path, "SpatialOrientation/v_cam_screen_cam"), np.float64).ravel()
+    return Pose(r_cam_screen.T, v_cam_screen_cam)
+
+
+def screen_nodes(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """OpenCSP ``DisplayShape`` as grid nodes: OpenCSP's (fraction x, fraction y) and the screen-frame
+    points (metres). Our position u_y is 1 - fraction y: build the screen with ``v_from_top=True``."""
+    model = _read(path, "DisplayShape/screen_model")
+    if model == "rectangular2D":
+        sx, sy = float(_read(path, "DisplayShape/screen_x")), float(_read(path, "DisplayShape/screen_y"))
+        frac = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0]])
+        pts = np.column_stack([(frac[:, 0] - 0.5) * sx, (frac[:, 1] - 0.5) * sy, np.zeros(4)])
+    elif model in ("distorted2D", "distorted3D"):
+        frac = np.array(_read(path, "DisplayShape/xy_screen_fraction"), np.float64).T
+        key = "DisplayShape/xy_screen_coords" if model == "distorted2D" else "DisplayShape/xyz_screen_coords"
+        coords = np.array(_read(path, key), np.float64).T
+        pts = coords if coords.shape[1] == 3 else np.column_stack([coords, np.zeros(len(coords))])
+    else:
+        raise ConfigError(f"{path}: unknown OpenCSP screen model {model!r}")
+    return frac, pts
+
+
+def reorder_frames(fringe_images: np.ndarray, n_y_sets: int, n_x_sets: int) -> np.ndarray:
+    """OpenCSP (rows, cols, 4 (n_y + n_x)) with y sets first -> ours (4 (n_x + n_y), rows, cols), x first."""
+    n_y = 4 * n_y_sets
+    if fringe_images.shape[2] != n_y + 4 * n_x_sets:
+        raise ConfigError(f"OpenCSP fringe images hold {fringe_images.shape[2]} frames, expected "
+                          f"{n_y + 4 * n_x_sets} for {n_y_sets} y and {n_x_sets} x period(s)")
+    stack = np.moveaxis(fringe_images, 2, 0)
+    return np.concatenate([stack[n_y:], stack[:n_y]])
+
+
+def response_function(camera_values: np.ndarray, display_values: np.ndarray):
+    """OpenCSP's image calibration: camera value -> display value, linear between samples, clamped."""
+    cam = np.asarray(camera_values, np.float64)
+    disp = np.asarray(display_values, np.float64)
+    keep = np.concatenate([[True], np.diff(cam) > 0])      # OpenCSP drops non-increasing samples
+    cam, disp = cam[keep], disp[keep]
+    table = np.interp(np.arange(256, dtype=np.float64), cam, disp, left=disp[0], right=disp[-1])
+    return lambda img: table[np.asarray(img)]
+
+
+def mask_threshold(dark: np.ndarray, light: np.ndarray) -> float:
+    """White-minus-dark threshold (counts) between the lit room and the facet.
+
+    A projection screen lights its room, so (unlike our LCD station, where only the facet reflects the
+    screen) the background responds too; Otsu's threshold on the difference image separates the facet's
+    bright mode from the room's, as OpenCSP's histogram threshold does.
+    """
+    import cv2
+
+    diff = np.clip((light.astype(np.int64) - dark) / COUNT_SCALE, 0, 255).astype(np.uint8)
+    level, _ = cv2.threshold(diff, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+    return float(level) * COUNT_SCALE
+
+
+def facet_from_opencsp(path: Path, focal_length_m: float, name: str = "opencsp-facet") -> FacetDesign:
+    """OpenCSP facet JSON (corners and centroid) as our FacetDesign (outline counter-clockwise)."""
+    try:
+        data = json.loads(Path(path).read_text())
+        c = data["v_facet_corners"]
+        corners = np.column_stack([c["x"], c["y"]]).astype(np.float64)
+        cen = data.get("v_centroid_facet", {"x": [0.0], "y": [0.0]})
+        centroid = [float(cen["x"][0]), float(cen["y"][0])]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise ConfigError(f"{path} is not an OpenCSP facet definition ({exc})") from None
+    x, y = corners[:, 0], corners[:, 1]
+    if np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y) < 0:
+        corners = corners[::-1]
+    kind = "heliostat" if focal_length_m > 20 else "dish"
+    return FacetDesign(name=name, kind=kind, focal_length_m=focal_length_m, outline_m=corners,
+                       measure_point_m=centroid, alignment_point_m=centroid)
+
+
+def nominal_pose(camera: CameraIntrinsics, mask: np.ndarray, screen_centre_cam: np.ndarray,
+                 distance_m: float) -> Pose:
+    """Where the facet is expected, for ordering its corners and starting the pose search.
+
+    The facet's middle lies on the camera ray through the mask's centroid, at the measured distance from
+    the screen centre; its normal bisects the directions to camera and screen (it reflects the screen
+    into the camera); its x axis runs along the image's columns and y up the rows (the orientation OpenCSP
+    assumes for a facet's expected pose).
+    """
+    rows, cols = np.nonzero(mask)
+    ray = pixel_rays(camera, np.array([cols.mean()]), np.array([rows.mean()]))[:, 0]
+    # |t ray - s| = d  ->  t^2 - 2 t (ray . s) + |s|^2 - d^2 = 0, the far root
+    b = float(ray @ screen_centre_cam)
+    disc = b * b - float(screen_centre_cam @ screen_centre_cam) + distance_m ** 2
+    if disc < 0:
+        raise ConfigError("the measured optic-to-screen distance cannot be met along the line of sight to the "
+                          "facet; check the OpenCSP measurement's dist_optic_screen")
+    p = (b + np.sqrt(disc)) * ray
+    to_cam = -p / np.linalg.norm(p)
+    to_screen = (screen_centre_cam - p) / np.linalg.norm(screen_centre_cam - p)
+    z = (to_cam + to_screen) / np.linalg.norm(to_cam + to_screen)
+    x = np.array([1.0, 0.0, 0.0]) - z[0] * z
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    return Pose(np.column_stack([x, y, z]), p)
+
+
+@dataclass
+class OpenCspMeasurement:
+    """An OpenCSP measurement converted to our inputs."""
+
+    name: str
+    date: str
+    frames: np.ndarray
+    fringes: FringeSet
+    geometry: StationGeometry
+    screen: InterpolatedScreen
+    design: FacetDesign
+    distance_m: float
+    settings: AnalysisSettings
+
+    def analyse(self, robust: bool = False, pixel_mask: np.ndarray | None = None, **overrides) -> Analysis:
+        """Our analysis of the measurement (``design``, ``distance_m`` may be overridden)."""
+        settings = replace(self.settings, robust_fit=robust)
+        return analyse(self.frames, self.fringes, self.geometry, overrides.get("design", self.design),
+                       overrides.get("distance_m", self.distance_m), settings, screen=self.screen,
+                       pixel_mask=pixel_mask)
+
+
+def read_opencsp(measurement: Path, camera: Path, display: Path, orientation: Path, calibration: Path,
+                 facet: Path, focal_length_m: float = 100.0) -> OpenCspMeasurement:
+    """Read the six OpenCSP files of one facet measurement (see the module docstring)."""
+    measurement, camera, display, orientation, calibration, facet = (
+        Path(p) for p in (measurement, camera, display, orientation, calibration, facet))
+    cam = camera_from_opencsp(camera)
+    g = "MeasurementSofastFringe/"
+    periods_x = [float(v) for v in _read(measurement, g + "fringe_periods_x")]
+    periods_y = [float(v) for v in _read(measurement, g + "fringe_periods_y")]
+    fringe_images = np.asarray(_read(measurement, g + "fringe_images"))
+    mask_images = np.asarray(_read(measurement, g + "mask_images"))
+    if fringe_images.shape[:2] != cam.shape or mask_images.shape[:2] != cam.shape:
+        raise ConfigError(f"{measurement}: images are {fringe_images.shape[1]} x {fringe_images.shape[0]} px but the "
+                          f"camera {camera} is {cam.width_px} x {cam.height_px}")
+    raw = np.concatenate([np.moveaxis(mask_images, 2, 0)[:2],
+                          reorder_frames(fringe_images, len(periods_y), len(periods_x))])
+    cal_type = _read(calibration, "ImageCalibration/calibration_type")
+    if cal_type not in ("ImageCalibrationScaling", "ImageCalibrationGlobal"):
+        raise ConfigError(f"{calibration}: unsupported image calibration {cal_type!r}")
+    respond = response_function(_read(calibration, "ImageCalibration/camera_values"),
+                                _read(calibration, "ImageCalibration/display_values"))
+    frames = np.rint(respond(raw) * COUNT_SCALE).astype(np.uint16)
+    uv, pts = screen_nodes(display)
+    to_cam = screen_to_camera(orientation)
+    screen = InterpolatedScreen(1.0, 1.0, uv, pts, to_cam, v_from_top=True)
+    distance = float(_read(measurement, g + "dist_optic_screen"))
+    mp = np.array(_read(measurement, g + "v_measure_point_facet"), np.float64).ravel()
+    design = facet_from_opencsp(facet, focal_length_m, name=str(_read(measurement, g + "name")))
+    design = replace(design, measure_point_m=mp[:2].copy()) if np.any(mp[:2] != design.measure_point_m) else design
+    threshold = mask_threshold(frames[0], frames[1])
+    mask = (frames[1].astype(np.int64) - frames[0]) > threshold
+    nominal = nominal_pose(cam, mask, screen.centre_camera(), distance)
+    geometry = StationGeometry(cam, ScreenSpec(1000, 1000, 0.001), to_cam, nominal)
+    settings = AnalysisSettings(mask_threshold_dn=threshold, min_modulation_dn=4.0 * COUNT_SCALE,
+                                max_hole_px=200, corner_tolerance_px=25.0, max_corner_rms_px=2.0, edge_window_px=3)
+    log.info("OpenCSP measurement %s: %d x %d px, periods x %s, y %s, distance %.3f m", design.name,
+             cam.width_px, cam.height_px, periods_x, periods_y, distance)
+    return OpenCspMeasurement(design.name, str(_read(measurement, g + "date")), frames,
+                              FringeSet(tuple(periods_x), tuple(periods_y)), geometry, screen, design, distance,
+                              settings)
+
+
+def opencsp_test_data_paths(root: Path) -> dict[str, Path]:
+    """The file layout of OpenCSP's ``opencsp/test/data`` (and of ``fixtures/opencsp``)."""
+    root = Path(root)
+    return {"measurement": root / "sofast_fringe/data_measurement/measurement_facet.h5",
+            "camera": root / "sofast_common/camera_sofast_downsampled.h5",
+            "display": root / "sofast_common/display_distorted_2d.h5",
+            "orientation": root / "sofast_common/spatial_orientation.h5",
+            "calibration": root / "sofast_fringe/data_measurement/image_calibration.h5",
+            "facet": root / "sofast_common/Facet_NSTTF.json"}
+
+
+@dataclass(frozen=True)
+class OpenCspResult:
+    """What OpenCSP reported for a measurement (its ``data.h5`` processing output)."""
+
+    focal_length_x_m: float
+    focal_length_y_m: float
+    twist_e1_mrad_per_m: float
+    twist_e2_mrad_per_m: float
+    mask: np.ndarray
+    slopes: np.ndarray            # (2, N) at the mask's pixels, raster order, in OpenCSP's aligned frame
+    points_m: np.ndarray          # (3, N)
+    robust: bool
+
+
+def read_opencsp_result(path: Path) -> OpenCspResult:
+    """OpenCSP's processed result of a single facet (``DataSofastCalculation/facet/facet_000``).
+
+    OpenCSP's slope coefficients are (C, 2A, E1) for x and (D, E2, 2B) for y; they come from its fit on
+    every 10th point (its ``downsample``), which is what its focal lengths are.
+    """
+    g = "DataSofastCalculation/facet/facet_000/"
+    sc = np.asarray(_read(path, g + "SlopeSolverData/slope_coefs_facet"), np.float64)
+    robust = bool(_read(path, "DataSofastInput/optic_definition/facet_000/ParamsSurface/robust_least_squares"))
+    return OpenCspResult(1.0 / (2.0 * sc[0, 1]), 1.0 / (2.0 * sc[1, 2]), 1000.0 * sc[0, 2], 1000.0 * sc[1, 1],
+                         np.asarray(_read(path, g + "CalculationImageProcessingFacet/mask_processed"), bool),
+                         np.asarray(_read(path, g + "SlopeSolverData/slopes_facet_xy"), np.float64),
+                         np.asarray(_read(path, g + "SlopeSolverData/v_surf_points_facet"), np.float64), robust)
