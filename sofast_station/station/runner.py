@@ -24,7 +24,7 @@ import numpy as np
 
 from .. import __version__
 from ..devices.protocols import FAULT_CODES, FacetRequest
-from ..errors import (CameraError, CaptureError, ConfigError, DisplayError, GeometryError, StationError,
+from ..errors import (CameraError, CaptureError, DisplayError, GeometryError, StationError,
                       TriggerError)
 from .frames import capture_sequence, crop, crop_box, restore
 from .inspect import FIGURE_KEYS, Station, now_iso

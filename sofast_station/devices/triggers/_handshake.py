@@ -69,6 +69,48 @@ class Handshake:
         return code
 
 
+class PolledHandshake(Handshake):
+    """A handshake the station drives by polling the PLC's signals (Modbus registers, USB pins).
+
+    Subclasses provide ``_beat()``, and set ``ack_timeout_s``, ``poll_interval_s``,
+    ``heartbeat_interval_s``, ``_last_beat``, ``_request`` and ``_armed``.
+    """
+
+    def _maybe_beat(self) -> None:
+        if time.monotonic() - self._last_beat >= self.heartbeat_interval_s:
+            self._beat()
+
+    def _await_ack(self, poll, what: str, unchanged: str, check: str) -> None:
+        """Poll until the PLC acknowledges an answer, beating the heartbeat meanwhile.
+
+        Parameters
+        ----------
+        poll : callable
+            Returns None while unacknowledged, else whether the station is armed for the next request
+            (FACET_PRESENT already dropped).
+        what : str
+            The answer, for the message ("done-pass", "fault (3)").
+        unchanged : str
+            The signal that did not change, for the message.
+        check : str
+            What the operator should check besides the PLC program.
+        """
+        deadline = time.monotonic() + self.ack_timeout_s
+        while True:
+            armed = poll()
+            if armed is not None:
+                if armed:
+                    self._armed = True
+                return
+            if time.monotonic() >= deadline:
+                raise TriggerError(
+                    f"{self.name}: PLC did not acknowledge the {what} answer for facet {self._request.serial} "
+                    f"within {self.ack_timeout_s:g} s ({unchanged}); the station reports it and goes on: check "
+                    f"the PLC program's handshake (docs/plc.md) and {check}")
+            self._maybe_beat()
+            pace(deadline, self.poll_interval_s)
+
+
 def recipe_name(code: int, name: str = "", recipes: dict[int, str] | None = None) -> str:
     """The recipe of a facet request from the PLC's recipe code and (optional) recipe name.
 

@@ -37,7 +37,7 @@ from datetime import datetime
 
 from ...errors import TriggerError
 from ..protocols import FacetRequest
-from ._handshake import ANSWERED, BUSY, CLOSED, IDLE, READY, REQUESTED, Handshake, pace, recipe_name
+from ._handshake import ANSWERED, BUSY, CLOSED, IDLE, READY, REQUESTED, PolledHandshake, pace, recipe_name
 
 log = logging.getLogger(__name__)
 
@@ -118,7 +118,7 @@ def decode_ascii(registers: list[int]) -> str:
     return "".join(chr(b) if 32 <= b < 127 else "?" for b in raw).strip()
 
 
-class ModbusTrigger(Handshake):
+class ModbusTrigger(PolledHandshake):
     """Trigger backend: the station as Modbus TCP client of the PLC (see module doc and docs/plc.md).
 
     Connects at construction. Every I/O failure (connection refused, lost, request timed out, exception
@@ -254,10 +254,6 @@ class ModbusTrigger(Handshake):
         self._write("writing the heartbeat")
         self._last_beat = time.monotonic()
 
-    def _maybe_beat(self) -> None:
-        if time.monotonic() - self._last_beat >= self.heartbeat_interval_s:
-            self._beat()
-
     # Trigger protocol ----------------------------------------------------------------------------
 
     def ready(self) -> None:
@@ -342,21 +338,12 @@ class ModbusTrigger(Handshake):
         self._regs[CYCLE] = (self._regs[CYCLE] + 1) & 0xFFFF
         self._write(f"writing the {what} answer")
         self._state = ANSWERED
-        deadline = time.monotonic() + self.ack_timeout_s
-        while True:
+
+        def poll():
             plc = self._read_plc("waiting for ACK")
-            if plc[ACK]:
-                if not plc[FACET_PRESENT]:
-                    self._armed = True
-                return
-            if time.monotonic() >= deadline:
-                raise TriggerError(
-                    f"{self.name}: PLC did not acknowledge the {what} answer for facet "
-                    f"{self._request.serial} within {self.ack_timeout_s:g} s (ACK, register "
-                    f"{self.map.plc_base + ACK}, stayed 0); the station reports it and goes on: check the "
-                    "PLC program's handshake (docs/plc.md) and its connection")
-            self._maybe_beat()
-            pace(deadline, self.poll_interval_s)
+            return (not plc[FACET_PRESENT]) if plc[ACK] else None
+
+        self._await_ack(poll, what, f"ACK, register {self.map.plc_base + ACK}, stayed 0", "its connection")
 
     def heartbeat(self) -> None:
         """HEARTBEAT + 1 (mod 65536)."""

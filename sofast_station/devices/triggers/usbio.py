@@ -41,7 +41,8 @@ import time
 
 from ...errors import ConfigError, TriggerError
 from ..protocols import FacetRequest
-from ._handshake import ANSWERED, BUSY, CLOSED, IDLE, READY, REQUESTED, Handshake, SerialGenerator, pace, recipe_name
+from ._handshake import (ANSWERED, BUSY, CLOSED, IDLE, READY, REQUESTED, PolledHandshake, SerialGenerator, pace,
+                         recipe_name)
 
 log = logging.getLogger(__name__)
 
@@ -87,7 +88,7 @@ def _ctrl_timeout(timeout_s: float) -> int:
     return max(1, int(round(1000 * timeout_s)))
 
 
-class UsbTrigger(Handshake):
+class UsbTrigger(PolledHandshake):
     """Trigger backend on an FTDI FT232R/FT232H in async bit-bang mode (see module doc and docs/plc.md).
 
     Opens the chip at construction. Every USB failure (unplugged, timed out, stalled) raises
@@ -270,10 +271,6 @@ class UsbTrigger(Handshake):
         self._put(self._status, "toggling the heartbeat")
         self._last_beat = time.monotonic()
 
-    def _maybe_beat(self) -> None:
-        if time.monotonic() - self._last_beat >= self.heartbeat_interval_s:
-            self._beat()
-
     # Trigger protocol ----------------------------------------------------------------------------
 
     def ready(self) -> None:
@@ -343,18 +340,8 @@ class UsbTrigger(Handshake):
     def _answer(self, status: int, what: str) -> None:
         self._put(status, f"writing STATUS={what}")
         self._state = ANSWERED
-        deadline = time.monotonic() + self.ack_timeout_s
-        while True:
-            if not self.read_pins() & IN_FACET_PRESENT:
-                self._armed = True
-                return
-            if time.monotonic() >= deadline:
-                raise TriggerError(
-                    f"{self.name}: PLC did not acknowledge the {what} answer for facet {self._request.serial} "
-                    f"within {self.ack_timeout_s:g} s (FACET_PRESENT, pin D3/CTS#, stayed 1); the station "
-                    "reports it and goes on: check the PLC program's handshake (docs/plc.md) and the wiring")
-            self._maybe_beat()
-            pace(deadline, self.poll_interval_s)
+        self._await_ack(lambda: None if self.read_pins() & IN_FACET_PRESENT else True, what,
+                        "FACET_PRESENT, pin D3/CTS#, stayed 1", "the wiring")
 
     def heartbeat(self) -> None:
         """Toggle the HEARTBEAT pin."""
