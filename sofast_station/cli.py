@@ -228,7 +228,9 @@ def build_parser() -> argparse.ArgumentParser:
     dn.add_argument("--config", default=_default_config())
     dn.set_defaults(func=cmd_dump_next)
     from .interop.cli import register as register_interop
+    from .reanalysis.cli import register as register_reanalysis
     register_interop(sub)
+    register_reanalysis(sub)
     return p
 
 

@@ -152,6 +152,10 @@ SCHEMA_V1: tuple[tuple[str, str, str, str, str, bool], ...] = (
     ("analysis/max_hole_px", "dataset", "int64", "px", "holes up to this area are filled", True),
     ("analysis/max_saturated_fraction", "dataset", "float64", "1", "largest accepted saturated fraction", True),
     ("analysis/max_corner_rms_px", "dataset", "float64", "px", "largest accepted corner RMS", True),
+    # added after the first dumps were written: optional, the analysis's defaults apply when absent
+    ("analysis/robust_fit", "dataset", "bool", "", "parabola fitted by bisquare-weighted least squares", False),
+    ("analysis/edge_window_px", "dataset", "int64", "px", "half-width of the window summed across a facet edge",
+     False),
 
     ("config", "group", "", "", "the station configuration as loaded", True),
     ("config/station_toml", "dataset", "str", "", "raw text of station.toml (empty if it could not be read)", True),
@@ -221,7 +225,8 @@ class DumpContent:
         Raw text of the configuration files.
     station_path, facet_path, station_name : str
     record : dict
-        The result record (JSON-ready: null for infinite or NaN values).
+        The result record (JSON-ready: null for infinite or NaN values); ``{}`` for a dump read with
+        ``read_dump(..., require_result=False)`` that holds no result.
     schema_version : int
         Layout version of the file it was read from (or will be written with).
     created : str
@@ -718,14 +723,21 @@ def _attr_str(attrs, key: str, where: str) -> str:
     return v.decode() if isinstance(v, bytes) else str(v)
 
 
-def read_dump(path: str | Path, load_frames: bool = True) -> DumpContent:
+def read_dump(path: str | Path, load_frames: bool = True, require_result: bool = True) -> DumpContent:
     """Open a data dump, check its schema, and return its content.
+
+    The reader dispatches on the file's ``schema_version`` (:data:`_READERS`): every layout version up to
+    :data:`SCHEMA_VERSION` keeps its own reader, so dumps of earlier versions stay readable.
 
     Parameters
     ----------
     path : str or Path
     load_frames : bool
         Read (and checksum-verify) the frames; False reads the metadata only (``frames_cropped`` None).
+    require_result : bool
+        Refuse a dump without its ``result`` group (the archived record). Re-analysis passes False: the
+        result is an output of the analysis, not an input, so a dump that lost it can still be redone;
+        its ``record`` is then ``{}``.
 
     Returns
     -------
@@ -768,7 +780,7 @@ def read_dump(path: str | Path, load_frames: bool = True) -> DumpContent:
         raise DumpError(f"dump {path} {what}; HDF5 says: {msg}") from exc
     try:
         with f:
-            return _read_open(f, path, load_frames)
+            return _read_open(f, path, load_frames, require_result)
     except DumpError:
         raise
     except (OSError, KeyError, ValueError, RuntimeError, TypeError) as exc:
@@ -776,9 +788,7 @@ def read_dump(path: str | Path, load_frames: bool = True) -> DumpContent:
                         f"{exc}") from exc
 
 
-def _read_open(f, path: Path, load_frames: bool) -> DumpContent:
-    import h5py
-
+def _read_open(f, path: Path, load_frames: bool, require_result: bool = True) -> DumpContent:
     schema = f.attrs.get("schema")
     if isinstance(schema, bytes):
         schema = schema.decode()
@@ -800,12 +810,24 @@ def _read_open(f, path: Path, load_frames: bool) -> DumpContent:
                         "sofast-station to read it")
     if version < 1:
         raise DumpError(f"dump {path} has an invalid schema_version {version}")
+    reader = _READERS.get(version)
+    if reader is None:                       # a version this software wrote but no longer reads: a bug
+        raise DumpError(f"dump {path} has schema version {version}, for which this software ({__version__}) "
+                        f"has no reader (it knows {sorted(_READERS)}); report this as a bug")
+    return reader(f, path, version, load_frames, require_result)
+
+
+def _read_v1(f, path: Path, version: int, load_frames: bool, require_result: bool) -> DumpContent:
+    """Reader of schema version 1 (docs/dump-schema.md, :data:`SCHEMA_V1`)."""
+    import h5py
+
     where = str(path)
     attrs = {k: _attr_str(f.attrs, k, where) for k in ("software_version", "cycle_id", "serial", "time",
                                                          "config_hash")}
     created = _attr_str(f.attrs, "created", where)
+    optional = () if require_result else ("result", "result/record_json")
     missing = [p for p, kind, _, _, _, required in SCHEMA_V1
-               if required and kind != "attribute" and "*" not in p and p not in f]
+               if required and kind != "attribute" and "*" not in p and p not in f and p not in optional]
     if missing:
         raise DumpError(f"dump {path} lacks the dataset(s) {', '.join(missing)} required by schema version "
                         f"{version}; the file is damaged or incomplete")
@@ -830,10 +852,15 @@ def _read_open(f, path: Path, load_frames: bool) -> DumpContent:
             or crop_box[0] + h > full_shape[0] or crop_box[1] + w > full_shape[1]:
         raise DumpError(f"dump {path}: the crop {h} x {w} at {crop_box} does not fit the full frame {full_shape}")
     cfg = _read_value(f["config"])
-    try:
-        record = json.loads(_read_value(f["result/record_json"]))
-    except json.JSONDecodeError as exc:
-        raise DumpError(f"dump {path}: result/record_json is not valid JSON ({exc})") from exc
+    record = {}
+    if "result/record_json" in f:
+        try:
+            record = json.loads(_read_value(f["result/record_json"]))
+        except json.JSONDecodeError as exc:
+            raise DumpError(f"dump {path}: result/record_json is not valid JSON ({exc})") from exc
+    else:
+        log.warning("dump %s holds no archived result (no result/record_json); reading it for re-analysis only",
+                    path)
     return DumpContent(
         cycle_id=attrs["cycle_id"], serial=attrs["serial"], time=attrs["time"],
         software_version=attrs["software_version"], config_hash=attrs["config_hash"], frames_cropped=frames,
@@ -844,6 +871,11 @@ def _read_open(f, path: Path, load_frames: bool) -> DumpContent:
         station_toml=cfg["station_toml"], facet_toml=cfg["facet_toml"], station_path=cfg["station_path"],
         facet_path=cfg["facet_path"], station_name=cfg["station_name"], record=record, schema_version=version,
         created=created, path=path)
+
+
+#: The reader of each schema version this software reads (a new layout adds its version here and keeps
+#: the readers of the older ones).
+_READERS = {1: _read_v1}
 
 
 # -- retention and disk ---------------------------------------------------------------------------------

@@ -1,0 +1,14 @@
+"""Re-analysis for the process engineer (SPEC.md, "The process engineer"; docs/reanalysis.md).
+
+- ``reprocess.py``: rerun the analysis of an HDF5 data dump from its raw frames, with optional overrides
+  (facet model, design focal length, alignment point, measured distance, mask threshold, calibration
+  record), and compare every figure with the archived result (:func:`reprocess_dump`).
+- ``batch.py``: reprocess a folder or glob of dumps on the local cores or on a Dask cluster, resumably,
+  with a summary workbook and CSV (:func:`run_batch`).
+- ``report.py``: slope-error maps in the style of the method paper's Figs. 8-10 and trend plots of an
+  archive period (:func:`write_slope_error_maps`, :func:`write_trend`).
+- ``cli.py``: ``register(subparsers)`` adds ``reprocess``, ``batch`` and ``report`` to ``sofast-station``.
+
+Nothing here is imported by the station loop; the modules import numpy only when used, so that the
+command line can put BLAS on one thread before numpy loads (SPEC.md, "Determinism").
+"""

@@ -1,0 +1,366 @@
+"""The re-analysis commands of ``sofast-station``: ``reprocess``, ``batch`` and ``report``.
+
+``register(subparsers)`` adds them to the ``sofast-station`` parser (``sofast_station/cli.py``). Importing
+this module imports nothing heavy: each command first puts BLAS on one thread (unless the user set a
+thread count), then loads numpy and the analysis, so that reprocessing is bit-exact (SPEC.md,
+"Determinism").
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+from ._env import single_thread_blas
+
+log = logging.getLogger(__name__)
+
+#: Exit codes: some dump could not be reprocessed; with --check, some figure differs from the archive.
+EXIT_FAILED = 2
+EXIT_DIFFERS = 3
+
+
+# -- options shared by the three commands ---------------------------------------------------------------
+def _add_overrides(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("overrides (what the engineer changes; default: the dump's own)")
+    g.add_argument("--facet", metavar="FILE", help="facet model: a facet TOML file ([facet] table) replacing the "
+                   "dumped design (its shape, outline, measure and alignment points)")
+    g.add_argument("--focal-length", metavar="M", type=float, help="design focal length, metres")
+    g.add_argument("--alignment-point", metavar=("X", "Y"), type=float, nargs=2,
+                   help="boresight alignment point (x, y) in the facet frame, metres")
+    g.add_argument("--distance", metavar="M", type=float,
+                   help="measured distance from the screen centre to the design's measure point, metres")
+    g.add_argument("--mask-threshold", metavar="DN", type=float,
+                   help="facet mask threshold (white - dark), DN")
+    g.add_argument("--calibration", metavar="FILE", help="radiometric calibration record (JSON); the frames "
+                   "were captured with the dumped record, so only the result's calibration reference changes")
+
+
+def overrides_from_args(args):
+    """The :class:`~sofast_station.reanalysis.reprocess.Overrides` of parsed command-line options."""
+    from .reprocess import Overrides
+
+    return Overrides(facet_path=args.facet, focal_length_m=args.focal_length,
+                     alignment_point_m=tuple(args.alignment_point) if args.alignment_point else None,
+                     measured_distance_m=args.distance, mask_threshold_dn=args.mask_threshold,
+                     radiometric_path=args.calibration)
+
+
+def register(subparsers) -> None:
+    """Add ``reprocess``, ``batch`` and ``report`` to a ``sofast-station`` subparsers object.
+
+    Parameters
+    ----------
+    subparsers : argparse._SubParsersAction
+        From ``parser.add_subparsers()``.
+    """
+    rep = subparsers.add_parser(
+        "reprocess", help="rerun the analysis of data dumps from their raw frames and compare with the archive",
+        description="Recompute every figure of each dump from its raw frames (never a stored result) and print "
+                    "archived versus new. With no overrides, the same software on the same platform reproduces "
+                    "the archived figures exactly, and says so.")
+    rep.add_argument("dumps", nargs="+", metavar="DUMP", help="HDF5 data dump(s)")
+    rep.add_argument("--json", action="store_true",
+                     help="print one JSON object per dump and line (the keys of 'inspect --json', plus 'archived', "
+                          "'differences' and 'reprocess') and nothing else on stdout")
+    rep.add_argument("--all", action="store_true", help="list every figure, not only the main and the changed ones")
+    rep.add_argument("--journal", metavar="PATH",
+                     help="the station's journal.sqlite3: the archived record of a dump that has lost its own")
+    rep.add_argument("--check", action="store_true",
+                     help=f"exit with {EXIT_DIFFERS} when a figure differs from the archive")
+    _add_overrides(rep)
+    rep.set_defaults(func=cmd_reprocess)
+
+    bat = subparsers.add_parser(
+        "batch", help="reprocess a folder or glob of dumps, locally or on a Dask cluster, resumably",
+        description="Reprocess many dumps: one JSON result per dump in OUT/results/ (written atomically; a "
+                    "killed batch resumes without redoing finished dumps), then OUT/summary.xlsx and "
+                    "OUT/summary.csv. A dump that fails is reported in the summary; the batch goes on.")
+    bat.add_argument("sources", nargs="+", metavar="FOLDER_OR_GLOB", help="folders (searched for *.h5), dumps, or "
+                     "glob patterns (quote them; ** matches sub-folders)")
+    bat.add_argument("--out", required=True, metavar="DIR", help="output folder (reuse it to resume)")
+    bat.add_argument("--workers", type=int, default=None, metavar="N",
+                     help="local worker processes (default: the number of CPUs)")
+    bat.add_argument("--scheduler", metavar="ADDRESS",
+                     help="run on the Dask cluster of this scheduler (tcp://host:8786); the dumps must be "
+                          "readable by its workers under the same paths")
+    bat.add_argument("--journal", metavar="PATH", help="journal for dumps that have lost their archived record")
+    bat.add_argument("--retry-failed", action="store_true", help="redo the dumps that failed in an earlier run")
+    bat.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+    _add_overrides(bat)
+    bat.set_defaults(func=cmd_batch)
+
+    rpt = subparsers.add_parser(
+        "report", help="slope-error maps of dumps (the paper's Figs. 8-10), or 'report trend' over a period",
+        description="'report DUMP...' writes one PNG per dump: the slope-error magnitude on a fixed colour scale "
+                    "with arrows of the error direction, for the design, the fitted parabola and the higher-order "
+                    "model, the RMS figures in the titles. 'report trend --journal PATH [--from] [--to]' (or "
+                    "'--results DIR' of a batch) plots focal lengths, residuals and twist over the period.")
+    rpt.add_argument("targets", nargs="+", metavar="DUMP_OR_trend", help="dump(s), or the word 'trend'")
+    rpt.add_argument("--out", metavar="DIR_OR_FILE", default=None,
+                     help="folder for the pictures (default: the current folder); for a trend, a .png file or a "
+                          "folder")
+    rpt.add_argument("--vmax", type=float, default=5.0, metavar="MRAD",
+                     help="top of the colour scale, mrad (default 5, as in the paper)")
+    rpt.add_argument("--arrow-step", type=int, default=None, metavar="N",
+                     help="an arrow at every Nth camera row and column (default: 10, more on large images)")
+    rpt.add_argument("--cmap", default="jet", help="Matplotlib colour map (default jet: blue to maroon)")
+    rpt.add_argument("--separate", action="store_true", help="three files per dump instead of three panels")
+    rpt.add_argument("--journal", metavar="PATH", help="trend: the station's journal.sqlite3")
+    rpt.add_argument("--results", metavar="DIR", help="trend: a batch output folder")
+    rpt.add_argument("--from", dest="since", default=None, metavar="ISO", help="trend: start (inclusive)")
+    rpt.add_argument("--to", dest="until", default=None, metavar="ISO", help="trend: end (exclusive)")
+    _add_overrides(rpt)
+    rpt.set_defaults(func=cmd_report)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """A parser with only the re-analysis commands (for tests and ``python -m``)."""
+    p = argparse.ArgumentParser(prog="sofast-station")
+    p.add_argument("-v", "--verbose", action="store_true")
+    register(p.add_subparsers(dest="command", required=True))
+    return p
+
+
+# -- reprocess ----------------------------------------------------------------------------------------------
+def _fmt(v) -> str:
+    if v is None:
+        return "null"
+    if isinstance(v, bool):
+        return str(v).lower()
+    if isinstance(v, float):
+        return f"{v:.10g}"
+    if isinstance(v, (list, dict)):
+        text = json.dumps(v, ensure_ascii=False)
+    else:
+        text = str(v)
+    return text if len(text) <= 24 else text[:21] + "..."
+
+
+def comparison_table(result, show_all: bool = False) -> str:
+    """Archived versus new, one figure a line: the main figures and every changed one (or all)."""
+    from .reprocess import HEADLINE, flatten_figures
+
+    new = flatten_figures(result.record)
+    old = flatten_figures(result.archived) if result.archived else {}
+    names = list(new) + [k for k in old if k not in new]
+    shown = names if show_all else [k for k in names if k in HEADLINE or k in result.differences]
+    lines = [f"  {'figure':<40} {'archived':>24} {'new':>24} {'new - archived':>16}"]
+    for name in shown:
+        a, b = old.get(name, "(absent)" if old else "-"), new.get(name, "(absent)")
+        d = result.differences.get(name)
+        if not old:
+            diff = ""
+        elif d is None:
+            diff = "0"
+        elif d["difference"] is not None:
+            diff = f"{d['difference']:+.3e}"
+        else:
+            diff = "changed"
+        lines.append(f"  {name:<40} {_fmt(a):>24} {_fmt(b):>24} {diff:>16}")
+    hidden = len(names) - len(shown)
+    if hidden:
+        lines.append(f"  ({hidden} more figure(s), all identical to the archive; --all lists them)"
+                     if old else f"  ({hidden} more figure(s); --all lists them)")
+    return "\n".join(lines)
+
+
+def result_text(result, show_all: bool = False) -> str:
+    """The human-readable report of one reprocessed dump."""
+    rec = result.record
+    wrap = textwrap.TextWrapper(width=110, initial_indent="  ", subsequent_indent="    ")
+    out = [str(result.path),
+           f"  facet {rec.get('serial')} ({rec.get('facet')}), measured {rec.get('time')}, cycle {rec.get('cycle_id')};"
+           f" dump schema {result.schema_version}, measured by sofast-station {result.dump_software_version}"]
+    for note in result.notes:
+        out.append(wrap.fill(f"note: {note}"))
+    if rec.get("verdict") == "fault":
+        out.append(wrap.fill(f"the analysis refused the capture: {'; '.join(rec.get('reasons', []))}"))
+    out.append(comparison_table(result, show_all))
+    out.append(f"  => {result.summary()}")
+    return "\n".join(out)
+
+
+def cmd_reprocess(args) -> int:
+    single_thread_blas()
+    from ..errors import StationError
+    from .batch import error_result
+    from .reprocess import reprocess_dump
+
+    overrides = overrides_from_args(args)
+    overrides.check()
+    failed = differs = 0
+    for i, dump in enumerate(args.dumps):
+        try:
+            res = reprocess_dump(dump, overrides, journal=args.journal)
+        except StationError as exc:
+            failed += 1
+            if args.json:
+                print(json.dumps(error_result(dump, exc), ensure_ascii=False), flush=True)
+            log.error("%s", exc if str(dump) in str(exc) else f"{dump}: {exc}")
+            continue
+        except Exception as exc:              # a bug: say so, with its traceback, and go on with the others
+            failed += 1
+            if args.json:
+                print(json.dumps(error_result(dump, exc, internal=True), ensure_ascii=False), flush=True)
+            log.exception("%s: internal error while reprocessing", dump)
+            continue
+        differs += bool(res.differences)
+        if args.json:
+            print(json.dumps(res.to_json(), ensure_ascii=False, allow_nan=False), flush=True)
+        else:
+            if i:
+                print()
+            print(result_text(res, args.all), flush=True)
+    if failed:
+        log.error("%d of %d dump(s) could not be reprocessed", failed, len(args.dumps))
+        return EXIT_FAILED
+    return EXIT_DIFFERS if args.check and differs else 0
+
+
+# -- batch ----------------------------------------------------------------------------------------------
+class ProgressBar:
+    """A small progress bar on a stream (stderr): redrawn in place on a terminal, a line every 10 % or
+    30 s otherwise (log files).
+
+    Called as ``bar(done, total, failed, name)``.
+    """
+
+    def __init__(self, stream=None, width: int = 30, label: str = "dumps"):
+        self.stream = stream or sys.stderr
+        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
+        self.width = width
+        self.label = label
+        self.t0 = time.monotonic()
+        self.start_done = None
+        self.last_draw = 0.0
+        self.last_decile = -1
+        self.drawn = False
+
+    def __call__(self, done: int, total: int, failed: int, name: str = "") -> None:
+        now = time.monotonic()
+        if self.start_done is None:
+            self.start_done = done
+            self.t0 = now
+        finished = done >= total
+        if self.tty and not finished and now - self.last_draw < 0.1 and done > self.start_done:
+            return
+        decile = int(10 * done / max(total, 1))
+        if not self.tty and not finished and decile == self.last_decile and now - self.last_draw < 30:
+            return
+        self.last_draw, self.last_decile = now, decile
+        frac = done / max(total, 1)
+        fill = int(round(self.width * frac))
+        rate = (done - self.start_done) / max(now - self.t0, 1e-9)
+        eta = (total - done) / rate if rate > 0 else float("nan")
+        eta_text = "--:--" if eta != eta else time.strftime("%H:%M:%S", time.gmtime(eta))
+        line = (f"[{'#' * fill}{'.' * (self.width - fill)}] {done}/{total} {self.label} {100 * frac:3.0f}% "
+                f"{rate:5.1f}/s eta {eta_text}" + (f", {failed} failed" if failed else ""))
+        if self.tty:
+            self.stream.write("\r" + line + "\x1b[K")
+        else:
+            self.stream.write(line + "\n")
+        self.stream.flush()
+        self.drawn = True
+
+    def close(self) -> None:
+        if self.tty and self.drawn:
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+def cmd_batch(args) -> int:
+    single_thread_blas()
+    from .batch import run_batch
+
+    overrides = overrides_from_args(args)
+    bar = None if args.no_progress else ProgressBar()
+    try:
+        summary = run_batch(args.sources, args.out, overrides, workers=args.workers, scheduler=args.scheduler,
+                            journal=args.journal, retry_failed=args.retry_failed, progress=bar)
+    except KeyboardInterrupt:
+        if bar:
+            bar.close()
+        log.error("interrupted: the finished results are kept; run the same command again to resume")
+        return 130
+    if bar:
+        bar.close()
+    print(summary.text(), flush=True)
+    return 1 if summary.failed or summary.unfinished else 0
+
+
+# -- report ---------------------------------------------------------------------------------------------
+def cmd_report(args) -> int:
+    single_thread_blas()
+    from ..errors import StationError
+    from .reprocess import reprocess_dump
+
+    if args.targets[0] == "trend":
+        return _cmd_trend(args)
+    if args.journal or args.results or args.since or args.until:
+        from ..errors import ConfigError
+        raise ConfigError("--journal, --results, --from and --to belong to 'report trend'")
+    from .report import write_slope_error_maps
+
+    overrides = overrides_from_args(args)
+    overrides.check()
+    out = Path(args.out or ".")
+    failed = 0
+    for dump in args.targets:
+        try:
+            res = reprocess_dump(dump, overrides)
+            for path in write_slope_error_maps(res, out, vmax_mrad=args.vmax, arrow_step_px=args.arrow_step,
+                                               cmap=args.cmap, separate=args.separate):
+                print(path, flush=True)
+        except StationError as exc:
+            failed += 1
+            log.error("%s", exc if str(dump) in str(exc) else f"{dump}: {exc}")
+    return EXIT_FAILED if failed else 0
+
+
+def _cmd_trend(args) -> int:
+    from ..errors import ConfigError
+    from .report import default_trend_name, trend_records_from_journal, trend_records_from_results, write_trend
+
+    if len(args.targets) > 1:
+        raise ConfigError("'report trend' takes no dumps: use --journal PATH or --results DIR")
+    if bool(args.journal) == bool(args.results):
+        raise ConfigError("'report trend' needs exactly one of --journal PATH and --results DIR")
+    if args.journal:
+        records = trend_records_from_journal(args.journal, args.since, args.until)
+        source = f"journal {args.journal}"
+    else:
+        records = trend_records_from_results(args.results, args.since, args.until)
+        source = f"batch results {args.results}"
+    out = Path(args.out) if args.out else Path(".")
+    if out.suffix.lower() != ".png":
+        out = out / default_trend_name(args.since, args.until)
+    period = f"from {args.since or 'the start'} to {args.until or 'now'}"
+    print(write_trend(records, out, title=f"{source}, {period}"), flush=True)
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run one re-analysis command (as ``sofast-station`` would), for tests and ``python -m``."""
+    from ..errors import StationError
+
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, stream=sys.stderr,
+                        format="%(asctime)s %(levelname)s %(message)s", datefmt="%H:%M:%S")
+    try:
+        return args.func(args)
+    except StationError as exc:
+        log.error("%s", exc)
+        return 2
+    except KeyboardInterrupt:
+        log.error("interrupted")
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,583 @@
+"""Rerun a data dump's analysis from its raw frames and compare it with the archived result.
+
+:func:`reprocess_dump` reads a dump (any schema version this software reads, with or without its
+archived result), rebuilds the full frame stack and runs :func:`~sofast_station.measure.pipeline.analyse`
+on it with the dumped fringe definition, geometry, facet design, analysis settings and measured
+distance, unless an :class:`Overrides` replaces one of them. It never returns a stored figure: every
+figure of the new record is recomputed from the frames; the archived record is only read to compare.
+
+With no overrides, the same software version on the same platform with BLAS on one thread reproduces
+every measured figure of the archived record bit for bit (SPEC.md, "Determinism"); the comparison
+(:func:`compare_figures`) says so, or lists each figure that differs with both values.
+
+Example::
+
+    from sofast_station.reanalysis.reprocess import Overrides, reprocess_dump
+    res = reprocess_dump("SIM-0001_....h5")
+    res.exact                    # True: every archived figure reproduced
+    res = reprocess_dump("SIM-0001_....h5", Overrides(focal_length_m=5.6))
+    res.differences              # {"slope_rms_mrad.design.x": {"archived": ..., "new": ..., "difference": ...}, ...}
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime as _dt
+import hashlib
+import json
+import logging
+import math
+import os
+import platform
+import time
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .. import __version__
+from ..archive._common import json_ready, to_json
+from ..archive.dumps import DumpContent, read_dump
+from ..errors import ArchiveError, ConfigError, DumpError, StationError
+from ._env import blas_on_one_thread, blas_threads
+
+log = logging.getLogger(__name__)
+
+#: Keys of a result record that describe the cycle rather than measure the facet: not compared.
+NOT_FIGURES = frozenset({"cycle_id", "serial", "time", "recipe", "station", "facet", "software_version", "config_hash",
+                         "calibration", "camera", "request", "capture_notes", "crop_box", "timings_s", "truth",
+                         "reprocess", "dump", "status", "archived", "differences", "error", "error_type"})
+
+#: The reported figures (SPEC.md, "Reported figures"; flattened names): the comparison table shows them
+#: whether or not they changed, and the other (diagnostic) figures only when they changed.
+HEADLINE = ("focal_length_x_m", "focal_length_y_m", "curvature_x_per_m", "curvature_y_per_m",
+            "principal_focal_lengths_m[0]", "principal_focal_lengths_m[1]", "axis_angle_rad", "twist_mrad_per_m",
+            "twist_e1_mrad_per_m", "twist_e2_mrad_per_m",
+            *(f"slope_rms_mrad.{m}.{c}" for m in ("design", "parabola", "higher_order")
+              for c in ("x", "y", "magnitude")),
+            "boresight_mrad.x", "boresight_mrad.y",
+            *(f"placement.{u}[{i}]" for u in ("mm", "mrad") for i in range(3)),
+            "n_points", "valid_fraction", "median_modulation_dn", "unwrap_disagreements",
+            *(f"coefficients.{c}" for c in "ABCDEF"), "measured_distance_m", "verdict", "reasons")
+
+
+# -- overrides -------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Overrides:
+    """What the engineer changes for a re-analysis; None leaves the dumped value.
+
+    Attributes
+    ----------
+    facet_path : str or None
+        A facet TOML file (``[facet]`` table, see :mod:`sofast_station.facet`) replacing the dumped design:
+        its shape, outline, measure point and alignment point.
+    focal_length_m : float or None
+        Design focal length, metres (after *facet_path*).
+    alignment_point_m : (float, float) or None
+        (x, y) of the boresight alignment point in the facet frame, metres (after *facet_path*).
+    measured_distance_m : float or None
+        Distance from the screen centre to the design's measure point, metres.
+    mask_threshold_dn : float or None
+        A pixel belongs to the facet when white - dark exceeds this, DN.
+    radiometric_path : str or None
+        A radiometric calibration record (JSON). The frames were captured with the dumped record, so this
+        changes only the result's calibration reference (see :func:`calibration_note`).
+    """
+
+    facet_path: str | None = None
+    focal_length_m: float | None = None
+    alignment_point_m: tuple[float, float] | None = None
+    measured_distance_m: float | None = None
+    mask_threshold_dn: float | None = None
+    radiometric_path: str | None = None
+
+    def __post_init__(self):
+        for name in ("focal_length_m", "measured_distance_m"):
+            v = getattr(self, name)
+            if v is not None and not (math.isfinite(float(v)) and float(v) > 0):
+                raise ConfigError(f"override {name} must be a positive number of metres, got {v}")
+        if self.mask_threshold_dn is not None and not (math.isfinite(float(self.mask_threshold_dn))
+                                                       and float(self.mask_threshold_dn) >= 0):
+            raise ConfigError(f"override mask_threshold_dn must be a number of DN >= 0, got {self.mask_threshold_dn}")
+        if self.alignment_point_m is not None:
+            p = tuple(float(v) for v in self.alignment_point_m)
+            if len(p) != 2 or not all(math.isfinite(v) for v in p):
+                raise ConfigError(f"override alignment_point_m must be a finite (x, y) in metres, got "
+                                  f"{self.alignment_point_m}")
+            object.__setattr__(self, "alignment_point_m", p)
+        for name in ("facet_path", "radiometric_path"):
+            v = getattr(self, name)
+            if v is not None:
+                object.__setattr__(self, name, str(Path(v).expanduser().absolute()))
+
+    @property
+    def empty(self) -> bool:
+        """No override: the dump's own configuration."""
+        return all(getattr(self, f.name) is None for f in dataclasses.fields(self))
+
+    @property
+    def changes_analysis(self) -> bool:
+        """Whether an override can change a measured figure (the calibration record cannot)."""
+        return any(getattr(self, f.name) is not None for f in dataclasses.fields(self) if f.name != "radiometric_path")
+
+    def to_dict(self) -> dict:
+        """The overrides that are set (JSON-ready)."""
+        return {f.name: (list(v) if isinstance(v, tuple) else v) for f in dataclasses.fields(self)
+                if (v := getattr(self, f.name)) is not None}
+
+    def check(self) -> None:
+        """Read the files the overrides name, so that a bad one is reported once, before any dump.
+
+        Raises
+        ------
+        ConfigError
+            Naming the facet or calibration file and what is wrong with it.
+        """
+        if self.facet_path is not None:
+            from ..facet import load_facet
+            load_facet(self.facet_path)
+        if self.radiometric_path is not None:
+            from ..calibrate.records import load_radiometric
+            load_radiometric(self.radiometric_path)
+
+    @classmethod
+    def from_dict(cls, d: dict | None) -> "Overrides":
+        d = dict(d or {})
+        unknown = sorted(set(d) - {f.name for f in dataclasses.fields(cls)})
+        if unknown:
+            raise ConfigError(f"unknown override(s) {', '.join(unknown)}")
+        return cls(**d)
+
+
+# -- the result ------------------------------------------------------------------------------------------
+@dataclass
+class ReprocessResult:
+    """One dump reprocessed.
+
+    Attributes
+    ----------
+    path : Path
+        The dump.
+    record : dict
+        The new result record, recomputed from the frames, with the keys of ``sofast-station inspect
+        --json`` (``timings_s`` holds the re-analysis's own timings, seconds) and ``reprocess`` (provenance).
+    archived : dict or None
+        The archived record (from the dump, or from the journal when the dump lost it); None when
+        neither has it.
+    differences : dict
+        Flattened figure name -> ``{"archived", "new", "difference"}`` (difference = new - archived for
+        numbers, else None) for every compared figure that is not identical.
+    n_compared : int
+        Number of figures compared.
+    notes : list of str
+        What the overrides can and cannot change, and anything else the engineer should know.
+    analysis : Analysis or None
+        The pipeline's full output (per-pixel arrays for plots); None when the analysis refused the
+        capture (the record then holds the fault).
+    design : FacetDesign
+        The design the analysis used (the dumped one, or the overridden one).
+    seconds : float
+        Wall time of read and analysis, seconds.
+    """
+
+    path: Path
+    record: dict
+    archived: dict | None
+    differences: dict
+    n_compared: int
+    overrides: Overrides
+    dump_software_version: str
+    schema_version: int
+    archived_source: str
+    notes: list = field(default_factory=list)
+    analysis: object | None = field(default=None, repr=False)
+    design: object | None = field(default=None, repr=False)
+    seconds: float = 0.0
+
+    @property
+    def exact(self) -> bool | None:
+        """True when every archived figure was reproduced bit for bit; None without an archived record."""
+        if self.archived is None:
+            return None
+        return not self.differences
+
+    @property
+    def same_software(self) -> bool:
+        return self.dump_software_version == __version__
+
+    def summary(self) -> str:
+        """One sentence: reproduced exactly, or how many figures differ and why that may be."""
+        n, k = self.n_compared, len(self.differences)
+        threads = "BLAS on 1 thread" if blas_on_one_thread() else f"BLAS threads {blas_threads()}"
+        if self.archived is None:
+            return (f"no archived result in the dump or the journal: {n} figures computed from the frames, "
+                    "nothing to compare")
+        where = "" if self.archived_source == "dump" else f" (archived record from {self.archived_source})"
+        if not self.overrides.empty:
+            if k == 0:
+                return f"no figure changed: all {n} figures identical to the archive{where} despite the overrides"
+            return f"{k} of {n} figures differ from the archive{where} with the overrides applied"
+        if k == 0:
+            return (f"reproduced exactly: all {n} archived figures identical{where} (sofast-station {__version__}, "
+                    f"dump schema {self.schema_version}, {threads})")
+        was, now = self.archived.get("verdict"), self.record.get("verdict")
+        if k and (was == "fault") != (now == "fault"):
+            why = "; ".join((self.archived if was == "fault" else self.record).get("reasons", []))
+            return (f"{k} of {n} figures differ: the archive holds verdict {was!r}, reprocessing gives {now!r}"
+                    f" ({why})")
+        one_sided = [name for name, d in self.differences.items() if _ABSENT in (d["archived"], d["new"])]
+        if one_sided:
+            return (f"{k} of {n} figures differ from the archive{where}, and {len(one_sided)} figure(s) exist on "
+                    f"one side only (e.g. {one_sided[0]}): the dump was measured by other analysis code (dump "
+                    f"written by sofast-station {self.dump_software_version}, this is {__version__})")
+        if self.same_software:
+            return (f"NOT reproduced: {k} of {n} figures differ from the archive{where} although the software "
+                    f"version is the same ({__version__}): the platform (CPU, numpy or BLAS build) or the BLAS "
+                    f"threads differ ({threads})")
+        return (f"{k} of {n} figures differ from the archive{where}: the versions differ (the dump was measured "
+                f"by sofast-station {self.dump_software_version}, this is {__version__})")
+
+    def to_json(self) -> dict:
+        """The JSON object of ``reprocess --json`` and of a batch result file (JSON-ready)."""
+        out = {"dump": str(self.path), "status": "ok"}
+        out.update(self.record)
+        out["archived"] = self.archived
+        out["differences"] = self.differences
+        return json_ready(out)
+
+
+# -- comparison ------------------------------------------------------------------------------------------
+def flatten_figures(record: dict) -> dict:
+    """Every measured figure of a record under a flat name.
+
+    Nested dicts give dotted names (``slope_rms_mrad.design.x``), lists of numbers one entry per element
+    (``principal_focal_lengths_m[0]``); lists of text (``reasons``) stay whole. Keys in
+    :data:`NOT_FIGURES` (time, serial, timings, ...) are left out.
+
+    Parameters
+    ----------
+    record : dict
+        A result record (JSON-ready).
+
+    Returns
+    -------
+    dict
+        Flat name -> value, in record order.
+    """
+    out: dict = {}
+
+    def walk(name: str, value) -> None:
+        if isinstance(value, dict):
+            for k, v in value.items():
+                walk(f"{name}.{k}" if name else str(k), v)
+        elif isinstance(value, (list, tuple)) and value and all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) or v is None for v in value):
+            for i, v in enumerate(value):
+                out[f"{name}[{i}]"] = v
+        elif isinstance(value, (list, tuple)) and any(isinstance(v, (dict, list, tuple)) for v in value):
+            for i, v in enumerate(value):
+                walk(f"{name}[{i}]", v)
+        else:
+            out[name] = list(value) if isinstance(value, tuple) else value
+
+    for key, value in json_ready(record).items():
+        if key not in NOT_FIGURES:
+            walk(key, value)
+    return out
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _same(a, b) -> bool:
+    if _is_number(a) and _is_number(b):
+        return float(a) == float(b)
+    return a == b and type(a) is type(b) or (a is None and b is None)
+
+
+_ABSENT = "(absent)"
+
+
+def compare_figures(archived: dict, new: dict) -> tuple[dict, int]:
+    """Compare two records figure by figure, exactly (bit for bit for floats).
+
+    Parameters
+    ----------
+    archived, new : dict
+        Result records (JSON-ready).
+
+    Returns
+    -------
+    differences : dict
+        Flat name -> ``{"archived": a, "new": b, "difference": b - a or None}`` for every figure that is
+        not identical; a figure present on one side only has ``"(absent)"`` on the other.
+    n_compared : int
+        Number of figures compared (the union of both sides).
+    """
+    fa, fb = flatten_figures(archived), flatten_figures(new)
+    names = list(fb) + [k for k in fa if k not in fb]
+    diffs = {}
+    for name in names:
+        a, b = fa.get(name, _ABSENT), fb.get(name, _ABSENT)
+        if _same(a, b):
+            continue
+        d = float(b) - float(a) if _is_number(a) and _is_number(b) else None
+        diffs[name] = {"archived": a, "new": b, "difference": d}
+    return diffs, len(names)
+
+
+# -- pieces of the re-analysis ---------------------------------------------------------------------------
+def _settings(content: DumpContent, overrides: Overrides, notes: list):
+    from ..measure.pipeline import AnalysisSettings
+
+    known = {f.name for f in dataclasses.fields(AnalysisSettings)}
+    dumped = dict(content.analysis)
+    unknown = sorted(set(dumped) - known)
+    if unknown:
+        notes.append(f"the dump's analysis settings include {', '.join(unknown)}, which this software version "
+                     "does not know; they are ignored, so figures may differ")
+    settings = AnalysisSettings(**{k: v for k, v in dumped.items() if k in known})
+    if overrides.mask_threshold_dn is not None:
+        old = settings.mask_threshold_dn
+        settings = dataclasses.replace(settings, mask_threshold_dn=overrides.mask_threshold_dn)
+        notes.append(f"mask threshold {overrides.mask_threshold_dn:g} DN (archived {old:g} DN)"
+                     + ("; the dump keeps only the box around the pixels that responded above the archived "
+                        "threshold (plus a margin) and frames are 0 outside it, so a lower threshold can add "
+                        "pixels only inside that box" if overrides.mask_threshold_dn < old else ""))
+    return settings
+
+
+def _design(content: DumpContent, overrides: Overrides, notes: list):
+    from ..facet import FacetDesign, load_facet
+
+    design = content.facet_design()
+    if overrides.facet_path is not None:
+        old = design
+        design = load_facet(overrides.facet_path)
+        notes.append(f"facet model {design.name!r} from {overrides.facet_path} (archived {old.name!r}, "
+                     f"f {old.focal_length_m:g} m)")
+    changes = {}
+    if overrides.focal_length_m is not None:
+        changes["focal_length_m"] = float(overrides.focal_length_m)
+        notes.append(f"design focal length {overrides.focal_length_m:g} m (was {design.focal_length_m:g} m)")
+    if overrides.alignment_point_m is not None:
+        changes["alignment_point_m"] = list(overrides.alignment_point_m)
+        notes.append("alignment point ({:g}, {:g}) m (was ({:g}, {:g}) m)".format(
+            *overrides.alignment_point_m, *design.alignment_point_m))
+    if changes:
+        design = FacetDesign.from_dict({**design.to_dict(), **changes}, source="re-analysis overrides")
+    return design
+
+
+def calibration_note(content: DumpContent, record) -> str:
+    """What a calibration-record override can and cannot change, for this dump.
+
+    Parameters
+    ----------
+    content : DumpContent
+    record : RadiometricRecord
+        The record the engineer names instead of the dumped one.
+    """
+    old = content.radiometric
+    lut_old = np.asarray(old["lut"], dtype=np.float64)
+    level = np.linspace(0.0, 1.0, 1001)
+    d_cmd = 255.0 * float(np.max(np.abs(np.interp(level, np.linspace(0, 1, lut_old.size), lut_old)
+                                        - np.interp(level, np.linspace(0, 1, record.lut.size), record.lut))))
+    return (f"calibration record {record.record_id!r} (archived {old['record_id']!r}): the radiometric record "
+            "shaped the fringes the display showed (its lookup table, floor and maximum levels) and set the "
+            "camera's exposure and gain; the dumped frames were captured with the archived record and cannot "
+            "change. The analysis reads nothing from the record, so every measured figure is recomputed from "
+            "the same frames and only the result's calibration reference changes (camera exposure and gain "
+            f"stay those of the capture). The two lookup tables differ by up to {d_cmd:.1f} display commands "
+            "(of 255); to measure with the new record, capture the facet again")
+
+
+def _judge_settings(content: DumpContent, recipe: str, notes: list):
+    """Limits and quality of the dumped station.toml (and of the record's recipe)."""
+    from ..station.verdict import Limits, Quality, limits_from_table, quality_from_table
+
+    if not content.station_toml.strip():
+        notes.append("the dump holds no station.toml text: the verdict uses the default limits")
+        return Limits(), Quality()
+    try:
+        raw = tomllib.loads(content.station_toml)
+        where = f"station.toml of dump {content.path}"
+        limits = limits_from_table(raw.get("limits", {}), f"{where} [limits]")
+        quality = quality_from_table(raw.get("quality", {}), f"{where} [quality]")
+        table = raw.get("recipes", {}).get(recipe) if recipe and recipe != "default" else None
+        if isinstance(table, dict):
+            limits = limits_from_table({**dataclasses.asdict(limits), **table.get("limits", {})},
+                                       f"{where} [recipes.{recipe}].limits")
+            quality = quality_from_table({**dataclasses.asdict(quality), **table.get("quality", {})},
+                                         f"{where} [recipes.{recipe}].quality")
+        return limits, quality
+    except (tomllib.TOMLDecodeError, ConfigError, TypeError) as exc:
+        notes.append(f"the dump's station.toml limits could not be read ({exc}): the verdict uses the default "
+                     "limits")
+        return Limits(), Quality()
+
+
+def _archived_from_journal(journal: str | Path, cycle_id: str) -> dict | None:
+    from ..archive.journal import Journal
+
+    journal = Path(journal)
+    if not journal.is_file():
+        raise ArchiveError(f"journal {journal} does not exist")
+    j = Journal(journal)
+    try:
+        row = j.get(cycle_id)
+    finally:
+        j.close()
+    return None if row is None else row.record
+
+
+def _config_hash(archived_hash: str, overrides: Overrides) -> str:
+    if overrides.empty:
+        return archived_hash
+    blob = json.dumps({"archived": archived_hash, "overrides": overrides.to_dict()}, sort_keys=True).encode()
+    return hashlib.sha256(blob).hexdigest()[:16]
+
+
+def _now_iso() -> str:
+    return _dt.datetime.now().astimezone().isoformat(timespec="milliseconds")
+
+
+# -- the re-analysis -------------------------------------------------------------------------------------
+def reprocess_content(content: DumpContent, overrides: Overrides | None = None, *, archived: dict | None = None,
+                      archived_source: str = "dump", read_s: float = 0.0) -> ReprocessResult:
+    """Rerun the analysis of a dump already read (with its frames) and compare it with *archived*.
+
+    Parameters
+    ----------
+    content : DumpContent
+        From :func:`~sofast_station.archive.dumps.read_dump` with ``load_frames=True``.
+    overrides : Overrides, optional
+    archived : dict, optional
+        The archived record to compare with; ``content.record`` by default (None when that is empty).
+    archived_source : str
+        Where *archived* came from, for the summary ("dump", or the journal's path).
+    read_s : float
+        Time it took to read the dump, seconds (for the record's timings).
+
+    Returns
+    -------
+    ReprocessResult
+    """
+    from ..station.inspect import FIGURE_KEYS
+    from ..station.runner import fault_code_for
+    from ..station.verdict import judge
+
+    t0 = time.perf_counter()
+    overrides = overrides or Overrides()
+    if archived is None:
+        archived = content.record or None
+    notes: list[str] = []
+    if archived is None:
+        notes.append("the dump holds no archived result (its result group is missing)"
+                     + ("" if archived_source == "dump" else f" and the journal {archived_source} has no row for "
+                        f"cycle {content.cycle_id}") + ": nothing to compare")
+    design = _design(content, overrides, notes)
+    settings = _settings(content, overrides, notes)
+    distance = content.measured_distance_m
+    if overrides.measured_distance_m is not None:
+        distance = float(overrides.measured_distance_m)
+        notes.append(f"measured distance {distance:.6f} m (archived {content.measured_distance_m:.6f} m)")
+    rad = content.radiometric
+    rad_id = rad["record_id"]
+    if overrides.radiometric_path is not None:
+        from ..calibrate.records import load_radiometric
+        new_rad = load_radiometric(overrides.radiometric_path)
+        notes.append(calibration_note(content, new_rad))
+        rad_id = new_rad.record_id
+    base = archived or {}
+    record = {"serial": content.serial, "time": content.time, "cycle_id": content.cycle_id,
+              "recipe": base.get("recipe", "default"), "station": content.station_name, "facet": design.name,
+              "software_version": __version__,
+              "config_hash": _config_hash(content.config_hash, overrides),
+              "calibration": {"radiometric": rad_id},
+              "camera": {"exposure_s": rad["exposure_s"], "gain": rad["gain"]}}
+    analysis = None
+    t1 = time.perf_counter()
+    try:
+        analysis = content.analyse(design=design, settings=settings, measured_distance_m=distance)
+    except (DumpError, ConfigError):
+        raise
+    except StationError as exc:              # the analysis refuses the capture: a fault, as on the line
+        code, kind = fault_code_for(exc)
+        record.update({"verdict": "fault", "fault_code": code, "reasons": [f"{kind}: {exc}"]})
+    t_analysis = time.perf_counter() - t1
+    if analysis is not None:
+        fig = analysis.figures
+        record.update({k: fig[k] for k in FIGURE_KEYS})
+        record.update({k: v for k, v in fig.items() if k not in FIGURE_KEYS and k != "timings_s"})
+        record["measured_distance_m"] = distance
+        limits, quality = _judge_settings(content, record["recipe"], notes)
+        record.update(judge(fig, design, limits, quality))
+        if overrides.empty and archived and "truth" in archived:
+            record["truth"] = archived["truth"]   # the twin's truth for the same pixels (simulated stations)
+    record["timings_s"] = {"read": read_s, "analysis": t_analysis,
+                           **({f"analysis_{k}": v for k, v in analysis.timings_s.items()} if analysis else {})}
+    record = json.loads(to_json(record))     # exactly what a JSON archive holds (no numpy scalars)
+    differences, n = compare_figures(archived, record) if archived else ({}, len(flatten_figures(record)))
+    seconds = time.perf_counter() - t0 + read_s
+    record["timings_s"]["total"] = seconds
+    record["reprocess"] = json_ready({
+        "at": _now_iso(), "software_version": __version__, "dump_software_version": content.software_version,
+        "dump_schema_version": content.schema_version, "dump_created": content.created,
+        "design": {"name": design.name, "focal_length_m": design.focal_length_m,
+                   "alignment_point_m": design.alignment_point_m.tolist(),
+                   "measure_point_m": design.measure_point_m.tolist()},
+        "archived_from": archived_source if archived else None, "overrides": overrides.to_dict(), "notes": notes,
+        "exact": None if not archived else not differences, "figures_compared": n,
+        "figures_different": len(differences), "blas_threads": blas_threads(),
+        "platform": f"{platform.system()} {platform.machine()} Python {platform.python_version()} "
+                    f"numpy {np.__version__}",
+        "host": platform.node(), "pid": os.getpid()})
+    res = ReprocessResult(path=Path(content.path) if content.path else Path(""), record=record, archived=archived,
+                          differences=differences, n_compared=n, overrides=overrides,
+                          dump_software_version=content.software_version, schema_version=content.schema_version,
+                          archived_source=archived_source, notes=notes, analysis=analysis, design=design,
+                          seconds=seconds)
+    record["reprocess"]["summary"] = res.summary()
+    log.debug("%s: %s", res.path, record["reprocess"]["summary"])
+    return res
+
+
+def reprocess_dump(path: str | Path, overrides: Overrides | None = None, *,
+                   journal: str | Path | None = None) -> ReprocessResult:
+    """Read a dump, rerun its analysis from the raw frames, and compare with the archived result.
+
+    Parameters
+    ----------
+    path : str or Path
+        The ``.h5`` data dump (any schema version up to this software's).
+    overrides : Overrides, optional
+        What to change; none reproduces the archived analysis.
+    journal : str or Path, optional
+        The station's journal (``journal.sqlite3``): where to find the archived record when the dump
+        has lost its ``result`` group.
+
+    Returns
+    -------
+    ReprocessResult
+
+    Raises
+    ------
+    DumpError
+        The file is missing, empty, not HDF5, truncated, corrupt, foreign, of a newer schema, or lacks a
+        dataset the analysis needs; the message names the file and the problem.
+    ConfigError
+        An override is invalid (a facet or calibration file that cannot be read, a bad value).
+    """
+    t0 = time.perf_counter()
+    content = read_dump(path, load_frames=True, require_result=False)
+    read_s = time.perf_counter() - t0
+    archived, source = (content.record or None), "dump"
+    if archived is None and journal is not None:
+        archived = _archived_from_journal(journal, content.cycle_id)
+        source = str(journal)
+        if archived is None:
+            log.warning("%s: cycle %s is not in the journal %s either", path, content.cycle_id, journal)
+    return reprocess_content(content, overrides, archived=archived, archived_source=source, read_s=read_s)

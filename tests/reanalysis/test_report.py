@@ -1,0 +1,106 @@
+"""Issue 7, item 3: slope-error maps in the style of the paper's Figs. 8-10, and trend plots (headless)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from matplotlib.image import imread
+
+from sofast_station.reanalysis.batch import run_batch
+from sofast_station.reanalysis.cli import main
+from sofast_station.reanalysis.report import (MODELS, ReportError, slope_error_maps, trend_records_from_journal,
+                                              trend_records_from_results, write_slope_error_maps, write_trend)
+from sofast_station.reanalysis.reprocess import reprocess_dump
+
+
+def _png_size(path):
+    img = imread(path)
+    return img.shape[1], img.shape[0]
+
+
+def test_slope_error_maps_show_the_measured_pixels_and_the_reported_figures(station_dumps):
+    res = reprocess_dump(station_dumps.good[0])
+    maps = slope_error_maps(res.analysis)
+    a = res.analysis
+    rows, cols = np.nonzero(a.valid)
+    for model in MODELS:
+        m = maps[model]
+        ex, ey = a.residuals_mrad[model]
+        # the panel titles' figures are the reported ones
+        for k in ("x", "y", "magnitude"):
+            assert m.rms_mrad[k] == pytest.approx(res.record["slope_rms_mrad"][model][k], rel=1e-12)
+        # nearest-pixel resampling: every coloured cell shows one measured pixel's magnitude
+        shown = m.magnitude_mrad[np.isfinite(m.magnitude_mrad)]
+        assert np.all(np.isin(shown, np.hypot(ex, ey)))
+        # the grid covers the facet (0.6 m square) at about the camera's pixel size on it
+        x0, x1, y0, y1 = m.extent_m
+        assert x1 - x0 == pytest.approx(0.6, abs=0.02) and y1 - y0 == pytest.approx(0.6, abs=0.02)
+        assert shown.size == pytest.approx(rows.size, rel=0.1)
+        # arrows on every 10th camera row and column, as in the paper
+        assert m.arrow_step_px == 10
+        expected = np.count_nonzero((rows % 10 == 0) & (cols % 10 == 0))
+        assert m.arrow_x_m.size == expected
+    # facet coordinates: the design map's x residual grows with x when the design is the wrong shape
+    big = slope_error_maps(reprocess_dump(station_dumps.good[0], _wrong_design()).analysis)["design"]
+    assert np.corrcoef(big.arrow_x_m, big.arrow_ex_mrad)[0, 1] < -0.9
+
+
+def _wrong_design():
+    from sofast_station.reanalysis.reprocess import Overrides
+    return Overrides(focal_length_m=4.5)        # a stronger design: measured slopes fall short as x grows
+
+
+def test_report_writes_a_png_per_dump(station_dumps, tmp_path, capsys):
+    dumps = [str(d) for d in station_dumps.good[:2]]
+    assert main(["report", *dumps, "--out", str(tmp_path / "maps")]) == 0
+    written = capsys.readouterr().out.split()
+    assert len(written) == 2
+    for path, dump in zip(written, station_dumps.good[:2]):
+        assert path.endswith(f"{dump.stem}.png")
+        w, h = _png_size(path)
+        assert w > 2 * h                        # three panels side by side
+    assert main(["report", dumps[0], "--out", str(tmp_path / "single"), "--separate", "--vmax", "2",
+                 "--arrow-step", "20"]) == 0
+    files = sorted((tmp_path / "single").glob("*.png"))
+    assert [f.name.rsplit("-", 1)[1] for f in files] == ["design.png", "higher_order.png", "parabola.png"]
+
+
+def test_a_refused_capture_has_no_map(station_dumps, tmp_path, caplog):
+    res = reprocess_dump(station_dumps.fault)
+    with pytest.raises(ReportError, match="refused the capture"):
+        write_slope_error_maps(res, tmp_path)
+    assert main(["report", str(station_dumps.fault), "--out", str(tmp_path)]) == 2
+    assert str(station_dumps.fault) in caplog.text and "dark" in caplog.text
+
+
+def test_trend_from_the_journal_and_from_batch_results(station_dumps, tmp_path, capsys):
+    records = trend_records_from_journal(station_dumps.journal)
+    assert len(records) == 4                   # three measured facets and one fault
+    times = [r["time"] for r in records]
+    out = write_trend(records, tmp_path / "t.png", title="journal")
+    assert _png_size(out)[0] > 500
+    # a period that holds only the first two rows
+    assert len(trend_records_from_journal(station_dumps.journal, times[0], times[2])) == 2
+    assert main(["report", "trend", "--journal", str(station_dumps.journal), "--from", times[0],
+                 "--out", str(tmp_path / "trend.png")]) == 0
+    assert capsys.readouterr().out.strip() == str(tmp_path / "trend.png")
+    # from a folder of batch results
+    run_batch(list(map(str, station_dumps.good)), tmp_path / "batch", workers=1)
+    got = trend_records_from_results(tmp_path / "batch")
+    assert [r["serial"] for r in got] == ["SIM-0001", "SIM-0002", "SIM-0003"]
+    assert main(["report", "trend", "--results", str(tmp_path / "batch"), "--out", str(tmp_path)]) == 0
+    (png,) = tmp_path.glob("trend-start-*.png")
+    assert _png_size(png)[0] > 500
+    # an empty period says so
+    with pytest.raises(ReportError, match="no measured facet"):
+        write_trend(trend_records_from_journal(station_dumps.journal, "2001-01-01", "2001-01-02"),
+                    tmp_path / "none.png")
+    # focal lengths beyond 20 m are shown as focal power
+    long = [dict(r, focal_length_x_m=100.0, focal_length_y_m=None, curvature_x_per_m=0.01, curvature_y_per_m=0.0)
+            for r in got]
+    assert write_trend(long, tmp_path / "long.png").exists()
+
+
+def test_report_trend_needs_one_source(tmp_path, caplog):
+    assert main(["report", "trend", "--out", str(tmp_path)]) == 2
+    assert "exactly one of --journal PATH and --results DIR" in caplog.text
