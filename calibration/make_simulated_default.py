@@ -3,7 +3,10 @@
 Until the daily radiometric calibration has run, the simulated station linearises its fringes with the
 twin's known inverse response: the twin's display emits floor + (1 - floor) (v/255)^gamma and its camera
 responds linearly, so the normalised response (L(v) - L(0)) / (L(255) - L(0)) = (v/255)^gamma and the
-table is level^(1/gamma). Run it again if the twin's default display gamma changes.
+table is level^(1/gamma). Its exposure (1/60 s, one refresh period) and gain (1) are the twin's reference
+sensor settings (TwinOptics.reference_exposure_s), at which white reads white_dn. Run it again if the
+twin's default display gamma changes. A station's own records come from 'sofast-station calibrate
+radiometric' (docs/calibration.md).
 """
 
 import json

@@ -227,8 +227,10 @@ def build_parser() -> argparse.ArgumentParser:
     dn = sub.add_parser("dump-next", help="write a data dump of the next facet measured")
     dn.add_argument("--config", default=_default_config())
     dn.set_defaults(func=cmd_dump_next)
+    from .calibrate.cli import register as register_calibrate
     from .interop.cli import register as register_interop
     from .reanalysis.cli import register as register_reanalysis
+    register_calibrate(sub, _default_config())
     register_interop(sub)
     register_reanalysis(sub)
     return p

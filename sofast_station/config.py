@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import ConfigError
+from .calibrate.settings import CALIBRATION_KEYS, parse_calibration_table
 from .facet import FacetDesign, load_facet
 from .files import read_toml
 from .fringes import FringeSet
@@ -133,7 +134,8 @@ def load_config(path: str | Path) -> StationConfig:
     limits = limits_from_table(raw.get("limits", {}), f"{where} [limits]")
     quality = quality_from_table(raw.get("quality", {}), f"{where} [quality]")
     cal = raw.get("calibration", {})
-    _check_keys(cal, {"radiometric"}, f"{where} [calibration]")
+    _check_keys(cal, CALIBRATION_KEYS, f"{where} [calibration]")
+    parse_calibration_table(cal, f"{where} [calibration]")       # validates policy and routine settings
     radiometric = base / cal["radiometric"] if "radiometric" in cal else None
     return StationConfig(path=path, name=str(st.get("name", path.stem)), data_dir=data_dir, backend=backend,
                          facet_path=facet_path, design=design, geometry=geometry, fringes=fringes,

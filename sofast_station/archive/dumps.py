@@ -111,6 +111,12 @@ SCHEMA_V1: tuple[tuple[str, str, str, str, str, bool], ...] = (
      "level of the fringe maximum", True),
     ("calibration/radiometric/exposure_s", "dataset", "float64", "s", "camera exposure time", True),
     ("calibration/radiometric/gain", "dataset", "float64", "1", "camera gain (linear factor)", True),
+    ("calibration/radiometric/dark_level_dn", "dataset", "float64", "DN",
+     "mean dark level at calibration (records from the daily routine)", False),
+    ("calibration/radiometric/latency_frames", "dataset", "int64", "frames",
+     "display-to-camera latency found by the routine", False),
+    ("calibration/radiometric/settle_s", "dataset", "float64", "s", "settle time the latency implies", False),
+    ("calibration/radiometric/refresh_hz", "dataset", "float64", "Hz", "display refresh rate used", False),
 
     ("geometry", "group", "", "", "station geometry: camera intrinsics, screen, poses (frames: SPEC.md)", True),
     ("geometry/camera", "group", "", "", "camera intrinsics, OpenCV pinhole + 5-term distortion", True),

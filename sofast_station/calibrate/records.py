@@ -1,13 +1,19 @@
-"""Calibration records: what the radiometric calibration found, stored as dated JSON.
+"""Calibration records: what the calibrations found, stored as dated JSON.
 
-The simulated station ships a default record in ``calibration/``; a real station writes its records
-under ``data_dir`` (the daily routine arrives with the calibration issue).
+The simulated station ships a default radiometric record in ``calibration/``; a station writes its own
+records under ``data_dir/calibration/<kind>/`` (:mod:`sofast_station.calibrate.store`), one file per run,
+never overwritten.
+
+A radiometric record made by the daily routine (:mod:`sofast_station.calibrate.radiometric`) carries,
+besides the fields every radiometric record has, the dark level it saw, the display latency and the
+settle time derived from it, the refresh rate, and the measured and fitted response (``curve``); these
+optional fields are absent from the shipped default and from older records.
 """
 
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +40,20 @@ class RadiometricRecord:
         Linear response levels of the fringe minimum (the calibrated floor) and maximum.
     exposure_s, gain : float
         Camera settings the record was made with.
+    dark_level_dn : float or None
+        Mean DN of the whole camera frame with the screen dark (command 0) at ``exposure_s`` and ``gain``
+        when the record was made: the reference for the dark-level drift check.
+    latency_frames : int or None
+        Camera frames grabbed after a display change that still showed the previous image.
+    settle_s : float or None
+        Display settle time derived from the latency, seconds (covers it with one refresh to spare).
+    refresh_hz : float or None
+        Display refresh rate the exposure was chosen for, Hz.
+    curve : dict or None
+        The routine's measurements and fit (ramp commands, responses, floor, top, fit method and
+        coefficients, search history); plain JSON data.
+    path : Path or None
+        The file the record was read from (not stored in it).
     """
 
     record_id: str
@@ -44,11 +64,30 @@ class RadiometricRecord:
     max_level: float
     exposure_s: float
     gain: float
+    dark_level_dn: float | None = None
+    latency_frames: int | None = None
+    settle_s: float | None = None
+    refresh_hz: float | None = None
+    curve: dict | None = field(default=None, compare=False)
+    path: Path | None = field(default=None, compare=False)
 
-    def to_dict(self) -> dict:
-        return {"schema": SCHEMA, "kind": "radiometric", "record_id": self.record_id, "created": self.created,
-                "source": self.source, "lut": [float(v) for v in self.lut], "floor_level": self.floor_level,
-                "max_level": self.max_level, "exposure_s": self.exposure_s, "gain": self.gain}
+    def to_dict(self, curve: bool = False) -> dict:
+        """Plain data: what a data dump keeps of the record in force; with *curve* also the routine's
+        measurements, as the record's own file holds them."""
+        out = {"schema": SCHEMA, "kind": "radiometric", "record_id": self.record_id, "created": self.created,
+               "source": self.source, "lut": [float(v) for v in self.lut], "floor_level": self.floor_level,
+               "max_level": self.max_level, "exposure_s": self.exposure_s, "gain": self.gain}
+        for key in _OPTIONAL:
+            value = getattr(self, key)
+            if value is not None:
+                out[key] = value
+        if curve and self.curve is not None:
+            out["curve"] = self.curve
+        return out
+
+
+#: Optional scalar fields of a radiometric record, written only when set (the shipped default has none).
+_OPTIONAL = ("dark_level_dn", "latency_frames", "settle_s", "refresh_hz")
 
 
 def load_radiometric(path: str | Path) -> RadiometricRecord:
@@ -69,13 +108,29 @@ def load_radiometric(path: str | Path) -> RadiometricRecord:
                if k not in d]
     if missing:
         raise ConfigError(f"radiometric calibration record {path} lacks {', '.join(missing)}; rerun the calibration")
-    lut = np.asarray(d["lut"], dtype=np.float64)
-    numbers = np.array([d["floor_level"], d["max_level"], d["exposure_s"], d["gain"]], dtype=np.float64)
+    try:
+        lut = np.asarray(d["lut"], dtype=np.float64)
+        numbers = np.array([d["floor_level"], d["max_level"], d["exposure_s"], d["gain"]], dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ConfigError(f"radiometric calibration record {path} holds values that are not numbers (lut, "
+                          "floor_level, max_level, exposure_s, gain); rerun the calibration") from None
     if lut.ndim != 1 or lut.size < 2 or not np.all(np.isfinite(lut)) or not np.all(np.isfinite(numbers)):
         raise ConfigError(f"radiometric calibration record {path} holds non-finite values; rerun the calibration")
     if np.any(np.diff(lut) < 0) or lut[0] < 0 or lut[-1] > 1:
         raise ConfigError(f"radiometric calibration record {path}: the lookup table must increase within 0..1")
     if not 0 <= d["floor_level"] < d["max_level"] <= 1:
         raise ConfigError(f"radiometric calibration record {path}: need 0 <= floor_level < max_level <= 1")
+    optional = {}
+    for key, kind in (("dark_level_dn", float), ("settle_s", float), ("refresh_hz", float), ("latency_frames", int)):
+        value = d.get(key)
+        if value is None:
+            continue
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) or value < 0:
+            raise ConfigError(f"radiometric calibration record {path}: {key} must be a number >= 0, got {value!r}; "
+                              "rerun the calibration")
+        optional[key] = kind(value)
+    if d.get("curve") is not None and not isinstance(d["curve"], dict):
+        raise ConfigError(f"radiometric calibration record {path}: curve must be a table; rerun the calibration")
     return RadiometricRecord(str(d["record_id"]), str(d["created"]), str(d.get("source", "")), lut,
-                             float(d["floor_level"]), float(d["max_level"]), float(d["exposure_s"]), float(d["gain"]))
+                             float(d["floor_level"]), float(d["max_level"]), float(d["exposure_s"]), float(d["gain"]),
+                             curve=d.get("curve"), path=path, **optional)

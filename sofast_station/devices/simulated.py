@@ -6,21 +6,47 @@ simulated camera looks at whatever the display currently shows through the twin'
 
 from __future__ import annotations
 
+import math
 import threading
 
 import numpy as np
 
-from ..errors import CameraDisconnectedError, CameraTimeoutError
+from ..errors import CameraDisconnectedError, CameraTimeoutError, DisplayError
+from .cameras._common import CameraSettingError, check_exposure, check_gain
 from ..fringes import Pattern
 from .renderer import FringeRenderer
 
 
 class SimulatedDisplay:
-    """Display backend that renders offscreen and keeps the image "on screen" for the simulated camera."""
+    """Display backend that renders offscreen and keeps the image "on screen" for the simulated camera.
 
-    def __init__(self, renderer: FringeRenderer):
+    Time is virtual: the display keeps the station's clock (seconds). An image asked for at time t reaches
+    the panel at ``t + latency_s`` (the twin's ``display_latency_s``); until then the panel shows the
+    previous one. :meth:`show` then "waits" ``settle_s`` (advances the clock), as the LCD's ``show`` waits
+    its settle time; each camera grab advances the clock by its frame period. So a grab right after
+    ``show`` sees the previous image unless the settle time covers the latency.
+
+    Parameters
+    ----------
+    renderer : FringeRenderer
+    latency_s : float
+        Time from ``show`` to the image being on the panel, seconds.
+    settle_s : float
+        Time ``show`` waits after drawing, seconds (the display-latency calibration's value).
+    """
+
+    def __init__(self, renderer: FringeRenderer, latency_s: float = 0.0, settle_s: float = 0.0):
         self.renderer = renderer
-        self.image = np.zeros((renderer.height_px, renderer.width_px), dtype=np.uint8)
+        self.latency_s = float(latency_s)
+        self.settle_s = float(settle_s)
+        if not (math.isfinite(self.latency_s) and self.latency_s >= 0):
+            raise DisplayError(f"display latency must be a finite number of seconds >= 0, got {latency_s}")
+        if not (math.isfinite(self.settle_s) and self.settle_s >= 0):
+            raise DisplayError(f"the display settle time must be a finite number of seconds >= 0, got {settle_s}")
+        #: Virtual time, seconds.
+        self.clock_s = 0.0
+        self._current = np.zeros((renderer.height_px, renderer.width_px), dtype=np.uint8)
+        self._pending: list[tuple[float, np.ndarray]] = []      # (on the panel from, image), in show order
         self._cache: dict[Pattern, np.ndarray] = {}
 
     def show(self, pattern: Pattern) -> None:
@@ -28,7 +54,23 @@ class SimulatedDisplay:
         img = self._cache.get(pattern)
         if img is None:
             img = self._cache[pattern] = self.renderer.render(pattern)
-        self.image = img
+        self._pending.append((self.clock_s + self.latency_s, img))
+        self.clock_s += max(self.settle_s, 0.0)
+
+    def image_at(self, t_s: float) -> np.ndarray:
+        """The image on the panel at virtual time *t_s* (not earlier than any time asked before)."""
+        while self._pending and self._pending[0][0] <= t_s:
+            self._current = self._pending.pop(0)[1]
+        return self._current
+
+    @property
+    def image(self) -> np.ndarray:
+        """The image on the panel now."""
+        return self.image_at(self.clock_s)
+
+    def advance(self, seconds: float) -> None:
+        """Let *seconds* of virtual time pass (a camera frame)."""
+        self.clock_s += float(seconds)
 
     def close(self) -> None:
         self.renderer.release()
@@ -36,24 +78,44 @@ class SimulatedDisplay:
 
 
 class SimulatedCamera:
-    """Camera backend that images the simulated display through the twin."""
+    """Camera backend that images the simulated display through the twin.
 
-    def __init__(self, twin, display: SimulatedDisplay, rng: np.random.Generator | None = None):
+    Exposure and gain act on the twin's sensor model (signal proportional to exposure x gain, read noise
+    scaled by the gain). Each grab starts at a random phase of the display's refresh cycle (from
+    *flicker_rng*), which matters only for exposures that are not a whole number of refresh periods, and
+    takes ``max(exposure, one refresh period)`` of the display's virtual time.
+
+    Parameters
+    ----------
+    twin : TwinStation
+    display : SimulatedDisplay
+    rng : numpy Generator or None
+        Sensor noise and ambient jitter; None for noise-free frames.
+    flicker_rng : numpy Generator or None
+        Phase of the refresh cycle at each grab; None starts every grab at phase 0.
+    """
+
+    def __init__(self, twin, display: SimulatedDisplay, rng: np.random.Generator | None = None,
+                 flicker_rng: np.random.Generator | None = None):
         self.twin = twin
         self.display = display
         self.rng = rng
+        self.flicker_rng = flicker_rng
         self.shape = (twin.geometry.camera.height_px, twin.geometry.camera.width_px)
-        self.exposure_s = 1 / 60
+        self.exposure_s = twin.optics.reference_exposure_s
         self.gain = 1.0
         #: Injected fault for the current facet (tests of the production loop), see SimulatedStation.
         self.fault: str | None = None
         self._unhang = threading.Event()
 
     def set_exposure(self, seconds: float) -> None:
-        self.exposure_s = float(seconds)
+        self.exposure_s = check_exposure(seconds)
 
     def set_gain(self, gain: float) -> None:
-        self.gain = float(gain)
+        gain = check_gain(gain)
+        if gain <= 0:
+            raise CameraSettingError(f"gain must be a positive factor, got {gain!r}")
+        self.gain = gain
 
     def grab(self, timeout_s: float = 2.0) -> np.ndarray:
         fault = self.fault
@@ -65,9 +127,13 @@ class SimulatedCamera:
             self.fault = None
             self._unhang.clear()
             self._unhang.wait(60.0)               # a driver that blocks far past any timeout
+        phase = float(self.flicker_rng.random()) if self.flicker_rng is not None else None
+        settings = {"exposure_s": self.exposure_s, "gain": self.gain, "flicker_phase": phase}
+        shown = self.display.image
+        self.display.advance(max(self.exposure_s, 1.0 / self.twin.optics.refresh_hz))
         if fault == "dark":
-            return self.twin.capture(np.zeros_like(self.display.image), self.rng)
-        frame = self.twin.capture(self.display.image, self.rng)
+            return self.twin.capture(np.zeros_like(shown), self.rng, **settings)
+        frame = self.twin.capture(shown, self.rng, **settings)
         if fault == "misplaced":
             frame = np.roll(frame, 220, axis=1)   # the facet far from where the fixture should hold it
         return frame

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import __version__
-from ..calibrate.records import RadiometricRecord, load_radiometric
+from ..calibrate.records import RadiometricRecord
 from ..config import StationConfig
 from ..devices.protocols import Camera, Display, RangeFinder
 from ..measure.camera import ray_grid
@@ -68,17 +68,34 @@ class Station:
                 log.exception("error while closing %s", type(dev).__name__)
 
 
-def open_station(config: StationConfig, seed: int | None = None, noise: bool = True) -> Station:
-    """Connect the devices named in the configuration (only the simulated station exists yet)."""
-    radiometric = load_radiometric(config.radiometric_path) if config.radiometric_path else None
-    if radiometric is None:
-        from ..devices.renderer import identity_lut
-        radiometric = RadiometricRecord("none", "", "no calibration: linear display assumed", identity_lut(),
-                                        0.0, 1.0, 1 / 60, 1.0)
+def open_station(config: StationConfig, seed: int | None = None, noise: bool = True,
+                 calibration_checks: bool = True) -> Station:
+    """Connect the devices named in the configuration, with the radiometric calibration in force.
+
+    The calibration is the newest record under ``data_dir``, else the shipped default of ``[calibration]``
+    (:mod:`sofast_station.calibrate.store`). A stale record (too old, or the dark level moved) warns or
+    refuses as configured; the optional warm-up interlock refuses a cold camera. The calibration routines
+    open the station with ``calibration_checks=False``: no staleness checks, and an unreadable record
+    falls back to a linear display with a warning (the routine is what replaces it).
+    """
+    from ..calibrate.store import check_opened_station, open_calibration
+
+    status = open_calibration(config, checks=calibration_checks)
+    radiometric = status.record
     if config.backend == "simulated":
         from .simulated import open_simulated
-        return open_simulated(config, radiometric, seed=seed, noise=noise)
-    return open_hardware(config, radiometric)
+        station = open_simulated(config, radiometric, seed=seed, noise=noise)
+    else:
+        station = open_hardware(config, radiometric)
+        if radiometric.settle_s is not None:     # the display-latency calibration's settle time
+            station.display.settle_s = radiometric.settle_s
+    try:
+        if calibration_checks:
+            check_opened_station(station, status)
+    except BaseException:
+        station.close()
+        raise
+    return station
 
 
 class FixedRangeFinder:
@@ -116,8 +133,12 @@ def open_hardware(config: StationConfig, radiometric: RadiometricRecord) -> Stat
     disp = dict(dev.get("display_options", {}))
     if "monitor" not in disp:
         raise ConfigError(f"{where}: display_options.monitor must name the LCD's monitor (see xrandr)")
+    # The settle time after each image: the display-latency calibration's, or station.toml's until one exists.
+    settle_s = radiometric.settle_s if radiometric.settle_s is not None else float(disp.get("settle_s", 0.05))
+    log.info("display settle time %.3f s (%s)", settle_s,
+             "from the latency calibration" if radiometric.settle_s is not None else "from station.toml")
     display = LcdDisplay(disp["monitor"], scr.width_px, scr.height_px, radiometric.lut, radiometric.floor_level,
-                         radiometric.max_level, float(disp.get("settle_s", 0.05)))
+                         radiometric.max_level, settle_s)
     try:
         kind = dev.get("camera", "basler")
         options = dict(dev.get("camera_options", {}))

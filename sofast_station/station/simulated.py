@@ -67,9 +67,17 @@ def open_simulated(config: StationConfig, radiometric: RadiometricRecord, seed: 
     scr = config.geometry.screen
     renderer = FringeRenderer(scr.width_px, scr.height_px, lut=radiometric.lut,
                               floor_level=radiometric.floor_level, max_level=radiometric.max_level)
-    display = SimulatedDisplay(renderer)
+    # The display's settle time: the latency calibration's, else [devices] display_options.settle_s, else 0.
+    settle_s = getattr(radiometric, "settle_s", None)
+    if settle_s is None:
+        settle_s = float(config.raw.get("devices", {}).get("display_options", {}).get("settle_s", 0.0))
+    display = SimulatedDisplay(renderer, latency_s=twin.optics.display_latency_s, settle_s=settle_s)
     seed = config.simulation.get("seed", 0) if seed is None else seed
-    camera = SimulatedCamera(twin, display, np.random.default_rng(seed) if noise else None)
+    # The refresh phase of each grab is not noise (it is there in noise-free runs too): its own stream.
+    camera = SimulatedCamera(twin, display, np.random.default_rng(seed) if noise else None,
+                             flicker_rng=np.random.default_rng([int(seed) % 2**32, 0xF11C]))
+    camera.set_exposure(radiometric.exposure_s)
+    camera.set_gain(radiometric.gain)
     rangefinder = SimulatedRangeFinder(twin, float(config.simulation.get("distance_error_m", 0.0)))
     faults = config.simulation.get("faults", {})
     bad = {k: v for k, v in faults.items() if v not in FAULT_KINDS}

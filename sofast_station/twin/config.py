@@ -209,6 +209,21 @@ class TwinOptics:
         noise off.
     vignetting : float
         Relative falloff at the farthest image corner, quadratic in the radius from the principal point.
+    reference_exposure_s : float
+        Exposure time, seconds, at which ``white_dn`` holds at gain 1. The sensor's signal above the black
+        level is proportional to exposure x gain (:meth:`TwinStation.capture`); read noise scales with the
+        gain, shot noise with the signal, and the counts clip at 255.
+    refresh_hz : float
+        The display's refresh rate, Hz: its backlight and pixel refresh modulate the light at this
+        frequency.
+    flicker_depth : float
+        Relative amplitude m of that modulation, luminance x (1 + m cos(2 pi (f t + phase))): an exposure of
+        a whole number of refresh periods integrates it away; any other exposure sees a brightness error
+        that depends on the phase at which it starts (drawn per grab by the simulated camera).
+    display_latency_s : float
+        Time from the display being asked to show an image to the image being on the panel, seconds. The
+        simulated camera sees the previous image until then (:mod:`sofast_station.devices.simulated`),
+        unless the display's settle time covers it.
     """
 
     display_gamma: float = 2.2
@@ -223,6 +238,10 @@ class TwinOptics:
     read_noise_dn: float = 0.8
     electrons_per_dn: float = 40.0
     vignetting: float = 0.15
+    reference_exposure_s: float = 1.0 / 60.0
+    refresh_hz: float = 60.0
+    flicker_depth: float = 0.25
+    display_latency_s: float = 0.0
 
     def __post_init__(self):
         owner = "TwinOptics"
@@ -243,6 +262,10 @@ class TwinOptics:
             ("read_noise_dn", self.read_noise_dn >= 0, "must be >= 0"),
             ("electrons_per_dn", self.electrons_per_dn >= 0, "must be >= 0 (0 turns shot noise off)"),
             ("vignetting", 0 <= self.vignetting < 1, "must lie in [0, 1)"),
+            ("reference_exposure_s", self.reference_exposure_s > 0, "must be a positive time in seconds"),
+            ("refresh_hz", self.refresh_hz > 0, "must be a positive frequency in Hz"),
+            ("flicker_depth", 0 <= self.flicker_depth < 1, "must lie in [0, 1)"),
+            ("display_latency_s", self.display_latency_s >= 0, "must be >= 0 seconds"),
         ]
         if self.knee_dn is not None:
             checks.append(("knee_dn", self.camera_offset_dn < self.knee_dn < 255,

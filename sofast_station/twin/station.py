@@ -110,7 +110,7 @@ class TwinStation:
     facet_to_fixture, facet_to_camera, facet_to_screen, camera_to_facet, screen_to_facet : Pose
         Where the true facet frame lies relative to the others.
     gain_dn : float
-        DN per unit radiance (fraction of white) at vignetting factor 1.
+        DN per unit radiance (fraction of white) at vignetting factor 1, at the reference exposure and gain 1.
     trace_seconds : float
         Wall time of the trace, seconds.
     """
@@ -318,26 +318,60 @@ class TwinStation:
         return twin
 
     # ---------------------------------------------------------------- capture
-    def capture(self, display_image: np.ndarray, rng: np.random.Generator | None = None) -> np.ndarray:
-        """The camera frame while the display shows *display_image*.
+    def sensor_scale(self, exposure_s: float | None = None, gain: float | None = None) -> float:
+        """Signal multiplier of an exposure and gain relative to the reference (``white_dn`` holds at 1).
 
         Parameters
         ----------
-        display_image : (screen height_px, screen width_px) uint8 array
-            Command values the display shows, row 0 = top row.
-        rng : numpy Generator or None
-            Source of the ambient jitter and the sensor noise; None gives the noise-free frame.
+        exposure_s : float or None
+            Exposure time, seconds; None is ``optics.reference_exposure_s``.
+        gain : float or None
+            Linear gain factor; None is 1.
 
         Returns
         -------
-        (camera height_px, camera width_px) uint8 array
+        float
+            ``(exposure_s / reference_exposure_s) * gain``.
         """
+        exposure = self.optics.reference_exposure_s if exposure_s is None else float(exposure_s)
+        g = 1.0 if gain is None else float(gain)
+        if not (math.isfinite(exposure) and exposure > 0):
+            raise DisplayError(f"exposure must be a positive time in seconds, got {exposure_s!r}")
+        if not (math.isfinite(g) and g > 0):
+            raise DisplayError(f"gain must be a positive factor, got {gain!r}")
+        return exposure / self.optics.reference_exposure_s * g
+
+    def flicker_factor(self, exposure_s: float | None = None, phase: float | None = None) -> float:
+        """Mean backlight factor seen by an exposure starting at *phase* of a refresh period.
+
+        The display's light is ``L (1 + m cos(2 pi (f t + phase)))`` (m ``optics.flicker_depth``, f
+        ``optics.refresh_hz``); averaged over an exposure of T seconds it is
+        ``1 + m (sin(2 pi (phase + f T)) - sin(2 pi phase)) / (2 pi f T)``: exactly 1 when f T is a whole
+        number (within 1e-6 periods), otherwise off by up to ``m / (pi f T)`` depending on the phase.
+
+        Parameters
+        ----------
+        exposure_s : float or None
+            Exposure time, seconds (None: the reference exposure).
+        phase : float or None
+            Phase of the refresh cycle at the start of the exposure, in periods (0..1); None is 0.
+        """
+        o = self.optics
+        exposure = o.reference_exposure_s if exposure_s is None else float(exposure_s)
+        periods = exposure * o.refresh_hz
+        if o.flicker_depth == 0 or (round(periods) >= 1 and abs(periods - round(periods)) < 1e-6):
+            return 1.0
+        p0 = 0.0 if phase is None else float(phase)
+        two_pi = 2.0 * math.pi
+        return 1.0 + o.flicker_depth * (math.sin(two_pi * (p0 + periods)) - math.sin(two_pi * p0)) / (two_pi * periods)
+
+    def _display_sample(self, display_image: np.ndarray) -> np.ndarray:
+        """Display luminance (fraction of white) bilinearly sampled at every seen pixel's screen point."""
         screen = self.geometry.screen
         image = np.asarray(display_image)
         if image.dtype != np.uint8 or image.shape != (screen.height_px, screen.width_px):
             raise DisplayError(f"display image must be uint8 of shape {(screen.height_px, screen.width_px)} "
                                f"(rows, columns of the screen), got {image.dtype} {image.shape}")
-        optics = self.optics
         sample = np.zeros(self._seen_idx.size, dtype=np.float32)
         if self._win_r1 > self._win_r0:
             window = np.zeros((self._win_r1 - self._win_r0 + 1, self._win_c1 - self._win_c0 + 1), np.float32)
@@ -349,15 +383,75 @@ class TwinStation:
             flat = window.ravel()
             for k in range(4):
                 sample += self._sample_w[k] * flat[self._sample_idx[k]]
+        return sample
+
+    def _linear(self, sample: np.ndarray, ambient: float, scale: float, flicker: float) -> np.ndarray:
+        """Noise-free DN before the knee, rounding and clipping (float32, camera shape)."""
+        if scale == 1.0 and flicker == 1.0:
+            # The reference exposure and gain: exactly the arithmetic the twin has always used.
+            dn = self._dn_base + np.float32(ambient) * self._dn_per_ambient
+            dn.ravel()[self._seen_idx] += self._dn_per_luminance * sample
+            return dn
+        offset = np.float32(self.optics.camera_offset_dn)
+        dn = (self._dn_base - offset) + np.float32(ambient) * self._dn_per_ambient
+        dn.ravel()[self._seen_idx] += self._dn_per_luminance * (sample * np.float32(flicker))
+        dn *= np.float32(scale)
+        dn += offset
+        return dn
+
+    def linear_dn(self, display_image: np.ndarray, exposure_s: float | None = None, gain: float | None = None,
+                  flicker_phase: float | None = None) -> np.ndarray:
+        """The noise-free camera signal before the knee, rounding and clipping, DN (float32).
+
+        The same image formation as :meth:`capture` without its random terms, for tests that need the
+        exact forward model (the analytically known optimum exposure and gain).
+        """
+        return self._linear(self._display_sample(display_image), self.optics.ambient,
+                            self.sensor_scale(exposure_s, gain), self.flicker_factor(exposure_s, flicker_phase))
+
+    def capture(self, display_image: np.ndarray, rng: np.random.Generator | None = None, *,
+                exposure_s: float | None = None, gain: float | None = None,
+                flicker_phase: float | None = None) -> np.ndarray:
+        """The camera frame while the display shows *display_image*.
+
+        The sensor: DN = black level + (exposure / reference exposure) x gain x (the light the pixel
+        gathers, display light times the flicker factor); read noise x gain and shot noise (variance
+        signal x gain / ``electrons_per_dn``) are added, then the knee, rounding and clipping to 0..255.
+        At the reference exposure, gain 1 and a whole number of refresh periods the frame is exactly the
+        one the twin has always produced.
+
+        Parameters
+        ----------
+        display_image : (screen height_px, screen width_px) uint8 array
+            Command values the display shows, row 0 = top row.
+        rng : numpy Generator or None
+            Source of the ambient jitter and the sensor noise; None gives the noise-free frame.
+        exposure_s : float or None
+            Exposure time, seconds; None is ``optics.reference_exposure_s``.
+        gain : float or None
+            Linear gain factor; None is 1.
+        flicker_phase : float or None
+            Phase of the display's refresh cycle at the start of the exposure, periods (0..1); None is 0.
+            Matters only for exposures that are not a whole number of refresh periods.
+
+        Returns
+        -------
+        (camera height_px, camera width_px) uint8 array
+        """
+        optics = self.optics
+        scale = self.sensor_scale(exposure_s, gain)
+        g = 1.0 if gain is None else float(gain)
+        flicker = self.flicker_factor(exposure_s, flicker_phase)
+        sample = self._display_sample(display_image)
         ambient = optics.ambient
         if rng is not None and optics.ambient_jitter > 0:
             ambient = max(0.0, ambient * (1.0 + optics.ambient_jitter * float(rng.standard_normal())))
-        dn = self._dn_base + np.float32(ambient) * self._dn_per_ambient
-        dn.ravel()[self._seen_idx] += self._dn_per_luminance * sample
+        dn = self._linear(sample, ambient, scale, flicker)
         if rng is not None and (optics.read_noise_dn > 0 or optics.electrons_per_dn > 0):
-            variance = np.full(dn.shape, optics.read_noise_dn ** 2, dtype=np.float32)
+            variance = np.full(dn.shape, (optics.read_noise_dn * g) ** 2, dtype=np.float32)
             if optics.electrons_per_dn > 0:
-                variance += np.maximum(dn - np.float32(optics.camera_offset_dn), 0) / np.float32(optics.electrons_per_dn)
+                variance += (np.maximum(dn - np.float32(optics.camera_offset_dn), 0)
+                             / np.float32(optics.electrons_per_dn / g))
             dn += np.sqrt(variance) * rng.standard_normal(dn.shape, dtype=np.float32)
         if optics.knee_dn is not None:
             knee = np.float32(optics.knee_dn)

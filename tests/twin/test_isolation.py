@@ -14,11 +14,12 @@ TWIN = REPO / "sofast_station" / "twin"
 ALLOWED_PROJECT_MODULES = {"sofast_station.geometry", "sofast_station.facet", "sofast_station.errors"}
 
 
-def test_importing_the_twin_loads_neither_measure_nor_cv2():
+def test_importing_the_twin_loads_neither_measure_nor_calibrate_nor_cv2():
     code = ("import json, sys\n"
             "import sofast_station.twin, sofast_station.twin.truth, sofast_station.twin.station\n"
+            "import sofast_station.twin.board\n"
             "bad = sorted(m for m in sys.modules if m.startswith('sofast_station.measure') or m == 'cv2'"
-            " or m.startswith('cv2.'))\n"
+            " or m.startswith('cv2.') or m.startswith('sofast_station.calibrate'))\n"
             "print(json.dumps(bad))\n")
     env = dict(os.environ, PYTHONPATH=str(REPO))
     out = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=env, capture_output=True, text=True, check=True)

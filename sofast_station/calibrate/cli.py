@@ -1,0 +1,205 @@
+"""``sofast-station calibrate ...``: the calibration routines on the command line.
+
+``register(subparsers)`` adds the ``calibrate`` command and its subcommands to the main parser::
+
+    sofast-station calibrate radiometric [--config station.toml] [--ramp-step 5] [--frames 2] [--no-plot]
+    sofast-station calibrate camera IMAGES... --board chessboard --squares 10x7 --square-mm 30
+    sofast-station calibrate geometry [--reference reference.toml]
+    sofast-station calibrate status
+
+Progress goes to the log (stderr); the summary to stdout (``--json``: one JSON object instead).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import logging
+import sys
+from pathlib import Path
+
+from .. import __version__
+from ..errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+
+def default_config() -> str:
+    """station.toml in the current folder, else the one beside the package (a source checkout)."""
+    here = Path("station.toml")
+    if here.exists():
+        return str(here)
+    return str(Path(__file__).resolve().parents[2] / "station.toml")
+
+
+def _squares(text: str) -> tuple[int, int]:
+    try:
+        a, b = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--squares must look like 10x7 (squares across, down), got {text!r}") \
+            from None
+    return a, b
+
+
+def _emit(args, data: dict, text: str) -> None:
+    if getattr(args, "json", False):
+        from .store import _json_safe
+        json.dump(_json_safe(data), sys.stdout, indent=1)
+        sys.stdout.write("\n")
+    else:
+        print(text)
+
+
+def cmd_radiometric(args) -> int:
+    from ..config import load_config
+    from ..station.inspect import open_station
+    from .radiometric import calibrate_radiometric, save_radiometric, summary_text
+    from .settings import calibration_settings
+    from .store import check_warmup
+
+    config = load_config(args.config)
+    policy, settings = calibration_settings(config)
+    overrides = {k: v for k, v in (("ramp_step", args.ramp_step), ("frames_per_level", args.frames),
+                                   ("max_exposure_periods", args.max_exposure_periods)) if v is not None}
+    if overrides:
+        try:
+            settings = dataclasses.replace(settings, **overrides)
+        except ConfigError as exc:
+            raise ConfigError(f"command line: {exc}") from None
+    log.info("radiometric calibration of %s (%s); records in %s", config.name, config.backend,
+             config.data_dir / "calibration" / "radiometric")
+    station = open_station(config, seed=args.seed, noise=not args.noise_free, calibration_checks=False)
+    try:
+        check_warmup(policy, config.data_dir, station.camera)
+        result = calibrate_radiometric(station.display, station.camera, settings)
+        source = (f"sofast-station {__version__} calibrate radiometric on {config.name} ({config.backend} backend, "
+                  f"{type(station.camera).__name__}, {type(station.display).__name__})")
+        record = save_radiometric(config.data_dir, result, source, plot=not args.no_plot)
+    finally:
+        station.close()
+    _emit(args, {k: v for k, v in record.to_dict(curve=True).items() if k != "lut"} | {"path": str(record.path)},
+          summary_text(record, record.path))
+    return 0
+
+
+def cmd_camera(args) -> int:
+    from ..config import load_config
+    from .camera import BoardSpec, calibrate_camera_images, read_images, save_camera, summary_text
+
+    config = load_config(args.config)
+    if args.board == "charuco" and args.marker_mm is None:
+        raise ConfigError("a ChArUco board needs --marker-mm (the marker side)")
+    board = BoardSpec(args.board, args.squares[0], args.squares[1], args.square_mm / 1000.0,
+                      (args.marker_mm or 0.0) / 1000.0, args.dictionary, args.legacy)
+    cal = calibrate_camera_images(read_images(args.images), board, fix_k3=not args.k3, min_images=args.min_images,
+                                  max_edge_width_px=args.max_edge_width)
+    source = f"sofast-station {__version__} calibrate camera, {len(args.images)} image(s)"
+    path = save_camera(config.data_dir, cal, source)
+    cam = config.geometry.camera
+    if cal.intrinsics.shape != cam.shape:
+        log.warning("the images are %d x %d, the station's camera [camera] is %d x %d", cal.intrinsics.width_px,
+                    cal.intrinsics.height_px, cam.width_px, cam.height_px)
+    _emit(args, {"path": str(path), "rms_px": cal.rms_px, "camera": cal.intrinsics.to_dict(),
+                 "std_intrinsics": cal.std_intrinsics, "images": [r.to_dict() for r in cal.images]},
+          summary_text(cal, path))
+    return 0
+
+
+def cmd_geometry(args) -> int:
+    from ..config import load_config
+    from ..station.inspect import open_station
+    from .geometry import check_geometry, load_reference, reference_from_simulation, save_geometry, summary_text
+
+    config = load_config(args.config)
+    reference = load_reference(args.reference) if args.reference else reference_from_simulation(config)
+    log.info("measuring the reference facet %s on %s", reference.name, config.name)
+    station = open_station(config, seed=args.seed, noise=not args.noise_free)
+    try:
+        check = check_geometry(station, reference)
+    finally:
+        station.close()
+    source = f"sofast-station {__version__} calibrate geometry with {reference.name}"
+    path = save_geometry(config.data_dir, config, check, source)
+    _emit(args, {"path": str(path), **check}, summary_text(check, path))
+    return 0 if check["within_tolerance"] else 1
+
+
+def cmd_status(args) -> int:
+    from ..config import load_config
+    from .settings import calibration_settings
+    from .store import KINDS, check_age, list_records, select_radiometric
+
+    config = load_config(args.config)
+    policy, _ = calibration_settings(config)
+    status = select_radiometric(config)
+    lines = [f"Calibration of {config.name} (data in {config.data_dir})", f"  in force: {status.describe}"]
+    try:
+        check_age(status, dataclasses.replace(policy, stale="warn"))
+    except ConfigError as exc:
+        status.warnings.append(str(exc))
+    if status.age_h is not None:
+        lines.append(f"  age {status.age_h:.1f} h (stale after {policy.max_age_h:g} h; stale records "
+                     f"{'refused' if policy.stale == 'refuse' else 'warned about'})")
+    lines += [f"  ! {w}" for w in status.warnings]
+    data = {"in_force": status.describe, "age_h": status.age_h, "warnings": status.warnings, "records": {}}
+    for kind in KINDS:
+        records = list_records(config.data_dir, kind)
+        data["records"][kind] = [str(p) for p in records]
+        lines.append(f"  {kind}: {len(records)} record(s)" + (f", newest {records[-1].name}" if records else ""))
+    _emit(args, data, "\n".join(lines))
+    return 0
+
+
+def register(subparsers, default_config_path: str | None = None) -> argparse.ArgumentParser:
+    """Add ``calibrate`` and its subcommands to the main parser's *subparsers*.
+
+    Each subcommand sets ``func`` (called with the parsed arguments; returns the exit status; raises
+    :class:`~sofast_station.errors.StationError` for the main program to report).
+    """
+    config_default = default_config_path or default_config()
+    cal = subparsers.add_parser("calibrate", help="calibration routines: radiometric (daily), camera, geometry")
+    sub = cal.add_subparsers(dest="calibrate_command", required=True)
+
+    def common(p, simulated=True):
+        p.add_argument("--config", default=config_default, help="station file (default: ./station.toml)")
+        p.add_argument("--json", action="store_true", help="print one JSON object instead of the summary")
+        if simulated:
+            p.add_argument("--seed", type=int, default=None, help="simulated station: noise seed")
+            p.add_argument("--noise-free", action="store_true", help="simulated station: no sensor noise")
+
+    rad = sub.add_parser("radiometric", help="the daily radiometric calibration: exposure, gain, floor, response, "
+                                             "lookup table, display latency")
+    common(rad)
+    rad.add_argument("--ramp-step", type=int, default=None, help="command step of the 0..255 ramp (default 5)")
+    rad.add_argument("--frames", type=int, default=None, help="frames averaged per ramp level (default 2)")
+    rad.add_argument("--max-exposure-periods", type=int, default=None,
+                     help="longest exposure in display refresh periods (default 2)")
+    rad.add_argument("--no-plot", action="store_true", help="do not write the PNG plot")
+    rad.set_defaults(func=cmd_radiometric)
+
+    cam = sub.add_parser("camera", help="camera intrinsics and distortion from chessboard or ChArUco images")
+    common(cam, simulated=False)
+    cam.add_argument("images", nargs="+", help="board images (any format OpenCV reads)")
+    cam.add_argument("--board", choices=("chessboard", "charuco"), default="chessboard")
+    cam.add_argument("--squares", type=_squares, required=True, help="squares across x down, e.g. 10x7")
+    cam.add_argument("--square-mm", type=float, required=True, help="side of a square, mm")
+    cam.add_argument("--marker-mm", type=float, default=None, help="ChArUco: side of a marker, mm")
+    cam.add_argument("--dictionary", default="DICT_5X5_100", help="ChArUco: OpenCV marker dictionary")
+    cam.add_argument("--legacy", action="store_true", help="ChArUco: a board made by OpenCV before 4.6")
+    cam.add_argument("--k3", action="store_true", help="also fit k3 (held at 0 by default)")
+    cam.add_argument("--min-images", type=int, default=5, help="fewest usable images (default 5)")
+    cam.add_argument("--max-edge-width", type=float, default=4.0,
+                     help="reject images whose edges are wider than this many pixels (blurred; default 4)")
+    cam.set_defaults(func=cmd_camera)
+
+    geo = sub.add_parser("geometry", help="measure a reference facet of known shape and report the geometry error")
+    common(geo)
+    geo.add_argument("--reference", default=None,
+                     help="reference facet file ([reference] table); the simulated station's true facet by default")
+    geo.set_defaults(func=cmd_geometry)
+
+    st = sub.add_parser("status", help="the calibration in force, its age, and the records kept")
+    common(st, simulated=False)
+    st.set_defaults(func=cmd_status)
+    return cal

@@ -1,0 +1,259 @@
+"""Station geometry: the camera-to-screen pose and the screen's size and pitch as records with their
+provenance, checked by measuring a reference facet of known shape.
+
+The geometry the analysis uses comes from station.toml (``[camera]``, ``[screen]``, ``[layout]``: the
+designed assembly). ``sofast-station calibrate geometry`` measures a reference facet whose focal lengths
+and placement in the fixture are known, reports how far the measured figures are from them, and writes
+a geometry record (``data_dir/calibration/geometry/``) holding the screen (size in pixels, pitch), the
+screen-to-camera pose, where each came from, and the reference check. A geometry error (a wrong
+separation, pitch or pose) shows as focal lengths or a placement that disagree with the reference.
+
+The reference facet is described by a TOML file::
+
+    [reference]
+    name = "reference dish R-01"
+    focal_length_x_m = 5.42          # known (measured on a coordinate measuring machine, say)
+    focal_length_y_m = 5.35
+    placement_mm = [0.0, 0.0, 0.0]   # its known placement in the fixture (as the facet's placement figure)
+    placement_mrad = [0.0, 0.0, 0.0]
+    focal_length_tolerance = 0.005   # relative; defaults shown
+    placement_tolerance_mm = 2.0
+    placement_tolerance_mrad = 2.0
+
+On the simulated station the reference is the twin's true facet (``[simulation.facet]``): its focal
+lengths and placement are known exactly (the focal lengths are those of its paraboloid; its random
+slope error and dents change the best-fit parabola slightly).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import ConfigError
+from ..files import read_toml
+from .store import write_record
+
+log = logging.getLogger(__name__)
+
+SCHEMA = 1
+
+
+@dataclass(frozen=True)
+class GeometryReference:
+    """A reference facet's known figures.
+
+    Attributes
+    ----------
+    name : str
+    focal_length_x_m, focal_length_y_m : float
+        Known focal lengths, metres (``math.inf`` for a flat direction).
+    placement_mm, placement_mrad : tuple of 3 floats
+        Known placement in the fixture (the facet's ``placement`` figure: translation of its middle, mm;
+        rotation R_z R_y R_x about it, mrad).
+    focal_length_tolerance : float
+        Relative tolerance on the focal lengths (on the curvature 1/f for long focal lengths).
+    placement_tolerance_mm, placement_tolerance_mrad : float
+    source : str
+        Where the known values come from.
+    """
+
+    name: str
+    focal_length_x_m: float
+    focal_length_y_m: float
+    placement_mm: tuple = (0.0, 0.0, 0.0)
+    placement_mrad: tuple = (0.0, 0.0, 0.0)
+    focal_length_tolerance: float = 0.005
+    placement_tolerance_mm: float = 2.0
+    placement_tolerance_mrad: float = 2.0
+    source: str = ""
+
+    def __post_init__(self):
+        for key in ("focal_length_x_m", "focal_length_y_m"):
+            f = float(getattr(self, key))
+            if f == 0 or math.isnan(f):
+                raise ConfigError(f"reference {key} must be a non-zero length in metres (inf for flat)")
+            object.__setattr__(self, key, f)
+        for key in ("placement_mm", "placement_mrad"):
+            v = tuple(float(x) for x in getattr(self, key))
+            if len(v) != 3 or not all(math.isfinite(x) for x in v):
+                raise ConfigError(f"reference {key} must be 3 finite numbers")
+            object.__setattr__(self, key, v)
+        for key in ("focal_length_tolerance", "placement_tolerance_mm", "placement_tolerance_mrad"):
+            if not float(getattr(self, key)) > 0:
+                raise ConfigError(f"reference {key} must be positive")
+
+
+_REF_KEYS = {"name", "focal_length_x_m", "focal_length_y_m", "placement_mm", "placement_mrad",
+             "focal_length_tolerance", "placement_tolerance_mm", "placement_tolerance_mrad"}
+
+
+def load_reference(path: str | Path) -> GeometryReference:
+    """Read a reference facet file (module docstring); ConfigError naming the file and key otherwise."""
+    path = Path(path)
+    table = read_toml(path, "reference facet file").get("reference")
+    if not isinstance(table, dict):
+        raise ConfigError(f"reference facet file {path} has no [reference] table")
+    unknown = sorted(set(table) - _REF_KEYS)
+    if unknown:
+        raise ConfigError(f"{path} [reference] has unknown key(s) {', '.join(unknown)}")
+    for key in ("focal_length_x_m", "focal_length_y_m"):
+        if key not in table:
+            raise ConfigError(f"{path} [reference] is missing {key}")
+    try:
+        return GeometryReference(name=str(table.get("name", path.stem)), source=str(path),
+                                 **{k: v for k, v in table.items() if k != "name"})
+    except (ConfigError, TypeError, ValueError) as exc:
+        raise ConfigError(f"{path} [reference]: {exc}") from None
+
+
+def reference_from_simulation(config) -> GeometryReference:
+    """The simulated station's reference: the twin's true facet as ``[simulation.facet]`` states it.
+
+    Reads the configuration's plain data only (the calibration code does not use the twin).
+    """
+    if config.backend != "simulated":
+        raise ConfigError(f"{config.path}: a hardware station needs a reference facet file (--reference)")
+    facet = config.simulation.get("facet", {})
+
+    def f(key):
+        value = facet.get(key)
+        if value is None:
+            return config.design.focal_length_m
+        if isinstance(value, str) and value.strip().lower() in ("inf", "+inf", "infinity"):
+            return math.inf
+        return float(value)
+
+    return GeometryReference(name=f"simulated true facet ({config.design.name})",
+                             focal_length_x_m=f("focal_length_x_m"), focal_length_y_m=f("focal_length_y_m"),
+                             placement_mm=tuple(facet.get("placement_mm", (0.0, 0.0, 0.0))),
+                             placement_mrad=tuple(facet.get("placement_mrad", (0.0, 0.0, 0.0))),
+                             source=f"{config.path} [simulation.facet]")
+
+
+def compare_to_reference(figures: dict, reference: GeometryReference) -> dict:
+    """How far measured figures are from the reference's known values.
+
+    Parameters
+    ----------
+    figures : dict
+        An inspection's result (``focal_length_x_m``, ``curvature_x_per_m``, ..., ``placement``).
+    reference : GeometryReference
+
+    Returns
+    -------
+    dict
+        Per focal length: measured, known, relative error (and the curvature difference, 1/m); the
+        placement difference (mm, mrad); ``within_tolerance`` and the reasons when not.
+    """
+    out = {"reference": reference.name, "reference_source": reference.source, "focal_lengths": {}, "reasons": []}
+    for axis in ("x", "y"):
+        known = getattr(reference, f"focal_length_{axis}_m")
+        kappa_known = 0.0 if math.isinf(known) else 1.0 / known
+        kappa = figures.get(f"curvature_{axis}_per_m")
+        measured = figures.get(f"focal_length_{axis}_m")
+        if kappa is None:
+            kappa = 0.0 if measured is None else 1.0 / measured
+        # f_measured / f_known - 1 = kappa_known / kappa - 1 (undefined for a flat direction)
+        rel = (kappa_known / kappa - 1.0) if kappa != 0 and kappa_known != 0 else None
+        entry = {"measured_m": measured, "known_m": None if math.isinf(known) else known, "relative_error": rel,
+                 "curvature_error_per_m": float(kappa - kappa_known)}
+        out["focal_lengths"][axis] = entry
+        # long focal lengths: the tolerance applies to the curvature (SPEC.md)
+        limit = reference.focal_length_tolerance * max(abs(kappa_known), 1 / 20.0)
+        if abs(kappa - kappa_known) > limit:
+            out["reasons"].append(f"f_{axis} {measured if measured is not None else 'inf'} m differs from the known "
+                                  f"{known:g} m by more than {100 * reference.focal_length_tolerance:g} %")
+    placement = figures.get("placement") or {}
+    d_mm = np.subtract(placement.get("mm", [np.nan] * 3), reference.placement_mm)
+    d_mrad = np.subtract(placement.get("mrad", [np.nan] * 3), reference.placement_mrad)
+    out["placement_error_mm"] = [float(v) for v in d_mm]
+    out["placement_error_mrad"] = [float(v) for v in d_mrad]
+    if not np.all(np.abs(d_mm) <= reference.placement_tolerance_mm):
+        out["reasons"].append(f"placement differs by {np.round(d_mm, 2).tolist()} mm (tolerance "
+                              f"{reference.placement_tolerance_mm:g} mm)")
+    if not np.all(np.abs(d_mrad) <= reference.placement_tolerance_mrad):
+        out["reasons"].append(f"rotation differs by {np.round(d_mrad, 2).tolist()} mrad (tolerance "
+                              f"{reference.placement_tolerance_mrad:g} mrad)")
+    out["within_tolerance"] = not out["reasons"]
+    out["tolerances"] = {"focal_length": reference.focal_length_tolerance, "mm": reference.placement_tolerance_mm,
+                         "mrad": reference.placement_tolerance_mrad}
+    return out
+
+
+def check_geometry(station, reference: GeometryReference, serial: str = "GEOMETRY-REFERENCE") -> dict:
+    """Measure the reference facet in the fixture and compare (:func:`compare_to_reference`).
+
+    Returns
+    -------
+    dict
+        The comparison, plus the inspection's serial, time, record id of the radiometric calibration
+        and verdict.
+    """
+    from ..station.inspect import inspect
+
+    rec = inspect(station, serial)
+    check = compare_to_reference(rec, reference)
+    check.update({"serial": serial, "time": rec["time"], "radiometric": rec["calibration"]["radiometric"],
+                  "verdict": rec.get("verdict"), "n_points": rec.get("n_points")})
+    return check
+
+
+def geometry_provenance(config) -> dict:
+    """The station's geometry as the analysis uses it, with where each part comes from."""
+    geometry = config.geometry
+    return {"screen": geometry.screen.to_dict(), "screen_to_camera": geometry.screen_to_camera.to_dict(),
+            "camera": geometry.camera.to_dict(),
+            "provenance": {"screen": f"{config.path} [screen] (width_px, height_px, pitch_m as entered)",
+                           "screen_to_camera": f"{config.path} [layout] (the designed assembly: separation "
+                                               f"{config.raw.get('layout', {}).get('separation_m')} m along "
+                                               f"{config.raw.get('layout', {}).get('separation_axis', 'x')})",
+                           "camera": f"{config.path} [camera]"}}
+
+
+def save_geometry(data_dir: str | Path, config, check: dict | None, source: str) -> Path:
+    """Write a geometry record (the station's geometry, its provenance and the reference check)."""
+    def build(record_id: str, created: str) -> dict:
+        return {"schema": SCHEMA, "kind": "geometry", "record_id": record_id, "created": created, "source": source,
+                **geometry_provenance(config), "reference_check": check}
+    path, _ = write_record(data_dir, "geometry", build)
+    return path
+
+
+def load_geometry_record(path: str | Path) -> dict:
+    """Read a geometry record; ConfigError naming the file when it is unusable."""
+    path = Path(path)
+    try:
+        d = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"geometry record {path} does not exist") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"geometry record {path} is corrupt ({exc})") from None
+    if not isinstance(d, dict) or d.get("kind") != "geometry" or d.get("schema") != SCHEMA:
+        raise ConfigError(f"{path} is not a geometry record of schema {SCHEMA}")
+    return d
+
+
+def summary_text(check: dict, path: Path | None = None) -> str:
+    """A readable summary of a reference check."""
+    lines = [f"Geometry check against {check['reference']} ({check['reference_source']})"
+             + (f"; record {path}" if path else "")]
+    for axis, e in check["focal_lengths"].items():
+        rel = e["relative_error"]
+        lines.append(f"  f_{axis}: measured {e['measured_m'] if e['measured_m'] is not None else float('inf'):.4f} m, "
+                     f"known {e['known_m'] if e['known_m'] is not None else float('inf'):.4f} m"
+                     + (f", {100 * rel:+.3f} %" if rel is not None else "")
+                     + f" (curvature {e['curvature_error_per_m']:+.2e} /m)")
+    lines.append("  placement - known: " + ", ".join(f"{v:+.2f}" for v in check["placement_error_mm"]) + " mm; "
+                 + ", ".join(f"{v:+.2f}" for v in check["placement_error_mrad"]) + " mrad")
+    t = check["tolerances"]
+    verdict = "WITHIN" if check["within_tolerance"] else "OUTSIDE"
+    lines.append(f"  {verdict} tolerance (f {100 * t['focal_length']:g} %, "
+                 f"{t['mm']:g} mm, {t['mrad']:g} mrad)" + "".join(f"\n    - {r}" for r in check["reasons"]))
+    return "\n".join(lines)
+

@@ -1,0 +1,390 @@
+"""Where calibration records live, which one is in force, and whether it may still be used.
+
+Records are JSON files under ``data_dir/calibration/<kind>/`` (kind ``radiometric``, ``camera`` or
+``geometry``), named ``<kind>-<UTC date and time>Z-<sequence>.json``; a file is created exclusively and
+never overwritten, so the folder is the history. The newest record is the last file name in sort order
+(the name carries the creation time in UTC). Companion files (the radiometric routine's PNG plot) share
+the record's stem.
+
+The radiometric record in force is the newest one under ``data_dir``, else the shipped default named by
+``[calibration] radiometric`` (reported as such), else none (a linear display assumed). It is stale when
+it is older than ``max_age_h`` (the simulated station's shipped default is exempt: the twin does not age),
+or when the dark level the camera sees now differs from the one stored in the record by more than
+``max_dark_shift_dn`` (room lighting changed); a stale record makes the station warn or refuse
+(``[calibration] stale``). The optional warm-up interlock refuses until the camera has run for
+``warmup_min`` minutes.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import logging
+import os
+import re
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from ..errors import ConfigError
+from ..fringes import Pattern
+from .errors import StaleCalibrationError, WarmupError
+from .records import RadiometricRecord, load_radiometric
+from .settings import CalibrationPolicy, calibration_settings
+
+log = logging.getLogger(__name__)
+
+KINDS = ("radiometric", "camera", "geometry")
+
+_NAME = re.compile(r"^(?P<kind>[a-z]+)-(?P<stamp>\d{8}T\d{6})Z-(?P<seq>\d{3,})\.json$")
+
+
+# -- files --------------------------------------------------------------------------------------------
+def record_dir(data_dir: str | Path, kind: str) -> Path:
+    """The folder of *kind* records under *data_dir*."""
+    if kind not in KINDS:
+        raise ValueError(f"unknown calibration record kind {kind!r}; use one of {KINDS}")
+    return Path(data_dir) / "calibration" / kind
+
+
+def list_records(data_dir: str | Path, kind: str) -> list[Path]:
+    """Record files of *kind*, oldest first (other files in the folder are ignored)."""
+    folder = record_dir(data_dir, kind)
+    if not folder.is_dir():
+        return []
+    names = [p for p in folder.iterdir() if p.is_file() and (m := _NAME.match(p.name)) and m["kind"] == kind]
+    return sorted(names, key=lambda p: p.name)
+
+
+def newest_record_path(data_dir: str | Path, kind: str) -> Path | None:
+    """The newest record file of *kind*, or None."""
+    records = list_records(data_dir, kind)
+    return records[-1] if records else None
+
+
+def now_local() -> _dt.datetime:
+    """The current local time with its UTC offset."""
+    return _dt.datetime.now().astimezone()
+
+
+def write_record(data_dir: str | Path, kind: str, build: Callable[[str, str], dict],
+                 created: _dt.datetime | None = None) -> tuple[Path, str]:
+    """Write a new record file exclusively (never replacing one), atomically and durably.
+
+    Parameters
+    ----------
+    data_dir : path
+        The station's data folder.
+    kind : str
+        ``radiometric``, ``camera`` or ``geometry``.
+    build : callable
+        ``build(record_id, created_iso) -> dict``: the JSON content, given the record's id and creation
+        time (ISO 8601 with the local UTC offset).
+    created : datetime, optional
+        Creation time (tz-aware); now by default.
+
+    Returns
+    -------
+    (Path, str)
+        The file written and the record id.
+    """
+    created = now_local() if created is None else created
+    if created.tzinfo is None:
+        raise ValueError("created must carry a time zone")
+    folder = record_dir(data_dir, kind)
+    folder.mkdir(parents=True, exist_ok=True)
+    stamp = created.astimezone(_dt.timezone.utc).strftime("%Y%m%dT%H%M%S")
+    created_iso = created.isoformat(timespec="seconds")
+    seq = 1
+    while True:
+        record_id = f"{kind}-{stamp}Z-{seq:03d}"
+        path = folder / f"{record_id}.json"
+        if path.exists():
+            seq += 1
+            continue
+        data = build(record_id, created_iso)
+        fd, tmp = tempfile.mkstemp(dir=folder, prefix=f".{record_id}.", suffix=".tmp")
+        try:
+            with os.fdopen(fd, "w") as fh:
+                json.dump(_json_safe(data), fh, indent=1)
+                fh.write("\n")
+                fh.flush()
+                os.fsync(fh.fileno())
+            try:
+                os.link(tmp, path)          # fails if the name was taken meanwhile: never overwrite
+            except FileExistsError:
+                seq += 1
+                continue
+        finally:
+            Path(tmp).unlink(missing_ok=True)
+        log.info("wrote %s record %s", kind, path)
+        return path, record_id
+
+
+def _json_safe(obj):
+    """Plain JSON data: numpy scalars and arrays to Python, non-finite floats to None."""
+    if isinstance(obj, dict):
+        return {str(k): _json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_safe(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _json_safe(obj.tolist())
+    if isinstance(obj, (np.bool_,)):
+        return bool(obj)
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, (float, np.floating)):
+        value = float(obj)
+        return value if np.isfinite(value) else None
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj
+
+
+def parse_created(record: RadiometricRecord, where: str) -> _dt.datetime:
+    """The record's creation time (tz-aware); ConfigError naming *where* when it is unusable."""
+    try:
+        created = _dt.datetime.fromisoformat(record.created)
+    except (TypeError, ValueError):
+        raise ConfigError(f"calibration record {where}: created {record.created!r} is not an ISO 8601 date and "
+                          "time; rerun the calibration") from None
+    if created.tzinfo is None:
+        raise ConfigError(f"calibration record {where}: created {record.created!r} has no time zone; rerun the "
+                          "calibration")
+    return created
+
+
+# -- the record in force -----------------------------------------------------------------------------
+@dataclass
+class CalibrationStatus:
+    """The radiometric record in force and what the checks found.
+
+    Attributes
+    ----------
+    record : RadiometricRecord
+    origin : str
+        ``"data_dir"`` (made by the routine on this station), ``"shipped default"`` or ``"none"``.
+    path : Path or None
+        The record's file.
+    exempt : bool
+        Exempt from the age check (the simulated station's shipped default).
+    age_h : float or None
+        Age of the record, hours.
+    dark_shift_dn : float or None
+        Dark level now minus the record's, DN (when measured).
+    warnings : list of str
+        What the checks warned about (also logged).
+    """
+
+    record: RadiometricRecord
+    origin: str
+    path: Path | None
+    exempt: bool = False
+    age_h: float | None = None
+    dark_shift_dn: float | None = None
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def describe(self) -> str:
+        """One line: which record, from where."""
+        if self.origin == "none":
+            return "no radiometric calibration (linear display assumed)"
+        return f"radiometric record {self.record.record_id} ({self.origin}, {self.path})"
+
+
+def _no_calibration(config) -> CalibrationStatus:
+    from ..devices.renderer import identity_lut
+    record = RadiometricRecord("none", "", "no calibration: linear display assumed", identity_lut(), 0.0, 1.0,
+                               1 / 60, 1.0)
+    return CalibrationStatus(record, "none", None, exempt=config.backend == "simulated")
+
+
+def select_radiometric(config, tolerant: bool = False) -> CalibrationStatus:
+    """The radiometric record in force for a station (newest under ``data_dir``, else the shipped default).
+
+    Parameters
+    ----------
+    config : StationConfig
+    tolerant : bool
+        Fall back to no calibration (a linear display), with a warning, instead of raising when the record
+        cannot be read: for the calibration routine, which replaces it.
+
+    Raises
+    ------
+    ConfigError
+        The newest record under ``data_dir``, or the shipped default, is missing, corrupt or invalid (the
+        message names the file).
+    """
+    try:
+        newest = newest_record_path(config.data_dir, "radiometric")
+        if newest is not None:
+            record = load_radiometric(newest)
+            return CalibrationStatus(record, "data_dir", newest)
+        if config.radiometric_path is not None:
+            record = load_radiometric(config.radiometric_path)
+            exempt = config.backend == "simulated"
+            return CalibrationStatus(record, "shipped default", Path(config.radiometric_path), exempt=exempt)
+    except ConfigError as exc:
+        if not tolerant:
+            raise
+        log.warning("%s; going on without a radiometric calibration", exc)
+    return _no_calibration(config)
+
+
+def _stale(policy: CalibrationPolicy, status: CalibrationStatus, message: str) -> None:
+    if policy.stale == "refuse":
+        raise StaleCalibrationError(message + " (the station is configured to refuse: [calibration] stale = "
+                                    "\"refuse\")")
+    log.warning("%s", message)
+    status.warnings.append(message)
+
+
+def check_age(status: CalibrationStatus, policy: CalibrationPolicy, now: _dt.datetime | None = None) -> None:
+    """Warn or refuse (per *policy*) when the record in force is older than ``max_age_h``.
+
+    No record, or a shipped default on a station other than the simulated one, counts as stale too: it
+    was not measured on this station.
+    """
+    if status.exempt:
+        log.debug("%s is exempt from the age check", status.describe)
+        return
+    if status.origin in ("none", "shipped default"):
+        # A shipped default was not measured on this station's hardware, whatever its date.
+        what = "" if status.origin == "none" else f" (the shipped default {status.path} is in force)"
+        _stale(policy, status, f"no radiometric calibration has been made on this station{what}: run "
+                               "'sofast-station calibrate radiometric'")
+        return
+    now = now_local() if now is None else now
+    created = parse_created(status.record, str(status.path))
+    status.age_h = (now - created).total_seconds() / 3600.0
+    if status.age_h > policy.max_age_h:
+        _stale(policy, status, f"{status.describe} is {status.age_h:.1f} h old, older than max_age_h = "
+                               f"{policy.max_age_h:g} h: run 'sofast-station calibrate radiometric'")
+
+
+def measure_dark_level(display, camera, frames: int = 1) -> float:
+    """Mean DN of the whole camera frame with the screen dark (command 0), over *frames* grabs."""
+    display.show(Pattern("uniform", command=0))
+    total = 0.0
+    for _ in range(int(frames)):
+        total += float(np.mean(camera.grab(), dtype=np.float64))
+    return total / int(frames)
+
+
+def check_dark_level(status: CalibrationStatus, policy: CalibrationPolicy, dark_level_dn: float) -> None:
+    """Warn or refuse (per *policy*) when the dark level moved by more than ``max_dark_shift_dn``.
+
+    Parameters
+    ----------
+    status : CalibrationStatus
+    policy : CalibrationPolicy
+    dark_level_dn : float
+        Mean DN of a whole frame with the screen dark, at the record's exposure and gain (an
+        inspection's dark frame serves as well).
+    """
+    ref = status.record.dark_level_dn
+    if ref is None or policy.max_dark_shift_dn <= 0:
+        return
+    status.dark_shift_dn = float(dark_level_dn) - ref
+    log.debug("dark level %.2f DN, %.2f DN at calibration", dark_level_dn, ref)
+    if abs(status.dark_shift_dn) > policy.max_dark_shift_dn:
+        _stale(policy, status, f"the dark level moved from {ref:.2f} DN to {dark_level_dn:.2f} DN since "
+                               f"{status.describe} (more than max_dark_shift_dn = {policy.max_dark_shift_dn:g} "
+                               "DN): room lighting or the camera changed; run 'sofast-station calibrate radiometric'")
+
+
+# -- warm-up ------------------------------------------------------------------------------------------
+def _boot_id() -> str:
+    try:
+        return Path("/proc/sys/kernel/random/boot_id").read_text().strip()
+    except OSError:               # not Linux: the boot time is the best we have
+        return f"boot-{int(time.time() - time.monotonic())}"
+
+
+def _marker(data_dir: Path) -> Path:
+    return Path(data_dir) / "calibration" / "camera-started.json"
+
+
+def mark_camera_started(data_dir: str | Path, started_epoch_s: float) -> None:
+    """Record when the camera started (this boot), epoch seconds: the warm-up is counted from it."""
+    marker = _marker(Path(data_dir))
+    marker.parent.mkdir(parents=True, exist_ok=True)
+    when = _dt.datetime.fromtimestamp(started_epoch_s).astimezone().isoformat(timespec="seconds")
+    marker.write_text(json.dumps({"boot_id": _boot_id(), "started_epoch_s": float(started_epoch_s),
+                                  "started": when}) + "\n")
+
+
+def camera_started(data_dir: str | Path, camera, now_epoch_s: float | None = None) -> float:
+    """When the camera started, epoch seconds.
+
+    A camera backend that knows (an attribute ``started_at``, epoch seconds) is believed; otherwise the
+    first time this station opened a camera since the computer booted (kept in
+    ``data_dir/calibration/camera-started.json``; cameras on USB or PoE are powered with the computer).
+    """
+    started = getattr(camera, "started_at", None)
+    if started is not None:
+        return float(started)
+    now = time.time() if now_epoch_s is None else now_epoch_s
+    marker = _marker(Path(data_dir))
+    try:
+        d = json.loads(marker.read_text())
+        if d.get("boot_id") == _boot_id():
+            return float(d["started_epoch_s"])
+    except (OSError, ValueError, KeyError, TypeError):
+        pass
+    mark_camera_started(data_dir, now)
+    return now
+
+
+def check_warmup(policy: CalibrationPolicy, data_dir: str | Path, camera, now_epoch_s: float | None = None) -> None:
+    """Refuse (WarmupError) while the camera has run for less than ``warmup_min`` minutes, if the interlock is on."""
+    if not policy.warmup:
+        return
+    now = time.time() if now_epoch_s is None else now_epoch_s
+    started = camera_started(data_dir, camera, now)
+    running_min = (now - started) / 60.0
+    if running_min < policy.warmup_min:
+        since = _dt.datetime.fromtimestamp(started).astimezone().strftime("%H:%M:%S")
+        ready = _dt.datetime.fromtimestamp(started + 60 * policy.warmup_min).astimezone().strftime("%H:%M")
+        raise WarmupError(f"the camera started at {since} and has warmed up for {running_min:.1f} min of the "
+                          f"{policy.warmup_min:g} min required: wait {policy.warmup_min - running_min:.1f} min more "
+                          f"(until {ready}), or turn the interlock off ([calibration] warmup = false)")
+
+
+# -- for open_station -----------------------------------------------------------------------------------
+def open_calibration(config, now: _dt.datetime | None = None, checks: bool = True) -> CalibrationStatus:
+    """Choose the radiometric record for a station about to open and check its age (warn or refuse).
+
+    Parameters
+    ----------
+    config : StationConfig
+    now : datetime, optional
+        The time to judge the age at (tz-aware); now by default.
+    checks : bool
+        False for the calibration routines: no age check, and an unreadable record is replaced by none.
+
+    Raises
+    ------
+    ConfigError
+        Bad ``[calibration]`` settings, or a missing or corrupt record (naming the file).
+    StaleCalibrationError
+        The record is too old and the station refuses stale records.
+    """
+    policy, _ = calibration_settings(config)
+    status = select_radiometric(config, tolerant=not checks)
+    log.info("using %s", status.describe)
+    if checks:
+        check_age(status, policy, now)
+    return status
+
+
+def check_opened_station(station, status: CalibrationStatus) -> None:
+    """The checks that need the devices: the warm-up interlock, then the dark-level drift (one dark frame)."""
+    policy, _ = calibration_settings(station.config)
+    check_warmup(policy, station.config.data_dir, station.camera)
+    if status.record.dark_level_dn is not None and policy.max_dark_shift_dn > 0:
+        check_dark_level(status, policy, measure_dark_level(station.display, station.camera))

@@ -1,0 +1,145 @@
+"""Camera calibration on board images rendered by the twin's own camera model (not OpenCV's).
+
+A 640 x 480 camera (fx 1040, fy 1042.08 px, principal point (323.7, 237.2), k1 -0.12, k2 0.15, p1 5e-4,
+p2 -3e-4), boards tilted 20-40 degrees (chessboard) or 15-35 degrees (ChArUco, whose markers must stay
+readable) anywhere in the middle half of the image, as large as the view allows; 2 DN of noise and a
+0.8 px blur (a real lens). Required: the focal length within 0.5 %, the principal point within 2 px.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import cv2
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from sofast_station.calibrate.camera import (BoardSpec, calibrate_camera_images, detect_board, load_camera_record,
+                                             save_camera)
+from sofast_station.calibrate.cli import register
+from sofast_station.calibrate.errors import CalibrationError
+from sofast_station.geometry import CameraIntrinsics, Pose
+from sofast_station.twin.board import PlanarTarget, chessboard_target, render_target_images
+from sofast_station.twin.camera import TwinCamera
+
+W, H = 640, 480
+K = np.array([[1040.0, 0.0, 323.7], [0.0, 1042.08, 237.2], [0.0, 0.0, 1.0]])
+CAMERA = CameraIntrinsics(W, H, K, [-0.12, 0.15, 5e-4, -3e-4, 0.0])
+
+
+def board_poses(n: int, size_m: tuple[float, float], tilt_deg: tuple[float, float], rng) -> list[Pose]:
+    """Tilted boards centred in the middle half of the image, each as close as the view allows."""
+    cam = TwinCamera(CAMERA)
+    w, h = size_m
+    margin = 0.03
+    outline = np.array([[-margin, -margin, 0], [w + margin, -margin, 0], [w + margin, h + margin, 0],
+                        [-margin, h + margin, 0]])
+    centre = np.array([w / 2, h / 2, 0.0])
+    poses = []
+    while len(poses) < n:
+        ax, ay = (np.deg2rad(rng.uniform(*tilt_deg)) * rng.choice([-1, 1]) for _ in range(2))
+        rot = Rotation.from_euler("xyz", [ax, ay, np.deg2rad(rng.uniform(-20, 20))]).as_matrix()
+        u, v = rng.uniform(0.25, 0.75) * W, rng.uniform(0.25, 0.75) * H
+        ray = np.array([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], 1.0])
+        for z in np.arange(0.25, 2.0, 0.01):
+            pose = Pose(rot, z * ray - rot @ centre)
+            uv = cam.project(pose.apply(outline))
+            if np.all(np.isfinite(uv)) and uv[:, 0].min() > 5 and uv[:, 0].max() < W - 5 \
+                    and uv[:, 1].min() > 5 and uv[:, 1].max() < H - 5:
+                poses.append(pose)
+                break
+    return poses
+
+
+CHESS = BoardSpec("chessboard", 13, 10, 0.02)
+
+
+@pytest.fixture(scope="module")
+def chess_images():
+    rng = np.random.default_rng(12)
+    target = chessboard_target(CHESS.squares_x, CHESS.squares_y, CHESS.square_m)
+    poses = board_poses(16, (13 * 0.02, 10 * 0.02), (20, 40), rng)
+    good = render_target_images(CAMERA, target, poses, supersample=4, blur_px=0.8, noise_dn=2.0, rng=rng)
+    blurred = render_target_images(CAMERA, target, poses[:1], supersample=3, blur_px=2.0, noise_dn=2.0, rng=rng)[0]
+    away = Pose(np.eye(3), np.array([0.3, 0.0, 0.8]))                  # the board beside the view
+    missing = render_target_images(CAMERA, target, [away], supersample=1, noise_dn=2.0, rng=rng)[0]
+    return good, blurred, missing
+
+
+def test_chessboard_images_give_focal_length_and_principal_point(chess_images, tmp_path):
+    good, blurred, missing = chess_images
+    images = [(f"view{i:02d}", im) for i, im in enumerate(good)]
+    images += [("blurred", blurred), ("away", missing), ("small", good[0][:240, :320].copy()), ("unreadable", None)]
+    cal = calibrate_camera_images(images, CHESS)
+    k = cal.intrinsics.matrix
+    f_err = (k[0, 0] / K[0, 0] - 1, k[1, 1] / K[1, 1] - 1)
+    pp_err = (k[0, 2] - K[0, 2], k[1, 2] - K[1, 2])
+    print(f"\nchessboard: {cal.used} images, RMS {cal.rms_px:.3f} px; f error {100 * f_err[0]:+.3f} %, "
+          f"{100 * f_err[1]:+.3f} %; principal point error {pp_err[0]:+.2f}, {pp_err[1]:+.2f} px "
+          f"(OpenCV's std {cal.std_intrinsics['cx']:.2f}, {cal.std_intrinsics['cy']:.2f} px)")
+    assert max(abs(e) for e in f_err) < 0.005
+    assert max(abs(e) for e in pp_err) < 2.0
+    reasons = {r.name: r.reason for r in cal.images if not r.accepted}
+    print(reasons)
+    assert cal.rms_px < 0.1 and cal.used == 16
+    assert set(reasons) == {"blurred", "away", "small", "unreadable"}
+    assert reasons["blurred"].startswith("blurred: edges") and reasons["away"].startswith("board not found")
+    assert "differs from the first image" in reasons["small"] and "cannot be read" in reasons["unreadable"]
+    widths = [r.edge_width_px for r in cal.images if r.accepted]
+    assert max(widths) < 3.0
+    path = save_camera(tmp_path / "data", cal, "tests")
+    intrinsics, record = load_camera_record(path)
+    assert path.parent == tmp_path / "data" / "calibration" / "camera"
+    assert np.allclose(intrinsics.matrix, k) and record["rms_px"] == cal.rms_px
+    assert [i["reason"] for i in record["images"] if not i["accepted"]] == list(reasons.values())
+
+
+def test_too_few_good_images_is_an_error_listing_every_reason(chess_images):
+    good, blurred, missing = chess_images
+    with pytest.raises(CalibrationError, match=r"(?s)only 2 usable board image\(s\).*\n  blurred: blurred"):
+        calibrate_camera_images([("a", good[0]), ("b", good[1]), ("blurred", blurred), ("away", missing)], CHESS)
+
+
+def test_charuco_images(tmp_path):
+    board = BoardSpec("charuco", 9, 7, 0.03, 0.018, "DICT_4X4_50")
+    texture = board.charuco().generateImage((9 * 60, 7 * 60), marginSize=0, borderBits=1) / 255.0
+    target = PlanarTarget(texture, 9 * 0.03, 7 * 0.03, margin_m=0.015)
+    rng = np.random.default_rng(6)
+    poses = board_poses(14, (0.27, 0.21), (15, 35), rng)
+    images = render_target_images(CAMERA, target, poses, supersample=4, blur_px=0.8, noise_dn=2.0, rng=rng)
+    # mostly outside the view: a few corners only
+    corner = Pose(np.eye(3), np.array([0.09, 0.07, 0.7]))
+    partial = render_target_images(CAMERA, target, [corner], supersample=2, noise_dn=2.0, rng=rng)[0]
+    one = detect_board(partial, board, "partial")
+    assert not one.accepted and one.reason.startswith("too few corners") and 0 < one.corners < 12
+    cal = calibrate_camera_images([(f"view{i:02d}", im) for i, im in enumerate(images)] + [("partial", partial)], board)
+    k = cal.intrinsics.matrix
+    f_err = (k[0, 0] / K[0, 0] - 1, k[1, 1] / K[1, 1] - 1)
+    pp_err = (k[0, 2] - K[0, 2], k[1, 2] - K[1, 2])
+    std = (cal.std_intrinsics["cx"], cal.std_intrinsics["cy"])
+    print(f"\nChArUco: {cal.used} images, RMS {cal.rms_px:.3f} px; f error {100 * f_err[0]:+.3f} %, "
+          f"{100 * f_err[1]:+.3f} %; principal point error {pp_err[0]:+.2f}, {pp_err[1]:+.2f} px (std {std[0]:.2f}, "
+          f"{std[1]:.2f} px)")
+    assert max(abs(e) for e in f_err) < 0.005
+    # fewer, smaller corners than the chessboard's: the principal point is only as good as OpenCV says
+    assert abs(pp_err[0]) < 3 * std[0] + 0.5 and abs(pp_err[1]) < 3 * std[1] + 0.5
+    assert cal.rms_px < 0.15 and cal.used >= 10
+
+
+def test_calibrate_camera_command(chess_images, tmp_path, small_station_toml, capsys):
+    good, blurred, _ = chess_images
+    files = []
+    for i, im in enumerate(list(good[:7]) + [blurred]):
+        files.append(tmp_path / f"board{i}.png")
+        cv2.imwrite(str(files[-1]), im)
+    parser = argparse.ArgumentParser(prog="sofast-station")
+    register(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(["calibrate", "camera", *map(str, files), "--squares", "13x10", "--square-mm", "20",
+                              "--config", str(small_station_toml), "--json"])
+    assert args.func(args) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["rms_px"] < 0.1 and abs(out["camera"]["matrix"][0][0] / K[0, 0] - 1) < 0.005
+    assert [i["accepted"] for i in out["images"]] == [True] * 7 + [False]
+    assert out["path"].endswith(".json") and "/calibration/camera/camera-" in out["path"]

@@ -1,0 +1,57 @@
+"""The ``calibrate`` subcommands through their own parser (``register``), on the small simulated station."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+
+import pytest
+
+from sofast_station.calibrate.cli import register
+from sofast_station.calibrate.store import list_records
+from sofast_station.config import load_config
+from sofast_station.station.inspect import open_station
+
+
+def run(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(prog="sofast-station")
+    register(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(argv)
+    return args.func(args)
+
+
+def test_calibrate_radiometric_writes_a_dated_record_and_inspection_uses_it(small_station_toml, capsys, caplog):
+    """The twin's default room light varies by 20 % from frame to frame: the routine averages the most frames
+    it may (8) per ramp level and says the levels are still known to only ~0.2 DN."""
+    caplog.set_level(logging.INFO)
+    assert run(["calibrate", "radiometric", "--config", str(small_station_toml), "--seed", "4"]) == 0
+    out = capsys.readouterr().out
+    cfg = load_config(small_station_toml)
+    records = list_records(cfg.data_dir, "radiometric")
+    assert len(records) == 1 and records[0].with_suffix(".png").exists()
+    assert out.startswith(f"Radiometric calibration {records[0].stem}") and "display latency: 0 frame(s)" in out
+    assert "exposure: 16.667 ms (1 refresh period(s) at 60 Hz)" in out and "fit polynomial" in out
+    assert "ramp: 52 levels, 8 frame(s) each" in caplog.text and "will be known to" in caplog.text
+    for step in ("active pixels:", "display latency:", "exposure:", "gain:", "ramp: 52/52 levels", "response: floor"):
+        assert step in caplog.text, step
+    # a second run keeps the first record
+    assert run(["calibrate", "radiometric", "--config", str(small_station_toml), "--noise-free", "--ramp-step", "15",
+                "--no-plot", "--json"]) == 0
+    data = json.loads(capsys.readouterr().out)
+    records = list_records(cfg.data_dir, "radiometric")
+    assert len(records) == 2 and data["path"] == str(records[1]) and data["curve"]["commands"][1] == 15
+    station = open_station(cfg, noise=False)
+    try:
+        assert station.radiometric.record_id == records[1].stem
+    finally:
+        station.close()
+    assert run(["calibrate", "status", "--config", str(small_station_toml)]) == 0
+    status = capsys.readouterr().out
+    assert f"radiometric record {records[1].stem} (data_dir" in status and "radiometric: 2 record(s)" in status
+
+
+def test_bad_routine_options_are_refused(small_station_toml):
+    from sofast_station.errors import ConfigError
+    with pytest.raises(ConfigError, match="command line: .*ramp_step"):
+        run(["calibrate", "radiometric", "--config", str(small_station_toml), "--ramp-step", "0"])
