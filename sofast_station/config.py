@@ -130,6 +130,9 @@ def load_config(path: str | Path) -> StationConfig:
         raise ConfigError(f"{where} [fringes]: {exc}") from None
     an = raw.get("analysis", {})
     _check_keys(an, {f.name for f in fields(AnalysisSettings)}, f"{where} [analysis]")
+    threads = an.get("threads", AnalysisSettings.threads)
+    if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
+        raise ConfigError(f"{where} [analysis] threads must be a whole number of at least 1, got {threads!r}")
     analysis = AnalysisSettings(**an)
     limits = limits_from_table(raw.get("limits", {}), f"{where} [limits]")
     quality = quality_from_table(raw.get("quality", {}), f"{where} [quality]")

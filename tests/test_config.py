@@ -26,6 +26,7 @@ def test_data_dir_comes_from_the_environment_in_tests(small_station_toml, tmp_pa
     (("pitch_m = 0.000275", "pitch_m = -1"), "pitch_m"),
     (("[simulation]", "[fringes]\nperiods_x = [4, 1]\n[simulation]"), "must increase"),
     (("[simulation]", "[analysis]\nthreshold = 3\n[simulation]"), "[analysis] has unknown key(s) threshold"),
+    (("[simulation]", "[analysis]\nthreads = 0\n[simulation]"), "threads must be a whole number of at least 1"),
 ])
 def test_errors_name_the_key(small_station_toml, edit, message):
     text = small_station_toml.read_text().replace(*edit, 1)

@@ -162,6 +162,7 @@ SCHEMA_V1: tuple[tuple[str, str, str, str, str, bool], ...] = (
     ("analysis/robust_fit", "dataset", "bool", "", "parabola fitted by bisquare-weighted least squares", False),
     ("analysis/edge_window_px", "dataset", "int64", "px", "half-width of the window summed across a facet edge",
      False),
+    ("analysis/threads", "dataset", "int64", "", "threads of the analysis (the figures do not depend on it)", False),
 
     ("config", "group", "", "", "the station configuration as loaded", True),
     ("config/station_toml", "dataset", "str", "", "raw text of station.toml (empty if it could not be read)", True),

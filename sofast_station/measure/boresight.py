@@ -58,9 +58,6 @@ class Assembly:
     screen_m: np.ndarray
     screen_centre_m: np.ndarray
 
-    def subset(self, sl) -> "Assembly":
-        return Assembly(self.camera_m, self.rays[:, sl], self.screen_m[:, sl], self.screen_centre_m)
-
     def moved(self, motion: "Motion") -> "Assembly":
         return Assembly(motion.point(self.camera_m), motion.vectors(self.rays), motion.points(self.screen_m),
                         motion.point(self.screen_centre_m))

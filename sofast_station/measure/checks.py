@@ -68,6 +68,8 @@ def check_saturation(stack: np.ndarray, max_fraction: float) -> None:
     """
     top = np.iinfo(stack.dtype).max
     for k in range(1, stack.shape[0]):     # the dark frame (0) cannot saturate meaningfully
+        if stack[k].max() < top:           # a quick pass for the usual frame with nothing at the top
+            continue
         frac = float(np.count_nonzero(stack[k] >= top)) / max(stack.shape[1], 1)
         if frac > max_fraction:
             what = "white frame" if k == 1 else f"fringe frame {k}"

@@ -7,6 +7,7 @@ hardware and keeps no state, so a data dump reprocesses to the same bits.
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -62,6 +63,10 @@ class AnalysisSettings:
     robust_fit : bool
         Fit the parabola by bisquare-weighted least squares, so outlying pixels (a facet edge that saw
         past the screen) do not pull the shape; residuals are still reported over every point.
+    threads : int
+        Threads for the independent parts of the analysis (the x and y phases and unwrapping, the fits,
+        the residuals of each model). Each part does the same arithmetic on any thread, so the figures
+        do not depend on this (SPEC.md, "Determinism"); 1 runs everything in the calling thread.
     """
 
     mask_threshold_dn: float = 20.0
@@ -77,6 +82,7 @@ class AnalysisSettings:
     max_corner_rms_px: float = 2.0
     robust_fit: bool = False
     edge_window_px: int = 5
+    threads: int = 2
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)
@@ -111,6 +117,50 @@ class _Timer:
         now = time.perf_counter()
         self.timings[name] = self.timings.get(name, 0.0) + (now - self._t)
         self._t = now
+
+
+class _Serial:
+    """Stand-in for a thread pool that runs each task at once in the calling thread."""
+
+    class _Done:
+        def __init__(self, value):
+            self._value = value
+
+        def result(self):
+            return self._value
+
+    def submit(self, fn, *args, **kwargs):
+        return self._Done(fn(*args, **kwargs))
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+
+def _pool(threads: int):
+    """A pool for independent tasks: numpy releases the GIL in its loops, so two threads use two cores."""
+    if threads < 1:
+        raise ValueError(f"[analysis] threads must be at least 1, got {threads}")
+    return _Serial() if threads == 1 else ThreadPoolExecutor(max_workers=threads, thread_name_prefix="analyse")
+
+
+def _reflect(rays: np.ndarray, screen_m: np.ndarray, coeffs: np.ndarray, camera_m: np.ndarray):
+    """Points on the model surface seen along *rays* and the slopes the reflection to *screen_m* gives."""
+    points = intersect_quadratic(coeffs, camera_m, rays)
+    return (points, *normal_slopes(points, camera_m, screen_m))
+
+
+def _in_halves(pool, fn, *columns: np.ndarray, **kwargs):
+    """Apply the column-wise *fn* to both halves of (3, N) *columns* on *pool* and join its outputs.
+
+    For element-wise arithmetic only: each column's result is the same bits whichever half it is in.
+    """
+    half = columns[0].shape[1] // 2
+    first = pool.submit(fn, *(c[:, :half] for c in columns), **kwargs)
+    second = fn(*(c[:, half:] for c in columns), **kwargs)
+    return tuple(np.concatenate([a, b], axis=-1) for a, b in zip(first.result(), second))
 
 
 def _phase_sets(stack: np.ndarray, sets: list[slice]):
@@ -159,6 +209,14 @@ def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, d
     -------
     Analysis
     """
+    with _pool(settings.threads) as pool:
+        return _reduce(pool, frames, fringes, geometry, design, measured_distance_m, settings, screen, rays_cam,
+                       pixel_mask)
+
+
+def _reduce(pool, frames, fringes, geometry, design, measured_distance_m, settings, screen, rays_cam,
+            pixel_mask) -> Analysis:
+    """The body of :func:`analyse`, with *pool* for its independent tasks."""
     timer = _Timer()
     cam = geometry.camera
     checks.check_frames(frames, fringes, cam.shape)
@@ -176,12 +234,13 @@ def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, d
 
     # 2-4. Phase, modulation, consistency and unwrapping for the facet's pixels.
     idx = np.flatnonzero(region)
-    stack = frames.reshape(frames.shape[0], -1)[:, idx]
+    stack = np.take(frames.reshape(frames.shape[0], -1), idx, axis=1)     # faster than [:, idx]
     checks.check_saturation(stack, settings.max_saturated_fraction)
     slices = fringes.slices()
-    raw = {axis: _phase_sets(stack, slices[axis]) for axis in ("x", "y")}
-    noise_dn = intensity_noise_dn(np.concatenate([np.concatenate(raw[a][2]) for a in ("x", "y")]))
+    tasks = {axis: pool.submit(_phase_sets, stack, slices[axis]) for axis in ("x", "y")}
     checks.check_repeats(stack, fringes)
+    raw = {axis: task.result() for axis, task in tasks.items()}
+    noise_dn = intensity_noise_dn(np.concatenate([np.concatenate(raw[a][2]) for a in ("x", "y")]))
     ok = np.ones(idx.size, dtype=bool)
     min_mod = np.full(idx.size, np.inf)
     inconsistent = np.zeros(idx.size, dtype=bool)
@@ -202,12 +261,16 @@ def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, d
         allowed = pixel_mask.ravel()[idx]
         excluded = int(np.count_nonzero(ok & ~allowed))
         ok &= allowed
-    positions, unwrap_stats = {}, {}
-    for axis in ("x", "y"):
+    def unwrap_axis(axis):
         periods = getattr(fringes, f"periods_{axis}")
         length = screen.width_m if axis == "x" else screen.height_m
         sigma = position_sigma_m(raw[axis][1][-1], noise_dn, periods[-1], length)
-        res = unwrap_positions(raw[axis][0], periods, length, sigma, settings.guard_sigmas)
+        return unwrap_positions(raw[axis][0], periods, length, sigma, settings.guard_sigmas)
+
+    tasks = {axis: pool.submit(unwrap_axis, axis) for axis in ("x", "y")}
+    positions, unwrap_stats = {}, {}
+    for axis, task in tasks.items():
+        res = task.result()
         positions[axis] = res.position_m
         unwrap_stats[axis] = res
         ok &= res.valid
@@ -256,29 +319,34 @@ def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, d
     timer.lap("pose")
 
     camera_to_facet = facet_to_camera.inverse()
-    full = Assembly(camera_to_facet.translation, to_frame(camera_to_facet, rays, translate=False),
-                    to_frame(camera_to_facet, screen_cam), to_frame(camera_to_facet, screen_centre_cam[:, None])[:, 0])
-    solution = solve_shape(full.subset(slice(None, None, settings.subsample_step)), design, measured_distance_m,
-                           settings.max_iterations, robust=settings.robust_fit)
+    sample = slice(None, None, settings.subsample_step)
+    subsample = Assembly(camera_to_facet.translation, to_frame(camera_to_facet, rays[:, sample], translate=False),
+                         to_frame(camera_to_facet, screen_cam[:, sample]),
+                         to_frame(camera_to_facet, screen_centre_cam[:, None])[:, 0])
+    solution = solve_shape(subsample, design, measured_distance_m, settings.max_iterations, robust=settings.robust_fit)
     timer.lap("iterate")
 
-    moved = full.moved(solution.motion)
-    points = intersect_quadratic(solution.coefficients, moved.camera_m, moved.rays)
-    s_x, s_y = normal_slopes(points, moved.camera_m, moved.screen_m)
+    # Every valid pixel, taken from the camera frame straight into the boresighted facet frame.
+    to_moved = solution.motion.as_pose().compose(camera_to_facet)
+    moved_rays = pool.submit(to_frame, to_moved, rays, translate=False)
+    moved_screen = to_frame(to_moved, screen_cam)
+    points, s_x, s_y = _in_halves(pool, _reflect, moved_rays.result(), moved_screen,
+                                  coeffs=solution.coefficients, camera_m=to_moved.translation)
     finite = np.isfinite(s_x) & np.isfinite(s_y)
     if not np.all(finite):
         raise AnalysisError(f"{int((~finite).sum())} pixel rays miss the fitted surface; the fit diverged")
     x, y = points[0], points[1]
+    cubic_task = pool.submit(fit_cubic, x, y, s_x, s_y)
+    angle_x = pool.submit(np.arctan, s_x)
     fit = fit_parabola(x, y, s_x, s_y, robust=settings.robust_fit)
     coeffs = fit.coefficients()
     coeffs[5] = float(design.z(*design.alignment_point_m)) - surface_z(coeffs, *design.alignment_point_m)
-    cubic = fit_cubic(x, y, s_x, s_y)
-    dx, dy = surface_slopes(design.coefficients, x, y)
-    px, py = surface_slopes(coeffs, x, y)
-    angles = (np.arctan(s_x), np.arctan(s_y))
-    residuals = {"design": slope_residuals_mrad(s_x, s_y, dx, dy, angles),
-                 "parabola": slope_residuals_mrad(s_x, s_y, px, py, angles),
-                 "higher_order": slope_residuals_mrad(s_x, s_y, *cubic.slopes(x, y), angles)}
+    angles = (angle_x.result(), np.arctan(s_y))
+    cubic = cubic_task.result()
+    higher = pool.submit(lambda: slope_residuals_mrad(s_x, s_y, *cubic.slopes(x, y), angles))
+    residuals = {"design": slope_residuals_mrad(s_x, s_y, *surface_slopes(design.coefficients, x, y), angles),
+                 "parabola": slope_residuals_mrad(s_x, s_y, *surface_slopes(coeffs, x, y), angles),
+                 "higher_order": higher.result()}
     timer.lap("fit")
 
     valid = np.zeros(cam.shape, dtype=bool)

@@ -1,4 +1,5 @@
-"""SPEC.md "Determinism": the analysis gives the same bits whatever the number of BLAS/OpenMP threads."""
+"""SPEC.md "Determinism": the analysis gives the same bits whatever the number of BLAS/OpenMP threads and
+of its own worker threads (``[analysis] threads``)."""
 
 import json
 import os
@@ -11,13 +12,14 @@ from sofast_station.config import load_config
 from sofast_station.station.inspect import capture, open_station
 
 SCRIPT = """
-import hashlib, json, sys
+import dataclasses, hashlib, json, sys
 import numpy as np
 from sofast_station.config import load_config
 from sofast_station.measure.pipeline import analyse
 cfg = load_config(sys.argv[1])
 d = np.load(sys.argv[2])
-a = analyse(d["frames"], cfg.fringes, cfg.geometry, cfg.design, float(d["distance"]), cfg.analysis)
+settings = dataclasses.replace(cfg.analysis, threads=int(sys.argv[3]))
+a = analyse(d["frames"], cfg.fringes, cfg.geometry, cfg.design, float(d["distance"]), settings)
 fig = {k: v for k, v in a.figures.items() if k != "timings_s"}
 print(json.dumps(fig, sort_keys=True))
 print(hashlib.sha256(a.slopes.tobytes()).hexdigest(), hashlib.sha256(a.points_facet_m.tobytes()).hexdigest())
@@ -25,6 +27,7 @@ print(hashlib.sha256(a.slopes.tobytes()).hexdigest(), hashlib.sha256(a.points_fa
 
 
 def test_same_bits_on_one_and_two_threads(small_station_toml, tmp_path):
+    """BLAS on one thread with the analysis serial, both on two, and BLAS on one with the analysis on two."""
     station = open_station(load_config(small_station_toml), seed=5)
     try:
         frames, distance = capture(station)
@@ -33,11 +36,11 @@ def test_same_bits_on_one_and_two_threads(small_station_toml, tmp_path):
     npz = tmp_path / "capture.npz"
     np.savez(npz, frames=frames, distance=distance)
     outputs = []
-    for threads in ("1", "2"):
-        env = dict(os.environ, OPENBLAS_NUM_THREADS=threads, OMP_NUM_THREADS=threads, MKL_NUM_THREADS=threads)
-        proc = subprocess.run([sys.executable, "-c", SCRIPT, str(small_station_toml), str(npz)], env=env,
+    for blas, analysis in (("1", "1"), ("2", "2"), ("1", "2")):
+        env = dict(os.environ, OPENBLAS_NUM_THREADS=blas, OMP_NUM_THREADS=blas, MKL_NUM_THREADS=blas)
+        proc = subprocess.run([sys.executable, "-c", SCRIPT, str(small_station_toml), str(npz), analysis], env=env,
                               capture_output=True, text=True, timeout=300)
         assert proc.returncode == 0, proc.stderr
         outputs.append(proc.stdout)
-    assert outputs[0] == outputs[1]
+    assert outputs[0] == outputs[1] == outputs[2]
     assert json.loads(outputs[0].splitlines()[0])["n_points"] > 10_000
