@@ -170,7 +170,7 @@ def cmd_archive_export(args) -> int:
     from .archive import Journal, export_workbook
     from .config import load_config
 
-    config = load_config(args.config)
+    config = load_config(args.config, use_camera_record=False)  # no camera needed
     path = config.data_dir / "journal.sqlite3"
     if not path.exists():
         raise StationError(f"no journal at {path}: this station has not measured anything yet")
@@ -189,7 +189,7 @@ def cmd_archive_export(args) -> int:
 def cmd_dump_next(args) -> int:
     from .config import load_config
 
-    config = load_config(args.config)
+    config = load_config(args.config, use_camera_record=False)  # no camera needed
     flag = config.data_dir / "dump-next"
     flag.parent.mkdir(parents=True, exist_ok=True)
     flag.touch()

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import dataclasses
 import os
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -28,7 +29,7 @@ from .station.verdict import Limits, Quality, limits_from_table, quality_from_ta
 _SECTIONS = {"station", "camera", "screen", "layout", "fringes", "analysis", "limits", "quality", "calibration",
              "simulation", "run", "recipes", "devices", "archive"}
 _STATION_KEYS = {"name", "data_dir", "backend", "facet"}
-_CAMERA_KEYS = {"width_px", "height_px", "focal_length_px", "principal_point_px", "distortion"}
+_CAMERA_KEYS = {"width_px", "height_px", "focal_length_px", "principal_point_px", "distortion", "intrinsics"}
 _LAYOUT_KEYS = {"separation_m", "separation_axis", "screen_offset_m"}
 _BACKENDS = ("simulated", "hardware")
 
@@ -67,6 +68,9 @@ class StationConfig:
     radiometric_path: Path | None
     simulation: dict = field(default_factory=dict)
     raw: dict = field(default_factory=dict)
+    #: With ``[camera] intrinsics = "record"``: the camera record in force (``record_id``, ``path``) and
+    #: ``stated``, the [camera] table's intrinsics (the simulated station's true camera); else None.
+    camera_record: dict | None = None
 
     @property
     def config_hash(self) -> str:
@@ -89,8 +93,12 @@ def _camera(table: dict, where: str) -> CameraIntrinsics:
         raise ConfigError(f"{where}: {exc}") from None
 
 
-def load_config(path: str | Path) -> StationConfig:
-    """Read and validate a station file."""
+def load_config(path: str | Path, use_camera_record: bool = True) -> StationConfig:
+    """Read and validate a station file.
+
+    With ``[camera] intrinsics = "record"`` the camera intrinsics come from the newest camera record under
+    ``data_dir`` (*use_camera_record* False keeps the table's: for ``calibrate camera``, which makes the record).
+    """
     path = Path(path).expanduser().resolve()
     raw = read_toml(path, "station file", "pass --config or run from the project folder")
     where = str(path)
@@ -140,7 +148,37 @@ def load_config(path: str | Path) -> StationConfig:
     _check_keys(cal, CALIBRATION_KEYS, f"{where} [calibration]")
     parse_calibration_table(cal, f"{where} [calibration]")       # validates policy and routine settings
     radiometric = base / cal["radiometric"] if "radiometric" in cal else None
+    camera_record = None
+    source = raw.get("camera", {}).get("intrinsics", "station.toml")
+    if source == "record" and use_camera_record:
+        recorded, camera_record = _camera_from_record(data_dir, geometry.camera, f"{where} [camera]")
+        geometry = dataclasses.replace(geometry, camera=recorded)
+    elif source not in ("station.toml", "record"):
+        raise ConfigError(f"{where} [camera] intrinsics must be \"station.toml\" (the table's values) or "
+                          f"\"record\" (the newest 'calibrate camera' record), got {source!r}")
     return StationConfig(path=path, name=str(st.get("name", path.stem)), data_dir=data_dir, backend=backend,
                          facet_path=facet_path, design=design, geometry=geometry, fringes=fringes,
-                         analysis=analysis, limits=limits, quality=quality, radiometric_path=radiometric, simulation=raw.get("simulation", {}),
-                         raw=raw)
+                         analysis=analysis, limits=limits, quality=quality, radiometric_path=radiometric,
+                         simulation=raw.get("simulation", {}), raw=raw, camera_record=camera_record)
+
+
+def _camera_from_record(data_dir: Path, stated: CameraIntrinsics, where: str) -> tuple[CameraIntrinsics, dict]:
+    """The intrinsics of the newest camera record under *data_dir* (``[camera] intrinsics = "record"``).
+
+    The record must be for a camera of the [camera] table's size; a missing, corrupt or mismatched record
+    is a ConfigError naming the file and what to do.
+    """
+    from .calibrate.camera import load_camera_record
+    from .calibrate.store import newest_record_path, record_dir
+
+    path = newest_record_path(data_dir, "camera")
+    if path is None:
+        raise ConfigError(f"{where}: intrinsics = \"record\" but there is no camera record in "
+                          f"{record_dir(data_dir, 'camera')}: run 'sofast-station calibrate camera IMAGES...', or "
+                          "set intrinsics = \"station.toml\" to use the table's values")
+    camera, record = load_camera_record(path)
+    if camera.shape != stated.shape:
+        raise ConfigError(f"camera record {path} is for a {camera.width_px} x {camera.height_px} camera, but {where} "
+                          f"says {stated.width_px} x {stated.height_px}: calibrate this camera, or fix width_px and "
+                          "height_px")
+    return camera, {"record_id": str(record.get("record_id", path.stem)), "path": path, "stated": stated}

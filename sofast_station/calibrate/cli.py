@@ -87,7 +87,7 @@ def cmd_camera(args) -> int:
     from ..config import load_config
     from .camera import BoardSpec, calibrate_camera_images, read_images, save_camera, summary_text
 
-    config = load_config(args.config)
+    config = load_config(args.config, use_camera_record=False)     # the record may not exist yet: we make it
     if args.board == "charuco" and args.marker_mm is None:
         raise ConfigError("a ChArUco board needs --marker-mm (the marker side)")
     board = BoardSpec(args.board, args.squares[0], args.squares[1], args.square_mm / 1000.0,
@@ -100,9 +100,14 @@ def cmd_camera(args) -> int:
     if cal.intrinsics.shape != cam.shape:
         log.warning("the images are %d x %d, the station's camera [camera] is %d x %d", cal.intrinsics.width_px,
                     cal.intrinsics.height_px, cam.width_px, cam.height_px)
+    if config.raw.get("camera", {}).get("intrinsics") == "record":
+        use = "The station uses this record from its next start ([camera] intrinsics = \"record\")."
+    else:
+        use = ("The station still uses the [camera] table of station.toml; set [camera] intrinsics = \"record\" "
+               "to use the newest camera record instead.")
     _emit(args, {"path": str(path), "rms_px": cal.rms_px, "camera": cal.intrinsics.to_dict(),
-                 "std_intrinsics": cal.std_intrinsics, "images": [r.to_dict() for r in cal.images]},
-          summary_text(cal, path))
+                 "std_intrinsics": cal.std_intrinsics, "images": [r.to_dict() for r in cal.images], "use": use},
+          summary_text(cal, path) + "\n" + use)
     return 0
 
 
@@ -130,7 +135,7 @@ def cmd_status(args) -> int:
     from .settings import calibration_settings
     from .store import KINDS, check_age, list_records, select_radiometric
 
-    config = load_config(args.config)
+    config = load_config(args.config, use_camera_record=False)  # reports on records
     policy, _ = calibration_settings(config)
     status = select_radiometric(config)
     lines = [f"Calibration of {config.name} (data in {config.data_dir})", f"  in force: {status.describe}"]
@@ -141,8 +146,20 @@ def cmd_status(args) -> int:
     if status.age_h is not None:
         lines.append(f"  age {status.age_h:.1f} h (stale after {policy.max_age_h:g} h; stale records "
                      f"{'refused' if policy.stale == 'refuse' else 'warned about'})")
+    camera_source = config.raw.get("camera", {}).get("intrinsics", "station.toml")
+    if camera_source == "record":
+        try:
+            camera_in_force = load_config(args.config).camera_record["path"].name
+        except ConfigError as exc:
+            camera_in_force = None
+            status.warnings.append(str(exc))
+        lines.append(f"  camera intrinsics: from the newest camera record ({camera_in_force or 'none usable'})")
+    else:
+        camera_in_force = "station.toml [camera]"
+        lines.append("  camera intrinsics: station.toml [camera] (set intrinsics = \"record\" to use a camera record)")
     lines += [f"  ! {w}" for w in status.warnings]
-    data = {"in_force": status.describe, "age_h": status.age_h, "warnings": status.warnings, "records": {}}
+    data = {"in_force": status.describe, "age_h": status.age_h, "warnings": status.warnings,
+            "camera_intrinsics": camera_in_force, "records": {}}
     for kind in KINDS:
         records = list_records(config.data_dir, kind)
         data["records"][kind] = [str(p) for p in records]

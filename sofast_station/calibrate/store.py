@@ -177,7 +177,10 @@ class CalibrationStatus:
     dark_shift_dn : float or None
         Dark level now minus the record's, DN (when measured).
     warnings : list of str
-        What the checks warned about (also logged).
+        What the checks warned about (also logged, unless *announce* is false).
+    announce : bool
+        Log each warning as it is found (False for the checks repeated on every facet, whose caller logs
+        only changes).
     """
 
     record: RadiometricRecord
@@ -187,6 +190,7 @@ class CalibrationStatus:
     age_h: float | None = None
     dark_shift_dn: float | None = None
     warnings: list[str] = field(default_factory=list)
+    announce: bool = True
 
     @property
     def describe(self) -> str:
@@ -239,7 +243,8 @@ def _stale(policy: CalibrationPolicy, status: CalibrationStatus, message: str) -
     if policy.stale == "refuse":
         raise StaleCalibrationError(message + " (the station is configured to refuse: [calibration] stale = "
                                     "\"refuse\")")
-    log.warning("%s", message)
+    if status.announce:
+        log.warning("%s", message)
     status.warnings.append(message)
 
 
@@ -380,6 +385,31 @@ def open_calibration(config, now: _dt.datetime | None = None, checks: bool = Tru
     if checks:
         check_age(status, policy, now)
     return status
+
+
+def check_cycle(status: CalibrationStatus, policy: CalibrationPolicy, dark_level_dn: float | None,
+                now: _dt.datetime | None = None) -> CalibrationStatus:
+    """The checks repeated for every facet of a run, on the record in force when the station opened.
+
+    A station left running past ``max_age_h`` goes stale mid-shift, and room light can change after the
+    station opened: the record's age is judged again, and the facet's own dark frame (*dark_level_dn*,
+    the mean DN of the whole frame with the screen dark; None to skip) is compared with the record's.
+
+    Returns
+    -------
+    CalibrationStatus
+        A fresh status for this facet: its ``warnings`` go into the facet's record (nothing is logged).
+
+    Raises
+    ------
+    StaleCalibrationError
+        The record went stale and the station refuses stale records.
+    """
+    probe = CalibrationStatus(status.record, status.origin, status.path, exempt=status.exempt, announce=False)
+    check_age(probe, policy, now)
+    if dark_level_dn is not None:
+        check_dark_level(probe, policy, dark_level_dn)
+    return probe
 
 
 def check_opened_station(station, status: CalibrationStatus) -> None:

@@ -80,6 +80,7 @@ FAULT_CODES = {
     "geometry": 4,         # the facet pose / measured distance does not fit
     "analysis": 5,         # the analysis could not produce figures
     "display": 6,          # the display failed
+    "calibration": 7,      # the calibration went stale mid-run and the station refuses ([calibration] stale)
     "internal": 99,        # a bug: see the log
 }
 

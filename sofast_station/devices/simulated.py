@@ -16,6 +16,9 @@ from .cameras._common import CameraSettingError, check_exposure, check_gain
 from ..fringes import Pattern
 from .renderer import FringeRenderer
 
+#: The "lights-off" fault: counts of room light, present at calibration, that every pixel loses, DN.
+LIGHTS_OFF_DN = 6
+
 
 class SimulatedDisplay:
     """Display backend that renders offscreen and keeps the image "on screen" for the simulated camera.
@@ -136,6 +139,8 @@ class SimulatedCamera:
         frame = self.twin.capture(shown, self.rng, **settings)
         if fault == "misplaced":
             frame = np.roll(frame, 220, axis=1)   # the facet far from where the fixture should hold it
+        if fault == "lights-off":                 # the room light seen at calibration is gone
+            frame = np.maximum(frame.astype(np.int16) - LIGHTS_OFF_DN, 0).astype(np.uint8)
         return frame
 
     def release_hang(self) -> None:

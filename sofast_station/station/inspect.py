@@ -41,6 +41,8 @@ class Station:
     radiometric: RadiometricRecord
     twin: object | None = None
     camera_factory: object | None = field(default=None, repr=False)
+    #: The radiometric record's status when the station opened (CalibrationStatus: origin, warnings).
+    calibration: object | None = None
     _rays: np.ndarray | None = field(default=None, repr=False)
 
     @property
@@ -89,6 +91,7 @@ def open_station(config: StationConfig, seed: int | None = None, noise: bool = T
         station = open_hardware(config, radiometric)
         if radiometric.settle_s is not None:     # the display-latency calibration's settle time
             station.display.settle_s = radiometric.settle_s
+    station.calibration = status
     try:
         if calibration_checks:
             check_opened_station(station, status)
@@ -96,6 +99,20 @@ def open_station(config: StationConfig, seed: int | None = None, noise: bool = T
         station.close()
         raise
     return station
+
+
+def calibration_entry(station: Station, warnings: list[str] | None = None) -> dict:
+    """The ``calibration`` entry of a result record: the record in force, where it came from, and the
+    staleness warnings that applied to this facet (*warnings*; those found when the station opened by
+    default), so an archive row says when it was measured on a stale calibration."""
+    entry = {"radiometric": station.radiometric.record_id}
+    if station.config.camera_record is not None:
+        entry["camera"] = station.config.camera_record["record_id"]
+    status = station.calibration
+    if status is not None:
+        entry["origin"] = status.origin
+        entry["warnings"] = list(status.warnings if warnings is None else warnings)
+    return entry
 
 
 class FixedRangeFinder:
@@ -192,7 +209,7 @@ def result_record(station: Station, serial: str, analysis: Analysis, timings: di
     out.update({k: fig[k] for k in FIGURE_KEYS})
     out.update({k: v for k, v in fig.items() if k not in FIGURE_KEYS and k != "timings_s"})
     out["camera"] = {"exposure_s": station.radiometric.exposure_s, "gain": station.radiometric.gain}
-    out["calibration"] = {"radiometric": station.radiometric.record_id}
+    out["calibration"] = calibration_entry(station)
     out["software_version"] = __version__
     out["config_hash"] = station.config.config_hash
     out["station"] = station.config.name

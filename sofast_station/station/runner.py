@@ -27,7 +27,7 @@ from ..devices.protocols import FAULT_CODES, FacetRequest
 from ..errors import (CameraError, CaptureError, DisplayError, GeometryError, StationError,
                       TriggerError)
 from .frames import capture_sequence, crop, crop_box, restore
-from .inspect import FIGURE_KEYS, Station, now_iso
+from .inspect import FIGURE_KEYS, Station, calibration_entry, now_iso
 from .recipes import Recipe, choose_recipe
 from .verdict import judge
 from .worker import AnalysisTimeout, AnalysisWorker
@@ -91,6 +91,9 @@ def new_cycle_id() -> str:
 
 def fault_code_for(exc: BaseException) -> tuple[int, str]:
     """Reason code and kind for an exception that ended a cycle."""
+    from ..calibrate.errors import StaleCalibrationError
+    if isinstance(exc, StaleCalibrationError):
+        return FAULT_CODES["calibration"], "calibration"
     if isinstance(exc, AnalysisTimeout):
         return FAULT_CODES["timeout"], "timeout"
     if isinstance(exc, CameraError):
@@ -158,6 +161,35 @@ class StationRunner:
         self.worker = AnalysisWorker(station.config.geometry, station.config.fringes, cam.shape)
         self._heartbeat_thread = threading.Thread(target=self._heartbeat, name="heartbeat", daemon=True)
         self._answer_lock = threading.Lock()
+        from ..calibrate.settings import calibration_settings
+        self._calibration_policy = calibration_settings(station.config)[0]
+        self._calibration_warned = False
+
+    def _check_calibration(self, dark_frame: np.ndarray) -> list[str]:
+        """Judge the calibration again for this facet (age, and the dark level of its dark frame).
+
+        Returns the warnings for the facet's record; raises StaleCalibrationError when the station refuses
+        stale records. The log hears of it when the calibration goes stale and when it is fresh again,
+        not on every facet.
+        """
+        from ..calibrate.store import check_cycle
+        status = self.station.calibration
+        if status is None:
+            return []
+        dark_dn = float(np.mean(dark_frame, dtype=np.float64))
+        try:
+            warnings = check_cycle(status, self._calibration_policy, dark_dn).warnings
+        except StationError:
+            if not self._calibration_warned:
+                log.error("the calibration went stale: facets are refused until it is renewed")
+            self._calibration_warned = True
+            raise
+        if warnings and not self._calibration_warned:
+            log.warning("calibration stale from this facet on (recorded in every row): %s", "; ".join(warnings))
+        elif not warnings and self._calibration_warned:
+            log.info("calibration checks pass again")
+        self._calibration_warned = bool(warnings)
+        return warnings
 
     # ------------------------------------------------------------------ loop
     def _heartbeat(self) -> None:
@@ -224,6 +256,7 @@ class StationRunner:
         watchdog.start()
         frames = raw_shape = box = distance = None
         outcome = None
+        cal_warnings: list[str] = []
         try:
             recipe = choose_recipe(self.recipes, request)
             inject = getattr(self.station, "inject", None)
@@ -236,6 +269,7 @@ class StationRunner:
             timings["capture"] = time.perf_counter() - t
             box = crop_box(raw[0], raw[1], recipe.analysis.mask_threshold_dn)
             frames, raw_shape = crop(raw, box), raw.shape[1:]
+            cal_warnings = self._check_calibration(raw[0])
             remaining = self.settings.deadline_s - (time.perf_counter() - t0) - 0.3
             if state["answered"] or remaining <= 0:     # the watchdog gave up on this cycle already
                 raise AnalysisTimeout(f"the capture took {timings['capture']:.1f} s, past the "
@@ -245,7 +279,7 @@ class StationRunner:
             res = self.worker.analyse(restore(frames, box, raw_shape), recipe.design, recipe.analysis,
                                       distance, timeout_s=remaining, hang_s=hang_s)
             timings["analysis"] = time.perf_counter() - t
-            record = self._record(cycle_id, request, recipe, res.figures, distance, notes, timings)
+            record = self._record(cycle_id, request, recipe, res.figures, distance, notes, timings, cal_warnings)
             record.update(judge(res.figures, recipe.design, recipe.limits, recipe.quality))
             if self.station.twin is not None and recipe.design.name == self.station.config.design.name:
                 from ..twin.truth import ground_truth
@@ -257,7 +291,7 @@ class StationRunner:
             if kind == "internal":
                 log.exception("%s: internal error", serial)
             reason = f"{kind}: {exc}"
-            record = self._fault_record(cycle_id, request, code, reason, timings)
+            record = self._fault_record(cycle_id, request, code, reason, timings, cal_warnings)
             outcome = CycleOutcome(cycle_id, serial, "fault", record, fault_code=code)
             if isinstance(exc, CameraError):
                 self._reopen_camera()
@@ -349,16 +383,16 @@ class StationRunner:
                 log.error("could not reopen the camera: %s", exc)
 
     # ------------------------------------------------------------------ records
-    def _base(self, cycle_id: str, request: FacetRequest, recipe_name: str) -> dict:
+    def _base(self, cycle_id: str, request: FacetRequest, recipe_name: str, cal_warnings=()) -> dict:
         cfg = self.station.config
         return {"cycle_id": cycle_id, "serial": request.serial, "time": now_iso(), "recipe": recipe_name,
                 "station": cfg.name, "software_version": __version__, "config_hash": cfg.config_hash,
-                "calibration": {"radiometric": self.station.radiometric.record_id},
+                "calibration": calibration_entry(self.station, list(cal_warnings)),
                 "camera": {"exposure_s": self.station.radiometric.exposure_s, "gain": self.station.radiometric.gain},
                 "request": {"recipe": request.recipe, "dump": request.dump, **request.extra}}
 
-    def _record(self, cycle_id, request, recipe, figures, distance, notes, timings) -> dict:
-        rec = self._base(cycle_id, request, recipe.name)
+    def _record(self, cycle_id, request, recipe, figures, distance, notes, timings, cal_warnings=()) -> dict:
+        rec = self._base(cycle_id, request, recipe.name, cal_warnings)
         rec["facet"] = recipe.design.name
         rec.update({k: figures[k] for k in FIGURE_KEYS})
         rec.update({k: v for k, v in figures.items() if k not in FIGURE_KEYS and k != "timings_s"})
@@ -367,9 +401,9 @@ class StationRunner:
         rec["timings_s"] = {**timings, **{f"analysis_{k}": v for k, v in figures.get("timings_s", {}).items()}}
         return rec
 
-    def _fault_record(self, cycle_id, request, code, reason, timings) -> dict:
+    def _fault_record(self, cycle_id, request, code, reason, timings, cal_warnings=()) -> dict:
         recipe = request.recipe or ""
-        rec = self._base(cycle_id, request, recipe)
+        rec = self._base(cycle_id, request, recipe, cal_warnings)
         rec.update({"verdict": "fault", "fault_code": code, "reasons": [reason], "timings_s": dict(timings)})
         return rec
 
@@ -385,6 +419,8 @@ class StationRunner:
                 f"parabola {f(parab, '5.2f')} mrad  {answer.upper():<7} {cycle_s:5.2f} s")
         if answer in ("fault", "invalid", "fail") and record.get("reasons"):
             text += f"  ({record['reasons'][0]})"
+        if record.get("calibration", {}).get("warnings"):
+            text += "  [calibration stale: see the log]"
         return text
 
     def close(self) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 
 import numpy as np
@@ -16,7 +17,8 @@ from .inspect import Station
 _SIM_KEYS = {"seed", "facet", "optics", "distance_error_m", "faults", "hang_s"}
 
 #: Faults the simulated station can inject for a given serial ([simulation.faults] SERIAL = KIND).
-FAULT_KINDS = ("dark", "camera-timeout", "misplaced", "hung-analysis", "hung-capture", "camera-disconnect")
+FAULT_KINDS = ("dark", "camera-timeout", "misplaced", "hung-analysis", "hung-capture", "camera-disconnect",
+               "lights-off")
 
 log = logging.getLogger(__name__)
 
@@ -37,7 +39,12 @@ def build_twin(config: StationConfig, noise: bool = True):
         raise ConfigError(f"{config.path} [simulation]: {exc}") from None
     if not noise:
         optics = optics.noise_free()
-    return TwinStation(config.geometry, config.design, facet, optics)
+    geometry = config.geometry
+    if config.camera_record is not None:
+        # The analysis uses the camera record (an estimate); the twin's camera is the physical one, which
+        # the [camera] table describes.
+        geometry = dataclasses.replace(geometry, camera=config.camera_record["stated"])
+    return TwinStation(geometry, config.design, facet, optics)
 
 
 class SimulatedStation(Station):
@@ -48,7 +55,7 @@ class SimulatedStation(Station):
         analysis must hang (for "hung-analysis"), else 0."""
         kind = self.config.simulation.get("faults", {}).get(serial)
         self.camera.fault = kind if kind in ("dark", "camera-timeout", "misplaced", "hung-capture",
-                                             "camera-disconnect") else None
+                                             "camera-disconnect", "lights-off") else None
         return self.config.simulation.get("hang_s", 3600.0) if kind == "hung-analysis" else 0.0
 
     def reopen_camera(self) -> None:

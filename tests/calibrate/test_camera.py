@@ -143,3 +143,4 @@ def test_calibrate_camera_command(chess_images, tmp_path, small_station_toml, ca
     assert out["rms_px"] < 0.1 and abs(out["camera"]["matrix"][0][0] / K[0, 0] - 1) < 0.005
     assert [i["accepted"] for i in out["images"]] == [True] * 7 + [False]
     assert out["path"].endswith(".json") and "/calibration/camera/camera-" in out["path"]
+    assert "set [camera] intrinsics = \"record\"" in out["use"]        # how to put the record in force

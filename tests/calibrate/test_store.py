@@ -167,3 +167,49 @@ def test_record_fields_round_trip(small_record):
     assert again.to_dict(curve=True)["curve"] == json.loads(small_record.path.read_text())["curve"]
     created = dt.datetime.fromisoformat(again.created)
     assert created.tzinfo is not None
+
+
+@pytest.mark.parametrize("stale", ["warn", "refuse"])
+def test_room_light_change_mid_run_marks_the_rows_or_refuses_the_facets(tmp_path, small_record, stale):
+    """The station opened in the room light of the calibration; the light goes off for facets 2 and 3,
+    then on again (the noise-free station, whose record this is, so that only the light changes). Every
+    facet's own dark frame is checked: the rows of facets 2 and 3 say they were measured on a stale
+    calibration (warn), or those facets are refused with fault 7 (refuse); the line goes on either way."""
+    from sofast_station.archive import Journal
+    from sofast_station.devices.protocols import FAULT_CODES
+    from sofast_station.station.service import Service
+
+    install_record(small_record.path, tmp_path / "data")
+    lit = {"SIM-0002": "lights-off", "SIM-0003": "lights-off"}
+    cfg = small_config(tmp_path, calibration={"stale": stale, "max_dark_shift_dn": 4.0},
+                       simulation={"faults": lit})
+    lines: list[str] = []
+    service = Service(cfg, simulated_facets=4, console=lines.append, archiver_process=False,
+                      station=open_station(cfg, noise=False))
+    robot = service.trigger
+    try:
+        service.runner.run()
+    finally:
+        service.close()
+    finals = {a.serial: a for a in robot.answers if a.kind in ("done", "fault")}
+    assert sorted(finals) == [f"SIM-{i:04d}" for i in range(1, 5)]
+    journal = Journal(cfg.data_dir / "journal.sqlite3")
+    try:
+        rows = {r.serial: r.record for r in journal.rows()}
+    finally:
+        journal.close()
+    for serial in ("SIM-0001", "SIM-0004"):
+        assert finals[serial].kind == "done", finals[serial]
+        assert rows[serial]["calibration"] == {"radiometric": small_record.record_id, "origin": "data_dir",
+                                               "warnings": []}
+    for serial, line in zip(lit, lines[1:3]):
+        assert serial in line
+        if stale == "warn":
+            assert finals[serial].kind == "done"
+            (warning,) = rows[serial]["calibration"]["warnings"]
+            assert f"dark level moved from {small_record.dark_level_dn:.2f} DN" in warning
+            assert "[calibration stale" in line
+        else:
+            assert finals[serial].kind == "fault" and finals[serial].code == FAULT_CODES["calibration"]
+            assert "dark level moved" in finals[serial].reason and "refuse" in finals[serial].reason
+            assert rows[serial]["verdict"] == "fault" and rows[serial]["fault_code"] == FAULT_CODES["calibration"]

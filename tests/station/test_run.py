@@ -14,9 +14,7 @@ import json
 import signal
 import subprocess
 import sys
-import time
 
-import numpy as np
 import pytest
 
 from sofast_station.archive import Journal, read_dump, read_workbook
