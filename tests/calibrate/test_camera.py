@@ -107,7 +107,8 @@ def test_charuco_images(tmp_path):
     texture = board.charuco().generateImage((9 * 60, 7 * 60), marginSize=0, borderBits=1) / 255.0
     target = PlanarTarget(texture, 9 * 0.03, 7 * 0.03, margin_m=0.015)
     rng = np.random.default_rng(6)
-    poses = board_poses(14, (0.27, 0.21), (15, 35), rng)
+    # 36 views: with a ChArUco board's fewer corners, OpenCV's principal point std is ~1 px (1.3 px with 14)
+    poses = board_poses(36, (0.27, 0.21), (15, 35), rng)
     images = render_target_images(CAMERA, target, poses, supersample=4, blur_px=0.8, noise_dn=2.0, rng=rng)
     # mostly outside the view: a few corners only
     corner = Pose(np.eye(3), np.array([0.09, 0.07, 0.7]))
@@ -123,9 +124,10 @@ def test_charuco_images(tmp_path):
           f"{100 * f_err[1]:+.3f} %; principal point error {pp_err[0]:+.2f}, {pp_err[1]:+.2f} px (std {std[0]:.2f}, "
           f"{std[1]:.2f} px)")
     assert max(abs(e) for e in f_err) < 0.005
-    # fewer, smaller corners than the chessboard's: the principal point is only as good as OpenCV says
+    # the 2 px, about two of OpenCV's standard deviations here; and consistent with that std
+    assert max(abs(e) for e in pp_err) < 2.0
     assert abs(pp_err[0]) < 3 * std[0] + 0.5 and abs(pp_err[1]) < 3 * std[1] + 0.5
-    assert cal.rms_px < 0.15 and cal.used >= 10
+    assert cal.rms_px < 0.15 and cal.used >= 30
 
 
 def test_calibrate_camera_command(chess_images, tmp_path, small_station_toml, capsys):
