@@ -86,9 +86,12 @@ def summary_text(rec: dict) -> str:
         lines.append(text)
     b = rec.get("boresight_mrad")
     if b:
-        tb = truth.get("boresight_mrad") if truth else None
-        extra = f"   (truth {tb['x']:.3f}, {tb['y']:.3f})" if tb else ""
-        lines.append(f"  boresight rotation (x, y)   {b['x']:7.3f}, {b['y']:.3f} mrad{extra}")
+        lines.append(f"  boresight rotation (x, y)   {b['x']:7.3f}, {b['y']:.3f} mrad   (from the corner pose)")
+    tilt = rec.get("optical_tilt_mrad")
+    if tilt:
+        tt = truth.get("optical_tilt_mrad") if truth else None
+        extra = f"   (truth {tt['x']:.3f}, {tt['y']:.3f})" if tt else ""
+        lines.append(f"  optical tilt in fixture     {tilt['x']:7.3f}, {tilt['y']:.3f} mrad{extra}")
     pl = rec.get("placement")
     if pl:
         lines.append("  placement in fixture       " + ", ".join(f"{v:.2f}" for v in pl["mm"]) + " mm, "

@@ -351,6 +351,10 @@ def _reduce(pool, frames, fringes, geometry, design, measured_distance_m, settin
 
     valid = np.zeros(cam.shape, dtype=bool)
     valid.ravel()[vidx] = True
+    boresighted_to_camera = solution.motion.as_pose().compose(camera_to_facet).inverse()
+    # The boresight frame's tilt in the fixture: where the facet's optical axis at the alignment point
+    # points, to the precision of the slopes (the corner pose's own tilt errors cancel).
+    tilt = placement(geometry.fixture_to_camera, boresighted_to_camera, design)["mrad"]
     kx, ky = 4.0 * fit.a, 4.0 * fit.b
     principal, angle = principal_axes(fit.a, fit.b, fit.e)
     figures = {
@@ -380,6 +384,7 @@ def _reduce(pool, frames, fringes, geometry, design, measured_distance_m, settin
                        "converged": solution.converged},
         "boresight_mrad": {"x": 1000.0 * solution.motion.alpha_rad, "y": 1000.0 * solution.motion.beta_rad},
         "placement": placement(geometry.fixture_to_camera, facet_to_camera, design),
+        "optical_tilt_mrad": {"x": tilt[0], "y": tilt[1]},
         "higher_order": cubic.to_dict(),
         # The converged fit on the subsample (every n-th valid pixel), before the all-points fit: what
         # programs that stop there (OpenCSP's SOFAST) report.
@@ -395,5 +400,5 @@ def _reduce(pool, frames, fringes, geometry, design, measured_distance_m, settin
     figures["timings_s"] = dict(timer.timings)
     return Analysis(figures=figures, valid=valid, points_facet_m=points, slopes=np.stack([s_x, s_y]),
                     residuals_mrad=residuals,
-                    facet_to_camera=solution.motion.as_pose().compose(camera_to_facet).inverse(), corners_px=found,
+                    facet_to_camera=boresighted_to_camera, corners_px=found,
                     coefficients=coeffs, timings_s=dict(timer.timings))

@@ -27,7 +27,7 @@ log = logging.getLogger(__name__)
 #: Figures copied from an analysis into the result (and compared with truth).
 FIGURE_KEYS = ("focal_length_x_m", "focal_length_y_m", "curvature_x_per_m", "curvature_y_per_m",
                "twist_mrad_per_m", "twist_e1_mrad_per_m", "twist_e2_mrad_per_m", "principal_focal_lengths_m",
-               "axis_angle_rad", "slope_rms_mrad", "n_points", "boresight_mrad")
+               "axis_angle_rad", "slope_rms_mrad", "n_points", "boresight_mrad", "optical_tilt_mrad")
 
 
 @dataclass

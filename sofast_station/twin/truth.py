@@ -147,6 +147,19 @@ def boresight_frame(points_m: np.ndarray, normals: np.ndarray, design: FacetDesi
                        "with a parabola near the design")
 
 
+def optical_tilt_mrad(placement_mrad, alpha_rad: float, beta_rad: float) -> dict:
+    """The boresight frame's tilt in the fixture, mrad: the (rx, ry) of its orientation there.
+
+    Boresight coordinates are X_b = R_b (X_t - P) + P with R_b = R_y(beta) R_x(alpha) (as in
+    :func:`rotate_about_pivot`), so the boresight frame's axes are R_b^T in the true facet frame, and
+    R_p R_b^T in the fixture, R_p = R_z(rz) R_y(ry) R_x(rx) being the true placement. Its angles are read
+    in the placement's own convention: ry = -asin(R[2, 0]), rx = atan2(R[2, 1], R[2, 2]).
+    """
+    rx, ry, rz = (1e-3 * float(v) for v in placement_mrad)
+    r = rotation_zyx(rx, ry, rz) @ rotation_zyx(alpha_rad, beta_rad, 0.0).T
+    return {"x": 1e3 * math.atan2(r[2, 1], r[2, 2]), "y": -1e3 * math.asin(max(-1.0, min(1.0, r[2, 0])))}
+
+
 def fit_parabola(xy_m: np.ndarray, slopes: np.ndarray) -> dict:
     """The SPEC's parabola fit: ``s_x = 2A x + C + E1 y`` and ``s_y = 2B y + D + E2 x``, separately.
 
@@ -285,6 +298,7 @@ def ground_truth(station: TwinStation, kept: np.ndarray) -> dict:
                            "parabola": _residual_rms_mrad(slopes, parabola),
                            "higher_order": _residual_rms_mrad(slopes, higher_order_slopes(xy, slopes))},
         "boresight_mrad": {"x": 1e3 * frame["alpha_rad"], "y": 1e3 * frame["beta_rad"]},
+        "optical_tilt_mrad": optical_tilt_mrad(station.facet.placement_mrad, frame["alpha_rad"], frame["beta_rad"]),
         "placement": {"mm": list(station.facet.placement_mm), "mrad": list(station.facet.placement_mrad)},
         "n_points": int(n),
     }

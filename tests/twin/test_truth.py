@@ -10,7 +10,7 @@ from sofast_station.twin import ground_truth
 
 KEYS = {"focal_length_x_m", "focal_length_y_m", "curvature_x_per_m", "curvature_y_per_m", "twist_mrad_per_m",
         "twist_e1_mrad_per_m", "twist_e2_mrad_per_m", "principal_focal_lengths_m", "axis_angle_rad",
-        "coefficients", "slope_rms_mrad", "boresight_mrad", "placement", "n_points"}
+        "coefficients", "slope_rms_mrad", "boresight_mrad", "optical_tilt_mrad", "placement", "n_points"}
 
 
 def test_pure_paraboloid_is_recovered_exactly(parabola_station):
@@ -186,6 +186,13 @@ def test_boresight_undoes_a_tilt_of_the_surface_in_its_frame(design_dish):
     assert abs(1e3 * alpha + 2.0) > 5e-6 and abs(1e3 * beta - 3.0) > 5e-6     # not simply (-rx, -ry)
     assert truth["boresight_mrad"]["x"] == pytest.approx(1e3 * alpha, abs=1e-6)
     assert truth["boresight_mrad"]["y"] == pytest.approx(1e3 * beta, abs=1e-6)
+    # The boresight frame's tilt (placement zero here) is R^T read as R_z R_y R_x (scipy's intrinsic ZYX):
+    # the surface's own tilt to first order, (2, -3) mrad, not exactly (convention, 6e-6 rad second order)
+    _, ry_b, rx_b = Rotation.from_matrix(r.T).as_euler("ZYX")
+    assert truth["optical_tilt_mrad"]["x"] == pytest.approx(1e3 * rx_b, abs=1e-6)
+    assert truth["optical_tilt_mrad"]["y"] == pytest.approx(1e3 * ry_b, abs=1e-6)
+    assert truth["optical_tilt_mrad"]["x"] == pytest.approx(2.0, abs=0.01)
+    assert truth["optical_tilt_mrad"]["y"] == pytest.approx(-3.0, abs=0.01)
     assert truth["focal_length_x_m"] == pytest.approx(5.33, rel=1e-6)
     assert truth["focal_length_y_m"] == pytest.approx(5.33, rel=1e-6)
     assert abs(truth["twist_mrad_per_m"]) < 1e-6
