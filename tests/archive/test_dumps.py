@@ -18,6 +18,9 @@ from sofast_station.archive.dumps import (SCHEMA_V1, crop_to_facet, disk_ok, pru
 from sofast_station.archive.spool import spool_get, spool_list, spool_put
 from sofast_station.errors import ArchiveError, DumpError
 
+from tests import bad_dumps
+from tests.bad_dumps import BAD_FILES
+
 from .conftest import ROOT, make_record, synthetic_content
 
 
@@ -181,62 +184,9 @@ def test_full_resolution_dump_of_twin_frames_is_small_and_fast(tmp_path):
 
 
 # -- bad files ------------------------------------------------------------------------------------------
-def _zero(p, good):
-    p.write_bytes(b"")
-
-
-def _png(p, good):
-    p.write_bytes(b"\x89PNG\r\n\x1a\n" + b"\x00" * 200)
-
-
-def _truncated(p, good):
-    p.write_bytes(good.read_bytes()[: good.stat().st_size * 6 // 10])
-
-
-def _corrupt(p, good):
-    data = bytearray(good.read_bytes())
-    mid = len(data) // 2
-    data[mid:mid + 64] = bytes(b ^ 0xFF for b in data[mid:mid + 64])
-    p.write_bytes(bytes(data))
-
-
-def _tampered(p, good):                     # a valid chunk with other pixels: only the digest notices
-    import zlib
-    p.write_bytes(good.read_bytes())
-    with h5py.File(p, "r+") as f:
-        ds = f["capture/frames"]
-        frame = ds[3]
-        frame[0, 0] ^= 1
-        ds.id.write_direct_chunk((3, 0, 0), zlib.compress(frame.tobytes(), 4), 0)
-
-
-def _foreign(p, good):
-    with h5py.File(p, "w") as f:
-        f.create_dataset("images", data=np.zeros((2, 3)))
-
-
-def _newer(p, good):
-    p.write_bytes(good.read_bytes())
-    with h5py.File(p, "r+") as f:
-        f.attrs["schema_version"] = np.int64(2)
-
-
-def _missing(p, good):
-    p.write_bytes(good.read_bytes())
-    with h5py.File(p, "r+") as f:
-        del f["geometry/camera/matrix"]
-
-
-@pytest.mark.parametrize("make, problem", [
-    (_zero, "is empty (0 bytes)"),
-    (_png, "is not an HDF5 file (it looks like a PNG image)"),
-    (_truncated, "is truncated"),
-    (_corrupt, "corrupt"),
-    (_tampered, "is corrupt: frame 3 does not match its SHA-256 digest"),
-    (_foreign, "is an HDF5 file but not a sofast-station dump"),
-    (_newer, "written by a newer sofast-station"),
-    (_missing, "lacks the dataset(s) geometry/camera/matrix"),
-], ids=["zero-byte", "png", "truncated", "corrupt", "tampered", "foreign", "newer", "missing"])
+@pytest.mark.parametrize("make, problem", [(make, problem) for _, make, problem in BAD_FILES] + [
+    (bad_dumps.tampered, "is corrupt: frame 3 does not match its SHA-256 digest")],
+    ids=[name for name, _, _ in BAD_FILES] + ["tampered"])
 def test_bad_files_raise_dump_errors_naming_file_and_problem(dump_file, tmp_path, make, problem):
     good, _ = dump_file
     bad = tmp_path / f"bad-{make.__name__}.h5"
@@ -245,7 +195,7 @@ def test_bad_files_raise_dump_errors_naming_file_and_problem(dump_file, tmp_path
         read_dump(bad)
     msg = str(info.value)
     assert str(bad) in msg and problem in msg, msg
-    if make is _newer:
+    if make is bad_dumps.newer:
         assert "upgrade" in msg
 
 

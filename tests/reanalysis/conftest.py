@@ -12,8 +12,6 @@ import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
-import h5py
-import numpy as np
 import pytest
 
 from tests.conftest import ROOT, SMALL_STATION
@@ -64,63 +62,3 @@ def copy_dump(src: Path, dst: Path) -> Path:
     dst.parent.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(src, dst)
     return dst
-
-
-# -- damaged and foreign files: each must give a clear error naming the file and the problem -----------------
-def _zero(p, good):
-    p.write_bytes(b"")
-
-
-def _png(p, good):
-    p.write_bytes(b"\x89PNG\r\n\x1a\n" + b"\x00" * 200)
-
-
-def _truncated(p, good):
-    p.write_bytes(good.read_bytes()[: good.stat().st_size * 6 // 10])
-
-
-def _corrupt(p, good):
-    data = bytearray(good.read_bytes())
-    mid = len(data) // 2
-    data[mid:mid + 64] = bytes(b ^ 0xFF for b in data[mid:mid + 64])
-    p.write_bytes(bytes(data))
-
-
-def _foreign(p, good):
-    with h5py.File(p, "w") as f:
-        f.create_dataset("images", data=np.zeros((2, 3)))
-
-
-def _newer(p, good):
-    p.write_bytes(good.read_bytes())
-    with h5py.File(p, "r+") as f:
-        f.attrs["schema_version"] = np.int64(2)
-
-
-def _missing(p, good):
-    p.write_bytes(good.read_bytes())
-    with h5py.File(p, "r+") as f:
-        del f["geometry/camera/matrix"]
-
-
-#: (name, how to make it from a good dump, what the error must say)
-BAD_FILES = (
-    ("zero-byte", _zero, "is empty (0 bytes)"),
-    ("png", _png, "is not an HDF5 file (it looks like a PNG image)"),
-    ("truncated", _truncated, "is truncated"),
-    ("corrupt", _corrupt, "corrupt"),
-    ("foreign", _foreign, "is an HDF5 file but not a sofast-station dump"),
-    ("newer", _newer, "written by a newer sofast-station"),
-    ("missing", _missing, "lacks the dataset(s) geometry/camera/matrix"),
-)
-
-
-def make_bad_files(folder: Path, good: Path) -> dict[Path, str]:
-    """Every kind of bad file in *folder* (named ``bad-<kind>.h5``) -> the problem its error must state."""
-    folder.mkdir(parents=True, exist_ok=True)
-    out = {}
-    for name, make, problem in BAD_FILES:
-        p = folder / f"bad-{name}.h5"
-        make(p, good)
-        out[p] = problem
-    return out

@@ -17,7 +17,8 @@ from sofast_station.reanalysis.batch import BatchError, read_result, run_batch
 from sofast_station.reanalysis.cli import ProgressBar
 from sofast_station.reanalysis.cli import main as cli_main
 from tests.conftest import ROOT
-from tests.reanalysis.conftest import copy_dump, make_bad_files
+from tests.bad_dumps import make_bad_files
+from tests.reanalysis.conftest import copy_dump
 
 #: Keys of a result that depend on when, where and how fast it was computed.
 VOLATILE = {"timings_s"}

@@ -22,7 +22,8 @@ from sofast_station.reanalysis.cli import main
 from sofast_station.reanalysis.reprocess import Overrides, compare_figures, flatten_figures, reprocess_dump
 from sofast_station.station.inspect import FIGURE_KEYS
 from tests.archive.conftest import SAMPLE_RECORD
-from tests.reanalysis.conftest import copy_dump, make_bad_files
+from tests.bad_dumps import make_bad_files
+from tests.reanalysis.conftest import copy_dump
 
 #: Figures computed before the corner pose: they depend on the frames, the fringe definition and the
 #: analysis thresholds only, never on the facet design or the measured distance.
