@@ -347,19 +347,8 @@ def _cmd_trend(args) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """Run one re-analysis command (as ``sofast-station`` would), for tests and ``python -m``."""
-    from ..errors import StationError
-
-    args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, stream=sys.stderr,
-                        format="%(asctime)s %(levelname)s %(message)s", datefmt="%H:%M:%S")
-    try:
-        return args.func(args)
-    except StationError as exc:
-        log.error("%s", exc)
-        return 2
-    except KeyboardInterrupt:
-        log.error("interrupted")
-        return 130
+    from ..cli import run
+    return run(build_parser().parse_args(argv))
 
 
 if __name__ == "__main__":  # pragma: no cover
