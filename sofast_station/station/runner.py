@@ -23,6 +23,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import __version__
+from ..calibrate.errors import StaleCalibrationError
+from ..calibrate.settings import calibration_settings
+from ..calibrate.store import check_cycle
 from ..devices.protocols import FAULT_CODES, FacetRequest
 from ..errors import (CameraError, CaptureError, DisplayError, GeometryError, StationError,
                       TriggerError)
@@ -89,24 +92,16 @@ def new_cycle_id() -> str:
     return _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%S%fZ")[:-4] + "-" + uuid.uuid4().hex[:8]
 
 
+#: The fault kind of an exception that ended a cycle: the first class it is an instance of.
+_FAULT_KINDS = ((StaleCalibrationError, "calibration"), (AnalysisTimeout, "timeout"), (CameraError, "camera"),
+                (DisplayError, "display"), (CaptureError, "capture"), (GeometryError, "geometry"),
+                (StationError, "analysis"))
+
+
 def fault_code_for(exc: BaseException) -> tuple[int, str]:
     """Reason code and kind for an exception that ended a cycle."""
-    from ..calibrate.errors import StaleCalibrationError
-    if isinstance(exc, StaleCalibrationError):
-        return FAULT_CODES["calibration"], "calibration"
-    if isinstance(exc, AnalysisTimeout):
-        return FAULT_CODES["timeout"], "timeout"
-    if isinstance(exc, CameraError):
-        return FAULT_CODES["camera"], "camera"
-    if isinstance(exc, DisplayError):
-        return FAULT_CODES["display"], "display"
-    if isinstance(exc, CaptureError):
-        return FAULT_CODES["capture"], "capture"
-    if isinstance(exc, GeometryError):
-        return FAULT_CODES["geometry"], "geometry"
-    if isinstance(exc, StationError):
-        return FAULT_CODES["analysis"], "analysis"
-    return FAULT_CODES["internal"], "internal"
+    kind = next((kind for cls, kind in _FAULT_KINDS if isinstance(exc, cls)), "internal")
+    return FAULT_CODES[kind], kind
 
 
 class LockedTrigger:
@@ -161,7 +156,6 @@ class StationRunner:
         self.worker = AnalysisWorker(station.config.geometry, station.config.fringes, cam.shape)
         self._heartbeat_thread = threading.Thread(target=self._heartbeat, name="heartbeat", daemon=True)
         self._answer_lock = threading.Lock()
-        from ..calibrate.settings import calibration_settings
         self._calibration_policy = calibration_settings(station.config)[0]
         self._calibration_warned = False
 
@@ -172,7 +166,6 @@ class StationRunner:
         stale records. The log hears of it when the calibration goes stale and when it is fresh again,
         not on every facet.
         """
-        from ..calibrate.store import check_cycle
         status = self.station.calibration
         if status is None:
             return []
