@@ -151,7 +151,7 @@ def load_config(path: str | Path, use_camera_record: bool = True) -> StationConf
     camera_record = None
     source = raw.get("camera", {}).get("intrinsics", "station.toml")
     if source == "record" and use_camera_record:
-        recorded, camera_record = _camera_from_record(data_dir, geometry.camera, f"{where} [camera]")
+        recorded, camera_record = camera_from_record(data_dir, geometry.camera, f"{where} [camera]")
         geometry = dataclasses.replace(geometry, camera=recorded)
     elif source not in ("station.toml", "record"):
         raise ConfigError(f"{where} [camera] intrinsics must be \"station.toml\" (the table's values) or "
@@ -162,7 +162,7 @@ def load_config(path: str | Path, use_camera_record: bool = True) -> StationConf
                          simulation=raw.get("simulation", {}), raw=raw, camera_record=camera_record)
 
 
-def _camera_from_record(data_dir: Path, stated: CameraIntrinsics, where: str) -> tuple[CameraIntrinsics, dict]:
+def camera_from_record(data_dir: Path, stated: CameraIntrinsics, where: str) -> tuple[CameraIntrinsics, dict]:
     """The intrinsics of the newest camera record under *data_dir* (``[camera] intrinsics = "record"``).
 
     The record must be for a camera of the [camera] table's size; a missing, corrupt or mismatched record

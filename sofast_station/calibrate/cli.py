@@ -131,7 +131,7 @@ def cmd_geometry(args) -> int:
 
 
 def cmd_status(args) -> int:
-    from ..config import load_config
+    from ..config import camera_from_record, load_config
     from .settings import calibration_settings
     from .store import KINDS, check_age, list_records, select_radiometric
 
@@ -149,7 +149,8 @@ def cmd_status(args) -> int:
     camera_source = config.raw.get("camera", {}).get("intrinsics", "station.toml")
     if camera_source == "record":
         try:
-            camera_in_force = load_config(args.config).camera_record["path"].name
+            camera_in_force = camera_from_record(config.data_dir, config.geometry.camera,
+                                                 f"{config.path} [camera]")[1]["path"].name
         except ConfigError as exc:
             camera_in_force = None
             status.warnings.append(str(exc))

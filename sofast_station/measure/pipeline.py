@@ -351,7 +351,7 @@ def _reduce(pool, frames, fringes, geometry, design, measured_distance_m, settin
 
     valid = np.zeros(cam.shape, dtype=bool)
     valid.ravel()[vidx] = True
-    boresighted_to_camera = solution.motion.as_pose().compose(camera_to_facet).inverse()
+    boresighted_to_camera = to_moved.inverse()
     # The boresight frame's tilt in the fixture: where the facet's optical axis at the alignment point
     # points, to the precision of the slopes (the corner pose's own tilt errors cancel).
     tilt = placement(geometry.fixture_to_camera, boresighted_to_camera, design)["mrad"]
