@@ -5,9 +5,8 @@
   record), and compare every figure with the archived result (:func:`reprocess_dump`).
 - ``batch.py``: reprocess a folder or glob of dumps on the local cores or on a Dask cluster, resumably,
   with a summary workbook and CSV (:func:`run_batch`).
-- ``report.py``: slope-error maps in the style of the method paper's Figs. 8-10 and trend plots of an
-  archive period (:func:`write_slope_error_maps`, :func:`write_trend`).
-- ``cli.py``: ``register(subparsers)`` adds ``reprocess``, ``batch`` and ``report`` to ``sofast-station``.
+- ``cli.py``: ``register(subparsers)`` adds ``reprocess``, ``batch`` and ``report`` to ``sofast-station``
+  (the pictures themselves live in :mod:`sofast_station.report`).
 
 Nothing here is imported by the station loop; the modules import numpy only when used, so that the
 command line can put BLAS on one thread before numpy loads (SPEC.md, "Determinism").

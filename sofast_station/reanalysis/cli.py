@@ -305,7 +305,7 @@ def cmd_report(args) -> int:
     if args.journal or args.results or args.since or args.until:
         from ..errors import ConfigError
         raise ConfigError("--journal, --results, --from and --to belong to 'report trend'")
-    from .report import write_slope_error_maps
+    from ..report.maps import write_slope_error_maps
 
     overrides = overrides_from_args(args)
     overrides.check()
@@ -325,7 +325,7 @@ def cmd_report(args) -> int:
 
 def _cmd_trend(args) -> int:
     from ..errors import ConfigError
-    from .report import default_trend_name, trend_records_from_journal, trend_records_from_results, write_trend
+    from ..report.trend import default_trend_name, trend_records_from_journal, trend_records_from_results, write_trend
 
     if len(args.targets) > 1:
         raise ConfigError("'report trend' takes no dumps: use --journal PATH or --results DIR")

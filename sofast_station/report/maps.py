@@ -1,7 +1,5 @@
-"""Pictures for the process engineer: slope-error maps (the method paper's Figs. 8-10) and trend plots.
+"""Slope-error maps for the process engineer (the method paper's Figs. 8-10).
 
-Slope-error maps
-----------------
 For each model (design, fitted parabola, higher order) the colour is the magnitude of the slope error
 sqrt(e_x^2 + e_y^2) in mrad on a fixed scale (0 to 5 mrad by default, blue to maroon as in the paper),
 drawn in facet coordinates (x and y in metres, +y up), and white arrows show the error's direction and
@@ -10,19 +8,12 @@ e_x, e_y and the magnitude, which are the reported figures. The map is a nearest
 per-pixel residuals onto a regular facet grid as fine as the camera's pixels on the facet, so every
 coloured cell shows one measured pixel's value.
 
-Trend plots
------------
-Focal lengths (or focal powers, for facets focused beyond 20 m), residual slope errors and twist over a
-period, from the station's journal or from a folder of batch results.
-
 The module uses Matplotlib's object-oriented API with the Agg canvas (no pyplot, no display), so it runs
 headless and in worker threads; every picture is written to a temporary file and renamed into place.
 """
 
 from __future__ import annotations
 
-import datetime as _dt
-import json
 import logging
 import math
 import os
@@ -32,8 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ..archive._common import parse_time, temp_path_for, utc_key
-from ..errors import StationError
+from ._common import ReportError, savefig_atomic
 
 log = logging.getLogger(__name__)
 
@@ -41,14 +31,6 @@ log = logging.getLogger(__name__)
 MODELS = ("design", "parabola", "higher_order")
 MODEL_LABELS = {"design": "compared with the design", "parabola": "compared with the fitted parabola",
                 "higher_order": "compared with the higher-order model (3rd order in z)"}
-
-#: Above this design focal length (metres) trends show focal power instead (SPEC.md, "Conventions").
-LONG_FOCAL_LENGTH_M = 20.0
-
-
-class ReportError(StationError):
-    """A picture cannot be made: no analysis (the capture was refused), or no data in the period."""
-
 
 # -- slope-error maps -------------------------------------------------------------------------------------
 @dataclass
@@ -169,19 +151,6 @@ def slope_error_maps(analysis, arrow_step_px: int | None = None, max_cells: int 
     return out
 
 
-def _savefig_atomic(fig, path: Path, dpi: int) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = temp_path_for(path)
-    try:
-        fig.savefig(tmp, format="png", dpi=dpi)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
-
-
 def _draw_map(fig, ax, m: SlopeErrorMap, title: str, vmax_mrad: float, cmap: str):
     image = ax.imshow(m.magnitude_mrad, extent=m.extent_m, origin="lower", cmap=cmap, vmin=0.0, vmax=vmax_mrad,
                       interpolation="nearest")
@@ -279,7 +248,7 @@ def write_slope_error_maps(result, out_dir: str | Path, *, vmax_mrad: float = 5.
             fig.colorbar(image, ax=ax, label="slope error magnitude (mrad)", extend="max", shrink=0.85)
             _arrow_key(q, 0.6)
             fig.suptitle("\n".join(lines), fontsize=8.5)
-            written.append(_savefig_atomic(fig, out_dir / f"{stem}-{model}.png", dpi))
+            written.append(savefig_atomic(fig, out_dir / f"{stem}-{model}.png", dpi))
     else:
         fig = Figure(figsize=(18.0, 6.6), layout="constrained")
         axes = fig.subplots(1, 3)
@@ -289,129 +258,6 @@ def write_slope_error_maps(result, out_dir: str | Path, *, vmax_mrad: float = 5.
         fig.colorbar(image, ax=list(axes), label="slope error magnitude (mrad)", extend="max", shrink=0.85)
         _arrow_key(q, 0.84)
         fig.suptitle(f"{lines[0]}: {lines[1]}\n{lines[2]}", fontsize=10)
-        written.append(_savefig_atomic(fig, out_dir / f"{stem}.png", dpi))
+        written.append(savefig_atomic(fig, out_dir / f"{stem}.png", dpi))
     log.info("slope-error maps of %s: %s", result.path, ", ".join(str(p) for p in written))
     return written
-
-
-# -- trends -----------------------------------------------------------------------------------------------
-def _in_period(time_iso, since, until) -> bool:
-    try:
-        key = utc_key(time_iso)
-    except (TypeError, ValueError):
-        return False
-    return (since is None or key >= utc_key(since)) and (until is None or key < utc_key(until))
-
-
-def trend_records_from_journal(journal: str | Path, since=None, until=None) -> list[dict]:
-    """The journal's records with time in ``[since, until)`` (ISO 8601; None is open), in time order."""
-    from ..archive.journal import Journal
-
-    journal = Path(journal)
-    if not journal.is_file():
-        raise ReportError(f"journal {journal} does not exist")
-    j = Journal(journal)
-    try:
-        return [r.record for r in j.rows(since, until)]
-    finally:
-        j.close()
-
-
-def trend_records_from_results(folder: str | Path, since=None, until=None) -> list[dict]:
-    """The reprocessed records of a batch output folder (or its ``results/``) in ``[since, until)``."""
-    folder = Path(folder)
-    results = folder / "results" if (folder / "results").is_dir() else folder
-    if not results.is_dir():
-        raise ReportError(f"{folder} is not a folder of batch results")
-    out = []
-    for p in sorted(results.glob("*.json")):
-        if p.name.startswith("."):
-            continue
-        try:
-            obj = json.loads(p.read_text(encoding="utf-8"))
-        except (OSError, json.JSONDecodeError):
-            continue
-        if isinstance(obj, dict) and obj.get("status") == "ok" and _in_period(obj.get("time"), since, until):
-            out.append(obj)
-    out.sort(key=lambda r: utc_key(r["time"]))
-    return out
-
-
-def write_trend(records: list[dict], out_path: str | Path, *, title: str = "", dpi: int = 110) -> Path:
-    """Plot focal lengths (or focal powers), residual slope errors and twist against time.
-
-    Parameters
-    ----------
-    records : list of dict
-        Result records (journal rows or reprocessed results); those without figures (faults) are
-        counted in the title and skipped.
-    out_path : str or Path
-        The PNG to write.
-    title : str
-        First line of the title (the source and the period).
-
-    Returns
-    -------
-    Path
-
-    Raises
-    ------
-    ReportError
-        When no record in *records* has figures.
-    """
-    from matplotlib.dates import AutoDateLocator, ConciseDateFormatter
-    from matplotlib.figure import Figure
-
-    rows = [r for r in records if isinstance(r.get("slope_rms_mrad"), dict) and r.get("time")]
-    if not rows:
-        raise ReportError(f"no measured facet in the period ({len(records)} record(s), none with figures)")
-    t = [parse_time(r["time"]) for r in rows]
-    fx = np.array([np.nan if r.get("focal_length_x_m") is None else r["focal_length_x_m"] for r in rows], float)
-    fy = np.array([np.nan if r.get("focal_length_y_m") is None else r["focal_length_y_m"] for r in rows], float)
-    both = np.abs(np.concatenate([fx, fy]))
-    long_focus = not np.any(np.isfinite(both)) or float(np.nanmedian(both)) > LONG_FOCAL_LENGTH_M
-    fig = Figure(figsize=(11.0, 8.5), layout="constrained")
-    ax_f, ax_e, ax_t = fig.subplots(3, 1, sharex=True)
-    if long_focus:
-        kx = np.array([r.get("curvature_x_per_m", np.nan) for r in rows], float)
-        ky = np.array([r.get("curvature_y_per_m", np.nan) for r in rows], float)
-        ax_f.plot(t, kx, "o", ms=3, label="kappa_x")
-        ax_f.plot(t, ky, "s", ms=3, label="kappa_y")
-        ax_f.set_ylabel("focal power (1/m)")
-    else:
-        ax_f.plot(t, fx, "o", ms=3, label="f_x")
-        ax_f.plot(t, fy, "s", ms=3, label="f_y")
-        ax_f.set_ylabel("focal length (m)")
-    designs = {(r.get("reprocess") or {}).get("design", {}).get("focal_length_m") for r in rows} - {None}
-    for f in sorted(designs):
-        ax_f.axhline(1.0 / f if long_focus else f, color="0.4", ls="--", lw=0.8, label=f"design {f:g} m")
-    bad = [i for i, r in enumerate(rows) if r.get("verdict") not in ("pass", None)]
-    if bad:
-        ax_f.plot([t[i] for i in bad], (kx if long_focus else fx)[bad], "o", mfc="none", mec="red", ms=7,
-                  label="fail or invalid")
-    ax_f.legend(fontsize=8, loc="best")
-    for model, marker in zip(MODELS, "o^s"):
-        v = [((r["slope_rms_mrad"].get(model) or {}).get("magnitude")) for r in rows]
-        ax_e.plot(t, np.array([np.nan if x is None else x for x in v], float), marker, ms=3,
-                  label=MODEL_LABELS[model].replace("compared with the ", ""))
-    ax_e.set_ylabel("slope error RMS,\nmagnitude (mrad)")
-    ax_e.legend(fontsize=8, loc="best")
-    ax_t.plot(t, [r.get("twist_mrad_per_m", np.nan) for r in rows], "o", ms=3)
-    ax_t.set_ylabel("twist (mrad/m)")
-    locator = AutoDateLocator(tz=t[0].tzinfo)          # the station's local time, as in the records
-    ax_t.xaxis.set_major_locator(locator)
-    ax_t.xaxis.set_major_formatter(ConciseDateFormatter(locator, tz=t[0].tzinfo))
-    skipped = len(records) - len(rows)
-    fig.suptitle((title + "\n" if title else "") + f"{len(rows)} measured facet(s) from {rows[0]['time'][:19]} to "
-                 f"{rows[-1]['time'][:19]}" + (f" ({skipped} fault(s) without figures not shown)" if skipped else ""),
-                 fontsize=10)
-    path = _savefig_atomic(fig, Path(out_path), dpi)
-    log.info("trend of %d facet(s): %s", len(rows), path)
-    return path
-
-
-def default_trend_name(since, until) -> str:
-    """``trend-<from>-<to>.png`` with file-name-safe dates."""
-    def part(v, default):
-        return default if v is None else str(v).replace(":", "").replace("+", "p")
-    return f"trend-{part(since, 'start')}-{part(until, _dt.date.today().isoformat())}.png"
