@@ -26,7 +26,8 @@ def _default_config() -> str:
 
 
 def _json_safe(obj):
-    """Replace NaN and infinities by None: JSON has no Infinity (SPEC.md: infinite f is null)."""
+    """Replace NaN and infinities by None: JSON has no Infinity (an infinite f is null:
+    docs/conventions.md#focal-power)."""
     if isinstance(obj, float):
         return obj if math.isfinite(obj) else None
     if isinstance(obj, dict):

@@ -11,7 +11,7 @@ A facet file (TOML, in ``fixtures/facets/``) holds one ``[facet]`` table::
     alignment_point_m = [0.0, 0.0]   # the electronic boresight's alignment point
 
 The facet frame's origin is the paraboloid vertex: the facet centre for on-axis facets, a point off the
-facet for gore facets (SPEC.md, "Facet frames").
+facet for gore facets (docs/conventions.md#facet-frame).
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@
 A capture is a dark frame, a white frame, then for x and then y each period count in increasing order,
 ``phase_steps`` images with shifts d_k = 2 pi k / phase_steps. With the defaults (periods 1 and 4, four
 steps) that is 2 + 16 = 18 frames. Image k of a set shows I_k = a + b cos(phi - d_k), phi = 2 pi p u / L
-(SPEC.md, "Conventions").
+(docs/conventions.md#phase).
 """
 
 from __future__ import annotations

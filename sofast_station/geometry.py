@@ -10,7 +10,7 @@ camera
     OpenCV: origin at the pinhole, +z along the optical axis, +x along image columns, +y down the rows.
 screen
     Metres; origin at the centre of the active area, +x along increasing display column, +y up
-    (decreasing display row), +z out of the screen toward the facet (SPEC.md, "Conventions").
+    (decreasing display row), +z out of the screen toward the facet (docs/conventions.md#screen-frame).
 fixture
     The nominal facet frame: where the facet frame lies when the facet sits perfectly in the fixture.
 """

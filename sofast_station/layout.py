@@ -1,4 +1,4 @@
-"""Where the camera and screen go for a facet (SPEC.md, "Station layout").
+"""Where the camera and screen go for a facet (docs/conventions.md#station-layout).
 
 The centre of curvature of the facet's middle (off-axis: midway between its sagittal and meridional
 centres) lies halfway between the camera and the screen centre; the camera sits beside the screen, never

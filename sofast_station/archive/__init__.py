@@ -1,4 +1,5 @@
-"""The station's archive: the journal, the Excel workbooks and the HDF5 data dumps (SPEC.md, "Archives").
+"""The station's archive: the journal, the Excel workbooks and the HDF5 data dumps
+(docs/conventions.md#archives).
 
 - :class:`Journal` (``journal.py``): append-only SQLite journal; a row is durable when ``append`` returns.
 - ``workbook.py``: one workbook per day (or shift), rows flattened from the records, saved atomically.

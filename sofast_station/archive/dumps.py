@@ -1,4 +1,4 @@
-"""HDF5 data dumps: everything needed to redo a facet's analysis bit for bit (SPEC.md, "Archives").
+"""HDF5 data dumps: everything needed to redo a facet's analysis bit for bit (docs/conventions.md#archives).
 
 A dump holds the raw frames cropped to the facet region (outside the crop the frames are defined as 0;
 :func:`restore_frames` rebuilds the full stack), the fringe definition, the radiometric calibration
@@ -118,7 +118,8 @@ SCHEMA_V1: tuple[tuple[str, str, str, str, str, bool], ...] = (
     ("calibration/radiometric/settle_s", "dataset", "float64", "s", "settle time the latency implies", False),
     ("calibration/radiometric/refresh_hz", "dataset", "float64", "Hz", "display refresh rate used", False),
 
-    ("geometry", "group", "", "", "station geometry: camera intrinsics, screen, poses (frames: SPEC.md)", True),
+    ("geometry", "group", "", "",
+     "station geometry: camera intrinsics, screen, poses (frames: docs/conventions.md#frames)", True),
     ("geometry/camera", "group", "", "", "camera intrinsics, OpenCV pinhole + 5-term distortion", True),
     ("geometry/camera/width_px", "dataset", "int64", "px", "image width", True),
     ("geometry/camera/height_px", "dataset", "int64", "px", "image height", True),

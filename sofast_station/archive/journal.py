@@ -1,4 +1,4 @@
-"""The journal: an append-only SQLite record of every inspection cycle (SPEC.md, "Archives").
+"""The journal: an append-only SQLite record of every inspection cycle (docs/conventions.md#archives).
 
 The station appends a facet's result record *before* it releases the robot; :meth:`Journal.append`
 returns only when the row is on the disk (WAL mode, ``synchronous=FULL``), so a crash, a SIGKILL or a

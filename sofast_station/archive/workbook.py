@@ -10,7 +10,7 @@ the record flattened to dotted column names (``slope_rms_mrad.design.x``); lists
 or null value is an empty cell. A record with a figure the book has no column for adds the column at the
 right.
 
-Safety (SPEC.md, "Archives"):
+Safety (docs/conventions.md#archives):
 
 - a save writes a temporary file in the same folder, flushes and fsyncs it, renames it over the book
   (``os.replace``) and fsyncs the folder: the book under its name is always a complete, valid file;

@@ -164,7 +164,7 @@ def compare_to_reference(figures: dict, reference: GeometryReference) -> dict:
         entry = {"measured_m": measured, "known_m": None if math.isinf(known) else known, "relative_error": rel,
                  "curvature_error_per_m": float(kappa - kappa_known)}
         out["focal_lengths"][axis] = entry
-        # long focal lengths: the tolerance applies to the curvature (SPEC.md)
+        # long focal lengths: the tolerance applies to the curvature (docs/conventions.md#focal-power)
         limit = reference.focal_length_tolerance * max(abs(kappa_known), 1 / 20.0)
         if abs(kappa - kappa_known) > limit:
             out["reasons"].append(f"f_{axis} {measured if measured is not None else 'inf'} m differs from the known "

@@ -1,4 +1,5 @@
-"""The daily radiometric calibration (seeds/004, "Camera calibration"), on any camera and display.
+"""The daily radiometric calibration, on any camera and display (the method paper's "Camera calibration",
+Andraka et al. 2009; docs/calibration.md).
 
 It sees the hardware only through the :class:`~sofast_station.devices.protocols.Display` (uniform screens,
 ``Pattern("uniform", command=v)``, and its ``settle_s``) and :class:`~sofast_station.devices.protocols.Camera`

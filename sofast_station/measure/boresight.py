@@ -1,4 +1,4 @@
-"""Shape fit nested with the electronic boresight (SPEC.md, "Data reduction", "Iteration").
+"""Shape fit nested with the electronic boresight (docs/conventions.md#boresight, #iteration).
 
 The camera/screen assembly, known in the facet frame from the corner pose, is moved rigidly by
 R = R_y(beta) R_x(alpha) about the alignment point P_a = (x_a, y_a, z_design(x_a, y_a)) and then by t_z
@@ -136,7 +136,7 @@ def kappa_converged(new: np.ndarray, old: np.ndarray) -> bool:
 
 def solve_shape(assembly: Assembly, design: FacetDesign, measured_distance_m: float,
                 max_iterations: int = 20, robust: bool = False) -> ShapeSolution:
-    """Iterate shape fit and boresight to convergence (SPEC.md, "Iteration").
+    """Iterate shape fit and boresight to convergence (docs/conventions.md#iteration).
 
     Parameters
     ----------

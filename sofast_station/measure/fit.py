@@ -1,7 +1,7 @@
-"""Least-squares shape fits in slope space (SPEC.md, "Twist" and "Data reduction").
+"""Least-squares shape fits in slope space (docs/conventions.md#twist, #data-reduction).
 
 Every sum here is an ``np.sum`` of an element-wise product (pairwise summation on one thread), never a
-BLAS call, so a fit gives the same bits whatever the number of threads (SPEC.md, "Determinism").
+BLAS call, so a fit gives the same bits whatever the number of threads (docs/conventions.md#determinism).
 """
 
 from __future__ import annotations

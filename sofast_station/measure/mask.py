@@ -1,4 +1,7 @@
-"""The active-pixel mask: the facet region that reflects the screen (SPEC.md, measurement step 1)."""
+"""The active-pixel mask: the facet region that reflects the screen.
+
+docs/conventions.md#measurement-sequence, step 1.
+"""
 
 from __future__ import annotations
 

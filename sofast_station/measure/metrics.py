@@ -1,4 +1,7 @@
-"""Reported figures: slope residuals as angles, focal lengths, principal axes (SPEC.md, "Conventions")."""
+"""Reported figures: slope residuals as angles, focal lengths, principal axes.
+
+Definitions: docs/conventions.md#residuals and #focal-power.
+"""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Phase, modulation and temporal unwrapping (SPEC.md, "Conventions").
+"""Phase, modulation and temporal unwrapping (docs/conventions.md#phase, #unwrapping).
 
 Four frames with shifts d_k = k pi/2 show I_k = a + b cos(phi - d_k), so
 I_0 - I_2 = 2b cos(phi), I_1 - I_3 = 2b sin(phi) and I_0 + I_2 - I_1 - I_3 = 0.
@@ -102,7 +102,7 @@ class UnwrapResult:
 
 def unwrap_positions(phases: list[np.ndarray] | tuple[np.ndarray, ...], periods, length_m: float,
                      position_sigma_m: np.ndarray | float = 0.0, guard_sigmas: float = 4.0) -> UnwrapResult:
-    """Temporal unwrapping, coarse to fine, into screen positions (SPEC.md, "Unwrapping").
+    """Temporal unwrapping, coarse to fine, into screen positions (docs/conventions.md#unwrapping).
 
     Parameters
     ----------
@@ -116,7 +116,7 @@ def unwrap_positions(phases: list[np.ndarray] | tuple[np.ndarray, ...], periods,
         Position noise of the finest phase per pixel (metres); sets the edge guard band when every
         period is a whole number.
     guard_sigmas : float
-        Guard band half-width in units of ``position_sigma_m`` (at least 4 by SPEC.md).
+        Guard band half-width in units of ``position_sigma_m`` (at least 4: docs/conventions.md#unwrapping).
 
     Returns
     -------
@@ -130,7 +130,7 @@ def unwrap_positions(phases: list[np.ndarray] | tuple[np.ndarray, ...], periods,
     if not (np.isfinite(length_m) and length_m > 0):
         raise ValueError(f"length_m must be a positive length, got {length_m}")
     if guard_sigmas < 4.0:
-        raise ValueError(f"guard_sigmas must be at least 4 (SPEC.md), got {guard_sigmas}")
+        raise ValueError(f"guard_sigmas must be at least 4 (docs/conventions.md#unwrapping), got {guard_sigmas}")
     big_l = float(length_m)
     u = big_l * np.asarray(phases[0], dtype=np.float64) / (TWO_PI * periods[0])
     coarse_bad = ~((u >= 0.0) & (u < big_l))

@@ -1,4 +1,5 @@
-"""From captured frames to reported figures: the data reduction of seeds/004, as pure functions.
+"""From captured frames to reported figures: the method paper's data reduction
+(docs/conventions.md#data-reduction; Andraka et al. 2009), as pure functions.
 
 ``analyse`` takes arrays and plain records and returns a :class:`Analysis`; it reads no file, touches no
 hardware and keeps no state, so a data dump reprocesses to the same bits.
@@ -66,7 +67,7 @@ class AnalysisSettings:
     threads : int
         Threads for the independent parts of the analysis (the x and y phases and unwrapping, the fits,
         the residuals of each model). Each part does the same arithmetic on any thread, so the figures
-        do not depend on this (SPEC.md, "Determinism"); 1 runs everything in the calling thread.
+        do not depend on this (docs/conventions.md#determinism); 1 runs everything in the calling thread.
     """
 
     mask_threshold_dn: float = 20.0
@@ -92,7 +93,7 @@ class AnalysisSettings:
 class Analysis:
     """The result of one analysis: reported figures plus the per-pixel data behind them.
 
-    ``figures`` is JSON-ready (SPEC.md, "Reported figures"); arrays are for plots and re-analysis.
+    ``figures`` is JSON-ready (docs/conventions.md#reported-figures); arrays are for plots and re-analysis.
     Per-point arrays follow the raster order of ``valid``; points (3, N) and slopes (2, N) hold their
     components in rows.
     """
@@ -183,7 +184,7 @@ def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, d
             measured_distance_m: float, settings: AnalysisSettings = AnalysisSettings(),
             screen: ScreenModel | None = None, rays_cam: np.ndarray | None = None,
             pixel_mask: np.ndarray | None = None) -> Analysis:
-    """Reduce one capture to the reported figures (SPEC.md, "Measurement sequence", "Data reduction").
+    """Reduce one capture to the reported figures (docs/conventions.md#measurement-sequence, #data-reduction).
 
     Parameters
     ----------

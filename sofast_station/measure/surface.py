@@ -65,7 +65,7 @@ def normal_slopes(points: np.ndarray, camera_m: np.ndarray, screen_points_m: np.
     """Surface slopes from the law of reflection.
 
     The unit normal at X bisects the unit vectors X->C (camera centre) and X->T (screen point); slopes
-    are s_x = -n_x/n_z, s_y = -n_y/n_z (SPEC.md, "Slopes").
+    are s_x = -n_x/n_z, s_y = -n_y/n_z (docs/conventions.md#slopes).
 
     Parameters
     ----------

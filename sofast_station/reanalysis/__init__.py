@@ -1,4 +1,4 @@
-"""Re-analysis for the process engineer (SPEC.md, "The process engineer"; docs/reanalysis.md).
+"""Re-analysis for the process engineer (docs/reanalysis.md).
 
 - ``reprocess.py``: rerun the analysis of an HDF5 data dump from its raw frames, with optional overrides
   (facet model, design focal length, alignment point, measured distance, mask threshold, calibration
@@ -9,5 +9,5 @@
   (the pictures themselves live in :mod:`sofast_station.report`).
 
 Nothing here is imported by the station loop; the modules import numpy only when used, so that the
-command line can put BLAS on one thread before numpy loads (SPEC.md, "Determinism").
+command line can put BLAS on one thread before numpy loads (docs/conventions.md#determinism).
 """

@@ -1,4 +1,4 @@
-"""BLAS threads for bit-exact re-analysis (SPEC.md, "Determinism"); imports nothing heavy.
+"""BLAS threads for bit-exact re-analysis (docs/conventions.md#determinism); imports nothing heavy.
 
 The thread count of a BLAS library is read when the library loads, that is when numpy is first
 imported; setting the variables afterwards has no effect. The command line therefore calls

@@ -2,8 +2,8 @@
 
 ``register(subparsers)`` adds them to the ``sofast-station`` parser (``sofast_station/cli.py``). Importing
 this module imports nothing heavy: each command first puts BLAS on one thread (unless the user set a
-thread count), then loads numpy and the analysis, so that reprocessing is bit-exact (SPEC.md,
-"Determinism").
+thread count), then loads numpy and the analysis, so that reprocessing is bit-exact
+(docs/conventions.md#determinism).
 """
 
 from __future__ import annotations

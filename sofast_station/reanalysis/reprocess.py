@@ -7,7 +7,7 @@ distance, unless an :class:`Overrides` replaces one of them. It never returns a 
 figure of the new record is recomputed from the frames; the archived record is only read to compare.
 
 With no overrides, the same software version on the same platform with BLAS on one thread reproduces
-every measured figure of the archived record bit for bit (SPEC.md, "Determinism"); the comparison
+every measured figure of the archived record bit for bit (docs/conventions.md#determinism); the comparison
 (:func:`compare_figures`) says so, or lists each figure that differs with both values.
 
 Example::
@@ -49,7 +49,7 @@ NOT_FIGURES = frozenset({"cycle_id", "serial", "time", "recipe", "station", "fac
                          "calibration", "camera", "request", "capture_notes", "crop_box", "timings_s", "truth",
                          "reprocess", "dump", "status", "archived", "differences", "error", "error_type"})
 
-#: The reported figures (SPEC.md, "Reported figures"; flattened names): the comparison table shows them
+#: The reported figures (docs/conventions.md#reported-figures; flattened names): the comparison table shows them
 #: whether or not they changed, and the other (diagnostic) figures only when they changed.
 HEADLINE = ("focal_length_x_m", "focal_length_y_m", "curvature_x_per_m", "curvature_y_per_m",
             "principal_focal_lengths_m[0]", "principal_focal_lengths_m[1]", "axis_angle_rad", "twist_mrad_per_m",

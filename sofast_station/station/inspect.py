@@ -203,7 +203,7 @@ def now_iso() -> str:
 
 
 def result_record(station: Station, serial: str, analysis: Analysis, timings: dict) -> dict:
-    """The facet's result as a JSON-ready dict (SPEC.md, "Reported figures")."""
+    """The facet's result as a JSON-ready dict (docs/conventions.md#reported-figures)."""
     fig = analysis.figures
     out = {"serial": serial, "time": now_iso()}
     out.update({k: fig[k] for k in FIGURE_KEYS})

@@ -67,8 +67,8 @@ def open_simulated(config: StationConfig, radiometric: RadiometricRecord, seed: 
                    noise: bool = True) -> Station:
     """Simulated display (offscreen renderer), twin camera and twin range finder."""
     twin = build_twin(config, noise=noise)
-    # SPEC.md "Station layout": the facet's reflection, widened for its largest slope error, must lie on
-    # the screen, or the edge of the facet would be measured against the bezel.
+    # docs/conventions.md#station-layout: the facet's reflection, widened for its largest slope error,
+    # must lie on the screen, or the edge of the facet would be measured against the bezel.
     margin = twin.footprint_check(float(config.design.layout.get("max_slope_error_mrad", 3.0)))
     log.debug("reflected footprint fits the screen with %.0f mm to spare", 1e3 * margin["min_margin_m"])
     scr = config.geometry.screen

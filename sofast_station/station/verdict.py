@@ -12,7 +12,7 @@ from dataclasses import dataclass, field, fields
 from ..errors import ConfigError
 from ..facet import FacetDesign
 
-#: Above this design focal length (metres) limits are stated on curvature (SPEC.md, "Conventions").
+#: Above this design focal length (metres) limits are stated on curvature (docs/conventions.md#focal-power).
 LONG_FOCAL_LENGTH_M = 20.0
 
 

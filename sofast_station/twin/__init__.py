@@ -14,8 +14,8 @@ TwinCamera
 TwinStation
     The traced station: ``capture(display_image, rng)`` and the test-support accessors.
 ground_truth
-    The SPEC's fit definitions applied to the exact true surface at the kept pixels, in the frame the
-    electronic boresight gives the parabola fitted to them (x, y, rotation about z: the true placement).
+    The fit definitions of docs/conventions.md applied to the exact true surface at the kept pixels, in
+    the frame the electronic boresight gives the parabola fitted to them (x, y, rotation about z: the true placement).
 """
 
 from .camera import TwinCamera

@@ -5,8 +5,8 @@ centre, +z toward the facet), fixture (the design's nominal facet frame) and the
 the facet really is: ``x_fixture = R (x_facet - P_mid) + P_mid + t`` (:class:`TrueFacet`). The trace works
 in the true facet frame.
 
-Screen coordinates (SPEC.md, "Conventions"): ``u_x`` in [0, W) metres from the left edge, ``u_y`` in
-[0, H) from the bottom edge; display column c is centred at ``u_x = (c + 1/2) pitch``, row r (0 = top) at
+Screen coordinates (docs/conventions.md#screen-positions): ``u_x`` in [0, W) metres from the left
+edge, ``u_y`` in [0, H) from the bottom edge; display column c is centred at ``u_x = (c + 1/2) pitch``, row r (0 = top) at
 ``u_y = H - (r + 1/2) pitch``; screen-frame ``x = u_x - W/2``, ``y = u_y - H/2``.
 """
 

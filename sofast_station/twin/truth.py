@@ -1,13 +1,14 @@
-"""Ground truth: the SPEC's fit definitions applied to the exact true surface at the kept pixels.
+"""Ground truth: the conventions' fit definitions applied to the exact true surface at the kept pixels.
 
 The exact surface points and normals at the kept pixels start in the true facet frame, so x, y and the
-rotation about z are the facet's true placement (SPEC.md, "Ground truth"). They are then put in the frame
-the electronic boresight defines for the parabola fitted to those exact normals: a rotation
+rotation about z are the facet's true placement (docs/conventions.md#ground-truth). They are then put
+in the frame the electronic boresight defines for the parabola fitted to those exact normals: a rotation
 R = R_y(beta) R_x(alpha) about the alignment point P_a = (x_a, y_a, z_design(x_a, y_a)) chosen so that the
 fitted parabola's slopes at (x_a, y_a) are the design's (:func:`boresight_frame`). The boresight's
 translation along z and the model's constant change neither slopes nor x, y, so they are left out.
 
-Everything here is written from the SPEC's definitions; nothing is shared with ``sofast_station.measure``.
+Everything here is written from the definitions of ``docs/conventions.md``; nothing is shared with
+``sofast_station.measure``.
 """
 
 from __future__ import annotations
@@ -161,7 +162,9 @@ def optical_tilt_mrad(placement_mrad, alpha_rad: float, beta_rad: float) -> dict
 
 
 def fit_parabola(xy_m: np.ndarray, slopes: np.ndarray) -> dict:
-    """The SPEC's parabola fit: ``s_x = 2A x + C + E1 y`` and ``s_y = 2B y + D + E2 x``, separately.
+    """The parabola fit: ``s_x = 2A x + C + E1 y`` and ``s_y = 2B y + D + E2 x``, separately.
+
+    Definition: docs/conventions.md#twist.
 
     Returns
     -------
@@ -232,7 +235,9 @@ def _residual_rms_mrad(slopes: np.ndarray, model: np.ndarray) -> dict:
 
 
 def ground_truth(station: TwinStation, kept: np.ndarray) -> dict:
-    """The SPEC's figures from the exact true slopes at the kept pixels, in the boresight frame.
+    """The reported figures from the exact true slopes at the kept pixels, in the boresight frame.
+
+    Definitions: docs/conventions.md#reported-figures.
 
     The exact samples (:func:`exact_samples`, true facet frame) are rotated into the frame the electronic
     boresight gives the parabola fitted to them (:func:`boresight_frame`). There the two slope equations

@@ -134,8 +134,8 @@ def test_design_focal_length_changes_exactly_the_figures_that_depend_on_it(stati
     So: the figures upstream of the pose stay bit-identical; the design residuals equal the baseline's
     measured slopes against the new design; the range correction moves by -dz_c; the fitted figures
     (focal lengths, twist, parabola and higher-order residuals) move only by the iteration's convergence
-    tolerance |d kappa| < 1e-6 |kappa| (SPEC.md, "Iteration"; in practice 1e-8) and the boresight by its 1
-    microradian tolerance plus the lateral shift delta of the frame, delta / 2f.
+    tolerance |d kappa| < 1e-6 |kappa| (docs/conventions.md#iteration; in practice 1e-8) and the boresight
+    by its 1 microradian tolerance plus the lateral shift delta of the frame, delta / 2f.
     """
     f1 = 5.6
     for dump in station_dumps.good:

@@ -1,5 +1,5 @@
-"""SPEC.md "Determinism": the analysis gives the same bits whatever the number of BLAS/OpenMP threads and
-of its own worker threads (``[analysis] threads``)."""
+"""docs/conventions.md#determinism: the analysis gives the same bits whatever the number of BLAS/OpenMP
+threads and of its own worker threads (``[analysis] threads``)."""
 
 import json
 import os

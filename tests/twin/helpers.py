@@ -28,7 +28,7 @@ def facet_to_camera(station) -> tuple[np.ndarray, np.ndarray]:
 
 
 def screen_points_camera(station, u_scr_m: np.ndarray) -> np.ndarray:
-    """3-D camera-frame points of screen coordinates (u_x, u_y) metres (SPEC screen convention)."""
+    """3-D camera-frame points of screen coordinates (u_x, u_y) metres (docs/conventions.md#screen-positions)."""
     screen = station.geometry.screen
     p_scr = np.column_stack([u_scr_m[:, 0] - screen.width_m / 2, u_scr_m[:, 1] - screen.height_m / 2,
                              np.zeros(len(u_scr_m))])

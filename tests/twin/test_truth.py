@@ -71,7 +71,7 @@ def test_rich_facet_fits_and_skips_pixels_without_facet(rich_station):
 
 
 # ---------------------------------------------------------------------------------------------------------
-# The boresight frame (SPEC.md, "Data reduction", "Electronic boresight"; "Ground truth") and the
+# The boresight frame (docs/conventions.md#boresight, #ground-truth) and the
 # higher-order model. Dish stations here use a quarter-resolution camera (same field of view): tracing takes
 # a tenth of a second and still gives ~36,000 facet pixels.
 
@@ -217,8 +217,8 @@ def test_gore_boresight_meets_the_design_slope_at_the_alignment_point(gore_stati
     assert 1e3 * te2 == pytest.approx(truth["twist_e2_mrad_per_m"], abs=1e-6)
     # The true facet touches the design at its middle (centroid x_c); with f_x = 5.42 against 5.33 m its
     # slope at x_a differs from the design's by about 2 (a - a_d)(x_a - x_c), so the frame turns about y by
-    # about that much, which changes the focal lengths (SPEC: ~0.08 % per mrad on a gore); the facet is
-    # symmetric about y = 0
+    # about that much, which changes the focal lengths (~0.08 % per mrad on a gore:
+    # docs/conventions.md#facet-frame); the facet is symmetric about y = 0
     x_c = float(GORE.centroid_m[0])
     expected_mrad = 1e3 * (math.atan(x_a / (2 * f) + (x_a - x_c) * (1 / (2 * 5.42) - 1 / (2 * f)))
                            - math.atan(x_a / (2 * f)))
