@@ -20,8 +20,8 @@ from ..geometry import Pose, StationGeometry
 from . import checks
 from . import corners as corners_mod
 from .camera import pixel_rays, project, to_frame
-from .boresight import Assembly, solve_shape
-from .fit import fit_cubic, fit_parabola
+from .boresight import Assembly, ShapeSolution, solve_shape
+from .fit import CubicFit, ParabolaFit, fit_cubic, fit_parabola
 from .mask import facet_region
 from .metrics import focal_length_m, principal_axes, rms_summary, slope_residuals_mrad
 from .phase import intensity_noise_dn, phase_and_modulation, position_sigma_m, unwrap_positions
@@ -180,11 +180,412 @@ def outline_image_points(design: FacetDesign, camera, facet_to_camera: Pose, per
     return project(camera, facet_to_camera, pts)
 
 
+@dataclass(frozen=True)
+class Region:
+    """Stage 1, the facet region: which pixels see the facet lit by the white screen.
+
+    Attributes
+    ----------
+    region : (rows, columns) bool array
+    idx : (M,) int array
+        Flat indices (raster order) of the region's pixels; every per-pixel array of the later stages
+        follows this order (or a subset of it).
+    stack : (n, M) array
+        The frames at those pixels, camera counts (DN).
+    contrast : (rows, columns) float32 array
+        White minus dark, DN (what the corners are found in).
+    """
+
+    region: np.ndarray
+    idx: np.ndarray
+    stack: np.ndarray
+    contrast: np.ndarray
+
+
+@dataclass(frozen=True)
+class Phases:
+    """Stage 2, phase and unwrapping: the screen position each region pixel sees, and which pixels to keep.
+
+    Per-pixel arrays follow ``Region.idx``.
+
+    Attributes
+    ----------
+    positions_m : dict
+        ``{"x": (M,), "y": (M,)}`` unwrapped screen positions, metres.
+    ok : (M,) bool array
+        Pixels with a trusted position in both axes (before the screen model's coverage).
+    noise_dn : float
+        Intensity noise estimated from the capture's own four-step consistency residuals, DN.
+    finest_modulation_dn : dict
+        ``{"x": (M,), "y": (M,)}`` fringe amplitude of the finest set of each axis, DN.
+    min_modulation_dn : (M,) array
+        The smallest fringe amplitude over all sets, DN.
+    dropped : dict
+        Counts of dropped pixels by cause.
+    unwrap : dict
+        ``{"x": UnwrapResult, "y": UnwrapResult}``.
+    """
+
+    positions_m: dict
+    ok: np.ndarray
+    noise_dn: float
+    finest_modulation_dn: dict
+    min_modulation_dn: np.ndarray
+    dropped: dict
+    unwrap: dict
+
+
+@dataclass(frozen=True)
+class Rays:
+    """Stage 3, screen points and rays in the camera frame for the valid pixels (raster order).
+
+    Attributes
+    ----------
+    vidx : (N,) int array
+        Flat indices of the valid pixels.
+    ok : (M,) bool array
+        ``Phases.ok`` less the positions the screen model does not cover; ``Region.idx[ok] == vidx``.
+    rays : (3, N) array
+        Unit pixel rays.
+    screen_cam_m : (3, N) array
+        Screen point each pixel sees, metres.
+    screen_centre_cam_m : (3,) array
+        Screen centre (the range finder's origin), metres.
+    off_model : int
+        Pixels whose screen position the screen model does not cover.
+    """
+
+    vidx: np.ndarray
+    ok: np.ndarray
+    rays: np.ndarray
+    screen_cam_m: np.ndarray
+    screen_centre_cam_m: np.ndarray
+    off_model: int
+
+
+@dataclass(frozen=True)
+class CornerPoseResult:
+    """Stage 4, corners and pose: the facet's corners in the image and its pose with the range fixed.
+
+    Attributes
+    ----------
+    corners_px : (n, 2) array
+        Found corners (column, row) in design order.
+    reprojection_rms_px : float
+    facet_to_camera : Pose
+        Corner pose with its range made to agree with the measured distance.
+    range_shift_m : float
+    outline_agreement : float
+    """
+
+    corners_px: np.ndarray
+    reprojection_rms_px: float
+    facet_to_camera: Pose
+    range_shift_m: float
+    outline_agreement: float
+
+
+@dataclass(frozen=True)
+class Shape:
+    """Stage 5, shape and boresight: the converged subsample solution and every valid pixel's point and slope
+    in the boresighted facet frame.
+
+    Attributes
+    ----------
+    solution : ShapeSolution
+    boresighted_to_camera : Pose
+    points_m : (3, N) array
+    slopes : (2, N) array
+        (s_x, s_y), dimensionless.
+    """
+
+    solution: ShapeSolution
+    boresighted_to_camera: Pose
+    points_m: np.ndarray
+    slopes: np.ndarray
+
+
+@dataclass(frozen=True)
+class Fits:
+    """Stage 6a, the all-points fits and the slope residuals of each model.
+
+    Attributes
+    ----------
+    parabola : ParabolaFit
+    coefficients : (6,) array
+        Parabola's A..F with F set so the model passes through the design z at the alignment point.
+    cubic : CubicFit
+    residuals_mrad : dict
+        ``{model: (e_x, e_y)}`` slope residuals, mrad.
+    """
+
+    parabola: ParabolaFit
+    coefficients: np.ndarray
+    cubic: CubicFit
+    residuals_mrad: dict
+
+
+def find_region(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, design: FacetDesign,
+                settings: AnalysisSettings) -> Region:
+    """Stage 1: check the capture and find the facet region from dark and white (refuses what cannot be
+    analysed)."""
+    cam = geometry.camera
+    checks.check_frames(frames, fringes, cam.shape)
+    dark, white = frames[0], frames[1]
+    checks.check_order(frames, fringes, settings.mask_threshold_dn)
+    checks.check_response(dark, white, settings.mask_threshold_dn)
+    region = facet_region(dark, white, settings.mask_threshold_dn, settings.max_hole_px)
+    nominal_outline = outline_image_points(design, cam, geometry.fixture_to_camera)
+    checks.check_region(region, float(checks.projected_outline_mask(cam.shape, nominal_outline).sum()))
+    idx = np.flatnonzero(region)
+    stack = np.take(frames.reshape(frames.shape[0], -1), idx, axis=1)     # faster than [:, idx]
+    contrast = white.astype(np.float32) - dark.astype(np.float32)
+    return Region(region=region, idx=idx, stack=stack, contrast=contrast)
+
+
+def measure_phases(region: Region, fringes: FringeSet, screen_size_m: tuple[float, float],
+                   settings: AnalysisSettings, pixel_mask: np.ndarray | None = None, pool=None) -> Phases:
+    """Stage 2: phase, modulation, consistency and unwrapping of the region's pixels.
+
+    *screen_size_m* is the displayed area's (width, height), metres; *pixel_mask* (rows, columns) limits
+    the pixels that may be used for the shape.
+    """
+    pool = pool if pool is not None else _Serial()
+    idx, stack = region.idx, region.stack
+    checks.check_saturation(stack, settings.max_saturated_fraction)
+    slices = fringes.slices()
+    tasks = {axis: pool.submit(_phase_sets, stack, slices[axis]) for axis in ("x", "y")}
+    checks.check_repeats(stack, fringes)
+    raw = {axis: task.result() for axis, task in tasks.items()}
+    noise_dn = intensity_noise_dn(np.concatenate([np.concatenate(raw[a][2]) for a in ("x", "y")]))
+    ok = np.ones(idx.size, dtype=bool)
+    min_mod = np.full(idx.size, np.inf)
+    inconsistent = np.zeros(idx.size, dtype=bool)
+    cons_limit = settings.consistency_sigmas * 2.0 * noise_dn + 1.0
+    inconsistent_fraction = {}
+    for axis in ("x", "y"):
+        for p, b, r in zip(getattr(fringes, f"periods_{axis}"), raw[axis][1], raw[axis][2]):
+            min_mod = np.minimum(min_mod, b)
+            bad = np.abs(r) > cons_limit
+            inconsistent_fraction[f"{axis} p={p:g}"] = float(np.count_nonzero(bad)) / idx.size
+            inconsistent |= bad
+    low_mod = min_mod < settings.min_modulation_dn
+    ok &= ~low_mod & ~inconsistent
+    excluded = 0
+    if pixel_mask is not None:
+        if pixel_mask.shape != region.region.shape:
+            raise CaptureError(f"pixel_mask has shape {pixel_mask.shape}, expected the camera's "
+                               f"{region.region.shape}")
+        allowed = pixel_mask.ravel()[idx]
+        excluded = int(np.count_nonzero(ok & ~allowed))
+        ok &= allowed
+    lengths = {"x": screen_size_m[0], "y": screen_size_m[1]}
+
+    def unwrap_axis(axis):
+        periods = getattr(fringes, f"periods_{axis}")
+        sigma = position_sigma_m(raw[axis][1][-1], noise_dn, periods[-1], lengths[axis])
+        return unwrap_positions(raw[axis][0], periods, lengths[axis], sigma, settings.guard_sigmas)
+
+    tasks = {axis: pool.submit(unwrap_axis, axis) for axis in ("x", "y")}
+    positions, unwrap_stats = {}, {}
+    for axis, task in tasks.items():
+        res = task.result()
+        positions[axis] = res.position_m
+        unwrap_stats[axis] = res
+        ok &= res.valid
+    checks.check_phase_sets(inconsistent_fraction,
+                            {a: unwrap_stats[a].disagreements / idx.size for a in ("x", "y")})
+    dropped = {"low_modulation": int(low_mod.sum()), "inconsistent_frames": int(inconsistent.sum()),
+               "excluded_by_pixel_mask": excluded}
+    return Phases(positions_m=positions, ok=ok, noise_dn=noise_dn,
+                  finest_modulation_dn={a: raw[a][1][-1] for a in ("x", "y")}, min_modulation_dn=min_mod,
+                  dropped=dropped, unwrap=unwrap_stats)
+
+
+def screen_points_and_rays(region: Region, phases: Phases, camera, screen: ScreenModel,
+                           rays_cam: np.ndarray | None = None) -> Rays:
+    """Stage 3: screen points and pixel rays in the camera frame for the pixels with a trusted position.
+
+    A measured screen model may not cover every position; those pixels are dropped.
+    """
+    ok = phases.ok.copy()
+    idx = region.idx
+    screen_cam = screen.points_camera(phases.positions_m["x"][ok], phases.positions_m["y"][ok])
+    covered = np.all(np.isfinite(screen_cam), axis=0)
+    off_model = int(np.count_nonzero(~covered))
+    if off_model:
+        ok[np.flatnonzero(ok)[~covered]] = False
+        screen_cam = screen_cam[:, covered]
+    vidx = idx[ok]
+    if vidx.size < 1000:
+        raise AnalysisError(f"only {vidx.size} pixels have a valid screen position (of {idx.size} facet "
+                            "pixels); check fringe contrast, exposure and the display")
+    if rays_cam is None:
+        rows, cols = np.divmod(vidx, camera.width_px)
+        rays = pixel_rays(camera, cols, rows)
+    else:
+        if rays_cam.shape != (3, *camera.shape):
+            raise CaptureError(f"precomputed rays have shape {rays_cam.shape}, expected {(3, *camera.shape)}")
+        rays = rays_cam.reshape(3, -1)[:, vidx]
+    return Rays(vidx=vidx, ok=ok, rays=rays, screen_cam_m=screen_cam, screen_centre_cam_m=screen.centre_camera(),
+                off_model=off_model)
+
+
+def corners_and_pose(region: Region, rays: Rays, geometry: StationGeometry, design: FacetDesign,
+                     measured_distance_m: float, settings: AnalysisSettings) -> CornerPoseResult:
+    """Stage 4: the facet's corners in the image, its pose from them, and the pose's range fixed by the
+    measured distance."""
+    cam = geometry.camera
+    outline = corners_mod.fit_outline(region.contrast, region.region, len(design.outline_m), settings.edge_window_px)
+    corners_3d = design.corners_3d()
+    expected = project(cam, geometry.fixture_to_camera, corners_3d)
+    found = corners_mod.match_corners(outline.corners_px, expected, settings.corner_tolerance_px)
+    return pose_from_corners(found, region, rays, geometry, design, measured_distance_m, settings)
+
+
+def pose_from_corners(found: np.ndarray, region: Region, rays: Rays, geometry: StationGeometry,
+                      design: FacetDesign, measured_distance_m: float,
+                      settings: AnalysisSettings) -> CornerPoseResult:
+    """Stage 4b: the pose from found corners (column, row) in design order, with its range fixed."""
+    cam = geometry.camera
+    corners_3d = design.corners_3d()
+    corner_pose = solve_corner_pose(cam, found, corners_3d, geometry.fixture_to_camera)
+    if corner_pose.reprojection_rms_px > settings.max_corner_rms_px:
+        raise FacetNotFoundError(
+            f"the corners found in the mask do not fit the design outline ({corner_pose.reprojection_rms_px:.1f} px "
+            "RMS): the facet is partly lit or obstructed, or it is not the recipe's facet type")
+    measure_point = np.array([*design.measure_point_m, float(design.z(*design.measure_point_m))])
+    facet_to_camera, range_shift = fix_range(corner_pose.facet_to_camera, measure_point, rays.screen_centre_cam_m,
+                                             measured_distance_m, settings.max_range_shift_m)
+    agreement = checks.outline_agreement(region.region, outline_image_points(design, cam, facet_to_camera))
+    return CornerPoseResult(corners_px=found, reprojection_rms_px=corner_pose.reprojection_rms_px,
+                            facet_to_camera=facet_to_camera, range_shift_m=range_shift, outline_agreement=agreement)
+
+
+def shape_and_boresight(rays: Rays, pose: CornerPoseResult, design: FacetDesign, measured_distance_m: float,
+                        settings: AnalysisSettings, pool=None, timer=None) -> Shape:
+    """Stage 5: shape and boresight iterated on the subsample, then every valid pixel's point and slope in
+    the boresighted facet frame."""
+    pool = pool if pool is not None else _Serial()
+    camera_to_facet = pose.facet_to_camera.inverse()
+    sample = slice(None, None, settings.subsample_step)
+    subsample = Assembly(camera_to_facet.translation,
+                         to_frame(camera_to_facet, rays.rays[:, sample], translate=False),
+                         to_frame(camera_to_facet, rays.screen_cam_m[:, sample]),
+                         to_frame(camera_to_facet, rays.screen_centre_cam_m[:, None])[:, 0])
+    solution = solve_shape(subsample, design, measured_distance_m, settings.max_iterations, robust=settings.robust_fit)
+    if timer is not None:
+        timer.lap("iterate")
+    # Every valid pixel, taken from the camera frame straight into the boresighted facet frame.
+    to_moved = solution.motion.as_pose().compose(camera_to_facet)
+    moved_rays = pool.submit(to_frame, to_moved, rays.rays, translate=False)
+    moved_screen = to_frame(to_moved, rays.screen_cam_m)
+    points, s_x, s_y = _in_halves(pool, _reflect, moved_rays.result(), moved_screen,
+                                  coeffs=solution.coefficients, camera_m=to_moved.translation)
+    finite = np.isfinite(s_x) & np.isfinite(s_y)
+    if not np.all(finite):
+        raise AnalysisError(f"{int((~finite).sum())} pixel rays miss the fitted surface; the fit diverged")
+    return Shape(solution=solution, boresighted_to_camera=to_moved.inverse(), points_m=points,
+                 slopes=np.stack([s_x, s_y]))
+
+
+def fit_models(shape: Shape, design: FacetDesign, settings: AnalysisSettings, pool=None) -> Fits:
+    """Stage 6a: the all-points parabola (its F through the design z at the alignment point) and cubic, and
+    the slope residuals against design, parabola and cubic."""
+    pool = pool if pool is not None else _Serial()
+    x, y = shape.points_m[0], shape.points_m[1]
+    s_x, s_y = shape.slopes[0], shape.slopes[1]
+    cubic_task = pool.submit(fit_cubic, x, y, s_x, s_y)
+    angle_x = pool.submit(np.arctan, s_x)
+    fit = fit_parabola(x, y, s_x, s_y, robust=settings.robust_fit)
+    coeffs = fit.coefficients()
+    coeffs[5] = float(design.z(*design.alignment_point_m)) - surface_z(coeffs, *design.alignment_point_m)
+    angles = (angle_x.result(), np.arctan(s_y))
+    cubic = cubic_task.result()
+    higher = pool.submit(lambda: slope_residuals_mrad(s_x, s_y, *cubic.slopes(x, y), angles))
+    residuals = {"design": slope_residuals_mrad(s_x, s_y, *surface_slopes(design.coefficients, x, y), angles),
+                 "parabola": slope_residuals_mrad(s_x, s_y, *surface_slopes(coeffs, x, y), angles),
+                 "higher_order": higher.result()}
+    return Fits(parabola=fit, coefficients=coeffs, cubic=cubic, residuals_mrad=residuals)
+
+
+def report_figures(region: Region, phases: Phases, rays: Rays, pose: CornerPoseResult, shape: Shape, fits: Fits,
+                   geometry: StationGeometry, design: FacetDesign, measured_distance_m: float,
+                   settings: AnalysisSettings) -> dict:
+    """Stage 6b: the reported figures (JSON-ready) from the stages' outputs."""
+    fit, coeffs, cubic, solution = fits.parabola, fits.coefficients, fits.cubic, shape.solution
+    idx, vidx = region.idx, rays.vidx
+    unwrap_stats = phases.unwrap
+    # The boresight frame's tilt in the fixture: where the facet's optical axis at the alignment point
+    # points, to the precision of the slopes (the corner pose's own tilt errors cancel).
+    tilt = placement(geometry.fixture_to_camera, shape.boresighted_to_camera, design)["mrad"]
+    kx, ky = 4.0 * fit.a, 4.0 * fit.b
+    principal, angle = principal_axes(fit.a, fit.b, fit.e)
+    return {
+        "focal_length_x_m": focal_length_m(kx),
+        "focal_length_y_m": focal_length_m(ky),
+        "curvature_x_per_m": kx,
+        "curvature_y_per_m": ky,
+        "twist_mrad_per_m": 1000.0 * fit.e,
+        "twist_e1_mrad_per_m": 1000.0 * fit.e1,
+        "twist_e2_mrad_per_m": 1000.0 * fit.e2,
+        "principal_focal_lengths_m": principal,
+        "axis_angle_rad": angle,
+        "coefficients": {"A": coeffs[0], "B": coeffs[1], "C": coeffs[2], "D": coeffs[3], "E": coeffs[4],
+                         "F": coeffs[5]},
+        "slope_rms_mrad": {name: rms_summary(*e) for name, e in fits.residuals_mrad.items()},
+        "n_points": int(vidx.size),
+        "valid_fraction": float(vidx.size / idx.size),
+        "facet_pixels": int(idx.size),
+        "median_modulation_dn": float(np.median(phases.min_modulation_dn[rays.ok])),
+        "intensity_noise_dn": phases.noise_dn,
+        "dropped": {"low_modulation": phases.dropped["low_modulation"],
+                    "inconsistent_frames": phases.dropped["inconsistent_frames"],
+                    "outside_screen_model": rays.off_model,
+                    "excluded_by_pixel_mask": phases.dropped["excluded_by_pixel_mask"],
+                    **{f"{k}_{a}": getattr(unwrap_stats[a], k) for a in ("x", "y")
+                       for k in ("coarse_out_of_range", "disagreements", "edge_guard")}},
+        "unwrap_disagreements": int(unwrap_stats["x"].disagreements + unwrap_stats["y"].disagreements),
+        "iterations": {"shape": solution.shape_iterations, "boresight": solution.boresight_iterations,
+                       "converged": solution.converged},
+        "boresight_mrad": {"x": 1000.0 * solution.motion.alpha_rad, "y": 1000.0 * solution.motion.beta_rad},
+        "placement": placement(geometry.fixture_to_camera, pose.facet_to_camera, design),
+        "optical_tilt_mrad": {"x": tilt[0], "y": tilt[1]},
+        "higher_order": cubic.to_dict(),
+        # The converged fit on the subsample (every n-th valid pixel), before the all-points fit: what
+        # programs that stop there (OpenCSP's SOFAST) report.
+        "subsample_fit": {"focal_length_x_m": focal_length_m(4.0 * float(solution.coefficients[0])),
+                          "focal_length_y_m": focal_length_m(4.0 * float(solution.coefficients[1])),
+                          "n_points": int(-(-vidx.size // settings.subsample_step))},
+        "corner_reprojection_rms_px": pose.reprojection_rms_px,
+        "outline_agreement": pose.outline_agreement,
+        "range_correction_m": pose.range_shift_m,
+        "measured_distance_m": float(measured_distance_m),
+    }
+
+
+@dataclass
+class Reduction:
+    """Every stage's output of one analysis, so a stage can be rerun with one input changed
+    (:func:`rerun`)."""
+
+    region: Region
+    phases: Phases
+    rays: Rays
+    pose: CornerPoseResult
+    shape: Shape
+    fits: Fits
+    figures: dict
+
+
 def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, design: FacetDesign,
             measured_distance_m: float, settings: AnalysisSettings = AnalysisSettings(),
             screen: ScreenModel | None = None, rays_cam: np.ndarray | None = None,
             pixel_mask: np.ndarray | None = None) -> Analysis:
     """Reduce one capture to the reported figures (docs/conventions.md#measurement-sequence, #data-reduction).
+
+    The reduction runs as named stages (:func:`reduce_stages`): facet region, phase and unwrapping,
+    screen points and rays, corners and pose, shape and boresight, fits and figures.
 
     Parameters
     ----------
@@ -210,196 +611,95 @@ def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, d
     -------
     Analysis
     """
+    reduction, timings = reduce_stages(frames, fringes, geometry, design, measured_distance_m, settings, screen,
+                                       rays_cam, pixel_mask)
+    return to_analysis(reduction, timings)
+
+
+def default_screen(geometry: StationGeometry) -> ScreenModel:
+    """The flat screen of *geometry*."""
+    return FlatScreen(geometry.screen.width_m, geometry.screen.height_m, geometry.screen_to_camera)
+
+
+def reduce_stages(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, design: FacetDesign,
+                  measured_distance_m: float, settings: AnalysisSettings = AnalysisSettings(),
+                  screen: ScreenModel | None = None, rays_cam: np.ndarray | None = None,
+                  pixel_mask: np.ndarray | None = None) -> tuple[Reduction, dict]:
+    """Run every stage of :func:`analyse`; returns the stages' outputs and their timings, seconds."""
     with _pool(settings.threads) as pool:
-        return _reduce(pool, frames, fringes, geometry, design, measured_distance_m, settings, screen, rays_cam,
-                       pixel_mask)
+        timer = _Timer()
+        if screen is None:
+            screen = default_screen(geometry)
+        region = find_region(frames, fringes, geometry, design, settings)
+        timer.lap("mask")
+        phases = measure_phases(region, fringes, (screen.width_m, screen.height_m), settings, pixel_mask, pool)
+        timer.lap("phase")
+        rays = screen_points_and_rays(region, phases, geometry.camera, screen, rays_cam)
+        timer.lap("rays")
+        pose = corners_and_pose(region, rays, geometry, design, measured_distance_m, settings)
+        timer.lap("pose")
+        shape = shape_and_boresight(rays, pose, design, measured_distance_m, settings, pool, timer)
+        fits = fit_models(shape, design, settings, pool)
+        timer.lap("fit")
+        figures = report_figures(region, phases, rays, pose, shape, fits, geometry, design, measured_distance_m,
+                                 settings)
+        timer.lap("report")
+    return Reduction(region, phases, rays, pose, shape, fits, figures), dict(timer.timings)
 
 
-def _reduce(pool, frames, fringes, geometry, design, measured_distance_m, settings, screen, rays_cam,
-            pixel_mask) -> Analysis:
-    """The body of :func:`analyse`, with *pool* for its independent tasks."""
-    timer = _Timer()
-    cam = geometry.camera
-    checks.check_frames(frames, fringes, cam.shape)
+def to_analysis(reduction: Reduction, timings: dict | None = None) -> Analysis:
+    """The :class:`Analysis` of a finished reduction."""
+    timings = dict(timings or {})
+    figures = dict(reduction.figures)
+    figures["timings_s"] = dict(timings)
+    cam_shape = reduction.region.region.shape
+    valid = np.zeros(cam_shape, dtype=bool)
+    valid.ravel()[reduction.rays.vidx] = True
+    return Analysis(figures=figures, valid=valid, points_facet_m=reduction.shape.points_m,
+                    slopes=reduction.shape.slopes, residuals_mrad=reduction.fits.residuals_mrad,
+                    facet_to_camera=reduction.shape.boresighted_to_camera, corners_px=reduction.pose.corners_px,
+                    coefficients=reduction.fits.coefficients, timings_s=timings)
+
+
+STAGES = ("region", "phases", "rays", "pose", "shape", "fits", "figures")
+
+
+def rerun(reduction: Reduction, start: str, *, fringes: FringeSet, geometry: StationGeometry,
+          design: FacetDesign, measured_distance_m: float, settings: AnalysisSettings = AnalysisSettings(),
+          screen: ScreenModel | None = None, phases: Phases | None = None, pose: CornerPoseResult | None = None,
+          pool=None) -> Reduction:
+    """Rerun the reduction from stage *start* (one of :data:`STAGES` after ``region``) with the inputs given,
+    reusing the earlier stages' outputs of *reduction*.
+
+    E.g. ``rerun(r, "rays", geometry=g2, ...)`` redoes everything from the screen points with a changed
+    camera-to-screen pose; ``rerun(r, "rays", phases=p2, ...)`` with changed screen positions;
+    ``rerun(r, "shape", pose=p2, ...)`` with a changed corner pose (``pose`` only when *start* is
+    ``"shape"``).
+    """
+    if start not in STAGES[1:]:
+        raise ValueError(f"start must be one of {STAGES[1:]}, got {start!r}")
+    order = STAGES.index(start)
     if screen is None:
-        screen = FlatScreen(geometry.screen.width_m, geometry.screen.height_m, geometry.screen_to_camera)
-
-    # 1. Facet region from dark and white.
-    dark, white = frames[0], frames[1]
-    checks.check_order(frames, fringes, settings.mask_threshold_dn)
-    checks.check_response(dark, white, settings.mask_threshold_dn)
-    region = facet_region(dark, white, settings.mask_threshold_dn, settings.max_hole_px)
-    nominal_outline = outline_image_points(design, cam, geometry.fixture_to_camera)
-    checks.check_region(region, float(checks.projected_outline_mask(cam.shape, nominal_outline).sum()))
-    timer.lap("mask")
-
-    # 2-4. Phase, modulation, consistency and unwrapping for the facet's pixels.
-    idx = np.flatnonzero(region)
-    stack = np.take(frames.reshape(frames.shape[0], -1), idx, axis=1)     # faster than [:, idx]
-    checks.check_saturation(stack, settings.max_saturated_fraction)
-    slices = fringes.slices()
-    tasks = {axis: pool.submit(_phase_sets, stack, slices[axis]) for axis in ("x", "y")}
-    checks.check_repeats(stack, fringes)
-    raw = {axis: task.result() for axis, task in tasks.items()}
-    noise_dn = intensity_noise_dn(np.concatenate([np.concatenate(raw[a][2]) for a in ("x", "y")]))
-    ok = np.ones(idx.size, dtype=bool)
-    min_mod = np.full(idx.size, np.inf)
-    inconsistent = np.zeros(idx.size, dtype=bool)
-    cons_limit = settings.consistency_sigmas * 2.0 * noise_dn + 1.0
-    inconsistent_fraction = {}
-    for axis in ("x", "y"):
-        for p, b, r in zip(getattr(fringes, f"periods_{axis}"), raw[axis][1], raw[axis][2]):
-            min_mod = np.minimum(min_mod, b)
-            bad = np.abs(r) > cons_limit
-            inconsistent_fraction[f"{axis} p={p:g}"] = float(np.count_nonzero(bad)) / idx.size
-            inconsistent |= bad
-    low_mod = min_mod < settings.min_modulation_dn
-    ok &= ~low_mod & ~inconsistent
-    excluded = 0
-    if pixel_mask is not None:
-        if pixel_mask.shape != cam.shape:
-            raise CaptureError(f"pixel_mask has shape {pixel_mask.shape}, expected the camera's {cam.shape}")
-        allowed = pixel_mask.ravel()[idx]
-        excluded = int(np.count_nonzero(ok & ~allowed))
-        ok &= allowed
-    def unwrap_axis(axis):
-        periods = getattr(fringes, f"periods_{axis}")
-        length = screen.width_m if axis == "x" else screen.height_m
-        sigma = position_sigma_m(raw[axis][1][-1], noise_dn, periods[-1], length)
-        return unwrap_positions(raw[axis][0], periods, length, sigma, settings.guard_sigmas)
-
-    tasks = {axis: pool.submit(unwrap_axis, axis) for axis in ("x", "y")}
-    positions, unwrap_stats = {}, {}
-    for axis, task in tasks.items():
-        res = task.result()
-        positions[axis] = res.position_m
-        unwrap_stats[axis] = res
-        ok &= res.valid
-    checks.check_phase_sets(inconsistent_fraction,
-                            {a: unwrap_stats[a].disagreements / idx.size for a in ("x", "y")})
-    timer.lap("phase")
-
-    # Screen points in the camera frame; a measured screen model may not cover every position.
-    screen_cam = screen.points_camera(positions["x"][ok], positions["y"][ok])
-    covered = np.all(np.isfinite(screen_cam), axis=0)
-    off_model = int(np.count_nonzero(~covered))
-    if off_model:
-        ok[np.flatnonzero(ok)[~covered]] = False
-        screen_cam = screen_cam[:, covered]
-
-    # Valid pixels (raster order) and their rays.
-    vidx = idx[ok]
-    if vidx.size < 1000:
-        raise AnalysisError(f"only {vidx.size} pixels have a valid screen position (of {idx.size} facet "
-                            "pixels); check fringe contrast, exposure and the display")
-    if rays_cam is None:
-        rows, cols = np.divmod(vidx, cam.width_px)
-        rays = pixel_rays(cam, cols, rows)
+        screen = default_screen(geometry)
+    region = reduction.region
+    if order <= STAGES.index("phases"):
+        phases = measure_phases(region, fringes, (screen.width_m, screen.height_m), settings, None, pool)
+    elif phases is None:
+        phases = reduction.phases
+    if order <= STAGES.index("rays"):
+        rays = screen_points_and_rays(region, phases, geometry.camera, screen)
     else:
-        if rays_cam.shape != (3, *cam.shape):
-            raise CaptureError(f"precomputed rays have shape {rays_cam.shape}, expected {(3, *cam.shape)}")
-        rays = rays_cam.reshape(3, -1)[:, vidx]
-    screen_centre_cam = screen.centre_camera()
-    timer.lap("rays")
-
-    # Corners and pose, then shape and boresight on the subsample.
-    contrast = white.astype(np.float32) - dark.astype(np.float32)
-    outline = corners_mod.fit_outline(contrast, region, len(design.outline_m), settings.edge_window_px)
-    corners_3d = design.corners_3d()
-    expected = project(cam, geometry.fixture_to_camera, corners_3d)
-    found = corners_mod.match_corners(outline.corners_px, expected, settings.corner_tolerance_px)
-    corner_pose = solve_corner_pose(cam, found, corners_3d, geometry.fixture_to_camera)
-    if corner_pose.reprojection_rms_px > settings.max_corner_rms_px:
-        raise FacetNotFoundError(
-            f"the corners found in the mask do not fit the design outline ({corner_pose.reprojection_rms_px:.1f} px "
-            "RMS): the facet is partly lit or obstructed, or it is not the recipe's facet type")
-    measure_point = np.array([*design.measure_point_m, float(design.z(*design.measure_point_m))])
-    facet_to_camera, range_shift = fix_range(corner_pose.facet_to_camera, measure_point, screen_centre_cam,
-                                             measured_distance_m, settings.max_range_shift_m)
-    agreement = checks.outline_agreement(region, outline_image_points(design, cam, facet_to_camera))
-    timer.lap("pose")
-
-    camera_to_facet = facet_to_camera.inverse()
-    sample = slice(None, None, settings.subsample_step)
-    subsample = Assembly(camera_to_facet.translation, to_frame(camera_to_facet, rays[:, sample], translate=False),
-                         to_frame(camera_to_facet, screen_cam[:, sample]),
-                         to_frame(camera_to_facet, screen_centre_cam[:, None])[:, 0])
-    solution = solve_shape(subsample, design, measured_distance_m, settings.max_iterations, robust=settings.robust_fit)
-    timer.lap("iterate")
-
-    # Every valid pixel, taken from the camera frame straight into the boresighted facet frame.
-    to_moved = solution.motion.as_pose().compose(camera_to_facet)
-    moved_rays = pool.submit(to_frame, to_moved, rays, translate=False)
-    moved_screen = to_frame(to_moved, screen_cam)
-    points, s_x, s_y = _in_halves(pool, _reflect, moved_rays.result(), moved_screen,
-                                  coeffs=solution.coefficients, camera_m=to_moved.translation)
-    finite = np.isfinite(s_x) & np.isfinite(s_y)
-    if not np.all(finite):
-        raise AnalysisError(f"{int((~finite).sum())} pixel rays miss the fitted surface; the fit diverged")
-    x, y = points[0], points[1]
-    cubic_task = pool.submit(fit_cubic, x, y, s_x, s_y)
-    angle_x = pool.submit(np.arctan, s_x)
-    fit = fit_parabola(x, y, s_x, s_y, robust=settings.robust_fit)
-    coeffs = fit.coefficients()
-    coeffs[5] = float(design.z(*design.alignment_point_m)) - surface_z(coeffs, *design.alignment_point_m)
-    angles = (angle_x.result(), np.arctan(s_y))
-    cubic = cubic_task.result()
-    higher = pool.submit(lambda: slope_residuals_mrad(s_x, s_y, *cubic.slopes(x, y), angles))
-    residuals = {"design": slope_residuals_mrad(s_x, s_y, *surface_slopes(design.coefficients, x, y), angles),
-                 "parabola": slope_residuals_mrad(s_x, s_y, *surface_slopes(coeffs, x, y), angles),
-                 "higher_order": higher.result()}
-    timer.lap("fit")
-
-    valid = np.zeros(cam.shape, dtype=bool)
-    valid.ravel()[vidx] = True
-    boresighted_to_camera = to_moved.inverse()
-    # The boresight frame's tilt in the fixture: where the facet's optical axis at the alignment point
-    # points, to the precision of the slopes (the corner pose's own tilt errors cancel).
-    tilt = placement(geometry.fixture_to_camera, boresighted_to_camera, design)["mrad"]
-    kx, ky = 4.0 * fit.a, 4.0 * fit.b
-    principal, angle = principal_axes(fit.a, fit.b, fit.e)
-    figures = {
-        "focal_length_x_m": focal_length_m(kx),
-        "focal_length_y_m": focal_length_m(ky),
-        "curvature_x_per_m": kx,
-        "curvature_y_per_m": ky,
-        "twist_mrad_per_m": 1000.0 * fit.e,
-        "twist_e1_mrad_per_m": 1000.0 * fit.e1,
-        "twist_e2_mrad_per_m": 1000.0 * fit.e2,
-        "principal_focal_lengths_m": principal,
-        "axis_angle_rad": angle,
-        "coefficients": {"A": coeffs[0], "B": coeffs[1], "C": coeffs[2], "D": coeffs[3], "E": coeffs[4],
-                         "F": coeffs[5]},
-        "slope_rms_mrad": {name: rms_summary(*e) for name, e in residuals.items()},
-        "n_points": int(vidx.size),
-        "valid_fraction": float(vidx.size / idx.size),
-        "facet_pixels": int(idx.size),
-        "median_modulation_dn": float(np.median(min_mod[ok])),
-        "intensity_noise_dn": noise_dn,
-        "dropped": {"low_modulation": int(low_mod.sum()), "inconsistent_frames": int(inconsistent.sum()),
-                    "outside_screen_model": off_model, "excluded_by_pixel_mask": excluded,
-                    **{f"{k}_{a}": getattr(unwrap_stats[a], k) for a in ("x", "y")
-                       for k in ("coarse_out_of_range", "disagreements", "edge_guard")}},
-        "unwrap_disagreements": int(unwrap_stats["x"].disagreements + unwrap_stats["y"].disagreements),
-        "iterations": {"shape": solution.shape_iterations, "boresight": solution.boresight_iterations,
-                       "converged": solution.converged},
-        "boresight_mrad": {"x": 1000.0 * solution.motion.alpha_rad, "y": 1000.0 * solution.motion.beta_rad},
-        "placement": placement(geometry.fixture_to_camera, facet_to_camera, design),
-        "optical_tilt_mrad": {"x": tilt[0], "y": tilt[1]},
-        "higher_order": cubic.to_dict(),
-        # The converged fit on the subsample (every n-th valid pixel), before the all-points fit: what
-        # programs that stop there (OpenCSP's SOFAST) report.
-        "subsample_fit": {"focal_length_x_m": focal_length_m(4.0 * float(solution.coefficients[0])),
-                          "focal_length_y_m": focal_length_m(4.0 * float(solution.coefficients[1])),
-                          "n_points": int(-(-vidx.size // settings.subsample_step))},
-        "corner_reprojection_rms_px": corner_pose.reprojection_rms_px,
-        "outline_agreement": agreement,
-        "range_correction_m": range_shift,
-        "measured_distance_m": float(measured_distance_m),
-    }
-    timer.lap("report")
-    figures["timings_s"] = dict(timer.timings)
-    return Analysis(figures=figures, valid=valid, points_facet_m=points, slopes=np.stack([s_x, s_y]),
-                    residuals_mrad=residuals,
-                    facet_to_camera=boresighted_to_camera, corners_px=found,
-                    coefficients=coeffs, timings_s=dict(timer.timings))
+        rays = reduction.rays
+    if order <= STAGES.index("pose"):
+        pose = pose_from_corners(reduction.pose.corners_px, region, rays, geometry, design, measured_distance_m,
+                                 settings)
+    elif pose is None:
+        pose = reduction.pose
+    if order <= STAGES.index("shape"):
+        shape = shape_and_boresight(rays, pose, design, measured_distance_m, settings, pool)
+    else:
+        shape = reduction.shape
+    fits = fit_models(shape, design, settings, pool) if order <= STAGES.index("fits") else reduction.fits
+    figures = report_figures(region, phases, rays, pose, shape, fits, geometry, design, measured_distance_m,
+                             settings)
+    return Reduction(region, phases, rays, pose, shape, fits, figures)
