@@ -17,20 +17,13 @@ import dataclasses
 import json
 import logging
 import sys
-from pathlib import Path
 
 from .. import __version__
+from ..commands import add_command, add_config_option
+from ..commands import default_config  # noqa: F401  (kept importable from here)
 from ..errors import ConfigError
 
 log = logging.getLogger(__name__)
-
-
-def default_config() -> str:
-    """station.toml in the current folder, else the one beside the package (a source checkout)."""
-    here = Path("station.toml")
-    if here.exists():
-        return str(here)
-    return str(Path(__file__).resolve().parents[2] / "station.toml")
 
 
 def _squares(text: str) -> tuple[int, int]:
@@ -175,49 +168,83 @@ def register(subparsers, default_config_path: str | None = None) -> argparse.Arg
     Each subcommand sets ``func`` (called with the parsed arguments; returns the exit status; raises
     :class:`~sofast_station.errors.StationError` for the main program to report).
     """
-    config_default = default_config_path or default_config()
-    cal = subparsers.add_parser("calibrate", help="calibration routines: radiometric (daily), camera, geometry")
-    sub = cal.add_subparsers(dest="calibrate_command", required=True)
+    cal = add_command(
+        subparsers, "calibrate", help="calibration routines: radiometric (daily), camera, geometry, status",
+        description="""
+            The station's calibrations (docs/calibration.md). Each writes a dated record (JSON, never
+            overwritten) under data_dir/calibration/; inspection uses the newest and warns or refuses when
+            it is stale, as [calibration] in the station file says. Run 'radiometric' every morning after
+            the camera's warm-up; 'camera' and 'geometry' when the optics or the assembly change.""")
+    sub = cal.add_subparsers(dest="calibrate_command", required=True, metavar="SUBCOMMAND", title="subcommands")
 
     def common(p, simulated=True):
-        p.add_argument("--config", default=config_default, help="station file (default: ./station.toml)")
+        add_config_option(p, default_config_path)
         p.add_argument("--json", action="store_true", help="print one JSON object instead of the summary")
         if simulated:
-            p.add_argument("--seed", type=int, default=None, help="simulated station: noise seed")
+            p.add_argument("--seed", type=int, default=None,
+                           help="simulated station: noise seed (default: the [simulation] seed of the station file)")
             p.add_argument("--noise-free", action="store_true", help="simulated station: no sensor noise")
 
-    rad = sub.add_parser("radiometric", help="the daily radiometric calibration: exposure, gain, floor, response, "
-                                             "lookup table, display latency")
+    rad = add_command(
+        sub, "radiometric", help="the daily radiometric calibration: exposure, gain, floor, response, lookup table, "
+                                 "display latency",
+        description="""
+            The morning routine, after the camera's warm-up: find the display latency and a flicker-safe
+            exposure, set the gain so a full-white screen reads about 250 of 255 at its brightest, ramp the
+            display 0..255, find the floor, fit the end-to-end response polynomial and its linearising
+            lookup table, and store them as a dated record (with a PNG of the response curve). Settings not
+            given here come from the [calibration] routine table of the station file.""")
     common(rad)
-    rad.add_argument("--ramp-step", type=int, default=None, help="command step of the 0..255 ramp (default 5)")
-    rad.add_argument("--frames", type=int, default=None, help="frames averaged per ramp level (default 2)")
-    rad.add_argument("--max-exposure-periods", type=int, default=None,
-                     help="longest exposure in display refresh periods (default 2)")
-    rad.add_argument("--no-plot", action="store_true", help="do not write the PNG plot")
+    rad.add_argument("--ramp-step", type=int, default=None, metavar="N",
+                     help="command step of the 0..255 ramp (default: the station file's, else 5)")
+    rad.add_argument("--frames", type=int, default=None, metavar="N",
+                     help="fewest frames averaged per ramp level; more are taken, up to the station file's "
+                          "max_frames_per_level, when the room light flickers (default: the station file's, else 2)")
+    rad.add_argument("--max-exposure-periods", type=int, default=None, metavar="N",
+                     help="longest exposure in display refresh periods (default: the station file's, else 2)")
+    rad.add_argument("--no-plot", action="store_true", help="do not write the PNG plot of the response")
     rad.set_defaults(func=cmd_radiometric)
 
-    cam = sub.add_parser("camera", help="camera intrinsics and distortion from chessboard or ChArUco images")
+    cam = add_command(
+        sub, "camera", help="camera intrinsics and distortion from chessboard or ChArUco images",
+        description="""
+            Calibrate the camera's intrinsics (focal length, principal point) and distortion from images of
+            a chessboard or ChArUco board, and store them as a dated camera record. Blurred images and
+            images where the board is not found are reported and skipped. The station uses the record when
+            [camera] intrinsics = "record" in the station file.""")
     common(cam, simulated=False)
-    cam.add_argument("images", nargs="+", help="board images (any format OpenCV reads)")
-    cam.add_argument("--board", choices=("chessboard", "charuco"), default="chessboard")
-    cam.add_argument("--squares", type=_squares, required=True, help="squares across x down, e.g. 10x7")
-    cam.add_argument("--square-mm", type=float, required=True, help="side of a square, mm")
-    cam.add_argument("--marker-mm", type=float, default=None, help="ChArUco: side of a marker, mm")
+    cam.add_argument("images", nargs="+", metavar="IMAGE", help="board images (any format OpenCV reads)")
+    cam.add_argument("--board", choices=("chessboard", "charuco"), default="chessboard", help="the board's kind")
+    cam.add_argument("--squares", type=_squares, required=True, metavar="NxM",
+                     help="squares across x down, e.g. 10x7 (required)")
+    cam.add_argument("--square-mm", type=float, required=True, metavar="MM", help="side of a square, mm (required)")
+    cam.add_argument("--marker-mm", type=float, default=None, metavar="MM",
+                     help="ChArUco: side of a marker, mm (required for ChArUco)")
     cam.add_argument("--dictionary", default="DICT_5X5_100", help="ChArUco: OpenCV marker dictionary")
     cam.add_argument("--legacy", action="store_true", help="ChArUco: a board made by OpenCV before 4.6")
-    cam.add_argument("--k3", action="store_true", help="also fit k3 (held at 0 by default)")
-    cam.add_argument("--min-images", type=int, default=5, help="fewest usable images (default 5)")
-    cam.add_argument("--max-edge-width", type=float, default=4.0,
-                     help="reject images whose edges are wider than this many pixels (blurred; default 4)")
+    cam.add_argument("--k3", action="store_true", help="also fit k3 (held at 0 otherwise)")
+    cam.add_argument("--min-images", type=int, default=5, metavar="N", help="fewest usable images")
+    cam.add_argument("--max-edge-width", type=float, default=4.0, metavar="PX",
+                     help="reject images whose edges are wider than this many pixels (blurred)")
     cam.set_defaults(func=cmd_camera)
 
-    geo = sub.add_parser("geometry", help="measure a reference facet of known shape and report the geometry error")
+    geo = add_command(
+        sub, "geometry", help="measure a reference facet of known shape and report the geometry error",
+        description="""
+            Check the station's geometry (camera pose, screen pose, distance): measure a reference facet of
+            known shape and compare the measured focal lengths and slopes with the reference's. Writes a
+            dated geometry record; exits with 1 when the error is beyond the reference's tolerance.""")
     common(geo)
-    geo.add_argument("--reference", default=None,
+    geo.add_argument("--reference", default=None, metavar="FILE",
                      help="reference facet file ([reference] table); the simulated station's true facet by default")
     geo.set_defaults(func=cmd_geometry)
 
-    st = sub.add_parser("status", help="the calibration in force, its age, and the records kept")
+    st = add_command(
+        sub, "status", help="the calibration in force, its age, and the records kept",
+        description="""
+            Show the radiometric calibration in force (or the shipped default), its age against the station
+            file's limits, where the camera intrinsics come from, and the records of each kind kept under
+            data_dir/calibration/. Nothing is measured.""")
     common(st, simulated=False)
     st.set_defaults(func=cmd_status)
     return cal

@@ -6,27 +6,38 @@ import json
 import sys
 from pathlib import Path
 
+from ..commands import add_command, json_safe
+
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser("import-opencsp", help="analyse a SOFAST fringe measurement from Sandia's OpenCSP")
-    p.add_argument("--test-data", default=None,
+    """Add ``import-opencsp`` to the ``sofast-station`` *subparsers*."""
+    p = add_command(
+        subparsers, "import-opencsp", help="analyse a SOFAST fringe measurement from Sandia's OpenCSP",
+        description="""
+            Read a fringe measurement in the HDF5 files of Sandia's OpenCSP (measurement, camera, display
+            shape, spatial orientation, image calibration, facet definition) and analyse it with this
+            station's pipeline. --test-data names a folder in the layout of OpenCSP's test data (the facet
+            shipped in fixtures/opencsp/test_data); each file can also be given on its own, and overrides
+            the folder's. --compare also analyses OpenCSP's own pixel selection and prints both results
+            (docs/opencsp.md).""")
+    p.add_argument("--test-data", default=None, metavar="DIR",
                    help="a folder in the layout of OpenCSP's opencsp/test/data (sets the six files below)")
     for name, what in (("measurement", "MeasurementSofastFringe HDF5"), ("camera", "Camera HDF5"),
                        ("display", "DisplayShape HDF5"), ("orientation", "SpatialOrientation HDF5"),
                        ("calibration", "ImageCalibration HDF5"), ("facet", "facet definition JSON")):
-        p.add_argument(f"--{name}", default=None, help=what)
-    p.add_argument("--focal-length", type=float, default=100.0,
+        p.add_argument(f"--{name}", default=None, metavar="FILE", help=f"{what} (default: from --test-data)")
+    p.add_argument("--focal-length", type=float, default=100.0, metavar="M",
                    help="design focal length, metres (OpenCSP keeps it with the processing, not the files)")
     p.add_argument("--robust", action="store_true", help="bisquare-weighted (robust) slope fits, like OpenCSP's "
                    "robust_least_squares")
-    p.add_argument("--compare", default=None,
-                   help="OpenCSP's own result (its data.h5): also analyse on its pixels and print both")
+    p.add_argument("--compare", default=None, metavar="FILE",
+                   help="OpenCSP's own result (its data.h5): also analyse on its pixels and print both "
+                        "(default: no comparison)")
     p.add_argument("--json", action="store_true", help="print one JSON object and nothing else on stdout")
     p.set_defaults(func=cmd_import_opencsp)
 
 
 def cmd_import_opencsp(args) -> int:
-    from ..cli import _json_safe
     from ..errors import ConfigError
     from .opencsp import opencsp_test_data_paths, read_opencsp, read_opencsp_result
 
@@ -48,7 +59,7 @@ def cmd_import_opencsp(args) -> int:
         out["opencsp"] = {"file": args.compare, "robust": ref.robust, "focal_length_x_m": ref.focal_length_x_m,
                           "focal_length_y_m": ref.focal_length_y_m, "n_points": int(ref.mask.sum()),
                           "ours_on_its_pixels": same}
-    out = _json_safe(out)
+    out = json_safe(out)
     if args.json:
         json.dump(out, sys.stdout, indent=1)
         sys.stdout.write("\n")

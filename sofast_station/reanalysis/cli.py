@@ -1,6 +1,7 @@
 """The re-analysis commands of ``sofast-station``: ``reprocess``, ``batch`` and ``report``.
 
-``register(subparsers)`` adds them to the ``sofast-station`` parser (``sofast_station/cli.py``). Importing
+``register(subparsers)`` adds them to the ``sofast-station`` parser (listed in
+:data:`sofast_station.commands.COMMAND_MODULES`). Importing
 this module imports nothing heavy: each command first puts BLAS on one thread (unless the user set a
 thread count), then loads numpy and the analysis, so that reprocessing is bit-exact
 (docs/conventions.md#determinism).
@@ -16,6 +17,9 @@ import textwrap
 import time
 from pathlib import Path
 
+from ..commands import add_command
+from ..commands import build_parser as _build_parser
+from ..commands import run
 from ._env import single_thread_blas
 
 log = logging.getLogger(__name__)
@@ -59,8 +63,8 @@ def register(subparsers) -> None:
     subparsers : argparse._SubParsersAction
         From ``parser.add_subparsers()``.
     """
-    rep = subparsers.add_parser(
-        "reprocess", help="rerun the analysis of data dumps from their raw frames and compare with the archive",
+    rep = add_command(
+        subparsers, "reprocess", help="rerun the analysis of data dumps from their raw frames and compare with the archive",
         description="Recompute every figure of each dump from its raw frames (never a stored result) and print "
                     "archived versus new. With no overrides, the same software on the same platform reproduces "
                     "the archived figures exactly, and says so.")
@@ -76,8 +80,8 @@ def register(subparsers) -> None:
     _add_overrides(rep)
     rep.set_defaults(func=cmd_reprocess)
 
-    bat = subparsers.add_parser(
-        "batch", help="reprocess a folder or glob of dumps, locally or on a Dask cluster, resumably",
+    bat = add_command(
+        subparsers, "batch", help="reprocess a folder or glob of dumps, locally or on a Dask cluster, resumably",
         description="Reprocess many dumps: one JSON result per dump in OUT/results/ (written atomically; a "
                     "killed batch resumes without redoing finished dumps), then OUT/summary.xlsx and "
                     "OUT/summary.csv. A dump that fails is reported in the summary; the batch goes on.")
@@ -95,8 +99,8 @@ def register(subparsers) -> None:
     _add_overrides(bat)
     bat.set_defaults(func=cmd_batch)
 
-    rpt = subparsers.add_parser(
-        "report", help="slope-error maps of dumps (the paper's Figs. 8-10), or 'report trend' over a period",
+    rpt = add_command(
+        subparsers, "report", help="slope-error maps of dumps (the paper's Figs. 8-10), or 'report trend' over a period",
         description="'report DUMP...' writes one PNG per dump: the slope-error magnitude on a fixed colour scale "
                     "with arrows of the error direction, for the design, the fitted parabola and the higher-order "
                     "model, the RMS figures in the titles. 'report trend --journal PATH [--from] [--to]' (or "
@@ -121,10 +125,8 @@ def register(subparsers) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     """A parser with only the re-analysis commands (for tests and ``python -m``)."""
-    p = argparse.ArgumentParser(prog="sofast-station")
-    p.add_argument("-v", "--verbose", action="store_true")
-    register(p.add_subparsers(dest="command", required=True))
-    return p
+    return _build_parser(description="The re-analysis commands of sofast-station (docs/reanalysis.md).",
+                         modules=(__name__,))
 
 
 # -- reprocess ----------------------------------------------------------------------------------------------
@@ -347,7 +349,6 @@ def _cmd_trend(args) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """Run one re-analysis command (as ``sofast-station`` would), for tests and ``python -m``."""
-    from ..cli import run
     return run(build_parser().parse_args(argv))
 
 

@@ -1,0 +1,166 @@
+"""The one registry of ``sofast-station`` commands, and what every command module shares.
+
+:data:`COMMAND_MODULES` lists the modules that provide commands, in the order ``sofast-station --help``
+shows them. Each has ``register(subparsers)``, which adds its commands (with their options and a
+``func`` default: ``func(args) -> exit status``). :func:`build_parser` imports them by name when it builds
+the parser, so a command module never imports ``sofast_station.cli`` or another command module: they all
+import this module, which imports none of them. A new command is a ``register`` function in its package's
+``cli.py`` and one line here.
+
+This module imports only the standard library, so ``--help`` and every command start fast; commands import
+numpy, the analysis and the devices inside their ``func``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import logging
+import math
+import os
+import re
+import sys
+import tempfile
+import textwrap
+from pathlib import Path
+
+from . import __version__
+from .errors import StationError
+
+log = logging.getLogger("sofast_station")
+
+#: The modules providing commands, in ``--help`` order, each with ``register(subparsers)``.
+COMMAND_MODULES = (
+    "sofast_station.station.cli",       # the production line: inspect, run, dump-next, archive export
+    "sofast_station.calibrate.cli",     # the morning calibration: calibrate radiometric|camera|geometry|status
+    "sofast_station.reanalysis.cli",    # the process engineer: reprocess, batch, report
+    "sofast_station.interop.cli",       # import-opencsp
+)
+
+
+class HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Plain-text help: paragraphs of a description re-wrapped to the terminal, indented lines (examples)
+    kept as written, and every option's default shown.
+
+    A default is appended as ``(default: X)`` unless the help text already speaks of its default, or the
+    default is ``None`` or a flag's ``False`` (then the help says what happens without the option).
+    """
+
+    def __init__(self, prog, indent_increment=2, max_help_position=30, width=None):
+        width = width or min(100, max(60, _terminal_width() - 2))
+        super().__init__(prog, indent_increment, max_help_position, width)
+
+    def _fill_text(self, text, width, indent):
+        blocks = []
+        for block in re.split(r"\n\s*\n", textwrap.dedent(text).strip("\n")):
+            out, words = [], []
+            for line in block.splitlines() + [" "]:
+                if line.startswith(" "):                  # an indented line (example, table): as written
+                    if words:
+                        out.append(textwrap.fill(" ".join(words), width, initial_indent=indent,
+                                                 subsequent_indent=indent, break_on_hyphens=False))
+                        words = []
+                    if line.strip():
+                        out.append(indent + line.rstrip())
+                else:
+                    words.append(line.strip())
+            blocks.append("\n".join(out))
+        return "\n\n".join(blocks) + "\n"
+
+    def _split_lines(self, text, width):
+        return textwrap.wrap(" ".join(text.split()), width, break_on_hyphens=False)
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        default = action.default
+        if ("default" in text.lower() or default is None or default is False or default is argparse.SUPPRESS
+                or not (action.option_strings or action.nargs in (argparse.OPTIONAL, argparse.ZERO_OR_MORE))):
+            return text
+        return f"{text} (default: %(default)s)"
+
+
+def _terminal_width() -> int:
+    try:
+        import shutil
+        return shutil.get_terminal_size().columns
+    except (OSError, ValueError):           # pragma: no cover
+        return 100
+
+
+def add_command(subparsers, name: str, help: str, description: str, **kwargs) -> argparse.ArgumentParser:
+    """Add one command: *help* is its line in the list of commands, *description* the paragraph(s) at the
+    top of its own ``--help`` (plain text; blank lines separate paragraphs, indented lines stay as
+    written)."""
+    return subparsers.add_parser(name, help=help, description=description, formatter_class=HelpFormatter,
+                                 **kwargs)
+
+
+def default_config() -> str:
+    """station.toml in the current folder, else the one beside the package (a source checkout)."""
+    here = Path("station.toml")
+    if here.exists():
+        return str(here)
+    return str(Path(__file__).resolve().parents[1] / "station.toml")
+
+
+def add_config_option(parser: argparse.ArgumentParser, default: str | None = None) -> None:
+    """The ``--config`` option every station command takes."""
+    parser.add_argument("--config", metavar="FILE", default=default or default_config(),
+                        help="the station file (default: ./station.toml if present, else the one beside the "
+                             "package)")
+
+
+def json_safe(obj):
+    """Replace NaN and infinities by None: JSON has no Infinity (an infinite f is null:
+    docs/conventions.md#focal-power)."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_safe(v) for v in obj]
+    if hasattr(obj, "item"):          # numpy scalar
+        return json_safe(obj.item())
+    return obj
+
+
+def write_json_atomic(path: Path, data: dict) -> None:
+    """Write JSON to a temporary file in the same folder, flush it to disk, then rename it into place."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as fh:
+            json.dump(data, fh, indent=1)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def build_parser(prog: str = "sofast-station", description: str = "", epilog: str = "",
+                 modules=COMMAND_MODULES) -> argparse.ArgumentParser:
+    """The parser of every command of *modules* (by default all of :data:`COMMAND_MODULES`)."""
+    p = argparse.ArgumentParser(prog=prog, description=description, epilog=epilog, formatter_class=HelpFormatter)
+    p.add_argument("--version", action="version", version=f"sofast-station {__version__}")
+    p.add_argument("-v", "--verbose", action="store_true", help="log debugging detail on stderr")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND", title="commands")
+    for name in modules:
+        importlib.import_module(name).register(sub)
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run a parsed command: logging to stderr, a StationError is one line and exit code 2."""
+    logging.basicConfig(level=logging.DEBUG if getattr(args, "verbose", False) else logging.INFO, stream=sys.stderr,
+                        format="%(asctime)s %(levelname)s %(message)s", datefmt="%H:%M:%S")
+    try:
+        return args.func(args)
+    except StationError as exc:
+        log.error("%s", exc)
+        return 2
+    except KeyboardInterrupt:
+        log.error("interrupted")
+        return 130

@@ -1,0 +1,231 @@
+"""The production line's commands: ``inspect``, ``run``, ``dump-next`` and ``archive export``.
+
+Registered in :data:`sofast_station.commands.COMMAND_MODULES`; each command imports the station, the
+devices and the archive only when it runs.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import sys
+from pathlib import Path
+
+from ..commands import add_command, add_config_option, json_safe, write_json_atomic
+from ..errors import StationError
+
+log = logging.getLogger("sofast_station")
+
+
+def _fmt(v, unit="", digits=4):
+    if v is None:
+        return "inf" if unit == " m" else "-"
+    return f"{v:.{digits}f}{unit}"
+
+
+def summary_text(rec: dict) -> str:
+    """A readable summary of one result record."""
+    lines = [f"Facet {rec['serial']} ({rec['facet']}) on {rec['station']}, {rec['time']}",
+             f"  verdict: {rec['verdict'].upper()}" + "".join(f"\n    - {r}" for r in rec.get("reasons", []))]
+    truth = rec.get("truth")
+
+    def row(label, key, unit="", digits=4, scale=1.0):
+        v = rec.get(key)
+        v = None if v is None else v * scale
+        t = None if not truth or truth.get(key) is None else truth[key] * scale
+        extra = f"   (truth {_fmt(t, unit, digits)})" if truth is not None else ""
+        lines.append(f"  {label:<26}{_fmt(v, unit, digits):>14}{extra}")
+
+    row("focal length x", "focal_length_x_m", " m")
+    row("focal length y", "focal_length_y_m", " m")
+    row("twist", "twist_mrad_per_m", " mrad/m")
+    row("twist E1 / E2", "twist_e1_mrad_per_m", " mrad/m")
+    row("", "twist_e2_mrad_per_m", " mrad/m")
+    lines.append("  slope error RMS (mrad)        x        y   magnitude")
+    for model, rms in rec["slope_rms_mrad"].items():
+        t = truth["slope_rms_mrad"].get(model) if truth else None
+        text = f"    {model:<22}{_fmt(rms['x'], '', 3):>9}{_fmt(rms['y'], '', 3):>9}{_fmt(rms['magnitude'], '', 3):>12}"
+        if t:
+            text += f"   (truth {t['x']:.3f} {t['y']:.3f} {t['magnitude']:.3f})"
+        lines.append(text)
+    b = rec.get("boresight_mrad")
+    if b:
+        lines.append(f"  boresight rotation (x, y)   {b['x']:7.3f}, {b['y']:.3f} mrad   (from the corner pose)")
+    tilt = rec.get("optical_tilt_mrad")
+    if tilt:
+        tt = truth.get("optical_tilt_mrad") if truth else None
+        extra = f"   (truth {tt['x']:.3f}, {tt['y']:.3f})" if tt else ""
+        lines.append(f"  optical tilt in fixture     {tilt['x']:7.3f}, {tilt['y']:.3f} mrad{extra}")
+    pl = rec.get("placement")
+    if pl:
+        lines.append("  placement in fixture       " + ", ".join(f"{v:.2f}" for v in pl["mm"]) + " mm, "
+                     + ", ".join(f"{v:.2f}" for v in pl["mrad"]) + " mrad")
+    lines.append(f"  points                    {rec['n_points']:>14,}   ({100 * rec['valid_fraction']:.1f} % of the facet's pixels)")
+    lines.append(f"  median modulation         {rec['median_modulation_dn']:>11.1f} DN")
+    it = rec["iterations"]
+    lines.append(f"  iterations                {it['shape']:>9} shape, {it['boresight']} boresight "
+                 f"({'converged' if it['converged'] else 'NOT converged'})")
+    t = rec["timings_s"]
+    lines.append(f"  time: capture {t['capture']:.2f} s, analysis {t['analysis']:.2f} s, total {t['total']:.2f} s")
+    return "\n".join(lines)
+
+
+def cmd_inspect(args) -> int:
+    from ..config import load_config
+    from .inspect import inspect, open_station
+
+    config = load_config(args.config)
+    log.info("station %s (%s), facet %s", config.name, config.backend, config.design.name)
+    log.info("preparing the station (simulated stations trace the twin once)...")
+    station = open_station(config, seed=args.seed, noise=not args.noise_free)
+    try:
+        def progress(i, n):
+            if i == n or i % 6 == 0:
+                log.info("captured %d/%d frames", i, n)
+        rec = inspect(station, args.serial, progress=progress)
+    finally:
+        station.close()
+    rec = json_safe(rec)
+    out = config.data_dir / "inspections" / f"{rec['serial']}-{rec['time'][:19].replace(':', '')}.json"
+    write_json_atomic(out, rec)
+    log.info("result written to %s", out)
+    if args.json:
+        json.dump(rec, sys.stdout, indent=1)
+        sys.stdout.write("\n")
+    else:
+        print(summary_text(rec))
+    return 0
+
+
+def cmd_run(args) -> int:
+    import signal
+
+    from ..config import load_config
+    from .service import Service, setup_logging
+
+    config = load_config(args.config)
+    log_path = setup_logging(config.data_dir, args.verbose)
+    log.info("station %s (%s); data in %s; log %s", config.name, config.backend, config.data_dir, log_path)
+    service = Service(config, simulated_facets=args.facets, seed=args.seed)
+    stop_signals = {"count": 0}
+
+    def on_signal(signum, frame):
+        stop_signals["count"] += 1
+        if stop_signals["count"] == 1:
+            log.warning("stop requested (%s): finishing the current facet", signal.Signals(signum).name)
+            service.runner.stop()
+        else:
+            raise KeyboardInterrupt
+
+    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    counts: dict[str, int] = {}
+    try:
+        print(f"{'serial':<14} {'focal lengths':^30} {'slope error RMS':^30} verdict  cycle", flush=True)
+        for outcome in service.runner.run(max_cycles=args.max_cycles):
+            counts[outcome.answer] = counts.get(outcome.answer, 0) + 1
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+        log.info("stopping: waiting for the archiver to write pending rows and dumps")
+        service.close()
+    total = sum(counts.values())
+    print(f"{total} facet(s): " + ", ".join(f"{n} {k}" for k, n in sorted(counts.items())), flush=True)
+    return 0
+
+
+def cmd_archive_export(args) -> int:
+    from ..archive import Journal, export_workbook
+    from ..config import load_config
+
+    config = load_config(args.config, use_camera_record=False)  # no camera needed
+    path = config.data_dir / "journal.sqlite3"
+    if not path.exists():
+        raise StationError(f"no journal at {path}: this station has not measured anything yet")
+    journal = Journal(path)
+    try:
+        out = Path(args.out) if args.out else config.data_dir / "exports" / \
+            f"sofast-{args.since or 'start'}-{args.until or 'now'}.xlsx".replace(":", "")
+        files = export_workbook(journal, args.since, args.until, out)
+    finally:
+        journal.close()
+    for f in files:
+        print(f)
+    return 0
+
+
+def cmd_dump_next(args) -> int:
+    from ..config import load_config
+
+    config = load_config(args.config, use_camera_record=False)  # no camera needed
+    flag = config.data_dir / "dump-next"
+    flag.parent.mkdir(parents=True, exist_ok=True)
+    flag.touch()
+    print(f"the next facet will be dumped ({flag})")
+    return 0
+
+
+def register(subparsers) -> None:
+    """Add ``inspect``, ``run``, ``dump-next`` and ``archive`` to the ``sofast-station`` *subparsers*."""
+    ins = add_command(
+        subparsers, "inspect", help="measure the facet in the fixture once and print its figures",
+        description="""
+            Measure the facet in the fixture once: show the 18 fringe images, capture them, analyse them and
+            print the facet's figures (focal lengths, twist, slope-error RMS per model, boresight, placement)
+            with the verdict. On the simulated station the twin's ground truth is printed beside each figure.
+            The result is also written as JSON under the station's data_dir/inspections/.
+
+            Progress goes to stderr; with --json stdout holds one JSON object and nothing else.""")
+    add_config_option(ins)
+    ins.add_argument("--serial", default="SIM-0001", help="the facet's serial number")
+    ins.add_argument("--json", action="store_true", help="print one JSON object and nothing else on stdout")
+    ins.add_argument("--seed", type=int, default=None,
+                     help="simulated station: noise seed (default: the [simulation] seed of the station file)")
+    ins.add_argument("--noise-free", action="store_true", help="simulated station: no sensor noise")
+    ins.set_defaults(func=cmd_inspect)
+
+    run = add_command(
+        subparsers, "run", help="run the production loop: robot-triggered inspections until stopped",
+        description="""
+            Run the production loop: wait for the robot or PLC to signal "facet in place", answer busy,
+            capture, analyse, judge, journal the facet's row, and answer done (pass, fail, invalid) or fault
+            with a reason code. An archiver process writes the daily workbooks and the data dumps. One line
+            per facet goes to stdout, a rotating log to data_dir/logs/.
+
+            Ctrl-C or SIGTERM finishes the facet in progress, waits for the archiver, then stops; a second
+            Ctrl-C stops at once.""")
+    add_config_option(run)
+    run.add_argument("--facets", type=int, default=None, metavar="N",
+                     help="simulated robot: how many facets to place (default 20)")
+    run.add_argument("--max-cycles", type=int, default=None, metavar="N",
+                     help="stop after this many facets (default: run until stopped)")
+    run.add_argument("--seed", type=int, default=None,
+                     help="simulated station: noise seed (default: the [simulation] seed of the station file)")
+    run.set_defaults(func=cmd_run)
+
+    dn = add_command(
+        subparsers, "dump-next", help="write a data dump of the next facet measured",
+        description="""
+            Ask the running station to write an HDF5 data dump of the next facet it measures (it leaves a
+            flag file in data_dir that the loop picks up). Dumps go to data_dir/dumps/; their layout is
+            docs/dump-schema.md.""")
+    add_config_option(dn)
+    dn.set_defaults(func=cmd_dump_next)
+
+    arch = add_command(
+        subparsers, "archive", help="the archive: export a period of the journal to a workbook",
+        description="""
+            The station's archive. 'archive export' writes the journal's rows of a period into an Excel
+            workbook (the daily workbooks in data_dir/archive/ are written by the running station).""")
+    arch_sub = arch.add_subparsers(dest="archive_command", required=True, metavar="SUBCOMMAND", title="subcommands")
+    exp = add_command(
+        arch_sub, "export", help="write a workbook of the journal's rows in a period",
+        description="""
+            Write the journal's rows of a period to an Excel workbook (several when the rows exceed Excel's
+            row limit) and print the file names. Nothing is measured: the camera is not opened.""")
+    add_config_option(exp)
+    exp.add_argument("--from", dest="since", default=None, metavar="ISO",
+                     help="ISO date/time, inclusive (default: the start of the journal)")
+    exp.add_argument("--to", dest="until", default=None, metavar="ISO", help="ISO date/time, exclusive (default: now)")
+    exp.add_argument("--out", default=None, metavar="FILE",
+                     help="the .xlsx to write (default: data_dir/exports/sofast-FROM-TO.xlsx)")
+    exp.set_defaults(func=cmd_archive_export)
