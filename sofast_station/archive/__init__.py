@@ -3,7 +3,7 @@
 
 - :class:`Journal` (``journal.py``): append-only SQLite journal; a row is durable when ``append`` returns.
 - ``workbook.py``: one workbook per day (or shift), rows flattened from the records, saved atomically.
-- ``dumps.py``: HDF5 data dumps (:func:`write_dump`, :func:`read_dump`, :func:`restore_frames`), retention
+- ``dumps/``: HDF5 data dumps (:func:`write_dump`, :func:`read_dump`, :func:`restore_frames`), retention
   (:func:`prune_dumps`) and the free-disk watch (:func:`disk_ok`); layout in ``docs/dump-schema.md``.
 - ``spool.py``: the fast crash-safe spool of a facet's frames before the robot is released.
 - :class:`Archiver` (``archiver.py``): drains journal and spool into workbooks and dumps, in the background.

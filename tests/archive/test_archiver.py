@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from sofast_station.archive import archiver as amod
-from sofast_station.archive import dumps as dmod
 from sofast_station.archive.archiver import Archiver, ArchiverSettings
 from sofast_station.archive.dumps import dump_path_for, list_dumps, read_dump, write_dump
+from sofast_station.archive.dumps import writer as dump_writer
 from sofast_station.archive.journal import Journal
 from sofast_station.archive.spool import spool_list, spool_path, spool_put
 from sofast_station.archive.workbook import read_workbook, workbook_path
@@ -110,7 +110,7 @@ def test_dumps_wait_while_the_disk_is_short_or_full(setup, small_config, monkeyp
         raise OSError(errno.ENOSPC, "No space left on device")
 
     with monkeypatch.context() as m:
-        m.setattr(dmod, "_flat_figures", full)                                   # fails while writing
+        m.setattr(dump_writer, "_flat_figures", full)                            # fails while writing
         report = arch.run_once()
     assert report.dumps_waiting == 1 and journal.get("c0").dump_status == "pending"
     assert list_dumps(data / "dumps") == [] and not list((data / "dumps").rglob("*.tmp"))

@@ -11,10 +11,10 @@ import h5py
 import numpy as np
 import pytest
 
-from sofast_station.archive import dumps as dmod
 from sofast_station.archive._common import json_ready
 from sofast_station.archive.dumps import (SCHEMA_V1, crop_to_facet, disk_ok, prune_dumps, read_dump, restore_frames,
                                           write_dump)
+from sofast_station.archive.dumps import writer as dump_writer
 from sofast_station.archive.spool import spool_get, spool_list, spool_put
 from sofast_station.errors import ArchiveError, DumpError
 
@@ -205,7 +205,7 @@ def test_a_failed_write_leaves_neither_dump_nor_temp_file(small_config, tmp_path
     def full(record):
         raise OSError(errno.ENOSPC, "No space left on device")
 
-    monkeypatch.setattr(dmod, "_flat_figures", full)
+    monkeypatch.setattr(dump_writer, "_flat_figures", full)
     with pytest.raises(ArchiveError, match="No space left"):
         write_dump(tmp_path / "out" / "d.h5", content)
     assert list((tmp_path / "out").iterdir()) == []

@@ -1,0 +1,217 @@
+"""Reading and validating a dump: what the file is, its schema and version, every required object, the
+frames' digests; a damaged or foreign file is a :class:`~sofast_station.errors.DumpError` that says what."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from ... import __version__
+from ...errors import DumpError
+from .content import DumpContent
+from .schema import _JSON_ENCODING, _PLAIN_ENCODING, SCHEMA, SCHEMA_V1, SCHEMA_VERSION
+
+log = logging.getLogger("sofast_station.archive.dumps")
+
+_MAGIC = ((b"\x89PNG\r\n\x1a\n", "a PNG image"), (b"\xff\xd8\xff", "a JPEG image"),
+          (b"PK\x03\x04", "a ZIP archive (an .xlsx, .npz or .zip file?)"), (b"II*\x00", "a TIFF image"),
+          (b"MM\x00*", "a TIFF image"), (b"SQLite format 3", "an SQLite database"), (b"%PDF", "a PDF document"),
+          (b"{", "JSON or other text"), (b"\x93NUMPY", "a NumPy .npy file"))
+
+
+def _read_value(obj):
+    import h5py
+
+    if isinstance(obj, h5py.Group):
+        return {k: _read_value(obj[k]) for k in obj.keys()}
+    encoding = obj.attrs.get("encoding", _PLAIN_ENCODING)
+    if isinstance(encoding, bytes):
+        encoding = encoding.decode()
+    if obj.dtype.kind in "OS" or h5py.check_string_dtype(obj.dtype) is not None:
+        value = obj.asstr()[()]
+        if isinstance(value, np.ndarray):
+            return [str(v) for v in value.tolist()]
+        return json.loads(value) if encoding == _JSON_ENCODING else str(value)
+    value = obj[()]
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    return value.item() if hasattr(value, "item") else value
+
+
+def _what_is(path: Path) -> str:
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(16)
+    except OSError:
+        return "unreadable"
+    for magic, name in _MAGIC:
+        if head.startswith(magic):
+            return name
+    return f"unknown content starting with {head[:8]!r}"
+
+
+def _attr_str(attrs, key: str, where: str) -> str:
+    if key not in attrs:
+        raise DumpError(f"dump {where}: the root attribute {key!r} is missing; the file is damaged or not "
+                        "written by sofast-station")
+    v = attrs[key]
+    return v.decode() if isinstance(v, bytes) else str(v)
+
+
+def read_dump(path: str | Path, load_frames: bool = True, require_result: bool = True) -> DumpContent:
+    """Open a data dump, check its schema, and return its content.
+
+    The reader dispatches on the file's ``schema_version`` (:data:`_READERS`): every layout version up to
+    :data:`SCHEMA_VERSION` keeps its own reader, so dumps of earlier versions stay readable.
+
+    Parameters
+    ----------
+    path : str or Path
+    load_frames : bool
+        Read (and checksum-verify) the frames; False reads the metadata only (``frames_cropped`` None).
+    require_result : bool
+        Refuse a dump without its ``result`` group (the archived record). Re-analysis passes False: the
+        result is an output of the analysis, not an input, so a dump that lost it can still be redone;
+        its ``record`` is then ``{}``.
+
+    Returns
+    -------
+    DumpContent
+
+    Raises
+    ------
+    DumpError
+        Naming the file and the problem: missing, empty, not HDF5 (e.g. a PNG renamed ``.h5``), truncated
+        or corrupt, an HDF5 file that is not a dump, a dump of a newer schema version (upgrade), or a
+        dump that lacks a dataset.
+    """
+    import h5py
+
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+    except FileNotFoundError:
+        raise DumpError(f"dump {path} does not exist") from None
+    except OSError as exc:
+        raise DumpError(f"dump {path} cannot be read: {exc}") from exc
+    if path.is_dir():
+        raise DumpError(f"dump {path} is a folder, not a file")
+    if size == 0:
+        raise DumpError(f"dump {path} is empty (0 bytes): its write was interrupted or it was truncated; "
+                        "it holds no data")
+    try:
+        is_hdf5 = h5py.is_hdf5(str(path))
+    except OSError as exc:
+        raise DumpError(f"dump {path} cannot be read: {exc}") from exc
+    if not is_hdf5:
+        raise DumpError(f"dump {path} is not an HDF5 file (it looks like {_what_is(path)}); it is not a "
+                        "sofast-station dump")
+    try:
+        f = h5py.File(path, "r", locking=False)      # readable on shares without file locking
+    except OSError as exc:
+        msg = str(exc)
+        what = "is truncated (shorter than its header says: an interrupted copy?)" if "truncated" in msg else \
+            "is corrupt"
+        raise DumpError(f"dump {path} {what}; HDF5 says: {msg}") from exc
+    try:
+        with f:
+            return _read_open(f, path, load_frames, require_result)
+    except DumpError:
+        raise
+    except (OSError, KeyError, ValueError, RuntimeError, TypeError) as exc:
+        raise DumpError(f"dump {path} is corrupt or truncated: reading it failed with {type(exc).__name__}: "
+                        f"{exc}") from exc
+
+
+def _read_open(f, path: Path, load_frames: bool, require_result: bool = True) -> DumpContent:
+    schema = f.attrs.get("schema")
+    if isinstance(schema, bytes):
+        schema = schema.decode()
+    if schema is None:
+        top = ", ".join(sorted(f.keys())[:8]) or "nothing"
+        raise DumpError(f"{path} is an HDF5 file but not a sofast-station dump (no 'schema' attribute at its "
+                        f"root; it holds {top})")
+    if schema != SCHEMA:
+        raise DumpError(f"{path} is an HDF5 file of schema {schema!r}, not a sofast-station dump ({SCHEMA!r})")
+    try:
+        version = int(f.attrs.get("schema_version"))
+    except (TypeError, ValueError):
+        raise DumpError(f"dump {path} has no valid 'schema_version' attribute ({f.attrs.get('schema_version')!r})")
+    if version > SCHEMA_VERSION:
+        sw = f.attrs.get("software_version", "?")
+        sw = sw.decode() if isinstance(sw, bytes) else sw
+        raise DumpError(f"dump {path} was written by a newer sofast-station ({sw}, dump schema version {version}); "
+                        f"this software ({__version__}) reads schema versions up to {SCHEMA_VERSION}: upgrade "
+                        "sofast-station to read it")
+    if version < 1:
+        raise DumpError(f"dump {path} has an invalid schema_version {version}")
+    reader = _READERS.get(version)
+    if reader is None:                       # a version this software wrote but no longer reads: a bug
+        raise DumpError(f"dump {path} has schema version {version}, for which this software ({__version__}) "
+                        f"has no reader (it knows {sorted(_READERS)}); report this as a bug")
+    return reader(f, path, version, load_frames, require_result)
+
+
+def _read_v1(f, path: Path, version: int, load_frames: bool, require_result: bool) -> DumpContent:
+    """Reader of schema version 1 (docs/dump-schema.md, :data:`SCHEMA_V1`)."""
+    import h5py
+
+    where = str(path)
+    attrs = {k: _attr_str(f.attrs, k, where) for k in ("software_version", "cycle_id", "serial", "time",
+                                                         "config_hash")}
+    created = _attr_str(f.attrs, "created", where)
+    optional = () if require_result else ("result", "result/record_json")
+    missing = [p for p, kind, _, _, _, required in SCHEMA_V1
+               if required and kind != "attribute" and "*" not in p and p not in f and p not in optional]
+    if missing:
+        raise DumpError(f"dump {path} lacks the dataset(s) {', '.join(missing)} required by schema version "
+                        f"{version}; the file is damaged or incomplete")
+    frames_ds = f["capture/frames"]
+    if not isinstance(frames_ds, h5py.Dataset) or frames_ds.ndim != 3 or frames_ds.dtype != np.uint8:
+        raise DumpError(f"dump {path}: capture/frames must be an (n, h, w) uint8 dataset, got "
+                        f"{getattr(frames_ds, 'shape', None)} {getattr(frames_ds, 'dtype', None)}")
+    cap = f["capture"]
+    frames = None
+    if load_frames:
+        frames = frames_ds[()]
+        digests = _read_value(cap["frames_sha256"])
+        if len(digests) != frames.shape[0]:
+            raise DumpError(f"dump {path}: {len(digests)} frame digests for {frames.shape[0]} frames")
+        for i, frame in enumerate(frames):
+            if hashlib.sha256(frame).hexdigest() != digests[i]:
+                raise DumpError(f"dump {path} is corrupt: frame {i} does not match its SHA-256 digest")
+    crop_box = tuple(int(v) for v in _read_value(cap["crop_box"]))
+    full_shape = tuple(int(v) for v in _read_value(cap["full_shape"]))
+    n, h, w = frames_ds.shape
+    if len(crop_box) != 2 or len(full_shape) != 2 or crop_box[0] < 0 or crop_box[1] < 0 \
+            or crop_box[0] + h > full_shape[0] or crop_box[1] + w > full_shape[1]:
+        raise DumpError(f"dump {path}: the crop {h} x {w} at {crop_box} does not fit the full frame {full_shape}")
+    cfg = _read_value(f["config"])
+    record = {}
+    if "result/record_json" in f:
+        try:
+            record = json.loads(_read_value(f["result/record_json"]))
+        except json.JSONDecodeError as exc:
+            raise DumpError(f"dump {path}: result/record_json is not valid JSON ({exc})") from exc
+    else:
+        log.warning("dump %s holds no archived result (no result/record_json); reading it for re-analysis only",
+                    path)
+    return DumpContent(
+        cycle_id=attrs["cycle_id"], serial=attrs["serial"], time=attrs["time"],
+        software_version=attrs["software_version"], config_hash=attrs["config_hash"], frames_cropped=frames,
+        crop_box=crop_box, full_shape=full_shape,
+        measured_distance_m=float(_read_value(cap["measured_distance_m"])),
+        fringes=_read_value(f["fringes"]), radiometric=_read_value(f["calibration/radiometric"]),
+        geometry=_read_value(f["geometry"]), design=_read_value(f["design"]), analysis=_read_value(f["analysis"]),
+        station_toml=cfg["station_toml"], facet_toml=cfg["facet_toml"], station_path=cfg["station_path"],
+        facet_path=cfg["facet_path"], station_name=cfg["station_name"], record=record, schema_version=version,
+        created=created, path=path)
+
+
+#: The reader of each schema version this software reads (a new layout adds its version here and keeps
+#: the readers of the older ones).
+_READERS = {1: _read_v1}
