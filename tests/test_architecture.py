@@ -1,0 +1,254 @@
+"""The import rules of docs/architecture.md, checked by reading the sources (no module is imported).
+
+Every ``import`` statement of ``sofast_station`` counts, at module level ("eager": loaded with the module)
+or inside a function ("lazy": loaded when the function runs). A rule on what a package may depend on
+uses both; a rule on what loading a package loads uses the eager ones.
+
+A failure names the importing file and line and the chain of imports that breaks the rule. If the rule
+itself has to change, change it in docs/architecture.md and here together.
+"""
+
+from __future__ import annotations
+
+import ast
+import sys
+from collections import defaultdict
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGE = "sofast_station"
+
+#: The plain-data modules the math, the twin and everyone else share (records and their TOML reader).
+PLAIN_DATA = {"errors", "geometry", "facet", "fringes", "files"}
+#: Standard-library modules that do I/O or run processes: none of them in the pure math.
+STDLIB_IO = {"sqlite3", "socket", "subprocess", "multiprocessing", "signal", "shutil", "tempfile", "urllib", "http",
+             "asyncio", "selectors", "ssl", "ftplib", "smtplib", "tkinter"}
+
+
+@dataclass(frozen=True)
+class Import:
+    source: str          # importing module, e.g. sofast_station.measure.fit
+    target: str          # imported module (project modules resolved to a module that exists), or a library
+    line: int
+    eager: bool          # at module level (also inside if/try at module level)
+
+
+def _module_name(path: Path, root: Path) -> str:
+    parts = list(path.relative_to(root).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def scan(root: Path = ROOT) -> tuple[set[str], list[Import]]:
+    """Every module of the package under *root* and every import statement in it."""
+    files = sorted((root / PACKAGE).rglob("*.py"))
+    modules = {_module_name(p, root) for p in files}
+    imports: list[Import] = []
+    for path in files:
+        name = _module_name(path, root)
+        package = name.split(".") if path.name == "__init__.py" else name.split(".")[:-1]
+        tree = ast.parse(path.read_text(), filename=str(path))
+        functions = [n for n in ast.walk(tree) if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda))]
+        lazy_nodes = {id(n) for f in functions for n in ast.walk(f)}
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                targets = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                if node.level:
+                    base = ".".join(package[:len(package) - node.level + 1] + ([node.module] if node.module else []))
+                else:
+                    base = node.module or ""
+                # "from pkg import name": name may be a submodule or an attribute of pkg
+                targets = [f"{base}.{a.name}" if f"{base}.{a.name}" in modules else base for a in node.names]
+            else:
+                continue
+            for target in targets:
+                if target.split(".")[0] == PACKAGE:
+                    while target not in modules and "." in target:
+                        target = target.rsplit(".", 1)[0]
+                imports.append(Import(name, target, node.lineno, id(node) not in lazy_nodes))
+    return modules, imports
+
+
+def unit(module: str) -> str:
+    """The architectural unit of a project module: its sub-package, or its top-level module's name."""
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else "(package)"
+
+
+class Graph:
+    def __init__(self, root: Path = ROOT):
+        self.modules, self.imports = scan(root)
+        self.out: dict[str, list[Import]] = defaultdict(list)
+        for imp in self.imports:
+            self.out[imp.source].append(imp)
+
+    def in_unit(self, name: str) -> list[str]:
+        return sorted(m for m in self.modules if unit(m) == name and m.startswith(PACKAGE + "."))
+
+    def reach(self, starts, eager_only: bool = False) -> dict[str, list[Import]]:
+        """Every module reachable from *starts* (project modules and libraries), each with one import chain."""
+        chains: dict[str, list[Import]] = {s: [] for s in starts}
+        todo = list(starts)
+        while todo:
+            m = todo.pop()
+            for imp in self.out.get(m, ()):
+                if eager_only and not imp.eager:
+                    continue
+                if imp.target not in chains:
+                    chains[imp.target] = chains[m] + [imp]
+                    if imp.target in self.modules:
+                        todo.append(imp.target)
+        return chains
+
+
+def _chain(chain: list[Import]) -> str:
+    return " -> ".join([chain[0].source] + [f"{i.target} (line {i.line}{'' if i.eager else ', lazy'})" for i in chain])
+
+
+def check_rules(graph: Graph) -> list[str]:
+    """Every broken rule of docs/architecture.md, one message each (empty when all hold)."""
+    bad: list[str] = []
+    project = graph.modules
+
+    def forbid(starts, allowed_unit, libraries_ok, rule, eager_only=False):
+        """Report each forbidden module reached from *starts* once, with the chain that reaches it (the
+        search does not go on through a forbidden module: its own imports are its rules' business)."""
+        chains = {s: [] for s in starts}
+        todo = list(starts)
+        while todo:
+            for imp in graph.out.get(todo.pop(), ()):
+                if (eager_only and not imp.eager) or imp.target in chains:
+                    continue
+                chains[imp.target] = chain = chains[imp.source] + [imp]
+                if imp.target in project:
+                    if allowed_unit(unit(imp.target)):
+                        todo.append(imp.target)
+                    else:
+                        bad.append(f"{rule}: {_chain(chain)}")
+                elif not libraries_ok(imp.target.split(".")[0]):
+                    bad.append(f"{rule}: {_chain(chain)}")
+
+    stdlib = set(sys.stdlib_module_names) | {"__future__"}
+
+    # 1. the math: only itself and the plain data, directly or indirectly; numpy, scipy, OpenCV; no I/O
+    forbid(graph.in_unit("measure"), lambda u: u == "measure" or u in PLAIN_DATA,
+           lambda lib: lib in {"numpy", "scipy", "cv2"} or (lib in stdlib and lib not in STDLIB_IO),
+           "measure/ may import only itself, the plain-data modules, numpy, scipy, cv2 and non-I/O stdlib")
+    # 1b. the statistics: pure as well
+    forbid(graph.in_unit("qc"), lambda u: u in {"qc", "errors"},
+           lambda lib: lib in {"numpy", "scipy"} or (lib in stdlib and lib not in STDLIB_IO),
+           "qc/ may import only itself, errors, numpy, scipy and non-I/O stdlib")
+    # 2. the twin: nothing of the math (nor calibration, nor OpenCV), directly or indirectly
+    forbid(graph.in_unit("twin"), lambda u: u in {"twin"} | PLAIN_DATA,
+           lambda lib: lib in {"numpy", "scipy"} or lib in stdlib,
+           "twin/ shares no code with measure/ (only itself, the plain data, numpy, scipy and the stdlib)")
+    # 3. calibration: never names the twin; loading it loads no twin module
+    for imp in graph.imports:
+        if unit(imp.source) == "calibrate" and imp.target in project and unit(imp.target) == "twin":
+            bad.append(f"calibrate/ never imports twin/: {imp.source} line {imp.line} imports {imp.target}")
+    forbid(graph.in_unit("calibrate"), lambda u: u != "twin", lambda lib: True,
+           "loading calibrate/ loads no twin/ module", eager_only=True)
+    # 4. devices: the leaves the loop drives
+    forbid(graph.in_unit("devices"), lambda u: u in {"devices"} | PLAIN_DATA, lambda lib: True,
+           "devices/ imports only itself and the plain data")
+    # 5. the archive keeps; it never drives the station, the devices or the twin
+    for imp in graph.imports:
+        if (unit(imp.source) == "archive" and imp.target in project
+                and unit(imp.target) in {"station", "devices", "twin", "cli", "commands"}):
+            bad.append(f"archive/ imports nothing from station/, devices/, twin/ or the command line: "
+                       f"{imp.source} line {imp.line} imports {imp.target}")
+    # 6. one registry of commands: only the entry point imports cli.py; commands.py imports no command module
+    for imp in graph.imports:
+        if imp.target == f"{PACKAGE}.cli" and imp.source != f"{PACKAGE}.__main__":
+            bad.append(f"only __main__ imports {PACKAGE}.cli: {imp.source} line {imp.line} imports it")
+    forbid([f"{PACKAGE}.commands"], lambda u: u in {"commands", "errors", "(package)"}, lambda lib: lib in stdlib,
+           "commands.py (the registry) imports only the standard library, errors and the package's version")
+    return bad
+
+
+def eager_cycles(graph: Graph) -> list[list[str]]:
+    """Import cycles among module-level imports (each once, as a list of modules)."""
+    index, low, stack, on, out = {}, {}, [], set(), []
+    edges = {m: sorted({i.target for i in graph.out.get(m, ()) if i.eager and i.target in graph.modules
+                        and i.target != m and not m.startswith(i.target + ".")}) for m in graph.modules}
+
+    def strong(v):
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in edges[v]:
+            if w not in index:
+                strong(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+
+    for m in sorted(graph.modules):
+        if m not in index:
+            strong(m)
+    return out
+
+
+@pytest.fixture(scope="module")
+def graph():
+    return Graph()
+
+
+def test_the_scan_sees_the_package(graph):
+    """Guard against a rule that passes because the scan saw nothing."""
+    assert {"sofast_station.measure.pipeline", "sofast_station.twin.truth", "sofast_station.calibrate.cli",
+            "sofast_station.commands"} <= graph.modules
+    measure_reach = graph.reach(graph.in_unit("measure"))
+    assert "sofast_station.geometry" in measure_reach and "numpy" in measure_reach
+    assert "sofast_station.twin.truth" in graph.reach(["sofast_station.station.inspect"])
+
+
+def test_the_import_rules_of_docs_architecture_hold(graph):
+    broken = check_rules(graph)
+    assert not broken, "import rules broken (docs/architecture.md):\n  " + "\n  ".join(broken)
+
+
+def test_no_import_cycle_at_module_level(graph):
+    cycles = eager_cycles(graph)
+    assert not cycles, "module-level import cycles: " + "; ".join(" <-> ".join(c) for c in cycles)
+
+
+def test_each_rule_catches_a_violation(tmp_path):
+    """Plant one violation of each rule in a copy of the package: each is reported."""
+    import shutil
+
+    shutil.copytree(ROOT / PACKAGE, tmp_path / PACKAGE, ignore=shutil.ignore_patterns("__pycache__"))
+    pkg = tmp_path / PACKAGE
+    planted = {
+        "measure/fit.py": "from ..archive.journal import Journal\n",
+        "measure/phase.py": "import sqlite3\n",
+        "twin/surface.py": "def f():\n    from ..measure.fit import fit_parabola\n",
+        "calibrate/store.py": "from ..twin import station\n",
+        "devices/lcd.py": "from ..station import runner\n",
+        "archive/journal.py": "from ..station.runner import Runner\n",
+        "reanalysis/batch.py": "from ..cli import main\n",
+        "commands.py": "from .station import cli\n",
+        "qc/spc.py": "import h5py\n",
+    }
+    for rel, code in planted.items():
+        path = pkg / rel
+        path.write_text(path.read_text() + "\n" + code)
+    broken = check_rules(Graph(tmp_path))
+    for rule in ("measure/ may import", "qc/ may import", "twin/ shares no code", "calibrate/ never imports twin/",
+                 "devices/ imports only", "archive/ imports nothing", "only __main__ imports",
+                 "commands.py (the registry)"):
+        assert any(b.startswith(rule) for b in broken), f"{rule!r} not reported; got:\n" + "\n".join(broken)
+    assert any("sqlite3" in b for b in broken) and any("lazy" in b and "twin" in b for b in broken)
