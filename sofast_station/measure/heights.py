@@ -1,0 +1,193 @@
+"""Slopes on a regular facet grid, integrated to heights by least squares, and local curvature.
+
+All functions are pure (numpy in, numpy out). Lengths in metres, slopes dimensionless (dz/dx, dz/dy).
+
+Gridding: the measured points (scattered in facet x, y, one per camera pixel) are averaged into square
+cells of side ``cell_m``; a cell holds the mean slope of the points that fall in it (or NaN).
+
+Integration: the heights h on the cell centres minimise
+
+    sum over x-neighbours (h[i, j+1] - h[i, j] - cell * (s_x[i, j] + s_x[i, j+1]) / 2)^2
+  + sum over y-neighbours (h[i+1, j] - h[i, j] - cell * (s_y[i, j] + s_y[i+1, j]) / 2)^2
+
+(the trapezoid rule on every pair of neighbouring valid cells; Southwell's geometry), with the mean of h
+fixed at zero. Each connected region of valid cells is solved on its own (its own zero mean).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+
+def grid_slopes(x_m, y_m, s_x, s_y, cell_m: float, extent_m=None, min_points: int = 1) -> dict:
+    """Average scattered slopes into square cells.
+
+    Parameters
+    ----------
+    x_m, y_m : (N,) arrays
+        Facet-frame positions of the points, metres.
+    s_x, s_y : (N,) arrays
+        Slopes (or slope differences) at the points, dimensionless.
+    cell_m : float
+        Cell side, metres.
+    extent_m : (x_min, x_max, y_min, y_max), optional
+        Grid edges; the points' bounding box (padded by one cell) by default.
+    min_points : int
+        A cell with fewer points is left empty (NaN).
+
+    Returns
+    -------
+    dict
+        ``s_x``, ``s_y`` (ny, nx) mean slopes, NaN where empty; ``count`` (ny, nx) points per cell;
+        ``x_m`` (nx,), ``y_m`` (ny,) cell centres; ``extent_m`` grid edges; ``cell_m``.
+    """
+    x = np.asarray(x_m, dtype=np.float64).ravel()
+    y = np.asarray(y_m, dtype=np.float64).ravel()
+    sx = np.asarray(s_x, dtype=np.float64).ravel()
+    sy = np.asarray(s_y, dtype=np.float64).ravel()
+    if not (x.size == y.size == sx.size == sy.size):
+        raise ValueError(f"x_m, y_m, s_x, s_y must have one value per point, got sizes "
+                         f"{x.size}, {y.size}, {sx.size}, {sy.size}")
+    if not (math.isfinite(cell_m) and cell_m > 0):
+        raise ValueError(f"cell_m must be a positive length in metres, got {cell_m}")
+    keep = np.isfinite(x) & np.isfinite(y) & np.isfinite(sx) & np.isfinite(sy)
+    x, y, sx, sy = x[keep], y[keep], sx[keep], sy[keep]
+    if extent_m is None:
+        if x.size == 0:
+            raise ValueError("no finite points to grid")
+        extent_m = (float(x.min()) - cell_m, float(x.max()) + cell_m, float(y.min()) - cell_m, float(y.max()) + cell_m)
+    x0, x1, y0, y1 = (float(v) for v in extent_m)
+    nx = max(1, int(math.ceil((x1 - x0) / cell_m - 1e-9)))
+    ny = max(1, int(math.ceil((y1 - y0) / cell_m - 1e-9)))
+    ix = np.floor((x - x0) / cell_m).astype(np.int64)
+    iy = np.floor((y - y0) / cell_m).astype(np.int64)
+    ok = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny)
+    flat = iy[ok] * nx + ix[ok]
+    count = np.bincount(flat, minlength=nx * ny).astype(np.float64)
+    mean_x = np.bincount(flat, sx[ok], minlength=nx * ny)
+    mean_y = np.bincount(flat, sy[ok], minlength=nx * ny)
+    full = count >= max(1, int(min_points))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        gx = np.where(full, mean_x / count, np.nan).reshape(ny, nx)
+        gy = np.where(full, mean_y / count, np.nan).reshape(ny, nx)
+    return {"s_x": gx, "s_y": gy, "count": count.reshape(ny, nx).astype(np.int64),
+            "x_m": x0 + (np.arange(nx) + 0.5) * cell_m, "y_m": y0 + (np.arange(ny) + 0.5) * cell_m,
+            "extent_m": (x0, x0 + nx * cell_m, y0, y0 + ny * cell_m), "cell_m": float(cell_m)}
+
+
+def integrate_slopes(s_x, s_y, cell_m: float) -> np.ndarray:
+    """Heights from gridded slopes by least squares (see the module's docstring).
+
+    Parameters
+    ----------
+    s_x, s_y : (ny, nx) arrays
+        dz/dx (along columns, +x) and dz/dy (along rows, +y: row index increasing with y) per cell;
+        NaN outside the measured region.
+    cell_m : float
+        Cell side, metres.
+
+    Returns
+    -------
+    (ny, nx) array
+        Heights, metres, zero mean over each connected measured region; NaN outside it and on
+        isolated cells (no neighbour to integrate from).
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.sparse.linalg import spsolve
+
+    sx = np.asarray(s_x, dtype=np.float64)
+    sy = np.asarray(s_y, dtype=np.float64)
+    if sx.shape != sy.shape or sx.ndim != 2:
+        raise ValueError(f"s_x and s_y must be 2-D arrays of one shape, got {sx.shape} and {sy.shape}")
+    if not (math.isfinite(cell_m) and cell_m > 0):
+        raise ValueError(f"cell_m must be a positive length in metres, got {cell_m}")
+    valid = np.isfinite(sx) & np.isfinite(sy)
+    ny, nx = sx.shape
+    index = np.full(sx.shape, -1, dtype=np.int64)
+    index[valid] = np.arange(int(valid.sum()))
+    n = int(valid.sum())
+    out = np.full(sx.shape, np.nan)
+    if n == 0:
+        return out
+    # neighbour pairs (a -> b) with the height difference the slopes predict
+    pa, pb, d = [], [], []
+    both = valid[:, :-1] & valid[:, 1:]
+    pa.append(index[:, :-1][both]); pb.append(index[:, 1:][both])
+    d.append(cell_m * 0.5 * (sx[:, :-1][both] + sx[:, 1:][both]))
+    both = valid[:-1, :] & valid[1:, :]
+    pa.append(index[:-1, :][both]); pb.append(index[1:, :][both])
+    d.append(cell_m * 0.5 * (sy[:-1, :][both] + sy[1:, :][both]))
+    a, b, dh = np.concatenate(pa), np.concatenate(pb), np.concatenate(d)
+    m = a.size
+    if m == 0:
+        return out
+    rows = np.r_[np.arange(m), np.arange(m)]
+    g = coo_matrix((np.r_[-np.ones(m), np.ones(m)], (rows, np.r_[a, b])), shape=(m, n)).tocsr()
+    adjacency = coo_matrix((np.ones(m), (a, b)), shape=(n, n))
+    n_comp, label = connected_components(adjacency, directed=False)
+    sizes = np.bincount(label, minlength=n_comp)
+    # normal equations G^T G h = G^T dh, singular by one constant per region: pin the first cell of each
+    # region (one more equation h = 0 there), then shift each region to zero mean
+    first = np.full(n_comp, -1, dtype=np.int64)
+    first[label[::-1]] = np.arange(n)[::-1]
+    pin = coo_matrix((np.ones(n_comp), (first, first)), shape=(n, n))
+    system = ((g.T @ g) + pin).tocsc()
+    h = np.asarray(spsolve(system, g.T @ dh), dtype=np.float64)
+    h -= (np.bincount(label, h, minlength=n_comp) / sizes)[label]
+    h[sizes[label] < 2] = np.nan
+    out[valid] = h
+    return out
+
+
+def curvature_map(s_x, s_y, cell_m: float) -> dict:
+    """Local focal power along x and y from gridded slopes: kappa_x = 2 ds_x/dx, kappa_y = 2 ds_y/dy, 1/m.
+
+    (For z = A x^2 the slope is 2 A x and kappa_x = 4 A = 1/f_x, the convention of the reported figures.)
+    Central differences inside the region, one-sided at its edge; NaN where a cell has no neighbour.
+
+    Returns
+    -------
+    dict
+        ``kappa_x``, ``kappa_y`` (ny, nx) in 1/m; ``mean`` their average.
+    """
+    sx = np.asarray(s_x, dtype=np.float64)
+    sy = np.asarray(s_y, dtype=np.float64)
+
+    def derivative(s, axis):
+        fwd = (np.roll(s, -1, axis) - s) / cell_m
+        bwd = (s - np.roll(s, 1, axis)) / cell_m
+        n = s.shape[axis]
+        edge_lo = [slice(None)] * 2
+        edge_lo[axis] = 0
+        edge_hi = [slice(None)] * 2
+        edge_hi[axis] = n - 1
+        bwd[tuple(edge_lo)] = np.nan
+        fwd[tuple(edge_hi)] = np.nan
+        central = 0.5 * (fwd + bwd)
+        return np.where(np.isfinite(central), central, np.where(np.isfinite(fwd), fwd, bwd))
+
+    kx = 2.0 * derivative(sx, 1)
+    ky = 2.0 * derivative(sy, 0)
+    return {"kappa_x": kx, "kappa_y": ky, "mean": 0.5 * (kx + ky)}
+
+
+def slope_differences(slopes, residuals_mrad) -> tuple[np.ndarray, np.ndarray]:
+    """Measured minus model slope, in slope units, from measured slopes and angle residuals.
+
+    The residuals are angles e = atan(s_measured) - atan(s_model) in mrad (docs/conventions.md), so the
+    model slope is tan(atan(s) - e) and the difference s - tan(atan(s) - e): on a steep gore facet it is
+    up to 15 % larger than e itself.
+
+    Parameters
+    ----------
+    slopes : (2, N) array
+        Measured slopes s_x, s_y.
+    residuals_mrad : (e_x, e_y)
+        Angle residuals, mrad.
+    """
+    s = np.asarray(slopes, dtype=np.float64)
+    ex, ey = (np.asarray(e, dtype=np.float64) * 1e-3 for e in residuals_mrad)
+    return s[0] - np.tan(np.arctan(s[0]) - ex), s[1] - np.tan(np.arctan(s[1]) - ey)
