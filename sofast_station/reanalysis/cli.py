@@ -109,11 +109,15 @@ def register(subparsers) -> None:
     rpt.add_argument("--out", metavar="DIR_OR_FILE", default=None,
                      help="folder for the pictures (default: the current folder); for a trend, a .png file or a "
                           "folder")
-    rpt.add_argument("--vmax", type=float, default=5.0, metavar="MRAD",
-                     help="top of the colour scale, mrad (default 5, as in the paper)")
+    rpt.add_argument("--vmax", type=float, default=None, metavar="MRAD",
+                     help="top of the colour scale, mrad (default: the 99th percentile of the data, rounded up; "
+                          "the paper used 5)")
     rpt.add_argument("--arrow-step", type=int, default=None, metavar="N",
                      help="an arrow at every Nth camera row and column (default: 10, more on large images)")
-    rpt.add_argument("--cmap", default="jet", help="Matplotlib colour map (default jet: blue to maroon)")
+    rpt.add_argument("--cmap", default="viridis", help="Matplotlib colour map of the magnitude (default viridis)")
+    rpt.add_argument("--detail", default="parabola", choices=("design", "parabola", "higher_order", "none"),
+                     help="also write <dump>-detail-MODEL.png: e_x, e_y, magnitude, height error (um) and local "
+                          "focal power against this model (default parabola; none: skip)")
     rpt.add_argument("--separate", action="store_true", help="three files per dump instead of three panels")
     rpt.add_argument("--journal", metavar="PATH", help="trend: the station's journal.sqlite3")
     rpt.add_argument("--results", metavar="DIR", help="trend: a batch output folder")
@@ -307,7 +311,7 @@ def cmd_report(args) -> int:
     if args.journal or args.results or args.since or args.until:
         from ..errors import ConfigError
         raise ConfigError("--journal, --results, --from and --to belong to 'report trend'")
-    from ..report.maps import write_slope_error_maps
+    from ..report.maps import write_detail_maps, write_slope_error_maps
 
     overrides = overrides_from_args(args)
     overrides.check()
@@ -319,6 +323,9 @@ def cmd_report(args) -> int:
             for path in write_slope_error_maps(res, out, vmax_mrad=args.vmax, arrow_step_px=args.arrow_step,
                                                cmap=args.cmap, separate=args.separate):
                 print(path, flush=True)
+            if args.detail != "none":
+                print(write_detail_maps(res, out / f"{Path(dump).stem}-detail-{args.detail}.png", args.detail),
+                      flush=True)
         except StationError as exc:
             failed += 1
             log.error("%s", exc if str(dump) in str(exc) else f"{dump}: {exc}")

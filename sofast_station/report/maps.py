@@ -1,9 +1,14 @@
 """Slope-error maps for the process engineer (the method paper's Figs. 8-10).
 
 For each model (design, fitted parabola, higher order) the colour is the magnitude of the slope error
-sqrt(e_x^2 + e_y^2) in mrad on a fixed scale (0 to 5 mrad by default, blue to maroon as in the paper),
-drawn in facet coordinates (x and y in metres, +y up), and white arrows show the error's direction and
-size (e_x, e_y) at every Nth camera pixel in both image directions. The panel titles carry the RMS of
+sqrt(e_x^2 + e_y^2) in mrad on one sequential, perceptually ordered scale (viridis) from 0 to the 99th
+percentile of the data rounded up (a fixed top such as the paper's 5 mrad on request), drawn in facet
+coordinates (x and y in metres, +y up); arrows show the error's direction and size, averaged on a regular
+grid of about 22 cells across and scaled so they never overlap, with a round-valued length key.
+
+The detail page of one model (:func:`write_detail_maps`) adds e_x and e_y on a diverging scale centred on
+zero (cool-warm), the height error in micrometres integrated from the residual slopes by least squares
+(:mod:`sofast_station.measure.heights`) and the local focal power minus the design's. The panel titles carry the RMS of
 e_x, e_y and the magnitude, which are the reported figures. The map is a nearest-pixel resampling of the
 per-pixel residuals onto a regular facet grid as fine as the camera's pixels on the facet, so every
 coloured cell shows one measured pixel's value.
@@ -23,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ._common import ReportError, savefig_atomic
+from ._common import LONG_FOCAL_LENGTH_M, ReportError, savefig_atomic
 
 log = logging.getLogger(__name__)
 
@@ -151,14 +156,113 @@ def slope_error_maps(analysis, arrow_step_px: int | None = None, max_cells: int 
     return out
 
 
+#: Colour maps: sequential for a magnitude, diverging (light at zero) for a signed value. Both are
+#: perceptually ordered (viridis; Moreland's cool-warm); never jet, whose bright bands invent edges.
+SEQUENTIAL_CMAP = "viridis"
+DIVERGING_CMAP = "coolwarm"
+
+#: Robust colour scales: this percentile of the data (|value| for a signed map) tops the scale.
+ROBUST_PERCENTILE = 99.0
+
+#: Arrows across the facet's longer side on the drawn (decimated) grid.
+ARROWS_ACROSS = 22
+
+
+def nice_ceil(v: float) -> float:
+    """The smallest of 1, 1.5, 2, 2.5, 3, 4, 5, 6, 8 x 10^k not below *v* (a readable scale top)."""
+    if not (math.isfinite(v) and v > 0):
+        return 1.0
+    k = math.floor(math.log10(v))
+    for m in (1, 1.5, 2, 2.5, 3, 4, 5, 6, 8, 10):
+        if m * 10 ** k >= v * (1 - 1e-12):
+            return m * 10 ** k
+    return 10 ** (k + 1)
+
+
+def nice_round(v: float) -> float:
+    """The largest of 1, 2, 5 x 10^k not above *v* (a length key)."""
+    if not (math.isfinite(v) and v > 0):
+        return 1.0
+    k = math.floor(math.log10(v))
+    for m in (5, 2, 1):
+        if m * 10 ** k <= v * (1 + 1e-12):
+            return m * 10 ** k
+    return 10 ** k
+
+
+def robust_top(values, signed: bool = False, percentile: float = ROBUST_PERCENTILE) -> float:
+    """Top of a colour scale: the *percentile* of the finite values (of |values| when *signed*), rounded
+    up to a readable number, so a few wild pixels do not flatten the picture."""
+    a = np.asarray(values, dtype=np.float64)
+    a = a[np.isfinite(a)]
+    if a.size == 0:
+        return 1.0
+    return nice_ceil(float(np.percentile(np.abs(a) if signed else a, percentile)))
+
+
+def decimated_arrows(x_m, y_m, u, v, across: int = ARROWS_ACROSS):
+    """Mean of (u, v) in a regular grid of about *across* cells along the longer side: arrow positions
+    (cell centres with data), vectors and the cell size (metres)."""
+    from ..measure.heights import grid_slopes
+
+    x = np.asarray(x_m, float)
+    y = np.asarray(y_m, float)
+    cell = max(float(np.ptp(x)), float(np.ptp(y)), 1e-9) / max(int(across), 1)
+    g = grid_slopes(x, y, u, v, cell, extent_m=(float(x.min()) - 0.5 * cell, float(x.min()) + cell * (across + 1),
+                                                float(y.min()) - 0.5 * cell, float(y.min()) + cell * (across + 1)))
+    gx, gy = np.meshgrid(g["x_m"], g["y_m"])
+    ok = np.isfinite(g["s_x"])
+    return gx[ok], gy[ok], g["s_x"][ok], g["s_y"][ok], cell
+
+
+def draw_arrows(ax, x_m, y_m, u, v, unit: str = "mrad", key_value: float | None = None, color: str = "black"):
+    """Arrows of (u, v) on a decimated grid, scaled so the 95th-percentile arrow is 0.9 cell long (they
+    never tangle), with a length key of a round value under the axes in a readable font."""
+    from matplotlib import patheffects
+
+    ax_, ay_, au, av, cell = decimated_arrows(x_m, y_m, u, v)
+    mags = np.hypot(au, av)
+    ref = float(np.percentile(mags, 95)) if mags.size else 1.0
+    ref = ref if ref > 0 else 1.0
+    scale = ref / (0.9 * cell)                           # data units per metre of arrow
+    # the few longest (beyond 2 x the 95th percentile) are drawn at that length, so they cannot tangle
+    long = mags > 2 * ref
+    au, av = (np.where(long, w * 2 * ref / np.where(long, mags, 1.0), w) for w in (au, av))
+    q = ax.quiver(ax_, ay_, au, av, color=color, angles="xy", scale_units="xy", scale=scale, width=0.005,
+                  headwidth=3.5, headlength=4.0, headaxislength=3.5, pivot="middle", zorder=3)
+    q.set_path_effects([patheffects.withStroke(linewidth=1.5, foreground="white")])
+    key = key_value or nice_round(ref)
+    ax.quiverkey(q, 0.62, -0.17, key, f"arrow: {key:g} {unit}", labelpos="E", coordinates="axes", color=color,
+                 fontproperties={"size": 10})
+    return q
+
+
+def draw_field(fig, ax, image, extent, title: str, label: str, *, signed: bool, top: float | None = None,
+               cmap: str | None = None, centre: float = 0.0):
+    """One map: a signed value on a diverging scale centred on *centre* (+- the robust top), or a
+    magnitude on a sequential scale from 0; a colour bar with *label*."""
+    data = np.asarray(image, float)
+    if top is None:
+        top = robust_top(data - centre if signed else data, signed=signed)
+    if signed:
+        vmin, vmax, cmap = centre - top, centre + top, cmap or DIVERGING_CMAP
+    else:
+        vmin, vmax, cmap = 0.0, top, cmap or SEQUENTIAL_CMAP
+    im = ax.imshow(data, extent=extent, origin="lower", cmap=cmap, vmin=vmin, vmax=vmax, interpolation="nearest")
+    ax.set_xlabel("facet x (m)")
+    ax.set_ylabel("facet y (m)")
+    ax.set_aspect("equal")
+    ax.set_title(title, fontsize=9.5)
+    finite = data[np.isfinite(data)]
+    over = finite.size and (np.max(np.abs(finite - centre)) > top if signed else np.max(finite) > top)
+    fig.colorbar(im, ax=ax, label=label, shrink=0.85, extend=("both" if signed else "max") if over else "neither")
+    return im
+
+
 def _draw_map(fig, ax, m: SlopeErrorMap, title: str, vmax_mrad: float, cmap: str):
     image = ax.imshow(m.magnitude_mrad, extent=m.extent_m, origin="lower", cmap=cmap, vmin=0.0, vmax=vmax_mrad,
                       interpolation="nearest")
-    spacing = m.arrow_step_px * m.pixel_m
-    # an error of vmax_mrad is drawn 3 arrow spacings long (1 mrad: 0.6 spacings on the 5 mrad scale)
-    q = ax.quiver(m.arrow_x_m, m.arrow_y_m, m.arrow_ex_mrad, m.arrow_ey_mrad, color="white", angles="xy",
-                  scale_units="xy", scale=vmax_mrad / (3.0 * spacing), width=0.0025, headwidth=3.5,
-                  headlength=4.0, pivot="tail")
+    q = draw_arrows(ax, m.arrow_x_m, m.arrow_y_m, m.arrow_ex_mrad, m.arrow_ey_mrad)
     ax.set_xlabel("facet x (m)")
     ax.set_ylabel("facet y (m)")
     ax.set_aspect("equal")
@@ -166,9 +270,168 @@ def _draw_map(fig, ax, m: SlopeErrorMap, title: str, vmax_mrad: float, cmap: str
     return image, q
 
 
-def _arrow_key(q, x: float) -> None:
-    q.axes.quiverkey(q, x, 0.025, 1.0, "arrow of a 1 mrad error", labelpos="E", coordinates="figure",
-                  color="black", fontproperties={"size": 8})
+# -- the engineer's maps of one model -----------------------------------------------------------------
+@dataclass
+class DetailMaps:
+    """Gridded maps of one model's residuals, ready to draw (facet frame, +y up).
+
+    Attributes
+    ----------
+    model : str
+    extent_m : tuple
+        Grid edges (x_min, x_max, y_min, y_max), metres.
+    cell_m : float
+    e_x_mrad, e_y_mrad, magnitude_mrad : (ny, nx) arrays
+        Mean residual angles per cell, mrad (NaN off the facet).
+    height_um : (ny, nx) array
+        Height error against the model, integrated from the residual slopes, micrometres, zero mean.
+    kappa_dev_per_m : (ny, nx) array
+        Local focal power (mean of kappa_x and kappa_y from the measured slopes) minus the design's, 1/m.
+    points : tuple
+        (x_m, y_m, e_x_mrad, e_y_mrad) per measured point, for arrows.
+    """
+
+    model: str
+    extent_m: tuple
+    cell_m: float
+    e_x_mrad: np.ndarray
+    e_y_mrad: np.ndarray
+    magnitude_mrad: np.ndarray
+    height_um: np.ndarray
+    kappa_dev_per_m: np.ndarray
+    points: tuple
+
+    @property
+    def height_rms_um(self) -> float:
+        return float(np.sqrt(np.nanmean(self.height_um ** 2)))
+
+
+def detail_maps(x_m, y_m, slopes, residuals_mrad: dict, model: str = "parabola", design_focal_length_m=None,
+                cells_across: int = 160) -> DetailMaps:
+    """Residual, height-error and curvature maps of one model on a regular grid (pure arrays in).
+
+    Parameters
+    ----------
+    x_m, y_m : (N,) arrays
+        Facet-frame point positions, metres.
+    slopes : (2, N) array
+        Measured slopes.
+    residuals_mrad : dict
+        Model -> (e_x, e_y) angle residuals, mrad.
+    model : str
+    design_focal_length_m : float, optional
+        For the curvature map's reference (kappa_design = 1 / f); 0 when None.
+    cells_across : int
+        Grid cells along the facet's longer side.
+    """
+    from ..measure.heights import curvature_map, grid_slopes, integrate_slopes, slope_differences
+
+    if model not in residuals_mrad:
+        raise ReportError(f"no residuals for model {model!r} (have {', '.join(residuals_mrad)})")
+    x = np.asarray(x_m, float)
+    y = np.asarray(y_m, float)
+    ex, ey = (np.asarray(e, float) for e in residuals_mrad[model])
+    # no finer than 1.5 measured points' spacing, so every cell holds a point (no holes between cells)
+    spacing = math.sqrt(max(float(np.ptp(x)) * float(np.ptp(y)), 1e-18) / max(x.size, 1))
+    cell = max(max(float(np.ptp(x)), float(np.ptp(y)), 1e-9) / max(int(cells_across), 8), 1.5 * spacing)
+    g = grid_slopes(x, y, ex, ey, cell)
+    extent = g["extent_m"]
+    dsx, dsy = slope_differences(slopes, (ex, ey))
+    d = grid_slopes(x, y, dsx, dsy, cell, extent_m=extent)
+    h = integrate_slopes(d["s_x"], d["s_y"], cell)
+    s = np.asarray(slopes, float)
+    m = grid_slopes(x, y, s[0], s[1], cell, extent_m=extent)
+    k = curvature_map(m["s_x"], m["s_y"], cell)["mean"]
+    k_design = 0.0 if not design_focal_length_m else 1.0 / float(design_focal_length_m)
+    return DetailMaps(model, extent, cell, g["s_x"], g["s_y"], np.hypot(g["s_x"], g["s_y"]), 1e6 * h,
+                      k - k_design, (x, y, ex, ey))
+
+
+def draw_detail(fig, axes, dm: DetailMaps, *, which=("e_x", "e_y", "magnitude", "height", "curvature")) -> None:
+    """Draw the chosen maps of *dm* into *axes* (one axis each, in the order of *which*)."""
+    label = MODEL_LABELS.get(dm.model, dm.model).replace("compared with the ", "vs ")
+    for ax, name in zip(axes, which):
+        if name == "e_x":
+            draw_field(fig, ax, dm.e_x_mrad, dm.extent_m, f"slope error x, {label}", "e_x (mrad)", signed=True)
+        elif name == "e_y":
+            draw_field(fig, ax, dm.e_y_mrad, dm.extent_m, f"slope error y, {label}", "e_y (mrad)", signed=True)
+        elif name == "magnitude":
+            draw_field(fig, ax, dm.magnitude_mrad, dm.extent_m, f"slope error magnitude, {label}",
+                       "|e| (mrad)", signed=False)
+            x, y, ex, ey = dm.points
+            draw_arrows(ax, x, y, ex, ey)
+        elif name == "height":
+            draw_field(fig, ax, dm.height_um, dm.extent_m,
+                       f"height error, {label}\nRMS {dm.height_rms_um:.2f} um (from slopes, least squares)",
+                       "height error (um)", signed=True)
+        elif name == "curvature":
+            draw_field(fig, ax, dm.kappa_dev_per_m, dm.extent_m, "local focal power minus design\n"
+                       "(kappa_x + kappa_y) / 2 - 1/f", "(1/m)", signed=True)
+        else:
+            raise ValueError(f"unknown map {name!r}")
+
+
+def write_detail_maps(result, out_path: str | Path, model: str = "parabola", dpi: int = 100) -> Path:
+    """The engineer's page of one model: e_x and e_y (diverging), magnitude with arrows, height error
+    (um) and local focal power, for a reprocessed dump or an OpenCSP import (anything with ``analysis``,
+    ``record`` and optionally ``design``)."""
+    from matplotlib.figure import Figure
+
+    a = getattr(result, "analysis", None)
+    if a is None:
+        raise ReportError(f"cannot draw {getattr(result, 'path', '')}: the analysis refused the capture")
+    f_design = getattr(getattr(result, "design", None), "focal_length_m", None)
+    dm = detail_maps(a.points_facet_m[0], a.points_facet_m[1], a.slopes, a.residuals_mrad, model, f_design)
+    fig = Figure(figsize=(16.5, 10.0), layout="constrained")
+    axes = fig.subplots(2, 3).ravel()
+    draw_detail(fig, axes[:5], dm)
+    rec = getattr(result, "record", {}) or {}
+    axes[5].axis("off")
+    axes[5].text(0.0, 1.0, figure_lines(rec), va="top", ha="left", family="monospace", fontsize=9,
+                 transform=axes[5].transAxes)
+    fig.suptitle(f"Facet {rec.get('serial', '?')} ({rec.get('facet', '?')}), measured {rec.get('time', '?')}: "
+                 f"maps {MODEL_LABELS.get(model, model)}", fontsize=11)
+    return savefig_atomic(fig, Path(out_path), dpi)
+
+
+def value_with_u(rec: dict, key: str, digits: int = 4, scale: float = 1.0) -> str:
+    """``value ± U`` when the record carries ``key_U`` (expanded uncertainty, k = 2), else the value."""
+    v = rec.get(key)
+    if v is None:
+        return "-"
+    u = rec.get(f"{key}_U")
+    text = f"{v * scale:.{digits}f}"
+    if isinstance(u, (int, float)) and u is not None:
+        text += f" ± {u * scale:.{digits}f}"
+    return text
+
+
+def figure_lines(rec: dict) -> str:
+    """The reported figures of a record as lines of text, with ± U where the record has it."""
+    long_f = any(isinstance(rec.get(k), (int, float)) and abs(rec[k]) > LONG_FOCAL_LENGTH_M
+                 for k in ("focal_length_x_m", "focal_length_y_m")) or rec.get("focal_length_x_m") is None
+    lines = []
+    if long_f:
+        lines += [f"kappa x     {value_with_u(rec, 'curvature_x_per_m', 6)} 1/m",
+                  f"kappa y     {value_with_u(rec, 'curvature_y_per_m', 6)} 1/m"]
+    else:
+        lines += [f"f x         {value_with_u(rec, 'focal_length_x_m')} m",
+                  f"f y         {value_with_u(rec, 'focal_length_y_m')} m"]
+    lines.append(f"twist       {value_with_u(rec, 'twist_mrad_per_m', 3)} mrad/m")
+    rms = rec.get("slope_rms_mrad") or {}
+    rms_u = rec.get("slope_rms_mrad_U") or {}
+    for model in MODELS:
+        r = rms.get(model)
+        if not r:
+            continue
+        u = (rms_u.get(model) or {}).get("magnitude")
+        lines.append(f"slope RMS {model:<12} {r['magnitude']:.3f}" + (f" ± {u:.3f}" if u is not None else "")
+                     + " mrad")
+    if rec.get("coverage_factor"):
+        lines.append(f"(± U: expanded uncertainty, k = {rec['coverage_factor']})")
+    if rec.get("verdict"):
+        lines.append(f"verdict     {str(rec['verdict']).upper()}")
+    return "\n".join(lines)
 
 
 def _titles(result, maps: dict) -> dict:
@@ -190,8 +453,9 @@ def _titles(result, maps: dict) -> dict:
     return out
 
 
-def write_slope_error_maps(result, out_dir: str | Path, *, vmax_mrad: float = 5.0, arrow_step_px: int | None = None,
-                           cmap: str = "jet", separate: bool = False, dpi: int = 110) -> list[Path]:
+def write_slope_error_maps(result, out_dir: str | Path, *, vmax_mrad: float | None = None,
+                           arrow_step_px: int | None = None, cmap: str = SEQUENTIAL_CMAP, separate: bool = False,
+                           dpi: int = 110) -> list[Path]:
     """Draw a reprocessed dump's slope-error maps (the paper's Figs. 8-10) as PNG.
 
     Parameters
@@ -201,12 +465,13 @@ def write_slope_error_maps(result, out_dir: str | Path, *, vmax_mrad: float = 5.
     out_dir : str or Path
         Folder for ``<dump stem>.png`` (three panels), or with *separate* ``<dump stem>-design.png``,
         ``-parabola.png`` and ``-higher_order.png``.
-    vmax_mrad : float
-        Top of the colour scale, mrad (the paper: 5); larger errors show in the top colour.
+    vmax_mrad : float, optional
+        Top of the colour scale, mrad (the paper: 5); larger errors show in the top colour. By default
+        the 99th percentile of the three panels' magnitudes, rounded up (one scale for all three).
     arrow_step_px : int, optional
         Arrows on every Nth camera row and column (default: :func:`auto_arrow_step`).
     cmap : str
-        Matplotlib colour map; ``jet`` runs blue to maroon like the paper's.
+        Matplotlib colour map (sequential, perceptually ordered: viridis by default).
     separate : bool
         Three files instead of one with three panels.
     dpi : int
@@ -226,15 +491,18 @@ def write_slope_error_maps(result, out_dir: str | Path, *, vmax_mrad: float = 5.
     if result.analysis is None:
         raise ReportError(f"cannot draw {result.path}: the analysis refused the capture "
                           f"({'; '.join(result.record.get('reasons', []))})")
-    if not (math.isfinite(vmax_mrad) and vmax_mrad > 0):
+    if vmax_mrad is not None and not (math.isfinite(vmax_mrad) and vmax_mrad > 0):
         raise ValueError(f"vmax_mrad must be a positive number of mrad, got {vmax_mrad}")
     maps = slope_error_maps(result.analysis, arrow_step_px)
+    if vmax_mrad is None:
+        vmax_mrad = robust_top(np.concatenate([m.magnitude_mrad.ravel() for m in maps.values()]))
     titles = _titles(result, maps)
     rec = result.record
     step = maps["design"].arrow_step_px
     overrides = result.overrides.to_dict()
     lines = [f"Facet {rec.get('serial')} ({rec.get('facet')}), measured {rec.get('time')}",
-             f"slope error, colour 0 to {vmax_mrad:g} mrad, arrows every {step}th pixel",
+             f"slope error, colour 0 to {vmax_mrad:g} mrad (99th percentile), arrows: mean error on a "
+             f"{ARROWS_ACROSS}-cell grid",
              f"reprocessed by sofast-station {__version__} from {Path(result.path).name}"
              + (" with " + ", ".join(f"{k} = {v}" for k, v in overrides.items()) if overrides else "")]
     out_dir = Path(out_dir)
@@ -246,7 +514,6 @@ def write_slope_error_maps(result, out_dir: str | Path, *, vmax_mrad: float = 5.
             ax = fig.subplots()
             image, q = _draw_map(fig, ax, maps[model], titles[model], vmax_mrad, cmap)
             fig.colorbar(image, ax=ax, label="slope error magnitude (mrad)", extend="max", shrink=0.85)
-            _arrow_key(q, 0.6)
             fig.suptitle("\n".join(lines), fontsize=8.5)
             written.append(savefig_atomic(fig, out_dir / f"{stem}-{model}.png", dpi))
     else:
@@ -256,7 +523,6 @@ def write_slope_error_maps(result, out_dir: str | Path, *, vmax_mrad: float = 5.
         for ax, model in zip(axes, MODELS):
             image, q = _draw_map(fig, ax, maps[model], titles[model], vmax_mrad, cmap)
         fig.colorbar(image, ax=list(axes), label="slope error magnitude (mrad)", extend="max", shrink=0.85)
-        _arrow_key(q, 0.84)
         fig.suptitle(f"{lines[0]}: {lines[1]}\n{lines[2]}", fontsize=10)
         written.append(savefig_atomic(fig, out_dir / f"{stem}.png", dpi))
     log.info("slope-error maps of %s: %s", result.path, ", ".join(str(p) for p in written))

@@ -55,13 +55,16 @@ def test_report_writes_a_png_per_dump(station_dumps, tmp_path, capsys):
     dumps = [str(d) for d in station_dumps.good[:2]]
     assert main(["report", *dumps, "--out", str(tmp_path / "maps")]) == 0
     written = capsys.readouterr().out.split()
-    assert len(written) == 2
+    assert len(written) == 4                    # the three models' maps and the detail page, per dump
+    assert written[1].endswith(f"{station_dumps.good[0].stem}-detail-parabola.png")
+    assert _png_size(written[1])[0] > 1000
+    written = written[::2]
     for path, dump in zip(written, station_dumps.good[:2]):
         assert path.endswith(f"{dump.stem}.png")
         w, h = _png_size(path)
         assert w > 2 * h                        # three panels side by side
     assert main(["report", dumps[0], "--out", str(tmp_path / "single"), "--separate", "--vmax", "2",
-                 "--arrow-step", "20"]) == 0
+                 "--arrow-step", "20", "--detail", "none"]) == 0
     files = sorted((tmp_path / "single").glob("*.png"))
     assert [f.name.rsplit("-", 1)[1] for f in files] == ["design.png", "higher_order.png", "parabola.png"]
 

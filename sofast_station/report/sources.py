@@ -1,0 +1,57 @@
+"""What a report can draw: a data dump (reprocessed from its raw frames) or an OpenCSP measurement.
+
+``opencsp:DIR`` names a folder in the layout of OpenCSP's test data (``fixtures/opencsp/test_data``);
+anything else is a dump. Both come back as a :class:`Measured` with the analysis, a record and the design.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from ._common import ReportError
+
+
+class _NoOverrides:
+    def to_dict(self) -> dict:
+        return {}
+
+
+@dataclass
+class Measured:
+    """One measured facet ready to draw (duck-typed like a reprocessed dump's result)."""
+
+    path: Path
+    analysis: object
+    record: dict
+    design: object
+    overrides: object = field(default_factory=_NoOverrides)
+    kind: str = "dump"
+
+
+def is_opencsp(spec: str) -> bool:
+    return str(spec).startswith("opencsp:")
+
+
+def load_measured(spec: str, overrides=None, focal_length_m: float = 100.0) -> Measured:
+    """A dump (reprocessed with *overrides*) or ``opencsp:DIR`` (analysed with *focal_length_m*)."""
+    if is_opencsp(spec):
+        from ..interop.opencsp import opencsp_test_data_paths, read_opencsp
+
+        root = Path(str(spec)[len("opencsp:"):])
+        paths = opencsp_test_data_paths(root)
+        missing = [str(p) for p in paths.values() if not p.exists()]
+        if missing:
+            raise ReportError(f"{root} is not a folder in OpenCSP's test-data layout: missing {', '.join(missing)}")
+        m = read_opencsp(**paths, focal_length_m=focal_length_m)
+        a = m.analyse(robust=True)
+        rec = {"serial": m.name, "facet": m.design.name, "time": m.date, "station": "OpenCSP import",
+               **a.figures}
+        return Measured(root, a, rec, m.design, kind="opencsp")
+    from ..reanalysis.reprocess import reprocess_dump
+
+    res = reprocess_dump(spec, overrides)
+    if res.analysis is None:
+        raise ReportError(f"cannot draw {spec}: the analysis refused the capture "
+                          f"({'; '.join(res.record.get('reasons', []))})")
+    return Measured(Path(spec), res.analysis, res.record, res.design, res.overrides, "dump")
