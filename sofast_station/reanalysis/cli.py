@@ -19,7 +19,7 @@ from pathlib import Path
 
 from ..commands import add_command
 from ..commands import build_parser as _build_parser
-from ..commands import run
+from ..commands import default_config, run
 from ._env import single_thread_blas
 
 log = logging.getLogger(__name__)
@@ -103,8 +103,9 @@ def register(subparsers) -> None:
         subparsers, "report", help="slope-error maps of dumps (the paper's Figs. 8-10), or 'report trend' over a period",
         description="'report DUMP...' writes one PNG per dump: the slope-error magnitude on a fixed colour scale "
                     "with arrows of the error direction, for the design, the fitted parabola and the higher-order "
-                    "model, the RMS figures in the titles. 'report trend --journal PATH [--from] [--to]' (or "
-                    "'--results DIR' of a batch) plots focal lengths, residuals and twist over the period.")
+                    "model, the RMS figures in the titles. 'report trend [--from] [--to]' plots focal lengths, "
+                    "residuals and twist over the period from the station's journal (in the data_dir of --config), "
+                    "or from --journal PATH, or from the --results DIR of a batch.")
     rpt.add_argument("targets", nargs="+", metavar="DUMP_OR_trend", help="dump(s), or the word 'trend'")
     rpt.add_argument("--out", metavar="DIR_OR_FILE", default=None,
                      help="folder for the pictures (default: the current folder); for a trend, a .png file or a "
@@ -119,7 +120,11 @@ def register(subparsers) -> None:
                      help="also write <dump>-detail-MODEL.png: e_x, e_y, magnitude, height error (um) and local "
                           "focal power against this model (default parabola; none: skip)")
     rpt.add_argument("--separate", action="store_true", help="three files per dump instead of three panels")
-    rpt.add_argument("--journal", metavar="PATH", help="trend: the station's journal.sqlite3")
+    rpt.add_argument("--journal", metavar="PATH",
+                     help="trend: a station's journal.sqlite3 (default: the journal in the data_dir of --config)")
+    rpt.add_argument("--config", metavar="FILE", default=None,
+                     help="trend: the station file whose data_dir holds the journal, when neither --journal nor "
+                          "--results is given (default: ./station.toml if present, else the one beside the package)")
     rpt.add_argument("--results", metavar="DIR", help="trend: a batch output folder")
     rpt.add_argument("--from", dest="since", default=None, metavar="ISO", help="trend: start (inclusive)")
     rpt.add_argument("--to", dest="until", default=None, metavar="ISO", help="trend: end (exclusive)")
@@ -308,9 +313,9 @@ def cmd_report(args) -> int:
 
     if args.targets[0] == "trend":
         return _cmd_trend(args)
-    if args.journal or args.results or args.since or args.until:
+    if args.journal or args.results or args.since or args.until or args.config:
         from ..errors import ConfigError
-        raise ConfigError("--journal, --results, --from and --to belong to 'report trend'")
+        raise ConfigError("--journal, --results, --config, --from and --to belong to 'report trend'")
     from ..report.maps import write_detail_maps, write_slope_error_maps
 
     overrides = overrides_from_args(args)
@@ -338,8 +343,16 @@ def _cmd_trend(args) -> int:
 
     if len(args.targets) > 1:
         raise ConfigError("'report trend' takes no dumps: use --journal PATH or --results DIR")
-    if bool(args.journal) == bool(args.results):
-        raise ConfigError("'report trend' needs exactly one of --journal PATH and --results DIR")
+    if args.journal and args.results:
+        raise ConfigError("'report trend' takes one of --journal PATH and --results DIR, not both")
+    if not args.journal and not args.results:
+        from ..config import load_config
+
+        config = load_config(args.config or default_config(), use_camera_record=False)  # no camera needed
+        args.journal = config.data_dir / "journal.sqlite3"
+        if not args.journal.exists():
+            raise ConfigError(f"no journal at {args.journal} (the data_dir of {config.path}): this station has "
+                              "not measured anything yet; give --journal PATH, --results DIR or --config FILE")
     if args.journal:
         records = trend_records_from_journal(args.journal, args.since, args.until)
         source = f"journal {args.journal}"

@@ -105,6 +105,18 @@ def test_trend_from_the_journal_and_from_batch_results(station_dumps, tmp_path, 
     assert write_trend(long, tmp_path / "long.png").exists()
 
 
-def test_report_trend_needs_one_source(tmp_path, caplog):
-    assert main(["report", "trend", "--out", str(tmp_path)]) == 2
-    assert "exactly one of --journal PATH and --results DIR" in caplog.text
+def test_report_trend_takes_one_source(tmp_path, caplog, station_dumps):
+    assert main(["report", "trend", "--journal", str(station_dumps.journal), "--results", str(tmp_path)]) == 2
+    assert "one of --journal PATH and --results DIR, not both" in caplog.text
+
+
+def test_report_trend_reads_the_station_journal_by_default(tmp_path, caplog, monkeypatch, station_dumps):
+    """Without --journal or --results, the journal in the station file's data_dir (no home path to type)."""
+    station = station_dumps.journal.parent.parent / "station.toml"
+    monkeypatch.setenv("SOFAST_DATA_DIR", str(tmp_path / "empty"))
+    assert main(["report", "trend", "--config", str(station), "--out", str(tmp_path)]) == 2
+    assert f"no journal at {tmp_path / 'empty' / 'journal.sqlite3'}" in caplog.text
+    monkeypatch.setenv("SOFAST_DATA_DIR", str(station_dumps.journal.parent))
+    assert main(["report", "trend", "--config", str(station), "--out", str(tmp_path)]) == 0
+    pngs = list(tmp_path.glob("*.png"))
+    assert len(pngs) == 1 and pngs[0].stat().st_size > 10_000
