@@ -101,12 +101,25 @@ def cmd_run(args) -> int:
     import signal
 
     from ..config import load_config
+    from ..web.settings import opcua_settings, web_settings
+    from . import console
     from .service import Service, setup_logging
+    from .shift import summarize
 
     config = load_config(args.config)
     log_path = setup_logging(config.data_dir, args.verbose)
     log.info("station %s (%s); data in %s; log %s", config.name, config.backend, config.data_dir, log_path)
-    service = Service(config, simulated_facets=args.facets, seed=args.seed)
+    web, opcua = web_settings(config), opcua_settings(config)
+    monitor = None
+    if args.serve or opcua.enabled:
+        from ..web.monitor import MonitorProcess
+        monitor = MonitorProcess(config, web if args.serve else None, opcua)
+    try:
+        service = Service(config, simulated_facets=args.facets, seed=args.seed)
+    except BaseException:
+        if monitor is not None:
+            monitor.stop()
+        raise
     stop_signals = {"count": 0}
 
     def on_signal(signum, frame):
@@ -118,18 +131,46 @@ def cmd_run(args) -> int:
             raise KeyboardInterrupt
 
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-    counts: dict[str, int] = {}
+    outcomes = []
+    runner = service.runner
+    if args.max_cycles is not None:
+        runner.expected_total = min(args.max_cycles, runner.expected_total or args.max_cycles)
     try:
-        print(f"{'serial':<14} {'focal lengths':^30} {'slope error RMS':^30} verdict  cycle", flush=True)
-        for outcome in service.runner.run(max_cycles=args.max_cycles):
-            counts[outcome.answer] = counts.get(outcome.answer, 0) + 1
+        print(console.header(runner.expected_total), flush=True)
+        outcomes = runner.run(max_cycles=args.max_cycles)
     finally:
         for s, h in old.items():
             signal.signal(s, h)
         log.info("stopping: waiting for the archiver to write pending rows and dumps")
         service.close()
-    total = sum(counts.values())
-    print(f"{total} facet(s): " + ", ".join(f"{n} {k}" for k, n in sorted(counts.items())), flush=True)
+        if monitor is not None:
+            monitor.stop()
+    summary = summarize([o.record for o in outcomes], [o.cycle_s for o in outcomes])
+    text = console.summary_text(summary)
+    log.info("run summary: %s", text.replace("\n", " | "))
+    print(text, flush=True)
+    return 0
+
+
+def cmd_serve(args) -> int:
+    from ..config import load_config
+    from ..web.monitor import serve
+    from ..web.settings import opcua_settings, web_settings
+    from .service import setup_logging
+
+    config = load_config(args.config, use_camera_record=False)      # the page opens no device
+    setup_logging(config.data_dir, args.verbose, name="monitor.log")
+    web = web_settings(config)
+    if args.host is not None or args.port is not None:
+        import dataclasses
+        web = dataclasses.replace(web, host=args.host or web.host, port=web.port if args.port is None else args.port)
+    opcua = opcua_settings(config)
+
+    def ready(info):
+        print(f"the line's page: {info['url']}" + ("" if web.token else "  (read-only: no [web] token)"), flush=True)
+        if info.get("opcua"):
+            print(f"OPC UA server: {info['opcua']}", flush=True)
+    serve(config, web, opcua, nice=web.nice, on_ready=ready)
     return 0
 
 
@@ -156,10 +197,10 @@ def cmd_archive_export(args) -> int:
 def cmd_dump_next(args) -> int:
     from ..config import load_config
 
+    from .commands import request_dump_next
+
     config = load_config(args.config, use_camera_record=False)  # no camera needed
-    flag = config.data_dir / "dump-next"
-    flag.parent.mkdir(parents=True, exist_ok=True)
-    flag.touch()
+    flag = request_dump_next(config.data_dir)
     print(f"the next facet will be dumped ({flag})")
     return 0
 
@@ -200,7 +241,28 @@ def register(subparsers) -> None:
                      help="stop after this many facets (default: run until stopped)")
     run.add_argument("--seed", type=int, default=None,
                      help="simulated station: noise seed (default: the [simulation] seed of the station file)")
+    run.add_argument("--serve", action="store_true",
+                     help="also serve the line's web page ([web] in the station file; see 'serve --help')")
     run.set_defaults(func=cmd_run)
+
+    srv = add_command(
+        subparsers, "serve", help="serve the line's web page (and OPC UA when [opcua] enabled)",
+        description="""
+            Serve the operator's web page for the line: the last facet (serial, recipe, verdict, reasons,
+            figures with their limits, the white frame with the found outline, the slope-error map), the
+            shift (facets, yield, faults by kind, cycle times, charts of the last 50 facets) and the station
+            (state, calibration, free disk, archive backlog, alarms). The page updates itself when a facet
+            is journaled. It reads the journal and the files in data_dir only, so it can run beside
+            'sofast-station run' (or use 'run --serve'), at a lower priority.
+
+            Actions (dump the next facet, pause and resume, re-measure, a serial by hand) need the token
+            of [web] token in the station file; without one the page is read-only. The page is served on
+            127.0.0.1 unless [web] host says otherwise. With [opcua] enabled = true the OPC UA server
+            (docs/opcua.md) runs in the same process.""")
+    add_config_option(srv)
+    srv.add_argument("--host", default=None, help="address to listen on (default: [web] host, else 127.0.0.1)")
+    srv.add_argument("--port", type=int, default=None, help="port (default: [web] port, else 8080; 0: any free)")
+    srv.set_defaults(func=cmd_serve)
 
     dn = add_command(
         subparsers, "dump-next", help="write a data dump of the next facet measured",

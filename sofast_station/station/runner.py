@@ -13,6 +13,7 @@ fault answer with its reason code; the loop then takes the next facet.
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
 import logging
 import threading
@@ -29,9 +30,12 @@ from ..calibrate.store import check_cycle
 from ..devices.protocols import FAULT_CODES, FacetRequest
 from ..errors import (CameraError, CaptureError, DisplayError, GeometryError, StationError,
                       TriggerError)
+from . import console as _console
+from .commands import take_commands, take_dump_next
 from .frames import capture_sequence, crop, crop_box, restore
 from .inspect import FIGURE_KEYS, Station, calibration_entry, now_iso
 from .recipes import Recipe, choose_recipe
+from .status import StatusFile
 from .verdict import judge
 from .worker import AnalysisTimeout, AnalysisWorker
 
@@ -85,6 +89,9 @@ class CycleOutcome:
     cycle_s: float = 0.0
     dumped: bool = False
     frames: np.ndarray | None = field(default=None, repr=False)
+    #: The analysis's valid pixels (camera size) and its thinned per-pixel results, for the monitor.
+    valid: np.ndarray | None = field(default=None, repr=False)
+    preview: dict | None = field(default=None, repr=False)
 
 
 def new_cycle_id() -> str:
@@ -158,6 +165,14 @@ class StationRunner:
         self._answer_lock = threading.Lock()
         self._calibration_policy = calibration_settings(station.config)[0]
         self._calibration_warned = False
+        #: How many facets this run expects (the console's n/N), when known.
+        self.expected_total: int | None = None
+        #: Called with each answered CycleOutcome, after the robot's answer (the monitor's pictures).
+        self.hooks: list = []
+        self.status = StatusFile(station.config.data_dir)
+        self.paused = False
+        self._manual_serial: str | None = None
+        self._last_request: FacetRequest | None = None
 
     def _check_calibration(self, dark_frame: np.ndarray) -> list[str]:
         """Judge the calibration again for this facet (age, and the dark level of its dark frame).
@@ -206,13 +221,20 @@ class StationRunner:
             while not self.stop_event.is_set():
                 if max_cycles is not None and self.cycles >= max_cycles:
                     break
+                for operator_request in self._take_commands():
+                    outcomes.append(self.cycle(operator_request))
+                if self.paused:
+                    self.stop_event.wait(min(self.settings.poll_s, 0.25))
+                    continue
                 try:
                     self.trigger.ready()
                     request = self.trigger.wait_for_facet(self.settings.poll_s)
                 except TriggerError as exc:
                     log.error("robot/PLC handshake failed: %s; reconnecting", exc)
+                    self.status.alarm("plc", f"robot/PLC handshake failed: {exc}")
                     self._reopen_trigger()
                     continue
+                self.status.alarm("plc", None)
                 if request is None:
                     if getattr(self.trigger.trigger, "finished", False):
                         break
@@ -221,6 +243,29 @@ class StationRunner:
         finally:
             self.stop_event.set()
         return outcomes
+
+    def _take_commands(self) -> list[FacetRequest]:
+        """Act on the operators' commands (station/commands.py); returns the re-measurements to run."""
+        remeasure = []
+        for cmd in take_commands(self.station.config.data_dir):
+            log.info("operator command %s%s (%s)", cmd.name, f" {cmd.serial!r}" if cmd.serial else "",
+                     cmd.source or "no source")
+            if cmd.name in ("pause", "resume"):
+                self.paused = cmd.name == "pause"
+                self.status.update(state="paused" if self.paused else "idle")
+            elif cmd.name == "serial":
+                self._manual_serial = cmd.serial
+                self.status.update(manual_serial=cmd.serial)
+            elif cmd.name == "remeasure":
+                last = self._last_request
+                if last is None:
+                    log.warning("re-measure asked for, but no facet has been measured since the start")
+                    continue
+                remeasure.append(FacetRequest(serial=last.serial, recipe=last.recipe,
+                                              extra={"operator": "remeasure"}))
+                if self.expected_total:
+                    self.expected_total += 1              # one cycle more than the robot's
+        return remeasure
 
     def _reopen_trigger(self) -> None:
         reopen = getattr(self.trigger.trigger, "reopen", None)
@@ -236,11 +281,20 @@ class StationRunner:
         t0 = time.perf_counter()
         cycle_id = new_cycle_id()
         self.cycles += 1
+        if self._manual_serial is not None and not request.extra.get("operator"):
+            request = dataclasses.replace(request, serial=self._manual_serial,
+                                          extra={**request.extra, "serial_read": request.serial,
+                                                 "serial_source": "operator"})
+            self._manual_serial = None
+            self.status.data["manual_serial"] = None
+        self._last_request = request
         serial = request.serial
         state = {"answered": False, "stage": "start"}
         timings: dict[str, float] = {}
+        self.status.update(state="measuring", serial=serial, cycle_id=cycle_id)
         try:
-            self.trigger.busy()
+            if not request.extra.get("operator"):       # a re-measurement: the robot did not ask
+                self.trigger.busy()
         except TriggerError as exc:
             log.error("%s: could not signal busy: %s", serial, exc)
         watchdog = threading.Timer(self.settings.deadline_s + 0.25, self._expire,
@@ -278,7 +332,8 @@ class StationRunner:
                 from ..twin.truth import ground_truth
                 truth = ground_truth(self.station.twin, res.valid)
                 record["truth"] = {k: truth[k] for k in FIGURE_KEYS if k in truth}
-            outcome = CycleOutcome(cycle_id, serial, record["verdict"], record)
+            outcome = CycleOutcome(cycle_id, serial, record["verdict"], record, valid=res.valid,
+                                   preview=res.preview)
         except Exception as exc:          # a bad facet must never stop the line
             code, kind = fault_code_for(exc)
             if kind == "internal":
@@ -287,6 +342,7 @@ class StationRunner:
             record = self._fault_record(cycle_id, request, code, reason, timings, cal_warnings)
             outcome = CycleOutcome(cycle_id, serial, "fault", record, fault_code=code)
             if isinstance(exc, CameraError):
+                self.status.alarm("camera", f"camera lost at facet {serial}: {exc}")
                 self._reopen_camera()
         finally:
             watchdog.cancel()
@@ -317,10 +373,11 @@ class StationRunner:
         record["timings_s"]["until_journal"] = time.perf_counter() - t0
         self.submit(cycle_id, record, None)
         try:
-            self.trigger.fault(FAULT_CODES["timeout"], reason)
+            if not request.extra.get("operator"):
+                self.trigger.fault(FAULT_CODES["timeout"], reason)
         except TriggerError as exc:
             log.error("could not answer the robot: %s", exc)
-        self.console(self._console_line(record, "fault", time.perf_counter() - t0))
+        self._report(record, "fault", time.perf_counter() - t0)
         # Closing the camera is how a blocked grab is aborted; the station's thread then comes back.
         self._reopen_camera()
 
@@ -328,9 +385,7 @@ class StationRunner:
         s = self.settings
         if outcome.frames is None:
             return False
-        flag = self.station.config.data_dir / "dump-next"
-        if flag.exists():
-            flag.unlink(missing_ok=True)
+        if take_dump_next(self.station.config.data_dir):
             return True
         return bool(request.dump or (s.dump_every_n and self.cycles % s.dump_every_n == 0)
                     or (s.dump_failed and outcome.answer in ("fail", "invalid", "fault")))
@@ -355,7 +410,9 @@ class StationRunner:
             record.setdefault("reasons", []).append(f"dump not written: {exc}")
             self.submit(outcome.cycle_id, record, None)
         try:
-            if outcome.answer == "fault":
+            if request.extra.get("operator"):
+                pass                                   # a re-measurement: the robot did not ask
+            elif outcome.answer == "fault":
                 self.trigger.fault(outcome.fault_code, record["reasons"][0] if record.get("reasons") else "fault")
             else:
                 self.trigger.done(outcome.answer)
@@ -363,9 +420,14 @@ class StationRunner:
             log.error("%s: could not answer the robot: %s", outcome.serial, exc)
             self._reopen_trigger()
         outcome.cycle_s = time.perf_counter() - t0
-        self.console(self._console_line(record, outcome.answer, outcome.cycle_s))
+        self._report(record, outcome.answer, outcome.cycle_s)
         if self.archiver is not None:
             self.archiver.wake()
+        for hook in self.hooks:
+            try:
+                hook(outcome)
+            except Exception:                  # the monitor's extras must never stop the line
+                log.exception("%s: a facet hook failed", outcome.serial)
 
     def _reopen_camera(self) -> None:
         reopen = getattr(self.station, "reopen_camera", None)
@@ -400,22 +462,15 @@ class StationRunner:
         rec.update({"verdict": "fault", "fault_code": code, "reasons": [reason], "timings_s": dict(timings)})
         return rec
 
-    @staticmethod
-    def _console_line(record: dict, answer: str, cycle_s: float) -> str:
-        def f(v, fmt):
-            return "-" if v is None else format(v, fmt)
-        rms = record.get("slope_rms_mrad", {})
-        design = rms.get("design", {}).get("magnitude")
-        parab = rms.get("parabola", {}).get("magnitude")
-        text = (f"{record['serial']:<14} f_x {f(record.get('focal_length_x_m'), '8.4f')} m  "
-                f"f_y {f(record.get('focal_length_y_m'), '8.4f')} m  slope RMS design {f(design, '5.2f')} "
-                f"parabola {f(parab, '5.2f')} mrad  {answer.upper():<7} {cycle_s:5.2f} s")
-        if answer in ("fault", "invalid", "fail") and record.get("reasons"):
-            text += f"  ({record['reasons'][0]})"
-        if record.get("calibration", {}).get("warnings"):
-            text += "  [calibration stale: see the log]"
-        return text
+    def _report(self, record: dict, answer: str, cycle_s: float) -> None:
+        """The facet's console line, its line in logs/station.log and the live status."""
+        self.console(_console.facet_line(record, answer, cycle_s, self.cycles, self.expected_total))
+        log.info("%s", _console.log_line(record, answer, cycle_s, self.cycles, self.expected_total))
+        if answer != "fault" or not str((record.get("reasons") or [""])[0]).startswith(("camera", "timeout")):
+            self.status.alarm("camera", None)
+        self.status.update(state="paused" if self.paused else "fault" if answer == "fault" else "idle")
 
     def close(self) -> None:
         self.stop_event.set()
         self.worker.close()
+        self.status.close()

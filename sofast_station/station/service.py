@@ -19,7 +19,9 @@ from ..archive import Archiver, ArchiverSettings, DumpContent, Journal, Workbook
 from ..config import StationConfig
 from ..devices.protocols import FacetRequest
 from ..errors import ConfigError
+from ..web.settings import web_settings
 from .inspect import open_station
+from .pictures import FacetPictures
 from .recipes import recipes_from_config
 from .runner import RunSettings, StationRunner
 
@@ -138,6 +140,9 @@ class Service:
             self.trigger = open_trigger_from_config(config, simulated_facets)
             self.runner = StationRunner(self.station, self.trigger, self.journal, self.archiver_process,
                                         self.recipes, self.settings, self.submit, console=console)
+            requests = getattr(self.trigger, "requests", None)
+            self.runner.expected_total = len(requests) if isinstance(requests, list) else None
+            self.runner.hooks.append(FacetPictures(data_dir, keep=web_settings(config).keep_pictures))
         except BaseException:
             self.close()
             raise

@@ -35,6 +35,7 @@ class WorkerResult:
     figures: dict
     valid: np.ndarray
     seconds: float
+    preview: dict | None = None
 
 
 # --- worker process side -------------------------------------------------------------------------
@@ -64,7 +65,20 @@ def _run(design: dict, settings: dict, distance_m: float, hang_s: float):
     frames = np.array(_STATE["frames"])  # a private copy: the station may refill the buffer after a timeout
     a = analyse(frames, _STATE["fringes"], _STATE["geometry"], FacetDesign.from_dict(design), distance_m,
                 AnalysisSettings(**settings), rays_cam=_STATE["rays"])
-    return a.figures, np.packbits(a.valid), a.valid.shape, time.perf_counter() - t
+    return a.figures, np.packbits(a.valid), a.valid.shape, time.perf_counter() - t, _preview(a)
+
+
+def _preview(a, most: int = 6000) -> dict:
+    """A thinned copy of the per-pixel results for the operator's slope-error map: every k-th camera row
+    and column (at most about *most* points), as float32; a few hundred kB, a few ms."""
+    rows, cols = np.nonzero(a.valid)
+    k = max(1, int(np.ceil(np.sqrt(rows.size / most))))
+    pick = (rows % k == 0) & (cols % k == 0)
+    return {"step_px": k, "rows": rows[pick].astype(np.int32), "cols": cols[pick].astype(np.int32),
+            "points_xy_m": np.asarray(a.points_facet_m[:2, pick], dtype=np.float32),
+            "residuals_mrad": {m: np.asarray([e[0][pick], e[1][pick]], dtype=np.float32)
+                               for m, e in a.residuals_mrad.items()},
+            "corners_px": np.asarray(a.corners_px, dtype=np.float32)}
 
 
 def _ping() -> bool:
@@ -117,7 +131,7 @@ class AnalysisWorker:
         np.copyto(self._frames, frames)
         fut = self._pool.submit(_run, design.to_dict(), settings.to_dict(), float(distance_m), float(hang_s))
         try:
-            figures, packed, shape, seconds = fut.result(timeout=max(timeout_s, 0.01))
+            figures, packed, shape, seconds, preview = fut.result(timeout=max(timeout_s, 0.01))
         except FutureTimeout:
             log.error("analysis exceeded its %.1f s budget: restarting the analysis worker", timeout_s)
             self._kill()
@@ -127,7 +141,7 @@ class AnalysisWorker:
             raise AnalysisTimeout(f"the analysis did not finish within {timeout_s:.1f} s; the worker was "
                                   "restarted") from None
         valid = np.unpackbits(packed, count=int(np.prod(shape))).astype(bool).reshape(shape)
-        return WorkerResult(figures, valid, seconds)
+        return WorkerResult(figures, valid, seconds, preview)
 
     def _kill(self) -> None:
         pool, self._pool = self._pool, None

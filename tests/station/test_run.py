@@ -112,12 +112,12 @@ def test_sigterm_finishes_the_current_facet(small_station_toml, tmp_path):
                              "--facets", "200"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     first = proc.stdout.readline()                  # the header
     second = proc.stdout.readline()                 # the first facet's line
-    assert first.startswith("serial") and second.startswith("SIM-0001"), (first, second)
+    assert first.split()[:2] == ["n", "serial"] and second.split()[:2] == ["1/200", "SIM-0001"], (first, second)
     proc.send_signal(signal.SIGTERM)
     out, err = proc.communicate(timeout=120)
     assert proc.returncode == 0, err
-    facet_lines = [ln for ln in (second + out).splitlines() if ln.startswith("SIM-")]
-    summary = out.strip().splitlines()[-1]
+    facet_lines = [ln for ln in (second + out).splitlines() if ln.split()[1:2] and ln.split()[1].startswith("SIM-")]
+    summary = next(ln for ln in out.splitlines() if "facet(s):" in ln)
     assert summary.startswith(f"{len(facet_lines)} facet(s)")
     assert len(facet_lines) < 200
     journal = Journal(tmp_path / "station-data" / "journal.sqlite3")

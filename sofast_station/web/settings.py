@@ -1,0 +1,137 @@
+"""``[web]`` and ``[opcua]`` in station.toml: the monitor's page and its OPC UA server.
+
+Validated here, with messages that name the file, the section, the key, the value and what is allowed.
+Importing this module imports no web or OPC UA library.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+
+from ..errors import ConfigError
+
+_TIME = re.compile(r"^([01][0-9]|2[0-3]):[0-5][0-9]$")
+
+
+@dataclass(frozen=True)
+class WebSettings:
+    """``[web]``.
+
+    Attributes
+    ----------
+    host : str
+        Address the page is served on; 127.0.0.1 (this computer only) unless set.
+    port : int
+    token : str
+        The token the guarded actions need (pause, resume, dump next, re-measure, serial by hand);
+        empty: the page is read-only.
+    keep_pictures : int
+        How many facets' pictures (white frame, outline, slope-error map) the station keeps in data_dir.
+    shift_starts : tuple of str
+        Local times ("HH:MM") at which a shift starts; the page's shift runs from the latest one.
+    nice : int
+        How much lower than the station the monitor process runs (os.nice increment, 0-19).
+    """
+
+    host: str = "127.0.0.1"
+    port: int = 8080
+    token: str = ""
+    keep_pictures: int = 200
+    shift_starts: tuple = ("06:00", "14:00", "22:00")
+    nice: int = 10
+
+
+@dataclass(frozen=True)
+class OpcUaSettings:
+    """``[opcua]``.
+
+    Attributes
+    ----------
+    enabled : bool
+        Off by default.
+    endpoint : str
+        ``opc.tcp://HOST:PORT/PATH``; the host is 127.0.0.1 unless set.
+    namespace : str
+        The namespace URI of the station's nodes.
+    anonymous : bool
+        Whether clients may connect without a user name (always read-only).
+    users : dict
+        User name -> password of clients that may log in (read-only as well).
+    """
+
+    enabled: bool = False
+    endpoint: str = "opc.tcp://127.0.0.1:4840/sofast-station/"
+    namespace: str = "urn:sofast-station"
+    anonymous: bool = True
+    users: dict = field(default_factory=dict)
+
+
+def _where(config, section: str) -> str:
+    return f"{config.path} [{section}]"
+
+
+def _unknown(table: dict, allowed: set, where: str) -> None:
+    unknown = sorted(set(table) - allowed)
+    if unknown:
+        raise ConfigError(f"{where} has unknown key(s) {', '.join(unknown)}; allowed: {', '.join(sorted(allowed))}")
+
+
+def web_settings(config) -> WebSettings:
+    """The ``[web]`` table of *config* (a StationConfig), validated."""
+    table = config.raw.get("web", {})
+    where = _where(config, "web")
+    if not isinstance(table, dict):
+        raise ConfigError(f"{where} must be a table")
+    _unknown(table, {"host", "port", "token", "keep_pictures", "shift_starts", "nice"}, where)
+    d = WebSettings()
+    host = table.get("host", d.host)
+    if not isinstance(host, str) or not host.strip():
+        raise ConfigError(f"{where} host = {host!r}: give an address such as \"127.0.0.1\" (this computer "
+                          "only) or \"0.0.0.0\" (every network interface)")
+    port = table.get("port", d.port)
+    if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
+        raise ConfigError(f"{where} port = {port!r}: must be a whole number from 1 to 65535 (0: any free port)")
+    token = table.get("token", d.token)
+    if not isinstance(token, str) or (token and len(token) < 8):
+        raise ConfigError(f"{where} token = {token!r}: must be a string of at least 8 characters, or \"\" "
+                          "for a read-only page")
+    keep = table.get("keep_pictures", d.keep_pictures)
+    if isinstance(keep, bool) or not isinstance(keep, int) or keep < 1:
+        raise ConfigError(f"{where} keep_pictures = {keep!r}: must be a whole number of at least 1")
+    starts = table.get("shift_starts", list(d.shift_starts))
+    if not isinstance(starts, list) or not starts or not all(isinstance(t, str) and _TIME.match(t) for t in starts):
+        raise ConfigError(f"{where} shift_starts = {starts!r}: must be a list of local times \"HH:MM\", "
+                          "e.g. [\"06:00\", \"14:00\", \"22:00\"]")
+    nice = table.get("nice", d.nice)
+    if isinstance(nice, bool) or not isinstance(nice, int) or not 0 <= nice <= 19:
+        raise ConfigError(f"{where} nice = {nice!r}: must be a whole number from 0 to 19")
+    return WebSettings(host.strip(), port, token, keep, tuple(sorted(starts)), nice)
+
+
+def opcua_settings(config) -> OpcUaSettings:
+    """The ``[opcua]`` table of *config*, validated."""
+    table = config.raw.get("opcua", {})
+    where = _where(config, "opcua")
+    if not isinstance(table, dict):
+        raise ConfigError(f"{where} must be a table")
+    _unknown(table, {"enabled", "endpoint", "namespace", "anonymous", "users"}, where)
+    d = OpcUaSettings()
+    for key in ("enabled", "anonymous"):
+        if not isinstance(table.get(key, False), bool):
+            raise ConfigError(f"{where} {key} = {table[key]!r}: must be true or false")
+    endpoint = table.get("endpoint", d.endpoint)
+    if not isinstance(endpoint, str) or not re.match(r"^opc\.tcp://[^/:]+:[0-9]+(/.*)?$", endpoint):
+        raise ConfigError(f"{where} endpoint = {endpoint!r}: must look like \"opc.tcp://127.0.0.1:4840/sofast-station/\"")
+    namespace = table.get("namespace", d.namespace)
+    if not isinstance(namespace, str) or not namespace:
+        raise ConfigError(f"{where} namespace = {namespace!r}: must be a non-empty URI string")
+    users = table.get("users", {})
+    if not isinstance(users, dict) or not all(isinstance(k, str) and isinstance(v, str) and v
+                                              for k, v in users.items()):
+        raise ConfigError(f"{where} users must be a table of user name = \"password\"")
+    anonymous = table.get("anonymous", d.anonymous)
+    if not anonymous and not users:
+        raise ConfigError(f"{where} anonymous = false but no users are configured: nobody could connect; "
+                          "add users = { NAME = \"PASSWORD\" } or allow anonymous reading")
+    return OpcUaSettings(table.get("enabled", d.enabled), endpoint, namespace, anonymous, dict(users))
