@@ -1,0 +1,330 @@
+"""The line's web page: a Starlette application (ASGI, served by uvicorn).
+
+Routes
+------
+``GET /``                           the page (server-rendered; works without script, updates with it)
+``GET /events``                     server-sent events: the page's sections again whenever the journal,
+                                    the live status or the last facet's pictures change (polled every 0.25 s)
+``GET /api/state``                  the same facts as JSON, for tools
+``GET /facet/{cycle_id}/white.png`` the white frame with the found outline
+``GET /facet/{cycle_id}/map.png``   the slope-error map
+``POST /action/{name}``             a guarded action (``dump-next``, ``pause``, ``resume``, ``remeasure``,
+                                    ``serial`` with ``{"serial": ...}``); needs the ``X-Station-Token``
+                                    header equal to ``[web] token``; refused (403) when none is configured
+
+No file is served by path: pictures are found by cycle id (a fixed pattern) under
+``data_dir/live/facets``, and the page's style and script are constants of this module.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import hmac
+import json
+import logging
+
+from starlette.applications import Starlette
+from starlette.requests import Request
+from starlette.responses import HTMLResponse, JSONResponse, Response, StreamingResponse
+from starlette.routing import Route
+
+from ..station.commands import COMMANDS, CommandError, post_command
+from .data import LineData
+from .images import FacetImages
+from .render import esc, sections
+
+log = logging.getLogger(__name__)
+
+POLL_S = 0.25
+_SECURITY_HEADERS = [
+    (b"content-security-policy", b"default-src 'none'; script-src 'self'; style-src 'self'; img-src 'self'; "
+                                 b"connect-src 'self'; base-uri 'none'; form-action 'none'; frame-ancestors 'none'"),
+    (b"x-content-type-options", b"nosniff"),
+    (b"referrer-policy", b"no-referrer"),
+]
+
+
+class _SecurityHeaders:
+    """Adds the security headers to every response (pure ASGI: streams pass through untouched)."""
+
+    def __init__(self, app):
+        self.app = app
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+
+        async def send_with_headers(message):
+            if message["type"] == "http.response.start":
+                message = dict(message)
+                message["headers"] = list(message.get("headers", [])) + _SECURITY_HEADERS
+            await send(message)
+        return await self.app(scope, receive, send_with_headers)
+
+
+class Hub:
+    """Polls the station's files and keeps the page's sections of the newest state for every client."""
+
+    def __init__(self, data: LineData):
+        self.data = data
+        self.version = None
+        self.counter = 0
+        self.payload = "{}"
+        self.snapshot: dict | None = None
+        self.stopping = False
+        self._lock = asyncio.Lock()
+
+    def _compute(self) -> tuple:
+        version = self.data.version()
+        if version == self.version and self.snapshot is not None:
+            return version, None, None
+        snap = self.data.snapshot()
+        payload = sections(snap)
+        payload["_seq"] = version[0] or 0
+        payload["_cycle"] = (snap.get("last") or {}).get("cycle_id", "")
+        return version, snap, json.dumps(payload)
+
+    async def refresh(self) -> None:
+        async with self._lock:
+            version, snap, payload = await asyncio.to_thread(self._compute)
+            if snap is not None:
+                self.version, self.snapshot, self.payload = version, snap, payload
+                self.counter += 1
+
+    async def run(self) -> None:
+        while not self.stopping:
+            try:
+                await self.refresh()
+            except Exception:
+                log.exception("reading the station's state failed; trying again")
+            await asyncio.sleep(POLL_S)
+
+
+def create_app(config, settings) -> Starlette:
+    """The page's application for the station of *config* (a StationConfig) with ``[web]`` *settings*."""
+    data = LineData(config, settings)
+    hub = Hub(data)
+    images = FacetImages(config.data_dir)
+    tasks: list = []
+
+    async def page(request: Request) -> Response:
+        await hub.refresh()
+        snap = hub.snapshot
+        parts = sections(snap)
+        return HTMLResponse(_PAGE.format(name=esc(config.name), seq=esc(hub.version[0] or 0),
+                                         cycle=esc((snap.get("last") or {}).get("cycle_id", "")),
+                                         actions=_actions_html(settings), **parts),
+                            headers={"cache-control": "no-store"})
+
+    async def events(request: Request) -> Response:
+        async def stream():
+            yield "retry: 1000\n\n"
+            seen = -1
+            idle = 0.0
+            while not hub.stopping:
+                if hub.counter != seen:
+                    seen = hub.counter
+                    yield f"event: sections\ndata: {hub.payload}\n\n"
+                    idle = 0.0
+                elif idle > 15:
+                    yield ": keep-alive\n\n"
+                    idle = 0.0
+                if await request.is_disconnected():
+                    break
+                await asyncio.sleep(POLL_S / 2)
+                idle += POLL_S / 2
+        return StreamingResponse(stream(), media_type="text/event-stream",
+                                 headers={"cache-control": "no-store", "x-accel-buffering": "no"})
+
+    async def state(request: Request) -> Response:
+        await hub.refresh()
+        snap = hub.snapshot
+        last = snap.get("last") or {}
+        s = snap["summary"]
+        return JSONResponse({"station": config.name, "state": snap["status"].get("state"), "seq": hub.version[0],
+                             "last": {k: last.get(k) for k in ("cycle_id", "serial", "recipe", "verdict", "reasons",
+                                                               "time")},
+                             "shift": {"start": snap["shift_start"], "counts": s.counts, "total": s.total,
+                                       "yield": s.yield_fraction, "cycle_median_s": s.cycle_median_s,
+                                       "cycle_worst_s": s.cycle_worst_s, "faults_by_kind": s.faults_by_kind},
+                             "alarms": [{"kind": k, "text": t} for k, t in snap["alarms"]],
+                             "calibration": snap["calibration"], "disk": snap["disk"],
+                             "actions_enabled": bool(settings.token)}, headers={"cache-control": "no-store"})
+
+    async def picture(request: Request) -> Response:
+        cycle_id, kind = request.path_params["cycle_id"], request.path_params["kind"]
+        png = await asyncio.to_thread(images.get, cycle_id, kind)
+        if png is None:
+            return Response("no such picture", status_code=404, media_type="text/plain",
+                            headers={"cache-control": "no-store"})
+        return Response(png, media_type="image/png", headers={"cache-control": "max-age=3600"})
+
+    async def action(request: Request) -> Response:
+        name = request.path_params["name"]
+        if not settings.token:
+            return JSONResponse({"ok": False, "error": "this page is read-only: set [web] token in station.toml to "
+                                 "allow actions"}, status_code=403)
+        given = request.headers.get("x-station-token", "")
+        if not hmac.compare_digest(given.encode("utf-8"), settings.token.encode("utf-8")):
+            log.warning("refused action %r from %s: %s token", name[:40], request.client.host if request.client
+                        else "?", "wrong" if given else "no")
+            return JSONResponse({"ok": False, "error": "wrong or missing token"}, status_code=403)
+        if name not in COMMANDS:
+            return JSONResponse({"ok": False, "error": f"unknown action; known: {', '.join(COMMANDS)}"},
+                                status_code=404)
+        serial = None
+        if name == "serial":
+            try:
+                body = await request.json()
+                serial = body.get("serial") if isinstance(body, dict) else None
+            except ValueError:
+                serial = None
+        try:
+            post_command(config.data_dir, name, serial,
+                         source=f"web page from {request.client.host if request.client else '?'}")
+        except CommandError as exc:
+            return JSONResponse({"ok": False, "error": str(exc)}, status_code=400)
+        return JSONResponse({"ok": True, "message": _DONE[name] + (f" {serial.strip()}" if serial else "")})
+
+    async def static(request: Request) -> Response:
+        name = request.url.path.rsplit("/", 1)[-1]
+        body, kind = _STATIC[name]
+        return Response(body, media_type=kind, headers={"cache-control": "max-age=60"})
+
+    @contextlib.asynccontextmanager
+    async def lifespan(app):
+        tasks.append(asyncio.create_task(hub.run()))
+        try:
+            yield
+        finally:
+            hub.stopping = True
+            for t in tasks:
+                t.cancel()
+            data.close()
+
+    routes = [Route("/", page), Route("/events", events), Route("/api/state", state),
+              Route("/facet/{cycle_id}/{kind}.png", picture), Route("/action/{name}", action, methods=["POST"]),
+              Route("/page.css", static), Route("/page.js", static)]
+    app = Starlette(routes=routes, lifespan=lifespan)
+    app.state.hub = hub
+    return _SecurityHeaders(app)
+
+
+_DONE = {"dump-next": "the next facet will be dumped", "pause": "the line pauses after the facet in progress",
+         "resume": "the line takes facets again", "remeasure": "the facet in the fixture will be measured again",
+         "serial": "the next facet gets the serial"}
+
+
+def _actions_html(settings) -> str:
+    if not settings.token:
+        note = ("<p class='muted'>Read-only: actions need a token (<code>[web] token</code> in station.toml).</p>")
+        disabled = " disabled"
+    else:
+        note = "<p class='muted'>Actions need the station's token.</p>"
+        disabled = ""
+    return (f"<h2>Actions</h2>{note}<div class='actions'>"
+            f"<input id='token' type='password' placeholder='token' autocomplete='off'{disabled}>"
+            f"<button data-action='dump-next'{disabled}>Dump next facet</button>"
+            f"<button data-action='pause'{disabled}>Pause line</button>"
+            f"<button data-action='resume'{disabled}>Resume line</button>"
+            f"<button data-action='remeasure'{disabled}>Re-measure facet in fixture</button>"
+            f"<input id='serial-input' maxlength='64' placeholder='serial by hand'{disabled}>"
+            f"<button data-action='serial'{disabled}>Use serial</button></div>"
+            f"<p id='action-result' role='status'></p>")
+
+
+_PAGE = """<!doctype html>
+<html lang="en"><head><meta charset="utf-8"><meta name="viewport" content="width=device-width, initial-scale=1">
+<title>{name}: the line</title><link rel="stylesheet" href="/page.css"><script src="/page.js" defer></script>
+</head><body data-seq="{seq}" data-cycle="{cycle}">
+<header><h1>{name}</h1><div id="state">{state}</div><div id="link" class="link">live</div></header>
+<main><section id="last">{last}</section>
+<div class="side"><section id="shift">{shift}</section><section id="station">{station}</section>
+<section id="actions">{actions}</section></div></main></body></html>
+"""
+
+_CSS = """
+:root { color-scheme: dark; }
+body { margin: 0; font: 16px/1.35 system-ui, sans-serif; background: #111827; color: #e5e7eb; }
+header { display: flex; gap: 1.5rem; align-items: center; padding: .5rem 1rem; background: #030712; }
+header h1 { font-size: 1.3rem; margin: 0; flex: 1; }
+main { display: grid; grid-template-columns: minmax(0, 1.1fr) minmax(0, 1fr); gap: 1rem; padding: 1rem; }
+section { background: #1f2937; border-radius: 8px; padding: .6rem 1rem; margin-bottom: 1rem; }
+h2 { margin: .2rem 0 .6rem; font-size: 1.2rem; } h3 { margin: .6rem 0 .3rem; font-size: 1rem; }
+.muted { color: #9ca3af; font-weight: normal; font-size: .9rem; }
+.serial { font-size: 2.6rem; font-weight: 700; overflow-wrap: anywhere; max-height: 7.5rem; overflow: hidden; }
+.meta { color: #9ca3af; overflow-wrap: anywhere; }
+.verdict { font-size: 9rem; font-weight: 900; line-height: 1; text-align: center; border-radius: 10px;
+  padding: 1rem 0; margin: .6rem 0; letter-spacing: .05em; }
+.verdict.pass { background: #15803d; color: #fff; } .verdict.fail { background: #b91c1c; color: #fff; }
+.verdict.invalid { background: #d97706; color: #111; } .verdict.fault { background: #7e22ce; color: #fff; }
+.pass-t { color: #4ade80; } .fail-t { color: #f87171; } .invalid-t { color: #fbbf24; } .fault-t { color: #c084fc; }
+.reasons li { font-size: 1.25rem; margin: .2rem 0; overflow-wrap: anywhere; }
+table { border-collapse: collapse; width: 100%; } th, td { text-align: left; padding: .2rem .4rem; }
+.figures td, .figures th { font-size: 1.15rem; border-bottom: 1px solid #374151; }
+td.num { text-align: right; font-variant-numeric: tabular-nums; } td.lim { color: #9ca3af; }
+tr.out td, tr.out th { color: #f87171; } .ok { color: #4ade80; } .bad { color: #f87171; font-weight: 700; }
+.pictures { display: flex; gap: 1rem; flex-wrap: wrap; } figure { margin: .5rem 0; }
+figure img { max-width: 100%; max-height: 360px; background: #000; border-radius: 4px; }
+figcaption { color: #9ca3af; font-size: .85rem; }
+.kpis { display: flex; gap: 1.2rem; flex-wrap: wrap; } .kpis div { display: flex; flex-direction: column; }
+.kpis b { font-size: 2.2rem; } .kpis span { color: #9ca3af; font-size: .85rem; }
+.charts svg { width: 100%; height: auto; background: #111827; border-radius: 6px; margin-top: .4rem; }
+.chart .ct { fill: #e5e7eb; font-size: 13px; } .chart .cl { fill: #9ca3af; font-size: 11px; }
+.chart .frame { fill: none; stroke: #374151; }
+.badge { padding: .15rem .7rem; border-radius: 999px; font-weight: 700; text-transform: uppercase; }
+.state-idle { background: #374151; } .state-measuring { background: #1d4ed8; } .state-fault { background: #7e22ce; }
+.state-paused { background: #d97706; color: #111; } .state-offline { background: #000; color: #f87171; }
+.alarms li { color: #fbbf24; overflow-wrap: anywhere; }
+.link { font-size: .85rem; color: #4ade80; } .link.down { color: #f87171; }
+.actions { display: flex; flex-wrap: wrap; gap: .4rem; } .actions button, .actions input { font-size: 1rem; padding: .4rem .6rem; }
+#action-result.error { color: #f87171; }
+@media (max-width: 1000px) { main { grid-template-columns: 1fr; } .verdict { font-size: 6rem; } }
+"""
+
+_JS = """
+"use strict";
+function put(sections) {
+  for (const [id, html] of Object.entries(sections)) {
+    if (id.startsWith("_")) continue;
+    const el = document.getElementById(id);
+    if (el) el.innerHTML = html;
+  }
+  document.body.dataset.seq = sections._seq;
+  document.body.dataset.cycle = sections._cycle;
+}
+function link(up) {
+  const el = document.getElementById("link");
+  el.textContent = up ? "live" : "reconnecting…";
+  el.classList.toggle("down", !up);
+  document.body.dataset.live = up ? "1" : "0";
+}
+function connect() {
+  const es = new EventSource("/events");
+  es.addEventListener("sections", ev => { put(JSON.parse(ev.data)); link(true); });
+  es.onopen = () => link(true);
+  es.onerror = () => {
+    link(false);
+    if (es.readyState === EventSource.CLOSED) { es.close(); setTimeout(connect, 1000); }
+  };
+}
+async function act(name) {
+  const out = document.getElementById("action-result");
+  const token = document.getElementById("token").value;
+  const body = name === "serial" ? JSON.stringify({serial: document.getElementById("serial-input").value}) : "{}";
+  try {
+    const r = await fetch("/action/" + name, {method: "POST", body,
+      headers: {"content-type": "application/json", "x-station-token": token}});
+    const j = await r.json();
+    out.textContent = j.ok ? j.message : ("refused: " + j.error);
+    out.className = j.ok ? "" : "error";
+  } catch (e) { out.textContent = "the station did not answer: " + e; out.className = "error"; }
+}
+document.addEventListener("DOMContentLoaded", () => {
+  for (const b of document.querySelectorAll("button[data-action]")) b.addEventListener("click", () => act(b.dataset.action));
+  connect();
+});
+"""
+
+_STATIC = {"page.css": (_CSS, "text/css"), "page.js": (_JS, "text/javascript")}

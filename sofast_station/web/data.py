@@ -1,0 +1,308 @@
+"""What the monitor shows, read from the station's files: the journal (read-only), the live status, the
+per-facet pictures and the disk. Nothing here writes, and nothing here talks to the station's process.
+
+:class:`LineData` keeps the shift's parsed journal rows and reads only rows it has not seen (by ``seq``),
+so a snapshot costs a few milliseconds however long the shift.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import logging
+import math
+import os
+import shutil
+import sqlite3
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..archive._common import utc_key
+from ..station.pictures import picture_path
+from ..station.recipes import recipes_from_config
+from ..station.shift import cycle_seconds, figure_uncertainty, figure_value, summarize
+from ..station.status import read_status, status_path
+from ..station.verdict import LONG_FOCAL_LENGTH_M
+
+log = logging.getLogger(__name__)
+
+#: How many facets the page's charts show.
+CHART_FACETS = 50
+
+
+def shift_start(now: _dt.datetime, starts: tuple) -> _dt.datetime:
+    """The latest shift start (local "HH:MM" times in *starts*) at or before *now* (tz-aware)."""
+    best = None
+    for day in (now.date(), now.date() - _dt.timedelta(days=1)):
+        for hhmm in starts:
+            h, m = (int(v) for v in hhmm.split(":"))
+            t = _dt.datetime.combine(day, _dt.time(h, m), tzinfo=now.tzinfo)
+            if t <= now and (best is None or t > best):
+                best = t
+    return best
+
+
+@dataclass
+class FigureRow:
+    """One figure of the last facet, as the page shows it."""
+
+    label: str
+    value: float | None
+    uncertainty: float | None
+    unit: str
+    decimals: int
+    limit: str
+    ok: bool | None
+
+
+def figure_rows(record: dict, recipe) -> list[FigureRow]:
+    """The last facet's figures with their limits (from its recipe) and whether each is within them."""
+    rows = []
+    lim = recipe.limits if recipe is not None else None
+    f_design = recipe.design.focal_length_m if recipe is not None else None
+    long_focus = f_design is not None and f_design > LONG_FOCAL_LENGTH_M
+    for axis in ("x", "y"):
+        if long_focus:
+            path = f"curvature_{axis}_per_m"
+            v = figure_value(record, path)
+            k0, tol = 1.0 / f_design, lim.curvature_tolerance_per_m
+            rows.append(FigureRow(f"curvature {axis}", v, figure_uncertainty(record, path), "1/m", 6,
+                                  f"{k0 - tol:.6f} to {k0 + tol:.6f}", None if v is None else abs(v - k0) <= tol))
+        else:
+            path = f"focal_length_{axis}_m"
+            v = figure_value(record, path)
+            limit, ok = "", None
+            if lim is not None:
+                lo, hi = f_design * (1 - lim.focal_length_tolerance), f_design * (1 + lim.focal_length_tolerance)
+                limit = f"{lo:.3f} to {hi:.3f}"
+                ok = None if v is None else lo <= v <= hi
+            rows.append(FigureRow(f"focal length {axis}", v, figure_uncertainty(record, path), "m", 4, limit, ok))
+    v = figure_value(record, "twist_mrad_per_m")
+    t = lim.max_twist_mrad_per_m if lim is not None else None
+    rows.append(FigureRow("twist", v, figure_uncertainty(record, "twist_mrad_per_m"), "mrad/m", 3,
+                          f"|t| ≤ {t:g}" if t is not None else "", None if v is None or t is None else abs(v) <= t))
+    for model in ("design", "parabola", "higher_order"):
+        path = f"slope_rms_mrad.{model}.magnitude"
+        v = figure_value(record, path)
+        if v is None:
+            continue
+        m = lim.max_slope_rms_mrad.get(model) if lim is not None else None
+        rows.append(FigureRow(f"slope RMS vs {model.replace('_', ' ')}", v, figure_uncertainty(record, path),
+                              "mrad", 3, f"≤ {m:g}" if m is not None else "", None if m is None else v <= m))
+    return rows
+
+
+class LineData:
+    """Reads the line's state for the page and the OPC UA server.
+
+    Parameters
+    ----------
+    config : StationConfig
+    settings : WebSettings
+    """
+
+    def __init__(self, config, settings):
+        self.config = config
+        self.settings = settings
+        self.data_dir = Path(config.data_dir)
+        self.journal_path = self.data_dir / "journal.sqlite3"
+        self.recipes = recipes_from_config(config)
+        self._db: sqlite3.Connection | None = None
+        self._rows: list[tuple[int, str, dict]] = []     # (seq, time_utc, record) of the shift
+        self._last_seq = 0
+        self._shift_key: str | None = None
+        self._calibration: tuple[float, dict] | None = None
+        self._disk: tuple[float, dict] | None = None
+
+    # -- the journal, read-only -------------------------------------------------------------------------
+    def _conn(self) -> sqlite3.Connection | None:
+        if self._db is None:
+            if not self.journal_path.exists():
+                return None
+            try:
+                self._db = sqlite3.connect(f"file:{self.journal_path}?mode=ro", uri=True, timeout=5.0,
+                                           check_same_thread=False)
+            except sqlite3.Error as exc:
+                log.warning("cannot open the journal %s read-only: %s", self.journal_path, exc)
+                return None
+        return self._db
+
+    def _query(self, sql: str, params: tuple = ()) -> list:
+        db = self._conn()
+        if db is None:
+            return []
+        try:
+            return db.execute(sql, params).fetchall()
+        except sqlite3.Error as exc:
+            log.warning("reading the journal %s: %s", self.journal_path, exc)
+            self.close()
+            return []
+
+    def close(self) -> None:
+        if self._db is not None:
+            self._db.close()
+            self._db = None
+
+    def version(self) -> tuple:
+        """Changes whenever anything the page shows may have changed (cheap: one query, two stats)."""
+        rows = self._query("SELECT MAX(seq) FROM cycles")
+        seq = rows[0][0] if rows else None
+        try:
+            st = status_path(self.data_dir).stat().st_mtime_ns
+        except OSError:
+            st = 0
+        last = self._query("SELECT cycle_id FROM cycles ORDER BY seq DESC LIMIT 1")
+        pic = picture_path(self.data_dir, last[0][0]) if last else None
+        return seq, st, bool(pic and pic.exists()), read_status(self.data_dir).get("state")
+
+    def _refresh(self, now: _dt.datetime) -> None:
+        start = shift_start(now, self.settings.shift_starts)
+        key = utc_key(start.isoformat())
+        if key != self._shift_key:
+            self._shift_key, self._rows, self._last_seq = key, [], 0
+        new = self._query("SELECT seq, time_utc, record FROM cycles WHERE seq > ? AND time_utc >= ? ORDER BY seq",
+                          (self._last_seq, key))
+        for seq, time_utc, text in new:
+            try:
+                self._rows.append((int(seq), time_utc, json.loads(text)))
+            except ValueError:
+                log.warning("journal row %s is not JSON; skipped", seq)
+            self._last_seq = max(self._last_seq, int(seq))
+        self._shift_start = start
+
+    def last_record(self) -> dict | None:
+        """The newest journal row's record (in this shift or not)."""
+        rows = self._query("SELECT record FROM cycles ORDER BY seq DESC LIMIT 1")
+        return json.loads(rows[0][0]) if rows else None
+
+    # -- the station --------------------------------------------------------------------------------------
+    def calibration(self) -> dict:
+        """The radiometric record in force, its age and the allowed age (re-read every 30 s)."""
+        now = time.monotonic()
+        if self._calibration and now - self._calibration[0] < 30:
+            return self._calibration[1]
+        from ..calibrate.settings import calibration_settings
+        from ..calibrate.store import select_radiometric
+        info: dict = {"record": None, "origin": None, "age_h": None, "max_age_h": None}
+        try:
+            status = select_radiometric(self.config, tolerant=True)
+            info.update(record=status.record.record_id, origin=status.origin)
+            info["max_age_h"] = calibration_settings(self.config)[0].max_age_h
+            created = _dt.datetime.fromisoformat(status.record.created) if status.record.created else None
+            if created is not None and created.tzinfo is not None:
+                info["age_h"] = (_dt.datetime.now(created.tzinfo) - created).total_seconds() / 3600.0
+            info["exempt"] = status.origin == "shipped default" and self.config.backend == "simulated"
+        except Exception as exc:                  # the page must show the rest whatever the record holds
+            info["error"] = str(exc)
+        self._calibration = (now, info)
+        return info
+
+    def disk(self) -> dict:
+        """Free space under data_dir and the archive's backlog (re-read every 5 s)."""
+        now = time.monotonic()
+        if self._disk and now - self._disk[0] < 5:
+            return self._disk[1]
+        try:
+            usage = shutil.disk_usage(self.data_dir)
+            free_gb = usage.free / 1e9
+        except OSError:
+            free_gb = None
+        rows = self._query("SELECT SUM(workbook_path IS NULL), SUM(dump_requested = 1 AND dump_path IS NULL AND "
+                           "dump_error IS NULL) FROM cycles")
+        pending_rows, pending_dumps = (rows[0] if rows else (0, 0))
+        try:
+            spool = sum(1 for e in os.scandir(self.data_dir / "spool") if e.name.endswith(".npz"))
+        except OSError:
+            spool = 0
+        min_free = float(self.config.raw.get("archive", {}).get("min_free_gb",
+                                                                 self.config.raw.get("run", {}).get("min_free_gb", 2.0)))
+        info = {"free_gb": free_gb, "min_free_gb": min_free, "workbook_backlog": int(pending_rows or 0),
+                "dump_backlog": int(pending_dumps or 0), "spool_files": spool}
+        self._disk = (now, info)
+        return info
+
+    def alarms(self, status: dict, last: dict | None, calibration: dict, disk: dict, records: list[dict]) -> list:
+        """(kind, text) of every alarm in force."""
+        out = [(k, str(v)) for k, v in sorted((status.get("alarms") or {}).items())]
+        warnings = ((last or {}).get("calibration") or {}).get("warnings") or []
+        if warnings:
+            out.append(("calibration", "; ".join(warnings)))
+        elif (calibration.get("age_h") is not None and calibration.get("max_age_h")
+              and not calibration.get("exempt") and calibration["age_h"] > calibration["max_age_h"]):
+            out.append(("calibration", f"radiometric record {calibration['record']} is {calibration['age_h']:.1f} h "
+                                       f"old (max {calibration['max_age_h']:g} h)"))
+        if disk.get("free_gb") is not None and disk["free_gb"] < disk["min_free_gb"]:
+            out.append(("disk", f"only {disk['free_gb']:.1f} GB free in data_dir (dumps stop below "
+                                f"{disk['min_free_gb']:g} GB)"))
+        drift = self._drift(records)
+        if drift:
+            out.append(("drift", drift))
+        return out
+
+    def _drift(self, records: list[dict]) -> str | None:
+        """The shift's last 10 measured facets against its first 10: a move of more than a quarter of the
+        tolerance band in the mean focal length is a drift (fixture, temperature, camera moved)."""
+        measured = [r for r in records if r.get("verdict") in ("pass", "fail", "invalid")]
+        if len(measured) < 20:
+            return None
+        recipe = self.recipes.get(measured[-1].get("recipe") or "default", self.recipes["default"])
+        f_design, tol = recipe.design.focal_length_m, recipe.limits.focal_length_tolerance
+        if f_design > LONG_FOCAL_LENGTH_M:
+            return None
+        for axis in ("x", "y"):
+            first = [v for r in measured[:10] if (v := figure_value(r, f"focal_length_{axis}_m")) is not None]
+            last = [v for r in measured[-10:] if (v := figure_value(r, f"focal_length_{axis}_m")) is not None]
+            if first and last:
+                move = sum(last) / len(last) - sum(first) / len(first)
+                if abs(move) > 0.25 * tol * f_design:
+                    return (f"mean focal length {axis} moved {move * 1000:+.1f} mm since the start of the shift "
+                            f"(a quarter of the tolerance is {0.25 * tol * f_design * 1000:.1f} mm)")
+        return None
+
+    # -- everything the page shows -----------------------------------------------------------------------
+    def snapshot(self, now: _dt.datetime | None = None) -> dict:
+        now = now or _dt.datetime.now().astimezone()
+        self._refresh(now)
+        records = [r for _, _, r in self._rows]
+        last = self.last_record()
+        status = read_status(self.data_dir)
+        calibration = self.calibration()
+        disk = self.disk()
+        summary = summarize(records)
+        recipe = None
+        if last is not None:
+            recipe = self.recipes.get(last.get("recipe") or "default", self.recipes["default"])
+        chart = records[-CHART_FACETS:]
+        default = self.recipes["default"]
+        pic = picture_path(self.data_dir, last.get("cycle_id", "")) if last else None
+        return {
+            "now": now.isoformat(timespec="seconds"),
+            "station": self.config.name,
+            "status": status,
+            "last": last,
+            "last_has_picture": bool(pic and pic.exists()),
+            "figures": figure_rows(last, recipe) if last and last.get("verdict") != "fault" else [],
+            "shift_start": self._shift_start.isoformat(timespec="minutes"),
+            "summary": summary,
+            "chart": {
+                "serials": [r.get("serial", "") for r in chart],
+                "verdicts": [r.get("verdict") for r in chart],
+                "f_x": [figure_value(r, "focal_length_x_m") for r in chart],
+                "f_y": [figure_value(r, "focal_length_y_m") for r in chart],
+                "rms_design": [figure_value(r, "slope_rms_mrad.design.magnitude") for r in chart],
+                "rms_parabola": [figure_value(r, "slope_rms_mrad.parabola.magnitude") for r in chart],
+                "f_design": default.design.focal_length_m,
+                "f_tolerance": default.limits.focal_length_tolerance,
+                "rms_limits": dict(default.limits.max_slope_rms_mrad),
+                "cycle_s": [cycle_seconds(r) for r in chart],
+            },
+            "calibration": calibration,
+            "disk": disk,
+            "alarms": self.alarms(status, last, calibration, disk, records),
+            "token_required": bool(self.settings.token),
+        }
+
+
+def finite(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)

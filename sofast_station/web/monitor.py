@@ -1,0 +1,155 @@
+"""The monitor: the line's web page and the OPC UA server, in a process of their own.
+
+``sofast-station serve`` runs it in the foreground; ``sofast-station run --serve`` (or ``[opcua] enabled``)
+starts it beside the loop with :class:`MonitorProcess`. Either way it runs at a lower priority than the
+station (``[web] nice``) and shares nothing with the loop but files: it reads the journal through a
+read-only SQLite connection, the live status and the pictures, and posts commands as files
+(station/commands.py). A slow browser, a hung OPC UA client or a crash here cannot delay a facet.
+
+Where it listens is written to ``data_dir/live/monitor.json`` (``{"url": ..., "opcua": ...}``), so a
+port chosen by the system (``port = 0``) can be found.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import multiprocessing
+import os
+import signal
+from pathlib import Path
+
+from ..errors import StationError
+from .settings import OpcUaSettings, WebSettings
+
+log = logging.getLogger(__name__)
+
+
+def monitor_info_path(data_dir) -> Path:
+    return Path(data_dir) / "live" / "monitor.json"
+
+
+def _lower_priority(nice: int) -> None:
+    try:
+        if nice:
+            os.nice(nice)
+    except OSError as exc:
+        log.warning("could not lower the monitor's priority: %s", exc)
+
+
+def _server_class():
+    import contextlib
+
+    import uvicorn
+
+    class Server(uvicorn.Server):
+        """uvicorn's server without its own signal handling: the monitor's handlers stop both servers."""
+
+        @contextlib.contextmanager
+        def capture_signals(self):
+            yield
+    return Server
+
+
+async def _serve(config, web: WebSettings | None, opcua: OpcUaSettings | None, on_ready=None) -> None:
+    import uvicorn
+
+    _Server = _server_class()
+
+    from .app import create_app
+    from .data import LineData
+
+    info: dict = {"pid": os.getpid()}
+    server = None
+    tasks = []
+    if web is not None:
+        app = create_app(config, web)
+        server = _Server(uvicorn.Config(app, host=web.host, port=web.port, log_level="warning",
+                                               timeout_graceful_shutdown=2, lifespan="on", access_log=False))
+        tasks.append(asyncio.create_task(server.serve()))
+        while not server.started:
+            if tasks[0].done():
+                await tasks[0]                       # raises what stopped it (the port is taken...)
+                raise StationError(f"the web server on {web.host}:{web.port} stopped at once")
+            await asyncio.sleep(0.05)
+        host, port = server.servers[0].sockets[0].getsockname()[:2]
+        shown = f"[{host}]" if ":" in host else host
+        info["url"] = f"http://{shown}:{port}/"
+        log.info("the line's page: %s%s", info["url"], "" if web.token else " (read-only: no [web] token)")
+    publisher = None
+    if opcua is not None and opcua.enabled:
+        from .opcua import OpcUaPublisher
+        publisher = OpcUaPublisher(LineData(config, web or WebSettings()), opcua)
+        await publisher.start()
+        info["opcua"] = publisher.endpoint
+        tasks.append(asyncio.create_task(publisher.run()))
+    path = monitor_info_path(config.data_dir)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".monitor.{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(info), encoding="utf-8")
+    os.replace(tmp, path)
+    if on_ready is not None:
+        on_ready(info)
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    try:
+        waiter = asyncio.create_task(stop.wait())
+        await asyncio.wait([waiter, *tasks], return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        if server is not None:
+            server.should_exit = True
+        if publisher is not None:
+            await publisher.stop()
+        for t in tasks:
+            try:
+                await asyncio.wait_for(t, timeout=5)
+            except (asyncio.TimeoutError, asyncio.CancelledError, Exception):
+                t.cancel()
+
+
+def serve(config, web: WebSettings | None, opcua: OpcUaSettings | None, nice: int = 0, on_ready=None) -> None:
+    """Run the monitor in this process until SIGINT or SIGTERM."""
+    _lower_priority(nice)
+    asyncio.run(_serve(config, web, opcua, on_ready))
+
+
+def _monitor_main(config, web, opcua, nice) -> None:
+    from ..station.service import setup_logging
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s monitor %(levelname)s %(message)s",
+                        datefmt="%H:%M:%S")
+    setup_logging(Path(config.data_dir), name="monitor.log")
+    try:
+        serve(config, web, opcua, nice)
+    except StationError as exc:
+        log.error("the monitor stopped: %s", exc)
+    except OSError as exc:
+        log.error("the monitor could not serve: %s (is the port taken? set [web] port)", exc)
+
+
+class MonitorProcess:
+    """The monitor beside the station's loop, in a spawned process at lower priority."""
+
+    def __init__(self, config, web: WebSettings | None, opcua: OpcUaSettings | None):
+        monitor_info_path(config.data_dir).unlink(missing_ok=True)
+        ctx = multiprocessing.get_context("spawn")
+        nice = (web or WebSettings()).nice
+        self._proc = ctx.Process(target=_monitor_main, name="sofast-monitor", args=(config, web, opcua, nice),
+                                 daemon=True)
+        self._proc.start()
+
+    @property
+    def pid(self) -> int | None:
+        return self._proc.pid
+
+    def stop(self, timeout_s: float = 10.0) -> None:
+        if self._proc.is_alive():
+            self._proc.terminate()                       # SIGTERM: both servers stop cleanly
+            self._proc.join(timeout_s)
+        if self._proc.is_alive():
+            log.error("the monitor did not stop within %.0f s; killing it", timeout_s)
+            self._proc.kill()
+            self._proc.join(5)

@@ -1,0 +1,212 @@
+"""The page's HTML, rendered on the server from a :meth:`LineData.snapshot`: every value that comes from
+the journal, the status file or the configuration is escaped here (a serial such as ``<script>`` or
+``../../etc/passwd`` is text on the page and never part of a file name). Charts are inline SVG.
+
+The page is cut into sections (:data:`SECTIONS`); the live updates send the sections' HTML again and the
+page's script puts it in place, so there is one renderer for the first load and for every update.
+"""
+
+from __future__ import annotations
+
+import html
+import math
+
+from ..station.shift import SUMMARY_FIGURES
+
+SECTIONS = ("state", "last", "shift", "station")
+_VERDICT_CLASS = {"pass": "pass", "fail": "fail", "invalid": "invalid", "fault": "fault"}
+
+
+def esc(value) -> str:
+    return html.escape("" if value is None else str(value), quote=True)
+
+
+def _num(v, decimals: int) -> str:
+    return "–" if v is None or not math.isfinite(v) else f"{v:.{decimals}f}"
+
+
+def _with_u(v, u, decimals: int) -> str:
+    text = _num(v, decimals)
+    return f"{text} ± {_num(u, decimals)}" if u is not None and v is not None else text
+
+
+def _age(hours) -> str:
+    if hours is None:
+        return "unknown age"
+    if hours < 1:
+        return f"{hours * 60:.0f} min old"
+    if hours < 48:
+        return f"{hours:.1f} h old"
+    return f"{hours / 24:.1f} days old"
+
+
+# -- sections ---------------------------------------------------------------------------------------------
+def state_html(snap: dict) -> str:
+    status = snap["status"]
+    state = status.get("state", "offline")
+    extra = ""
+    if state == "measuring" and status.get("serial") is not None:
+        extra = f" <span class='muted'>{esc(status['serial'])}</span>"
+    if status.get("manual_serial"):
+        extra += f" <span class='muted'>next serial (typed): {esc(status['manual_serial'])}</span>"
+    return f"<span class='badge state-{esc(state)}' data-state='{esc(state)}'>{esc(state)}</span>{extra}"
+
+
+def last_html(snap: dict) -> str:
+    rec = snap.get("last")
+    if rec is None:
+        return "<h2>Last facet</h2><p class='muted'>No facet measured yet.</p>"
+    verdict = str(rec.get("verdict") or "fault")
+    cls = _VERDICT_CLASS.get(verdict, "fault")
+    request = rec.get("request") or {}
+    notes = []
+    if request.get("serial_source") == "operator":
+        notes.append(f"serial typed by the operator (the robot said {esc(request.get('serial_read'))})")
+    if request.get("operator") == "remeasure":
+        notes.append("re-measured on the operator's request")
+    reasons = "".join(f"<li>{esc(r)}</li>" for r in rec.get("reasons") or [])
+    rows = []
+    for f in snap.get("figures", []):
+        mark = "" if f.ok is None else ("<span class='ok'>✓</span>" if f.ok else "<span class='bad'>✗</span>")
+        rows.append(f"<tr class='{'' if f.ok is None else 'in' if f.ok else 'out'}'><th>{esc(f.label)}</th>"
+                    f"<td class='num'>{esc(_with_u(f.value, f.uncertainty, f.decimals))} {esc(f.unit)}</td>"
+                    f"<td class='lim'>{esc(f.limit)} {esc(f.unit) if f.limit else ''}</td><td>{mark}</td></tr>")
+    table = ""
+    if rows:
+        k = rec.get("coverage_factor")
+        head = "value ± U (k = " + esc(k) + ")" if k and any(f.uncertainty is not None for f in snap["figures"]) \
+            else "value"
+        table = (f"<table class='figures'><thead><tr><th>figure</th><th>{head}</th><th>limit</th><th></th></tr>"
+                 f"</thead><tbody>{''.join(rows)}</tbody></table>")
+    cid = esc(rec.get("cycle_id", ""))
+    pictures = ""
+    if snap.get("last_has_picture"):
+        pictures = (f"<div class='pictures'><figure><img id='white' alt='white frame with the found outline' "
+                    f"src='/facet/{cid}/white.png'><figcaption>camera's white frame, found outline</figcaption>"
+                    f"</figure>")
+        if verdict != "fault":
+            pictures += (f"<figure><img id='map' alt='slope-error map' src='/facet/{cid}/map.png'>"
+                         f"<figcaption>slope error vs design (mrad)</figcaption></figure>")
+        pictures += "</div>"
+    return (f"<h2>Last facet</h2>"
+            f"<div class='facet-head'><div class='serial' title='{esc(rec.get('serial'))}'>{esc(rec.get('serial'))}"
+            f"</div><div class='meta'>recipe {esc(rec.get('recipe') or 'default')} · {esc(rec.get('time'))}"
+            f" · cycle {cid}</div></div>"
+            f"<div class='verdict {cls}' data-verdict='{esc(verdict)}'>{esc(verdict.upper())}</div>"
+            + (f"<p class='muted'>{'; '.join(notes)}</p>" if notes else "")
+            + (f"<ul class='reasons'>{reasons}</ul>" if reasons else "")
+            + table + pictures)
+
+
+def shift_html(snap: dict) -> str:
+    s = snap["summary"]
+    c = s.counts
+    yield_text = "–" if s.yield_fraction is None else f"{100 * s.yield_fraction:.1f} %"
+    faults = ", ".join(f"{n} {esc(k)}" for k, n in s.faults_by_kind.items()) or "none"
+    cycle = ("–" if s.cycle_median_s is None else
+             f"median {s.cycle_median_s:.2f} s · worst {s.cycle_worst_s:.2f} s")
+    stats = []
+    for path, label, unit, decimals in SUMMARY_FIGURES:
+        st = s.figures.get(path)
+        if st and st.n:
+            stats.append(f"<tr><th>{esc(label)}</th><td class='num'>{_num(st.mean, decimals)}</td>"
+                         f"<td class='num'>{_num(st.std, decimals)}</td><td>{esc(unit)}</td></tr>")
+    ch = snap["chart"]
+    f_lo, f_hi = ch["f_design"] * (1 - ch["f_tolerance"]), ch["f_design"] * (1 + ch["f_tolerance"])
+    f_chart = svg_chart("focal lengths of the last facets (m)",
+                        [("f_x", ch["f_x"], "#3b82f6"), ("f_y", ch["f_y"], "#f59e0b")],
+                        [(f_lo, "#ef4444", "limit"), (f_hi, "#ef4444", ""), (ch["f_design"], "#9ca3af", "design")],
+                        decimals=3) if ch["f_design"] <= 20 else ""
+    rms_limits = [(v, "#ef4444" if k == "design" else "#a855f7", f"limit {k}") for k, v in ch["rms_limits"].items()]
+    rms_chart = svg_chart("slope RMS of the last facets (mrad)",
+                          [("vs design", ch["rms_design"], "#3b82f6"), ("vs parabola", ch["rms_parabola"], "#10b981")],
+                          rms_limits, decimals=2, floor=0.0)
+    return (f"<h2>Shift <span class='muted'>since {esc(snap['shift_start'])}</span></h2>"
+            f"<div class='kpis'><div><b>{s.total}</b><span>facets</span></div>"
+            f"<div><b>{yield_text}</b><span>yield</span></div>"
+            f"<div><b class='pass-t'>{c.get('pass', 0)}</b><span>pass</span></div>"
+            f"<div><b class='fail-t'>{c.get('fail', 0)}</b><span>fail</span></div>"
+            f"<div><b class='invalid-t'>{c.get('invalid', 0)}</b><span>invalid</span></div>"
+            f"<div><b class='fault-t'>{c.get('fault', 0)}</b><span>fault</span></div></div>"
+            f"<p>faults by kind: {faults}</p><p>cycle time: {cycle}</p>"
+            + (f"<table class='stats'><thead><tr><th></th><th>mean</th><th>std</th><th></th></tr></thead>"
+               f"<tbody>{''.join(stats)}</tbody></table>" if stats else "")
+            + f"<div class='charts'>{f_chart}{rms_chart}</div>")
+
+
+def station_html(snap: dict) -> str:
+    cal = snap["calibration"]
+    disk = snap["disk"]
+    if cal.get("record"):
+        cal_text = (f"radiometric record {esc(cal['record'])} ({esc(cal.get('origin'))}), {esc(_age(cal.get('age_h')))}"
+                    + (f", allowed {cal['max_age_h']:g} h" if cal.get("max_age_h") else ""))
+    else:
+        cal_text = esc(cal.get("error") or "no calibration in force")
+    free = "–" if disk.get("free_gb") is None else f"{disk['free_gb']:.1f} GB"
+    alarms = "".join(f"<li class='alarm'><b>{esc(kind)}</b>: {esc(text)}</li>" for kind, text in snap["alarms"])
+    return (f"<h2>Station</h2><table class='station'>"
+            f"<tr><th>state</th><td>{state_html(snap)}</td></tr>"
+            f"<tr><th>calibration in force</th><td>{cal_text}</td></tr>"
+            f"<tr><th>free disk</th><td>{esc(free)} (data_dir)</td></tr>"
+            f"<tr><th>archive backlog</th><td>{disk['workbook_backlog']} rows for the workbook, "
+            f"{disk['dump_backlog']} dumps, {disk['spool_files']} spooled</td></tr></table>"
+            f"<h3>Alarms</h3>" + (f"<ul class='alarms'>{alarms}</ul>" if alarms else "<p class='ok'>none</p>"))
+
+
+def sections(snap: dict) -> dict:
+    return {"state": state_html(snap), "last": last_html(snap), "shift": shift_html(snap),
+            "station": station_html(snap)}
+
+
+# -- charts -----------------------------------------------------------------------------------------------
+def svg_chart(title: str, series: list, limits: list, decimals: int = 3, floor: float | None = None,
+              width: int = 520, height: int = 170) -> str:
+    """A small line chart of *series* [(name, values (None: gap), colour)] with horizontal *limits*
+    [(value, colour, label)], as inline SVG."""
+    values = [v for _, vs, _ in series for v in vs if v is not None and math.isfinite(v)]
+    marks = [v for v, _, _ in limits if v is not None]
+    if not values:
+        return (f"<svg class='chart' viewBox='0 0 {width} {height}' role='img' aria-label='{esc(title)}'>"
+                f"<text x='8' y='18' class='ct'>{esc(title)}</text><text x='8' y='60' class='cl'>no facet measured"
+                f"</text></svg>")
+    lo, hi = min(values + marks), max(values + marks)
+    if floor is not None:
+        lo = min(lo, floor)
+    pad = (hi - lo) * 0.08 or max(abs(hi), 1.0) * 0.01
+    lo, hi = lo - pad, hi + pad
+    left, right, top, bottom = 58, 8, 26, 18
+    n = max(len(vs) for _, vs, _ in series)
+
+    def x(i):
+        return left + (width - left - right) * (i / max(n - 1, 1))
+
+    def y(v):
+        return top + (height - top - bottom) * (1 - (v - lo) / (hi - lo))
+    parts = [f"<svg class='chart' viewBox='0 0 {width} {height}' role='img' aria-label='{esc(title)}'>",
+             f"<text x='8' y='16' class='ct'>{esc(title)}</text>",
+             f"<rect x='{left}' y='{top}' width='{width - left - right}' height='{height - top - bottom}' "
+             f"class='frame'/>"]
+    for v, colour, label in limits:
+        if v is None:
+            continue
+        parts.append(f"<line x1='{left}' x2='{width - right}' y1='{y(v):.1f}' y2='{y(v):.1f}' stroke='{colour}' "
+                     f"stroke-dasharray='5 4' stroke-width='1.5'/>")
+        parts.append(f"<text x='{left - 4}' y='{y(v) + 4:.1f}' class='cl' text-anchor='end'>{v:.{decimals}f}</text>")
+    legend_x = left + 190
+    for name, vs, colour in series:
+        path, pen = [], "M"
+        for i, v in enumerate(vs):
+            if v is None or not math.isfinite(v):
+                pen = "M"
+                continue
+            path.append(f"{pen}{x(i):.1f},{y(v):.1f}")
+            pen = "L"
+        if path:
+            parts.append(f"<path d='{' '.join(path)}' fill='none' stroke='{colour}' stroke-width='2'/>")
+        for i, v in enumerate(vs):
+            if v is not None and math.isfinite(v):
+                parts.append(f"<circle cx='{x(i):.1f}' cy='{y(v):.1f}' r='2.5' fill='{colour}'/>")
+        parts.append(f"<text x='{legend_x}' y='16' class='cl' fill='{colour}'>■ {esc(name)}</text>")
+        legend_x += 110
+    parts.append("</svg>")
+    return "".join(parts)
