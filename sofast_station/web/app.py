@@ -265,8 +265,8 @@ table { border-collapse: collapse; width: 100%; } th, td { text-align: left; pad
 .figures td, .figures th { font-size: 1.15rem; border-bottom: 1px solid #374151; }
 td.num { text-align: right; font-variant-numeric: tabular-nums; } td.lim { color: #9ca3af; }
 tr.out td, tr.out th { color: #f87171; } .ok { color: #4ade80; } .bad { color: #f87171; font-weight: 700; }
-.pictures { display: flex; gap: 1rem; flex-wrap: wrap; } figure { margin: .5rem 0; }
-figure img { max-width: 100%; max-height: 360px; background: #000; border-radius: 4px; }
+.pictures { display: flex; gap: 1rem; } figure { margin: .5rem 0; flex: 1 1 0; min-width: 0; }
+figure img { width: 100%; max-height: 420px; object-fit: contain; background: #000; border-radius: 4px; }
 figcaption { color: #9ca3af; font-size: .85rem; }
 .kpis { display: flex; gap: 1.2rem; flex-wrap: wrap; } .kpis div { display: flex; flex-direction: column; }
 .kpis b { font-size: 2.2rem; } .kpis span { color: #9ca3af; font-size: .85rem; }

@@ -70,8 +70,12 @@ async def _serve(config, web: WebSettings | None, opcua: OpcUaSettings | None, o
         tasks.append(asyncio.create_task(server.serve()))
         while not server.started:
             if tasks[0].done():
-                await tasks[0]                       # raises what stopped it (the port is taken...)
-                raise StationError(f"the web server on {web.host}:{web.port} stopped at once")
+                try:
+                    await tasks[0]
+                except (SystemExit, OSError):            # uvicorn exits when it cannot bind
+                    pass
+                raise StationError(f"cannot serve the page on {web.host}:{web.port}: is the port taken or the "
+                                   "address not this computer's? Set [web] host and port in the station file")
             await asyncio.sleep(0.05)
         host, port = server.servers[0].sockets[0].getsockname()[:2]
         shown = f"[{host}]" if ":" in host else host
@@ -81,7 +85,14 @@ async def _serve(config, web: WebSettings | None, opcua: OpcUaSettings | None, o
     if opcua is not None and opcua.enabled:
         from .opcua import OpcUaPublisher
         publisher = OpcUaPublisher(LineData(config, web or WebSettings()), opcua)
-        await publisher.start()
+        try:
+            await publisher.start()
+        except OSError as exc:
+            if server is not None:
+                server.should_exit = True
+                await tasks[0]
+            raise StationError(f"cannot start the OPC UA server at {opcua.endpoint}: {exc}; set [opcua] endpoint "
+                               "in the station file") from None
         info["opcua"] = publisher.endpoint
         tasks.append(asyncio.create_task(publisher.run()))
     path = monitor_info_path(config.data_dir)

@@ -139,7 +139,8 @@ def station_html(snap: dict) -> str:
     disk = snap["disk"]
     if cal.get("record"):
         cal_text = (f"radiometric record {esc(cal['record'])} ({esc(cal.get('origin'))}), {esc(_age(cal.get('age_h')))}"
-                    + (f", allowed {cal['max_age_h']:g} h" if cal.get("max_age_h") else ""))
+                    + (" (the simulated station's shipped record does not age)" if cal.get("exempt") else
+                       f", allowed {cal['max_age_h']:g} h" if cal.get("max_age_h") else ""))
     else:
         cal_text = esc(cal.get("error") or "no calibration in force")
     free = "–" if disk.get("free_gb") is None else f"{disk['free_gb']:.1f} GB"
@@ -206,7 +207,7 @@ def svg_chart(title: str, series: list, limits: list, decimals: int = 3, floor: 
         for i, v in enumerate(vs):
             if v is not None and math.isfinite(v):
                 parts.append(f"<circle cx='{x(i):.1f}' cy='{y(v):.1f}' r='2.5' fill='{colour}'/>")
-        parts.append(f"<text x='{legend_x}' y='16' class='cl' fill='{colour}'>■ {esc(name)}</text>")
+        parts.append(f"<text x='{legend_x}' y='16' class='cl' style='fill: {colour}'>■ {esc(name)}</text>")
         legend_x += 110
     parts.append("</svg>")
     return "".join(parts)

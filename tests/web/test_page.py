@@ -1,0 +1,224 @@
+"""Issue 15: the line's web page in a real browser (Debian's chromium, headless, driven by Playwright).
+
+One small simulated run with the page served by ``sofast-station serve`` in its own process, as on the
+line. After each facet (a runner hook, so the loop waits while the browser looks) the open page must
+show that facet without being reloaded. The serials include ``../../etc/passwd``, markup with unicode and
+a 300-character one: the page shows them as text, and no request path reaches a file outside the
+pictures of data_dir. A guarded action without the token is refused; with it, it reaches the loop's
+command interface. Finally the server is restarted and the page reconnects by itself.
+
+Screenshots after a pass, a fail and a fault go to $SOFAST_SCREENSHOTS (default: a temporary folder).
+"""
+
+from __future__ import annotations
+
+import http.client
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from sofast_station.config import load_config
+from sofast_station.devices.protocols import FacetRequest
+from sofast_station.station.commands import commands_dir
+from sofast_station.station.service import Service
+from tests.conftest import ROOT, SMALL_STATION
+
+CHROMIUM = "/usr/bin/chromium"
+playwright = pytest.importorskip("playwright.sync_api", reason="Playwright is not installed ('setup-env test')")
+if not (os.path.exists(CHROMIUM) and os.access(CHROMIUM, os.X_OK)):
+    pytest.skip("Debian's chromium is not installed ('setup-env test' installs it)", allow_module_level=True)
+
+TOKEN = "line-token-for-tests"
+LONG = "L" * 280 + "-END-OF-LONG-SERIAL"           # 300 characters
+UNICODE = "<script>alert('x')</script>Ærø-序列-🙂"
+SERIALS = ["SIM-0001", "F-0002", "../../etc/passwd", UNICODE, LONG, "X-0006"]
+VERDICTS = ["pass", "fail", "pass", "pass", "pass", "fault"]
+EXTRA = """
+[recipes.strict]
+serial_pattern = "^F-"
+limits = {{ focal_length_tolerance = 0.005 }}
+
+[simulation.faults]
+"X-0006" = "dark"
+
+[web]
+token = "{token}"
+port = {port}
+nice = 0
+"""
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _start_server(config: Path, data: Path) -> subprocess.Popen:
+    (data / "live" / "monitor.json").unlink(missing_ok=True)
+    env = dict(os.environ, PYTHONPATH=str(ROOT), SOFAST_DATA_DIR=str(data))
+    proc = subprocess.Popen([sys.executable, "-m", "sofast_station", "serve", "--config", str(config)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    end = time.monotonic() + 120
+    while not (data / "live" / "monitor.json").exists():
+        if proc.poll() is not None or time.monotonic() > end:
+            proc.kill()
+            raise AssertionError(f"the server did not start: {proc.communicate()}")
+        time.sleep(0.1)
+    return proc
+
+
+def _stop_server(proc: subprocess.Popen) -> None:
+    proc.send_signal(signal.SIGTERM)
+    try:
+        proc.wait(timeout=30)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
+def _raw_get(port: int, path: str) -> tuple[int, bytes]:
+    """GET with the path sent exactly as given (no client-side normalisation of ../)."""
+    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=30)
+    try:
+        conn.putrequest("GET", path, skip_accept_encoding=True)
+        conn.endheaders()
+        r = conn.getresponse()
+        return r.status, r.read()
+    finally:
+        conn.close()
+
+
+@pytest.fixture(scope="module")
+def line(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("web")
+    data = tmp / "data"
+    port = _free_port()
+    config = tmp / "station.toml"
+    config.write_text(SMALL_STATION.format(data_dir=data, facet=ROOT / "fixtures/facets/dish_5m33.toml",
+                                           radiometric=ROOT / "calibration/simulated_radiometric.json")
+                      + EXTRA.format(port=port, token=TOKEN))
+    shots = Path(os.environ.get("SOFAST_SCREENSHOTS") or tmp / "screenshots")
+    shots.mkdir(parents=True, exist_ok=True)
+    return config, data, port, shots
+
+
+def test_the_page_follows_the_line(line, monkeypatch):
+    config_path, data, port, shots = line
+    monkeypatch.setenv("SOFAST_DATA_DIR", str(data))
+    cfg = load_config(config_path)
+    server = _start_server(config_path, data)
+    url = f"http://127.0.0.1:{port}/"
+    seen: list[dict] = []
+    from playwright.sync_api import sync_playwright
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, args=[
+            "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+            "--disable-component-update", "--disable-sync", "--no-first-run"])
+        try:
+            page = browser.new_page(viewport={"width": 1500, "height": 1100})
+            dialogs: list[str] = []
+            page.on("dialog", lambda d: (dialogs.append(d.message), d.dismiss()))
+            page.goto(url)
+            assert "No facet measured yet" in page.inner_text("#last")
+            page.evaluate("window.__loadedOnce = true")       # gone if the page were reloaded
+
+            def look(outcome):
+                """After each facet: the open page shows it, without a reload."""
+                page.wait_for_function("c => document.body.dataset.cycle === c", arg=outcome.cycle_id,
+                                       timeout=60_000)
+                assert page.evaluate("window.__loadedOnce") is True
+                verdict = page.get_attribute("#last .verdict", "data-verdict")
+                serial = page.inner_text("#last .serial")
+                reasons = page.locator("#last .reasons li").all_inner_texts()
+                if outcome.answer != "fault":
+                    page.wait_for_function("() => { const i = document.getElementById('map'); "
+                                           "return i && i.complete && i.naturalWidth > 0; }", timeout=60_000)
+                page.wait_for_function("() => { const i = document.getElementById('white'); "
+                                       "return i && i.complete && i.naturalWidth > 0; }", timeout=60_000)
+                seen.append({"serial": serial, "verdict": verdict, "reasons": reasons,
+                             "scripts": page.locator("script").count(),
+                             "facets": page.inner_text("#shift .kpis div:first-child b")})
+                if outcome.serial in ("SIM-0001", "F-0002", "X-0006"):
+                    page.screenshot(path=str(shots / f"page-after-{outcome.answer}.png"), full_page=True)
+
+            requests = [FacetRequest(serial=s) for s in SERIALS]
+            service = Service(cfg, simulated_facets=requests, console=lambda line: None, archiver_process=False)
+            service.runner.hooks.append(look)
+            try:
+                outcomes = service.runner.run()
+            finally:
+                service.close()
+            assert [o.answer for o in outcomes] == VERDICTS
+
+            # what the page showed after each facet: that facet, its serial as text, every reason
+            assert [s["serial"] for s in seen] == SERIALS
+            assert [s["verdict"] for s in seen] == VERDICTS
+            assert [s["facets"] for s in seen] == [str(i) for i in range(1, 7)]
+            assert any("focal length x" in r for r in seen[1]["reasons"])
+            assert "dark everywhere" in seen[5]["reasons"][0]
+            assert all(s["scripts"] == 1 for s in seen) and not dialogs      # the markup serial stayed text
+
+            # a guarded action without the token (or with a wrong one) is refused and posts nothing
+            page.click("button[data-action='pause']")
+            page.wait_for_function("() => document.getElementById('action-result').textContent.length > 0")
+            assert page.inner_text("#action-result").startswith("refused: wrong or missing token")
+            page.fill("#token", "not-the-token")
+            page.evaluate("document.getElementById('action-result').textContent = ''")
+            page.click("button[data-action='remeasure']")
+            page.wait_for_function("() => document.getElementById('action-result').textContent.length > 0")
+            assert page.inner_text("#action-result").startswith("refused")
+            assert not commands_dir(data).exists() or not list(commands_dir(data).glob("*.json"))
+            # with the token it reaches the loop's command interface
+            page.fill("#token", TOKEN)
+            page.fill("#serial-input", "HAND-7")
+            page.evaluate("document.getElementById('action-result').textContent = ''")
+            page.click("button[data-action='serial']")
+            page.wait_for_function("() => document.getElementById('action-result').textContent.length > 0")
+            assert page.inner_text("#action-result") == "the next facet gets the serial HAND-7"
+            posted = [json.loads(p.read_text()) for p in commands_dir(data).glob("*.json")]
+            assert [(c["command"], c["serial"]) for c in posted] == [("serial", "HAND-7")]
+
+            # the server restarts: the page reconnects by itself and shows the same last facet
+            _stop_server(server)
+            page.wait_for_function("() => document.body.dataset.live === '0'", timeout=60_000)
+            server = _start_server(config_path, data)
+            page.wait_for_function("() => document.body.dataset.live === '1'", timeout=60_000)
+            assert page.evaluate("window.__loadedOnce") is True
+            assert page.get_attribute("#last .verdict", "data-verdict") == "fault"
+        finally:
+            browser.close()
+            _stop_server(server)
+    for name in ("pass", "fail", "fault"):
+        assert (shots / f"page-after-{name}.png").stat().st_size > 10_000
+
+
+def test_no_file_outside_the_pictures_is_served(line, monkeypatch):
+    """Whatever the request path holds (the serials' own text, ../, encoded slashes), only the page, its
+    script and style, the JSON state and the pictures of data_dir/live/facets come back."""
+    config_path, data, port, _ = line
+    server = _start_server(config_path, data)
+    try:
+        secret = b"root:"
+        outside = data.parent / "outside.png"
+        outside.write_bytes(b"\x89PNG not for the page")
+        paths = ["/../../etc/passwd", "/facet/../../etc/passwd/white.png", "/facet/..%2F..%2Fetc%2Fpasswd/white.png",
+                 "/%2e%2e/%2e%2e/etc/passwd", "/page.css/../../../etc/passwd", "/facet/%2e%2e/outside.png",
+                 "/facet/..%2f..%2foutside/white.png", "//etc/passwd", "/static/../../etc/passwd",
+                 "/facet/" + "L" * 300 + "/white.png", "/facet/%E5%BA%8F%E5%88%97/map.png",
+                 "/facet/20261201T000000000-0a1b2c3d/white.png"]
+        for path in paths:
+            status, body = _raw_get(port, path)
+            assert secret not in body and b"not for the page" not in body, path
+            assert status in (400, 404), (path, status)
+        status, body = _raw_get(port, "/api/state")
+        assert status == 200 and json.loads(body)["station"]
+    finally:
+        _stop_server(server)
