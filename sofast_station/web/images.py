@@ -64,22 +64,25 @@ def white_png(pic) -> bytes:
     return buf.tobytes()
 
 
-def map_png(pic, model: str = "design", vmax_mrad: float = 5.0) -> bytes | None:
-    """The slope-error map of *model* (PNG bytes), or None when the file has no per-pixel results."""
+def map_png(pic, model: str = "design") -> bytes | None:
+    """The slope-error map of *model* (PNG bytes), or None when the file has no per-pixel results.
+
+    Drawn like ``sofast-station report``'s maps (report/maps.py): magnitude on a perceptually ordered scale
+    topped at the 99th percentile, arrows of the mean error on a coarse grid."""
     from matplotlib.figure import Figure
 
-    from ..report.maps import _draw_map, slope_error_maps
+    from ..report.maps import SEQUENTIAL_CMAP, _draw_map, robust_top, slope_error_maps
 
     if "map_rows" not in pic.files or pic["map_rows"].size < 10:
         return None
-    maps = slope_error_maps(_Thinned(pic), max_cells=300)
-    m = maps[model]
-    fig = Figure(figsize=(5.0, 4.3), layout="constrained")
+    m = slope_error_maps(_Thinned(pic), max_cells=300)[model]
+    top = robust_top(m.magnitude_mrad)
+    fig = Figure(figsize=(5.0, 4.5), layout="constrained")
     ax = fig.subplots()
     r = m.rms_mrad
     image, _ = _draw_map(fig, ax, m, f"slope error vs {model}: RMS x {r['x']:.2f}, y {r['y']:.2f}, "
-                                     f"magnitude {r['magnitude']:.2f} mrad\n(thinned to one camera pixel in {int(pic['map_step_px'])} per axis)",
-                         vmax_mrad, "jet")
+                                     f"magnitude {r['magnitude']:.2f} mrad\n(one camera pixel in "
+                                     f"{int(pic['map_step_px'])} per axis)", top, SEQUENTIAL_CMAP)
     fig.colorbar(image, ax=ax, label="slope error magnitude (mrad)", extend="max", shrink=0.85)
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=80)
