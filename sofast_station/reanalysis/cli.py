@@ -106,7 +106,8 @@ def register(subparsers) -> None:
                     "model, the RMS figures in the titles. 'report trend [--from] [--to]' plots focal lengths, "
                     "residuals and twist over the period from the station's journal (in the data_dir of --config), "
                     "or from --journal PATH, or from the --results DIR of a batch.")
-    rpt.add_argument("targets", nargs="+", metavar="DUMP_OR_trend", help="dump(s), or the word 'trend'")
+    rpt.add_argument("targets", nargs="+", metavar="DUMP_OR_REPORT",
+                     help="dump(s) or opencsp:DIR; or 'trend', 'spc', 'acceptance', 'certificate SERIAL', 'diff A B'")
     rpt.add_argument("--out", metavar="DIR_OR_FILE", default=None,
                      help="folder for the pictures (default: the current folder); for a trend, a .png file or a "
                           "folder")
@@ -128,6 +129,8 @@ def register(subparsers) -> None:
     rpt.add_argument("--results", metavar="DIR", help="trend: a batch output folder")
     rpt.add_argument("--from", dest="since", default=None, metavar="ISO", help="trend: start (inclusive)")
     rpt.add_argument("--to", dest="until", default=None, metavar="ISO", help="trend: end (exclusive)")
+    from ..report.cli import add_options as add_quality_options
+    add_quality_options(rpt)
     _add_overrides(rpt)
     rpt.set_defaults(func=cmd_report)
 
@@ -313,10 +316,14 @@ def cmd_report(args) -> int:
 
     if args.targets[0] == "trend":
         return _cmd_trend(args)
+    from ..report.cli import REPORTS, run as run_quality_report
+    if args.targets[0] in REPORTS:
+        return run_quality_report(args)
     if args.journal or args.results or args.since or args.until or args.config:
         from ..errors import ConfigError
         raise ConfigError("--journal, --results, --config, --from and --to belong to 'report trend'")
     from ..report.maps import write_detail_maps, write_slope_error_maps
+    from ..report.sources import load_measured
 
     overrides = overrides_from_args(args)
     overrides.check()
@@ -324,7 +331,7 @@ def cmd_report(args) -> int:
     failed = 0
     for dump in args.targets:
         try:
-            res = reprocess_dump(dump, overrides)
+            res = load_measured(dump, overrides)
             for path in write_slope_error_maps(res, out, vmax_mrad=args.vmax, arrow_step_px=args.arrow_step,
                                                cmap=args.cmap, separate=args.separate):
                 print(path, flush=True)

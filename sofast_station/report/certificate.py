@@ -1,0 +1,129 @@
+"""A one-page PDF certificate per facet (``sofast-station report certificate SERIAL``).
+
+Station, date, recipe, serial; every reported figure with ``± U`` where the record has ``name_U``
+(expanded uncertainty, k = 2), its limits and the verdict; the slope-error map against the design and
+the height-error map against the fitted parabola (when the facet has a data dump); the calibration
+record in force; the SHA-256 of the dump. Drawn with Matplotlib's PDF backend.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+from ._common import ReportError, savefig_atomic
+from .maps import MODEL_LABELS, detail_maps, draw_detail, value_with_u
+
+
+def sha256_of(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _limit_text(spec) -> str:
+    if spec.lsl is not None and spec.usl is not None:
+        return f"{spec.lsl:.6g} to {spec.usl:.6g}"
+    if spec.usl is not None:
+        return f"at most {spec.usl:.6g}"
+    return "-"
+
+
+def figure_rows(record: dict, specs) -> list[list[str]]:
+    """Rows (figure, value ± U, unit, limits, within) of the certificate's table."""
+    from .spc import lookup
+
+    rows = []
+    for s in specs:
+        v = lookup(record, s.key)
+        if s.key.startswith("slope_rms_mrad."):
+            model = s.key.split(".")[1]
+            u = ((record.get("slope_rms_mrad_U") or {}).get(model) or {}).get("magnitude")
+            shown = "-" if v is None else f"{v:.3f}" + (f" ± {u:.3f}" if isinstance(u, (int, float)) else "")
+        else:
+            digits = 6 if "curvature" in s.key else 3 if "mrad" in s.key else 4
+            shown = value_with_u(record, s.key, digits)
+        ok = "-" if v is None else ("yes" if (s.lsl is None or v >= s.lsl) and (s.usl is None or v <= s.usl) else "NO")
+        rows.append([s.label, shown, s.unit, _limit_text(s), ok])
+    return rows
+
+
+def write_certificate(record: dict, out_path: Path, *, specs, measured=None, dump_path: Path | None = None,
+                      dpi: int = 150) -> Path:
+    """Write the certificate PDF.
+
+    Parameters
+    ----------
+    record : dict
+        The facet's journaled result record.
+    out_path : Path
+        The ``.pdf`` to write.
+    specs : list of FigureSpec
+        Figures and limits of the facet's recipe (:func:`sofast_station.report.spc.figure_specs`).
+    measured : Measured, optional
+        The reprocessed dump (for the maps); without it the page says why there are no maps.
+    dump_path : Path, optional
+        The dump file, whose SHA-256 is printed.
+    """
+    from matplotlib.figure import Figure
+
+    if record.get("verdict") in (None, "fault"):
+        raise ReportError(f"facet {record.get('serial')} has no figures (its cycle ended in a fault: "
+                          f"{'; '.join(record.get('reasons', []))}): no certificate")
+    fig = Figure(figsize=(8.27, 11.69))               # A4 portrait
+    fig.text(0.06, 0.965, "Facet inspection certificate", fontsize=17, weight="bold")
+    verdict = str(record.get("verdict", "?")).upper()
+    fig.text(0.94, 0.965, verdict, fontsize=17, weight="bold", ha="right",
+             color={"PASS": "tab:green", "FAIL": "tab:red"}.get(verdict, "tab:orange"))
+    cal = record.get("calibration") or {}
+    head = [("Serial", record.get("serial", "?")), ("Facet type", record.get("facet", "?")),
+            ("Recipe", record.get("recipe") or "default"), ("Station", record.get("station", "?")),
+            ("Measured", str(record.get("time", "?"))[:19].replace("T", " ") + " (local time)"),
+            ("Software", f"sofast-station {record.get('software_version', '?')}, configuration "
+                         f"{record.get('config_hash', '?')}"),
+            ("Calibration in force", ", ".join(f"{k} {v}" for k, v in cal.items() if k != "warnings") or "-")]
+    if cal.get("warnings"):
+        head.append(("Calibration warnings", "; ".join(cal["warnings"])))
+    y = 0.935
+    for k, v in head:
+        fig.text(0.06, y, k, fontsize=9, weight="bold")
+        fig.text(0.30, y, str(v), fontsize=9, wrap=True)
+        y -= 0.018
+    rows = figure_rows(record, specs)
+    ax_t = fig.add_axes((0.06, y - 0.03 - 0.024 * len(rows), 0.88, 0.024 * (len(rows) + 1)))
+    ax_t.axis("off")
+    table = ax_t.table(cellText=rows, colLabels=["figure", "value" + (" ± U (k = 2)" if record.get("coverage_factor")
+                                                                       else ""), "unit", "limits", "within"],
+                       loc="upper center", cellLoc="left", colWidths=(0.30, 0.26, 0.10, 0.24, 0.10))
+    table.auto_set_font_size(False)
+    table.set_fontsize(8.5)
+    y = y - 0.05 - 0.024 * len(rows)
+    reasons = record.get("reasons") or []
+    fig.text(0.06, y, "Verdict: " + verdict + (": " + "; ".join(reasons) if reasons else
+                                               ": every figure within its limits"), fontsize=9, wrap=True)
+    y -= 0.02
+    if measured is not None and getattr(measured, "analysis", None) is not None:
+        a = measured.analysis
+        f_design = getattr(getattr(measured, "design", None), "focal_length_m", None)
+        d_design = detail_maps(a.points_facet_m[0], a.points_facet_m[1], a.slopes, a.residuals_mrad, "design",
+                               f_design, cells_across=120)
+        d_parab = detail_maps(a.points_facet_m[0], a.points_facet_m[1], a.slopes, a.residuals_mrad, "parabola",
+                              f_design, cells_across=120)
+        side = 0.37                                      # square maps on the A4 page
+        ax1 = fig.add_axes((0.07, 0.16, side, side * 8.27 / 11.69))
+        ax2 = fig.add_axes((0.55, 0.16, side, side * 8.27 / 11.69))
+        draw_detail(fig, [ax1], d_design, which=("magnitude",))
+        draw_detail(fig, [ax2], d_parab, which=("height",))
+        ax1.set_title(f"slope error {MODEL_LABELS['design'].replace('compared with the ', 'vs ')}", fontsize=9)
+    else:
+        fig.text(0.06, 0.5, "No data dump of this facet: no maps (the station dumps every n-th facet, failed "
+                            "ones, and on request: sofast-station dump-next).", fontsize=9, wrap=True)
+    if dump_path:
+        fig.text(0.06, 0.055, f"Data dump {Path(dump_path).name}", fontsize=7, family="monospace")
+        fig.text(0.06, 0.042, f"SHA-256 {sha256_of(Path(dump_path))}", fontsize=7, family="monospace")
+    else:
+        fig.text(0.06, 0.055, "Data dump: none", fontsize=7, family="monospace")
+    fig.text(0.06, 0.029, f"Cycle {record.get('cycle_id', '-')}", fontsize=7, family="monospace")
+    return savefig_atomic(fig, Path(out_path), dpi, fmt="pdf")

@@ -1,0 +1,234 @@
+"""``sofast-station report spc | acceptance | certificate SERIAL | diff A B``: the quality engineer's reports.
+
+The ``report`` command itself is registered by :mod:`sofast_station.reanalysis.cli` (its first word
+chooses the report); :func:`add_options` adds these reports' options to it and :func:`run` runs them.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import logging
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+#: The first words of ``report`` handled here.
+REPORTS = ("spc", "acceptance", "certificate", "diff")
+
+
+def add_options(rpt) -> None:
+    """Options of the quality reports on the ``report`` parser."""
+    # --config (the station file) is the report command's own option, shared with 'report trend'
+    rpt.add_argument("--recipe", default=None, help="spc, acceptance: only facets of this recipe (default: all for "
+                     "spc; 'default' for acceptance)")
+    rpt.add_argument("--facet-type", dest="facet_type", default=None, help="spc: only this facet type (the record's 'facet', e.g. dish-5.33)")
+    rpt.add_argument("--serial", default=None, metavar="REGEX", help="spc: only serials matching this pattern")
+    rpt.add_argument("--ewma", type=float, default=None, metavar="LAMBDA",
+                     help="spc: also draw an EWMA chart with this lambda (e.g. 0.2)")
+    rpt.add_argument("--rules", default="western_electric", choices=("western_electric", "nelson", "beyond_limits"),
+                     help="spc: the run rules")
+    rpt.add_argument("--baseline-n", type=int, default=25, metavar="N",
+                     help="spc: control limits from the first N measured facets of the selection")
+    rpt.add_argument("--baseline-from", default=None, metavar="DATE",
+                     help="spc: control limits from this period instead (with --baseline-to)")
+    rpt.add_argument("--baseline-to", default=None, metavar="DATE", help="spc: end of the baseline period")
+
+
+def parse_date(text: str | None, what: str, end: bool = False):
+    """An ISO date or date-time, or ``today`` / ``yesterday`` (local midnight); None stays None. With
+    *end*, a bare date means the end of that day (the next midnight), so ``--to 2026-11-25`` includes it."""
+    from ..errors import ConfigError
+
+    if text is None:
+        return None
+    t = str(text).strip().lower()
+    today = _dt.date.today()
+    if t in ("today", "yesterday", "tomorrow"):
+        day = today + _dt.timedelta(days={"today": 0, "yesterday": -1, "tomorrow": 1}[t])
+        return (day + _dt.timedelta(days=1) if end else day).isoformat()
+    try:
+        if len(t) == 10:
+            day = _dt.date.fromisoformat(t)
+            return (day + _dt.timedelta(days=1) if end else day).isoformat()
+        _dt.datetime.fromisoformat(str(text).strip())
+        return str(text).strip()
+    except ValueError:
+        raise ConfigError(f"{what} {text!r} is not a date: give an ISO date (2026-11-25), a date and time "
+                          f"(2026-11-25T06:00), 'today' or 'yesterday'") from None
+
+
+def check_range(since, until, what: str = "--from/--to") -> None:
+    from ..archive._common import utc_key
+    from ..errors import ConfigError
+
+    if since is not None and until is not None and utc_key(since) >= utc_key(until):
+        raise ConfigError(f"{what}: the period from {since} to {until} is empty or reversed: the start must come "
+                          f"before the end")
+
+
+def _config(args):
+    from ..commands import default_config
+    from ..config import load_config
+
+    return load_config(args.config or default_config(), use_camera_record=False)
+
+
+def _records(args, config) -> tuple[list[dict], str]:
+    from ..report.trend import trend_records_from_journal, trend_records_from_results
+
+    if args.results:
+        return trend_records_from_results(args.results), f"batch results {args.results}"
+    journal = Path(args.journal) if args.journal else config.data_dir / "journal.sqlite3"
+    return trend_records_from_journal(journal), f"journal {journal}"
+
+
+def _recipe(config, name: str | None):
+    from ..errors import ConfigError
+    from ..station.recipes import recipes_from_config
+
+    recipes = recipes_from_config(config)
+    name = name or "default"
+    if name not in recipes:
+        raise ConfigError(f"no recipe {name!r} in {config.path} (known: {', '.join(sorted(recipes))})")
+    return recipes[name]
+
+
+def run(args) -> int:
+    """Run ``report spc | acceptance | certificate | diff``."""
+    kind = args.targets[0]
+    return {"spc": cmd_spc, "acceptance": cmd_acceptance, "certificate": cmd_certificate, "diff": cmd_diff}[kind](args)
+
+
+def _period(args):
+    since = parse_date(args.since, "--from")
+    until = parse_date(args.until, "--to", end=True)
+    check_range(since, until)
+    return since, until
+
+
+def cmd_spc(args) -> int:
+    from ..errors import ConfigError
+    from ..qc import spc as qspc
+    from .spc import (build_charts, draw_charts, draw_yield, figure_specs, select_records, write_summary_workbook,
+                      yield_table)
+
+    if len(args.targets) > 1:
+        raise ConfigError("'report spc' takes no dumps: choose facets with --recipe, --facet, --serial, --from/--to")
+    config = _config(args)
+    since, until = _period(args)
+    records, source = _records(args, config)
+    chosen = select_records(records, recipe=args.recipe, facet=args.facet_type, serial=args.serial, since=since,
+                            until=until)
+    recipe = _recipe(config, args.recipe)
+    facets = {r.get("facet") for r in chosen if r.get("facet")}
+    if args.recipe is None and len(facets) > 1:
+        raise ConfigError(f"the period holds {len(facets)} facet types ({', '.join(sorted(facets))}): choose one with "
+                          "--recipe or --facet-type, so one chart does not mix them")
+    specs = figure_specs(recipe.design.focal_length_m, recipe.limits)
+    baselines = None
+    if args.baseline_from or args.baseline_to:
+        b0 = parse_date(args.baseline_from, "--baseline-from")
+        b1 = parse_date(args.baseline_to, "--baseline-to", end=True)
+        check_range(b0, b1, "--baseline-from/--baseline-to")
+        base_records = [r for r in select_records(records, recipe=args.recipe, facet=args.facet_type, serial=args.serial,
+                                                  since=b0, until=b1) if r.get("verdict") in ("pass", "fail")]
+        baselines = {}
+        for s in specs:
+            from .spc import lookup
+            try:
+                baselines[s.key] = qspc.baseline([v for v in (lookup(r, s.key) for r in base_records) if v is not None])
+            except ValueError as exc:
+                raise ConfigError(f"the baseline period {b0} to {b1} gives no limits for {s.label}: {exc}") from None
+    charts = build_charts(chosen, specs, baseline_n=args.baseline_n, baselines=baselines, rule_set=args.rules,
+                          ewma_lambda=args.ewma)
+    name = f"spc-{recipe.name}-{since or 'start'}-{until or 'now'}".replace(":", "")
+    out = Path(args.out or ".")
+    title = (f"{source}: recipe {recipe.name}, {since or 'start'} to {until or 'now'}; limits from "
+             + (f"the baseline {args.baseline_from} to {args.baseline_to}" if baselines
+                else f"the first {args.baseline_n} facets") + f"; rules {args.rules}")
+    for p in (draw_charts(charts, out / f"{name}.png", title, ewma_lambda=args.ewma),
+              draw_yield(yield_table(chosen), out / f"{name}-yield.png", title),
+              write_summary_workbook(charts, yield_table(chosen), out / f"{name}.xlsx", title, args.rules)):
+        print(p, flush=True)
+    for c in charts:
+        n_bad = len({int(k) for v in c.violations.values() for k in v})
+        cap = c.capability
+        log.info("%s: %d facets, %d violating a rule, Cp %s, Cpk %s", c.spec.label, c.values.size, n_bad,
+                 "-" if cap.get("cp") is None else f"{cap['cp']:.2f}", "-" if cap.get("cpk") is None else f"{cap['cpk']:.2f}")
+    return 0
+
+
+def cmd_acceptance(args) -> int:
+    from ..errors import ConfigError
+    from .acceptance import contract_from_config, draw, evaluate, text
+    from .spc import select_records
+
+    if len(args.targets) > 1:
+        raise ConfigError("'report acceptance' takes no dumps: choose facets with --recipe and --from/--to")
+    config = _config(args)
+    since, until = _period(args)
+    recipe = args.recipe or "default"
+    contract = contract_from_config(config, recipe)
+    records, source = _records(args, config)
+    chosen = select_records(records, recipe=recipe, since=since, until=until)
+    results = evaluate(contract, chosen)
+    period = f"{since or 'start'} to {until or 'now'}"
+    print(text(contract, results, period), flush=True)
+    out = Path(args.out or ".")
+    print(draw(contract, results, out / f"acceptance-{recipe}-{since or 'start'}-{until or 'now'}.png".replace(":", ""),
+               f"{source}: recipe {recipe}, {period}"), flush=True)
+    return 0 if all(r["verdict"] == "pass" for r in results) else 1
+
+
+def cmd_certificate(args) -> int:
+    from ..archive.journal import Journal
+    from ..errors import ConfigError, StationError
+    from .certificate import write_certificate
+    from .sources import load_measured
+    from .spc import figure_specs
+
+    if len(args.targets) != 2:
+        raise ConfigError("'report certificate' needs one serial: report certificate SERIAL")
+    serial = args.targets[1]
+    config = _config(args)
+    path = Path(args.journal) if args.journal else config.data_dir / "journal.sqlite3"
+    if not path.is_file():
+        raise ConfigError(f"no journal at {path}: this station has not measured anything yet")
+    with Journal(path) as j:
+        rows = j.rows(serial=serial)
+    if not rows:
+        raise ConfigError(f"serial {serial!r} is not in the journal {path}")
+    row = rows[-1]                         # the latest test of the serial
+    rec = row.record
+    recipe = _recipe(config, rec.get("recipe") or "default")
+    measured = None
+    dump = Path(row.dump_path) if row.dump_path else None
+    if dump is not None and dump.exists():
+        try:
+            measured = load_measured(str(dump))
+        except StationError as exc:
+            log.warning("the dump %s could not be reprocessed for the maps: %s", dump, exc)
+    elif dump is not None:
+        log.warning("the dump %s named in the journal is missing: certificate without maps", dump)
+        dump = None
+    out = Path(args.out) if args.out and args.out.lower().endswith(".pdf") else \
+        Path(args.out or ".") / f"certificate-{serial}.pdf"
+    print(write_certificate(rec, out, specs=figure_specs(recipe.design.focal_length_m, recipe.limits),
+                            measured=measured, dump_path=dump), flush=True)
+    if len(rows) > 1:
+        log.info("serial %s was tested %d times: the certificate shows the latest (%s)", serial, len(rows), row.time)
+    return 0
+
+
+def cmd_diff(args) -> int:
+    from ..errors import ConfigError
+    from .diff import write_diff
+    from .sources import load_measured
+
+    if len(args.targets) != 3:
+        raise ConfigError("'report diff' needs two measurements: report diff A B (dumps, or opencsp:DIR)")
+    a, b = (load_measured(t) for t in args.targets[1:])
+    out = Path(args.out) if args.out and args.out.lower().endswith(".png") else \
+        Path(args.out or ".") / f"diff-{Path(a.path).stem}-{Path(b.path).stem}.png"
+    print(write_diff(a, b, out), flush=True)
+    return 0

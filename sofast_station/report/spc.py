@@ -1,0 +1,282 @@
+"""Control charts of a period: one individuals and moving-range chart per figure, yield per day and shift,
+and a summary workbook (``sofast-station report spc``).
+
+The statistics are :mod:`sofast_station.qc.spc`; this module picks the figures out of result records,
+takes the specification limits from the recipe, draws, and writes the workbook.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..archive._common import parse_time
+from ..qc import spc
+from ._common import LONG_FOCAL_LENGTH_M, ReportError, savefig_atomic
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class FigureSpec:
+    """One charted figure: where it is in a record, its unit, design value and specification limits."""
+
+    key: str                      # dotted path in the record
+    label: str
+    unit: str
+    design: float | None = None
+    lsl: float | None = None
+    usl: float | None = None
+
+
+def lookup(record: dict, dotted: str):
+    v = record
+    for part in dotted.split("."):
+        if not isinstance(v, dict):
+            return None
+        v = v.get(part)
+    return v if isinstance(v, (int, float)) and not isinstance(v, bool) else None
+
+
+def figure_specs(design_focal_length_m: float, limits) -> list[FigureSpec]:
+    """The charted figures of a recipe: f_x, f_y (or kappa_x, kappa_y beyond 20 m), twist, slope RMS vs design
+    and vs the fitted parabola, with the recipe's limits as specification limits."""
+    f = float(design_focal_length_m)
+    out = []
+    if f > LONG_FOCAL_LENGTH_M:
+        k, tol = 1.0 / f, limits.curvature_tolerance_per_m
+        for axis in ("x", "y"):
+            out.append(FigureSpec(f"curvature_{axis}_per_m", f"focal power kappa_{axis}", "1/m", k, k - tol, k + tol))
+    else:
+        tol = limits.focal_length_tolerance
+        for axis in ("x", "y"):
+            out.append(FigureSpec(f"focal_length_{axis}_m", f"focal length f_{axis}", "m", f, f * (1 - tol),
+                                  f * (1 + tol)))
+    t = limits.max_twist_mrad_per_m
+    out.append(FigureSpec("twist_mrad_per_m", "twist", "mrad/m", 0.0, -t, t))
+    for model in ("design", "parabola"):
+        out.append(FigureSpec(f"slope_rms_mrad.{model}.magnitude", f"slope error RMS vs {model}", "mrad", None, None,
+                              limits.max_slope_rms_mrad.get(model)))
+    return out
+
+
+def select_records(records, *, recipe: str | None = None, facet: str | None = None, serial: str | None = None,
+                   since=None, until=None) -> list[dict]:
+    """Records matching the filters (recipe name, facet type, serial regular expression, period), in time
+    order."""
+    try:
+        pattern = re.compile(serial) if serial else None
+    except re.error as exc:
+        raise ReportError(f"--serial {serial!r} is not a valid regular expression: {exc}") from None
+    lo = parse_time(since) if since is not None else None
+    hi = parse_time(until) if until is not None else None
+    out = []
+    for r in records:
+        if recipe is not None and (r.get("recipe") or "default") != recipe:
+            continue
+        if facet is not None and r.get("facet") != facet:
+            continue
+        if pattern is not None and not pattern.search(str(r.get("serial", ""))):
+            continue
+        try:
+            t = parse_time(r["time"])
+        except (KeyError, TypeError, ValueError):
+            continue
+        if (lo is not None and t < lo) or (hi is not None and t >= hi):
+            continue
+        out.append(r)
+    out.sort(key=lambda r: parse_time(r["time"]))
+    return out
+
+
+@dataclass
+class Chart:
+    """One figure's chart data and statistics."""
+
+    spec: FigureSpec
+    times: list
+    values: np.ndarray
+    serials: list
+    baseline: spc.Baseline | None
+    violations: dict = field(default_factory=dict)
+    ewma_out: np.ndarray | None = None
+    capability: dict = field(default_factory=dict)
+
+
+def build_charts(records: list[dict], specs: list[FigureSpec], *, baseline_n: int = 25, baselines: dict | None = None,
+                 rule_set: str = "western_electric", ewma_lambda: float | None = None) -> list[Chart]:
+    """Charts of the measured (pass or fail) records: limits from *baselines* (figure key -> Baseline) or
+    from the first *baseline_n* facets."""
+    measured = [r for r in records if r.get("verdict") in ("pass", "fail")]
+    if not measured:
+        raise ReportError(f"no measured facet (pass or fail) among the {len(records)} selected record(s)")
+    charts = []
+    for s in specs:
+        vals = np.array([np.nan if lookup(r, s.key) is None else lookup(r, s.key) for r in measured], float)
+        base = (baselines or {}).get(s.key)
+        if base is None:
+            head = vals[:baseline_n]
+            try:
+                base = spc.baseline(head)
+            except ValueError:
+                base = None
+        c = Chart(s, [parse_time(r["time"]) for r in measured], vals, [r.get("serial") for r in measured], base)
+        if base is not None:
+            c.violations = spc.violations(vals, base, rule_set)
+            if ewma_lambda:
+                c.ewma_out = spc.ewma_violations(vals, base, ewma_lambda)
+        if s.lsl is not None or s.usl is not None:
+            c.capability = spc.capability(vals, s.lsl, s.usl, base.sigma if base else None)
+        charts.append(c)
+    return charts
+
+
+def yield_table(records: list[dict], shift_starts_h=(6.0, 14.0, 22.0)) -> dict:
+    """Counts of pass, fail, invalid and fault per day and per shift, and the yield pass / all."""
+    from ..archive.workbook import WorkbookSettings, period_key
+
+    day_s = WorkbookSettings(period="day")
+    shift_s = WorkbookSettings(period="shift", shift_starts_h=tuple(shift_starts_h))
+    out = {"day": {}, "shift": {}}
+    for r in records:
+        verdict = r.get("verdict") or "fault"
+        for kind, settings in (("day", day_s), ("shift", shift_s)):
+            key = period_key(r["time"], settings)
+            row = out[kind].setdefault(key, {"pass": 0, "fail": 0, "invalid": 0, "fault": 0})
+            row[verdict if verdict in row else "fault"] += 1
+    for kind in out:
+        for row in out[kind].values():
+            n = sum(row.values())
+            row["total"] = n
+            row["yield"] = row["pass"] / n if n else None
+    return out
+
+
+def draw_charts(charts: list[Chart], path: Path, title: str, *, ewma_lambda: float | None = None,
+                dpi: int = 100) -> Path:
+    """One row per figure: individuals chart (values, design, spec limits, centre and control limits,
+    rule violations marked) and its moving-range chart; an EWMA line when *ewma_lambda* is given."""
+    from matplotlib.figure import Figure
+
+    n = len(charts)
+    fig = Figure(figsize=(15.0, 2.9 * n + 0.8), layout="constrained")
+    axes = fig.subplots(n, 2, width_ratios=(3.2, 1.0), squeeze=False)
+    for (ax, ax_mr), c in zip(axes, charts):
+        s, x = c.spec, c.values
+        i = np.arange(1, x.size + 1)
+        ax.plot(i, x, "-o", color="0.25", ms=3, lw=0.7, label="facet")
+        if s.design is not None:
+            ax.axhline(s.design, color="tab:green", lw=1.0, ls="-", label=f"design {s.design:.6g}")
+        for lim, name in ((s.lsl, "LSL"), (s.usl, "USL")):
+            if lim is not None:
+                ax.axhline(lim, color="tab:red", lw=1.2, ls="-", label=f"{name} {lim:.6g}")
+        if c.baseline is not None:
+            b = c.baseline
+            ax.axhline(b.centre, color="tab:blue", lw=0.9, ls="--", label=f"centre {b.centre:.6g}")
+            for lim in (b.lcl, b.ucl):
+                ax.axhline(lim, color="tab:blue", lw=0.9, ls=":")
+            ax.axhspan(b.lcl, b.ucl, color="tab:blue", alpha=0.05, label="control limits (baseline, 3 sigma)")
+            marked = sorted({int(k) for v in c.violations.values() for k in v})
+            if marked:
+                ax.plot(i[marked], x[marked], "o", mfc="none", mec="red", ms=9, mew=1.5,
+                        label="rule violated: " + ", ".join(r for r, v in c.violations.items() if len(v)))
+            if ewma_lambda:
+                z = spc.ewma(x, b.centre, ewma_lambda)
+                lo, hi = spc.ewma_limits(x.size, b, ewma_lambda)
+                ax.plot(i, z, color="tab:orange", lw=1.2, label=f"EWMA (lambda {ewma_lambda:g})")
+                ax.plot(i, lo, color="tab:orange", lw=0.6, ls=":")
+                ax.plot(i, hi, color="tab:orange", lw=0.6, ls=":")
+        cap = c.capability
+        extra = ""
+        if cap.get("cpk") is not None:
+            extra = (f"   Cp {cap['cp']:.2f}" if cap.get("cp") is not None else "") + f"   Cpk {cap['cpk']:.2f}"
+        ax.set_title(f"{s.label} ({s.unit}): {np.count_nonzero(np.isfinite(x))} facets{extra}", fontsize=10)
+        ax.set_ylabel(s.unit)
+        ax.legend(fontsize=7, loc="upper left", ncol=3)
+        mr = spc.moving_range(x)
+        ax_mr.plot(i, mr, "-o", color="0.25", ms=2, lw=0.6)
+        if c.baseline is not None:
+            ax_mr.axhline(c.baseline.mr_bar, color="tab:blue", ls="--", lw=0.9)
+            ax_mr.axhline(c.baseline.mr_ucl, color="tab:blue", ls=":", lw=0.9)
+        ax_mr.set_title("moving range", fontsize=9)
+    axes[-1][0].set_xlabel("facet (in time order)")
+    axes[-1][1].set_xlabel("facet")
+    fig.suptitle(title, fontsize=11)
+    return savefig_atomic(fig, Path(path), dpi)
+
+
+def draw_yield(table: dict, path: Path, title: str, dpi: int = 100) -> Path:
+    """Yield per day and per shift as bars, with the facet counts."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(12.0, 6.5), layout="constrained")
+    for ax, kind in zip(fig.subplots(2, 1), ("day", "shift")):
+        keys = sorted(table[kind])
+        y = [100 * (table[kind][k]["yield"] or 0) for k in keys]
+        bars = ax.bar(range(len(keys)), y, color="tab:green")
+        for b, k in zip(bars, keys):
+            ax.text(b.get_x() + b.get_width() / 2, b.get_height() + 1, f"{table[kind][k]['total']}", ha="center",
+                    fontsize=7)
+        ax.set_xticks(range(len(keys)), keys, rotation=30, ha="right", fontsize=8)
+        ax.set_ylim(0, 110)
+        ax.set_ylabel("yield (% pass)")
+        ax.set_title(f"yield per {kind} (number above a bar: facets)", fontsize=10)
+    fig.suptitle(title, fontsize=11)
+    return savefig_atomic(fig, Path(path), dpi)
+
+
+def write_summary_workbook(charts: list[Chart], table: dict, path: Path, title: str, rule_set: str) -> Path:
+    """A workbook with a ``summary`` sheet (one row per figure: limits, baseline, Cp/Cpk, violations), a
+    ``yield`` sheet and a ``facets`` sheet (time as an Excel date, each figure a number)."""
+    from openpyxl import Workbook
+    from openpyxl.styles import Font
+
+    from ..archive.workbook import save_atomic
+
+    wb = Workbook()
+    ws = wb.active
+    ws.title = "summary"
+    ws.append([title])
+    ws["A1"].font = Font(bold=True)
+    head = ["figure", "unit", "n", "mean", "design", "LSL", "USL", "centre (baseline)", "sigma (baseline)",
+            "LCL", "UCL", "baseline n", "Cp", "Cpk", "Pp", "Ppk", "points violating a rule", "rules violated"]
+    ws.append(head)
+    for cell in ws[2]:
+        cell.font = Font(bold=True)
+    for c in charts:
+        b, cap = c.baseline, c.capability
+        marked = sorted({int(k) for v in c.violations.values() for k in v})
+        ws.append([c.spec.label, c.spec.unit, int(np.count_nonzero(np.isfinite(c.values))),
+                   float(np.nanmean(c.values)) if np.any(np.isfinite(c.values)) else None, c.spec.design, c.spec.lsl,
+                   c.spec.usl, b.centre if b else None, b.sigma if b else None, b.lcl if b else None,
+                   b.ucl if b else None, b.n if b else None, cap.get("cp"), cap.get("cpk"), cap.get("pp"),
+                   cap.get("ppk"), len(marked), ", ".join(f"{r} ({len(v)})" for r, v in c.violations.items() if len(v))])
+    ws.append([])
+    ws.append([f"rules: {rule_set}: " + "; ".join(f"{r} {spc.RULE_TEXT[r]}" for r in spc.rules_of(rule_set))])
+    ws.column_dimensions["A"].width = 28
+    ys = wb.create_sheet("yield")
+    ys.append(["period", "kind", "pass", "fail", "invalid", "fault", "total", "yield"])
+    for cell in ys[1]:
+        cell.font = Font(bold=True)
+    for kind in ("day", "shift"):
+        for k in sorted(table[kind]):
+            row = table[kind][k]
+            ys.append([k, kind, row["pass"], row["fail"], row["invalid"], row["fault"], row["total"], row["yield"]])
+            ys.cell(row=ys.max_row, column=8).number_format = "0.0%"
+    fs = wb.create_sheet("facets")
+    fs.append(["time", "serial"] + [f"{c.spec.label} ({c.spec.unit})" for c in charts])
+    for cell in fs[1]:
+        cell.font = Font(bold=True)
+    if charts:
+        for j, t in enumerate(charts[0].times):
+            fs.append([t.replace(tzinfo=None), charts[0].serials[j]]
+                      + [None if not np.isfinite(c.values[j]) else float(c.values[j]) for c in charts])
+            fs.cell(row=fs.max_row, column=1).number_format = "yyyy-mm-dd hh:mm:ss"
+    fs.column_dimensions["A"].width = 20
+    path = Path(path)
+    save_atomic(wb, path)
+    return path

@@ -1,0 +1,119 @@
+"""Issue 16: control charts, contract acceptance, certificates and diffs through the command line."""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+from matplotlib.image import imread
+
+from sofast_station.archive.journal import Journal
+from sofast_station.reanalysis.cli import main
+
+SAMPLE = json.loads((Path(__file__).parents[1] / "archive" / "sample_record.json").read_text())
+
+CONTRACT = """
+[acceptance.default]
+population = 14500
+confidence = 0.95
+relative_error = 0.05
+
+[acceptance.default.figures."slope_rms_mrad.design.magnitude"]
+name = "slope deviation SD_2D,RMS"
+contract = 1.3
+tolerance = 0.2
+expected_std = 0.3
+sense = "at_most"
+
+[acceptance.default.figures."focal_length_x_m"]
+contract = 5.33
+tolerance = 0.11
+expected_std = 0.02
+relative_error = 0.002
+"""
+
+
+def synthetic_journal(path: Path, n: int, *, step_at: int | None = None, seed: int = 1) -> list[dict]:
+    """*n* in-control facets of the default recipe, one every 10 minutes from 2026-11-20 06:00 (+00:00),
+    f_x ~ N(5.42, 0.01); with *step_at* f_x steps up by one standard deviation from that facet on."""
+    rng = np.random.default_rng(seed)
+    t0 = dt.datetime(2026, 11, 20, 6, 0, tzinfo=dt.timezone.utc)
+    out = []
+    with Journal(path) as j:
+        for i in range(n):
+            r = json.loads(json.dumps(SAMPLE))
+            r.pop("truth")
+            r["serial"] = f"SYN-{i + 1:04d}"
+            r["recipe"] = "default"
+            r["time"] = (t0 + dt.timedelta(minutes=10 * i)).isoformat(timespec="milliseconds")
+            r["focal_length_x_m"] = 5.42 + 0.01 * rng.standard_normal() + (0.01 if step_at and i + 1 >= step_at else 0)
+            r["focal_length_y_m"] = 5.35 + 0.01 * rng.standard_normal()
+            r["twist_mrad_per_m"] = 0.1 + 0.05 * rng.standard_normal()
+            r["slope_rms_mrad"]["design"]["magnitude"] = float(rng.weibull(2.0) * 1.2)
+            r["slope_rms_mrad"]["parabola"]["magnitude"] = 0.7 + 0.03 * rng.standard_normal()
+            r["verdict"] = "pass"
+            j.append(f"c{i:05d}", r)
+            out.append(r)
+    return out
+
+
+@pytest.fixture
+def station(tmp_path, small_station_toml):
+    cfg = small_station_toml
+    cfg.write_text(cfg.read_text() + CONTRACT)
+    return cfg
+
+
+def test_report_spc_draws_charts_and_writes_the_summary_workbook(station, tmp_path, capsys):
+    from openpyxl import load_workbook
+
+    journal = tmp_path / "j.sqlite3"
+    synthetic_journal(journal, 120, step_at=80)
+    assert main(["report", "spc", "--config", str(station), "--journal", str(journal), "--from", "2026-11-20",
+                 "--to", "2026-11-20", "--ewma", "0.2", "--out", str(tmp_path / "out")]) == 0
+    png, yield_png, book = capsys.readouterr().out.split()
+    assert imread(png).shape[0] > 1000 and imread(yield_png).shape[1] > 800
+    wb = load_workbook(book)
+    rows = list(wb["summary"].iter_rows(min_row=3, values_only=True))
+    fx = next(r for r in rows if r and r[0] == "focal length f_x")
+    # the step at facet 80 is flagged; the capability numbers are numbers
+    assert fx[16] > 0 and isinstance(fx[13], float)
+    # --to 2026-11-20... includes the whole day: 108 facets from 06:00 to 23:50
+    assert fx[2] == 108
+    facets = wb["facets"]
+    assert isinstance(facets["A2"].value, dt.datetime) and isinstance(facets["C2"].value, float)
+    assert wb["yield"]["H2"].value == 1.0
+
+
+def test_report_spc_refuses_a_reversed_period_and_a_bad_date(station, tmp_path, caplog):
+    journal = tmp_path / "j.sqlite3"
+    synthetic_journal(journal, 5)
+    assert main(["report", "spc", "--config", str(station), "--journal", str(journal), "--from", "2026-11-21",
+                 "--to", "2026-11-20"]) == 2
+    assert "reversed" in caplog.text
+    assert main(["report", "spc", "--config", str(station), "--journal", str(journal), "--from", "last week"]) == 2
+    assert "'today' or 'yesterday'" in caplog.text
+
+
+def test_report_acceptance_counts_what_is_missing_then_passes(station, tmp_path, capsys):
+    journal = tmp_path / "j.sqlite3"
+    synthetic_journal(journal, 40)
+    assert main(["report", "acceptance", "--config", str(station), "--journal", str(journal),
+                 "--out", str(tmp_path)]) == 1
+    out = capsys.readouterr().out
+    # the guideline asks for 82 facets for SD_2D,RMS at N_pop 14,500, mu_e 1.3, sigma_e 0.3, e* 5 %, 95 %
+    assert "sample size (guideline Eq. 7, mu_e 1.3, sigma_e 0.3, e* 5 %): 82; measured 40; MISSING 42" in out
+    assert "UNDECIDED" in out
+    journal2 = tmp_path / "j2.sqlite3"
+    synthetic_journal(journal2, 120, seed=2)
+    assert main(["report", "acceptance", "--config", str(station), "--journal", str(journal2),
+                 "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "overall: PASS" in out
+    png = out.strip().splitlines()[-1]
+    assert imread(png).shape[1] > 1000
