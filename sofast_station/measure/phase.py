@@ -6,6 +6,7 @@ I_0 - I_2 = 2b cos(phi), I_1 - I_3 = 2b sin(phi) and I_0 + I_2 - I_1 - I_3 = 0.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -61,20 +62,247 @@ def phase_and_modulation(frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, np
     return phase, modulation, consistency
 
 
-def intensity_noise_dn(consistency: np.ndarray) -> float:
-    """Robust estimate of the per-frame intensity noise (DN) from consistency residuals.
+#: Residuals beyond this many standard deviations are trimmed from the noise variance (iteratively).
+TRIM_SIGMAS = 4.5
+#: Largest number of residuals the noise and harmonic estimates use (a fixed stride beyond it).
+MAX_NOISE_SAMPLES = 200_000
 
-    The residual I_0 + I_2 - I_1 - I_3 of four independent frames with noise sigma has standard
-    deviation 2 sigma; the median absolute deviation makes the estimate immune to the few pixels a
-    half-drawn frame spoils. Never below 8-bit quantisation noise.
+
+def _stride(r: np.ndarray) -> np.ndarray:
+    """A fixed stride of at most :data:`MAX_NOISE_SAMPLES` elements: deterministic and fast."""
+    return r[:: max(1, -(-r.size // MAX_NOISE_SAMPLES))]
+
+
+def trimmed_std(r: np.ndarray, trim_sigmas: float = TRIM_SIGMAS, rounds: int = 50) -> float:
+    """Standard deviation of *r* with outliers trimmed, consistent for Gaussian data.
+
+    Unlike the median absolute deviation, this keeps its meaning on integer-valued residuals (whose
+    median absolute deviation can only take a few values): the variance of the values within
+    ``trim_sigmas`` standard deviations, divided by that truncated Gaussian's variance fraction, iterated
+    from the 68th percentile of |r| until the kept set stops changing.
     """
-    r = np.asarray(consistency, dtype=np.float64).ravel()
-    if r.size > 400_000:     # a fixed stride keeps the estimate deterministic and fast
-        r = r[:: r.size // 200_000]
+    r = np.asarray(r, dtype=np.float64).ravel()
     if r.size == 0:
-        return QUANTISATION_NOISE_DN
-    mad = np.median(np.abs(r - np.median(r)))
-    return float(max(1.4826 * mad / 2.0, QUANTISATION_NOISE_DN))
+        return 0.0
+    a = np.abs(r - np.median(r))
+    s = max(float(np.quantile(a, 0.6827)), 0.5)
+    c = float(trim_sigmas)
+    # Variance of a standard Gaussian truncated to |z| <= c, relative to 1.
+    frac = math.erf(c / math.sqrt(2.0))
+    shrink = 1.0 - 2.0 * c * np.exp(-0.5 * c * c) / np.sqrt(2.0 * np.pi) / frac
+    keep = None
+    for _ in range(rounds):
+        new_keep = a <= c * s
+        if keep is not None and np.array_equal(new_keep, keep):
+            break
+        keep = new_keep
+        kept = r[keep]
+        if kept.size < 2:
+            break
+        s = float(np.sqrt(np.mean((kept - kept.mean()) ** 2) / shrink))
+        if s == 0.0:
+            break
+    return s
+
+
+def intensity_noise_dn(consistency: np.ndarray, quantised: bool = True) -> float:
+    """Per-frame intensity noise (DN) from consistency residuals I_0 + I_2 - I_1 - I_3 alone.
+
+    The residual of four independent frames with noise sigma has standard deviation
+    2 sqrt(sigma^2 + q^2), q^2 = 1/12 DN^2 being the variance of rounding to whole counts (exact on average
+    over pixels whose true values have uniformly spread fractions). The trimmed standard deviation keeps
+    the estimate immune to the few pixels a half-drawn frame spoils. With *quantised* the rounding
+    variance is removed, so the result estimates the camera's own noise; 0 when rounding explains all.
+    Residuals carrying a display nonlinearity must be cleaned first (:func:`frame_noise`).
+    """
+    r = _stride(np.asarray(consistency, dtype=np.float64).ravel())
+    if r.size == 0:
+        return 0.0
+    var = (trimmed_std(r) / 2.0) ** 2 - (QUANTISATION_NOISE_DN ** 2 if quantised else 0.0)
+    return float(np.sqrt(max(var, 0.0)))
+
+
+def _power_law_table(exponents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Second-harmonic ratio and largest four-step phase error (rad) of full-depth fringes seen through a
+    power-law response I = (1 + cos theta)^g, for each exponent g (the model behind the phase-error
+    estimate of :func:`frame_noise`)."""
+    phi = np.linspace(0.0, TWO_PI, 720, endpoint=False)
+    ratios, errors = [], []
+    for g in exponents:
+        i0, i1, i2, i3 = ((1.0 + np.cos(phi - k * np.pi / 2)) ** g for k in range(4))
+        s, c = i1 - i3, i0 - i2
+        b = 0.5 * np.hypot(s, c)
+        x = b * np.cos(2.0 * phi)
+        ratios.append(float(x @ (i0 + i2 - i1 - i3)) / float(x @ x) / 4.0)
+        errors.append(float(np.abs(np.angle(np.exp(1j * (np.arctan2(s, c) - phi)))).max()))
+    return np.array(ratios), np.array(errors)
+
+
+_EXPONENTS = np.linspace(0.25, 4.0, 301)
+_RATIOS, _PHASE_ERRORS = _power_law_table(_EXPONENTS)
+
+
+def phase_error_from_harmonic(ratio: float) -> float:
+    """Largest four-step phase error (rad) that a power-law response with this second-harmonic ratio
+    (second-harmonic amplitude over the fundamental's, signed) gives on full-depth fringes."""
+    ratio = float(np.clip(ratio, _RATIOS[0], _RATIOS[-1]))
+    return float(np.interp(ratio, _RATIOS, _PHASE_ERRORS))
+
+
+@dataclass(frozen=True)
+class FrameNoise:
+    """What the four-step residuals say about the capture: noise, and a display response left nonlinear.
+
+    A display whose response is not linear adds harmonics to every fringe. In I_0 + I_2 - I_1 - I_3 the
+    fundamental cancels but the second harmonic c_2 cos(2 (phi - d_k) + psi) adds up to
+    4 c_2 cos(2 phi + psi): a residual that follows the phase, which noise does not. It is fitted per set
+    as r = alpha + b (beta cos 2 phi + gamma sin 2 phi) [+ delta w] (alpha, delta per set: room light or
+    exposure changing between frames, w the pixel's white - dark; beta, gamma shared by the sets) and
+    removed before the noise is estimated (with the sixth harmonic, which survives the residual too).
+
+    Attributes
+    ----------
+    noise_dn : float
+        Per-frame camera noise, DN, rounding to whole counts removed (see :func:`intensity_noise_dn`).
+    frame_noise_dn : float
+        Per-frame noise including rounding, sqrt(noise^2 + 1/12), DN: what phases and consistency see.
+    harmonic_ratio : float
+        The second harmonic's amplitude over the fundamental's (0 for a linear response; about 0.28 for a
+        display with gamma 2.2 left uncorrected), fitted over all sets together.
+    signed_harmonic_ratio : float
+        The same, positive when the response bends upward (gamma above 1), negative when downward.
+    phase_error_rad : float
+        Largest phase error such a response gives the four-step phase, assuming a power law over the
+        fringe's full depth (:func:`phase_error_from_harmonic`), rad.
+    residuals : list of arrays
+        Each set's consistency residual with its fitted harmonic and offset removed, DN.
+    """
+
+    noise_dn: float
+    frame_noise_dn: float
+    harmonic_ratio: float
+    signed_harmonic_ratio: float
+    phase_error_rad: float
+    residuals: list
+
+
+def frame_noise(phases, modulations, residuals, level=None) -> FrameNoise:
+    """Noise and display nonlinearity from the four-step sets of one capture.
+
+    Parameters
+    ----------
+    phases, modulations, residuals : sequences of arrays
+        Per four-step set, as :func:`phase_and_modulation` returns them (rad, DN, DN), same pixels.
+    level : array, optional
+        Each pixel's brightness (white - dark, DN), the same pixels. Room light or exposure changing
+        between frames changes each pixel in proportion to its brightness: with *level* that part is
+        fitted too. (Not the mean of the fringe frames: a half-drawn frame would leak into it.)
+
+    Returns
+    -------
+    FrameNoise
+    """
+    n_sets = len(residuals)
+    if n_sets == 0:
+        return FrameNoise(0.0, QUANTISATION_NOISE_DN, 0.0, [], 0.0, [])
+    level = None if level is None else np.asarray(level).ravel()
+    per_set = 1 if level is None else 2
+
+    def rows(k, stride):
+        """The regressors of set k on every *stride*-th pixel: its own offset (and mean level), then the
+        shared harmonics. The sixth harmonic survives the residual too (its sign alternates with the step)."""
+        # Samples for the fit in double precision; every pixel (stride 1, for the cleaned residuals) in
+        # single, which is ample for a residual compared with a few noise deviations.
+        dtype = np.float32 if stride == 1 else np.float64
+        phi = np.asarray(phases[k]).ravel()[::stride].astype(dtype, copy=False)
+        b = np.asarray(modulations[k]).ravel()[::stride].astype(dtype, copy=False)
+        own = [np.ones_like(phi)] + ([] if level is None else [level[::stride].astype(dtype, copy=False)])
+        c2, s2 = np.cos(2.0 * phi), np.sin(2.0 * phi)
+        # cos 6 phi and sin 6 phi by the triple-angle formulas (cheaper than two more trigonometric calls)
+        return own, [b * c2, b * s2, b * c2 * (4.0 * c2 * c2 - 3.0), b * s2 * (3.0 - 4.0 * s2 * s2)]
+
+    samples = []
+    for k in range(n_sets):
+        r = np.asarray(residuals[k], dtype=np.float64).ravel()
+        stride = max(1, -(-r.size * n_sets // MAX_NOISE_SAMPLES))
+        own, shared = rows(k, stride)
+        samples.append((np.stack(own), np.stack(shared), r[::stride]))
+
+    def joint_fit(good):
+        """One fit over the *good* sets: each its own offset (and level term), the harmonics shared. A set
+        whose pixels see only part of a fringe (coarse periods over a small reflected footprint) cannot
+        tell a harmonic from an offset on its own; together the sets can. Returns the shared harmonic
+        coefficients and every set's own coefficients (those of the others fitted with the harmonic fixed)."""
+        n_own = per_set * len(good)
+        columns = []
+        for j, k in enumerate(good):
+            own, shared, r = samples[k]
+            block = np.zeros((n_own + 4, r.size))
+            block[per_set * j:per_set * (j + 1)] = own
+            block[n_own:] = shared
+            columns.append(block)
+        coef = _robust_lstsq(np.concatenate(columns, axis=1), np.concatenate([samples[k][2] for k in good]),
+                             stride=False)
+        harmonic, own_coefs = coef[n_own:], []
+        for k in range(n_sets):
+            if k in good:
+                j = good.index(k)
+                own_coefs.append(coef[per_set * j:per_set * (j + 1)])
+            else:
+                own, shared, r = samples[k]
+                own_coefs.append(_robust_lstsq(own, r - _combine(harmonic, shared), stride=False))
+        return harmonic, own_coefs
+
+    # A set spoiled by a half-drawn frame keeps a large scatter about the shared fit (its error follows
+    # the fundamental, and the other sets do not share it): the worst such set is left out and the fit
+    # repeated, one set at a time (a spoiled set also pulls the shared terms, so others look worse at first).
+    good = list(range(n_sets))
+    while True:
+        harmonic, own_coefs = joint_fit(good)
+        scatter = [trimmed_std(r - _combine(harmonic, shared) - _combine(c, own))
+                   for (own, shared, r), c in zip(samples, own_coefs)]
+        worst = max(good, key=lambda k: scatter[k])
+        if len(good) == 1 or scatter[worst] <= 2.0 * min(scatter[k] for k in good):
+            break
+        good.remove(worst)
+    cleaned = []
+    for k in range(n_sets):
+        own, shared = rows(k, 1)
+        fitted = _combine(harmonic.astype(np.float32), shared) + _combine(own_coefs[k].astype(np.float32), own)
+        cleaned.append(np.asarray(residuals[k]).ravel().astype(np.float32, copy=False) - fitted)
+    # r = 4 c_2 cos(2 phi + psi): the ratio c_2 / b, signed by the cosine part (power laws have psi = 0, pi).
+    ratio = 0.25 * float(np.hypot(harmonic[0], harmonic[1])) * (1.0 if harmonic[0] >= 0 else -1.0)
+    noise = intensity_noise_dn(np.concatenate([_stride(cleaned[k]) for k in good]))
+    return FrameNoise(noise_dn=noise, frame_noise_dn=float(np.hypot(noise, QUANTISATION_NOISE_DN)),
+                      harmonic_ratio=abs(ratio), signed_harmonic_ratio=ratio,
+                      phase_error_rad=phase_error_from_harmonic(ratio), residuals=cleaned)
+
+
+def _combine(coef: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """sum_k coef[k] rows[k], element-wise (no BLAS)."""
+    out = coef[0] * rows[0]      # rows: a (k, N) array or a list of k arrays
+    for c, row in zip(coef[1:], rows[1:]):
+        out = out + c * row
+    return out
+
+
+def _robust_lstsq(design: np.ndarray, r: np.ndarray, rounds: int = 3, stride: bool = True) -> np.ndarray:
+    """Least squares of r on the rows of *design* (k, N), refitted without residuals beyond 5 trimmed
+    standard deviations (the pixels a half-drawn frame spoils), on a fixed stride of the points."""
+    d, y = (design[:, :: max(1, -(-r.size // MAX_NOISE_SAMPLES))], _stride(r)) if stride else (design, r)
+    keep = np.ones(y.size, dtype=bool)
+    coef = np.zeros(design.shape[0])
+    for _ in range(rounds):
+        dk, yk = d[:, keep], y[keep]
+        # Normal equations by einsum's own loops: no BLAS call sees pixel-length data (determinism).
+        gram = np.einsum("in,jn->ij", dk, dk, optimize=False)
+        coef = np.linalg.solve(gram, np.einsum("in,n->i", dk, yk, optimize=False))
+        res = y - _combine(coef, d)
+        new_keep = np.abs(res) <= 5.0 * max(trimmed_std(res), 0.5)
+        if np.array_equal(new_keep, keep) or new_keep.sum() < design.shape[0] * 3:
+            break
+        keep = new_keep
+    return coef
 
 
 @dataclass(frozen=True)

@@ -24,7 +24,7 @@ from .boresight import Assembly, ShapeSolution, solve_shape
 from .fit import CubicFit, ParabolaFit, fit_cubic, fit_parabola
 from .mask import facet_region
 from .metrics import focal_length_m, principal_axes, rms_summary, slope_residuals_mrad
-from .phase import intensity_noise_dn, phase_and_modulation, position_sigma_m, unwrap_positions
+from .phase import FrameNoise, frame_noise, phase_and_modulation, position_sigma_m, unwrap_positions
 from .pose import fix_range, solve_corner_pose
 from .screen import FlatScreen, ScreenModel
 from .pose import placement
@@ -215,7 +215,11 @@ class Phases:
     ok : (M,) bool array
         Pixels with a trusted position in both axes (before the screen model's coverage).
     noise_dn : float
-        Intensity noise estimated from the capture's own four-step consistency residuals, DN.
+        Per-frame intensity noise the phases see (camera noise and rounding to whole counts), estimated
+        from the capture's own four-step consistency residuals, DN.
+    noise : FrameNoise or None
+        The full estimate: the camera's own noise (rounding removed), the display's residual
+        nonlinearity and the phase error it may cause (:func:`~sofast_station.measure.phase.frame_noise`).
     finest_modulation_dn : dict
         ``{"x": (M,), "y": (M,)}`` fringe amplitude of the finest set of each axis, DN.
     min_modulation_dn : (M,) array
@@ -233,6 +237,7 @@ class Phases:
     min_modulation_dn: np.ndarray
     dropped: dict
     unwrap: dict
+    noise: FrameNoise | None = None
 
 
 @dataclass(frozen=True)
@@ -357,14 +362,20 @@ def measure_phases(region: Region, fringes: FringeSet, screen_size_m: tuple[floa
     tasks = {axis: pool.submit(_phase_sets, stack, slices[axis]) for axis in ("x", "y")}
     checks.check_repeats(stack, fringes)
     raw = {axis: task.result() for axis, task in tasks.items()}
-    noise_dn = intensity_noise_dn(np.concatenate([np.concatenate(raw[a][2]) for a in ("x", "y")]))
+    # Noise and display nonlinearity from the four-step residuals; the consistency check then sees the
+    # residuals without the harmonic a nonlinear display adds (that is judged on its own, in the verdict).
+    noise = frame_noise(*([*raw["x"][i], *raw["y"][i]] for i in range(3)),
+                        level=stack[1].astype(np.float32) - stack[0].astype(np.float32))
+    noise_dn = noise.frame_noise_dn
+    n_x = len(raw["x"][2])
+    cleaned = {"x": noise.residuals[:n_x], "y": noise.residuals[n_x:]}
     ok = np.ones(idx.size, dtype=bool)
     min_mod = np.full(idx.size, np.inf)
     inconsistent = np.zeros(idx.size, dtype=bool)
     cons_limit = settings.consistency_sigmas * 2.0 * noise_dn + 1.0
     inconsistent_fraction = {}
     for axis in ("x", "y"):
-        for p, b, r in zip(getattr(fringes, f"periods_{axis}"), raw[axis][1], raw[axis][2]):
+        for p, b, r in zip(getattr(fringes, f"periods_{axis}"), raw[axis][1], cleaned[axis]):
             min_mod = np.minimum(min_mod, b)
             bad = np.abs(r) > cons_limit
             inconsistent_fraction[f"{axis} p={p:g}"] = float(np.count_nonzero(bad)) / idx.size
@@ -399,7 +410,7 @@ def measure_phases(region: Region, fringes: FringeSet, screen_size_m: tuple[floa
                "excluded_by_pixel_mask": excluded}
     return Phases(positions_m=positions, ok=ok, noise_dn=noise_dn,
                   finest_modulation_dn={a: raw[a][1][-1] for a in ("x", "y")}, min_modulation_dn=min_mod,
-                  dropped=dropped, unwrap=unwrap_stats)
+                  dropped=dropped, unwrap=unwrap_stats, noise=noise)
 
 
 def screen_points_and_rays(region: Region, phases: Phases, camera, screen: ScreenModel,
@@ -538,7 +549,10 @@ def report_figures(region: Region, phases: Phases, rays: Rays, pose: CornerPoseR
         "valid_fraction": float(vidx.size / idx.size),
         "facet_pixels": int(idx.size),
         "median_modulation_dn": float(np.median(phases.min_modulation_dn[rays.ok])),
-        "intensity_noise_dn": phases.noise_dn,
+        "intensity_noise_dn": phases.noise.noise_dn,
+        "display_response": {"harmonic_ratio": phases.noise.harmonic_ratio,
+                             "signed_harmonic_ratio": phases.noise.signed_harmonic_ratio,
+                             "phase_error_rad": phases.noise.phase_error_rad},
         "dropped": {"low_modulation": phases.dropped["low_modulation"],
                     "inconsistent_frames": phases.dropped["inconsistent_frames"],
                     "outside_screen_model": rays.off_model,

@@ -26,7 +26,8 @@ def _fmt(v, unit="", digits=4):
 def summary_text(rec: dict) -> str:
     """A readable summary of one result record."""
     lines = [f"Facet {rec['serial']} ({rec['facet']}) on {rec['station']}, {rec['time']}",
-             f"  verdict: {rec['verdict'].upper()}" + "".join(f"\n    - {r}" for r in rec.get("reasons", []))]
+             f"  verdict: {rec['verdict'].upper()}" + "".join(f"\n    - {r}" for r in rec.get("reasons", []))
+             + "".join(f"\n    warning: {w}" for w in rec.get("warnings", []))]
     truth = rec.get("truth")
 
     def row(label, key, unit="", digits=4, scale=1.0):

@@ -13,7 +13,7 @@ import numpy as np
 
 from ..fringes import FringeSet
 from ..measure.mask import facet_region
-from ..measure.phase import intensity_noise_dn, phase_and_modulation
+from ..measure.phase import frame_noise, phase_and_modulation
 
 log = logging.getLogger(__name__)
 
@@ -58,10 +58,14 @@ def inconsistent_fractions(frames: np.ndarray, fringes: FringeSet, idx: np.ndarr
     """
     sample = idx[:: max(1, idx.size // 20_000)]
     flat = frames.reshape(frames.shape[0], -1)
-    cons = {(axis, k): phase_and_modulation(flat[sl][:, sample])[2]
-            for axis, sets in fringes.slices().items() for k, sl in enumerate(sets)}
-    noise = intensity_noise_dn(np.concatenate(list(cons.values())))
-    return {key: float(np.mean(np.abs(c) > sigmas * 2.0 * noise + 1.0)) for key, c in cons.items()}
+    sets = {(axis, k): phase_and_modulation(flat[sl][:, sample])
+            for axis, slices in fringes.slices().items() for k, sl in enumerate(slices)}
+    # A display response left nonlinear adds a phase-following harmonic to every residual: removed here,
+    # so that it is reported by the analysis as what it is, not retaken as half-drawn frames.
+    noise = frame_noise(*([s[i] for s in sets.values()] for i in range(3)),
+                        level=flat[1, sample].astype(np.float32) - flat[0, sample].astype(np.float32))
+    limit = sigmas * 2.0 * noise.frame_noise_dn + 1.0
+    return {key: float(np.mean(np.abs(c) > limit)) for key, c in zip(sets, noise.residuals)}
 
 
 def capture_sequence(display, camera, fringes: FringeSet, threshold_dn: float, retake_limit: float = 0.05,

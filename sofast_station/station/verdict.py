@@ -47,6 +47,11 @@ class Quality:
     max_unwrap_disagreement_fraction: float = 0.01
     min_outline_agreement: float = 0.95
     max_corner_reprojection_px: float = 1.0
+    #: A display response whose second harmonic exceeds this fraction of the fringe's amplitude was not
+    #: linearised (gamma 2.2 left uncorrected: about 0.28); between the warning level and this the result
+    #: stands with a warning stating the phase error it may cause.
+    max_display_harmonic_ratio: float = 0.05
+    warn_display_harmonic_ratio: float = 0.01
 
 
 def _from_table(cls, table: dict, where: str):
@@ -69,9 +74,26 @@ def quality_from_table(table: dict, where: str) -> Quality:
     return _from_table(Quality, table, where)
 
 
+def display_response(fig: dict, quality: Quality) -> tuple[list[str], list[str]]:
+    """(invalid reasons, warnings) from the display's residual nonlinearity (``fig["display_response"]``)."""
+    resp = fig.get("display_response")
+    if not resp:
+        return [], []
+    ratio, error = resp["harmonic_ratio"], resp["phase_error_rad"]
+    what = (f"second harmonic {100 * ratio:.1f} % of the fringe amplitude, phase error up to {error:.4f} rad "
+            f"({1000 * error:.1f} mrad)")
+    if ratio > quality.max_display_harmonic_ratio:
+        return [f"display response not linearised: run calibrate radiometric ({what}; limit "
+                f"{100 * quality.max_display_harmonic_ratio:g} %)"], []
+    if ratio > quality.warn_display_harmonic_ratio:
+        return [], [f"display response slightly nonlinear: {what}; rerun calibrate radiometric if it grows"]
+    return [], []
+
+
 def judge(fig: dict, design: FacetDesign, limits: Limits, quality: Quality) -> dict:
-    """``{"verdict": "pass" | "fail" | "invalid", "reasons": [...]}`` for one facet's figures."""
-    invalid = []
+    """``{"verdict": "pass" | "fail" | "invalid", "reasons": [...], "warnings": [...]}`` for one facet's
+    figures; warnings say what weakens a result without invalidating it."""
+    invalid, warnings = display_response(fig, quality)
     if fig["valid_fraction"] < quality.min_valid_fraction:
         invalid.append(f"only {100 * fig['valid_fraction']:.1f} % of the facet's pixels are valid "
                        f"(minimum {100 * quality.min_valid_fraction:.0f} %)")
@@ -90,7 +112,7 @@ def judge(fig: dict, design: FacetDesign, limits: Limits, quality: Quality) -> d
     if not fig["iterations"]["converged"]:
         invalid.append(f"shape and boresight iteration did not converge in {fig['iterations']['boresight']} steps")
     if invalid:
-        return {"verdict": "invalid", "reasons": invalid}
+        return {"verdict": "invalid", "reasons": invalid, "warnings": warnings}
 
     fail = []
     f_design = design.focal_length_m
@@ -114,4 +136,4 @@ def judge(fig: dict, design: FacetDesign, limits: Limits, quality: Quality) -> d
         rms = fig["slope_rms_mrad"][model]["magnitude"]
         if rms > limit:
             fail.append(f"{model} slope error {rms:.3f} mrad RMS (limit {limit:g})")
-    return {"verdict": "fail" if fail else "pass", "reasons": fail}
+    return {"verdict": "fail" if fail else "pass", "reasons": fail, "warnings": warnings}

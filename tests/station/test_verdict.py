@@ -27,7 +27,7 @@ def changed(**kw):
 
 
 def test_good_facet_passes():
-    assert judge(GOOD, DISH, Limits(), Quality()) == {"verdict": "pass", "reasons": []}
+    assert judge(GOOD, DISH, Limits(), Quality()) == {"verdict": "pass", "reasons": [], "warnings": []}
 
 
 @pytest.mark.parametrize("fig, words", [
