@@ -27,7 +27,7 @@ from .measure.pipeline import AnalysisSettings
 from .station.verdict import Limits, Quality, limits_from_table, quality_from_table
 
 _SECTIONS = {"station", "camera", "screen", "layout", "fringes", "analysis", "limits", "quality", "calibration",
-             "simulation", "run", "recipes", "devices", "archive", "web", "opcua", "acceptance"}
+             "simulation", "run", "recipes", "devices", "archive", "web", "opcua", "acceptance", "drift"}
 _STATION_KEYS = {"name", "data_dir", "backend", "facet"}
 _CAMERA_KEYS = {"width_px", "height_px", "focal_length_px", "principal_point_px", "distortion", "intrinsics"}
 _LAYOUT_KEYS = {"separation_m", "separation_axis", "screen_offset_m"}

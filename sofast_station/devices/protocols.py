@@ -85,6 +85,12 @@ FAULT_CODES = {
 }
 
 
+#: Warning bits sent to the robot/PLC with a "done" answer (the line goes on; docs/plc.md).
+WARNING_BITS = {
+    "drift": 1,            # a control-chart rule flagged the recipe's recent facets (a drift alarm)
+}
+
+
 class Trigger(Protocol):
     """The robot/PLC handshake, seen from the station.
 
@@ -100,7 +106,7 @@ class Trigger(Protocol):
 
     def busy(self) -> None: ...
 
-    def done(self, verdict: str) -> None: ...
+    def done(self, verdict: str, warnings: int = 0) -> None: ...
 
     def fault(self, code: int, reason: str) -> None: ...
 

@@ -32,6 +32,9 @@ def add_options(rpt) -> None:
     rpt.add_argument("--baseline-from", default=None, metavar="DATE",
                      help="spc: control limits from this period instead (with --baseline-to)")
     rpt.add_argument("--baseline-to", default=None, metavar="DATE", help="spc: end of the baseline period")
+    rpt.add_argument("--save-baseline", action="store_true",
+                     help="spc: save the control limits as the recipe's baseline for the line's drift alarms "
+                          "(data_dir/quality/baseline-RECIPE.json; needs --recipe)")
 
 
 def parse_date(text: str | None, what: str, end: bool = False):
@@ -150,6 +153,15 @@ def cmd_spc(args) -> int:
               draw_yield(yield_table(chosen), out / f"{name}-yield.png", title),
               write_summary_workbook(charts, yield_table(chosen), out / f"{name}.xlsx", title, args.rules)):
         print(p, flush=True)
+    if args.save_baseline:
+        from ..station.drift import save_baseline
+        if args.recipe is None:
+            raise ConfigError("--save-baseline needs --recipe: a baseline belongs to one recipe")
+        saved = {c.spec.key: c.baseline for c in charts if c.baseline is not None}
+        period = ({"from": args.baseline_from, "to": args.baseline_to} if baselines else
+                  {"first_facets": args.baseline_n, "from": since, "to": until})
+        log.info("drift baseline of recipe %s saved to %s", recipe.name,
+                 save_baseline(config.data_dir, recipe.name, saved, period))
     for c in charts:
         n_bad = len({int(k) for v in c.violations.values() for k in v})
         cap = c.capability

@@ -69,6 +69,8 @@ def facet_line(record: dict, answer: str, cycle_s: float | None, n: int | None =
     notes = list(record.get("reasons") or []) if answer in ("fail", "invalid", "fault") else []
     if record.get("calibration", {}).get("warnings"):
         notes.append("calibration stale: see the log")
+    if record.get("drift_alarms"):
+        notes.append("DRIFT ALARM: " + " | ".join(record["drift_alarms"]))
     return text + ("  " + "; ".join(notes) if notes else "")
 
 

@@ -27,11 +27,12 @@ from .. import __version__
 from ..calibrate.errors import StaleCalibrationError
 from ..calibrate.settings import calibration_settings
 from ..calibrate.store import check_cycle
-from ..devices.protocols import FAULT_CODES, FacetRequest
+from ..devices.protocols import FAULT_CODES, WARNING_BITS, FacetRequest
 from ..errors import (CameraError, CaptureError, DisplayError, GeometryError, StationError,
                       TriggerError)
 from . import console as _console
 from .commands import take_commands, take_dump_next
+from .drift import DriftMonitor
 from .frames import capture_sequence, crop, crop_box, restore
 from .inspect import FIGURE_KEYS, Station, calibration_entry, now_iso
 from .recipes import Recipe, choose_recipe
@@ -173,6 +174,22 @@ class StationRunner:
         self.paused = False
         self._manual_serial: str | None = None
         self._last_request: FacetRequest | None = None
+        #: Drift alarms: the control-chart rules on each recipe's recent facets (off without a baseline).
+        self.drift = DriftMonitor(station.config, recipes, journal)
+
+    def _check_drift(self, recipe: str, record: dict) -> None:
+        """Drift alarm: the rules on the recipe's recent facets; alarms go to the record (journal row),
+        the log, the status file (console and web page); the PLC's warning bit follows with the answer."""
+        try:
+            alarms = self.drift.check(recipe, record)
+        except Exception:                   # an aid, never a reason to stop the line or fail the facet
+            log.exception("%s: the drift check failed; the facet is answered without it", record.get("serial"))
+            return
+        if alarms:
+            record["drift_alarms"] = alarms
+            log.warning("%s: DRIFT ALARM, recipe %s: %s", record.get("serial"), recipe, " | ".join(alarms))
+            self.status.alarm(f"drift-{recipe}", f"drift in recipe {recipe} at facet {record.get('serial')}: "
+                                                 + " | ".join(alarms))
 
     def _check_calibration(self, dark_frame: np.ndarray) -> list[str]:
         """Judge the calibration again for this facet (age, and the dark level of its dark frame).
@@ -332,6 +349,7 @@ class StationRunner:
                 from ..twin.truth import ground_truth
                 truth = ground_truth(self.station.twin, res.valid)
                 record["truth"] = {k: truth[k] for k in FIGURE_KEYS if k in truth}
+            self._check_drift(recipe.name, record)
             outcome = CycleOutcome(cycle_id, serial, record["verdict"], record, valid=res.valid,
                                    preview=res.preview)
         except Exception as exc:          # a bad facet must never stop the line
@@ -415,7 +433,7 @@ class StationRunner:
             elif outcome.answer == "fault":
                 self.trigger.fault(outcome.fault_code, record["reasons"][0] if record.get("reasons") else "fault")
             else:
-                self.trigger.done(outcome.answer)
+                self.trigger.done(outcome.answer, warnings=WARNING_BITS["drift"] if record.get("drift_alarms") else 0)
         except TriggerError as exc:
             log.error("%s: could not answer the robot: %s", outcome.serial, exc)
             self._reopen_trigger()

@@ -17,6 +17,7 @@ address    name                written by meaning
 3          HEARTBEAT           station    +1 (mod 65536) at least every second while the station runs
 4          CYCLE               station    +1 (mod 65536) for every facet answered (done or fault)
 5          SEQUENCE_ECHO       station    the PLC's SEQUENCE of the facet being answered
+6          WARNINGS            station    with STATUS=done: warning bits, bit 0 = drift alarm (else 0)
 100        FACET_PRESENT       PLC        1: a facet waits for inspection (the request), 0: none
 101        ACK                 PLC        1: the PLC has read the done/fault answer
 102        DUMP_REQUEST        PLC        1: write a full data dump of this facet
@@ -47,8 +48,8 @@ OFFLINE, STATUS_READY, STATUS_BUSY, STATUS_DONE, STATUS_FAULT = 0, 1, 2, 3, 4
 VERDICT_CODES = {"pass": 1, "fail": 2, "invalid": 3}
 
 # Offsets in the station's block.
-STATUS, VERDICT, FAULT_CODE, HEARTBEAT, CYCLE, SEQUENCE_ECHO = range(6)
-STATION_REGISTERS = 6
+STATUS, VERDICT, FAULT_CODE, HEARTBEAT, CYCLE, SEQUENCE_ECHO, WARNINGS = range(7)
+STATION_REGISTERS = 7
 # Offsets in the PLC's block.
 FACET_PRESENT, ACK, DUMP_REQUEST, RECIPE_CODE, SEQUENCE, SERIAL = range(6)
 
@@ -264,6 +265,7 @@ class ModbusTrigger(PolledHandshake):
         plc = self._read_plc("reading the PLC block")
         self._armed = self._armed or not plc[FACET_PRESENT]
         self._regs[STATUS], self._regs[VERDICT], self._regs[FAULT_CODE] = STATUS_READY, 0, 0
+        self._regs[WARNINGS] = 0
         self._write("writing STATUS=ready")
         self._request = None
         self._state = READY
@@ -316,12 +318,13 @@ class ModbusTrigger(PolledHandshake):
         self._write("writing STATUS=busy")
         self._state = BUSY
 
-    def done(self, verdict: str) -> None:
-        """VERDICT, STATUS = done, CYCLE + 1; returns once the PLC acknowledged (ACK = 1), else raises
-        TriggerError after ``ack_timeout_s``."""
+    def done(self, verdict: str, warnings: int = 0) -> None:
+        """VERDICT, WARNINGS (the WARNING_BITS), STATUS = done, CYCLE + 1, in one write; returns once the
+        PLC acknowledged (ACK = 1), else raises TriggerError after ``ack_timeout_s``."""
         self._enter("done", (BUSY,))
         self._check_verdict(verdict)
         self._regs[VERDICT], self._regs[FAULT_CODE] = VERDICT_CODES[verdict], 0
+        self._regs[WARNINGS] = int(warnings) & 0xFFFF
         self._answer(STATUS_DONE, f"done ({verdict})")
 
     def fault(self, code: int, reason: str) -> None:
@@ -330,7 +333,7 @@ class ModbusTrigger(PolledHandshake):
         self._enter("fault", (BUSY,))
         code = self._check_fault_code(code)
         log.warning("%s: fault %d for facet %s: %s", self.name, code, self._request.serial, reason)
-        self._regs[VERDICT], self._regs[FAULT_CODE] = 0, code
+        self._regs[VERDICT], self._regs[FAULT_CODE], self._regs[WARNINGS] = 0, code, 0
         self._answer(STATUS_FAULT, f"fault ({code})")
 
     def _answer(self, status: int, what: str) -> None:

@@ -45,6 +45,7 @@ class Answer:
     verdict: str | None = None
     code: int | None = None
     reason: str | None = None
+    warnings: int = 0
 
 
 class SimulatedRobot(Handshake):
@@ -134,11 +135,11 @@ class SimulatedRobot(Handshake):
         self.answers.append(Answer(self.current.serial, "busy", time.monotonic()))
         self._state = BUSY
 
-    def done(self, verdict: str) -> None:
-        """The facet is measured: ``verdict`` is "pass", "fail" or "invalid"."""
+    def done(self, verdict: str, warnings: int = 0) -> None:
+        """The facet is measured: ``verdict`` is "pass", "fail" or "invalid"; ``warnings`` the WARNING_BITS."""
         self._enter("done", (BUSY,))
         self._check_verdict(verdict)
-        self._answer(Answer(self.current.serial, "done", time.monotonic(), verdict=verdict))
+        self._answer(Answer(self.current.serial, "done", time.monotonic(), verdict=verdict, warnings=int(warnings)))
 
     def fault(self, code: int, reason: str) -> None:
         """The facet could not be measured: fault ``code`` (FAULT_CODES) and a reason for the log."""

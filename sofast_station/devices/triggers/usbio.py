@@ -322,9 +322,10 @@ class UsbTrigger(PolledHandshake):
         self._put(STATUS_BUSY, "writing STATUS=busy")
         self._state = BUSY
 
-    def done(self, verdict: str) -> None:
+    def done(self, verdict: str, warnings: int = 0) -> None:
         """STATUS = done-pass/-fail/-invalid; returns once the PLC dropped FACET_PRESENT (its
-        acknowledgement), else raises TriggerError after ``ack_timeout_s``."""
+        acknowledgement), else raises TriggerError after ``ack_timeout_s``. Every pin is taken, so
+        ``warnings`` (a drift alarm) reaches only the log, the journal and the console (docs/plc.md)."""
         self._enter("done", (BUSY,))
         self._check_verdict(verdict)
         self._answer(DONE_CODES[verdict], f"done-{verdict}")

@@ -33,6 +33,7 @@ from sofast_station.devices.triggers.modbus import (
     STATUS,
     STATUS_DONE,
     STATUS_FAULT,
+    WARNINGS,
     STATUS_READY,
     VERDICT,
     RegisterMap,
@@ -107,7 +108,7 @@ async def _program(port: int, script: dict, events) -> None:
             await asyncio.sleep(poll)
         events.put(("answer", {"serial": facet["serial"], "sequence": sequence, "echo": st[SEQUENCE_ECHO],
                                "status": st[STATUS], "verdict": st[VERDICT], "fault_code": st[FAULT_CODE],
-                               "cycle": st[CYCLE]}))
+                               "cycle": st[CYCLE], "warnings": st[WARNINGS]}))
         if not acks:
             continue  # a broken PLC: never acknowledges, keeps FACET_PRESENT up
         await asyncio.sleep(script.get("ack_delay_s", 0.0))

@@ -14,7 +14,7 @@ import pymodbus  # noqa: F401  (a dependency: its absence must fail, not skip)
 
 from pymodbus.client import ModbusTcpClient  # noqa: E402
 
-from sofast_station.devices.protocols import FAULT_CODES  # noqa: E402
+from sofast_station.devices.protocols import FAULT_CODES, WARNING_BITS  # noqa: E402
 from sofast_station.devices.triggers import modbus  # noqa: E402
 from sofast_station.devices.triggers.modbus import ModbusTrigger, RegisterMap, decode_ascii, encode_ascii  # noqa: E402
 from sofast_station.errors import TriggerError  # noqa: E402
@@ -104,7 +104,7 @@ def test_register_map_is_the_documented_one():
     m = RegisterMap()
     assert (m.station_base, m.plc_base, m.serial_registers, m.recipe_name_registers) == (0, 100, 10, 8)
     assert (modbus.STATUS, modbus.VERDICT, modbus.FAULT_CODE, modbus.HEARTBEAT, modbus.CYCLE,
-            modbus.SEQUENCE_ECHO) == (0, 1, 2, 3, 4, 5)
+            modbus.SEQUENCE_ECHO, modbus.WARNINGS, modbus.STATION_REGISTERS) == (0, 1, 2, 3, 4, 5, 6, 7)
     assert (modbus.FACET_PRESENT, modbus.ACK, modbus.DUMP_REQUEST, modbus.RECIPE_CODE, modbus.SEQUENCE,
             modbus.SERIAL, m.recipe_name_offset, m.plc_registers) == (0, 1, 2, 3, 4, 5, 15, 23)
     with pytest.raises(ValueError, match="overlaps"):
@@ -129,15 +129,16 @@ def test_full_multi_facet_handshake(plcs):
     plc = plcs({"facets": facets, "ack_delay_s": 0.02})
     trigger = ModbusTrigger("127.0.0.1", plc.port, recipes={2: "dish-5m33"})
     answers = [("done", "pass"), ("done", "fail"), ("fault", FAULT_CODES["capture"]), ("done", "invalid")]
+    warnings = [WARNING_BITS["drift"], 0, 0, 0]            # a drift alarm rides with the first answer
     requests = []
-    for answer in answers:
+    for answer, warn in zip(answers, warnings):
         trigger.ready()
         request = _wait_request(trigger)
         requests.append(request)
         trigger.busy()
         t0 = time.monotonic()
         if answer[0] == "done":
-            trigger.done(answer[1])
+            trigger.done(answer[1], warnings=warn)
         else:
             trigger.fault(answer[1], "dark frame")
         assert 0.015 < time.monotonic() - t0 < 2.0  # returned on the PLC's (delayed) acknowledgement
@@ -146,6 +147,7 @@ def test_full_multi_facet_handshake(plcs):
     assert [r.dump for r in requests] == [False, True, False, False]
     assert [r.extra["sequence"] for r in requests] == [1000, 1001, 1002, 1003]
     reported = [plc.next("answer")[1] for _ in facets]
+    assert [a["warnings"] for a in reported] == warnings
     assert [(a["status"], a["verdict"], a["fault_code"]) for a in reported] == [
         (modbus.STATUS_DONE, 1, 0), (modbus.STATUS_DONE, 2, 0), (modbus.STATUS_FAULT, 0, 3),
         (modbus.STATUS_DONE, 3, 0)]
