@@ -99,6 +99,42 @@ def utc_key(value) -> str:
     return parse_time(value).astimezone(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%S.%fZ")
 
 
+def parse_bound(text, what: str = "--from/--to") -> str | None:
+    """A period bound from the command line: an ISO date (local midnight at its start), an ISO date and
+    time, or ``today`` / ``yesterday`` / ``tomorrow`` (local midnight); None stays None.
+
+    Raises
+    ------
+    ConfigError
+        Naming *what* and the accepted forms, when *text* is none of them.
+    """
+    from ..errors import ConfigError
+
+    if text is None:
+        return None
+    t = str(text).strip()
+    words = {"today": 0, "yesterday": -1, "tomorrow": 1}
+    if t.lower() in words:
+        return (_dt.date.today() + _dt.timedelta(days=words[t.lower()])).isoformat()
+    try:
+        if len(t) == 10:
+            return _dt.date.fromisoformat(t).isoformat()
+        _dt.datetime.fromisoformat(t)
+        return t
+    except ValueError:
+        raise ConfigError(f"{what} {text!r} is not a date: give an ISO date (2026-11-25), a date and time "
+                          f"(2026-11-25T06:00), 'today' or 'yesterday'") from None
+
+
+def check_period(since, until, what: str = "--from/--to") -> None:
+    """Refuse an empty or reversed period ``[since, until)`` with a message that says so."""
+    from ..errors import ConfigError
+
+    if since is not None and until is not None and utc_key(since) >= utc_key(until):
+        raise ConfigError(f"{what}: the period from {since} to {until} is empty or reversed (the end is "
+                          f"exclusive): the start must come before the end")
+
+
 def now_iso() -> str:
     """Local date and time with its UTC offset, ISO 8601, to the millisecond."""
     return _dt.datetime.now().astimezone().isoformat(timespec="milliseconds")

@@ -5,10 +5,21 @@ record's own UTC offset): ``results-2026-11-25.xlsx``, or per shift ``results-20
 (a night shift that crosses midnight belongs to the day it started). When a workbook reaches Excel's row
 limit (1,048,576 rows with the header) the rows continue in ``results-2026-11-25-part2.xlsx`` and so on.
 
-Every row holds ``cycle_id``, ``serial``, ``time``, ``verdict``, ``reasons``, then every other figure of
-the record flattened to dotted column names (``slope_rms_mrad.design.x``); lists are JSON text, a missing
-or null value is an empty cell. A record with a figure the book has no column for adds the column at the
-right.
+Every row holds ``cycle_id``, ``serial``, ``time``, ``verdict``, ``reasons``, ``dump_file``, then every
+other figure of the record flattened to dotted column names (``slope_rms_mrad.design.x``). What a plant
+needs to work with the book in Excel:
+
+- ``time`` is an Excel date and time (the record's local wall-clock time; its UTC offset is the column
+  ``utc_offset``), so it sorts, filters and plots as a date;
+- every figure is a number cell with a number format; a missing or null value is an empty cell;
+- lists are readable text, items separated by ``; `` (``reasons``, principal focal lengths, terms);
+- ``dump_file`` names the facet's HDF5 data dump when one was written or is on its way;
+- the sheet ``units`` gives the unit of every column (the column names also end in their unit:
+  ``_m``, ``_mrad``, ``_per_m``, ``_s``, ``_dn``, ``_px``);
+- ``truth.*`` columns (the twin's ground truth) exist only for rows of the simulated station: a hardware
+  station's records have no truth.
+
+A record with a figure the book has no column for adds the column at the right.
 
 Safety (docs/conventions.md#archives):
 
@@ -42,7 +53,7 @@ log = logging.getLogger(__name__)
 EXCEL_MAX_ROWS = 1_048_576
 
 #: The columns every workbook starts with, in this order.
-FIRST_COLUMNS = ("cycle_id", "serial", "time", "verdict", "reasons")
+FIRST_COLUMNS = ("cycle_id", "serial", "time", "verdict", "reasons", "dump_file")
 
 #: Title of the results sheet.
 SHEET_TITLE = "results"
@@ -127,24 +138,77 @@ def _flatten(prefix: str, value, out: dict) -> None:
         out[prefix] = value
 
 
-def flatten_record(cycle_id: str, record: dict) -> dict:
+def _list_text(items: list) -> str:
+    """A list as text a person reads: scalars joined by "; ", anything nested as JSON."""
+    if all(v is None or isinstance(v, (str, int, float, bool)) for v in items):
+        return "; ".join("" if v is None else f"{v:.10g}" if isinstance(v, float) else str(v) for v in items)
+    return json.dumps(items, ensure_ascii=False)
+
+
+def excel_time(time_iso) -> tuple:
+    """(naive local datetime for an Excel date cell, the UTC offset as text ``+01:00``) of an ISO time."""
+    if time_iso is None:
+        return None, None
+    try:
+        t = parse_time(time_iso)
+    except (TypeError, ValueError):
+        return time_iso, None                       # not a time: keep the text as it is
+    off = t.utcoffset() or _dt.timedelta(0)
+    sign = "-" if off < _dt.timedelta(0) else "+"
+    minutes = abs(int(off.total_seconds())) // 60
+    # Excel keeps milliseconds: drop the rest so a read-back equals what is shown
+    return t.replace(tzinfo=None, microsecond=t.microsecond // 1000 * 1000), f"{sign}{minutes // 60:02d}:{minutes % 60:02d}"
+
+
+def flatten_record(cycle_id: str, record: dict, dump_file: str | None = None) -> dict:
     """The workbook row of a record: column name -> cell value.
 
-    ``cycle_id``, ``serial``, ``time``, ``verdict``, ``reasons`` come first, then every other entry in
-    record order, nested dicts flattened to dotted names. Lists become JSON text, NaN, infinities and
-    None become None (an empty cell).
+    ``cycle_id``, ``serial``, ``time`` (a naive local datetime), ``verdict``, ``reasons``, ``dump_file``
+    come first, then ``utc_offset`` and every other entry in record order, nested dicts flattened to
+    dotted names. Lists become readable text (:func:`_list_text`); NaN, infinities and None become None
+    (an empty cell).
     """
     rec = json_ready(record)
     flat: dict = {}
     _flatten("", {k: v for k, v in rec.items() if k not in FIRST_COLUMNS}, flat)
-    row = {"cycle_id": cycle_id, "serial": rec.get("serial"), "time": rec.get("time"),
-           "verdict": rec.get("verdict"), "reasons": rec.get("reasons", [])}
+    when, offset = excel_time(rec.get("time"))
+    row = {"cycle_id": cycle_id, "serial": rec.get("serial"), "time": when,
+           "verdict": rec.get("verdict"), "reasons": rec.get("reasons", []), "dump_file": dump_file,
+           "utc_offset": offset}
     row.update(flat)
-    return {k: (json.dumps(v, ensure_ascii=False) if isinstance(v, list) else v) for k, v in row.items()}
+    return {k: (_list_text(v) if isinstance(v, list) else v) for k, v in row.items()}
+
+
+def column_unit(name: str) -> str:
+    """The unit of a workbook column, from its name's suffix (the record's naming convention)."""
+    n = name.lower()
+    last = n.rsplit(".", 1)[-1]
+    if n == "time":
+        return "local date and time (see utc_offset)"
+    if n.startswith("slope_rms_mrad") or n.startswith("truth.slope_rms_mrad") or "boresight_mrad" in n \
+            or "optical_tilt_mrad" in n or n.endswith("placement.mrad"):
+        return "mrad"
+    if n.endswith("placement.mm"):
+        return "mm"
+    for suffix, unit in (("_mrad_per_m", "mrad/m"), ("_per_m", "1/m"), ("_mrad", "mrad"), ("_dn", "DN"),
+                         ("_px", "px"), ("_rad", "rad"), ("_m", "m"), ("_s", "s"), ("_gb", "GB")):
+        if last.endswith(suffix) or n.endswith(suffix):
+            return unit
+    if n.startswith("timings_s.") or ".timings_s." in n:
+        return "s"
+    if "fraction" in n or "agreement" in n:
+        return "1 (fraction)"
+    if n.startswith("coefficients.") and last in ("a", "b", "e"):
+        return "1/m"
+    if n.startswith("coefficients."):
+        return "1 (slope)"
+    return ""
 
 
 def number_format(column: str, value) -> str | None:
     """Excel number format for a cell of *column* holding *value* (None: leave General)."""
+    if isinstance(value, _dt.datetime):
+        return "yyyy-mm-dd hh:mm:ss"
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         return None
     if isinstance(value, int):
@@ -167,6 +231,19 @@ def number_format(column: str, value) -> str | None:
     if name.endswith("_px") or name.endswith("_s"):
         return "0.000"
     return "0.000000" if 1e-3 <= abs(value) < 1e6 or value == 0 else "0.000000E+00"
+
+
+def row_dump_file(row: JournalRow) -> str | None:
+    """The file name of a journal row's data dump: written, or requested and on its way; else None."""
+    if row.dump_path:
+        return Path(row.dump_path).name
+    if row.dump_requested and not row.dump_error:
+        from .dumps import dump_name
+        try:
+            return dump_name(row.serial, row.time, row.cycle_id)
+        except (TypeError, ValueError):
+            return None
+    return None
 
 
 def _cell_value(value):
@@ -259,7 +336,7 @@ class _Book:
             cell = ws.cell(row=1, column=i, value=name)
             cell.font = Font(bold=True)
         ws.freeze_panes = "B2"
-        for col, width in zip("ABCDE", (30, 14, 30, 9, 40)):
+        for col, width in zip("ABCDEF", (30, 14, 20, 9, 40, 44)):
             ws.column_dimensions[col].width = width
         return cls(wb, path)
 
@@ -272,8 +349,8 @@ class _Book:
         self.columns[name] = col
         return col
 
-    def append(self, cycle_id: str, record: dict) -> None:
-        flat = flatten_record(cycle_id, record)
+    def append(self, cycle_id: str, record: dict, dump_file: str | None = None) -> None:
+        flat = flatten_record(cycle_id, record, dump_file)
         for name in flat:
             if name not in self.columns:
                 self.add_column(name)
@@ -288,9 +365,24 @@ class _Book:
         self.ids.add(cycle_id)
         self.next_row += 1
 
+    def _write_units(self) -> None:
+        from openpyxl.styles import Font
+
+        if "units" in self.wb.sheetnames:
+            del self.wb["units"]
+        us = self.wb.create_sheet("units")
+        us.append(["column", "unit"])
+        for cell in us[1]:
+            cell.font = Font(bold=True)
+        for name in self.header:
+            us.append([name, column_unit(name)])
+        us.column_dimensions["A"].width = 44
+        us.column_dimensions["B"].width = 30
+
     def save(self) -> None:
         from openpyxl.utils import get_column_letter
 
+        self._write_units()
         self.ws.auto_filter.ref = f"A1:{get_column_letter(max(len(self.header), 1))}{self.n_rows + 1}"
         save_atomic(self.wb, self.path)
 
@@ -386,7 +478,7 @@ def _rebuild(path: Path, journal: Journal) -> _Book:
     _quarantine(path)
     book = _Book.new(path)
     for row in journal.rows_in_workbook(path):
-        book.append(row.cycle_id, row.record)
+        book.append(row.cycle_id, row.record, row_dump_file(row))
     book.save()
     return book
 
@@ -457,7 +549,7 @@ def append_rows(folder: Path, key: str, rows: list[JournalRow], settings: Workbo
             book = _Book.new(workbook_path(folder, key, part, settings.prefix))
         chunk, todo = todo[:limit - book.n_rows], todo[limit - book.n_rows:]
         for r in chunk:
-            book.append(r.cycle_id, r.record)
+            book.append(r.cycle_id, r.record, row_dump_file(r))
         t0 = time.perf_counter()
         book.save()
         ids = [r.cycle_id for r in chunk]
@@ -533,7 +625,7 @@ def export_workbook(journal: Journal, since, until, path: str | Path, max_rows: 
         book = _Book.new(target)
         chunk, rows = rows[:limit], rows[limit:]
         for r in chunk:
-            book.append(r.cycle_id, r.record)
+            book.append(r.cycle_id, r.record, row_dump_file(r))
         book.save()
         out.append(target)
         if not rows:

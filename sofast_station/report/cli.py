@@ -6,7 +6,6 @@ chooses the report); :func:`add_options` adds these reports' options to it and :
 
 from __future__ import annotations
 
-import datetime as _dt
 import logging
 from pathlib import Path
 
@@ -37,36 +36,14 @@ def add_options(rpt) -> None:
                           "(data_dir/quality/baseline-RECIPE.json; needs --recipe)")
 
 
-def parse_date(text: str | None, what: str, end: bool = False):
-    """An ISO date or date-time, or ``today`` / ``yesterday`` (local midnight); None stays None. With
-    *end*, a bare date means the end of that day (the next midnight), so ``--to 2026-11-25`` includes it."""
-    from ..errors import ConfigError
-
-    if text is None:
-        return None
-    t = str(text).strip().lower()
-    today = _dt.date.today()
-    if t in ("today", "yesterday", "tomorrow"):
-        day = today + _dt.timedelta(days={"today": 0, "yesterday": -1, "tomorrow": 1}[t])
-        return (day + _dt.timedelta(days=1) if end else day).isoformat()
-    try:
-        if len(t) == 10:
-            day = _dt.date.fromisoformat(t)
-            return (day + _dt.timedelta(days=1) if end else day).isoformat()
-        _dt.datetime.fromisoformat(str(text).strip())
-        return str(text).strip()
-    except ValueError:
-        raise ConfigError(f"{what} {text!r} is not a date: give an ISO date (2026-11-25), a date and time "
-                          f"(2026-11-25T06:00), 'today' or 'yesterday'") from None
+def parse_date(text, what: str):
+    from ..archive._common import parse_bound
+    return parse_bound(text, what)
 
 
 def check_range(since, until, what: str = "--from/--to") -> None:
-    from ..archive._common import utc_key
-    from ..errors import ConfigError
-
-    if since is not None and until is not None and utc_key(since) >= utc_key(until):
-        raise ConfigError(f"{what}: the period from {since} to {until} is empty or reversed: the start must come "
-                          f"before the end")
+    from ..archive._common import check_period
+    check_period(since, until, what)
 
 
 def _config(args):
@@ -104,7 +81,7 @@ def run(args) -> int:
 
 def _period(args):
     since = parse_date(args.since, "--from")
-    until = parse_date(args.until, "--to", end=True)
+    until = parse_date(args.until, "--to")
     check_range(since, until)
     return since, until
 
@@ -131,7 +108,7 @@ def cmd_spc(args) -> int:
     baselines = None
     if args.baseline_from or args.baseline_to:
         b0 = parse_date(args.baseline_from, "--baseline-from")
-        b1 = parse_date(args.baseline_to, "--baseline-to", end=True)
+        b1 = parse_date(args.baseline_to, "--baseline-to")
         check_range(b0, b1, "--baseline-from/--baseline-to")
         base_records = [r for r in select_records(records, recipe=args.recipe, facet=args.facet_type, serial=args.serial,
                                                   since=b0, until=b1) if r.get("verdict") in ("pass", "fail")]

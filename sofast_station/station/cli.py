@@ -177,8 +177,12 @@ def cmd_serve(args) -> int:
 
 def cmd_archive_export(args) -> int:
     from ..archive import Journal, export_workbook
+    from ..archive._common import check_period, parse_bound
     from ..config import load_config
 
+    args.since = parse_bound(args.since, "--from")
+    args.until = parse_bound(args.until, "--to")
+    check_period(args.since, args.until)
     config = load_config(args.config, use_camera_record=False)  # no camera needed
     path = config.data_dir / "journal.sqlite3"
     if not path.exists():
@@ -286,9 +290,12 @@ def register(subparsers) -> None:
             Write the journal's rows of a period to an Excel workbook (several when the rows exceed Excel's
             row limit) and print the file names. Nothing is measured: the camera is not opened.""")
     add_config_option(exp)
-    exp.add_argument("--from", dest="since", default=None, metavar="ISO",
-                     help="ISO date/time, inclusive (default: the start of the journal)")
-    exp.add_argument("--to", dest="until", default=None, metavar="ISO", help="ISO date/time, exclusive (default: now)")
+    exp.add_argument("--from", dest="since", default=None, metavar="DATE",
+                     help="ISO date or date/time, 'today' or 'yesterday' (local midnight), inclusive (default: the "
+                          "start of the journal)")
+    exp.add_argument("--to", dest="until", default=None, metavar="DATE",
+                     help="ISO date or date/time, 'today' or 'yesterday', exclusive: --from yesterday --to today is "
+                          "yesterday's rows (default: now)")
     exp.add_argument("--out", default=None, metavar="FILE",
                      help="the .xlsx to write (default: data_dir/exports/sofast-FROM-TO.xlsx)")
     exp.set_defaults(func=cmd_archive_export)

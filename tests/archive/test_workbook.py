@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import datetime as dt
 import errno
 import json
 import os
@@ -45,20 +46,52 @@ def test_a_row_holds_every_figure_of_the_record(journal, tmp_path):
     assert report.written == {str(book): 1} and journal.pending_workbook() == []
     assert journal.get("cycle-1").workbook_path == str(book)
     header = [c.value for c in load_workbook(book)["results"][1]]
-    assert tuple(header[:5]) == FIRST_COLUMNS
+    assert tuple(header[:6]) == FIRST_COLUMNS
     (row,) = read_workbook(book)
     expected = leaves("", SAMPLE_RECORD, {})
     assert "slope_rms_mrad.design.x" in expected and "truth.slope_rms_mrad.parabola.magnitude" in expected
     assert row["cycle_id"] == "cycle-1"
     for name, value in expected.items():
         assert name in header, name
-        if isinstance(value, list):
-            assert json.loads(row[name]) == value, name          # lists as JSON text
+        if name == "time":        # an Excel date and time: the record's local wall clock, offset beside it
+            assert row[name] == dt.datetime(2026, 11, 25, 14, 40, 35, 89000) and row["utc_offset"] == "+00:00"
+        elif isinstance(value, list):                             # lists as readable text
+            assert row.get(name, "") == "; ".join(f"{v:.10g}" if isinstance(v, float) else str(v) for v in value), name
         elif isinstance(value, float):
             assert row[name] == float("%.16g" % value), name     # openpyxl writes 16 significant digits
         else:
             assert row[name] == value, name
-    assert len(header) == len(expected) + 1                       # + cycle_id
+    assert len(header) == len(expected) + 3                       # + cycle_id, dump_file, utc_offset
+    assert "dump_file" not in row                                 # no dump requested: an empty cell
+    units = dict(load_workbook(book)["units"].iter_rows(min_row=2, values_only=True))
+    assert units["focal_length_x_m"] == "m" and units["slope_rms_mrad.design.x"] == "mrad"
+    assert units["twist_mrad_per_m"] == "mrad/m" and units["curvature_x_per_m"] == "1/m"
+
+
+def test_the_plant_reads_dates_as_dates_numbers_as_numbers_and_the_dump_name(journal, tmp_path):
+    journal.append("cycle-7", SAMPLE_RECORD, dump_requested=True)
+    out = tmp_path / "export.xlsx"
+    export_workbook(journal, None, None, out)
+    ws = load_workbook(out)["results"]
+    cols = {c.value: c.column for c in ws[1]}
+    t = ws.cell(2, cols["time"])
+    assert t.is_date and isinstance(t.value, dt.datetime) and t.number_format == "yyyy-mm-dd hh:mm:ss"
+    f = ws.cell(2, cols["focal_length_x_m"])
+    assert f.data_type == "n" and isinstance(f.value, float)
+    assert ws.cell(2, cols["n_points"]).data_type == "n"
+    assert ws.cell(2, cols["reasons"]).value is None                        # no reasons: an empty cell
+    assert ws.cell(2, cols["dump_file"]).value.startswith("SIM-0001_20261125T144035_cycle-7")
+    # a hardware station's record has no truth: no truth.* column
+    hw = {k: v for k, v in SAMPLE_RECORD.items() if k != "truth"}
+    journal.append("cycle-8", dict(hw, serial="HW-1"))
+    export_workbook(journal, "2026-11-25", "2026-11-26", out)
+    header = [c.value for c in load_workbook(out)["results"][1]]
+    assert any(h.startswith("truth.") for h in header)                      # the simulated row has them
+    journal2 = Journal(tmp_path / "hw.sqlite")
+    journal2.append("cycle-9", hw)
+    export_workbook(journal2, None, None, tmp_path / "hw.xlsx")
+    journal2.close()
+    assert not any(c.value.startswith("truth.") for c in load_workbook(tmp_path / "hw.xlsx")["results"][1])
 
 
 def test_number_formats_and_header(journal, tmp_path):
@@ -210,3 +243,27 @@ def test_a_book_damaged_elsewhere_is_set_aside_and_rebuilt_from_the_journal(jour
     assert [r["cycle_id"] for r in read_workbook(book)] == ["c0", "c1", "c2"]
     aside = list(tmp_path.glob("results-2026-03-02.corrupt-*.xlsx"))
     assert len(aside) == 1 and aside[0].read_bytes() == b"someone saved garbage here"
+
+
+def test_archive_export_takes_words_and_iso_dates_and_refuses_a_reversed_range(small_station_toml, caplog, capsys):
+    import datetime as _dt
+
+    from sofast_station.cli import main
+    from sofast_station.config import load_config
+
+    data = load_config(small_station_toml).data_dir
+    now = _dt.datetime.now().astimezone()
+    with Journal(data / "journal.sqlite3") as j:
+        j.append("today-1", dict(SAMPLE_RECORD, time=now.isoformat(timespec="milliseconds")))
+        j.append("old-1", dict(SAMPLE_RECORD, time="2026-01-05T10:00:00+00:00"))
+    out = data / "x.xlsx"
+    assert main(["archive", "export", "--config", str(small_station_toml), "--from", "yesterday", "--out", str(out)]) == 0
+    assert [r["cycle_id"] for r in read_workbook(out)] == ["today-1"]
+    assert main(["archive", "export", "--config", str(small_station_toml), "--from", "2026-01-05", "--to",
+                 "2026-01-06", "--out", str(out)]) == 0
+    assert [r["cycle_id"] for r in read_workbook(out)] == ["old-1"]
+    assert main(["archive", "export", "--config", str(small_station_toml), "--from", "today", "--to",
+                 "yesterday", "--out", str(out)]) == 2
+    assert "empty or reversed" in caplog.text
+    assert main(["archive", "export", "--config", str(small_station_toml), "--from", "last tuesday"]) == 2
+    assert "'today' or 'yesterday'" in caplog.text

@@ -75,7 +75,7 @@ def test_report_spc_draws_charts_and_writes_the_summary_workbook(station, tmp_pa
     journal = tmp_path / "j.sqlite3"
     synthetic_journal(journal, 120, step_at=80)
     assert main(["report", "spc", "--config", str(station), "--journal", str(journal), "--from", "2026-11-20",
-                 "--to", "2026-11-20", "--ewma", "0.2", "--out", str(tmp_path / "out")]) == 0
+                 "--to", "2026-11-21", "--ewma", "0.2", "--out", str(tmp_path / "out")]) == 0
     png, yield_png, book = capsys.readouterr().out.split()
     assert imread(png).shape[0] > 1000 and imread(yield_png).shape[1] > 800
     wb = load_workbook(book)
@@ -83,7 +83,7 @@ def test_report_spc_draws_charts_and_writes_the_summary_workbook(station, tmp_pa
     fx = next(r for r in rows if r and r[0] == "focal length f_x")
     # the step at facet 80 is flagged; the capability numbers are numbers
     assert fx[16] > 0 and isinstance(fx[13], float)
-    # --to 2026-11-20... includes the whole day: 108 facets from 06:00 to 23:50
+    # [2026-11-20, 2026-11-21): 108 facets from 06:00 to 23:50
     assert fx[2] == 108
     facets = wb["facets"]
     assert isinstance(facets["A2"].value, dt.datetime) and isinstance(facets["C2"].value, float)
