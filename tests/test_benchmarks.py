@@ -20,3 +20,19 @@ def test_cycle_benchmark_quick(repo_root, small_station_toml):
     print(proc.stdout)
     for line in ("camera 400 x 300", "answers: 3 pass", "trigger -> release", "render and image one capture"):
         assert line in proc.stdout
+
+
+def test_web_benchmark_quick(repo_root, small_station_toml):
+    """benchmarks/web.py: 3 facets without, 3 with the page open in chromium (skipped without chromium)."""
+    import os
+
+    import pytest
+    if not os.path.exists("/usr/bin/chromium"):
+        pytest.skip("Debian's chromium is not installed ('setup-env test' installs it)")
+    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "web.py"), "--quick", "--config",
+                           str(small_station_toml)], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    print(proc.stdout)
+    for line in ("camera 400 x 300", "without the page: cycle median", "with the page   : cycle median",
+                 "median cycle: without"):
+        assert line in proc.stdout

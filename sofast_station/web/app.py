@@ -278,7 +278,8 @@ figcaption { color: #9ca3af; font-size: .85rem; }
 .state-paused { background: #d97706; color: #111; } .state-offline { background: #000; color: #f87171; }
 .alarms li { color: #fbbf24; overflow-wrap: anywhere; }
 .link { font-size: .85rem; color: #4ade80; } .link.down { color: #f87171; }
-.actions { display: flex; flex-wrap: wrap; gap: .4rem; } .actions button, .actions input { font-size: 1rem; padding: .4rem .6rem; }
+.actions { display: flex; flex-wrap: wrap; gap: .4rem; }
+.actions button, .actions input { font-size: 1rem; padding: .4rem .6rem; }
 #action-result.error { color: #f87171; }
 @media (max-width: 1000px) { main { grid-template-columns: 1fr; } .verdict { font-size: 6rem; } }
 """
@@ -322,7 +323,9 @@ async function act(name) {
   } catch (e) { out.textContent = "the station did not answer: " + e; out.className = "error"; }
 }
 document.addEventListener("DOMContentLoaded", () => {
-  for (const b of document.querySelectorAll("button[data-action]")) b.addEventListener("click", () => act(b.dataset.action));
+  for (const b of document.querySelectorAll("button[data-action]")) {
+    b.addEventListener("click", () => act(b.dataset.action));
+  }
   connect();
 });
 """

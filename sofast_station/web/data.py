@@ -10,7 +10,6 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import logging
-import math
 import os
 import shutil
 import sqlite3
@@ -215,8 +214,8 @@ class LineData:
             spool = sum(1 for e in os.scandir(self.data_dir / "spool") if e.name.endswith(".npz"))
         except OSError:
             spool = 0
-        min_free = float(self.config.raw.get("archive", {}).get("min_free_gb",
-                                                                 self.config.raw.get("run", {}).get("min_free_gb", 2.0)))
+        raw = self.config.raw
+        min_free = float(raw.get("archive", {}).get("min_free_gb", raw.get("run", {}).get("min_free_gb", 2.0)))
         info = {"free_gb": free_gb, "min_free_gb": min_free, "workbook_backlog": int(pending_rows or 0),
                 "dump_backlog": int(pending_dumps or 0), "spool_files": spool}
         self._disk = (now, info)
@@ -303,6 +302,3 @@ class LineData:
             "token_required": bool(self.settings.token),
         }
 
-
-def finite(v) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)

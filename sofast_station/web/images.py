@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import io
 import logging
+import threading
 from collections import OrderedDict
 from pathlib import Path
 
@@ -96,6 +97,7 @@ class FacetImages:
         self.data_dir = Path(data_dir)
         self._cache: OrderedDict = OrderedDict()
         self._size = cache
+        self._lock = threading.Lock()                # requests are served from a thread pool
 
     def get(self, cycle_id: str, kind: str) -> bytes | None:
         """The PNG *kind* ("white" or "map") of *cycle_id*; None when there is none (or no such cycle)."""
@@ -105,9 +107,10 @@ class FacetImages:
         if path is None or not path.is_file():
             return None
         key = (cycle_id, kind)
-        if key in self._cache:
-            self._cache.move_to_end(key)
-            return self._cache[key]
+        with self._lock:
+            if key in self._cache:
+                self._cache.move_to_end(key)
+                return self._cache[key]
         try:
             with np.load(path, allow_pickle=False) as pic:
                 png = white_png(pic) if kind == "white" else map_png(pic)
@@ -115,7 +118,8 @@ class FacetImages:
             log.warning("cannot draw the %s picture of cycle %s: %s", kind, cycle_id, exc)
             return None
         if png is not None:
-            self._cache[key] = png
-            while len(self._cache) > self._size:
-                self._cache.popitem(last=False)
+            with self._lock:
+                self._cache[key] = png
+                while len(self._cache) > self._size:
+                    self._cache.popitem(last=False)
         return png

@@ -91,7 +91,8 @@ def values(snap: dict) -> dict:
     status, last, s = snap["status"], snap.get("last") or {}, snap["summary"]
     cal, disk = snap["calibration"], snap["disk"]
     out = {"Station/Name": snap["station"], "Station/State": status.get("state", "offline"),
-           "Station/StateSince": str(status.get("since") or ""), "Station/CalibrationRecord": str(cal.get("record") or ""),
+           "Station/StateSince": str(status.get("since") or ""),
+           "Station/CalibrationRecord": str(cal.get("record") or ""),
            "Station/CalibrationAge_h": _d(cal.get("age_h")), "Station/FreeDisk_GB": _d(disk.get("free_gb")),
            "Station/ArchiveBacklog": int(disk.get("workbook_backlog") or 0),
            "LastFacet/CycleId": str(last.get("cycle_id") or ""), "LastFacet/Serial": str(last.get("serial") or ""),

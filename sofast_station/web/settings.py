@@ -122,7 +122,8 @@ def opcua_settings(config) -> OpcUaSettings:
             raise ConfigError(f"{where} {key} = {table[key]!r}: must be true or false")
     endpoint = table.get("endpoint", d.endpoint)
     if not isinstance(endpoint, str) or not re.match(r"^opc\.tcp://[^/:]+:[0-9]+(/.*)?$", endpoint):
-        raise ConfigError(f"{where} endpoint = {endpoint!r}: must look like \"opc.tcp://127.0.0.1:4840/sofast-station/\"")
+        raise ConfigError(f"{where} endpoint = {endpoint!r}: must look like "
+                          "\"opc.tcp://127.0.0.1:4840/sofast-station/\"")
     namespace = table.get("namespace", d.namespace)
     if not isinstance(namespace, str) or not namespace:
         raise ConfigError(f"{where} namespace = {namespace!r}: must be a non-empty URI string")
