@@ -71,6 +71,15 @@ def _browser(url: str, out: str, stop, reload_s: float) -> None:
     Path(out).write_text(json.dumps(seen))
 
 
+def _cpu_seconds(pid: int) -> float:
+    """User + system CPU seconds of a process so far (Linux /proc)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return float("nan")
+
+
 def one_run(cfg, frames, distance, frame_delay, n: int, with_page: bool, reload_s: float) -> dict:
     from cycle import FixedRangeFinder, NullDisplay
 
@@ -118,6 +127,7 @@ def one_run(cfg, frames, distance, frame_delay, n: int, with_page: bool, reload_
         result["answers"] = [o.answer for o in outcomes]
         if with_page:
             time.sleep(2.0)                          # the last facet reaches the page
+            result["monitor_cpu_s"] = _cpu_seconds(monitor.pid)
             stop.set()
             browser.join(120)
             monitor.stop()
@@ -174,6 +184,7 @@ def main(argv=None) -> int:
             lat = res["latency_s"]
             extra = (f"; on the page {res['facets_seen']}/{n} facets, journal row -> page (live, {len(lat)}) median "
                      f"{statistics.median(lat):.2f} s, worst {max(lat):.2f} s" if lat else "; no facet seen")
+            extra += f"; the monitor process used {res['monitor_cpu_s']:.1f} s of CPU"
         label = "with the page   " if with_page else "without the page"
         print(f"  {label}: cycle median {statistics.median(c):.3f} s, "
               f"mean {statistics.mean(c):.3f} s, worst {max(c):.3f} s ({', '.join(sorted(set(res['answers'])))})"

@@ -446,6 +446,7 @@ class StationRunner:
                 hook(outcome)
             except Exception:                  # the monitor's extras must never stop the line
                 log.exception("%s: a facet hook failed", outcome.serial)
+        outcome.valid = outcome.preview = None         # the hooks had them; the run's outcomes need not
 
     def _reopen_camera(self) -> None:
         reopen = getattr(self.station, "reopen_camera", None)

@@ -286,11 +286,12 @@ figcaption { color: #9ca3af; font-size: .85rem; }
 
 _JS = """
 "use strict";
+const shown = {};
 function put(sections) {
   for (const [id, html] of Object.entries(sections)) {
-    if (id.startsWith("_")) continue;
+    if (id.startsWith("_") || shown[id] === html) continue;   // unchanged: no re-layout, no image reload
     const el = document.getElementById(id);
-    if (el) el.innerHTML = html;
+    if (el) { el.innerHTML = html; shown[id] = html; }
   }
   document.body.dataset.seq = sections._seq;
   document.body.dataset.cycle = sections._cycle;

@@ -134,7 +134,8 @@ class LineData:
         try:
             return db.execute(sql, params).fetchall()
         except sqlite3.Error as exc:
-            log.warning("reading the journal %s: %s", self.journal_path, exc)
+            if "no such table" not in str(exc):      # else: the station is creating the journal right now
+                log.warning("reading the journal %s: %s", self.journal_path, exc)
             self.close()
             return []
 
