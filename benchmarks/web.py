@@ -34,8 +34,10 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 CHROMIUM = "/usr/bin/chromium"
 
 
-def _browser(url: str, out: str, stop, reload_s: float) -> None:
+def _browser(url: str, out: str, stop, reload_s: float, nice: int) -> None:
     """The operator's browser: the page open, live; reloaded every *reload_s*; appearance times saved."""
+    if nice:
+        os.nice(nice)                                # chromium, started from here, inherits it
     from playwright.sync_api import Error as PlaywrightError
     from playwright.sync_api import sync_playwright
 
@@ -80,7 +82,8 @@ def _cpu_seconds(pid: int) -> float:
         return float("nan")
 
 
-def one_run(cfg, frames, distance, frame_delay, n: int, with_page: bool, reload_s: float) -> dict:
+def one_run(cfg, frames, distance, frame_delay, n: int, with_page: bool, reload_s: float,
+            browser_nice: int = 0) -> dict:
     from cycle import FixedRangeFinder, NullDisplay
 
     from sofast_station.archive import Journal
@@ -110,7 +113,8 @@ def one_run(cfg, frames, distance, frame_delay, n: int, with_page: bool, reload_
             ctx = multiprocessing.get_context("spawn")
             stop = ctx.Event()
             seen_path = Path(tmp) / "seen.json"
-            browser = ctx.Process(target=_browser, args=(url, str(seen_path), stop, reload_s), daemon=True)
+            browser = ctx.Process(target=_browser, args=(url, str(seen_path), stop, reload_s, browser_nice),
+                                  daemon=True)
             browser.start()
             time.sleep(5.0)                          # the page is open before the first facet
         service = Service.__new__(Service)
@@ -149,6 +153,8 @@ def main(argv=None) -> int:
     p.add_argument("--facets", type=int, default=20)
     p.add_argument("--rounds", type=int, default=1, help="pairs of runs (without/with, then with/without, ...)")
     p.add_argument("--reload-s", type=float, default=10.0, help="the browser reloads the whole page this often")
+    p.add_argument("--browser-nice", type=int, default=0,
+                   help="run the browser this much below normal priority (a kiosk browser on the station PC)")
     p.add_argument("--quick", action="store_true", help="3 facets per run")
     args = p.parse_args(argv)
     n = 3 if args.quick else args.facets
@@ -170,13 +176,14 @@ def main(argv=None) -> int:
     frame_delay = 3.0 / 60.0
     cam = cfg.geometry.camera
     print(f"station: {cfg.name}; camera {cam.width_px} x {cam.height_px}; {n} facets per run; "
-          f"{os.cpu_count()} CPUs; load average {os.getloadavg()[0]:.1f} at the start")
+          f"{os.cpu_count()} CPUs; load average {os.getloadavg()[0]:.1f} at the start; browser nice "
+          f"{args.browser_nice}")
     order = []
     for r in range(args.rounds):
         order += [False, True] if r % 2 == 0 else [True, False]
     runs = []
     for with_page in order:
-        res = one_run(cfg, frames, distance, frame_delay, n, with_page, args.reload_s)
+        res = one_run(cfg, frames, distance, frame_delay, n, with_page, args.reload_s, args.browser_nice)
         runs.append(res)
         c = res["cycle_s"]
         extra = ""

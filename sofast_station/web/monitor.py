@@ -66,7 +66,7 @@ async def _serve(config, web: WebSettings | None, opcua: OpcUaSettings | None, o
     if web is not None:
         app = create_app(config, web)
         server = _Server(uvicorn.Config(app, host=web.host, port=web.port, log_level="warning",
-                                               timeout_graceful_shutdown=2, lifespan="on", access_log=False))
+                                               timeout_graceful_shutdown=5, lifespan="on", access_log=False))
         tasks.append(asyncio.create_task(server.serve()))
         while not server.started:
             if tasks[0].done():
