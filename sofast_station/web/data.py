@@ -222,8 +222,9 @@ class LineData:
         self._disk = (now, info)
         return info
 
-    def alarms(self, status: dict, last: dict | None, calibration: dict, disk: dict, records: list[dict]) -> list:
-        """(kind, text) of every alarm in force."""
+    def alarms(self, status: dict, last: dict | None, calibration: dict, disk: dict) -> list:
+        """(kind, text) of every alarm in force: the loop's (camera, plc, drift-RECIPE from the control-chart
+        rules of station/drift.py) and the monitor's own (calibration, disk)."""
         out = [(k, str(v)) for k, v in sorted((status.get("alarms") or {}).items())]
         warnings = ((last or {}).get("calibration") or {}).get("warnings") or []
         if warnings:
@@ -235,30 +236,7 @@ class LineData:
         if disk.get("free_gb") is not None and disk["free_gb"] < disk["min_free_gb"]:
             out.append(("disk", f"only {disk['free_gb']:.1f} GB free in data_dir (dumps stop below "
                                 f"{disk['min_free_gb']:g} GB)"))
-        drift = self._drift(records)
-        if drift:
-            out.append(("drift", drift))
         return out
-
-    def _drift(self, records: list[dict]) -> str | None:
-        """The shift's last 10 measured facets against its first 10: a move of more than a quarter of the
-        tolerance band in the mean focal length is a drift (fixture, temperature, camera moved)."""
-        measured = [r for r in records if r.get("verdict") in ("pass", "fail", "invalid")]
-        if len(measured) < 20:
-            return None
-        recipe = self.recipes.get(measured[-1].get("recipe") or "default", self.recipes["default"])
-        f_design, tol = recipe.design.focal_length_m, recipe.limits.focal_length_tolerance
-        if f_design > LONG_FOCAL_LENGTH_M:
-            return None
-        for axis in ("x", "y"):
-            first = [v for r in measured[:10] if (v := figure_value(r, f"focal_length_{axis}_m")) is not None]
-            last = [v for r in measured[-10:] if (v := figure_value(r, f"focal_length_{axis}_m")) is not None]
-            if first and last:
-                move = sum(last) / len(last) - sum(first) / len(first)
-                if abs(move) > 0.25 * tol * f_design:
-                    return (f"mean focal length {axis} moved {move * 1000:+.1f} mm since the start of the shift "
-                            f"(a quarter of the tolerance is {0.25 * tol * f_design * 1000:.1f} mm)")
-        return None
 
     # -- everything the page shows -----------------------------------------------------------------------
     def snapshot(self, now: _dt.datetime | None = None) -> dict:
@@ -299,7 +277,7 @@ class LineData:
             },
             "calibration": calibration,
             "disk": disk,
-            "alarms": self.alarms(status, last, calibration, disk, records),
+            "alarms": self.alarms(status, last, calibration, disk),
             "token_required": bool(self.settings.token),
         }
 

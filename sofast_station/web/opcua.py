@@ -69,7 +69,7 @@ TREE = {
     "Alarms": [
         ("Active", BOOLEAN, "any alarm in force"),
         ("Calibration", BOOLEAN, "stale calibration"),
-        ("Drift", BOOLEAN, "the shift's focal lengths drift"),
+        ("Drift", BOOLEAN, "a drift alarm of the control-chart rules (any recipe)"),
         ("Disk", BOOLEAN, "data_dir nearly full"),
         ("Camera", BOOLEAN, "camera lost"),
         ("Plc", BOOLEAN, "robot/PLC handshake lost"),
@@ -111,7 +111,7 @@ def values(snap: dict) -> dict:
         out[f"LastFacet/{u_name}"] = _d(figure_uncertainty(last, path))
     for verdict in ("pass", "fail", "invalid", "fault"):
         out[f"Counters/{verdict.capitalize()}"] = int(s.counts.get(verdict, 0))
-    kinds = {kind for kind, _ in snap["alarms"]}
+    kinds = {kind.split("-", 1)[0] for kind, _ in snap["alarms"]}      # drift-RECIPE -> drift
     out["Alarms/Active"] = bool(kinds)
     for name in ("Calibration", "Drift", "Disk", "Camera", "Plc"):
         out[f"Alarms/{name}"] = name.lower() in kinds
