@@ -182,3 +182,17 @@ def test_missing_file_is_named(paths, tmp_path):
     with pytest.raises(ConfigError, match="nope.h5"):
         read_opencsp(**bad)
     assert COUNT_SCALE == 256
+
+
+def test_report_draws_maps_of_an_opencsp_measurement(repo_root, tmp_path, capsys):
+    """Issue 16: 'report opencsp:DIR' draws the same maps as for a dump, and an OpenCSP folder is checked."""
+    from matplotlib.image import imread
+
+    from sofast_station.reanalysis.cli import main
+
+    spec = f"opencsp:{repo_root / 'fixtures/opencsp/test_data'}"
+    assert main(["report", spec, "--out", str(tmp_path)]) == 0
+    overview, detail = capsys.readouterr().out.split()
+    assert overview.endswith("test_data.png") and detail.endswith("test_data-detail-parabola.png")
+    assert imread(overview).shape[1] > 2 * imread(overview).shape[0] and imread(detail).shape[1] > 1000
+    assert main(["report", f"opencsp:{tmp_path}", "--out", str(tmp_path)]) == 2
