@@ -28,8 +28,10 @@ SOFAST_DATA_DIR overrides it).
 
 Commands by user:
   the production line       inspect, run, dump-next, archive export
+  the operator              serve (the line's web page, OPC UA), run --serve
   the morning calibration   calibrate radiometric | camera | geometry | status
-  the process engineer      reprocess, batch, report, import-opencsp
+  the process engineer      reprocess, batch, report, report trend, import-opencsp
+  the quality engineer      report spc | acceptance | certificate SERIAL | diff A B
 """
 
 EPILOG = """\

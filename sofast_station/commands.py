@@ -32,9 +32,9 @@ log = logging.getLogger("sofast_station")
 
 #: The modules providing commands, in ``--help`` order, each with ``register(subparsers)``.
 COMMAND_MODULES = (
-    "sofast_station.station.cli",       # the production line: inspect, run, dump-next, archive export
+    "sofast_station.station.cli",       # the production line: inspect, run, serve, dump-next, archive export
     "sofast_station.calibrate.cli",     # the morning calibration: calibrate radiometric|camera|geometry|status
-    "sofast_station.reanalysis.cli",    # the process engineer: reprocess, batch, report
+    "sofast_station.reanalysis.cli",    # the process and quality engineers: reprocess, batch, report
     "sofast_station.interop.cli",       # import-opencsp
 )
 

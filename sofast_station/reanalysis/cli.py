@@ -101,11 +101,14 @@ def register(subparsers) -> None:
 
     rpt = add_command(
         subparsers, "report", help="slope-error maps of dumps (the paper's Figs. 8-10), or 'report trend' over a period",
-        description="'report DUMP...' writes one PNG per dump: the slope-error magnitude on a fixed colour scale "
-                    "with arrows of the error direction, for the design, the fitted parabola and the higher-order "
-                    "model, the RMS figures in the titles. 'report trend [--from] [--to]' plots focal lengths, "
+        description="'report DUMP...' writes one PNG per dump: the slope-error magnitude with arrows of the "
+                    "error direction, for the design, the fitted parabola and the higher-order model, the RMS "
+                    "figures in the titles, and a detail page against one model (--detail). 'report trend [--from] [--to]' plots focal lengths, "
                     "residuals and twist over the period from the station's journal (in the data_dir of --config), "
-                    "or from --journal PATH, or from the --results DIR of a batch.")
+                    "or from --journal PATH, or from the --results DIR of a batch. 'report spc', 'report acceptance', "
+                    "'report certificate SERIAL' and 'report diff A B' are the quality engineer's reports: control "
+                    "charts of the journal, contract acceptance of a lot, one facet's certificate, two facets compared "
+                    "(their options say which report they belong to).")
     rpt.add_argument("targets", nargs="+", metavar="DUMP_OR_REPORT",
                      help="dump(s) or opencsp:DIR; or 'trend', 'spc', 'acceptance', 'certificate SERIAL', 'diff A B'")
     rpt.add_argument("--out", metavar="DIR_OR_FILE", default=None,
