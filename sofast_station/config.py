@@ -18,6 +18,7 @@ import numpy as np
 
 from .errors import ConfigError
 from .calibrate.settings import CALIBRATION_KEYS, parse_calibration_table
+from .config_schema import add_dataclass_keys, validate
 from .facet import FacetDesign, load_facet
 from .files import read_toml
 from .fringes import FringeSet
@@ -26,8 +27,9 @@ from .layout import layout_station
 from .measure.pipeline import AnalysisSettings
 from .station.verdict import Limits, Quality, limits_from_table, quality_from_table
 
-_SECTIONS = {"station", "camera", "screen", "layout", "fringes", "analysis", "limits", "quality", "calibration",
-             "simulation", "run", "recipes", "devices", "archive", "web", "opcua", "acceptance", "drift"}
+for _section, _cls in (("analysis", AnalysisSettings), ("limits", Limits), ("quality", Quality)):
+    add_dataclass_keys(_section, _cls)
+
 _STATION_KEYS = {"name", "data_dir", "backend", "facet"}
 _CAMERA_KEYS = {"width_px", "height_px", "focal_length_px", "principal_point_px", "distortion", "intrinsics"}
 _LAYOUT_KEYS = {"separation_m", "separation_axis", "screen_offset_m"}
@@ -102,7 +104,7 @@ def load_config(path: str | Path, use_camera_record: bool = True) -> StationConf
     path = Path(path).expanduser().resolve()
     raw = read_toml(path, "station file", "pass --config or run from the project folder")
     where = str(path)
-    _check_keys(raw, _SECTIONS, where)
+    validate(raw, where)              # every section, key, type and range, before anything is built
     base = path.parent
     st = raw.get("station", {})
     _check_keys(st, _STATION_KEYS, f"{where} [station]")

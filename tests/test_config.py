@@ -41,3 +41,55 @@ def test_broken_toml_names_the_file(tmp_path):
     p.write_text("[station\n")
     with pytest.raises(ConfigError, match="station.toml is not valid TOML"):
         load_config(p)
+
+
+@pytest.mark.parametrize("section, line, message", [
+    ("run", 'dump_every_n = "two"', "[run] dump_every_n must be a whole number of at least 0, got 'two'"),
+    ("run", "deadline_s = 0", "[run] deadline_s must be a number above 0, got 0"),
+    ("run", "camera_timeout_s = 20.0", "[run] camera_timeout_s = 20.0: must be shorter than deadline_s"),
+    ("run", "dump_failed = 1", "[run] dump_failed must be true or false, got 1"),
+    ("run", "deadline = 3", "[run] has unknown key(s) deadline; allowed:"),
+    ("camera", 'width_px = "1600"', "[camera] width_px must be a whole number of at least 1, got '1600'"),
+    ("camera", "distortion = [0.1, 0.2]", "[camera] distortion must be a list of numbers of length 4 or 5 or 8"),
+    ("limits", "focal_length_tolerance = -0.02",
+     "[limits] focal_length_tolerance must be a number above 0 and at most 1, got -0.02"),
+    ("limits", "max_slope_rms_mrad = { design = -3.0 }", "[limits.max_slope_rms_mrad] design must be a number above 0"),
+    ("quality", "min_valid_fraction = 1.5", "[quality] min_valid_fraction must be a number of at least 0 and at most 1"),
+    ("analysis", "robust_fit = \"yes\"", "[analysis] robust_fit must be true or false, got 'yes'"),
+    ("archive", 'workbook_period = "week"', "[archive] workbook_period must be one of 'day', 'shift', got 'week'"),
+    ("devices", 'trigger = "plc"', "[devices] trigger must be one of 'simulated', 'modbus', 'usb', got 'plc'"),
+    ("recipes.gore", "serial_pattern = 3", "[recipes.gore] serial_pattern must be a string, got 3"),
+    ("recipes.gore", "analysis = { threads = 0 }", "[recipes.gore.analysis] threads must be a whole number of at least 1"),
+    ("runn", "deadline_s = 3", "has unknown section(s) runn; allowed:"),
+])
+def test_every_key_is_checked_at_load(small_station_toml, section, line, message):
+    """Issue 11: types, ranges and cross-key rules at load, naming the file, section, key and value."""
+    text = small_station_toml.read_text()
+    table = f"[{section}]"
+    key = line.split(" =")[0]
+    existing = [ln for ln in text.splitlines() if ln.startswith(f"{key} =")]
+    if existing and section == "camera":
+        text = text.replace(existing[0], line, 1)
+    elif table in text:
+        text = text.replace(table, f"{table}\n{line}", 1)
+    else:
+        text = text.replace("[simulation]", f"{table}\n{line}\n\n[simulation]", 1)
+    small_station_toml.write_text(text)
+    with pytest.raises(ConfigError) as exc:
+        load_config(small_station_toml)
+    assert message in str(exc.value)
+    assert str(small_station_toml) in str(exc.value)
+
+
+def test_shipped_station_documents_every_key(repo_root):
+    """Every key the schema knows appears in the shipped station.toml (set or in a comment)."""
+    from sofast_station.config_schema import SECTIONS, TOP_LEVEL
+
+    text = (repo_root / "station.toml").read_text()
+    for section in TOP_LEVEL:
+        assert f"[{section}" in text, section
+        for key in SECTIONS[section]:
+            if key not in ("*", "routine"):
+                assert f"{key} =" in text or f"{key}," in text, (section, key)
+    cfg = load_config(repo_root / "station.toml")
+    assert cfg.raw["run"]["dump_every_n"] > 0

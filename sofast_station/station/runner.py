@@ -65,6 +65,11 @@ class RunSettings:
         Below this much free space in data_dir no dump is written (the row still is), and the log warns.
     dump_keep_days, dump_max_gb : float
         Retention of dumps: older or beyond the total size, the oldest go first.
+    late_grace_s : float
+        An analysis still running at the deadline (the robot already answered "fault: timeout") may
+        finish this much later; its figures are then journaled and its frames dumped, marked late.
+    warmup : bool
+        Analyse one capture before the station reports ready, so the first facet is not the slowest.
     """
 
     deadline_s: float = 10.0
@@ -76,6 +81,8 @@ class RunSettings:
     min_free_gb: float = 2.0
     dump_keep_days: float = 90.0
     dump_max_gb: float = 50.0
+    late_grace_s: float = 10.0
+    warmup: bool = True
 
 
 @dataclass

@@ -1,0 +1,375 @@
+"""What station.toml may hold: every section, every key, its type, its range, and the rules between keys.
+
+:func:`validate` checks a whole file at load, before any device opens, so that a typo stops the station
+at the door with one message naming the file, the section, the key, the value and what is allowed,
+instead of a traceback in the middle of a facet.
+
+The schema is data. To add a section or a key, add a :class:`Key` to :data:`SECTIONS` (and a function to
+:data:`CROSS_RULES` for a rule between keys), then document the key in the shipped ``station.toml``::
+
+    SECTIONS["opcua"] = {
+        "endpoint": Key("str", doc="opc.tcp://host:port of the server"),
+        "publish_s": Key("float", low=0.0, low_open=True, doc="publishing interval"),
+    }
+
+Sections whose contents another module checks in depth are declared with ``Key("any")`` / ``Key("table")``
+and their reader is listed in :data:`READERS` (run at load), e.g. ``[web]``, ``[opcua]``, ``[drift]``.
+A library such as pydantic was considered; a table of
+plain rules is enough here, keeps messages in the station's words (file, section, key, value, allowed),
+and adds no dependency to the measuring loop.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable
+
+from .errors import ConfigError
+
+
+@dataclass(frozen=True)
+class Key:
+    """One key of a section.
+
+    Parameters
+    ----------
+    kind : str
+        ``"int"`` (a whole number), ``"float"`` (any finite number), ``"bool"``, ``"str"``, ``"table"``
+        (a TOML table, not looked into), ``"floats"`` (a list of numbers), ``"ints"`` (a list of whole
+        numbers), ``"float|floats"`` (a number or a list of numbers), or ``"section:NAME"`` (a table checked
+        against the section NAME of :data:`SECTIONS`), ``"any"``.
+    low, high : float, optional
+        Inclusive bounds of a number (of every element of a list); *low_open* / *high_open* make them
+        exclusive.
+    choices : tuple, optional
+        The values allowed.
+    length : tuple of int, optional
+        The lengths a list may have.
+    doc : str
+        What the key means (for messages and for the reader of this table).
+    """
+
+    kind: str
+    low: float | None = None
+    high: float | None = None
+    low_open: bool = False
+    high_open: bool = False
+    choices: tuple = ()
+    length: tuple = ()
+    doc: str = ""
+
+    def allowed(self) -> str:
+        """What is allowed, in words."""
+        if self.choices:
+            return "one of " + ", ".join(repr(c) for c in self.choices)
+        base = {"int": "a whole number", "float": "a number", "bool": "true or false", "str": "a string",
+                "table": "a table", "floats": "a list of numbers", "ints": "a list of whole numbers",
+                "float|floats": "a number or a list of numbers", "any": "anything"}.get(self.kind, "a table")
+        if self.length:
+            base += " of length " + " or ".join(str(n) for n in self.length)
+        bounds = []
+        if self.low is not None:
+            bounds.append(f"{'above' if self.low_open else 'at least'} {self.low:g}")
+        if self.high is not None:
+            bounds.append(f"{'below' if self.high_open else 'at most'} {self.high:g}")
+        if bounds:
+            text = " and ".join(bounds)
+            if self.kind in ("floats", "ints", "float|floats"):
+                base += f" (each {text})"
+            else:
+                base += (" of " if text.startswith("at") else " ") + text
+        return base
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _in_range(key: Key, v: float) -> bool:
+    if key.low is not None and (v <= key.low if key.low_open else v < key.low):
+        return False
+    if key.high is not None and (v >= key.high if key.high_open else v > key.high):
+        return False
+    return True
+
+
+def _pos(doc: str) -> Key:
+    return Key("float", low=0.0, low_open=True, doc=doc)
+
+
+def _nonneg(doc: str) -> Key:
+    return Key("float", low=0.0, doc=doc)
+
+
+def _fraction(doc: str) -> Key:
+    return Key("float", low=0.0, high=1.0, doc=doc)
+
+
+#: Every section of station.toml and its keys.
+SECTIONS: dict[str, dict[str, Key]] = {
+    "station": {
+        "name": Key("str", doc="shown in every record"),
+        "data_dir": Key("str", doc="where everything the station writes goes"),
+        "backend": Key("str", choices=("simulated", "hardware"), doc="the twin or real devices"),
+        "facet": Key("str", doc="facet design file, relative to station.toml"),
+    },
+    "camera": {
+        "width_px": Key("int", low=1), "height_px": Key("int", low=1),
+        "focal_length_px": Key("float|floats", low=0.0, low_open=True, length=(2,), doc="f or [fx, fy], px"),
+        "principal_point_px": Key("floats", length=(2,), doc="[cx, cy], px"),
+        "distortion": Key("floats", length=(4, 5, 8), doc="OpenCV k1, k2, p1, p2[, k3[, k4, k5, k6]]"),
+        "intrinsics": Key("str", choices=("station.toml", "record")),
+    },
+    "screen": {
+        "width_px": Key("int", low=1), "height_px": Key("int", low=1),
+        "pitch_m": _pos("pixel pitch, m"),
+    },
+    "layout": {
+        "separation_m": _nonneg("camera to screen centre, m"),
+        "separation_axis": Key("str", choices=("x", "y")),
+        "screen_offset_m": Key("floats", length=(2,)),
+    },
+    "fringes": {
+        "periods_x": Key("ints", low=1), "periods_y": Key("ints", low=1),
+        "phase_steps": Key("int", low=3),
+    },
+    "analysis": {
+        "mask_threshold_dn": _nonneg("DN"), "min_modulation_dn": _nonneg("DN"),
+        "consistency_sigmas": _pos("noise sigmas"), "guard_sigmas": _nonneg("position-noise units"),
+        "subsample_step": Key("int", low=1), "max_iterations": Key("int", low=1),
+        "max_range_shift_m": _pos("m"), "corner_tolerance_px": _pos("px"), "max_hole_px": Key("int", low=0),
+        "max_saturated_fraction": _fraction("fraction of the facet's pixels"), "max_corner_rms_px": _pos("px"),
+        "robust_fit": Key("bool"), "edge_window_px": Key("int", low=1), "threads": Key("int", low=1),
+    },
+    "limits": {
+        "focal_length_tolerance": Key("float", low=0.0, high=1.0, low_open=True, doc="relative, |f/f_design - 1|"),
+        "curvature_tolerance_per_m": _pos("1/m"),
+        "max_twist_mrad_per_m": _pos("mrad/m"),
+        "max_slope_rms_mrad": Key("section:slope_limits", doc="per model, mrad"),
+    },
+    "slope_limits": {
+        "design": _pos("mrad"), "parabola": _pos("mrad"), "higher_order": _pos("mrad"),
+    },
+    "quality": {
+        "min_valid_fraction": _fraction(""), "min_median_modulation_dn": _nonneg("DN"),
+        "max_unwrap_disagreement_fraction": _fraction(""), "min_outline_agreement": _fraction(""),
+        "max_corner_reprojection_px": _pos("px"),
+        "max_display_harmonic_ratio": _nonneg("second harmonic / fringe amplitude"),
+        "warn_display_harmonic_ratio": _nonneg("second harmonic / fringe amplitude"),
+    },
+    "calibration": {
+        "radiometric": Key("str"), "stale": Key("str", choices=("warn", "refuse")),
+        "max_age_h": _pos("h"), "max_dark_shift_dn": _nonneg("DN"), "warmup": Key("bool"),
+        "warmup_min": _nonneg("min"), "routine": Key("table", doc="checked by calibrate.settings"),
+    },
+    "simulation": {"*": Key("any", doc="the twin's own records check these")},
+    "run": {
+        "deadline_s": _pos("trigger to answer, s"), "dump_every_n": Key("int", low=0),
+        "dump_failed": Key("bool"), "heartbeat_s": _pos("s"), "poll_s": _pos("s"),
+        "camera_timeout_s": _pos("s"), "min_free_gb": _nonneg("GB"), "dump_keep_days": _pos("days"),
+        "dump_max_gb": _pos("GB"), "late_grace_s": _nonneg("s after the deadline a late analysis may take"),
+        "warmup": Key("bool", doc="analyse one capture before reporting ready"),
+    },
+    "archive": {
+        "workbook_period": Key("str", choices=("day", "shift")), "workbook_interval_s": _pos("s"),
+        "dump_keep_days": _pos("days"), "dump_max_gb": _pos("GB"), "min_free_gb": _nonneg("GB"),
+    },
+    "devices": {
+        "trigger": Key("str", choices=("simulated", "modbus", "usb")), "trigger_options": Key("table"),
+        "display_options": Key("table"), "camera": Key("str", choices=("basler", "aravis", "replay")),
+        "camera_options": Key("table"), "range_finder_options": Key("table"),
+    },
+    "recipes": {"*": Key("section:recipe", doc="[recipes.NAME]")},
+    "web": {"*": Key("any", doc="checked by its reader (READERS below)")},
+    "opcua": {"*": Key("any", doc="checked by its reader (READERS below)")},
+    "drift": {"*": Key("any", doc="checked by its reader (READERS below)")},
+    "acceptance": {"*": Key("table", doc="[acceptance.RECIPE], checked by report.acceptance (a rule below)")},
+    "recipe": {
+        "facet": Key("str"), "serial_pattern": Key("str"),
+        "alignment_point_m": Key("floats", length=(2,)), "measure_point_m": Key("floats", length=(2,)),
+        "limits": Key("section:limits"), "quality": Key("section:quality"), "analysis": Key("section:analysis"),
+    },
+}
+
+#: The sections that may appear at the top of station.toml (the others are nested tables).
+TOP_LEVEL = ["station", "camera", "screen", "layout", "fringes", "analysis", "limits", "quality", "calibration",
+             "simulation", "run", "archive", "devices", "recipes", "web", "opcua", "acceptance", "drift"]
+
+
+def _check_value(key: Key, value, file: str, label: str, name: str) -> None:
+    def bad() -> ConfigError:
+        return ConfigError(f"{file} [{label}] {name} must be {key.allowed()}, got {value!r}")
+
+    kind = key.kind
+    if kind == "any":
+        return
+    if kind.startswith("section:"):
+        if not isinstance(value, dict):
+            raise bad()
+        check_section(kind.split(":", 1)[1], value, file, f"{label}.{name}")
+        return
+    if kind == "table":
+        if not isinstance(value, dict):
+            raise bad()
+        return
+    if kind == "bool":
+        if not isinstance(value, bool):
+            raise bad()
+        return
+    if kind == "str":
+        if not isinstance(value, str):
+            raise bad()
+    elif kind == "int":
+        if not _is_int(value) or not _in_range(key, value):
+            raise bad()
+    elif kind == "float" or (kind == "float|floats" and not isinstance(value, list)):
+        if not _is_number(value) or not _in_range(key, value):
+            raise bad()
+    elif kind in ("floats", "ints", "float|floats"):
+        ok = _is_int if kind == "ints" else _is_number
+        if (not isinstance(value, list) or not value or (key.length and len(value) not in key.length)
+                or not all(ok(v) and _in_range(key, v) for v in value)):
+            raise bad()
+    if key.choices and value not in key.choices:
+        raise bad()
+
+
+def check_section(section: str, table: dict, file: str, label: str | None = None) -> None:
+    """Check one table against ``SECTIONS[section]``.
+
+    Parameters
+    ----------
+    section : str
+        The schema's section name.
+    table : dict
+        The table as read from TOML.
+    file : str
+        The station file, for messages.
+    label : str, optional
+        The table's name in the file (``"recipes.gore.limits"``); default *section*.
+
+    Raises
+    ------
+    ConfigError
+        Naming the file, the table, the key, the value and what is allowed.
+    """
+    label = label or section
+    keys = SECTIONS[section]
+    if not isinstance(table, dict):
+        raise ConfigError(f"{file} [{label}] must be a table, got {table!r}")
+    if "*" in keys:
+        for name, value in table.items():
+            _check_value(keys["*"], value, file, label, name)
+        return
+    unknown = sorted(set(table) - set(keys))
+    if unknown:
+        raise ConfigError(f"{file} [{label}] has unknown key(s) {', '.join(unknown)}; allowed: "
+                          f"{', '.join(sorted(keys))}")
+    for name, value in table.items():
+        _check_value(keys[name], value, file, label, name)
+
+
+def _rule_camera(raw: dict, where: str) -> None:
+    cam = raw.get("camera", {})
+    if "principal_point_px" in cam and "width_px" in cam and "height_px" in cam:
+        cx, cy = cam["principal_point_px"]
+        if not (0 <= cx <= cam["width_px"] - 1 and 0 <= cy <= cam["height_px"] - 1):
+            raise ConfigError(f"{where} [camera] principal_point_px = {cam['principal_point_px']!r}: must lie "
+                              f"inside the {cam['width_px']} x {cam['height_px']} image")
+
+
+def _rule_fringes(raw: dict, where: str) -> None:
+    fr = raw.get("fringes", {})
+    for name in ("periods_x", "periods_y"):
+        p = fr.get(name)
+        if p and any(b <= a for a, b in zip(p, p[1:])):
+            raise ConfigError(f"{where} [fringes] {name} = {p!r}: the periods must increase (coarse to fine)")
+        if p and p[0] != 1:
+            raise ConfigError(f"{where} [fringes] {name} = {p!r}: the first (coarse) set must have 1 period, "
+                              "so that its phase is unambiguous")
+
+
+def _rule_run(raw: dict, where: str) -> None:
+    run = raw.get("run", {})
+    deadline = run.get("deadline_s", 10.0)
+    for name in ("camera_timeout_s", "poll_s"):
+        if name in run and run[name] >= deadline:
+            raise ConfigError(f"{where} [run] {name} = {run[name]!r}: must be shorter than deadline_s "
+                              f"({deadline:g} s)")
+
+
+#: Sections whose own reader checks them in depth: section -> "module:function", called at load with an
+#: object carrying ``path`` and ``raw`` (the reader raises ConfigError naming file, section and key).
+READERS = {
+    "web": "sofast_station.web.settings:web_settings",
+    "opcua": "sofast_station.web.settings:opcua_settings",
+    "drift": "sofast_station.station.drift:drift_settings",
+}
+
+
+def _rule_readers(raw: dict, where: str) -> None:
+    """Run the reader of every section in :data:`READERS` that the file has."""
+    import importlib
+    from types import SimpleNamespace
+
+    config = SimpleNamespace(path=where, raw=raw)
+    for section, target in READERS.items():
+        if section in raw:
+            module, func = target.split(":")
+            getattr(importlib.import_module(module), func)(config)
+
+
+def _rule_acceptance(raw: dict, where: str) -> None:
+    """[acceptance.RECIPE] contracts are checked by their reader (sofast_station/report/acceptance.py)."""
+    if not raw.get("acceptance"):
+        return
+    from types import SimpleNamespace
+
+    from .report.acceptance import contract_from_config
+
+    for recipe in raw["acceptance"]:
+        contract_from_config(SimpleNamespace(path=where, raw=raw), recipe)
+
+
+#: Rules between keys: ``rule(raw, file)`` raises ConfigError naming the file, the section and the key.
+CROSS_RULES: list[Callable[[dict, str], None]] = [_rule_camera, _rule_fringes, _rule_run, _rule_readers,
+                                                  _rule_acceptance]
+
+
+def add_dataclass_keys(section: str, cls) -> None:
+    """Declare every field of the dataclass *cls* read from [*section*] that the schema does not list yet,
+    typed by its default (a safety net: a field added to e.g. ``Quality`` is accepted, and type-checked,
+    before someone writes its range here)."""
+    import dataclasses
+
+    keys = SECTIONS.setdefault(section, {})
+    for f in dataclasses.fields(cls):
+        if f.name in keys:
+            continue
+        default = f.default
+        kind = ("bool" if isinstance(default, bool) else "int" if isinstance(default, int)
+                else "float" if isinstance(default, float) else "str" if isinstance(default, str) else "any")
+        keys[f.name] = Key(kind, doc="declared from its dataclass")
+
+
+def validate(raw: dict, where: str) -> None:
+    """Check a whole station file (*raw*, as read from TOML; *where*: its path) against the schema.
+
+    Raises
+    ------
+    ConfigError
+        At the first problem, naming the file, the section, the key, the value and what is allowed.
+    """
+    unknown = sorted(set(raw) - set(TOP_LEVEL))
+    if unknown:
+        raise ConfigError(f"{where} has unknown section(s) {', '.join(unknown)}; allowed: {', '.join(TOP_LEVEL)}")
+    for section in TOP_LEVEL:
+        if section in raw:
+            check_section(section, raw[section], where)
+    for rule in CROSS_RULES:
+        rule(raw, where)
