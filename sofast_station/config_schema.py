@@ -123,7 +123,7 @@ SECTIONS: dict[str, dict[str, Key]] = {
         "focal_length_px": Key("float|floats", low=0.0, low_open=True, length=(2,), doc="f or [fx, fy], px"),
         "principal_point_px": Key("floats", length=(2,), doc="[cx, cy], px"),
         "distortion": Key("floats", length=(4, 5, 8), doc="OpenCV k1, k2, p1, p2[, k3[, k4, k5, k6]]"),
-        "intrinsics": Key("str", choices=("station.toml", "record")),
+        "intrinsics": Key("str", doc="\"station.toml\" or \"record\" (checked with its own message)"),
     },
     "screen": {
         "width_px": Key("int", low=1), "height_px": Key("int", low=1),
