@@ -52,6 +52,7 @@ limits = {{ focal_length_tolerance = 0.005 }}
 token = "{token}"
 port = {port}
 nice = 0
+shift_starts = ["00:00"]
 """
 
 
@@ -148,6 +149,9 @@ def test_the_page_follows_the_line(line, monkeypatch):
                              "facets": page.inner_text("#shift .kpis div:first-child b")})
                 if outcome.serial in ("SIM-0001", "F-0002", "X-0006"):
                     page.screenshot(path=str(shots / f"page-after-{outcome.answer}.png"), full_page=True)
+                elif outcome.serial in (UNICODE, LONG):
+                    name = "unicode" if outcome.serial == UNICODE else "long"
+                    page.screenshot(path=str(shots / f"page-serial-{name}.png"))
 
             requests = [FacetRequest(serial=s) for s in SERIALS]
             service = Service(cfg, simulated_facets=requests, console=lambda line: None, archiver_process=False)
@@ -159,22 +163,23 @@ def test_the_page_follows_the_line(line, monkeypatch):
             assert [o.answer for o in outcomes] == VERDICTS
 
             # what the page showed after each facet: that facet, its serial as text, every reason
-            assert [s["serial"] for s in seen] == SERIALS
-            assert [s["verdict"] for s in seen] == VERDICTS
-            assert [s["facets"] for s in seen] == [str(i) for i in range(1, 7)]
-            assert any("focal length x" in r for r in seen[1]["reasons"])
-            assert "dark everywhere" in seen[5]["reasons"][0]
-            assert all(s["scripts"] == 1 for s in seen) and not dialogs      # the markup serial stayed text
+            assert [s["serial"] for s in seen] == SERIALS, seen
+            assert [s["verdict"] for s in seen] == VERDICTS, seen
+            assert [s["facets"] for s in seen] == [str(i) for i in range(1, 7)], seen
+            assert any("focal length x" in r for r in seen[1]["reasons"]), seen
+            assert "dark everywhere" in seen[5]["reasons"][0], seen
+            assert all(s["scripts"] == 1 for s in seen) and not dialogs, (seen, dialogs)   # markup stayed text
 
             # a guarded action without the token (or with a wrong one) is refused and posts nothing
             page.click("button[data-action='pause']")
             page.wait_for_function("() => document.getElementById('action-result').textContent.length > 0")
-            assert page.inner_text("#action-result").startswith("refused: wrong or missing token")
+            assert page.inner_text("#action-result").startswith("refused: wrong or missing token"), \
+                page.inner_text("#action-result")
             page.fill("#token", "not-the-token")
             page.evaluate("document.getElementById('action-result').textContent = ''")
             page.click("button[data-action='remeasure']")
             page.wait_for_function("() => document.getElementById('action-result').textContent.length > 0")
-            assert page.inner_text("#action-result").startswith("refused")
+            assert page.inner_text("#action-result").startswith("refused"), page.inner_text("#action-result")
             assert not commands_dir(data).exists() or not list(commands_dir(data).glob("*.json"))
             # with the token it reaches the loop's command interface
             page.fill("#token", TOKEN)
@@ -182,7 +187,8 @@ def test_the_page_follows_the_line(line, monkeypatch):
             page.evaluate("document.getElementById('action-result').textContent = ''")
             page.click("button[data-action='serial']")
             page.wait_for_function("() => document.getElementById('action-result').textContent.length > 0")
-            assert page.inner_text("#action-result") == "the next facet gets the serial HAND-7"
+            assert page.inner_text("#action-result") == "the next facet gets the serial HAND-7", \
+                page.inner_text("#action-result")
             posted = [json.loads(p.read_text()) for p in commands_dir(data).glob("*.json")]
             assert [(c["command"], c["serial"]) for c in posted] == [("serial", "HAND-7")]
 
