@@ -30,6 +30,16 @@ def _with_u(v, u, decimals: int) -> str:
     return f"{text} ± {_num(u, decimals)}" if u is not None and v is not None else text
 
 
+def _short(serial, most: int = 60) -> str:
+    """A serial too long for the big heading: its start and its end, the middle left out (the page's
+    tooltip and the journal keep it whole)."""
+    text = "" if serial is None else str(serial)
+    if len(text) <= most:
+        return text
+    keep = (most - 1) // 2
+    return f"{text[:keep]}…{text[-keep:]}"
+
+
 def _age(hours) -> str:
     if hours is None:
         return "unknown age"
@@ -89,8 +99,8 @@ def last_html(snap: dict) -> str:
                          f"<figcaption>slope error vs design (mrad)</figcaption></figure>")
         pictures += "</div>"
     return (f"<h2>Last facet</h2>"
-            f"<div class='facet-head'><div class='serial' title='{esc(rec.get('serial'))}'>{esc(rec.get('serial'))}"
-            f"</div><div class='meta'>recipe {esc(rec.get('recipe') or 'default')} · {esc(rec.get('time'))}"
+            f"<div class='facet-head'><div class='serial' title='{esc(rec.get('serial'))}'>"
+            f"{esc(_short(rec.get('serial')))}</div><div class='meta'>recipe {esc(rec.get('recipe') or 'default')} · {esc(rec.get('time'))}"
             f" · cycle {cid}</div></div>"
             f"<div class='verdict {cls}' data-verdict='{esc(verdict)}'>{esc(verdict.upper())}</div>"
             + (f"<p class='muted'>{'; '.join(notes)}</p>" if notes else "")

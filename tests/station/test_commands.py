@@ -30,6 +30,7 @@ def _wait_for(predicate, timeout_s=120.0):
 
 
 def test_commands_reach_the_loop(small_station_toml):
+    small_station_toml.write_text(small_station_toml.read_text() + "\n[run]\ndeadline_s = 300\n")  # busy machines
     cfg = load_config(small_station_toml)
     data = cfg.data_dir
     post_command(data, "serial", "HAND-0001", source="test")

@@ -22,6 +22,9 @@ from tests.conftest import ROOT, SMALL_STATION
 pytest.importorskip("asyncua", reason="asyncua is not installed ('setup-env test')")
 
 EXTRA = """
+[run]
+deadline_s = 300          # a busy machine must not turn a facet into a timeout fault
+
 [simulation.faults]
 "X-0002" = "dark"
 

@@ -41,6 +41,9 @@ UNICODE = "<script>alert('x')</script>Ærø-序列-🙂"
 SERIALS = ["SIM-0001", "F-0002", "../../etc/passwd", UNICODE, LONG, "X-0006"]
 VERDICTS = ["pass", "fail", "pass", "pass", "pass", "fault"]
 EXTRA = """
+[run]
+deadline_s = 300          # a busy machine must not turn a facet into a timeout fault
+
 [recipes.strict]
 serial_pattern = "^F-"
 limits = {{ focal_length_tolerance = 0.005 }}
@@ -138,13 +141,14 @@ def test_the_page_follows_the_line(line, monkeypatch):
                 assert page.evaluate("window.__loadedOnce") is True
                 verdict = page.get_attribute("#last .verdict", "data-verdict")
                 serial = page.inner_text("#last .serial")
+                title = page.get_attribute("#last .serial", "title")
                 reasons = page.locator("#last .reasons li").all_inner_texts()
                 if outcome.answer != "fault":
                     page.wait_for_function("() => { const i = document.getElementById('map'); "
                                            "return i && i.complete && i.naturalWidth > 0; }", timeout=60_000)
                 page.wait_for_function("() => { const i = document.getElementById('white'); "
                                        "return i && i.complete && i.naturalWidth > 0; }", timeout=60_000)
-                seen.append({"serial": serial, "verdict": verdict, "reasons": reasons,
+                seen.append({"serial": serial, "title": title, "verdict": verdict, "reasons": reasons,
                              "scripts": page.locator("script").count(),
                              "facets": page.inner_text("#shift .kpis div:first-child b")})
                 if outcome.serial in ("SIM-0001", "F-0002", "X-0006"):
@@ -163,7 +167,9 @@ def test_the_page_follows_the_line(line, monkeypatch):
             assert [o.answer for o in outcomes] == VERDICTS
 
             # what the page showed after each facet: that facet, its serial as text, every reason
-            assert [s["serial"] for s in seen] == SERIALS, seen
+            shown_long = LONG[:29] + "…" + LONG[-29:]       # start and end of a serial too long to show whole
+            assert [s["serial"] for s in seen] == SERIALS[:4] + [shown_long] + SERIALS[5:], seen
+            assert seen[4]["title"] == LONG
             assert [s["verdict"] for s in seen] == VERDICTS, seen
             assert [s["facets"] for s in seen] == [str(i) for i in range(1, 7)], seen
             assert any("focal length x" in r for r in seen[1]["reasons"]), seen

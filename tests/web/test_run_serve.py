@@ -16,7 +16,7 @@ from tests.conftest import ROOT
 
 
 def test_run_serve_starts_and_stops_the_page(small_station_toml, tmp_path):
-    small_station_toml.write_text(small_station_toml.read_text() + "\n[web]\nport = 0\n")
+    small_station_toml.write_text(small_station_toml.read_text() + "\n[web]\nport = 0\n\n[run]\ndeadline_s = 300\n")
     data = tmp_path / "station-data"
     post_command(data, "pause", source="test")       # the line waits, paused, until the page is checked
     env = dict(os.environ, PYTHONPATH=str(ROOT), SOFAST_DATA_DIR=str(data))
