@@ -1,15 +1,29 @@
-"""Benchmark: the analysis of one full-resolution capture of the default station, stage by stage.
+"""Benchmark: the analysis of one full-resolution capture, stage by stage, from each input path.
 
-    .venv/bin/python benchmarks/analysis.py            # default station, 7 timed runs
-    .venv/bin/python benchmarks/analysis.py --quick    # small station, 1 run (the test suite does this)
+    .venv/bin/python benchmarks/analysis.py                      # twin capture, plain fit, 7 timed runs
+    .venv/bin/python benchmarks/analysis.py --source dump --fit robust
+    .venv/bin/python benchmarks/analysis.py --source all --fit both    # every path, each fit (6 processes)
+    .venv/bin/python benchmarks/analysis.py --quick              # small station, 1 run (the test suite does this)
 
-One noisy capture is taken from the simulated station and saved; a fresh process then analyses it
-repeatedly, as the station's long-running process does facet after facet, with the camera's pixel rays
-precomputed (they depend only on the camera calibration and are computed once when the station starts;
-their cost is printed separately). The first analysis in the process (cold: first calls into numpy and
-OpenCV) is reported on its own; the stage table is over the runs after it. Printed: camera size, valid
-pixels, the median (min, max) time of every stage and of the whole analysis, and the peak memory the
-analysis adds to the process (resident set, read from /proc). Nothing is asserted.
+Sources (what a user of each path runs):
+
+* ``twin``: a noisy capture of the simulated station, analysed as the station's analysis worker does it
+  (per-camera data precomputed when the worker starts);
+* ``dump``: the same kind of capture written to an HDF5 data dump and re-analysed by ``reprocess``
+  (:func:`~sofast_station.reanalysis.reprocess.reprocess_content` on the dump read once);
+* ``opencsp``: OpenCSP's real measured facet (``fixtures/opencsp``) upsampled ``--opencsp-scale`` times
+  (8: 1624 x 1232 px; every frame resized bilinearly, the camera matrix scaled to match), written as
+  OpenCSP files, read by our OpenCSP reader and analysed with its measured (distorted 2-D) screen shape,
+  as ``import-opencsp`` does.
+
+Each (source, fit) runs in a fresh process, which analyses the capture repeatedly, as a long-running
+process does facet after facet. The first analysis (cold: first calls into numpy and OpenCV, per-camera
+caches filled) is reported on its own; the stage table is over the runs after it (steady state). Printed:
+camera size, facet pixels, valid points, the median (min - max) wall time of every stage and of the
+whole analysis, the process CPU time per analysis (both threads; less disturbed by other load on the
+machine than wall time), the peak memory the analysis adds to the process (resident set from /proc,
+peak reset after the inputs are loaded) and the machine's load average (``uptime``) before and after.
+Nothing is asserted.
 """
 
 from __future__ import annotations
@@ -17,6 +31,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import statistics
 import subprocess
 import sys
@@ -37,11 +52,44 @@ def rss_kb(field):
             return int(line.split()[1])
     return 0
 
-from sofast_station.config import load_config
-from sofast_station.measure.pipeline import analyse
-cfg = load_config(sys.argv[1])
-d = np.load(sys.argv[2])
-frames, distance, rays = d["frames"], float(d["distance"]), d["rays"]
+spec = json.loads(sys.argv[1])
+source, robust, runs = spec["source"], spec["robust"], spec["runs"]
+t = time.perf_counter()
+if source == "twin":
+    import dataclasses
+    from sofast_station.config import load_config
+    from sofast_station.measure.pipeline import analyse
+    cfg = load_config(spec["config"])
+    d = np.load(spec["capture"])
+    frames, distance = d["frames"], float(d["distance"])
+    settings = dataclasses.replace(cfg.analysis, robust_fit=robust)
+    try:                                        # what the station's analysis worker does when it starts
+        from sofast_station.precompute import ray_table, warm_up
+        warm_up(cfg.geometry.camera)
+        rays = ray_table(cfg.geometry.camera)
+    except ImportError:                         # an older checkout (before the per-camera ray table)
+        from sofast_station.measure.camera import ray_grid
+        rays = ray_grid(cfg.geometry.camera)
+    def once():
+        a = analyse(frames, cfg.fringes, cfg.geometry, cfg.design, distance, settings, rays_cam=rays)
+        return a.figures, a.timings_s
+elif source == "dump":
+    import dataclasses
+    from sofast_station.archive.dumps import read_dump
+    from sofast_station.reanalysis.reprocess import reprocess_content
+    content = read_dump(spec["dump_robust" if robust else "dump"], load_frames=True)
+    def once():
+        res = reprocess_content(content)
+        if res.analysis is None:
+            raise SystemExit("the dump's analysis was refused: " + "; ".join(res.record.get("reasons", [])))
+        return res.analysis.figures, res.analysis.timings_s
+else:
+    from sofast_station.interop.opencsp import opencsp_test_data_paths, read_opencsp
+    m = read_opencsp(**opencsp_test_data_paths(spec["opencsp"]))
+    def once():
+        a = m.analyse(robust=robust)
+        return a.figures, a.timings_s
+setup_s = time.perf_counter() - t
 base = rss_kb("VmRSS:")
 try:
     with open("/proc/self/clear_refs", "w") as fh:   # reset the peak (VmHWM) to the current RSS
@@ -49,34 +97,38 @@ try:
     reset = True
 except OSError:
     reset = False
-runs = []
-for i in range(int(sys.argv[3]) + 1):
-    t = time.perf_counter()
-    a = analyse(frames, cfg.fringes, cfg.geometry, cfg.design, distance, cfg.analysis, rays_cam=rays)
-    runs.append({"total": time.perf_counter() - t, "stages": a.timings_s})
-    if i == 0:
-        peak = rss_kb("VmHWM:")
-print(json.dumps({"runs": runs, "n_points": a.figures["n_points"], "base_mb": base / 1024,
-                  "peak_mb": peak / 1024, "peak_reset": reset}))
+out = []
+for i in range(runs + 1):
+    t, c = time.perf_counter(), time.process_time()
+    fig, stages = once()
+    out.append({"total": time.perf_counter() - t, "cpu": time.process_time() - c, "stages": stages})
+peak = rss_kb("VmHWM:")
+print(json.dumps({"runs": out, "n_points": fig["n_points"], "facet_pixels": fig["facet_pixels"],
+                  "f": [fig["focal_length_x_m"], fig["focal_length_y_m"]], "base_mb": base / 1024,
+                  "peak_mb": peak / 1024, "peak_reset": reset, "setup_s": setup_s}))
 """
 
 
-def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--config", default=str(ROOT / "station.toml"))
-    p.add_argument("--runs", type=int, default=7)
-    p.add_argument("--quick", action="store_true", help="one run on the given (or small test) station")
-    args = p.parse_args(argv)
-    runs = 1 if args.quick else args.runs
+def _load() -> str:
+    try:
+        return Path("/proc/loadavg").read_text().split()[:3].__repr__()
+    except OSError:
+        return "unknown"
 
+
+def _uptime() -> str:
+    try:
+        return subprocess.run(["uptime"], capture_output=True, text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return f"load average {_load()}"
+
+
+def _twin_capture(config: str):
+    """A noisy capture of the simulated station (frames, distance) and the station's configuration."""
     from sofast_station.config import load_config
-    from sofast_station.measure.camera import ray_grid
     from sofast_station.station.inspect import capture, open_station
 
-    cfg = load_config(args.config)
-    cam = cfg.geometry.camera
-    print(f"station: {cfg.name} ({args.config})")
-    print(f"camera: {cam.width_px} x {cam.height_px} pixels, facet {cfg.design.name}")
+    cfg = load_config(config)
     t = time.perf_counter()
     station = open_station(cfg, seed=1)
     t_open = time.perf_counter() - t
@@ -84,36 +136,168 @@ def main(argv=None) -> int:
         t = time.perf_counter()
         frames, distance = capture(station)
         t_capture = time.perf_counter() - t
-        t = time.perf_counter()
-        rays = ray_grid(cam)
-        t_rays = time.perf_counter() - t
     finally:
         station.close()
     print(f"setup (not part of the analysis): twin trace and renderer {t_open:.2f} s, simulated capture "
-          f"{t_capture:.2f} s, pixel rays for this camera {t_rays:.2f} s (once per calibration)")
+          f"{t_capture:.2f} s")
+    return cfg, station, frames, distance
 
-    with tempfile.TemporaryDirectory() as tmp:
-        npz = Path(tmp) / "capture.npz"
-        import numpy as np
-        np.savez(npz, frames=frames, distance=distance, rays=rays)
-        env = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1",
-                   PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
-        out = subprocess.run([sys.executable, "-c", _CHILD, args.config, str(npz), str(runs)], capture_output=True,
-                             text=True, env=env, check=True)
-        result = json.loads(out.stdout.strip().splitlines()[-1])
-    print(f"valid pixels: {result['n_points']:,}")
+
+def prepare_twin(config: str, tmp: Path) -> dict:
+    import numpy as np
+
+    cfg, _, frames, distance = _twin_capture(config)
+    path = tmp / "capture.npz"
+    np.savez(path, frames=frames, distance=distance)
+    cam = cfg.geometry.camera
+    return {"capture": str(path), "config": config, "what": f"{cam.width_px} x {cam.height_px} pixels, facet "
+            f"{cfg.design.name} ({cfg.name})"}
+
+
+def prepare_dump(config: str, tmp: Path, fits) -> dict:
+    """A twin capture, analysed once per fit, written as the station's data dumps (cropped frames, record,
+    the analysis settings with that fit), as a station configured for that fit writes them."""
+    import dataclasses
+
+    from sofast_station.archive.dumps import DumpContent, crop_to_facet, write_dump
+    from sofast_station.measure.pipeline import analyse
+    from sofast_station.station.inspect import result_record
+    from sofast_station.station.verdict import judge
+
+    cfg, station, frames, distance = _twin_capture(config)
+    cropped, box, full = crop_to_facet(frames, cfg.analysis.mask_threshold_dn)
+    spec = {}
+    for fit in fits:
+        settings = dataclasses.replace(cfg.analysis, robust_fit=fit == "robust")
+        a = analyse(frames, cfg.fringes, cfg.geometry, cfg.design, distance, settings)
+        record = result_record(station, "BENCH-1", a, dict(a.timings_s))
+        record.update(judge(a.figures, cfg.design, cfg.limits, cfg.quality))
+        content = DumpContent.from_station(station, cycle_id=f"bench-{fit}", record=record, frames_cropped=cropped,
+                                           crop_box=box, full_shape=full, measured_distance_m=distance,
+                                           analysis=settings)
+        path = tmp / f"bench-{fit}.h5"
+        write_dump(path, content)
+        spec["dump_robust" if fit == "robust" else "dump"] = str(path)
+    cam = cfg.geometry.camera
+    spec["what"] = (f"dump of {cam.width_px} x {cam.height_px} pixels, facet {cfg.design.name}, "
+                    f"{path.stat().st_size / 1e6:.1f} MB")
+    return spec
+
+
+def upsample_opencsp(src: Path, dst: Path, scale: int) -> None:
+    """Copy OpenCSP's test data to *dst* with the facet measurement's frames and camera *scale* times larger.
+
+    Frames are resized bilinearly (OpenCV's pixel-centre convention: destination pixel x samples source
+    position (x + 1/2)/scale - 1/2), so the camera matrix scales as f' = scale f, c' = scale c +
+    (scale - 1)/2; the distortion coefficients (normalised coordinates) are unchanged.
+    """
+    import cv2
+    import h5py
+    import numpy as np
+
+    from sofast_station.interop.opencsp import opencsp_test_data_paths
+
+    shutil.copytree(src, dst)
+    paths = opencsp_test_data_paths(dst)
+
+    def resize(stack):
+        h, w, n = stack.shape
+        return np.stack([cv2.resize(stack[:, :, k], (w * scale, h * scale), interpolation=cv2.INTER_LINEAR)
+                         for k in range(n)], axis=2)
+
+    def replace(h, key, value):
+        del h[key]
+        h[key] = value
+
+    with h5py.File(paths["measurement"], "r+") as h:
+        g = "MeasurementSofastFringe/"
+        for key in ("fringe_images", "mask_images"):
+            replace(h, g + key, resize(np.asarray(h[g + key])))
+    with h5py.File(paths["camera"], "r+") as h:
+        k = np.array(h["Camera/intrinsic_mat"], np.float64)
+        norm = k[2, 2]                       # OpenCSP's downsampled camera keeps K[2,2] = 1/8
+        k[0, 0] *= scale
+        k[1, 1] *= scale
+        k[0, 1] *= scale
+        k[0, 2] = scale * k[0, 2] + 0.5 * (scale - 1) * norm
+        k[1, 2] = scale * k[1, 2] + 0.5 * (scale - 1) * norm
+        replace(h, "Camera/intrinsic_mat", k)
+        shape = np.array(h["Camera/image_shape_xy"])
+        replace(h, "Camera/image_shape_xy", (shape * scale).astype(shape.dtype))
+
+
+def prepare_opencsp(scale: int, tmp: Path) -> dict:
+    src = ROOT / "fixtures/opencsp/test_data"
+    if scale == 1:
+        return {"opencsp": str(src), "what": "OpenCSP's measured facet, native resolution"}
+    dst = tmp / "opencsp"
+    upsample_opencsp(src, dst, scale)
+    return {"opencsp": str(dst), "what": f"OpenCSP's measured facet upsampled {scale}x (frames and intrinsics), "
+            "distorted 2-D screen"}
+
+
+def run_child(spec: dict) -> dict:
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1",
+               PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
+    out = subprocess.run([sys.executable, "-c", _CHILD, json.dumps(spec)], capture_output=True, text=True, env=env)
+    if out.returncode != 0:
+        raise SystemExit(f"the analysis process failed:\n{out.stderr}")
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def report(source: str, fit: str, what: str, result: dict) -> None:
+    print(f"\n== source {source}, {fit} fit: {what}")
+    print(f"facet pixels: {result['facet_pixels']:,}, valid pixels: {result['n_points']:,} "
+          f"(f_x {result['f'][0]:.4f} m, f_y {result['f'][1]:.4f} m)")
     cold, warm = result["runs"][0], result["runs"][1:]
-    print(f"first analysis in a new process (cold): {cold['total']:.3f} s")
+    print(f"load inputs {result['setup_s']:.2f} s; first analysis in a new process (cold): {cold['total']:.3f} s")
     print(f"analysis over {len(warm)} further run(s), seconds: median (min - max)")
     for s in cold["stages"]:
-        v = [r["stages"][s] for r in warm]
+        v = [r["stages"].get(s, 0.0) for r in warm]
         print(f"  {s:<10} {statistics.median(v):7.3f}  ({min(v):.3f} - {max(v):.3f})")
     tot = [r["total"] for r in warm]
+    cpu = [r["cpu"] for r in warm]
     print(f"  {'total':<10} {statistics.median(tot):7.3f}  ({min(tot):.3f} - {max(tot):.3f})")
+    print(f"  {'cpu time':<10} {statistics.median(cpu):7.3f}  ({min(cpu):.3f} - {max(cpu):.3f})  "
+          "(process CPU, both threads)")
     peak, base = result["peak_mb"], result["base_mb"]
     note = "" if result["peak_reset"] else " (peak could not be reset: includes loading)"
     print(f"memory: peak resident {peak:.0f} MB, of which the analysis added {peak - base:.0f} MB over the "
-          f"{base:.0f} MB holding the capture and rays{note}")
+          f"{base:.0f} MB holding the inputs{note}")
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--source", choices=("twin", "dump", "opencsp", "all"), default="twin")
+    p.add_argument("--fit", choices=("plain", "robust", "both"), default="plain")
+    p.add_argument("--config", default=str(ROOT / "station.toml"), help="station for the twin and dump sources")
+    p.add_argument("--opencsp-scale", type=int, default=8, help="upsampling of OpenCSP's measurement (1: native)")
+    p.add_argument("--runs", type=int, default=7)
+    p.add_argument("--quick", action="store_true", help="one run on the given (or small test) station")
+    args = p.parse_args(argv)
+    runs = 1 if args.quick else args.runs
+    sources = ("twin", "dump", "opencsp") if args.source == "all" else (args.source,)
+    fits = ("plain", "robust") if args.fit == "both" else (args.fit,)
+    if args.opencsp_scale < 1:
+        p.error("--opencsp-scale must be at least 1")
+
+    print(f"before: {_uptime()}")
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        for source in sources:
+            if source == "twin":
+                spec = prepare_twin(args.config, tmp)
+            elif source == "dump":
+                spec = prepare_dump(args.config, tmp, fits)
+            else:
+                spec = prepare_opencsp(args.opencsp_scale, tmp)
+            what = spec.pop("what")
+            if source == "twin":
+                print(f"camera: {what.split(', facet')[0]}")     # the line the quick test looks for
+            for fit in fits:
+                result = run_child({**spec, "source": source, "robust": fit == "robust", "runs": runs})
+                report(source, fit, what, result)
+    print(f"\nafter: {_uptime()}")
     return 0
 
 
