@@ -24,7 +24,7 @@ import numpy as np
 from ..errors import GeometryError
 from ..facet import FacetDesign
 from ..geometry import Pose
-from .fit import fit_parabola
+from .fit import ParabolaFit, fit_parabola
 from .surface import intersect_quadratic, normal_slopes, surface_slopes, surface_z
 
 
@@ -107,6 +107,8 @@ class ShapeSolution:
         Shape fits done, over all boresight steps.
     boresight_iterations : int
     converged : bool
+    fit : ParabolaFit or None
+        The last slope fit on the subsample (with a robust fit's weights and residual scale).
     """
 
     coefficients: np.ndarray
@@ -114,6 +116,7 @@ class ShapeSolution:
     shape_iterations: int
     boresight_iterations: int
     converged: bool
+    fit: ParabolaFit | None = None
 
 
 def _solve_t_z(assembly: Assembly, rotation_only: Motion, measure_point_m: np.ndarray, distance_m: float) -> float:
@@ -161,6 +164,7 @@ def solve_shape(assembly: Assembly, design: FacetDesign, measured_distance_m: fl
     shape_total = 0
     converged = False
     outer = 0
+    fit = None
     for outer in range(1, max_iterations + 1):
         motion = Motion(alpha, beta, t_z, pivot)
         moved = assembly.moved(motion)
@@ -168,7 +172,9 @@ def solve_shape(assembly: Assembly, design: FacetDesign, measured_distance_m: fl
         for inner in range(1, max_iterations + 1):
             pts = intersect_quadratic(coeffs, moved.camera_m, moved.rays)
             sx, sy = normal_slopes(pts, moved.camera_m, moved.screen_m)
-            new = fit_parabola(pts[0], pts[1], sx, sy, robust=robust).coefficients()
+            # A robust fit starts from the previous fit's weights: the same points, moved very little.
+            fit = fit_parabola(pts[0], pts[1], sx, sy, robust=robust, start=fit)
+            new = fit.coefficients()
             new[5] = z_align - surface_z(new, xa, ya)
             shape_total += 1
             stable = kappa_converged(new, coeffs)
@@ -187,5 +193,5 @@ def solve_shape(assembly: Assembly, design: FacetDesign, measured_distance_m: fl
         if shape_done and inner == 1 and max(abs(d_alpha), abs(d_beta)) < 1e-6:
             converged = True
             break
-    return ShapeSolution(coeffs, Motion(alpha, beta, t_z, pivot), shape_total, outer, converged)
+    return ShapeSolution(coeffs, Motion(alpha, beta, t_z, pivot), shape_total, outer, converged, fit)
 

@@ -21,7 +21,7 @@ from . import checks
 from . import corners as corners_mod
 from .camera import pixel_rays, project, to_frame
 from .boresight import Assembly, ShapeSolution, solve_shape
-from .fit import CubicFit, ParabolaFit, fit_cubic, fit_parabola
+from .fit import CubicFit, ParabolaFit, fit_cubic, fit_parabola, reweight_parabola
 from .mask import facet_region
 from .metrics import focal_length_m, principal_axes, rms_summary, slope_residuals_mrad
 from .phase import FrameNoise, frame_noise, phase_and_modulation, position_sigma_m, unwrap_positions
@@ -434,6 +434,8 @@ def screen_points_and_rays(region: Region, phases: Phases, camera, screen: Scree
     if rays_cam is None:
         rows, cols = np.divmod(vidx, camera.width_px)
         rays = pixel_rays(camera, cols, rows)
+    elif hasattr(rays_cam, "take") and not isinstance(rays_cam, np.ndarray):     # a RayTable
+        rays = rays_cam.take(vidx)
     else:
         if rays_cam.shape != (3, *camera.shape):
             raise CaptureError(f"precomputed rays have shape {rays_cam.shape}, expected {(3, *camera.shape)}")
@@ -508,7 +510,9 @@ def fit_models(shape: Shape, design: FacetDesign, settings: AnalysisSettings, po
     s_x, s_y = shape.slopes[0], shape.slopes[1]
     cubic_task = pool.submit(fit_cubic, x, y, s_x, s_y)
     angle_x = pool.submit(np.arctan, s_x)
-    fit = fit_parabola(x, y, s_x, s_y, robust=settings.robust_fit)
+    # Robust: the bisquare iteration converged on the subsample; one Newton step over every point.
+    fit = (reweight_parabola(x, y, s_x, s_y, shape.solution.fit) if settings.robust_fit
+           else fit_parabola(x, y, s_x, s_y))
     coeffs = fit.coefficients()
     coeffs[5] = float(design.z(*design.alignment_point_m)) - surface_z(coeffs, *design.alignment_point_m)
     angles = (angle_x.result(), np.arctan(s_y))
@@ -614,8 +618,9 @@ def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, d
     settings : AnalysisSettings
     screen : ScreenModel, optional
         Screen positions -> camera-frame points; the flat screen of ``geometry`` by default.
-    rays_cam : (3, rows, columns) array, optional
-        Precomputed unit pixel rays (:func:`~sofast_station.measure.camera.ray_grid`); computed for the
+    rays_cam : (3, rows, columns) array or RayTable, optional
+        Precomputed unit pixel rays (:func:`~sofast_station.measure.camera.ray_grid`, or a
+        :class:`~sofast_station.measure.camera.RayTable` that keeps the rays it computes); computed for the
         valid pixels when absent.
     pixel_mask : (rows, columns) bool array, optional
         Only these pixels may be used for the shape (to exclude a region, or to compare with another

@@ -18,8 +18,8 @@ from .. import __version__
 from ..calibrate.records import RadiometricRecord
 from ..config import StationConfig
 from ..devices.protocols import Camera, Display, RangeFinder
-from ..measure.camera import ray_grid
 from ..measure.pipeline import Analysis, analyse
+from ..precompute import ray_table
 from .verdict import judge
 
 log = logging.getLogger(__name__)
@@ -46,10 +46,10 @@ class Station:
     _rays: np.ndarray | None = field(default=None, repr=False)
 
     @property
-    def rays_cam(self) -> np.ndarray:
-        """Unit pixel rays of the calibrated camera, computed once."""
+    def rays_cam(self):
+        """Unit pixel rays of the calibrated camera (a RayTable: each pixel's ray computed once)."""
         if self._rays is None:
-            self._rays = ray_grid(self.config.geometry.camera)
+            self._rays = ray_table(self.config.geometry.camera)
         return self._rays
 
     def reopen_camera(self) -> None:

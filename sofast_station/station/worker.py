@@ -45,14 +45,15 @@ _STATE: dict = {}
 def _init(shm_name: str, shape: tuple[int, int, int], geometry: dict, fringes: dict) -> None:
     from ..fringes import FringeSet
     from ..geometry import StationGeometry
-    from ..measure.camera import ray_grid
+    from ..precompute import ray_table, warm_up
 
     shm = SharedMemory(name=shm_name)
     _STATE["shm"] = shm
     _STATE["frames"] = np.ndarray(shape, dtype=np.uint8, buffer=shm.buf)
     _STATE["geometry"] = StationGeometry.from_dict(geometry)
     _STATE["fringes"] = FringeSet.from_dict(fringes)
-    _STATE["rays"] = ray_grid(_STATE["geometry"].camera)
+    warm_up(_STATE["geometry"].camera)          # every pixel's ray before the first facet
+    _STATE["rays"] = ray_table(_STATE["geometry"].camera)
 
 
 def _run(design: dict, settings: dict, distance_m: float, hang_s: float):

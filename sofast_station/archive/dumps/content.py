@@ -207,6 +207,7 @@ class DumpContent:
         sofast_station.measure.pipeline.Analysis
         """
         from ...measure.pipeline import analyse
+        from ...precompute import ray_table
 
         args = {"fringes": self.fringe_set(), "geometry": self.station_geometry(), "design": self.facet_design(),
                 "measured_distance_m": self.measured_distance_m, "settings": self.analysis_settings()}
@@ -214,7 +215,8 @@ class DumpContent:
         if unknown:
             raise TypeError(f"unknown override(s) {sorted(unknown)}; allowed: {sorted(args)}")
         args.update(overrides)
-        return analyse(self.frames(), **args)
+        # The camera's rays are kept per process: re-analysing many dumps of one station computes them once.
+        return analyse(self.frames(), **args, rays_cam=ray_table(args["geometry"].camera))
 
 
 def _crop_origin(crop_box, shape) -> tuple[int, int]:
