@@ -57,6 +57,7 @@ class SimulatedDisplay:
         img = self._cache.get(pattern)
         if img is None:
             img = self._cache[pattern] = self.renderer.render(pattern)
+            img.setflags(write=False)        # the twin may keep what it derives from an image that never changes
         self._pending.append((self.clock_s + self.latency_s, img))
         self.clock_s += max(self.settle_s, 0.0)
 

@@ -14,7 +14,10 @@ from __future__ import annotations
 
 import copy
 import math
+import threading
 import time
+import weakref
+from concurrent.futures import ThreadPoolExecutor
 from functools import cached_property
 
 import numpy as np
@@ -29,6 +32,10 @@ from .surface import TrueSurface
 
 #: Sub-rays per edge pixel are processed in chunks of this many pixels (bounds the memory used).
 _EDGE_CHUNK_PX = 4096
+
+#: The thread that finishes half of every captured frame (shared by all twins of the process).
+_FINISHER: ThreadPoolExecutor | None = None
+_FINISHER_LOCK = threading.Lock()
 
 
 def rotation_zyx(rx_rad: float, ry_rad: float, rz_rad: float) -> np.ndarray:
@@ -134,6 +141,8 @@ class TwinStation:
         self.facet_to_screen = self.screen_to_facet.inverse()
         self._supersample = int(supersample)
         self._edge_band_px = float(edge_band_px)
+        #: Display samples of the read-only images captured so far (id -> (weak reference, sample)).
+        self._samples: dict = {}
         start = time.perf_counter()
         self._trace()
         self._prepare_sampling()
@@ -312,6 +321,7 @@ class TwinStation:
         """
         twin = copy.copy(self)
         twin.optics = optics
+        twin._samples = {}                   # the display's response (luminance table) may differ
         twin._prepare_photometry()
         for name in ("screen_position_m", "surface_point_facet_m", "slope_true", "on_screen"):
             twin.__dict__.pop(name, None)
@@ -385,12 +395,30 @@ class TwinStation:
                 sample += self._sample_w[k] * flat[self._sample_idx[k]]
         return sample
 
+    def _cached_sample(self, display_image: np.ndarray) -> np.ndarray:
+        """:meth:`_display_sample`, kept for read-only images (the display's rendered patterns, which
+        never change): the trace fixes where every pixel looks, so only the image formation is redone."""
+        image = display_image
+        if not (isinstance(image, np.ndarray) and not image.flags.writeable and image.base is None):
+            return self._display_sample(image)
+        key = id(image)
+        hit = self._samples.get(key)
+        if hit is not None and hit[0]() is image:
+            return hit[1]
+        sample = self._display_sample(image)
+        sample.setflags(write=False)
+        samples = self._samples
+        self._samples[key] = (weakref.ref(image, lambda _, k=key: samples.pop(k, None)), sample)
+        return sample
+
     def _linear(self, sample: np.ndarray, ambient: float, scale: float, flicker: float) -> np.ndarray:
         """Noise-free DN before the knee, rounding and clipping (float32, camera shape)."""
         if scale == 1.0 and flicker == 1.0:
             # The reference exposure and gain: exactly the arithmetic the twin has always used.
-            dn = self._dn_base + np.float32(ambient) * self._dn_per_ambient
-            dn.ravel()[self._seen_idx] += self._dn_per_luminance * sample
+            dn = np.multiply(self._dn_per_ambient, np.float32(ambient))
+            dn += self._dn_base
+            flat = dn.ravel()
+            flat[self._seen_idx] += self._dn_per_luminance * sample
             return dn
         offset = np.float32(self.optics.camera_offset_dn)
         dn = (self._dn_base - offset) + np.float32(ambient) * self._dn_per_ambient
@@ -417,8 +445,10 @@ class TwinStation:
         The sensor: DN = black level + (exposure / reference exposure) x gain x (the light the pixel
         gathers, display light times the flicker factor); read noise x gain and shot noise (variance
         signal x gain / ``electrons_per_dn``) are added, then the knee, rounding and clipping to 0..255.
-        At the reference exposure, gain 1 and a whole number of refresh periods the frame is exactly the
-        one the twin has always produced.
+        At the reference exposure, gain 1 and a whole number of refresh periods the signal is exactly the
+        one the twin has always formed (a noise-free frame is the same bits). The noise of each half of
+        the image comes from its own generator seeded from *rng*, so the two halves are drawn in parallel;
+        a given *rng* state still gives the same frame.
 
         Parameters
         ----------
@@ -442,23 +472,58 @@ class TwinStation:
         scale = self.sensor_scale(exposure_s, gain)
         g = 1.0 if gain is None else float(gain)
         flicker = self.flicker_factor(exposure_s, flicker_phase)
-        sample = self._display_sample(display_image)
+        sample = self._cached_sample(display_image)
         ambient = optics.ambient
         if rng is not None and optics.ambient_jitter > 0:
             ambient = max(0.0, ambient * (1.0 + optics.ambient_jitter * float(rng.standard_normal())))
         dn = self._linear(sample, ambient, scale, flicker)
-        if rng is not None and (optics.read_noise_dn > 0 or optics.electrons_per_dn > 0):
-            variance = np.full(dn.shape, (optics.read_noise_dn * g) ** 2, dtype=np.float32)
+        out = np.empty(dn.shape, dtype=np.uint8)
+        noisy = rng is not None and (optics.read_noise_dn > 0 or optics.electrons_per_dn > 0)
+        # The image's two halves are finished side by side, each with its own generator seeded from *rng*
+        # (numpy releases the GIL while it draws and computes): the sensor noise dominates the frame's cost.
+        seeds = rng.integers(0, 2**63, size=2) if noisy else (None, None)
+        half = dn.shape[0] // 2
+        first = self._finisher().submit(self._finish_rows, dn[:half], out[:half], seeds[0], g)
+        self._finish_rows(dn[half:], out[half:], seeds[1], g)
+        first.result()
+        return out
+
+    def _finisher(self) -> ThreadPoolExecutor:
+        """The one extra thread that finishes half of each frame (created on first use)."""
+        with _FINISHER_LOCK:
+            global _FINISHER
+            if _FINISHER is None:
+                _FINISHER = ThreadPoolExecutor(max_workers=1, thread_name_prefix="twin-frame")
+            return _FINISHER
+
+    def _finish_rows(self, dn: np.ndarray, out: np.ndarray, seed, g: float) -> None:
+        """Sensor noise, knee, rounding and clipping of some rows of the linear signal *dn*, into *out*.
+
+        Noise: read noise x gain and shot noise (variance signal x gain / ``electrons_per_dn``), drawn from
+        a generator seeded with *seed* (None: no noise). Float32, in place, one scratch array.
+        """
+        optics = self.optics
+        if seed is not None:
+            noise = np.random.Generator(np.random.PCG64(int(seed))).standard_normal(dn.shape, dtype=np.float32)
+            read_var = np.float32((optics.read_noise_dn * g) ** 2)
             if optics.electrons_per_dn > 0:
-                variance += (np.maximum(dn - np.float32(optics.camera_offset_dn), 0)
-                             / np.float32(optics.electrons_per_dn / g))
-            dn += np.sqrt(variance) * rng.standard_normal(dn.shape, dtype=np.float32)
+                variance = np.subtract(dn, np.float32(optics.camera_offset_dn))
+                np.maximum(variance, np.float32(0), out=variance)
+                variance /= np.float32(optics.electrons_per_dn / g)
+                variance += read_var
+                np.sqrt(variance, out=variance)
+                noise *= variance
+            else:
+                noise *= np.sqrt(read_var)
+            dn += noise
         if optics.knee_dn is not None:
             knee = np.float32(optics.knee_dn)
             room = np.float32(255.0 - optics.knee_dn)
             over = dn > knee
             dn[over] = knee + room * -np.expm1(-(dn[over] - knee) / room)
-        return np.clip(np.rint(dn), 0, 255).astype(np.uint8)
+        np.rint(dn, out=dn)
+        np.clip(dn, 0, 255, out=dn)
+        out[...] = dn
 
     # ------------------------------------------------------------- geometry
     def measured_distance_m(self) -> float:
