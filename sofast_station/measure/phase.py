@@ -233,16 +233,8 @@ def frame_noise(phases, modulations, residuals, level=None) -> FrameNoise:
         whose pixels see only part of a fringe (coarse periods over a small reflected footprint) cannot
         tell a harmonic from an offset on its own; together the sets can. Returns the shared harmonic
         coefficients and every set's own coefficients (those of the others fitted with the harmonic fixed)."""
+        coef = _block_lstsq([samples[k] for k in good])
         n_own = per_set * len(good)
-        columns = []
-        for j, k in enumerate(good):
-            own, shared, r = samples[k]
-            block = np.zeros((n_own + 4, r.size))
-            block[per_set * j:per_set * (j + 1)] = own
-            block[n_own:] = shared
-            columns.append(block)
-        coef = _robust_lstsq(np.concatenate(columns, axis=1), np.concatenate([samples[k][2] for k in good]),
-                             stride=False)
         harmonic, own_coefs = coef[n_own:], []
         for k in range(n_sets):
             if k in good:
@@ -265,17 +257,81 @@ def frame_noise(phases, modulations, residuals, level=None) -> FrameNoise:
         if len(good) == 1 or scatter[worst] <= 2.0 * min(scatter[k] for k in good):
             break
         good.remove(worst)
-    cleaned = []
-    for k in range(n_sets):
-        own, shared = rows(k, 1)
-        fitted = _combine(harmonic.astype(np.float32), shared) + _combine(own_coefs[k].astype(np.float32), own)
-        cleaned.append(np.asarray(residuals[k]).ravel().astype(np.float32, copy=False) - fitted)
+    cleaned = [_cleaned(residuals[k], phases[k], modulations[k], level, harmonic, own_coefs[k])
+               for k in range(n_sets)]
     # r = 4 c_2 cos(2 phi + psi): the ratio c_2 / b, signed by the cosine part (power laws have psi = 0, pi).
     ratio = 0.25 * float(np.hypot(harmonic[0], harmonic[1])) * (1.0 if harmonic[0] >= 0 else -1.0)
     noise = intensity_noise_dn(np.concatenate([_stride(cleaned[k]) for k in good]))
     return FrameNoise(noise_dn=noise, frame_noise_dn=float(np.hypot(noise, QUANTISATION_NOISE_DN)),
                       harmonic_ratio=abs(ratio), signed_harmonic_ratio=ratio,
                       phase_error_rad=phase_error_from_harmonic(ratio), residuals=cleaned)
+
+
+def _cleaned(residual, phase, modulation, level, harmonic: np.ndarray, own: np.ndarray) -> np.ndarray:
+    """A set's residual at every pixel, its fitted offset (and level term) and harmonics removed, float32.
+
+    The harmonics b (h0 cos 2phi + h1 sin 2phi + h2 cos 6phi + h3 sin 6phi), with cos 6phi = cos 2phi
+    (4 cos^2 2phi - 3) and sin 6phi = sin 2phi (3 - 4 sin^2 2phi), grouped as
+    b (cos 2phi (h0 - 3 h2 + 4 h2 cos^2 2phi) + sin 2phi (h1 + 3 h3 - 4 h3 sin^2 2phi)): a dozen passes in
+    place over the pixels in single precision, ample for a residual compared with a few noise deviations.
+    """
+    h0, h1, h2, h3 = (np.float32(v) for v in harmonic)
+    phi2 = np.multiply(np.asarray(phase).ravel(), np.float32(2.0), dtype=np.float32)
+    c2 = np.cos(phi2)
+    s2 = np.sin(phi2, out=phi2)
+    t = np.multiply(c2, c2)
+    t *= np.float32(4.0) * h2
+    t += h0 - np.float32(3.0) * h2
+    t *= c2
+    u = np.multiply(s2, s2, out=c2)
+    u *= np.float32(-4.0) * h3
+    u += h1 + np.float32(3.0) * h3
+    u *= s2
+    t += u
+    t *= np.asarray(modulation).ravel()
+    t += np.float32(own[0])
+    if level is not None:
+        u = np.multiply(level, np.float32(own[1]), out=u, dtype=np.float32)
+        t += u
+    return np.subtract(np.asarray(residual).ravel(), t, out=t, dtype=np.float32)
+
+
+def _block_lstsq(samples: list) -> np.ndarray:
+    """:func:`_robust_lstsq` of the joint fit without forming its (mostly zero) design matrix.
+
+    *samples*: per set (own rows (m, n_k), shared rows (4, n_k), residuals (n_k,)). The unknowns are every
+    set's own coefficients then the four shared ones; the normal equations are assembled block by block
+    from each set's own and shared rows (einsum's loops, no BLAS), refitted without residuals beyond 5
+    trimmed standard deviations like :func:`_robust_lstsq`.
+    """
+    m = samples[0][0].shape[0]
+    n_own = m * len(samples)
+    keeps = [np.ones(r.size, dtype=bool) for _, _, r in samples]
+    coef = np.zeros(n_own + 4)
+    for _ in range(3):
+        gram = np.zeros((n_own + 4, n_own + 4))
+        rhs = np.zeros(n_own + 4)
+        for j, ((own, shared, r), keep) in enumerate(zip(samples, keeps)):
+            o, sh, y = own[:, keep], shared[:, keep], r[keep]
+            a = slice(m * j, m * (j + 1))
+            gram[a, a] = np.einsum("in,jn->ij", o, o, optimize=False)
+            cross = np.einsum("in,jn->ij", o, sh, optimize=False)
+            gram[a, n_own:] = cross
+            gram[n_own:, a] = cross.T
+            gram[n_own:, n_own:] += np.einsum("in,jn->ij", sh, sh, optimize=False)
+            rhs[a] = np.einsum("in,n->i", o, y, optimize=False)
+            rhs[n_own:] += np.einsum("in,n->i", sh, y, optimize=False)
+        coef = np.linalg.solve(gram, rhs)
+        res = [r - _combine(coef[m * j:m * (j + 1)], own) - _combine(coef[n_own:], shared)
+               for j, (own, shared, r) in enumerate(samples)]
+        all_res = np.concatenate(res)
+        limit = 5.0 * max(trimmed_std(all_res), 0.5)
+        new_keeps = [np.abs(rr) <= limit for rr in res]
+        if all(np.array_equal(a, b) for a, b in zip(new_keeps, keeps)) or \
+                sum(int(k.sum()) for k in new_keeps) < (n_own + 4) * 3:
+            break
+        keeps = new_keeps
+    return coef
 
 
 def _combine(coef: np.ndarray, rows: np.ndarray) -> np.ndarray:
