@@ -13,6 +13,12 @@ import numpy as np
 from ..errors import AnalysisError
 
 
+def _dot(a: np.ndarray, b: np.ndarray) -> float:
+    """sum_i a_i b_i by einsum's own loops: one pass, no temporary, no BLAS (the same bits on any number
+    of threads)."""
+    return float(np.einsum("i,i->", a, b, optimize=False))
+
+
 def solve_normal_equations(columns: list[np.ndarray], target: np.ndarray,
                            weights: np.ndarray | None = None) -> np.ndarray:
     """Coefficients k minimising sum_i w_i (sum_j k_j columns[j]_i - target_i)^2, deterministically.
@@ -20,19 +26,19 @@ def solve_normal_equations(columns: list[np.ndarray], target: np.ndarray,
     Columns are scaled to unit RMS before the Gram matrix is formed, which keeps it well conditioned
     for any sensible choice of units. Without *weights* every point weighs 1.
     """
-    scale = np.array([np.sqrt(np.sum(c * c) / c.size) for c in columns])
+    scale = np.array([np.sqrt(_dot(c, c) / c.size) for c in columns])
     if np.any(scale == 0) or not np.all(np.isfinite(scale)):
         raise AnalysisError("the fit's points do not span the facet (a design column is zero or not finite); "
                             "too few valid points")
-    cols = [c / s for c, s in zip(columns, scale)]
-    wcols = cols if weights is None else [c * weights for c in cols]
-    k = len(cols)
+    # Sums of the unscaled products, scaled afterwards (the same equations as scaling the columns first).
+    wcols = columns if weights is None else [c * weights for c in columns]
+    k = len(columns)
     gram = np.empty((k, k))
     rhs = np.empty(k)
     for i in range(k):
-        rhs[i] = np.sum(wcols[i] * target)
+        rhs[i] = _dot(wcols[i], target) / scale[i]
         for j in range(i, k):
-            gram[i, j] = gram[j, i] = np.sum(wcols[i] * cols[j])
+            gram[i, j] = gram[j, i] = _dot(wcols[i], columns[j]) / (scale[i] * scale[j])
     try:
         sol = np.linalg.solve(gram, rhs)
     except np.linalg.LinAlgError:
@@ -233,16 +239,15 @@ def _newton_step(columns: list[np.ndarray], r: np.ndarray, sigma: float) -> np.n
     dpsi = np.multiply(q, -5.0, out=q)
     dpsi += 1.0
     dpsi *= one_q
-    scale = np.array([np.sqrt(np.sum(c * c) / c.size) for c in columns])
-    cols = [c / s for c, s in zip(columns, scale)]
-    k = len(cols)
+    scale = np.array([np.sqrt(_dot(c, c) / c.size) for c in columns])
+    k = len(columns)
     gram = np.empty((k, k))
     rhs = np.empty(k)
     for i in range(k):
-        rhs[i] = np.sum(cols[i] * wr)
-        dcol = cols[i] * dpsi
+        rhs[i] = _dot(columns[i], wr) / scale[i]
+        dcol = columns[i] * dpsi
         for j in range(i, k):
-            gram[i, j] = gram[j, i] = np.sum(dcol * cols[j])
+            gram[i, j] = gram[j, i] = _dot(dcol, columns[j]) / (scale[i] * scale[j])
     if not np.all(np.linalg.eigvalsh(gram) > 1e-12 * np.abs(gram).max()):
         raise AnalysisError("the robust fit's last step is not a minimum: too many points lie far from the "
                             "subsample's fit; check the capture (or use the plain fit)")
@@ -296,16 +301,24 @@ class CubicFit:
 
     def slopes(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Model slopes dz/dx, dz/dy at facet-frame (x, y), metres."""
-        u, v = (x - self.x0) / self.h, (y - self.y0) / self.h
-        base = _monomials(u, v)
-        sx = np.zeros_like(u)
-        sy = np.zeros_like(u)
+        # Each slope is a quadratic in (u, v): its six coefficients first, then one pass per monomial.
+        cx, cy = np.zeros(len(_BASE)), np.zeros(len(_BASE))
         for c, (i, j) in zip(self.coefficients, CUBIC_TERMS):
             if i:
-                sx = sx + (c * i / self.h) * base[_BASE.index((i - 1, j))]
+                cx[_BASE.index((i - 1, j))] += c * i / self.h
             if j:
-                sy = sy + (c * j / self.h) * base[_BASE.index((i, j - 1))]
-        return sx, sy
+                cy[_BASE.index((i, j - 1))] += c * j / self.h
+        u, v = (x - self.x0) / self.h, (y - self.y0) / self.h
+        base = [None, u, v, u * u, u * v, v * v]
+        out = []
+        for coef in (cx, cy):
+            acc = np.multiply(u, coef[1])
+            acc += coef[0]
+            tmp = np.empty_like(acc)
+            for m in range(2, len(_BASE)):
+                acc += np.multiply(base[m], coef[m], out=tmp)
+            out.append(acc)
+        return out[0], out[1]
 
     def to_dict(self) -> dict:
         return {"terms": [f"u^{i} v^{j}" for i, j in CUBIC_TERMS], "coefficients": self.coefficients.tolist(),
@@ -327,16 +340,17 @@ def fit_cubic(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray) ->
         raise AnalysisError(f"only {x.size} valid points: too few to fit the higher-order model")
     x0 = float(np.sum(x) / x.size)
     y0 = float(np.sum(y) / y.size)
-    h = float(max(np.max(np.abs(x - x0)), np.max(np.abs(y - y0)), 1e-9))
+    # max |x - x0| without the temporary: rounding is monotonic, so these are the same numbers.
+    h = float(max(np.max(x) - x0, x0 - np.min(x), np.max(y) - y0, y0 - np.min(y), 1e-9))
     u, v = (x - x0) / h, (y - y0) / h
     base = _monomials(u, v)
     nb = len(_BASE)
     gram_b = np.empty((nb, nb))
     for a in range(nb):
         for b in range(a, nb):
-            gram_b[a, b] = gram_b[b, a] = np.sum(base[a] * base[b])
-    rhs_x = np.array([np.sum(m * s_x) for m in base])
-    rhs_y = np.array([np.sum(m * s_y) for m in base])
+            gram_b[a, b] = gram_b[b, a] = _dot(base[a], base[b])
+    rhs_x = np.array([_dot(m, s_x) for m in base])
+    rhs_y = np.array([_dot(m, s_y) for m in base])
     n = len(CUBIC_TERMS)
     gram = np.zeros((n, n))
     rhs = np.zeros(n)
