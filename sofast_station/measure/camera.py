@@ -57,8 +57,14 @@ def to_frame(pose: Pose, v: np.ndarray, translate: bool = True) -> np.ndarray:
     explicit sums cannot depend on BLAS threading.
     """
     r, t = pose.rotation, pose.translation
-    return np.stack([r[i, 0] * v[0] + r[i, 1] * v[1] + r[i, 2] * v[2] + (t[i] if translate else 0.0)
-                     for i in range(3)])
+    out = np.empty((3, v.shape[1]), dtype=np.result_type(v, r))
+    tmp = np.empty(v.shape[1], dtype=out.dtype)
+    for i in range(3):      # ((r_i0 v0 + r_i1 v1) + r_i2 v2) + t_i, in place (the same bits)
+        row = np.multiply(v[0], r[i, 0], out=out[i])
+        row += np.multiply(v[1], r[i, 1], out=tmp)
+        row += np.multiply(v[2], r[i, 2], out=tmp)
+        row += t[i] if translate else 0.0
+    return out
 
 
 class RayTable:

@@ -43,21 +43,44 @@ def intersect_quadratic(coeffs: np.ndarray, origin: np.ndarray, directions: np.n
     a_, b_, c_, d_, e_, f_ = (float(v) for v in coeffs)
     ox, oy, oz = (float(v) for v in origin)
     ux, uy, uz = directions
-    qa = a_ * ux * ux + b_ * uy * uy + e_ * ux * uy
-    qb = (2.0 * a_ * ox + c_ + e_ * oy) * ux + (2.0 * b_ * oy + d_ + e_ * ox) * uy - uz
+    # Written in place (a pass per operation, no temporaries beyond two), in exactly the order of
+    # qa = a ux ux + b uy uy + e ux uy, qb = (2a ox + c + e oy) ux + (2b oy + d + e ox) uy - uz,
+    # disc = qb qb - 4 qa qc: the same bits as the expressions written out.
+    tmp = np.empty_like(ux)
+    qa = np.multiply(ux, a_)
+    qa *= ux
+    np.multiply(uy, b_, out=tmp)
+    tmp *= uy
+    qa += tmp
+    np.multiply(ux, e_, out=tmp)
+    tmp *= uy
+    qa += tmp
+    qb = np.multiply(ux, 2.0 * a_ * ox + c_ + e_ * oy)
+    qb += np.multiply(uy, 2.0 * b_ * oy + d_ + e_ * ox, out=tmp)
+    qb -= uz
     qc = a_ * ox * ox + b_ * oy * oy + c_ * ox + d_ * oy + e_ * ox * oy + f_ - oz
-    disc = qb * qb - 4.0 * qa * qc
+    disc = np.multiply(qb, qb)
+    np.multiply(qa, 4.0, out=tmp)
+    tmp *= qc
+    disc -= tmp
     miss = disc < 0
-    root = np.sqrt(np.where(miss, 0.0, disc))
-    q = -0.5 * (qb + np.copysign(root, qb))
+    root = np.maximum(disc, 0.0, out=disc)        # NaN stays NaN, as np.where(miss, 0, disc) leaves it
+    np.sqrt(root, out=root)
+    q = np.copysign(root, qb, out=root)
+    q += qb
+    q *= -0.5
     with np.errstate(divide="ignore", invalid="ignore"):
-        t1 = qc / q
-        t2 = q / qa
-    t1 = np.where(t1 > 0, t1, np.inf)
-    t2 = np.where(t2 > 0, t2, np.inf)
-    t = np.minimum(t1, t2)
-    t = np.where(miss | ~np.isfinite(t), np.nan, t)
-    return np.stack([ox + t * ux, oy + t * uy, oz + t * uz])
+        t1 = np.divide(qc, q, out=tmp)
+        t2 = np.divide(q, qa, out=qa)
+    np.copyto(t1, np.inf, where=~(t1 > 0))
+    np.copyto(t2, np.inf, where=~(t2 > 0))
+    t = np.minimum(t1, t2, out=t1)
+    np.copyto(t, np.nan, where=miss | ~np.isfinite(t))
+    out = np.empty((3, t.size))
+    for row, (o, u) in enumerate(((ox, ux), (oy, uy), (oz, uz))):
+        np.multiply(t, u, out=out[row])
+        out[row] += o
+    return out
 
 
 def normal_slopes(points: np.ndarray, camera_m: np.ndarray, screen_points_m: np.ndarray
@@ -78,10 +101,22 @@ def normal_slopes(points: np.ndarray, camera_m: np.ndarray, screen_points_m: np.
     """
     cx, cy, cz = (float(v) for v in camera_m)
     px, py, pz = points
-    ax, ay, az = cx - px, cy - py, cz - pz
-    la = np.sqrt(ax * ax + ay * ay + az * az)
-    bx, by, bz = screen_points_m[0] - px, screen_points_m[1] - py, screen_points_m[2] - pz
-    lb = np.sqrt(bx * bx + by * by + bz * bz)
+    # In place, in the order of la = |C - X|, lb = |T - X|, n = a lb + b la, s = -n_xy / n_z (the same bits).
+    ax, ay, az = np.subtract(cx, px), np.subtract(cy, py), np.subtract(cz, pz)
+    bx, by, bz = (np.subtract(screen_points_m[k], p) for k, p in enumerate((px, py, pz)))
+    tmp = np.empty_like(ax)
+
+    def length(x, y, z):
+        n = np.multiply(x, x)
+        n += np.multiply(y, y, out=tmp)
+        n += np.multiply(z, z, out=tmp)
+        return np.sqrt(n, out=n)
+
+    la, lb = length(ax, ay, az), length(bx, by, bz)
     # n = a/|a| + b/|b|, scaled by |a||b| (its length does not matter for the slope ratios)
-    nx, ny, nz = ax * lb + bx * la, ay * lb + by * la, az * lb + bz * la
-    return -nx / nz, -ny / nz
+    for a, b in ((ax, bx), (ay, by), (az, bz)):
+        a *= lb
+        a += np.multiply(b, la, out=tmp)
+    np.divide(ax, az, out=ax)
+    np.divide(ay, az, out=ay)
+    return np.negative(ax, out=ax), np.negative(ay, out=ay)
