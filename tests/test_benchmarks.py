@@ -36,3 +36,28 @@ def test_web_benchmark_quick(repo_root, small_station_toml):
     for line in ("camera 400 x 300", "without the page: cycle median", "with the page   : cycle median",
                  "median cycle: without"):
         assert line in proc.stdout
+
+
+def test_analysis_benchmark_dump_and_opencsp_paths_quick(repo_root, small_station_toml):
+    """The dump and OpenCSP paths of the analysis benchmark, each fit (OpenCSP at native size here)."""
+    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "analysis.py"), "--quick", "--config",
+                           str(small_station_toml), "--source", "dump", "--fit", "both"],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    proc2 = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "analysis.py"), "--quick", "--source",
+                            "opencsp", "--opencsp-scale", "1", "--fit", "robust"],
+                           capture_output=True, text=True, timeout=600)
+    assert proc2.returncode == 0, proc2.stderr
+    print(proc.stdout, proc2.stdout)
+    for line in ("source dump, plain fit", "source dump, robust fit", "memory: peak resident", "load average"):
+        assert line in proc.stdout
+    assert "source opencsp, robust fit" in proc2.stdout and "valid pixels: 7," in proc2.stdout
+
+
+def test_twin_render_benchmark_quick(repo_root, small_station_toml):
+    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "twin_render.py"), "--quick", "--config",
+                           str(small_station_toml)], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    print(proc.stdout)
+    for line in ("camera 400 x 300, 18 frames", "capture over 2 runs: wall", "cpu"):
+        assert line in proc.stdout
