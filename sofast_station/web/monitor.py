@@ -18,6 +18,7 @@ import logging
 import multiprocessing
 import os
 import signal
+import socket
 from pathlib import Path
 
 from ..errors import StationError
@@ -36,6 +37,25 @@ def _lower_priority(nice: int) -> None:
             os.nice(nice)
     except OSError as exc:
         log.warning("could not lower the monitor's priority: %s", exc)
+
+
+def _bind(host: str, port: int) -> socket.socket:
+    """A listening socket on *host*:*port*; StationError saying what to do when that is impossible."""
+    try:
+        family, kind, proto, _, address = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)[0]
+        sock = socket.socket(family, kind, proto)
+    except (OSError, IndexError) as exc:
+        raise StationError(f"cannot serve the page on {host}:{port}: {exc}; set [web] host to an address of "
+                           "this computer (127.0.0.1 by default)") from None
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind(address)
+        sock.listen(64)
+    except OSError as exc:
+        sock.close()
+        raise StationError(f"cannot serve the page on {host}:{port}: {exc.strerror or exc}; is another "
+                           "'sofast-station serve' running? Set [web] port (or --port) to a free port") from None
+    return sock
 
 
 def _server_class():
@@ -67,15 +87,12 @@ async def _serve(config, web: WebSettings | None, opcua: OpcUaSettings | None, o
         app = create_app(config, web)
         server = _Server(uvicorn.Config(app, host=web.host, port=web.port, log_level="warning",
                                                timeout_graceful_shutdown=5, lifespan="on", access_log=False))
-        tasks.append(asyncio.create_task(server.serve()))
+        sock = _bind(web.host, web.port)             # here, so a taken port is a clear error, not an exit
+        tasks.append(asyncio.create_task(server.serve(sockets=[sock])))
         while not server.started:
             if tasks[0].done():
-                try:
-                    await tasks[0]
-                except (SystemExit, OSError):            # uvicorn exits when it cannot bind
-                    pass
-                raise StationError(f"cannot serve the page on {web.host}:{web.port}: is the port taken or the "
-                                   "address not this computer's? Set [web] host and port in the station file")
+                await tasks[0]
+                raise StationError(f"the page's server on {web.host}:{web.port} stopped as it started; see the log")
             await asyncio.sleep(0.05)
         host, port = server.servers[0].sockets[0].getsockname()[:2]
         shown = f"[{host}]" if ":" in host else host
