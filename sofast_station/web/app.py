@@ -272,6 +272,7 @@ figcaption { color: #9ca3af; font-size: .85rem; }
 .kpis b { font-size: 2.2rem; } .kpis span { color: #9ca3af; font-size: .85rem; }
 .charts svg { width: 100%; height: auto; background: #111827; border-radius: 6px; margin-top: .4rem; }
 .chart .ct { fill: #e5e7eb; font-size: 13px; } .chart .cl { fill: #9ca3af; font-size: 11px; }
+.chart .lg { font-size: 12px; }
 .chart .frame { fill: none; stroke: #374151; }
 .badge { padding: .15rem .7rem; border-radius: 999px; font-weight: 700; text-transform: uppercase; }
 .state-idle { background: #374151; } .state-measuring { background: #1d4ed8; } .state-fault { background: #7e22ce; }

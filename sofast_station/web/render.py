@@ -217,7 +217,7 @@ def svg_chart(title: str, series: list, limits: list, decimals: int = 3, floor: 
         for i, v in enumerate(vs):
             if v is not None and math.isfinite(v):
                 parts.append(f"<circle cx='{x(i):.1f}' cy='{y(v):.1f}' r='2.5' fill='{colour}'/>")
-        parts.append(f"<text x='{legend_x}' y='16' class='cl' style='fill: {colour}'>■ {esc(name)}</text>")
+        parts.append(f"<text x='{legend_x}' y='16' class='lg' fill='{colour}'>■ {esc(name)}</text>")
         legend_x += 110
     parts.append("</svg>")
     return "".join(parts)
