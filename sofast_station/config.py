@@ -73,6 +73,8 @@ class StationConfig:
     #: With ``[camera] intrinsics = "record"``: the camera record in force (``record_id``, ``path``) and
     #: ``stated``, the [camera] table's intrinsics (the simulated station's true camera); else None.
     camera_record: dict | None = None
+    #: ``[optics]``: how the facet's optical figures are computed (None: ``enabled = false``).
+    optics: object | None = None
 
     @property
     def config_hash(self) -> str:
@@ -161,7 +163,20 @@ def load_config(path: str | Path, use_camera_record: bool = True) -> StationConf
     return StationConfig(path=path, name=str(st.get("name", path.stem)), data_dir=data_dir, backend=backend,
                          facet_path=facet_path, design=design, geometry=geometry, fringes=fringes,
                          analysis=analysis, limits=limits, quality=quality, radiometric_path=radiometric,
-                         simulation=raw.get("simulation", {}), raw=raw, camera_record=camera_record)
+                         simulation=raw.get("simulation", {}), raw=raw, camera_record=camera_record,
+                         optics=_optics(raw, where))
+
+
+def _optics(raw: dict, where: str):
+    """``[optics]`` as OpticsSettings (None when disabled); validated in :mod:`sofast_station.station.optics`."""
+    from .station.optics import optics_for
+    from .station.verdict import OPTICAL_LIMITS
+    optics = optics_for(raw, where)
+    used = [k for k in OPTICAL_LIMITS if raw.get("limits", {}).get(k) is not None]
+    if optics is None and used:
+        raise ConfigError(f"{where} [limits] sets {', '.join(used)} but [optics] enabled = false: the optical "
+                          "figures are not computed; enable [optics] or remove those limits")
+    return optics
 
 
 def camera_from_record(data_dir: Path, stated: CameraIntrinsics, where: str) -> tuple[CameraIntrinsics, dict]:

@@ -151,6 +151,10 @@ SECTIONS: dict[str, dict[str, Key]] = {
         "curvature_tolerance_per_m": _pos("1/m"),
         "max_twist_mrad_per_m": _pos("mrad/m"),
         "max_slope_rms_mrad": Key("section:slope_limits", doc="per model, mrad"),
+        "min_intercept": _fraction("intercept factor for the [optics] aperture"),
+        "max_spot_radius_mrad": _pos("radius holding 90 % of the power, seen from the facet, mrad"),
+        "max_centroid_offset_mrad": _nonneg("beam centroid from the aim point, mrad"),
+        "min_power_ratio": _nonneg("intercepted power / the design facet's"),
     },
     "slope_limits": {
         "design": _pos("mrad"), "parabola": _pos("mrad"), "higher_order": _pos("mrad"),
@@ -166,6 +170,24 @@ SECTIONS: dict[str, dict[str, Key]] = {
         "radiometric": Key("str"), "stale": Key("str", choices=("warn", "refuse")),
         "max_age_h": _pos("h"), "max_dark_shift_dn": _nonneg("DN"), "warmup": Key("bool"),
         "warmup_min": _nonneg("min"), "routine": Key("table", doc="checked by calibrate.settings"),
+    },
+    "optics": {
+        "enabled": Key("bool", doc="compute the optical figures (docs/optics.md)"),
+        "sun": Key("str", choices=("pillbox", "gaussian", "buie"), doc="sun shape"),
+        "sigma_mrad": _pos("Gaussian sun, per direction, mrad"),
+        "csr": Key("float", low=0.0, high=1.0, low_open=True, high_open=True, doc="Buie sun's circumsolar ratio"),
+        "dni_w_m2": _pos("direct normal irradiance, W/m^2"),
+        "reflectivity": Key("float", low=0.0, high=1.0, low_open=True, doc="specular reflectivity"),
+        "incidence_angle_deg": Key("float", low=0.0, high=90.0, high_open=True, doc="sun from the facet's axis"),
+        "slant_range_m": _pos("facet centre to target plane, m"),
+        "aperture": Key("table", doc="{shape = \"circle\", radius_m} or {shape = \"rectangle\", width_m, height_m}, "
+                                     "checked by station.optics"),
+        "rays_per_pixel": _pos("rays per measured point"),
+        "min_rays": Key("int", low=0, doc="at least this many rays per facet"),
+        "grid_cells": Key("int", low=2, high=4001, doc="flux map cells per side"),
+        "grid_half_width_m": _pos("flux map half-width, m"),
+        "design_points": Key("int", low=100, doc="samples of the design surface"),
+        "seed": Key("int", low=0, doc="seed of the sun-shape samples"),
     },
     "simulation": {"*": Key("any", doc="the twin's own records check these")},
     "run": {
@@ -193,12 +215,13 @@ SECTIONS: dict[str, dict[str, Key]] = {
         "facet": Key("str"), "serial_pattern": Key("str"),
         "alignment_point_m": Key("floats", length=(2,)), "measure_point_m": Key("floats", length=(2,)),
         "limits": Key("section:limits"), "quality": Key("section:quality"), "analysis": Key("section:analysis"),
+        "optics": Key("section:optics", doc="over [optics] for this recipe"),
     },
 }
 
 #: The sections that may appear at the top of station.toml (the others are nested tables).
 TOP_LEVEL = ["station", "camera", "screen", "layout", "fringes", "analysis", "limits", "quality", "calibration",
-             "simulation", "run", "archive", "devices", "recipes", "web", "opcua", "acceptance", "drift"]
+             "optics", "simulation", "run", "archive", "devices", "recipes", "web", "opcua", "acceptance", "drift"]
 
 
 def _check_value(key: Key, value, file: str, label: str, name: str) -> None:

@@ -161,7 +161,7 @@ def pixel_areas_m2(points_m: np.ndarray, slopes: np.ndarray, camera_m: np.ndarra
     d2 = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
     cos_view = np.abs(v[2] - s_x * v[0] - s_y * v[1]) * inv / np.sqrt(d2)
     footprint = (d2 / np.maximum(cos_view, f32(1e-3))).astype(np.float64)
-    return footprint * (total_projected_m2 / float(np.dot(footprint, inv)))
+    return footprint * (total_projected_m2 / float(np.sum(footprint * inv)))
 
 
 # -- the scene ---------------------------------------------------------------------------------------------

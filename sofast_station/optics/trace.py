@@ -158,16 +158,16 @@ def _perpendicular_pair(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _combine(const: float, *terms) -> np.ndarray:
-    """const + sum(c * array) over the (c, array) terms, skipping zero coefficients (float32 arithmetic)."""
+    """const + sum(c * array) over the (c, array) terms, skipping zero coefficients (in the arrays' type)."""
     out = None
     for c, arr in terms:
         if c == 0.0:
             continue
-        term = arr if c == 1.0 else (-arr if c == -1.0 else np.float32(c) * arr)
+        term = arr if c == 1.0 else (-arr if c == -1.0 else arr.dtype.type(c) * arr)
         out = term if out is None else out + term
     if out is None:
-        return np.full(terms[0][1].shape, const, dtype=np.float32)
-    return out + np.float32(const) if const != 0.0 else out
+        return np.full(terms[0][1].shape, const, dtype=terms[0][1].dtype)
+    return out + out.dtype.type(const) if const != 0.0 else out
 
 
 def trace(points_m: np.ndarray, slopes: np.ndarray, area_m2: np.ndarray, target: Target, sun: SunShape,
@@ -215,13 +215,15 @@ def trace(points_m: np.ndarray, slopes: np.ndarray, area_m2: np.ndarray, target:
     cos_i = (-d[2] + d[0] * s_x + d[1] * s_y) / np.sqrt(mm)
     np.maximum(cos_i, 0.0, out=cos_i)
     power = (dni_w_m2 * reflectivity) * cos_i.astype(np.float64) * area_m2      # per point, W
-    incident = float(dni_w_m2 * np.dot(cos_i.astype(np.float64), area_m2))
+    incident = float(dni_w_m2 * np.sum(cos_i.astype(np.float64) * area_m2))
     reflected = float(power.sum())
 
     # Points in the target frame, relative to the aim point: q = P - aim along u_x, u_y and the plane normal.
+    # (Element-wise arithmetic and numpy's own sums only, no BLAS: the bits must not depend on its threads,
+    # so that a dump re-analysed anywhere reproduces the archived figures.)
     rot = np.stack([target.u_x, target.u_y, target.u_reflected])
-    q = rot @ points_m - (rot @ target.aim_m)[:, None]
-    q_x, q_y, q_n = q.astype(f32)
+    q = points_m - target.aim_m[:, None]
+    q_x, q_y, q_n = (_combine(0.0, *((rot[j, c], q[c]) for c in range(3))).astype(f32) for j in range(3))
 
     n_rays = max(1, int(round(rays_per_point * n_points)))
     if n_rays == n_points:
@@ -297,8 +299,8 @@ def spot_figures(hits: Hits, aperture: Aperture, slant_range_m: float, fraction:
     inside = aperture.contains(hits.x_m, hits.y_m)
     intercepted = float(p[inside].sum())
     if on_plane > 0:
-        cx = float(np.dot(p, hits.x_m) / on_plane)
-        cy = float(np.dot(p, hits.y_m) / on_plane)
+        cx = float(np.sum(p * hits.x_m) / on_plane)
+        cy = float(np.sum(p * hits.y_m) / on_plane)
     else:
         cx = cy = float("nan")
     radius = None

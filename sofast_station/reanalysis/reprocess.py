@@ -419,6 +419,28 @@ def _judge_settings(content: DumpContent, recipe: str, notes: list):
         return Limits(), Quality()
 
 
+def _optics_settings(content: DumpContent, recipe: str, archived: dict | None, overrides: Overrides, notes: list):
+    """The optics settings of the dumped station.toml (and recipe), or None when the figures are not wanted.
+
+    A record archived by software without optical figures is compared like for like: no trace then, unless
+    the re-analysis changes something anyway (overrides).
+    """
+    from ..station.optics import optics_for
+
+    if archived is not None and "optics" not in archived and overrides.empty:
+        if archived.get("verdict") != "fault":
+            notes.append("the archived record has no optical figures: not traced, so the comparison stays like "
+                         "for like")
+        return None
+    try:
+        raw = tomllib.loads(content.station_toml) if content.station_toml.strip() else {}
+        return optics_for(raw, f"station.toml of dump {content.path}", recipe)
+    except (tomllib.TOMLDecodeError, ConfigError) as exc:
+        notes.append(f"the dump's [optics] could not be read ({exc}): optical figures with the defaults")
+        from ..optics import OpticsSettings
+        return OpticsSettings()
+
+
 def _archived_from_journal(journal: str | Path, cycle_id: str) -> dict | None:
     from ..archive.journal import Journal
 
@@ -509,6 +531,10 @@ def reprocess_content(content: DumpContent, overrides: Overrides | None = None, 
         record.update({"verdict": "fault", "fault_code": code, "reasons": [f"{kind}: {exc}"]})
     t_analysis = time.perf_counter() - t1
     if analysis is not None:
+        optics = _optics_settings(content, record["recipe"], archived, overrides, notes)
+        if optics is not None:
+            from ..station.optics import add_optics
+            add_optics(analysis, design, optics)
         fig = analysis.figures
         record.update({k: fig[k] for k in FIGURE_KEYS})
         record.update({k: v for k, v in fig.items() if k not in FIGURE_KEYS and k != "timings_s"})

@@ -44,6 +44,8 @@ class Station:
     #: The radiometric record's status when the station opened (CalibrationStatus: origin, warnings).
     calibration: object | None = None
     _rays: np.ndarray | None = field(default=None, repr=False)
+    #: The design's optical trace, computed once per facet type (:class:`~sofast_station.station.optics.DesignTraces`).
+    design_traces: object | None = field(default=None, repr=False)
 
     @property
     def rays_cam(self):
@@ -228,6 +230,12 @@ def inspect(station: Station, serial: str, progress=None) -> dict:
     analysis = analyse(frames, station.config.fringes, station.config.geometry, station.config.design, distance,
                        station.config.analysis, rays_cam=rays)
     t_analysis = time.perf_counter() - t1
+    optics = getattr(station.config, "optics", None)
+    if optics is not None:
+        from .optics import DesignTraces, add_optics
+        if station.design_traces is None:
+            station.design_traces = DesignTraces()
+        add_optics(analysis, station.config.design, optics, station.design_traces)
     timings = {"capture": t_capture, **{f"analysis_{k}": v for k, v in analysis.timings_s.items()},
                "analysis": t_analysis}
     record = result_record(station, serial, analysis, timings)
@@ -236,5 +244,9 @@ def inspect(station: Station, serial: str, progress=None) -> dict:
         from ..twin.truth import ground_truth
         truth = ground_truth(station.twin, analysis.valid)
         record["truth"] = {k: truth[k] for k in FIGURE_KEYS if k in truth}
+        if optics is not None:       # the same trace of the twin's exact surface at the kept pixels
+            from .optics import truth_optics
+            record["truth"]["optics"] = truth_optics(station.twin, analysis.valid, station.config.design, optics,
+                                                     station.design_traces)
     record["timings_s"]["total"] = time.perf_counter() - t0
     return record

@@ -21,9 +21,11 @@ from ..devices.protocols import FacetRequest
 from ..errors import ConfigError
 from ..facet import FacetDesign, load_facet
 from ..measure.pipeline import AnalysisSettings
+from .optics import optics_for
 from .verdict import Limits, Quality, limits_from_table, quality_from_table
 
-_KEYS = {"facet", "serial_pattern", "alignment_point_m", "measure_point_m", "limits", "quality", "analysis"}
+_KEYS = {"facet", "serial_pattern", "alignment_point_m", "measure_point_m", "limits", "quality", "analysis",
+         "optics"}
 
 
 @dataclass(frozen=True)
@@ -34,11 +36,14 @@ class Recipe:
     limits: Limits
     quality: Quality
     serial_pattern: re.Pattern | None = None
+    #: How the optical figures are computed (``[optics]`` with the recipe's ``optics`` table); None: off.
+    optics: object | None = None
 
 
 def default_recipe(config) -> Recipe:
     """The station's own facet, settings and limits, under the name "default"."""
-    return Recipe("default", config.design, config.analysis, config.limits, config.quality)
+    return Recipe("default", config.design, config.analysis, config.limits, config.quality,
+                  optics=getattr(config, "optics", None))
 
 
 def recipes_from_config(config) -> dict[str, Recipe]:
@@ -65,7 +70,8 @@ def recipes_from_config(config) -> dict[str, Recipe]:
                 pattern = re.compile(table["serial_pattern"])
             except re.error as exc:
                 raise ConfigError(f"{where}: serial_pattern is not a valid regular expression: {exc}") from None
-        out[name] = Recipe(name, design, analysis, limits, quality, pattern)
+        optics = optics_for(config.raw, str(config.path), name)
+        out[name] = Recipe(name, design, analysis, limits, quality, pattern, optics)
     return out
 
 

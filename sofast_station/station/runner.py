@@ -348,7 +348,7 @@ class StationRunner:
             t = time.perf_counter()
             state["stage"] = "analysis"
             res = self.worker.analyse(restore(frames, box, raw_shape), recipe.design, recipe.analysis,
-                                      distance, timeout_s=remaining, hang_s=hang_s)
+                                      distance, timeout_s=remaining, hang_s=hang_s, optics=recipe.optics)
             timings["analysis"] = time.perf_counter() - t
             record = self._record(cycle_id, request, recipe, res.figures, distance, notes, timings, cal_warnings)
             record.update(judge(res.figures, recipe.design, recipe.limits, recipe.quality))

@@ -30,12 +30,34 @@ class Limits:
         Largest |twist|, mrad/m.
     max_slope_rms_mrad : dict
         Largest magnitude RMS residual per model ("design", "parabola", "higher_order"), mrad.
+    min_intercept : float or None
+        Smallest intercept factor (power in the receiver aperture over the power reflected), 0 to 1.
+    max_spot_radius_mrad : float or None
+        Largest radius holding 90 % of the power, seen from the facet's centre, mrad.
+    max_centroid_offset_mrad : float or None
+        Largest distance of the beam's centroid from the aim point, seen from the facet's centre, mrad.
+    min_power_ratio : float or None
+        Smallest intercepted power over the design facet's.
+    The optical limits apply to the figures of ``[optics]`` (``optics`` in the result); None: not judged.
     """
 
     focal_length_tolerance: float = 0.02
     curvature_tolerance_per_m: float = 2e-4
     max_twist_mrad_per_m: float = 1.0
     max_slope_rms_mrad: dict = field(default_factory=lambda: {"design": 3.0, "parabola": 2.0})
+    min_intercept: float | None = None
+    max_spot_radius_mrad: float | None = None
+    max_centroid_offset_mrad: float | None = None
+    min_power_ratio: float | None = None
+
+    @property
+    def optical(self) -> dict:
+        """The optical limits that are set, by name."""
+        return {k: getattr(self, k) for k in OPTICAL_LIMITS if getattr(self, k) is not None}
+
+
+#: Limits on the optical figures (``optics`` in the result record).
+OPTICAL_LIMITS = ("min_intercept", "max_spot_radius_mrad", "max_centroid_offset_mrad", "min_power_ratio")
 
 
 @dataclass(frozen=True)
@@ -67,6 +89,12 @@ def limits_from_table(table: dict, where: str) -> Limits:
     models = {"design", "parabola", "higher_order"}
     if not set(lim.max_slope_rms_mrad) <= models:
         raise ConfigError(f"{where}.max_slope_rms_mrad keys must be among {sorted(models)}")
+    for key, value in lim.optical.items():
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0:
+            raise ConfigError(f"{where}: {key} must be a non-negative number, got {value!r}")
+    if lim.min_intercept is not None and lim.min_intercept > 1:
+        raise ConfigError(f"{where}: min_intercept is a fraction of the reflected power (0 to 1), "
+                          f"got {lim.min_intercept}")
     return lim
 
 
@@ -136,4 +164,28 @@ def judge(fig: dict, design: FacetDesign, limits: Limits, quality: Quality) -> d
         rms = fig["slope_rms_mrad"][model]["magnitude"]
         if rms > limit:
             fail.append(f"{model} slope error {rms:.3f} mrad RMS (limit {limit:g})")
+    fail.extend(judge_optics(fig.get("optics"), limits))
     return {"verdict": "fail" if fail else "pass", "reasons": fail, "warnings": warnings}
+
+
+def judge_optics(optics: dict | None, limits: Limits) -> list[str]:
+    """Reasons to fail on the optical figures (empty when none of ``limits.optical`` is exceeded)."""
+    if not limits.optical:
+        return []
+    if optics is None:
+        return ["optical limits are set but the result has no optical figures ([optics] enabled = false)"]
+    fail = []
+    checks = (("min_intercept", optics.get("intercept"), "intercept factor", "{:.4f}", -1),
+              ("max_spot_radius_mrad", optics.get("spot_radius_mrad"), "90 % spot radius", "{:.3f} mrad", 1),
+              ("max_centroid_offset_mrad", (optics.get("centroid_offset_mrad") or {}).get("magnitude"),
+               "beam centroid offset", "{:.3f} mrad", 1),
+              ("min_power_ratio", optics.get("power_ratio_vs_design"), "intercepted power / design's", "{:.4f}", -1))
+    for key, value, label, fmt, sign in checks:
+        limit = getattr(limits, key)
+        if limit is None:
+            continue
+        if value is None:
+            fail.append(f"{label}: not computed (the spot spills off the target plane), limit {limit:g}")
+        elif sign * (value - limit) > 0:
+            fail.append(f"{label} {fmt.format(value)} ({'minimum' if sign < 0 else 'maximum'} {limit:g})")
+    return fail

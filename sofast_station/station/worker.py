@@ -56,16 +56,20 @@ def _init(shm_name: str, shape: tuple[int, int, int], geometry: dict, fringes: d
     _STATE["rays"] = ray_table(_STATE["geometry"].camera)
 
 
-def _run(design: dict, settings: dict, distance_m: float, hang_s: float):
+def _run(design: dict, settings: dict, distance_m: float, hang_s: float, optics=None):
     from ..facet import FacetDesign
     from ..measure.pipeline import AnalysisSettings, analyse
+    from .optics import DesignTraces, add_optics
 
     if hang_s > 0:                       # fault injection for tests: an analysis that hangs
         time.sleep(hang_s)
     t = time.perf_counter()
     frames = np.array(_STATE["frames"])  # a private copy: the station may refill the buffer after a timeout
-    a = analyse(frames, _STATE["fringes"], _STATE["geometry"], FacetDesign.from_dict(design), distance_m,
+    facet = FacetDesign.from_dict(design)
+    a = analyse(frames, _STATE["fringes"], _STATE["geometry"], facet, distance_m,
                 AnalysisSettings(**settings), rays_cam=_STATE["rays"])
+    # The optical figures (intercept, spot size, aim), with the design's trace kept for the next facet.
+    add_optics(a, facet, optics, _STATE.setdefault("design_traces", DesignTraces()))
     return a.figures, np.packbits(a.valid), a.valid.shape, time.perf_counter() - t, _preview(a)
 
 
@@ -117,8 +121,10 @@ class AnalysisWorker:
         log.info("analysis worker ready in %.1f s", time.perf_counter() - t)
 
     def analyse(self, frames: np.ndarray, design, settings, distance_m: float, timeout_s: float,
-                hang_s: float = 0.0) -> WorkerResult:
+                hang_s: float = 0.0, optics=None) -> WorkerResult:
         """Analyse *frames* in the worker; :class:`AnalysisTimeout` after *timeout_s* (worker restarted).
+
+        With *optics* (OpticsSettings) the figures carry the facet's optical figures (``optics``).
 
         Errors raised by the analysis (StationError subclasses) come back as themselves.
         """
@@ -130,7 +136,7 @@ class AnalysisWorker:
             self._restarting.join()
             self._restarting = None
         np.copyto(self._frames, frames)
-        fut = self._pool.submit(_run, design.to_dict(), settings.to_dict(), float(distance_m), float(hang_s))
+        fut = self._pool.submit(_run, design.to_dict(), settings.to_dict(), float(distance_m), float(hang_s), optics)
         try:
             figures, packed, shape, seconds, preview = fut.result(timeout=max(timeout_s, 0.01))
         except FutureTimeout:
