@@ -43,6 +43,9 @@ class OpticsSettings:
         The receiver's aperture; None: a circle of twice the radius of the sun's image at the slant range.
     rays_per_pixel : float
         Rays traced per measured point on average (0.5: every second point).
+    min_rays : int
+        At least this many rays per facet: a measurement with few points (a downsampled camera) gets more
+        rays per point, so its flux map is not dominated by sampling noise.
     grid_cells : int
         Cells per side of the flux map.
     grid_half_width_m : float or None
@@ -61,6 +64,7 @@ class OpticsSettings:
     slant_range_m: float | None = None
     aperture: Aperture | None = None
     rays_per_pixel: float = 1.0
+    min_rays: int = 200_000
     grid_cells: int = 151
     grid_half_width_m: float | None = None
     design_points: int = 200_000
@@ -77,6 +81,8 @@ class OpticsSettings:
             raise ValueError(f"slant_range_m must be a positive distance in metres, got {self.slant_range_m}")
         if not (np.isfinite(self.rays_per_pixel) and self.rays_per_pixel > 0):
             raise ValueError(f"rays_per_pixel must be positive, got {self.rays_per_pixel}")
+        if not (isinstance(self.min_rays, int) and self.min_rays >= 0):
+            raise ValueError(f"min_rays must be a whole number >= 0, got {self.min_rays}")
         if not (isinstance(self.grid_cells, int) and 2 <= self.grid_cells <= 4001):
             raise ValueError(f"grid_cells must be a whole number from 2 to 4001, got {self.grid_cells}")
         if self.grid_half_width_m is not None and not (self.grid_half_width_m > 0):
@@ -324,7 +330,8 @@ def facet_optics(points_m: np.ndarray, slopes: np.ndarray, camera_m: np.ndarray,
     scene = scene or make_scene(design, settings)
     design_result = design_result or design_trace(design, settings, scene)
     areas = pixel_areas_m2(points_m, slopes, np.asarray(camera_m, dtype=np.float64), scene.mirror_area_m2)
-    measured = trace_surface(points_m, slopes, areas, scene, settings)
+    rays = max(settings.rays_per_pixel, settings.min_rays / max(points_m.shape[1], 1))
+    measured = trace_surface(points_m, slopes, areas, scene, settings, rays_per_point=rays)
     m, d = measured.figures, design_result.figures
     slant = scene.target.slant_range_m
     # The analytic model's focal distance: the design's, scaled by the measured focal power.

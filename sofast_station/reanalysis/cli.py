@@ -100,7 +100,8 @@ def register(subparsers) -> None:
     bat.set_defaults(func=cmd_batch)
 
     rpt = add_command(
-        subparsers, "report", help="slope-error maps of dumps (the paper's Figs. 8-10), or 'report trend' over a period",
+        subparsers, "report", help="slope-error maps of dumps (the paper's Figs. 8-10), 'report trend' over a period, "
+                                   "'report flux' (flux maps), or the quality reports",
         description="'report DUMP...' writes one PNG per dump: the slope-error magnitude with arrows of the "
                     "error direction, for the design, the fitted parabola and the higher-order model, the RMS "
                     "figures in the titles, and a detail page against one model (--detail). 'report trend [--from] [--to]' plots focal lengths, "
@@ -108,9 +109,13 @@ def register(subparsers) -> None:
                     "or from --journal PATH, or from the --results DIR of a batch. 'report spc', 'report acceptance', "
                     "'report certificate SERIAL' and 'report diff A B' are the quality engineer's reports: control "
                     "charts of the journal, contract acceptance of a lot, one facet's certificate, two facets compared "
-                    "(their options say which report they belong to).")
+                    "(their options say which report they belong to). 'report flux DUMP...' (or opencsp:DIR, or --opencsp "
+                    "DIR) writes the facet's flux map on the target plane in W/m² beside its design's, the receiver "
+                    "aperture drawn, with the dump's [optics] settings unless the flux options change them; it prints "
+                    "the intercept factor, 90 % spot radius, centroid offset and power ratio.")
     rpt.add_argument("targets", nargs="+", metavar="DUMP_OR_REPORT",
-                     help="dump(s) or opencsp:DIR; or 'trend', 'spc', 'acceptance', 'certificate SERIAL', 'diff A B'")
+                     help="dump(s) or opencsp:DIR; or 'trend', 'spc', 'acceptance', 'certificate SERIAL', 'diff A B', "
+                          "'flux DUMP...'")
     rpt.add_argument("--out", metavar="DIR_OR_FILE", default=None,
                      help="folder for the pictures (default: the current folder); for a trend, a .png file or a "
                           "folder")
@@ -134,6 +139,26 @@ def register(subparsers) -> None:
     rpt.add_argument("--to", dest="until", default=None, metavar="ISO", help="trend: end (exclusive)")
     from ..report.cli import add_options as add_quality_options
     add_quality_options(rpt)
+    flux = rpt.add_argument_group("flux maps ('report flux')")
+    flux.add_argument("--opencsp", metavar="DIR", default=None,
+                      help="flux: an OpenCSP measurement in the layout of its test data (e.g. fixtures/opencsp/"
+                           "test_data) instead of dumps")
+    flux.add_argument("--opencsp-focal-length", type=float, default=100.0, metavar="M",
+                      help="flux: the OpenCSP facet's design focal length, metres")
+    flux.add_argument("--sun", choices=("pillbox", "gaussian", "buie"), default=None,
+                      help="flux: sun shape (default: the dump's [optics], else pillbox)")
+    flux.add_argument("--sigma-mrad", type=float, default=None, help="flux: Gaussian sun's sigma, mrad")
+    flux.add_argument("--csr", type=float, default=None, help="flux: Buie sun's circumsolar ratio")
+    flux.add_argument("--dni", type=float, default=None, metavar="W_M2", help="flux: DNI, W/m² (default 1000)")
+    flux.add_argument("--reflectivity", type=float, default=None, help="flux: mirror reflectivity (default 0.94)")
+    flux.add_argument("--incidence", type=float, default=None, metavar="DEG", help="flux: incidence angle, degrees")
+    flux.add_argument("--slant-range", type=float, default=None, metavar="M",
+                      help="flux: distance to the target plane, metres (default: the design's focal distance)")
+    flux.add_argument("--aperture", type=float, nargs="+", default=None, metavar="M",
+                      help="flux: receiver aperture, metres: one value is a circle's radius, two a rectangle's "
+                           "width and height")
+    flux.add_argument("--rays-per-pixel", type=float, default=None, help="flux: rays per measured point")
+    flux.add_argument("--grid-cells", type=int, default=None, help="flux: cells per side of the map")
     _add_overrides(rpt)
     rpt.set_defaults(func=cmd_report)
 
@@ -319,6 +344,8 @@ def cmd_report(args) -> int:
 
     if args.targets[0] == "trend":
         return _cmd_trend(args)
+    if args.targets[0] == "flux":
+        return _cmd_flux(args)
     from ..report.cli import REPORTS, run as run_quality_report
     if args.targets[0] in REPORTS:
         return run_quality_report(args)
@@ -344,6 +371,88 @@ def cmd_report(args) -> int:
         except StationError as exc:
             failed += 1
             log.error("%s", exc if str(dump) in str(exc) else f"{dump}: {exc}")
+    return EXIT_FAILED if failed else 0
+
+
+def _flux_table(args) -> dict:
+    """The command line's optics options as an [optics] table (only those given)."""
+    table = {}
+    for opt, key in (("sun", "sun"), ("sigma_mrad", "sigma_mrad"), ("csr", "csr"), ("dni", "dni_w_m2"),
+                     ("reflectivity", "reflectivity"), ("incidence", "incidence_angle_deg"),
+                     ("slant_range", "slant_range_m"), ("rays_per_pixel", "rays_per_pixel"),
+                     ("grid_cells", "grid_cells")):
+        if getattr(args, opt) is not None:
+            table[key] = getattr(args, opt)
+    if args.aperture is not None:
+        from ..errors import ConfigError
+        if len(args.aperture) == 1:
+            table["aperture"] = {"shape": "circle", "radius_m": args.aperture[0]}
+        elif len(args.aperture) == 2:
+            table["aperture"] = {"shape": "rectangle", "width_m": args.aperture[0], "height_m": args.aperture[1]}
+        else:
+            raise ConfigError("--aperture takes one value (a circle's radius) or two (a rectangle's width and "
+                              f"height), metres; got {len(args.aperture)}")
+    return table
+
+
+def flux_text(name: str, figures: dict, path) -> str:
+    """One facet's optical figures, as the console shows them."""
+    f = figures
+    d = f["design"]
+    c = f["conditions"]
+    off = f["centroid_offset_mrad"]
+    r90 = "-" if f["spot_radius_m"] is None else f"{1000 * f['spot_radius_m']:.2f} mm ({f['spot_radius_mrad']:.3f} mrad)"
+    d90 = "-" if d["spot_radius_m"] is None else f"{1000 * d['spot_radius_m']:.2f} mm"
+    return (f"{name}: target at {c['slant_range_m']:.3f} m, aperture {c['aperture']}\n"
+            f"  intercept {f['intercept']:.4f} (design {d['intercept']:.4f}), power / design's "
+            f"{f['power_ratio_vs_design']:.4f}\n"
+            f"  90 % spot radius {r90}, design {d90}; analytic (patent model) {1000 * f['analytic_spot_radius_m']:.2f} "
+            f"mm, design {1000 * d['analytic_spot_radius_m']:.2f} mm\n"
+            f"  centroid offset x {off['x']:+.3f} y {off['y']:+.3f} mrad (magnitude {off['magnitude']:.3f})\n"
+            f"  {path}")
+
+
+def _cmd_flux(args) -> int:
+    import tomllib
+
+    from ..errors import ConfigError, StationError
+    from ..report.flux import write_flux_map
+    from ..report.sources import load_measured
+    from ..station.optics import analysis_optics, optics_for
+
+    targets = args.targets[1:] + ([f"opencsp:{args.opencsp}"] if args.opencsp else [])
+    if not targets:
+        raise ConfigError("'report flux' needs dump(s) or opencsp:DIR (or --opencsp DIR)")
+    cli_table = _flux_table(args)
+    out = Path(args.out or ".")
+    overrides = overrides_from_args(args)
+    overrides.check()
+    failed = 0
+    for target in targets:
+        try:
+            res = load_measured(target, overrides, focal_length_m=args.opencsp_focal_length)
+            table = dict(cli_table)
+            if res.kind == "dump":        # the dump's own [optics] (and its recipe's), under the options given
+                from ..archive.dumps import read_dump
+                text = read_dump(target, load_frames=False, require_result=False).station_toml
+                raw = tomllib.loads(text) if text.strip() else {}
+                recipe = res.record.get("recipe", "default")
+                over = raw.get("recipes", {}).get(recipe, {}) if recipe != "default" else {}
+                table = {**raw.get("optics", {}), **(over.get("optics", {}) if isinstance(over, dict) else {}),
+                         **cli_table, "enabled": True}
+            settings = optics_for({"optics": table}, f"{target} ([optics] and the command line)")
+            opt = analysis_optics(res.analysis, res.design, settings)
+            name = str(res.record.get("serial", "")) or Path(target).stem
+            stem = (f"opencsp-{name}" if res.kind == "opencsp" else Path(target).name.removesuffix(".h5")).replace(" ", "_")
+            path = out if out.suffix.lower() == ".png" and len(targets) == 1 else out / f"flux-{stem}.png"
+            title = (f"OpenCSP measurement {name} ({res.record.get('time', '')}), design f "
+                     f"{res.design.focal_length_m:g} m" if res.kind == "opencsp"
+                     else f"{name} ({res.design.name}), {res.record.get('time', '')}")
+            path = write_flux_map(opt, path, title=title)
+            print(flux_text(name, opt.figures, path), flush=True)
+        except StationError as exc:
+            failed += 1
+            log.error("%s", exc if str(target) in str(exc) else f"{target}: {exc}")
     return EXIT_FAILED if failed else 0
 
 

@@ -13,6 +13,7 @@ facet of a type, in a small cache. ::
     slant_range_m = 5.33             # default: the design's distance from the facet's centre to its focus
     aperture = { shape = "circle", radius_m = 0.035 }   # or { shape = "rectangle", width_m, height_m }
     rays_per_pixel = 1.0
+    min_rays = 200000                # at least this many rays per facet (more per point on small cameras)
     grid_cells = 151
 """
 
@@ -34,7 +35,7 @@ log = logging.getLogger(__name__)
 
 #: The keys of ``[optics]`` (and of a recipe's ``optics`` table).
 OPTICS_KEYS = ("enabled", "sun", "sigma_mrad", "csr", "dni_w_m2", "reflectivity", "incidence_angle_deg",
-               "slant_range_m", "aperture", "rays_per_pixel", "grid_cells", "grid_half_width_m", "design_points",
+               "slant_range_m", "aperture", "rays_per_pixel", "min_rays", "grid_cells", "grid_half_width_m", "design_points",
                "seed")
 _APERTURE_KEYS = {"circle": ("shape", "radius_m"), "rectangle": ("shape", "width_m", "height_m")}
 
@@ -92,7 +93,7 @@ def optics_from_table(table: dict, where: str) -> OpticsSettings | None:
                 "grid_half_width_m"):
         if key in table:
             args[key] = _number(where, key, table[key])
-    for key in ("grid_cells", "design_points", "seed"):
+    for key in ("grid_cells", "design_points", "seed", "min_rays"):
         if key in table:
             args[key] = _number(where, key, table[key], integer=True)
     try:

@@ -1,0 +1,89 @@
+"""Flux maps: the irradiance a measured facet puts on the target plane, beside its design's.
+
+Two panels on one colour scale (W/m^2, at the stated DNI and reflectivity): the measured facet's flux map
+and the design facet's, each with the receiver aperture drawn (white), the aim point (+), the beam's
+centroid (x) and the circle holding 90 % of the power about it (dashed). The title carries the sun
+shape, DNI, reflectivity, incidence angle and slant range; each panel's title its intercept factor and
+90 % radius, and the measured panel also the centroid offset and the power ratio against the design.
+
+Axes are the target plane's (docs/conventions.md, "Optics"): x is the facet's x made perpendicular to the
+central reflected ray, in millimetres (metres for spots larger than a metre) from the aim point.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from ._common import ReportError, savefig_atomic
+
+log = logging.getLogger(__name__)
+
+
+def _fmt(value, fmt: str) -> str:
+    return "-" if value is None else fmt.format(value)
+
+
+def draw_flux_maps(res, title: str = "") -> "Figure":  # noqa: F821
+    """A Matplotlib figure (Agg) of the measured and the design flux maps of a FacetOptics result."""
+    from matplotlib.figure import Figure
+    from matplotlib.patches import Circle, Rectangle
+
+    scene = res.scene
+    half = scene.grid_half_width_m
+    scale, unit, lf = (1.0, "m", "{:.3f}") if half > 1.0 else (1000.0, "mm", "{:.1f}")
+    extent = [-half * scale, half * scale, -half * scale, half * scale]
+    vmax = float(max(res.measured.flux_w_m2.max(), res.design.flux_w_m2.max())) or 1.0
+    fig = Figure(figsize=(13.0, 7.0), layout="constrained")
+    axes = fig.subplots(1, 2, sharex=True, sharey=True)
+    cond = res.figures["conditions"]
+    sun = cond["sun"]
+    sun_text = {"pillbox": lambda s: f"pillbox sun {s['half_angle_mrad']:.2f} mrad",
+                "gaussian": lambda s: f"Gaussian sun sigma {s['sigma_mrad']:.2f} mrad",
+                "buie": lambda s: f"Buie sun CSR {s['csr']:.3f}"}[sun["shape"]](sun)
+    fig.suptitle(f"{title}\n{sun_text}, DNI {cond['dni_w_m2']:g} W/m², reflectivity {cond['reflectivity']:g}, "
+                 f"incidence {cond['incidence_angle_deg']:g}°, target at {cond['slant_range_m']:.3f} m "
+                 f"({cond['rays']:,} rays)".strip())
+    f = res.figures
+    panels = ((res.measured, "measured facet",
+               f"intercept {_fmt(f['intercept'], '{:.4f}')}, r90 {_fmt(f['spot_radius_mrad'], '{:.3f}')} mrad, "
+               f"centroid {_fmt(f['centroid_offset_mrad']['magnitude'], '{:.3f}')} mrad off aim,\n"
+               f"power / design's {_fmt(f['power_ratio_vs_design'], '{:.4f}')}; analytic r90 "
+               f"{_fmt(f['analytic_spot_radius_m'] * scale, lf)} {unit}"),
+              (res.design, "design facet",
+               f"intercept {_fmt(f['design']['intercept'], '{:.4f}')}, r90 "
+               f"{_fmt(None if f['design']['spot_radius_m'] is None else f['design']['spot_radius_m'] * scale, lf)}"
+               f" {unit}\nanalytic r90 {_fmt(f['design']['analytic_spot_radius_m'] * scale, lf)} {unit}"))
+    image = None
+    for ax, (trace, label, text) in zip(axes, panels):
+        image = ax.imshow(trace.flux_w_m2, origin="lower", extent=extent, cmap="inferno", vmin=0.0, vmax=vmax,
+                          interpolation="nearest")
+        ap = scene.aperture
+        if ap.shape == "circle":
+            ax.add_patch(Circle((0, 0), ap.radius_m * scale, fill=False, ec="white", lw=1.4, label="aperture"))
+        else:
+            ax.add_patch(Rectangle((-ap.width_m / 2 * scale, -ap.height_m / 2 * scale), ap.width_m * scale,
+                                   ap.height_m * scale, fill=False, ec="white", lw=1.4, label="aperture"))
+        fg = trace.figures
+        cx, cy = fg["centroid_m"]["x"] * scale, fg["centroid_m"]["y"] * scale
+        ax.plot([0], [0], "+", color="cyan", ms=12, mew=1.5, label="aim point")
+        ax.plot([cx], [cy], "x", color="lime", ms=9, mew=1.5, label="centroid")
+        if fg["spot_radius_m"] is not None:
+            ax.add_patch(Circle((cx, cy), fg["spot_radius_m"] * scale, fill=False, ec="lime", lw=1.0, ls="--",
+                                label="90 % of the power"))
+        ax.set_title(f"{label}: {text}", fontsize=9.5)
+        ax.set_xlabel(f"target x ({unit})")
+        ax.set_aspect("equal")
+    axes[0].set_ylabel(f"target y ({unit})")
+    axes[0].legend(loc="upper left", fontsize=8, framealpha=0.5)
+    fig.colorbar(image, ax=list(axes), shrink=0.85, label="irradiance (W/m²)")
+    return fig
+
+
+def write_flux_map(res, path: str | Path, title: str = "", dpi: int = 110) -> Path:
+    """Draw :func:`draw_flux_maps` into a PNG at *path* (atomically); returns the path."""
+    if res is None:
+        raise ReportError("no optical figures to draw: the analysis produced none ([optics] enabled = false?)")
+    return savefig_atomic(draw_flux_maps(res, title), Path(path), dpi)
