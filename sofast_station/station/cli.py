@@ -23,6 +23,44 @@ def _fmt(v, unit="", digits=4):
     return f"{v:.{digits}f}{unit}"
 
 
+def optics_lines(opt: dict | None, truth: dict | None = None) -> list[str]:
+    """The optical figures of a record (``optics``), with their ``_U`` uncertainty and truth when present."""
+    if not opt:
+        return []
+
+    def show(d, key, fmt, scale=1.0):
+        v = d.get(key)
+        if v is None:
+            return "-"
+        text = fmt.format(v * scale)
+        if d.get(f"{key}_U") is not None:
+            text += " ± " + fmt.format(d[f"{key}_U"] * scale)
+        return text
+
+    def extra(key, fmt, scale=1.0, sub=None):
+        if not truth:
+            return ""
+        v = truth.get(key) if sub is None else (truth.get(key) or {}).get(sub)
+        return f"   (truth {'-' if v is None else fmt.format(v * scale)})"
+
+    c = opt["conditions"]
+    ap = c["aperture"]
+    ap_text = (f"circle r {1000 * ap['radius_m']:.1f} mm" if ap["shape"] == "circle"
+               else f"rectangle {1000 * ap['width_m']:.1f} x {1000 * ap['height_m']:.1f} mm")
+    off = opt["centroid_offset_mrad"]
+    return [f"  optics: {c['sun']['shape']} sun, DNI {c['dni_w_m2']:g} W/m^2, reflectivity {c['reflectivity']:g}, "
+            f"target at {c['slant_range_m']:.3f} m, aperture {ap_text}",
+            f"    intercept factor        {show(opt, 'intercept', '{:.4f}'):>12}   (design "
+            f"{opt['design']['intercept']:.4f}){extra('intercept', '{:.4f}')}",
+            f"    90 % spot radius        {show(opt, 'spot_radius_m', '{:.2f}', 1000.0):>12} mm   (design "
+            f"{_fmt(opt['design']['spot_radius_m'] and 1000 * opt['design']['spot_radius_m'], '', 2)} mm; analytic "
+            f"{1000 * opt['analytic_spot_radius_m']:.2f} mm){extra('spot_radius_m', '{:.2f}', 1000.0)}",
+            f"    centroid offset         {off['magnitude']:>12.3f} mrad (x {off['x']:+.3f}, y {off['y']:+.3f})"
+            f"{extra('centroid_offset_mrad', '{:.3f}', sub='magnitude')}",
+            f"    power / design's        {show(opt, 'power_ratio_vs_design', '{:.4f}'):>12}"
+            f"{extra('power_ratio_vs_design', '{:.4f}')}"]
+
+
 def summary_text(rec: dict) -> str:
     """A readable summary of one result record."""
     lines = [f"Facet {rec['serial']} ({rec['facet']}) on {rec['station']}, {rec['time']}",
@@ -61,6 +99,7 @@ def summary_text(rec: dict) -> str:
     if pl:
         lines.append("  placement in fixture       " + ", ".join(f"{v:.2f}" for v in pl["mm"]) + " mm, "
                      + ", ".join(f"{v:.2f}" for v in pl["mrad"]) + " mrad")
+    lines.extend(optics_lines(rec.get("optics"), (truth or {}).get("optics")))
     lines.append(f"  points                    {rec['n_points']:>14,}   ({100 * rec['valid_fraction']:.1f} % of the facet's pixels)")
     lines.append(f"  median modulation         {rec['median_modulation_dn']:>11.1f} DN")
     it = rec["iterations"]

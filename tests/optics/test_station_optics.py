@@ -1,0 +1,91 @@
+"""Optical figures in the station: [optics] settings, inspect against the twin's truth, optical limits."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+
+from sofast_station.config import load_config
+from sofast_station.errors import ConfigError
+from sofast_station.station.verdict import judge
+
+
+@pytest.fixture(scope="module")
+def inspected(tmp_path_factory):
+    """One inspection of the small simulated dish station, with an aperture near the spot's size."""
+    from sofast_station.station.inspect import inspect, open_station
+    from tests.conftest import ROOT, SMALL_STATION
+
+    d = tmp_path_factory.mktemp("optics-station")
+    path = d / "station.toml"
+    path.write_text(SMALL_STATION.format(data_dir=d / "data", facet=ROOT / "fixtures/facets/dish_5m33.toml",
+                                         radiometric=ROOT / "calibration/simulated_radiometric.json")
+                    + '\n[optics]\naperture = { shape = "circle", radius_m = 0.028 }\ndesign_points = 40000\n')
+    config = dataclasses.replace(load_config(path), data_dir=d / "data")
+    station = open_station(config, seed=5)
+    try:
+        return config, inspect(station, "OPT-1")
+    finally:
+        station.close()
+
+
+def test_inspection_reports_optical_figures_that_match_the_twins_truth(inspected):
+    """The measured facet's trace agrees with the trace of the twin's exact surface at the same pixels."""
+    _, rec = inspected
+    opt, truth = rec["optics"], rec["truth"]["optics"]
+    assert opt["conditions"]["aperture"] == {"shape": "circle", "radius_m": 0.028}
+    assert opt["conditions"]["slant_range_m"] == pytest.approx(5.33)
+    # The twin's facet (f 5.42 / 5.35 m, 0.5 mrad slope error) spills past a 28 mm aperture; the design does not.
+    assert 0.7 < opt["intercept"] < 0.99 and opt["design"]["intercept"] == 1.0
+    assert opt["intercept"] == pytest.approx(truth["intercept"], abs=0.02)
+    assert opt["spot_radius_m"] == pytest.approx(truth["spot_radius_m"], rel=0.03)
+    assert opt["power_ratio_vs_design"] == pytest.approx(truth["power_ratio_vs_design"], abs=0.02)
+    assert abs(opt["centroid_offset_mrad"]["magnitude"] - truth["centroid_offset_mrad"]["magnitude"]) < 0.05
+    assert opt["spot_radius_m"] > opt["design"]["spot_radius_m"]
+    assert rec["timings_s"]["analysis_optics"] > 0
+
+
+def test_optical_limits_judge_the_optical_figures(inspected):
+    config, rec = inspected
+    f = rec["optics"]
+    ok = dataclasses.replace(config.limits, min_intercept=f["intercept"] - 0.01,
+                             max_spot_radius_mrad=f["spot_radius_mrad"] + 0.1)
+    strict = dataclasses.replace(config.limits, min_intercept=min(1.0, f["intercept"] + 0.01),
+                                 max_centroid_offset_mrad=0.0, min_power_ratio=1.0)
+    assert not [r for r in judge(rec, config.design, ok, config.quality)["reasons"] if "intercept" in r]
+    reasons = judge(rec, config.design, strict, config.quality)["reasons"]
+    assert any(r.startswith("intercept factor") and "minimum" in r for r in reasons)
+    assert any(r.startswith("beam centroid offset") for r in reasons)
+    assert any(r.startswith("intercepted power / design's") for r in reasons)
+
+
+@pytest.mark.parametrize("table, message", [
+    ('[optics]\nsunshape = "buie"\n', "unknown key(s) sunshape"),
+    ('[optics]\nsun = "square"\n', "sun shape must be one of"),
+    ('[optics]\naperture = { shape = "circle", width_m = 1.0 }\n', "a circle aperture takes exactly shape, radius_m"),
+    ('[optics]\nreflectivity = 1.5\n', "reflectivity must lie in (0, 1]"),
+    ('[optics]\nrays_per_pixel = "many"\n', "rays_per_pixel must be a number"),
+    ('[optics]\nenabled = false\n[limits]\nmin_intercept = 0.9\n', "sets min_intercept but [optics] enabled = false"),
+    ('[limits]\nmin_intercept = 1.5\n', "min_intercept is a fraction"),
+])
+def test_optics_configuration_errors_name_the_file_section_and_key(small_station_toml, table, message):
+    text = small_station_toml.read_text()
+    small_station_toml.write_text(text + "\n" + table)
+    with pytest.raises(ConfigError) as err:
+        load_config(small_station_toml)
+    assert message in str(err.value)
+    assert str(small_station_toml) in str(err.value)
+
+
+def test_recipe_overrides_the_aperture(small_station_toml):
+    from sofast_station.station.recipes import recipes_from_config
+
+    small_station_toml.write_text(small_station_toml.read_text() + '\n[optics]\nsun = "buie"\ncsr = 0.1\n'
+                                  '\n[recipes.wide]\noptics = { aperture = { shape = "rectangle", width_m = 0.1, '
+                                  'height_m = 0.08 } }\n')
+    recipes = recipes_from_config(load_config(small_station_toml))
+    assert recipes["default"].optics.aperture is None
+    wide = recipes["wide"].optics
+    assert (wide.aperture.shape, wide.aperture.width_m, wide.aperture.height_m) == ("rectangle", 0.1, 0.08)
+    assert (wide.sun.kind, wide.sun.csr) == ("buie", 0.1)
