@@ -141,6 +141,10 @@ def check_rules(graph: Graph) -> list[str]:
     forbid(graph.in_unit("qc"), lambda u: u in {"qc", "errors"},
            lambda lib: lib in {"numpy", "scipy"} or (lib in stdlib and lib not in STDLIB_IO),
            "qc/ may import only itself, errors, numpy, scipy and non-I/O stdlib")
+    # 1c. the optics (ray trace of a facet in sunlight): pure as well
+    forbid(graph.in_unit("optics"), lambda u: u == "optics" or u in PLAIN_DATA,
+           lambda lib: lib == "numpy" or (lib in stdlib and lib not in STDLIB_IO),
+           "optics/ may import only itself, the plain-data modules, numpy and non-I/O stdlib")
     # 2. the twin: nothing of the math (nor calibration, nor OpenCV), directly or indirectly
     forbid(graph.in_unit("twin"), lambda u: u in {"twin"} | PLAIN_DATA,
            lambda lib: lib in {"numpy", "scipy"} or lib in stdlib,
@@ -242,12 +246,13 @@ def test_each_rule_catches_a_violation(tmp_path):
         "reanalysis/batch.py": "from ..cli import main\n",
         "commands.py": "from .station import cli\n",
         "qc/spc.py": "import h5py\n",
+        "optics/trace.py": "from ..station import optics\n",
     }
     for rel, code in planted.items():
         path = pkg / rel
         path.write_text(path.read_text() + "\n" + code)
     broken = check_rules(Graph(tmp_path))
-    for rule in ("measure/ may import", "qc/ may import", "twin/ shares no code", "calibrate/ never imports twin/",
+    for rule in ("measure/ may import", "qc/ may import", "optics/ may import", "twin/ shares no code", "calibrate/ never imports twin/",
                  "devices/ imports only", "archive/ imports nothing", "only __main__ imports",
                  "commands.py (the registry)"):
         assert any(b.startswith(rule) for b in broken), f"{rule!r} not reported; got:\n" + "\n".join(broken)

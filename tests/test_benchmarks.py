@@ -61,3 +61,12 @@ def test_twin_render_benchmark_quick(repo_root, small_station_toml):
     print(proc.stdout)
     for line in ("camera 400 x 300, 18 frames", "capture over 2 runs: wall", "cpu"):
         assert line in proc.stdout
+
+
+def test_optics_benchmark_quick(repo_root, small_station_toml):
+    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "optics.py"), "--quick", "--config",
+                           str(small_station_toml)], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    print(proc.stdout)
+    for line in ("20,000 points", "per-facet optical figures: median", "load average", "intercept"):
+        assert line in proc.stdout

@@ -67,7 +67,7 @@ class OpticsSettings:
     min_rays: int = 200_000
     grid_cells: int = 151
     grid_half_width_m: float | None = None
-    design_points: int = 200_000
+    design_points: int = 50_000
     seed: int = 1
 
     def __post_init__(self):

@@ -48,7 +48,9 @@ def draw_flux_maps(res, title: str = "") -> "Figure":  # noqa: F821
                  f"({cond['rays']:,} rays)".strip())
     f = res.figures
     panels = ((res.measured, "measured facet",
-               f"intercept {_fmt(f['intercept'], '{:.4f}')}, r90 {_fmt(f['spot_radius_mrad'], '{:.3f}')} mrad, "
+               f"intercept {_fmt(f['intercept'], '{:.4f}')}, r90 "
+               f"{_fmt(None if f['spot_radius_m'] is None else f['spot_radius_m'] * scale, lf)} {unit} "
+               f"({_fmt(f['spot_radius_mrad'], '{:.2f}')} mrad), "
                f"centroid {_fmt(f['centroid_offset_mrad']['magnitude'], '{:.3f}')} mrad off aim,\n"
                f"power / design's {_fmt(f['power_ratio_vs_design'], '{:.4f}')}; analytic r90 "
                f"{_fmt(f['analytic_spot_radius_m'] * scale, lf)} {unit}"),

@@ -9,6 +9,7 @@ In station.toml::
     alignment_point_m = [3.8, 0.0]          # overrides the facet file's
     limits = { focal_length_tolerance = 0.01 }
     quality = { min_valid_fraction = 0.85 }
+    optics = { aperture = { shape = "circle", radius_m = 0.05 } }   # over [optics] (docs/optics.md)
 """
 
 from __future__ import annotations

@@ -169,6 +169,8 @@ class StationRunner:
         self.cycles = 0
         cam = station.config.geometry.camera
         self.worker = AnalysisWorker(station.config.geometry, station.config.fringes, cam.shape)
+        # The designs' optical traces are the same for every facet of a type: made now, not in a cycle.
+        self.worker.prepare_optics([(r.design, r.optics) for r in recipes.values() if r.optics is not None])
         self._heartbeat_thread = threading.Thread(target=self._heartbeat, name="heartbeat", daemon=True)
         self._answer_lock = threading.Lock()
         self._calibration_policy = calibration_settings(station.config)[0]

@@ -86,6 +86,16 @@ def _preview(a, most: int = 6000) -> dict:
             "corners_px": np.asarray(a.corners_px, dtype=np.float32)}
 
 
+def _prepare_optics(designs: list) -> int:
+    from ..facet import FacetDesign
+    from .optics import DesignTraces
+
+    cache = _STATE.setdefault("design_traces", DesignTraces(max(4, len(designs))))
+    for design, optics in designs:
+        cache.get(FacetDesign.from_dict(design), optics)
+    return len(designs)
+
+
 def _ping() -> bool:
     return "rays" in _STATE
 
@@ -149,6 +159,14 @@ class AnalysisWorker:
                                   "restarted") from None
         valid = np.unpackbits(packed, count=int(np.prod(shape))).astype(bool).reshape(shape)
         return WorkerResult(figures, valid, seconds, preview)
+
+    def prepare_optics(self, designs: list, timeout_s: float = 120.0) -> None:
+        """Trace each (design, OpticsSettings)'s design surface in the worker now, so that no facet's cycle
+        pays for it (a restarted worker traces again on its first facet)."""
+        if designs:
+            t = time.perf_counter()
+            self._pool.submit(_prepare_optics, [(d.to_dict(), o) for d, o in designs]).result(timeout=timeout_s)
+            log.info("optics: %d design trace(s) ready in %.2f s", len(designs), time.perf_counter() - t)
 
     def _kill(self) -> None:
         pool, self._pool = self._pool, None
