@@ -89,3 +89,20 @@ def test_recipe_overrides_the_aperture(small_station_toml):
     wide = recipes["wide"].optics
     assert (wide.aperture.shape, wide.aperture.width_m, wide.aperture.height_m) == ("rectangle", 0.1, 0.08)
     assert (wide.sun.kind, wide.sun.csr) == ("buie", 0.1)
+
+
+def test_optical_figures_reach_the_journal_and_the_workbook_row(inspected, tmp_path):
+    from sofast_station.archive import Journal
+    from sofast_station.archive.workbook import flatten_record
+
+    _, rec = inspected
+    row = flatten_record("cycle-1", rec)
+    assert row["optics.intercept"] == rec["optics"]["intercept"]
+    assert row["optics.spot_radius_mrad"] == rec["optics"]["spot_radius_mrad"]
+    assert row["optics.centroid_offset_mrad.magnitude"] == rec["optics"]["centroid_offset_mrad"]["magnitude"]
+    journal = Journal(tmp_path / "journal.sqlite3")
+    try:
+        journal.append("cycle-1", {k: v for k, v in rec.items() if k != "truth"})
+        assert journal.get("cycle-1").record["optics"]["power_ratio_vs_design"] == rec["optics"]["power_ratio_vs_design"]
+    finally:
+        journal.close()
