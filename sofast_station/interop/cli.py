@@ -53,6 +53,11 @@ def cmd_import_opencsp(args) -> int:
     keys = ("focal_length_x_m", "focal_length_y_m", "twist_mrad_per_m", "twist_e1_mrad_per_m",
             "twist_e2_mrad_per_m", "slope_rms_mrad", "n_points", "boresight_mrad", "subsample_fit")
     out = {"facet": m.name, "measured": m.date, "robust": args.robust, **{k: fig[k] for k in keys}}
+    # What the facet does with sunlight: default [optics] (pillbox sun, target at the design focal length);
+    # 'report flux --opencsp' draws the map and takes other conditions.
+    from ..optics import OpticsSettings
+    from ..station.optics import analysis_optics
+    out["optics"] = analysis_optics(a, m.design, OpticsSettings()).figures
     if args.compare:
         ref = read_opencsp_result(Path(args.compare))
         same = m.analyse(robust=ref.robust, pixel_mask=ref.mask).figures["subsample_fit"]
@@ -71,6 +76,11 @@ def cmd_import_opencsp(args) -> int:
           f"{out['twist_e2_mrad_per_m']:.4f})")
     for model, r in out["slope_rms_mrad"].items():
         print(f"  slope error RMS vs {model:<12} x {r['x']:.3f}  y {r['y']:.3f}  magnitude {r['magnitude']:.3f} mrad")
+    o = out["optics"]
+    print(f"  optics (pillbox sun, target at {o['conditions']['slant_range_m']:g} m, aperture radius "
+          f"{o['conditions']['aperture']['radius_m']:.3f} m): intercept {o['intercept']:.4f}, 90 % spot radius "
+          f"{o['spot_radius_m']:.3f} m ({o['spot_radius_mrad']:.2f} mrad; design {o['design']['spot_radius_m']:.3f} m), "
+          f"centroid {o['centroid_offset_mrad']['magnitude']:.3f} mrad off aim")
     if "opencsp" in out:
         o = out["opencsp"]
         s = o["ours_on_its_pixels"]

@@ -174,6 +174,9 @@ def test_import_opencsp_command(repo_root):
     out = json.loads(proc.stdout)
     assert out["robust"] and out["n_points"] > 7000
     assert abs(out["opencsp"]["ours_on_its_pixels"]["focal_length_x_m"] / out["opencsp"]["focal_length_x_m"] - 1) < 5e-3
+    # the optical figures at the design focal length (docs/optics.md; checked against OpenCSP's own ray trace
+    # in test_opencsp_optics.py)
+    assert 0.46 < out["optics"]["spot_radius_m"] < 0.56 and 0.9 < out["optics"]["intercept"] <= 1.0
 
 
 def test_missing_file_is_named(paths, tmp_path):
