@@ -90,9 +90,18 @@ def _prepare_optics(designs: list) -> int:
     from ..facet import FacetDesign
     from .optics import DesignTraces
 
+    import numpy as np
+
+    from ..optics import design_samples, facet_optics
+
     cache = _STATE.setdefault("design_traces", DesignTraces(max(4, len(designs))))
     for design, optics in designs:
-        cache.get(FacetDesign.from_dict(design), optics)
+        facet = FacetDesign.from_dict(design)
+        scene, traced = cache.get(facet, optics)
+        # One small trace through the measured facet's path, so the first facet runs warm code.
+        points, slopes, _ = design_samples(facet, 2000)
+        facet_optics(points, slopes, np.array([0.0, 0.0, 2.0 * facet.focal_length_m]), facet, optics,
+                     scene=scene, design_result=traced)
     return len(designs)
 
 
@@ -120,6 +129,7 @@ class AnalysisWorker:
         self._frames = np.ndarray(self._shape, dtype=np.uint8, buffer=self._shm.buf)
         self._pool = None
         self._restarting: threading.Thread | None = None
+        self._optics_designs: list = []          # (design dict, OpticsSettings) traced at every (re)start
         self._start()
 
     def _start(self) -> None:
@@ -128,6 +138,8 @@ class AnalysisWorker:
         self._pool = ProcessPoolExecutor(max_workers=1, mp_context=ctx, initializer=_init,
                                          initargs=(self._shm.name, self._shape, self._geometry, self._fringes))
         self._pool.submit(_ping).result(timeout=120)
+        if self._optics_designs:
+            self._pool.submit(_prepare_optics, self._optics_designs).result(timeout=120)
         log.info("analysis worker ready in %.1f s", time.perf_counter() - t)
 
     def analyse(self, frames: np.ndarray, design, settings, distance_m: float, timeout_s: float,
@@ -162,10 +174,11 @@ class AnalysisWorker:
 
     def prepare_optics(self, designs: list, timeout_s: float = 120.0) -> None:
         """Trace each (design, OpticsSettings)'s design surface in the worker now, so that no facet's cycle
-        pays for it (a restarted worker traces again on its first facet)."""
+        pays for it; a restarted worker traces them again while it starts."""
+        self._optics_designs = [(d.to_dict(), o) for d, o in designs]
         if designs:
             t = time.perf_counter()
-            self._pool.submit(_prepare_optics, [(d.to_dict(), o) for d, o in designs]).result(timeout=timeout_s)
+            self._pool.submit(_prepare_optics, self._optics_designs).result(timeout=timeout_s)
             log.info("optics: %d design trace(s) ready in %.2f s", len(designs), time.perf_counter() - t)
 
     def _kill(self) -> None:
