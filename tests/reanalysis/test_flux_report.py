@@ -36,4 +36,4 @@ def test_report_flux_options_change_the_conditions(station_dumps, tmp_path, caps
 
 def test_report_flux_needs_dumps_or_an_opencsp_folder(caplog):
     assert main(["report", "flux"]) != 0
-    assert "needs dump(s) or --opencsp" in caplog.text
+    assert "needs dump(s) or opencsp:DIR" in caplog.text
