@@ -62,12 +62,13 @@ def test_optical_limits_judge_the_optical_figures(inspected):
 
 @pytest.mark.parametrize("table, message", [
     ('[optics]\nsunshape = "buie"\n', "unknown key(s) sunshape"),
-    ('[optics]\nsun = "square"\n', "sun shape must be one of"),
+    ('[optics]\nsun = "square"\n', "[optics] sun must be one of 'pillbox', 'gaussian', 'buie'"),
     ('[optics]\naperture = { shape = "circle", width_m = 1.0 }\n', "a circle aperture takes exactly shape, radius_m"),
-    ('[optics]\nreflectivity = 1.5\n', "reflectivity must lie in (0, 1]"),
+    ('[optics]\nreflectivity = 1.5\n', "[optics] reflectivity must be a number above 0 and at most 1"),
     ('[optics]\nrays_per_pixel = "many"\n', "rays_per_pixel must be a number"),
     ('[optics]\nenabled = false\n[limits]\nmin_intercept = 0.9\n', "sets min_intercept but [optics] enabled = false"),
-    ('[limits]\nmin_intercept = 1.5\n', "min_intercept is a fraction"),
+    ('[limits]\nmin_intercept = 1.5\n', "[limits] min_intercept must be a number of at least 0 and at most 1"),
+    ('[recipes.a]\noptics = { sun = "buie", csr = 2.0 }\n', "[recipes.a.optics] csr must be"),
 ])
 def test_optics_configuration_errors_name_the_file_section_and_key(small_station_toml, table, message):
     text = small_station_toml.read_text()
