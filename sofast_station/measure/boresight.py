@@ -138,7 +138,7 @@ def kappa_converged(new: np.ndarray, old: np.ndarray) -> bool:
 
 
 def solve_shape(assembly: Assembly, design: FacetDesign, measured_distance_m: float,
-                max_iterations: int = 20, robust: bool = False) -> ShapeSolution:
+                max_iterations: int = 20, robust: bool = False, pool=None) -> ShapeSolution:
     """Iterate shape fit and boresight to convergence (docs/conventions.md#iteration).
 
     Parameters
@@ -152,6 +152,8 @@ def solve_shape(assembly: Assembly, design: FacetDesign, measured_distance_m: fl
         Limit for the shape loop inside each boresight step, and for the boresight steps.
     robust : bool
         Bisquare-weighted slope fits (see :func:`~sofast_station.measure.fit.fit_parabola`).
+    pool : executor, optional
+        Where a robust fit's second slope equation runs beside the first (the same bits either way).
     """
     xa, ya = (float(v) for v in design.alignment_point_m)
     xm, ym = (float(v) for v in design.measure_point_m)
@@ -173,7 +175,7 @@ def solve_shape(assembly: Assembly, design: FacetDesign, measured_distance_m: fl
             pts = intersect_quadratic(coeffs, moved.camera_m, moved.rays)
             sx, sy = normal_slopes(pts, moved.camera_m, moved.screen_m)
             # A robust fit starts from the previous fit's weights: the same points, moved very little.
-            fit = fit_parabola(pts[0], pts[1], sx, sy, robust=robust, start=fit)
+            fit = fit_parabola(pts[0], pts[1], sx, sy, robust=robust, start=fit, pool=pool)
             new = fit.coefficients()
             new[5] = z_align - surface_z(new, xa, ya)
             shape_total += 1

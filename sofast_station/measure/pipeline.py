@@ -486,7 +486,8 @@ def shape_and_boresight(rays: Rays, pose: CornerPoseResult, design: FacetDesign,
                          to_frame(camera_to_facet, rays.rays[:, sample], translate=False),
                          to_frame(camera_to_facet, rays.screen_cam_m[:, sample]),
                          to_frame(camera_to_facet, rays.screen_centre_cam_m[:, None])[:, 0])
-    solution = solve_shape(subsample, design, measured_distance_m, settings.max_iterations, robust=settings.robust_fit)
+    solution = solve_shape(subsample, design, measured_distance_m, settings.max_iterations, robust=settings.robust_fit,
+                           pool=pool if settings.robust_fit else None)
     if timer is not None:
         timer.lap("iterate")
     # Every valid pixel, taken from the camera frame straight into the boresighted facet frame.
