@@ -1,0 +1,546 @@
+"""Expanded uncertainty (k = 2) of every reported figure, and its budget (docs/uncertainty.md).
+
+Two parts, combined per the GUM (root sum of squares of standard-uncertainty contributions, times the
+coverage factor 2):
+
+* **random** -- what changes from capture to capture: the intensity noise measured in the capture itself,
+  propagated to screen positions (:func:`~sofast_station.measure.phase.position_sigma_m`), to slopes (the
+  reflection law's derivative, per pixel) and through the fits (their covariance); and the corners'
+  location noise (``corner_px``) through the pose;
+* **systematic** -- sensitivity of each figure to each station input (measured distance, camera
+  intrinsics and distortion, camera-to-screen pose, screen pitch, display response, fixture pose), by
+  finite differences of the whole reduction (:func:`~sofast_station.measure.pipeline.rerun`) at plus and
+  minus one standard uncertainty: the linear part ``(f(+u) - f(-u)) / 2`` and the curvature part
+  ``(f(+u) + f(-u)) / 2 - f(0)`` combine to the standard deviation ``sqrt(c^2 + 2 q^2)`` of the figure
+  for a normal input (the curvature part matters for slope RMS values, which a perturbation raises
+  whatever its sign).
+
+Sensitivities depend on the station's geometry and the recipe, not on the facet: they are computed once
+on a decimated copy of one reduction (:func:`sensitivities`) and reused (:func:`combine`); the caller
+keeps the cache. Pure functions: numpy and records in, numpy and dicts out.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import ConfigError
+from ..geometry import Pose
+from .camera import to_frame
+from .metrics import principal_axes
+from .phase import position_sigma_m
+from .screen import FlatScreen
+from .surface import normal_slopes
+
+COVERAGE_FACTOR = 2.0
+MODELS = ("design", "parabola", "higher_order")
+RMS_AXES = ("x", "y", "magnitude")
+
+#: Every scalar figure that gets an uncertainty, as a path into the figures dict.
+SCALAR_PATHS: tuple[tuple, ...] = (
+    ("focal_length_x_m",), ("focal_length_y_m",), ("curvature_x_per_m",), ("curvature_y_per_m",),
+    ("twist_mrad_per_m",), ("twist_e1_mrad_per_m",), ("twist_e2_mrad_per_m",),
+    ("principal_focal_lengths_m", 0), ("principal_focal_lengths_m", 1), ("axis_angle_rad",),
+    *[("slope_rms_mrad", m, a) for m in MODELS for a in RMS_AXES],
+    ("boresight_mrad", "x"), ("boresight_mrad", "y"), ("optical_tilt_mrad", "x"), ("optical_tilt_mrad", "y"),
+    *[("placement", "mm", i) for i in range(3)], *[("placement", "mrad", i) for i in range(3)],
+)
+
+
+def path_name(path: tuple) -> str:
+    """``("slope_rms_mrad", "design", "x")`` -> ``"slope_rms_mrad.design.x"``."""
+    return ".".join(str(p) for p in path)
+
+
+def get_path(figures: dict, path: tuple):
+    v = figures
+    for p in path:
+        if v is None:
+            return None
+        v = v[p]
+    return None if v is None else float(v)
+
+
+def _rotation(rx: float, ry: float, rz: float) -> np.ndarray:
+    """R_z(rz) R_y(ry) R_x(rx), radians."""
+    cx, sx, cy, sy, cz, sz = np.cos(rx), np.sin(rx), np.cos(ry), np.sin(ry), np.cos(rz), np.sin(rz)
+    r_x = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+    r_y = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+    r_z = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+    return r_z @ r_y @ r_x
+
+
+def small_motion(rotation_mrad=(0.0, 0.0, 0.0), translation_mm=(0.0, 0.0, 0.0)) -> Pose:
+    """A small rigid motion from rotations (mrad) and a translation (mm)."""
+    return Pose(_rotation(*(1e-3 * np.asarray(rotation_mrad, float))), 1e-3 * np.asarray(translation_mm, float))
+
+
+@dataclass(frozen=True)
+class InputUncertainties:
+    """Standard uncertainties (k = 1) of the station's inputs (``[uncertainty]`` in station.toml).
+
+    Defaults and their justification: docs/uncertainty.md.
+
+    Attributes
+    ----------
+    distance_mm : float
+        Measured distance screen centre -> measure point, mm.
+    camera_focal_px : float
+        Each of the camera's focal lengths f_x, f_y, pixels.
+    camera_principal_px : float
+        Each coordinate of the principal point, pixels.
+    camera_distortion : tuple of 5 floats
+        k1, k2, p1, p2, k3 (dimensionless).
+    screen_rotation_mrad, screen_translation_mm : tuple of 3 floats
+        Camera-to-screen pose: rotations about and shifts along the screen's own x, y, z through its centre.
+    screen_pitch_relative : float
+        Relative pixel pitch of the display, each axis.
+    response_phase_rad : float
+        Phase error left by the display's linearised response (amplitude of the 4-times-phase harmonic
+        a residual nonlinearity leaves in four-step phases), radians.
+    fixture_rotation_mrad, fixture_translation_mm : tuple of 3 floats
+        Where the fixture (nominal facet frame) sits in the camera frame: about/along the fixture axes.
+    corner_px : float
+        Location noise of each found corner coordinate, pixels (random: it changes with each placement).
+    """
+
+    distance_mm: float = 0.5
+    camera_focal_px: float = 1.0
+    camera_principal_px: float = 1.0
+    camera_distortion: tuple = (2e-3, 1e-2, 5e-5, 5e-5, 0.0)
+    screen_rotation_mrad: tuple = (0.5, 0.5, 0.5)
+    screen_translation_mm: tuple = (0.5, 0.5, 0.5)
+    screen_pitch_relative: float = 1e-4
+    response_phase_rad: float = 0.003
+    fixture_rotation_mrad: tuple = (0.5, 0.5, 0.5)
+    fixture_translation_mm: tuple = (0.5, 0.5, 0.5)
+    corner_px: float = 0.1
+
+    def to_dict(self) -> dict:
+        return {f.name: (list(v) if isinstance(v, tuple) else v)
+                for f in dataclasses.fields(self) for v in [getattr(self, f.name)]}
+
+    @classmethod
+    def from_table(cls, table: dict, where: str = "[uncertainty]") -> "InputUncertainties":
+        """From station.toml's ``[uncertainty]`` table (every key optional), validated."""
+        known = {f.name: f for f in dataclasses.fields(cls)}
+        unknown = sorted(set(table) - set(known))
+        if unknown:
+            raise ConfigError(f"{where} has unknown key(s) {', '.join(unknown)}; allowed: {', '.join(sorted(known))}")
+        values = {}
+        for key, value in table.items():
+            default = getattr(cls(), key)
+            n = len(default) if isinstance(default, tuple) else None
+            items = value if n is not None else [value]
+            if (n is not None and (not isinstance(value, (list, tuple)) or len(value) != n)) or not all(
+                    isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) and v >= 0
+                    for v in items):
+                what = f"a list of {n} non-negative numbers" if n else "a non-negative number"
+                raise ConfigError(f"{where} {key} must be {what} (a standard uncertainty, k = 1), got {value!r}")
+            values[key] = tuple(float(v) for v in value) if n is not None else float(value)
+        return cls(**values)
+
+    def with_camera_record(self, record: dict | None) -> "InputUncertainties":
+        """Where a camera calibration record states its parameters' standard deviations (``std`` with
+        ``fx``, ``fy``, ``cx``, ``cy``, ``distortion``), use them instead of the defaults."""
+        std = (record or {}).get("std") if isinstance(record, dict) else None
+        if not isinstance(std, dict):
+            return self
+        out = self
+        try:
+            if "fx" in std and "fy" in std:
+                out = dataclasses.replace(out, camera_focal_px=float(max(std["fx"], std["fy"])))
+            if "cx" in std and "cy" in std:
+                out = dataclasses.replace(out, camera_principal_px=float(max(std["cx"], std["cy"])))
+            if "distortion" in std and len(std["distortion"]) == 5:
+                out = dataclasses.replace(out, camera_distortion=tuple(float(v) for v in std["distortion"]))
+        except (TypeError, ValueError):
+            return self
+        return out
+
+
+@dataclass(frozen=True)
+class Input:
+    """One row of the budget: a station input, its standard uncertainty and unit, and its kind."""
+
+    name: str
+    group: str
+    u: float
+    unit: str
+    kind: str = "systematic"
+
+
+def budget_inputs(inputs: InputUncertainties, n_corners: int) -> list[Input]:
+    """The systematic and corner rows of the budget for *inputs* (zero-uncertainty inputs are left out)."""
+    rows = [Input("distance", "measured distance", inputs.distance_mm, "mm"),
+            Input("camera fx", "camera focal length", inputs.camera_focal_px, "px"),
+            Input("camera fy", "camera focal length", inputs.camera_focal_px, "px"),
+            Input("camera cx", "camera principal point", inputs.camera_principal_px, "px"),
+            Input("camera cy", "camera principal point", inputs.camera_principal_px, "px")]
+    rows += [Input(f"camera {k}", "camera distortion", u, "1")
+             for k, u in zip(("k1", "k2", "p1", "p2", "k3"), inputs.camera_distortion)]
+    rows += [Input(f"screen r{a}", "camera-to-screen rotation", u, "mrad")
+             for a, u in zip("xyz", inputs.screen_rotation_mrad)]
+    rows += [Input(f"screen t{a}", "camera-to-screen translation", u, "mm")
+             for a, u in zip("xyz", inputs.screen_translation_mm)]
+    rows += [Input("screen pitch x", "screen pitch", inputs.screen_pitch_relative, "1"),
+             Input("screen pitch y", "screen pitch", inputs.screen_pitch_relative, "1"),
+             Input("display response", "display response", inputs.response_phase_rad, "rad")]
+    rows += [Input(f"fixture r{a}", "fixture pose", u, "mrad") for a, u in zip("xyz", inputs.fixture_rotation_mrad)]
+    rows += [Input(f"fixture t{a}", "fixture pose", u, "mm") for a, u in zip("xyz", inputs.fixture_translation_mm)]
+    rows += [Input(f"corner {i} {c}", "corner location", inputs.corner_px, "px", "random")
+             for i in range(n_corners) for c in "uv"]
+    return [r for r in rows if r.u > 0]
+
+
+def _response_shift(positions: np.ndarray, length_m: float, periods: float, amplitude_rad: float) -> np.ndarray:
+    """Position error of a four-step phase with a 4-times-phase harmonic of *amplitude_rad*, metres."""
+    phase = 2.0 * np.pi * periods * positions / length_m
+    return amplitude_rad * np.sin(4.0 * phase) * length_m / (2.0 * np.pi * periods)
+
+
+def decimated(reduction, max_points: int = 30_000):
+    """A copy of *reduction* whose phases keep every n-th valid pixel (about *max_points* of them): the
+    figures' dependence on the station's inputs is smooth, so sensitivities need no more."""
+    from .pipeline import Phases  # noqa: F401  (type only)
+    ok = reduction.rays.ok
+    kept = np.flatnonzero(ok)
+    step = max(1, kept.size // max_points)
+    dec_ok = np.zeros_like(ok)
+    dec_ok[kept[::step]] = True
+    phases = dataclasses.replace(reduction.phases, ok=reduction.phases.ok & dec_ok)
+    return dataclasses.replace(reduction, phases=phases)
+
+
+def _perturbed_run(red, inp: Input, sign: float, ctx: dict):
+    """The reduction rerun with input *inp* moved by *sign* standard uncertainties."""
+    from .pipeline import pose_from_corners, rerun
+
+    g, distance, settings = ctx["geometry"], ctx["distance_m"], ctx["settings"]
+    fringes, design = ctx["fringes"], ctx["design"]
+    screen = ctx["screen"]
+    step = sign * inp.u
+    phases = red.phases
+    start = "rays"
+    name = inp.name
+    if name == "distance":
+        distance = distance + 1e-3 * step
+        start = "pose"
+    elif name in ("camera fx", "camera fy", "camera cx", "camera cy"):
+        k = g.camera.matrix.copy()
+        k[{"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}[name.split()[1]]] += step
+        g = dataclasses.replace(g, camera=dataclasses.replace(g.camera, matrix=k))
+    elif name.startswith("camera "):
+        d = g.camera.distortion.copy()
+        d[("k1", "k2", "p1", "p2", "k3").index(name.split()[1])] += step
+        g = dataclasses.replace(g, camera=dataclasses.replace(g.camera, distortion=d))
+    elif name.startswith("screen r") or name.startswith("screen t"):
+        axis = "xyz".index(name[-1])
+        vec = np.zeros(3)
+        vec[axis] = step
+        delta = small_motion(rotation_mrad=vec) if name.startswith("screen r") else small_motion(translation_mm=vec)
+        g = dataclasses.replace(g, screen_to_camera=g.screen_to_camera.compose(delta))
+        screen = None
+    elif name.startswith("screen pitch"):
+        axis = name[-1]
+        pos = dict(phases.positions_m)
+        pos[axis] = pos[axis] * (1.0 + step)
+        phases = dataclasses.replace(phases, positions_m=pos)
+        w, h = ctx["screen_size_m"]
+        w, h = (w * (1.0 + step), h) if axis == "x" else (w, h * (1.0 + step))
+        screen = FlatScreen(w, h, g.screen_to_camera)
+    elif name == "display response":
+        pos = dict(phases.positions_m)
+        for axis, length in zip("xy", ctx["screen_size_m"]):
+            p = getattr(fringes, f"periods_{axis}")[-1]
+            pos[axis] = pos[axis] + _response_shift(pos[axis], length, p, step)
+        phases = dataclasses.replace(phases, positions_m=pos)
+    elif name.startswith("fixture"):
+        axis = "xyz".index(name[-1])
+        vec = np.zeros(3)
+        vec[axis] = step
+        delta = small_motion(rotation_mrad=vec) if name.startswith("fixture r") else small_motion(translation_mm=vec)
+        g = dataclasses.replace(g, fixture_to_camera=g.fixture_to_camera.compose(delta))
+        start = "pose"
+    elif name.startswith("corner "):
+        _, i, c = name.split()
+        corners = red.pose.corners_px.copy()
+        corners[int(i), "uv".index(c)] += step
+        pose = pose_from_corners(corners, red.region, red.rays, g, design, distance, settings)
+        return rerun(red, "shape", fringes=fringes, geometry=g, design=design, measured_distance_m=distance,
+                     settings=settings, screen=screen, pose=pose)
+    else:
+        raise ValueError(f"unknown input {name!r}")
+    return rerun(red, start, fringes=fringes, geometry=g, design=design, measured_distance_m=distance,
+                 settings=settings, screen=screen, phases=phases)
+
+
+@dataclass
+class Sensitivities:
+    """Standard-uncertainty contribution of each input to each scalar figure (figure units), from finite
+    differences at +-1 u: ``linear`` (c) and ``curvature`` (q); the contribution is sqrt(c^2 + 2 q^2)."""
+
+    inputs: list
+    paths: list
+    linear: np.ndarray          # (n_inputs, n_paths)
+    curvature: np.ndarray       # (n_inputs, n_paths)
+    n_points: int
+    seconds: float = 0.0
+
+    @property
+    def contributions(self) -> np.ndarray:
+        return np.sqrt(self.linear ** 2 + 2.0 * self.curvature ** 2)
+
+
+def sensitivities(reduction, *, fringes, geometry, design, measured_distance_m: float, settings,
+                  inputs: InputUncertainties, screen=None, max_points: int = 10_000) -> Sensitivities:
+    """Finite-difference sensitivities of every scalar figure to every input of :func:`budget_inputs`,
+    on a decimated copy of *reduction* (cost: two partial reruns per input)."""
+    import time
+
+    from .pipeline import default_screen, rerun
+
+    t0 = time.perf_counter()
+    screen = screen if screen is not None else default_screen(geometry)
+    red = decimated(reduction, max_points)
+    ctx = {"geometry": geometry, "distance_m": measured_distance_m, "settings": settings, "fringes": fringes,
+           "design": design, "screen": screen, "screen_size_m": (screen.width_m, screen.height_m)}
+    base = rerun(red, "rays", fringes=fringes, geometry=geometry, design=design,
+                 measured_distance_m=measured_distance_m, settings=settings, screen=screen)
+    f0 = np.array([_value(base.figures, p) for p in SCALAR_PATHS])
+    rows = budget_inputs(inputs, len(reduction.pose.corners_px))
+    lin = np.zeros((len(rows), len(SCALAR_PATHS)))
+    cur = np.zeros_like(lin)
+    for i, inp in enumerate(rows):
+        fig_plus = _perturbed_run(base, inp, +1.0, ctx).figures
+        fig_minus = _perturbed_run(base, inp, -1.0, ctx).figures
+        plus = np.array([_value(fig_plus, p) for p in SCALAR_PATHS])
+        minus = np.array([_value(fig_minus, p) for p in SCALAR_PATHS])
+        lin[i] = 0.5 * (plus - minus)
+        cur[i] = 0.5 * (plus + minus) - f0
+    return Sensitivities(rows, list(SCALAR_PATHS), lin, cur, int(base.rays.vidx.size), time.perf_counter() - t0)
+
+
+def _value(figures: dict, path: tuple) -> float:
+    v = get_path(figures, path)
+    return np.nan if v is None else v
+
+
+# ------------------------------------------------------------------------------------------- random part
+def _fit_figures(a: float, b: float, e1: float, e2: float) -> dict:
+    """The fit's scalar figures as functions of A, B, E1, E2 (for their Jacobian)."""
+    e = 0.5 * (e1 + e2)
+    (p1, p2), angle = principal_axes(a, b, e)
+    kx, ky = 4.0 * a, 4.0 * b
+    return {("focal_length_x_m",): 1.0 / kx if kx else np.nan, ("focal_length_y_m",): 1.0 / ky if ky else np.nan,
+            ("curvature_x_per_m",): kx, ("curvature_y_per_m",): ky, ("twist_mrad_per_m",): 1000.0 * e,
+            ("twist_e1_mrad_per_m",): 1000.0 * e1, ("twist_e2_mrad_per_m",): 1000.0 * e2,
+            ("principal_focal_lengths_m", 0): np.nan if p1 is None else p1,
+            ("principal_focal_lengths_m", 1): np.nan if p2 is None else p2, ("axis_angle_rad",): angle}
+
+
+def _line_fit_covariance(u: np.ndarray, v: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """Covariance of (k0, k1, k2) in s = k0 (u - mean u) + k1 + k2 (v - mean v) fitted by ordinary least
+    squares to slopes with independent noise *sigma* per point."""
+    uc, vc = u - u.mean(), v - v.mean()
+    x = np.stack([uc, np.ones_like(uc), vc])
+    m_inv = np.linalg.inv(x @ x.T)
+    b = (x * sigma ** 2) @ x.T
+    return m_inv @ b @ m_inv
+
+
+@dataclass
+class NoisePropagation:
+    """The capture's own noise carried to the figures.
+
+    Attributes
+    ----------
+    sigma : dict
+        ``{path: standard uncertainty}`` of the scalar figures the noise reaches (fit figures, boresight,
+        optical tilt, slope RMS values).
+    slope_noise_mrad : dict
+        ``{"x", "y", "magnitude"}`` the RMS slope (angle) noise the capture's intensity noise explains, mrad.
+    """
+
+    sigma: dict
+    slope_noise_mrad: dict
+
+
+def noise_propagation(reduction, *, fringes, geometry, design, settings, screen=None,
+                      max_points: int = 30_000) -> NoisePropagation:
+    """Propagate the capture's intensity noise (``Phases.noise_dn``) to slopes and to the fits.
+
+    Position noise per pixel from the finest phase's modulation; the slope noise per pixel from the
+    reflection law's derivative with respect to the screen position (finite difference with the surface
+    point held); the fits' covariance by least-squares propagation of independent per-pixel noise. Done
+    on every n-th valid pixel (about *max_points*) and scaled to all of them.
+    """
+    from .pipeline import default_screen
+
+    screen = screen if screen is not None else default_screen(geometry)
+    red = reduction
+    ok = red.rays.ok
+    n_all = int(red.rays.vidx.size)
+    step = max(1, n_all // max_points)
+    sel = slice(None, None, step)
+    ux = red.phases.positions_m["x"][ok][sel]
+    uy = red.phases.positions_m["y"][ok][sel]
+    sig_u = {a: position_sigma_m(red.phases.finest_modulation_dn[a][ok][sel], red.phases.noise_dn,
+                                 getattr(fringes, f"periods_{a}")[-1], length)
+             for a, length in zip("xy", (screen.width_m, screen.height_m))}
+    # Slopes' derivative with respect to the screen position, surface point held, in the boresight frame.
+    cam_to_b = red.shape.boresighted_to_camera.inverse()
+    camera_b = cam_to_b.translation
+    points = red.shape.points_m[:, sel]
+    delta = 1e-4
+    s0 = np.stack(normal_slopes(points, camera_b, to_frame(cam_to_b, screen.points_camera(ux, uy))))
+    sx_dx = np.stack(normal_slopes(points, camera_b, to_frame(cam_to_b, screen.points_camera(ux + delta, uy))))
+    sy_dy = np.stack(normal_slopes(points, camera_b, to_frame(cam_to_b, screen.points_camera(ux, uy + delta))))
+    gx, gy = (sx_dx - s0) / delta, (sy_dy - s0) / delta          # (2, n): d(s_x, s_y)/du_x, /du_y
+    var = (gx * sig_u["x"]) ** 2 + (gy * sig_u["y"]) ** 2        # (2, n) slope variance
+    sig_s = np.sqrt(var)
+    angle_sig = 1000.0 * sig_s / (1.0 + s0 ** 2)                 # mrad
+    noise = {"x": float(np.sqrt(np.mean(angle_sig[0] ** 2))), "y": float(np.sqrt(np.mean(angle_sig[1] ** 2)))}
+    noise["magnitude"] = float(np.hypot(noise["x"], noise["y"]))
+    x, y = points[0], points[1]
+    scale = points.shape[1] / n_all                              # covariance on all points = scale x subset's
+    cov_x = _line_fit_covariance(x, y, sig_s[0]) * scale         # (2A, C', E1)
+    cov_y = _line_fit_covariance(y, x, sig_s[1]) * scale         # (2B, D', E2)
+    fit = red.fits.parabola
+    # Jacobian of the fit figures with respect to (A, B, E1, E2); A = k0/2.
+    cov = np.diag([cov_x[0, 0] / 4.0, cov_y[0, 0] / 4.0, cov_x[2, 2], cov_y[2, 2]])
+    cov[0, 2] = cov[2, 0] = cov_x[0, 2] / 2.0
+    cov[1, 3] = cov[3, 1] = cov_y[0, 2] / 2.0
+    p0 = np.array([fit.a, fit.b, fit.e1, fit.e2])
+    base = _fit_figures(*p0)
+    jac = {}
+    for j in range(4):
+        h = 1e-6 * max(abs(p0[j]), 1e-6)
+        hi = _fit_figures(*(p0 + h * np.eye(4)[j]))
+        lo = _fit_figures(*(p0 - h * np.eye(4)[j]))
+        for k in base:
+            jac.setdefault(k, np.zeros(4))[j] = (hi[k] - lo[k]) / (2 * h)
+    sigma = {k: float(np.sqrt(max(J @ cov @ J, 0.0))) for k, J in jac.items()}
+    # Boresight and optical tilt: the subsample fit's slope at the alignment point (alpha <- s_y, beta <- s_x).
+    xa, ya = (float(c) for c in design.alignment_point_m)
+    sub = settings.subsample_step
+    va = np.array([xa - x.mean(), 1.0, ya - y.mean()])
+    vb = np.array([ya - y.mean(), 1.0, xa - x.mean()])
+    s_a = (2 * fit.a * xa + fit.c + fit.e * ya, 2 * fit.b * ya + fit.d + fit.e * xa)
+    sig_bx = 1000.0 * np.sqrt(vb @ cov_y @ vb * sub) / (1 + s_a[1] ** 2)
+    sig_by = 1000.0 * np.sqrt(va @ cov_x @ va * sub) / (1 + s_a[0] ** 2)
+    sigma[("boresight_mrad", "x")] = sigma[("optical_tilt_mrad", "x")] = float(sig_bx)
+    sigma[("boresight_mrad", "y")] = sigma[("optical_tilt_mrad", "y")] = float(sig_by)
+    # Slope RMS values: mean(e^2) with e = t + n has variance (4 mean(t^2) s^2 + 2 s^4) / N.
+    for model, (ex, ey) in red.fits.residuals_mrad.items():
+        ms = {"x": float(np.mean(ex * ex)), "y": float(np.mean(ey * ey))}
+        ms["magnitude"] = ms["x"] + ms["y"]
+        s2 = {a: noise[a] ** 2 for a in RMS_AXES}
+        for a in RMS_AXES:
+            var_ms = (4 * max(ms[a] - s2[a], 0.0) * s2[a] + 2 * s2[a] ** 2) / n_all
+            sigma[("slope_rms_mrad", model, a)] = float(np.sqrt(var_ms) / (2 * np.sqrt(max(ms[a], 1e-30))))
+    return NoisePropagation(sigma, noise)
+
+
+# ------------------------------------------------------------------------------------------- combination
+def _nest(values: dict, figures: dict) -> dict:
+    """``{path: value}`` -> ``{"name_U": structure like figures[name]}``."""
+    out: dict = {}
+    for path, v in values.items():
+        top = path[0]
+        if len(path) == 1:
+            out[f"{top}_U"] = v
+            continue
+        template = figures[top]
+        cur = out.setdefault(f"{top}_U", _empty_like(template))
+        for p in path[1:-1]:
+            cur = cur[p]
+        cur[path[-1]] = v
+    return out
+
+
+def _empty_like(template):
+    if isinstance(template, dict):
+        return {k: _empty_like(v) for k, v in template.items()}
+    if isinstance(template, (list, tuple)):
+        return [None] * len(template)
+    return None
+
+
+def _clean(v: float):
+    return None if v is None or not np.isfinite(v) else float(v)
+
+
+def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs: InputUncertainties) -> dict:
+    """The figures' expanded uncertainties, the noise floor and the budget, as figure keys to add.
+
+    Returns ``{"name_U": ..., "name_U_random": ..., "coverage_factor": 2, "slope_rms_noise_mrad": ...,
+    "slope_rms_corrected_mrad": ..., "slope_rms_corrected_mrad_U": ..., "uncertainty_budget": ...}``.
+    The measured slope RMS's U also covers the noise's bias (the measured value minus the noise-corrected
+    one), which the measured value does not remove.
+    """
+    contrib = sens.contributions
+    kinds = np.array([i.kind for i in sens.inputs])
+    u_sys2 = np.nansum(contrib[kinds == "systematic"] ** 2, axis=0)
+    u_cor2 = np.nansum(contrib[kinds == "random"] ** 2, axis=0)
+    noise_col = np.array([noise.sigma.get(p, 0.0) for p in sens.paths])
+    u_rand = np.sqrt(u_cor2 + noise_col ** 2)
+    u = np.sqrt(u_sys2 + u_rand ** 2)
+    k = COVERAGE_FACTOR
+    values = {p: get_path(figures, p) for p in sens.paths}
+    total, random = {}, {}
+    for j, p in enumerate(sens.paths):
+        if values[p] is None:
+            total[p] = random[p] = None
+            continue
+        total[p] = _clean(k * u[j])
+        random[p] = _clean(k * u_rand[j])
+    # Noise floor: the slope noise the capture explains, and the RMS with it removed in quadrature.
+    noise_mrad = {m: dict(noise.slope_noise_mrad) for m in figures["slope_rms_mrad"]}
+    corrected, corrected_u = {}, {}
+    for m, rms in figures["slope_rms_mrad"].items():
+        corrected[m], corrected_u[m] = {}, {}
+        for a in RMS_AXES:
+            r, s = rms[a], noise_mrad[m][a]
+            corrected[m][a] = None if r is None else float(np.sqrt(max(r * r - s * s, 0.0)))
+            p = ("slope_rms_mrad", m, a)
+            corrected_u[m][a] = total.get(p)
+            if total.get(p) is not None and r is not None:
+                total[p] = total[p] + (r - corrected[m][a])
+    out = _nest(total, figures)
+    out.update({k2 + "_random": v for k2, v in _nest(random, figures).items()})
+    out["coverage_factor"] = 2
+    out["slope_rms_noise_mrad"] = noise_mrad
+    out["slope_rms_corrected_mrad"] = corrected
+    out["slope_rms_corrected_mrad_U"] = corrected_u
+    names = [path_name(p) for p in sens.paths]
+    rows = [{"input": i.name, "group": i.group, "u": i.u, "unit": i.unit, "kind": i.kind,
+             "contributions": [_clean(c) for c in contrib[r]]} for r, i in enumerate(sens.inputs)]
+    rows.append({"input": "intensity noise", "group": "intensity noise", "u": None, "unit": "DN",
+                 "kind": "random", "contributions": [_clean(c) for c in noise_col]})
+    out["uncertainty_budget"] = {
+        "figures": names, "rows": rows, "coverage_factor": 2,
+        "combined_standard": [_clean(c) for c in u], "random_standard": [_clean(c) for c in u_rand],
+        "inputs": inputs.to_dict(), "sensitivity_points": sens.n_points,
+        "sensitivity_seconds": sens.seconds,
+    }
+    return out
+
+
+def uncertainty_figures(reduction, *, fringes, geometry, design, measured_distance_m: float, settings,
+                        inputs: InputUncertainties, screen=None, cache: dict | None = None,
+                        cache_key=None) -> dict:
+    """Everything :func:`combine` adds to a reduction's figures; sensitivities come from *cache* under
+    *cache_key* (geometry + recipe + inputs) when present, else are computed and stored there."""
+    sens = None if cache is None or cache_key is None else cache.get(cache_key)
+    if sens is None:
+        sens = sensitivities(reduction, fringes=fringes, geometry=geometry, design=design,
+                             measured_distance_m=measured_distance_m, settings=settings, inputs=inputs, screen=screen)
+        if cache is not None and cache_key is not None:
+            cache[cache_key] = sens
+    noise = noise_propagation(reduction, fringes=fringes, geometry=geometry, design=design, settings=settings,
+                              screen=screen)
+    return combine(reduction.figures, sens, noise, inputs)
