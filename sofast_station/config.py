@@ -25,6 +25,7 @@ from .fringes import FringeSet
 from .geometry import CameraIntrinsics, ScreenSpec, StationGeometry
 from .layout import layout_station
 from .measure.pipeline import AnalysisSettings
+from .measure.uncertainty import InputUncertainties
 from .station.verdict import Limits, Quality, limits_from_table, quality_from_table
 
 for _section, _cls in (("analysis", AnalysisSettings), ("limits", Limits), ("quality", Quality)):
@@ -75,6 +76,9 @@ class StationConfig:
     camera_record: dict | None = None
     #: ``[optics]``: how the facet's optical figures are computed (None: ``enabled = false``).
     optics: object | None = None
+    #: Standard uncertainties of the station's inputs (``[uncertainty]``; docs/uncertainty.md), with a camera
+    #: record's stated standard deviations where it has them.
+    uncertainty: InputUncertainties = field(default_factory=InputUncertainties)
 
     @property
     def config_hash(self) -> str:
@@ -160,11 +164,14 @@ def load_config(path: str | Path, use_camera_record: bool = True) -> StationConf
     elif source not in ("station.toml", "record"):
         raise ConfigError(f"{where} [camera] intrinsics must be \"station.toml\" (the table's values) or "
                           f"\"record\" (the newest 'calibrate camera' record), got {source!r}")
+    uncertainty = InputUncertainties.from_table(raw.get("uncertainty", {}), f"{where} [uncertainty]")
+    if camera_record is not None:
+        uncertainty = uncertainty.with_camera_record(camera_record)
     return StationConfig(path=path, name=str(st.get("name", path.stem)), data_dir=data_dir, backend=backend,
                          facet_path=facet_path, design=design, geometry=geometry, fringes=fringes,
                          analysis=analysis, limits=limits, quality=quality, radiometric_path=radiometric,
                          simulation=raw.get("simulation", {}), raw=raw, camera_record=camera_record,
-                         optics=_optics(raw, where))
+                         optics=_optics(raw, where), uncertainty=uncertainty)
 
 
 def _optics(raw: dict, where: str):
@@ -198,4 +205,5 @@ def camera_from_record(data_dir: Path, stated: CameraIntrinsics, where: str) -> 
         raise ConfigError(f"camera record {path} is for a {camera.width_px} x {camera.height_px} camera, but {where} "
                           f"says {stated.width_px} x {stated.height_px}: calibrate this camera, or fix width_px and "
                           "height_px")
-    return camera, {"record_id": str(record.get("record_id", path.stem)), "path": path, "stated": stated}
+    return camera, {"record_id": str(record.get("record_id", path.stem)), "path": path, "stated": stated,
+                    "std": record.get("std_intrinsics")}

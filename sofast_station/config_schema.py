@@ -155,6 +155,20 @@ SECTIONS: dict[str, dict[str, Key]] = {
         "max_spot_radius_mrad": _pos("radius holding 90 % of the power, seen from the facet, mrad"),
         "max_centroid_offset_mrad": _nonneg("beam centroid from the aim point, mrad"),
         "min_power_ratio": _nonneg("intercepted power / the design facet's"),
+        "slope_rms_value": Key("str", choices=("measured", "corrected"),
+                               doc="the slope RMS the limits apply to (docs/uncertainty.md)"),
+        "decision_rule": Key("str", choices=("simple", "guarded"), doc="guarded: ISO 14253-1, with U"),
+    },
+    "uncertainty": {
+        "distance_mm": _nonneg("mm, standard uncertainty"), "camera_focal_px": _nonneg("px"),
+        "camera_principal_px": _nonneg("px"),
+        "camera_distortion": Key("floats", low=0.0, length=(5,), doc="k1, k2, p1, p2, k3"),
+        "screen_rotation_mrad": Key("floats", low=0.0, length=(3,), doc="mrad about the screen's x, y, z"),
+        "screen_translation_mm": Key("floats", low=0.0, length=(3,), doc="mm along the screen's x, y, z"),
+        "screen_pitch_relative": _nonneg("relative"), "response_phase_rad": _nonneg("rad"),
+        "fixture_rotation_mrad": Key("floats", low=0.0, length=(3,), doc="mrad"),
+        "fixture_translation_mm": Key("floats", low=0.0, length=(3,), doc="mm"),
+        "corner_px": _nonneg("px"),
     },
     "slope_limits": {
         "design": _pos("mrad"), "parabola": _pos("mrad"), "higher_order": _pos("mrad"),
@@ -221,7 +235,8 @@ SECTIONS: dict[str, dict[str, Key]] = {
 
 #: The sections that may appear at the top of station.toml (the others are nested tables).
 TOP_LEVEL = ["station", "camera", "screen", "layout", "fringes", "analysis", "limits", "quality", "calibration",
-             "optics", "simulation", "run", "archive", "devices", "recipes", "web", "opcua", "acceptance", "drift"]
+             "optics", "simulation", "run", "archive", "devices", "recipes", "web", "opcua", "acceptance", "drift",
+             "uncertainty"]
 
 
 def _check_value(key: Key, value, file: str, label: str, name: str) -> None:

@@ -55,6 +55,9 @@ EXCEL_MAX_ROWS = 1_048_576
 #: The columns every workbook starts with, in this order.
 FIRST_COLUMNS = ("cycle_id", "serial", "time", "verdict", "reasons", "dump_file")
 
+#: Record entries that get no workbook columns.
+NOT_IN_WORKBOOK = ("uncertainty_budget",)
+
 #: Title of the results sheet.
 SHEET_TITLE = "results"
 
@@ -166,11 +169,12 @@ def flatten_record(cycle_id: str, record: dict, dump_file: str | None = None) ->
     ``cycle_id``, ``serial``, ``time`` (a naive local datetime), ``verdict``, ``reasons``, ``dump_file``
     come first, then ``utc_offset`` and every other entry in record order, nested dicts flattened to
     dotted names. Lists become readable text (:func:`_list_text`); NaN, infinities and None become None
-    (an empty cell).
+    (an empty cell). The uncertainty budget (the same table for every facet of a recipe, kept in the
+    journal and the dumps) gets no columns; each figure's ``_U`` does.
     """
     rec = json_ready(record)
     flat: dict = {}
-    _flatten("", {k: v for k, v in rec.items() if k not in FIRST_COLUMNS}, flat)
+    _flatten("", {k: v for k, v in rec.items() if k not in FIRST_COLUMNS and k not in NOT_IN_WORKBOOK}, flat)
     when, offset = excel_time(rec.get("time"))
     row = {"cycle_id": cycle_id, "serial": rec.get("serial"), "time": when,
            "verdict": rec.get("verdict"), "reasons": rec.get("reasons", []), "dump_file": dump_file,

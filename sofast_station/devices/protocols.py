@@ -97,7 +97,7 @@ class Trigger(Protocol):
     The station calls ``ready()`` when it can take a facet, then ``wait_for_facet`` repeatedly (each
     call returns None after ``timeout_s`` so the station can beat its heartbeat and notice a stop
     request); on a request it answers ``busy()``, then exactly one of ``done(verdict)`` ("pass", "fail",
-    "invalid") or ``fault(code, reason)``; ``heartbeat()`` at least once a second while running.
+    "invalid", "indeterminate") or ``fault(code, reason)``; ``heartbeat()`` at least once a second while running.
     """
 
     def ready(self) -> None: ...

@@ -600,7 +600,8 @@ class Reduction:
 def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, design: FacetDesign,
             measured_distance_m: float, settings: AnalysisSettings = AnalysisSettings(),
             screen: ScreenModel | None = None, rays_cam: np.ndarray | None = None,
-            pixel_mask: np.ndarray | None = None) -> Analysis:
+            pixel_mask: np.ndarray | None = None, uncertainty=None,
+            sensitivity_cache: dict | None = None) -> Analysis:
     """Reduce one capture to the reported figures (docs/conventions.md#measurement-sequence, #data-reduction).
 
     The reduction runs as named stages (:func:`reduce_stages`): facet region, phase and unwrapping,
@@ -626,6 +627,13 @@ def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, d
     pixel_mask : (rows, columns) bool array, optional
         Only these pixels may be used for the shape (to exclude a region, or to compare with another
         program on its own pixels); the facet region and corners still come from the whole image.
+    uncertainty : InputUncertainties, optional
+        The station inputs' standard uncertainties: with them the figures also carry their expanded
+        uncertainties ``name_U`` (k = 2), the noise floor of the slope RMS values and the budget
+        (:mod:`sofast_station.measure.uncertainty`).
+    sensitivity_cache : dict, optional
+        Where the sensitivities (per geometry, recipe and input uncertainties) are kept between calls; the
+        caller owns it. Without it they are computed for this capture alone.
 
     Returns
     -------
@@ -633,6 +641,14 @@ def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, d
     """
     reduction, timings = reduce_stages(frames, fringes, geometry, design, measured_distance_m, settings, screen,
                                        rays_cam, pixel_mask)
+    if uncertainty is not None:
+        from .uncertainty import sensitivity_key, uncertainty_figures
+        t0 = time.perf_counter()
+        key = sensitivity_key(geometry, design, fringes, settings, uncertainty, screen)
+        reduction.figures.update(uncertainty_figures(
+            reduction, fringes=fringes, geometry=geometry, design=design, measured_distance_m=measured_distance_m,
+            settings=settings, inputs=uncertainty, screen=screen, cache=sensitivity_cache, cache_key=key))
+        timings["uncertainty"] = time.perf_counter() - t0
     return to_analysis(reduction, timings)
 
 

@@ -144,8 +144,9 @@ class InputUncertainties:
         return cls(**values)
 
     def with_camera_record(self, record: dict | None) -> "InputUncertainties":
-        """Where a camera calibration record states its parameters' standard deviations (``std`` with
-        ``fx``, ``fy``, ``cx``, ``cy``, ``distortion``), use them instead of the defaults."""
+        """Where the camera record in force states its parameters' standard deviations (``std``: the
+        record's ``std_intrinsics`` with ``fx``, ``fy``, ``cx``, ``cy``, ``distortion``), use them instead of
+        the ``[uncertainty]`` values."""
         std = (record or {}).get("std") if isinstance(record, dict) else None
         if not isinstance(std, dict):
             return self
@@ -516,18 +517,44 @@ def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs:
     out["slope_rms_noise_mrad"] = noise_mrad
     out["slope_rms_corrected_mrad"] = corrected
     out["slope_rms_corrected_mrad_U"] = corrected_u
-    names = [path_name(p) for p in sens.paths]
-    rows = [{"input": i.name, "group": i.group, "u": i.u, "unit": i.unit, "kind": i.kind,
-             "contributions": [_clean(c) for c in contrib[r]]} for r, i in enumerate(sens.inputs)]
-    rows.append({"input": "intensity noise", "group": "intensity noise", "u": None, "unit": "DN",
-                 "kind": "random", "contributions": [_clean(c) for c in noise_col]})
-    out["uncertainty_budget"] = {
-        "figures": names, "rows": rows, "coverage_factor": 2,
-        "combined_standard": [_clean(c) for c in u], "random_standard": [_clean(c) for c in u_rand],
-        "inputs": inputs.to_dict(), "sensitivity_points": sens.n_points,
-        "sensitivity_seconds": sens.seconds,
-    }
+    out["uncertainty_budget"] = budget_table(sens, noise_col, u, u_rand, inputs)
     return out
+
+
+def _sig(v: float, digits: int = 3):
+    v = _clean(v)
+    return None if v is None else float(f"{v:.{digits}g}")
+
+
+def budget_table(sens: Sensitivities, noise_col: np.ndarray, u: np.ndarray, u_rand: np.ndarray,
+                 inputs: InputUncertainties) -> dict:
+    """The budget as one table, input group against figure: standard-uncertainty contributions (k = 1,
+    figure units, root sum of squares within a group), the combined standard uncertainty, its random part,
+    and the coverage factor (JSON-ready, 3 significant digits)."""
+    groups: dict[str, dict] = {}
+    contrib = sens.contributions
+    for r, inp in enumerate(sens.inputs):
+        g = groups.setdefault(inp.group, {"group": inp.group, "kind": inp.kind, "inputs": [], "sq": 0.0})
+        g["inputs"].append(f"{inp.name} ({inp.u:g} {inp.unit})")
+        g["sq"] = g["sq"] + np.nan_to_num(contrib[r]) ** 2
+    rows = [{"group": g["group"], "kind": g["kind"], "inputs": g["inputs"],
+             "contributions": [_sig(c) for c in np.sqrt(g["sq"])]} for g in groups.values()]
+    rows.append({"group": "intensity noise", "kind": "random", "inputs": ["the capture's own noise"],
+                 "contributions": [_sig(c) for c in noise_col]})
+    return {"figures": [path_name(p) for p in sens.paths], "rows": rows, "coverage_factor": 2,
+            "combined_standard": [_sig(c) for c in u], "random_standard": [_sig(c) for c in u_rand],
+            "sensitivity_points": sens.n_points, "sensitivity_seconds": round(sens.seconds, 3)}
+
+
+def sensitivity_key(geometry, design, fringes, settings, inputs: InputUncertainties, screen=None) -> str:
+    """What the sensitivities depend on (geometry, recipe, input uncertainties), as a short hash."""
+    import hashlib
+    import json
+
+    blob = {"geometry": geometry.to_dict(), "design": design.to_dict(), "fringes": fringes.to_dict(),
+            "settings": {k: v for k, v in settings.to_dict().items() if k != "threads"},
+            "inputs": inputs.to_dict(), "screen": None if screen is None else repr(type(screen))}
+    return hashlib.sha256(json.dumps(blob, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
 def uncertainty_figures(reduction, *, fringes, geometry, design, measured_distance_m: float, settings,

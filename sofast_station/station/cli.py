@@ -61,44 +61,85 @@ def optics_lines(opt: dict | None, truth: dict | None = None) -> list[str]:
             f"{extra('power_ratio_vs_design', '{:.4f}')}"]
 
 
+def _pm(v, u, unit="", digits=4):
+    """``5.4183 ± 0.0021 m`` (or ``5.4183 m`` without an uncertainty)."""
+    if v is None or u is None:
+        return _fmt(v, unit, digits)
+    return f"{v:.{digits}f} ± {u:.{digits}f}{unit}"
+
+
+def _sig_digits(u, minimum=3):
+    """Decimals that show the expanded uncertainty *u* to two significant digits (at least *minimum*)."""
+    import math
+    if u is None or u <= 0 or not math.isfinite(u):
+        return minimum
+    return max(minimum, min(8, 1 - int(math.floor(math.log10(u)))))
+
+
 def summary_text(rec: dict) -> str:
-    """A readable summary of one result record."""
+    """A readable summary of one result record (``value ± U`` where the record has ``name_U``, k = 2)."""
     lines = [f"Facet {rec['serial']} ({rec['facet']}) on {rec['station']}, {rec['time']}",
              f"  verdict: {rec['verdict'].upper()}" + "".join(f"\n    - {r}" for r in rec.get("reasons", []))
              + "".join(f"\n    warning: {w}" for w in rec.get("warnings", []))]
     truth = rec.get("truth")
+    k = rec.get("coverage_factor")
+    if k is not None:
+        lines.append(f"  figures are value ± U, the expanded uncertainty (k={k:g})")
 
     def row(label, key, unit="", digits=4, scale=1.0):
         v = rec.get(key)
         v = None if v is None else v * scale
+        u = rec.get(f"{key}_U")
+        u = None if u is None else u * scale
+        digits = max(digits, _sig_digits(u)) if u is not None else digits
         t = None if not truth or truth.get(key) is None else truth[key] * scale
         extra = f"   (truth {_fmt(t, unit, digits)})" if truth is not None else ""
-        lines.append(f"  {label:<26}{_fmt(v, unit, digits):>14}{extra}")
+        lines.append(f"  {label:<26}{_pm(v, u, unit, digits):>24}{extra}")
 
     row("focal length x", "focal_length_x_m", " m")
     row("focal length y", "focal_length_y_m", " m")
     row("twist", "twist_mrad_per_m", " mrad/m")
     row("twist E1 / E2", "twist_e1_mrad_per_m", " mrad/m")
     row("", "twist_e2_mrad_per_m", " mrad/m")
-    lines.append("  slope error RMS (mrad)        x        y   magnitude")
+    rms_u = rec.get("slope_rms_mrad_U") or {}
+    lines.append("  slope error RMS (mrad)        x        y   magnitude" + ("      ± U" if rms_u else ""))
     for model, rms in rec["slope_rms_mrad"].items():
         t = truth["slope_rms_mrad"].get(model) if truth else None
         text = f"    {model:<22}{_fmt(rms['x'], '', 3):>9}{_fmt(rms['y'], '', 3):>9}{_fmt(rms['magnitude'], '', 3):>12}"
+        u = (rms_u.get(model) or {}).get("magnitude")
+        if u is not None:
+            text += f" ± {u:.3f}"
         if t:
             text += f"   (truth {t['x']:.3f} {t['y']:.3f} {t['magnitude']:.3f})"
         lines.append(text)
-    b = rec.get("boresight_mrad")
-    if b:
-        lines.append(f"  boresight rotation (x, y)   {b['x']:7.3f}, {b['y']:.3f} mrad   (from the corner pose)")
-    tilt = rec.get("optical_tilt_mrad")
-    if tilt:
-        tt = truth.get("optical_tilt_mrad") if truth else None
+    noise = rec.get("slope_rms_noise_mrad")
+    corrected = rec.get("slope_rms_corrected_mrad")
+    if noise and corrected:
+        n = next(iter(noise.values()))
+        lines.append(f"    {'noise explained':<22}{n['x']:9.3f}{n['y']:9.3f}{n['magnitude']:12.3f}"
+                     "   (slope noise the capture's own noise explains)")
+        lines.append("    with that noise removed in quadrature:")
+        for model, c in corrected.items():
+            lines.append(f"    {model:<22}{_fmt(c['x'], '', 3):>9}{_fmt(c['y'], '', 3):>9}"
+                         f"{_fmt(c['magnitude'], '', 3):>12}")
+
+    def pair(label, key, unit, note=""):
+        v = rec.get(key)
+        if not v:
+            return
+        u = rec.get(f"{key}_U") or {}
+        tt = truth.get(key) if truth else None
         extra = f"   (truth {tt['x']:.3f}, {tt['y']:.3f})" if tt else ""
-        lines.append(f"  optical tilt in fixture     {tilt['x']:7.3f}, {tilt['y']:.3f} mrad{extra}")
+        lines.append(f"  {label:<28}{_pm(v['x'], u.get('x'), '', 3)}, {_pm(v['y'], u.get('y'), '', 3)} {unit}"
+                     f"{note}{extra}")
+
+    pair("boresight rotation (x, y)", "boresight_mrad", "mrad", "   (from the corner pose)")
+    pair("optical tilt in fixture", "optical_tilt_mrad", "mrad")
     pl = rec.get("placement")
     if pl:
-        lines.append("  placement in fixture       " + ", ".join(f"{v:.2f}" for v in pl["mm"]) + " mm, "
-                     + ", ".join(f"{v:.2f}" for v in pl["mrad"]) + " mrad")
+        pu = rec.get("placement_U") or {"mm": [None] * 3, "mrad": [None] * 3}
+        lines.append("  placement in fixture       " + ", ".join(_pm(v, u, "", 2) for v, u in zip(pl["mm"], pu["mm"]))
+                     + " mm, " + ", ".join(_pm(v, u, "", 2) for v, u in zip(pl["mrad"], pu["mrad"])) + " mrad")
     lines.extend(optics_lines(rec.get("optics"), (truth or {}).get("optics")))
     lines.append(f"  points                    {rec['n_points']:>14,}   ({100 * rec['valid_fraction']:.1f} % of the facet's pixels)")
     lines.append(f"  median modulation         {rec['median_modulation_dn']:>11.1f} DN")
@@ -107,6 +148,44 @@ def summary_text(rec: dict) -> str:
                  f"({'converged' if it['converged'] else 'NOT converged'})")
     t = rec["timings_s"]
     lines.append(f"  time: capture {t['capture']:.2f} s, analysis {t['analysis']:.2f} s, total {t['total']:.2f} s")
+    return "\n".join(lines)
+
+
+#: Figures shown as columns of ``inspect --budget`` (the record's budget has every scalar figure).
+BUDGET_COLUMNS = (("focal_length_x_m", "f x", "m"), ("focal_length_y_m", "f y", "m"),
+                  ("twist_mrad_per_m", "twist", "mrad/m"),
+                  ("slope_rms_mrad.design.magnitude", "RMS design", "mrad"),
+                  ("slope_rms_mrad.parabola.magnitude", "RMS parab.", "mrad"),
+                  ("boresight_mrad.x", "bore x", "mrad"), ("optical_tilt_mrad.x", "tilt x", "mrad"),
+                  ("placement.mm.0", "place x", "mm"), ("placement.mrad.2", "place rz", "mrad"))
+
+
+def budget_text(rec: dict, columns=BUDGET_COLUMNS) -> str:
+    """The uncertainty budget as one table: input groups against figures, standard-uncertainty
+    contributions (k = 1), then the combined standard and expanded uncertainties."""
+    b = rec.get("uncertainty_budget")
+    if not b:
+        return "no uncertainty budget in this record"
+    names = b["figures"]
+    cols = [(names.index(key), title, unit) for key, title, unit in columns if key in names]
+
+    def cell(v):
+        return f"{'-' if v is None else format(v, '.2e'):>11}"
+
+    lines = ["Uncertainty budget: standard-uncertainty contribution of each input to each figure (k=1), "
+             "combined per GUM",
+             f"  {'input':<30}{'':>10}" + "".join(f"{t:>11}" for _, t, _ in cols),
+             f"  {'':<30}{'':>10}" + "".join(f"{u:>11}" for _, _, u in cols)]
+    for row in b["rows"]:
+        lines.append(f"  {row['group']:<30}{row['kind']:>10}" + "".join(cell(row["contributions"][i]) for i, _, _ in cols))
+    lines.append(f"  {'combined standard u':<30}{'':>10}" + "".join(cell(b["combined_standard"][i]) for i, _, _ in cols))
+    lines.append(f"  {'  of which random':<30}{'':>10}" + "".join(cell(b["random_standard"][i]) for i, _, _ in cols))
+    k = b.get("coverage_factor", 2)
+    lines.append(f"  {f'expanded U (k={k})':<30}{'':>10}" + "".join(
+        cell(None if b["combined_standard"][i] is None else k * b["combined_standard"][i]) for i, _, _ in cols))
+    lines.append("  inputs: " + "; ".join(", ".join(r["inputs"]) for r in b["rows"] if r["kind"] == "systematic"))
+    lines.append(f"  sensitivities from {b.get('sensitivity_points')} points in {b.get('sensitivity_seconds')} s "
+                 "(computed once per geometry and recipe); docs/uncertainty.md")
     return "\n".join(lines)
 
 
@@ -134,6 +213,8 @@ def cmd_inspect(args) -> int:
         sys.stdout.write("\n")
     else:
         print(summary_text(rec))
+        if args.budget:
+            print(budget_text(rec))
     return 0
 
 
@@ -266,6 +347,8 @@ def register(subparsers) -> None:
     ins.add_argument("--seed", type=int, default=None,
                      help="simulated station: noise seed (default: the [simulation] seed of the station file)")
     ins.add_argument("--noise-free", action="store_true", help="simulated station: no sensor noise")
+    ins.add_argument("--budget", action="store_true",
+                     help="also print the uncertainty budget: input against figure (docs/uncertainty.md)")
     ins.set_defaults(func=cmd_inspect)
 
     run = add_command(

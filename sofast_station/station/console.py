@@ -66,7 +66,7 @@ def facet_line(record: dict, answer: str, cycle_s: float | None, n: int | None =
         cells.append(_figure_cell(record, path, decimals, width, u_width))
     cells.append(f"{cycle_s:6.2f}s" if cycle_s is not None else f"{'-':>7}")
     text = "  ".join(cells)
-    notes = list(record.get("reasons") or []) if answer in ("fail", "invalid", "fault") else []
+    notes = list(record.get("reasons") or []) if answer in ("fail", "invalid", "indeterminate", "fault") else []
     if record.get("calibration", {}).get("warnings"):
         notes.append("calibration stale: see the log")
     if record.get("drift_alarms"):
@@ -98,7 +98,8 @@ def summary_text(summary: ShiftSummary) -> str:
     """The end-of-run summary: verdict counts and yield, mean and spread of each figure, cycle times."""
     c = summary.counts
     lines = [f"{summary.total} facet(s): {c.get('pass', 0)} pass, {c.get('fail', 0)} fail, "
-             f"{c.get('invalid', 0)} invalid, {c.get('fault', 0)} fault"]
+             f"{c.get('invalid', 0)} invalid, {c.get('fault', 0)} fault"
+             + (f", {c['indeterminate']} indeterminate" if c.get("indeterminate") else "")]
     if summary.yield_fraction is not None:
         lines[0] += f"; yield {100 * summary.yield_fraction:.1f} % ({c.get('pass', 0)}/{summary.total})"
     if summary.faults_by_kind:

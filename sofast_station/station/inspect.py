@@ -46,6 +46,9 @@ class Station:
     _rays: np.ndarray | None = field(default=None, repr=False)
     #: The design's optical trace, computed once per facet type (:class:`~sofast_station.station.optics.DesignTraces`).
     design_traces: object | None = field(default=None, repr=False)
+    #: Sensitivities of the figures to the station's inputs, per geometry and recipe, computed on the first
+    #: facet and reused (:mod:`sofast_station.measure.uncertainty`).
+    sensitivity_cache: dict = field(default_factory=dict, repr=False)
 
     @property
     def rays_cam(self):
@@ -228,7 +231,8 @@ def inspect(station: Station, serial: str, progress=None) -> dict:
     rays = station.rays_cam
     t1 = time.perf_counter()
     analysis = analyse(frames, station.config.fringes, station.config.geometry, station.config.design, distance,
-                       station.config.analysis, rays_cam=rays)
+                       station.config.analysis, rays_cam=rays, uncertainty=station.config.uncertainty,
+                       sensitivity_cache=station.sensitivity_cache)
     t_analysis = time.perf_counter() - t1
     optics = getattr(station.config, "optics", None)
     if optics is not None:

@@ -350,7 +350,8 @@ class StationRunner:
             t = time.perf_counter()
             state["stage"] = "analysis"
             res = self.worker.analyse(restore(frames, box, raw_shape), recipe.design, recipe.analysis,
-                                      distance, timeout_s=remaining, hang_s=hang_s, optics=recipe.optics)
+                                      distance, timeout_s=remaining, hang_s=hang_s, optics=recipe.optics,
+                                      uncertainty=self.station.config.uncertainty)
             timings["analysis"] = time.perf_counter() - t
             record = self._record(cycle_id, request, recipe, res.figures, distance, notes, timings, cal_warnings)
             record.update(judge(res.figures, recipe.design, recipe.limits, recipe.quality))
@@ -415,7 +416,7 @@ class StationRunner:
         if take_dump_next(self.station.config.data_dir):
             return True
         return bool(request.dump or (s.dump_every_n and self.cycles % s.dump_every_n == 0)
-                    or (s.dump_failed and outcome.answer in ("fail", "invalid", "fault")))
+                    or (s.dump_failed and outcome.answer in ("fail", "invalid", "indeterminate", "fault")))
 
     def _finish(self, outcome: CycleOutcome, request: FacetRequest, t0: float, raw_shape, box, distance) -> None:
         """Journal (and spool), then answer the robot: in that order."""

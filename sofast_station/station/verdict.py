@@ -1,8 +1,10 @@
-"""Pass, fail or invalid: the facet's figures against configured limits.
+"""Pass, fail, indeterminate or invalid: the facet's figures against configured limits.
 
 *invalid* means the measurement itself cannot be trusted (too few valid points, poor fringe contrast,
 many unwrap disagreements, a corner pose that does not match the mask, an iteration that did not
 converge); it is decided first, because limits applied to an untrustworthy figure mean nothing.
+*indeterminate* comes only from the guarded decision rule (``[limits] decision_rule = "guarded"``, ISO
+14253-1): a figure lies within its expanded uncertainty of its limit, so neither pass nor fail is proven.
 """
 
 from __future__ import annotations
@@ -14,6 +16,13 @@ from ..facet import FacetDesign
 
 #: Above this design focal length (metres) limits are stated on curvature (docs/conventions.md#focal-power).
 LONG_FOCAL_LENGTH_M = 20.0
+
+
+#: What ``[limits] slope_rms_value`` may name, and the figure key each reads.
+SLOPE_RMS_VALUES = ("measured", "corrected")
+_RMS_KEY = {"measured": "slope_rms_mrad", "corrected": "slope_rms_corrected_mrad"}
+#: ``[limits] decision_rule``.
+DECISION_RULES = ("simple", "guarded")
 
 
 @dataclass(frozen=True)
@@ -38,6 +47,13 @@ class Limits:
         Largest distance of the beam's centroid from the aim point, seen from the facet's centre, mrad.
     min_power_ratio : float or None
         Smallest intercepted power over the design facet's.
+    slope_rms_value : str
+        Which slope RMS the limits apply to: ``"measured"`` (as computed from the measured slopes) or
+        ``"corrected"`` (with the slope noise the capture's own noise explains removed in quadrature).
+    decision_rule : str
+        ``"simple"``: pass when every figure is within its limit. ``"guarded"`` (ISO 14253-1): pass only
+        when every figure is within its limit less its expanded uncertainty U, fail when a figure is beyond
+        its limit plus U, otherwise ``indeterminate``.
     The optical limits apply to the figures of ``[optics]`` (``optics`` in the result); None: not judged.
     """
 
@@ -49,6 +65,8 @@ class Limits:
     max_spot_radius_mrad: float | None = None
     max_centroid_offset_mrad: float | None = None
     min_power_ratio: float | None = None
+    slope_rms_value: str = "measured"
+    decision_rule: str = "simple"
 
     @property
     def optical(self) -> dict:
@@ -86,6 +104,12 @@ def _from_table(cls, table: dict, where: str):
 
 def limits_from_table(table: dict, where: str) -> Limits:
     lim = _from_table(Limits, table, where)
+    if lim.slope_rms_value not in SLOPE_RMS_VALUES:
+        raise ConfigError(f"{where} slope_rms_value must be one of {', '.join(map(repr, SLOPE_RMS_VALUES))}, "
+                          f"got {lim.slope_rms_value!r}")
+    if lim.decision_rule not in DECISION_RULES:
+        raise ConfigError(f"{where} decision_rule must be one of {', '.join(map(repr, DECISION_RULES))}, "
+                          f"got {lim.decision_rule!r}")
     models = {"design", "parabola", "higher_order"}
     if not set(lim.max_slope_rms_mrad) <= models:
         raise ConfigError(f"{where}.max_slope_rms_mrad keys must be among {sorted(models)}")
@@ -119,8 +143,9 @@ def display_response(fig: dict, quality: Quality) -> tuple[list[str], list[str]]
 
 
 def judge(fig: dict, design: FacetDesign, limits: Limits, quality: Quality) -> dict:
-    """``{"verdict": "pass" | "fail" | "invalid", "reasons": [...], "warnings": [...]}`` for one facet's
-    figures; warnings say what weakens a result without invalidating it."""
+    """``{"verdict": "pass" | "fail" | "indeterminate" | "invalid", "reasons": [...], "warnings": [...]}`` for
+    one facet's figures; warnings say what weakens a result without invalidating it. The guarded decision
+    rule uses the figures' ``name_U`` expanded uncertainties (missing ones count as 0)."""
     invalid, warnings = display_response(fig, quality)
     if fig["valid_fraction"] < quality.min_valid_fraction:
         invalid.append(f"only {100 * fig['valid_fraction']:.1f} % of the facet's pixels are valid "
@@ -142,30 +167,54 @@ def judge(fig: dict, design: FacetDesign, limits: Limits, quality: Quality) -> d
     if invalid:
         return {"verdict": "invalid", "reasons": invalid, "warnings": warnings}
 
-    fail = []
+    guarded = limits.decision_rule == "guarded"
+    fail, unsure = [], []
+
+    def check(excess: float, u: float | None, text: str) -> None:
+        """*excess* = |deviation| - limit (> 0 beyond the limit); *u* the deviation's expanded uncertainty."""
+        if not guarded:
+            if excess > 0:
+                fail.append(text)
+            return
+        u = 0.0 if u is None else float(u)
+        if excess > u:
+            fail.append(f"{text}, beyond the limit by more than its U {u:.3g}")
+        elif excess > -u:
+            unsure.append(f"{text.split(' (limit')[0]} is within its U {u:.3g} of the limit"
+                          f" ({'beyond' if excess > 0 else 'inside'} by {abs(excess):.3g})")
+
     f_design = design.focal_length_m
     for axis in ("x", "y"):
         kappa = fig[f"curvature_{axis}_per_m"]
         if f_design > LONG_FOCAL_LENGTH_M:
             dk = kappa - 1.0 / f_design
-            if abs(dk) > limits.curvature_tolerance_per_m:
-                fail.append(f"curvature {axis} {kappa:.6f} /m is {dk:+.2e} /m from design "
-                            f"(limit {limits.curvature_tolerance_per_m:g})")
+            check(abs(dk) - limits.curvature_tolerance_per_m, fig.get(f"curvature_{axis}_per_m_U"),
+                  f"curvature {axis} {kappa:.6f} /m is {dk:+.2e} /m from design "
+                  f"(limit {limits.curvature_tolerance_per_m:g})")
         else:
             f = fig[f"focal_length_{axis}_m"]
             rel = float("inf") if f is None else f / f_design - 1.0
-            if abs(rel) > limits.focal_length_tolerance:
-                shown = "infinite" if f is None else f"{f:.4f} m"
-                fail.append(f"focal length {axis} {shown} is {100 * rel:+.2f} % from design "
-                            f"(limit {100 * limits.focal_length_tolerance:g} %)")
-    if abs(fig["twist_mrad_per_m"]) > limits.max_twist_mrad_per_m:
-        fail.append(f"twist {fig['twist_mrad_per_m']:.3f} mrad/m (limit {limits.max_twist_mrad_per_m:g})")
+            u_f = fig.get(f"focal_length_{axis}_m_U")
+            shown = "infinite" if f is None else f"{f:.4f} m"
+            check(abs(rel) - limits.focal_length_tolerance, None if u_f is None else u_f / f_design,
+                  f"focal length {axis} {shown} is {100 * rel:+.2f} % from design "
+                  f"(limit {100 * limits.focal_length_tolerance:g} %)")
+    twist = fig["twist_mrad_per_m"]
+    check(abs(twist) - limits.max_twist_mrad_per_m, fig.get("twist_mrad_per_m_U"),
+          f"twist {twist:.3f} mrad/m (limit {limits.max_twist_mrad_per_m:g})")
+    key = _RMS_KEY[limits.slope_rms_value]
+    rms_values = fig.get(key) or fig["slope_rms_mrad"]
+    label = "" if key == "slope_rms_mrad" else " (noise-corrected)"
     for model, limit in limits.max_slope_rms_mrad.items():
-        rms = fig["slope_rms_mrad"][model]["magnitude"]
-        if rms > limit:
-            fail.append(f"{model} slope error {rms:.3f} mrad RMS (limit {limit:g})")
+        rms = rms_values[model]["magnitude"]
+        u_rms = ((fig.get(f"{key}_U") or {}).get(model) or {}).get("magnitude")
+        check(rms - limit, u_rms, f"{model} slope error{label} {rms:.3f} mrad RMS (limit {limit:g})")
     fail.extend(judge_optics(fig.get("optics"), limits))
-    return {"verdict": "fail" if fail else "pass", "reasons": fail, "warnings": warnings}
+    if fail:
+        return {"verdict": "fail", "reasons": fail + unsure, "warnings": warnings}
+    if unsure:
+        return {"verdict": "indeterminate", "reasons": unsure, "warnings": warnings}
+    return {"verdict": "pass", "reasons": [], "warnings": warnings}
 
 
 def judge_optics(optics: dict | None, limits: Limits) -> list[str]:

@@ -56,9 +56,11 @@ def _init(shm_name: str, shape: tuple[int, int, int], geometry: dict, fringes: d
     _STATE["rays"] = ray_table(_STATE["geometry"].camera)
 
 
-def _run(design: dict, settings: dict, distance_m: float, hang_s: float, optics=None):
+def _run(design: dict, settings: dict, distance_m: float, hang_s: float, optics=None,
+         uncertainty: dict | None = None):
     from ..facet import FacetDesign
     from ..measure.pipeline import AnalysisSettings, analyse
+    from ..measure.uncertainty import InputUncertainties
     from .optics import DesignTraces, add_optics
 
     if hang_s > 0:                       # fault injection for tests: an analysis that hangs
@@ -66,8 +68,11 @@ def _run(design: dict, settings: dict, distance_m: float, hang_s: float, optics=
     t = time.perf_counter()
     frames = np.array(_STATE["frames"])  # a private copy: the station may refill the buffer after a timeout
     facet = FacetDesign.from_dict(design)
+    # Sensitivities are computed on the first facet of each recipe and kept for the worker's life.
+    inputs = None if uncertainty is None else InputUncertainties.from_table(uncertainty)
     a = analyse(frames, _STATE["fringes"], _STATE["geometry"], facet, distance_m,
-                AnalysisSettings(**settings), rays_cam=_STATE["rays"])
+                AnalysisSettings(**settings), rays_cam=_STATE["rays"], uncertainty=inputs,
+                sensitivity_cache=_STATE.setdefault("sensitivities", {}))
     # The optical figures (intercept, spot size, aim), with the design's trace kept for the next facet.
     add_optics(a, facet, optics, _STATE.setdefault("design_traces", DesignTraces()))
     return a.figures, np.packbits(a.valid), a.valid.shape, time.perf_counter() - t, _preview(a)
@@ -143,7 +148,7 @@ class AnalysisWorker:
         log.info("analysis worker ready in %.1f s", time.perf_counter() - t)
 
     def analyse(self, frames: np.ndarray, design, settings, distance_m: float, timeout_s: float,
-                hang_s: float = 0.0, optics=None) -> WorkerResult:
+                hang_s: float = 0.0, optics=None, uncertainty=None) -> WorkerResult:
         """Analyse *frames* in the worker; :class:`AnalysisTimeout` after *timeout_s* (worker restarted).
 
         With *optics* (OpticsSettings) the figures carry the facet's optical figures (``optics``).
@@ -158,7 +163,8 @@ class AnalysisWorker:
             self._restarting.join()
             self._restarting = None
         np.copyto(self._frames, frames)
-        fut = self._pool.submit(_run, design.to_dict(), settings.to_dict(), float(distance_m), float(hang_s), optics)
+        fut = self._pool.submit(_run, design.to_dict(), settings.to_dict(), float(distance_m), float(hang_s), optics,
+                                None if uncertainty is None else uncertainty.to_dict())
         try:
             figures, packed, shape, seconds, preview = fut.result(timeout=max(timeout_s, 0.01))
         except FutureTimeout:

@@ -23,7 +23,11 @@ COMPRESSION_LEVEL = 4
 KEY_FIGURES = ("verdict", "focal_length_x_m", "focal_length_y_m", "curvature_x_per_m", "curvature_y_per_m",
                "twist_mrad_per_m", "slope_rms_mrad.design.magnitude", "slope_rms_mrad.parabola.magnitude",
                "slope_rms_mrad.higher_order.magnitude", "boresight_mrad.x", "boresight_mrad.y", "n_points",
-               "valid_fraction", "median_modulation_dn", "measured_distance_m")
+               "valid_fraction", "median_modulation_dn", "measured_distance_m",
+               # expanded uncertainties (k = 2) of the figures above, where the record has them
+               "focal_length_x_m_U", "focal_length_y_m_U", "curvature_x_per_m_U", "curvature_y_per_m_U",
+               "twist_mrad_per_m_U", "slope_rms_mrad_U.design.magnitude", "slope_rms_mrad_U.parabola.magnitude",
+               "slope_rms_mrad_U.higher_order.magnitude", "boresight_mrad_U.x", "boresight_mrad_U.y")
 
 # -- the schema ---------------------------------------------------------------------------------------
 #: Every group, dataset and root attribute of schema version 1:

@@ -24,7 +24,7 @@ from ...errors import TriggerError
 log = logging.getLogger(__name__)
 
 #: The verdicts ``done`` accepts.
-VERDICTS = ("pass", "fail", "invalid")
+VERDICTS = ("pass", "fail", "invalid", "indeterminate")
 
 #: Handshake states of the station side.
 IDLE, READY, REQUESTED, BUSY, ANSWERED, CLOSED = "idle", "ready", "requested", "busy", "answered", "closed"

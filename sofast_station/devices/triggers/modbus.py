@@ -12,7 +12,7 @@ default bases; docs/plc.md has the handshake diagram and the PLC's side of it:
 address    name                written by meaning
 =========  ==================  =========  ===============================================================
 0          STATUS              station    0 offline, 1 ready, 2 busy, 3 done, 4 fault
-1          VERDICT             station    with STATUS=done: 1 pass, 2 fail, 3 invalid (else 0)
+1          VERDICT             station    with STATUS=done: 1 pass, 2 fail, 3 invalid, 4 indeterminate (else 0)
 2          FAULT_CODE          station    with STATUS=fault: FAULT_CODES value (else 0)
 3          HEARTBEAT           station    +1 (mod 65536) at least every second while the station runs
 4          CYCLE               station    +1 (mod 65536) for every facet answered (done or fault)
@@ -45,7 +45,7 @@ log = logging.getLogger(__name__)
 # STATUS values (station -> PLC).
 OFFLINE, STATUS_READY, STATUS_BUSY, STATUS_DONE, STATUS_FAULT = 0, 1, 2, 3, 4
 #: VERDICT values (station -> PLC).
-VERDICT_CODES = {"pass": 1, "fail": 2, "invalid": 3}
+VERDICT_CODES = {"pass": 1, "fail": 2, "invalid": 3, "indeterminate": 4}
 
 # Offsets in the station's block.
 STATUS, VERDICT, FAULT_CODE, HEARTBEAT, CYCLE, SEQUENCE_ECHO, WARNINGS = range(7)

@@ -19,9 +19,9 @@ D7    RI#    in           RECIPE bit 1
 ====  =====  ===========  ===========================================================================
 
 STATUS code (bit 2, bit 1, bit 0): 0 offline, 1 ready, 2 busy, 3 done-pass, 4 done-fail, 5 done-invalid,
-6 fault, 7 never sent (the station's outputs are UART outputs idling high when the chip is not in
-bit-bang mode, so 7 typically means "no station driving the pins"). The code is only valid while the
-heartbeat toggles. Outputs sit on the pins that are outputs in the chip's UART mode and inputs on pins
+6 fault, 7 done-indeterminate (the guarded decision rule could not decide). The station's outputs are
+UART outputs idling high when the chip is not in bit-bang mode, so 7 without a toggling heartbeat means
+"no station driving the pins". The code is only valid while the heartbeat toggles. Outputs sit on the pins that are outputs in the chip's UART mode and inputs on pins
 that are inputs there, so that before the station configures bit-bang nothing drives against the PLC.
 
 Discrete I/O carries no serial number: the station makes one, "USB-<YYYYMMDD>-<NNNN>" (see
@@ -68,8 +68,8 @@ IN_FACET_PRESENT, IN_DUMP_REQUEST, IN_RECIPE0, IN_RECIPE1 = 1 << 3, 1 << 5, 1 <<
 OUTPUT_MASK = OUT_STATUS0 | OUT_HEARTBEAT | OUT_STATUS1 | OUT_STATUS2
 
 # STATUS codes.
-OFFLINE, STATUS_READY, STATUS_BUSY, DONE_PASS, DONE_FAIL, DONE_INVALID, STATUS_FAULT = range(7)
-DONE_CODES = {"pass": DONE_PASS, "fail": DONE_FAIL, "invalid": DONE_INVALID}
+OFFLINE, STATUS_READY, STATUS_BUSY, DONE_PASS, DONE_FAIL, DONE_INVALID, STATUS_FAULT, DONE_INDETERMINATE = range(8)
+DONE_CODES = {"pass": DONE_PASS, "fail": DONE_FAIL, "invalid": DONE_INVALID, "indeterminate": DONE_INDETERMINATE}
 
 
 def status_pins(code: int) -> int:
