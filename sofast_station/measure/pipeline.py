@@ -7,6 +7,7 @@ hardware and keeps no state, so a data dump reprocesses to the same bits.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -228,6 +229,10 @@ class Phases:
         Counts of dropped pixels by cause.
     unwrap : dict
         ``{"x": UnwrapResult, "y": UnwrapResult}``.
+    set_offsets_dn : dict
+        ``{"x": [...], "y": [...]}`` per four-step set, the mean consistency residual I0 + I2 - I1 - I3
+        over the consistent pixels, DN: frame-to-frame brightness changes (room light, display), which
+        the uncertainty turns into a phase error (:mod:`sofast_station.measure.uncertainty`).
     """
 
     positions_m: dict
@@ -238,6 +243,7 @@ class Phases:
     dropped: dict
     unwrap: dict
     noise: FrameNoise | None = None
+    set_offsets_dn: dict = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -281,6 +287,10 @@ class CornerPoseResult:
         Corner pose with its range made to agree with the measured distance.
     range_shift_m : float
     outline_agreement : float
+    corner_sigma_px : float or None
+        Standard uncertainty of each corner coordinate from the scatter of its sides' edge points about
+        their fitted curves (3 x RMS / sqrt(points): a quadratic's end point), pixels; None when the
+        corners were given.
     """
 
     corners_px: np.ndarray
@@ -288,6 +298,7 @@ class CornerPoseResult:
     facet_to_camera: Pose
     range_shift_m: float
     outline_agreement: float
+    corner_sigma_px: float | None = None
 
 
 @dataclass(frozen=True)
@@ -374,12 +385,15 @@ def measure_phases(region: Region, fringes: FringeSet, screen_size_m: tuple[floa
     inconsistent = np.zeros(idx.size, dtype=bool)
     cons_limit = settings.consistency_sigmas * 2.0 * noise_dn + 1.0
     inconsistent_fraction = {}
+    offsets: dict = {"x": [], "y": []}
     for axis in ("x", "y"):
-        for p, b, r in zip(getattr(fringes, f"periods_{axis}"), raw[axis][1], cleaned[axis]):
+        for p, b, r, r_raw in zip(getattr(fringes, f"periods_{axis}"), raw[axis][1], cleaned[axis], raw[axis][2]):
             min_mod = np.minimum(min_mod, b)
             bad = np.abs(r) > cons_limit
             inconsistent_fraction[f"{axis} p={p:g}"] = float(np.count_nonzero(bad)) / idx.size
             inconsistent |= bad
+            good = r_raw[~bad]     # before the fitted offsets are removed: they are what is measured here
+            offsets[axis].append(float(np.sum(good, dtype=np.float64) / good.size) if good.size else 0.0)
     low_mod = min_mod < settings.min_modulation_dn
     ok &= ~low_mod & ~inconsistent
     excluded = 0
@@ -410,7 +424,8 @@ def measure_phases(region: Region, fringes: FringeSet, screen_size_m: tuple[floa
                "excluded_by_pixel_mask": excluded}
     return Phases(positions_m=positions, ok=ok, noise_dn=noise_dn,
                   finest_modulation_dn={a: raw[a][1][-1] for a in ("x", "y")}, min_modulation_dn=min_mod,
-                  dropped=dropped, unwrap=unwrap_stats, noise=noise)
+                  dropped=dropped, unwrap=unwrap_stats, noise=noise,
+                  set_offsets_dn=offsets)
 
 
 def screen_points_and_rays(region: Region, phases: Phases, camera, screen: ScreenModel,
@@ -453,7 +468,9 @@ def corners_and_pose(region: Region, rays: Rays, geometry: StationGeometry, desi
     corners_3d = design.corners_3d()
     expected = project(cam, geometry.fixture_to_camera, corners_3d)
     found = corners_mod.match_corners(outline.corners_px, expected, settings.corner_tolerance_px)
-    return pose_from_corners(found, region, rays, geometry, design, measured_distance_m, settings)
+    result = pose_from_corners(found, region, rays, geometry, design, measured_distance_m, settings)
+    sigma = 3.0 * np.asarray(outline.edge_rms_px, float) / np.sqrt(np.maximum(outline.n_edge_points, 1))
+    return dataclasses.replace(result, corner_sigma_px=float(np.median(sigma)))
 
 
 def pose_from_corners(found: np.ndarray, region: Region, rays: Rays, geometry: StationGeometry,

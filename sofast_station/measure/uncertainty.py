@@ -189,18 +189,35 @@ def budget_inputs(inputs: InputUncertainties, n_corners: int) -> list[Input]:
              for a, u in zip("xyz", inputs.screen_translation_mm)]
     rows += [Input("screen pitch x", "screen pitch", inputs.screen_pitch_relative, "1"),
              Input("screen pitch y", "screen pitch", inputs.screen_pitch_relative, "1"),
-             Input("display response", "display response", inputs.response_phase_rad, "rad")]
+             Input("display response cos", "display response", inputs.response_phase_rad, "rad"),
+             Input("display response sin", "display response", inputs.response_phase_rad, "rad")]
     rows += [Input(f"fixture r{a}", "fixture pose", u, "mrad") for a, u in zip("xyz", inputs.fixture_rotation_mrad)]
     rows += [Input(f"fixture t{a}", "fixture pose", u, "mm") for a, u in zip("xyz", inputs.fixture_translation_mm)]
     rows += [Input(f"corner {i} {c}", "corner location", inputs.corner_px, "px", "random")
              for i in range(n_corners) for c in "uv"]
+    # Scaled per capture by the amplitude its own consistency residuals give (:func:`capture_scales`).
+    rows += [Input(f"frame brightness {a} {q}", "frame-to-frame brightness", FRAME_PHASE_REF_RAD, "rad", "random")
+             for a in "xy" for q in ("cos", "sin")]
     return [r for r in rows if r.u > 0]
 
 
-def _response_shift(positions: np.ndarray, length_m: float, periods: float, amplitude_rad: float) -> np.ndarray:
-    """Position error of a four-step phase with a 4-times-phase harmonic of *amplitude_rad*, metres."""
+#: Phase-error amplitude (rad) at which the frame-brightness sensitivities are computed; each capture
+#: scales them by its own amplitude.
+FRAME_PHASE_REF_RAD = 0.005
+
+
+def _phase_error_shift(positions: np.ndarray, length_m: float, periods: float, amplitude_rad: float,
+                       harmonic: int, quadrature: str) -> np.ndarray:
+    """Position error (metres) of a phase error ``amplitude * cos|sin(harmonic * phase)`` in the finest set.
+
+    A display response that is not linear leaves a 4-times-phase harmonic in four-step phases; a brightness
+    change between the frames of a set (room light, display) leaves a once-per-period one. Near the
+    centre of curvature a facet's slopes map to a small stretch of the screen, where such an error acts as
+    a scale on the slope deviations, so it reaches focal lengths and slope RMS values alike.
+    """
     phase = 2.0 * np.pi * periods * positions / length_m
-    return amplitude_rad * np.sin(4.0 * phase) * length_m / (2.0 * np.pi * periods)
+    trig = np.cos if quadrature == "cos" else np.sin
+    return amplitude_rad * trig(harmonic * phase) * length_m / (2.0 * np.pi * periods)
 
 
 def decimated(reduction, max_points: int = 30_000):
@@ -253,11 +270,15 @@ def _perturbed_run(red, inp: Input, sign: float, ctx: dict):
         w, h = ctx["screen_size_m"]
         w, h = (w * (1.0 + step), h) if axis == "x" else (w, h * (1.0 + step))
         screen = FlatScreen(w, h, g.screen_to_camera)
-    elif name == "display response":
+    elif name.startswith("display response") or name.startswith("frame brightness"):
         pos = dict(phases.positions_m)
+        quadrature = name.split()[-1]
+        harmonic = 4 if name.startswith("display") else 1
+        axes = "xy" if harmonic == 4 else name.split()[2]
         for axis, length in zip("xy", ctx["screen_size_m"]):
-            p = getattr(fringes, f"periods_{axis}")[-1]
-            pos[axis] = pos[axis] + _response_shift(pos[axis], length, p, step)
+            if axis in axes:
+                p = getattr(fringes, f"periods_{axis}")[-1]
+                pos[axis] = pos[axis] + _phase_error_shift(pos[axis], length, p, step, harmonic, quadrature)
         phases = dataclasses.replace(phases, positions_m=pos)
     elif name.startswith("fixture"):
         axis = "xyz".index(name[-1])
@@ -475,7 +496,37 @@ def _clean(v: float):
     return None if v is None or not np.isfinite(v) else float(v)
 
 
-def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs: InputUncertainties) -> dict:
+def capture_scales(reduction, sens: Sensitivities, inputs: InputUncertainties) -> np.ndarray:
+    """Per budget row, the factor by which this capture's own estimate scales the cached sensitivity
+    (1 for the systematic rows).
+
+    * corner location: the capture's corner uncertainty (``CornerPoseResult.corner_sigma_px``) over the
+      ``corner_px`` the sensitivities were computed at;
+    * frame-to-frame brightness: the phase-error amplitude sigma_f / (sqrt(2) b) of each quadrature, with
+      sigma_f the frames' brightness noise from the sets' mean consistency residuals
+      (I0 + I2 - I1 - I3 has variance 4 sigma_f^2) and b the median finest-set modulation of the axis,
+      over the reference amplitude.
+    """
+    scales = np.ones(len(sens.inputs))
+    sigma_c = getattr(reduction.pose, "corner_sigma_px", None)
+    offsets = getattr(reduction.phases, "set_offsets_dn", {}) or {}
+    allsets = [v for a in ("x", "y") for v in offsets.get(a, [])]
+    sigma_f = float(np.sqrt(np.mean(np.square(allsets)) / 4.0)) if allsets else 0.0
+    ok = reduction.rays.ok
+    amp = {}
+    for a in ("x", "y"):
+        b = float(np.median(reduction.phases.finest_modulation_dn[a][ok]))
+        amp[a] = sigma_f / (np.sqrt(2.0) * max(b, 1e-9))
+    for i, inp in enumerate(sens.inputs):
+        if inp.group == "corner location" and sigma_c is not None and inp.u > 0:
+            scales[i] = sigma_c / inp.u
+        elif inp.group == "frame-to-frame brightness":
+            scales[i] = amp[inp.name.split()[2]] / inp.u
+    return scales
+
+
+def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs: InputUncertainties,
+            scales: np.ndarray | None = None) -> dict:
     """The figures' expanded uncertainties, the noise floor and the budget, as figure keys to add.
 
     Returns ``{"name_U": ..., "name_U_random": ..., "coverage_factor": 2, "slope_rms_noise_mrad": ...,
@@ -483,7 +534,8 @@ def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs:
     The measured slope RMS's U also covers the noise's bias (the measured value minus the noise-corrected
     one), which the measured value does not remove.
     """
-    contrib = sens.contributions
+    sc = np.ones(len(sens.inputs)) if scales is None else np.asarray(scales, float)
+    contrib = np.sqrt((sens.linear * sc[:, None]) ** 2 + 2.0 * (sens.curvature * (sc ** 2)[:, None]) ** 2)
     kinds = np.array([i.kind for i in sens.inputs])
     u_sys2 = np.nansum(contrib[kinds == "systematic"] ** 2, axis=0)
     u_cor2 = np.nansum(contrib[kinds == "random"] ** 2, axis=0)
@@ -517,7 +569,7 @@ def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs:
     out["slope_rms_noise_mrad"] = noise_mrad
     out["slope_rms_corrected_mrad"] = corrected
     out["slope_rms_corrected_mrad_U"] = corrected_u
-    out["uncertainty_budget"] = budget_table(sens, noise_col, u, u_rand, inputs)
+    out["uncertainty_budget"] = budget_table(sens, contrib, noise_col, u, u_rand, inputs, sc)
     return out
 
 
@@ -526,16 +578,15 @@ def _sig(v: float, digits: int = 3):
     return None if v is None else float(f"{v:.{digits}g}")
 
 
-def budget_table(sens: Sensitivities, noise_col: np.ndarray, u: np.ndarray, u_rand: np.ndarray,
-                 inputs: InputUncertainties) -> dict:
+def budget_table(sens: Sensitivities, contrib: np.ndarray, noise_col: np.ndarray, u: np.ndarray,
+                 u_rand: np.ndarray, inputs: InputUncertainties, scales: np.ndarray) -> dict:
     """The budget as one table, input group against figure: standard-uncertainty contributions (k = 1,
     figure units, root sum of squares within a group), the combined standard uncertainty, its random part,
     and the coverage factor (JSON-ready, 3 significant digits)."""
     groups: dict[str, dict] = {}
-    contrib = sens.contributions
     for r, inp in enumerate(sens.inputs):
         g = groups.setdefault(inp.group, {"group": inp.group, "kind": inp.kind, "inputs": [], "sq": 0.0})
-        g["inputs"].append(f"{inp.name} ({inp.u:g} {inp.unit})")
+        g["inputs"].append(f"{inp.name} ({inp.u * scales[r]:.3g} {inp.unit})")
         g["sq"] = g["sq"] + np.nan_to_num(contrib[r]) ** 2
     rows = [{"group": g["group"], "kind": g["kind"], "inputs": g["inputs"],
              "contributions": [_sig(c) for c in np.sqrt(g["sq"])]} for g in groups.values()]
@@ -570,4 +621,4 @@ def uncertainty_figures(reduction, *, fringes, geometry, design, measured_distan
             cache[cache_key] = sens
     noise = noise_propagation(reduction, fringes=fringes, geometry=geometry, design=design, settings=settings,
                               screen=screen)
-    return combine(reduction.figures, sens, noise, inputs)
+    return combine(reduction.figures, sens, noise, inputs, capture_scales(reduction, sens, inputs))

@@ -1,0 +1,257 @@
+"""Measurement studies on the digital twin: repeatability (gauge R&R) and the uncertainty's coverage.
+
+Both take the same facet out and put it back many times: a new placement within the fixture tolerance and
+new sensor noise each time (the repeatability study); the coverage study also perturbs the station's
+geometry within its stated standard uncertainties (``[uncertainty]``) *in the twin only*, while the
+analysis keeps the nominal geometry, and checks how often |error against the twin's truth| <= U.
+
+The fringe images are rendered once (offscreen OpenGL, with the station's radiometric lookup table); each
+repeat traces a new twin and photographs them. Ground truth comes from :mod:`sofast_station.twin.truth`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..config import StationConfig
+from ..errors import StationError
+from ..measure.pipeline import analyse
+from ..measure.uncertainty import SCALAR_PATHS, InputUncertainties, get_path, path_name, small_motion
+
+log = logging.getLogger(__name__)
+
+#: Figures the studies report (a readable subset of every scalar with an uncertainty).
+STUDY_FIGURES = (("focal_length_x_m",), ("focal_length_y_m",), ("twist_mrad_per_m",), ("twist_e1_mrad_per_m",),
+                 ("twist_e2_mrad_per_m",), ("principal_focal_lengths_m", 0), ("principal_focal_lengths_m", 1),
+                 ("slope_rms_mrad", "design", "magnitude"), ("slope_rms_mrad", "parabola", "magnitude"),
+                 ("slope_rms_mrad", "higher_order", "magnitude"), ("slope_rms_mrad", "design", "x"),
+                 ("slope_rms_mrad", "design", "y"), ("optical_tilt_mrad", "x"), ("optical_tilt_mrad", "y"),
+                 ("boresight_mrad", "x"), ("boresight_mrad", "y"),
+                 *[("placement", "mm", i) for i in range(3)], *[("placement", "mrad", i) for i in range(3)])
+
+
+@dataclass(frozen=True)
+class Placement:
+    """The fixture's placement tolerance: each placement coordinate is uniform in +-these."""
+
+    mm: tuple = (1.0, 1.0, 0.5)
+    mrad: tuple = (1.0, 1.0, 1.0)
+
+    def draw(self, rng: np.random.Generator) -> tuple[tuple, tuple]:
+        return (tuple(float(v) for v in rng.uniform(-1, 1, 3) * np.asarray(self.mm)),
+                tuple(float(v) for v in rng.uniform(-1, 1, 3) * np.asarray(self.mrad)))
+
+
+class TwinRig:
+    """The station's twin without the production devices: fringe images rendered once, a twin traced per
+    placement (and per perturbed geometry), frames captured with a given noise stream."""
+
+    def __init__(self, config: StationConfig):
+        from ..calibrate.store import open_calibration
+        from ..devices.renderer import FringeRenderer
+        from ..twin.config import TrueFacet, TwinOptics
+
+        if config.backend != "simulated":
+            raise StationError(f"{config.path}: studies run on the simulated station (backend = \"simulated\"), "
+                               f"this one is {config.backend!r}")
+        self.config = config
+        sim = config.simulation
+        self.facet = TrueFacet.from_dict(sim.get("facet", {}))
+        self.optics = TwinOptics.from_dict(sim.get("optics", {}))
+        radiometric = open_calibration(config, checks=False).record
+        scr = config.geometry.screen
+        with FringeRenderer(scr.width_px, scr.height_px, lut=radiometric.lut, floor_level=radiometric.floor_level,
+                            max_level=radiometric.max_level) as renderer:
+            self.images = renderer.render_all(config.fringes.patterns())
+        self.exposure_s = radiometric.exposure_s
+        self.gain = radiometric.gain
+
+    def twin(self, placement_mm, placement_mrad, geometry=None):
+        from ..twin.station import TwinStation
+
+        facet = dataclasses.replace(self.facet, placement_mm=tuple(placement_mm), placement_mrad=tuple(placement_mrad))
+        return TwinStation(geometry if geometry is not None else self.config.geometry, self.config.design, facet,
+                           self.optics)
+
+    def capture(self, twin, rng: np.random.Generator) -> np.ndarray:
+        return np.stack([twin.capture(img, rng, exposure_s=self.exposure_s, gain=self.gain) for img in self.images])
+
+
+def perturbed_geometry(geometry, inputs: InputUncertainties, rng: np.random.Generator):
+    """The station geometry with every input of the budget drawn from a normal distribution with its
+    standard uncertainty (the "true" station the twin photographs), and the distance error (m)."""
+    cam = geometry.camera
+    k = cam.matrix.copy()
+    k[0, 0] += rng.normal(0, inputs.camera_focal_px)
+    k[1, 1] += rng.normal(0, inputs.camera_focal_px)
+    k[0, 2] += rng.normal(0, inputs.camera_principal_px)
+    k[1, 2] += rng.normal(0, inputs.camera_principal_px)
+    dist = cam.distortion + rng.normal(0, 1, 5) * np.asarray(inputs.camera_distortion)
+    camera = dataclasses.replace(cam, matrix=k, distortion=dist)
+    screen_delta = small_motion(rng.normal(0, 1, 3) * np.asarray(inputs.screen_rotation_mrad),
+                                rng.normal(0, 1, 3) * np.asarray(inputs.screen_translation_mm))
+    fixture_delta = small_motion(rng.normal(0, 1, 3) * np.asarray(inputs.fixture_rotation_mrad),
+                                 rng.normal(0, 1, 3) * np.asarray(inputs.fixture_translation_mm))
+    # One pitch for both axes (the twin's display has square pixels).
+    pitch = geometry.screen.pitch_m * (1.0 + rng.normal(0, inputs.screen_pitch_relative))
+    screen = dataclasses.replace(geometry.screen, pitch_m=pitch)
+    true = dataclasses.replace(geometry, camera=camera, screen=screen,
+                               screen_to_camera=geometry.screen_to_camera.compose(screen_delta),
+                               fixture_to_camera=geometry.fixture_to_camera.compose(fixture_delta))
+    return true, float(rng.normal(0, 1e-3 * inputs.distance_mm))
+
+
+def _flat(figures: dict, paths) -> dict:
+    return {path_name(p): get_path(figures, p) for p in paths}
+
+
+def run_repeats(config: StationConfig, n: int, seed: int = 0, placement: Placement = Placement(),
+                perturb_geometry: bool = False, progress=None, paths=SCALAR_PATHS) -> list[dict]:
+    """*n* repeats of the station's facet on the twin; each returns the figures, their U and U_random,
+    and the truth (flattened ``{figure name: value}`` dicts)."""
+    from ..twin.truth import ground_truth
+
+    rig = TwinRig(config)
+    rng = np.random.default_rng(seed)
+    cache: dict = {}
+    out = []
+    for i in range(n):
+        t0 = time.perf_counter()
+        place = placement.draw(rng)
+        geometry, distance_error = (perturbed_geometry(config.geometry, config.uncertainty, rng)
+                                    if perturb_geometry else (config.geometry, 0.0))
+        twin = rig.twin(*place, geometry=geometry)
+        frames = rig.capture(twin, np.random.default_rng(rng.integers(2**63)))
+        distance = twin.measured_distance_m() + distance_error
+        a = analyse(frames, config.fringes, config.geometry, config.design, distance, config.analysis,
+                    uncertainty=config.uncertainty, sensitivity_cache=cache)
+        truth = ground_truth(twin, a.valid)
+        fig = a.figures
+        u_all = {k[:-2]: v for k, v in fig.items() if k.endswith("_U")}
+        ur_all = {k[:-9]: v for k, v in fig.items() if k.endswith("_U_random")}
+        rec = {"figures": _flat(fig, paths), "U": _flat(u_all, paths), "U_random": _flat(ur_all, paths),
+               "truth": {}, "corrected": _flat({"slope_rms_mrad": fig["slope_rms_corrected_mrad"]},
+                                               [p for p in paths if p[0] == "slope_rms_mrad"]),
+               "U_corrected": _flat({"slope_rms_mrad": fig["slope_rms_corrected_mrad_U"]},
+                                    [p for p in paths if p[0] == "slope_rms_mrad"]),
+               "placement": place, "seconds": time.perf_counter() - t0,
+               "analysis_seconds": fig["timings_s"]}
+        truth_fig = dict(truth)
+        truth_fig["placement"] = {"mm": list(place[0]), "mrad": list(place[1])}
+        for p in paths:
+            try:
+                rec["truth"][path_name(p)] = get_path(truth_fig, p)
+            except (KeyError, IndexError, TypeError):
+                rec["truth"][path_name(p)] = None
+        out.append(rec)
+        if progress:
+            progress(i + 1, n, rec)
+    return out
+
+
+def repeatability_table(repeats: list[dict], config: StationConfig, paths=STUDY_FIGURES) -> list[dict]:
+    """Per figure: mean, standard deviation, the mean stated random U (k = 2) and the ratio std / U_random,
+    and %GRR = 6 std / tolerance width against ``[limits]`` where a limit applies (<= 10 %: acceptable,
+    10-30 %: marginal, above: unacceptable)."""
+    lim = config.limits
+    f_design = config.design.focal_length_m
+    tolerances = {"focal_length_x_m": 2 * lim.focal_length_tolerance * f_design,
+                  "focal_length_y_m": 2 * lim.focal_length_tolerance * f_design,
+                  "twist_mrad_per_m": 2 * lim.max_twist_mrad_per_m}
+    for model, limit in lim.max_slope_rms_mrad.items():
+        tolerances[f"slope_rms_mrad.{model}.magnitude"] = float(limit)     # one-sided: 0 .. limit
+    rows = []
+    for p in paths:
+        name = path_name(p)
+        v = np.array([r["figures"][name] for r in repeats if r["figures"][name] is not None], float)
+        ur = np.array([r["U_random"][name] for r in repeats if r["U_random"].get(name) is not None], float)
+        u = np.array([r["U"][name] for r in repeats if r["U"].get(name) is not None], float)
+        if v.size < 2:
+            continue
+        std = float(np.std(v, ddof=1))
+        u_rand = float(np.mean(ur)) if ur.size else None
+        tol = tolerances.get(name)
+        grr = None if tol is None else 100.0 * 6.0 * std / tol
+        rows.append({"figure": name, "n": int(v.size), "mean": float(np.mean(v)), "std": std,
+                     "U_random": u_rand, "U": float(np.mean(u)) if u.size else None,
+                     "std_over_U_random": None if not u_rand else std / u_rand,
+                     "tolerance": tol, "grr_percent": grr,
+                     "grr_class": None if grr is None else
+                     ("acceptable" if grr <= 10 else "marginal" if grr <= 30 else "unacceptable")})
+    return rows
+
+
+def table_text(rows: list[dict]) -> str:
+    head = (f"{'figure':<36}{'mean':>12}{'std':>11}{'U_random':>11}{'U (k=2)':>11}{'std/U_rand':>11}"
+            f"{'%GRR':>8}  class")
+    lines = [head]
+    for r in rows:
+        def g(v, fmt):
+            return "-" if v is None else format(v, fmt)
+        lines.append(f"{r['figure']:<36}{g(r['mean'], '12.6g')}{g(r['std'], '11.3g')}{g(r['U_random'], '11.3g')}"
+                     f"{g(r['U'], '11.3g')}{g(r['std_over_U_random'], '11.2f')}{g(r['grr_percent'], '8.1f')}"
+                     f"  {r['grr_class'] or ''}")
+    return "\n".join(lines)
+
+
+def repeatability_png(rows: list[dict], path, title: str) -> None:
+    """Bars of std / U_random per figure (the 1.5 line is the study's pass mark), and %GRR where a
+    tolerance applies (10 % and 30 % lines)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(14, 7), gridspec_kw={"width_ratios": [3, 1]})
+    names = [r["figure"] for r in rows if r["std_over_U_random"] is not None]
+    ratios = [r["std_over_U_random"] for r in rows if r["std_over_U_random"] is not None]
+    ax = axes[0]
+    ax.barh(names, ratios, color=["tab:red" if x > 1.5 else "tab:blue" for x in ratios])
+    ax.axvline(1.5, color="tab:red", linestyle="--", label="1.5 (limit of the study)")
+    ax.axvline(0.5, color="grey", linestyle=":", label="0.5 (std = u_random, k = 2)")
+    ax.set_xlabel("standard deviation over repeats / stated random U (k=2)")
+    ax.invert_yaxis()
+    ax.legend(loc="lower right")
+    ax.set_title("repeatability against the stated random uncertainty")
+    graded = [r for r in rows if r["grr_percent"] is not None]
+    ax = axes[1]
+    ax.bar([r["figure"].replace("slope_rms_mrad.", "RMS ").replace(".magnitude", "") for r in graded],
+           [r["grr_percent"] for r in graded], color="tab:green")
+    ax.axhline(10, color="tab:orange", linestyle="--", label="10 % acceptable")
+    ax.axhline(30, color="tab:red", linestyle="--", label="30 % marginal")
+    ax.set_ylabel("%GRR = 6 std / tolerance")
+    ax.tick_params(axis="x", rotation=60)
+    ax.legend()
+    ax.set_title("%GRR against [limits]")
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def coverage_table(repeats: list[dict], paths=SCALAR_PATHS) -> list[dict]:
+    """Per figure: the fraction of repeats with |error against truth| <= U, the median U, the errors'
+    mean, standard deviation and RMS, and the ratio median U / std (errors)."""
+    rows = []
+    for p in paths:
+        name = path_name(p)
+        err, u = [], []
+        for r in repeats:
+            v, t, uu = r["figures"].get(name), r["truth"].get(name), r["U"].get(name)
+            if v is None or t is None or uu is None:
+                continue
+            err.append(v - t)
+            u.append(uu)
+        if len(err) < 2:
+            continue
+        err, u = np.array(err), np.array(u)
+        std = float(np.std(err, ddof=1))
+        rows.append({"figure": name, "n": int(err.size), "coverage": float(np.mean(np.abs(err) <= u)),
+                     "median_U": float(np.median(u)), "mean_error": float(np.mean(err)), "std_error": std,
+                     "rms_error": float(np.sqrt(np.mean(err ** 2))),
+                     "U_over_std": float(np.median(u) / std) if std > 0 else None})
+    return rows
