@@ -60,3 +60,56 @@ def test_long_focal_lengths_are_judged_on_curvature():
     v = judge(fig, HELIOSTAT, Limits(curvature_tolerance_per_m=2e-4), Quality())
     assert v["verdict"] == "fail" and "curvature x" in v["reasons"][0]
     assert judge(fig, HELIOSTAT, Limits(curvature_tolerance_per_m=1e-3), Quality())["verdict"] == "pass"
+
+
+# -- decision rules (ISO 14253-1 guarded acceptance) and the noise-corrected slope RMS ------------------
+GUARDED = Limits(decision_rule="guarded", max_twist_mrad_per_m=1.0)
+
+
+def with_twist(value, u):
+    return changed(twist_mrad_per_m=value, twist_mrad_per_m_U=u)
+
+
+@pytest.mark.parametrize("value,u,simple,guarded", [
+    (0.5, 0.1, "pass", "pass"),                 # well inside: both pass
+    (0.95, 0.1, "pass", "indeterminate"),       # inside, but within U of the limit
+    (1.05, 0.1, "fail", "indeterminate"),       # beyond, but within U of the limit
+    (1.2, 0.1, "fail", "fail"),                 # beyond the limit plus U
+    (-1.2, 0.1, "fail", "fail"),                # the limit is on |twist|
+])
+def test_guarded_rule_needs_the_uncertainty_zone_cleared(value, u, simple, guarded):
+    assert judge(with_twist(value, u), DISH, Limits(), Quality())["verdict"] == simple
+    out = judge(with_twist(value, u), DISH, GUARDED, Quality())
+    assert out["verdict"] == guarded
+    if guarded == "indeterminate":
+        assert any("twist" in r and "within its U" in r for r in out["reasons"])
+
+
+def test_guarded_focal_length_uses_its_U_relative_to_design():
+    # 2 % of 5.33 m is 0.1066 m: f = 5.33 * 1.019 is inside, by 0.0053 m.
+    fig = changed(focal_length_x_m=5.33 * 1.019, focal_length_x_m_U=0.002)
+    assert judge(fig, DISH, GUARDED, Quality())["verdict"] == "pass"
+    fig["focal_length_x_m_U"] = 0.01
+    assert judge(fig, DISH, GUARDED, Quality())["verdict"] == "indeterminate"
+
+
+def test_a_fail_wins_over_an_indeterminate_figure():
+    fig = changed(twist_mrad_per_m=0.98, twist_mrad_per_m_U=0.1, focal_length_x_m=6.0)
+    assert judge(fig, DISH, GUARDED, Quality())["verdict"] == "fail"
+
+
+def test_limits_can_apply_to_the_noise_corrected_rms():
+    fig = changed(slope_rms_mrad={"design": {"magnitude": 3.05}, "parabola": {"magnitude": 0.7}},
+                  slope_rms_corrected_mrad={"design": {"magnitude": 2.95}, "parabola": {"magnitude": 0.69}})
+    assert judge(fig, DISH, Limits(), Quality())["verdict"] == "fail"
+    out = judge(fig, DISH, Limits(slope_rms_value="corrected"), Quality())
+    assert out["verdict"] == "pass"
+
+
+@pytest.mark.parametrize("table,words", [({"decision_rule": "strict"}, "decision_rule"),
+                                          ({"slope_rms_value": "best"}, "slope_rms_value")])
+def test_bad_decision_settings_are_refused(table, words):
+    from sofast_station.errors import ConfigError
+    from sofast_station.station.verdict import limits_from_table
+    with pytest.raises(ConfigError, match=words):
+        limits_from_table(table, "station.toml [limits]")

@@ -125,11 +125,12 @@ def test_full_multi_facet_handshake(plcs):
     facets = [{"serial": "MF-2024-0001", "recipe_code": 2},
               {"serial": "MF-2024-0002", "recipe_name": "gore-inner", "dump": True},
               {"serial": "MF-2024-0003", "recipe_code": 7},
-              {"serial": "MF-2024-0004"}]
+              {"serial": "MF-2024-0004"}, {"serial": "MF-2024-0005"}]
     plc = plcs({"facets": facets, "ack_delay_s": 0.02})
     trigger = ModbusTrigger("127.0.0.1", plc.port, recipes={2: "dish-5m33"})
-    answers = [("done", "pass"), ("done", "fail"), ("fault", FAULT_CODES["capture"]), ("done", "invalid")]
-    warnings = [WARNING_BITS["drift"], 0, 0, 0]            # a drift alarm rides with the first answer
+    answers = [("done", "pass"), ("done", "fail"), ("fault", FAULT_CODES["capture"]), ("done", "invalid"),
+               ("done", "indeterminate")]
+    warnings = [WARNING_BITS["drift"], 0, 0, 0, 0]         # a drift alarm rides with the first answer
     requests = []
     for answer, warn in zip(answers, warnings):
         trigger.ready()
@@ -143,16 +144,16 @@ def test_full_multi_facet_handshake(plcs):
             trigger.fault(answer[1], "dark frame")
         assert 0.015 < time.monotonic() - t0 < 2.0  # returned on the PLC's (delayed) acknowledgement
     assert [r.serial for r in requests] == [f["serial"] for f in facets]
-    assert [r.recipe for r in requests] == ["dish-5m33", "gore-inner", "7", ""]
-    assert [r.dump for r in requests] == [False, True, False, False]
-    assert [r.extra["sequence"] for r in requests] == [1000, 1001, 1002, 1003]
+    assert [r.recipe for r in requests] == ["dish-5m33", "gore-inner", "7", "", ""]
+    assert [r.dump for r in requests] == [False, True, False, False, False]
+    assert [r.extra["sequence"] for r in requests] == [1000, 1001, 1002, 1003, 1004]
     reported = [plc.next("answer")[1] for _ in facets]
     assert [a["warnings"] for a in reported] == warnings
     assert [(a["status"], a["verdict"], a["fault_code"]) for a in reported] == [
         (modbus.STATUS_DONE, 1, 0), (modbus.STATUS_DONE, 2, 0), (modbus.STATUS_FAULT, 0, 3),
-        (modbus.STATUS_DONE, 3, 0)]
+        (modbus.STATUS_DONE, 3, 0), (modbus.STATUS_DONE, 4, 0)]
     assert [a["echo"] for a in reported] == [a["sequence"] for a in reported]
-    assert [a["cycle"] for a in reported] == [1, 2, 3, 4]
+    assert [a["cycle"] for a in reported] == [1, 2, 3, 4, 5]
     trigger.ready()  # the PLC clears ACK once the station is ready again, then it has no more facets
     plc.next("finished")
     assert trigger.wait_for_facet(0.1) is None

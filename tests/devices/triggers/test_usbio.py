@@ -18,7 +18,7 @@ from sofast_station.errors import ConfigError, TriggerError  # noqa: E402
 
 from .virtual_ftdi import VirtualFtdi, VirtualUsbBackend  # noqa: E402
 
-ANSWERED = (usbio.DONE_PASS, usbio.DONE_FAIL, usbio.DONE_INVALID, usbio.STATUS_FAULT)
+ANSWERED = (usbio.DONE_PASS, usbio.DONE_FAIL, usbio.DONE_INVALID, usbio.STATUS_FAULT, usbio.DONE_INDETERMINATE)
 
 
 @pytest.fixture(autouse=True)
@@ -82,11 +82,12 @@ def test_open_configures_async_bitbang():
 
 def test_full_handshake_with_station_made_serials():
     chip = VirtualFtdi()
-    facets = [{"recipe": 1}, {"recipe": 2, "dump": True}, {"recipe": 3}, {}]
+    facets = [{"recipe": 1}, {"recipe": 2, "dump": True}, {"recipe": 3}, {}, {}]
     plc = DiscretePlc(chip, facets)
     plc.start()
     trigger = UsbTrigger(backend=VirtualUsbBackend(chip), recipes={1: "dish-5m33", 3: "gore"})
-    answers = [("done", "pass"), ("done", "fail"), ("done", "invalid"), ("fault", FAULT_CODES["camera"])]
+    answers = [("done", "pass"), ("done", "fail"), ("done", "invalid"), ("fault", FAULT_CODES["camera"]),
+               ("done", "indeterminate")]
     requests = []
     for answer in answers:
         trigger.ready()
@@ -98,12 +99,13 @@ def test_full_handshake_with_station_made_serials():
         else:
             trigger.fault(answer[1], "camera gone")
     plc.join(5)
-    assert plc.answers == [usbio.DONE_PASS, usbio.DONE_FAIL, usbio.DONE_INVALID, usbio.STATUS_FAULT]
+    assert plc.answers == [usbio.DONE_PASS, usbio.DONE_FAIL, usbio.DONE_INVALID, usbio.STATUS_FAULT,
+                           usbio.DONE_INDETERMINATE]
     today = datetime.now().strftime("%Y%m%d")
-    assert [r.serial for r in requests] == [f"USB-{today}-{n:04d}" for n in (1, 2, 3, 4)]
-    assert [r.recipe for r in requests] == ["dish-5m33", "2", "gore", ""]
-    assert [r.dump for r in requests] == [False, True, False, False]
-    assert [r.extra["recipe_code"] for r in requests] == [1, 2, 3, 0]
+    assert [r.serial for r in requests] == [f"USB-{today}-{n:04d}" for n in (1, 2, 3, 4, 5)]
+    assert [r.recipe for r in requests] == ["dish-5m33", "2", "gore", "", ""]
+    assert [r.dump for r in requests] == [False, True, False, False, False]
+    assert [r.extra["recipe_code"] for r in requests] == [1, 2, 3, 0, 0]
     trigger.close()
 
 

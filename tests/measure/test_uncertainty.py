@@ -1,0 +1,120 @@
+"""Expanded uncertainties (k = 2) on a small twin station: every reported scalar carries one, of the
+figure's shape; the noise explained matches the slope noise two captures of the same facet show; the
+sensitivities are cached; and over a handful of captures with the station's geometry perturbed within
+its stated uncertainties (twin perturbed, analysis nominal) the errors against the twin's truth lie
+within U about as often as they should (the full 200-capture proof is benchmarks/coverage.py)."""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+import pytest
+
+from sofast_station.config import load_config
+from sofast_station.errors import ConfigError
+from sofast_station.measure.pipeline import analyse
+from sofast_station.measure.uncertainty import SCALAR_PATHS, InputUncertainties, get_path, path_name
+from sofast_station.station.study import TwinRig, coverage_table, run_repeats
+from tests.conftest import ROOT
+
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from coverage import small_station  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def rig(tmp_path_factory):
+    cfg = load_config(small_station(tmp_path_factory.mktemp("unc")))
+    return TwinRig(cfg)
+
+
+@pytest.fixture(scope="module")
+def two_captures(rig):
+    cfg = rig.config
+    twin = rig.twin((0.3, -0.2, 0.1), (0.2, -0.3, 0.4))
+    cache: dict = {}
+    out = []
+    for seed in (1, 2):
+        frames = rig.capture(twin, np.random.default_rng(seed))
+        out.append(analyse(frames, cfg.fringes, cfg.geometry, cfg.design, twin.measured_distance_m(), cfg.analysis,
+                           uncertainty=cfg.uncertainty, sensitivity_cache=cache))
+    return out, cache
+
+
+def _same_shape(a, b):
+    if isinstance(a, dict):
+        return isinstance(b, dict) and set(a) == set(b) and all(_same_shape(a[k], b[k]) for k in a)
+    if isinstance(a, (list, tuple)):
+        return isinstance(b, (list, tuple)) and len(a) == len(b) and all(_same_shape(x, y) for x, y in zip(a, b))
+    return (a is None) == (b is None)
+
+
+def test_every_reported_scalar_has_an_expanded_uncertainty(two_captures):
+    (a, _), _ = two_captures
+    fig = a.figures
+    assert fig["coverage_factor"] == 2
+    for path in SCALAR_PATHS:
+        u = get_path({k[:-2]: v for k, v in fig.items() if k.endswith("_U")}, path)
+        assert u is not None and np.isfinite(u) and u > 0, path_name(path)
+        ur = get_path({k[:-9]: v for k, v in fig.items() if k.endswith("_U_random")}, path)
+        assert 0 < ur <= u + 1e-15, path_name(path)
+    for top in {p[0] for p in SCALAR_PATHS}:
+        assert _same_shape(fig[top], fig[f"{top}_U"]), top
+    # The noise floor: corrected <= measured, with the noise explained removed in quadrature.
+    for model, rms in fig["slope_rms_mrad"].items():
+        for axis in ("x", "y", "magnitude"):
+            c, n = fig["slope_rms_corrected_mrad"][model][axis], fig["slope_rms_noise_mrad"][model][axis]
+            assert c == pytest.approx(np.sqrt(rms[axis] ** 2 - n ** 2), rel=1e-12)
+    budget = fig["uncertainty_budget"]
+    groups = {r["group"] for r in budget["rows"]}
+    assert {"measured distance", "camera focal length", "camera distortion", "camera-to-screen rotation",
+            "camera-to-screen translation", "screen pitch", "display response", "fixture pose", "corner location",
+            "intensity noise"} <= groups
+    f = budget["figures"].index("focal_length_x_m")
+    assert budget["combined_standard"][f] == pytest.approx(fig["focal_length_x_m_U"] / 2, rel=1e-2)
+
+
+def test_noise_explained_matches_the_scatter_between_two_captures(two_captures):
+    (a, b), _ = two_captures
+    both = np.flatnonzero((a.valid & b.valid).ravel())
+    ia, ib = np.isin(np.flatnonzero(a.valid.ravel()), both), np.isin(np.flatnonzero(b.valid.ravel()), both)
+    d = 1000.0 * (np.arctan(a.slopes[:, ia]) - np.arctan(b.slopes[:, ib]))
+    # The pixel-to-pixel scatter between the two captures, over sqrt(2).
+    for axis, row in (("x", 0), ("y", 1)):
+        seen = float(np.std(d[row] - np.median(d[row]))) / np.sqrt(2.0)
+        stated = a.figures["slope_rms_noise_mrad"]["design"][axis]
+        assert 0.7 < stated / seen < 1.5, (axis, stated, seen)
+
+
+def test_sensitivities_are_computed_once_per_geometry_and_recipe(two_captures):
+    (a, b), cache = two_captures
+    assert len(cache) == 1
+    assert (a.figures["uncertainty_budget"]["sensitivity_seconds"]
+            == b.figures["uncertainty_budget"]["sensitivity_seconds"])
+    assert a.timings_s["uncertainty"] > 0
+
+
+def test_uncertainty_table_is_validated():
+    with pytest.raises(ConfigError, match="distance_mm"):
+        InputUncertainties.from_table({"distance_mm": -1})
+    with pytest.raises(ConfigError, match="screen_rotation_mrad"):
+        InputUncertainties.from_table({"screen_rotation_mrad": [0.1, 0.2]})
+    with pytest.raises(ConfigError, match="unknown"):
+        InputUncertainties.from_table({"distance": 1})
+    u = InputUncertainties.from_table({"distance_mm": 2, "camera_distortion": [0, 0, 0, 0, 0]})
+    assert u.distance_mm == 2.0 and u.camera_distortion == (0.0,) * 5
+    rec = {"std": {"fx": 0.4, "fy": 0.6, "cx": 0.3, "cy": 0.2, "distortion": [1e-3, 2e-3, 0, 0, 0]}}
+    v = u.with_camera_record(rec)
+    assert v.camera_focal_px == 0.6 and v.camera_principal_px == 0.3 and v.camera_distortion[1] == 2e-3
+
+
+def test_coverage_on_a_few_perturbed_captures_is_not_absurd(rig):
+    """12 captures: each main figure's error against truth lies within U in most of them, and U is not
+    grossly larger than the errors' spread (the 200-capture statistics are in benchmarks/coverage.py)."""
+    reps = run_repeats(rig.config, 12, seed=21, perturb_geometry=True)
+    rows = {r["figure"]: r for r in coverage_table(reps)}
+    for name in ("focal_length_x_m", "focal_length_y_m", "twist_mrad_per_m", "slope_rms_mrad.design.magnitude",
+                 "slope_rms_mrad.parabola.magnitude", "optical_tilt_mrad.x", "placement.mm.0"):
+        r = rows[name]
+        assert r["coverage"] >= 0.75, (name, r)
+        assert r["median_U"] < 5 * max(r["rms_error"], 1e-12), (name, r)
