@@ -475,8 +475,11 @@ def corners_and_pose(region: Region, rays: Rays, geometry: StationGeometry, desi
 
 def pose_from_corners(found: np.ndarray, region: Region, rays: Rays, geometry: StationGeometry,
                       design: FacetDesign, measured_distance_m: float,
-                      settings: AnalysisSettings) -> CornerPoseResult:
-    """Stage 4b: the pose from found corners (column, row) in design order, with its range fixed."""
+                      settings: AnalysisSettings, agreement: float | None = None) -> CornerPoseResult:
+    """Stage 4b: the pose from found corners (column, row) in design order, with its range fixed.
+
+    The outline's agreement with the region is measured unless *agreement* is given (a rerun that
+    changes no pixel)."""
     cam = geometry.camera
     corners_3d = design.corners_3d()
     corner_pose = solve_corner_pose(cam, found, corners_3d, geometry.fixture_to_camera)
@@ -487,7 +490,8 @@ def pose_from_corners(found: np.ndarray, region: Region, rays: Rays, geometry: S
     measure_point = np.array([*design.measure_point_m, float(design.z(*design.measure_point_m))])
     facet_to_camera, range_shift = fix_range(corner_pose.facet_to_camera, measure_point, rays.screen_centre_cam_m,
                                              measured_distance_m, settings.max_range_shift_m)
-    agreement = checks.outline_agreement(region.region, outline_image_points(design, cam, facet_to_camera))
+    if agreement is None:
+        agreement = checks.outline_agreement(region.region, outline_image_points(design, cam, facet_to_camera))
     return CornerPoseResult(corners_px=found, reprojection_rms_px=corner_pose.reprojection_rms_px,
                             facet_to_camera=facet_to_camera, range_shift_m=range_shift, outline_agreement=agreement)
 
@@ -662,10 +666,14 @@ def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, d
         from .uncertainty import sensitivity_key, uncertainty_figures
         t0 = time.perf_counter()
         key = sensitivity_key(geometry, design, fringes, settings, uncertainty, screen)
-        reduction.figures.update(uncertainty_figures(
+        extra = uncertainty_figures(
             reduction, fringes=fringes, geometry=geometry, design=design, measured_distance_m=measured_distance_m,
-            settings=settings, inputs=uncertainty, screen=screen, cache=sensitivity_cache, cache_key=key))
+            settings=settings, inputs=uncertainty, screen=screen, cache=sensitivity_cache, cache_key=key)
+        sensitivity_s = extra.pop("_sensitivity_seconds")
+        reduction.figures.update(extra)
         timings["uncertainty"] = time.perf_counter() - t0
+        if sensitivity_s:
+            timings["uncertainty_sensitivities"] = sensitivity_s
     return to_analysis(reduction, timings)
 
 
@@ -745,7 +753,7 @@ def rerun(reduction: Reduction, start: str, *, fringes: FringeSet, geometry: Sta
         rays = reduction.rays
     if order <= STAGES.index("pose"):
         pose = pose_from_corners(reduction.pose.corners_px, region, rays, geometry, design, measured_distance_m,
-                                 settings)
+                                 settings, agreement=reduction.pose.outline_agreement)
     elif pose is None:
         pose = reduction.pose
     if order <= STAGES.index("shape"):

@@ -265,7 +265,7 @@ def _perturbed_run(red, inp: Input, sign: float, ctx: dict):
     elif name.startswith("screen pitch"):
         axis = name[-1]
         pos = dict(phases.positions_m)
-        pos[axis] = pos[axis] * (1.0 + step)
+        pos[axis] = pos[axis] * (1.0 + step)      # NaN where invalid stays NaN
         phases = dataclasses.replace(phases, positions_m=pos)
         w, h = ctx["screen_size_m"]
         w, h = (w * (1.0 + step), h) if axis == "x" else (w, h * (1.0 + step))
@@ -275,10 +275,13 @@ def _perturbed_run(red, inp: Input, sign: float, ctx: dict):
         quadrature = name.split()[-1]
         harmonic = 4 if name.startswith("display") else 1
         axes = "xy" if harmonic == 4 else name.split()[2]
+        ok = phases.ok
         for axis, length in zip("xy", ctx["screen_size_m"]):
             if axis in axes:
                 p = getattr(fringes, f"periods_{axis}")[-1]
-                pos[axis] = pos[axis] + _phase_error_shift(pos[axis], length, p, step, harmonic, quadrature)
+                moved = pos[axis].copy()
+                moved[ok] += _phase_error_shift(moved[ok], length, p, step, harmonic, quadrature)
+                pos[axis] = moved
         phases = dataclasses.replace(phases, positions_m=pos)
     elif name.startswith("fixture"):
         axis = "xyz".index(name[-1])
@@ -291,7 +294,8 @@ def _perturbed_run(red, inp: Input, sign: float, ctx: dict):
         _, i, c = name.split()
         corners = red.pose.corners_px.copy()
         corners[int(i), "uv".index(c)] += step
-        pose = pose_from_corners(corners, red.region, red.rays, g, design, distance, settings)
+        pose = pose_from_corners(corners, red.region, red.rays, g, design, distance, settings,
+                                 agreement=red.pose.outline_agreement)
         return rerun(red, "shape", fringes=fringes, geometry=g, design=design, measured_distance_m=distance,
                      settings=settings, screen=screen, pose=pose)
     else:
@@ -318,7 +322,7 @@ class Sensitivities:
 
 
 def sensitivities(reduction, *, fringes, geometry, design, measured_distance_m: float, settings,
-                  inputs: InputUncertainties, screen=None, max_points: int = 10_000) -> Sensitivities:
+                  inputs: InputUncertainties, screen=None, max_points: int = 4_000) -> Sensitivities:
     """Finite-difference sensitivities of every scalar figure to every input of :func:`budget_inputs`,
     on a decimated copy of *reduction* (cost: two partial reruns per input)."""
     import time
@@ -594,7 +598,7 @@ def budget_table(sens: Sensitivities, contrib: np.ndarray, noise_col: np.ndarray
                  "contributions": [_sig(c) for c in noise_col]})
     return {"figures": [path_name(p) for p in sens.paths], "rows": rows, "coverage_factor": 2,
             "combined_standard": [_sig(c) for c in u], "random_standard": [_sig(c) for c in u_rand],
-            "sensitivity_points": sens.n_points, "sensitivity_seconds": round(sens.seconds, 3)}
+            "sensitivity_points": sens.n_points}
 
 
 def sensitivity_key(geometry, design, fringes, settings, inputs: InputUncertainties, screen=None) -> str:
@@ -614,6 +618,7 @@ def uncertainty_figures(reduction, *, fringes, geometry, design, measured_distan
     """Everything :func:`combine` adds to a reduction's figures; sensitivities come from *cache* under
     *cache_key* (geometry + recipe + inputs) when present, else are computed and stored there."""
     sens = None if cache is None or cache_key is None else cache.get(cache_key)
+    fresh = sens is None
     if sens is None:
         sens = sensitivities(reduction, fringes=fringes, geometry=geometry, design=design,
                              measured_distance_m=measured_distance_m, settings=settings, inputs=inputs, screen=screen)
@@ -621,4 +626,7 @@ def uncertainty_figures(reduction, *, fringes, geometry, design, measured_distan
             cache[cache_key] = sens
     noise = noise_propagation(reduction, fringes=fringes, geometry=geometry, design=design, settings=settings,
                               screen=screen)
-    return combine(reduction.figures, sens, noise, inputs, capture_scales(reduction, sens, inputs))
+    out = combine(reduction.figures, sens, noise, inputs, capture_scales(reduction, sens, inputs))
+    # Not a figure (a timing): :func:`~sofast_station.measure.pipeline.analyse` moves it to the timings.
+    out["_sensitivity_seconds"] = sens.seconds if fresh else 0.0
+    return out

@@ -190,6 +190,18 @@ def comparison_table(result, show_all: bool = False) -> str:
 
     new = flatten_figures(result.record)
     old = flatten_figures(result.archived) if result.archived else {}
+    new_u = flatten_figures(result.record, uncertainties=True)
+    old_u = flatten_figures(result.archived, uncertainties=True) if result.archived else {}
+
+    def with_u(value, name, flat):
+        """``value ± U`` where the record has the figure's expanded uncertainty."""
+        top, dot, rest = name.partition(".")
+        top, bracket, index = top.partition("[")
+        u = flat.get(f"{top}_U{bracket}{index}{dot}{rest}")
+        if u is None or not isinstance(value, (int, float)) or isinstance(value, bool):
+            return _fmt(value)
+        return f"{value:.6g} ± {u:.2g}"
+
     names = list(new) + [k for k in old if k not in new]
     shown = names if show_all else [k for k in names if k in HEADLINE or k in result.differences]
     lines = [f"  {'figure':<40} {'archived':>24} {'new':>24} {'new - archived':>16}"]
@@ -204,7 +216,7 @@ def comparison_table(result, show_all: bool = False) -> str:
             diff = f"{d['difference']:+.3e}"
         else:
             diff = "changed"
-        lines.append(f"  {name:<40} {_fmt(a):>24} {_fmt(b):>24} {diff:>16}")
+        lines.append(f"  {name:<40} {with_u(a, name, old_u):>24} {with_u(b, name, new_u):>24} {diff:>16}")
     hidden = len(names) - len(shown)
     if hidden:
         lines.append(f"  ({hidden} more figure(s), all identical to the archive; --all lists them)"

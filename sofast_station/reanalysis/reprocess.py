@@ -248,17 +248,27 @@ class ReprocessResult:
 
 
 # -- comparison ------------------------------------------------------------------------------------------
-def flatten_figures(record: dict) -> dict:
+def is_uncertainty_key(key: str) -> bool:
+    """Keys of the uncertainty (``name_U``, ``name_U_random``, the budget): they come from sensitivities
+    cached per geometry and recipe (on the line, from its first facet), so a re-analysis, which computes
+    them from the dump itself, may differ in their last digits; they are shown, not compared exactly."""
+    return key.endswith("_U") or key.endswith("_U_random") or key == "uncertainty_budget"
+
+
+def flatten_figures(record: dict, uncertainties: bool = False) -> dict:
     """Every measured figure of a record under a flat name.
 
     Nested dicts give dotted names (``slope_rms_mrad.design.x``), lists of numbers one entry per element
     (``principal_focal_lengths_m[0]``); lists of text (``reasons``) stay whole. Keys in
-    :data:`NOT_FIGURES` (time, serial, timings, ...) are left out.
+    :data:`NOT_FIGURES` (time, serial, timings, ...) are left out, and so are the uncertainties
+    (:func:`is_uncertainty_key`) unless *uncertainties*.
 
     Parameters
     ----------
     record : dict
         A result record (JSON-ready).
+    uncertainties : bool
+        Also the ``_U`` figures and the budget.
 
     Returns
     -------
@@ -282,7 +292,7 @@ def flatten_figures(record: dict) -> dict:
             out[name] = list(value) if isinstance(value, tuple) else value
 
     for key, value in json_ready(record).items():
-        if key not in NOT_FIGURES:
+        if key not in NOT_FIGURES and (uncertainties or not is_uncertainty_key(key)):
             walk(key, value)
     return out
 
@@ -392,6 +402,22 @@ def calibration_note(content: DumpContent, record) -> str:
             "the same frames and only the result's calibration reference changes (camera exposure and gain "
             f"stay those of the capture). The two lookup tables differ by up to {d_cmd:.1f} display commands "
             "(of 255); to measure with the new record, capture the facet again")
+
+
+def _uncertainty_inputs(content: DumpContent, notes: list):
+    """The input uncertainties of the dumped station.toml's ``[uncertainty]`` (the defaults without one).
+
+    The sensitivities are computed from each dump itself (not shared between dumps), so a dump's
+    re-analysis gives the same bits whatever else a batch worker analysed before it."""
+    from ..measure.uncertainty import InputUncertainties
+
+    try:
+        raw = tomllib.loads(content.station_toml) if content.station_toml.strip() else {}
+        return InputUncertainties.from_table(raw.get("uncertainty", {}), f"station.toml of dump {content.path} "
+                                                                          "[uncertainty]")
+    except (tomllib.TOMLDecodeError, ConfigError, TypeError) as exc:
+        notes.append(f"the dump's [uncertainty] could not be read ({exc}): the default input uncertainties are used")
+        return InputUncertainties()
 
 
 def _judge_settings(content: DumpContent, recipe: str, notes: list):
@@ -523,7 +549,8 @@ def reprocess_content(content: DumpContent, overrides: Overrides | None = None, 
     analysis = None
     t1 = time.perf_counter()
     try:
-        analysis = content.analyse(design=design, settings=settings, measured_distance_m=distance)
+        analysis = content.analyse(design=design, settings=settings, measured_distance_m=distance,
+                                   uncertainty=_uncertainty_inputs(content, notes))
     except (DumpError, ConfigError):
         raise
     except StationError as exc:              # the analysis refuses the capture: a fault, as on the line

@@ -184,8 +184,8 @@ def budget_text(rec: dict, columns=BUDGET_COLUMNS) -> str:
     lines.append(f"  {f'expanded U (k={k})':<30}{'':>10}" + "".join(
         cell(None if b["combined_standard"][i] is None else k * b["combined_standard"][i]) for i, _, _ in cols))
     lines.append("  inputs: " + "; ".join(", ".join(r["inputs"]) for r in b["rows"] if r["kind"] == "systematic"))
-    lines.append(f"  sensitivities from {b.get('sensitivity_points')} points in {b.get('sensitivity_seconds')} s "
-                 "(computed once per geometry and recipe); docs/uncertainty.md")
+    lines.append(f"  sensitivities from {b.get('sensitivity_points')} points, computed once per geometry and "
+                 "recipe; docs/uncertainty.md")
     return "\n".join(lines)
 
 

@@ -38,7 +38,8 @@ def station_dumps(tmp_path_factory) -> StationDumps:
     text = SMALL_STATION.format(data_dir=d / "data", facet=ROOT / "fixtures/facets/dish_5m33.toml",
                                 radiometric=ROOT / "calibration/simulated_radiometric.json")
     text = text.replace("[simulation]\nseed = 3\n", '[simulation]\nseed = 3\nfaults = { "SIM-0004" = "dark" }\n')
-    path.write_text(text + "\n[run]\ndump_every_n = 1\n")
+    # Dumps, not a cycle-time test: a generous deadline keeps the fixture independent of machine load.
+    path.write_text(text + "\n[run]\ndump_every_n = 1\ndeadline_s = 60\n")
     cfg = dataclasses.replace(load_config(path), data_dir=d / "data")
     service = Service(cfg, simulated_facets=4, console=lambda line: None)
     try:

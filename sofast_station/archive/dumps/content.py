@@ -200,7 +200,8 @@ class DumpContent:
         """Rerun the analysis on the dumped frames with the dumped configuration.
 
         Keyword arguments replace any of ``fringes``, ``geometry``, ``design``, ``measured_distance_m``,
-        ``settings`` (e.g. another facet model or alignment point).
+        ``settings`` (e.g. another facet model or alignment point); ``uncertainty`` and
+        ``sensitivity_cache`` are passed on (the figures' expanded uncertainties).
 
         Returns
         -------
@@ -211,10 +212,12 @@ class DumpContent:
 
         args = {"fringes": self.fringe_set(), "geometry": self.station_geometry(), "design": self.facet_design(),
                 "measured_distance_m": self.measured_distance_m, "settings": self.analysis_settings()}
+        passed = {k: overrides.pop(k) for k in ("uncertainty", "sensitivity_cache") if k in overrides}
         unknown = set(overrides) - set(args)
         if unknown:
             raise TypeError(f"unknown override(s) {sorted(unknown)}; allowed: {sorted(args)}")
         args.update(overrides)
+        args.update(passed)
         # The camera's rays are kept per process: re-analysing many dumps of one station computes them once.
         return analyse(self.frames(), **args, rays_cam=ray_table(args["geometry"].camera))
 
