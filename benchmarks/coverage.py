@@ -76,10 +76,17 @@ def main(argv=None) -> int:
     p.add_argument("--captures", type=int, default=200)
     p.add_argument("--seed", type=int, default=12)
     p.add_argument("--out", default=None, help="write the per-capture results and the table as JSON here")
+    p.add_argument("--merge", nargs="+", default=None, metavar="JSON",
+                   help="no new captures: the table over the captures of these --out files (runs in parallel)")
     args = p.parse_args(argv)
+    if args.merge:
+        reps = [c for f in args.merge for c in json.loads(Path(f).read_text())["captures"]]
+        print(f"{len(reps)} captures from {len(args.merge)} file(s)")
+        report(reps)
+        return 0
 
     from sofast_station.config import load_config
-    from sofast_station.station.study import coverage_table, run_repeats
+    from sofast_station.station.study import run_repeats
 
     with tempfile.TemporaryDirectory() as tmp:
         cfg = load_config(args.config or small_station(Path(tmp)))
@@ -93,24 +100,33 @@ def main(argv=None) -> int:
                 print(f"  {i}/{n} captures ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
 
         reps = run_repeats(cfg, args.captures, seed=args.seed, perturb_geometry=True, progress=progress)
+    rows, crow = report(reps)
+    if args.out:
+        Path(args.out).write_text(json.dumps({"rows": rows, "corrected": crow, "captures": reps}, default=str))
+    return 0
+
+
+def report(reps):
+    """Print the coverage table of *reps*; returns (rows, noise-corrected rows)."""
+    from sofast_station.station.study import coverage_table
+
     rows = coverage_table(reps)
     # The noise-corrected slope RMS values against truth, with their own U.
     corrected = [{"figures": r["corrected"], "U": r["U_corrected"], "truth": r["truth"]} for r in reps]
     from sofast_station.measure.uncertainty import SCALAR_PATHS
     crow = coverage_table(corrected, [q for q in SCALAR_PATHS if q[0] == "slope_rms_mrad"])
-    print(f"{'figure':<38}{'coverage':>9}{'median U':>11}{'mean err':>11}{'std err':>11}{'U/std':>7}")
+    print(f"{'figure':<38}{'coverage':>9}{'median U':>11}{'mean err':>11}{'std err':>11}{'U/std':>7}{'U/rms':>7}")
     for label, table in (("", rows), ("noise-corrected ", crow)):
         for r in table:
             flag = "" if abs(r["coverage"] - 0.95) <= 0.03 else "  <- outside 95 +- 3 %"
             flag += "" if r["U_over_std"] is None or r["U_over_std"] <= 2.0 else "  <- U > 2 std"
             print(f"{label + r['figure']:<38}{100 * r['coverage']:8.1f}%{r['median_U']:11.3g}{r['mean_error']:11.2g}"
-                  f"{r['std_error']:11.3g}{(r['U_over_std'] or 0):7.2f}{flag}")
+                  f"{r['std_error']:11.3g}{(r['U_over_std'] or 0):7.2f}"
+                  f"{r['median_U'] / r['rms_error'] if r['rms_error'] else 0:7.2f}{flag}")
     t_an = [r["analysis_seconds"].get("uncertainty", 0.0) for r in reps[1:]]
     print(f"per capture: {sum(r['seconds'] for r in reps) / len(reps):.2f} s (twin trace, capture, analysis); "
           f"uncertainty per facet (cached sensitivities) median {sorted(t_an)[len(t_an) // 2]:.3f} s")
-    if args.out:
-        Path(args.out).write_text(json.dumps({"rows": rows, "corrected": crow, "captures": reps}, default=str))
-    return 0
+    return rows, crow
 
 
 if __name__ == "__main__":

@@ -36,6 +36,7 @@ COMMAND_MODULES = (
     "sofast_station.calibrate.cli",     # the morning calibration: calibrate radiometric|camera|geometry|status
     "sofast_station.reanalysis.cli",    # the process and quality engineers: reprocess, batch, report
     "sofast_station.interop.cli",       # import-opencsp
+    "sofast_station.station.study_cli", # study repeatability (the twin)
 )
 
 

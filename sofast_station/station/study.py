@@ -155,9 +155,11 @@ def run_repeats(config: StationConfig, n: int, seed: int = 0, placement: Placeme
 
 
 def repeatability_table(repeats: list[dict], config: StationConfig, paths=STUDY_FIGURES) -> list[dict]:
-    """Per figure: mean, standard deviation, the mean stated random U (k = 2) and the ratio std / U_random,
-    and %GRR = 6 std / tolerance width against ``[limits]`` where a limit applies (<= 10 %: acceptable,
-    10-30 %: marginal, above: unacceptable)."""
+    """Per figure: mean, standard deviation, the mean stated random U (k = 2), the standard deviation of
+    the error against the twin's truth (for placement and optical tilt, whose true value changes with
+    every placement, the measurement's own repeatability) and its ratio to U_random, and %GRR = 6 std /
+    tolerance width against ``[limits]`` where a limit applies (<= 10 %: acceptable, 10-30 %: marginal,
+    above: unacceptable)."""
     lim = config.limits
     f_design = config.design.focal_length_m
     tolerances = {"focal_length_x_m": 2 * lim.focal_length_tolerance * f_design,
@@ -174,12 +176,16 @@ def repeatability_table(repeats: list[dict], config: StationConfig, paths=STUDY_
         if v.size < 2:
             continue
         std = float(np.std(v, ddof=1))
+        err = np.array([r["figures"][name] - r["truth"][name] for r in repeats
+                        if r["figures"][name] is not None and r["truth"].get(name) is not None], float)
+        std_err = float(np.std(err, ddof=1)) if err.size > 1 else None
         u_rand = float(np.mean(ur)) if ur.size else None
         tol = tolerances.get(name)
         grr = None if tol is None else 100.0 * 6.0 * std / tol
         rows.append({"figure": name, "n": int(v.size), "mean": float(np.mean(v)), "std": std,
                      "U_random": u_rand, "U": float(np.mean(u)) if u.size else None,
-                     "std_over_U_random": None if not u_rand else std / u_rand,
+                     "std_error": std_err,
+                     "std_over_U_random": None if not u_rand or std_err is None else std_err / u_rand,
                      "tolerance": tol, "grr_percent": grr,
                      "grr_class": None if grr is None else
                      ("acceptable" if grr <= 10 else "marginal" if grr <= 30 else "unacceptable")})
@@ -187,13 +193,14 @@ def repeatability_table(repeats: list[dict], config: StationConfig, paths=STUDY_
 
 
 def table_text(rows: list[dict]) -> str:
-    head = (f"{'figure':<36}{'mean':>12}{'std':>11}{'U_random':>11}{'U (k=2)':>11}{'std/U_rand':>11}"
-            f"{'%GRR':>8}  class")
+    head = (f"{'figure':<36}{'mean':>12}{'std':>11}{'std error':>11}{'U_random':>11}{'U (k=2)':>11}"
+            f"{'err/U_rand':>11}{'%GRR':>8}  class")
     lines = [head]
     for r in rows:
         def g(v, fmt):
             return "-" if v is None else format(v, fmt)
-        lines.append(f"{r['figure']:<36}{g(r['mean'], '12.6g')}{g(r['std'], '11.3g')}{g(r['U_random'], '11.3g')}"
+        lines.append(f"{r['figure']:<36}{g(r['mean'], '12.6g')}{g(r['std'], '11.3g')}{g(r['std_error'], '11.3g')}"
+                     f"{g(r['U_random'], '11.3g')}"
                      f"{g(r['U'], '11.3g')}{g(r['std_over_U_random'], '11.2f')}{g(r['grr_percent'], '8.1f')}"
                      f"  {r['grr_class'] or ''}")
     return "\n".join(lines)
@@ -213,7 +220,7 @@ def repeatability_png(rows: list[dict], path, title: str) -> None:
     ax.barh(names, ratios, color=["tab:red" if x > 1.5 else "tab:blue" for x in ratios])
     ax.axvline(1.5, color="tab:red", linestyle="--", label="1.5 (limit of the study)")
     ax.axvline(0.5, color="grey", linestyle=":", label="0.5 (std = u_random, k = 2)")
-    ax.set_xlabel("standard deviation over repeats / stated random U (k=2)")
+    ax.set_xlabel("standard deviation of the error against truth over repeats / stated random U (k=2)")
     ax.invert_yaxis()
     ax.legend(loc="lower right")
     ax.set_title("repeatability against the stated random uncertainty")

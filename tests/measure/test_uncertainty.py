@@ -117,3 +117,23 @@ def test_coverage_on_a_few_perturbed_captures_is_not_absurd(rig):
         r = rows[name]
         assert r["coverage"] >= 0.75, (name, r)
         assert r["median_U"] < 5 * max(r["rms_error"], 1e-12), (name, r)
+
+
+def test_study_repeatability_command(rig, tmp_path, capsys):
+    """Three placements through the CLI: a table, its JSON and a PNG; the measurement's own spread (error
+    against truth) is of the order of the stated random U (the 30-placement figures are in the notes)."""
+    import json
+
+    from sofast_station.cli import main
+
+    assert main(["study", "repeatability", "--config", str(rig.config.path), "--facets", "3",
+                 "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "focal_length_x_m" in out and "%GRR" in out
+    table = json.loads(next(tmp_path.glob("repeatability-*.json")).read_text())
+    png = next(tmp_path.glob("repeatability-*.png"))
+    assert png.stat().st_size > 10_000
+    rows = {r["figure"]: r for r in table["rows"]}
+    for name in ("focal_length_x_m", "twist_mrad_per_m", "slope_rms_mrad.design.magnitude", "placement.mm.0"):
+        assert rows[name]["std_over_U_random"] < 3.0, rows[name]
+    assert rows["focal_length_x_m"]["grr_class"] == "acceptable"
