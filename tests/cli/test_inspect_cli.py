@@ -22,6 +22,8 @@ def test_inspect_json_prints_one_object_and_nothing_else(small_station_toml, tmp
         assert set(rec["slope_rms_mrad"][model]) == {"x", "y", "magnitude"}
     assert KEYS - {"serial", "timings_s", "truth"} <= set(rec["truth"])
     assert abs(rec["focal_length_x_m"] / rec["truth"]["focal_length_x_m"] - 1) < 0.01
+    assert rec["coverage_factor"] == 2 and rec["focal_length_x_m_U"] > 0
+    assert set(rec["slope_rms_mrad_U"]["design"]) == {"x", "y", "magnitude"}
     assert {"capture", "analysis", "total"} <= set(rec["timings_s"])
     assert "captured" in proc.stderr          # progress goes to stderr
     # SOFAST_DATA_DIR (set for every test by conftest) overrides the file's data_dir
@@ -30,9 +32,12 @@ def test_inspect_json_prints_one_object_and_nothing_else(small_station_toml, tmp
 
 
 def test_inspect_summary_is_readable(small_station_toml, capsys):
-    assert main(["inspect", "--config", str(small_station_toml), "--noise-free"]) == 0
+    assert main(["inspect", "--config", str(small_station_toml), "--noise-free", "--budget"]) == 0
     out = capsys.readouterr().out
     assert "focal length x" in out and "truth" in out and "parabola" in out
+    # every figure with its expanded uncertainty, and the budget table (docs/uncertainty.md)
+    assert "(k=2)" in out and " ± " in out.split("focal length x")[1].splitlines()[0]
+    assert "Uncertainty budget" in out and "measured distance" in out and "expanded U (k=2)" in out
 
 
 def test_infinite_values_become_null():
