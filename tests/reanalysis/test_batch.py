@@ -56,11 +56,13 @@ def test_a_killed_batch_of_50_resumes_without_redoing_or_losing_any(station_dump
     # the parent and its two workers in a process group of their own, killed together
     proc = subprocess.Popen(cmd, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
     results = out / "results"
-    deadline = time.monotonic() + 120
+    # Killed once some results exist, whatever the machine's speed (each dump's re-analysis also computes
+    # its uncertainty's sensitivities: a few seconds on a busy machine).
+    deadline = time.monotonic() + 600
     try:
         while time.monotonic() < deadline:
             n = len(list(results.glob("*.json"))) if results.is_dir() else 0
-            if n >= 20 or proc.poll() is not None:
+            if n >= 8 or proc.poll() is not None:
                 break
             time.sleep(0.02)
         os.killpg(proc.pid, signal.SIGKILL)
@@ -68,7 +70,7 @@ def test_a_killed_batch_of_50_resumes_without_redoing_or_losing_any(station_dump
         proc.communicate(timeout=60)
     assert proc.returncode == -signal.SIGKILL, "the batch finished before it could be killed"
     first = {p.name: (p.stat().st_ino, p.stat().st_mtime_ns) for p in results.glob("*.json")}
-    assert 20 <= len(first) < 50, len(first)
+    assert 8 <= len(first) < 50, len(first)
     for p in results.glob("*.json"):           # no half-written result under a result's name
         assert read_result(p) is not None, p
     assert not (out / "summary.csv").exists()  # the killed run never got to its summary
