@@ -19,8 +19,14 @@ from ..errors import FacetNotFoundError
 EDGE_HALF_WIDTH_PX = 5
 #: Plateau and background are read this far beyond the window (pixels), on either side.
 PLATEAU_RANGE_PX = (3, 9)
-#: Fraction of each side left out at either end, away from the corners' rounding.
-SIDE_TRIM = 0.12
+#: Fraction of each side left out at either end, away from the rough outline's corner error.
+SIDE_TRIM = 0.03
+#: Pixels left out at either end of a side: the window and plateau of a point there must not reach
+#: across the neighbouring side.
+END_TRIM_PX = 16
+#: A side is a staircase (sharply point-sampled edge) when most of its edge positions lie this close
+#: (pixels) to a half-integer: each row or column then says only between which two pixel centres it lies.
+STAIRCASE_TOLERANCE_PX = 0.05
 
 
 @dataclass(frozen=True)
@@ -80,7 +86,8 @@ def _edge_points(contrast: np.ndarray, p0: np.ndarray, p1: np.ndarray, inside_si
     a0, a1 = (p0[0], p1[0]) if along_x else (p0[1], p1[1])
     lo, hi = sorted((a0, a1))
     span = hi - lo
-    s = np.arange(np.ceil(lo + SIDE_TRIM * span), np.floor(hi - SIDE_TRIM * span) + 1)
+    trim = max(SIDE_TRIM * span, END_TRIM_PX)
+    s = np.arange(np.ceil(lo + trim), np.floor(hi - trim) + 1)
     if s.size < 3:
         return np.empty((0, 2))
     # Rough edge crossing of each row/column, from the rough line.
@@ -116,13 +123,15 @@ def _edge_points(contrast: np.ndarray, p0: np.ndarray, p1: np.ndarray, inside_si
     return np.column_stack([s, edge]) if along_x else np.column_stack([edge, s])
 
 
-def _fit_side(points: np.ndarray, rounds: int = 4) -> tuple[np.ndarray, float, int]:
+def _fit_side(points: np.ndarray, rounds: int = 4, degree: int = 2) -> tuple[np.ndarray, float, int]:
     """Quadratic curve through one side's edge points, with robust rejection of stray points.
 
     A straight edge on a curved facet is a curve in space: its corners stand nearer the camera than its
     middle, so its image bows by a tenth of a pixel or so. A quadratic d = a + b s + c s^2 across the
     side's chord (s along it, d across it) follows that bow, where a line would put the corners inside
     the true ones.
+
+    *degree* 1 fits a line (for a few points).
 
     Returns
     -------
@@ -139,7 +148,7 @@ def _fit_side(points: np.ndarray, rounds: int = 4) -> tuple[np.ndarray, float, i
     s = (points - centre) @ t
     d = (points - centre) @ n
     keep = np.ones(len(points), dtype=bool)
-    design = np.column_stack([np.ones_like(s), s, s * s])
+    design = np.column_stack([np.ones_like(s), s, s * s][:degree + 1])
     for _ in range(rounds):
         coef = np.linalg.lstsq(design[keep], d[keep], rcond=None)[0]
         res = d - design @ coef
@@ -149,7 +158,57 @@ def _fit_side(points: np.ndarray, rounds: int = 4) -> tuple[np.ndarray, float, i
             break
         keep = new_keep
     rms = float(np.sqrt(np.mean(res[keep] ** 2)))
+    coef = np.concatenate([coef, np.zeros(3 - coef.size)])      # a line has c = 0
     return np.array([centre[0], centre[1], t[0], t[1], *coef]), rms, int(keep.sum())
+
+
+def is_staircase(edge: np.ndarray) -> bool:
+    """Whether edge positions (pixels, along the sampling axis) come from a point-sampled edge.
+
+    Summed across a point-sampled edge, each row or column counts whole pixels, so its edge position is
+    a half-integer (between the last background and the first facet pixel centre).
+    """
+    off = np.abs(edge - (np.floor(edge) + 0.5))
+    return edge.size >= 10 and float(np.mean(off < STAIRCASE_TOLERANCE_PX)) > 0.8
+
+
+def _staircase_side(points: np.ndarray, along_x: bool) -> tuple[np.ndarray, float, int]:
+    """:func:`_fit_side` for a point-sampled side, weighting the steps of its staircase.
+
+    A row or column of a point-sampled edge only says between which two pixel centres the edge passes
+    (its half-integer position is uncertain by 1/sqrt(12) px). Where the staircase steps from one column
+    (or row) to the next, the edge crosses a line of pixel centres between the two: a point known to half
+    a pixel along the edge, and so, for a side tilted by t pixels per pixel, to about t/2 across it. The
+    quadratic is fitted to both by weighted least squares (in the image's sampling frame: rows as a
+    function of columns for a near-horizontal side, and the other way round), so a side with many steps
+    is located to a small fraction of a pixel, and one with few keeps the shape its rows or columns give.
+    A side aligned with the pixel grid has no steps and no sub-pixel information.
+    """
+    s, e = (points[:, 0], points[:, 1]) if along_x else (points[:, 1], points[:, 0])
+    order = np.argsort(s)
+    s, e = s[order], e[order]
+    k = np.round(e - 0.5)
+    nxt = np.flatnonzero((np.diff(s) == 1) & (np.abs(np.diff(k)) == 1))
+    steps_s = s[nxt] + 0.5
+    steps_d = np.maximum(k[nxt], k[nxt + 1])
+    # local tilt (pixels per pixel) from the staircase's overall slope
+    tilt = abs(float(np.polyfit(s, e, 1)[0])) if s.size > 2 else 1.0
+    sigma_step = max(0.5 * tilt / np.sqrt(3.0), 0.01)
+    ss = np.concatenate([s, steps_s])
+    dd = np.concatenate([k + 0.5, steps_d])
+    w = np.concatenate([np.full(s.size, np.sqrt(12.0)), np.full(steps_s.size, 1.0 / sigma_step)])
+    mid, half = 0.5 * (s.min() + s.max()), max(0.5 * (s.max() - s.min()), 1.0)
+    u = (ss - mid) / half
+    design = np.column_stack([np.ones_like(u), u, u * u])
+    coef = np.linalg.lstsq(design * w[:, None], dd * w, rcond=None)[0]
+    res = e - (coef[0] + coef[1] * (s - mid) / half + coef[2] * ((s - mid) / half) ** 2)
+    a2, b2, c2 = coef
+    a, b, c = a2 - b2 * mid / half + c2 * mid * mid / half ** 2, b2 / half - 2 * c2 * mid / half ** 2, c2 / half ** 2
+    rms = float(np.sqrt(np.mean(res ** 2)))
+    if along_x:      # point = s (1, 0) + d (0, 1): t = (1, 0), n = (0, 1)
+        return np.array([0.0, 0.0, 1.0, 0.0, a, b, c]), rms, int(s.size)
+    # point = s (0, 1) + d' (-1, 0) with d' = -(a + b s + c s^2): t = (0, 1), n = (-1, 0)
+    return np.array([0.0, 0.0, 0.0, 1.0, -a, -b, -c]), rms, int(s.size)
 
 
 def _side_residual(curve: np.ndarray, p: np.ndarray) -> tuple[float, np.ndarray]:
@@ -215,7 +274,8 @@ def fit_outline(contrast: np.ndarray, region: np.ndarray, n_corners: int,
             raise FacetNotFoundError(
                 f"side {i + 1} of the facet outline is too short or too close to the image border to locate "
                 "(the facet may be cut off or too small in the image)")
-        curve, r, n = _fit_side(pts)
+        edge = pts[:, 1] if along_x else pts[:, 0]
+        curve, r, n = _staircase_side(pts, along_x) if is_staircase(edge) else _fit_side(pts)
         curves.append(curve)
         rms.append(r)
         counts.append(n)

@@ -224,6 +224,9 @@ class TwinOptics:
         Time from the display being asked to show an image to the image being on the panel, seconds. The
         simulated camera sees the previous image until then (:mod:`sofast_station.devices.simulated`),
         unless the display's settle time covers it.
+    blur_px : float
+        Standard deviation of the lens's Gaussian point-spread function, camera pixels (defocus). 0 (the
+        default) gives sharply area-sampled edges: each pixel's value is the light falling on its area.
     """
 
     display_gamma: float = 2.2
@@ -242,6 +245,7 @@ class TwinOptics:
     refresh_hz: float = 60.0
     flicker_depth: float = 0.25
     display_latency_s: float = 0.0
+    blur_px: float = 0.0
 
     def __post_init__(self):
         owner = "TwinOptics"
@@ -266,6 +270,7 @@ class TwinOptics:
             ("refresh_hz", self.refresh_hz > 0, "must be a positive frequency in Hz"),
             ("flicker_depth", 0 <= self.flicker_depth < 1, "must lie in [0, 1)"),
             ("display_latency_s", self.display_latency_s >= 0, "must be >= 0 seconds"),
+            ("blur_px", 0 <= self.blur_px <= 10, "must lie in [0, 10] pixels"),
         ]
         if self.knee_dn is not None:
             checks.append(("knee_dn", self.camera_offset_dn < self.knee_dn < 255,

@@ -109,6 +109,10 @@ class TwinStation:
         Sub-rays per edge pixel are ``supersample**2`` (at least 8, i.e. 64 sub-rays).
     edge_band_px : float
         Half-width of the band around the outline's image that is supersampled, pixels (at least 1).
+    edge_sampling : {"area", "point"}
+        ``"area"``: an edge pixel's value is the light on its covered area (the band's sub-rays).
+        ``"point"``: only its centre ray counts, so a pixel is facet or background and a slightly tilted
+        edge is a staircase (a renderer that point-samples; no blur either way unless the optics have it).
 
     Attributes
     ----------
@@ -123,7 +127,11 @@ class TwinStation:
     """
 
     def __init__(self, geometry: StationGeometry, design: FacetDesign, facet: TrueFacet = TrueFacet(),
-                 optics: TwinOptics = TwinOptics(), supersample: int = 8, edge_band_px: float = 2.0):
+                 optics: TwinOptics = TwinOptics(), supersample: int = 8, edge_band_px: float = 2.0,
+                 edge_sampling: str = "area"):
+        if edge_sampling not in ("area", "point"):
+            raise GeometryError(f"edge_sampling must be 'area' or 'point', got {edge_sampling!r}")
+        self._edge_sampling = edge_sampling
         if int(supersample) < 8:
             raise GeometryError(f"supersample must be at least 8 (64 sub-rays per edge pixel), got {supersample}")
         if not edge_band_px >= 1.0:
@@ -214,7 +222,8 @@ class TwinStation:
         in_band = np.abs(sd) < self._edge_band_px * footprint_m[rel_pos]
         coverage_rel = np.where(sd <= 0, 1.0, 0.0)
         band_pos = np.flatnonzero(in_band)
-        coverage_rel[band_pos] = self._edge_coverage(rel_idx[band_pos], width)
+        if self._edge_sampling == "area":
+            coverage_rel[band_pos] = self._edge_coverage(rel_idx[band_pos], width)
 
         coverage = np.zeros(n_px)
         coverage[rel_idx] = coverage_rel
@@ -412,7 +421,18 @@ class TwinStation:
         return sample
 
     def _linear(self, sample: np.ndarray, ambient: float, scale: float, flicker: float) -> np.ndarray:
-        """Noise-free DN before the knee, rounding and clipping (float32, camera shape)."""
+        """Noise-free DN before the knee, rounding and clipping (float32, camera shape), through the lens's
+        point-spread function when it has one."""
+        dn = self._linear_sharp(sample, ambient, scale, flicker)
+        if self.optics.blur_px > 0:
+            from scipy.ndimage import gaussian_filter
+            # The light is spread before the sensor integrates it; black level is not light, but a
+            # uniform offset passes a normalised filter unchanged.
+            dn = gaussian_filter(dn, float(self.optics.blur_px), mode="nearest", truncate=4.0)
+        return dn
+
+    def _linear_sharp(self, sample: np.ndarray, ambient: float, scale: float, flicker: float) -> np.ndarray:
+        """:meth:`_linear` without the point-spread function: every pixel its own area's light."""
         if scale == 1.0 and flicker == 1.0:
             # The reference exposure and gain: exactly the arithmetic the twin has always used.
             dn = np.multiply(self._dn_per_ambient, np.float32(ambient))
