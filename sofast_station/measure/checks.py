@@ -30,6 +30,17 @@ def check_frames(frames: np.ndarray, fringes: FringeSet, shape: tuple[int, int])
 
 def check_response(dark: np.ndarray, white: np.ndarray, threshold_dn: float) -> None:
     """Something must respond to the screen: tell a dark scene from a display that shows nothing."""
+    top = np.iinfo(white.dtype).max if np.issubdtype(white.dtype, np.integer) else None
+    if top is not None:
+        # A capture far too bright clips dark and white alike at the top count: they then look equal.
+        clipped = white >= top
+        n_clipped = int(np.count_nonzero(clipped))
+        if n_clipped >= 50 and float(np.mean(dark[clipped] >= top)) > 0.5:
+            raise CaptureError(
+                f"the capture is saturated: {n_clipped} pixels are at the top count {top} DN in the white frame "
+                f"and {100 * float(np.mean(dark[clipped] >= top)):.0f} % of them in the dark frame too, so the "
+                "screen's light cannot be seen; lower the exposure or gain (rerun calibrate radiometric) or dim "
+                "the room light")
     brightest = int(white.max())
     if brightest <= threshold_dn:
         raise FacetNotFoundError(
@@ -46,19 +57,21 @@ def check_response(dark: np.ndarray, white: np.ndarray, threshold_dn: float) -> 
 def check_region(region: np.ndarray, expected_area_px: float, min_area_fraction: float = 0.5) -> None:
     """The facet region must be whole: not cut off at the image border, not much smaller than expected."""
     area = int(region.sum())
-    if area < min_area_fraction * expected_area_px:
-        raise FacetNotFoundError(
-            f"the facet covers only {area} pixels where the design in the fixture should cover about "
-            f"{expected_area_px:.0f}: the facet is too small in the image, partly hidden, not the recipe's "
-            "facet type, or not in the fixture")
+    # Cut off first: a facet partly out of view is also smaller than expected, but that is not the cause.
     h, w = region.shape
     sides = {"top": region[0].any(), "bottom": region[h - 1].any(), "left": region[:, 0].any(),
              "right": region[:, w - 1].any()}
     cut = [name for name, touches in sides.items() if touches]
     if cut:
         raise FacetNotFoundError(
-            f"the facet is cut off at the image's {' and '.join(cut)} edge: it is misplaced in the fixture or the "
-            "camera is aimed wrongly; the whole outline must be in view")
+            f"the facet is cut off at the image's {' and '.join(cut)} edge (out of view; {area} pixels seen of "
+            f"about {expected_area_px:.0f}): it is misplaced in the fixture or the camera is aimed wrongly; the "
+            "whole outline must be in view")
+    if area < min_area_fraction * expected_area_px:
+        raise FacetNotFoundError(
+            f"the facet covers only {area} pixels where the design in the fixture should cover about "
+            f"{expected_area_px:.0f}: the facet is too small in the image, partly hidden, not the recipe's "
+            "facet type, or not in the fixture")
 
 
 def check_saturation(stack: np.ndarray, max_fraction: float) -> None:
@@ -93,6 +106,15 @@ def check_order(frames: np.ndarray, fringes: FringeSet, threshold_dn: float) -> 
     if np.count_nonzero(responsive) < 50:
         return
     means = sample[:, responsive].mean(axis=1)
+    # Room light that outshines the display drowns the sequence: frame levels then follow the light's
+    # flicker and drift, not the patterns, and would look like frames out of order.
+    black = float(np.percentile(sample, 1))
+    level, swing = float(means.min()) - black, float(means.max() - means.min())
+    if level > swing:
+        raise CaptureError(
+            f"too much ambient light, too little contrast: even the darkest frame is {level:.0f} DN above the "
+            f"black level over the facet, where the display changes it by only {swing:.0f} DN; shade the "
+            "station from room light or daylight (or switch it off) and retake")
     labels = [p.label for p in fringes.patterns()]
     darkest, brightest = int(np.argmin(means)), int(np.argmax(means))
     tie = 0.02 * float(means.max() - means.min())      # a saturated white may tie with a fringe peak
@@ -154,3 +176,74 @@ def outline_agreement(region: np.ndarray, outline_px: np.ndarray) -> float:
     proj = projected_outline_mask(region.shape, outline_px)
     union = np.count_nonzero(region | proj)
     return float(np.count_nonzero(region & proj) / union) if union else 0.0
+
+
+def slope_curl(valid: np.ndarray, points_m: np.ndarray, slopes: np.ndarray, step_m: float = 0.01) -> dict:
+    """How far the measured slope field is from being a gradient: the local curl, against its noise.
+
+    Slopes of a real surface are a gradient, s = grad z, so ds_x/dy = ds_y/dx everywhere. Fringe sets
+    swapped between the axes (y captured before x) exchange and rescale the slope components: the field's
+    local fluctuations (slope errors, dents) then turn as much as they stretch. With the pixel grid's
+    centred differences over about *step_m* on the facet (long enough for the slope noise to average,
+    short against the slope errors' structure) and the chain rule through the facet coordinates, the slope
+    gradient G (1/m) is split into its antisymmetric part a = (G_xy - G_yx)/2 and the symmetric parts
+    (G_xy + G_yx)/2 and (G_xx - G_yy)/2; each less its median over the facet (the facet's overall shape).
+
+    Parameters
+    ----------
+    valid : (H, W) bool array
+        The pixels whose points and slopes are given, raster order.
+    points_m : (3, N) array
+        Surface points (facet frame), metres.
+    slopes : (2, N) array
+        Slopes dz/dx, dz/dy.
+    step_m : float
+        Half the difference baseline on the facet, metres.
+
+    Returns
+    -------
+    dict
+        ``antisymmetric_rms_per_m``, ``symmetric_rms_per_m`` (both symmetric parts together, per
+        component), ``step_px`` and ``n`` (the differences used).
+    """
+    h, w = valid.shape
+    flat = np.flatnonzero(valid.ravel())
+    grids = []
+    for values in (points_m[0], points_m[1], slopes[0], slopes[1]):
+        g = np.full(h * w, np.nan)
+        g[flat] = values
+        grids.append(g.reshape(h, w))
+    x, y, sx, sy = grids
+    with np.errstate(invalid="ignore"):
+        spacing = np.abs(np.concatenate([(x[:, 1:] - x[:, :-1]).ravel(), (y[1:, :] - y[:-1, :]).ravel()]))
+    spacing = spacing[np.isfinite(spacing)]
+    k = max(1, int(round(step_m / float(np.median(spacing))))) if spacing.size else 1
+    if 4 * k >= min(h, w):
+        return {"antisymmetric_rms_per_m": 0.0, "symmetric_rms_per_m": 0.0, "step_px": k, "n": 0}
+
+    def d_col(f):
+        return f[k:-k, 2 * k:] - f[k:-k, :-2 * k]
+
+    def d_row(f):
+        return f[2 * k:, k:-k] - f[:-2 * k, k:-k]
+
+    xc, xr, yc, yr = d_col(x), d_row(x), d_col(y), d_row(y)
+    det = xc * yr - xr * yc
+    with np.errstate(invalid="ignore", divide="ignore"):
+        i00, i01, i10, i11 = yr / det, -xr / det, -yc / det, xc / det
+        sc, sr, tc, tr = d_col(sx), d_row(sx), d_col(sy), d_row(sy)
+        g01, g10 = sc * i01 + sr * i11, tc * i00 + tr * i10
+        g00, g11 = sc * i00 + sr * i10, tc * i01 + tr * i11
+    ok = np.isfinite(g00) & np.isfinite(g01) & np.isfinite(g10) & np.isfinite(g11)
+    if np.count_nonzero(ok) < 100:
+        return {"antisymmetric_rms_per_m": 0.0, "symmetric_rms_per_m": 0.0, "step_px": k, "n": 0}
+    a = 0.5 * (g01 - g10)[ok]
+    s = 0.5 * (g01 + g10)[ok]
+    d = 0.5 * (g00 - g11)[ok]
+
+    def rms(v):
+        v = v - np.median(v)
+        return float(np.sqrt(np.mean(v * v)))
+
+    return {"antisymmetric_rms_per_m": rms(a), "symmetric_rms_per_m": float(np.hypot(rms(s), rms(d)) / np.sqrt(2.0)),
+            "step_px": k, "n": int(np.count_nonzero(ok))}

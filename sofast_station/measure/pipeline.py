@@ -558,6 +558,9 @@ def report_figures(region: Region, phases: Phases, rays: Rays, pose: CornerPoseR
     tilt = placement(geometry.fixture_to_camera, shape.boresighted_to_camera, design)["mrad"]
     kx, ky = 4.0 * fit.a, 4.0 * fit.b
     principal, angle = principal_axes(fit.a, fit.b, fit.e)
+    valid = np.zeros(region.region.shape, dtype=bool)
+    valid.ravel()[vidx] = True
+    curl = checks.slope_curl(valid, shape.points_m, shape.slopes)
     return {
         "focal_length_x_m": focal_length_m(kx),
         "focal_length_y_m": focal_length_m(ky),
@@ -576,6 +579,8 @@ def report_figures(region: Region, phases: Phases, rays: Rays, pose: CornerPoseR
         "facet_pixels": int(idx.size),
         "median_modulation_dn": float(np.median(phases.min_modulation_dn[rays.ok])),
         "intensity_noise_dn": phases.noise.noise_dn,
+        # A slope field that curls is no surface's: x and y fringe sets swapped (checked in the verdict).
+        "slope_curl": curl,
         "display_response": {"harmonic_ratio": phases.noise.harmonic_ratio,
                              "signed_harmonic_ratio": phases.noise.signed_harmonic_ratio,
                              "phase_error_rad": phases.noise.phase_error_rad},

@@ -92,6 +92,11 @@ class Quality:
     #: stands with a warning stating the phase error it may cause.
     max_display_harmonic_ratio: float = 0.05
     warn_display_harmonic_ratio: float = 0.01
+    #: A real surface's slopes are a gradient: their local fluctuations stretch but do not turn. When the
+    #: turning (antisymmetric) part exceeds this fraction of the stretching part, and is above the
+    #: floor (1/m) below which the fluctuations are too weak to judge, the x and y sets were swapped.
+    max_slope_curl_ratio: float = 0.5
+    min_slope_curl_per_m: float = 0.005
 
 
 def _from_table(cls, table: dict, where: str):
@@ -147,6 +152,14 @@ def judge(fig: dict, design: FacetDesign, limits: Limits, quality: Quality) -> d
     one facet's figures; warnings say what weakens a result without invalidating it. The guarded decision
     rule uses the figures' ``name_U`` expanded uncertainties (missing ones count as 0)."""
     invalid, warnings = display_response(fig, quality)
+    curl = fig.get("slope_curl")
+    if curl and curl["antisymmetric_rms_per_m"] > max(quality.max_slope_curl_ratio * curl["symmetric_rms_per_m"],
+                                                      quality.min_slope_curl_per_m):
+        invalid.append(
+            f"the measured slopes are no surface's: they turn as much as they stretch (local curl "
+            f"{1000 * curl['antisymmetric_rms_per_m']:.1f} mrad/m RMS against {1000 * curl['symmetric_rms_per_m']:.1f}): "
+            "the x and y fringe sets were swapped (y captured before x?) or shown in the wrong order; "
+            "capture the sequence in the fringe definition's order")
     if fig["valid_fraction"] < quality.min_valid_fraction:
         invalid.append(f"only {100 * fig['valid_fraction']:.1f} % of the facet's pixels are valid "
                        f"(minimum {100 * quality.min_valid_fraction:.0f} %)")
