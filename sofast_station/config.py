@@ -124,10 +124,14 @@ def load_config(path: str | Path, use_camera_record: bool = True) -> StationConf
     design = load_facet(facet_path)
     camera = _camera(raw.get("camera", {}), f"{where} [camera]")
     scr = raw.get("screen", {})
-    _check_keys(scr, {"width_px", "height_px", "pitch_m"}, f"{where} [screen]")
+    _check_keys(scr, {"width_px", "height_px", "pitch_m", "pitch_x_m", "pitch_y_m"}, f"{where} [screen]")
     try:
-        screen = ScreenSpec(_need(scr, "width_px", f"{where} [screen]"), _need(scr, "height_px", f"{where} [screen]"),
-                            _need(scr, "pitch_m", f"{where} [screen]"))
+        size = (_need(scr, "width_px", f"{where} [screen]"), _need(scr, "height_px", f"{where} [screen]"))
+        if "pitch_x_m" in scr or "pitch_y_m" in scr:      # non-square display pixels
+            screen = ScreenSpec(*size, _need(scr, "pitch_x_m", f"{where} [screen]"),
+                                _need(scr, "pitch_y_m", f"{where} [screen]"))
+        else:
+            screen = ScreenSpec(*size, _need(scr, "pitch_m", f"{where} [screen]"))
     except ConfigError as exc:
         raise ConfigError(f"{where} [screen]: {exc}") from None
     lay = raw.get("layout", {})

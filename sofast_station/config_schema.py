@@ -127,7 +127,9 @@ SECTIONS: dict[str, dict[str, Key]] = {
     },
     "screen": {
         "width_px": Key("int", low=1), "height_px": Key("int", low=1),
-        "pitch_m": _pos("pixel pitch, m"),
+        "pitch_m": _pos("pixel pitch of a square-pixel display, m"),
+        "pitch_x_m": _pos("pixel pitch along x (display columns), m"),
+        "pitch_y_m": _pos("pixel pitch along y (display rows), m"),
     },
     "layout": {
         "separation_m": _nonneg("camera to screen centre, m"),
@@ -179,6 +181,8 @@ SECTIONS: dict[str, dict[str, Key]] = {
         "max_corner_reprojection_px": _pos("px"),
         "max_display_harmonic_ratio": _nonneg("second harmonic / fringe amplitude"),
         "warn_display_harmonic_ratio": _nonneg("second harmonic / fringe amplitude"),
+        "max_slope_curl_ratio": _nonneg("turning / stretching part of the slope gradient"),
+        "min_slope_curl_per_m": _nonneg("1/m"),
     },
     "calibration": {
         "radiometric": Key("str"), "stale": Key("str", choices=("warn", "refuse")),
@@ -321,6 +325,17 @@ def _rule_camera(raw: dict, where: str) -> None:
                               f"inside the {cam['width_px']} x {cam['height_px']} image")
 
 
+def _rule_screen(raw: dict, where: str) -> None:
+    scr = raw.get("screen", {})
+    square, per_axis = "pitch_m" in scr, [k for k in ("pitch_x_m", "pitch_y_m") if k in scr]
+    if square and per_axis:
+        raise ConfigError(f"{where} [screen] has pitch_m and {', '.join(per_axis)}: give pitch_m for square pixels "
+                          "or pitch_x_m and pitch_y_m, not both")
+    if len(per_axis) == 1:
+        raise ConfigError(f"{where} [screen] has {per_axis[0]} alone: give both pitch_x_m and pitch_y_m "
+                          "(or pitch_m for square pixels)")
+
+
 def _rule_fringes(raw: dict, where: str) -> None:
     fr = raw.get("fringes", {})
     for name in ("periods_x", "periods_y"):
@@ -375,7 +390,7 @@ def _rule_acceptance(raw: dict, where: str) -> None:
 
 
 #: Rules between keys: ``rule(raw, file)`` raises ConfigError naming the file, the section and the key.
-CROSS_RULES: list[Callable[[dict, str], None]] = [_rule_camera, _rule_fringes, _rule_run, _rule_readers,
+CROSS_RULES: list[Callable[[dict, str], None]] = [_rule_camera, _rule_screen, _rule_fringes, _rule_run, _rule_readers,
                                                   _rule_acceptance]
 
 

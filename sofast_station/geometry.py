@@ -123,20 +123,41 @@ class CameraIntrinsics:
 
 @dataclass(frozen=True)
 class ScreenSpec:
-    """A flat display: native resolution and pixel pitch (metres per display pixel)."""
+    """A flat display: native resolution and pixel pitch (metres per display pixel).
+
+    ``pitch_m`` is the pitch along x (display columns); ``pitch_y_m`` the pitch along y (display rows),
+    the same as ``pitch_m`` when not given (square pixels). A 0.08 % difference between the two, taken as
+    square, is a 0.015 % focal-length error.
+    """
 
     width_px: int
     height_px: int
     pitch_m: float
+    pitch_y_m: float | None = None
 
     def __post_init__(self):
         if int(self.width_px) <= 0 or int(self.height_px) <= 0:
             raise ConfigError(f"screen size must be positive, got {self.width_px} x {self.height_px}")
-        if not (np.isfinite(self.pitch_m) and 0 < self.pitch_m < 0.1):
-            raise ConfigError(f"screen pitch_m must be a positive length in metres, got {self.pitch_m}")
+        for name in ("pitch_m", "pitch_y_m"):
+            value = getattr(self, name)
+            if name == "pitch_y_m" and value is None:
+                continue
+            if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)) \
+                    or not (np.isfinite(value) and 0 < value < 0.1):
+                raise ConfigError(f"screen {name} must be a positive length in metres, got {value!r}")
         object.__setattr__(self, "width_px", int(self.width_px))
         object.__setattr__(self, "height_px", int(self.height_px))
         object.__setattr__(self, "pitch_m", float(self.pitch_m))
+        object.__setattr__(self, "pitch_y_m", float(self.pitch_m if self.pitch_y_m is None else self.pitch_y_m))
+
+    @property
+    def pitch_x_m(self) -> float:
+        """Pitch along x (display columns), metres."""
+        return self.pitch_m
+
+    @property
+    def square(self) -> bool:
+        return self.pitch_y_m == self.pitch_m
 
     @property
     def width_m(self) -> float:
@@ -146,14 +167,22 @@ class ScreenSpec:
     @property
     def height_m(self) -> float:
         """Active height H, metres."""
-        return self.height_px * self.pitch_m
+        return self.height_px * self.pitch_y_m
 
     def to_dict(self) -> dict:
-        return {"width_px": self.width_px, "height_px": self.height_px, "pitch_m": self.pitch_m}
+        """``pitch_m`` for square pixels (as station.toml and dumps of schema 1 have it), else
+        ``pitch_x_m`` and ``pitch_y_m``."""
+        if self.square:
+            return {"width_px": self.width_px, "height_px": self.height_px, "pitch_m": self.pitch_m}
+        return {"width_px": self.width_px, "height_px": self.height_px, "pitch_x_m": self.pitch_m,
+                "pitch_y_m": self.pitch_y_m}
 
     @classmethod
     def from_dict(cls, d: dict) -> "ScreenSpec":
-        return cls(d["width_px"], d["height_px"], d["pitch_m"])
+        """From ``pitch_m`` (square) or ``pitch_x_m`` and ``pitch_y_m``."""
+        if "pitch_m" in d:
+            return cls(d["width_px"], d["height_px"], d["pitch_m"])
+        return cls(d["width_px"], d["height_px"], d["pitch_x_m"], d["pitch_y_m"])
 
 
 @dataclass(frozen=True)

@@ -9,6 +9,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from sofast_station.archive.dumps import SCHEMA_VERSION
+
 
 def zero(p, good):
     p.write_bytes(b"")
@@ -46,7 +48,7 @@ def foreign(p, good):
 def newer(p, good):
     p.write_bytes(good.read_bytes())
     with h5py.File(p, "r+") as f:
-        f.attrs["schema_version"] = np.int64(2)
+        f.attrs["schema_version"] = np.int64(SCHEMA_VERSION + 1)
 
 
 def missing(p, good):

@@ -277,10 +277,10 @@ class TwinStation:
     def _prepare_sampling(self) -> None:
         """Bilinear sampling indices/weights into a zero-padded window of the display luminance."""
         screen = self.geometry.screen
-        pitch = screen.pitch_m
+        pitch_x, pitch_y = screen.pitch_m, screen.pitch_y_m              # columns, rows (may differ)
         with np.errstate(invalid="ignore"):
-            col = self._u_scr_m[:, 0] / pitch - 0.5                       # continuous display column
-            row = (screen.height_m - self._u_scr_m[:, 1]) / pitch - 0.5    # continuous display row
+            col = self._u_scr_m[:, 0] / pitch_x - 0.5                       # continuous display column
+            row = (screen.height_m - self._u_scr_m[:, 1]) / pitch_y - 0.5    # continuous display row
             good = np.isfinite(col) & np.isfinite(row) & (col > -1) & (col < screen.width_px) \
                 & (row > -1) & (row < screen.height_px)
         col0 = np.floor(np.where(good, col, 0.0))

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from sofast_station.archive._common import json_ready
-from sofast_station.archive.dumps import (SCHEMA_V1, crop_to_facet, disk_ok, prune_dumps, read_dump, restore_frames,
+from sofast_station.archive.dumps import (SCHEMA_V1, SCHEMA_V2, SCHEMA_VERSION, crop_to_facet, disk_ok, prune_dumps, read_dump, restore_frames,
                                           write_dump)
 from sofast_station.archive.dumps import writer as dump_writer
 from sofast_station.archive.spool import spool_get, spool_list, spool_put
@@ -48,7 +48,7 @@ def test_round_trip_is_bit_exact(dump_file, small_config):
     path, content = dump_file
     back = read_dump(path)
     assert_same_content(content, back)
-    assert back.path == path and back.created and back.schema_version == 1
+    assert back.path == path and back.created and back.schema_version == SCHEMA_VERSION == 2
     # the typed records come back equal to the configuration's
     assert back.station_geometry().to_dict() == small_config.geometry.to_dict()
     assert back.fringe_set() == small_config.fringes
@@ -83,14 +83,14 @@ def test_every_group_and_dataset_is_described(dump_file):
         assert "units" in obj.attrs, name
 
     with h5py.File(path) as f:
-        assert f.attrs["schema"] == "sofast-station-dump" and f.attrs["schema_version"] == 1
+        assert f.attrs["schema"] == "sofast-station-dump" and f.attrs["schema_version"] == 2
         f.visititems(check)
-        for p, kind, *_ in SCHEMA_V1:
+        for p, kind, *_ in SCHEMA_V2:
             if kind == "attribute" and p != "/@station" and p != "/@facet":
                 assert p[2:] in f.attrs, p
     assert "capture/frames" in seen and "geometry/camera/matrix" in seen
     doc = (ROOT / "docs" / "dump-schema.md").read_text()
-    for p, *_ in SCHEMA_V1:
+    for p, *_ in SCHEMA_V1 + SCHEMA_V2:
         name = p[2:] if p.startswith("/@") else p
         assert f"`{name}`" in doc, f"docs/dump-schema.md does not describe {p}"
 
@@ -254,3 +254,29 @@ def test_disk_watch(tmp_path, monkeypatch):
     assert ok and free > 0
     ok, free2 = disk_ok(tmp_path, 1e9)                   # an exabyte: never
     assert not ok and free2 == pytest.approx(free, rel=0.1)
+
+
+def test_schema_1_dumps_are_still_read(dump_file, small_config):
+    """Schema 2 only added non-square display pixels: a version 1 file (square pixels) reads as before."""
+    path, content = dump_file
+    with h5py.File(path, "r+") as f:
+        f.attrs["schema_version"] = np.int64(1)
+    back = read_dump(path)
+    assert back.schema_version == 1
+    assert back.station_geometry().to_dict() == small_config.geometry.to_dict()
+
+
+def test_non_square_display_pixels_round_trip(small_config, tmp_path):
+    import dataclasses
+
+    from sofast_station.geometry import ScreenSpec
+
+    screen = ScreenSpec(1920, 1080, 0.00027, 0.0002703)
+    content = dataclasses.replace(synthetic_content(small_config), geometry=dataclasses.replace(
+        small_config.geometry, screen=screen).to_dict())
+    path = tmp_path / "n.h5"
+    write_dump(path, content)
+    with h5py.File(path) as f:
+        assert "pitch_m" not in f["geometry/screen"] and f["geometry/screen/pitch_y_m"][()] == 0.0002703
+    back = read_dump(path).station_geometry().screen
+    assert back == screen and back.height_m == 1080 * 0.0002703 and back.width_m == 1920 * 0.00027

@@ -13,7 +13,7 @@ import numpy as np
 from ... import __version__
 from ...errors import DumpError
 from .content import DumpContent
-from .schema import _JSON_ENCODING, _PLAIN_ENCODING, SCHEMA, SCHEMA_V1, SCHEMA_VERSION
+from .schema import _JSON_ENCODING, _PLAIN_ENCODING, SCHEMA, SCHEMA_V1, SCHEMA_V2, SCHEMA_VERSION
 
 log = logging.getLogger("sofast_station.archive.dumps")
 
@@ -156,7 +156,8 @@ def _read_open(f, path: Path, load_frames: bool, require_result: bool = True) ->
     return reader(f, path, version, load_frames, require_result)
 
 
-def _read_v1(f, path: Path, version: int, load_frames: bool, require_result: bool) -> DumpContent:
+def _read_v1(f, path: Path, version: int, load_frames: bool, require_result: bool,
+             table=SCHEMA_V1) -> DumpContent:
     """Reader of schema version 1 (docs/dump-schema.md, :data:`SCHEMA_V1`)."""
     import h5py
 
@@ -165,7 +166,7 @@ def _read_v1(f, path: Path, version: int, load_frames: bool, require_result: boo
                                                          "config_hash")}
     created = _attr_str(f.attrs, "created", where)
     optional = () if require_result else ("result", "result/record_json")
-    missing = [p for p, kind, _, _, _, required in SCHEMA_V1
+    missing = [p for p, kind, _, _, _, required in table
                if required and kind != "attribute" and "*" not in p and p not in f and p not in optional]
     if missing:
         raise DumpError(f"dump {path} lacks the dataset(s) {', '.join(missing)} required by schema version "
@@ -212,6 +213,16 @@ def _read_v1(f, path: Path, version: int, load_frames: bool, require_result: boo
         created=created, path=path)
 
 
+def _read_v2(f, path: Path, version: int, load_frames: bool, require_result: bool) -> DumpContent:
+    """Reader of schema version 2 (:data:`SCHEMA_V2`): version 1's layout, the screen's pitch as ``pitch_m``
+    (square pixels) or ``pitch_x_m`` and ``pitch_y_m``."""
+    scr = f["geometry/screen"] if "geometry/screen" in f else {}
+    if "pitch_m" not in scr and not ("pitch_x_m" in scr and "pitch_y_m" in scr):
+        raise DumpError(f"dump {path} lacks geometry/screen/pitch_m (or pitch_x_m and pitch_y_m) required by schema "
+                        f"version {version}; the file is damaged or incomplete")
+    return _read_v1(f, path, version, load_frames, require_result, table=SCHEMA_V2)
+
+
 #: The reader of each schema version this software reads (a new layout adds its version here and keeps
 #: the readers of the older ones).
-_READERS = {1: _read_v1}
+_READERS = {1: _read_v1, 2: _read_v2}

@@ -1,7 +1,8 @@
 """The layout of a data dump: its name and version, every group and dataset with units and description.
 
-:data:`SCHEMA_V1` is the reference the writer labels every object from and ``docs/dump-schema.md``
-documents (a test keeps the two in step). A new layout gets a new table and version here, and a reader
+:data:`SCHEMA_CURRENT` (:data:`SCHEMA_V2`) is the reference the writer labels every object from and
+``docs/dump-schema.md`` documents (a test keeps the two in step); :data:`SCHEMA_V1` is the first layout,
+still read. A new layout gets a new table and version here, and a reader
 in :mod:`.reader`.
 """
 
@@ -13,8 +14,10 @@ log = logging.getLogger("sofast_station.archive.dumps")
 
 #: Root attribute ``schema`` of every dump.
 SCHEMA = "sofast-station-dump"
-#: Version of the layout this software writes (and the newest it reads).
-SCHEMA_VERSION = 1
+#: Version of the layout this software writes (and the newest it reads). Version 2 (non-square display
+#: pixels): ``geometry/screen`` holds ``pitch_x_m`` and ``pitch_y_m`` where the pixels are not square,
+#: ``pitch_m`` where they are; version 1 always had ``pitch_m``.
+SCHEMA_VERSION = 2
 
 #: gzip level of the frames (lossless; level 4 is within 1 % of level 9's size at a third of the time).
 COMPRESSION_LEVEL = 4
@@ -145,6 +148,29 @@ SCHEMA_V1: tuple[tuple[str, str, str, str, str, bool], ...] = (
     ("result/record_json", "dataset", "str", "", "the result record as JSON text (null: infinite or not a number)", True),
 )
 
+
+def _v2(entry):
+    path = entry[0]
+    if path == "/@schema_version":
+        return (path, *entry[1:4], "layout version of this file (2)", True)
+    if path == "geometry/screen/pitch_m":
+        return (path, "dataset", "float64", "m", "display pixel pitch, square pixels (else pitch_x_m, pitch_y_m)",
+                False)
+    return entry
+
+
+#: Schema version 2: version 1 with non-square display pixels (``pitch_x_m``, ``pitch_y_m``) allowed.
+SCHEMA_V2: tuple[tuple[str, str, str, str, str, bool], ...] = tuple(
+    e for entry in SCHEMA_V1 for e in ((_v2(entry),) if entry[0] != "geometry/screen/pitch_m" else (
+        _v2(entry),
+        ("geometry/screen/pitch_x_m", "dataset", "float64", "m",
+         "display pixel pitch along x (columns), non-square pixels", False),
+        ("geometry/screen/pitch_y_m", "dataset", "float64", "m",
+         "display pixel pitch along y (rows), non-square pixels", False))))
+
+#: The layout this software writes.
+SCHEMA_CURRENT = SCHEMA_V2
+
 _PLAIN_ENCODING = "plain"
 _JSON_ENCODING = "json"
 
@@ -152,7 +178,7 @@ _JSON_ENCODING = "json"
 def _schema_entry(path: str):
     import fnmatch
 
-    for entry in SCHEMA_V1:
+    for entry in SCHEMA_CURRENT:
         if entry[0] == path or ("*" in entry[0] and fnmatch.fnmatchcase(path, entry[0])):
             return entry
     return None
