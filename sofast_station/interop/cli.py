@@ -52,7 +52,8 @@ def cmd_import_opencsp(args) -> int:
     fig = a.figures
     keys = ("focal_length_x_m", "focal_length_y_m", "twist_mrad_per_m", "twist_e1_mrad_per_m",
             "twist_e2_mrad_per_m", "slope_rms_mrad", "n_points", "boresight_mrad", "subsample_fit")
-    out = {"facet": m.name, "measured": m.date, "robust": args.robust, **{k: fig[k] for k in keys}}
+    out = {"facet": m.name, "measured": m.date, "robust": args.robust, **{k: fig[k] for k in keys},
+           "assumptions": list(m.assumptions)}
     # What the facet does with sunlight: default [optics] (pillbox sun, target at the design focal length);
     # 'report flux --opencsp' draws the map and takes other conditions.
     from ..optics import OpticsSettings
@@ -71,6 +72,7 @@ def cmd_import_opencsp(args) -> int:
         return 0
     print(f"OpenCSP measurement {out['facet']} ({out['measured']}), {out['n_points']} points"
           f"{', robust fit' if args.robust else ''}")
+    print("  assumed (OpenCSP's files do not say):" + "".join(f"\n    - {a}" for a in out["assumptions"]))
     print(f"  focal length x {out['focal_length_x_m']:.3f} m, y {out['focal_length_y_m']:.3f} m; twist "
           f"{out['twist_mrad_per_m']:.4f} mrad/m (E1 {out['twist_e1_mrad_per_m']:.4f}, E2 "
           f"{out['twist_e2_mrad_per_m']:.4f})")

@@ -194,6 +194,9 @@ class OpenCspMeasurement:
     design: FacetDesign
     distance_m: float
     settings: AnalysisSettings
+    #: What the import assumed or derived where OpenCSP's files say nothing, in words (printed by
+    #: ``import-opencsp``).
+    assumptions: tuple = ()
 
     def analyse(self, robust: bool = False, pixel_mask: np.ndarray | None = None, **overrides) -> Analysis:
         """Our analysis of the measurement (``design``, ``distance_m`` may be overridden)."""
@@ -242,9 +245,21 @@ def read_opencsp(measurement: Path, camera: Path, display: Path, orientation: Pa
                                 max_hole_px=200, corner_tolerance_px=25.0, max_corner_rms_px=2.0, edge_window_px=3)
     log.info("OpenCSP measurement %s: %d x %d px, periods x %s, y %s, distance %.3f m", design.name,
              cam.width_px, cam.height_px, periods_x, periods_y, distance)
+    assumptions = (
+        f"design focal length {focal_length_m:g} m (OpenCSP's facet file has none; --focal-length sets it): the "
+        "boresight aligns the fitted normal with this design's at the alignment point",
+        f"alignment point {design.alignment_point_m.tolist()} m and measure point {design.measure_point_m.tolist()} m "
+        "(facet frame; the measure point from the measurement)",
+        f"facet pixels: white - dark above {threshold:.0f} counts (x{COUNT_SCALE} after OpenCSP's response "
+        "calibration), holes up to 200 px filled",
+        f"nominal facet pose: the mask's centre at the measured distance {distance:.4f} m (OpenCSP has no fixture)",
+        "display: OpenCSP's measured 2-D grid of screen points (no flat screen or pixel pitch assumed, so "
+        "non-square display pixels need nothing more)",
+        "corners: matched within 25 px of the nominal pose, 2 px RMS allowed, 3 px edge window",
+    )
     return OpenCspMeasurement(design.name, str(_read(measurement, g + "date")), frames,
                               FringeSet(tuple(periods_x), tuple(periods_y)), geometry, screen, design, distance,
-                              settings)
+                              settings, assumptions)
 
 
 def opencsp_test_data_paths(root: Path) -> dict[str, Path]:

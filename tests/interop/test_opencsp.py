@@ -177,6 +177,9 @@ def test_import_opencsp_command(repo_root):
     # the optical figures at the design focal length (docs/optics.md; checked against OpenCSP's own ray trace
     # in test_opencsp_optics.py)
     assert 0.46 < out["optics"]["spot_radius_m"] < 0.56 and 0.9 < out["optics"]["intercept"] <= 1.0
+    # every assumption the import makes is stated, the design focal length first
+    assert out["assumptions"][0].startswith("design focal length 100 m")
+    assert any("pixel pitch" in a for a in out["assumptions"]) and len(out["assumptions"]) >= 5
 
 
 def test_missing_file_is_named(paths, tmp_path):
