@@ -18,7 +18,7 @@ _FIGURES = (
     ("RMS parab.", "slope_rms_mrad.parabola.magnitude", 2, 5, 7),
 )
 SERIAL_WIDTH = 16
-_VERDICT_WIDTH = 7
+_VERDICT_WIDTH = 13                  # INDETERMINATE
 
 
 def _serial_cell(serial: str) -> str:

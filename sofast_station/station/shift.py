@@ -104,7 +104,7 @@ def summarize(records: list[dict], cycle_s: list[float] | None = None) -> ShiftS
     total = len(records)
     figures = {}
     for path, *_ in SUMMARY_FIGURES:
-        values = np.array([v for rec in records if rec.get("verdict") in ("pass", "fail", "invalid")
+        values = np.array([v for rec in records if rec.get("verdict") in ("pass", "fail", "invalid", "indeterminate")
                            and (v := figure_value(rec, path)) is not None and math.isfinite(v)], dtype=float)
         figures[path] = FigureStats(float(values.mean()) if values.size else None,
                                     float(values.std(ddof=1)) if values.size > 1 else None, int(values.size))

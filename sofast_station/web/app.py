@@ -259,6 +259,7 @@ h2 { margin: .2rem 0 .6rem; font-size: 1.2rem; } h3 { margin: .6rem 0 .3rem; fon
   padding: 1rem 0; margin: .6rem 0; letter-spacing: .05em; }
 .verdict.pass { background: #15803d; color: #fff; } .verdict.fail { background: #b91c1c; color: #fff; }
 .verdict.invalid { background: #d97706; color: #111; } .verdict.fault { background: #7e22ce; color: #fff; }
+.verdict.indeterminate { background: #0e7490; color: #fff; font-size: 5.5rem; padding: 2.2rem 0; }
 .pass-t { color: #4ade80; } .fail-t { color: #f87171; } .invalid-t { color: #fbbf24; } .fault-t { color: #c084fc; }
 .reasons li { font-size: 1.25rem; margin: .2rem 0; overflow-wrap: anywhere; }
 table { border-collapse: collapse; width: 100%; } th, td { text-align: left; padding: .2rem .4rem; }

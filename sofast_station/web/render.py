@@ -14,7 +14,8 @@ import math
 from ..station.shift import SUMMARY_FIGURES
 
 SECTIONS = ("state", "last", "shift", "station")
-_VERDICT_CLASS = {"pass": "pass", "fail": "fail", "invalid": "invalid", "fault": "fault"}
+_VERDICT_CLASS = {"pass": "pass", "fail": "fail", "invalid": "invalid", "indeterminate": "indeterminate",
+                  "fault": "fault"}
 
 
 def esc(value) -> str:
