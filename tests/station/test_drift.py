@@ -48,6 +48,8 @@ def test_the_line_raises_the_same_alarms_as_the_chart_and_none_without_a_baselin
 def test_a_drift_alarm_reaches_console_log_journal_and_plc_and_the_line_goes_on(small_station_toml, caplog):
     from sofast_station.station.service import Service
 
+    # a busy machine must not turn a facet into a timeout fault
+    small_station_toml.write_text(small_station_toml.read_text() + "\n[run]\ndeadline_s = 300\n")
     cfg = load_config(small_station_toml)
     # a baseline the twin's facet (f_x 5.42 m) is far from: every facet breaks rule WE1
     save_baseline(cfg.data_dir, "default", {"focal_length_x_m": spc.Baseline(5.30, 0.002, 0.002 * spc.D2, 100)},
