@@ -70,8 +70,10 @@ if source == "twin":
     except ImportError:                         # an older checkout (before the per-camera ray table)
         from sofast_station.measure.camera import ray_grid
         rays = ray_grid(cfg.geometry.camera)
+    cache = {}      # the uncertainty's sensitivities: computed in the cold run, reused after, as in the station
     def once():
-        a = analyse(frames, cfg.fringes, cfg.geometry, cfg.design, distance, settings, rays_cam=rays)
+        a = analyse(frames, cfg.fringes, cfg.geometry, cfg.design, distance, settings, rays_cam=rays,
+                    uncertainty=cfg.uncertainty, sensitivity_cache=cache)
         return a.figures, a.timings_s
 elif source == "dump":
     import dataclasses
@@ -251,6 +253,9 @@ def report(source: str, fit: str, what: str, result: dict) -> None:
           f"(f_x {result['f'][0]:.4f} m, f_y {result['f'][1]:.4f} m)")
     cold, warm = result["runs"][0], result["runs"][1:]
     print(f"load inputs {result['setup_s']:.2f} s; first analysis in a new process (cold): {cold['total']:.3f} s")
+    if cold["stages"].get("uncertainty_sensitivities"):
+        print(f"  of which the uncertainty's sensitivities {cold['stages']['uncertainty_sensitivities']:.2f} s "
+              "(once per geometry and recipe; the 'uncertainty' row below is the per-facet cost)")
     print(f"analysis over {len(warm)} further run(s), seconds: median (min - max)")
     for s in cold["stages"]:
         v = [r["stages"].get(s, 0.0) for r in warm]
