@@ -171,6 +171,7 @@ class ModbusTrigger(PolledHandshake):
         self._regs = [0] * STATION_REGISTERS
         self._armed = False         # FACET_PRESENT seen at 0 since the last request: a 1 is a new one
         self._stale_warned = False
+        self._acked_sequence = None  # SEQUENCE of the facet last answered and acknowledged
         self._request: FacetRequest | None = None
         self._last_beat = time.monotonic()
         self._client = ModbusTcpClient(self.host, port=self.port, timeout=self.timeout_s, retries=0,
@@ -263,7 +264,7 @@ class ModbusTrigger(PolledHandshake):
         # The PLC may raise FACET_PRESENT only once it sees READY: read it before writing READY, so that
         # a 0 now makes any later 1 a new request, and a 1 now is a request left from an earlier cycle.
         plc = self._read_plc("reading the PLC block")
-        self._armed = self._armed or not plc[FACET_PRESENT]
+        self._armed = self._armed or not plc[FACET_PRESENT] or self._raised_after_ack(plc)
         self._regs[STATUS], self._regs[VERDICT], self._regs[FAULT_CODE] = STATUS_READY, 0, 0
         self._regs[WARNINGS] = 0
         self._write("writing STATUS=ready")
@@ -279,7 +280,7 @@ class ModbusTrigger(PolledHandshake):
             plc = self._read_plc("reading the PLC block")
             if not plc[FACET_PRESENT]:
                 self._armed, self._stale_warned = True, False
-            elif self._armed and not plc[ACK]:
+            elif (self._armed or self._raised_after_ack(plc)) and not plc[ACK]:
                 return self._take(plc)
             elif not self._stale_warned:
                 self._stale_warned = True
@@ -291,6 +292,18 @@ class ModbusTrigger(PolledHandshake):
                 return None
             self._maybe_beat()
             pace(deadline, self.poll_interval_s)
+
+    def _raised_after_ack(self, plc: list[int]) -> bool:
+        """FACET_PRESENT is 1 with a SEQUENCE other than the facet just answered and acknowledged: the
+        PLC dropped and raised it again between two polls (a request right after the acknowledgement).
+        """
+        fresh = (self._acked_sequence is not None and bool(plc[FACET_PRESENT])
+                 and plc[SEQUENCE] != self._acked_sequence)
+        if fresh and not self._armed:
+            log.info("%s: a new request (SEQUENCE %d) was raised right after the acknowledgement of SEQUENCE "
+                     "%d: taken", self.name, plc[SEQUENCE], self._acked_sequence)
+            self._armed = True
+        return fresh
 
     def _take(self, plc: list[int]) -> FacetRequest:
         m = self.map
@@ -305,6 +318,7 @@ class ModbusTrigger(PolledHandshake):
         self._request = FacetRequest(serial=serial, recipe=recipe_name(plc[RECIPE_CODE], name, self.recipes),
                                      dump=bool(plc[DUMP_REQUEST]), extra=extra)
         self._armed = False
+        self._acked_sequence = None
         self._state = REQUESTED
         log.debug("%s: facet %s (sequence %d, recipe %r, dump %s)", self.name, serial, plc[SEQUENCE],
                   self._request.recipe, self._request.dump)
@@ -342,9 +356,15 @@ class ModbusTrigger(PolledHandshake):
         self._write(f"writing the {what} answer")
         self._state = ANSWERED
 
+        answered = self._request.extra["sequence"]
+
         def poll():
             plc = self._read_plc("waiting for ACK")
-            return (not plc[FACET_PRESENT]) if plc[ACK] else None
+            new_request = bool(plc[FACET_PRESENT]) and plc[SEQUENCE] != answered
+            if plc[ACK] or new_request:       # a new SEQUENCE raised means the answer was read (ACK missed)
+                self._acked_sequence = answered
+                return (not plc[FACET_PRESENT]) or new_request
+            return None
 
         self._await_ack(poll, what, f"ACK, register {self.map.plc_base + ACK}, stayed 0", "its connection")
 

@@ -291,3 +291,64 @@ def test_empty_serial_gets_a_station_made_one(plcs, caplog):
     assert "empty SERIAL" in caplog.text
     trigger.close()
     obs.close()
+
+
+@pytest.mark.parametrize("ack_seen", [True, False], ids=["ack-and-request-together", "ack-pulse-missed"])
+def test_a_request_raised_right_after_the_acknowledgement_is_taken(plcs, ack_seen):
+    """Issue 11: the PLC acknowledges late and raises the next facet before the station's next poll. The
+    station never sees FACET_PRESENT at 0; the new SEQUENCE tells it that this is a new request."""
+    import threading
+
+    plc = plcs({"facets": []})
+    obs = Observer(plc.port)
+    trigger = ModbusTrigger("127.0.0.1", plc.port, ack_timeout_s=20.0)
+    obs.write_plc(plc_block({"serial": "FIRST-1"}, 1, present=0))
+    trigger.ready()
+    obs.write_plc(plc_block({"serial": "FIRST-1"}, 1))
+    assert _wait_request(trigger).serial == "FIRST-1"
+    trigger.busy()
+    answered = threading.Thread(target=trigger.done, args=("pass",))
+    answered.start()
+    deadline = time.monotonic() + 10
+    while obs.station()[modbus.STATUS] != modbus.STATUS_DONE:
+        assert time.monotonic() < deadline
+        time.sleep(0.01)
+    time.sleep(0.3)                                    # a late acknowledgement ...
+    # ... written in one go with the next facet: ACK = 1 with the new request, or ACK already back at 0
+    obs.write_plc(plc_block({"serial": "NEXT-2"}, 2, present=1, ack=1 if ack_seen else 0))
+    answered.join(10)
+    assert not answered.is_alive()
+    trigger.ready()
+    if ack_seen:
+        assert trigger.wait_for_facet(0.1) is None     # ACK still 1: not yet
+        obs.write_plc(plc_block({"serial": "NEXT-2"}, 2, present=1, ack=0))   # the PLC clears ACK on READY
+    request = trigger.wait_for_facet(2.0)
+    assert request is not None and request.serial == "NEXT-2" and request.extra["sequence"] == 2
+    trigger.busy()
+    assert obs.station()[modbus.SEQUENCE_ECHO] == 2
+    trigger.close()
+    obs.close()
+
+
+def test_a_plc_down_at_start_is_retried_until_it_answers(plcs, caplog):
+    """Issue 11: the station starting before its PLC waits for it, as its message says, instead of exiting."""
+    import threading
+    from types import SimpleNamespace
+
+    from sofast_station.station.service import open_trigger_from_config
+
+    port = free_port()
+    config = SimpleNamespace(path="station.toml", raw={"devices": {"trigger": "modbus", "trigger_options": {
+        "host": "127.0.0.1", "port": port, "timeout_s": 0.5}}})
+    opened = []
+    thread = threading.Thread(target=lambda: opened.append(open_trigger_from_config(config, None, retry_s=0.2)),
+                              daemon=True)
+    with caplog.at_level("ERROR"):
+        thread.start()
+        time.sleep(1.5)                                # several attempts fail meanwhile
+        assert not opened and thread.is_alive()
+        plcs({"facets": []}, port=port)
+        thread.join(20)
+    assert opened and isinstance(opened[0], ModbusTrigger)
+    assert "retrying every 0.2 s" in caplog.text
+    opened[0].close()
