@@ -66,6 +66,9 @@ class ArchiverSettings:
         this is moved to ``spool/orphaned/``, seconds.
     compression_level : int
         gzip level of the dumped frames.
+    late_spool_grace_s : float
+        A spool whose row does not request a dump is kept this long (a late result spools first and
+        then amends its row), seconds.
     """
 
     workbook: WorkbookSettings = field(default_factory=WorkbookSettings)
@@ -78,6 +81,7 @@ class ArchiverSettings:
     missing_spool_grace_s: float = 300.0
     orphan_spool_age_s: float = 3600.0
     compression_level: int = COMPRESSION_LEVEL
+    late_spool_grace_s: float = 120.0
 
 
 @dataclass
@@ -141,11 +145,24 @@ class Archiver:
         self._low_disk_logged = False
 
     # -- the station's side -----------------------------------------------------------------------------
-    def submit(self, cycle_id: str, record: dict, content: DumpContent | None = None) -> bool:
+    def submit(self, cycle_id: str, record: dict, content: DumpContent | None = None, amend: bool = False) -> bool:
         """Spool the dump content (if any), then journal the record (durable on return), then wake the thread.
 
-        Call before releasing the robot. Returns False when the cycle was already journaled.
+        Call before releasing the robot. Returns False when the cycle was already journaled. With *amend*
+        (a late result, ``record["late"]`` true) the cycle's journaled record is replaced, and its workbook
+        row rewritten by the next pass.
         """
+        if amend:
+            if content is not None:
+                arrays, meta = content.to_spool()
+                spool_put(self.spool_dir, cycle_id, arrays, meta)
+            if self.journal.amend(cycle_id, record, dump_requested=content is not None):
+                self.wake()
+                return True
+            log.warning("cycle %s was not journaled before its late result: journaling it now", cycle_id)
+            added = self.journal.append(cycle_id, record, dump_requested=content is not None)
+            self.wake()
+            return added
         if content is not None:
             arrays, meta = content.to_spool()
             spool_put(self.spool_dir, cycle_id, arrays, meta)
@@ -305,6 +322,13 @@ class Archiver:
                     log.warning("spool %s has no journal row (the station stopped between spooling and "
                                 "journaling); moved to %s", spool, self.spool_dir / "orphaned")
                     self._quarantine_spool(spool, "orphaned")
+                    continue
+            if row.dump_status == "not requested":
+                # A late result spools its frames before it amends its row to request the dump: give it time.
+                try:
+                    if time.time() - spool.stat().st_mtime < self.settings.late_spool_grace_s:
+                        continue
+                except FileNotFoundError:
                     continue
             if row.dump_status in ("written", "failed", "not requested"):
                 self._remove_spool(spool, report)

@@ -256,7 +256,39 @@ class Journal:
             log.info("cycle %s is already in the journal; the second append was ignored", cycle_id)
         return added
 
-    def mark_workbook(self, cycle_ids, workbook_path: str | Path) -> int:
+    def amend(self, cycle_id: str, record: dict, dump_requested: bool = False) -> bool:
+        """Replace the record of a journaled cycle (a late result); its workbook row is rewritten.
+
+        The watchdog journals "fault: timeout" when a cycle misses its deadline; when the analysis then
+        finishes within the grace period its figures replace that record, so the facet keeps one row.
+        The record should carry ``"late": True`` (the workbook writer rewrites rows of late records).
+
+        Returns
+        -------
+        bool
+            True when the row was amended; False when the cycle is not journaled.
+        """
+        try:
+            text = to_json(record)
+        except (TypeError, ValueError) as exc:
+            raise ArchiveError(f"journal {self.path}: the record of cycle {cycle_id} cannot be stored as JSON: "
+                               f"{exc}") from exc
+        with self._lock:
+            db = self._conn()
+            try:
+                db.execute("BEGIN IMMEDIATE")
+                # journaled_at changes, so an archiver that read the old record does not mark the new one
+                cur = db.execute("UPDATE cycles SET record = ?, verdict = ?, dump_requested = ?, journaled_at = ?, "
+                                 "workbook_path = NULL, workbook_at = NULL WHERE cycle_id = ?",
+                                 (text, record.get("verdict"), int(bool(dump_requested)), now_iso(), cycle_id))
+                db.execute("COMMIT")
+            except sqlite3.Error as exc:
+                if db.in_transaction:
+                    db.execute("ROLLBACK")
+                raise self._error(f"amending cycle {cycle_id}", exc) from exc
+        return cur.rowcount == 1
+
+    def mark_workbook(self, cycle_ids, workbook_path: str | Path, versions: dict | None = None) -> int:
         """Record that these cycles' rows are in *workbook_path*.
 
         Parameters
@@ -264,6 +296,9 @@ class Journal:
         cycle_ids : iterable of str
         workbook_path : str or Path
             The workbook (part) file that now holds the rows.
+        versions : dict, optional
+            Cycle id -> ``journaled_at`` of the row as written; a row amended since (a late result) is
+            not marked, so that its new record reaches the workbook too.
 
         Returns
         -------
@@ -279,7 +314,12 @@ class Journal:
             try:
                 db.execute("BEGIN IMMEDIATE")
                 n = 0
-                for i in range(0, len(ids), 500):
+                if versions is not None:
+                    for cid in ids:
+                        cur = db.execute("UPDATE cycles SET workbook_path = ?, workbook_at = ? WHERE cycle_id = ? "
+                                         "AND journaled_at = ?", (str(workbook_path), stamp, cid, versions.get(cid)))
+                        n += cur.rowcount
+                for i in range(0, len(ids), 500) if versions is None else ():
                     chunk = ids[i:i + 500]
                     cur = db.execute(f"UPDATE cycles SET workbook_path = ?, workbook_at = ? WHERE cycle_id IN "
                                      f"({','.join('?' * len(chunk))})", (str(workbook_path), stamp, *chunk))

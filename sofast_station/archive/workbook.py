@@ -354,20 +354,34 @@ class _Book:
         return col
 
     def append(self, cycle_id: str, record: dict, dump_file: str | None = None) -> None:
+        self._write(self.next_row, cycle_id, record, dump_file)
+        self.ids.add(cycle_id)
+        self.next_row += 1
+
+    def replace(self, cycle_id: str, record: dict, dump_file: str | None = None) -> bool:
+        """Rewrite the row of *cycle_id* with *record* (a late result); False when the book lacks it."""
+        for row, (value,) in enumerate(self.ws.iter_rows(min_row=2, max_col=1, values_only=True), start=2):
+            if value == cycle_id:
+                for col in range(1, len(self.header) + 1):
+                    self.ws.cell(row=row, column=col).value = None
+                self._write(row, cycle_id, record, dump_file)
+                return True
+        return False
+
+    def _write(self, row: int, cycle_id: str, record: dict, dump_file: str | None = None) -> None:
         flat = flatten_record(cycle_id, record, dump_file)
         for name in flat:
             if name not in self.columns:
                 self.add_column(name)
-        row = self.next_row
         for name, value in flat.items():
             if value is None:
                 continue
             cell = self.ws.cell(row=row, column=self.columns[name], value=_cell_value(value))
+            if isinstance(value, str) and cell.data_type == "f":
+                cell.data_type = "s"         # text from outside (a serial "=HYPERLINK(...)") is never a formula
             fmt = number_format(name, value)
             if fmt:
                 cell.number_format = fmt
-        self.ids.add(cycle_id)
-        self.next_row += 1
 
     def _write_units(self) -> None:
         from openpyxl.styles import Font
@@ -537,10 +551,23 @@ def append_rows(folder: Path, key: str, rows: list[JournalRow], settings: Workbo
         for r in rows:
             if r.cycle_id in ids:
                 present.setdefault(path, []).append(r.cycle_id)
+    versions = {r.cycle_id: r.journaled_at for r in rows}
+    # A late result amends a row that may be in a book already: its row there is rewritten.
+    amended = {r.cycle_id: r for r in rows if r.record.get("late")}
+    for path, ids in present.items():
+        redo = [i for i in ids if i in amended]
+        if not redo:
+            continue
+        target = book if book is not None and path == book.path else _open_part(path, journal)
+        for i in redo:
+            target.replace(i, amended[i].record, row_dump_file(amended[i]))
+        target.save()
+        log.info("rewrote %d late result row(s) in %s", len(redo), path)
     if journal is not None:
         for path, ids in present.items():
-            log.info("%d row(s) were already in %s (saved before a crash); marking them", len(ids), path)
-            journal.mark_workbook(ids, path)
+            log.info("%d row(s) were already in %s (saved before a crash, or late results); marking them",
+                     len(ids), path)
+            journal.mark_workbook(ids, path, versions)
     held = {i for ids in present.values() for i in ids}
     todo = [r for r in rows if r.cycle_id not in held]
     # a row twice in *rows* (cannot happen from the journal, whose ids are unique) would be written once
@@ -560,7 +587,7 @@ def append_rows(folder: Path, key: str, rows: list[JournalRow], settings: Workbo
         log.debug("saved %s with %d new row(s) in %.2f s", book.path, len(ids), time.perf_counter() - t0)
         added[book.path] = ids
         if journal is not None:
-            journal.mark_workbook(ids, book.path)
+            journal.mark_workbook(ids, book.path, versions)
     return added
 
 

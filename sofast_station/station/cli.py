@@ -252,13 +252,26 @@ def cmd_run(args) -> int:
             raise KeyboardInterrupt
 
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-    outcomes = []
+    # Only what the run's summary needs, a few hundred bytes per facet: a station runs for months, and
+    # an outcome holds the analysis's pixel mask and preview (megabytes at full resolution).
+    slim: list[dict] = []
+    cycle_s: list[float] = []
+
+    def keep(outcome):
+        rec = outcome.record
+        slim.append({"verdict": rec.get("verdict"), "reasons": list(rec.get("reasons") or [])[:1],
+                     **{k: rec[k] for k in ("focal_length_x_m", "focal_length_y_m", "twist_mrad_per_m")
+                        if k in rec},
+                     "slope_rms_mrad": {m: {"magnitude": v.get("magnitude")}
+                                        for m, v in (rec.get("slope_rms_mrad") or {}).items()
+                                        if m in ("design", "parabola") and isinstance(v, dict)}})
+        cycle_s.append(outcome.cycle_s)
     runner = service.runner
     if args.max_cycles is not None:
         runner.expected_total = min(args.max_cycles, runner.expected_total or args.max_cycles)
     try:
         print(console.header(runner.expected_total), flush=True)
-        outcomes = runner.run(max_cycles=args.max_cycles)
+        runner.run(max_cycles=args.max_cycles, on_outcome=keep)
     finally:
         for s, h in old.items():
             signal.signal(s, h)
@@ -266,7 +279,7 @@ def cmd_run(args) -> int:
         service.close()
         if monitor is not None:
             monitor.stop()
-    summary = summarize([o.record for o in outcomes], [o.cycle_s for o in outcomes])
+    summary = summarize(slim, cycle_s)
     text = console.summary_text(summary)
     log.info("run summary: %s", text.replace("\n", " | "))
     print(text, flush=True)

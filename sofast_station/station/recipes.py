@@ -76,11 +76,15 @@ def recipes_from_config(config) -> dict[str, Recipe]:
     return out
 
 
+class UnknownRecipeError(ConfigError):
+    """The PLC asked for a recipe that station.toml does not define (its own fault code, "recipe")."""
+
+
 def choose_recipe(recipes: dict[str, Recipe], request: FacetRequest) -> Recipe:
     """The PLC's recipe if it names one, else the first whose serial pattern matches, else "default"."""
     if request.recipe:
         if request.recipe not in recipes:
-            raise ConfigError(f"the PLC asked for recipe {request.recipe!r}, which station.toml does not define "
+            raise UnknownRecipeError(f"the PLC asked for recipe {request.recipe!r}, which station.toml does not define "
                               f"(known: {', '.join(sorted(recipes))})")
         return recipes[request.recipe]
     for recipe in recipes.values():

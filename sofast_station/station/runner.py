@@ -28,6 +28,7 @@ from ..calibrate.errors import StaleCalibrationError
 from ..calibrate.settings import calibration_settings
 from ..calibrate.store import check_cycle
 from ..devices.protocols import FAULT_CODES, WARNING_BITS, FacetRequest
+from ..serials import clean_serial
 from ..errors import (CameraError, CaptureError, DisplayError, GeometryError, StationError,
                       TriggerError)
 from . import console as _console
@@ -38,7 +39,8 @@ from .inspect import FIGURE_KEYS, Station, calibration_entry, now_iso
 from .recipes import Recipe, choose_recipe
 from .status import StatusFile
 from .verdict import judge
-from .worker import AnalysisTimeout, AnalysisWorker
+from .recipes import UnknownRecipeError
+from .worker import AnalysisTimeout, AnalysisWorker, WorkerDied
 
 log = logging.getLogger(__name__)
 
@@ -110,7 +112,11 @@ def new_cycle_id() -> str:
 #: The fault kind of an exception that ended a cycle: the first class it is an instance of.
 _FAULT_KINDS = ((StaleCalibrationError, "calibration"), (AnalysisTimeout, "timeout"), (CameraError, "camera"),
                 (DisplayError, "display"), (CaptureError, "capture"), (GeometryError, "geometry"),
-                (StationError, "analysis"))
+                (UnknownRecipeError, "recipe"), (WorkerDied, "worker"), (StationError, "analysis"))
+
+
+class JournalFailed(StationError):
+    """The journal could not be written (a full or read-only disk): the station stops after answering."""
 
 
 def fault_code_for(exc: BaseException) -> tuple[int, str]:
@@ -167,6 +173,7 @@ class StationRunner:
         self.console = console
         self.stop_event = threading.Event()
         self.cycles = 0
+        self.fatal: StationError | None = None     # set when the station must stop (journal not writable)
         cam = station.config.geometry.camera
         self.worker = AnalysisWorker(station.config.geometry, station.config.fringes, cam.shape)
         # The designs' optical traces are the same for every facet of a type: made now, not in a cycle.
@@ -239,16 +246,27 @@ class StationRunner:
         """Finish the current facet, then stop."""
         self.stop_event.set()
 
-    def run(self, max_cycles: int | None = None) -> list[CycleOutcome]:
-        """Take facets until stopped, *max_cycles* are done, or the (simulated) robot has no more."""
+    def run(self, max_cycles: int | None = None, on_outcome=None) -> list[CycleOutcome]:
+        """Take facets until stopped, *max_cycles* are done, or the (simulated) robot has no more.
+
+        Each finished cycle goes to *on_outcome* when given, and is then dropped (a station that runs
+        for months keeps nothing per facet); without it the outcomes are returned (tests, benchmarks).
+        Frames are never kept past their cycle.
+        """
         outcomes = []
-        self._heartbeat_thread.start()
+        if not self._heartbeat_thread.is_alive():
+            self._heartbeat_thread.start()
         try:
             while not self.stop_event.is_set():
                 if max_cycles is not None and self.cycles >= max_cycles:
                     break
+                self.supervise()
                 for operator_request in self._take_commands():
-                    outcomes.append(self.cycle(operator_request))
+                    done = self.cycle(operator_request)
+                    if on_outcome is not None:
+                        on_outcome(done)
+                    else:
+                        outcomes.append(done)
                 if self.paused:
                     self.stop_event.wait(min(self.settings.poll_s, 0.25))
                     continue
@@ -265,7 +283,13 @@ class StationRunner:
                     if getattr(self.trigger.trigger, "finished", False):
                         break
                     continue
-                outcomes.append(self.cycle(request))
+                outcome = self.cycle(request)
+                if on_outcome is not None:
+                    on_outcome(outcome)
+                else:
+                    outcomes.append(outcome)
+                if self.fatal is not None:
+                    raise self.fatal
         finally:
             self.stop_event.set()
         return outcomes
@@ -292,6 +316,32 @@ class StationRunner:
                 if self.expected_total:
                     self.expected_total += 1              # one cycle more than the robot's
         return remeasure
+    def supervise(self) -> None:
+        """Between facets: restart a dead analysis worker or archiver (logged), so the line goes on."""
+        self.worker.supervise()
+        check = getattr(self.archiver, "supervise", None)
+        if check is not None:
+            check()
+
+    def warm_up(self) -> None:
+        """Capture once and analyse it in the worker before the station reports ready.
+
+        The first analysis in a fresh process pays for imports, caches and page faults (seconds); paid
+        here, the first facet is not the slowest. A warm-up that fails (no facet in the fixture) is
+        logged and does not stop the station.
+        """
+        t = time.perf_counter()
+        try:
+            recipe = self.recipes["default"]
+            raw, _ = capture_sequence(self.station.display, self.station.camera, self.station.config.fringes,
+                                      recipe.analysis.mask_threshold_dn, timeout_s=self.settings.camera_timeout_s)
+            distance = float(self.station.range_finder.measure())
+            self.worker.analyse(raw, recipe.design, recipe.analysis, distance,
+                                timeout_s=max(60.0, 3 * self.settings.deadline_s))
+            log.info("warm-up: one capture analysed in %.1f s", time.perf_counter() - t)
+        except StationError as exc:
+            log.warning("warm-up capture not analysed (%s); the first facet may be slower", exc)
+            self._reopen_camera()
 
     def _reopen_trigger(self) -> None:
         reopen = getattr(self.trigger.trigger, "reopen", None)
@@ -307,8 +357,13 @@ class StationRunner:
         t0 = time.perf_counter()
         cycle_id = new_cycle_id()
         self.cycles += 1
+        serial, note = clean_serial(request.serial)
+        if note:                             # one safe serial for the journal, workbook, dump and page
+            log.warning("%s (cycle %s)", note, cycle_id)
+            request = dataclasses.replace(request, serial=serial,
+                                          extra={**request.extra, "serial_as_sent": ascii(request.serial[:200])})
         if self._manual_serial is not None and not request.extra.get("operator"):
-            request = dataclasses.replace(request, serial=self._manual_serial,
+            request = dataclasses.replace(request, serial=clean_serial(self._manual_serial)[0],
                                           extra={**request.extra, "serial_read": request.serial,
                                                  "serial_source": "operator"})
             self._manual_serial = None
@@ -323,7 +378,8 @@ class StationRunner:
                 self.trigger.busy()
         except TriggerError as exc:
             log.error("%s: could not signal busy: %s", serial, exc)
-        watchdog = threading.Timer(self.settings.deadline_s + 0.25, self._expire,
+        # The watchdog answers the robot at the deadline whatever this thread is doing.
+        watchdog = threading.Timer(max(0.1, self.settings.deadline_s - 0.2), self._expire,
                                    args=(cycle_id, request, state, t0))
         watchdog.daemon = True
         watchdog.start()
@@ -343,14 +399,17 @@ class StationRunner:
             box = crop_box(raw[0], raw[1], recipe.analysis.mask_threshold_dn)
             frames, raw_shape = crop(raw, box), raw.shape[1:]
             cal_warnings = self._check_calibration(raw[0])
-            remaining = self.settings.deadline_s - (time.perf_counter() - t0) - 0.3
-            if state["answered"] or remaining <= 0:     # the watchdog gave up on this cycle already
+            del raw
+            # Past the deadline the watchdog answers "timeout"; the analysis may still finish within the
+            # grace period, and its figures are then journaled and dumped as a late result.
+            budget = self.settings.deadline_s - (time.perf_counter() - t0) - 0.3 + self.settings.late_grace_s
+            if budget <= 0:
                 raise AnalysisTimeout(f"the capture took {timings['capture']:.1f} s, past the "
                                       f"{self.settings.deadline_s:g} s deadline")
             t = time.perf_counter()
             state["stage"] = "analysis"
             res = self.worker.analyse(restore(frames, box, raw_shape), recipe.design, recipe.analysis,
-                                      distance, timeout_s=remaining, hang_s=hang_s, optics=recipe.optics,
+                                      distance, timeout_s=budget, hang_s=hang_s, optics=recipe.optics,
                                       uncertainty=self.station.config.uncertainty)
             timings["analysis"] = time.perf_counter() - t
             record = self._record(cycle_id, request, recipe, res.figures, distance, notes, timings, cal_warnings)
@@ -378,36 +437,89 @@ class StationRunner:
         if frames is not None:
             outcome.record["crop_box"] = list(box)
         with self._answer_lock:
-            if state["answered"]:
-                log.error("%s: cycle %s finished after the watchdog answered timeout; result discarded",
-                          serial, cycle_id)
-                self._reopen_camera()
-                outcome.answer = "fault"
-                return outcome
+            late = state["answered"]
             state["answered"] = True
-            self._finish(outcome, request, t0, raw_shape=raw_shape, box=box, distance=distance)
+        try:
+            if late:
+                self._finish_late(outcome, request, t0, state, raw_shape=raw_shape, box=box, distance=distance)
+            else:
+                self._finish(outcome, request, t0, raw_shape=raw_shape, box=box, distance=distance)
+        finally:
+            outcome.frames = None             # nothing of the frames outlives the cycle
         return outcome
 
     def _expire(self, cycle_id: str, request: FacetRequest, state: dict, t0: float) -> None:
-        """Watchdog: the cycle passed its deadline with its thread still busy (a hung capture)."""
+        """Watchdog: the cycle reached its deadline with its thread still busy (a hung capture or a slow
+        analysis): journal and answer "fault: timeout" now; the cycle's thread may still bring a late result."""
         with self._answer_lock:
             if state["answered"]:
                 return
             state["answered"] = True
+            stage = state["stage"]
         reason = (f"timeout: no result within the {self.settings.deadline_s:g} s cycle deadline "
-                  f"({state['stage']} did not return)")
+                  f"({stage} did not return)")
+        state["reason"] = reason
         log.error("%s: %s", request.serial, reason)
         record = self._fault_record(cycle_id, request, FAULT_CODES["timeout"], reason, {})
         record["timings_s"]["until_journal"] = time.perf_counter() - t0
-        self.submit(cycle_id, record, None)
+        try:
+            self.submit(cycle_id, record, None)
+        except (OSError, StationError) as exc:
+            self._journal_failed(exc)
         try:
             if not request.extra.get("operator"):
                 self.trigger.fault(FAULT_CODES["timeout"], reason)
         except TriggerError as exc:
             log.error("could not answer the robot: %s", exc)
         self._report(record, "fault", time.perf_counter() - t0)
-        # Closing the camera is how a blocked grab is aborted; the station's thread then comes back.
-        self._reopen_camera()
+        if stage == "capture":
+            # Closing the camera is how a blocked grab is aborted; the station's thread then comes back.
+            self._reopen_camera()
+
+    def _finish_late(self, outcome: CycleOutcome, request: FacetRequest, t0: float, state: dict, raw_shape, box,
+                     distance) -> None:
+        """The cycle's thread came back after the watchdog answered "timeout": keep what was measured.
+
+        The robot's answer stays the timeout; the journaled row gets the figures (or the fault) and is
+        marked late, and the frames are dumped (a timeout is a fault).
+        """
+        record = outcome.record
+        late_by = time.perf_counter() - t0 - self.settings.deadline_s
+        timeout_reason = state.get("reason", "timeout")
+        reasons = list(record.get("reasons", []))
+        if outcome.answer != "fault":
+            record["late_verdict"] = outcome.answer
+            note = (f"late result: the analysis finished {late_by:.1f} s after the deadline; its verdict would "
+                    f"have been {outcome.answer}")
+        else:
+            note = f"late: {reasons.pop(0) if reasons else 'fault'}"
+        record["reasons"] = [timeout_reason, note] + reasons
+        record.update({"verdict": "fault", "fault_code": FAULT_CODES["timeout"], "late": True,
+                       "late_by_s": round(late_by, 3)})
+        outcome.answer, outcome.fault_code = "fault", FAULT_CODES["timeout"]
+        dump = None
+        if self._dump_due(outcome, request):
+            dump = {"frames": outcome.frames, "crop_box": box, "full_shape": raw_shape,
+                    "measured_distance_m": distance}
+        try:
+            self.submit(outcome.cycle_id, record, dump, amend=True)
+            outcome.dumped = dump is not None
+        except (OSError, StationError) as exc:
+            log.error("%s: the late result of cycle %s could not be journaled: %s", outcome.serial,
+                      outcome.cycle_id, exc)
+        log.warning("%s: %s (cycle %s; the robot was answered timeout)", outcome.serial, note, outcome.cycle_id)
+        self._report(record, "late", time.perf_counter() - t0)
+        if self.archiver is not None:
+            self.archiver.wake()
+
+    def _journal_failed(self, exc: BaseException) -> None:
+        """The journal cannot be written: after this facet's fault answer the station stops."""
+        log.critical("the journal cannot be written (%s): the station stops after answering this facet; free "
+                     "disk space or fix the data folder's permissions, then start again", exc)
+        if self.fatal is None:
+            self.fatal = JournalFailed(f"the journal could not be written: {exc}; free disk space or fix the "
+                                       f"permissions of {self.station.config.data_dir}, then start again")
+        self.stop_event.set()
 
     def _dump_due(self, outcome: CycleOutcome, request: FacetRequest) -> bool:
         s = self.settings
@@ -427,16 +539,24 @@ class StationRunner:
                     "measured_distance_m": distance}
         record["timings_s"]["until_journal"] = time.perf_counter() - t0
         try:
-            self.submit(outcome.cycle_id, record, dump)
-            outcome.dumped = dump is not None
+            try:
+                self.submit(outcome.cycle_id, record, dump)
+                outcome.dumped = dump is not None
+            except (OSError, StationError) as exc:
+                if dump is None:
+                    raise
+                # The row matters more than the dump: keep the row, say why the dump is missing.
+                log.error("%s: the frames for the dump could not be spooled (%s); journaling the row without",
+                          outcome.serial, exc)
+                record.setdefault("reasons", []).append(f"dump not written: {exc}")
+                self.submit(outcome.cycle_id, record, None)
         except (OSError, StationError) as exc:
-            if dump is None:
-                raise
-            # The row matters more than the dump: keep the row, say why the dump is missing.
-            log.error("%s: the frames for the dump could not be spooled (%s); journaling the row without",
-                      outcome.serial, exc)
-            record.setdefault("reasons", []).append(f"dump not written: {exc}")
-            self.submit(outcome.cycle_id, record, None)
+            # Not even the row could be written: the robot must still hear that this facet was not recorded.
+            self._journal_failed(exc)
+            reason = f"archive: the result could not be journaled ({exc})"
+            record.update({"verdict": "fault", "fault_code": FAULT_CODES["archive"]})
+            record["reasons"] = [reason] + list(record.get("reasons", []))
+            outcome.answer, outcome.fault_code = "fault", FAULT_CODES["archive"]
         try:
             if request.extra.get("operator"):
                 pass                                   # a re-measurement: the robot did not ask

@@ -9,21 +9,28 @@ slows a cycle. They share only files: the journal (SQLite WAL) and the spool.
 from __future__ import annotations
 
 import dataclasses
+import errno
+import fcntl
 import logging
 import logging.handlers
 import multiprocessing
+import os
 import signal
+import time
 from pathlib import Path
 
 from ..archive import Archiver, ArchiverSettings, DumpContent, Journal, WorkbookSettings
+from ..archive._common import remove_stale_temp_files
+from ..archive.spool import spool_get, spool_list
 from ..config import StationConfig
 from ..devices.protocols import FacetRequest
-from ..errors import ConfigError
+from ..errors import ArchiveError, ConfigError, StationError, TriggerError
 from ..web.settings import web_settings
 from .inspect import open_station
 from .pictures import FacetPictures
 from .recipes import recipes_from_config
 from .runner import RunSettings, StationRunner
+from .worker import watch_parent
 
 log = logging.getLogger(__name__)
 
@@ -54,8 +61,12 @@ def archiver_settings(config: StationConfig, run: RunSettings) -> ArchiverSettin
                             min_free_gb=float(table.get("min_free_gb", run.min_free_gb)))
 
 
-def open_trigger_from_config(config: StationConfig, simulated_facets: list[FacetRequest] | int | None):
-    """The robot/PLC of ``[devices]`` (``trigger = "simulated" | "modbus" | "usb"``, ``trigger_options``)."""
+def open_trigger_from_config(config: StationConfig, simulated_facets: list[FacetRequest] | int | None,
+                             retry_s: float | None = 2.0):
+    """The robot/PLC of ``[devices]`` (``trigger = "simulated" | "modbus" | "usb"``, ``trigger_options``).
+
+    A PLC that cannot be reached is tried again every *retry_s* seconds until it answers (None: raise).
+    """
     from ..devices.triggers import open_trigger
 
     dev = config.raw.get("devices", {})
@@ -66,44 +77,216 @@ def open_trigger_from_config(config: StationConfig, simulated_facets: list[Facet
     options = dict(dev.get("trigger_options", {}))
     if kind == "simulated":
         options.setdefault("requests", simulated_facets if simulated_facets is not None else 20)
-    return open_trigger(kind, **options)
+    attempt = 0
+    while True:
+        try:
+            return open_trigger(kind, **options)
+        except TriggerError as exc:
+            # The PLC may simply not be up yet (the line powers on together): retry, as the message says.
+            if retry_s is None:
+                raise
+            attempt += 1
+            if attempt == 1 or attempt % 30 == 0:
+                log.error("%s (attempt %d; retrying every %g s until it answers, Ctrl-C or SIGTERM to give up)",
+                          exc, attempt, retry_s)
+            time.sleep(retry_s)
 
 
-def _archiver_main(journal_path: str, data_dir: str, settings: ArchiverSettings, stop) -> None:
-    """The archiver process: drain journal and spool until *stop* is set, then once more."""
+class StationLocked(StationError):
+    """Another station runs on this data folder."""
+
+
+class DataDirLock:
+    """One station per data folder: an exclusive ``flock`` on ``data_dir/station.lock`` holding the PID.
+
+    The lock is the kernel's: it goes with the process, so a station killed with SIGKILL leaves a lock
+    file that the next station simply takes again (and says so). Taken before any device opens.
+    """
+
+    def __init__(self, data_dir: Path, name: str = "station.lock", wait_s: float = 0.0, what: str = "station"):
+        self.path = Path(data_dir) / name
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        deadline = time.monotonic() + wait_s
+        while True:
+            try:
+                fcntl.flock(self._fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except OSError as exc:
+                if exc.errno not in (errno.EWOULDBLOCK, errno.EACCES):
+                    os.close(self._fd)
+                    raise StationError(f"cannot lock {self.path}: {exc}") from None
+                if time.monotonic() >= deadline:
+                    holder = self._holder()
+                    os.close(self._fd)
+                    raise StationLocked(
+                        f"another {what} (process {holder or '?'}) is running on the data folder {data_dir}: "
+                        f"stop it first, or give this one its own data_dir (station.toml [station] data_dir, or "
+                        f"SOFAST_DATA_DIR)") from None
+                time.sleep(0.1)
+        previous = self._holder()
+        if previous and previous != os.getpid():
+            log.warning("the %s lock %s was left by process %d, which is gone (killed?): taken over",
+                        what, self.path, previous)
+        os.ftruncate(self._fd, 0)
+        os.pwrite(self._fd, f"{os.getpid()}\n".encode(), 0)
+        self.recovered_from = previous if previous and previous != os.getpid() else None
+
+    def _holder(self) -> int | None:
+        try:
+            text = os.pread(self._fd, 32, 0).decode(errors="replace").strip()
+            return int(text) if text.isdigit() else None
+        except OSError:
+            return None
+
+    def release(self) -> None:
+        if self._fd is not None:
+            try:
+                os.ftruncate(self._fd, 0)
+            except OSError:
+                pass
+            os.close(self._fd)          # closing the descriptor releases the flock
+            self._fd = None
+
+
+def recover_leftovers(data_dir: Path, journal: Journal) -> dict:
+    """At start, under the station lock: remove what a killed station left, and say so in the log.
+
+    Every temporary file under ``archive/``, ``dumps/`` and ``spool/`` is a dead writer's (the lock
+    guarantees no other writer, and this station's own have not started); a spool without a journal row
+    (the station died between spooling and journaling, before it answered) is journaled as a fault with
+    its figures and queued for its dump, so the measurement is not lost.
+    """
+    removed = []
+    for folder, recursive in (("archive", False), ("dumps", True), ("spool", False)):
+        removed += remove_stale_temp_files(data_dir / folder, max_age_s=0.0, recursive=recursive)
+    requeued = []
+    for spool in spool_list(data_dir / "spool"):
+        if journal.get(spool.stem) is not None:
+            continue
+        try:
+            meta = spool_get(spool)[1]
+        except ArchiveError as exc:
+            log.warning("leftover spool %s is unreadable (%s); left for the archiver to set aside", spool, exc)
+            continue
+        cycle_id = meta.get("cycle_id", spool.stem)
+        if journal.get(cycle_id) is not None:
+            continue
+        record = dict(meta.get("record") or {})
+        record.setdefault("serial", meta.get("serial", "?"))
+        record.setdefault("time", meta.get("time"))
+        record.update({"cycle_id": cycle_id, "recovered": True, "verdict": "fault",
+                       "fault_code": record.get("fault_code", 99)})
+        record["reasons"] = ["internal: the station stopped after spooling this facet and before journaling it "
+                             "(no answer reached the robot); recovered at the next start"] + \
+            list(record.get("reasons", []))
+        try:
+            journal.append(cycle_id, record, dump_requested=True)
+            requeued.append(cycle_id)
+            log.warning("re-queued the orphan spool %s (serial %s) left by a stopped station: journaled as a "
+                        "fault, its dump will be written", spool.name, record["serial"])
+        except ArchiveError as exc:
+            log.error("could not journal the orphan spool %s: %s", spool, exc)
+    if removed:
+        log.warning("removed %d temporary file(s) left by a stopped writer", len(removed))
+    return {"temp_files": removed, "requeued": requeued}
+
+
+def _archiver_main(journal_path: str, data_dir: str, settings: ArchiverSettings, conn) -> None:
+    """The archiver process: drain journal and spool until the station says stop (or goes away), then once more."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)      # the station decides when the archiver stops
+    watch_parent()                                    # a killed station takes its archiver with it
     logging.basicConfig(level=logging.INFO, format="%(asctime)s archiver %(levelname)s %(message)s",
                         datefmt="%H:%M:%S")
     setup_logging(Path(data_dir), name="archiver.log")
+    # One archiver per data folder, even for the instant a killed station's archiver takes to notice.
+    lock = DataDirLock(Path(data_dir), name="archiver.lock", wait_s=30.0, what="archiver")
     journal = Journal(journal_path)
     archiver = Archiver(journal, data_dir, settings)
     archiver.start()
-    stop.wait()
-    archiver.stop(timeout_s=120, drain=True)
-    journal.close()
+    try:
+        while True:
+            try:
+                if conn.poll(1.0):
+                    conn.recv()
+                    break
+            except (EOFError, OSError):                   # the station is gone
+                break
+        archiver.stop(timeout_s=120, drain=True)
+    finally:
+        journal.close()
+        lock.release()
 
 
 class ArchiverProcess:
-    """The archiver in its own process."""
+    """The archiver in its own process, supervised by the station.
+
+    The station tells it to stop through a pipe (not a shared lock: a process killed while holding a
+    multiprocessing lock would block the station's shutdown forever); end of file on the pipe also
+    stops it. :meth:`supervise` restarts a dead archiver between facets.
+    """
 
     def __init__(self, journal_path: Path, data_dir: Path, settings: ArchiverSettings):
+        self._args = (str(journal_path), str(data_dir), settings)
+        self._proc = self._conn = None
+        self.restarts = 0
+        self._start()
+
+    def _start(self) -> None:
         ctx = multiprocessing.get_context("spawn")
-        self._stop = ctx.Event()
-        self._proc = ctx.Process(target=_archiver_main, name="sofast-archiver",
-                                 args=(str(journal_path), str(data_dir), settings, self._stop), daemon=True)
+        self._conn, child = ctx.Pipe()
+        self._proc = ctx.Process(target=_archiver_main, name="sofast-archiver", args=(*self._args, child),
+                                 daemon=True)
         self._proc.start()
+        child.close()
+
+    @property
+    def pid(self) -> int | None:
+        return self._proc.pid if self._proc is not None else None
+
+    def alive(self) -> bool:
+        return self._proc is not None and self._proc.is_alive()
+
+    def supervise(self) -> bool:
+        """Restart the archiver when it died (logged); True when restarted."""
+        if self.alive():
+            return False
+        code = self._proc.exitcode if self._proc is not None else None
+        log.error("the archiver process %s ended (exit code %s): restarting it; rows and dumps it had not "
+                  "written wait in the journal and the spool", self.pid, code)
+        self._close_conn()
+        self._start()
+        self.restarts += 1
+        return True
 
     def wake(self) -> None:
         """The archiver polls every couple of seconds; nothing to do."""
 
+    def _close_conn(self) -> None:
+        if self._conn is not None:
+            try:
+                self._conn.close()
+            except OSError:
+                pass
+            self._conn = None
+
     def stop(self, timeout_s: float = 180.0) -> None:
-        self._stop.set()
+        if not self.alive():
+            log.warning("the archiver was not running at shutdown; pending rows and dumps are written at the "
+                        "next start")
+            self._close_conn()
+            return
+        try:
+            self._conn.send("stop")
+        except OSError:
+            pass
         self._proc.join(timeout_s)
         if self._proc.is_alive():
             log.error("the archiver did not finish within %.0f s; stopping it (pending rows stay in the "
                       "journal and are written at the next start)", timeout_s)
-            self._proc.terminate()
+            self._proc.kill()
             self._proc.join(10)
+        self._close_conn()
 
 
 def setup_logging(data_dir: Path, verbose: bool = False, name: str = "station.log") -> Path:
@@ -129,11 +312,13 @@ class Service:
         data_dir.mkdir(parents=True, exist_ok=True)
         self.settings = run_settings(config)
         self.recipes = recipes_from_config(config)
-        self.journal = Journal(data_dir / "journal.sqlite3")
-        arch_settings = archiver_settings(config, self.settings)
-        self.archiver = Archiver(self.journal, data_dir, arch_settings)   # submit() only, in this process
-        self.archiver_process = self.station = self.trigger = self.runner = None
+        self.lock = DataDirLock(data_dir)          # before any device opens or anything is written
+        self.journal = self.archiver_process = self.station = self.trigger = self.runner = None
         try:
+            self.journal = Journal(data_dir / "journal.sqlite3")
+            self.recovered = recover_leftovers(data_dir, self.journal)
+            arch_settings = archiver_settings(config, self.settings)
+            self.archiver = Archiver(self.journal, data_dir, arch_settings)   # submit() only, in this process
             self.archiver_process = ArchiverProcess(data_dir / "journal.sqlite3", data_dir, arch_settings) \
                 if archiver_process else None
             self.station = open_station(config, seed=seed) if station is None else station
@@ -143,11 +328,13 @@ class Service:
             requests = getattr(self.trigger, "requests", None)
             self.runner.expected_total = len(requests) if isinstance(requests, list) else None
             self.runner.hooks.append(FacetPictures(data_dir, keep=web_settings(config).keep_pictures))
+            if self.settings.warmup:
+                self.runner.warm_up()
         except BaseException:
             self.close()
             raise
 
-    def submit(self, cycle_id: str, record: dict, dump: dict | None) -> None:
+    def submit(self, cycle_id: str, record: dict, dump: dict | None, amend: bool = False) -> None:
         """Journal the record (and spool its dump content first): durable when it returns."""
         content = None
         if dump is not None:
@@ -158,7 +345,7 @@ class Service:
                 crop_box=dump["crop_box"], full_shape=dump["full_shape"],
                 measured_distance_m=dump["measured_distance_m"], design=recipe.design, analysis=recipe.analysis,
                 facet_path=(self.config.path.parent / facet_path) if facet_path else None)
-        self.archiver.submit(cycle_id, record, content)
+        self.archiver.submit(cycle_id, record, content, amend=amend)
 
     def close(self) -> None:
         for part in (self.runner, self.trigger, self.station):
@@ -169,4 +356,6 @@ class Service:
                 log.exception("error while shutting down")
         if self.archiver_process is not None:
             self.archiver_process.stop()
-        self.journal.close()
+        if self.journal is not None:
+            self.journal.close()
+        self.lock.release()

@@ -14,11 +14,11 @@ from ..devices.simulated import SimulatedCamera, SimulatedDisplay, SimulatedRang
 from ..errors import ConfigError
 from .inspect import Station
 
-_SIM_KEYS = {"seed", "facet", "optics", "distance_error_m", "faults", "hang_s"}
+_SIM_KEYS = {"seed", "facet", "optics", "distance_error_m", "faults", "hang_s", "slow_s"}
 
 #: Faults the simulated station can inject for a given serial ([simulation.faults] SERIAL = KIND).
 FAULT_KINDS = ("dark", "camera-timeout", "misplaced", "hung-analysis", "hung-capture", "camera-disconnect",
-               "lights-off")
+               "lights-off", "slow-analysis", "worker-dies")
 
 log = logging.getLogger(__name__)
 
@@ -52,11 +52,16 @@ class SimulatedStation(Station):
 
     def inject(self, serial: str) -> float:
         """Arm this cycle's fault (if [simulation.faults] names the serial); returns the seconds the
-        analysis must hang (for "hung-analysis"), else 0."""
+        analysis must wait before it starts ("hung-analysis": ``hang_s``, "slow-analysis": ``slow_s``),
+        -1 for "worker-dies" (the worker process exits mid-analysis), else 0."""
         kind = self.config.simulation.get("faults", {}).get(serial)
         self.camera.fault = kind if kind in ("dark", "camera-timeout", "misplaced", "hung-capture",
                                              "camera-disconnect", "lights-off") else None
-        return self.config.simulation.get("hang_s", 3600.0) if kind == "hung-analysis" else 0.0
+        if kind == "hung-analysis":
+            return self.config.simulation.get("hang_s", 3600.0)
+        if kind == "slow-analysis":          # finishes, but after the deadline: a late result
+            return self.config.simulation.get("slow_s", 15.0)
+        return -1.0 if kind == "worker-dies" else 0.0
 
     def reopen_camera(self) -> None:
         self.camera.fault = None

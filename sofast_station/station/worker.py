@@ -10,10 +10,12 @@ from __future__ import annotations
 
 import logging
 import multiprocessing
+import os
 import threading
 import time
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures import TimeoutError as FutureTimeout
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from multiprocessing.shared_memory import SharedMemory
 
@@ -26,6 +28,29 @@ log = logging.getLogger(__name__)
 
 class AnalysisTimeout(StationError):
     """The analysis did not finish before the cycle's deadline; the worker was restarted."""
+
+
+class WorkerDied(StationError):
+    """The analysis worker process died (killed, out of memory); it is being restarted."""
+
+
+def watch_parent(poll_s: float = 0.5) -> None:
+    """In a child process: exit as soon as the process that started it is gone.
+
+    A station killed with SIGKILL cannot stop its children; without this they would live on under
+    PID 1 (an orphaned archiver writing the data folder beside the restarted station). The check is a
+    daemon thread comparing ``os.getppid()`` with its value at start, which, unlike
+    ``PR_SET_PDEATHSIG``, does not fire when merely the parent's *thread* that spawned the child ends.
+    """
+    parent = os.getppid()
+
+    def watch():
+        while True:
+            time.sleep(poll_s)
+            if os.getppid() != parent:
+                os._exit(0)
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
 
 
 @dataclass
@@ -47,6 +72,7 @@ def _init(shm_name: str, shape: tuple[int, int, int], geometry: dict, fringes: d
     from ..geometry import StationGeometry
     from ..precompute import ray_table, warm_up
 
+    watch_parent()
     shm = SharedMemory(name=shm_name)
     _STATE["shm"] = shm
     _STATE["frames"] = np.ndarray(shape, dtype=np.uint8, buffer=shm.buf)
@@ -63,6 +89,8 @@ def _run(design: dict, settings: dict, distance_m: float, hang_s: float, optics=
     from ..measure.uncertainty import InputUncertainties
     from .optics import DesignTraces, add_optics
 
+    if hang_s < 0:                       # fault injection for tests: the worker dies mid-analysis
+        os._exit(9)
     if hang_s > 0:                       # fault injection for tests: an analysis that hangs
         time.sleep(hang_s)
     t = time.perf_counter()
@@ -135,17 +163,70 @@ class AnalysisWorker:
         self._pool = None
         self._restarting: threading.Thread | None = None
         self._optics_designs: list = []          # (design dict, OpticsSettings) traced at every (re)start
-        self._start()
+        self.starts = 0
+        try:
+            self._start()
+        except BaseException:
+            self._shm.close()
+            self._shm.unlink()
+            raise
 
     def _start(self) -> None:
         t = time.perf_counter()
         ctx = multiprocessing.get_context("spawn")
         self._pool = ProcessPoolExecutor(max_workers=1, mp_context=ctx, initializer=_init,
                                          initargs=(self._shm.name, self._shape, self._geometry, self._fringes))
-        self._pool.submit(_ping).result(timeout=120)
+        try:
+            self._pool.submit(_ping).result(timeout=120)
+        except (BrokenProcessPool, FutureTimeout, OSError) as exc:
+            self._kill()
+            raise WorkerDied(f"the analysis worker could not start ({type(exc).__name__}: {exc}); see the log, "
+                             "and check memory and the Python environment") from None
         if self._optics_designs:
             self._pool.submit(_prepare_optics, self._optics_designs).result(timeout=120)
-        log.info("analysis worker ready in %.1f s", time.perf_counter() - t)
+        self.starts += 1
+        log.info("analysis worker ready in %.1f s (process %s)", time.perf_counter() - t, self.pids())
+
+    def pids(self) -> list[int]:
+        """Process ids of the worker (empty while it is being restarted)."""
+        pool = self._pool
+        return [p.pid for p in list((getattr(pool, "_processes", None) or {}).values())] if pool else []
+
+    def alive(self) -> bool:
+        """Whether the worker process runs (False while a restart is under way, or after it died)."""
+        pool = self._pool
+        if pool is None or getattr(pool, "_broken", False):
+            return False
+        procs = list((getattr(pool, "_processes", None) or {}).values())
+        return bool(procs) and all(p.is_alive() for p in procs)
+
+    def supervise(self) -> bool:
+        """Between facets: restart a worker that died; True when a restart was started."""
+        if self._restarting is not None or self.alive():
+            return False
+        log.error("the analysis worker (process %s) is gone: restarting it", self.pids() or "?")
+        self._restart()
+        return True
+
+    def _restart(self) -> None:
+        self._kill()
+        # The new worker starts in the background: the robot gets its answer now, not after the start.
+        self._restarting = threading.Thread(target=self._restart_main, name="analysis-worker-restart", daemon=True)
+        self._restarting.start()
+
+    def _restart_main(self) -> None:
+        try:
+            self._start()
+        except StationError as exc:
+            log.error("%s", exc)
+
+    def _ready(self) -> None:
+        """Wait for a restart under way; start again when it failed."""
+        if self._restarting is not None:
+            self._restarting.join()
+            self._restarting = None
+        if self._pool is None:
+            self._start()
 
     def analyse(self, frames: np.ndarray, design, settings, distance_m: float, timeout_s: float,
                 hang_s: float = 0.0, optics=None, uncertainty=None) -> WorkerResult:
@@ -159,22 +240,25 @@ class AnalysisWorker:
             from ..errors import CaptureError
             raise CaptureError(f"the capture is {frames.dtype} {frames.shape}, the station expects uint8 "
                                f"{self._shape}; check the camera's pixel format and size")
-        if self._restarting is not None:           # a restart after a timeout: wait for the new worker
-            self._restarting.join()
-            self._restarting = None
+        self._ready()                              # a restart under way: wait for the new worker
+        if not self.alive():
+            self.supervise()
+            self._ready()
         np.copyto(self._frames, frames)
-        fut = self._pool.submit(_run, design.to_dict(), settings.to_dict(), float(distance_m), float(hang_s), optics,
-                                None if uncertainty is None else uncertainty.to_dict())
         try:
+            fut = self._pool.submit(_run, design.to_dict(), settings.to_dict(), float(distance_m), float(hang_s),
+                                    optics, None if uncertainty is None else uncertainty.to_dict())
             figures, packed, shape, seconds, preview = fut.result(timeout=max(timeout_s, 0.01))
         except FutureTimeout:
             log.error("analysis exceeded its %.1f s budget: restarting the analysis worker", timeout_s)
-            self._kill()
-            # The new worker starts in the background: the robot gets its answer now, not after the start.
-            self._restarting = threading.Thread(target=self._start, name="analysis-worker-restart", daemon=True)
-            self._restarting.start()
+            self._restart()
             raise AnalysisTimeout(f"the analysis did not finish within {timeout_s:.1f} s; the worker was "
                                   "restarted") from None
+        except (BrokenProcessPool, RuntimeError) as exc:
+            log.error("the analysis worker died during the analysis (%s): restarting it", exc)
+            self._restart()
+            raise WorkerDied("the analysis worker process died during this facet's analysis (killed or out of "
+                             "memory); it is restarted, the next facet is measured") from None
         valid = np.unpackbits(packed, count=int(np.prod(shape))).astype(bool).reshape(shape)
         return WorkerResult(figures, valid, seconds, preview)
 
@@ -190,9 +274,12 @@ class AnalysisWorker:
     def _kill(self) -> None:
         pool, self._pool = self._pool, None
         if pool is not None:
-            for proc in list((getattr(pool, "_processes", None) or {}).values()):
+            procs = list((getattr(pool, "_processes", None) or {}).values())
+            for proc in procs:
                 proc.kill()
             pool.shutdown(wait=False, cancel_futures=True)
+            for proc in procs:
+                proc.join(5)                 # reap it: a zombie's PID would keep its temporary files "alive"
 
     def close(self) -> None:
         if self._restarting is not None:

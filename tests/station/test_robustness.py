@@ -1,0 +1,268 @@
+"""Issue 11: the line runs for months.
+
+Supervised processes (a killed analysis worker or archiver is replaced and the line goes on), one
+station per data folder, nothing measured thrown away (a late result keeps its figures and its dump, a
+full disk still answers the facet in progress), leftovers of a killed station recovered at the next
+start, and children that die with the station. Small (400 x 300) simulated station; deadlines are far
+beyond a facet's time on a loaded machine, and the faults are injected, so nothing here races the clock.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import errno
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sofast_station.archive import Journal, read_dump, read_workbook
+from sofast_station.archive.spool import spool_put
+from sofast_station.config import load_config
+from sofast_station.devices.protocols import FAULT_CODES
+from sofast_station.errors import ArchiveError
+from sofast_station.station.runner import JournalFailed
+from sofast_station.station.service import Service, StationLocked
+
+
+def _config(path: Path, data: Path, faults=None, run=None, **sim):
+    cfg = load_config(path)
+    raw = dict(cfg.raw, run={"deadline_s": 30.0, "late_grace_s": 60.0, **(run or {})},
+               archive={"workbook_interval_s": 0.5})
+    return dataclasses.replace(cfg, data_dir=data, raw=raw,
+                               simulation={**cfg.simulation, "faults": faults or {}, **sim})
+
+
+def _rows(data: Path):
+    journal = Journal(data / "journal.sqlite3")
+    try:
+        return journal.rows()
+    finally:
+        journal.close()
+
+
+def _book_serials(data: Path) -> list[str]:
+    return sorted(r["serial"] for b in (data / "archive").glob("*.xlsx") for r in read_workbook(b))
+
+
+def test_a_late_result_keeps_its_figures_and_its_dump(small_station_toml, tmp_path):
+    """The analysis of SIM-0002 ends after the deadline: the robot hears "timeout", the row has the
+    figures, marked late, and the frames are dumped."""
+    cfg = _config(small_station_toml, tmp_path / "d", faults={"SIM-0002": "slow-analysis"},
+                  run={"deadline_s": 4.0, "camera_timeout_s": 2.0}, slow_s=6.0)
+    service = Service(cfg, simulated_facets=3, console=lambda line: None)
+    robot = service.trigger
+    try:
+        service.runner.run()
+    finally:
+        service.close()
+    finals = {a.serial: a for a in robot.answers if a.kind in ("done", "fault")}
+    assert finals["SIM-0002"].kind == "fault" and finals["SIM-0002"].code == FAULT_CODES["timeout"]
+    assert finals["SIM-0001"].kind == finals["SIM-0003"].kind == "done"
+    rows = {r.serial: r for r in _rows(cfg.data_dir)}
+    assert len(rows) == 3
+    late = rows["SIM-0002"]
+    rec = late.record
+    assert rec["late"] is True and rec["verdict"] == "fault" and rec["fault_code"] == FAULT_CODES["timeout"]
+    assert rec["late_verdict"] == "pass" and rec["late_by_s"] > 0
+    assert abs(rec["focal_length_x_m"] - 5.42) < 0.05, rec.get("focal_length_x_m")
+    assert late.dump_status == "written"
+    assert read_dump(late.dump_path, load_frames=False).cycle_id == late.cycle_id
+    assert _book_serials(cfg.data_dir) == ["SIM-0001", "SIM-0002", "SIM-0003"]
+
+
+def test_a_killed_worker_is_replaced_and_the_line_goes_on(small_station_toml, tmp_path):
+    """The worker dies mid-analysis (SIM-0002) and is killed with SIGKILL between facets (after SIM-0003):
+    the facet in progress is answered with the worker fault, every other facet passes."""
+    cfg = _config(small_station_toml, tmp_path / "d", faults={"SIM-0002": "worker-dies"})
+    service = Service(cfg, simulated_facets=5, console=lambda line: None)
+    robot = service.trigger
+    killed = []
+
+    def on_outcome(outcome):
+        if outcome.serial == "SIM-0003":
+            pid = service.runner.worker.pids()[0]
+            os.kill(pid, signal.SIGKILL)
+            killed.append(pid)
+    try:
+        service.runner.run(on_outcome=on_outcome)
+        starts = service.runner.worker.starts
+    finally:
+        service.close()
+    finals = [a for a in robot.answers if a.kind in ("done", "fault")]
+    assert [a.serial for a in finals] == [f"SIM-{i:04d}" for i in range(1, 6)]
+    by = {a.serial: a for a in finals}
+    assert by["SIM-0002"].kind == "fault" and by["SIM-0002"].code == FAULT_CODES["worker"]
+    assert all(by[s].kind == "done" for s in ("SIM-0001", "SIM-0003", "SIM-0004", "SIM-0005"))
+    assert killed and starts == 3                       # the first start and two restarts
+    assert len(_rows(cfg.data_dir)) == 5
+
+
+def test_a_killed_archiver_is_replaced_and_nothing_is_lost(small_station_toml, tmp_path):
+    cfg = _config(small_station_toml, tmp_path / "d", run={"dump_every_n": 1})
+    service = Service(cfg, simulated_facets=4, console=lambda line: None)
+
+    def on_outcome(outcome):
+        if outcome.serial in ("SIM-0001", "SIM-0003"):
+            os.kill(service.archiver_process.pid, signal.SIGKILL)
+            service.archiver_process._proc.join(10)
+    try:
+        service.runner.run(on_outcome=on_outcome)
+        restarts = service.archiver_process.restarts
+    finally:
+        service.close()                                  # must return: the archiver is not waited for forever
+    assert restarts == 2
+    rows = _rows(cfg.data_dir)
+    assert len(rows) == 4 and all(r.workbook_path for r in rows)
+    assert all(r.dump_status == "written" for r in rows)
+    assert _book_serials(cfg.data_dir) == [f"SIM-{i:04d}" for i in range(1, 5)]
+    assert not list(cfg.data_dir.rglob("*.tmp"))
+
+
+def test_a_full_disk_answers_the_facet_in_progress_then_stops(small_station_toml, tmp_path):
+    """The journal cannot be written from the third facet on (an injected ENOSPC): that facet is
+    answered with the archive fault code, then the station stops with a message saying what to do."""
+    cfg = _config(small_station_toml, tmp_path / "d")
+    service = Service(cfg, simulated_facets=5, console=lambda line: None)
+    robot = service.trigger
+    append = service.journal.append
+
+    def full_disk(cycle_id, record, dump_requested=False):
+        if record["serial"] >= "SIM-0003":
+            raise ArchiveError(f"journal: appending cycle {cycle_id} failed: "
+                               f"{os.strerror(errno.ENOSPC)}")
+        return append(cycle_id, record, dump_requested)
+    service.journal.append = full_disk
+    try:
+        with pytest.raises(JournalFailed, match="free disk space"):
+            service.runner.run()
+    finally:
+        service.close()
+    finals = [a for a in robot.answers if a.kind in ("done", "fault")]
+    assert [a.serial for a in finals] == ["SIM-0001", "SIM-0002", "SIM-0003"]
+    assert finals[2].kind == "fault" and finals[2].code == FAULT_CODES["archive"]
+    assert "could not be journaled" in finals[2].reason
+
+
+def test_one_station_per_data_folder(small_station_toml, tmp_path):
+    cfg = _config(small_station_toml, tmp_path / "d", run={"warmup": False})
+    first = Service(cfg, simulated_facets=1, console=lambda line: None)
+    try:
+        with pytest.raises(StationLocked, match=rf"another station \(process {os.getpid()}\) is running"):
+            Service(cfg, simulated_facets=1, console=lambda line: None)
+    finally:
+        first.close()
+    second = Service(cfg, simulated_facets=1, console=lambda line: None)   # free again after close
+    second.close()
+
+
+def test_a_killed_stations_leftovers_are_recovered(small_station_toml, tmp_path, caplog):
+    """A lock, a temporary file and a spool without a journal row, as a killed station leaves them."""
+    data = tmp_path / "d"
+    (data / "archive").mkdir(parents=True)
+    (data / "station.lock").write_text("999999\n")          # the PID of a station that is gone
+    zombie_tmp = data / "archive" / f".results-2026-12-01.xlsx.{os.getppid()}.0123abcd.tmp"   # PID alive
+    zombie_tmp.write_bytes(b"half a workbook")
+    cfg = _config(small_station_toml, data, run={"warmup": False})
+    # a spool whose facet was never journaled: take a real one from a first run's dump content
+    service = Service(cfg, simulated_facets=1, console=lambda line: None)
+    try:
+        service.runner.run()
+    finally:
+        service.close()
+    row = _rows(data)[0]
+    record = dict(row.record, serial="SIM-ORPHAN", cycle_id="20261201T000000000Z-deadbeef")
+    spool_put(data / "spool", record["cycle_id"], {"frames_cropped": np.zeros((18, 4, 4), np.uint8)},
+              {"record": record, "serial": "SIM-ORPHAN", "time": record["time"]})
+    (data / "station.lock").write_text("999999\n")
+    with caplog.at_level("WARNING"):
+        service = Service(cfg, simulated_facets=0, console=lambda line: None)
+        service.close()
+    text = caplog.text
+    assert "left by process 999999, which is gone" in text
+    assert "re-queued the orphan spool" in text and "removed 1 temporary file" in text
+    assert not zombie_tmp.exists()
+    rows = {r.serial: r for r in _rows(data)}
+    assert rows["SIM-ORPHAN"].record["recovered"] is True and rows["SIM-ORPHAN"].dump_requested
+
+
+def _children(pid: int) -> set[int]:
+    out = set()
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            out |= {int(c) for c in (task / "children").read_text().split()}
+        except OSError:
+            pass
+    return out
+
+
+def _gone(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().split()[2] == "Z"
+    except OSError:
+        return True
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="needs Linux /proc")
+def test_the_stations_children_die_with_it_and_a_second_run_is_refused(small_station_toml, tmp_path):
+    cmd = [sys.executable, "-m", "sofast_station", "run", "--config", str(small_station_toml), "--facets", "500"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().startswith("serial")
+        assert proc.stdout.readline().startswith("SIM-0001")
+        second = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+        assert second.returncode == 2
+        assert f"another station (process {proc.pid}) is running" in second.stderr
+        assert "Traceback" not in second.stderr
+        children = _children(proc.pid)
+        assert len(children) >= 2                       # the analysis worker and the archiver
+        proc.kill()
+        proc.wait(30)
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and not all(_gone(c) for c in children):
+            time.sleep(0.2)
+        assert all(_gone(c) for c in children), [c for c in children if not _gone(c)]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        proc.communicate()
+
+
+BAD_SERIALS = ['=HYPERLINK("http://evil.example/x","click")', "AB\x00CD", "../../../escape", "S" * 300]
+
+
+def test_serials_from_outside_are_made_safe_once_for_every_use(small_station_toml, tmp_path):
+    """A formula, a NUL, a path traversal and a 300-character serial: each facet is measured, journaled,
+    in the workbook as text (never a formula) and dumped inside data_dir."""
+    from openpyxl import load_workbook
+
+    from sofast_station.devices.protocols import FacetRequest
+    from sofast_station.serials import MAX_SERIAL_CHARS, clean_serial
+
+    cfg = _config(small_station_toml, tmp_path / "d", run={"dump_every_n": 1, "warmup": False})
+    service = Service(cfg, simulated_facets=[FacetRequest(serial=s) for s in BAD_SERIALS],
+                      console=lambda line: None)
+    try:
+        service.runner.run()
+    finally:
+        service.close()
+    rows = _rows(cfg.data_dir)
+    assert [r.serial for r in rows] == [clean_serial(s)[0] for s in BAD_SERIALS]
+    assert rows[1].serial == "ABCD" and len(rows[3].serial) == MAX_SERIAL_CHARS
+    assert all(r.verdict == "pass" and r.dump_status == "written" for r in rows), [r.record.get("reasons") for r in rows]
+    for r in rows:
+        path = Path(r.dump_path).resolve()
+        assert path.is_relative_to((cfg.data_dir / "dumps").resolve())
+        assert read_dump(path, load_frames=False).serial == r.serial
+    assert "serial_as_sent" in rows[1].record["request"]
+    book = next((cfg.data_dir / "archive").glob("*.xlsx"))
+    ws = load_workbook(book).active
+    header = [c.value for c in ws[1]]
+    cells = [row[header.index("serial")] for row in ws.iter_rows(min_row=2)]
+    assert cells[0].value == BAD_SERIALS[0] and cells[0].data_type == "s"      # text, not a formula
+    assert not [p for p in tmp_path.rglob("*escape*") if not p.resolve().is_relative_to(cfg.data_dir.resolve())]
