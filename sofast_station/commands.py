@@ -141,6 +141,35 @@ def write_json_atomic(path: Path, data: dict) -> None:
         raise
 
 
+def positive_int(text: str) -> int:
+    """argparse type: a whole number of at least 1 (``--facets 0`` or ``-3`` is a usage error, exit 2)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def lower_priority(niceness: int = 10) -> None:
+    """Run this process (and the processes it starts) *niceness* steps below normal priority.
+
+    For the commands that may run on the station computer beside ``run`` (batch, report, the web page):
+    the measuring loop keeps its cores. ``SOFAST_NICE=0`` in the environment turns it off.
+    """
+    niceness = int(os.environ.get("SOFAST_NICE", niceness))
+    if niceness <= 0 or not hasattr(os, "nice"):
+        return
+    try:
+        current = os.nice(0)
+        if current < niceness:
+            os.nice(niceness - current)
+            log.debug("running at niceness %d so the measuring loop is not starved", niceness)
+    except OSError as exc:                   # not allowed here: run at the normal priority
+        log.debug("could not lower the priority: %s", exc)
+
+
 def build_parser(prog: str = "sofast-station", description: str = "", epilog: str = "",
                  modules=COMMAND_MODULES) -> argparse.ArgumentParser:
     """The parser of every command of *modules* (by default all of :data:`COMMAND_MODULES`)."""
@@ -154,7 +183,13 @@ def build_parser(prog: str = "sofast-station", description: str = "", epilog: st
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run a parsed command: logging to stderr, a StationError is one line and exit code 2."""
+    """Run a parsed command: logging to stderr, a StationError is one line and exit code 2.
+
+    Exit codes (README "Exit codes"): 0 done; 1 the command ran but part of its work failed (batch: a
+    dump failed or is unfinished); 2 a user's mistake or a station error, one line saying what to do (argparse
+    usage errors too); 130 interrupted (Ctrl-C). Output piped into a reader that stops early (``head``)
+    ends quietly with 0.
+    """
     logging.basicConfig(level=logging.DEBUG if getattr(args, "verbose", False) else logging.INFO, stream=sys.stderr,
                         format="%(asctime)s %(levelname)s %(message)s", datefmt="%H:%M:%S")
     try:
@@ -165,3 +200,11 @@ def run(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         log.error("interrupted")
         return 130
+    except BrokenPipeError:
+        # the reader went away (`... | head`): not an error of ours; silence the interpreter's final flush
+        try:
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+        except OSError:
+            pass
+        return 0

@@ -19,7 +19,7 @@ from pathlib import Path
 
 from ..commands import add_command
 from ..commands import build_parser as _build_parser
-from ..commands import default_config, run
+from ..commands import default_config, lower_priority, run
 from ._env import single_thread_blas
 
 log = logging.getLogger(__name__)
@@ -330,6 +330,7 @@ class ProgressBar:
 
 def cmd_batch(args) -> int:
     single_thread_blas()
+    lower_priority()                    # beside a running station the measuring loop keeps its cores
     from .batch import run_batch
 
     overrides = overrides_from_args(args)
@@ -351,6 +352,7 @@ def cmd_batch(args) -> int:
 # -- report ---------------------------------------------------------------------------------------------
 def cmd_report(args) -> int:
     single_thread_blas()
+    lower_priority()
     from ..errors import StationError
     from .reprocess import reprocess_dump
 

@@ -11,7 +11,7 @@ import logging
 import sys
 from pathlib import Path
 
-from ..commands import add_command, add_config_option, json_safe, write_json_atomic
+from ..commands import add_command, add_config_option, json_safe, positive_int, write_json_atomic
 from ..errors import StationError
 
 log = logging.getLogger("sofast_station")
@@ -190,7 +190,9 @@ def budget_text(rec: dict, columns=BUDGET_COLUMNS) -> str:
 
 
 def cmd_inspect(args) -> int:
+    from ..archive._common import safe_name
     from ..config import load_config
+    from ..serials import clean_serial
     from .inspect import inspect, open_station
 
     config = load_config(args.config)
@@ -201,11 +203,15 @@ def cmd_inspect(args) -> int:
         def progress(i, n):
             if i == n or i % 6 == 0:
                 log.info("captured %d/%d frames", i, n)
-        rec = inspect(station, args.serial, progress=progress)
+        serial, note = clean_serial(args.serial)
+        if note:
+            log.warning("%s", note)
+        rec = inspect(station, serial, progress=progress)
     finally:
         station.close()
     rec = json_safe(rec)
-    out = config.data_dir / "inspections" / f"{rec['serial']}-{rec['time'][:19].replace(':', '')}.json"
+    # the serial never makes a path: no '/', no '..' (the result stays inside data_dir/inspections)
+    out = config.data_dir / "inspections" / f"{safe_name(rec['serial'], 64)}-{rec['time'][:19].replace(':', '')}.json"
     write_json_atomic(out, rec)
     log.info("result written to %s", out)
     if args.json:
@@ -375,9 +381,9 @@ def register(subparsers) -> None:
             Ctrl-C or SIGTERM finishes the facet in progress, waits for the archiver, then stops; a second
             Ctrl-C stops at once.""")
     add_config_option(run)
-    run.add_argument("--facets", type=int, default=None, metavar="N",
+    run.add_argument("--facets", type=positive_int, default=None, metavar="N",
                      help="simulated robot: how many facets to place (default 20)")
-    run.add_argument("--max-cycles", type=int, default=None, metavar="N",
+    run.add_argument("--max-cycles", type=positive_int, default=None, metavar="N",
                      help="stop after this many facets (default: run until stopped)")
     run.add_argument("--seed", type=int, default=None,
                      help="simulated station: noise seed (default: the [simulation] seed of the station file)")

@@ -213,8 +213,8 @@ def test_the_stations_children_die_with_it_and_a_second_run_is_refused(small_sta
     cmd = [sys.executable, "-m", "sofast_station", "run", "--config", str(small_station_toml), "--facets", "500"]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        assert proc.stdout.readline().startswith("serial")
-        assert proc.stdout.readline().startswith("SIM-0001")
+        assert "serial" in proc.stdout.readline()          # the header
+        assert "SIM-0001" in proc.stdout.readline()        # the first facet is answered
         second = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
         assert second.returncode == 2
         assert f"another station (process {proc.pid}) is running" in second.stderr
