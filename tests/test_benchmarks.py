@@ -70,3 +70,12 @@ def test_optics_benchmark_quick(repo_root, small_station_toml):
     print(proc.stdout)
     for line in ("20,000 points", "per-facet optical figures: median", "load average", "intercept"):
         assert line in proc.stdout
+
+
+def test_soak_benchmark_quick(repo_root):
+    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "soak.py"), "--quick"],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    print(proc.stdout)
+    for line in ("12 cycles in", "growth/100 cycles", "same ids as the journal: True", "temporary files left: 0"):
+        assert line in proc.stdout

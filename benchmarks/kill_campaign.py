@@ -1,0 +1,270 @@
+"""Kill campaign: kill -9 the station, its analysis worker or its archiver at random moments; check the archive.
+
+    .venv/bin/python benchmarks/kill_campaign.py --kills 30          # 30 kills on a 400 x 300 station
+    .venv/bin/python benchmarks/kill_campaign.py --two-runs 100      # two runs on one data folder
+
+``--kills N``: runs ``sofast-station run`` (the real command, a fresh process) on one data folder and,
+N times, waits a random number of facets (0.5 to 6 s), then sends SIGKILL to the station, the worker or
+the archiver, chosen at random. After a station kill it checks that no process of the killed station
+remains (within 10 s) and starts the station again; after a worker or archiver kill it checks that the
+line goes on with passes. At the end the station is stopped with SIGTERM and must exit by itself.
+
+Then the archive is checked: every facet line printed (answered) has its journal row, every journal row
+is in exactly one workbook row, every requested dump is readable, no temporary file and no process is
+left. (A station killed between journaling and printing leaves a row without a printed line: those are
+counted, at most one per station kill.)
+
+``--two-runs N``: a run of N facets; while it runs a second ``run`` on the same data folder must refuse
+(naming the first one's PID); then a second run of N facets; 2 N rows, none lost or duplicated.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import random
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks.soak import SMALL  # noqa: E402
+
+
+def children(pid: int) -> set[int]:
+    out: set[int] = set()
+    try:
+        tasks = list(Path(f"/proc/{pid}/task").iterdir())
+    except OSError:
+        return out
+    for task in tasks:
+        try:
+            out |= {int(c) for c in (task / "children").read_text().split()}
+        except OSError:
+            pass
+    return out
+
+
+def gone(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().split()[2] == "Z"
+    except OSError:
+        return True
+
+
+def cmdline(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+    except OSError:
+        return ""
+
+
+class Station:
+    """One ``sofast-station run`` process, its console lines collected by a thread."""
+
+    def __init__(self, config: Path, facets: int, env: dict):
+        self.proc = subprocess.Popen([sys.executable, "-m", "sofast_station", "run", "--config", str(config),
+                                      "--facets", str(facets)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                     text=True, env=env, cwd=str(ROOT), start_new_session=True)
+        self.lines: list[str] = []
+        self.err: list[str] = []
+        self._t = threading.Thread(target=self._read, args=(self.proc.stdout, self.lines), daemon=True)
+        self._e = threading.Thread(target=self._read, args=(self.proc.stderr, self.err), daemon=True)
+        self._t.start()
+        self._e.start()
+
+    @staticmethod
+    def _read(stream, into):
+        for line in stream:
+            into.append(line.rstrip("\n"))
+
+    def facets(self) -> list[str]:
+        return [ln for ln in self.lines if " SIM-" in f" {ln}"]
+
+    def wait_facets(self, n: int, timeout_s: float = 300.0) -> bool:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline and self.proc.poll() is None:
+            if len(self.facets()) >= n:
+                return True
+            time.sleep(0.05)
+        return len(self.facets()) >= n
+
+    def worker_and_archiver(self) -> tuple[int | None, int | None]:
+        worker = archiver = None
+        for c in children(self.proc.pid):
+            text = cmdline(c)
+            if "resource_tracker" in text:
+                continue
+            if "spawn_main" in text:
+                # the archiver is started first; the pool worker second: tell them by their threads
+                names = {(Path(f"/proc/{c}/task") / t / "comm").read_text().strip()
+                         for t in os.listdir(f"/proc/{c}/task")} if not gone(c) else set()
+                if any(n.startswith("sofast-archiver") for n in names):
+                    archiver = c
+                else:
+                    worker = worker or c
+        return worker, archiver
+
+    def finish(self, timeout_s: float) -> int | None:
+        try:
+            self.proc.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            return None
+        self._t.join(5)
+        self._e.join(5)
+        return self.proc.returncode
+
+
+def write_config(folder: Path) -> Path:
+    path = folder / "station.toml"
+    path.write_text(SMALL.format(root=ROOT) + "\n[run]\ndump_every_n = 3\nlate_grace_s = 5.0\n"
+                    "[archive]\nworkbook_interval_s = 2.0\n")
+    return path
+
+
+def check_archive(data: Path, answered: int, station_kills: int) -> dict:
+    from sofast_station.archive import Journal, read_dump, read_workbook
+
+    journal = Journal(data / "journal.sqlite3")
+    try:
+        rows = journal.rows()
+    finally:
+        journal.close()
+    ids = [r.cycle_id for r in rows]
+    book_ids = [r["cycle_id"] for b in sorted((data / "archive").glob("*.xlsx")) for r in read_workbook(b)]
+    bad_dumps = []
+    for r in rows:
+        if r.dump_requested:
+            try:
+                if read_dump(r.dump_path, load_frames=True).cycle_id != r.cycle_id:
+                    bad_dumps.append(r.cycle_id)
+            except Exception as exc:   # noqa: BLE001
+                bad_dumps.append(f"{r.cycle_id}: {exc}")
+    return {"answered_lines": answered, "journal_rows": len(rows), "journal_unique": len(set(ids)) == len(ids),
+            "rows_without_line": len(rows) - answered, "station_kills": station_kills,
+            "workbook_rows": len(book_ids), "workbook_unique": len(set(book_ids)) == len(book_ids),
+            "workbook_equals_journal": sorted(book_ids) == sorted(ids),
+            "dumps_requested": sum(r.dump_requested for r in rows), "dumps_bad": bad_dumps,
+            "temp_files": [str(p) for p in data.rglob("*.tmp")],
+            "orphan_spools": [str(p) for p in (data / "spool").glob("*.npz")] if (data / "spool").exists() else []}
+
+
+def campaign(kills: int, seed: int, folder: Path) -> int:
+    rng = random.Random(seed)
+    config = write_config(folder)
+    data = folder / "data"
+    env = dict(os.environ, SOFAST_DATA_DIR=str(data), PYTHONPATH=str(ROOT))
+    answered = 0
+    station_kills = 0
+    problems: list[str] = []
+    all_pids: set[int] = set()
+    station = Station(config, 100000, env)
+    counts = {"station": 0, "worker": 0, "archiver": 0}
+    for k in range(1, kills + 1):
+        if not station.wait_facets(len(station.facets()) + 1, 300):
+            problems.append(f"kill {k}: the station measured nothing (exit {station.proc.poll()}): "
+                            + " | ".join(station.err[-5:]))
+            break
+        time.sleep(rng.uniform(0.5, 6.0))
+        worker, archiver = station.worker_and_archiver()
+        all_pids |= {p for p in (worker, archiver) if p} | children(station.proc.pid)
+        target = rng.choice(["station", "worker", "archiver"])
+        pid = {"station": station.proc.pid, "worker": worker, "archiver": archiver}[target]
+        if pid is None:
+            target, pid = "station", station.proc.pid
+        before = len(station.facets())
+        kids = children(station.proc.pid)
+        os.kill(pid, signal.SIGKILL)
+        counts[target] += 1
+        if target == "station":
+            station_kills += 1
+            station.finish(10)
+            answered += len(station.facets())
+            deadline = time.monotonic() + 10
+            while time.monotonic() < deadline and not all(gone(c) for c in kids):
+                time.sleep(0.1)
+            left = [c for c in kids if not gone(c)]
+            if left:
+                problems.append(f"kill {k}: processes {left} of the killed station remain")
+            station = Station(config, 100000, env)
+            note = "restarted"
+        else:
+            ok = station.wait_facets(before + 3, 300)
+            recent = station.facets()[before:]
+            passes = sum(" PASS " in ln for ln in recent)
+            if not ok or not passes:
+                problems.append(f"kill {k}: after killing the {target} the line did not go on with passes "
+                                f"({recent})")
+            note = f"line went on: {len(recent)} facets, {passes} pass"
+        print(f"kill {k:2d}: {target:<8} (pid {pid}) after {before} facets of this run; {note}", flush=True)
+    station.wait_facets(len(station.facets()) + 2, 300)
+    station.proc.send_signal(signal.SIGTERM)
+    code = station.finish(180)
+    if code != 0:
+        problems.append(f"the last run did not exit by itself on SIGTERM (exit {code}): {station.err[-5:]}")
+    answered += len(station.facets())
+    time.sleep(2)
+    left = [p for p in all_pids if not gone(p)]
+    if left:
+        problems.append(f"processes left: {left}")
+    result = check_archive(data, answered, station_kills)
+    print(f"kills: {counts}")
+    for k, v in result.items():
+        print(f"  {k}: {v}")
+    if not (result["journal_unique"] and result["workbook_unique"] and result["workbook_equals_journal"]
+            and 0 <= result["rows_without_line"] <= station_kills and not result["dumps_bad"]
+            and not result["temp_files"] and not result["orphan_spools"]):
+        problems.append("archive check failed (see above)")
+    print("problems: " + ("; ".join(problems) if problems else "none"))
+    return 1 if problems else 0
+
+
+def two_runs(n: int, folder: Path) -> int:
+    config = write_config(folder)
+    data = folder / "data"
+    env = dict(os.environ, SOFAST_DATA_DIR=str(data), PYTHONPATH=str(ROOT))
+    first = Station(config, n, env)
+    first.wait_facets(1, 300)
+    second = subprocess.run([sys.executable, "-m", "sofast_station", "run", "--config", str(config), "--facets",
+                             str(n)], capture_output=True, text=True, env=env, cwd=str(ROOT), timeout=300)
+    refused = second.returncode == 2 and f"(process {first.proc.pid})" in second.stderr
+    print(f"second run while the first runs: exit {second.returncode}; "
+          f"{second.stderr.strip().splitlines()[-1] if second.stderr.strip() else ''}")
+    code1 = first.finish(3600)
+    then = Station(config, n, env)
+    code2 = then.finish(3600)
+    answered = len(first.facets()) + len(then.facets())
+    result = check_archive(data, answered, 0)
+    print(f"first run exit {code1}, {len(first.facets())} facets; second run exit {code2}, "
+          f"{len(then.facets())} facets")
+    for k, v in result.items():
+        print(f"  {k}: {v}")
+    ok = (refused and code1 == 0 and code2 == 0 and result["journal_rows"] == 2 * n == answered
+          and result["workbook_equals_journal"] and result["workbook_unique"] and not result["dumps_bad"])
+    print("two runs: " + ("ok" if ok else "FAILED"))
+    return 0 if ok else 1
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--kills", type=int, default=30)
+    p.add_argument("--two-runs", type=int, default=0, metavar="N", help="instead: two runs of N facets")
+    p.add_argument("--seed", type=int, default=11)
+    p.add_argument("--keep", default=None, help="keep the data folder here")
+    args = p.parse_args(argv)
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(args.keep) if args.keep else Path(tmp)
+        folder.mkdir(parents=True, exist_ok=True)
+        if args.two_runs:
+            return two_runs(args.two_runs, folder)
+        return campaign(args.kills, args.seed, folder)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

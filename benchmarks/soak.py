@@ -1,0 +1,213 @@
+"""Soak: the production loop for many cycles with injected faults; memory and open files of every process.
+
+    .venv/bin/python benchmarks/soak.py                      # 500 cycles, default full-resolution station
+    .venv/bin/python benchmarks/soak.py --cycles 3000 --small  # a long run at 400 x 300
+    .venv/bin/python benchmarks/soak.py --quick              # the test suite's smoke run
+
+Runs the real station (simulated devices, analysis worker process, archiver process) on a fresh data
+folder. Every ``--fault-every``-th facet gets an injected fault, in turn: a dark capture, a misplaced
+facet, a camera timeout, and an analysis that finishes after the deadline (a late result). Every
+``--sample-every`` cycles it records the resident memory (VmRSS) and open file descriptors of the
+station, the analysis worker and the archiver, and reports for each the growth per 100 cycles (least
+squares over the samples after the first 10 % of the run, so that start-up allocations do not count).
+
+After the run it checks the archive: one journal row per cycle (no id twice), every row in exactly one
+workbook row, every requested dump written and readable with its frames, no temporary file left.
+Nothing is asserted; the figures are printed (and written as JSON with ``--json``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import sys
+import tempfile
+import time
+from collections import Counter
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+FAULT_CYCLE = ("dark", "misplaced", "camera-timeout", "slow-analysis")
+
+SMALL = """
+[station]
+name = "Soak station (400 x 300)"
+backend = "simulated"
+facet = "{root}/fixtures/facets/dish_5m33.toml"
+[camera]
+width_px = 400
+height_px = 300
+focal_length_px = 3409.0
+distortion = [-0.05, 0.1, 0.0002, -0.0001, 0.0]
+[screen]
+width_px = 1920
+height_px = 1080
+pitch_m = 0.000275
+[layout]
+separation_m = 0.34
+[calibration]
+radiometric = "{root}/calibration/simulated_radiometric.json"
+[simulation]
+seed = 3
+[simulation.facet]
+focal_length_x_m = 5.42
+focal_length_y_m = 5.35
+twist_mrad_per_m = 0.1
+slope_error_rms_mrad = 0.5
+"""
+
+
+def proc_sample(pid: int | None) -> tuple[float, int] | None:
+    """(VmRSS in MB, open file descriptors) of a process, None when it is gone."""
+    if not pid:
+        return None
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+        rss_kb = next(int(line.split()[1]) for line in status.splitlines() if line.startswith("VmRSS:"))
+        return rss_kb / 1024.0, len(os.listdir(f"/proc/{pid}/fd"))
+    except (OSError, StopIteration):
+        return None
+
+
+def slope_per_100(xs: list[float], ys: list[float]) -> float:
+    """Least-squares slope of ys over xs, times 100 (MB per 100 cycles)."""
+    n = len(xs)
+    if n < 2:
+        return float("nan")
+    mx, my = sum(xs) / n, sum(ys) / n
+    sxx = sum((x - mx) ** 2 for x in xs)
+    return 100.0 * sum((x - mx) * (y - my) for x, y in zip(xs, ys)) / sxx if sxx else float("nan")
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--config", default=str(ROOT / "station.toml"), help="station file (default: full resolution)")
+    p.add_argument("--small", action="store_true", help="a 400 x 300 station instead of --config")
+    p.add_argument("--cycles", type=int, default=500, help="facets to measure (default 500)")
+    p.add_argument("--fault-every", type=int, default=10, help="every n-th facet gets a fault (default 10)")
+    p.add_argument("--sample-every", type=int, default=10, help="memory sample every n cycles (default 10)")
+    p.add_argument("--deadline", type=float, default=10.0, help="[run] deadline_s (default 10)")
+    p.add_argument("--data", default=None, help="data folder (default: a temporary one, removed)")
+    p.add_argument("--json", default=None, help="write the figures to this JSON file")
+    p.add_argument("--quick", action="store_true", help="12 cycles at 400 x 300 (the test suite's smoke run)")
+    args = p.parse_args(argv)
+    if args.quick:
+        args.small, args.cycles, args.fault_every, args.sample_every, args.deadline = True, 12, 4, 2, 10.0
+
+    import logging
+    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(message)s", datefmt="%H:%M:%S")
+    from sofast_station.archive import Journal, read_dump, read_workbook
+    from sofast_station.config import load_config
+    from sofast_station.station.service import Service
+
+    with tempfile.TemporaryDirectory() as tmp:
+        config_path = Path(args.config)
+        if args.small:
+            config_path = Path(tmp) / "station.toml"
+            config_path.write_text(SMALL.format(root=ROOT))
+        data = Path(args.data) if args.data else Path(tmp) / "data"
+        cfg = load_config(config_path)
+        faults = {f"SIM-{i:04d}": FAULT_CYCLE[(i // args.fault_every - 1) % len(FAULT_CYCLE)]
+                  for i in range(args.fault_every, args.cycles + 1, args.fault_every)}
+        raw = dict(cfg.raw, run={"deadline_s": args.deadline, "late_grace_s": 10.0, "dump_every_n": 25},
+                   archive={"workbook_interval_s": 10.0})
+        cfg = dataclasses.replace(cfg, data_dir=data, raw=raw,
+                                  simulation={**cfg.simulation, "faults": faults, "slow_s": args.deadline + 2.0})
+        cam = cfg.geometry.camera
+        print(f"soak: {cfg.name}, camera {cam.width_px} x {cam.height_px}, {args.cycles} cycles, "
+              f"{len(faults)} injected faults ({', '.join(FAULT_CYCLE)} in turn), data in {data}", flush=True)
+        t0 = time.perf_counter()
+        service = Service(cfg, simulated_facets=args.cycles, console=lambda line: None)
+        print(f"station started in {time.perf_counter() - t0:.1f} s", flush=True)
+        samples: dict[str, list[tuple[int, float, int]]] = {"station": [], "worker": [], "archiver": []}
+        answers: Counter = Counter()
+        late = [0]
+        pids: dict[str, set] = {"worker": set(), "archiver": set()}
+
+        def sample(n: int) -> None:
+            worker = (service.runner.worker.pids() or [None])[0]
+            archiver = service.archiver_process.pid
+            pids["worker"].add(worker)
+            pids["archiver"].add(archiver)
+            for name, pid in (("station", os.getpid()), ("worker", worker), ("archiver", archiver)):
+                s = proc_sample(pid)
+                if s is not None:
+                    samples[name].append((n, *s))
+
+        def on_outcome(outcome) -> None:
+            answers[outcome.answer] += 1
+            late[0] += bool(outcome.record.get("late"))
+            n = sum(answers.values())
+            if n % args.sample_every == 0:
+                sample(n)
+            if n % max(args.cycles // 10, 1) == 0:
+                rss = ", ".join(f"{k} {v[-1][1]:.0f} MB" for k, v in samples.items() if v)
+                print(f"  {n:5d} cycles, {time.perf_counter() - t0:7.0f} s: {rss}", flush=True)
+
+        t_run = time.perf_counter()
+        try:
+            service.runner.run(on_outcome=on_outcome)
+        finally:
+            t_close = time.perf_counter()
+            service.close()
+        run_s, close_s = t_close - t_run, time.perf_counter() - t_close
+        n = sum(answers.values())
+        print(f"{n} cycles in {run_s:.0f} s ({run_s / max(n, 1):.2f} s each), shutdown {close_s:.1f} s; answers: "
+              + ", ".join(f"{v} {k}" for k, v in sorted(answers.items())) + f"; {late[0]} late results kept")
+
+        figures: dict = {"cycles": n, "camera": [cam.width_px, cam.height_px], "answers": dict(answers),
+                         "late": late[0], "run_s": run_s, "processes": {}}
+        print("process     RSS first   last  growth/100 cycles   open files first  last   (pids)")
+        for name, rows in samples.items():
+            if not rows:
+                continue
+            start = [r for r in rows if r[0] > 0.1 * n] or rows
+            growth = slope_per_100([r[0] for r in start], [r[1] for r in start])
+            figures["processes"][name] = {"rss_first_mb": rows[0][1], "rss_last_mb": rows[-1][1],
+                                          "rss_max_mb": max(r[1] for r in rows),
+                                          "rss_growth_mb_per_100": growth, "fds_first": rows[0][2],
+                                          "fds_last": rows[-1][2], "samples": len(rows)}
+            who = pids.get(name, {os.getpid()}) - {None}
+            print(f"{name:<10} {rows[0][1]:8.1f} {rows[-1][1]:7.1f} {growth:+12.2f} MB {rows[0][2]:17d} "
+                  f"{rows[-1][2]:5d}   ({len(who)} process{'es' if len(who) > 1 else ''})")
+
+        journal = Journal(data / "journal.sqlite3")
+        try:
+            rows = journal.rows()
+        finally:
+            journal.close()
+        ids = [r.cycle_id for r in rows]
+        book_ids = [r["cycle_id"] for b in sorted((data / "archive").glob("*.xlsx")) for r in read_workbook(b)]
+        requested = [r for r in rows if r.dump_requested]
+        bad = []
+        for r in requested:
+            try:
+                d = read_dump(r.dump_path, load_frames=True)
+                if d.cycle_id != r.cycle_id:
+                    bad.append((r.cycle_id, "wrong cycle"))
+            except Exception as exc:      # noqa: BLE001 - every failure is reported
+                bad.append((r.cycle_id, f"{type(exc).__name__}: {exc}"))
+        temps = [str(t) for t in data.rglob("*.tmp")]
+        spools = [str(s) for s in (data / "spool").glob("*.npz")] if (data / "spool").exists() else []
+        checks = {"journal_rows": len(rows), "journal_ids_unique": len(set(ids)) == len(ids),
+                  "workbook_rows": len(book_ids), "workbook_ids_unique": len(set(book_ids)) == len(book_ids),
+                  "workbook_equals_journal": sorted(book_ids) == sorted(ids), "dumps_requested": len(requested),
+                  "dumps_valid": len(requested) - len(bad), "dump_errors": bad[:10], "temp_files_left": temps,
+                  "spools_left": spools}
+        figures["checks"] = checks
+        print(f"journal: {len(rows)} rows for {n} cycles, ids unique: {checks['journal_ids_unique']}; workbooks: "
+              f"{len(book_ids)} rows, unique: {checks['workbook_ids_unique']}, same ids as the journal: "
+              f"{checks['workbook_equals_journal']}")
+        print(f"dumps: {len(requested)} requested, {checks['dumps_valid']} valid (read back with frames); "
+              f"temporary files left: {len(temps)}; spools left: {len(spools)}")
+        if args.json:
+            Path(args.json).write_text(json.dumps(figures, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
