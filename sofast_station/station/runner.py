@@ -507,8 +507,8 @@ class StationRunner:
         except (OSError, StationError) as exc:
             log.error("%s: the late result of cycle %s could not be journaled: %s", outcome.serial,
                       outcome.cycle_id, exc)
+        # The console already has this facet's line (the timeout): the log says what became of it.
         log.warning("%s: %s (cycle %s; the robot was answered timeout)", outcome.serial, note, outcome.cycle_id)
-        self._report(record, "late", time.perf_counter() - t0)
         if self.archiver is not None:
             self.archiver.wake()
 
