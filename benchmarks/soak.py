@@ -93,6 +93,8 @@ def main(argv=None) -> int:
     p.add_argument("--deadline", type=float, default=10.0, help="[run] deadline_s (default 10)")
     p.add_argument("--data", default=None, help="data folder (default: a temporary one, removed)")
     p.add_argument("--json", default=None, help="write the figures to this JSON file")
+    p.add_argument("--minutes", type=float, default=None,
+                   help="stop after this long (the facet in progress is finished) and report what was done")
     p.add_argument("--quick", action="store_true", help="12 cycles at 400 x 300 (the test suite's smoke run)")
     args = p.parse_args(argv)
     if args.quick:
@@ -148,6 +150,14 @@ def main(argv=None) -> int:
                 rss = ", ".join(f"{k} {v[-1][1]:.0f} MB" for k, v in samples.items() if v)
                 print(f"  {n:5d} cycles, {time.perf_counter() - t0:7.0f} s: {rss}", flush=True)
 
+        import signal
+        import threading
+        for sig in (signal.SIGINT, signal.SIGTERM):     # stop after the facet in progress, then report
+            signal.signal(sig, lambda *_: service.runner.stop())
+        if args.minutes:
+            timer = threading.Timer(60.0 * args.minutes, service.runner.stop)
+            timer.daemon = True
+            timer.start()
         t_run = time.perf_counter()
         try:
             service.runner.run(on_outcome=on_outcome)

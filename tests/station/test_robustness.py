@@ -53,8 +53,9 @@ def _book_serials(data: Path) -> list[str]:
 def test_a_late_result_keeps_its_figures_and_its_dump(small_station_toml, tmp_path):
     """The analysis of SIM-0002 ends after the deadline: the robot hears "timeout", the row has the
     figures, marked late, and the frames are dumped."""
+    # the deadline is far beyond a facet's time even on a loaded machine; the slow analysis waits past it
     cfg = _config(small_station_toml, tmp_path / "d", faults={"SIM-0002": "slow-analysis"},
-                  run={"deadline_s": 4.0, "camera_timeout_s": 2.0}, slow_s=6.0)
+                  run={"deadline_s": 20.0}, slow_s=24.0)
     service = Service(cfg, simulated_facets=3, console=lambda line: None)
     robot = service.trigger
     try:
