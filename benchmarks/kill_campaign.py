@@ -102,10 +102,12 @@ class Station:
             if "resource_tracker" in text:
                 continue
             if "spawn_main" in text:
-                # the archiver is started first; the pool worker second: tell them by their threads
-                names = {(Path(f"/proc/{c}/task") / t / "comm").read_text().strip()
-                         for t in os.listdir(f"/proc/{c}/task")} if not gone(c) else set()
-                if any(n.startswith("sofast-archiver") for n in names):
+                # the archiver holds data_dir/archiver.lock open; the analysis worker does not
+                try:
+                    files = {os.readlink(f"/proc/{c}/fd/{fd}") for fd in os.listdir(f"/proc/{c}/fd")}
+                except OSError:
+                    continue
+                if any(f.endswith("archiver.lock") for f in files):
                     archiver = c
                 else:
                     worker = worker or c

@@ -18,6 +18,9 @@ def repo_root() -> Path:
 def _data_dir(tmp_path, monkeypatch):
     """Every test's station data (journal, results, records) goes to its own temporary folder."""
     monkeypatch.setenv("SOFAST_DATA_DIR", str(tmp_path / "station-data"))
+    # A cycle deadline far beyond any facet's time on a loaded machine, where a test does not set one on
+    # purpose: the tests do not depend on the machine's speed (issue 11).
+    monkeypatch.setenv("SOFAST_DEFAULT_DEADLINE_S", "120")
 
 
 SMALL_STATION = """

@@ -39,13 +39,27 @@ _DEVICE_KEYS = {"trigger", "trigger_options", "display_options", "camera", "came
 _ARCHIVE_KEYS = {"workbook_period", "workbook_interval_s", "dump_keep_days", "dump_max_gb", "min_free_gb"}
 
 
+#: Environment variable: the cycle deadline, seconds, when station.toml's [run] does not set deadline_s.
+#: The test suite sets it long, so that no test depends on the machine's load (only tests that set a
+#: deadline on purpose meet one).
+DEFAULT_DEADLINE_ENV = "SOFAST_DEFAULT_DEADLINE_S"
+
+
 def run_settings(config: StationConfig) -> RunSettings:
+    """``[run]`` of station.toml (checked at load by the config schema)."""
     table = config.raw.get("run", {})
     known = {f.name for f in dataclasses.fields(RunSettings)}
     unknown = sorted(set(table) - known)
     if unknown:
         raise ConfigError(f"{config.path} [run] has unknown key(s) {', '.join(unknown)}; allowed: "
                           f"{', '.join(sorted(known))}")
+    table = dict(table)
+    default_deadline = os.environ.get(DEFAULT_DEADLINE_ENV)
+    if default_deadline and "deadline_s" not in table:
+        try:
+            table["deadline_s"] = float(default_deadline)
+        except ValueError:
+            raise ConfigError(f"{DEFAULT_DEADLINE_ENV}={default_deadline!r} is not a number of seconds") from None
     return RunSettings(**table)
 
 
