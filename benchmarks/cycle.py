@@ -9,7 +9,10 @@ display settle (``--settle-frames`` refreshes at ``--refresh-hz``) plus the expo
 (``--exposure-frames`` refreshes). Everything else is the station's real loop: busy, capture,
 four-step check, crop, analysis in the worker process, verdict, journal (SQLite, synchronous), spool
 of every 5th facet's frames, answer; the archiver writes workbook and dumps in its own process, off the
-critical path. Prints the median and the worst of each stage. Nothing is asserted.
+critical path. Prints, for each stage, the first facet on its own (after the worker's warm-up capture)
+and the median and worst of the others; then runs the same facets again with a two-worker
+``sofast-station batch`` re-analysing the first run's dumps beside the line (``--batch-workers``), to show
+what a process engineer's batch costs the line. Nothing is asserted.
 """
 
 from __future__ import annotations
@@ -51,6 +54,9 @@ def main(argv=None) -> int:
     p.add_argument("--refresh-hz", type=float, default=60.0)
     p.add_argument("--settle-frames", type=float, default=2.0, help="display refreshes before the exposure")
     p.add_argument("--exposure-frames", type=float, default=1.0, help="exposure, in display refreshes")
+    p.add_argument("--batch-workers", type=int, default=2,
+                   help="then the same facets again with 'sofast-station batch --workers N' re-analysing the first "
+                        "run's dumps beside the line (0: skip)")
     p.add_argument("--quick", action="store_true", help="3 facets (the test suite's smoke run)")
     args = p.parse_args(argv)
     n = 3 if args.quick else args.facets
@@ -80,17 +86,18 @@ def main(argv=None) -> int:
     print(f"modelled per frame: {args.settle_frames:g} + {args.exposure_frames:g} refreshes at {args.refresh_hz:g} Hz "
           f"= {1000 * frame_delay:.0f} ms, {frames.shape[0]} frames = {frames.shape[0] * frame_delay:.2f} s")
 
-    with tempfile.TemporaryDirectory() as tmp:
-        raw = dict(cfg.raw, run={"dump_every_n": 5}, archive={"workbook_interval_s": 5.0})
-        bench_cfg = dataclasses.replace(cfg, data_dir=Path(tmp), raw=raw, simulation={})
+    def line(data: Path, dump_every: int):
+        """Run the real service with replay hardware on *data* for n facets: (outcomes, start s, close s)."""
+        raw = dict(cfg.raw, run={"dump_every_n": dump_every}, archive={"workbook_interval_s": 5.0})
+        bench_cfg = dataclasses.replace(cfg, data_dir=data, raw=raw, simulation={})
         lines: list[str] = []
         service = Service.__new__(Service)           # the real service, with replay hardware
-        service_init_devices = Station(config=bench_cfg, display=NullDisplay(),
-                                       camera=ReplayCamera(frames, frame_delay_s=frame_delay, loop=True),
-                                       range_finder=FixedRangeFinder(distance),
-                                       radiometric=load_radiometric(cfg.radiometric_path), twin=None)
+        devices = Station(config=bench_cfg, display=NullDisplay(),
+                          camera=ReplayCamera(frames, frame_delay_s=frame_delay, loop=True),
+                          range_finder=FixedRangeFinder(distance),
+                          radiometric=load_radiometric(cfg.radiometric_path), twin=None)
         t = time.perf_counter()
-        Service.__init__(service, bench_cfg, simulated_facets=n, console=lines.append, station=service_init_devices)
+        Service.__init__(service, bench_cfg, simulated_facets=n, console=lines.append, station=devices)
         t_start = time.perf_counter() - t
         try:
             outcomes = service.runner.run()
@@ -98,21 +105,62 @@ def main(argv=None) -> int:
             t = time.perf_counter()
             service.close()
             t_close = time.perf_counter() - t
-    print(f"station start (worker process, pixel rays, archiver process): {t_start:.2f} s; shutdown with archive "
-          f"drained: {t_close:.2f} s")
-    answers = {}
-    for o in outcomes:
-        answers[o.answer] = answers.get(o.answer, 0) + 1
-    print("answers: " + ", ".join(f"{v} {k}" for k, v in sorted(answers.items())))
-    rows = []
-    for o in outcomes:
-        ts = o.record.get("timings_s", {})
-        rows.append({"capture": ts.get("capture", float("nan")), "analysis": ts.get("analysis", float("nan")),
-                     "until journal": ts.get("until_journal", float("nan")), "trigger -> release": o.cycle_s})
-    print("seconds per facet: median   worst")
-    for key in rows[0]:
-        v = [r[key] for r in rows]
-        print(f"  {key:<20} {statistics.median(v):6.3f} {max(v):7.3f}")
+        return outcomes, t_start, t_close
+
+    def table(outcomes, title: str) -> None:
+        answers = {}
+        for o in outcomes:
+            answers[o.answer] = answers.get(o.answer, 0) + 1
+        print(f"{title}: answers " + ", ".join(f"{v} {k}" for k, v in sorted(answers.items())))
+        rows = []
+        for o in outcomes:
+            ts = o.record.get("timings_s", {})
+            rows.append({"capture": ts.get("capture", float("nan")), "analysis": ts.get("analysis", float("nan")),
+                         "until journal": ts.get("until_journal", float("nan")), "trigger -> release": o.cycle_s})
+        # The first facet is reported on its own: the median of the others is the steady state.
+        print("seconds per facet:     first   median   worst   (median and worst of facets 2..n)")
+        for key in rows[0]:
+            rest = [r[key] for r in rows[1:]] or [rows[0][key]]
+            print(f"  {key:<20} {rows[0][key]:6.3f} {statistics.median(rest):8.3f} {max(rest):7.3f}")
+
+    with tempfile.TemporaryDirectory() as tmp:
+        outcomes, t_start, t_close = line(Path(tmp) / "alone", max(1, min(5, n // 4)))
+        print(f"station start (worker process and its warm-up capture, archiver process): {t_start:.2f} s; "
+              f"shutdown with archive drained: {t_close:.2f} s")
+        table(outcomes, "the station alone")
+        if args.batch_workers:
+            import os
+            import subprocess
+            dumps = sorted(str(p) for p in (Path(tmp) / "alone" / "dumps").rglob("*.h5"))
+            stop = [False]
+            runs = [0]
+            procs = []
+
+            def batch_loop():
+                # re-analysis beside the line, as the process engineer would run it (its own priority)
+                while not stop[0]:
+                    out = Path(tmp) / f"batch-{runs[0]}"
+                    proc = subprocess.Popen([sys.executable, "-m", "sofast_station", "batch", *dumps, "--out", str(out),
+                                             "--workers", str(args.batch_workers), "--no-progress"],
+                                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                            env=dict(os.environ, PYTHONPATH=str(ROOT)))
+                    procs.append(proc)
+                    proc.wait()
+                    runs[0] += 1
+            import threading
+            thread = threading.Thread(target=batch_loop, daemon=True)
+            thread.start()
+            time.sleep(3.0)                          # the batch is under way before the first facet
+            try:
+                beside, _, _ = line(Path(tmp) / "beside", max(1, min(5, n // 4)))
+            finally:
+                stop[0] = True
+                for proc in procs:
+                    if proc.poll() is None:
+                        proc.terminate()
+                thread.join(60)
+            table(beside, f"with a {args.batch_workers}-worker batch beside it ({len(dumps)} dumps, "
+                          f"{runs[0]} batch run(s) finished meanwhile, batch at its default lower priority)")
     return 0
 
 

@@ -18,7 +18,8 @@ def test_cycle_benchmark_quick(repo_root, small_station_toml):
                            str(small_station_toml)], capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr
     print(proc.stdout)
-    for line in ("camera 400 x 300", "answers: 3 pass", "trigger -> release", "render and image one capture"):
+    for line in ("camera 400 x 300", "the station alone: answers 3 pass", "trigger -> release",
+                 "render and image one capture", "first   median", "with a 2-worker batch beside it"):
         assert line in proc.stdout
 
 

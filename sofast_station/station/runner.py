@@ -507,6 +507,7 @@ class StationRunner:
         except (OSError, StationError) as exc:
             log.error("%s: the late result of cycle %s could not be journaled: %s", outcome.serial,
                       outcome.cycle_id, exc)
+        outcome.cycle_s = time.perf_counter() - t0           # until the late result (the robot left earlier)
         # The console already has this facet's line (the timeout): the log says what became of it.
         log.warning("%s: %s (cycle %s; the robot was answered timeout)", outcome.serial, note, outcome.cycle_id)
         if self.archiver is not None:
