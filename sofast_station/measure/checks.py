@@ -209,19 +209,30 @@ def slope_curl(valid: np.ndarray, points_m: np.ndarray, slopes: np.ndarray, step
         component), ``step_px`` and ``n`` (the differences used).
     """
     h, w = valid.shape
-    flat = np.flatnonzero(valid.ravel())
-    grids = []
-    for values in (points_m[0], points_m[1], slopes[0], slopes[1]):
-        g = np.full(h * w, np.nan)
-        g[flat] = values
-        grids.append(g.reshape(h, w))
-    x, y, sx, sy = grids
+    rows, cols = np.flatnonzero(valid.any(axis=1)), np.flatnonzero(valid.any(axis=0))
+    if rows.size == 0:
+        return {"antisymmetric_rms_per_m": 0.0, "symmetric_rms_per_m": 0.0, "step_px": 1, "n": 0}
+
+    def grids_in(r0, r1, c0, c1):
+        # The camera image cropped to [r0, r1) x [c0, c1): outside the valid pixels every value is NaN,
+        # so a crop that holds them with a margin of 2k gives the same differences as the whole image.
+        sub = valid[r0:r1, c0:c1]
+        out = []
+        for values in (points_m[0], points_m[1], slopes[0], slopes[1]):
+            g = np.full(sub.shape, np.nan)
+            g[sub] = values
+            out.append(g)
+        return out
+
+    x, y, sx, sy = grids_in(rows[0], rows[-1] + 1, cols[0], cols[-1] + 1)
     with np.errstate(invalid="ignore"):
         spacing = np.abs(np.concatenate([(x[:, 1:] - x[:, :-1]).ravel(), (y[1:, :] - y[:-1, :]).ravel()]))
     spacing = spacing[np.isfinite(spacing)]
     k = max(1, int(round(step_m / float(np.median(spacing))))) if spacing.size else 1
     if 4 * k >= min(h, w):
         return {"antisymmetric_rms_per_m": 0.0, "symmetric_rms_per_m": 0.0, "step_px": k, "n": 0}
+    x, y, sx, sy = grids_in(max(rows[0] - 2 * k, 0), min(rows[-1] + 1 + 2 * k, h),
+                            max(cols[0] - 2 * k, 0), min(cols[-1] + 1 + 2 * k, w))
 
     def d_col(f):
         return f[k:-k, 2 * k:] - f[k:-k, :-2 * k]

@@ -548,8 +548,12 @@ def fit_models(shape: Shape, design: FacetDesign, settings: AnalysisSettings, po
 
 def report_figures(region: Region, phases: Phases, rays: Rays, pose: CornerPoseResult, shape: Shape, fits: Fits,
                    geometry: StationGeometry, design: FacetDesign, measured_distance_m: float,
-                   settings: AnalysisSettings) -> dict:
-    """Stage 6b: the reported figures (JSON-ready) from the stages' outputs."""
+                   settings: AnalysisSettings, with_curl: bool = True) -> dict:
+    """Stage 6b: the reported figures (JSON-ready) from the stages' outputs.
+
+    *with_curl* False leaves out the slope-curl check (``slope_curl`` None): it judges the capture, not the
+    geometry, so the uncertainty's perturbed reruns, which only read the figures, need not pay for it.
+    """
     fit, coeffs, cubic, solution = fits.parabola, fits.coefficients, fits.cubic, shape.solution
     idx, vidx = region.idx, rays.vidx
     unwrap_stats = phases.unwrap
@@ -560,7 +564,7 @@ def report_figures(region: Region, phases: Phases, rays: Rays, pose: CornerPoseR
     principal, angle = principal_axes(fit.a, fit.b, fit.e)
     valid = np.zeros(region.region.shape, dtype=bool)
     valid.ravel()[vidx] = True
-    curl = checks.slope_curl(valid, shape.points_m, shape.slopes)
+    curl = checks.slope_curl(valid, shape.points_m, shape.slopes) if with_curl else None
     return {
         "focal_length_x_m": focal_length_m(kx),
         "focal_length_y_m": focal_length_m(ky),
@@ -733,14 +737,14 @@ STAGES = ("region", "phases", "rays", "pose", "shape", "fits", "figures")
 def rerun(reduction: Reduction, start: str, *, fringes: FringeSet, geometry: StationGeometry,
           design: FacetDesign, measured_distance_m: float, settings: AnalysisSettings = AnalysisSettings(),
           screen: ScreenModel | None = None, phases: Phases | None = None, pose: CornerPoseResult | None = None,
-          pool=None) -> Reduction:
+          pool=None, with_curl: bool = True) -> Reduction:
     """Rerun the reduction from stage *start* (one of :data:`STAGES` after ``region``) with the inputs given,
     reusing the earlier stages' outputs of *reduction*.
 
     E.g. ``rerun(r, "rays", geometry=g2, ...)`` redoes everything from the screen points with a changed
     camera-to-screen pose; ``rerun(r, "rays", phases=p2, ...)`` with changed screen positions;
     ``rerun(r, "shape", pose=p2, ...)`` with a changed corner pose (``pose`` only when *start* is
-    ``"shape"``).
+    ``"shape"``). *with_curl* as in :func:`report_figures`.
     """
     if start not in STAGES[1:]:
         raise ValueError(f"start must be one of {STAGES[1:]}, got {start!r}")
@@ -767,5 +771,5 @@ def rerun(reduction: Reduction, start: str, *, fringes: FringeSet, geometry: Sta
         shape = reduction.shape
     fits = fit_models(shape, design, settings, pool) if order <= STAGES.index("fits") else reduction.fits
     figures = report_figures(region, phases, rays, pose, shape, fits, geometry, design, measured_distance_m,
-                             settings)
+                             settings, with_curl=with_curl)
     return Reduction(region, phases, rays, pose, shape, fits, figures)

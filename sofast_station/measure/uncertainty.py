@@ -297,11 +297,11 @@ def _perturbed_run(red, inp: Input, sign: float, ctx: dict):
         pose = pose_from_corners(corners, red.region, red.rays, g, design, distance, settings,
                                  agreement=red.pose.outline_agreement)
         return rerun(red, "shape", fringes=fringes, geometry=g, design=design, measured_distance_m=distance,
-                     settings=settings, screen=screen, pose=pose)
+                     settings=settings, screen=screen, pose=pose, with_curl=False)
     else:
         raise ValueError(f"unknown input {name!r}")
     return rerun(red, start, fringes=fringes, geometry=g, design=design, measured_distance_m=distance,
-                 settings=settings, screen=screen, phases=phases)
+                 settings=settings, screen=screen, phases=phases, with_curl=False)
 
 
 @dataclass
@@ -335,7 +335,7 @@ def sensitivities(reduction, *, fringes, geometry, design, measured_distance_m: 
     ctx = {"geometry": geometry, "distance_m": measured_distance_m, "settings": settings, "fringes": fringes,
            "design": design, "screen": screen, "screen_size_m": (screen.width_m, screen.height_m)}
     base = rerun(red, "rays", fringes=fringes, geometry=geometry, design=design,
-                 measured_distance_m=measured_distance_m, settings=settings, screen=screen)
+                 measured_distance_m=measured_distance_m, settings=settings, screen=screen, with_curl=False)
     f0 = np.array([_value(base.figures, p) for p in SCALAR_PATHS])
     rows = budget_inputs(inputs, len(reduction.pose.corners_px))
     lin = np.zeros((len(rows), len(SCALAR_PATHS)))
