@@ -208,7 +208,7 @@ def test_room_light_change_mid_run_marks_the_rows_or_refuses_the_facets(tmp_path
             assert finals[serial].kind == "done"
             (warning,) = rows[serial]["calibration"]["warnings"]
             assert f"dark level moved from {small_record.dark_level_dn:.2f} DN" in warning
-            assert "[calibration stale" in line
+            assert "calibration stale: see the log" in line
         else:
             assert finals[serial].kind == "fault" and finals[serial].code == FAULT_CODES["calibration"]
             assert "dark level moved" in finals[serial].reason and "refuse" in finals[serial].reason
