@@ -26,6 +26,7 @@ import pytest
 
 from sofast_station.config import load_config
 from sofast_station.devices.protocols import FacetRequest
+from sofast_station.serials import clean_serial
 from sofast_station.station.commands import commands_dir
 from sofast_station.station.service import Service
 from tests.conftest import ROOT, SMALL_STATION
@@ -153,7 +154,7 @@ def test_the_page_follows_the_line(line, monkeypatch):
                              "facets": page.inner_text("#shift .kpis div:first-child b")})
                 if outcome.serial in ("SIM-0001", "F-0002", "X-0006"):
                     page.screenshot(path=str(shots / f"page-after-{outcome.answer}.png"), full_page=True)
-                elif outcome.serial in (UNICODE, LONG):
+                elif outcome.serial in (UNICODE, clean_serial(LONG)[0]):
                     name = "unicode" if outcome.serial == UNICODE else "long"
                     page.screenshot(path=str(shots / f"page-serial-{name}.png"))
 
@@ -167,9 +168,12 @@ def test_the_page_follows_the_line(line, monkeypatch):
             assert [o.answer for o in outcomes] == VERDICTS
 
             # what the page showed after each facet: that facet, its serial as text, every reason
-            shown_long = LONG[:29] + "…" + LONG[-29:]       # start and end of a serial too long to show whole
+            # the station keeps a serial's first MAX_SERIAL_CHARS characters (sofast_station/serials.py); the
+            # page shows the start and end of what it kept when that is too long to show whole
+            kept = clean_serial(LONG)[0]
+            shown_long = kept[:29] + "…" + kept[-29:]
             assert [s["serial"] for s in seen] == SERIALS[:4] + [shown_long] + SERIALS[5:], seen
-            assert seen[4]["title"] == LONG
+            assert seen[4]["title"] == kept
             assert [s["verdict"] for s in seen] == VERDICTS, seen
             assert [s["facets"] for s in seen] == [str(i) for i in range(1, 7)], seen
             assert any("focal length x" in r for r in seen[1]["reasons"]), seen
