@@ -40,7 +40,7 @@ TREE = {
         ("CycleId", STRING, "the cycle's id (unique)"),
         ("Serial", STRING, "the facet's serial"),
         ("Recipe", STRING, "the recipe it was judged with"),
-        ("Verdict", STRING, "pass, fail, invalid or fault"),
+        ("Verdict", STRING, "pass, fail, indeterminate, invalid or fault"),
         ("Reasons", STRINGS, "every reason of a fail, invalid or fault"),
         ("Time", STRING, "when it was measured, ISO 8601"),
         ("FocalLengthX_m", DOUBLE, "focal length x, m (NaN: none)"),
@@ -60,6 +60,7 @@ TREE = {
         ("Facets", UINT32, "facets measured in the shift"),
         ("Pass", UINT32, "passed"),
         ("Fail", UINT32, "failed"),
+        ("Indeterminate", UINT32, "within U of a limit under the guarded decision rule"),
         ("Invalid", UINT32, "invalid measurements"),
         ("Fault", UINT32, "faults"),
         ("Yield", DOUBLE, "passed / measured, 0 to 1 (NaN before the first facet)"),
@@ -109,7 +110,7 @@ def values(snap: dict) -> dict:
         u_name = name + "_U_" + unit[len(name) + 1:]
         out[f"LastFacet/{unit}"] = _d(figure_value(last, path))
         out[f"LastFacet/{u_name}"] = _d(figure_uncertainty(last, path))
-    for verdict in ("pass", "fail", "invalid", "fault"):
+    for verdict in ("pass", "fail", "indeterminate", "invalid", "fault"):
         out[f"Counters/{verdict.capitalize()}"] = int(s.counts.get(verdict, 0))
     kinds = {kind.split("-", 1)[0] for kind, _ in snap["alarms"]}      # drift-RECIPE -> drift
     out["Alarms/Active"] = bool(kinds)

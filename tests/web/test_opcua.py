@@ -142,3 +142,21 @@ def test_opcua_client_sees_the_tree_and_the_verdict_change(tmp_path, monkeypatch
         except subprocess.TimeoutExpired:
             server.kill()
             server.wait()
+
+
+def test_counters_count_indeterminate_facets_apart():
+    """A guarded-rule `indeterminate` facet is counted in its own node, not lost among pass/fail."""
+    from sofast_station.station.shift import summarize
+    from sofast_station.web.opcua import values
+
+    verdicts = ["pass", "indeterminate", "indeterminate", "fail", "fault"]
+    records = [{"cycle_id": f"c{i}", "verdict": v, "reasons": ["camera: lost"] if v == "fault" else []}
+               for i, v in enumerate(verdicts)]
+    snap = {"status": {"state": "idle"}, "last": records[-1], "summary": summarize(records),
+            "calibration": {}, "disk": {}, "station": "line-1", "shift_start": "2026-12-02T06:00",
+            "alarms": []}
+    out = values(snap)
+    assert (out["Counters/Indeterminate"], out["Counters/Pass"], out["Counters/Fail"], out["Counters/Fault"]) \
+        == (2, 1, 1, 1)
+    assert out["Counters/Facets"] == 5 and out["Counters/Yield"] == 0.2
+    assert "Counters/Indeterminate" in _documented_paths()
