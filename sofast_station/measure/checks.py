@@ -11,6 +11,7 @@ import numpy as np
 
 from ..errors import CaptureError, DisplayNotShowingError, FacetNotFoundError
 from ..fringes import FringeSet
+from .stats import median, quantile
 
 
 def check_frames(frames: np.ndarray, fringes: FringeSet, shape: tuple[int, int]) -> None:
@@ -101,16 +102,17 @@ def check_order(frames: np.ndarray, fringes: FringeSet, threshold_dn: float) -> 
     reports that.
     """
     flat = frames.reshape(frames.shape[0], -1)
-    sample = flat[:, :: max(1, flat.shape[1] // 200_000)].astype(np.float32)
+    # The counts themselves (no float copy): the largest minus the smallest cannot wrap around.
+    sample = np.ascontiguousarray(flat[:, :: max(1, flat.shape[1] // 200_000)])
     responsive = (sample.max(axis=0) - sample.min(axis=0)) > threshold_dn
     if np.count_nonzero(responsive) < 50:
         return
-    means = sample[:, responsive].mean(axis=1)
+    means = sample[:, responsive].mean(axis=1, dtype=np.float64)
     # Room light that outshines the display drowns the sequence: frame levels then follow the light's
     # flicker and drift, not the patterns, and would look like frames out of order.
     # The swing between frames includes the room light's own changes, so the bar is half of it: room
     # light giving a third of the brightest frame (the display then at most two thirds) is refused.
-    black = float(np.percentile(sample, 1))
+    black = quantile(sample, 0.01)      # np.percentile(sample, 1), by counting (integer counts)
     level, swing = float(means.min()) - black, float(means.max() - means.min())
     if level > 0.5 * swing:
         raise CaptureError(
@@ -138,10 +140,10 @@ def check_repeats(stack: np.ndarray, fringes: FringeSet) -> None:
     not set this bound.
     """
     sample = stack[:, :: max(1, stack.shape[1] // 20_000)].astype(np.float32)
-    contrast = float(np.median(sample[1] - sample[0]))
+    contrast = median(sample[1] - sample[0])
     labels = [p.label for p in fringes.patterns()]
     for k in range(1, stack.shape[0]):
-        change = float(np.median(np.abs(sample[k] - sample[k - 1])))
+        change = median(np.abs(sample[k] - sample[k - 1]))
         if change < 0.02 * contrast:
             raise CaptureError(
                 f"frame {k} ({labels[k]}) repeats frame {k - 1} ({labels[k - 1]}): median change {change:.1f} DN, "
@@ -228,7 +230,7 @@ def slope_curl(valid: np.ndarray, points_m: np.ndarray, slopes: np.ndarray, step
     with np.errstate(invalid="ignore"):
         spacing = np.abs(np.concatenate([(x[:, 1:] - x[:, :-1]).ravel(), (y[1:, :] - y[:-1, :]).ravel()]))
     spacing = spacing[np.isfinite(spacing)]
-    k = max(1, int(round(step_m / float(np.median(spacing))))) if spacing.size else 1
+    k = max(1, int(round(step_m / median(spacing)))) if spacing.size else 1
     if 4 * k >= min(h, w):
         return {"antisymmetric_rms_per_m": 0.0, "symmetric_rms_per_m": 0.0, "step_px": k, "n": 0}
     x, y, sx, sy = grids_in(max(rows[0] - 2 * k, 0), min(rows[-1] + 1 + 2 * k, h),
@@ -255,7 +257,7 @@ def slope_curl(valid: np.ndarray, points_m: np.ndarray, slopes: np.ndarray, step
     d = 0.5 * (g00 - g11)[ok]
 
     def rms(v):
-        v = v - np.median(v)
+        v = v - median(v)
         return float(np.sqrt(np.mean(v * v)))
 
     return {"antisymmetric_rms_per_m": rms(a), "symmetric_rms_per_m": float(np.hypot(rms(s), rms(d)) / np.sqrt(2.0)),

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import AnalysisError
+from .stats import median as _median
 
 
 def _dot(a: np.ndarray, b: np.ndarray) -> float:
@@ -91,16 +92,6 @@ def _bisquare(r: np.ndarray, sigma: float) -> np.ndarray:
     np.maximum(u, 0.0, out=u)
     u *= u
     return u
-
-
-def _median(v: np.ndarray) -> float:
-    """Median of a 1-D array (as np.median), partitioning a scratch copy."""
-    n = v.size
-    half = n // 2
-    if n % 2:
-        return float(np.partition(v, half)[half])
-    part = np.partition(v, (half - 1, half))
-    return float(0.5 * (part[half - 1] + part[half]))
 
 
 def robust_weights(columns: list[np.ndarray], target: np.ndarray, max_iterations: int = 50,

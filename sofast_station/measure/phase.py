@@ -11,6 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .stats import median, quantile
+
 TWO_PI = 2.0 * np.pi
 
 #: Uniform 8-bit quantisation noise, DN (1/sqrt(12)): the floor of any intensity-noise estimate.
@@ -84,8 +86,8 @@ def trimmed_std(r: np.ndarray, trim_sigmas: float = TRIM_SIGMAS, rounds: int = 5
     r = np.asarray(r, dtype=np.float64).ravel()
     if r.size == 0:
         return 0.0
-    a = np.abs(r - np.median(r))
-    s = max(float(np.quantile(a, 0.6827)), 0.5)
+    a = np.abs(r - median(r))
+    s = max(quantile(a, 0.6827), 0.5)
     c = float(trim_sigmas)
     # Variance of a standard Gaussian truncated to |z| <= c, relative to 1.
     frac = math.erf(c / math.sqrt(2.0))

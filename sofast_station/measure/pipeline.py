@@ -28,6 +28,7 @@ from .metrics import focal_length_m, principal_axes, rms_summary, slope_residual
 from .phase import FrameNoise, frame_noise, phase_and_modulation, position_sigma_m, unwrap_positions
 from .pose import fix_range, solve_corner_pose
 from .screen import FlatScreen, ScreenModel
+from .stats import median
 from .pose import placement
 from .surface import intersect_quadratic, normal_slopes, surface_slopes, surface_z
 
@@ -342,21 +343,37 @@ class Fits:
 
 
 def find_region(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, design: FacetDesign,
-                settings: AnalysisSettings) -> Region:
+                settings: AnalysisSettings, pool=None) -> Region:
     """Stage 1: check the capture and find the facet region from dark and white (refuses what cannot be
-    analysed)."""
+    analysed).
+
+    On a *pool*, the frame-order check, the contrast image and half of the frames' gathering run beside
+    the rest; a fault of the frame order is still the one reported when several checks fail."""
+    pool = pool if pool is not None else _Serial()
     cam = geometry.camera
     checks.check_frames(frames, fringes, cam.shape)
     dark, white = frames[0], frames[1]
-    checks.check_order(frames, fringes, settings.mask_threshold_dn)
-    checks.check_response(dark, white, settings.mask_threshold_dn)
-    region = facet_region(dark, white, settings.mask_threshold_dn, settings.max_hole_px)
-    nominal_outline = outline_image_points(design, cam, geometry.fixture_to_camera)
-    checks.check_region(region, float(checks.projected_outline_mask(cam.shape, nominal_outline).sum()))
+    order = pool.submit(checks.check_order, frames, fringes, settings.mask_threshold_dn)
+    contrast = pool.submit(np.subtract, white, dark, dtype=np.float32)    # white - dark in float32 (exact)
+    try:
+        checks.check_response(dark, white, settings.mask_threshold_dn)
+        region = facet_region(dark, white, settings.mask_threshold_dn, settings.max_hole_px)
+        nominal_outline = outline_image_points(design, cam, geometry.fixture_to_camera)
+        checks.check_region(region, float(checks.projected_outline_mask(cam.shape, nominal_outline).sum()))
+    except Exception:
+        order.result()          # frames out of order explain the rest: that is the fault to report
+        raise
+    order.result()
     idx = np.flatnonzero(region)
-    stack = np.take(frames.reshape(frames.shape[0], -1), idx, axis=1)     # faster than [:, idx]
-    contrast = white.astype(np.float32) - dark.astype(np.float32)
-    return Region(region=region, idx=idx, stack=stack, contrast=contrast)
+    flat = frames.reshape(frames.shape[0], -1)
+    stack = np.empty((flat.shape[0], idx.size), dtype=flat.dtype)
+    half = flat.shape[0] // 2
+    # np.take is faster than [:, idx]; each half of the frames gathered on its own thread (the same values)
+    # (mode "clip" lets take write into *out* directly; every index is in range, so it clips nothing)
+    first = pool.submit(np.take, flat[:half], idx, axis=1, out=stack[:half], mode="clip")
+    np.take(flat[half:], idx, axis=1, out=stack[half:], mode="clip")
+    first.result()
+    return Region(region=region, idx=idx, stack=stack, contrast=contrast.result())
 
 
 def measure_phases(region: Region, fringes: FringeSet, screen_size_m: tuple[float, float],
@@ -548,11 +565,13 @@ def fit_models(shape: Shape, design: FacetDesign, settings: AnalysisSettings, po
 
 def report_figures(region: Region, phases: Phases, rays: Rays, pose: CornerPoseResult, shape: Shape, fits: Fits,
                    geometry: StationGeometry, design: FacetDesign, measured_distance_m: float,
-                   settings: AnalysisSettings, with_curl: bool = True) -> dict:
+                   settings: AnalysisSettings, with_curl: bool = True, curl=None) -> dict:
     """Stage 6b: the reported figures (JSON-ready) from the stages' outputs.
 
     *with_curl* False leaves out the slope-curl check (``slope_curl`` None): it judges the capture, not the
     geometry, so the uncertainty's perturbed reruns, which only read the figures, need not pay for it.
+    *curl*, a future of :func:`slope_curl_of` already started (on another thread), is used instead of
+    computing the check here.
     """
     fit, coeffs, cubic, solution = fits.parabola, fits.coefficients, fits.cubic, shape.solution
     idx, vidx = region.idx, rays.vidx
@@ -562,9 +581,12 @@ def report_figures(region: Region, phases: Phases, rays: Rays, pose: CornerPoseR
     tilt = placement(geometry.fixture_to_camera, shape.boresighted_to_camera, design)["mrad"]
     kx, ky = 4.0 * fit.a, 4.0 * fit.b
     principal, angle = principal_axes(fit.a, fit.b, fit.e)
-    valid = np.zeros(region.region.shape, dtype=bool)
-    valid.ravel()[vidx] = True
-    curl = checks.slope_curl(valid, shape.points_m, shape.slopes) if with_curl else None
+    if not with_curl:
+        curl = None
+    elif curl is None:
+        curl = slope_curl_of(region, rays, shape)
+    else:
+        curl = curl.result()
     return {
         "focal_length_x_m": focal_length_m(kx),
         "focal_length_y_m": focal_length_m(ky),
@@ -581,7 +603,7 @@ def report_figures(region: Region, phases: Phases, rays: Rays, pose: CornerPoseR
         "n_points": int(vidx.size),
         "valid_fraction": float(vidx.size / idx.size),
         "facet_pixels": int(idx.size),
-        "median_modulation_dn": float(np.median(phases.min_modulation_dn[rays.ok])),
+        "median_modulation_dn": median(phases.min_modulation_dn[rays.ok]),
         "intensity_noise_dn": phases.noise.noise_dn,
         # A slope field that curls is no surface's: x and y fringe sets swapped (checked in the verdict).
         "slope_curl": curl,
@@ -611,6 +633,13 @@ def report_figures(region: Region, phases: Phases, rays: Rays, pose: CornerPoseR
         "range_correction_m": pose.range_shift_m,
         "measured_distance_m": float(measured_distance_m),
     }
+
+
+def slope_curl_of(region: Region, rays: Rays, shape: Shape) -> dict:
+    """The slope-curl check (:func:`~sofast_station.measure.checks.slope_curl`) of a shape's valid pixels."""
+    valid = np.zeros(region.region.shape, dtype=bool)
+    valid.ravel()[rays.vidx] = True
+    return checks.slope_curl(valid, shape.points_m, shape.slopes)
 
 
 @dataclass
@@ -700,7 +729,7 @@ def reduce_stages(frames: np.ndarray, fringes: FringeSet, geometry: StationGeome
         timer = _Timer()
         if screen is None:
             screen = default_screen(geometry)
-        region = find_region(frames, fringes, geometry, design, settings)
+        region = find_region(frames, fringes, geometry, design, settings, pool)
         timer.lap("mask")
         phases = measure_phases(region, fringes, (screen.width_m, screen.height_m), settings, pixel_mask, pool)
         timer.lap("phase")
@@ -709,10 +738,12 @@ def reduce_stages(frames: np.ndarray, fringes: FringeSet, geometry: StationGeome
         pose = corners_and_pose(region, rays, geometry, design, measured_distance_m, settings)
         timer.lap("pose")
         shape = shape_and_boresight(rays, pose, design, measured_distance_m, settings, pool, timer)
+        # The slope-curl check needs only the shape: it runs on a pool thread beside the fits.
+        curl = pool.submit(slope_curl_of, region, rays, shape)
         fits = fit_models(shape, design, settings, pool)
         timer.lap("fit")
         figures = report_figures(region, phases, rays, pose, shape, fits, geometry, design, measured_distance_m,
-                                 settings)
+                                 settings, curl=curl)
         timer.lap("report")
     return Reduction(region, phases, rays, pose, shape, fits, figures), dict(timer.timings)
 
