@@ -1,0 +1,41 @@
+"""The fast order statistics give numpy's numbers bit for bit (measure/stats.py)."""
+
+import numpy as np
+import pytest
+
+from sofast_station.measure.stats import median, quantile
+
+
+@pytest.mark.parametrize("kind", ["normal", "ties", "float32", "positive"])
+def test_median_and_quantile_are_numpys_bits(kind):
+    rng = np.random.default_rng(7)
+    for _ in range(60):
+        n = int(rng.integers(60, 3000))
+        x = rng.normal(size=n)
+        if kind == "ties":
+            x = np.round(3 * x)
+        elif kind == "float32":
+            x = x.astype(np.float32)
+        elif kind == "positive":
+            x = np.abs(x)
+        assert median(x) == float(np.median(x))
+        if x.dtype == np.float64:
+            for q in (0.0, 0.01, 0.5, 0.6827, 0.99, 1.0, float(rng.random())):
+                assert quantile(x, q) == float(np.quantile(x, q)), (n, q)
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.int16, np.int32])
+def test_integer_quantiles_by_counting_are_numpys(dtype):
+    rng = np.random.default_rng(3)
+    low = -40 if np.issubdtype(dtype, np.signedinteger) else 0
+    for n in (70, 1001, 200_000):
+        x = rng.integers(low, 250, size=n).astype(dtype)
+        for q in (0.0, 0.01, 0.5, 0.6827, 0.99, 1.0):
+            assert quantile(x, q) == float(np.quantile(x, q)), (dtype, n, q)
+
+
+def test_nan_gives_nan_as_numpy():
+    x = np.random.default_rng(1).normal(size=501)
+    x[3] = np.nan
+    assert np.isnan(median(x)) and np.isnan(np.median(x))
+    assert np.isnan(quantile(x, 0.2)) and np.isnan(np.quantile(x, 0.2))
