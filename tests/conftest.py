@@ -21,6 +21,9 @@ def _data_dir(tmp_path, monkeypatch):
     # A cycle deadline far beyond any facet's time on a loaded machine, where a test does not set one on
     # purpose: the tests do not depend on the machine's speed (issue 11).
     monkeypatch.setenv("SOFAST_DEFAULT_DEADLINE_S", "120")
+    # `batch` and `report` lower their own process's priority (issue 11). Called in-process from a test,
+    # that would renice the whole pytest run for every later test; tests/test_priority.py checks it apart.
+    monkeypatch.setenv("SOFAST_NICE", "0")
 
 
 SMALL_STATION = """
