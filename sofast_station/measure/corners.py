@@ -43,12 +43,18 @@ class OutlineFit:
     edge_rms_px : (N,) float array
         RMS distance of each side's edge points from its fitted curve, pixels.
     n_edge_points : (N,) int array
+    corner_cov_px2 : (2N, 2N) float array or None
+        Covariance of the corners' coordinates (c0 column, c0 row, c1 column, ...), pixels squared, from
+        the covariance of each side's fitted curve (:func:`side_covariance`) carried to its two corners
+        (:func:`corner_covariance`). Corners sharing a side are correlated: a side's offset moves both,
+        its tilt moves them in opposite directions.
     """
 
     corners_px: np.ndarray
     sides: np.ndarray
     edge_rms_px: np.ndarray
     n_edge_points: np.ndarray
+    corner_cov_px2: np.ndarray | None = None
 
 
 def rough_outline(region: np.ndarray, n_corners: int) -> np.ndarray:
@@ -123,7 +129,8 @@ def _edge_points(contrast: np.ndarray, p0: np.ndarray, p1: np.ndarray, inside_si
     return np.column_stack([s, edge]) if along_x else np.column_stack([edge, s])
 
 
-def _fit_side(points: np.ndarray, rounds: int = 4, degree: int = 2) -> tuple[np.ndarray, float, int]:
+def _fit_side(points: np.ndarray, rounds: int = 4, degree: int = 2,
+              with_cov: bool = False) -> tuple[np.ndarray, float, int]:
     """Quadratic curve through one side's edge points, with robust rejection of stray points.
 
     A straight edge on a curved facet is a curve in space: its corners stand nearer the camera than its
@@ -140,6 +147,8 @@ def _fit_side(points: np.ndarray, rounds: int = 4, degree: int = 2) -> tuple[np.
     rms : float
         RMS distance of the kept points from the curve, pixels.
     n_kept : int
+    cov : (4,) tuple, only with *with_cov*
+        :func:`side_covariance` of the fit: (mid, half, 3 x 3 covariance of (a, b, c) in the side's own s).
     """
     centre = points.mean(axis=0)
     _, _, vt = np.linalg.svd(points - centre, full_matrices=False)
@@ -159,7 +168,55 @@ def _fit_side(points: np.ndarray, rounds: int = 4, degree: int = 2) -> tuple[np.
         keep = new_keep
     rms = float(np.sqrt(np.mean(res[keep] ** 2)))
     coef = np.concatenate([coef, np.zeros(3 - coef.size)])      # a line has c = 0
-    return np.array([centre[0], centre[1], t[0], t[1], *coef]), rms, int(keep.sum())
+    curve = np.array([centre[0], centre[1], t[0], t[1], *coef])
+    if not with_cov:
+        return curve, rms, int(keep.sum())
+    cov = side_covariance(s[keep], res[keep], np.ones(int(keep.sum())), degree)
+    return curve, rms, int(keep.sum()), cov
+
+
+def _lag1_inflation(res: np.ndarray) -> float:
+    """Variance factor (1 + rho) / (1 - rho) for residuals with lag-1 autocorrelation rho (in the order
+    along the side; rho taken in [0, 0.8]): neighbouring edge points share blur and pixel sampling, so
+    their errors are not independent and a fit's coefficients vary more than white noise would say."""
+    if res.size < 10:
+        return 1.0
+    r = res - res.mean()
+    den = float(r @ r)
+    rho = float(np.clip((r[:-1] @ r[1:]) / den, 0.0, 0.8)) if den > 0 else 0.0
+    return (1.0 + rho) / (1.0 - rho)
+
+
+def side_covariance(s: np.ndarray, res: np.ndarray, weights: np.ndarray, degree: int = 2,
+                    mid: float | None = None, half: float | None = None, correlated: bool = True) -> tuple:
+    """Covariance of a side curve d = a + b u + c u^2 (u = (s - mid) / half) fitted by (weighted) least
+    squares to edge points at positions *s* (pixels along the side, sorted or not) with residuals *res*.
+
+    The residuals' scatter sets the noise (its weighted RMS, with the fit's degrees of freedom), inflated by
+    their lag-1 autocorrelation along the side (:func:`_lag1_inflation`) when *correlated* (not for a
+    staircase, whose rows' sawtooth residual is quantisation, not noise).
+
+    Returns
+    -------
+    (mid, half, cov) : cov is the 3 x 3 covariance of (a, b, c), pixels squared (zero row and column for c
+    when *degree* is 1).
+    """
+    mid = float(np.mean(s)) if mid is None else float(mid)
+    half = max(0.5 * float(np.ptp(s)), 1.0) if half is None else float(half)
+    u = (np.asarray(s, float) - mid) / half
+    order = np.argsort(u)
+    x = np.column_stack([np.ones_like(u), u, u * u])[:, :degree + 1]
+    w = np.asarray(weights, float)
+    n, k = u.size, degree + 1
+    wr = (w * res)[order]
+    sigma2 = float(wr @ wr) / max(n - k, 1)
+    xw = x * w[:, None]
+    cov = np.zeros((3, 3))
+    try:
+        cov[:k, :k] = np.linalg.inv(xw.T @ xw) * sigma2 * (_lag1_inflation(wr) if correlated else 1.0)
+    except np.linalg.LinAlgError:
+        cov[:k, :k] = np.nan
+    return mid, half, cov
 
 
 def is_staircase(edge: np.ndarray) -> bool:
@@ -172,7 +229,7 @@ def is_staircase(edge: np.ndarray) -> bool:
     return edge.size >= 10 and float(np.mean(off < STAIRCASE_TOLERANCE_PX)) > 0.8
 
 
-def _staircase_side(points: np.ndarray, along_x: bool) -> tuple[np.ndarray, float, int]:
+def _staircase_side(points: np.ndarray, along_x: bool, with_cov: bool = False) -> tuple[np.ndarray, float, int]:
     """:func:`_fit_side` for a point-sampled side, weighting the steps of its staircase.
 
     A row or column of a point-sampled edge only says between which two pixel centres the edge passes
@@ -206,9 +263,15 @@ def _staircase_side(points: np.ndarray, along_x: bool) -> tuple[np.ndarray, floa
     a, b, c = a2 - b2 * mid / half + c2 * mid * mid / half ** 2, b2 / half - 2 * c2 * mid / half ** 2, c2 / half ** 2
     rms = float(np.sqrt(np.mean(res ** 2)))
     if along_x:      # point = s (1, 0) + d (0, 1): t = (1, 0), n = (0, 1)
-        return np.array([0.0, 0.0, 1.0, 0.0, a, b, c]), rms, int(s.size)
-    # point = s (0, 1) + d' (-1, 0) with d' = -(a + b s + c s^2): t = (0, 1), n = (-1, 0)
-    return np.array([0.0, 0.0, 0.0, 1.0, -a, -b, -c]), rms, int(s.size)
+        curve = np.array([0.0, 0.0, 1.0, 0.0, a, b, c])
+    else:            # point = s (0, 1) + d' (-1, 0) with d' = -(a + b s + c s^2): t = (0, 1), n = (-1, 0)
+        curve = np.array([0.0, 0.0, 0.0, 1.0, -a, -b, -c])
+    if not with_cov:
+        return curve, rms, int(s.size)
+    # Weighted residuals of rows/columns and steps alike (each ~1 when the weights are right).
+    res_all = dd - design @ coef
+    cov = side_covariance(ss, res_all, w, 2, mid, half, correlated=False)
+    return curve, rms, int(s.size), cov
 
 
 def _side_residual(curve: np.ndarray, p: np.ndarray) -> tuple[float, np.ndarray]:
@@ -261,7 +324,7 @@ def fit_outline(contrast: np.ndarray, region: np.ndarray, n_corners: int,
     rough = rough_outline(region, n_corners)
     centroid = rough.mean(axis=0)
     contrast = contrast.astype(np.float64, copy=False)
-    curves, rms, counts = [], [], []
+    curves, rms, counts, covs = [], [], [], []
     for i in range(n_corners):
         p0, p1 = rough[i], rough[(i + 1) % n_corners]
         d = p1 - p0
@@ -275,12 +338,51 @@ def fit_outline(contrast: np.ndarray, region: np.ndarray, n_corners: int,
                 f"side {i + 1} of the facet outline is too short or too close to the image border to locate "
                 "(the facet may be cut off or too small in the image)")
         edge = pts[:, 1] if along_x else pts[:, 0]
-        curve, r, n = _staircase_side(pts, along_x) if is_staircase(edge) else _fit_side(pts)
+        curve, r, n, c = (_staircase_side(pts, along_x, with_cov=True) if is_staircase(edge)
+                          else _fit_side(pts, with_cov=True))
         curves.append(curve)
+        covs.append(c)
         rms.append(r)
         counts.append(n)
     corners = np.array([_intersect_sides(curves[i - 1], curves[i]) for i in range(n_corners)])
-    return OutlineFit(corners, np.array(curves), np.array(rms), np.array(counts))
+    cov = corner_covariance(corners, curves, covs)
+    return OutlineFit(corners, np.array(curves), np.array(rms), np.array(counts), cov)
+
+
+def corner_covariance(corners: np.ndarray, curves: list, covs: list) -> np.ndarray:
+    """Covariance (2N x 2N, pixels squared) of corners ``i`` = intersection of sides ``i - 1`` and ``i``.
+
+    A change dd of a side's curve moves a corner on it by dp with g . dp = dd (g the side residual's
+    gradient there); the two sides through a corner give dp = G^-1 (dd_1, dd_2). Each side's dd at its two
+    corners is correlated through its fit's covariance (*covs*: :func:`side_covariance` tuples).
+    """
+    n = len(corners)
+    # jac[i]: (2, 2N_side_offsets) map from the side offsets at the corners to corner i's (column, row).
+    # The side offsets: for side j, its offset at corner j (start) and at corner j + 1 (end) -> index 2j, 2j+1.
+    jac = np.zeros((2 * n, 2 * n))
+    basis = np.zeros((2 * n, 3))
+    side_of = np.zeros(2 * n, dtype=int)
+    for i in range(n):
+        prev, cur = (i - 1) % n, i
+        p = corners[i]
+        _, g1 = _side_residual(curves[prev], p)
+        _, g2 = _side_residual(curves[cur], p)
+        g_inv = np.linalg.inv(np.array([g1, g2]))
+        # offset of side prev at its end (corner i) and side cur at its start (corner i)
+        jac[2 * i:2 * i + 2, 2 * prev + 1] = g_inv[:, 0]
+        jac[2 * i:2 * i + 2, 2 * cur] = g_inv[:, 1]
+        for j, slot in ((prev, 2 * prev + 1), (cur, 2 * cur)):
+            o, t = curves[j][:2], curves[j][2:4]
+            mid, half, _ = covs[j]
+            u = ((p - o) @ t - mid) / half
+            basis[slot] = (1.0, u, u * u)
+            side_of[slot] = j
+    offsets = np.zeros((2 * n, 2 * n))
+    for a in range(2 * n):
+        for b in range(2 * n):
+            if side_of[a] == side_of[b]:
+                offsets[a, b] = basis[a] @ covs[side_of[a]][2] @ basis[b]
+    return jac @ offsets @ jac.T
 
 
 def match_corners(found_px: np.ndarray, expected_px: np.ndarray, tolerance_px: float) -> np.ndarray:

@@ -292,6 +292,10 @@ class CornerPoseResult:
         Standard uncertainty of each corner coordinate from the scatter of its sides' edge points about
         their fitted curves (3 x RMS / sqrt(points): a quadratic's end point), pixels; None when the
         corners were given.
+    corner_cov_px2 : (2n, 2n) array or None
+        Covariance of the corners' coordinates (c0 column, c0 row, c1 column, ...) in design order, pixels
+        squared, from the sides' fits (:func:`~sofast_station.measure.corners.corner_covariance`); None
+        when the corners were given.
     """
 
     corners_px: np.ndarray
@@ -300,6 +304,7 @@ class CornerPoseResult:
     range_shift_m: float
     outline_agreement: float
     corner_sigma_px: float | None = None
+    corner_cov_px2: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -487,7 +492,12 @@ def corners_and_pose(region: Region, rays: Rays, geometry: StationGeometry, desi
     found = corners_mod.match_corners(outline.corners_px, expected, settings.corner_tolerance_px)
     result = pose_from_corners(found, region, rays, geometry, design, measured_distance_m, settings)
     sigma = 3.0 * np.asarray(outline.edge_rms_px, float) / np.sqrt(np.maximum(outline.n_edge_points, 1))
-    return dataclasses.replace(result, corner_sigma_px=float(np.median(sigma)))
+    cov = None
+    if outline.corner_cov_px2 is not None:
+        order = [int(np.flatnonzero(np.all(outline.corners_px == f, axis=1))[0]) for f in found]
+        idx = np.array([[2 * j, 2 * j + 1] for j in order]).ravel()
+        cov = outline.corner_cov_px2[np.ix_(idx, idx)]
+    return dataclasses.replace(result, corner_sigma_px=float(np.median(sigma)), corner_cov_px2=cov)
 
 
 def pose_from_corners(found: np.ndarray, region: Region, rays: Rays, geometry: StationGeometry,

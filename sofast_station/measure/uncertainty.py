@@ -163,6 +163,26 @@ class InputUncertainties:
         return out
 
 
+    def with_geometry_record(self, std: dict | None) -> "InputUncertainties":
+        """Where the geometry record in force (``calibrate geometry``, within tolerance, made with the
+        present geometry) states what it determined (``fixture_translation_mm``, ``fixture_rotation_mrad``:
+        3 standard uncertainties each; ``distance_mm``), use them: the fixture pose's replace the
+        ``[uncertainty]`` values; the distance's is how well the check confirmed the range finder, which
+        does not make one reading better than the instrument's own accuracy, so the larger is kept."""
+        if not isinstance(std, dict) or not std:
+            return self
+        out = self
+        try:
+            for key in ("fixture_translation_mm", "fixture_rotation_mrad"):
+                if key in std and len(std[key]) == 3:
+                    out = dataclasses.replace(out, **{key: tuple(float(v) for v in std[key])})
+            if "distance_mm" in std:
+                out = dataclasses.replace(out, distance_mm=max(out.distance_mm, float(std["distance_mm"])))
+        except (TypeError, ValueError):
+            return self
+        return out
+
+
 @dataclass(frozen=True)
 class Input:
     """One row of the budget: a station input, its standard uncertainty and unit, and its kind."""
@@ -500,29 +520,102 @@ def _clean(v: float):
     return None if v is None or not np.isfinite(v) else float(v)
 
 
-def capture_scales(reduction, sens: Sensitivities, inputs: InputUncertainties) -> np.ndarray:
+def small_sample_factor(dof: int) -> float:
+    """Standard deviation of a Type A quantity estimated from *dof* degrees of freedom, per unit estimate.
+
+    A standard deviation s estimated from nu observations leaves the quantity t-distributed about its
+    estimate, with standard deviation s sqrt(nu / (nu - 2)) (GUM Supplement 1, 6.4.9): for the few
+    fringe sets of a capture (4 with two periods per axis) that is 1.41 s, without which a k = 2 interval
+    covers about 88 % instead of 95 %. At most sqrt(3) (nu = 3) when nu is smaller.
+    """
+    nu = max(int(dof), 3)
+    return float(np.sqrt(nu / (nu - 2.0)))
+
+
+#: Captures whose frame-brightness estimates are pooled (the most recent ones of a geometry and recipe).
+FRAME_POOL_CAPTURES = 50
+#: A capture whose own frame-brightness estimate is beyond this quantile of the pooled one (F test) uses
+#: its own: the room light changed, or this capture was disturbed.
+FRAME_POOL_QUANTILE = 0.99
+
+
+def frame_brightness_dn(reduction) -> tuple[float, int]:
+    """The capture's own frame-to-frame brightness noise sigma_f (DN) and its degrees of freedom: each
+    set's mean consistency residual I0 + I2 - I1 - I3 has variance 4 sigma_f^2 (one value per set)."""
+    offsets = getattr(reduction.phases, "set_offsets_dn", {}) or {}
+    allsets = [v for a in ("x", "y") for v in offsets.get(a, [])]
+    if not allsets:
+        return 0.0, 0
+    return float(np.sqrt(np.mean(np.square(allsets)) / 4.0)), len(allsets)
+
+
+def pooled_frame_brightness(own_dn: float, dof: int, pool) -> dict:
+    """The frame-brightness noise a capture's uncertainty uses: pooled over the recent captures of the same
+    geometry and recipe (GUM 4.2.4: a pooled variance of a measurement under statistical control), or the
+    capture's own when it is significantly larger (F test at :data:`FRAME_POOL_QUANTILE`).
+
+    *pool* (a deque, or None for no pooling) receives this capture's (sum of squares, dof). The value used
+    is widened by :func:`small_sample_factor` of its degrees of freedom.
+
+    Returns
+    -------
+    dict
+        ``sigma_dn`` (used, widened), ``own_dn``, ``pooled_dn``, ``dof`` (of the value used), ``captures``
+        (in the pool), ``source`` ("pooled" or "own").
+    """
+    own = {"sigma_dn": own_dn * small_sample_factor(dof), "own_dn": own_dn, "pooled_dn": None, "dof": dof,
+           "captures": 1, "source": "own"}
+    if pool is None or dof == 0:
+        return own
+    pool.append((own_dn ** 2 * dof, dof))
+    n = sum(d for _, d in pool)
+    pooled = float(np.sqrt(sum(ss for ss, _ in pool) / n))
+    if len(pool) == 1:
+        return own | {"pooled_dn": pooled}
+    from scipy.stats import f as f_dist
+    limit = float(f_dist.ppf(FRAME_POOL_QUANTILE, dof, max(n - dof, 1)))
+    if pooled > 0 and own_dn ** 2 / pooled ** 2 > limit:
+        return own | {"pooled_dn": pooled, "captures": len(pool)}
+    return {"sigma_dn": pooled * small_sample_factor(n), "own_dn": own_dn, "pooled_dn": pooled, "dof": n,
+            "captures": len(pool), "source": "pooled"}
+
+
+def capture_scales(reduction, sens: Sensitivities, inputs: InputUncertainties,
+                   frame_sigma_dn: float | None = None) -> np.ndarray:
     """Per budget row, the factor by which this capture's own estimate scales the cached sensitivity
     (1 for the systematic rows).
 
-    * corner location: the capture's corner uncertainty (``CornerPoseResult.corner_sigma_px``) over the
-      ``corner_px`` the sensitivities were computed at;
+    * corner location: each corner coordinate's standard uncertainty from the sides' fits (the diagonal
+      of ``CornerPoseResult.corner_cov_px2``; the median ``corner_sigma_px`` without it) over the
+      ``corner_px`` the sensitivities were computed at (:func:`combine` also uses the correlations);
     * frame-to-frame brightness: the phase-error amplitude sigma_f / (sqrt(2) b) of each quadrature, with
       sigma_f the frames' brightness noise from the sets' mean consistency residuals
       (I0 + I2 - I1 - I3 has variance 4 sigma_f^2) and b the median finest-set modulation of the axis,
-      over the reference amplitude.
+      over the reference amplitude; sigma_f is *frame_sigma_dn* when given (:func:`pooled_frame_brightness`),
+      else the capture's own times :func:`small_sample_factor` of its number of sets (it comes from that few
+      values).
     """
     scales = np.ones(len(sens.inputs))
     sigma_c = getattr(reduction.pose, "corner_sigma_px", None)
-    offsets = getattr(reduction.phases, "set_offsets_dn", {}) or {}
-    allsets = [v for a in ("x", "y") for v in offsets.get(a, [])]
-    sigma_f = float(np.sqrt(np.mean(np.square(allsets)) / 4.0)) if allsets else 0.0
+    cov = getattr(reduction.pose, "corner_cov_px2", None)
+    corner_rows = [i for i, inp in enumerate(sens.inputs) if inp.group == "corner location"]
+    per_coordinate = None
+    if cov is not None and cov.shape == (len(corner_rows), len(corner_rows)):
+        per_coordinate = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    if frame_sigma_dn is None:
+        own, dof = frame_brightness_dn(reduction)
+        sigma_f = own * small_sample_factor(dof)
+    else:
+        sigma_f = float(frame_sigma_dn)
     ok = reduction.rays.ok
     amp = {}
     for a in ("x", "y"):
         b = float(np.median(reduction.phases.finest_modulation_dn[a][ok]))
         amp[a] = sigma_f / (np.sqrt(2.0) * max(b, 1e-9))
     for i, inp in enumerate(sens.inputs):
-        if inp.group == "corner location" and sigma_c is not None and inp.u > 0:
+        if inp.group == "corner location" and per_coordinate is not None and inp.u > 0:
+            scales[i] = per_coordinate[corner_rows.index(i)] / inp.u
+        elif inp.group == "corner location" and sigma_c is not None and inp.u > 0:
             scales[i] = sigma_c / inp.u
         elif inp.group == "frame-to-frame brightness":
             scales[i] = amp[inp.name.split()[2]] / inp.u
@@ -530,16 +623,30 @@ def capture_scales(reduction, sens: Sensitivities, inputs: InputUncertainties) -
 
 
 def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs: InputUncertainties,
-            scales: np.ndarray | None = None) -> dict:
+            scales: np.ndarray | None = None, corner_cov: np.ndarray | None = None) -> dict:
     """The figures' expanded uncertainties, the noise floor and the budget, as figure keys to add.
 
     Returns ``{"name_U": ..., "name_U_random": ..., "coverage_factor": 2, "slope_rms_noise_mrad": ...,
     "slope_rms_corrected_mrad": ..., "slope_rms_corrected_mrad_U": ..., "uncertainty_budget": ...}``.
     The measured slope RMS's U also covers the noise's bias (the measured value minus the noise-corrected
     one), which the measured value does not remove.
+
+    *corner_cov* (2n x 2n, pixels squared, the corners' coordinates in budget order): the corner rows'
+    linear parts are then carried with their correlations, as sqrt(J^T C J) with J the sensitivities per
+    pixel, split into independent rows (C = M M^T, row contributions M^T J) so the budget still adds up.
     """
     sc = np.ones(len(sens.inputs)) if scales is None else np.asarray(scales, float)
-    contrib = np.sqrt((sens.linear * sc[:, None]) ** 2 + 2.0 * (sens.curvature * (sc ** 2)[:, None]) ** 2)
+    linear = sens.linear * sc[:, None]
+    rows = [i for i, inp in enumerate(sens.inputs) if inp.group == "corner location"]
+    if corner_cov is not None and np.shape(corner_cov) == (len(rows), len(rows)) and rows \
+            and np.all(np.isfinite(corner_cov)):
+        u_ref = np.array([sens.inputs[i].u for i in rows])
+        jac = sens.linear[rows] / u_ref[:, None]                           # figure per pixel
+        w, v = np.linalg.eigh(0.5 * (corner_cov + corner_cov.T))
+        m = v * np.sqrt(np.clip(w, 0.0, None))[None, :]
+        linear = linear.copy()
+        linear[rows] = m.T @ np.nan_to_num(jac)
+    contrib = np.sqrt(linear ** 2 + 2.0 * (sens.curvature * (sc ** 2)[:, None]) ** 2)
     kinds = np.array([i.kind for i in sens.inputs])
     u_sys2 = np.nansum(contrib[kinds == "systematic"] ** 2, axis=0)
     u_cor2 = np.nansum(contrib[kinds == "random"] ** 2, axis=0)
@@ -626,7 +733,15 @@ def uncertainty_figures(reduction, *, fringes, geometry, design, measured_distan
             cache[cache_key] = sens
     noise = noise_propagation(reduction, fringes=fringes, geometry=geometry, design=design, settings=settings,
                               screen=screen)
-    out = combine(reduction.figures, sens, noise, inputs, capture_scales(reduction, sens, inputs))
+    pool = None
+    if cache is not None and cache_key is not None:
+        from collections import deque
+        pool = cache.setdefault(("frame brightness", cache_key), deque(maxlen=FRAME_POOL_CAPTURES))
+    frame = pooled_frame_brightness(*frame_brightness_dn(reduction), pool)
+    out = combine(reduction.figures, sens, noise, inputs, capture_scales(reduction, sens, inputs, frame["sigma_dn"]),
+                  getattr(reduction.pose, "corner_cov_px2", None))
+    out["uncertainty_budget"]["frame_brightness"] = {k: (_sig(v, 4) if isinstance(v, float) else v)
+                                                     for k, v in frame.items()}
     # Not a figure (a timing): :func:`~sofast_station.measure.pipeline.analyse` moves it to the timings.
     out["_sensitivity_seconds"] = sens.seconds if fresh else 0.0
     return out

@@ -53,3 +53,34 @@ def test_corners_far_from_the_fixture_are_refused():
     with pytest.raises(FacetNotFoundError, match="misplaced"):
         match_corners(found, found + 200.0, tolerance_px=50)
     assert np.array_equal(match_corners(found[[2, 3, 0, 1]], found, 5), found)
+
+
+def test_corner_covariance_matches_the_scatter_over_noise():
+    """The corners' covariance from the sides' fits (issue 12: corner noise is not isotropic and corners on
+    one side move together) against the scatter of 40 noise draws of a blurred, tilted quadrilateral: each
+    coordinate's standard deviation, and the combinations a pose sees (a side's tilt, the outline's size),
+    within a factor 1.6."""
+    from scipy.ndimage import gaussian_filter
+
+    c, s = np.cos(np.radians(12.0)), np.sin(np.radians(12.0))
+    half = np.array([[-120.3, -100.2], [121.1, -98.7], [119.4, 102.6], [-118.8, 100.9]])
+    true = half @ np.array([[c, s], [-s, c]]) + [160.37, 140.81]
+    cov = gaussian_filter(coverage_image(true, (280, 320), ss=8), 1.5)
+    rng = np.random.default_rng(4)
+    errors, predicted = [], []
+    for _ in range(40):
+        fit = fit_outline(180.0 * cov + rng.normal(0, 3.0, cov.shape), cov > 0.1, 4)
+        order = [int(np.argmin(np.linalg.norm(fit.corners_px - t, axis=1))) for t in true]
+        idx = np.array([[2 * j, 2 * j + 1] for j in order]).ravel()
+        errors.append((fit.corners_px[order] - true).ravel())
+        predicted.append(fit.corner_cov_px2[np.ix_(idx, idx)])
+    seen = np.cov(np.array(errors).T)
+    stated = np.mean(predicted, axis=0)
+    combos = {f"corner {i} {'uv'[k]}": np.eye(8)[2 * i + k] for i in range(4) for k in range(2)}
+    combos["top side's tilt (v1 - v0)"] = np.array([0, -1, 0, 1, 0, 0, 0, 0], float)
+    combos["left side's tilt (u3 - u0)"] = np.array([-1, 0, 0, 0, 0, 0, 1, 0], float)
+    combos["width (u1 + u2 - u0 - u3)"] = np.array([-1, 0, 1, 0, 1, 0, -1, 0], float)
+    for name, w in combos.items():
+        ratio = np.sqrt(w @ stated @ w / (w @ seen @ w))
+        print(f"{name}: stated / seen {ratio:.2f}")
+        assert 1 / 1.6 < ratio < 1.6, name

@@ -14,7 +14,7 @@ import pytest
 from sofast_station.config import load_config
 from sofast_station.errors import ConfigError
 from sofast_station.measure.pipeline import analyse
-from sofast_station.measure.uncertainty import SCALAR_PATHS, InputUncertainties, get_path, path_name
+from sofast_station.measure.uncertainty import SCALAR_PATHS, InputUncertainties, Sensitivities, get_path, path_name
 from sofast_station.station.study import TwinRig, coverage_table, run_repeats
 from tests.conftest import ROOT
 
@@ -88,7 +88,7 @@ def test_noise_explained_matches_the_scatter_between_two_captures(two_captures):
 
 def test_sensitivities_are_computed_once_per_geometry_and_recipe(two_captures):
     (a, b), cache = two_captures
-    assert len(cache) == 1
+    assert sum(isinstance(v, Sensitivities) for v in cache.values()) == 1     # (and the frame-brightness pool)
     assert a.timings_s["uncertainty_sensitivities"] > 0 and "uncertainty_sensitivities" not in b.timings_s
     assert a.timings_s["uncertainty"] > 0 and b.timings_s["uncertainty"] > 0
 
@@ -137,3 +137,30 @@ def test_study_repeatability_command(rig, tmp_path, capsys):
     for name in ("focal_length_x_m", "twist_mrad_per_m", "slope_rms_mrad.design.magnitude", "placement.mm.0"):
         assert rows[name]["std_over_U_random"] < 3.0, rows[name]
     assert rows["focal_length_x_m"]["grr_class"] == "acceptable"
+
+
+def test_frame_brightness_is_pooled_over_captures_and_widened_for_few_values():
+    """A capture's four fringe sets give its frame-brightness noise with 4 degrees of freedom only: alone,
+    it is widened by sqrt(4 / 2) (the t distribution's standard deviation); pooled over the recent captures
+    it converges on the true value; a capture far above the pool (the room light changed) keeps its own."""
+    from collections import deque
+
+    from sofast_station.measure.uncertainty import pooled_frame_brightness, small_sample_factor
+
+    assert small_sample_factor(4) == pytest.approx(np.sqrt(2.0)) and small_sample_factor(1000) < 1.002
+    alone = pooled_frame_brightness(0.8, 4, None)
+    assert alone["source"] == "own" and alone["sigma_dn"] == pytest.approx(0.8 * np.sqrt(2.0))
+    rng = np.random.default_rng(0)
+    pool = deque(maxlen=50)
+    used = []
+    for _ in range(60):
+        own = float(np.sqrt(np.mean(rng.normal(0.0, 1.0, 4) ** 2)))      # true sigma 1 DN, 4 values
+        used.append(pooled_frame_brightness(own, 4, pool))
+    pooled = [u for u in used[20:] if u["source"] == "pooled"]
+    assert len(pool) == 50 and len(pooled) >= 36 and pooled[-1]["dof"] == 200     # (the F test's 1 % aside)
+    assert abs(pooled[-1]["sigma_dn"] - 1.0) < 0.15
+    spread_own = np.std([u["own_dn"] for u in used[20:]])
+    spread_used = np.std([u["sigma_dn"] for u in pooled])
+    assert spread_used < 0.3 * spread_own                # a stable U instead of one that jumps by 35 %
+    disturbed = pooled_frame_brightness(4.0, 4, pool)
+    assert disturbed["source"] == "own" and disturbed["sigma_dn"] > 4.0
