@@ -171,6 +171,7 @@ def load_config(path: str | Path, use_camera_record: bool = True) -> StationConf
     uncertainty = InputUncertainties.from_table(raw.get("uncertainty", {}), f"{where} [uncertainty]")
     if camera_record is not None:
         uncertainty = uncertainty.with_camera_record(camera_record)
+    uncertainty = uncertainty.with_geometry_record(_geometry_record_std(data_dir, geometry))
     return StationConfig(path=path, name=str(st.get("name", path.stem)), data_dir=data_dir, backend=backend,
                          facet_path=facet_path, design=design, geometry=geometry, fringes=fringes,
                          analysis=analysis, limits=limits, quality=quality, radiometric_path=radiometric,
@@ -188,6 +189,22 @@ def _optics(raw: dict, where: str):
         raise ConfigError(f"{where} [limits] sets {', '.join(used)} but [optics] enabled = false: the optical "
                           "figures are not computed; enable [optics] or remove those limits")
     return optics
+
+
+def _geometry_record_std(data_dir: Path, geometry) -> dict:
+    """What the newest geometry record (``calibrate geometry``) lends the uncertainty budget, if it was
+    within tolerance and made with this geometry (:func:`~sofast_station.calibrate.geometry.budget_std`);
+    {} when there is none or it cannot be read (the check's own command reports those)."""
+    from .calibrate.geometry import budget_std, load_geometry_record
+    from .calibrate.store import newest_record_path
+
+    path = newest_record_path(data_dir, "geometry")
+    if path is None:
+        return {}
+    try:
+        return budget_std(load_geometry_record(path), geometry)
+    except ConfigError:
+        return {}
 
 
 def camera_from_record(data_dir: Path, stated: CameraIntrinsics, where: str) -> tuple[CameraIntrinsics, dict]:

@@ -11,8 +11,15 @@ Every image is either used or rejected with a reason:
   above 0.5 px): the corners were misdetected; the rest is calibrated again.
 
 The model is OpenCV's pinhole with distortion k1, k2, p1, p2, k3 (k3 held at 0 unless asked for: a
-long-focus lens cannot tell it from k1 and k2). The result is stored as a camera record under
-``data_dir/calibration/camera/`` with the reprojection RMS and the verdict on every image.
+long-focus lens cannot tell it from k1 and k2; k2 too may be held at 0). The result is stored as a camera
+record under ``data_dir/calibration/camera/`` with the reprojection RMS, the standard deviation of every
+parameter and the verdict on every image.
+
+The calibration judges itself (:func:`judge_calibration`, thresholds below, argued in
+docs/calibration.md): ``pass``, ``warn`` (recorded, with the warnings) or ``refused`` (no record: the
+parameters are not determined by the views) from the reprojection RMS, OpenCV's standard deviations of
+the parameters (focal length relative, principal point against the image width, distortion as the
+displacement it leaves uncertain at the image's corners) and how the views' points cover the image.
 """
 
 from __future__ import annotations
@@ -32,6 +39,22 @@ from .store import write_record
 log = logging.getLogger(__name__)
 
 SCHEMA = 1
+
+#: Verdict thresholds (warn, refuse) of :func:`judge_calibration`; docs/calibration.md argues them.
+#: Reprojection RMS over the used images, pixels (a sharp board on a good lens gives 0.05-0.2 px).
+RMS_PX = (0.3, 1.0)
+#: Standard deviation of each focal length over the focal length.
+FOCAL_RELATIVE = (1e-3, 5e-3)
+#: Standard deviation of each principal point coordinate over the image width.
+PRINCIPAL_OF_WIDTH = (5e-3, 2e-2)
+#: Displacement the distortion terms' standard deviations leave at the image's corners, pixels.
+DISTORTION_CORNER_PX = (0.5, 2.0)
+#: Coverage: the image is cut into COVERAGE_GRID cells (across, down); warn under this fraction holding
+#: a point of some view, and when a corner zone (CORNER_ZONE of the width and height from a corner)
+#: holds none.
+COVERAGE_GRID = (8, 6)
+MIN_COVERAGE = 0.6
+CORNER_ZONE = 0.2
 
 
 @dataclass(frozen=True)
@@ -148,6 +171,10 @@ class CameraCalibration:
     images : list of ImageResult
     board : BoardSpec
     fix_k3 : bool
+    fix_k2 : bool
+        k2 (and k3) held at 0.
+    quality : dict
+        :func:`judge_calibration`'s verdict, reasons, measures and advice.
     """
 
     intrinsics: CameraIntrinsics
@@ -156,6 +183,12 @@ class CameraCalibration:
     images: list
     board: BoardSpec
     fix_k3: bool
+    fix_k2: bool = False
+    quality: dict = field(default_factory=dict)
+
+    @property
+    def verdict(self) -> str:
+        return self.quality.get("verdict", "pass")
 
     @property
     def used(self) -> int:
@@ -286,9 +319,123 @@ def detect_board(image: np.ndarray, board: BoardSpec, name: str = "", min_corner
     return out
 
 
+def coverage(points: list[np.ndarray], width_px: int, height_px: int, grid: tuple[int, int] = COVERAGE_GRID,
+             corner_zone: float = CORNER_ZONE) -> dict:
+    """How the detected points of all views cover the image.
+
+    Returns
+    -------
+    dict
+        ``cells``: fraction of the grid's cells holding a point; ``corners``: how many of the image's four
+        corner zones (*corner_zone* of the width and height from each corner) hold one; ``border``:
+        fraction of the grid's outer ring of cells holding one; ``grid``.
+    """
+    gx, gy = grid
+    pts = np.concatenate([np.asarray(p, float).reshape(-1, 2) for p in points]) if points else np.empty((0, 2))
+    hit = np.zeros((gy, gx), dtype=bool)
+    if len(pts):
+        cx = np.clip((pts[:, 0] / width_px * gx).astype(int), 0, gx - 1)
+        cy = np.clip((pts[:, 1] / height_px * gy).astype(int), 0, gy - 1)
+        hit[cy, cx] = True
+    ring = np.ones_like(hit)
+    ring[1:-1, 1:-1] = False
+    zx, zy = corner_zone * width_px, corner_zone * height_px
+    corners = 0
+    for left in (True, False):
+        for top in (True, False):
+            inx = pts[:, 0] < zx if left else pts[:, 0] > width_px - zx
+            iny = pts[:, 1] < zy if top else pts[:, 1] > height_px - zy
+            corners += int(np.any(inx & iny))
+    return {"cells": float(hit.mean()), "border": float(hit[ring].mean()), "corners": corners, "grid": [gx, gy]}
+
+
+def distortion_corner_px(intrinsics: CameraIntrinsics, std_distortion) -> float:
+    """Displacement (pixels) at the image's farthest corner that one standard deviation of each distortion
+    term leaves, combined in quadrature (radial terms k r^2, k r^4, k r^6 of the normalised radius r,
+    tangential p about 3 r^2)."""
+    k = intrinsics.matrix
+    f = 0.5 * (k[0, 0] + k[1, 1])
+    w, h = intrinsics.width_px, intrinsics.height_px
+    dx = max(k[0, 2], w - k[0, 2])
+    dy = max(k[1, 2], h - k[1, 2])
+    r = float(np.hypot(dx, dy) / f)
+    s = np.zeros(5)
+    sd = np.asarray(std_distortion, float).ravel()[:5]
+    s[:sd.size] = np.nan_to_num(sd)
+    k1, k2, p1, p2, k3 = s
+    radial = np.hypot(np.hypot(k1 * r ** 2, k2 * r ** 4), k3 * r ** 6) * r
+    tangential = np.hypot(p1, p2) * 3.0 * r ** 2
+    return float(f * np.hypot(radial, tangential))
+
+
+def judge_calibration(intrinsics: CameraIntrinsics, rms_px: float, std: dict, points: list[np.ndarray], *,
+                      fix_k2: bool = False, fix_k3: bool = True) -> dict:
+    """The calibration's verdict: ``pass``, ``warn`` or ``refused`` (parameters not determined).
+
+    Each measure is compared with its (warn, refuse) thresholds (module constants); the coverage only
+    warns (it explains a refusal, it does not make one).
+
+    Returns
+    -------
+    dict
+        ``verdict``, ``reasons`` (what is beyond a threshold), ``measures`` (rms_px, focal_relative,
+        principal_of_width, distortion_corner_px, coverage), ``thresholds`` and ``advice`` (what to do).
+    """
+    k = intrinsics.matrix
+    w = intrinsics.width_px
+    focal_rel = max(std["fx"] / k[0, 0], std["fy"] / k[1, 1])
+    principal = max(std["cx"], std["cy"]) / w
+    dist_px = distortion_corner_px(intrinsics, std["distortion"])
+    cov = coverage(points, intrinsics.width_px, intrinsics.height_px)
+    measures = {"rms_px": float(rms_px), "focal_relative": float(focal_rel), "principal_of_width": float(principal),
+                "distortion_corner_px": dist_px, "coverage": cov}
+    thresholds = {"rms_px": RMS_PX, "focal_relative": FOCAL_RELATIVE, "principal_of_width": PRINCIPAL_OF_WIDTH,
+                  "distortion_corner_px": DISTORTION_CORNER_PX, "min_coverage": MIN_COVERAGE,
+                  "corner_zone": CORNER_ZONE}
+    text = {
+        "rms_px": lambda v, t: f"reprojection RMS {v:.3f} px (over {t:g} px)",
+        "focal_relative": lambda v, t: (f"focal length +- {100 * v:.2f} % (fx +- {std['fx']:.2f}, fy +- "
+                                        f"{std['fy']:.2f} px; over {100 * t:g} %)"),
+        "principal_of_width": lambda v, t: (f"principal point +- ({std['cx']:.1f}, {std['cy']:.1f}) px, "
+                                            f"{100 * v:.2f} % of the image width (over {100 * t:g} %)"),
+        "distortion_corner_px": lambda v, t: (f"distortion uncertain by {v:.2f} px at the image corners "
+                                              f"(k1 +- {std['distortion'][0]:.3g}, k2 +- {std['distortion'][1]:.3g}; "
+                                              f"over {t:g} px)"),
+    }
+    refuse, warn = [], []
+    for key, (t_warn, t_refuse) in (("rms_px", RMS_PX), ("focal_relative", FOCAL_RELATIVE),
+                                    ("principal_of_width", PRINCIPAL_OF_WIDTH),
+                                    ("distortion_corner_px", DISTORTION_CORNER_PX)):
+        v = measures[key]
+        if not np.isfinite(v) or v > t_refuse:
+            refuse.append(text[key](v, t_refuse))
+        elif v > t_warn:
+            warn.append(text[key](v, t_warn))
+    cover = (f"the views' points cover {100 * cov['cells']:.0f} % of the image ({cov['grid'][0]} x {cov['grid'][1]} "
+             f"cells) and reach {cov['corners']} of its 4 corners")
+    if cov["cells"] < MIN_COVERAGE or cov["corners"] < 4:
+        warn.append(cover + f" (at least {100 * MIN_COVERAGE:g} % and all 4 wanted)")
+    advice = []
+    if cov["cells"] < MIN_COVERAGE or cov["corners"] < 4:
+        advice.append("take views with the board reaching into the image's corners and along its edges")
+    if refuse or warn:
+        advice.append("take more views (15-25), the board tilted 20-40 degrees about both of its axes, "
+                      "at several distances")
+    if (measures["distortion_corner_px"] > DISTORTION_CORNER_PX[0] or principal > PRINCIPAL_OF_WIDTH[0]) \
+            and not fix_k2:
+        advice.append("for a long lens, whose small distortion the views cannot separate from the principal "
+                      "point, hold k2 at 0 (--fix-k2)" + ("" if fix_k3 else " and k3 (leave out --k3)"))
+    if rms_px > RMS_PX[0]:
+        advice.append("check --squares and --square-mm against the board, its flatness, and the focus")
+    verdict = "refused" if refuse else ("warn" if warn else "pass")
+    return {"verdict": verdict, "reasons": refuse + warn, "refuse_reasons": refuse, "warnings": warn,
+            "measures": measures, "thresholds": thresholds, "advice": advice, "coverage_text": cover}
+
+
 def calibrate_camera_images(images: list[tuple[str, np.ndarray | None]], board: BoardSpec, *, fix_k3: bool = True,
                             min_images: int = 5, min_corners: int = 12, max_edge_width_px: float = 4.0,
-                            outlier_factor: float = 3.0) -> CameraCalibration:
+                            outlier_factor: float = 3.0, fix_k2: bool = False,
+                            refuse: bool = True) -> CameraCalibration:
     """Intrinsics and distortion from board images.
 
     Parameters
@@ -303,15 +450,22 @@ def calibrate_camera_images(images: list[tuple[str, np.ndarray | None]], board: 
     min_corners, max_edge_width_px : see :func:`detect_board`
     outlier_factor : float
         Images whose reprojection RMS exceeds this times the median (and 0.5 px) are dropped once.
+    fix_k2 : bool
+        Hold k2 (and k3) at 0.
+    refuse : bool
+        Raise when :func:`judge_calibration` refuses (else the refused calibration is returned, its
+        ``quality`` saying so).
 
     Returns
     -------
     CameraCalibration
+        With ``quality`` (:func:`judge_calibration`).
 
     Raises
     ------
     CalibrationError
-        Fewer than *min_images* usable images (the message lists why each was rejected).
+        Fewer than *min_images* usable images (the message lists why each was rejected), or parameters not
+        determined (the message says which and what to do).
     """
     import cv2
 
@@ -334,7 +488,8 @@ def calibrate_camera_images(images: list[tuple[str, np.ndarray | None]], board: 
         results.append(res)
 
     def solve(used: list[ImageResult]):
-        flags = cv2.CALIB_FIX_K3 if fix_k3 else 0
+        flags = cv2.CALIB_FIX_K3 if (fix_k3 or fix_k2) else 0
+        flags |= cv2.CALIB_FIX_K2 if fix_k2 else 0
         return cv2.calibrateCameraExtended([r.object_points for r in used], [r.image_points for r in used],
                                            (size[1], size[0]), None, None, flags=flags)
 
@@ -367,7 +522,30 @@ def calibrate_camera_images(images: list[tuple[str, np.ndarray | None]], board: 
     s = std_int.ravel()
     std = {"fx": float(s[0]), "fy": float(s[1]), "cx": float(s[2]), "cy": float(s[3]),
            "distortion": [float(v) for v in s[4:9]]}
-    return CameraCalibration(intrinsics, float(rms), std, results, board, fix_k3)
+    quality = judge_calibration(intrinsics, float(rms), std, [r.image_points for r in used], fix_k2=fix_k2,
+                                fix_k3=fix_k3)
+    cal = CameraCalibration(intrinsics, float(rms), std, results, board, fix_k3 or fix_k2, fix_k2, quality)
+    if quality["verdict"] == "refused":
+        log.warning("camera calibration refused: %s", "; ".join(quality["refuse_reasons"]))
+        if refuse:
+            raise CalibrationError(refusal_text(cal))
+    return cal
+
+
+def refusal_text(cal: CameraCalibration) -> str:
+    """Why a calibration was refused and what to do (no record is written)."""
+    q = cal.quality
+    k = cal.intrinsics.matrix
+    d = cal.intrinsics.distortion
+    lines = [f"camera calibration refused: the parameters are not determined by the {cal.used} view(s) used "
+             f"(fx {k[0, 0]:.1f}, principal point ({k[0, 2]:.1f}, {k[1, 2]:.1f}) px, k1 {d[0]:+.4g}, k2 {d[1]:+.4g}); "
+             "no record was written:"]
+    lines += [f"  - {r}" for r in q["refuse_reasons"]]
+    lines += [f"  - {r}" for r in q["warnings"]]
+    if not any(r.startswith(q["coverage_text"]) for r in q["warnings"]):
+        lines.append(f"  ({q['coverage_text']})")
+    lines.append("What to do: " + "; ".join(q["advice"]) + ".")
+    return "\n".join(lines)
 
 
 def read_images(paths: list[str | Path]) -> list[tuple[str, np.ndarray | None]]:
@@ -377,11 +555,16 @@ def read_images(paths: list[str | Path]) -> list[tuple[str, np.ndarray | None]]:
 
 
 def save_camera(data_dir: str | Path, cal: CameraCalibration, source: str) -> Path:
-    """Write a camera record under ``data_dir/calibration/camera/``; returns its path."""
+    """Write a camera record under ``data_dir/calibration/camera/``; returns its path.
+
+    A refused calibration (parameters not determined) is never written: CalibrationError saying why."""
+    if cal.verdict == "refused":
+        raise CalibrationError(refusal_text(cal))
     def build(record_id: str, created: str) -> dict:
         return {"schema": SCHEMA, "kind": "camera", "record_id": record_id, "created": created, "source": source,
                 "camera": cal.intrinsics.to_dict(), "rms_px": cal.rms_px, "std_intrinsics": cal.std_intrinsics,
-                "fix_k3": cal.fix_k3, "board": cal.board.to_dict(), "images": [r.to_dict() for r in cal.images]}
+                "fix_k3": cal.fix_k3, "fix_k2": cal.fix_k2, "quality": cal.quality, "board": cal.board.to_dict(),
+                "images": [r.to_dict() for r in cal.images]}
     path, _ = write_record(data_dir, "camera", build)
     return path
 
@@ -412,7 +595,17 @@ def summary_text(cal: CameraCalibration, path: Path | None = None) -> str:
              f"  reprojection RMS {cal.rms_px:.3f} px",
              f"  fx {k[0, 0]:.2f} +- {s['fx']:.2f} px, fy {k[1, 1]:.2f} +- {s['fy']:.2f} px, "
              f"principal point ({k[0, 2]:.2f}, {k[1, 2]:.2f}) +- ({s['cx']:.2f}, {s['cy']:.2f}) px",
-             "  distortion k1 k2 p1 p2 k3: " + " ".join(f"{v:+.5f}" for v in cal.intrinsics.distortion)]
+             "  distortion k1 k2 p1 p2 k3: " + " ".join(f"{v:+.5f}" for v in cal.intrinsics.distortion)
+             + "  +- " + " ".join(f"{v:.5f}" for v in s["distortion"])]
+    q = cal.quality
+    if q:
+        m = q["measures"]
+        lines.append(f"  verdict: {q['verdict'].upper()} (focal length +- {100 * m['focal_relative']:.3f} %, principal "
+                     f"point +- {100 * m['principal_of_width']:.2f} % of the width, distortion +- "
+                     f"{m['distortion_corner_px']:.2f} px at the corners; {q['coverage_text']})")
+        lines += [f"    - {r}" for r in q["reasons"]]
+        if q["verdict"] != "pass" and q["advice"]:
+            lines.append("    what to do: " + "; ".join(q["advice"]))
     for r in cal.images:
         if r.accepted:
             lines.append(f"  {r.name}: used, {r.corners} corners, RMS {r.rms_px:.3f} px, edges "

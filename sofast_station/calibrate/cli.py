@@ -54,7 +54,9 @@ def cmd_radiometric(args) -> int:
     config = load_config(args.config)
     policy, settings = calibration_settings(config)
     overrides = {k: v for k, v in (("ramp_step", args.ramp_step), ("frames_per_level", args.frames),
-                                   ("max_exposure_periods", args.max_exposure_periods)) if v is not None}
+                                   ("max_exposure_periods", args.max_exposure_periods),
+                                   ("max_frames_per_level", args.max_frames), ("gain_max", args.gain_max))
+                 if v is not None}
     if overrides:
         try:
             settings = dataclasses.replace(settings, **overrides)
@@ -85,8 +87,10 @@ def cmd_camera(args) -> int:
         raise ConfigError("a ChArUco board needs --marker-mm (the marker side)")
     board = BoardSpec(args.board, args.squares[0], args.squares[1], args.square_mm / 1000.0,
                       (args.marker_mm or 0.0) / 1000.0, args.dictionary, args.legacy)
+    if args.fix_k2 and args.k3:
+        raise ConfigError("--fix-k2 holds k3 at 0 too: give --fix-k2 or --k3, not both")
     cal = calibrate_camera_images(read_images(args.images), board, fix_k3=not args.k3, min_images=args.min_images,
-                                  max_edge_width_px=args.max_edge_width)
+                                  max_edge_width_px=args.max_edge_width, fix_k2=args.fix_k2)
     source = f"sofast-station {__version__} calibrate camera, {len(args.images)} image(s)"
     path = save_camera(config.data_dir, cal, source)
     cam = config.geometry.camera
@@ -99,7 +103,8 @@ def cmd_camera(args) -> int:
         use = ("The station still uses the [camera] table of station.toml; set [camera] intrinsics = \"record\" "
                "to use the newest camera record instead.")
     _emit(args, {"path": str(path), "rms_px": cal.rms_px, "camera": cal.intrinsics.to_dict(),
-                 "std_intrinsics": cal.std_intrinsics, "images": [r.to_dict() for r in cal.images], "use": use},
+                 "std_intrinsics": cal.std_intrinsics, "verdict": cal.verdict, "quality": cal.quality,
+                 "images": [r.to_dict() for r in cal.images], "use": use},
           summary_text(cal, path) + "\n" + use)
     return 0
 
@@ -107,13 +112,13 @@ def cmd_camera(args) -> int:
 def cmd_geometry(args) -> int:
     from ..config import load_config
     from ..station.inspect import open_station
-    from .geometry import check_geometry, load_reference, reference_from_simulation, save_geometry, summary_text
+    from .geometry import check_geometry, save_geometry, station_reference, summary_text
 
     config = load_config(args.config)
-    reference = load_reference(args.reference) if args.reference else reference_from_simulation(config)
-    log.info("measuring the reference facet %s on %s", reference.name, config.name)
     station = open_station(config, seed=args.seed, noise=not args.noise_free)
     try:
+        reference = station_reference(station, args.reference)
+        log.info("measuring the reference facet %s on %s", reference.name, config.name)
         check = check_geometry(station, reference)
     finally:
         station.close()
@@ -202,6 +207,11 @@ def register(subparsers, default_config_path: str | None = None) -> argparse.Arg
                           "max_frames_per_level, when the room light flickers (default: the station file's, else 2)")
     rad.add_argument("--max-exposure-periods", type=int, default=None, metavar="N",
                      help="longest exposure in display refresh periods (default: the station file's, else 2)")
+    rad.add_argument("--max-frames", type=int, default=None, metavar="N",
+                     help="most frames averaged per ramp level when the room light flickers (default: the "
+                          "station file's max_frames_per_level, else 8)")
+    rad.add_argument("--gain-max", type=float, default=None, metavar="G",
+                     help="highest camera gain the gain search may use (default: the station file's gain_max)")
     rad.add_argument("--no-plot", action="store_true", help="do not write the PNG plot of the response")
     rad.set_defaults(func=cmd_radiometric)
 
@@ -210,7 +220,10 @@ def register(subparsers, default_config_path: str | None = None) -> argparse.Arg
         description="""
             Calibrate the camera's intrinsics (focal length, principal point) and distortion from images of
             a chessboard or ChArUco board, and store them as a dated camera record. Blurred images and
-            images where the board is not found are reported and skipped. The station uses the record when
+            images where the board is not found are reported and skipped. The calibration judges itself
+            (pass / warn / refused) from the reprojection RMS, the parameters' standard deviations and how
+            the views cover the image; a refused calibration (parameters not determined) writes no record
+            and says what to do (docs/calibration.md). The station uses the record when
             [camera] intrinsics = "record" in the station file.""")
     common(cam, simulated=False)
     cam.add_argument("images", nargs="+", metavar="IMAGE", help="board images (any format OpenCV reads)")
@@ -223,6 +236,8 @@ def register(subparsers, default_config_path: str | None = None) -> argparse.Arg
     cam.add_argument("--dictionary", default="DICT_5X5_100", help="ChArUco: OpenCV marker dictionary")
     cam.add_argument("--legacy", action="store_true", help="ChArUco: a board made by OpenCV before 4.6")
     cam.add_argument("--k3", action="store_true", help="also fit k3 (held at 0 otherwise)")
+    cam.add_argument("--fix-k2", action="store_true",
+                     help="hold k2 (and k3) at 0: for a long lens whose small distortion the views cannot determine")
     cam.add_argument("--min-images", type=int, default=5, metavar="N", help="fewest usable images")
     cam.add_argument("--max-edge-width", type=float, default=4.0, metavar="PX",
                      help="reject images whose edges are wider than this many pixels (blurred)")
@@ -232,11 +247,14 @@ def register(subparsers, default_config_path: str | None = None) -> argparse.Arg
         sub, "geometry", help="measure a reference facet of known shape and report the geometry error",
         description="""
             Check the station's geometry (camera pose, screen pose, distance): measure a reference facet of
-            known shape and compare the measured focal lengths and slopes with the reference's. Writes a
-            dated geometry record; exits with 1 when the error is beyond the reference's tolerance.""")
+            known shape and compare the measured focal lengths and placement with the reference's CERTIFIED
+            figures (its certificate, not its design). Writes a dated geometry record stating the fixture
+            pose and distance it determines, with their uncertainties (the budget uses them); exits with 1
+            when the error is beyond the reference's tolerance.""")
     common(geo)
     geo.add_argument("--reference", default=None, metavar="FILE",
-                     help="reference facet file ([reference] table); the simulated station's true facet by default")
+                     help="the reference facet's certificate ([reference] table: certified focal lengths, "
+                          "placement and their uncertainties); the simulated station's twin truth by default")
     geo.set_defaults(func=cmd_geometry)
 
     st = add_command(

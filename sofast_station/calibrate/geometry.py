@@ -8,21 +8,31 @@ a geometry record (``data_dir/calibration/geometry/``) holding the screen (size 
 screen-to-camera pose, where each came from, and the reference check. A geometry error (a wrong
 separation, pitch or pose) shows as focal lengths or a placement that disagree with the reference.
 
-The reference facet is described by a TOML file::
+The reference facet is described by its certificate, a TOML file::
 
     [reference]
     name = "reference dish R-01"
-    focal_length_x_m = 5.42          # known (measured on a coordinate measuring machine, say)
-    focal_length_y_m = 5.35
+    focal_length_x_m = 5.42          # certified (measured on a coordinate measuring machine, say): the
+    focal_length_y_m = 5.35          # best-fit parabola's, as docs/conventions.md defines the figure
+    focal_length_u_relative = 0.0    # the certificate's standard uncertainty (k = 1), relative
     placement_mm = [0.0, 0.0, 0.0]   # its known placement in the fixture (as the facet's placement figure)
     placement_mrad = [0.0, 0.0, 0.0]
+    placement_u_mm = 0.0             # standard uncertainty of that placement (k = 1)
+    placement_u_mrad = 0.0
     focal_length_tolerance = 0.005   # relative; defaults shown
     placement_tolerance_mm = 2.0
     placement_tolerance_mrad = 2.0
 
-On the simulated station the reference is the twin's true facet (``[simulation.facet]``): its focal
-lengths and placement are known exactly (the focal lengths are those of its paraboloid; its random
-slope error and dents change the best-fit parabola slightly).
+The comparison is with the certified figures, never with the facet's design: a facet's best-fit
+parabola differs from its nominal focal lengths (on the twin's default facet, whose paraboloid has f_y
+5.35 m, the random slope error and twist make it 5.3444 m: a perfect station compared with the nominal
+value reported f_y -0.105 %). On the simulated station the certificate is the twin's truth
+(``station.reference_certificate()``: the conventions' figures of its exact surface over the facet).
+
+The record also states what the check determines, with standard uncertainties (``determined``): the
+fixture's pose (the reference's measured placement minus its certified one; the inspection's U of the
+placement and the certificate's) and how well the measured distance is confirmed (the focal lengths'
+agreement through their sensitivity to the distance). The budget uses them (:func:`budget_std`).
 """
 
 from __future__ import annotations
@@ -72,6 +82,9 @@ class GeometryReference:
     placement_tolerance_mm: float = 2.0
     placement_tolerance_mrad: float = 2.0
     source: str = ""
+    focal_length_u_relative: float = 0.0
+    placement_u_mm: float = 0.0
+    placement_u_mrad: float = 0.0
 
     def __post_init__(self):
         for key in ("focal_length_x_m", "focal_length_y_m"):
@@ -87,10 +100,16 @@ class GeometryReference:
         for key in ("focal_length_tolerance", "placement_tolerance_mm", "placement_tolerance_mrad"):
             if not float(getattr(self, key)) > 0:
                 raise ConfigError(f"reference {key} must be positive")
+        for key in ("focal_length_u_relative", "placement_u_mm", "placement_u_mrad"):
+            v = getattr(self, key)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+                raise ConfigError(f"reference {key} must be a non-negative number (a standard uncertainty), got {v!r}")
+            object.__setattr__(self, key, float(v))
 
 
 _REF_KEYS = {"name", "focal_length_x_m", "focal_length_y_m", "placement_mm", "placement_mrad",
-             "focal_length_tolerance", "placement_tolerance_mm", "placement_tolerance_mrad"}
+             "focal_length_tolerance", "placement_tolerance_mm", "placement_tolerance_mrad",
+             "focal_length_u_relative", "placement_u_mm", "placement_u_mrad"}
 
 
 def load_reference(path: str | Path) -> GeometryReference:
@@ -112,10 +131,38 @@ def load_reference(path: str | Path) -> GeometryReference:
         raise ConfigError(f"{path} [reference]: {exc}") from None
 
 
-def reference_from_simulation(config) -> GeometryReference:
-    """The simulated station's reference: the twin's true facet as ``[simulation.facet]`` states it.
+def reference_from_certificate(certificate: dict) -> GeometryReference:
+    """A reference from a certificate dict (the keys of the ``[reference]`` table, plus ``name`` and
+    ``source``), e.g. the simulated station's ``reference_certificate()``; None focal lengths are flat."""
+    d = dict(certificate)
+    for key in ("focal_length_x_m", "focal_length_y_m"):
+        if d.get(key) is None:
+            d[key] = math.inf
+    unknown = sorted(set(d) - _REF_KEYS - {"source"})
+    if unknown:
+        raise ConfigError(f"certificate has unknown key(s) {', '.join(unknown)}")
+    return GeometryReference(**d)
 
-    Reads the configuration's plain data only (the calibration code does not use the twin).
+
+def station_reference(station, path: str | Path | None = None) -> GeometryReference:
+    """The reference facet's certificate: the file *path* ([reference] table), else the station's own
+    (``station.reference_certificate()``: the simulated station's twin truth); a hardware station needs
+    the file."""
+    if path:
+        return load_reference(path)
+    certify = getattr(station, "reference_certificate", None)
+    if certify is None:
+        raise ConfigError(f"{station.config.path}: a hardware station needs the reference facet's certificate "
+                          "(--reference FILE with a [reference] table: its certified focal lengths and placement)")
+    return reference_from_certificate(certify())
+
+
+def reference_from_simulation(config) -> GeometryReference:
+    """The twin's true facet as ``[simulation.facet]`` states its *design* (its paraboloid's focal lengths).
+
+    Not a certificate: the facet's best-fit parabola differs from these by its slope error and twist (about
+    0.1 % on the default facet); :func:`station_reference` gives the certified (true) figures. Reads the
+    configuration's plain data only (the calibration code does not use the twin).
     """
     if config.backend != "simulated":
         raise ConfigError(f"{config.path}: a hardware station needs a reference facet file (--reference)")
@@ -201,7 +248,87 @@ def check_geometry(station, reference: GeometryReference, serial: str = "GEOMETR
     check = compare_to_reference(rec, reference)
     check.update({"serial": serial, "time": rec["time"], "radiometric": rec["calibration"]["radiometric"],
                   "verdict": rec.get("verdict"), "n_points": rec.get("n_points")})
+    check["determined"] = determined(rec, reference, getattr(station.config, "uncertainty", None))
     return check
+
+
+def determined(figures: dict, reference: GeometryReference, inputs=None) -> dict:
+    """What the reference check determines, with standard uncertainties (k = 1).
+
+    * ``fixture_translation_mm``, ``fixture_rotation_mrad``: the fixture's pose offset (measured minus
+      certified placement) and its standard uncertainty, from the inspection's placement U (k = 2, halved)
+      and the certificate's placement uncertainty, in quadrature;
+    * ``distance_mm``: how well the measured distance is confirmed: the focal lengths' standard uncertainty
+      other than the distance's own (and the certificate's) over their sensitivity to the distance (from
+      the inspection's budget); the better of x and y. None without a budget.
+    """
+    out: dict = {}
+    placement = figures.get("placement") or {}
+    budget = figures.get("uncertainty_budget")
+
+    def other_than(group: str, name: str) -> float | None:
+        """The figure's combined standard uncertainty without *group*'s contribution (from the budget)."""
+        if not budget or name not in budget["figures"]:
+            return None
+        j = budget["figures"].index(name)
+        if budget["combined_standard"][j] is None:
+            return None
+        return math.sqrt(sum((r["contributions"][j] or 0.0) ** 2 for r in budget["rows"] if r["group"] != group))
+
+    for key, unit, cert_u in (("mm", "translation_mm", reference.placement_u_mm),
+                              ("mrad", "rotation_mrad", reference.placement_u_mrad)):
+        value = placement.get(key)
+        known = reference.placement_mm if key == "mm" else reference.placement_mrad
+        # the placement's uncertainty without the fixture pose's own (which is what is being determined)
+        u = [other_than("fixture pose", f"placement.{key}.{i}") for i in range(3)]
+        if value is None or any(v is None for v in u):
+            continue
+        out[f"fixture_{unit}"] = {"offset": [float(a - b) for a, b in zip(value, known)],
+                                  "std": [float(math.hypot(ui, cert_u)) for ui in u]}
+    u_distance = getattr(inputs, "distance_mm", None) if inputs is not None else None
+    if budget and u_distance:
+        best = None
+        for axis in ("x", "y"):
+            name = f"focal_length_{axis}_m"
+            f = figures.get(name)
+            if name not in budget["figures"] or f is None:
+                continue
+            j = budget["figures"].index(name)
+            row = next((r for r in budget["rows"] if r["group"] == "measured distance"), None)
+            c = None if row is None else row["contributions"][j]
+            rest = other_than("measured distance", name)
+            if not c or rest is None:
+                continue
+            other = math.hypot(rest, reference.focal_length_u_relative * f)
+            std = other / (c / u_distance)             # metres of f over metres of f per mm of distance
+            best = std if best is None else min(best, std)
+        if best is not None:
+            out["distance_mm"] = {"std": float(best)}
+    return out
+
+
+def budget_std(record: dict | None, geometry=None) -> dict:
+    """The standard uncertainties a geometry record lends the budget (``[uncertainty]`` keys): the
+    fixture pose's, and the distance's, from a check that was within tolerance and made with the station's
+    present geometry (*geometry*, a StationGeometry, compared with the record's); else {}."""
+    if not isinstance(record, dict):
+        return {}
+    check = record.get("reference_check") or {}
+    if not check.get("within_tolerance"):
+        return {}
+    if geometry is not None and (record.get("screen_to_camera") != geometry.screen_to_camera.to_dict()
+                                 or record.get("screen") != geometry.screen.to_dict()):
+        return {}
+    det = check.get("determined") or {}
+    out = {}
+    for key in ("fixture_translation_mm", "fixture_rotation_mrad"):
+        std = (det.get(key) or {}).get("std")
+        if isinstance(std, list) and len(std) == 3 and all(isinstance(v, (int, float)) for v in std):
+            out[key] = tuple(float(v) for v in std)
+    std = (det.get("distance_mm") or {}).get("std")
+    if isinstance(std, (int, float)) and math.isfinite(std):
+        out["distance_mm"] = float(std)
+    return out
 
 
 def geometry_provenance(config) -> dict:
@@ -251,6 +378,13 @@ def summary_text(check: dict, path: Path | None = None) -> str:
                      + f" (curvature {e['curvature_error_per_m']:+.2e} /m)")
     lines.append("  placement - known: " + ", ".join(f"{v:+.2f}" for v in check["placement_error_mm"]) + " mm; "
                  + ", ".join(f"{v:+.2f}" for v in check["placement_error_mrad"]) + " mrad")
+    det = check.get("determined") or {}
+    for key, unit in (("fixture_translation_mm", "mm"), ("fixture_rotation_mrad", "mrad")):
+        if key in det:
+            lines.append(f"  fixture {key.split('_')[1]}: " + ", ".join(
+                f"{o:+.2f} +- {s:.2f}" for o, s in zip(det[key]["offset"], det[key]["std"])) + f" {unit} (k=1)")
+    if "distance_mm" in det:
+        lines.append(f"  measured distance confirmed to +- {det['distance_mm']['std']:.2f} mm (k=1)")
     t = check["tolerances"]
     verdict = "WITHIN" if check["within_tolerance"] else "OUTSIDE"
     lines.append(f"  {verdict} tolerance (f {100 * t['focal_length']:g} %, "

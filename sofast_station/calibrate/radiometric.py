@@ -201,7 +201,8 @@ def find_top_and_floor(commands: np.ndarray, response_dn: np.ndarray, saturated_
     r = np.asarray(response_dn, dtype=np.float64)
     ok = np.flatnonzero(np.asarray(saturated_fraction) <= max_saturated_fraction)
     if ok.size == 0:
-        raise CalibrationError("every ramp level is saturated: the gain search went wrong; lower gain_max")
+        raise CalibrationError("every ramp level is saturated: the gain search went wrong; lower the maximum gain "
+                               "(--gain-max G, or gain_max in [calibration.routine] of the station file)")
     top = int(ok.max())
     mean_step = (r[top] - r[0]) / max(top, 1)
     rise_min = max(floor_rise_fraction * mean_step, 3.0 * step_noise_dn, 1e-9)
@@ -543,8 +544,10 @@ def calibrate_radiometric(display, camera, settings: RadiometricSettings = Radio
     rig.set_camera(exposure_s, gain)
     final = gain_stats[gain]
     if g_hi is None and s.gain_max > s.gain_min and gain >= s.gain_max:
-        log.warning("full white reaches only %.1f DN at the maximum gain %g: open the lens aperture or allow a "
-                    "longer exposure (max_exposure_periods)", final["percentile_dn"], s.gain_max)
+        log.warning("full white reaches only %.1f DN at the maximum gain %g: open the lens aperture, allow a "
+                    "longer exposure (--max-exposure-periods N) or a higher gain (--gain-max G); or set "
+                    "max_exposure_periods, gain_max in [calibration.routine] of the station file",
+                    final["percentile_dn"], s.gain_max)
     frame_means = np.asarray(final["frame_means_dn"])
     flicker = float(np.std(frame_means) / np.mean(frame_means)) if frame_means.size > 1 else 0.0
     # How much the active pixels' mean varies from frame to frame (ambient light, flicker), pooled over
@@ -575,7 +578,8 @@ def calibrate_radiometric(display, camera, settings: RadiometricSettings = Radio
         frames_per_level, frame_noise)
     if frame_noise / math.sqrt(frames_per_level) > s.ramp_noise_dn:
         log.warning("the ramp levels will be known to %.2f DN only (ramp_noise_dn %.2f DN with at most %d frames): "
-                    "steady the room light, or allow more frames (max_frames_per_level)",
+                    "steady the room light, or allow more frames (--max-frames N, or max_frames_per_level in "
+                    "[calibration.routine] of the station file)",
                     frame_noise / math.sqrt(frames_per_level), s.ramp_noise_dn, frames_per_level)
     mean_dn, dim_dn, sat, noise = [], [], [], []
     for i, v in enumerate(commands):

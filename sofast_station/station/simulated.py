@@ -67,6 +67,18 @@ class SimulatedStation(Station):
         self.camera.fault = None
         self.camera.release_hang()
 
+    def reference_certificate(self) -> dict:
+        """The facet in the fixture as a reference's certificate (``calibrate geometry``): the twin's truth,
+        the conventions' figures of its exact surface over every pixel that sees the facet, and its
+        placement; exact (zero uncertainty)."""
+        from ..twin.truth import ground_truth
+
+        truth = ground_truth(self.twin, np.asarray(self.twin.coverage) > 0.5)
+        return {"name": f"twin's true facet ({self.config.design.name})",
+                "source": "the digital twin's exact surface ([simulation.facet]), as certified figures",
+                "focal_length_x_m": truth["focal_length_x_m"], "focal_length_y_m": truth["focal_length_y_m"],
+                "placement_mm": tuple(truth["placement"]["mm"]), "placement_mrad": tuple(truth["placement"]["mrad"])}
+
 
 def open_simulated(config: StationConfig, radiometric: RadiometricRecord, seed: int | None = None,
                    noise: bool = True) -> Station:

@@ -10,7 +10,8 @@ import pytest
 
 from sofast_station.calibrate.cli import register
 from sofast_station.calibrate.geometry import (check_geometry, compare_to_reference, load_geometry_record,
-                                               load_reference, reference_from_simulation, save_geometry)
+                                               load_reference, reference_from_simulation, save_geometry,
+                                               station_reference)
 from sofast_station.config import load_config
 from sofast_station.errors import ConfigError
 from sofast_station.station import simulated as simulated_station
@@ -25,21 +26,38 @@ def measured(tmp_path_factory):
     cfg = small_config(folder)
     station = open_station(cfg, noise=False)
     try:
-        check = check_geometry(station, reference_from_simulation(cfg))
+        check = check_geometry(station, station_reference(station))
     finally:
         station.close()
     return cfg, check
 
 
-def test_the_reference_facet_agrees_with_the_station_geometry(measured):
+def test_the_reference_facet_agrees_with_the_station_geometry(measured, monkeypatch):
+    """A perfect twin station against the reference's certified figures (the twin's truth): the focal
+    lengths agree to a few thousandths of a percent. Against the facet's design (its paraboloid's 5.42 and
+    5.35 m) the same measurement would be off by the facet's own best-fit difference (here f_y +0.055 %; on
+    the default station -0.105 %, as the issue reported): that is the facet, not the station."""
     cfg, check = measured
     f = check["focal_lengths"]
-    print(f"\nreference check: f_x {100 * f['x']['relative_error']:+.3f} %, "
-          f"f_y {100 * f['y']['relative_error']:+.3f} %, "
+    print(f"\nreference check: f_x {100 * f['x']['relative_error']:+.4f} %, "
+          f"f_y {100 * f['y']['relative_error']:+.4f} %, "
           f"placement {check['placement_error_mm']} mm, {check['placement_error_mrad']} mrad")
     assert check["within_tolerance"] and not check["reasons"]
-    assert abs(f["x"]["relative_error"]) < 0.002 and abs(f["y"]["relative_error"]) < 0.002
+    assert "twin's true facet" in check["reference"]
+    assert abs(f["x"]["relative_error"]) < 5e-5 and abs(f["y"]["relative_error"]) < 5e-5
+    figures = {"focal_length_x_m": f["x"]["measured_m"], "focal_length_y_m": f["y"]["measured_m"], "placement": {}}
+    design = compare_to_reference(figures, reference_from_simulation(cfg))["focal_lengths"]
+    print(f"against the design instead: f_x {100 * design['x']['relative_error']:+.4f} %, "
+          f"f_y {100 * design['y']['relative_error']:+.4f} %")
+    assert abs(design["y"]["relative_error"]) > 4e-4     # what the old comparison called a station error
     assert max(abs(v) for v in check["placement_error_mm"]) < 0.5
+    # what the check determines, with standard uncertainties, and the twin's truth within 3 of them
+    det = check["determined"]
+    print(f"determined: {det}")
+    for key in ("fixture_translation_mm", "fixture_rotation_mrad"):
+        assert all(s > 0 for s in det[key]["std"])
+        assert all(abs(o) < 3 * s for o, s in zip(det[key]["offset"], det[key]["std"]))
+    assert 0 < det["distance_mm"]["std"] < 50
     path = save_geometry(cfg.data_dir, cfg, check, "tests")
     record = load_geometry_record(path)
     assert path.parent == cfg.data_dir / "calibration" / "geometry"
@@ -47,6 +65,13 @@ def test_the_reference_facet_agrees_with_the_station_geometry(measured):
     assert record["screen_to_camera"] == cfg.geometry.screen_to_camera.to_dict()
     assert "[screen]" in record["provenance"]["screen"] and "[layout]" in record["provenance"]["screen_to_camera"]
     assert record["reference_check"]["within_tolerance"] and record["created"] and record["record_id"] == path.stem
+    # the budget uses what the record determined: the fixture pose's std replaces [uncertainty]'s
+    det = record["reference_check"]["determined"]
+    monkeypatch.setenv("SOFAST_DATA_DIR", str(cfg.data_dir))       # (the tests' isolation sets another)
+    used = load_config(cfg.path).uncertainty
+    assert used.fixture_rotation_mrad == pytest.approx(tuple(det["fixture_rotation_mrad"]["std"]))
+    assert used.fixture_translation_mm == pytest.approx(tuple(det["fixture_translation_mm"]["std"]))
+    assert used.distance_mm == max(cfg.uncertainty.distance_mm, det["distance_mm"]["std"])
 
 
 def test_wrong_known_values_are_reported_outside_tolerance(measured):
