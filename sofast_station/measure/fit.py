@@ -137,18 +137,26 @@ def robust_weights(columns: list[np.ndarray], target: np.ndarray, max_iterations
     prev = None
     coef = None
     sigma = float("nan")
+    # Index arrays and constants hoisted out of the loop (a small fit iterates some twenty times, and the
+    # uncertainty's reruns do thousands of small fits): the same numbers as building them each time.
+    sym = np.empty((k, k), dtype=np.intp)
+    for row, (i, j) in enumerate(pairs):
+        sym[i, j] = sym[j, i] = row
+    outer = np.outer(scale, scale)
+    upper_i, upper_j = (np.array(v, dtype=np.intp) for v in zip(*pairs))
+    doubled = np.array([1.0 if i == j else 2.0 for i, j in pairs])
     for _ in range(max_iterations):
         sums = np.einsum("ij,j->i", prods, w)
-        gram = np.empty((k, k))
-        for row, (i, j) in enumerate(pairs):
-            gram[i, j] = gram[j, i] = sums[row]
+        gram = sums[sym]
         rhs = sums[len(pairs):]
-        g = gram / np.outer(scale, scale)
+        g = gram / outer
         try:
             sol = np.linalg.solve(g, rhs / scale)
         except np.linalg.LinAlgError:
             raise AnalysisError("the slope fit is singular: the valid points do not cover enough of the facet")
-        if np.linalg.cond(g) > 1e12:
+        # The condition number of the symmetric g from its eigenvalues (cheaper than np.linalg.cond's SVD).
+        lam = np.abs(np.linalg.eigvalsh(g))
+        if not lam.min() > 0.0 or lam.max() > 1e12 * lam.min():
             raise AnalysisError("the slope fit is ill-conditioned: the valid points cover too little of the facet")
         coef = sol / scale
         np.copyto(r, target)
@@ -160,7 +168,7 @@ def robust_weights(columns: list[np.ndarray], target: np.ndarray, max_iterations
         prev = ms
         # leverage of each point under the current weights: h_i = w_i x_i^T (X^T W X)^-1 x_i
         inv = np.linalg.inv(gram)
-        quad = np.array([inv[i, j] * (1.0 if i == j else 2.0) for i, j in pairs])
+        quad = inv[upper_i, upper_j] * doubled
         h = np.einsum("ij,i->j", prods[:len(pairs)], quad)
         h *= w
         np.subtract(1.0, h, out=h)

@@ -45,7 +45,10 @@ def median(values) -> float:
     if n % 2:
         return float(upper)
     lower = part[:half].max()
-    # np.median takes np.mean of the two: (lower + upper) / 2 in the array's type.
+    # np.median takes np.mean of the two: (lower + upper) / 2 in the array's type (for doubles, the same
+    # two IEEE operations in Python's floats).
+    if a.dtype == np.float64:
+        return (float(lower) + float(upper)) / 2.0
     return float(np.mean(np.array([lower, upper], dtype=a.dtype)))
 
 
