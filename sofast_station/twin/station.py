@@ -417,13 +417,38 @@ class TwinStation:
         sample = self._display_sample(image)
         sample.setflags(write=False)
         samples = self._samples
-        self._samples[key] = (weakref.ref(image, lambda _, k=key: samples.pop(k, None)), sample)
+        # (the third item keeps the image's light term once :meth:`_cached_light` has formed it)
+        self._samples[key] = (weakref.ref(image, lambda _, k=key: samples.pop(k, None)), sample, [])
         return sample
 
-    def _linear(self, sample: np.ndarray, ambient: float, scale: float, flicker: float) -> np.ndarray:
+    def _cached_light(self, display_image: np.ndarray) -> np.ndarray | None:
+        """The display light of a cached read-only image at the reference exposure, laid out on the box of
+        camera pixels that see the screen (zero where a pixel sees none), or None for an image not cached.
+
+        Adding it to that box of the frame gives the same bits as adding the light to the seen pixels one by
+        one (x + 0 = x), without an indexed scatter per frame (a fifth of a frame's cost)."""
+        hit = self._samples.get(id(display_image))
+        if hit is None or hit[0]() is not display_image:
+            return None
+        if not hit[2]:
+            if not hasattr(self, "_seen_box"):
+                width = self.geometry.camera.width_px
+                rows, cols = np.divmod(self._seen_idx, width)
+                r0, c0 = (int(rows.min()), int(cols.min())) if rows.size else (0, 0)
+                r1, c1 = (int(rows.max()) + 1, int(cols.max()) + 1) if rows.size else (0, 0)
+                self._seen_box = (r0, r1, c0, c1, (rows - r0) * (c1 - c0) + (cols - c0))
+            r0, r1, c0, c1, local = self._seen_box
+            light = np.zeros((r1 - r0, c1 - c0), dtype=np.float32)
+            light.ravel()[local] = self._dn_per_luminance * hit[1]
+            light.setflags(write=False)
+            hit[2].append(light)
+        return hit[2][0]
+
+    def _linear(self, sample: np.ndarray, ambient: float, scale: float, flicker: float,
+                light: np.ndarray | None = None) -> np.ndarray:
         """Noise-free DN before the knee, rounding and clipping (float32, camera shape), through the lens's
-        point-spread function when it has one."""
-        dn = self._linear_sharp(sample, ambient, scale, flicker)
+        point-spread function when it has one. *light*: the sample's :meth:`_cached_light`, when known."""
+        dn = self._linear_sharp(sample, ambient, scale, flicker, light)
         if self.optics.blur_px > 0:
             from scipy.ndimage import gaussian_filter
             # The light is spread before the sensor integrates it; black level is not light, but a
@@ -431,14 +456,19 @@ class TwinStation:
             dn = gaussian_filter(dn, float(self.optics.blur_px), mode="nearest", truncate=4.0)
         return dn
 
-    def _linear_sharp(self, sample: np.ndarray, ambient: float, scale: float, flicker: float) -> np.ndarray:
+    def _linear_sharp(self, sample: np.ndarray, ambient: float, scale: float, flicker: float,
+                      light: np.ndarray | None = None) -> np.ndarray:
         """:meth:`_linear` without the point-spread function: every pixel its own area's light."""
         if scale == 1.0 and flicker == 1.0:
             # The reference exposure and gain: exactly the arithmetic the twin has always used.
             dn = np.multiply(self._dn_per_ambient, np.float32(ambient))
             dn += self._dn_base
-            flat = dn.ravel()
-            flat[self._seen_idx] += self._dn_per_luminance * sample
+            if light is not None:
+                r0, r1, c0, c1, _ = self._seen_box
+                dn[r0:r1, c0:c1] += light
+            else:
+                flat = dn.ravel()
+                flat[self._seen_idx] += self._dn_per_luminance * sample
             return dn
         offset = np.float32(self.optics.camera_offset_dn)
         dn = (self._dn_base - offset) + np.float32(ambient) * self._dn_per_ambient
@@ -496,7 +526,8 @@ class TwinStation:
         ambient = optics.ambient
         if rng is not None and optics.ambient_jitter > 0:
             ambient = max(0.0, ambient * (1.0 + optics.ambient_jitter * float(rng.standard_normal())))
-        dn = self._linear(sample, ambient, scale, flicker)
+        light = self._cached_light(display_image) if scale == 1.0 and flicker == 1.0 else None
+        dn = self._linear(sample, ambient, scale, flicker, light)
         out = np.empty(dn.shape, dtype=np.uint8)
         noisy = rng is not None and (optics.read_noise_dn > 0 or optics.electrons_per_dn > 0)
         # The image's two halves are finished side by side, each with its own generator seeded from *rng*
@@ -529,7 +560,9 @@ class TwinStation:
             if optics.electrons_per_dn > 0:
                 variance = np.subtract(dn, np.float32(optics.camera_offset_dn))
                 np.maximum(variance, np.float32(0), out=variance)
-                variance /= np.float32(optics.electrons_per_dn / g)
+                # times gain / electrons per DN (a multiplication: a division costs four times as much on
+                # the frame; the noise's deviation moves by float rounding only)
+                variance *= np.float32(g / optics.electrons_per_dn)
                 variance += read_var
                 np.sqrt(variance, out=variance)
                 noise *= variance
@@ -541,9 +574,10 @@ class TwinStation:
             room = np.float32(255.0 - optics.knee_dn)
             over = dn > knee
             dn[over] = knee + room * -np.expm1(-(dn[over] - knee) / room)
-        np.rint(dn, out=dn)
+        # Clipping to the whole counts 0 and 255 commutes with rounding: clip, then round straight into
+        # the uint8 frame (one pass fewer than rounding, clipping and converting; the same counts).
         np.clip(dn, 0, 255, out=dn)
-        out[...] = dn
+        np.rint(dn, out=out, casting="unsafe")
 
     # ------------------------------------------------------------- geometry
     def measured_distance_m(self) -> float:
