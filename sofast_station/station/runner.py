@@ -327,8 +327,10 @@ class StationRunner:
         """Capture once and analyse it in the worker before the station reports ready.
 
         The first analysis in a fresh process pays for imports, caches and page faults (seconds); paid
-        here, the first facet is not the slowest. A warm-up that fails (no facet in the fixture) is
-        logged and does not stop the station.
+        here, the first facet is not the slowest. It is analysed as a facet is, with the recipe's optical
+        figures and the uncertainty, so the worker also keeps the design's trace and the uncertainty's
+        sensitivities (seconds on their own) before the first facet. A warm-up that fails (no facet in
+        the fixture) is logged and does not stop the station.
         """
         t = time.perf_counter()
         try:
@@ -337,7 +339,8 @@ class StationRunner:
                                       recipe.analysis.mask_threshold_dn, timeout_s=self.settings.camera_timeout_s)
             distance = float(self.station.range_finder.measure())
             self.worker.analyse(raw, recipe.design, recipe.analysis, distance,
-                                timeout_s=max(60.0, 3 * self.settings.deadline_s))
+                                timeout_s=max(60.0, 3 * self.settings.deadline_s), optics=recipe.optics,
+                                uncertainty=self.station.config.uncertainty)
             log.info("warm-up: one capture analysed in %.1f s", time.perf_counter() - t)
         except StationError as exc:
             log.warning("warm-up capture not analysed (%s); the first facet may be slower", exc)
