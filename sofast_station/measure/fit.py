@@ -20,14 +20,30 @@ def _dot(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.einsum("i,i->", a, b, optimize=False))
 
 
+def _cached_dot(sums: dict | None, a: np.ndarray, b: np.ndarray) -> float:
+    """:func:`_dot`, kept in *sums* by the two arrays' identities: a b and b a are the same products in
+    the same order, so the same bits."""
+    if sums is None:
+        return _dot(a, b)
+    key = (id(a), id(b)) if id(a) <= id(b) else (id(b), id(a))
+    value = sums.get(key)
+    if value is None:
+        value = sums[key] = _dot(a, b)
+    return value
+
+
 def solve_normal_equations(columns: list[np.ndarray], target: np.ndarray,
-                           weights: np.ndarray | None = None) -> np.ndarray:
+                           weights: np.ndarray | None = None, sums: dict | None = None) -> np.ndarray:
     """Coefficients k minimising sum_i w_i (sum_j k_j columns[j]_i - target_i)^2, deterministically.
 
     Columns are scaled to unit RMS before the Gram matrix is formed, which keeps it well conditioned
-    for any sensible choice of units. Without *weights* every point weighs 1.
+    for any sensible choice of units. Without *weights* every point weighs 1. *sums*, a dict the caller
+    keeps while its arrays live, shares the unweighted column products between fits of the same columns
+    (the paper's two slope equations use the same three), and the diagonal with the scales.
     """
-    scale = np.array([np.sqrt(_dot(c, c) / c.size) for c in columns])
+    if weights is not None:
+        sums = None
+    scale = np.array([np.sqrt(_cached_dot(sums, c, c) / c.size) for c in columns])
     if np.any(scale == 0) or not np.all(np.isfinite(scale)):
         raise AnalysisError("the fit's points do not span the facet (a design column is zero or not finite); "
                             "too few valid points")
@@ -37,9 +53,9 @@ def solve_normal_equations(columns: list[np.ndarray], target: np.ndarray,
     gram = np.empty((k, k))
     rhs = np.empty(k)
     for i in range(k):
-        rhs[i] = _dot(wcols[i], target) / scale[i]
+        rhs[i] = _cached_dot(sums, wcols[i], target) / scale[i]
         for j in range(i, k):
-            gram[i, j] = gram[j, i] = _dot(wcols[i], columns[j]) / (scale[i] * scale[j])
+            gram[i, j] = gram[j, i] = _cached_dot(sums, wcols[i], columns[j]) / (scale[i] * scale[j])
     try:
         sol = np.linalg.solve(gram, rhs)
     except np.linalg.LinAlgError:
@@ -220,8 +236,9 @@ def fit_parabola(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray,
         ky, wy, sig_y = (robust_weights([yc, one, xc], s_y, weights=wy) if second is None
                          else second.result())
         return _assemble(kx, ky, xm, ym, weights=(wx, wy), sigma=(sig_x, sig_y))
-    kx = solve_normal_equations([xc, one, yc], s_x)      # 2A, C', E1
-    ky = solve_normal_equations([yc, one, xc], s_y)      # 2B, D', E2
+    sums: dict = {}      # both equations' columns are xc, 1, yc: their products are summed once
+    kx = solve_normal_equations([xc, one, yc], s_x, sums=sums)      # 2A, C', E1
+    ky = solve_normal_equations([yc, one, xc], s_y, sums=sums)      # 2B, D', E2
     return _assemble(kx, ky, xm, ym)
 
 

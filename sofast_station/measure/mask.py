@@ -35,12 +35,18 @@ def facet_region(dark: np.ndarray, white: np.ndarray, threshold_dn: float,
         return np.zeros(responsive.shape, dtype=bool)
     largest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
     region = labels == largest
-    # Holes: connected unresponsive areas that do not touch the image border.
-    n_h, labels_h, stats_h, _ = cv2.connectedComponentsWithStats((~region).view(np.uint8), connectivity=4)
-    h, w = region.shape
+    # Holes: connected unresponsive areas that do not touch the image border. They lie inside the region's
+    # bounding box, and an unresponsive area of the box that touches the box's edge reaches the border
+    # through the unresponsive pixels around the box (4-connected): so the holes are the box's own
+    # unresponsive areas that do not touch the box's edge (the same pixels as over the whole image, for
+    # less than half the labelling).
+    c0, r0, bw0, bh0 = (int(stats[largest, k]) for k in (cv2.CC_STAT_LEFT, cv2.CC_STAT_TOP, cv2.CC_STAT_WIDTH,
+                                                         cv2.CC_STAT_HEIGHT))
+    box = region[r0:r0 + bh0, c0:c0 + bw0]
+    n_h, labels_h, stats_h, _ = cv2.connectedComponentsWithStats((~box).view(np.uint8), connectivity=4)
     x, y, bw, bh, area = (stats_h[:, k] for k in range(5))
-    touches_border = (x == 0) | (y == 0) | (x + bw == w) | (y + bh == h)
+    touches_border = (x == 0) | (y == 0) | (x + bw == bw0) | (y + bh == bh0)
     fill = ~touches_border & (area <= max_hole_px)
     fill[0] = False
-    region |= fill[labels_h]
+    box |= fill[labels_h]
     return region
