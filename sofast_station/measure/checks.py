@@ -215,26 +215,34 @@ def slope_curl(valid: np.ndarray, points_m: np.ndarray, slopes: np.ndarray, step
     if rows.size == 0:
         return {"antisymmetric_rms_per_m": 0.0, "symmetric_rms_per_m": 0.0, "step_px": 1, "n": 0}
 
-    def grids_in(r0, r1, c0, c1):
-        # The camera image cropped to [r0, r1) x [c0, c1): outside the valid pixels every value is NaN,
-        # so a crop that holds them with a margin of 2k gives the same differences as the whole image.
-        sub = valid[r0:r1, c0:c1]
-        out = []
-        for values in (points_m[0], points_m[1], slopes[0], slopes[1]):
-            g = np.full(sub.shape, np.nan)
-            g[sub] = values
-            out.append(g)
-        return out
+    # The camera image cropped to the valid pixels' box: outside them every value is NaN, so a crop
+    # that holds them with a margin of 2k gives the same differences as the whole image.
+    box = (rows[0], rows[-1] + 1, cols[0], cols[-1] + 1)
+    sub = valid[box[0]:box[1], box[2]:box[3]]
 
-    x, y, sx, sy = grids_in(rows[0], rows[-1] + 1, cols[0], cols[-1] + 1)
+    def grid(values, shape=sub.shape, at=(0, 0)):
+        g = np.full(shape, np.nan)
+        g[at[0]:at[0] + sub.shape[0], at[1]:at[1] + sub.shape[1]][sub] = values
+        return g
+
+    x, y = grid(points_m[0]), grid(points_m[1])
     with np.errstate(invalid="ignore"):
         spacing = np.abs(np.concatenate([(x[:, 1:] - x[:, :-1]).ravel(), (y[1:, :] - y[:-1, :]).ravel()]))
     spacing = spacing[np.isfinite(spacing)]
     k = max(1, int(round(step_m / median(spacing)))) if spacing.size else 1
     if 4 * k >= min(h, w):
         return {"antisymmetric_rms_per_m": 0.0, "symmetric_rms_per_m": 0.0, "step_px": k, "n": 0}
-    x, y, sx, sy = grids_in(max(rows[0] - 2 * k, 0), min(rows[-1] + 1 + 2 * k, h),
-                            max(cols[0] - 2 * k, 0), min(cols[-1] + 1 + 2 * k, w))
+    # The box with its margin (cut at the image's edges); the box's grids are copied in, not rebuilt.
+    r0, c0 = max(box[0] - 2 * k, 0), max(box[2] - 2 * k, 0)
+    shape = (min(box[1] + 2 * k, h) - r0, min(box[3] + 2 * k, w) - c0)
+    at = (box[0] - r0, box[2] - c0)
+    wide = []
+    for g in (x, y):
+        big = np.full(shape, np.nan)
+        big[at[0]:at[0] + sub.shape[0], at[1]:at[1] + sub.shape[1]] = g
+        wide.append(big)
+    x, y = wide
+    sx, sy = grid(slopes[0], shape, at), grid(slopes[1], shape, at)
 
     def d_col(f):
         return f[k:-k, 2 * k:] - f[k:-k, :-2 * k]
