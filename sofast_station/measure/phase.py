@@ -188,7 +188,7 @@ class FrameNoise:
     residuals: list
 
 
-def frame_noise(phases, modulations, residuals, level=None) -> FrameNoise:
+def frame_noise(phases, modulations, residuals, level=None, pool=None) -> FrameNoise:
     """Noise and display nonlinearity from the four-step sets of one capture.
 
     Parameters
@@ -199,6 +199,9 @@ def frame_noise(phases, modulations, residuals, level=None) -> FrameNoise:
         Each pixel's brightness (white - dark, DN), the same pixels. Room light or exposure changing
         between frames changes each pixel in proportion to its brightness: with *level* that part is
         fitted too. (Not the mean of the fringe frames: a half-drawn frame would leak into it.)
+    pool : executor, optional
+        Where half of the sets' cleaned residuals are formed beside the other half (each set's arithmetic
+        is the same on any thread).
 
     Returns
     -------
@@ -259,8 +262,13 @@ def frame_noise(phases, modulations, residuals, level=None) -> FrameNoise:
         if len(good) == 1 or scatter[worst] <= 2.0 * min(scatter[k] for k in good):
             break
         good.remove(worst)
-    cleaned = [_cleaned(residuals[k], phases[k], modulations[k], level, harmonic, own_coefs[k])
-               for k in range(n_sets)]
+    def clean(ks):
+        return [_cleaned(residuals[k], phases[k], modulations[k], level, harmonic, own_coefs[k]) for k in ks]
+
+    half = n_sets // 2 if pool is not None else 0
+    first = pool.submit(clean, range(half)) if half else None
+    rest = clean(range(half, n_sets))
+    cleaned = (first.result() if first is not None else []) + rest
     # r = 4 c_2 cos(2 phi + psi): the ratio c_2 / b, signed by the cosine part (power laws have psi = 0, pi).
     ratio = 0.25 * float(np.hypot(harmonic[0], harmonic[1])) * (1.0 if harmonic[0] >= 0 else -1.0)
     noise = intensity_noise_dn(np.concatenate([_stride(cleaned[k]) for k in good]))
