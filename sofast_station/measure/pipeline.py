@@ -390,6 +390,8 @@ def measure_phases(region: Region, fringes: FringeSet, screen_size_m: tuple[floa
     """
     pool = pool if pool is not None else _Serial()
     idx, stack = region.idx, region.stack
+    if pixel_mask is not None and pixel_mask.shape != region.region.shape:
+        raise CaptureError(f"pixel_mask has shape {pixel_mask.shape}, expected the camera's {region.region.shape}")
     checks.check_saturation(stack, settings.max_saturated_fraction)
     slices = fringes.slices()
     tasks = {axis: pool.submit(_phase_sets, stack, slices[axis]) for axis in ("x", "y")}
@@ -402,6 +404,16 @@ def measure_phases(region: Region, fringes: FringeSet, screen_size_m: tuple[floa
     noise_dn = noise.frame_noise_dn
     n_x = len(raw["x"][2])
     cleaned = {"x": noise.residuals[:n_x], "y": noise.residuals[n_x:]}
+    lengths = {"x": screen_size_m[0], "y": screen_size_m[1]}
+
+    def unwrap_axis(axis):
+        periods = getattr(fringes, f"periods_{axis}")
+        sigma = position_sigma_m(raw[axis][1][-1], noise_dn, periods[-1], lengths[axis])
+        return unwrap_positions(raw[axis][0], periods, lengths[axis], sigma, settings.guard_sigmas)
+
+    # Unwrapping needs only the phases and the noise: it runs on the pool while the consistency check
+    # and the modulation limit go over the sets here.
+    tasks = {axis: pool.submit(unwrap_axis, axis) for axis in ("x", "y")}
     ok = np.ones(idx.size, dtype=bool)
     min_mod = np.full(idx.size, np.inf)
     inconsistent = np.zeros(idx.size, dtype=bool)
@@ -420,20 +432,9 @@ def measure_phases(region: Region, fringes: FringeSet, screen_size_m: tuple[floa
     ok &= ~low_mod & ~inconsistent
     excluded = 0
     if pixel_mask is not None:
-        if pixel_mask.shape != region.region.shape:
-            raise CaptureError(f"pixel_mask has shape {pixel_mask.shape}, expected the camera's "
-                               f"{region.region.shape}")
         allowed = pixel_mask.ravel()[idx]
         excluded = int(np.count_nonzero(ok & ~allowed))
         ok &= allowed
-    lengths = {"x": screen_size_m[0], "y": screen_size_m[1]}
-
-    def unwrap_axis(axis):
-        periods = getattr(fringes, f"periods_{axis}")
-        sigma = position_sigma_m(raw[axis][1][-1], noise_dn, periods[-1], lengths[axis])
-        return unwrap_positions(raw[axis][0], periods, lengths[axis], sigma, settings.guard_sigmas)
-
-    tasks = {axis: pool.submit(unwrap_axis, axis) for axis in ("x", "y")}
     positions, unwrap_stats = {}, {}
     for axis, task in tasks.items():
         res = task.result()
