@@ -320,6 +320,11 @@ class CubicFit:
 
     def slopes(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Model slopes dz/dx, dz/dy at facet-frame (x, y), metres."""
+        u, v = (x - self.x0) / self.h, (y - self.y0) / self.h
+        return self._slopes([None, u, v, u * u, u * v, v * v])
+
+    def _slopes(self, base: list) -> tuple[np.ndarray, np.ndarray]:
+        """The slopes from the monomials (1), u, v, u^2, uv, v^2 of the points (``base[0]`` unused)."""
         # Each slope is a quadratic in (u, v): its six coefficients first, then one pass per monomial.
         cx, cy = np.zeros(len(_BASE)), np.zeros(len(_BASE))
         for c, (i, j) in zip(self.coefficients, CUBIC_TERMS):
@@ -327,8 +332,7 @@ class CubicFit:
                 cx[_BASE.index((i - 1, j))] += c * i / self.h
             if j:
                 cy[_BASE.index((i, j - 1))] += c * j / self.h
-        u, v = (x - self.x0) / self.h, (y - self.y0) / self.h
-        base = [None, u, v, u * u, u * v, v * v]
+        u = base[1]
         out = []
         for coef in (cx, cy):
             acc = np.multiply(u, coef[1])
@@ -355,6 +359,18 @@ def fit_cubic(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray) ->
     The slopes of every term are multiples of the six monomials of degree <= 2, so the normal equations
     are assembled from their 21 pairwise sums instead of a (2N x 9) design matrix.
     """
+    return _fit_cubic(x, y, s_x, s_y)[0]
+
+
+def fit_cubic_with_slopes(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray
+                          ) -> tuple[CubicFit, tuple[np.ndarray, np.ndarray]]:
+    """:func:`fit_cubic` and the fitted model's slopes at the same points (``fit.slopes(x, y)``, the same
+    bits), the monomials formed once for both."""
+    fit, base = _fit_cubic(x, y, s_x, s_y)
+    return fit, fit._slopes(base)
+
+
+def _fit_cubic(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray) -> tuple[CubicFit, list]:
     if x.size < 30:
         raise AnalysisError(f"only {x.size} valid points: too few to fit the higher-order model")
     x0 = float(np.sum(x) / x.size)
@@ -365,9 +381,12 @@ def fit_cubic(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray) ->
     base = _monomials(u, v)
     nb = len(_BASE)
     gram_b = np.empty((nb, nb))
-    for a in range(nb):
+    for a in reversed(range(nb)):
         for b in range(a, nb):
-            gram_b[a, b] = gram_b[b, a] = _dot(base[a], base[b])
+            # 1 x u^2, 1 x uv, 1 x v^2 are the products u x u, u x v, v x v (u^2 is u * u, and so on):
+            # the same sums, taken from those (formed first: the rows are summed last to first).
+            same = {(0, 3): (1, 1), (0, 4): (1, 2), (0, 5): (2, 2)}.get((a, b))
+            gram_b[a, b] = gram_b[b, a] = gram_b[same] if same else _dot(base[a], base[b])
     rhs_x = np.array([_dot(m, s_x) for m in base])
     rhs_y = np.array([_dot(m, s_y) for m in base])
     n = len(CUBIC_TERMS)
@@ -392,4 +411,4 @@ def fit_cubic(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray) ->
     if np.linalg.cond(g) > 1e12:
         raise AnalysisError("the higher-order fit is ill-conditioned: the valid points cover too little of the facet")
     coef = np.linalg.solve(g, rhs / scale) / scale
-    return CubicFit(coef, x0, y0, h)
+    return CubicFit(coef, x0, y0, h), base

@@ -22,7 +22,7 @@ from . import checks
 from . import corners as corners_mod
 from .camera import pixel_rays, project, to_frame
 from .boresight import Assembly, ShapeSolution, solve_shape
-from .fit import CubicFit, ParabolaFit, fit_cubic, fit_parabola, reweight_parabola
+from .fit import CubicFit, ParabolaFit, fit_cubic_with_slopes, fit_parabola, reweight_parabola
 from .mask import facet_region
 from .metrics import focal_length_m, principal_axes, rms_summary, slope_residuals_mrad
 from .phase import FrameNoise, frame_noise, phase_and_modulation, position_sigma_m, unwrap_positions
@@ -558,7 +558,7 @@ def fit_models(shape: Shape, design: FacetDesign, settings: AnalysisSettings, po
     pool = pool if pool is not None else _Serial()
     x, y = shape.points_m[0], shape.points_m[1]
     s_x, s_y = shape.slopes[0], shape.slopes[1]
-    cubic_task = pool.submit(fit_cubic, x, y, s_x, s_y)
+    cubic_task = pool.submit(fit_cubic_with_slopes, x, y, s_x, s_y)
     angle_x = pool.submit(np.arctan, s_x)
     # Robust: the bisquare iteration converged on the subsample; one Newton step over every point.
     fit = (reweight_parabola(x, y, s_x, s_y, shape.solution.fit) if settings.robust_fit
@@ -566,8 +566,8 @@ def fit_models(shape: Shape, design: FacetDesign, settings: AnalysisSettings, po
     coeffs = fit.coefficients()
     coeffs[5] = float(design.z(*design.alignment_point_m)) - surface_z(coeffs, *design.alignment_point_m)
     angles = (angle_x.result(), np.arctan(s_y))
-    cubic = cubic_task.result()
-    higher = pool.submit(lambda: slope_residuals_mrad(s_x, s_y, *cubic.slopes(x, y), angles))
+    cubic, cubic_slopes = cubic_task.result()
+    higher = pool.submit(lambda: slope_residuals_mrad(s_x, s_y, *cubic_slopes, angles))
     residuals = {"design": slope_residuals_mrad(s_x, s_y, *surface_slopes(design.coefficients, x, y), angles),
                  "parabola": slope_residuals_mrad(s_x, s_y, *surface_slopes(coeffs, x, y), angles),
                  "higher_order": higher.result()}
