@@ -123,6 +123,23 @@ def test_same_seed_gives_the_same_frame(parabola_station):
     assert np.array_equal(station.capture(display), station.capture(display))
 
 
+def test_a_kept_pattern_renders_the_same_frame_as_a_fresh_image(rich_station):
+    # A read-only pattern's light is kept on the box of seen pixels and added there; a writable image is
+    # sampled and scattered onto the seen pixels each time: the same frames, bit for bit.
+    station = rich_station.with_optics(TwinOptics())
+    screen = station.geometry.screen
+    rows, cols = np.mgrid[0:screen.height_px, 0:screen.width_px]
+    pattern = (127.5 + 120 * np.cos(2 * np.pi * (cols / 37.0 + rows / 53.0))).astype(np.uint8)
+    kept = pattern.copy()
+    kept.setflags(write=False)
+    for seed in (3, None):
+        fresh = station.capture(pattern.copy(), None if seed is None else np.random.default_rng(seed))
+        first = station.capture(kept, None if seed is None else np.random.default_rng(seed))
+        again = station.capture(kept, None if seed is None else np.random.default_rng(seed))
+        assert np.array_equal(fresh, first) and np.array_equal(first, again)
+    assert station._cached_light(kept) is not None and station._cached_light(pattern) is None
+
+
 def test_knee_is_monotone_and_saturates_at_255(parabola_station):
     station = parabola_station.with_optics(TwinOptics(read_noise_dn=0.0, electrons_per_dn=0.0, ambient_jitter=0.0,
                                                       white_dn=300.0, knee_dn=200.0))
