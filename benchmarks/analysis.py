@@ -158,7 +158,8 @@ def prepare_twin(config: str, tmp: Path) -> dict:
 
 def prepare_dump(config: str, tmp: Path, fits) -> dict:
     """A twin capture, analysed once per fit, written as the station's data dumps (cropped frames, record,
-    the analysis settings with that fit), as a station configured for that fit writes them."""
+    the analysis settings with that fit, the uncertainty's sensitivities the analysis kept), as a station
+    configured for that fit writes them."""
     import dataclasses
 
     from sofast_station.archive.dumps import DumpContent, crop_to_facet, write_dump
@@ -171,12 +172,13 @@ def prepare_dump(config: str, tmp: Path, fits) -> dict:
     spec = {}
     for fit in fits:
         settings = dataclasses.replace(cfg.analysis, robust_fit=fit == "robust")
-        a = analyse(frames, cfg.fringes, cfg.geometry, cfg.design, distance, settings)
+        a = analyse(frames, cfg.fringes, cfg.geometry, cfg.design, distance, settings, uncertainty=cfg.uncertainty,
+                    sensitivity_cache={})
         record = result_record(station, "BENCH-1", a, dict(a.timings_s))
         record.update(judge(a.figures, cfg.design, cfg.limits, cfg.quality))
         content = DumpContent.from_station(station, cycle_id=f"bench-{fit}", record=record, frames_cropped=cropped,
                                            crop_box=box, full_shape=full, measured_distance_m=distance,
-                                           analysis=settings)
+                                           analysis=settings, sensitivities=getattr(a, "sensitivities", None))
         path = tmp / f"bench-{fit}.h5"
         write_dump(path, content)
         spec["dump_robust" if fit == "robust" else "dump"] = str(path)

@@ -109,6 +109,10 @@ class Analysis:
     corners_px: np.ndarray
     coefficients: np.ndarray
     timings_s: dict = field(default_factory=dict)
+    #: The uncertainty's sensitivities this analysis used, as a record
+    #: (:func:`~sofast_station.measure.sensitivity_record.to_record`), when they were kept in a cache:
+    #: what a data dump stores so that re-analysis can reuse them.
+    sensitivities: dict | None = None
 
 
 class _Timer:
@@ -723,6 +727,11 @@ def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, d
         timings["uncertainty"] = time.perf_counter() - t0
         if sensitivity_s:
             timings["uncertainty_sensitivities"] = sensitivity_s
+        if sensitivity_cache is not None and key in sensitivity_cache:
+            from .sensitivity_record import to_record
+            analysis = to_analysis(reduction, timings)
+            analysis.sensitivities = to_record(key, sensitivity_cache[key])
+            return analysis
     return to_analysis(reduction, timings)
 
 

@@ -420,6 +420,20 @@ def _uncertainty_inputs(content: DumpContent, notes: list):
         return InputUncertainties()
 
 
+def stored_sensitivities(content: DumpContent) -> dict | None:
+    """The dump's own sensitivities as a cache for its analysis (``{key: Sensitivities}``), or None.
+
+    The analysis uses them only when its inputs hash to the same key (the same geometry, recipe and input
+    uncertainties as the station's); otherwise, and for a dump without them, it computes them from the
+    dump's capture. A fresh dict per dump: nothing carries over from one dump to the next, so a dump's
+    result does not depend on the order of a batch or on its worker.
+    """
+    from ..measure.sensitivity_record import from_record
+
+    stored = from_record(content.sensitivities) if content.sensitivities is not None else None
+    return None if stored is None else {stored[0]: stored[1]}
+
+
 def _judge_settings(content: DumpContent, recipe: str, notes: list):
     """Limits and quality of the dumped station.toml (and of the record's recipe)."""
     from ..station.verdict import Limits, Quality, limits_from_table, quality_from_table
@@ -550,7 +564,8 @@ def reprocess_content(content: DumpContent, overrides: Overrides | None = None, 
     t1 = time.perf_counter()
     try:
         analysis = content.analyse(design=design, settings=settings, measured_distance_m=distance,
-                                   uncertainty=_uncertainty_inputs(content, notes))
+                                   uncertainty=_uncertainty_inputs(content, notes),
+                                   sensitivity_cache=stored_sensitivities(content))
     except (DumpError, ConfigError):
         raise
     except StationError as exc:              # the analysis refuses the capture: a fault, as on the line

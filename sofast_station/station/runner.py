@@ -102,6 +102,8 @@ class CycleOutcome:
     #: The analysis's valid pixels (camera size) and its thinned per-pixel results, for the monitor.
     valid: np.ndarray | None = field(default=None, repr=False)
     preview: dict | None = field(default=None, repr=False)
+    #: The uncertainty's sensitivities the analysis used (a record), written into the facet's dump.
+    sensitivities: dict | None = field(default=None, repr=False)
 
 
 def new_cycle_id() -> str:
@@ -423,7 +425,7 @@ class StationRunner:
                 record["truth"] = {k: truth[k] for k in FIGURE_KEYS if k in truth}
             self._check_drift(recipe.name, record)
             outcome = CycleOutcome(cycle_id, serial, record["verdict"], record, valid=res.valid,
-                                   preview=res.preview)
+                                   preview=res.preview, sensitivities=getattr(res, "sensitivities", None))
         except Exception as exc:          # a bad facet must never stop the line
             code, kind = fault_code_for(exc)
             if kind == "internal":
@@ -503,7 +505,7 @@ class StationRunner:
         dump = None
         if self._dump_due(outcome, request):
             dump = {"frames": outcome.frames, "crop_box": box, "full_shape": raw_shape,
-                    "measured_distance_m": distance}
+                    "measured_distance_m": distance, "sensitivities": outcome.sensitivities}
         try:
             self.submit(outcome.cycle_id, record, dump, amend=True)
             outcome.dumped = dump is not None
@@ -540,7 +542,7 @@ class StationRunner:
         dump = None
         if self._dump_due(outcome, request):
             dump = {"frames": outcome.frames, "crop_box": box, "full_shape": raw_shape,
-                    "measured_distance_m": distance}
+                    "measured_distance_m": distance, "sensitivities": outcome.sensitivities}
         record["timings_s"]["until_journal"] = time.perf_counter() - t0
         try:
             try:
@@ -580,7 +582,7 @@ class StationRunner:
                 hook(outcome)
             except Exception:                  # the monitor's extras must never stop the line
                 log.exception("%s: a facet hook failed", outcome.serial)
-        outcome.valid = outcome.preview = None         # the hooks had them; the run's outcomes need not
+        outcome.valid = outcome.preview = outcome.sensitivities = None   # the hooks and the dump had them
 
     def _reopen_camera(self) -> None:
         reopen = getattr(self.station, "reopen_camera", None)

@@ -358,7 +358,8 @@ class Service:
                 self.station, cycle_id=cycle_id, record=record, frames_cropped=dump["frames"],
                 crop_box=dump["crop_box"], full_shape=dump["full_shape"],
                 measured_distance_m=dump["measured_distance_m"], design=recipe.design, analysis=recipe.analysis,
-                facet_path=(self.config.path.parent / facet_path) if facet_path else None)
+                facet_path=(self.config.path.parent / facet_path) if facet_path else None,
+                sensitivities=dump.get("sensitivities"))
         self.archiver.submit(cycle_id, record, content, amend=amend)
 
     def close(self) -> None:

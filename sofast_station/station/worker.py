@@ -61,6 +61,8 @@ class WorkerResult:
     valid: np.ndarray
     seconds: float
     preview: dict | None = None
+    #: The uncertainty's sensitivities the worker keeps for this recipe (a record, a few kB), for the dump.
+    sensitivities: dict | None = None
 
 
 # --- worker process side -------------------------------------------------------------------------
@@ -103,7 +105,7 @@ def _run(design: dict, settings: dict, distance_m: float, hang_s: float, optics=
                 sensitivity_cache=_STATE.setdefault("sensitivities", {}))
     # The optical figures (intercept, spot size, aim), with the design's trace kept for the next facet.
     add_optics(a, facet, optics, _STATE.setdefault("design_traces", DesignTraces()))
-    return a.figures, np.packbits(a.valid), a.valid.shape, time.perf_counter() - t, _preview(a)
+    return a.figures, np.packbits(a.valid), a.valid.shape, time.perf_counter() - t, _preview(a), a.sensitivities
 
 
 def _preview(a, most: int = 6000) -> dict:
@@ -248,7 +250,7 @@ class AnalysisWorker:
         try:
             fut = self._pool.submit(_run, design.to_dict(), settings.to_dict(), float(distance_m), float(hang_s),
                                     optics, None if uncertainty is None else uncertainty.to_dict())
-            figures, packed, shape, seconds, preview = fut.result(timeout=max(timeout_s, 0.01))
+            figures, packed, shape, seconds, preview, sensitivities = fut.result(timeout=max(timeout_s, 0.01))
         except FutureTimeout:
             log.error("analysis exceeded its %.1f s budget: restarting the analysis worker", timeout_s)
             self._restart()
@@ -260,7 +262,7 @@ class AnalysisWorker:
             raise WorkerDied("the analysis worker process died during this facet's analysis (killed or out of "
                              "memory); it is restarted, the next facet is measured") from None
         valid = np.unpackbits(packed, count=int(np.prod(shape))).astype(bool).reshape(shape)
-        return WorkerResult(figures, valid, seconds, preview)
+        return WorkerResult(figures, valid, seconds, preview, sensitivities)
 
     def prepare_optics(self, designs: list, timeout_s: float = 120.0) -> None:
         """Trace each (design, OpticsSettings)'s design surface in the worker now, so that no facet's cycle

@@ -392,3 +392,30 @@ def test_the_command_reports_a_bad_file_without_a_traceback(tmp_path):
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and proc.stdout == ""
     assert str(bad) in proc.stderr and "it looks like a PNG image" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_dumps_carry_the_stations_sensitivities_and_reprocess_reuses_them_in_any_order(station_dumps):
+    from sofast_station.reanalysis.reprocess import is_uncertainty_key, reprocess_content
+
+    def u_figures(res):
+        return {k: v for k, v in flatten_figures(res.record, uncertainties=True).items() if is_uncertainty_key(k)}
+
+    contents = [read_dump(d) for d in station_dumps.good[:2]]
+    for content in contents:
+        stored = content.sensitivities
+        assert stored is not None and stored["key"] and len(stored["linear"]) == len(stored["inputs"])
+        # the station's own sensitivities are used: none computed in the re-analysis
+        res = reprocess_content(content)
+        assert res.exact is True, res.differences
+        assert "analysis_uncertainty_sensitivities" not in res.record["timings_s"]
+        assert u_figures(res) and all(v is None or math.isfinite(v) for v in u_figures(res).values())
+    # Each dump uses its own record: the order of a batch does not change a dump's uncertainties.
+    first = [u_figures(reprocess_content(c)) for c in contents]
+    second = [u_figures(reprocess_content(c)) for c in reversed(contents)][::-1]
+    assert first == second
+    # Without the record (an older dump), they are computed from the capture: a cost, not another figure.
+    bare = read_dump(station_dumps.good[0])
+    bare.sensitivities = None
+    res = reprocess_content(bare)
+    assert res.exact is True and res.record["timings_s"]["analysis_uncertainty_sensitivities"] > 0
+    assert set(u_figures(res)) == set(first[0])

@@ -74,6 +74,10 @@ class DumpContent:
     schema_version: int = SCHEMA_VERSION
     created: str = ""
     path: Path | None = field(default=None, compare=False)
+    #: The uncertainty's sensitivities the station's analysis used
+    #: (:mod:`~sofast_station.measure.sensitivity_record`), or None: re-analysis reuses them when its inputs
+    #: are the same, instead of computing them from this capture.
+    sensitivities: dict | None = field(default=None, compare=False)
 
     def __post_init__(self):
         if self.frames_cropped is not None:
@@ -86,7 +90,7 @@ class DumpContent:
     @classmethod
     def build(cls, config, radiometric, *, cycle_id: str, record: dict, frames_cropped: np.ndarray,
               crop_box, full_shape, measured_distance_m: float, design=None, analysis=None,
-              facet_path: str | Path | None = None) -> "DumpContent":
+              facet_path: str | Path | None = None, sensitivities: dict | None = None) -> "DumpContent":
         """Assemble a dump's content from a loaded configuration and calibration.
 
         Parameters
@@ -108,6 +112,9 @@ class DumpContent:
             The analysis settings used (a recipe's); the station's by default.
         facet_path : str or Path, optional
             The facet file of *design*, kept as text; the station's facet file by default.
+        sensitivities : dict, optional
+            The uncertainty's sensitivities the analysis used (a record of
+            :func:`~sofast_station.measure.sensitivity_record.to_record`).
         """
         frames_cropped = np.ascontiguousarray(frames_cropped)
         box = _crop_origin(crop_box, frames_cropped.shape)
@@ -131,7 +138,8 @@ class DumpContent:
                    radiometric=json_ready(radiometric.to_dict()), geometry=json_ready(config.geometry.to_dict()),
                    design=json_ready(design.to_dict()), analysis=json_ready(analysis.to_dict()),
                    station_toml=texts[0], facet_toml=texts[1], station_path=str(config.path),
-                   facet_path=str(facet_path), station_name=str(config.name), record=rec)
+                   facet_path=str(facet_path), station_name=str(config.name), record=rec,
+                   sensitivities=None if sensitivities is None else json_ready(sensitivities))
 
     @classmethod
     def from_station(cls, station, **kwargs) -> "DumpContent":
@@ -147,6 +155,7 @@ class DumpContent:
         """(arrays, metadata) for :func:`~sofast_station.archive.spool.spool_put`."""
         meta = {k: getattr(self, k) for k in self._META_FIELDS}
         meta["crop_box"], meta["full_shape"] = list(self.crop_box), list(self.full_shape)
+        meta["sensitivities"] = self.sensitivities
         meta["spool_kind"] = "sofast-station-dump-content"
         return {"frames_cropped": self.frames_cropped}, meta
 
@@ -160,7 +169,8 @@ class DumpContent:
         except KeyError as exc:
             raise ArchiveError(f"the spool lacks {exc.args[0]!r}") from None
         kw["crop_box"], kw["full_shape"] = tuple(kw["crop_box"]), tuple(kw["full_shape"])
-        return cls(cycle_id=metadata["cycle_id"], frames_cropped=arrays["frames_cropped"], **kw)
+        return cls(cycle_id=metadata["cycle_id"], frames_cropped=arrays["frames_cropped"],
+                   sensitivities=metadata.get("sensitivities"), **kw)     # (absent in older spools)
 
     # -- use ----------------------------------------------------------------------------------------
     @property

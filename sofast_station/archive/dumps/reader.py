@@ -201,6 +201,13 @@ def _read_v1(f, path: Path, version: int, load_frames: bool, require_result: boo
     else:
         log.warning("dump %s holds no archived result (no result/record_json); reading it for re-analysis only",
                     path)
+    sensitivities = None
+    if "result/sensitivities_json" in f:          # optional: re-analysis recomputes them without it
+        try:
+            sensitivities = json.loads(_read_value(f["result/sensitivities_json"]))
+        except (json.JSONDecodeError, TypeError) as exc:
+            log.warning("dump %s: result/sensitivities_json is not valid JSON (%s); the re-analysis computes the "
+                        "sensitivities afresh", path, exc)
     return DumpContent(
         cycle_id=attrs["cycle_id"], serial=attrs["serial"], time=attrs["time"],
         software_version=attrs["software_version"], config_hash=attrs["config_hash"], frames_cropped=frames,
@@ -210,7 +217,7 @@ def _read_v1(f, path: Path, version: int, load_frames: bool, require_result: boo
         geometry=_read_value(f["geometry"]), design=_read_value(f["design"]), analysis=_read_value(f["analysis"]),
         station_toml=cfg["station_toml"], facet_toml=cfg["facet_toml"], station_path=cfg["station_path"],
         facet_path=cfg["facet_path"], station_name=cfg["station_name"], record=record, schema_version=version,
-        created=created, path=path)
+        created=created, path=path, sensitivities=sensitivities)
 
 
 def _read_v2(f, path: Path, version: int, load_frames: bool, require_result: bool) -> DumpContent:

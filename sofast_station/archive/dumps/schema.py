@@ -168,6 +168,12 @@ SCHEMA_V2: tuple[tuple[str, str, str, str, str, bool], ...] = tuple(
         ("geometry/screen/pitch_y_m", "dataset", "float64", "m",
          "display pixel pitch along y (rows), non-square pixels", False))))
 
+# Optional in version 2 (written since the station keeps them): older readers ignore it.
+SCHEMA_V2 = SCHEMA_V2 + (
+    ("result/sensitivities_json", "dataset", "str", "",
+     "the uncertainty's sensitivities the analysis used, as JSON text (re-analysis reuses them for the same "
+     "inputs)", False),)
+
 #: The layout this software writes.
 SCHEMA_CURRENT = SCHEMA_V2
 

@@ -215,6 +215,8 @@ def write_dump(path: str | Path, content: DumpContent, compression_level: int = 
             res = f.create_group("result", track_order=True)
             _set_description(res, "result")
             _write_value(res, "record_json", to_json(content.record), "result/record_json")
+            if content.sensitivities is not None:
+                _write_value(res, "sensitivities_json", to_json(content.sensitivities), "result/sensitivities_json")
             for k, v in _flat_figures(content.record).items():
                 res.attrs[k] = v
         fsync_file(tmp)
