@@ -425,6 +425,11 @@ def judge_calibration(intrinsics: CameraIntrinsics, rms_px: float, std: dict, po
             and not fix_k2:
         advice.append("for a long lens, whose small distortion the views cannot separate from the principal "
                       "point, hold k2 at 0 (--fix-k2)" + ("" if fix_k3 else " and k3 (leave out --k3)"))
+    if principal > PRINCIPAL_OF_WIDTH[1]:
+        fov = float(np.degrees(2 * np.arctan(0.5 * w / k[0, 0])))
+        advice.append(f"a lens whose field of view is narrow ({fov:.1f} degrees across) locates its principal point "
+                      "poorly whatever the views: if more views do not help, keep the [camera] table's values "
+                      "and state their uncertainty in [uncertainty] camera_principal_px")
     if rms_px > RMS_PX[0]:
         advice.append("check --squares and --square-mm against the board, its flatness, and the focus")
     verdict = "refused" if refuse else ("warn" if warn else "pass")
@@ -526,9 +531,9 @@ def calibrate_camera_images(images: list[tuple[str, np.ndarray | None]], board: 
                                 fix_k3=fix_k3)
     cal = CameraCalibration(intrinsics, float(rms), std, results, board, fix_k3 or fix_k2, fix_k2, quality)
     if quality["verdict"] == "refused":
-        log.warning("camera calibration refused: %s", "; ".join(quality["refuse_reasons"]))
         if refuse:
             raise CalibrationError(refusal_text(cal))
+        log.warning("camera calibration refused: %s", "; ".join(quality["refuse_reasons"]))
     return cal
 
 
