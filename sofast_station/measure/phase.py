@@ -238,7 +238,7 @@ def frame_noise(phases, modulations, residuals, level=None, pool=None) -> FrameN
         whose pixels see only part of a fringe (coarse periods over a small reflected footprint) cannot
         tell a harmonic from an offset on its own; together the sets can. Returns the shared harmonic
         coefficients and every set's own coefficients (those of the others fitted with the harmonic fixed)."""
-        coef = _block_lstsq([samples[k] for k in good])
+        coef = _block_lstsq([samples[k] for k in good], first_blocks)
         n_own = per_set * len(good)
         harmonic, own_coefs = coef[n_own:], []
         for k in range(n_sets):
@@ -254,6 +254,7 @@ def frame_noise(phases, modulations, residuals, level=None, pool=None) -> FrameN
     # the fundamental, and the other sets do not share it): the worst such set is left out and the fit
     # repeated, one set at a time (a spoiled set also pulls the shared terms, so others look worse at first).
     good = list(range(n_sets))
+    first_blocks: dict = {}      # each set's sums over all its samples: the same in every refit
     while True:
         harmonic, own_coefs = joint_fit(good)
         scatter = [trimmed_std(r - _combine(harmonic, shared) - _combine(c, own))
@@ -306,31 +307,43 @@ def _cleaned(residual, phase, modulation, level, harmonic: np.ndarray, own: np.n
     return np.subtract(np.asarray(residual).ravel(), t, out=t, dtype=np.float32)
 
 
-def _block_lstsq(samples: list) -> np.ndarray:
+def _block_lstsq(samples: list, first_blocks: dict | None = None) -> np.ndarray:
     """:func:`_robust_lstsq` of the joint fit without forming its (mostly zero) design matrix.
 
     *samples*: per set (own rows (m, n_k), shared rows (4, n_k), residuals (n_k,)). The unknowns are every
     set's own coefficients then the four shared ones; the normal equations are assembled block by block
     from each set's own and shared rows (einsum's loops, no BLAS), refitted without residuals beyond 5
     trimmed standard deviations like :func:`_robust_lstsq`.
+
+    The first round keeps every sample, so each set's sums there do not depend on the other sets:
+    *first_blocks* (a dict the caller keeps while its samples live) keeps them between fits of different
+    groups of the same sets (the same sums, so the same bits).
     """
     m = samples[0][0].shape[0]
     n_own = m * len(samples)
     keeps = [np.ones(r.size, dtype=bool) for _, _, r in samples]
     coef = np.zeros(n_own + 4)
-    for _ in range(3):
+    for round_ in range(3):
+        first = round_ == 0
         gram = np.zeros((n_own + 4, n_own + 4))
         rhs = np.zeros(n_own + 4)
         for j, ((own, shared, r), keep) in enumerate(zip(samples, keeps)):
-            o, sh, y = own[:, keep], shared[:, keep], r[keep]
             a = slice(m * j, m * (j + 1))
-            gram[a, a] = np.einsum("in,jn->ij", o, o, optimize=False)
-            cross = np.einsum("in,jn->ij", o, sh, optimize=False)
+            blocks = None if first_blocks is None or not first else first_blocks.get(id(r))
+            if blocks is None:
+                o, sh, y = own[:, keep], shared[:, keep], r[keep]
+                blocks = (np.einsum("in,jn->ij", o, o, optimize=False), np.einsum("in,jn->ij", o, sh, optimize=False),
+                          np.einsum("in,jn->ij", sh, sh, optimize=False), np.einsum("in,n->i", o, y, optimize=False),
+                          np.einsum("in,n->i", sh, y, optimize=False))
+                if first and first_blocks is not None:
+                    first_blocks[id(r)] = blocks
+            oo, cross, ss, oy, sy = blocks
+            gram[a, a] = oo
             gram[a, n_own:] = cross
             gram[n_own:, a] = cross.T
-            gram[n_own:, n_own:] += np.einsum("in,jn->ij", sh, sh, optimize=False)
-            rhs[a] = np.einsum("in,n->i", o, y, optimize=False)
-            rhs[n_own:] += np.einsum("in,n->i", sh, y, optimize=False)
+            gram[n_own:, n_own:] += ss
+            rhs[a] = oy
+            rhs[n_own:] += sy
         coef = np.linalg.solve(gram, rhs)
         res = [r - _combine(coef[m * j:m * (j + 1)], own) - _combine(coef[n_own:], shared)
                for j, (own, shared, r) in enumerate(samples)]
