@@ -9,7 +9,11 @@ folder. Every ``--fault-every``-th facet gets an injected fault, in turn: a dark
 facet, a camera timeout, and an analysis that finishes after the deadline (a late result). Every
 ``--sample-every`` cycles it records the resident memory (VmRSS) and open file descriptors of the
 station, the analysis worker and the archiver, and reports for each the growth per 100 cycles (least
-squares over the samples after the first 10 % of the run, so that start-up allocations do not count).
+squares) twice: after a warm-up (``--warmup`` cycles, default 20 % of the run, at least 50, so that
+start-up allocations, first-use caches and the allocator settling do not count) and over the whole run.
+``--trace N`` also follows the station process's Python allocations with tracemalloc: a snapshot at the
+end of the warm-up, then every N cycles the sites that grew most since it (slower; for finding a leak,
+not for the RSS figures).
 
 After the run it checks the archive: one journal row per cycle (no id twice), every row in exactly one
 workbook row, every requested dump written and readable with its frames, no temporary file left.
@@ -95,16 +99,22 @@ def main(argv=None) -> int:
     p.add_argument("--json", default=None, help="write the figures to this JSON file")
     p.add_argument("--minutes", type=float, default=None,
                    help="stop after this long (the facet in progress is finished) and report what was done")
+    p.add_argument("--warmup", type=int, default=None,
+                   help="cycles not counted in the growth after warm-up (default: 20 %% of the run, at least 50)")
+    p.add_argument("--trace", type=int, default=0, metavar="N",
+                   help="tracemalloc in the station process: the top growth sites every N cycles after warm-up")
     p.add_argument("--quick", action="store_true", help="12 cycles at 400 x 300 (the test suite's smoke run)")
     args = p.parse_args(argv)
     if args.quick:
         args.small, args.cycles, args.fault_every, args.sample_every, args.deadline = True, 12, 4, 2, 10.0
+    warmup = args.warmup if args.warmup is not None else min(max(50, args.cycles // 5), args.cycles // 2)
 
     import logging
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(message)s", datefmt="%H:%M:%S")
     from sofast_station.archive import Journal, read_dump, read_workbook
     from sofast_station.config import load_config
     from sofast_station.station.service import Service
+    from sofast_station.station.shift import ShiftTally
 
     with tempfile.TemporaryDirectory() as tmp:
         config_path = Path(args.config)
@@ -140,12 +150,39 @@ def main(argv=None) -> int:
                 if s is not None:
                     samples[name].append((n, *s))
 
+        traced: dict = {}
+
+        def trace(n: int) -> None:
+            import tracemalloc
+            if n == warmup:
+                tracemalloc.start(8)
+                traced["base"] = tracemalloc.take_snapshot()
+                print(f"  tracemalloc: baseline at cycle {n}", flush=True)
+            elif "base" in traced and (n - warmup) % args.trace == 0:
+                snap = tracemalloc.take_snapshot().filter_traces(
+                    [tracemalloc.Filter(False, tracemalloc.__file__), tracemalloc.Filter(False, "<frozen*")])
+                stats = snap.compare_to(traced["base"], "traceback")
+                total = sum(s.size_diff for s in stats)
+                print(f"  tracemalloc at cycle {n}: {total / 1e6:+.3f} MB traced since cycle {warmup}; "
+                      f"top growth sites:", flush=True)
+                for st in stats[:8]:
+                    if st.size_diff <= 0:
+                        break
+                    frames = [f"{f.filename.replace(str(ROOT) + '/', '')}:{f.lineno}" for f in st.traceback][-4:]
+                    print(f"    {st.size_diff / 1e3:+9.1f} kB {st.count_diff:+6d} blocks  " + " <- ".join(
+                        reversed(frames)), flush=True)
+
+        tally = ShiftTally()                   # what `sofast-station run` keeps for its summary
+
         def on_outcome(outcome) -> None:
+            tally.add(outcome.record, outcome.cycle_s)
             answers[outcome.answer] += 1
             late[0] += bool(outcome.record.get("late"))
             n = sum(answers.values())
             if n % args.sample_every == 0:
                 sample(n)
+            if args.trace and n >= warmup:
+                trace(n)
             if n % max(args.cycles // 10, 1) == 0:
                 rss = ", ".join(f"{k} {v[-1][1]:.0f} MB" for k, v in samples.items() if v)
                 print(f"  {n:5d} cycles, {time.perf_counter() - t0:7.0f} s: {rss}", flush=True)
@@ -170,20 +207,29 @@ def main(argv=None) -> int:
               + ", ".join(f"{v} {k}" for k, v in sorted(answers.items())) + f"; {late[0]} late results kept")
 
         figures: dict = {"cycles": n, "camera": [cam.width_px, cam.height_px], "answers": dict(answers),
-                         "late": late[0], "run_s": run_s, "processes": {}}
-        print("process     RSS first   last  growth/100 cycles   open files first  last   (pids)")
+                         "late": late[0], "run_s": run_s, "warmup_cycles": warmup, "processes": {},
+                         "load_average": os.getloadavg()}
+        print(f"growth per 100 cycles (least squares): after the warm-up of {warmup} cycles, and over the whole run")
+        print("process    RSS first  at warm-up   last    max  growth/100 after warm-up  overall   "
+              "open files first  last  (pids)")
         for name, rows in samples.items():
             if not rows:
                 continue
-            start = [r for r in rows if r[0] > 0.1 * n] or rows
-            growth = slope_per_100([r[0] for r in start], [r[1] for r in start])
-            figures["processes"][name] = {"rss_first_mb": rows[0][1], "rss_last_mb": rows[-1][1],
-                                          "rss_max_mb": max(r[1] for r in rows),
-                                          "rss_growth_mb_per_100": growth, "fds_first": rows[0][2],
-                                          "fds_last": rows[-1][2], "samples": len(rows)}
+            later = [r for r in rows if r[0] >= warmup]
+            growth = slope_per_100([r[0] for r in later], [r[1] for r in later])
+            overall = slope_per_100([r[0] for r in rows], [r[1] for r in rows])
+            fd_growth = slope_per_100([r[0] for r in later], [r[2] for r in later])
+            at_warmup = later[0][1] if later else float("nan")
+            figures["processes"][name] = {"rss_first_mb": rows[0][1], "rss_at_warmup_mb": at_warmup,
+                                          "rss_last_mb": rows[-1][1], "rss_max_mb": max(r[1] for r in rows),
+                                          "rss_growth_mb_per_100_after_warmup": growth,
+                                          "rss_growth_mb_per_100_overall": overall, "fds_first": rows[0][2],
+                                          "fds_last": rows[-1][2], "fds_max": max(r[2] for r in rows),
+                                          "fds_growth_per_100_after_warmup": fd_growth, "samples": len(rows)}
             who = pids.get(name, {os.getpid()}) - {None}
-            print(f"{name:<10} {rows[0][1]:8.1f} {rows[-1][1]:7.1f} {growth:+12.2f} MB {rows[0][2]:17d} "
-                  f"{rows[-1][2]:5d}   ({len(who)} process{'es' if len(who) > 1 else ''})")
+            print(f"{name:<10} {rows[0][1]:8.1f} {at_warmup:10.1f} {rows[-1][1]:7.1f} {max(r[1] for r in rows):6.1f}"
+                  f" {growth:+17.2f} MB {overall:+9.2f} MB {rows[0][2]:17d} {rows[-1][2]:5d}  "
+                  f"({len(who)} process{'es' if len(who) > 1 else ''})")
 
         journal = Journal(data / "journal.sqlite3")
         try:

@@ -231,7 +231,7 @@ def cmd_run(args) -> int:
     from ..web.settings import opcua_settings, web_settings
     from . import console
     from .service import Service, setup_logging
-    from .shift import summarize
+    from .shift import ShiftTally
 
     config = load_config(args.config)
     log_path = setup_logging(config.data_dir, args.verbose)
@@ -258,20 +258,12 @@ def cmd_run(args) -> int:
             raise KeyboardInterrupt
 
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-    # Only what the run's summary needs, a few hundred bytes per facet: a station runs for months, and
-    # an outcome holds the analysis's pixel mask and preview (megabytes at full resolution).
-    slim: list[dict] = []
-    cycle_s: list[float] = []
+    # The run's summary as running statistics (a fixed size): a station runs for months, and an outcome
+    # holds the analysis's pixel mask and preview (megabytes at full resolution).
+    tally = ShiftTally()
 
     def keep(outcome):
-        rec = outcome.record
-        slim.append({"verdict": rec.get("verdict"), "reasons": list(rec.get("reasons") or [])[:1],
-                     **{k: rec[k] for k in ("focal_length_x_m", "focal_length_y_m", "twist_mrad_per_m")
-                        if k in rec},
-                     "slope_rms_mrad": {m: {"magnitude": v.get("magnitude")}
-                                        for m, v in (rec.get("slope_rms_mrad") or {}).items()
-                                        if m in ("design", "parabola") and isinstance(v, dict)}})
-        cycle_s.append(outcome.cycle_s)
+        tally.add(outcome.record, outcome.cycle_s)
     runner = service.runner
     if args.max_cycles is not None:
         runner.expected_total = min(args.max_cycles, runner.expected_total or args.max_cycles)
@@ -285,7 +277,7 @@ def cmd_run(args) -> int:
         service.close()
         if monitor is not None:
             monitor.stop()
-    summary = summarize(slim, cycle_s)
+    summary = tally.summary()
     text = console.summary_text(summary)
     log.info("run summary: %s", text.replace("\n", " | "))
     print(text, flush=True)

@@ -1,13 +1,15 @@
 """What a shift's facets add up to: counts, yield, the spread of each figure, cycle times.
 
 Pure: result records (dicts, as journaled) in, numbers out; the console's end-of-run summary and the
-line's web page both use it. Figures are read with :func:`figure_value`, so a nested figure such as the
+line's web page both use it. A running station keeps a :class:`ShiftTally` (running statistics, a fixed
+size whatever the number of facets) rather than a list of records: it runs for months. Figures are read with :func:`figure_value`, so a nested figure such as the
 slope-error RMS of one model is named by a path (``slope_rms_mrad.design.magnitude``).
 """
 
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -91,27 +93,83 @@ def cycle_seconds(record: dict):
     return figure_value(record, "timings_s.until_journal")
 
 
-def summarize(records: list[dict], cycle_s: list[float] | None = None) -> ShiftSummary:
-    """Summarise *records*; cycle times from *cycle_s* (seconds), else from each record."""
-    counts = {v: 0 for v in VERDICTS}
-    faults: dict[str, int] = {}
-    for rec in records:
-        verdict = str(rec.get("verdict") or "fault")
-        counts[verdict] = counts.get(verdict, 0) + 1
+class RunningStats:
+    """Count, mean and sample standard deviation of a stream of numbers in constant memory (Welford's
+    update: B. P. Welford, "Note on a method for calculating corrected sums of squares and products",
+    Technometrics, 1962)."""
+
+    __slots__ = ("n", "mean", "_m2")
+
+    def __init__(self):
+        self.n, self.mean, self._m2 = 0, 0.0, 0.0
+
+    def add(self, x: float) -> None:
+        self.n += 1
+        delta = x - self.mean
+        self.mean += delta / self.n
+        self._m2 += delta * (x - self.mean)
+
+    def stats(self) -> FigureStats:
+        return FigureStats(self.mean if self.n else None,
+                           math.sqrt(max(self._m2, 0.0) / (self.n - 1)) if self.n > 1 else None, self.n)
+
+
+#: The newest cycle times a running tally keeps for its median and 95th percentile (8 bytes each).
+CYCLE_WINDOW = 10_000
+
+
+class ShiftTally:
+    """A run's summary kept up to date facet by facet, in memory that does not grow with the facets.
+
+    Verdict and fault counts, and for each figure of :data:`SUMMARY_FIGURES` a running mean and standard
+    deviation (:class:`RunningStats`); the cycle-time median and 95th percentile are over the newest
+    *cycle_window* cycles (None: all of them, for a finite list), the worst cycle over all.
+    """
+
+    def __init__(self, cycle_window: int | None = CYCLE_WINDOW):
+        self.counts = {v: 0 for v in VERDICTS}
+        self.faults: dict[str, int] = {}
+        self.figures = {path: RunningStats() for path, *_ in SUMMARY_FIGURES}
+        self.cycle_s: deque = deque(maxlen=cycle_window)
+        self.worst_s: float | None = None
+        self.total = 0
+
+    def add(self, record: dict, cycle_s: float | None = None) -> None:
+        """Count one facet's *record*; its cycle time is *cycle_s* (seconds), else the record's own."""
+        verdict = str(record.get("verdict") or "fault")
+        self.counts[verdict] = self.counts.get(verdict, 0) + 1
+        self.total += 1
         if verdict == "fault":
-            kind = fault_kind(rec)
-            faults[kind] = faults.get(kind, 0) + 1
-    total = len(records)
-    figures = {}
-    for path, *_ in SUMMARY_FIGURES:
-        values = np.array([v for rec in records if rec.get("verdict") in ("pass", "fail", "invalid", "indeterminate")
-                           and (v := figure_value(rec, path)) is not None and math.isfinite(v)], dtype=float)
-        figures[path] = FigureStats(float(values.mean()) if values.size else None,
-                                    float(values.std(ddof=1)) if values.size > 1 else None, int(values.size))
-    times = [float(t) for t in (cycle_s if cycle_s is not None else (cycle_seconds(r) for r in records))
-             if t is not None and math.isfinite(t)]
-    med = p95 = worst = None
-    if times:
-        med, p95, worst = (float(np.percentile(times, 50)), float(np.percentile(times, 95)), max(times))
-    return ShiftSummary(counts, total, counts["pass"] / total if total else None, figures, med, p95, worst,
-                        dict(sorted(faults.items())))
+            kind = fault_kind(record)
+            self.faults[kind] = self.faults.get(kind, 0) + 1
+        elif verdict in ("pass", "fail", "invalid", "indeterminate"):
+            for path, stats in self.figures.items():
+                v = figure_value(record, path)
+                if v is not None and math.isfinite(v):
+                    stats.add(float(v))
+        self.add_cycle(cycle_s if cycle_s is not None else cycle_seconds(record))
+
+    def add_cycle(self, t: float | None) -> None:
+        """One cycle time, seconds (None or not finite: not counted)."""
+        if t is not None and math.isfinite(t):
+            self.cycle_s.append(float(t))
+            self.worst_s = float(t) if self.worst_s is None else max(self.worst_s, float(t))
+
+    def summary(self) -> ShiftSummary:
+        med = p95 = None
+        if self.cycle_s:
+            times = np.fromiter(self.cycle_s, float, len(self.cycle_s))
+            med, p95 = float(np.percentile(times, 50)), float(np.percentile(times, 95))
+        return ShiftSummary(dict(self.counts), self.total, self.counts["pass"] / self.total if self.total else None,
+                            {path: st.stats() for path, st in self.figures.items()}, med, p95, self.worst_s,
+                            dict(sorted(self.faults.items())))
+
+
+def summarize(records, cycle_s: list[float] | None = None) -> ShiftSummary:
+    """Summarise *records*; cycle times from *cycle_s* (seconds), else from each record."""
+    tally = ShiftTally(cycle_window=None)
+    for rec in records:
+        tally.add(rec, math.nan if cycle_s is not None else None)     # NaN: the time comes from cycle_s
+    for t in cycle_s if cycle_s is not None else ():
+        tally.add_cycle(t)
+    return tally.summary()

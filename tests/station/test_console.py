@@ -90,3 +90,34 @@ def test_shift_summary_yield_spread_and_cycle_times():
     assert f"{all_fx.mean():.4f}" in text and f"{all_fx.std(ddof=1):.4f}" in text
     assert f"median {np.median(times):.2f} s, 95th percentile {np.percentile(times, 95):.2f} s" in text
     assert fault_kind({"reasons": ["some free text without a kind"]}) == "other"
+
+
+def test_running_tally_matches_the_list_summary_and_keeps_a_fixed_size():
+    """The run's summary is running statistics: the same figures as summarising every record, in memory
+    that does not grow with the number of facets (a station runs for months)."""
+    import pickle
+
+    from sofast_station.station.shift import ShiftTally
+
+    rng = np.random.default_rng(7)
+    records = []
+    for i in range(400):
+        verdict = ("pass", "pass", "pass", "fail", "fault")[i % 5]
+        records.append(_rec(f"S{i}", verdict, 5.42 + 0.003 * rng.standard_normal(), 5.35 + 0.002 * rng.standard_normal(),
+                            0.6, 0.5, reasons=["camera: lost"] if verdict == "fault" else [], cycle=0.5 + rng.random()))
+    tally = ShiftTally(cycle_window=50)
+    sizes = []
+    for i, rec in enumerate(records):
+        tally.add(rec)
+        if i + 1 in (100, 400):
+            sizes.append(len(pickle.dumps(tally)))
+    full, running = summarize(records), tally.summary()
+    assert running.counts == full.counts and running.total == 400 and running.faults_by_kind == {"camera": 80}
+    for path, st in full.figures.items():
+        assert running.figures[path].n == st.n
+        assert np.isclose(running.figures[path].mean, st.mean, rtol=1e-12)
+        assert np.isclose(running.figures[path].std, st.std, rtol=1e-9)
+    assert running.cycle_worst_s == full.cycle_worst_s
+    last = [r["timings_s"]["until_journal"] for r in records[-50:]]
+    assert np.isclose(running.cycle_median_s, np.median(last))
+    assert sizes[1] - sizes[0] < 32, sizes          # 300 more facets: a few bytes (counts), not a row each
