@@ -110,6 +110,10 @@ def _fraction(doc: str) -> Key:
     return Key("float", low=0.0, high=1.0, doc=doc)
 
 
+#: Faults the simulated station can inject for a serial ([simulation.faults] SERIAL = KIND).
+SIMULATED_FAULTS = ("dark", "camera-timeout", "misplaced", "hung-analysis", "hung-capture", "camera-disconnect",
+                    "lights-off", "slow-analysis", "worker-dies")
+
 #: Every section of station.toml and its keys.
 SECTIONS: dict[str, dict[str, Key]] = {
     "station": {
@@ -207,7 +211,16 @@ SECTIONS: dict[str, dict[str, Key]] = {
         "design_points": Key("int", low=100, doc="samples of the design surface"),
         "seed": Key("int", low=0, doc="seed of the sun-shape samples"),
     },
-    "simulation": {"*": Key("any", doc="the twin's own records check these")},
+    "simulation": {
+        "seed": Key("int", low=0, doc="sensor noise seed"),
+        "facet": Key("table", doc="[simulation.facet]: the twin's true facet (twin.config.TrueFacet, a rule below)"),
+        "optics": Key("table", doc="[simulation.optics]: display, camera and noise (twin.config.TwinOptics)"),
+        "distance_error_m": Key("float", low=-1.0, high=1.0, doc="the simulated range finder's error, m"),
+        "faults": Key("section:simulation_faults", doc="SERIAL = fault kind, injected (tests, benchmarks)"),
+        "hang_s": _pos("how long a 'hung-analysis' fault hangs, s"),
+        "slow_s": _pos("how long a 'slow-analysis' fault delays the analysis, s"),
+    },
+    "simulation_faults": {"*": Key("str", choices=SIMULATED_FAULTS, doc="fault injected for this serial")},
     "run": {
         "deadline_s": _pos("trigger to answer, s"), "dump_every_n": Key("int", low=0),
         "dump_failed": Key("bool"), "heartbeat_s": _pos("s"), "poll_s": _pos("s"),
@@ -377,6 +390,21 @@ def _rule_readers(raw: dict, where: str) -> None:
             getattr(importlib.import_module(module), func)(config)
 
 
+def _rule_simulation(raw: dict, where: str) -> None:
+    """[simulation.facet] and [simulation.optics] through the twin's own records (types, ranges, keys)."""
+    sim = raw.get("simulation")
+    if not sim:
+        return
+    from .twin.config import TrueFacet, TwinOptics
+
+    for key, cls in (("facet", TrueFacet), ("optics", TwinOptics)):
+        try:
+            cls.from_dict(sim.get(key, {}))
+        except ConfigError as exc:
+            msg = str(exc).replace(f"{cls.__name__}.", "").replace(f"{cls.__name__}: ", "")
+            raise ConfigError(f"{where} [simulation.{key}] {msg}") from None
+
+
 def _rule_acceptance(raw: dict, where: str) -> None:
     """[acceptance.RECIPE] contracts are checked by their reader (sofast_station/report/acceptance.py)."""
     if not raw.get("acceptance"):
@@ -391,7 +419,7 @@ def _rule_acceptance(raw: dict, where: str) -> None:
 
 #: Rules between keys: ``rule(raw, file)`` raises ConfigError naming the file, the section and the key.
 CROSS_RULES: list[Callable[[dict, str], None]] = [_rule_camera, _rule_screen, _rule_fringes, _rule_run, _rule_readers,
-                                                  _rule_acceptance]
+                                                  _rule_simulation, _rule_acceptance]
 
 
 def add_dataclass_keys(section: str, cls) -> None:

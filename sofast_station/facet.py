@@ -70,6 +70,11 @@ class FacetDesign:
             p = np.array(getattr(self, key), dtype=np.float64)
             if p.shape != (2,) or not np.all(np.isfinite(p)):
                 raise ConfigError(f"{where}: {key} must be a finite [x, y] pair in metres")
+            if not on_outline(p, outline):
+                lo, hi = outline.min(axis=0), outline.max(axis=0)
+                raise ConfigError(f"{where}: {key} = [{p[0]:g}, {p[1]:g}] lies outside the facet's outline (x "
+                                  f"{lo[0]:g} to {hi[0]:g} m, y {lo[1]:g} to {hi[1]:g} m, facet frame); give a "
+                                  f"point on the facet, or leave {key} out for the outline's centre")
             p.setflags(write=False)
             object.__setattr__(self, key, p)
 
@@ -119,9 +124,27 @@ class FacetDesign:
             raise ConfigError(f"{source}: [facet] is missing {', '.join(missing)}")
         outline = np.asarray(d["outline_m"], dtype=np.float64)
         centre = outline.mean(axis=0).tolist() if outline.ndim == 2 else [0.0, 0.0]
-        return cls(name=str(d["name"]), kind=str(d["kind"]), focal_length_m=d["focal_length_m"],
-                   outline_m=outline, measure_point_m=d.get("measure_point_m", centre),
-                   alignment_point_m=d.get("alignment_point_m", centre), layout=dict(d.get("layout", {})))
+        try:
+            return cls(name=str(d["name"]), kind=str(d["kind"]), focal_length_m=d["focal_length_m"],
+                       outline_m=outline, measure_point_m=d.get("measure_point_m", centre),
+                       alignment_point_m=d.get("alignment_point_m", centre), layout=dict(d.get("layout", {})))
+        except ConfigError as exc:            # name where the design came from (a file, a recipe)
+            msg = str(exc)
+            raise ConfigError(msg if source == "facet" or source in msg else f"{source}: {msg}") from None
+
+
+def on_outline(point: np.ndarray, outline_m: np.ndarray, tol_m: float = 1e-9) -> bool:
+    """Whether the (x, y) *point* lies inside the polygon *outline_m* or on its edge (even-odd rule)."""
+    x, y = float(point[0]), float(point[1])
+    a, b = outline_m, np.roll(outline_m, -1, axis=0)
+    d = b - a
+    t = np.clip(((x - a[:, 0]) * d[:, 0] + (y - a[:, 1]) * d[:, 1]) / np.maximum((d ** 2).sum(axis=1), 1e-300), 0, 1)
+    if np.min(np.hypot(a[:, 0] + t * d[:, 0] - x, a[:, 1] + t * d[:, 1] - y)) <= tol_m:
+        return True
+    crosses = (a[:, 1] > y) != (b[:, 1] > y)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x_cross = a[:, 0] + (y - a[:, 1]) * d[:, 0] / d[:, 1]
+    return bool(np.count_nonzero(crosses & (x < x_cross)) % 2)
 
 
 def load_facet(path: str | Path) -> FacetDesign:

@@ -114,10 +114,29 @@ def load_radiometric(path: str | Path) -> RadiometricRecord:
     except (TypeError, ValueError):
         raise ConfigError(f"radiometric calibration record {path} holds values that are not numbers (lut, "
                           "floor_level, max_level, exposure_s, gain); rerun the calibration") from None
-    if lut.ndim != 1 or lut.size < 2 or not np.all(np.isfinite(lut)) or not np.all(np.isfinite(numbers)):
-        raise ConfigError(f"radiometric calibration record {path} holds non-finite values; rerun the calibration")
-    if np.any(np.diff(lut) < 0) or lut[0] < 0 or lut[-1] > 1:
-        raise ConfigError(f"radiometric calibration record {path}: the lookup table must increase within 0..1")
+    redo = ("rerun 'sofast-station calibrate radiometric', or point [calibration] radiometric in station.toml "
+            "at a good record")
+    if lut.ndim != 1 or lut.size < 2:
+        raise ConfigError(f"radiometric calibration record {path}: lut must be a list of at least 2 numbers; {redo}")
+    bad = np.flatnonzero(~np.isfinite(lut))
+    if bad.size:
+        raise ConfigError(f"radiometric calibration record {path} holds non-finite values: lut[{bad[0]}] = "
+                          f"{lut[bad[0]]} ({bad.size} of {lut.size} entries); {redo}")
+    for key, value in zip(("floor_level", "max_level", "exposure_s", "gain"), numbers):
+        if not np.isfinite(value):
+            raise ConfigError(f"radiometric calibration record {path} holds non-finite values: {key} = {value}; {redo}")
+    falls = np.flatnonzero(np.diff(lut) < 0)
+    if falls.size:
+        i = int(falls[0])
+        raise ConfigError(f"radiometric calibration record {path}: the response curve (lut) is not monotone: lut[{i}] "
+                          f"= {lut[i]:.6g} > lut[{i + 1}] = {lut[i + 1]:.6g} ({falls.size} fall(s)); it must increase "
+                          f"within 0..1; {redo}")
+    if lut[0] < 0 or lut[-1] > 1:
+        raise ConfigError(f"radiometric calibration record {path}: the lookup table must increase within 0..1, runs "
+                          f"from {lut[0]:.6g} to {lut[-1]:.6g}; {redo}")
+    if not (numbers[2] > 0 and numbers[3] > 0):
+        raise ConfigError(f"radiometric calibration record {path}: exposure_s = {numbers[2]:g} and gain = "
+                          f"{numbers[3]:g} must be positive; {redo}")
     if not 0 <= d["floor_level"] < d["max_level"] <= 1:
         raise ConfigError(f"radiometric calibration record {path}: need 0 <= floor_level < max_level <= 1")
     optional = {}

@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 
 from ..archive import Archiver, ArchiverSettings, DumpContent, Journal, WorkbookSettings
-from ..archive._common import remove_stale_temp_files
+from ..archive._common import remove_stale_temp_files, temp_path_for
 from ..archive.spool import spool_get, spool_list
 from ..config import StationConfig
 from ..devices.protocols import FacetRequest
@@ -206,6 +206,41 @@ def recover_leftovers(data_dir: Path, journal: Journal) -> dict:
     return {"temp_files": removed, "requeued": requeued}
 
 
+#: The folders under data_dir the station and its archiver write, checked at start (see check_writable).
+WRITTEN_FOLDERS = ("archive", "dumps", "spool")
+
+
+def check_writable(data_dir: Path) -> None:
+    """At start, before any device opens: each folder the archive writes takes a small file.
+
+    A folder the station cannot write (permissions, a read-only mount, a full disk) would otherwise show
+    up facets later, in the archiver's log; here it stops the start with one message. The probe is a
+    temporary file (``.write-test.PID.HEX.tmp``), removed at once, or at the next start if killed.
+
+    Raises
+    ------
+    StationError
+        Naming the folder, the system's reason and what to do.
+    """
+    for name in WRITTEN_FOLDERS:
+        folder = Path(data_dir) / name
+        probe = temp_path_for(folder / "write-test")
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            fd = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+            try:
+                os.write(fd, b"0")
+            finally:
+                os.close(fd)
+            os.unlink(probe)
+        except OSError as exc:
+            raise StationError(
+                f"the station cannot write into its {name} folder {folder} ({exc.strerror or exc}); nothing was "
+                f"measured. Make the folder writable (permissions, a read-only mount, a full disk), or give the "
+                f"station another data_dir (station.toml [station] data_dir, or SOFAST_DATA_DIR), then start "
+                f"again") from None
+
+
 def _archiver_main(journal_path: str, data_dir: str, settings: ArchiverSettings, conn) -> None:
     """The archiver process: drain journal and spool until the station says stop (or goes away), then once more."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)      # the station decides when the archiver stops
@@ -306,9 +341,14 @@ class ArchiverProcess:
 def setup_logging(data_dir: Path, verbose: bool = False, name: str = "station.log") -> Path:
     """Console (stderr) plus a rotating log file under data_dir/logs."""
     log_dir = data_dir / "logs"
-    log_dir.mkdir(parents=True, exist_ok=True)
     path = log_dir / name
-    handler = logging.handlers.RotatingFileHandler(path, maxBytes=10_000_000, backupCount=10)
+    try:
+        log_dir.mkdir(parents=True, exist_ok=True)
+        handler = logging.handlers.RotatingFileHandler(path, maxBytes=10_000_000, backupCount=10)
+    except OSError as exc:
+        raise StationError(f"cannot write the log {path} ({exc.strerror or exc}): make {log_dir} writable "
+                           f"(permissions, a read-only mount, a full disk) or give the station another data_dir "
+                           f"(station.toml [station] data_dir, or SOFAST_DATA_DIR), then start again") from None
     handler.setFormatter(logging.Formatter("%(asctime)s %(process)d %(name)s %(levelname)s %(message)s"))
     root = logging.getLogger()
     root.addHandler(handler)
@@ -331,6 +371,7 @@ class Service:
         try:
             self.journal = Journal(data_dir / "journal.sqlite3")
             self.recovered = recover_leftovers(data_dir, self.journal)
+            check_writable(data_dir)           # before the archiver starts and any device opens
             arch_settings = archiver_settings(config, self.settings)
             self.archiver = Archiver(self.journal, data_dir, arch_settings)   # submit() only, in this process
             self.archiver_process = ArchiverProcess(data_dir / "journal.sqlite3", data_dir, arch_settings) \

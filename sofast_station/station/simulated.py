@@ -9,6 +9,7 @@ import numpy as np
 
 from ..calibrate.records import RadiometricRecord
 from ..config import StationConfig
+from ..config_schema import SIMULATED_FAULTS
 from ..devices.renderer import FringeRenderer
 from ..devices.simulated import SimulatedCamera, SimulatedDisplay, SimulatedRangeFinder
 from ..errors import ConfigError
@@ -17,8 +18,7 @@ from .inspect import Station
 _SIM_KEYS = {"seed", "facet", "optics", "distance_error_m", "faults", "hang_s", "slow_s"}
 
 #: Faults the simulated station can inject for a given serial ([simulation.faults] SERIAL = KIND).
-FAULT_KINDS = ("dark", "camera-timeout", "misplaced", "hung-analysis", "hung-capture", "camera-disconnect",
-               "lights-off", "slow-analysis", "worker-dies")
+FAULT_KINDS = SIMULATED_FAULTS
 
 log = logging.getLogger(__name__)
 

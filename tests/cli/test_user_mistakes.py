@@ -62,3 +62,60 @@ def test_output_piped_into_head_and_a_serial_that_is_a_path(small_station_toml, 
     saved = list((tmp_path / "station-data" / "inspections").glob("*.json"))
     assert len(saved) == 1 and "escape" in saved[0].name
     assert not [p for p in tmp_path.parent.rglob("escape*") if tmp_path not in p.parents]
+
+
+def _radiometric(tmp_path, lut) -> str:
+    import json
+
+    path = tmp_path / "radiometric.json"
+    path.write_text(json.dumps({"schema": 1, "kind": "radiometric", "record_id": "bad", "created": "2026-12-01T00:00:00Z",
+                                "lut": lut, "floor_level": 0.01, "max_level": 1.0, "exposure_s": 0.0167, "gain": 1.0}))
+    return str(path)
+
+
+@pytest.mark.parametrize("case", ["nan-record", "falling-record", "alignment-outside", "simulation-type",
+                                  "archive-read-only"])
+def test_records_recipes_and_folders_are_checked_before_the_first_facet(small_station_toml, tmp_path, case):
+    """Issue 11: a bad radiometric record, a recipe's alignment point off the facet, a [simulation] typo or
+    an archive folder the station cannot write stop `run` at the door: one line naming the file, the
+    field and the value, and what to do; exit code 2 (README "Exit codes"); no traceback; no facet measured."""
+    import os
+    import re
+    from pathlib import Path
+
+    text = small_station_toml.read_text()
+    if case in ("nan-record", "falling-record"):
+        lut = [i / 99 for i in range(100)]
+        lut[37] = float("nan") if case == "nan-record" else 0.2
+        record = _radiometric(tmp_path, lut)
+        text = re.sub(r'radiometric = ".*"', f'radiometric = "{record}"', text)
+        expect = [record, "lut[37] = nan" if case == "nan-record" else "not monotone: lut[36] = 0.363636 > lut[37] = 0.2",
+                  "calibrate radiometric"]
+    elif case == "alignment-outside":
+        text += "\n[recipes.edge]\nalignment_point_m = [0.9, 0.0]\n"
+        expect = [str(small_station_toml), "[recipes.edge]", "alignment_point_m = [0.9, 0]",
+                  "lies outside the facet's outline", "give a point on the facet"]
+    elif case == "simulation-type":
+        text = text.replace("twist_mrad_per_m = 0.1", 'twist_mrad_per_m = "0.1"')
+        expect = [str(small_station_toml), "[simulation.facet] twist_mrad_per_m must be a number, got '0.1'"]
+    else:
+        archive = Path(os.environ["SOFAST_DATA_DIR"]) / "archive"       # the tests' data_dir (conftest)
+        archive.mkdir(parents=True)
+        archive.chmod(0o555)
+        if os.access(archive, os.W_OK):         # root writes through permissions: a file in the folder's place
+            archive.chmod(0o755)
+            archive.rmdir()
+            archive.write_text("not a folder")
+        expect = [f"cannot write into its archive folder {archive}", "nothing was measured", "data_dir"]
+    small_station_toml.write_text(text)
+    try:
+        proc = _run("run", "--config", str(small_station_toml), "--facets", "2")
+    finally:
+        if case == "archive-read-only" and archive.is_dir():
+            archive.chmod(0o755)
+    assert proc.returncode == 2, proc.stderr
+    assert "Traceback" not in proc.stderr and "SIM-0001" not in proc.stdout
+    error = [line for line in proc.stderr.splitlines() if "ERROR" in line]
+    assert len(error) == 1, proc.stderr
+    for part in expect:
+        assert part in error[0], (part, error[0])
