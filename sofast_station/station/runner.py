@@ -517,6 +517,7 @@ class StationRunner:
         log.warning("%s: %s (cycle %s; the robot was answered timeout)", outcome.serial, note, outcome.cycle_id)
         if self.archiver is not None:
             self.archiver.wake()
+        outcome.valid = outcome.preview = None         # as after the hooks of an answered facet
 
     def _journal_failed(self, exc: BaseException) -> None:
         """The journal cannot be written: after this facet's fault answer the station stops."""

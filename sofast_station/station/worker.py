@@ -247,6 +247,7 @@ class AnalysisWorker:
             self.supervise()
             self._ready()
         np.copyto(self._frames, frames)
+        fut = None
         try:
             fut = self._pool.submit(_run, design.to_dict(), settings.to_dict(), float(distance_m), float(hang_s),
                                     optics, None if uncertainty is None else uncertainty.to_dict())
@@ -261,6 +262,11 @@ class AnalysisWorker:
             self._restart()
             raise WorkerDied("the analysis worker process died during this facet's analysis (killed or out of "
                              "memory); it is restarted, the next facet is measured") from None
+        finally:
+            # An analysis error is raised from the future, which keeps it: the error's traceback holds this
+            # frame, and this frame the future, a reference cycle that would keep the cycle's frames (tens
+            # of MB at full resolution) until the garbage collector's rare full pass. Broken here.
+            fut = None
         valid = np.unpackbits(packed, count=int(np.prod(shape))).astype(bool).reshape(shape)
         return WorkerResult(figures, valid, seconds, preview, sensitivities)
 

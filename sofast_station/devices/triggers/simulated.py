@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import deque
 from collections.abc import Iterable
 from dataclasses import dataclass
 
@@ -17,6 +18,10 @@ from ..protocols import FacetRequest
 from ._handshake import ANSWERED, BUSY, CLOSED, IDLE, READY, REQUESTED, Handshake
 
 log = logging.getLogger(__name__)
+
+#: The newest answers and heartbeat times the simulated robot keeps (a fixed memory over a long soak).
+ANSWERS_KEPT = 100_000
+HEARTBEATS_KEPT = 10_000
 
 
 @dataclass(frozen=True)
@@ -65,10 +70,10 @@ class SimulatedRobot(Handshake):
 
     Attributes
     ----------
-    answers : list of Answer
-        Every busy/done/fault, in order.
-    heartbeats : list of float
-        The ``time.monotonic()`` seconds of every ``heartbeat()``.
+    answers : deque of Answer
+        Every busy/done/fault, in order (the newest ``ANSWERS_KEPT``).
+    heartbeats : deque of float
+        The ``time.monotonic()`` seconds of every ``heartbeat()`` (the newest ``HEARTBEATS_KEPT``).
     """
 
     name = "simulated robot"
@@ -86,8 +91,9 @@ class SimulatedRobot(Handshake):
             raise ValueError(f"period_s must be >= 0, not {period_s}")
         self.period_s = float(period_s)
         self.fail_ack = set(fail_ack)
-        self.answers: list[Answer] = []
-        self.heartbeats: list[float] = []
+        # Bounded: a soak runs the simulated robot for thousands of facets in the station's process.
+        self.answers: deque[Answer] = deque(maxlen=ANSWERS_KEPT)
+        self.heartbeats: deque[float] = deque(maxlen=HEARTBEATS_KEPT)
         self._next = 0            # index of the next request to place
         self._answered = 0        # requests answered with done or fault
         self._t0: float | None = None
