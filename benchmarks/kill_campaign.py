@@ -4,8 +4,8 @@
     .venv/bin/python benchmarks/kill_campaign.py --two-runs 100      # two runs on one data folder
 
 ``--kills N``: runs ``sofast-station run`` (the real command, a fresh process) on one data folder and,
-N times, waits a random number of facets (0.5 to 6 s), then sends SIGKILL to the station, the worker or
-the archiver, chosen at random. After a station kill it checks that no process of the killed station
+N times, waits for a facet and a random 0.5 to 6 s more, then sends SIGKILL to the station, the worker or
+the archiver: a third of the kills each (at least ``--archiver`` of the archiver), in a random order. After a station kill it checks that no process of the killed station
 remains (within 10 s) and starts the station again; after a worker or archiver kill it checks that the
 line goes on with passes. At the end the station is stopped with SIGTERM and must exit by itself.
 
@@ -157,7 +157,7 @@ def check_archive(data: Path, answered: int, station_kills: int) -> dict:
             "orphan_spools": [str(p) for p in (data / "spool").glob("*.npz")] if (data / "spool").exists() else []}
 
 
-def campaign(kills: int, seed: int, folder: Path) -> int:
+def campaign(kills: int, seed: int, folder: Path, archiver_kills: int = 10) -> int:
     rng = random.Random(seed)
     config = write_config(folder)
     data = folder / "data"
@@ -168,6 +168,11 @@ def campaign(kills: int, seed: int, folder: Path) -> int:
     all_pids: set[int] = set()
     station = Station(config, 100000, env)
     counts = {"station": 0, "worker": 0, "archiver": 0}
+    n_archiver = max(archiver_kills, kills // 3)
+    n_worker = (kills - n_archiver) // 2
+    plan = ["archiver"] * n_archiver + ["worker"] * n_worker + ["station"] * (kills - n_archiver - n_worker)
+    rng.shuffle(plan)
+    t_start = time.monotonic()
     for k in range(1, kills + 1):
         if not station.wait_facets(len(station.facets()) + 1, 300):
             problems.append(f"kill {k}: the station measured nothing (exit {station.proc.poll()}): "
@@ -176,10 +181,17 @@ def campaign(kills: int, seed: int, folder: Path) -> int:
         time.sleep(rng.uniform(0.5, 6.0))
         worker, archiver = station.worker_and_archiver()
         all_pids |= {p for p in (worker, archiver) if p} | children(station.proc.pid)
-        target = rng.choice(["station", "worker", "archiver"])
+        target = plan[k - 1]
         pid = {"station": station.proc.pid, "worker": worker, "archiver": archiver}[target]
+        for _ in range(100):                 # a worker or archiver being restarted: wait for the new one
+            if pid is not None:
+                break
+            time.sleep(0.1)
+            worker, archiver = station.worker_and_archiver()
+            pid = {"station": station.proc.pid, "worker": worker, "archiver": archiver}[target]
         if pid is None:
-            target, pid = "station", station.proc.pid
+            problems.append(f"kill {k}: no {target} process to kill")
+            continue
         before = len(station.facets())
         kids = children(station.proc.pid)
         os.kill(pid, signal.SIGKILL)
@@ -204,7 +216,8 @@ def campaign(kills: int, seed: int, folder: Path) -> int:
                 problems.append(f"kill {k}: after killing the {target} the line did not go on with passes "
                                 f"({recent})")
             note = f"line went on: {len(recent)} facets, {passes} pass"
-        print(f"kill {k:2d}: {target:<8} (pid {pid}) after {before} facets of this run; {note}", flush=True)
+        print(f"kill {k:2d} at {time.monotonic() - t_start:6.0f} s: {target:<8} (pid {pid}) after {before} facets "
+              f"of this run; {note}", flush=True)
     station.wait_facets(len(station.facets()) + 2, 300)
     station.proc.send_signal(signal.SIGTERM)
     code = station.finish(180)
@@ -216,7 +229,8 @@ def campaign(kills: int, seed: int, folder: Path) -> int:
     if left:
         problems.append(f"processes left: {left}")
     result = check_archive(data, answered, station_kills)
-    print(f"kills: {counts}")
+    print(f"kills: {counts}; {answered} facets answered in {time.monotonic() - t_start:.0f} s; load average "
+          f"{os.getloadavg()[0]:.1f}")
     for k, v in result.items():
         print(f"  {k}: {v}")
     if not (result["journal_unique"] and result["workbook_unique"] and result["workbook_equals_journal"]
@@ -257,6 +271,7 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--kills", type=int, default=30)
     p.add_argument("--two-runs", type=int, default=0, metavar="N", help="instead: two runs of N facets")
+    p.add_argument("--archiver", type=int, default=10, help="at least this many of the kills hit the archiver")
     p.add_argument("--seed", type=int, default=11)
     p.add_argument("--keep", default=None, help="keep the data folder here")
     args = p.parse_args(argv)
@@ -265,7 +280,7 @@ def main(argv=None) -> int:
         folder.mkdir(parents=True, exist_ok=True)
         if args.two_runs:
             return two_runs(args.two_runs, folder)
-        return campaign(args.kills, args.seed, folder)
+        return campaign(args.kills, args.seed, folder, args.archiver)
 
 
 if __name__ == "__main__":

@@ -12,8 +12,9 @@ station, the analysis worker and the archiver, and reports for each the growth p
 squares) twice: after a warm-up (``--warmup`` cycles, default 20 % of the run, at least 50, so that
 start-up allocations, first-use caches and the allocator settling do not count) and over the whole run.
 ``--trace N`` also follows the station process's Python allocations with tracemalloc: a snapshot at the
-end of the warm-up, then every N cycles the sites that grew most since it (slower; for finding a leak,
-not for the RSS figures).
+end of the warm-up, then every N cycles the sites that grew most since it; the archiver and the analysis
+worker log theirs every ``--trace-s`` seconds (``SOFAST_TRACEMALLOC_S``, sofast_station/station/memtrace.py).
+Slower; for finding a leak, not for the RSS figures.
 
 After the run it checks the archive: one journal row per cycle (no id twice), every row in exactly one
 workbook row, every requested dump written and readable with its frames, no temporary file left.
@@ -103,6 +104,11 @@ def main(argv=None) -> int:
                    help="cycles not counted in the growth after warm-up (default: 20 %% of the run, at least 50)")
     p.add_argument("--trace", type=int, default=0, metavar="N",
                    help="tracemalloc in the station process: the top growth sites every N cycles after warm-up")
+    p.add_argument("--trace-s", type=float, default=300.0,
+                   help="with --trace: the archiver's and the worker's growth sites every this many seconds")
+    p.add_argument("--no-truth", action="store_true",
+                   help="skip the twin's ground truth per facet (a simulation extra a real station does not "
+                        "compute; seconds per facet at full resolution)")
     p.add_argument("--quick", action="store_true", help="12 cycles at 400 x 300 (the test suite's smoke run)")
     args = p.parse_args(argv)
     if args.quick:
@@ -132,9 +138,14 @@ def main(argv=None) -> int:
         cam = cfg.geometry.camera
         print(f"soak: {cfg.name}, camera {cam.width_px} x {cam.height_px}, {args.cycles} cycles, "
               f"{len(faults)} injected faults ({', '.join(FAULT_CYCLE)} in turn), data in {data}", flush=True)
+        if args.trace:
+            from sofast_station.station.memtrace import ENV
+            os.environ[ENV] = str(args.trace_s)           # the archiver and the worker inherit it
         t0 = time.perf_counter()
         service = Service(cfg, simulated_facets=args.cycles, console=lambda line: None)
         print(f"station started in {time.perf_counter() - t0:.1f} s", flush=True)
+        if args.no_truth:
+            service.runner.station.twin = None     # the camera keeps its own twin; only the truth goes
         samples: dict[str, list[tuple[int, float, int]]] = {"station": [], "worker": [], "archiver": []}
         answers: Counter = Counter()
         late = [0]
@@ -159,18 +170,11 @@ def main(argv=None) -> int:
                 traced["base"] = tracemalloc.take_snapshot()
                 print(f"  tracemalloc: baseline at cycle {n}", flush=True)
             elif "base" in traced and (n - warmup) % args.trace == 0:
-                snap = tracemalloc.take_snapshot().filter_traces(
-                    [tracemalloc.Filter(False, tracemalloc.__file__), tracemalloc.Filter(False, "<frozen*")])
-                stats = snap.compare_to(traced["base"], "traceback")
-                total = sum(s.size_diff for s in stats)
-                print(f"  tracemalloc at cycle {n}: {total / 1e6:+.3f} MB traced since cycle {warmup}; "
-                      f"top growth sites:", flush=True)
-                for st in stats[:8]:
-                    if st.size_diff <= 0:
-                        break
-                    frames = [f"{f.filename.replace(str(ROOT) + '/', '')}:{f.lineno}" for f in st.traceback][-4:]
-                    print(f"    {st.size_diff / 1e3:+9.1f} kB {st.count_diff:+6d} blocks  " + " <- ".join(
-                        reversed(frames)), flush=True)
+                from sofast_station.station.memtrace import growth_lines
+                lines = growth_lines(tracemalloc.take_snapshot(), traced["base"], strip=str(ROOT) + "/")
+                print(f"  station memory trace at cycle {n} (baseline: cycle {warmup}): {lines[0]}", flush=True)
+                for line in lines[1:]:
+                    print(f"    {line}", flush=True)
 
         tally = ShiftTally()                   # what `sofast-station run` keeps for its summary
 
@@ -204,14 +208,16 @@ def main(argv=None) -> int:
         run_s, close_s = t_close - t_run, time.perf_counter() - t_close
         n = sum(answers.values())
         print(f"{n} cycles in {run_s:.0f} s ({run_s / max(n, 1):.2f} s each), shutdown {close_s:.1f} s; answers: "
-              + ", ".join(f"{v} {k}" for k, v in sorted(answers.items())) + f"; {late[0]} late results kept")
+              + ", ".join(f"{v} {k}" for k, v in sorted(answers.items())) + f"; {late[0]} late results kept; "
+              f"load average {os.getloadavg()[0]:.1f} at the end")
 
         figures: dict = {"cycles": n, "camera": [cam.width_px, cam.height_px], "answers": dict(answers),
+                         "deadline_s": args.deadline, "truth": not args.no_truth,
                          "late": late[0], "run_s": run_s, "warmup_cycles": warmup, "processes": {},
                          "load_average": os.getloadavg()}
         print(f"growth per 100 cycles (least squares): after the warm-up of {warmup} cycles, and over the whole run")
-        print("process    RSS first  at warm-up   last    max  growth/100 after warm-up  overall   "
-              "open files first  last  (pids)")
+        print("           RSS (MB):                          growth/100 cycles (MB):")
+        print("process       first  at warm-up   last    max  after warm-up  overall   open files first  last  (pids)")
         for name, rows in samples.items():
             if not rows:
                 continue
@@ -228,7 +234,7 @@ def main(argv=None) -> int:
                                           "fds_growth_per_100_after_warmup": fd_growth, "samples": len(rows)}
             who = pids.get(name, {os.getpid()}) - {None}
             print(f"{name:<10} {rows[0][1]:8.1f} {at_warmup:10.1f} {rows[-1][1]:7.1f} {max(r[1] for r in rows):6.1f}"
-                  f" {growth:+17.2f} MB {overall:+9.2f} MB {rows[0][2]:17d} {rows[-1][2]:5d}  "
+                  f" {growth:+14.2f} {overall:+8.2f} {rows[0][2]:19d} {rows[-1][2]:5d}  "
                   f"({len(who)} process{'es' if len(who) > 1 else ''})")
 
         journal = Journal(data / "journal.sqlite3")

@@ -248,6 +248,8 @@ def _archiver_main(journal_path: str, data_dir: str, settings: ArchiverSettings,
     logging.basicConfig(level=logging.INFO, format="%(asctime)s archiver %(levelname)s %(message)s",
                         datefmt="%H:%M:%S")
     setup_logging(Path(data_dir), name="archiver.log")
+    from .memtrace import start_from_env
+    start_from_env("archiver")                        # off unless SOFAST_TRACEMALLOC_S is set (leak hunts)
     # One archiver per data folder, even for the instant a killed station's archiver takes to notice.
     lock = DataDirLock(Path(data_dir), name="archiver.lock", wait_s=30.0, what="archiver")
     journal = Journal(journal_path)

@@ -82,6 +82,8 @@ def _init(shm_name: str, shape: tuple[int, int, int], geometry: dict, fringes: d
     _STATE["fringes"] = FringeSet.from_dict(fringes)
     warm_up(_STATE["geometry"].camera)          # every pixel's ray before the first facet
     _STATE["rays"] = ray_table(_STATE["geometry"].camera)
+    from .memtrace import start_from_env
+    start_from_env("worker")                    # off unless SOFAST_TRACEMALLOC_S is set (leak hunts)
 
 
 def _run(design: dict, settings: dict, distance_m: float, hang_s: float, optics=None,
