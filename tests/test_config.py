@@ -93,3 +93,18 @@ def test_shipped_station_documents_every_key(repo_root):
                 assert f"{key} =" in text or f"{key}," in text, (section, key)
     cfg = load_config(repo_root / "station.toml")
     assert cfg.raw["run"]["dump_every_n"] > 0
+
+
+def test_workbook_parts_are_bounded_by_default(small_station_toml):
+    """The archiver holds one workbook part in memory while it appends: a busy line's day is split into
+    parts of [archive] workbook_max_rows rows (1000 unless set), so its memory does not grow with the day."""
+    from sofast_station.station.service import WORKBOOK_MAX_ROWS, archiver_settings, run_settings
+
+    cfg = load_config(small_station_toml)
+    assert archiver_settings(cfg, run_settings(cfg)).workbook.rows_per_part() == WORKBOOK_MAX_ROWS == 1000
+    small_station_toml.write_text(small_station_toml.read_text() + "\n[archive]\nworkbook_max_rows = 50\n")
+    cfg = load_config(small_station_toml)
+    assert archiver_settings(cfg, run_settings(cfg)).workbook.rows_per_part() == 50
+    small_station_toml.write_text(small_station_toml.read_text().replace("= 50", "= 0"))
+    with pytest.raises(ConfigError, match=r"\[archive\] workbook_max_rows must be a whole number of at least 1"):
+        load_config(small_station_toml)

@@ -146,6 +146,24 @@ def safe_name(text: str, limit: int = 80) -> str:
     return out[:limit]
 
 
+def release_memory() -> None:
+    """Give the memory a large piece of work freed back to the system (a full garbage collection, then
+    glibc's ``malloc_trim``; nothing where that does not exist).
+
+    openpyxl holds a whole workbook part in memory while it appends to it (of the order of 80 kB per row of
+    about a hundred columns); freed afterwards, that memory would otherwise stay with the long-lived
+    archiver process at its high-water mark.
+    """
+    import ctypes
+    import gc
+
+    gc.collect()
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
+
+
 def temp_path_for(final: Path) -> Path:
     """A fresh hidden temporary name in *final*'s folder, recognisable by :func:`is_temp_file`."""
     return final.parent / f".{final.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp"

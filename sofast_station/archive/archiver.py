@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..errors import ArchiveError
-from ._common import parse_time, remove_stale_temp_files
+from ._common import parse_time, release_memory, remove_stale_temp_files
 from .dumps import COMPRESSION_LEVEL, DumpContent, disk_ok, dump_path_for, prune_dumps, read_dump, write_dump
 from .journal import Journal
 from .spool import spool_get, spool_list, spool_path, spool_put
@@ -203,6 +203,8 @@ class Archiver:
 
     def _workbook_step(self, report: ArchiveReport) -> None:
         wb = write_pending(self.journal, self.archive_dir, self.settings.workbook)
+        if wb.rows_written or wb.already_present:
+            release_memory()               # the loaded workbook part: back to the system, not kept at its peak
         self._last_workbook = time.monotonic()
         report.workbook_rows += wb.rows_written
         report.workbook_waiting += wb.waiting

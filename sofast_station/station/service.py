@@ -36,7 +36,12 @@ log = logging.getLogger(__name__)
 
 _DEVICE_KEYS = {"trigger", "trigger_options", "display_options", "camera", "camera_options",
                 "range_finder_options"}
-_ARCHIVE_KEYS = {"workbook_period", "workbook_interval_s", "dump_keep_days", "dump_max_gb", "min_free_gb"}
+_ARCHIVE_KEYS = {"workbook_period", "workbook_interval_s", "workbook_max_rows", "dump_keep_days", "dump_max_gb",
+                 "min_free_gb"}
+
+#: Data rows per workbook part unless ``[archive] workbook_max_rows`` says otherwise: the archiver holds one
+#: part in memory while it appends (about 80 kB a row), so a day of a busy line must not be one book.
+WORKBOOK_MAX_ROWS = 1000
 
 
 #: Environment variable: the cycle deadline, seconds, when station.toml's [run] does not set deadline_s.
@@ -68,7 +73,8 @@ def archiver_settings(config: StationConfig, run: RunSettings) -> ArchiverSettin
     unknown = sorted(set(table) - _ARCHIVE_KEYS)
     if unknown:
         raise ConfigError(f"{config.path} [archive] has unknown key(s) {', '.join(unknown)}")
-    return ArchiverSettings(workbook=WorkbookSettings(period=table.get("workbook_period", "day")),
+    return ArchiverSettings(workbook=WorkbookSettings(period=table.get("workbook_period", "day"),
+                                                      max_rows=table.get("workbook_max_rows", WORKBOOK_MAX_ROWS)),
                             workbook_interval_s=float(table.get("workbook_interval_s", 30.0)),
                             dump_keep_days=table.get("dump_keep_days", run.dump_keep_days),
                             dump_max_total_gb=table.get("dump_max_gb", run.dump_max_gb),
