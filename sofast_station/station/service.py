@@ -360,6 +360,9 @@ def setup_logging(data_dir: Path, verbose: bool = False, name: str = "station.lo
     handler.setFormatter(logging.Formatter("%(asctime)s %(process)d %(name)s %(levelname)s %(message)s"))
     root = logging.getLogger()
     root.addHandler(handler)
+    # On a full disk the file handler fails on every line: without this each failure prints a logging
+    # traceback on the console (seen on a 30 MB tmpfs data folder); the console handler still says it all.
+    logging.raiseExceptions = False
     root.setLevel(logging.DEBUG if verbose else logging.INFO)
     return path
 
