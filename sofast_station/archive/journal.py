@@ -401,6 +401,10 @@ class Journal:
         where = ("WHERE " + " AND ".join(clauses)) if clauses else ""
         return self._select(where, tuple(params), order="time_utc, seq")
 
+    def recent(self, n: int) -> list[JournalRow]:
+        """The newest *n* rows (by record time), oldest first: without reading a months-long journal whole."""
+        return list(reversed(self._select(order="time_utc DESC, seq DESC", limit=max(int(n), 1))))
+
     def count(self) -> int:
         """Number of journaled cycles."""
         with self._lock:

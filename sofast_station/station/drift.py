@@ -142,7 +142,7 @@ class DriftMonitor:
         hist: deque = deque(maxlen=window)
         if self.journal is not None:
             try:
-                rows = self.journal.rows()[-5000:]
+                rows = self.journal.recent(5000)      # not rows()[-5000:]: the journal holds months
             except Exception as exc:           # the alarm is an aid: never stop the line for it
                 log.warning("drift: cannot read the journal for recipe %s's recent facets: %s", recipe, exc)
                 rows = []

@@ -78,6 +78,8 @@ def test_time_range_queries_compare_instants(tmp_path):
         assert [r.cycle_id for r in j.rows(until="2026-03-02T01:00:00Z")] == ["a", "b"]  # until is exclusive
         assert [r.cycle_id for r in j.rows("2026-03-02T00:10:00+00:00", "2026-03-02T12:00:00+00:00")] == ["b", "c"]
         assert j.rows(since="2027-01-01T00:00:00+00:00") == []
+        # the newest rows by record time, oldest first, without reading the whole journal (drift priming)
+        assert [r.cycle_id for r in j.recent(2)] == ["c", "d"] and [r.cycle_id for r in j.recent(9)] == list("abcd")
 
 
 def test_pending_queries_and_marks(tmp_path):
