@@ -304,7 +304,6 @@ class StationRunner:
                      cmd.source or "no source")
             if cmd.name in ("pause", "resume"):
                 self.paused = cmd.name == "pause"
-                self.status.update(state="paused" if self.paused else "idle")
             elif cmd.name == "serial":
                 self._manual_serial = cmd.serial
                 self.status.update(manual_serial=cmd.serial)
@@ -317,7 +316,12 @@ class StationRunner:
                                               extra={"operator": "remeasure"}))
                 if self.expected_total:
                     self.expected_total += 1              # one cycle more than the robot's
+        if not remeasure:
+            # with re-measurements queued the state says "measuring" until they are done; each cycle's end
+            # then says "paused" if a pause was asked for, so "paused" always means no facet is being taken
+            self.status.update(state="paused" if self.paused else "idle")
         return remeasure
+
     def supervise(self) -> None:
         """Between facets: restart a dead analysis worker or archiver (logged), so the line goes on."""
         self.worker.supervise()

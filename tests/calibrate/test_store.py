@@ -132,14 +132,20 @@ def test_a_missing_or_corrupt_record_is_a_clear_error_naming_the_file(tmp_path, 
     assert station.radiometric.record_id == "none" and corrupt.name in caplog.text
 
 
-def test_the_warm_up_interlock_says_how_long_to_wait(tmp_path):
+def test_the_warm_up_interlock_says_how_long_to_wait(tmp_path, monkeypatch):
+    import types
+
+    from sofast_station.calibrate import store
+    # the station's clock stands still, so the minutes in the message do not depend on the machine's speed
+    now = time.time()
+    monkeypatch.setattr(store, "time", types.SimpleNamespace(time=lambda: now, monotonic=time.monotonic))
     cfg = small_config(tmp_path, calibration={"warmup": True, "warmup_min": 30})
     with pytest.raises(WarmupError, match=r"wait 30\.0 min more"):
         open_station(cfg, noise=False)                       # the camera starts now
-    mark_camera_started(cfg.data_dir, time.time() - 10 * 60)
+    mark_camera_started(cfg.data_dir, now - 10 * 60)
     with pytest.raises(WarmupError, match=r"warmed up for 10\.0 min of the 30 min required: wait 20\.0 min"):
         open_station(cfg, noise=False)
-    mark_camera_started(cfg.data_dir, time.time() - 31 * 60)
+    mark_camera_started(cfg.data_dir, now - 31 * 60)
     station = open_station(cfg, noise=False)
     station.close()
     # off by default
