@@ -196,7 +196,8 @@ def fsync_dir(folder: Path) -> None:
         os.close(fd)
 
 
-def _pid_alive(pid: int) -> bool:
+def pid_alive(pid: int) -> bool:
+    """Whether process *pid* exists (on POSIX; elsewhere assumed alive: files are then judged by age)."""
     if os.name != "posix":
         return True              # no safe liveness probe (os.kill terminates on Windows): go by age
     try:
@@ -241,7 +242,7 @@ def remove_stale_temp_files(folder: Path, max_age_s: float = 3600.0, recursive: 
             continue
         try:
             age = now - path.stat().st_mtime
-            if not _pid_alive(pid) or age > max_age_s:
+            if not pid_alive(pid) or age > max_age_s:
                 path.unlink()
                 removed.append(path)
                 log.info("removed the temporary file %s left by a stopped writer (process %d)", path, pid)

@@ -17,6 +17,8 @@ import logging
 import os
 from pathlib import Path
 
+from ..archive._common import pid_alive
+
 log = logging.getLogger(__name__)
 
 STATES = ("idle", "measuring", "fault", "paused", "offline")
@@ -74,19 +76,9 @@ def read_status(data_dir: str | Path) -> dict:
     except (OSError, ValueError):
         return {"state": "offline", "alarms": {}}
     pid = data.get("pid")
-    if data.get("state") != "offline" and not (isinstance(pid, int) and _alive(pid)):
+    if data.get("state") != "offline" and not (isinstance(pid, int) and pid_alive(pid)):
         data["state"] = "offline"
     return data
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 def _now() -> str:
