@@ -229,11 +229,7 @@ class Journal:
             time_utc = utc_key(record["time"])
         except ValueError:
             raise ArchiveError(f"journal {self.path}: cycle {cycle_id} has time {record['time']!r}, not ISO 8601")
-        try:
-            text = to_json(record)
-        except (TypeError, ValueError) as exc:
-            raise ArchiveError(f"journal {self.path}: the record of cycle {cycle_id} cannot be stored as JSON: "
-                               f"{exc}") from exc
+        text = self._record_json(cycle_id, record)
         with self._lock:
             db = self._conn()
             try:
@@ -256,6 +252,14 @@ class Journal:
             log.info("cycle %s is already in the journal; the second append was ignored", cycle_id)
         return added
 
+    def _record_json(self, cycle_id: str, record: dict) -> str:
+        """*record* as the journal stores it (JSON text); ArchiveError naming the cycle if it cannot be."""
+        try:
+            return to_json(record)
+        except (TypeError, ValueError) as exc:
+            raise ArchiveError(f"journal {self.path}: the record of cycle {cycle_id} cannot be stored as JSON: "
+                               f"{exc}") from exc
+
     def amend(self, cycle_id: str, record: dict, dump_requested: bool = False) -> bool:
         """Replace the record of a journaled cycle (a late result); its workbook row is rewritten.
 
@@ -268,11 +272,7 @@ class Journal:
         bool
             True when the row was amended; False when the cycle is not journaled.
         """
-        try:
-            text = to_json(record)
-        except (TypeError, ValueError) as exc:
-            raise ArchiveError(f"journal {self.path}: the record of cycle {cycle_id} cannot be stored as JSON: "
-                               f"{exc}") from exc
+        text = self._record_json(cycle_id, record)
         with self._lock:
             db = self._conn()
             try:
