@@ -247,8 +247,30 @@ def check_writable(data_dir: Path) -> None:
                 f"again") from None
 
 
-def _archiver_main(journal_path: str, data_dir: str, settings: ArchiverSettings, conn) -> None:
-    """The archiver process: drain journal and spool until the station says stop (or goes away), then once more."""
+#: The archiver starts afresh (the station starts a new one between facets) once its memory has grown
+#: this many MB past what it held after its first minute: a hard bound on the long-lived process, whatever
+#: holds on to memory (openpyxl reloads the workbook part it appends to; freed memory fragments).
+ARCHIVER_RECYCLE_MB = 192.0
+#: Seconds after its start at which the archiver takes its memory as the reference for that bound.
+ARCHIVER_BASELINE_S = 60.0
+
+#: The archiver's exit code when it ends to start afresh (EX_TEMPFAIL), not because it failed.
+RECYCLED_EXIT = 75
+
+
+def _rss_mb() -> float:
+    """This process's resident memory, MB (0 where /proc is not there)."""
+    try:
+        with open("/proc/self/status") as fh:
+            return next(int(line.split()[1]) for line in fh if line.startswith("VmRSS:")) / 1024.0
+    except (OSError, StopIteration, ValueError):
+        return 0.0
+
+
+def _archiver_main(journal_path: str, data_dir: str, settings: ArchiverSettings, conn,
+                   recycle_mb: float = ARCHIVER_RECYCLE_MB, baseline_s: float = ARCHIVER_BASELINE_S) -> None:
+    """The archiver process: drain journal and spool until the station says stop (or goes away), then once
+    more; past *recycle_mb* of growth it drains and exits with :data:`RECYCLED_EXIT` to start afresh."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)      # the station decides when the archiver stops
     watch_parent()                                    # a killed station takes its archiver with it
     logging.basicConfig(level=logging.INFO, format="%(asctime)s archiver %(levelname)s %(message)s",
@@ -261,6 +283,7 @@ def _archiver_main(journal_path: str, data_dir: str, settings: ArchiverSettings,
     journal = Journal(journal_path)
     archiver = Archiver(journal, data_dir, settings)
     archiver.start()
+    t_start, base_mb, recycle = time.monotonic(), None, False
     try:
         while True:
             try:
@@ -269,10 +292,20 @@ def _archiver_main(journal_path: str, data_dir: str, settings: ArchiverSettings,
                     break
             except (EOFError, OSError):                   # the station is gone
                 break
+            rss = _rss_mb()
+            if base_mb is None and time.monotonic() - t_start >= baseline_s:
+                base_mb = rss
+            elif base_mb is not None and rss > base_mb + recycle_mb:
+                log.info("the archiver holds %.0f MB, %.0f MB more than %.0f s after its start: it writes what is "
+                         "pending and starts afresh", rss, rss - base_mb, baseline_s)
+                recycle = True
+                break
         archiver.stop(timeout_s=120, drain=True)
     finally:
         journal.close()
         lock.release()
+    if recycle:
+        os._exit(RECYCLED_EXIT)
 
 
 class ArchiverProcess:
@@ -283,17 +316,20 @@ class ArchiverProcess:
     stops it. :meth:`supervise` restarts a dead archiver between facets.
     """
 
-    def __init__(self, journal_path: Path, data_dir: Path, settings: ArchiverSettings):
+    def __init__(self, journal_path: Path, data_dir: Path, settings: ArchiverSettings,
+                 recycle_mb: float | None = None):
         self._args = (str(journal_path), str(data_dir), settings)
+        self._recycle = (ARCHIVER_RECYCLE_MB if recycle_mb is None else recycle_mb, ARCHIVER_BASELINE_S)
         self._proc = self._conn = None
-        self.restarts = 0
+        self.restarts = 0            # after the archiver died
+        self.recycles = 0            # after it started afresh to give back memory (RECYCLED_EXIT)
         self._start()
 
     def _start(self) -> None:
         ctx = multiprocessing.get_context("spawn")
         self._conn, child = ctx.Pipe()
-        self._proc = ctx.Process(target=_archiver_main, name="sofast-archiver", args=(*self._args, child),
-                                 daemon=True)
+        self._proc = ctx.Process(target=_archiver_main, name="sofast-archiver",
+                                 args=(*self._args, child, *self._recycle), daemon=True)
         self._proc.start()
         child.close()
 
@@ -309,11 +345,16 @@ class ArchiverProcess:
         if self.alive():
             return False
         code = self._proc.exitcode if self._proc is not None else None
-        log.error("the archiver process %s ended (exit code %s): restarting it; rows and dumps it had not "
-                  "written wait in the journal and the spool", self.pid, code)
+        if code == RECYCLED_EXIT:
+            log.info("the archiver process %s started afresh to give back its memory: a new one takes over",
+                     self.pid)
+            self.recycles += 1
+        else:
+            log.error("the archiver process %s ended (exit code %s): restarting it; rows and dumps it had not "
+                      "written wait in the journal and the spool", self.pid, code)
+            self.restarts += 1
         self._close_conn()
         self._start()
-        self.restarts += 1
         return True
 
     def wake(self) -> None:
@@ -328,6 +369,8 @@ class ArchiverProcess:
             self._conn = None
 
     def stop(self, timeout_s: float = 180.0) -> None:
+        if not self.alive() and self._proc is not None and self._proc.exitcode == RECYCLED_EXIT:
+            self.supervise()            # it had just ended to start afresh: a new one writes what is pending
         if not self.alive():
             log.warning("the archiver was not running at shutdown; pending rows and dumps are written at the "
                         "next start")
@@ -338,6 +381,9 @@ class ArchiverProcess:
         except OSError:
             pass
         self._proc.join(timeout_s)
+        if self._proc.exitcode == RECYCLED_EXIT:    # it ended to start afresh just before "stop" came
+            self.supervise()
+            return self.stop(timeout_s)
         if self._proc.is_alive():
             log.error("the archiver did not finish within %.0f s; stopping it (pending rows stay in the "
                       "journal and are written at the next start)", timeout_s)

@@ -32,7 +32,9 @@ from sofast_station.station.service import Service, StationLocked
 
 def _config(path: Path, data: Path, faults=None, run=None, **sim):
     cfg = load_config(path)
-    raw = dict(cfg.raw, run={"deadline_s": 30.0, "late_grace_s": 60.0, **(run or {})},
+    # No deadline that a loaded machine could meet by accident (load 18 on two cores: 30 s per 400 x 300
+    # facet); a test that needs one sets its own.
+    raw = dict(cfg.raw, run={"deadline_s": 600.0, "late_grace_s": 60.0, **(run or {})},
                archive={"workbook_interval_s": 0.5})
     return dataclasses.replace(cfg, data_dir=data, raw=raw,
                                simulation={**cfg.simulation, "faults": faults or {}, **sim})
@@ -64,9 +66,12 @@ def test_a_late_result_keeps_its_figures_and_its_dump(small_station_toml, tmp_pa
         service.close()
     finals = {a.serial: a for a in robot.answers if a.kind in ("done", "fault")}
     assert finals["SIM-0002"].kind == "fault" and finals["SIM-0002"].code == FAULT_CODES["timeout"]
-    assert finals["SIM-0001"].kind == finals["SIM-0003"].kind == "done"
     rows = {r.serial: r for r in _rows(cfg.data_dir)}
     assert len(rows) == 3
+    # SIM-0001 and SIM-0003 pass; on a machine so loaded that they too outlast the 20 s deadline they are
+    # late results themselves, and then keep their figures the same way
+    for serial in ("SIM-0001", "SIM-0003"):
+        assert finals[serial].kind == "done" or rows[serial].record.get("late_verdict") == "pass", serial
     late = rows["SIM-0002"]
     rec = late.record
     assert rec["late"] is True and rec["verdict"] == "fault" and rec["fault_code"] == FAULT_CODES["timeout"]
@@ -123,6 +128,31 @@ def test_a_killed_archiver_is_replaced_and_nothing_is_lost(small_station_toml, t
     assert all(r.dump_status == "written" for r in rows)
     assert _book_serials(cfg.data_dir) == [f"SIM-{i:04d}" for i in range(1, 5)]
     assert not list(cfg.data_dir.rglob("*.tmp"))
+
+
+def test_the_archiver_starts_afresh_past_its_memory_bound(small_station_toml, tmp_path, monkeypatch):
+    """Past its memory bound the archiver writes what is pending and ends (exit 75); the station starts a
+    fresh one between facets, and at shutdown; nothing is lost. The bound is set so that any archiver is
+    past it a second after its start."""
+    from sofast_station.station import service as service_module
+
+    monkeypatch.setattr(service_module, "ARCHIVER_RECYCLE_MB", -1.0)
+    monkeypatch.setattr(service_module, "ARCHIVER_BASELINE_S", 1.0)
+    cfg = _config(small_station_toml, tmp_path / "d", run={"dump_every_n": 1, "warmup": False})
+    service = Service(cfg, simulated_facets=3, console=lambda line: None)
+    try:
+        first = service.archiver_process._proc
+        first.join(120)
+        assert first.exitcode == service_module.RECYCLED_EXIT
+        service.runner.run()
+        recycles, restarts = service.archiver_process.recycles, service.archiver_process.restarts
+    finally:
+        service.close()
+    assert recycles >= 1 and restarts == 0
+    rows = _rows(cfg.data_dir)
+    assert len(rows) == 3 and all(r.workbook_path for r in rows) and all(r.dump_status == "written" for r in rows)
+    assert _book_serials(cfg.data_dir) == ["SIM-0001", "SIM-0002", "SIM-0003"]
+    assert "starts afresh" in (cfg.data_dir / "logs" / "archiver.log").read_text()
 
 
 def test_a_full_disk_answers_the_facet_in_progress_then_stops(small_station_toml, tmp_path):
