@@ -291,6 +291,11 @@ class FacetOptics:
     scene: Scene
     measured: SurfaceTrace
     design: SurfaceTrace
+    #: Each input's standard contribution per figure (from :func:`~sofast_station.optics.uncertainty.
+    #: optics_uncertainty`), when the figures carry an uncertainty.
+    uncertainty_rows: dict | None = None
+    #: The optical sensitivities used (:func:`~sofast_station.optics.uncertainty.optics_sensitivities`).
+    sensitivities: dict | None = None
 
 
 def _rounded(v):
@@ -299,7 +304,8 @@ def _rounded(v):
 
 def facet_optics(points_m: np.ndarray, slopes: np.ndarray, camera_m: np.ndarray, design: FacetDesign,
                  settings: OpticsSettings, slope_error_mrad: float = 0.0, focal_power_per_m: float | None = None,
-                 scene: Scene | None = None, design_result: SurfaceTrace | None = None) -> FacetOptics:
+                 scene: Scene | None = None, design_result: SurfaceTrace | None = None,
+                 surface_u=None, sensitivities: dict | None = None) -> FacetOptics:
     """Trace the measured facet and its design; the figures the station reports.
 
     Parameters
@@ -317,6 +323,13 @@ def facet_optics(points_m: np.ndarray, slopes: np.ndarray, camera_m: np.ndarray,
     scene, design_result : optional
         From :func:`make_scene` and :func:`design_trace` for the same design and settings (they do not
         depend on the facet, so a station computes them once per facet type).
+    surface_u : SurfaceUncertainty, optional
+        The measured surface's standard uncertainties; with them the figures get their expanded
+        uncertainty (k = 2) as ``_U`` and ``_U_random`` siblings (:mod:`sofast_station.optics.uncertainty`).
+    sensitivities : dict, optional
+        From :func:`~sofast_station.optics.uncertainty.optics_sensitivities` for the same design and
+        settings (computed on a station's first facet of a type and kept); None: computed for this facet
+        (returned in :attr:`FacetOptics.sensitivities`).
 
     Returns
     -------
@@ -357,7 +370,17 @@ def facet_optics(points_m: np.ndarray, slopes: np.ndarray, camera_m: np.ndarray,
                        "reflectivity": settings.reflectivity, "incidence_angle_deg": settings.incidence_angle_deg,
                        "slant_range_m": slant, "aperture": scene.aperture.to_dict(), "rays": measured.hits.n_rays},
     }
-    return FacetOptics(figures, scene, measured, design_result)
+    rows = None
+    if surface_u is not None:
+        from .uncertainty import optics_sensitivities, optics_uncertainty
+        if sensitivities is None:
+            sensitivities = optics_sensitivities(points_m, slopes, areas, design, settings, scene, d,
+                                                 slope_error_mrad, SPOT_FRACTION)
+        extra = optics_uncertainty(sensitivities, scene, measured.hits, m, design_result.hits, d, surface_u,
+                                   SPOT_FRACTION)
+        rows = extra.pop("uncertainty_rows")
+        figures.update(extra)
+    return FacetOptics(figures, scene, measured, design_result, rows, sensitivities)
 
 
 def _sun_dict(sun: SunShape) -> dict:

@@ -30,6 +30,7 @@ import numpy as np
 from ..errors import ConfigError
 from ..optics import Aperture, OpticsSettings, SunShape, design_trace, facet_optics, make_scene
 from ..optics.facet import FacetOptics
+from ..optics.uncertainty import SurfaceUncertainty
 
 log = logging.getLogger(__name__)
 
@@ -126,9 +127,16 @@ class DesignTraces:
     def __init__(self, size: int = 4):
         self._size = size
         self._cache: OrderedDict = OrderedDict()
+        #: The optical figures' sensitivities per (design, settings), from the first facet traced with
+        #: an uncertainty (docs/uncertainty.md, "Optical figures").
+        self.sensitivities: dict = {}
+
+    @staticmethod
+    def key(design, settings: OpticsSettings) -> tuple:
+        return (json.dumps(design.to_dict(), sort_keys=True), repr(settings))
 
     def get(self, design, settings: OpticsSettings):
-        key = (json.dumps(design.to_dict(), sort_keys=True), repr(settings))
+        key = self.key(design, settings)
         hit = self._cache.get(key)
         if hit is None:
             t = time.perf_counter()
@@ -137,7 +145,8 @@ class DesignTraces:
             log.info("design %s traced in %.2f s", design.name, time.perf_counter() - t)
             self._cache[key] = hit
             while len(self._cache) > self._size:
-                self._cache.popitem(last=False)
+                old, _ = self._cache.popitem(last=False)
+                self.sensitivities.pop(old, None)
         self._cache.move_to_end(key)
         return hit
 
@@ -150,11 +159,19 @@ def camera_in_facet_m(analysis) -> np.ndarray:
 def analysis_optics(analysis, design, settings: OpticsSettings, cache: DesignTraces | None = None) -> FacetOptics:
     """Trace the analysed facet (every valid pixel) and its design."""
     fig = analysis.figures
-    scene, design_result = (cache or DesignTraces(1)).get(design, settings)
+    cache = cache or DesignTraces(1)
+    scene, design_result = cache.get(design, settings)
     kappa = 0.5 * (fig["curvature_x_per_m"] + fig["curvature_y_per_m"])
-    return facet_optics(analysis.points_facet_m, analysis.slopes, camera_in_facet_m(analysis), design, settings,
-                        slope_error_mrad=fig["slope_rms_mrad"]["parabola"]["magnitude"], focal_power_per_m=kappa,
-                        scene=scene, design_result=design_result)
+    # With the analysis's uncertainty, the optical figures get theirs (docs/uncertainty.md, "Optical figures");
+    # their sensitivities are computed on the first facet of a type and kept with the design's trace.
+    key = DesignTraces.key(design, settings)
+    res = facet_optics(analysis.points_facet_m, analysis.slopes, camera_in_facet_m(analysis), design, settings,
+                       slope_error_mrad=fig["slope_rms_mrad"]["parabola"]["magnitude"], focal_power_per_m=kappa,
+                       scene=scene, design_result=design_result, surface_u=SurfaceUncertainty.from_figures(fig),
+                       sensitivities=cache.sensitivities.get(key))
+    if res.sensitivities is not None:
+        cache.sensitivities[key] = res.sensitivities
+    return res
 
 
 def add_optics(analysis, design, settings: OpticsSettings | None, cache: DesignTraces | None = None
