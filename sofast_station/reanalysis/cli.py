@@ -415,14 +415,24 @@ def flux_text(name: str, figures: dict, path) -> str:
     d = f["design"]
     c = f["conditions"]
     off = f["centroid_offset_mrad"]
-    r90 = "-" if f["spot_radius_m"] is None else f"{1000 * f['spot_radius_m']:.2f} mm ({f['spot_radius_mrad']:.3f} mrad)"
+
+    def pm(key, scale=1.0, digits=4, d_=None, sign=""):     # value ± U (k = 2) when the record has U
+        src = f if d_ is None else d_
+        v = src[key] if d_ is None else src.get(key)
+        u = f.get(f"{key}_U") if d_ is None else (f.get("centroid_offset_mrad_U") or {}).get(key)
+        text = f"{v * scale:{sign}.{digits}f}"
+        return text if u is None else f"{text} ± {u * scale:.{digits}f}"
+
+    r90 = "-" if f["spot_radius_m"] is None else (f"{pm('spot_radius_m', 1000.0, 2)} mm "
+                                                  f"({pm('spot_radius_mrad', 1.0, 3)} mrad)")
     d90 = "-" if d["spot_radius_m"] is None else f"{1000 * d['spot_radius_m']:.2f} mm"
     return (f"{name}: target at {c['slant_range_m']:.3f} m, aperture {c['aperture']}\n"
-            f"  intercept {f['intercept']:.4f} (design {d['intercept']:.4f}), power / design's "
-            f"{f['power_ratio_vs_design']:.4f}\n"
+            f"  intercept {pm('intercept')} (design {d['intercept']:.4f}), power / design's "
+            f"{pm('power_ratio_vs_design')}\n"
             f"  90 % spot radius {r90}, design {d90}; analytic (patent model) {1000 * f['analytic_spot_radius_m']:.2f} "
             f"mm, design {1000 * d['analytic_spot_radius_m']:.2f} mm\n"
-            f"  centroid offset x {off['x']:+.3f} y {off['y']:+.3f} mrad (magnitude {off['magnitude']:.3f})\n"
+            f"  centroid offset x {pm('x', 1.0, 3, off, '+')} y {pm('y', 1.0, 3, off, '+')} mrad "
+            f"(magnitude {pm('magnitude', 1.0, 3, off)})\n"
             f"  {path}")
 
 

@@ -22,8 +22,11 @@ from ._common import ReportError, savefig_atomic
 log = logging.getLogger(__name__)
 
 
-def _fmt(value, fmt: str) -> str:
-    return "-" if value is None else fmt.format(value)
+def _fmt(value, fmt: str, u=None) -> str:
+    """*value* in *fmt*, with `` ± U`` (k = 2) when its uncertainty *u* is known."""
+    if value is None:
+        return "-"
+    return fmt.format(value) + ("" if u is None else " ± " + fmt.format(u))
 
 
 def draw_flux_maps(res, title: str = "") -> "Figure":  # noqa: F821
@@ -47,12 +50,15 @@ def draw_flux_maps(res, title: str = "") -> "Figure":  # noqa: F821
                  f"incidence {cond['incidence_angle_deg']:g}°, target at {cond['slant_range_m']:.3f} m "
                  f"({cond['rays']:,} rays)".strip())
     f = res.figures
+    u_r90 = None if f.get("spot_radius_m_U") is None else f["spot_radius_m_U"] * scale   # ± U (k = 2) if known
+    u_off = (f.get("centroid_offset_mrad_U") or {}).get("magnitude")
     panels = ((res.measured, "measured facet",
-               f"intercept {_fmt(f['intercept'], '{:.4f}')}, r90 "
-               f"{_fmt(None if f['spot_radius_m'] is None else f['spot_radius_m'] * scale, lf)} {unit} "
-               f"({_fmt(f['spot_radius_mrad'], '{:.2f}')} mrad), "
-               f"centroid {_fmt(f['centroid_offset_mrad']['magnitude'], '{:.3f}')} mrad off aim,\n"
-               f"power / design's {_fmt(f['power_ratio_vs_design'], '{:.4f}')}; analytic r90 "
+               f"intercept {_fmt(f['intercept'], '{:.4f}', f.get('intercept_U'))}, r90 "
+               f"{_fmt(None if f['spot_radius_m'] is None else f['spot_radius_m'] * scale, lf, u_r90)} {unit} "
+               f"({_fmt(f['spot_radius_mrad'], '{:.2f}', f.get('spot_radius_mrad_U'))} mrad), "
+               f"centroid {_fmt(f['centroid_offset_mrad']['magnitude'], '{:.3f}', u_off)} mrad off aim,\n"
+               f"power / design's {_fmt(f['power_ratio_vs_design'], '{:.4f}', f.get('power_ratio_vs_design_U'))}; "
+               f"analytic r90 "
                f"{_fmt(f['analytic_spot_radius_m'] * scale, lf)} {unit}"),
               (res.design, "design facet",
                f"intercept {_fmt(f['design']['intercept'], '{:.4f}')}, r90 "

@@ -28,13 +28,15 @@ def optics_lines(opt: dict | None, truth: dict | None = None) -> list[str]:
     if not opt:
         return []
 
-    def show(d, key, fmt, scale=1.0):
+    def show(d, key, fmt, scale=1.0, u=None):
+        """The value, `` ± U`` when ``key_U`` is in *d* (or *key* in *u*, for a nested figure's U)."""
         v = d.get(key)
         if v is None:
             return "-"
         text = fmt.format(v * scale)
-        if d.get(f"{key}_U") is not None:
-            text += " ± " + fmt.format(d[f"{key}_U"] * scale)
+        big_u = d.get(f"{key}_U") if u is None else u.get(key)
+        if big_u is not None:
+            text += " ± " + fmt.replace("+", "").format(big_u * scale)
         return text
 
     def extra(key, fmt, scale=1.0, sub=None):
@@ -48,6 +50,7 @@ def optics_lines(opt: dict | None, truth: dict | None = None) -> list[str]:
     ap_text = (f"circle r {1000 * ap['radius_m']:.1f} mm" if ap["shape"] == "circle"
                else f"rectangle {1000 * ap['width_m']:.1f} x {1000 * ap['height_m']:.1f} mm")
     off = opt["centroid_offset_mrad"]
+    off_u = opt.get("centroid_offset_mrad_U") or {}
     return [f"  optics: {c['sun']['shape']} sun, DNI {c['dni_w_m2']:g} W/m^2, reflectivity {c['reflectivity']:g}, "
             f"target at {c['slant_range_m']:.3f} m, aperture {ap_text}",
             f"    intercept factor        {show(opt, 'intercept', '{:.4f}'):>12}   (design "
@@ -55,7 +58,8 @@ def optics_lines(opt: dict | None, truth: dict | None = None) -> list[str]:
             f"    90 % spot radius        {show(opt, 'spot_radius_m', '{:.2f}', 1000.0):>12} mm   (design "
             f"{_fmt(opt['design']['spot_radius_m'] and 1000 * opt['design']['spot_radius_m'], '', 2)} mm; analytic "
             f"{1000 * opt['analytic_spot_radius_m']:.2f} mm){extra('spot_radius_m', '{:.2f}', 1000.0)}",
-            f"    centroid offset         {off['magnitude']:>12.3f} mrad (x {off['x']:+.3f}, y {off['y']:+.3f})"
+            f"    centroid offset         {show(off, 'magnitude', '{:.3f}', u=off_u):>12} mrad "
+            f"(x {show(off, 'x', '{:+.3f}', u=off_u)}, y {show(off, 'y', '{:+.3f}', u=off_u)})"
             f"{extra('centroid_offset_mrad', '{:.3f}', sub='magnitude')}",
             f"    power / design's        {show(opt, 'power_ratio_vs_design', '{:.4f}'):>12}"
             f"{extra('power_ratio_vs_design', '{:.4f}')}"]
