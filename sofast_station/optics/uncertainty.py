@@ -36,6 +36,8 @@ RMS_STEP = 0.10
 #: At most this many points and rays in the re-traces (the figures' dependence on the surface is smooth).
 MAX_POINTS = 20_000
 RAYS = 100_000
+#: The sampling error's sums over rays use at most this many (every k-th) rays.
+SAMPLED_RAYS = 200_000
 
 #: The scalar optical figures that get an uncertainty, as paths into ``facet_optics``'s figures.
 PATHS = (("intercept",), ("spot_radius_m",), ("centroid_offset_mrad", "x"), ("centroid_offset_mrad", "y"),
@@ -112,30 +114,32 @@ def sampling_u(hits: Hits, figures: dict, aperture, slant_range_m: float, fracti
     as independent of its other rays and of other points', which overstates the error of a stratified trace
     a little (conservative).
     """
-    w = hits.power_w.astype(np.float64)
     total = hits.reflected_w
     out = dict.fromkeys(("intercept", "spot_radius_m", "centroid_x_m", "centroid_y_m", "intercepted_w"), None)
-    if w.size == 0 or total <= 0:
+    if hits.power_w.size == 0 or total <= 0:
         return out
-    inside = aperture.contains(hits.x_m, hits.y_m)
+    # The sums over rays are estimated from every k-th ray (at most SAMPLED_RAYS of them), scaled by k.
+    k = max(1, hits.power_w.size // SAMPLED_RAYS)
+    w = hits.power_w[::k].astype(np.float64)
+    x, y = hits.x_m[::k].astype(np.float64), hits.y_m[::k].astype(np.float64)
+    inside = aperture.contains(x, y)
     i = figures["intercept"]
-    out["intercept"] = float(np.sqrt(np.sum((w * (inside - i)) ** 2)) / total)
-    out["intercepted_w"] = float(np.sqrt(np.sum((w * (inside - i)) ** 2)))
-    on = w.sum()
+    out["intercepted_w"] = float(np.sqrt(k * np.sum((w * (inside - i)) ** 2)))
+    out["intercept"] = out["intercepted_w"] / total
+    on = float(hits.power_w.sum())
     cx, cy = figures["centroid_m"]["x"], figures["centroid_m"]["y"]
-    x, y = hits.x_m.astype(np.float64), hits.y_m.astype(np.float64)
-    out["centroid_x_m"] = float(np.sqrt(np.sum((w * (x - cx)) ** 2)) / on)
-    out["centroid_y_m"] = float(np.sqrt(np.sum((w * (y - cy)) ** 2)) / on)
+    out["centroid_x_m"] = float(np.sqrt(k * np.sum((w * (x - cx)) ** 2)) / on)
+    out["centroid_y_m"] = float(np.sqrt(k * np.sum((w * (y - cy)) ** 2)) / on)
     r90 = figures.get("spot_radius_m")
     if r90:
         r = np.hypot(x - cx, y - cy)
-        n_eff = on * on / float(np.sum(w * w))
+        n_eff = on * on / (k * float(np.sum(w * w)))
         for half in (0.02, 0.05, 0.1):      # a window holding enough rays for the density
             lo, hi = r90 * (1 - half), r90 * (1 + half)
             sel = (r > lo) & (r <= hi)
             if np.count_nonzero(sel) >= 50:
                 break
-        density = float(np.sum(w[sel])) / total / (hi - lo)       # power fraction per metre of radius
+        density = k * float(np.sum(w[sel])) / total / (hi - lo)       # power fraction per metre of radius
         if density > 0:
             out["spot_radius_m"] = math.sqrt(fraction * (1 - fraction) / n_eff) / density
     return out
