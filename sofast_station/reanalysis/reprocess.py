@@ -280,7 +280,8 @@ def flatten_figures(record: dict, uncertainties: bool = False) -> dict:
     def walk(name: str, value) -> None:
         if isinstance(value, dict):
             for k, v in value.items():
-                walk(f"{name}.{k}" if name else str(k), v)
+                if uncertainties or not is_uncertainty_key(str(k)):     # nested ones too (optics' _U)
+                    walk(f"{name}.{k}" if name else str(k), v)
         elif isinstance(value, (list, tuple)) and value and all(
                 isinstance(v, (int, float)) and not isinstance(v, bool) or v is None for v in value):
             for i, v in enumerate(value):
