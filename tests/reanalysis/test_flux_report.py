@@ -20,7 +20,7 @@ def test_report_flux_of_a_dump_draws_the_map_and_reproduces_the_archived_figures
     assert png.stat().st_size > 20_000 and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     # The same settings and seed as on the line: the same figures, printed.
     assert f"intercept {archived['intercept']:.4f}" in out
-    assert f"90 % spot radius {1000 * archived['spot_radius_m']:.2f} mm" in out
+    assert f"90 % spot radius {1000 * archived['spot_radius_m']:.2f} ± {1000 * archived['spot_radius_m_U']:.2f} mm" in out
 
 
 def test_report_flux_options_change_the_conditions(station_dumps, tmp_path, capsys):
