@@ -55,9 +55,9 @@ def draw_flux_maps(res, title: str = "") -> "Figure":  # noqa: F821
     panels = ((res.measured, "measured facet",
                f"intercept {_fmt(f['intercept'], '{:.4f}', f.get('intercept_U'))}, r90 "
                f"{_fmt(None if f['spot_radius_m'] is None else f['spot_radius_m'] * scale, lf, u_r90)} {unit} "
-               f"({_fmt(f['spot_radius_mrad'], '{:.2f}', f.get('spot_radius_mrad_U'))} mrad), "
-               f"centroid {_fmt(f['centroid_offset_mrad']['magnitude'], '{:.3f}', u_off)} mrad off aim,\n"
-               f"power / design's {_fmt(f['power_ratio_vs_design'], '{:.4f}', f.get('power_ratio_vs_design_U'))}; "
+               f"({_fmt(f['spot_radius_mrad'], '{:.2f}', f.get('spot_radius_mrad_U'))} mrad),\n"
+               f"centroid {_fmt(f['centroid_offset_mrad']['magnitude'], '{:.3f}', u_off)} mrad off aim, "
+               f"power / design's {_fmt(f['power_ratio_vs_design'], '{:.4f}', f.get('power_ratio_vs_design_U'))};\n"
                f"analytic r90 "
                f"{_fmt(f['analytic_spot_radius_m'] * scale, lf)} {unit}"),
               (res.design, "design facet",

@@ -111,6 +111,8 @@ def test_optical_figures_reach_the_journal_and_the_workbook_row(inspected, tmp_p
     assert row["optics.intercept"] == rec["optics"]["intercept"]
     assert row["optics.spot_radius_mrad"] == rec["optics"]["spot_radius_mrad"]
     assert row["optics.centroid_offset_mrad.magnitude"] == rec["optics"]["centroid_offset_mrad"]["magnitude"]
+    assert row["optics.intercept_U"] == rec["optics"]["intercept_U"] > 0            # the U columns too
+    assert row["optics.centroid_offset_mrad_U.x"] == rec["optics"]["centroid_offset_mrad_U"]["x"] > 0
     journal = Journal(tmp_path / "journal.sqlite3")
     try:
         journal.append("cycle-1", {k: v for k, v in rec.items() if k != "truth"})
