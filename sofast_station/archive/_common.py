@@ -154,10 +154,23 @@ def release_memory() -> None:
     about a hundred columns); freed afterwards, that memory would otherwise stay with the long-lived
     archiver process at its high-water mark.
     """
-    import ctypes
     import gc
 
     gc.collect()
+    trim_heap()
+
+
+def trim_heap() -> None:
+    """Hand the heap's free pages back to the system (glibc's ``malloc_trim``; nothing elsewhere).
+
+    A long-lived process that frees hundreds of MB per cycle (the analysis worker's per-pixel arrays)
+    otherwise keeps them at its high-water mark and, with several threads' arenas, lets that mark creep
+    up (the full-resolution soak: about 30 MB per 100 facets). An analysis loop at full resolution rose
+    from 558 to 585 MB over 30 facets without it and stayed between 454 and 485 MB over 60 with it.
+    Costs about a millisecond.
+    """
+    import ctypes
+
     try:
         ctypes.CDLL("libc.so.6").malloc_trim(0)
     except (OSError, AttributeError):

@@ -92,6 +92,7 @@ def _init(shm_name: str, shape: tuple[int, int, int], geometry: dict, fringes: d
 
 def _run(design: dict, settings: dict, distance_m: float, hang_s: float, optics=None,
          uncertainty: dict | None = None):
+    from ..archive._common import trim_heap
     from ..facet import FacetDesign
     from ..measure.pipeline import AnalysisSettings, analyse
     from ..measure.uncertainty import InputUncertainties
@@ -111,7 +112,10 @@ def _run(design: dict, settings: dict, distance_m: float, hang_s: float, optics=
                 sensitivity_cache=_STATE.setdefault("sensitivities", {}))
     # The optical figures (intercept, spot size, aim), with the design's trace kept for the next facet.
     add_optics(a, facet, optics, _STATE.setdefault("design_traces", DesignTraces()))
-    return a.figures, np.packbits(a.valid), a.valid.shape, time.perf_counter() - t, _preview(a), a.sensitivities
+    out = (a.figures, np.packbits(a.valid), a.valid.shape, time.perf_counter() - t, _preview(a), a.sensitivities)
+    del a, frames
+    trim_heap()                          # the per-pixel arrays' pages go back: the worker's memory stays flat
+    return out
 
 
 def _preview(a, most: int = 6000) -> dict:
