@@ -43,6 +43,7 @@ import time
 import traceback
 from collections import deque
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Callable, Iterable
 
@@ -400,12 +401,18 @@ def _run_local(todo: list[Path], workers: int, overrides: dict, journal: str | N
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
     from concurrent.futures.process import BrokenProcessPool
 
+    from ..station.worker import watch_parent
+
     single_thread_blas()                         # the spawned workers load numpy with BLAS on one thread
     ctx = multiprocessing.get_context("spawn")   # no inherited threads, OpenGL or HDF5 state
+    # A batch ended by SIGTERM or SIGKILL cannot stop its pool: each worker exits by itself once its parent
+    # is gone, instead of waiting under PID 1 for work that never comes.
+    new_pool = partial(ProcessPoolExecutor, max_workers=workers, mp_context=ctx, initializer=watch_parent,
+                       initargs=(os.getpid(),))
     pending = deque(todo)
     deaths: dict[Path, int] = {}
     suspects: set[Path] = set()                  # dumps in flight when a worker died: retried alone
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx)
+    pool = new_pool()
     inflight: dict = {}
     finished = 0
     try:
@@ -442,7 +449,7 @@ def _run_local(todo: list[Path], workers: int, overrides: dict, journal: str | N
                 inflight.clear()
                 pool.shutdown(wait=False, cancel_futures=True)
                 log.error("a worker process died; starting a new pool of %d", workers)
-                pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx)
+                pool = new_pool()
     finally:
         pool.shutdown(wait=False, cancel_futures=True)
 

@@ -34,15 +34,19 @@ class WorkerDied(StationError):
     """The analysis worker process died (killed, out of memory); it is being restarted."""
 
 
-def watch_parent(poll_s: float = 0.5) -> None:
-    """In a child process: exit as soon as the process that started it is gone.
+def watch_parent(parent_pid: int | None = None, poll_s: float = 0.5) -> None:
+    """In a child process: exit as soon as the process that started it (*parent_pid*; by default the
+    present parent) is gone. Given the PID, a child whose parent died while it was still starting exits at
+    once instead of taking its new parent (PID 1) for the one to watch.
 
     A station killed with SIGKILL cannot stop its children; without this they would live on under
     PID 1 (an orphaned archiver writing the data folder beside the restarted station). The check is a
     daemon thread comparing ``os.getppid()`` with its value at start, which, unlike
     ``PR_SET_PDEATHSIG``, does not fire when merely the parent's *thread* that spawned the child ends.
     """
-    parent = os.getppid()
+    parent = os.getppid() if parent_pid is None else parent_pid
+    if os.getppid() != parent:
+        os._exit(0)
 
     def watch():
         while True:

@@ -204,3 +204,39 @@ def test_progress_bar_on_a_log_file_prints_a_line_per_tenth():
     bar.close()
     lines = stream.getvalue().splitlines()
     assert 10 <= len(lines) <= 12 and lines[-1].startswith("[" + "#" * 30 + "] 100/100 dumps 100%")
+
+
+def test_a_batch_killed_alone_leaves_no_worker_behind(station_dumps, tmp_path):
+    """SIGKILL of the batch process only (not its group): its pool's workers exit by themselves."""
+    src = tmp_path / "dumps"
+    _copies(station_dumps, src, 12)
+    cmd = [sys.executable, "-m", "sofast_station.reanalysis.cli", "batch", str(src), "--out", str(tmp_path / "out"),
+           "--workers", "2", "--no-progress"]
+    proc = subprocess.Popen(cmd, env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            start_new_session=True)
+    children_file = Path(f"/proc/{proc.pid}/task/{proc.pid}/children")
+    if not children_file.exists():
+        os.killpg(proc.pid, signal.SIGKILL)
+        pytest.skip("needs Linux /proc children lists")
+    workers: set[int] = set()
+    try:
+        deadline = time.monotonic() + 300            # the pool is up whatever the machine's speed
+        while time.monotonic() < deadline and len(workers) < 2 and proc.poll() is None:
+            workers = {int(p) for p in children_file.read_text().split()} - {proc.pid}
+            workers = {p for p in workers if "spawn_main" in Path(f"/proc/{p}/cmdline").read_text(errors="replace")}
+            time.sleep(0.05)
+        assert len(workers) >= 2, "the batch never started its two workers"
+        proc.kill()                                  # the parent only: nothing can stop the pool for it
+        proc.wait(timeout=60)
+        deadline = time.monotonic() + 120
+        alive = set(workers)
+        while alive and time.monotonic() < deadline:
+            alive = {p for p in alive if Path(f"/proc/{p}").exists()
+                     and Path(f"/proc/{p}/stat").read_text().split()[2] != "Z"}
+            time.sleep(0.1)
+        assert not alive, f"batch workers {sorted(alive)} outlived their killed parent"
+    finally:
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)      # whatever is left of the group, if the test failed
+        except ProcessLookupError:
+            pass
