@@ -34,7 +34,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.soak import SMALL  # noqa: E402
+from benchmarks.soak import SMALL, archive_checks  # noqa: E402
 
 
 def children(pid: int) -> set[int]:
@@ -131,30 +131,9 @@ def write_config(folder: Path) -> Path:
 
 
 def check_archive(data: Path, answered: int, station_kills: int) -> dict:
-    from sofast_station.archive import Journal, read_dump, read_workbook
-
-    journal = Journal(data / "journal.sqlite3")
-    try:
-        rows = journal.rows()
-    finally:
-        journal.close()
-    ids = [r.cycle_id for r in rows]
-    book_ids = [r["cycle_id"] for b in sorted((data / "archive").glob("*.xlsx")) for r in read_workbook(b)]
-    bad_dumps = []
-    for r in rows:
-        if r.dump_requested:
-            try:
-                if read_dump(r.dump_path, load_frames=True).cycle_id != r.cycle_id:
-                    bad_dumps.append(r.cycle_id)
-            except Exception as exc:   # noqa: BLE001
-                bad_dumps.append(f"{r.cycle_id}: {exc}")
-    return {"answered_lines": answered, "journal_rows": len(rows), "journal_unique": len(set(ids)) == len(ids),
-            "rows_without_line": len(rows) - answered, "station_kills": station_kills,
-            "workbook_rows": len(book_ids), "workbook_unique": len(set(book_ids)) == len(book_ids),
-            "workbook_equals_journal": sorted(book_ids) == sorted(ids),
-            "dumps_requested": sum(r.dump_requested for r in rows), "dumps_bad": bad_dumps,
-            "temp_files": [str(p) for p in data.rglob("*.tmp")],
-            "orphan_spools": [str(p) for p in (data / "spool").glob("*.npz")] if (data / "spool").exists() else []}
+    result = archive_checks(data)
+    return {"answered_lines": answered, "rows_without_line": result["journal_rows"] - answered,
+            "station_kills": station_kills, **result}
 
 
 def campaign(kills: int, seed: int, folder: Path, archiver_kills: int = 10) -> int:

@@ -88,6 +88,35 @@ def slope_per_100(xs: list[float], ys: list[float]) -> float:
     return 100.0 * sum((x - mx) * (y - my) for x, y in zip(xs, ys)) / sxx if sxx else float("nan")
 
 
+def archive_checks(data: Path) -> dict:
+    """What a soak or kill campaign left in *data*: journal and workbook rows (counts, ids unique, the same
+    ids in both), requested dumps that do not read back with their frames ("cycle: why"), temporary files
+    and orphan spools left behind."""
+    from sofast_station.archive import Journal, read_dump, read_workbook
+
+    journal = Journal(data / "journal.sqlite3")
+    try:
+        rows = journal.rows()
+    finally:
+        journal.close()
+    ids = [r.cycle_id for r in rows]
+    book_ids = [r["cycle_id"] for b in sorted((data / "archive").glob("*.xlsx")) for r in read_workbook(b)]
+    bad_dumps = []
+    for r in rows:
+        if r.dump_requested:
+            try:
+                if read_dump(r.dump_path, load_frames=True).cycle_id != r.cycle_id:
+                    bad_dumps.append(f"{r.cycle_id}: wrong cycle")
+            except Exception as exc:      # noqa: BLE001 - every failure is reported
+                bad_dumps.append(f"{r.cycle_id}: {type(exc).__name__}: {exc}")
+    return {"journal_rows": len(rows), "journal_unique": len(set(ids)) == len(ids),
+            "workbook_rows": len(book_ids), "workbook_unique": len(set(book_ids)) == len(book_ids),
+            "workbook_equals_journal": sorted(book_ids) == sorted(ids),
+            "dumps_requested": sum(r.dump_requested for r in rows), "dumps_bad": bad_dumps,
+            "temp_files": [str(p) for p in data.rglob("*.tmp")],
+            "orphan_spools": [str(p) for p in (data / "spool").glob("*.npz")] if (data / "spool").exists() else []}
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--config", default=str(ROOT / "station.toml"), help="station file (default: full resolution)")
@@ -117,7 +146,6 @@ def main(argv=None) -> int:
 
     import logging
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(message)s", datefmt="%H:%M:%S")
-    from sofast_station.archive import Journal, read_dump, read_workbook
     from sofast_station.config import load_config
     from sofast_station.station.service import Service
     from sofast_station.station.shift import ShiftTally
@@ -237,34 +265,19 @@ def main(argv=None) -> int:
                   f" {growth:+14.2f} {overall:+8.2f} {rows[0][2]:19d} {rows[-1][2]:5d}  "
                   f"({len(who)} process{'es' if len(who) > 1 else ''})")
 
-        journal = Journal(data / "journal.sqlite3")
-        try:
-            rows = journal.rows()
-        finally:
-            journal.close()
-        ids = [r.cycle_id for r in rows]
-        book_ids = [r["cycle_id"] for b in sorted((data / "archive").glob("*.xlsx")) for r in read_workbook(b)]
-        requested = [r for r in rows if r.dump_requested]
-        bad = []
-        for r in requested:
-            try:
-                d = read_dump(r.dump_path, load_frames=True)
-                if d.cycle_id != r.cycle_id:
-                    bad.append((r.cycle_id, "wrong cycle"))
-            except Exception as exc:      # noqa: BLE001 - every failure is reported
-                bad.append((r.cycle_id, f"{type(exc).__name__}: {exc}"))
-        temps = [str(t) for t in data.rglob("*.tmp")]
-        spools = [str(s) for s in (data / "spool").glob("*.npz")] if (data / "spool").exists() else []
-        checks = {"journal_rows": len(rows), "journal_ids_unique": len(set(ids)) == len(ids),
-                  "workbook_rows": len(book_ids), "workbook_ids_unique": len(set(book_ids)) == len(book_ids),
-                  "workbook_equals_journal": sorted(book_ids) == sorted(ids), "dumps_requested": len(requested),
-                  "dumps_valid": len(requested) - len(bad), "dump_errors": bad[:10], "temp_files_left": temps,
-                  "spools_left": spools}
+        c = archive_checks(data)
+        rows, book_ids, requested = c["journal_rows"], c["workbook_rows"], c["dumps_requested"]
+        temps, spools = c["temp_files"], c["orphan_spools"]
+        checks = {"journal_rows": rows, "journal_ids_unique": c["journal_unique"],
+                  "workbook_rows": book_ids, "workbook_ids_unique": c["workbook_unique"],
+                  "workbook_equals_journal": c["workbook_equals_journal"], "dumps_requested": requested,
+                  "dumps_valid": requested - len(c["dumps_bad"]), "dump_errors": c["dumps_bad"][:10],
+                  "temp_files_left": temps, "spools_left": spools}
         figures["checks"] = checks
-        print(f"journal: {len(rows)} rows for {n} cycles, ids unique: {checks['journal_ids_unique']}; workbooks: "
-              f"{len(book_ids)} rows, unique: {checks['workbook_ids_unique']}, same ids as the journal: "
+        print(f"journal: {rows} rows for {n} cycles, ids unique: {checks['journal_ids_unique']}; workbooks: "
+              f"{book_ids} rows, unique: {checks['workbook_ids_unique']}, same ids as the journal: "
               f"{checks['workbook_equals_journal']}")
-        print(f"dumps: {len(requested)} requested, {checks['dumps_valid']} valid (read back with frames); "
+        print(f"dumps: {requested} requested, {checks['dumps_valid']} valid (read back with frames); "
               f"temporary files left: {len(temps)}; spools left: {len(spools)}")
         if args.json:
             Path(args.json).write_text(json.dumps(figures, indent=1))
