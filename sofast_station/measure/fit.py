@@ -215,7 +215,8 @@ def _assemble(kx, ky, xm: float, ym: float, **extra) -> ParabolaFit:
 
 
 def fit_parabola(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray,
-                 robust: bool = False, start: ParabolaFit | None = None, pool=None) -> ParabolaFit:
+                 robust: bool = False, start: ParabolaFit | None = None, pool=None,
+                 robust_tolerance: float = 1e-9) -> ParabolaFit:
     """Fit the two slope equations separately (metres in, slopes dimensionless).
 
     Positions are centred on their mean before fitting (the constant terms are restored exactly), so a
@@ -223,7 +224,8 @@ def fit_parabola(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray,
     is fitted by bisquare-weighted least squares (:func:`robust_weights`), which keeps outliers (edge
     pixels seeing past the screen, dust) from pulling the shape; *start*, a robust fit of the same points
     in an earlier iteration, supplies the starting weights, and *pool* (an executor) runs the second
-    equation's iteration beside the first (each does the same arithmetic on any thread).
+    equation's iteration beside the first (each does the same arithmetic on any thread);
+    *robust_tolerance* is the reweighting's stopping tolerance (see :func:`robust_weights`).
     """
     if x.size < 10:
         raise AnalysisError(f"only {x.size} valid points: too few to fit a shape")
@@ -231,9 +233,11 @@ def fit_parabola(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray,
     one = np.ones_like(xc)
     if robust:
         wx, wy = start.weights if start is not None and start.weights is not None else (None, None)
-        second = None if pool is None else pool.submit(robust_weights, [yc, one, xc], s_y, weights=wy)
-        kx, wx, sig_x = robust_weights([xc, one, yc], s_x, weights=wx)
-        ky, wy, sig_y = (robust_weights([yc, one, xc], s_y, weights=wy) if second is None
+        tol = float(robust_tolerance)
+        second = None if pool is None else pool.submit(robust_weights, [yc, one, xc], s_y, tolerance=tol,
+                                                       weights=wy)
+        kx, wx, sig_x = robust_weights([xc, one, yc], s_x, tolerance=tol, weights=wx)
+        ky, wy, sig_y = (robust_weights([yc, one, xc], s_y, tolerance=tol, weights=wy) if second is None
                          else second.result())
         return _assemble(kx, ky, xm, ym, weights=(wx, wy), sigma=(sig_x, sig_y))
     sums: dict = {}      # both equations' columns are xc, 1, yc: their products are summed once
