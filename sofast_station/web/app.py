@@ -195,6 +195,8 @@ def create_app(config, settings) -> Starlette:
     @contextlib.asynccontextmanager
     async def lifespan(app):
         tasks.append(asyncio.create_task(hub.run()))
+        # the pictures' imports (OpenCV, the colour table) now, not inside the first facet's picture request
+        tasks.append(asyncio.create_task(asyncio.to_thread(images.warm)))
         try:
             yield
         finally:
