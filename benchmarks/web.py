@@ -57,7 +57,7 @@ def _browser(url: str, out: str, stop, reload_s: float, nice: int) -> None:
         page.evaluate(watch)
         last = time.monotonic()
         while not stop.is_set():
-            page.wait_for_timeout(200)
+            page.wait_for_timeout(1000)              # the page notes each facet's time itself; this only idles
             if time.monotonic() - last > reload_s:
                 for k, v in page.evaluate("window.__seen || {}").items():
                     seen.setdefault(k, v)
@@ -80,6 +80,31 @@ def _cpu_seconds(pid: int) -> float:
         return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
     except (OSError, IndexError, ValueError):
         return float("nan")
+
+
+def _tree_cpu_seconds(pid: int, name_prefix: str = "") -> float:
+    """CPU seconds of *pid* and every living descendant whose name starts with *name_prefix* (e.g. the
+    browser's renderer and GPU processes, not Playwright's driver)."""
+    children: dict = {}
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                ppid = int(Path(f"/proc/{entry}/stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                continue
+            children.setdefault(ppid, []).append(int(entry))
+    total, todo = 0.0, [pid]
+    while todo:
+        p = todo.pop()
+        try:
+            name = Path(f"/proc/{p}/comm").read_text().strip()
+        except OSError:
+            name = ""
+        if name.startswith(name_prefix):
+            c = _cpu_seconds(p)
+            total += 0.0 if c != c else c
+        todo.extend(children.get(p, []))
+    return total
 
 
 def one_run(cfg, frames, distance, frame_delay, n: int, with_page: bool, reload_s: float,
@@ -117,6 +142,7 @@ def one_run(cfg, frames, distance, frame_delay, n: int, with_page: bool, reload_
                                   daemon=True)
             browser.start()
             time.sleep(5.0)                          # the page is open before the first facet
+            cpu_before = (_cpu_seconds(monitor.pid), _tree_cpu_seconds(browser.pid, "chrom"))
         service = Service.__new__(Service)
         station = Station(config=bench_cfg, display=NullDisplay(),
                           camera=ReplayCamera(frames, frame_delay_s=frame_delay, loop=True),
@@ -131,7 +157,8 @@ def one_run(cfg, frames, distance, frame_delay, n: int, with_page: bool, reload_
         result["answers"] = [o.answer for o in outcomes]
         if with_page:
             time.sleep(2.0)                          # the last facet reaches the page
-            result["monitor_cpu_s"] = _cpu_seconds(monitor.pid)
+            result["monitor_cpu_s"] = _cpu_seconds(monitor.pid) - cpu_before[0]
+            result["browser_cpu_s"] = _tree_cpu_seconds(browser.pid, "chrom") - cpu_before[1]
             stop.set()
             browser.join(120)
             monitor.stop()
@@ -191,7 +218,8 @@ def main(argv=None) -> int:
             lat = res["latency_s"]
             extra = (f"; on the page {res['facets_seen']}/{n} facets, journal row -> page (live, {len(lat)}) median "
                      f"{statistics.median(lat):.2f} s, worst {max(lat):.2f} s" if lat else "; no facet seen")
-            extra += f"; the monitor process used {res['monitor_cpu_s']:.1f} s of CPU"
+            extra += (f"; CPU during the facets: monitor {res['monitor_cpu_s'] / n:.2f} s per facet, chromium "
+                      f"{res['browser_cpu_s'] / n:.2f} s per facet")
         label = "with the page   " if with_page else "without the page"
         print(f"  {label}: cycle median {statistics.median(c):.3f} s, "
               f"mean {statistics.mean(c):.3f} s, worst {max(c):.3f} s ({', '.join(sorted(set(res['answers'])))})"
@@ -199,6 +227,9 @@ def main(argv=None) -> int:
     without = [t for r in runs if not r["with_page"] for t in r["cycle_s"]]
     with_ = [t for r in runs if r["with_page"] for t in r["cycle_s"]]
     m0, m1 = statistics.median(without), statistics.median(with_)
+    pairs = [statistics.median(b["cycle_s"]) / statistics.median(a["cycle_s"]) - 1
+             for a, b in zip(runs[0::2], runs[1::2]) for a, b in [(a, b) if not a["with_page"] else (b, a)]]
+    print("each round, with against without (median cycle): " + ", ".join(f"{100 * d:+.1f} %" for d in pairs))
     print(f"median cycle: without {m0:.3f} s, with the page {m1:.3f} s: {100 * (m1 / m0 - 1):+.1f} % "
           f"(mean {100 * (statistics.mean(with_) / statistics.mean(without) - 1):+.1f} %); "
           f"load average {os.getloadavg()[0]:.1f} at the end")

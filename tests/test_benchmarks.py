@@ -35,7 +35,7 @@ def test_web_benchmark_quick(repo_root, small_station_toml):
     assert proc.returncode == 0, proc.stderr
     print(proc.stdout)
     for line in ("camera 400 x 300", "without the page: cycle median", "with the page   : cycle median",
-                 "median cycle: without"):
+                 "CPU during the facets: monitor", "each round, with against without", "median cycle: without"):
         assert line in proc.stdout
 
 
