@@ -172,6 +172,7 @@ def load_config(path: str | Path, use_camera_record: bool = True) -> StationConf
     if camera_record is not None:
         uncertainty = uncertainty.with_camera_record(camera_record)
     uncertainty = uncertainty.with_geometry_record(_geometry_record_std(data_dir, geometry))
+    uncertainty = _with_radiometric_record(uncertainty, data_dir, radiometric, geometry, fringes)
     return StationConfig(path=path, name=str(st.get("name", path.stem)), data_dir=data_dir, backend=backend,
                          facet_path=facet_path, design=design, geometry=geometry, fringes=fringes,
                          analysis=analysis, limits=limits, quality=quality, radiometric_path=radiometric,
@@ -205,6 +206,25 @@ def _geometry_record_std(data_dir: Path, geometry) -> dict:
         return budget_std(load_geometry_record(path), geometry)
     except ConfigError:
         return {}
+
+
+def _with_radiometric_record(uncertainty, data_dir: Path, shipped: Path | None, geometry, fringes):
+    """*uncertainty* with the display-response part the radiometric record in force states (the newest
+    under *data_dir*, else the shipped default; :meth:`InputUncertainties.with_radiometric_record`);
+    unchanged when there is none or it cannot be read (opening the station reports that)."""
+    from .calibrate.records import load_radiometric
+    from .calibrate.store import newest_record_path
+
+    path = newest_record_path(data_dir, "radiometric") or shipped
+    if path is None:
+        return uncertainty
+    try:
+        record = load_radiometric(path)
+    except (ConfigError, OSError):
+        return uncertainty
+    scr = geometry.screen
+    samples = (scr.width_px / fringes.periods_x[-1], scr.height_px / fringes.periods_y[-1])
+    return uncertainty.with_radiometric_record(record.lut, record.floor_level, record.max_level, samples)
 
 
 def camera_from_record(data_dir: Path, stated: CameraIntrinsics, where: str) -> tuple[CameraIntrinsics, dict]:

@@ -78,6 +78,36 @@ def small_motion(rotation_mrad=(0.0, 0.0, 0.0), translation_mm=(0.0, 0.0, 0.0)) 
     return Pose(_rotation(*(1e-3 * np.asarray(rotation_mrad, float))), 1e-3 * np.asarray(translation_mm, float))
 
 
+#: Fields of :class:`InputUncertainties` that come from records, not from ``[uncertainty]``.
+_NOT_TABLE_KEYS = ("response_record_rad",)
+
+
+def lut_phase_error_rad(lut, floor_level: float, max_level: float, samples_per_period: float) -> float:
+    """Amplitude (rad) of the 4-times-phase error a four-step phase shows when full-depth fringes are drawn
+    through the lookup table *lut* (command / 255 against linear response level 0..1) with whole 8-bit
+    commands, on a display whose response the table inverts exactly.
+
+    Rounding to whole commands leaves a fixed error pattern over each fringe period, the same at every
+    period when a period is a whole number of display pixels; a four-step phase sees it as a phase error
+    that repeats with the phase. Only its cos/sin(4 phase) part has the shape the budget's display-response
+    rows carry (the rest, of higher order, is a fine ripple along the screen). The display samples each
+    pixel at its centre: *samples_per_period* pixels per period, phases 2 pi (i + 1/2) / n.
+    """
+    lut = np.asarray(lut, dtype=np.float64)
+    n = max(int(round(samples_per_period)), 8)
+    phi = 2.0 * np.pi * (np.arange(n) + 0.5) / n
+    grid = np.linspace(0.0, 1.0, lut.size)
+    seen = []
+    for k in range(4):
+        level = floor_level + (max_level - floor_level) * 0.5 * (1.0 + np.cos(phi - 0.5 * np.pi * k))
+        command = np.rint(255.0 * np.interp(level, grid, lut))
+        seen.append(np.interp(command / 255.0, lut, grid))
+    error = np.angle(np.exp(1j * (np.arctan2(seen[1] - seen[3], seen[0] - seen[2]) - phi)))
+    x = np.column_stack([np.cos(4.0 * phi), np.sin(4.0 * phi), np.ones(n)])
+    coef = np.linalg.lstsq(x, error, rcond=None)[0]
+    return float(np.hypot(coef[0], coef[1]))
+
+
 @dataclass(frozen=True)
 class InputUncertainties:
     """Standard uncertainties (k = 1) of the station's inputs (``[uncertainty]`` in station.toml).
@@ -100,11 +130,17 @@ class InputUncertainties:
         Relative pixel pitch of the display, each axis.
     response_phase_rad : float
         Phase error left by the display's linearised response (amplitude of the 4-times-phase harmonic
-        a residual nonlinearity leaves in four-step phases), radians.
+        a residual nonlinearity leaves in four-step phases), radians: the value the sensitivities are
+        computed at and the one used when a capture gives no evidence of its own; each capture's own
+        estimate replaces it (:func:`display_response_u`). 0 leaves the display response out.
     fixture_rotation_mrad, fixture_translation_mm : tuple of 3 floats
         Where the fixture (nominal facet frame) sits in the camera frame: about/along the fixture axes.
     corner_px : float
         Location noise of each found corner coordinate, pixels (random: it changes with each placement).
+    response_record_rad : float or None
+        Not a station.toml key: the 4-times-phase error the radiometric record in force leaves with 8-bit
+        display commands (:func:`lut_phase_error_rad`), set from the record (:meth:`with_radiometric_record`);
+        None when there is none.
     """
 
     distance_mm: float = 0.5
@@ -118,6 +154,7 @@ class InputUncertainties:
     fixture_rotation_mrad: tuple = (0.5, 0.5, 0.5)
     fixture_translation_mm: tuple = (0.5, 0.5, 0.5)
     corner_px: float = 0.1
+    response_record_rad: float | None = None
 
     def to_dict(self) -> dict:
         return {f.name: (list(v) if isinstance(v, tuple) else v)
@@ -126,7 +163,7 @@ class InputUncertainties:
     @classmethod
     def from_table(cls, table: dict, where: str = "[uncertainty]") -> "InputUncertainties":
         """From station.toml's ``[uncertainty]`` table (every key optional), validated."""
-        known = {f.name: f for f in dataclasses.fields(cls)}
+        known = {f.name: f for f in dataclasses.fields(cls) if f.name not in _NOT_TABLE_KEYS}
         unknown = sorted(set(table) - set(known))
         if unknown:
             raise ConfigError(f"{where} has unknown key(s) {', '.join(unknown)}; allowed: {', '.join(sorted(known))}")
@@ -162,6 +199,19 @@ class InputUncertainties:
             return self
         return out
 
+
+    def with_radiometric_record(self, lut, floor_level: float, max_level: float,
+                                samples_per_period) -> "InputUncertainties":
+        """The 4-times-phase error the radiometric record's lookup table leaves with 8-bit commands
+        (:func:`lut_phase_error_rad`, the largest over the finest sets' *samples_per_period*) as
+        ``response_record_rad``: the part of the display response a capture's second harmonic does not
+        show (:func:`display_response_u`)."""
+        try:
+            value = max(lut_phase_error_rad(lut, float(floor_level), float(max_level), float(n))
+                        for n in samples_per_period)
+        except (TypeError, ValueError):
+            return self
+        return dataclasses.replace(self, response_record_rad=float(value)) if np.isfinite(value) else self
 
     def with_geometry_record(self, std: dict | None) -> "InputUncertainties":
         """Where the geometry record in force (``calibrate geometry``, within tolerance, made with the
@@ -344,10 +394,19 @@ class Sensitivities:
 def sensitivities(reduction, *, fringes, geometry, design, measured_distance_m: float, settings,
                   inputs: InputUncertainties, screen=None, max_points: int = 4_000) -> Sensitivities:
     """Finite-difference sensitivities of every scalar figure to every input of :func:`budget_inputs`,
-    on a decimated copy of *reduction* (cost: two partial reruns per input)."""
+    on a decimated copy of *reduction* (cost: two partial reruns per input).
+
+    They are taken at the facet's expected pose, not at the one this capture's corners give: the corners
+    are replaced by the design corners where the fixture's nominal pose puts them (GUM 5.1.3: sensitivity
+    coefficients at the expectations of the inputs). The corner pose of a nearly frontal facet is a
+    strongly nonlinear function of the corners and the camera's focal lengths (its rotation about y turns
+    2.5 mrad for +1 px of f_x - f_y and 3.2 mrad for -1 px on the 400 x 300 twin); at one capture's noisy
+    corners (their own rotation error of about 1.6 mrad) the secant scattered from 2.1 to 2.9 mrad per px
+    from capture to capture, and the first facet's value was kept for every later one."""
     import time
 
-    from .pipeline import default_screen, rerun
+    from .camera import project
+    from .pipeline import default_screen, pose_from_corners, rerun
 
     t0 = time.perf_counter()
     screen = screen if screen is not None else default_screen(geometry)
@@ -356,6 +415,12 @@ def sensitivities(reduction, *, fringes, geometry, design, measured_distance_m: 
            "design": design, "screen": screen, "screen_size_m": (screen.width_m, screen.height_m)}
     base = rerun(red, "rays", fringes=fringes, geometry=geometry, design=design,
                  measured_distance_m=measured_distance_m, settings=settings, screen=screen, with_curl=False)
+    nominal_corners = project(geometry.camera, geometry.fixture_to_camera, design.corners_3d())
+    nominal_pose = pose_from_corners(nominal_corners, base.region, base.rays, geometry, design, measured_distance_m,
+                                     settings, agreement=base.pose.outline_agreement)
+    base = rerun(base, "shape", fringes=fringes, geometry=geometry, design=design,
+                 measured_distance_m=measured_distance_m, settings=settings, screen=screen, pose=nominal_pose,
+                 with_curl=False)
     f0 = np.array([_value(base.figures, p) for p in SCALAR_PATHS])
     rows = budget_inputs(inputs, len(reduction.pose.corners_px))
     lin = np.zeros((len(rows), len(SCALAR_PATHS)))
@@ -491,6 +556,125 @@ def noise_propagation(reduction, *, fringes, geometry, design, settings, screen=
     return NoisePropagation(sigma, noise)
 
 
+# ------------------------------------------------------------------------------ the corner pose, by Monte Carlo
+#: Figures the corner pose decides (their U comes from :func:`pose_monte_carlo`).
+POSE_PATHS: tuple[tuple, ...] = (("boresight_mrad", "x"), ("boresight_mrad", "y"),
+                                 *[("placement", "mm", i) for i in range(3)],
+                                 *[("placement", "mrad", i) for i in range(3)])
+#: Budget groups the Monte Carlo of the corner pose draws (the other groups' contributions are added to it).
+POSE_GROUPS = ("measured distance", "camera focal length", "camera principal point", "camera distortion",
+               "fixture pose", "corner location")
+#: Draws of the Monte Carlo (each solves the 4-corner pose twice: all inputs, corners alone).
+POSE_DRAWS = 200
+
+
+def pose_monte_carlo(reduction, *, geometry, design, measured_distance_m: float, settings,
+                     inputs: InputUncertainties, draws: int = POSE_DRAWS, seed: int = 12) -> dict:
+    """Mean squared change of the corner-pose figures (boresight, placement) when the inputs the corner
+    pose depends on are drawn from their distributions (GUM Supplement 1): the corners from their
+    covariance (``corner_cov_px2``), the camera's focal lengths, principal point and distortion, the
+    fixture pose and the measured distance from ``[uncertainty]``.
+
+    Why not the finite differences of :func:`sensitivities`: the pose of a nearly frontal facet from its
+    corners is far from linear at the scale of these uncertainties (on the 400 x 300 twin its rotation
+    about y moves by -3.2 mrad for f_x - f_y = +1 px and +2.5 mrad for -1 px, and the slope itself shifts
+    with the corners' own noise), so a sensitivity taken at one point, once per geometry, made U of the
+    rotation about y cover 91 % of the errors instead of 95 %. Solving the 4-point pose is cheap
+    (tens of microseconds), so it is drawn for every capture at its own corners. A fixed seed keeps the
+    result the same for the same capture.
+
+    The boresight is the rotation from the corner pose to the frame the measured surface defines, which
+    does not depend on the corner pose: its change is the corner pose's rotation change (about the facet's
+    x and y), with the opposite sign.
+
+    Returns
+    -------
+    dict
+        ``{path: (mean square change, mean square change from the corners alone)}`` for
+        :data:`POSE_PATHS`, in the figures' units squared; {} when the corners have no covariance.
+    """
+    import cv2
+
+    pose0 = reduction.pose
+    cov = getattr(pose0, "corner_cov_px2", None)
+    corners = np.asarray(pose0.corners_px, float)
+    if cov is None or np.shape(cov) != (corners.size, corners.size) or not np.all(np.isfinite(cov)):
+        return {}
+    w, v = np.linalg.eigh(0.5 * (cov + cov.T))
+    m = v * np.sqrt(np.clip(w, 0.0, None))[None, :]
+    rng = np.random.default_rng(seed)
+    # The arithmetic of pose.solve_corner_pose, pose.fix_range and pose.placement on bare arrays (the Pose
+    # objects' checks would cost more than the solve itself, 600 times per capture).
+    corners_3d = np.asarray(design.corners_3d(), np.float64).reshape(-1, 1, 3)
+    measure = np.array([*design.measure_point_m, float(design.z(*design.measure_point_m))])
+    cx, cy = (float(c) for c in design.centroid_m)
+    p_mid = np.array([cx, cy, float(design.z(cx, cy))])
+    centre = np.asarray(reduction.rays.screen_centre_cam_m, np.float64)
+    fix0 = geometry.fixture_to_camera
+    rvec0 = cv2.Rodrigues(fix0.rotation)[0]
+    r0 = pose0.facet_to_camera.rotation
+
+    def solve(corner_px, k, dist, distance):
+        ok, rvec, tvec = cv2.solvePnP(corners_3d, corner_px.reshape(-1, 1, 2), k, dist, rvec=rvec0.copy(),
+                                      tvec=fix0.translation.reshape(3, 1).copy(), useExtrinsicGuess=True,
+                                      flags=cv2.SOLVEPNP_ITERATIVE)
+        if not ok:
+            return None
+        r, t = cv2.Rodrigues(rvec)[0], tvec.ravel()
+        q = r @ measure + t                         # range fixed along the line of sight to the measure point
+        u = q / np.linalg.norm(q)
+        wv = centre - q
+        uw = float(u @ wv)
+        disc = uw * uw - float(wv @ wv) + distance * distance
+        if disc < 0:
+            return None
+        mu = min((uw - np.sqrt(disc), uw + np.sqrt(disc)), key=abs)
+        return r, t + mu * u
+
+    def place(r, t, fix_r, fix_t):
+        rf = fix_r.T @ r                            # facet -> fixture
+        tf = fix_r.T @ (r @ p_mid + t - fix_t) - p_mid
+        return np.array([*(1000.0 * tf), 1000.0 * np.arctan2(rf[2, 1], rf[2, 2]),
+                         -1000.0 * np.arcsin(np.clip(rf[2, 0], -1.0, 1.0)), 1000.0 * np.arctan2(rf[1, 0], rf[0, 0])])
+
+    cam = geometry.camera
+    base_pose = solve(corners, cam.matrix, cam.distortion, measured_distance_m)
+    if base_pose is None:
+        return {}
+    base = place(*base_pose, fix0.rotation, fix0.translation)
+
+    def change(pose, fix_r, fix_t):
+        d = r0.T @ pose[0]                          # the pose's rotation change, facet axes
+        return np.array([-1000.0 * d[2, 1], -1000.0 * d[0, 2], *(place(*pose, fix_r, fix_t) - base)])
+
+    sq_all = np.zeros(len(POSE_PATHS))
+    sq_corners = np.zeros(len(POSE_PATHS))
+    n = 0
+    for _ in range(draws):
+        c = corners + (m @ rng.standard_normal(corners.size)).reshape(corners.shape)
+        k = cam.matrix.copy()
+        k[0, 0] += rng.normal(0.0, inputs.camera_focal_px)
+        k[1, 1] += rng.normal(0.0, inputs.camera_focal_px)
+        k[0, 2] += rng.normal(0.0, inputs.camera_principal_px)
+        k[1, 2] += rng.normal(0.0, inputs.camera_principal_px)
+        dist = cam.distortion + rng.standard_normal(5) * np.asarray(inputs.camera_distortion)
+        # The fixture moved by a small motion (fixture_to_camera.compose(small_motion(...))), on arrays.
+        d_rot = _rotation(*(1e-3 * rng.standard_normal(3) * np.asarray(inputs.fixture_rotation_mrad)))
+        d_t = 1e-3 * rng.standard_normal(3) * np.asarray(inputs.fixture_translation_mm)
+        fix_r, fix_t = fix0.rotation @ d_rot, fix0.rotation @ d_t + fix0.translation
+        distance = measured_distance_m + 1e-3 * inputs.distance_mm * rng.standard_normal()
+        all_inputs = solve(c, k, dist, distance)
+        corners_only = solve(c, cam.matrix, cam.distortion, measured_distance_m)
+        if all_inputs is None or corners_only is None:
+            continue                    # a draw whose pose cannot be solved says nothing about the others
+        sq_all += change(all_inputs, fix_r, fix_t) ** 2
+        sq_corners += change(corners_only, fix0.rotation, fix0.translation) ** 2
+        n += 1
+    if n < draws // 2:
+        return {}
+    return {p: (float(sq_all[j] / n), float(sq_corners[j] / n)) for j, p in enumerate(POSE_PATHS)}
+
+
 # ------------------------------------------------------------------------------------------- combination
 def _nest(values: dict, figures: dict) -> dict:
     """``{path: value}`` -> ``{"name_U": structure like figures[name]}``."""
@@ -580,8 +764,70 @@ def pooled_frame_brightness(own_dn: float, dof: int, pool) -> dict:
             "captures": len(pool), "source": "pooled"}
 
 
+def display_response_u(reduction, inputs: InputUncertainties) -> dict:
+    """Standard uncertainty (rad) of the display response's phase error for this capture, from the
+    capture's own evidence (docs/uncertainty.md, "display response").
+
+    A response left nonlinear puts a second harmonic, correlated with the phase, into every four-step
+    residual; :func:`~sofast_station.measure.phase.frame_noise` fits it over all sets (ratio r to the
+    fringe's amplitude) and turns it into the largest four-step phase error E it gives for a power-law
+    response (:func:`~sofast_station.measure.phase.phase_error_from_harmonic`). The fit's own standard
+    uncertainty: each harmonic coefficient of the residual ``b (beta cos 2 phi + gamma sin 2 phi)``,
+    fitted to N samples with residual noise 2 sigma (four frames of noise sigma), has standard deviation
+    ``2 sigma / (b sqrt(N / 2))``, and r = |(beta, gamma)| / 4, so ``u(r) = sigma / (2 b sqrt(N / 2))``
+    and ``u(E) = |dE/dr| u(r)``. The value used is ``sqrt(E^2 + u(E)^2)``: the phase error is not
+    corrected, so its estimate counts in full, together with the estimate's uncertainty.
+
+    The second harmonic shows a smooth miss of the response (a gamma not quite inverted), not the rounding
+    of the fringes to whole 8-bit commands, whose 4-times-phase part the radiometric record in force
+    states (``inputs.response_record_rad``, :func:`lut_phase_error_rad`): it is added in quadrature.
+
+    ``[uncertainty] response_phase_rad`` is used when neither the capture (no four-step sets) nor a record
+    says anything, and 0 there leaves the display response out of the budget.
+
+    Returns
+    -------
+    dict
+        ``u_rad`` (used), ``source`` ("capture", "capture and record", "record", "default" or "off"), and
+        for a capture's evidence ``estimate_rad`` (E), ``estimate_u_rad`` (u(E)) and ``harmonic_ratio``
+        (signed r); ``record_rad`` when a record's value is in it.
+    """
+    from .phase import MAX_NOISE_SAMPLES, phase_error_from_harmonic
+
+    if inputs.response_phase_rad <= 0:
+        return {"u_rad": 0.0, "source": "off"}
+    fn = getattr(reduction.phases, "noise", None)
+    ratio = getattr(fn, "signed_harmonic_ratio", None)
+    sigma = getattr(fn, "frame_noise_dn", None)
+    offsets = getattr(reduction.phases, "set_offsets_dn", None) or {}
+    n_sets = sum(len(offsets.get(a, [])) for a in ("x", "y"))
+    record = inputs.response_record_rad
+    mods = []
+    if ratio is not None and sigma is not None and n_sets and np.isfinite(ratio):
+        ok = reduction.rays.ok
+        mods = [np.asarray(reduction.phases.finest_modulation_dn[a])[ok] for a in ("x", "y")]
+    if not mods or mods[0].size == 0:
+        if record is not None:
+            return {"u_rad": float(record), "source": "record", "record_rad": float(record)}
+        return {"u_rad": float(inputs.response_phase_rad), "source": "default"}
+    b = float(np.sqrt(np.mean(np.concatenate(mods) ** 2)))
+    n = min(int(reduction.region.idx.size) * n_sets, MAX_NOISE_SAMPLES)
+    u_ratio = float(sigma) / (2.0 * max(b, 1e-9) * np.sqrt(max(n, 2) / 2.0))
+    estimate = float(fn.phase_error_rad)
+    h = max(u_ratio, 1e-6)
+    slope = abs(phase_error_from_harmonic(abs(ratio) + h) - phase_error_from_harmonic(abs(ratio))) / h
+    u_estimate = slope * u_ratio
+    out = {"u_rad": float(np.hypot(estimate, u_estimate)), "source": "capture", "estimate_rad": estimate,
+           "estimate_u_rad": float(u_estimate), "harmonic_ratio": float(ratio)}
+    if record is not None:
+        # The two are different errors (a smooth miss of the response, the rounding to whole commands).
+        out.update(u_rad=float(np.sqrt(out["u_rad"] ** 2 + record ** 2)), source="capture and record",
+                   record_rad=float(record))
+    return out
+
+
 def capture_scales(reduction, sens: Sensitivities, inputs: InputUncertainties,
-                   frame_sigma_dn: float | None = None) -> np.ndarray:
+                   frame_sigma_dn: float | None = None, response_u_rad: float | None = None) -> np.ndarray:
     """Per budget row, the factor by which this capture's own estimate scales the cached sensitivity
     (1 for the systematic rows).
 
@@ -593,7 +839,9 @@ def capture_scales(reduction, sens: Sensitivities, inputs: InputUncertainties,
       (I0 + I2 - I1 - I3 has variance 4 sigma_f^2) and b the median finest-set modulation of the axis,
       over the reference amplitude; sigma_f is *frame_sigma_dn* when given (:func:`pooled_frame_brightness`),
       else the capture's own times :func:`small_sample_factor` of its number of sets (it comes from that few
-      values).
+      values);
+    * display response: *response_u_rad* (:func:`display_response_u`, the capture's own evidence) over
+      ``response_phase_rad``, at which the sensitivities were computed; 1 when not given.
     """
     scales = np.ones(len(sens.inputs))
     sigma_c = getattr(reduction.pose, "corner_sigma_px", None)
@@ -619,11 +867,14 @@ def capture_scales(reduction, sens: Sensitivities, inputs: InputUncertainties,
             scales[i] = sigma_c / inp.u
         elif inp.group == "frame-to-frame brightness":
             scales[i] = amp[inp.name.split()[2]] / inp.u
+        elif inp.group == "display response" and response_u_rad is not None and inp.u > 0:
+            scales[i] = response_u_rad / inp.u
     return scales
 
 
 def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs: InputUncertainties,
-            scales: np.ndarray | None = None, corner_cov: np.ndarray | None = None) -> dict:
+            scales: np.ndarray | None = None, corner_cov: np.ndarray | None = None,
+            pose_mc: dict | None = None) -> dict:
     """The figures' expanded uncertainties, the noise floor and the budget, as figure keys to add.
 
     Returns ``{"name_U": ..., "name_U_random": ..., "coverage_factor": 2, "slope_rms_noise_mrad": ...,
@@ -634,6 +885,9 @@ def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs:
     *corner_cov* (2n x 2n, pixels squared, the corners' coordinates in budget order): the corner rows'
     linear parts are then carried with their correlations, as sqrt(J^T C J) with J the sensitivities per
     pixel, split into independent rows (C = M M^T, row contributions M^T J) so the budget still adds up.
+
+    *pose_mc* (:func:`pose_monte_carlo`): for the corner-pose figures, the mean square changes it drew stand
+    for the rows of :data:`POSE_GROUPS` (the other rows are added to them in quadrature).
     """
     sc = np.ones(len(sens.inputs)) if scales is None else np.asarray(scales, float)
     linear = sens.linear * sc[:, None]
@@ -649,10 +903,27 @@ def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs:
     contrib = np.sqrt(linear ** 2 + 2.0 * (sens.curvature * (sc ** 2)[:, None]) ** 2)
     kinds = np.array([i.kind for i in sens.inputs])
     u_sys2 = np.nansum(contrib[kinds == "systematic"] ** 2, axis=0)
+    # A response that curves (q != 0) does not only spread the figure: for a normal input its mean moves by q
+    # (E[c z + q z^2] = q), and the reported value does not remove that offset. The systematic inputs'
+    # offsets add with their signs and count as one more term (U = k sqrt(u^2 + b^2), the usual way to state
+    # an uncorrected bias); c^2 + 2 q^2 above is the spread about that mean.
+    offset = np.nansum(sens.curvature[kinds == "systematic"] * (sc[kinds == "systematic"] ** 2)[:, None], axis=0)
+    u_sys2 = u_sys2 + offset ** 2
     u_cor2 = np.nansum(contrib[kinds == "random"] ** 2, axis=0)
     noise_col = np.array([noise.sigma.get(p, 0.0) for p in sens.paths])
     u_rand = np.sqrt(u_cor2 + noise_col ** 2)
     u = np.sqrt(u_sys2 + u_rand ** 2)
+    if pose_mc:
+        other = np.array([inp.group not in POSE_GROUPS for inp in sens.inputs])
+        sys_o, rand_o = other & (kinds == "systematic"), other & (kinds == "random")
+        off_o = np.nansum(sens.curvature[sys_o] * (sc[sys_o] ** 2)[:, None], axis=0)
+        u_sys_o2 = np.nansum(contrib[sys_o] ** 2, axis=0) + off_o ** 2
+        u_rand_o2 = np.nansum(contrib[rand_o] ** 2, axis=0) + noise_col ** 2
+        for j, p in enumerate(sens.paths):
+            if p in pose_mc:
+                ms_all, ms_corners = pose_mc[p]
+                u_rand[j] = np.sqrt(ms_corners + u_rand_o2[j])
+                u[j] = max(np.sqrt(ms_all + u_sys_o2[j] + u_rand_o2[j]), u_rand[j])
     k = COVERAGE_FACTOR
     values = {p: get_path(figures, p) for p in sens.paths}
     total, random = {}, {}
@@ -680,7 +951,11 @@ def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs:
     out["slope_rms_noise_mrad"] = noise_mrad
     out["slope_rms_corrected_mrad"] = corrected
     out["slope_rms_corrected_mrad_U"] = corrected_u
-    out["uncertainty_budget"] = budget_table(sens, contrib, noise_col, u, u_rand, inputs, sc)
+    out["uncertainty_budget"] = budget_table(sens, contrib, noise_col, u, u_rand, inputs, sc, offset)
+    if pose_mc:
+        out["uncertainty_budget"]["pose_monte_carlo"] = {
+            "figures": [path_name(p) for p in sens.paths if p in pose_mc], "groups": list(POSE_GROUPS),
+            "draws": POSE_DRAWS}
     return out
 
 
@@ -690,7 +965,8 @@ def _sig(v: float, digits: int = 3):
 
 
 def budget_table(sens: Sensitivities, contrib: np.ndarray, noise_col: np.ndarray, u: np.ndarray,
-                 u_rand: np.ndarray, inputs: InputUncertainties, scales: np.ndarray) -> dict:
+                 u_rand: np.ndarray, inputs: InputUncertainties, scales: np.ndarray,
+                 offset: np.ndarray | None = None) -> dict:
     """The budget as one table, input group against figure: standard-uncertainty contributions (k = 1,
     figure units, root sum of squares within a group), the combined standard uncertainty, its random part,
     and the coverage factor (JSON-ready, 3 significant digits)."""
@@ -701,6 +977,12 @@ def budget_table(sens: Sensitivities, contrib: np.ndarray, noise_col: np.ndarray
         g["sq"] = g["sq"] + np.nan_to_num(contrib[r]) ** 2
     rows = [{"group": g["group"], "kind": g["kind"], "inputs": g["inputs"],
              "contributions": [_sig(c) for c in np.sqrt(g["sq"])]} for g in groups.values()]
+    if offset is not None:
+        # After the systematic groups: the mean the systematic inputs' curved responses leave (see combine).
+        at = sum(1 for r in rows if r["kind"] == "systematic")
+        rows.insert(at, {"group": "curved-response offset", "kind": "systematic",
+                         "inputs": ["sum of the systematic inputs' q"],
+                         "contributions": [_sig(abs(c)) for c in np.nan_to_num(offset)]})
     rows.append({"group": "intensity noise", "kind": "random", "inputs": ["the capture's own noise"],
                  "contributions": [_sig(c) for c in noise_col]})
     return {"figures": [path_name(p) for p in sens.paths], "rows": rows, "coverage_factor": 2,
@@ -738,10 +1020,16 @@ def uncertainty_figures(reduction, *, fringes, geometry, design, measured_distan
         from collections import deque
         pool = cache.setdefault(("frame brightness", cache_key), deque(maxlen=FRAME_POOL_CAPTURES))
     frame = pooled_frame_brightness(*frame_brightness_dn(reduction), pool)
-    out = combine(reduction.figures, sens, noise, inputs, capture_scales(reduction, sens, inputs, frame["sigma_dn"]),
-                  getattr(reduction.pose, "corner_cov_px2", None))
+    response = display_response_u(reduction, inputs)
+    pose_mc = pose_monte_carlo(reduction, geometry=geometry, design=design, measured_distance_m=measured_distance_m,
+                               settings=settings, inputs=inputs)
+    out = combine(reduction.figures, sens, noise, inputs,
+                  capture_scales(reduction, sens, inputs, frame["sigma_dn"], response["u_rad"]),
+                  getattr(reduction.pose, "corner_cov_px2", None), pose_mc)
     out["uncertainty_budget"]["frame_brightness"] = {k: (_sig(v, 4) if isinstance(v, float) else v)
                                                      for k, v in frame.items()}
+    out["uncertainty_budget"]["display_response"] = {k: (_sig(v, 4) if isinstance(v, float) else v)
+                                                     for k, v in response.items()}
     # Not a figure (a timing): :func:`~sofast_station.measure.pipeline.analyse` moves it to the timings.
     out["_sensitivity_seconds"] = sens.seconds if fresh else 0.0
     return out

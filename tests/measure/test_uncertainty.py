@@ -100,6 +100,8 @@ def test_uncertainty_table_is_validated():
         InputUncertainties.from_table({"screen_rotation_mrad": [0.1, 0.2]})
     with pytest.raises(ConfigError, match="unknown"):
         InputUncertainties.from_table({"distance": 1})
+    with pytest.raises(ConfigError, match="unknown"):      # set from the radiometric record, not by hand
+        InputUncertainties.from_table({"response_record_rad": 1e-4})
     u = InputUncertainties.from_table({"distance_mm": 2, "camera_distortion": [0, 0, 0, 0, 0]})
     assert u.distance_mm == 2.0 and u.camera_distortion == (0.0,) * 5
     rec = {"std": {"fx": 0.4, "fy": 0.6, "cx": 0.3, "cy": 0.2, "distortion": [1e-3, 2e-3, 0, 0, 0]}}
@@ -164,3 +166,74 @@ def test_frame_brightness_is_pooled_over_captures_and_widened_for_few_values():
     assert spread_used < 0.3 * spread_own                # a stable U instead of one that jumps by 35 %
     disturbed = pooled_frame_brightness(4.0, 4, pool)
     assert disturbed["source"] == "own" and disturbed["sigma_dn"] > 4.0
+
+
+def _true_four_step_error_rad(rig, gamma: float) -> float:
+    """The twin's own four-step phase error of its finest fringes, its cos/sin(4 phase) amplitude (rad):
+    the commands it was sent (the rendered images, through the record's lookup table) seen through the
+    twin's display (luminance floor + (1 - floor) (v / 255)^gamma), along the middle screen line; the
+    larger of the two axes."""
+    pats = rig.config.fringes.patterns()
+    lum = rig.optics.display_floor + (1.0 - rig.optics.display_floor) * (np.arange(256) / 255.0) ** gamma
+    out = []
+    for axis in "xy":
+        p = max(q.periods for q in pats if q.kind == "fringe" and q.axis == axis)
+        ks = [i for i, q in enumerate(pats) if q.kind == "fringe" and q.axis == axis and q.periods == p]
+        img = rig.images[ks]
+        line = lum[img[:, img.shape[1] // 2, :] if axis == "x" else img[:, :, img.shape[2] // 2]]
+        phi = np.unwrap(np.arctan2(line[1] - line[3], line[0] - line[2]))
+        t = np.arange(phi.size)
+        err = phi - np.polyval(np.polyfit(t, phi, 1), t)
+        coef = np.linalg.lstsq(np.column_stack([np.cos(4 * phi), np.sin(4 * phi), np.ones_like(phi)]), err,
+                               rcond=None)[0]
+        out.append(float(np.hypot(coef[0], coef[1])))
+    return max(out)
+
+
+def test_display_response_uncertainty_comes_from_the_evidence(rig, two_captures):
+    """The display response's standard uncertainty is the capture's own estimate of the phase error (from the
+    second harmonic of its four-step residuals) with the rounding to 8-bit commands the radiometric record
+    leaves, not the fixed 0.003 rad default: on the twin with its display linearised by the record, the
+    record's part matches the twin's true 4-times-phase error and the result stays far below the default;
+    with the twin's display at gamma 2.45 (the table inverts 2.2) the capture's estimate follows the twin's
+    true error and the budget's display-response row grows with it."""
+    import dataclasses
+
+    (a, _), cache = two_captures
+    cfg = rig.config
+    assert cfg.uncertainty.response_phase_rad == 0.003
+    dr = a.figures["uncertainty_budget"]["display_response"]
+    truth = _true_four_step_error_rad(rig, rig.optics.display_gamma)
+    assert dr["source"] == "capture and record"
+    assert dr["record_rad"] == pytest.approx(truth, rel=0.1)
+    assert truth <= dr["u_rad"] < 0.003 / 4
+
+    optics = rig.optics
+    try:
+        rig.optics = dataclasses.replace(optics, display_gamma=2.45)
+        twin = rig.twin((0.3, -0.2, 0.1), (0.2, -0.3, 0.4))
+        frames = rig.capture(twin, np.random.default_rng(3))
+        truth_bent = _true_four_step_error_rad(rig, 2.45)
+    finally:
+        rig.optics = optics
+    b = analyse(frames, cfg.fringes, cfg.geometry, cfg.design, twin.measured_distance_m(), cfg.analysis,
+                uncertainty=cfg.uncertainty, sensitivity_cache=cache)
+    bent = b.figures["uncertainty_budget"]["display_response"]
+    assert truth_bent > 10 * truth
+    assert bent["estimate_rad"] == pytest.approx(truth_bent, rel=0.15)
+    assert bent["u_rad"] == pytest.approx(np.hypot(bent["estimate_rad"], bent["record_rad"]), rel=1e-3)
+    # The budget's row scales with it (same cached sensitivities).
+    rows = {r["group"]: r["contributions"] for r in a.figures["uncertainty_budget"]["rows"]}
+    rows_b = {r["group"]: r["contributions"] for r in b.figures["uncertainty_budget"]["rows"]}
+    j = a.figures["uncertainty_budget"]["figures"].index("twist_e1_mrad_per_m")
+    assert rows_b["display response"][j] / rows["display response"][j] == pytest.approx(
+        bent["u_rad"] / dr["u_rad"], rel=0.1)
+    # Without the capture's evidence: the record's part, else the stated default; 0 there: left out.
+    from types import SimpleNamespace
+
+    from sofast_station.measure.uncertainty import display_response_u
+    quiet = SimpleNamespace(phases=SimpleNamespace(noise=None))        # phases that say nothing about it
+    assert display_response_u(quiet, cfg.uncertainty)["source"] == "record"
+    assert display_response_u(quiet, dataclasses.replace(cfg.uncertainty, response_record_rad=None)) == {
+        "u_rad": 0.003, "source": "default"}
+    assert display_response_u(a, dataclasses.replace(cfg.uncertainty, response_phase_rad=0.0))["u_rad"] == 0.0
