@@ -26,6 +26,7 @@ from ..errors import DisplayError, GeometryError
 from ..facet import FacetDesign
 from ..geometry import Pose, StationGeometry
 from .camera import TwinCamera
+from .noise import scratch_f32, standard_normal_f32
 from .config import TrueFacet, TwinOptics
 from .outline import inside_outline, signed_distance_to_outline
 from .surface import TrueSurface
@@ -319,6 +320,7 @@ class TwinStation:
         self._dn_base = (optics.camera_offset_dn + scale * (1.0 - self._coverage) * optics.background).astype(np.float32)
         self._dn_per_ambient = (scale * self._coverage).astype(np.float32)
         self._dn_per_luminance = (self._dn_per_ambient.ravel()[self._seen_idx] * optics.reflectance).astype(np.float32)
+        self._dark_sigmas: dict = {}        # gain -> noise deviation at the dark level (_dark_sigma)
         levels = np.arange(256, dtype=np.float64) / 255.0
         self._luminance_lut = (optics.display_floor
                                + (1.0 - optics.display_floor) * levels ** optics.display_gamma).astype(np.float32)
@@ -445,10 +447,11 @@ class TwinStation:
         return hit[2][0]
 
     def _linear(self, sample: np.ndarray, ambient: float, scale: float, flicker: float,
-                light: np.ndarray | None = None) -> np.ndarray:
+                light: np.ndarray | None = None, out: np.ndarray | None = None) -> np.ndarray:
         """Noise-free DN before the knee, rounding and clipping (float32, camera shape), through the lens's
-        point-spread function when it has one. *light*: the sample's :meth:`_cached_light`, when known."""
-        dn = self._linear_sharp(sample, ambient, scale, flicker, light)
+        point-spread function when it has one. *light*: the sample's :meth:`_cached_light`, when known;
+        *out*: where the sharp signal may be formed (a float32 array of the camera's shape)."""
+        dn = self._linear_sharp(sample, ambient, scale, flicker, light, out)
         if self.optics.blur_px > 0:
             from scipy.ndimage import gaussian_filter
             # The light is spread before the sensor integrates it; black level is not light, but a
@@ -457,11 +460,11 @@ class TwinStation:
         return dn
 
     def _linear_sharp(self, sample: np.ndarray, ambient: float, scale: float, flicker: float,
-                      light: np.ndarray | None = None) -> np.ndarray:
+                      light: np.ndarray | None = None, out: np.ndarray | None = None) -> np.ndarray:
         """:meth:`_linear` without the point-spread function: every pixel its own area's light."""
         if scale == 1.0 and flicker == 1.0:
             # The reference exposure and gain: exactly the arithmetic the twin has always used.
-            dn = np.multiply(self._dn_per_ambient, np.float32(ambient))
+            dn = np.multiply(self._dn_per_ambient, np.float32(ambient), out=out)
             dn += self._dn_base
             if light is not None:
                 r0, r1, c0, c1, _ = self._seen_box
@@ -527,13 +530,28 @@ class TwinStation:
         if rng is not None and optics.ambient_jitter > 0:
             ambient = max(0.0, ambient * (1.0 + optics.ambient_jitter * float(rng.standard_normal())))
         light = self._cached_light(display_image) if scale == 1.0 and flicker == 1.0 else None
-        dn = self._linear(sample, ambient, scale, flicker, light)
-        out = np.empty(dn.shape, dtype=np.uint8)
+        height, width = self.geometry.camera.shape
+        out = np.empty((height, width), dtype=np.uint8)
         noisy = rng is not None and (optics.read_noise_dn > 0 or optics.electrons_per_dn > 0)
         # The image's two halves are finished side by side, each with its own generator seeded from *rng*
         # (numpy releases the GIL while it draws and computes): the sensor noise dominates the frame's cost.
         seeds = rng.integers(0, 2**63, size=2) if noisy else (None, None)
-        half = dn.shape[0] // 2
+        half = height // 2
+        if light is not None and noisy and self.optics.blur_px == 0:
+            # The signal is formed on the box of pixels that see the screen only: outside it every pixel
+            # has its constant dark level (no light, no ambient) and its noise deviation is kept per gain.
+            # The same noise draws, the same arithmetic per pixel: the same frame as the path below.
+            r0, r1, c0, c1, _ = self._seen_box
+            box = np.multiply(self._dn_per_ambient[r0:r1, c0:c1], np.float32(ambient),
+                              out=scratch_f32("twin.box", (r1 - r0, c1 - c0)))
+            box += self._dn_base[r0:r1, c0:c1]
+            box += light
+            first = self._finisher().submit(self._finish_boxed, box, out[:half], 0, seeds[0], g)
+            self._finish_boxed(box, out[half:], half, seeds[1], g)
+            first.result()
+            return out
+        # (the signal is formed in this thread's scratch frame: it is finished into *out* and dropped)
+        dn = self._linear(sample, ambient, scale, flicker, light, out=scratch_f32("twin.frame", (height, width)))
         first = self._finisher().submit(self._finish_rows, dn[:half], out[:half], seeds[0], g)
         self._finish_rows(dn[half:], out[half:], seeds[1], g)
         first.result()
@@ -551,24 +569,83 @@ class TwinStation:
         """Sensor noise, knee, rounding and clipping of some rows of the linear signal *dn*, into *out*.
 
         Noise: read noise x gain and shot noise (variance signal x gain / ``electrons_per_dn``), drawn from
-        a generator seeded with *seed* (None: no noise). Float32, in place, one scratch array.
+        a generator seeded with *seed* (None: no noise). Float32, in place, scratch arrays per thread.
         """
-        optics = self.optics
         if seed is not None:
-            noise = np.random.Generator(np.random.PCG64(int(seed))).standard_normal(dn.shape, dtype=np.float32)
+            self._add_noise(dn, self._noise(seed, dn.shape), g)
+        self._round(dn, out)
+
+    def _finish_boxed(self, box: np.ndarray, out: np.ndarray, row0: int, seed, g: float) -> None:
+        """:meth:`_finish_rows` of the rows ``row0 ..`` of a frame whose signal is *box* on the seen box and
+        the dark level elsewhere: the same noise draws and per-pixel arithmetic, so the same counts."""
+        noise = self._noise(seed, out.shape)
+        rows, width = out.shape
+        r0, r1, c0, c1, _ = self._seen_box
+        a, b = row0, row0 + rows
+        i0, i1 = min(max(r0, a), b), max(min(r1, b), a)          # the box's rows within these rows
+        sigma = self._dark_sigma(g)
+        for rs, cs in ((slice(a, i0), slice(0, width)), (slice(i1, b), slice(0, width)),
+                       (slice(i0, i1), slice(0, c0)), (slice(i0, i1), slice(c1, width))):
+            local = slice(rs.start - a, rs.stop - a)
+            block = noise[local, cs]
+            if block.size == 0:
+                continue
+            # dn + noise x sigma with dn the dark level: the sum in the other order (the same bits)
+            block *= sigma[rs, cs]
+            block += self._dn_base[rs, cs]
+            self._round(block, out[local, cs])
+        if i1 > i0:
+            dn = box[i0 - r0:i1 - r0]
+            self._add_noise(dn, noise[i0 - a:i1 - a, c0:c1], g)
+            self._round(dn, out[i0 - a:i1 - a, c0:c1])
+
+    def _noise(self, seed, shape) -> np.ndarray:
+        """Standard normal deviates for *shape* pixels (raster order) from a generator seeded with *seed*:
+        Box-Muller on its raw words into this thread's scratch array (:mod:`sofast_station.twin.noise`)."""
+        n = int(np.prod(shape))
+        return standard_normal_f32(np.random.Generator(np.random.PCG64(int(seed))), n,
+                                   out=scratch_f32("twin.noise", shape))
+
+    def _add_noise(self, dn: np.ndarray, noise: np.ndarray, g: float) -> None:
+        """dn += noise x sqrt(read noise^2 + shot noise variance), in place (*noise* is overwritten)."""
+        optics = self.optics
+        read_var = np.float32((optics.read_noise_dn * g) ** 2)
+        if optics.electrons_per_dn > 0:
+            variance = np.subtract(dn, np.float32(optics.camera_offset_dn), out=scratch_f32("twin.variance", dn.shape))
+            np.maximum(variance, np.float32(0), out=variance)
+            # times gain / electrons per DN (a multiplication: a division costs four times as much on
+            # the frame; the noise's deviation moves by float rounding only)
+            variance *= np.float32(g / optics.electrons_per_dn)
+            variance += read_var
+            np.sqrt(variance, out=variance)
+            noise *= variance
+        else:
+            noise *= np.sqrt(read_var)
+        dn += noise
+
+    def _dark_sigma(self, g: float) -> np.ndarray:
+        """The noise deviation of every pixel at its dark level (the signal outside the seen box), DN:
+        what :meth:`_add_noise` computes there, kept per gain (float32, camera shape)."""
+        key = float(g)
+        sigma = self._dark_sigmas.get(key)
+        if sigma is None:
+            optics = self.optics
             read_var = np.float32((optics.read_noise_dn * g) ** 2)
             if optics.electrons_per_dn > 0:
-                variance = np.subtract(dn, np.float32(optics.camera_offset_dn))
-                np.maximum(variance, np.float32(0), out=variance)
-                # times gain / electrons per DN (a multiplication: a division costs four times as much on
-                # the frame; the noise's deviation moves by float rounding only)
-                variance *= np.float32(g / optics.electrons_per_dn)
-                variance += read_var
-                np.sqrt(variance, out=variance)
-                noise *= variance
+                sigma = np.subtract(self._dn_base, np.float32(optics.camera_offset_dn))
+                np.maximum(sigma, np.float32(0), out=sigma)
+                sigma *= np.float32(g / optics.electrons_per_dn)
+                sigma += read_var
+                np.sqrt(sigma, out=sigma)
             else:
-                noise *= np.sqrt(read_var)
-            dn += noise
+                sigma = np.full(self._dn_base.shape, np.sqrt(read_var), dtype=np.float32)
+            sigma.setflags(write=False)
+            self._dark_sigmas[key] = sigma
+        return sigma
+
+    def _round(self, dn: np.ndarray, out: np.ndarray) -> None:
+        """The knee, then clipping and rounding of *dn* (in place) into the uint8 *out*."""
+        optics = self.optics
         if optics.knee_dn is not None:
             knee = np.float32(optics.knee_dn)
             room = np.float32(255.0 - optics.knee_dn)

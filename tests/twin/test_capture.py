@@ -123,10 +123,12 @@ def test_same_seed_gives_the_same_frame(parabola_station):
     assert np.array_equal(station.capture(display), station.capture(display))
 
 
-def test_a_kept_pattern_renders_the_same_frame_as_a_fresh_image(rich_station):
-    # A read-only pattern's light is kept on the box of seen pixels and added there; a writable image is
-    # sampled and scattered onto the seen pixels each time: the same frames, bit for bit.
-    station = rich_station.with_optics(TwinOptics())
+@pytest.mark.parametrize("optics", [TwinOptics(), TwinOptics(electrons_per_dn=0.0, read_noise_dn=2.0, knee_dn=60.0)])
+def test_a_kept_pattern_renders_the_same_frame_as_a_fresh_image(rich_station, optics):
+    # A read-only pattern's light is kept on the box of seen pixels and added there, and a noisy frame is
+    # formed on that box only (the dark level and its noise deviation outside it); a writable image is
+    # sampled and scattered onto the seen pixels of a whole frame each time: the same frames, bit for bit.
+    station = rich_station.with_optics(optics)
     screen = station.geometry.screen
     rows, cols = np.mgrid[0:screen.height_px, 0:screen.width_px]
     pattern = (127.5 + 120 * np.cos(2 * np.pi * (cols / 37.0 + rows / 53.0))).astype(np.uint8)
@@ -138,6 +140,9 @@ def test_a_kept_pattern_renders_the_same_frame_as_a_fresh_image(rich_station):
         again = station.capture(kept, None if seed is None else np.random.default_rng(seed))
         assert np.array_equal(fresh, first) and np.array_equal(first, again)
     assert station._cached_light(kept) is not None and station._cached_light(pattern) is None
+    r0, r1, c0, c1, _ = station._seen_box         # the box leaves dark pixels on every side to check
+    height, width = station.geometry.camera.shape
+    assert r0 > 0 and c0 > 0 and r1 < height and c1 < width
 
 
 def test_knee_is_monotone_and_saturates_at_255(parabola_station):
