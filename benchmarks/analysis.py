@@ -22,7 +22,8 @@ caches filled) is reported on its own; the stage table is over the runs after it
 camera size, facet pixels, valid points, the median (min - max) wall time of every stage and of the
 whole analysis, the process CPU time per analysis (both threads; less disturbed by other load on the
 machine than wall time), the peak memory the analysis adds to the process (resident set from /proc,
-peak reset after the inputs are loaded) and the machine's load average (``uptime``) before and after.
+peak reset after the inputs are loaded) and the machine's load average (``uptime``) before and after;
+at the end a summary line per source and fit, with the robust fit's CPU time over the plain fit's.
 Nothing is asserted.
 """
 
@@ -249,6 +250,20 @@ def run_child(spec: dict) -> dict:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
+def summary(rows: list) -> None:
+    """One line per (source, fit): median CPU and wall time of the steady runs, memory added, and the
+    robust fit's CPU time over the plain fit's of the same source (the issue's limit is 1.3)."""
+    print("\nsummary (median of the steady runs; CPU is the process's, both threads)")
+    print(f"  {'source':<8} {'fit':<7} {'cpu s':>6} {'wall s':>7} {'added MB':>9} {'robust/plain cpu':>17}")
+    cpu = {(src, fit): statistics.median(r["cpu"] for r in res["runs"][1:]) for src, fit, res in rows}
+    for src, fit, res in rows:
+        warm = res["runs"][1:]
+        ratio = (f"{cpu[src, fit] / cpu[src, 'plain']:.2f}" if fit == "robust" and (src, "plain") in cpu
+                 else "")
+        print(f"  {src:<8} {fit:<7} {cpu[src, fit]:6.3f} {statistics.median(r['total'] for r in warm):7.3f} "
+              f"{res['peak_mb'] - res['base_mb']:9.0f} {ratio:>17}")
+
+
 def report(source: str, fit: str, what: str, result: dict) -> None:
     print(f"\n== source {source}, {fit} fit: {what}")
     print(f"facet pixels: {result['facet_pixels']:,}, valid pixels: {result['n_points']:,} "
@@ -289,6 +304,7 @@ def main(argv=None) -> int:
         p.error("--opencsp-scale must be at least 1")
 
     print(f"before: {_uptime()}")
+    rows = []
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         for source in sources:
@@ -304,6 +320,8 @@ def main(argv=None) -> int:
             for fit in fits:
                 result = run_child({**spec, "source": source, "robust": fit == "robust", "runs": runs})
                 report(source, fit, what, result)
+                rows.append((source, fit, result))
+    summary(rows)
     print(f"\nafter: {_uptime()}")
     return 0
 
