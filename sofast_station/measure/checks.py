@@ -226,8 +226,14 @@ def slope_curl(valid: np.ndarray, points_m: np.ndarray, slopes: np.ndarray, step
         return g
 
     x, y = grid(points_m[0]), grid(points_m[1])
+    # |neighbour differences| of x along rows, then of y along columns, formed in one array (the same
+    # values in the same order as concatenating the two)
+    n_col = x.shape[0] * (x.shape[1] - 1)
+    spacing = np.empty(n_col + (y.shape[0] - 1) * y.shape[1])
     with np.errstate(invalid="ignore"):
-        spacing = np.abs(np.concatenate([(x[:, 1:] - x[:, :-1]).ravel(), (y[1:, :] - y[:-1, :]).ravel()]))
+        np.subtract(x[:, 1:], x[:, :-1], out=spacing[:n_col].reshape(x.shape[0], x.shape[1] - 1))
+        np.subtract(y[1:, :], y[:-1, :], out=spacing[n_col:].reshape(y.shape[0] - 1, y.shape[1]))
+    np.abs(spacing, out=spacing)
     spacing = spacing[np.isfinite(spacing)]
     k = max(1, int(round(step_m / median(spacing)))) if spacing.size else 1
     if 4 * k >= min(h, w):
@@ -250,23 +256,47 @@ def slope_curl(valid: np.ndarray, points_m: np.ndarray, slopes: np.ndarray, step
     def d_row(f):
         return f[2 * k:, k:-k] - f[:-2 * k, k:-k]
 
+    # Each expression below is formed in place where its operands are not needed again (a fresh array of
+    # the box per operation costs as much as the operation): the same operations in the same order as
+    # det = xc yr - xr yc, (i00, i01, i10, i11) = (yr, -xr, -yc, xc) / det, g01 = sc i01 + sr i11,
+    # g10 = tc i00 + tr i10, g00 = sc i00 + sr i10, g11 = tc i01 + tr i11, so the same bits.
     xc, xr, yc, yr = d_col(x), d_row(x), d_col(y), d_row(y)
-    det = xc * yr - xr * yc
+    det = np.multiply(xc, yr)
+    tmp = np.multiply(xr, yc)
+    det -= tmp
     with np.errstate(invalid="ignore", divide="ignore"):
-        i00, i01, i10, i11 = yr / det, -xr / det, -yc / det, xc / det
+        i00 = np.divide(yr, det, out=yr)
+        i01 = np.divide(np.negative(xr, out=xr), det, out=xr)
+        i10 = np.divide(np.negative(yc, out=yc), det, out=yc)
+        i11 = np.divide(xc, det, out=xc)
         sc, sr, tc, tr = d_col(sx), d_row(sx), d_col(sy), d_row(sy)
-        g01, g10 = sc * i01 + sr * i11, tc * i00 + tr * i10
-        g00, g11 = sc * i00 + sr * i10, tc * i01 + tr * i11
-    ok = np.isfinite(g00) & np.isfinite(g01) & np.isfinite(g10) & np.isfinite(g11)
+        g01 = np.multiply(sc, i01, out=det)
+        g01 += np.multiply(sr, i11, out=tmp)
+        g00 = np.multiply(sc, i00, out=sc)
+        g00 += np.multiply(sr, i10, out=tmp)
+        g10 = np.multiply(tc, i00, out=i00)
+        g10 += np.multiply(tr, i10, out=tmp)
+        g11 = np.multiply(tc, i01, out=tc)
+        g11 += np.multiply(tr, i11, out=tmp)
+    ok = np.isfinite(g00)
+    for g in (g01, g10, g11):
+        ok &= np.isfinite(g, out=np.empty_like(ok))
     if np.count_nonzero(ok) < 100:
         return {"antisymmetric_rms_per_m": 0.0, "symmetric_rms_per_m": 0.0, "step_px": k, "n": 0}
-    a = 0.5 * (g01 - g10)[ok]
-    s = 0.5 * (g01 + g10)[ok]
-    d = 0.5 * (g00 - g11)[ok]
+
+    def half(first, op, second):
+        """0.5 (first op second) at the ok cells (the selection, then the halving: the same values)."""
+        v = op(first, second, out=tmp)[ok]
+        v *= 0.5
+        return v
+
+    a = half(g01, np.subtract, g10)
+    s = half(g01, np.add, g10)
+    d = half(g00, np.subtract, g11)
 
     def rms(v):
-        v = v - median(v)
-        return float(np.sqrt(np.mean(v * v)))
+        v -= median(v)           # (v is this function's own array)
+        return float(np.sqrt(np.mean(np.multiply(v, v, out=v))))
 
     return {"antisymmetric_rms_per_m": rms(a), "symmetric_rms_per_m": float(np.hypot(rms(s), rms(d)) / np.sqrt(2.0)),
             "step_px": k, "n": int(np.count_nonzero(ok))}
