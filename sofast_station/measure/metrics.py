@@ -12,16 +12,25 @@ FLAT_CURVATURE_PER_M = 4e-9
 
 
 def slope_residuals_mrad(s_x: np.ndarray, s_y: np.ndarray, model_x: np.ndarray, model_y: np.ndarray,
-                         measured_angles: tuple[np.ndarray, np.ndarray] | None = None
-                         ) -> tuple[np.ndarray, np.ndarray]:
+                         measured_angles: tuple[np.ndarray, np.ndarray] | None = None,
+                         overwrite_model: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Residual angles e = atan(s_measured) - atan(s_model), mrad, per axis.
 
     Slope units and angles differ by up to 15 % at the slopes of a gore facet, so residuals are never
     taken as slope differences. ``measured_angles`` may pass atan(s_x), atan(s_y) computed once for
-    several models.
+    several models. With *overwrite_model* the residuals are formed in the (float64) model arrays, which
+    the caller no longer needs: the same operations, the same bits, no fresh arrays.
     """
     ax, ay = measured_angles if measured_angles is not None else (np.arctan(s_x), np.arctan(s_y))
-    return 1000.0 * (ax - np.arctan(model_x)), 1000.0 * (ay - np.arctan(model_y))
+    if not overwrite_model:
+        return 1000.0 * (ax - np.arctan(model_x)), 1000.0 * (ay - np.arctan(model_y))
+    out = []
+    for angle, model in ((ax, model_x), (ay, model_y)):
+        e = np.arctan(model, out=model)
+        np.subtract(angle, e, out=e)
+        e *= 1000.0
+        out.append(e)
+    return out[0], out[1]
 
 
 def rms_summary(e_x_mrad: np.ndarray, e_y_mrad: np.ndarray) -> dict:

@@ -30,7 +30,7 @@ from .pose import fix_range, solve_corner_pose
 from .screen import FlatScreen, ScreenModel
 from .stats import median
 from .pose import placement
-from .surface import intersect_quadratic, normal_slopes, surface_slopes, surface_z
+from .surface import intersect_quadratic, normal_slopes, surface_slopes_of_points, surface_z
 
 
 @dataclass(frozen=True)
@@ -571,9 +571,12 @@ def fit_models(shape: Shape, design: FacetDesign, settings: AnalysisSettings, po
     coeffs[5] = float(design.z(*design.alignment_point_m)) - surface_z(coeffs, *design.alignment_point_m)
     angles = (angle_x.result(), np.arctan(s_y))
     cubic, cubic_slopes = cubic_task.result()
-    higher = pool.submit(lambda: slope_residuals_mrad(s_x, s_y, *cubic_slopes, angles))
-    residuals = {"design": slope_residuals_mrad(s_x, s_y, *surface_slopes(design.coefficients, x, y), angles),
-                 "parabola": slope_residuals_mrad(s_x, s_y, *surface_slopes(coeffs, x, y), angles),
+    # (the model slopes are this function's own arrays: the residuals are formed in them)
+    higher = pool.submit(lambda: slope_residuals_mrad(s_x, s_y, *cubic_slopes, angles, overwrite_model=True))
+    residuals = {"design": slope_residuals_mrad(s_x, s_y, *surface_slopes_of_points(design.coefficients, x, y),
+                                                angles, overwrite_model=True),
+                 "parabola": slope_residuals_mrad(s_x, s_y, *surface_slopes_of_points(coeffs, x, y), angles,
+                                                  overwrite_model=True),
                  "higher_order": higher.result()}
     return Fits(parabola=fit, coefficients=coeffs, cubic=cubic, residuals_mrad=residuals)
 

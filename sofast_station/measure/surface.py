@@ -20,6 +20,20 @@ def surface_slopes(coeffs: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np
     return 2.0 * a * x + c + e * y, 2.0 * b * y + d + e * x
 
 
+def surface_slopes_of_points(coeffs: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`surface_slopes` of point arrays, formed in place: the same operations in the same order
+    (2A x + C + E y as (2A x + C) + E y), so the same bits, with two fresh arrays instead of eight."""
+    a, b, c, d, e, _ = coeffs
+    s_x = np.multiply(2.0 * a, x)
+    s_x += c
+    tmp = np.multiply(e, y)
+    s_x += tmp
+    s_y = np.multiply(2.0 * b, y)
+    s_y += d
+    s_y += np.multiply(e, x, out=tmp)
+    return s_x, s_y
+
+
 def intersect_quadratic(coeffs: np.ndarray, origin: np.ndarray, directions: np.ndarray) -> np.ndarray:
     """First intersection of rays ``origin + t u`` (t > 0) with the quadratic surface.
 
