@@ -378,6 +378,40 @@ class Journal:
         """Rows recorded as written to *workbook_path*, in journal order."""
         return self._select("WHERE workbook_path = ?", (str(workbook_path),))
 
+    def ids_in_workbook(self, workbook_path: str | Path) -> list[str]:
+        """Cycle ids of the rows recorded as written to *workbook_path*, in journal order."""
+        with self._lock:
+            try:
+                rows = self._conn().execute("SELECT cycle_id FROM cycles WHERE workbook_path = ? ORDER BY seq",
+                                            (str(workbook_path),)).fetchall()
+            except sqlite3.Error as exc:
+                raise self._error("reading", exc) from exc
+        return [r[0] for r in rows]
+
+    def rows_by_ids(self, cycle_ids) -> dict[str, JournalRow]:
+        """Cycle id -> row, for those of *cycle_ids* that are journaled (a few hundred at a time is best)."""
+        ids = list(cycle_ids)
+        out: dict[str, JournalRow] = {}
+        for i in range(0, len(ids), 500):
+            chunk = ids[i:i + 500]
+            for row in self._select(f"WHERE cycle_id IN ({','.join('?' * len(chunk))})", tuple(chunk)):
+                out[row.cycle_id] = row
+        return out
+
+    def known_ids(self, cycle_ids) -> set[str]:
+        """Those of *cycle_ids* that are journaled."""
+        ids = list(cycle_ids)
+        out: set[str] = set()
+        with self._lock:
+            for i in range(0, len(ids), 500):
+                chunk = ids[i:i + 500]
+                try:
+                    out.update(r[0] for r in self._conn().execute(
+                        f"SELECT cycle_id FROM cycles WHERE cycle_id IN ({','.join('?' * len(chunk))})", chunk))
+                except sqlite3.Error as exc:
+                    raise self._error("reading", exc) from exc
+        return out
+
     def rows(self, since=None, until=None, serial: str | None = None) -> list[JournalRow]:
         """Rows whose record time lies in ``[since, until)``, in time order.
 

@@ -163,18 +163,21 @@ def excel_time(time_iso) -> tuple:
     return t.replace(tzinfo=None, microsecond=t.microsecond // 1000 * 1000), f"{sign}{minutes // 60:02d}:{minutes % 60:02d}"
 
 
-def flatten_record(cycle_id: str, record: dict, dump_file: str | None = None) -> dict:
+def flatten_record(cycle_id: str, record: dict, dump_file: str | None = None, json_safe: bool = False) -> dict:
     """The workbook row of a record: column name -> cell value.
 
     ``cycle_id``, ``serial``, ``time`` (a naive local datetime), ``verdict``, ``reasons``, ``dump_file``
     come first, then ``utc_offset`` and every other entry in record order, nested dicts flattened to
     dotted names. Lists become readable text (:func:`_list_text`); NaN, infinities and None become None
     (an empty cell). The uncertainty budget (the same table for every facet of a recipe, kept in the
-    journal and the dumps) gets no columns; each figure's ``_U`` does.
+    journal and the dumps) gets no columns; each figure's ``_U`` does. *json_safe*: the record is as
+    JSON holds it already (a journal row's), so its conversion (:func:`json_ready`) is skipped.
     """
-    rec = json_ready(record)
+    rec = {k: v for k, v in record.items() if k not in NOT_IN_WORKBOOK}
+    if not json_safe:
+        rec = json_ready(rec)
     flat: dict = {}
-    _flatten("", {k: v for k, v in rec.items() if k not in FIRST_COLUMNS and k not in NOT_IN_WORKBOOK}, flat)
+    _flatten("", {k: v for k, v in rec.items() if k not in FIRST_COLUMNS}, flat)
     when, offset = excel_time(rec.get("time"))
     row = {"cycle_id": cycle_id, "serial": rec.get("serial"), "time": when,
            "verdict": rec.get("verdict"), "reasons": rec.get("reasons", []), "dump_file": dump_file,
@@ -307,102 +310,214 @@ def _part_number(folder: Path, key: str, prefix: str, path: Path) -> int:
 
 
 # -- files ------------------------------------------------------------------------------------------
-class _Book:
-    """An openpyxl workbook with its results sheet, header map and the cycle ids it holds."""
+#: Journal rows fetched at a time while a part is written (bounds the records held at once).
+_FETCH_ROWS = 100
 
-    def __init__(self, wb, path: Path):
-        self.wb = wb
-        self.path = path
-        self.ws = wb[SHEET_TITLE] if SHEET_TITLE in wb.sheetnames else wb.worksheets[0]
-        header = [c.value for c in self.ws[1]] if self.ws.max_row >= 1 else []
-        self.header = [h for h in header if h is not None]
-        if not self.header or self.header[0] != "cycle_id":
-            raise ArchiveError(f"workbook {path} does not start with a cycle_id column; it is not a results "
-                               "workbook of this station")
-        self.columns = {name: i + 1 for i, name in enumerate(self.header)}
-        self.ids = {v for (v,) in self.ws.iter_rows(min_row=2, max_col=1, values_only=True) if v is not None}
-        self.next_row = max(self.ws.max_row, 1) + 1
+#: Widths of the first columns (cycle_id, serial, time, verdict, reasons, dump_file), characters.
+_FIRST_WIDTHS = (30, 14, 20, 9, 40, 44)
+
+
+@dataclass
+class _PartScan:
+    """What a workbook part on the disk holds: its header and its rows' cycle ids, in sheet order."""
+
+    path: Path
+    header: list
+    ids: list
 
     @property
     def n_rows(self) -> int:
-        """Data rows the sheet uses (blank rows included)."""
-        return self.next_row - 2
+        return len(self.ids)
 
-    @classmethod
-    def new(cls, path: Path) -> "_Book":
+
+def _open_read_only(path: Path):
+    from openpyxl import load_workbook
+
+    try:
+        return load_workbook(path, read_only=True)
+    except OSError:
+        raise
+    except Exception as exc:    # zipfile.BadZipFile, KeyError, InvalidFileException, XML errors...
+        raise ArchiveError(f"workbook {path} is not a readable .xlsx file ({type(exc).__name__}: {exc})") from exc
+
+
+def _results_sheet(wb):
+    return wb[SHEET_TITLE] if SHEET_TITLE in wb.sheetnames else wb.worksheets[0]
+
+
+def scan_part(path: Path) -> _PartScan:
+    """The header and cycle ids of a results workbook part, read in streaming mode (nothing per cell kept).
+
+    Raises
+    ------
+    OSError
+        When the file cannot be read (permissions, a share that went away): a transient condition.
+    ArchiveError
+        When the file is not a readable results workbook.
+    """
+    path = Path(path)
+    wb = _open_read_only(path)
+    try:
+        ws = _results_sheet(wb)
+        header = [h for h in next(ws.iter_rows(max_row=1, values_only=True), ()) if h is not None]
+        if not header or header[0] != "cycle_id":
+            raise ArchiveError(f"workbook {path} does not start with a cycle_id column; it is not a results "
+                               "workbook of this station")
+        ids = [v for (v,) in ws.iter_rows(min_row=2, max_col=1, values_only=True) if v is not None]
+    except (OSError, ArchiveError):
+        raise
+    except Exception as exc:    # a damaged sheet inside a readable zip
+        raise ArchiveError(f"workbook {path} is not a readable .xlsx file ({type(exc).__name__}: {exc})") from exc
+    finally:
+        wb.close()
+    return _PartScan(path, header, [str(i) for i in ids])
+
+
+def _file_rows(path: Path, wanted: set) -> dict:
+    """Cycle id -> {column: value} of the rows of *path* whose id is in *wanted* (rows the journal lacks)."""
+    wb = _open_read_only(path)
+    try:
+        rows = _results_sheet(wb).iter_rows(values_only=True)
+        header = list(next(rows, ()))
+        return {str(v[0]): {h: x for h, x in zip(header, v) if h is not None and x is not None}
+                for v in rows if v and v[0] is not None and str(v[0]) in wanted}
+    finally:
+        wb.close()
+
+
+def _cell(ws, column: str, value):
+    """What goes into a write-only sheet for *value* in *column*: the value, or a styled cell."""
+    from openpyxl.cell import WriteOnlyCell
+
+    value = _cell_value(value)
+    fmt = number_format(column, value)
+    if isinstance(value, str):
+        if value[:1] in ("=", "#"):
+            cell = WriteOnlyCell(ws, value)
+            cell.data_type = "s"     # text from outside (a serial "=HYPERLINK(...)", "#N/A") is never a formula
+            return cell
+        return value
+    if fmt:
+        cell = WriteOnlyCell(ws, value)
+        cell.number_format = fmt
+        return cell
+    return value
+
+
+class _PartWriter:
+    """Writes one workbook part whole, in openpyxl's write-only (streaming) mode, from the journal.
+
+    A part is regenerated on every save rather than loaded and appended to: rows are read from the
+    journal (the source of truth, which holds every row's record) a few at a time and streamed into the
+    sheet, so the memory a save needs does not grow with the rows the part holds (openpyxl's normal mode
+    keeps every cell of the loaded part as an object, about 80 kB a row of 236 columns).
+
+    Parameters
+    ----------
+    path : Path
+        The part's file.
+    slots : list of str
+        The cycle ids of its rows, in order.
+    journal : Journal or None
+        Where the records of *slots* are read (rows given in *given* excepted).
+    given : dict, optional
+        Cycle id -> JournalRow already at hand (the rows being added; an export's rows).
+    header : list of str, optional
+        The part's columns so far (its file's header): kept in their order, new ones added at the right.
+    foreign : dict, optional
+        Cycle id -> {column: value} of rows of the old file the journal does not know (a journal started
+        afresh beside an existing workbook): kept as they were.
+    """
+
+    def __init__(self, path: Path, slots: list, journal: Journal | None, given: dict | None = None,
+                 header: list | None = None, foreign: dict | None = None):
+        self.path = Path(path)
+        self.slots = slots
+        self.journal = journal
+        self.given = given or {}
+        self.header = list(header) if header else list(FIRST_COLUMNS)
+        self.foreign = foreign or {}
+
+    def _flat_rows(self):
+        """Every slot's row as {column: value}, in order, fetching journal rows _FETCH_ROWS at a time."""
+        for i in range(0, len(self.slots), _FETCH_ROWS):
+            chunk = self.slots[i:i + _FETCH_ROWS]
+            need = [c for c in chunk if c not in self.given and c not in self.foreign]
+            fetched = self.journal.rows_by_ids(need) if need and self.journal is not None else {}
+            for cycle_id in chunk:
+                row = self.given.get(cycle_id) or fetched.get(cycle_id)
+                if row is not None:
+                    yield flatten_record(row.cycle_id, row.record, row_dump_file(row), json_safe=True)
+                elif cycle_id in self.foreign:
+                    yield self.foreign[cycle_id]
+                else:
+                    raise ArchiveError(f"workbook {self.path}: cycle {cycle_id} is neither in the journal nor in "
+                                       "the part")
+            del fetched
+
+    def save(self) -> list:
+        """Write the part (atomically, :func:`save_atomic`); returns its header."""
         from openpyxl import Workbook
+        from openpyxl.cell import WriteOnlyCell
         from openpyxl.styles import Font
-
-        wb = Workbook()
-        ws = wb.active
-        ws.title = SHEET_TITLE
-        for i, name in enumerate(FIRST_COLUMNS, start=1):
-            cell = ws.cell(row=1, column=i, value=name)
-            cell.font = Font(bold=True)
-        ws.freeze_panes = "B2"
-        for col, width in zip("ABCDEF", (30, 14, 20, 9, 40, 44)):
-            ws.column_dimensions[col].width = width
-        return cls(wb, path)
-
-    def add_column(self, name: str) -> int:
-        from openpyxl.styles import Font
-
-        col = len(self.header) + 1
-        self.ws.cell(row=1, column=col, value=name).font = Font(bold=True)
-        self.header.append(name)
-        self.columns[name] = col
-        return col
-
-    def append(self, cycle_id: str, record: dict, dump_file: str | None = None) -> None:
-        self._write(self.next_row, cycle_id, record, dump_file)
-        self.ids.add(cycle_id)
-        self.next_row += 1
-
-    def replace(self, cycle_id: str, record: dict, dump_file: str | None = None) -> bool:
-        """Rewrite the row of *cycle_id* with *record* (a late result); False when the book lacks it."""
-        for row, (value,) in enumerate(self.ws.iter_rows(min_row=2, max_col=1, values_only=True), start=2):
-            if value == cycle_id:
-                for col in range(1, len(self.header) + 1):
-                    self.ws.cell(row=row, column=col).value = None
-                self._write(row, cycle_id, record, dump_file)
-                return True
-        return False
-
-    def _write(self, row: int, cycle_id: str, record: dict, dump_file: str | None = None) -> None:
-        flat = flatten_record(cycle_id, record, dump_file)
-        for name in flat:
-            if name not in self.columns:
-                self.add_column(name)
-        for name, value in flat.items():
-            if value is None:
-                continue
-            cell = self.ws.cell(row=row, column=self.columns[name], value=_cell_value(value))
-            if isinstance(value, str) and cell.data_type == "f":
-                cell.data_type = "s"         # text from outside (a serial "=HYPERLINK(...)") is never a formula
-            fmt = number_format(name, value)
-            if fmt:
-                cell.number_format = fmt
-
-    def _write_units(self) -> None:
-        from openpyxl.styles import Font
-
-        if "units" in self.wb.sheetnames:
-            del self.wb["units"]
-        us = self.wb.create_sheet("units")
-        us.append(["column", "unit"])
-        for cell in us[1]:
-            cell.font = Font(bold=True)
-        for name in self.header:
-            us.append([name, column_unit(name)])
-        us.column_dimensions["A"].width = 44
-        us.column_dimensions["B"].width = 30
-
-    def save(self) -> None:
         from openpyxl.utils import get_column_letter
 
-        self._write_units()
-        self.ws.auto_filter.ref = f"A1:{get_column_letter(max(len(self.header), 1))}{self.n_rows + 1}"
-        save_atomic(self.wb, self.path)
+        columns = {name: i for i, name in enumerate(self.header)}
+        for flat in self._flat_rows():                      # first pass: the columns (a sheet streams its
+            for name in flat:                               # header first)
+                if name not in columns:
+                    columns[name] = len(self.header)
+                    self.header.append(name)
+        wb = Workbook(write_only=True)
+        ws = wb.create_sheet(SHEET_TITLE)
+        ws.freeze_panes = "B2"
+        for i, width in enumerate(_FIRST_WIDTHS, start=1):
+            ws.column_dimensions[get_column_letter(i)].width = width
+        ws.auto_filter.ref = f"A1:{get_column_letter(max(len(self.header), 1))}{len(self.slots) + 1}"
+        bold = Font(bold=True)
+
+        def heading(text):
+            cell = WriteOnlyCell(ws, text)
+            cell.font = bold
+            return cell
+
+        try:
+            ws.append([heading(name) for name in self.header])
+            width = len(self.header)
+            for flat in self._flat_rows():                  # second pass: the rows, streamed to the sheet
+                cells = [None] * width
+                for name, value in flat.items():
+                    if value is not None:
+                        cells[columns[name]] = _cell(ws, name, value)
+                ws.append(cells)
+            us = wb.create_sheet("units")
+            us.column_dimensions["A"].width = 44
+            us.column_dimensions["B"].width = 30
+            us.append([heading("column"), heading("unit")])
+            for name in self.header:
+                us.append([name, column_unit(name)])
+            save_atomic(wb, self.path)
+        finally:
+            _drop_stream_files(wb)
+        return self.header
+
+
+def _drop_stream_files(wb) -> None:
+    """Remove the temporary files of a write-only workbook's sheets that were not saved (an error)."""
+    for ws in getattr(wb, "_sheets", ()):
+        writer = getattr(ws, "_writer", None)
+        out = getattr(writer, "out", None)
+        if isinstance(out, str) and os.path.exists(out):
+            for gen in (getattr(ws, "_rows", None), writer):   # the rows' generator first, then the file's
+                try:
+                    if gen is not None:
+                        gen.close()
+                except Exception:   # noqa: BLE001 - a half-written sheet's stream; its file goes anyway
+                    pass
+            try:
+                writer.cleanup()
+            except (OSError, ValueError):
+                pass
 
 
 def _save_to(wb, fileobj) -> None:
@@ -434,27 +549,6 @@ def save_atomic(wb, path: Path) -> None:
         raise
     fsync_dir(path.parent)
     fault_point("workbook-renamed")
-
-
-def load_book(path: Path) -> "_Book":
-    """Open an existing results workbook.
-
-    Raises
-    ------
-    OSError
-        When the file cannot be read (permissions, a share that went away): a transient condition.
-    ArchiveError
-        When the file is not a readable results workbook.
-    """
-    from openpyxl import load_workbook
-
-    try:
-        wb = load_workbook(path)
-    except OSError:
-        raise
-    except Exception as exc:    # zipfile.BadZipFile, KeyError, InvalidFileException, XML errors...
-        raise ArchiveError(f"workbook {path} is not a readable .xlsx file ({type(exc).__name__}: {exc})") from exc
-    return _Book(wb, path)
 
 
 def read_workbook(path: str | Path) -> list[dict]:
@@ -491,42 +585,53 @@ def _quarantine(path: Path) -> Path:
     return aside
 
 
-def _rebuild(path: Path, journal: Journal) -> _Book:
+def _rebuild(path: Path, journal: Journal) -> _PartScan:
     """Set a damaged part aside and rebuild it from the journal rows recorded as written to it."""
     _quarantine(path)
-    book = _Book.new(path)
-    for row in journal.rows_in_workbook(path):
-        book.append(row.cycle_id, row.record, row_dump_file(row))
-    book.save()
-    return book
+    ids = journal.ids_in_workbook(path)
+    header = _PartWriter(path, ids, journal).save()
+    return _PartScan(path, header, ids)
 
 
-def _open_part(path: Path, journal: Journal | None) -> _Book:
-    """Load a part for appending; a damaged one (by something else than this software) is rebuilt."""
+def _scan(path: Path, journal: Journal | None) -> _PartScan:
+    """Scan a part; a damaged one (by something else than this software) is rebuilt from the journal."""
     try:
-        return load_book(path)
+        return scan_part(path)
     except ArchiveError:
         if journal is None:
             raise
         return _rebuild(path, journal)
 
 
-def _part_ids(path: Path, journal: Journal | None) -> set:
-    """The cycle ids of a full (earlier) part, read in streaming mode (a part may hold a million rows)."""
-    try:
-        return {r["cycle_id"] for r in read_workbook(path) if "cycle_id" in r}
-    except ArchiveError:
-        if journal is None:
-            raise
-        return set(_rebuild(path, journal).ids)
+def _rewrite(scan: _PartScan, journal: Journal | None, given: dict, new: list | None = None) -> None:
+    """Write *scan*'s part again with its rows (their records as the journal holds them now, or as *given*)
+    followed by the *new* rows; rows of the file the journal does not know are kept as they were."""
+    new = new or []
+    known = set(given)
+    if journal is not None:
+        unknown = [i for i in scan.ids if i not in known]
+        for k in range(0, len(unknown), 500):
+            known.update(journal.known_ids(unknown[k:k + 500]))
+    lost = {i for i in scan.ids if i not in known}
+    foreign = _file_rows(scan.path, lost) if lost else {}
+    if foreign:
+        log.warning("workbook %s holds %d row(s) the journal does not know (another journal?); they are kept",
+                    scan.path, len(foreign))
+    given = dict(given, **{r.cycle_id: r for r in new})
+    scan.header = _PartWriter(scan.path, scan.ids + [r.cycle_id for r in new], journal, given, scan.header,
+                              foreign).save()
+    scan.ids = scan.ids + [r.cycle_id for r in new]
 
 
 def append_rows(folder: Path, key: str, rows: list[JournalRow], settings: WorkbookSettings = WorkbookSettings(),
                 journal: Journal | None = None) -> dict[Path, list[str]]:
     """Add *rows* (of one period) to that period's workbook, skipping cycle ids it already holds.
 
-    Each part that receives rows is saved once, atomically; when *journal* is given, the rows are marked
-    as written to their part right after its save, and rows found already present are marked too.
+    A part that receives rows is written again whole, in streaming mode, from the journal's records of
+    the rows it holds and the new ones (a part holds at most ``settings.max_rows`` rows, so this is
+    bounded work and memory), and saved once, atomically. When *journal* is given, the rows are marked as
+    written to their part right after its save, and rows found already present are marked too. A late
+    result (``record["late"]``) whose row is in a part already gets that row rewritten in place.
 
     Returns
     -------
@@ -540,54 +645,52 @@ def append_rows(folder: Path, key: str, rows: list[JournalRow], settings: Workbo
     """
     folder = Path(folder)
     limit = settings.rows_per_part()
-    parts = workbook_parts(folder, key, settings.prefix)
-    # the last part is loaded to append to; earlier (full) parts are only scanned for their ids
-    book = _open_part(parts[-1], journal) if parts else None
-    held_by = {p: _part_ids(p, journal) for p in parts[:-1]}
-    if book is not None:
-        held_by[book.path] = book.ids
+    scans = [_scan(p, journal) for p in workbook_parts(folder, key, settings.prefix)]
+    last = scans[-1] if scans else None
     present: dict[Path, list[str]] = {}
-    for path, ids in held_by.items():
+    for scan in scans:
+        ids = set(scan.ids)
         for r in rows:
             if r.cycle_id in ids:
-                present.setdefault(path, []).append(r.cycle_id)
+                present.setdefault(scan.path, []).append(r.cycle_id)
     versions = {r.cycle_id: r.journaled_at for r in rows}
     # A late result amends a row that may be in a book already: its row there is rewritten.
     amended = {r.cycle_id: r for r in rows if r.record.get("late")}
-    for path, ids in present.items():
-        redo = [i for i in ids if i in amended]
-        if not redo:
-            continue
-        target = book if book is not None and path == book.path else _open_part(path, journal)
-        for i in redo:
-            target.replace(i, amended[i].record, row_dump_file(amended[i]))
-        target.save()
-        log.info("rewrote %d late result row(s) in %s", len(redo), path)
-    if journal is not None:
-        for path, ids in present.items():
-            log.info("%d row(s) were already in %s (saved before a crash, or late results); marking them",
-                     len(ids), path)
-            journal.mark_workbook(ids, path, versions)
     held = {i for ids in present.values() for i in ids}
     todo = [r for r in rows if r.cycle_id not in held]
     # a row twice in *rows* (cannot happen from the journal, whose ids are unique) would be written once
     seen: set[str] = set()
     todo = [r for r in todo if not (r.cycle_id in seen or seen.add(r.cycle_id))]
+    room = limit - last.n_rows if last is not None else 0
+    for scan in scans:
+        redo = {i: amended[i] for i in present.get(scan.path, ()) if i in amended}
+        if not redo or (scan is last and todo and room > 0):
+            continue                                  # the last part is written below with the new rows
+        _rewrite(scan, journal, redo)
+        log.info("rewrote %d late result row(s) in %s", len(redo), scan.path)
     added: dict[Path, list[str]] = {}
+    book = last
     while todo:
         if book is None or book.n_rows >= limit:
             part = 1 if book is None else _part_number(folder, key, settings.prefix, book.path) + 1
-            book = _Book.new(workbook_path(folder, key, part, settings.prefix))
+            book = _PartScan(workbook_path(folder, key, part, settings.prefix), list(FIRST_COLUMNS), [])
         chunk, todo = todo[:limit - book.n_rows], todo[limit - book.n_rows:]
-        for r in chunk:
-            book.append(r.cycle_id, r.record, row_dump_file(r))
+        redo = {i: amended[i] for i in present.get(book.path, ()) if i in amended}
         t0 = time.perf_counter()
-        book.save()
+        _rewrite(book, journal, redo, chunk)
         ids = [r.cycle_id for r in chunk]
-        log.debug("saved %s with %d new row(s) in %.2f s", book.path, len(ids), time.perf_counter() - t0)
+        log.debug("saved %s with %d new row(s) (%d in all) in %.2f s", book.path, len(ids), book.n_rows,
+                  time.perf_counter() - t0)
+        if redo:
+            log.info("rewrote %d late result row(s) in %s", len(redo), book.path)
         added[book.path] = ids
         if journal is not None:
             journal.mark_workbook(ids, book.path, versions)
+    if journal is not None:
+        for path, ids in present.items():
+            log.info("%d row(s) were already in %s (saved before a crash, or late results); marking them",
+                     len(ids), path)
+            journal.mark_workbook(ids, path, versions)
     return added
 
 
@@ -653,11 +756,8 @@ def export_workbook(journal: Journal, since, until, path: str | Path, max_rows: 
     part = 1
     while True:
         target = path if part == 1 else path.with_name(f"{path.stem}-part{part}{path.suffix}")
-        book = _Book.new(target)
         chunk, rows = rows[:limit], rows[limit:]
-        for r in chunk:
-            book.append(r.cycle_id, r.record, row_dump_file(r))
-        book.save()
+        _PartWriter(target, [r.cycle_id for r in chunk], None, {r.cycle_id: r for r in chunk}).save()
         out.append(target)
         if not rows:
             break
