@@ -96,8 +96,8 @@ def test_shipped_station_documents_every_key(repo_root):
 
 
 def test_workbook_parts_are_bounded_by_default(small_station_toml):
-    """The archiver holds one workbook part in memory while it appends: a busy line's day is split into
-    parts of [archive] workbook_max_rows rows (1000 unless set), so its memory does not grow with the day."""
+    """The archiver writes a workbook part whole on every save: a busy line's day is split into
+    parts of [archive] workbook_max_rows rows (1000 unless set), so a save's work does not grow with the day."""
     from sofast_station.station.service import WORKBOOK_MAX_ROWS, archiver_settings, run_settings
 
     cfg = load_config(small_station_toml)

@@ -150,9 +150,9 @@ def release_memory() -> None:
     """Give the memory a large piece of work freed back to the system (a full garbage collection, then
     glibc's ``malloc_trim``; nothing where that does not exist).
 
-    openpyxl holds a whole workbook part in memory while it appends to it (of the order of 80 kB per row of
-    about a hundred columns); freed afterwards, that memory would otherwise stay with the long-lived
-    archiver process at its high-water mark.
+    A workbook save (a part streamed from the journal), a dump (a facet's frames) allocate and free a few
+    MB; freed, that memory would otherwise stay with the long-lived archiver process at its high-water
+    mark.
     """
     import gc
 

@@ -25,12 +25,15 @@ Safety (docs/conventions.md#archives):
 
 - a save writes a temporary file in the same folder, flushes and fsyncs it, renames it over the book
   (``os.replace``) and fsyncs the folder: the book under its name is always a complete, valid file;
-- before appending, the cycle ids the book already holds are read, so a crash after the rename but before
+- before writing, the cycle ids the book already holds are read, so a crash after the rename but before
   the journal was marked never duplicates a row;
 - when a save fails (the book is open in Excel on a share: ``PermissionError``; the disk is full:
   ``OSError ENOSPC``) the temporary file is removed and the rows stay pending in the journal for the next
   attempt;
-- all pending rows of a book go in one save (openpyxl rewrites the whole book on every save).
+- all pending rows of a book go in one save: a save writes the whole part again, streamed (openpyxl's
+  write-only mode) from the journal's records of the rows it holds, a hundred at a time, so neither its
+  memory nor the archiver's grows with the rows of the part (a part holds ``max_rows`` rows, 1000 on a
+  station: bounded work); rows of the file that the journal does not know are kept as they were.
 """
 
 from __future__ import annotations

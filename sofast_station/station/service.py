@@ -39,8 +39,9 @@ _DEVICE_KEYS = {"trigger", "trigger_options", "display_options", "camera", "came
 _ARCHIVE_KEYS = {"workbook_period", "workbook_interval_s", "workbook_max_rows", "dump_keep_days", "dump_max_gb",
                  "min_free_gb"}
 
-#: Data rows per workbook part unless ``[archive] workbook_max_rows`` says otherwise: the archiver holds one
-#: part in memory while it appends (about 80 kB a row), so a day of a busy line must not be one book.
+#: Data rows per workbook part unless ``[archive] workbook_max_rows`` says otherwise: the archiver writes a
+#: part whole on every save (streamed, its memory does not grow with the part), so a day of a busy line is
+#: split into parts to keep that work bounded (about 14 s of CPU per save of a full 1000-row part).
 WORKBOOK_MAX_ROWS = 1000
 
 
@@ -249,7 +250,8 @@ def check_writable(data_dir: Path) -> None:
 
 #: The archiver starts afresh (the station starts a new one between facets) once its memory has grown
 #: this many MB past what it held after its first minute: a hard bound on the long-lived process, whatever
-#: holds on to memory (openpyxl reloads the workbook part it appends to; freed memory fragments).
+#: holds on to memory (freed memory fragments; a leak in a library). A safety net: the workbook writer
+#: streams its parts and the archiver's memory is flat without it.
 ARCHIVER_RECYCLE_MB = 192.0
 #: Seconds after its start at which the archiver takes its memory as the reference for that bound.
 ARCHIVER_BASELINE_S = 60.0
