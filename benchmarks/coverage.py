@@ -78,11 +78,16 @@ def main(argv=None) -> int:
     p.add_argument("--out", default=None, help="write the per-capture results and the table as JSON here")
     p.add_argument("--merge", nargs="+", default=None, metavar="JSON",
                    help="no new captures: the table over the captures of these --out files (runs in parallel)")
+    p.add_argument("--explain", action="store_true",
+                   help="also regress each figure's errors on the drawn station inputs and the placement: the "
+                        "inputs they follow (|t| > 3), the error they leave at zero (intercept) and the rest")
     args = p.parse_args(argv)
     if args.merge:
         reps = [c for f in args.merge for c in json.loads(Path(f).read_text())["captures"]]
         print(f"{len(reps)} captures from {len(args.merge)} file(s)")
         report(reps)
+        if args.explain:
+            explain(reps)
         return 0
 
     from sofast_station.config import load_config
@@ -101,6 +106,8 @@ def main(argv=None) -> int:
 
         reps = run_repeats(cfg, args.captures, seed=args.seed, perturb_geometry=True, progress=progress)
     rows, crow = report(reps)
+    if args.explain:
+        explain(reps)
     if args.out:
         Path(args.out).write_text(json.dumps({"rows": rows, "corrected": crow, "captures": reps}, default=str))
     return 0
@@ -127,6 +134,48 @@ def report(reps):
     print(f"per capture: {sum(r['seconds'] for r in reps) / len(reps):.2f} s (twin trace, capture, analysis); "
           f"uncertainty per facet (cached sensitivities) median {sorted(t_an)[len(t_an) // 2]:.3f} s")
     return rows, crow
+
+
+def explain(reps, t_min: float = 3.0):
+    """Per figure, a least-squares fit of the errors against truth on the drawn station inputs (each in its
+    own unit, ``drawn`` of the repeats) and the placement (mm, mrad): the intercept (the error left with
+    every input at its nominal value), the inputs with |t| > *t_min* and their coefficients, and the
+    residual's standard deviation against the stated random part (median U_random / 2). A figure whose
+    errors follow an input by a different amount than the budget says, or that keeps an intercept, shows
+    what the budget misses."""
+    import numpy as np
+
+    from sofast_station.measure.uncertainty import SCALAR_PATHS, path_name
+    from sofast_station.station.study import DRAWN_INPUTS
+
+    reps = [r for r in reps if r.get("drawn")]
+    if len(reps) < len(DRAWN_INPUTS) + 10:
+        print("explain: too few captures with their drawn inputs (runs before the inputs were recorded have none)")
+        return
+    names = ["intercept", *DRAWN_INPUTS, "place x mm", "place y mm", "place z mm", "place rx", "place ry", "place rz"]
+    x = np.array([[1.0, *[r["drawn"][k] for k in DRAWN_INPUTS], *r["placement"][0], *r["placement"][1]]
+                  for r in reps])
+    keep = np.ptp(x, axis=0) > 0
+    keep[0] = True
+    x, names = x[:, keep], [n for n, k in zip(names, keep) if k]
+    print(f"\nerrors against the drawn inputs (least squares over {len(reps)} captures; terms with |t| > {t_min:g}):")
+    for path in SCALAR_PATHS:
+        name = path_name(path)
+        e = np.array([r["figures"][name] - r["truth"][name] if r["figures"].get(name) is not None
+                      and r["truth"].get(name) is not None else np.nan for r in reps])
+        ok = np.isfinite(e)
+        if ok.sum() < x.shape[1] + 5:
+            continue
+        beta, *_ = np.linalg.lstsq(x[ok], e[ok], rcond=None)
+        resid = e[ok] - x[ok] @ beta
+        dof = int(ok.sum()) - x.shape[1]
+        s = float(np.sqrt(resid @ resid / dof))
+        se = s * np.sqrt(np.diag(np.linalg.pinv(x[ok].T @ x[ok])))
+        t = np.divide(beta, se, out=np.zeros_like(beta), where=se > 0)
+        terms = ", ".join(f"{names[j]} {beta[j]:+.3g} (t {t[j]:+.1f})" for j in np.argsort(-np.abs(t))
+                          if abs(t[j]) > t_min)
+        u_r = np.median([r["U_random"][name] for r in reps if r["U_random"].get(name) is not None]) / 2
+        print(f"  {name:<36} residual std {s:.3g} (stated random {u_r:.3g}); {terms or 'nothing significant'}")
 
 
 if __name__ == "__main__":

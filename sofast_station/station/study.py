@@ -82,28 +82,47 @@ class TwinRig:
         return np.stack([twin.capture(img, rng, exposure_s=self.exposure_s, gain=self.gain) for img in self.images])
 
 
-def perturbed_geometry(geometry, inputs: InputUncertainties, rng: np.random.Generator):
+#: Names of the inputs :func:`perturbed_geometry` draws, in its order (``drawn`` values).
+DRAWN_INPUTS = ("camera fx", "camera fy", "camera cx", "camera cy", "camera k1", "camera k2", "camera p1",
+                "camera p2", "camera k3", "screen rx", "screen ry", "screen rz", "screen tx", "screen ty", "screen tz",
+                "fixture rx", "fixture ry", "fixture rz", "fixture tx", "fixture ty", "fixture tz", "screen pitch",
+                "distance")
+
+
+def perturbed_geometry(geometry, inputs: InputUncertainties, rng: np.random.Generator, drawn: dict | None = None):
     """The station geometry with every input of the budget drawn from a normal distribution with its
-    standard uncertainty (the "true" station the twin photographs), and the distance error (m)."""
+    standard uncertainty (the "true" station the twin photographs), and the distance error (m).
+
+    *drawn*, a dict, receives each input's draw in its own unit (:data:`DRAWN_INPUTS`: px, 1, mrad, mm,
+    relative, mm), so that a study can say which input its errors follow."""
     cam = geometry.camera
     k = cam.matrix.copy()
-    k[0, 0] += rng.normal(0, inputs.camera_focal_px)
-    k[1, 1] += rng.normal(0, inputs.camera_focal_px)
-    k[0, 2] += rng.normal(0, inputs.camera_principal_px)
-    k[1, 2] += rng.normal(0, inputs.camera_principal_px)
-    dist = cam.distortion + rng.normal(0, 1, 5) * np.asarray(inputs.camera_distortion)
-    camera = dataclasses.replace(cam, matrix=k, distortion=dist)
-    screen_delta = small_motion(rng.normal(0, 1, 3) * np.asarray(inputs.screen_rotation_mrad),
-                                rng.normal(0, 1, 3) * np.asarray(inputs.screen_translation_mm))
-    fixture_delta = small_motion(rng.normal(0, 1, 3) * np.asarray(inputs.fixture_rotation_mrad),
-                                 rng.normal(0, 1, 3) * np.asarray(inputs.fixture_translation_mm))
+    d_k = [rng.normal(0, inputs.camera_focal_px), rng.normal(0, inputs.camera_focal_px),
+           rng.normal(0, inputs.camera_principal_px), rng.normal(0, inputs.camera_principal_px)]
+    k[0, 0] += d_k[0]
+    k[1, 1] += d_k[1]
+    k[0, 2] += d_k[2]
+    k[1, 2] += d_k[3]
+    d_dist = rng.normal(0, 1, 5) * np.asarray(inputs.camera_distortion)
+    camera = dataclasses.replace(cam, matrix=k, distortion=cam.distortion + d_dist)
+    d_screen = (rng.normal(0, 1, 3) * np.asarray(inputs.screen_rotation_mrad),
+                rng.normal(0, 1, 3) * np.asarray(inputs.screen_translation_mm))
+    d_fixture = (rng.normal(0, 1, 3) * np.asarray(inputs.fixture_rotation_mrad),
+                 rng.normal(0, 1, 3) * np.asarray(inputs.fixture_translation_mm))
+    screen_delta = small_motion(*d_screen)
+    fixture_delta = small_motion(*d_fixture)
     # One pitch for both axes (the twin's display has square pixels).
-    pitch = geometry.screen.pitch_m * (1.0 + rng.normal(0, inputs.screen_pitch_relative))
+    d_pitch = rng.normal(0, inputs.screen_pitch_relative)
+    pitch = geometry.screen.pitch_m * (1.0 + d_pitch)
     screen = dataclasses.replace(geometry.screen, pitch_m=pitch)
     true = dataclasses.replace(geometry, camera=camera, screen=screen,
                                screen_to_camera=geometry.screen_to_camera.compose(screen_delta),
                                fixture_to_camera=geometry.fixture_to_camera.compose(fixture_delta))
-    return true, float(rng.normal(0, 1e-3 * inputs.distance_mm))
+    d_distance = float(rng.normal(0, 1e-3 * inputs.distance_mm))
+    if drawn is not None:
+        values = [*d_k, *d_dist, *d_screen[0], *d_screen[1], *d_fixture[0], *d_fixture[1], d_pitch, 1e3 * d_distance]
+        drawn.update({name: float(v) for name, v in zip(DRAWN_INPUTS, values)})
+    return true, d_distance
 
 
 def _flat(figures: dict, paths) -> dict:
@@ -123,7 +142,8 @@ def run_repeats(config: StationConfig, n: int, seed: int = 0, placement: Placeme
     for i in range(n):
         t0 = time.perf_counter()
         place = placement.draw(rng)
-        geometry, distance_error = (perturbed_geometry(config.geometry, config.uncertainty, rng)
+        drawn: dict = {}
+        geometry, distance_error = (perturbed_geometry(config.geometry, config.uncertainty, rng, drawn)
                                     if perturb_geometry else (config.geometry, 0.0))
         twin = rig.twin(*place, geometry=geometry)
         frames = rig.capture(twin, np.random.default_rng(rng.integers(2**63)))
@@ -139,7 +159,7 @@ def run_repeats(config: StationConfig, n: int, seed: int = 0, placement: Placeme
                                                [p for p in paths if p[0] == "slope_rms_mrad"]),
                "U_corrected": _flat({"slope_rms_mrad": fig["slope_rms_corrected_mrad_U"]},
                                     [p for p in paths if p[0] == "slope_rms_mrad"]),
-               "placement": place, "seconds": time.perf_counter() - t0,
+               "placement": place, "drawn": drawn, "seconds": time.perf_counter() - t0,
                "analysis_seconds": fig["timings_s"]}
         truth_fig = dict(truth)
         truth_fig["placement"] = {"mm": list(place[0]), "mrad": list(place[1])}
