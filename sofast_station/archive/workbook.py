@@ -556,18 +556,10 @@ def save_atomic(wb, path: Path) -> None:
 
 def read_workbook(path: str | Path) -> list[dict]:
     """The data rows of a results workbook as dicts (column name -> value; empty cells omitted)."""
-    from openpyxl import load_workbook
-
     path = Path(path)
+    wb = _open_read_only(path)
     try:
-        wb = load_workbook(path, read_only=True)
-    except OSError:
-        raise
-    except Exception as exc:
-        raise ArchiveError(f"workbook {path} is not a readable .xlsx file ({type(exc).__name__}: {exc})") from exc
-    try:
-        ws = wb[SHEET_TITLE] if SHEET_TITLE in wb.sheetnames else wb.worksheets[0]
-        rows = ws.iter_rows(values_only=True)
+        rows = _results_sheet(wb).iter_rows(values_only=True)
         header = list(next(rows, ()))
         out = []
         for values in rows:
