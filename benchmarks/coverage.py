@@ -25,42 +25,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-SMALL_STATION = """
-[station]
-name = "Small simulated dish station (coverage study)"
-backend = "simulated"
-data_dir = "{data_dir}"
-facet = "{facet}"
-
-[camera]
-width_px = 400
-height_px = 300
-focal_length_px = 3409.0
-distortion = [-0.05, 0.1, 0.0002, -0.0001, 0.0]
-
-[screen]
-width_px = 1920
-height_px = 1080
-pitch_m = 0.000275
-
-[layout]
-separation_m = 0.34
-
-[analysis]
-edge_window_px = 3
-
-[calibration]
-radiometric = "{radiometric}"
-
-[simulation]
-seed = 3
-
-[simulation.facet]
-focal_length_x_m = 5.42
-focal_length_y_m = 5.35
-twist_mrad_per_m = 0.12
-slope_error_rms_mrad = 0.5
-"""
+#: The tests' small station (fixtures/stations/small_dish.toml.in) with a narrower edge window and more twist.
+SMALL_STATION = (ROOT / "fixtures/stations/small_dish.toml.in").read_text().format(
+    name="Small simulated dish station (coverage study)", data_dir_line='data_dir = "{data_dir}"\n',
+    facet="{facet}", analysis="[analysis]\nedge_window_px = 3\n\n", radiometric="{radiometric}", twist="0.12")
 
 
 def small_station(folder: Path) -> Path:

@@ -38,32 +38,10 @@ sys.path.insert(0, str(ROOT))
 
 FAULT_CYCLE = ("dark", "misplaced", "camera-timeout", "slow-analysis")
 
-SMALL = """
-[station]
-name = "Soak station (400 x 300)"
-backend = "simulated"
-facet = "{root}/fixtures/facets/dish_5m33.toml"
-[camera]
-width_px = 400
-height_px = 300
-focal_length_px = 3409.0
-distortion = [-0.05, 0.1, 0.0002, -0.0001, 0.0]
-[screen]
-width_px = 1920
-height_px = 1080
-pitch_m = 0.000275
-[layout]
-separation_m = 0.34
-[calibration]
-radiometric = "{root}/calibration/simulated_radiometric.json"
-[simulation]
-seed = 3
-[simulation.facet]
-focal_length_x_m = 5.42
-focal_length_y_m = 5.35
-twist_mrad_per_m = 0.1
-slope_error_rms_mrad = 0.5
-"""
+#: --small: the tests' 400 x 300 station (fixtures/stations/small_dish.toml.in), its paths under {root}.
+SMALL = (ROOT / "fixtures/stations/small_dish.toml.in").read_text().format(
+    name="Soak station (400 x 300)", data_dir_line="", facet="{root}/fixtures/facets/dish_5m33.toml", analysis="",
+    radiometric="{root}/calibration/simulated_radiometric.json", twist="0.1")
 
 
 def proc_sample(pid: int | None) -> tuple[float, int] | None:

@@ -26,39 +26,11 @@ def _data_dir(tmp_path, monkeypatch):
     monkeypatch.setenv("SOFAST_NICE", "0")
 
 
-SMALL_STATION = """
-[station]
-name = "Small simulated dish station (tests)"
-backend = "simulated"
-data_dir = "{data_dir}"
-facet = "{facet}"
-
-[camera]
-width_px = 400
-height_px = 300
-focal_length_px = 3409.0
-distortion = [-0.05, 0.1, 0.0002, -0.0001, 0.0]
-
-[screen]
-width_px = 1920
-height_px = 1080
-pitch_m = 0.000275
-
-[layout]
-separation_m = 0.34
-
-[calibration]
-radiometric = "{radiometric}"
-
-[simulation]
-seed = 3
-
-[simulation.facet]
-focal_length_x_m = 5.42
-focal_length_y_m = 5.35
-twist_mrad_per_m = 0.1
-slope_error_rms_mrad = 0.5
-"""
+#: The small simulated dish station (400 x 300 camera) as a str.format template of {data_dir}, {facet} and
+#: {radiometric}; the benchmarks fill in the same shared template (fixtures/stations/small_dish.toml.in).
+SMALL_STATION = (ROOT / "fixtures/stations/small_dish.toml.in").read_text().format(
+    name="Small simulated dish station (tests)", data_dir_line='data_dir = "{data_dir}"\n', facet="{facet}",
+    analysis="", radiometric="{radiometric}", twist="0.1")
 
 
 @pytest.fixture
