@@ -180,6 +180,14 @@ class InputUncertainties:
             values[key] = tuple(float(v) for v in value) if n is not None else float(value)
         return cls(**values)
 
+    @classmethod
+    def from_dict(cls, d: dict) -> "InputUncertainties":
+        """From :meth:`to_dict` (e.g. handed to the analysis worker): the table's keys validated as in
+        :meth:`from_table`, the record-derived ones taken as they are."""
+        out = cls.from_table({k: v for k, v in d.items() if k not in _NOT_TABLE_KEYS})
+        record = d.get("response_record_rad")
+        return out if record is None else dataclasses.replace(out, response_record_rad=float(record))
+
     def with_camera_record(self, record: dict | None) -> "InputUncertainties":
         """Where the camera record in force states its parameters' standard deviations (``std``: the
         record's ``std_intrinsics`` with ``fx``, ``fy``, ``cx``, ``cy``, ``distortion``), use them instead of
@@ -1010,7 +1018,10 @@ def sensitivity_key(geometry, design, fringes, settings, inputs: InputUncertaint
 
     blob = {"geometry": geometry.to_dict(), "design": design.to_dict(), "fringes": fringes.to_dict(),
             "settings": {k: v for k, v in settings.to_dict().items() if k != "threads"},
-            "inputs": inputs.to_dict(), "screen": None if screen is None else repr(type(screen))}
+            # Not the record-derived values: the sensitivities are computed at the table's reference
+            # values, so a re-analysis without the record (reprocess) finds the station's own.
+            "inputs": {k: v for k, v in inputs.to_dict().items() if k not in _NOT_TABLE_KEYS},
+            "screen": None if screen is None else repr(type(screen))}
     return hashlib.sha256(json.dumps(blob, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 

@@ -110,7 +110,7 @@ def _run(design: dict, settings: dict, distance_m: float, hang_s: float, optics=
     frames = np.array(_STATE["frames"])  # a private copy: the station may refill the buffer after a timeout
     facet = FacetDesign.from_dict(design)
     # Sensitivities are computed on the first facet of each recipe and kept for the worker's life.
-    inputs = None if uncertainty is None else InputUncertainties.from_table(uncertainty)
+    inputs = None if uncertainty is None else InputUncertainties.from_dict(uncertainty)
     a = analyse(frames, _STATE["fringes"], _STATE["geometry"], facet, distance_m,
                 AnalysisSettings(**settings), rays_cam=_STATE["rays"], uncertainty=inputs,
                 sensitivity_cache=_STATE.setdefault("sensitivities", {}))

@@ -102,6 +102,9 @@ def test_uncertainty_table_is_validated():
         InputUncertainties.from_table({"distance": 1})
     with pytest.raises(ConfigError, match="unknown"):      # set from the radiometric record, not by hand
         InputUncertainties.from_table({"response_record_rad": 1e-4})
+    # ... but it travels to the analysis worker with the rest (to_dict / from_dict).
+    w = InputUncertainties(distance_mm=0.7, response_record_rad=4e-4)
+    assert InputUncertainties.from_dict(w.to_dict()) == w
     u = InputUncertainties.from_table({"distance_mm": 2, "camera_distortion": [0, 0, 0, 0, 0]})
     assert u.distance_mm == 2.0 and u.camera_distortion == (0.0,) * 5
     rec = {"std": {"fx": 0.4, "fy": 0.6, "cx": 0.3, "cy": 0.2, "distortion": [1e-3, 2e-3, 0, 0, 0]}}
