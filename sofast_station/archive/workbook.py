@@ -376,6 +376,41 @@ def scan_part(path: Path) -> _PartScan:
     return _PartScan(path, header, [str(i) for i in ids])
 
 
+#: The parts this process wrote or read last: path -> (the file's identity, header, cycle ids), so that the
+#: next pass need not read back what it has just written (about a third of a pass's CPU time on a full
+#: part). A file changed since, by anyone (another inode, size or modification time), is read again.
+_WRITTEN: dict = {}
+_WRITTEN_MAX = 16
+
+
+def _identity(path: Path) -> tuple:
+    st = os.stat(path)
+    return st.st_ino, st.st_size, st.st_mtime_ns
+
+
+def _remember(scan: _PartScan, identity: tuple | None = None) -> None:
+    """Note what *scan*'s part holds: just written by this process, or read when the file was *identity*."""
+    key = str(scan.path)
+    _WRITTEN.pop(key, None)
+    try:
+        _WRITTEN[key] = (identity or _identity(scan.path), tuple(scan.header), tuple(scan.ids))
+    except OSError:
+        return
+    while len(_WRITTEN) > _WRITTEN_MAX:
+        _WRITTEN.pop(next(iter(_WRITTEN)))
+
+
+def _recall(path: Path) -> _PartScan | None:
+    """The scan of a part as this process wrote it, when the file is still that one; else None."""
+    known = _WRITTEN.get(str(path))
+    try:
+        if known is None or known[0] != _identity(path):
+            return None
+    except OSError:
+        return None
+    return _PartScan(Path(path), list(known[1]), list(known[2]))
+
+
 def _file_rows(path: Path, wanted: set) -> dict:
     """Cycle id -> {column: value} of the rows of *path* whose id is in *wanted* (rows the journal lacks)."""
     wb = _open_read_only(path)
@@ -584,14 +619,22 @@ def _rebuild(path: Path, journal: Journal) -> _PartScan:
     """Set a damaged part aside and rebuild it from the journal rows recorded as written to it."""
     _quarantine(path)
     ids = journal.ids_in_workbook(path)
-    header = _PartWriter(path, ids, journal).save()
-    return _PartScan(path, header, ids)
+    scan = _PartScan(path, _PartWriter(path, ids, journal).save(), ids)
+    _remember(scan)
+    return scan
 
 
 def _scan(path: Path, journal: Journal | None) -> _PartScan:
-    """Scan a part; a damaged one (by something else than this software) is rebuilt from the journal."""
+    """Scan a part (or recall it, unchanged since this process wrote or read it); a damaged one (by something
+    else than this software) is rebuilt from the journal."""
+    recalled = _recall(path)
+    if recalled is not None:
+        return recalled
     try:
-        return scan_part(path)
+        identity = _identity(path)             # before the read: a change while reading is read again later
+        scan = scan_part(path)
+        _remember(scan, identity)
+        return scan
     except ArchiveError:
         if journal is None:
             raise
@@ -616,6 +659,7 @@ def _rewrite(scan: _PartScan, journal: Journal | None, given: dict, new: list | 
     scan.header = _PartWriter(scan.path, scan.ids + [r.cycle_id for r in new], journal, given, scan.header,
                               foreign).save()
     scan.ids = scan.ids + [r.cycle_id for r in new]
+    _remember(scan)
 
 
 def append_rows(folder: Path, key: str, rows: list[JournalRow], settings: WorkbookSettings = WorkbookSettings(),
