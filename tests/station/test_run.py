@@ -30,9 +30,12 @@ FAULTS = {"SIM-0004": "dark", "SIM-0008": "camera-timeout", "SIM-0012": "misplac
 def twenty(repo_root, tmp_path_factory):
     data = tmp_path_factory.mktemp("run")
     cfg = load_config(repo_root / "station.toml")
-    # Time is controlled, not raced: the deadline is far beyond any facet's time on a loaded machine (the
-    # worker is warmed up before the first facet), and the hung analysis never ends, so only it times out.
-    raw = dict(cfg.raw, run={"deadline_s": 40.0, "late_grace_s": 0.0, "dump_every_n": 5},
+    # Time is controlled, not raced: the deadline is far beyond a facet's time on a loaded machine (the
+    # worker is warmed up before the first facet), and the hung analysis never ends, so it times out and
+    # its worker is restarted after the grace. On a machine made very busy (load 14 on two cores a facet took
+    # up to 80 s) a good facet may pass the deadline too: the grace lets its analysis finish, and it is then
+    # checked as a late result (_late_by_load).
+    raw = dict(cfg.raw, run={"deadline_s": 40.0, "late_grace_s": 60.0, "dump_every_n": 5},
                archive={"workbook_interval_s": 1.0})
     cfg = dataclasses.replace(cfg, data_dir=data, raw=raw,
                               simulation={"seed": 3, "facet": FACETS["dish"][1], "faults": FAULTS,
@@ -52,9 +55,12 @@ def test_twenty_answers_and_the_line_goes_on(twenty):
     finals = [a for a in robot.answers if a.kind in ("done", "fault")]
     assert [a.serial for a in finals] == [f"SIM-{i:04d}" for i in range(1, 21)]
     assert len(lines) == 20
+    late = _late_by_load(outcomes)
     for a in finals:
         if a.serial in FAULTS:
             assert a.kind == "fault" and a.reason, a
+        elif a.serial in late:                       # a machine so busy the deadline passed: measured late
+            assert a.kind == "fault" and a.reason.startswith("timeout"), a
         else:
             assert a.kind == "done" and a.verdict in ("pass", "fail", "invalid"), a
     by_serial = {a.serial: a for a in finals}
@@ -62,16 +68,31 @@ def test_twenty_answers_and_the_line_goes_on(twenty):
     assert "camera" in by_serial["SIM-0008"].reason
     assert "cut off" in by_serial["SIM-0012"].reason or "misplaced" in by_serial["SIM-0012"].reason
     assert "timeout" in by_serial["SIM-0016"].reason
-    assert by_serial["SIM-0017"].kind == "done"          # the facet after the hung analysis is measured
+    # the facet after the hung analysis is measured (in time, or late on a very busy machine)
+    assert by_serial["SIM-0017"].kind == "done" or "SIM-0017" in late
+
+
+def _late_by_load(outcomes) -> set:
+    """Serials of facets without an injected fault whose analysis ended after the deadline.
+
+    The deadline (40 s) is far beyond a facet's time on a loaded machine, but a machine made busy enough
+    can pass it (in a run at load 14 on two cores SIM-0013 and SIM-0017 took 44 and 83 s): the station
+    then does what it must, answers the robot "timeout" and journals the late result with its figures and
+    verdict (``late_verdict``). Such a facet is checked
+    like any other: its figures against the truth, its row, its dump. A facet that timed out without a
+    late result is not in this set, so the tests fail on it."""
+    return {o.serial for o in outcomes if o.serial not in FAULTS and o.answer == "fault"
+            and o.record.get("late") and o.record.get("late_verdict")}
 
 
 def test_good_facets_meet_the_core_tolerances(twenty):
     _, _, outcomes, _ = twenty
-    good = [o for o in outcomes if o.answer != "fault"]
+    late = _late_by_load(outcomes)
+    good = [o for o in outcomes if o.answer != "fault" or o.serial in late]
     assert len(good) == 16
     for o in good:
         check_against_truth(o.record, long_focus=False)
-        assert o.record["verdict"] == "pass", o.record["reasons"]
+        assert o.record.get("late_verdict", o.record["verdict"]) == "pass", o.record["reasons"]
 
 
 def test_journal_workbook_and_dumps(twenty):
@@ -83,8 +104,10 @@ def test_journal_workbook_and_dumps(twenty):
         assert all(r.workbook_path for r in rows), "every row reached a workbook"
         books = sorted((cfg.data_dir / "archive").glob("*.xlsx"))
         assert books and sum(len(read_workbook(b)) for b in books) == 20
-        # dumps: every 5th facet, and every faulted one that has frames (dark, misplaced, hung analysis)
+        # dumps: every 5th facet, and every faulted one that has frames (dark, misplaced, hung analysis, and
+        # a facet measured late on a very busy machine)
         wanted = {"SIM-0005", "SIM-0010", "SIM-0015", "SIM-0020", "SIM-0004", "SIM-0012", "SIM-0016"}
+        wanted |= _late_by_load(outcomes)
         dumped = {r.serial for r in rows if r.dump_status == "written"}
         assert dumped == wanted
         for r in rows:
