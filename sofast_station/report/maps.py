@@ -215,19 +215,26 @@ def decimated_arrows(x_m, y_m, u, v, across: int = ARROWS_ACROSS):
     return gx[ok], gy[ok], g["s_x"][ok], g["s_y"][ok], cell
 
 
+def scaled_arrows(x_m, y_m, u, v):
+    """:func:`decimated_arrows` ready to draw: positions, vectors, the cell size (metres) and the reference
+    length *ref* (the 95th-percentile magnitude) that is drawn 0.9 cell long. The few longest (beyond
+    2 x *ref*) are shortened to 2 x *ref*, so they cannot tangle."""
+    ax_, ay_, au, av, cell = decimated_arrows(x_m, y_m, u, v)
+    mags = np.hypot(au, av)
+    ref = float(np.percentile(mags, 95)) if mags.size else 1.0
+    ref = ref if ref > 0 else 1.0
+    long = mags > 2 * ref
+    au, av = (np.where(long, w * 2 * ref / np.where(long, mags, 1.0), w) for w in (au, av))
+    return ax_, ay_, au, av, cell, ref
+
+
 def draw_arrows(ax, x_m, y_m, u, v, unit: str = "mrad", key_value: float | None = None, color: str = "black"):
     """Arrows of (u, v) on a decimated grid, scaled so the 95th-percentile arrow is 0.9 cell long (they
     never tangle), with a length key of a round value under the axes in a readable font."""
     from matplotlib import patheffects
 
-    ax_, ay_, au, av, cell = decimated_arrows(x_m, y_m, u, v)
-    mags = np.hypot(au, av)
-    ref = float(np.percentile(mags, 95)) if mags.size else 1.0
-    ref = ref if ref > 0 else 1.0
+    ax_, ay_, au, av, cell, ref = scaled_arrows(x_m, y_m, u, v)
     scale = ref / (0.9 * cell)                           # data units per metre of arrow
-    # the few longest (beyond 2 x the 95th percentile) are drawn at that length, so they cannot tangle
-    long = mags > 2 * ref
-    au, av = (np.where(long, w * 2 * ref / np.where(long, mags, 1.0), w) for w in (au, av))
     q = ax.quiver(ax_, ay_, au, av, color=color, angles="xy", scale_units="xy", scale=scale, width=0.005,
                   headwidth=3.5, headlength=4.0, headaxislength=3.5, pivot="middle", zorder=3)
     q.set_path_effects([patheffects.withStroke(linewidth=1.5, foreground="white")])

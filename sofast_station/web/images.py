@@ -98,7 +98,7 @@ def map_png(pic, model: str = "design") -> bytes | None:
     right, +y up; a scale bar stands in for the axes."""
     import cv2
 
-    from ..report.maps import SEQUENTIAL_CMAP, decimated_arrows, nice_round, robust_top, slope_error_maps
+    from ..report.maps import SEQUENTIAL_CMAP, nice_round, robust_top, scaled_arrows, slope_error_maps
 
     if "map_rows" not in pic.files or pic["map_rows"].size < 10:
         return None
@@ -121,12 +121,7 @@ def map_png(pic, model: str = "design") -> bytes | None:
     colours[~on] = 235                                   # off the facet: light grey
     img[top_px:top_px + h, left:left + w] = cv2.resize(colours, (w, h), interpolation=cv2.INTER_NEAREST)
     # arrows: the report's decimated grid and scaling
-    ax_, ay_, au, av, cell = decimated_arrows(m.arrow_x_m, m.arrow_y_m, m.arrow_ex_mrad, m.arrow_ey_mrad)
-    mags = np.hypot(au, av)
-    ref = float(np.percentile(mags, 95)) if mags.size else 1.0
-    ref = ref if ref > 0 else 1.0
-    long = mags > 2 * ref
-    au, av = (np.where(long, c * 2 * ref / np.where(long, mags, 1.0), c) for c in (au, av))
+    ax_, ay_, au, av, cell, ref = scaled_arrows(m.arrow_x_m, m.arrow_y_m, m.arrow_ex_mrad, m.arrow_ey_mrad)
     length_px = 0.9 * cell * px_per_m / ref             # pixels per mrad
     for xm, ym, u, v in zip(ax_, ay_, au, av):
         cx, cy = left + (xm - x0) * px_per_m, top_px + (y1 - ym) * px_per_m
