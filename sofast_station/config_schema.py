@@ -230,6 +230,8 @@ SECTIONS: dict[str, dict[str, Key]] = {
     },
     "archive": {
         "workbook_period": Key("str", choices=("day", "shift")), "workbook_interval_s": _pos("s"),
+        "workbook_cpu_share": Key("float", low=0.0, low_open=True, high=1.0,
+                                  doc="largest share of one core the workbook saves take on average"),
         "workbook_max_rows": Key("int", low=1, high=1048575, doc="data rows per workbook part (-part2.xlsx, ...)"),
         "dump_keep_days": _pos("days"), "dump_max_gb": _pos("GB"), "min_free_gb": _nonneg("GB"),
     },

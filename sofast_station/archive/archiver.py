@@ -15,7 +15,9 @@ Every step re-checks what is already done, so :meth:`Archiver.run_once` is idemp
 SIGKILL) at any point loses and duplicates nothing: rerunning finishes the work.
 
 The background thread (:meth:`start`, :meth:`stop`) calls :meth:`run_once` every ``poll_interval_s``
-(the workbook at most every ``workbook_interval_s``, because openpyxl rewrites the whole book on each save);
+(the workbook at most every ``workbook_interval_s``, because each save rewrites the whole part, and less
+often when a save is long: the saves take at most ``workbook_cpu_share`` of one core on average, so a day's
+part that has grown to hundreds of rows does not take a core from the measuring loop);
 :meth:`wake` asks for a run now. It never raises: problems are logged and retried.
 """
 
@@ -50,6 +52,11 @@ class ArchiverSettings:
         Background thread: time between runs, seconds.
     workbook_interval_s : float
         Background thread: least time between workbook saves, seconds (rows wait in the journal meanwhile).
+    workbook_cpu_share : float
+        Background thread: largest share of one core the workbook saves take on average, in (0, 1]. A save
+        rewrites its part whole (about 14 ms of CPU a row of the full-resolution record), so after a save that
+        took *c* seconds of CPU the next waits at least ``c * (1 / share - 1)`` seconds (rows wait in the
+        journal, which is the record of truth, meanwhile).
     dump_keep_days : float or None
         Retention: largest age of a dump, days; None keeps them forever.
     dump_max_total_gb : float or None
@@ -74,6 +81,7 @@ class ArchiverSettings:
     workbook: WorkbookSettings = field(default_factory=WorkbookSettings)
     poll_interval_s: float = 2.0
     workbook_interval_s: float = 60.0
+    workbook_cpu_share: float = 0.1
     dump_keep_days: float | None = 90.0
     dump_max_total_gb: float | None = 100.0
     min_free_gb: float = 2.0
@@ -140,6 +148,9 @@ class Archiver:
         self._thread: threading.Thread | None = None
         self._run_lock = threading.Lock()
         self._last_workbook = float("-inf")
+        self._cpu_clock = time.thread_time      # the save runs in the calling thread (a test may set a clock)
+        #: The least time between the last workbook save and the next, s (grows with a long save).
+        self.workbook_gap_s = self.settings.workbook_interval_s
         self._last_prune = float("-inf")
         self._cleaned = False
         self._low_disk_logged = False
@@ -202,13 +213,25 @@ class Archiver:
         return self._stop.is_set() and threading.current_thread() is self._thread
 
     def _workbook_step(self, report: ArchiveReport) -> None:
+        cpu = self._cpu_clock()
         wb = write_pending(self.journal, self.archive_dir, self.settings.workbook)
         if wb.rows_written or wb.already_present:
             release_memory()               # the loaded workbook part: back to the system, not kept at its peak
         self._last_workbook = time.monotonic()
+        self._workbook_gap(self._cpu_clock() - cpu, wb.rows_written)
         report.workbook_rows += wb.rows_written
         report.workbook_waiting += wb.waiting
         report.workbook_errors.update(wb.errors)
+
+    def _workbook_gap(self, cpu_s: float, rows: int) -> None:
+        """The least time to the next save after one that took *cpu_s* seconds of CPU (the share cap)."""
+        share = min(max(self.settings.workbook_cpu_share, 1e-3), 1.0)
+        gap = max(self.settings.workbook_interval_s, cpu_s * (1.0 / share - 1.0))
+        if gap > self.settings.workbook_interval_s and gap >= 1.5 * self.workbook_gap_s:
+            log.info("workbook save took %.1f s of CPU (%d rows added): the next in %.0f s at the earliest, to "
+                     "keep the saves under %.0f %% of a core (rows wait in the journal)", cpu_s, rows, gap,
+                     100 * share)
+        self.workbook_gap_s = gap
 
     def _prune(self, report: ArchiveReport) -> None:
         s = self.settings
@@ -381,7 +404,7 @@ class Archiver:
     def _loop(self) -> None:
         log.debug("archiver thread started (%s)", self.data_dir)
         while not self._stop.is_set():
-            due = time.monotonic() - self._last_workbook >= self.settings.workbook_interval_s
+            due = time.monotonic() - self._last_workbook >= self.workbook_gap_s
             try:
                 self.run_once(workbook=due)
             except Exception:       # never stop archiving: log and retry on the next pass

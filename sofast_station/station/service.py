@@ -36,12 +36,13 @@ log = logging.getLogger(__name__)
 
 _DEVICE_KEYS = {"trigger", "trigger_options", "display_options", "camera", "camera_options",
                 "range_finder_options"}
-_ARCHIVE_KEYS = {"workbook_period", "workbook_interval_s", "workbook_max_rows", "dump_keep_days", "dump_max_gb",
+_ARCHIVE_KEYS = {"workbook_period", "workbook_interval_s", "workbook_cpu_share", "workbook_max_rows", "dump_keep_days", "dump_max_gb",
                  "min_free_gb"}
 
 #: Data rows per workbook part unless ``[archive] workbook_max_rows`` says otherwise: the archiver writes a
 #: part whole on every save (streamed, its memory does not grow with the part), so a day of a busy line is
-#: split into parts to keep that work bounded (about 14 s of CPU per save of a full 1000-row part).
+#: split into parts to keep that work bounded (about 14 s of CPU per save of a full 1000-row part; the
+#: archiver spaces its saves so that they take at most ``[archive] workbook_cpu_share`` of a core).
 WORKBOOK_MAX_ROWS = 1000
 
 
@@ -77,6 +78,7 @@ def archiver_settings(config: StationConfig, run: RunSettings) -> ArchiverSettin
     return ArchiverSettings(workbook=WorkbookSettings(period=table.get("workbook_period", "day"),
                                                       max_rows=table.get("workbook_max_rows", WORKBOOK_MAX_ROWS)),
                             workbook_interval_s=float(table.get("workbook_interval_s", 30.0)),
+                            workbook_cpu_share=float(table.get("workbook_cpu_share", 0.1)),
                             dump_keep_days=table.get("dump_keep_days", run.dump_keep_days),
                             dump_max_total_gb=table.get("dump_max_gb", run.dump_max_gb),
                             min_free_gb=float(table.get("min_free_gb", run.min_free_gb)))

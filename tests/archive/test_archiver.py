@@ -162,3 +162,31 @@ def test_thread_batches_workbook_saves_and_stop_can_drain(setup):
     assert arch.stop(timeout_s=30, drain=True)
     assert journal.pending_workbook() == []
     assert [r["cycle_id"] for r in read_workbook(workbook_path(data / "archive", "2026-03-02"))] == ["c0", "c1"]
+
+
+def test_long_workbook_saves_are_spaced_to_keep_their_share_of_a_core(setup, monkeypatch):
+    """A save that took c s of CPU puts the next one c * (1/share - 1) s later (at least the interval)."""
+    journal, data = setup
+    arch = Archiver(journal, data, ArchiverSettings(min_free_gb=0.0, workbook_interval_s=30.0,
+                                                    workbook_cpu_share=0.1))
+    clock = [100.0]
+    arch._cpu_clock = lambda: clock[0]                           # the test's CPU clock, not the machine's
+    real = amod.write_pending
+
+    def save_costing(cpu_s):
+        def save(*args, **kwargs):
+            clock[0] += cpu_s
+            return real(*args, **kwargs)
+        return save
+
+    assert arch.workbook_gap_s == 30.0
+    arch.submit("c0", make_record("S0"))
+    monkeypatch.setattr(amod, "write_pending", save_costing(12.0))    # a nearly full part
+    arch.run_once(dumps=False)
+    assert arch.workbook_gap_s == pytest.approx(108.0)                          # 12 s in every 120 s: 10 %
+    assert [r["cycle_id"] for r in read_workbook(workbook_path(data / "archive", "2026-03-02"))] == ["c0"]
+    arch.submit("c1", make_record("S1"))
+    monkeypatch.setattr(amod, "write_pending", save_costing(0.5))     # a short part: the interval
+    arch.run_once(dumps=False)
+    assert arch.workbook_gap_s == 30.0
+    assert journal.pending_workbook() == []
