@@ -520,6 +520,7 @@ class _PartWriter:
             return cell
 
         try:
+            _stream_beside(ws, self.path)                   # after the sheet's settings: they head its stream
             ws.append([heading(name) for name in self.header])
             width = len(self.header)
             for flat in self._flat_rows():                  # second pass: the rows, streamed to the sheet
@@ -531,6 +532,7 @@ class _PartWriter:
             us = wb.create_sheet("units")
             us.column_dimensions["A"].width = 44
             us.column_dimensions["B"].width = 30
+            _stream_beside(us, self.path)
             us.append([heading("column"), heading("unit")])
             for name in self.header:
                 us.append([name, column_unit(name)])
@@ -538,6 +540,28 @@ class _PartWriter:
         finally:
             _drop_stream_files(wb)
         return self.header
+
+
+def _stream_beside(ws, path: Path) -> None:
+    """Stream write-only sheet *ws* into a temporary file beside *path*, not into the system's temp folder.
+
+    Call it after the sheet's settings (freeze panes, widths, filter) and before its first row: the
+    stream begins with them.
+
+    openpyxl streams each sheet into ``/tmp/openpyxl.*`` until the save; a writer killed meanwhile leaves
+    that file (tens of MB for a full part) where nothing of ours ever looks. Named as our other temporary
+    files (``.<part>.sheet.<pid>.<random>.tmp``), it is removed at the next start like them. openpyxl has
+    no public option for it: its sheet writer takes the file as *out* and registers it for its own
+    clean-up (the test ``test_a_save_streams_its_sheets_beside_the_part`` guards this).
+    """
+    from openpyxl.worksheet._writer import ALL_TEMP_FILES, WorksheetWriter
+
+    out = temp_path_for(path.with_name(path.name + ".sheet"))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.touch()
+    ALL_TEMP_FILES.append(str(out))
+    ws._writer = WorksheetWriter(ws, out=str(out))
+    ws._writer.write_top()
 
 
 def _drop_stream_files(wb) -> None:

@@ -6,11 +6,13 @@ import datetime as dt
 import errno
 import json
 import os
+import tempfile
 
 import pytest
 from openpyxl import load_workbook
 
 from sofast_station.archive import workbook as wbmod
+from sofast_station.archive._common import is_temp_file
 from sofast_station.archive.journal import Journal
 from sofast_station.archive.workbook import (FIRST_COLUMNS, WorkbookSettings, export_workbook, period_key,
                                              read_workbook, workbook_path, write_pending)
@@ -294,3 +296,27 @@ def test_the_memory_of_a_save_does_not_grow_with_the_rows_of_its_part(journal, t
 
     small, large = peak_of_a_save(tmp_path / "small", 20), peak_of_a_save(tmp_path / "large", 200)
     assert large - small < 180 * 10_000, f"{(large - small) / 180:.0f} bytes more per row of the part"
+
+
+def test_a_save_streams_its_sheets_beside_the_part(journal, tmp_path, monkeypatch):
+    """openpyxl's sheet streams go beside the part (removed at the next start if a kill leaves them), not /tmp."""
+    system_tmp = tmp_path / "system-tmp"
+    system_tmp.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(system_tmp))
+    folder = tmp_path / "archive"
+    seen = []
+    real = wbmod._save_to
+
+    def looking(wb, fh):
+        seen.extend(sorted(p.name for p in temp_files(folder)))
+        return real(wb, fh)
+
+    monkeypatch.setattr(wbmod, "_save_to", looking)
+    journal.append("cycle-1", SAMPLE_RECORD)
+    write_pending(journal, folder)
+    pid = os.getpid()
+    streams = [n for n in seen if n.startswith(".results-2026-11-25.xlsx.sheet.")]
+    assert len(streams) == 2 and all(is_temp_file(folder / n) and f".{pid}." in n for n in streams)
+    assert list(system_tmp.iterdir()) == []                      # nothing of the save in the system's folder
+    assert temp_files(folder) == []                              # and nothing left beside the part
+    assert [r["cycle_id"] for r in read_workbook(workbook_path(folder, "2026-11-25"))] == ["cycle-1"]
