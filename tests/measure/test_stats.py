@@ -39,3 +39,23 @@ def test_nan_gives_nan_as_numpy():
     x[3] = np.nan
     assert np.isnan(median(x)) and np.isnan(np.median(x))
     assert np.isnan(quantile(x, 0.2)) and np.isnan(np.quantile(x, 0.2))
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+def test_camera_count_quantiles_from_the_histogram_are_numpys(dtype, monkeypatch):
+    """Unsigned counts over the whole range, with heavy ties at both ends (clipped black and saturated
+    pixels), counted in several histogram chunks."""
+    from sofast_station.measure import stats
+
+    monkeypatch.setattr(stats, "_HIST_CHUNK", 4096)
+    rng = np.random.default_rng(5)
+    top = np.iinfo(dtype).max
+    for n in (65, 5000, 30_001):
+        x = rng.integers(0, top + 1, size=n).astype(dtype)
+        x[: n // 4] = 0
+        x[n // 4: n // 3] = top
+        rng.shuffle(x)
+        for q in (0.0, 0.01, 0.25, 0.2501, 0.5, 0.6827, 0.99, 1.0, float(rng.random())):
+            assert quantile(x, q) == float(np.quantile(x, q)), (dtype, n, q)
+        strided = x[: n - n % 5].reshape(5, -1)[:, ::2]      # not contiguous
+        assert quantile(strided, 0.3) == float(np.quantile(strided, 0.3))
