@@ -20,9 +20,10 @@ from ..fringes import FringeSet
 from ..geometry import Pose, StationGeometry
 from . import checks
 from . import corners as corners_mod
+from .blocks import blockwise
 from .camera import pixel_rays, project, to_frame
 from .boresight import Assembly, ShapeSolution, solve_shape
-from .fit import CubicFit, ParabolaFit, fit_cubic_with_slopes, fit_parabola, reweight_parabola
+from .fit import CubicFit, ParabolaFit, fit_cubic, fit_parabola, reweight_parabola
 from .mask import facet_region
 from .metrics import focal_length_m, principal_axes, rms_summary, slope_residuals_mrad
 from .phase import FrameNoise, frame_noise, phase_and_modulation, position_sigma_m, unwrap_positions
@@ -157,6 +158,14 @@ def _reflect(rays: np.ndarray, screen_m: np.ndarray, coeffs: np.ndarray, camera_
     """Points on the model surface seen along *rays* and the slopes the reflection to *screen_m* gives."""
     points = intersect_quadratic(coeffs, camera_m, rays)
     return (points, *normal_slopes(points, camera_m, screen_m))
+
+
+def _reflect_moved(rays_cam: np.ndarray, screen_cam_m: np.ndarray, to_moved: Pose, coeffs: np.ndarray):
+    """:func:`_reflect` of camera-frame *rays_cam* and *screen_cam_m* taken into the frame *to_moved* leads
+    to: points (3, N) and slopes (2, N)."""
+    points, s_x, s_y = _reflect(to_frame(to_moved, rays_cam, translate=False), to_frame(to_moved, screen_cam_m),
+                                coeffs, to_moved.translation)
+    return points, np.stack([s_x, s_y])
 
 
 def _in_halves(pool, fn, *columns: np.ndarray, **kwargs):
@@ -543,17 +552,27 @@ def shape_and_boresight(rays: Rays, pose: CornerPoseResult, design: FacetDesign,
                            pool=pool if settings.robust_fit else None)
     if timer is not None:
         timer.lap("iterate")
-    # Every valid pixel, taken from the camera frame straight into the boresighted facet frame.
+    # Every valid pixel, taken from the camera frame straight into the boresighted facet frame, in
+    # blocks (element-wise: the same bits as on the whole arrays).
     to_moved = solution.motion.as_pose().compose(camera_to_facet)
-    moved_rays = pool.submit(to_frame, to_moved, rays.rays, translate=False)
-    moved_screen = to_frame(to_moved, rays.screen_cam_m)
-    points, s_x, s_y = _in_halves(pool, _reflect, moved_rays.result(), moved_screen,
-                                  coeffs=solution.coefficients, camera_m=to_moved.translation)
-    finite = np.isfinite(s_x) & np.isfinite(s_y)
+    points, slopes = blockwise(_reflect_moved, rays.rays, rays.screen_cam_m, pool=pool, to_moved=to_moved,
+                               coeffs=solution.coefficients)
+    finite = np.isfinite(slopes[0]) & np.isfinite(slopes[1])
     if not np.all(finite):
         raise AnalysisError(f"{int((~finite).sum())} pixel rays miss the fitted surface; the fit diverged")
-    return Shape(solution=solution, boresighted_to_camera=to_moved.inverse(), points_m=points,
-                 slopes=np.stack([s_x, s_y]))
+    return Shape(solution=solution, boresighted_to_camera=to_moved.inverse(), points_m=points, slopes=slopes)
+
+
+def _model_residuals(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray, design_coeffs: np.ndarray,
+                     coeffs: np.ndarray, cubic: CubicFit) -> tuple:
+    """Slope residuals e_x, e_y (mrad) of the design, the parabola *coeffs* and the *cubic* at the points."""
+    angles = (np.arctan(s_x), np.arctan(s_y))
+    out = []
+    # (the model slopes are this function's own arrays: the residuals are formed in them)
+    for model in (surface_slopes_of_points(design_coeffs, x, y), surface_slopes_of_points(coeffs, x, y),
+                  cubic.slopes(x, y)):
+        out.extend(slope_residuals_mrad(s_x, s_y, *model, angles, overwrite_model=True))
+    return tuple(out)
 
 
 def fit_models(shape: Shape, design: FacetDesign, settings: AnalysisSettings, pool=None) -> Fits:
@@ -562,22 +581,17 @@ def fit_models(shape: Shape, design: FacetDesign, settings: AnalysisSettings, po
     pool = pool if pool is not None else _Serial()
     x, y = shape.points_m[0], shape.points_m[1]
     s_x, s_y = shape.slopes[0], shape.slopes[1]
-    cubic_task = pool.submit(fit_cubic_with_slopes, x, y, s_x, s_y)
-    angle_x = pool.submit(np.arctan, s_x)
+    cubic_task = pool.submit(fit_cubic, x, y, s_x, s_y)
     # Robust: the bisquare iteration converged on the subsample; one Newton step over every point.
     fit = (reweight_parabola(x, y, s_x, s_y, shape.solution.fit) if settings.robust_fit
            else fit_parabola(x, y, s_x, s_y))
     coeffs = fit.coefficients()
     coeffs[5] = float(design.z(*design.alignment_point_m)) - surface_z(coeffs, *design.alignment_point_m)
-    angles = (angle_x.result(), np.arctan(s_y))
-    cubic, cubic_slopes = cubic_task.result()
-    # (the model slopes are this function's own arrays: the residuals are formed in them)
-    higher = pool.submit(lambda: slope_residuals_mrad(s_x, s_y, *cubic_slopes, angles, overwrite_model=True))
-    residuals = {"design": slope_residuals_mrad(s_x, s_y, *surface_slopes_of_points(design.coefficients, x, y),
-                                                angles, overwrite_model=True),
-                 "parabola": slope_residuals_mrad(s_x, s_y, *surface_slopes_of_points(coeffs, x, y), angles,
-                                                  overwrite_model=True),
-                 "higher_order": higher.result()}
+    cubic = cubic_task.result()
+    # Every model's residuals in one pass over the points, in blocks (element-wise: the same bits).
+    e = blockwise(_model_residuals, x, y, s_x, s_y, pool=pool, design_coeffs=design.coefficients, coeffs=coeffs,
+                  cubic=cubic)
+    residuals = {"design": e[0:2], "parabola": e[2:4], "higher_order": e[4:6]}
     return Fits(parabola=fit, coefficients=coeffs, cubic=cubic, residuals_mrad=residuals)
 
 
