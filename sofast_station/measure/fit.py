@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import AnalysisError
+from .blocks import blockwise
 from .stats import median as _median
 
 
@@ -246,31 +247,47 @@ def fit_parabola(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray,
     return _assemble(kx, ky, xm, ym)
 
 
-def _newton_step(columns: list[np.ndarray], r: np.ndarray, sigma: float) -> np.ndarray:
-    """The Newton step (X^T diag(psi') X)^-1 X^T (w r) of the bisquare M-estimate at residuals *r*.
-
-    With u = r / (4.685 sigma), q = u^2: the bisquare weight is w = (1 - q)^2 and the derivative of
-    psi(r) = w r is psi' = (1 - q)(1 - 5q) (both zero for q >= 1). Sums are np.sum of element-wise
-    products, as in :func:`solve_normal_equations`; columns are scaled to unit RMS likewise.
-    """
-    q = r * (1.0 / (BISQUARE_C * sigma))
+def _newton_terms(c0: np.ndarray, c2: np.ndarray, s: np.ndarray, k0: np.ndarray, sigma: float):
+    """Element-wise part of :func:`_newton_step` for the columns (c0, 1, c2) and the start *k0*: the
+    residuals r = s - ((k0_0 c0 + k0_1) + k0_2 c2), then with u = r / (4.685 sigma), q = u^2 the bisquare's
+    w r = (1 - q)^2 r and psi' = (1 - q)(1 - 5q) (both zero for q >= 1), and c0 psi', c2 psi'.
+    Returns (w r, c0 psi', psi', c2 psi') (psi' is 1 psi' to the bit)."""
+    r = np.multiply(k0[0], c0)
+    r += k0[1]
+    tmp = np.multiply(k0[2], c2)
+    r += tmp
+    np.subtract(s, r, out=r)
+    q = np.multiply(r, 1.0 / (BISQUARE_C * sigma), out=tmp)
     q *= q
     np.minimum(q, 1.0, out=q)
     one_q = np.subtract(1.0, q)
-    wr = one_q * one_q
+    wr = np.multiply(one_q, one_q)
     wr *= r
     dpsi = np.multiply(q, -5.0, out=q)
     dpsi += 1.0
     dpsi *= one_q
-    scale = np.array([np.sqrt(_dot(c, c) / c.size) for c in columns])
+    return wr, np.multiply(c0, dpsi, out=one_q), dpsi, np.multiply(c2, dpsi, out=r)
+
+
+def _newton_step(columns: list[np.ndarray], target: np.ndarray, k0: np.ndarray, sigma: float, scale: np.ndarray,
+                 pool=None) -> np.ndarray:
+    """The Newton step (X^T diag(psi') X)^-1 X^T (w r) of the bisquare M-estimate at the residuals of the
+    start *k0* for the columns (c0, 1, c2).
+
+    With u = r / (4.685 sigma), q = u^2: the bisquare weight is w = (1 - q)^2 and the derivative of
+    psi(r) = w r is psi' = (1 - q)(1 - 5q) (both zero for q >= 1). The element-wise terms are formed in
+    cache-sized blocks (:func:`~sofast_station.measure.blocks.blockwise`, on *pool* too); sums are
+    einsum dot products as in :func:`solve_normal_equations`, over columns scaled to unit RMS
+    (*scale*, the columns' RMS values).
+    """
+    wr, *dcols = blockwise(_newton_terms, columns[0], columns[2], target, pool=pool, k0=k0, sigma=sigma)
     k = len(columns)
     gram = np.empty((k, k))
     rhs = np.empty(k)
     for i in range(k):
         rhs[i] = _dot(columns[i], wr) / scale[i]
-        dcol = columns[i] * dpsi
         for j in range(i, k):
-            gram[i, j] = gram[j, i] = _dot(dcol, columns[j]) / (scale[i] * scale[j])
+            gram[i, j] = gram[j, i] = _dot(dcols[i], columns[j]) / (scale[i] * scale[j])
     if not np.all(np.linalg.eigvalsh(gram) > 1e-12 * np.abs(gram).max()):
         raise AnalysisError("the robust fit's last step is not a minimum: too many points lie far from the "
                             "subsample's fit; check the capture (or use the plain fit)")
@@ -278,7 +295,7 @@ def _newton_step(columns: list[np.ndarray], r: np.ndarray, sigma: float) -> np.n
 
 
 def reweight_parabola(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray,
-                      start: ParabolaFit) -> ParabolaFit:
+                      start: ParabolaFit, pool=None) -> ParabolaFit:
     """The robust fit on all points: one Newton step of the bisquare M-estimate from a converged robust fit.
 
     The bisquare iteration converges on the subsample (every n-th point, :func:`fit_parabola` with
@@ -286,7 +303,8 @@ def reweight_parabola(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.nda
     one Newton-Raphson step of the M-estimate on all points: a one-step M-estimate (Bickel, "One-step
     Huber estimates in the linear model", JASA 1975), which agrees with iterating to convergence on all
     points to within a small fraction of its own statistical uncertainty, at the cost of one plain fit.
-    (Leverage is left out here: it is ~k/N, below 1e-5 for a full capture.)
+    (Leverage is left out here: it is ~k/N, below 1e-5 for a full capture.) *pool* (an executor) runs
+    the second slope equation beside the first (the same arithmetic on any thread).
     """
     if x.size < 10:
         raise AnalysisError(f"only {x.size} valid points: too few to fit a shape")
@@ -294,13 +312,17 @@ def reweight_parabola(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.nda
         return fit_parabola(x, y, s_x, s_y, robust=True)
     xm, ym, xc, yc = _centred(x, y)
     one = np.ones_like(xc)
+    # Both equations' columns are xc, 1 and yc: their unit-RMS scales once.
+    rms = {id(c): np.sqrt(_dot(c, c) / c.size) for c in (xc, one, yc)}
     # The start in centred coordinates: s_x = 2A xc + (C + 2A xm + E1 ym) + E1 yc, and alike for s_y.
     k0x = np.array([2.0 * start.a, start.c + 2.0 * start.a * xm + start.e1 * ym, start.e1])
     k0y = np.array([2.0 * start.b, start.d + 2.0 * start.b * ym + start.e2 * xm, start.e2])
-    rx = s_x - (k0x[0] * xc + k0x[1] + k0x[2] * yc)
-    ry = s_y - (k0y[0] * yc + k0y[1] + k0y[2] * xc)
-    kx = k0x + _newton_step([xc, one, yc], rx, start.sigma[0])
-    ky = k0y + _newton_step([yc, one, xc], ry, start.sigma[1])
+    cols_x, cols_y = [xc, one, yc], [yc, one, xc]
+    sy = None if pool is None else pool.submit(_newton_step, cols_y, s_y, k0y, start.sigma[1],
+                                               np.array([rms[id(c)] for c in cols_y]))
+    kx = k0x + _newton_step(cols_x, s_x, k0x, start.sigma[0], np.array([rms[id(c)] for c in cols_x]))
+    ky = k0y + (_newton_step(cols_y, s_y, k0y, start.sigma[1], np.array([rms[id(c)] for c in cols_y]))
+                if sy is None else sy.result())
     return _assemble(kx, ky, xm, ym, sigma=start.sigma)
 
 

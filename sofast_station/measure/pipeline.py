@@ -583,7 +583,7 @@ def fit_models(shape: Shape, design: FacetDesign, settings: AnalysisSettings, po
     s_x, s_y = shape.slopes[0], shape.slopes[1]
     cubic_task = pool.submit(fit_cubic, x, y, s_x, s_y)
     # Robust: the bisquare iteration converged on the subsample; one Newton step over every point.
-    fit = (reweight_parabola(x, y, s_x, s_y, shape.solution.fit) if settings.robust_fit
+    fit = (reweight_parabola(x, y, s_x, s_y, shape.solution.fit, pool=pool) if settings.robust_fit
            else fit_parabola(x, y, s_x, s_y))
     coeffs = fit.coefficients()
     coeffs[5] = float(design.z(*design.alignment_point_m)) - surface_z(coeffs, *design.alignment_point_m)

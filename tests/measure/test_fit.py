@@ -120,3 +120,17 @@ def test_one_weighted_pass_on_all_points_matches_iterating_on_all_points():
     assert abs(one.a / full.a - 1) < 2e-6 and abs(one.b / full.b - 1) < 2e-6
     assert abs(one.e1 - full.e1) < 1e-8 and abs(one.e2 - full.e2) < 1e-8
     assert abs(1 / (4 * one.a) / 110.0 - 1) < 1e-3 and abs(1 / (4 * one.b) / 105.0 - 1) < 1e-3
+
+
+def test_one_weighted_pass_is_the_same_on_two_threads():
+    """reweight_parabola's second equation on a pool, its terms in blocks: the same bits as in one thread."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from sofast_station.measure.fit import reweight_parabola
+
+    x, y, sx, sy = outlier_slopes(50_001, seed=5)
+    sub = fit_parabola(x[::10], y[::10], sx[::10], sy[::10], robust=True)
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        two = reweight_parabola(x, y, sx, sy, sub, pool=pool)
+    one = reweight_parabola(x, y, sx, sy, sub)
+    assert one == two and one.sigma == two.sigma
