@@ -34,6 +34,10 @@ from .surface import TrueSurface
 #: Sub-rays per edge pixel are processed in chunks of this many pixels (bounds the memory used).
 _EDGE_CHUNK_PX = 4096
 
+#: A captured frame is drawn and finished in blocks of rows of about this many pixels: a block's float32
+#: working arrays (a few hundred kB each) stay in the core's cache between passes.
+_BLOCK_PX = 96_000
+
 #: The thread that finishes half of every captured frame (shared by all twins of the process).
 _FINISHER: ThreadPoolExecutor | None = None
 _FINISHER_LOCK = threading.Lock()
@@ -536,24 +540,18 @@ class TwinStation:
         # The image's two halves are finished side by side, each with its own generator seeded from *rng*
         # (numpy releases the GIL while it draws and computes): the sensor noise dominates the frame's cost.
         seeds = rng.integers(0, 2**63, size=2) if noisy else (None, None)
+        if light is not None and noisy and optics.blur_px == 0:
+            # The signal is formed, block by block, on the box of pixels that see the screen only: outside
+            # it every pixel has its constant dark level (no light, no ambient) and its noise deviation is
+            # kept per gain. The same noise draws, the same arithmetic per pixel: the same frame as below.
+            job = (self._finish_boxed, ambient, light)
+        else:
+            # (the signal is formed in this thread's scratch frame: it is finished into *out* and dropped)
+            dn = self._linear(sample, ambient, scale, flicker, light, out=scratch_f32("twin.frame", (height, width)))
+            job = (self._finish_rows, dn)
         half = height // 2
-        if light is not None and noisy and self.optics.blur_px == 0:
-            # The signal is formed on the box of pixels that see the screen only: outside it every pixel
-            # has its constant dark level (no light, no ambient) and its noise deviation is kept per gain.
-            # The same noise draws, the same arithmetic per pixel: the same frame as the path below.
-            r0, r1, c0, c1, _ = self._seen_box
-            box = np.multiply(self._dn_per_ambient[r0:r1, c0:c1], np.float32(ambient),
-                              out=scratch_f32("twin.box", (r1 - r0, c1 - c0)))
-            box += self._dn_base[r0:r1, c0:c1]
-            box += light
-            first = self._finisher().submit(self._finish_boxed, box, out[:half], 0, seeds[0], g)
-            self._finish_boxed(box, out[half:], half, seeds[1], g)
-            first.result()
-            return out
-        # (the signal is formed in this thread's scratch frame: it is finished into *out* and dropped)
-        dn = self._linear(sample, ambient, scale, flicker, light, out=scratch_f32("twin.frame", (height, width)))
-        first = self._finisher().submit(self._finish_rows, dn[:half], out[:half], seeds[0], g)
-        self._finish_rows(dn[half:], out[half:], seeds[1], g)
+        first = self._finisher().submit(self._finish, job, out, 0, half, seeds[0], g)
+        self._finish(job, out, half, height, seeds[1], g)
         first.result()
         return out
 
@@ -565,81 +563,101 @@ class TwinStation:
                 _FINISHER = ThreadPoolExecutor(max_workers=1, thread_name_prefix="twin-frame")
             return _FINISHER
 
-    def _finish_rows(self, dn: np.ndarray, out: np.ndarray, seed, g: float) -> None:
-        """Sensor noise, knee, rounding and clipping of some rows of the linear signal *dn*, into *out*.
+    def _finish(self, job: tuple, out: np.ndarray, a: int, b: int, seed, g: float) -> None:
+        """Rows ``a .. b`` of the frame *out*: sensor noise, knee, rounding and clipping, block by block.
 
-        Noise: read noise x gain and shot noise (variance signal x gain / ``electrons_per_dn``), drawn from
-        a generator seeded with *seed* (None: no noise). Float32, in place, scratch arrays per thread.
+        A block of rows (about ``_BLOCK_PX`` pixels) is drawn and finished before the next: its working
+        arrays stay in the core's cache from one pass to the next, where a pass over a whole frame would
+        run at the speed of memory. The noise comes from a generator seeded with *seed* (None: no noise),
+        drawn block after block. *job* is ``(method, *arguments)``: :meth:`_finish_rows` or
+        :meth:`_finish_boxed`, called for each block.
         """
-        if seed is not None:
-            self._add_noise(dn, self._noise(seed, dn.shape), g)
+        width = out.shape[1]
+        step = max(1, _BLOCK_PX // max(width, 1))
+        # SFC64: the cheapest of numpy's bit generators per raw word, of the same statistical quality
+        gen = None if seed is None else np.random.Generator(np.random.SFC64(int(seed)))
+        method, *args = job
+        for start in range(a, b, step):
+            stop = min(start + step, b)
+            noise = None
+            if gen is not None:
+                n = (stop - start) * width
+                noise = standard_normal_f32(gen, n, out=scratch_f32("twin.noise", n)).reshape(stop - start, width)
+            method(*args, out, start, stop, noise, g)
+
+    def _finish_rows(self, dn: np.ndarray, out: np.ndarray, a: int, b: int, noise: np.ndarray | None,
+                     g: float) -> None:
+        """Rows ``a .. b`` of *out* from the frame's linear signal *dn* (changed in place) and their standard
+        normal *noise* (None: no noise)."""
+        if noise is None:
+            self._round(dn[a:b], out[a:b])
+        else:
+            self._noisy_round(dn[a:b], noise, out[a:b], g)
+
+    def _finish_boxed(self, ambient: float, light: np.ndarray, out: np.ndarray, a: int, b: int,
+                      noise: np.ndarray, g: float) -> None:
+        """:meth:`_finish_rows` of the rows ``a .. b`` of a frame whose signal is the cached *light* plus the
+        ambient on the seen box and the dark level elsewhere: the same noise draws and per-pixel
+        arithmetic, so the same counts."""
+        width = out.shape[1]
+        r0, r1, c0, c1, _ = self._seen_box
+        i0, i1 = min(max(r0, a), b), max(min(r1, b), a)          # the box's rows within these rows
+        # Whole rows throughout: numpy's passes over a block of whole rows are contiguous, several times
+        # faster per pixel than over the strips beside the box.
+        sigma = self._dark_sigma(g)
+        for lo, hi in ((a, i0), (i1, b)):
+            if hi > lo:
+                # rows without the box: dn + noise x sigma with dn the dark level, the sum in the other
+                # order (the same bits)
+                block = noise[lo - a:hi - a]
+                block *= sigma[lo:hi] if sigma.ndim else sigma
+                block += self._dn_base[lo:hi]
+                self._round(block, out[lo:hi])
+        if i1 > i0:
+            # the box's rows as :meth:`_linear_sharp` forms them: ambient term (zero off the facet) and dark
+            # level, plus the display's light on the box (zero on the pixels that see no screen)
+            dn = np.multiply(self._dn_per_ambient[i0:i1], np.float32(ambient),
+                             out=scratch_f32("twin.box", (i1 - i0, width)))
+            dn += self._dn_base[i0:i1]
+            dn[:, c0:c1] += light[i0 - r0:i1 - r0]
+            self._noisy_round(dn, noise[i0 - a:i1 - a], out[i0:i1], g)
+
+    def _noisy_round(self, dn: np.ndarray, noise: np.ndarray, out: np.ndarray, g: float) -> None:
+        """dn + noise x (the noise deviation at dn), then the knee, rounding and clipping into *out* (*dn*
+        and *noise* are overwritten)."""
+        noise *= self._sigma(dn, g, scratch_f32("twin.sigma", dn.shape))
+        dn += noise
         self._round(dn, out)
 
-    def _finish_boxed(self, box: np.ndarray, out: np.ndarray, row0: int, seed, g: float) -> None:
-        """:meth:`_finish_rows` of the rows ``row0 ..`` of a frame whose signal is *box* on the seen box and
-        the dark level elsewhere: the same noise draws and per-pixel arithmetic, so the same counts."""
-        noise = self._noise(seed, out.shape)
-        rows, width = out.shape
-        r0, r1, c0, c1, _ = self._seen_box
-        a, b = row0, row0 + rows
-        i0, i1 = min(max(r0, a), b), max(min(r1, b), a)          # the box's rows within these rows
-        sigma = self._dark_sigma(g)
-        for rs, cs in ((slice(a, i0), slice(0, width)), (slice(i1, b), slice(0, width)),
-                       (slice(i0, i1), slice(0, c0)), (slice(i0, i1), slice(c1, width))):
-            local = slice(rs.start - a, rs.stop - a)
-            block = noise[local, cs]
-            if block.size == 0:
-                continue
-            # dn + noise x sigma with dn the dark level: the sum in the other order (the same bits)
-            block *= sigma[rs, cs]
-            block += self._dn_base[rs, cs]
-            self._round(block, out[local, cs])
-        if i1 > i0:
-            dn = box[i0 - r0:i1 - r0]
-            self._add_noise(dn, noise[i0 - a:i1 - a, c0:c1], g)
-            self._round(dn, out[i0 - a:i1 - a, c0:c1])
+    def _sigma(self, dn: np.ndarray, g: float, out: np.ndarray) -> np.ndarray:
+        """The noise deviation at the signal *dn*, DN: sqrt(read noise^2 x gain^2 + max(dn - black level, 0)
+        x gain / ``electrons_per_dn``) (read and shot noise), into *out*; a float32 scalar when there is no
+        shot noise.
 
-    def _noise(self, seed, shape) -> np.ndarray:
-        """Standard normal deviates for *shape* pixels (raster order) from a generator seeded with *seed*:
-        Box-Muller on its raw words into this thread's scratch array (:mod:`sofast_station.twin.noise`)."""
-        n = int(np.prod(shape))
-        return standard_normal_f32(np.random.Generator(np.random.PCG64(int(seed))), n,
-                                   out=scratch_f32("twin.noise", shape))
-
-    def _add_noise(self, dn: np.ndarray, noise: np.ndarray, g: float) -> None:
-        """dn += noise x sqrt(read noise^2 + shot noise variance), in place (*noise* is overwritten)."""
+        Formed as sqrt(max(dn k + (r - b k), r)) with k = gain / electrons per DN, r the read variance and b
+        the black level: four passes (the same value as the formula, to float rounding).
+        """
         optics = self.optics
         read_var = np.float32((optics.read_noise_dn * g) ** 2)
-        if optics.electrons_per_dn > 0:
-            variance = np.subtract(dn, np.float32(optics.camera_offset_dn), out=scratch_f32("twin.variance", dn.shape))
-            np.maximum(variance, np.float32(0), out=variance)
-            # times gain / electrons per DN (a multiplication: a division costs four times as much on
-            # the frame; the noise's deviation moves by float rounding only)
-            variance *= np.float32(g / optics.electrons_per_dn)
-            variance += read_var
-            np.sqrt(variance, out=variance)
-            noise *= variance
-        else:
-            noise *= np.sqrt(read_var)
-        dn += noise
+        if optics.electrons_per_dn <= 0:
+            return np.sqrt(read_var)
+        k = np.float32(g / optics.electrons_per_dn)
+        sigma = np.multiply(dn, k, out=out)
+        sigma += np.float32(read_var - k * np.float32(optics.camera_offset_dn))
+        np.maximum(sigma, read_var, out=sigma)
+        np.sqrt(sigma, out=sigma)
+        return sigma
 
     def _dark_sigma(self, g: float) -> np.ndarray:
         """The noise deviation of every pixel at its dark level (the signal outside the seen box), DN:
-        what :meth:`_add_noise` computes there, kept per gain (float32, camera shape)."""
+        what :meth:`_sigma` computes there, kept per gain (float32, camera shape; a scalar without shot
+        noise)."""
         key = float(g)
         sigma = self._dark_sigmas.get(key)
         if sigma is None:
-            optics = self.optics
-            read_var = np.float32((optics.read_noise_dn * g) ** 2)
-            if optics.electrons_per_dn > 0:
-                sigma = np.subtract(self._dn_base, np.float32(optics.camera_offset_dn))
-                np.maximum(sigma, np.float32(0), out=sigma)
-                sigma *= np.float32(g / optics.electrons_per_dn)
-                sigma += read_var
-                np.sqrt(sigma, out=sigma)
-            else:
-                sigma = np.full(self._dn_base.shape, np.sqrt(read_var), dtype=np.float32)
-            sigma.setflags(write=False)
+            sigma = self._sigma(self._dn_base, g, np.empty(self._dn_base.shape, dtype=np.float32))
+            if sigma.ndim:
+                sigma.setflags(write=False)
             self._dark_sigmas[key] = sigma
         return sigma
 
