@@ -29,6 +29,13 @@ def check_frames(frames: np.ndarray, fringes: FringeSet, shape: tuple[int, int])
         raise CaptureError(f"frames must hold integer camera counts, got dtype {frames.dtype}")
 
 
+def _saturating(white: np.ndarray, dark: np.ndarray, threshold_dn: float) -> bool:
+    """Whether ``cv2.subtract(white, dark)`` (white - dark clipped at zero) decides ``white - dark >
+    threshold_dn`` as the true difference does: unsigned 8- or 16-bit counts of one shape, threshold >= 0."""
+    return (white.dtype == dark.dtype and white.dtype in (np.uint8, np.uint16) and white.shape == dark.shape
+            and threshold_dn >= 0)
+
+
 def check_response(dark: np.ndarray, white: np.ndarray, threshold_dn: float) -> None:
     """Something must respond to the screen: tell a dark scene from a display that shows nothing."""
     top = np.iinfo(white.dtype).max if np.issubdtype(white.dtype, np.integer) else None
@@ -47,6 +54,10 @@ def check_response(dark: np.ndarray, white: np.ndarray, threshold_dn: float) -> 
         raise FacetNotFoundError(
             f"the white frame is dark everywhere (brightest pixel {brightest} DN): no facet in view, the lens "
             "is covered or there is no light; put a facet in the fixture and check the camera")
+    # The largest white - dark: from the difference clipped at zero when that exceeds the (non-negative)
+    # threshold, as it does in every capture that shows something (one pass, no wider copies).
+    if _saturating(white, dark, threshold_dn) and int(cv2.subtract(white, dark).max()) > threshold_dn:
+        return
     diff = white.astype(np.int32) - dark.astype(np.int32)
     if int(diff.max()) <= threshold_dn:
         raise DisplayNotShowingError(
@@ -92,6 +103,17 @@ def check_saturation(stack: np.ndarray, max_fraction: float) -> None:
                 "exposure or gain (rerun the radiometric calibration), or dim the room light")
 
 
+def _masked_means(sample: np.ndarray, mask: np.ndarray, count: int) -> np.ndarray:
+    """``sample[:, mask].mean(axis=1, dtype=np.float64)`` of integer counts, the same numbers: each row's
+    sum over the mask by OpenCV (counts of up to 16 bits summed exactly, as numpy's float64 sum of
+    integers is below 2^53) divided by the count, without gathering the masked values first."""
+    if sample.dtype not in (np.uint8, np.uint16, np.int16) or sample.shape[1] * 65535 >= 2**53:
+        return sample[:, mask].mean(axis=1, dtype=np.float64)
+    m = mask.view(np.uint8).reshape(1, -1)
+    sums = [cv2.sumElems(cv2.bitwise_and(row, row, mask=m))[0] for row in sample.reshape(sample.shape[0], 1, -1)]
+    return np.array(sums, dtype=np.float64) / count
+
+
 def check_order(frames: np.ndarray, fringes: FringeSet, threshold_dn: float) -> None:
     """The dark frame must be the darkest and the white frame the brightest of the sequence.
 
@@ -105,9 +127,10 @@ def check_order(frames: np.ndarray, fringes: FringeSet, threshold_dn: float) -> 
     # The counts themselves (no float copy): the largest minus the smallest cannot wrap around.
     sample = np.ascontiguousarray(flat[:, :: max(1, flat.shape[1] // 200_000)])
     responsive = (sample.max(axis=0) - sample.min(axis=0)) > threshold_dn
-    if np.count_nonzero(responsive) < 50:
+    n_responsive = int(np.count_nonzero(responsive))
+    if n_responsive < 50:
         return
-    means = sample[:, responsive].mean(axis=1, dtype=np.float64)
+    means = _masked_means(sample, responsive, n_responsive)
     # Room light that outshines the display drowns the sequence: frame levels then follow the light's
     # flicker and drift, not the patterns, and would look like frames out of order.
     # The swing between frames includes the room light's own changes, so the bar is half of it: room

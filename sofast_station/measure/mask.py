@@ -28,8 +28,14 @@ def facet_region(dark: np.ndarray, white: np.ndarray, threshold_dn: float,
     (H, W) bool array
         Empty when nothing responds.
     """
-    wide = np.int16 if white.dtype == np.uint8 else np.int64       # no overflow for 16-bit counts
-    responsive = (white.astype(wide) - dark.astype(wide)) > threshold_dn
+    if white.dtype == dark.dtype and white.dtype in (np.uint8, np.uint16) and threshold_dn >= 0:
+        # white - dark clipped at zero (OpenCV, one pass in the counts' own type) against the threshold's
+        # whole part: for integer differences and a threshold >= 0, d > t exactly when max(d, 0) > floor(t).
+        whole = min(int(np.floor(threshold_dn)), int(np.iinfo(white.dtype).max))
+        responsive = np.greater(cv2.subtract(white, dark), whole)
+    else:
+        wide = np.int16 if white.dtype == np.uint8 else np.int64       # no overflow for 16-bit counts
+        responsive = (white.astype(wide) - dark.astype(wide)) > threshold_dn
     n, labels, stats, _ = cv2.connectedComponentsWithStats(responsive.view(np.uint8), connectivity=8)
     if n <= 1:
         return np.zeros(responsive.shape, dtype=bool)

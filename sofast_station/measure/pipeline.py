@@ -386,12 +386,28 @@ def find_region(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometr
     flat = frames.reshape(frames.shape[0], -1)
     stack = np.empty((flat.shape[0], idx.size), dtype=flat.dtype)
     half = flat.shape[0] // 2
-    # np.take is faster than [:, idx]; each half of the frames gathered on its own thread (the same values)
-    # (mode "clip" lets take write into *out* directly; every index is in range, so it clips nothing)
-    first = pool.submit(np.take, flat[:half], idx, axis=1, out=stack[:half], mode="clip")
-    np.take(flat[half:], idx, axis=1, out=stack[half:], mode="clip")
+    # Each half of the frames gathered on its own thread (the same values)
+    runs = _runs(idx)
+    first = pool.submit(_gather_runs, flat[:half], idx, runs, stack[:half])
+    _gather_runs(flat[half:], idx, runs, stack[half:])
     first.result()
     return Region(region=region, idx=idx, stack=stack, contrast=contrast.result())
+
+
+def _runs(idx: np.ndarray) -> tuple[list, list]:
+    """Where the sorted flat indices *idx* run on without a gap: (starts, ends) in *idx*, as lists."""
+    if idx.size == 0:
+        return [], []
+    breaks = np.flatnonzero(np.diff(idx) != 1) + 1
+    return [0, *breaks.tolist()], [*breaks.tolist(), int(idx.size)]
+
+
+def _gather_runs(flat: np.ndarray, idx: np.ndarray, runs: tuple[list, list], out: np.ndarray) -> None:
+    """``out[:] = flat[:, idx]`` copied run by run: a facet's pixels are a few hundred runs of whole row
+    segments, and slice copies are twice as fast as np.take's element-wise gather."""
+    for start, end in zip(*runs):
+        first = int(idx[start])
+        out[:, start:end] = flat[:, first:first + end - start]
 
 
 def measure_phases(region: Region, fringes: FringeSet, screen_size_m: tuple[float, float],
