@@ -429,7 +429,7 @@ def measure_phases(region: Region, fringes: FringeSet, screen_size_m: tuple[floa
     # Noise and display nonlinearity from the four-step residuals; the consistency check then sees the
     # residuals without the harmonic a nonlinear display adds (that is judged on its own, in the verdict).
     noise = frame_noise(*([*raw["x"][i], *raw["y"][i]] for i in range(3)),
-                        level=stack[1].astype(np.float32) - stack[0].astype(np.float32), pool=pool)
+                        level=np.subtract(stack[1], stack[0], dtype=np.float32), pool=pool)
     noise_dn = noise.frame_noise_dn
     n_x = len(raw["x"][2])
     cleaned = {"x": noise.residuals[:n_x], "y": noise.residuals[n_x:]}
