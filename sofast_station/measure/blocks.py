@@ -50,3 +50,36 @@ def blockwise(fn, *columns: np.ndarray, pool=None, block: int = BLOCK, **kwargs)
         run(head, mid)
         second.result()
     return outs
+
+
+def blocksums(fn, *columns: np.ndarray, pool=None, block: int = BLOCK, **kwargs) -> np.ndarray:
+    """The sum over consecutive blocks of the columns' last axis of ``fn(*block_columns, **kwargs)``, a
+    vector of sums over each block's points.
+
+    For sums of element-wise terms that need not be kept: the terms stay in cache. The blocks' partial
+    sums are added in block order whichever thread formed them (*pool*: the second half of the blocks
+    on it), so the result is the same bits on any number of threads; it differs from one sum over all
+    the points in the last bits only (another grouping of the same additions).
+    """
+    n = columns[0].shape[-1]
+    if block < 1:
+        raise ValueError(f"block must be at least 1, got {block}")
+    starts = list(range(0, n, block)) or [0]
+    parts: list = [None] * len(starts)
+
+    def run(lo: int, hi: int) -> None:
+        for b in range(lo, hi):
+            i = starts[b]
+            parts[b] = np.asarray(fn(*(c[..., i:i + block] for c in columns), **kwargs), dtype=np.float64)
+
+    half = len(starts) // 2
+    if pool is None or half == 0:
+        run(0, len(starts))
+    else:
+        second = pool.submit(run, half, len(starts))
+        run(0, half)
+        second.result()
+    total = parts[0].copy()
+    for p in parts[1:]:
+        total += p
+    return total

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import AnalysisError
-from .blocks import blockwise
+from .blocks import blocksums
 from .stats import median as _median
 
 
@@ -247,11 +247,12 @@ def fit_parabola(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray,
     return _assemble(kx, ky, xm, ym)
 
 
-def _newton_terms(c0: np.ndarray, c2: np.ndarray, s: np.ndarray, k0: np.ndarray, sigma: float):
-    """Element-wise part of :func:`_newton_step` for the columns (c0, 1, c2) and the start *k0*: the
-    residuals r = s - ((k0_0 c0 + k0_1) + k0_2 c2), then with u = r / (4.685 sigma), q = u^2 the bisquare's
-    w r = (1 - q)^2 r and psi' = (1 - q)(1 - 5q) (both zero for q >= 1), and c0 psi', c2 psi'.
-    Returns (w r, c0 psi', psi', c2 psi') (psi' is 1 psi' to the bit)."""
+def _newton_sums(c0: np.ndarray, c2: np.ndarray, s: np.ndarray, k0: np.ndarray, sigma: float) -> list:
+    """The sums of a Newton step of the bisquare M-estimate (:func:`reweight_parabola`) over the points
+    given, for the columns (c0, 1, c2) and the start *k0*: with the residuals r = s - ((k0_0 c0 + k0_1) +
+    k0_2 c2), u = r / (4.685 sigma), q = u^2, the bisquare's w r = (1 - q)^2 r and psi' = (1 - q)(1 - 5q)
+    (both zero for q >= 1): sum c0 wr, sum wr, sum c2 wr, then X^T diag(psi') X's sum c0 c0 psi',
+    sum c0 psi', sum c0 c2 psi', sum psi', sum c2 psi', sum c2 c2 psi'."""
     r = np.multiply(k0[0], c0)
     r += k0[1]
     tmp = np.multiply(k0[2], c2)
@@ -266,28 +267,26 @@ def _newton_terms(c0: np.ndarray, c2: np.ndarray, s: np.ndarray, k0: np.ndarray,
     dpsi = np.multiply(q, -5.0, out=q)
     dpsi += 1.0
     dpsi *= one_q
-    return wr, np.multiply(c0, dpsi, out=one_q), dpsi, np.multiply(c2, dpsi, out=r)
+    d0, d2 = np.multiply(c0, dpsi, out=one_q), np.multiply(c2, dpsi, out=r)
+    return [_dot(c0, wr), float(np.sum(wr)), _dot(c2, wr), _dot(d0, c0), float(np.sum(d0)), _dot(d0, c2),
+            float(np.sum(dpsi)), float(np.sum(d2)), _dot(d2, c2)]
 
 
-def _newton_step(columns: list[np.ndarray], target: np.ndarray, k0: np.ndarray, sigma: float, scale: np.ndarray,
-                 pool=None) -> np.ndarray:
-    """The Newton step (X^T diag(psi') X)^-1 X^T (w r) of the bisquare M-estimate at the residuals of the
-    start *k0* for the columns (c0, 1, c2).
+def _reweight_sums(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray, xm: float, ym: float,
+                   k0x: np.ndarray, k0y: np.ndarray, sigma: tuple) -> np.ndarray:
+    """Over the points given: sum xc^2, sum yc^2 (xc = x - xm, yc = y - ym), then :func:`_newton_sums` of
+    the x equation (columns xc, 1, yc) and of the y equation (yc, 1, xc)."""
+    xc, yc = np.subtract(x, xm), np.subtract(y, ym)
+    return np.array([_dot(xc, xc), _dot(yc, yc), *_newton_sums(xc, yc, s_x, k0x, sigma[0]),
+                     *_newton_sums(yc, xc, s_y, k0y, sigma[1])])
 
-    With u = r / (4.685 sigma), q = u^2: the bisquare weight is w = (1 - q)^2 and the derivative of
-    psi(r) = w r is psi' = (1 - q)(1 - 5q) (both zero for q >= 1). The element-wise terms are formed in
-    cache-sized blocks (:func:`~sofast_station.measure.blocks.blockwise`, on *pool* too); sums are
-    einsum dot products as in :func:`solve_normal_equations`, over columns scaled to unit RMS
-    (*scale*, the columns' RMS values).
-    """
-    wr, *dcols = blockwise(_newton_terms, columns[0], columns[2], target, pool=pool, k0=k0, sigma=sigma)
-    k = len(columns)
-    gram = np.empty((k, k))
-    rhs = np.empty(k)
-    for i in range(k):
-        rhs[i] = _dot(columns[i], wr) / scale[i]
-        for j in range(i, k):
-            gram[i, j] = gram[j, i] = _dot(dcols[i], columns[j]) / (scale[i] * scale[j])
+
+def _newton_solve(sums: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """The Newton step (X^T diag(psi') X)^-1 X^T (w r) from :func:`_newton_sums`, the columns scaled to unit
+    RMS (*scale*, their RMS values) as in :func:`solve_normal_equations`."""
+    rhs = sums[:3] / scale
+    g = sums[3:]                      # (0,0) (0,1) (0,2) (1,1) (1,2) (2,2)
+    gram = np.array([[g[0], g[1], g[2]], [g[1], g[3], g[4]], [g[2], g[4], g[5]]]) / np.outer(scale, scale)
     if not np.all(np.linalg.eigvalsh(gram) > 1e-12 * np.abs(gram).max()):
         raise AnalysisError("the robust fit's last step is not a minimum: too many points lie far from the "
                             "subsample's fit; check the capture (or use the plain fit)")
@@ -303,26 +302,26 @@ def reweight_parabola(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.nda
     one Newton-Raphson step of the M-estimate on all points: a one-step M-estimate (Bickel, "One-step
     Huber estimates in the linear model", JASA 1975), which agrees with iterating to convergence on all
     points to within a small fraction of its own statistical uncertainty, at the cost of one plain fit.
-    (Leverage is left out here: it is ~k/N, below 1e-5 for a full capture.) *pool* (an executor) runs
-    the second slope equation beside the first (the same arithmetic on any thread).
+    (Leverage is left out here: it is ~k/N, below 1e-5 for a full capture.)
+
+    Both equations' terms and sums are formed in one pass, block by block in cache
+    (:func:`~sofast_station.measure.blocks.blocksums`; *pool*, an executor, takes half of the blocks):
+    the same bits on any number of threads, and the same fit as one sum over all points but for the
+    sums' last bits.
     """
     if x.size < 10:
         raise AnalysisError(f"only {x.size} valid points: too few to fit a shape")
     if start.sigma is None or not all(np.isfinite(start.sigma)):
         return fit_parabola(x, y, s_x, s_y, robust=True)
-    xm, ym, xc, yc = _centred(x, y)
-    one = np.ones_like(xc)
-    # Both equations' columns are xc, 1 and yc: their unit-RMS scales once.
-    rms = {id(c): np.sqrt(_dot(c, c) / c.size) for c in (xc, one, yc)}
+    xm = float(np.sum(x) / x.size)
+    ym = float(np.sum(y) / y.size)
     # The start in centred coordinates: s_x = 2A xc + (C + 2A xm + E1 ym) + E1 yc, and alike for s_y.
     k0x = np.array([2.0 * start.a, start.c + 2.0 * start.a * xm + start.e1 * ym, start.e1])
     k0y = np.array([2.0 * start.b, start.d + 2.0 * start.b * ym + start.e2 * xm, start.e2])
-    cols_x, cols_y = [xc, one, yc], [yc, one, xc]
-    sy = None if pool is None else pool.submit(_newton_step, cols_y, s_y, k0y, start.sigma[1],
-                                               np.array([rms[id(c)] for c in cols_y]))
-    kx = k0x + _newton_step(cols_x, s_x, k0x, start.sigma[0], np.array([rms[id(c)] for c in cols_x]))
-    ky = k0y + (_newton_step(cols_y, s_y, k0y, start.sigma[1], np.array([rms[id(c)] for c in cols_y]))
-                if sy is None else sy.result())
+    sums = blocksums(_reweight_sums, x, y, s_x, s_y, pool=pool, xm=xm, ym=ym, k0x=k0x, k0y=k0y, sigma=start.sigma)
+    rms_x, rms_y = np.sqrt(sums[0] / x.size), np.sqrt(sums[1] / x.size)
+    kx = k0x + _newton_solve(sums[2:11], np.array([rms_x, 1.0, rms_y]))
+    ky = k0y + _newton_solve(sums[11:20], np.array([rms_y, 1.0, rms_x]))
     return _assemble(kx, ky, xm, ym, sigma=start.sigma)
 
 
