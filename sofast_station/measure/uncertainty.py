@@ -728,9 +728,9 @@ def solve_poses_batch(corners_px: np.ndarray, points: np.ndarray, matrix: np.nda
 
 def pose_draws(corners_px: np.ndarray, corner_factor: np.ndarray, geometry, inputs: InputUncertainties,
                draws: int = POSE_DRAWS, seed: int = 12) -> dict:
-    """The inputs :func:`pose_monte_carlo` draws: *corners_px* (n, 2) moved by ``corner_factor @ z``
+    """The inputs :func:`pose_monte_carlo` draws: the noise of the *corners_px* (n, 2), ``corner_factor @ z``
     (C = M M^T, the corners' covariance in pixels squared), the camera's focal lengths, principal point and
-    distortion, the fixture pose and the measured distance from *inputs*.
+    distortion, the fixture pose and the measured distance's error from *inputs*.
 
     Standard normal draws, each input's column moment-matched (mean 0, standard deviation 1 exactly): the
     same draws serve every capture (fixed *seed*), so their sampling error would otherwise be one common
@@ -739,9 +739,9 @@ def pose_draws(corners_px: np.ndarray, corner_factor: np.ndarray, geometry, inpu
     Returns
     -------
     dict of arrays over the draws
-        ``corners_px`` (draws, n, 2), ``matrix`` (draws, 3, 3), ``distortion`` (draws, 5),
-        ``fixture_rotation`` (draws, 3, 3) and ``fixture_translation`` (draws, 3) of the fixture-to-camera
-        pose, ``distance_m`` (draws,): the change of the measured distance, metres.
+        ``corner_noise_px`` (draws, n, 2), the camera's ``matrix`` (draws, 3, 3) and ``distortion``
+        (draws, 5), ``fixture_rotation`` (draws, 3, 3) and ``fixture_translation`` (draws, 3) of the
+        fixture-to-camera pose, ``distance_m`` (draws,): the measured distance's error, metres.
     """
     rng = np.random.default_rng(seed)
     corners = np.asarray(corners_px, np.float64)
@@ -755,7 +755,7 @@ def pose_draws(corners_px: np.ndarray, corner_factor: np.ndarray, geometry, inpu
     k[:, (0, 1, 0, 1), (0, 1, 2, 2)] += z_k * u_k
     # The fixture moved by a small motion (fixture_to_camera.compose(small_motion(...))), on arrays.
     d_rot = _rotation_batch(1e-3 * z_f[:, :3] * np.asarray(inputs.fixture_rotation_mrad))
-    return {"corners_px": corners[None] + (z_c @ np.asarray(corner_factor).T).reshape(draws, *corners.shape),
+    return {"corner_noise_px": (z_c @ np.asarray(corner_factor).T).reshape(draws, *corners.shape),
             "matrix": k, "distortion": cam.distortion[None] + z_d * np.asarray(inputs.camera_distortion)[None],
             "fixture_rotation": fix0.rotation @ d_rot,
             "fixture_translation": (fix0.rotation @ (1e-3 * z_f[:, 3:] * np.asarray(inputs.fixture_translation_mm)).T).T
@@ -765,43 +765,50 @@ def pose_draws(corners_px: np.ndarray, corner_factor: np.ndarray, geometry, inpu
 
 def pose_monte_carlo(reduction, *, geometry, design, measured_distance_m: float, settings,
                      inputs: InputUncertainties, draws: int = POSE_DRAWS, seed: int = 12) -> dict:
-    """Mean squared change of the corner-pose figures (boresight, placement) when the inputs the corner
-    pose depends on are drawn from their distributions (GUM Supplement 1): the corners from their
+    """Mean squared error of the corner-pose figures (boresight, placement) when the inputs the corner
+    pose depends on are drawn from their distributions (GUM Supplement 1): the corners' noise from their
     covariance (``corner_cov_px2``), the camera's focal lengths, principal point and distortion, the
-    fixture pose and the measured distance from ``[uncertainty]``.
+    fixture pose and the measured distance's error from ``[uncertainty]``.
 
     Why not the finite differences of :func:`sensitivities`: the pose of a nearly frontal facet from its
     corners is far from linear at the scale of these uncertainties (on the 400 x 300 twin its rotation
     about y moves by -3.2 mrad for f_x - f_y = +1 px and +2.5 mrad for -1 px, and the slope itself shifts
     with the corners' own noise), so a sensitivity taken at one point, once per geometry, made U of the
     rotation about y cover 91 % of the errors instead of 95 %. All draws' 4-point poses are solved at once
-    (:func:`solve_poses_batch`, 21 ms of CPU for the 400 solves against 113 ms for OpenCV's solvePnP
-    one at a time), so it is drawn for every capture, with its own corner covariance, about the
-    expected pose (the design corners where the fixture's nominal pose puts them; GUM 5.1.3). Not about
-    the capture's found corners: their own noise moves that point towards the near-frontal pose's two-fold
-    ambiguity, where the pose turns fastest, and U then scattered from 3 to 13 mrad between captures of
-    the same facet and covered 88-91 %. A fixed seed and moment-matched draws keep the result the same
-    for the same capture and free of a common sampling bias.
+    (:func:`solve_poses_batch`, about 20 ms of CPU for the 400 solves against 113 ms for OpenCV's solvePnP
+    one at a time), so it is drawn for every capture, with its own corner covariance, at the expected
+    pose (the facet where the fixture's nominal pose puts it; GUM 5.1.3). Not at the capture's found
+    corners: their own noise moves that point towards the near-frontal pose's two-fold ambiguity, where
+    the pose turns fastest, and U then scattered from 3 to 13 mrad between captures of the same facet and
+    covered 88-91 %. A fixed seed and moment-matched draws keep the result the same for the same capture
+    and free of a common sampling bias.
+
+    Each draw is the measurement itself: the facet at the expected pose in the drawn fixture, photographed
+    by the drawn camera (its corners projected through the drawn intrinsics and distortion, plus the drawn
+    corner noise), its distance read with the drawn error; the analysis's corner pose from those corners
+    with the nominal camera, range-fixed with that distance, and its placement in the nominal fixture;
+    the error is against the draw's truth. (Until 2026-12-02 the draws perturbed the analysis instead:
+    nominal corners solved with the drawn camera. To first order that is the same spread, but the pose's
+    curvature in f_x - f_y then has the opposite sign, so its offset of the rotation about y, -0.6 mrad
+    on the twin, came out as +0.6 mrad; its U changed by 1-3 %.) Drawing the facet's placement in the
+    fixture as well (uniform +-1 mm, +-1 mrad on the twin) changes these U by less than 0.5 %: the pose's
+    nonlinearity is in the camera and the corners, not in where within that tolerance the facet sits.
 
     The boresight is the rotation from the corner pose to the frame the measured surface defines, which
-    does not depend on the corner pose: its change is the corner pose's rotation change (about the facet's
+    does not depend on the corner pose: its error is the corner pose's rotation error (about the facet's
     x and y), with the opposite sign.
 
     Returns
     -------
     dict
-        ``{path: (mean square change, mean square change from the corners alone)}`` for
-        :data:`POSE_PATHS`, in the figures' units squared; {} when the corners have no covariance.
+        ``{path: (mean square error, mean square error from the corners alone)}`` for :data:`POSE_PATHS`,
+        in the figures' units squared; {} when the corners have no covariance.
     """
-    from .camera import project
-
     pose0 = reduction.pose
     cov = getattr(pose0, "corner_cov_px2", None)
-    corners = np.asarray(pose0.corners_px, float)
-    if cov is None or np.shape(cov) != (corners.size, corners.size) or not np.all(np.isfinite(cov)):
+    n_corners = np.asarray(pose0.corners_px, float).size
+    if cov is None or np.shape(cov) != (n_corners, n_corners) or not np.all(np.isfinite(cov)):
         return {}
-    # At the expected pose: the design corners where the fixture's nominal pose puts them (see above).
-    corners = project(geometry.camera, geometry.fixture_to_camera, design.corners_3d())
     w, v = np.linalg.eigh(0.5 * (cov + cov.T))
     m = v * np.sqrt(np.clip(w, 0.0, None))[None, :]
     # The arithmetic of pose.solve_corner_pose, pose.fix_range and pose.placement on arrays, all draws at once.
@@ -813,9 +820,17 @@ def pose_monte_carlo(reduction, *, geometry, design, measured_distance_m: float,
     fix0 = geometry.fixture_to_camera
     cam = geometry.camera
 
-    def solve(corner_px, k, dist, distance):
-        """Poses (rotation, translation) of the draws, range-fixed; NaN where a draw has none."""
-        r, t, _ = solve_poses_batch(corner_px, corners_3d, k, dist, fix0.rotation, fix0.translation)
+    def nominal(x, n):
+        return np.repeat(np.asarray(x, np.float64)[None], n, axis=0)
+
+    def measured(true_r, true_t, k, dist, noise, distance_error):
+        """The analysis's corner pose (range-fixed, NaN where it has none) of a facet at (true_r, true_t)
+        photographed by camera (k, dist) with corner noise, its distance read with distance_error."""
+        n = true_r.shape[0]
+        corner_px = _project_batch(true_r, true_t, corners_3d, k, dist) + noise
+        distance = np.linalg.norm(true_r @ measure + true_t - centre, axis=1) + distance_error
+        r, t, _ = solve_poses_batch(corner_px, corners_3d, nominal(cam.matrix, n), nominal(cam.distortion, n),
+                                    fix0.rotation, fix0.translation)
         q = r @ measure + t                         # range fixed along the line of sight to the measure point
         u = q / np.linalg.norm(q, axis=1)[:, None]
         wv = centre - q
@@ -825,34 +840,27 @@ def pose_monte_carlo(reduction, *, geometry, design, measured_distance_m: float,
         mu = np.where(np.abs(uw - root) <= np.abs(uw + root), uw - root, uw + root)
         return r, t + mu[:, None] * u
 
-    def place(r, t, fix_r, fix_t):
-        rf = np.swapaxes(fix_r, -1, -2) @ r         # facet -> fixture
-        tf = (np.swapaxes(fix_r, -1, -2) @ ((r @ p_mid + t - fix_t)[..., None]))[..., 0] - p_mid
-        return np.column_stack([1000.0 * tf, 1000.0 * np.arctan2(rf[:, 2, 1], rf[:, 2, 2]),
+    def errors(true_r, est):
+        r, t = est
+        d = np.swapaxes(true_r, -1, -2) @ r         # the pose's rotation error, facet axes
+        rf = fix0.rotation.T @ r                    # facet -> nominal fixture: the placement reported
+        tf = (fix0.rotation.T @ (r @ p_mid + t - fix0.translation).T).T - p_mid
+        # The facet sits at the expected pose in the (drawn) fixture: its true placement is zero.
+        return np.column_stack([-1000.0 * d[:, 2, 1], -1000.0 * d[:, 0, 2], 1000.0 * tf,
+                                1000.0 * np.arctan2(rf[:, 2, 1], rf[:, 2, 2]),
                                 -1000.0 * np.arcsin(np.clip(rf[:, 2, 0], -1.0, 1.0)),
                                 1000.0 * np.arctan2(rf[:, 1, 0], rf[:, 0, 0])])
 
-    dr = pose_draws(corners, m, geometry, inputs, draws, seed)
-    # In one batch of poses: the expected pose itself, then both Monte Carlos (all inputs; the corners alone).
-    c = dr["corners_px"]
-    nominal = lambda x, n: np.repeat(np.asarray(x)[None], n, axis=0)  # noqa: E731
-    r, t = solve(np.concatenate([corners[None], c, c]),
-                 np.concatenate([nominal(cam.matrix, draws + 1), dr["matrix"]])[np.r_[0, draws + 1:2 * draws + 1,
-                                                                                       1:draws + 1]],
-                 np.concatenate([nominal(cam.distortion, 1), dr["distortion"], nominal(cam.distortion, draws)]),
-                 np.concatenate([[measured_distance_m], measured_distance_m + dr["distance_m"],
-                                 np.full(draws, measured_distance_m)]))
-    if not np.all(np.isfinite(t[0])):
-        return {}
-    r0 = r[0]
-    base = place(r[:1], t[:1], fix0.rotation[None], fix0.translation[None])[0]
-
-    def change(r, t, fix_r, fix_t):
-        d = r0.T @ r                                # the pose's rotation change, facet axes
-        return np.column_stack([-1000.0 * d[:, 2, 1], -1000.0 * d[:, 0, 2], place(r, t, fix_r, fix_t) - base])
-
-    d_all = change(r[1:draws + 1], t[1:draws + 1], dr["fixture_rotation"], dr["fixture_translation"])
-    d_corners = change(r[draws + 1:], t[draws + 1:], nominal(fix0.rotation, draws), nominal(fix0.translation, draws))
+    dr = pose_draws(np.zeros((n_corners // 2, 2)), m, geometry, inputs, draws, seed)
+    # In one batch of poses: all inputs drawn, then the corners alone.
+    true_r = np.concatenate([dr["fixture_rotation"], nominal(fix0.rotation, draws)])
+    true_t = np.concatenate([dr["fixture_translation"], nominal(fix0.translation, draws)])
+    est = measured(true_r, true_t, np.concatenate([dr["matrix"], nominal(cam.matrix, draws)]),
+                   np.concatenate([dr["distortion"], nominal(cam.distortion, draws)]),
+                   np.concatenate([dr["corner_noise_px"], dr["corner_noise_px"]]),
+                   np.concatenate([dr["distance_m"], np.zeros(draws)]))
+    err = errors(true_r, est)
+    d_all, d_corners = err[:draws], err[draws:]
     # A draw whose pose cannot be solved says nothing about the others.
     good = np.all(np.isfinite(d_all), axis=1) & np.all(np.isfinite(d_corners), axis=1)
     n = int(good.sum())
