@@ -243,8 +243,8 @@ def frame_noise(phases, modulations, residuals, level=None, pool=None) -> FrameN
         between frames changes each pixel in proportion to its brightness: with *level* that part is
         fitted too. (Not the mean of the fringe frames: a half-drawn frame would leak into it.)
     pool : executor, optional
-        Where half of the sets' cleaned residuals are formed beside the other half (each set's arithmetic
-        is the same on any thread).
+        Where half of the sets' fit samples, scatters and cleaned residuals are formed beside the other
+        half (each set's arithmetic is the same on any thread).
 
     Returns
     -------
@@ -269,12 +269,13 @@ def frame_noise(phases, modulations, residuals, level=None, pool=None) -> FrameN
         # cos 6 phi and sin 6 phi by the triple-angle formulas (cheaper than two more trigonometric calls)
         return own, [b * c2, b * s2, b * c2 * (4.0 * c2 * c2 - 3.0), b * s2 * (3.0 - 4.0 * s2 * s2)]
 
-    samples = []
-    for k in range(n_sets):
+    def sample(k):
         r = np.asarray(residuals[k]).ravel()
         stride = max(1, -(-r.size * n_sets // MAX_NOISE_SAMPLES))
         own, shared = rows(k, stride)
-        samples.append((np.stack(own), np.stack(shared), r[::stride].astype(np.float64)))
+        return np.stack(own), np.stack(shared), r[::stride].astype(np.float64)
+
+    samples = _map_halves(pool, sample, range(n_sets))
 
     def joint_fit(good):
         """One fit over the *good* sets: each its own offset (and level term), the harmonics shared. A set
@@ -300,30 +301,34 @@ def frame_noise(phases, modulations, residuals, level=None, pool=None) -> FrameN
     first_blocks: dict = {}      # each set's sums over all its samples: the same in every refit
     while True:
         harmonic, own_coefs = joint_fit(good)
-        scatter = [trimmed_std(r - _combine(harmonic, shared) - _combine(c, own))
-                   for (own, shared, r), c in zip(samples, own_coefs)]
+        scatter = _map_halves(pool, lambda k: trimmed_std(samples[k][2] - _combine(harmonic, samples[k][1])
+                                                           - _combine(own_coefs[k], samples[k][0])), range(n_sets))
         worst = max(good, key=lambda k: scatter[k])
         if len(good) == 1 or scatter[worst] <= 2.0 * min(scatter[k] for k in good):
             break
         good.remove(worst)
-    def clean(ks):
-        out = []
-        for k in ks:
-            columns = [np.asarray(a).ravel() for a in (residuals[k], phases[k], modulations[k])]
-            columns += [] if level is None else [level]
-            out.append(blockwise(_cleaned, *columns, harmonic=harmonic, own=own_coefs[k])[0])
-        return out
+    def clean(k):
+        columns = [np.asarray(a).ravel() for a in (residuals[k], phases[k], modulations[k])]
+        columns += [] if level is None else [level]
+        return blockwise(_cleaned, *columns, harmonic=harmonic, own=own_coefs[k])[0]
 
-    half = n_sets // 2 if pool is not None else 0
-    first = pool.submit(clean, range(half)) if half else None
-    rest = clean(range(half, n_sets))
-    cleaned = (first.result() if first is not None else []) + rest
+    cleaned = _map_halves(pool, clean, range(n_sets))
     # r = 4 c_2 cos(2 phi + psi): the ratio c_2 / b, signed by the cosine part (power laws have psi = 0, pi).
     ratio = 0.25 * float(np.hypot(harmonic[0], harmonic[1])) * (1.0 if harmonic[0] >= 0 else -1.0)
     noise = intensity_noise_dn(np.concatenate([_stride(cleaned[k]) for k in good]))
     return FrameNoise(noise_dn=noise, frame_noise_dn=float(np.hypot(noise, QUANTISATION_NOISE_DN)),
                       harmonic_ratio=abs(ratio), signed_harmonic_ratio=ratio,
                       phase_error_rad=phase_error_from_harmonic(ratio), residuals=cleaned)
+
+
+def _map_halves(pool, fn, items) -> list:
+    """``[fn(x) for x in items]`` with the first half of the items done on *pool* (an executor, or None)
+    beside the rest: each item's arithmetic is the same on any thread, so the same values."""
+    items = list(items)
+    half = len(items) // 2 if pool is not None else 0
+    first = pool.submit(lambda: [fn(x) for x in items[:half]]) if half else None
+    rest = [fn(x) for x in items[half:]]
+    return (first.result() if first is not None else []) + rest
 
 
 def _cleaned(residual, phase, modulation, level=None, *, harmonic: np.ndarray, own: np.ndarray) -> np.ndarray:

@@ -7,7 +7,10 @@ hardware and keeps no state, so a data dump reprocesses to the same bits.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import os
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -147,11 +150,28 @@ class _Serial:
         return False
 
 
+#: The analyses' thread pools, one per thread count, created on first use and kept for the process (with
+#: the process id that made them: a forked child has none of their threads).
+_POOLS: dict = {}
+_POOLS_LOCK = threading.Lock()
+
+
 def _pool(threads: int):
-    """A pool for independent tasks: numpy releases the GIL in its loops, so two threads use two cores."""
+    """A pool for independent tasks: numpy releases the GIL in its loops, so two threads use two cores.
+
+    A context manager giving the process's pool of *threads* workers, kept from one analysis to the next
+    (its threads are started once; leaving the ``with`` does not shut it down). Tasks never wait on other
+    tasks of the pool, so analyses in several threads of one process may share it (they queue)."""
     if threads < 1:
         raise ValueError(f"[analysis] threads must be at least 1, got {threads}")
-    return _Serial() if threads == 1 else ThreadPoolExecutor(max_workers=threads, thread_name_prefix="analyse")
+    if threads == 1:
+        return _Serial()
+    with _POOLS_LOCK:
+        pid, pool = _POOLS.get(threads, (None, None))
+        if pid != os.getpid():
+            pool = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="analyse")
+            _POOLS[threads] = (os.getpid(), pool)
+    return contextlib.nullcontext(pool)
 
 
 def _reflect(rays: np.ndarray, screen_m: np.ndarray, coeffs: np.ndarray, camera_m: np.ndarray):

@@ -224,3 +224,23 @@ def test_block_wise_unwrapping_gives_the_formulas_values():
     assert np.array_equal(res.position_m, np.where(valid, u, np.nan), equal_nan=True)
     assert (res.disagreements, res.edge_guard, res.coarse_out_of_range) == (disagree.sum(), near_edge.sum(), 0)
     assert res.edge_guard > 0 and res.disagreements > 0
+
+
+def test_noise_fit_on_two_threads_gives_the_same_bits():
+    """frame_noise with a pool (half of the sets' samples, scatters and cleaned residuals on the pool's
+    thread) gives the serial path's values, bit for bit; the analysis keeps one pool per process."""
+    from sofast_station.measure.pipeline import _pool
+
+    sets = [_quantised_sets(1.0, gamma=1.3, n=60_000, seed=s) for s in (1, 2, 3)]
+    parts = [phase_and_modulation(f) for f in sets]
+    args = ([p[0] for p in parts], [p[1] for p in parts], [p[2] for p in parts])
+    level = sets[0].mean(axis=0)
+    serial = frame_noise(*args, level=level)
+    with _pool(2) as pool:
+        threaded = frame_noise(*args, level=level, pool=pool)
+    with _pool(2) as again:
+        assert again is pool                                   # kept, not shut down
+        assert again.submit(lambda: 7).result() == 7
+    assert serial.harmonic_ratio > 0.01                         # a harmonic was fitted and removed
+    assert (threaded.noise_dn, threaded.signed_harmonic_ratio) == (serial.noise_dn, serial.signed_harmonic_ratio)
+    assert all(np.array_equal(a, b) for a, b in zip(serial.residuals, threaded.residuals))
