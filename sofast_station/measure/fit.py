@@ -384,36 +384,47 @@ def fit_cubic(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray) ->
     The slopes of every term are multiples of the six monomials of degree <= 2, so the normal equations
     are assembled from their 21 pairwise sums instead of a (2N x 9) design matrix.
     """
-    return _fit_cubic(x, y, s_x, s_y)[0]
+    return _fit_cubic(x, y, s_x, s_y)
 
 
-def fit_cubic_with_slopes(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray
-                          ) -> tuple[CubicFit, tuple[np.ndarray, np.ndarray]]:
-    """:func:`fit_cubic` and the fitted model's slopes at the same points (``fit.slopes(x, y)``, the same
-    bits), the monomials formed once for both."""
-    fit, base = _fit_cubic(x, y, s_x, s_y)
-    return fit, fit._slopes(base)
+#: The distinct sums of the monomials' pairwise products (a <= b, rows last to first, as assembled):
+#: 1 x u^2, 1 x uv, 1 x v^2 are the products u x u, u x v, v x v, so they are taken from those.
+_GRAM_PAIRS = [(a, b) for a in reversed(range(len(_BASE))) for b in range(a, len(_BASE))
+               if (a, b) not in ((0, 3), (0, 4), (0, 5))]
+_SAME = {(0, 3): (1, 1), (0, 4): (1, 2), (0, 5): (2, 2)}
 
 
-def _fit_cubic(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray) -> tuple[CubicFit, list]:
+def _cubic_sums(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray, x0: float, y0: float,
+                h: float) -> np.ndarray:
+    """Over the points given: the sums of the monomials' products (:data:`_GRAM_PAIRS`), then of each
+    monomial times s_x and times s_y, with u = (x - x0)/h, v = (y - y0)/h."""
+    u = np.subtract(x, x0)
+    u /= h
+    v = np.subtract(y, y0)
+    v /= h
+    base = _monomials(u, v)
+    return np.array([_dot(base[a], base[b]) for a, b in _GRAM_PAIRS] + [_dot(m, s_x) for m in base]
+                    + [_dot(m, s_y) for m in base])
+
+
+def _fit_cubic(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray) -> CubicFit:
     if x.size < 30:
         raise AnalysisError(f"only {x.size} valid points: too few to fit the higher-order model")
     x0 = float(np.sum(x) / x.size)
     y0 = float(np.sum(y) / y.size)
     # max |x - x0| without the temporary: rounding is monotonic, so these are the same numbers.
     h = float(max(np.max(x) - x0, x0 - np.min(x), np.max(y) - y0, y0 - np.min(y), 1e-9))
-    u, v = (x - x0) / h, (y - y0) / h
-    base = _monomials(u, v)
+    # The monomials and their sums block by block in cache (the blocks' sums added in order: one sum
+    # over all points but for the last bits).
+    sums = blocksums(_cubic_sums, x, y, s_x, s_y, x0=x0, y0=y0, h=h)
     nb = len(_BASE)
     gram_b = np.empty((nb, nb))
-    for a in reversed(range(nb)):
-        for b in range(a, nb):
-            # 1 x u^2, 1 x uv, 1 x v^2 are the products u x u, u x v, v x v (u^2 is u * u, and so on):
-            # the same sums, taken from those (formed first: the rows are summed last to first).
-            same = {(0, 3): (1, 1), (0, 4): (1, 2), (0, 5): (2, 2)}.get((a, b))
-            gram_b[a, b] = gram_b[b, a] = gram_b[same] if same else _dot(base[a], base[b])
-    rhs_x = np.array([_dot(m, s_x) for m in base])
-    rhs_y = np.array([_dot(m, s_y) for m in base])
+    for (a, b), value in zip(_GRAM_PAIRS, sums):
+        gram_b[a, b] = gram_b[b, a] = value
+    for (a, b), same in _SAME.items():
+        gram_b[a, b] = gram_b[b, a] = gram_b[same]
+    rhs_x = sums[len(_GRAM_PAIRS):len(_GRAM_PAIRS) + nb]
+    rhs_y = sums[len(_GRAM_PAIRS) + nb:]
     n = len(CUBIC_TERMS)
     gram = np.zeros((n, n))
     rhs = np.zeros(n)
@@ -436,4 +447,4 @@ def _fit_cubic(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray) -
     if np.linalg.cond(g) > 1e12:
         raise AnalysisError("the higher-order fit is ill-conditioned: the valid points cover too little of the facet")
     coef = np.linalg.solve(g, rhs / scale) / scale
-    return CubicFit(coef, x0, y0, h), base
+    return CubicFit(coef, x0, y0, h)
