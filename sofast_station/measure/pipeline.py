@@ -188,17 +188,6 @@ def _reflect_moved(rays_cam: np.ndarray, screen_cam_m: np.ndarray, to_moved: Pos
     return points, np.stack([s_x, s_y])
 
 
-def _in_halves(pool, fn, *columns: np.ndarray, **kwargs):
-    """Apply the column-wise *fn* to both halves of (3, N) *columns* on *pool* and join its outputs.
-
-    For element-wise arithmetic only: each column's result is the same bits whichever half it is in.
-    """
-    half = columns[0].shape[1] // 2
-    first = pool.submit(fn, *(c[:, :half] for c in columns), **kwargs)
-    second = fn(*(c[:, half:] for c in columns), **kwargs)
-    return tuple(np.concatenate([a, b], axis=-1) for a, b in zip(first.result(), second))
-
-
 def _phase_sets(stack: np.ndarray, sets: list[slice]):
     """Phase, modulation and consistency residual of each four-step set of one axis (gathered pixels)."""
     out = [phase_and_modulation(stack[sl]) for sl in sets]
