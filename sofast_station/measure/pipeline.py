@@ -490,14 +490,22 @@ def measure_phases(region: Region, fringes: FringeSet, screen_size_m: tuple[floa
 
 
 def screen_points_and_rays(region: Region, phases: Phases, camera, screen: ScreenModel,
-                           rays_cam: np.ndarray | None = None) -> Rays:
+                           rays_cam: np.ndarray | None = None, pool=None) -> Rays:
     """Stage 3: screen points and pixel rays in the camera frame for the pixels with a trusted position.
 
-    A measured screen model may not cover every position; those pixels are dropped.
+    A measured screen model may not cover every position; those pixels are dropped. On a *pool*, the
+    pixel rays and half of the screen points are formed beside the other half: each point and each ray
+    on its own, and the points in the same two halves on one thread or two, so the same values.
     """
+    pool = pool if pool is not None else _Serial()
     ok = phases.ok.copy()
     idx = region.idx
-    screen_cam = screen.points_camera(phases.positions_m["x"][ok], phases.positions_m["y"][ok])
+    table = rays_cam is None or (hasattr(rays_cam, "take") and not isinstance(rays_cam, np.ndarray))
+    rays_task = pool.submit(_rays_of, camera, rays_cam, idx[ok]) if table else None
+    u_x, u_y = phases.positions_m["x"][ok], phases.positions_m["y"][ok]
+    half = u_x.size // 2
+    first = pool.submit(screen.points_camera, u_x[:half], u_y[:half])
+    screen_cam = np.concatenate([first.result(), screen.points_camera(u_x[half:], u_y[half:])], axis=1)
     covered = np.all(np.isfinite(screen_cam), axis=0)
     off_model = int(np.count_nonzero(~covered))
     if off_model:
@@ -507,17 +515,24 @@ def screen_points_and_rays(region: Region, phases: Phases, camera, screen: Scree
     if vidx.size < 1000:
         raise AnalysisError(f"only {vidx.size} pixels have a valid screen position (of {idx.size} facet "
                             "pixels); check fringe contrast, exposure and the display")
-    if rays_cam is None:
-        rows, cols = np.divmod(vidx, camera.width_px)
-        rays = pixel_rays(camera, cols, rows)
-    elif hasattr(rays_cam, "take") and not isinstance(rays_cam, np.ndarray):     # a RayTable
-        rays = rays_cam.take(vidx)
+    if table:
+        rays = rays_task.result()
+        if off_model:
+            rays = rays[:, covered]
     else:
         if rays_cam.shape != (3, *camera.shape):
             raise CaptureError(f"precomputed rays have shape {rays_cam.shape}, expected {(3, *camera.shape)}")
         rays = rays_cam.reshape(3, -1)[:, vidx]
     return Rays(vidx=vidx, ok=ok, rays=rays, screen_cam_m=screen_cam, screen_centre_cam_m=screen.centre_camera(),
                 off_model=off_model)
+
+
+def _rays_of(camera, table, vidx: np.ndarray) -> np.ndarray:
+    """(3, N) unit rays of the flat pixel indices *vidx*: from the ray *table* (a RayTable) or computed."""
+    if table is None:
+        rows, cols = np.divmod(vidx, camera.width_px)
+        return pixel_rays(camera, cols, rows)
+    return table.take(vidx)
 
 
 def corners_and_pose(region: Region, rays: Rays, geometry: StationGeometry, design: FacetDesign,
@@ -795,7 +810,7 @@ def reduce_stages(frames: np.ndarray, fringes: FringeSet, geometry: StationGeome
         timer.lap("mask")
         phases = measure_phases(region, fringes, (screen.width_m, screen.height_m), settings, pixel_mask, pool)
         timer.lap("phase")
-        rays = screen_points_and_rays(region, phases, geometry.camera, screen, rays_cam)
+        rays = screen_points_and_rays(region, phases, geometry.camera, screen, rays_cam, pool)
         timer.lap("rays")
         pose = corners_and_pose(region, rays, geometry, design, measured_distance_m, settings)
         timer.lap("pose")
@@ -850,7 +865,7 @@ def rerun(reduction: Reduction, start: str, *, fringes: FringeSet, geometry: Sta
     elif phases is None:
         phases = reduction.phases
     if order <= STAGES.index("rays"):
-        rays = screen_points_and_rays(region, phases, geometry.camera, screen)
+        rays = screen_points_and_rays(region, phases, geometry.camera, screen, pool=pool)
     else:
         rays = reduction.rays
     if order <= STAGES.index("pose"):
