@@ -460,8 +460,9 @@ def measure_phases(region: Region, fringes: FringeSet, screen_size_m: tuple[floa
     offsets: dict = {"x": [], "y": []}
     for axis in ("x", "y"):
         for p, b, r, r_raw in zip(getattr(fringes, f"periods_{axis}"), raw[axis][1], cleaned[axis], raw[axis][2]):
-            min_mod = np.minimum(min_mod, b)
-            bad = np.abs(r) > cons_limit
+            np.minimum(min_mod, b, out=min_mod)
+            bad = r > cons_limit           # |r| > limit, without the absolute values' array
+            bad |= r < -cons_limit
             inconsistent_fraction[f"{axis} p={p:g}"] = float(np.count_nonzero(bad)) / idx.size
             inconsistent |= bad
             good = r_raw[~bad]     # before the fitted offsets are removed: they are what is measured here
