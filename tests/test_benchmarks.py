@@ -55,6 +55,16 @@ def test_analysis_benchmark_dump_and_opencsp_paths_quick(repo_root, small_statio
     assert "source opencsp, robust fit" in proc2.stdout and "valid pixels: 7," in proc2.stdout
 
 
+def test_robust_ratio_benchmark_quick(repo_root, small_station_toml):
+    """benchmarks/robust_ratio.py: the small station's twin capture, plain and robust in one process."""
+    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "robust_ratio.py"), "--quick", "--config",
+                           str(small_station_toml), "--source", "twin"], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    print(proc.stdout)
+    for line in ("== source twin: 400 x 300", "CPU s per analysis, median of 1", "robust/plain:", "summary:"):
+        assert line in proc.stdout
+
+
 def test_twin_render_benchmark_quick(repo_root, small_station_toml):
     proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "twin_render.py"), "--quick", "--config",
                            str(small_station_toml)], capture_output=True, text=True, timeout=600)
