@@ -1068,6 +1068,33 @@ def capture_scales(reduction, sens: Sensitivities, inputs: InputUncertainties,
     return scales
 
 
+#: Budget groups of the camera intrinsics (the Monte Carlo draws them for the corner pose only).
+CAMERA_GROUPS = ("camera focal length", "camera principal point", "camera distortion")
+
+
+def boresight_ray_path(sens: Sensitivities, contrib: np.ndarray) -> dict:
+    """The camera intrinsics' contribution (standard, mrad) to the boresight through the rays, which the
+    corner pose's Monte Carlo does not draw: ``{("boresight_mrad", a): u}``.
+
+    The boresight is the rotation from the corner pose to the frame the measured surface defines. The
+    Monte Carlo draws how the intrinsics move the corner pose; they also turn the measured surface's frame,
+    since every pixel's ray turns with them (by 1 / f per pixel of the principal point). The optical tilt
+    is that frame's tilt in the fixture, in which the corner pose's own tilt cancels, so the camera rows'
+    contributions to ``optical_tilt_mrad`` (finite differences of the whole reduction) are this path. On
+    the coverage twin (f = 3409 px) the boresight errors minus the placement rotations' follow the principal
+    point by +0.29 to +0.30 mrad per px on three seeds; the optical tilt's row is 0.293. The two paths are
+    nearly independent (the Monte Carlo's corner pose follows the principal point by 0.01-0.02 mrad per
+    px), so this adds in quadrature.
+    """
+    rows = np.array([inp.group in CAMERA_GROUPS for inp in sens.inputs])
+    out = {}
+    for a in ("x", "y"):
+        if ("optical_tilt_mrad", a) in sens.paths and rows.any():
+            j = sens.paths.index(("optical_tilt_mrad", a))
+            out[("boresight_mrad", a)] = float(np.sqrt(np.nansum(contrib[rows, j] ** 2)))
+    return out
+
+
 def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs: InputUncertainties,
             scales: np.ndarray | None = None, corner_cov: np.ndarray | None = None,
             pose_mc: dict | None = None) -> dict:
@@ -1115,11 +1142,12 @@ def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs:
         off_o = np.nansum(sens.curvature[sys_o] * (sc[sys_o] ** 2)[:, None], axis=0)
         u_sys_o2 = np.nansum(contrib[sys_o] ** 2, axis=0) + off_o ** 2
         u_rand_o2 = np.nansum(contrib[rand_o] ** 2, axis=0) + noise_col ** 2
+        rays = boresight_ray_path(sens, contrib)
         for j, p in enumerate(sens.paths):
             if p in pose_mc:
                 ms_all, ms_corners = pose_mc[p]
                 u_rand[j] = np.sqrt(ms_corners + u_rand_o2[j])
-                u[j] = max(np.sqrt(ms_all + u_sys_o2[j] + u_rand_o2[j]), u_rand[j])
+                u[j] = max(np.sqrt(ms_all + u_sys_o2[j] + u_rand_o2[j] + rays.get(p, 0.0) ** 2), u_rand[j])
     k = COVERAGE_FACTOR
     values = {p: get_path(figures, p) for p in sens.paths}
     total, random = {}, {}
@@ -1151,7 +1179,8 @@ def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs:
     if pose_mc:
         out["uncertainty_budget"]["pose_monte_carlo"] = {
             "figures": [path_name(p) for p in sens.paths if p in pose_mc], "groups": list(POSE_GROUPS),
-            "draws": POSE_DRAWS}
+            "draws": POSE_DRAWS,
+            "boresight_camera_rays": {path_name(p): _sig(v) for p, v in boresight_ray_path(sens, contrib).items()}}
     return out
 
 

@@ -336,3 +336,32 @@ def test_pose_monte_carlo_matches_the_stations_own_corner_pose(rig):
     assert ref[0] > 0.3 and ref[1] > 0.3                  # the boresight's spread is real (mrad)
     np.testing.assert_allclose(got, ref, rtol=0.025)
     assert -1.0 < errors[:, 6].mean() < -0.3               # placement rotation about y, mrad
+
+
+def test_boresight_carries_the_principal_points_turn_of_the_rays(rig, two_captures):
+    """The boresight is the rotation from the corner pose to the frame the measured surface defines; the
+    camera's principal point turns that frame too (every ray by 1 / f per pixel), which the corner pose's
+    Monte Carlo does not draw. On the twin, a camera whose principal point is 3 px off moves the boresight
+    about x by 3 / f more than the placement's rotation (the corner pose's noise is common to both), and the
+    budget adds that path (u / f for u = 1 px) to the boresight's U."""
+    cfg = rig.config
+    analyses, cache = two_captures
+    first = analyses[0].figures
+    f_px = cfg.geometry.camera.matrix[1, 1]
+    rays = first["uncertainty_budget"]["pose_monte_carlo"]["boresight_camera_rays"]
+    expected = 1000.0 * cfg.uncertainty.camera_principal_px / f_px
+    assert rays["boresight_mrad.x"] == pytest.approx(expected, rel=0.05)
+    assert rays["boresight_mrad.y"] == pytest.approx(expected, rel=0.05)
+
+    k = cfg.geometry.camera.matrix.copy()
+    k[1, 2] += 3.0
+    true = dataclasses.replace(cfg.geometry, camera=dataclasses.replace(cfg.geometry.camera, matrix=k))
+    twin = rig.twin((0.3, -0.2, 0.1), (0.2, -0.3, 0.4), geometry=true)
+    frames = rig.capture(twin, np.random.default_rng(1))
+    moved = analyse(frames, cfg.fringes, cfg.geometry, cfg.design, twin.measured_distance_m(), cfg.analysis,
+                    uncertainty=cfg.uncertainty, sensitivity_cache=cache).figures
+
+    def gap(fig):
+        return fig["boresight_mrad"]["x"] - fig["placement"]["mrad"][0]
+
+    assert gap(moved) - gap(first) == pytest.approx(3000.0 / f_px, abs=0.1)
