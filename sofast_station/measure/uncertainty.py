@@ -1109,8 +1109,9 @@ def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs:
     linear parts are then carried with their correlations, as sqrt(J^T C J) with J the sensitivities per
     pixel, split into independent rows (C = M M^T, row contributions M^T J) so the budget still adds up.
 
-    *pose_mc* (:func:`pose_monte_carlo`): for the corner-pose figures, the mean square changes it drew stand
-    for the rows of :data:`POSE_GROUPS` (the other rows are added to them in quadrature).
+    *pose_mc* (:func:`pose_monte_carlo`): for the corner-pose figures, the mean square errors it drew stand
+    for the rows of :data:`POSE_GROUPS` (the other rows are added to them in quadrature, and for the
+    boresight the camera intrinsics' path through the rays, :func:`boresight_ray_path`).
     """
     sc = np.ones(len(sens.inputs)) if scales is None else np.asarray(scales, float)
     linear = sens.linear * sc[:, None]
