@@ -775,13 +775,14 @@ def pose_monte_carlo(reduction, *, geometry, design, measured_distance_m: float,
     about y moves by -3.2 mrad for f_x - f_y = +1 px and +2.5 mrad for -1 px, and the slope itself shifts
     with the corners' own noise), so a sensitivity taken at one point, once per geometry, made U of the
     rotation about y cover 91 % of the errors instead of 95 %. All draws' 4-point poses are solved at once
-    (:func:`solve_poses_batch`, about 20 ms of CPU for the 400 solves against 113 ms for OpenCV's solvePnP
-    one at a time), so it is drawn for every capture, with its own corner covariance, at the expected
-    pose (the facet where the fixture's nominal pose puts it; GUM 5.1.3). Not at the capture's found
+    (:func:`solve_poses_batch`: 34-36 ms of CPU per facet against 95-100 ms for OpenCV's solvePnP one at a
+    time, on a quiet machine), so it is drawn for every capture, with its own corner covariance, at the
+    expected pose (the facet where the fixture's nominal pose puts it; GUM 5.1.3). Not at the capture's found
     corners: their own noise moves that point towards the near-frontal pose's two-fold ambiguity, where
     the pose turns fastest, and U then scattered from 3 to 13 mrad between captures of the same facet and
-    covered 88-91 %. A fixed seed and moment-matched draws keep the result the same for the same capture
-    and free of a common sampling bias.
+    covered 88-91 %. A fixed seed keeps the result the same for the same capture, and moment-matched draws
+    make its linear part exact; the curved, heavy-tailed rest keeps a sampling error of 5-7 % of U with 200
+    draws, common to every capture through the seed (docs/uncertainty.md).
 
     Each draw is the measurement itself: the facet at the expected pose in the drawn fixture, photographed
     by the drawn camera (its corners projected through the drawn intrinsics and distortion, plus the drawn
