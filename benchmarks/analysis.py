@@ -55,6 +55,16 @@ def rss_kb(field):
 
 spec = json.loads(sys.argv[1])
 source, robust, runs = spec["source"], spec["robust"], spec["runs"]
+
+
+def keep_memory():
+    try:
+        from sofast_station.precompute import keep_freed_memory
+    except ImportError:                         # an older checkout
+        return
+    keep_freed_memory()
+
+
 t = time.perf_counter()
 if source == "twin":
     import dataclasses
@@ -78,6 +88,7 @@ if source == "twin":
         return a.figures, a.timings_s
 elif source == "dump":
     import dataclasses
+    keep_memory()                               # what `reprocess` and `batch` workers do when they start
     from sofast_station.archive.dumps import read_dump
     from sofast_station.reanalysis.reprocess import reprocess_content
     content = read_dump(spec["dump_robust" if robust else "dump"], load_frames=True)
@@ -87,6 +98,7 @@ elif source == "dump":
             raise SystemExit("the dump's analysis was refused: " + "; ".join(res.record.get("reasons", [])))
         return res.analysis.figures, res.analysis.timings_s
 else:
+    keep_memory()                               # what `import-opencsp` does
     from sofast_station.interop.opencsp import opencsp_test_data_paths, read_opencsp
     m = read_opencsp(**opencsp_test_data_paths(spec["opencsp"]))
     def once():

@@ -401,13 +401,11 @@ def _run_local(todo: list[Path], workers: int, overrides: dict, journal: str | N
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
     from concurrent.futures.process import BrokenProcessPool
 
-    from ..station.worker import watch_parent
-
     single_thread_blas()                         # the spawned workers load numpy with BLAS on one thread
     ctx = multiprocessing.get_context("spawn")   # no inherited threads, OpenGL or HDF5 state
     # A batch ended by SIGTERM or SIGKILL cannot stop its pool: each worker exits by itself once its parent
     # is gone, instead of waiting under PID 1 for work that never comes.
-    new_pool = partial(ProcessPoolExecutor, max_workers=workers, mp_context=ctx, initializer=watch_parent,
+    new_pool = partial(ProcessPoolExecutor, max_workers=workers, mp_context=ctx, initializer=_worker_start,
                        initargs=(os.getpid(),))
     pending = deque(todo)
     deaths: dict[Path, int] = {}
@@ -452,6 +450,17 @@ def _run_local(todo: list[Path], workers: int, overrides: dict, journal: str | N
                 pool = new_pool()
     finally:
         pool.shutdown(wait=False, cancel_futures=True)
+
+
+def _worker_start(parent_pid: int) -> None:
+    """A local batch worker's start: exit with the batch (:func:`watch_parent`), and keep the memory an
+    analysis frees for the next dump's (:func:`~sofast_station.precompute.keep_freed_memory`, as the
+    station's worker does)."""
+    from ..precompute import keep_freed_memory
+    from ..station.worker import watch_parent
+
+    watch_parent(parent_pid)
+    keep_freed_memory()
 
 
 def _worker_died(d: Path, deaths: dict, suspects: set, pending: deque, on_result, alone: bool) -> None:
