@@ -1103,8 +1103,10 @@ def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs:
 
     Returns ``{"name_U": ..., "name_U_random": ..., "coverage_factor": 2, "slope_rms_noise_mrad": ...,
     "slope_rms_corrected_mrad": ..., "slope_rms_corrected_mrad_U": ..., "uncertainty_budget": ...}``.
-    The measured slope RMS's U also covers the noise's bias (the measured value minus the noise-corrected
-    one), which the measured value does not remove.
+    The measured slope RMS's U also covers the noise's bias b (the measured value minus the noise-corrected
+    one), which the measured value does not remove, as every uncorrected offset here: U = k sqrt(u^2 + b^2).
+    (Added linearly, U = k u + b, it over-stated the slope RMS x's U by about 6 % on the twin: 1000 captures
+    covered 97.3 % with U / std 2.23; in quadrature 96.0 % and 2.10.)
 
     *corner_cov* (2n x 2n, pixels squared, the corners' coordinates in budget order): the corner rows'
     linear parts are then carried with their correlations, as sqrt(J^T C J) with J the sensitivities per
@@ -1169,8 +1171,8 @@ def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs:
             corrected[m][a] = None if r is None else float(np.sqrt(max(r * r - s * s, 0.0)))
             p = ("slope_rms_mrad", m, a)
             corrected_u[m][a] = total.get(p)
-            if total.get(p) is not None and r is not None:
-                total[p] = total[p] + (r - corrected[m][a])
+            if total.get(p) is not None and r is not None:       # the noise's bias, uncorrected: in quadrature
+                total[p] = float(np.hypot(total[p], k * (r - corrected[m][a])))
     out = _nest(total, figures)
     out.update({k2 + "_random": v for k2, v in _nest(random, figures).items()})
     out["coverage_factor"] = 2
