@@ -1140,13 +1140,13 @@ def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs:
     noise_col = np.array([noise.sigma.get(p, 0.0) for p in sens.paths])
     u_rand = np.sqrt(u_cor2 + noise_col ** 2)
     u = np.sqrt(u_sys2 + u_rand ** 2)
+    rays = boresight_ray_path(sens, contrib) if pose_mc else {}
     if pose_mc:
         other = np.array([inp.group not in POSE_GROUPS for inp in sens.inputs])
         sys_o, rand_o = other & (kinds == "systematic"), other & (kinds == "random")
         off_o = np.nansum(sens.curvature[sys_o] * (sc[sys_o] ** 2)[:, None], axis=0)
         u_sys_o2 = np.nansum(contrib[sys_o] ** 2, axis=0) + off_o ** 2
         u_rand_o2 = np.nansum(contrib[rand_o] ** 2, axis=0) + noise_col ** 2
-        rays = boresight_ray_path(sens, contrib)
         for j, p in enumerate(sens.paths):
             if p in pose_mc:
                 ms_all, ms_corners = pose_mc[p]
@@ -1184,7 +1184,7 @@ def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs:
         out["uncertainty_budget"]["pose_monte_carlo"] = {
             "figures": [path_name(p) for p in sens.paths if p in pose_mc], "groups": list(POSE_GROUPS),
             "draws": POSE_DRAWS,
-            "boresight_camera_rays": {path_name(p): _sig(v) for p, v in boresight_ray_path(sens, contrib).items()}}
+            "boresight_camera_rays": {path_name(p): _sig(v) for p, v in rays.items()}}
     return out
 
 
