@@ -763,8 +763,8 @@ def pose_draws(corners_px: np.ndarray, corner_factor: np.ndarray, geometry, inpu
             "distance_m": 1e-3 * inputs.distance_mm * z_r[:, 0]}
 
 
-def pose_monte_carlo(reduction, *, geometry, design, measured_distance_m: float, settings,
-                     inputs: InputUncertainties, draws: int = POSE_DRAWS, seed: int = 12) -> dict:
+def pose_monte_carlo(reduction, *, geometry, design, inputs: InputUncertainties, draws: int = POSE_DRAWS,
+                     seed: int = 12) -> dict:
     """Mean squared error of the corner-pose figures (boresight, placement) when the inputs the corner
     pose depends on are drawn from their distributions (GUM Supplement 1): the corners' noise from their
     covariance (``corner_cov_px2``), the camera's focal lengths, principal point and distortion, the
@@ -1253,8 +1253,7 @@ def uncertainty_figures(reduction, *, fringes, geometry, design, measured_distan
         pool = cache.setdefault(("frame brightness", cache_key), deque(maxlen=FRAME_POOL_CAPTURES))
     frame = pooled_frame_brightness(*frame_brightness_dn(reduction), pool)
     response = display_response_u(reduction, inputs)
-    pose_mc = pose_monte_carlo(reduction, geometry=geometry, design=design, measured_distance_m=measured_distance_m,
-                               settings=settings, inputs=inputs)
+    pose_mc = pose_monte_carlo(reduction, geometry=geometry, design=design, inputs=inputs)
     out = combine(reduction.figures, sens, noise, inputs,
                   capture_scales(reduction, sens, inputs, frame["sigma_dn"], response["u_rad"]),
                   getattr(reduction.pose, "corner_cov_px2", None), pose_mc)

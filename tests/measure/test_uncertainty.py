@@ -316,8 +316,7 @@ def test_pose_monte_carlo_matches_the_stations_own_corner_pose(rig):
     red = SimpleNamespace(pose=SimpleNamespace(corners_px=corners, corner_cov_px2=cov),
                           rays=SimpleNamespace(screen_centre_cam_m=centre))
     draws = 120
-    mc = pose_monte_carlo(red, geometry=g, design=design, measured_distance_m=5.0, settings=cfg.analysis,
-                          inputs=cfg.uncertainty, draws=draws, seed=4)
+    mc = pose_monte_carlo(red, geometry=g, design=design, inputs=cfg.uncertainty, draws=draws, seed=4)
     w, v = np.linalg.eigh(cov)
     dr = pose_draws(corners, v * np.sqrt(w)[None, :], g, cfg.uncertainty, draws, seed=4)
     measure = np.array([*design.measure_point_m, float(design.z(*design.measure_point_m))])
