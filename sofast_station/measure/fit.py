@@ -378,15 +378,6 @@ def _monomials(u: np.ndarray, v: np.ndarray) -> list[np.ndarray]:
     return [one, u, v, u * u, u * v, v * v]
 
 
-def fit_cubic(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray) -> CubicFit:
-    """Fit the higher-order model: both slope equations stacked, with shared coefficients.
-
-    The slopes of every term are multiples of the six monomials of degree <= 2, so the normal equations
-    are assembled from their 21 pairwise sums instead of a (2N x 9) design matrix.
-    """
-    return _fit_cubic(x, y, s_x, s_y)
-
-
 #: The distinct sums of the monomials' pairwise products (a <= b, rows last to first, as assembled):
 #: 1 x u^2, 1 x uv, 1 x v^2 are the products u x u, u x v, v x v, so they are taken from those.
 _GRAM_PAIRS = [(a, b) for a in reversed(range(len(_BASE))) for b in range(a, len(_BASE))
@@ -407,7 +398,12 @@ def _cubic_sums(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray, 
                     + [_dot(m, s_y) for m in base])
 
 
-def _fit_cubic(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray) -> CubicFit:
+def fit_cubic(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray) -> CubicFit:
+    """Fit the higher-order model: both slope equations stacked, with shared coefficients.
+
+    The slopes of every term are multiples of the six monomials of degree <= 2, so the normal equations
+    are assembled from their 21 pairwise sums instead of a (2N x 9) design matrix.
+    """
     if x.size < 30:
         raise AnalysisError(f"only {x.size} valid points: too few to fit the higher-order model")
     x0 = float(np.sum(x) / x.size)
