@@ -99,15 +99,12 @@ def quantile(values, q: float) -> float:
         lo, b = (float(v) for v in _unsigned_select(a, (previous, nxt)))
     elif a.dtype.kind == "i" and a.itemsize <= 2:
         lo, b = float(_int_select(a, previous)), float(_int_select(a, nxt))
-    if a.dtype.kind in "iu" and a.itemsize <= 2:
-        gamma = virtual - float(previous)
-        diff = b - lo
-        return b - diff * (1.0 - gamma) if gamma >= 0.5 else lo + diff * gamma
-    part = np.partition(a, nxt)
-    if _nan_result(a, part[nxt:]):
-        return float("nan")
-    b = float(part[nxt])
-    lo = float(part[:nxt].max())
+    else:
+        part = np.partition(a, nxt)
+        if _nan_result(a, part[nxt:]):
+            return float("nan")
+        b = float(part[nxt])
+        lo = float(part[:nxt].max())
     gamma = virtual - float(previous)
     # numpy's _lerp: a + (b - a) gamma, or b - (b - a)(1 - gamma) when gamma >= 1/2
     diff = b - lo
