@@ -78,8 +78,25 @@ class TwinRig:
         return TwinStation(geometry if geometry is not None else self.config.geometry, self.config.design, facet,
                            self.optics)
 
-    def capture(self, twin, rng: np.random.Generator) -> np.ndarray:
-        return np.stack([twin.capture(img, rng, exposure_s=self.exposure_s, gain=self.gain) for img in self.images])
+    def capture(self, twin, rng: np.random.Generator, steady: bool = False):
+        """The capture's frames (n, rows, columns) with the noise drawn from *rng*.
+
+        With *steady*, also the same frames with the ambient light at its nominal level in every frame (the
+        same sensor noise, no frame-to-frame brightness change): ``(frames, steady frames)``. The noise of
+        the first is what it is without *steady* (the same draws from *rng*, in the same order).
+        """
+        jitter = rng is not None and twin.optics.ambient_jitter > 0
+        frames, calm = [], []
+        for img in self.images:
+            # What TwinStation.capture draws first when it draws the ambient itself: the same stream.
+            z = float(rng.standard_normal()) if jitter else None
+            if steady:
+                twin_rng = np.random.default_rng()
+                twin_rng.bit_generator.state = rng.bit_generator.state
+                calm.append(twin.capture(img, twin_rng, exposure_s=self.exposure_s, gain=self.gain,
+                                         ambient_z=0.0 if jitter else None))
+            frames.append(twin.capture(img, rng, exposure_s=self.exposure_s, gain=self.gain, ambient_z=z))
+        return (np.stack(frames), np.stack(calm)) if steady else np.stack(frames)
 
 
 #: Names of the inputs :func:`perturbed_geometry` draws, in its order (``drawn`` values).
@@ -130,14 +147,22 @@ def _flat(figures: dict, paths) -> dict:
 
 
 def run_repeats(config: StationConfig, n: int, seed: int = 0, placement: Placement = Placement(),
-                perturb_geometry: bool = False, progress=None, paths=SCALAR_PATHS) -> list[dict]:
+                perturb_geometry: bool = False, progress=None, paths=SCALAR_PATHS,
+                split_brightness: bool = False) -> list[dict]:
     """*n* repeats of the station's facet on the twin; each returns the figures, their U and U_random,
-    and the truth (flattened ``{figure name: value}`` dicts)."""
+    and the truth (flattened ``{figure name: value}`` dicts).
+
+    With *split_brightness*, each capture is also analysed with the same sensor noise and no frame-to-frame
+    change of the ambient light (:meth:`TwinRig.capture`, its own sensitivity cache and frame-brightness
+    pool): ``steady`` holds those figures, so ``figures - steady`` is the part of each error the
+    frame-to-frame brightness made, and ``U_brightness`` the budget's frame-brightness rows (k = 2) that
+    state it. The repeats themselves are the same as without it."""
     from ..twin.truth import ground_truth
 
     rig = TwinRig(config)
     rng = np.random.default_rng(seed)
     cache: dict = {}
+    steady_cache: dict = {}
     out = []
     for i in range(n):
         t0 = time.perf_counter()
@@ -146,7 +171,9 @@ def run_repeats(config: StationConfig, n: int, seed: int = 0, placement: Placeme
         geometry, distance_error = (perturbed_geometry(config.geometry, config.uncertainty, rng, drawn)
                                     if perturb_geometry else (config.geometry, 0.0))
         twin = rig.twin(*place, geometry=geometry)
-        frames = rig.capture(twin, np.random.default_rng(rng.integers(2**63)))
+        frames = rig.capture(twin, np.random.default_rng(rng.integers(2**63)), steady=split_brightness)
+        if split_brightness:
+            frames, steady_frames = frames
         distance = twin.measured_distance_m() + distance_error
         a = analyse(frames, config.fringes, config.geometry, config.design, distance, config.analysis,
                     uncertainty=config.uncertainty, sensitivity_cache=cache)
@@ -161,6 +188,15 @@ def run_repeats(config: StationConfig, n: int, seed: int = 0, placement: Placeme
                                     [p for p in paths if p[0] == "slope_rms_mrad"]),
                "placement": place, "drawn": drawn, "seconds": time.perf_counter() - t0,
                "analysis_seconds": fig["timings_s"]}
+        if split_brightness:
+            calm = analyse(steady_frames, config.fringes, config.geometry, config.design, distance, config.analysis,
+                           uncertainty=config.uncertainty, sensitivity_cache=steady_cache)
+            rec["steady"] = _flat(calm.figures, paths)
+            budget = fig["uncertainty_budget"]
+            row = next((r["contributions"] for r in budget["rows"] if r["group"] == "frame-to-frame brightness"), [])
+            stated = dict(zip(budget["figures"], row))
+            rec["U_brightness"] = {path_name(p): None if stated.get(path_name(p)) is None
+                                   else 2.0 * stated[path_name(p)] for p in paths}
         truth_fig = dict(truth)
         truth_fig["placement"] = {"mm": list(place[0]), "mrad": list(place[1])}
         for p in paths:
@@ -281,4 +317,46 @@ def coverage_table(repeats: list[dict], paths=SCALAR_PATHS) -> list[dict]:
                      "median_U": float(np.median(u)), "mean_error": float(np.mean(err)), "std_error": std,
                      "rms_error": float(np.sqrt(np.mean(err ** 2))),
                      "U_over_std": float(np.median(u) / std) if std > 0 else None})
+    return rows
+
+
+def brightness_split_table(repeats: list[dict], paths=SCALAR_PATHS) -> list[dict]:
+    """Per figure, from repeats of ``run_repeats(..., split_brightness=True)``: the part of the errors the
+    frame-to-frame brightness made (``figures - steady``) against the budget's frame-brightness rows, and
+    the rest (``steady - truth``, its RMS: U also covers offsets) against the rest of U, so that a coverage
+    run can tell a wrong budget from the spread of its own draws.
+
+    ``brightness_ratio`` is sqrt(mean((part / stated)^2)) over the repeats (1 for a right row, with a
+    sampling spread of about 1 / sqrt(2 n)), ``rest_ratio`` the rest's RMS over the median
+    of sqrt((U/2)^2 - stated^2), ``U_over_std`` median U / std(error) as in :func:`coverage_table` and
+    ``U_over_std_at_stated`` the same with each brightness part divided by ``brightness_ratio`` (the
+    brightness draws at the spread the budget states, the rest as drawn).
+    """
+    rows = []
+    for p in paths:
+        name = path_name(p)
+        part, rest, stated, u = [], [], [], []
+        for r in repeats:
+            v, t, uu = r["figures"].get(name), r["truth"].get(name), r["U"].get(name)
+            calm, ub = (r.get("steady") or {}).get(name), (r.get("U_brightness") or {}).get(name)
+            if None in (v, t, uu, calm, ub) or ub <= 0:
+                continue
+            part.append(v - calm)
+            rest.append(calm - t)
+            stated.append(ub / 2.0)
+            u.append(uu)
+        if len(part) < 2:
+            continue
+        part, rest, stated, u = (np.array(x, float) for x in (part, rest, stated, u))
+        ratio = float(np.sqrt(np.mean((part / stated) ** 2)))
+        u_rest = np.sqrt(np.clip((u / 2.0) ** 2 - stated ** 2, 0.0, None))
+        std = float(np.std(part + rest, ddof=1))
+        rest_rms = float(np.sqrt(np.mean(rest ** 2)))       # U also covers the offsets the reported value keeps
+        std_at = float(np.std(rest + part / ratio, ddof=1)) if ratio > 0 else std
+        rows.append({"figure": name, "n": int(part.size), "brightness_std": float(np.std(part, ddof=1)),
+                     "brightness_stated": float(np.median(stated)), "brightness_ratio": ratio,
+                     "rest_rms": rest_rms, "rest_stated": float(np.median(u_rest)),
+                     "rest_ratio": rest_rms / float(np.median(u_rest)) if np.median(u_rest) > 0 else None,
+                     "U_over_std": float(np.median(u) / std) if std > 0 else None,
+                     "U_over_std_at_stated": float(np.median(u) / std_at) if std_at > 0 else None})
     return rows

@@ -496,7 +496,7 @@ class TwinStation:
 
     def capture(self, display_image: np.ndarray, rng: np.random.Generator | None = None, *,
                 exposure_s: float | None = None, gain: float | None = None,
-                flicker_phase: float | None = None) -> np.ndarray:
+                flicker_phase: float | None = None, ambient_z: float | None = None) -> np.ndarray:
         """The camera frame while the display shows *display_image*.
 
         The sensor: DN = black level + (exposure / reference exposure) x gain x (the light the pixel
@@ -520,6 +520,13 @@ class TwinStation:
         flicker_phase : float or None
             Phase of the display's refresh cycle at the start of the exposure, periods (0..1); None is 0.
             Matters only for exposures that are not a whole number of refresh periods.
+        ambient_z : float or None
+            This frame's ambient jitter as a standard normal value (ambient x (1 + ``ambient_jitter`` z));
+            None draws it from *rng* when there is one. Given, it is not drawn, so the sensor noise comes
+            from the state *rng* is in: drawing z from *rng* first and passing it gives the same frame as
+            passing nothing, and ``0.0`` with a copy of that state gives the same sensor noise at the
+            nominal ambient (what the frame-to-frame brightness leaves in a figure, ``benchmarks/coverage.py
+            --split-brightness``).
 
         Returns
         -------
@@ -531,8 +538,10 @@ class TwinStation:
         flicker = self.flicker_factor(exposure_s, flicker_phase)
         sample = self._cached_sample(display_image)
         ambient = optics.ambient
-        if rng is not None and optics.ambient_jitter > 0:
-            ambient = max(0.0, ambient * (1.0 + optics.ambient_jitter * float(rng.standard_normal())))
+        if ambient_z is None and rng is not None and optics.ambient_jitter > 0:
+            ambient_z = float(rng.standard_normal())
+        if ambient_z is not None and optics.ambient_jitter > 0:
+            ambient = max(0.0, ambient * (1.0 + optics.ambient_jitter * float(ambient_z)))
         light = self._cached_light(display_image) if scale == 1.0 and flicker == 1.0 else None
         height, width = self.geometry.camera.shape
         out = np.empty((height, width), dtype=np.uint8)
