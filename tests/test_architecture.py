@@ -135,8 +135,8 @@ def check_rules(graph: Graph) -> list[str]:
 
     # 1. the math: only itself and the plain data, directly or indirectly; numpy, scipy, OpenCV; no I/O
     forbid(graph.in_unit("measure"), lambda u: u == "measure" or u in PLAIN_DATA,
-           lambda lib: lib in {"numpy", "scipy", "cv2"} or (lib in stdlib and lib not in STDLIB_IO),
-           "measure/ may import only itself, the plain-data modules, numpy, scipy, cv2 and non-I/O stdlib")
+           lambda lib: lib in {"numpy", "scipy", "cv2", "numba"} or (lib in stdlib and lib not in STDLIB_IO),
+           "measure/ may import only itself, the plain-data modules, numpy, scipy, cv2, numba and non-I/O stdlib")
     # 1b. the statistics: pure as well
     forbid(graph.in_unit("qc"), lambda u: u in {"qc", "errors"},
            lambda lib: lib in {"numpy", "scipy"} or (lib in stdlib and lib not in STDLIB_IO),

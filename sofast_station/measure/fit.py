@@ -348,15 +348,20 @@ class CubicFit:
         u, v = (x - self.x0) / self.h, (y - self.y0) / self.h
         return self._slopes([None, u, v, u * u, u * v, v * v])
 
-    def _slopes(self, base: list) -> tuple[np.ndarray, np.ndarray]:
-        """The slopes from the monomials (1), u, v, u^2, uv, v^2 of the points (``base[0]`` unused)."""
-        # Each slope is a quadratic in (u, v): its six coefficients first, then one pass per monomial.
+    def slope_coefficients(self) -> tuple[np.ndarray, np.ndarray]:
+        """Each slope (dz/dx, dz/dy) as a quadratic in (u, v): its coefficients of 1, u, v, u^2, uv, v^2."""
         cx, cy = np.zeros(len(_BASE)), np.zeros(len(_BASE))
         for c, (i, j) in zip(self.coefficients, CUBIC_TERMS):
             if i:
                 cx[_BASE.index((i - 1, j))] += c * i / self.h
             if j:
                 cy[_BASE.index((i, j - 1))] += c * j / self.h
+        return cx, cy
+
+    def _slopes(self, base: list) -> tuple[np.ndarray, np.ndarray]:
+        """The slopes from the monomials (1), u, v, u^2, uv, v^2 of the points (``base[0]`` unused)."""
+        # Each slope is a quadratic in (u, v): its six coefficients first, then one pass per monomial.
+        cx, cy = self.slope_coefficients()
         u = base[1]
         out = []
         for coef in (cx, cy):

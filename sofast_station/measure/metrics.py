@@ -11,6 +11,16 @@ import numpy as np
 FLAT_CURVATURE_PER_M = 4e-9
 
 
+def arctan(x: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """Arctangent, radians: the compiled :func:`~.kernels.atan` for 1-D float64 arrays, numpy's otherwise."""
+    x = np.asarray(x)
+    if x.ndim == 1 and x.dtype == np.float64 and (out is None or (out.dtype == np.float64 and out.ndim == 1
+                                                                    and out.flags.c_contiguous)):
+        from .kernels import atan
+        return atan(x, out=out)
+    return np.arctan(x, out=out)
+
+
 def slope_residuals_mrad(s_x: np.ndarray, s_y: np.ndarray, model_x: np.ndarray, model_y: np.ndarray,
                          measured_angles: tuple[np.ndarray, np.ndarray] | None = None,
                          overwrite_model: bool = False) -> tuple[np.ndarray, np.ndarray]:
@@ -19,14 +29,15 @@ def slope_residuals_mrad(s_x: np.ndarray, s_y: np.ndarray, model_x: np.ndarray, 
     Slope units and angles differ by up to 15 % at the slopes of a gore facet, so residuals are never
     taken as slope differences. ``measured_angles`` may pass atan(s_x), atan(s_y) computed once for
     several models. With *overwrite_model* the residuals are formed in the (float64) model arrays, which
-    the caller no longer needs: the same operations, the same bits, no fresh arrays.
+    the caller no longer needs: the same operations, the same bits, no fresh arrays. The arctangents are
+    :func:`~.kernels.atan` (numpy's to 3 units in the last place, four times faster) on 1-D arrays.
     """
-    ax, ay = measured_angles if measured_angles is not None else (np.arctan(s_x), np.arctan(s_y))
+    ax, ay = measured_angles if measured_angles is not None else (arctan(s_x), arctan(s_y))
     if not overwrite_model:
-        return 1000.0 * (ax - np.arctan(model_x)), 1000.0 * (ay - np.arctan(model_y))
+        return 1000.0 * (ax - arctan(model_x)), 1000.0 * (ay - arctan(model_y))
     out = []
     for angle, model in ((ax, model_x), (ay, model_y)):
-        e = np.arctan(model, out=model)
+        e = arctan(model, out=model)
         np.subtract(angle, e, out=e)
         e *= 1000.0
         out.append(e)

@@ -68,51 +68,26 @@ def phase_and_modulation(frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, np
 
 
 def _phase_and_modulation_counts(frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`phase_and_modulation` of 8- or 16-bit counts, block by block (:func:`~.blocks.blockwise`: the
-    temporaries stay in cache), from the counts without converting whole frames.
+    """:func:`phase_and_modulation` of 8- or 16-bit counts in one compiled pass over the pixels
+    (:func:`~.kernels.phase_counts`), from the counts without converting whole frames.
 
-    The differences of whole counts are exact in float32 (formed by OpenCV straight from the counts):
+    With s = I_1 - I_3 and c = I_0 - I_2 (whole counts, exact):
 
-    * phase: with s = I_1 - I_3 and c = I_0 - I_2, ``pi - atan2(s, -c)`` is atan2(s, c) already wrapped
-      into [0, 2 pi) (s = 0 is +0 and |s| >= 1 otherwise, so neither end is reached; -c is -0 where c = 0,
-      so s = c = 0 gives 0 as atan2(0, 0) does): no masked pass. It differs from the general path's
-      ``atan2(s, c) + 2 pi`` by at most one float32 step (4.8e-7 rad, a thousandth of the phase noise of
-      1 DN on 50 DN of modulation) on some pixels: checked over every one of the 511 x 511 possible
-      8-bit (s, c);
-    * modulation: sqrt(s^2 + c^2) / 2. For 8-bit counts s^2 + c^2 < 2^24 is exact in float32, so its
-      square root is the correctly rounded hypot; for 16-bit counts the sum is exact in float64 and its
-      square root rounded to float32 is what the C library's float hypot computes: the same values;
-    * consistency: (I_0 + I_2) - (I_1 + I_3) in 16-bit (32-bit) integers, exact: the same values.
+    * phase: atan2(s, c) wrapped into [0, 2 pi), evaluated in float64 and rounded once to float32 (within
+      half a float32 step of the exact value; s = 0 gives 0 where c >= 0 and pi where c < 0). It differs
+      from the general path's float32 ``atan2(s, c) + 2 pi`` by at most one float32 step (4.8e-7 rad, a
+      thousandth of the phase noise of 1 DN on 50 DN of modulation): checked over every 8-bit (s, c);
+    * modulation: sqrt(s^2 + c^2) / 2, the sum exact in float64 and its square root rounded to float32:
+      the correctly rounded hypot, as the C library's float hypot computes it;
+    * consistency: (I_0 + I_2) - (I_1 + I_3) in integers, exact.
     """
+    from .kernels import phase_counts
+
     shape = frames.shape[1:]
     flat = np.ascontiguousarray(frames).reshape(4, -1)
-    phase, modulation, consistency = blockwise(_phase_block, flat)
+    phase, modulation, consistency = (np.empty(flat.shape[1], dtype=np.float32) for _ in range(3))
+    phase_counts(flat, phase, modulation, consistency)
     return phase.reshape(shape), modulation.reshape(shape), consistency.reshape(shape)
-
-
-def _phase_block(block: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Phase, modulation and consistency of a (4, n) block of 8- or 16-bit counts
-    (:func:`_phase_and_modulation_counts`)."""
-    import cv2
-
-    i0, i1, i2, i3 = (block[k].reshape(1, -1) for k in range(4))
-    s = cv2.subtract(i1, i3, dtype=cv2.CV_32F)                 # +0 where I_1 = I_3
-    minus_c = np.negative(cv2.subtract(i0, i2, dtype=cv2.CV_32F))   # -0 where I_0 = I_2: atan2(+0, -0) = pi
-    phase = np.arctan2(s, minus_c)
-    np.subtract(np.float32(np.pi), phase, out=phase)
-    if block.dtype == np.uint8:
-        modulation = np.multiply(s, s)
-        modulation += np.multiply(minus_c, minus_c, out=minus_c)
-        np.sqrt(modulation, out=modulation)
-        sums = cv2.CV_16S
-    else:
-        square = np.multiply(s, s, dtype=np.float64)
-        square += np.multiply(minus_c, minus_c, dtype=np.float64)
-        modulation = np.sqrt(square, out=square).astype(np.float32)
-        sums = cv2.CV_32S
-    modulation *= np.float32(0.5)
-    consistency = cv2.subtract(cv2.add(i0, i2, dtype=sums), cv2.add(i1, i3, dtype=sums), dst=s, dtype=cv2.CV_32F)
-    return phase.ravel(), modulation.ravel(), consistency.ravel()
 
 
 #: Residuals beyond this many standard deviations are trimmed from the noise variance (iteratively).

@@ -23,18 +23,17 @@ from ..fringes import FringeSet
 from ..geometry import Pose, StationGeometry
 from . import checks
 from . import corners as corners_mod
-from .blocks import blockwise
 from .camera import pixel_rays, project, to_frame
 from .boresight import Assembly, ShapeSolution, solve_shape
 from .fit import CubicFit, ParabolaFit, fit_cubic, fit_parabola, reweight_parabola
 from .mask import facet_region
-from .metrics import focal_length_m, principal_axes, rms_summary, slope_residuals_mrad
+from .metrics import focal_length_m, principal_axes, rms_summary
 from .phase import FrameNoise, frame_noise, phase_and_modulation, position_sigma_m, unwrap_positions
 from .pose import fix_range, solve_corner_pose
 from .screen import FlatScreen, ScreenModel
 from .stats import median
 from .pose import placement
-from .surface import intersect_quadratic, normal_slopes, surface_slopes_of_points, surface_z
+from .surface import surface_z
 
 
 @dataclass(frozen=True)
@@ -172,20 +171,6 @@ def _pool(threads: int):
             pool = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="analyse")
             _POOLS[threads] = (os.getpid(), pool)
     return contextlib.nullcontext(pool)
-
-
-def _reflect(rays: np.ndarray, screen_m: np.ndarray, coeffs: np.ndarray, camera_m: np.ndarray):
-    """Points on the model surface seen along *rays* and the slopes the reflection to *screen_m* gives."""
-    points = intersect_quadratic(coeffs, camera_m, rays)
-    return (points, *normal_slopes(points, camera_m, screen_m))
-
-
-def _reflect_moved(rays_cam: np.ndarray, screen_cam_m: np.ndarray, to_moved: Pose, coeffs: np.ndarray):
-    """:func:`_reflect` of camera-frame *rays_cam* and *screen_cam_m* taken into the frame *to_moved* leads
-    to: points (3, N) and slopes (2, N)."""
-    points, s_x, s_y = _reflect(to_frame(to_moved, rays_cam, translate=False), to_frame(to_moved, screen_cam_m),
-                                coeffs, to_moved.translation)
-    return points, np.stack([s_x, s_y])
 
 
 def _phase_sets(stack: np.ndarray, sets: list[slice]):
@@ -593,27 +578,19 @@ def shape_and_boresight(rays: Rays, pose: CornerPoseResult, design: FacetDesign,
                            pool=pool if settings.robust_fit else None)
     if timer is not None:
         timer.lap("iterate")
-    # Every valid pixel, taken from the camera frame straight into the boresighted facet frame, in
-    # blocks (element-wise: the same bits as on the whole arrays).
+    # Every valid pixel, taken from the camera frame straight into the boresighted facet frame, in one
+    # compiled pass (element-wise, half of the points on the pool: the same bits as numpy's chain).
+    from .kernels import halves, reflect
+
     to_moved = solution.motion.as_pose().compose(camera_to_facet)
-    points, slopes = blockwise(_reflect_moved, rays.rays, rays.screen_cam_m, pool=pool, to_moved=to_moved,
-                               coeffs=solution.coefficients)
+    n = rays.rays.shape[1]
+    points, slopes = np.empty((3, n)), np.empty((2, n))
+    halves(pool if not isinstance(pool, _Serial) else None, reflect, n, rays.rays, rays.screen_cam_m,
+           to_moved.rotation, to_moved.translation, solution.coefficients, points, slopes)
     finite = np.isfinite(slopes[0]) & np.isfinite(slopes[1])
     if not np.all(finite):
         raise AnalysisError(f"{int((~finite).sum())} pixel rays miss the fitted surface; the fit diverged")
     return Shape(solution=solution, boresighted_to_camera=to_moved.inverse(), points_m=points, slopes=slopes)
-
-
-def _model_residuals(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray, design_coeffs: np.ndarray,
-                     coeffs: np.ndarray, cubic: CubicFit) -> tuple:
-    """Slope residuals e_x, e_y (mrad) of the design, the parabola *coeffs* and the *cubic* at the points."""
-    angles = (np.arctan(s_x), np.arctan(s_y))
-    out = []
-    # (the model slopes are this function's own arrays: the residuals are formed in them)
-    for model in (surface_slopes_of_points(design_coeffs, x, y), surface_slopes_of_points(coeffs, x, y),
-                  cubic.slopes(x, y)):
-        out.extend(slope_residuals_mrad(s_x, s_y, *model, angles, overwrite_model=True))
-    return tuple(out)
 
 
 def fit_models(shape: Shape, design: FacetDesign, settings: AnalysisSettings, pool=None) -> Fits:
@@ -629,9 +606,13 @@ def fit_models(shape: Shape, design: FacetDesign, settings: AnalysisSettings, po
     coeffs = fit.coefficients()
     coeffs[5] = float(design.z(*design.alignment_point_m)) - surface_z(coeffs, *design.alignment_point_m)
     cubic = cubic_task.result()
-    # Every model's residuals in one pass over the points, in blocks (element-wise: the same bits).
-    e = blockwise(_model_residuals, x, y, s_x, s_y, pool=pool, design_coeffs=design.coefficients, coeffs=coeffs,
-                  cubic=cubic)
+    # Every model's residuals in one compiled pass over the points (half of them on the pool).
+    from .kernels import halves, model_residuals
+
+    e = np.empty((6, x.size))
+    halves(pool if not isinstance(pool, _Serial) else None, model_residuals, x.size, x, y, s_x, s_y,
+           [design.coefficients, coeffs], [cubic.x0, cubic.y0, cubic.h, *np.concatenate(cubic.slope_coefficients())],
+           e)
     residuals = {"design": e[0:2], "parabola": e[2:4], "higher_order": e[4:6]}
     return Fits(parabola=fit, coefficients=coeffs, cubic=cubic, residuals_mrad=residuals)
 
