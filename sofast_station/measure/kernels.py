@@ -67,21 +67,25 @@ def _atan_reduced(u):
 
 @numba.njit(inline="always", **_FMA)
 def _atan_unit(t):
-    """atan(t) for 0 <= t <= 1."""
+    """atan(t) for 0 <= t <= 1 (both reductions computed and one selected: no branch to mispredict)."""
     big = t > _TAN_PI_8
-    u = (t - 1.0) / (t + 1.0) if big else t
+    reduced = (t - 1.0) / (t + 1.0)
+    u = reduced if big else t
     r = _atan_reduced(u)
-    return r + _PI_4 if big else r
+    offset = _PI_4 if big else 0.0
+    return r + offset
 
 
-@numba.njit(**_FMA)
+@numba.njit(inline="always", **_FMA)
 def _atan_scalar(x):
     """atan(x), radians, for any float64 x (nan stays nan; +-inf gives +-pi/2)."""
     a = abs(x)
     inv = a > 1.0
-    t = 1.0 / a if inv else a
+    recip = 1.0 / a
+    t = recip if inv else a
     r = _atan_unit(t)
-    r = _PI_2 - r if inv else r
+    flipped = _PI_2 - r
+    r = flipped if inv else r
     return math.copysign(r, x)
 
 
@@ -138,7 +142,7 @@ def phase_counts(frames: np.ndarray, phase: np.ndarray, modulation: np.ndarray, 
 
 
 @numba.njit(**_JIT)
-def _reflect_into(lo, hi, rays, screen, rot, trans, qk, coeffs, points, slopes):
+def _reflect_into(r0, r1, r2, w0_, w1_, w2_, rot, trans, qk, coeffs, p0, p1, p2, s0, s1):
     a_ = coeffs[0]
     b_ = coeffs[1]
     e_ = coeffs[4]
@@ -146,12 +150,12 @@ def _reflect_into(lo, hi, rays, screen, rot, trans, qk, coeffs, points, slopes):
     oy = trans[1]
     oz = trans[2]
     k_x, k_y, qc = qk[0], qk[1], qk[2]
-    for j in range(lo, hi):
-        v0, v1, v2 = rays[0, j], rays[1, j], rays[2, j]
+    for j in range(r0.size):
+        v0, v1, v2 = r0[j], r1[j], r2[j]
         ux = ((rot[0, 0] * v0 + rot[0, 1] * v1) + rot[0, 2] * v2) + 0.0
         uy = ((rot[1, 0] * v0 + rot[1, 1] * v1) + rot[1, 2] * v2) + 0.0
         uz = ((rot[2, 0] * v0 + rot[2, 1] * v1) + rot[2, 2] * v2) + 0.0
-        w0, w1, w2 = screen[0, j], screen[1, j], screen[2, j]
+        w0, w1, w2 = w0_[j], w1_[j], w2_[j]
         tx = ((rot[0, 0] * w0 + rot[0, 1] * w1) + rot[0, 2] * w2) + ox
         ty = ((rot[1, 0] * w0 + rot[1, 1] * w1) + rot[1, 2] * w2) + oy
         tz = ((rot[2, 0] * w0 + rot[2, 1] * w1) + rot[2, 2] * w2) + oz
@@ -172,9 +176,9 @@ def _reflect_into(lo, hi, rays, screen, rot, trans, qk, coeffs, points, slopes):
         px = t * ux + ox
         py = t * uy + oy
         pz = t * uz + oz
-        points[0, j] = px
-        points[1, j] = py
-        points[2, j] = pz
+        p0[j] = px
+        p1[j] = py
+        p2[j] = pz
         # normal_slopes
         ax, ay, az = ox - px, oy - py, oz - pz
         bx, by, bz = tx - px, ty - py, tz - pz
@@ -183,8 +187,8 @@ def _reflect_into(lo, hi, rays, screen, rot, trans, qk, coeffs, points, slopes):
         nx = ax * lb + bx * la
         ny = ay * lb + by * la
         nz = az * lb + bz * la
-        slopes[0, j] = -(nx / nz)
-        slopes[1, j] = -(ny / nz)
+        s0[j] = -(nx / nz)
+        s1[j] = -(ny / nz)
 
 
 def reflect(rays_cam: np.ndarray, screen_cam_m: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
@@ -200,34 +204,39 @@ def reflect(rays_cam: np.ndarray, screen_cam_m: np.ndarray, rotation: np.ndarray
     ox, oy, oz = (float(v) for v in translation)
     qk = np.array([2.0 * a_ * ox + c_ + e_ * oy, 2.0 * b_ * oy + d_ + e_ * ox,
                    a_ * ox * ox + b_ * oy * oy + c_ * ox + d_ * oy + e_ * ox * oy + f_ - oz])
-    _reflect_into(lo, hi, rays_cam, screen_cam_m, np.ascontiguousarray(rotation, dtype=np.float64),
-                  np.asarray(translation, dtype=np.float64), qk, np.asarray(coeffs, dtype=np.float64), points, slopes)
+    sl = slice(lo, hi)        # (slices: a loop over 0..n-1 vectorises, one over lo..hi does not)
+    _reflect_into(*(c[sl] for c in rays_cam), *(c[sl] for c in screen_cam_m),
+                  np.ascontiguousarray(rotation, dtype=np.float64), np.asarray(translation, dtype=np.float64), qk,
+                  np.asarray(coeffs, dtype=np.float64), *(c[sl] for c in points), *(c[sl] for c in slopes))
 
 
-@numba.njit(**_JIT)
-def _residuals_into(lo, hi, x, y, s_x, s_y, lin, cubic, out):
+@numba.njit(**_FMA)
+def _residuals_into(x, y, s_x, s_y, lin, cubic, o0, o1, o2, o3, o4, o5):
     # lin: per linear model (design, parabola) 2A, C, E, 2B, D; cubic: x0, y0, h, then the x and y slopes'
-    # coefficients of 1, u, v, u^2, uv, v^2
+    # coefficients of 1, u, v, u^2, uv, v^2 (every coefficient a local: the loop reads only the points)
+    a0, c0, e0, b0, d0 = lin[0], lin[1], lin[2], lin[3], lin[4]
+    a1, c1, e1, b1, d1 = lin[5], lin[6], lin[7], lin[8], lin[9]
     x0, y0, h = cubic[0], cubic[1], cubic[2]
-    for j in range(lo, hi):
+    p0, p1, p2, p3, p4, p5 = cubic[3], cubic[4], cubic[5], cubic[6], cubic[7], cubic[8]
+    q0, q1, q2, q3, q4, q5 = cubic[9], cubic[10], cubic[11], cubic[12], cubic[13], cubic[14]
+    for j in range(x.size):
         xj = x[j]
         yj = y[j]
         ax = _atan_scalar(s_x[j])
         ay = _atan_scalar(s_y[j])
-        for m in range(2):
-            mx = (lin[5 * m] * xj + lin[5 * m + 1]) + lin[5 * m + 2] * yj
-            my = (lin[5 * m + 3] * yj + lin[5 * m + 4]) + lin[5 * m + 2] * xj
-            out[2 * m, j] = (ax - _atan_scalar(mx)) * 1000.0
-            out[2 * m + 1, j] = (ay - _atan_scalar(my)) * 1000.0
+        o0[j] = (ax - _atan_scalar((a0 * xj + c0) + e0 * yj)) * 1000.0
+        o1[j] = (ay - _atan_scalar((b0 * yj + d0) + e0 * xj)) * 1000.0
+        o2[j] = (ax - _atan_scalar((a1 * xj + c1) + e1 * yj)) * 1000.0
+        o3[j] = (ay - _atan_scalar((b1 * yj + d1) + e1 * xj)) * 1000.0
         u = (xj - x0) / h
         v = (yj - y0) / h
         uu = u * u
         uv = u * v
         vv = v * v
-        cx = ((((u * cubic[4] + cubic[3]) + v * cubic[5]) + uu * cubic[6]) + uv * cubic[7]) + vv * cubic[8]
-        cy = ((((u * cubic[10] + cubic[9]) + v * cubic[11]) + uu * cubic[12]) + uv * cubic[13]) + vv * cubic[14]
-        out[4, j] = (ax - _atan_scalar(cx)) * 1000.0
-        out[5, j] = (ay - _atan_scalar(cy)) * 1000.0
+        cx = ((((u * p1 + p0) + v * p2) + uu * p3) + uv * p4) + vv * p5
+        cy = ((((u * q1 + q0) + v * q2) + uu * q3) + uv * q4) + vv * q5
+        o4[j] = (ax - _atan_scalar(cx)) * 1000.0
+        o5[j] = (ay - _atan_scalar(cy)) * 1000.0
 
 
 def model_residuals(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray, linear: list, cubic: np.ndarray,
@@ -240,7 +249,8 @@ def model_residuals(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarr
     slopes are formed in the order of :func:`~.surface.surface_slopes_of_points` and
     :meth:`~.fit.CubicFit.slopes` (the same bits); the arctangents are :func:`atan`'s."""
     lin = np.array([v for a, b, c, d, e, _ in linear for v in (2.0 * a, c, e, 2.0 * b, d)], dtype=np.float64)
-    _residuals_into(lo, hi, x, y, s_x, s_y, lin, np.asarray(cubic, dtype=np.float64), out)
+    sl = slice(lo, hi)        # (slices: a loop over 0..n-1 vectorises, one over lo..hi does not)
+    _residuals_into(x[sl], y[sl], s_x[sl], s_y[sl], lin, np.asarray(cubic, dtype=np.float64), *(o[sl] for o in out))
 
 
 def halves(pool, fn, n: int, *args) -> None:

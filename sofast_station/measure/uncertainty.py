@@ -33,6 +33,7 @@ from .camera import to_frame
 from .metrics import principal_axes
 from .phase import position_sigma_m
 from .screen import FlatScreen
+from .stats import median
 from .surface import normal_slopes
 
 COVERAGE_FACTOR = 2.0
@@ -505,9 +506,10 @@ def noise_propagation(reduction, *, fringes, geometry, design, settings, screen=
     n_all = int(red.rays.vidx.size)
     step = max(1, n_all // max_points)
     sel = slice(None, None, step)
-    ux = red.phases.positions_m["x"][ok][sel]
-    uy = red.phases.positions_m["y"][ok][sel]
-    sig_u = {a: position_sigma_m(red.phases.finest_modulation_dn[a][ok][sel], red.phases.noise_dn,
+    take = np.flatnonzero(ok)[sel]          # the pixels of [ok][sel], without gathering every valid pixel first
+    ux = red.phases.positions_m["x"][take]
+    uy = red.phases.positions_m["y"][take]
+    sig_u = {a: position_sigma_m(red.phases.finest_modulation_dn[a][take], red.phases.noise_dn,
                                  getattr(fringes, f"periods_{a}")[-1], length)
              for a, length in zip("xy", (screen.width_m, screen.height_m))}
     # Slopes' derivative with respect to the screen position, surface point held, in the boresight frame.
@@ -953,8 +955,10 @@ def pooled_frame_brightness(own_dn: float, dof: int, pool) -> dict:
     pooled = float(np.sqrt(sum(ss for ss, _ in pool) / n))
     if len(pool) == 1:
         return own | {"pooled_dn": pooled}
-    from scipy.stats import f as f_dist
-    limit = float(f_dist.ppf(FRAME_POOL_QUANTILE, dof, max(n - dof, 1)))
+    # The F distribution's quantile (scipy.stats' f.ppf computes this very function; scipy.stats itself
+    # takes a second to import, which the first pooled capture paid)
+    from scipy.special import fdtri
+    limit = float(fdtri(dof, max(n - dof, 1), FRAME_POOL_QUANTILE))
     if pooled > 0 and own_dn ** 2 / pooled ** 2 > limit:
         return own | {"pooled_dn": pooled, "captures": len(pool)}
     return {"sigma_dn": pooled * small_sample_factor(n), "own_dn": own_dn, "pooled_dn": pooled, "dof": n,
@@ -1055,7 +1059,7 @@ def capture_scales(reduction, sens: Sensitivities, inputs: InputUncertainties,
     ok = reduction.rays.ok
     amp = {}
     for a in ("x", "y"):
-        b = float(np.median(reduction.phases.finest_modulation_dn[a][ok]))
+        b = float(median(reduction.phases.finest_modulation_dn[a][ok]))
         amp[a] = sigma_f / (np.sqrt(2.0) * max(b, 1e-9))
     for i, inp in enumerate(sens.inputs):
         if inp.group == "corner location" and per_coordinate is not None and inp.u > 0:
