@@ -25,7 +25,7 @@ from ..errors import GeometryError
 from ..facet import FacetDesign
 from ..geometry import Pose
 from .fit import ParabolaFit, fit_parabola
-from .surface import intersect_quadratic, normal_slopes, surface_slopes, surface_z
+from .surface import surface_slopes, surface_z
 
 
 def rotation_yx(alpha_rad: float, beta_rad: float) -> np.ndarray:
@@ -119,6 +119,10 @@ class ShapeSolution:
     fit: ParabolaFit | None = None
 
 
+_IDENTITY = np.eye(3)
+_ZERO = np.zeros(3)
+
+
 def _solve_t_z(assembly: Assembly, rotation_only: Motion, measure_point_m: np.ndarray, distance_m: float) -> float:
     """t_z that puts the moved screen centre *distance_m* from the measure point."""
     w = rotation_only.point(assembly.screen_centre_m) - measure_point_m
@@ -180,13 +184,18 @@ def solve_shape(assembly: Assembly, design: FacetDesign, measured_distance_m: fl
     # A robust fit's weights are iterated loosely while the assembly moves; once the loop has converged
     # it runs once more with the weights iterated to the final tolerance (which then also has to hold).
     tolerance = STEERING_TOLERANCE if robust else FINAL_TOLERANCE
+    from .kernels import reflect
+
+    n = assembly.rays.shape[1]
+    pts, slopes = np.empty((3, n)), np.empty((2, n))
     for outer in range(1, max_iterations + 1):
         motion = Motion(alpha, beta, t_z, pivot)
         moved = assembly.moved(motion)
         shape_done = False
         for inner in range(1, max_iterations + 1):
-            pts = intersect_quadratic(coeffs, moved.camera_m, moved.rays)
-            sx, sy = normal_slopes(pts, moved.camera_m, moved.screen_m)
+            # intersect_quadratic and normal_slopes in one compiled pass (the same bits)
+            reflect(moved.rays, moved.screen_m, _IDENTITY, _ZERO, coeffs, pts, slopes, 0, n, origin=moved.camera_m)
+            sx, sy = slopes
             # A robust fit starts from the previous fit's weights: the same points, moved very little.
             fit = fit_parabola(pts[0], pts[1], sx, sy, robust=robust, start=fit, pool=pool,
                                robust_tolerance=tolerance)

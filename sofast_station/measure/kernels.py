@@ -142,13 +142,14 @@ def phase_counts(frames: np.ndarray, phase: np.ndarray, modulation: np.ndarray, 
 
 
 @numba.njit(**_JIT)
-def _reflect_into(r0, r1, r2, w0_, w1_, w2_, rot, trans, qk, coeffs, p0, p1, p2, s0, s1):
+def _reflect_into(r0, r1, r2, w0_, w1_, w2_, rot, trans, origin, qk, coeffs, p0, p1, p2, s0, s1):
     a_ = coeffs[0]
     b_ = coeffs[1]
     e_ = coeffs[4]
-    ox = trans[0]
-    oy = trans[1]
-    oz = trans[2]
+    ox = origin[0]
+    oy = origin[1]
+    oz = origin[2]
+    t0, t1_, t2_ = trans[0], trans[1], trans[2]
     k_x, k_y, qc = qk[0], qk[1], qk[2]
     for j in range(r0.size):
         v0, v1, v2 = r0[j], r1[j], r2[j]
@@ -156,9 +157,9 @@ def _reflect_into(r0, r1, r2, w0_, w1_, w2_, rot, trans, qk, coeffs, p0, p1, p2,
         uy = ((rot[1, 0] * v0 + rot[1, 1] * v1) + rot[1, 2] * v2) + 0.0
         uz = ((rot[2, 0] * v0 + rot[2, 1] * v1) + rot[2, 2] * v2) + 0.0
         w0, w1, w2 = w0_[j], w1_[j], w2_[j]
-        tx = ((rot[0, 0] * w0 + rot[0, 1] * w1) + rot[0, 2] * w2) + ox
-        ty = ((rot[1, 0] * w0 + rot[1, 1] * w1) + rot[1, 2] * w2) + oy
-        tz = ((rot[2, 0] * w0 + rot[2, 1] * w1) + rot[2, 2] * w2) + oz
+        tx = ((rot[0, 0] * w0 + rot[0, 1] * w1) + rot[0, 2] * w2) + t0
+        ty = ((rot[1, 0] * w0 + rot[1, 1] * w1) + rot[1, 2] * w2) + t1_
+        tz = ((rot[2, 0] * w0 + rot[2, 1] * w1) + rot[2, 2] * w2) + t2_
         # intersect_quadratic
         qa = (ux * a_ * ux + uy * b_ * uy) + ux * e_ * uy
         qb = (ux * k_x + uy * k_y) - uz
@@ -192,21 +193,26 @@ def _reflect_into(r0, r1, r2, w0_, w1_, w2_, rot, trans, qk, coeffs, p0, p1, p2,
 
 
 def reflect(rays_cam: np.ndarray, screen_cam_m: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
-            coeffs: np.ndarray, points: np.ndarray, slopes: np.ndarray, lo: int, hi: int) -> None:
+            coeffs: np.ndarray, points: np.ndarray, slopes: np.ndarray, lo: int, hi: int,
+            origin: np.ndarray | None = None) -> None:
     """Points of the quadratic model surface *coeffs* seen along camera-frame unit rays *rays_cam* (3, N),
     and the slopes the law of reflection gives with the camera-frame screen points *screen_cam_m* (3, N),
-    both taken into the frame (*rotation*, *translation*) leads to (where the camera centre is
-    *translation*), for the columns lo:hi, into *points* (3, N, metres) and *slopes* (2, N).
+    both taken into the frame (*rotation*, *translation*) leads to, for the columns lo:hi, into *points*
+    (3, N, metres) and *slopes* (2, N). The rays start at *origin* in that frame (the camera centre; by
+    default *translation*, where the camera frame's origin goes).
 
     The arithmetic of :func:`~.camera.to_frame`, :func:`~.surface.intersect_quadratic` and
-    :func:`~.surface.normal_slopes` in the same order, in one pass: the same bits (tested)."""
+    :func:`~.surface.normal_slopes` in the same order, in one pass: the same bits (tested). With the
+    identity rotation and a zero translation, those of the last two alone."""
     a_, b_, c_, d_, e_, f_ = (float(v) for v in coeffs)
-    ox, oy, oz = (float(v) for v in translation)
+    origin = translation if origin is None else origin
+    ox, oy, oz = (float(v) for v in origin)
     qk = np.array([2.0 * a_ * ox + c_ + e_ * oy, 2.0 * b_ * oy + d_ + e_ * ox,
                    a_ * ox * ox + b_ * oy * oy + c_ * ox + d_ * oy + e_ * ox * oy + f_ - oz])
     sl = slice(lo, hi)        # (slices: a loop over 0..n-1 vectorises, one over lo..hi does not)
     _reflect_into(*(c[sl] for c in rays_cam), *(c[sl] for c in screen_cam_m),
-                  np.ascontiguousarray(rotation, dtype=np.float64), np.asarray(translation, dtype=np.float64), qk,
+                  np.ascontiguousarray(rotation, dtype=np.float64), np.asarray(translation, dtype=np.float64),
+                  np.array([ox, oy, oz]), qk,
                   np.asarray(coeffs, dtype=np.float64), *(c[sl] for c in points), *(c[sl] for c in slopes))
 
 

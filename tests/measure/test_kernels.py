@@ -114,3 +114,18 @@ def test_model_residuals_are_numpys_to_the_last_bits():
     with ThreadPoolExecutor(2) as pool:
         kernels.halves(pool, kernels.model_residuals, n, *args[:-1], again)
     np.testing.assert_array_equal(again, out)
+
+
+def test_reflect_in_place_gives_the_intersection_and_normals_bits():
+    """With the identity rotation, no translation and the camera centre as *origin* (the boresight loop's
+    use): intersect_quadratic and normal_slopes' bits."""
+    rng = np.random.default_rng(13)
+    rays, screen, pose = _random_assembly(rng, 20_000)
+    coeffs = np.array([0.047, 0.046, 0.001, -0.002, 0.0005, 0.0])
+    camera = pose.translation
+    points_ref = intersect_quadratic(coeffs, camera, rays)
+    slopes_ref = np.stack(normal_slopes(points_ref, camera, screen))
+    points, slopes = np.empty((3, rays.shape[1])), np.empty((2, rays.shape[1]))
+    kernels.reflect(rays, screen, np.eye(3), np.zeros(3), coeffs, points, slopes, 0, rays.shape[1], origin=camera)
+    np.testing.assert_array_equal(points, points_ref)
+    np.testing.assert_array_equal(slopes, slopes_ref)
