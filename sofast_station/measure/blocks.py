@@ -5,7 +5,8 @@ temporary is 4.7 MB, more than a core's cache); run on blocks of 16,384 points, 
 and write the cache instead, about twice as fast for the ray/surface and residual chains of the analysis.
 Only for element-wise functions: each point's result is then the same bits whichever block it is in, so
 :func:`blockwise` gives the same arrays as calling the function once on everything. Sums over the points
-are not element-wise (their rounding depends on the grouping) and stay outside.
+are not element-wise (their rounding depends on the grouping): the compiled kernels of ``kernels.py`` form
+them block by block and add the blocks in order.
 """
 
 from __future__ import annotations
@@ -50,36 +51,3 @@ def blockwise(fn, *columns: np.ndarray, pool=None, block: int = BLOCK, **kwargs)
         run(head, mid)
         second.result()
     return outs
-
-
-def blocksums(fn, *columns: np.ndarray, pool=None, block: int = BLOCK, **kwargs) -> np.ndarray:
-    """The sum over consecutive blocks of the columns' last axis of ``fn(*block_columns, **kwargs)``, a
-    vector of sums over each block's points.
-
-    For sums of element-wise terms that need not be kept: the terms stay in cache. The blocks' partial
-    sums are added in block order whichever thread formed them (*pool*: the second half of the blocks
-    on it), so the result is the same bits on any number of threads; it differs from one sum over all
-    the points in the last bits only (another grouping of the same additions).
-    """
-    n = columns[0].shape[-1]
-    if block < 1:
-        raise ValueError(f"block must be at least 1, got {block}")
-    starts = list(range(0, n, block)) or [0]
-    parts: list = [None] * len(starts)
-
-    def run(lo: int, hi: int) -> None:
-        for b in range(lo, hi):
-            i = starts[b]
-            parts[b] = np.asarray(fn(*(c[..., i:i + block] for c in columns), **kwargs), dtype=np.float64)
-
-    half = len(starts) // 2
-    if pool is None or half == 0:
-        run(0, len(starts))
-    else:
-        second = pool.submit(run, half, len(starts))
-        run(0, half)
-        second.result()
-    total = parts[0].copy()
-    for p in parts[1:]:
-        total += p
-    return total

@@ -1,7 +1,8 @@
 """Least-squares shape fits in slope space (docs/conventions.md#twist, #data-reduction).
 
-Every sum here is an ``np.sum`` of an element-wise product (pairwise summation on one thread), never a
-BLAS call, so a fit gives the same bits whatever the number of threads (docs/conventions.md#determinism).
+Every sum over the points is formed by the compiled kernels (measure/kernels.py: blocks of 16,384 points
+summed on their own, then added in block order) or by einsum's own loops, never a BLAS call, so a fit
+gives the same bits whatever the number of threads (docs/conventions.md#determinism).
 """
 
 from __future__ import annotations
@@ -11,52 +12,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import AnalysisError
-from .blocks import blocksums
 from .stats import median as _median
 
 
-def _dot(a: np.ndarray, b: np.ndarray) -> float:
-    """sum_i a_i b_i by einsum's own loops: one pass, no temporary, no BLAS (the same bits on any number
-    of threads)."""
-    return float(np.einsum("i,i->", a, b, optimize=False))
-
-
-def _cached_dot(sums: dict | None, a: np.ndarray, b: np.ndarray) -> float:
-    """:func:`_dot`, kept in *sums* by the two arrays' identities: a b and b a are the same products in
-    the same order, so the same bits."""
-    if sums is None:
-        return _dot(a, b)
-    key = (id(a), id(b)) if id(a) <= id(b) else (id(b), id(a))
-    value = sums.get(key)
-    if value is None:
-        value = sums[key] = _dot(a, b)
-    return value
-
-
-def solve_normal_equations(columns: list[np.ndarray], target: np.ndarray,
-                           weights: np.ndarray | None = None, sums: dict | None = None) -> np.ndarray:
-    """Coefficients k minimising sum_i w_i (sum_j k_j columns[j]_i - target_i)^2, deterministically.
-
-    Columns are scaled to unit RMS before the Gram matrix is formed, which keeps it well conditioned
-    for any sensible choice of units. Without *weights* every point weighs 1. *sums*, a dict the caller
-    keeps while its arrays live, shares the unweighted column products between fits of the same columns
-    (the paper's two slope equations use the same three), and the diagonal with the scales.
-    """
-    if weights is not None:
-        sums = None
-    scale = np.array([np.sqrt(_cached_dot(sums, c, c) / c.size) for c in columns])
-    if np.any(scale == 0) or not np.all(np.isfinite(scale)):
-        raise AnalysisError("the fit's points do not span the facet (a design column is zero or not finite); "
-                            "too few valid points")
-    # Sums of the unscaled products, scaled afterwards (the same equations as scaling the columns first).
-    wcols = columns if weights is None else [c * weights for c in columns]
-    k = len(columns)
-    gram = np.empty((k, k))
-    rhs = np.empty(k)
-    for i in range(k):
-        rhs[i] = _cached_dot(sums, wcols[i], target) / scale[i]
-        for j in range(i, k):
-            gram[i, j] = gram[j, i] = _cached_dot(sums, wcols[i], columns[j]) / (scale[i] * scale[j])
+def _solve_scaled(gram: np.ndarray, rhs: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """The normal equations from the sums of the unscaled column products *gram* and column-target
+    products *rhs*, the columns scaled to unit RMS (*scale*, their RMS values) before solving."""
+    gram = gram / np.outer(scale, scale)
+    rhs = rhs / scale
     try:
         sol = np.linalg.solve(gram, rhs)
     except np.linalg.LinAlgError:
@@ -241,49 +204,25 @@ def fit_parabola(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray,
         ky, wy, sig_y = (robust_weights([yc, one, xc], s_y, tolerance=tol, weights=wy) if second is None
                          else second.result())
         return _assemble(kx, ky, xm, ym, weights=(wx, wy), sigma=(sig_x, sig_y))
-    sums: dict = {}      # both equations' columns are xc, 1, yc: their products are summed once
-    kx = solve_normal_equations([xc, one, yc], s_x, sums=sums)      # 2A, C', E1
-    ky = solve_normal_equations([yc, one, xc], s_y, sums=sums)      # 2B, D', E2
+    # Both equations' columns are xc, 1, yc: every sum they need in one compiled pass.
+    from .kernels import parabola_sums
+
+    xx, x1, xy, yy, y1, xsx, sx1, ysx, ysy, sy1, xsy = parabola_sums(x, y, s_x, s_y, xm, ym)
+    n = float(x.size)
+    rms_x, rms_y = np.sqrt(xx / n), np.sqrt(yy / n)
+    if not (rms_x > 0 and rms_y > 0 and np.isfinite(rms_x) and np.isfinite(rms_y)):
+        raise AnalysisError("the fit's points do not span the facet (a design column is zero or not finite); "
+                            "too few valid points")
+    kx = _solve_scaled(np.array([[xx, x1, xy], [x1, n, y1], [xy, y1, yy]]), np.array([xsx, sx1, ysx]),
+                       np.array([rms_x, 1.0, rms_y]))      # 2A, C', E1
+    ky = _solve_scaled(np.array([[yy, y1, xy], [y1, n, x1], [xy, x1, xx]]), np.array([ysy, sy1, xsy]),
+                       np.array([rms_y, 1.0, rms_x]))      # 2B, D', E2
     return _assemble(kx, ky, xm, ym)
-
-
-def _newton_sums(c0: np.ndarray, c2: np.ndarray, s: np.ndarray, k0: np.ndarray, sigma: float) -> list:
-    """The sums of a Newton step of the bisquare M-estimate (:func:`reweight_parabola`) over the points
-    given, for the columns (c0, 1, c2) and the start *k0*: with the residuals r = s - ((k0_0 c0 + k0_1) +
-    k0_2 c2), u = r / (4.685 sigma), q = u^2, the bisquare's w r = (1 - q)^2 r and psi' = (1 - q)(1 - 5q)
-    (both zero for q >= 1): sum c0 wr, sum wr, sum c2 wr, then X^T diag(psi') X's sum c0 c0 psi',
-    sum c0 psi', sum c0 c2 psi', sum psi', sum c2 psi', sum c2 c2 psi'."""
-    r = np.multiply(k0[0], c0)
-    r += k0[1]
-    tmp = np.multiply(k0[2], c2)
-    r += tmp
-    np.subtract(s, r, out=r)
-    q = np.multiply(r, 1.0 / (BISQUARE_C * sigma), out=tmp)
-    q *= q
-    np.minimum(q, 1.0, out=q)
-    one_q = np.subtract(1.0, q)
-    wr = np.multiply(one_q, one_q)
-    wr *= r
-    dpsi = np.multiply(q, -5.0, out=q)
-    dpsi += 1.0
-    dpsi *= one_q
-    d0, d2 = np.multiply(c0, dpsi, out=one_q), np.multiply(c2, dpsi, out=r)
-    return [_dot(c0, wr), float(np.sum(wr)), _dot(c2, wr), _dot(d0, c0), float(np.sum(d0)), _dot(d0, c2),
-            float(np.sum(dpsi)), float(np.sum(d2)), _dot(d2, c2)]
-
-
-def _reweight_sums(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray, xm: float, ym: float,
-                   k0x: np.ndarray, k0y: np.ndarray, sigma: tuple) -> np.ndarray:
-    """Over the points given: sum xc^2, sum yc^2 (xc = x - xm, yc = y - ym), then :func:`_newton_sums` of
-    the x equation (columns xc, 1, yc) and of the y equation (yc, 1, xc)."""
-    xc, yc = np.subtract(x, xm), np.subtract(y, ym)
-    return np.array([_dot(xc, xc), _dot(yc, yc), *_newton_sums(xc, yc, s_x, k0x, sigma[0]),
-                     *_newton_sums(yc, xc, s_y, k0y, sigma[1])])
 
 
 def _newton_solve(sums: np.ndarray, scale: np.ndarray) -> np.ndarray:
     """The Newton step (X^T diag(psi') X)^-1 X^T (w r) from :func:`_newton_sums`, the columns scaled to unit
-    RMS (*scale*, their RMS values) as in :func:`solve_normal_equations`."""
+    RMS (*scale*, their RMS values) as in :func:`_solve_scaled`."""
     rhs = sums[:3] / scale
     g = sums[3:]                      # (0,0) (0,1) (0,2) (1,1) (1,2) (2,2)
     gram = np.array([[g[0], g[1], g[2]], [g[1], g[3], g[4]], [g[2], g[4], g[5]]]) / np.outer(scale, scale)
@@ -305,7 +244,7 @@ def reweight_parabola(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.nda
     (Leverage is left out here: it is ~k/N, below 1e-5 for a full capture.)
 
     Both equations' terms and sums are formed in one pass, block by block in cache
-    (:func:`~sofast_station.measure.blocks.blocksums`; *pool*, an executor, takes half of the blocks):
+    (:func:`~sofast_station.measure.kernels.reweight_sums`; *pool*, an executor, takes half of the blocks):
     the same bits on any number of threads, and the same fit as one sum over all points but for the
     sums' last bits.
     """
@@ -318,7 +257,9 @@ def reweight_parabola(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.nda
     # The start in centred coordinates: s_x = 2A xc + (C + 2A xm + E1 ym) + E1 yc, and alike for s_y.
     k0x = np.array([2.0 * start.a, start.c + 2.0 * start.a * xm + start.e1 * ym, start.e1])
     k0y = np.array([2.0 * start.b, start.d + 2.0 * start.b * ym + start.e2 * xm, start.e2])
-    sums = blocksums(_reweight_sums, x, y, s_x, s_y, pool=pool, xm=xm, ym=ym, k0x=k0x, k0y=k0y, sigma=start.sigma)
+    from .kernels import reweight_sums
+
+    sums = reweight_sums(x, y, s_x, s_y, xm, ym, k0x, k0y, start.sigma, BISQUARE_C, pool=pool)
     rms_x, rms_y = np.sqrt(sums[0] / x.size), np.sqrt(sums[1] / x.size)
     kx = k0x + _newton_solve(sums[2:11], np.array([rms_x, 1.0, rms_y]))
     ky = k0y + _newton_solve(sums[11:20], np.array([rms_y, 1.0, rms_x]))
@@ -378,29 +319,11 @@ class CubicFit:
                 "u": f"(x - {self.x0!r}) / {self.h!r}", "v": f"(y - {self.y0!r}) / {self.h!r}"}
 
 
-def _monomials(u: np.ndarray, v: np.ndarray) -> list[np.ndarray]:
-    one = np.ones_like(u)
-    return [one, u, v, u * u, u * v, v * v]
-
-
 #: The distinct sums of the monomials' pairwise products (a <= b, rows last to first, as assembled):
 #: 1 x u^2, 1 x uv, 1 x v^2 are the products u x u, u x v, v x v, so they are taken from those.
 _GRAM_PAIRS = [(a, b) for a in reversed(range(len(_BASE))) for b in range(a, len(_BASE))
                if (a, b) not in ((0, 3), (0, 4), (0, 5))]
 _SAME = {(0, 3): (1, 1), (0, 4): (1, 2), (0, 5): (2, 2)}
-
-
-def _cubic_sums(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray, x0: float, y0: float,
-                h: float) -> np.ndarray:
-    """Over the points given: the sums of the monomials' products (:data:`_GRAM_PAIRS`), then of each
-    monomial times s_x and times s_y, with u = (x - x0)/h, v = (y - y0)/h."""
-    u = np.subtract(x, x0)
-    u /= h
-    v = np.subtract(y, y0)
-    v /= h
-    base = _monomials(u, v)
-    return np.array([_dot(base[a], base[b]) for a, b in _GRAM_PAIRS] + [_dot(m, s_x) for m in base]
-                    + [_dot(m, s_y) for m in base])
 
 
 def fit_cubic(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray) -> CubicFit:
@@ -417,7 +340,9 @@ def fit_cubic(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray) ->
     h = float(max(np.max(x) - x0, x0 - np.min(x), np.max(y) - y0, y0 - np.min(y), 1e-9))
     # The monomials and their sums block by block in cache (the blocks' sums added in order: one sum
     # over all points but for the last bits).
-    sums = blocksums(_cubic_sums, x, y, s_x, s_y, x0=x0, y0=y0, h=h)
+    from .kernels import cubic_sums
+
+    sums = cubic_sums(x, y, s_x, s_y, x0, y0, h, _GRAM_PAIRS)
     nb = len(_BASE)
     gram_b = np.empty((nb, nb))
     for (a, b), value in zip(_GRAM_PAIRS, sums):

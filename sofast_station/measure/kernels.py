@@ -259,6 +259,143 @@ def model_residuals(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarr
     _residuals_into(x[sl], y[sl], s_x[sl], s_y[sl], lin, np.asarray(cubic, dtype=np.float64), *(o[sl] for o in out))
 
 
+# ----------------------------------------------------------------------------- sums over the points, by blocks
+#: Points per block of the sums below: each block is summed on its own and the blocks' sums are added in
+#: block order, so a sum is the same bits whichever thread formed which blocks.
+SUM_BLOCK = 16384
+
+
+@numba.njit(**_JIT)
+def _cubic_sums_into(x, y, s_x, s_y, x0, y0, h, first, second, block, parts):
+    n = x.size
+    m = np.empty(6)
+    m[0] = 1.0
+    npairs = first.size
+    for b in range(parts.shape[0]):
+        acc = parts[b]
+        acc[:] = 0.0
+        for j in range(b * block, min(n, (b + 1) * block)):
+            u = (x[j] - x0) / h
+            v = (y[j] - y0) / h
+            m[1] = u
+            m[2] = v
+            m[3] = u * u
+            m[4] = u * v
+            m[5] = v * v
+            for p in range(npairs):
+                acc[p] += m[first[p]] * m[second[p]]
+            sx = s_x[j]
+            sy = s_y[j]
+            for k in range(6):
+                acc[npairs + k] += m[k] * sx
+                acc[npairs + 6 + k] += m[k] * sy
+
+
+@numba.njit(**_JIT)
+def _parabola_sums_into(x, y, s_x, s_y, xm, ym, block, parts):
+    n = x.size
+    for b in range(parts.shape[0]):
+        acc = parts[b]
+        acc[:] = 0.0
+        for j in range(b * block, min(n, (b + 1) * block)):
+            xc = x[j] - xm
+            yc = y[j] - ym
+            sx = s_x[j]
+            sy = s_y[j]
+            acc[0] += xc * xc
+            acc[1] += xc
+            acc[2] += xc * yc
+            acc[3] += yc * yc
+            acc[4] += yc
+            acc[5] += xc * sx
+            acc[6] += sx
+            acc[7] += yc * sx
+            acc[8] += yc * sy
+            acc[9] += sy
+            acc[10] += xc * sy
+
+
+@numba.njit(inline="always", **_JIT)
+def _newton_terms(c0, c2, s, k0, k1, k2, inv, acc, at):
+    r = s - ((k0 * c0 + k1) + k2 * c2)
+    q = r * inv
+    q = min(q * q, 1.0)
+    one_q = 1.0 - q
+    wr = one_q * one_q * r
+    dpsi = (1.0 - 5.0 * q) * one_q
+    d0 = c0 * dpsi
+    acc[at] += c0 * wr
+    acc[at + 1] += wr
+    acc[at + 2] += c2 * wr
+    acc[at + 3] += d0 * c0
+    acc[at + 4] += d0
+    acc[at + 5] += d0 * c2
+    acc[at + 6] += dpsi
+    acc[at + 7] += c2 * dpsi
+    acc[at + 8] += c2 * dpsi * c2
+
+
+@numba.njit(**_JIT)
+def _reweight_sums_into(x, y, s_x, s_y, xm, ym, kx, ky, inv_x, inv_y, block, parts):
+    n = x.size
+    for b in range(parts.shape[0]):
+        acc = parts[b]
+        acc[:] = 0.0
+        for j in range(b * block, min(n, (b + 1) * block)):
+            xc = x[j] - xm
+            yc = y[j] - ym
+            acc[0] += xc * xc
+            acc[1] += yc * yc
+            _newton_terms(xc, yc, s_x[j], kx[0], kx[1], kx[2], inv_x, acc, 2)
+            _newton_terms(yc, xc, s_y[j], ky[0], ky[1], ky[2], inv_y, acc, 11)
+
+
+def _block_sums(kernel, n_sums: int, columns: tuple, args: tuple, pool=None) -> np.ndarray:
+    """``kernel(*columns, *args, SUM_BLOCK, parts)``'s per-block sums over every point, added in block order
+    (the second half of the blocks on *pool* when given)."""
+    n = columns[0].size
+    n_blocks = max(1, -(-n // SUM_BLOCK))
+    parts = np.zeros((n_blocks, n_sums))
+    half = n_blocks // 2 if pool is not None else 0
+    if half:
+        cut = half * SUM_BLOCK
+        second = pool.submit(kernel, *(c[cut:] for c in columns), *args, SUM_BLOCK, parts[half:])
+        kernel(*(c[:cut] for c in columns), *args, SUM_BLOCK, parts[:half])
+        second.result()
+    else:
+        kernel(*columns, *args, SUM_BLOCK, parts)
+    total = parts[0].copy()
+    for row in parts[1:]:
+        total += row
+    return total
+
+
+def cubic_sums(x, y, s_x, s_y, x0: float, y0: float, h: float, pairs, pool=None) -> np.ndarray:
+    """With u = (x - x0)/h, v = (y - y0)/h and the monomials m = (1, u, v, u^2, uv, v^2) of every point: the
+    sums of m_a m_b for each (a, b) of *pairs*, then of each m_k s_x, then of each m_k s_y."""
+    first = np.array([a for a, _ in pairs], dtype=np.int64)
+    second = np.array([b for _, b in pairs], dtype=np.int64)
+    return _block_sums(_cubic_sums_into, len(pairs) + 12, (x, y, s_x, s_y), (float(x0), float(y0), float(h), first,
+                                                                             second), pool)
+
+
+def parabola_sums(x, y, s_x, s_y, xm: float, ym: float, pool=None) -> np.ndarray:
+    """With xc = x - xm, yc = y - ym: the sums of xc^2, xc, xc yc, yc^2, yc, xc s_x, s_x, yc s_x, yc s_y,
+    s_y, xc s_y over every point."""
+    return _block_sums(_parabola_sums_into, 11, (x, y, s_x, s_y), (float(xm), float(ym)), pool)
+
+
+def reweight_sums(x, y, s_x, s_y, xm: float, ym: float, k0x, k0y, sigma: tuple, bisquare_c: float,
+                  pool=None) -> np.ndarray:
+    """Sums of xc^2 and yc^2, then the bisquare Newton step's nine sums of the x equation (columns xc, 1, yc,
+    start *k0x*, scale sigma[0]) and of the y equation (yc, 1, xc; *k0y*, sigma[1]); see
+    :func:`~sofast_station.measure.fit.reweight_parabola`."""
+    inv = [1.0 / (bisquare_c * float(sg)) for sg in sigma]
+    return _block_sums(_reweight_sums_into, 20, (x, y, s_x, s_y),
+                       (float(xm), float(ym), np.asarray(k0x, dtype=np.float64), np.asarray(k0y, dtype=np.float64),
+                        inv[0], inv[1]), pool)
+
+
 def halves(pool, fn, n: int, *args) -> None:
     """``fn(*args, lo, hi)`` over 0:n, the first half on *pool* (an executor, or None) beside the second:
     for the element-wise kernels here, the same values on one thread or two."""
@@ -279,3 +416,6 @@ def warm_up() -> None:
     one = np.ones((3, 1))
     reflect(one, one, np.eye(3), np.zeros(3), np.zeros(6), np.empty((3, 1)), np.empty((2, 1)), 0, 1)
     model_residuals(x, x, x, x, [np.zeros(6)] * 2, np.ones(15), np.empty((6, 2)), 0, 2)
+    cubic_sums(x, x, x, x, 0.0, 0.0, 1.0, [(0, 0)])
+    parabola_sums(x, x, x, x, 0.0, 0.0)
+    reweight_sums(x, x, x, x, 0.0, 0.0, np.zeros(3), np.zeros(3), (1.0, 1.0), 4.685)

@@ -45,22 +45,3 @@ def test_a_single_array_result_comes_back_as_a_tuple():
     assert np.array_equal(y, np.sqrt(x))
     with pytest.raises(ValueError, match="block"):
         blockwise(np.sqrt, x, block=0)
-
-
-def test_block_sums_are_the_sums_and_the_same_bits_on_two_threads():
-    from sofast_station.measure.blocks import blocksums
-
-    rng = np.random.default_rng(2)
-    a, b = rng.normal(size=50_003), rng.normal(size=50_003)
-
-    def sums(a, b):
-        return np.array([np.sum(a * b), np.sum(a), float(a.size)])
-
-    one = blocksums(sums, a, b, block=1000)
-    with ThreadPoolExecutor(max_workers=2) as pool:
-        two = blocksums(sums, a, b, pool=pool, block=1000)
-    assert np.array_equal(one, two)
-    assert one[2] == a.size
-    assert one[0] == pytest.approx(np.sum(a * b), rel=1e-12, abs=1e-9)
-    assert one[1] == pytest.approx(np.sum(a), rel=1e-12, abs=1e-9)
-    assert np.array_equal(blocksums(sums, a[:0], b[:0]), [0.0, 0.0, 0.0])

@@ -129,3 +129,56 @@ def test_reflect_in_place_gives_the_intersection_and_normals_bits():
     kernels.reflect(rays, screen, np.eye(3), np.zeros(3), coeffs, points, slopes, 0, rays.shape[1], origin=camera)
     np.testing.assert_array_equal(points, points_ref)
     np.testing.assert_array_equal(slopes, slopes_ref)
+
+
+def _points(n=70_000, seed=14):
+    rng = np.random.default_rng(seed)
+    x, y = rng.uniform(-0.3, 0.35, n), rng.uniform(-0.25, 0.3, n)
+    s_x = 0.094 * x + rng.normal(0, 1e-3, n)
+    s_y = 0.093 * y + rng.normal(0, 1e-3, n)
+    s_x[:50] += 0.02                            # outliers beyond the bisquare's reach
+    return x, y, s_x, s_y
+
+
+def _same_on_two_threads(fn, *args):
+    one = fn(*args)
+    with ThreadPoolExecutor(2) as pool:
+        two = fn(*args, pool=pool)
+    np.testing.assert_array_equal(one, two)
+    return one
+
+
+def test_the_sums_kernels_are_numpys_sums_and_the_same_bits_on_two_threads():
+    x, y, s_x, s_y = _points()
+    xm, ym = 0.02, 0.03
+    xc, yc = x - xm, y - ym
+    got = _same_on_two_threads(kernels.parabola_sums, x, y, s_x, s_y, xm, ym)
+    ref = [xc * xc, xc, xc * yc, yc * yc, yc, xc * s_x, s_x, yc * s_x, yc * s_y, s_y, xc * s_y]
+    np.testing.assert_allclose(got, [np.sum(r) for r in ref], rtol=1e-12, atol=1e-12)
+
+    pairs = [(a, b) for a in range(6) for b in range(a, 6)]
+    got = _same_on_two_threads(kernels.cubic_sums, x, y, s_x, s_y, 0.01, -0.02, 0.3, pairs)
+    u, v = (x - 0.01) / 0.3, (y + 0.02) / 0.3
+    m = [np.ones_like(u), u, v, u * u, u * v, v * v]
+    ref = [np.sum(m[a] * m[b]) for a, b in pairs] + [np.sum(k * s_x) for k in m] + [np.sum(k * s_y) for k in m]
+    np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-12)
+
+
+def test_the_newton_step_sums_follow_the_bisquare():
+    """Tukey's bisquare psi(r) = r (1 - (r/c)^2)^2 and its derivative, written out here independently."""
+    x, y, s_x, s_y = _points()
+    xm, ym = float(np.mean(x)), float(np.mean(y))
+    k0x, k0y, sigma = np.array([0.094, 1e-4, 0.0]), np.array([0.093, -1e-4, 0.0]), (1.1e-3, 0.9e-3)
+    got = _same_on_two_threads(kernels.reweight_sums, x, y, s_x, s_y, xm, ym, k0x, k0y, sigma, 4.685)
+    xc, yc = x - xm, y - ym
+    ref = [np.sum(xc ** 2), np.sum(yc ** 2)]
+    for c0, c2, s, k0, sg in ((xc, yc, s_x, k0x, sigma[0]), (yc, xc, s_y, k0y, sigma[1])):
+        r = s - (k0[0] * c0 + k0[1] + k0[2] * c2)
+        inside = np.abs(r) < 4.685 * sg
+        t = r / (4.685 * sg)
+        psi = np.where(inside, r * (1 - t ** 2) ** 2, 0.0)
+        dpsi = np.where(inside, (1 - t ** 2) * (1 - 5 * t ** 2), 0.0)
+        ref += [np.sum(c0 * psi), np.sum(psi), np.sum(c2 * psi), np.sum(c0 * c0 * dpsi), np.sum(c0 * dpsi),
+                np.sum(c0 * c2 * dpsi), np.sum(dpsi), np.sum(c2 * dpsi), np.sum(c2 * c2 * dpsi)]
+    assert not np.all(np.abs(s_x - 0.094 * x) < 4.685 * sigma[0])      # the outliers are outside
+    np.testing.assert_allclose(got, ref, rtol=1e-10, atol=1e-12)
