@@ -64,16 +64,6 @@ BISQUARE_C = 4.685
 MAD_TO_SIGMA = 0.6745
 
 
-def _bisquare(r: np.ndarray, sigma: float) -> np.ndarray:
-    """Tukey's bisquare weights (1 - u^2)^2 for |u| < 1, else 0, with u = r / (4.685 sigma)."""
-    u = r * (1.0 / (BISQUARE_C * sigma))
-    u *= u
-    np.subtract(1.0, u, out=u)
-    np.maximum(u, 0.0, out=u)
-    u *= u
-    return u
-
-
 def robust_weights(columns: list[np.ndarray], target: np.ndarray, max_iterations: int = 50,
                    tolerance: float = 1e-9, weights: np.ndarray | None = None
                    ) -> tuple[np.ndarray, np.ndarray, float]:
@@ -98,22 +88,23 @@ def robust_weights(columns: list[np.ndarray], target: np.ndarray, max_iterations
     (coefficients, weights, sigma)
         sigma is the residual scale of the last reweighting (slope units; NaN when none was done).
     """
+    from .kernels import bisquare_into, residuals_and_leverage, weighted_sums
+
     k = len(columns)
+    if k != 3:
+        raise ValueError(f"robust_weights fits three columns (a slope equation), got {k}")
     n = target.size
     pairs = [(i, j) for i in range(k) for j in range(i, k)]
-    # Column products and column-target products, once: every weighted sum below is one einsum over them.
-    prods = np.empty((len(pairs) + k, n))
-    for row, (i, j) in enumerate(pairs):
-        np.multiply(columns[i], columns[j], out=prods[row])
-    for i in range(k):
-        np.multiply(columns[i], target, out=prods[len(pairs) + i])
-    diag = [pairs.index((i, i)) for i in range(k)]
-    scale = np.sqrt(np.einsum("ij->i", prods[diag]) / n)
+    cols = [np.ascontiguousarray(c, dtype=np.float64) for c in columns]
+    target = np.ascontiguousarray(target, dtype=np.float64)
+    scale = np.sqrt(np.array([np.einsum("i,i->", c, c) for c in cols]) / n)
     if np.any(scale == 0) or not np.all(np.isfinite(scale)):
         raise AnalysisError("the fit's points do not span the facet (a design column is zero or not finite); "
                             "too few valid points")
     w = np.ones(n) if weights is None else np.array(weights, dtype=np.float64)
     r = np.empty(n)
+    r_adj = np.empty(n)
+    sums = np.empty(len(pairs) + k)
     prev = None
     coef = None
     sigma = float("nan")
@@ -125,8 +116,10 @@ def robust_weights(columns: list[np.ndarray], target: np.ndarray, max_iterations
     outer = np.outer(scale, scale)
     upper_i, upper_j = (np.array(v, dtype=np.intp) for v in zip(*pairs))
     doubled = np.array([1.0 if i == j else 2.0 for i, j in pairs])
+    # Each iteration: the weighted sums in one compiled pass; the small solve; residuals, mean square and
+    # leverage-adjusted residuals in a second pass; their two medians; the new weights in a third.
     for _ in range(max_iterations):
-        sums = np.einsum("ij,j->i", prods, w)
+        weighted_sums(*cols, target, w, sums)
         gram = sums[sym]
         rhs = sums[len(pairs):]
         g = gram / outer
@@ -139,28 +132,20 @@ def robust_weights(columns: list[np.ndarray], target: np.ndarray, max_iterations
         if not lam.min() > 0.0 or lam.max() > 1e12 * lam.min():
             raise AnalysisError("the slope fit is ill-conditioned: the valid points cover too little of the facet")
         coef = sol / scale
-        np.copyto(r, target)
-        for c, kk in zip(columns, coef):
-            r -= kk * c
-        ms = float(np.einsum("i,i,i->", w, r, r) / max(float(np.sum(w)), 1.0))
-        if prev is not None and abs(ms - prev) <= tolerance * max(prev, 1e-30):
-            break
-        prev = ms
         # leverage of each point under the current weights: h_i = w_i x_i^T (X^T W X)^-1 x_i
         inv = np.linalg.inv(gram)
         quad = inv[upper_i, upper_j] * doubled
-        h = np.einsum("ij,i->j", prods[:len(pairs)], quad)
-        h *= w
-        np.subtract(1.0, h, out=h)
-        np.maximum(h, 1e-12, out=h)
-        np.sqrt(h, out=h)
-        r_adj = np.divide(r, h, out=h)
+        wrr, sw = residuals_and_leverage(*cols, target, w, coef, quad, r, r_adj)
+        ms = wrr / max(sw, 1.0)
+        if prev is not None and abs(ms - prev) <= tolerance * max(prev, 1e-30):
+            break
+        prev = ms
         dev = np.abs(r_adj - _median(r_adj))
         mad = _median(dev)
         if mad == 0.0:
             break
         sigma = mad / MAD_TO_SIGMA
-        w = _bisquare(r_adj, sigma)
+        bisquare_into(r_adj, 1.0 / (BISQUARE_C * sigma), w)
     return coef, w, sigma
 
 

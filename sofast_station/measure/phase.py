@@ -291,9 +291,9 @@ def frame_noise(phases, modulations, residuals, level=None, pool=None) -> FrameN
             break
         good.remove(worst)
     def clean(k):
-        columns = [np.asarray(a).ravel() for a in (residuals[k], phases[k], modulations[k])]
-        columns += [] if level is None else [level]
-        return blockwise(_cleaned, *columns, harmonic=harmonic, own=own_coefs[k])[0]
+        from .kernels import cleaned_residuals
+
+        return cleaned_residuals(residuals[k], phases[k], modulations[k], level, harmonic, own_coefs[k])
 
     cleaned = _map_halves(pool, clean, range(n_sets))
     # r = 4 c_2 cos(2 phi + psi): the ratio c_2 / b, signed by the cosine part (power laws have psi = 0, pi).
@@ -312,35 +312,6 @@ def _map_halves(pool, fn, items) -> list:
     first = pool.submit(lambda: [fn(x) for x in items[:half]]) if half else None
     rest = [fn(x) for x in items[half:]]
     return (first.result() if first is not None else []) + rest
-
-
-def _cleaned(residual, phase, modulation, level=None, *, harmonic: np.ndarray, own: np.ndarray) -> np.ndarray:
-    """A set's residual at every pixel, its fitted offset (and level term) and harmonics removed, float32.
-
-    The harmonics b (h0 cos 2phi + h1 sin 2phi + h2 cos 6phi + h3 sin 6phi), with cos 6phi = cos 2phi
-    (4 cos^2 2phi - 3) and sin 6phi = sin 2phi (3 - 4 sin^2 2phi), grouped as
-    b (cos 2phi (h0 - 3 h2 + 4 h2 cos^2 2phi) + sin 2phi (h1 + 3 h3 - 4 h3 sin^2 2phi)): a dozen passes in
-    place over the pixels in single precision, ample for a residual compared with a few noise deviations.
-    """
-    h0, h1, h2, h3 = (np.float32(v) for v in harmonic)
-    phi2 = np.multiply(np.asarray(phase).ravel(), np.float32(2.0), dtype=np.float32)
-    c2 = np.cos(phi2)
-    s2 = np.sin(phi2, out=phi2)
-    t = np.multiply(c2, c2)
-    t *= np.float32(4.0) * h2
-    t += h0 - np.float32(3.0) * h2
-    t *= c2
-    u = np.multiply(s2, s2, out=c2)
-    u *= np.float32(-4.0) * h3
-    u += h1 + np.float32(3.0) * h3
-    u *= s2
-    t += u
-    t *= np.asarray(modulation).ravel()
-    t += np.float32(own[0])
-    if level is not None:
-        u = np.multiply(level, np.float32(own[1]), out=u, dtype=np.float32)
-        t += u
-    return np.subtract(np.asarray(residual).ravel(), t, out=t, dtype=np.float32)
 
 
 def _block_lstsq(samples: list, first_blocks: dict | None = None) -> np.ndarray:

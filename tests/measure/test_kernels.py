@@ -182,3 +182,22 @@ def test_the_newton_step_sums_follow_the_bisquare():
                 np.sum(c0 * c2 * dpsi), np.sum(dpsi), np.sum(c2 * dpsi), np.sum(c2 * c2 * dpsi)]
     assert not np.all(np.abs(s_x - 0.094 * x) < 4.685 * sigma[0])      # the outliers are outside
     np.testing.assert_allclose(got, ref, rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("with_level", [False, True])
+def test_cleaned_residuals_are_the_harmonic_model_removed_to_float32_rounding(with_level):
+    rng = np.random.default_rng(15)
+    n = 100_000
+    phase = rng.uniform(0, 2 * np.pi, n).astype(np.float32)
+    phase[:4] = [0.0, np.float32(np.pi), np.nextafter(np.float32(2 * np.pi), 0, dtype=np.float32), 1e-7]
+    modulation = rng.uniform(5, 120, n).astype(np.float32)
+    residual = rng.integers(-6, 7, n).astype(np.float32)
+    level = rng.uniform(20, 240, n).astype(np.float32) if with_level else None
+    harmonic, own = np.array([0.31, -0.12, 0.02, -0.015]), np.array([0.4, -0.003])
+    got = kernels.cleaned_residuals(residual, phase, modulation, level, harmonic, own)
+    assert got.dtype == np.float32
+    # the harmonic model in double precision; the model term is at most ~60 DN: a few float32 steps of it
+    phi2 = 2.0 * phase.astype(np.float64)
+    model = modulation * (harmonic[0] * np.cos(phi2) + harmonic[1] * np.sin(phi2) + harmonic[2] * np.cos(3 * phi2)
+                          + harmonic[3] * np.sin(3 * phi2)) + own[0] + (own[1] * level if with_level else 0.0)
+    assert np.abs(got - (residual - model)).max() < 2e-5
