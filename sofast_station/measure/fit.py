@@ -178,20 +178,26 @@ def fit_parabola(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray,
     """
     if x.size < 10:
         raise AnalysisError(f"only {x.size} valid points: too few to fit a shape")
+    if not robust:
+        return _plain_parabola(x, y, s_x, s_y)
     xm, ym, xc, yc = _centred(x, y)
     one = np.ones_like(xc)
-    if robust:
-        wx, wy = start.weights if start is not None and start.weights is not None else (None, None)
-        tol = float(robust_tolerance)
-        second = None if pool is None else pool.submit(robust_weights, [yc, one, xc], s_y, tolerance=tol,
-                                                       weights=wy)
-        kx, wx, sig_x = robust_weights([xc, one, yc], s_x, tolerance=tol, weights=wx)
-        ky, wy, sig_y = (robust_weights([yc, one, xc], s_y, tolerance=tol, weights=wy) if second is None
-                         else second.result())
-        return _assemble(kx, ky, xm, ym, weights=(wx, wy), sigma=(sig_x, sig_y))
-    # Both equations' columns are xc, 1, yc: every sum they need in one compiled pass.
+    wx, wy = start.weights if start is not None and start.weights is not None else (None, None)
+    tol = float(robust_tolerance)
+    second = None if pool is None else pool.submit(robust_weights, [yc, one, xc], s_y, tolerance=tol, weights=wy)
+    kx, wx, sig_x = robust_weights([xc, one, yc], s_x, tolerance=tol, weights=wx)
+    ky, wy, sig_y = (robust_weights([yc, one, xc], s_y, tolerance=tol, weights=wy) if second is None
+                     else second.result())
+    return _assemble(kx, ky, xm, ym, weights=(wx, wy), sigma=(sig_x, sig_y))
+
+
+def _plain_parabola(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray) -> ParabolaFit:
+    """:func:`fit_parabola` without weights: both equations' columns are xc, 1, yc, so every sum they need
+    comes from one compiled pass over the points (the centred columns are never formed)."""
     from .kernels import parabola_sums
 
+    xm = float(np.sum(x) / x.size)
+    ym = float(np.sum(y) / y.size)
     xx, x1, xy, yy, y1, xsx, sx1, ysx, ysy, sy1, xsy = parabola_sums(x, y, s_x, s_y, xm, ym)
     n = float(x.size)
     rms_x, rms_y = np.sqrt(xx / n), np.sqrt(yy / n)
@@ -206,7 +212,7 @@ def fit_parabola(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray,
 
 
 def _newton_solve(sums: np.ndarray, scale: np.ndarray) -> np.ndarray:
-    """The Newton step (X^T diag(psi') X)^-1 X^T (w r) from :func:`_newton_sums`, the columns scaled to unit
+    """The Newton step (X^T diag(psi') X)^-1 X^T (w r) from :func:`~.kernels.reweight_sums`, the columns scaled to unit
     RMS (*scale*, their RMS values) as in :func:`_solve_scaled`."""
     rhs = sums[:3] / scale
     g = sums[3:]                      # (0,0) (0,1) (0,2) (1,1) (1,2) (2,2)

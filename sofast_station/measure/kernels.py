@@ -343,63 +343,130 @@ def cleaned_residuals(residual: np.ndarray, phase: np.ndarray, modulation: np.nd
 
 
 # ----------------------------------------------------------------------------- sums over the points, by blocks
-#: Points per block of the sums below: each block is summed on its own and the blocks' sums are added in
-#: block order, so a sum is the same bits whichever thread formed which blocks.
+#: Points per block of the sums below: each block is summed on its own (in the compiler's vector lanes) and
+#: the blocks' sums are added in block order, so a sum is the same bits whichever thread formed which blocks.
 SUM_BLOCK = 16384
 
 
-@numba.njit(**_JIT)
-def _cubic_sums_into(x, y, s_x, s_y, x0, y0, h, first, second, block, parts):
+@numba.njit(**_VECTOR_SUMS)
+def _cubic_sums_into(x, y, s_x, s_y, x0, y0, h, block, parts):
+    # per block: the 21 products m_a m_b (a <= b, row-major over a) of m = (1, u, v, u^2, uv, v^2), then the
+    # six m_k s_x and the six m_k s_y; each sum a local (a register), so the compiler runs it in vector lanes
     n = x.size
-    m = np.empty(6)
-    m[0] = 1.0
-    npairs = first.size
     for b in range(parts.shape[0]):
-        acc = parts[b]
-        acc[:] = 0.0
+        a0 = a1 = a2 = a3 = a4 = a5 = a6 = a7 = a8 = a9 = a10 = 0.0
+        a11 = a12 = a13 = a14 = a15 = a16 = a17 = a18 = a19 = a20 = a21 = 0.0
+        a22 = a23 = a24 = a25 = a26 = a27 = a28 = a29 = a30 = a31 = a32 = 0.0
         for j in range(b * block, min(n, (b + 1) * block)):
             u = (x[j] - x0) / h
             v = (y[j] - y0) / h
-            m[1] = u
-            m[2] = v
-            m[3] = u * u
-            m[4] = u * v
-            m[5] = v * v
-            for p in range(npairs):
-                acc[p] += m[first[p]] * m[second[p]]
+            uu = u * u
+            uv = u * v
+            vv = v * v
             sx = s_x[j]
             sy = s_y[j]
-            for k in range(6):
-                acc[npairs + k] += m[k] * sx
-                acc[npairs + 6 + k] += m[k] * sy
+            a0 += 1.0
+            a1 += u
+            a2 += v
+            a3 += uu
+            a4 += uv
+            a5 += vv
+            a6 += u * u
+            a7 += u * v
+            a8 += u * uu
+            a9 += u * uv
+            a10 += u * vv
+            a11 += v * v
+            a12 += v * uu
+            a13 += v * uv
+            a14 += v * vv
+            a15 += uu * uu
+            a16 += uu * uv
+            a17 += uu * vv
+            a18 += uv * uv
+            a19 += uv * vv
+            a20 += vv * vv
+            a21 += sx
+            a22 += u * sx
+            a23 += v * sx
+            a24 += uu * sx
+            a25 += uv * sx
+            a26 += vv * sx
+            a27 += sy
+            a28 += u * sy
+            a29 += v * sy
+            a30 += uu * sy
+            a31 += uv * sy
+            a32 += vv * sy
+        acc = parts[b]
+        acc[0] = a0
+        acc[1] = a1
+        acc[2] = a2
+        acc[3] = a3
+        acc[4] = a4
+        acc[5] = a5
+        acc[6] = a6
+        acc[7] = a7
+        acc[8] = a8
+        acc[9] = a9
+        acc[10] = a10
+        acc[11] = a11
+        acc[12] = a12
+        acc[13] = a13
+        acc[14] = a14
+        acc[15] = a15
+        acc[16] = a16
+        acc[17] = a17
+        acc[18] = a18
+        acc[19] = a19
+        acc[20] = a20
+        acc[21] = a21
+        acc[22] = a22
+        acc[23] = a23
+        acc[24] = a24
+        acc[25] = a25
+        acc[26] = a26
+        acc[27] = a27
+        acc[28] = a28
+        acc[29] = a29
+        acc[30] = a30
+        acc[31] = a31
+        acc[32] = a32
 
 
-@numba.njit(**_JIT)
+#: The position of the product m_a m_b (a <= b) among the 21 that :func:`_cubic_sums_into` forms.
+_PAIR_INDEX = {(a, b): k for k, (a, b) in enumerate((a, b) for a in range(6) for b in range(a, 6))}
+
+
+@numba.njit(**_VECTOR_SUMS)
 def _parabola_sums_into(x, y, s_x, s_y, xm, ym, block, parts):
     n = x.size
     for b in range(parts.shape[0]):
-        acc = parts[b]
-        acc[:] = 0.0
+        a0 = a1 = a2 = a3 = a4 = a5 = a6 = a7 = a8 = a9 = a10 = 0.0
         for j in range(b * block, min(n, (b + 1) * block)):
             xc = x[j] - xm
             yc = y[j] - ym
             sx = s_x[j]
             sy = s_y[j]
-            acc[0] += xc * xc
-            acc[1] += xc
-            acc[2] += xc * yc
-            acc[3] += yc * yc
-            acc[4] += yc
-            acc[5] += xc * sx
-            acc[6] += sx
-            acc[7] += yc * sx
-            acc[8] += yc * sy
-            acc[9] += sy
-            acc[10] += xc * sy
+            a0 += xc * xc
+            a1 += xc
+            a2 += xc * yc
+            a3 += yc * yc
+            a4 += yc
+            a5 += xc * sx
+            a6 += sx
+            a7 += yc * sx
+            a8 += yc * sy
+            a9 += sy
+            a10 += xc * sy
+        acc = parts[b]
+        acc[0], acc[1], acc[2], acc[3], acc[4], acc[5] = a0, a1, a2, a3, a4, a5
+        acc[6], acc[7], acc[8], acc[9], acc[10] = a6, a7, a8, a9, a10
 
 
-@numba.njit(inline="always", **_JIT)
-def _newton_terms(c0, c2, s, k0, k1, k2, inv, acc, at):
+@numba.njit(inline="always", **_VECTOR_SUMS)
+def _newton_terms(c0, c2, s, k0, k1, k2, inv):
+    """A point's nine terms of the bisquare Newton step (:func:`reweight_sums`)."""
     r = s - ((k0 * c0 + k1) + k2 * c2)
     q = r * inv
     q = min(q * q, 1.0)
@@ -407,30 +474,45 @@ def _newton_terms(c0, c2, s, k0, k1, k2, inv, acc, at):
     wr = one_q * one_q * r
     dpsi = (1.0 - 5.0 * q) * one_q
     d0 = c0 * dpsi
-    acc[at] += c0 * wr
-    acc[at + 1] += wr
-    acc[at + 2] += c2 * wr
-    acc[at + 3] += d0 * c0
-    acc[at + 4] += d0
-    acc[at + 5] += d0 * c2
-    acc[at + 6] += dpsi
-    acc[at + 7] += c2 * dpsi
-    acc[at + 8] += c2 * dpsi * c2
+    return c0 * wr, wr, c2 * wr, d0 * c0, d0, d0 * c2, dpsi, c2 * dpsi, c2 * dpsi * c2
 
 
-@numba.njit(**_JIT)
+@numba.njit(**_VECTOR_SUMS)
 def _reweight_sums_into(x, y, s_x, s_y, xm, ym, kx, ky, inv_x, inv_y, block, parts):
     n = x.size
+    kx0, kx1, kx2, ky0, ky1, ky2 = kx[0], kx[1], kx[2], ky[0], ky[1], ky[2]
     for b in range(parts.shape[0]):
-        acc = parts[b]
-        acc[:] = 0.0
+        a0 = a1 = a2 = a3 = a4 = a5 = a6 = a7 = a8 = a9 = 0.0
+        a10 = a11 = a12 = a13 = a14 = a15 = a16 = a17 = a18 = a19 = 0.0
         for j in range(b * block, min(n, (b + 1) * block)):
             xc = x[j] - xm
             yc = y[j] - ym
-            acc[0] += xc * xc
-            acc[1] += yc * yc
-            _newton_terms(xc, yc, s_x[j], kx[0], kx[1], kx[2], inv_x, acc, 2)
-            _newton_terms(yc, xc, s_y[j], ky[0], ky[1], ky[2], inv_y, acc, 11)
+            a0 += xc * xc
+            a1 += yc * yc
+            t0, t1, t2, t3, t4, t5, t6, t7, t8 = _newton_terms(xc, yc, s_x[j], kx0, kx1, kx2, inv_x)
+            a2 += t0
+            a3 += t1
+            a4 += t2
+            a5 += t3
+            a6 += t4
+            a7 += t5
+            a8 += t6
+            a9 += t7
+            a10 += t8
+            t0, t1, t2, t3, t4, t5, t6, t7, t8 = _newton_terms(yc, xc, s_y[j], ky0, ky1, ky2, inv_y)
+            a11 += t0
+            a12 += t1
+            a13 += t2
+            a14 += t3
+            a15 += t4
+            a16 += t5
+            a17 += t6
+            a18 += t7
+            a19 += t8
+        acc = parts[b]
+        acc[0], acc[1], acc[2], acc[3], acc[4], acc[5], acc[6] = a0, a1, a2, a3, a4, a5, a6
+        acc[7], acc[8], acc[9], acc[10], acc[11], acc[12], acc[13] = a7, a8, a9, a10, a11, a12, a13
+        acc[14], acc[15], acc[16], acc[17], acc[18], acc[19] = a14, a15, a16, a17, a18, a19
 
 
 def _block_sums(kernel, n_sums: int, columns: tuple, args: tuple, pool=None) -> np.ndarray:
@@ -456,10 +538,8 @@ def _block_sums(kernel, n_sums: int, columns: tuple, args: tuple, pool=None) -> 
 def cubic_sums(x, y, s_x, s_y, x0: float, y0: float, h: float, pairs, pool=None) -> np.ndarray:
     """With u = (x - x0)/h, v = (y - y0)/h and the monomials m = (1, u, v, u^2, uv, v^2) of every point: the
     sums of m_a m_b for each (a, b) of *pairs*, then of each m_k s_x, then of each m_k s_y."""
-    first = np.array([a for a, _ in pairs], dtype=np.int64)
-    second = np.array([b for _, b in pairs], dtype=np.int64)
-    return _block_sums(_cubic_sums_into, len(pairs) + 12, (x, y, s_x, s_y), (float(x0), float(y0), float(h), first,
-                                                                             second), pool)
+    sums = _block_sums(_cubic_sums_into, 33, (x, y, s_x, s_y), (float(x0), float(y0), float(h)), pool)
+    return np.concatenate([sums[[_PAIR_INDEX[min(a, b), max(a, b)] for a, b in pairs]], sums[21:]])
 
 
 def parabola_sums(x, y, s_x, s_y, xm: float, ym: float, pool=None) -> np.ndarray:
