@@ -2,7 +2,7 @@
 figure's shape; the noise explained matches the slope noise two captures of the same facet show; the
 sensitivities are cached; and over a handful of captures with the station's geometry perturbed within
 its stated uncertainties (twin perturbed, analysis nominal) the errors against the twin's truth lie
-within U about as often as they should (the full 200-capture proof is benchmarks/coverage.py)."""
+within U about as often as they should (the full 200-capture proof is benchmarks/uncertainty_coverage.py)."""
 
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ from sofast_station.station.study import TwinRig, coverage_table, run_repeats
 from tests.conftest import ROOT
 
 sys.path.insert(0, str(ROOT / "benchmarks"))
-from coverage import small_station  # noqa: E402
+from uncertainty_coverage import small_station  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -119,7 +119,7 @@ def test_uncertainty_table_is_validated():
 
 def test_coverage_on_a_few_perturbed_captures_is_not_absurd(rig):
     """12 captures: each main figure's error against truth lies within U in most of them, and U is not
-    grossly larger than the errors' spread (the 200-capture statistics are in benchmarks/coverage.py)."""
+    grossly larger than the errors' spread (the 200-capture statistics are in benchmarks/uncertainty_coverage.py)."""
     reps = run_repeats(rig.config, 12, seed=21, perturb_geometry=True)
     rows = {r["figure"]: r for r in coverage_table(reps)}
     for name in ("focal_length_x_m", "focal_length_y_m", "twist_mrad_per_m", "slope_rms_mrad.design.magnitude",

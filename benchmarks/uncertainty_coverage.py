@@ -1,8 +1,8 @@
 """Proof of the stated uncertainty on the twin: coverage of |error against truth| <= U (k = 2).
 
-    .venv/bin/python benchmarks/coverage.py                 # 200 captures on a 400 x 300 dish station
-    .venv/bin/python benchmarks/coverage.py --captures 30 --out /tmp/cov.json
-    .venv/bin/python benchmarks/coverage.py --split-brightness --out /tmp/cov.json   # twice the analyses
+    .venv/bin/python benchmarks/uncertainty_coverage.py                 # 200 captures on a 400 x 300 dish station
+    .venv/bin/python benchmarks/uncertainty_coverage.py --captures 30 --out /tmp/cov.json
+    .venv/bin/python benchmarks/uncertainty_coverage.py --split-brightness --out /tmp/cov.json   # twice the analyses
 
 Each capture: a new placement of the facet within the fixture tolerance, new sensor noise, and the station's
 geometry (camera intrinsics and distortion, camera-to-screen pose, screen pitch, fixture pose, measured
