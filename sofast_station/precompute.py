@@ -75,15 +75,20 @@ def keep_freed_memory() -> bool:
 
 
 def warm_up(camera: CameraIntrinsics) -> float:
-    """Fill the camera's ray table for every pixel, so the first facet costs what every other does, and
-    have the process keep the memory analyses free for the next (:func:`keep_freed_memory`).
+    """Fill the camera's ray table for every pixel and load the analysis' compiled kernels, so the first
+    facet costs what every other does, and have the process keep the memory analyses free for the next
+    (:func:`keep_freed_memory`).
 
     Returns
     -------
     float
-        Seconds it took (about 2 s for 1.9 MP; nothing when the table is already full).
+        Seconds it took (about 2 s for 1.9 MP, plus the kernels: about 0.5 s from numba's on-disk cache,
+        10 to 20 s the first time after an install or an update, when they are compiled and cached).
     """
+    from .measure.kernels import warm_up as load_kernels
+
     t = time.perf_counter()
     keep_freed_memory()
     ray_table(camera).fill()
+    load_kernels()
     return time.perf_counter() - t

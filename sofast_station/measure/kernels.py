@@ -342,6 +342,68 @@ def cleaned_residuals(residual: np.ndarray, phase: np.ndarray, modulation: np.nd
     return out
 
 
+@numba.njit(**_FMA)
+def _noise_rows_into(phase, modulation, residual, level, has_level, stride, own, shared, r):
+    for i in range(r.size):
+        j = i * stride
+        phi = np.float64(phase[j])
+        b = np.float64(modulation[j])
+        s2, c2 = _sincos(2.0 * phi)
+        shared[0, i] = b * c2
+        shared[1, i] = b * s2
+        shared[2, i] = b * c2 * (4.0 * c2 * c2 - 3.0)
+        shared[3, i] = b * s2 * (3.0 - 4.0 * s2 * s2)
+        own[0, i] = 1.0
+        if has_level:
+            own[1, i] = np.float64(level[j])
+        r[i] = np.float64(residual[j])
+
+
+def noise_rows(phase: np.ndarray, modulation: np.ndarray, residual: np.ndarray, level: np.ndarray | None,
+               stride: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The noise fit's samples of one four-step set on every *stride*-th pixel, in double precision: its own
+    regressors (1, and the pixel's level when given) (1 or 2, m), the shared harmonics b cos 2phi, b sin 2phi,
+    b cos 6phi, b sin 6phi (4, m; the sixth by the triple-angle formulas) and the residuals (m,)."""
+    phase, modulation, residual = (np.ascontiguousarray(np.asarray(a).ravel()) for a in (phase, modulation,
+                                                                                          residual))
+    m = len(range(0, residual.size, stride))
+    has_level = level is not None
+    level = np.ascontiguousarray(np.asarray(level).ravel()) if has_level else np.zeros(1, dtype=phase.dtype)
+    own = np.empty((2 if has_level else 1, m))
+    shared = np.empty((4, m))
+    r = np.empty(m)
+    _noise_rows_into(phase, modulation, residual, level, has_level, int(stride), own, shared, r)
+    return own, shared, r
+
+
+@numba.njit(**_JIT)
+def _consistency_into(modulation, cleaned, raw, limit, min_mod, inconsistent):
+    bad_n = 0
+    good_sum = 0.0
+    for j in range(cleaned.size):
+        b = np.float64(modulation[j])
+        if b < min_mod[j]:
+            min_mod[j] = b
+        r = cleaned[j]
+        if r > limit or r < -limit:
+            bad_n += 1
+            inconsistent[j] = True
+        else:
+            good_sum += np.float64(raw[j])
+    return bad_n, good_sum
+
+
+def consistency_set(modulation: np.ndarray, cleaned: np.ndarray, raw: np.ndarray, limit: float,
+                    min_modulation: np.ndarray, inconsistent: np.ndarray) -> tuple[int, float]:
+    """One four-step set's pass of the consistency check: *min_modulation* (float64) lowered to the set's
+    modulation, *inconsistent* set where the cleaned residual lies beyond +-*limit* (DN); returns how many
+    pixels that is and the sum of the raw residuals of the others (whole counts: exact in float64)."""
+    # (compared in the residuals' float32, as numpy compares a float32 array with a Python float)
+    bad, good_sum = _consistency_into(modulation, cleaned, raw, cleaned.dtype.type(limit), min_modulation,
+                                      inconsistent)
+    return int(bad), float(good_sum)
+
+
 # ----------------------------------------------------------------------------- sums over the points, by blocks
 #: Points per block of the sums below: each block is summed on its own (in the compiler's vector lanes) and
 #: the blocks' sums are added in block order, so a sum is the same bits whichever thread formed which blocks.
@@ -641,3 +703,6 @@ def warm_up() -> None:
     f = np.zeros(2, dtype=np.float32)
     cleaned_residuals(f, f, f, None, np.zeros(4), np.zeros(2))
     cleaned_residuals(f, f, f, f, np.zeros(4), np.zeros(2))
+    noise_rows(f, f, f, None, 1)
+    noise_rows(f, f, f, f, 1)
+    consistency_set(f, f, f, 1.0, np.zeros(2), np.zeros(2, dtype=np.bool_))

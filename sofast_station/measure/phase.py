@@ -239,24 +239,15 @@ def frame_noise(phases, modulations, residuals, level=None, pool=None) -> FrameN
     level = None if level is None else np.asarray(level).ravel()
     per_set = 1 if level is None else 2
 
-    def rows(k, stride):
-        """The regressors of set k on every *stride*-th pixel: its own offset (and mean level), then the
-        shared harmonics. The sixth harmonic survives the residual too (its sign alternates with the step)."""
-        # Samples for the fit in double precision; every pixel (stride 1, for the cleaned residuals) in
-        # single, which is ample for a residual compared with a few noise deviations.
-        dtype = np.float32 if stride == 1 else np.float64
-        phi = np.asarray(phases[k]).ravel()[::stride].astype(dtype, copy=False)
-        b = np.asarray(modulations[k]).ravel()[::stride].astype(dtype, copy=False)
-        own = [np.ones_like(phi)] + ([] if level is None else [level[::stride].astype(dtype, copy=False)])
-        c2, s2 = np.cos(2.0 * phi), np.sin(2.0 * phi)
-        # cos 6 phi and sin 6 phi by the triple-angle formulas (cheaper than two more trigonometric calls)
-        return own, [b * c2, b * s2, b * c2 * (4.0 * c2 * c2 - 3.0), b * s2 * (3.0 - 4.0 * s2 * s2)]
-
     def sample(k):
+        """Set k's regressors on every stride-th pixel (double precision): its own offset (and mean level),
+        then the shared harmonics (the sixth survives the residual too: its sign alternates with the
+        step), and its residuals (:func:`~.kernels.noise_rows`, one compiled pass)."""
+        from .kernels import noise_rows
+
         r = np.asarray(residuals[k]).ravel()
         stride = max(1, -(-r.size * n_sets // MAX_NOISE_SAMPLES))
-        own, shared = rows(k, stride)
-        return np.stack(own), np.stack(shared), r[::stride].astype(np.float64)
+        return noise_rows(phases[k], modulations[k], r, level, stride)
 
     samples = _map_halves(pool, sample, range(n_sets))
 

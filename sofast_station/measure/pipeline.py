@@ -443,15 +443,16 @@ def measure_phases(region: Region, fringes: FringeSet, screen_size_m: tuple[floa
     cons_limit = settings.consistency_sigmas * 2.0 * noise_dn + 1.0
     inconsistent_fraction = {}
     offsets: dict = {"x": [], "y": []}
+    from .kernels import consistency_set
+
     for axis in ("x", "y"):
         for p, b, r, r_raw in zip(getattr(fringes, f"periods_{axis}"), raw[axis][1], cleaned[axis], raw[axis][2]):
-            np.minimum(min_mod, b, out=min_mod)
-            bad = r > cons_limit           # |r| > limit, without the absolute values' array
-            bad |= r < -cons_limit
-            inconsistent_fraction[f"{axis} p={p:g}"] = float(np.count_nonzero(bad)) / idx.size
-            inconsistent |= bad
-            good = r_raw[~bad]     # before the fitted offsets are removed: they are what is measured here
-            offsets[axis].append(float(np.sum(good, dtype=np.float64) / good.size) if good.size else 0.0)
+            # the modulation limit, |r| > limit, and the mean raw residual of the consistent pixels (before
+            # the fitted offsets are removed: they are what is measured here), in one compiled pass
+            n_bad, good_sum = consistency_set(b, r, r_raw, cons_limit, min_mod, inconsistent)
+            inconsistent_fraction[f"{axis} p={p:g}"] = float(n_bad) / idx.size
+            n_good = idx.size - n_bad
+            offsets[axis].append(good_sum / n_good if n_good else 0.0)
     low_mod = min_mod < settings.min_modulation_dn
     ok &= ~low_mod & ~inconsistent
     excluded = 0

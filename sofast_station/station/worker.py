@@ -87,9 +87,9 @@ def _init(shm_name: str, shape: tuple[int, int, int], geometry: dict, fringes: d
     warm_up(_STATE["geometry"].camera)          # every pixel's ray before the first facet
     _STATE["rays"] = ray_table(_STATE["geometry"].camera)
     # What the analysis imports on first use, imported here rather than in a facet's cycle: the
-    # uncertainty's pooled frame brightness needs scipy.stats from the second capture on (the warm-up
-    # capture being the first), seconds to import on a busy machine.
-    import scipy.stats  # noqa: F401
+    # uncertainty's pooled frame brightness needs scipy.special's F quantile from the second capture on
+    # (the warm-up capture being the first).
+    import scipy.special  # noqa: F401
     from .memtrace import start_from_env
     start_from_env("worker")                    # off unless SOFAST_TRACEMALLOC_S is set (leak hunts)
 

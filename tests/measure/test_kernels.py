@@ -201,3 +201,21 @@ def test_cleaned_residuals_are_the_harmonic_model_removed_to_float32_rounding(wi
     model = modulation * (harmonic[0] * np.cos(phi2) + harmonic[1] * np.sin(phi2) + harmonic[2] * np.cos(3 * phi2)
                           + harmonic[3] * np.sin(3 * phi2)) + own[0] + (own[1] * level if with_level else 0.0)
     assert np.abs(got - (residual - model)).max() < 2e-5
+
+
+def test_noise_rows_are_the_harmonic_regressors_on_the_stride():
+    rng = np.random.default_rng(16)
+    n = 50_001
+    phase = rng.uniform(0, 2 * np.pi, n).astype(np.float32)
+    modulation = rng.uniform(5, 120, n).astype(np.float32)
+    residual = rng.integers(-6, 7, n).astype(np.float32)
+    level = rng.uniform(20, 240, n).astype(np.float32)
+    own, shared, r = kernels.noise_rows(phase, modulation, residual, level, 7)
+    phi, b = phase[::7].astype(np.float64), modulation[::7].astype(np.float64)
+    ref = [b * np.cos(2 * phi), b * np.sin(2 * phi), b * np.cos(6 * phi), b * np.sin(6 * phi)]
+    assert shared.shape == (4, r.size) and r.size == len(range(0, n, 7))
+    np.testing.assert_allclose(shared, ref, rtol=0, atol=1e-11)
+    np.testing.assert_array_equal(own, [np.ones(r.size), level[::7]])
+    np.testing.assert_array_equal(r, residual[::7])
+    own, _, _ = kernels.noise_rows(phase, modulation, residual, None, 7)
+    np.testing.assert_array_equal(own, [np.ones(r.size)])
