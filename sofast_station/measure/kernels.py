@@ -214,8 +214,8 @@ def reflect(rays_cam: np.ndarray, screen_cam_m: np.ndarray, rotation: np.ndarray
                    a_ * ox * ox + b_ * oy * oy + c_ * ox + d_ * oy + e_ * ox * oy + f_ - oz])
     sl = slice(lo, hi)        # (slices: a loop over 0..n-1 vectorises, one over lo..hi does not)
     _reflect_into(*(c[sl] for c in rays_cam), *(c[sl] for c in screen_cam_m),
-                  np.ascontiguousarray(rotation, dtype=np.float64), np.asarray(translation, dtype=np.float64),
-                  np.array([ox, oy, oz]), qk,
+                  np.array(rotation, dtype=np.float64), np.array(translation, dtype=np.float64),   # (writable
+                  np.array([ox, oy, oz]), qk,                                                       # copies)
                   np.asarray(coeffs, dtype=np.float64), *(c[sl] for c in points), *(c[sl] for c in slopes))
 
 
