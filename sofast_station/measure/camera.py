@@ -84,6 +84,7 @@ class RayTable:
         n = camera.width_px * camera.height_px
         self._rays = np.empty((3, n))
         self._known = np.zeros(n, dtype=bool)
+        self._full = False          # every pixel known (then take() checks nothing)
 
     @classmethod
     def from_grid(cls, camera: CameraIntrinsics, grid: np.ndarray) -> "RayTable":
@@ -93,10 +94,13 @@ class RayTable:
         table = cls(camera)
         table._rays[:] = grid.reshape(3, -1)
         table._known[:] = True
+        table._full = True
         return table
 
     def fill(self, flat_idx: np.ndarray | None = None) -> None:
         """Compute the rays of the flat pixel indices *flat_idx* (every pixel when None) not known yet."""
+        if self._full:
+            return
         if flat_idx is None:
             flat_idx = np.arange(self._known.size)
         missing = flat_idx[~self._known[flat_idx]]
@@ -104,8 +108,12 @@ class RayTable:
             rows, cols = np.divmod(missing, self.camera.width_px)
             self._rays[:, missing] = pixel_rays(self.camera, cols, rows)
             self._known[missing] = True
+        self._full = bool(self._known.all()) if missing.size else self._full
 
     def take(self, flat_idx: np.ndarray) -> np.ndarray:
         """(3, N) unit rays, camera frame, of the pixels with flat (raster) indices *flat_idx*."""
         self.fill(flat_idx)
-        return np.stack([self._rays[k].take(flat_idx) for k in range(3)])
+        out = np.empty((3, np.size(flat_idx)))
+        for k in range(3):
+            np.take(self._rays[k], flat_idx, out=out[k])
+        return out

@@ -219,6 +219,26 @@ def reflect(rays_cam: np.ndarray, screen_cam_m: np.ndarray, rotation: np.ndarray
                   np.asarray(coeffs, dtype=np.float64), *(c[sl] for c in points), *(c[sl] for c in slopes))
 
 
+@numba.njit(**_JIT)
+def _to_frame_every_into(v0, v1, v2, rot, shift, step, out):
+    for i in range(out.shape[1]):
+        j = i * step
+        a, b, c = v0[j], v1[j], v2[j]
+        out[0, i] = ((rot[0, 0] * a + rot[0, 1] * b) + rot[0, 2] * c) + shift[0]
+        out[1, i] = ((rot[1, 0] * a + rot[1, 1] * b) + rot[1, 2] * c) + shift[1]
+        out[2, i] = ((rot[2, 0] * a + rot[2, 1] * b) + rot[2, 2] * c) + shift[2]
+
+
+def to_frame_every(v: np.ndarray, rotation: np.ndarray, translation: np.ndarray, step: int,
+                   translate: bool = True) -> np.ndarray:
+    """:func:`~.camera.to_frame` of every *step*-th column of the (3, N) *v* (points, or directions with
+    ``translate=False``), gathered and transformed in one pass (the same bits): (3, ceil(N / step))."""
+    shift = np.array(translation, dtype=np.float64) if translate else np.zeros(3)
+    out = np.empty((3, len(range(0, v.shape[1], step))))
+    _to_frame_every_into(v[0], v[1], v[2], np.array(rotation, dtype=np.float64), shift, int(step), out)
+    return out
+
+
 @numba.njit(**_FMA)
 def _residuals_into(x, y, s_x, s_y, lin, cubic, o0, o1, o2, o3, o4, o5):
     # lin: per linear model (design, parabola) 2A, C, E, 2B, D; cubic: x0, y0, h, then the x and y slopes'
@@ -706,3 +726,4 @@ def warm_up() -> None:
     noise_rows(f, f, f, None, 1)
     noise_rows(f, f, f, f, 1)
     consistency_set(f, f, f, 1.0, np.zeros(2), np.zeros(2, dtype=np.bool_))
+    to_frame_every(np.zeros((3, 2)), np.eye(3), np.zeros(3), 1)

@@ -569,11 +569,16 @@ def shape_and_boresight(rays: Rays, pose: CornerPoseResult, design: FacetDesign,
     """Stage 5: shape and boresight iterated on the subsample, then every valid pixel's point and slope in
     the boresighted facet frame."""
     pool = pool if pool is not None else _Serial()
+    from .kernels import to_frame_every
+
     camera_to_facet = pose.facet_to_camera.inverse()
-    sample = slice(None, None, settings.subsample_step)
+    step = settings.subsample_step
+    # every step-th ray and screen point, gathered and taken into the facet frame in one compiled pass each
     subsample = Assembly(camera_to_facet.translation,
-                         to_frame(camera_to_facet, rays.rays[:, sample], translate=False),
-                         to_frame(camera_to_facet, rays.screen_cam_m[:, sample]),
+                         to_frame_every(rays.rays, camera_to_facet.rotation, camera_to_facet.translation, step,
+                                        translate=False),
+                         to_frame_every(rays.screen_cam_m, camera_to_facet.rotation, camera_to_facet.translation,
+                                        step),
                          to_frame(camera_to_facet, rays.screen_centre_cam_m[:, None])[:, 0])
     solution = solve_shape(subsample, design, measured_distance_m, settings.max_iterations, robust=settings.robust_fit,
                            pool=pool if settings.robust_fit else None)

@@ -219,3 +219,11 @@ def test_noise_rows_are_the_harmonic_regressors_on_the_stride():
     np.testing.assert_array_equal(r, residual[::7])
     own, _, _ = kernels.noise_rows(phase, modulation, residual, None, 7)
     np.testing.assert_array_equal(own, [np.ones(r.size)])
+
+
+def test_to_frame_every_is_to_frame_of_the_strided_columns():
+    rng = np.random.default_rng(17)
+    rays, screen, pose = _random_assembly(rng, 10_001)
+    for v, translate in ((rays, False), (screen, True)):
+        got = kernels.to_frame_every(v, pose.rotation, pose.translation, 7, translate=translate)
+        np.testing.assert_array_equal(got, to_frame(pose, v[:, ::7], translate=translate))
