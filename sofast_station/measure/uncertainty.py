@@ -556,8 +556,10 @@ def noise_propagation(reduction, *, fringes, geometry, design, settings, screen=
     sigma[("boresight_mrad", "x")] = sigma[("optical_tilt_mrad", "x")] = float(sig_bx)
     sigma[("boresight_mrad", "y")] = sigma[("optical_tilt_mrad", "y")] = float(sig_by)
     # Slope RMS values: mean(e^2) with e = t + n has variance (4 mean(t^2) s^2 + 2 s^4) / N.
-    for model, (ex, ey) in red.fits.residuals_mrad.items():
-        ms = {"x": float(np.mean(ex * ex)), "y": float(np.mean(ey * ey))}
+    for model in red.fits.residuals_mrad:
+        # mean(e^2) from the reported RMS (the same sums; squared back, within a unit of the last place)
+        rms = red.figures["slope_rms_mrad"][model]
+        ms = {"x": float(rms["x"]) ** 2, "y": float(rms["y"]) ** 2}
         ms["magnitude"] = ms["x"] + ms["y"]
         s2 = {a: noise[a] ** 2 for a in RMS_AXES}
         for a in RMS_AXES:
