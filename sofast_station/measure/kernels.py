@@ -424,6 +424,64 @@ def consistency_set(modulation: np.ndarray, cleaned: np.ndarray, raw: np.ndarray
     return int(bad), float(good_sum)
 
 
+@numba.njit(**_JIT)
+def trim_rounds(r, a, c, s, shrink, rounds):
+    """The iteration of :func:`~sofast_station.measure.phase.trimmed_std` from the scale *s*: keep the values
+    of *r* whose |deviation| *a* is at most c s, take their standard deviation over *shrink*, until the kept
+    set stops changing (the sets of successive thresholds are nested, so the same count is the same set)."""
+    previous = -1
+    for _ in range(rounds):
+        limit = c * s
+        count = 0
+        total = 0.0
+        for j in range(r.size):
+            if a[j] <= limit:
+                count += 1
+                total += r[j]
+        if count == previous or count < 2:
+            break
+        previous = count
+        mean = total / count
+        squares = 0.0
+        for j in range(r.size):
+            if a[j] <= limit:
+                d = r[j] - mean
+                squares += d * d
+        s = math.sqrt(squares / count / shrink)
+        if s == 0.0:
+            break
+    return s
+
+
+@numba.njit(**_JIT)
+def _minus_models_into(r, rows_a, coef_a, rows_b, coef_b, out):
+    ka = rows_a.shape[0]
+    kb = rows_b.shape[0]
+    for j in range(r.size):
+        acc = coef_a[0] * rows_a[0, j]
+        for i in range(1, ka):
+            acc = acc + coef_a[i] * rows_a[i, j]
+        v = r[j] - acc
+        if kb:
+            acc = coef_b[0] * rows_b[0, j]
+            for i in range(1, kb):
+                acc = acc + coef_b[i] * rows_b[i, j]
+            v = v - acc
+        out[j] = v
+
+
+def minus_models(r: np.ndarray, rows_a: np.ndarray, coef_a: np.ndarray, rows_b: np.ndarray | None = None,
+                 coef_b: np.ndarray | None = None) -> np.ndarray:
+    """(r - sum_i coef_a[i] rows_a[i]) - sum_i coef_b[i] rows_b[i], each sum formed left to right (the same
+    bits as numpy's expression of it), in one pass; rows are (k, n) float64 arrays."""
+    if rows_b is None:
+        rows_b, coef_b = np.zeros((0, 1)), np.zeros(1)
+    out = np.empty(r.size)
+    _minus_models_into(r, np.ascontiguousarray(rows_a), np.asarray(coef_a, dtype=np.float64),
+                       np.ascontiguousarray(rows_b), np.asarray(coef_b, dtype=np.float64), out)
+    return out
+
+
 # ----------------------------------------------------------------------------- sums over the points, by blocks
 #: Points per block of the sums below: each block is summed on its own (in the compiler's vector lanes) and
 #: the blocks' sums are added in block order, so a sum is the same bits whichever thread formed which blocks.
@@ -727,3 +785,6 @@ def warm_up() -> None:
     noise_rows(f, f, f, f, 1)
     consistency_set(f, f, f, 1.0, np.zeros(2), np.zeros(2, dtype=np.bool_))
     to_frame_every(np.zeros((3, 2)), np.eye(3), np.zeros(3), 1)
+    trim_rounds(x, x, 1.0, 1.0, 1.0, 1)
+    minus_models(x, np.ones((1, 2)), np.ones(1))
+    minus_models(x, np.ones((1, 2)), np.ones(1), np.ones((4, 2)), np.ones(4))

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .blocks import blockwise
+from .kernels import minus_models
 from .stats import median, quantile
 
 TWO_PI = 2.0 * np.pi
@@ -118,19 +119,9 @@ def trimmed_std(r: np.ndarray, trim_sigmas: float = TRIM_SIGMAS, rounds: int = 5
     # Variance of a standard Gaussian truncated to |z| <= c, relative to 1.
     frac = math.erf(c / math.sqrt(2.0))
     shrink = 1.0 - 2.0 * c * np.exp(-0.5 * c * c) / np.sqrt(2.0 * np.pi) / frac
-    keep = None
-    for _ in range(rounds):
-        new_keep = a <= c * s
-        if keep is not None and np.array_equal(new_keep, keep):
-            break
-        keep = new_keep
-        kept = r[keep]
-        if kept.size < 2:
-            break
-        s = float(np.sqrt(np.mean((kept - kept.mean()) ** 2) / shrink))
-        if s == 0.0:
-            break
-    return s
+    from .kernels import trim_rounds
+
+    return float(trim_rounds(r, a, c, s, float(shrink), int(rounds)))
 
 
 def intensity_noise_dn(consistency: np.ndarray, quantised: bool = True) -> float:
@@ -265,7 +256,7 @@ def frame_noise(phases, modulations, residuals, level=None, pool=None) -> FrameN
                 own_coefs.append(coef[per_set * j:per_set * (j + 1)])
             else:
                 own, shared, r = samples[k]
-                own_coefs.append(_robust_lstsq(own, r - _combine(harmonic, shared), stride=False))
+                own_coefs.append(_robust_lstsq(own, minus_models(r, shared, harmonic), stride=False))
         return harmonic, own_coefs
 
     # A set spoiled by a half-drawn frame keeps a large scatter about the shared fit (its error follows
@@ -275,8 +266,8 @@ def frame_noise(phases, modulations, residuals, level=None, pool=None) -> FrameN
     first_blocks: dict = {}      # each set's sums over all its samples: the same in every refit
     while True:
         harmonic, own_coefs = joint_fit(good)
-        scatter = _map_halves(pool, lambda k: trimmed_std(samples[k][2] - _combine(harmonic, samples[k][1])
-                                                           - _combine(own_coefs[k], samples[k][0])), range(n_sets))
+        scatter = _map_halves(pool, lambda k: trimmed_std(minus_models(samples[k][2], samples[k][1], harmonic,
+                                                                       samples[k][0], own_coefs[k])), range(n_sets))
         worst = max(good, key=lambda k: scatter[k])
         if len(good) == 1 or scatter[worst] <= 2.0 * min(scatter[k] for k in good):
             break
@@ -346,7 +337,7 @@ def _block_lstsq(samples: list, first_blocks: dict | None = None) -> np.ndarray:
             rhs[a] = oy
             rhs[n_own:] += sy
         coef = np.linalg.solve(gram, rhs)
-        res = [r - _combine(coef[m * j:m * (j + 1)], own) - _combine(coef[n_own:], shared)
+        res = [minus_models(r, own, coef[m * j:m * (j + 1)], shared, coef[n_own:])
                for j, (own, shared, r) in enumerate(samples)]
         all_res = np.concatenate(res)
         limit = 5.0 * max(trimmed_std(all_res), 0.5)

@@ -227,3 +227,25 @@ def test_to_frame_every_is_to_frame_of_the_strided_columns():
     for v, translate in ((rays, False), (screen, True)):
         got = kernels.to_frame_every(v, pose.rotation, pose.translation, 7, translate=translate)
         np.testing.assert_array_equal(got, to_frame(pose, v[:, ::7], translate=translate))
+
+
+def test_minus_models_is_numpys_expression_bit_for_bit():
+    rng = np.random.default_rng(18)
+    r, own, shared = rng.normal(size=5000), rng.normal(size=(2, 5000)), rng.normal(size=(4, 5000))
+    a, b = rng.normal(size=2), rng.normal(size=4)
+    ref = r - (a[0] * own[0] + a[1] * own[1]) - (((b[0] * shared[0] + b[1] * shared[1]) + b[2] * shared[2])
+                                                 + b[3] * shared[3])
+    np.testing.assert_array_equal(kernels.minus_models(r, own, a, shared, b), ref)
+    np.testing.assert_array_equal(kernels.minus_models(r, own, a), r - (a[0] * own[0] + a[1] * own[1]))
+
+
+def test_trimmed_std_keeps_its_meaning():
+    """A Gaussian's deviation through 2 % of gross outliers, and integer-valued residuals."""
+    from sofast_station.measure.phase import trimmed_std
+
+    rng = np.random.default_rng(19)
+    r = rng.normal(0, 1.3, 100_000)
+    r[:2000] = rng.uniform(30, 60, 2000)
+    assert trimmed_std(r) == pytest.approx(1.3, rel=0.01)
+    assert trimmed_std(np.round(rng.normal(0, 2.0, 100_000))) == pytest.approx(np.hypot(2.0, 1 / np.sqrt(12)),
+                                                                               rel=0.01)
