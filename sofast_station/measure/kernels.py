@@ -482,6 +482,20 @@ def minus_models(r: np.ndarray, rows_a: np.ndarray, coef_a: np.ndarray, rows_b: 
     return out
 
 
+@numba.njit(**_JIT)
+def _count_labels_into(labels, counts):
+    for v in labels:
+        counts[v] += 1
+
+
+def label_areas(labels: np.ndarray, n_labels: int) -> np.ndarray:
+    """How many pixels carry each label 0 .. n_labels - 1 of an OpenCV labelling (int32): one pass, a
+    quarter of np.bincount's time (which widens every label to 64 bits first)."""
+    counts = np.zeros(n_labels, dtype=np.int64)
+    _count_labels_into(np.ascontiguousarray(labels).ravel(), counts)
+    return counts
+
+
 # ----------------------------------------------------------------------------- sums over the points, by blocks
 #: Points per block of the sums below: each block is summed on its own (in the compiler's vector lanes) and
 #: the blocks' sums are added in block order, so a sum is the same bits whichever thread formed which blocks.
@@ -786,5 +800,6 @@ def warm_up() -> None:
     consistency_set(f, f, f, 1.0, np.zeros(2), np.zeros(2, dtype=np.bool_))
     to_frame_every(np.zeros((3, 2)), np.eye(3), np.zeros(3), 1)
     trim_rounds(x, x, 1.0, 1.0, 1.0, 1)
+    label_areas(np.zeros((2, 2), dtype=np.int32), 1)
     minus_models(x, np.ones((1, 2)), np.ones(1))
     minus_models(x, np.ones((1, 2)), np.ones(1), np.ones((4, 2)), np.ones(4))

@@ -249,3 +249,8 @@ def test_trimmed_std_keeps_its_meaning():
     assert trimmed_std(r) == pytest.approx(1.3, rel=0.01)
     assert trimmed_std(np.round(rng.normal(0, 2.0, 100_000))) == pytest.approx(np.hypot(2.0, 1 / np.sqrt(12)),
                                                                                rel=0.01)
+
+
+def test_label_areas_count_every_label():
+    labels = np.random.default_rng(20).integers(0, 37, size=(300, 410)).astype(np.int32)
+    np.testing.assert_array_equal(kernels.label_areas(labels, 37), np.bincount(labels.ravel(), minlength=37))
