@@ -59,10 +59,13 @@ source, robust, runs = spec["source"], spec["robust"], spec["runs"]
 
 def keep_memory():
     try:
-        from sofast_station.precompute import keep_freed_memory
+        from sofast_station.precompute import prepare_analysis_process
     except ImportError:                         # an older checkout
-        return
-    keep_freed_memory()
+        try:
+            from sofast_station.precompute import keep_freed_memory as prepare_analysis_process
+        except ImportError:
+            return
+    prepare_analysis_process()
 
 
 t = time.perf_counter()

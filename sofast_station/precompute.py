@@ -74,6 +74,20 @@ def keep_freed_memory() -> bool:
     return bool(mallopt(m_mmap_threshold, 32 * 1024 * 1024)) and bool(mallopt(m_trim_threshold, 2 ** 31 - 1))
 
 
+def prepare_analysis_process() -> float:
+    """What a process that analyses capture after capture does when it starts (``reprocess``, ``batch``'s
+    workers, ``import-opencsp``; the station's worker through :func:`warm_up`): keep freed memory
+    (:func:`keep_freed_memory`) and load the analysis' compiled kernels (from numba's on-disk cache; the
+    first time after an install or an update they are compiled, 10 to 20 s), so the first analysis costs
+    what the others do. Returns the seconds it took."""
+    from .measure.kernels import warm_up as load_kernels
+
+    t = time.perf_counter()
+    keep_freed_memory()
+    load_kernels()
+    return time.perf_counter() - t
+
+
 def warm_up(camera: CameraIntrinsics) -> float:
     """Fill the camera's ray table for every pixel and load the analysis' compiled kernels, so the first
     facet costs what every other does, and have the process keep the memory analyses free for the next
@@ -85,10 +99,7 @@ def warm_up(camera: CameraIntrinsics) -> float:
         Seconds it took (about 2 s for 1.9 MP, plus the kernels: about 0.5 s from numba's on-disk cache,
         10 to 20 s the first time after an install or an update, when they are compiled and cached).
     """
-    from .measure.kernels import warm_up as load_kernels
-
     t = time.perf_counter()
-    keep_freed_memory()
+    prepare_analysis_process()
     ray_table(camera).fill()
-    load_kernels()
     return time.perf_counter() - t

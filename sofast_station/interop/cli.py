@@ -39,7 +39,7 @@ def register(subparsers) -> None:
 
 def cmd_import_opencsp(args) -> int:
     from ..errors import ConfigError
-    from ..precompute import keep_freed_memory
+    from ..precompute import prepare_analysis_process
     from .opencsp import opencsp_test_data_paths, read_opencsp, read_opencsp_result
 
     paths = opencsp_test_data_paths(Path(args.test_data)) if args.test_data else {}
@@ -49,7 +49,7 @@ def cmd_import_opencsp(args) -> int:
         if key not in paths:
             raise ConfigError(f"import-opencsp needs --{key} (or --test-data with OpenCSP's folder layout)")
     m = read_opencsp(**paths, focal_length_m=args.focal_length)
-    keep_freed_memory()             # as the station's worker: the analyses reuse each other's memory
+    prepare_analysis_process()      # as the station's worker: memory reused, kernels loaded first
     a = m.analyse(robust=args.robust)
     fig = a.figures
     keys = ("focal_length_x_m", "focal_length_y_m", "twist_mrad_per_m", "twist_e1_mrad_per_m",

@@ -454,13 +454,13 @@ def _run_local(todo: list[Path], workers: int, overrides: dict, journal: str | N
 
 def _worker_start(parent_pid: int) -> None:
     """A local batch worker's start: exit with the batch (:func:`watch_parent`), and keep the memory an
-    analysis frees for the next dump's (:func:`~sofast_station.precompute.keep_freed_memory`, as the
-    station's worker does)."""
-    from ..precompute import keep_freed_memory
+    analysis frees for the next dump's and load the compiled kernels
+    (:func:`~sofast_station.precompute.prepare_analysis_process`, as the station's worker does)."""
+    from ..precompute import prepare_analysis_process
     from ..station.worker import watch_parent
 
     watch_parent(parent_pid)
-    keep_freed_memory()
+    prepare_analysis_process()
 
 
 def _worker_died(d: Path, deaths: dict, suspects: set, pending: deque, on_result, alone: bool) -> None:

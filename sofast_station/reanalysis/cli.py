@@ -242,9 +242,9 @@ def result_text(result, show_all: bool = False) -> str:
 
 def cmd_reprocess(args) -> int:
     single_thread_blas()
-    from ..precompute import keep_freed_memory
+    from ..precompute import prepare_analysis_process
 
-    keep_freed_memory()             # as the station's worker: each dump's analysis reuses the last one's memory
+    prepare_analysis_process()      # as the station's worker: memory reused, kernels loaded before the first dump
     from ..errors import StationError
     from .batch import error_result
     from .reprocess import reprocess_dump
