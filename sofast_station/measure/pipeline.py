@@ -764,9 +764,11 @@ def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, d
         from .uncertainty import sensitivity_key, uncertainty_figures
         t0 = time.perf_counter()
         key = sensitivity_key(geometry, design, fringes, settings, uncertainty, screen)
-        extra = uncertainty_figures(
-            reduction, fringes=fringes, geometry=geometry, design=design, measured_distance_m=measured_distance_m,
-            settings=settings, inputs=uncertainty, screen=screen, cache=sensitivity_cache, cache_key=key)
+        with _pool(settings.threads) as pool:
+            extra = uncertainty_figures(
+                reduction, fringes=fringes, geometry=geometry, design=design, measured_distance_m=measured_distance_m,
+                settings=settings, inputs=uncertainty, screen=screen, cache=sensitivity_cache, cache_key=key,
+                pool=None if isinstance(pool, _Serial) else pool)
         sensitivity_s = extra.pop("_sensitivity_seconds")
         reduction.figures.update(extra)
         timings["uncertainty"] = time.perf_counter() - t0

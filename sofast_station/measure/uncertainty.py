@@ -1241,9 +1241,10 @@ def sensitivity_key(geometry, design, fringes, settings, inputs: InputUncertaint
 
 def uncertainty_figures(reduction, *, fringes, geometry, design, measured_distance_m: float, settings,
                         inputs: InputUncertainties, screen=None, cache: dict | None = None,
-                        cache_key=None) -> dict:
+                        cache_key=None, pool=None) -> dict:
     """Everything :func:`combine` adds to a reduction's figures; sensitivities come from *cache* under
-    *cache_key* (geometry + recipe + inputs) when present, else are computed and stored there."""
+    *cache_key* (geometry + recipe + inputs) when present, else are computed and stored there. On a *pool*
+    (an executor) the corner pose's Monte Carlo runs beside the rest (the same values)."""
     sens = None if cache is None or cache_key is None else cache.get(cache_key)
     fresh = sens is None
     if sens is None:
@@ -1251,6 +1252,8 @@ def uncertainty_figures(reduction, *, fringes, geometry, design, measured_distan
                              measured_distance_m=measured_distance_m, settings=settings, inputs=inputs, screen=screen)
         if cache is not None and cache_key is not None:
             cache[cache_key] = sens
+    pose_task = None if pool is None else pool.submit(pose_monte_carlo, reduction, geometry=geometry, design=design,
+                                                      inputs=inputs)
     noise = noise_propagation(reduction, fringes=fringes, geometry=geometry, design=design, settings=settings,
                               screen=screen)
     pool = None
@@ -1259,7 +1262,8 @@ def uncertainty_figures(reduction, *, fringes, geometry, design, measured_distan
         pool = cache.setdefault(("frame brightness", cache_key), deque(maxlen=FRAME_POOL_CAPTURES))
     frame = pooled_frame_brightness(*frame_brightness_dn(reduction), pool)
     response = display_response_u(reduction, inputs)
-    pose_mc = pose_monte_carlo(reduction, geometry=geometry, design=design, inputs=inputs)
+    pose_mc = (pose_monte_carlo(reduction, geometry=geometry, design=design, inputs=inputs) if pose_task is None
+               else pose_task.result())
     out = combine(reduction.figures, sens, noise, inputs,
                   capture_scales(reduction, sens, inputs, frame["sigma_dn"], response["u_rad"]),
                   getattr(reduction.pose, "corner_cov_px2", None), pose_mc)
