@@ -525,7 +525,7 @@ class TwinStation:
             None draws it from *rng* when there is one. Given, it is not drawn, so the sensor noise comes
             from the state *rng* is in: drawing z from *rng* first and passing it gives the same frame as
             passing nothing, and ``0.0`` with a copy of that state gives the same sensor noise at the
-            nominal ambient (what the frame-to-frame brightness leaves in a figure, ``benchmarks/coverage.py
+            nominal ambient (what the frame-to-frame brightness leaves in a figure, ``benchmarks/uncertainty_coverage.py
             --split-brightness``).
 
         Returns
