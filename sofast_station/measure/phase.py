@@ -349,14 +349,6 @@ def _block_lstsq(samples: list, first_blocks: dict | None = None) -> np.ndarray:
     return coef
 
 
-def _combine(coef: np.ndarray, rows: np.ndarray) -> np.ndarray:
-    """sum_k coef[k] rows[k], element-wise (no BLAS)."""
-    out = coef[0] * rows[0]      # rows: a (k, N) array or a list of k arrays
-    for c, row in zip(coef[1:], rows[1:]):
-        out = out + c * row
-    return out
-
-
 def _robust_lstsq(design: np.ndarray, r: np.ndarray, rounds: int = 3, stride: bool = True) -> np.ndarray:
     """Least squares of r on the rows of *design* (k, N), refitted without residuals beyond 5 trimmed
     standard deviations (the pixels a half-drawn frame spoils), on a fixed stride of the points."""
@@ -368,7 +360,7 @@ def _robust_lstsq(design: np.ndarray, r: np.ndarray, rounds: int = 3, stride: bo
         # Normal equations by einsum's own loops: no BLAS call sees pixel-length data (determinism).
         gram = np.einsum("in,jn->ij", dk, dk, optimize=False)
         coef = np.linalg.solve(gram, np.einsum("in,n->i", dk, yk, optimize=False))
-        res = y - _combine(coef, d)
+        res = minus_models(y, d, coef)
         new_keep = np.abs(res) <= 5.0 * max(trimmed_std(res), 0.5)
         if np.array_equal(new_keep, keep) or new_keep.sum() < design.shape[0] * 3:
             break
