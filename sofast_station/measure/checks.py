@@ -118,14 +118,20 @@ def check_order(frames: np.ndarray, fringes: FringeSet, threshold_dn: float) -> 
     """The dark frame must be the darkest and the white frame the brightest of the sequence.
 
     Judged before anything else, so that swapped or shifted frames are reported as such rather than as a
-    dark scene, on the pixels (a fixed stride of them) whose value changes by more than *threshold_dn*
+    dark scene, on the pixels (every n-th row of them) whose value changes by more than *threshold_dn*
     over the sequence: room light drifting between frames moves every pixel a little and must not
     decide the order. When too few pixels respond there is no order to judge; :func:`check_response`
     reports that.
     """
-    flat = frames.reshape(frames.shape[0], -1)
-    # The counts themselves (no float copy): the largest minus the smallest cannot wrap around.
-    sample = np.ascontiguousarray(flat[:, :: max(1, flat.shape[1] // 200_000)])
+    # The counts themselves (no float copy): the largest minus the smallest cannot wrap around. About
+    # 200,000 pixels a frame: every n-th whole row of (n, rows, columns) frames, read contiguously (every
+    # n-th pixel touched every cache line of every frame).
+    if frames.ndim == 3:
+        step = max(1, frames.shape[1] // max(1, 200_000 // frames.shape[2]))
+        sample = np.ascontiguousarray(frames[:, ::step]).reshape(frames.shape[0], -1)
+    else:
+        flat = frames.reshape(frames.shape[0], -1)
+        sample = np.ascontiguousarray(flat[:, :: max(1, flat.shape[1] // 200_000)])
     responsive = (sample.max(axis=0) - sample.min(axis=0)) > threshold_dn
     n_responsive = int(np.count_nonzero(responsive))
     if n_responsive < 50:
