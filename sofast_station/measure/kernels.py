@@ -496,6 +496,58 @@ def label_areas(labels: np.ndarray, n_labels: int) -> np.ndarray:
     return counts
 
 
+@numba.njit(**_JIT)
+def _grid_screen_into(u, v, xs, ys, grid, main_diagonal, tol, rot, trans, out):
+    nx = xs.size
+    ny = ys.size
+    lo_x = xs[0] - tol * (xs[1] - xs[0])
+    hi_x = xs[nx - 1] + tol * (xs[nx - 1] - xs[nx - 2])
+    lo_y = ys[0] - tol * (ys[1] - ys[0])
+    hi_y = ys[ny - 1] + tol * (ys[ny - 1] - ys[ny - 2])
+    for k in range(u.size):
+        x = u[k]
+        y = v[k]
+        if not (x >= lo_x and x <= hi_x and y >= lo_y and y <= hi_y):
+            out[0, k] = np.nan
+            out[1, k] = np.nan
+            out[2, k] = np.nan
+            continue
+        i = min(max(np.searchsorted(xs, x, side="right") - 1, 0), nx - 2)
+        j = min(max(np.searchsorted(ys, y, side="right") - 1, 0), ny - 2)
+        s = (x - xs[i]) / (xs[i + 1] - xs[i])
+        t = (y - ys[j]) / (ys[j + 1] - ys[j])
+        # the triangle's three nodes (a, b, c) and their weights
+        if main_diagonal[j, i]:
+            if t >= s:
+                a, b, c, wa, wb, wc = (j, i), (j + 1, i + 1), (j + 1, i), 1.0 - t, s, t - s
+            else:
+                a, b, c, wa, wb, wc = (j, i), (j, i + 1), (j + 1, i + 1), 1.0 - s, s - t, t
+        elif s + t <= 1.0:
+            a, b, c, wa, wb, wc = (j, i), (j, i + 1), (j + 1, i), (1.0 - s) - t, s, t
+        else:
+            a, b, c, wa, wb, wc = (j, i + 1), (j + 1, i), (j + 1, i + 1), 1.0 - t, 1.0 - s, (s + t) - 1.0
+        p0 = grid[a[0], a[1], 0] * wa + grid[b[0], b[1], 0] * wb + grid[c[0], c[1], 0] * wc
+        p1 = grid[a[0], a[1], 1] * wa + grid[b[0], b[1], 1] * wb + grid[c[0], c[1], 1] * wc
+        p2 = grid[a[0], a[1], 2] * wa + grid[b[0], b[1], 2] * wb + grid[c[0], c[1], 2] * wc
+        for r in range(3):
+            out[r, k] = rot[r, 0] * p0 + rot[r, 1] * p1 + rot[r, 2] * p2 + trans[r]
+
+
+def grid_screen_points(u: np.ndarray, v: np.ndarray, xs: np.ndarray, ys: np.ndarray, grid: np.ndarray,
+                       main_diagonal: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
+                       tol: float = 100 * np.finfo(float).eps) -> np.ndarray:
+    """Piecewise-linear interpolation of a measured screen on a rectangular grid of positions *xs* (nx,) by
+    *ys* (ny,), node points *grid* (ny, nx, 3), each cell split into two triangles along its main diagonal
+    ((x0, y0)-(x1, y1)) where *main_diagonal* (ny - 1, nx - 1) says so, else along the other; the points
+    then taken into the camera frame by (*rotation*, *translation*): (3, N), NaN outside the grid (beyond
+    *tol* of a cell, as scipy's triangulation accepts)."""
+    out = np.empty((3, np.size(u)))
+    _grid_screen_into(np.ascontiguousarray(u, dtype=np.float64), np.ascontiguousarray(v, dtype=np.float64), xs, ys,
+                      grid, main_diagonal, float(tol), np.array(rotation, dtype=np.float64),
+                      np.array(translation, dtype=np.float64), out)
+    return out
+
+
 # ----------------------------------------------------------------------------- sums over the points, by blocks
 #: Points per block of the sums below: each block is summed on its own (in the compiler's vector lanes) and
 #: the blocks' sums are added in block order, so a sum is the same bits whichever thread formed which blocks.
@@ -801,5 +853,7 @@ def warm_up() -> None:
     to_frame_every(np.zeros((3, 2)), np.eye(3), np.zeros(3), 1)
     trim_rounds(x, x, 1.0, 1.0, 1.0, 1)
     label_areas(np.zeros((2, 2), dtype=np.int32), 1)
+    grid_screen_points(x, x, np.arange(2.0), np.arange(2.0), np.zeros((2, 2, 3)), np.ones((1, 1), dtype=np.bool_),
+                       np.eye(3), np.zeros(3))
     minus_models(x, np.ones((1, 2)), np.ones(1))
     minus_models(x, np.ones((1, 2)), np.ones(1), np.ones((4, 2)), np.ones(4))

@@ -103,13 +103,53 @@ class InterpolatedScreen:
         self._interp = LinearNDInterpolator(nodes_uv, nodes_screen_m)
         self._centre = np.asarray(centre_screen_m, np.float64)
         self._v_from_top = bool(v_from_top)
+        self._grid = self._as_grid(nodes_uv, nodes_screen_m)
+
+    def _as_grid(self, nodes_uv: np.ndarray, nodes_screen_m: np.ndarray):
+        """For nodes on a full rectangular grid (OpenCSP's display models): the grid and, per cell, which
+        diagonal the triangulation split it along, so that :meth:`points_camera` finds a position's cell
+        directly (a compiled kernel) instead of walking the triangulation (a tenth of the time), with the
+        same triangles. None when the nodes are not such a grid, or the two disagree (then scipy's)."""
+        xs, ys = np.unique(nodes_uv[:, 0]), np.unique(nodes_uv[:, 1])
+        if xs.size < 2 or ys.size < 2 or xs.size * ys.size != nodes_uv.shape[0]:
+            return None
+        grid = np.full((ys.size, xs.size, 3), np.nan)
+        grid[np.searchsorted(ys, nodes_uv[:, 1]), np.searchsorted(xs, nodes_uv[:, 0])] = nodes_screen_m
+        if not np.all(np.isfinite(grid)):
+            return None
+        # the triangle holding a point at (0.2, 0.6) of each cell has both ends of the main diagonal or not
+        gx, gy = np.meshgrid(xs[:-1] + 0.2 * np.diff(xs), ys[:-1] + 0.6 * np.diff(ys))
+        tri = self._interp.tri
+        simplex = tri.find_simplex(np.column_stack([gx.ravel(), gy.ravel()]))
+        if np.any(simplex < 0):
+            return None
+        jj, ii = np.meshgrid(np.arange(ys.size - 1), np.arange(xs.size - 1), indexing="ij")
+        node = np.full((ys.size, xs.size), -1)
+        node[np.searchsorted(ys, nodes_uv[:, 1]), np.searchsorted(xs, nodes_uv[:, 0])] = np.arange(nodes_uv.shape[0])
+        verts = tri.simplices[simplex]
+        first, last = node[jj, ii].ravel(), node[jj + 1, ii + 1].ravel()
+        main = (np.any(verts == first[:, None], axis=1) & np.any(verts == last[:, None], axis=1)).reshape(jj.shape)
+        out = (xs, ys, grid, main)
+        # check against the triangulation at points all over the grid
+        rng = np.random.default_rng(0)
+        probe = np.column_stack([rng.uniform(xs[0], xs[-1], 4000), rng.uniform(ys[0], ys[-1], 4000)])
+        from .kernels import grid_screen_points
+
+        mine = grid_screen_points(probe[:, 0], probe[:, 1], *out, np.eye(3), np.zeros(3))
+        if not np.allclose(mine.T, self._interp(probe), rtol=0.0, atol=1e-12):
+            return None
+        return out
 
     def points_camera(self, u_x_m: np.ndarray, u_y_m: np.ndarray) -> np.ndarray:
         v = np.asarray(u_y_m, np.float64)
         if self._v_from_top:
             v = self.height_m - v
-        pts = self._interp(np.column_stack([np.asarray(u_x_m, np.float64), v]))
         r, t = self.screen_to_camera.rotation, self.screen_to_camera.translation
+        if self._grid is not None:
+            from .kernels import grid_screen_points
+
+            return grid_screen_points(np.asarray(u_x_m, np.float64), v, *self._grid, r, t)
+        pts = self._interp(np.column_stack([np.asarray(u_x_m, np.float64), v]))
         return np.stack([r[i, 0] * pts[:, 0] + r[i, 1] * pts[:, 1] + r[i, 2] * pts[:, 2] + t[i] for i in range(3)])
 
     def centre_camera(self) -> np.ndarray:

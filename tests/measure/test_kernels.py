@@ -254,3 +254,26 @@ def test_trimmed_std_keeps_its_meaning():
 def test_label_areas_count_every_label():
     labels = np.random.default_rng(20).integers(0, 37, size=(300, 410)).astype(np.int32)
     np.testing.assert_array_equal(kernels.label_areas(labels, 37), np.bincount(labels.ravel(), minlength=37))
+
+
+def test_a_measured_grid_screen_is_scipys_triangulation_found_directly():
+    """A distorted screen on a rectangular grid (as OpenCSP's display models): the direct cell lookup gives
+    scipy's piecewise-linear interpolation over the same triangles, NaN outside, on the edges too."""
+    from scipy.interpolate import LinearNDInterpolator
+
+    from sofast_station.measure.screen import InterpolatedScreen
+
+    rng = np.random.default_rng(21)
+    xs, ys = np.cumsum(rng.uniform(0.05, 0.15, 9)), np.cumsum(rng.uniform(0.05, 0.15, 7))
+    gx, gy = np.meshgrid(xs, ys)
+    uv = np.column_stack([gx.ravel(), gy.ravel()])
+    pts = np.column_stack([uv * 0.5 + rng.normal(0, 0.002, uv.shape), rng.normal(0, 0.003, len(uv))])
+    pose = Pose(np.eye(3), np.array([0.1, -0.2, 3.0]))
+    screen = InterpolatedScreen(1.0, 1.0, uv, pts, pose)
+    assert screen._grid is not None
+    u = np.concatenate([rng.uniform(xs[0] - 0.05, xs[-1] + 0.05, 20_000), xs, [xs[0], xs[-1]]])
+    v = np.concatenate([rng.uniform(ys[0] - 0.05, ys[-1] + 0.05, 20_000), np.full(xs.size, ys[3]), [ys[-1], ys[0]]])
+    got = screen.points_camera(u, v)
+    ref = LinearNDInterpolator(uv, pts)(np.column_stack([u, v])).T + pose.translation[:, None]
+    assert np.array_equal(np.isnan(got), np.isnan(ref)) and np.isnan(got).any()
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-14)
