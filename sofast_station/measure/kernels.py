@@ -548,6 +548,25 @@ def grid_screen_points(u: np.ndarray, v: np.ndarray, xs: np.ndarray, ys: np.ndar
     return out
 
 
+@numba.njit(**_JIT)
+def _gather_runs_into(flat, src, dst, length, out):
+    for f in range(flat.shape[0]):
+        row = flat[f]
+        target = out[f]
+        for r in range(src.size):
+            a = src[r]
+            b = dst[r]
+            target[b:b + length[r]] = row[a:a + length[r]]
+
+
+def gather_runs(flat: np.ndarray, idx: np.ndarray, runs: tuple[list, list], out: np.ndarray) -> None:
+    """``out[:] = flat[:, idx]`` for sorted flat indices *idx* that run on in *runs* ((starts, ends) in *idx*):
+    each run copied as a row segment, in one compiled pass without the GIL (frames (F, N), out (F, len(idx)))."""
+    starts = np.asarray(runs[0], dtype=np.int64)
+    ends = np.asarray(runs[1], dtype=np.int64)
+    _gather_runs_into(flat, idx[starts].astype(np.int64), starts, ends - starts, out)
+
+
 # ----------------------------------------------------------------------------- sums over the points, by blocks
 #: Points per block of the sums below: each block is summed on its own (in the compiler's vector lanes) and
 #: the blocks' sums are added in block order, so a sum is the same bits whichever thread formed which blocks.
@@ -853,6 +872,8 @@ def warm_up() -> None:
     to_frame_every(np.zeros((3, 2)), np.eye(3), np.zeros(3), 1)
     trim_rounds(x, x, 1.0, 1.0, 1.0, 1)
     label_areas(np.zeros((2, 2), dtype=np.int32), 1)
+    for dtype in (np.uint8, np.uint16):
+        gather_runs(np.zeros((2, 4), dtype=dtype), np.arange(2), ([0], [2]), np.empty((2, 2), dtype=dtype))
     grid_screen_points(x, x, np.arange(2.0), np.arange(2.0), np.zeros((2, 2, 3)), np.ones((1, 1), dtype=np.bool_),
                        np.eye(3), np.zeros(3))
     minus_models(x, np.ones((1, 2)), np.ones(1))

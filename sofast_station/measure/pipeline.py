@@ -398,10 +398,11 @@ def _runs(idx: np.ndarray) -> tuple[list, list]:
 
 def _gather_runs(flat: np.ndarray, idx: np.ndarray, runs: tuple[list, list], out: np.ndarray) -> None:
     """``out[:] = flat[:, idx]`` copied run by run: a facet's pixels are a few hundred runs of whole row
-    segments, and slice copies are twice as fast as np.take's element-wise gather."""
-    for start, end in zip(*runs):
-        first = int(idx[start])
-        out[:, start:end] = flat[:, first:first + end - start]
+    segments (:func:`~.kernels.gather_runs`: compiled, without the GIL, so the two halves of the frames
+    are copied at once; a Python loop of slice copies held the GIL between its hundreds of small copies)."""
+    from .kernels import gather_runs
+
+    gather_runs(flat, idx, runs, out)
 
 
 def measure_phases(region: Region, fringes: FringeSet, screen_size_m: tuple[float, float],

@@ -277,3 +277,16 @@ def test_a_measured_grid_screen_is_scipys_triangulation_found_directly():
     ref = LinearNDInterpolator(uv, pts)(np.column_stack([u, v])).T + pose.translation[:, None]
     assert np.array_equal(np.isnan(got), np.isnan(ref)) and np.isnan(got).any()
     np.testing.assert_allclose(got, ref, rtol=0, atol=1e-14)
+
+
+def test_gather_runs_is_numpys_fancy_index():
+    from sofast_station.measure.pipeline import _runs
+
+    rng = np.random.default_rng(22)
+    frames = rng.integers(0, 256, size=(5, 60, 70)).astype(np.uint8)
+    region = rng.uniform(size=(60, 70)) < 0.7
+    idx = np.flatnonzero(region)
+    flat = frames.reshape(5, -1)
+    out = np.empty((5, idx.size), dtype=np.uint8)
+    kernels.gather_runs(flat, idx, _runs(idx), out)
+    np.testing.assert_array_equal(out, flat[:, idx])
