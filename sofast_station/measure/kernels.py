@@ -567,6 +567,68 @@ def gather_runs(flat: np.ndarray, idx: np.ndarray, runs: tuple[list, list], out:
     _gather_runs_into(flat, idx[starts].astype(np.int64), starts, ends - starts, out)
 
 
+# ---------------------------------------------------------------------------------------------- unwrapping
+@numba.njit(**_JIT)
+def _unwrap_into(phases, periods, big_l, whole, guard_sigmas, sigma, per_pixel, u_out, valid):
+    n_sets = phases.shape[0]
+    two_pi = 2.0 * math.pi
+    coarse_bad_n = 0
+    disagree_n = 0
+    edge_n = 0
+    first = two_pi * periods[0]
+    for j in range(phases.shape[1]):
+        u = (big_l * np.float64(phases[0, j])) / first
+        coarse_bad = not (u >= 0.0 and u < big_l)
+        disagree = False
+        for m in range(1, n_sets):
+            p = periods[m]
+            phi = np.float64(phases[m, j])
+            k = np.rint((((two_pi * p) * u) / big_l - phi) / two_pi)
+            u_fine = ((phi + k * two_pi) * big_l) / (two_pi * p)
+            if abs(u_fine - u) > big_l / (4.0 * p):
+                disagree = True
+            u = u_fine
+        near_edge = False
+        if whole:
+            if u < 0.0 or u >= big_l:
+                u = np.mod(u, big_l)
+            if u >= big_l:
+                u = 0.0
+            coarse_bad = False
+            guard = guard_sigmas * (sigma[j] if per_pixel else sigma[0])
+            near_edge = u < guard or u > big_l - guard
+        else:
+            coarse_bad = coarse_bad or not (u >= 0.0 and u < big_l)
+        disagree = disagree and not coarse_bad
+        near_edge = near_edge and not (coarse_bad or disagree)
+        coarse_bad_n += coarse_bad
+        disagree_n += disagree
+        edge_n += near_edge
+        ok = not (coarse_bad or disagree or near_edge)
+        valid[j] = ok
+        u_out[j] = u if ok else np.nan
+    return coarse_bad_n, disagree_n, edge_n
+
+
+def unwrap(phases: list, periods: list, big_l: float, whole: bool, guard_sigmas: float, sigma
+           ) -> tuple[np.ndarray, np.ndarray, int, int, int]:
+    """Temporal unwrapping of every pixel in one pass without the GIL (so the two axes unwrap at once on
+    two threads; see :func:`~sofast_station.measure.phase.unwrap_positions`, which checks the arguments):
+    positions (metres, NaN where invalid), valid, and the counts of coarse-out-of-range, disagreeing and
+    edge-guard pixels. *sigma*: the finest phase's position noise per pixel (an array) or for all (a
+    float), metres. Each pixel's operations in the order of u = L phi / (2 pi p);
+    k = round((2 pi p u / L - phi) / 2 pi); u' = L (phi + 2 pi k) / (2 pi p) (numpy's values)."""
+    stack = np.stack([np.asarray(ph).ravel() for ph in phases])
+    per_pixel = np.ndim(sigma) > 0
+    sig = np.ascontiguousarray(np.ravel(sigma), dtype=np.float64) if per_pixel else np.array([float(sigma)])
+    n = stack.shape[1]
+    u = np.empty(n)
+    valid = np.empty(n, dtype=np.bool_)
+    counts = _unwrap_into(stack, np.asarray(periods, dtype=np.float64), float(big_l), bool(whole),
+                          float(guard_sigmas), sig, per_pixel, u, valid)
+    return u, valid, int(counts[0]), int(counts[1]), int(counts[2])
+
+
 # ----------------------------------------------------------------------------- sums over the points, by blocks
 #: Points per block of the sums below: each block is summed on its own (in the compiler's vector lanes) and
 #: the blocks' sums are added in block order, so a sum is the same bits whichever thread formed which blocks.
@@ -872,6 +934,9 @@ def warm_up() -> None:
     to_frame_every(np.zeros((3, 2)), np.eye(3), np.zeros(3), 1)
     trim_rounds(x, x, 1.0, 1.0, 1.0, 1)
     label_areas(np.zeros((2, 2), dtype=np.int32), 1)
+    for phase_dtype in (np.float32, np.float64):
+        for sigma in (np.zeros(1), 0.0):
+            unwrap([np.zeros(1, dtype=phase_dtype)] * 2, [1.0, 2.0], 1.0, True, 4.0, sigma)
     for dtype in (np.uint8, np.uint16):
         gather_runs(np.zeros((2, 4), dtype=dtype), np.arange(2), ([0], [2]), np.empty((2, 2), dtype=dtype))
     grid_screen_points(x, x, np.arange(2.0), np.arange(2.0), np.zeros((2, 2, 3)), np.ones((1, 1), dtype=np.bool_),

@@ -11,7 +11,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .blocks import blockwise
 from .kernels import minus_models
 from .stats import median, quantile
 
@@ -424,67 +423,15 @@ def unwrap_positions(phases: list[np.ndarray] | tuple[np.ndarray, ...], periods,
         raise ValueError(f"guard_sigmas must be at least 4 (docs/conventions.md#unwrapping), got {guard_sigmas}")
     big_l = float(length_m)
     whole = all(abs(p - round(p)) < 1e-12 for p in periods)
+    from .kernels import unwrap
+
     shape = np.shape(phases[0])
-    columns = [np.asarray(phi).reshape(-1) for phi in phases]
     sigma = np.asarray(position_sigma_m, dtype=np.float64)
-    per_pixel = sigma.ndim > 0
-    if per_pixel:
-        columns.append(np.broadcast_to(sigma, shape).reshape(-1))
-    u, valid, coarse_bad, disagree, near_edge = blockwise(
-        _unwrap_block, *columns, periods=periods, big_l=big_l, whole=whole, guard_sigmas=float(guard_sigmas),
-        sigma=None if per_pixel else float(sigma))
-    return UnwrapResult(u.reshape(shape), valid.reshape(shape), int(np.count_nonzero(coarse_bad)),
-                        int(np.count_nonzero(disagree)), int(np.count_nonzero(near_edge)))
-
-
-def _unwrap_block(*columns, periods: list, big_l: float, whole: bool, guard_sigmas: float, sigma: float | None):
-    """:func:`unwrap_positions` on a block of pixels: *columns* are the phases, coarse first, then the
-    position noise per pixel when *sigma* is None. Returns the positions (NaN where invalid), valid, and
-    the coarse-out-of-range, disagreement and edge-guard flags.
-
-    The passes go in place over float64 arrays in the order of the formulas' operations (the same values
-    as whole-array expressions): u = L phi / (2 pi p); k = round((2 pi p u / L - phi) / 2 pi);
-    u' = L (phi + 2 pi k) / (2 pi p).
-    """
-    phases = columns[:len(periods)]
-    u = np.multiply(big_l, phases[0], dtype=np.float64)
-    u /= TWO_PI * periods[0]
-    coarse_bad = ~((u >= 0.0) & (u < big_l))
-    disagree = np.zeros(u.shape, dtype=bool)
-    spare = np.empty_like(u)
-    for phi, p in zip(phases[1:], periods[1:]):
-        u_fine = np.multiply(TWO_PI * p, u, out=spare)
-        u_fine /= big_l
-        np.subtract(u_fine, phi, out=u_fine, dtype=np.float64)
-        u_fine /= TWO_PI
-        np.round(u_fine, out=u_fine)                        # k
-        u_fine *= TWO_PI
-        np.add(phi, u_fine, out=u_fine, dtype=np.float64)
-        u_fine *= big_l
-        u_fine /= TWO_PI * p
-        np.subtract(u_fine, u, out=u)                       # (the coarser u is not needed after this)
-        np.abs(u, out=u)
-        disagree |= u > big_l / (4.0 * p)
-        u, spare = u_fine, u
-    if whole:
-        # Every pattern repeats with period L: 0 and L look alike, so the finest phase decides the side.
-        # np.mod(u, L) only where u lies outside [0, L) (inside, it is u itself): the same values, without
-        # a pass of fmod over every pixel.
-        outside = np.flatnonzero((u < 0.0) | (u >= big_l))
-        u[outside] = np.mod(u[outside], big_l)
-        u[u >= big_l] = 0.0
-        coarse_bad[:] = False
-        guard = np.multiply(guard_sigmas, columns[len(periods)] if sigma is None else sigma, dtype=np.float64)
-        near_edge = u < guard
-        near_edge |= u > (np.subtract(big_l, guard, out=guard) if np.ndim(guard) else big_l - guard)
-    else:
-        coarse_bad |= ~((u >= 0.0) & (u < big_l))
-        near_edge = np.zeros(u.shape, dtype=bool)
-    disagree &= ~coarse_bad
-    near_edge &= ~(coarse_bad | disagree)
-    invalid = coarse_bad | disagree | near_edge
-    u[invalid] = np.nan
-    return u, ~invalid, coarse_bad, disagree, near_edge
+    if sigma.ndim > 0:
+        sigma = np.broadcast_to(sigma, shape)
+    u, valid, coarse_bad, disagree, near_edge = unwrap(phases, periods, big_l, whole, float(guard_sigmas),
+                                                       sigma if sigma.ndim > 0 else float(sigma))
+    return UnwrapResult(u.reshape(shape), valid.reshape(shape), coarse_bad, disagree, near_edge)
 
 
 def position_sigma_m(modulation_dn: np.ndarray, noise_dn: float, finest_periods: float,

@@ -262,3 +262,26 @@ def test_noise_fit_on_two_threads_gives_the_same_bits():
     assert serial.harmonic_ratio > 0.01                         # a harmonic was fitted and removed
     assert (threaded.noise_dn, threaded.signed_harmonic_ratio) == (serial.noise_dn, serial.signed_harmonic_ratio)
     assert all(np.array_equal(a, b) for a, b in zip(serial.residuals, threaded.residuals))
+
+
+def test_unwrapping_on_two_threads_gives_the_same_positions():
+    """The compiled unwrapping of both axes at once (as the analysis runs it): each pixel's arithmetic
+    is its own, so the same positions and counts as one after the other."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from sofast_station.measure.phase import unwrap_positions
+
+    rng = np.random.default_rng(32)
+    n, big_l, periods = 100_000, 0.52, [1, 8]
+    u_true = rng.uniform(0, big_l, n)
+    phases = [np.mod(2 * np.pi * p * u_true / big_l + rng.normal(0, 0.02, n), 2 * np.pi).astype(np.float32)
+              for p in periods]
+    sigma = rng.uniform(1e-5, 4e-5, n)
+    alone = unwrap_positions(phases, periods, big_l, sigma, 4.0)
+    with ThreadPoolExecutor(2) as pool:
+        both = [pool.submit(unwrap_positions, phases, periods, big_l, sigma, 4.0) for _ in range(2)]
+        both = [f.result() for f in both]
+    for got in both:
+        np.testing.assert_array_equal(got.position_m, alone.position_m)
+        assert (got.edge_guard, got.disagreements) == (alone.edge_guard, alone.disagreements)
+    assert np.nanmax(np.abs(alone.position_m - u_true)) < big_l / 64 / 4
