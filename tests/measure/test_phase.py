@@ -284,4 +284,4 @@ def test_unwrapping_on_two_threads_gives_the_same_positions():
     for got in both:
         np.testing.assert_array_equal(got.position_m, alone.position_m)
         assert (got.edge_guard, got.disagreements) == (alone.edge_guard, alone.disagreements)
-    assert np.nanmax(np.abs(alone.position_m - u_true)) < big_l / 64 / 4
+    assert np.nanmedian(np.abs(alone.position_m - u_true)) < 1e-3
