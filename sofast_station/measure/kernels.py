@@ -239,6 +239,32 @@ def to_frame_every(v: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
     return out
 
 
+@numba.njit(**_JIT)
+def _normal_slopes_into(px, py, pz, camera, tx_, ty_, tz_, s0, s1):
+    cx, cy, cz = camera[0], camera[1], camera[2]
+    for j in range(px.size):
+        ax, ay, az = cx - px[j], cy - py[j], cz - pz[j]
+        bx, by, bz = tx_[j] - px[j], ty_[j] - py[j], tz_[j] - pz[j]
+        la = math.sqrt((ax * ax + ay * ay) + az * az)
+        lb = math.sqrt((bx * bx + by * by) + bz * bz)
+        nx = ax * lb + bx * la
+        ny = ay * lb + by * la
+        nz = az * lb + bz * la
+        s0[j] = -(nx / nz)
+        s1[j] = -(ny / nz)
+
+
+def normal_slopes(points: np.ndarray, camera_m: np.ndarray, screen_points_m: np.ndarray) -> np.ndarray:
+    """:func:`~.surface.normal_slopes` (the law of reflection's slopes at *points* (3, N) seen from *camera_m*
+    and showing *screen_points_m* (3, N)) in one compiled pass, the same bits: (2, N)."""
+    n = points.shape[1]
+    out = np.empty((2, n))
+    p = [np.ascontiguousarray(points[k], dtype=np.float64) for k in range(3)]
+    t = [np.ascontiguousarray(screen_points_m[k], dtype=np.float64) for k in range(3)]
+    _normal_slopes_into(*p, np.array(camera_m, dtype=np.float64), *t, out[0], out[1])
+    return out
+
+
 @numba.njit(**_FMA)
 def _residuals_into(x, y, s_x, s_y, lin, cubic, o0, o1, o2, o3, o4, o5):
     # lin: per linear model (design, parabola) 2A, C, E, 2B, D; cubic: x0, y0, h, then the x and y slopes'
@@ -934,6 +960,7 @@ def warm_up() -> None:
     to_frame_every(np.zeros((3, 2)), np.eye(3), np.zeros(3), 1)
     trim_rounds(x, x, 1.0, 1.0, 1.0, 1)
     label_areas(np.zeros((2, 2), dtype=np.int32), 1)
+    normal_slopes(np.ones((3, 2)), np.zeros(3), np.ones((3, 2)))
     for phase_dtype in (np.float32, np.float64):
         for sigma in (np.zeros(1), 0.0):
             unwrap([np.zeros(1, dtype=phase_dtype)] * 2, [1.0, 2.0], 1.0, True, 4.0, sigma)

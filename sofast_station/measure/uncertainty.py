@@ -34,7 +34,6 @@ from .metrics import principal_axes
 from .phase import position_sigma_m
 from .screen import FlatScreen
 from .stats import median
-from .surface import normal_slopes
 
 COVERAGE_FACTOR = 2.0
 MODELS = ("design", "parabola", "higher_order")
@@ -517,9 +516,11 @@ def noise_propagation(reduction, *, fringes, geometry, design, settings, screen=
     camera_b = cam_to_b.translation
     points = red.shape.points_m[:, sel]
     delta = 1e-4
-    s0 = np.stack(normal_slopes(points, camera_b, to_frame(cam_to_b, screen.points_camera(ux, uy))))
-    sx_dx = np.stack(normal_slopes(points, camera_b, to_frame(cam_to_b, screen.points_camera(ux + delta, uy))))
-    sy_dy = np.stack(normal_slopes(points, camera_b, to_frame(cam_to_b, screen.points_camera(ux, uy + delta))))
+    from .kernels import normal_slopes as slopes_of      # surface.normal_slopes in one compiled pass
+
+    s0 = slopes_of(points, camera_b, to_frame(cam_to_b, screen.points_camera(ux, uy)))
+    sx_dx = slopes_of(points, camera_b, to_frame(cam_to_b, screen.points_camera(ux + delta, uy)))
+    sy_dy = slopes_of(points, camera_b, to_frame(cam_to_b, screen.points_camera(ux, uy + delta)))
     gx, gy = (sx_dx - s0) / delta, (sy_dy - s0) / delta          # (2, n): d(s_x, s_y)/du_x, /du_y
     var = (gx * sig_u["x"]) ** 2 + (gy * sig_u["y"]) ** 2        # (2, n) slope variance
     sig_s = np.sqrt(var)

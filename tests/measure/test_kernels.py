@@ -290,3 +290,12 @@ def test_gather_runs_is_numpys_fancy_index():
     out = np.empty((5, idx.size), dtype=np.uint8)
     kernels.gather_runs(flat, idx, _runs(idx), out)
     np.testing.assert_array_equal(out, flat[:, idx])
+
+
+def test_normal_slopes_kernel_is_the_numpy_function_bit_for_bit():
+    rng = np.random.default_rng(23)
+    points = rng.normal([0, 0, 0.01], [0.3, 0.3, 0.005], size=(5000, 3)).T
+    screen = rng.normal([0.2, 0.0, -5.3], [0.2, 0.1, 0.01], size=(5000, 3)).T
+    camera = np.array([0.05, -0.02, -5.35])
+    np.testing.assert_array_equal(kernels.normal_slopes(points, camera, screen),
+                                  np.stack(normal_slopes(points, camera, screen)))
