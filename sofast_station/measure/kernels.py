@@ -144,6 +144,28 @@ def phase_counts(frames: np.ndarray, phase: np.ndarray, modulation: np.ndarray, 
     _phase_counts_into(frames, phase, modulation, consistency)
 
 
+@numba.njit(inline="always", **_JIT)
+def _rotate_shift(rot, a, b, c, s0, s1, s2):
+    """rot @ (a, b, c) + (s0, s1, s2), each row summed left to right as :func:`~.camera.to_frame` does."""
+    return (((rot[0, 0] * a + rot[0, 1] * b) + rot[0, 2] * c) + s0,
+            ((rot[1, 0] * a + rot[1, 1] * b) + rot[1, 2] * c) + s1,
+            ((rot[2, 0] * a + rot[2, 1] * b) + rot[2, 2] * c) + s2)
+
+
+@numba.njit(inline="always", **_JIT)
+def _law_of_reflection(px, py, pz, cx, cy, cz, tx, ty, tz):
+    """The slopes (s_x, s_y) at the point p seen from the camera centre c showing the screen point t, in the
+    order of :func:`~.surface.normal_slopes` (n = a |b| + b |a| with a = c - p, b = t - p)."""
+    ax, ay, az = cx - px, cy - py, cz - pz
+    bx, by, bz = tx - px, ty - py, tz - pz
+    la = math.sqrt((ax * ax + ay * ay) + az * az)
+    lb = math.sqrt((bx * bx + by * by) + bz * bz)
+    nx = ax * lb + bx * la
+    ny = ay * lb + by * la
+    nz = az * lb + bz * la
+    return -(nx / nz), -(ny / nz)
+
+
 @numba.njit(**_JIT)
 def _reflect_into(r0, r1, r2, w0_, w1_, w2_, rot, trans, origin, qk, coeffs, p0, p1, p2, s0, s1):
     a_ = coeffs[0]
@@ -155,14 +177,8 @@ def _reflect_into(r0, r1, r2, w0_, w1_, w2_, rot, trans, origin, qk, coeffs, p0,
     t0, t1_, t2_ = trans[0], trans[1], trans[2]
     k_x, k_y, qc = qk[0], qk[1], qk[2]
     for j in range(r0.size):
-        v0, v1, v2 = r0[j], r1[j], r2[j]
-        ux = ((rot[0, 0] * v0 + rot[0, 1] * v1) + rot[0, 2] * v2) + 0.0
-        uy = ((rot[1, 0] * v0 + rot[1, 1] * v1) + rot[1, 2] * v2) + 0.0
-        uz = ((rot[2, 0] * v0 + rot[2, 1] * v1) + rot[2, 2] * v2) + 0.0
-        w0, w1, w2 = w0_[j], w1_[j], w2_[j]
-        tx = ((rot[0, 0] * w0 + rot[0, 1] * w1) + rot[0, 2] * w2) + t0
-        ty = ((rot[1, 0] * w0 + rot[1, 1] * w1) + rot[1, 2] * w2) + t1_
-        tz = ((rot[2, 0] * w0 + rot[2, 1] * w1) + rot[2, 2] * w2) + t2_
+        ux, uy, uz = _rotate_shift(rot, r0[j], r1[j], r2[j], 0.0, 0.0, 0.0)
+        tx, ty, tz = _rotate_shift(rot, w0_[j], w1_[j], w2_[j], t0, t1_, t2_)
         # intersect_quadratic
         qa = (ux * a_ * ux + uy * b_ * uy) + ux * e_ * uy
         qb = (ux * k_x + uy * k_y) - uz
@@ -183,16 +199,7 @@ def _reflect_into(r0, r1, r2, w0_, w1_, w2_, rot, trans, origin, qk, coeffs, p0,
         p0[j] = px
         p1[j] = py
         p2[j] = pz
-        # normal_slopes
-        ax, ay, az = ox - px, oy - py, oz - pz
-        bx, by, bz = tx - px, ty - py, tz - pz
-        la = math.sqrt((ax * ax + ay * ay) + az * az)
-        lb = math.sqrt((bx * bx + by * by) + bz * bz)
-        nx = ax * lb + bx * la
-        ny = ay * lb + by * la
-        nz = az * lb + bz * la
-        s0[j] = -(nx / nz)
-        s1[j] = -(ny / nz)
+        s0[j], s1[j] = _law_of_reflection(px, py, pz, ox, oy, oz, tx, ty, tz)
 
 
 def reflect(rays_cam: np.ndarray, screen_cam_m: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
@@ -223,10 +230,7 @@ def reflect(rays_cam: np.ndarray, screen_cam_m: np.ndarray, rotation: np.ndarray
 def _to_frame_every_into(v0, v1, v2, rot, shift, step, out):
     for i in range(out.shape[1]):
         j = i * step
-        a, b, c = v0[j], v1[j], v2[j]
-        out[0, i] = ((rot[0, 0] * a + rot[0, 1] * b) + rot[0, 2] * c) + shift[0]
-        out[1, i] = ((rot[1, 0] * a + rot[1, 1] * b) + rot[1, 2] * c) + shift[1]
-        out[2, i] = ((rot[2, 0] * a + rot[2, 1] * b) + rot[2, 2] * c) + shift[2]
+        out[0, i], out[1, i], out[2, i] = _rotate_shift(rot, v0[j], v1[j], v2[j], shift[0], shift[1], shift[2])
 
 
 def to_frame_every(v: np.ndarray, rotation: np.ndarray, translation: np.ndarray, step: int,
@@ -243,15 +247,7 @@ def to_frame_every(v: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
 def _normal_slopes_into(px, py, pz, camera, tx_, ty_, tz_, s0, s1):
     cx, cy, cz = camera[0], camera[1], camera[2]
     for j in range(px.size):
-        ax, ay, az = cx - px[j], cy - py[j], cz - pz[j]
-        bx, by, bz = tx_[j] - px[j], ty_[j] - py[j], tz_[j] - pz[j]
-        la = math.sqrt((ax * ax + ay * ay) + az * az)
-        lb = math.sqrt((bx * bx + by * by) + bz * bz)
-        nx = ax * lb + bx * la
-        ny = ay * lb + by * la
-        nz = az * lb + bz * la
-        s0[j] = -(nx / nz)
-        s1[j] = -(ny / nz)
+        s0[j], s1[j] = _law_of_reflection(px[j], py[j], pz[j], cx, cy, cz, tx_[j], ty_[j], tz_[j])
 
 
 def normal_slopes(points: np.ndarray, camera_m: np.ndarray, screen_points_m: np.ndarray) -> np.ndarray:
