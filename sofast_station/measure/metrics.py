@@ -1,4 +1,5 @@
-"""Reported figures: slope residuals as angles, focal lengths, principal axes.
+"""Reported figures: slope-residual RMS values, focal lengths, principal axes (the residual angles
+themselves come from :func:`~sofast_station.measure.kernels.model_residuals`).
 
 Definitions: docs/conventions.md#residuals and #focal-power.
 """
@@ -9,39 +10,6 @@ import numpy as np
 
 #: |kappa| below this (1/m) means an infinite focal length.
 FLAT_CURVATURE_PER_M = 4e-9
-
-
-def arctan(x: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-    """Arctangent, radians: the compiled :func:`~.kernels.atan` for 1-D float64 arrays, numpy's otherwise."""
-    x = np.asarray(x)
-    if x.ndim == 1 and x.dtype == np.float64 and (out is None or (out.dtype == np.float64 and out.ndim == 1
-                                                                    and out.flags.c_contiguous)):
-        from .kernels import atan
-        return atan(x, out=out)
-    return np.arctan(x, out=out)
-
-
-def slope_residuals_mrad(s_x: np.ndarray, s_y: np.ndarray, model_x: np.ndarray, model_y: np.ndarray,
-                         measured_angles: tuple[np.ndarray, np.ndarray] | None = None,
-                         overwrite_model: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """Residual angles e = atan(s_measured) - atan(s_model), mrad, per axis.
-
-    Slope units and angles differ by up to 15 % at the slopes of a gore facet, so residuals are never
-    taken as slope differences. ``measured_angles`` may pass atan(s_x), atan(s_y) computed once for
-    several models. With *overwrite_model* the residuals are formed in the (float64) model arrays, which
-    the caller no longer needs: the same operations, the same bits, no fresh arrays. The arctangents are
-    :func:`~.kernels.atan` (numpy's to 3 units in the last place, four times faster) on 1-D arrays.
-    """
-    ax, ay = measured_angles if measured_angles is not None else (arctan(s_x), arctan(s_y))
-    if not overwrite_model:
-        return 1000.0 * (ax - arctan(model_x)), 1000.0 * (ay - arctan(model_y))
-    out = []
-    for angle, model in ((ax, model_x), (ay, model_y)):
-        e = arctan(model, out=model)
-        np.subtract(angle, e, out=e)
-        e *= 1000.0
-        out.append(e)
-    return out[0], out[1]
 
 
 def rms_summary(e_x_mrad: np.ndarray, e_y_mrad: np.ndarray) -> dict:

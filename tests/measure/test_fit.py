@@ -5,7 +5,8 @@ import pytest
 
 from sofast_station.errors import AnalysisError
 from sofast_station.measure.fit import fit_parabola
-from sofast_station.measure.metrics import focal_length_m, principal_axes, rms_summary, slope_residuals_mrad
+from sofast_station.measure.kernels import model_residuals
+from sofast_station.measure.metrics import focal_length_m, principal_axes, rms_summary
 
 
 @pytest.mark.parametrize("x0, half", [(0.0, 0.3), (3.0, 1.5)], ids=["dish", "gore-like offset"])
@@ -34,7 +35,12 @@ def test_fit_refuses_degenerate_points():
 
 
 def test_residuals_are_angles_not_slope_differences():
-    ex, _ = slope_residuals_mrad(np.array([0.4]), np.array([0.0]), np.array([0.39]), np.array([0.0]))
+    # (the analysis' residuals: a model of constant slope 0.39 in x, measured slope 0.4)
+    out = np.empty((6, 1))
+    slope_0_39 = np.array([0.0, 0.0, 0.39, 0.0, 0.0, 0.0])
+    model_residuals(np.zeros(1), np.zeros(1), np.array([0.4]), np.array([0.0]), [slope_0_39, slope_0_39],
+                    np.r_[0.0, 0.0, 1.0, np.zeros(12)], out, 0, 1)
+    ex = out[0]
     assert ex[0] == pytest.approx(1000 * (np.arctan(0.4) - np.arctan(0.39)))
     assert ex[0] < 0.9 * 10.0       # 0.01 in slope units is only ~8.6 mrad at slope 0.4
 
