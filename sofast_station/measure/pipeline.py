@@ -592,7 +592,7 @@ def shape_and_boresight(rays: Rays, pose: CornerPoseResult, design: FacetDesign,
     to_moved = solution.motion.as_pose().compose(camera_to_facet)
     n = rays.rays.shape[1]
     points, slopes = np.empty((3, n)), np.empty((2, n))
-    halves(pool if not isinstance(pool, _Serial) else None, reflect, n, rays.rays, rays.screen_cam_m,
+    halves(pool, reflect, n, rays.rays, rays.screen_cam_m,
            to_moved.rotation, to_moved.translation, solution.coefficients, points, slopes)
     finite = np.isfinite(slopes[0]) & np.isfinite(slopes[1])
     if not np.all(finite):
@@ -617,7 +617,7 @@ def fit_models(shape: Shape, design: FacetDesign, settings: AnalysisSettings, po
     from .kernels import halves, model_residuals
 
     e = np.empty((6, x.size))
-    halves(pool if not isinstance(pool, _Serial) else None, model_residuals, x.size, x, y, s_x, s_y,
+    halves(pool, model_residuals, x.size, x, y, s_x, s_y,
            [design.coefficients, coeffs], [cubic.x0, cubic.y0, cubic.h, *np.concatenate(cubic.slope_coefficients())],
            e)
     residuals = {"design": e[0:2], "parabola": e[2:4], "higher_order": e[4:6]}
@@ -769,7 +769,7 @@ def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, d
             extra = uncertainty_figures(
                 reduction, fringes=fringes, geometry=geometry, design=design, measured_distance_m=measured_distance_m,
                 settings=settings, inputs=uncertainty, screen=screen, cache=sensitivity_cache, cache_key=key,
-                pool=None if isinstance(pool, _Serial) else pool)
+                pool=pool)
         sensitivity_s = extra.pop("_sensitivity_seconds")
         reduction.figures.update(extra)
         timings["uncertainty"] = time.perf_counter() - t0
