@@ -113,8 +113,9 @@ class InterpolatedScreen:
         xs, ys = np.unique(nodes_uv[:, 0]), np.unique(nodes_uv[:, 1])
         if xs.size < 2 or ys.size < 2 or xs.size * ys.size != nodes_uv.shape[0]:
             return None
+        row, col = np.searchsorted(ys, nodes_uv[:, 1]), np.searchsorted(xs, nodes_uv[:, 0])
         grid = np.full((ys.size, xs.size, 3), np.nan)
-        grid[np.searchsorted(ys, nodes_uv[:, 1]), np.searchsorted(xs, nodes_uv[:, 0])] = nodes_screen_m
+        grid[row, col] = nodes_screen_m
         if not np.all(np.isfinite(grid)):
             return None
         # the triangle holding a point at (0.2, 0.6) of each cell has both ends of the main diagonal or not
@@ -125,7 +126,7 @@ class InterpolatedScreen:
             return None
         jj, ii = np.meshgrid(np.arange(ys.size - 1), np.arange(xs.size - 1), indexing="ij")
         node = np.full((ys.size, xs.size), -1)
-        node[np.searchsorted(ys, nodes_uv[:, 1]), np.searchsorted(xs, nodes_uv[:, 0])] = np.arange(nodes_uv.shape[0])
+        node[row, col] = np.arange(nodes_uv.shape[0])
         verts = tri.simplices[simplex]
         first, last = node[jj, ii].ravel(), node[jj + 1, ii + 1].ravel()
         main = (np.any(verts == first[:, None], axis=1) & np.any(verts == last[:, None], axis=1)).reshape(jj.shape)
