@@ -59,7 +59,12 @@ class Assembly:
     screen_centre_m: np.ndarray
 
     def moved(self, motion: "Motion") -> "Assembly":
-        return Assembly(motion.point(self.camera_m), motion.vectors(self.rays), motion.points(self.screen_m),
+        from .kernels import moved
+
+        # rays and screen points in one compiled pass each (the same bits as Motion's numpy arithmetic)
+        r = motion.rotation
+        return Assembly(motion.point(self.camera_m), moved(self.rays, r, motion.pivot_m, 0.0, False),
+                        moved(self.screen_m, r, motion.pivot_m, motion.t_z_m, True),
                         motion.point(self.screen_centre_m))
 
 

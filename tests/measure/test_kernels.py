@@ -299,3 +299,81 @@ def test_normal_slopes_kernel_is_the_numpy_function_bit_for_bit():
     camera = np.array([0.05, -0.02, -5.35])
     np.testing.assert_array_equal(kernels.normal_slopes(points, camera, screen),
                                   np.stack(normal_slopes(points, camera, screen)))
+
+
+def test_median_near_a_guess_is_numpys_median_bit_for_bit():
+    """Windows that hold the median, that miss it, none at all; odd and even counts, ties, |a - about|."""
+    rng = np.random.default_rng(11)
+    scratch = np.empty(5000)
+    for n in (1, 2, 3, 64, 65, 999, 1000, 4096, 4097):
+        for kind in ("normal", "ties", "outliers"):
+            a = rng.normal(0.3, 2.0, n)
+            if kind == "ties":
+                a = np.round(a)
+            elif kind == "outliers":
+                a[: n // 10] += 50.0
+            for about, absolute in ((0.0, False), (0.25, True)):
+                ref = float(np.median(np.abs(a - about) if absolute else a))
+                for lo, hi in ((ref - 0.01, ref + 0.01), (ref, ref), (ref + 0.5, ref + 0.6), (-1e9, 1e9),
+                               (np.nan, np.nan), (ref - 3.0, ref - 2.0)):
+                    got = kernels._median_of(a, about, absolute, lo, hi, scratch)
+                    assert got == ref, (n, kind, absolute, lo, hi)
+                    m, found = kernels.median_in_window(a, about, absolute, lo, hi, scratch)
+                    assert (not found) or m == ref
+    # a NaN makes the median NaN, as numpy's
+    a = rng.normal(size=101)
+    a[7] = np.nan
+    assert np.isnan(kernels._median_of(a, 0.0, False, -0.1, 0.1, scratch))
+    assert np.isnan(kernels._median_of(a, 0.0, True, np.nan, np.nan, scratch))
+
+
+def _irls_reference(x_cols, target, w, tolerance, max_iterations):
+    """Textbook IRLS with Tukey's bisquare, written with numpy's least squares (the kernel's definition)."""
+    X = np.stack(x_cols, axis=1)
+    prev, sigma = None, np.nan
+    for _ in range(max_iterations):
+        sw = np.sqrt(w)
+        coef = np.linalg.lstsq(X * sw[:, None], target * sw, rcond=None)[0]
+        r = target - X @ coef
+        h = w * np.einsum("ij,jk,ik->i", X, np.linalg.inv(X.T @ (X * w[:, None])), X)
+        r_adj = r / np.sqrt(np.maximum(1.0 - h, 1e-12))
+        ms = np.sum(w * r * r) / max(np.sum(w), 1.0)
+        if prev is not None and abs(ms - prev) <= tolerance * max(prev, 1e-30):
+            break
+        prev = ms
+        mad = np.median(np.abs(r_adj - np.median(r_adj)))
+        sigma = mad / 0.6745
+        u = r_adj / (4.685 * sigma)
+        w = np.where(np.abs(u) < 1.0, (1.0 - u * u) ** 2, 0.0)
+    return coef, w, sigma
+
+
+def test_the_compiled_bisquare_iteration_is_the_textbook_one():
+    rng = np.random.default_rng(5)
+    n = 20_000
+    x, y = rng.uniform(-0.7, 0.7, n), rng.uniform(-0.5, 0.5, n)
+    s = 4e-3 * x + 2e-4 + 1e-4 * y + 2e-4 * rng.standard_normal(n)
+    s[rng.choice(n, 800, replace=False)] += rng.uniform(5e-3, 2e-2, 800)      # 4 % outliers, one-sided
+    cols = [x - x.mean(), np.ones(n), y - y.mean()]
+    ref_coef, ref_w, ref_sigma = _irls_reference(cols, s, np.ones(n), 1e-9, 50)
+    scale = np.sqrt(np.array(kernels.sum_squares(*cols)) / n)
+    for start_sigma in (np.nan, ref_sigma, 3.0 * ref_sigma):       # the guess changes the time, not the fit
+        w = np.ones(n)
+        coef = np.empty(3)
+        status, sigma = kernels.irls_bisquare(*cols, s, w, scale, 1e-9, 50, start_sigma, 4.685, 0.6745, 0.01, coef)
+        assert status == 0
+        np.testing.assert_allclose(coef, ref_coef, rtol=1e-9, atol=1e-15)
+        np.testing.assert_allclose(w, ref_w, rtol=0, atol=1e-9)
+        assert sigma == pytest.approx(ref_sigma, rel=1e-9)
+    # the outliers are down-weighted to nothing, and the slope is the true one to its noise
+    assert abs(coef[0] - 4e-3) < 1e-5 and np.mean(w[s > 4e-3 * x + 4e-3] == 0.0) > 0.95
+    # a degenerate column: the kernel says so instead of returning numbers
+    flat = [np.zeros(n), np.ones(n), y]
+    status, _ = kernels.irls_bisquare(*flat, s, np.ones(n), np.ones(3), 1e-9, 50, np.nan, 4.685, 0.6745, 0.01,
+                                      np.empty(3))
+    assert status in (kernels.SINGULAR, kernels.ILL_CONDITIONED)
+    bad = s.copy()
+    bad[3] = np.nan
+    status, _ = kernels.irls_bisquare(*cols, bad, np.ones(n), scale, 1e-9, 50, np.nan, 4.685, 0.6745, 0.01,
+                                      np.empty(3))
+    assert status == kernels.ILL_CONDITIONED
