@@ -4,11 +4,17 @@ A screen model answers one question: where, in the camera's frame, is the screen
 (u_x, u_y) metres from the active area's left and bottom edges? The flat model uses the screen's size
 and its pose (the camera/screen assembly); a measured distortion map (projection screens) plugs in
 behind the same method.
+
+Every model can be perturbed as itself (the uncertainty's finite differences,
+:mod:`sofast_station.measure.uncertainty`): :meth:`~ScreenModel.moved` turns and shifts it about and
+along its own axes through its centre, :meth:`~ScreenModel.stretched` scales one axis about its centre
+(a pitch error of a flat screen, a scale error of a measured screen's shape).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import copy
+from dataclasses import dataclass, replace
 from typing import Protocol
 
 import numpy as np
@@ -25,12 +31,29 @@ class ScreenModel(Protocol):
 
     width_m: float
     height_m: float
+    screen_to_camera: Pose
 
     def points_camera(self, u_x_m: np.ndarray, u_y_m: np.ndarray) -> np.ndarray:
         """(3, N) camera-frame points, metres, of screen positions u_x (from left), u_y (from bottom)."""
 
     def centre_camera(self) -> np.ndarray:
         """The point the range finder measures from (the screen centre), camera frame, metres."""
+
+    def moved(self, delta: Pose) -> "ScreenModel":
+        """The same screen moved by the small motion *delta* about and along its own axes through its
+        centre (the screen's pose in the camera frame composed with *delta*)."""
+
+    def stretched(self, axis: str, factor: float) -> "ScreenModel":
+        """The same screen with its *axis* ("x" or "y") scaled by *factor* about its centre: every
+        position of that axis lies *factor* times as far from the centre."""
+
+
+def _check_stretch(axis: str, factor: float) -> int:
+    if axis not in ("x", "y"):
+        raise ValueError(f"axis must be 'x' or 'y', got {axis!r}")
+    if not (np.isfinite(factor) and factor > 0):
+        raise ValueError(f"factor must be a positive finite number, got {factor!r}")
+    return "xy".index(axis)
 
 
 @dataclass(frozen=True)
@@ -43,24 +66,45 @@ class FlatScreen:
         Active area W and H, metres.
     screen_to_camera : Pose
         Maps screen-frame points (origin at the active area's centre) into the camera frame.
+    pitch_scale : (float, float)
+        The pixel pitch over the nominal one, per axis (1, 1 unless :meth:`stretched`): a position u,
+        counted over the nominal ``width_m``, lies ``u * scale`` from the left edge of an active area
+        ``width_m * scale`` wide.
     """
 
     width_m: float
     height_m: float
     screen_to_camera: Pose
+    pitch_scale: tuple = (1.0, 1.0)
 
     def points_camera(self, u_x_m: np.ndarray, u_y_m: np.ndarray) -> np.ndarray:
         u_x_m = np.asarray(u_x_m, dtype=np.float64)
         u_y_m = np.asarray(u_y_m, dtype=np.float64)
         r = self.screen_to_camera.rotation
         t = self.screen_to_camera.translation
-        x = u_x_m - 0.5 * self.width_m
-        y = u_y_m - 0.5 * self.height_m
+        sx, sy = self.pitch_scale
+        # (u s) - (w s) / 2, not (u - w / 2) s: the stretched screen's points are then bit for bit those
+        # of the positions and width scaled first (the uncertainty's screen-pitch rows before stretched()).
+        # At scale 1 both products are exact, so the nominal screen's points are unchanged.
+        x = (u_x_m * sx if sx != 1.0 else u_x_m) - 0.5 * (self.width_m * sx)
+        y = (u_y_m * sy if sy != 1.0 else u_y_m) - 0.5 * (self.height_m * sy)
         return np.stack([r[i, 0] * x + r[i, 1] * y + t[i] for i in range(3)])
 
     def centre_camera(self) -> np.ndarray:
         """The screen centre in the camera frame, metres."""
         return self.screen_to_camera.translation.copy()
+
+    def moved(self, delta: Pose) -> "FlatScreen":
+        """The screen moved by *delta* about and along its own axes through its centre (its frame's origin)."""
+        return replace(self, screen_to_camera=self.screen_to_camera.compose(delta))
+
+    def stretched(self, axis: str, factor: float) -> "FlatScreen":
+        """The screen with the pitch of *axis* ("x" or "y") scaled by *factor* about its centre; positions
+        are still counted over the nominal width and height (they come from the fringes)."""
+        i = _check_stretch(axis, factor)
+        scale = list(self.pitch_scale)
+        scale[i] = scale[i] * factor
+        return replace(self, pitch_scale=(float(scale[0]), float(scale[1])))
 
 
 class InterpolatedScreen:
@@ -100,6 +144,7 @@ class InterpolatedScreen:
             raise ValueError("the screen model needs at least 3 finite grid nodes")
         self.width_m, self.height_m = float(width_m), float(height_m)
         self.screen_to_camera = screen_to_camera
+        self._nodes_uv, self._nodes_screen = nodes_uv, nodes_screen_m
         self._interp = LinearNDInterpolator(nodes_uv, nodes_screen_m)
         self._centre = np.asarray(centre_screen_m, np.float64)
         self._v_from_top = bool(v_from_top)
@@ -155,3 +200,38 @@ class InterpolatedScreen:
 
     def centre_camera(self) -> np.ndarray:
         return self.screen_to_camera.apply(self._centre)
+
+    def moved(self, delta: Pose) -> "InterpolatedScreen":
+        """The screen moved by *delta* about and along its own axes through its centre (``centre_screen_m``):
+        its pose composed with the motion conjugated to the centre. The grid is shared, not rebuilt."""
+        c = self._centre
+        if np.any(c != 0.0):
+            to_centre, back = Pose(np.eye(3), c), Pose(np.eye(3), -c)
+            delta = to_centre.compose(delta).compose(back)
+        out = copy.copy(self)
+        out.screen_to_camera = self.screen_to_camera.compose(delta)
+        return out
+
+    def stretched(self, axis: str, factor: float) -> "InterpolatedScreen":
+        """The screen with its measured shape scaled by *factor* along *axis* ("x" or "y" of the screen
+        frame) about its centre: every node's coordinate on that axis *factor* times as far from the
+        centre. For a measured grid the screen positions are fractions of the displayed image and exact
+        by construction; what a pitch uncertainty stands for is the scale of the shape measurement (its
+        photogrammetry) along that axis. On a flat screen's own grid this is the flat screen's
+        :meth:`FlatScreen.stretched`."""
+        i = _check_stretch(axis, factor)
+        nodes = self._nodes_screen.copy()
+        nodes[:, i] = self._centre[i] + (nodes[:, i] - self._centre[i]) * factor
+        return InterpolatedScreen(self.width_m, self.height_m, self._nodes_uv, nodes, self.screen_to_camera,
+                                  self._centre, self._v_from_top)
+
+    def fingerprint(self) -> str:
+        """A short hash of the measured shape (grid, points, centre, extents): what cached sensitivities
+        computed with this screen depend on besides the pose."""
+        import hashlib
+
+        h = hashlib.sha256()
+        for a in (self._nodes_uv, self._nodes_screen, self._centre,
+                  np.array([self.width_m, self.height_m, float(self._v_from_top)])):
+            h.update(np.ascontiguousarray(a, np.float64).tobytes())
+        return h.hexdigest()[:16]

@@ -32,7 +32,6 @@ from ..geometry import Pose
 from .camera import to_frame
 from .metrics import principal_axes
 from .phase import position_sigma_m
-from .screen import FlatScreen
 from .stats import median
 
 COVERAGE_FACTOR = 2.0
@@ -338,16 +337,11 @@ def _perturbed_run(red, inp: Input, sign: float, ctx: dict):
         vec = np.zeros(3)
         vec[axis] = step
         delta = small_motion(rotation_mrad=vec) if name.startswith("screen r") else small_motion(translation_mm=vec)
-        g = dataclasses.replace(g, screen_to_camera=g.screen_to_camera.compose(delta))
-        screen = None
+        # The screen moved as itself (a measured screen keeps its shape); the geometry's pose follows it.
+        screen = screen.moved(delta)
+        g = dataclasses.replace(g, screen_to_camera=screen.screen_to_camera)
     elif name.startswith("screen pitch"):
-        axis = name[-1]
-        pos = dict(phases.positions_m)
-        pos[axis] = pos[axis] * (1.0 + step)      # NaN where invalid stays NaN
-        phases = dataclasses.replace(phases, positions_m=pos)
-        w, h = ctx["screen_size_m"]
-        w, h = (w * (1.0 + step), h) if axis == "x" else (w, h * (1.0 + step))
-        screen = FlatScreen(w, h, g.screen_to_camera)
+        screen = screen.stretched(name[-1], 1.0 + step)
     elif name.startswith("display response") or name.startswith("frame brightness"):
         pos = dict(phases.positions_m)
         quadrature = name.split()[-1]
@@ -1236,7 +1230,9 @@ def sensitivity_key(geometry, design, fringes, settings, inputs: InputUncertaint
             # Not the record-derived values: the sensitivities are computed at the table's reference
             # values, so a re-analysis without the record (reprocess) finds the station's own.
             "inputs": {k: v for k, v in inputs.to_dict().items() if k not in _NOT_TABLE_KEYS},
-            "screen": None if screen is None else repr(type(screen))}
+            # A measured screen's shape too (two display models at one pose are different stations).
+            "screen": None if screen is None else repr(type(screen)) + (
+                f" {screen.fingerprint()}" if hasattr(screen, "fingerprint") else "")}
     return hashlib.sha256(json.dumps(blob, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 

@@ -448,3 +448,94 @@ def test_frame_brightness_rows_state_what_a_known_brightness_change_does(rig):
                 assert np.sqrt(response[name]) == pytest.approx(per_dn[name], rel=0.04), (axis, name)
             else:                           # the other axis's frames leave these figures alone
                 assert np.sqrt(response[name]) < 0.1 * per_dn[name], (axis, name)
+
+
+def _flat_screen_as_grid(geometry, nx: int = 9, ny: int = 7):
+    """The station's flat screen as a measured one (OpenCSP's kind): positions in fractions of the screen,
+    each grid node's screen-frame point from the flat screen's size. Returns the screen and a geometry whose
+    own screen is 1 x 1 m, as the OpenCSP import's, so nothing can fall back to the flat screen unnoticed."""
+    from sofast_station.geometry import ScreenSpec
+    from sofast_station.measure.pipeline import default_screen
+    from sofast_station.measure.screen import InterpolatedScreen
+
+    flat = default_screen(geometry)
+    fx, fy = np.meshgrid(np.linspace(0.0, 1.0, nx), np.linspace(0.0, 1.0, ny))
+    uv = np.column_stack([fx.ravel(), fy.ravel()])
+    pts = np.column_stack([(uv[:, 0] - 0.5) * flat.width_m, (uv[:, 1] - 0.5) * flat.height_m, np.zeros(len(uv))])
+    screen = InterpolatedScreen(1.0, 1.0, uv, pts, geometry.screen_to_camera)
+    return screen, dataclasses.replace(geometry, screen=ScreenSpec(1000, 1000, 0.001))
+
+
+def test_a_measured_screen_is_perturbed_as_itself(rig):
+    """The flat screen's own grid as an InterpolatedScreen (fractional positions, the geometry's screen
+    1 x 1 m as in the OpenCSP import) gives the flat screen's sensitivities and noise propagation.
+
+    Tolerance: linear interpolation of a linear map is that map, so both reductions see the same screen
+    points up to rounding (1e-16 relative); the reruns at +-u then differ by rounding only, and a
+    contribution by a few 1e-16 of the figure, which is at most ~1e-11 of the column's largest
+    contribution (found: 8e-12). 1e-6 leaves room and is six orders of magnitude below what a screen
+    replaced by another one does: before the screen models had moved() and stretched(), the camera-to-screen
+    and pitch rows of the measured screen fell back to a flat 1 x 1 m screen, 1270 times the column's
+    largest contribution. The noise propagation's finite difference (1e-4 of the position unit) straddles
+    no kink of a linear map: 1e-6 relative (found 2e-8)."""
+    from sofast_station.measure.pipeline import reduce_stages
+    from sofast_station.measure.uncertainty import noise_propagation, sensitivities
+
+    cfg = rig.config
+    twin = rig.twin((0.3, -0.2, 0.1), (0.2, -0.3, 0.4))
+    frames = rig.capture(twin, np.random.default_rng(1))
+    d = twin.measured_distance_m()
+    grid, g_grid = _flat_screen_as_grid(cfg.geometry)
+    out = {}
+    for name, geometry, screen in (("flat", cfg.geometry, None), ("grid", g_grid, grid)):
+        red, _ = reduce_stages(frames, cfg.fringes, geometry, cfg.design, d, cfg.analysis, screen)
+        kw = dict(fringes=cfg.fringes, geometry=geometry, design=cfg.design, settings=cfg.analysis, screen=screen)
+        out[name] = (sensitivities(red, measured_distance_m=d, inputs=cfg.uncertainty, **kw),
+                     noise_propagation(red, **kw))
+    (s_flat, n_flat), (s_grid, n_grid) = out["flat"], out["grid"]
+    assert [i.name for i in s_flat.inputs] == [i.name for i in s_grid.inputs]
+    column = np.nanmax(np.abs(s_flat.contributions), axis=0)
+    rel = np.abs(s_grid.contributions - s_flat.contributions) / column
+    worst = {inp.name: float(np.nanmax(rel[i])) for i, inp in enumerate(s_flat.inputs)}
+    assert max(worst.values()) < 1e-6, {k: v for k, v in worst.items() if v >= 1e-6}
+    assert any(inp.group == "screen pitch" for inp in s_grid.inputs)
+    for path, sigma in n_flat.sigma.items():
+        assert n_grid.sigma[path] == pytest.approx(sigma, rel=1e-6, abs=1e-300), path
+
+
+def test_screen_models_move_and_stretch_alike(rig):
+    """moved() and stretched() of the flat screen and of its own grid give the same points; a stretch keeps
+    the centre, and doubles as the pitch error it stands for; the arguments are checked."""
+    from sofast_station.measure.pipeline import default_screen
+    from sofast_station.measure.uncertainty import small_motion
+
+    flat = default_screen(rig.config.geometry)
+    grid, _ = _flat_screen_as_grid(rig.config.geometry)
+    rng = np.random.default_rng(3)
+    fx, fy = rng.uniform(0.0, 1.0, 500), rng.uniform(0.0, 1.0, 500)
+    w, h = flat.width_m, flat.height_m
+    delta = small_motion((0.5, -0.3, 0.2), (0.4, 0.1, -0.6))
+    for f, g in ((flat.moved(delta), grid.moved(delta)), (flat.stretched("x", 1.001), grid.stretched("x", 1.001)),
+                 (flat.stretched("y", 0.999), grid.stretched("y", 0.999))):
+        assert np.abs(f.points_camera(fx * w, fy * h) - g.points_camera(fx, fy)).max() < 1e-12
+        assert np.allclose(f.centre_camera(), g.centre_camera(), rtol=0, atol=1e-12)
+    assert np.allclose(flat.moved(delta).centre_camera(), flat.screen_to_camera.compose(delta).translation)
+    assert np.array_equal(flat.stretched("x", 1.001).centre_camera(), flat.centre_camera())
+    # the right edge moves out by half the width's change, in the screen's plane
+    edge = flat.stretched("x", 1.001).points_camera(np.array([w]), np.array([0.5 * h]))[:, 0]
+    assert np.linalg.norm(edge - flat.points_camera(np.array([w]), np.array([0.5 * h]))[:, 0]) == pytest.approx(
+        0.0005 * w, rel=1e-9)
+    # a measured screen whose centre is not its frame's origin turns about that centre: a pure rotation
+    # leaves the centre where it was, and a stretch keeps it too
+    from sofast_station.measure.screen import InterpolatedScreen
+    off = InterpolatedScreen(1.0, 1.0, grid._nodes_uv, grid._nodes_screen, grid.screen_to_camera, (0.1, -0.05, 0.0))
+    turn = small_motion((2.0, -1.0, 3.0))
+    assert np.allclose(off.moved(turn).centre_camera(), off.centre_camera(), rtol=0, atol=1e-12)
+    assert np.allclose(off.stretched("y", 1.01).centre_camera(), off.centre_camera(), rtol=0, atol=1e-15)
+    # the unstretched screen and the flat screen at pitch scale 1 are the same bits
+    assert np.array_equal(flat.stretched("x", 1.0).points_camera(fx * w, fy * h), flat.points_camera(fx * w, fy * h))
+    for bad in (("z", 1.0), ("x", 0.0), ("y", float("nan"))):
+        with pytest.raises(ValueError, match="axis|factor"):
+            grid.stretched(*bad)
+        with pytest.raises(ValueError, match="axis|factor"):
+            flat.stretched(*bad)
