@@ -19,7 +19,8 @@ def register(subparsers) -> None:
             station's pipeline. --test-data names a folder in the layout of OpenCSP's test data (the facet
             shipped in fixtures/opencsp/test_data); each file can also be given on its own, and overrides
             the folder's. --compare also analyses OpenCSP's own pixel selection and prints both results
-            (docs/opencsp.md).""")
+            (docs/opencsp.md). Every figure carries its expanded uncertainty U (k = 2) from input
+            uncertainties suited to an OpenCSP setup (listed with the assumptions; docs/opencsp.md).""")
     p.add_argument("--test-data", default=None, metavar="DIR",
                    help="a folder in the layout of OpenCSP's opencsp/test/data (sets the six files below)")
     for name, what in (("measurement", "MeasurementSofastFringe HDF5"), ("camera", "Camera HDF5"),
@@ -33,8 +34,65 @@ def register(subparsers) -> None:
     p.add_argument("--compare", default=None, metavar="FILE",
                    help="OpenCSP's own result (its data.h5): also analyse on its pixels and print both "
                         "(default: no comparison)")
+    p.add_argument("--uncertainty", default=None, metavar="FILE",
+                   help="a TOML file whose [uncertainty] table (station.toml's keys, docs/uncertainty.md) overrides "
+                        "the OpenCSP setup's input uncertainties (default: those of docs/opencsp.md)")
+    p.add_argument("--budget", action="store_true", help="also print the uncertainty budget (as inspect --budget)")
     p.add_argument("--json", action="store_true", help="print one JSON object and nothing else on stdout")
     p.set_defaults(func=cmd_import_opencsp)
+
+
+#: The figures import-opencsp reports, each with its ``_U`` and ``_U_random`` (k = 2) where it has one.
+#: Not the placement and optical tilt: they are measured against a fixture, and OpenCSP has none.
+FIGURE_KEYS = ("focal_length_x_m", "focal_length_y_m", "curvature_x_per_m", "curvature_y_per_m",
+               "principal_focal_lengths_m", "axis_angle_rad", "twist_mrad_per_m", "twist_e1_mrad_per_m",
+               "twist_e2_mrad_per_m", "slope_rms_mrad", "boresight_mrad", "subsample_fit")
+#: The noise floor of the slope RMS values and the budget (as in the station's result record).
+UNCERTAINTY_KEYS = ("coverage_factor", "slope_rms_noise_mrad", "slope_rms_corrected_mrad",
+                    "slope_rms_corrected_mrad_U", "intensity_noise_dn", "uncertainty_budget")
+
+
+def read_uncertainty_table(path: Path) -> dict:
+    """The ``[uncertainty]`` table of the TOML file *path* (checked against the keys by the reader)."""
+    import tomllib
+
+    from ..errors import ConfigError
+    try:
+        data = tomllib.loads(Path(path).read_text())
+    except OSError as exc:
+        raise ConfigError(f"--uncertainty {path}: cannot read it ({exc.strerror})") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"--uncertainty {path} is not valid TOML ({exc})") from None
+    table = data.get("uncertainty")
+    if not isinstance(table, dict):
+        raise ConfigError(f"--uncertainty {path} has no [uncertainty] table (station.toml's keys, docs/uncertainty.md)")
+    return table
+
+
+def figures_with_u(fig: dict, keys=FIGURE_KEYS) -> dict:
+    """*keys* of the analysis's figures, each followed by its ``_U`` and ``_U_random`` siblings (k = 2),
+    and the uncertainty's other keys: the structure of the station's result record."""
+    out = {}
+    for k in keys:
+        out[k] = fig[k]
+        for suffix in ("_U", "_U_random"):
+            if f"{k}{suffix}" in fig:
+                out[f"{k}{suffix}"] = fig[f"{k}{suffix}"]
+    out["n_points"] = fig["n_points"]
+    out.update({k: fig[k] for k in UNCERTAINTY_KEYS if k in fig})
+    return out
+
+
+def _pm(v, u, unit: str = "", digits: int = 3) -> str:
+    """``115.738 ± 1.564 m``: U shown to at least two significant digits."""
+    from ..station.cli import _sig_digits
+
+    if v is None:
+        return "-"
+    if u is None:
+        return f"{v:.{digits}f}{unit}"
+    d = max(digits, _sig_digits(u, digits))
+    return f"{v:.{d}f} ± {u:.{d}f}{unit}"
 
 
 def cmd_import_opencsp(args) -> int:
@@ -48,48 +106,85 @@ def cmd_import_opencsp(args) -> int:
             paths[key] = Path(getattr(args, key))
         if key not in paths:
             raise ConfigError(f"import-opencsp needs --{key} (or --test-data with OpenCSP's folder layout)")
-    m = read_opencsp(**paths, focal_length_m=args.focal_length)
+    table = read_uncertainty_table(Path(args.uncertainty)) if args.uncertainty else None
+    m = read_opencsp(**paths, focal_length_m=args.focal_length, uncertainty=table)
     prepare_analysis_process()      # as the station's worker: memory reused, kernels loaded first
-    a = m.analyse(robust=args.robust)
+    cache: dict = {}                # the uncertainty's sensitivities, per geometry and recipe
+    a = m.analyse(robust=args.robust, uncertainty=m.uncertainty, sensitivity_cache=cache)
     fig = a.figures
-    keys = ("focal_length_x_m", "focal_length_y_m", "twist_mrad_per_m", "twist_e1_mrad_per_m",
-            "twist_e2_mrad_per_m", "slope_rms_mrad", "n_points", "boresight_mrad", "subsample_fit")
-    out = {"facet": m.name, "measured": m.date, "robust": args.robust, **{k: fig[k] for k in keys},
-           "assumptions": list(m.assumptions)}
+    out = {"facet": m.name, "measured": m.date, "robust": args.robust, **figures_with_u(fig),
+           "input_uncertainties": m.uncertainty.to_dict(), "assumptions": list(m.assumptions)}
     # What the facet does with sunlight: default [optics] (pillbox sun, target at the design focal length);
-    # 'report flux --opencsp' draws the map and takes other conditions.
+    # 'report flux --opencsp' draws the map and takes other conditions. With the analysis's U, the optics'.
     from ..optics import OpticsSettings
     from ..station.optics import analysis_optics
     out["optics"] = analysis_optics(a, m.design, OpticsSettings()).figures
     if args.compare:
         ref = read_opencsp_result(Path(args.compare))
-        same = m.analyse(robust=ref.robust, pixel_mask=ref.mask).figures["subsample_fit"]
+        theirs = m.analyse(robust=ref.robust, pixel_mask=ref.mask, uncertainty=m.uncertainty,
+                           sensitivity_cache=cache).figures
         out["opencsp"] = {"file": args.compare, "robust": ref.robust, "focal_length_x_m": ref.focal_length_x_m,
                           "focal_length_y_m": ref.focal_length_y_m, "n_points": int(ref.mask.sum()),
-                          "ours_on_its_pixels": same}
+                          "ours_on_its_pixels": theirs["subsample_fit"],
+                          "ours_on_its_pixels_U": theirs.get("subsample_fit_U"),
+                          "ours_on_its_pixels_U_random": theirs.get("subsample_fit_U_random")}
     out = json_safe(out)
     if args.json:
         json.dump(out, sys.stdout, indent=1)
         sys.stdout.write("\n")
         return 0
-    print(f"OpenCSP measurement {out['facet']} ({out['measured']}), {out['n_points']} points"
-          f"{', robust fit' if args.robust else ''}")
-    print("  assumed (OpenCSP's files do not say):" + "".join(f"\n    - {a}" for a in out["assumptions"]))
-    print(f"  focal length x {out['focal_length_x_m']:.3f} m, y {out['focal_length_y_m']:.3f} m; twist "
-          f"{out['twist_mrad_per_m']:.4f} mrad/m (E1 {out['twist_e1_mrad_per_m']:.4f}, E2 "
-          f"{out['twist_e2_mrad_per_m']:.4f})")
+    print(summary_text(out, args.robust))
+    if args.budget:
+        from ..station.cli import BUDGET_COLUMNS, budget_text
+        print(budget_text(out, [c for c in BUDGET_COLUMNS if not c[0].startswith(("optical_tilt", "placement"))]))
+    return 0
+
+
+def summary_text(out: dict, robust: bool) -> str:
+    """The console summary of import-opencsp's result *out*: every figure as value ± U (k = 2)."""
+    def u_of(key, *sub):
+        v = out.get(f"{key}_U")
+        for s_ in sub:
+            v = None if v is None else v[s_]
+        return v
+
+    k = out.get("coverage_factor", 2)
+    kk = f" (k={k:g})"
+    lines = [f"OpenCSP measurement {out['facet']} ({out['measured']}), {out['n_points']} points"
+             f"{', robust fit' if robust else ''}",
+             "  assumed (OpenCSP's files do not say):" + "".join(f"\n    - {a}" for a in out["assumptions"]),
+             f"  figures are value ± U, the expanded uncertainty{kk}",
+             f"  f x {_pm(out['focal_length_x_m'], u_of('focal_length_x_m'), ' m')}{kk}",
+             f"  f y {_pm(out['focal_length_y_m'], u_of('focal_length_y_m'), ' m')}{kk}",
+             f"  twist {_pm(out['twist_mrad_per_m'], u_of('twist_mrad_per_m'), ' mrad/m', 4)}{kk}"
+             f" (E1 {_pm(out['twist_e1_mrad_per_m'], u_of('twist_e1_mrad_per_m'), '', 4)}, E2 "
+             f"{_pm(out['twist_e2_mrad_per_m'], u_of('twist_e2_mrad_per_m'), '', 4)})"]
     for model, r in out["slope_rms_mrad"].items():
-        print(f"  slope error RMS vs {model:<12} x {r['x']:.3f}  y {r['y']:.3f}  magnitude {r['magnitude']:.3f} mrad")
+        lines.append(f"  slope RMS vs {model:<12} x {_pm(r['x'], u_of('slope_rms_mrad', model, 'x'))}  y "
+                     f"{_pm(r['y'], u_of('slope_rms_mrad', model, 'y'))}  magnitude "
+                     f"{_pm(r['magnitude'], u_of('slope_rms_mrad', model, 'magnitude'))} mrad{kk}")
+    noise = out.get("slope_rms_noise_mrad")
+    if noise:
+        n = next(iter(noise.values()))
+        lines.append(f"    (the capture's own intensity noise explains {n['x']:.4f} x, {n['y']:.4f} y mrad of slope noise)")
+    b = out["boresight_mrad"]
+    lines.append(f"  boresight x {_pm(b['x'], u_of('boresight_mrad', 'x'), '', 2)}, y "
+                 f"{_pm(b['y'], u_of('boresight_mrad', 'y'), '', 2)} mrad{kk} (from the corner pose)")
     o = out["optics"]
-    print(f"  optics (pillbox sun, target at {o['conditions']['slant_range_m']:g} m, aperture radius "
-          f"{o['conditions']['aperture']['radius_m']:.3f} m): intercept {o['intercept']:.4f}, 90 % spot radius "
-          f"{o['spot_radius_m']:.3f} m ({o['spot_radius_mrad']:.2f} mrad; design {o['design']['spot_radius_m']:.3f} m), "
-          f"centroid {o['centroid_offset_mrad']['magnitude']:.3f} mrad off aim")
+    lines.append(f"  optics (pillbox sun, target at {o['conditions']['slant_range_m']:g} m, aperture radius "
+                 f"{o['conditions']['aperture']['radius_m']:.3f} m): intercept {_pm(o['intercept'], o.get('intercept_U'), '', 4)}, "
+                 f"90 % spot radius {_pm(o['spot_radius_m'], o.get('spot_radius_m_U'), ' m')} (design "
+                 f"{o['design']['spot_radius_m']:.3f} m), centroid "
+                 f"{_pm(o['centroid_offset_mrad']['magnitude'], (o.get('centroid_offset_mrad_U') or {}).get('magnitude'))} "
+                 f"mrad off aim{kk}")
     if "opencsp" in out:
         o = out["opencsp"]
-        s = o["ours_on_its_pixels"]
-        print(f"  OpenCSP ({'robust' if o['robust'] else 'plain'} fit on every 10th of its {o['n_points']} pixels): "
-              f"f_x {o['focal_length_x_m']:.3f} m, f_y {o['focal_length_y_m']:.3f} m; ours on the same pixels: "
-              f"f_x {s['focal_length_x_m']:.3f} m ({100 * (s['focal_length_x_m'] / o['focal_length_x_m'] - 1):+.2f} %), "
-              f"f_y {s['focal_length_y_m']:.3f} m ({100 * (s['focal_length_y_m'] / o['focal_length_y_m'] - 1):+.2f} %)")
-    return 0
+        s_ = o["ours_on_its_pixels"]
+        u = o.get("ours_on_its_pixels_U") or {}
+        lines.append(f"  OpenCSP ({'robust' if o['robust'] else 'plain'} fit on every 10th of its {o['n_points']} pixels): "
+                     f"f_x {o['focal_length_x_m']:.3f} m, f_y {o['focal_length_y_m']:.3f} m (OpenCSP states no U); "
+                     f"ours on the same pixels: f_x {_pm(s_['focal_length_x_m'], u.get('focal_length_x_m'), ' m')} "
+                     f"({100 * (s_['focal_length_x_m'] / o['focal_length_x_m'] - 1):+.2f} %), f_y "
+                     f"{_pm(s_['focal_length_y_m'], u.get('focal_length_y_m'), ' m')} "
+                     f"({100 * (s_['focal_length_y_m'] / o['focal_length_y_m'] - 1):+.2f} %){kk}")
+    return "\n".join(lines)

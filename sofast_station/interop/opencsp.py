@@ -45,6 +45,7 @@ from ..geometry import CameraIntrinsics, Pose, ScreenSpec, StationGeometry
 from ..measure.camera import pixel_rays
 from ..measure.pipeline import Analysis, AnalysisSettings, analyse
 from ..measure.screen import InterpolatedScreen
+from ..measure.uncertainty import InputUncertainties, Sensitivities
 from ..precompute import ray_table
 
 log = logging.getLogger(__name__)
@@ -181,6 +182,60 @@ def nominal_pose(camera: CameraIntrinsics, mask: np.ndarray, screen_centre_cam: 
     return Pose(np.column_stack([x, y, z]), p)
 
 
+#: Standard uncertainties (k = 1) of an OpenCSP/SOFAST setup's inputs where the camera matrix does not set
+#: them (docs/opencsp.md, "Uncertainty of an imported measurement"): key -> (value, why).
+OPENCSP_UNCERTAINTY = {
+    "distance_mm": (1.0, "dist_optic_screen by tape or laser to a projection screen's marked centre over ~10 m"),
+    "camera_distortion": ((2e-3, 1e-2, 5e-5, 5e-5, 0.0), "the station's (a chessboard calibration of a low-"
+                          "distortion lens; dimensionless, so the same at any resolution)"),
+    "screen_rotation_mrad": ((0.5, 0.5, 0.5), "OpenCSP's camera-position calibration against the screen's "
+                             "photogrammetric markers"),
+    "screen_translation_mm": ((1.0, 1.0, 1.0), "the same calibration, over a screen several metres wide"),
+    "screen_pitch_relative": (2e-4, "scale of the photogrammetric screen-shape measurement per axis (scale "
+                              "bars to 5e-5, the bundle's scale over an 8.7 m screen about 1.5e-4)"),
+    "fixture_rotation_mrad": ((0.0, 0.0, 0.0), "none: OpenCSP has no fixture"),
+    "fixture_translation_mm": ((0.0, 0.0, 0.0), "none: OpenCSP has no fixture"),
+}
+#: The camera's focal lengths and principal point: relative to the focal length in pixels, so that the same
+#: calibration holds at the native and at a resampled resolution (a full-resolution calibration of the
+#: NSTTF camera, f about 5,500 px: about 1 px for f, 1.6 px for the principal point).
+OPENCSP_CAMERA_FOCAL_RELATIVE = 2e-4
+OPENCSP_CAMERA_PRINCIPAL_RELATIVE = 3e-4
+
+
+def opencsp_input_uncertainties(camera: CameraIntrinsics, table: dict | None = None,
+                                where: str = "--uncertainty") -> InputUncertainties:
+    """The input uncertainties of an OpenCSP measurement: :data:`OPENCSP_UNCERTAINTY`, the camera's from
+    its focal length, the rest the station's defaults (display response from the capture's own evidence,
+    corner and frame brightness from the capture); *table* (station.toml's ``[uncertainty]`` keys,
+    validated) overrides any of them."""
+    f_px = 0.5 * float(camera.matrix[0, 0] + camera.matrix[1, 1])
+    values = {k: v for k, (v, _) in OPENCSP_UNCERTAINTY.items()}
+    values.update(camera_focal_px=OPENCSP_CAMERA_FOCAL_RELATIVE * f_px,
+                  camera_principal_px=OPENCSP_CAMERA_PRINCIPAL_RELATIVE * f_px)
+    out = replace(InputUncertainties(), **values)
+    if table:
+        given = InputUncertainties.from_table(table, where)
+        out = replace(out, **{k: getattr(given, k) for k in table})
+    return out
+
+
+def _uncertainty_assumptions(u: InputUncertainties) -> tuple:
+    """The input uncertainties as lines of the "assumed" list."""
+    def fmt(v):
+        return ", ".join(f"{x:g}" for x in v) if isinstance(v, tuple) else f"{v:.3g}"
+
+    return (f"input standard uncertainties (k = 1; docs/opencsp.md): distance {fmt(u.distance_mm)} mm, camera f "
+            f"{fmt(u.camera_focal_px)} px and principal point {fmt(u.camera_principal_px)} px ({OPENCSP_CAMERA_FOCAL_RELATIVE:g}"
+            f" and {OPENCSP_CAMERA_PRINCIPAL_RELATIVE:g} of f), distortion {fmt(u.camera_distortion)}, screen rotation "
+            f"{fmt(u.screen_rotation_mrad)} mrad and translation {fmt(u.screen_translation_mm)} mm, screen-shape scale "
+            f"{fmt(u.screen_pitch_relative)} per axis; display response, frame brightness, corners and intensity noise "
+            "from the capture itself",
+            "left out of the uncertainty: the fixture pose (OpenCSP has none; the nominal pose is a guess from the "
+            "mask), so placement and optical tilt are not reported; the screen shape's node-by-node measurement "
+            "errors (only its scale and pose are inputs)")
+
+
 @dataclass
 class OpenCspMeasurement:
     """An OpenCSP measurement converted to our inputs."""
@@ -197,18 +252,38 @@ class OpenCspMeasurement:
     #: What the import assumed or derived where OpenCSP's files say nothing, in words (printed by
     #: ``import-opencsp``).
     assumptions: tuple = ()
+    #: The inputs' standard uncertainties for this setup (:func:`opencsp_input_uncertainties`).
+    uncertainty: InputUncertainties | None = None
 
-    def analyse(self, robust: bool = False, pixel_mask: np.ndarray | None = None, **overrides) -> Analysis:
-        """Our analysis of the measurement (``design``, ``distance_m`` may be overridden)."""
+    def analyse(self, robust: bool = False, pixel_mask: np.ndarray | None = None,
+                uncertainty: InputUncertainties | None = None, sensitivity_cache: dict | None = None,
+                **overrides) -> Analysis:
+        """Our analysis of the measurement (``design``, ``distance_m`` may be overridden).
+
+        With *uncertainty* (e.g. :attr:`uncertainty`) every figure also carries its expanded uncertainty
+        (k = 2). The sensitivities are kept in *sensitivity_cache* (the caller's, per geometry, recipe and
+        inputs) so that analysing again pays only the per-capture part. An OpenCSP measurement is one
+        capture: its frame-to-frame brightness is its own, never pooled with analyses of itself again
+        (which would count the same sets twice), so only the sensitivities go to and from the cache.
+        """
         settings = replace(self.settings, robust_fit=robust)
-        return analyse(self.frames, self.fringes, self.geometry, overrides.get("design", self.design),
-                       overrides.get("distance_m", self.distance_m), settings, screen=self.screen,
-                       pixel_mask=pixel_mask, rays_cam=ray_table(self.geometry.camera))
+        local = None
+        if uncertainty is not None:
+            local = {} if sensitivity_cache is None else {
+                k: v for k, v in sensitivity_cache.items() if isinstance(v, Sensitivities)}
+        a = analyse(self.frames, self.fringes, self.geometry, overrides.get("design", self.design),
+                    overrides.get("distance_m", self.distance_m), settings, screen=self.screen,
+                    pixel_mask=pixel_mask, rays_cam=ray_table(self.geometry.camera), uncertainty=uncertainty,
+                    sensitivity_cache=local)
+        if sensitivity_cache is not None and local:
+            sensitivity_cache.update({k: v for k, v in local.items() if isinstance(v, Sensitivities)})
+        return a
 
 
 def read_opencsp(measurement: Path, camera: Path, display: Path, orientation: Path, calibration: Path,
-                 facet: Path, focal_length_m: float = 100.0) -> OpenCspMeasurement:
-    """Read the six OpenCSP files of one facet measurement (see the module docstring)."""
+                 facet: Path, focal_length_m: float = 100.0, uncertainty: dict | None = None) -> OpenCspMeasurement:
+    """Read the six OpenCSP files of one facet measurement (see the module docstring); *uncertainty* (an
+    ``[uncertainty]`` table) overrides input uncertainties (:func:`opencsp_input_uncertainties`)."""
     measurement, camera, display, orientation, calibration, facet = (
         Path(p) for p in (measurement, camera, display, orientation, calibration, facet))
     cam = camera_from_opencsp(camera)
@@ -257,9 +332,10 @@ def read_opencsp(measurement: Path, camera: Path, display: Path, orientation: Pa
         "non-square display pixels need nothing more)",
         "corners: matched within 25 px of the nominal pose, 2 px RMS allowed, 3 px edge window",
     )
+    inputs = opencsp_input_uncertainties(cam, uncertainty)
     return OpenCspMeasurement(design.name, str(_read(measurement, g + "date")), frames,
                               FringeSet(tuple(periods_x), tuple(periods_y)), geometry, screen, design, distance,
-                              settings, assumptions)
+                              settings, assumptions + _uncertainty_assumptions(inputs), inputs)
 
 
 def opencsp_test_data_paths(root: Path) -> dict[str, Path]:

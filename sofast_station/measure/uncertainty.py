@@ -1176,6 +1176,7 @@ def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs:
                 total[p] = float(np.hypot(total[p], k * (r - corrected[m][a])))
     out = _nest(total, figures)
     out.update({k2 + "_random": v for k2, v in _nest(random, figures).items()})
+    out.update(_subsample_fit_u(figures, sens.paths, u, u_rand, noise_col))
     out["coverage_factor"] = 2
     out["slope_rms_noise_mrad"] = noise_mrad
     out["slope_rms_corrected_mrad"] = corrected
@@ -1187,6 +1188,34 @@ def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs:
             "draws": POSE_DRAWS,
             "boresight_camera_rays": {path_name(p): _sig(v) for p, v in rays.items()}}
     return out
+
+
+def _subsample_fit_u(figures: dict, paths: list, u: np.ndarray, u_rand: np.ndarray, noise_col: np.ndarray) -> dict:
+    """``subsample_fit_U`` and ``subsample_fit_U_random`` (k = 2) of the focal lengths fitted on every n-th
+    point (``subsample_fit``, what OpenCSP's SOFAST reports).
+
+    The station inputs, the frame brightness and the corners move every slope smoothly over the facet, so the
+    fit on every n-th point follows them as the fit on all points does: those contributions are the same.
+    The intensity noise is independent from pixel to pixel, so its contribution to a least-squares fit grows
+    as the square root of the points it leaves out: u_sub^2 = u^2 + (N / n - 1) u_noise^2 (N points in
+    the reported fit, n in the subsample's). Exact for the plain fit; for the robust fit as far as its
+    weights are the same on both (the noise propagation makes that approximation for the full fit too).
+    """
+    sub = figures.get("subsample_fit")
+    n_all = figures.get("n_points")
+    if not isinstance(sub, dict) or not sub.get("n_points") or not n_all:
+        return {}
+    more = max(float(n_all) / float(sub["n_points"]) - 1.0, 0.0)
+    total, random = {"n_points": None}, {"n_points": None}     # the figure's shape; a count has no U
+    for key in ("focal_length_x_m", "focal_length_y_m"):
+        if (key,) not in paths or sub.get(key) is None:
+            total[key] = random[key] = None
+            continue
+        j = paths.index((key,))
+        total[key] = _clean(COVERAGE_FACTOR * np.sqrt(u[j] ** 2 + more * noise_col[j] ** 2))
+        random[key] = _clean(COVERAGE_FACTOR * np.sqrt(u_rand[j] ** 2 + more * noise_col[j] ** 2))
+    order = list(sub)
+    return {"subsample_fit_U": {k: total.get(k) for k in order}, "subsample_fit_U_random": {k: random.get(k) for k in order}}
 
 
 def _sig(v: float, digits: int = 3):
