@@ -14,7 +14,8 @@ Sources (what a user of each path runs):
 * ``opencsp``: OpenCSP's real measured facet (``fixtures/opencsp``) upsampled ``--opencsp-scale`` times
   (8: 1624 x 1232 px; every frame resized bilinearly, the camera matrix scaled to match), written as
   OpenCSP files, read by our OpenCSP reader and analysed with its measured (distorted 2-D) screen shape,
-  as ``import-opencsp`` does.
+  as ``import-opencsp`` does: with the uncertainty of an OpenCSP setup (docs/opencsp.md), its sensitivities
+  computed in the cold run and reused after, as the command and the station's worker keep them.
 
 Each (source, fit) runs in a fresh process, which analyses the capture repeatedly, as a long-running
 process does facet after facet. The first analysis (cold: first calls into numpy and OpenCV, per-camera
@@ -104,8 +105,11 @@ else:
     keep_memory()                               # what `import-opencsp` does
     from sofast_station.interop.opencsp import opencsp_test_data_paths, read_opencsp
     m = read_opencsp(**opencsp_test_data_paths(spec["opencsp"]))
+    inputs = getattr(m, "uncertainty", None)      # None on an older checkout (no U for OpenCSP then)
+    cache = {}      # as import-opencsp: the sensitivities computed in the cold run, reused after
     def once():
-        a = m.analyse(robust=robust)
+        a = (m.analyse(robust=robust) if inputs is None
+             else m.analyse(robust=robust, uncertainty=inputs, sensitivity_cache=cache))
         return a.figures, a.timings_s
 setup_s = time.perf_counter() - t
 base = rss_kb("VmRSS:")
@@ -297,6 +301,11 @@ def report(source: str, fit: str, what: str, result: dict) -> None:
     print(f"  {'total':<10} {statistics.median(tot):7.3f}  ({min(tot):.3f} - {max(tot):.3f})")
     print(f"  {'cpu time':<10} {statistics.median(cpu):7.3f}  ({min(cpu):.3f} - {max(cpu):.3f})  "
           "(process CPU, both threads)")
+    unc = [r["stages"]["uncertainty"] for r in warm if "uncertainty" in r["stages"]]
+    if unc:
+        print(f"per-facet uncertainty (noise propagation, corner-pose Monte Carlo, combination; sensitivities "
+              f"cached): {statistics.median(unc):.3f} s, {100 * statistics.median(unc) / statistics.median(tot):.0f} % "
+              "of the analysis")
     peak, base = result["peak_mb"], result["base_mb"]
     note = "" if result["peak_reset"] else " (peak could not be reset: includes loading)"
     print(f"memory: peak resident {peak:.0f} MB, of which the analysis added {peak - base:.0f} MB over the "
