@@ -44,7 +44,7 @@ def load_measured(spec: str, overrides=None, focal_length_m: float = 100.0) -> M
         if missing:
             raise ReportError(f"{root} is not a folder in OpenCSP's test-data layout: missing {', '.join(missing)}")
         m = read_opencsp(**paths, focal_length_m=focal_length_m)
-        a = m.analyse(robust=True)
+        a = m.analyse(robust=True, uncertainty=m.uncertainty)      # every figure with its U (docs/opencsp.md)
         rec = {"serial": m.name, "facet": m.design.name, "time": m.date, "station": "OpenCSP import",
                **a.figures}
         return Measured(root, a, rec, m.design, kind="opencsp")
