@@ -112,7 +112,8 @@ def trimmed_std(r: np.ndarray, trim_sigmas: float = TRIM_SIGMAS, rounds: int = 5
     r = np.asarray(r, dtype=np.float64).ravel()
     if r.size == 0:
         return 0.0
-    a = np.abs(r - median(r))
+    about = median(r)
+    a = np.abs(r - about)
     s = max(quantile(a, 0.6827), 0.5)
     c = float(trim_sigmas)
     # Variance of a standard Gaussian truncated to |z| <= c, relative to 1.
@@ -120,7 +121,7 @@ def trimmed_std(r: np.ndarray, trim_sigmas: float = TRIM_SIGMAS, rounds: int = 5
     shrink = 1.0 - 2.0 * c * np.exp(-0.5 * c * c) / np.sqrt(2.0 * np.pi) / frac
     from .kernels import trim_rounds
 
-    return float(trim_rounds(r, a, c, s, float(shrink), int(rounds)))
+    return float(trim_rounds(r, a, c, s, float(shrink), int(rounds), about))
 
 
 def intensity_noise_dn(consistency: np.ndarray, quantised: bool = True) -> float:
