@@ -442,21 +442,27 @@ def figure_lines(rec: dict) -> str:
 
 
 def _titles(result, maps: dict) -> dict:
+    """Each model map's title: the model, its focal lengths and slope RMS, each ``± U`` (expanded, k = 2,
+    said in the page's title) where the record carries it: every figure shown is a measurement result."""
     rec = result.record
     f_design = getattr(result.design, "focal_length_m", None)
 
-    def fmt_f(v):
-        return "inf" if v is None else f"{v:.4f}"
+    def fmt_f(key):
+        return "inf" if rec.get(key) is None else value_with_u(rec, key, 3)
 
     head = {"design": MODEL_LABELS["design"] + (f" (f {f_design:g} m)" if f_design else ""),
-            "parabola": MODEL_LABELS["parabola"] + f" (f_x {fmt_f(rec.get('focal_length_x_m'))} m, "
-                                                   f"f_y {fmt_f(rec.get('focal_length_y_m'))} m)",
+            "parabola": MODEL_LABELS["parabola"] + f"\nf_x {fmt_f('focal_length_x_m')} m, "
+                                                   f"f_y {fmt_f('focal_length_y_m')} m",
             "higher_order": MODEL_LABELS["higher_order"]}
     out = {}
     for model, m in maps.items():
         r = rec.get("slope_rms_mrad", {}).get(model) or m.rms_mrad
-        out[model] = (f"{head[model]}\nslope error RMS x {r['x']:.3f}, y {r['y']:.3f}, "
-                      f"magnitude {r['magnitude']:.3f} mrad")
+        u = (rec.get("slope_rms_mrad_U") or {}).get(model) or {}
+
+        def pm(axis):
+            return f"{r[axis]:.3f}" + (f" ± {u[axis]:.3f}" if isinstance(u.get(axis), (int, float)) else "")
+
+        out[model] = f"{head[model]}\nslope error RMS (mrad) x {pm('x')}, y {pm('y')},\nmagnitude {pm('magnitude')}"
     return out
 
 
@@ -509,7 +515,8 @@ def write_slope_error_maps(result, out_dir: str | Path, *, vmax_mrad: float | No
     overrides = result.overrides.to_dict()
     lines = [f"Facet {rec.get('serial')} ({rec.get('facet')}), measured {rec.get('time')}",
              f"slope error, colour 0 to {vmax_mrad:g} mrad (99th percentile), arrows: mean error on a "
-             f"{ARROWS_ACROSS}-cell grid",
+             f"{ARROWS_ACROSS}-cell grid" + (f"; ± U: expanded uncertainty, k = {rec['coverage_factor']}"
+                                             if rec.get("coverage_factor") else ""),
              f"reprocessed by sofast-station {__version__} from {Path(result.path).name}"
              + (" with " + ", ".join(f"{k} = {v}" for k, v in overrides.items()) if overrides else "")]
     out_dir = Path(out_dir)

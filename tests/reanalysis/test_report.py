@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from matplotlib.image import imread
@@ -44,6 +46,25 @@ def test_slope_error_maps_show_the_measured_pixels_and_the_reported_figures(stat
     # facet coordinates: the design map's x residual grows with x when the design is the wrong shape
     big = slope_error_maps(reprocess_dump(station_dumps.good[0], _wrong_design()).analysis)["design"]
     assert np.corrcoef(big.arrow_x_m, big.arrow_ex_mrad)[0, 1] < -0.9
+
+
+def test_map_titles_carry_each_figures_uncertainty(station_dumps):
+    """Every figure a map's title shows is a measurement result: value ± U (k = 2 in the page title)."""
+    from sofast_station.report.maps import _titles
+
+    res = reprocess_dump(station_dumps.good[0])
+    rec = res.record
+    titles = _titles(res, slope_error_maps(res.analysis))
+    assert rec.get("coverage_factor") == 2
+    for model in MODELS:
+        u = rec["slope_rms_mrad_U"][model]
+        for k in ("x", "y", "magnitude"):
+            assert f"{rec['slope_rms_mrad'][model][k]:.3f} ± {u[k]:.3f}" in titles[model]
+    assert f"{rec['focal_length_x_m']:.3f} ± {rec['focal_length_x_m_U']:.3f}" in titles["parabola"]
+    # a record without U (an old dump's) shows the values alone
+    bare = {k: v for k, v in rec.items() if not k.endswith("_U")}
+    plain = _titles(dataclasses.replace(res, record=bare), slope_error_maps(res.analysis))
+    assert "±" not in plain["design"]
 
 
 def _wrong_design():
