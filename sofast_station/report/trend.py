@@ -96,15 +96,30 @@ def write_trend(records: list[dict], out_path: str | Path, *, title: str = "", d
     long_focus = not np.any(np.isfinite(both)) or float(np.nanmedian(both)) > LONG_FOCAL_LENGTH_M
     fig = Figure(figsize=(11.0, 8.5), layout="constrained")
     ax_f, ax_e, ax_t = fig.subplots(3, 1, sharex=True)
+
+    def u_of(key, sub=()):
+        """Each facet's expanded uncertainty of a figure (0 where a record has none: no bar)."""
+        out = []
+        for r in rows:
+            v = r.get(key)
+            for k in sub:
+                v = v.get(k) if isinstance(v, dict) else None
+            out.append(v if isinstance(v, (int, float)) and np.isfinite(v) else 0.0)
+        return np.array(out, float)
+
+    def points(ax, values, u, marker, label=None):
+        """The facets' values with their ± U as bars (every plotted figure is a measurement result)."""
+        ax.errorbar(t, values, yerr=u, fmt=marker, ms=3, elinewidth=0.7, capsize=0, label=label)
+
     if long_focus:
         kx = np.array([r.get("curvature_x_per_m", np.nan) for r in rows], float)
         ky = np.array([r.get("curvature_y_per_m", np.nan) for r in rows], float)
-        ax_f.plot(t, kx, "o", ms=3, label="kappa_x")
-        ax_f.plot(t, ky, "s", ms=3, label="kappa_y")
+        points(ax_f, kx, u_of("curvature_x_per_m_U"), "o", "kappa_x")
+        points(ax_f, ky, u_of("curvature_y_per_m_U"), "s", "kappa_y")
         ax_f.set_ylabel("focal power (1/m)")
     else:
-        ax_f.plot(t, fx, "o", ms=3, label="f_x")
-        ax_f.plot(t, fy, "s", ms=3, label="f_y")
+        points(ax_f, fx, u_of("focal_length_x_m_U"), "o", "f_x")
+        points(ax_f, fy, u_of("focal_length_y_m_U"), "s", "f_y")
         ax_f.set_ylabel("focal length (m)")
     designs = {(r.get("reprocess") or {}).get("design", {}).get("focal_length_m") for r in rows} - {None}
     for f in sorted(designs):
@@ -116,19 +131,22 @@ def write_trend(records: list[dict], out_path: str | Path, *, title: str = "", d
     ax_f.legend(fontsize=8, loc="best")
     for model, marker in zip(MODELS, "o^s"):
         v = [((r["slope_rms_mrad"].get(model) or {}).get("magnitude")) for r in rows]
-        ax_e.plot(t, np.array([np.nan if x is None else x for x in v], float), marker, ms=3,
-                  label=MODEL_LABELS[model].replace("compared with the ", ""))
+        points(ax_e, np.array([np.nan if x is None else x for x in v], float),
+               u_of("slope_rms_mrad_U", (model, "magnitude")), marker,
+               MODEL_LABELS[model].replace("compared with the ", ""))
     ax_e.set_ylabel("slope error RMS,\nmagnitude (mrad)")
     ax_e.legend(fontsize=8, loc="best")
-    ax_t.plot(t, [r.get("twist_mrad_per_m", np.nan) for r in rows], "o", ms=3)
+    points(ax_t, np.array([r.get("twist_mrad_per_m", np.nan) for r in rows], float), u_of("twist_mrad_per_m_U"), "o")
     ax_t.set_ylabel("twist (mrad/m)")
     locator = AutoDateLocator(tz=t[0].tzinfo)          # the station's local time, as in the records
     ax_t.xaxis.set_major_locator(locator)
     ax_t.xaxis.set_major_formatter(ConciseDateFormatter(locator, tz=t[0].tzinfo))
     skipped = len(records) - len(rows)
+    with_u = any(isinstance(r.get("focal_length_x_m_U"), (int, float)) or isinstance(r.get("curvature_x_per_m_U"),
+                                                                                    (int, float)) for r in rows)
     fig.suptitle((title + "\n" if title else "") + f"{len(rows)} measured facet(s) from {rows[0]['time'][:19]} to "
-                 f"{rows[-1]['time'][:19]}" + (f" ({skipped} fault(s) without figures not shown)" if skipped else ""),
-                 fontsize=10)
+                 f"{rows[-1]['time'][:19]}" + (f" ({skipped} fault(s) without figures not shown)" if skipped else "")
+                 + ("; bars: ± U, the expanded uncertainty (k = 2)" if with_u else ""), fontsize=10)
     path = savefig_atomic(fig, Path(out_path), dpi)
     log.info("trend of %d facet(s): %s", len(rows), path)
     return path

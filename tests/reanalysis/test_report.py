@@ -101,6 +101,8 @@ def test_a_refused_capture_has_no_map(station_dumps, tmp_path, caplog):
 def test_trend_from_the_journal_and_from_batch_results(station_dumps, tmp_path, capsys):
     records = trend_records_from_journal(station_dumps.journal)
     assert len(records) == 4                   # three measured facets and one fault
+    # each measured facet's figures come with their U: the plot draws them as bars
+    assert sum(isinstance(r.get("focal_length_x_m_U"), float) and r["focal_length_x_m_U"] > 0 for r in records) == 3
     times = [r["time"] for r in records]
     out = write_trend(records, tmp_path / "t.png", title="journal")
     assert _png_size(out)[0] > 500
