@@ -71,7 +71,8 @@ def read_uncertainty_table(path: Path) -> dict:
 
 def figures_with_u(fig: dict, keys=FIGURE_KEYS) -> dict:
     """*keys* of the analysis's figures, each followed by its ``_U`` and ``_U_random`` siblings (k = 2),
-    and the uncertainty's other keys: the structure of the station's result record."""
+    and the uncertainty's other keys: the structure of the station's result record. The budget keeps only
+    the columns of the figures reported (not placement and optical tilt)."""
     out = {}
     for k in keys:
         out[k] = fig[k]
@@ -80,6 +81,22 @@ def figures_with_u(fig: dict, keys=FIGURE_KEYS) -> dict:
                 out[f"{k}{suffix}"] = fig[f"{k}{suffix}"]
     out["n_points"] = fig["n_points"]
     out.update({k: fig[k] for k in UNCERTAINTY_KEYS if k in fig})
+    if isinstance(out.get("uncertainty_budget"), dict):
+        out["uncertainty_budget"] = _budget_of(out["uncertainty_budget"], keys)
+    return out
+
+
+def _budget_of(budget: dict, keys) -> dict:
+    """*budget* (:func:`~sofast_station.measure.uncertainty.budget_table`'s layout: per-figure lists) with
+    only the columns of figures under *keys*."""
+    names = budget.get("figures", [])
+    keep = [i for i, n in enumerate(names) if n.split(".")[0] in keys]
+    out = dict(budget)
+    out["figures"] = [names[i] for i in keep]
+    for key in ("combined_standard", "random_standard"):
+        if isinstance(budget.get(key), list):
+            out[key] = [budget[key][i] for i in keep]
+    out["rows"] = [dict(r, contributions=[r["contributions"][i] for i in keep]) for r in budget.get("rows", [])]
     return out
 
 

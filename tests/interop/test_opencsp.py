@@ -246,6 +246,14 @@ def test_import_opencsp_json_carries_u_for_every_scalar_figure(repo_root):
         assert u is not None and np.isfinite(u) and u > 0, path
         assert 0 < ur <= u * (1 + 1e-12), path
     assert out["input_uncertainties"]["fixture_rotation_mrad"] == [0.0, 0.0, 0.0]
+    # the budget has a column for each reported figure and none for those not reported
+    b = out["uncertainty_budget"]
+    assert b["figures"] and not any(n.startswith(("placement", "optical_tilt")) for n in b["figures"])
+    assert "focal_length_x_m" in b["figures"] and "twist_e1_mrad_per_m" in b["figures"]
+    assert all(len(r["contributions"]) == len(b["figures"]) for r in b["rows"])
+    assert len(b["combined_standard"]) == len(b["random_standard"]) == len(b["figures"])
+    j = b["figures"].index("focal_length_x_m")
+    assert 2 * b["combined_standard"][j] == pytest.approx(out["focal_length_x_m_U"], rel=1e-2)
 
 
 def test_opencsp_focal_length_uncertainty_is_plausible(measurement):
