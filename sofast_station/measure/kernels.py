@@ -1009,27 +1009,19 @@ def median_in_window(a, about, absolute, lo, hi, scratch):
     # No branches: every value is stored and the count of kept ones advances for those in the window.
     # (A branch per value, even one rarely taken, made the pass seven times slower on residuals fresh
     # from their own pass, 170 us against 24 for 38,000 values.)
-    if absolute:
-        for j in range(n):
-            v = abs(a[j] - about)
-            scratch[m] = v
-            below += v < lo
-            m += (v >= lo) & (v <= hi)
-            nans += v != v
-    else:
-        for j in range(n):
-            v = a[j]
-            scratch[m] = v
-            below += v < lo
-            m += (v >= lo) & (v <= hi)
-            nans += v != v
+    for j in range(n):
+        v = abs(a[j] - about) if absolute else a[j]
+        scratch[m] = v
+        below += v < lo
+        m += (v >= lo) & (v <= hi)
+        nans += v != v
     k = n // 2 - below
     if nans or n == 0 or k < 0 or k >= m or (n % 2 == 0 and k == 0):
         return math.nan, False      # (an even count's lower order statistic below the window: k == 0)
     upper = _select_in_place(scratch, m, k)
     if n % 2:
         return upper, True
-    lower = scratch[0]
+    lower = scratch[0]              # the next smaller order statistic: the largest value left of k
     for j in range(1, k):
         if scratch[j] > lower:
             lower = scratch[j]
@@ -1069,17 +1061,8 @@ def _median_of(a, about, absolute, lo, hi, scratch):
         if found:
             return m
         spread *= 2
-    for j in range(n):              # every value (a NaN is caught above or by the windows)
-        scratch[j] = abs(a[j] - about) if absolute else a[j]
-    h = n // 2
-    upper = _select_in_place(scratch, n, h)
-    if n % 2:
-        return upper
-    lower = scratch[0]
-    for j in range(1, h):
-        if scratch[j] > lower:
-            lower = scratch[j]
-    return (lower + upper) / 2.0
+    m, _ = median_in_window(a, about, absolute, -math.inf, math.inf, scratch)   # every value
+    return m
 
 
 @numba.njit(**_JIT)
