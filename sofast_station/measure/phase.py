@@ -286,6 +286,89 @@ def frame_noise(phases, modulations, residuals, level=None, pool=None) -> FrameN
                       phase_error_rad=phase_error_from_harmonic(ratio), residuals=cleaned)
 
 
+#: Brightness bins (equal numbers of pixels) over which :func:`noise_by_level` fits the noise's growth.
+NOISE_LEVEL_BINS = 12
+#: Fewest residuals a brightness bin needs to count in that fit.
+NOISE_LEVEL_MIN_SAMPLES = 200
+
+
+def noise_by_level(residuals, level_dn: np.ndarray, frame_noise_dn: float,
+                   bins: int = NOISE_LEVEL_BINS) -> tuple[float, float]:
+    """The frame noise's variance as an affine function of the pixel's brightness, sigma^2 = a + b w.
+
+    A camera's noise grows with the light a pixel gathers (shot noise: variance in proportion to the
+    signal, on top of the read noise and the rounding), so one noise figure for the whole facet over-states
+    the noise of its dim pixels and under-states that of its bright ones. Dim pixels are mostly at the
+    facet's edges (vignetting, and pixels the edge only partly covers), where they weigh most in the fits'
+    curvature and twist. Each consistency residual I_0 + I_2 - I_1 - I_3 has variance 4 sigma^2 at its
+    pixel (the fringe's own term cancels), so the residuals, binned by brightness *level_dn* (white - dark,
+    DN, the same pixels as each residual array), give a variance per bin (the trimmed standard deviation,
+    immune to the few spoiled pixels), and a line weighted by each bin's count over its variance squared
+    gives a and b.
+
+    The line is then scaled so that its mean over the pixels is *frame_noise_dn* squared: the overall
+    level stays the capture's own estimate (:func:`intensity_noise_dn`), and only its spread over the
+    pixels comes from here. b = 0 (one level for every pixel) when fewer than three bins have
+    :data:`NOISE_LEVEL_MIN_SAMPLES` residuals, when their brightness does not spread, or when the fitted
+    noise does not grow with brightness.
+
+    Returns
+    -------
+    (a, b) : DN^2 and DN (sigma^2 in DN^2 for w in DN; :func:`pixel_noise_dn` evaluates it)
+    """
+    flat = frame_noise_dn ** 2
+    level_dn = np.asarray(level_dn, dtype=np.float64).ravel()
+    sets = [np.asarray(r).ravel() for r in residuals]
+    if not sets or any(r.size != level_dn.size for r in sets) or level_dn.size == 0:
+        return flat, 0.0
+    stride = max(1, -(-level_dn.size * len(sets) // MAX_NOISE_SAMPLES))
+    w_s = level_dn[::stride]
+    finite = np.isfinite(w_s)
+    if np.count_nonzero(finite) * len(sets) < 3 * NOISE_LEVEL_MIN_SAMPLES or flat <= 0:
+        return flat, 0.0
+    # Bins of equal counts (where most pixels are) and of equal width (the few dim ones at the edges,
+    # which decide the line's slope when the facet's inside is evenly lit).
+    steps = np.linspace(0.0, 1.0, bins + 1)
+    wf = w_s[finite]
+    edges = np.unique(np.concatenate([np.quantile(wf, steps), wf.min() + steps * (wf.max() - wf.min())]))
+    n_bins = max(edges.size - 1, 1)
+    which = np.clip(np.searchsorted(edges, np.where(finite, w_s, edges[0]), side="right") - 1, 0, n_bins - 1)
+    # Each bin's variance from the residuals within 4.5 of the capture's standard deviations (a spoiled
+    # pixel is far beyond; a Gaussian loses 1e-4 of its variance there), summed over the sets.
+    limit = (2.0 * TRIM_SIGMAS * np.sqrt(flat)) ** 2
+    counts, sums, level_sums = np.zeros(n_bins), np.zeros(n_bins), np.zeros(n_bins)
+    for r in sets:
+        r2 = np.square(r[::stride], dtype=np.float64)
+        keep = finite & (r2 <= limit)
+        counts += np.bincount(which[keep], minlength=n_bins)
+        sums += np.bincount(which[keep], weights=r2[keep], minlength=n_bins)
+        level_sums += np.bincount(which[keep], weights=w_s[keep], minlength=n_bins)
+    use = counts >= NOISE_LEVEL_MIN_SAMPLES
+    levels = level_sums[use] / counts[use]
+    variances = sums[use] / counts[use] / 4.0
+    counts = counts[use]
+    if levels.size < 3 or np.ptp(levels) <= 0 or np.any(variances <= 0):
+        return flat, 0.0
+    x, v, weight = levels, variances, counts / np.square(variances)
+    xm = float(np.sum(weight * x) / np.sum(weight))
+    vm = float(np.sum(weight * v) / np.sum(weight))
+    b = float(np.sum(weight * (x - xm) * (v - vm)) / np.sum(weight * (x - xm) ** 2))
+    if not np.isfinite(b) or b <= 0:
+        return flat, 0.0
+    a = vm - b * xm
+    mean_var = float(np.mean(np.maximum(a + b * wf, QUANTISATION_NOISE_DN ** 2)))
+    scale = flat / mean_var if mean_var > 0 else 1.0
+    return float(a * scale), float(b * scale)
+
+
+def pixel_noise_dn(model: tuple[float, float], level_dn: np.ndarray) -> np.ndarray:
+    """Each pixel's frame noise (DN, rounding included) at its brightness *level_dn* (white - dark, DN)
+    by the line (a, b) of :func:`noise_by_level`; never below the rounding's 1/sqrt(12) DN."""
+    a, b = model
+    var = a + b * np.asarray(level_dn, dtype=np.float64)
+    return np.sqrt(np.maximum(var, QUANTISATION_NOISE_DN ** 2))
+
+
 def _map_halves(pool, fn, items) -> list:
     """``[fn(x) for x in items]`` with the first half of the items done on *pool* (an executor, or None)
     beside the rest: each item's arithmetic is the same on any thread, so the same values."""

@@ -5,8 +5,9 @@ import pytest
 
 from sofast_station.devices.renderer import FringeRenderer
 from sofast_station.fringes import FringeSet
-from sofast_station.measure.phase import (QUANTISATION_NOISE_DN, frame_noise, intensity_noise_dn, phase_and_modulation,
-                                          position_sigma_m, unwrap_positions, wrap_phase)
+from sofast_station.measure.phase import (QUANTISATION_NOISE_DN, frame_noise, intensity_noise_dn, noise_by_level,
+                                          phase_and_modulation, pixel_noise_dn, position_sigma_m, unwrap_positions,
+                                          wrap_phase)
 
 WIDTH_PX, HEIGHT_PX, PITCH_M = 1920, 1080, 0.000275
 
@@ -52,6 +53,57 @@ def test_noise_of_rounded_frames(sigma):
     assert got.noise_dn == pytest.approx(sigma, rel=0.03)
     assert got.frame_noise_dn == pytest.approx(np.hypot(sigma, QUANTISATION_NOISE_DN), rel=0.03)
     assert got.harmonic_ratio < 0.002 and got.phase_error_rad < 1e-3
+
+
+def _shot_noise_sets(read_dn, electrons_per_dn, n=120_000, seed=2):
+    """Four-step 8-bit frames whose noise grows with the signal (variance read^2 + signal / electrons_per_dn,
+    as a camera's): 90 % of the pixels evenly lit, 10 % dim (a facet's edge pixels); and each pixel's
+    white - dark level and true per-frame noise (rounding included) averaged over its four frames."""
+    rng = np.random.default_rng(seed)
+    dim = rng.random(n) < 0.1
+    mean = np.where(dim, rng.uniform(10, 110, n), rng.uniform(112, 122, n))      # fringe mean, DN
+    amp = 0.8 * mean
+    phi = rng.uniform(0, 2 * np.pi, n)
+    clean = np.stack([mean + amp * np.cos(phi - k * np.pi / 2) for k in range(4)])
+    var = read_dn ** 2 + (clean / electrons_per_dn if electrons_per_dn else np.zeros_like(clean))
+    frames = np.clip(np.rint(clean + rng.standard_normal(clean.shape) * np.sqrt(var)), 0, 255).astype(np.uint8)
+    white_minus_dark = 2.0 * mean
+    true_dn = np.sqrt(var.mean(axis=0) + QUANTISATION_NOISE_DN ** 2)
+    return frames, white_minus_dark, true_dn, dim
+
+
+@pytest.mark.parametrize("read_dn, electrons_per_dn", [(0.8, 40.0), (0.5, 10.0)])
+def test_noise_grows_with_brightness_as_the_camera_makes_it(read_dn, electrons_per_dn):
+    """Shot noise makes dim pixels quieter: the noise-against-brightness line gives each pixel its own
+    noise (the facet's dim edge pixels within 5 %, where one figure for all is 30-60 % too high), and its
+    mean over the pixels stays the capture's one noise figure."""
+    frames, w, true_dn, dim = _shot_noise_sets(read_dn, electrons_per_dn)
+    phi, b, r = phase_and_modulation(frames)
+    got = frame_noise([phi], [b], [r], level=w)
+    per_pixel = pixel_noise_dn(noise_by_level(got.residuals, w, got.frame_noise_dn), w)
+    for sel in (dim & (w < 80), dim & (w > 140), ~dim):
+        assert np.sqrt(np.mean(per_pixel[sel] ** 2)) == pytest.approx(np.sqrt(np.mean(true_dn[sel] ** 2)), rel=0.05)
+    assert np.sqrt(np.mean(true_dn[dim & (w < 80)] ** 2)) < 0.8 * got.frame_noise_dn    # one figure would be wrong
+    assert np.mean(per_pixel ** 2) == pytest.approx(got.frame_noise_dn ** 2, rel=1e-6)
+
+
+def test_noise_that_does_not_grow_with_brightness_stays_one_figure():
+    frames, w, true_dn, dim = _shot_noise_sets(1.5, 0.0)
+    phi, b, r = phase_and_modulation(frames)
+    got = frame_noise([phi], [b], [r], level=w)
+    per_pixel = pixel_noise_dn(noise_by_level(got.residuals, w, got.frame_noise_dn), w)
+    assert per_pixel == pytest.approx(np.full(w.size, got.frame_noise_dn), rel=0.04)
+    assert got.frame_noise_dn == pytest.approx(np.hypot(1.5, QUANTISATION_NOISE_DN), rel=0.03)
+
+
+def test_noise_by_level_falls_back_to_one_figure():
+    rng = np.random.default_rng(0)
+    w = rng.uniform(50, 200, 20_000)
+    falling = rng.normal(0, 2 * np.sqrt(4.0 - 0.01 * w))              # noise that falls with brightness
+    assert noise_by_level([falling], w, 1.7) == (1.7 ** 2, 0.0)
+    assert noise_by_level([falling[:100]], w[:100], 1.7) == (1.7 ** 2, 0.0)         # too few residuals
+    assert noise_by_level([falling], np.full(w.size, 120.0), 1.7) == (1.7 ** 2, 0.0)  # no spread of brightness
+    assert noise_by_level([falling], w[:10], 1.7) == (1.7 ** 2, 0.0)                # not the same pixels
 
 
 def test_half_drawn_pixels_do_not_inflate_the_noise():

@@ -539,3 +539,31 @@ def test_screen_models_move_and_stretch_alike(rig):
             grid.stretched(*bad)
         with pytest.raises(ValueError, match="axis|factor"):
             flat.stretched(*bad)
+
+
+def test_each_pixels_noise_follows_its_brightness_as_the_twins_camera_makes_it(rig):
+    """The twin's camera adds read noise and shot noise (variance in proportion to the signal). Where the
+    facet's edges cut through pixels, those pixels gather less light and are quieter: the noise the
+    uncertainty gives each valid pixel (from the capture's noise-against-brightness line) is what two
+    captures of the same scene show, for the dim edge pixels and for the rest, where the capture's one
+    noise figure is far too high for the dim ones."""
+    from sofast_station.measure.pipeline import reduce_stages
+    from sofast_station.measure.uncertainty import pixel_noise_dn
+
+    cfg = rig.config
+    twin = rig.twin((0.5, -0.5, 0.2), (0.5, 0.3, -0.4))
+    (_, one), (_, two) = (rig.capture(twin, np.random.default_rng(s), steady=True) for s in (3, 4))
+    red, _ = reduce_stages(one, cfg.fringes, cfg.geometry, cfg.design, twin.measured_distance_m(), cfg.analysis)
+    take = np.flatnonzero(red.phases.ok)
+    pix = red.region.idx[take]
+    finest = cfg.fringes.slices()["x"][-1]
+    # Each pixel's frame noise over the finest set's four frames, rounding included: var(f1 - f2) / 2.
+    diff = (one[finest].reshape(4, -1)[:, pix].astype(float) - two[finest].reshape(4, -1)[:, pix]) ** 2 / 2.0
+    seen = diff.mean(axis=0)
+    got = np.broadcast_to(pixel_noise_dn(red, take), take.shape)
+    level = np.subtract(red.region.stack[1][take], red.region.stack[0][take], dtype=float)
+    dim = level < 0.8 * np.median(level)
+    assert dim.sum() > 100
+    for sel in (dim, ~dim):
+        assert np.sqrt(np.mean(got[sel] ** 2)) == pytest.approx(np.sqrt(np.mean(seen[sel])), rel=0.06)
+    assert red.phases.noise_dn > 1.2 * np.sqrt(np.mean(seen[dim]))
