@@ -286,7 +286,8 @@ def frame_noise(phases, modulations, residuals, level=None, pool=None) -> FrameN
                       phase_error_rad=phase_error_from_harmonic(ratio), residuals=cleaned)
 
 
-#: Brightness bins (equal numbers of pixels) over which :func:`noise_by_level` fits the noise's growth.
+#: Brightness bins of each kind (equal counts, equal widths) over which :func:`noise_by_level` fits the
+#: noise's growth.
 NOISE_LEVEL_BINS = 12
 #: Fewest residuals a brightness bin needs to count in that fit.
 NOISE_LEVEL_MIN_SAMPLES = 200
@@ -302,9 +303,10 @@ def noise_by_level(residuals, level_dn: np.ndarray, frame_noise_dn: float,
     facet's edges (vignetting, and pixels the edge only partly covers), where they weigh most in the fits'
     curvature and twist. Each consistency residual I_0 + I_2 - I_1 - I_3 has variance 4 sigma^2 at its
     pixel (the fringe's own term cancels), so the residuals, binned by brightness *level_dn* (white - dark,
-    DN, the same pixels as each residual array), give a variance per bin (the trimmed standard deviation,
-    immune to the few spoiled pixels), and a line weighted by each bin's count over its variance squared
-    gives a and b.
+    DN, the same pixels as each residual array; *bins* bins of equal counts and *bins* of equal widths),
+    give a variance per bin (the mean square of the residuals within 4.5 of the capture's standard
+    deviations, so the few spoiled pixels do not count), and a line weighted by each bin's count over its
+    variance squared gives a and b.
 
     The line is then scaled so that its mean over the pixels is *frame_noise_dn* squared: the overall
     level stays the capture's own estimate (:func:`intensity_noise_dn`), and only its spread over the
@@ -314,7 +316,7 @@ def noise_by_level(residuals, level_dn: np.ndarray, frame_noise_dn: float,
 
     Returns
     -------
-    (a, b) : DN^2 and DN (sigma^2 in DN^2 for w in DN; :func:`pixel_noise_dn` evaluates it)
+    (a, b) : DN^2 and DN (sigma^2 in DN^2 for w in DN; :func:`noise_at_level` evaluates it)
     """
     flat = frame_noise_dn ** 2
     level_dn = np.asarray(level_dn, dtype=np.float64).ravel()
@@ -340,9 +342,10 @@ def noise_by_level(residuals, level_dn: np.ndarray, frame_noise_dn: float,
     for r in sets:
         r2 = np.square(r[::stride], dtype=np.float64)
         keep = finite & (r2 <= limit)
-        counts += np.bincount(which[keep], minlength=n_bins)
-        sums += np.bincount(which[keep], weights=r2[keep], minlength=n_bins)
-        level_sums += np.bincount(which[keep], weights=w_s[keep], minlength=n_bins)
+        bin_of = which[keep]
+        counts += np.bincount(bin_of, minlength=n_bins)
+        sums += np.bincount(bin_of, weights=r2[keep], minlength=n_bins)
+        level_sums += np.bincount(bin_of, weights=w_s[keep], minlength=n_bins)
     use = counts >= NOISE_LEVEL_MIN_SAMPLES
     levels = level_sums[use] / counts[use]
     variances = sums[use] / counts[use] / 4.0
@@ -361,7 +364,7 @@ def noise_by_level(residuals, level_dn: np.ndarray, frame_noise_dn: float,
     return float(a * scale), float(b * scale)
 
 
-def pixel_noise_dn(model: tuple[float, float], level_dn: np.ndarray) -> np.ndarray:
+def noise_at_level(model: tuple[float, float], level_dn: np.ndarray) -> np.ndarray:
     """Each pixel's frame noise (DN, rounding included) at its brightness *level_dn* (white - dark, DN)
     by the line (a, b) of :func:`noise_by_level`; never below the rounding's 1/sqrt(12) DN."""
     a, b = model

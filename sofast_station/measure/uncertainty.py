@@ -522,8 +522,7 @@ def pixel_noise_dn(reduction, take: np.ndarray) -> np.ndarray | float:
     arrays), each at its own brightness (white - dark) by the capture's noise-against-brightness line
     (:func:`~.phase.noise_by_level`, fitted here on its cleaned four-step residuals: only the uncertainty
     needs it); the capture's one noise figure where there is no such line."""
-    from .phase import noise_by_level
-    from .phase import pixel_noise_dn as on_line
+    from .phase import noise_at_level, noise_by_level
 
     phases = reduction.phases
     stack = getattr(reduction.region, "stack", None)
@@ -531,7 +530,7 @@ def pixel_noise_dn(reduction, take: np.ndarray) -> np.ndarray | float:
         return phases.noise_dn
     level = np.subtract(stack[1], stack[0], dtype=np.float32)
     model = noise_by_level(phases.noise.residuals, level, phases.noise_dn)
-    return on_line(model, level[take])
+    return noise_at_level(model, level[take])
 
 
 def noise_propagation(reduction, *, fringes, geometry, design, settings, screen=None,
@@ -1271,7 +1270,8 @@ def _subsample_fit_u(figures: dict, paths: list, u: np.ndarray, u_rand: np.ndarr
         total[key] = _clean(COVERAGE_FACTOR * np.sqrt(u[j] ** 2 + more * noise_col[j] ** 2))
         random[key] = _clean(COVERAGE_FACTOR * np.sqrt(u_rand[j] ** 2 + more * noise_col[j] ** 2))
     order = list(sub)
-    return {"subsample_fit_U": {k: total.get(k) for k in order}, "subsample_fit_U_random": {k: random.get(k) for k in order}}
+    return {"subsample_fit_U": {k: total.get(k) for k in order},
+            "subsample_fit_U_random": {k: random.get(k) for k in order}}
 
 
 def _sig(v: float, digits: int = 3):

@@ -5,8 +5,8 @@ import pytest
 
 from sofast_station.devices.renderer import FringeRenderer
 from sofast_station.fringes import FringeSet
-from sofast_station.measure.phase import (QUANTISATION_NOISE_DN, frame_noise, intensity_noise_dn, noise_by_level,
-                                          phase_and_modulation, pixel_noise_dn, position_sigma_m, unwrap_positions,
+from sofast_station.measure.phase import (QUANTISATION_NOISE_DN, frame_noise, intensity_noise_dn, noise_at_level,
+                                          noise_by_level, phase_and_modulation, position_sigma_m, unwrap_positions,
                                           wrap_phase)
 
 WIDTH_PX, HEIGHT_PX, PITCH_M = 1920, 1080, 0.000275
@@ -80,7 +80,7 @@ def test_noise_grows_with_brightness_as_the_camera_makes_it(read_dn, electrons_p
     frames, w, true_dn, dim = _shot_noise_sets(read_dn, electrons_per_dn)
     phi, b, r = phase_and_modulation(frames)
     got = frame_noise([phi], [b], [r], level=w)
-    per_pixel = pixel_noise_dn(noise_by_level(got.residuals, w, got.frame_noise_dn), w)
+    per_pixel = noise_at_level(noise_by_level(got.residuals, w, got.frame_noise_dn), w)
     for sel in (dim & (w < 80), dim & (w > 140), ~dim):
         assert np.sqrt(np.mean(per_pixel[sel] ** 2)) == pytest.approx(np.sqrt(np.mean(true_dn[sel] ** 2)), rel=0.05)
     assert np.sqrt(np.mean(true_dn[dim & (w < 80)] ** 2)) < 0.8 * got.frame_noise_dn    # one figure would be wrong
@@ -91,7 +91,7 @@ def test_noise_that_does_not_grow_with_brightness_stays_one_figure():
     frames, w, true_dn, dim = _shot_noise_sets(1.5, 0.0)
     phi, b, r = phase_and_modulation(frames)
     got = frame_noise([phi], [b], [r], level=w)
-    per_pixel = pixel_noise_dn(noise_by_level(got.residuals, w, got.frame_noise_dn), w)
+    per_pixel = noise_at_level(noise_by_level(got.residuals, w, got.frame_noise_dn), w)
     assert per_pixel == pytest.approx(np.full(w.size, got.frame_noise_dn), rel=0.04)
     assert got.frame_noise_dn == pytest.approx(np.hypot(1.5, QUANTISATION_NOISE_DN), rel=0.03)
 
