@@ -4,6 +4,12 @@ A hung analysis must not hang the line: the station runs :func:`~sofast_station.
 in one long-lived worker process (spawned, so it shares no OpenGL or thread state with the station),
 hands it the frames through shared memory (no 35 MB pickle per facet), waits with a deadline, and kills
 and restarts the worker when the deadline passes. The worker computes the camera's pixel rays once.
+
+A worker that dies *before* it begins a facet's analysis (killed or out of memory between facets, its
+death not yet seen when the next facet arrives) costs that facet nothing: the worker marks each analysis
+it begins in the shared memory, so the station knows the facet was never started, restarts the worker and
+analyses it again within the facet's time budget. A worker that dies *during* an analysis answers that
+facet with the worker fault (the facet itself may be what kills it), and the next facet is measured.
 """
 
 from __future__ import annotations
@@ -73,6 +79,16 @@ class WorkerResult:
 _STATE: dict = {}
 
 
+#: Bytes at the end of the shared memory past the frames: the number of the analysis the worker began last.
+_TICKET_BYTES = 8
+
+
+def _frame_bytes(shape: tuple[int, int, int]) -> int:
+    """The frames' bytes in the shared memory, rounded up so that the ticket after them is aligned."""
+    n = int(np.prod(shape))
+    return n + (-n) % _TICKET_BYTES
+
+
 def _init(shm_name: str, shape: tuple[int, int, int], geometry: dict, fringes: dict) -> None:
     from ..fringes import FringeSet
     from ..geometry import StationGeometry
@@ -82,6 +98,7 @@ def _init(shm_name: str, shape: tuple[int, int, int], geometry: dict, fringes: d
     shm = SharedMemory(name=shm_name)
     _STATE["shm"] = shm
     _STATE["frames"] = np.ndarray(shape, dtype=np.uint8, buffer=shm.buf)
+    _STATE["ticket"] = np.ndarray((1,), dtype=np.int64, buffer=shm.buf, offset=_frame_bytes(shape))
     _STATE["geometry"] = StationGeometry.from_dict(geometry)
     _STATE["fringes"] = FringeSet.from_dict(fringes)
     warm_up(_STATE["geometry"].camera)          # every pixel's ray before the first facet
@@ -94,7 +111,7 @@ def _init(shm_name: str, shape: tuple[int, int, int], geometry: dict, fringes: d
     start_from_env("worker")                    # off unless SOFAST_TRACEMALLOC_S is set (leak hunts)
 
 
-def _run(design: dict, settings: dict, distance_m: float, hang_s: float, optics=None,
+def _run(ticket: int, design: dict, settings: dict, distance_m: float, hang_s: float, optics=None,
          uncertainty: dict | None = None):
     from ..archive._common import trim_heap
     from ..facet import FacetDesign
@@ -102,6 +119,7 @@ def _run(design: dict, settings: dict, distance_m: float, hang_s: float, optics=
     from ..measure.uncertainty import InputUncertainties
     from .optics import DesignTraces, add_optics
 
+    _STATE["ticket"][0] = ticket         # begun: from here a death is this facet's (see the module's text)
     if hang_s < 0:                       # fault injection for tests: the worker dies mid-analysis
         os._exit(9)
     if hang_s > 0:                       # fault injection for tests: an analysis that hangs
@@ -174,8 +192,11 @@ class AnalysisWorker:
         self._geometry = geometry.to_dict()
         self._fringes = fringes.to_dict()
         self._shape = (fringes.n_frames, *shape)
-        self._shm = SharedMemory(create=True, size=int(np.prod(self._shape)))
+        self._shm = SharedMemory(create=True, size=_frame_bytes(self._shape) + _TICKET_BYTES)
         self._frames = np.ndarray(self._shape, dtype=np.uint8, buffer=self._shm.buf)
+        self._begun = np.ndarray((1,), dtype=np.int64, buffer=self._shm.buf, offset=_frame_bytes(self._shape))
+        self._tickets = 0                        # analyses asked for so far
+        self._begun[0] = 0
         self._pool = None
         self._restarting: threading.Thread | None = None
         self._optics_designs: list = []          # (design dict, OpticsSettings) traced at every (re)start
@@ -256,31 +277,45 @@ class AnalysisWorker:
             from ..errors import CaptureError
             raise CaptureError(f"the capture is {frames.dtype} {frames.shape}, the station expects uint8 "
                                f"{self._shape}; check the camera's pixel format and size")
-        self._ready()                              # a restart under way: wait for the new worker
-        if not self.alive():
-            self.supervise()
-            self._ready()
-        np.copyto(self._frames, frames)
-        fut = None
-        try:
-            fut = self._pool.submit(_run, design.to_dict(), settings.to_dict(), float(distance_m), float(hang_s),
-                                    optics, None if uncertainty is None else uncertainty.to_dict())
-            figures, packed, shape, seconds, preview, sensitivities = fut.result(timeout=max(timeout_s, 0.01))
-        except FutureTimeout:
-            log.error("analysis exceeded its %.1f s budget: restarting the analysis worker", timeout_s)
-            self._restart()
-            raise AnalysisTimeout(f"the analysis did not finish within {timeout_s:.1f} s; the worker was "
-                                  "restarted") from None
-        except (BrokenProcessPool, RuntimeError) as exc:
-            log.error("the analysis worker died during the analysis (%s): restarting it", exc)
-            self._restart()
-            raise WorkerDied("the analysis worker process died during this facet's analysis (killed or out of "
-                             "memory); it is restarted, the next facet is measured") from None
-        finally:
-            # An analysis error is raised from the future, which keeps it: the error's traceback holds this
-            # frame, and this frame the future, a reference cycle that would keep the cycle's frames (tens
-            # of MB at full resolution) until the garbage collector's rare full pass. Broken here.
+        t_end = time.perf_counter() + timeout_s
+        for attempt in (1, 2):
+            self._ready()                          # a restart under way: wait for the new worker
+            if not self.alive():
+                self.supervise()
+                self._ready()
+            left_s = t_end - time.perf_counter()
+            if left_s <= 0:
+                raise AnalysisTimeout(f"the analysis worker was being restarted for the facet's whole "
+                                      f"{timeout_s:.1f} s; the facet was not analysed")
+            np.copyto(self._frames, frames)
+            self._tickets += 1
             fut = None
+            try:
+                fut = self._pool.submit(_run, self._tickets, design.to_dict(), settings.to_dict(),
+                                        float(distance_m), float(hang_s), optics,
+                                        None if uncertainty is None else uncertainty.to_dict())
+                figures, packed, shape, seconds, preview, sensitivities = fut.result(timeout=max(left_s, 0.01))
+                break
+            except FutureTimeout:
+                log.error("analysis exceeded its %.1f s budget: restarting the analysis worker", timeout_s)
+                self._restart()
+                raise AnalysisTimeout(f"the analysis did not finish within {timeout_s:.1f} s; the worker was "
+                                      "restarted") from None
+            except (BrokenProcessPool, RuntimeError) as exc:
+                begun = int(self._begun[0]) == self._tickets
+                self._restart()
+                if begun or attempt == 2:
+                    log.error("the analysis worker died during the analysis (%s): restarting it", exc)
+                    raise WorkerDied("the analysis worker process died during this facet's analysis (killed or "
+                                     "out of memory); it is restarted, the next facet is measured") from None
+                log.warning("the analysis worker had died before this facet's analysis began (%s): restarting "
+                            "it and analysing the facet again", exc)
+            finally:
+                # An analysis error is raised from the future, which keeps it: the error's traceback holds
+                # this frame, and this frame the future, a reference cycle that would keep the cycle's
+                # frames (tens of MB at full resolution) until the garbage collector's rare full pass.
+                # Broken here.
+                fut = None
         valid = np.unpackbits(packed, count=int(np.prod(shape))).astype(bool).reshape(shape)
         return WorkerResult(figures, valid, seconds, preview, sensitivities)
 
@@ -308,6 +343,6 @@ class AnalysisWorker:
             self._restarting.join()
             self._restarting = None
         self._kill()
-        self._frames = None
+        self._frames = self._begun = None
         self._shm.close()
         self._shm.unlink()
