@@ -154,7 +154,10 @@ def test_thread_batches_workbook_saves_and_stop_can_drain(setup):
     journal, data = setup
     arch = Archiver(journal, data, ArchiverSettings(min_free_gb=0.0, poll_interval_s=0.02, workbook_interval_s=3600))
     arch.start()
-    time.sleep(0.3)                                           # the first pass (workbook due) has run
+    deadline = time.monotonic() + 60                          # wait for the first pass (workbook due) to run
+    while arch._last_workbook == float("-inf") and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert arch._last_workbook > float("-inf"), "the archiver's first pass did not run within 60 s"
     arch.submit("c0", make_record("S0"))
     arch.submit("c1", make_record("S1"))
     time.sleep(0.3)
