@@ -401,16 +401,18 @@ def write_detail_maps(result, out_path: str | Path, model: str = "parabola", dpi
     return savefig_atomic(fig, Path(out_path), dpi)
 
 
+def _pm(v: float, u, digits: int) -> str:
+    """``v ± u`` to *digits* decimals, or ``v`` alone when *u* is not a number."""
+    return f"{v:.{digits}f}" + (f" ± {u:.{digits}f}" if isinstance(u, (int, float)) else "")
+
+
 def value_with_u(rec: dict, key: str, digits: int = 4, scale: float = 1.0) -> str:
     """``value ± U`` when the record carries ``key_U`` (expanded uncertainty, k = 2), else the value."""
     v = rec.get(key)
     if v is None:
         return "-"
     u = rec.get(f"{key}_U")
-    text = f"{v * scale:.{digits}f}"
-    if isinstance(u, (int, float)) and u is not None:
-        text += f" ± {u * scale:.{digits}f}"
-    return text
+    return _pm(v * scale, u * scale if isinstance(u, (int, float)) else None, digits)
 
 
 def figure_lines(rec: dict) -> str:
@@ -432,8 +434,7 @@ def figure_lines(rec: dict) -> str:
         if not r:
             continue
         u = (rms_u.get(model) or {}).get("magnitude")
-        lines.append(f"slope RMS {model:<12} {r['magnitude']:.3f}" + (f" ± {u:.3f}" if u is not None else "")
-                     + " mrad")
+        lines.append(f"slope RMS {model:<12} {_pm(r['magnitude'], u, 3)} mrad")
     if rec.get("coverage_factor"):
         lines.append(f"(± U: expanded uncertainty, k = {rec['coverage_factor']})")
     if rec.get("verdict"):
@@ -458,11 +459,8 @@ def _titles(result, maps: dict) -> dict:
     for model, m in maps.items():
         r = rec.get("slope_rms_mrad", {}).get(model) or m.rms_mrad
         u = (rec.get("slope_rms_mrad_U") or {}).get(model) or {}
-
-        def pm(axis):
-            return f"{r[axis]:.3f}" + (f" ± {u[axis]:.3f}" if isinstance(u.get(axis), (int, float)) else "")
-
-        out[model] = f"{head[model]}\nslope error RMS (mrad) x {pm('x')}, y {pm('y')},\nmagnitude {pm('magnitude')}"
+        x, y, mag = (_pm(r[a], u.get(a), 3) for a in ("x", "y", "magnitude"))
+        out[model] = f"{head[model]}\nslope error RMS (mrad) x {x}, y {y},\nmagnitude {mag}"
     return out
 
 
