@@ -80,13 +80,18 @@ _STATE: dict = {}
 
 
 #: Bytes at the end of the shared memory past the frames: the number of the analysis the worker began last.
-_TICKET_BYTES = 8
+_BEGUN_BYTES = 8
 
 
 def _frame_bytes(shape: tuple[int, int, int]) -> int:
-    """The frames' bytes in the shared memory, rounded up so that the ticket after them is aligned."""
+    """The frames' bytes in the shared memory, rounded up so that the number after them is aligned."""
     n = int(np.prod(shape))
-    return n + (-n) % _TICKET_BYTES
+    return n + (-n) % _BEGUN_BYTES
+
+
+def _begun_slot(shm: SharedMemory, shape: tuple[int, int, int]) -> np.ndarray:
+    """The shared number (int64, past the frames) of the analysis the worker began last."""
+    return np.ndarray((1,), dtype=np.int64, buffer=shm.buf, offset=_frame_bytes(shape))
 
 
 def _init(shm_name: str, shape: tuple[int, int, int], geometry: dict, fringes: dict) -> None:
@@ -98,7 +103,7 @@ def _init(shm_name: str, shape: tuple[int, int, int], geometry: dict, fringes: d
     shm = SharedMemory(name=shm_name)
     _STATE["shm"] = shm
     _STATE["frames"] = np.ndarray(shape, dtype=np.uint8, buffer=shm.buf)
-    _STATE["ticket"] = np.ndarray((1,), dtype=np.int64, buffer=shm.buf, offset=_frame_bytes(shape))
+    _STATE["begun"] = _begun_slot(shm, shape)
     _STATE["geometry"] = StationGeometry.from_dict(geometry)
     _STATE["fringes"] = FringeSet.from_dict(fringes)
     warm_up(_STATE["geometry"].camera)          # every pixel's ray before the first facet
@@ -119,7 +124,7 @@ def _run(ticket: int, design: dict, settings: dict, distance_m: float, hang_s: f
     from ..measure.uncertainty import InputUncertainties
     from .optics import DesignTraces, add_optics
 
-    _STATE["ticket"][0] = ticket         # begun: from here a death is this facet's (see the module's text)
+    _STATE["begun"][0] = ticket          # begun: from here a death is this facet's (see the module's text)
     if hang_s < 0:                       # fault injection for tests: the worker dies mid-analysis
         os._exit(9)
     if hang_s > 0:                       # fault injection for tests: an analysis that hangs
@@ -192,9 +197,9 @@ class AnalysisWorker:
         self._geometry = geometry.to_dict()
         self._fringes = fringes.to_dict()
         self._shape = (fringes.n_frames, *shape)
-        self._shm = SharedMemory(create=True, size=_frame_bytes(self._shape) + _TICKET_BYTES)
+        self._shm = SharedMemory(create=True, size=_frame_bytes(self._shape) + _BEGUN_BYTES)
         self._frames = np.ndarray(self._shape, dtype=np.uint8, buffer=self._shm.buf)
-        self._begun = np.ndarray((1,), dtype=np.int64, buffer=self._shm.buf, offset=_frame_bytes(self._shape))
+        self._begun = _begun_slot(self._shm, self._shape)
         self._tickets = 0                        # analyses asked for so far
         self._begun[0] = 0
         self._pool = None
