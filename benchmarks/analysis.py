@@ -73,7 +73,7 @@ t = time.perf_counter()
 if source == "twin":
     import dataclasses
     from sofast_station.config import load_config
-    from sofast_station.measure.pipeline import analyse
+    from sofast_station.measure.analysis import analyse
     cfg = load_config(spec["config"])
     d = np.load(spec["capture"])
     frames, distance = d["frames"], float(d["distance"])
@@ -183,7 +183,7 @@ def prepare_dump(config: str, tmp: Path, fits) -> dict:
     import dataclasses
 
     from sofast_station.archive.dumps import DumpContent, crop_to_facet, write_dump
-    from sofast_station.measure.pipeline import analyse
+    from sofast_station.measure.analysis import analyse
     from sofast_station.station.inspect import result_record
     from sofast_station.station.verdict import judge
 

@@ -18,7 +18,8 @@ from .. import __version__
 from ..calibrate.records import RadiometricRecord
 from ..config import StationConfig
 from ..devices.protocols import Camera, Display, RangeFinder
-from ..measure.pipeline import Analysis, analyse
+from ..measure.analysis import analyse
+from ..measure.pipeline import Analysis
 from ..precompute import ray_table
 from .verdict import judge
 

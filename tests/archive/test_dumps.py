@@ -120,7 +120,7 @@ def test_restore_frames_and_crop():
 def small_capture(tmp_path_factory):
     """One noisy capture of the small simulated station, its analysis and result record."""
     from sofast_station.config import load_config
-    from sofast_station.measure.pipeline import analyse
+    from sofast_station.measure.analysis import analyse
     from sofast_station.station.inspect import capture, open_station, result_record
     from tests.conftest import SMALL_STATION
 

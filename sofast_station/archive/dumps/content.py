@@ -217,7 +217,7 @@ class DumpContent:
         -------
         sofast_station.measure.pipeline.Analysis
         """
-        from ...measure.pipeline import analyse
+        from ...measure.analysis import analyse
         from ...precompute import ray_table
 
         args = {"fringes": self.fringe_set(), "geometry": self.station_geometry(), "design": self.facet_design(),
