@@ -148,7 +148,8 @@ def _uptime() -> str:
 def _twin_capture(config: str):
     """A noisy capture of the simulated station (frames, distance) and the station's configuration."""
     from sofast_station.config import load_config
-    from sofast_station.station.inspect import capture, open_station
+    from sofast_station.station.factory import open_station
+    from sofast_station.station.inspection import capture
 
     cfg = load_config(config)
     t = time.perf_counter()
@@ -184,7 +185,7 @@ def prepare_dump(config: str, tmp: Path, fits) -> dict:
 
     from sofast_station.archive.dumps import DumpContent, crop_to_facet, write_dump
     from sofast_station.measure.analysis import analyse
-    from sofast_station.station.inspect import result_record
+    from sofast_station.station.inspection import result_record
     from sofast_station.station.verdict import judge
 
     cfg, station, frames, distance = _twin_capture(config)

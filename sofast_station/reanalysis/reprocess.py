@@ -528,7 +528,7 @@ def reprocess_content(content: DumpContent, overrides: Overrides | None = None, 
     -------
     ReprocessResult
     """
-    from ..station.inspect import FIGURE_KEYS
+    from ..station.inspection import FIGURE_KEYS
     from ..station.runner import fault_code_for
     from ..station.verdict import judge
 

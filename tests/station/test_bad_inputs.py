@@ -13,7 +13,8 @@ from sofast_station.errors import (CaptureError, ConfigError, DisplayNotShowingE
                                    GeometryError, StationError)
 from sofast_station.geometry import CameraIntrinsics, Pose
 from sofast_station.measure.analysis import analyse
-from sofast_station.station.inspect import capture, open_station
+from sofast_station.station.factory import open_station
+from sofast_station.station.inspection import capture
 
 
 @pytest.fixture(scope="module")

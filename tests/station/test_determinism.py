@@ -9,7 +9,8 @@ import sys
 import numpy as np
 
 from sofast_station.config import load_config
-from sofast_station.station.inspect import capture, open_station
+from sofast_station.station.factory import open_station
+from sofast_station.station.inspection import capture
 
 SCRIPT = """
 import dataclasses, hashlib, json, sys

@@ -11,7 +11,8 @@ import pytest
 from sofast_station.config import load_config
 from sofast_station.geometry import Pose
 from sofast_station.measure import analysis, pipeline
-from sofast_station.station.inspect import capture, open_station
+from sofast_station.station.factory import open_station
+from sofast_station.station.inspection import capture
 
 
 @pytest.fixture(scope="module")

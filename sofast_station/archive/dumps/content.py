@@ -143,7 +143,7 @@ class DumpContent:
 
     @classmethod
     def from_station(cls, station, **kwargs) -> "DumpContent":
-        """:meth:`build` from a :class:`~sofast_station.station.inspect.Station` (its config and calibration)."""
+        """:meth:`build` from a :class:`~sofast_station.station.opened.Station` (its config and calibration)."""
         return cls.build(station.config, station.radiometric, **kwargs)
 
     # -- spooling -----------------------------------------------------------------------------------
