@@ -203,7 +203,7 @@ SECTIONS: dict[str, dict[str, Key]] = {
         "incidence_angle_deg": Key("float", low=0.0, high=90.0, high_open=True, doc="sun from the facet's axis"),
         "slant_range_m": _pos("facet centre to target plane, m"),
         "aperture": Key("table", doc="{shape = \"circle\", radius_m} or {shape = \"rectangle\", width_m, height_m}, "
-                                     "checked by station.optics"),
+                                     "checked by result.optical_figures"),
         "rays_per_pixel": _pos("rays per measured point"),
         "min_rays": Key("int", low=0, doc="at least this many rays per facet"),
         "grid_cells": Key("int", low=2, high=4001, doc="flux map cells per side"),

@@ -219,7 +219,7 @@ def test_the_scan_sees_the_package(graph):
             "sofast_station.commands"} <= graph.modules
     measure_reach = graph.reach(graph.in_unit("measure"))
     assert "sofast_station.geometry" in measure_reach and "numpy" in measure_reach
-    assert "sofast_station.twin.truth" in graph.reach(["sofast_station.station.inspection"])
+    assert "sofast_station.twin.truth" in graph.reach(["sofast_station.station.factory"])
 
 
 def test_the_import_rules_of_docs_architecture_hold(graph):

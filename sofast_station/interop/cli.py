@@ -134,7 +134,7 @@ def cmd_import_opencsp(args) -> int:
     # What the facet does with sunlight: default [optics] (pillbox sun, target at the design focal length);
     # 'report flux --opencsp' draws the map and takes other conditions. With the analysis's U, the optics'.
     from ..optics import OpticsSettings
-    from ..station.optics import analysis_optics
+    from ..result.optical_figures import analysis_optics
     out["optics"] = analysis_optics(a, m.design, OpticsSettings()).figures
     if args.compare:
         ref = read_opencsp_result(Path(args.compare))

@@ -445,7 +445,7 @@ def _cmd_flux(args) -> int:
     from ..errors import ConfigError, StationError
     from ..report.flux import write_flux_map
     from ..report.sources import load_measured
-    from ..station.optics import analysis_optics, optics_for
+    from ..result.optical_figures import analysis_optics, optics_for
 
     targets = args.targets[1:] + ([f"opencsp:{args.opencsp}"] if args.opencsp else [])
     if not targets:

@@ -8,9 +8,6 @@ from pathlib import Path
 from ..archive._common import temp_path_for
 from ..errors import StationError
 
-#: Above this design focal length (metres) reports show focal power instead (docs/conventions.md).
-LONG_FOCAL_LENGTH_M = 20.0
-
 
 class ReportError(StationError):
     """A picture cannot be made: no analysis (the capture was refused), or no data in the period."""

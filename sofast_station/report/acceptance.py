@@ -29,7 +29,7 @@ import numpy as np
 from ..errors import ConfigError
 from ..qc import acceptance as acc
 from ._common import ReportError, savefig_atomic
-from .spc import lookup
+from ..result.record import figure_value
 
 _KEYS = {"population", "confidence", "relative_error", "figures"}
 _FIGURE_KEYS = {"name", "contract", "tolerance", "expected_mean", "expected_std", "sense", "relative_error"}
@@ -113,7 +113,7 @@ def evaluate(contract: Contract, records: list[dict]) -> list[dict]:
     measured = [r for r in records if r.get("verdict") in ("pass", "fail")]
     out = []
     for f in contract.figures:
-        values = np.array([v for v in (lookup(r, f.key) for r in measured) if v is not None], float)
+        values = np.array([v for v in (figure_value(r, f.key) for r in measured) if v is not None], float)
         rel = f.relative_error or contract.relative_error
         n_req = acc.sample_size(f.expected_mean, f.expected_std, rel, contract.confidence, contract.population)
         ci = acc.mean_interval(values, contract.confidence, contract.population)

@@ -33,11 +33,11 @@ def _limit_text(spec) -> str:
 
 def figure_rows(record: dict, specs) -> list[list[str]]:
     """Rows (figure, value ± U, unit, limits, within) of the certificate's table."""
-    from .spc import lookup
+    from ..result.record import figure_value
 
     rows = []
     for s in specs:
-        v = lookup(record, s.key)
+        v = figure_value(record, s.key)
         if s.key.startswith("slope_rms_mrad."):
             model = s.key.split(".")[1]
             u = ((record.get("slope_rms_mrad_U") or {}).get(model) or {}).get("magnitude")
@@ -61,7 +61,7 @@ def write_certificate(record: dict, out_path: Path, *, specs, measured=None, dum
     out_path : Path
         The ``.pdf`` to write.
     specs : list of FigureSpec
-        Figures and limits of the facet's recipe (:func:`sofast_station.report.spc.figure_specs`).
+        Figures and limits of the facet's recipe (:func:`sofast_station.result.specs.figure_specs`).
     measured : Measured, optional
         The reprocessed dump (for the maps); without it the page says why there are no maps.
     dump_path : Path, optional

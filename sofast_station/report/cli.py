@@ -89,7 +89,8 @@ def _period(args):
 def cmd_spc(args) -> int:
     from ..errors import ConfigError
     from ..qc import spc as qspc
-    from .spc import (build_charts, draw_charts, draw_yield, figure_specs, select_records, write_summary_workbook,
+    from ..result.specs import figure_specs
+    from .spc import (build_charts, draw_charts, draw_yield, select_records, write_summary_workbook,
                       yield_table)
 
     if len(args.targets) > 1:
@@ -114,9 +115,9 @@ def cmd_spc(args) -> int:
                                                   since=b0, until=b1) if r.get("verdict") in ("pass", "fail")]
         baselines = {}
         for s in specs:
-            from .spc import lookup
+            from ..result.record import figure_value
             try:
-                baselines[s.key] = qspc.baseline([v for v in (lookup(r, s.key) for r in base_records) if v is not None])
+                baselines[s.key] = qspc.baseline([v for v in (figure_value(r, s.key) for r in base_records) if v is not None])
             except ValueError as exc:
                 raise ConfigError(f"the baseline period {b0} to {b1} gives no limits for {s.label}: {exc}") from None
     charts = build_charts(chosen, specs, baseline_n=args.baseline_n, baselines=baselines, rule_set=args.rules,
@@ -174,7 +175,7 @@ def cmd_certificate(args) -> int:
     from ..errors import ConfigError, StationError
     from .certificate import write_certificate
     from .sources import load_measured
-    from .spc import figure_specs
+    from ..result.specs import figure_specs
 
     if len(args.targets) != 2:
         raise ConfigError("'report certificate' needs one serial: report certificate SERIAL")

@@ -28,7 +28,8 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ._common import LONG_FOCAL_LENGTH_M, ReportError, savefig_atomic
+from ..result.verdict import LONG_FOCAL_LENGTH_M
+from ._common import ReportError, savefig_atomic
 
 log = logging.getLogger(__name__)
 

@@ -236,7 +236,7 @@ def cmd_run(args) -> int:
     from ..web.settings import opcua_settings, web_settings
     from . import console
     from .service import Service, setup_logging
-    from .shift import ShiftTally
+    from ..result.shift import ShiftTally
 
     config = load_config(args.config)
     log_path = setup_logging(config.data_dir, args.verbose)

@@ -8,7 +8,8 @@ column. A figure shows ``value ± U`` when the record carries its expanded uncer
 
 from __future__ import annotations
 
-from .shift import SUMMARY_FIGURES, ShiftSummary, figure_uncertainty, figure_value
+from ..result.record import figure_uncertainty, figure_value
+from ..result.shift import SUMMARY_FIGURES, ShiftSummary
 
 #: Console columns: (heading, record path, decimals, width of the value, width of its "± U").
 _FIGURES = (

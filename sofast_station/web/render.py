@@ -11,7 +11,7 @@ from __future__ import annotations
 import html
 import math
 
-from ..station.shift import SUMMARY_FIGURES
+from ..result.shift import SUMMARY_FIGURES
 
 SECTIONS = ("state", "last", "shift", "station")
 _VERDICT_CLASS = {"pass": "pass", "fail": "fail", "invalid": "invalid", "indeterminate": "indeterminate",

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from sofast_station.station import console
-from sofast_station.station.shift import fault_kind, summarize
+from sofast_station.result.faults import fault_kind
+from sofast_station.result.shift import summarize
 
 
 def _rec(serial, verdict, fx=None, fy=None, design=None, parab=None, reasons=(), cycle=None, **extra):
@@ -97,7 +98,7 @@ def test_running_tally_matches_the_list_summary_and_keeps_a_fixed_size():
     that does not grow with the number of facets (a station runs for months)."""
     import pickle
 
-    from sofast_station.station.shift import ShiftTally
+    from sofast_station.result.shift import ShiftTally
 
     rng = np.random.default_rng(7)
     records = []
