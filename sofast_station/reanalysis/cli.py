@@ -20,6 +20,7 @@ from pathlib import Path
 from ..commands import add_command
 from ..commands import build_parser as _build_parser
 from ..commands import default_config, lower_priority, run
+from ..result.formatting import with_u
 from ._env import single_thread_blas
 
 log = logging.getLogger(__name__)
@@ -193,14 +194,14 @@ def comparison_table(result, show_all: bool = False) -> str:
     new_u = flatten_figures(result.record, uncertainties=True)
     old_u = flatten_figures(result.archived, uncertainties=True) if result.archived else {}
 
-    def with_u(value, name, flat):
+    def value_u(value, name, flat):
         """``value ± U`` where the record has the figure's expanded uncertainty."""
         top, dot, rest = name.partition(".")
         top, bracket, index = top.partition("[")
         u = flat.get(f"{top}_U{bracket}{index}{dot}{rest}")
         if u is None or not isinstance(value, (int, float)) or isinstance(value, bool):
             return _fmt(value)
-        return f"{value:.6g} ± {u:.2g}"
+        return with_u(value, u)
 
     names = list(new) + [k for k in old if k not in new]
     shown = names if show_all else [k for k in names if k in HEADLINE or k in result.differences]
@@ -216,7 +217,7 @@ def comparison_table(result, show_all: bool = False) -> str:
             diff = f"{d['difference']:+.3e}"
         else:
             diff = "changed"
-        lines.append(f"  {name:<40} {with_u(a, name, old_u):>24} {with_u(b, name, new_u):>24} {diff:>16}")
+        lines.append(f"  {name:<40} {value_u(a, name, old_u):>24} {value_u(b, name, new_u):>24} {diff:>16}")
     hidden = len(names) - len(shown)
     if hidden:
         lines.append(f"  ({hidden} more figure(s), all identical to the archive; --all lists them)"
@@ -423,8 +424,7 @@ def flux_text(name: str, figures: dict, path) -> str:
         src = f if d_ is None else d_
         v = src[key] if d_ is None else src.get(key)
         u = f.get(f"{key}_U") if d_ is None else (f.get("centroid_offset_mrad_U") or {}).get(key)
-        text = f"{v * scale:{sign}.{digits}f}"
-        return text if u is None else f"{text} ± {u * scale:.{digits}f}"
+        return with_u(v, u, decimals=digits, scale=scale, sign=sign == "+")
 
     r90 = "-" if f["spot_radius_m"] is None else (f"{pm('spot_radius_m', 1000.0, 2)} mm "
                                                   f"({pm('spot_radius_mrad', 1.0, 3)} mrad)")

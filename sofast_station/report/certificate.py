@@ -33,6 +33,7 @@ def _limit_text(spec) -> str:
 
 def figure_rows(record: dict, specs) -> list[list[str]]:
     """Rows (figure, value ± U, unit, limits, within) of the certificate's table."""
+    from ..result.formatting import with_u
     from ..result.record import figure_value
 
     rows = []
@@ -41,7 +42,7 @@ def figure_rows(record: dict, specs) -> list[list[str]]:
         if s.key.startswith("slope_rms_mrad."):
             model = s.key.split(".")[1]
             u = ((record.get("slope_rms_mrad_U") or {}).get(model) or {}).get("magnitude")
-            shown = "-" if v is None else f"{v:.3f}" + (f" ± {u:.3f}" if isinstance(u, (int, float)) else "")
+            shown = with_u(v, u if isinstance(u, (int, float)) else None, decimals=3)
         else:
             digits = 6 if "curvature" in s.key else 3 if "mrad" in s.key else 4
             shown = value_with_u(record, s.key, digits)
