@@ -409,12 +409,12 @@ def _rule_simulation(raw: dict, where: str) -> None:
 
 
 def _rule_acceptance(raw: dict, where: str) -> None:
-    """[acceptance.RECIPE] contracts are checked by their reader (sofast_station/report/acceptance.py)."""
+    """[acceptance.RECIPE] contracts are checked by their reader (sofast_station/qc/acceptance.py)."""
     if not raw.get("acceptance"):
         return
     from types import SimpleNamespace
 
-    from .report.acceptance import contract_from_config
+    from .qc.acceptance import contract_from_config
 
     for recipe in raw["acceptance"]:
         contract_from_config(SimpleNamespace(path=where, raw=raw), recipe)

@@ -150,7 +150,8 @@ def cmd_spc(args) -> int:
 
 def cmd_acceptance(args) -> int:
     from ..errors import ConfigError
-    from .acceptance import contract_from_config, draw, evaluate, text
+    from ..qc.acceptance import contract_from_config
+    from .acceptance import draw, evaluate, text
     from .spc import select_records
 
     if len(args.targets) > 1:
