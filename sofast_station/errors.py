@@ -76,5 +76,9 @@ class ArchiveError(StationError):
     """A journal, workbook or dump could not be read or written."""
 
 
+class ReportError(StationError):
+    """A picture or report cannot be made: no analysis (the capture was refused), or no data in the period."""
+
+
 class DumpError(ArchiveError):
     """A data dump is unreadable, truncated, foreign, or of an unknown schema."""

@@ -138,7 +138,7 @@ def register(subparsers) -> None:
     rpt.add_argument("--results", metavar="DIR", help="trend: a batch output folder")
     rpt.add_argument("--from", dest="since", default=None, metavar="ISO", help="trend: start (inclusive)")
     rpt.add_argument("--to", dest="until", default=None, metavar="ISO", help="trend: end (exclusive)")
-    from ..report.cli import add_options as add_quality_options
+    from .quality_reports import add_options as add_quality_options
     add_quality_options(rpt)
     flux = rpt.add_argument_group("flux maps ('report flux')")
     flux.add_argument("--opencsp", metavar="DIR", default=None,
@@ -364,14 +364,14 @@ def cmd_report(args) -> int:
         return _cmd_trend(args)
     if args.targets[0] == "flux":
         return _cmd_flux(args)
-    from ..report.cli import REPORTS, run as run_quality_report
+    from .quality_reports import REPORTS, run as run_quality_report
     if args.targets[0] in REPORTS:
         return run_quality_report(args)
     if args.journal or args.results or args.since or args.until or args.config:
         from ..errors import ConfigError
         raise ConfigError("--journal, --results, --config, --from and --to belong to 'report trend'")
     from ..report.maps import write_detail_maps, write_slope_error_maps
-    from ..report.sources import load_measured
+    from .sources import load_measured
 
     overrides = overrides_from_args(args)
     overrides.check()
@@ -444,7 +444,7 @@ def _cmd_flux(args) -> int:
 
     from ..errors import ConfigError, StationError
     from ..report.flux import write_flux_map
-    from ..report.sources import load_measured
+    from .sources import load_measured
     from ..result.optical_figures import analysis_optics, optics_for
 
     targets = args.targets[1:] + ([f"opencsp:{args.opencsp}"] if args.opencsp else [])

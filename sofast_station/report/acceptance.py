@@ -27,7 +27,8 @@ import numpy as np
 from ..qc import acceptance as acc
 from ..qc.acceptance import Contract
 from ..result.record import figure_value
-from ._common import ReportError, savefig_atomic
+from ..errors import ReportError
+from ._common import savefig_atomic
 
 def evaluate(contract: Contract, records: list[dict]) -> list[dict]:
     """Per contract figure: the guideline sample size, what is missing, the observed mean with its

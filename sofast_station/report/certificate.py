@@ -11,7 +11,8 @@ from __future__ import annotations
 import hashlib
 from pathlib import Path
 
-from ._common import ReportError, savefig_atomic
+from ..errors import ReportError
+from ._common import savefig_atomic
 from .maps import MODEL_LABELS, detail_maps, draw_detail, value_with_u
 
 

@@ -18,7 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from ..result.formatting import with_u
-from ._common import ReportError, savefig_atomic
+from ..errors import ReportError
+from ._common import savefig_atomic
 
 log = logging.getLogger(__name__)
 

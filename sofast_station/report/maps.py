@@ -30,7 +30,8 @@ import numpy as np
 from .. import __version__
 from ..result.formatting import with_u
 from ..result.verdict import LONG_FOCAL_LENGTH_M
-from ._common import ReportError, savefig_atomic
+from ..errors import ReportError
+from ._common import savefig_atomic
 
 log = logging.getLogger(__name__)
 

@@ -18,7 +18,8 @@ from ..archive._common import parse_time
 from ..qc import spc
 from ..result.record import figure_value
 from ..result.specs import FigureSpec
-from ._common import ReportError, savefig_atomic
+from ..errors import ReportError
+from ._common import savefig_atomic
 
 log = logging.getLogger(__name__)
 

@@ -13,7 +13,8 @@ import numpy as np
 
 from ..archive._common import parse_time, utc_key
 from ..result.verdict import LONG_FOCAL_LENGTH_M
-from ._common import ReportError, savefig_atomic
+from ..errors import ReportError
+from ._common import savefig_atomic
 from .maps import MODEL_LABELS, MODELS
 
 log = logging.getLogger(__name__)

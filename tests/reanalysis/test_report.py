@@ -10,7 +10,7 @@ from matplotlib.image import imread
 
 from sofast_station.reanalysis.batch import run_batch
 from sofast_station.reanalysis.cli import main
-from sofast_station.report._common import ReportError
+from sofast_station.errors import ReportError
 from sofast_station.report.maps import MODELS, slope_error_maps, write_slope_error_maps
 from sofast_station.report.trend import trend_records_from_journal, trend_records_from_results, write_trend
 from sofast_station.reanalysis.reprocess import reprocess_dump

@@ -1,7 +1,9 @@
 """``sofast-station report spc | acceptance | certificate SERIAL | diff A B``: the quality engineer's reports.
 
 The ``report`` command itself is registered by :mod:`sofast_station.reanalysis.cli` (its first word
-chooses the report); :func:`add_options` adds these reports' options to it and :func:`run` runs them.
+chooses the report); :func:`add_options` adds these reports' options to it and :func:`run` runs them. The
+pictures and documents are drawn by :mod:`sofast_station.report`; this module finds the records, the
+recipes and the measurements they need.
 """
 
 from __future__ import annotations
@@ -90,7 +92,7 @@ def cmd_spc(args) -> int:
     from ..errors import ConfigError
     from ..qc import spc as qspc
     from ..result.specs import figure_specs
-    from .spc import (build_charts, draw_charts, draw_yield, select_records, write_summary_workbook,
+    from ..report.spc import (build_charts, draw_charts, draw_yield, select_records, write_summary_workbook,
                       yield_table)
 
     if len(args.targets) > 1:
@@ -151,8 +153,8 @@ def cmd_spc(args) -> int:
 def cmd_acceptance(args) -> int:
     from ..errors import ConfigError
     from ..qc.acceptance import contract_from_config
-    from .acceptance import draw, evaluate, text
-    from .spc import select_records
+    from ..report.acceptance import draw, evaluate, text
+    from ..report.spc import select_records
 
     if len(args.targets) > 1:
         raise ConfigError("'report acceptance' takes no dumps: choose facets with --recipe and --from/--to")
@@ -174,7 +176,7 @@ def cmd_acceptance(args) -> int:
 def cmd_certificate(args) -> int:
     from ..archive.journal import Journal
     from ..errors import ConfigError, StationError
-    from .certificate import write_certificate
+    from ..report.certificate import write_certificate
     from .sources import load_measured
     from ..result.specs import figure_specs
 
@@ -213,7 +215,7 @@ def cmd_certificate(args) -> int:
 
 def cmd_diff(args) -> int:
     from ..errors import ConfigError
-    from .diff import write_diff
+    from ..report.diff import write_diff
     from .sources import load_measured
 
     if len(args.targets) != 3:
