@@ -31,7 +31,8 @@ from .boresight import Assembly, ShapeSolution, solve_shape
 from .fit import CubicFit, ParabolaFit, fit_cubic, fit_parabola, reweight_parabola
 from .mask import facet_region
 from .metrics import focal_length_m, principal_axes, rms_summary
-from .phase import FrameNoise, frame_noise, phase_and_modulation, position_sigma_m, unwrap_positions
+from .phase import (FrameNoise, frame_noise, phase_and_modulation, phase_error_between_periods, position_sigma_m,
+                    unwrap_positions)
 from .pose import fix_range, solve_corner_pose
 from .screen import FlatScreen, ScreenModel
 from .stats import median
@@ -467,6 +468,10 @@ def measure_phases(region: Region, fringes: FringeSet, screen_size_m: tuple[floa
         ok &= res.valid
     checks.check_phase_sets(inconsistent_fraction,
                             {a: unwrap_stats[a].disagreements / idx.size for a in ("x", "y")})
+    # The response's phase error as the coarse and fine sets show it (any shape of response), where they can.
+    noise = noise.with_period_error(phase_error_between_periods(
+        [(raw[a][0][0], raw[a][0][-1], raw[a][1][0], raw[a][1][-1], getattr(fringes, f"periods_{a}")[0],
+          getattr(fringes, f"periods_{a}")[-1]) for a in ("x", "y")], noise_dn, mask=[ok, ok]))
     dropped = {"low_modulation": int(low_mod.sum()), "inconsistent_frames": int(inconsistent.sum()),
                "excluded_by_pixel_mask": excluded}
     return Phases(positions_m=positions, ok=ok, noise_dn=noise_dn,
@@ -669,7 +674,9 @@ def report_figures(region: Region, phases: Phases, rays: Rays, pose: CornerPoseR
         "slope_curl": curl,
         "display_response": {"harmonic_ratio": phases.noise.harmonic_ratio,
                              "signed_harmonic_ratio": phases.noise.signed_harmonic_ratio,
-                             "phase_error_rad": phases.noise.phase_error_rad},
+                             "phase_error_rad": phases.noise.phase_error_rad,
+                             "phase_error_rms_rad": phases.noise.phase_error_rms_rad,
+                             "phase_error_from": phases.noise.phase_error_from},
         "dropped": {"low_modulation": phases.dropped["low_modulation"],
                     "inconsistent_frames": phases.dropped["inconsistent_frames"],
                     "outside_screen_model": rays.off_model,
