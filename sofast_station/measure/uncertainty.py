@@ -27,11 +27,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import ConfigError
+from ..errors import AnalysisError, ConfigError, StationError
 from ..geometry import Pose
-from .camera import to_frame
 from .metrics import principal_axes
-from .phase import position_sigma_m
 from .stats import median
 
 COVERAGE_FACTOR = 2.0
@@ -278,6 +276,19 @@ def budget_inputs(inputs: InputUncertainties, n_corners: int) -> list[Input]:
     return [r for r in rows if r.u > 0]
 
 
+def input_key(inp: Input) -> str | None:
+    """The ``[uncertainty]`` key that states *inp*'s standard uncertainty (None: the capture's own)."""
+    if inp.name.startswith("fixture r"):
+        return "fixture_rotation_mrad"
+    if inp.name.startswith("fixture t"):
+        return "fixture_translation_mm"
+    return {"measured distance": "distance_mm", "camera focal length": "camera_focal_px",
+            "camera principal point": "camera_principal_px", "camera distortion": "camera_distortion",
+            "camera-to-screen rotation": "screen_rotation_mrad", "camera-to-screen translation": "screen_translation_mm",
+            "screen pitch": "screen_pitch_relative", "display response": "response_phase_rad",
+            "corner location": "corner_px"}.get(inp.group)
+
+
 #: Phase-error amplitude (rad) at which the frame-brightness sensitivities are computed; each capture
 #: scales them by its own amplitude.
 FRAME_PHASE_REF_RAD = 0.005
@@ -447,6 +458,10 @@ def sensitivities(reduction, *, fringes, geometry, design, measured_distance_m: 
     t0 = time.perf_counter()
     screen = screen if screen is not None else default_screen(geometry)
     reduction, settings = robust_inliers(reduction, settings)
+    # The reruns move the station's inputs, not the capture: the checks that judge a capture (the corner
+    # pose against the outline, the measured distance against the corner pose's range) do not apply to
+    # them (a 300 mm distance uncertainty would otherwise ask to re-measure a distance that is fine).
+    settings = dataclasses.replace(settings, max_range_shift_m=float("inf"), max_corner_rms_px=float("inf"))
     red = decimated(reduction, max_points)
     ctx = {"geometry": geometry, "distance_m": measured_distance_m, "settings": settings, "fringes": fringes,
            "design": design, "screen": screen, "screen_size_m": (screen.width_m, screen.height_m)}
@@ -463,8 +478,16 @@ def sensitivities(reduction, *, fringes, geometry, design, measured_distance_m: 
     lin = np.zeros((len(rows), len(SCALAR_PATHS)))
     cur = np.zeros_like(lin)
     for i, inp in enumerate(rows):
-        fig_plus = _perturbed_run(base, inp, +1.0, ctx).figures
-        fig_minus = _perturbed_run(base, inp, -1.0, ctx).figures
+        try:
+            fig_plus = _perturbed_run(base, inp, +1.0, ctx).figures
+            fig_minus = _perturbed_run(base, inp, -1.0, ctx).figures
+        except StationError as exc:
+            key = input_key(inp)
+            raise AnalysisError(
+                f"the uncertainty cannot be computed: with the {inp.name} moved by its standard uncertainty "
+                f"({inp.u:g} {inp.unit}{f', [uncertainty] {key}' if key else ''}) the reduction fails ({exc}); "
+                f"that uncertainty is not plausible for this station: check {f'[uncertainty] {key}' if key else 'it'}"
+            ) from exc
         plus = np.array([_value(fig_plus, p) for p in SCALAR_PATHS])
         minus = np.array([_value(fig_minus, p) for p in SCALAR_PATHS])
         lin[i] = 0.5 * (plus - minus)
@@ -519,18 +542,10 @@ class NoisePropagation:
 
 def pixel_noise_dn(reduction, take: np.ndarray) -> np.ndarray | float:
     """The frame noise (DN, rounding included) of the region's pixels *take* (indices into the phases'
-    arrays), each at its own brightness (white - dark) by the capture's noise-against-brightness line
-    (:func:`~.phase.noise_by_level`, fitted here on its cleaned four-step residuals: only the uncertainty
-    needs it); the capture's one noise figure where there is no such line."""
-    from .phase import noise_at_level, noise_by_level
+    arrays), each at its own brightness: :func:`~.slope_noise.pixel_noise_dn` of *reduction*."""
+    from .slope_noise import pixel_noise_dn as of_stages
 
-    phases = reduction.phases
-    stack = getattr(reduction.region, "stack", None)
-    if phases.noise is None or not phases.noise.residuals or stack is None or len(stack) < 2:
-        return phases.noise_dn
-    level = np.subtract(stack[1], stack[0], dtype=np.float32)
-    model = noise_by_level(phases.noise.residuals, level, phases.noise_dn)
-    return noise_at_level(model, level[take])
+    return of_stages(reduction.phases, getattr(reduction.region, "stack", None), take)
 
 
 def noise_propagation(reduction, *, fringes, geometry, design, settings, screen=None,
@@ -554,23 +569,14 @@ def noise_propagation(reduction, *, fringes, geometry, design, settings, screen=
     step = max(1, n_all // max_points)
     sel = slice(None, None, step)
     take = np.flatnonzero(ok)[sel]          # the pixels of [ok][sel], without gathering every valid pixel first
-    ux = red.phases.positions_m["x"][take]
-    uy = red.phases.positions_m["y"][take]
-    noise_dn = pixel_noise_dn(red, take)
-    sig_u = {a: position_sigma_m(red.phases.finest_modulation_dn[a][take], noise_dn,
-                                 getattr(fringes, f"periods_{a}")[-1], length)
-             for a, length in zip("xy", (screen.width_m, screen.height_m))}
-    # Slopes' derivative with respect to the screen position, surface point held, in the boresight frame.
-    cam_to_b = red.shape.boresighted_to_camera.inverse()
-    camera_b = cam_to_b.translation
-    points = red.shape.points_m[:, sel]
-    delta = 1e-4
-    from .kernels import normal_slopes as slopes_of      # surface.normal_slopes in one compiled pass
+    from .slope_noise import position_sigmas_m, slope_jacobian
 
-    s0 = slopes_of(points, camera_b, to_frame(cam_to_b, screen.points_camera(ux, uy)))
-    sx_dx = slopes_of(points, camera_b, to_frame(cam_to_b, screen.points_camera(ux + delta, uy)))
-    sy_dy = slopes_of(points, camera_b, to_frame(cam_to_b, screen.points_camera(ux, uy + delta)))
-    gx, gy = (sx_dx - s0) / delta, (sy_dy - s0) / delta          # (2, n): d(s_x, s_y)/du_x, /du_y
+    sig_u = position_sigmas_m(red.phases, getattr(red.region, "stack", None), take, fringes,
+                              (screen.width_m, screen.height_m))
+    # Slopes' derivative with respect to the screen position, surface point held, in the boresight frame.
+    points = red.shape.points_m[:, sel]
+    s0, gx, gy = slope_jacobian(points, red.shape.boresighted_to_camera.inverse(), screen,
+                                red.phases.positions_m["x"][take], red.phases.positions_m["y"][take])
     var = (gx * sig_u["x"]) ** 2 + (gy * sig_u["y"]) ** 2        # (2, n) slope variance
     sig_s = np.sqrt(var)
     angle_sig = 1000.0 * sig_s / (1.0 + s0 ** 2)                 # mrad

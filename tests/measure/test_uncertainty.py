@@ -567,3 +567,23 @@ def test_each_pixels_noise_follows_its_brightness_as_the_twins_camera_makes_it(r
     for sel in (dim, ~dim):
         assert np.sqrt(np.mean(got[sel] ** 2)) == pytest.approx(np.sqrt(np.mean(seen[sel])), rel=0.06)
     assert red.phases.noise_dn > 1.2 * np.sqrt(np.mean(seen[dim]))
+
+
+@pytest.mark.parametrize("inputs", [{"distance_mm": 300.0}, {"camera_focal_px": 500.0}],
+                         ids=["distance_300_mm", "camera_focal_500_px"])
+def test_sensitivity_reruns_never_trip_the_captures_checks(rig, inputs):
+    """Issue 26: the uncertainty's reruns move the station's inputs, not the capture. A sensitivity study
+    with [uncertainty] distance_mm = 300 moved the rerun's distance 0.3 m from the corner pose's range,
+    beyond the 0.25 m a capture may differ, and the facet was refused with "re-measure the distance"
+    (the distance was fine); camera_focal_px = 500 (15 % of the 3409 px lens) put the rerun's corners
+    off the outline and refused it as "partly lit or obstructed". Both analyse, with a U that grows
+    with the input's."""
+    cfg = rig.config
+    twin = rig.twin((0.3, -0.2, 0.1), (0.2, -0.3, 0.4))
+    frames = rig.capture(twin, np.random.default_rng(3))
+    base = analyse(frames, cfg.fringes, cfg.geometry, cfg.design, twin.measured_distance_m(), cfg.analysis,
+                   uncertainty=cfg.uncertainty)
+    a = analyse(frames, cfg.fringes, cfg.geometry, cfg.design, twin.measured_distance_m(), cfg.analysis,
+                uncertainty=dataclasses.replace(cfg.uncertainty, **inputs))
+    assert a.figures["focal_length_x_m"] == base.figures["focal_length_x_m"]
+    assert a.figures["focal_length_x_m_U"] > 3 * base.figures["focal_length_x_m_U"]
