@@ -18,7 +18,6 @@ import datetime as _dt
 import logging
 import threading
 import time
-import uuid
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -33,9 +32,10 @@ from ..errors import (CameraError, CaptureError, DisplayError, GeometryError, St
                       TriggerError)
 from . import console as _console
 from .commands import take_commands, take_dump_next
+from .clock import StationClock
 from .drift import DriftMonitor
 from .frames import capture_sequence, crop, crop_box, restore
-from .inspect import FIGURE_KEYS, Station, calibration_entry, now_iso
+from .inspect import FIGURE_KEYS, Station, calibration_entry
 from .recipes import Recipe, choose_recipe
 from .status import StatusFile
 from .verdict import judge
@@ -107,8 +107,24 @@ class CycleOutcome:
 
 
 def new_cycle_id() -> str:
-    """Sortable and unique: UTC time to the millisecond plus 8 random hex digits."""
-    return _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%S%fZ")[:-4] + "-" + uuid.uuid4().hex[:8]
+    """Sortable and unique: UTC time to the millisecond plus 8 random hex digits (a cycle's id comes from
+    the runner's :class:`~.clock.StationClock`, which also keeps ids increasing when the clock steps back)."""
+    return StationClock().next_cycle()[0]
+
+
+def _journal_newest(journal) -> tuple[str | None, _dt.datetime | None]:
+    """The journal's newest cycle id and row time (None, None when it has none or cannot say)."""
+    try:
+        rows = journal.recent(1)
+    except Exception:           # a journal that cannot be read here says so when the row is written
+        return None, None
+    if not rows:
+        return None, None
+    try:
+        when = _dt.datetime.fromisoformat(rows[-1].time)
+    except (TypeError, ValueError):
+        when = None
+    return rows[-1].cycle_id, when
 
 
 #: The fault kind of an exception that ended a cycle: the first class it is an instance of.
@@ -168,6 +184,10 @@ class StationRunner:
         self.station = station
         self.trigger = LockedTrigger(trigger)
         self.journal = journal
+        #: The wall clock, watched for steps; cycle ids go on from the journal's newest (station/clock.py).
+        last_id, last_time = _journal_newest(journal)
+        self.clock = StationClock(last_cycle_id=last_id, last_time=last_time)
+        self._clock_warning: str | None = None
         self.archiver = archiver
         self.recipes = recipes
         self.settings = settings
@@ -364,7 +384,7 @@ class StationRunner:
     # ------------------------------------------------------------------ one cycle
     def cycle(self, request: FacetRequest) -> CycleOutcome:
         t0 = time.perf_counter()
-        cycle_id = new_cycle_id()
+        cycle_id, self._clock_warning = self.clock.next_cycle()
         self.cycles += 1
         serial, note = clean_serial(request.serial)
         if note:                             # one safe serial for the journal, workbook, dump and page
@@ -600,7 +620,9 @@ class StationRunner:
     # ------------------------------------------------------------------ records
     def _base(self, cycle_id: str, request: FacetRequest, recipe_name: str, cal_warnings=()) -> dict:
         cfg = self.station.config
-        return {"cycle_id": cycle_id, "serial": request.serial, "time": now_iso(), "recipe": recipe_name,
+        clock = {"clock_warning": self._clock_warning} if self._clock_warning else {}
+        return {"cycle_id": cycle_id, "serial": request.serial, "time": self.clock.now_iso(), **clock,
+                "recipe": recipe_name,
                 "station": cfg.name, "software_version": __version__, "config_hash": cfg.config_hash,
                 "calibration": calibration_entry(self.station, list(cal_warnings)),
                 "camera": {"exposure_s": self.station.radiometric.exposure_s, "gain": self.station.radiometric.gain},
