@@ -41,7 +41,7 @@ def scaled(kind: str, scale: int):
 def measure(kind: str, scale: int, blur_px: float = 0.0, edge_sampling: str = "area", rz_mrad: float = 0.0):
     cfg, facet = scaled(kind, scale)
     twin = TwinStation(cfg.geometry, cfg.design, TrueFacet.from_dict({**facet, "placement_mrad": [0.0, 0.0, rz_mrad]}),
-                       TwinOptics(blur_px=blur_px).noise_free(), edge_sampling=edge_sampling)
+                       TwinOptics(blur_px=blur_px, edge_sampling=edge_sampling).noise_free())
     record = load_radiometric(ROOT / "calibration/simulated_radiometric.json")
     scr = cfg.geometry.screen
     with FringeRenderer(scr.width_px, scr.height_px, lut=record.lut, floor_level=record.floor_level,
