@@ -190,6 +190,7 @@ SECTIONS: dict[str, dict[str, Key]] = {
         "slope_curl_sigmas": _pos("standard deviations of the turning part's noise"),
         "slope_curl_noise_tolerance": _nonneg("relative, of the predicted noise's mean square"),
         "max_placement_mm": _pos("mm, beyond the placement's U"), "max_placement_mrad": _pos("mrad, beyond its U"),
+        "max_design_slope_factor": _pos("times the layout's largest slope error (design RMS)"),
     },
     "calibration": {
         "radiometric": Key("str"), "stale": Key("str", choices=("warn", "refuse")),

@@ -118,7 +118,7 @@ def _edge_points(contrast: np.ndarray, p0: np.ndarray, p1: np.ndarray, inside_si
     inside = np.median(sample(inside_sign * far), axis=1)
     outside = np.median(sample(-inside_sign * far), axis=1)
     scale = inside - outside
-    good = scale > 0.25 * np.median(scale)
+    good = (scale > 0.25 * np.median(scale)) & (scale > 0)      # (a median at or below 0: an obstructed edge)
     coverage = (window - outside[:, None]) / np.where(good, scale, 1.0)[:, None]
     total = coverage.sum(axis=1)
     if inside_sign > 0:   # facet on the high side: edge = last window pixel's upper boundary - covered
@@ -396,6 +396,11 @@ def match_corners(found_px: np.ndarray, expected_px: np.ndarray, tolerance_px: f
     dist = np.linalg.norm(found_px[None, :, :] - expected_px[:, None, :], axis=2)
     order = np.argmin(dist, axis=1)
     worst = float(dist[np.arange(len(expected_px)), order].max())
+    if len(set(order.tolist())) != len(expected_px) and worst <= tolerance_px:
+        raise FacetNotFoundError(
+            f"the outline found in the mask is not the facet's: two of its corners are nearest the same design "
+            f"corner (all within {worst:.0f} px of where the fixture puts them): the facet is partly hidden or "
+            "obstructed, or it is not the recipe's facet type")
     if len(set(order.tolist())) != len(expected_px) or worst > tolerance_px:
         raise FacetNotFoundError(
             f"the facet's corners are up to {worst:.0f} px from where the fixture puts them (tolerance "

@@ -153,3 +153,26 @@ def test_a_facet_far_from_its_place_in_the_fixture_is_invalid_as_misplaced():
     assert v["verdict"] == "invalid" and len(v["reasons"]) == 1
     assert "misplaced in the fixture" in v["reasons"][0] and "x +152.0" in v["reasons"][0]
     assert "about z +44.0" in v["reasons"][0] and "reseat" in v["reasons"][0]
+    # the corner pose's tilt is poorly resolved (a 400 x 300 dish seen on a coarsely supersampled edge came
+    # out 46 mrad about x, 3.7 of its U): the tilt judged is the optical tilt, which the slopes fix
+    tilted_corners = changed(placement={"mm": [3.1, 0.0, 0.0], "mrad": [46.5, -30.6, -2.3]},
+                             placement_U={"mm": [6.3, 6.0, 2.9], "mrad": [12.6, 27.8, 1.1]},
+                             optical_tilt_mrad={"x": 0.4, "y": -0.2}, optical_tilt_mrad_U={"x": 2.6, "y": 2.4})
+    assert judge(tilted_corners, DISH, Limits(), Quality())["verdict"] == "pass"
+    tilted = changed(optical_tilt_mrad={"x": 45.0, "y": -0.2}, optical_tilt_mrad_U={"x": 2.6, "y": 2.4})
+    assert "tilt about x +45.0" in judge(tilted, DISH, Limits(), Quality())["reasons"][0]
+
+
+def test_slopes_far_beyond_what_the_layout_allows_are_no_facet_of_the_recipes_type():
+    """Issue 26: the x and y sets swapped on a nearly flat facet seen by a small camera turn too little to
+    show above the slope noise, but read as a facet of f = 2 m, 160 mrad RMS from a design the station is
+    laid out for within 2 mrad: invalid, naming the sets. A facet merely out of tolerance fails."""
+    heliostat = FacetDesign("h", "heliostat", 100.0, [[0.6, -0.6], [0.6, 0.6], [-0.6, 0.6], [-0.6, -0.6]], [0, 0],
+                            [0, 0], layout={"distance_m": 4.0, "max_slope_error_mrad": 2.0})
+    base = {**GOOD, "curvature_x_per_m": 0.0101, "curvature_y_per_m": 0.0099}
+    swapped = {**base, "curvature_x_per_m": 0.4878, "curvature_y_per_m": 0.5055,
+               "slope_rms_mrad": {"design": {"magnitude": 163.5}, "parabola": {"magnitude": 1.97}}}
+    v = judge(swapped, heliostat, Limits(), Quality())
+    assert v["verdict"] == "invalid" and "fringe sets swapped" in v["reasons"][0] and "82 times" in v["reasons"][0]
+    bad = {**base, "slope_rms_mrad": {"design": {"magnitude": 4.0}, "parabola": {"magnitude": 1.5}}}
+    assert judge(bad, heliostat, Limits(), Quality())["verdict"] == "fail"
