@@ -41,12 +41,13 @@ reference of 5.9 / 5.8 m); the record says how finely, and when that is too coar
 The record also states what the check determines, with standard uncertainties (``determined``): the
 fixture's pose (the reference's measured placement minus its certified one; the inspection's U of the
 placement and the certificate's) and how well the measured distance is confirmed (the focal lengths'
-agreement through their sensitivity to the distance). The budget uses them (:func:`budget_std`).
+agreement through their sensitivity to the distance). The budget uses them
+(:func:`~sofast_station.calibrate.geometry_record.budget_std`); the record itself is written and read by
+:mod:`sofast_station.calibrate.geometry_record`.
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 from dataclasses import dataclass
@@ -56,11 +57,8 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..files import read_toml
-from .store import write_record
 
 log = logging.getLogger(__name__)
-
-SCHEMA = 1
 
 
 @dataclass(frozen=True)
@@ -244,8 +242,12 @@ def compare_to_reference(figures: dict, reference: GeometryReference) -> dict:
     return out
 
 
-def check_geometry(station, reference: GeometryReference, serial: str = "GEOMETRY-REFERENCE") -> dict:
-    """Measure the reference facet in the fixture and compare (:func:`compare_to_reference`).
+def check_geometry(rec: dict, reference: GeometryReference, inputs=None, pitch_sensitivity: dict | None = None) -> dict:
+    """Compare the inspection *rec* of the reference facet in the fixture with its certificate
+    (:func:`compare_to_reference`), say what that determines (:func:`determined`; *inputs*: the station's
+    InputUncertainties) and estimate the screen's scale (:func:`screen_scale`; *pitch_sensitivity*: the
+    inspection's, :func:`pitch_sensitivities`). ``sofast-station calibrate geometry`` inspects the
+    reference and calls this.
 
     Returns
     -------
@@ -253,14 +255,11 @@ def check_geometry(station, reference: GeometryReference, serial: str = "GEOMETR
         The comparison, plus the inspection's serial, time, record id of the radiometric calibration
         and verdict.
     """
-    from ..station.inspect import inspect
-
-    rec = inspect(station, serial)
     check = compare_to_reference(rec, reference)
-    check.update({"serial": serial, "time": rec["time"], "radiometric": rec["calibration"]["radiometric"],
+    check.update({"serial": rec["serial"], "time": rec["time"], "radiometric": rec["calibration"]["radiometric"],
                   "verdict": rec.get("verdict"), "n_points": rec.get("n_points")})
-    check["determined"] = determined(rec, reference, getattr(station.config, "uncertainty", None))
-    scale = screen_scale(rec, reference, pitch_sensitivities(station))
+    check["determined"] = determined(rec, reference, inputs)
+    scale = screen_scale(rec, reference, pitch_sensitivity)
     check["screen_scale"] = scale
     if scale.get("flagged"):
         check["reasons"].append(
@@ -272,25 +271,18 @@ def check_geometry(station, reference: GeometryReference, serial: str = "GEOMETR
     return check
 
 
-def pitch_sensitivities(station) -> dict | None:
-    """``{figure name: d figure / d (relative pitch)}``, signed, of the station's last analysis: the
-    uncertainty's finite differences at +-1 standard uncertainty of the screen pitch (both axes together:
-    a scale of the whole screen), from the station's sensitivity cache; None without them."""
-    from ..measure.uncertainty import path_name, sensitivity_key
-
-    config = station.config
-    inputs = getattr(config, "uncertainty", None)
-    cache = getattr(station, "sensitivity_cache", None) or {}
-    if inputs is None:
+def pitch_sensitivities(sensitivities) -> dict | None:
+    """``{figure name: d figure / d (relative pitch)}``, signed, from the uncertainty's sensitivities of the
+    inspection (:class:`~sofast_station.measure.uncertainty.Sensitivities`: finite differences at +-1
+    standard uncertainty of each axis's pitch, summed: a scale of the whole screen); None without them."""
+    if sensitivities is None:
         return None
-    sens = cache.get(sensitivity_key(config.geometry, config.design, config.fringes, config.analysis, inputs))
-    if sens is None:
-        return None
-    rows = [i for i, inp in enumerate(sens.inputs) if inp.name in ("screen pitch x", "screen pitch y")]
+    rows = [i for i, inp in enumerate(sensitivities.inputs) if inp.name in ("screen pitch x", "screen pitch y")]
     if len(rows) != 2:
         return None
-    return {path_name(p): float(sum(sens.linear[i, j] / sens.inputs[i].u for i in rows))
-            for j, p in enumerate(sens.paths)}
+    names = [".".join(str(q) for q in p) for p in sensitivities.paths]
+    return {name: float(sum(sensitivities.linear[i, j] / sensitivities.inputs[i].u for i in rows))
+            for j, name in enumerate(names)}
 
 
 def screen_scale(figures: dict, reference: GeometryReference, sensitivity: dict | None) -> dict:
@@ -396,65 +388,6 @@ def determined(figures: dict, reference: GeometryReference, inputs=None) -> dict
         if best is not None:
             out["distance_mm"] = {"std": float(best)}
     return out
-
-
-def budget_std(record: dict | None, geometry=None) -> dict:
-    """The standard uncertainties a geometry record lends the budget (``[uncertainty]`` keys): the
-    fixture pose's, and the distance's, from a check that was within tolerance and made with the station's
-    present geometry (*geometry*, a StationGeometry, compared with the record's); else {}."""
-    if not isinstance(record, dict):
-        return {}
-    check = record.get("reference_check") or {}
-    if not check.get("within_tolerance"):
-        return {}
-    if geometry is not None and (record.get("screen_to_camera") != geometry.screen_to_camera.to_dict()
-                                 or record.get("screen") != geometry.screen.to_dict()):
-        return {}
-    det = check.get("determined") or {}
-    out = {}
-    for key in ("fixture_translation_mm", "fixture_rotation_mrad"):
-        std = (det.get(key) or {}).get("std")
-        if isinstance(std, list) and len(std) == 3 and all(isinstance(v, (int, float)) for v in std):
-            out[key] = tuple(float(v) for v in std)
-    std = (det.get("distance_mm") or {}).get("std")
-    if isinstance(std, (int, float)) and math.isfinite(std):
-        out["distance_mm"] = float(std)
-    return out
-
-
-def geometry_provenance(config) -> dict:
-    """The station's geometry as the analysis uses it, with where each part comes from."""
-    geometry = config.geometry
-    return {"screen": geometry.screen.to_dict(), "screen_to_camera": geometry.screen_to_camera.to_dict(),
-            "camera": geometry.camera.to_dict(),
-            "provenance": {"screen": f"{config.path} [screen] (width_px, height_px, pitch_m as entered)",
-                           "screen_to_camera": f"{config.path} [layout] (the designed assembly: separation "
-                                               f"{config.raw.get('layout', {}).get('separation_m')} m along "
-                                               f"{config.raw.get('layout', {}).get('separation_axis', 'x')})",
-                           "camera": f"{config.path} [camera]"}}
-
-
-def save_geometry(data_dir: str | Path, config, check: dict | None, source: str) -> Path:
-    """Write a geometry record (the station's geometry, its provenance and the reference check)."""
-    def build(record_id: str, created: str) -> dict:
-        return {"schema": SCHEMA, "kind": "geometry", "record_id": record_id, "created": created, "source": source,
-                **geometry_provenance(config), "reference_check": check}
-    path, _ = write_record(data_dir, "geometry", build)
-    return path
-
-
-def load_geometry_record(path: str | Path) -> dict:
-    """Read a geometry record; ConfigError naming the file when it is unusable."""
-    path = Path(path)
-    try:
-        d = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise ConfigError(f"geometry record {path} does not exist") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"geometry record {path} is corrupt ({exc})") from None
-    if not isinstance(d, dict) or d.get("kind") != "geometry" or d.get("schema") != SCHEMA:
-        raise ConfigError(f"{path} is not a geometry record of schema {SCHEMA}")
-    return d
 
 
 def summary_text(check: dict, path: Path | None = None) -> str:

@@ -44,7 +44,7 @@ from ..errors import StationError
 from ..measure.pipeline import analyse
 from ..measure.uncertainty import SCALAR_PATHS
 from .study import Placement, capture_record, perturbed_geometry
-from .verdict import judge
+from ..result.verdict import judge
 
 log = logging.getLogger(__name__)
 
@@ -444,7 +444,7 @@ def summarise(cases: list[dict], quality=None) -> dict:
     """The population's tallies: false alarms on good captures (by check, by kind), detection of each
     planted fault (and by what), the checks' statistics against their thresholds on good captures, and
     per figure the coverage of |error against truth| <= U over the good captures that were judged."""
-    from .verdict import Quality
+    from ..result.verdict import Quality
 
     q = quality or Quality()
     good = [c for c in cases if c["case"] == "good"]
@@ -607,7 +607,7 @@ def population_png(cases: list[dict], summary: dict, path) -> None:
         if v:
             v = np.clip(np.asarray(v, float), -20, 1e4)
             ax.hist(np.sign(v) * np.log10(1 + np.abs(v)), bins=40, alpha=0.6, color=color, label=f"{label} ({len(v)})")
-    from .verdict import Quality
+    from ..result.verdict import Quality
     q = Quality()
     ax.axvline(np.log10(1 + q.slope_curl_sigmas), color="k", linestyle="--", label=f"threshold {q.slope_curl_sigmas:g}")
     ax.set_xlabel("slope curl beyond its noise, sign x log10(1 + |sigmas|)")
@@ -679,7 +679,7 @@ def study(captures: int, seed: int = 0, per_station: int = 10, kinds=tuple(KINDS
     import datetime as _dt
 
     from ..commands import json_safe, write_json_atomic
-    from .verdict import Quality
+    from ..result.verdict import Quality
 
     t0 = time.perf_counter()
     cases = run_population(captures, seed=seed, per_station=per_station, kinds=kinds, edges=edges, faults=faults,

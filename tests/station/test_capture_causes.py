@@ -16,8 +16,8 @@ from sofast_station.calibrate.records import load_radiometric
 from sofast_station.config import load_config
 from sofast_station.devices.renderer import FringeRenderer
 from sofast_station.errors import CaptureError, FacetNotFoundError
-from sofast_station.measure.pipeline import analyse
-from sofast_station.station.verdict import judge
+from sofast_station.measure.analysis import analyse
+from sofast_station.result.verdict import judge
 from sofast_station.twin.config import TrueFacet, TwinOptics
 from sofast_station.twin.station import TwinStation
 from tests.conftest import ROOT, SMALL_STATION
@@ -138,8 +138,8 @@ def test_shipped_heliostat_station_fails_on_focal_power_not_invalid_for_seeds_1_
     FAIL, with the two focal-power reasons. The capture is the one `inspect --seed S` takes (the simulated
     camera's noise and refresh-phase streams of seed S); full resolution, as shipped."""
     from sofast_station.measure.pipeline import analyse as analyse_capture
-    from sofast_station.station.inspect import capture as capture_sequence
-    from sofast_station.station.inspect import open_station
+    from sofast_station.station.inspection import capture as capture_sequence
+    from sofast_station.station.factory import open_station
 
     cfg = load_config(ROOT / "fixtures/stations/heliostat.toml")
     station = open_station(cfg, seed=1)
