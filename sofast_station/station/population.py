@@ -41,7 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import StationError
-from ..measure.pipeline import analyse
+from ..measure.analysis import analyse
 from ..measure.uncertainty import SCALAR_PATHS
 from .study import Placement, capture_record, perturbed_geometry
 from ..result.verdict import judge

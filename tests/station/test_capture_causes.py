@@ -137,7 +137,7 @@ def test_shipped_heliostat_station_fails_on_focal_power_not_invalid_for_seeds_1_
     their ratio judged the noise. Judged against its noise, the station answers what its README promises:
     FAIL, with the two focal-power reasons. The capture is the one `inspect --seed S` takes (the simulated
     camera's noise and refresh-phase streams of seed S); full resolution, as shipped."""
-    from sofast_station.measure.pipeline import analyse as analyse_capture
+    from sofast_station.measure.analysis import analyse as analyse_capture
     from sofast_station.station.inspection import capture as capture_sequence
     from sofast_station.station.factory import open_station
 
