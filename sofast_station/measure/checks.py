@@ -453,7 +453,14 @@ def _curl_noise(slope_cov, right, left, down, up, i00, i01, i10, i11) -> tuple[n
     part is a weighted sum of the four pixels' slopes; pixels R and L (D and U) enter with opposite weights
     of one size, so each part's variance is the pair's summed covariances through those weights."""
     cells = np.concatenate([right, left, down, up])
-    unique, inverse = np.unique(cells, return_inverse=True)
+    # the points asked for once each, in index order, without sorting (a mark and a lookup over the points)
+    size = int(cells.max()) + 1 if cells.size else 0
+    mark = np.zeros(size, dtype=bool)
+    mark[cells] = True
+    unique = np.flatnonzero(mark)
+    where = np.empty(size, dtype=np.intp)
+    where[unique] = np.arange(unique.size)
+    inverse = where[cells]
     vx, vy, cxy = (np.asarray(v, dtype=np.float64)[inverse] for v in slope_cov(unique))
     n = right.size
     pair = {}
