@@ -245,7 +245,7 @@ _SPACING_STRIDE = 4
 
 
 def slope_curl(valid: np.ndarray, points_m: np.ndarray, slopes: np.ndarray, step_m: float = 0.01,
-               stride: int | None = None, slope_cov=None) -> dict:
+               stride: int | None = None, slope_cov=None, edge_px: int = 1) -> dict:
     """How far the measured slope field is from being a gradient: the local curl, against its noise.
 
     Slopes of a real surface are a gradient, s = grad z, so ds_x/dy = ds_y/dx everywhere. Fringe sets
@@ -263,6 +263,11 @@ def slope_curl(valid: np.ndarray, points_m: np.ndarray, slopes: np.ndarray, step
     their sampling scatter, for 1/stride^2 of the work. The slope noise enters each centre through its own
     four pixels, uncorrelated between centres, so its share of each mean square is unbiased either way.
     ``stride=1`` takes every pixel.
+
+    The valid pixels within *edge_px* of the valid region's border (its outline and any hole) are left
+    out: a facet's outermost pixels see part facet, part background, or a bevelled rim that reflects the
+    screen at another angle, and their few wild slopes would weigh in both parts alike (a 1.0 ratio on a
+    good capture of a nearly flat facet with a bevelled edge).
 
     With *slope_cov*, the mean squares the slope noise alone would give each part are computed too, from
     every centre's four pixels' noise through the same differences (each pixel's noise is its own, so the
@@ -286,6 +291,8 @@ def slope_curl(valid: np.ndarray, points_m: np.ndarray, slopes: np.ndarray, step
         Half the difference baseline on the facet, metres.
     stride : int, optional
         Spacing of the centre pixels' lattice, pixels.
+    edge_px : int
+        Valid pixels this close to the valid region's border (4-neighbourhood steps) are not used, pixels.
     slope_cov : callable, optional
         ``slope_cov(indices) -> (var_x, var_y, cov_xy)``: each point's slope noise (slope units squared)
         at the given point indices (into the columns of *points_m*).
@@ -307,6 +314,11 @@ def slope_curl(valid: np.ndarray, points_m: np.ndarray, slopes: np.ndarray, step
     kind = np.int32 if points_m.shape[1] < 2**31 else np.intp
     index = np.full(sub.shape, -1, dtype=kind)
     index[sub] = np.arange(points_m.shape[1], dtype=kind)
+    if edge_px > 0:
+        cross = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
+        inner = cv2.erode(np.ascontiguousarray(sub, dtype=np.uint8), cross, iterations=int(edge_px),
+                          borderType=cv2.BORDER_CONSTANT, borderValue=0)
+        index[inner == 0] = -1
 
     def pairs(first, second):
         """The point indices of the pixel pairs (first, second) that are both valid."""

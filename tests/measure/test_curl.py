@@ -7,10 +7,20 @@ from sofast_station.measure.checks import slope_curl
 
 
 def every_pixel_curl(valid, points_m, slopes, step_m=0.01):
-    """The check written out on NaN-filled images, at every pixel (what the lattice must reproduce)."""
+    """The check written out on NaN-filled images, at every pixel (what the lattice must reproduce), the
+    valid region's outermost pixels (a 4-neighbour short of valid all round) left out."""
+    inner = valid.copy()
+    inner[1:] &= valid[:-1]
+    inner[:-1] &= valid[1:]
+    inner[:, 1:] &= valid[:, :-1]
+    inner[:, :-1] &= valid[:, 1:]
+    inner[0] = inner[-1] = False
+    inner[:, 0] = inner[:, -1] = False
+
     def image(v):
         g = np.full(valid.shape, np.nan)
         g[valid] = v
+        g[~inner] = np.nan
         return g
 
     x, y, sx, sy = image(points_m[0]), image(points_m[1]), image(slopes[0]), image(slopes[1])
