@@ -184,12 +184,7 @@ def _phase_sets(stack: np.ndarray, sets: list[slice]):
 
 def outline_image_points(design: FacetDesign, camera, facet_to_camera: Pose, per_side: int = 64) -> np.ndarray:
     """Image points (column, row) along the design outline on the design surface, *per_side* per side."""
-    corners = design.outline_m
-    t = np.linspace(0.0, 1.0, per_side, endpoint=False)[:, None]
-    xy = np.concatenate([corners[i] + t * (corners[(i + 1) % len(corners)] - corners[i])
-                         for i in range(len(corners))])
-    pts = np.column_stack([xy, design.z(xy[:, 0], xy[:, 1])])
-    return project(camera, facet_to_camera, pts)
+    return corners_mod.outline_points_px(design, camera, facet_to_camera, per_side)
 
 
 @dataclass(frozen=True)
@@ -531,7 +526,8 @@ def corners_and_pose(region: Region, rays: Rays, geometry: StationGeometry, desi
     """Stage 4: the facet's corners in the image, its pose from them, and the pose's range fixed by the
     measured distance."""
     cam = geometry.camera
-    outline = corners_mod.fit_outline(region.contrast, region.region, len(design.outline_m), settings.edge_window_px)
+    outline = corners_mod.fit_outline(region.contrast, region.region, len(design.outline_m), settings.edge_window_px,
+                                      **corners_mod.outline_hints(design, cam, geometry.fixture_to_camera))
     corners_3d = design.corners_3d()
     expected = project(cam, geometry.fixture_to_camera, corners_3d)
     found = corners_mod.match_corners(outline.corners_px, expected, settings.corner_tolerance_px)
