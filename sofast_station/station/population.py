@@ -281,8 +281,14 @@ def _statistics(fig: dict, verdict_quality) -> dict:
     if curl:
         j = curl_judgement(curl, q.max_slope_curl_ratio, q.min_slope_curl_per_m, q.slope_curl_sigmas,
                            q.slope_curl_noise_tolerance)
-        out.update({"curl_sigmas": j["sigmas"], "curl_ratio": (j["antisymmetric_per_m"] / j["symmetric_per_m"]
-                                                                if j["symmetric_per_m"] > 0 else None),
+        ratio = (j["antisymmetric_per_m"] / j["symmetric_per_m"] if j["symmetric_per_m"] > 0
+                 else (float("inf") if j["antisymmetric_per_m"] > 0 else 0.0))
+        beyond = (j["sigmas"] is None or j["sigmas"] > q.slope_curl_sigmas) and \
+            j["antisymmetric_per_m"] > q.min_slope_curl_per_m
+        out.update({"curl_sigmas": j["sigmas"], "curl_ratio": ratio,
+                    # the turning part over the stretching part where it is beyond its noise and the floor
+                    # (0 elsewhere): what max_slope_curl_ratio judges
+                    "curl_turning_ratio": ratio if beyond else 0.0,
                     "curl_raw_ratio": curl["antisymmetric_rms_per_m"] / max(curl["symmetric_rms_per_m"], 1e-30),
                     "curl_noise_ratio": (curl["antisymmetric_rms_per_m"] / curl["antisymmetric_noise_per_m"]
                                          if curl.get("antisymmetric_noise_per_m") else None)})
@@ -482,7 +488,7 @@ def summarise(cases: list[dict], quality=None) -> dict:
               "outline_agreement": (">=", q.min_outline_agreement),
               "corner_reprojection_rms_px": ("<=", q.max_corner_reprojection_px),
               "display_harmonic_ratio": ("<=", q.max_display_harmonic_ratio),
-              "curl_sigmas": ("<=", q.slope_curl_sigmas)}
+              "curl_turning_ratio": ("<=", q.max_slope_curl_ratio)}
     margins = {}
     for name, (sense, limit) in limits.items():
         v = np.array([s[name] for s in stats if s.get(name) is not None], float)
@@ -505,7 +511,8 @@ def summarise(cases: list[dict], quality=None) -> dict:
 def coverage_rows(cases: list[dict], paths=SCALAR_PATHS) -> list[dict]:
     """Per figure over *cases* (with ``figures``, ``truth`` and ``U``): how many, the fraction with
     |error against truth| <= U, and the RMS of error / (U / 2) (1 for a right U whatever the figure's
-    scale, so it may be pooled over facet kinds where the errors' spread may not)."""
+    scale, so it may be pooled over facet kinds where the errors' spread may not). The axis angle is an
+    axis's: its error is taken modulo pi (into [-pi/2, pi/2))."""
     from ..measure.uncertainty import path_name
 
     rows = []
@@ -516,7 +523,10 @@ def coverage_rows(cases: list[dict], paths=SCALAR_PATHS) -> list[dict]:
             v, t, u = c["figures"].get(name), c["truth"].get(name), c["U"].get(name)
             if v is None or t is None or u is None or not u > 0:
                 continue
-            z.append((v - t) / (u / 2.0))
+            err = v - t
+            if name == "axis_angle_rad":
+                err = (err + 0.5 * math.pi) % math.pi - 0.5 * math.pi
+            z.append(err / (u / 2.0))
         if not z:
             continue
         z = np.asarray(z)
@@ -600,20 +610,25 @@ def population_png(cases: list[dict], summary: dict, path) -> None:
     ax.set_xlabel("|error against truth| <= U (k = 2), % of good captures")
     ax.set_title("coverage of the stated uncertainty")
     ax = axes[1]
-    q = None
-    for label, kind, color in (("good captures", "good", "tab:blue"), ("swapped sets", "swapped", "tab:red")):
-        v = [c["statistics"]["curl_sigmas"] for c in cases if c["case"] == kind and c.get("statistics")
-             and c["statistics"].get("curl_sigmas") is not None]
-        if v:
-            v = np.clip(np.asarray(v, float), -20, 1e4)
-            ax.hist(np.sign(v) * np.log10(1 + np.abs(v)), bins=40, alpha=0.6, color=color, label=f"{label} ({len(v)})")
     from ..result.verdict import Quality
     q = Quality()
-    ax.axvline(np.log10(1 + q.slope_curl_sigmas), color="k", linestyle="--", label=f"threshold {q.slope_curl_sigmas:g}")
-    ax.set_xlabel("slope curl beyond its noise, sign x log10(1 + |sigmas|)")
-    ax.set_ylabel("captures")
-    ax.legend()
-    ax.set_title("swapped x/y sets: the curl against its noise")
+    for label, kind, color in (("good captures", "good", "tab:blue"), ("swapped sets", "swapped", "tab:red")):
+        pts = [(c["statistics"]["curl_sigmas"], c["statistics"]["curl_ratio"]) for c in cases
+               if c["case"] == kind and c.get("statistics") and c["statistics"].get("curl_sigmas") is not None]
+        if pts:
+            x, y = np.asarray(pts, float).T
+            ax.scatter(np.sign(x) * np.log10(1 + np.abs(x)), np.clip(y, 0, 3), s=10, alpha=0.6, color=color,
+                       label=f"{label} ({len(pts)})")
+    x0 = np.log10(1 + q.slope_curl_sigmas)
+    ax.axvline(x0, color="k", linestyle="--", linewidth=1)
+    ax.axhline(q.max_slope_curl_ratio, color="k", linestyle="--", linewidth=1)
+    ax.fill_between([x0, 5.5], q.max_slope_curl_ratio, 3.0, color="tab:red", alpha=0.08, label="judged swapped")
+    ax.set_xlim(-1.5, 5.5)
+    ax.set_ylim(0, 3)
+    ax.set_xlabel("turning part beyond its noise: sign x log10(1 + |standard deviations|)")
+    ax.set_ylabel("turning / stretching part, each less its noise (clipped at 3)")
+    ax.legend(loc="upper left")
+    ax.set_title("swapped x/y sets: the slope curl against its noise")
     ax = axes[2]
     fr = summary["faults"]
     if fr:
