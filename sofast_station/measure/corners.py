@@ -234,7 +234,8 @@ def _edge_points(contrast: np.ndarray, p0: np.ndarray, p1: np.ndarray, inside_si
         inside = inside + both[:, :k.size] - np.median(both[:, k.size:], axis=1)[:, None]
     scale = inside - outside
     centre_scale = np.median(scale, axis=1)
-    good = centre_scale > 0.25 * np.median(centre_scale)
+    # (a median at or below 0 is an obstructed edge: no point of it is good)
+    good = (centre_scale > 0.25 * np.median(centre_scale)) & (centre_scale > 0)
     coverage = (window - outside) / np.where(good[:, None], scale, 1.0)
     total = coverage.sum(axis=1)
     if inside_sign > 0:   # facet on the high side: edge = last window pixel's upper boundary - covered
@@ -782,6 +783,11 @@ def match_corners(found_px: np.ndarray, expected_px: np.ndarray, tolerance_px: f
     dist = np.linalg.norm(found_px[None, :, :] - expected_px[:, None, :], axis=2)
     order = np.argmin(dist, axis=1)
     worst = float(dist[np.arange(len(expected_px)), order].max())
+    if len(set(order.tolist())) != len(expected_px) and worst <= tolerance_px:
+        raise FacetNotFoundError(
+            f"the outline found in the mask is not the facet's: two of its corners are nearest the same design "
+            f"corner (all within {worst:.0f} px of where the fixture puts them): the facet is partly hidden or "
+            "obstructed, or it is not the recipe's facet type")
     if len(set(order.tolist())) != len(expected_px) or worst > tolerance_px:
         raise FacetNotFoundError(
             f"the facet's corners are up to {worst:.0f} px from where the fixture puts them (tolerance "

@@ -630,13 +630,14 @@ def fit_models(shape: Shape, design: FacetDesign, settings: AnalysisSettings, po
 
 def report_figures(region: Region, phases: Phases, rays: Rays, pose: CornerPoseResult, shape: Shape, fits: Fits,
                    geometry: StationGeometry, design: FacetDesign, measured_distance_m: float,
-                   settings: AnalysisSettings, with_curl: bool = True, curl=None) -> dict:
+                   settings: AnalysisSettings, with_curl: bool = True, curl=None, fringes: FringeSet | None = None,
+                   screen: ScreenModel | None = None) -> dict:
     """Stage 6b: the reported figures (JSON-ready) from the stages' outputs.
 
     *with_curl* False leaves out the slope-curl check (``slope_curl`` None): it judges the capture, not the
     geometry, so the uncertainty's perturbed reruns, which only read the figures, need not pay for it.
     *curl*, a future of :func:`slope_curl_of` already started (on another thread), is used instead of
-    computing the check here.
+    computing the check here; *fringes* and *screen* let it judge the curl against each pixel's slope noise.
     """
     fit, coeffs, cubic, solution = fits.parabola, fits.coefficients, fits.cubic, shape.solution
     idx, vidx = region.idx, rays.vidx
@@ -649,7 +650,7 @@ def report_figures(region: Region, phases: Phases, rays: Rays, pose: CornerPoseR
     if not with_curl:
         curl = None
     elif curl is None:
-        curl = slope_curl_of(region, rays, shape)
+        curl = slope_curl_of(region, rays, shape, phases, fringes, screen)
     else:
         curl = curl.result()
     return {
@@ -702,11 +703,22 @@ def report_figures(region: Region, phases: Phases, rays: Rays, pose: CornerPoseR
     }
 
 
-def slope_curl_of(region: Region, rays: Rays, shape: Shape) -> dict:
-    """The slope-curl check (:func:`~sofast_station.measure.checks.slope_curl`) of a shape's valid pixels."""
+def slope_curl_of(region: Region, rays: Rays, shape: Shape, phases: Phases | None = None,
+                  fringes: FringeSet | None = None, screen: ScreenModel | None = None) -> dict:
+    """The slope-curl check (:func:`~sofast_station.measure.checks.slope_curl`) of a shape's valid pixels;
+    with *phases*, *fringes* and *screen*, against the slope noise of each pixel
+    (:func:`~sofast_station.measure.slope_noise.slope_covariance`)."""
     valid = np.zeros(region.region.shape, dtype=bool)
     valid.ravel()[rays.vidx] = True
-    return checks.slope_curl(valid, shape.points_m, shape.slopes)
+    cov = None
+    if phases is not None and fringes is not None and screen is not None:
+        from .slope_noise import slope_covariance
+
+        stages = Reduction(region, phases, rays, None, shape, None, {})
+
+        def cov(points):
+            return slope_covariance(stages, fringes, screen, points)
+    return checks.slope_curl(valid, shape.points_m, shape.slopes, slope_cov=cov)
 
 
 @dataclass
@@ -748,7 +760,7 @@ def reduce_stages(frames: np.ndarray, fringes: FringeSet, geometry: StationGeome
         timer.lap("pose")
         shape = shape_and_boresight(rays, pose, design, measured_distance_m, settings, pool, timer)
         # The slope-curl check needs only the shape: it runs on a pool thread beside the fits.
-        curl = pool.submit(slope_curl_of, region, rays, shape)
+        curl = pool.submit(slope_curl_of, region, rays, shape, phases, fringes, screen)
         fits = fit_models(shape, design, settings, pool)
         timer.lap("fit")
         figures = report_figures(region, phases, rays, pose, shape, fits, geometry, design, measured_distance_m,
@@ -811,5 +823,5 @@ def rerun(reduction: Reduction, start: str, *, fringes: FringeSet, geometry: Sta
         shape = reduction.shape
     fits = fit_models(shape, design, settings, pool) if order <= STAGES.index("fits") else reduction.fits
     figures = report_figures(region, phases, rays, pose, shape, fits, geometry, design, measured_distance_m,
-                             settings, with_curl=with_curl)
+                             settings, with_curl=with_curl, fringes=fringes, screen=screen)
     return Reduction(region, phases, rays, pose, shape, fits, figures)

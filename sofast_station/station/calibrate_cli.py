@@ -110,9 +110,21 @@ def cmd_camera(args) -> int:
     return 0
 
 
+def sensitivities_in_force(station):
+    """The uncertainty's sensitivities the station's analyses used (from its cache; None when it has none):
+    the geometry check reads the screen pitch's from them."""
+    from ..measure.uncertainty import sensitivity_key
+
+    config = station.config
+    if getattr(config, "uncertainty", None) is None:
+        return None
+    key = sensitivity_key(config.geometry, config.design, config.fringes, config.analysis, config.uncertainty)
+    return (getattr(station, "sensitivity_cache", None) or {}).get(key)
+
+
 def cmd_geometry(args) -> int:
     from ..config import load_config
-    from ..calibrate.geometry import check_geometry, station_reference, summary_text
+    from ..calibrate.geometry import check_geometry, pitch_sensitivities, station_reference, summary_text
     from .factory import open_station
     from .inspection import inspect
     from ..calibrate.geometry_record import save_geometry
@@ -122,7 +134,8 @@ def cmd_geometry(args) -> int:
     try:
         reference = station_reference(station, args.reference)
         log.info("measuring the reference facet %s on %s", reference.name, config.name)
-        check = check_geometry(inspect(station, "GEOMETRY-REFERENCE"), reference, config.uncertainty)
+        rec = inspect(station, "GEOMETRY-REFERENCE")
+        check = check_geometry(rec, reference, config.uncertainty, pitch_sensitivities(sensitivities_in_force(station)))
     finally:
         station.close()
     source = f"sofast-station {__version__} calibrate geometry with {reference.name}"

@@ -18,7 +18,6 @@ import datetime as _dt
 import logging
 import threading
 import time
-import uuid
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -33,6 +32,7 @@ from ..result.verdict import judge
 from ..serials import clean_serial
 from . import console as _console
 from .commands import take_commands, take_dump_next
+from .clock import StationClock
 from .drift import DriftMonitor
 from .frames import capture_sequence, crop, crop_box, restore
 from .opened import Station
@@ -105,8 +105,24 @@ class CycleOutcome:
 
 
 def new_cycle_id() -> str:
-    """Sortable and unique: UTC time to the millisecond plus 8 random hex digits."""
-    return _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%S%fZ")[:-4] + "-" + uuid.uuid4().hex[:8]
+    """Sortable and unique: UTC time to the millisecond plus 8 random hex digits (a cycle's id comes from
+    the runner's :class:`~.clock.StationClock`, which also keeps ids increasing when the clock steps back)."""
+    return StationClock().next_cycle()[0]
+
+
+def _journal_newest(journal) -> tuple[str | None, _dt.datetime | None]:
+    """The journal's newest cycle id and row time (None, None when it has none or cannot say)."""
+    try:
+        rows = journal.recent(1)
+    except Exception:           # a journal that cannot be read here says so when the row is written
+        return None, None
+    if not rows:
+        return None, None
+    try:
+        when = _dt.datetime.fromisoformat(rows[-1].time)
+    except (TypeError, ValueError):
+        when = None
+    return rows[-1].cycle_id, when
 
 
 class JournalFailed(StationError):
@@ -154,6 +170,10 @@ class StationRunner:
         self.station = station
         self.trigger = LockedTrigger(trigger)
         self.journal = journal
+        #: The wall clock, watched for steps; cycle ids go on from the journal's newest (station/clock.py).
+        last_id, last_time = _journal_newest(journal)
+        self.clock = StationClock(last_cycle_id=last_id, last_time=last_time)
+        self._clock_warning: str | None = None
         self.archiver = archiver
         self.recipes = recipes
         self.settings = settings
@@ -350,7 +370,7 @@ class StationRunner:
     # ------------------------------------------------------------------ one cycle
     def cycle(self, request: FacetRequest) -> CycleOutcome:
         t0 = time.perf_counter()
-        cycle_id = new_cycle_id()
+        cycle_id, self._clock_warning = self.clock.next_cycle()
         self.cycles += 1
         serial, note = clean_serial(request.serial)
         if note:                             # one safe serial for the journal, workbook, dump and page
@@ -412,7 +432,7 @@ class StationRunner:
             record = build_record(
                 self._head(cycle_id, request, recipe.name, cal_warnings, facet=recipe.design.name),
                 figures=res.figures, verdict=judge(res.figures, recipe.design, recipe.limits, recipe.quality),
-                truth=truth, measured_distance_m=distance, capture_notes=notes,
+                truth=truth, measured_distance_m=distance, capture_notes=notes, **self._clock_note(),
                 timings={**timings, **{f"analysis_{k}": v for k, v in res.figures.get("timings_s", {}).items()}})
             self._check_drift(recipe.name, record)
             outcome = CycleOutcome(cycle_id, serial, record["verdict"], record, valid=res.valid,
@@ -586,14 +606,20 @@ class StationRunner:
     # ------------------------------------------------------------------ records
     def _head(self, cycle_id: str, request: FacetRequest, recipe_name: str, cal_warnings=(),
               facet: str | None = None) -> RecordHead:
-        """The head of this cycle's record (:class:`~sofast_station.result.record.RecordHead`)."""
-        return self.station.record_head(request.serial, list(cal_warnings), facet=facet, cycle_id=cycle_id,
+        """The head of this cycle's record (:class:`~sofast_station.result.record.RecordHead`), dated by the
+        runner's clock (station/clock.py)."""
+        head = self.station.record_head(request.serial, list(cal_warnings), facet=facet, cycle_id=cycle_id,
                                         recipe=recipe_name,
                                         request={"recipe": request.recipe, "dump": request.dump, **request.extra})
+        return dataclasses.replace(head, time=self.clock.now_iso())
+
+    def _clock_note(self) -> dict:
+        """``{"clock_warning": ...}`` when the wall clock stepped back before this cycle (else empty)."""
+        return {"clock_warning": self._clock_warning} if self._clock_warning else {}
 
     def _fault_record(self, cycle_id, request, code, reason, timings, cal_warnings=()) -> dict:
         return build_record(self._head(cycle_id, request, request.recipe or "", cal_warnings), fault=(code, reason),
-                            timings=timings)
+                            timings=timings, **self._clock_note())
 
     def _report(self, record: dict, answer: str, cycle_s: float) -> None:
         """The facet's console line, its line in logs/station.log and the live status."""

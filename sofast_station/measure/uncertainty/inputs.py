@@ -233,6 +233,19 @@ class Input:
     kind: str = "systematic"
 
 
+def input_key(inp: Input) -> str | None:
+    """The ``[uncertainty]`` key that states *inp*'s standard uncertainty (None: the capture's own)."""
+    if inp.name.startswith("fixture r"):
+        return "fixture_rotation_mrad"
+    if inp.name.startswith("fixture t"):
+        return "fixture_translation_mm"
+    return {"measured distance": "distance_mm", "camera focal length": "camera_focal_px",
+            "camera principal point": "camera_principal_px", "camera distortion": "camera_distortion",
+            "camera-to-screen rotation": "screen_rotation_mrad", "camera-to-screen translation": "screen_translation_mm",
+            "screen pitch": "screen_pitch_relative", "display response": "response_phase_rad",
+            "corner location": "corner_px"}.get(inp.group)
+
+
 def budget_inputs(inputs: InputUncertainties, n_corners: int) -> list[Input]:
     """The systematic and corner rows of the budget for *inputs* (zero-uncertainty inputs are left out)."""
     rows = [Input("distance", "measured distance", inputs.distance_mm, "mm"),
