@@ -181,6 +181,10 @@ class PopulationStation:
         dist[0] = spec["k1"]
         cfg = dataclasses.replace(cfg, geometry=dataclasses.replace(
             cfg.geometry, camera=dataclasses.replace(cam, distortion=dist)))
+        rim_mm = float(spec["optics"].get("bevel_width_mm", 0.0))
+        if rim_mm > 0:
+            # a glass edge's seamed or bevelled rim is part of the facet type's design (facet.edge_rim_m)
+            cfg = dataclasses.replace(cfg, design=dataclasses.replace(cfg.design, edge_rim_m=1e-3 * rim_mm))
         self.config = cfg
         design = cfg.design
         kind = KINDS[spec["kind"]]
@@ -319,6 +323,9 @@ def _analyse_case(st: PopulationStation, frames, distance: float, twin, place, w
         out["check"] = classify("invalid", verdict["reasons"], None)
     if with_uncertainty:
         out.update(capture_record(a.figures, ground_truth(twin, a.valid), place))
+        # the corners against the twin's true corner pixels (both in the design outline's order)
+        err = np.asarray(a.corners_px) - twin.corner_pixels()
+        out["corner_error_px"] = float(np.sqrt(np.mean(np.sum(err * err, axis=1))))
     return out
 
 
@@ -504,6 +511,16 @@ def summarise(cases: list[dict], quality=None) -> dict:
     out["coverage_by_kind"] = {k: {r["figure"]: {"coverage": r["coverage"], "n": r["n"]}
                                    for r in coverage_rows([c for c in judged if c["kind"] == k])}
                                for k in sorted({c["kind"] for c in judged})}
+    out["coverage_by_edge"] = {e: {r["figure"]: {"coverage": r["coverage"], "n": r["n"]}
+                                   for r in coverage_rows([c for c in judged if c["edge"] == e])}
+                               for e in sorted({c["edge"] for c in judged})}
+    corners = {}
+    for e in sorted({c["edge"] for c in judged}):
+        v = np.array([c["corner_error_px"] for c in judged if c["edge"] == e and c.get("corner_error_px") is not None])
+        if v.size:
+            corners[e] = {"n": int(v.size), "median": float(np.median(v)), "p90": float(np.quantile(v, 0.9)),
+                          "max": float(v.max()), "within_0.1": float(np.mean(v <= 0.1))}
+    out["corners_by_edge"] = corners
     out["n_stations"] = len({c["index"] for c in cases})
     return out
 
@@ -584,6 +601,22 @@ def summary_text(summary: dict) -> str:
             lines.append(f"  {r['figure']:<38}{100 * r['coverage']:8.1f}%{r['n']:6d}{r['z_rms']:9.2f}{r['z_max']:7.1f}"
                          + by_kind + flag)
         lines.append("  (rms e/u: RMS of error / (U / 2), 1 for a right U; max: the largest |error| / (U / 2))")
+    if summary.get("corners_by_edge"):
+        lines.append("corners against the twin's true corner pixels per edge model (RMS per capture, px):")
+        lines.append(f"  {'edge model':<14}{'n':>6}{'median':>9}{'90 %':>9}{'max':>9}{'<= 0.1 px':>11}")
+        for e, c in summary["corners_by_edge"].items():
+            lines.append(f"  {e:<14}{c['n']:6d}{c['median']:9.3f}{c['p90']:9.3f}{c['max']:9.3f}"
+                         f"{100 * c['within_0.1']:10.1f}%")
+        edges = list(summary.get("coverage_by_edge", {}))
+        corner_figures = [r["figure"] for r in rows if r["figure"].split(".")[0] in
+                          ("twist_mrad_per_m", "axis_angle_rad", "optical_tilt_mrad", "boresight_mrad", "placement")]
+        if edges and corner_figures:
+            lines.append("coverage per edge model of the figures the corners decide:")
+            lines.append(f"  {'figure':<26}" + "".join(f"{e:>11}" for e in edges))
+            for f in corner_figures:
+                cells = [summary["coverage_by_edge"][e].get(f) for e in edges]
+                lines.append(f"  {f:<26}" + "".join(f"{100 * c['coverage']:10.1f}%" if c else f"{'-':>11}"
+                                                    for c in cells))
     return "\n".join(lines)
 
 

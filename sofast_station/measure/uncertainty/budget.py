@@ -42,6 +42,76 @@ def _empty_like(template):
     return None
 
 
+def _projected_normal_quantile(d: float, level: float = 0.95) -> float:
+    """The *level* quantile of |theta| (rad) for theta = atan2(Y, d + X), X and Y independent standard
+    normal: the direction of a 2-D vector known to within a unit isotropic spread at distance d from the
+    origin. Its density is (1 / 2 pi) exp(-d^2 sin^2 theta / 2) (exp(-a^2 / 2) + a sqrt(2 pi) Phi(a)),
+    a = d cos theta, integrated on a fine grid."""
+    from scipy.special import ndtr
+
+    theta = np.linspace(0.0, np.pi, 4001)
+    a = d * np.cos(theta)
+    f = np.exp(-0.5 * (d * np.sin(theta)) ** 2) * (np.exp(-0.5 * a * a) + a * np.sqrt(2 * np.pi) * ndtr(a)) / np.pi
+    cdf = np.concatenate([[0.0], np.cumsum(0.5 * (f[1:] + f[:-1]) * np.diff(theta))])
+    return float(np.interp(level * cdf[-1], cdf, theta))
+
+
+_AXIS_U_LIN = np.geomspace(1e-3, 10.0, 121)
+_AXIS_U_95: np.ndarray | None = None
+
+
+def axis_angle_u(u_linear: float) -> float:
+    """The axis angle's expanded uncertainty (95 %, rad) from its linear standard uncertainty.
+
+    The axis angle is half the direction of the vector (A - B, E). Linearised, its standard uncertainty is
+    sigma / (2 rho) (rho the vector's length, sigma its spread across it); that holds while sigma is small
+    against rho. On a nearly round facet (f_x close to f_y, little twist: a heliostat's, a flat one's) it is
+    not: the direction is then anywhere, and k times the linear value, small against pi / 2, covered 69-79 %
+    of the twin's true angles. Here the 95 % quantile of the half-direction of a vector d = rho / sigma =
+    1 / (2 u) from the origin with a unit isotropic spread, the linear k u where that is larger: pi / 2 x 0.95
+    when the vector is lost in its spread.
+    """
+    global _AXIS_U_95
+    if _AXIS_U_95 is None:
+        _AXIS_U_95 = np.array([0.5 * _projected_normal_quantile(1.0 / (2.0 * u)) for u in _AXIS_U_LIN])
+    u = float(u_linear)
+    if not np.isfinite(u) or u <= 0:
+        return COVERAGE_FACTOR * u if np.isfinite(u) else u
+    return max(COVERAGE_FACTOR * u, float(np.interp(np.log(u), np.log(_AXIS_U_LIN), _AXIS_U_95)))
+
+
+def _axis_angle_linear_u(figures: dict, sens, linear: np.ndarray, kinds: np.ndarray, noise_col: np.ndarray,
+                         u: np.ndarray, u_rand: np.ndarray) -> None:
+    """The axis angle's linear standard uncertainty (total and random, in *u* and *u_rand*) from the rows of
+    the curvatures and the twist, not from its own finite differences.
+
+    A finite difference of the angle itself is wrong where an input's step moves the vector (A - B, E) by
+    as much as its length (a nearly round facet): the angle turns by at most pi / 2 whatever the step, and
+    the sensitivity comes out far too small. The curvatures and the twist are linear in every input: each
+    row's changes of A - B = (kappa_x - kappa_y) / 4 and E = twist / 1000 turn the angle by
+    ((A - B) dE - E d(A - B)) / (2 rho^2), rho = |(A - B, E)|, added over the (independent) rows; the
+    intensity noise's part stays the angle's own (its Jacobian is analytic)."""
+    paths = list(sens.paths)
+    need = [("curvature_x_per_m",), ("curvature_y_per_m",), ("twist_mrad_per_m",), ("axis_angle_rad",)]
+    if not all(q in paths for q in need):
+        return
+    jx, jy, jt, ja = (paths.index(q) for q in need)
+    kx, ky, tw = (get_path(figures, q) for q in need[:3])
+    if kx is None or ky is None or tw is None:
+        return
+    a_b, e = 0.25 * (kx - ky), 1e-3 * tw
+    rho2 = a_b * a_b + e * e
+    if not rho2 > 0:
+        return
+    d_ab = 0.25 * (linear[:, jx] - linear[:, jy])
+    d_e = 1e-3 * linear[:, jt]
+    d_angle = np.nan_to_num((a_b * d_e - e * d_ab) / (2.0 * rho2))
+    u_sys2 = float(np.sum(d_angle[kinds == "systematic"] ** 2))
+    u_r2 = float(np.sum(d_angle[kinds == "random"] ** 2)) + float(noise_col[ja]) ** 2
+    u_rand[ja] = np.sqrt(u_r2)
+    u[ja] = np.sqrt(u_sys2 + u_r2)
+
+
 def _clean(v: float):
     return None if v is None or not np.isfinite(v) else float(v)
 
@@ -129,12 +199,16 @@ def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs:
                 ms_all, ms_corners = pose_mc[p]
                 u_rand[j] = np.sqrt(ms_corners + u_rand_o2[j])
                 u[j] = max(np.sqrt(ms_all + u_sys_o2[j] + u_rand_o2[j] + rays.get(p, 0.0) ** 2), u_rand[j])
+    _axis_angle_linear_u(figures, sens, linear, kinds, noise_col, u, u_rand)
     k = COVERAGE_FACTOR
     values = {p: get_path(figures, p) for p in sens.paths}
     total, random = {}, {}
     for j, p in enumerate(sens.paths):
         if values[p] is None:
             total[p] = random[p] = None
+            continue
+        if p == ("axis_angle_rad",):
+            total[p], random[p] = _clean(axis_angle_u(u[j])), _clean(axis_angle_u(u_rand[j]))
             continue
         total[p] = _clean(k * u[j])
         random[p] = _clean(k * u_rand[j])
