@@ -117,6 +117,22 @@ def _segment_distance(points: np.ndarray, q0: np.ndarray, q1: np.ndarray) -> np.
     return np.linalg.norm(points - (q0 + t[..., None] * d), axis=-1)
 
 
+def _segments_distance(a0: np.ndarray, a1: np.ndarray, q0: np.ndarray, q1: np.ndarray) -> np.ndarray:
+    """Distance (pixels) between each segment a0[i] -> a1[i] ((M, 2) each) and the segment q0 -> q1: 0
+    where they cross, else the least of their ends' distances to the other segment."""
+    def side(p, r0, r1):
+        return (r1[..., 0] - r0[..., 0]) * (p[..., 1] - r0[..., 1]) - (r1[..., 1] - r0[..., 1]) * (p[..., 0] - r0[..., 0])
+
+    crossing = (np.sign(side(q0, a0, a1)) != np.sign(side(q1, a0, a1))) \
+        & (np.sign(side(a0, q0, q1)) != np.sign(side(a1, q0, q1)))
+    ends = np.minimum(_segment_distance(a0, q0, q1), _segment_distance(a1, q0, q1))
+    d = a1 - a0
+    for q in (q0, q1):
+        t = np.clip(np.sum((q - a0) * d, axis=1) / np.maximum(np.sum(d * d, axis=1), 1e-12), 0.0, 1.0)
+        ends = np.minimum(ends, np.linalg.norm(q - (a0 + t[:, None] * d), axis=1))
+    return np.where(crossing, 0.0, ends)
+
+
 def shading(contrast: np.ndarray, region: np.ndarray, degree: int = SHADING_DEGREE) -> np.ndarray | None:
     """The facet's smooth brightness in the contrast image: coefficients of a polynomial in the image
     coordinates fitted to the region's inside (away from its edge), or None for a small region.
@@ -133,8 +149,8 @@ def shading(contrast: np.ndarray, region: np.ndarray, degree: int = SHADING_DEGR
     if any_rows.size < 20 or any_cols.size < 20:
         return None
     r0, r1, c0, c1 = any_rows[0], any_rows[-1] + 1, any_cols[0], any_cols[-1] + 1
-    # every step-th pixel of the region's box (about 20,000), where the region holds 4 px on every side
-    step = max(1, int(np.sqrt((r1 - r0) * (c1 - c0) / 20_000)))
+    # every step-th pixel of the region's box (about 10,000), where the region holds 4 px on every side
+    step = max(1, int(np.sqrt((r1 - r0) * (c1 - c0) / 10_000)))
     inner = cv2.erode(region[r0:r1, c0:c1].astype(np.uint8), np.ones((9, 9), np.uint8),
                       borderType=cv2.BORDER_CONSTANT, borderValue=0)[::step, ::step] > 0
     rows, cols = np.nonzero(inner)
@@ -205,12 +221,11 @@ def _edge_points(contrast: np.ndarray, p0: np.ndarray, p1: np.ndarray, inside_si
     limit = (h if along_x else w) - 1
     ok = (centre - far[-1] >= 0) & (centre + far[-1] <= limit)
     if others:
-        reach = np.arange(-far[-1], far[-1] + 1)
-        across = centre[:, None] + reach[None, :]
-        samples = np.stack([np.broadcast_to(s[:, None], across.shape), across], axis=-1) if along_x \
-            else np.stack([across, np.broadcast_to(s[:, None], across.shape)], axis=-1)
-        clearance = np.min([_segment_distance(samples.astype(np.float64), q0, q1).min(axis=1)
-                            for q0, q1 in others], axis=0)
+        # each point's samples span a segment across the side, from -far[-1] to +far[-1]
+        ends = [np.column_stack([s, centre + o]) if along_x else np.column_stack([centre + o, s])
+                for o in (-far[-1], far[-1])]
+        ends = [e.astype(np.float64) for e in ends]
+        clearance = np.min([_segments_distance(ends[0], ends[1], q0, q1) for q0, q1 in others], axis=0)
         ok &= clearance >= NEIGHBOUR_MARGIN_PX
     s, centre = s[ok].astype(np.int64), centre[ok]
     if s.size < 3:
@@ -244,9 +259,10 @@ def _edge_points(contrast: np.ndarray, p0: np.ndarray, p1: np.ndarray, inside_si
         edge = centre + half_width + 0.5 - total
     else:                 # facet on the low side: edge = first window pixel's lower boundary + covered
         edge = centre - half_width - 0.5 + total
-    # one point's noise: the noisier plateau's scatter (median absolute deviation; the lit facet has the
-    # shot noise) through the window's sum
-    spread = max(float(np.median(np.abs(v - np.median(v, axis=1, keepdims=True)))) for v in (in_values, out_values))
+    # one point's noise: the noisier plateau's scatter (median absolute deviation, over every 4th point;
+    # the lit facet has the shot noise) through the window's sum
+    spread = max(float(np.median(np.abs(v - np.median(v, axis=1, keepdims=True)))) for v in
+                 (in_values[::4], out_values[::4]))
     sigma = float(1.4826 * spread * np.sqrt(k.size) / max(float(np.median(centre_scale)), 1e-9))
     edge, s, coverage = edge[good], s[good], coverage[good]
     if inside_sign < 0:
@@ -742,9 +758,27 @@ def outline_hints(design, camera, fixture_to_camera, per_side: int = 64) -> dict
     (``design.edge_rim_m``), in pixels along each side, is its width over the side's metres times the
     side's pixels.
     """
+    key = (design.outline_m.tobytes(), float(design.focal_length_m), float(design.edge_rim_m),
+           np.asarray(camera.matrix, np.float64).tobytes(), np.asarray(camera.distortion, np.float64).tobytes(),
+           fixture_to_camera.rotation.tobytes(), fixture_to_camera.translation.tobytes(), int(per_side))
+    hit = _HINTS.get(key)
+    if hit is None:
+        if len(_HINTS) > 16:
+            _HINTS.clear()
+        hit = _HINTS[key] = _outline_hints(design, camera, fixture_to_camera, per_side)
+    return dict(hit)
+
+
+#: :func:`outline_hints` of the last few (design, camera, fixture pose): the same for every capture of a
+#: station (read-only arrays).
+_HINTS: dict = {}
+
+
+def _outline_hints(design, camera, fixture_to_camera, per_side: int) -> dict:
     nominal = outline_points_px(design, camera, fixture_to_camera, per_side)
     n = len(design.outline_m)
     bows = _bows_px(nominal, n)
+    coarse = _bows_px(outline_points_px(design, camera, fixture_to_camera, 16), n)
     mx, my = design.middle_m
     middle = np.array([mx, my, float(design.z(mx, my))])
     rot_rad, shift_m = PLACEMENT_SPAN
@@ -757,15 +791,19 @@ def outline_hints(design, camera, fixture_to_camera, per_side: int = 64) -> dict
             turned = Pose(r, middle - r @ middle)
             moved = Pose(np.eye(3), sign * shift_m * np.eye(3)[axis])
             for off in (turned, moved):
-                other = outline_points_px(design, camera, fixture_to_camera.compose(off), per_side)
-                spread = np.maximum(spread, np.abs(_bows_px(other, n) - bows))
+                other = outline_points_px(design, camera, fixture_to_camera.compose(off), 16)
+                spread = np.maximum(spread, np.abs(_bows_px(other, n) - coarse))
     rim = None
     if design.edge_rim_m > 0:
         starts = nominal.reshape(n, -1, 2)[:, 0]
         length_px = np.linalg.norm(np.roll(starts, -1, axis=0) - starts, axis=1)
         length_m = np.linalg.norm(np.roll(design.outline_m, -1, axis=0) - design.outline_m, axis=1)
         rim = design.edge_rim_m * length_px / length_m
-    return {"nominal_px": nominal, "bow_sigma_px": np.maximum(spread, 0.01), "rim_px": rim}
+        rim.setflags(write=False)
+    nominal.setflags(write=False)
+    sigma = np.maximum(spread, 0.01)
+    sigma.setflags(write=False)
+    return {"nominal_px": nominal, "bow_sigma_px": sigma, "rim_px": rim}
 
 
 def _rotation(rvec: np.ndarray) -> np.ndarray:

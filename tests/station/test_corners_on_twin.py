@@ -84,16 +84,22 @@ def test_point_sampled_staircase_edges(kind):
     assert rms < 0.1
 
 
+def twist_and_tilt_errors(a, twin, label: str) -> tuple[float, dict]:
+    """The twist's (mrad/m) and the optical tilt's (mrad, x and y) errors against the twin's truth, printed."""
+    truth = ground_truth(twin, a.valid)
+    twist = a.figures["twist_mrad_per_m"] - truth["twist_mrad_per_m"]
+    tilt = {ax: a.figures["optical_tilt_mrad"][ax] - truth["optical_tilt_mrad"][ax] for ax in "xy"}
+    print(f"gore, {label}: corners {corner_rms_px(a, twin):.3f} px, twist error {twist:+.5f} mrad/m, "
+          f"optical tilt error {tilt['x']:+.4f}, {tilt['y']:+.4f} mrad")
+    return twist, tilt
+
+
 @pytest.mark.parametrize("blur_px", [0.0, 1.0])
 def test_gore_twist_and_optical_tilt(blur_px):
     """The gore's twist within 0.002 mrad/m and its optical tilt within 0.05 mrad of truth (the corner
     errors of sharply sampled edges once put 0.009 mrad/m and 0.4 mrad there)."""
     a, twin = measure("gore", 2, blur_px=blur_px)
-    truth = ground_truth(twin, a.valid)
-    twist = a.figures["twist_mrad_per_m"] - truth["twist_mrad_per_m"]
-    tilt = {ax: a.figures["optical_tilt_mrad"][ax] - truth["optical_tilt_mrad"][ax] for ax in "xy"}
-    print(f"gore, blur {blur_px} px: corners {corner_rms_px(a, twin):.3f} px, twist error {twist:+.5f} mrad/m, "
-          f"optical tilt error {tilt['x']:+.4f}, {tilt['y']:+.4f} mrad")
+    twist, tilt = twist_and_tilt_errors(a, twin, f"blur {blur_px} px")
     assert abs(twist) < 0.002
     assert abs(tilt["x"]) < 0.05 and abs(tilt["y"]) < 0.05
 
@@ -107,11 +113,7 @@ def test_gore_twist_on_other_edge_models_through_a_distorting_lens(model):
     corner tests, tests/station/test_corner_models.py.)"""
     optics = {"disk blur": {"defocus_px": 1.5}, "bevelled rim": {"bevel_width_mm": 2.0, "bevel_tilt_mrad": 400.0}}[model]
     a, twin = measure("gore", 2, k1=-0.3, optics=optics)
-    truth = ground_truth(twin, a.valid)
-    twist = a.figures["twist_mrad_per_m"] - truth["twist_mrad_per_m"]
-    tilt = {ax: a.figures["optical_tilt_mrad"][ax] - truth["optical_tilt_mrad"][ax] for ax in "xy"}
-    print(f"gore, {model}, k1 -0.3: corners {corner_rms_px(a, twin):.3f} px, twist error {twist:+.5f} mrad/m, "
-          f"optical tilt error {tilt['x']:+.4f}, {tilt['y']:+.4f} mrad")
+    twist, tilt = twist_and_tilt_errors(a, twin, f"{model}, k1 -0.3")
     assert abs(twist) < 0.002
     limit = 0.15 if model == "bevelled rim" else 0.05
     assert abs(tilt["x"]) < limit and abs(tilt["y"]) < limit
@@ -122,9 +124,5 @@ def test_gore_twist_on_point_sampled_edges_within_its_uncertainty():
     pixel centres (0.26 px of corner error here): its twist is not within 0.002 mrad/m, and cannot be
     from this image, but within the U it states."""
     a, twin = measure("gore", 2, edge_sampling="point", k1=-0.3, uncertainty=True)
-    truth = ground_truth(twin, a.valid)
-    twist = a.figures["twist_mrad_per_m"] - truth["twist_mrad_per_m"]
-    u = a.figures["twist_mrad_per_m_U"]
-    print(f"gore, point sampled, k1 -0.3: corners {corner_rms_px(a, twin):.3f} px, twist error {twist:+.5f} "
-          f"mrad/m, U {u:.4f}")
-    assert abs(twist) <= u
+    twist, _ = twist_and_tilt_errors(a, twin, f"point sampled, k1 -0.3, twist U {a.figures['twist_mrad_per_m_U']:.4f}")
+    assert abs(twist) <= a.figures["twist_mrad_per_m_U"]
