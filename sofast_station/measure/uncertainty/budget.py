@@ -80,38 +80,6 @@ def axis_angle_u(u_linear: float) -> float:
     return max(COVERAGE_FACTOR * u, float(np.interp(np.log(u), np.log(_AXIS_U_LIN), _AXIS_U_95)))
 
 
-def _axis_angle_linear_u(figures: dict, sens, linear: np.ndarray, kinds: np.ndarray, noise_col: np.ndarray,
-                         u: np.ndarray, u_rand: np.ndarray) -> None:
-    """The axis angle's linear standard uncertainty (total and random, in *u* and *u_rand*) from the rows of
-    the curvatures and the twist, not from its own finite differences.
-
-    A finite difference of the angle itself is wrong where an input's step moves the vector (A - B, E) by
-    as much as its length (a nearly round facet): the angle turns by at most pi / 2 whatever the step, and
-    the sensitivity comes out far too small. The curvatures and the twist are linear in every input: each
-    row's changes of A - B = (kappa_x - kappa_y) / 4 and E = twist / 1000 turn the angle by
-    ((A - B) dE - E d(A - B)) / (2 rho^2), rho = |(A - B, E)|, added over the (independent) rows; the
-    intensity noise's part stays the angle's own (its Jacobian is analytic)."""
-    paths = list(sens.paths)
-    need = [("curvature_x_per_m",), ("curvature_y_per_m",), ("twist_mrad_per_m",), ("axis_angle_rad",)]
-    if not all(q in paths for q in need):
-        return
-    jx, jy, jt, ja = (paths.index(q) for q in need)
-    kx, ky, tw = (get_path(figures, q) for q in need[:3])
-    if kx is None or ky is None or tw is None:
-        return
-    a_b, e = 0.25 * (kx - ky), 1e-3 * tw
-    rho2 = a_b * a_b + e * e
-    if not rho2 > 0:
-        return
-    d_ab = 0.25 * (linear[:, jx] - linear[:, jy])
-    d_e = 1e-3 * linear[:, jt]
-    d_angle = np.nan_to_num((a_b * d_e - e * d_ab) / (2.0 * rho2))
-    u_sys2 = float(np.sum(d_angle[kinds == "systematic"] ** 2))
-    u_r2 = float(np.sum(d_angle[kinds == "random"] ** 2)) + float(noise_col[ja]) ** 2
-    u_rand[ja] = np.sqrt(u_r2)
-    u[ja] = np.sqrt(u_sys2 + u_r2)
-
-
 def _clean(v: float):
     return None if v is None or not np.isfinite(v) else float(v)
 
@@ -199,7 +167,6 @@ def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs:
                 ms_all, ms_corners = pose_mc[p]
                 u_rand[j] = np.sqrt(ms_corners + u_rand_o2[j])
                 u[j] = max(np.sqrt(ms_all + u_sys_o2[j] + u_rand_o2[j] + rays.get(p, 0.0) ** 2), u_rand[j])
-    _axis_angle_linear_u(figures, sens, linear, kinds, noise_col, u, u_rand)
     k = COVERAGE_FACTOR
     values = {p: get_path(figures, p) for p in sens.paths}
     total, random = {}, {}
