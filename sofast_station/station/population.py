@@ -504,6 +504,8 @@ def summarise(cases: list[dict], quality=None) -> dict:
     out["coverage_by_kind"] = {k: {r["figure"]: {"coverage": r["coverage"], "n": r["n"]}
                                    for r in coverage_rows([c for c in judged if c["kind"] == k])}
                                for k in sorted({c["kind"] for c in judged})}
+    out["coverage_by_edge"] = {e: coverage_rows([c for c in judged if c["edge"] == e])
+                               for e in sorted({c["edge"] for c in judged})}
     out["n_stations"] = len({c["index"] for c in cases})
     return out
 
@@ -584,6 +586,18 @@ def summary_text(summary: dict) -> str:
             lines.append(f"  {r['figure']:<38}{100 * r['coverage']:8.1f}%{r['n']:6d}{r['z_rms']:9.2f}{r['z_max']:7.1f}"
                          + by_kind + flag)
         lines.append("  (rms e/u: RMS of error / (U / 2), 1 for a right U; max: the largest |error| / (U / 2))")
+        lines.append("by edge model: captures, the lowest and highest coverage over the figures, and the figures "
+                     "outside the band for that many:")
+        for edge, erows in summary.get("coverage_by_edge", {}).items():
+            if not erows:
+                continue
+            n = min(r["n"] for r in erows)
+            lo_e, hi_e = coverage_band(n)
+            outside = [f"{r['figure']} {100 * r['coverage']:.0f} %" for r in erows
+                       if not lo_e <= r["coverage"] <= hi_e]
+            cov = [r["coverage"] for r in erows]
+            lines.append(f"  {edge:<11}{n:5d}  {100 * min(cov):5.1f}-{100 * max(cov):5.1f} %"
+                         + (f"; outside {100 * lo_e:.0f}-{100 * hi_e:.0f} %: " + ", ".join(outside) if outside else ""))
     return "\n".join(lines)
 
 
