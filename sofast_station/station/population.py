@@ -616,7 +616,8 @@ def population_png(cases: list[dict], summary: dict, path) -> None:
         cov = [100 * r["coverage"] for r in rows]
         lo, hi = coverage_band(min(r["n"] for r in rows))
         ax.barh(names, cov, color=["tab:blue" if 100 * lo <= c <= 100 * hi else "tab:red" for c in cov])
-        ax.axvspan(100 * lo, 100 * hi, color="tab:green", alpha=0.15, label=f"a right 95 % claim (n = {rows[0]['n']})")
+        ax.axvspan(100 * lo, 100 * hi, color="tab:green", alpha=0.15, zorder=0,
+                   label=f"a right 95 % claim (n = {rows[0]['n']})")
         ax.axvline(95, color="tab:green")
         ax.set_xlim(min(80, min(cov) - 2), 100)
         ax.invert_yaxis()
@@ -647,6 +648,7 @@ def population_png(cases: list[dict], summary: dict, path) -> None:
     fr = summary["faults"]
     if fr:
         ax.bar(list(fr), [100 * r["rate"] for r in fr.values()], color="tab:orange")
+        ax.tick_params(axis="x", rotation=20)
         for i, r in enumerate(fr.values()):
             ax.text(i, 100 * r["rate"] + 1, f"{r['k']}/{r['n']}", ha="center")
         ax.set_ylim(0, 110)
