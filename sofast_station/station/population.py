@@ -511,8 +511,7 @@ def summarise(cases: list[dict], quality=None) -> dict:
     out["coverage_by_kind"] = {k: {r["figure"]: {"coverage": r["coverage"], "n": r["n"]}
                                    for r in coverage_rows([c for c in judged if c["kind"] == k])}
                                for k in sorted({c["kind"] for c in judged})}
-    out["coverage_by_edge"] = {e: {r["figure"]: {"coverage": r["coverage"], "n": r["n"]}
-                                   for r in coverage_rows([c for c in judged if c["edge"] == e])}
+    out["coverage_by_edge"] = {e: coverage_rows([c for c in judged if c["edge"] == e])
                                for e in sorted({c["edge"] for c in judged})}
     corners = {}
     for e in sorted({c["edge"] for c in judged}):
@@ -601,6 +600,18 @@ def summary_text(summary: dict) -> str:
             lines.append(f"  {r['figure']:<38}{100 * r['coverage']:8.1f}%{r['n']:6d}{r['z_rms']:9.2f}{r['z_max']:7.1f}"
                          + by_kind + flag)
         lines.append("  (rms e/u: RMS of error / (U / 2), 1 for a right U; max: the largest |error| / (U / 2))")
+        lines.append("by edge model: captures, the lowest and highest coverage over the figures, and the figures "
+                     "outside the band for that many:")
+        for edge, erows in summary.get("coverage_by_edge", {}).items():
+            if not erows:
+                continue
+            n = min(r["n"] for r in erows)
+            lo_e, hi_e = coverage_band(n)
+            outside = [f"{r['figure']} {100 * r['coverage']:.0f} %" for r in erows
+                       if not lo_e <= r["coverage"] <= hi_e]
+            cov = [r["coverage"] for r in erows]
+            lines.append(f"  {edge:<11}{n:5d}  {100 * min(cov):5.1f}-{100 * max(cov):5.1f} %"
+                         + (f"; outside {100 * lo_e:.0f}-{100 * hi_e:.0f} %: " + ", ".join(outside) if outside else ""))
     if summary.get("corners_by_edge"):
         lines.append("corners against the twin's true corner pixels per edge model (RMS per capture, px):")
         lines.append(f"  {'edge model':<14}{'n':>6}{'median':>9}{'90 %':>9}{'max':>9}{'<= 0.1 px':>11}")
@@ -614,7 +625,7 @@ def summary_text(summary: dict) -> str:
             lines.append("coverage per edge model of the figures the corners decide:")
             lines.append(f"  {'figure':<26}" + "".join(f"{e:>11}" for e in edges))
             for f in corner_figures:
-                cells = [summary["coverage_by_edge"][e].get(f) for e in edges]
+                cells = [next((r for r in summary["coverage_by_edge"][e] if r["figure"] == f), None) for e in edges]
                 lines.append(f"  {f:<26}" + "".join(f"{100 * c['coverage']:10.1f}%" if c else f"{'-':>11}"
                                                     for c in cells))
     return "\n".join(lines)
@@ -635,7 +646,8 @@ def population_png(cases: list[dict], summary: dict, path) -> None:
         cov = [100 * r["coverage"] for r in rows]
         lo, hi = coverage_band(min(r["n"] for r in rows))
         ax.barh(names, cov, color=["tab:blue" if 100 * lo <= c <= 100 * hi else "tab:red" for c in cov])
-        ax.axvspan(100 * lo, 100 * hi, color="tab:green", alpha=0.15, label=f"a right 95 % claim (n = {rows[0]['n']})")
+        ax.axvspan(100 * lo, 100 * hi, color="tab:green", alpha=0.15, zorder=0,
+                   label=f"a right 95 % claim (n = {rows[0]['n']})")
         ax.axvline(95, color="tab:green")
         ax.set_xlim(min(80, min(cov) - 2), 100)
         ax.invert_yaxis()
@@ -666,6 +678,7 @@ def population_png(cases: list[dict], summary: dict, path) -> None:
     fr = summary["faults"]
     if fr:
         ax.bar(list(fr), [100 * r["rate"] for r in fr.values()], color="tab:orange")
+        ax.tick_params(axis="x", rotation=20)
         for i, r in enumerate(fr.values()):
             ax.text(i, 100 * r["rate"] + 1, f"{r['k']}/{r['n']}", ha="center")
         ax.set_ylim(0, 110)
