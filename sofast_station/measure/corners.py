@@ -46,6 +46,12 @@ SHADING_DEGREE = 4
 #: per coordinate from the true ones (tests/station/test_corner_models.py, the population study); 0.02 px
 #: stated them three times that, and over-covered the corner pose's rotation about x (99 % in 500 captures).
 SIDE_MODEL_SIGMA_PX = 0.01
+#: How far the lens's blur reaches across the facet's edge, in standard deviations of its line-spread
+#: function (:func:`edge_blur_px`): a Gaussian's light beyond it is 0.13 %, and a defocus disk of radius r
+#: (standard deviation r / 2) ends at 2 of them.
+EDGE_REACH_SIGMAS = 3.0
+#: Margin (pixels) kept beyond the blur's reach and the pixel's own half width (:func:`edge_inset_px`).
+EDGE_MARGIN_PX = 0.5
 
 
 @dataclass(frozen=True)
@@ -73,6 +79,8 @@ class OutlineFit:
         in its intervals the edge lies (:func:`_quantised_side`).
     quantised : (N,) int array or None
         Each side's sub-ray grid n (1: point sampled, a staircase) or 0 (area-like; :func:`quantisation`).
+    edge_blur_px : float
+        Standard deviation of the edge's blur beyond the pixel's own square, pixels (:func:`edge_blur_px`).
     """
 
     corners_px: np.ndarray
@@ -82,6 +90,7 @@ class OutlineFit:
     corner_cov_px2: np.ndarray | None = None
     corner_model_cov_px2: np.ndarray | None = None
     quantised: np.ndarray | None = None
+    edge_blur_px: float = 0.0
 
 
 def rough_outline(region: np.ndarray, n_corners: int) -> np.ndarray:
@@ -638,7 +647,7 @@ def fit_outline(contrast: np.ndarray, region: np.ndarray, n_corners: int,
     centroid = rough.mean(axis=0)
     contrast = contrast.astype(np.float64, copy=False)
     shade = shading(contrast, region)
-    curves, rms, counts, noise_covs, model_covs, grids = [], [], [], [], [], []
+    curves, rms, counts, noise_covs, model_covs, grids, profiles = [], [], [], [], [], [], []
     for i in range(n_corners):
         p0, p1 = rough[i], rough[(i + 1) % n_corners]
         d = p1 - p0
@@ -652,6 +661,7 @@ def fit_outline(contrast: np.ndarray, region: np.ndarray, n_corners: int,
             raise FacetNotFoundError(
                 f"side {i + 1} of the facet outline is too short or too close to the image border to locate "
                 "(the facet may be cut off or too small in the image)")
+        profiles.append(coverage)
         bow, j = _nominal_side(nominal_px, n_corners, p0, p1)
         grid = quantisation(coverage, sigma)
         bow_sigma = BOW_SIGMA_PX if bow_sigma_px is None or j is None else float(bow_sigma_px[j])
@@ -684,7 +694,72 @@ def fit_outline(contrast: np.ndarray, region: np.ndarray, n_corners: int,
     model_cov = corner_covariance(corners, curves, model_covs)
     cov = corner_covariance(corners, curves, noise_covs) + model_cov
     return OutlineFit(corners, np.array(curves), np.array(rms), np.array(counts), cov, model_cov,
-                      np.array(grids))
+                      np.array(grids), edge_blur_px(np.vstack(profiles)))
+
+
+def edge_blur_px(coverage: np.ndarray, trim: float = 0.1) -> float:
+    """Standard deviation of the facet edge's blur (the lens's line-spread function), pixels, from the edge
+    points' coverage profiles.
+
+    Each profile's steps (coverage 0 beyond the window outside, 1 inside) are the edge's line-spread
+    function sampled at the pixel boundaries; their second moment about the profile's own edge position
+    (their first moment) is the blur's variance plus the pixel square's 1/12 plus the sampling's 1/12
+    (Sheppard's correction; exactly 1/6 on average for a sharp area-sampled edge, 0 for a point-sampled
+    step). The moments are linear in the coverages, so noise averages out over the points: their mean,
+    the outer *trim* fraction at either end left out (points spoiled by a neighbouring side or dust).
+    What it measures is only the profile, whichever way it was formed (no model of the lens).
+
+    Parameters
+    ----------
+    coverage : (M, 2 h + 1) array
+        Coverage profiles across the edge, outside to inside (:func:`_edge_points`).
+    trim : float
+        Fraction of the points left out at either end of the sorted second moments.
+
+    Returns
+    -------
+    float
+        The blur's standard deviation beyond the pixel's own square, pixels (0 for a sharp edge).
+    """
+    coverage = np.asarray(coverage, dtype=np.float64)
+    if coverage.ndim != 2 or coverage.shape[0] == 0:
+        return 0.0
+    m, n = coverage.shape
+    half = (n - 1) / 2.0
+    steps = np.diff(np.concatenate([np.zeros((m, 1)), coverage, np.ones((m, 1))], axis=1), axis=1)
+    bounds = np.arange(n + 1) - half - 0.5
+    first = steps @ bounds
+    second = np.sort(np.einsum("ij,ij->i", steps, (bounds[None, :] - first[:, None]) ** 2))
+    cut = int(trim * m)
+    variance = float(np.mean(second[cut:m - cut])) if m - 2 * cut > 0 else float(np.median(second))
+    return float(np.sqrt(max(variance - 1.0 / 6.0, 0.0)))
+
+
+def edge_inset_px(blur_px: float) -> float:
+    """How far inside the outline (pixels) a pixel's centre must lie for none of its light to come from
+    beyond the edge: its own half width, :data:`EDGE_REACH_SIGMAS` of the blur (*blur_px*, its standard
+    deviation) and :data:`EDGE_MARGIN_PX`."""
+    return 0.5 + EDGE_REACH_SIGMAS * float(blur_px) + EDGE_MARGIN_PX
+
+
+def inside_outline(outline: OutlineFit, cols: np.ndarray, rows: np.ndarray, inset_px: float) -> np.ndarray:
+    """Whether each pixel centre (*cols*, *rows*) lies at least *inset_px* inside the fitted outline.
+
+    The distance to a convex outline from inside is the least distance to its sides' curves, each measured
+    along the side's normal (the curves' bow is a fraction of a pixel over the side).
+    """
+    p = np.column_stack([np.asarray(cols, np.float64), np.asarray(rows, np.float64)])
+    centre = outline.corners_px.mean(axis=0)
+    keep = np.ones(p.shape[0], dtype=bool)
+    for o_x, o_y, t_x, t_y, a, b, c in outline.sides:
+        o, t, n = np.array([o_x, o_y]), np.array([t_x, t_y]), np.array([-t_y, t_x])
+
+        def offset(q):
+            s = (q - o) @ t
+            return (q - o) @ n - (a + b * s + c * s * s)
+        inward = 1.0 if offset(centre[None, :])[0] > 0 else -1.0
+        keep &= inward * offset(p) >= inset_px
+    return keep
 
 
 def corner_covariance(corners: np.ndarray, curves: list, covs: list) -> np.ndarray:

@@ -30,7 +30,7 @@ from .camera import pixel_rays, project, to_frame
 from .boresight import Assembly, ShapeSolution, solve_shape
 from .fit import CubicFit, ParabolaFit, fit_cubic, fit_parabola, reweight_parabola
 from .mask import facet_region
-from .metrics import focal_length_m, principal_axes, rms_summary
+from .metrics import focal_length_m, neighbour_difference_ms, principal_axes, rms_summary
 from .phase import (FrameNoise, frame_noise, phase_and_modulation, phase_error_between_periods, position_sigma_m,
                     unwrap_positions)
 from .pose import fix_range, solve_corner_pose
@@ -202,12 +202,24 @@ class Region:
         The frames at those pixels, camera counts (DN).
     contrast : (rows, columns) float32 array
         White minus dark, DN (what the corners are found in).
+    outline : OutlineFit or None
+        The facet's sub-pixel outline (:func:`~sofast_station.measure.corners.fit_outline`), found here
+        because the edge's blur it measures decides which pixels the shape may use; None when it could
+        not be found (*outline_error* then says why, raised by the corner stage).
+    outline_error : Exception or None
+    clear_of_edge : (M,) bool array or None
+        Which of the region's pixels (``idx`` order) lie far enough inside the outline that none of their
+        light comes from beyond it (:func:`~sofast_station.measure.corners.edge_inset_px`); only they may
+        be used for the shape. None: no outline.
     """
 
     region: np.ndarray
     idx: np.ndarray
     stack: np.ndarray
     contrast: np.ndarray
+    outline: corners_mod.OutlineFit | None = None
+    outline_error: Exception | None = None
+    clear_of_edge: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -376,6 +388,9 @@ def find_region(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometr
         raise
     order.result()
     idx = np.flatnonzero(region)
+    # The outline on a pool thread while the frames are gathered: its edge profiles say how far the
+    # lens's blur reaches inside the facet.
+    outline = pool.submit(_outline_of, contrast.result(), region, geometry, design, settings)
     flat = frames.reshape(frames.shape[0], -1)
     stack = np.empty((flat.shape[0], idx.size), dtype=flat.dtype)
     half = flat.shape[0] // 2
@@ -384,7 +399,25 @@ def find_region(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometr
     first = pool.submit(_gather_runs, flat[:half], idx, runs, stack[:half])
     _gather_runs(flat[half:], idx, runs, stack[half:])
     first.result()
-    return Region(region=region, idx=idx, stack=stack, contrast=contrast.result())
+    outline, error = outline.result()
+    clear = None
+    if outline is not None:
+        rows, cols = np.divmod(idx, cam.width_px)
+        clear = corners_mod.inside_outline(outline, cols, rows, corners_mod.edge_inset_px(outline.edge_blur_px))
+    return Region(region=region, idx=idx, stack=stack, contrast=contrast.result(), outline=outline,
+                  outline_error=error, clear_of_edge=clear)
+
+
+def _outline_of(contrast: np.ndarray, region: np.ndarray, geometry: StationGeometry, design: FacetDesign,
+                settings: AnalysisSettings) -> tuple:
+    """(outline, None), or (None, the error) when the facet's outline cannot be found: that is reported by
+    the corner stage, after the phase stage's checks, as before the outline moved into stage 1."""
+    try:
+        return corners_mod.fit_outline(contrast, region, len(design.outline_m), settings.edge_window_px,
+                                       **corners_mod.outline_hints(design, geometry.camera,
+                                                                   geometry.fixture_to_camera)), None
+    except FacetNotFoundError as exc:
+        return None, exc
 
 
 def _runs(idx: np.ndarray) -> tuple[list, list]:
@@ -460,6 +493,11 @@ def measure_phases(region: Region, fringes: FringeSet, screen_size_m: tuple[floa
         allowed = pixel_mask.ravel()[idx]
         excluded = int(np.count_nonzero(ok & ~allowed))
         ok &= allowed
+    near_edge = 0
+    if region.clear_of_edge is not None:
+        # pixels within the blur of the facet's edge see light from both sides of it: left out
+        near_edge = int(np.count_nonzero(~region.clear_of_edge))
+        ok &= region.clear_of_edge
     positions, unwrap_stats = {}, {}
     for axis, task in tasks.items():
         res = task.result()
@@ -473,7 +511,7 @@ def measure_phases(region: Region, fringes: FringeSet, screen_size_m: tuple[floa
         [(raw[a][0][0], raw[a][0][-1], raw[a][1][0], raw[a][1][-1], getattr(fringes, f"periods_{a}")[0],
           getattr(fringes, f"periods_{a}")[-1]) for a in ("x", "y")], noise_dn, mask=[ok, ok]))
     dropped = {"low_modulation": int(low_mod.sum()), "inconsistent_frames": int(inconsistent.sum()),
-               "excluded_by_pixel_mask": excluded}
+               "excluded_by_pixel_mask": excluded, "near_edge": near_edge}
     return Phases(positions_m=positions, ok=ok, noise_dn=noise_dn,
                   finest_modulation_dn={a: raw[a][1][-1] for a in ("x", "y")}, min_modulation_dn=min_mod,
                   dropped=dropped, unwrap=unwrap_stats, noise=noise,
@@ -531,8 +569,10 @@ def corners_and_pose(region: Region, rays: Rays, geometry: StationGeometry, desi
     """Stage 4: the facet's corners in the image, its pose from them, and the pose's range fixed by the
     measured distance."""
     cam = geometry.camera
-    outline = corners_mod.fit_outline(region.contrast, region.region, len(design.outline_m), settings.edge_window_px,
-                                      **corners_mod.outline_hints(design, cam, geometry.fixture_to_camera))
+    if region.outline is None:
+        raise region.outline_error if region.outline_error is not None else \
+            FacetNotFoundError("no facet outline was fitted")
+    outline = region.outline
     corners_3d = design.corners_3d()
     expected = project(cam, geometry.fixture_to_camera, corners_3d)
     found = corners_mod.match_corners(outline.corners_px, expected, settings.corner_tolerance_px)
@@ -667,7 +707,8 @@ def report_figures(region: Region, phases: Phases, rays: Rays, pose: CornerPoseR
                          "F": coeffs[5]},
         "slope_rms_mrad": {name: rms_summary(*e) for name, e in fits.residuals_mrad.items()},
         "n_points": int(vidx.size),
-        "valid_fraction": float(vidx.size / idx.size),
+        # of the pixels clear of the edge's blur (the others are left out by design, not for a fault)
+        "valid_fraction": float(vidx.size / max(idx.size - phases.dropped.get("near_edge", 0), 1)),
         "facet_pixels": int(idx.size),
         "median_modulation_dn": median(phases.min_modulation_dn[rays.ok]),
         "intensity_noise_dn": phases.noise.noise_dn,
@@ -682,6 +723,7 @@ def report_figures(region: Region, phases: Phases, rays: Rays, pose: CornerPoseR
                     "inconsistent_frames": phases.dropped["inconsistent_frames"],
                     "outside_screen_model": rays.off_model,
                     "excluded_by_pixel_mask": phases.dropped["excluded_by_pixel_mask"],
+                    "near_edge": phases.dropped.get("near_edge", 0),
                     **{f"{k}_{a}": getattr(unwrap_stats[a], k) for a in ("x", "y")
                        for k in ("coarse_out_of_range", "disagreements", "edge_guard")}},
         "unwrap_disagreements": int(unwrap_stats["x"].disagreements + unwrap_stats["y"].disagreements),
@@ -697,6 +739,12 @@ def report_figures(region: Region, phases: Phases, rays: Rays, pose: CornerPoseR
                           "focal_length_y_m": focal_length_m(4.0 * float(solution.coefficients[1])),
                           "n_points": int(-(-vidx.size // settings.subsample_step))},
         "corner_reprojection_rms_px": pose.reprojection_rms_px,
+        # the facet edge's blur (pixels) and what it may have smoothed away of the slope residuals: their
+        # neighbouring pixels' mean square difference (the uncertainty's blur term, budget.combine)
+        "edge_blur_px": region.outline.edge_blur_px if region.outline is not None else None,
+        "slope_residual_neighbour_ms_mrad2": {
+            m: {a: neighbour_difference_ms(e[i], vidx, geometry.camera.width_px) for i, a in enumerate(("x", "y"))}
+            for m, e in fits.residuals_mrad.items()},
         "outline_agreement": pose.outline_agreement,
         "range_correction_m": pose.range_shift_m,
         "measured_distance_m": float(measured_distance_m),

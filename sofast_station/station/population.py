@@ -318,7 +318,8 @@ def _analyse_case(st: PopulationStation, frames, distance: float, twin, place, w
                 "check": f"internal error ({type(exc).__name__})", "seconds": time.perf_counter() - t0}
     verdict = judge(a.figures, cfg.design, cfg.limits, cfg.quality)
     out = {"outcome": verdict["verdict"], "reasons": verdict["reasons"], "warnings": verdict["warnings"],
-           "error": None, "statistics": _statistics(a.figures, cfg.quality), "seconds": time.perf_counter() - t0}
+           "error": None, "statistics": _statistics(a.figures, cfg.quality), "seconds": time.perf_counter() - t0,
+           "edge_blur_px": a.figures.get("edge_blur_px")}
     if verdict["verdict"] == "invalid":
         out["check"] = classify("invalid", verdict["reasons"], None)
     if with_uncertainty:
@@ -373,7 +374,10 @@ def run_station(spec: dict, captures: int, seed: int, data_dir: Path, images: di
     rng = np.random.default_rng([seed, spec["index"], 0xCA5E])
     placement = Placement()
     base = {k: spec[k] for k in ("index", "kind", "edge")}
-    base.update({"read_noise_dn": spec["optics"]["read_noise_dn"], "k1": spec["k1"]})
+    base.update({"read_noise_dn": spec["optics"]["read_noise_dn"], "k1": spec["k1"],
+                 # the twin's point-spread function's standard deviation per axis, pixels (a disk of radius r: r / 2)
+                 "psf_sigma_px": float(np.hypot(spec["optics"].get("blur_px", 0.0),
+                                                0.5 * spec["optics"].get("defocus_px", 0.0)))})
     cases = []
 
     def good_capture():

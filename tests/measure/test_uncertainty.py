@@ -532,9 +532,10 @@ def test_screen_models_move_and_stretch_alike(rig):
 def test_each_pixels_noise_follows_its_brightness_as_the_twins_camera_makes_it(rig):
     """The twin's camera adds read noise and shot noise (variance in proportion to the signal). Where the
     facet's edges cut through pixels, those pixels gather less light and are quieter: the noise the
-    uncertainty gives each valid pixel (from the capture's noise-against-brightness line) is what two
-    captures of the same scene show, for the dim edge pixels and for the rest, where the capture's one
-    noise figure is far too high for the dim ones."""
+    uncertainty gives each pixel of the facet's region (from the capture's noise-against-brightness line) is
+    what two captures of the same scene show, for the dim edge pixels and for the rest, where the capture's
+    one noise figure is far too high for the dim ones. (The shape no longer uses the edge pixels, which the
+    lens's blur reaches, but the noise model is the capture's, for every pixel.)"""
     from sofast_station.measure.pipeline import reduce_stages
     from sofast_station.measure.uncertainty import pixel_noise_dn
 
@@ -542,7 +543,7 @@ def test_each_pixels_noise_follows_its_brightness_as_the_twins_camera_makes_it(r
     twin = rig.twin((0.5, -0.5, 0.2), (0.5, 0.3, -0.4))
     (_, one), (_, two) = (rig.capture(twin, np.random.default_rng(s), steady=True) for s in (3, 4))
     red, _ = reduce_stages(one, cfg.fringes, cfg.geometry, cfg.design, twin.measured_distance_m(), cfg.analysis)
-    take = np.flatnonzero(red.phases.ok)
+    take = np.flatnonzero(red.phases.min_modulation_dn >= cfg.analysis.min_modulation_dn)
     pix = red.region.idx[take]
     finest = cfg.fringes.slices()["x"][-1]
     # Each pixel's frame noise over the finest set's four frames, rounding included: var(f1 - f2) / 2.

@@ -69,15 +69,41 @@ def axis_angle_u(u_linear: float) -> float:
     not: the direction is then anywhere, and k times the linear value, small against pi / 2, covered 69-79 %
     of the twin's true angles. Here the 95 % quantile of the half-direction of a vector d = rho / sigma =
     1 / (2 u) from the origin with a unit isotropic spread, the linear k u where that is larger: pi / 2 x 0.95
-    when the vector is lost in its spread.
+    when the vector is lost in its spread; never more than pi / 2 (an axis is a direction modulo pi).
     """
     global _AXIS_U_95
     if _AXIS_U_95 is None:
         _AXIS_U_95 = np.array([0.5 * _projected_normal_quantile(1.0 / (2.0 * u)) for u in _AXIS_U_LIN])
     u = float(u_linear)
-    if not np.isfinite(u) or u <= 0:
+    if np.isnan(u) or u <= 0:
         return COVERAGE_FACTOR * u if np.isfinite(u) else u
-    return max(COVERAGE_FACTOR * u, float(np.interp(np.log(u), np.log(_AXIS_U_LIN), _AXIS_U_95)))
+    if not np.isfinite(u):
+        return 0.5 * np.pi
+    # an axis is a direction modulo pi: no error exceeds pi / 2
+    return min(0.5 * np.pi, max(COVERAGE_FACTOR * u, float(np.interp(np.log(u), np.log(_AXIS_U_LIN), _AXIS_U_95))))
+
+
+def _axis_angle_floor(figures: dict, paths: list, u: np.ndarray) -> float:
+    """The axis angle's linear standard uncertainty (rad) that the curvatures' and the twist's own *u*
+    imply, taking their errors as independent: the angle is half the direction of (A - B, E) with
+    A - B = (kappa_x - kappa_y) / 4 and E = twist / 1000, so an error across that vector of sigma_perp
+    turns it by sigma_perp / (2 rho). The budget's own rows for the angle miss what moves kappa_x and kappa_y
+    apart without a row of its own (a blurred edge's slopes, the facet's own slope errors over the pixels
+    kept); on a nearly round facet that decides whether the direction is known at all. 0 when a figure
+    is missing."""
+    try:
+        jx, jy, jt = (paths.index((n,)) for n in ("curvature_x_per_m", "curvature_y_per_m", "twist_mrad_per_m"))
+        kx, ky, tw = (float(figures[n]) for n in ("curvature_x_per_m", "curvature_y_per_m", "twist_mrad_per_m"))
+    except (ValueError, KeyError, TypeError):
+        return 0.0
+    d, e = 0.25 * (kx - ky), 1e-3 * tw
+    s_d, s_e = 0.25 * float(np.hypot(u[jx], u[jy])), 1e-3 * float(u[jt])
+    rho = float(np.hypot(d, e))
+    if not np.isfinite(s_d + s_e):
+        return 0.0
+    if rho == 0.0:
+        return float("inf") if s_d + s_e > 0 else 0.0
+    return float(np.hypot(s_d * e, s_e * d) / rho) / (2.0 * rho)
 
 
 def _clean(v: float):
@@ -175,7 +201,9 @@ def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs:
             total[p] = random[p] = None
             continue
         if p == ("axis_angle_rad",):
-            total[p], random[p] = _clean(axis_angle_u(u[j])), _clean(axis_angle_u(u_rand[j]))
+            floor, floor_rand = (_axis_angle_floor(figures, sens.paths, v) for v in (u, u_rand))
+            total[p] = _clean(axis_angle_u(max(u[j], floor)))
+            random[p] = _clean(axis_angle_u(max(u_rand[j], floor_rand)))
             continue
         total[p] = _clean(k * u[j])
         random[p] = _clean(k * u_rand[j])
@@ -191,6 +219,7 @@ def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs:
             corrected_u[m][a] = total.get(p)
             if total.get(p) is not None and r is not None:       # the noise's bias, uncorrected: in quadrature
                 total[p] = float(np.hypot(total[p], k * (r - corrected[m][a])))
+                total[p] = float(np.hypot(total[p], k * blur_bias_mrad(figures, m, a, noise_mrad[m])))
     out = _nest(total, figures)
     out.update({k2 + "_random": v for k2, v in _nest(random, figures).items()})
     out.update(_subsample_fit_u(figures, sens.paths, u, u_rand, noise_col))
@@ -205,6 +234,33 @@ def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs:
             "draws": POSE_DRAWS,
             "boresight_camera_rays": {path_name(p): _sig(v) for p, v in rays.items()}}
     return out
+
+
+#: The first-order estimate of what a blur smooths away of the slope residuals, from the blurred field's own
+#: gradient, understates it by the factor x e^-x / (1 - e^-x) (x = sigma^2 k^2 of the field's wavenumbers
+#: k, for a Gaussian blur of standard deviation sigma), at least 0.5 while x <= 1.26: it is stated this
+#: many times over.
+BLUR_LOSS_FACTOR = 2.0
+
+
+def blur_bias_mrad(figures: dict, model: str, axis: str, noise_mrad: dict) -> float:
+    """How much lower than the facet's own the slope RMS *axis* of *model* may read because the lens's blur
+    averages neighbouring slopes (mrad; 0 for a sharp edge), an uncorrected bias added to U in quadrature.
+
+    A blur of standard deviation s pixels (``edge_blur_px``, measured on the facet's edge) lowers a field's
+    mean square by about s^2 times its mean square gradient per pixel, which is twice the neighbours' mean
+    square difference (``slope_residual_neighbour_ms_mrad2``) less the noise's share (2 sigma^2 for
+    independent pixel noise sigma, *noise_mrad*); stated :data:`BLUR_LOSS_FACTOR` times over. The bias is
+    sqrt(rms^2 + loss) - rms.
+    """
+    blur = figures.get("edge_blur_px") or 0.0
+    diffs = (figures.get("slope_residual_neighbour_ms_mrad2") or {}).get(model)
+    rms = get_path(figures, ("slope_rms_mrad", model, axis))
+    if blur <= 0 or not diffs or rms is None:
+        return 0.0
+    axes = ("x", "y") if axis == "magnitude" else (axis,)
+    loss = sum(BLUR_LOSS_FACTOR * blur ** 2 * 2.0 * max(diffs[a] - 2.0 * noise_mrad[a] ** 2, 0.0) for a in axes)
+    return float(np.sqrt(rms * rms + loss) - rms)
 
 
 def _subsample_fit_u(figures: dict, paths: list, u: np.ndarray, u_rand: np.ndarray, noise_col: np.ndarray) -> dict:
