@@ -66,7 +66,7 @@ def _records(args, config) -> tuple[list[dict], str]:
 
 def _recipe(config, name: str | None):
     from ..errors import ConfigError
-    from ..station.recipes import recipes_from_config
+    from ..recipes import recipes_from_config
 
     recipes = recipes_from_config(config)
     name = name or "default"

@@ -186,7 +186,8 @@ def cmd_run(args) -> int:
     from ..config import load_config
     from ..web.settings import opcua_settings, web_settings
     from . import console
-    from .service import Service, setup_logging
+    from ..live.logs import setup_logging
+    from .service import Service
     from ..result.shift import ShiftTally
 
     config = load_config(args.config)
@@ -244,7 +245,7 @@ def cmd_serve(args) -> int:
     from ..config import load_config
     from ..web.monitor import serve
     from ..web.settings import opcua_settings, web_settings
-    from .service import setup_logging
+    from ..live.logs import setup_logging
 
     config = load_config(args.config, use_camera_record=False)      # the page opens no device
     setup_logging(config.data_dir, args.verbose, name="monitor.log")
@@ -289,7 +290,7 @@ def cmd_archive_export(args) -> int:
 def cmd_dump_next(args) -> int:
     from ..config import load_config
 
-    from .commands import request_dump_next
+    from ..live.operator_commands import request_dump_next
 
     config = load_config(args.config, use_camera_record=False)  # no camera needed
     flag = request_dump_next(config.data_dir)

@@ -32,12 +32,12 @@ from ..result.record import RecordHead, build_record
 from ..result.verdict import judge
 from ..serials import clean_serial
 from . import console as _console
-from .commands import take_commands, take_dump_next
+from ..live.operator_commands import take_commands, take_dump_next
 from .drift import DriftMonitor
 from .frames import capture_sequence, crop, crop_box, restore
 from .opened import Station
-from .recipes import Recipe, choose_recipe
-from .status import StatusFile
+from ..recipes import Recipe, choose_recipe
+from ..live.status import StatusFile
 from .worker import AnalysisWorker
 
 log = logging.getLogger(__name__)
@@ -283,7 +283,7 @@ class StationRunner:
         return outcomes
 
     def _take_commands(self) -> list[FacetRequest]:
-        """Act on the operators' commands (station/commands.py); returns the re-measurements to run."""
+        """Act on the operators' commands (live/operator_commands.py); returns the re-measurements to run."""
         remeasure = []
         for cmd in take_commands(self.station.config.data_dir):
             log.info("operator command %s%s (%s)", cmd.name, f" {cmd.serial!r}" if cmd.serial else "",

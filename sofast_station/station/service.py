@@ -12,7 +12,6 @@ import dataclasses
 import errno
 import fcntl
 import logging
-import logging.handlers
 import multiprocessing
 import os
 import signal
@@ -25,10 +24,11 @@ from ..archive.spool import spool_get, spool_list
 from ..config import StationConfig
 from ..devices.protocols import FacetRequest
 from ..errors import ArchiveError, ConfigError, StationError, TriggerError
+from ..live.logs import setup_logging
 from ..web.settings import web_settings
 from .factory import open_station
-from .pictures import FacetPictures
-from .recipes import recipes_from_config
+from ..live.pictures import FacetPictures
+from ..recipes import recipes_from_config
 from .runner import RunSettings, StationRunner
 from .worker import watch_parent
 
@@ -394,27 +394,6 @@ class ArchiverProcess:
             self._proc.kill()
             self._proc.join(10)
         self._close_conn()
-
-
-def setup_logging(data_dir: Path, verbose: bool = False, name: str = "station.log") -> Path:
-    """Console (stderr) plus a rotating log file under data_dir/logs."""
-    log_dir = data_dir / "logs"
-    path = log_dir / name
-    try:
-        log_dir.mkdir(parents=True, exist_ok=True)
-        handler = logging.handlers.RotatingFileHandler(path, maxBytes=10_000_000, backupCount=10)
-    except OSError as exc:
-        raise StationError(f"cannot write the log {path} ({exc.strerror or exc}): make {log_dir} writable "
-                           f"(permissions, a read-only mount, a full disk) or give the station another data_dir "
-                           f"(station.toml [station] data_dir, or SOFAST_DATA_DIR), then start again") from None
-    handler.setFormatter(logging.Formatter("%(asctime)s %(process)d %(name)s %(levelname)s %(message)s"))
-    root = logging.getLogger()
-    root.addHandler(handler)
-    # On a full disk the file handler fails on every line: without this each failure prints a logging
-    # traceback on the console (seen on a 30 MB tmpfs data folder); the console handler still says it all.
-    logging.raiseExceptions = False
-    root.setLevel(logging.DEBUG if verbose else logging.INFO)
-    return path
 
 
 class Service:

@@ -30,7 +30,7 @@ from starlette.responses import HTMLResponse, JSONResponse, Response, StreamingR
 from starlette.routing import Route
 
 from ..errors import CommandError
-from ..station.commands import COMMANDS, post_command
+from ..live.operator_commands import COMMANDS, post_command
 from .data import LineData
 from .images import FacetImages
 from .render import esc, sections

@@ -4,7 +4,7 @@
 starts it beside the loop with :class:`MonitorProcess`. Either way it runs at a lower priority than the
 station (``[web] nice``) and shares nothing with the loop but files: it reads the journal through a
 read-only SQLite connection, the live status and the pictures, and posts commands as files
-(station/commands.py). A slow browser, a hung OPC UA client or a crash here cannot delay a facet.
+(live/operator_commands.py). A slow browser, a hung OPC UA client or a crash here cannot delay a facet.
 
 Where it listens is written to ``data_dir/live/monitor.json`` (``{"url": ..., "opcua": ...}``), so a
 port chosen by the system (``port = 0``) can be found.
@@ -145,7 +145,7 @@ def serve(config, web: WebSettings | None, opcua: OpcUaSettings | None, nice: in
 
 
 def _monitor_main(config, web, opcua, nice) -> None:
-    from ..station.service import setup_logging
+    from ..live.logs import setup_logging
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s monitor %(levelname)s %(message)s",
                         datefmt="%H:%M:%S")

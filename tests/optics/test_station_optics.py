@@ -91,7 +91,7 @@ def test_optics_configuration_errors_name_the_file_section_and_key(small_station
 
 
 def test_recipe_overrides_the_aperture(small_station_toml):
-    from sofast_station.station.recipes import recipes_from_config
+    from sofast_station.recipes import recipes_from_config
 
     small_station_toml.write_text(small_station_toml.read_text() + '\n[optics]\nsun = "buie"\ncsr = 0.1\n'
                                   '\n[recipes.wide]\noptics = { aperture = { shape = "rectangle", width_m = 0.1, '

@@ -11,7 +11,7 @@ import pytest
 
 from sofast_station.config import load_config
 from sofast_station.errors import ConfigError
-from sofast_station.station.commands import commands_dir
+from sofast_station.live.operator_commands import commands_dir
 from sofast_station.web.app import create_app
 from sofast_station.web.render import last_html
 from sofast_station.web.settings import WebSettings, opcua_settings, web_settings

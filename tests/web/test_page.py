@@ -27,7 +27,7 @@ import pytest
 from sofast_station.config import load_config
 from sofast_station.devices.protocols import FacetRequest
 from sofast_station.serials import clean_serial
-from sofast_station.station.commands import commands_dir
+from sofast_station.live.operator_commands import commands_dir
 from sofast_station.station.service import Service
 from tests.conftest import ROOT, SMALL_STATION
 
