@@ -79,6 +79,13 @@ class Station:
                           calibration=self.calibration_entry(warnings),
                           camera={"exposure_s": self.radiometric.exposure_s, "gain": self.radiometric.gain}, **more)
 
+    def arm_faults(self, serial: str) -> float:
+        """Fault injection for tests of the production loop, at the start of each cycle: returns how long
+        the analysis waits before it starts, seconds (negative: the worker dies mid-analysis). A real station
+        injects nothing: 0 (the simulated station arms what ``[simulation.faults]`` names for *serial*,
+        :meth:`~sofast_station.station.simulated.SimulatedStation.arm_faults`)."""
+        return 0.0
+
     def truth(self, valid: np.ndarray, design=None, optics=None) -> dict | None:
         """The ground truth of the facet in the fixture at the pixels *valid* (the analysis kept them), for
         the result record; None: a real station knows none (the simulated station does,

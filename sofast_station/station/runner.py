@@ -104,6 +104,27 @@ class CycleOutcome:
     sensitivities: dict | None = field(default=None, repr=False)
 
 
+@dataclass
+class CycleCapture:
+    """What a cycle captured and keeps until its answer: the frames cropped to the facet (what a dump keeps),
+    the crop box in the camera image, the camera image's size and the measured distance (metres). Empty
+    when the capture failed."""
+
+    frames: np.ndarray | None = field(default=None, repr=False)
+    box: tuple | None = None
+    full_shape: tuple | None = None
+    distance_m: float | None = None
+
+    def restored(self) -> np.ndarray:
+        """The frames at the camera's full size (outside the crop: 0), as the analysis takes them."""
+        return restore(self.frames, self.box, self.full_shape)
+
+    def dump(self, sensitivities: dict | None) -> dict:
+        """What :meth:`Service.submit <sofast_station.station.service.Service.submit>` spools for a dump."""
+        return {"frames": self.frames, "crop_box": self.box, "full_shape": self.full_shape,
+                "measured_distance_m": self.distance_m, "sensitivities": sensitivities}
+
+
 def new_cycle_id() -> str:
     """Sortable and unique: UTC time to the millisecond plus 8 random hex digits."""
     return _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%S%fZ")[:-4] + "-" + uuid.uuid4().hex[:8]
@@ -349,11 +370,59 @@ class StationRunner:
 
     # ------------------------------------------------------------------ one cycle
     def cycle(self, request: FacetRequest) -> CycleOutcome:
+        """One facet, from the robot's request to its answer (docs/architecture.md, steps 3-9).
+
+        The request's serial is made safe (or replaced by one an operator typed); the robot hears busy;
+        a watchdog will answer "fault: timeout" at the deadline whatever this thread is doing
+        (:meth:`_expire`); the facet is measured (:meth:`_measure`: capture, crop, calibration check,
+        analysis in the worker process, verdict, record); then its record is journaled, with its frames
+        spooled when a dump is due, and only then the robot hears the answer (:meth:`_finish`, or
+        :meth:`_finish_late` when the watchdog answered first).
+
+        Never raises for a bad facet: any error in the measurement becomes a fault answer with its reason
+        code (:mod:`sofast_station.result.faults`), and the loop takes the next facet.
+        """
         t0 = time.perf_counter()
         cycle_id = new_cycle_id()
         self.cycles += 1
+        request = self._accept(request, cycle_id)
+        self.status.update(state="measuring", serial=request.serial, cycle_id=cycle_id)
+        try:
+            if not request.extra.get("operator"):       # a re-measurement: the robot did not ask
+                self.trigger.busy()
+        except TriggerError as exc:
+            log.error("%s: could not signal busy: %s", request.serial, exc)
+        # The watchdog answers the robot at the deadline whatever this thread is doing.
+        state = {"answered": False, "stage": "start"}
+        watchdog = threading.Timer(max(0.1, self.settings.deadline_s - 0.2), self._expire,
+                                   args=(cycle_id, request, state, t0))
+        watchdog.daemon = True
+        watchdog.start()
+        captured = CycleCapture()
+        try:
+            outcome = self._measure(cycle_id, request, state, t0, captured)
+        finally:
+            watchdog.cancel()
+        outcome.frames = captured.frames
+        if captured.frames is not None:
+            outcome.record["crop_box"] = list(captured.box)
+        with self._answer_lock:
+            late = state["answered"]
+            state["answered"] = True
+        try:
+            if late:
+                self._finish_late(outcome, request, t0, state, captured)
+            else:
+                self._finish(outcome, request, t0, captured)
+        finally:
+            outcome.frames = None             # nothing of the frames outlives the cycle
+        return outcome
+
+    def _accept(self, request: FacetRequest, cycle_id: str) -> FacetRequest:
+        """The request as the cycle uses it: one safe serial for the journal, workbook, dump and page (what
+        was sent is kept in the request's extras), or the serial an operator typed for this facet."""
         serial, note = clean_serial(request.serial)
-        if note:                             # one safe serial for the journal, workbook, dump and page
+        if note:
             log.warning("%s (cycle %s)", note, cycle_id)
             request = dataclasses.replace(request, serial=serial,
                                           extra={**request.extra, "serial_as_sent": ascii(request.serial[:200])})
@@ -364,35 +433,27 @@ class StationRunner:
             self._manual_serial = None
             self.status.data["manual_serial"] = None
         self._last_request = request
-        serial = request.serial
-        state = {"answered": False, "stage": "start"}
+        return request
+
+    def _measure(self, cycle_id: str, request: FacetRequest, state: dict, t0: float,
+                 captured: CycleCapture) -> CycleOutcome:
+        """Measure the facet: the recipe, the capture (cropped into *captured*, which the answer and the dump
+        use), the calibration check on its dark frame, the analysis in the worker within what is left of
+        the deadline and its grace, the verdict and the record. Any error becomes a fault outcome.
+        *state*'s ``stage`` tells the watchdog what did not return."""
         timings: dict[str, float] = {}
-        self.status.update(state="measuring", serial=serial, cycle_id=cycle_id)
-        try:
-            if not request.extra.get("operator"):       # a re-measurement: the robot did not ask
-                self.trigger.busy()
-        except TriggerError as exc:
-            log.error("%s: could not signal busy: %s", serial, exc)
-        # The watchdog answers the robot at the deadline whatever this thread is doing.
-        watchdog = threading.Timer(max(0.1, self.settings.deadline_s - 0.2), self._expire,
-                                   args=(cycle_id, request, state, t0))
-        watchdog.daemon = True
-        watchdog.start()
-        frames = raw_shape = box = distance = None
-        outcome = None
         cal_warnings: list[str] = []
         try:
             recipe = choose_recipe(self.recipes, request)
-            inject = getattr(self.station, "inject", None)
-            hang_s = inject(serial) if inject else 0.0
+            analysis_delay_s = self.station.arm_faults(request.serial)
             t = time.perf_counter()
             state["stage"] = "capture"
             raw, notes = capture_sequence(self.station.display, self.station.camera, self.station.config.fringes,
                                           recipe.analysis.mask_threshold_dn, timeout_s=self.settings.camera_timeout_s)
-            distance = float(self.station.range_finder.measure())
+            captured.distance_m = float(self.station.range_finder.measure())
             timings["capture"] = time.perf_counter() - t
-            box = crop_box(raw[0], raw[1], recipe.analysis.mask_threshold_dn)
-            frames, raw_shape = crop(raw, box), raw.shape[1:]
+            captured.box = crop_box(raw[0], raw[1], recipe.analysis.mask_threshold_dn)
+            captured.frames, captured.full_shape = crop(raw, captured.box), raw.shape[1:]
             cal_warnings = self._check_calibration(raw[0])
             del raw
             # Past the deadline the watchdog answers "timeout"; the analysis may still finish within the
@@ -403,8 +464,8 @@ class StationRunner:
                                       f"{self.settings.deadline_s:g} s deadline")
             t = time.perf_counter()
             state["stage"] = "analysis"
-            res = self.worker.analyse(restore(frames, box, raw_shape), recipe.design, recipe.analysis,
-                                      distance, timeout_s=budget, hang_s=hang_s, optics=recipe.optics,
+            res = self.worker.analyse(captured.restored(), recipe.design, recipe.analysis, captured.distance_m,
+                                      timeout_s=budget, hang_s=analysis_delay_s, optics=recipe.optics,
                                       uncertainty=self.station.config.uncertainty)
             timings["analysis"] = time.perf_counter() - t
             # The ground truth (simulated station) is that of the station's own facet type.
@@ -412,36 +473,20 @@ class StationRunner:
             record = build_record(
                 self._head(cycle_id, request, recipe.name, cal_warnings, facet=recipe.design.name),
                 figures=res.figures, verdict=judge(res.figures, recipe.design, recipe.limits, recipe.quality),
-                truth=truth, measured_distance_m=distance, capture_notes=notes,
+                truth=truth, measured_distance_m=captured.distance_m, capture_notes=notes,
                 timings={**timings, **{f"analysis_{k}": v for k, v in res.figures.get("timings_s", {}).items()}})
             self._check_drift(recipe.name, record)
-            outcome = CycleOutcome(cycle_id, serial, record["verdict"], record, valid=res.valid,
-                                   preview=res.preview, sensitivities=getattr(res, "sensitivities", None))
+            return CycleOutcome(cycle_id, request.serial, record["verdict"], record, valid=res.valid,
+                                preview=res.preview, sensitivities=getattr(res, "sensitivities", None))
         except Exception as exc:          # a bad facet must never stop the line
             code, reason = fault_reason(exc)
             if code == FAULT_CODES["internal"]:
-                log.exception("%s: internal error", serial)
+                log.exception("%s: internal error", request.serial)
             record = self._fault_record(cycle_id, request, code, reason, timings, cal_warnings)
-            outcome = CycleOutcome(cycle_id, serial, "fault", record, fault_code=code)
             if isinstance(exc, CameraError):
-                self.status.alarm("camera", f"camera lost at facet {serial}: {exc}")
+                self.status.alarm("camera", f"camera lost at facet {request.serial}: {exc}")
                 self._reopen_camera()
-        finally:
-            watchdog.cancel()
-        outcome.frames = frames
-        if frames is not None:
-            outcome.record["crop_box"] = list(box)
-        with self._answer_lock:
-            late = state["answered"]
-            state["answered"] = True
-        try:
-            if late:
-                self._finish_late(outcome, request, t0, state, raw_shape=raw_shape, box=box, distance=distance)
-            else:
-                self._finish(outcome, request, t0, raw_shape=raw_shape, box=box, distance=distance)
-        finally:
-            outcome.frames = None             # nothing of the frames outlives the cycle
-        return outcome
+            return CycleOutcome(cycle_id, request.serial, "fault", record, fault_code=code)
 
     def _expire(self, cycle_id: str, request: FacetRequest, state: dict, t0: float) -> None:
         """Watchdog: the cycle reached its deadline with its thread still busy (a hung capture or a slow
@@ -471,8 +516,8 @@ class StationRunner:
             # Closing the camera is how a blocked grab is aborted; the station's thread then comes back.
             self._reopen_camera()
 
-    def _finish_late(self, outcome: CycleOutcome, request: FacetRequest, t0: float, state: dict, raw_shape, box,
-                     distance) -> None:
+    def _finish_late(self, outcome: CycleOutcome, request: FacetRequest, t0: float, state: dict,
+                     captured: CycleCapture) -> None:
         """The cycle's thread came back after the watchdog answered "timeout": keep what was measured.
 
         The robot's answer stays the timeout; the journaled row gets the figures (or the fault) and is
@@ -492,10 +537,7 @@ class StationRunner:
         record.update({"verdict": "fault", "fault_code": FAULT_CODES["timeout"], "late": True,
                        "late_by_s": round(late_by, 3)})
         outcome.answer, outcome.fault_code = "fault", FAULT_CODES["timeout"]
-        dump = None
-        if self._dump_due(outcome, request):
-            dump = {"frames": outcome.frames, "crop_box": box, "full_shape": raw_shape,
-                    "measured_distance_m": distance, "sensitivities": outcome.sensitivities}
+        dump = captured.dump(outcome.sensitivities) if self._dump_due(outcome, request) else None
         try:
             self.submit(outcome.cycle_id, record, dump, amend=True)
             outcome.dumped = dump is not None
@@ -527,13 +569,10 @@ class StationRunner:
         return bool(request.dump or (s.dump_every_n and self.cycles % s.dump_every_n == 0)
                     or (s.dump_failed and outcome.answer in ("fail", "invalid", "indeterminate", "fault")))
 
-    def _finish(self, outcome: CycleOutcome, request: FacetRequest, t0: float, raw_shape, box, distance) -> None:
+    def _finish(self, outcome: CycleOutcome, request: FacetRequest, t0: float, captured: CycleCapture) -> None:
         """Journal (and spool), then answer the robot: in that order."""
         record = outcome.record
-        dump = None
-        if self._dump_due(outcome, request):
-            dump = {"frames": outcome.frames, "crop_box": box, "full_shape": raw_shape,
-                    "measured_distance_m": distance, "sensitivities": outcome.sensitivities}
+        dump = captured.dump(outcome.sensitivities) if self._dump_due(outcome, request) else None
         record["timings_s"]["until_journal"] = time.perf_counter() - t0
         try:
             try:
