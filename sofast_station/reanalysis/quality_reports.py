@@ -92,7 +92,7 @@ def cmd_spc(args) -> int:
     from ..errors import ConfigError
     from ..qc import spc as qspc
     from ..result.specs import figure_specs
-    from ..report.spc import (build_charts, draw_charts, draw_yield, select_records, write_summary_workbook,
+    from ..report.control_charts import (build_charts, draw_charts, draw_yield, select_records, write_summary_workbook,
                       yield_table)
 
     if len(args.targets) > 1:
@@ -154,7 +154,7 @@ def cmd_acceptance(args) -> int:
     from ..errors import ConfigError
     from ..qc.acceptance import contract_from_config
     from ..report.acceptance import draw, evaluate, text
-    from ..report.spc import select_records
+    from ..report.control_charts import select_records
 
     if len(args.targets) > 1:
         raise ConfigError("'report acceptance' takes no dumps: choose facets with --recipe and --from/--to")

@@ -27,7 +27,7 @@ from ..facet import FacetDesign
 from ..geometry import Pose, StationGeometry
 from .camera import TwinCamera
 from .noise import scratch_f32, standard_normal_f32
-from .config import TrueFacet, TwinOptics
+from .parameters import TrueFacet, TwinOptics
 from .outline import inside_outline, signed_distance_to_outline
 from .surface import TrueSurface
 
