@@ -29,12 +29,10 @@ from sofast_station.devices.protocols import FacetRequest
 from sofast_station.serials import clean_serial
 from sofast_station.live.operator_commands import commands_dir
 from sofast_station.station.service import Service
-from tests.conftest import ROOT, SMALL_STATION
+from tests.conftest import ROOT, SMALL_STATION, require, require_chromium
 
-CHROMIUM = "/usr/bin/chromium"
-playwright = pytest.importorskip("playwright.sync_api", reason="Playwright is not installed ('setup-env test')")
-if not (os.path.exists(CHROMIUM) and os.access(CHROMIUM, os.X_OK)):
-    pytest.skip("Debian's chromium is not installed ('setup-env test' installs it)", allow_module_level=True)
+playwright = require("playwright.sync_api")
+CHROMIUM = require_chromium()
 
 TOKEN = "line-token-for-tests"
 LONG = "L" * 280 + "-END-OF-LONG-SERIAL"           # 300 characters
