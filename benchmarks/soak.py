@@ -85,7 +85,7 @@ def archive_checks(data: Path) -> dict:
             try:
                 if read_dump(r.dump_path, load_frames=True).cycle_id != r.cycle_id:
                     bad_dumps.append(f"{r.cycle_id}: wrong cycle")
-            except Exception as exc:      # noqa: BLE001 - every failure is reported
+            except Exception as exc:  # every failure is reported
                 bad_dumps.append(f"{r.cycle_id}: {type(exc).__name__}: {exc}")
     return {"journal_rows": len(rows), "journal_unique": len(set(ids)) == len(ids),
             "workbook_rows": len(book_ids), "workbook_unique": len(set(book_ids)) == len(book_ids),

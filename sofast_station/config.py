@@ -7,9 +7,9 @@ environment variable ``SOFAST_DATA_DIR``.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
-import dataclasses
 import os
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -181,7 +181,8 @@ def load_config(path: str | Path, use_camera_record: bool = True) -> StationConf
 
 
 def _optics(raw: dict, where: str):
-    """``[optics]`` as OpticsSettings (None when disabled); validated in :mod:`sofast_station.result.optical_figures`."""
+    """``[optics]`` as OpticsSettings (None when disabled); validated in
+    :mod:`sofast_station.result.optical_figures`."""
     from .result.optical_figures import optics_for
     from .result.verdict import OPTICAL_LIMITS
     optics = optics_for(raw, where)

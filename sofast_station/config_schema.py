@@ -213,7 +213,8 @@ SECTIONS: dict[str, dict[str, Key]] = {
     },
     "simulation": {
         "seed": Key("int", low=0, doc="sensor noise seed"),
-        "facet": Key("table", doc="[simulation.facet]: the twin's true facet (twin.parameters.TrueFacet, a rule below)"),
+        "facet": Key("table", doc="[simulation.facet]: the twin's true facet (twin.parameters.TrueFacet, a rule "
+                                  "below)"),
         "optics": Key("table", doc="[simulation.optics]: display, camera and noise (twin.parameters.TwinOptics)"),
         "distance_error_m": Key("float", low=-1.0, high=1.0, doc="the simulated range finder's error, m"),
         "faults": Key("section:simulation_faults", doc="SERIAL = fault kind, injected (tests, benchmarks)"),

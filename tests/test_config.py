@@ -54,12 +54,14 @@ def test_broken_toml_names_the_file(tmp_path):
     ("limits", "focal_length_tolerance = -0.02",
      "[limits] focal_length_tolerance must be a number above 0 and at most 1, got -0.02"),
     ("limits", "max_slope_rms_mrad = { design = -3.0 }", "[limits.max_slope_rms_mrad] design must be a number above 0"),
-    ("quality", "min_valid_fraction = 1.5", "[quality] min_valid_fraction must be a number of at least 0 and at most 1"),
+    ("quality", "min_valid_fraction = 1.5",
+     "[quality] min_valid_fraction must be a number of at least 0 and at most 1"),
     ("analysis", "robust_fit = \"yes\"", "[analysis] robust_fit must be true or false, got 'yes'"),
     ("archive", 'workbook_period = "week"', "[archive] workbook_period must be one of 'day', 'shift', got 'week'"),
     ("devices", 'trigger = "plc"', "[devices] trigger must be one of 'simulated', 'modbus', 'usb', got 'plc'"),
     ("recipes.gore", "serial_pattern = 3", "[recipes.gore] serial_pattern must be a string, got 3"),
-    ("recipes.gore", "analysis = { threads = 0 }", "[recipes.gore.analysis] threads must be a whole number of at least 1"),
+    ("recipes.gore", "analysis = { threads = 0 }",
+     "[recipes.gore.analysis] threads must be a whole number of at least 1"),
     ("runn", "deadline_s = 3", "has unknown section(s) runn; allowed:"),
 ])
 def test_every_key_is_checked_at_load(small_station_toml, section, line, message):
@@ -108,3 +110,4 @@ def test_workbook_parts_are_bounded_by_default(small_station_toml):
     small_station_toml.write_text(small_station_toml.read_text().replace("= 50", "= 0"))
     with pytest.raises(ConfigError, match=r"\[archive\] workbook_max_rows must be a whole number of at least 1"):
         load_config(small_station_toml)
+

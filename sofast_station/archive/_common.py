@@ -49,7 +49,8 @@ def json_ready(obj):
     """A copy of *obj* that :func:`json.dumps` accepts with ``allow_nan=False``.
 
     NaN and infinities become ``None`` (an infinite focal length is JSON null:
-    docs/conventions.md#focal-power), numpy scalars and arrays become Python numbers and lists, tuples become lists, paths become strings.
+    docs/conventions.md#focal-power), numpy scalars and arrays become Python numbers and lists, tuples become lists,
+    paths become strings.
     """
     if isinstance(obj, bool) or obj is None or isinstance(obj, str):
         return obj

@@ -163,7 +163,8 @@ def excel_time(time_iso) -> tuple:
     sign = "-" if off < _dt.timedelta(0) else "+"
     minutes = abs(int(off.total_seconds())) // 60
     # Excel keeps milliseconds: drop the rest so a read-back equals what is shown
-    return t.replace(tzinfo=None, microsecond=t.microsecond // 1000 * 1000), f"{sign}{minutes // 60:02d}:{minutes % 60:02d}"
+    offset = f"{sign}{minutes // 60:02d}:{minutes % 60:02d}"
+    return t.replace(tzinfo=None, microsecond=t.microsecond // 1000 * 1000), offset
 
 
 def flatten_record(cycle_id: str, record: dict, dump_file: str | None = None, json_safe: bool = False) -> dict:
@@ -574,7 +575,7 @@ def _drop_stream_files(wb) -> None:
                 try:
                     if gen is not None:
                         gen.close()
-                except Exception:   # noqa: BLE001 - a half-written sheet's stream; its file goes anyway
+                except Exception:  # a half-written sheet's stream; its file goes anyway
                     pass
             try:
                 writer.cleanup()

@@ -3,8 +3,8 @@
 Anything that wants the line to do something (the web page's guarded actions, the command line) posts a
 command here; the station's loop takes the waiting commands between two facets, oldest first, and
 deletes each as it takes it. A command is a small JSON file written under a temporary name and renamed,
-so the loop never reads half of one. Nothing here touches the devices: :class:`~sofast_station.station.runner.StationRunner`
-acts on what it takes.
+so the loop never reads half of one. Nothing here touches the devices:
+:class:`~sofast_station.station.runner.StationRunner` acts on what it takes.
 
 Commands
 --------

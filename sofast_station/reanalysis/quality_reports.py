@@ -22,7 +22,8 @@ def add_options(rpt) -> None:
     # --config (the station file) is the report command's own option, shared with 'report trend'
     rpt.add_argument("--recipe", default=None, help="spc, acceptance: only facets of this recipe (default: all for "
                      "spc; 'default' for acceptance)")
-    rpt.add_argument("--facet-type", dest="facet_type", default=None, help="spc: only this facet type (the record's 'facet', e.g. dish-5.33)")
+    rpt.add_argument("--facet-type", dest="facet_type", default=None,
+                     help="spc: only this facet type (the record's 'facet', e.g. dish-5.33)")
     rpt.add_argument("--serial", default=None, metavar="REGEX", help="spc: only serials matching this pattern")
     rpt.add_argument("--ewma", type=float, default=None, metavar="LAMBDA",
                      help="spc: also draw an EWMA chart with this lambda (e.g. 0.2)")
@@ -113,13 +114,15 @@ def cmd_spc(args) -> int:
         b0 = parse_date(args.baseline_from, "--baseline-from")
         b1 = parse_date(args.baseline_to, "--baseline-to")
         check_range(b0, b1, "--baseline-from/--baseline-to")
-        base_records = [r for r in select_records(records, recipe=args.recipe, facet=args.facet_type, serial=args.serial,
-                                                  since=b0, until=b1) if r.get("verdict") in ("pass", "fail")]
+        base_records = [r for r in select_records(records, recipe=args.recipe, facet=args.facet_type,
+                                                  serial=args.serial, since=b0, until=b1)
+                        if r.get("verdict") in ("pass", "fail")]
         baselines = {}
         for s in specs:
             from ..result.record import figure_value
+            values = [v for v in (figure_value(r, s.key) for r in base_records) if v is not None]
             try:
-                baselines[s.key] = qspc.baseline([v for v in (figure_value(r, s.key) for r in base_records) if v is not None])
+                baselines[s.key] = qspc.baseline(values)
             except ValueError as exc:
                 raise ConfigError(f"the baseline period {b0} to {b1} gives no limits for {s.label}: {exc}") from None
     charts = build_charts(chosen, specs, baseline_n=args.baseline_n, baselines=baselines, rule_set=args.rules,
@@ -146,7 +149,8 @@ def cmd_spc(args) -> int:
         n_bad = len({int(k) for v in c.violations.values() for k in v})
         cap = c.capability
         log.info("%s: %d facets, %d violating a rule, Cp %s, Cpk %s", c.spec.label, c.values.size, n_bad,
-                 "-" if cap.get("cp") is None else f"{cap['cp']:.2f}", "-" if cap.get("cpk") is None else f"{cap['cpk']:.2f}")
+                 "-" if cap.get("cp") is None else f"{cap['cp']:.2f}",
+                 "-" if cap.get("cpk") is None else f"{cap['cpk']:.2f}")
     return 0
 
 

@@ -214,7 +214,8 @@ def write_summary_workbook(charts: list[Chart], table: dict, path: Path, title: 
                    float(np.nanmean(c.values)) if np.any(np.isfinite(c.values)) else None, c.spec.design, c.spec.lsl,
                    c.spec.usl, b.centre if b else None, b.sigma if b else None, b.lcl if b else None,
                    b.ucl if b else None, b.n if b else None, cap.get("cp"), cap.get("cpk"), cap.get("pp"),
-                   cap.get("ppk"), len(marked), ", ".join(f"{r} ({len(v)})" for r, v in c.violations.items() if len(v))])
+                   cap.get("ppk"), len(marked),
+                   ", ".join(f"{r} ({len(v)})" for r, v in c.violations.items() if len(v))])
     ws.append([])
     ws.append([f"rules: {rule_set}: " + "; ".join(f"{r} {spc.RULE_TEXT[r]}" for r in spc.rules_of(rule_set))])
     ws.column_dimensions["A"].width = 28

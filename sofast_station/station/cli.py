@@ -134,7 +134,8 @@ def summary_text(rec: dict) -> str:
         lines.append("  placement in fixture       " + ", ".join(_pm(v, u, "", 2) for v, u in zip(pl["mm"], pu["mm"]))
                      + " mm, " + ", ".join(_pm(v, u, "", 2) for v, u in zip(pl["mrad"], pu["mrad"])) + " mrad")
     lines.extend(optics_lines(rec.get("optics"), (truth or {}).get("optics")))
-    lines.append(f"  points                    {rec['n_points']:>14,}   ({100 * rec['valid_fraction']:.1f} % of the facet's pixels)")
+    lines.append(f"  points                    {rec['n_points']:>14,}   "
+                 f"({100 * rec['valid_fraction']:.1f} % of the facet's pixels)")
     lines.append(f"  median modulation         {rec['median_modulation_dn']:>11.1f} DN")
     it = rec["iterations"]
     lines.append(f"  iterations                {it['shape']:>9} shape, {it['boresight']} boresight "

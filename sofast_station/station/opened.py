@@ -34,7 +34,8 @@ class Station:
     #: The radiometric record's status when the station opened (CalibrationStatus: origin, warnings).
     calibration: object | None = None
     _rays: np.ndarray | None = field(default=None, repr=False)
-    #: The design's optical trace, computed once per facet type (:class:`~sofast_station.result.optical_figures.DesignTraces`).
+    #: The design's optical trace, computed once per facet type
+    #: (:class:`~sofast_station.result.optical_figures.DesignTraces`).
     design_traces: object | None = field(default=None, repr=False)
     #: Sensitivities of the figures to the station's inputs, per geometry and recipe, computed on the first
     #: facet and reused (:mod:`sofast_station.measure.uncertainty`).

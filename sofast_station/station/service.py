@@ -36,8 +36,8 @@ log = logging.getLogger(__name__)
 
 _DEVICE_KEYS = {"trigger", "trigger_options", "display_options", "camera", "camera_options",
                 "range_finder_options"}
-_ARCHIVE_KEYS = {"workbook_period", "workbook_interval_s", "workbook_cpu_share", "workbook_max_rows", "dump_keep_days", "dump_max_gb",
-                 "min_free_gb"}
+_ARCHIVE_KEYS = {"workbook_period", "workbook_interval_s", "workbook_cpu_share", "workbook_max_rows", "dump_keep_days",
+                 "dump_max_gb", "min_free_gb"}
 
 #: Data rows per workbook part unless ``[archive] workbook_max_rows`` says otherwise: the archiver writes a
 #: part whole on every save (streamed, its memory does not grow with the part), so a day of a busy line is

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from sofast_station.archive._common import json_ready
-from sofast_station.archive.dumps import (SCHEMA_V1, SCHEMA_V2, SCHEMA_VERSION, crop_to_facet, disk_ok, prune_dumps, read_dump, restore_frames,
-                                          write_dump)
+from sofast_station.archive.dumps import (SCHEMA_V1, SCHEMA_V2, SCHEMA_VERSION, crop_to_facet, disk_ok, prune_dumps,
+                                          read_dump, restore_frames, write_dump)
 from sofast_station.archive.dumps import writer as dump_writer
 from sofast_station.archive.spool import spool_get, spool_list, spool_put
 from sofast_station.errors import ArchiveError, DumpError
@@ -284,3 +284,4 @@ def test_non_square_display_pixels_round_trip(small_config, tmp_path):
         assert "pitch_m" not in f["geometry/screen"] and f["geometry/screen/pitch_y_m"][()] == 0.0002703
     back = read_dump(path).station_geometry().screen
     assert back == screen and back.height_m == 1080 * 0.0002703 and back.width_m == 1920 * 0.00027
+

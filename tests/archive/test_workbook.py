@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import datetime as dt
 import errno
-import json
 import os
 import tempfile
 
@@ -259,7 +258,8 @@ def test_archive_export_takes_words_and_iso_dates_and_refuses_a_reversed_range(s
         j.append("today-1", dict(SAMPLE_RECORD, time=now.isoformat(timespec="milliseconds")))
         j.append("old-1", dict(SAMPLE_RECORD, time="2026-01-05T10:00:00+00:00"))
     out = data / "x.xlsx"
-    assert main(["archive", "export", "--config", str(small_station_toml), "--from", "yesterday", "--out", str(out)]) == 0
+    assert main(["archive", "export", "--config", str(small_station_toml), "--from", "yesterday",
+                 "--out", str(out)]) == 0
     assert [r["cycle_id"] for r in read_workbook(out)] == ["today-1"]
     assert main(["archive", "export", "--config", str(small_station_toml), "--from", "2026-01-05", "--to",
                  "2026-01-06", "--out", str(out)]) == 0

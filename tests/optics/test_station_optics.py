@@ -117,7 +117,8 @@ def test_optical_figures_reach_the_journal_and_the_workbook_row(inspected, tmp_p
     journal = Journal(tmp_path / "journal.sqlite3")
     try:
         journal.append("cycle-1", {k: v for k, v in rec.items() if k != "truth"})
-        assert journal.get("cycle-1").record["optics"]["power_ratio_vs_design"] == rec["optics"]["power_ratio_vs_design"]
+        journaled = journal.get("cycle-1").record["optics"]
+        assert journaled["power_ratio_vs_design"] == rec["optics"]["power_ratio_vs_design"]
     finally:
         journal.close()
 

@@ -324,7 +324,8 @@ def test_serials_from_outside_are_made_safe_once_for_every_use(small_station_tom
     rows = _rows(cfg.data_dir)
     assert [r.serial for r in rows] == [clean_serial(s)[0] for s in BAD_SERIALS]
     assert rows[1].serial == "ABCD" and len(rows[3].serial) == MAX_SERIAL_CHARS
-    assert all(r.verdict == "pass" and r.dump_status == "written" for r in rows), [r.record.get("reasons") for r in rows]
+    assert all(r.verdict == "pass" and r.dump_status == "written" for r in rows), \
+        [r.record.get("reasons") for r in rows]
     for r in rows:
         path = Path(r.dump_path).resolve()
         assert path.is_relative_to((cfg.data_dir / "dumps").resolve())

@@ -178,7 +178,7 @@ class ModbusTrigger(PolledHandshake):
                                        reconnect_delay=0, reconnect_delay_max=0)
         try:
             ok = self._client.connect()
-        except Exception as exc:  # noqa: BLE001 - pymodbus/OS errors alike
+        except Exception as exc:  # pymodbus/OS errors alike
             ok, why = False, f"{type(exc).__name__}: {exc}"
         else:
             why = "connection refused or timed out"
@@ -223,7 +223,7 @@ class ModbusTrigger(PolledHandshake):
     def _read(self, address: int, count: int, what: str) -> list[int]:
         try:
             rr = self._client.read_holding_registers(address, count=count, device_id=self.unit_id)
-        except Exception as exc:  # noqa: BLE001 - ConnectionException, ModbusIOException, OSError
+        except Exception as exc:  # ConnectionException, ModbusIOException, OSError
             raise self._fail(what, f"{type(exc).__name__}: {exc}") from exc
         if rr.isError():
             raise self._refused(what, rr)
@@ -234,7 +234,7 @@ class ModbusTrigger(PolledHandshake):
     def _write(self, what: str) -> None:
         try:
             rr = self._client.write_registers(self.map.station_base, list(self._regs), device_id=self.unit_id)
-        except Exception as exc:  # noqa: BLE001
+        except Exception as exc:
             raise self._fail(what, f"{type(exc).__name__}: {exc}") from exc
         if rr.isError():
             raise self._refused(what, rr)

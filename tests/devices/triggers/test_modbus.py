@@ -12,14 +12,14 @@ import pytest
 
 import pymodbus  # noqa: F401  (a dependency: its absence must fail, not skip)
 
-from pymodbus.client import ModbusTcpClient  # noqa: E402
+from pymodbus.client import ModbusTcpClient
 
-from sofast_station.devices.protocols import FAULT_CODES, WARNING_BITS  # noqa: E402
-from sofast_station.devices.triggers import modbus  # noqa: E402
-from sofast_station.devices.triggers.modbus import ModbusTrigger, RegisterMap, decode_ascii, encode_ascii  # noqa: E402
-from sofast_station.errors import TriggerError  # noqa: E402
+from sofast_station.devices.protocols import FAULT_CODES, WARNING_BITS
+from sofast_station.devices.triggers import modbus
+from sofast_station.devices.triggers.modbus import ModbusTrigger, RegisterMap, decode_ascii, encode_ascii
+from sofast_station.errors import TriggerError
 
-from .fake_plc import MAP, free_port, plc_block, run_plc  # noqa: E402
+from .fake_plc import MAP, free_port, plc_block, run_plc
 
 SPAWN = mp.get_context("spawn")
 
