@@ -111,3 +111,26 @@ def test_workbook_parts_are_bounded_by_default(small_station_toml):
     with pytest.raises(ConfigError, match=r"\[archive\] workbook_max_rows must be a whole number of at least 1"):
         load_config(small_station_toml)
 
+
+@pytest.mark.parametrize("kind, says", [
+    ("geometry", "the fixture pose and the distance keep their [uncertainty] values"),
+    ("radiometric", "the uncertainty budget's display response leaves out the rounding of its lookup table"),
+])
+def test_an_unreadable_calibration_record_is_named_when_its_part_of_the_budget_is_left_out(
+        small_station_toml, kind, says, caplog):
+    """Issue 27: a geometry or radiometric record that cannot be read drops what it lends the uncertainty
+    budget; loading the configuration says so, naming the file, and the budget keeps the table's values."""
+    import logging
+
+    before = load_config(small_station_toml).uncertainty
+    folder = load_config(small_station_toml).data_dir / "calibration" / kind
+    folder.mkdir(parents=True)
+    bad = folder / f"{kind}-20261201T060000Z-001.json"
+    bad.write_text('{"schema": 1, "kind": "' + kind + '", "record_id": "cut off mid-wr')
+    with caplog.at_level(logging.WARNING, logger="sofast_station.config"):
+        after = load_config(small_station_toml).uncertainty
+    assert str(bad) in caplog.text and says in caplog.text, caplog.text
+    if kind == "geometry":
+        assert after == before
+    else:                     # the shipped record's rounding was in the budget; the unreadable newest has none
+        assert before.response_record_rad is not None and after.response_record_rad is None

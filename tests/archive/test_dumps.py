@@ -285,3 +285,28 @@ def test_non_square_display_pixels_round_trip(small_config, tmp_path):
     back = read_dump(path).station_geometry().screen
     assert back == screen and back.height_m == 1080 * 0.0002703 and back.width_m == 1920 * 0.00027
 
+
+def test_a_dump_whose_fringe_definition_names_no_patterns_says_so(small_config, tmp_path, monkeypatch, caplog):
+    """The frames are dumped whatever the fringe definition (it may be what is wrong), and the log says that
+    their pattern names were replaced."""
+    import logging
+
+    from sofast_station.archive.dumps.content import DumpContent
+
+    content = synthetic_content(small_config)
+
+    def unusable(self):
+        raise ValueError("periods_x must increase")
+
+    monkeypatch.setattr(DumpContent, "patterns", property(unusable))
+    path = tmp_path / "d.h5"
+    with caplog.at_level(logging.WARNING, logger="sofast_station.archive.dumps"):
+        write_dump(path, content)
+    n = content.frames_cropped.shape[0]
+    assert f"gives no pattern names (ValueError: periods_x must increase); its frames are named frame 0..{n - 1}" \
+        in caplog.text
+    import h5py
+    with h5py.File(path, "r") as f:
+        names = [v.decode() if isinstance(v, bytes) else str(v) for v in f["capture/patterns"][()]]
+    assert names == [f"frame {i}" for i in range(n)]
+

@@ -166,9 +166,15 @@ def write_dump(path: str | Path, content: DumpContent, compression_level: int = 
                            f"frame {tuple(content.full_shape)}")
     try:
         patterns = content.patterns
-    except Exception:                        # an unusable fringe definition still gets dumped
-        patterns = []
-    if len(patterns) != n:
+    except Exception as exc:                 # an unusable fringe definition still gets dumped
+        log.warning("dump %s: the fringe definition gives no pattern names (%s: %s); its frames are named "
+                    "frame 0..%d", path, type(exc).__name__, exc, n - 1)
+        patterns = None
+    if patterns is not None and len(patterns) != n:
+        log.warning("dump %s: the fringe definition names %d patterns for %d frames; the frames are named "
+                    "frame 0..%d", path, len(patterns), n, n - 1)
+        patterns = None
+    if patterns is None:
         patterns = [f"frame {i}" for i in range(n)]
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = temp_path_for(path)
