@@ -21,6 +21,7 @@ import signal
 import socket
 from pathlib import Path
 
+from ..archive._common import write_file_atomic
 from ..errors import StationError
 from .settings import OpcUaSettings, WebSettings
 
@@ -114,9 +115,8 @@ async def _serve(config, web: WebSettings | None, opcua: OpcUaSettings | None, o
         tasks.append(asyncio.create_task(publisher.run()))
     path = monitor_info_path(config.data_dir)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".monitor.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(info), encoding="utf-8")
-    os.replace(tmp, path)
+    text = json.dumps(info)
+    write_file_atomic(path, lambda fh: fh.write(text), mode="w")
     if on_ready is not None:
         on_ready(info)
     stop = asyncio.Event()
