@@ -85,9 +85,11 @@ async def _serve(config, web: WebSettings | None, opcua: OpcUaSettings | None, o
     server = None
     tasks = []
     if web is not None:
+        exposure = web.exposure()                    # ConfigError beyond loopback without a decision
         app = create_app(config, web)
+        tls = {"ssl_certfile": web.certificate, "ssl_keyfile": web.key} if web.tls else {}
         server = _Server(uvicorn.Config(app, host=web.host, port=web.port, log_level="warning",
-                                               timeout_graceful_shutdown=5, lifespan="on", access_log=False))
+                                        timeout_graceful_shutdown=5, lifespan="on", access_log=False, **tls))
         sock = _bind(web.host, web.port)             # here, so a taken port is a clear error, not an exit
         tasks.append(asyncio.create_task(server.serve(sockets=[sock])))
         while not server.started:
@@ -97,8 +99,10 @@ async def _serve(config, web: WebSettings | None, opcua: OpcUaSettings | None, o
             await asyncio.sleep(0.05)
         host, port = server.servers[0].sockets[0].getsockname()[:2]
         shown = f"[{host}]" if ":" in host else host
-        info["url"] = f"http://{shown}:{port}/"
+        info["url"] = f"{'https' if web.tls else 'http'}://{shown}:{port}/"
         log.info("the line's page: %s%s", info["url"], "" if web.token else " (read-only: no [web] token)")
+        if exposure:
+            log.warning("%s", exposure)
     publisher = None
     if opcua is not None and opcua.enabled:
         from .opcua import OpcUaPublisher
