@@ -107,6 +107,14 @@ class OpcUaSettings:
         Whether clients may connect without a user name (always read-only).
     users : dict
         User name -> password of clients that may log in (read-only as well).
+    certificate, private_key : str
+        The server's certificate (PEM or DER) and its private key (PEM or DER, unencrypted), absolute paths;
+        with them the server offers security policy Basic256Sha256 with Sign & Encrypt. "": none.
+    security_none : bool
+        Whether the endpoint without message security (policy None) is offered too (plain readers).
+    allow_plain_passwords : bool
+        Whether a user's password may come in clear text (over policy None, without the token encryption
+        the server asks for); refused unless true.
     """
 
     enabled: bool = False
@@ -114,6 +122,15 @@ class OpcUaSettings:
     namespace: str = "urn:sofast-station"
     anonymous: bool = True
     users: dict = field(default_factory=dict)
+    certificate: str = ""
+    private_key: str = ""
+    security_none: bool = True
+    allow_plain_passwords: bool = False
+
+    @property
+    def encrypted(self) -> bool:
+        """Whether the server offers Basic256Sha256 Sign & Encrypt (a certificate and key are given)."""
+        return bool(self.certificate and self.private_key)
 
 
 def _where(config, section: str) -> str:
@@ -203,9 +220,10 @@ def opcua_settings(config) -> OpcUaSettings:
     where = _where(config, "opcua")
     if not isinstance(table, dict):
         raise ConfigError(f"{where} must be a table")
-    _unknown(table, {"enabled", "endpoint", "namespace", "anonymous", "users"}, where)
+    _unknown(table, {"enabled", "endpoint", "namespace", "anonymous", "users", "certificate", "private_key",
+                     "security_none", "allow_plain_passwords"}, where)
     d = OpcUaSettings()
-    for key in ("enabled", "anonymous"):
+    for key in ("enabled", "anonymous", "security_none", "allow_plain_passwords"):
         if not isinstance(table.get(key, False), bool):
             raise ConfigError(f"{where} {key} = {table[key]!r}: must be true or false")
     endpoint = table.get("endpoint", d.endpoint)
@@ -223,4 +241,43 @@ def opcua_settings(config) -> OpcUaSettings:
     if not anonymous and not users:
         raise ConfigError(f"{where} anonymous = false but no users are configured: nobody could connect; "
                           "add users = { NAME = \"PASSWORD\" } or allow anonymous reading")
-    return OpcUaSettings(table.get("enabled", d.enabled), endpoint, namespace, anonymous, dict(users))
+    cert, key = (_file(config, table, name, where) for name in ("certificate", "private_key"))
+    if bool(cert) != bool(key):
+        raise ConfigError(f"{where}: give both certificate and private_key for Basic256Sha256 Sign & Encrypt, or "
+                          "neither")
+    if cert:
+        _check_opcua_pair(cert, key, where)
+    security_none = table.get("security_none", d.security_none)
+    allow_plain = table.get("allow_plain_passwords", d.allow_plain_passwords)
+    if not cert and not security_none:
+        raise ConfigError(f"{where} security_none = false but no certificate and private_key: no endpoint would be "
+                          "left; give them (Basic256Sha256 Sign & Encrypt) or offer policy None")
+    if users and not cert and not allow_plain:
+        raise ConfigError(f"{where} users are configured but the server has no certificate: their passwords would "
+                          "cross the network in clear text (security policy None). Give certificate and private_key "
+                          "(the server then offers Basic256Sha256 Sign & Encrypt and encrypts passwords; "
+                          "docs/opcua.md), or set allow_plain_passwords = true to decide for clear text on a network "
+                          "you trust")
+    return OpcUaSettings(table.get("enabled", d.enabled), endpoint, namespace, anonymous, dict(users), cert, key,
+                         security_none, allow_plain)
+
+
+def _check_opcua_pair(certificate: str, private_key: str, where: str) -> None:
+    """The OPC UA certificate (PEM or DER) and private key (PEM or DER, unencrypted) load and belong together
+    (read with the cryptography package, which asyncua uses; imported only when they are given)."""
+    from cryptography import x509
+    from cryptography.hazmat.primitives import serialization
+
+    def load(path, pem, der, what):
+        data = Path(path).read_bytes()
+        try:
+            return pem(data) if data.lstrip().startswith(b"-----BEGIN") else der(data)
+        except (ValueError, TypeError) as exc:
+            raise ConfigError(f"{where} {what} = {path!r} cannot be read ({exc}): give a PEM or DER file"
+                              + (", unencrypted" if what == "private_key" else "")) from None
+    cert = load(certificate, x509.load_pem_x509_certificate, x509.load_der_x509_certificate, "certificate")
+    key = load(private_key, lambda b: serialization.load_pem_private_key(b, None),
+               lambda b: serialization.load_der_private_key(b, None), "private_key")
+    if cert.public_key().public_numbers() != key.public_key().public_numbers():
+        raise ConfigError(f"{where} certificate = {certificate!r} and private_key = {private_key!r} do not belong "
+                          "together: give the key the certificate was made for")
