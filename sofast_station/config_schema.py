@@ -229,6 +229,8 @@ SECTIONS: dict[str, dict[str, Key]] = {
         "camera_timeout_s": _pos("s"), "min_free_gb": _nonneg("GB"), "dump_keep_days": _pos("days"),
         "dump_max_gb": _pos("GB"), "late_grace_s": _nonneg("s after the deadline a late analysis may take"),
         "warmup": Key("bool", doc="analyse one capture before reporting ready"),
+        "standby_worker": Key("bool", doc="keep a warm second analysis worker that takes over after a timeout or "
+                                          "a crash"),
     },
     "archive": {
         "workbook_period": Key("str", choices=("day", "shift")), "workbook_interval_s": _pos("s"),

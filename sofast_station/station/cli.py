@@ -196,7 +196,7 @@ def budget_text(rec: dict, columns=BUDGET_COLUMNS) -> str:
 def cmd_inspect(args) -> int:
     from ..archive._common import safe_name
     from ..config import load_config
-    from ..serials import clean_serial
+    from ..serials import clean_serial, raw_for_record
     from .factory import open_station
     from .inspection import inspect
 
@@ -212,6 +212,8 @@ def cmd_inspect(args) -> int:
         if note:
             log.warning("%s", note)
         rec = inspect(station, serial, progress=progress)
+        if note:                             # the serial as typed, when making it safe changed it
+            rec["serial_raw"] = raw_for_record(args.serial)
     finally:
         station.close()
     rec = json_safe(rec)

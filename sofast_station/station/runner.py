@@ -28,7 +28,7 @@ from ..calibrate.errors import StaleCalibrationError
 from ..calibrate.settings import calibration_settings
 from ..calibrate.store import check_cycle
 from ..devices.protocols import FAULT_CODES, WARNING_BITS, FacetRequest
-from ..serials import clean_serial
+from ..serials import clean_serial, raw_for_record
 from ..errors import (CameraError, CaptureError, DisplayError, GeometryError, StationError,
                       TriggerError)
 from . import console as _console
@@ -36,6 +36,7 @@ from .commands import take_commands, take_dump_next
 from .drift import DriftMonitor
 from .frames import capture_sequence, crop, crop_box, restore
 from .inspection import FIGURE_KEYS, calibration_entry, now_iso
+from .link import LinkWatch
 from .opened import Station
 from .recipes import Recipe, choose_recipe
 from .status import StatusFile
@@ -70,9 +71,13 @@ class RunSettings:
         Retention of dumps: older or beyond the total size, the oldest go first.
     late_grace_s : float
         An analysis still running at the deadline (the robot already answered "fault: timeout") may
-        finish this much later; its figures are then journaled and its frames dumped, marked late.
+        finish this much later, in its retired worker, while the standby measures the next facet; its
+        figures are then journaled and its frames dumped, marked late.
     warmup : bool
         Analyse one capture before the station reports ready, so the first facet is not the slowest.
+    standby_worker : bool
+        Keep a second analysis worker started and warm, which takes over at once after a timeout or a
+        crash, so the next facet is measured normally (a few hundred MB more memory at full resolution).
     """
 
     deadline_s: float = 10.0
@@ -86,6 +91,7 @@ class RunSettings:
     dump_max_gb: float = 50.0
     late_grace_s: float = 10.0
     warmup: bool = True
+    standby_worker: bool = True
 
 
 @dataclass
@@ -175,10 +181,14 @@ class StationRunner:
         self.submit = submit
         self.console = console
         self.stop_event = threading.Event()
+        #: The robot/PLC link: outages logged once, then once a minute; reconnects after a growing pause.
+        self.link = LinkWatch(settings.poll_s)
+        self._pause = self.stop_event.wait          # the pause between reconnects (tests give their own)
         self.cycles = 0
         self.fatal: StationError | None = None     # set when the station must stop (journal not writable)
         cam = station.config.geometry.camera
-        self.worker = AnalysisWorker(station.config.geometry, station.config.fringes, cam.shape)
+        self.worker = AnalysisWorker(station.config.geometry, station.config.fringes, cam.shape,
+                                     standby=settings.standby_worker)
         # The designs' optical traces are the same for every facet of a type: made now, not in a cycle.
         self.worker.prepare_optics([(r.design, r.optics) for r in recipes.values() if r.optics is not None])
         self._heartbeat_thread = threading.Thread(target=self._heartbeat, name="heartbeat", daemon=True)
@@ -237,13 +247,17 @@ class StationRunner:
 
     # ------------------------------------------------------------------ loop
     def _heartbeat(self) -> None:
+        warned = False
         while not self.stop_event.wait(self.settings.heartbeat_s):
-            if getattr(self.trigger.trigger, "finished", False):
-                continue                     # the simulated robot has placed its last facet
+            if getattr(self.trigger.trigger, "finished", False) or self.link.down:
+                continue                     # the last facet placed, or the link down: the loop reconnects
             try:
                 self.trigger.heartbeat()
+                warned = False
             except StationError as exc:
-                log.warning("heartbeat failed: %s", exc)
+                if not warned:               # once per failure streak, not every second
+                    log.warning("heartbeat failed: %s", exc)
+                warned = True
 
     def stop(self) -> None:
         """Finish the current facet, then stop."""
@@ -277,10 +291,9 @@ class StationRunner:
                     self.trigger.ready()
                     request = self.trigger.wait_for_facet(self.settings.poll_s)
                 except TriggerError as exc:
-                    log.error("robot/PLC handshake failed: %s; reconnecting", exc)
-                    self.status.alarm("plc", f"robot/PLC handshake failed: {exc}")
-                    self._reopen_trigger()
+                    self._link_failed(exc)
                     continue
+                self.link.ok()
                 self.status.alarm("plc", None)
                 if request is None:
                     if getattr(self.trigger.trigger, "finished", False):
@@ -345,13 +358,26 @@ class StationRunner:
             raw, _ = capture_sequence(self.station.display, self.station.camera, self.station.config.fringes,
                                       recipe.analysis.mask_threshold_dn, timeout_s=self.settings.camera_timeout_s)
             distance = float(self.station.range_finder.measure())
-            self.worker.analyse(raw, recipe.design, recipe.analysis, distance,
+            self.worker.warm_up(raw, recipe.design, recipe.analysis, distance,
                                 timeout_s=max(60.0, 3 * self.settings.deadline_s), optics=recipe.optics,
                                 uncertainty=self.station.config.uncertainty)
             log.info("warm-up: one capture analysed in %.1f s", time.perf_counter() - t)
         except StationError as exc:
             log.warning("warm-up capture not analysed (%s); the first facet may be slower", exc)
             self._reopen_camera()
+
+    def _link_failed(self, exc: BaseException) -> None:
+        """The handshake failed while waiting for a facet: alarm, reconnect, pause; logged by the link watch
+        once, then once a minute while the outage lasts (it was five lines a second)."""
+        pause = self.link.failed(exc)
+        self.status.alarm("plc", f"robot/PLC handshake failed: {exc}")
+        reopen = getattr(self.trigger.trigger, "reopen", None)
+        if reopen:
+            try:
+                reopen()
+            except StationError as again:
+                pause = self.link.failed(again)
+        self._pause(pause)
 
     def _reopen_trigger(self) -> None:
         reopen = getattr(self.trigger.trigger, "reopen", None)
@@ -371,11 +397,15 @@ class StationRunner:
         if note:                             # one safe serial for the journal, workbook, dump and page
             log.warning("%s (cycle %s)", note, cycle_id)
             request = dataclasses.replace(request, serial=serial,
-                                          extra={**request.extra, "serial_as_sent": ascii(request.serial[:200])})
+                                          extra={**request.extra, "serial_raw": raw_for_record(request.serial)})
         if self._manual_serial is not None and not request.extra.get("operator"):
-            request = dataclasses.replace(request, serial=clean_serial(self._manual_serial)[0],
-                                          extra={**request.extra, "serial_read": request.serial,
-                                                 "serial_source": "operator"})
+            manual, note = clean_serial(self._manual_serial)
+            extra = {k: v for k, v in request.extra.items() if k != "serial_raw"}   # the robot's: serial_read now
+            extra.update(serial_read=request.serial, serial_source="operator")
+            if note:
+                log.warning("%s (cycle %s, typed by an operator)", note, cycle_id)
+                extra["serial_raw"] = raw_for_record(self._manual_serial)
+            request = dataclasses.replace(request, serial=manual, extra=extra)
             self._manual_serial = None
             self.status.data["manual_serial"] = None
         self._last_request = request
@@ -393,7 +423,7 @@ class StationRunner:
                                    args=(cycle_id, request, state, t0))
         watchdog.daemon = True
         watchdog.start()
-        frames = raw_shape = box = distance = None
+        frames = raw_shape = box = distance = late = None
         outcome = None
         cal_warnings: list[str] = []
         try:
@@ -410,24 +440,27 @@ class StationRunner:
             frames, raw_shape = crop(raw, box), raw.shape[1:]
             cal_warnings = self._check_calibration(raw[0])
             del raw
-            # Past the deadline the watchdog answers "timeout"; the analysis may still finish within the
-            # grace period, and its figures are then journaled and dumped as a late result.
-            budget = self.settings.deadline_s - (time.perf_counter() - t0) - 0.3 + self.settings.late_grace_s
+            # At the deadline this thread answers "timeout" itself (just before the watchdog would) and the
+            # standby worker takes over for the next facet; the abandoned analysis may still finish within
+            # the late grace in its retired worker, and its figures are then journaled and dumped as a late
+            # result (_follow_late).
+            budget = self.settings.deadline_s - (time.perf_counter() - t0) - 0.3
             if budget <= 0:
                 raise AnalysisTimeout(f"the capture took {timings['capture']:.1f} s, past the "
                                       f"{self.settings.deadline_s:g} s deadline")
             t = time.perf_counter()
             state["stage"] = "analysis"
-            res = self.worker.analyse(restore(frames, box, raw_shape), recipe.design, recipe.analysis,
-                                      distance, timeout_s=budget, hang_s=hang_s, optics=recipe.optics,
-                                      uncertainty=self.station.config.uncertainty)
+            try:
+                res = self.worker.analyse(restore(frames, box, raw_shape), recipe.design, recipe.analysis,
+                                          distance, timeout_s=budget, hang_s=hang_s, optics=recipe.optics,
+                                          uncertainty=self.station.config.uncertainty,
+                                          late_s=self.settings.late_grace_s)
+            except AnalysisTimeout as exc:
+                if exc.late is not None:
+                    late = (exc.late, recipe, distance, notes, dict(timings), list(cal_warnings), t)
+                raise
             timings["analysis"] = time.perf_counter() - t
-            record = self._record(cycle_id, request, recipe, res.figures, distance, notes, timings, cal_warnings)
-            record.update(judge(res.figures, recipe.design, recipe.limits, recipe.quality))
-            if self.station.twin is not None and recipe.design.name == self.station.config.design.name:
-                from ..twin.truth import ground_truth
-                truth = ground_truth(self.station.twin, res.valid)
-                record["truth"] = {k: truth[k] for k in FIGURE_KEYS if k in truth}
+            record = self._measured_record(cycle_id, request, recipe, res, distance, notes, timings, cal_warnings)
             self._check_drift(recipe.name, record)
             outcome = CycleOutcome(cycle_id, serial, record["verdict"], record, valid=res.valid,
                                    preview=res.preview, sensitivities=getattr(res, "sensitivities", None))
@@ -447,16 +480,74 @@ class StationRunner:
         if frames is not None:
             outcome.record["crop_box"] = list(box)
         with self._answer_lock:
-            late = state["answered"]
+            answered = state["answered"]
             state["answered"] = True
         try:
-            if late:
+            if late is not None:
+                # The analysis was abandoned at the deadline and may still finish: the row is the timeout now
+                # (answered here, or by the watchdog), its figures and dump follow when the late result comes.
+                self._follow_late(outcome, request, t0, state, late, answered, raw_shape=raw_shape, box=box)
+            elif answered:
                 self._finish_late(outcome, request, t0, state, raw_shape=raw_shape, box=box, distance=distance)
             else:
                 self._finish(outcome, request, t0, raw_shape=raw_shape, box=box, distance=distance)
         finally:
             outcome.frames = None             # nothing of the frames outlives the cycle
         return outcome
+
+    def _measured_record(self, cycle_id, request, recipe, res, distance, notes, timings, cal_warnings) -> dict:
+        """The record of an analysed facet: figures, verdict and, on the simulated station, the truth."""
+        record = self._record(cycle_id, request, recipe, res.figures, distance, notes, timings, cal_warnings)
+        record.update(judge(res.figures, recipe.design, recipe.limits, recipe.quality))
+        if self.station.twin is not None and recipe.design.name == self.station.config.design.name:
+            from ..twin.truth import ground_truth
+            truth = ground_truth(self.station.twin, res.valid)
+            record["truth"] = {k: truth[k] for k in FIGURE_KEYS if k in truth}
+        return record
+
+    def _follow_late(self, outcome: CycleOutcome, request: FacetRequest, t0: float, state: dict, late: tuple,
+                     answered: bool, raw_shape, box) -> None:
+        """An analysis abandoned at the deadline: journal and answer the timeout now (unless the watchdog did),
+        without the dump; when the retired worker's result comes (or its grace ends), amend the row with the
+        figures, marked late, and dump the frames (_finish_late, from the retired worker's thread)."""
+        future, recipe, distance, notes, timings, cal_warnings, t_analysis = late
+        wanted = self._dump_due(outcome, request)            # decided now: the flag file is for this facet
+        if not answered:
+            self._finish(outcome, request, t0, raw_shape=raw_shape, box=box, distance=distance, dump=False)
+        state.setdefault("reason", (outcome.record.get("reasons") or ["timeout"])[0])
+        frames, cycle_id = outcome.frames, outcome.cycle_id
+        timeout_record = outcome.record
+
+        def done(fut) -> None:
+            try:
+                res = fut.result()
+            except StationError as exc:           # the analysis ended with its own error, late
+                res, error = None, exc
+            except BaseException as exc:          # noqa: BLE001 - never lose the row for an unexpected one
+                res, error = None, exc
+            else:
+                error = None
+            try:
+                if res is not None:
+                    timings["analysis"] = time.perf_counter() - t_analysis
+                    record = self._measured_record(cycle_id, request, recipe, res, distance, notes, timings,
+                                                   cal_warnings)
+                    result = CycleOutcome(cycle_id, outcome.serial, record["verdict"], record,
+                                          sensitivities=res.sensitivities)
+                else:
+                    record = dict(timeout_record)
+                    record["reasons"] = [f"{fault_code_for(error)[1]}: {error}" if error is not None else
+                                         f"no result within the late grace of {self.settings.late_grace_s:g} s "
+                                         "(the abandoned worker was killed)"]
+                    result = CycleOutcome(cycle_id, outcome.serial, "fault", record, fault_code=outcome.fault_code)
+                result.frames = frames
+                self._finish_late(result, request, t0, state, raw_shape=raw_shape, box=box, distance=distance,
+                                  dump=wanted)
+            except Exception:                      # noqa: BLE001 - a background thread must log, not die
+                log.exception("%s: the late result of cycle %s could not be kept", outcome.serial, cycle_id)
+            finally:
+                result = None
+        future.add_done_callback(done)
 
     def _expire(self, cycle_id: str, request: FacetRequest, state: dict, t0: float) -> None:
         """Watchdog: the cycle reached its deadline with its thread still busy (a hung capture or a slow
@@ -487,11 +578,13 @@ class StationRunner:
             self._reopen_camera()
 
     def _finish_late(self, outcome: CycleOutcome, request: FacetRequest, t0: float, state: dict, raw_shape, box,
-                     distance) -> None:
-        """The cycle's thread came back after the watchdog answered "timeout": keep what was measured.
+                     distance, dump: bool | None = None) -> None:
+        """A result that came after the robot was answered "timeout" (the watchdog's, or this thread's at the
+        deadline): keep what was measured.
 
         The robot's answer stays the timeout; the journaled row gets the figures (or the fault) and is
-        marked late, and the frames are dumped (a timeout is a fault).
+        marked late, and the frames are dumped (a timeout is a fault). *dump* says whether (decided at the
+        deadline); None: decide now.
         """
         record = outcome.record
         late_by = time.perf_counter() - t0 - self.settings.deadline_s
@@ -507,8 +600,9 @@ class StationRunner:
         record.update({"verdict": "fault", "fault_code": FAULT_CODES["timeout"], "late": True,
                        "late_by_s": round(late_by, 3)})
         outcome.answer, outcome.fault_code = "fault", FAULT_CODES["timeout"]
+        wanted = self._dump_due(outcome, request) if dump is None else (dump and outcome.frames is not None)
         dump = None
-        if self._dump_due(outcome, request):
+        if wanted:
             dump = {"frames": outcome.frames, "crop_box": box, "full_shape": raw_shape,
                     "measured_distance_m": distance, "sensitivities": outcome.sensitivities}
         try:
@@ -542,11 +636,14 @@ class StationRunner:
         return bool(request.dump or (s.dump_every_n and self.cycles % s.dump_every_n == 0)
                     or (s.dump_failed and outcome.answer in ("fail", "invalid", "indeterminate", "fault")))
 
-    def _finish(self, outcome: CycleOutcome, request: FacetRequest, t0: float, raw_shape, box, distance) -> None:
-        """Journal (and spool), then answer the robot: in that order."""
+    def _finish(self, outcome: CycleOutcome, request: FacetRequest, t0: float, raw_shape, box, distance,
+                dump: bool = True) -> None:
+        """Journal (and spool), then answer the robot: in that order. *dump* False: no dump now (a late
+        result may follow, which brings it)."""
         record = outcome.record
+        wanted = dump and self._dump_due(outcome, request)
         dump = None
-        if self._dump_due(outcome, request):
+        if wanted:
             dump = {"frames": outcome.frames, "crop_box": box, "full_shape": raw_shape,
                     "measured_distance_m": distance, "sensitivities": outcome.sensitivities}
         record["timings_s"]["until_journal"] = time.perf_counter() - t0
@@ -601,11 +698,16 @@ class StationRunner:
     # ------------------------------------------------------------------ records
     def _base(self, cycle_id: str, request: FacetRequest, recipe_name: str, cal_warnings=()) -> dict:
         cfg = self.station.config
-        return {"cycle_id": cycle_id, "serial": request.serial, "time": now_iso(), "recipe": recipe_name,
-                "station": cfg.name, "software_version": __version__, "config_hash": cfg.config_hash,
-                "calibration": calibration_entry(self.station, list(cal_warnings)),
-                "camera": {"exposure_s": self.station.radiometric.exposure_s, "gain": self.station.radiometric.gain},
-                "request": {"recipe": request.recipe, "dump": request.dump, **request.extra}}
+        extra = dict(request.extra)
+        raw = extra.pop("serial_raw", None)
+        rec = {"cycle_id": cycle_id, "serial": request.serial, "time": now_iso(), "recipe": recipe_name,
+               "station": cfg.name, "software_version": __version__, "config_hash": cfg.config_hash,
+               "calibration": calibration_entry(self.station, list(cal_warnings)),
+               "camera": {"exposure_s": self.station.radiometric.exposure_s, "gain": self.station.radiometric.gain},
+               "request": {"recipe": request.recipe, "dump": request.dump, **extra}}
+        if raw is not None:                  # the serial as received, when making it safe changed it
+            rec["serial_raw"] = raw
+        return rec
 
     def _record(self, cycle_id, request, recipe, figures, distance, notes, timings, cal_warnings=()) -> dict:
         rec = self._base(cycle_id, request, recipe.name, cal_warnings)

@@ -41,6 +41,9 @@ from ..protocols import FacetRequest
 from ._handshake import ANSWERED, BUSY, CLOSED, IDLE, READY, REQUESTED, PolledHandshake, pace, recipe_name
 
 log = logging.getLogger(__name__)
+# pymodbus logs every failed connect and request itself ("Connection to (host, port) failed"), which the
+# TriggerError raised here says with what to do: during a PLC outage those lines only filled the log.
+logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
 
 # STATUS values (station -> PLC).
 OFFLINE, STATUS_READY, STATUS_BUSY, STATUS_DONE, STATUS_FAULT = 0, 1, 2, 3, 4

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import multiprocessing as mp
 import os
 import queue
@@ -415,3 +416,30 @@ def test_after_a_reconnect_the_interrupted_cycles_own_request_stays_stale(plcs):
     assert request is not None and request.serial == "FIRST-1"
     trigger.close()
     obs.close()
+
+
+def test_a_plc_outage_is_said_once_then_once_a_minute(caplog):
+    """Issue 28: a PLC outage wrote about five log lines a second (the loop's failure, its failed reconnect,
+    the heartbeat's, pymodbus's own). The loop's link watch says it once, then once a minute, and once when
+    the link is back; reconnects are tried after a pause doubling up to MAX_PAUSE_S. On a test clock: a
+    ten-minute outage of a PLC that refuses every reconnect (the real ModbusTrigger against a closed port)."""
+    from sofast_station.station.link import MAX_PAUSE_S, LinkWatch
+
+    now = [1000.0]
+    watch = LinkWatch(first_pause_s=0.5, clock=lambda: now[0])
+    port = free_port()                                  # nobody listens there: the PLC is off
+    pauses = []
+    with caplog.at_level(logging.DEBUG):
+        while now[0] < 1000.0 + 600.0:
+            try:
+                ModbusTrigger("127.0.0.1", port, timeout_s=0.2)
+            except TriggerError as exc:
+                pauses.append(watch.failed(exc))
+                now[0] += pauses[-1]
+        watch.ok()
+    lines = [r for r in caplog.records if r.levelno >= logging.WARNING]
+    assert len(pauses) > 100                          # a reconnect every few seconds, all along
+    assert pauses[:4] == [0.5, 1.0, 2.0, 4.0] and max(pauses) == MAX_PAUSE_S
+    assert 10 <= len(lines) <= 13, [r.getMessage() for r in lines]   # the first, ~10 reminders, the recovery
+    assert "handshake failed" in lines[0].getMessage() and "back after 6" in lines[-1].getMessage()
+    assert not [r for r in caplog.records if r.name.startswith("pymodbus")]
