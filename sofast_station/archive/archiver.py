@@ -257,7 +257,7 @@ class Archiver:
         return ok
 
     def _dump_step(self, report: ArchiveReport) -> None:
-        pending = self.journal.pending_dumps()
+        pending = self.journal.pending_dump_rows()           # without the records: they come from the spool
         for i, row in enumerate(pending):
             if self._stop_requested():
                 report.dumps_waiting += len(pending) - i
