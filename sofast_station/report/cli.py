@@ -189,6 +189,7 @@ def cmd_acceptance(args) -> int:
 def cmd_certificate(args) -> int:
     from ..archive._common import safe_name
     from ..archive.journal import Journal
+    from ..serials import clean_serial
     from ..errors import ConfigError, StationError
     from .certificate import write_certificate
     from .sources import load_measured
@@ -203,6 +204,9 @@ def cmd_certificate(args) -> int:
         raise ConfigError(f"no journal at {path}: this station has not measured anything yet")
     with Journal(path) as j:
         rows = j.rows(serial=serial)
+        safe = clean_serial(serial)[0]
+        if not rows and safe != serial:          # typed as printed; journaled as the station made it safe
+            rows = j.rows(serial=safe)
     if not rows:
         raise ConfigError(f"serial {serial!r} is not in the journal {path}")
     row = rows[-1]                         # the latest test of the serial

@@ -150,3 +150,17 @@ def test_a_certificate_of_a_path_like_serial_stays_in_its_folder(station, tmp_pa
     assert pdf.resolve().parent == out.resolve() and pdf.suffix == ".pdf" and pdf.stat().st_size > 1000
     made = {p for p in tmp_path.rglob("*")} - before
     assert all(p.resolve().is_relative_to(out.resolve()) or p == out for p in made), sorted(made)
+
+
+def test_a_certificate_is_found_under_the_serial_as_printed(station, tmp_path, capsys):
+    """The station journals a serial made safe ("MF/2024/001" -> "MF_2024_001", the original in serial_raw);
+    the quality engineer types it as printed on the facet and gets its certificate."""
+    journal = tmp_path / "j.sqlite3"
+    rec = json.loads(json.dumps(SAMPLE))
+    rec.pop("truth")
+    rec.update(serial="MF_2024_001", serial_raw="MF/2024/001")
+    with Journal(journal) as j:
+        j.append("c00001", rec)
+    assert main(["report", "certificate", "MF/2024/001", "--config", str(station), "--journal", str(journal),
+                 "--out", str(tmp_path / "out")]) == 0
+    assert Path(capsys.readouterr().out.strip()).name == "certificate-MF_2024_001.pdf"
