@@ -176,12 +176,8 @@ def web_settings(config) -> WebSettings:
     allow_plain = table.get("allow_plain_http", d.allow_plain_http)
     if not isinstance(allow_plain, bool):
         raise ConfigError(f"{where} allow_plain_http = {allow_plain!r}: must be true or false")
-    cert, key = (_file(config, table, name, where) for name in ("certificate", "key"))
-    if bool(cert) != bool(key):
-        raise ConfigError(f"{where}: give both certificate and key (PEM files) to serve the page over HTTPS, "
-                          "or neither")
-    if cert:
-        _check_tls_pair(cert, key, where)
+    cert, key = _pair(config, table, ("certificate", "key"), where, "(PEM files) to serve the page over HTTPS",
+                      _check_tls_pair)
     settings = WebSettings(host.strip(), port, token, keep, tuple(sorted(starts)), nice, cert, key, allow_plain)
     settings.exposure(where)
     return settings
@@ -201,6 +197,17 @@ def _file(config, table: dict, name: str, where: str) -> str:
     if not path.is_file():
         raise ConfigError(f"{where} {name} = {value!r}: no such file ({path})")
     return str(path)
+
+
+def _pair(config, table: dict, names: tuple, where: str, purpose: str, check) -> tuple[str, str]:
+    """A certificate and its key (*names* in *table*) as absolute paths, both or neither ("", ""), checked
+    together by *check* (certificate, key, where)."""
+    cert, key = (_file(config, table, name, where) for name in names)
+    if bool(cert) != bool(key):
+        raise ConfigError(f"{where}: give both {names[0]} and {names[1]} {purpose}, or neither")
+    if cert:
+        check(cert, key, where)
+    return cert, key
 
 
 def _check_tls_pair(certificate: str, key: str, where: str) -> None:
@@ -241,12 +248,8 @@ def opcua_settings(config) -> OpcUaSettings:
     if not anonymous and not users:
         raise ConfigError(f"{where} anonymous = false but no users are configured: nobody could connect; "
                           "add users = { NAME = \"PASSWORD\" } or allow anonymous reading")
-    cert, key = (_file(config, table, name, where) for name in ("certificate", "private_key"))
-    if bool(cert) != bool(key):
-        raise ConfigError(f"{where}: give both certificate and private_key for Basic256Sha256 Sign & Encrypt, or "
-                          "neither")
-    if cert:
-        _check_opcua_pair(cert, key, where)
+    cert, key = _pair(config, table, ("certificate", "private_key"), where, "for Basic256Sha256 Sign & Encrypt",
+                      _check_opcua_pair)
     security_none = table.get("security_none", d.security_none)
     allow_plain = table.get("allow_plain_passwords", d.allow_plain_passwords)
     if not cert and not security_none:

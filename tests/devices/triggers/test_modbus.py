@@ -355,14 +355,10 @@ def test_a_plc_down_at_start_is_retried_until_it_answers(plcs, caplog):
     opened[0].close()
 
 
-@pytest.mark.parametrize("moment", ["before-reopen", "after-reopen", "after-ready"])
-def test_a_late_acknowledgement_followed_at_once_by_the_next_request_is_taken(plcs, moment):
-    """Issue 28: the PLC acknowledges after ``ack_timeout_s`` (the station has reported it and reconnected),
-    drops FACET_PRESENT for under a millisecond and raises the next facet with a new SEQUENCE. Whenever
-    those two writes land in the station's recovery (before its reconnect, between reconnect and READY,
-    or after READY), the next facet is taken, as docs/plc.md promises; the request of the interrupted
-    cycle itself (its SEQUENCE) still is not."""
-    plc = plcs({"facets": []})                         # the test is the PLC program: every write in order
+def _answer_not_acknowledged_in_time(plcs):
+    """A trigger whose answer to FIRST-1 (SEQUENCE 7) the PLC did not acknowledge within ``ack_timeout_s``
+    (the test is the PLC program: every write in order), and the observer that plays the PLC."""
+    plc = plcs({"facets": []})
     obs = Observer(plc.port)
     trigger = ModbusTrigger("127.0.0.1", plc.port, ack_timeout_s=0.3, heartbeat_interval_s=0.1)
     obs.write_plc(plc_block({"serial": "FIRST-1"}, 7, present=0))
@@ -372,6 +368,17 @@ def test_a_late_acknowledgement_followed_at_once_by_the_next_request_is_taken(pl
     trigger.busy()
     with pytest.raises(TriggerError, match="did not acknowledge"):
         trigger.done("pass")                           # the PLC is late: the station gives up waiting
+    return trigger, obs
+
+
+@pytest.mark.parametrize("moment", ["before-reopen", "after-reopen", "after-ready"])
+def test_a_late_acknowledgement_followed_at_once_by_the_next_request_is_taken(plcs, moment):
+    """Issue 28: the PLC acknowledges after ``ack_timeout_s`` (the station has reported it and reconnected),
+    drops FACET_PRESENT for under a millisecond and raises the next facet with a new SEQUENCE. Whenever
+    those two writes land in the station's recovery (before its reconnect, between reconnect and READY,
+    or after READY), the next facet is taken, as docs/plc.md promises; the request of the interrupted
+    cycle itself (its SEQUENCE) still is not."""
+    trigger, obs = _answer_not_acknowledged_in_time(plcs)
 
     def late_ack_then_next_facet():
         obs.write_plc(plc_block({"serial": "FIRST-1"}, 7, present=0, ack=1))      # the late acknowledgement
@@ -396,16 +403,7 @@ def test_a_late_acknowledgement_followed_at_once_by_the_next_request_is_taken(pl
 def test_after_a_reconnect_the_interrupted_cycles_own_request_stays_stale(plcs):
     """The other side of the SEQUENCE rule: the station reconnects while the unacknowledged request is still
     up with the SEQUENCE it answered; that is not a new facet until the PLC drops it and raises it again."""
-    plc = plcs({"facets": []})
-    obs = Observer(plc.port)
-    trigger = ModbusTrigger("127.0.0.1", plc.port, ack_timeout_s=0.3, heartbeat_interval_s=0.1)
-    obs.write_plc(plc_block({"serial": "FIRST-1"}, 7, present=0))
-    trigger.ready()
-    obs.write_plc(plc_block({"serial": "FIRST-1"}, 7))
-    assert _wait_request(trigger).serial == "FIRST-1"
-    trigger.busy()
-    with pytest.raises(TriggerError, match="did not acknowledge"):
-        trigger.done("pass")
+    trigger, obs = _answer_not_acknowledged_in_time(plcs)
     trigger.reopen()
     trigger.ready()
     assert trigger.wait_for_facet(0.3) is None         # SEQUENCE 7 again: the interrupted cycle's request
