@@ -476,6 +476,9 @@ class StationRunner:
                 self._reopen_camera()
         finally:
             watchdog.cancel()
+            # A watchdog that has fired may still be answering the robot (journal, then the trigger): the
+            # loop's next ready() must come after that answer, not in the middle of it.
+            watchdog.join()
         outcome.frames = frames
         if frames is not None:
             outcome.record["crop_box"] = list(box)

@@ -510,11 +510,12 @@ class AnalysisWorker:
         """Between facets: a worker that died is replaced (the standby takes over), a dead standby restarted,
         a missing standby started; True when the worker was replaced."""
         replaced = False
-        if self._active is None or not self._active.alive():
-            log.error("the analysis worker (process %s) is gone: replacing it",
-                      (self._active.pids() if self._active else None) or "?")
+        if self._active is not None and not self._active.alive():
+            log.error("the analysis worker (process %s) is gone: replacing it", self._active.pids() or "?")
             self._replace(self._active)
             replaced = True
+        elif self._active is None and not self._promote():
+            self._launch_standby()               # none ready (a takeover's standby still starting): on its way
         with self._lock:
             standby = self._standby
         if standby is not None and not standby.alive():
