@@ -526,7 +526,9 @@ class _PartWriter:
             for flat in self._flat_rows():                  # second pass: the rows, streamed to the sheet
                 cells = [None] * width
                 for name, value in flat.items():
-                    if value is not None:
+                    # a column the first pass did not see: the row was amended (a late result) between the
+                    # passes; its journal row changed version, so it stays pending and is written whole again
+                    if value is not None and name in columns:
                         cells[columns[name]] = _cell(ws, name, value)
                 ws.append(cells)
             us = wb.create_sheet("units")
