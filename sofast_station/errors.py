@@ -16,6 +16,14 @@ class ConfigError(StationError):
     """The configuration (station.toml, a facet file, a calibration record) is missing or invalid."""
 
 
+class UnknownRecipeError(ConfigError):
+    """The PLC asked for a recipe that station.toml does not define (its own fault code, "recipe")."""
+
+
+class CommandError(StationError):
+    """An operator command that cannot be posted to the running station: unknown, or with a bad argument."""
+
+
 class CaptureError(StationError):
     """The frames handed to the analysis are not a usable capture (wrong count, size, dark, saturated)."""
 
@@ -40,6 +48,26 @@ class AnalysisError(StationError):
     """The analysis could not produce a trustworthy result from otherwise valid frames."""
 
 
+class AnalysisTimeout(StationError):
+    """The analysis did not finish before the cycle's deadline; the standby worker took over.
+
+    Attributes
+    ----------
+    late : concurrent.futures.Future or None
+        The abandoned analysis, still running in its retired worker for up to the late grace: resolves to
+        the worker's result when it finishes in time, to None when it does not (the worker is then killed),
+        or to the analysis's own error. None when there is nothing to wait for.
+    """
+
+    def __init__(self, message: str = "", late=None):
+        super().__init__(message)
+        self.late = late
+
+
+class WorkerDied(StationError):
+    """The analysis worker process died (killed, out of memory); the standby took over."""
+
+
 class CameraError(StationError):
     """The camera failed: no frame in time, gone from the bus, or frames of the wrong size."""
 
@@ -58,6 +86,10 @@ class TriggerError(StationError):
 
 class ArchiveError(StationError):
     """A journal, workbook or dump could not be read or written."""
+
+
+class ReportError(StationError):
+    """A picture or report cannot be made: no analysis (the capture was refused), or no data in the period."""
 
 
 class DumpError(ArchiveError):

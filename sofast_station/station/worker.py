@@ -37,29 +37,9 @@ from multiprocessing.shared_memory import SharedMemory
 
 import numpy as np
 
-from ..errors import StationError
+from ..errors import AnalysisTimeout, StationError, WorkerDied
 
 log = logging.getLogger(__name__)
-
-
-class AnalysisTimeout(StationError):
-    """The analysis did not finish before the cycle's deadline; the standby worker took over.
-
-    Attributes
-    ----------
-    late : concurrent.futures.Future or None
-        The abandoned analysis, still running in its retired worker for up to the late grace: resolves to
-        the :class:`WorkerResult` when it finishes in time, to None when it does not (the worker is then
-        killed), or to the analysis's own error. None when there is nothing to wait for.
-    """
-
-    def __init__(self, message: str, late: Future | None = None):
-        super().__init__(message)
-        self.late = late
-
-
-class WorkerDied(StationError):
-    """The analysis worker process died (killed, out of memory); it is being restarted."""
 
 
 def watch_parent(parent_pid: int | None = None, poll_s: float = 0.5) -> None:
@@ -145,7 +125,7 @@ def _run(ticket: int, design: dict, settings: dict, distance_m: float, hang_s: f
     from ..measure.analysis import analyse
     from ..measure.pipeline import AnalysisSettings
     from ..measure.uncertainty import InputUncertainties
-    from .optics import DesignTraces, add_optics
+    from ..result.optical_figures import DesignTraces, add_optics
 
     _STATE["begun"][0] = ticket          # begun: from here a death is this facet's (see the module's text)
     if hang_s < 0:                       # fault injection for tests: the worker dies mid-analysis
@@ -183,7 +163,7 @@ def _preview(a, most: int = 6000) -> dict:
 
 def _prepare_optics(designs: list) -> int:
     from ..facet import FacetDesign
-    from .optics import DesignTraces
+    from ..result.optical_figures import DesignTraces
 
     import numpy as np
 

@@ -33,7 +33,8 @@ from starlette.requests import Request
 from starlette.responses import HTMLResponse, JSONResponse, Response, StreamingResponse
 from starlette.routing import Route
 
-from ..station.commands import COMMANDS, CommandError, check_manual_serial, post_command
+from ..errors import CommandError
+from ..station.commands import COMMANDS, check_manual_serial, post_command
 from .data import LineData
 from .images import FacetImages
 from .render import esc, sections
