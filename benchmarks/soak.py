@@ -168,7 +168,7 @@ def main(argv=None) -> int:
         service = Service(cfg, simulated_facets=args.cycles, console=lambda line: None)
         print(f"station started in {time.perf_counter() - t0:.1f} s", flush=True)
         if args.no_truth:
-            service.runner.station.twin = None     # the camera keeps its own twin; only the truth goes
+            service.runner.station.truth = lambda *a, **k: None   # what a real station knows: no truth
         samples: dict[str, list[tuple[int, float, int]]] = {"station": [], "worker": [], "standby": [],
                                                              "archiver": []}
         by_pid: dict[tuple[str, int], list[tuple[int, float]]] = {}
