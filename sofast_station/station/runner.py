@@ -507,13 +507,9 @@ class StationRunner:
 
         def done(fut) -> None:
             try:
-                res = fut.result()
-            except StationError as exc:           # the analysis ended with its own error, late
+                res, error = fut.result(), None
+            except BaseException as exc:          # noqa: BLE001 - the analysis's own error, late: kept in the row
                 res, error = None, exc
-            except BaseException as exc:          # noqa: BLE001 - never lose the row for an unexpected one
-                res, error = None, exc
-            else:
-                error = None
             try:
                 if res is not None:
                     timings["analysis"] = time.perf_counter() - t_analysis
