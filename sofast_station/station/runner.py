@@ -16,6 +16,7 @@ from __future__ import annotations
 import dataclasses
 import datetime as _dt
 import logging
+import queue
 import threading
 import time
 import uuid
@@ -26,6 +27,7 @@ import numpy as np
 from ..calibrate.settings import calibration_settings
 from ..calibrate.store import check_cycle
 from ..devices.protocols import FAULT_CODES, WARNING_BITS, FacetRequest
+from ..archive._common import trim_heap
 from ..errors import AnalysisTimeout, CameraError, StationError, TriggerError
 from ..result.faults import fault_reason
 from ..result.record import RecordHead, build_record
@@ -166,6 +168,8 @@ class StationRunner:
         self.submit = submit
         self.console = console
         self.stop_event = threading.Event()
+        #: Late results of abandoned analyses, queued by the retired workers' threads, kept by the loop.
+        self._late_results: queue.SimpleQueue = queue.SimpleQueue()
         #: The robot/PLC link: outages logged once, then once a minute; reconnects after a growing pause.
         self.link = LinkWatch(settings.poll_s)
         self._pause = self.stop_event.wait          # the pause between reconnects (tests give their own)
@@ -263,6 +267,7 @@ class StationRunner:
                 if max_cycles is not None and self.cycles >= max_cycles:
                     break
                 self.supervise()
+                self._keep_late_results()
                 for operator_request in self._take_commands():
                     done = self.cycle(operator_request)
                     if on_outcome is not None:
@@ -495,8 +500,8 @@ class StationRunner:
     def _follow_late(self, outcome: CycleOutcome, request: FacetRequest, t0: float, state: dict, late: tuple,
                      answered: bool, raw_shape, box) -> None:
         """An analysis abandoned at the deadline: journal and answer the timeout now (unless the watchdog did),
-        without the dump; when the retired worker's result comes (or its grace ends), amend the row with the
-        figures, marked late, and dump the frames (_finish_late, from the retired worker's thread)."""
+        without the dump; when the retired worker's result comes (or its grace ends), the loop amends the row
+        with the figures, marked late, and dumps the frames, between facets (_finish_late)."""
         future, recipe, distance, notes, timings, cal_warnings, t_analysis = late
         wanted = self._dump_due(outcome, request)            # decided now: the flag file is for this facet
         if not answered:
@@ -505,7 +510,10 @@ class StationRunner:
         frames, cycle_id = outcome.frames, outcome.cycle_id
         timeout_record = outcome.record
 
-        def done(fut) -> None:
+        def done(fut) -> None:                     # in the retired worker's thread: hand it to the loop
+            self._late_results.put(lambda: keep(fut))
+
+        def keep(fut) -> None:                     # in the loop's thread, between facets
             try:
                 res, error = fut.result(), None
             except BaseException as exc:          # noqa: BLE001 - the analysis's own error, late: kept in the row
@@ -526,7 +534,7 @@ class StationRunner:
                 result.frames = frames
                 self._finish_late(result, request, t0, state, raw_shape=raw_shape, box=box, distance=distance,
                                   dump=wanted)
-            except Exception:                      # noqa: BLE001 - a background thread must log, not die
+            except Exception:                      # noqa: BLE001 - a late result must never stop the line
                 log.exception("%s: the late result of cycle %s could not be kept", outcome.serial, cycle_id)
             finally:
                 result = None
@@ -701,7 +709,21 @@ class StationRunner:
             self.status.alarm("camera", None)
         self.status.update(state="paused" if self.paused else "fault" if answer == "fault" else "idle")
 
+    def _keep_late_results(self) -> None:
+        """Between facets, in the loop's thread: journal and dump the late results that came in (they are
+        queued by the retired workers' threads, so that the records, the spools of tens of MB and the
+        journal are written where every other facet's are, not in a thread per late result)."""
+        while True:
+            try:
+                keep = self._late_results.get_nowait()
+            except queue.Empty:
+                return
+            keep()
+            keep = None
+            trim_heap()                 # the late facet's frames and result: back to the system
+
     def close(self) -> None:
         self.stop_event.set()
-        self.worker.close()
+        self.worker.close()             # waits for an abandoned analysis within its grace: it queues its result
+        self._keep_late_results()
         self.status.close()
