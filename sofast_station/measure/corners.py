@@ -130,7 +130,8 @@ def _segments_distance(a0: np.ndarray, a1: np.ndarray, q0: np.ndarray, q1: np.nd
     """Distance (pixels) between each segment a0[i] -> a1[i] ((M, 2) each) and the segment q0 -> q1: 0
     where they cross, else the least of their ends' distances to the other segment."""
     def side(p, r0, r1):
-        return (r1[..., 0] - r0[..., 0]) * (p[..., 1] - r0[..., 1]) - (r1[..., 1] - r0[..., 1]) * (p[..., 0] - r0[..., 0])
+        return ((r1[..., 0] - r0[..., 0]) * (p[..., 1] - r0[..., 1])
+                - (r1[..., 1] - r0[..., 1]) * (p[..., 0] - r0[..., 0]))
 
     crossing = (np.sign(side(q0, a0, a1)) != np.sign(side(q1, a0, a1))) \
         & (np.sign(side(a0, q0, q1)) != np.sign(side(a1, q0, q1)))
@@ -852,7 +853,6 @@ _HINTS: dict = {}
 def _outline_hints(design, camera, fixture_to_camera, per_side: int) -> dict:
     nominal = outline_points_px(design, camera, fixture_to_camera, per_side)
     n = len(design.outline_m)
-    bows = _bows_px(nominal, n)
     coarse = _bows_px(outline_points_px(design, camera, fixture_to_camera, 16), n)
     mx, my = design.middle_m
     middle = np.array([mx, my, float(design.z(mx, my))])

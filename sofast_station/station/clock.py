@@ -96,7 +96,8 @@ class StationClock:
                            f"{now.isoformat(timespec='seconds')}): this row is dated, and filed, by the clock as it "
                            "reads now; check the station's time (NTP)")
         elif self._last_time is not None and (self._last_time - now).total_seconds() > self.tolerance_s:
-            warning = (f"the wall clock reads {now.isoformat(timespec='seconds')}, {_hours((self._last_time - now).total_seconds())} "
+            back = _hours((self._last_time - now).total_seconds())
+            warning = (f"the wall clock reads {now.isoformat(timespec='seconds')}, {back} "
                        f"before the journal's newest row ({self._last_time.isoformat(timespec='seconds')}): it stepped "
                        "back while the station was off; this row is dated, and filed, by the clock as it reads now; "
                        "check the station's time (NTP)")

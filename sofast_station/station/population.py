@@ -172,7 +172,7 @@ class PopulationStation:
     facet, the displayed images (linearised, and not: the gamma fault) and the sensitivity cache."""
 
     def __init__(self, spec: dict, data_dir: Path, images: dict):
-        from ..twin.config import TrueFacet, TwinOptics
+        from ..twin.parameters import TrueFacet, TwinOptics
 
         self.spec = spec
         cfg = kind_config(spec["kind"], data_dir)
@@ -494,7 +494,8 @@ def summarise(cases: list[dict], quality=None) -> dict:
                                                             "reasons")} for c in fc if not c["caught"]]}
     out["faults"] = faults
     stats = [c["statistics"] for c in good if c.get("statistics")]
-    limits = {"valid_fraction": (">=", q.min_valid_fraction), "median_modulation_dn": (">=", q.min_median_modulation_dn),
+    limits = {"valid_fraction": (">=", q.min_valid_fraction),
+              "median_modulation_dn": (">=", q.min_median_modulation_dn),
               "unwrap_disagreement_fraction": ("<=", q.max_unwrap_disagreement_fraction),
               "outline_agreement": (">=", q.min_outline_agreement),
               "corner_reprojection_rms_px": ("<=", q.max_corner_reprojection_px),

@@ -19,7 +19,7 @@ ground_truth
 """
 
 from .camera import TwinCamera
-from .config import TrueFacet, TwinOptics
+from .parameters import TrueFacet, TwinOptics
 from .station import TwinStation
 from .surface import TrueSurface
 from .truth import ground_truth

@@ -8,7 +8,7 @@ camera model, any k1 the distortion inverts, e.g. |k1| <= 0.3).
 
 Selecting a model
 -----------------
-Every model is a field of :class:`~sofast_station.twin.config.TwinOptics`, so a station file selects it
+Every model is a field of :class:`~sofast_station.twin.parameters.TwinOptics`, so a station file selects it
 in its ``[simulation.optics]`` table, and code passes ``TwinOptics(...)`` to
 :class:`~sofast_station.twin.station.TwinStation`::
 

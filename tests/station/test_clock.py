@@ -8,8 +8,6 @@ import datetime as _dt
 import logging
 import time
 
-import pytest
-
 from sofast_station.archive import Journal
 from sofast_station.archive.workbook import period_key
 from sofast_station.config import load_config

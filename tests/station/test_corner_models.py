@@ -21,7 +21,7 @@ import pytest
 from sofast_station.config import load_config
 from sofast_station.measure import corners
 from sofast_station.measure.mask import facet_region
-from sofast_station.twin.config import TrueFacet, TwinOptics
+from sofast_station.twin.parameters import TrueFacet, TwinOptics
 from sofast_station.twin.station import TwinStation
 from tests.conftest import ROOT
 from tests.station.test_facets import FACETS
@@ -59,7 +59,8 @@ def find_corners(kind: str, optics: dict, turn_mrad: float, rim_m: float = 0.0, 
     """(found corners in the true corners' order, the fit, true corner pixels) for one capture with 1 DN
     read noise and shot noise."""
     cfg, facet = small_station(kind, rim_m=rim_m)
-    twin = TwinStation(cfg.geometry, cfg.design, TrueFacet.from_dict({**facet, "placement_mrad": [0.0, 0.0, turn_mrad]}),
+    true_facet = TrueFacet.from_dict({**facet, "placement_mrad": [0.0, 0.0, turn_mrad]})
+    twin = TwinStation(cfg.geometry, cfg.design, true_facet,
                        TwinOptics(**optics, read_noise_dn=1.0, ambient_jitter=0.0))
     rng = np.random.default_rng(seed)
     screen = cfg.geometry.screen

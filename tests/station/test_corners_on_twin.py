@@ -18,7 +18,7 @@ from sofast_station.calibrate.records import load_radiometric
 from sofast_station.config import load_config
 from sofast_station.devices.renderer import FringeRenderer
 from sofast_station.measure.analysis import analyse
-from sofast_station.twin.config import TrueFacet, TwinOptics
+from sofast_station.twin.parameters import TrueFacet, TwinOptics
 from sofast_station.twin.station import TwinStation
 from sofast_station.twin.truth import ground_truth
 from tests.conftest import ROOT
@@ -47,7 +47,8 @@ def measure(kind: str, scale: int, blur_px: float = 0.0, edge_sampling: str = "a
     cfg, facet = scaled(kind, scale, k1)
     optics = {"blur_px": blur_px, "edge_sampling": edge_sampling, **(optics or {})}
     if optics.get("bevel_width_mm"):          # the design declares its glass rim
-        cfg = dataclasses.replace(cfg, design=dataclasses.replace(cfg.design, edge_rim_m=1e-3 * optics["bevel_width_mm"]))
+        rim_m = 1e-3 * optics["bevel_width_mm"]
+        cfg = dataclasses.replace(cfg, design=dataclasses.replace(cfg.design, edge_rim_m=rim_m))
     twin = TwinStation(cfg.geometry, cfg.design, TrueFacet.from_dict({**facet, "placement_mrad": [0.0, 0.0, rz_mrad]}),
                        TwinOptics(**optics).noise_free())
     record = load_radiometric(ROOT / "calibration/simulated_radiometric.json")
@@ -111,7 +112,8 @@ def test_gore_twist_on_other_edge_models_through_a_distorting_lens(model):
     through a lens with k1 = -0.3: within 0.002 mrad/m, the optical tilt within 0.05 mrad (the rim's within
     0.15: its corners are only known to the rim's width). (Strong vignetting: 0.0002 mrad/m, left to the
     corner tests, tests/station/test_corner_models.py.)"""
-    optics = {"disk blur": {"defocus_px": 1.5}, "bevelled rim": {"bevel_width_mm": 2.0, "bevel_tilt_mrad": 400.0}}[model]
+    optics = {"disk blur": {"defocus_px": 1.5},
+              "bevelled rim": {"bevel_width_mm": 2.0, "bevel_tilt_mrad": 400.0}}[model]
     a, twin = measure("gore", 2, k1=-0.3, optics=optics)
     twist, tilt = twist_and_tilt_errors(a, twin, f"{model}, k1 -0.3")
     assert abs(twist) < 0.002

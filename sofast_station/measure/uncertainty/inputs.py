@@ -241,7 +241,8 @@ def input_key(inp: Input) -> str | None:
         return "fixture_translation_mm"
     return {"measured distance": "distance_mm", "camera focal length": "camera_focal_px",
             "camera principal point": "camera_principal_px", "camera distortion": "camera_distortion",
-            "camera-to-screen rotation": "screen_rotation_mrad", "camera-to-screen translation": "screen_translation_mm",
+            "camera-to-screen rotation": "screen_rotation_mrad",
+            "camera-to-screen translation": "screen_translation_mm",
             "screen pitch": "screen_pitch_relative", "display response": "response_phase_rad",
             "corner location": "corner_px"}.get(inp.group)
 
