@@ -102,6 +102,10 @@ EDGE_MODELS = {
                                "vignetting_exponent": float(rng.uniform(2.0, 6.0))},
 }
 
+#: The edge models in two groups the study reports apart: a sharp edge (the pixel's own sampling, a rim,
+#: vignetting) and one the lens blurs over a pixel or more.
+EDGE_GROUPS = {"sharp": ("area", "point", "grid", "bevel", "vignetting"), "blurred": ("blur", "defocus")}
+
 #: Planted faults, each caught when the capture is refused or judged invalid.
 FAULTS = ("swapped", "gamma", "obstruction", "misplaced")
 
@@ -525,6 +529,8 @@ def summarise(cases: list[dict], quality=None) -> dict:
             corners[e] = {"n": int(v.size), "median": float(np.median(v)), "p90": float(np.quantile(v, 0.9)),
                           "max": float(v.max()), "within_0.1": float(np.mean(v <= 0.1))}
     out["corners_by_edge"] = corners
+    out["coverage_by_group"] = {g: coverage_rows([c for c in judged if c["edge"] in members])
+                                for g, members in EDGE_GROUPS.items()}
     out["n_stations"] = len({c["index"] for c in cases})
     return out
 
@@ -617,6 +623,19 @@ def summary_text(summary: dict) -> str:
             cov = [r["coverage"] for r in erows]
             lines.append(f"  {edge:<11}{n:5d}  {100 * min(cov):5.1f}-{100 * max(cov):5.1f} %"
                          + (f"; outside {100 * lo_e:.0f}-{100 * hi_e:.0f} %: " + ", ".join(outside) if outside else ""))
+    groups = {g: {r["figure"]: r for r in grows} for g, grows in summary.get("coverage_by_group", {}).items()}
+    if rows and any(groups.values()):
+        counts = {g: max((r["n"] for r in t.values()), default=0) for g, t in groups.items()}
+        lines.append("coverage (RMS of error / (U / 2)) per figure, all captures and by edge group ("
+                     + "; ".join(f"{g}: {', '.join(EDGE_GROUPS[g])}" for g in groups) + "):")
+        n_all = max(r["n"] for r in rows)
+        lines.append(f"  {'figure':<38}{'all (' + str(n_all) + ')':>16}"
+                     + "".join(f"{g + ' (' + str(counts[g]) + ')':>18}" for g in groups))
+        for r in rows:
+            cells = [groups[g].get(r["figure"]) for g in groups]
+            lines.append(f"  {r['figure']:<38}{100 * r['coverage']:8.1f}% ({r['z_rms']:4.2f})"
+                         + "".join(f"{100 * c['coverage']:10.1f}% ({c['z_rms']:4.2f})" if c else f"{'-':>18}"
+                                   for c in cells))
     if summary.get("corners_by_edge"):
         lines.append("corners against the twin's true corner pixels per edge model (RMS per capture, px):")
         lines.append(f"  {'edge model':<14}{'n':>6}{'median':>9}{'90 %':>9}{'max':>9}{'<= 0.1 px':>11}")
