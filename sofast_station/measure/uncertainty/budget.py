@@ -84,26 +84,35 @@ def axis_angle_u(u_linear: float) -> float:
 
 
 def _axis_angle_floor(figures: dict, paths: list, u: np.ndarray) -> float:
-    """The axis angle's linear standard uncertainty (rad) that the curvatures' and the twist's own *u*
-    imply, taking their errors as independent: the angle is half the direction of (A - B, E) with
-    A - B = (kappa_x - kappa_y) / 4 and E = twist / 1000, so an error across that vector of sigma_perp
-    turns it by sigma_perp / (2 rho). The budget's own rows for the angle miss what moves kappa_x and kappa_y
-    apart without a row of its own (a blurred edge's slopes, the facet's own slope errors over the pixels
-    kept); on a nearly round facet that decides whether the direction is known at all. 0 when a figure
-    is missing."""
+    """The axis angle's expanded uncertainty (k = 2, rad) that the curvatures' and the twist's own standard
+    uncertainties *u* imply, their errors taken as independent.
+
+    The angle is half the direction of v = (A - B, E), A - B = (kappa_x - kappa_y) / 4 and E = twist / 1000.
+    The vectors within k standard deviations of the measured one (an ellipse of half-axes k sigma) turn
+    it by at most the largest half-direction change over that ellipse's boundary; when the ellipse holds
+    the origin the direction is not known at all: pi / 2. Linearised (what the budget's own rows give),
+    a nearly round facet's |A - B| inflated by its noise looked like a known axis: a flat facet whose
+    measured A - B was 2 of its standard deviations from 0 had its axis stated to 0.03 rad and was pi / 2
+    off. The budget's rows also miss what moves kappa_x and kappa_y apart without a row of its own (the
+    facet's own slope errors over the pixels kept). 0 when a figure is missing."""
     try:
         jx, jy, jt = (paths.index((n,)) for n in ("curvature_x_per_m", "curvature_y_per_m", "twist_mrad_per_m"))
         kx, ky, tw = (float(figures[n]) for n in ("curvature_x_per_m", "curvature_y_per_m", "twist_mrad_per_m"))
     except (ValueError, KeyError, TypeError):
         return 0.0
     d, e = 0.25 * (kx - ky), 1e-3 * tw
-    s_d, s_e = 0.25 * float(np.hypot(u[jx], u[jy])), 1e-3 * float(u[jt])
-    rho = float(np.hypot(d, e))
-    if not np.isfinite(s_d + s_e):
+    k = COVERAGE_FACTOR
+    r_d, r_e = k * 0.25 * float(np.hypot(u[jx], u[jy])), k * 1e-3 * float(u[jt])
+    if not np.isfinite(r_d + r_e) or not np.isfinite(d + e):
         return 0.0
-    if rho == 0.0:
-        return float("inf") if s_d + s_e > 0 else 0.0
-    return float(np.hypot(s_d * e, s_e * d) / rho) / (2.0 * rho)
+    if r_d <= 0.0 or r_e <= 0.0:
+        return 0.0
+    if (d / r_d) ** 2 + (e / r_e) ** 2 <= 1.0:
+        return 0.5 * np.pi
+    t = np.linspace(0.0, 2.0 * np.pi, 256, endpoint=False)
+    turn = 0.5 * (np.arctan2(e + r_e * np.sin(t), d + r_d * np.cos(t)) - np.arctan2(e, d))
+    turn = (turn + 0.5 * np.pi) % np.pi - 0.5 * np.pi
+    return float(min(np.max(np.abs(turn)), 0.5 * np.pi))
 
 
 def _clean(v: float):
@@ -202,8 +211,8 @@ def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs:
             continue
         if p == ("axis_angle_rad",):
             floor, floor_rand = (_axis_angle_floor(figures, sens.paths, v) for v in (u, u_rand))
-            total[p] = _clean(axis_angle_u(max(u[j], floor)))
-            random[p] = _clean(axis_angle_u(max(u_rand[j], floor_rand)))
+            total[p] = _clean(max(axis_angle_u(u[j]), floor))
+            random[p] = _clean(max(axis_angle_u(u_rand[j]), floor_rand))
             continue
         total[p] = _clean(k * u[j])
         random[p] = _clean(k * u_rand[j])
