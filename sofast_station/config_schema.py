@@ -126,7 +126,9 @@ SECTIONS: dict[str, dict[str, Key]] = {
         "width_px": Key("int", low=1), "height_px": Key("int", low=1),
         "focal_length_px": Key("float|floats", low=0.0, low_open=True, length=(2,), doc="f or [fx, fy], px"),
         "principal_point_px": Key("floats", length=(2,), doc="[cx, cy], px"),
-        "distortion": Key("floats", length=(4, 5, 8), doc="OpenCV k1, k2, p1, p2[, k3[, k4, k5, k6]]"),
+        "distortion": Key("floats", length=(4, 5), doc="OpenCV's k1, k2, p1, p2[, k3]: the 5-term model the "
+                          "analysis and the twin use (4 terms: k3 = 0); OpenCV's 8-term rational model is not "
+                          "supported, calibrate the camera with the 5-term model ('calibrate camera')"),
         "intrinsics": Key("str", doc="\"station.toml\" or \"record\" (checked with its own message)"),
     },
     "screen": {
@@ -261,7 +263,8 @@ TOP_LEVEL = ["station", "camera", "screen", "layout", "fringes", "analysis", "li
 
 def _check_value(key: Key, value, file: str, label: str, name: str) -> None:
     def bad() -> ConfigError:
-        return ConfigError(f"{file} [{label}] {name} must be {key.allowed()}, got {value!r}")
+        what = f" ({key.doc})" if key.length and isinstance(value, list) and len(value) not in key.length else ""
+        return ConfigError(f"{file} [{label}] {name} must be {key.allowed()}, got {value!r}{what}")
 
     kind = key.kind
     if kind == "any":

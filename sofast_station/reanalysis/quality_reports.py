@@ -17,6 +17,22 @@ log = logging.getLogger(__name__)
 REPORTS = ("spc", "acceptance", "certificate", "diff")
 
 
+def ewma_lambda(text: str) -> float:
+    """argparse type of ``--ewma``: the EWMA's weight of the newest point, in (0, 1] (a usage error, exit 2,
+    otherwise; ``--ewma 5`` was a ValueError traceback)."""
+    import argparse
+    import math
+
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number: give the EWMA weight, e.g. 0.2") from None
+    if not (math.isfinite(value) and 0.0 < value <= 1.0):
+        raise argparse.ArgumentTypeError(f"{text} is not a weight between 0 (excluded) and 1: the EWMA's lambda is "
+                                         "the weight of the newest facet, e.g. 0.2 (0.05 to 0.3 are usual)")
+    return value
+
+
 def add_options(rpt) -> None:
     """Options of the quality reports on the ``report`` parser."""
     # --config (the station file) is the report command's own option, shared with 'report trend'
@@ -24,8 +40,9 @@ def add_options(rpt) -> None:
                      "spc; 'default' for acceptance)")
     rpt.add_argument("--facet-type", dest="facet_type", default=None, help="spc: only this facet type (the record's 'facet', e.g. dish-5.33)")
     rpt.add_argument("--serial", default=None, metavar="REGEX", help="spc: only serials matching this pattern")
-    rpt.add_argument("--ewma", type=float, default=None, metavar="LAMBDA",
-                     help="spc: also draw an EWMA chart with this lambda (e.g. 0.2)")
+    rpt.add_argument("--ewma", type=ewma_lambda, default=None, metavar="LAMBDA",
+                     help="spc: also draw an EWMA chart with this weight of the newest facet, 0 < LAMBDA <= 1 "
+                          "(e.g. 0.2)")
     rpt.add_argument("--rules", default="western_electric", choices=("western_electric", "nelson", "beyond_limits"),
                      help="spc: the run rules")
     rpt.add_argument("--baseline-n", type=int, default=25, metavar="N",
@@ -174,6 +191,7 @@ def cmd_acceptance(args) -> int:
 
 
 def cmd_certificate(args) -> int:
+    from ..archive._common import safe_name
     from ..archive.journal import Journal
     from ..errors import ConfigError, StationError
     from ..report.certificate import write_certificate
@@ -204,8 +222,10 @@ def cmd_certificate(args) -> int:
     elif dump is not None:
         log.warning("the dump %s named in the journal is missing: certificate without maps", dump)
         dump = None
+    # The serial names the file, never a path: a journaled serial (or one typed here) such as "../../x"
+    # stays inside the --out folder.
     out = Path(args.out) if args.out and args.out.lower().endswith(".pdf") else \
-        Path(args.out or ".") / f"certificate-{serial}.pdf"
+        Path(args.out or ".") / f"certificate-{safe_name(serial, 64)}.pdf"
     print(write_certificate(rec, out, specs=figure_specs(recipe.design.focal_length_m, recipe.limits),
                             measured=measured, dump_path=dump), flush=True)
     if len(rows) > 1:

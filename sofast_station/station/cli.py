@@ -252,6 +252,7 @@ def cmd_serve(args) -> int:
     if args.host is not None or args.port is not None:
         import dataclasses
         web = dataclasses.replace(web, host=args.host or web.host, port=web.port if args.port is None else args.port)
+        web.exposure(f"{config.path} [web] (with --host/--port)")     # beyond loopback: HTTPS or a decision
     opcua = opcua_settings(config)
 
     def ready(info):

@@ -37,6 +37,7 @@ enabled = true
 endpoint = "opc.tcp://127.0.0.1:{port}/sofast-station/"
 anonymous = true
 users = {{ scada = "s3cret-pass" }}
+allow_plain_passwords = true   # loopback only; Sign & Encrypt with a certificate: test_opcua_security.py
 """
 
 

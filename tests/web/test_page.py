@@ -154,8 +154,8 @@ def test_the_page_follows_the_line(line, monkeypatch):
                              "facets": page.inner_text("#shift .kpis div:first-child b")})
                 if outcome.serial in ("SIM-0001", "F-0002", "X-0006"):
                     page.screenshot(path=str(shots / f"page-after-{outcome.answer}.png"), full_page=True)
-                elif outcome.serial in (UNICODE, clean_serial(LONG)[0]):
-                    name = "unicode" if outcome.serial == UNICODE else "long"
+                elif outcome.serial in (clean_serial(UNICODE)[0], clean_serial(LONG)[0]):
+                    name = "unicode" if outcome.serial == clean_serial(UNICODE)[0] else "long"
                     page.screenshot(path=str(shots / f"page-serial-{name}.png"))
 
             requests = [FacetRequest(serial=s) for s in SERIALS]
@@ -172,7 +172,10 @@ def test_the_page_follows_the_line(line, monkeypatch):
             # page shows the start and end of what it kept when that is too long to show whole
             kept = clean_serial(LONG)[0]
             shown_long = kept[:29] + "…" + kept[-29:]
-            assert [s["serial"] for s in seen] == SERIALS[:4] + [shown_long] + SERIALS[5:], seen
+            # every serial as the station keeps it: "../../etc/passwd" and "</script>" are never a path
+            kept_all = [clean_serial(s)[0] for s in SERIALS]
+            assert kept_all[2] == "____etc_passwd" and "<script>" in kept_all[3]       # markup stays, escaped
+            assert [s["serial"] for s in seen] == kept_all[:4] + [shown_long] + kept_all[5:], seen
             assert seen[4]["title"] == kept
             assert [s["verdict"] for s in seen] == VERDICTS, seen
             assert [s["facets"] for s in seen] == [str(i) for i in range(1, 7)], seen

@@ -352,3 +352,66 @@ def test_a_plc_down_at_start_is_retried_until_it_answers(plcs, caplog):
     assert opened and isinstance(opened[0], ModbusTrigger)
     assert "retrying every 0.2 s" in caplog.text
     opened[0].close()
+
+
+@pytest.mark.parametrize("moment", ["before-reopen", "after-reopen", "after-ready"])
+def test_a_late_acknowledgement_followed_at_once_by_the_next_request_is_taken(plcs, moment):
+    """Issue 28: the PLC acknowledges after ``ack_timeout_s`` (the station has reported it and reconnected),
+    drops FACET_PRESENT for under a millisecond and raises the next facet with a new SEQUENCE. Whenever
+    those two writes land in the station's recovery (before its reconnect, between reconnect and READY,
+    or after READY), the next facet is taken, as docs/plc.md promises; the request of the interrupted
+    cycle itself (its SEQUENCE) still is not."""
+    plc = plcs({"facets": []})                         # the test is the PLC program: every write in order
+    obs = Observer(plc.port)
+    trigger = ModbusTrigger("127.0.0.1", plc.port, ack_timeout_s=0.3, heartbeat_interval_s=0.1)
+    obs.write_plc(plc_block({"serial": "FIRST-1"}, 7, present=0))
+    trigger.ready()
+    obs.write_plc(plc_block({"serial": "FIRST-1"}, 7))
+    assert _wait_request(trigger).serial == "FIRST-1"
+    trigger.busy()
+    with pytest.raises(TriggerError, match="did not acknowledge"):
+        trigger.done("pass")                           # the PLC is late: the station gives up waiting
+
+    def late_ack_then_next_facet():
+        obs.write_plc(plc_block({"serial": "FIRST-1"}, 7, present=0, ack=1))      # the late acknowledgement
+        obs.write_plc(plc_block({"serial": "NEXT-2"}, 8, present=1, ack=0))       # the next facet at once
+
+    if moment == "before-reopen":
+        late_ack_then_next_facet()
+    trigger.reopen()                                   # the station's recovery (runner._reopen_trigger)
+    if moment == "after-reopen":
+        late_ack_then_next_facet()
+    trigger.ready()
+    if moment == "after-ready":
+        late_ack_then_next_facet()
+    request = trigger.wait_for_facet(1.0)
+    assert request is not None and request.serial == "NEXT-2" and request.extra["sequence"] == 8
+    trigger.busy()
+    assert obs.station()[modbus.SEQUENCE_ECHO] == 8
+    trigger.close()
+    obs.close()
+
+
+def test_after_a_reconnect_the_interrupted_cycles_own_request_stays_stale(plcs):
+    """The other side of the SEQUENCE rule: the station reconnects while the unacknowledged request is still
+    up with the SEQUENCE it answered; that is not a new facet until the PLC drops it and raises it again."""
+    plc = plcs({"facets": []})
+    obs = Observer(plc.port)
+    trigger = ModbusTrigger("127.0.0.1", plc.port, ack_timeout_s=0.3, heartbeat_interval_s=0.1)
+    obs.write_plc(plc_block({"serial": "FIRST-1"}, 7, present=0))
+    trigger.ready()
+    obs.write_plc(plc_block({"serial": "FIRST-1"}, 7))
+    assert _wait_request(trigger).serial == "FIRST-1"
+    trigger.busy()
+    with pytest.raises(TriggerError, match="did not acknowledge"):
+        trigger.done("pass")
+    trigger.reopen()
+    trigger.ready()
+    assert trigger.wait_for_facet(0.3) is None         # SEQUENCE 7 again: the interrupted cycle's request
+    obs.write_plc(plc_block({"serial": "FIRST-1"}, 7, present=0))
+    assert trigger.wait_for_facet(0.1) is None
+    obs.write_plc(plc_block({"serial": "FIRST-1"}, 7))  # placed again (a rising edge): taken
+    request = trigger.wait_for_facet(1.0)
+    assert request is not None and request.serial == "FIRST-1"
+    trigger.close()
+    obs.close()
