@@ -185,7 +185,7 @@ def main(argv=None) -> int:
         tally = ShiftTally()                   # what `sofast-station run` keeps for its summary
 
         def on_outcome(outcome) -> None:
-            tally.add(outcome.record, outcome.cycle_s)
+            tally.add(outcome.record)
             answers[outcome.answer] += 1
             late[0] += bool(outcome.record.get("late"))
             n = sum(answers.values())
