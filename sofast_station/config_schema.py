@@ -217,6 +217,8 @@ SECTIONS: dict[str, dict[str, Key]] = {
         "seed": Key("int", low=0, doc="sensor noise seed"),
         "facet": Key("table", doc="[simulation.facet]: the twin's true facet (twin.config.TrueFacet, a rule below)"),
         "optics": Key("table", doc="[simulation.optics]: display, camera and noise (twin.config.TwinOptics)"),
+        "population": Key("table", doc="[simulation.population]: how the line's facets differ "
+                                       "(twin.population.FacetPopulation)"),
         "distance_error_m": Key("float", low=-1.0, high=1.0, doc="the simulated range finder's error, m"),
         "faults": Key("section:simulation_faults", doc="SERIAL = fault kind, injected (tests, benchmarks)"),
         "hang_s": _pos("how long a 'hung-analysis' fault hangs, s"),
@@ -397,13 +399,15 @@ def _rule_readers(raw: dict, where: str) -> None:
 
 
 def _rule_simulation(raw: dict, where: str) -> None:
-    """[simulation.facet] and [simulation.optics] through the twin's own records (types, ranges, keys)."""
+    """[simulation.facet], [simulation.optics] and [simulation.population] through the twin's own records
+    (types, ranges, keys)."""
     sim = raw.get("simulation")
     if not sim:
         return
     from .twin.config import TrueFacet, TwinOptics
+    from .twin.population import FacetPopulation
 
-    for key, cls in (("facet", TrueFacet), ("optics", TwinOptics)):
+    for key, cls in (("facet", TrueFacet), ("optics", TwinOptics), ("population", FacetPopulation)):
         try:
             cls.from_dict(sim.get(key, {}))
         except ConfigError as exc:
