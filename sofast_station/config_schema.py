@@ -249,6 +249,11 @@ SECTIONS: dict[str, dict[str, Key]] = {
     "opcua": {"*": Key("any", doc="checked by its reader (READERS below)")},
     "drift": {"*": Key("any", doc="checked by its reader (READERS below)")},
     "acceptance": {"*": Key("table", doc="[acceptance.RECIPE], checked by report.acceptance (a rule below)")},
+    "certificate": {
+        "issuer": Key("str", doc="who issues the facet certificates (report certificate): the organisation"),
+        "address": Key("str", doc="the issuer's address, one line under its name"),
+        "signatory": Key("str", doc="name and role printed under the certificate's signature line"),
+    },
     "recipe": {
         "facet": Key("str"), "serial_pattern": Key("str"),
         "alignment_point_m": Key("floats", length=(2,)), "measure_point_m": Key("floats", length=(2,)),
@@ -260,7 +265,7 @@ SECTIONS: dict[str, dict[str, Key]] = {
 #: The sections that may appear at the top of station.toml (the others are nested tables).
 TOP_LEVEL = ["station", "camera", "screen", "layout", "fringes", "analysis", "limits", "quality", "calibration",
              "optics", "simulation", "run", "archive", "devices", "recipes", "web", "opcua", "acceptance", "drift",
-             "uncertainty"]
+             "uncertainty", "certificate"]
 
 
 def _check_value(key: Key, value, file: str, label: str, name: str) -> None:

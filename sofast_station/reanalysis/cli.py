@@ -127,7 +127,7 @@ def register(subparsers) -> None:
                      help="an arrow at every Nth camera row and column (default: 10, more on large images)")
     rpt.add_argument("--cmap", default="viridis", help="Matplotlib colour map of the magnitude (default viridis)")
     rpt.add_argument("--detail", default="parabola", choices=("design", "parabola", "higher_order", "none"),
-                     help="also write <dump>-detail-MODEL.png: e_x, e_y, magnitude, height error (um) and local "
+                     help="also write <dump>-detail-MODEL.png: e_x, e_y, magnitude, height error (µm) and local "
                           "focal power against this model (default parabola; none: skip)")
     rpt.add_argument("--separate", action="store_true", help="three files per dump instead of three panels")
     rpt.add_argument("--journal", metavar="PATH",
@@ -413,6 +413,35 @@ def _flux_table(args) -> dict:
     return table
 
 
+#: The sun shape each shape option belongs to.
+_SUN_OPTIONS = {"csr": ("--csr", "buie"), "sigma_mrad": ("--sigma-mrad", "gaussian")}
+
+
+def _check_sun_options(args, table: dict, target) -> None:
+    """Refuse a sun-shape option that does not apply to the sun the map is drawn with (``--csr`` without the
+    Buie sun was silently ignored)."""
+    from ..errors import ConfigError
+
+    sun = table.get("sun", "pillbox")
+    for opt, (flag, shape) in _SUN_OPTIONS.items():
+        if getattr(args, opt) is not None and sun != shape:
+            where = "--sun" if args.sun is not None else f"{target}'s [optics] (or the default)"
+            raise ConfigError(f"{flag} applies to the {shape} sun, but the sun here is {sun} (from {where}): add "
+                              f"--sun {shape}, or leave {flag} out")
+
+
+def sun_text(sun: dict) -> str:
+    """The sun shape as the console and the map name it, e.g. ``Buie, circumsolar ratio 0.1``."""
+    shape = str(sun.get("shape", "?"))
+    if shape == "pillbox":
+        return f"pillbox, half-angle {sun.get('half_angle_mrad', 4.65):.2f} mrad"
+    if shape == "gaussian":
+        return f"Gaussian, sigma {sun.get('sigma_mrad'):g} mrad"
+    if shape == "buie":
+        return f"Buie, circumsolar ratio {sun.get('csr'):g}"
+    return shape
+
+
 def flux_text(name: str, figures: dict, path) -> str:
     """One facet's optical figures, as the console shows them."""
     f = figures
@@ -429,7 +458,8 @@ def flux_text(name: str, figures: dict, path) -> str:
     r90 = "-" if f["spot_radius_m"] is None else (f"{pm('spot_radius_m', 1000.0, 2)} mm "
                                                   f"({pm('spot_radius_mrad', 1.0, 3)} mrad)")
     d90 = "-" if d["spot_radius_m"] is None else f"{1000 * d['spot_radius_m']:.2f} mm"
-    return (f"{name}: target at {c['slant_range_m']:.3f} m, aperture {c['aperture']}\n"
+    return (f"{name}: sun {sun_text(c.get('sun') or {})}, DNI {c.get('dni_w_m2', 0):g} W/m², target at "
+            f"{c['slant_range_m']:.3f} m, aperture {c['aperture']}\n"
             f"  intercept {pm('intercept')} (design {d['intercept']:.4f}), power / design's "
             f"{pm('power_ratio_vs_design')}\n"
             f"  90 % spot radius {r90}, design {d90}; analytic (patent model) {1000 * f['analytic_spot_radius_m']:.2f} "
@@ -467,6 +497,7 @@ def _cmd_flux(args) -> int:
                 over = raw.get("recipes", {}).get(recipe, {}) if recipe != "default" else {}
                 table = {**raw.get("optics", {}), **(over.get("optics", {}) if isinstance(over, dict) else {}),
                          **cli_table, "enabled": True}
+            _check_sun_options(args, table, target)
             settings = optics_for({"optics": table}, f"{target} ([optics] and the command line)")
             opt = analysis_optics(res.analysis, res.design, settings)
             name = str(res.record.get("serial", "")) or Path(target).stem
