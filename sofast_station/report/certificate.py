@@ -150,11 +150,13 @@ def write_certificate(record: dict, out_path: Path, *, specs, measured=None, dum
                                f_design, cells_across=120)
         d_parab = detail_maps(a.points_facet_m[0], a.points_facet_m[1], a.slopes, a.residuals_mrad, "parabola",
                               f_design, cells_across=120)
-        side = 0.36                                      # square maps: their colour bars take a share of it
+        # Two square maps, each with its colour bar (which takes a share of its box) and labels: the left
+        # one's colour-bar label ends before the right one's y label begins (checked by the layout test).
+        side = 0.33
         height = side * 8.27 / 11.69
         bottom = max(0.235, y - 0.06 - height)
-        ax1 = fig.add_axes((0.12, bottom, side, height))
-        ax2 = fig.add_axes((0.58, bottom, side, height))
+        ax1 = fig.add_axes((0.11, bottom, side, height))
+        ax2 = fig.add_axes((0.60, bottom, side, height))
         draw_detail(fig, [ax1], d_design, which=("magnitude",))
         draw_detail(fig, [ax2], d_parab, which=("height",))
         ax1.set_title(f"slope error {MODEL_LABELS['design'].replace('compared with the ', 'vs ')}", fontsize=9)

@@ -48,14 +48,15 @@ def _text_boxes(pdf):
     walk(pages[0])
     groups: list[list] = []
     for c in sorted(rotated, key=lambda c: (round(c.x0), c.y0)):
-        near = [g for g in groups if min(c.x1, g[3]) - max(c.x0, g[1]) > -2 and min(c.y1, g[4]) - max(c.y0, g[2]) > -2]
+        # one rotated label: its characters share their column (x) and follow one another (y)
+        near = [g for g in groups if abs(c.x0 - g[5]) < 0.5 and abs(c.x1 - g[6]) < 0.5 and c.y0 - g[4] < 2]
         if near:
             g = near[0]
             g[0] += c.get_text()
-            g[1:] = [min(g[1], c.x0), min(g[2], c.y0), max(g[3], c.x1), max(g[4], c.y1)]
+            g[1:5] = [min(g[1], c.x0), min(g[2], c.y0), max(g[3], c.x1), max(g[4], c.y1)]
         else:
-            groups.append([c.get_text(), c.x0, c.y0, c.x1, c.y1])
-    return lines + [tuple(g) for g in groups], pages[0].bbox
+            groups.append([c.get_text(), c.x0, c.y0, c.x1, c.y1, c.x0, c.x1])
+    return lines + [tuple(g[:5]) for g in groups], pages[0].bbox
 
 
 def _overlap(a, b, slack: float = 0.5) -> bool:
