@@ -41,6 +41,23 @@ def register(subparsers) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object and nothing else on stdout")
     p.set_defaults(func=cmd_import_opencsp)
 
+    e = add_command(
+        subparsers, "export", help="write a measured surface for other tools (CSV, PLY, OpenCSP, SolTrace)",
+        description="""
+            export surface DUMP.h5 --format csv|ply|opencsp|soltrace: reprocess the dump and write its measured
+            points, normals, slope errors and height error in the facet frame, named and headed by the facet's
+            serial, with the units in the header (sofast_station/interop/export.py says what each format
+            holds). The OpenCSP file is in the layout of OpenCSP's SOFAST processing output; the SolTrace file
+            is a finite-element surface (.fed) of the design's height plus the measured height error.""")
+    e.add_argument("what", choices=("surface",), help="what to export: surface")
+    e.add_argument("dumps", nargs="+", metavar="DUMP", help="data dumps (HDF5) of the facets")
+    e.add_argument("--format", required=True, choices=("csv", "ply", "opencsp", "soltrace"),
+                   help="csv (one row per point), ply (binary point cloud with normals), opencsp (its processed-"
+                        "result HDF5), soltrace (finite-element surface .fed)")
+    e.add_argument("--out", default=".", metavar="DIR_OR_FILE",
+                   help="folder for the files (default: here), or the file when one dump is given")
+    e.set_defaults(func=cmd_export)
+
 
 #: The figures import-opencsp reports, each with its ``_U`` and ``_U_random`` (k = 2) where it has one.
 #: Not the placement and optical tilt: they are measured against a fixture, and OpenCSP has none.
@@ -200,3 +217,28 @@ def summary_text(out: dict, robust: bool) -> str:
                      f"{_pm(s_['focal_length_y_m'], u.get('focal_length_y_m'), ' m')} "
                      f"({100 * (s_['focal_length_y_m'] / o['focal_length_y_m'] - 1):+.2f} %){kk}")
     return "\n".join(lines)
+
+
+def cmd_export(args) -> int:
+    """``export surface DUMP... --format F``: one file per dump, named after its serial."""
+    import logging
+
+    from ..archive._common import safe_name
+    from ..errors import StationError
+    from ..reanalysis.sources import load_measured
+    from .export import SUFFIX, export_surface, surface_points
+
+    log = logging.getLogger(__name__)
+    out = Path(args.out)
+    single = len(args.dumps) == 1 and out.suffix.lower() == SUFFIX[args.format]
+    failed = 0
+    for dump in args.dumps:
+        try:
+            m = load_measured(dump)
+            points = surface_points(m.analysis, m.record, m.design)
+            path = out if single else out / f"surface-{safe_name(points.serial, 64)}{SUFFIX[args.format]}"
+            print(export_surface(points, args.format, path), flush=True)
+        except StationError as exc:
+            failed += 1
+            log.error("%s", exc if str(dump) in str(exc) else f"{dump}: {exc}")
+    return 2 if failed else 0
