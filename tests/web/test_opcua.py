@@ -9,8 +9,6 @@ import datetime as dt
 import math
 import os
 import re
-import signal
-import socket
 import subprocess
 import sys
 import time
@@ -22,6 +20,7 @@ from sofast_station.web.opcua import UNECE_URI, unit_id
 from sofast_station.devices.protocols import FacetRequest
 from sofast_station.station.service import Service
 from tests.conftest import ROOT, SMALL_STATION
+from tests.web.serving import free_port, stop_server
 
 from asyncua import ua   # a test dependency: missing, the suite fails (setup-env test installs it)
 
@@ -45,12 +44,6 @@ allow_plain_passwords = true   # loopback only; Sign & Encrypt with a certificat
 """
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def _documented_paths() -> list[str]:
     text = (ROOT / "docs" / "opcua.md").read_text()
     return re.findall(r"^\| `([A-Za-z]+/[A-Za-z0-9_]+)` \|", text, flags=re.M)
@@ -60,7 +53,7 @@ def test_opcua_client_sees_the_tree_and_the_verdict_change(tmp_path, monkeypatch
     from asyncua.sync import Client
 
     data = tmp_path / "data"
-    port = _free_port()
+    port = free_port()
     endpoint = f"opc.tcp://127.0.0.1:{port}/sofast-station/"
     config = tmp_path / "station.toml"
     config.write_text(SMALL_STATION.format(data_dir=data, facet=ROOT / "fixtures/facets/dish_5m33.toml",
@@ -169,12 +162,7 @@ def test_opcua_client_sees_the_tree_and_the_verdict_change(tmp_path, monkeypatch
             wrong.connect()
         wrong.disconnect()
     finally:
-        server.send_signal(signal.SIGTERM)
-        try:
-            server.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            server.kill()
-            server.wait()
+        stop_server(server)
 
 
 def test_counters_count_indeterminate_facets_apart():
