@@ -108,7 +108,7 @@ def write_diff(a, b, out_path: Path, dpi: int = 100, d: dict | None = None) -> P
     from matplotlib.figure import Figure
 
     d = common_grid_difference(a, b) if d is None else d
-    fig = Figure(figsize=(16.0, 9.5), layout="constrained")
+    fig = Figure(figsize=(12.5, 10.5), layout="constrained")
     axes = fig.subplots(2, 2).ravel()
     rms = {k: float(np.sqrt(np.nanmean(d[k] ** 2))) for k in ("e_x_mrad", "e_y_mrad", "height_um")}
     draw_field(fig, axes[0], d["e_x_mrad"], d["extent_m"], f"slope difference x, B - A (RMS {rms['e_x_mrad']:.3f} mrad)",
@@ -119,6 +119,7 @@ def write_diff(a, b, out_path: Path, dpi: int = 100, d: dict | None = None) -> P
                "mrad", signed=False)
     draw_field(fig, axes[3], d["height_um"], d["extent_m"], f"height difference B - A (RMS {rms['height_um']:.2f} µm)",
                "µm", signed=True)
-    fig.suptitle(f"B - A, A: {_label(a)}, B: {_label(b)}\n"
-                 f"common grid of {d['n_cells']} cells of {1e3 * d['cell_m']:.1f} mm, mean tilt removed", fontsize=11)
+    fig.suptitle(f"B - A: {b.record.get('serial')} minus {a.record.get('serial')}, on a common grid of "
+                 f"{d['n_cells']} cells of {1e3 * d['cell_m']:.1f} mm, mean tilt removed\n"
+                 f"A: {_label(a)}\nB: {_label(b)}", fontsize=10)
     return savefig_atomic(fig, Path(out_path), dpi)
