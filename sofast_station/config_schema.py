@@ -218,6 +218,8 @@ SECTIONS: dict[str, dict[str, Key]] = {
         "facet": Key("table", doc="[simulation.facet]: the twin's true facet (twin.parameters.TrueFacet, a rule "
                                   "below)"),
         "optics": Key("table", doc="[simulation.optics]: display, camera and noise (twin.parameters.TwinOptics)"),
+        "population": Key("table", doc="[simulation.population]: how the line's facets differ "
+                                       "(twin.population.FacetPopulation)"),
         "distance_error_m": Key("float", low=-1.0, high=1.0, doc="the simulated range finder's error, m"),
         "faults": Key("section:simulation_faults", doc="SERIAL = fault kind, injected (tests, benchmarks)"),
         "hang_s": _pos("how long a 'hung-analysis' fault hangs, s"),
@@ -250,6 +252,11 @@ SECTIONS: dict[str, dict[str, Key]] = {
     "opcua": {"*": Key("any", doc="checked by its reader (READERS below)")},
     "drift": {"*": Key("any", doc="checked by its reader (READERS below)")},
     "acceptance": {"*": Key("table", doc="[acceptance.RECIPE], checked by report.acceptance (a rule below)")},
+    "certificate": {
+        "issuer": Key("str", doc="who issues the facet certificates (report certificate): the organisation"),
+        "address": Key("str", doc="the issuer's address, one line under its name"),
+        "signatory": Key("str", doc="name and role printed under the certificate's signature line"),
+    },
     "recipe": {
         "facet": Key("str"), "serial_pattern": Key("str"),
         "alignment_point_m": Key("floats", length=(2,)), "measure_point_m": Key("floats", length=(2,)),
@@ -261,7 +268,7 @@ SECTIONS: dict[str, dict[str, Key]] = {
 #: The sections that may appear at the top of station.toml (the others are nested tables).
 TOP_LEVEL = ["station", "camera", "screen", "layout", "fringes", "analysis", "limits", "quality", "calibration",
              "optics", "simulation", "run", "archive", "devices", "recipes", "web", "opcua", "acceptance", "drift",
-             "uncertainty"]
+             "uncertainty", "certificate"]
 
 
 def _check_value(key: Key, value, file: str, label: str, name: str) -> None:
@@ -400,13 +407,15 @@ def _rule_readers(raw: dict, where: str) -> None:
 
 
 def _rule_simulation(raw: dict, where: str) -> None:
-    """[simulation.facet] and [simulation.optics] through the twin's own records (types, ranges, keys)."""
+    """[simulation.facet], [simulation.optics] and [simulation.population] through the twin's own records
+    (types, ranges, keys)."""
     sim = raw.get("simulation")
     if not sim:
         return
     from .twin.parameters import TrueFacet, TwinOptics
+    from .twin.population import FacetPopulation
 
-    for key, cls in (("facet", TrueFacet), ("optics", TwinOptics)):
+    for key, cls in (("facet", TrueFacet), ("optics", TwinOptics), ("population", FacetPopulation)):
         try:
             cls.from_dict(sim.get(key, {}))
         except ConfigError as exc:
