@@ -73,7 +73,7 @@ t = time.perf_counter()
 if source == "twin":
     import dataclasses
     from sofast_station.config import load_config
-    from sofast_station.measure.pipeline import analyse
+    from sofast_station.measure.analysis import analyse
     cfg = load_config(spec["config"])
     d = np.load(spec["capture"])
     frames, distance = d["frames"], float(d["distance"])
@@ -148,7 +148,8 @@ def _uptime() -> str:
 def _twin_capture(config: str):
     """A noisy capture of the simulated station (frames, distance) and the station's configuration."""
     from sofast_station.config import load_config
-    from sofast_station.station.inspect import capture, open_station
+    from sofast_station.station.factory import open_station
+    from sofast_station.station.inspection import capture
 
     cfg = load_config(config)
     t = time.perf_counter()
@@ -183,9 +184,9 @@ def prepare_dump(config: str, tmp: Path, fits) -> dict:
     import dataclasses
 
     from sofast_station.archive.dumps import DumpContent, crop_to_facet, write_dump
-    from sofast_station.measure.pipeline import analyse
-    from sofast_station.station.inspect import result_record
-    from sofast_station.station.verdict import judge
+    from sofast_station.measure.analysis import analyse
+    from sofast_station.result.record import build_record
+    from sofast_station.result.verdict import judge
 
     cfg, station, frames, distance = _twin_capture(config)
     cropped, box, full = crop_to_facet(frames, cfg.analysis.mask_threshold_dn)
@@ -194,8 +195,8 @@ def prepare_dump(config: str, tmp: Path, fits) -> dict:
         settings = dataclasses.replace(cfg.analysis, robust_fit=fit == "robust")
         a = analyse(frames, cfg.fringes, cfg.geometry, cfg.design, distance, settings, uncertainty=cfg.uncertainty,
                     sensitivity_cache={})
-        record = result_record(station, "BENCH-1", a, dict(a.timings_s))
-        record.update(judge(a.figures, cfg.design, cfg.limits, cfg.quality))
+        record = build_record(station.record_head("BENCH-1"), figures=a.figures,
+                              verdict=judge(a.figures, cfg.design, cfg.limits, cfg.quality), timings=dict(a.timings_s))
         content = DumpContent.from_station(station, cycle_id=f"bench-{fit}", record=record, frames_cropped=cropped,
                                            crop_box=box, full_shape=full, measured_distance_m=distance,
                                            analysis=settings, sensitivities=getattr(a, "sensitivities", None))

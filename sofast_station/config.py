@@ -26,7 +26,7 @@ from .geometry import CameraIntrinsics, ScreenSpec, StationGeometry
 from .layout import layout_station
 from .measure.pipeline import AnalysisSettings
 from .measure.uncertainty import InputUncertainties
-from .station.verdict import Limits, Quality, limits_from_table, quality_from_table
+from .result.verdict import Limits, Quality, limits_from_table, quality_from_table
 
 for _section, _cls in (("analysis", AnalysisSettings), ("limits", Limits), ("quality", Quality)):
     add_dataclass_keys(_section, _cls)
@@ -181,9 +181,9 @@ def load_config(path: str | Path, use_camera_record: bool = True) -> StationConf
 
 
 def _optics(raw: dict, where: str):
-    """``[optics]`` as OpticsSettings (None when disabled); validated in :mod:`sofast_station.station.optics`."""
-    from .station.optics import optics_for
-    from .station.verdict import OPTICAL_LIMITS
+    """``[optics]`` as OpticsSettings (None when disabled); validated in :mod:`sofast_station.result.optical_figures`."""
+    from .result.optical_figures import optics_for
+    from .result.verdict import OPTICAL_LIMITS
     optics = optics_for(raw, where)
     used = [k for k in OPTICAL_LIMITS if raw.get("limits", {}).get(k) is not None]
     if optics is None and used:
@@ -194,9 +194,9 @@ def _optics(raw: dict, where: str):
 
 def _geometry_record_std(data_dir: Path, geometry) -> dict:
     """What the newest geometry record (``calibrate geometry``) lends the uncertainty budget, if it was
-    within tolerance and made with this geometry (:func:`~sofast_station.calibrate.geometry.budget_std`);
+    within tolerance and made with this geometry (:func:`~sofast_station.calibrate.geometry_record.budget_std`);
     {} when there is none or it cannot be read (the check's own command reports those)."""
-    from .calibrate.geometry import budget_std, load_geometry_record
+    from .calibrate.geometry_record import budget_std, load_geometry_record
     from .calibrate.store import newest_record_path
 
     path = newest_record_path(data_dir, "geometry")

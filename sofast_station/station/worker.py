@@ -1,6 +1,6 @@
 """The analysis in a separate, killable process.
 
-A hung analysis must not hang the line: the station runs :func:`~sofast_station.measure.pipeline.analyse`
+A hung analysis must not hang the line: the station runs :func:`~sofast_station.measure.analysis.analyse`
 in one long-lived worker process (spawned, so it shares no OpenGL or thread state with the station),
 hands it the frames through shared memory (no 35 MB pickle per facet), waits with a deadline, and kills
 and restarts the worker when the deadline passes. The worker computes the camera's pixel rays once.
@@ -27,17 +27,9 @@ from multiprocessing.shared_memory import SharedMemory
 
 import numpy as np
 
-from ..errors import StationError
+from ..errors import AnalysisTimeout, StationError, WorkerDied
 
 log = logging.getLogger(__name__)
-
-
-class AnalysisTimeout(StationError):
-    """The analysis did not finish before the cycle's deadline; the worker was restarted."""
-
-
-class WorkerDied(StationError):
-    """The analysis worker process died (killed, out of memory); it is being restarted."""
 
 
 def watch_parent(parent_pid: int | None = None, poll_s: float = 0.5) -> None:
@@ -120,9 +112,10 @@ def _run(ticket: int, design: dict, settings: dict, distance_m: float, hang_s: f
          uncertainty: dict | None = None):
     from ..archive._common import trim_heap
     from ..facet import FacetDesign
-    from ..measure.pipeline import AnalysisSettings, analyse
+    from ..measure.analysis import analyse
+    from ..measure.pipeline import AnalysisSettings
     from ..measure.uncertainty import InputUncertainties
-    from .optics import DesignTraces, add_optics
+    from ..result.optical_figures import DesignTraces, add_optics
 
     _STATE["begun"][0] = ticket          # begun: from here a death is this facet's (see the module's text)
     if hang_s < 0:                       # fault injection for tests: the worker dies mid-analysis
@@ -160,7 +153,7 @@ def _preview(a, most: int = 6000) -> dict:
 
 def _prepare_optics(designs: list) -> int:
     from ..facet import FacetDesign
-    from .optics import DesignTraces
+    from ..result.optical_figures import DesignTraces
 
     import numpy as np
 

@@ -18,7 +18,8 @@ from sofast_station.calibrate.camera import BoardSpec, CameraCalibration, save_c
 from sofast_station.config import load_config
 from sofast_station.errors import ConfigError, StationError
 from sofast_station.geometry import CameraIntrinsics
-from sofast_station.station.inspect import inspect, open_station
+from sofast_station.station.factory import open_station
+from sofast_station.station.inspection import inspect
 
 from tests.station.test_facets import check_against_truth
 
@@ -113,7 +114,7 @@ def test_calibrate_camera_runs_before_any_record_exists(station_toml):
     """A station set to use the record can still make its first one."""
     import argparse
 
-    from sofast_station.calibrate.cli import register
+    from sofast_station.station.calibrate_cli import register
 
     parser = argparse.ArgumentParser(prog="sofast-station")
     register(parser.add_subparsers(dest="command", required=True))

@@ -8,10 +8,10 @@ import logging
 
 import pytest
 
-from sofast_station.calibrate.cli import register
+from sofast_station.station.calibrate_cli import register
 from sofast_station.calibrate.store import list_records
 from sofast_station.config import load_config
-from sofast_station.station.inspect import open_station
+from sofast_station.station.factory import open_station
 
 
 def run(argv: list[str]) -> int:

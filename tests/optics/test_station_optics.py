@@ -10,14 +10,15 @@ import pytest
 
 from sofast_station.config import load_config
 from sofast_station.errors import ConfigError
-from sofast_station.station.verdict import judge
+from sofast_station.result.verdict import judge
 
 
 @pytest.fixture(scope="module")
 def inspections(tmp_path_factory):
     """Three inspections (three noisy captures) of the small simulated dish station, with an aperture near
     the spot's size; and the optical sensitivities the station kept."""
-    from sofast_station.station.inspect import inspect, open_station
+    from sofast_station.station.factory import open_station
+    from sofast_station.station.inspection import inspect
     from tests.conftest import ROOT, SMALL_STATION
 
     d = tmp_path_factory.mktemp("optics-station")
