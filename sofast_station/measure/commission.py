@@ -448,6 +448,112 @@ def fit_screen(views: list[ScreenView], camera: CameraIntrinsics, width_m: float
     return ScreenFit(fits, chosen, tests)
 
 
+# -- a printed target's outer border: its size, to a thousandth of a pixel ------------------------
+def target_border(image: np.ndarray, camera: CameraIntrinsics, target_to_camera: Pose, width_m: float,
+                  height_m: float, border_m: float, half_width_px: int = 4, trim_px: int = 12):
+    """Sub-pixel points of a printed target's outer border (its white margin against a darker background).
+
+    The border is the rectangle ``[-border, width + border] x [-border, height + border]`` of the target
+    frame. Along every image row (a side that runs down the image) or column (one that runs across) the
+    contrast is summed across the edge: the covered fractions of the pixels give the edge's position to a
+    hundredth of a pixel (exact for an area-sampled edge), and a few hundred of them give the border's size
+    far better than the corners inside it: what the distance to a target 10 m away rests on.
+
+    Parameters
+    ----------
+    image : (H, W) array
+        A frame with the target lit (the room's light) and the background darker.
+    camera : CameraIntrinsics
+    target_to_camera : Pose
+        The target's approximate pose (its corners' solvePnP): where to look.
+    width_m, height_m : float
+        The pattern's extent, target frame, metres.
+    border_m : float
+        The white margin's width, metres (at least half_width + 3 pixels in the image).
+
+    Returns
+    -------
+    points_m : (N, 3) array
+        Border points in the target frame (z = 0), one per row or column crossed.
+    observed_px : (N, 2) array
+        Where the border crosses that row or column in the image.
+    normals : (N, 2) array
+        The border's unit normal in the image there (the residual's direction).
+    """
+    img = np.asarray(image, dtype=np.float64)
+    h_img, w_img = img.shape
+    x0, y0, x1, y1 = -border_m, -border_m, width_m + border_m, height_m + border_m
+    corners = np.array([[x0, y0, 0.0], [x1, y0, 0.0], [x1, y1, 0.0], [x0, y1, 0.0]])
+    cam = bundle.camera_vector(camera)
+    centre_px = bundle.project(cam, target_to_camera.apply(np.array([[0.5 * width_m, 0.5 * height_m, 0.0]])))[0]
+    pts, obs, nrm = [], [], []
+    h = int(half_width_px)
+    for a, b in zip(corners, np.roll(corners, -1, axis=0)):
+        pa, pb = bundle.project(cam, target_to_camera.apply(np.stack([a, b])))
+        d = pb - pa
+        vertical = abs(d[1]) > abs(d[0])
+        along = 1 if vertical else 0              # image axis the side runs along
+        across = 1 - along
+        lo, hi = sorted((pa[along], pb[along]))
+        steps = np.arange(np.ceil(lo + trim_px), np.floor(hi - trim_px) + 1)
+        if steps.size < 4:
+            continue
+        normal = np.array([-d[1], d[0]]) / np.linalg.norm(d)
+        inside = 1.0 if (centre_px[across] - (pa[across] + d[across] * (centre_px[along] - pa[along]) / d[along])) > 0 \
+            else -1.0                               # the margin lies toward +across or -across
+        for t in steps:
+            frac = (t - pa[along]) / d[along]
+            c0 = pa[across] + frac * d[across]
+            lo_c, hi_c = int(np.floor(c0)) - h, int(np.floor(c0)) + h + 1
+            if lo_c - 4 < 0 or hi_c + 4 >= (w_img if vertical else h_img) or not 0 <= int(t) < (h_img if vertical else w_img):
+                continue
+            line = img[int(t), :] if vertical else img[:, int(t)]
+            if inside > 0:
+                out_level = np.median(line[lo_c - 4:lo_c - 1])
+                in_level = np.median(line[hi_c + 1:hi_c + 4])
+            else:
+                out_level = np.median(line[hi_c + 1:hi_c + 4])
+                in_level = np.median(line[lo_c - 4:lo_c - 1])
+            if in_level - out_level < 20.0:
+                continue
+            f = np.clip((line[lo_c:hi_c + 1] - out_level) / (in_level - out_level), -0.5, 1.5)
+            covered = float(f.sum())
+            # pixel c spans [c - 1/2, c + 1/2]: the inside's covered width ends at the window's far edge
+            edge = (hi_c + 0.5 - covered) if inside > 0 else (lo_c - 0.5 + covered)
+            q = np.empty(2)
+            q[across], q[along] = edge, t
+            pts.append(a + frac * (b - a))
+            obs.append(q)
+            nrm.append(normal)
+    if not pts:
+        return np.zeros((0, 3)), np.zeros((0, 2)), np.zeros((0, 2))
+    return np.array(pts), np.array(obs), np.array(nrm)
+
+
+def _border_group(target_name: str, points: np.ndarray, observed: np.ndarray, normals: np.ndarray):
+    """The target's border points projected, their offset from where the image shows the border, along
+    its normal (the border's position along itself is not observed)."""
+
+    def f(values, der):
+        target, s, cam = values[target_name], values["scale"][0], values["camera"]
+        pts = points * s
+        if not der:
+            pix = bundle.project(cam, target.apply(pts))
+            return np.sum((pix - observed) * normals, axis=1)
+        pix, d_pix, d_cam = bundle.project(cam, target.apply(pts), True)
+        dn = np.einsum("ni,nij->nj", normals, d_pix)                 # d(residual)/d(camera point)
+        jac = {target_name: np.einsum("nj,njk->nk", dn, bundle.pose_derivative(target, pts)),
+               "scale": np.einsum("nj,jk,nk->n", dn, target.rotation, points)[:, None],
+               "camera": np.einsum("ni,nij->nj", normals, d_cam)}
+        return np.sum((pix - observed) * normals, axis=1), jac
+
+    return f
+
+
+CORNER_SIGMA = 0.1
+KNOWN = ()
+
+
 # -- the pose -------------------------------------------------------------------------------------
 @dataclass
 class MirrorPlacement:
@@ -462,6 +568,9 @@ class MirrorPlacement:
         Pixels that see the screen through the mirror: pixel positions, display positions, their noise.
     distance_m : float or None
         The range finder's distance from the screen centre to the target's measure point.
+    border_points, border_px, border_normals : arrays, optional
+        The printed frame's outer border (:func:`target_border`): target-frame points, where the image shows
+        them, the border's normal there.
     """
 
     label: str
@@ -471,6 +580,9 @@ class MirrorPlacement:
     fringe_uv: np.ndarray
     fringe_sigma_uv: np.ndarray
     distance_m: float | None = None
+    border_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    border_px: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    border_normals: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
 
 
 @dataclass
@@ -557,9 +669,19 @@ def _distance_group(target_name: str, point: np.ndarray, distance_m: float):
     return f
 
 
+def _assembly_group(designed: Pose):
+    """The designed assembly as a prior on the screen's pose: its small motion from the designed one."""
+
+    def f(values, der):
+        r = bundle.motion_between(designed, values["screen"])
+        return (r, {"screen": np.eye(6)}) if der else r
+
+    return f
+
+
 def fit_pose(placements: list[MirrorPlacement], camera: CameraIntrinsics, shape: ScreenShape,
              screen_to_camera0: Pose, *, pitch_std=(0.0, 0.0), camera_std=None, scale_u: float = 5e-5,
-             measure_point_xy=None, distance_std_m: float = 5e-4) -> PoseFit:
+             measure_point_xy=None, distance_std_m: float = 5e-4, assembly_std=None) -> PoseFit:
     """Fit the screen's pose in the camera frame to mirror placements (module docstring).
 
     Parameters
@@ -583,6 +705,12 @@ def fit_pose(placements: list[MirrorPlacement], camera: CameraIntrinsics, shape:
     distance_std_m : float
         The range finder's standard uncertainty, metres: the distances' noise (too few readings to
         estimate it from their residuals).
+    assembly_std : (6,) array, optional
+        How well the station is assembled to its drawing (*screen_to_camera0*): standard deviations of the
+        screen's rotations (rad) and shifts (m) about and along its axes. A prior: the mirror sees the
+        screen from about twice the facet's distance, through a plane whose tilt its printed frame gives
+        only to milliradians, so one combination (the screen turned about the camera's mirror image and the
+        mirror with it) is hardly seen; the drawing holds it. None: no prior.
     """
     if not placements:
         raise ValueError("no placements")
@@ -609,7 +737,11 @@ def fit_pose(placements: list[MirrorPlacement], camera: CameraIntrinsics, shape:
             return (xy * s, {"scale": xy[:, :, None]}) if der else xy * s
 
         groups.append(bundle.Group("target corners", [name, "scale", "camera"],
-                                   _points_group(name, pl.target_px, on_target, ["scale"]), 0.1, f"{pl.label} target"))
+                                   _points_group(name, pl.target_px, on_target, ["scale"]), CORNER_SIGMA, f"{pl.label} target"))
+        if len(pl.border_points):
+            groups.append(bundle.Group("target border", [name, "scale", "camera"],
+                                       _border_group(name, pl.border_points, pl.border_px, pl.border_normals), 0.02,
+                                       f"{pl.label} border"))
         if len(pl.fringe_px):
             base, design = shape.basis(pl.fringe_uv[:, 0], pl.fringe_uv[:, 1])
             rest = design[:, :, 2:] @ shape.params[2:]
@@ -629,8 +761,12 @@ def fit_pose(placements: list[MirrorPlacement], camera: CameraIntrinsics, shape:
             mp = np.array([measure_point_xy[0], measure_point_xy[1], 0.0])
             groups.append(bundle.Group("distance", ["screen", name, "scale"], _distance_group(name, mp, pl.distance_m),
                                        distance_std_m, f"{pl.label} distance"))
-    # the range finder's noise is its stated accuracy: a few readings cannot estimate it
-    sol = bundle.solve(blocks, groups, known_noise=("distance",))
+    if assembly_std is not None:
+        groups.append(bundle.Group("assembly", ["screen"], _assembly_group(screen_to_camera0),
+                                   np.asarray(assembly_std, dtype=np.float64), "designed assembly"))
+    # the range finder's noise is its stated accuracy and the assembly's its tolerance: a few values cannot
+    # estimate them
+    sol = bundle.solve(blocks, groups, known_noise=("distance", "assembly") + KNOWN)
     pitch = sol.values["pitch"]
     return PoseFit(sol.values["screen"], sol.covariance["screen"],
                    [sol.values[f"target {k}"] for k in range(len(placements))],

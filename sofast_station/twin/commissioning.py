@@ -44,21 +44,31 @@ def _luminance_table(gamma: float, floor: float) -> np.ndarray:
 
 
 def _sub_rays(camera: TwinCamera, supersample: int) -> tuple[np.ndarray, int]:
-    """Unit ray directions (n_px * s, 3), camera frame, of every pixel's sub-rays (pixel-major), and s."""
+    """Unit ray directions (n_px * s, 3), camera frame, of every pixel's sub-rays (pixel-major), and s.
+
+    Every pixel's rook lattice is shifted by its own offset (modulo the pixel; a fixed pseudo-random one
+    per pixel): the same lattice in every pixel would quantise a long straight edge's position to the same
+    1/s^2 of a pixel all along it (a bias of up to 1/(2 s^2) px for a side that runs along the pixel grid),
+    where shifted lattices leave errors that average away along the edge, as a sensor's area does.
+    """
     height, width = camera.intrinsics.shape
     v_px, u_px = np.mgrid[0:height, 0:width].astype(np.float64)
     x0, y0 = camera.undistort((u_px - camera.cx) / camera.fx, (v_px - camera.cy) / camera.fy)
-    offsets = rook_lattice(int(supersample)) if supersample > 1 else np.zeros((1, 2))
     if supersample > 1:
+        lattice = rook_lattice(int(supersample)) + 0.5                           # in [0, 1)
+        shift = np.random.default_rng(0x5EED).random((height * width, 1, 2))
+        offsets = np.mod(lattice[None, :, :] + shift, 1.0) - 0.5                 # (n_px, s, 2)
         dx_du, dx_dv = np.gradient(x0, axis=1), np.gradient(x0, axis=0)
         dy_du, dy_dv = np.gradient(y0, axis=1), np.gradient(y0, axis=0)
-        x = x0.reshape(-1, 1) + offsets[None, :, 0] * dx_du.reshape(-1, 1) + offsets[None, :, 1] * dx_dv.reshape(-1, 1)
-        y = y0.reshape(-1, 1) + offsets[None, :, 0] * dy_du.reshape(-1, 1) + offsets[None, :, 1] * dy_dv.reshape(-1, 1)
+        x = x0.reshape(-1, 1) + offsets[:, :, 0] * dx_du.reshape(-1, 1) + offsets[:, :, 1] * dx_dv.reshape(-1, 1)
+        y = y0.reshape(-1, 1) + offsets[:, :, 0] * dy_du.reshape(-1, 1) + offsets[:, :, 1] * dy_dv.reshape(-1, 1)
+        count = lattice.shape[0]
     else:
         x, y = x0.reshape(-1, 1), y0.reshape(-1, 1)
+        count = 1
     rays = np.stack([x.ravel(), y.ravel(), np.ones(x.size)], axis=-1)
     rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
-    return rays, offsets.shape[0]
+    return rays, count
 
 
 def _display_hits(screen: TrueScreen, stated: ScreenSpec, origins: np.ndarray, directions: np.ndarray,
@@ -318,13 +328,16 @@ class MirrorScene:
         reference exposure and gain 1.
     supersample : int
         Sub-rays per pixel edge.
+    measure_point_m : (x, y), optional
+        The range finder's point on the target, target frame, metres (:meth:`measured_distance_m`).
     """
 
     def __init__(self, geometry, screen: TrueScreen, target: PlanarTarget, window_m, target_to_fixture: Pose,
                  optics: TwinOptics = TwinOptics(), target_white_dn: float = 150.0, background_dn: float = 10.0,
-                 supersample: int = 3, bezel_m: float = 0.015):
+                 supersample: int = 3, bezel_m: float = 0.015, measure_point_m=None):
         self.geometry, self.screen, self.optics = geometry, screen, optics
         self.target, self.target_to_fixture = target, target_to_fixture
+        self.measure_point_m = measure_point_m
         x0, y0, x1, y1 = (float(v) for v in window_m)
         if not (x1 > x0 and y1 > y0):
             raise ConfigError(f"mirror window must be (x0, y0, x1, y1) with x1 > x0 and y1 > y0, got {window_m}")
@@ -365,6 +378,14 @@ class MirrorScene:
         self._static = static.reshape(-1, subs).mean(axis=1).reshape(geometry.camera.shape).astype(np.float32)
         self._lut = _luminance_table(optics.display_gamma, optics.display_floor)
         self._white_above_offset = (optics.white_dn - off) * optics.reflectance / (optics.reflectance + optics.ambient)
+
+    def measured_distance_m(self) -> float:
+        """Distance (m) from the true screen centre to the target's measure point (the range finder's)."""
+        if self.measure_point_m is None:
+            raise GeometryError("the mirror scene has no measure point for the range finder")
+        point = np.array([self.measure_point_m[0], self.measure_point_m[1], 0.0])
+        target_to_camera = self.geometry.fixture_to_camera.compose(self.target_to_fixture)
+        return float(np.linalg.norm(target_to_camera.apply(point) - self.geometry.screen_to_camera.translation))
 
     def mirror_pixels(self) -> np.ndarray:
         """(H, W) bool: pixels all of whose sub-rays see the display through the mirror."""
