@@ -18,7 +18,7 @@ mirror's certificate.
     target = "fixtures/targets/reference_mirror.toml"   # the reference mirror's certificate
     placements = 6              # seated, then a shim under each edge in turn
     min_placements = 3
-    max_samples = 3000          # fringe pixels per placement in the fit
+    max_samples = 2000          # fringe pixels per placement in the fit
     assembly_mm = 5.0           # how well the station is built to its drawing ([layout]): the screen's
     assembly_mrad = 3.0         # shifts and turns against the camera (standard uncertainties; a prior)
 
@@ -196,7 +196,7 @@ class PoseSettings:
     target: str = "fixtures/targets/reference_mirror.toml"
     placements: int = 6
     min_placements: int = 3
-    max_samples: int = 3000
+    max_samples: int = 2000
     min_corners: int = 12
     min_mirror_pixels: int = 300
     assembly_mm: float = 5.0

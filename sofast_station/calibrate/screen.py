@@ -461,7 +461,9 @@ def summary_text(cal: ScreenCalibration, path: Path | None = None) -> str:
                          f"{1e6 * p0:.3f} um ({100 * (p / p0 - 1):+.3f} %)")
         h = best.shape.height_summary()
         lines.append(f"  model: {best.shape.model} (" + ", ".join(
-            f"{m}: F {t['F']:.1f} against {t['critical']:.2f}" for m, t in cal.fit.tests.items()) + ")")
+            f"{m}: F {t['F']:.1f} against {t['critical']:.2f}" + ("" if t.get("pitch_agrees") in (None, True)
+                                                                 else ", its pitch off the 3-D model's")
+            for m, t in cal.fit.tests.items()) + ")")
         lines.append(f"  shape: sag {1e3 * h['sag_m']:+.3f} mm, twist {1e3 * h['twist_m']:+.3f} mm, peak to valley "
                      f"{1e3 * h['peak_to_valley_m']:.3f} mm")
         lines.append("  residuals: " + ", ".join(f"{k} {v:.3f} px" for k, v in sol.rms.items())

@@ -9,7 +9,8 @@ display position), and a certified flat scale board fixed beside the screen. Unk
 certificate), the camera's intrinsics (prior: its calibration) and the screen's shape
 (:mod:`sofast_station.measure.screen_shape`). The board sets the metric scale, so the pitch is measured,
 not assumed. The three shape models are fitted on the same observations; the simplest that leaves no
-significantly larger residual than the richest (F test, 99 %) is chosen.
+significantly larger residual than the richest (F test, 99 %) and whose pitch agrees with the richest's
+(within two of its standard uncertainties) is chosen.
 
 **The pose** (:func:`fit_pose`), from the station camera looking at a flat reference mirror in the
 fixture whose printed frame is a certified ChArUco target, in several placements (tilted by shims). Per
@@ -307,9 +308,7 @@ def _screen_problem(views: list[ScreenView], camera: CameraIntrinsics, camera_st
                 return (pts, {"shape": design}) if der else pts
 
             if kind == "fringes":
-                def project_uv(q, pose0=pose0):
-                    return bundle.project(cam0, pose0.apply(_flat_points(q, width_m, height_m)))
-                sigma = np.maximum(_uv_sigma_in_pixels(project_uv, uv, v.fringe_sigma_uv).ravel(), 1e-3)
+                sigma = starts["fringe_sigma"][k]
             else:
                 sigma = 0.1
             groups.append(bundle.Group(kind, [name, "shape", "camera"], _points_group(name, px, on_screen, ["shape"]),
@@ -405,6 +404,15 @@ def fit_screen(views: list[ScreenView], camera: CameraIntrinsics, width_m: float
             raise ValueError(f"unknown screen model {m!r}; use {', '.join(MODELS)}")
     camera_std = _camera_std(camera, camera_std)
     starts = {"views": initial_screen_poses(views, camera, width_m, height_m)}
+    # every fringe sample's noise in pixels, from its display position's through the starting pose; computed
+    # once, so that every model is judged on the same weights (the F tests compare their sums of squares)
+    cam0 = bundle.camera_vector(camera)
+    starts["fringe_sigma"] = []
+    for v, pose0 in zip(views, starts["views"]):
+        def project_uv(q, pose0=pose0):
+            return bundle.project(cam0, pose0.apply(_flat_points(q, width_m, height_m)))
+        starts["fringe_sigma"].append(np.maximum(_uv_sigma_in_pixels(project_uv, v.fringe_uv, v.fringe_sigma_uv)
+                                                 .ravel(), 1e-3) if len(v.fringe_uv) else np.zeros(0))
     if any(len(v.board_xy) for v in views):
         boards = []
         for v, p in zip(views, starts["views"]):
@@ -435,10 +443,20 @@ def fit_screen(views: list[ScreenView], camera: CameraIntrinsics, width_m: float
             raise ValueError(f"model {force!r} was not fitted; fit it with models=(..., {force!r}, ...)")
         chosen = force
     else:
+        # the simplest model that leaves no significantly larger residual than the richest AND whose pitch
+        # agrees with the richest's within two of the richest's standard uncertainties: a bow too small for
+        # the F test at these views can still bias a flat model's pitch (by 0.15 % for a 0.2 mm bow on the
+        # twin), and the pitch is what the record is for
+        rich_pitch = rich.values["shape"][:2]
+        rich_std = rich.std("shape")[:2]
         for m in models[:-1]:
-            if not tests[m]["needed"]:
+            agree = np.abs(fits[m].solution.values["shape"][:2] - rich_pitch) < 2.0 * rich_std
+            tests[m]["pitch_agrees"] = bool(np.all(agree))
+            if not tests[m]["needed"] and tests[m]["pitch_agrees"]:
                 chosen = m
                 break
+        for m in models[:-1]:
+            tests[m].setdefault("pitch_agrees", None)
     if chosen != richest:
         # the chosen model's own noise estimate and covariance (its residuals are the richest's, within noise)
         st = _restart(starts, rich, shape_start, len(views))

@@ -175,9 +175,19 @@ def cmd_status(args) -> int:
     else:
         camera_in_force = "station.toml [camera]"
         lines.append("  camera intrinsics: station.toml [camera] (set intrinsics = \"record\" to use a camera record)")
+    commissioned = config.commissioned or {}
+    if commissioned:
+        lines.append("  geometry: " + ", ".join(f"{k} record {commissioned[k]['record_id']}" for k in ("screen", "pose")
+                                                if k in commissioned) + " ([calibration] geometry = \"records\")")
+        status.warnings.extend(commissioned.get("warnings", []))
+    elif config.raw.get("calibration", {}).get("geometry") == "station.toml":
+        lines.append("  geometry: station.toml [screen] and [layout] ([calibration] geometry = \"station.toml\")")
+    else:
+        lines.append("  geometry: station.toml [screen] and [layout] (no screen or pose record: run calibrate commission)")
     lines += [f"  ! {w}" for w in status.warnings]
     data = {"in_force": status.describe, "age_h": status.age_h, "warnings": status.warnings,
-            "camera_intrinsics": camera_in_force, "records": {}}
+            "camera_intrinsics": camera_in_force, "records": {},
+            "geometry": {k: v for k, v in commissioned.items() if k != "warnings"}}
     for kind in KINDS:
         records = list_records(config.data_dir, kind)
         data["records"][kind] = [str(p) for p in records]

@@ -37,6 +37,19 @@ from .station import rook_lattice
 _NOTHING, _BEZEL, _BOARD, _DISPLAY = 0, 1, 2, 3
 
 
+def _apply(pose: Pose, points: np.ndarray, translate: bool = True) -> np.ndarray:
+    """*pose* applied to (N, 3) points (or, without *translate*, directions), component by component: an
+    (N, 3) @ (3, 3) product is several times slower in numpy for millions of rows."""
+    r, t = pose.rotation, pose.translation
+    x, y, z = points[:, 0], points[:, 1], points[:, 2]
+    out = np.empty_like(points)
+    for i in range(3):
+        out[:, i] = r[i, 0] * x + r[i, 1] * y + r[i, 2] * z
+        if translate:
+            out[:, i] += t[i]
+    return out
+
+
 def _luminance_table(gamma: float, floor: float) -> np.ndarray:
     """Display luminance (fraction of white) of each command 0..255."""
     levels = np.arange(256, dtype=np.float64) / 255.0
@@ -71,11 +84,27 @@ def _sub_rays(camera: TwinCamera, supersample: int) -> tuple[np.ndarray, int]:
     return rays, count
 
 
+def sub_rays(intrinsics: CameraIntrinsics, supersample: int) -> tuple[np.ndarray, int]:
+    """Every pixel's sub-rays of a camera (unit directions, camera frame) and their count per pixel."""
+    return _sub_rays(TwinCamera(intrinsics), supersample)
+
+
 def _display_hits(screen: TrueScreen, stated: ScreenSpec, origins: np.ndarray, directions: np.ndarray,
                   bezel_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Rays (screen frame) against the panel: (path t, kind, display pixel flat index)."""
-    t, pos = screen.trace(origins, directions)
     n = origins.shape[0]
+    # only rays that meet the panel's plane near the panel go on to its true (bowed) surface
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t0 = -origins[:, 2] / directions[:, 2]
+        px = origins[:, 0] + t0 * directions[:, 0]
+        py = origins[:, 1] + t0 * directions[:, 1]
+    reach = 0.5 * max(screen.width_m, screen.height_m) * 0.05 + bezel_m + 0.01
+    near = np.flatnonzero(np.isfinite(t0) & (t0 > 0) & (np.abs(px) < 0.5 * screen.width_m + reach)
+                          & (np.abs(py) < 0.5 * screen.height_m + reach))
+    t = np.full(n, np.nan)
+    pos = np.full((n, 2), np.nan)
+    if near.size:
+        t[near], pos[near] = screen.trace(origins[near], directions[near])
     kind = np.full(n, _NOTHING, dtype=np.uint8)
     index = np.zeros(n, dtype=np.int64)
     with np.errstate(invalid="ignore"):
@@ -98,8 +127,8 @@ def _board_hits(board: PlanarTarget, board_to_frame: Pose, origins: np.ndarray,
     """Rays (in the frame *board_to_frame* maps into) against the board's plane: (path t, reflectance
     (NaN off the board), board-frame hit points (x, y))."""
     to_board = board_to_frame.inverse()
-    o = to_board.apply(origins)
-    d = to_board.apply_vector(directions)
+    o = _apply(to_board, origins)
+    d = _apply(to_board, directions, translate=False)
     with np.errstate(invalid="ignore", divide="ignore"):
         t = -o[:, 2] / d[:, 2]
     t = np.where(np.isfinite(t) & (t > 0), t, np.inf)
@@ -223,7 +252,7 @@ class ScreenScene:
         """Put the handheld camera at a pose (the screen frame in its frame) and trace what it sees."""
         to_screen = screen_to_camera.inverse()
         origin = np.broadcast_to(to_screen.translation, self._rays.shape)
-        dirs = to_screen.apply_vector(self._rays)
+        dirs = _apply(to_screen, self._rays, translate=False)
         t_disp, kind, index = _display_hits(self.screen, self.screen.stated, origin, dirs, self.bezel_m)
         refl = np.zeros(kind.size, dtype=np.float32)
         if self.board is not None:
@@ -330,11 +359,13 @@ class MirrorScene:
         Sub-rays per pixel edge.
     measure_point_m : (x, y), optional
         The range finder's point on the target, target frame, metres (:meth:`measured_distance_m`).
+    rays : (rays, count), optional
+        The camera's sub-rays (:func:`sub_rays`), when several placements share them.
     """
 
     def __init__(self, geometry, screen: TrueScreen, target: PlanarTarget, window_m, target_to_fixture: Pose,
                  optics: TwinOptics = TwinOptics(), target_white_dn: float = 150.0, background_dn: float = 10.0,
-                 supersample: int = 3, bezel_m: float = 0.015, measure_point_m=None):
+                 supersample: int = 3, bezel_m: float = 0.015, measure_point_m=None, rays=None):
         self.geometry, self.screen, self.optics = geometry, screen, optics
         self.target, self.target_to_fixture = target, target_to_fixture
         self.measure_point_m = measure_point_m
@@ -342,15 +373,14 @@ class MirrorScene:
         if not (x1 > x0 and y1 > y0):
             raise ConfigError(f"mirror window must be (x0, y0, x1, y1) with x1 > x0 and y1 > y0, got {window_m}")
         self.window_m = (x0, y0, x1, y1)
-        camera = TwinCamera(geometry.camera)
-        rays, subs = _sub_rays(camera, supersample)
+        rays, subs = rays if rays is not None else sub_rays(geometry.camera, supersample)
         target_to_camera = geometry.fixture_to_camera.compose(target_to_fixture)
         origin = np.zeros_like(rays)
         t_board, refl, xy = _board_hits(target, target_to_camera, origin, rays)
         # the window: the same plane, a mirror instead of print
         to_target = target_to_camera.inverse()
-        o_t = to_target.apply(origin)
-        d_t = to_target.apply_vector(rays)
+        o_t = _apply(to_target, origin)
+        d_t = _apply(to_target, rays, translate=False)
         with np.errstate(invalid="ignore", divide="ignore"):
             t_plane = -o_t[:, 2] / d_t[:, 2]
             hit_t = o_t + t_plane[:, None] * d_t
@@ -364,8 +394,8 @@ class MirrorScene:
         d_ref_t = d_t - 2.0 * (d_t @ normal_t)[:, None] * normal_t
         target_to_screen = geometry.screen_to_camera.inverse().compose(target_to_camera)
         idx = np.flatnonzero(in_window)
-        _, k_disp, index = _display_hits(screen, geometry.screen, target_to_screen.apply(hit_t[idx]),
-                                         target_to_screen.apply_vector(d_ref_t[idx]), bezel_m)
+        _, k_disp, index = _display_hits(screen, geometry.screen, _apply(target_to_screen, hit_t[idx]),
+                                         _apply(target_to_screen, d_ref_t[idx], translate=False), bezel_m)
         kind[idx] = np.where(k_disp == _DISPLAY, _DISPLAY, np.where(k_disp == _BEZEL, _BEZEL, _NOTHING))
         full_index = np.zeros(rays.shape[0], dtype=np.int64)
         full_index[idx] = index
