@@ -185,7 +185,7 @@ class ScreenSpec:
         return cls(d["width_px"], d["height_px"], d["pitch_x_m"], d["pitch_y_m"])
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class MeasuredScreen:
     """A measured screen shape (``calibrate screen``): where, in the screen frame, each display position is.
 
@@ -224,6 +224,13 @@ class MeasuredScreen:
         object.__setattr__(self, "nodes_screen_m", pts)
         object.__setattr__(self, "modes_m", modes)
         object.__setattr__(self, "record_id", str(self.record_id))
+
+    def __eq__(self, other) -> bool:
+        return (isinstance(other, MeasuredScreen) and self.record_id == other.record_id
+                and all(np.array_equal(getattr(self, k), getattr(other, k))
+                        for k in ("nodes_px", "nodes_screen_m", "modes_m")))
+
+    __hash__ = None
 
     def to_dict(self) -> dict:
         return {"nodes_px": self.nodes_px.tolist(), "nodes_screen_m": self.nodes_screen_m.tolist(),
