@@ -112,26 +112,28 @@ def cmd_geometry(args) -> int:
     return 0 if step.verdict == "pass" else 1
 
 
+def _emit_step(args, step) -> int:
+    """Print a commissioning step (its summary ends with its verdict; --json: its data, verdict and summary);
+    the exit status: 1 when it was refused (no record), else 0."""
+    _emit(args, {k: v for k, v in step.data.items() if k != "headline"} | {"verdict": step.verdict,
+                                                                        "summary": step.summary}, step.summary)
+    return 1 if step.verdict == "refused" else 0
+
+
 def cmd_screen(args) -> int:
     from ..config import load_config
     from .commissioning import run_screen
 
-    step = run_screen(load_config(args.config), views=args.views, model=args.model, seed=args.seed,
-                      noise=not args.noise_free)
-    _emit(args, {k: v for k, v in step.data.items() if k != "headline"} | {"verdict": step.verdict,
-                                                                        "summary": step.summary}, step.summary)
-    return 1 if step.verdict == "refused" else 0
+    return _emit_step(args, run_screen(load_config(args.config), views=args.views, model=args.model, seed=args.seed,
+                                       noise=not args.noise_free))
 
 
 def cmd_pose(args) -> int:
     from ..config import load_config
     from .commissioning import run_pose
 
-    step = run_pose(load_config(args.config), placements=args.placements, target=args.target, seed=args.seed,
-                    noise=not args.noise_free)
-    _emit(args, {k: v for k, v in step.data.items() if k != "headline"} | {"verdict": step.verdict,
-                                                                        "summary": step.summary}, step.summary)
-    return 1 if step.verdict == "refused" else 0
+    return _emit_step(args, run_pose(load_config(args.config), placements=args.placements, target=args.target,
+                                     seed=args.seed, noise=not args.noise_free))
 
 
 def cmd_commission(args) -> int:
@@ -192,6 +194,8 @@ def cmd_status(args) -> int:
         records = list_records(config.data_dir, kind)
         data["records"][kind] = [str(p) for p in records]
         lines.append(f"  {kind}: {len(records)} record(s)" + (f", newest {records[-1].name}" if records else ""))
+    lines.append(f"verdict: {'WARN (see the warnings above)' if status.warnings else 'OK'}")
+    data["verdict"] = "warn" if status.warnings else "ok"
     _emit(args, data, "\n".join(lines))
     return 0
 

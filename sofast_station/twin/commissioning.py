@@ -31,7 +31,7 @@ from .assembly import TrueScreen
 from .board import PlanarTarget
 from .camera import TwinCamera
 from .config import TwinOptics
-from .station import rook_lattice
+from .station import TwinStation, rook_lattice
 
 #: What a sub-ray hits.
 _NOTHING, _BEZEL, _BOARD, _DISPLAY = 0, 1, 2, 3
@@ -422,20 +422,10 @@ class MirrorScene:
         v = self._view
         return np.all((v.kind == _DISPLAY).reshape(-1, v.subs), axis=1).reshape(v.shape)
 
-    def sensor_scale(self, exposure_s: float | None = None, gain: float | None = None) -> float:
-        exposure = self.optics.reference_exposure_s if exposure_s is None else float(exposure_s)
-        return exposure / self.optics.reference_exposure_s * (1.0 if gain is None else float(gain))
-
-    def flicker_factor(self, exposure_s: float | None = None, phase: float | None = None) -> float:
-        """As the twin station's: the display's backlight averaged over the exposure."""
-        o = self.optics
-        exposure = o.reference_exposure_s if exposure_s is None else float(exposure_s)
-        periods = exposure * o.refresh_hz
-        if o.flicker_depth == 0 or (round(periods) >= 1 and abs(periods - round(periods)) < 1e-6):
-            return 1.0
-        p0 = 0.0 if phase is None else float(phase)
-        return 1.0 + o.flicker_depth * (math.sin(2 * math.pi * (p0 + periods)) - math.sin(2 * math.pi * p0)) \
-            / (2 * math.pi * periods)
+    # the sensor's exposure x gain and the display's flicker, exactly as the twin station forms them (they
+    # read only the optics)
+    sensor_scale = TwinStation.sensor_scale
+    flicker_factor = TwinStation.flicker_factor
 
     def capture(self, display_image: np.ndarray, rng: np.random.Generator | None = None, *,
                 exposure_s: float | None = None, gain: float | None = None, flicker_phase: float | None = None,
