@@ -16,7 +16,8 @@ from sofast_station.calibrate.geometry_record import load_geometry_record, save_
 from sofast_station.config import load_config
 from sofast_station.errors import ConfigError
 from sofast_station.station import simulated as simulated_station
-from sofast_station.station.calibrate_cli import register, sensitivities_in_force
+from sofast_station.station.calibrate_cli import register
+from sofast_station.station.commissioning import sensitivities_in_force
 from sofast_station.station.factory import open_station
 from sofast_station.station.inspection import inspect
 
