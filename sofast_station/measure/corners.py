@@ -52,6 +52,10 @@ SIDE_MODEL_SIGMA_PX = 0.01
 EDGE_REACH_SIGMAS = 3.0
 #: Margin (pixels) kept beyond the blur's reach and the pixel's own half width (:func:`edge_inset_px`).
 EDGE_MARGIN_PX = 0.5
+#: A blur (standard deviation, pixels) from which the pixel's own half width and the margin are kept in
+#: full; a sharper edge keeps that share of them (a sharp edge's partly covered pixels only mix in the
+#: dark background: on OpenCSP's 85-pixel-wide facet leaving out that ring moved f_y by 1 %).
+EDGE_SHARP_PX = 0.25
 
 
 @dataclass(frozen=True)
@@ -738,9 +742,12 @@ def edge_blur_px(coverage: np.ndarray, trim: float = 0.1) -> float:
 
 def edge_inset_px(blur_px: float) -> float:
     """How far inside the outline (pixels) a pixel's centre must lie for none of its light to come from
-    beyond the edge: its own half width, :data:`EDGE_REACH_SIGMAS` of the blur (*blur_px*, its standard
-    deviation) and :data:`EDGE_MARGIN_PX`."""
-    return 0.5 + EDGE_REACH_SIGMAS * float(blur_px) + EDGE_MARGIN_PX
+    beyond the edge through the lens's blur: :data:`EDGE_REACH_SIGMAS` of the blur (*blur_px*, its standard
+    deviation), plus its own half width and :data:`EDGE_MARGIN_PX` for a blurred edge. A sharp edge's
+    partly covered pixels see the facet and the dark background only (no light of another phase), so
+    below :data:`EDGE_SHARP_PX` of blur that share fades to 0: the centre inside the outline suffices."""
+    blur = max(float(blur_px), 0.0)
+    return EDGE_REACH_SIGMAS * blur + min(1.0, blur / EDGE_SHARP_PX) * (0.5 + EDGE_MARGIN_PX)
 
 
 def inside_outline(outline: OutlineFit, cols: np.ndarray, rows: np.ndarray, inset_px: float) -> np.ndarray:

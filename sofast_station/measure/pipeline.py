@@ -442,7 +442,8 @@ def measure_phases(region: Region, fringes: FringeSet, screen_size_m: tuple[floa
     """Stage 2: phase, modulation, consistency and unwrapping of the region's pixels.
 
     *screen_size_m* is the displayed area's (width, height), metres; *pixel_mask* (rows, columns) limits
-    the pixels that may be used for the shape.
+    the pixels that may be used for the shape. Without one, the pixels within the edge's blur
+    (``Region.clear_of_edge``) are left out; with one, the mask alone decides.
     """
     pool = pool if pool is not None else _Serial()
     idx, stack = region.idx, region.stack
@@ -494,8 +495,9 @@ def measure_phases(region: Region, fringes: FringeSet, screen_size_m: tuple[floa
         excluded = int(np.count_nonzero(ok & ~allowed))
         ok &= allowed
     near_edge = 0
-    if region.clear_of_edge is not None:
-        # pixels within the blur of the facet's edge see light from both sides of it: left out
+    if region.clear_of_edge is not None and pixel_mask is None:
+        # pixels within the blur of the facet's edge see light from both sides of it: left out (a caller's
+        # own pixel mask, e.g. another program's pixels for a like-with-like comparison, decides alone)
         near_edge = int(np.count_nonzero(~region.clear_of_edge))
         ok &= region.clear_of_edge
     positions, unwrap_stats = {}, {}
