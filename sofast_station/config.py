@@ -183,6 +183,7 @@ def load_config(path: str | Path, use_camera_record: bool = True) -> StationConf
     geometry, commissioned, commissioned_std = geometry_in_force(data_dir, stated_geometry, where,
                                                                  cal.get("geometry", "records"))
     uncertainty = InputUncertainties.from_table(raw.get("uncertainty", {}), f"{where} [uncertainty]")
+    _check_camera_uncertainty(uncertainty, geometry.camera, f"{where} [uncertainty]")
     if camera_record is not None:
         uncertainty = uncertainty.with_camera_record(camera_record)
     uncertainty = uncertainty.with_commission_records(commissioned_std)
@@ -200,6 +201,19 @@ def load_config(path: str | Path, use_camera_record: bool = True) -> StationConf
                          simulation=raw.get("simulation", {}), raw=raw, camera_record=camera_record,
                          optics=_optics(raw, where), uncertainty=uncertainty, stated_geometry=stated_geometry,
                          commissioned=commissioned)
+
+
+def _check_camera_uncertainty(uncertainty, camera, where: str) -> None:
+    """A camera's focal length or principal point uncertain by a fifth of its focal length is no calibrated
+    camera's: the uncertainty's reruns would move the lens to nonsense (a negative focal length), and the
+    first facet would fail with a message about its corners. Named here, at load."""
+    f_px = float(min(camera.matrix[0, 0], camera.matrix[1, 1]))
+    for key, what in (("camera_focal_px", "focal length"), ("camera_principal_px", "principal point")):
+        u = float(getattr(uncertainty, key))
+        if u > 0.2 * f_px:
+            raise ConfigError(f"{where} {key} = {u:g} px is {u / f_px:.3g} times the camera's focal length "
+                              f"({f_px:g} px): not the standard uncertainty of a calibrated camera's {what} (a few "
+                              "pixels; `calibrate camera` states it); correct it")
 
 
 def _optics(raw: dict, where: str):

@@ -189,6 +189,10 @@ SECTIONS: dict[str, dict[str, Key]] = {
         "warn_display_harmonic_ratio": _nonneg("second harmonic / fringe amplitude"),
         "max_slope_curl_ratio": _nonneg("turning / stretching part of the slope gradient"),
         "min_slope_curl_per_m": _nonneg("1/m"),
+        "slope_curl_sigmas": _pos("standard deviations of the turning part's noise"),
+        "slope_curl_noise_tolerance": _nonneg("relative, of the predicted noise's mean square"),
+        "max_placement_mm": _pos("mm, beyond the placement's U"), "max_placement_mrad": _pos("mrad, beyond its U"),
+        "max_design_slope_factor": _pos("times the layout's largest slope error (design RMS)"),
     },
     "calibration": {
         "radiometric": Key("str"), "stale": Key("str", choices=("warn", "refuse")),

@@ -9,6 +9,8 @@ A facet file (TOML, in ``fixtures/facets/``) holds one ``[facet]`` table::
     outline_m = [[0.3, -0.3], [0.3, 0.3], [-0.3, 0.3], [-0.3, -0.3]]   # corners, counter-clockwise
     measure_point_m = [0.0, 0.0]     # where the range finder's distance is taken to
     alignment_point_m = [0.0, 0.0]   # the electronic boresight's alignment point
+    edge_rim_m = 0.0                 # optional: a rim along the outline that may not reflect like the
+                                     # mirror (a seamed or bevelled glass edge), metres wide
 
 The facet frame's origin is the paraboloid vertex: the facet centre for on-axis facets, a point off the
 facet for gore facets (docs/conventions.md#facet-frame).
@@ -39,6 +41,12 @@ class FacetDesign:
         Corner points (x, y) of the reflective outline, counter-clockwise seen from +z.
     measure_point_m, alignment_point_m : (2,) arrays
         (x, y) of the range-finder point and of the boresight alignment point.
+    layout : dict
+        The ``[facet.layout]`` table (the station layout's hints).
+    edge_rim_m : float
+        Width of a rim inside the outline whose surface is not the mirror's (a seamed or bevelled glass
+        edge), metres: it may look lit or dark in the camera, so the corners' uncertainty includes it
+        (docs/method.md, facet outline). 0: the mirror reaches the outline.
     """
 
     name: str
@@ -48,6 +56,7 @@ class FacetDesign:
     measure_point_m: np.ndarray
     alignment_point_m: np.ndarray
     layout: dict = field(default_factory=dict)
+    edge_rim_m: float = 0.0
 
     def __post_init__(self):
         where = f"facet {self.name!r}"
@@ -66,6 +75,14 @@ class FacetDesign:
             raise ConfigError(f"{where}: outline_m corners must run counter-clockwise seen from +z")
         outline.setflags(write=False)
         object.__setattr__(self, "outline_m", outline)
+        rim = self.edge_rim_m
+        if isinstance(rim, bool) or not isinstance(rim, (int, float)) or not np.isfinite(rim) or rim < 0:
+            raise ConfigError(f"{where}: edge_rim_m must be a width >= 0 in metres, got {rim!r}")
+        sides = np.linalg.norm(np.roll(outline, -1, axis=0) - outline, axis=1)
+        if rim >= 0.25 * sides.min():
+            raise ConfigError(f"{where}: edge_rim_m = {rim:g} m is not a narrow rim of this outline (its "
+                              f"shortest side is {sides.min():g} m); give the rim's width in metres")
+        object.__setattr__(self, "edge_rim_m", float(rim))
         for key in ("measure_point_m", "alignment_point_m"):
             p = np.array(getattr(self, key), dtype=np.float64)
             if p.shape != (2,) or not np.all(np.isfinite(p)):
@@ -113,9 +130,12 @@ class FacetDesign:
         return np.column_stack([x, y, self.z(x, y)])
 
     def to_dict(self) -> dict:
-        return {"name": self.name, "kind": self.kind, "focal_length_m": self.focal_length_m,
-                "outline_m": self.outline_m.tolist(), "measure_point_m": self.measure_point_m.tolist(),
-                "alignment_point_m": self.alignment_point_m.tolist(), "layout": dict(self.layout)}
+        d = {"name": self.name, "kind": self.kind, "focal_length_m": self.focal_length_m,
+             "outline_m": self.outline_m.tolist(), "measure_point_m": self.measure_point_m.tolist(),
+             "alignment_point_m": self.alignment_point_m.tolist(), "layout": dict(self.layout)}
+        if self.edge_rim_m:         # (absent when there is none: designs and hashes from before it)
+            d["edge_rim_m"] = self.edge_rim_m
+        return d
 
     @classmethod
     def from_dict(cls, d: dict, source: str = "facet") -> "FacetDesign":
@@ -127,7 +147,8 @@ class FacetDesign:
         try:
             return cls(name=str(d["name"]), kind=str(d["kind"]), focal_length_m=d["focal_length_m"],
                        outline_m=outline, measure_point_m=d.get("measure_point_m", centre),
-                       alignment_point_m=d.get("alignment_point_m", centre), layout=dict(d.get("layout", {})))
+                       alignment_point_m=d.get("alignment_point_m", centre), layout=dict(d.get("layout", {})),
+                       edge_rim_m=d.get("edge_rim_m", 0.0))
         except ConfigError as exc:            # name where the design came from (a file, a recipe)
             msg = str(exc)
             raise ConfigError(msg if source == "facet" or source in msg else f"{source}: {msg}") from None

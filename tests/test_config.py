@@ -4,6 +4,7 @@ import pytest
 
 from sofast_station.config import load_config
 from sofast_station.errors import ConfigError
+from tests.conftest import ROOT, SMALL_STATION
 
 
 def test_default_station_is_the_full_resolution_dish(repo_root):
@@ -114,6 +115,20 @@ def test_workbook_parts_are_bounded_by_default(small_station_toml):
     small_station_toml.write_text(small_station_toml.read_text().replace("= 50", "= 0"))
     with pytest.raises(ConfigError, match=r"\[archive\] workbook_max_rows must be a whole number of at least 1"):
         load_config(small_station_toml)
+
+
+def test_a_camera_focal_length_uncertainty_of_a_million_pixels_is_named_at_load(tmp_path):
+    """Issue 26: [uncertainty] camera_focal_px = 1e6 loaded, and the first facet's uncertainty reran the
+    analysis with a focal length of -996,591 px: refused as "partly lit or obstructed". It is a wrong camera
+    focal length uncertainty, said when the station file is read."""
+    path = tmp_path / "station.toml"
+    path.write_text(SMALL_STATION.format(data_dir=tmp_path / "data", facet=ROOT / "fixtures/facets/dish_5m33.toml",
+                                         radiometric=ROOT / "calibration/simulated_radiometric.json")
+                    + "\n[uncertainty]\ncamera_focal_px = 1e6\n")
+    says = r"camera_focal_px = 1e\+06 px is 293 times the camera's focal length"
+    with pytest.raises(ConfigError, match=says) as info:
+        load_config(path)
+    assert "obstructed" not in str(info.value)
 
 
 @pytest.mark.parametrize("kind, says", [

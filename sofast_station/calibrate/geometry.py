@@ -22,12 +22,21 @@ The reference facet is described by its certificate, a TOML file::
     focal_length_tolerance = 0.005   # relative; defaults shown
     placement_tolerance_mm = 2.0
     placement_tolerance_mrad = 2.0
+    screen_scale_tolerance = 0.005   # relative: the screen's pitch flagged beyond this (and its U)
 
 The comparison is with the certified figures, never with the facet's design: a facet's best-fit
 parabola differs from its nominal focal lengths (on the twin's default facet, whose paraboloid has f_y
 5.35 m, the random slope error and twist make it 5.3444 m: a perfect station compared with the nominal
 value reported f_y -0.105 %). On the simulated station the certificate is the twin's truth
 (``station.reference_certificate()``: the conventions' figures of its exact surface over the facet).
+
+The check also estimates the screen's scale (:func:`screen_scale`): the screen pitch that would make the
+measured focal lengths the certified ones, through their sensitivity to the pitch (the uncertainty
+budget's, signed). A station laid out about the facet's centre of curvature sees the pitch only through
+how far the reference's focal lengths are from the layout's design focal length: the farther, the finer
+(on the 400 x 300 dish station, +-0.8 % (k = 2) with the design's 5.42 / 5.35 m facet; +-0.12 % with a
+reference of 5.9 / 5.8 m); the record says how finely, and when that is too coarse to check the pitch.
+``screen_scale_tolerance = 0.005`` in the reference file sets what is flagged.
 
 The record also states what the check determines, with standard uncertainties (``determined``): the
 fixture's pose (the reference's measured placement minus its certified one; the inspection's U of the
@@ -83,6 +92,7 @@ class GeometryReference:
     focal_length_u_relative: float = 0.0
     placement_u_mm: float = 0.0
     placement_u_mrad: float = 0.0
+    screen_scale_tolerance: float = 0.005
 
     def __post_init__(self):
         for key in ("focal_length_x_m", "focal_length_y_m"):
@@ -95,7 +105,8 @@ class GeometryReference:
             if len(v) != 3 or not all(math.isfinite(x) for x in v):
                 raise ConfigError(f"reference {key} must be 3 finite numbers")
             object.__setattr__(self, key, v)
-        for key in ("focal_length_tolerance", "placement_tolerance_mm", "placement_tolerance_mrad"):
+        for key in ("focal_length_tolerance", "placement_tolerance_mm", "placement_tolerance_mrad",
+                    "screen_scale_tolerance"):
             if not float(getattr(self, key)) > 0:
                 raise ConfigError(f"reference {key} must be positive")
         for key in ("focal_length_u_relative", "placement_u_mm", "placement_u_mrad"):
@@ -107,7 +118,7 @@ class GeometryReference:
 
 _REF_KEYS = {"name", "focal_length_x_m", "focal_length_y_m", "placement_mm", "placement_mrad",
              "focal_length_tolerance", "placement_tolerance_mm", "placement_tolerance_mrad",
-             "focal_length_u_relative", "placement_u_mm", "placement_u_mrad"}
+             "focal_length_u_relative", "placement_u_mm", "placement_u_mrad", "screen_scale_tolerance"}
 
 
 def load_reference(path: str | Path) -> GeometryReference:
@@ -231,10 +242,12 @@ def compare_to_reference(figures: dict, reference: GeometryReference) -> dict:
     return out
 
 
-def check_geometry(rec: dict, reference: GeometryReference, inputs=None) -> dict:
+def check_geometry(rec: dict, reference: GeometryReference, inputs=None, pitch_sensitivity: dict | None = None) -> dict:
     """Compare the inspection *rec* of the reference facet in the fixture with its certificate
-    (:func:`compare_to_reference`) and say what that determines (:func:`determined`; *inputs*: the station's
-    InputUncertainties). ``sofast-station calibrate geometry`` inspects the reference and calls this.
+    (:func:`compare_to_reference`), say what that determines (:func:`determined`; *inputs*: the station's
+    InputUncertainties) and estimate the screen's scale (:func:`screen_scale`; *pitch_sensitivity*: the
+    inspection's, :func:`pitch_sensitivities`). ``sofast-station calibrate geometry`` inspects the
+    reference and calls this.
 
     Returns
     -------
@@ -246,7 +259,86 @@ def check_geometry(rec: dict, reference: GeometryReference, inputs=None) -> dict
     check.update({"serial": rec["serial"], "time": rec["time"], "radiometric": rec["calibration"]["radiometric"],
                   "verdict": rec.get("verdict"), "n_points": rec.get("n_points")})
     check["determined"] = determined(rec, reference, inputs)
+    scale = screen_scale(rec, reference, pitch_sensitivity)
+    check["screen_scale"] = scale
+    if scale.get("flagged"):
+        check["reasons"].append(
+            f"the screen's scale: the certified focal lengths are met with the screen pitch "
+            f"{100 * scale['value']:+.2f} ± {100 * scale['U']:.2f} % (k = 2) off the configured [screen] pitch_m "
+            f"(tolerance {100 * reference.screen_scale_tolerance:g} %): measure the screen's active width and "
+            "correct pitch_m (a wrong pitch scales every slope deviation the station measures)")
+        check["within_tolerance"] = False
     return check
+
+
+def pitch_sensitivities(sensitivities) -> dict | None:
+    """``{figure name: d figure / d (relative pitch)}``, signed, from the uncertainty's sensitivities of the
+    inspection (:class:`~sofast_station.measure.uncertainty.Sensitivities`: finite differences at +-1
+    standard uncertainty of each axis's pitch, summed: a scale of the whole screen); None without them."""
+    if sensitivities is None:
+        return None
+    rows = [i for i, inp in enumerate(sensitivities.inputs) if inp.name in ("screen pitch x", "screen pitch y")]
+    if len(rows) != 2:
+        return None
+    names = [".".join(str(q) for q in p) for p in sensitivities.paths]
+    return {name: float(sum(sensitivities.linear[i, j] / sensitivities.inputs[i].u for i in rows))
+            for j, name in enumerate(names)}
+
+
+def screen_scale(figures: dict, reference: GeometryReference, sensitivity: dict | None) -> dict:
+    """The screen's scale the reference check finds: s = true pitch / configured pitch - 1, with its U.
+
+    The measured curvatures differ from the certified ones by d_i = -c_i s to first order (c_i: each
+    curvature's sensitivity to a stretch of the configured pitch, :func:`pitch_sensitivities`); s is the
+    weighted least-squares solution over kappa_x and kappa_y, each weighted by its standard uncertainty
+    without the pitch's own row (the budget's) and the certificate's, in quadrature (the two figures'
+    errors taken as independent). ``resolves`` says whether U (k = 2) is below the reference's
+    ``screen_scale_tolerance`` (a reference too close to the layout's centre of curvature cannot check the
+    pitch: any small disagreement of its focal lengths, the certificate's own included, would read as a
+    large scale); flagged when it resolves and |s| exceeds both U and that tolerance.
+    """
+    budget = figures.get("uncertainty_budget")
+    if not sensitivity or not budget:
+        return {"value": None, "U": None, "k": 2, "flagged": False,
+                "note": "not checked: the inspection has no uncertainty budget or no sensitivity to the screen pitch"}
+    num = den = 0.0
+    for axis in ("x", "y"):
+        name = f"curvature_{axis}_per_m"
+        known = getattr(reference, f"focal_length_{axis}_m")
+        kappa_known = 0.0 if math.isinf(known) else 1.0 / known
+        c = sensitivity.get(name)
+        u = _u_without(budget, "screen pitch", name)
+        if c is None or u is None or figures.get(name) is None:
+            continue
+        u = math.hypot(u, reference.focal_length_u_relative * abs(kappa_known))
+        if u <= 0:
+            continue
+        d = float(figures[name]) - kappa_known
+        num += -c * d / u ** 2
+        den += c * c / u ** 2
+    if den <= 0:
+        return {"value": None, "U": None, "k": 2, "flagged": False,
+                "note": "not checked: the focal lengths do not depend on the screen pitch here"}
+    value, big_u = num / den, 2.0 / math.sqrt(den)
+    tol = reference.screen_scale_tolerance
+    out = {"value": value, "U": big_u, "k": 2, "tolerance": tol, "resolves": big_u < tol,
+           "flagged": big_u < tol and abs(value) > max(big_u, tol)}
+    if not out["resolves"]:
+        out["note"] = (f"this reference resolves the screen's scale to +-{100 * big_u:.2f} % (k = 2) only, coarser "
+                       f"than the {100 * tol:g} % to check: its focal lengths are too close to the layout's design "
+                       "focal length (the screen near the centre of curvature); a reference whose focal lengths "
+                       "differ from it by 10 % resolves about 0.1 %")
+    return out
+
+
+def _u_without(budget: dict, group: str, name: str) -> float | None:
+    """The figure's combined standard uncertainty without *group*'s contribution (from the budget)."""
+    if not budget or name not in budget["figures"]:
+        return None
+    j = budget["figures"].index(name)
+    if budget["combined_standard"][j] is None:
+        return None
+    return math.sqrt(sum((r["contributions"][j] or 0.0) ** 2 for r in budget["rows"] if r["group"] != group))
 
 
 def determined(figures: dict, reference: GeometryReference, inputs=None) -> dict:
@@ -264,13 +356,7 @@ def determined(figures: dict, reference: GeometryReference, inputs=None) -> dict
     budget = figures.get("uncertainty_budget")
 
     def other_than(group: str, name: str) -> float | None:
-        """The figure's combined standard uncertainty without *group*'s contribution (from the budget)."""
-        if not budget or name not in budget["figures"]:
-            return None
-        j = budget["figures"].index(name)
-        if budget["combined_standard"][j] is None:
-            return None
-        return math.sqrt(sum((r["contributions"][j] or 0.0) ** 2 for r in budget["rows"] if r["group"] != group))
+        return _u_without(budget, group, name)
 
     for key, unit, cert_u in (("mm", "translation_mm", reference.placement_u_mm),
                               ("mrad", "rotation_mrad", reference.placement_u_mrad)):
@@ -323,6 +409,12 @@ def summary_text(check: dict, path: Path | None = None) -> str:
                 f"{o:+.2f} +- {s:.2f}" for o, s in zip(det[key]["offset"], det[key]["std"])) + f" {unit} (k=1)")
     if "distance_mm" in det:
         lines.append(f"  measured distance confirmed to +- {det['distance_mm']['std']:.2f} mm (k=1)")
+    scale = check.get("screen_scale") or {}
+    if scale.get("value") is not None:
+        lines.append(f"  screen scale: true pitch / configured - 1 = {100 * scale['value']:+.2f} +- "
+                     f"{100 * scale['U']:.2f} % (k=2)")
+    if scale.get("note"):
+        lines.append(f"  screen scale {scale['note']}")
     t = check["tolerances"]
     verdict = "WITHIN" if check["within_tolerance"] else "OUTSIDE"
     lines.append(f"  {verdict} tolerance (f {100 * t['focal_length']:g} %, "

@@ -132,7 +132,16 @@ def check_order(frames: np.ndarray, fringes: FringeSet, threshold_dn: float) -> 
     else:
         flat = frames.reshape(frames.shape[0], -1)
         sample = np.ascontiguousarray(flat[:, :: max(1, flat.shape[1] // 200_000)])
-    responsive = (sample.max(axis=0) - sample.min(axis=0)) > threshold_dn
+    # A pixel that only sees noise also changes over 18 frames, by about 3.6 of its standard deviations
+    # and now and then by 7: the bar is raised by 7 times the noise, taken from a four-step set's
+    # consistency residual I0 + I2 - I1 - I3 (2 sigma of noise whatever the fringe), at its lower
+    # quartile (0.637 of 2 sigma), which stays noise as long as a quarter of the image is still.
+    sigma = 0.0
+    if fringes.phase_steps == 4:
+        k = fringes.slices()["x"][0].start
+        residual = (sample[k].astype(np.int32) + sample[k + 2]) - (sample[k + 1].astype(np.int32) + sample[k + 3])
+        sigma = quantile(np.abs(residual), 0.25) / (2.0 * 0.637)
+    responsive = (sample.max(axis=0) - sample.min(axis=0)) > threshold_dn + 7.0 * sigma
     n_responsive = int(np.count_nonzero(responsive))
     if n_responsive < 50:
         return
@@ -143,11 +152,31 @@ def check_order(frames: np.ndarray, fringes: FringeSet, threshold_dn: float) -> 
     # light giving a third of the brightest frame (the display then at most two thirds) is refused.
     black = quantile(sample, 0.01)      # np.percentile(sample, 1), by counting (integer counts)
     level, swing = float(means.min()) - black, float(means.max() - means.min())
-    if level > 0.5 * swing:
+    top = np.iinfo(sample.dtype).max if np.issubdtype(sample.dtype, np.integer) else None
+    if level > 0.5 * swing and top is not None:
+        # An over-exposed capture clips the white frame at the top count, which shrinks the swing and
+        # would read as room light drowning the display. The dark frame tells them apart: over-exposure
+        # leaves it below the top (the display's black and the room light, scaled up with everything),
+        # where room light that fills the range clips it too (check_response names that saturation).
+        white, dark = sample[1][responsive], sample[0][responsive]
+        clipped = white >= top
+        n_clipped = int(np.count_nonzero(clipped))
+        if n_clipped > 0.1 * white.size and np.count_nonzero(dark[clipped] >= top) <= 0.5 * n_clipped:
+            dark_level = float(np.median(dark)) - black
+            raise CaptureError(
+                f"the capture is over-exposed: {100 * n_clipped / white.size:.0f} % of the responding pixels are "
+                f"saturated (at the top count {top} DN) in the white frame, while the dark frame is below it "
+                f"({dark_level:.0f} DN above the black level: the display's black and the room light, scaled up "
+                "with everything else); lower the exposure or gain (rerun calibrate radiometric)")
+    if level > 0.5 * swing and level > threshold_dn:
         raise CaptureError(
             f"too much ambient light, too little contrast: even the darkest frame is {level:.0f} DN above the "
             f"black level over the facet, where the display changes it by only {swing:.0f} DN; shade the "
             "station from room light or daylight (or switch it off) and retake")
+    if swing <= threshold_dn:
+        # Nothing in view follows the display (pixels picked by noise alone): no order to judge here;
+        # check_response and the region's checks say what is missing.
+        return
     labels = [p.label for p in fringes.patterns()]
     darkest, brightest = int(np.argmin(means)), int(np.argmax(means))
     tie = 0.02 * float(means.max() - means.min())      # a saturated white may tie with a fringe peak
@@ -216,7 +245,7 @@ _SPACING_STRIDE = 4
 
 
 def slope_curl(valid: np.ndarray, points_m: np.ndarray, slopes: np.ndarray, step_m: float = 0.01,
-               stride: int | None = None) -> dict:
+               stride: int | None = None, slope_cov=None, edge_px: int = 1) -> dict:
     """How far the measured slope field is from being a gradient: the local curl, against its noise.
 
     Slopes of a real surface are a gradient, s = grad z, so ds_x/dy = ds_y/dx everywhere. Fringe sets
@@ -235,6 +264,21 @@ def slope_curl(valid: np.ndarray, points_m: np.ndarray, slopes: np.ndarray, step
     four pixels, uncorrelated between centres, so its share of each mean square is unbiased either way.
     ``stride=1`` takes every pixel.
 
+    The valid pixels within *edge_px* of the valid region's border (its outline and any hole) are left
+    out: a facet's outermost pixels see part facet, part background, or a bevelled rim that reflects the
+    screen at another angle, and their few wild slopes would weigh in both parts alike (a 1.0 ratio on a
+    good capture of a nearly flat facet with a bevelled edge).
+
+    With *slope_cov*, the mean squares the slope noise alone would give each part are computed too, from
+    every centre's four pixels' noise through the same differences (each pixel's noise is its own, so the
+    variances add), so that the verdict can judge the parts against their noise and not against each other
+    only: ``antisymmetric_noise_per_m`` and ``symmetric_noise_per_m`` (the RMS values a curl-free field of
+    that noise gives), and ``antisymmetric_noise_ms_sd_per_m2``, the standard deviation of the
+    antisymmetric mean square under the noise alone (each centre's square of a normal value of variance v
+    has variance 2 v^2; centres on the lattice share pixels with up to four others, each a quarter of their
+    variance, which the 1.25 factor on the variance of the sum allows for). :func:`curl_judgement` judges
+    them.
+
     Parameters
     ----------
     valid : (H, W) bool array
@@ -247,12 +291,18 @@ def slope_curl(valid: np.ndarray, points_m: np.ndarray, slopes: np.ndarray, step
         Half the difference baseline on the facet, metres.
     stride : int, optional
         Spacing of the centre pixels' lattice, pixels.
+    edge_px : int
+        Valid pixels this close to the valid region's border (4-neighbourhood steps) are not used, pixels.
+    slope_cov : callable, optional
+        ``slope_cov(indices) -> (var_x, var_y, cov_xy)``: each point's slope noise (slope units squared)
+        at the given point indices (into the columns of *points_m*).
 
     Returns
     -------
     dict
         ``antisymmetric_rms_per_m``, ``symmetric_rms_per_m`` (both symmetric parts together, per
-        component), ``step_px`` (k), ``stride_px`` and ``n`` (the centres used).
+        component), ``step_px`` (k), ``stride_px`` and ``n`` (the centres used); with *slope_cov* also the
+        noise figures above (1/m, and sigmas).
     """
     h, w = valid.shape
     rows, cols = np.flatnonzero(valid.any(axis=1)), np.flatnonzero(valid.any(axis=0))
@@ -264,6 +314,11 @@ def slope_curl(valid: np.ndarray, points_m: np.ndarray, slopes: np.ndarray, step
     kind = np.int32 if points_m.shape[1] < 2**31 else np.intp
     index = np.full(sub.shape, -1, dtype=kind)
     index[sub] = np.arange(points_m.shape[1], dtype=kind)
+    if edge_px > 0:
+        cross = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
+        inner = cv2.erode(np.ascontiguousarray(sub, dtype=np.uint8), cross, iterations=int(edge_px),
+                          borderType=cv2.BORDER_CONSTANT, borderValue=0)
+        index[inner == 0] = -1
 
     def pairs(first, second):
         """The point indices of the pixel pairs (first, second) that are both valid."""
@@ -325,6 +380,7 @@ def slope_curl(valid: np.ndarray, points_m: np.ndarray, slopes: np.ndarray, step
         i01 = np.divide(np.negative(xr, out=xr), det, out=xr)
         i10 = np.divide(np.negative(yc, out=yc), det, out=yc)
         i11 = np.divide(xc, det, out=xc)
+        noise = None if slope_cov is None else _curl_noise(slope_cov, right, left, down, up, i00, i01, i10, i11)
         sc, sr, tc, tr = d_col(sx), d_row(sx), d_col(sy), d_row(sy)
         g01 = np.multiply(sc, i01, out=det)
         g01 += np.multiply(sr, i11, out=tmp)
@@ -354,5 +410,83 @@ def slope_curl(valid: np.ndarray, points_m: np.ndarray, slopes: np.ndarray, step
         v -= median(v)           # (v is this function's own array)
         return float(np.sqrt(np.mean(np.multiply(v, v, out=v))))
 
-    return {"antisymmetric_rms_per_m": rms(a), "symmetric_rms_per_m": float(np.hypot(rms(s), rms(d)) / np.sqrt(2.0)),
-            "step_px": k, "stride_px": m, "n": int(np.count_nonzero(ok))}
+    out = {"antisymmetric_rms_per_m": rms(a), "symmetric_rms_per_m": float(np.hypot(rms(s), rms(d)) / np.sqrt(2.0)),
+           "step_px": k, "stride_px": m, "n": int(np.count_nonzero(ok))}
+    if noise is not None:
+        var_a, var_s = noise[0][ok], noise[1][ok]
+        n = var_a.size
+        out["antisymmetric_noise_per_m"] = float(np.sqrt(np.mean(var_a)))
+        out["symmetric_noise_per_m"] = float(np.sqrt(np.mean(var_s)))
+        out["antisymmetric_noise_ms_sd_per_m2"] = float(np.sqrt(1.25 * 2.0 * np.sum(var_a * var_a)) / n)
+    return out
+
+
+def curl_judgement(curl: dict, max_ratio: float, floor_per_m: float, sigmas: float,
+                   noise_tolerance: float) -> dict:
+    """Whether a slope field turns (fringe sets swapped), judged against its noise: pure, for the verdict.
+
+    From :func:`slope_curl`'s figures: each part's mean square less what the slope noise alone gives it
+    (the parts a noise-free capture would show), ``excess_a`` and ``excess_s``. The field turns when
+
+    * the antisymmetric excess is beyond its noise: above *sigmas* standard deviations of the
+      antisymmetric mean square under noise alone, that deviation widened in quadrature by
+      *noise_tolerance* times the predicted noise mean square (how well the predicted noise is known);
+    * its root exceeds *max_ratio* times the symmetric excess's root (a real surface's slope errors
+      stretch, they do not turn: swapped sets turn about as much as they stretch), and *floor_per_m*.
+
+    Without the noise figures (an analysis of older code) the parts are judged as measured, noise included.
+
+    Returns
+    -------
+    dict
+        ``turns`` (bool), ``antisymmetric_per_m`` and ``symmetric_per_m`` (the roots of the excesses, 1/m)
+        and ``sigmas`` (the antisymmetric excess over its deviation; None without noise figures).
+    """
+    anti, sym = curl["antisymmetric_rms_per_m"], curl["symmetric_rms_per_m"]
+    noise_a, noise_s = curl.get("antisymmetric_noise_per_m"), curl.get("symmetric_noise_per_m")
+    if noise_a is None or noise_s is None:
+        turns = anti > max(max_ratio * sym, floor_per_m)
+        return {"turns": bool(turns), "antisymmetric_per_m": anti, "symmetric_per_m": sym, "sigmas": None}
+    excess_a = anti * anti - noise_a * noise_a
+    excess_s = sym * sym - noise_s * noise_s
+    sd = float(np.hypot(curl.get("antisymmetric_noise_ms_sd_per_m2", 0.0), noise_tolerance * noise_a * noise_a))
+    z = excess_a / sd if sd > 0 else (float("inf") if excess_a > 0 else 0.0)
+    root_a, root_s = float(np.sqrt(max(excess_a, 0.0))), float(np.sqrt(max(excess_s, 0.0)))
+    turns = z > sigmas and root_a > max(max_ratio * root_s, floor_per_m)
+    return {"turns": bool(turns), "antisymmetric_per_m": root_a, "symmetric_per_m": root_s, "sigmas": float(z)}
+
+
+def _curl_noise(slope_cov, right, left, down, up, i00, i01, i10, i11) -> tuple[np.ndarray, np.ndarray]:
+    """Per centre, the variance the slope noise gives the antisymmetric part a = (G_xy - G_yx) / 2 and the
+    mean variance of the two symmetric parts (G_xy + G_yx) / 2, (G_xx - G_yy) / 2 (1/m^2).
+
+    With the differences sc = s_x[R] - s_x[L], sr = s_x[D] - s_x[U] (tc, tr of s_y likewise) and
+    G_xy = sc i01 + sr i11, G_yx = tc i00 + tr i10, G_xx = sc i00 + sr i10, G_yy = tc i01 + tr i11, every
+    part is a weighted sum of the four pixels' slopes; pixels R and L (D and U) enter with opposite weights
+    of one size, so each part's variance is the pair's summed covariances through those weights."""
+    cells = np.concatenate([right, left, down, up])
+    # the points asked for once each, in index order, without sorting (a mark and a lookup over the points)
+    size = int(cells.max()) + 1 if cells.size else 0
+    mark = np.zeros(size, dtype=bool)
+    mark[cells] = True
+    unique = np.flatnonzero(mark)
+    where = np.empty(size, dtype=np.intp)
+    where[unique] = np.arange(unique.size)
+    inverse = where[cells]
+    vx, vy, cxy = (np.asarray(v, dtype=np.float64)[inverse] for v in slope_cov(unique))
+    n = right.size
+    pair = {}
+    for name, (p, q) in (("rl", (0, 1)), ("du", (2, 3))):
+        sl_p, sl_q = slice(p * n, (p + 1) * n), slice(q * n, (q + 1) * n)
+        pair[name] = (vx[sl_p] + vx[sl_q], vy[sl_p] + vy[sl_q], cxy[sl_p] + cxy[sl_q])
+
+    def var(w_rl, w_du):
+        """Variance of 1/2 (w_x s_x + w_y s_y) summed over the pairs, weights (w_x, w_y) per pair."""
+        total = 0.0
+        for (wx, wy), (xx, yy, xy) in ((w_rl, pair["rl"]), (w_du, pair["du"])):
+            total = total + wx * wx * xx + wy * wy * yy + 2.0 * wx * wy * xy
+        return 0.25 * total
+
+    var_a = var((i01, -i00), (i11, -i10))
+    var_s = 0.5 * (var((i01, i00), (i11, i10)) + var((i00, -i01), (i10, -i11)))
+    return var_a, var_s

@@ -40,3 +40,36 @@ def principal_axes(a: float, b: float, e: float) -> tuple[list, float]:
     half = np.hypot(0.5 * (a - b), 0.5 * e)
     lambdas = (mean + half, mean - half)      # larger lambda = shorter positive focal length
     return [focal_length_m(4.0 * lam) for lam in lambdas], float(0.5 * np.arctan2(e, a - b))
+
+
+def neighbour_difference_ms(values: np.ndarray, flat_idx: np.ndarray, width_px: int) -> float:
+    """Mean square difference of *values* between side-by-side and stacked neighbouring pixels.
+
+    Parameters
+    ----------
+    values : (N,) array
+        One value per pixel (e.g. a slope residual, mrad).
+    flat_idx : (N,) int array
+        The pixels' flat indices (raster order, increasing) in an image *width_px* wide.
+    width_px : int
+
+    Returns
+    -------
+    float
+        Mean of (v(p) - v(q))^2 over the pairs of neighbours that both have a value, in the values' unit
+        squared; 0 when there is no pair. For a smooth field it is half the mean square gradient per pixel,
+        plus twice the per-pixel noise variance.
+    """
+    values = np.asarray(values, dtype=np.float64)
+    flat_idx = np.asarray(flat_idx)
+    total, count = 0.0, 0
+    for step in (1, int(width_px)):
+        nxt = np.searchsorted(flat_idx, flat_idx + step)
+        nxt = np.minimum(nxt, flat_idx.size - 1)
+        pair = flat_idx[nxt] == flat_idx + step
+        if step == 1:
+            pair &= (flat_idx % width_px) != width_px - 1        # not across a row's end
+        d = values[nxt[pair]] - values[pair]
+        total += float(np.einsum("i,i->", d, d, optimize=False))      # einsum's own loop: the same bits always
+        count += int(d.size)
+    return total / count if count else 0.0

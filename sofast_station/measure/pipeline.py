@@ -30,8 +30,9 @@ from .camera import pixel_rays, project, to_frame
 from .boresight import Assembly, ShapeSolution, solve_shape
 from .fit import CubicFit, ParabolaFit, fit_cubic, fit_parabola, reweight_parabola
 from .mask import facet_region
-from .metrics import focal_length_m, principal_axes, rms_summary
-from .phase import FrameNoise, frame_noise, phase_and_modulation, position_sigma_m, unwrap_positions
+from .metrics import focal_length_m, neighbour_difference_ms, principal_axes, rms_summary
+from .phase import (FrameNoise, frame_noise, phase_and_modulation, phase_error_between_periods, position_sigma_m,
+                    unwrap_positions)
 from .pose import fix_range, solve_corner_pose
 from .screen import FlatScreen, InterpolatedScreen, ScreenModel
 from .stats import median
@@ -184,12 +185,7 @@ def _phase_sets(stack: np.ndarray, sets: list[slice]):
 
 def outline_image_points(design: FacetDesign, camera, facet_to_camera: Pose, per_side: int = 64) -> np.ndarray:
     """Image points (column, row) along the design outline on the design surface, *per_side* per side."""
-    corners = design.outline_m
-    t = np.linspace(0.0, 1.0, per_side, endpoint=False)[:, None]
-    xy = np.concatenate([corners[i] + t * (corners[(i + 1) % len(corners)] - corners[i])
-                         for i in range(len(corners))])
-    pts = np.column_stack([xy, design.z(xy[:, 0], xy[:, 1])])
-    return project(camera, facet_to_camera, pts)
+    return corners_mod.outline_points_px(design, camera, facet_to_camera, per_side)
 
 
 @dataclass(frozen=True)
@@ -206,12 +202,24 @@ class Region:
         The frames at those pixels, camera counts (DN).
     contrast : (rows, columns) float32 array
         White minus dark, DN (what the corners are found in).
+    outline : OutlineFit or None
+        The facet's sub-pixel outline (:func:`~sofast_station.measure.corners.fit_outline`), found here
+        because the edge's blur it measures decides which pixels the shape may use; None when it could
+        not be found (*outline_error* then says why, raised by the corner stage).
+    outline_error : Exception or None
+    clear_of_edge : (M,) bool array or None
+        Which of the region's pixels (``idx`` order) lie far enough inside the outline that none of their
+        light comes from beyond it (:func:`~sofast_station.measure.corners.edge_inset_px`); only they may
+        be used for the shape. None: no outline.
     """
 
     region: np.ndarray
     idx: np.ndarray
     stack: np.ndarray
     contrast: np.ndarray
+    outline: corners_mod.OutlineFit | None = None
+    outline_error: Exception | None = None
+    clear_of_edge: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -380,6 +388,9 @@ def find_region(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometr
         raise
     order.result()
     idx = np.flatnonzero(region)
+    # The outline on a pool thread while the frames are gathered: its edge profiles say how far the
+    # lens's blur reaches inside the facet.
+    outline = pool.submit(_outline_of, contrast.result(), region, geometry, design, settings)
     flat = frames.reshape(frames.shape[0], -1)
     stack = np.empty((flat.shape[0], idx.size), dtype=flat.dtype)
     half = flat.shape[0] // 2
@@ -388,7 +399,25 @@ def find_region(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometr
     first = pool.submit(_gather_runs, flat[:half], idx, runs, stack[:half])
     _gather_runs(flat[half:], idx, runs, stack[half:])
     first.result()
-    return Region(region=region, idx=idx, stack=stack, contrast=contrast.result())
+    outline, error = outline.result()
+    clear = None
+    if outline is not None:
+        rows, cols = np.divmod(idx, cam.width_px)
+        clear = corners_mod.inside_outline(outline, cols, rows, corners_mod.edge_inset_px(outline.edge_blur_px))
+    return Region(region=region, idx=idx, stack=stack, contrast=contrast.result(), outline=outline,
+                  outline_error=error, clear_of_edge=clear)
+
+
+def _outline_of(contrast: np.ndarray, region: np.ndarray, geometry: StationGeometry, design: FacetDesign,
+                settings: AnalysisSettings) -> tuple:
+    """(outline, None), or (None, the error) when the facet's outline cannot be found: that is reported by
+    the corner stage, after the phase stage's checks, as before the outline moved into stage 1."""
+    try:
+        return corners_mod.fit_outline(contrast, region, len(design.outline_m), settings.edge_window_px,
+                                       **corners_mod.outline_hints(design, geometry.camera,
+                                                                   geometry.fixture_to_camera)), None
+    except FacetNotFoundError as exc:
+        return None, exc
 
 
 def _runs(idx: np.ndarray) -> tuple[list, list]:
@@ -413,7 +442,8 @@ def measure_phases(region: Region, fringes: FringeSet, screen_size_m: tuple[floa
     """Stage 2: phase, modulation, consistency and unwrapping of the region's pixels.
 
     *screen_size_m* is the displayed area's (width, height), metres; *pixel_mask* (rows, columns) limits
-    the pixels that may be used for the shape.
+    the pixels that may be used for the shape. Without one, the pixels within the edge's blur
+    (``Region.clear_of_edge``) are left out; with one, the mask alone decides.
     """
     pool = pool if pool is not None else _Serial()
     idx, stack = region.idx, region.stack
@@ -464,6 +494,12 @@ def measure_phases(region: Region, fringes: FringeSet, screen_size_m: tuple[floa
         allowed = pixel_mask.ravel()[idx]
         excluded = int(np.count_nonzero(ok & ~allowed))
         ok &= allowed
+    near_edge = 0
+    if region.clear_of_edge is not None and pixel_mask is None:
+        # pixels within the blur of the facet's edge see light from both sides of it: left out (a caller's
+        # own pixel mask, e.g. another program's pixels for a like-with-like comparison, decides alone)
+        near_edge = int(np.count_nonzero(~region.clear_of_edge))
+        ok &= region.clear_of_edge
     positions, unwrap_stats = {}, {}
     for axis, task in tasks.items():
         res = task.result()
@@ -472,8 +508,12 @@ def measure_phases(region: Region, fringes: FringeSet, screen_size_m: tuple[floa
         ok &= res.valid
     checks.check_phase_sets(inconsistent_fraction,
                             {a: unwrap_stats[a].disagreements / idx.size for a in ("x", "y")})
+    # The response's phase error as the coarse and fine sets show it (any shape of response), where they can.
+    noise = noise.with_period_error(phase_error_between_periods(
+        [(raw[a][0][0], raw[a][0][-1], raw[a][1][0], raw[a][1][-1], getattr(fringes, f"periods_{a}")[0],
+          getattr(fringes, f"periods_{a}")[-1]) for a in ("x", "y")], noise_dn, mask=[ok, ok]))
     dropped = {"low_modulation": int(low_mod.sum()), "inconsistent_frames": int(inconsistent.sum()),
-               "excluded_by_pixel_mask": excluded}
+               "excluded_by_pixel_mask": excluded, "near_edge": near_edge}
     return Phases(positions_m=positions, ok=ok, noise_dn=noise_dn,
                   finest_modulation_dn={a: raw[a][1][-1] for a in ("x", "y")}, min_modulation_dn=min_mod,
                   dropped=dropped, unwrap=unwrap_stats, noise=noise,
@@ -531,7 +571,10 @@ def corners_and_pose(region: Region, rays: Rays, geometry: StationGeometry, desi
     """Stage 4: the facet's corners in the image, its pose from them, and the pose's range fixed by the
     measured distance."""
     cam = geometry.camera
-    outline = corners_mod.fit_outline(region.contrast, region.region, len(design.outline_m), settings.edge_window_px)
+    if region.outline is None:
+        raise region.outline_error if region.outline_error is not None else \
+            FacetNotFoundError("no facet outline was fitted")
+    outline = region.outline
     corners_3d = design.corners_3d()
     expected = project(cam, geometry.fixture_to_camera, corners_3d)
     found = corners_mod.match_corners(outline.corners_px, expected, settings.corner_tolerance_px)
@@ -629,13 +672,14 @@ def fit_models(shape: Shape, design: FacetDesign, settings: AnalysisSettings, po
 
 def report_figures(region: Region, phases: Phases, rays: Rays, pose: CornerPoseResult, shape: Shape, fits: Fits,
                    geometry: StationGeometry, design: FacetDesign, measured_distance_m: float,
-                   settings: AnalysisSettings, with_curl: bool = True, curl=None) -> dict:
+                   settings: AnalysisSettings, with_curl: bool = True, curl=None, fringes: FringeSet | None = None,
+                   screen: ScreenModel | None = None) -> dict:
     """Stage 6b: the reported figures (JSON-ready) from the stages' outputs.
 
     *with_curl* False leaves out the slope-curl check (``slope_curl`` None): it judges the capture, not the
     geometry, so the uncertainty's perturbed reruns, which only read the figures, need not pay for it.
     *curl*, a future of :func:`slope_curl_of` already started (on another thread), is used instead of
-    computing the check here.
+    computing the check here; *fringes* and *screen* let it judge the curl against each pixel's slope noise.
     """
     fit, coeffs, cubic, solution = fits.parabola, fits.coefficients, fits.cubic, shape.solution
     idx, vidx = region.idx, rays.vidx
@@ -648,7 +692,7 @@ def report_figures(region: Region, phases: Phases, rays: Rays, pose: CornerPoseR
     if not with_curl:
         curl = None
     elif curl is None:
-        curl = slope_curl_of(region, rays, shape)
+        curl = slope_curl_of(region, rays, shape, phases, fringes, screen)
     else:
         curl = curl.result()
     return {
@@ -665,7 +709,8 @@ def report_figures(region: Region, phases: Phases, rays: Rays, pose: CornerPoseR
                          "F": coeffs[5]},
         "slope_rms_mrad": {name: rms_summary(*e) for name, e in fits.residuals_mrad.items()},
         "n_points": int(vidx.size),
-        "valid_fraction": float(vidx.size / idx.size),
+        # of the pixels clear of the edge's blur (the others are left out by design, not for a fault)
+        "valid_fraction": float(vidx.size / max(idx.size - phases.dropped.get("near_edge", 0), 1)),
         "facet_pixels": int(idx.size),
         "median_modulation_dn": median(phases.min_modulation_dn[rays.ok]),
         "intensity_noise_dn": phases.noise.noise_dn,
@@ -673,11 +718,14 @@ def report_figures(region: Region, phases: Phases, rays: Rays, pose: CornerPoseR
         "slope_curl": curl,
         "display_response": {"harmonic_ratio": phases.noise.harmonic_ratio,
                              "signed_harmonic_ratio": phases.noise.signed_harmonic_ratio,
-                             "phase_error_rad": phases.noise.phase_error_rad},
+                             "phase_error_rad": phases.noise.phase_error_rad,
+                             "phase_error_rms_rad": phases.noise.phase_error_rms_rad,
+                             "phase_error_from": phases.noise.phase_error_from},
         "dropped": {"low_modulation": phases.dropped["low_modulation"],
                     "inconsistent_frames": phases.dropped["inconsistent_frames"],
                     "outside_screen_model": rays.off_model,
                     "excluded_by_pixel_mask": phases.dropped["excluded_by_pixel_mask"],
+                    "near_edge": phases.dropped.get("near_edge", 0),
                     **{f"{k}_{a}": getattr(unwrap_stats[a], k) for a in ("x", "y")
                        for k in ("coarse_out_of_range", "disagreements", "edge_guard")}},
         "unwrap_disagreements": int(unwrap_stats["x"].disagreements + unwrap_stats["y"].disagreements),
@@ -693,17 +741,34 @@ def report_figures(region: Region, phases: Phases, rays: Rays, pose: CornerPoseR
                           "focal_length_y_m": focal_length_m(4.0 * float(solution.coefficients[1])),
                           "n_points": int(-(-vidx.size // settings.subsample_step))},
         "corner_reprojection_rms_px": pose.reprojection_rms_px,
+        # the facet edge's blur (pixels) and what it may have smoothed away of the slope residuals: their
+        # neighbouring pixels' mean square difference (the uncertainty's blur term, budget.combine)
+        "edge_blur_px": region.outline.edge_blur_px if region.outline is not None else None,
+        "slope_residual_neighbour_ms_mrad2": {
+            m: {a: neighbour_difference_ms(e[i], vidx, geometry.camera.width_px) for i, a in enumerate(("x", "y"))}
+            for m, e in fits.residuals_mrad.items()},
         "outline_agreement": pose.outline_agreement,
         "range_correction_m": pose.range_shift_m,
         "measured_distance_m": float(measured_distance_m),
     }
 
 
-def slope_curl_of(region: Region, rays: Rays, shape: Shape) -> dict:
-    """The slope-curl check (:func:`~sofast_station.measure.checks.slope_curl`) of a shape's valid pixels."""
+def slope_curl_of(region: Region, rays: Rays, shape: Shape, phases: Phases | None = None,
+                  fringes: FringeSet | None = None, screen: ScreenModel | None = None) -> dict:
+    """The slope-curl check (:func:`~sofast_station.measure.checks.slope_curl`) of a shape's valid pixels;
+    with *phases*, *fringes* and *screen*, against the slope noise of each pixel
+    (:func:`~sofast_station.measure.slope_noise.slope_covariance`)."""
     valid = np.zeros(region.region.shape, dtype=bool)
     valid.ravel()[rays.vidx] = True
-    return checks.slope_curl(valid, shape.points_m, shape.slopes)
+    cov = None
+    if phases is not None and fringes is not None and screen is not None:
+        from .slope_noise import slope_covariance
+
+        stages = Reduction(region, phases, rays, None, shape, None, {})
+
+        def cov(points):
+            return slope_covariance(stages, fringes, screen, points)
+    return checks.slope_curl(valid, shape.points_m, shape.slopes, slope_cov=cov)
 
 
 @dataclass
@@ -761,7 +826,7 @@ def reduce_stages(frames: np.ndarray, fringes: FringeSet, geometry: StationGeome
         timer.lap("pose")
         shape = shape_and_boresight(rays, pose, design, measured_distance_m, settings, pool, timer)
         # The slope-curl check needs only the shape: it runs on a pool thread beside the fits.
-        curl = pool.submit(slope_curl_of, region, rays, shape)
+        curl = pool.submit(slope_curl_of, region, rays, shape, phases, fringes, screen)
         fits = fit_models(shape, design, settings, pool)
         timer.lap("fit")
         figures = report_figures(region, phases, rays, pose, shape, fits, geometry, design, measured_distance_m,
@@ -824,5 +889,5 @@ def rerun(reduction: Reduction, start: str, *, fringes: FringeSet, geometry: Sta
         shape = reduction.shape
     fits = fit_models(shape, design, settings, pool) if order <= STAGES.index("fits") else reduction.fits
     figures = report_figures(region, phases, rays, pose, shape, fits, geometry, design, measured_distance_m,
-                             settings, with_curl=with_curl)
+                             settings, with_curl=with_curl, fringes=fringes, screen=screen)
     return Reduction(region, phases, rays, pose, shape, fits, figures)

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field, fields
 
 from ..errors import ConfigError
 from ..facet import FacetDesign
+from ..measure.checks import curl_judgement
 
 #: Above this design focal length (metres) limits are stated on curvature (docs/conventions.md#focal-power).
 LONG_FOCAL_LENGTH_M = 20.0
@@ -92,11 +93,27 @@ class Quality:
     #: stands with a warning stating the phase error it may cause.
     max_display_harmonic_ratio: float = 0.05
     warn_display_harmonic_ratio: float = 0.01
-    #: A real surface's slopes are a gradient: their local fluctuations stretch but do not turn. When the
-    #: turning (antisymmetric) part exceeds this fraction of the stretching part, and is above the
-    #: floor (1/m) below which the fluctuations are too weak to judge, the x and y sets were swapped.
+    #: A real surface's slopes are a gradient: their local fluctuations stretch but do not turn. The x and
+    #: y sets were swapped when the turning (antisymmetric) part, less what the slope noise alone gives
+    #: it, is beyond that noise by ``slope_curl_sigmas`` standard deviations (the predicted noise known to
+    #: ``slope_curl_noise_tolerance`` of its mean square), exceeds ``max_slope_curl_ratio`` of the
+    #: stretching part (less its noise too), and the floor ``min_slope_curl_per_m`` (1/m) below which the
+    #: fluctuations are too weak to judge (measure/checks.py curl_judgement; docs/method.md).
     max_slope_curl_ratio: float = 0.5
-    min_slope_curl_per_m: float = 0.005
+    min_slope_curl_per_m: float = 0.002
+    slope_curl_sigmas: float = 5.0
+    slope_curl_noise_tolerance: float = 0.05
+    #: A facet found farther from its place in the fixture than this (translation of its middle, mm;
+    #: rotation about its normal and optical tilt, mrad), by more than the figure's own expanded
+    #: uncertainty, is misplaced: the layout (the reflected footprint on the screen, the range finder's
+    #: spot) holds for a seated facet only.
+    max_placement_mm: float = 20.0
+    max_placement_mrad: float = 30.0
+    #: The station is laid out for slopes within the facet design's ``layout.max_slope_error_mrad`` (3
+    #: mrad when not set) of the design: slopes measured farther from it by more than this factor (RMS
+    #: against the design) are no facet of the recipe's type as this station sees it (fringe sets
+    #: swapped on a nearly flat facet read as f of 2 m; a wrong recipe).
+    max_design_slope_factor: float = 10.0
 
 
 def _from_table(cls, table: dict, where: str):
@@ -147,19 +164,64 @@ def display_response(fig: dict, quality: Quality) -> tuple[list[str], list[str]]
     return [], []
 
 
+def misplacement(fig: dict, quality: Quality) -> list[str]:
+    """The reason a facet is misplaced in its fixture (empty when it is seated): a placement coordinate
+    beyond ``max_placement_mm`` / ``max_placement_mrad`` by more than its U (k = 2; 0 when not stated).
+
+    The translations and the rotation about the facet's normal are the corner pose's (well resolved); its
+    tilts are not (a corner's depth barely moves its image: several mrad on a small camera, and a corner
+    found wrongly on an edge of an unusual kind turns them by tens of mrad), so the tilts judged are the
+    optical tilt's, the boresight frame's in the fixture, which the slopes fix to a fraction of a mrad."""
+    placement, u = fig.get("placement") or {}, fig.get("placement_U") or {}
+    tilt, tilt_u = fig.get("optical_tilt_mrad") or {}, fig.get("optical_tilt_mrad_U") or {}
+    mm, mm_u = list(placement.get("mm") or []), list(u.get("mm") or [])
+    mrad, mrad_u = list(placement.get("mrad") or []), list(u.get("mrad") or [])
+    checked = [(f"{a}", v, (mm_u[i] if i < len(mm_u) else None), "mm", quality.max_placement_mm)
+               for i, (a, v) in enumerate(zip("xyz", mm))]
+    checked += [(f"tilt about {a}", tilt.get(a), tilt_u.get(a), "mrad", quality.max_placement_mrad) for a in "xy"]
+    if len(mrad) == 3:
+        checked.append(("about z", mrad[2], mrad_u[2] if len(mrad_u) == 3 else None, "mrad",
+                        quality.max_placement_mrad))
+    beyond = []
+    for name, v, ui, unit, limit in checked:
+        ui = 0.0 if ui is None else float(ui)
+        if v is not None and abs(v) - ui > limit:
+            beyond.append(f"{name} {v:+.1f} ± {ui:.1f} {unit}")
+    if not beyond:
+        return []
+    return [f"the facet is misplaced in the fixture: placement {', '.join(beyond)}, beyond the fixture's limits "
+            f"({quality.max_placement_mm:g} mm, {quality.max_placement_mrad:g} mrad: [quality] max_placement_mm, "
+            "max_placement_mrad) by more than the placement's U; reseat it and measure again"]
+
+
+def implausible_shape(fig: dict, design: FacetDesign, quality: Quality) -> list[str]:
+    """The reason a measured shape is no facet of the recipe's type (empty when it is): its RMS slope
+    deviation from the design beyond ``max_design_slope_factor`` times the layout's largest slope error."""
+    rms = ((fig.get("slope_rms_mrad") or {}).get("design") or {}).get("magnitude")
+    allowed = float((getattr(design, "layout", None) or {}).get("max_slope_error_mrad", 3.0))
+    if rms is None or not rms > quality.max_design_slope_factor * allowed:
+        return []
+    return [f"the measured slopes depart from the design by {rms:.1f} mrad RMS, {rms / allowed:.0f} times the "
+            f"{allowed:g} mrad the station is laid out for (limit {quality.max_design_slope_factor:g} times): this "
+            "is no facet of the recipe's type as the station sees it: the x and y fringe sets swapped (y captured "
+            "before x?), the wrong recipe, or a facet far out of shape; check the capture order and the recipe"]
+
+
 def judge(fig: dict, design: FacetDesign, limits: Limits, quality: Quality) -> dict:
     """``{"verdict": "pass" | "fail" | "indeterminate" | "invalid", "reasons": [...], "warnings": [...]}`` for
     one facet's figures; warnings say what weakens a result without invalidating it. The guarded decision
     rule uses the figures' ``name_U`` expanded uncertainties (missing ones count as 0)."""
     invalid, warnings = display_response(fig, quality)
     curl = fig.get("slope_curl")
-    if curl and curl["antisymmetric_rms_per_m"] > max(quality.max_slope_curl_ratio * curl["symmetric_rms_per_m"],
-                                                      quality.min_slope_curl_per_m):
+    turning = curl and curl_judgement(curl, quality.max_slope_curl_ratio, quality.min_slope_curl_per_m,
+                                      quality.slope_curl_sigmas, quality.slope_curl_noise_tolerance)
+    if turning and turning["turns"]:
+        beyond = ("" if turning["sigmas"] is None else
+                  f", {turning['sigmas']:.0f} standard deviations beyond what the slope noise gives")
         invalid.append(
             f"the measured slopes are no surface's: they turn as much as they stretch (local curl "
-            f"{1000 * curl['antisymmetric_rms_per_m']:.1f} mrad/m RMS against "
-            f"{1000 * curl['symmetric_rms_per_m']:.1f}): "
-            "the x and y fringe sets were swapped (y captured before x?) or shown in the wrong order; "
+            f"{1000 * turning['antisymmetric_per_m']:.1f} mrad/m RMS against {1000 * turning['symmetric_per_m']:.1f}"
+            f"{beyond}): the x and y fringe sets were swapped (y captured before x?) or shown in the wrong order; "
             "capture the sequence in the fringe definition's order")
     if fig["valid_fraction"] < quality.min_valid_fraction:
         invalid.append(f"only {100 * fig['valid_fraction']:.1f} % of the facet's pixels are valid "
@@ -176,6 +238,8 @@ def judge(fig: dict, design: FacetDesign, limits: Limits, quality: Quality) -> d
                        f"minimum {quality.min_outline_agreement}): partly lit or obstructed facet?")
     if fig["corner_reprojection_rms_px"] > quality.max_corner_reprojection_px:
         invalid.append(f"corners do not fit the design outline ({fig['corner_reprojection_rms_px']:.2f} px RMS)")
+    invalid.extend(misplacement(fig, quality))
+    invalid.extend(implausible_shape(fig, design, quality))
     if not fig["iterations"]["converged"]:
         invalid.append(f"shape and boresight iteration did not converge in {fig['iterations']['boresight']} steps")
     if invalid:

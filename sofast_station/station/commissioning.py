@@ -199,18 +199,32 @@ def run_pose(config, *, placements: int | None = None, target: str | None = None
                 {"path": str(path), "headline": headline, "quality": cal.quality, "screen_std": std}, str(path))
 
 
+def sensitivities_in_force(station):
+    """The uncertainty's sensitivities the station's analyses used (from its cache; None when it has none):
+    the geometry check reads the screen pitch's from them."""
+    from ..measure.uncertainty import sensitivity_key
+
+    config = station.config
+    if getattr(config, "uncertainty", None) is None:
+        return None
+    key = sensitivity_key(config.geometry, config.design, config.fringes, config.analysis, config.uncertainty)
+    return (getattr(station, "sensitivity_cache", None) or {}).get(key)
+
+
 def run_geometry(config, *, reference: str | None = None, seed: int | None = None, noise: bool = True) -> Step:
     """``calibrate geometry`` (the reference facet checks the whole chain) on the station of *config*."""
-    from ..calibrate.geometry import check_geometry, station_reference, summary_text
+    from ..calibrate.geometry import check_geometry, pitch_sensitivities, station_reference, summary_text
     from ..calibrate.geometry_record import save_geometry
     from .factory import open_station
     from .inspection import inspect
 
     station = open_station(config, seed=seed, noise=noise)
     try:
-        ref = station_reference(station, reference)
-        log.info("measuring the reference facet %s on %s", ref.name, config.name)
-        check = check_geometry(inspect(station, "GEOMETRY-REFERENCE"), ref, config.uncertainty)
+        log.info("measuring the reference facet on %s", config.name)
+        rec = inspect(station, "GEOMETRY-REFERENCE")
+        ref = station_reference(station, reference)        # the twin's: over the pixels the inspection kept
+        # the screen pitch's sensitivities the station's analyses used: the check estimates the screen's scale
+        check = check_geometry(rec, ref, config.uncertainty, pitch_sensitivities(sensitivities_in_force(station)))
     finally:
         station.close()
     source = f"sofast-station {__version__} calibrate geometry with {ref.name}"

@@ -19,7 +19,6 @@ import logging
 import queue
 import threading
 import time
-import uuid
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -36,6 +35,7 @@ from ..result.verdict import judge
 from ..serials import clean_serial, raw_for_record
 from . import console as _console
 from ..live.operator_commands import take_commands, take_dump_next
+from .clock import StationClock
 from .drift import DriftMonitor
 from .frames import capture_sequence, crop, crop_box, restore
 from .link import LinkWatch
@@ -141,8 +141,24 @@ class CycleCapture:
 
 
 def new_cycle_id() -> str:
-    """Sortable and unique: UTC time to the millisecond plus 8 random hex digits."""
-    return _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%S%fZ")[:-4] + "-" + uuid.uuid4().hex[:8]
+    """Sortable and unique: UTC time to the millisecond plus 8 random hex digits (a cycle's id comes from
+    the runner's :class:`~.clock.StationClock`, which also keeps ids increasing when the clock steps back)."""
+    return StationClock().next_cycle()[0]
+
+
+def _journal_newest(journal) -> tuple[str | None, _dt.datetime | None]:
+    """The journal's newest cycle id and row time (None, None when it has none or cannot say)."""
+    try:
+        rows = journal.recent(1)
+    except Exception:           # a journal that cannot be read here says so when the row is written
+        return None, None
+    if not rows:
+        return None, None
+    try:
+        when = _dt.datetime.fromisoformat(rows[-1].time)
+    except (TypeError, ValueError):
+        when = None
+    return rows[-1].cycle_id, when
 
 
 class JournalFailed(StationError):
@@ -190,6 +206,10 @@ class StationRunner:
         self.station = station
         self.trigger = LockedTrigger(trigger)
         self.journal = journal
+        #: The wall clock, watched for steps; cycle ids go on from the journal's newest (station/clock.py).
+        last_id, last_time = _journal_newest(journal)
+        self.clock = StationClock(last_cycle_id=last_id, last_time=last_time)
+        self._clock_warning: str | None = None
         self.archiver = archiver
         self.recipes = recipes
         self.settings = settings
@@ -423,7 +443,7 @@ class StationRunner:
         code (:mod:`sofast_station.result.faults`), and the loop takes the next facet.
         """
         t0 = time.perf_counter()
-        cycle_id = new_cycle_id()
+        cycle_id, self._clock_warning = self.clock.next_cycle()
         self.cycles += 1
         request = self._accept(request, cycle_id)
         self.status.update(state="measuring", serial=request.serial, cycle_id=cycle_id)
@@ -551,7 +571,7 @@ class StationRunner:
         return build_record(
             self._head(cycle_id, request, recipe.name, cal_warnings, facet=recipe.design.name),
             figures=res.figures, verdict=judge(res.figures, recipe.design, recipe.limits, recipe.quality),
-            truth=truth, measured_distance_m=distance, capture_notes=notes,
+            truth=truth, measured_distance_m=distance, capture_notes=notes, **self._clock_note(),
             timings={**timings, **{f"analysis_{k}": v for k, v in res.figures.get("timings_s", {}).items()}})
 
     def _follow_late(self, outcome: CycleOutcome, request: FacetRequest, t0: float, state: dict, answered: bool,
@@ -746,17 +766,23 @@ class StationRunner:
     # ------------------------------------------------------------------ records
     def _head(self, cycle_id: str, request: FacetRequest, recipe_name: str, cal_warnings=(),
               facet: str | None = None) -> RecordHead:
-        """The head of this cycle's record (:class:`~sofast_station.result.record.RecordHead`); the serial as
-        received goes to ``serial_raw`` when making it safe changed it."""
+        """The head of this cycle's record (:class:`~sofast_station.result.record.RecordHead`), dated by the
+        runner's clock (station/clock.py); the serial as received goes to ``serial_raw`` when making it safe
+        changed it."""
         extra = dict(request.extra)
         raw = extra.pop("serial_raw", None)
-        return self.station.record_head(request.serial, list(cal_warnings), facet=facet, cycle_id=cycle_id,
+        head = self.station.record_head(request.serial, list(cal_warnings), facet=facet, cycle_id=cycle_id,
                                         recipe=recipe_name, serial_raw=raw,
                                         request={"recipe": request.recipe, "dump": request.dump, **extra})
+        return dataclasses.replace(head, time=self.clock.now_iso())
+
+    def _clock_note(self) -> dict:
+        """``{"clock_warning": ...}`` when the wall clock stepped back before this cycle (else empty)."""
+        return {"clock_warning": self._clock_warning} if self._clock_warning else {}
 
     def _fault_record(self, cycle_id, request, code, reason, timings, cal_warnings=()) -> dict:
         return build_record(self._head(cycle_id, request, request.recipe or "", cal_warnings), fault=(code, reason),
-                            timings=timings)
+                            timings=timings, **self._clock_note())
 
     def _report(self, record: dict, answer: str) -> None:
         """The facet's console line, its line in logs/station.log and the live status; the cycle time shown is

@@ -151,6 +151,7 @@ class SimulatedStation(Station):
         from ..twin.truth import ground_truth
 
         truth = ground_truth(self.twin, valid)
+        self._last_valid = np.asarray(valid, dtype=bool)
         if optics is not None and design is not None:
             truth["optics"] = truth_optics(self.twin, valid, design, optics, self.design_traces)
         return truth
@@ -171,11 +172,14 @@ class SimulatedStation(Station):
 
     def reference_certificate(self) -> dict:
         """The facet in the fixture as a reference's certificate (``calibrate geometry``): the twin's truth,
-        the conventions' figures of its exact surface over every pixel that sees the facet, and its
-        placement; exact (zero uncertainty)."""
+        the conventions' figures of its exact surface over the pixels the last inspection kept (as every
+        truth of the twin is stated: the analysis leaves out the pixels within the edge's blur, and over a
+        1-pixel ring a facet's best-fit f differs by a few hundredths of a percent), else over every pixel
+        that sees the facet, and its placement; exact (zero uncertainty)."""
         from ..twin.truth import ground_truth
 
-        truth = ground_truth(self.twin, np.asarray(self.twin.coverage) > 0.5)
+        kept = getattr(self, "_last_valid", None)
+        truth = ground_truth(self.twin, kept if kept is not None else np.asarray(self.twin.coverage) > 0.5)
         return {"name": f"twin's true facet ({self.config.design.name})",
                 "source": "the digital twin's exact surface ([simulation.facet]), as certified figures",
                 "focal_length_x_m": truth["focal_length_x_m"], "focal_length_y_m": truth["focal_length_y_m"],

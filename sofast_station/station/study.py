@@ -146,6 +146,27 @@ def _flat(figures: dict, paths) -> dict:
     return {path_name(p): get_path(figures, p) for p in paths}
 
 
+def capture_record(fig: dict, truth: dict, place, paths=SCALAR_PATHS) -> dict:
+    """One capture's figures, their U and U_random, the noise-corrected slope RMS values with theirs, and
+    the truth, each flattened to ``{figure name: value}`` over *paths* (what the coverage tables read);
+    the true placement is *place* ((mm, mrad), as drawn), which the twin's truth echoes."""
+    u_all = {k[:-2]: v for k, v in fig.items() if k.endswith("_U")}
+    ur_all = {k[:-9]: v for k, v in fig.items() if k.endswith("_U_random")}
+    rms_paths = [p for p in paths if p[0] == "slope_rms_mrad"]
+    rec = {"figures": _flat(fig, paths), "U": _flat(u_all, paths), "U_random": _flat(ur_all, paths), "truth": {},
+           "corrected": _flat({"slope_rms_mrad": fig["slope_rms_corrected_mrad"]}, rms_paths),
+           "U_corrected": _flat({"slope_rms_mrad": fig["slope_rms_corrected_mrad_U"]}, rms_paths),
+           "placement": [list(place[0]), list(place[1])]}
+    truth_fig = dict(truth)
+    truth_fig["placement"] = {"mm": list(place[0]), "mrad": list(place[1])}
+    for p in paths:
+        try:
+            rec["truth"][path_name(p)] = get_path(truth_fig, p)
+        except (KeyError, IndexError, TypeError):
+            rec["truth"][path_name(p)] = None
+    return rec
+
+
 def run_repeats(config: StationConfig, n: int, seed: int = 0, placement: Placement = Placement(),
                 perturb_geometry: bool = False, progress=None, paths=SCALAR_PATHS,
                 split_brightness: bool = False) -> list[dict]:
@@ -177,17 +198,9 @@ def run_repeats(config: StationConfig, n: int, seed: int = 0, placement: Placeme
         distance = twin.measured_distance_m() + distance_error
         a = analyse(frames, config.fringes, config.geometry, config.design, distance, config.analysis,
                     uncertainty=config.uncertainty, sensitivity_cache=cache)
-        truth = ground_truth(twin, a.valid)
         fig = a.figures
-        u_all = {k[:-2]: v for k, v in fig.items() if k.endswith("_U")}
-        ur_all = {k[:-9]: v for k, v in fig.items() if k.endswith("_U_random")}
-        rec = {"figures": _flat(fig, paths), "U": _flat(u_all, paths), "U_random": _flat(ur_all, paths),
-               "truth": {}, "corrected": _flat({"slope_rms_mrad": fig["slope_rms_corrected_mrad"]},
-                                               [p for p in paths if p[0] == "slope_rms_mrad"]),
-               "U_corrected": _flat({"slope_rms_mrad": fig["slope_rms_corrected_mrad_U"]},
-                                    [p for p in paths if p[0] == "slope_rms_mrad"]),
-               "placement": place, "drawn": drawn, "seconds": time.perf_counter() - t0,
-               "analysis_seconds": fig["timings_s"]}
+        rec = capture_record(fig, ground_truth(twin, a.valid), place, paths)
+        rec.update({"drawn": drawn, "seconds": time.perf_counter() - t0, "analysis_seconds": fig["timings_s"]})
         if split_brightness:
             calm = analyse(steady_frames, config.fringes, config.geometry, config.design, distance, config.analysis,
                            uncertainty=config.uncertainty, sensitivity_cache=steady_cache)
@@ -197,13 +210,6 @@ def run_repeats(config: StationConfig, n: int, seed: int = 0, placement: Placeme
             stated = dict(zip(budget["figures"], row))
             rec["U_brightness"] = {path_name(p): None if stated.get(path_name(p)) is None
                                    else 2.0 * stated[path_name(p)] for p in paths}
-        truth_fig = dict(truth)
-        truth_fig["placement"] = {"mm": list(place[0]), "mrad": list(place[1])}
-        for p in paths:
-            try:
-                rec["truth"][path_name(p)] = get_path(truth_fig, p)
-            except (KeyError, IndexError, TypeError):
-                rec["truth"][path_name(p)] = None
         out.append(rec)
         if progress:
             progress(i + 1, n, rec)

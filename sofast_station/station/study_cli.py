@@ -1,4 +1,5 @@
-"""``sofast-station study repeatability``: the same facet taken out and put back N times on the twin.
+"""``sofast-station study repeatability``: the same facet taken out and put back N times on the twin;
+``sofast-station study population``: the validity checks and the uncertainty on stations drawn at random.
 
 Registered in :data:`sofast_station.commands.COMMAND_MODULES`.
 """
@@ -53,6 +54,47 @@ def cmd_study_repeatability(args) -> int:
     return 0
 
 
+def cmd_study_population(args) -> int:
+    import math
+
+    from ..errors import StationError
+    from .population import EDGE_MODELS, FAULTS, KINDS, ProgressLog, study
+
+    if args.captures < 1:
+        raise StationError(f"--captures must be at least 1, got {args.captures}")
+    if args.per_station < 1:
+        raise StationError(f"--per-station must be at least 1, got {args.per_station}")
+    kinds = tuple(args.kinds.split(",")) if args.kinds else tuple(KINDS)
+    edges = tuple(args.edges.split(",")) if args.edges else tuple(EDGE_MODELS)
+    for given, known, what in ((kinds, KINDS, "--kinds"), (edges, EDGE_MODELS, "--edges")):
+        bad = [k for k in given if k not in known]
+        if bad:
+            raise StationError(f"{what}: unknown {', '.join(bad)}; use some of {', '.join(known)}")
+    faults = () if args.no_faults else FAULTS
+    if args.out:
+        out_dir = Path(args.out)
+    else:
+        from ..config import load_config
+        out_dir = load_config(args.config).data_dir / "studies"
+    stations = math.ceil(args.captures / args.per_station)
+    log.info("population study: %d good captures on %d stations (seed %d), and %d planted faults on each",
+             args.captures, stations, args.seed, len(faults))
+    command = (f"sofast-station study population --captures {args.captures} --per-station {args.per_station} "
+               f"--seed {args.seed}" + (f" --kinds {args.kinds}" if args.kinds else "")
+               + (f" --edges {args.edges}" if args.edges else "") + (" --no-faults" if args.no_faults else ""))
+    result = study(args.captures, seed=args.seed, per_station=args.per_station, kinds=kinds, edges=edges,
+                   faults=faults, out_dir=out_dir, command=command, progress=ProgressLog(stations))
+    summary = result["summary"]
+    if args.json:
+        json.dump(json_safe(summary), sys.stdout, indent=1)
+        sys.stdout.write("\n")
+    else:
+        print(result["text"])
+        print("\n".join(f"{k} {v}" for k, v in result["paths"].items()))
+    missed = sum(r["n"] - r["k"] for r in summary["faults"].values())
+    return 0 if summary["good"]["false_alarms"]["k"] == 0 and missed == 0 else 1
+
+
 def register(subparsers) -> None:
     """Add ``study repeatability`` to the ``sofast-station`` *subparsers*."""
     study = add_command(subparsers, "study", help="measurement studies on the simulated station",
@@ -76,3 +118,29 @@ def register(subparsers) -> None:
     rep.add_argument("--out", default=None, help="folder for the table and the PNG (default data_dir/studies)")
     rep.add_argument("--json", action="store_true", help="print the table as JSON on stdout")
     rep.set_defaults(func=cmd_study_repeatability)
+    pop = add_command(
+        sub, "population", help="the validity checks and U on stations and captures drawn at random",
+        description="""
+            Trust outside the one default station: draws stations at random (the dish, the gore, the
+            heliostat facet of f 100 m and a nearly flat facet of f 600 m, each with a 400 x 300 camera;
+            lens distortion up to |k1| 0.3; an image-formation model of the facet's edge: exact area,
+            point or coarse grid sampling, a Gaussian blur, a defocus disk, a bevelled glass rim, strong
+            vignetting; read noise 0.3-5 DN, shot noise, room light, display
+            flicker, the display's residual nonlinearity) and on each --per-station good captures (new
+            placement, the station's geometry drawn within [uncertainty] in the twin only, new noise),
+            plus one capture of each planted fault (x and y sets swapped, display gamma not linearised, an
+            obstruction, the facet misplaced). Reports the false INVALID / refusal rate on good captures
+            (and which check), each fault's detection rate, each check's statistic against its threshold,
+            and per figure the coverage of |error against truth| <= U. Seeded and reproducible. Writes
+            population-SEED-N.json / .txt / .png under data_dir/studies/ (or --out); progress on stderr.
+            Exit status 1 when a good capture was refused or invalid or a fault was missed.""")
+    add_config_option(pop)
+    pop.add_argument("--captures", type=int, default=100, metavar="N", help="good captures in all")
+    pop.add_argument("--per-station", type=int, default=10, metavar="M", help="good captures per drawn station")
+    pop.add_argument("--seed", type=int, default=0, help="seed of the population (stations, captures, faults)")
+    pop.add_argument("--kinds", default=None, help="comma-separated facet kinds (default: all)")
+    pop.add_argument("--edges", default=None, help="comma-separated edge models (default: all)")
+    pop.add_argument("--no-faults", action="store_true", help="no planted faults (good captures only)")
+    pop.add_argument("--out", default=None, help="folder for the JSON, table and PNG (default data_dir/studies)")
+    pop.add_argument("--json", action="store_true", help="print the tallies as JSON on stdout")
+    pop.set_defaults(func=cmd_study_population)

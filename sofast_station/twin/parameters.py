@@ -18,6 +18,7 @@ import numbers
 from dataclasses import dataclass
 
 from ..errors import ConfigError
+from .edges import EDGE_SAMPLING as _EDGE_SAMPLING
 
 _DENT_KEYS = ("x_m", "y_m", "depth_m", "radius_m")
 
@@ -228,6 +229,23 @@ class TwinOptics:
     blur_px : float
         Standard deviation of the lens's Gaussian point-spread function, camera pixels (defocus). 0 (the
         default) gives sharply area-sampled edges: each pixel's value is the light falling on its area.
+    edge_sampling : {"area", "point", "grid"}
+        How a pixel samples the facet's edge (:mod:`sofast_station.twin.edges`): ``"area"`` its exact
+        covered area, ``"point"`` its centre ray only (a staircase edge), ``"grid"`` the mean of
+        ``edge_grid**2`` sub-rays on a regular grid.
+    edge_grid : int
+        Sub-rays per pixel side for ``edge_sampling = "grid"`` (2 to 16).
+    defocus_px : float
+        Radius of a uniform-disk point-spread function (a defocused lens's blur circle), pixels; 0 is none.
+    bevel_width_mm : float
+        Width of a bevelled rim inside the facet's outline, millimetres; 0 (the default) is none.
+    bevel_tilt_mrad : float
+        The rim's surface normal turned outward from the facet's by this angle, mrad (it reflects the screen
+        at another angle: other fringes when small, dark when its rays miss the screen).
+    bevel_reflectance : float
+        The rim's specular reflectance relative to the facet's, [0, 1].
+    vignetting_exponent : float
+        Shape of the fall-off: ``1 - vignetting (r / r_corner)^vignetting_exponent`` (2: quadratic).
     """
 
     display_gamma: float = 2.2
@@ -247,12 +265,27 @@ class TwinOptics:
     flicker_depth: float = 0.25
     display_latency_s: float = 0.0
     blur_px: float = 0.0
+    edge_sampling: str = "area"
+    edge_grid: int = 4
+    defocus_px: float = 0.0
+    bevel_width_mm: float = 0.0
+    bevel_tilt_mrad: float = 0.0
+    bevel_reflectance: float = 1.0
+    vignetting_exponent: float = 2.0
 
     def __post_init__(self):
         owner = "TwinOptics"
+        if self.edge_sampling not in _EDGE_SAMPLING:
+            raise ConfigError(f"{owner}.edge_sampling must be one of {', '.join(map(repr, _EDGE_SAMPLING))}, "
+                              f"got {self.edge_sampling!r}")
+        grid = self.edge_grid
+        if isinstance(grid, bool) or not isinstance(grid, numbers.Integral) or not 2 <= grid <= 16:
+            raise ConfigError(f"{owner}.edge_grid must be a whole number of sub-rays per pixel side from 2 to 16, "
+                              f"got {grid!r}")
+        object.__setattr__(self, "edge_grid", int(grid))
         for f in dataclasses.fields(self):
             value = getattr(self, f.name)
-            if f.name == "knee_dn" and value is None:
+            if (f.name == "knee_dn" and value is None) or f.name in ("edge_sampling", "edge_grid"):
                 continue
             object.__setattr__(self, f.name, _number(owner, f.name, value))
         checks = [
@@ -272,6 +305,11 @@ class TwinOptics:
             ("flicker_depth", 0 <= self.flicker_depth < 1, "must lie in [0, 1)"),
             ("display_latency_s", self.display_latency_s >= 0, "must be >= 0 seconds"),
             ("blur_px", 0 <= self.blur_px <= 10, "must lie in [0, 10] pixels"),
+            ("defocus_px", 0 <= self.defocus_px <= 10, "must lie in [0, 10] pixels"),
+            ("bevel_width_mm", 0 <= self.bevel_width_mm <= 50, "must lie in [0, 50] millimetres"),
+            ("bevel_tilt_mrad", abs(self.bevel_tilt_mrad) <= 1000, "must lie in [-1000, 1000] mrad"),
+            ("bevel_reflectance", 0 <= self.bevel_reflectance <= 1, "must lie in [0, 1]"),
+            ("vignetting_exponent", 0.5 <= self.vignetting_exponent <= 16, "must lie in [0.5, 16]"),
         ]
         if self.knee_dn is not None:
             checks.append(("knee_dn", self.camera_offset_dn < self.knee_dn < 255,

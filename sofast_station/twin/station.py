@@ -25,22 +25,19 @@ import numpy as np
 from ..errors import DisplayError, GeometryError
 from ..facet import FacetDesign
 from ..geometry import Pose, StationGeometry
+from . import edges
 from .camera import TwinCamera
 from .noise import scratch_f32, standard_normal_f32
 from .parameters import TrueFacet, TwinOptics
-from .outline import inside_outline, signed_distance_to_outline
+from .outline import signed_distance_to_outline
 from .surface import TrueSurface
-
-#: Sub-rays per edge pixel are processed in chunks of this many pixels (bounds the memory used).
-_EDGE_CHUNK_PX = 4096
 
 #: A captured frame is drawn and finished in blocks of rows of about this many pixels: a block's float32
 #: working arrays (a few hundred kB each) stay in the core's cache between passes.
 _BLOCK_PX = 96_000
 
 #: :meth:`TwinStation.with_facet` keeps the traced outline while the new shape moves its image by less than
-#: this, pixels: a fifth of the corner location's standard uncertainty ([uncertainty] corner_px = 0.1 px),
-#: and about the 64 sub-rays' own resolution of an edge pixel (1/128 px) times three.
+#: this, pixels: a fifth of the corner location's standard uncertainty ([uncertainty] corner_px = 0.1 px).
 MAX_KEPT_EDGE_SHIFT_PX = 0.02
 
 #: The thread that finishes half of every captured frame (shared by all twins of the process).
@@ -100,10 +97,11 @@ class TwinStation:
 
     Construction traces every camera pixel centre: intersection with the true surface (first hit from the
     camera), the outline test (true facet frame), reflection about the exact true normal, and the screen
-    point. Pixels within ``edge_band_px`` of the outline's image get their area coverage from
-    ``supersample**2`` sub-rays on a rook lattice; they keep their centre ray's screen point (the analytic
-    surface continues past the outline). Display sampling indices and weights are precomputed, so
-    :meth:`capture` is a few vector operations.
+    point. The optics' edge model (:mod:`sofast_station.twin.edges`: exact area, centre-ray point or
+    sub-ray grid sampling, a bevelled rim) gives each pixel its facet coverage; edge pixels keep their
+    centre ray's screen point (the analytic surface continues past the outline), and a pixel on a
+    bevelled rim also sees the screen point its rim reflects. Display sampling indices and weights are
+    precomputed, so :meth:`capture` is a few vector operations.
 
     Parameters
     ----------
@@ -114,15 +112,12 @@ class TwinStation:
     facet : TrueFacet
         The true shape and placement.
     optics : TwinOptics
-        Display, reflection, ambient, camera response, noise, vignetting.
-    supersample : int
-        Sub-rays per edge pixel are ``supersample**2`` (at least 8, i.e. 64 sub-rays).
+        Display, reflection, ambient, camera response, noise, vignetting, and the edge model
+        (``edge_sampling``, ``edge_grid``, ``blur_px``, ``defocus_px``, ``bevel_*``; see
+        :mod:`sofast_station.twin.edges`).
     edge_band_px : float
-        Half-width of the band around the outline's image that is supersampled, pixels (at least 1).
-    edge_sampling : {"area", "point"}
-        ``"area"``: an edge pixel's value is the light on its covered area (the band's sub-rays).
-        ``"point"``: only its centre ray counts, so a pixel is facet or background and a slightly tilted
-        edge is a staircase (a renderer that point-samples; no blur either way unless the optics have it).
+        Half-width of the band around the outline's image whose pixels ``edge_sampling = "grid"``
+        supersamples, pixels (at least 1).
     screen_shape : TrueScreen, optional
         The panel as it really is (bowed, twisted, another pitch: :mod:`sofast_station.twin.assembly`);
         a flat screen of the stated pitch by default. *geometry* then holds the stated screen (the units
@@ -141,13 +136,7 @@ class TwinStation:
     """
 
     def __init__(self, geometry: StationGeometry, design: FacetDesign, facet: TrueFacet = TrueFacet(),
-                 optics: TwinOptics = TwinOptics(), supersample: int = 8, edge_band_px: float = 2.0,
-                 edge_sampling: str = "area", screen_shape=None):
-        if edge_sampling not in ("area", "point"):
-            raise GeometryError(f"edge_sampling must be 'area' or 'point', got {edge_sampling!r}")
-        self._edge_sampling = edge_sampling
-        if int(supersample) < 8:
-            raise GeometryError(f"supersample must be at least 8 (64 sub-rays per edge pixel), got {supersample}")
+                 optics: TwinOptics = TwinOptics(), edge_band_px: float = 2.0, screen_shape=None):
         if not edge_band_px >= 1.0:
             raise GeometryError(f"edge_band_px must be at least 1 pixel, got {edge_band_px}")
         self.geometry = geometry
@@ -162,7 +151,6 @@ class TwinStation:
         self.camera_to_facet = self.facet_to_camera.inverse()
         self.screen_to_facet = self.camera_to_facet.compose(geometry.screen_to_camera)
         self.facet_to_screen = self.screen_to_facet.inverse()
-        self._supersample = int(supersample)
         self._edge_band_px = float(edge_band_px)
         #: Display samples of the read-only images captured so far (id -> (weak reference, sample)).
         self._samples: dict = {}
@@ -233,12 +221,8 @@ class TwinStation:
         d_rel = rays_facet[rel_pos]
         t_rel = self.surface.intersect(v_cam_facet, d_rel)
         x_rel = v_cam_facet + t_rel[:, None] * d_rel
-        sd = signed_distance_to_outline(x_rel[:, 0], x_rel[:, 1], self.design.outline_m)
-        in_band = np.abs(sd) < self._edge_band_px * footprint_m[rel_pos]
-        coverage_rel = np.where(sd <= 0, 1.0, 0.0)
-        band_pos = np.flatnonzero(in_band)
-        if self._edge_sampling == "area":
-            coverage_rel[band_pos] = self._edge_coverage(rel_idx[band_pos], width)
+        # The edge model (twin/edges.py): each pixel's facet coverage, and the part of it on a bevelled rim.
+        coverage_rel, rim_rel = edges.pixel_coverage(self, rel_idx, x_rel, footprint_m[rel_pos], self._edge_band_px)
 
         coverage = np.zeros(n_px)
         coverage[rel_idx] = coverage_rel
@@ -248,14 +232,32 @@ class TwinStation:
         x_facet = x_rel[seen]
         d_in_facet = d_rel[seen]
 
-        self._reflect(x_facet, d_in_facet)
-
-    def _reflect(self, x_facet: np.ndarray, d_in_facet: np.ndarray) -> None:
-        """Reflect the seen pixels' rays (hitting at *x_facet*, directions *d_in_facet*, facet frame) about the
-        exact true normal onto the screen plane; fills the per-seen-pixel arrays."""
+        # Reflection about the exact true normal, then the screen plane.
         _, zx, zy = self.surface.height_and_slopes(x_facet[:, 0], x_facet[:, 1])
         normal = np.column_stack([-zx, -zy, np.ones_like(zx)])
         normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+        self._x_facet_m = x_facet
+        self._d_in_facet = d_in_facet
+        self._slope = np.column_stack([zx, zy])
+        self._u_scr_m, self._path_m, self._on_screen = self._reflect_to_screen(x_facet, d_in_facet, normal)
+
+        # A bevelled rim: its part of a pixel reflects about the rim's tilted normal, elsewhere on the screen.
+        rim = rim_rel[seen] / coverage_rel[seen]
+        self._rim_pos = np.flatnonzero(rim > 0)
+        self._rim_fraction = rim[self._rim_pos]
+        self._rim_u_scr_m = np.empty((0, 2))
+        if self._rim_pos.size:
+            at = self._rim_pos
+            outward = edges.rim_distance_and_direction(x_facet[at, 0], x_facet[at, 1], self.design.outline_m)[1]
+            tilted = edges.tilt_normals(normal[at], outward, 1e-3 * self.optics.bevel_tilt_mrad)
+            self._rim_u_scr_m = self._reflect_to_screen(x_facet[at], d_in_facet[at], tilted)[0]
+        rim_image = np.zeros(n_px)
+        rim_image[self._seen_idx[self._rim_pos]] = coverage_rel[seen][self._rim_pos] * self._rim_fraction
+        self._rim_coverage = rim_image.reshape(height, width)
+
+    def _reflect_to_screen(self, x_facet: np.ndarray, d_in_facet: np.ndarray, normal: np.ndarray):
+        """Screen coordinates (u_x, u_y) metres, path length (m, NaN when the plane is missed) and whether
+        it lands on the active area, of rays *d_in_facet* reflected at *x_facet* about unit *normal*."""
         d_out_facet = d_in_facet - 2.0 * np.sum(d_in_facet * normal, axis=1, keepdims=True) * normal
         x_scr = self.facet_to_screen.apply(x_facet)
         d_out_scr = self.facet_to_screen.apply_vector(d_out_facet)
@@ -274,38 +276,21 @@ class TwinStation:
         with np.errstate(invalid="ignore"):
             on_screen = hits_plane & (u_scr_m[:, 0] >= 0) & (u_scr_m[:, 0] < screen.width_m) \
                 & (u_scr_m[:, 1] >= 0) & (u_scr_m[:, 1] < screen.height_m)
-
-        self._x_facet_m = x_facet
-        self._d_in_facet = d_in_facet
-        self._slope = np.column_stack([zx, zy])
-        self._u_scr_m = u_scr_m
-        self._path_m = path_m
-        self._on_screen = on_screen
-
-    def _edge_coverage(self, pixel_idx: np.ndarray, width: int) -> np.ndarray:
-        """Area coverage of edge pixels by the outline, from sub-rays on a rook lattice."""
-        offsets = rook_lattice(self._supersample)
-        v_cam_facet = self.camera_to_facet.translation
-        coverage = np.empty(pixel_idx.size)
-        for start in range(0, pixel_idx.size, _EDGE_CHUNK_PX):
-            chunk = pixel_idx[start:start + _EDGE_CHUNK_PX]
-            u = (chunk % width).astype(np.float64)[:, None] + offsets[None, :, 0]
-            v = (chunk // width).astype(np.float64)[:, None] + offsets[None, :, 1]
-            rays = self.camera_to_facet.apply_vector(self.camera.pixel_rays(u.ravel(), v.ravel()))
-            t = self.surface.intersect(v_cam_facet, rays)
-            hit = v_cam_facet + t[:, None] * rays
-            inside = inside_outline(hit[:, 0], hit[:, 1], self.design.outline_m) & np.isfinite(t)
-            coverage[start:start + chunk.size] = inside.reshape(chunk.size, -1).mean(axis=1)
-        return coverage
+        return u_scr_m, path_m, on_screen
 
     # ------------------------------------------------------------- precompute
     def _prepare_sampling(self) -> None:
-        """Bilinear sampling indices/weights into a zero-padded window of the display luminance."""
+        """Bilinear sampling indices/weights into a zero-padded window of the display luminance.
+
+        A pixel on a bevelled rim has a second set (``_rim_idx``, ``_rim_w``) for its rim's screen point;
+        each set's weights carry its share of the pixel's facet area (and the rim's relative reflectance).
+        """
         screen = self.geometry.screen
         pitch_x, pitch_y = screen.pitch_m, screen.pitch_y_m              # columns, rows (may differ)
+        u_scr_m = np.concatenate([self._u_scr_m, self._rim_u_scr_m])
         with np.errstate(invalid="ignore"):
-            col = self._u_scr_m[:, 0] / pitch_x - 0.5                       # continuous display column
-            row = (screen.height_m - self._u_scr_m[:, 1]) / pitch_y - 0.5    # continuous display row
+            col = u_scr_m[:, 0] / pitch_x - 0.5                       # continuous display column
+            row = (screen.height_m - u_scr_m[:, 1]) / pitch_y - 0.5    # continuous display row
             good = np.isfinite(col) & np.isfinite(row) & (col > -1) & (col < screen.width_px) \
                 & (row > -1) & (row < screen.height_px)
         col0 = np.floor(np.where(good, col, 0.0))
@@ -321,20 +306,23 @@ class TwinStation:
             self._win_r0 = self._win_r1 = self._win_c0 = self._win_c1 = 0
         win_w = self._win_c1 - self._win_c0 + 1
         base = np.where(good, (pad_r - self._win_r0) * win_w + (pad_c - self._win_c0), 0)
-        self._sample_idx = np.stack([base, base + 1, base + win_w, base + win_w + 1]).astype(np.intp)
+        idx = np.stack([base, base + 1, base + win_w, base + win_w + 1]).astype(np.intp)
         weights = np.stack([(1 - frac_r) * (1 - frac_c), (1 - frac_r) * frac_c,
                             frac_r * (1 - frac_c), frac_r * frac_c])
-        self._sample_w = np.where(good, weights, 0.0).astype(np.float32)
+        weights = np.where(good, weights, 0.0)
+        n = self._u_scr_m.shape[0]
+        if self._rim_pos.size:
+            weights[:, self._rim_pos] *= 1.0 - self._rim_fraction
+            weights[:, n:] *= self._rim_fraction * self.optics.bevel_reflectance
+        self._sample_idx, self._rim_idx = idx[:, :n], idx[:, n:]
+        self._sample_w, self._rim_w = weights[:, :n].astype(np.float32), weights[:, n:].astype(np.float32)
 
     def _prepare_photometry(self) -> None:
         """Vignetting, gain, and the per-pixel affine terms of the linear response."""
         optics = self.optics
         height, width = self.geometry.camera.shape
-        cx, cy = self.camera.cx, self.camera.cy
-        v_px, u_px = np.mgrid[0:height, 0:width].astype(np.float64)
-        r2 = (u_px - cx) ** 2 + (v_px - cy) ** 2
-        r2_corner = max((u - cx) ** 2 + (v - cy) ** 2 for u in (0, width - 1) for v in (0, height - 1))
-        self._vignetting = 1.0 - optics.vignetting * r2 / r2_corner if r2_corner > 0 else np.ones_like(r2)
+        self._vignetting = edges.vignetting_factor((height, width), self.camera.cx, self.camera.cy,
+                                                   optics.vignetting, optics.vignetting_exponent)
         full = self._coverage >= 1.0
         some = self._coverage > 0
         vig_max = float(self._vignetting[full].max() if full.any()
@@ -356,14 +344,14 @@ class TwinStation:
         With the placement unchanged, only the shape differs by micrometres: every pixel that saw the
         facet is intersected again with the new surface (Newton from its old hit, to 1e-12 m), reflected
         about the new exact normal and followed to the screen; the facet's outline in the image, and so
-        each edge pixel's area coverage, is kept. A new trace would move the outline's image by
-        less than :data:`MAX_KEPT_EDGE_SHIFT_PX` (bounded here: the largest height change along the
-        outline times the steepest ray there, over the pixel's footprint), i.e. change an edge pixel's
-        coverage by a sub-ray or two; beyond that, or with another placement, the station is traced anew.
-        Every figure of the twin's truth is the new surface's, exactly. Shares the unchanged read-only
-        arrays.
+        each edge pixel's coverage, is kept. A new trace would move the outline's image by less than
+        :data:`MAX_KEPT_EDGE_SHIFT_PX` (bounded here: the largest height change along the outline times the
+        steepest ray there, over the pixel's footprint); beyond that, with another placement, or with a
+        bevelled rim (whose pixels reflect twice), the station is traced anew. Every figure of the twin's
+        truth is the new surface's, exactly. Shares the unchanged read-only arrays.
         """
-        if facet.placement_mm != self.facet.placement_mm or facet.placement_mrad != self.facet.placement_mrad:
+        if facet.placement_mm != self.facet.placement_mm or facet.placement_mrad != self.facet.placement_mrad \
+                or self._rim_pos.size:
             return self._traced_anew(facet)
         surface = TrueSurface(facet, self.design)
         if self._edge_shift_px(surface) > MAX_KEPT_EDGE_SHIFT_PX:
@@ -378,14 +366,20 @@ class TwinStation:
         v_cam = self.camera_to_facet.translation
         t_old = np.einsum("ij,ij->i", self._x_facet_m - v_cam, d_in)
         t_new = surface.intersect(v_cam, d_in, start_m=t_old)
-        twin._reflect(v_cam + t_new[:, None] * d_in, d_in)
+        x_facet = v_cam + t_new[:, None] * d_in
+        _, zx, zy = surface.height_and_slopes(x_facet[:, 0], x_facet[:, 1])
+        normal = np.column_stack([-zx, -zy, np.ones_like(zx)])
+        normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+        twin._x_facet_m = x_facet
+        twin._slope = np.column_stack([zx, zy])
+        twin._u_scr_m, twin._path_m, twin._on_screen = twin._reflect_to_screen(x_facet, d_in, normal)
         twin._prepare_sampling()
         twin.trace_seconds = time.perf_counter() - start
         return twin
 
     def _traced_anew(self, facet: TrueFacet) -> "TwinStation":
-        return TwinStation(self.geometry, self.design, facet, self.optics, supersample=self._supersample,
-                           edge_band_px=self._edge_band_px, edge_sampling=self._edge_sampling)
+        return TwinStation(self.geometry, self.design, facet, self.optics, edge_band_px=self._edge_band_px,
+                           screen_shape=self.screen_shape)
 
     def _edge_shift_px(self, surface: TrueSurface) -> float:
         """How far, in pixels, the facet's outline would move in the image if this station's surface became
@@ -402,14 +396,21 @@ class TwinStation:
         return float(np.max(dz * tilt / footprint_m))
 
     def with_optics(self, optics: TwinOptics) -> "TwinStation":
-        """The same traced station with other optics (exposure, noise, display): no new trace.
+        """The same traced station with other optics (exposure, noise, display, blur, vignetting): no new trace.
 
-        The returned station shares the trace's (read-only) arrays with this one.
+        The returned station shares the trace's (read-only) arrays with this one. Optics whose edge model
+        changes the trace (:data:`sofast_station.twin.edges.TRACE_FIELDS`: sampling, a bevelled rim) give a
+        newly traced station.
         """
+        if any(getattr(optics, name) != getattr(self.optics, name) for name in edges.TRACE_FIELDS):
+            return TwinStation(self.geometry, self.design, self.facet, optics, edge_band_px=self._edge_band_px,
+                               screen_shape=self.screen_shape)
         twin = copy.copy(self)
         twin.optics = optics
         twin._samples = {}                   # the display's response (luminance table) may differ
         twin._prepare_photometry()
+        if optics.bevel_reflectance != self.optics.bevel_reflectance:
+            twin._prepare_sampling()
         for name in ("screen_position_m", "surface_point_facet_m", "slope_true", "on_screen"):
             twin.__dict__.pop(name, None)
         return twin
@@ -480,6 +481,11 @@ class TwinStation:
             flat = window.ravel()
             for k in range(4):
                 sample += self._sample_w[k] * flat[self._sample_idx[k]]
+            if self._rim_pos.size:
+                rim = np.zeros(self._rim_pos.size, dtype=np.float32)
+                for k in range(4):
+                    rim += self._rim_w[k] * flat[self._rim_idx[k]]
+                sample[self._rim_pos] += rim
         return sample
 
     def _cached_sample(self, display_image: np.ndarray) -> np.ndarray:
@@ -528,11 +534,9 @@ class TwinStation:
         point-spread function when it has one. *light*: the sample's :meth:`_cached_light`, when known;
         *out*: where the sharp signal may be formed (a float32 array of the camera's shape)."""
         dn = self._linear_sharp(sample, ambient, scale, flicker, light, out)
-        if self.optics.blur_px > 0:
-            from scipy.ndimage import gaussian_filter
-            # The light is spread before the sensor integrates it; black level is not light, but a
-            # uniform offset passes a normalised filter unchanged.
-            dn = gaussian_filter(dn, float(self.optics.blur_px), mode="nearest", truncate=4.0)
+        if edges.has_psf(self.optics):
+            # The light is spread before the sensor integrates it (twin/edges.py: Gaussian, disk).
+            dn = edges.apply_psf(dn, self.optics)
         return dn
 
     def _linear_sharp(self, sample: np.ndarray, ambient: float, scale: float, flicker: float,
@@ -621,7 +625,7 @@ class TwinStation:
         # The image's two halves are finished side by side, each with its own generator seeded from *rng*
         # (numpy releases the GIL while it draws and computes): the sensor noise dominates the frame's cost.
         seeds = rng.integers(0, 2**63, size=2) if noisy else (None, None)
-        if light is not None and noisy and optics.blur_px == 0:
+        if light is not None and noisy and not edges.has_psf(optics):
             # The signal is formed, block by block, on the box of pixels that see the screen only: outside
             # it every pixel has its constant dark level (no light, no ambient) and its noise deviation is
             # kept per gain. The same noise draws, the same arithmetic per pixel: the same frame as below.
@@ -827,6 +831,23 @@ class TwinStation:
     def coverage(self) -> np.ndarray:
         """Fraction (H, W) of each pixel's area covered by the facet (0 outside, 1 inside)."""
         out = self._coverage.view()
+        out.setflags(write=False)
+        return out
+
+    @property
+    def rim_coverage(self) -> np.ndarray:
+        """Fraction (H, W) of each pixel's area on the facet's bevelled rim (zero without one)."""
+        out = self._rim_coverage.view()
+        out.setflags(write=False)
+        return out
+
+    @cached_property
+    def rim_screen_position_m(self) -> np.ndarray:
+        """Screen coordinates (H, W, 2) of the screen point each rim pixel's rim reflects; NaN elsewhere."""
+        height, width = self.geometry.camera.shape
+        out = np.full((height * width, 2), np.nan)
+        out[self._seen_idx[self._rim_pos]] = self._rim_u_scr_m
+        out = out.reshape(height, width, 2)
         out.setflags(write=False)
         return out
 

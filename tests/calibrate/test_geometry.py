@@ -4,17 +4,20 @@ and the geometry is kept as a record with its provenance."""
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 
 import pytest
 
 from sofast_station.calibrate.geometry import (check_geometry, compare_to_reference, load_reference,
-                                               reference_from_simulation, station_reference)
+                                               pitch_sensitivities, reference_from_simulation, station_reference,
+                                               summary_text)
 from sofast_station.calibrate.geometry_record import load_geometry_record, save_geometry
 from sofast_station.config import load_config
 from sofast_station.errors import ConfigError
 from sofast_station.station import simulated as simulated_station
 from sofast_station.station.calibrate_cli import register
+from sofast_station.station.commissioning import sensitivities_in_force
 from sofast_station.station.factory import open_station
 from sofast_station.station.inspection import inspect
 
@@ -141,3 +144,62 @@ def test_calibrate_geometry_command_with_a_reference_file(tmp_path, capsys):
     ref.write_text('[reference]\nfocal_length_x_m = 5.42\nfocal_lenght_y_m = 5.35\n')
     with pytest.raises(ConfigError, match=r"reference\.toml \[reference\] has unknown key\(s\) focal_lenght_y_m"):
         load_reference(ref)
+
+
+def _pitch_check(tmp_path, monkeypatch, pitch_scale: float, facet: dict | None = None):
+    """The reference check on the small dish station whose twin's screen pitch is *pitch_scale* times
+    the configured one (the analysis keeps station.toml's), the reference facet *facet* in the fixture."""
+    cfg = small_config(tmp_path / "station", simulation={"facet": facet} if facet else None)
+    true_file = tmp_path / "true" / "station.toml"
+    true_file.parent.mkdir()
+    true_file.write_text(cfg.path.read_text().replace("pitch_m = 0.000275", f"pitch_m = {0.000275 * pitch_scale!r}"))
+    true_cfg = dataclasses.replace(load_config(true_file), simulation=cfg.simulation)
+    build = simulated_station.build_twin
+    with monkeypatch.context() as patch:
+        patch.setattr(simulated_station, "build_twin", lambda config, noise=True: build(true_cfg, noise))
+        station = open_station(cfg, noise=False)
+    try:
+        rec = inspect(station, "GEOMETRY-REFERENCE")
+        return check_geometry(rec, station_reference(station), cfg.uncertainty,
+                              pitch_sensitivities(sensitivities_in_force(station)))
+    finally:
+        station.close()
+
+
+#: A reference facet whose focal lengths are 10 % from the station's design (5.33 m): off the layout's
+#: centre of curvature, the screen points it sees spread, and the pitch shows in its focal lengths.
+REFERENCE_FACET = {"focal_length_x_m": 5.9, "focal_length_y_m": 5.8, "twist_mrad_per_m": 0.1,
+                   "slope_error_rms_mrad": 0.5}
+
+
+@pytest.mark.parametrize("pitch_scale", [1.01, 0.99])
+def test_a_one_percent_screen_pitch_error_is_flagged(tmp_path, monkeypatch, pitch_scale):
+    """Issue 26: a screen pitch 10 % off passed the daily check (f off 9 mm, within its 0.5 % tolerance).
+    The check now estimates the screen's scale from the focal lengths' deviations and their (signed)
+    sensitivity to the pitch: 1 % is found within its U and flagged."""
+    check = _pitch_check(tmp_path, monkeypatch, pitch_scale, REFERENCE_FACET)
+    scale = check["screen_scale"]
+    print(f"\npitch x {pitch_scale}: screen scale {100 * scale['value']:+.3f} +- {100 * scale['U']:.3f} % (k=2); "
+          f"f {[round(100 * e['relative_error'], 3) for e in check['focal_lengths'].values()]} %")
+    assert scale["resolves"] and scale["flagged"] and not check["within_tolerance"]
+    assert abs(scale["value"] - (pitch_scale - 1.0)) < scale["U"]
+    assert any("the screen's scale" in r and "pitch_m" in r for r in check["reasons"])
+    # the focal lengths alone stay within the reference's 0.5 % tolerance: the scale is what catches it
+    assert all(abs(e["relative_error"]) < 0.005 for e in check["focal_lengths"].values())
+
+
+def test_the_right_screen_pitch_is_not_flagged_and_a_coarse_reference_says_so(tmp_path, monkeypatch):
+    right = _pitch_check(tmp_path / "right", monkeypatch, 1.0, REFERENCE_FACET)
+    scale = right["screen_scale"]
+    print(f"\nright pitch: screen scale {100 * scale['value']:+.3f} +- {100 * scale['U']:.3f} % (k=2)")
+    assert scale["resolves"] and not scale["flagged"] and right["within_tolerance"]
+    assert abs(scale["value"]) < scale["U"]
+    # a reference at the design's focal length, whose centre of curvature the layout puts midway between
+    # camera and screen: every pixel sees nearly the same screen point, so the pitch cannot show; said so,
+    # not flagged
+    coarse = _pitch_check(tmp_path / "coarse", monkeypatch, 1.01, {**REFERENCE_FACET, "focal_length_x_m": 5.335,
+                                                                    "focal_length_y_m": 5.33})
+    scale = coarse["screen_scale"]
+    print(f"reference at the design's f, pitch 1 % off: {scale}")
+    assert not scale["resolves"] and not scale["flagged"] and "resolves the screen's scale" in scale["note"]
+    assert "screen scale" in summary_text(coarse)

@@ -73,7 +73,8 @@ def test_corner_covariance_matches_the_scatter_over_noise():
         order = [int(np.argmin(np.linalg.norm(fit.corners_px - t, axis=1))) for t in true]
         idx = np.array([[2 * j, 2 * j + 1] for j in order]).ravel()
         errors.append((fit.corners_px[order] - true).ravel())
-        predicted.append(fit.corner_cov_px2[np.ix_(idx, idx)])
+        # the noise's part: the covariance less the corner finder's own model error
+        predicted.append((fit.corner_cov_px2 - fit.corner_model_cov_px2)[np.ix_(idx, idx)])
     seen = np.cov(np.array(errors).T)
     stated = np.mean(predicted, axis=0)
     combos = {f"corner {i} {'uv'[k]}": np.eye(8)[2 * i + k] for i in range(4) for k in range(2)}

@@ -42,6 +42,79 @@ def _empty_like(template):
     return None
 
 
+def _projected_normal_quantile(d: float, level: float = 0.95) -> float:
+    """The *level* quantile of |theta| (rad) for theta = atan2(Y, d + X), X and Y independent standard
+    normal: the direction of a 2-D vector known to within a unit isotropic spread at distance d from the
+    origin. Its density is (1 / 2 pi) exp(-d^2 sin^2 theta / 2) (exp(-a^2 / 2) + a sqrt(2 pi) Phi(a)),
+    a = d cos theta, integrated on a fine grid."""
+    from scipy.special import ndtr
+
+    theta = np.linspace(0.0, np.pi, 4001)
+    a = d * np.cos(theta)
+    f = np.exp(-0.5 * (d * np.sin(theta)) ** 2) * (np.exp(-0.5 * a * a) + a * np.sqrt(2 * np.pi) * ndtr(a)) / np.pi
+    cdf = np.concatenate([[0.0], np.cumsum(0.5 * (f[1:] + f[:-1]) * np.diff(theta))])
+    return float(np.interp(level * cdf[-1], cdf, theta))
+
+
+_AXIS_U_LIN = np.geomspace(1e-3, 10.0, 121)
+_AXIS_U_95: np.ndarray | None = None
+
+
+def axis_angle_u(u_linear: float) -> float:
+    """The axis angle's expanded uncertainty (95 %, rad) from its linear standard uncertainty.
+
+    The axis angle is half the direction of the vector (A - B, E). Linearised, its standard uncertainty is
+    sigma / (2 rho) (rho the vector's length, sigma its spread across it); that holds while sigma is small
+    against rho. On a nearly round facet (f_x close to f_y, little twist: a heliostat's, a flat one's) it is
+    not: the direction is then anywhere, and k times the linear value, small against pi / 2, covered 69-79 %
+    of the twin's true angles. Here the 95 % quantile of the half-direction of a vector d = rho / sigma =
+    1 / (2 u) from the origin with a unit isotropic spread, the linear k u where that is larger: pi / 2 x 0.95
+    when the vector is lost in its spread; never more than pi / 2 (an axis is a direction modulo pi).
+    """
+    global _AXIS_U_95
+    if _AXIS_U_95 is None:
+        _AXIS_U_95 = np.array([0.5 * _projected_normal_quantile(1.0 / (2.0 * u)) for u in _AXIS_U_LIN])
+    u = float(u_linear)
+    if np.isnan(u) or u <= 0:
+        return COVERAGE_FACTOR * u if np.isfinite(u) else u
+    if not np.isfinite(u):
+        return 0.5 * np.pi
+    # an axis is a direction modulo pi: no error exceeds pi / 2
+    return min(0.5 * np.pi, max(COVERAGE_FACTOR * u, float(np.interp(np.log(u), np.log(_AXIS_U_LIN), _AXIS_U_95))))
+
+
+def _axis_angle_floor(figures: dict, paths: list, u: np.ndarray) -> float:
+    """The axis angle's expanded uncertainty (k = 2, rad) that the curvatures' and the twist's own standard
+    uncertainties *u* imply, their errors taken as independent.
+
+    The angle is half the direction of v = (A - B, E), A - B = (kappa_x - kappa_y) / 4 and E = twist / 1000.
+    The vectors within k standard deviations of the measured one (an ellipse of half-axes k sigma) turn
+    it by at most the largest half-direction change over that ellipse's boundary; when the ellipse holds
+    the origin the direction is not known at all: pi / 2. Linearised (what the budget's own rows give),
+    a nearly round facet's |A - B| inflated by its noise looked like a known axis: a flat facet whose
+    measured A - B was 2 of its standard deviations from 0 had its axis stated to 0.03 rad and was pi / 2
+    off. The budget's rows also miss what moves kappa_x and kappa_y apart without a row of its own (the
+    facet's own slope errors over the pixels kept). 0 when a figure is missing."""
+    try:
+        jx, jy, jt = (paths.index((n,)) for n in ("curvature_x_per_m", "curvature_y_per_m", "twist_mrad_per_m"))
+        kx, ky, tw = (float(figures[n]) for n in ("curvature_x_per_m", "curvature_y_per_m", "twist_mrad_per_m"))
+    except (ValueError, KeyError, TypeError):
+        return 0.0
+    d, e = 0.25 * (kx - ky), 1e-3 * tw
+    k = COVERAGE_FACTOR
+    r_d, r_e = k * 0.25 * float(np.hypot(u[jx], u[jy])), k * 1e-3 * float(u[jt])
+    if not np.isfinite(r_d + r_e) or not np.isfinite(d + e):
+        return 0.0
+    if r_d <= 0.0 or r_e <= 0.0:
+        return 0.0
+    if (d / r_d) ** 2 + (e / r_e) ** 2 <= 1.0:
+        return 0.5 * np.pi
+    t = np.linspace(0.0, 2.0 * np.pi, 256, endpoint=False)
+    turn = 0.5 * (np.arctan2(e + r_e * np.sin(t), d + r_d * np.cos(t)) - np.arctan2(e, d))
+    turn = (turn + 0.5 * np.pi) % np.pi - 0.5 * np.pi
+    return float(min(np.max(np.abs(turn)), 0.5 * np.pi))
+
+
 def _clean(v: float):
     return None if v is None or not np.isfinite(v) else float(v)
 
@@ -136,6 +209,11 @@ def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs:
         if values[p] is None:
             total[p] = random[p] = None
             continue
+        if p == ("axis_angle_rad",):
+            floor, floor_rand = (_axis_angle_floor(figures, sens.paths, v) for v in (u, u_rand))
+            total[p] = _clean(max(axis_angle_u(u[j]), floor))
+            random[p] = _clean(max(axis_angle_u(u_rand[j]), floor_rand))
+            continue
         total[p] = _clean(k * u[j])
         random[p] = _clean(k * u_rand[j])
     # Noise floor: the slope noise the capture explains, and the RMS with it removed in quadrature.
@@ -150,6 +228,7 @@ def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs:
             corrected_u[m][a] = total.get(p)
             if total.get(p) is not None and r is not None:       # the noise's bias, uncorrected: in quadrature
                 total[p] = float(np.hypot(total[p], k * (r - corrected[m][a])))
+                total[p] = float(np.hypot(total[p], k * blur_bias_mrad(figures, m, a, noise_mrad[m])))
     out = _nest(total, figures)
     out.update({k2 + "_random": v for k2, v in _nest(random, figures).items()})
     out.update(_subsample_fit_u(figures, sens.paths, u, u_rand, noise_col))
@@ -164,6 +243,33 @@ def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs:
             "draws": POSE_DRAWS,
             "boresight_camera_rays": {path_name(p): _sig(v) for p, v in rays.items()}}
     return out
+
+
+#: The first-order estimate of what a blur smooths away of the slope residuals, from the blurred field's own
+#: gradient, understates it by the factor x e^-x / (1 - e^-x) (x = sigma^2 k^2 of the field's wavenumbers
+#: k, for a Gaussian blur of standard deviation sigma), at least 0.5 while x <= 1.26: it is stated this
+#: many times over.
+BLUR_LOSS_FACTOR = 2.0
+
+
+def blur_bias_mrad(figures: dict, model: str, axis: str, noise_mrad: dict) -> float:
+    """How much lower than the facet's own the slope RMS *axis* of *model* may read because the lens's blur
+    averages neighbouring slopes (mrad; 0 for a sharp edge), an uncorrected bias added to U in quadrature.
+
+    A blur of standard deviation s pixels (``edge_blur_px``, measured on the facet's edge) lowers a field's
+    mean square by about s^2 times its mean square gradient per pixel, which is twice the neighbours' mean
+    square difference (``slope_residual_neighbour_ms_mrad2``) less the noise's share (2 sigma^2 for
+    independent pixel noise sigma, *noise_mrad*); stated :data:`BLUR_LOSS_FACTOR` times over. The bias is
+    sqrt(rms^2 + loss) - rms.
+    """
+    blur = figures.get("edge_blur_px") or 0.0
+    diffs = (figures.get("slope_residual_neighbour_ms_mrad2") or {}).get(model)
+    rms = get_path(figures, ("slope_rms_mrad", model, axis))
+    if blur <= 0 or not diffs or rms is None:
+        return 0.0
+    axes = ("x", "y") if axis == "magnitude" else (axis,)
+    loss = sum(BLUR_LOSS_FACTOR * blur ** 2 * 2.0 * max(diffs[a] - 2.0 * noise_mrad[a] ** 2, 0.0) for a in axes)
+    return float(np.sqrt(rms * rms + loss) - rms)
 
 
 def _subsample_fit_u(figures: dict, paths: list, u: np.ndarray, u_rand: np.ndarray, noise_col: np.ndarray) -> dict:

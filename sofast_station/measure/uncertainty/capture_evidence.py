@@ -86,8 +86,10 @@ def display_response_u(reduction, inputs: InputUncertainties) -> dict:
     uncertainty: each harmonic coefficient of the residual ``b (beta cos 2 phi + gamma sin 2 phi)``,
     fitted to N samples with residual noise 2 sigma (four frames of noise sigma), has standard deviation
     ``2 sigma / (b sqrt(N / 2))``, and r = |(beta, gamma)| / 4, so ``u(r) = sigma / (2 b sqrt(N / 2))``
-    and ``u(E) = |dE/dr| u(r)``. The value used is ``sqrt(E^2 + u(E)^2)``: the phase error is not
-    corrected, so its estimate counts in full, together with the estimate's uncertainty.
+    and ``u(E) = |dE/dr| u(r)``. Where the capture's coarse and fine sets show the phase error directly
+    (:func:`~sofast_station.measure.phase.phase_error_between_periods`: any shape of response), E and
+    u(E) are theirs. The value used is ``sqrt(E^2 + u(E)^2)``: the phase error is not corrected, so its
+    estimate counts in full, together with the estimate's uncertainty.
 
     The second harmonic shows a smooth miss of the response (a gamma not quite inverted), not the rounding
     of the fringes to whole 8-bit commands, whose 4-times-phase part the radiometric record in force
@@ -123,9 +125,12 @@ def display_response_u(reduction, inputs: InputUncertainties) -> dict:
     n = min(int(reduction.region.idx.size) * n_sets, MAX_NOISE_SAMPLES)
     u_ratio = float(sigma) / (2.0 * max(b, 1e-9) * np.sqrt(max(n, 2) / 2.0))
     estimate = float(fn.phase_error_rad)
-    h = max(u_ratio, 1e-6)
-    slope = abs(phase_error_from_harmonic(abs(ratio) + h) - phase_error_from_harmonic(abs(ratio))) / h
-    u_estimate = slope * u_ratio
+    if getattr(fn, "phase_error_u_rad", None) is not None:
+        u_estimate = float(fn.phase_error_u_rad)        # measured between the period sets, with its fit's u
+    else:
+        h = max(u_ratio, 1e-6)
+        slope = abs(phase_error_from_harmonic(abs(ratio) + h) - phase_error_from_harmonic(abs(ratio))) / h
+        u_estimate = slope * u_ratio
     out = {"u_rad": float(np.hypot(estimate, u_estimate)), "source": "capture", "estimate_rad": estimate,
            "estimate_u_rad": float(u_estimate), "harmonic_ratio": float(ratio)}
     if record is not None:

@@ -253,6 +253,20 @@ class Input:
     kind: str = "systematic"
 
 
+def input_key(inp: Input) -> str | None:
+    """The ``[uncertainty]`` key that states *inp*'s standard uncertainty (None: the capture's own)."""
+    if inp.name.startswith("fixture r"):
+        return "fixture_rotation_mrad"
+    if inp.name.startswith("fixture t"):
+        return "fixture_translation_mm"
+    return {"measured distance": "distance_mm", "camera focal length": "camera_focal_px",
+            "camera principal point": "camera_principal_px", "camera distortion": "camera_distortion",
+            "camera-to-screen rotation": "screen_rotation_mrad",
+            "camera-to-screen translation": "screen_translation_mm",
+            "screen pitch": "screen_pitch_relative", "display response": "response_phase_rad",
+            "corner location": "corner_px"}.get(inp.group)
+
+
 def screen_shape_inputs(screen) -> list[Input]:
     """The rows of a measured screen's shape (``calibrate screen``): one per independent uncertainty field the
     screen carries (:meth:`~sofast_station.measure.screen.InterpolatedScreen.displaced`), each at one standard

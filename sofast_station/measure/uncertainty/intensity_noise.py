@@ -9,10 +9,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..camera import to_frame
 from ..metrics import principal_axes
-from ..phase import noise_at_level, noise_by_level, position_sigma_m
 from ..pipeline import default_screen
+from ..slope_noise import pixel_noise_dn as _pixel_noise_dn
+from ..slope_noise import position_sigmas_m, slope_jacobian
 from .inputs import RMS_AXES
 
 
@@ -57,16 +57,8 @@ class NoisePropagation:
 
 def pixel_noise_dn(reduction, take: np.ndarray) -> np.ndarray | float:
     """The frame noise (DN, rounding included) of the region's pixels *take* (indices into the phases'
-    arrays), each at its own brightness (white - dark) by the capture's noise-against-brightness line
-    (:func:`~.phase.noise_by_level`, fitted here on its cleaned four-step residuals: only the uncertainty
-    needs it); the capture's one noise figure where there is no such line."""
-    phases = reduction.phases
-    stack = getattr(reduction.region, "stack", None)
-    if phases.noise is None or not phases.noise.residuals or stack is None or len(stack) < 2:
-        return phases.noise_dn
-    level = np.subtract(stack[1], stack[0], dtype=np.float32)
-    model = noise_by_level(phases.noise.residuals, level, phases.noise_dn)
-    return noise_at_level(model, level[take])
+    arrays), each at its own brightness: :func:`~..slope_noise.pixel_noise_dn` of *reduction*."""
+    return _pixel_noise_dn(reduction.phases, getattr(reduction.region, "stack", None), take)
 
 
 def noise_propagation(reduction, *, fringes, geometry, design, settings, screen=None,
@@ -88,23 +80,12 @@ def noise_propagation(reduction, *, fringes, geometry, design, settings, screen=
     step = max(1, n_all // max_points)
     sel = slice(None, None, step)
     take = np.flatnonzero(ok)[sel]          # the pixels of [ok][sel], without gathering every valid pixel first
-    ux = red.phases.positions_m["x"][take]
-    uy = red.phases.positions_m["y"][take]
-    noise_dn = pixel_noise_dn(red, take)
-    sig_u = {a: position_sigma_m(red.phases.finest_modulation_dn[a][take], noise_dn,
-                                 getattr(fringes, f"periods_{a}")[-1], length)
-             for a, length in zip("xy", (screen.width_m, screen.height_m))}
+    sig_u = position_sigmas_m(red.phases, getattr(red.region, "stack", None), take, fringes,
+                              (screen.width_m, screen.height_m))
     # Slopes' derivative with respect to the screen position, surface point held, in the boresight frame.
-    cam_to_b = red.shape.boresighted_to_camera.inverse()
-    camera_b = cam_to_b.translation
     points = red.shape.points_m[:, sel]
-    delta = 1e-4
-    from ..kernels import normal_slopes as slopes_of      # surface.normal_slopes in one compiled pass
-
-    s0 = slopes_of(points, camera_b, to_frame(cam_to_b, screen.points_camera(ux, uy)))
-    sx_dx = slopes_of(points, camera_b, to_frame(cam_to_b, screen.points_camera(ux + delta, uy)))
-    sy_dy = slopes_of(points, camera_b, to_frame(cam_to_b, screen.points_camera(ux, uy + delta)))
-    gx, gy = (sx_dx - s0) / delta, (sy_dy - s0) / delta          # (2, n): d(s_x, s_y)/du_x, /du_y
+    s0, gx, gy = slope_jacobian(points, red.shape.boresighted_to_camera.inverse(), screen,
+                                red.phases.positions_m["x"][take], red.phases.positions_m["y"][take])
     var = (gx * sig_u["x"]) ** 2 + (gy * sig_u["y"]) ** 2        # (2, n) slope variance
     sig_s = np.sqrt(var)
     angle_sig = 1000.0 * sig_s / (1.0 + s0 ** 2)                 # mrad

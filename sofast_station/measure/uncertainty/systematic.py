@@ -21,11 +21,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ...errors import AnalysisError, StationError
 from ..camera import project
 from ..fit import BISQUARE_C
 from ..pipeline import default_screen, pose_from_corners, rerun
 from .inputs import (RECORD_DERIVED_KEYS, SCALAR_PATHS, Input, InputUncertainties, budget_inputs, get_path,
-                     screen_shape_inputs, small_motion)
+                     input_key, screen_shape_inputs, small_motion)
 
 
 def _phase_error_shift(positions: np.ndarray, length_m: float, periods: float, amplitude_rad: float,
@@ -185,6 +186,10 @@ def sensitivities(reduction, *, fringes, geometry, design, measured_distance_m: 
     t0 = time.perf_counter()
     screen = screen if screen is not None else default_screen(geometry)
     reduction, settings = robust_inliers(reduction, settings)
+    # The reruns move the station's inputs, not the capture: the checks that judge a capture (the corner
+    # pose against the outline, the measured distance against the corner pose's range) do not apply to
+    # them (a 300 mm distance uncertainty would otherwise ask to re-measure a distance that is fine).
+    settings = dataclasses.replace(settings, max_range_shift_m=float("inf"), max_corner_rms_px=float("inf"))
     red = decimated(reduction, max_points)
     ctx = {"geometry": geometry, "distance_m": measured_distance_m, "settings": settings, "fringes": fringes,
            "design": design, "screen": screen, "screen_size_m": (screen.width_m, screen.height_m)}
@@ -201,8 +206,16 @@ def sensitivities(reduction, *, fringes, geometry, design, measured_distance_m: 
     lin = np.zeros((len(rows), len(SCALAR_PATHS)))
     cur = np.zeros_like(lin)
     for i, inp in enumerate(rows):
-        fig_plus = _perturbed_run(base, inp, +1.0, ctx).figures
-        fig_minus = _perturbed_run(base, inp, -1.0, ctx).figures
+        try:
+            fig_plus = _perturbed_run(base, inp, +1.0, ctx).figures
+            fig_minus = _perturbed_run(base, inp, -1.0, ctx).figures
+        except StationError as exc:
+            key = input_key(inp)
+            raise AnalysisError(
+                f"the uncertainty cannot be computed: with the {inp.name} moved by its standard uncertainty "
+                f"({inp.u:g} {inp.unit}{f', [uncertainty] {key}' if key else ''}) the reduction fails ({exc}); "
+                f"that uncertainty is not plausible for this station: check {f'[uncertainty] {key}' if key else 'it'}"
+            ) from exc
         plus = np.array([_value(fig_plus, p) for p in SCALAR_PATHS])
         minus = np.array([_value(fig_minus, p) for p in SCALAR_PATHS])
         lin[i] = 0.5 * (plus - minus)

@@ -1,0 +1,164 @@
+"""Issue 26, items 1 and 2 (and issue 27, item 5): a small population of stations and captures drawn at
+random (station/population.py), the CI version of benchmarks/population.py.
+
+Eight stations (the four facet kinds twice, each with an edge model, noise and optics drawn at random, 400 x
+300 cameras), three good captures each and one of each planted fault: no good capture refused or invalid,
+every planted fault caught, and the stated uncertainty's coverage of the twin's truth within what a right
+95 % claim shows on this many captures (the full population's numbers: docs/uncertainty.md, docs/method.md).
+And eight stations whose lens blurs the facet's edge (Gaussian or defocus disk), two captures each: the fit
+figures and slope RMS values covered as claimed there too.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from sofast_station.station.population import (EDGE_MODELS, FAULTS, KINDS, coverage_band, draw_station,
+                                               run_population, summarise, swap_sets)
+
+CAPTURES, PER_STATION, SEED = 24, 3, 0
+
+
+@pytest.fixture(scope="module")
+def population():
+    cases = run_population(CAPTURES, seed=SEED, per_station=PER_STATION)
+    return cases, summarise(cases)
+
+
+def test_stations_are_drawn_reproducibly_from_their_seed():
+    assert draw_station(3, 7) == draw_station(3, 7) != draw_station(3, 8)
+    kinds = [draw_station(i, 0)["kind"] for i in range(8)]
+    assert kinds == list(KINDS) * 2                                  # every kind in turn
+    spec = draw_station(5, 0)
+    assert spec["edge"] in EDGE_MODELS and 0.3 <= spec["optics"]["read_noise_dn"] <= 5.0 and abs(spec["k1"]) <= 0.3
+
+
+def test_no_good_capture_is_refused_or_invalid(population):
+    cases, summary = population
+    good = summary["good"]
+    print(json.dumps({k: good[k] for k in ("n", "false_alarms", "by_check", "outcomes")}, indent=1))
+    assert good["n"] == CAPTURES
+    assert good["false_alarms"]["k"] == 0, good["alarms"]
+    # the population is not one station: every kind, several edge models, noise over a wide range
+    assert {c["kind"] for c in cases} == set(KINDS)
+    assert len({c["edge"] for c in cases}) >= 4
+    noise = [c["read_noise_dn"] for c in cases if c["case"] == "good"]
+    assert min(noise) < 1.0 and max(noise) > 3.0
+
+
+def test_every_planted_fault_is_caught(population):
+    _, summary = population
+    for fault in FAULTS:
+        r = summary["faults"][fault]
+        print(fault, r["how"])
+        assert r["n"] == CAPTURES // PER_STATION and r["k"] == r["n"], (fault, r["missed"])
+    # and named: the swapped sets and the display by their own checks (the others by whichever part of
+    # the outline or the region they spoil)
+    assert set(summary["faults"]["gamma"]["how"]) == {"display not linearised"}
+    assert set(summary["faults"]["swapped"]["how"]) <= {"swapped sets", "not the facet type (shape)"}
+
+
+#: Figures whose U is a linearisation that fails where U is of the figure's own size: f = 1/kappa of the f 100
+#: and 600 m facets (their curvatures are judged instead) and the axis angle of a nearly round facet (A - B
+#: within its noise): their errors have heavy tails, so only their coverage is claimed, not their RMS.
+NONLINEAR = ("focal_length_x_m", "focal_length_y_m", "principal_focal_lengths_m.0", "principal_focal_lengths_m.1",
+             "axis_angle_rad")
+#: The slope RMS against the design: it moves with the corner pose's rotation through the boresight, which
+#: on a gore seen by a point-sampling camera is off by tens of mrad (within its own U), far beyond the
+#: linear sensitivity its U is built from (seed 0's gore stations: 0.06-0.12 mrad against a U of 0.01;
+#: 90.8 % coverage over the 390 sharp-edged captures of the benchmark): its coverage is claimed, its RMS
+#: of error / (U / 2) is open (docs/uncertainty.md).
+DESIGN_RMS = ("slope_rms_mrad.design.x", "slope_rms_mrad.design.y", "slope_rms_mrad.design.magnitude")
+
+
+def test_stated_uncertainty_covers_the_truth_as_claimed(population):
+    """The 95 % claim of U (k = 2) on this many judged captures: each figure's coverage within the band a
+    right claim leaves with probability 0.999 (binomial; 24 captures: 75-100 %), and the RMS of
+    error / (U / 2) below 1.5 (a U stated half as large as it should be gives 2; a sample RMS of 24 normal
+    values exceeds 1.5 with probability 4e-4), but for :data:`NONLINEAR` and :data:`DESIGN_RMS`."""
+    _, summary = population
+    rows = summary["coverage"]
+    assert rows
+    lo, hi = coverage_band(min(r["n"] for r in rows))
+    for r in rows:
+        print(f"{r['figure']:<40} {100 * r['coverage']:5.1f} % of {r['n']}, rms e/u {r['z_rms']:.2f}")
+    for r in rows:
+        assert r["n"] == CAPTURES, r
+        assert lo <= r["coverage"], r
+        assert r["figure"] in NONLINEAR + DESIGN_RMS or r["z_rms"] < 1.5, r
+
+
+def test_swapped_sets_on_the_same_frames_only_reorder_them():
+    """The swapped-sets fault is the good capture's own frames, y sets where the x sets were."""
+    from sofast_station.fringes import FringeSet
+
+    frames = np.arange(18)[:, None, None] * np.ones((18, 2, 2), dtype=np.uint8)
+    out = swap_sets(frames, FringeSet())
+    assert out[:, 0, 0].tolist() == [0, 1, *range(10, 18), *range(2, 10)]
+
+
+def test_study_population_command(tmp_path, capsys, small_station_toml):
+    """Two captures on one station through the CLI: the table, its JSON and a PNG, exit status 0."""
+    import argparse
+
+    from sofast_station.station.study_cli import register
+
+    parser = argparse.ArgumentParser(prog="sofast-station")
+    register(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(["study", "population", "--config", str(small_station_toml), "--captures", "2",
+                              "--per-station", "2", "--kinds", "dish", "--edges", "area", "--no-faults",
+                              "--out", str(tmp_path / "out")])
+    assert args.func(args) == 0
+    out = capsys.readouterr().out
+    assert "false INVALID / refusal on good captures: 0 of 2" in out and "coverage of |error| <= U" in out
+    saved = json.loads((tmp_path / "out" / "population-0-2.json").read_text())
+    assert saved["summary"]["good"]["n"] == 2 and len(saved["cases"]) == 2
+    assert "sofast-station study population --captures 2" in saved["command"]
+    assert (tmp_path / "out" / "population-0-2.png").stat().st_size > 10_000
+    bad = parser.parse_args(["study", "population", "--config", str(small_station_toml), "--kinds", "dish,moon"])
+    from sofast_station.errors import StationError
+    with pytest.raises(StationError, match="--kinds: unknown moon"):
+        bad.func(bad)
+
+
+#: The fit figures and slope RMS values the pixels within an edge's blur spoiled (their linear U: all but
+#: the principal focal lengths and the axis angle, whose coverage only is claimed, :data:`NONLINEAR`).
+BLUR_FIGURES = ("curvature_x_per_m", "curvature_y_per_m", "twist_mrad_per_m", "twist_e1_mrad_per_m",
+                "twist_e2_mrad_per_m", "principal_focal_lengths_m", "axis_angle_rad", "slope_rms_mrad")
+BLURRED_CAPTURES, BLURRED_SEED = 16, 3
+
+
+def test_blurred_and_defocused_edges_leave_the_fit_figures_and_slope_rms_covered():
+    """Issue 26: on stations whose lens blurs the facet's edge (a Gaussian of 0.3-1.2 px, a defocus disk of
+    radius 0.5-2 px) the pixels within the blur see light from both sides of the edge, and the blur
+    averages the slopes it covers: over 110 such captures the fit figures and slope RMS values were
+    covered only 57-85 % (twist 6 U off on a defocused dish). The edge's blur is now measured on the
+    facet's own edge profiles (no model of the lens), the pixels it reaches left out, and the slope RMS's
+    U holds what the blur smooths away.
+
+    Eight stations (the four kinds twice; blur or defocus drawn, 400 x 300 cameras), two captures each:
+    16 captures. Each figure's coverage within what a right 95 % claim shows on 16 with probability
+    0.999 (binomial: at least 11 of 16), and the RMS of error / (U / 2) below 1.5 for the figures whose U
+    is linear (a sample RMS of 16 normal values exceeds 1.5 with probability 0.003; the code before this
+    change gave 2.7 for the twist and 3-11 for the slope RMS values). The measured blur within 0.3 px of
+    the twin's point-spread function's standard deviation (its noise is a few hundredths; the disk's
+    second moment r / 2 is what it measures)."""
+    cases = run_population(BLURRED_CAPTURES, seed=BLURRED_SEED, per_station=2, edges=("blur", "defocus"),
+                           faults=())
+    summary = summarise(cases)
+    assert summary["good"]["n"] == BLURRED_CAPTURES and summary["good"]["false_alarms"]["k"] == 0, summary["good"]
+    assert {c["edge"] for c in cases} == {"blur", "defocus"} and {c["kind"] for c in cases} == set(KINDS)
+    for c in cases:
+        print(f"{c['kind']:<10}{c['edge']:<8} psf {c['psf_sigma_px']:.2f} px, measured {c['edge_blur_px']:.2f} px")
+        assert abs(c["edge_blur_px"] - c["psf_sigma_px"]) < 0.3, c
+    lo, _ = coverage_band(BLURRED_CAPTURES)
+    rows = [r for r in summary["coverage"] if r["figure"].split(".")[0] in BLUR_FIGURES]
+    assert len(rows) == 2 + 3 + 2 + 1 + 9
+    for r in rows:
+        print(f"{r['figure']:<40} {100 * r['coverage']:5.1f} % of {r['n']}, rms e/u {r['z_rms']:.2f}")
+    for r in rows:
+        assert r["n"] == BLURRED_CAPTURES and lo <= r["coverage"], r
+        assert r["figure"] in NONLINEAR or r["z_rms"] < 1.5, r
