@@ -22,7 +22,7 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = "sofast_station"
 
 #: The plain-data modules the math, the twin and everyone else share (records and their TOML reader).
-PLAIN_DATA = {"errors", "geometry", "facet", "fringes", "files"}
+PLAIN_DATA = {"errors", "geometry", "facet", "ensemble", "fringes", "files"}
 #: Standard-library modules that do I/O or run processes: none of them in the pure math.
 STDLIB_IO = {"sqlite3", "socket", "subprocess", "multiprocessing", "signal", "shutil", "tempfile", "urllib", "http",
              "asyncio", "selectors", "ssl", "ftplib", "smtplib", "tkinter"}
