@@ -38,6 +38,10 @@ _EDGE_CHUNK_PX = 4096
 #: working arrays (a few hundred kB each) stay in the core's cache between passes.
 _BLOCK_PX = 96_000
 
+#: What a trace leaves per seen pixel (in the order of ``_seen_idx``): what a merged trace must give
+#: (:meth:`TwinStation.adopt_trace`). ``_hit_range_m`` is the distance from the camera centre to the hit.
+TRACE_ARRAYS = ("_x_facet_m", "_hit_range_m", "_slope", "_u_scr_m", "_path_m", "_on_screen")
+
 #: The thread that finishes half of every captured frame (shared by all twins of the process).
 _FINISHER: ThreadPoolExecutor | None = None
 _FINISHER_LOCK = threading.Lock()
@@ -118,6 +122,9 @@ class TwinStation:
         ``"area"``: an edge pixel's value is the light on its covered area (the band's sub-rays).
         ``"point"``: only its centre ray counts, so a pixel is facet or background and a slightly tilted
         edge is a staircase (a renderer that point-samples; no blur either way unless the optics have it).
+    trace_only : bool
+        Only trace (no display sampling, no photometry): one facet of a picture that several traces make
+        together (:class:`~sofast_station.twin.heliostat.TwinHeliostat`); it cannot capture.
 
     Attributes
     ----------
@@ -133,7 +140,7 @@ class TwinStation:
 
     def __init__(self, geometry: StationGeometry, design: FacetDesign, facet: TrueFacet = TrueFacet(),
                  optics: TwinOptics = TwinOptics(), supersample: int = 8, edge_band_px: float = 2.0,
-                 edge_sampling: str = "area"):
+                 edge_sampling: str = "area", trace_only: bool = False):
         if edge_sampling not in ("area", "point"):
             raise GeometryError(f"edge_sampling must be 'area' or 'point', got {edge_sampling!r}")
         self._edge_sampling = edge_sampling
@@ -158,9 +165,25 @@ class TwinStation:
         self._samples: dict = {}
         start = time.perf_counter()
         self._trace()
+        if not trace_only:
+            self._prepare_sampling()
+            self._prepare_photometry()
+        self.trace_seconds = time.perf_counter() - start
+
+    def adopt_trace(self, coverage: np.ndarray, seen_idx: np.ndarray, arrays: dict) -> None:
+        """Take the trace of another picture (several traces merged: :mod:`sofast_station.twin.heliostat`)
+        and prepare the captures from it: *coverage* (H, W), the seen pixels' flat indices *seen_idx*, and
+        each of :data:`TRACE_ARRAYS` for them, in that order."""
+        self._coverage = coverage
+        self._seen_idx = seen_idx
+        for name in TRACE_ARRAYS:
+            setattr(self, name, arrays[name])
+        self._samples = {}
+        self.__dict__.pop("_seen_box", None)
+        for name in ("screen_position_m", "surface_point_facet_m", "slope_true", "on_screen"):
+            self.__dict__.pop(name, None)
         self._prepare_sampling()
         self._prepare_photometry()
-        self.trace_seconds = time.perf_counter() - start
 
     # ------------------------------------------------------------------ trace
     def _facet_window(self) -> tuple[int, int, int, int]:
@@ -257,6 +280,7 @@ class TwinStation:
                 & (u_scr_m[:, 1] >= 0) & (u_scr_m[:, 1] < screen.height_m)
 
         self._x_facet_m = x_facet
+        self._hit_range_m = t_rel[seen]
         self._slope = np.column_stack([zx, zy])
         self._u_scr_m = u_scr_m
         self._path_m = path_m
