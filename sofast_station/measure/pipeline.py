@@ -761,6 +761,18 @@ def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, d
     """
     reduction, timings = reduce_stages(frames, fringes, geometry, design, measured_distance_m, settings, screen,
                                        rays_cam, pixel_mask)
+    return finish_analysis(reduction, timings, fringes=fringes, geometry=geometry, design=design,
+                           measured_distance_m=measured_distance_m, settings=settings, screen=screen,
+                           uncertainty=uncertainty, sensitivity_cache=sensitivity_cache)
+
+
+def finish_analysis(reduction: "Reduction", timings: dict, *, fringes: FringeSet, geometry: StationGeometry,
+                    design: FacetDesign, measured_distance_m: float, settings: AnalysisSettings = AnalysisSettings(),
+                    screen: ScreenModel | None = None, uncertainty=None,
+                    sensitivity_cache: dict | None = None) -> Analysis:
+    """The :class:`Analysis` of a finished reduction (:func:`reduce_stages`, or one rerun from a stage with
+    :func:`rerun`), with the expanded uncertainties when *uncertainty* is given (as :func:`analyse`: its
+    parameters of the same names). *timings* (seconds) gets the uncertainty's."""
     if uncertainty is not None:
         from .uncertainty import sensitivity_key, uncertainty_figures
         t0 = time.perf_counter()
