@@ -465,21 +465,17 @@ class HeliostatAnalysis:
         """Facet *i*'s optical (boresighted) frame in the camera."""
         return self.analyses[i].facet_to_camera
 
-    def points_in_heliostat(self, i: int, corrected: bool = False) -> tuple[np.ndarray, np.ndarray]:
-        """Facet *i*'s measured points (3, N) and slopes (2, N) in the heliostat's optical frame; *corrected*:
-        with its canting error turned out (about its own origin; the rotation about its normal kept)."""
-        a = self.analyses[i]
-        to_frame = self._optical_to_camera.inverse().compose(a.facet_to_camera)
-        rotation = to_frame.rotation
-        if corrected:
-            e = self._errors[i]
-            rz = math.atan2(e[1, 0], e[0, 0])
-            c, s = math.cos(rz), math.sin(rz)
-            rotation = self._design_rotations[i] @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-        pts = rotation @ a.points_facet_m + to_frame.translation[:, None]
-        n = np.vstack([-a.slopes, np.ones((1, a.slopes.shape[1]))])
-        n = rotation @ n
-        return pts, -n[:2] / n[2]
+    def facet_in_heliostat(self, i: int, corrected: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """Facet *i*'s optical frame in the heliostat's optical frame: (rotation, translation of its origin);
+        *corrected*: with its canting error turned out (about its own origin; its rotation about its normal
+        kept), i.e. its design canting turned by that rotation."""
+        to_frame = self._optical_to_camera.inverse().compose(self.analyses[i].facet_to_camera)
+        if not corrected:
+            return to_frame.rotation, to_frame.translation
+        e = self._errors[i]
+        rz = math.atan2(e[1, 0], e[0, 0])
+        c, s = math.cos(rz), math.sin(rz)
+        return self._design_rotations[i] @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]), to_frame.translation
 
     # set by analyse_heliostat
     _optical_to_camera: Pose | None = None
