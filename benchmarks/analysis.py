@@ -73,7 +73,7 @@ t = time.perf_counter()
 if source == "twin":
     import dataclasses
     from sofast_station.config import load_config
-    from sofast_station.measure.pipeline import analyse
+    from sofast_station.measure.analysis import analyse
     cfg = load_config(spec["config"])
     d = np.load(spec["capture"])
     frames, distance = d["frames"], float(d["distance"])
@@ -148,7 +148,8 @@ def _uptime() -> str:
 def _twin_capture(config: str):
     """A noisy capture of the simulated station (frames, distance) and the station's configuration."""
     from sofast_station.config import load_config
-    from sofast_station.station.inspect import capture, open_station
+    from sofast_station.station.factory import open_station
+    from sofast_station.station.inspection import capture
 
     cfg = load_config(config)
     t = time.perf_counter()
@@ -183,8 +184,8 @@ def prepare_dump(config: str, tmp: Path, fits) -> dict:
     import dataclasses
 
     from sofast_station.archive.dumps import DumpContent, crop_to_facet, write_dump
-    from sofast_station.measure.pipeline import analyse
-    from sofast_station.station.inspect import result_record
+    from sofast_station.measure.analysis import analyse
+    from sofast_station.station.inspection import result_record
     from sofast_station.station.verdict import judge
 
     cfg, station, frames, distance = _twin_capture(config)

@@ -66,7 +66,9 @@ def main(argv=None) -> int:
     from sofast_station.calibrate.records import load_radiometric
     from sofast_station.config import load_config
     from sofast_station.devices.cameras.replay import ReplayCamera
-    from sofast_station.station.inspect import Station, capture, open_station
+    from sofast_station.station.factory import open_station
+    from sofast_station.station.inspection import capture
+    from sofast_station.station.opened import Station
     from sofast_station.station.service import Service
 
     cfg = load_config(args.config)

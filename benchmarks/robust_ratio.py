@@ -42,7 +42,7 @@ def _child(spec: dict) -> dict:
         import numpy as np
 
         from sofast_station.config import load_config
-        from sofast_station.measure.pipeline import analyse
+        from sofast_station.measure.analysis import analyse
         from sofast_station.precompute import ray_table, warm_up
 
         cfg = load_config(spec["config"])

@@ -38,7 +38,8 @@ def main(argv=None) -> int:
     n = 2 if args.quick else args.captures
 
     from sofast_station.config import load_config
-    from sofast_station.station.inspect import capture, open_station
+    from sofast_station.station.factory import open_station
+    from sofast_station.station.inspection import capture
 
     cfg = load_config(args.config)
     cam = cfg.geometry.camera

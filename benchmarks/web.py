@@ -114,7 +114,7 @@ def one_run(cfg, frames, distance, frame_delay, n: int, with_page: bool, reload_
     from sofast_station.archive import Journal
     from sofast_station.calibrate.records import load_radiometric
     from sofast_station.devices.cameras.replay import ReplayCamera
-    from sofast_station.station.inspect import Station
+    from sofast_station.station.opened import Station
     from sofast_station.station.service import Service
     from sofast_station.web.monitor import MonitorProcess, monitor_info_path
     from sofast_station.web.settings import web_settings
@@ -192,7 +192,8 @@ def main(argv=None) -> int:
     import logging
     logging.basicConfig(level=logging.WARNING)
     from sofast_station.config import load_config
-    from sofast_station.station.inspect import capture, open_station
+    from sofast_station.station.factory import open_station
+    from sofast_station.station.inspection import capture
 
     cfg = load_config(args.config)
     twin = open_station(cfg, seed=1)

@@ -194,9 +194,9 @@ def _optics(raw: dict, where: str):
 
 def _geometry_record_std(data_dir: Path, geometry) -> dict:
     """What the newest geometry record (``calibrate geometry``) lends the uncertainty budget, if it was
-    within tolerance and made with this geometry (:func:`~sofast_station.calibrate.geometry.budget_std`);
+    within tolerance and made with this geometry (:func:`~sofast_station.calibrate.geometry_record.budget_std`);
     {} when there is none or it cannot be read (the check's own command reports those)."""
-    from .calibrate.geometry import budget_std, load_geometry_record
+    from .calibrate.geometry_record import budget_std, load_geometry_record
     from .calibrate.store import newest_record_path
 
     path = newest_record_path(data_dir, "geometry")

@@ -46,7 +46,7 @@ def _emit(args, data: dict, text: str) -> None:
 
 def cmd_radiometric(args) -> int:
     from ..config import load_config
-    from ..station.inspect import open_station
+    from ..station.factory import open_station
     from .radiometric import calibrate_radiometric, save_radiometric, summary_text
     from .settings import calibration_settings
     from .store import check_warmup
@@ -111,8 +111,9 @@ def cmd_camera(args) -> int:
 
 def cmd_geometry(args) -> int:
     from ..config import load_config
-    from ..station.inspect import open_station
-    from .geometry import check_geometry, save_geometry, station_reference, summary_text
+    from ..station.factory import open_station
+    from .geometry import check_geometry, station_reference, summary_text
+    from .geometry_record import save_geometry
 
     config = load_config(args.config)
     station = open_station(config, seed=args.seed, noise=not args.noise_free)

@@ -32,12 +32,13 @@ value reported f_y -0.105 %). On the simulated station the certificate is the tw
 The record also states what the check determines, with standard uncertainties (``determined``): the
 fixture's pose (the reference's measured placement minus its certified one; the inspection's U of the
 placement and the certificate's) and how well the measured distance is confirmed (the focal lengths'
-agreement through their sensitivity to the distance). The budget uses them (:func:`budget_std`).
+agreement through their sensitivity to the distance). The budget uses them
+(:func:`~sofast_station.calibrate.geometry_record.budget_std`); the record itself is written and read by
+:mod:`sofast_station.calibrate.geometry_record`.
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 from dataclasses import dataclass
@@ -47,11 +48,8 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..files import read_toml
-from .store import write_record
 
 log = logging.getLogger(__name__)
-
-SCHEMA = 1
 
 
 @dataclass(frozen=True)
@@ -242,7 +240,7 @@ def check_geometry(station, reference: GeometryReference, serial: str = "GEOMETR
         The comparison, plus the inspection's serial, time, record id of the radiometric calibration
         and verdict.
     """
-    from ..station.inspect import inspect
+    from ..station.inspection import inspect
 
     rec = inspect(station, serial)
     check = compare_to_reference(rec, reference)
@@ -305,65 +303,6 @@ def determined(figures: dict, reference: GeometryReference, inputs=None) -> dict
         if best is not None:
             out["distance_mm"] = {"std": float(best)}
     return out
-
-
-def budget_std(record: dict | None, geometry=None) -> dict:
-    """The standard uncertainties a geometry record lends the budget (``[uncertainty]`` keys): the
-    fixture pose's, and the distance's, from a check that was within tolerance and made with the station's
-    present geometry (*geometry*, a StationGeometry, compared with the record's); else {}."""
-    if not isinstance(record, dict):
-        return {}
-    check = record.get("reference_check") or {}
-    if not check.get("within_tolerance"):
-        return {}
-    if geometry is not None and (record.get("screen_to_camera") != geometry.screen_to_camera.to_dict()
-                                 or record.get("screen") != geometry.screen.to_dict()):
-        return {}
-    det = check.get("determined") or {}
-    out = {}
-    for key in ("fixture_translation_mm", "fixture_rotation_mrad"):
-        std = (det.get(key) or {}).get("std")
-        if isinstance(std, list) and len(std) == 3 and all(isinstance(v, (int, float)) for v in std):
-            out[key] = tuple(float(v) for v in std)
-    std = (det.get("distance_mm") or {}).get("std")
-    if isinstance(std, (int, float)) and math.isfinite(std):
-        out["distance_mm"] = float(std)
-    return out
-
-
-def geometry_provenance(config) -> dict:
-    """The station's geometry as the analysis uses it, with where each part comes from."""
-    geometry = config.geometry
-    return {"screen": geometry.screen.to_dict(), "screen_to_camera": geometry.screen_to_camera.to_dict(),
-            "camera": geometry.camera.to_dict(),
-            "provenance": {"screen": f"{config.path} [screen] (width_px, height_px, pitch_m as entered)",
-                           "screen_to_camera": f"{config.path} [layout] (the designed assembly: separation "
-                                               f"{config.raw.get('layout', {}).get('separation_m')} m along "
-                                               f"{config.raw.get('layout', {}).get('separation_axis', 'x')})",
-                           "camera": f"{config.path} [camera]"}}
-
-
-def save_geometry(data_dir: str | Path, config, check: dict | None, source: str) -> Path:
-    """Write a geometry record (the station's geometry, its provenance and the reference check)."""
-    def build(record_id: str, created: str) -> dict:
-        return {"schema": SCHEMA, "kind": "geometry", "record_id": record_id, "created": created, "source": source,
-                **geometry_provenance(config), "reference_check": check}
-    path, _ = write_record(data_dir, "geometry", build)
-    return path
-
-
-def load_geometry_record(path: str | Path) -> dict:
-    """Read a geometry record; ConfigError naming the file when it is unusable."""
-    path = Path(path)
-    try:
-        d = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise ConfigError(f"geometry record {path} does not exist") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"geometry record {path} is corrupt ({exc})") from None
-    if not isinstance(d, dict) or d.get("kind") != "geometry" or d.get("schema") != SCHEMA:
-        raise ConfigError(f"{path} is not a geometry record of schema {SCHEMA}")
-    return d
 
 
 def summary_text(check: dict, path: Path | None = None) -> str:

@@ -43,7 +43,8 @@ from ..facet import FacetDesign
 from ..fringes import FringeSet
 from ..geometry import CameraIntrinsics, Pose, ScreenSpec, StationGeometry
 from ..measure.camera import pixel_rays
-from ..measure.pipeline import Analysis, AnalysisSettings, analyse
+from ..measure.analysis import analyse
+from ..measure.pipeline import Analysis, AnalysisSettings
 from ..measure.screen import InterpolatedScreen
 from ..measure.uncertainty import InputUncertainties, Sensitivities
 from ..precompute import ray_table

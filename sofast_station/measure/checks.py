@@ -1,6 +1,6 @@
 """Checks that turn bad captures into clear errors instead of silent wrong answers.
 
-Each check names what is wrong and what to do. They run inside :func:`~sofast_station.measure.pipeline.analyse`
+Each check names what is wrong and what to do. They run inside :func:`~sofast_station.measure.analysis.analyse`
 at the point where the quantity they need exists.
 """
 

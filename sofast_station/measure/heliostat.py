@@ -600,7 +600,8 @@ def analyse_heliostat(frames: np.ndarray, fringes: FringeSet, geometry: StationG
         No facet could be analysed (every facet's reason is named).
     """
     from ..errors import CaptureError
-    from .pipeline import _pool, finish_analysis, pose_from_corners, reduce_stages, rerun
+    from .analysis import finish_analysis
+    from .pipeline import pose_from_corners, reduce_stages, rerun, thread_pool
 
     t0 = time.perf_counter()
     timings: dict = {}
@@ -660,7 +661,7 @@ def analyse_heliostat(frames: np.ndarray, fringes: FringeSet, geometry: StationG
 
     # 3. every facet's shape and figures again from its corner pose at that distance, with their uncertainty
     analyses: dict[int, Analysis] = {}
-    with _pool(settings.threads) as pool:
+    with thread_pool(settings.threads) as pool:
         for i, (red, tim) in reductions.items():
             t = time.perf_counter()
             f, g = ensemble.facets[i], geometries[i]

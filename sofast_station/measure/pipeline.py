@@ -1,8 +1,11 @@
 """From captured frames to reported figures: the method paper's data reduction
-(docs/conventions.md#data-reduction; Andraka et al. 2009), as pure functions.
+(docs/conventions.md#data-reduction; Andraka et al. 2009), as named stages of pure functions.
 
-``analyse`` takes arrays and plain records and returns a :class:`Analysis`; it reads no file, touches no
-hardware and keeps no state, so a data dump reprocesses to the same bits.
+:func:`reduce_stages` runs them all (facet region, phase and unwrapping, screen points and rays, corners
+and pose, shape and boresight, fits and figures) and :func:`rerun` redoes them from any stage with one
+input changed; :func:`~sofast_station.measure.analysis.analyse` adds the figures' uncertainty and returns
+an :class:`Analysis`. They read no file, touch no hardware and keep no state, so a data dump reprocesses
+to the same bits.
 """
 
 from __future__ import annotations
@@ -155,7 +158,7 @@ _POOLS: dict = {}
 _POOLS_LOCK = threading.Lock()
 
 
-def _pool(threads: int):
+def thread_pool(threads: int):
     """A pool for independent tasks: numpy releases the GIL in its loops, so two threads use two cores.
 
     A context manager giving the process's pool of *threads* workers, kept from one analysis to the next
@@ -717,84 +720,6 @@ class Reduction:
     figures: dict
 
 
-def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, design: FacetDesign,
-            measured_distance_m: float, settings: AnalysisSettings = AnalysisSettings(),
-            screen: ScreenModel | None = None, rays_cam: np.ndarray | None = None,
-            pixel_mask: np.ndarray | None = None, uncertainty=None,
-            sensitivity_cache: dict | None = None) -> Analysis:
-    """Reduce one capture to the reported figures (docs/conventions.md#measurement-sequence, #data-reduction).
-
-    The reduction runs as named stages (:func:`reduce_stages`): facet region, phase and unwrapping,
-    screen points and rays, corners and pose, shape and boresight, fits and figures.
-
-    Parameters
-    ----------
-    frames : (n, rows, columns) integer array
-        Dark, white, then the fringe frames in the order of ``fringes.patterns()``, camera counts (DN).
-    fringes : FringeSet
-    geometry : StationGeometry
-        Camera intrinsics, camera/screen assembly, and the fixture's nominal facet pose.
-    design : FacetDesign
-    measured_distance_m : float
-        Range finder's distance from the screen centre to ``design.measure_point_m``, metres.
-    settings : AnalysisSettings
-    screen : ScreenModel, optional
-        Screen positions -> camera-frame points; the flat screen of ``geometry`` by default.
-    rays_cam : (3, rows, columns) array or RayTable, optional
-        Precomputed unit pixel rays (:func:`~sofast_station.measure.camera.ray_grid`, or a
-        :class:`~sofast_station.measure.camera.RayTable` that keeps the rays it computes); computed for the
-        valid pixels when absent.
-    pixel_mask : (rows, columns) bool array, optional
-        Only these pixels may be used for the shape (to exclude a region, or to compare with another
-        program on its own pixels); the facet region and corners still come from the whole image.
-    uncertainty : InputUncertainties, optional
-        The station inputs' standard uncertainties: with them the figures also carry their expanded
-        uncertainties ``name_U`` (k = 2), the noise floor of the slope RMS values and the budget
-        (:mod:`sofast_station.measure.uncertainty`).
-    sensitivity_cache : dict, optional
-        Where the sensitivities (per geometry, recipe and input uncertainties) are kept between calls; the
-        caller owns it. Without it they are computed for this capture alone.
-
-    Returns
-    -------
-    Analysis
-    """
-    reduction, timings = reduce_stages(frames, fringes, geometry, design, measured_distance_m, settings, screen,
-                                       rays_cam, pixel_mask)
-    return finish_analysis(reduction, timings, fringes=fringes, geometry=geometry, design=design,
-                           measured_distance_m=measured_distance_m, settings=settings, screen=screen,
-                           uncertainty=uncertainty, sensitivity_cache=sensitivity_cache)
-
-
-def finish_analysis(reduction: "Reduction", timings: dict, *, fringes: FringeSet, geometry: StationGeometry,
-                    design: FacetDesign, measured_distance_m: float, settings: AnalysisSettings = AnalysisSettings(),
-                    screen: ScreenModel | None = None, uncertainty=None,
-                    sensitivity_cache: dict | None = None) -> Analysis:
-    """The :class:`Analysis` of a finished reduction (:func:`reduce_stages`, or one rerun from a stage with
-    :func:`rerun`), with the expanded uncertainties when *uncertainty* is given (as :func:`analyse`: its
-    parameters of the same names). *timings* (seconds) gets the uncertainty's."""
-    if uncertainty is not None:
-        from .uncertainty import sensitivity_key, uncertainty_figures
-        t0 = time.perf_counter()
-        key = sensitivity_key(geometry, design, fringes, settings, uncertainty, screen)
-        with _pool(settings.threads) as pool:
-            extra = uncertainty_figures(
-                reduction, fringes=fringes, geometry=geometry, design=design, measured_distance_m=measured_distance_m,
-                settings=settings, inputs=uncertainty, screen=screen, cache=sensitivity_cache, cache_key=key,
-                pool=pool)
-        sensitivity_s = extra.pop("_sensitivity_seconds")
-        reduction.figures.update(extra)
-        timings["uncertainty"] = time.perf_counter() - t0
-        if sensitivity_s:
-            timings["uncertainty_sensitivities"] = sensitivity_s
-        if sensitivity_cache is not None and key in sensitivity_cache:
-            from .sensitivity_record import to_record
-            analysis = to_analysis(reduction, timings)
-            analysis.sensitivities = to_record(key, sensitivity_cache[key])
-            return analysis
-    return to_analysis(reduction, timings)
-
-
 def default_screen(geometry: StationGeometry) -> ScreenModel:
     """The flat screen of *geometry*."""
     return FlatScreen(geometry.screen.width_m, geometry.screen.height_m, geometry.screen_to_camera)
@@ -804,8 +729,9 @@ def reduce_stages(frames: np.ndarray, fringes: FringeSet, geometry: StationGeome
                   measured_distance_m: float, settings: AnalysisSettings = AnalysisSettings(),
                   screen: ScreenModel | None = None, rays_cam: np.ndarray | None = None,
                   pixel_mask: np.ndarray | None = None) -> tuple[Reduction, dict]:
-    """Run every stage of :func:`analyse`; returns the stages' outputs and their timings, seconds."""
-    with _pool(settings.threads) as pool:
+    """Run every stage of the reduction (:func:`~sofast_station.measure.analysis.analyse` without the
+    uncertainty); returns the stages' outputs and their timings, seconds."""
+    with thread_pool(settings.threads) as pool:
         timer = _Timer()
         if screen is None:
             screen = default_screen(geometry)

@@ -1,7 +1,7 @@
 """The uncertainty's sensitivities as a JSON-ready record, so a data dump can carry the station's own.
 
 The sensitivities depend on the station's geometry, the recipe and the input uncertainties
-(:func:`~sofast_station.measure.uncertainty.sensitivity_key`), and cost seconds to compute. The
+(:func:`~sofast_station.measure.uncertainty.systematic.sensitivity_key`), and cost seconds to compute. The
 station computes them once (on its warm-up capture) and keeps them; a dump written with them lets
 ``reprocess`` and ``batch`` reuse them when the dump is redone with the same inputs, instead of
 recomputing them from the dump's capture. Each dump then uses its own record: the result does not
@@ -15,7 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .uncertainty import Input, Sensitivities
+from .uncertainty.inputs import Input
+from .uncertainty.systematic import Sensitivities
 
 #: Version of the record's layout (a reader refuses a layout it does not know and recomputes).
 RECORD_VERSION = 1

@@ -1,7 +1,7 @@
 """Rerun a data dump's analysis from its raw frames and compare it with the archived result.
 
 :func:`reprocess_dump` reads a dump (any schema version this software reads, with or without its
-archived result), rebuilds the full frame stack and runs :func:`~sofast_station.measure.pipeline.analyse`
+archived result), rebuilds the full frame stack and runs :func:`~sofast_station.measure.analysis.analyse`
 on it with the dumped fringe definition, geometry, facet design, analysis settings and measured
 distance, unless an :class:`Overrides` replaces one of them. It never returns a stored figure: every
 figure of the new record is recomputed from the frames; the archived record is only read to compare.
@@ -528,7 +528,7 @@ def reprocess_content(content: DumpContent, overrides: Overrides | None = None, 
     -------
     ReprocessResult
     """
-    from ..station.inspect import FIGURE_KEYS
+    from ..station.inspection import FIGURE_KEYS
     from ..station.runner import fault_code_for
     from ..station.verdict import judge
 

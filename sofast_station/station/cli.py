@@ -197,7 +197,8 @@ def cmd_inspect(args) -> int:
     from ..archive._common import safe_name
     from ..config import load_config
     from ..serials import clean_serial
-    from .inspect import inspect, open_station
+    from .factory import open_station
+    from .inspection import inspect
 
     config = load_config(args.config)
     log.info("station %s (%s), facet %s", config.name, config.backend, config.design.name)

@@ -35,7 +35,8 @@ from . import console as _console
 from .commands import take_commands, take_dump_next
 from .drift import DriftMonitor
 from .frames import capture_sequence, crop, crop_box, restore
-from .inspect import FIGURE_KEYS, Station, calibration_entry, now_iso
+from .inspection import FIGURE_KEYS, calibration_entry, now_iso
+from .opened import Station
 from .recipes import Recipe, choose_recipe
 from .status import StatusFile
 from .verdict import judge

@@ -26,7 +26,7 @@ from ..config import StationConfig
 from ..devices.protocols import FacetRequest
 from ..errors import ArchiveError, ConfigError, StationError, TriggerError
 from ..web.settings import web_settings
-from .inspect import open_station
+from .factory import open_station
 from .pictures import FacetPictures
 from .recipes import recipes_from_config
 from .runner import RunSettings, StationRunner

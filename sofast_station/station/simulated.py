@@ -13,7 +13,7 @@ from ..config_schema import SIMULATED_FAULTS
 from ..devices.renderer import FringeRenderer
 from ..devices.simulated import SimulatedCamera, SimulatedDisplay, SimulatedRangeFinder
 from ..errors import ConfigError
-from .inspect import Station
+from .opened import Station
 
 _SIM_KEYS = {"seed", "facet", "optics", "distance_error_m", "faults", "hang_s", "slow_s"}
 

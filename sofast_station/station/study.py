@@ -20,7 +20,7 @@ import numpy as np
 
 from ..config import StationConfig
 from ..errors import StationError
-from ..measure.pipeline import analyse
+from ..measure.analysis import analyse
 from ..measure.uncertainty import SCALAR_PATHS, InputUncertainties, get_path, path_name, small_motion
 
 log = logging.getLogger(__name__)

@@ -1,6 +1,6 @@
 """The analysis in a separate, killable process.
 
-A hung analysis must not hang the line: the station runs :func:`~sofast_station.measure.pipeline.analyse`
+A hung analysis must not hang the line: the station runs :func:`~sofast_station.measure.analysis.analyse`
 in one long-lived worker process (spawned, so it shares no OpenGL or thread state with the station),
 hands it the frames through shared memory (no 35 MB pickle per facet), waits with a deadline, and kills
 and restarts the worker when the deadline passes. The worker computes the camera's pixel rays once.
@@ -120,7 +120,8 @@ def _run(ticket: int, design: dict, settings: dict, distance_m: float, hang_s: f
          uncertainty: dict | None = None):
     from ..archive._common import trim_heap
     from ..facet import FacetDesign
-    from ..measure.pipeline import AnalysisSettings, analyse
+    from ..measure.analysis import analyse
+    from ..measure.pipeline import AnalysisSettings
     from ..measure.uncertainty import InputUncertainties
     from .optics import DesignTraces, add_optics
 

@@ -120,8 +120,9 @@ def test_restore_frames_and_crop():
 def small_capture(tmp_path_factory):
     """One noisy capture of the small simulated station, its analysis and result record."""
     from sofast_station.config import load_config
-    from sofast_station.measure.pipeline import analyse
-    from sofast_station.station.inspect import capture, open_station, result_record
+    from sofast_station.measure.analysis import analyse
+    from sofast_station.station.factory import open_station
+    from sofast_station.station.inspection import capture, result_record
     from tests.conftest import SMALL_STATION
 
     d = tmp_path_factory.mktemp("small")
@@ -159,7 +160,8 @@ def test_reanalysing_a_dump_gives_the_archived_figures_exactly(small_capture, tm
 def test_full_resolution_dump_of_twin_frames_is_small_and_fast(tmp_path):
     from sofast_station.archive.dumps import DumpContent
     from sofast_station.config import load_config
-    from sofast_station.station.inspect import capture, open_station
+    from sofast_station.station.factory import open_station
+    from sofast_station.station.inspection import capture
 
     config = load_config(ROOT / "station.toml")
     station = open_station(config, seed=1)

@@ -39,7 +39,7 @@ def small_config(folder: Path, calibration: dict | None = None, simulation: dict
 @pytest.fixture(scope="session")
 def small_record(tmp_path_factory):
     """A radiometric record made by the routine on the small noise-free station (copy it before use)."""
-    from sofast_station.station.inspect import open_station
+    from sofast_station.station.factory import open_station
 
     folder = tmp_path_factory.mktemp("small-calibrated")
     cfg = small_config(folder)

@@ -18,7 +18,8 @@ from sofast_station.calibrate.camera import BoardSpec, CameraCalibration, save_c
 from sofast_station.config import load_config
 from sofast_station.errors import ConfigError, StationError
 from sofast_station.geometry import CameraIntrinsics
-from sofast_station.station.inspect import inspect, open_station
+from sofast_station.station.factory import open_station
+from sofast_station.station.inspection import inspect
 
 from tests.station.test_facets import check_against_truth
 

@@ -11,7 +11,7 @@ import pytest
 from sofast_station.calibrate.cli import register
 from sofast_station.calibrate.store import list_records
 from sofast_station.config import load_config
-from sofast_station.station.inspect import open_station
+from sofast_station.station.factory import open_station
 
 
 def run(argv: list[str]) -> int:

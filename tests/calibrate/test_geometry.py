@@ -9,13 +9,13 @@ import json
 import pytest
 
 from sofast_station.calibrate.cli import register
-from sofast_station.calibrate.geometry import (check_geometry, compare_to_reference, load_geometry_record,
-                                               load_reference, reference_from_simulation, save_geometry,
-                                               station_reference)
+from sofast_station.calibrate.geometry import (check_geometry, compare_to_reference, load_reference,
+                                               reference_from_simulation, station_reference)
+from sofast_station.calibrate.geometry_record import load_geometry_record, save_geometry
 from sofast_station.config import load_config
 from sofast_station.errors import ConfigError
 from sofast_station.station import simulated as simulated_station
-from sofast_station.station.inspect import open_station
+from sofast_station.station.factory import open_station
 
 from .conftest import small_config
 

@@ -43,7 +43,8 @@ from sofast_station.config import load_config
 from sofast_station.devices.renderer import FringeRenderer, identity_lut
 from sofast_station.fringes import Pattern
 from sofast_station.station import simulated as simulated_station
-from sofast_station.station.inspect import inspect, open_station
+from sofast_station.station.factory import open_station
+from sofast_station.station.inspection import inspect
 from tests.station.test_facets import FACETS, check_against_truth
 
 OPTICS = {"display_gamma": 2.35, "camera_offset_dn": 7.3, "knee_dn": 243.0, "white_dn": 96.0,

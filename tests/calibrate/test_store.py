@@ -18,7 +18,8 @@ from sofast_station.calibrate.store import (check_age, list_records, mark_camera
                                             select_radiometric, write_record)
 from sofast_station.calibrate.settings import CalibrationPolicy, calibration_settings
 from sofast_station.errors import ConfigError
-from sofast_station.station.inspect import inspect, open_station
+from sofast_station.station.factory import open_station
+from sofast_station.station.inspection import inspect
 
 from .conftest import install_record, small_config
 

@@ -305,7 +305,7 @@ def test_uncertainty_file_overrides_the_inputs_and_is_validated(paths, repo_root
 
 def test_a_robust_fits_uncertainty_is_its_smooth_response(measurement):
     """The robust (bisquare) fit's sensitivities are taken by least squares on the points it keeps
-    (measure/uncertainty.py, robust_inliers): on this real facet, finite differences of the bisquare fit
+    (measure/uncertainty/systematic.py, robust_inliers): on this real facet, finite differences of the bisquare fit
     itself jumped with the points crossing the weights' edge and made the frame-brightness row of f x 60
     times the plain fit's (U 5.5 % of f against 1.35 %). The robust fit has the same inputs and the same
     points less its outliers, so its U is the plain fit's within the f^2 of its 4 % larger f and a few

@@ -57,8 +57,9 @@ def test_slope_differences_are_in_slope_units():
 
 def test_height_error_of_the_twin_facet_within_5_percent_of_its_rms(small_station_toml):
     from sofast_station.config import load_config
-    from sofast_station.measure.pipeline import analyse
-    from sofast_station.station.inspect import capture, open_station
+    from sofast_station.measure.analysis import analyse
+    from sofast_station.station.factory import open_station
+    from sofast_station.station.inspection import capture
     from sofast_station.twin.truth import fit_parabola
 
     cfg = load_config(small_station_toml)

@@ -299,16 +299,16 @@ def test_block_wise_unwrapping_gives_the_formulas_values():
 def test_noise_fit_on_two_threads_gives_the_same_bits():
     """frame_noise with a pool (half of the sets' samples, scatters and cleaned residuals on the pool's
     thread) gives the serial path's values, bit for bit; the analysis keeps one pool per process."""
-    from sofast_station.measure.pipeline import _pool
+    from sofast_station.measure.pipeline import thread_pool
 
     sets = [_quantised_sets(1.0, gamma=1.3, n=60_000, seed=s) for s in (1, 2, 3)]
     parts = [phase_and_modulation(f) for f in sets]
     args = ([p[0] for p in parts], [p[1] for p in parts], [p[2] for p in parts])
     level = sets[0].mean(axis=0)
     serial = frame_noise(*args, level=level)
-    with _pool(2) as pool:
+    with thread_pool(2) as pool:
         threaded = frame_noise(*args, level=level, pool=pool)
-    with _pool(2) as again:
+    with thread_pool(2) as again:
         assert again is pool                                   # kept, not shut down
         assert again.submit(lambda: 7).result() == 7
     assert serial.harmonic_ratio > 0.01                         # a harmonic was fitted and removed

@@ -14,7 +14,7 @@ import pytest
 
 from sofast_station.config import load_config
 from sofast_station.errors import ConfigError
-from sofast_station.measure.pipeline import analyse
+from sofast_station.measure.analysis import analyse
 from sofast_station.measure.uncertainty import SCALAR_PATHS, InputUncertainties, Sensitivities, get_path, path_name
 from sofast_station.station.study import TwinRig, coverage_table, run_repeats
 from tests.conftest import ROOT
@@ -260,7 +260,7 @@ def test_batched_pose_solver_finds_opencvs_poses(rig):
     nearly frontal facet's flat valley, a few draws far from the minimum)."""
     import cv2
 
-    from sofast_station.measure.uncertainty import _project_batch, solve_poses_batch
+    from sofast_station.measure.uncertainty.corner_pose import _project_batch, solve_poses_batch
 
     cfg = rig.config
     cam, fix = cfg.geometry.camera, cfg.geometry.fixture_to_camera
@@ -404,7 +404,7 @@ def test_frame_brightness_rows_state_what_a_known_brightness_change_does(rig):
     deviation sigma_f sqrt(sum_k (dF_k / D)^2); the budget's row states sigma_f times the same, per DN of
     the sigma_f it used. The x rows and the y rows are each right to a few per cent (on the coverage twin
     with the seeds' drawn ambients: 1.00-1.01 with the per-pixel ratio of the ambient to the modulation)."""
-    from sofast_station.measure.pipeline import analyse as run
+    from sofast_station.measure.analysis import analyse as run
 
     cfg = rig.config
     twin = rig.twin((0.3, -0.2, 0.1), (0.2, -0.3, 0.4))

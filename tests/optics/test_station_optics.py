@@ -17,7 +17,8 @@ from sofast_station.station.verdict import judge
 def inspections(tmp_path_factory):
     """Three inspections (three noisy captures) of the small simulated dish station, with an aperture near
     the spot's size; and the optical sensitivities the station kept."""
-    from sofast_station.station.inspect import inspect, open_station
+    from sofast_station.station.factory import open_station
+    from sofast_station.station.inspection import inspect
     from tests.conftest import ROOT, SMALL_STATION
 
     d = tmp_path_factory.mktemp("optics-station")

@@ -16,8 +16,9 @@ import numpy as np
 import pytest
 
 from sofast_station.config import load_config
-from sofast_station.measure.pipeline import analyse
-from sofast_station.station.inspect import capture, open_station
+from sofast_station.measure.analysis import analyse
+from sofast_station.station.factory import open_station
+from sofast_station.station.inspection import capture
 from sofast_station.twin.truth import ground_truth
 from tests.station.test_facets import FACETS, check_against_truth
 

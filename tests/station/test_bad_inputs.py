@@ -12,8 +12,9 @@ from sofast_station.config import load_config
 from sofast_station.errors import (CaptureError, ConfigError, DisplayNotShowingError, FacetNotFoundError,
                                    GeometryError, StationError)
 from sofast_station.geometry import CameraIntrinsics, Pose
-from sofast_station.measure.pipeline import analyse
-from sofast_station.station.inspect import capture, open_station
+from sofast_station.measure.analysis import analyse
+from sofast_station.station.factory import open_station
+from sofast_station.station.inspection import capture
 
 
 @pytest.fixture(scope="module")

@@ -9,13 +9,14 @@ import sys
 import numpy as np
 
 from sofast_station.config import load_config
-from sofast_station.station.inspect import capture, open_station
+from sofast_station.station.factory import open_station
+from sofast_station.station.inspection import capture
 
 SCRIPT = """
 import dataclasses, hashlib, json, sys
 import numpy as np
 from sofast_station.config import load_config
-from sofast_station.measure.pipeline import analyse
+from sofast_station.measure.analysis import analyse
 cfg = load_config(sys.argv[1])
 d = np.load(sys.argv[2])
 settings = dataclasses.replace(cfg.analysis, threads=int(sys.argv[3]))

@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from sofast_station.config import load_config
-from sofast_station.station.inspect import inspect, open_station
+from sofast_station.station.factory import open_station
+from sofast_station.station.inspection import inspect
 
 FACETS = {
     # station file, true facet (the paper's ADDS figures for the dish and gore)

@@ -17,7 +17,7 @@ import pytest
 from sofast_station.calibrate.records import load_radiometric
 from sofast_station.config import load_config
 from sofast_station.devices.renderer import FringeRenderer
-from sofast_station.measure.pipeline import analyse
+from sofast_station.measure.analysis import analyse
 from sofast_station.measure.phase import phase_and_modulation
 from sofast_station.station.simulated import build_twin
 from sofast_station.station.verdict import judge

@@ -12,8 +12,9 @@ import pytest
 from sofast_station.config import load_config
 from sofast_station.errors import ConfigError
 from sofast_station.geometry import ScreenSpec
-from sofast_station.measure.pipeline import analyse
-from sofast_station.station.inspect import capture, open_station
+from sofast_station.measure.analysis import analyse
+from sofast_station.station.factory import open_station
+from sofast_station.station.inspection import capture
 from sofast_station.twin.truth import ground_truth
 from tests.conftest import ROOT, SMALL_STATION
 

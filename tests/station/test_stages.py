@@ -10,8 +10,9 @@ import pytest
 
 from sofast_station.config import load_config
 from sofast_station.geometry import Pose
-from sofast_station.measure import pipeline
-from sofast_station.station.inspect import capture, open_station
+from sofast_station.measure import analysis, pipeline
+from sofast_station.station.factory import open_station
+from sofast_station.station.inspection import capture
 
 
 @pytest.fixture(scope="module")
@@ -36,7 +37,7 @@ def _figures(a):
 
 def test_stages_give_the_same_bits_as_analyse(small_capture):
     cfg, frames, distance = small_capture
-    a = pipeline.analyse(frames, cfg.fringes, cfg.geometry, cfg.design, distance, cfg.analysis)
+    a = analysis.analyse(frames, cfg.fringes, cfg.geometry, cfg.design, distance, cfg.analysis)
     red, timings = pipeline.reduce_stages(frames, cfg.fringes, cfg.geometry, cfg.design, distance, cfg.analysis)
     b = pipeline.to_analysis(red, timings)
     assert _figures(a) == _figures(b)

@@ -143,7 +143,7 @@ class DumpContent:
 
     @classmethod
     def from_station(cls, station, **kwargs) -> "DumpContent":
-        """:meth:`build` from a :class:`~sofast_station.station.inspect.Station` (its config and calibration)."""
+        """:meth:`build` from a :class:`~sofast_station.station.opened.Station` (its config and calibration)."""
         return cls.build(station.config, station.radiometric, **kwargs)
 
     # -- spooling -----------------------------------------------------------------------------------
@@ -217,7 +217,7 @@ class DumpContent:
         -------
         sofast_station.measure.pipeline.Analysis
         """
-        from ...measure.pipeline import analyse
+        from ...measure.analysis import analyse
         from ...precompute import ray_table
 
         args = {"fringes": self.fringe_set(), "geometry": self.station_geometry(), "design": self.facet_design(),

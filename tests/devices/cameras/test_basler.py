@@ -27,7 +27,8 @@ pytestmark = pytest.mark.filterwarnings("ignore:builtin type .* has no __module_
 def twin_frames(tmp_path_factory):
     """The first frames of a small simulated station's capture (dark, white, fringes), as PNG files."""
     from sofast_station.config import load_config
-    from sofast_station.station.inspect import capture, open_station
+    from sofast_station.station.factory import open_station
+    from sofast_station.station.inspection import capture
     from tests.conftest import ROOT, SMALL_STATION
 
     folder = tmp_path_factory.mktemp("twin")

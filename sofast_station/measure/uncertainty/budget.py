@@ -1,0 +1,262 @@
+"""The combination (GUM): each figure's expanded uncertainty U = k u_c, k = 2, from the systematic
+sensitivities scaled by the capture's own evidence, the intensity noise and the corner pose's Monte Carlo;
+the noise floor of the slope RMS values; and the budget table, input group against figure.
+:func:`uncertainty_figures` is what :func:`~sofast_station.measure.analysis.analyse` calls.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+import numpy as np
+
+from .capture_evidence import (FRAME_POOL_CAPTURES, capture_scales, display_response_u, frame_brightness_dn,
+                               pooled_frame_brightness)
+from .corner_pose import POSE_DRAWS, POSE_GROUPS, pose_monte_carlo
+from .inputs import COVERAGE_FACTOR, RMS_AXES, InputUncertainties, get_path, path_name
+from .intensity_noise import NoisePropagation, noise_propagation
+from .systematic import Sensitivities, sensitivities
+
+
+def _nest(values: dict, figures: dict) -> dict:
+    """``{path: value}`` -> ``{"name_U": structure like figures[name]}``."""
+    out: dict = {}
+    for path, v in values.items():
+        top = path[0]
+        if len(path) == 1:
+            out[f"{top}_U"] = v
+            continue
+        template = figures[top]
+        cur = out.setdefault(f"{top}_U", _empty_like(template))
+        for p in path[1:-1]:
+            cur = cur[p]
+        cur[path[-1]] = v
+    return out
+
+
+def _empty_like(template):
+    if isinstance(template, dict):
+        return {k: _empty_like(v) for k, v in template.items()}
+    if isinstance(template, (list, tuple)):
+        return [None] * len(template)
+    return None
+
+
+def _clean(v: float):
+    return None if v is None or not np.isfinite(v) else float(v)
+
+
+#: Budget groups of the camera intrinsics (the Monte Carlo draws them for the corner pose only).
+CAMERA_GROUPS = ("camera focal length", "camera principal point", "camera distortion")
+
+
+def boresight_ray_path(sens: Sensitivities, contrib: np.ndarray) -> dict:
+    """The camera intrinsics' contribution (standard, mrad) to the boresight through the rays, which the
+    corner pose's Monte Carlo does not draw: ``{("boresight_mrad", a): u}``.
+
+    The boresight is the rotation from the corner pose to the frame the measured surface defines. The
+    Monte Carlo draws how the intrinsics move the corner pose; they also turn the measured surface's frame,
+    since every pixel's ray turns with them (by 1 / f per pixel of the principal point). The optical tilt
+    is that frame's tilt in the fixture, in which the corner pose's own tilt cancels, so the camera rows'
+    contributions to ``optical_tilt_mrad`` (finite differences of the whole reduction) are this path. On
+    the coverage twin (f = 3409 px) the boresight errors minus the placement rotations' follow the principal
+    point by +0.29 to +0.30 mrad per px on three seeds; the optical tilt's row is 0.293. The two paths are
+    nearly independent (the Monte Carlo's corner pose follows the principal point by 0.01-0.02 mrad per
+    px), so this adds in quadrature.
+    """
+    rows = np.array([inp.group in CAMERA_GROUPS for inp in sens.inputs])
+    out = {}
+    for a in ("x", "y"):
+        if ("optical_tilt_mrad", a) in sens.paths and rows.any():
+            j = sens.paths.index(("optical_tilt_mrad", a))
+            out[("boresight_mrad", a)] = float(np.sqrt(np.nansum(contrib[rows, j] ** 2)))
+    return out
+
+
+def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs: InputUncertainties,
+            scales: np.ndarray | None = None, corner_cov: np.ndarray | None = None,
+            pose_mc: dict | None = None) -> dict:
+    """The figures' expanded uncertainties, the noise floor and the budget, as figure keys to add.
+
+    Returns ``{"name_U": ..., "name_U_random": ..., "coverage_factor": 2, "slope_rms_noise_mrad": ...,
+    "slope_rms_corrected_mrad": ..., "slope_rms_corrected_mrad_U": ..., "uncertainty_budget": ...}``.
+    The measured slope RMS's U also covers the noise's bias b (the measured value minus the noise-corrected
+    one), which the measured value does not remove, as every uncorrected offset here: U = k sqrt(u^2 + b^2).
+    (Added linearly, U = k u + b, it over-stated the slope RMS x's U by about 6 % on the twin: 1000 captures
+    covered 97.3 % with U / std 2.23; in quadrature 96.0 % and 2.10.)
+
+    *corner_cov* (2n x 2n, pixels squared, the corners' coordinates in budget order): the corner rows'
+    linear parts are then carried with their correlations, as sqrt(J^T C J) with J the sensitivities per
+    pixel, split into independent rows (C = M M^T, row contributions M^T J) so the budget still adds up.
+
+    *pose_mc* (:func:`pose_monte_carlo`): for the corner-pose figures, the mean square errors it drew stand
+    for the rows of :data:`POSE_GROUPS` (the other rows are added to them in quadrature, and for the
+    boresight the camera intrinsics' path through the rays, :func:`boresight_ray_path`).
+    """
+    sc = np.ones(len(sens.inputs)) if scales is None else np.asarray(scales, float)
+    linear = sens.linear * sc[:, None]
+    rows = [i for i, inp in enumerate(sens.inputs) if inp.group == "corner location"]
+    if corner_cov is not None and np.shape(corner_cov) == (len(rows), len(rows)) and rows \
+            and np.all(np.isfinite(corner_cov)):
+        u_ref = np.array([sens.inputs[i].u for i in rows])
+        jac = sens.linear[rows] / u_ref[:, None]                           # figure per pixel
+        w, v = np.linalg.eigh(0.5 * (corner_cov + corner_cov.T))
+        m = v * np.sqrt(np.clip(w, 0.0, None))[None, :]
+        linear = linear.copy()
+        linear[rows] = m.T @ np.nan_to_num(jac)
+    contrib = np.sqrt(linear ** 2 + 2.0 * (sens.curvature * (sc ** 2)[:, None]) ** 2)
+    kinds = np.array([i.kind for i in sens.inputs])
+    u_sys2 = np.nansum(contrib[kinds == "systematic"] ** 2, axis=0)
+    # A response that curves (q != 0) does not only spread the figure: for a normal input its mean moves by q
+    # (E[c z + q z^2] = q), and the reported value does not remove that offset. The systematic inputs'
+    # offsets add with their signs and count as one more term (U = k sqrt(u^2 + b^2), the usual way to state
+    # an uncorrected bias); c^2 + 2 q^2 above is the spread about that mean.
+    offset = np.nansum(sens.curvature[kinds == "systematic"] * (sc[kinds == "systematic"] ** 2)[:, None], axis=0)
+    u_sys2 = u_sys2 + offset ** 2
+    u_cor2 = np.nansum(contrib[kinds == "random"] ** 2, axis=0)
+    noise_col = np.array([noise.sigma.get(p, 0.0) for p in sens.paths])
+    u_rand = np.sqrt(u_cor2 + noise_col ** 2)
+    u = np.sqrt(u_sys2 + u_rand ** 2)
+    rays = boresight_ray_path(sens, contrib) if pose_mc else {}
+    if pose_mc:
+        other = np.array([inp.group not in POSE_GROUPS for inp in sens.inputs])
+        sys_o, rand_o = other & (kinds == "systematic"), other & (kinds == "random")
+        off_o = np.nansum(sens.curvature[sys_o] * (sc[sys_o] ** 2)[:, None], axis=0)
+        u_sys_o2 = np.nansum(contrib[sys_o] ** 2, axis=0) + off_o ** 2
+        u_rand_o2 = np.nansum(contrib[rand_o] ** 2, axis=0) + noise_col ** 2
+        for j, p in enumerate(sens.paths):
+            if p in pose_mc:
+                ms_all, ms_corners = pose_mc[p]
+                u_rand[j] = np.sqrt(ms_corners + u_rand_o2[j])
+                u[j] = max(np.sqrt(ms_all + u_sys_o2[j] + u_rand_o2[j] + rays.get(p, 0.0) ** 2), u_rand[j])
+    k = COVERAGE_FACTOR
+    values = {p: get_path(figures, p) for p in sens.paths}
+    total, random = {}, {}
+    for j, p in enumerate(sens.paths):
+        if values[p] is None:
+            total[p] = random[p] = None
+            continue
+        total[p] = _clean(k * u[j])
+        random[p] = _clean(k * u_rand[j])
+    # Noise floor: the slope noise the capture explains, and the RMS with it removed in quadrature.
+    noise_mrad = {m: dict(noise.slope_noise_mrad) for m in figures["slope_rms_mrad"]}
+    corrected, corrected_u = {}, {}
+    for m, rms in figures["slope_rms_mrad"].items():
+        corrected[m], corrected_u[m] = {}, {}
+        for a in RMS_AXES:
+            r, s = rms[a], noise_mrad[m][a]
+            corrected[m][a] = None if r is None else float(np.sqrt(max(r * r - s * s, 0.0)))
+            p = ("slope_rms_mrad", m, a)
+            corrected_u[m][a] = total.get(p)
+            if total.get(p) is not None and r is not None:       # the noise's bias, uncorrected: in quadrature
+                total[p] = float(np.hypot(total[p], k * (r - corrected[m][a])))
+    out = _nest(total, figures)
+    out.update({k2 + "_random": v for k2, v in _nest(random, figures).items()})
+    out.update(_subsample_fit_u(figures, sens.paths, u, u_rand, noise_col))
+    out["coverage_factor"] = 2
+    out["slope_rms_noise_mrad"] = noise_mrad
+    out["slope_rms_corrected_mrad"] = corrected
+    out["slope_rms_corrected_mrad_U"] = corrected_u
+    out["uncertainty_budget"] = budget_table(sens, contrib, noise_col, u, u_rand, inputs, sc, offset)
+    if pose_mc:
+        out["uncertainty_budget"]["pose_monte_carlo"] = {
+            "figures": [path_name(p) for p in sens.paths if p in pose_mc], "groups": list(POSE_GROUPS),
+            "draws": POSE_DRAWS,
+            "boresight_camera_rays": {path_name(p): _sig(v) for p, v in rays.items()}}
+    return out
+
+
+def _subsample_fit_u(figures: dict, paths: list, u: np.ndarray, u_rand: np.ndarray, noise_col: np.ndarray) -> dict:
+    """``subsample_fit_U`` and ``subsample_fit_U_random`` (k = 2) of the focal lengths fitted on every n-th
+    point (``subsample_fit``, what OpenCSP's SOFAST reports).
+
+    The station inputs, the frame brightness and the corners move every slope smoothly over the facet, so the
+    fit on every n-th point follows them as the fit on all points does: those contributions are the same.
+    The intensity noise is independent from pixel to pixel, so its contribution to a least-squares fit grows
+    as the square root of the points it leaves out: u_sub^2 = u^2 + (N / n - 1) u_noise^2 (N points in
+    the reported fit, n in the subsample's). Exact for the plain fit; for the robust fit as far as its
+    weights are the same on both (the noise propagation makes that approximation for the full fit too).
+    """
+    sub = figures.get("subsample_fit")
+    n_all = figures.get("n_points")
+    if not isinstance(sub, dict) or not sub.get("n_points") or not n_all:
+        return {}
+    more = max(float(n_all) / float(sub["n_points"]) - 1.0, 0.0)
+    total, random = {"n_points": None}, {"n_points": None}     # the figure's shape; a count has no U
+    for key in ("focal_length_x_m", "focal_length_y_m"):
+        if (key,) not in paths or sub.get(key) is None:
+            total[key] = random[key] = None
+            continue
+        j = paths.index((key,))
+        total[key] = _clean(COVERAGE_FACTOR * np.sqrt(u[j] ** 2 + more * noise_col[j] ** 2))
+        random[key] = _clean(COVERAGE_FACTOR * np.sqrt(u_rand[j] ** 2 + more * noise_col[j] ** 2))
+    order = list(sub)
+    return {"subsample_fit_U": {k: total.get(k) for k in order},
+            "subsample_fit_U_random": {k: random.get(k) for k in order}}
+
+
+def _sig(v: float, digits: int = 3):
+    v = _clean(v)
+    return None if v is None else float(f"{v:.{digits}g}")
+
+
+def budget_table(sens: Sensitivities, contrib: np.ndarray, noise_col: np.ndarray, u: np.ndarray,
+                 u_rand: np.ndarray, inputs: InputUncertainties, scales: np.ndarray,
+                 offset: np.ndarray | None = None) -> dict:
+    """The budget as one table, input group against figure: standard-uncertainty contributions (k = 1,
+    figure units, root sum of squares within a group), the combined standard uncertainty, its random part,
+    and the coverage factor (JSON-ready, 3 significant digits)."""
+    groups: dict[str, dict] = {}
+    for r, inp in enumerate(sens.inputs):
+        g = groups.setdefault(inp.group, {"group": inp.group, "kind": inp.kind, "inputs": [], "sq": 0.0})
+        g["inputs"].append(f"{inp.name} ({inp.u * scales[r]:.3g} {inp.unit})")
+        g["sq"] = g["sq"] + np.nan_to_num(contrib[r]) ** 2
+    rows = [{"group": g["group"], "kind": g["kind"], "inputs": g["inputs"],
+             "contributions": [_sig(c) for c in np.sqrt(g["sq"])]} for g in groups.values()]
+    if offset is not None:
+        # After the systematic groups: the mean the systematic inputs' curved responses leave (see combine).
+        at = sum(1 for r in rows if r["kind"] == "systematic")
+        rows.insert(at, {"group": "curved-response offset", "kind": "systematic",
+                         "inputs": ["sum of the systematic inputs' q"],
+                         "contributions": [_sig(abs(c)) for c in np.nan_to_num(offset)]})
+    rows.append({"group": "intensity noise", "kind": "random", "inputs": ["the capture's own noise"],
+                 "contributions": [_sig(c) for c in noise_col]})
+    return {"figures": [path_name(p) for p in sens.paths], "rows": rows, "coverage_factor": 2,
+            "combined_standard": [_sig(c) for c in u], "random_standard": [_sig(c) for c in u_rand],
+            "sensitivity_points": sens.n_points}
+
+
+def uncertainty_figures(reduction, *, fringes, geometry, design, measured_distance_m: float, settings,
+                        inputs: InputUncertainties, screen=None, cache: dict | None = None,
+                        cache_key=None, pool=None) -> dict:
+    """Everything :func:`combine` adds to a reduction's figures; sensitivities come from *cache* under
+    *cache_key* (geometry + recipe + inputs) when present, else are computed and stored there. On a *pool*
+    (an executor) the corner pose's Monte Carlo runs beside the rest (the same values)."""
+    sens = None if cache is None or cache_key is None else cache.get(cache_key)
+    fresh = sens is None
+    if sens is None:
+        sens = sensitivities(reduction, fringes=fringes, geometry=geometry, design=design,
+                             measured_distance_m=measured_distance_m, settings=settings, inputs=inputs, screen=screen)
+        if cache is not None and cache_key is not None:
+            cache[cache_key] = sens
+    pose_task = None if pool is None else pool.submit(pose_monte_carlo, reduction, geometry=geometry, design=design,
+                                                      inputs=inputs)
+    noise = noise_propagation(reduction, fringes=fringes, geometry=geometry, design=design, settings=settings,
+                              screen=screen)
+    pool = None
+    if cache is not None and cache_key is not None:
+        pool = cache.setdefault(("frame brightness", cache_key), deque(maxlen=FRAME_POOL_CAPTURES))
+    frame = pooled_frame_brightness(*frame_brightness_dn(reduction), pool)
+    response = display_response_u(reduction, inputs)
+    pose_mc = (pose_monte_carlo(reduction, geometry=geometry, design=design, inputs=inputs) if pose_task is None
+               else pose_task.result())
+    out = combine(reduction.figures, sens, noise, inputs,
+                  capture_scales(reduction, sens, inputs, frame["sigma_dn"], response["u_rad"]),
+                  getattr(reduction.pose, "corner_cov_px2", None), pose_mc)
+    out["uncertainty_budget"]["frame_brightness"] = {k: (_sig(v, 4) if isinstance(v, float) else v)
+                                                     for k, v in frame.items()}
+    out["uncertainty_budget"]["display_response"] = {k: (_sig(v, 4) if isinstance(v, float) else v)
+                                                     for k, v in response.items()}
+    # Not a figure (a timing): :func:`~sofast_station.measure.analysis.analyse` moves it to the timings.
+    out["_sensitivity_seconds"] = sens.seconds if fresh else 0.0
+    return out

@@ -1,0 +1,152 @@
+"""The random part the capture's own intensity noise explains: per pixel to screen positions
+(:func:`~sofast_station.measure.phase.position_sigma_m`), to slopes (the reflection law's derivative) and
+through the fits (their covariance); also the slope noise floor of the RMS values.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..camera import to_frame
+from ..metrics import principal_axes
+from ..phase import noise_at_level, noise_by_level, position_sigma_m
+from ..pipeline import default_screen
+from .inputs import RMS_AXES
+
+
+def _fit_figures(a: float, b: float, e1: float, e2: float) -> dict:
+    """The fit's scalar figures as functions of A, B, E1, E2 (for their Jacobian)."""
+    e = 0.5 * (e1 + e2)
+    (p1, p2), angle = principal_axes(a, b, e)
+    kx, ky = 4.0 * a, 4.0 * b
+    return {("focal_length_x_m",): 1.0 / kx if kx else np.nan, ("focal_length_y_m",): 1.0 / ky if ky else np.nan,
+            ("curvature_x_per_m",): kx, ("curvature_y_per_m",): ky, ("twist_mrad_per_m",): 1000.0 * e,
+            ("twist_e1_mrad_per_m",): 1000.0 * e1, ("twist_e2_mrad_per_m",): 1000.0 * e2,
+            ("principal_focal_lengths_m", 0): np.nan if p1 is None else p1,
+            ("principal_focal_lengths_m", 1): np.nan if p2 is None else p2, ("axis_angle_rad",): angle}
+
+
+def _line_fit_covariance(u: np.ndarray, v: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """Covariance of (k0, k1, k2) in s = k0 (u - mean u) + k1 + k2 (v - mean v) fitted by ordinary least
+    squares to slopes with independent noise *sigma* per point."""
+    uc, vc = u - u.mean(), v - v.mean()
+    x = np.stack([uc, np.ones_like(uc), vc])
+    m_inv = np.linalg.inv(x @ x.T)
+    b = (x * sigma ** 2) @ x.T
+    return m_inv @ b @ m_inv
+
+
+@dataclass
+class NoisePropagation:
+    """The capture's own noise carried to the figures.
+
+    Attributes
+    ----------
+    sigma : dict
+        ``{path: standard uncertainty}`` of the scalar figures the noise reaches (fit figures, boresight,
+        optical tilt, slope RMS values).
+    slope_noise_mrad : dict
+        ``{"x", "y", "magnitude"}`` the RMS slope (angle) noise the capture's intensity noise explains, mrad.
+    """
+
+    sigma: dict
+    slope_noise_mrad: dict
+
+
+def pixel_noise_dn(reduction, take: np.ndarray) -> np.ndarray | float:
+    """The frame noise (DN, rounding included) of the region's pixels *take* (indices into the phases'
+    arrays), each at its own brightness (white - dark) by the capture's noise-against-brightness line
+    (:func:`~.phase.noise_by_level`, fitted here on its cleaned four-step residuals: only the uncertainty
+    needs it); the capture's one noise figure where there is no such line."""
+    phases = reduction.phases
+    stack = getattr(reduction.region, "stack", None)
+    if phases.noise is None or not phases.noise.residuals or stack is None or len(stack) < 2:
+        return phases.noise_dn
+    level = np.subtract(stack[1], stack[0], dtype=np.float32)
+    model = noise_by_level(phases.noise.residuals, level, phases.noise_dn)
+    return noise_at_level(model, level[take])
+
+
+def noise_propagation(reduction, *, fringes, geometry, design, settings, screen=None,
+                      max_points: int = 30_000) -> NoisePropagation:
+    """Propagate the capture's intensity noise (``Phases.noise_dn``) to slopes and to the fits.
+
+    Position noise per pixel from the finest phase's modulation and the pixel's own frame noise at its
+    brightness (:func:`pixel_noise_dn`: shot noise makes the dim pixels at the facet's edges quieter,
+    and one noise figure for all over-stated the fits' noise by 5-8 % whenever the facet's edges cut
+    through pixels); the slope noise per pixel from the reflection law's derivative with respect to the
+    screen position (finite difference with the surface point held); the fits' covariance by
+    least-squares propagation of independent per-pixel noise. Done on every n-th valid pixel (about
+    *max_points*) and scaled to all of them.
+    """
+    screen = screen if screen is not None else default_screen(geometry)
+    red = reduction
+    ok = red.rays.ok
+    n_all = int(red.rays.vidx.size)
+    step = max(1, n_all // max_points)
+    sel = slice(None, None, step)
+    take = np.flatnonzero(ok)[sel]          # the pixels of [ok][sel], without gathering every valid pixel first
+    ux = red.phases.positions_m["x"][take]
+    uy = red.phases.positions_m["y"][take]
+    noise_dn = pixel_noise_dn(red, take)
+    sig_u = {a: position_sigma_m(red.phases.finest_modulation_dn[a][take], noise_dn,
+                                 getattr(fringes, f"periods_{a}")[-1], length)
+             for a, length in zip("xy", (screen.width_m, screen.height_m))}
+    # Slopes' derivative with respect to the screen position, surface point held, in the boresight frame.
+    cam_to_b = red.shape.boresighted_to_camera.inverse()
+    camera_b = cam_to_b.translation
+    points = red.shape.points_m[:, sel]
+    delta = 1e-4
+    from ..kernels import normal_slopes as slopes_of      # surface.normal_slopes in one compiled pass
+
+    s0 = slopes_of(points, camera_b, to_frame(cam_to_b, screen.points_camera(ux, uy)))
+    sx_dx = slopes_of(points, camera_b, to_frame(cam_to_b, screen.points_camera(ux + delta, uy)))
+    sy_dy = slopes_of(points, camera_b, to_frame(cam_to_b, screen.points_camera(ux, uy + delta)))
+    gx, gy = (sx_dx - s0) / delta, (sy_dy - s0) / delta          # (2, n): d(s_x, s_y)/du_x, /du_y
+    var = (gx * sig_u["x"]) ** 2 + (gy * sig_u["y"]) ** 2        # (2, n) slope variance
+    sig_s = np.sqrt(var)
+    angle_sig = 1000.0 * sig_s / (1.0 + s0 ** 2)                 # mrad
+    noise = {"x": float(np.sqrt(np.mean(angle_sig[0] ** 2))), "y": float(np.sqrt(np.mean(angle_sig[1] ** 2)))}
+    noise["magnitude"] = float(np.hypot(noise["x"], noise["y"]))
+    x, y = points[0], points[1]
+    scale = points.shape[1] / n_all                              # covariance on all points = scale x subset's
+    cov_x = _line_fit_covariance(x, y, sig_s[0]) * scale         # (2A, C', E1)
+    cov_y = _line_fit_covariance(y, x, sig_s[1]) * scale         # (2B, D', E2)
+    fit = red.fits.parabola
+    # Jacobian of the fit figures with respect to (A, B, E1, E2); A = k0/2.
+    cov = np.diag([cov_x[0, 0] / 4.0, cov_y[0, 0] / 4.0, cov_x[2, 2], cov_y[2, 2]])
+    cov[0, 2] = cov[2, 0] = cov_x[0, 2] / 2.0
+    cov[1, 3] = cov[3, 1] = cov_y[0, 2] / 2.0
+    p0 = np.array([fit.a, fit.b, fit.e1, fit.e2])
+    base = _fit_figures(*p0)
+    jac = {}
+    for j in range(4):
+        h = 1e-6 * max(abs(p0[j]), 1e-6)
+        hi = _fit_figures(*(p0 + h * np.eye(4)[j]))
+        lo = _fit_figures(*(p0 - h * np.eye(4)[j]))
+        for k in base:
+            jac.setdefault(k, np.zeros(4))[j] = (hi[k] - lo[k]) / (2 * h)
+    sigma = {k: float(np.sqrt(max(J @ cov @ J, 0.0))) for k, J in jac.items()}
+    # Boresight and optical tilt: the subsample fit's slope at the alignment point (alpha <- s_y, beta <- s_x).
+    xa, ya = (float(c) for c in design.alignment_point_m)
+    sub = settings.subsample_step
+    va = np.array([xa - x.mean(), 1.0, ya - y.mean()])
+    vb = np.array([ya - y.mean(), 1.0, xa - x.mean()])
+    s_a = (2 * fit.a * xa + fit.c + fit.e * ya, 2 * fit.b * ya + fit.d + fit.e * xa)
+    sig_bx = 1000.0 * np.sqrt(vb @ cov_y @ vb * sub) / (1 + s_a[1] ** 2)
+    sig_by = 1000.0 * np.sqrt(va @ cov_x @ va * sub) / (1 + s_a[0] ** 2)
+    sigma[("boresight_mrad", "x")] = sigma[("optical_tilt_mrad", "x")] = float(sig_bx)
+    sigma[("boresight_mrad", "y")] = sigma[("optical_tilt_mrad", "y")] = float(sig_by)
+    # Slope RMS values: mean(e^2) with e = t + n has variance (4 mean(t^2) s^2 + 2 s^4) / N.
+    for model in red.fits.residuals_mrad:
+        # mean(e^2) from the reported RMS (the same sums; squared back, within a unit of the last place)
+        rms = red.figures["slope_rms_mrad"][model]
+        ms = {"x": float(rms["x"]) ** 2, "y": float(rms["y"]) ** 2}
+        ms["magnitude"] = ms["x"] + ms["y"]
+        s2 = {a: noise[a] ** 2 for a in RMS_AXES}
+        for a in RMS_AXES:
+            var_ms = (4 * max(ms[a] - s2[a], 0.0) * s2[a] + 2 * s2[a] ** 2) / n_all
+            sigma[("slope_rms_mrad", model, a)] = float(np.sqrt(var_ms) / (2 * np.sqrt(max(ms[a], 1e-30))))
+    return NoisePropagation(sigma, noise)
