@@ -182,11 +182,20 @@ def find_facets(dark: np.ndarray, white: np.ndarray, geometry: StationGeometry, 
     FacetNotFoundError
         When nothing responds, or one region spans two facets' nominal images (no gap between them).
     """
+    from scipy.ndimage import find_objects
+
     h, w = geometry.camera.shape
-    responsive = (white.astype(np.int32) - dark.astype(np.int32)) > threshold_dn
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(responsive.view(np.uint8), connectivity=8)
-    areas = stats[:, cv2.CC_STAT_AREA].astype(np.int64)
+    if white.dtype == dark.dtype and white.dtype in (np.uint8, np.uint16) and threshold_dn >= 0:
+        # white - dark clipped at zero in the counts' own type, against the threshold's whole part (the same
+        # pixels as the signed difference: see measure/mask.py)
+        responsive = np.greater(cv2.subtract(white, dark), min(int(np.floor(threshold_dn)),
+                                                               int(np.iinfo(white.dtype).max)))
+    else:
+        responsive = (white.astype(np.int64) - dark.astype(np.int64)) > threshold_dn
+    n, labels = cv2.connectedComponents(responsive.view(np.uint8), connectivity=8)
+    areas = np.bincount(labels.ravel(), minlength=n).astype(np.int64)
     areas[0] = 0
+    boxes = find_objects(labels)            # (rows, columns) slices of region c at boxes[c - 1]
     if not np.any(areas >= settings.min_region_px):
         raise FacetNotFoundError("nothing in the image responds to the screen: no heliostat in the fixture, or the "
                                  "display is not showing")
@@ -227,10 +236,10 @@ def find_facets(dark: np.ndarray, white: np.ndarray, geometry: StationGeometry, 
             reason = (f"facet {f.label} is missing: nothing responds where the design puts it (not mounted, covered, "
                       "or turned far from its design canting)")
         else:
-            x0 = min(int(stats[c, cv2.CC_STAT_LEFT]) for c in comps)
-            y0 = min(int(stats[c, cv2.CC_STAT_TOP]) for c in comps)
-            x1 = max(int(stats[c, cv2.CC_STAT_LEFT] + stats[c, cv2.CC_STAT_WIDTH]) for c in comps) - 1
-            y1 = max(int(stats[c, cv2.CC_STAT_TOP] + stats[c, cv2.CC_STAT_HEIGHT]) for c in comps) - 1
+            y0 = min(boxes[c - 1][0].start for c in comps)
+            x0 = min(boxes[c - 1][1].start for c in comps)
+            y1 = max(boxes[c - 1][0].stop for c in comps) - 1
+            x1 = max(boxes[c - 1][1].stop for c in comps) - 1
             border = y0 == 0 or x0 == 0 or y1 == h - 1 or x1 == w - 1
             outside = y0 < r0 or x0 < c0 or y1 >= r1 or x1 >= c1
             if border or outside:
@@ -418,22 +427,53 @@ def combined_u(weights: dict, sensitivities: dict, u_random: dict, path: tuple) 
     ``sqrt((sum_i w_i c_ik)^2 + 2 (sum_i w_i q_ik)^2)`` per input. The random parts (the capture's noise,
     the corners) are independent between facets: ``sum_i (w_i u_i)^2``.
     """
-    lin: dict = {}
-    cur: dict = {}
-    rand2 = 0.0
-    for i, w in weights.items():
-        sens, ur = sensitivities.get(i), u_random.get(i)
-        if sens is None or ur is None or path not in sens.paths:
+    keys = list(weights)
+    table = _systematic_table(keys, sensitivities, u_random, path)
+    if table is None:
+        return None
+    lin, cur, rand = table
+    w = np.array([weights[i] for i in keys])
+    return float(2.0 * np.sqrt(np.sum((w @ lin) ** 2 + 2.0 * (w @ cur) ** 2) + np.sum((w * 0.5 * rand) ** 2)))
+
+
+def _systematic_table(keys: list, sensitivities: dict, u_random: dict, path: tuple):
+    """(linear (n, k), curvature (n, k), random U (n,)) of *path* for facets *keys* and the systematic inputs
+    (by name, in the first facet's order; an input a facet lacks counts 0 for it); None when a facet has no
+    sensitivities or random part."""
+    names: list = []
+    for i in keys:
+        sens = sensitivities.get(i)
+        if sens is None or u_random.get(i) is None or path not in sens.paths:
             return None
+        for inp in sens.inputs:
+            if inp.kind == "systematic" and inp.name not in names:
+                names.append(inp.name)
+    col = {n: c for c, n in enumerate(names)}
+    lin = np.zeros((len(keys), len(names)))
+    cur = np.zeros_like(lin)
+    for r, i in enumerate(keys):
+        sens = sensitivities[i]
         j = sens.paths.index(path)
-        for r, inp in enumerate(sens.inputs):
-            if inp.kind != "systematic":
-                continue
-            lin[inp.name] = lin.get(inp.name, 0.0) + w * float(sens.linear[r, j])
-            cur[inp.name] = cur.get(inp.name, 0.0) + w * float(sens.curvature[r, j])
-        rand2 += (w * 0.5 * float(ur)) ** 2
-    sys2 = sum(lin[k] ** 2 + 2.0 * cur[k] ** 2 for k in lin)
-    return 2.0 * math.sqrt(sys2 + rand2)
+        for k, inp in enumerate(sens.inputs):
+            if inp.kind == "systematic":
+                lin[r, col[inp.name]] = sens.linear[k, j]
+                cur[r, col[inp.name]] = sens.curvature[k, j]
+    return lin, cur, np.array([float(u_random[i]) for i in keys])
+
+
+def canting_u(sensitivities: dict, u_random: dict, path: tuple) -> dict:
+    """Every facet's canting U (k = 2) at once: :func:`combined_u` with the weights of x_i less the facets'
+    mean (``e_i - 1/n``), for the facets of *sensitivities*."""
+    keys = sorted(sensitivities)
+    table = _systematic_table(keys, sensitivities, u_random, path)
+    if table is None:
+        return {i: None for i in keys}
+    lin, cur, rand = table
+    n = len(keys)
+    w = np.eye(n) - 1.0 / n
+    sys2 = np.sum((w @ lin) ** 2 + 2.0 * (w @ cur) ** 2, axis=1)
+    rand2 = (w ** 2) @ ((0.5 * rand) ** 2)
+    return {i: float(2.0 * np.sqrt(sys2[r] + rand2[r])) for r, i in enumerate(keys)}
 
 
 @dataclass
@@ -492,52 +532,64 @@ def _placement_about_origin(fixture_to_camera: Pose, frame_to_camera: Pose) -> d
             "mrad": [1000.0 * rx, 1000.0 * ry, 1000.0 * math.atan2(r[1, 0], r[0, 0])]}
 
 
+def _placement_of(pose6: np.ndarray, geometry: StationGeometry, ensemble: EnsembleDesign, centre: np.ndarray,
+                  distance_m: float, max_shift_m: float) -> np.ndarray:
+    """The heliostat's placement (mm, mrad) of the corner pose (rvec, tvec) *pose6*, range fixed."""
+    pose = Pose(cv2.Rodrigues(np.asarray(pose6[:3], np.float64))[0], np.asarray(pose6[3:], np.float64))
+    h2c, _ = fix_range(pose, ensemble.measure_point_m, centre, distance_m, max_shift_m)
+    pl = _placement_about_origin(geometry.fixture_to_camera, h2c)
+    return np.array([*pl["mm"], *pl["mrad"]])
+
+
 def _pose_uncertainty(hp: HeliostatPose, geometry: StationGeometry, ensemble: EnsembleDesign, centre: np.ndarray,
                       distance_m: float, settings: AnalysisSettings, inputs) -> dict:
-    """Expanded uncertainty (k = 2) of the heliostat's placement (mm, mrad) from its corners' covariance, the
-    camera's intrinsics, the measured distance and the fixture pose, by finite differences of the pose."""
+    """Expanded uncertainty (k = 2) of the heliostat's placement (mm, mrad), linearised about the found pose:
+    its corners' covariance (each facet's sides' fits) through the least-squares pose
+    (``(J^T J)^-1 J^T``, J the projection's Jacobian), the camera's focal lengths and principal point the
+    same way, the measured distance through the range fix, and the fixture pose (its uncertainty is the
+    placement's own, one to one)."""
     keys = sorted(hp.corners_px)
-
-    def place(corners: dict, camera=None, distance=None) -> np.ndarray:
-        g = geometry if camera is None else dataclasses.replace(geometry, camera=camera)
-        try:
-            p = heliostat_pose(corners, {}, g, ensemble, centre, distance_m if distance is None else distance,
-                               settings.max_range_shift_m, float("inf"))
-        except StationError:
-            return np.full(6, np.nan)
-        pl = _placement_about_origin(geometry.fixture_to_camera, p.heliostat_to_camera)
-        return np.array([*pl["mm"], *pl["mrad"]])
-
-    base = place(hp.corners_px)
-    var = np.zeros(6)
-    # corners: each facet's covariance (its sides' fits), through the pose's Jacobian
+    design = np.concatenate([ensemble.facets[i].corners_m() for i in keys])
+    # the corner pose itself (before the range fix): what the range-fixed pose came from, to first order
+    r0 = hp.heliostat_to_camera.rotation
+    rvec = cv2.Rodrigues(r0)[0].ravel()
+    pose6 = np.concatenate([rvec, hp.heliostat_to_camera.translation])
+    cam = geometry.camera
+    _, jac = cv2.projectPoints(design.reshape(-1, 1, 3), rvec, hp.heliostat_to_camera.translation, cam.matrix,
+                               cam.distortion)
+    j_pose, j_cam = jac[:, :6], jac[:, 6:10]            # d(image)/d(rvec, tvec), d(image)/d(fx, fy, cx, cy)
+    solve = np.linalg.pinv(j_pose)                       # d(pose)/d(image), least squares
+    base = _placement_of(pose6, geometry, ensemble, centre, distance_m, settings.max_range_shift_m)
+    g = np.zeros((6, 6))
+    for k in range(6):
+        step = np.zeros(6)
+        step[k] = 1e-6                                    # rad, or m
+        g[:, k] = (_placement_of(pose6 + step, geometry, ensemble, centre, distance_m, settings.max_range_shift_m)
+                   - base) / step[k]
+    cov_img = np.zeros((2 * len(design), 2 * len(design)))
+    at = 0
     for i in keys:
+        n = 2 * len(hp.corners_px[i])
         cov = hp.corner_cov_px2.get(i)
-        if cov is None:
-            continue
-        n = hp.corners_px[i].size
-        jac = np.zeros((6, n))
-        step = 0.05
-        for k in range(n):
-            moved = {j: c.copy() for j, c in hp.corners_px.items()}
-            moved[i].ravel()[k] += step
-            jac[:, k] = (place(moved) - base) / step
-        var += np.einsum("ij,jk,ik->i", jac, cov, jac)
+        cov_img[at:at + n, at:at + n] = cov if cov is not None and np.all(np.isfinite(cov)) else 0.0
+        at += n
+    # the found corners move with the camera's intrinsics as the design's image does: the pose moves by the
+    # opposite of what explains that motion
+    var = np.diag(g @ solve @ cov_img @ solve.T @ g.T).copy()
     if inputs is not None:
-        cam = geometry.camera
-        for (r, c), u in (((0, 0), inputs.camera_focal_px), ((1, 1), inputs.camera_focal_px),
-                          ((0, 2), inputs.camera_principal_px), ((1, 2), inputs.camera_principal_px)):
+        for col, u in ((0, inputs.camera_focal_px), (1, inputs.camera_focal_px), (2, inputs.camera_principal_px),
+                       (3, inputs.camera_principal_px)):
             if u > 0:
-                k = cam.matrix.copy()
-                k[r, c] += u
-                var += (place(hp.corners_px, camera=dataclasses.replace(cam, matrix=k)) - base) ** 2
+                var += (g @ solve @ (j_cam[:, col] * u)) ** 2
         if inputs.distance_mm > 0:
-            var += (place(hp.corners_px, distance=distance_m + 1e-3 * inputs.distance_mm) - base) ** 2
+            moved = _placement_of(pose6, geometry, ensemble, centre, distance_m + 1e-3 * inputs.distance_mm,
+                                  settings.max_range_shift_m)
+            var += (moved - base) ** 2
         var[:3] += np.square(inputs.fixture_translation_mm)
         var[3:] += np.square(inputs.fixture_rotation_mrad)
-    u = 2.0 * np.sqrt(var)
-    return {"mm": [None if not np.isfinite(v) else float(v) for v in u[:3]],
-            "mrad": [None if not np.isfinite(v) else float(v) for v in u[3:]]}
+    u = 2.0 * np.sqrt(np.maximum(var, 0.0))
+    return {"mm": [float(v) if np.isfinite(v) else None for v in u[:3]],
+            "mrad": [float(v) if np.isfinite(v) else None for v in u[3:]]}
 
 
 def _facet_geometry(geometry: StationGeometry, ensemble: EnsembleDesign, region: FacetRegion) -> StationGeometry:
@@ -554,13 +606,14 @@ def analyse_heliostat(frames: np.ndarray, fringes: FringeSet, geometry: StationG
                       progress=None) -> HeliostatAnalysis:
     """Reduce one capture of a heliostat to every facet's figures and canting error (see the module docstring).
 
-    Each facet is reduced twice over: first with a distance from the fixture's nominal heliostat pose (every
-    stage of :func:`~sofast_station.measure.pipeline.reduce_stages`), which gives its corners and its optical
-    frame; the heliostat's corner pose comes from all corners and its tilt from the optical frames (the
-    corners of a nearly flat heliostat resolve its tilt to milliradians, the facets' normals to hundredths);
-    then each facet's shape and figures are rerun from its corner pose with the distance that pose gives it
-    (:func:`~sofast_station.measure.pipeline.rerun`) and finished with their uncertainties
-    (:func:`~sofast_station.measure.pipeline.finish_analysis`).
+    Each facet is reduced in two parts: first, with a distance from the fixture's nominal heliostat pose, the
+    stages of :func:`~sofast_station.measure.pipeline.reduce_stages` up to shape and boresight on the
+    subsample, which give its corners and its optical frame; the heliostat's corner pose comes from all
+    corners and its tilt from the optical frames (the corners of a nearly flat heliostat resolve its tilt to
+    milliradians, the facets' normals to hundredths); then each facet's shape over every pixel, its fits and
+    figures from its corner pose with the distance that pose gives it (:func:`~sofast_station.measure.
+    pipeline.rerun` from the shape), finished with their uncertainties
+    (:func:`~sofast_station.measure.analysis.finish_analysis`).
 
     Parameters
     ----------
@@ -618,22 +671,32 @@ def analyse_heliostat(frames: np.ndarray, fringes: FringeSet, geometry: StationG
     total = 2 * len(todo)
     done = 0
 
-    # 1. every found facet reduced with the distance the nominal pose gives it
+    # (Facets analysed side by side, one thread each, took longer on a busy 2-core machine than one after
+    # the other with the analysis's own two threads: 2.27 against 1.89 s for the 2x2, load 17 to 22.)
+    # 1. every found facet reduced, up to its boresight on the subsample, with the distance the nominal pose
+    #    gives it
     nominal = facet_distances(geometry.fixture_to_camera, ensemble, centre)
     shift = measured_distance_m - nominal[ensemble.measure_facet]
-    reductions, geometries, reasons = {}, {}, {}
-    for reg in todo:
+    geometries = {reg.index: _facet_geometry(geometry, ensemble, reg) for reg in todo}
+    reductions, reasons = {}, {}
+
+    def first(reg: FacetRegion):
         t = time.perf_counter()
-        f = ensemble.facets[reg.index]
-        g = geometries[reg.index] = _facet_geometry(geometry, ensemble, reg)
         rays = None if rays_cam is None else WindowRays(rays_cam, reg.window, geometry.camera.width_px)
         try:
-            reductions[reg.index] = reduce_stages(facet_frames(frames, reg, labels, heliostat.blank_dilation_px),
-                                                  fringes, g, f.design, nominal[reg.index] + shift, settings, screen,
-                                                  rays)
+            return reduce_stages(facet_frames(frames, reg, labels, heliostat.blank_dilation_px), fringes,
+                                 geometries[reg.index], ensemble.facets[reg.index].design,
+                                 nominal[reg.index] + shift, settings, screen, rays,
+                                 stop_after_boresight=True), time.perf_counter() - t
         except StationError as exc:
-            reasons[reg.index] = str(exc)
-        timings[f"reduce_{f.label}"] = time.perf_counter() - t
+            return exc, time.perf_counter() - t
+
+    for reg in todo:
+        out, timings[f"reduce_{reg.label}"] = first(reg)
+        if isinstance(out, StationError):
+            reasons[reg.index] = str(out)
+        else:
+            reductions[reg.index] = out
         done += 1
         if progress:
             progress(done, total)
@@ -653,35 +716,46 @@ def analyse_heliostat(frames: np.ndarray, fringes: FringeSet, geometry: StationG
                           settings.max_corner_rms_px)
     h2c = pose.heliostat_to_camera
     design_rot = {i: ensemble.facets[i].rotation for i in reductions}
-    first = canting_errors(design_rot, {i: h2c.rotation.T @ red.shape.boresighted_to_camera.rotation
-                                        for i, (red, _) in reductions.items()})
-    distances = facet_distances(tilted(h2c, ensemble, first["tilt_mrad"]), ensemble, centre)
+    first_cant = canting_errors(design_rot, {i: h2c.rotation.T @ red.shape.boresighted_to_camera.rotation
+                                             for i, (red, _) in reductions.items()})
+    distances = facet_distances(tilted(h2c, ensemble, first_cant["tilt_mrad"]), ensemble, centre)
     pose = dataclasses.replace(pose, distances_m=distances)
     timings["heliostat_pose"] = time.perf_counter() - t
 
-    # 3. every facet's shape and figures again from its corner pose at that distance, with their uncertainty
+    # 3. every facet's shape over every pixel, its fits and figures from its corner pose at that distance, with
+    #    their uncertainty
     analyses: dict[int, Analysis] = {}
-    with thread_pool(settings.threads) as pool:
-        for i, (red, tim) in reductions.items():
-            t = time.perf_counter()
-            f, g = ensemble.facets[i], geometries[i]
-            try:
-                p = pose_from_corners(red.pose.corners_px, red.region, red.rays, g, f.design, distances[i], settings,
-                                      agreement=red.pose.outline_agreement)
-                p = dataclasses.replace(p, corner_sigma_px=red.pose.corner_sigma_px,
-                                        corner_cov_px2=red.pose.corner_cov_px2)
+
+    def second(i: int):
+        t = time.perf_counter()
+        red, tim = reductions[i]
+        f, g = ensemble.facets[i], geometries[i]
+        try:
+            p = pose_from_corners(red.pose.corners_px, red.region, red.rays, g, f.design, distances[i], settings,
+                                  agreement=red.pose.outline_agreement)
+            p = dataclasses.replace(p, corner_sigma_px=red.pose.corner_sigma_px,
+                                    corner_cov_px2=red.pose.corner_cov_px2)
+            with thread_pool(settings.threads) as pool:
                 again = rerun(red, "shape", fringes=fringes, geometry=g, design=f.design,
-                              measured_distance_m=distances[i], settings=settings, screen=screen, pose=p, pool=pool)
-                tim = dict(tim, rerun=time.perf_counter() - t)
-                analyses[i] = finish_analysis(again, tim, fringes=fringes, geometry=g, design=f.design,
-                                              measured_distance_m=distances[i], settings=settings, screen=screen,
-                                              uncertainty=uncertainty, sensitivity_cache=sensitivity_cache)
-            except StationError as exc:
-                reasons[i] = str(exc)
-            timings[f"facet_{f.label}"] = time.perf_counter() - t
-            done += 1
-            if progress:
-                progress(done, total)
+                              measured_distance_m=distances[i], settings=settings, screen=screen, pose=p,
+                              pool=pool)
+            tim = dict(tim, rerun=time.perf_counter() - t)
+            return finish_analysis(again, tim, fringes=fringes, geometry=g, design=f.design,
+                                   measured_distance_m=distances[i], settings=settings, screen=screen,
+                                   uncertainty=uncertainty, sensitivity_cache=sensitivity_cache), time.perf_counter() - t
+        except StationError as exc:
+            return exc, time.perf_counter() - t
+
+    keys = sorted(reductions)
+    for i in keys:
+        out, timings[f"facet_{ensemble.facets[i].label}"] = second(i)
+        if isinstance(out, StationError):
+            reasons[i] = str(out)
+        else:
+            analyses[i] = out
+        done += 1
+        if progress:
+            progress(done, total)
     if not analyses:
         raise AnalysisError("no facet of the heliostat could be analysed: "
                             + "; ".join(f"{ensemble.facets[i].label}: {m}" for i, m in sorted(reasons.items())))
@@ -715,6 +789,11 @@ def analyse_heliostat(frames: np.ndarray, fringes: FringeSet, geometry: StationG
         return combined_u(weights, sens, {j: None if u_rand[j] is None else u_rand[j][ax] for j in keys},
                           ("optical_tilt_mrad", ax))
 
+    cant_u = {}
+    if uncertainty is not None:
+        cant_u = {ax: canting_u(sens, {j: None if u_rand[j] is None else u_rand[j][ax] for j in keys},
+                                ("optical_tilt_mrad", ax)) for ax in "xy"}
+
     facets_out = []
     valid = np.zeros(geometry.camera.shape, dtype=bool)
     for reg in regions:
@@ -736,8 +815,7 @@ def analyse_heliostat(frames: np.ndarray, fringes: FringeSet, geometry: StationG
             entry["canting_rz_mrad"] = cant["rz_mrad"][i]
             entry["measured_distance_m"] = distances[i]
             if uncertainty is not None:
-                w = {j: (1.0 if j == i else 0.0) - 1.0 / n for j in keys}
-                entry["canting_mrad_U"] = {ax: u_of(w, ax) for ax in "xy"}
+                entry["canting_mrad_U"] = {ax: cant_u[ax][i] for ax in "xy"}
         facets_out.append(entry)
     pl = _placement_about_origin(geometry.fixture_to_camera, h2c)
     in_fixture = _placement_about_origin(geometry.fixture_to_camera, optical_to_camera)["mrad"]

@@ -15,7 +15,7 @@ from ..devices.simulated import SimulatedCamera, SimulatedDisplay, SimulatedRang
 from ..errors import ConfigError
 from .opened import Station
 
-_SIM_KEYS = {"seed", "facet", "optics", "distance_error_m", "faults", "hang_s", "slow_s"}
+_SIM_KEYS = {"seed", "facet", "optics", "distance_error_m", "faults", "hang_s", "slow_s", "heliostat"}
 
 #: Faults the simulated station can inject for a given serial ([simulation.faults] SERIAL = KIND).
 FAULT_KINDS = SIMULATED_FAULTS
@@ -44,6 +44,13 @@ def build_twin(config: StationConfig, noise: bool = True):
         # The analysis uses the camera record (an estimate); the twin's camera is the physical one, which
         # the [camera] table describes.
         geometry = dataclasses.replace(geometry, camera=config.camera_record["stated"])
+    if config.ensemble is not None:
+        from ..twin.heliostat import TwinHeliostat, heliostat_from_simulation
+        heliostat = heliostat_from_simulation(sim, config.ensemble, f"{config.path} [simulation]")
+        return TwinHeliostat(geometry, config.ensemble, heliostat, optics)
+    if "heliostat" in sim:
+        raise ConfigError(f"{config.path} [simulation.heliostat] describes a heliostat, but [station] facet is a "
+                          "single facet's file")
     return TwinStation(geometry, config.design, facet, optics)
 
 

@@ -96,6 +96,39 @@ class TrueHeliostat:
         return cls(**d)
 
 
+def heliostat_from_simulation(sim: dict, ensemble: EnsembleDesign, where: str = "[simulation]") -> TrueHeliostat:
+    """The true heliostat a station file's ``[simulation]`` describes::
+
+        [simulation]
+        facet = { slope_error_rms_mrad = 0.2 }           # every facet's true shape (TrueFacet), the default
+        [simulation.heliostat]
+        placement_mm = [1.0, -0.5, 0.5]                  # the heliostat in the fixture
+        placement_mrad = [0.4, -0.3, 0.2]
+        missing = ["R1C2"]                               # facets not mounted
+        obstructed = { R2C1 = 0.3 }                      # a facet partly hidden (fraction of its width)
+        [simulation.heliostat.facets.R1C1]               # one facet over the default: its canting error
+        placement_mrad = [0.6, -0.3, 0.4]                # (rx, ry, rz about its middle) and its own shape
+        surface_seed = 4
+
+    Errors name *where* and the key."""
+    base = dict(sim.get("facet", {}))
+    table = dict(sim.get("heliostat", {}))
+    per = table.pop("facets", {})
+    if not isinstance(per, dict):
+        raise ConfigError(f"{where} heliostat.facets must be tables keyed by the facets' labels "
+                          f"([simulation.heliostat.facets.R1C1])")
+    unknown = sorted(set(per) - set(ensemble.labels))
+    if unknown:
+        raise ConfigError(f"{where} heliostat.facets names {', '.join(unknown)}, not facets of {ensemble.name!r} "
+                          f"({', '.join(ensemble.labels)})")
+    try:
+        facets = tuple(TrueFacet.from_dict({**base, **per.get(label, {})}) for label in ensemble.labels)
+        _check_keys("TrueHeliostat", {**table, "facets": ()}, TrueHeliostat)
+        return TrueHeliostat(facets=facets, **table)
+    except ConfigError as exc:
+        raise ConfigError(f"{where}: {exc}") from None
+
+
 def heliostat_to_fixture(heliostat: TrueHeliostat) -> Pose:
     """The true heliostat frame in the fixture (rotation about the heliostat frame's origin)."""
     return Pose(rotation_zyx(*(1e-3 * np.asarray(heliostat.placement_mrad, float))),

@@ -16,7 +16,7 @@ from sofast_station.errors import FacetNotFoundError
 from sofast_station.geometry import CameraIntrinsics, Pose, ScreenSpec
 from sofast_station.layout import layout_station
 from sofast_station.measure.camera import RayTable, pixel_rays, project
-from sofast_station.measure.heliostat import (WindowRays, canting_errors, combined_u, find_facets,
+from sofast_station.measure.heliostat import (WindowRays, canting_errors, canting_u, combined_u, find_facets,
                                               nominal_outlines, tilted, window_camera)
 from sofast_station.measure.uncertainty import Input, Sensitivities
 from tests.conftest import ROOT
@@ -62,6 +62,18 @@ def test_combined_u_adds_shared_inputs_before_squaring_and_random_parts_after():
     expected = 2.0 * np.sqrt(0.04 ** 2 + (0.5 * 0.01) ** 2 + (0.5 * 0.02) ** 2)
     assert got == pytest.approx(expected, rel=1e-12)
     assert combined_u(w, {0: s[0], 1: None}, u_rand, ("optical_tilt_mrad", "x")) is None
+
+
+def test_every_facets_canting_u_at_once_is_the_difference_from_the_mean():
+    rng = np.random.default_rng(3)
+    s = {i: sens({"camera fy": float(rng.normal()), "screen rz": float(rng.normal()), "distance": 0.1 * i})
+         for i in range(5)}
+    u_rand = {i: 0.01 * (i + 1) for i in range(5)}
+    path = ("optical_tilt_mrad", "x")
+    every = canting_u(s, u_rand, path)
+    for i in range(5):
+        w = {j: (1.0 if j == i else 0.0) - 0.2 for j in range(5)}
+        assert every[i] == pytest.approx(combined_u(w, s, u_rand, path), rel=1e-12)
 
 
 def test_the_pose_turned_about_its_measure_point_keeps_the_distance():
