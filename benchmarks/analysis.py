@@ -185,8 +185,8 @@ def prepare_dump(config: str, tmp: Path, fits) -> dict:
 
     from sofast_station.archive.dumps import DumpContent, crop_to_facet, write_dump
     from sofast_station.measure.analysis import analyse
-    from sofast_station.station.inspection import result_record
-    from sofast_station.station.verdict import judge
+    from sofast_station.result.record import build_record
+    from sofast_station.result.verdict import judge
 
     cfg, station, frames, distance = _twin_capture(config)
     cropped, box, full = crop_to_facet(frames, cfg.analysis.mask_threshold_dn)
@@ -195,8 +195,8 @@ def prepare_dump(config: str, tmp: Path, fits) -> dict:
         settings = dataclasses.replace(cfg.analysis, robust_fit=fit == "robust")
         a = analyse(frames, cfg.fringes, cfg.geometry, cfg.design, distance, settings, uncertainty=cfg.uncertainty,
                     sensitivity_cache={})
-        record = result_record(station, "BENCH-1", a, dict(a.timings_s))
-        record.update(judge(a.figures, cfg.design, cfg.limits, cfg.quality))
+        record = build_record(station.record_head("BENCH-1"), figures=a.figures,
+                              verdict=judge(a.figures, cfg.design, cfg.limits, cfg.quality), timings=dict(a.timings_s))
         content = DumpContent.from_station(station, cycle_id=f"bench-{fit}", record=record, frames_cropped=cropped,
                                            crop_box=box, full_shape=full, measured_distance_m=distance,
                                            analysis=settings, sensitivities=getattr(a, "sensitivities", None))

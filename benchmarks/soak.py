@@ -126,7 +126,7 @@ def main(argv=None) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(message)s", datefmt="%H:%M:%S")
     from sofast_station.config import load_config
     from sofast_station.station.service import Service
-    from sofast_station.station.shift import ShiftTally
+    from sofast_station.result.shift import ShiftTally
 
     with tempfile.TemporaryDirectory() as tmp:
         config_path = Path(args.config)

@@ -1,6 +1,6 @@
 """The ``sofast-station`` command: the parser of every registered command, and ``main``.
 
-The commands live with the code they drive (``station/cli.py``, ``calibrate/cli.py``,
+The commands live with the program that runs them (``station/cli.py``, ``station/calibrate_cli.py``,
 ``reanalysis/cli.py``, ``interop/cli.py``) and are listed once, in
 :data:`sofast_station.commands.COMMAND_MODULES`. Nothing imports this module but the entry points
 (``sofast-station``, ``python -m sofast_station``).

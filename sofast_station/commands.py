@@ -4,8 +4,8 @@
 shows them. Each has ``register(subparsers)``, which adds its commands (with their options and a
 ``func`` default: ``func(args) -> exit status``). :func:`build_parser` imports them by name when it builds
 the parser, so a command module never imports ``sofast_station.cli`` or another command module: they all
-import this module, which imports none of them. A new command is a ``register`` function in its package's
-``cli.py`` and one line here.
+import this module, which imports none of them. A new command is a ``register`` function in its program's
+command module (``station/cli.py``, ``station/calibrate_cli.py``, ``reanalysis/cli.py``...) and one line here.
 
 This module imports only the standard library, so ``--help`` and every command start fast; commands import
 numpy, the analysis and the devices inside their ``func``.
@@ -32,11 +32,11 @@ log = logging.getLogger("sofast_station")
 
 #: The modules providing commands, in ``--help`` order, each with ``register(subparsers)``.
 COMMAND_MODULES = (
-    "sofast_station.station.cli",       # the production line: inspect, run, serve, dump-next, archive export
-    "sofast_station.calibrate.cli",     # the morning calibration: calibrate radiometric|camera|geometry|status
-    "sofast_station.reanalysis.cli",    # the process and quality engineers: reprocess, batch, report
-    "sofast_station.interop.cli",       # import-opencsp
-    "sofast_station.station.study_cli", # study repeatability (the twin)
+    "sofast_station.station.cli",            # the production line: inspect, run, serve, dump-next, archive export
+    "sofast_station.station.calibrate_cli",  # the morning calibration: calibrate radiometric|camera|geometry|status
+    "sofast_station.reanalysis.cli",         # the process and quality engineers: reprocess, batch, report
+    "sofast_station.interop.cli",            # import-opencsp
+    "sofast_station.station.study_cli",      # study repeatability (the twin)
 )
 
 

@@ -28,7 +28,7 @@ from .layout import layout_station
 from .measure.heliostat import HeliostatSettings
 from .measure.pipeline import AnalysisSettings
 from .measure.uncertainty import InputUncertainties
-from .station.verdict import Limits, Quality, limits_from_table, quality_from_table
+from .result.verdict import Limits, Quality, limits_from_table, quality_from_table
 
 for _section, _cls in (("analysis", AnalysisSettings), ("limits", Limits), ("quality", Quality),
                        ("heliostat", HeliostatSettings)):
@@ -201,9 +201,9 @@ def load_config(path: str | Path, use_camera_record: bool = True) -> StationConf
 
 
 def _optics(raw: dict, where: str):
-    """``[optics]`` as OpticsSettings (None when disabled); validated in :mod:`sofast_station.station.optics`."""
-    from .station.optics import optics_for
-    from .station.verdict import OPTICAL_LIMITS
+    """``[optics]`` as OpticsSettings (None when disabled); validated in :mod:`sofast_station.result.optical_figures`."""
+    from .result.optical_figures import optics_for
+    from .result.verdict import OPTICAL_LIMITS
     optics = optics_for(raw, where)
     used = [k for k in OPTICAL_LIMITS if raw.get("limits", {}).get(k) is not None]
     if optics is None and used:

@@ -204,7 +204,7 @@ SECTIONS: dict[str, dict[str, Key]] = {
         "incidence_angle_deg": Key("float", low=0.0, high=90.0, high_open=True, doc="sun from the facet's axis"),
         "slant_range_m": _pos("facet centre to target plane, m"),
         "aperture": Key("table", doc="{shape = \"circle\", radius_m} or {shape = \"rectangle\", width_m, height_m}, "
-                                     "checked by station.optics"),
+                                     "checked by result.optical_figures"),
         "rays_per_pixel": _pos("rays per measured point"),
         "min_rays": Key("int", low=0, doc="at least this many rays per facet"),
         "grid_cells": Key("int", low=2, high=4001, doc="flux map cells per side"),
@@ -420,12 +420,12 @@ def _rule_simulation(raw: dict, where: str) -> None:
 
 
 def _rule_acceptance(raw: dict, where: str) -> None:
-    """[acceptance.RECIPE] contracts are checked by their reader (sofast_station/report/acceptance.py)."""
+    """[acceptance.RECIPE] contracts are checked by their reader (sofast_station/qc/acceptance.py)."""
     if not raw.get("acceptance"):
         return
     from types import SimpleNamespace
 
-    from .report.acceptance import contract_from_config
+    from .qc.acceptance import contract_from_config
 
     for recipe in raw["acceptance"]:
         contract_from_config(SimpleNamespace(path=where, raw=raw), recipe)

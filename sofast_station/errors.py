@@ -16,6 +16,14 @@ class ConfigError(StationError):
     """The configuration (station.toml, a facet file, a calibration record) is missing or invalid."""
 
 
+class UnknownRecipeError(ConfigError):
+    """The PLC asked for a recipe that station.toml does not define (its own fault code, "recipe")."""
+
+
+class CommandError(StationError):
+    """An operator command that cannot be posted to the running station: unknown, or with a bad argument."""
+
+
 class CaptureError(StationError):
     """The frames handed to the analysis are not a usable capture (wrong count, size, dark, saturated)."""
 
@@ -40,6 +48,14 @@ class AnalysisError(StationError):
     """The analysis could not produce a trustworthy result from otherwise valid frames."""
 
 
+class AnalysisTimeout(StationError):
+    """The analysis did not finish before the cycle's deadline; the worker was restarted."""
+
+
+class WorkerDied(StationError):
+    """The analysis worker process died (killed, out of memory); it is being restarted."""
+
+
 class CameraError(StationError):
     """The camera failed: no frame in time, gone from the bus, or frames of the wrong size."""
 
@@ -58,6 +74,10 @@ class TriggerError(StationError):
 
 class ArchiveError(StationError):
     """A journal, workbook or dump could not be read or written."""
+
+
+class ReportError(StationError):
+    """A picture or report cannot be made: no analysis (the capture was refused), or no data in the period."""
 
 
 class DumpError(ArchiveError):

@@ -231,8 +231,10 @@ def compare_to_reference(figures: dict, reference: GeometryReference) -> dict:
     return out
 
 
-def check_geometry(station, reference: GeometryReference, serial: str = "GEOMETRY-REFERENCE") -> dict:
-    """Measure the reference facet in the fixture and compare (:func:`compare_to_reference`).
+def check_geometry(rec: dict, reference: GeometryReference, inputs=None) -> dict:
+    """Compare the inspection *rec* of the reference facet in the fixture with its certificate
+    (:func:`compare_to_reference`) and say what that determines (:func:`determined`; *inputs*: the station's
+    InputUncertainties). ``sofast-station calibrate geometry`` inspects the reference and calls this.
 
     Returns
     -------
@@ -240,13 +242,10 @@ def check_geometry(station, reference: GeometryReference, serial: str = "GEOMETR
         The comparison, plus the inspection's serial, time, record id of the radiometric calibration
         and verdict.
     """
-    from ..station.inspection import inspect
-
-    rec = inspect(station, serial)
     check = compare_to_reference(rec, reference)
-    check.update({"serial": serial, "time": rec["time"], "radiometric": rec["calibration"]["radiometric"],
+    check.update({"serial": rec["serial"], "time": rec["time"], "radiometric": rec["calibration"]["radiometric"],
                   "verdict": rec.get("verdict"), "n_points": rec.get("n_points")})
-    check["determined"] = determined(rec, reference, getattr(station.config, "uncertainty", None))
+    check["determined"] = determined(rec, reference, inputs)
     return check
 
 

@@ -101,15 +101,10 @@ def _budget_of(budget: dict, keys) -> dict:
 
 
 def _pm(v, u, unit: str = "", digits: int = 3) -> str:
-    """``115.738 ± 1.564 m``: U shown to at least two significant digits."""
-    from ..station.cli import _sig_digits
+    """``115.7 ± 1.6 m`` (:func:`~sofast_station.result.formatting.with_u`); *digits* decimals without U."""
+    from ..result.formatting import with_u
 
-    if v is None:
-        return "-"
-    if u is None:
-        return f"{v:.{digits}f}{unit}"
-    d = max(digits, _sig_digits(u, digits))
-    return f"{v:.{d}f} ± {u:.{d}f}{unit}"
+    return with_u(v, u, unit, digits)
 
 
 def cmd_import_opencsp(args) -> int:
@@ -134,7 +129,7 @@ def cmd_import_opencsp(args) -> int:
     # What the facet does with sunlight: default [optics] (pillbox sun, target at the design focal length);
     # 'report flux --opencsp' draws the map and takes other conditions. With the analysis's U, the optics'.
     from ..optics import OpticsSettings
-    from ..station.optics import analysis_optics
+    from ..result.optical_figures import analysis_optics
     out["optics"] = analysis_optics(a, m.design, OpticsSettings()).figures
     if args.compare:
         ref = read_opencsp_result(Path(args.compare))
@@ -152,7 +147,7 @@ def cmd_import_opencsp(args) -> int:
         return 0
     print(summary_text(out, args.robust))
     if args.budget:
-        from ..station.cli import BUDGET_COLUMNS, budget_text
+        from ..result.formatting import BUDGET_COLUMNS, budget_text
         print(budget_text(out, [c for c in BUDGET_COLUMNS if not c[0].startswith(("optical_tilt", "placement"))]))
     return 0
 

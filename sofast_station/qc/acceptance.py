@@ -1,4 +1,5 @@
-"""Contract acceptance of a population of facets from a sample (pure: numpy in, numpy out).
+"""Contract acceptance of a population of facets from a sample (pure: numpy in, numpy out), and the
+contract itself as station.toml states it (:func:`contract_from_config`, ``[acceptance.RECIPE]``).
 
 Sample size
 -----------
@@ -24,8 +25,11 @@ population correction of the guideline's Eq. (5).
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, field
 
 import numpy as np
+
+from ..errors import ConfigError
 
 
 def z_for(confidence: float) -> float:
@@ -171,3 +175,80 @@ def fit_weibull(x) -> dict | None:
         return None
     k, _, lam = weibull_min.fit(a, floc=0.0)
     return {"shape": float(k), "scale": float(lam)}
+
+
+# ------------------------------------------------------------------------------- the contract
+_KEYS = {"population", "confidence", "relative_error", "figures"}
+_FIGURE_KEYS = {"name", "contract", "tolerance", "expected_mean", "expected_std", "sense", "relative_error"}
+
+
+@dataclass
+class ContractFigure:
+    key: str
+    name: str
+    contract: float
+    tolerance: float
+    expected_std: float
+    expected_mean: float
+    sense: str = "two_sided"
+    relative_error: float | None = None
+
+
+@dataclass
+class Contract:
+    recipe: str
+    population: int
+    confidence: float
+    relative_error: float
+    figures: list = field(default_factory=list)
+
+
+def _number(table: dict, key: str, where: str, positive: bool = False) -> float:
+    v = table.get(key)
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or (positive and v <= 0):
+        raise ConfigError(f"{where}: {key} = {v!r} must be a{' positive' if positive else ''} number")
+    return float(v)
+
+
+def contract_from_config(config, recipe: str) -> Contract:
+    """The ``[acceptance.RECIPE]`` table of station.toml, validated (messages name file, table, key)."""
+    tables = config.raw.get("acceptance", {})
+    where = f"{config.path} [acceptance.{recipe}]"
+    if recipe not in tables:
+        raise ConfigError(f"{config.path} has no [acceptance.{recipe}] table: add the contract's population, "
+                          f"confidence, relative_error and figures (docs/quality.md)"
+                          + (f"; tables present: {', '.join(sorted(tables))}" if tables else ""))
+    t = tables[recipe]
+    unknown = sorted(set(t) - _KEYS)
+    if unknown:
+        raise ConfigError(f"{where} has unknown key(s) {', '.join(unknown)}; allowed: {', '.join(sorted(_KEYS))}")
+    population = t.get("population")
+    if isinstance(population, bool) or not isinstance(population, int) or population < 1:
+        raise ConfigError(f"{where}: population = {population!r} must be a whole number of facets >= 1")
+    confidence = _number(t, "confidence", where) if "confidence" in t else 0.95
+    if not 0 < confidence < 1:
+        raise ConfigError(f"{where}: confidence = {confidence} must lie between 0 and 1 (e.g. 0.95)")
+    rel = _number(t, "relative_error", where) if "relative_error" in t else 0.05
+    if not 0 < rel < 1:
+        raise ConfigError(f"{where}: relative_error = {rel} must lie between 0 and 1 (0.05 for 5 %)")
+    figs = t.get("figures")
+    if not isinstance(figs, dict) or not figs:
+        raise ConfigError(f"{where}: figures must be a table of at least one figure, e.g. "
+                          f"[acceptance.{recipe}.figures.\"slope_rms_mrad.design.magnitude\"]")
+    out = []
+    for key, f in figs.items():
+        fw = f"{where} figures.{key}"
+        if not isinstance(f, dict):
+            raise ConfigError(f"{fw} must be a table")
+        unknown = sorted(set(f) - _FIGURE_KEYS)
+        if unknown:
+            raise ConfigError(f"{fw} has unknown key(s) {', '.join(unknown)}; allowed: {', '.join(sorted(_FIGURE_KEYS))}")
+        contract = _number(f, "contract", fw)
+        sense = f.get("sense", "two_sided")
+        if sense not in ("two_sided", "at_most"):
+            raise ConfigError(f"{fw}: sense = {sense!r} must be 'two_sided' or 'at_most'")
+        out.append(ContractFigure(key, str(f.get("name", key)), contract, _number(f, "tolerance", fw, True),
+                                  _number(f, "expected_std", fw, True),
+                                  _number(f, "expected_mean", fw) if "expected_mean" in f else contract, sense,
+                                  _number(f, "relative_error", fw) if "relative_error" in f else None))
+    return Contract(recipe, population, confidence, rel, out)

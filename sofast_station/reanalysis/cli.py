@@ -20,6 +20,7 @@ from pathlib import Path
 from ..commands import add_command
 from ..commands import build_parser as _build_parser
 from ..commands import default_config, lower_priority, run
+from ..result.formatting import with_u
 from ._env import single_thread_blas
 
 log = logging.getLogger(__name__)
@@ -137,7 +138,7 @@ def register(subparsers) -> None:
     rpt.add_argument("--results", metavar="DIR", help="trend: a batch output folder")
     rpt.add_argument("--from", dest="since", default=None, metavar="ISO", help="trend: start (inclusive)")
     rpt.add_argument("--to", dest="until", default=None, metavar="ISO", help="trend: end (exclusive)")
-    from ..report.cli import add_options as add_quality_options
+    from .quality_reports import add_options as add_quality_options
     add_quality_options(rpt)
     flux = rpt.add_argument_group("flux maps ('report flux')")
     flux.add_argument("--opencsp", metavar="DIR", default=None,
@@ -193,14 +194,14 @@ def comparison_table(result, show_all: bool = False) -> str:
     new_u = flatten_figures(result.record, uncertainties=True)
     old_u = flatten_figures(result.archived, uncertainties=True) if result.archived else {}
 
-    def with_u(value, name, flat):
+    def value_u(value, name, flat):
         """``value ± U`` where the record has the figure's expanded uncertainty."""
         top, dot, rest = name.partition(".")
         top, bracket, index = top.partition("[")
         u = flat.get(f"{top}_U{bracket}{index}{dot}{rest}")
         if u is None or not isinstance(value, (int, float)) or isinstance(value, bool):
             return _fmt(value)
-        return f"{value:.6g} ± {u:.2g}"
+        return with_u(value, u)
 
     names = list(new) + [k for k in old if k not in new]
     shown = names if show_all else [k for k in names if k in HEADLINE or k in result.differences]
@@ -216,7 +217,7 @@ def comparison_table(result, show_all: bool = False) -> str:
             diff = f"{d['difference']:+.3e}"
         else:
             diff = "changed"
-        lines.append(f"  {name:<40} {with_u(a, name, old_u):>24} {with_u(b, name, new_u):>24} {diff:>16}")
+        lines.append(f"  {name:<40} {value_u(a, name, old_u):>24} {value_u(b, name, new_u):>24} {diff:>16}")
     hidden = len(names) - len(shown)
     if hidden:
         lines.append(f"  ({hidden} more figure(s), all identical to the archive; --all lists them)"
@@ -363,14 +364,14 @@ def cmd_report(args) -> int:
         return _cmd_trend(args)
     if args.targets[0] == "flux":
         return _cmd_flux(args)
-    from ..report.cli import REPORTS, run as run_quality_report
+    from .quality_reports import REPORTS, run as run_quality_report
     if args.targets[0] in REPORTS:
         return run_quality_report(args)
     if args.journal or args.results or args.since or args.until or args.config:
         from ..errors import ConfigError
         raise ConfigError("--journal, --results, --config, --from and --to belong to 'report trend'")
     from ..report.maps import write_detail_maps, write_slope_error_maps
-    from ..report.sources import load_measured
+    from .sources import load_measured
 
     overrides = overrides_from_args(args)
     overrides.check()
@@ -423,8 +424,7 @@ def flux_text(name: str, figures: dict, path) -> str:
         src = f if d_ is None else d_
         v = src[key] if d_ is None else src.get(key)
         u = f.get(f"{key}_U") if d_ is None else (f.get("centroid_offset_mrad_U") or {}).get(key)
-        text = f"{v * scale:{sign}.{digits}f}"
-        return text if u is None else f"{text} ± {u * scale:.{digits}f}"
+        return with_u(v, u, decimals=digits, scale=scale, sign=sign == "+")
 
     r90 = "-" if f["spot_radius_m"] is None else (f"{pm('spot_radius_m', 1000.0, 2)} mm "
                                                   f"({pm('spot_radius_mrad', 1.0, 3)} mrad)")
@@ -444,8 +444,8 @@ def _cmd_flux(args) -> int:
 
     from ..errors import ConfigError, StationError
     from ..report.flux import write_flux_map
-    from ..report.sources import load_measured
-    from ..station.optics import analysis_optics, optics_for
+    from .sources import load_measured
+    from ..result.optical_figures import analysis_optics, optics_for
 
     targets = args.targets[1:] + ([f"opencsp:{args.opencsp}"] if args.opencsp else [])
     if not targets:

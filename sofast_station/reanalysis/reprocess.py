@@ -22,7 +22,6 @@ Example::
 from __future__ import annotations
 
 import dataclasses
-import datetime as _dt
 import hashlib
 import json
 import logging
@@ -437,7 +436,7 @@ def stored_sensitivities(content: DumpContent) -> dict | None:
 
 def _judge_settings(content: DumpContent, recipe: str, notes: list):
     """Limits and quality of the dumped station.toml (and of the record's recipe)."""
-    from ..station.verdict import Limits, Quality, limits_from_table, quality_from_table
+    from ..result.verdict import Limits, Quality, limits_from_table, quality_from_table
 
     if not content.station_toml.strip():
         notes.append("the dump holds no station.toml text: the verdict uses the default limits")
@@ -466,7 +465,7 @@ def _optics_settings(content: DumpContent, recipe: str, archived: dict | None, o
     A record archived by software without optical figures is compared like for like: no trace then, unless
     the re-analysis changes something anyway (overrides).
     """
-    from ..station.optics import optics_for
+    from ..result.optical_figures import optics_for
 
     if archived is not None and "optics" not in archived and overrides.empty:
         if archived.get("verdict") != "fault":
@@ -503,10 +502,6 @@ def _config_hash(archived_hash: str, overrides: Overrides) -> str:
     return hashlib.sha256(blob).hexdigest()[:16]
 
 
-def _now_iso() -> str:
-    return _dt.datetime.now().astimezone().isoformat(timespec="milliseconds")
-
-
 # -- the re-analysis -------------------------------------------------------------------------------------
 def reprocess_content(content: DumpContent, overrides: Overrides | None = None, *, archived: dict | None = None,
                       archived_source: str = "dump", read_s: float = 0.0) -> ReprocessResult:
@@ -528,9 +523,9 @@ def reprocess_content(content: DumpContent, overrides: Overrides | None = None, 
     -------
     ReprocessResult
     """
-    from ..station.inspection import FIGURE_KEYS
-    from ..station.runner import fault_code_for
-    from ..station.verdict import judge
+    from ..result.faults import fault_reason
+    from ..result.record import RecordHead, build_record, now_iso
+    from ..result.verdict import judge
 
     t0 = time.perf_counter()
     overrides = overrides or Overrides()
@@ -555,13 +550,11 @@ def reprocess_content(content: DumpContent, overrides: Overrides | None = None, 
         notes.append(calibration_note(content, new_rad))
         rad_id = new_rad.record_id
     base = archived or {}
-    record = {"serial": content.serial, "time": content.time, "cycle_id": content.cycle_id,
-              "recipe": base.get("recipe", "default"), "station": content.station_name, "facet": design.name,
-              "software_version": __version__,
-              "config_hash": _config_hash(content.config_hash, overrides),
-              "calibration": {"radiometric": rad_id},
-              "camera": {"exposure_s": rad["exposure_s"], "gain": rad["gain"]}}
-    analysis = None
+    head = RecordHead(serial=content.serial, time=content.time, station=content.station_name,
+                      config_hash=_config_hash(content.config_hash, overrides), calibration={"radiometric": rad_id},
+                      camera={"exposure_s": rad["exposure_s"], "gain": rad["gain"]}, facet=design.name,
+                      cycle_id=content.cycle_id, recipe=base.get("recipe", "default"))
+    analysis = fault = None
     t1 = time.perf_counter()
     try:
         analysis = content.analyse(design=design, settings=settings, measured_distance_m=distance,
@@ -570,30 +563,29 @@ def reprocess_content(content: DumpContent, overrides: Overrides | None = None, 
     except (DumpError, ConfigError):
         raise
     except StationError as exc:              # the analysis refuses the capture: a fault, as on the line
-        code, kind = fault_code_for(exc)
-        record.update({"verdict": "fault", "fault_code": code, "reasons": [f"{kind}: {exc}"]})
+        fault = fault_reason(exc)
     t_analysis = time.perf_counter() - t1
-    if analysis is not None:
-        optics = _optics_settings(content, record["recipe"], archived, overrides, notes)
+    if analysis is None:
+        record = build_record(head, fault=fault, timings={"read": read_s, "analysis": t_analysis})
+    else:
+        optics = _optics_settings(content, head.recipe, archived, overrides, notes)
         if optics is not None:
-            from ..station.optics import add_optics
+            from ..result.optical_figures import add_optics
             add_optics(analysis, design, optics)
-        fig = analysis.figures
-        record.update({k: fig[k] for k in FIGURE_KEYS})
-        record.update({k: v for k, v in fig.items() if k not in FIGURE_KEYS and k != "timings_s"})
-        record["measured_distance_m"] = distance
-        limits, quality = _judge_settings(content, record["recipe"], notes)
-        record.update(judge(fig, design, limits, quality))
-        if overrides.empty and archived and "truth" in archived:
-            record["truth"] = archived["truth"]   # the twin's truth for the same pixels (simulated stations)
-    record["timings_s"] = {"read": read_s, "analysis": t_analysis,
-                           **({f"analysis_{k}": v for k, v in analysis.timings_s.items()} if analysis else {})}
+        timings = {"read": read_s, "analysis": t_analysis,
+                   **{f"analysis_{k}": v for k, v in analysis.timings_s.items()}}
+        limits, quality = _judge_settings(content, head.recipe, notes)
+        # the twin's truth for the same pixels (simulated stations), when nothing was changed
+        truth = archived["truth"] if overrides.empty and archived and "truth" in archived else None
+        record = build_record(head, figures=analysis.figures,
+                              verdict=judge(analysis.figures, design, limits, quality), truth=truth,
+                              measured_distance_m=distance, timings=timings)
     record = json.loads(to_json(record))     # exactly what a JSON archive holds (no numpy scalars)
     differences, n = compare_figures(archived, record) if archived else ({}, len(flatten_figures(record)))
     seconds = time.perf_counter() - t0 + read_s
     record["timings_s"]["total"] = seconds
     record["reprocess"] = json_ready({
-        "at": _now_iso(), "software_version": __version__, "dump_software_version": content.software_version,
+        "at": now_iso(), "software_version": __version__, "dump_software_version": content.software_version,
         "dump_schema_version": content.schema_version, "dump_created": content.created,
         "design": {"name": design.name, "focal_length_m": design.focal_length_m,
                    "alignment_point_m": design.alignment_point_m.tolist(),

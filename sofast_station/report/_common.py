@@ -1,4 +1,4 @@
-"""What every report shares: its error and the atomic PNG write."""
+"""What every report shares: the atomic write of a picture (its error, ReportError, is in errors.py)."""
 
 from __future__ import annotations
 
@@ -6,14 +6,6 @@ import os
 from pathlib import Path
 
 from ..archive._common import temp_path_for
-from ..errors import StationError
-
-#: Above this design focal length (metres) reports show focal power instead (docs/conventions.md).
-LONG_FOCAL_LENGTH_M = 20.0
-
-
-class ReportError(StationError):
-    """A picture cannot be made: no analysis (the capture was refused), or no data in the period."""
 
 
 def savefig_atomic(fig, path: Path, dpi: int, fmt: str = "png") -> Path:

@@ -14,98 +14,21 @@ The contract is in station.toml, one table per recipe (``default`` is the statio
     expected_std = 0.3          # sigma_e for the sample size (expected_mean defaults to the contract value)
     sense = "at_most"
 
-The statistics (guideline sample sizes, t intervals, normal and Weibull fits) are
-:mod:`sofast_station.qc.acceptance`.
+The contract's reader and the statistics (guideline sample sizes, t intervals, normal and Weibull fits) are
+:mod:`sofast_station.qc.acceptance`; this module evaluates a period's records and draws and writes the result.
 """
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from ..errors import ConfigError
 from ..qc import acceptance as acc
-from ._common import ReportError, savefig_atomic
-from .spc import lookup
-
-_KEYS = {"population", "confidence", "relative_error", "figures"}
-_FIGURE_KEYS = {"name", "contract", "tolerance", "expected_mean", "expected_std", "sense", "relative_error"}
-
-
-@dataclass
-class ContractFigure:
-    key: str
-    name: str
-    contract: float
-    tolerance: float
-    expected_std: float
-    expected_mean: float
-    sense: str = "two_sided"
-    relative_error: float | None = None
-
-
-@dataclass
-class Contract:
-    recipe: str
-    population: int
-    confidence: float
-    relative_error: float
-    figures: list = field(default_factory=list)
-
-
-def _number(table: dict, key: str, where: str, positive: bool = False) -> float:
-    v = table.get(key)
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or (positive and v <= 0):
-        raise ConfigError(f"{where}: {key} = {v!r} must be a{' positive' if positive else ''} number")
-    return float(v)
-
-
-def contract_from_config(config, recipe: str) -> Contract:
-    """The ``[acceptance.RECIPE]`` table of station.toml, validated (messages name file, table, key)."""
-    tables = config.raw.get("acceptance", {})
-    where = f"{config.path} [acceptance.{recipe}]"
-    if recipe not in tables:
-        raise ConfigError(f"{config.path} has no [acceptance.{recipe}] table: add the contract's population, "
-                          f"confidence, relative_error and figures (docs/quality.md)"
-                          + (f"; tables present: {', '.join(sorted(tables))}" if tables else ""))
-    t = tables[recipe]
-    unknown = sorted(set(t) - _KEYS)
-    if unknown:
-        raise ConfigError(f"{where} has unknown key(s) {', '.join(unknown)}; allowed: {', '.join(sorted(_KEYS))}")
-    population = t.get("population")
-    if isinstance(population, bool) or not isinstance(population, int) or population < 1:
-        raise ConfigError(f"{where}: population = {population!r} must be a whole number of facets >= 1")
-    confidence = _number(t, "confidence", where) if "confidence" in t else 0.95
-    if not 0 < confidence < 1:
-        raise ConfigError(f"{where}: confidence = {confidence} must lie between 0 and 1 (e.g. 0.95)")
-    rel = _number(t, "relative_error", where) if "relative_error" in t else 0.05
-    if not 0 < rel < 1:
-        raise ConfigError(f"{where}: relative_error = {rel} must lie between 0 and 1 (0.05 for 5 %)")
-    figs = t.get("figures")
-    if not isinstance(figs, dict) or not figs:
-        raise ConfigError(f"{where}: figures must be a table of at least one figure, e.g. "
-                          f"[acceptance.{recipe}.figures.\"slope_rms_mrad.design.magnitude\"]")
-    out = []
-    for key, f in figs.items():
-        fw = f"{where} figures.{key}"
-        if not isinstance(f, dict):
-            raise ConfigError(f"{fw} must be a table")
-        unknown = sorted(set(f) - _FIGURE_KEYS)
-        if unknown:
-            raise ConfigError(f"{fw} has unknown key(s) {', '.join(unknown)}; allowed: {', '.join(sorted(_FIGURE_KEYS))}")
-        contract = _number(f, "contract", fw)
-        sense = f.get("sense", "two_sided")
-        if sense not in ("two_sided", "at_most"):
-            raise ConfigError(f"{fw}: sense = {sense!r} must be 'two_sided' or 'at_most'")
-        out.append(ContractFigure(key, str(f.get("name", key)), contract, _number(f, "tolerance", fw, True),
-                                  _number(f, "expected_std", fw, True),
-                                  _number(f, "expected_mean", fw) if "expected_mean" in f else contract, sense,
-                                  _number(f, "relative_error", fw) if "relative_error" in f else None))
-    return Contract(recipe, population, confidence, rel, out)
-
+from ..qc.acceptance import Contract
+from ..result.record import figure_value
+from ..errors import ReportError
+from ._common import savefig_atomic
 
 def evaluate(contract: Contract, records: list[dict]) -> list[dict]:
     """Per contract figure: the guideline sample size, what is missing, the observed mean with its
@@ -113,7 +36,7 @@ def evaluate(contract: Contract, records: list[dict]) -> list[dict]:
     measured = [r for r in records if r.get("verdict") in ("pass", "fail")]
     out = []
     for f in contract.figures:
-        values = np.array([v for v in (lookup(r, f.key) for r in measured) if v is not None], float)
+        values = np.array([v for v in (figure_value(r, f.key) for r in measured) if v is not None], float)
         rel = f.relative_error or contract.relative_error
         n_req = acc.sample_size(f.expected_mean, f.expected_std, rel, contract.confidence, contract.population)
         ci = acc.mean_interval(values, contract.confidence, contract.population)

@@ -11,7 +11,8 @@ from __future__ import annotations
 import hashlib
 from pathlib import Path
 
-from ._common import ReportError, savefig_atomic
+from ..errors import ReportError
+from ._common import savefig_atomic
 from .maps import MODEL_LABELS, detail_maps, draw_detail, value_with_u
 
 
@@ -33,15 +34,16 @@ def _limit_text(spec) -> str:
 
 def figure_rows(record: dict, specs) -> list[list[str]]:
     """Rows (figure, value ± U, unit, limits, within) of the certificate's table."""
-    from .spc import lookup
+    from ..result.formatting import with_u
+    from ..result.record import figure_value
 
     rows = []
     for s in specs:
-        v = lookup(record, s.key)
+        v = figure_value(record, s.key)
         if s.key.startswith("slope_rms_mrad."):
             model = s.key.split(".")[1]
             u = ((record.get("slope_rms_mrad_U") or {}).get(model) or {}).get("magnitude")
-            shown = "-" if v is None else f"{v:.3f}" + (f" ± {u:.3f}" if isinstance(u, (int, float)) else "")
+            shown = with_u(v, u if isinstance(u, (int, float)) else None, decimals=3)
         else:
             digits = 6 if "curvature" in s.key else 3 if "mrad" in s.key else 4
             shown = value_with_u(record, s.key, digits)
@@ -61,7 +63,7 @@ def write_certificate(record: dict, out_path: Path, *, specs, measured=None, dum
     out_path : Path
         The ``.pdf`` to write.
     specs : list of FigureSpec
-        Figures and limits of the facet's recipe (:func:`sofast_station.report.spc.figure_specs`).
+        Figures and limits of the facet's recipe (:func:`sofast_station.result.specs.figure_specs`).
     measured : Measured, optional
         The reprocessed dump (for the maps); without it the page says why there are no maps.
     dump_path : Path, optional

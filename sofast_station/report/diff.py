@@ -13,7 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ._common import ReportError, savefig_atomic
+from ..errors import ReportError
+from ._common import savefig_atomic
 from .maps import draw_field
 
 

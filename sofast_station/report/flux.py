@@ -17,16 +17,17 @@ from pathlib import Path
 
 import numpy as np
 
-from ._common import ReportError, savefig_atomic
+from ..result.formatting import with_u
+from ..errors import ReportError
+from ._common import savefig_atomic
 
 log = logging.getLogger(__name__)
 
 
 def _fmt(value, fmt: str, u=None) -> str:
-    """*value* in *fmt*, with `` ± U`` (k = 2) when its uncertainty *u* is known."""
-    if value is None:
-        return "-"
-    return fmt.format(value) + ("" if u is None else " ± " + fmt.format(u))
+    """*value* with `` ± U`` (k = 2) by GUM's rule (:func:`~sofast_station.result.formatting.with_u`) when its
+    uncertainty *u* is known, else to the decimals of *fmt* (``"{:.4f}"``)."""
+    return with_u(value, u, decimals=int(fmt.split(".")[1].rstrip("f}")))
 
 
 def draw_flux_maps(res, title: str = "") -> "Figure":  # noqa: F821

@@ -28,7 +28,10 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ._common import LONG_FOCAL_LENGTH_M, ReportError, savefig_atomic
+from ..result.formatting import with_u
+from ..result.verdict import LONG_FOCAL_LENGTH_M
+from ..errors import ReportError
+from ._common import savefig_atomic
 
 log = logging.getLogger(__name__)
 
@@ -401,18 +404,11 @@ def write_detail_maps(result, out_path: str | Path, model: str = "parabola", dpi
     return savefig_atomic(fig, Path(out_path), dpi)
 
 
-def _pm(v: float, u, digits: int) -> str:
-    """``v ± u`` to *digits* decimals, or ``v`` alone when *u* is not a number."""
-    return f"{v:.{digits}f}" + (f" ± {u:.{digits}f}" if isinstance(u, (int, float)) else "")
-
-
 def value_with_u(rec: dict, key: str, digits: int = 4, scale: float = 1.0) -> str:
-    """``value ± U`` when the record carries ``key_U`` (expanded uncertainty, k = 2), else the value."""
-    v = rec.get(key)
-    if v is None:
-        return "-"
+    """``value ± U`` (:func:`~sofast_station.result.formatting.with_u`) when the record carries ``key_U``
+    (expanded uncertainty, k = 2), else the value to *digits* decimals."""
     u = rec.get(f"{key}_U")
-    return _pm(v * scale, u * scale if isinstance(u, (int, float)) else None, digits)
+    return with_u(rec.get(key), u if isinstance(u, (int, float)) else None, decimals=digits, scale=scale)
 
 
 def figure_lines(rec: dict) -> str:
@@ -434,7 +430,7 @@ def figure_lines(rec: dict) -> str:
         if not r:
             continue
         u = (rms_u.get(model) or {}).get("magnitude")
-        lines.append(f"slope RMS {model:<12} {_pm(r['magnitude'], u, 3)} mrad")
+        lines.append(f"slope RMS {model:<12} {with_u(r['magnitude'], u, ' mrad', 3)}")
     if rec.get("coverage_factor"):
         lines.append(f"(± U: expanded uncertainty, k = {rec['coverage_factor']})")
     if rec.get("verdict"):
@@ -459,7 +455,7 @@ def _titles(result, maps: dict) -> dict:
     for model, m in maps.items():
         r = rec.get("slope_rms_mrad", {}).get(model) or m.rms_mrad
         u = (rec.get("slope_rms_mrad_U") or {}).get(model) or {}
-        x, y, mag = (_pm(r[a], u.get(a), 3) for a in ("x", "y", "magnitude"))
+        x, y, mag = (with_u(r[a], u.get(a), decimals=3) for a in ("x", "y", "magnitude"))
         out[model] = f"{head[model]}\nslope error RMS (mrad) x {x}, y {y},\nmagnitude {mag}"
     return out
 

@@ -16,52 +16,12 @@ import numpy as np
 
 from ..archive._common import parse_time
 from ..qc import spc
-from ._common import LONG_FOCAL_LENGTH_M, ReportError, savefig_atomic
+from ..result.record import figure_value
+from ..result.specs import FigureSpec
+from ..errors import ReportError
+from ._common import savefig_atomic
 
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class FigureSpec:
-    """One charted figure: where it is in a record, its unit, design value and specification limits."""
-
-    key: str                      # dotted path in the record
-    label: str
-    unit: str
-    design: float | None = None
-    lsl: float | None = None
-    usl: float | None = None
-
-
-def lookup(record: dict, dotted: str):
-    v = record
-    for part in dotted.split("."):
-        if not isinstance(v, dict):
-            return None
-        v = v.get(part)
-    return v if isinstance(v, (int, float)) and not isinstance(v, bool) else None
-
-
-def figure_specs(design_focal_length_m: float, limits) -> list[FigureSpec]:
-    """The charted figures of a recipe: f_x, f_y (or kappa_x, kappa_y beyond 20 m), twist, slope RMS vs design
-    and vs the fitted parabola, with the recipe's limits as specification limits."""
-    f = float(design_focal_length_m)
-    out = []
-    if f > LONG_FOCAL_LENGTH_M:
-        k, tol = 1.0 / f, limits.curvature_tolerance_per_m
-        for axis in ("x", "y"):
-            out.append(FigureSpec(f"curvature_{axis}_per_m", f"focal power kappa_{axis}", "1/m", k, k - tol, k + tol))
-    else:
-        tol = limits.focal_length_tolerance
-        for axis in ("x", "y"):
-            out.append(FigureSpec(f"focal_length_{axis}_m", f"focal length f_{axis}", "m", f, f * (1 - tol),
-                                  f * (1 + tol)))
-    t = limits.max_twist_mrad_per_m
-    out.append(FigureSpec("twist_mrad_per_m", "twist", "mrad/m", 0.0, -t, t))
-    for model in ("design", "parabola"):
-        out.append(FigureSpec(f"slope_rms_mrad.{model}.magnitude", f"slope error RMS vs {model}", "mrad", None, None,
-                              limits.max_slope_rms_mrad.get(model)))
-    return out
 
 
 def select_records(records, *, recipe: str | None = None, facet: str | None = None, serial: str | None = None,
@@ -116,7 +76,7 @@ def build_charts(records: list[dict], specs: list[FigureSpec], *, baseline_n: in
         raise ReportError(f"no measured facet (pass or fail) among the {len(records)} selected record(s)")
     charts = []
     for s in specs:
-        vals = np.array([np.nan if lookup(r, s.key) is None else lookup(r, s.key) for r in measured], float)
+        vals = np.array([np.nan if figure_value(r, s.key) is None else figure_value(r, s.key) for r in measured], float)
         base = (baselines or {}).get(s.key)
         if base is None:
             head = vals[:baseline_n]

@@ -12,7 +12,9 @@ from pathlib import Path
 import numpy as np
 
 from ..archive._common import parse_time, utc_key
-from ._common import LONG_FOCAL_LENGTH_M, ReportError, savefig_atomic
+from ..result.verdict import LONG_FOCAL_LENGTH_M
+from ..errors import ReportError
+from ._common import savefig_atomic
 from .maps import MODEL_LABELS, MODELS
 
 log = logging.getLogger(__name__)

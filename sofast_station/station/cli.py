@@ -13,6 +13,7 @@ from pathlib import Path
 
 from ..commands import add_command, add_config_option, json_safe, positive_int, write_json_atomic
 from ..errors import StationError
+from ..result.formatting import budget_text, shown_decimals, value_and_u, with_u
 
 log = logging.getLogger("sofast_station")
 
@@ -29,15 +30,11 @@ def optics_lines(opt: dict | None, truth: dict | None = None) -> list[str]:
         return []
 
     def show(d, key, fmt, scale=1.0, u=None):
-        """The value, `` ± U`` when ``key_U`` is in *d* (or *key* in *u*, for a nested figure's U)."""
-        v = d.get(key)
-        if v is None:
-            return "-"
-        text = fmt.format(v * scale)
+        """The value, `` ± U`` when ``key_U`` is in *d* (or *key* in *u*, for a nested figure's U); *fmt* gives
+        the decimals (and sign) of a value without U."""
         big_u = d.get(f"{key}_U") if u is None else u.get(key)
-        if big_u is not None:
-            text += " ± " + fmt.replace("+", "").format(big_u * scale)
-        return text
+        decimals = int(fmt.split(".")[1].rstrip("f}"))
+        return with_u(d.get(key), big_u, decimals=decimals, scale=scale, sign="+" in fmt)
 
     def extra(key, fmt, scale=1.0, sub=None):
         if not truth:
@@ -66,18 +63,9 @@ def optics_lines(opt: dict | None, truth: dict | None = None) -> list[str]:
 
 
 def _pm(v, u, unit="", digits=4):
-    """``5.4183 ± 0.0021 m`` (or ``5.4183 m`` without an uncertainty)."""
-    if v is None or u is None:
-        return _fmt(v, unit, digits)
-    return f"{v:.{digits}f} ± {u:.{digits}f}{unit}"
-
-
-def _sig_digits(u, minimum=3):
-    """Decimals that show the expanded uncertainty *u* to two significant digits (at least *minimum*)."""
-    import math
-    if u is None or u <= 0 or not math.isfinite(u):
-        return minimum
-    return max(minimum, min(8, 1 - int(math.floor(math.log10(u)))))
+    """``5.4183 ± 0.0021 m`` (:func:`~sofast_station.result.formatting.with_u`), or the value to *digits*
+    decimals without an uncertainty."""
+    return _fmt(v, unit, digits) if v is None else with_u(v, u, unit, digits)
 
 
 def summary_text(rec: dict) -> str:
@@ -95,7 +83,7 @@ def summary_text(rec: dict) -> str:
         v = None if v is None else v * scale
         u = rec.get(f"{key}_U")
         u = None if u is None else u * scale
-        digits = max(digits, _sig_digits(u)) if u is not None else digits
+        digits = shown_decimals(v, u, digits)         # the truth to the value's decimals
         t = None if not truth or truth.get(key) is None else truth[key] * scale
         extra = f"   (truth {_fmt(t, unit, digits)})" if truth is not None else ""
         lines.append(f"  {label:<26}{_pm(v, u, unit, digits):>24}{extra}")
@@ -109,10 +97,11 @@ def summary_text(rec: dict) -> str:
     lines.append("  slope error RMS (mrad)        x        y   magnitude" + ("      ± U" if rms_u else ""))
     for model, rms in rec["slope_rms_mrad"].items():
         t = truth["slope_rms_mrad"].get(model) if truth else None
-        text = f"    {model:<22}{_fmt(rms['x'], '', 3):>9}{_fmt(rms['y'], '', 3):>9}{_fmt(rms['magnitude'], '', 3):>12}"
         u = (rms_u.get(model) or {}).get("magnitude")
-        if u is not None:
-            text += f" ± {u:.3f}"
+        magnitude, big_u = ("-", None) if rms["magnitude"] is None else value_and_u(rms["magnitude"], u, 3)
+        text = f"    {model:<22}{_fmt(rms['x'], '', 3):>9}{_fmt(rms['y'], '', 3):>9}{magnitude:>12}"
+        if big_u is not None:
+            text += f" ± {big_u}"
         if t:
             text += f"   (truth {t['x']:.3f} {t['y']:.3f} {t['magnitude']:.3f})"
         lines.append(text)
@@ -152,44 +141,6 @@ def summary_text(rec: dict) -> str:
                  f"({'converged' if it['converged'] else 'NOT converged'})")
     t = rec["timings_s"]
     lines.append(f"  time: capture {t['capture']:.2f} s, analysis {t['analysis']:.2f} s, total {t['total']:.2f} s")
-    return "\n".join(lines)
-
-
-#: Figures shown as columns of ``inspect --budget`` (the record's budget has every scalar figure).
-BUDGET_COLUMNS = (("focal_length_x_m", "f x", "m"), ("focal_length_y_m", "f y", "m"),
-                  ("twist_mrad_per_m", "twist", "mrad/m"),
-                  ("slope_rms_mrad.design.magnitude", "RMS design", "mrad"),
-                  ("slope_rms_mrad.parabola.magnitude", "RMS parab.", "mrad"),
-                  ("boresight_mrad.x", "bore x", "mrad"), ("optical_tilt_mrad.x", "tilt x", "mrad"),
-                  ("placement.mm.0", "place x", "mm"), ("placement.mrad.2", "place rz", "mrad"))
-
-
-def budget_text(rec: dict, columns=BUDGET_COLUMNS) -> str:
-    """The uncertainty budget as one table: input groups against figures, standard-uncertainty
-    contributions (k = 1), then the combined standard and expanded uncertainties."""
-    b = rec.get("uncertainty_budget")
-    if not b:
-        return "no uncertainty budget in this record"
-    names = b["figures"]
-    cols = [(names.index(key), title, unit) for key, title, unit in columns if key in names]
-
-    def cell(v):
-        return f"{'-' if v is None else format(v, '.2e'):>11}"
-
-    lines = ["Uncertainty budget: standard-uncertainty contribution of each input to each figure (k=1), "
-             "combined per GUM",
-             f"  {'input':<30}{'':>10}" + "".join(f"{t:>11}" for _, t, _ in cols),
-             f"  {'':<30}{'':>10}" + "".join(f"{u:>11}" for _, _, u in cols)]
-    for row in b["rows"]:
-        lines.append(f"  {row['group']:<30}{row['kind']:>10}" + "".join(cell(row["contributions"][i]) for i, _, _ in cols))
-    lines.append(f"  {'combined standard u':<30}{'':>10}" + "".join(cell(b["combined_standard"][i]) for i, _, _ in cols))
-    lines.append(f"  {'  of which random':<30}{'':>10}" + "".join(cell(b["random_standard"][i]) for i, _, _ in cols))
-    k = b.get("coverage_factor", 2)
-    lines.append(f"  {f'expanded U (k={k})':<30}{'':>10}" + "".join(
-        cell(None if b["combined_standard"][i] is None else k * b["combined_standard"][i]) for i, _, _ in cols))
-    lines.append("  inputs: " + "; ".join(", ".join(r["inputs"]) for r in b["rows"] if r["kind"] == "systematic"))
-    lines.append(f"  sensitivities from {b.get('sensitivity_points')} points, computed once per geometry and "
-                 "recipe; docs/uncertainty.md")
     return "\n".join(lines)
 
 
@@ -236,7 +187,7 @@ def cmd_run(args) -> int:
     from ..web.settings import opcua_settings, web_settings
     from . import console
     from .service import Service, setup_logging
-    from .shift import ShiftTally
+    from ..result.shift import ShiftTally
 
     config = load_config(args.config)
     log_path = setup_logging(config.data_dir, args.verbose)

@@ -30,7 +30,7 @@ import uuid
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..errors import StationError
+from ..errors import CommandError
 
 log = logging.getLogger(__name__)
 
@@ -39,10 +39,6 @@ COMMANDS = ("dump-next", "pause", "resume", "remeasure", "serial")
 DUMP_NEXT_FLAG = "dump-next"
 #: Longest serial an operator may enter, characters.
 MAX_MANUAL_SERIAL = 64
-
-
-class CommandError(StationError):
-    """A command that cannot be posted: unknown, or with a bad argument."""
 
 
 @dataclass(frozen=True)

@@ -8,14 +8,17 @@ column. A figure shows ``value ± U`` when the record carries its expanded uncer
 
 from __future__ import annotations
 
-from .shift import SUMMARY_FIGURES, ShiftSummary, figure_uncertainty, figure_value
+from ..result.formatting import value_and_u, with_u
+from ..result.record import figure_uncertainty, figure_value
+from ..result.shift import SUMMARY_FIGURES, ShiftSummary
 
-#: Console columns: (heading, record path, decimals, width of the value, width of its "± U").
+#: Console columns: (heading, record path, decimals without U, width of the value, width of its "± U"). A
+#: value with its U is written by GUM's rule (U to two significant digits, the value to the same place).
 _FIGURES = (
-    ("f_x (m)", "focal_length_x_m", 4, 7, 9),
-    ("f_y (m)", "focal_length_y_m", 4, 7, 9),
-    ("RMS design", "slope_rms_mrad.design.magnitude", 2, 5, 7),
-    ("RMS parab.", "slope_rms_mrad.parabola.magnitude", 2, 5, 7),
+    ("f_x (m)", "focal_length_x_m", 4, 7, 10),
+    ("f_y (m)", "focal_length_y_m", 4, 7, 10),
+    ("RMS design", "slope_rms_mrad.design.magnitude", 2, 5, 8),
+    ("RMS parab.", "slope_rms_mrad.parabola.magnitude", 2, 5, 8),
 )
 SERIAL_WIDTH = 16
 _VERDICT_WIDTH = 13                  # INDETERMINATE
@@ -41,11 +44,10 @@ def _count_width(total: int | None) -> int:
 
 def _figure_cell(record: dict, path: str, decimals: int, width: int, u_width: int) -> str:
     value = figure_value(record, path)
-    text = "-" if value is None else f"{value:.{decimals}f}"
-    cell = f"{text:>{width}}"
-    u = figure_uncertainty(record, path) if value is not None else None
-    cell += f" ± {u:<{u_width - 3}.{decimals}f}" if u is not None else " " * u_width
-    return cell
+    if value is None:
+        return f"{'-':>{width}}" + " " * u_width
+    text, u = value_and_u(value, figure_uncertainty(record, path), decimals)
+    return f"{text:>{width}}" + (f" ± {u:<{u_width - 3}}" if u is not None else " " * u_width)
 
 
 def header(total: int | None = None) -> str:
@@ -83,9 +85,8 @@ def log_line(record: dict, answer: str, cycle_s: float | None, n: int | None = N
     for _, path, decimals, _, _ in _FIGURES:
         value = figure_value(record, path)
         if value is not None:
-            u = figure_uncertainty(record, path)
-            parts.append(f"{path.replace('slope_rms_mrad.', 'rms_').replace('.magnitude', '')}="
-                         f"{value:.{decimals + 2}f}" + (f"±{u:.{decimals + 2}f}" if u is not None else ""))
+            text = with_u(value, figure_uncertainty(record, path), decimals=decimals + 2).replace(" ± ", "±")
+            parts.append(f"{path.replace('slope_rms_mrad.', 'rms_').replace('.magnitude', '')}={text}")
     if cycle_s is not None:
         parts.append(f"cycle_s={cycle_s:.3f}")
     reasons = record.get("reasons") or []

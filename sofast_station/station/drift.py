@@ -1,7 +1,7 @@
 """Drift alarms in the line: after each facet, the control-chart rules on that recipe's recent facets.
 
 The station evaluates, for every charted figure of the facet's recipe (f_x, f_y or kappa_x, kappa_y,
-twist, slope RMS vs design and vs parabola: :func:`sofast_station.report.spc.figure_specs`), the run rules
+twist, slope RMS vs design and vs parabola: :func:`sofast_station.result.specs.figure_specs`), the run rules
 (:mod:`sofast_station.qc.spc`, Western Electric by default) on the facets measured since the recipe's last
 alarm, against the recipe's *baseline*: the centre and sigma of each figure over an in-control period,
 saved by ``sofast-station report spc --recipe NAME --save-baseline`` as
@@ -177,7 +177,8 @@ class DriftMonitor:
         hist = self._history[recipe]
         hist.append(record)
         from ..qc.spc import RULE_TEXT, alarm_at_last
-        from ..report.spc import figure_specs, lookup
+        from ..result.record import figure_value
+        from ..result.specs import figure_specs
 
         if recipe not in self._specs:
             r = self.recipes.get(recipe)
@@ -187,7 +188,7 @@ class DriftMonitor:
             b = base.get(spec.key)
             if b is None:
                 continue
-            x = np.array([np.nan if lookup(r, spec.key) is None else lookup(r, spec.key) for r in hist], float)
+            x = np.array([np.nan if figure_value(r, spec.key) is None else figure_value(r, spec.key) for r in hist], float)
             rules = alarm_at_last(x, b, s.rules)
             if rules:
                 alarms.append(f"{spec.label}: " + "; ".join(f"{r} {RULE_TEXT[r]}" for r in rules)

@@ -15,6 +15,7 @@ from ..calibrate.records import RadiometricRecord
 from ..config import StationConfig
 from ..devices.protocols import Camera, Display, RangeFinder
 from ..precompute import ray_table
+from ..result.record import RecordHead, now_iso
 
 log = logging.getLogger(__name__)
 
@@ -33,7 +34,7 @@ class Station:
     #: The radiometric record's status when the station opened (CalibrationStatus: origin, warnings).
     calibration: object | None = None
     _rays: np.ndarray | None = field(default=None, repr=False)
-    #: The design's optical trace, computed once per facet type (:class:`~sofast_station.station.optics.DesignTraces`).
+    #: The design's optical trace, computed once per facet type (:class:`~sofast_station.result.optical_figures.DesignTraces`).
     design_traces: object | None = field(default=None, repr=False)
     #: Sensitivities of the figures to the station's inputs, per geometry and recipe, computed on the first
     #: facet and reused (:mod:`sofast_station.measure.uncertainty`).
@@ -55,6 +56,34 @@ class Station:
         except Exception:
             log.exception("error while closing the camera")
         self.camera = self.camera_factory()
+
+    def calibration_entry(self, warnings: list[str] | None = None) -> dict:
+        """The ``calibration`` entry of a result record: the record in force, where it came from, and the
+        staleness warnings that applied to this facet (*warnings*; those found when the station opened by
+        default), so an archive row says when it was measured on a stale calibration."""
+        entry = {"radiometric": self.radiometric.record_id}
+        if self.config.camera_record is not None:
+            entry["camera"] = self.config.camera_record["record_id"]
+        status = self.calibration
+        if status is not None:
+            entry["origin"] = status.origin
+            entry["warnings"] = list(status.warnings if warnings is None else warnings)
+        return entry
+
+    def record_head(self, serial: str, warnings: list[str] | None = None, **more) -> RecordHead:
+        """The head of a result record of this station (its name, configuration, calibration and camera
+        settings, now), for :func:`~sofast_station.result.record.build_record`; *more*: ``facet`` (the
+        station's own by default), ``cycle_id``, ``recipe``, ``request``."""
+        more.setdefault("facet", self.config.design.name)
+        return RecordHead(serial=serial, time=now_iso(), station=self.config.name, config_hash=self.config.config_hash,
+                          calibration=self.calibration_entry(warnings),
+                          camera={"exposure_s": self.radiometric.exposure_s, "gain": self.radiometric.gain}, **more)
+
+    def truth(self, valid: np.ndarray, design=None, optics=None) -> dict | None:
+        """The ground truth of the facet in the fixture at the pixels *valid* (the analysis kept them), for
+        the result record; None: a real station knows none (the simulated station does,
+        :class:`~sofast_station.station.simulated.SimulatedStation`)."""
+        return None
 
     def close(self) -> None:
         for dev in (self.camera, self.display):

@@ -19,11 +19,11 @@ import re
 from dataclasses import dataclass
 
 from ..devices.protocols import FacetRequest
-from ..errors import ConfigError
+from ..errors import ConfigError, UnknownRecipeError
 from ..facet import FacetDesign, load_facet
 from ..measure.pipeline import AnalysisSettings
-from .optics import optics_for
-from .verdict import Limits, Quality, limits_from_table, quality_from_table
+from ..result.optical_figures import optics_for
+from ..result.verdict import Limits, Quality, limits_from_table, quality_from_table
 
 _KEYS = {"facet", "serial_pattern", "alignment_point_m", "measure_point_m", "limits", "quality", "analysis",
          "optics"}
@@ -74,10 +74,6 @@ def recipes_from_config(config) -> dict[str, Recipe]:
         optics = optics_for(config.raw, str(config.path), name)
         out[name] = Recipe(name, design, analysis, limits, quality, pattern, optics)
     return out
-
-
-class UnknownRecipeError(ConfigError):
-    """The PLC asked for a recipe that station.toml does not define (its own fault code, "recipe")."""
 
 
 def choose_recipe(recipes: dict[str, Recipe], request: FacetRequest) -> Recipe:

@@ -23,25 +23,22 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .. import __version__
-from ..calibrate.errors import StaleCalibrationError
 from ..calibrate.settings import calibration_settings
 from ..calibrate.store import check_cycle
 from ..devices.protocols import FAULT_CODES, WARNING_BITS, FacetRequest
+from ..errors import AnalysisTimeout, CameraError, StationError, TriggerError
+from ..result.faults import fault_reason
+from ..result.record import RecordHead, build_record
+from ..result.verdict import judge
 from ..serials import clean_serial
-from ..errors import (CameraError, CaptureError, DisplayError, GeometryError, StationError,
-                      TriggerError)
 from . import console as _console
 from .commands import take_commands, take_dump_next
 from .drift import DriftMonitor
 from .frames import capture_sequence, crop, crop_box, restore
-from .inspection import FIGURE_KEYS, calibration_entry, now_iso
 from .opened import Station
 from .recipes import Recipe, choose_recipe
 from .status import StatusFile
-from .verdict import judge
-from .recipes import UnknownRecipeError
-from .worker import AnalysisTimeout, AnalysisWorker, WorkerDied
+from .worker import AnalysisWorker
 
 log = logging.getLogger(__name__)
 
@@ -112,20 +109,8 @@ def new_cycle_id() -> str:
     return _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%S%fZ")[:-4] + "-" + uuid.uuid4().hex[:8]
 
 
-#: The fault kind of an exception that ended a cycle: the first class it is an instance of.
-_FAULT_KINDS = ((StaleCalibrationError, "calibration"), (AnalysisTimeout, "timeout"), (CameraError, "camera"),
-                (DisplayError, "display"), (CaptureError, "capture"), (GeometryError, "geometry"),
-                (UnknownRecipeError, "recipe"), (WorkerDied, "worker"), (StationError, "analysis"))
-
-
 class JournalFailed(StationError):
     """The journal could not be written (a full or read-only disk): the station stops after answering."""
-
-
-def fault_code_for(exc: BaseException) -> tuple[int, str]:
-    """Reason code and kind for an exception that ended a cycle."""
-    kind = next((kind for cls, kind in _FAULT_KINDS if isinstance(exc, cls)), "internal")
-    return FAULT_CODES[kind], kind
 
 
 class LockedTrigger:
@@ -422,20 +407,20 @@ class StationRunner:
                                       distance, timeout_s=budget, hang_s=hang_s, optics=recipe.optics,
                                       uncertainty=self.station.config.uncertainty)
             timings["analysis"] = time.perf_counter() - t
-            record = self._record(cycle_id, request, recipe, res.figures, distance, notes, timings, cal_warnings)
-            record.update(judge(res.figures, recipe.design, recipe.limits, recipe.quality))
-            if self.station.twin is not None and recipe.design.name == self.station.config.design.name:
-                from ..twin.truth import ground_truth
-                truth = ground_truth(self.station.twin, res.valid)
-                record["truth"] = {k: truth[k] for k in FIGURE_KEYS if k in truth}
+            # The ground truth (simulated station) is that of the station's own facet type.
+            truth = self.station.truth(res.valid) if recipe.design.name == self.station.config.design.name else None
+            record = build_record(
+                self._head(cycle_id, request, recipe.name, cal_warnings, facet=recipe.design.name),
+                figures=res.figures, verdict=judge(res.figures, recipe.design, recipe.limits, recipe.quality),
+                truth=truth, measured_distance_m=distance, capture_notes=notes,
+                timings={**timings, **{f"analysis_{k}": v for k, v in res.figures.get("timings_s", {}).items()}})
             self._check_drift(recipe.name, record)
             outcome = CycleOutcome(cycle_id, serial, record["verdict"], record, valid=res.valid,
                                    preview=res.preview, sensitivities=getattr(res, "sensitivities", None))
         except Exception as exc:          # a bad facet must never stop the line
-            code, kind = fault_code_for(exc)
-            if kind == "internal":
+            code, reason = fault_reason(exc)
+            if code == FAULT_CODES["internal"]:
                 log.exception("%s: internal error", serial)
-            reason = f"{kind}: {exc}"
             record = self._fault_record(cycle_id, request, code, reason, timings, cal_warnings)
             outcome = CycleOutcome(cycle_id, serial, "fault", record, fault_code=code)
             if isinstance(exc, CameraError):
@@ -599,29 +584,16 @@ class StationRunner:
                 log.error("could not reopen the camera: %s", exc)
 
     # ------------------------------------------------------------------ records
-    def _base(self, cycle_id: str, request: FacetRequest, recipe_name: str, cal_warnings=()) -> dict:
-        cfg = self.station.config
-        return {"cycle_id": cycle_id, "serial": request.serial, "time": now_iso(), "recipe": recipe_name,
-                "station": cfg.name, "software_version": __version__, "config_hash": cfg.config_hash,
-                "calibration": calibration_entry(self.station, list(cal_warnings)),
-                "camera": {"exposure_s": self.station.radiometric.exposure_s, "gain": self.station.radiometric.gain},
-                "request": {"recipe": request.recipe, "dump": request.dump, **request.extra}}
-
-    def _record(self, cycle_id, request, recipe, figures, distance, notes, timings, cal_warnings=()) -> dict:
-        rec = self._base(cycle_id, request, recipe.name, cal_warnings)
-        rec["facet"] = recipe.design.name
-        rec.update({k: figures[k] for k in FIGURE_KEYS})
-        rec.update({k: v for k, v in figures.items() if k not in FIGURE_KEYS and k != "timings_s"})
-        rec["measured_distance_m"] = distance
-        rec["capture_notes"] = notes
-        rec["timings_s"] = {**timings, **{f"analysis_{k}": v for k, v in figures.get("timings_s", {}).items()}}
-        return rec
+    def _head(self, cycle_id: str, request: FacetRequest, recipe_name: str, cal_warnings=(),
+              facet: str | None = None) -> RecordHead:
+        """The head of this cycle's record (:class:`~sofast_station.result.record.RecordHead`)."""
+        return self.station.record_head(request.serial, list(cal_warnings), facet=facet, cycle_id=cycle_id,
+                                        recipe=recipe_name,
+                                        request={"recipe": request.recipe, "dump": request.dump, **request.extra})
 
     def _fault_record(self, cycle_id, request, code, reason, timings, cal_warnings=()) -> dict:
-        recipe = request.recipe or ""
-        rec = self._base(cycle_id, request, recipe, cal_warnings)
-        rec.update({"verdict": "fault", "fault_code": code, "reasons": [reason], "timings_s": dict(timings)})
-        return rec
+        return build_record(self._head(cycle_id, request, request.recipe or "", cal_warnings), fault=(code, reason),
+                            timings=timings)
 
     def _report(self, record: dict, answer: str, cycle_s: float) -> None:
         """The facet's console line, its line in logs/station.log and the live status."""

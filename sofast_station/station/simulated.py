@@ -74,6 +74,17 @@ class SimulatedStation(Station):
         self.camera.fault = None
         self.camera.release_hang()
 
+    def truth(self, valid: np.ndarray, design=None, optics=None) -> dict:
+        """The twin's ground truth at the pixels *valid* (:func:`~sofast_station.twin.truth.ground_truth`),
+        with the optical figures of its exact surface (:func:`truth_optics`) when *optics* (the settings the
+        measured ones were traced with) and the *design* are given."""
+        from ..twin.truth import ground_truth
+
+        truth = ground_truth(self.twin, valid)
+        if optics is not None and design is not None:
+            truth["optics"] = truth_optics(self.twin, valid, design, optics, self.design_traces)
+        return truth
+
     def reference_certificate(self) -> dict:
         """The facet in the fixture as a reference's certificate (``calibrate geometry``): the twin's truth,
         the conventions' figures of its exact surface over every pixel that sees the facet, and its
@@ -116,3 +127,27 @@ def open_simulated(config: StationConfig, radiometric: RadiometricRecord, seed: 
         raise ConfigError(f"{config.path} [simulation.faults]: unknown fault kind(s) {bad}; use {FAULT_KINDS}")
     return SimulatedStation(config=config, display=display, camera=camera, range_finder=rangefinder,
                             radiometric=radiometric, twin=twin)
+
+
+def truth_optics(twin, kept: np.ndarray, design, settings, cache=None) -> dict:
+    """The optical figures of the twin's exact surface at the kept pixels, in the boresight frame the twin's
+    own ground truth defines: what the measured figures should be."""
+    from ..optics import facet_optics
+    from ..result.optical_figures import DesignTraces
+    from ..twin.station import rotation_zyx
+    from ..twin.truth import boresight_frame, exact_samples, ground_truth
+
+    points, normals = exact_samples(twin, kept)
+    frame = boresight_frame(points, normals, design)
+    x_a, y_a = (float(c) for c in design.alignment_point_m)
+    pivot = np.array([x_a, y_a, float(design.z(x_a, y_a))])
+    r = rotation_zyx(frame["alpha_rad"], frame["beta_rad"], 0.0)
+    moved = (points - pivot) @ r.T + pivot
+    truth = ground_truth(twin, kept)
+    camera_m = r @ (twin.camera_to_facet.translation - pivot) + pivot
+    scene, design_result = (cache or DesignTraces(1)).get(design, settings)
+    kappa = 0.5 * (truth["curvature_x_per_m"] + truth["curvature_y_per_m"])
+    res = facet_optics(moved.T, frame["slopes"].T, camera_m, design, settings,
+                       slope_error_mrad=truth["slope_rms_mrad"]["parabola"]["magnitude"], focal_power_per_m=kappa,
+                       scene=scene, design_result=design_result)
+    return res.figures

@@ -27,17 +27,9 @@ from multiprocessing.shared_memory import SharedMemory
 
 import numpy as np
 
-from ..errors import StationError
+from ..errors import AnalysisTimeout, StationError, WorkerDied
 
 log = logging.getLogger(__name__)
-
-
-class AnalysisTimeout(StationError):
-    """The analysis did not finish before the cycle's deadline; the worker was restarted."""
-
-
-class WorkerDied(StationError):
-    """The analysis worker process died (killed, out of memory); it is being restarted."""
 
 
 def watch_parent(parent_pid: int | None = None, poll_s: float = 0.5) -> None:
@@ -123,7 +115,7 @@ def _run(ticket: int, design: dict, settings: dict, distance_m: float, hang_s: f
     from ..measure.analysis import analyse
     from ..measure.pipeline import AnalysisSettings
     from ..measure.uncertainty import InputUncertainties
-    from .optics import DesignTraces, add_optics
+    from ..result.optical_figures import DesignTraces, add_optics
 
     _STATE["begun"][0] = ticket          # begun: from here a death is this facet's (see the module's text)
     if hang_s < 0:                       # fault injection for tests: the worker dies mid-analysis
@@ -161,7 +153,7 @@ def _preview(a, most: int = 6000) -> dict:
 
 def _prepare_optics(designs: list) -> int:
     from ..facet import FacetDesign
-    from .optics import DesignTraces
+    from ..result.optical_figures import DesignTraces
 
     import numpy as np
 

@@ -29,7 +29,8 @@ from starlette.requests import Request
 from starlette.responses import HTMLResponse, JSONResponse, Response, StreamingResponse
 from starlette.routing import Route
 
-from ..station.commands import COMMANDS, CommandError, post_command
+from ..errors import CommandError
+from ..station.commands import COMMANDS, post_command
 from .data import LineData
 from .images import FacetImages
 from .render import esc, sections

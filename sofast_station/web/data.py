@@ -20,9 +20,10 @@ from pathlib import Path
 from ..archive._common import utc_key
 from ..station.pictures import picture_path
 from ..station.recipes import recipes_from_config
-from ..station.shift import cycle_seconds, figure_uncertainty, figure_value, summarize
+from ..result.record import figure_uncertainty, figure_value
+from ..result.shift import cycle_seconds, summarize
 from ..station.status import read_status, status_path
-from ..station.verdict import LONG_FOCAL_LENGTH_M
+from ..result.verdict import LONG_FOCAL_LENGTH_M
 
 log = logging.getLogger(__name__)
 

@@ -16,7 +16,7 @@ import logging
 import math
 
 from ..errors import ConfigError
-from ..station.shift import figure_uncertainty, figure_value
+from ..result.record import figure_uncertainty, figure_value
 from .settings import OpcUaSettings
 
 log = logging.getLogger(__name__)

@@ -11,7 +11,8 @@ from __future__ import annotations
 import html
 import math
 
-from ..station.shift import SUMMARY_FIGURES
+from ..result.formatting import with_u
+from ..result.shift import SUMMARY_FIGURES
 
 SECTIONS = ("state", "last", "shift", "station")
 _VERDICT_CLASS = {"pass": "pass", "fail": "fail", "invalid": "invalid", "indeterminate": "indeterminate",
@@ -27,8 +28,8 @@ def _num(v, decimals: int) -> str:
 
 
 def _with_u(v, u, decimals: int) -> str:
-    text = _num(v, decimals)
-    return f"{text} ± {_num(u, decimals)}" if u is not None and v is not None else text
+    """``value ± U`` by GUM's rule (:func:`~sofast_station.result.formatting.with_u`); a dash for no value."""
+    return _num(v, decimals) if v is None or not math.isfinite(v) else with_u(v, u, decimals=decimals)
 
 
 def _short(serial, most: int = 60) -> str:

@@ -122,7 +122,8 @@ def small_capture(tmp_path_factory):
     from sofast_station.config import load_config
     from sofast_station.measure.analysis import analyse
     from sofast_station.station.factory import open_station
-    from sofast_station.station.inspection import capture, result_record
+    from sofast_station.result.record import build_record
+    from sofast_station.station.inspection import capture
     from tests.conftest import SMALL_STATION
 
     d = tmp_path_factory.mktemp("small")
@@ -136,7 +137,7 @@ def small_capture(tmp_path_factory):
         station.close()
     cfg = station.config
     analysis = analyse(frames, cfg.fringes, cfg.geometry, cfg.design, distance, cfg.analysis)
-    record = result_record(station, "SIM-RE", analysis, {"total": 1.0})
+    record = build_record(station.record_head("SIM-RE"), figures=analysis.figures, timings={"total": 1.0})
     return station, frames, distance, analysis, record
 
 

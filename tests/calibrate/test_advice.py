@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from sofast_station.calibrate.cli import register
+from sofast_station.station.calibrate_cli import register
 
 CALIBRATE = Path(__file__).resolve().parents[2] / "sofast_station" / "calibrate"
 OPTION = re.compile(r"(?<![\w-])--[a-z][a-z0-9-]*")

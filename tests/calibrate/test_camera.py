@@ -18,7 +18,7 @@ from scipy.spatial.transform import Rotation
 
 from sofast_station.calibrate.camera import (BoardSpec, calibrate_camera_images, detect_board, load_camera_record,
                                              save_camera)
-from sofast_station.calibrate.cli import register
+from sofast_station.station.calibrate_cli import register
 from sofast_station.calibrate.errors import CalibrationError
 from sofast_station.geometry import CameraIntrinsics, Pose
 from sofast_station.twin.board import PlanarTarget, chessboard_target, render_target_images

@@ -114,7 +114,7 @@ def test_calibrate_camera_runs_before_any_record_exists(station_toml):
     """A station set to use the record can still make its first one."""
     import argparse
 
-    from sofast_station.calibrate.cli import register
+    from sofast_station.station.calibrate_cli import register
 
     parser = argparse.ArgumentParser(prog="sofast-station")
     register(parser.add_subparsers(dest="command", required=True))

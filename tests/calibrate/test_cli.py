@@ -8,7 +8,7 @@ import logging
 
 import pytest
 
-from sofast_station.calibrate.cli import register
+from sofast_station.station.calibrate_cli import register
 from sofast_station.calibrate.store import list_records
 from sofast_station.config import load_config
 from sofast_station.station.factory import open_station

@@ -8,14 +8,15 @@ import json
 
 import pytest
 
-from sofast_station.calibrate.cli import register
 from sofast_station.calibrate.geometry import (check_geometry, compare_to_reference, load_reference,
                                                reference_from_simulation, station_reference)
 from sofast_station.calibrate.geometry_record import load_geometry_record, save_geometry
 from sofast_station.config import load_config
 from sofast_station.errors import ConfigError
 from sofast_station.station import simulated as simulated_station
+from sofast_station.station.calibrate_cli import register
 from sofast_station.station.factory import open_station
+from sofast_station.station.inspection import inspect
 
 from .conftest import small_config
 
@@ -26,7 +27,7 @@ def measured(tmp_path_factory):
     cfg = small_config(folder)
     station = open_station(cfg, noise=False)
     try:
-        check = check_geometry(station, station_reference(station))
+        check = check_geometry(inspect(station, "GEOMETRY-REFERENCE"), station_reference(station), cfg.uncertainty)
     finally:
         station.close()
     return cfg, check
@@ -100,7 +101,8 @@ def test_a_wrong_camera_to_screen_separation_shows_in_the_placement(tmp_path, mo
     monkeypatch.setattr(simulated_station, "build_twin", lambda config, noise=True: build(true_cfg, noise))
     station = open_station(cfg, noise=False)
     try:
-        check = check_geometry(station, reference_from_simulation(cfg))
+        check = check_geometry(inspect(station, "GEOMETRY-REFERENCE"), reference_from_simulation(cfg),
+                               cfg.uncertainty)
     finally:
         station.close()
     print(f"\n5 cm separation error: placement {check['placement_error_mm']} mm, {check['placement_error_mrad']} mrad")
@@ -112,7 +114,8 @@ def test_a_range_finder_error_shows_in_the_focal_lengths_and_the_placement(tmp_p
     cfg = small_config(tmp_path, simulation={"distance_error_m": 0.08})
     station = open_station(cfg, noise=False)
     try:
-        check = check_geometry(station, reference_from_simulation(cfg))
+        check = check_geometry(inspect(station, "GEOMETRY-REFERENCE"), reference_from_simulation(cfg),
+                               cfg.uncertainty)
     finally:
         station.close()
     f = check["focal_lengths"]

@@ -20,7 +20,7 @@ import pytest
 
 from sofast_station.interop.opencsp import opencsp_test_data_paths, read_opencsp
 from sofast_station.optics import Aperture, OpticsSettings
-from sofast_station.station.optics import DesignTraces, analysis_optics
+from sofast_station.result.optical_figures import DesignTraces, analysis_optics
 
 OPENCSP_MEASURED = {0.2: 0.23, 0.3: 0.50, 0.4: 0.73, 0.5: 0.91, 0.6: 0.96, 0.8: 0.99}
 OPENCSP_REFERENCE = {0.3: 0.52, 0.5: 1.0}

@@ -10,7 +10,7 @@ import pytest
 
 from sofast_station.config import load_config
 from sofast_station.errors import ConfigError
-from sofast_station.station.verdict import judge
+from sofast_station.result.verdict import judge
 
 
 @pytest.fixture(scope="module")

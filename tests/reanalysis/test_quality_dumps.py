@@ -33,7 +33,7 @@ def test_diff_of_two_measurements_of_one_facet_type(station_dumps, tmp_path, cap
     assert main(["report", "diff", a, b, "--out", str(tmp_path / "d.png")]) == 0
     assert imread(tmp_path / "d.png").shape[1] > 1000
     from sofast_station.report.diff import common_grid_difference
-    from sofast_station.report.sources import load_measured
+    from sofast_station.reanalysis.sources import load_measured
     same = load_measured(a)
     d = common_grid_difference(same, same)
     assert np.nanmax(np.abs(d["e_x_mrad"])) == 0 and np.nanmax(np.abs(d["height_um"])) < 1e-9

@@ -10,7 +10,7 @@ from matplotlib.image import imread
 
 from sofast_station.reanalysis.batch import run_batch
 from sofast_station.reanalysis.cli import main
-from sofast_station.report._common import ReportError
+from sofast_station.errors import ReportError
 from sofast_station.report.maps import MODELS, slope_error_maps, write_slope_error_maps
 from sofast_station.report.trend import trend_records_from_journal, trend_records_from_results, write_trend
 from sofast_station.reanalysis.reprocess import reprocess_dump
@@ -51,6 +51,7 @@ def test_slope_error_maps_show_the_measured_pixels_and_the_reported_figures(stat
 def test_map_titles_carry_each_figures_uncertainty(station_dumps):
     """Every figure a map's title shows is a measurement result: value ± U (k = 2 in the page title)."""
     from sofast_station.report.maps import _titles
+    from sofast_station.result.formatting import with_u
 
     res = reprocess_dump(station_dumps.good[0])
     rec = res.record
@@ -59,8 +60,8 @@ def test_map_titles_carry_each_figures_uncertainty(station_dumps):
     for model in MODELS:
         u = rec["slope_rms_mrad_U"][model]
         for k in ("x", "y", "magnitude"):
-            assert f"{rec['slope_rms_mrad'][model][k]:.3f} ± {u[k]:.3f}" in titles[model]
-    assert f"{rec['focal_length_x_m']:.3f} ± {rec['focal_length_x_m_U']:.3f}" in titles["parabola"]
+            assert with_u(rec['slope_rms_mrad'][model][k], u[k]) in titles[model]
+    assert with_u(rec['focal_length_x_m'], rec['focal_length_x_m_U']) in titles["parabola"]
     # a record without U (an old dump's) shows the values alone
     bare = {k: v for k, v in rec.items() if not k.endswith("_U")}
     plain = _titles(dataclasses.replace(res, record=bare), slope_error_maps(res.analysis))

@@ -20,7 +20,7 @@ from sofast_station.archive import read_dump
 from sofast_station.errors import DumpError
 from sofast_station.reanalysis.cli import main
 from sofast_station.reanalysis.reprocess import Overrides, compare_figures, flatten_figures, reprocess_dump
-from sofast_station.station.inspection import FIGURE_KEYS
+from sofast_station.result.record import FIGURE_KEYS
 from tests.archive.conftest import SAMPLE_RECORD
 from tests.bad_dumps import make_bad_files
 from tests.reanalysis.conftest import copy_dump

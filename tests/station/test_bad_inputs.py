@@ -144,7 +144,7 @@ def test_non_finite_calibration_values(tmp_path):
 def test_partly_lit_facet_never_gives_false_corners(good, leg):
     """A shadow across one corner: the analysis either recovers the true corners from the straight parts
     of the sides, or refuses; it never reports a pose built on false corners as valid."""
-    from sofast_station.station.verdict import judge
+    from sofast_station.result.verdict import judge
     cfg, frames, _ = good
     frames = frames.copy()
     rows, cols = np.nonzero((frames[1].astype(int) - frames[0]) > 20)

@@ -14,7 +14,8 @@ import pytest
 
 from sofast_station.archive import Journal
 from sofast_station.config import load_config
-from sofast_station.station.commands import CommandError, post_command, take_commands
+from sofast_station.errors import CommandError
+from sofast_station.station.commands import post_command, take_commands
 from sofast_station.station.pictures import picture_path
 from sofast_station.station.service import Service
 from sofast_station.station.status import read_status

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from sofast_station.station import console
-from sofast_station.station.shift import fault_kind, summarize
+from sofast_station.result.faults import fault_kind
+from sofast_station.result.shift import summarize
 
 
 def _rec(serial, verdict, fx=None, fy=None, design=None, parab=None, reasons=(), cycle=None, **extra):
@@ -48,7 +49,7 @@ def test_every_kind_of_row_lines_up_with_the_header():
     for line in lines:
         assert line[c_end - 1] == "s" and line[c_end - 6:c_end - 1].strip().replace(".", "").isdigit(), (head, line)
     # the figures sit right-aligned under their headings (a dash when missing)
-    f_end = head.index("f_x (m)") + len("f_x (m)") - 9       # the value ends before its "± U" room
+    f_end = head.index("f_x (m)") + len("f_x (m)") - console._FIGURES[0][4]   # the value ends before its "± U" room
     assert lines[0][f_end - 6:f_end] == "5.4183" and lines[3][f_end - 1] == "-"
     assert "".join(ch for ch in lines[3][head.index("verdict") + 7:c_end - 7] if ch not in " -") == ""
 
@@ -59,7 +60,7 @@ def test_count_uncertainty_long_serial_and_every_reason():
     assert lines[1].endswith("focal length x 5.6001 m is +5.07 % from design; design slope error 3.400 mrad RMS "
                              "(limit 3)")
     assert "camera: no frame within 2 s" in lines[3]
-    assert "5.4183 ± 0.0021" in lines[4] and "0.61 ± 0.03" in lines[4]
+    assert "5.4183 ± 0.0021" in lines[4] and "0.610 ± 0.030" in lines[4]   # GUM: U to two digits
     assert "A-VERY-LONG-SER…" in lines[4] and len(lines[4]) >= len(lines[0])
     assert console.facet_line(ROWS[0][0], "pass", 1.0, n=7).lstrip().startswith("7 ")   # N unknown: n alone
     # the log line names every reason and the cycle
@@ -97,7 +98,7 @@ def test_running_tally_matches_the_list_summary_and_keeps_a_fixed_size():
     that does not grow with the number of facets (a station runs for months)."""
     import pickle
 
-    from sofast_station.station.shift import ShiftTally
+    from sofast_station.result.shift import ShiftTally
 
     rng = np.random.default_rng(7)
     records = []

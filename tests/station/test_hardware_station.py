@@ -14,7 +14,7 @@ import pytest
 
 from sofast_station.archive import Journal, read_dump
 from sofast_station.config import load_config
-from sofast_station.station.inspection import FIGURE_KEYS
+from sofast_station.result.record import FIGURE_KEYS
 from sofast_station.station.service import Service
 from tests.devices.test_lcd import running_xvfb
 

@@ -20,7 +20,7 @@ from sofast_station.devices.renderer import FringeRenderer
 from sofast_station.measure.analysis import analyse
 from sofast_station.measure.phase import phase_and_modulation
 from sofast_station.station.simulated import build_twin
-from sofast_station.station.verdict import judge
+from sofast_station.result.verdict import judge
 from tests.conftest import ROOT
 
 

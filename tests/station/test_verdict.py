@@ -5,7 +5,7 @@ import copy
 import pytest
 
 from sofast_station.facet import FacetDesign
-from sofast_station.station.verdict import Limits, Quality, judge
+from sofast_station.result.verdict import Limits, Quality, judge
 
 DISH = FacetDesign("dish", "dish", 5.33, [[0.3, -0.3], [0.3, 0.3], [-0.3, 0.3], [-0.3, -0.3]], [0, 0], [0, 0])
 HELIOSTAT = FacetDesign("h", "heliostat", 100.0, [[0.6, -0.6], [0.6, 0.6], [-0.6, 0.6], [-0.6, -0.6]], [0, 0], [0, 0])
@@ -110,6 +110,6 @@ def test_limits_can_apply_to_the_noise_corrected_rms():
                                           ({"slope_rms_value": "best"}, "slope_rms_value")])
 def test_bad_decision_settings_are_refused(table, words):
     from sofast_station.errors import ConfigError
-    from sofast_station.station.verdict import limits_from_table
+    from sofast_station.result.verdict import limits_from_table
     with pytest.raises(ConfigError, match=words):
         limits_from_table(table, "station.toml [limits]")

@@ -146,7 +146,7 @@ def test_opcua_client_sees_the_tree_and_the_verdict_change(tmp_path, monkeypatch
 
 def test_counters_count_indeterminate_facets_apart():
     """A guarded-rule `indeterminate` facet is counted in its own node, not lost among pass/fail."""
-    from sofast_station.station.shift import summarize
+    from sofast_station.result.shift import summarize
     from sofast_station.web.opcua import values
 
     verdicts = ["pass", "indeterminate", "indeterminate", "fail", "fault"]

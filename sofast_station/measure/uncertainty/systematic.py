@@ -24,8 +24,8 @@ import numpy as np
 from ..camera import project
 from ..fit import BISQUARE_C
 from ..pipeline import default_screen, pose_from_corners, rerun
-from .inputs import RECORD_DERIVED_KEYS, FRAME_PHASE_REF_RAD, SCALAR_PATHS, Input, InputUncertainties, budget_inputs, \
-    get_path, small_motion
+from .inputs import (RECORD_DERIVED_KEYS, SCALAR_PATHS, Input, InputUncertainties, budget_inputs, get_path,
+                     small_motion)
 
 
 def _phase_error_shift(positions: np.ndarray, length_m: float, periods: float, amplitude_rad: float,

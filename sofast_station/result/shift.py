@@ -3,7 +3,8 @@
 Pure: result records (dicts, as journaled) in, numbers out; the console's end-of-run summary and the
 line's web page both use it. A running station keeps a :class:`ShiftTally` (running statistics, a fixed
 size whatever the number of facets) rather than a list of records: it runs for months. Figures are read with :func:`figure_value`, so a nested figure such as the
-slope-error RMS of one model is named by a path (``slope_rms_mrad.design.magnitude``).
+slope-error RMS of one model is named by a path (``slope_rms_mrad.design.magnitude``;
+:mod:`sofast_station.result.record`).
 """
 
 from __future__ import annotations
@@ -13,6 +14,9 @@ from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from .faults import fault_kind
+from .record import figure_value
 
 #: The figures a shift summary describes: (path in the record, label, unit, decimals).
 SUMMARY_FIGURES = (
@@ -24,23 +28,6 @@ SUMMARY_FIGURES = (
 )
 
 VERDICTS = ("pass", "fail", "invalid", "fault")
-
-
-def figure_value(record: dict, path: str):
-    """The figure at a dotted *path* of *record* (``slope_rms_mrad.design.magnitude``), or None."""
-    node = record
-    for part in path.split("."):
-        if not isinstance(node, dict) or part not in node:
-            return None
-        node = node[part]
-    return node if isinstance(node, (int, float)) and not isinstance(node, bool) else None
-
-
-def figure_uncertainty(record: dict, path: str):
-    """The expanded uncertainty (k = 2) of the figure at *path*: the sibling ``NAME_U`` of the path's
-    first key, with the same nesting (``slope_rms_mrad_U.design.magnitude``); None when absent."""
-    head, _, rest = path.partition(".")
-    return figure_value(record, f"{head}_U" + (f".{rest}" if rest else ""))
 
 
 @dataclass
@@ -79,13 +66,6 @@ class ShiftSummary:
     cycle_p95_s: float | None
     cycle_worst_s: float | None
     faults_by_kind: dict = field(default_factory=dict)
-
-
-def fault_kind(record: dict) -> str:
-    """The kind of a faulted record: the part of its first reason before the colon ("camera", ...)."""
-    reasons = record.get("reasons") or []
-    head = str(reasons[0]).split(":", 1)[0].strip() if reasons else ""
-    return head if head and len(head) <= 20 and " " not in head else "other"
 
 
 def cycle_seconds(record: dict):

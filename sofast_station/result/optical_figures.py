@@ -1,4 +1,4 @@
-"""The station's optical figures: ``[optics]`` in station.toml, and the trace of each analysed facet.
+"""A result's optical figures: ``[optics]`` in station.toml, and the trace of each analysed facet.
 
 Reads the ``[optics]`` table (and a recipe's ``optics`` overrides) into
 :class:`~sofast_station.optics.OpticsSettings`, traces an :class:`~sofast_station.measure.pipeline.Analysis`
@@ -186,26 +186,3 @@ def add_optics(analysis, design, settings: OpticsSettings | None, cache: DesignT
     analysis.timings_s["optics"] = seconds
     analysis.figures.setdefault("timings_s", {})["optics"] = seconds
     return res
-
-
-def truth_optics(twin, kept: np.ndarray, design, settings: OpticsSettings, cache: DesignTraces | None = None
-                 ) -> dict:
-    """The optical figures of the twin's exact surface at the kept pixels, in the boresight frame the twin's
-    own ground truth defines: what the measured figures should be."""
-    from ..twin.station import rotation_zyx
-    from ..twin.truth import boresight_frame, exact_samples, ground_truth
-
-    points, normals = exact_samples(twin, kept)
-    frame = boresight_frame(points, normals, design)
-    x_a, y_a = (float(c) for c in design.alignment_point_m)
-    pivot = np.array([x_a, y_a, float(design.z(x_a, y_a))])
-    r = rotation_zyx(frame["alpha_rad"], frame["beta_rad"], 0.0)
-    moved = (points - pivot) @ r.T + pivot
-    truth = ground_truth(twin, kept)
-    camera_m = r @ (twin.camera_to_facet.translation - pivot) + pivot
-    scene, design_result = (cache or DesignTraces(1)).get(design, settings)
-    kappa = 0.5 * (truth["curvature_x_per_m"] + truth["curvature_y_per_m"])
-    res = facet_optics(moved.T, frame["slopes"].T, camera_m, design, settings,
-                       slope_error_mrad=truth["slope_rms_mrad"]["parabola"]["magnitude"], focal_power_per_m=kappa,
-                       scene=scene, design_result=design_result)
-    return res.figures

@@ -1,4 +1,6 @@
-"""``sofast-station calibrate ...``: the calibration routines on the command line.
+"""``sofast-station calibrate ...``: the calibration routines (:mod:`sofast_station.calibrate`) on the command
+line. The commands open the station (its devices, its configuration) and run a routine on it, so they live
+with the station's other commands; the routines themselves see only the device protocols.
 
 ``register(subparsers)`` adds the ``calibrate`` command and its subcommands to the main parser::
 
@@ -20,7 +22,6 @@ import sys
 
 from .. import __version__
 from ..commands import add_command, add_config_option
-from ..commands import default_config  # noqa: F401  (kept importable from here)
 from ..errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -37,7 +38,7 @@ def _squares(text: str) -> tuple[int, int]:
 
 def _emit(args, data: dict, text: str) -> None:
     if getattr(args, "json", False):
-        from .store import _json_safe
+        from ..calibrate.store import _json_safe
         json.dump(_json_safe(data), sys.stdout, indent=1)
         sys.stdout.write("\n")
     else:
@@ -46,10 +47,10 @@ def _emit(args, data: dict, text: str) -> None:
 
 def cmd_radiometric(args) -> int:
     from ..config import load_config
-    from ..station.factory import open_station
-    from .radiometric import calibrate_radiometric, save_radiometric, summary_text
-    from .settings import calibration_settings
-    from .store import check_warmup
+    from .factory import open_station
+    from ..calibrate.radiometric import calibrate_radiometric, save_radiometric, summary_text
+    from ..calibrate.settings import calibration_settings
+    from ..calibrate.store import check_warmup
 
     config = load_config(args.config)
     policy, settings = calibration_settings(config)
@@ -80,7 +81,7 @@ def cmd_radiometric(args) -> int:
 
 def cmd_camera(args) -> int:
     from ..config import load_config
-    from .camera import BoardSpec, calibrate_camera_images, read_images, save_camera, summary_text
+    from ..calibrate.camera import BoardSpec, calibrate_camera_images, read_images, save_camera, summary_text
 
     config = load_config(args.config, use_camera_record=False)     # the record may not exist yet: we make it
     if args.board == "charuco" and args.marker_mm is None:
@@ -111,16 +112,17 @@ def cmd_camera(args) -> int:
 
 def cmd_geometry(args) -> int:
     from ..config import load_config
-    from ..station.factory import open_station
-    from .geometry import check_geometry, station_reference, summary_text
-    from .geometry_record import save_geometry
+    from ..calibrate.geometry import check_geometry, station_reference, summary_text
+    from .factory import open_station
+    from .inspection import inspect
+    from ..calibrate.geometry_record import save_geometry
 
     config = load_config(args.config)
     station = open_station(config, seed=args.seed, noise=not args.noise_free)
     try:
         reference = station_reference(station, args.reference)
         log.info("measuring the reference facet %s on %s", reference.name, config.name)
-        check = check_geometry(station, reference)
+        check = check_geometry(inspect(station, "GEOMETRY-REFERENCE"), reference, config.uncertainty)
     finally:
         station.close()
     source = f"sofast-station {__version__} calibrate geometry with {reference.name}"
@@ -131,8 +133,8 @@ def cmd_geometry(args) -> int:
 
 def cmd_status(args) -> int:
     from ..config import camera_from_record, load_config
-    from .settings import calibration_settings
-    from .store import KINDS, check_age, list_records, select_radiometric
+    from ..calibrate.settings import calibration_settings
+    from ..calibrate.store import KINDS, check_age, list_records, select_radiometric
 
     config = load_config(args.config, use_camera_record=False)  # reports on records
     policy, _ = calibration_settings(config)

@@ -1,7 +1,9 @@
 """``sofast-station report spc | acceptance | certificate SERIAL | diff A B``: the quality engineer's reports.
 
 The ``report`` command itself is registered by :mod:`sofast_station.reanalysis.cli` (its first word
-chooses the report); :func:`add_options` adds these reports' options to it and :func:`run` runs them.
+chooses the report); :func:`add_options` adds these reports' options to it and :func:`run` runs them. The
+pictures and documents are drawn by :mod:`sofast_station.report`; this module finds the records, the
+recipes and the measurements they need.
 """
 
 from __future__ import annotations
@@ -89,7 +91,8 @@ def _period(args):
 def cmd_spc(args) -> int:
     from ..errors import ConfigError
     from ..qc import spc as qspc
-    from .spc import (build_charts, draw_charts, draw_yield, figure_specs, select_records, write_summary_workbook,
+    from ..result.specs import figure_specs
+    from ..report.spc import (build_charts, draw_charts, draw_yield, select_records, write_summary_workbook,
                       yield_table)
 
     if len(args.targets) > 1:
@@ -114,9 +117,9 @@ def cmd_spc(args) -> int:
                                                   since=b0, until=b1) if r.get("verdict") in ("pass", "fail")]
         baselines = {}
         for s in specs:
-            from .spc import lookup
+            from ..result.record import figure_value
             try:
-                baselines[s.key] = qspc.baseline([v for v in (lookup(r, s.key) for r in base_records) if v is not None])
+                baselines[s.key] = qspc.baseline([v for v in (figure_value(r, s.key) for r in base_records) if v is not None])
             except ValueError as exc:
                 raise ConfigError(f"the baseline period {b0} to {b1} gives no limits for {s.label}: {exc}") from None
     charts = build_charts(chosen, specs, baseline_n=args.baseline_n, baselines=baselines, rule_set=args.rules,
@@ -149,8 +152,9 @@ def cmd_spc(args) -> int:
 
 def cmd_acceptance(args) -> int:
     from ..errors import ConfigError
-    from .acceptance import contract_from_config, draw, evaluate, text
-    from .spc import select_records
+    from ..qc.acceptance import contract_from_config
+    from ..report.acceptance import draw, evaluate, text
+    from ..report.spc import select_records
 
     if len(args.targets) > 1:
         raise ConfigError("'report acceptance' takes no dumps: choose facets with --recipe and --from/--to")
@@ -172,9 +176,9 @@ def cmd_acceptance(args) -> int:
 def cmd_certificate(args) -> int:
     from ..archive.journal import Journal
     from ..errors import ConfigError, StationError
-    from .certificate import write_certificate
+    from ..report.certificate import write_certificate
     from .sources import load_measured
-    from .spc import figure_specs
+    from ..result.specs import figure_specs
 
     if len(args.targets) != 2:
         raise ConfigError("'report certificate' needs one serial: report certificate SERIAL")
@@ -211,7 +215,7 @@ def cmd_certificate(args) -> int:
 
 def cmd_diff(args) -> int:
     from ..errors import ConfigError
-    from .diff import write_diff
+    from ..report.diff import write_diff
     from .sources import load_measured
 
     if len(args.targets) != 3:

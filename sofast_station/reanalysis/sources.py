@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ._common import ReportError
+from ..errors import ReportError
 
 
 class _NoOverrides:
@@ -48,7 +48,7 @@ def load_measured(spec: str, overrides=None, focal_length_m: float = 100.0) -> M
         rec = {"serial": m.name, "facet": m.design.name, "time": m.date, "station": "OpenCSP import",
                **a.figures}
         return Measured(root, a, rec, m.design, kind="opencsp")
-    from ..reanalysis.reprocess import reprocess_dump
+    from .reprocess import reprocess_dump
 
     res = reprocess_dump(spec, overrides)
     if res.analysis is None:
