@@ -79,7 +79,8 @@ def canting_instructions(record: dict, ensemble: EnsembleDesign, limit_mrad: flo
 
 
 def _pm(v: float, u) -> str:
-    return f"{v:+.3f}" + ("" if u is None else f" ± {u:.3f}")
+    from ..result.formatting import with_u
+    return with_u(v, u, "", 3, sign=True)
 
 
 def instructions_text(instructions: dict) -> str:

@@ -21,10 +21,12 @@ from ._common import savefig_atomic
 
 
 def _pm(value, u, fmt: str = "{:.3f}") -> str:
-    """*value* in *fmt*, with `` ± U`` when its expanded uncertainty *u* is known."""
-    if value is None:
-        return "-"
-    return fmt.format(value) + ("" if u is None else " ± " + fmt.replace("+", "").format(u))
+    """*value* with `` ± U`` when its expanded uncertainty *u* is known (the one formatter, GUM's rounding),
+    else in *fmt* (its decimals and sign)."""
+    from ..result.formatting import with_u
+
+    decimals = int(fmt.split(".")[1][0])
+    return with_u(value, u, "", decimals, sign="+" in fmt)
 
 
 def draw_heliostat_flux(optics, title: str = "") -> "Figure":  # noqa: F821

@@ -162,7 +162,7 @@ def cmd_inspect(args) -> int:
         serial, note = clean_serial(args.serial)
         if note:
             log.warning("%s", note)
-        rec = inspect(station, serial, progress=progress)
+        rec = inspect(station, serial, progress=progress, pictures_dir=config.data_dir / "inspections")
     finally:
         station.close()
     rec = json_safe(rec)
@@ -173,6 +173,9 @@ def cmd_inspect(args) -> int:
     if args.json:
         json.dump(rec, sys.stdout, indent=1)
         sys.stdout.write("\n")
+    elif "facets" in rec:                     # a heliostat: one line per facet, its optics, what to turn
+        from .heliostat import summary_text as heliostat_summary
+        print(heliostat_summary(rec))
     else:
         print(summary_text(rec))
         if args.budget:

@@ -78,8 +78,11 @@ class SimulatedStation(Station):
         """The twin's ground truth at the pixels *valid* (:func:`~sofast_station.twin.truth.ground_truth`),
         with the optical figures of its exact surface (:func:`truth_optics`) when *optics* (the settings the
         measured ones were traced with) and the *design* are given."""
+        from ..twin.heliostat import TwinHeliostat, heliostat_truth
         from ..twin.truth import ground_truth
 
+        if isinstance(self.twin, TwinHeliostat):     # every facet's figures and canting, and the heliostat's
+            return heliostat_truth(self.twin, valid)
         truth = ground_truth(self.twin, valid)
         if optics is not None and design is not None:
             truth["optics"] = truth_optics(self.twin, valid, design, optics, self.design_traces)
