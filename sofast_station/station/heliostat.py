@@ -38,21 +38,20 @@ def analysis_optics(result, ensemble: EnsembleDesign, settings: OpticsSettings) 
     return heliostat_optics(facet_surfaces(result, ensemble), ensemble, settings)
 
 
-def inspect_heliostat(station, serial: str, progress=None, pictures_dir=None) -> dict:
-    """Measure the heliostat in the fixture and return its record (``facets``, with ``truth`` on the twin):
-    :func:`~sofast_station.station.inspection.inspect` for a heliostat station. With *pictures_dir*, its flux
-    maps and the map of its facets are written there as PNG (their paths in the record's ``pictures``)."""
+def inspect_heliostat(station, serial: str, frames: np.ndarray, distance: float, t_capture: float,
+                      pictures_dir=None) -> dict:
+    """The record of the heliostat captured in *frames* at the measured *distance* (``facets``, with
+    ``truth`` on the twin): :func:`~sofast_station.station.inspection.inspect` for a heliostat station, after
+    its capture (which took *t_capture* seconds). With *pictures_dir*, its flux maps and the map of its facets
+    are written there as PNG (their paths in the record's ``pictures``)."""
     import time
 
     from ..measure.heliostat import analyse_heliostat
     from ..result.heliostat import heliostat_record
-    from .inspection import capture
 
     config = station.config
     ensemble = config.ensemble
-    t0 = time.perf_counter()
-    frames, distance = capture(station, progress)
-    t_capture = time.perf_counter() - t0
+    t0 = time.perf_counter() - t_capture
     t1 = time.perf_counter()
     res = analyse_heliostat(frames, config.fringes, config.geometry, ensemble, distance, config.analysis,
                             config.heliostat, rays_cam=station.rays_cam, uncertainty=config.uncertainty,
