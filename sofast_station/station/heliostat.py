@@ -7,9 +7,12 @@ The analysis itself is :func:`~sofast_station.measure.heliostat.analyse_heliosta
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from ..ensemble import EnsembleDesign
+from ..measure.heliostat import HeliostatSettings
 from ..optics.facet import OpticsSettings, outline_area_m2
 from ..optics.heliostat import FacetSurface, HeliostatOptics, heliostat_optics
 
@@ -150,3 +153,79 @@ def summary_text(rec: dict) -> str:
     for kind, path in (rec.get("pictures") or {}).items():
         lines.append(f"  {kind}: {path}")
     return "\n".join(lines)
+
+
+@dataclass(frozen=True)
+class HeliostatJob:
+    """What the loop's analysis worker needs to analyse a heliostat recipe (sent to it as plain data, in the
+    place of a facet design: :meth:`to_dict` carries ``ensemble``, which the worker looks for)."""
+
+    ensemble: EnsembleDesign
+    heliostat: HeliostatSettings
+    max_canting_mrad: float | None = None
+
+    @property
+    def name(self) -> str:
+        return self.ensemble.name
+
+    def to_dict(self) -> dict:
+        return {"ensemble": self.ensemble.to_dict(), "heliostat": self.heliostat.to_dict(),
+                "max_canting_mrad": self.max_canting_mrad}
+
+
+def analyse_job(frames: np.ndarray, fringes, geometry, job: dict, settings, distance_m: float, rays_cam=None,
+                optics: OpticsSettings | None = None, uncertainty=None, sensitivity_cache: dict | None = None):
+    """A heliostat's analysis, optics and canting instructions in one call (the loop's worker runs it):
+    ``(figures, valid, sensitivities)`` with *figures* the record's parts (``heliostat``, ``facets``,
+    ``optics``, ``canting_instructions``, ``timings_s``), *valid* every facet's kept pixels and
+    *sensitivities* {label: the record of the facet's sensitivities} (what a dump keeps)."""
+    import time
+
+    from ..measure.heliostat import analyse_heliostat
+    from ..report.canting import canting_instructions
+
+    ensemble = EnsembleDesign.from_dict(job["ensemble"])
+    res = analyse_heliostat(frames, fringes, geometry, ensemble, distance_m, settings,
+                            HeliostatSettings(**job["heliostat"]), rays_cam=rays_cam, uncertainty=uncertainty,
+                            sensitivity_cache=sensitivity_cache)
+    t = time.perf_counter()
+    traced = None if optics is None else analysis_optics(res, ensemble, optics)
+    figures = {"heliostat": res.figures["heliostat"], "facets": res.figures["facets"],
+               "optics": None if traced is None else traced.figures,
+               "canting_instructions": canting_instructions(res.figures, ensemble, job.get("max_canting_mrad")),
+               "timings_s": {**res.timings_s, "optics": time.perf_counter() - t}}
+    sensitivities = {ensemble.facets[i].label: a.sensitivities for i, a in res.analyses.items()
+                     if a.sensitivities is not None}
+    return figures, res.valid, sensitivities or None
+
+
+def crop_box(dark: np.ndarray, white: np.ndarray, threshold_dn: float, margin_px: int = 32) -> tuple:
+    """(row0, col0, row1, col1), end-exclusive: the box around every pixel that responds to the screen (every
+    facet, not only the largest region), widened by *margin_px*, clipped to the image; the whole image when
+    nothing responds (the analysis then says why)."""
+    responsive = (white.astype(np.int32) - dark.astype(np.int32)) > threshold_dn
+    h, w = dark.shape
+    rows, cols = np.flatnonzero(responsive.any(axis=1)), np.flatnonzero(responsive.any(axis=0))
+    if rows.size == 0:
+        return 0, 0, h, w
+    return (max(0, int(rows[0]) - margin_px), max(0, int(cols[0]) - margin_px),
+            min(h, int(rows[-1]) + 1 + margin_px), min(w, int(cols[-1]) + 1 + margin_px))
+
+
+def analysis_design(recipe, config):
+    """What the loop's worker analyses for *recipe*: its facet design, or a heliostat recipe's
+    :class:`HeliostatJob`."""
+    if recipe.ensemble is None:
+        return recipe.design
+    return HeliostatJob(recipe.ensemble, config.heliostat, recipe.limits.max_canting_mrad)
+
+
+def loop_record(head, figures: dict, recipe, truth: dict | None, **extra) -> dict:
+    """The loop's record of a heliostat recipe's facet cycle, from the worker's *figures* (:func:`analyse_job`)."""
+    from ..result.heliostat import heliostat_record
+
+    timings = extra.pop("timings", {})
+    timings = {**timings, **{f"analysis_{k}": v for k, v in figures.get("timings_s", {}).items()}}
+    return heliostat_record(head, figures, recipe.ensemble, recipe.limits, recipe.quality, truth=truth,
+                            optics=figures.get("optics"), instructions=figures.get("canting_instructions"),
+                            timings=timings, **extra)

@@ -35,6 +35,8 @@ from . import console as _console
 from .commands import take_commands, take_dump_next
 from .drift import DriftMonitor
 from .frames import capture_sequence, crop, crop_box, restore
+from .heliostat import analysis_design, loop_record
+from .heliostat import crop_box as heliostat_crop_box
 from .opened import Station
 from .recipes import Recipe, choose_recipe
 from .status import StatusFile
@@ -165,7 +167,8 @@ class StationRunner:
         cam = station.config.geometry.camera
         self.worker = AnalysisWorker(station.config.geometry, station.config.fringes, cam.shape)
         # The designs' optical traces are the same for every facet of a type: made now, not in a cycle.
-        self.worker.prepare_optics([(r.design, r.optics) for r in recipes.values() if r.optics is not None])
+        self.worker.prepare_optics([(r.design, r.optics) for r in recipes.values()
+                                    if r.optics is not None and r.ensemble is None])
         self._heartbeat_thread = threading.Thread(target=self._heartbeat, name="heartbeat", daemon=True)
         self._answer_lock = threading.Lock()
         self._calibration_policy = calibration_settings(station.config)[0]
@@ -330,7 +333,7 @@ class StationRunner:
             raw, _ = capture_sequence(self.station.display, self.station.camera, self.station.config.fringes,
                                       recipe.analysis.mask_threshold_dn, timeout_s=self.settings.camera_timeout_s)
             distance = float(self.station.range_finder.measure())
-            self.worker.analyse(raw, recipe.design, recipe.analysis, distance,
+            self.worker.analyse(raw, analysis_design(recipe, self.station.config), recipe.analysis, distance,
                                 timeout_s=max(60.0, 3 * self.settings.deadline_s), optics=recipe.optics,
                                 uncertainty=self.station.config.uncertainty)
             log.info("warm-up: one capture analysed in %.1f s", time.perf_counter() - t)
@@ -391,7 +394,9 @@ class StationRunner:
                                           recipe.analysis.mask_threshold_dn, timeout_s=self.settings.camera_timeout_s)
             distance = float(self.station.range_finder.measure())
             timings["capture"] = time.perf_counter() - t
-            box = crop_box(raw[0], raw[1], recipe.analysis.mask_threshold_dn)
+            # (a heliostat: the box around every facet, not its largest region)
+            box = (heliostat_crop_box if recipe.ensemble is not None else crop_box)(
+                raw[0], raw[1], recipe.analysis.mask_threshold_dn)
             frames, raw_shape = crop(raw, box), raw.shape[1:]
             cal_warnings = self._check_calibration(raw[0])
             del raw
@@ -403,18 +408,23 @@ class StationRunner:
                                       f"{self.settings.deadline_s:g} s deadline")
             t = time.perf_counter()
             state["stage"] = "analysis"
-            res = self.worker.analyse(restore(frames, box, raw_shape), recipe.design, recipe.analysis,
-                                      distance, timeout_s=budget, hang_s=hang_s, optics=recipe.optics,
-                                      uncertainty=self.station.config.uncertainty)
+            res = self.worker.analyse(restore(frames, box, raw_shape), analysis_design(recipe, self.station.config),
+                                      recipe.analysis, distance, timeout_s=budget, hang_s=hang_s,
+                                      optics=recipe.optics, uncertainty=self.station.config.uncertainty)
             timings["analysis"] = time.perf_counter() - t
             # The ground truth (simulated station) is that of the station's own facet type.
             truth = self.station.truth(res.valid) if recipe.design.name == self.station.config.design.name else None
-            record = build_record(
-                self._head(cycle_id, request, recipe.name, cal_warnings, facet=recipe.design.name),
-                figures=res.figures, verdict=judge(res.figures, recipe.design, recipe.limits, recipe.quality),
-                truth=truth, measured_distance_m=distance, capture_notes=notes,
-                timings={**timings, **{f"analysis_{k}": v for k, v in res.figures.get("timings_s", {}).items()}})
-            self._check_drift(recipe.name, record)
+            head = self._head(cycle_id, request, recipe.name, cal_warnings, facet=recipe.design.name)
+            if recipe.ensemble is not None:       # a heliostat: one entry per facet (docs/heliostats.md)
+                record = loop_record(head, res.figures, recipe, truth, measured_distance_m=distance,
+                                     capture_notes=notes, timings=timings)
+            else:
+                record = build_record(
+                    head, figures=res.figures, verdict=judge(res.figures, recipe.design, recipe.limits,
+                                                             recipe.quality),
+                    truth=truth, measured_distance_m=distance, capture_notes=notes,
+                    timings={**timings, **{f"analysis_{k}": v for k, v in res.figures.get("timings_s", {}).items()}})
+                self._check_drift(recipe.name, record)
             outcome = CycleOutcome(cycle_id, serial, record["verdict"], record, valid=res.valid,
                                    preview=res.preview, sensitivities=getattr(res, "sensitivities", None))
         except Exception as exc:          # a bad facet must never stop the line

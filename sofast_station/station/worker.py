@@ -124,6 +124,17 @@ def _run(ticket: int, design: dict, settings: dict, distance_m: float, hang_s: f
         time.sleep(hang_s)
     t = time.perf_counter()
     frames = np.array(_STATE["frames"])  # a private copy: the station may refill the buffer after a timeout
+    if "ensemble" in design:             # a heliostat recipe (station/heliostat.py HeliostatJob)
+        from .heliostat import analyse_job
+        inputs = None if uncertainty is None else InputUncertainties.from_dict(uncertainty)
+        figures, valid, sensitivities = analyse_job(
+            frames, _STATE["fringes"], _STATE["geometry"], design, AnalysisSettings(**settings), distance_m,
+            rays_cam=_STATE["rays"], optics=optics, uncertainty=inputs,
+            sensitivity_cache=_STATE.setdefault("sensitivities", {}))
+        out = (figures, np.packbits(valid), valid.shape, time.perf_counter() - t, None, sensitivities)
+        del frames, valid
+        trim_heap()
+        return out
     facet = FacetDesign.from_dict(design)
     # Sensitivities are computed on the first facet of each recipe and kept for the worker's life.
     inputs = None if uncertainty is None else InputUncertainties.from_dict(uncertainty)

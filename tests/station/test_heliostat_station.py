@@ -109,3 +109,48 @@ def test_a_missing_facet_fails_the_heliostat_and_a_hidden_one_makes_it_invalid()
     assert v["verdict"] == "invalid" and facets[0]["verdict"] == "fail" and facets[1]["verdict"] == "invalid"
     assert v["reasons"][0] == "R1C2: facet R1C2 is partly hidden"
     assert judge_heliostat(facets[:1], DESIGNS, LIMITS, Quality())["verdict"] == "fail"
+
+
+@pytest.fixture(scope="module")
+def line(tmp_path_factory):
+    """Two heliostats through the production loop (the simulated robot), every one dumped."""
+    import dataclasses
+
+    from sofast_station.config import load_config
+    from sofast_station.station.service import Service
+
+    tmp = tmp_path_factory.mktemp("line")
+    cfg = load_config(small_heliostat_station(tmp))
+    raw = dict(cfg.raw, run={"deadline_s": 120.0, "late_grace_s": 60.0, "dump_every_n": 1},
+               archive={"workbook_interval_s": 1.0})
+    cfg = dataclasses.replace(cfg, data_dir=tmp / "data", raw=raw)
+    service = Service(cfg, simulated_facets=2, console=lambda line: None)
+    try:
+        outcomes = service.runner.run()
+    finally:
+        service.close()                      # waits for the archiver to drain
+    return cfg, outcomes
+
+
+def test_the_line_journals_a_row_per_facet_and_dumps_that_reprocess_exactly(line):
+    from sofast_station.archive import Journal, read_workbook
+    from sofast_station.reanalysis.reprocess import reprocess_dump
+
+    cfg, outcomes = line
+    assert [o.answer for o in outcomes] == ["fail", "fail"]           # R1C2's canting, as inspect found
+    journal = Journal(cfg.data_dir / "journal.sqlite3")
+    try:
+        rows = journal.rows()
+    finally:
+        journal.close()
+    assert len(rows) == 2 and all(r.dump_status == "written" for r in rows)
+    books = sorted((cfg.data_dir / "archive").glob("*.xlsx"))
+    sheet = [row for b in books for row in read_workbook(b)]
+    assert [r["serial"] for r in sheet] == [f"SIM-000{i}-{lab}" for i in (1, 2) for lab in ("R1C1", "R1C2", "R2C1",
+                                                                                             "R2C2")]
+    for r in sheet:
+        assert r["heliostat_serial"] in ("SIM-0001", "SIM-0002") and r["heliostat_verdict"] == "fail"
+        assert "canting_mrad.x" in r and "canting_mrad_U.x" in r and "heliostat.canting_max_mrad" in r
+    res = reprocess_dump(rows[0].dump_path)
+    assert res.exact, res.differences
+    assert res.n_compared > 400 and res.record["facets"][1]["canting_mrad"] == rows[0].record["facets"][1]["canting_mrad"]
