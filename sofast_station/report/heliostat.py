@@ -96,9 +96,29 @@ def draw_facet_map(record: dict, ensemble, limit_mrad: float | None = None, titl
 
     *record* is a heliostat record (``facets`` entries with ``label``, ``status``, ``canting_mrad`` and
     ``canting_mrad_U``); *limit_mrad* (``[limits] max_canting_mrad``) sets the colour scale's end (red)."""
+    from matplotlib.figure import Figure
+
+    n = ensemble.n_facets
+    fig = Figure(figsize=(9.0, 8.5) if n <= 9 else (12.0, 11.0), layout="constrained")
+    ax = fig.subplots()
+    norm, cmap = draw_facet_map_on(ax, record, ensemble, limit_mrad, fontsize=9 if n <= 9 else 7)
+    from matplotlib.cm import ScalarMappable
+    fig.colorbar(ScalarMappable(norm, cmap), ax=ax, shrink=0.8,
+                 label="canting error, mrad" + (" (red: at the limit)" if limit_mrad else ""))
+    h = record.get("heliostat", {})
+    sub = ""
+    if "canting_rms_mrad" in h:
+        sub = (f"canting RMS {h['canting_rms_mrad']:.3f} mrad, largest {h['canting_max_mrad']:.3f} mrad "
+               f"({h.get('canting_max_facet', '')}); arrows: where each facet's optical axis leans")
+    ax.set_title(f"{title}\n{sub}".strip(), fontsize=11)
+    return fig
+
+
+def draw_facet_map_on(ax, record: dict, ensemble, limit_mrad: float | None = None, fontsize: int = 9):
+    """Draw the map of the facets (:func:`draw_facet_map`) into the Matplotlib axes *ax*; returns its colour
+    scale (norm, colour map)."""
     from matplotlib import colormaps
     from matplotlib.colors import Normalize
-    from matplotlib.figure import Figure
     from matplotlib.patches import FancyArrow, Polygon
 
     facets = {f["label"]: f for f in record["facets"]}
@@ -109,11 +129,9 @@ def draw_facet_map(record: dict, ensemble, limit_mrad: float | None = None, titl
     xy = ensemble.corners_m()[:, :2]
     span = float(np.max(xy.max(axis=0) - xy.min(axis=0)))
     n = ensemble.n_facets
-    fig = Figure(figsize=(9.0, 8.5) if n <= 9 else (12.0, 11.0), layout="constrained")
-    ax = fig.subplots()
     pitch = span / max(1.0, math.sqrt(n))
     arrow_scale = 0.35 * pitch / max(top, 1e-9)          # an error at the limit: an arrow a third of a facet long
-    font = 9 if n <= 9 else 7
+    font = fontsize
     for ef in ensemble.facets:
         corners = ef.corners_m()[:, :2]
         f = facets.get(ef.label, {"status": "missing"})
@@ -145,16 +163,7 @@ def draw_facet_map(record: dict, ensemble, limit_mrad: float | None = None, titl
     ax.set_aspect("equal")
     ax.set_xlabel("heliostat x, m (seen from the mirrors)")
     ax.set_ylabel("heliostat y, m")
-    from matplotlib.cm import ScalarMappable
-    fig.colorbar(ScalarMappable(norm, cmap), ax=ax, shrink=0.8,
-                 label="canting error, mrad" + (" (red: at the limit)" if limit_mrad else ""))
-    h = record.get("heliostat", {})
-    sub = ""
-    if "canting_rms_mrad" in h:
-        sub = (f"canting RMS {h['canting_rms_mrad']:.3f} mrad, largest {h['canting_max_mrad']:.3f} mrad "
-               f"({h.get('canting_max_facet', '')}); arrows: where each facet's optical axis leans")
-    ax.set_title(f"{title}\n{sub}".strip(), fontsize=11)
-    return fig
+    return norm, cmap
 
 
 def save_facet_map(record: dict, ensemble, path: Path, limit_mrad: float | None = None, title: str = "",

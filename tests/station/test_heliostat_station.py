@@ -154,3 +154,40 @@ def test_the_line_journals_a_row_per_facet_and_dumps_that_reprocess_exactly(line
     res = reprocess_dump(rows[0].dump_path)
     assert res.exact, res.differences
     assert res.n_compared > 400 and res.record["facets"][1]["canting_mrad"] == rows[0].record["facets"][1]["canting_mrad"]
+
+
+def test_the_certificate_and_the_page_show_the_heliostat_as_a_map_of_its_facets(line, tmp_path):
+    import subprocess
+    import sys
+
+    from sofast_station.web.data import LineData
+    from sofast_station.web.images import FacetImages
+    from sofast_station.web.render import last_html
+    from sofast_station.web.settings import web_settings
+
+    cfg, outcomes = line
+    out = tmp_path / "certificate.pdf"
+    import os
+    proc = subprocess.run([sys.executable, "-m", "sofast_station", "report", "certificate", "SIM-0002", "--config",
+                           str(cfg.path), "--out", str(out)], capture_output=True, text=True, timeout=300,
+                          env=dict(os.environ, SOFAST_DATA_DIR=str(cfg.data_dir)))
+    assert proc.returncode == 0, proc.stderr
+    data = out.read_bytes()
+    assert data.startswith(b"%PDF") and b"/Count 1" in data           # one page
+    from sofast_station.archive import Journal
+    from sofast_station.report.certificate import draw_heliostat_certificate
+    with Journal(cfg.data_dir / "journal.sqlite3") as j:
+        rec = j.rows(serial="SIM-0002")[-1].record
+    fig = draw_heliostat_certificate(rec, ensemble=cfg.ensemble, limit_mrad=0.5)
+    text = "\n".join([t.get_text() for t in fig.texts] + [t.get_text() for ax in fig.axes for t in ax.texts]
+                     + [c.get_text().get_text() for ax in fig.axes for tb in ax.tables for c in tb.get_celld().values()])
+    for words in ("Heliostat inspection certificate", "SIM-0002", "R1C2  OVER", "canting RMS", "FAIL",
+                  "Data dump", "fail"):
+        assert words in text, words
+    snap = LineData(cfg, web_settings(cfg)).snapshot()
+    labels = [f.label for f in snap["figures"]]
+    assert labels[:2] == ["R1C1 canting (pass)", "R1C2 canting (fail)"] and snap["figures"][1].ok is False
+    html = last_html(snap)
+    assert f"/facet/{outcomes[-1].cycle_id}/facets.png" in html and "/map.png" not in html
+    png = FacetImages(cfg.data_dir, config=cfg).get(outcomes[-1].cycle_id, "facets")
+    assert png[:4] == b"\x89PNG"
