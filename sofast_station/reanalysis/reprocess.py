@@ -524,7 +524,7 @@ def reprocess_content(content: DumpContent, overrides: Overrides | None = None, 
     ReprocessResult
     """
     from ..result.faults import fault_reason
-    from ..result.record import RecordHead, build_record, now_iso
+    from ..result.record import build_record
     from ..result.verdict import judge
 
     t0 = time.perf_counter()
@@ -541,22 +541,7 @@ def reprocess_content(content: DumpContent, overrides: Overrides | None = None, 
                         f"cycle {content.cycle_id}") + ": nothing to compare")
     design = _design(content, overrides, notes)
     settings = _settings(content, overrides, notes)
-    distance = content.measured_distance_m
-    if overrides.measured_distance_m is not None:
-        distance = float(overrides.measured_distance_m)
-        notes.append(f"measured distance {distance:.6f} m (archived {content.measured_distance_m:.6f} m)")
-    rad = content.radiometric
-    rad_id = rad["record_id"]
-    if overrides.radiometric_path is not None:
-        from ..calibrate.records import load_radiometric
-        new_rad = load_radiometric(overrides.radiometric_path)
-        notes.append(calibration_note(content, new_rad))
-        rad_id = new_rad.record_id
-    base = archived or {}
-    head = RecordHead(serial=content.serial, time=content.time, station=content.station_name,
-                      config_hash=_config_hash(content.config_hash, overrides), calibration={"radiometric": rad_id},
-                      camera={"exposure_s": rad["exposure_s"], "gain": rad["gain"]}, facet=design.name,
-                      cycle_id=content.cycle_id, recipe=base.get("recipe", "default"))
+    head, distance = _head_and_distance(content, overrides, archived, notes, design.name)
     analysis = fault = None
     t1 = time.perf_counter()
     try:
@@ -583,16 +568,49 @@ def reprocess_content(content: DumpContent, overrides: Overrides | None = None, 
         record = build_record(head, figures=analysis.figures,
                               verdict=judge(analysis.figures, design, limits, quality), truth=truth,
                               measured_distance_m=distance, timings=timings)
+    design_note = {"name": design.name, "focal_length_m": design.focal_length_m,
+                   "alignment_point_m": design.alignment_point_m.tolist(),
+                   "measure_point_m": design.measure_point_m.tolist()}
+    return _compared(record, content, overrides, archived, archived_source, notes, design_note,
+                     analysis=analysis, design=design, seconds=time.perf_counter() - t0 + read_s)
+
+
+def _head_and_distance(content, overrides, archived: dict | None, notes: list, name: str):
+    """The reprocessed record's head (design *name*, the radiometric record an override names) and the
+    measured distance (the archived one, or the override's), with a note for each override."""
+    from ..result.record import RecordHead
+
+    distance = content.measured_distance_m
+    if overrides.measured_distance_m is not None:
+        distance = float(overrides.measured_distance_m)
+        notes.append(f"measured distance {distance:.6f} m (archived {content.measured_distance_m:.6f} m)")
+    rad = content.radiometric
+    rad_id = rad["record_id"]
+    if overrides.radiometric_path is not None:
+        from ..calibrate.records import load_radiometric
+        new_rad = load_radiometric(overrides.radiometric_path)
+        notes.append(calibration_note(content, new_rad))
+        rad_id = new_rad.record_id
+    head = RecordHead(serial=content.serial, time=content.time, station=content.station_name,
+                      config_hash=_config_hash(content.config_hash, overrides), calibration={"radiometric": rad_id},
+                      camera={"exposure_s": rad["exposure_s"], "gain": rad["gain"]}, facet=name,
+                      cycle_id=content.cycle_id, recipe=(archived or {}).get("recipe", "default"))
+    return head, distance
+
+
+def _compared(record: dict, content, overrides, archived: dict | None, archived_source: str, notes: list,
+              design_note: dict, *, analysis, design, seconds: float) -> "ReprocessResult":
+    """The reprocessed *record* as a JSON archive holds it, compared with *archived*, with its ``reprocess``
+    part (*design_note*: what design it was redone with)."""
+    from ..result.record import now_iso
+
     record = json.loads(to_json(record))     # exactly what a JSON archive holds (no numpy scalars)
     differences, n = compare_figures(archived, record) if archived else ({}, len(flatten_figures(record)))
-    seconds = time.perf_counter() - t0 + read_s
     record["timings_s"]["total"] = seconds
     record["reprocess"] = json_ready({
         "at": now_iso(), "software_version": __version__, "dump_software_version": content.software_version,
         "dump_schema_version": content.schema_version, "dump_created": content.created,
-        "design": {"name": design.name, "focal_length_m": design.focal_length_m,
-                   "alignment_point_m": design.alignment_point_m.tolist(),
-                   "measure_point_m": design.measure_point_m.tolist()},
+        "design": design_note,
         "archived_from": archived_source if archived else None, "overrides": overrides.to_dict(), "notes": notes,
         "exact": None if not archived else not differences, "figures_compared": n,
         "figures_different": len(differences), "blas_threads": blas_threads(),
@@ -645,7 +663,7 @@ def reprocess_heliostat(content, overrides, *, archived: dict | None, archived_s
     from ..geometry import StationGeometry
     from ..precompute import ray_table
     from ..result.faults import fault_reason
-    from ..result.record import RecordHead, build_record, now_iso
+    from ..result.record import build_record
     from ..station.heliostat import analyse_job, loop_record
     from ..station.recipes import Recipe
 
@@ -661,23 +679,8 @@ def reprocess_heliostat(content, overrides, *, archived: dict | None, archived_s
     job = {k: content.design[k] for k in ("ensemble", "heliostat", "max_canting_mrad") if k in content.design}
     ensemble = EnsembleDesign.from_dict(job["ensemble"])
     settings = _settings(content, overrides, notes)
-    distance = content.measured_distance_m
-    if overrides.measured_distance_m is not None:
-        distance = float(overrides.measured_distance_m)
-        notes.append(f"measured distance {distance:.6f} m (archived {content.measured_distance_m:.6f} m)")
-    rad = content.radiometric
-    rad_id = rad["record_id"]
-    if overrides.radiometric_path is not None:
-        from ..calibrate.records import load_radiometric
-        new_rad = load_radiometric(overrides.radiometric_path)
-        notes.append(calibration_note(content, new_rad))
-        rad_id = new_rad.record_id
-    base = archived or {}
-    recipe_name = base.get("recipe", "default")
-    head = RecordHead(serial=content.serial, time=content.time, station=content.station_name,
-                      config_hash=_config_hash(content.config_hash, overrides), calibration={"radiometric": rad_id},
-                      camera={"exposure_s": rad["exposure_s"], "gain": rad["gain"]}, facet=ensemble.name,
-                      cycle_id=content.cycle_id, recipe=recipe_name)
+    head, distance = _head_and_distance(content, overrides, archived, notes, ensemble.name)
+    recipe_name = head.recipe
     geometry = StationGeometry.from_dict(content.geometry)
     optics = _optics_settings(content, recipe_name, archived, overrides, notes)
     limits, quality = _judge_settings(content, recipe_name, notes)
@@ -706,27 +709,9 @@ def reprocess_heliostat(content, overrides, *, archived: dict | None, archived_s
                     f["truth"] = truth[f["label"]]
             if "truth" in archived:
                 record["truth"] = archived["truth"]
-    record = json.loads(to_json(record))
-    differences, n = compare_figures(archived, record) if archived else ({}, len(flatten_figures(record)))
-    seconds = time.perf_counter() - t0 + read_s
-    record["timings_s"]["total"] = seconds
-    record["reprocess"] = json_ready({
-        "at": now_iso(), "software_version": __version__, "dump_software_version": content.software_version,
-        "dump_schema_version": content.schema_version, "dump_created": content.created,
-        "design": {"name": ensemble.name, "facets": ensemble.labels},
-        "archived_from": archived_source if archived else None, "overrides": overrides.to_dict(), "notes": notes,
-        "exact": None if not archived else not differences, "figures_compared": n,
-        "figures_different": len(differences), "blas_threads": blas_threads(),
-        "platform": f"{platform.system()} {platform.machine()} Python {platform.python_version()} "
-                    f"numpy {np.__version__}",
-        "host": platform.node(), "pid": os.getpid()})
-    res = ReprocessResult(path=Path(content.path) if content.path else Path(""), record=record, archived=archived,
-                          differences=differences, n_compared=n, overrides=overrides,
-                          dump_software_version=content.software_version, schema_version=content.schema_version,
-                          archived_source=archived_source, notes=notes, analysis=None,
-                          design=ensemble.layout_design(), seconds=seconds)
-    record["reprocess"]["summary"] = res.summary()
-    return res
+    return _compared(record, content, overrides, archived, archived_source, notes,
+                     {"name": ensemble.name, "facets": ensemble.labels}, analysis=None,
+                     design=ensemble.layout_design(), seconds=time.perf_counter() - t0 + read_s)
 
 
 def reprocess_dump(path: str | Path, overrides: Overrides | None = None, *,

@@ -103,8 +103,10 @@ def draw_facet_map(record: dict, ensemble, limit_mrad: float | None = None, titl
     ax = fig.subplots()
     norm, cmap = draw_facet_map_on(ax, record, ensemble, limit_mrad, fontsize=9 if n <= 9 else 7)
     from matplotlib.cm import ScalarMappable
-    fig.colorbar(ScalarMappable(norm, cmap), ax=ax, shrink=0.8,
-                 label="canting error, mrad" + (" (red: at the limit)" if limit_mrad else ""))
+    bar = fig.colorbar(ScalarMappable(norm, cmap), ax=ax, shrink=0.8, extend="max" if limit_mrad else "neither",
+                       label="canting error, mrad" + (f" (the line: the limit, {limit_mrad:g})" if limit_mrad else ""))
+    if limit_mrad:
+        bar.ax.axhline(limit_mrad, color="black", lw=2.0)
     h = record.get("heliostat", {})
     sub = ""
     if "canting_rms_mrad" in h:
@@ -123,14 +125,17 @@ def draw_facet_map_on(ax, record: dict, ensemble, limit_mrad: float | None = Non
 
     facets = {f["label"]: f for f in record["facets"]}
     mags = [math.hypot(f["canting_mrad"]["x"], f["canting_mrad"]["y"]) for f in facets.values() if "canting_mrad" in f]
-    top = limit_mrad if limit_mrad else (max(mags) if mags else 1.0) or 1.0
+    # the colour scale runs to 1.5 times the limit: green well within it, orange near it, red beyond
+    top = 1.5 * limit_mrad if limit_mrad else (max(mags) if mags else 1.0) or 1.0
     norm = Normalize(0.0, top)
     cmap = colormaps["RdYlGn_r"]
     xy = ensemble.corners_m()[:, :2]
     span = float(np.max(xy.max(axis=0) - xy.min(axis=0)))
     n = ensemble.n_facets
     pitch = span / max(1.0, math.sqrt(n))
-    arrow_scale = 0.35 * pitch / max(top, 1e-9)          # an error at the limit: an arrow a third of a facet long
+    # the arrow in the facet's lower half, its text in the upper: an error at the scale's end (or beyond)
+    # draws an arrow a fifth of a facet long, so it stays on its facet and off its text
+    arrow_scale = 0.2 * pitch / max(top, 1e-9)
     font = fontsize
     for ef in ensemble.facets:
         corners = ef.corners_m()[:, :2]
@@ -141,15 +146,14 @@ def draw_facet_map_on(ax, record: dict, ensemble, limit_mrad: float | None = Non
             mag = math.hypot(c["x"], c["y"])
             ax.add_patch(Polygon(corners, closed=True, fc=cmap(norm(min(mag, top))), ec="black", lw=1.0))
             # the optical axis leans towards (ry, -rx) in the facet's frame
-            # (an error beyond twice the scale's end is drawn at twice: the arrow stays on its facet)
-            stretch = arrow_scale * min(1.0, 2.0 * top / mag) if mag > 0 else 0.0
+            stretch = arrow_scale * min(1.0, top / mag) if mag > 0 else 0.0
             dx, dy = c["y"] * stretch, -c["x"] * stretch
             if math.hypot(dx, dy) > 1e-9:
-                ax.add_patch(FancyArrow(centre[0], centre[1], dx, dy, width=0.012 * pitch, head_width=0.06 * pitch,
-                                        length_includes_head=True, color="black"))
+                ax.add_patch(FancyArrow(centre[0], centre[1] - 0.2 * pitch, dx, dy, width=0.012 * pitch,
+                                        head_width=0.05 * pitch, length_includes_head=True, color="black"))
             u = f.get("canting_mrad_U") or {}
             over = limit_mrad is not None and mag > limit_mrad
-            ax.text(centre[0], centre[1] - 0.28 * pitch,
+            ax.text(centre[0], centre[1] + 0.4 * pitch,
                     f"{ef.label}{'  OVER' if over else ''}\nx {_pm(c['x'], u.get('x'), '{:+.3f}')}\n"
                     f"y {_pm(c['y'], u.get('y'), '{:+.3f}')} mrad", ha="center", va="top", fontsize=font,
                     fontweight="bold" if over else "normal")

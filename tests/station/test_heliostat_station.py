@@ -76,7 +76,10 @@ def test_the_verdict_is_each_facets_and_the_heliostats(record):
     assert by["R1C2"]["verdict"] == "fail"
     assert any(r.startswith("canting error") for r in by["R1C2"]["reasons"])
     assert record["verdict"] == "fail" and any(r.startswith("R1C2: canting error") for r in record["reasons"])
-    assert all(by[k]["verdict"] in ("pass", "fail") for k in by)
+    # the station holds its facets' curvature to 1e-3 /m (their U at this resolution is a few 1e-4): the
+    # twin's facets are within it, so R1C2 fails on its canting alone and the others pass
+    assert [by[k]["verdict"] for k in ("R1C1", "R1C2", "R2C1", "R2C2")] == ["pass", "fail", "pass", "pass"]
+    assert len(by["R1C2"]["reasons"]) == 1 and len(record["reasons"]) == 1
 
 
 def test_the_record_carries_optics_instructions_and_pictures(record):
