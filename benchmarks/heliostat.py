@@ -19,7 +19,11 @@ less so). The heliostats' optics (three traces and the canting's Monte Carlo) ar
 ``--population N`` draws N 2x2 heliostats (canting 1 mrad RMS per facet and axis, facet heights to 0.2 mm,
 placements +-3 mm / +-2 mrad, the twin's default noise) at full resolution and prints the canting errors
 against the twin's truth: the station known exactly, then with its inputs drawn from ``[uncertainty]``
-(coverage of U). Nothing is asserted.
+(coverage of U). ``--inputs`` moves each group of the station's inputs by twice its standard uncertainty
+in the twin alone, and raises one facet 1 mm on its frame, and prints the canting's change beside what U's
+sensitivities predict. Nothing is asserted.
+
+    .venv/bin/python benchmarks/heliostat.py --runs 1 --inputs
 """
 
 from __future__ import annotations
@@ -183,11 +187,112 @@ def population(n: int, scale: int, rng) -> None:
               f"{np.median(u):.4f} mrad ({time.perf_counter() - t:.0f} s)")
 
 
+class _TwoSigma:
+    """A stand-in for the generator :func:`~sofast_station.station.study.perturbed_geometry` draws from: the
+    draws numbered in *on* (in its order, ``DRAWN_INPUTS``) are +2 standard uncertainties, the rest 0."""
+
+    def __init__(self, on):
+        self.on, self.i = set(on), 0
+
+    def normal(self, loc, scale, size=None):
+        import numpy as np
+
+        out = []
+        for _ in range(1 if size is None else size):
+            out.append(2.0 * float(scale) if self.i in self.on else 0.0)
+            self.i += 1
+        return out[0] if size is None else np.array(out)
+
+
+#: The station's inputs moved one group at a time: draws of ``perturbed_geometry`` and U's rows.
+INPUT_GROUPS = {"camera focal lengths": ((0, 1), ("camera fx", "camera fy")),
+                "camera principal point": ((2, 3), ("camera cx", "camera cy")),
+                "camera distortion": ((4, 5, 6, 7, 8), ("camera k1", "camera k2", "camera p1", "camera p2", "camera k3")),
+                "screen rotation x": ((9,), ("screen rx",)), "screen rotation y": ((10,), ("screen ry",)),
+                "screen rotation z": ((11,), ("screen rz",)),
+                "screen translation": ((12, 13, 14), ("screen tx", "screen ty", "screen tz")),
+                "fixture": ((15, 16, 17, 18, 19, 20), ("fixture rx", "fixture ry", "fixture rz", "fixture tx",
+                                                       "fixture ty", "fixture tz")),
+                "screen pitch": ((21,), ("screen pitch x", "screen pitch y")), "distance": ((22,), ("distance",))}
+
+
+def inputs_check(scale: int) -> None:
+    """Each group of the station's inputs moved by +2 standard uncertainties in the twin alone (the analysis
+    believes the nominal station), and a facet raised 1 mm on its frame: the canting's change, facet by
+    facet, against what U's sensitivities predict (the same size; the opposite sign, since the analysis's
+    belief is what is off). One noise-free 2x2 heliostat."""
+    import dataclasses
+
+    import numpy as np
+
+    from sofast_station.calibrate.store import open_calibration
+    from sofast_station.config import load_config
+    from sofast_station.measure.heliostat import analyse_heliostat
+    from sofast_station.measure.sensitivity_record import from_record
+    from sofast_station.station.heliostat_study import HeliostatRig
+    from sofast_station.station.study import perturbed_geometry
+    from sofast_station.twin.config import TwinOptics
+    from sofast_station.twin.heliostat import draw_heliostat, heliostat_truth
+
+    cfg = scaled(load_config(STATIONS["2x2"]), scale)
+    analysis = cfg.analysis if scale == 1 else dataclasses.replace(cfg.analysis, edge_window_px=3)
+    radiometric = open_calibration(cfg, checks=False).record
+    rig = HeliostatRig(cfg.geometry, cfg.ensemble, cfg.fringes, radiometric, analysis, cfg.heliostat,
+                       cfg.uncertainty)
+    true = draw_heliostat(cfg.ensemble, np.random.default_rng(3), canting_mrad=1.0, position_mm=0.0)
+
+    def errors(heliostat, geometry, distance_error):
+        twin = rig.twin(heliostat, TwinOptics.noise_free(), geometry)
+        res = analyse_heliostat(rig.capture(twin, None), rig.fringes, rig.geometry, rig.ensemble,
+                                twin.measured_distance_m() + distance_error, rig.analysis, rig.heliostat,
+                                rays_cam=rig.rays, uncertainty=rig.uncertainty, sensitivity_cache=rig.cache)
+        truth = heliostat_truth(twin, res.valid)["facets"]
+        return np.array([[f["canting_mrad"][a] - truth[f["label"]]["canting_mrad"][a] for a in "xy"]
+                         for f in res.figures["facets"]]), res
+
+    base, res = errors(true, cfg.geometry, 0.0)
+    sens = [from_record(res.analyses[i].sensitivities)[1] for i in sorted(res.analyses)]
+    n = len(sens)
+    weights = np.eye(n) - 1.0 / n
+
+    def predicted(names):
+        out = np.zeros((n, 2))
+        for col, ax in enumerate("xy"):
+            lin = np.array([[s.linear[k, s.paths.index(("optical_tilt_mrad", ax))] if s.inputs[k].name in names
+                             else 0.0 for k in range(len(s.inputs))] for s in sens])
+            out[:, col] = 2.0 * (weights @ lin).sum(axis=1)
+        return out
+
+    print(f"inputs: each moved by +2 u in the twin alone; the canting's change (x, y per facet, mrad) against "
+          f"U's prediction, on {n} facets (signs opposite where the twin moved, alike for the distance, which the "
+          f"analysis is given wrong)")
+    for name, (draws, rows) in INPUT_GROUPS.items():
+        geometry, distance_error = perturbed_geometry(cfg.geometry, cfg.uncertainty, _TwoSigma(draws))
+        e, _ = errors(true, geometry, distance_error)
+        change, pred = e - base, predicted(rows)
+        print(f"  {name:24s} change {np.abs(change).min():.3f} to {np.abs(change).max():.3f}, predicted "
+              f"{np.abs(pred).min():.3f} to {np.abs(pred).max():.3f}; facet by facet "
+              f"{' '.join(f'{c:+.3f}/{q:+.3f}' for c, q in zip(change.ravel(), pred.ravel()))}", flush=True)
+    facets = list(true.facets)
+    m = (cfg.ensemble.measure_facet + 1) % n        # not the measure facet, whose height the range finder sees
+    facets[m] = dataclasses.replace(facets[m], placement_mm=tuple(np.add(facets[m].placement_mm, (0.0, 0.0, 1.0))))
+    e, _ = errors(dataclasses.replace(true, facets=tuple(facets)), cfg.geometry, 0.0)
+    own = (e - base)[m] - np.delete(e - base, m, axis=0).mean(axis=0)
+    dist = [k for k, inp in enumerate(sens[m].inputs) if inp.name == "distance"][0]
+    model = [float(sens[m].linear[dist, sens[m].paths.index(("optical_tilt_mrad", a))]) / sens[m].inputs[dist].u
+             for a in "xy"]
+    print(f"  facet {cfg.ensemble.facets[m].label} raised 1 mm on its frame: its canting against the others' moves "
+          f"x {own[0]:+.4f}, y {own[1]:+.4f} mrad; U's height term takes {abs(model[0]):.4f}, {abs(model[1]):.4f} "
+          f"mrad per mm")
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--runs", type=int, default=7, help="timed runs after the cold one (default 7)")
     p.add_argument("--quick", action="store_true", help="a quarter of the resolution, 1 run")
     p.add_argument("--population", type=int, default=0, help="also this many drawn 2x2 heliostats (canting errors)")
+    p.add_argument("--inputs", action="store_true",
+                   help="also check U's model input by input on one 2x2 heliostat (about 12 captures)")
     p.add_argument("--seed", type=int, default=30)
     args = p.parse_args(argv)
     import numpy as np
@@ -207,6 +312,8 @@ def main(argv=None) -> int:
     print(f"5x5: {five_wall:.2f} s wall, {five_cpu:.2f} s CPU (target: at most 10 s)")
     if args.population:
         population(args.population, scale, rng)
+    if args.inputs:
+        inputs_check(scale)
     print(f"load average after: {load()}")
     return 0
 

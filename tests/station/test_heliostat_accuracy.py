@@ -15,8 +15,8 @@ Tolerances:
   the facets sit on the frame at their design height to 0.2 mm (one standard deviation; a jig): what is left
   is the method (corners, noise, the facets' own shapes), 0.035 mrad at most here. A facet's height on the
   frame is not measured (its distance comes from the frame's pose and its design position, as OpenCSP does
-  it): each millimetre of it turns its measured canting by 0.05 to 0.07 mrad on this station (its U carries
-  it, ``HeliostatSettings.facet_height_mm``);
+  it): each millimetre of it turns its measured canting by 0.02 to 0.07 mrad on this station, by facet and
+  axis (its U carries it, ``HeliostatSettings.facet_height_mm``);
 * **canting covered by its U (k = 2)** when the twin's station (camera, screen, fixture, pitch, distance) is
   drawn from ``[uncertainty]``, the analysis believes the nominal one, and the facets' heights are drawn to
   0.5 mm: the quarter-resolution camera's 1 px focal-length uncertainty is 4 times the full camera's in
