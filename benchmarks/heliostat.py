@@ -170,21 +170,61 @@ def population(n: int, scale: int, rng) -> None:
     rig = HeliostatRig(cfg.geometry, cfg.ensemble, cfg.fringes, radiometric, cfg.analysis, cfg.heliostat,
                        cfg.uncertainty)
     for perturb in (False, True):
-        errors, us = [], []
+        errors, us, predicted, within = [], [], [], []
         t = time.perf_counter()
         for k in range(n):
+            drawn: dict = {}
             r = rig.case(draw_heliostat(cfg.ensemble, rng, canting_mrad=1.0, position_mm=0.2 if not perturb else 0.5),
-                         TwinOptics(), rng, perturb=perturb)
+                         TwinOptics(), rng, perturb=perturb, keep=perturb, drawn=drawn)
+            pred = drawn_prediction(r.analysis, drawn) if perturb else {}
+            inside = []
             for label in r.canting:
                 errors.append(np.subtract(r.canting[label], r.truth[label]))
                 us.append(r.u[label])
+                inside.extend(np.abs(errors[-1]) <= us[-1])
+                if perturb:
+                    predicted.append(pred[label])
+            within.append(np.mean(inside))
             print(f"  {'drawn station' if perturb else 'exact station'} {k + 1}/{n}: largest error so far "
                   f"{np.abs(errors).max():.4f} mrad", flush=True)
         e, u = np.array(errors), np.array(us)
         print(f"population, {'station inputs drawn from [uncertainty], facet heights 0.5 mm' if perturb else 'the station known exactly, facet heights 0.2 mm'}: "
               f"{n} heliostats, {e.size} canting errors: largest {np.abs(e).max():.4f} mrad, RMS "
               f"{np.sqrt(np.mean(e ** 2)):.4f} mrad, {100 * np.mean(np.abs(e) <= u):.1f} % within U, median U "
-              f"{np.median(u):.4f} mrad ({time.perf_counter() - t:.0f} s)")
+              f"{np.median(u):.4f} mrad, RMS of error / (U / 2) {np.sqrt(np.mean((2 * e / u) ** 2)):.2f} "
+              f"({time.perf_counter() - t:.0f} s)")
+        print(f"  per heliostat, % within U: {' '.join(f'{100 * w:.0f}' for w in within)}"
+              + (" (a heliostat's errors share its one drawn station)" if perturb else ""))
+        if perturb:
+            q = np.array(predicted)
+            print(f"  the errors against U's own prediction from the drawn inputs (its sensitivities times the draws): "
+                  f"slope {float(np.sum(e * q) / np.sum(q * q)):.3f}, correlation {np.corrcoef(e.ravel(), q.ravel())[0, 1]:.3f}, "
+                  f"the rest RMS {np.sqrt(np.mean((e - q) ** 2)):.4f} mrad (the facets' heights, noise, corners)")
+
+
+def drawn_prediction(res, drawn: dict) -> dict:
+    """Facet label -> the canting error (x, y, mrad) U's model predicts for the station inputs *drawn* (from
+    :func:`~sofast_station.station.study.perturbed_geometry`): each facet's sensitivities of its optical tilt,
+    per unit of each input, times the draw (opposite in sign: the twin moved, the analysis believes the nominal
+    station; alike for the distance, which the analysis is given wrong), less the facets' mean. The twin's one
+    pitch moves both of U's pitch rows."""
+    import numpy as np
+
+    from sofast_station.measure.sensitivity_record import from_record
+
+    keys = sorted(res.analyses)
+    sens = [from_record(res.analyses[i].sensitivities)[1] for i in keys]
+    tilts = np.zeros((len(keys), 2))
+    for r, s in enumerate(sens):
+        for col, ax in enumerate("xy"):
+            j = s.paths.index(("optical_tilt_mrad", ax))
+            for k, inp in enumerate(s.inputs):
+                d = drawn.get("screen pitch" if inp.name.startswith("screen pitch") else inp.name)
+                if d is not None and inp.kind == "systematic":
+                    tilts[r, col] += (1.0 if inp.name == "distance" else -1.0) * s.linear[k, j] / inp.u * d
+    tilts -= tilts.mean(axis=0)
+    labels = {f["index"]: f["label"] for f in res.figures["facets"]}
+    return {labels[i]: tuple(tilts[r]) for r, i in enumerate(keys)}
 
 
 class _TwoSigma:

@@ -424,8 +424,10 @@ def combined_u(weights: dict, sensitivities: dict, u_random: dict, path: tuple) 
 
     The systematic inputs (every row of kind ``"systematic"``) are the same for every facet of a capture:
     their signed contributions c_ik (and curvatures q_ik) add with the weights before squaring,
-    ``sqrt((sum_i w_i c_ik)^2 + 2 (sum_i w_i q_ik)^2)`` per input. The random parts (the capture's noise,
-    the corners) are independent between facets: ``sum_i (w_i u_i)^2``.
+    ``sqrt((sum_i w_i c_ik)^2 + 2 (sum_i w_i q_ik)^2)`` per input; as in the single facet's budget
+    (:func:`~sofast_station.measure.uncertainty.budget.combine`) the curvatures' signed sum over the inputs,
+    ``sum_k sum_i w_i q_ik``, is an offset the value keeps, added in quadrature. The random parts (the
+    capture's noise, the corners) are independent between facets: ``sum_i (w_i u_i)^2``.
     """
     keys = list(weights)
     table = _systematic_table(keys, sensitivities, u_random, path)
@@ -433,7 +435,8 @@ def combined_u(weights: dict, sensitivities: dict, u_random: dict, path: tuple) 
         return None
     lin, cur, rand = table
     w = np.array([weights[i] for i in keys])
-    return float(2.0 * np.sqrt(np.sum((w @ lin) ** 2 + 2.0 * (w @ cur) ** 2) + np.sum((w * 0.5 * rand) ** 2)))
+    sys2 = np.sum((w @ lin) ** 2 + 2.0 * (w @ cur) ** 2) + np.sum(w @ cur) ** 2
+    return float(2.0 * np.sqrt(sys2 + np.sum((w * 0.5 * rand) ** 2)))
 
 
 def _systematic_table(keys: list, sensitivities: dict, u_random: dict, path: tuple):
@@ -461,6 +464,23 @@ def _systematic_table(keys: list, sensitivities: dict, u_random: dict, path: tup
     return lin, cur, np.array([float(u_random[i]) for i in keys])
 
 
+def capture_scaled(sens, figures: dict):
+    """A facet's cached sensitivities with its systematic rows at the values its capture's own evidence gave
+    them, as the single facet's budget uses them (:func:`~sofast_station.measure.uncertainty.capture_evidence.
+    capture_scales`): the display response's rows, computed at ``[uncertainty] response_phase_rad``, scaled to
+    the capture's estimate (``uncertainty_budget.display_response.u_rad``: its second harmonic, and the
+    radiometric record's rounding) -- linear parts by the ratio, curvatures by its square. The random rows are
+    the facet's ``_U_random`` already. *sens* itself is not changed."""
+    response = ((figures.get("uncertainty_budget") or {}).get("display_response") or {}).get("u_rad")
+    rows = [k for k, inp in enumerate(sens.inputs) if inp.group == "display response" and inp.u > 0]
+    if response is None or not rows:
+        return sens
+    scale = np.ones(len(sens.inputs))
+    scale[rows] = [float(response) / sens.inputs[k].u for k in rows]
+    return dataclasses.replace(sens, linear=sens.linear * scale[:, None],
+                               curvature=sens.curvature * (scale ** 2)[:, None])
+
+
 def canting_u(sensitivities: dict, u_random: dict, path: tuple) -> dict:
     """Every facet's canting U (k = 2) at once: :func:`combined_u` with the weights of x_i less the facets'
     mean (``e_i - 1/n``), for the facets of *sensitivities*."""
@@ -471,7 +491,7 @@ def canting_u(sensitivities: dict, u_random: dict, path: tuple) -> dict:
     lin, cur, rand = table
     n = len(keys)
     w = np.eye(n) - 1.0 / n
-    sys2 = np.sum((w @ lin) ** 2 + 2.0 * (w @ cur) ** 2, axis=1)
+    sys2 = np.sum((w @ lin) ** 2 + 2.0 * (w @ cur) ** 2, axis=1) + np.sum(w @ cur, axis=1) ** 2
     rand2 = (w ** 2) @ ((0.5 * rand) ** 2)
     return {i: float(2.0 * np.sqrt(sys2[r] + rand2[r])) for r, i in enumerate(keys)}
 
@@ -784,7 +804,7 @@ def analyse_heliostat(frames: np.ndarray, fringes: FringeSet, geometry: StationG
         from .sensitivity_record import from_record
         for i, a in analyses.items():
             rec = from_record(a.sensitivities) if a.sensitivities is not None else None
-            sens[i] = rec[1] if rec else None
+            sens[i] = None if not rec else capture_scaled(rec[1], a.figures)
             u = a.figures.get("optical_tilt_mrad_U_random")
             u_rand[i] = None if u is None else dict(u)
             # a facet's height on the frame is its own: its share of the distance, independent between facets

@@ -81,9 +81,10 @@ class HeliostatRig:
         return np.stack([twin.capture(img, rng, exposure_s=self.exposure_s, gain=self.gain) for img in self.images])
 
     def case(self, true_heliostat, optics, rng: np.random.Generator | None, perturb: bool = False,
-             keep: bool = False) -> CaseResult:
+             keep: bool = False, drawn: dict | None = None) -> CaseResult:
         """Trace, photograph, analyse and compare one heliostat. With *perturb*, the twin's station (camera,
-        screen, fixture, pitch) and the measured distance are drawn from ``[uncertainty]`` (*rng*)."""
+        screen, fixture, pitch) and the measured distance are drawn from ``[uncertainty]`` (*rng*); *drawn*, a
+        dict, then receives each input's draw (:func:`~sofast_station.station.study.perturbed_geometry`)."""
         import time
 
         from ..twin.heliostat import heliostat_truth
@@ -91,7 +92,7 @@ class HeliostatRig:
         geometry, distance_error = self.geometry, 0.0
         if perturb:
             from .study import perturbed_geometry
-            geometry, distance_error = perturbed_geometry(self.geometry, self.uncertainty, rng)
+            geometry, distance_error = perturbed_geometry(self.geometry, self.uncertainty, rng, drawn)
         twin = self.twin(true_heliostat, optics, geometry)
         frames = self.capture(twin, rng if optics.has_noise else None)
         t = time.perf_counter()

@@ -16,8 +16,8 @@ from sofast_station.errors import FacetNotFoundError
 from sofast_station.geometry import CameraIntrinsics, Pose, ScreenSpec
 from sofast_station.layout import layout_station
 from sofast_station.measure.camera import RayTable, pixel_rays, project
-from sofast_station.measure.heliostat import (WindowRays, canting_errors, canting_u, combined_u, find_facets,
-                                              nominal_outlines, tilted, window_camera)
+from sofast_station.measure.heliostat import (WindowRays, canting_errors, canting_u, capture_scaled, combined_u,
+                                              find_facets, nominal_outlines, tilted, window_camera)
 from sofast_station.measure.uncertainty import Input, Sensitivities
 from tests.conftest import ROOT
 
@@ -74,6 +74,35 @@ def test_every_facets_canting_u_at_once_is_the_difference_from_the_mean():
     for i in range(5):
         w = {j: (1.0 if j == i else 0.0) - 0.2 for j in range(5)}
         assert every[i] == pytest.approx(combined_u(w, s, u_rand, path), rel=1e-12)
+
+
+def test_canting_u_keeps_the_curvatures_offset_as_the_single_facet_budget_does():
+    # An input the tilt responds to as q z^2 (no linear part) moves every facet's tilt by q on average, not
+    # only spreads it: the single facet's budget adds that offset (budget.combine), and so must the canting's.
+    s = {0: sens({"screen rz": 0.0}), 1: sens({"screen rz": 0.0})}
+    s[0].curvature[0, 0], s[1].curvature[0, 0] = 0.03, -0.01
+    u_rand = {0: 0.0, 1: 0.0}
+    w = {0: 0.5, 1: -0.5}
+    q = 0.5 * 0.03 + 0.5 * 0.01                  # the difference's curvature
+    assert combined_u(w, s, u_rand, ("optical_tilt_mrad", "x")) == pytest.approx(2.0 * np.sqrt(2 * q ** 2 + q ** 2),
+                                                                                  rel=1e-12)
+    assert canting_u(s, u_rand, ("optical_tilt_mrad", "x"))[0] == pytest.approx(2.0 * np.sqrt(3.0) * q, rel=1e-12)
+
+
+def test_canting_u_takes_the_display_response_at_the_captures_own_evidence():
+    # The sensitivities are computed at [uncertainty] response_phase_rad; the single facet's budget scales the
+    # display response's rows to what the capture shows (capture_evidence.capture_scales): so must the canting.
+    inputs = [Input("display response cos", "display response", 0.003, "rad"),
+              Input("screen rz", "camera-to-screen rotation", 0.5, "mrad")]
+    lin = np.array([[0.02], [0.04]])
+    cur = np.array([[0.001], [0.002]])
+    s = Sensitivities(inputs, [("optical_tilt_mrad", "x")], lin, cur, 100)
+    figures = {"uncertainty_budget": {"display_response": {"u_rad": 0.012, "source": "capture"}}}
+    scaled = capture_scaled(s, figures)
+    assert scaled.linear[:, 0] == pytest.approx([0.08, 0.04], rel=1e-12)       # 4 times the reference u
+    assert scaled.curvature[:, 0] == pytest.approx([0.016, 0.002], rel=1e-12)
+    assert s.linear[0, 0] == 0.02                                                # the cached record unchanged
+    assert capture_scaled(s, {}) is s                                            # no evidence: as computed
 
 
 def test_the_pose_turned_about_its_measure_point_keeps_the_distance():
