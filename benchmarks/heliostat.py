@@ -117,7 +117,7 @@ def heliostat(kind: str, scale: int, runs: int, rng, optics_runs: int, with_u: b
     from sofast_station.precompute import warm_up
     from sofast_station.station.heliostat import analysis_optics
     from sofast_station.station.heliostat_study import HeliostatRig
-    from sofast_station.twin.config import TwinOptics
+    from sofast_station.twin.parameters import TwinOptics
     from sofast_station.twin.heliostat import draw_heliostat
 
     cfg = scaled(load_config(STATIONS[kind]), scale)
@@ -162,7 +162,7 @@ def population(n: int, scale: int, rng) -> None:
     from sofast_station.calibrate.store import open_calibration
     from sofast_station.config import load_config
     from sofast_station.station.heliostat_study import HeliostatRig
-    from sofast_station.twin.config import TwinOptics
+    from sofast_station.twin.parameters import TwinOptics
     from sofast_station.twin.heliostat import draw_heliostat
 
     cfg = scaled(load_config(STATIONS["2x2"]), scale)
@@ -188,7 +188,9 @@ def population(n: int, scale: int, rng) -> None:
             print(f"  {'drawn station' if perturb else 'exact station'} {k + 1}/{n}: largest error so far "
                   f"{np.abs(errors).max():.4f} mrad", flush=True)
         e, u = np.array(errors), np.array(us)
-        print(f"population, {'station inputs drawn from [uncertainty], facet heights 0.5 mm' if perturb else 'the station known exactly, facet heights 0.2 mm'}: "
+        what = ("station inputs drawn from [uncertainty], facet heights 0.5 mm" if perturb
+                else "the station known exactly, facet heights 0.2 mm")
+        print(f"population, {what}: "
               f"{n} heliostats, {e.size} canting errors: largest {np.abs(e).max():.4f} mrad, RMS "
               f"{np.sqrt(np.mean(e ** 2)):.4f} mrad, {100 * np.mean(np.abs(e) <= u):.1f} % within U, median U "
               f"{np.median(u):.4f} mrad, RMS of error / (U / 2) {np.sqrt(np.mean((2 * e / u) ** 2)):.2f} "
@@ -198,7 +200,8 @@ def population(n: int, scale: int, rng) -> None:
         if perturb:
             q = np.array(predicted)
             print(f"  the errors against U's own prediction from the drawn inputs (its sensitivities times the draws): "
-                  f"slope {float(np.sum(e * q) / np.sum(q * q)):.3f}, correlation {np.corrcoef(e.ravel(), q.ravel())[0, 1]:.3f}, "
+                  f"slope {float(np.sum(e * q) / np.sum(q * q)):.3f}, "
+                  f"correlation {np.corrcoef(e.ravel(), q.ravel())[0, 1]:.3f}, "
                   f"the rest RMS {np.sqrt(np.mean((e - q) ** 2)):.4f} mrad (the facets' heights, noise, corners)")
 
 
@@ -247,7 +250,8 @@ class _TwoSigma:
 #: The station's inputs moved one group at a time: draws of ``perturbed_geometry`` and U's rows.
 INPUT_GROUPS = {"camera focal lengths": ((0, 1), ("camera fx", "camera fy")),
                 "camera principal point": ((2, 3), ("camera cx", "camera cy")),
-                "camera distortion": ((4, 5, 6, 7, 8), ("camera k1", "camera k2", "camera p1", "camera p2", "camera k3")),
+                "camera distortion": ((4, 5, 6, 7, 8), ("camera k1", "camera k2", "camera p1", "camera p2",
+                                                        "camera k3")),
                 "screen rotation x": ((9,), ("screen rx",)), "screen rotation y": ((10,), ("screen ry",)),
                 "screen rotation z": ((11,), ("screen rz",)),
                 "screen translation": ((12, 13, 14), ("screen tx", "screen ty", "screen tz")),
@@ -271,7 +275,7 @@ def inputs_check(scale: int) -> None:
     from sofast_station.measure.sensitivity_record import from_record
     from sofast_station.station.heliostat_study import HeliostatRig
     from sofast_station.station.study import perturbed_geometry
-    from sofast_station.twin.config import TwinOptics
+    from sofast_station.twin.parameters import TwinOptics
     from sofast_station.twin.heliostat import draw_heliostat, heliostat_truth
 
     cfg = scaled(load_config(STATIONS["2x2"]), scale)

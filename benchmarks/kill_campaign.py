@@ -5,7 +5,8 @@
 
 ``--kills N``: runs ``sofast-station run`` (the real command, a fresh process) on one data folder and,
 N times, waits for a facet and a random 0.5 to 6 s more, then sends SIGKILL to the station, the worker or
-the archiver: a third of the kills each (at least ``--archiver`` of the archiver), in a random order. After a station kill it checks that no process of the killed station
+the archiver: a third of the kills each (at least ``--archiver`` of the archiver), in a random order. After a station
+kill it checks that no process of the killed station
 remains (within 10 s) and starts the station again; after a worker or archiver kill it checks that the
 line goes on with passes. At the end the station is stopped with SIGTERM and must exit by itself.
 

@@ -32,7 +32,7 @@ def facet_samples(config, n_points: int):
     import numpy as np
 
     from sofast_station.optics.facet import inside_polygon, outline_area_m2
-    from sofast_station.twin.config import TrueFacet
+    from sofast_station.twin.parameters import TrueFacet
     from sofast_station.twin.surface import TrueSurface
 
     design = config.design

@@ -12,9 +12,6 @@ import argparse
 import sys
 
 from . import commands
-# Kept importable from here for existing callers; they are defined with the commands.
-from .commands import json_safe as _json_safe, run, write_json_atomic  # noqa: F401
-from .station.cli import summary_text  # noqa: F401
 
 DESCRIPTION = """\
 sofast-station measures concentrating-solar mirror facets by fringe reflection (deflectometry), after
@@ -52,7 +49,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return run(build_parser().parse_args(argv))
+    return commands.run(build_parser().parse_args(argv))
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -7,9 +7,10 @@ environment variable ``SOFAST_DATA_DIR``.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
-import dataclasses
+import logging
 import os
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -29,6 +30,8 @@ from .measure.heliostat import HeliostatSettings
 from .measure.pipeline import AnalysisSettings
 from .measure.uncertainty import InputUncertainties
 from .result.verdict import Limits, Quality, limits_from_table, quality_from_table
+
+log = logging.getLogger(__name__)
 
 for _section, _cls in (("analysis", AnalysisSettings), ("limits", Limits), ("quality", Quality),
                        ("heliostat", HeliostatSettings)):
@@ -103,7 +106,9 @@ def _camera(table: dict, where: str) -> CameraIntrinsics:
     f = _need(table, "focal_length_px", where)
     fx, fy = (f, f) if np.isscalar(f) else tuple(f)
     cx, cy = table.get("principal_point_px", [(w - 1) / 2.0, (h - 1) / 2.0])
-    dist = table.get("distortion", [0.0] * 5)
+    dist = list(table.get("distortion", [0.0] * 5))
+    if len(dist) == 4:                   # OpenCV's k1, k2, p1, p2: k3 = 0 (the schema allows 4 or 5 terms)
+        dist.append(0.0)
     try:
         return CameraIntrinsics(w, h, [[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dist)
     except ConfigError as exc:
@@ -201,7 +206,8 @@ def load_config(path: str | Path, use_camera_record: bool = True) -> StationConf
 
 
 def _optics(raw: dict, where: str):
-    """``[optics]`` as OpticsSettings (None when disabled); validated in :mod:`sofast_station.result.optical_figures`."""
+    """``[optics]`` as OpticsSettings (None when disabled); validated in
+    :mod:`sofast_station.result.optical_figures`."""
     from .result.optical_figures import optics_for
     from .result.verdict import OPTICAL_LIMITS
     optics = optics_for(raw, where)
@@ -215,7 +221,8 @@ def _optics(raw: dict, where: str):
 def _geometry_record_std(data_dir: Path, geometry) -> dict:
     """What the newest geometry record (``calibrate geometry``) lends the uncertainty budget, if it was
     within tolerance and made with this geometry (:func:`~sofast_station.calibrate.geometry_record.budget_std`);
-    {} when there is none or it cannot be read (the check's own command reports those)."""
+    {} when there is none, it does not apply, or it cannot be read (logged: what it would have lent is then
+    left to ``[uncertainty]``)."""
     from .calibrate.geometry_record import budget_std, load_geometry_record
     from .calibrate.store import newest_record_path
 
@@ -223,15 +230,22 @@ def _geometry_record_std(data_dir: Path, geometry) -> dict:
     if path is None:
         return {}
     try:
-        return budget_std(load_geometry_record(path), geometry)
-    except ConfigError:
+        record = load_geometry_record(path)
+    except ConfigError as exc:
+        log.warning("the geometry record lends the uncertainty budget nothing: %s; the fixture pose and the "
+                    "distance keep their [uncertainty] values (run 'sofast-station calibrate geometry' again)", exc)
         return {}
+    lent = budget_std(record, geometry)
+    if not lent:
+        log.info("the geometry record %s lends the uncertainty budget nothing (outside tolerance, made with "
+                 "another geometry, or it determined nothing)", path)
+    return lent
 
 
 def _with_radiometric_record(uncertainty, data_dir: Path, shipped: Path | None, geometry, fringes):
     """*uncertainty* with the display-response part the radiometric record in force states (the newest
     under *data_dir*, else the shipped default; :meth:`InputUncertainties.with_radiometric_record`);
-    unchanged when there is none or it cannot be read (opening the station reports that)."""
+    unchanged when there is none or it cannot be read (logged; opening the station reports it too)."""
     from .calibrate.records import load_radiometric
     from .calibrate.store import newest_record_path
 
@@ -240,7 +254,9 @@ def _with_radiometric_record(uncertainty, data_dir: Path, shipped: Path | None, 
         return uncertainty
     try:
         record = load_radiometric(path)
-    except (ConfigError, OSError):
+    except (ConfigError, OSError) as exc:
+        log.warning("the radiometric record %s cannot be read (%s): the uncertainty budget's display response "
+                    "leaves out the rounding of its lookup table to 8-bit commands", path, exc)
         return uncertainty
     scr = geometry.screen
     samples = (scr.width_px / fringes.periods_x[-1], scr.height_px / fringes.periods_y[-1])

@@ -126,7 +126,9 @@ SECTIONS: dict[str, dict[str, Key]] = {
         "width_px": Key("int", low=1), "height_px": Key("int", low=1),
         "focal_length_px": Key("float|floats", low=0.0, low_open=True, length=(2,), doc="f or [fx, fy], px"),
         "principal_point_px": Key("floats", length=(2,), doc="[cx, cy], px"),
-        "distortion": Key("floats", length=(4, 5, 8), doc="OpenCV k1, k2, p1, p2[, k3[, k4, k5, k6]]"),
+        "distortion": Key("floats", length=(4, 5), doc="OpenCV's k1, k2, p1, p2[, k3]: the 5-term model the "
+                          "analysis and the twin use (4 terms: k3 = 0); OpenCV's 8-term rational model is not "
+                          "supported, calibrate the camera with the 5-term model ('calibrate camera')"),
         "intrinsics": Key("str", doc="\"station.toml\" or \"record\" (checked with its own message)"),
     },
     "screen": {
@@ -214,8 +216,9 @@ SECTIONS: dict[str, dict[str, Key]] = {
     },
     "simulation": {
         "seed": Key("int", low=0, doc="sensor noise seed"),
-        "facet": Key("table", doc="[simulation.facet]: the twin's true facet (twin.config.TrueFacet, a rule below)"),
-        "optics": Key("table", doc="[simulation.optics]: display, camera and noise (twin.config.TwinOptics)"),
+        "facet": Key("table", doc="[simulation.facet]: the twin's true facet (twin.parameters.TrueFacet, a rule "
+                                  "below)"),
+        "optics": Key("table", doc="[simulation.optics]: display, camera and noise (twin.parameters.TwinOptics)"),
         "distance_error_m": Key("float", low=-1.0, high=1.0, doc="the simulated range finder's error, m"),
         "faults": Key("section:simulation_faults", doc="SERIAL = fault kind, injected (tests, benchmarks)"),
         "heliostat": Key("table", doc="[simulation.heliostat]: the twin's true heliostat (twin.heliostat, a rule "
@@ -230,6 +233,8 @@ SECTIONS: dict[str, dict[str, Key]] = {
         "camera_timeout_s": _pos("s"), "min_free_gb": _nonneg("GB"), "dump_keep_days": _pos("days"),
         "dump_max_gb": _pos("GB"), "late_grace_s": _nonneg("s after the deadline a late analysis may take"),
         "warmup": Key("bool", doc="analyse one capture before reporting ready"),
+        "standby_worker": Key("bool", doc="keep a warm second analysis worker that takes over after a timeout or "
+                                          "a crash"),
     },
     "archive": {
         "workbook_period": Key("str", choices=("day", "shift")), "workbook_interval_s": _pos("s"),
@@ -272,7 +277,8 @@ TOP_LEVEL = ["station", "camera", "screen", "layout", "fringes", "analysis", "li
 
 def _check_value(key: Key, value, file: str, label: str, name: str) -> None:
     def bad() -> ConfigError:
-        return ConfigError(f"{file} [{label}] {name} must be {key.allowed()}, got {value!r}")
+        what = f" ({key.doc})" if key.length and isinstance(value, list) and len(value) not in key.length else ""
+        return ConfigError(f"{file} [{label}] {name} must be {key.allowed()}, got {value!r}{what}")
 
     kind = key.kind
     if kind == "any":
@@ -409,7 +415,7 @@ def _rule_simulation(raw: dict, where: str) -> None:
     sim = raw.get("simulation")
     if not sim:
         return
-    from .twin.config import TrueFacet, TwinOptics
+    from .twin.parameters import TrueFacet, TwinOptics
 
     for key, cls in (("facet", TrueFacet), ("optics", TwinOptics)):
         try:

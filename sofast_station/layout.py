@@ -29,7 +29,8 @@ def layout_distance_m(design: FacetDesign) -> float:
     """Distance (metres) from the facet's middle to the point halfway between camera and screen.
 
     The mean of the meridional and sagittal radii of curvature of the design paraboloid at the facet's
-    middle (the centre of its outline's bounding box), unless the facet file sets ``layout.distance_m`` (nearly flat facets).
+    middle (the centre of its outline's bounding box), unless the facet file sets ``layout.distance_m`` (nearly flat
+    facets).
     """
     if "distance_m" in design.layout:
         d = float(design.layout["distance_m"])

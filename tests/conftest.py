@@ -2,11 +2,32 @@
 
 from __future__ import annotations
 
+import importlib
+import os
 from pathlib import Path
 
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
+#: Debian's chromium, which the page's browser tests drive through Playwright (setup-env test installs it).
+CHROMIUM = "/usr/bin/chromium"
+
+
+def require(module: str):
+    """Import a test dependency: when it is missing the suite FAILS (a collection error naming it and how
+    to install it), never skips (CI has what setup-env installs; a skipped test proves nothing)."""
+    try:
+        return importlib.import_module(module)
+    except ImportError as exc:
+        pytest.fail(f"the test dependency {module} is missing ({exc}): run ./setup-env test", pytrace=False)
+
+
+def require_chromium() -> str:
+    """Debian's chromium for the browser tests, or a failure saying how to install it."""
+    if not (os.path.exists(CHROMIUM) and os.access(CHROMIUM, os.X_OK)):
+        pytest.fail(f"the test dependency chromium is missing ({CHROMIUM}): run ./setup-env test "
+                    "(it installs Debian's chromium)", pytrace=False)
+    return CHROMIUM
 
 
 @pytest.fixture(scope="session")

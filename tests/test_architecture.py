@@ -23,6 +23,20 @@ PACKAGE = "sofast_station"
 
 #: The plain-data modules the math, the twin and everyone else share (records and their TOML reader).
 PLAIN_DATA = {"errors", "geometry", "facet", "ensemble", "fringes", "files"}
+#: The floors of docs/architecture.md's picture, top to bottom (units: sub-packages, or top-level modules by
+#: name). A unit imports only its own floor and those below it; no two units import each other.
+FLOORS: tuple[tuple[str, frozenset], ...] = (
+    ("entry", frozenset({"__main__", "cli"})),
+    ("programs", frozenset({"reanalysis", "station", "interop"})),
+    ("the monitor", frozenset({"web"})),
+    ("shown and shared", frozenset({"report", "live"})),
+    ("configured and kept", frozenset({"config", "config_schema", "recipes", "archive", "precompute"})),
+    ("the result", frozenset({"result"})),
+    ("routines, devices, oracle, math", frozenset({"calibrate", "devices", "twin", "measure", "qc", "optics",
+                                                   "layout"})),
+    ("plain data", frozenset({"errors", "geometry", "facet", "ensemble", "fringes", "files", "serials", "commands",
+                              "(package)"})),
+)
 #: Standard-library modules that do I/O or run processes: none of them in the pure math.
 STDLIB_IO = {"sqlite3", "socket", "subprocess", "multiprocessing", "signal", "shutil", "tempfile", "urllib", "http",
              "asyncio", "selectors", "ssl", "ftplib", "smtplib", "tkinter"}
@@ -76,6 +90,11 @@ def unit(module: str) -> str:
     """The architectural unit of a project module: its sub-package, or its top-level module's name."""
     parts = module.split(".")
     return parts[1] if len(parts) > 1 else "(package)"
+
+
+def floor_of(name: str) -> int | None:
+    """The floor (0 = top) of the unit *name* in :data:`FLOORS`; None when it has none."""
+    return next((i for i, (_, units) in enumerate(FLOORS) if name in units), None)
 
 
 class Graph:
@@ -170,6 +189,25 @@ def check_rules(graph: Graph) -> list[str]:
             bad.append(f"only __main__ imports {PACKAGE}.cli: {imp.source} line {imp.line} imports it")
     forbid([f"{PACKAGE}.commands"], lambda u: u in {"commands", "errors", "(package)"}, lambda lib: lib in stdlib,
            "commands.py (the registry) imports only the standard library, errors and the package's version")
+    # 8. the floors: no import runs back up a floor, no two units import each other
+    units = {unit(m) for m in project}
+    for name in sorted(u for u in units if floor_of(u) is None):
+        bad.append(f"every unit has a floor: {name} has none in FLOORS (give it one here and in docs/architecture.md)")
+    ties: dict = {}
+    for imp in graph.imports:
+        if imp.target not in project or unit(imp.source) == unit(imp.target):
+            continue
+        a, b = unit(imp.source), unit(imp.target)
+        ties.setdefault((a, b), imp)
+        fa, fb = floor_of(a), floor_of(b)
+        if fa is not None and fb is not None and fb < fa:
+            bad.append(f"no import runs back up a floor: {imp.source} line {imp.line} imports {imp.target} "
+                       f"({FLOORS[fa][0]} -> {FLOORS[fb][0]})")
+    for (a, b), imp in sorted(ties.items()):
+        if a < b and (b, a) in ties:
+            back = ties[(b, a)]
+            bad.append(f"no two units import each other: {imp.source} line {imp.line} imports {imp.target}, "
+                       f"{back.source} line {back.line} imports {back.target}")
     return bad
 
 
@@ -262,13 +300,16 @@ def test_each_rule_catches_a_violation(tmp_path):
         "commands.py": "from .station import cli\n",
         "qc/spc.py": "import h5py\n",
         "optics/trace.py": "from ..station import optics\n",
+        "result/record.py": "def f():\n    from ..station import runner\n",
+        "live/status.py": "def f():\n    from ..web import data\n",
     }
     for rel, code in planted.items():
         path = pkg / rel
         path.write_text(path.read_text() + "\n" + code)
     broken = check_rules(Graph(tmp_path))
-    for rule in ("measure/ may import", "qc/ may import", "optics/ may import", "twin/ shares no code", "calibrate/ never imports twin/",
-                 "devices/ imports only", "archive/ imports nothing", "only __main__ imports",
-                 "commands.py (the registry)"):
+    for rule in ("measure/ may import", "qc/ may import", "optics/ may import", "twin/ shares no code",
+                 "calibrate/ never imports twin/", "devices/ imports only", "archive/ imports nothing",
+                 "only __main__ imports", "commands.py (the registry)", "no import runs back up a floor",
+                 "no two units import each other"):
         assert any(b.startswith(rule) for b in broken), f"{rule!r} not reported; got:\n" + "\n".join(broken)
     assert any("sqlite3" in b for b in broken) and any("lazy" in b and "twin" in b for b in broken)

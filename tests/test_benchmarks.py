@@ -24,12 +24,11 @@ def test_cycle_benchmark_quick(repo_root, small_station_toml):
 
 
 def test_web_benchmark_quick(repo_root, small_station_toml):
-    """benchmarks/web.py: 3 facets without, 3 with the page open in chromium (skipped without chromium)."""
-    import os
+    """benchmarks/web.py: 3 facets without, 3 with the page open in chromium (which setup-env installs; its
+    absence fails this test)."""
+    from tests.conftest import require_chromium
 
-    import pytest
-    if not os.path.exists("/usr/bin/chromium"):
-        pytest.skip("Debian's chromium is not installed ('setup-env test' installs it)")
+    require_chromium()
     proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "web.py"), "--quick", "--config",
                            str(small_station_toml)], capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr

@@ -50,16 +50,22 @@ def test_broken_toml_names_the_file(tmp_path):
     ("run", "dump_failed = 1", "[run] dump_failed must be true or false, got 1"),
     ("run", "deadline = 3", "[run] has unknown key(s) deadline; allowed:"),
     ("camera", 'width_px = "1600"', "[camera] width_px must be a whole number of at least 1, got '1600'"),
-    ("camera", "distortion = [0.1, 0.2]", "[camera] distortion must be a list of numbers of length 4 or 5 or 8"),
+    ("camera", "distortion = [0.1, 0.2]", "[camera] distortion must be a list of numbers of length 4 or 5, got"),
+    # issue 28: the schema allowed an 8-term model that the camera loader then refused
+    ("camera", "distortion = [-0.05, 0.1, 0.0002, -0.0001, 0.0, 0.01, 0.0, 0.0]",
+     "[camera] distortion must be a list of numbers of length 4 or 5, got [-0.05, 0.1, 0.0002, -0.0001, 0.0, 0.01, "
+     "0.0, 0.0] (OpenCV's k1, k2, p1, p2[, k3]: the 5-term model"),
     ("limits", "focal_length_tolerance = -0.02",
      "[limits] focal_length_tolerance must be a number above 0 and at most 1, got -0.02"),
     ("limits", "max_slope_rms_mrad = { design = -3.0 }", "[limits.max_slope_rms_mrad] design must be a number above 0"),
-    ("quality", "min_valid_fraction = 1.5", "[quality] min_valid_fraction must be a number of at least 0 and at most 1"),
+    ("quality", "min_valid_fraction = 1.5",
+     "[quality] min_valid_fraction must be a number of at least 0 and at most 1"),
     ("analysis", "robust_fit = \"yes\"", "[analysis] robust_fit must be true or false, got 'yes'"),
     ("archive", 'workbook_period = "week"', "[archive] workbook_period must be one of 'day', 'shift', got 'week'"),
     ("devices", 'trigger = "plc"', "[devices] trigger must be one of 'simulated', 'modbus', 'usb', got 'plc'"),
     ("recipes.gore", "serial_pattern = 3", "[recipes.gore] serial_pattern must be a string, got 3"),
-    ("recipes.gore", "analysis = { threads = 0 }", "[recipes.gore.analysis] threads must be a whole number of at least 1"),
+    ("recipes.gore", "analysis = { threads = 0 }",
+     "[recipes.gore.analysis] threads must be a whole number of at least 1"),
     ("runn", "deadline_s = 3", "has unknown section(s) runn; allowed:"),
 ])
 def test_every_key_is_checked_at_load(small_station_toml, section, line, message):
@@ -108,3 +114,36 @@ def test_workbook_parts_are_bounded_by_default(small_station_toml):
     small_station_toml.write_text(small_station_toml.read_text().replace("= 50", "= 0"))
     with pytest.raises(ConfigError, match=r"\[archive\] workbook_max_rows must be a whole number of at least 1"):
         load_config(small_station_toml)
+
+
+@pytest.mark.parametrize("kind, says", [
+    ("geometry", "the fixture pose and the distance keep their [uncertainty] values"),
+    ("radiometric", "the uncertainty budget's display response leaves out the rounding of its lookup table"),
+])
+def test_an_unreadable_calibration_record_is_named_when_its_part_of_the_budget_is_left_out(
+        small_station_toml, kind, says, caplog):
+    """Issue 27: a geometry or radiometric record that cannot be read drops what it lends the uncertainty
+    budget; loading the configuration says so, naming the file, and the budget keeps the table's values."""
+    import logging
+
+    before = load_config(small_station_toml).uncertainty
+    folder = load_config(small_station_toml).data_dir / "calibration" / kind
+    folder.mkdir(parents=True)
+    bad = folder / f"{kind}-20261201T060000Z-001.json"
+    bad.write_text('{"schema": 1, "kind": "' + kind + '", "record_id": "cut off mid-wr')
+    with caplog.at_level(logging.WARNING, logger="sofast_station.config"):
+        after = load_config(small_station_toml).uncertainty
+    assert str(bad) in caplog.text and says in caplog.text, caplog.text
+    if kind == "geometry":
+        assert after == before
+    else:                     # the shipped record's rounding was in the budget; the unreadable newest has none
+        assert before.response_record_rad is not None and after.response_record_rad is None
+
+
+def test_a_four_term_distortion_loads_with_k3_zero(small_station_toml):
+    """Issue 28: what the schema allows, the camera loader takes: OpenCV's four terms mean k3 = 0."""
+    text = small_station_toml.read_text()
+    line = next(ln for ln in text.splitlines() if ln.startswith("distortion ="))
+    small_station_toml.write_text(text.replace(line, "distortion = [-0.05, 0.1, 0.0002, -0.0001]", 1))
+    cam = load_config(small_station_toml).geometry.camera
+    assert cam.distortion.tolist() == [-0.05, 0.1, 0.0002, -0.0001, 0.0]

@@ -44,8 +44,11 @@ It sees the hardware only through the :class:`~sofast_station.devices.protocols.
    ``max_level`` (= 1) through it are linear in camera counts. Below the floor the table runs linearly to
    command 0 (never used by fringes).
 
-:func:`calibrate_radiometric` returns the result; :func:`save_radiometric` writes the dated record and its
-PNG plot under ``data_dir``.
+Each step is a function of its own: ``_active_pixels`` (1), ``_display_latency`` (2),
+``_flicker_safe_exposure`` (3), ``_gain_for_target`` and ``_frames_per_level`` (4), ``_ramp`` (6),
+:func:`find_top_and_floor` (7), :func:`fit_monotone_response` (8) and :func:`build_lut` (9), all driving the
+devices through ``_Rig``. :func:`calibrate_radiometric` runs them in order and returns the result;
+:func:`save_radiometric` writes the dated record and its PNG plot under ``data_dir``.
 """
 
 from __future__ import annotations
@@ -384,59 +387,59 @@ def _measure_latency(rig: _Rig, mask: np.ndarray, dark_dn: float, white_dn: floa
     return max(counts), counts, float(np.median(intervals)) if intervals else 0.0
 
 
-def calibrate_radiometric(display, camera, settings: RadiometricSettings = RadiometricSettings(),
-                          progress: Callable[[str], None] | None = None) -> RadiometricResult:
-    """Run the daily radiometric calibration (module docstring) on a display and a camera.
-
-    Parameters
-    ----------
-    display : Display
-        Shows ``Pattern("uniform", command=v)``; its ``settle_s`` (seconds) is set to 0 while the latency
-        is timed and to the measured settle time afterwards (left so).
-    camera : Camera
-        Exposure (seconds), gain (linear, the camera's unit) and grab; left at the chosen settings.
-    settings : RadiometricSettings
-    progress : callable, optional
-        Called with a line of text at each step (also logged at INFO).
+def _active_pixels(rig: _Rig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Step 1: the pixels that see the display, from a dark and a full-white frame at the brightest the
+    routine may use (the longest exposure, the minimum gain, a generous settle).
 
     Returns
     -------
-    RadiometricResult
-
-    Raises
-    ------
-    CalibrationError
-        Nothing responds to the display, full white is too bright even at one refresh period and the
-        minimum gain, the display change is never seen, or the response does not rise.
+    (mask, dark, white): the active pixels (bool, camera size) and the two mean frames, DN.
     """
-    s = settings
-    period = s.refresh_period_s
-    rig = _Rig(display, camera, s)
-    t_start = time.perf_counter()
-
-    def say(message: str, *args) -> None:
-        text = message % args if args else message
-        log.info("%s", text)
-        if progress is not None:
-            progress(text)
-
-    # 1. active pixels, at the brightest the routine may use
+    s = rig.s
     rig.set_settle(s.initial_settle_s)
-    rig.set_camera(s.max_exposure_periods * period, s.gain_min)
+    rig.set_camera(s.max_exposure_periods * s.refresh_period_s, s.gain_min)
     rig.show(0)
-    dark0 = rig.frames().mean(axis=0)
+    dark = rig.frames().mean(axis=0)
     rig.show(255)
-    white0 = rig.frames().mean(axis=0)
-    mask = (white0 - dark0) > s.mask_threshold_dn
+    white = rig.frames().mean(axis=0)
+    mask = (white - dark) > s.mask_threshold_dn
     n_active = int(mask.sum())
     if n_active < MIN_ACTIVE_PIXELS:
         raise CalibrationError(f"only {n_active} pixels respond to the display by more than {s.mask_threshold_dn:g} DN "
                                f"at {s.max_exposure_periods} refresh periods and gain {s.gain_min:g}: is the reference "
                                "mirror in the fixture, the lens cap off, the display on?")
-    say("active pixels: %d (%.1f %% of the frame), white - dark > %g DN", n_active, 100 * n_active / mask.size,
-        s.mask_threshold_dn)
+    return mask, dark, white
 
-    # 2. display latency, at one refresh period (the finest flicker-safe time step)
+
+@dataclass
+class Latency:
+    """Step 2's answer: how long the display takes to show a new image.
+
+    Attributes
+    ----------
+    frames : int
+        Frames that still show the previous image after a change (the largest over the repeats).
+    counts : list of int
+        That count for each change.
+    frame_interval_s : float
+        Time between two grabs, seconds.
+    settle_s : float
+        The settle time the routine and the station use from now on: ``frames`` frame intervals plus one
+        refresh period, seconds.
+    """
+
+    frames: int
+    counts: list
+    frame_interval_s: float
+    settle_s: float
+
+
+def _display_latency(rig: _Rig, mask: np.ndarray, dark0: np.ndarray, white0: np.ndarray) -> Latency:
+    """Step 2: the display's latency at one refresh period (the finest flicker-safe time step), or at the
+    brightest settings when one period shows too little (*dark0*, *white0*: step 1's frames); leaves the
+    display's settle time at the measured one."""
+    s = rig.s
+    period = s.refresh_period_s
     rig.set_settle(s.initial_settle_s)
     rig.set_camera(period, s.gain_min)
     rig.show(0)
@@ -446,25 +449,40 @@ def calibrate_radiometric(display, camera, settings: RadiometricSettings = Radio
     if white_dn - dark_dn < 2.0:
         rig.set_camera(s.max_exposure_periods * period, s.gain_min)
         dark_dn, white_dn = float(dark0[mask].mean()), float(white0[mask].mean())
-    latency_frames, latency_counts, wall_interval = _measure_latency(rig, mask, dark_dn, white_dn)
+    frames, counts, wall_interval = _measure_latency(rig, mask, dark_dn, white_dn)
     frame_interval = max(rig.exposure_s, period, wall_interval)
-    settle_s = latency_frames * frame_interval + period
+    settle_s = frames * frame_interval + period
     rig.set_settle(settle_s)
-    say("display latency: %d frame(s) (%s over %d changes, frame interval %.1f ms): settle %.1f ms", latency_frames,
-        ", ".join(map(str, latency_counts)), len(latency_counts), 1e3 * frame_interval, 1e3 * settle_s)
+    return Latency(frames, counts, frame_interval, settle_s)
 
-    # 3. exposure: whole refresh periods, binary search for the longest that stays at or below the target
+
+def _white_ok(rig: _Rig, mask: np.ndarray, exposure_s: float, gain: float) -> tuple[bool, dict]:
+    """Full white at these settings, and whether it stays at or below the target (percentile and saturation)."""
+    s = rig.s
+    rig.set_camera(exposure_s, gain)
+    st = rig.white_stats(mask)
+    return st["percentile_dn"] <= s.target_dn and st["saturated_fraction"] <= s.max_saturated_fraction, st
+
+
+def _flicker_safe_exposure(rig: _Rig, mask: np.ndarray) -> tuple[int, dict, list[dict]]:
+    """Step 3: the longest exposure of whole refresh periods (up to ``max_exposure_periods``) at which full
+    white, at the minimum gain, stays at or below the target; binary search over the number of periods.
+
+    Returns
+    -------
+    (periods, white statistics there, the search's tries as JSON data)
+    """
+    s = rig.s
+    period = s.refresh_period_s
     rig.show(255)
-    exposure_tries: list[dict] = []
+    tries: list[dict] = []
     stats_at: dict[int, dict] = {}
 
     def exposure_ok(k: int) -> bool:
-        rig.set_camera(k * period, s.gain_min)
-        st = rig.white_stats(mask)
+        ok, st = _white_ok(rig, mask, k * period, s.gain_min)
         stats_at[k] = st
-        ok = st["percentile_dn"] <= s.target_dn and st["saturated_fraction"] <= s.max_saturated_fraction
-        exposure_tries.append({"periods": k, "exposure_s": k * period, "percentile_dn": st["percentile_dn"],
-                               "saturated_fraction": st["saturated_fraction"], "ok": ok})
+        tries.append({"periods": k, "exposure_s": k * period, "percentile_dn": st["percentile_dn"],
+                      "saturated_fraction": st["saturated_fraction"], "ok": ok})
         log.debug("exposure %d period(s): white p%g %.1f DN, %.3f %% saturated", k, s.target_percentile,
                   st["percentile_dn"], 100 * st["saturated_fraction"])
         return ok
@@ -485,23 +503,27 @@ def calibrate_radiometric(display, camera, settings: RadiometricSettings = Radio
             lo = mid
         else:
             hi = mid
-    k = lo
-    exposure_s = k * period
-    base = stats_at[k]
-    say("exposure: %d refresh period(s) = %.2f ms (white p%g %.1f DN at gain %g)", k, 1e3 * exposure_s,
-        s.target_percentile, base["percentile_dn"], s.gain_min)
+    return lo, stats_at[lo], tries
 
-    # 4. gain: geometric binary search for the largest gain with white at or below the target
-    gain_tries: list[dict] = []
-    gain_stats: dict[float, dict] = {s.gain_min: base}
+
+def _gain_for_target(rig: _Rig, mask: np.ndarray, exposure_s: float, base: dict) -> tuple[float, dict, list[dict]]:
+    """Step 4: the gain at which full white reads the target (geometric binary search to a bracket
+    ``gain_step`` wide, then the bracket's geometric middle unless that saturates); *base*: full white at
+    the minimum gain (step 3). Leaves the camera at the chosen exposure and gain.
+
+    Returns
+    -------
+    (gain, {gain: white statistics} of every gain measured, the search's tries as JSON data)
+    """
+    s = rig.s
+    tries: list[dict] = []
+    stats: dict[float, dict] = {s.gain_min: base}
 
     def gain_ok(g: float) -> bool:
-        rig.set_camera(exposure_s, g)
-        st = rig.white_stats(mask)
-        gain_stats[g] = st
-        ok = st["percentile_dn"] <= s.target_dn and st["saturated_fraction"] <= s.max_saturated_fraction
-        gain_tries.append({"gain": g, "percentile_dn": st["percentile_dn"],
-                           "saturated_fraction": st["saturated_fraction"], "ok": ok})
+        ok, st = _white_ok(rig, mask, exposure_s, g)
+        stats[g] = st
+        tries.append({"gain": g, "percentile_dn": st["percentile_dn"], "saturated_fraction": st["saturated_fraction"],
+                      "ok": ok})
         log.debug("gain %.4f: white p%g %.1f DN, %.3f %% saturated", g, s.target_percentile, st["percentile_dn"],
                   100 * st["saturated_fraction"])
         return ok
@@ -540,47 +562,76 @@ def calibrate_radiometric(display, camera, settings: RadiometricSettings = Radio
         rig.set_camera(exposure_s, mid)
         st = rig.white_stats(mask)
         if st["saturated_fraction"] <= s.max_saturated_fraction:
-            gain, gain_stats[mid] = mid, st
+            gain, stats[mid] = mid, st
     rig.set_camera(exposure_s, gain)
-    final = gain_stats[gain]
     if g_hi is None and s.gain_max > s.gain_min and gain >= s.gain_max:
         log.warning("full white reaches only %.1f DN at the maximum gain %g: open the lens aperture, allow a "
                     "longer exposure (--max-exposure-periods N) or a higher gain (--gain-max G); or set "
                     "max_exposure_periods, gain_max in [calibration.routine] of the station file",
-                    final["percentile_dn"], s.gain_max)
-    frame_means = np.asarray(final["frame_means_dn"])
-    flicker = float(np.std(frame_means) / np.mean(frame_means)) if frame_means.size > 1 else 0.0
-    # How much the active pixels' mean varies from frame to frame (ambient light, flicker), pooled over
-    # the full-white measurements: the ramp averages enough frames to know each level to ramp_noise_dn.
-    groups = [np.asarray(st["frame_means_dn"]) for st in gain_stats.values() if len(st["frame_means_dn"]) > 1]
+                    stats[gain]["percentile_dn"], s.gain_max)
+    return gain, stats, tries
+
+
+def _frames_per_level(white_stats: list[dict], s: RadiometricSettings) -> tuple[int, float]:
+    """How many frames each ramp level averages so that its mean is known to ``ramp_noise_dn``, from how much
+    the active pixels' mean varied from frame to frame in the full-white measurements (*white_stats*,
+    pooled: room light and flicker move the whole image together, so averaging pixels does not remove it).
+
+    Returns
+    -------
+    (frames per level, the pooled frame-to-frame standard deviation, DN)
+    """
+    groups = [np.asarray(st["frame_means_dn"]) for st in white_stats if len(st["frame_means_dn"]) > 1]
     dof = sum(g.size - 1 for g in groups)
     frame_noise = math.sqrt(sum(float(np.sum((g - g.mean()) ** 2)) for g in groups) / dof) if dof else 0.0
-    frames_per_level = int(np.clip(math.ceil((frame_noise / s.ramp_noise_dn) ** 2), s.frames_per_level,
-                                   max(s.frames_per_level, s.max_frames_per_level)))
-    say("gain: %.4f (search step %.2f %%): white p%g %.1f DN, %.3f %% saturated", gain, 100 * s.gain_step,
-        s.target_percentile, final["percentile_dn"], 100 * final["saturated_fraction"])
+    frames = int(np.clip(math.ceil((frame_noise / s.ramp_noise_dn) ** 2), s.frames_per_level,
+                         max(s.frames_per_level, s.max_frames_per_level)))
+    if frame_noise / math.sqrt(frames) > s.ramp_noise_dn:
+        log.warning("the ramp levels will be known to %.2f DN only (ramp_noise_dn %.2f DN with at most %d frames): "
+                    "steady the room light, or allow more frames (--max-frames N, or max_frames_per_level in "
+                    "[calibration.routine] of the station file)", frame_noise / math.sqrt(frames), s.ramp_noise_dn,
+                    frames)
+    return frames, frame_noise
 
-    # 5. dark level at the chosen settings
-    rig.show(0)
-    dark_frames = rig.frames()
-    dark_level_dn = float(dark_frames.mean(dtype=np.float64))
-    dark = dark_frames.mean(axis=0)
 
-    # 6. ramp
-    response_white = final["white"] - dark
+@dataclass
+class Ramp:
+    """Step 6's measurements, one entry per command of the ramp.
+
+    Attributes
+    ----------
+    commands : list of int
+        0, ``ramp_step``, ..., 255.
+    mean_dn, dim_dn : list of float
+        Mean response of the active pixels, and of their dimmest tenth (for the record), DN.
+    saturated : list of float
+        Fraction of the active pixels' samples at or above ``saturation_dn``.
+    step_noise_dn : float
+        Standard deviation of the difference of two levels' means, DN (from their frame-to-frame scatter).
+    """
+
+    commands: list
+    mean_dn: list
+    dim_dn: list
+    saturated: list
+    step_noise_dn: float
+
+
+def ramp_commands(step: int) -> list[int]:
+    """The ramp's display commands: 0, *step*, 2 *step*, ... and 255."""
+    commands = list(range(0, 256, step))
+    return commands if commands[-1] == 255 else commands + [255]
+
+
+def _ramp(rig: _Rig, mask: np.ndarray, response_white: np.ndarray, frames_per_level: int, say) -> Ramp:
+    """Step 6: uniform screens at every ``ramp_step``-th command, each averaged over *frames_per_level* frames;
+    the dimmest tenth of the active pixels is chosen by their full-white response *response_white*."""
+    s = rig.s
+    n_active = int(mask.sum())
     order = np.argsort(response_white[mask], kind="stable")
     dim = np.zeros(n_active, dtype=bool)
     dim[order[:max(1, n_active // 10)]] = True
-    commands = list(range(0, 256, s.ramp_step))
-    if commands[-1] != 255:
-        commands.append(255)
-    say("ramp: %d levels, %d frame(s) each (the active mean varies by %.2f DN from frame to frame)", len(commands),
-        frames_per_level, frame_noise)
-    if frame_noise / math.sqrt(frames_per_level) > s.ramp_noise_dn:
-        log.warning("the ramp levels will be known to %.2f DN only (ramp_noise_dn %.2f DN with at most %d frames): "
-                    "steady the room light, or allow more frames (--max-frames N, or max_frames_per_level in "
-                    "[calibration.routine] of the station file)",
-                    frame_noise / math.sqrt(frames_per_level), s.ramp_noise_dn, frames_per_level)
+    commands = ramp_commands(s.ramp_step)
     mean_dn, dim_dn, sat, noise = [], [], [], []
     for i, v in enumerate(commands):
         rig.show(v)
@@ -594,13 +645,82 @@ def calibrate_radiometric(display, camera, settings: RadiometricSettings = Radio
             noise.append(float(np.std(per_frame, ddof=1) / math.sqrt(per_frame.size)))
         if (i + 1) % 13 == 0 or i + 1 == len(commands):
             say("ramp: %d/%d levels (command %d: %.1f DN)", i + 1, len(commands), v, mean_dn[-1])
-    commands_a = np.asarray(commands, dtype=np.float64)
-    mean_a = np.asarray(mean_dn)
     step_noise = math.sqrt(2.0) * float(np.median(noise)) if noise else 0.0
+    return Ramp(commands, mean_dn, dim_dn, sat, step_noise)
+
+
+def calibrate_radiometric(display, camera, settings: RadiometricSettings = RadiometricSettings(),
+                          progress: Callable[[str], None] | None = None) -> RadiometricResult:
+    """Run the daily radiometric calibration (module docstring, steps 1-9) on a display and a camera.
+
+    Parameters
+    ----------
+    display : Display
+        Shows ``Pattern("uniform", command=v)``; its ``settle_s`` (seconds) is set to 0 while the latency
+        is timed and to the measured settle time afterwards (left so).
+    camera : Camera
+        Exposure (seconds), gain (linear, the camera's unit) and grab; left at the chosen settings.
+    settings : RadiometricSettings
+    progress : callable, optional
+        Called with a line of text at each step (also logged at INFO).
+
+    Returns
+    -------
+    RadiometricResult
+
+    Raises
+    ------
+    CalibrationError
+        Nothing responds to the display, full white is too bright even at one refresh period and the
+        minimum gain, the display change is never seen, or the response does not rise.
+    """
+    s = settings
+    period = s.refresh_period_s
+    rig = _Rig(display, camera, s)
+    t_start = time.perf_counter()
+
+    def say(message: str, *args) -> None:
+        text = message % args if args else message
+        log.info("%s", text)
+        if progress is not None:
+            progress(text)
+
+    mask, dark0, white0 = _active_pixels(rig)
+    n_active = int(mask.sum())
+    say("active pixels: %d (%.1f %% of the frame), white - dark > %g DN", n_active, 100 * n_active / mask.size,
+        s.mask_threshold_dn)
+
+    latency = _display_latency(rig, mask, dark0, white0)
+    say("display latency: %d frame(s) (%s over %d changes, frame interval %.1f ms): settle %.1f ms", latency.frames,
+        ", ".join(map(str, latency.counts)), len(latency.counts), 1e3 * latency.frame_interval_s,
+        1e3 * latency.settle_s)
+
+    k, base, exposure_tries = _flicker_safe_exposure(rig, mask)
+    exposure_s = k * period
+    say("exposure: %d refresh period(s) = %.2f ms (white p%g %.1f DN at gain %g)", k, 1e3 * exposure_s,
+        s.target_percentile, base["percentile_dn"], s.gain_min)
+
+    gain, gain_stats, gain_tries = _gain_for_target(rig, mask, exposure_s, base)
+    final = gain_stats[gain]
+    frame_means = np.asarray(final["frame_means_dn"])
+    flicker = float(np.std(frame_means) / np.mean(frame_means)) if frame_means.size > 1 else 0.0
+    say("gain: %.4f (search step %.2f %%): white p%g %.1f DN, %.3f %% saturated", gain, 100 * s.gain_step,
+        s.target_percentile, final["percentile_dn"], 100 * final["saturated_fraction"])
+    frames_per_level, frame_noise = _frames_per_level(list(gain_stats.values()), s)
+
+    # 5. dark level at the chosen settings (the reference of the station's drift check)
+    rig.show(0)
+    dark_frames = rig.frames()
+    dark_level_dn = float(dark_frames.mean(dtype=np.float64))
+
+    say("ramp: %d levels, %d frame(s) each (the active mean varies by %.2f DN from frame to frame)",
+        len(ramp_commands(s.ramp_step)), frames_per_level, frame_noise)
+    ramp = _ramp(rig, mask, final["white"] - dark_frames.mean(axis=0), frames_per_level, say)
+    commands, commands_a, mean_a = ramp.commands, np.asarray(ramp.commands, dtype=np.float64), np.asarray(ramp.mean_dn)
 
     # 7. top and floor, 8. fit, 9. table
-    top, floor, rise_min = find_top_and_floor(commands_a, mean_a, np.asarray(sat), s.max_saturated_fraction,
-                                              s.floor_rise_fraction, step_noise)
+    top, floor, rise_min = find_top_and_floor(commands_a, mean_a, np.asarray(ramp.saturated),
+                                              s.max_saturated_fraction, s.floor_rise_fraction, ramp.step_noise_dn)
     if top < len(commands) - 1:
         log.warning("the response stops rising or saturates above command %d: fringes will stop there (max_level); "
                     "check the gain", commands[top])
@@ -612,22 +732,22 @@ def calibrate_radiometric(display, camera, settings: RadiometricSettings = Radio
         float(np.sqrt(np.mean(residual ** 2))), float(np.abs(residual).max()))
 
     curve = {
-        "commands": commands, "response_dn": mean_dn, "response_dim_tenth_dn": dim_dn, "saturated_fraction": sat,
-        "step_noise_dn": step_noise, "rise_min_dn": rise_min,
-        "floor_command": commands[floor], "top_command": commands[top], "dark_active_dn": mean_dn[0],
+        "commands": commands, "response_dn": ramp.mean_dn, "response_dim_tenth_dn": ramp.dim_dn,
+        "saturated_fraction": ramp.saturated, "step_noise_dn": ramp.step_noise_dn, "rise_min_dn": rise_min,
+        "floor_command": commands[floor], "top_command": commands[top], "dark_active_dn": ramp.mean_dn[0],
         "fit": fit.to_dict(), "fit_residual_rms_dn": float(np.sqrt(np.mean(residual ** 2))),
         "fit_residual_max_dn": float(np.abs(residual).max()),
         "active_pixels": n_active, "exposure_periods": k,
         "white_percentile_dn": final["percentile_dn"], "white_saturated_fraction": final["saturated_fraction"],
         "white_frame_to_frame": flicker, "frame_noise_dn": frame_noise, "frames_per_level": frames_per_level,
-        "latency_counts": latency_counts, "frame_interval_s": frame_interval,
+        "latency_counts": latency.counts, "frame_interval_s": latency.frame_interval_s,
         "search": {"exposure": exposure_tries, "gain": gain_tries},
         "grabs": rig.grabs, "duration_s": time.perf_counter() - t_start,
         "settings": dataclasses.asdict(s),
     }
     return RadiometricResult(exposure_s=exposure_s, gain=gain, exposure_periods=k, lut=lut, floor_level=floor_level,
-                             max_level=max_level, dark_level_dn=dark_level_dn, latency_frames=latency_frames,
-                             settle_s=settle_s, refresh_hz=s.refresh_hz, curve=curve, active_mask=mask, fit=fit)
+                             max_level=max_level, dark_level_dn=dark_level_dn, latency_frames=latency.frames,
+                             settle_s=latency.settle_s, refresh_hz=s.refresh_hz, curve=curve, active_mask=mask, fit=fit)
 
 
 # -- the record and its plot ----------------------------------------------------------------------------

@@ -11,7 +11,8 @@ its centre position, so the image does not depend on the GPU:
 
 ``u`` is the position along the fringe axis measured from the left edge (x) or the bottom edge (y) of the
 active area (docs/conventions.md#screen-positions): display column c is at
-``u_x / W = (c + 1/2) / width_px``, display row r (0 = top) at ``u_y / H = (height_px - r - 1/2) / height_px``, which are ``gl_FragCoord / size``.
+``u_x / W = (c + 1/2) / width_px``, display row r (0 = top) at ``u_y / H = (height_px - r - 1/2) / height_px``, which
+are ``gl_FragCoord / size``.
 """
 
 from __future__ import annotations

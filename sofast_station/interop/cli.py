@@ -201,7 +201,8 @@ def _import_ensemble(m, args) -> int:
              f" of {out['heliostat']['n_facets']} facets measured",
              "  assumed (OpenCSP's files do not say):" + "".join(f"\n    - {a}" for a in out["assumptions"]),
              "  figures are value ± U, the expanded uncertainty (k=2)",
-             "  facet   canting x (mrad)    canting y (mrad)    f x (m)               f y (m)               slope RMS vs "
+             "  facet   canting x (mrad)    canting y (mrad)    f x (m)               f y (m)               "
+             "slope RMS vs "
              "parabola (mrad)"]
     for f in facets:
         if "canting_mrad" not in f:
@@ -214,7 +215,8 @@ def _import_ensemble(m, args) -> int:
                      f"{_pm(f['focal_length_x_m'], f.get('focal_length_x_m_U')):<21} "
                      f"{_pm(f['focal_length_y_m'], f.get('focal_length_y_m_U')):<21} {_pm(r, ru)}")
     ct, cu = out["heliostat"]["common_tilt_mrad"], out["heliostat"].get("common_tilt_mrad_U") or {}
-    lines.append(f"  facets' common tilt against their corners {_pm(ct['x'], cu.get('x'))}, {_pm(ct['y'], cu.get('y'))} "
+    lines.append(f"  facets' common tilt against their corners {_pm(ct['x'], cu.get('x'))}, "
+                 f"{_pm(ct['y'], cu.get('y'))} "
                  "mrad (where the ensemble points: not a canting error)")
     print("\n".join(lines))
     return 0
@@ -246,22 +248,25 @@ def summary_text(out: dict, robust: bool) -> str:
     noise = out.get("slope_rms_noise_mrad")
     if noise:
         n = next(iter(noise.values()))
-        lines.append(f"    (the capture's own intensity noise explains {n['x']:.4f} x, {n['y']:.4f} y mrad of slope noise)")
+        lines.append(f"    (the capture's own intensity noise explains {n['x']:.4f} x, {n['y']:.4f} y mrad of slope "
+                     "noise)")
     b = out["boresight_mrad"]
     lines.append(f"  boresight x {_pm(b['x'], u_of('boresight_mrad', 'x'), '', 2)}, y "
                  f"{_pm(b['y'], u_of('boresight_mrad', 'y'), '', 2)} mrad{kk} (from the corner pose)")
     o = out["optics"]
+    centroid_u = (o.get("centroid_offset_mrad_U") or {}).get("magnitude")
     lines.append(f"  optics (pillbox sun, target at {o['conditions']['slant_range_m']:g} m, aperture radius "
-                 f"{o['conditions']['aperture']['radius_m']:.3f} m): intercept {_pm(o['intercept'], o.get('intercept_U'), '', 4)}, "
+                 f"{o['conditions']['aperture']['radius_m']:.3f} m): "
+                 f"intercept {_pm(o['intercept'], o.get('intercept_U'), '', 4)}, "
                  f"90 % spot radius {_pm(o['spot_radius_m'], o.get('spot_radius_m_U'), ' m')} (design "
                  f"{o['design']['spot_radius_m']:.3f} m), centroid "
-                 f"{_pm(o['centroid_offset_mrad']['magnitude'], (o.get('centroid_offset_mrad_U') or {}).get('magnitude'))} "
-                 f"mrad off aim{kk}")
+                 f"{_pm(o['centroid_offset_mrad']['magnitude'], centroid_u)} mrad off aim{kk}")
     if "opencsp" in out:
         o = out["opencsp"]
         s_ = o["ours_on_its_pixels"]
         u = o.get("ours_on_its_pixels_U") or {}
-        lines.append(f"  OpenCSP ({'robust' if o['robust'] else 'plain'} fit on every 10th of its {o['n_points']} pixels): "
+        lines.append(f"  OpenCSP ({'robust' if o['robust'] else 'plain'} fit on every 10th of its {o['n_points']} "
+                     "pixels): "
                      f"f_x {o['focal_length_x_m']:.3f} m, f_y {o['focal_length_y_m']:.3f} m (OpenCSP states no U); "
                      f"ours on the same pixels: f_x {_pm(s_['focal_length_x_m'], u.get('focal_length_x_m'), ' m')} "
                      f"({100 * (s_['focal_length_x_m'] / o['focal_length_x_m'] - 1):+.2f} %), f_y "

@@ -216,9 +216,10 @@ def _uncertainty_assumptions(u: InputUncertainties) -> tuple:
         return ", ".join(f"{x:g}" for x in v) if isinstance(v, tuple) else f"{v:.3g}"
 
     return (f"input standard uncertainties (k = 1; docs/opencsp.md): distance {fmt(u.distance_mm)} mm, camera f "
-            f"{fmt(u.camera_focal_px)} px and principal point {fmt(u.camera_principal_px)} px ({OPENCSP_CAMERA_FOCAL_RELATIVE:g}"
-            f" and {OPENCSP_CAMERA_PRINCIPAL_RELATIVE:g} of f), distortion {fmt(u.camera_distortion)}, screen rotation "
-            f"{fmt(u.screen_rotation_mrad)} mrad and translation {fmt(u.screen_translation_mm)} mm, screen-shape scale "
+            f"{fmt(u.camera_focal_px)} px and principal point {fmt(u.camera_principal_px)} px "
+            f"({OPENCSP_CAMERA_FOCAL_RELATIVE:g} and {OPENCSP_CAMERA_PRINCIPAL_RELATIVE:g} of f), "
+            f"distortion {fmt(u.camera_distortion)}, screen rotation {fmt(u.screen_rotation_mrad)} mrad and "
+            f"translation {fmt(u.screen_translation_mm)} mm, screen-shape scale "
             f"{fmt(u.screen_pitch_relative)} per axis; display response, frame brightness, corners and intensity noise "
             "from the capture itself",
             "left out of the uncertainty: the fixture pose (OpenCSP has none; the nominal pose is a guess from the "
@@ -350,7 +351,8 @@ def read_opencsp(measurement: Path, camera: Path, display: Path, orientation: Pa
     )
     inputs = opencsp_input_uncertainties(cam, uncertainty)
     if ens is not None:
-        assumptions += (f"ensemble {Path(ensemble).name}: {ens.n_facets} facets of {Path(facet).name}, the distance taken "
+        assumptions += (f"ensemble {Path(ensemble).name}: {ens.n_facets} facets of {Path(facet).name}, "
+                        "the distance taken "
                         f"to facet {ens.facets[ens.measure_facet].label}",)
     return OpenCspMeasurement(design.name, str(_read(measurement, g + "date")), frames,
                               FringeSet(tuple(periods_x), tuple(periods_y)), geometry, screen, design, distance,

@@ -26,7 +26,8 @@ def pixel_rays(camera: CameraIntrinsics, columns: np.ndarray, rows: np.ndarray) 
     (3, N) float64 array of unit vectors with z > 0 (components in rows).
     """
     pts = np.column_stack([columns, rows]).astype(np.float64).reshape(-1, 1, 2)
-    norm = _undistort(pts, camera.matrix, camera.distortion, None, np.eye(3), np.eye(3), _UNDISTORT_CRITERIA).reshape(-1, 2)
+    norm = _undistort(pts, camera.matrix, camera.distortion, None, np.eye(3), np.eye(3),
+                      _UNDISTORT_CRITERIA).reshape(-1, 2)
     x, y = norm[:, 0], norm[:, 1]
     inv = 1.0 / np.sqrt(x * x + y * y + 1.0)
     return np.stack([x * inv, y * inv, inv])

@@ -325,13 +325,13 @@ def fit_cubic(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray) ->
             rhs[k] += ik / h * rhs_x[ax]
         if ay is not None:
             rhs[k] += jk / h * rhs_y[ay]
-        for l, (il, jl) in enumerate(CUBIC_TERMS):
+        for m, (il, jl) in enumerate(CUBIC_TERMS):
             bx = _BASE.index((il - 1, jl)) if il else None
             by = _BASE.index((il, jl - 1)) if jl else None
             if ax is not None and bx is not None:
-                gram[k, l] += ik * il / h**2 * gram_b[ax, bx]
+                gram[k, m] += ik * il / h**2 * gram_b[ax, bx]
             if ay is not None and by is not None:
-                gram[k, l] += jk * jl / h**2 * gram_b[ay, by]
+                gram[k, m] += jk * jl / h**2 * gram_b[ay, by]
     scale = np.sqrt(np.diag(gram))
     g = gram / np.outer(scale, scale)
     if np.linalg.cond(g) > 1e12:

@@ -115,10 +115,12 @@ def integrate_slopes(s_x, s_y, cell_m: float) -> np.ndarray:
     # neighbour pairs (a -> b) with the height difference the slopes predict
     pa, pb, d = [], [], []
     both = valid[:, :-1] & valid[:, 1:]
-    pa.append(index[:, :-1][both]); pb.append(index[:, 1:][both])
+    pa.append(index[:, :-1][both])
+    pb.append(index[:, 1:][both])
     d.append(cell_m * 0.5 * (sx[:, :-1][both] + sx[:, 1:][both]))
     both = valid[:-1, :] & valid[1:, :]
-    pa.append(index[:-1, :][both]); pb.append(index[1:, :][both])
+    pa.append(index[:-1, :][both])
+    pb.append(index[1:, :][both])
     d.append(cell_m * 0.5 * (sy[:-1, :][both] + sy[1:, :][both]))
     a, b, dh = np.concatenate(pa), np.concatenate(pb), np.concatenate(d)
     m = a.size

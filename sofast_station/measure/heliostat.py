@@ -46,9 +46,6 @@ from ..ensemble import EnsembleDesign
 from ..errors import AnalysisError, FacetNotFoundError, GeometryError, StationError
 from ..fringes import FringeSet
 from ..geometry import CameraIntrinsics, Pose, StationGeometry
-from . import corners as corners_mod
-from .camera import project
-from .mask import facet_region
 from .pipeline import Analysis, AnalysisSettings, default_screen, outline_image_points
 from .pose import fix_range, solve_corner_pose
 from .screen import ScreenModel
@@ -337,7 +334,8 @@ def heliostat_pose(corners_px: dict, corner_cov: dict, geometry: StationGeometry
     design = np.concatenate([ensemble.facets[i].corners_m() for i in keys])
     pose = solve_corner_pose(geometry.camera, found, design, geometry.fixture_to_camera)
     if pose.reprojection_rms_px > max_corner_rms_px:
-        raise FacetNotFoundError(f"the facets' corners do not fit the heliostat's design ({pose.reprojection_rms_px:.1f} "
+        raise FacetNotFoundError("the facets' corners do not fit the heliostat's design "
+                                 f"({pose.reprojection_rms_px:.1f} "
                                  "px RMS): a facet far off its place on the frame, or not this heliostat")
     h2c, shift = fix_range(pose.facet_to_camera, ensemble.measure_point_m, screen_centre_cam_m, measured_distance_m,
                            max_range_shift_m)
@@ -772,9 +770,10 @@ def analyse_heliostat(frames: np.ndarray, fringes: FringeSet, geometry: StationG
                               measured_distance_m=distances[i], settings=settings, screen=screen, pose=p,
                               pool=pool)
             tim = dict(tim, rerun=time.perf_counter() - t)
-            return finish_analysis(again, tim, fringes=fringes, geometry=g, design=f.design,
-                                   measured_distance_m=distances[i], settings=settings, screen=screen,
-                                   uncertainty=uncertainty, sensitivity_cache=sensitivity_cache), time.perf_counter() - t
+            done_ = finish_analysis(again, tim, fringes=fringes, geometry=g, design=f.design,
+                                    measured_distance_m=distances[i], settings=settings, screen=screen,
+                                    uncertainty=uncertainty, sensitivity_cache=sensitivity_cache)
+            return done_, time.perf_counter() - t
         except StationError as exc:
             return exc, time.perf_counter() - t
 

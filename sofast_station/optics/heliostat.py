@@ -215,10 +215,9 @@ def heliostat_optics(facets: list, ensemble: EnsembleDesign, settings: OpticsSet
     if all(f.canting_u_mrad is not None for f in facets) and facets:
         for name, rot_of in (("measured", lambda f: f.rotation), ("corrected", lambda f: f.corrected_rotation)):
             out[name].update(_canting_u(facets, areas_of, rot_of, scene, settings, out[name]))
+    spot = (out["measured"]["spot_radius_mrad"], out["corrected"]["spot_radius_mrad"])
     out["recanting_gain"] = {"intercept": out["corrected"]["intercept"] - out["measured"]["intercept"],
-                             "spot_radius_mrad": (None if out["corrected"]["spot_radius_mrad"] is None
-                                                  or out["measured"]["spot_radius_mrad"] is None else
-                                                  out["corrected"]["spot_radius_mrad"] - out["measured"]["spot_radius_mrad"])}
+                             "spot_radius_mrad": None if None in spot else spot[1] - spot[0]}
     out["conditions"] = {"sun": settings.sun.kind, "dni_w_m2": settings.dni_w_m2, "reflectivity": settings.reflectivity,
                          "incidence_angle_deg": settings.incidence_angle_deg,
                          "slant_range_m": scene.target.slant_range_m, "aperture": scene.aperture.to_dict(),

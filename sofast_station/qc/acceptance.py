@@ -242,7 +242,8 @@ def contract_from_config(config, recipe: str) -> Contract:
             raise ConfigError(f"{fw} must be a table")
         unknown = sorted(set(f) - _FIGURE_KEYS)
         if unknown:
-            raise ConfigError(f"{fw} has unknown key(s) {', '.join(unknown)}; allowed: {', '.join(sorted(_FIGURE_KEYS))}")
+            raise ConfigError(f"{fw} has unknown key(s) {', '.join(unknown)}; "
+                              f"allowed: {', '.join(sorted(_FIGURE_KEYS))}")
         contract = _number(f, "contract", fw)
         sense = f.get("sense", "two_sided")
         if sense not in ("two_sided", "at_most"):

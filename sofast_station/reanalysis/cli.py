@@ -65,7 +65,8 @@ def register(subparsers) -> None:
         From ``parser.add_subparsers()``.
     """
     rep = add_command(
-        subparsers, "reprocess", help="rerun the analysis of data dumps from their raw frames and compare with the archive",
+        subparsers, "reprocess",
+        help="rerun the analysis of data dumps from their raw frames and compare with the archive",
         description="Recompute every figure of each dump from its raw frames (never a stored result) and print "
                     "archived versus new. With no overrides, the same software on the same platform reproduces "
                     "the archived figures exactly, and says so.")
@@ -103,17 +104,18 @@ def register(subparsers) -> None:
     rpt = add_command(
         subparsers, "report", help="slope-error maps of dumps (the paper's Figs. 8-10), 'report trend' over a period, "
                                    "'report flux' (flux maps), or the quality reports",
-        description="'report DUMP...' writes one PNG per dump: the slope-error magnitude with arrows of the "
-                    "error direction, for the design, the fitted parabola and the higher-order model, the RMS "
-                    "figures in the titles, and a detail page against one model (--detail). 'report trend [--from] [--to]' plots focal lengths, "
-                    "residuals and twist over the period from the station's journal (in the data_dir of --config), "
-                    "or from --journal PATH, or from the --results DIR of a batch. 'report spc', 'report acceptance', "
-                    "'report certificate SERIAL' and 'report diff A B' are the quality engineer's reports: control "
-                    "charts of the journal, contract acceptance of a lot, one facet's certificate, two facets compared "
-                    "(their options say which report they belong to). 'report flux DUMP...' (or opencsp:DIR, or --opencsp "
-                    "DIR) writes the facet's flux map on the target plane in W/m² beside its design's, the receiver "
-                    "aperture drawn, with the dump's [optics] settings unless the flux options change them; it prints "
-                    "the intercept factor, 90 % spot radius, centroid offset and power ratio.")
+        description="'report DUMP...' writes one PNG per dump: the slope-error magnitude with arrows of the error "
+                    "direction, for the design, the fitted parabola and the higher-order model, the RMS figures in "
+                    "the titles, and a detail page against one model (--detail). 'report trend [--from] [--to]' plots "
+                    "focal lengths, residuals and twist over the period from the station's journal (in the data_dir "
+                    "of --config), or from --journal PATH, or from the --results DIR of a batch. 'report spc', "
+                    "'report acceptance', 'report certificate SERIAL' and 'report diff A B' are the quality "
+                    "engineer's reports: control charts of the journal, contract acceptance of a lot, one facet's "
+                    "certificate, two facets compared (their options say which report they belong to). 'report flux "
+                    "DUMP...' (or opencsp:DIR, or --opencsp DIR) writes the facet's flux map on the target plane in "
+                    "W/m² beside its design's, the receiver aperture drawn, with the dump's [optics] settings unless "
+                    "the flux options change them; it prints the intercept factor, 90 % spot radius, centroid offset "
+                    "and power ratio.")
     rpt.add_argument("targets", nargs="+", metavar="DUMP_OR_REPORT",
                      help="dump(s) or opencsp:DIR; or 'trend', 'spc', 'acceptance', 'certificate SERIAL', 'diff A B', "
                           "'flux DUMP...'")
@@ -358,7 +360,6 @@ def cmd_report(args) -> int:
     single_thread_blas()
     lower_priority()
     from ..errors import StationError
-    from .reprocess import reprocess_dump
 
     if args.targets[0] == "trend":
         return _cmd_trend(args)
@@ -470,7 +471,8 @@ def _cmd_flux(args) -> int:
             settings = optics_for({"optics": table}, f"{target} ([optics] and the command line)")
             opt = analysis_optics(res.analysis, res.design, settings)
             name = str(res.record.get("serial", "")) or Path(target).stem
-            stem = (f"opencsp-{name}" if res.kind == "opencsp" else Path(target).name.removesuffix(".h5")).replace(" ", "_")
+            stem = f"opencsp-{name}" if res.kind == "opencsp" else Path(target).name.removesuffix(".h5")
+            stem = stem.replace(" ", "_")
             path = out if out.suffix.lower() == ".png" and len(targets) == 1 else out / f"flux-{stem}.png"
             title = (f"OpenCSP measurement {name} ({res.record.get('time', '')}), design f "
                      f"{res.design.focal_length_m:g} m" if res.kind == "opencsp"

@@ -17,15 +17,33 @@ log = logging.getLogger(__name__)
 REPORTS = ("spc", "acceptance", "certificate", "diff")
 
 
+def ewma_lambda(text: str) -> float:
+    """argparse type of ``--ewma``: the EWMA's weight of the newest point, in (0, 1] (a usage error, exit 2,
+    otherwise; ``--ewma 5`` was a ValueError traceback)."""
+    import argparse
+    import math
+
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number: give the EWMA weight, e.g. 0.2") from None
+    if not (math.isfinite(value) and 0.0 < value <= 1.0):
+        raise argparse.ArgumentTypeError(f"{text} is not a weight between 0 (excluded) and 1: the EWMA's lambda is "
+                                         "the weight of the newest facet, e.g. 0.2 (0.05 to 0.3 are usual)")
+    return value
+
+
 def add_options(rpt) -> None:
     """Options of the quality reports on the ``report`` parser."""
     # --config (the station file) is the report command's own option, shared with 'report trend'
     rpt.add_argument("--recipe", default=None, help="spc, acceptance: only facets of this recipe (default: all for "
                      "spc; 'default' for acceptance)")
-    rpt.add_argument("--facet-type", dest="facet_type", default=None, help="spc: only this facet type (the record's 'facet', e.g. dish-5.33)")
+    rpt.add_argument("--facet-type", dest="facet_type", default=None,
+                     help="spc: only this facet type (the record's 'facet', e.g. dish-5.33)")
     rpt.add_argument("--serial", default=None, metavar="REGEX", help="spc: only serials matching this pattern")
-    rpt.add_argument("--ewma", type=float, default=None, metavar="LAMBDA",
-                     help="spc: also draw an EWMA chart with this lambda (e.g. 0.2)")
+    rpt.add_argument("--ewma", type=ewma_lambda, default=None, metavar="LAMBDA",
+                     help="spc: also draw an EWMA chart with this weight of the newest facet, 0 < LAMBDA <= 1 "
+                          "(e.g. 0.2)")
     rpt.add_argument("--rules", default="western_electric", choices=("western_electric", "nelson", "beyond_limits"),
                      help="spc: the run rules")
     rpt.add_argument("--baseline-n", type=int, default=25, metavar="N",
@@ -66,7 +84,7 @@ def _records(args, config) -> tuple[list[dict], str]:
 
 def _recipe(config, name: str | None):
     from ..errors import ConfigError
-    from ..station.recipes import recipes_from_config
+    from ..recipes import recipes_from_config
 
     recipes = recipes_from_config(config)
     name = name or "default"
@@ -92,7 +110,7 @@ def cmd_spc(args) -> int:
     from ..errors import ConfigError
     from ..qc import spc as qspc
     from ..result.specs import figure_specs
-    from ..report.spc import (build_charts, draw_charts, draw_yield, select_records, write_summary_workbook,
+    from ..report.control_charts import (build_charts, draw_charts, draw_yield, select_records, write_summary_workbook,
                       yield_table)
 
     if len(args.targets) > 1:
@@ -113,13 +131,15 @@ def cmd_spc(args) -> int:
         b0 = parse_date(args.baseline_from, "--baseline-from")
         b1 = parse_date(args.baseline_to, "--baseline-to")
         check_range(b0, b1, "--baseline-from/--baseline-to")
-        base_records = [r for r in select_records(records, recipe=args.recipe, facet=args.facet_type, serial=args.serial,
-                                                  since=b0, until=b1) if r.get("verdict") in ("pass", "fail")]
+        base_records = [r for r in select_records(records, recipe=args.recipe, facet=args.facet_type,
+                                                  serial=args.serial, since=b0, until=b1)
+                        if r.get("verdict") in ("pass", "fail")]
         baselines = {}
         for s in specs:
             from ..result.record import figure_value
+            values = [v for v in (figure_value(r, s.key) for r in base_records) if v is not None]
             try:
-                baselines[s.key] = qspc.baseline([v for v in (figure_value(r, s.key) for r in base_records) if v is not None])
+                baselines[s.key] = qspc.baseline(values)
             except ValueError as exc:
                 raise ConfigError(f"the baseline period {b0} to {b1} gives no limits for {s.label}: {exc}") from None
     charts = build_charts(chosen, specs, baseline_n=args.baseline_n, baselines=baselines, rule_set=args.rules,
@@ -146,7 +166,8 @@ def cmd_spc(args) -> int:
         n_bad = len({int(k) for v in c.violations.values() for k in v})
         cap = c.capability
         log.info("%s: %d facets, %d violating a rule, Cp %s, Cpk %s", c.spec.label, c.values.size, n_bad,
-                 "-" if cap.get("cp") is None else f"{cap['cp']:.2f}", "-" if cap.get("cpk") is None else f"{cap['cpk']:.2f}")
+                 "-" if cap.get("cp") is None else f"{cap['cp']:.2f}",
+                 "-" if cap.get("cpk") is None else f"{cap['cpk']:.2f}")
     return 0
 
 
@@ -154,7 +175,7 @@ def cmd_acceptance(args) -> int:
     from ..errors import ConfigError
     from ..qc.acceptance import contract_from_config
     from ..report.acceptance import draw, evaluate, text
-    from ..report.spc import select_records
+    from ..report.control_charts import select_records
 
     if len(args.targets) > 1:
         raise ConfigError("'report acceptance' takes no dumps: choose facets with --recipe and --from/--to")
@@ -174,7 +195,9 @@ def cmd_acceptance(args) -> int:
 
 
 def cmd_certificate(args) -> int:
+    from ..archive._common import safe_name
     from ..archive.journal import Journal
+    from ..serials import clean_serial
     from ..errors import ConfigError, StationError
     from ..report.certificate import write_certificate
     from .sources import load_measured
@@ -189,6 +212,9 @@ def cmd_certificate(args) -> int:
         raise ConfigError(f"no journal at {path}: this station has not measured anything yet")
     with Journal(path) as j:
         rows = j.rows(serial=serial)
+        safe = clean_serial(serial)[0]
+        if not rows and safe != serial:          # typed as printed; journaled as the station made it safe
+            rows = j.rows(serial=safe)
     if not rows:
         raise ConfigError(f"serial {serial!r} is not in the journal {path}")
     row = rows[-1]                         # the latest test of the serial
@@ -215,8 +241,10 @@ def cmd_certificate(args) -> int:
     elif dump is not None:
         log.warning("the dump %s named in the journal is missing: certificate without maps", dump)
         dump = None
+    # The serial names the file, never a path: a journaled serial (or one typed here) such as "../../x"
+    # stays inside the --out folder.
     out = Path(args.out) if args.out and args.out.lower().endswith(".pdf") else \
-        Path(args.out or ".") / f"certificate-{serial}.pdf"
+        Path(args.out or ".") / f"certificate-{safe_name(serial, 64)}.pdf"
     print(write_certificate(rec, out, specs=figure_specs(recipe.design.focal_length_m, recipe.limits),
                             measured=measured, dump_path=dump), flush=True)
     if len(rows) > 1:

@@ -665,7 +665,7 @@ def reprocess_heliostat(content, overrides, *, archived: dict | None, archived_s
     from ..result.faults import fault_reason
     from ..result.record import build_record
     from ..station.heliostat import analyse_job, loop_record
-    from ..station.recipes import Recipe
+    from ..recipes import Recipe
 
     t0 = time.perf_counter()
     if overrides.facet_path is not None or overrides.alignment_point_m is not None \

@@ -53,10 +53,9 @@ def write_diff(a, b, out_path: Path, dpi: int = 100) -> Path:
     fig = Figure(figsize=(16.0, 9.5), layout="constrained")
     axes = fig.subplots(2, 2).ravel()
     rms = {k: float(np.sqrt(np.nanmean(d[k] ** 2))) for k in ("e_x_mrad", "e_y_mrad", "height_um")}
-    draw_field(fig, axes[0], d["e_x_mrad"], d["extent_m"], f"slope difference x, B - A (RMS {rms['e_x_mrad']:.3f} mrad)",
-               "mrad", signed=True)
-    draw_field(fig, axes[1], d["e_y_mrad"], d["extent_m"], f"slope difference y, B - A (RMS {rms['e_y_mrad']:.3f} mrad)",
-               "mrad", signed=True)
+    for ax, axis in zip(axes[:2], "xy"):
+        draw_field(fig, ax, d[f"e_{axis}_mrad"], d["extent_m"],
+                   f"slope difference {axis}, B - A (RMS {rms[f'e_{axis}_mrad']:.3f} mrad)", "mrad", signed=True)
     draw_field(fig, axes[2], np.hypot(d["e_x_mrad"], d["e_y_mrad"]), d["extent_m"], "slope difference magnitude",
                "mrad", signed=False)
     draw_field(fig, axes[3], d["height_um"], d["extent_m"], f"height difference B - A (RMS {rms['height_um']:.2f} um)",

@@ -14,12 +14,14 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import numpy as np
-
-from ..result.formatting import with_u
 from ..errors import ReportError
+from ..result.formatting import with_u
 from ._common import savefig_atomic
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 log = logging.getLogger(__name__)
 
@@ -30,7 +32,7 @@ def _fmt(value, fmt: str, u=None) -> str:
     return with_u(value, u, decimals=int(fmt.split(".")[1].rstrip("f}")))
 
 
-def draw_flux_maps(res, title: str = "") -> "Figure":  # noqa: F821
+def draw_flux_maps(res, title: str = "") -> Figure:
     """A Matplotlib figure (Agg) of the measured and the design flux maps of a FacetOptics result."""
     from matplotlib.figure import Figure
     from matplotlib.patches import Circle, Rectangle

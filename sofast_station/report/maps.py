@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -505,7 +504,6 @@ def write_slope_error_maps(result, out_dir: str | Path, *, vmax_mrad: float | No
         vmax_mrad = robust_top(np.concatenate([m.magnitude_mrad.ravel() for m in maps.values()]))
     titles = _titles(result, maps)
     rec = result.record
-    step = maps["design"].arrow_step_px
     overrides = result.overrides.to_dict()
     lines = [f"Facet {rec.get('serial')} ({rec.get('facet')}), measured {rec.get('time')}",
              f"slope error, colour 0 to {vmax_mrad:g} mrad (99th percentile), arrows: mean error on a "

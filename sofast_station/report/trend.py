@@ -44,21 +44,26 @@ def trend_records_from_journal(journal: str | Path, since=None, until=None) -> l
 
 
 def trend_records_from_results(folder: str | Path, since=None, until=None) -> list[dict]:
-    """The reprocessed records of a batch output folder (or its ``results/``) in ``[since, until)``."""
+    """The reprocessed records of a batch output folder (or its ``results/``) in ``[since, until)``; a result
+    file that cannot be read is left out with a warning naming it."""
     folder = Path(folder)
     results = folder / "results" if (folder / "results").is_dir() else folder
     if not results.is_dir():
         raise ReportError(f"{folder} is not a folder of batch results")
-    out = []
+    out, unreadable = [], []
     for p in sorted(results.glob("*.json")):
         if p.name.startswith("."):
             continue
         try:
             obj = json.loads(p.read_text(encoding="utf-8"))
-        except (OSError, json.JSONDecodeError):
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            unreadable.append(f"{p.name} ({exc})")
             continue
         if isinstance(obj, dict) and obj.get("status") == "ok" and _in_period(obj.get("time"), since, until):
             out.append(obj)
+    if unreadable:
+        log.warning("the trend leaves out %d unreadable result file(s) of %s: %s", len(unreadable), results,
+                    "; ".join(unreadable))
     out.sort(key=lambda r: utc_key(r["time"]))
     return out
 

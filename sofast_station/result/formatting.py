@@ -110,8 +110,10 @@ def budget_text(rec: dict, columns=BUDGET_COLUMNS) -> str:
              f"  {'input':<30}{'':>10}" + "".join(f"{t:>11}" for _, t, _ in cols),
              f"  {'':<30}{'':>10}" + "".join(f"{u:>11}" for _, _, u in cols)]
     for row in b["rows"]:
-        lines.append(f"  {row['group']:<30}{row['kind']:>10}" + "".join(cell(row["contributions"][i]) for i, _, _ in cols))
-    lines.append(f"  {'combined standard u':<30}{'':>10}" + "".join(cell(b["combined_standard"][i]) for i, _, _ in cols))
+        lines.append(f"  {row['group']:<30}{row['kind']:>10}"
+                     + "".join(cell(row["contributions"][i]) for i, _, _ in cols))
+    lines.append(f"  {'combined standard u':<30}{'':>10}"
+                 + "".join(cell(b["combined_standard"][i]) for i, _, _ in cols))
     lines.append(f"  {'  of which random':<30}{'':>10}" + "".join(cell(b["random_standard"][i]) for i, _, _ in cols))
     k = b.get("coverage_factor", 2)
     lines.append(f"  {f'expanded U (k={k})':<30}{'':>10}" + "".join(

@@ -36,7 +36,8 @@ log = logging.getLogger(__name__)
 
 #: The keys of ``[optics]`` (and of a recipe's ``optics`` table).
 OPTICS_KEYS = ("enabled", "sun", "sigma_mrad", "csr", "dni_w_m2", "reflectivity", "incidence_angle_deg",
-               "slant_range_m", "aperture", "rays_per_pixel", "min_rays", "grid_cells", "grid_half_width_m", "design_points",
+               "slant_range_m", "aperture", "rays_per_pixel", "min_rays", "grid_cells", "grid_half_width_m",
+               "design_points",
                "seed")
 _APERTURE_KEYS = {"circle": ("shape", "radius_m"), "rectangle": ("shape", "width_m", "height_m")}
 

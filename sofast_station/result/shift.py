@@ -2,9 +2,9 @@
 
 Pure: result records (dicts, as journaled) in, numbers out; the console's end-of-run summary and the
 line's web page both use it. A running station keeps a :class:`ShiftTally` (running statistics, a fixed
-size whatever the number of facets) rather than a list of records: it runs for months. Figures are read with :func:`figure_value`, so a nested figure such as the
-slope-error RMS of one model is named by a path (``slope_rms_mrad.design.magnitude``;
-:mod:`sofast_station.result.record`).
+size whatever the number of facets) rather than a list of records: it runs for months. Figures are read
+with :func:`~sofast_station.result.record.figure_value`, so a nested figure such as the slope-error RMS of
+one model is named by a path (``slope_rms_mrad.design.magnitude``).
 """
 
 from __future__ import annotations

@@ -161,7 +161,8 @@ def judge(fig: dict, design: FacetDesign, limits: Limits, quality: Quality) -> d
                                                       quality.min_slope_curl_per_m):
         invalid.append(
             f"the measured slopes are no surface's: they turn as much as they stretch (local curl "
-            f"{1000 * curl['antisymmetric_rms_per_m']:.1f} mrad/m RMS against {1000 * curl['symmetric_rms_per_m']:.1f}): "
+            f"{1000 * curl['antisymmetric_rms_per_m']:.1f} mrad/m RMS against "
+            f"{1000 * curl['symmetric_rms_per_m']:.1f}): "
             "the x and y fringe sets were swapped (y captured before x?) or shown in the wrong order; "
             "capture the sequence in the fringe definition's order")
     if fig["valid_fraction"] < quality.min_valid_fraction:

@@ -134,7 +134,8 @@ def summary_text(rec: dict) -> str:
         lines.append("  placement in fixture       " + ", ".join(_pm(v, u, "", 2) for v, u in zip(pl["mm"], pu["mm"]))
                      + " mm, " + ", ".join(_pm(v, u, "", 2) for v, u in zip(pl["mrad"], pu["mrad"])) + " mrad")
     lines.extend(optics_lines(rec.get("optics"), (truth or {}).get("optics")))
-    lines.append(f"  points                    {rec['n_points']:>14,}   ({100 * rec['valid_fraction']:.1f} % of the facet's pixels)")
+    lines.append(f"  points                    {rec['n_points']:>14,}   "
+                 f"({100 * rec['valid_fraction']:.1f} % of the facet's pixels)")
     lines.append(f"  median modulation         {rec['median_modulation_dn']:>11.1f} DN")
     it = rec["iterations"]
     lines.append(f"  iterations                {it['shape']:>9} shape, {it['boresight']} boresight "
@@ -147,7 +148,7 @@ def summary_text(rec: dict) -> str:
 def cmd_inspect(args) -> int:
     from ..archive._common import safe_name
     from ..config import load_config
-    from ..serials import clean_serial
+    from ..serials import clean_serial, raw_for_record
     from .factory import open_station
     from .inspection import inspect
 
@@ -163,6 +164,8 @@ def cmd_inspect(args) -> int:
         if note:
             log.warning("%s", note)
         rec = inspect(station, serial, progress=progress, pictures_dir=config.data_dir / "inspections")
+        if note:                             # the serial as typed, when making it safe changed it
+            rec["serial_raw"] = raw_for_record(args.serial)
     finally:
         station.close()
     rec = json_safe(rec)
@@ -189,7 +192,8 @@ def cmd_run(args) -> int:
     from ..config import load_config
     from ..web.settings import opcua_settings, web_settings
     from . import console
-    from .service import Service, setup_logging
+    from ..live.logs import setup_logging
+    from .service import Service
     from ..result.shift import ShiftTally
 
     config = load_config(args.config)
@@ -247,7 +251,7 @@ def cmd_serve(args) -> int:
     from ..config import load_config
     from ..web.monitor import serve
     from ..web.settings import opcua_settings, web_settings
-    from .service import setup_logging
+    from ..live.logs import setup_logging
 
     config = load_config(args.config, use_camera_record=False)      # the page opens no device
     setup_logging(config.data_dir, args.verbose, name="monitor.log")
@@ -255,6 +259,7 @@ def cmd_serve(args) -> int:
     if args.host is not None or args.port is not None:
         import dataclasses
         web = dataclasses.replace(web, host=args.host or web.host, port=web.port if args.port is None else args.port)
+        web.exposure(f"{config.path} [web] (with --host/--port)")     # beyond loopback: HTTPS or a decision
     opcua = opcua_settings(config)
 
     def ready(info):
@@ -292,7 +297,7 @@ def cmd_archive_export(args) -> int:
 def cmd_dump_next(args) -> int:
     from ..config import load_config
 
-    from .commands import request_dump_next
+    from ..live.operator_commands import request_dump_next
 
     config = load_config(args.config, use_camera_record=False)  # no camera needed
     flag = request_dump_next(config.data_dir)

@@ -188,7 +188,8 @@ class DriftMonitor:
             b = base.get(spec.key)
             if b is None:
                 continue
-            x = np.array([np.nan if figure_value(r, spec.key) is None else figure_value(r, spec.key) for r in hist], float)
+            values = (figure_value(r, spec.key) for r in hist)
+            x = np.array([np.nan if v is None else v for v in values], float)
             rules = alarm_at_last(x, b, s.rules)
             if rules:
                 alarms.append(f"{spec.label}: " + "; ".join(f"{r} {RULE_TEXT[r]}" for r in rules)

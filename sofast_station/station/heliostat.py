@@ -142,7 +142,8 @@ def summary_text(rec: dict) -> str:
         lines.append(f"  optics at {cond['slant_range_m']:.1f} m, aperture {cond['aperture']}:")
         lines.append(f"    intercept: measured {with_u(m['intercept'], m.get('intercept_U'), '', 4)}, design "
                      f"{d['intercept']:.4f}, re-canted {with_u(c['intercept'], c.get('intercept_U'), '', 4)}")
-        lines.append(f"    90 % spot radius: measured {with_u(m['spot_radius_mrad'], m.get('spot_radius_mrad_U'), '', 3)}"
+        lines.append("    90 % spot radius: measured "
+                     f"{with_u(m['spot_radius_mrad'], m.get('spot_radius_mrad_U'), '', 3)}"
                      f" mrad, design {d['spot_radius_mrad']:.3f}, re-canted "
                      f"{with_u(c['spot_radius_mrad'], c.get('spot_radius_mrad_U'), '', 3)} mrad")
     if rec.get("canting_instructions"):

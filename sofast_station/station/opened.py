@@ -34,7 +34,8 @@ class Station:
     #: The radiometric record's status when the station opened (CalibrationStatus: origin, warnings).
     calibration: object | None = None
     _rays: np.ndarray | None = field(default=None, repr=False)
-    #: The design's optical trace, computed once per facet type (:class:`~sofast_station.result.optical_figures.DesignTraces`).
+    #: The design's optical trace, computed once per facet type
+    #: (:class:`~sofast_station.result.optical_figures.DesignTraces`).
     design_traces: object | None = field(default=None, repr=False)
     #: Sensitivities of the figures to the station's inputs, per geometry and recipe, computed on the first
     #: facet and reused (:mod:`sofast_station.measure.uncertainty`).
@@ -78,6 +79,13 @@ class Station:
         return RecordHead(serial=serial, time=now_iso(), station=self.config.name, config_hash=self.config.config_hash,
                           calibration=self.calibration_entry(warnings),
                           camera={"exposure_s": self.radiometric.exposure_s, "gain": self.radiometric.gain}, **more)
+
+    def arm_faults(self, serial: str) -> float:
+        """Fault injection for tests of the production loop, at the start of each cycle: returns how long
+        the analysis waits before it starts, seconds (negative: the worker dies mid-analysis). A real station
+        injects nothing: 0 (the simulated station arms what ``[simulation.faults]`` names for *serial*,
+        :meth:`~sofast_station.station.simulated.SimulatedStation.arm_faults`)."""
+        return 0.0
 
     def truth(self, valid: np.ndarray, design=None, optics=None) -> dict | None:
         """The ground truth of the facet in the fixture at the pixels *valid* (the analysis kept them), for

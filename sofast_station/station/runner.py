@@ -16,6 +16,7 @@ from __future__ import annotations
 import dataclasses
 import datetime as _dt
 import logging
+import queue
 import threading
 import time
 import uuid
@@ -26,20 +27,22 @@ import numpy as np
 from ..calibrate.settings import calibration_settings
 from ..calibrate.store import check_cycle
 from ..devices.protocols import FAULT_CODES, WARNING_BITS, FacetRequest
+from ..archive._common import trim_heap
 from ..errors import AnalysisTimeout, CameraError, StationError, TriggerError
 from ..result.faults import fault_reason
 from ..result.record import RecordHead, build_record
 from ..result.verdict import judge
-from ..serials import clean_serial
+from ..serials import clean_serial, raw_for_record
 from . import console as _console
-from .commands import take_commands, take_dump_next
+from ..live.operator_commands import take_commands, take_dump_next
 from .drift import DriftMonitor
 from .frames import capture_sequence, crop, crop_box, restore
 from .heliostat import analysis_design, loop_record
 from .heliostat import crop_box as heliostat_crop_box
+from .link import LinkWatch
 from .opened import Station
-from .recipes import Recipe, choose_recipe
-from .status import StatusFile
+from ..recipes import Recipe, choose_recipe
+from ..live.status import StatusFile
 from .worker import AnalysisWorker
 
 log = logging.getLogger(__name__)
@@ -69,9 +72,13 @@ class RunSettings:
         Retention of dumps: older or beyond the total size, the oldest go first.
     late_grace_s : float
         An analysis still running at the deadline (the robot already answered "fault: timeout") may
-        finish this much later; its figures are then journaled and its frames dumped, marked late.
+        finish this much later, in its retired worker, while the standby measures the next facet; its
+        figures are then journaled and its frames dumped, marked late.
     warmup : bool
         Analyse one capture before the station reports ready, so the first facet is not the slowest.
+    standby_worker : bool
+        Keep a second analysis worker started and warm, which takes over at once after a timeout or a
+        crash, so the next facet is measured normally (a few hundred MB more memory at full resolution).
     """
 
     deadline_s: float = 10.0
@@ -85,6 +92,7 @@ class RunSettings:
     dump_max_gb: float = 50.0
     late_grace_s: float = 10.0
     warmup: bool = True
+    standby_worker: bool = True
 
 
 @dataclass
@@ -104,6 +112,29 @@ class CycleOutcome:
     preview: dict | None = field(default=None, repr=False)
     #: The uncertainty's sensitivities the analysis used (a record), written into the facet's dump.
     sensitivities: dict | None = field(default=None, repr=False)
+
+
+@dataclass
+class CycleCapture:
+    """What a cycle captured and keeps until its answer: the frames cropped to the facet (what a dump keeps),
+    the crop box in the camera image, the camera image's size and the measured distance (metres). Empty
+    when the capture failed. ``late`` holds an analysis abandoned at the deadline that may still finish
+    (its future and what its record needs), for :meth:`StationRunner._follow_late`."""
+
+    frames: np.ndarray | None = field(default=None, repr=False)
+    box: tuple | None = None
+    full_shape: tuple | None = None
+    distance_m: float | None = None
+    late: tuple | None = field(default=None, repr=False)
+
+    def restored(self) -> np.ndarray:
+        """The frames at the camera's full size (outside the crop: 0), as the analysis takes them."""
+        return restore(self.frames, self.box, self.full_shape)
+
+    def dump(self, sensitivities: dict | None) -> dict:
+        """What :meth:`Service.submit <sofast_station.station.service.Service.submit>` spools for a dump."""
+        return {"frames": self.frames, "crop_box": self.box, "full_shape": self.full_shape,
+                "measured_distance_m": self.distance_m, "sensitivities": sensitivities}
 
 
 def new_cycle_id() -> str:
@@ -162,10 +193,16 @@ class StationRunner:
         self.submit = submit
         self.console = console
         self.stop_event = threading.Event()
+        #: Late results of abandoned analyses, queued by the retired workers' threads, kept by the loop.
+        self._late_results: queue.SimpleQueue = queue.SimpleQueue()
+        #: The robot/PLC link: outages logged once, then once a minute; reconnects after a growing pause.
+        self.link = LinkWatch(settings.poll_s)
+        self._pause = self.stop_event.wait          # the pause between reconnects (tests give their own)
         self.cycles = 0
         self.fatal: StationError | None = None     # set when the station must stop (journal not writable)
         cam = station.config.geometry.camera
-        self.worker = AnalysisWorker(station.config.geometry, station.config.fringes, cam.shape)
+        self.worker = AnalysisWorker(station.config.geometry, station.config.fringes, cam.shape,
+                                     standby=settings.standby_worker)
         # The designs' optical traces are the same for every facet of a type: made now, not in a cycle.
         self.worker.prepare_optics([(r.design, r.optics) for r in recipes.values()
                                     if r.optics is not None and r.ensemble is None])
@@ -225,13 +262,17 @@ class StationRunner:
 
     # ------------------------------------------------------------------ loop
     def _heartbeat(self) -> None:
+        warned = False
         while not self.stop_event.wait(self.settings.heartbeat_s):
-            if getattr(self.trigger.trigger, "finished", False):
-                continue                     # the simulated robot has placed its last facet
+            if getattr(self.trigger.trigger, "finished", False) or self.link.down:
+                continue                     # the last facet placed, or the link down: the loop reconnects
             try:
                 self.trigger.heartbeat()
+                warned = False
             except StationError as exc:
-                log.warning("heartbeat failed: %s", exc)
+                if not warned:               # once per failure streak, not every second
+                    log.warning("heartbeat failed: %s", exc)
+                warned = True
 
     def stop(self) -> None:
         """Finish the current facet, then stop."""
@@ -252,6 +293,7 @@ class StationRunner:
                 if max_cycles is not None and self.cycles >= max_cycles:
                     break
                 self.supervise()
+                self._keep_late_results()
                 for operator_request in self._take_commands():
                     done = self.cycle(operator_request)
                     if on_outcome is not None:
@@ -265,10 +307,9 @@ class StationRunner:
                     self.trigger.ready()
                     request = self.trigger.wait_for_facet(self.settings.poll_s)
                 except TriggerError as exc:
-                    log.error("robot/PLC handshake failed: %s; reconnecting", exc)
-                    self.status.alarm("plc", f"robot/PLC handshake failed: {exc}")
-                    self._reopen_trigger()
+                    self._link_failed(exc)
                     continue
+                self.link.ok()
                 self.status.alarm("plc", None)
                 if request is None:
                     if getattr(self.trigger.trigger, "finished", False):
@@ -286,7 +327,7 @@ class StationRunner:
         return outcomes
 
     def _take_commands(self) -> list[FacetRequest]:
-        """Act on the operators' commands (station/commands.py); returns the re-measurements to run."""
+        """Act on the operators' commands (live/operator_commands.py); returns the re-measurements to run."""
         remeasure = []
         for cmd in take_commands(self.station.config.data_dir):
             log.info("operator command %s%s (%s)", cmd.name, f" {cmd.serial!r}" if cmd.serial else "",
@@ -333,13 +374,26 @@ class StationRunner:
             raw, _ = capture_sequence(self.station.display, self.station.camera, self.station.config.fringes,
                                       recipe.analysis.mask_threshold_dn, timeout_s=self.settings.camera_timeout_s)
             distance = float(self.station.range_finder.measure())
-            self.worker.analyse(raw, analysis_design(recipe, self.station.config), recipe.analysis, distance,
+            self.worker.warm_up(raw, analysis_design(recipe, self.station.config), recipe.analysis, distance,
                                 timeout_s=max(60.0, 3 * self.settings.deadline_s), optics=recipe.optics,
                                 uncertainty=self.station.config.uncertainty)
             log.info("warm-up: one capture analysed in %.1f s", time.perf_counter() - t)
         except StationError as exc:
             log.warning("warm-up capture not analysed (%s); the first facet may be slower", exc)
             self._reopen_camera()
+
+    def _link_failed(self, exc: BaseException) -> None:
+        """The handshake failed while waiting for a facet: alarm, reconnect, pause; logged by the link watch
+        once, then once a minute while the outage lasts (it was five lines a second)."""
+        pause = self.link.failed(exc)
+        self.status.alarm("plc", f"robot/PLC handshake failed: {exc}")
+        reopen = getattr(self.trigger.trigger, "reopen", None)
+        if reopen:
+            try:
+                reopen()
+            except StationError as again:
+                pause = self.link.failed(again)
+        self._pause(pause)
 
     def _reopen_trigger(self) -> None:
         reopen = getattr(self.trigger.trigger, "reopen", None)
@@ -352,106 +406,202 @@ class StationRunner:
 
     # ------------------------------------------------------------------ one cycle
     def cycle(self, request: FacetRequest) -> CycleOutcome:
+        """One facet, from the robot's request to its answer (docs/architecture.md, steps 3-9).
+
+        The request's serial is made safe (or replaced by one an operator typed); the robot hears busy;
+        a watchdog will answer "fault: timeout" at the deadline whatever this thread is doing
+        (:meth:`_expire`); the facet is measured (:meth:`_measure`: capture, crop, calibration check,
+        analysis in the worker process, verdict, record); then its record is journaled, with its frames
+        spooled when a dump is due, and only then the robot hears the answer (:meth:`_finish`, or
+        :meth:`_finish_late` when the watchdog answered first). An analysis abandoned at the deadline is
+        answered "timeout" now and its late result kept between facets (:meth:`_follow_late`), while the
+        standby worker measures the next facet.
+
+        Never raises for a bad facet: any error in the measurement becomes a fault answer with its reason
+        code (:mod:`sofast_station.result.faults`), and the loop takes the next facet.
+        """
         t0 = time.perf_counter()
         cycle_id = new_cycle_id()
         self.cycles += 1
-        serial, note = clean_serial(request.serial)
-        if note:                             # one safe serial for the journal, workbook, dump and page
-            log.warning("%s (cycle %s)", note, cycle_id)
-            request = dataclasses.replace(request, serial=serial,
-                                          extra={**request.extra, "serial_as_sent": ascii(request.serial[:200])})
-        if self._manual_serial is not None and not request.extra.get("operator"):
-            request = dataclasses.replace(request, serial=clean_serial(self._manual_serial)[0],
-                                          extra={**request.extra, "serial_read": request.serial,
-                                                 "serial_source": "operator"})
-            self._manual_serial = None
-            self.status.data["manual_serial"] = None
-        self._last_request = request
-        serial = request.serial
-        state = {"answered": False, "stage": "start"}
-        timings: dict[str, float] = {}
-        self.status.update(state="measuring", serial=serial, cycle_id=cycle_id)
+        request = self._accept(request, cycle_id)
+        self.status.update(state="measuring", serial=request.serial, cycle_id=cycle_id)
         try:
             if not request.extra.get("operator"):       # a re-measurement: the robot did not ask
                 self.trigger.busy()
         except TriggerError as exc:
-            log.error("%s: could not signal busy: %s", serial, exc)
+            log.error("%s: could not signal busy: %s", request.serial, exc)
         # The watchdog answers the robot at the deadline whatever this thread is doing.
+        state = {"answered": False, "stage": "start"}
         watchdog = threading.Timer(max(0.1, self.settings.deadline_s - 0.2), self._expire,
                                    args=(cycle_id, request, state, t0))
         watchdog.daemon = True
         watchdog.start()
-        frames = raw_shape = box = distance = None
-        outcome = None
+        captured = CycleCapture()
+        try:
+            outcome = self._measure(cycle_id, request, state, t0, captured)
+        finally:
+            watchdog.cancel()
+            # A watchdog that has fired may still be answering the robot (journal, then the trigger): the
+            # loop's next ready() must come after that answer, not in the middle of it.
+            watchdog.join()
+        outcome.frames = captured.frames
+        if captured.frames is not None:
+            outcome.record["crop_box"] = list(captured.box)
+        with self._answer_lock:
+            answered = state["answered"]
+            state["answered"] = True
+        try:
+            if captured.late is not None:
+                # The analysis was abandoned at the deadline and may still finish: the row is the timeout now
+                # (answered here, or by the watchdog), its figures and dump follow when the late result comes.
+                self._follow_late(outcome, request, t0, state, answered, captured)
+            elif answered:
+                self._finish_late(outcome, request, t0, state, captured)
+            else:
+                self._finish(outcome, request, t0, captured)
+        finally:
+            outcome.frames = None             # nothing of the frames outlives the cycle
+        return outcome
+
+    def _accept(self, request: FacetRequest, cycle_id: str) -> FacetRequest:
+        """The request as the cycle uses it: one safe serial for the journal, workbook, dump and page (what
+        was sent goes to the record's ``serial_raw``), or the serial an operator typed for this facet."""
+        serial, note = clean_serial(request.serial)
+        if note:
+            log.warning("%s (cycle %s)", note, cycle_id)
+            request = dataclasses.replace(request, serial=serial,
+                                          extra={**request.extra, "serial_raw": raw_for_record(request.serial)})
+        if self._manual_serial is not None and not request.extra.get("operator"):
+            manual, note = clean_serial(self._manual_serial)
+            extra = {k: v for k, v in request.extra.items() if k != "serial_raw"}   # the robot's: serial_read now
+            extra.update(serial_read=request.serial, serial_source="operator")
+            if note:
+                log.warning("%s (cycle %s, typed by an operator)", note, cycle_id)
+                extra["serial_raw"] = raw_for_record(self._manual_serial)
+            request = dataclasses.replace(request, serial=manual, extra=extra)
+            self._manual_serial = None
+            self.status.data["manual_serial"] = None
+        self._last_request = request
+        return request
+
+    def _measure(self, cycle_id: str, request: FacetRequest, state: dict, t0: float,
+                 captured: CycleCapture) -> CycleOutcome:
+        """Measure the facet: the recipe, the capture (cropped into *captured*, which the answer and the dump
+        use), the calibration check on its dark frame, the analysis in the worker within what is left of
+        the deadline, the verdict and the record. Any error becomes a fault outcome; an analysis abandoned
+        at the deadline leaves its future in ``captured.late``. *state*'s ``stage`` tells the watchdog what
+        did not return."""
+        timings: dict[str, float] = {}
         cal_warnings: list[str] = []
         try:
             recipe = choose_recipe(self.recipes, request)
-            inject = getattr(self.station, "inject", None)
-            hang_s = inject(serial) if inject else 0.0
+            analysis_delay_s = self.station.arm_faults(request.serial)
             t = time.perf_counter()
             state["stage"] = "capture"
             raw, notes = capture_sequence(self.station.display, self.station.camera, self.station.config.fringes,
                                           recipe.analysis.mask_threshold_dn, timeout_s=self.settings.camera_timeout_s)
-            distance = float(self.station.range_finder.measure())
+            captured.distance_m = float(self.station.range_finder.measure())
             timings["capture"] = time.perf_counter() - t
             # (a heliostat: the box around every facet, not its largest region)
-            box = (heliostat_crop_box if recipe.ensemble is not None else crop_box)(
+            captured.box = (heliostat_crop_box if recipe.ensemble is not None else crop_box)(
                 raw[0], raw[1], recipe.analysis.mask_threshold_dn)
-            frames, raw_shape = crop(raw, box), raw.shape[1:]
+            captured.frames, captured.full_shape = crop(raw, captured.box), raw.shape[1:]
             cal_warnings = self._check_calibration(raw[0])
             del raw
-            # Past the deadline the watchdog answers "timeout"; the analysis may still finish within the
-            # grace period, and its figures are then journaled and dumped as a late result.
-            budget = self.settings.deadline_s - (time.perf_counter() - t0) - 0.3 + self.settings.late_grace_s
+            # At the deadline this thread answers "timeout" itself (just before the watchdog would) and the
+            # standby worker takes over for the next facet; the abandoned analysis may still finish within
+            # the late grace in its retired worker, and its figures are then journaled and dumped as a late
+            # result (_follow_late).
+            budget = self.settings.deadline_s - (time.perf_counter() - t0) - 0.3
             if budget <= 0:
                 raise AnalysisTimeout(f"the capture took {timings['capture']:.1f} s, past the "
                                       f"{self.settings.deadline_s:g} s deadline")
             t = time.perf_counter()
             state["stage"] = "analysis"
-            res = self.worker.analyse(restore(frames, box, raw_shape), analysis_design(recipe, self.station.config),
-                                      recipe.analysis, distance, timeout_s=budget, hang_s=hang_s,
-                                      optics=recipe.optics, uncertainty=self.station.config.uncertainty)
+            try:
+                res = self.worker.analyse(captured.restored(), analysis_design(recipe, self.station.config),
+                                          recipe.analysis, captured.distance_m,
+                                          timeout_s=budget, hang_s=analysis_delay_s, optics=recipe.optics,
+                                          uncertainty=self.station.config.uncertainty,
+                                          late_s=self.settings.late_grace_s)
+            except AnalysisTimeout as exc:
+                if exc.late is not None:
+                    captured.late = (exc.late, recipe, captured.distance_m, notes, dict(timings),
+                                     list(cal_warnings), t)
+                raise
             timings["analysis"] = time.perf_counter() - t
-            # The ground truth (simulated station) is that of the station's own facet type.
-            truth = self.station.truth(res.valid) if recipe.design.name == self.station.config.design.name else None
-            head = self._head(cycle_id, request, recipe.name, cal_warnings, facet=recipe.design.name)
-            if recipe.ensemble is not None:       # a heliostat: one entry per facet (docs/heliostats.md)
-                record = loop_record(head, res.figures, recipe, truth, measured_distance_m=distance,
-                                     capture_notes=notes, timings=timings)
-            else:
-                record = build_record(
-                    head, figures=res.figures, verdict=judge(res.figures, recipe.design, recipe.limits,
-                                                             recipe.quality),
-                    truth=truth, measured_distance_m=distance, capture_notes=notes,
-                    timings={**timings, **{f"analysis_{k}": v for k, v in res.figures.get("timings_s", {}).items()}})
+            record = self._measured_record(cycle_id, request, recipe, res, captured.distance_m, notes, timings,
+                                           cal_warnings)
+            if recipe.ensemble is None:           # (a heliostat's facets are not one facet's trend)
                 self._check_drift(recipe.name, record)
-            outcome = CycleOutcome(cycle_id, serial, record["verdict"], record, valid=res.valid,
-                                   preview=res.preview, sensitivities=getattr(res, "sensitivities", None))
+            return CycleOutcome(cycle_id, request.serial, record["verdict"], record, valid=res.valid,
+                                preview=res.preview, sensitivities=getattr(res, "sensitivities", None))
         except Exception as exc:          # a bad facet must never stop the line
             code, reason = fault_reason(exc)
             if code == FAULT_CODES["internal"]:
-                log.exception("%s: internal error", serial)
+                log.exception("%s: internal error", request.serial)
             record = self._fault_record(cycle_id, request, code, reason, timings, cal_warnings)
-            outcome = CycleOutcome(cycle_id, serial, "fault", record, fault_code=code)
             if isinstance(exc, CameraError):
-                self.status.alarm("camera", f"camera lost at facet {serial}: {exc}")
+                self.status.alarm("camera", f"camera lost at facet {request.serial}: {exc}")
                 self._reopen_camera()
-        finally:
-            watchdog.cancel()
-        outcome.frames = frames
-        if frames is not None:
-            outcome.record["crop_box"] = list(box)
-        with self._answer_lock:
-            late = state["answered"]
-            state["answered"] = True
-        try:
-            if late:
-                self._finish_late(outcome, request, t0, state, raw_shape=raw_shape, box=box, distance=distance)
-            else:
-                self._finish(outcome, request, t0, raw_shape=raw_shape, box=box, distance=distance)
-        finally:
-            outcome.frames = None             # nothing of the frames outlives the cycle
-        return outcome
+            return CycleOutcome(cycle_id, request.serial, "fault", record, fault_code=code)
+
+    def _measured_record(self, cycle_id, request, recipe, res, distance, notes, timings, cal_warnings) -> dict:
+        """The record of an analysed facet (in time or late): figures, verdict and, on the simulated station,
+        the truth of the station's own facet type."""
+        truth = self.station.truth(res.valid) if recipe.design.name == self.station.config.design.name else None
+        head = self._head(cycle_id, request, recipe.name, cal_warnings, facet=recipe.design.name)
+        if recipe.ensemble is not None:       # a heliostat: one entry per facet (docs/heliostats.md)
+            return loop_record(head, res.figures, recipe, truth, measured_distance_m=distance, capture_notes=notes,
+                               timings=timings)
+        return build_record(
+            head,
+            figures=res.figures, verdict=judge(res.figures, recipe.design, recipe.limits, recipe.quality),
+            truth=truth, measured_distance_m=distance, capture_notes=notes,
+            timings={**timings, **{f"analysis_{k}": v for k, v in res.figures.get("timings_s", {}).items()}})
+
+    def _follow_late(self, outcome: CycleOutcome, request: FacetRequest, t0: float, state: dict, answered: bool,
+                     captured: CycleCapture) -> None:
+        """An analysis abandoned at the deadline: journal and answer the timeout now (unless the watchdog did),
+        without the dump; when the retired worker's result comes (or its grace ends), the loop amends the row
+        with the figures, marked late, and dumps the frames, between facets (_finish_late)."""
+        future, recipe, distance, notes, timings, cal_warnings, t_analysis = captured.late
+        captured.late = None
+        wanted = self._dump_due(outcome, request)            # decided now: the flag file is for this facet
+        if not answered:
+            self._finish(outcome, request, t0, captured, dump=False)
+        state.setdefault("reason", (outcome.record.get("reasons") or ["timeout"])[0])
+        frames, cycle_id = outcome.frames, outcome.cycle_id
+        timeout_record = outcome.record
+
+        def done(fut) -> None:                     # in the retired worker's thread: hand it to the loop
+            self._late_results.put(lambda: keep(fut))
+
+        def keep(fut) -> None:                     # in the loop's thread, between facets
+            try:
+                res, error = fut.result(), None
+            except BaseException as exc:          # the analysis's own error, late: kept in the row
+                res, error = None, exc
+            try:
+                if res is not None:
+                    timings["analysis"] = time.perf_counter() - t_analysis
+                    record = self._measured_record(cycle_id, request, recipe, res, distance, notes, timings,
+                                                   cal_warnings)
+                    result = CycleOutcome(cycle_id, outcome.serial, record["verdict"], record,
+                                          sensitivities=res.sensitivities)
+                else:
+                    record = dict(timeout_record)
+                    record["reasons"] = [fault_reason(error)[1] if error is not None else
+                                         f"no result within the late grace of {self.settings.late_grace_s:g} s "
+                                         "(the abandoned worker was killed)"]
+                    result = CycleOutcome(cycle_id, outcome.serial, "fault", record, fault_code=outcome.fault_code)
+                result.frames = frames
+                self._finish_late(result, request, t0, state, captured, dump=wanted)
+            except Exception:                      # a late result must never stop the line
+                log.exception("%s: the late result of cycle %s could not be kept", outcome.serial, cycle_id)
+            finally:
+                result = None
+        future.add_done_callback(done)
 
     def _expire(self, cycle_id: str, request: FacetRequest, state: dict, t0: float) -> None:
         """Watchdog: the cycle reached its deadline with its thread still busy (a hung capture or a slow
@@ -481,12 +631,14 @@ class StationRunner:
             # Closing the camera is how a blocked grab is aborted; the station's thread then comes back.
             self._reopen_camera()
 
-    def _finish_late(self, outcome: CycleOutcome, request: FacetRequest, t0: float, state: dict, raw_shape, box,
-                     distance) -> None:
-        """The cycle's thread came back after the watchdog answered "timeout": keep what was measured.
+    def _finish_late(self, outcome: CycleOutcome, request: FacetRequest, t0: float, state: dict,
+                     captured: CycleCapture, dump: bool | None = None) -> None:
+        """A result that came after the robot was answered "timeout" (the watchdog's, or this thread's at the
+        deadline): keep what was measured.
 
         The robot's answer stays the timeout; the journaled row gets the figures (or the fault) and is
-        marked late, and the frames are dumped (a timeout is a fault).
+        marked late, and the frames are dumped (a timeout is a fault). *dump* says whether (decided at the
+        deadline); None: decide now.
         """
         record = outcome.record
         late_by = time.perf_counter() - t0 - self.settings.deadline_s
@@ -502,10 +654,8 @@ class StationRunner:
         record.update({"verdict": "fault", "fault_code": FAULT_CODES["timeout"], "late": True,
                        "late_by_s": round(late_by, 3)})
         outcome.answer, outcome.fault_code = "fault", FAULT_CODES["timeout"]
-        dump = None
-        if self._dump_due(outcome, request):
-            dump = {"frames": outcome.frames, "crop_box": box, "full_shape": raw_shape,
-                    "measured_distance_m": distance, "sensitivities": outcome.sensitivities}
+        wanted = self._dump_due(outcome, request) if dump is None else (dump and outcome.frames is not None)
+        dump = captured.dump(outcome.sensitivities) if wanted else None
         try:
             self.submit(outcome.cycle_id, record, dump, amend=True)
             outcome.dumped = dump is not None
@@ -537,13 +687,13 @@ class StationRunner:
         return bool(request.dump or (s.dump_every_n and self.cycles % s.dump_every_n == 0)
                     or (s.dump_failed and outcome.answer in ("fail", "invalid", "indeterminate", "fault")))
 
-    def _finish(self, outcome: CycleOutcome, request: FacetRequest, t0: float, raw_shape, box, distance) -> None:
-        """Journal (and spool), then answer the robot: in that order."""
+    def _finish(self, outcome: CycleOutcome, request: FacetRequest, t0: float, captured: CycleCapture,
+                dump: bool = True) -> None:
+        """Journal (and spool), then answer the robot: in that order. *dump* False: no dump now (a late
+        result may follow, which brings it)."""
         record = outcome.record
-        dump = None
-        if self._dump_due(outcome, request):
-            dump = {"frames": outcome.frames, "crop_box": box, "full_shape": raw_shape,
-                    "measured_distance_m": distance, "sensitivities": outcome.sensitivities}
+        wanted = dump and self._dump_due(outcome, request)
+        dump = captured.dump(outcome.sensitivities) if wanted else None
         record["timings_s"]["until_journal"] = time.perf_counter() - t0
         try:
             try:
@@ -596,10 +746,13 @@ class StationRunner:
     # ------------------------------------------------------------------ records
     def _head(self, cycle_id: str, request: FacetRequest, recipe_name: str, cal_warnings=(),
               facet: str | None = None) -> RecordHead:
-        """The head of this cycle's record (:class:`~sofast_station.result.record.RecordHead`)."""
+        """The head of this cycle's record (:class:`~sofast_station.result.record.RecordHead`); the serial as
+        received goes to ``serial_raw`` when making it safe changed it."""
+        extra = dict(request.extra)
+        raw = extra.pop("serial_raw", None)
         return self.station.record_head(request.serial, list(cal_warnings), facet=facet, cycle_id=cycle_id,
-                                        recipe=recipe_name,
-                                        request={"recipe": request.recipe, "dump": request.dump, **request.extra})
+                                        recipe=recipe_name, serial_raw=raw,
+                                        request={"recipe": request.recipe, "dump": request.dump, **extra})
 
     def _fault_record(self, cycle_id, request, code, reason, timings, cal_warnings=()) -> dict:
         return build_record(self._head(cycle_id, request, request.recipe or "", cal_warnings), fault=(code, reason),
@@ -613,7 +766,21 @@ class StationRunner:
             self.status.alarm("camera", None)
         self.status.update(state="paused" if self.paused else "fault" if answer == "fault" else "idle")
 
+    def _keep_late_results(self) -> None:
+        """Between facets, in the loop's thread: journal and dump the late results that came in (they are
+        queued by the retired workers' threads, so that the records, the spools of tens of MB and the
+        journal are written where every other facet's are, not in a thread per late result)."""
+        while True:
+            try:
+                keep = self._late_results.get_nowait()
+            except queue.Empty:
+                return
+            keep()
+            keep = None
+            trim_heap()                 # the late facet's frames and result: back to the system
+
     def close(self) -> None:
         self.stop_event.set()
-        self.worker.close()
+        self.worker.close()             # waits for an abandoned analysis within its grace: it queues its result
+        self._keep_late_results()
         self.status.close()

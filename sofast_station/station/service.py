@@ -12,7 +12,6 @@ import dataclasses
 import errno
 import fcntl
 import logging
-import logging.handlers
 import multiprocessing
 import os
 import signal
@@ -25,10 +24,11 @@ from ..archive.spool import spool_get, spool_list
 from ..config import StationConfig
 from ..devices.protocols import FacetRequest
 from ..errors import ArchiveError, ConfigError, StationError, TriggerError
+from ..live.logs import setup_logging
 from ..web.settings import web_settings
 from .factory import open_station
-from .pictures import FacetPictures
-from .recipes import recipes_from_config
+from ..live.pictures import FacetPictures
+from ..recipes import recipes_from_config
 from .runner import RunSettings, StationRunner
 from .worker import watch_parent
 
@@ -36,8 +36,8 @@ log = logging.getLogger(__name__)
 
 _DEVICE_KEYS = {"trigger", "trigger_options", "display_options", "camera", "camera_options",
                 "range_finder_options"}
-_ARCHIVE_KEYS = {"workbook_period", "workbook_interval_s", "workbook_cpu_share", "workbook_max_rows", "dump_keep_days", "dump_max_gb",
-                 "min_free_gb"}
+_ARCHIVE_KEYS = {"workbook_period", "workbook_interval_s", "workbook_cpu_share", "workbook_max_rows", "dump_keep_days",
+                 "dump_max_gb", "min_free_gb"}
 
 #: Data rows per workbook part unless ``[archive] workbook_max_rows`` says otherwise: the archiver writes a
 #: part whole on every save (streamed, its memory does not grow with the part), so a day of a busy line is
@@ -128,8 +128,15 @@ class DataDirLock:
 
     def __init__(self, data_dir: Path, name: str = "station.lock", wait_s: float = 0.0, what: str = "station"):
         self.path = Path(data_dir) / name
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        self._fd = None
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as exc:
+            raise StationError(f"cannot open the {what}'s lock {self.path} ({exc.strerror or exc}): make the data "
+                               f"folder {data_dir} writable (permissions, a read-only mount, a full disk) or give "
+                               f"the station another data_dir (station.toml [station] data_dir, or "
+                               f"SOFAST_DATA_DIR), then start again") from None
         deadline = time.monotonic() + wait_s
         while True:
             try:
@@ -148,11 +155,21 @@ class DataDirLock:
                         f"SOFAST_DATA_DIR)") from None
                 time.sleep(0.1)
         previous = self._holder()
+        try:
+            os.ftruncate(self._fd, 0)
+            os.pwrite(self._fd, f"{os.getpid()}\n".encode(), 0)
+        except OSError as exc:
+            # A full disk (or a read-only one) refuses even the PID's few bytes: say so, not with a traceback.
+            os.close(self._fd)                       # and the flock with it: nothing is held
+            self._fd = None
+            raise StationError(
+                f"cannot write the {what}'s process id into {self.path} ({exc.strerror or exc}): the data "
+                f"folder {data_dir} is full or read-only; nothing was started. Free disk space or make it "
+                f"writable, or give the station another data_dir (station.toml [station] data_dir, or "
+                f"SOFAST_DATA_DIR), then start again") from None
         if previous and previous != os.getpid():
             log.warning("the %s lock %s was left by process %d, which is gone (killed?): taken over",
                         what, self.path, previous)
-        os.ftruncate(self._fd, 0)
-        os.pwrite(self._fd, f"{os.getpid()}\n".encode(), 0)
         self.recovered_from = previous if previous and previous != os.getpid() else None
 
     def _holder(self) -> int | None:
@@ -183,6 +200,18 @@ def recover_leftovers(data_dir: Path, journal: Journal) -> dict:
     removed = []
     for folder, recursive in (("archive", False), ("dumps", True), ("spool", False)):
         removed += remove_stale_temp_files(data_dir / folder, max_age_s=0.0, recursive=recursive)
+    # live/ and commands/ are written by the monitor too (a `serve` beside the station may be running):
+    # there only the temporary files of processes that are gone.
+    for folder, recursive in (("live", True), ("commands", False)):
+        removed += remove_stale_temp_files(data_dir / folder, recursive=recursive)
+    # Names of the live status's and the pictures' temporary files before they were made like the others
+    # (a full disk left them for good); only the station writes either, and this one has not started yet.
+    for leftover in [*(data_dir / "live").glob(".status.*.tmp"), *(data_dir / "live" / "facets").glob(".*.tmp")]:
+        try:
+            leftover.unlink()
+            removed.append(leftover)
+        except OSError as exc:
+            log.warning("could not remove the leftover temporary file %s: %s", leftover, exc)
     requeued = []
     for spool in spool_list(data_dir / "spool"):
         if journal.get(spool.stem) is not None:
@@ -396,35 +425,13 @@ class ArchiverProcess:
         self._close_conn()
 
 
-def setup_logging(data_dir: Path, verbose: bool = False, name: str = "station.log") -> Path:
-    """Console (stderr) plus a rotating log file under data_dir/logs."""
-    log_dir = data_dir / "logs"
-    path = log_dir / name
-    try:
-        log_dir.mkdir(parents=True, exist_ok=True)
-        handler = logging.handlers.RotatingFileHandler(path, maxBytes=10_000_000, backupCount=10)
-    except OSError as exc:
-        raise StationError(f"cannot write the log {path} ({exc.strerror or exc}): make {log_dir} writable "
-                           f"(permissions, a read-only mount, a full disk) or give the station another data_dir "
-                           f"(station.toml [station] data_dir, or SOFAST_DATA_DIR), then start again") from None
-    handler.setFormatter(logging.Formatter("%(asctime)s %(process)d %(name)s %(levelname)s %(message)s"))
-    root = logging.getLogger()
-    root.addHandler(handler)
-    # On a full disk the file handler fails on every line: without this each failure prints a logging
-    # traceback on the console (seen on a 30 MB tmpfs data folder); the console handler still says it all.
-    logging.raiseExceptions = False
-    root.setLevel(logging.DEBUG if verbose else logging.INFO)
-    return path
-
-
 class Service:
     """Everything `sofast-station run` holds open."""
 
     def __init__(self, config: StationConfig, simulated_facets=None, seed: int | None = None, console=print,
                  archiver_process: bool = True, station=None):
         self.config = config
-        data_dir = config.data_dir
-        data_dir.mkdir(parents=True, exist_ok=True)
+        data_dir = config.data_dir                 # made by the lock, which says so when it cannot
         self.settings = run_settings(config)
         self.recipes = recipes_from_config(config)
         self.lock = DataDirLock(data_dir)          # before any device opens or anything is written

@@ -25,7 +25,7 @@ log = logging.getLogger(__name__)
 
 def build_twin(config: StationConfig, noise: bool = True):
     """The digital twin described by ``[simulation]`` (true facet and optics) in the station's geometry."""
-    from ..twin.config import TrueFacet, TwinOptics
+    from ..twin.parameters import TrueFacet, TwinOptics
     from ..twin.station import TwinStation
 
     sim = config.simulation
@@ -57,7 +57,7 @@ def build_twin(config: StationConfig, noise: bool = True):
 class SimulatedStation(Station):
     """The simulated station, with faults injected per serial for tests of the production loop."""
 
-    def inject(self, serial: str) -> float:
+    def arm_faults(self, serial: str) -> float:
         """Arm this cycle's fault (if [simulation.faults] names the serial); returns the seconds the
         analysis must wait before it starts ("hung-analysis": ``hang_s``, "slow-analysis": ``slow_s``),
         -1 for "worker-dies" (the worker process exits mid-analysis), else 0."""

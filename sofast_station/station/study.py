@@ -54,7 +54,7 @@ class TwinRig:
     def __init__(self, config: StationConfig):
         from ..calibrate.store import open_calibration
         from ..devices.renderer import FringeRenderer
-        from ..twin.config import TrueFacet, TwinOptics
+        from ..twin.parameters import TrueFacet, TwinOptics
 
         if config.backend != "simulated":
             raise StationError(f"{config.path}: studies run on the simulated station (backend = \"simulated\"), "

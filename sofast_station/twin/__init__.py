@@ -21,7 +21,7 @@ ground_truth
 """
 
 from .camera import TwinCamera
-from .config import TrueFacet, TwinOptics
+from .parameters import TrueFacet, TwinOptics
 from .station import TwinStation
 from .heliostat import TrueHeliostat, TwinHeliostat, heliostat_truth
 from .surface import TrueSurface

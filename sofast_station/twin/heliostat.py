@@ -10,7 +10,7 @@ to the screen is not modelled: the facets of a heliostat turn by a few milliradi
 Frames (docs/conventions.md#heliostat-frame): the true heliostat frame is placed in the fixture by
 :attr:`TrueHeliostat.placement_mm` / ``placement_mrad`` (``x_fixture = R x_heliostat + t``, about the
 heliostat frame's origin); facet i's true frame is its design pose on that frame, then its own
-:class:`~sofast_station.twin.config.TrueFacet` placement (its canting and position errors, about its
+:class:`~sofast_station.twin.parameters.TrueFacet` placement (its canting and position errors, about its
 middle, in its design frame).
 
 Ground truth (:func:`heliostat_truth`) applies the conventions' definitions to the exact surfaces
@@ -29,7 +29,7 @@ from ..ensemble import EnsembleDesign
 from ..errors import ConfigError, GeometryError
 from ..geometry import Pose, StationGeometry
 from .camera import TwinCamera
-from .config import TrueFacet, TwinOptics, _check_keys, _vector
+from .parameters import TrueFacet, TwinOptics, _check_keys, _vector
 from .station import TRACE_ARRAYS, TwinStation, facet_to_fixture_pose, rotation_zyx
 from .truth import truth_from_samples
 
@@ -332,8 +332,8 @@ def heliostat_truth(twin: TwinHeliostat, kept: np.ndarray) -> dict:
     dict
         ``facets``: {label: figures (as ``ground_truth``; ``placement`` and ``optical_tilt_mrad`` against the
         facet's nominal frame in the fixture, as the analysis states them) + ``canting_mrad`` {x, y} +
-        ``canting_rz_mrad``} for each facet with kept pixels; ``heliostat``: ``common_tilt_mrad`` {x, y} (the optical frame
-        against the true frame), ``optical_tilt_mrad`` {x, y} (the optical frame in the fixture),
+        ``canting_rz_mrad``} for each facet with kept pixels; ``heliostat``: ``common_tilt_mrad`` {x, y} (the
+        optical frame against the true frame), ``optical_tilt_mrad`` {x, y} (the optical frame in the fixture),
         ``placement`` (the true placement, echoed).
     """
     kept = np.asarray(kept, dtype=bool).ravel()

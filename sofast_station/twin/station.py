@@ -6,8 +6,8 @@ the facet really is: ``x_fixture = R (x_facet - P_mid) + P_mid + t`` (:class:`Tr
 in the true facet frame.
 
 Screen coordinates (docs/conventions.md#screen-positions): ``u_x`` in [0, W) metres from the left
-edge, ``u_y`` in [0, H) from the bottom edge; display column c is centred at ``u_x = (c + 1/2) pitch``, row r (0 = top) at
-``u_y = H - (r + 1/2) pitch``; screen-frame ``x = u_x - W/2``, ``y = u_y - H/2``.
+edge, ``u_y`` in [0, H) from the bottom edge; display column c is centred at ``u_x = (c + 1/2) pitch``, row r (0 = top)
+at ``u_y = H - (r + 1/2) pitch``; screen-frame ``x = u_x - W/2``, ``y = u_y - H/2``.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from ..facet import FacetDesign
 from ..geometry import Pose, StationGeometry
 from .camera import TwinCamera
 from .noise import scratch_f32, standard_normal_f32
-from .config import TrueFacet, TwinOptics
+from .parameters import TrueFacet, TwinOptics
 from .outline import inside_outline, signed_distance_to_outline
 from .surface import TrueSurface
 
@@ -345,7 +345,8 @@ class TwinStation:
                         else self._vignetting[some].max() if some.any() else 1.0)
         self.gain_dn = (optics.white_dn - optics.camera_offset_dn) / ((optics.reflectance + optics.ambient) * vig_max)
         scale = self.gain_dn * self._vignetting
-        self._dn_base = (optics.camera_offset_dn + scale * (1.0 - self._coverage) * optics.background).astype(np.float32)
+        self._dn_base = (optics.camera_offset_dn
+                         + scale * (1.0 - self._coverage) * optics.background).astype(np.float32)
         self._dn_per_ambient = (scale * self._coverage).astype(np.float32)
         self._dn_per_luminance = (self._dn_per_ambient.ravel()[self._seen_idx] * optics.reflectance).astype(np.float32)
         self._dark_sigmas: dict = {}        # gain -> noise deviation at the dark level (_dark_sigma)

@@ -2,9 +2,9 @@
 
 The surface is ``z = a x^2 + b y^2 + E x y + l_x x + l_y y + c + cubic(u, v) + dents(x, y) + random(x, y)``
 with ``a = 1/(4 f_x)``, ``b = 1/(4 f_y)``, ``(u, v) = (x - cx, y - cy)`` and (cx, cy) the design outline's
-centroid (see :class:`~sofast_station.twin.config.TrueFacet`); l_x, l_y and c make the quadratic part
-touch the design at (cx, cy), so an off-axis facet's focal-length error does not also tilt it. Every term has an analytic derivative;
-the random term is a bicubic spline, differentiated exactly.
+centroid (see :class:`~sofast_station.twin.parameters.TrueFacet`); l_x, l_y and c make the quadratic part
+touch the design at (cx, cy), so an off-axis facet's focal-length error does not also tilt it. Every term has an
+analytic derivative; the random term is a bicubic spline, differentiated exactly.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from scipy.ndimage import gaussian_filter
 
 from ..errors import ConfigError, GeometryError
 from ..facet import FacetDesign
-from .config import TrueFacet
+from .parameters import TrueFacet
 from .outline import inside_outline
 
 #: Newton stops when the step along the ray is below this, metres.

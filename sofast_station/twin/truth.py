@@ -279,7 +279,7 @@ def ground_truth(station: TwinStation, kept: np.ndarray) -> dict:
 
 def truth_from_samples(points_m: np.ndarray, normals: np.ndarray, design: FacetDesign, facet) -> dict:
     """:func:`ground_truth` of exact samples: *points_m* (n, 3) and unit *normals* (n, 3) in the true facet
-    frame of the true facet *facet* (a :class:`~sofast_station.twin.config.TrueFacet`: its placement)."""
+    frame of the true facet *facet* (a :class:`~sofast_station.twin.parameters.TrueFacet`: its placement)."""
     n = points_m.shape[0]
     if n < len(HIGHER_ORDER_TERMS):
         raise AnalysisError(f"ground truth needs at least {len(HIGHER_ORDER_TERMS)} kept pixels on the facet, "

@@ -10,11 +10,15 @@ Routes
 ``GET /facet/{cycle_id}/map.png``   the slope-error map
 ``GET /facet/{cycle_id}/facets.png`` a heliostat's facets and their canting errors
 ``POST /action/{name}``             a guarded action (``dump-next``, ``pause``, ``resume``, ``remeasure``,
-                                    ``serial`` with ``{"serial": ...}``); needs the ``X-Station-Token``
-                                    header equal to ``[web] token``; refused (403) when none is configured
+                                    ``serial`` with ``{"serial": ...}`` as JSON or ``serial=...`` as a form);
+                                    needs the ``X-Station-Token`` header equal to ``[web] token``; refused
+                                    (403) when none is configured, or when the request comes from another
+                                    site's page (its ``Origin`` is not the page's own)
 
 No file is served by path: pictures are found by cycle id (a fixed pattern) under
-``data_dir/live/facets``, and the page's style and script are constants of this module.
+``data_dir/live/facets``, and the page's style and script are constants of this module. No request body
+larger than :data:`~.settings.MAX_BODY_BYTES` is read (413). Serving beyond this computer (HTTPS, or plain
+HTTP by decision) is ``[web]``'s business: docs/network.md.
 """
 
 from __future__ import annotations
@@ -31,10 +35,11 @@ from starlette.responses import HTMLResponse, JSONResponse, Response, StreamingR
 from starlette.routing import Route
 
 from ..errors import CommandError
-from ..station.commands import COMMANDS, post_command
+from ..live.operator_commands import COMMANDS, check_manual_serial, post_command
 from .data import LineData
 from .images import FacetImages
 from .render import esc, sections
+from .settings import MAX_BODY_BYTES
 
 log = logging.getLogger(__name__)
 
@@ -63,6 +68,99 @@ class _SecurityHeaders:
                 message["headers"] = list(message.get("headers", [])) + _SECURITY_HEADERS
             await send(message)
         return await self.app(scope, receive, send_with_headers)
+
+
+class _BodyLimit:
+    """Refuses a request body larger than *limit* bytes with 413 before the application reads it (pure ASGI).
+
+    A declared ``content-length`` beyond the limit is refused at once; a body sent without one (chunked) is
+    read here up to the limit and handed on only when it stayed within it. A 200 MB body took the monitor
+    from 179 to 751 MB before.
+    """
+
+    def __init__(self, app, limit: int):
+        self.app = app
+        self.limit = int(limit)
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        declared = dict(scope.get("headers") or []).get(b"content-length")
+        try:
+            too_big = declared is not None and int(declared) > self.limit
+        except ValueError:
+            too_big = True
+        if too_big:
+            return await self._refuse(send)
+        if scope.get("method") in ("GET", "HEAD"):
+            return await self.app(scope, receive, send)
+        body, more = bytearray(), True
+        while more:
+            message = await receive()
+            if message["type"] != "http.request":
+                return                                  # the client went away
+            body += message.get("body", b"")
+            more = message.get("more_body", False)
+            if len(body) > self.limit:
+                return await self._refuse(send)
+        sent = False
+
+        async def replay():
+            nonlocal sent
+            if not sent:
+                sent = True
+                return {"type": "http.request", "body": bytes(body), "more_body": False}
+            return await receive()
+        return await self.app(scope, replay, send)
+
+    async def _refuse(self, send) -> None:
+        text = json.dumps({"ok": False, "error": f"the request body is larger than {self.limit} bytes: an action "
+                                                 "carries a few dozen"}).encode()
+        await send({"type": "http.response.start", "status": 413,
+                    "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(text)).encode()),
+                                (b"connection", b"close"), *_SECURITY_HEADERS]})
+        await send({"type": "http.response.body", "body": text})
+
+
+def _same_origin(request: Request) -> bool:
+    """Whether an action comes from the page itself (or from a tool that sends no ``Origin``): a browser
+    names the page that sends a request in ``Origin`` (and, today, ``Sec-Fetch-Site``); an action from
+    another site's page is refused even when it carries the token."""
+    if request.headers.get("sec-fetch-site", "same-origin") not in ("same-origin", "none"):
+        return False
+    origin = request.headers.get("origin")
+    if origin is None:
+        return True
+    host = request.headers.get("host", "")
+    return bool(host) and origin.lower() == f"{request.url.scheme}://{host}".lower()
+
+
+async def _serial_of(request: Request):
+    """The ``serial`` of an action's body: JSON ``{"serial": ...}`` or a form ``serial=...``; None when the
+    body holds none. CommandError when the body is neither."""
+    import urllib.parse
+
+    body = await request.body()
+    kind = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    if kind == "application/x-www-form-urlencoded":
+        try:
+            values = urllib.parse.parse_qs(body.decode("utf-8"), strict_parsing=bool(body), max_num_fields=10)
+        except (UnicodeDecodeError, ValueError):
+            raise CommandError("the form could not be read: send serial=THE-SERIAL (URL-encoded UTF-8)") from None
+        return values.get("serial", [None])[0]
+    if kind not in ("", "application/json", "text/plain"):
+        raise CommandError(f"a {kind} body is not understood: send JSON {{\"serial\": \"F-123\"}} or the form "
+                           "serial=F-123")
+    if not body.strip():
+        return None
+    try:
+        data = json.loads(body)
+    except (ValueError, UnicodeDecodeError):
+        raise CommandError("the body is not JSON: send {\"serial\": \"F-123\"} (or the form serial=F-123)") from None
+    if not isinstance(data, dict):
+        raise CommandError(f"the body must be a JSON object such as {{\"serial\": \"F-123\"}}, not "
+                           f"{type(data).__name__}")
+    return data.get("serial")
 
 
 class Hub:
@@ -172,22 +270,23 @@ def create_app(config, settings) -> Starlette:
             log.warning("refused action %r from %s: %s token", name[:40], request.client.host if request.client
                         else "?", "wrong" if given else "no")
             return JSONResponse({"ok": False, "error": "wrong or missing token"}, status_code=403)
+        if not _same_origin(request):
+            log.warning("refused action %r from %s: sent by another site's page (Origin %r)", name[:40],
+                        request.client.host if request.client else "?", request.headers.get("origin", "")[:100])
+            return JSONResponse({"ok": False, "error": "refused: the action was sent by another site's page"},
+                                status_code=403)
         if name not in COMMANDS:
             return JSONResponse({"ok": False, "error": f"unknown action; known: {', '.join(COMMANDS)}"},
                                 status_code=404)
         serial = None
-        if name == "serial":
-            try:
-                body = await request.json()
-                serial = body.get("serial") if isinstance(body, dict) else None
-            except ValueError:
-                serial = None
         try:
+            if name == "serial":
+                serial = check_manual_serial(await _serial_of(request))
             post_command(config.data_dir, name, serial,
                          source=f"web page from {request.client.host if request.client else '?'}")
         except CommandError as exc:
             return JSONResponse({"ok": False, "error": str(exc)}, status_code=400)
-        return JSONResponse({"ok": True, "message": _DONE[name] + (f" {serial.strip()}" if serial else "")})
+        return JSONResponse({"ok": True, "message": _DONE[name] + (f" {serial}" if serial else "")})
 
     async def static(request: Request) -> Response:
         name = request.url.path.rsplit("/", 1)[-1]
@@ -212,7 +311,7 @@ def create_app(config, settings) -> Starlette:
               Route("/page.css", static), Route("/page.js", static)]
     app = Starlette(routes=routes, lifespan=lifespan)
     app.state.hub = hub
-    return _SecurityHeaders(app)
+    return _SecurityHeaders(_BodyLimit(app, MAX_BODY_BYTES))
 
 
 _DONE = {"dump-next": "the next facet will be dumped", "pause": "the line pauses after the facet in progress",

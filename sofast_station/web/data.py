@@ -18,11 +18,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..archive._common import utc_key
-from ..station.pictures import picture_path
-from ..station.recipes import recipes_from_config
+from ..live.pictures import picture_path
+from ..recipes import recipes_from_config
 from ..result.record import figure_uncertainty, figure_value
 from ..result.shift import cycle_seconds, summarize
-from ..station.status import read_status, status_path
+from ..live.status import read_status, status_path
 from ..result.verdict import LONG_FOCAL_LENGTH_M
 
 log = logging.getLogger(__name__)

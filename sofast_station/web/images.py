@@ -1,4 +1,4 @@
-"""PNG pictures of one facet for the page, from its small picture file (station/pictures.py).
+"""PNG pictures of one facet for the page, from its small picture file (live/pictures.py).
 
 - the camera's white frame with the outline the station found (the edge of the analysis's valid pixels,
   green) and the corners it found (red), drawn with OpenCV;
@@ -6,7 +6,7 @@
   resampling, colours and arrows (as ``sofast-station report``), drawn with OpenCV (cheap enough for every
   facet).
 
-Files are looked up by cycle id only (:func:`~sofast_station.station.pictures.picture_path`), never by a
+Files are looked up by cycle id only (:func:`~sofast_station.live.pictures.picture_path`), never by a
 serial or any other text from a request.
 """
 
@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..station.pictures import picture_path
+from ..live.pictures import picture_path
 
 log = logging.getLogger(__name__)
 
@@ -204,7 +204,7 @@ class FacetImages:
             record = json.loads(row[0]) if row else None
             if not record or not isinstance(record.get("facets"), list):
                 return None
-            from ..station.recipes import recipes_from_config
+            from ..recipes import recipes_from_config
             recipes = recipes_from_config(self.config)
             recipe = recipes.get(record.get("recipe") or "default", recipes["default"])
             if recipe.ensemble is None:

@@ -4,7 +4,7 @@
 starts it beside the loop with :class:`MonitorProcess`. Either way it runs at a lower priority than the
 station (``[web] nice``) and shares nothing with the loop but files: it reads the journal through a
 read-only SQLite connection, the live status and the pictures, and posts commands as files
-(station/commands.py). A slow browser, a hung OPC UA client or a crash here cannot delay a facet.
+(live/operator_commands.py). A slow browser, a hung OPC UA client or a crash here cannot delay a facet.
 
 Where it listens is written to ``data_dir/live/monitor.json`` (``{"url": ..., "opcua": ...}``), so a
 port chosen by the system (``port = 0``) can be found.
@@ -21,6 +21,7 @@ import signal
 import socket
 from pathlib import Path
 
+from ..archive._common import write_file_atomic
 from ..errors import StationError
 from .settings import OpcUaSettings, WebSettings
 
@@ -84,9 +85,11 @@ async def _serve(config, web: WebSettings | None, opcua: OpcUaSettings | None, o
     server = None
     tasks = []
     if web is not None:
+        exposure = web.exposure()                    # ConfigError beyond loopback without a decision
         app = create_app(config, web)
+        tls = {"ssl_certfile": web.certificate, "ssl_keyfile": web.key} if web.tls else {}
         server = _Server(uvicorn.Config(app, host=web.host, port=web.port, log_level="warning",
-                                               timeout_graceful_shutdown=5, lifespan="on", access_log=False))
+                                        timeout_graceful_shutdown=5, lifespan="on", access_log=False, **tls))
         sock = _bind(web.host, web.port)             # here, so a taken port is a clear error, not an exit
         tasks.append(asyncio.create_task(server.serve(sockets=[sock])))
         while not server.started:
@@ -96,8 +99,10 @@ async def _serve(config, web: WebSettings | None, opcua: OpcUaSettings | None, o
             await asyncio.sleep(0.05)
         host, port = server.servers[0].sockets[0].getsockname()[:2]
         shown = f"[{host}]" if ":" in host else host
-        info["url"] = f"http://{shown}:{port}/"
+        info["url"] = f"{'https' if web.tls else 'http'}://{shown}:{port}/"
         log.info("the line's page: %s%s", info["url"], "" if web.token else " (read-only: no [web] token)")
+        if exposure:
+            log.warning("%s", exposure)
     publisher = None
     if opcua is not None and opcua.enabled:
         from .opcua import OpcUaPublisher
@@ -114,9 +119,8 @@ async def _serve(config, web: WebSettings | None, opcua: OpcUaSettings | None, o
         tasks.append(asyncio.create_task(publisher.run()))
     path = monitor_info_path(config.data_dir)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".monitor.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(info), encoding="utf-8")
-    os.replace(tmp, path)
+    text = json.dumps(info)
+    write_file_atomic(path, lambda fh: fh.write(text), mode="w")
     if on_ready is not None:
         on_ready(info)
     stop = asyncio.Event()
@@ -145,7 +149,7 @@ def serve(config, web: WebSettings | None, opcua: OpcUaSettings | None, nice: in
 
 
 def _monitor_main(config, web, opcua, nice) -> None:
-    from ..station.service import setup_logging
+    from ..live.logs import setup_logging
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s monitor %(levelname)s %(message)s",
                         datefmt="%H:%M:%S")

@@ -4,8 +4,10 @@ It publishes what the page shows, from the same :class:`~.data.LineData` (journa
 node tree documented in docs/opcua.md: the station's state, the last facet (serial, recipe, verdict,
 reasons, figures with their expanded uncertainties), the shift's counters and the alarms. Every variable
 is read-only; clients connect anonymously unless ``anonymous = false``, and users listed in
-``[opcua] users`` may log in by name (read-only as well). It runs in the monitor process, never in the
-station's loop.
+``[opcua] users`` may log in by name (read-only as well). With ``certificate`` and ``private_key`` the
+server offers security policy Basic256Sha256 with Sign & Encrypt (and None beside it unless
+``security_none = false``); a password in clear text is refused unless ``allow_plain_passwords = true``.
+It runs in the monitor process, never in the station's loop.
 """
 
 from __future__ import annotations
@@ -120,6 +122,42 @@ def values(snap: dict) -> dict:
     return out
 
 
+#: The server's application URI (a certificate made for it names it as its subjectAltName URI).
+APPLICATION_URI = "urn:sofast-station:server"
+
+
+def _refuse_clear_text_passwords(server, ua) -> None:
+    """Refuse a user-name token whose password comes in clear text over a channel without encryption.
+
+    asyncua takes any password its user manager accepts, whatever the channel. With a certificate the
+    server tells clients on the None endpoint to encrypt the password with it (the token's own security
+    policy); a client that sends it in clear text over policy None (no peer certificate on the channel) is
+    refused here with BadIdentityTokenRejected, before its password is even compared. On the Sign & Encrypt
+    channel the whole message, password included, is encrypted.
+    """
+    from asyncua.common.utils import ServiceError
+
+    iserver = server.iserver
+    create = iserver.create_session
+
+    def create_session(name, *args, **kwargs):
+        session = create(name, *args, **kwargs)
+        activate = session.activate_session
+
+        def activate_session(params, peer_certificate):
+            token = params.UserIdentityToken
+            if (isinstance(token, ua.UserNameIdentityToken) and not token.EncryptionAlgorithm
+                    and not peer_certificate):          # None: no certificate on the channel (b"")
+                log.warning("OPC UA: refused user %r: the password came in clear text over security policy None "
+                            "(connect with Basic256Sha256 Sign & Encrypt, or let the client encrypt the token)",
+                            str(token.UserName)[:40])
+                raise ServiceError(ua.StatusCodes.BadIdentityTokenRejected)
+            return activate(params, peer_certificate)
+        session.activate_session = activate_session
+        return session
+    iserver.create_session = create_session
+
+
 class OpcUaPublisher:
     """The OPC UA server and the task that keeps its variables current.
 
@@ -174,9 +212,17 @@ class OpcUaPublisher:
         await server.init()
         server.set_endpoint(self.settings.endpoint)
         server.set_server_name(f"sofast-station: {self.data.config.name}")
-        server.set_security_policy([ua.SecurityPolicyType.NoSecurity], permission_ruleset=ReadOnly())
+        await server.set_application_uri(APPLICATION_URI)
+        policies = [ua.SecurityPolicyType.NoSecurity] if self.settings.security_none else []
+        if self.settings.encrypted:
+            await server.load_certificate(self.settings.certificate)
+            await server.load_private_key(self.settings.private_key)
+            policies.append(ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt)
+        server.set_security_policy(policies, permission_ruleset=ReadOnly())
         server.set_identity_tokens(([ua.AnonymousIdentityToken] if self.settings.anonymous else [])
                                    + ([ua.UserNameIdentityToken] if users else []))
+        if not self.settings.allow_plain_passwords:
+            _refuse_clear_text_passwords(server, ua)
         idx = await server.register_namespace(self.settings.namespace)
         root = await server.nodes.objects.add_object(idx, ROOT)
         kinds = {STRING: (ua.VariantType.String, ""), DOUBLE: (ua.VariantType.Double, math.nan),
@@ -198,8 +244,12 @@ class OpcUaPublisher:
         await server.start()
         self.server = server
         self.namespace_index = idx
-        log.info("OPC UA server at %s (%s)", self.settings.endpoint,
-                 ", ".join(["anonymous read-only"] * self.settings.anonymous + [f"{len(users)} user(s)"] * bool(users)))
+        log.info("OPC UA server at %s (%s; security %s)", self.settings.endpoint,
+                 ", ".join(["anonymous read-only"] * self.settings.anonymous + [f"{len(users)} user(s)"] * bool(users)),
+                 " and ".join(["None"] * self.settings.security_none
+                              + ["Basic256Sha256 Sign & Encrypt"] * self.settings.encrypted))
+        if users and self.settings.allow_plain_passwords:
+            log.warning("OPC UA: allow_plain_passwords = true: a user's password may cross the network in clear text")
 
     async def publish(self) -> bool:
         """Write the newest values when the station's files changed; True when it wrote."""

@@ -105,8 +105,8 @@ def last_html(snap: dict) -> str:
         pictures += "</div>"
     return (f"<h2>Last facet</h2>"
             f"<div class='facet-head'><div class='serial' title='{esc(rec.get('serial'))}'>"
-            f"{esc(_short(rec.get('serial')))}</div><div class='meta'>recipe {esc(rec.get('recipe') or 'default')} · {esc(rec.get('time'))}"
-            f" · cycle {cid}</div></div>"
+            f"{esc(_short(rec.get('serial')))}</div><div class='meta'>recipe {esc(rec.get('recipe') or 'default')}"
+            f" · {esc(rec.get('time'))} · cycle {cid}</div></div>"
             f"<div class='verdict {cls}' data-verdict='{esc(verdict)}'>{esc(verdict.upper())}</div>"
             + (f"<p class='muted'>{'; '.join(notes)}</p>" if notes else "")
             + (f"<ul class='reasons'>{reasons}</ul>" if reasons else "")

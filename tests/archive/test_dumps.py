@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from sofast_station.archive._common import json_ready
-from sofast_station.archive.dumps import (SCHEMA_V1, SCHEMA_V2, SCHEMA_VERSION, crop_to_facet, disk_ok, prune_dumps, read_dump, restore_frames,
-                                          write_dump)
+from sofast_station.archive.dumps import (SCHEMA_V1, SCHEMA_V2, SCHEMA_VERSION, crop_to_facet, disk_ok, prune_dumps,
+                                          read_dump, restore_frames, write_dump)
 from sofast_station.archive.dumps import writer as dump_writer
 from sofast_station.archive.spool import spool_get, spool_list, spool_put
 from sofast_station.errors import ArchiveError, DumpError
@@ -284,3 +284,29 @@ def test_non_square_display_pixels_round_trip(small_config, tmp_path):
         assert "pitch_m" not in f["geometry/screen"] and f["geometry/screen/pitch_y_m"][()] == 0.0002703
     back = read_dump(path).station_geometry().screen
     assert back == screen and back.height_m == 1080 * 0.0002703 and back.width_m == 1920 * 0.00027
+
+
+def test_a_dump_whose_fringe_definition_names_no_patterns_says_so(small_config, tmp_path, monkeypatch, caplog):
+    """The frames are dumped whatever the fringe definition (it may be what is wrong), and the log says that
+    their pattern names were replaced."""
+    import logging
+
+    from sofast_station.archive.dumps.content import DumpContent
+
+    content = synthetic_content(small_config)
+
+    def unusable(self):
+        raise ValueError("periods_x must increase")
+
+    monkeypatch.setattr(DumpContent, "patterns", property(unusable))
+    path = tmp_path / "d.h5"
+    with caplog.at_level(logging.WARNING, logger="sofast_station.archive.dumps"):
+        write_dump(path, content)
+    n = content.frames_cropped.shape[0]
+    assert f"gives no pattern names (ValueError: periods_x must increase); its frames are named frame 0..{n - 1}" \
+        in caplog.text
+    import h5py
+    with h5py.File(path, "r") as f:
+        names = [v.decode() if isinstance(v, bytes) else str(v) for v in f["capture/patterns"][()]]
+    assert names == [f"frame {i}" for i in range(n)]
+

@@ -68,8 +68,9 @@ def _radiometric(tmp_path, lut) -> str:
     import json
 
     path = tmp_path / "radiometric.json"
-    path.write_text(json.dumps({"schema": 1, "kind": "radiometric", "record_id": "bad", "created": "2026-12-01T00:00:00Z",
-                                "lut": lut, "floor_level": 0.01, "max_level": 1.0, "exposure_s": 0.0167, "gain": 1.0}))
+    path.write_text(json.dumps({"schema": 1, "kind": "radiometric", "record_id": "bad",
+                                "created": "2026-12-01T00:00:00Z", "lut": lut, "floor_level": 0.01, "max_level": 1.0,
+                                "exposure_s": 0.0167, "gain": 1.0}))
     return str(path)
 
 
@@ -89,8 +90,8 @@ def test_records_recipes_and_folders_are_checked_before_the_first_facet(small_st
         lut[37] = float("nan") if case == "nan-record" else 0.2
         record = _radiometric(tmp_path, lut)
         text = re.sub(r'radiometric = ".*"', f'radiometric = "{record}"', text)
-        expect = [record, "lut[37] = nan" if case == "nan-record" else "not monotone: lut[36] = 0.363636 > lut[37] = 0.2",
-                  "calibrate radiometric"]
+        expect = [record, "lut[37] = nan" if case == "nan-record"
+                  else "not monotone: lut[36] = 0.363636 > lut[37] = 0.2", "calibrate radiometric"]
     elif case == "alignment-outside":
         text += "\n[recipes.edge]\nalignment_point_m = [0.9, 0.0]\n"
         expect = [str(small_station_toml), "[recipes.edge]", "alignment_point_m = [0.9, 0]",

@@ -19,7 +19,10 @@ from sofast_station.interop.opencsp import export_opencsp, read_opencsp
 from sofast_station.measure.pipeline import default_screen
 from sofast_station.twin.heliostat import heliostat_truth
 from tests.conftest import ROOT
-from tests.station.test_heliostat_accuracy import ENSEMBLE, TwinOptics, draw_heliostat, rig  # noqa: F401
+from tests.station import test_heliostat_accuracy as accuracy
+from tests.station.test_heliostat_accuracy import ENSEMBLE, TwinOptics, draw_heliostat
+
+rig = accuracy.rig          # the quarter-resolution heliostat station's fixture
 
 
 @pytest.fixture(scope="module")

@@ -56,7 +56,8 @@ def facet(swapped=False, seed=2, size=360):
     # z = dish + sum of a few bumps; slopes are its exact gradient
     sx, sy = x / (2 * 5.4), y / (2 * 5.3)
     for _ in range(12):
-        x0, y0, w, amp = rng.uniform(-0.18, 0.18), rng.uniform(-0.18, 0.18), rng.uniform(0.02, 0.06), rng.normal(0, 5e-5)
+        x0, y0 = rng.uniform(-0.18, 0.18), rng.uniform(-0.18, 0.18)
+        w, amp = rng.uniform(0.02, 0.06), rng.normal(0, 5e-5)
         bump = amp * np.exp(-((x - x0) ** 2 + (y - y0) ** 2) / (2 * w * w))
         sx, sy = sx - bump * (x - x0) / (w * w), sy - bump * (y - y0) / (w * w)
     sx, sy = sx + rng.normal(0, 1e-5, sx.size), sy + rng.normal(0, 1e-5, sy.size)

@@ -32,7 +32,8 @@ def test_region_from_clipped_differences_is_the_exact_integer_region(dtype):
         dark = rng.integers(0, top + 1, (90, 120)).astype(dtype)
         white = np.clip(dark.astype(np.int64) + rng.integers(-40, 60, dark.shape), 0, top)
         lit = int(min(threshold, top))
-        white[20:70, 30:100] = np.clip(dark[20:70, 30:100].astype(np.int64) + lit + rng.integers(-2, 3, (50, 70)), 0, top)
+        noise = rng.integers(-2, 3, (50, 70))
+        white[20:70, 30:100] = np.clip(dark[20:70, 30:100].astype(np.int64) + lit + noise, 0, top)
         white[40:44, 50:53] = dark[40:44, 50:53]                  # a hole
         white = white.astype(dtype)
         assert np.array_equal(facet_region(dark, white, threshold), numpy_region(dark, white, threshold)), threshold

@@ -20,7 +20,7 @@ from sofast_station.station.study import TwinRig, coverage_table, run_repeats
 from tests.conftest import ROOT
 
 sys.path.insert(0, str(ROOT / "benchmarks"))
-from uncertainty_coverage import small_station  # noqa: E402
+from uncertainty_coverage import small_station
 
 
 @pytest.fixture(scope="module")

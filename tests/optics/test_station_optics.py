@@ -91,7 +91,7 @@ def test_optics_configuration_errors_name_the_file_section_and_key(small_station
 
 
 def test_recipe_overrides_the_aperture(small_station_toml):
-    from sofast_station.station.recipes import recipes_from_config
+    from sofast_station.recipes import recipes_from_config
 
     small_station_toml.write_text(small_station_toml.read_text() + '\n[optics]\nsun = "buie"\ncsr = 0.1\n'
                                   '\n[recipes.wide]\noptics = { aperture = { shape = "rectangle", width_m = 0.1, '
@@ -117,7 +117,8 @@ def test_optical_figures_reach_the_journal_and_the_workbook_row(inspected, tmp_p
     journal = Journal(tmp_path / "journal.sqlite3")
     try:
         journal.append("cycle-1", {k: v for k, v in rec.items() if k != "truth"})
-        assert journal.get("cycle-1").record["optics"]["power_ratio_vs_design"] == rec["optics"]["power_ratio_vs_design"]
+        journaled = journal.get("cycle-1").record["optics"]
+        assert journaled["power_ratio_vs_design"] == rec["optics"]["power_ratio_vs_design"]
     finally:
         journal.close()
 

@@ -17,7 +17,7 @@ from scipy import optimize, stats
 
 from sofast_station.facet import FacetDesign, load_facet
 from sofast_station.optics import OpticsSettings, analytic_spot_radius_m, facet_optics
-from sofast_station.twin.config import TrueFacet
+from sofast_station.twin.parameters import TrueFacet
 from sofast_station.twin.surface import TrueSurface
 
 ROOT = Path(__file__).resolve().parents[2]

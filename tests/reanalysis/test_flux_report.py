@@ -2,11 +2,8 @@
 
 from __future__ import annotations
 
-import json
 import re
 
-import numpy as np
-import pytest
 
 from sofast_station.archive.dumps import read_dump
 from sofast_station.reanalysis.cli import main

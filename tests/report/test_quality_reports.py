@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import datetime as dt
 import json
-import shutil
-import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -117,3 +115,50 @@ def test_report_acceptance_counts_what_is_missing_then_passes(station, tmp_path,
     assert "overall: PASS" in out
     png = out.strip().splitlines()[-1]
     assert imread(png).shape[1] > 1000
+
+
+@pytest.mark.parametrize("value", ["5", "0", "-0.2", "nan"])
+def test_report_spc_refuses_an_ewma_weight_outside_0_to_1(station, tmp_path, value, capsys):
+    """Issue 28: `report spc --ewma 5` was a ValueError traceback; it is a usage error naming the range."""
+    journal = tmp_path / "j.sqlite3"
+    synthetic_journal(journal, 5)
+    with pytest.raises(SystemExit) as info:
+        main(["report", "spc", "--config", str(station), "--journal", str(journal), "--ewma", value])
+    assert info.value.code == 2
+    err = capsys.readouterr().err
+    assert "--ewma" in err and "Traceback" not in err
+    assert "between 0 (excluded) and 1" in err
+
+
+def test_a_certificate_of_a_path_like_serial_stays_in_its_folder(station, tmp_path, capsys):
+    """Issue 28: `report certificate ../../../x --out OUT` wrote the PDF above OUT and made stray folders. A
+    journal may hold such a serial (journaled before serials were made safe): the file stays inside OUT."""
+    journal = tmp_path / "deep" / "er" / "j.sqlite3"
+    journal.parent.mkdir(parents=True)
+    rec = json.loads(json.dumps(SAMPLE))
+    rec.pop("truth")
+    rec["serial"] = "../../../x"
+    with Journal(journal) as j:
+        j.append("c00001", rec)
+    out = tmp_path / "deep" / "er" / "out"
+    before = {p for p in tmp_path.rglob("*")}
+    assert main(["report", "certificate", "../../../x", "--config", str(station), "--journal", str(journal),
+                 "--out", str(out)]) == 0
+    pdf = Path(capsys.readouterr().out.strip())
+    assert pdf.resolve().parent == out.resolve() and pdf.suffix == ".pdf" and pdf.stat().st_size > 1000
+    made = {p for p in tmp_path.rglob("*")} - before
+    assert all(p.resolve().is_relative_to(out.resolve()) or p == out for p in made), sorted(made)
+
+
+def test_a_certificate_is_found_under_the_serial_as_printed(station, tmp_path, capsys):
+    """The station journals a serial made safe ("MF/2024/001" -> "MF_2024_001", the original in serial_raw);
+    the quality engineer types it as printed on the facet and gets its certificate."""
+    journal = tmp_path / "j.sqlite3"
+    rec = json.loads(json.dumps(SAMPLE))
+    rec.pop("truth")
+    rec.update(serial="MF_2024_001", serial_raw="MF/2024/001")
+    with Journal(journal) as j:
+        j.append("c00001", rec)
+    assert main(["report", "certificate", "MF/2024/001", "--config", str(station), "--journal", str(journal),
+                 "--out", str(tmp_path / "out")]) == 0
+    assert Path(capsys.readouterr().out.strip()).name == "certificate-MF_2024_001.pdf"

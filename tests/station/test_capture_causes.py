@@ -18,7 +18,7 @@ from sofast_station.devices.renderer import FringeRenderer
 from sofast_station.errors import CaptureError, FacetNotFoundError
 from sofast_station.measure.analysis import analyse
 from sofast_station.result.verdict import judge
-from sofast_station.twin.config import TrueFacet, TwinOptics
+from sofast_station.twin.parameters import TrueFacet, TwinOptics
 from sofast_station.twin.station import TwinStation
 from tests.conftest import ROOT, SMALL_STATION
 

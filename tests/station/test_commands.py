@@ -1,4 +1,4 @@
-"""Issue 15: operator commands reach the running loop between facets (station/commands.py).
+"""Issue 15: operator commands reach the running loop between facets (live/operator_commands.py).
 
 One small simulated run: a serial typed by hand and a dump asked for before the first facet, a
 re-measurement and a pause after the second; the line waits while paused and goes on when resumed.
@@ -15,10 +15,10 @@ import pytest
 from sofast_station.archive import Journal
 from sofast_station.config import load_config
 from sofast_station.errors import CommandError
-from sofast_station.station.commands import post_command, take_commands
-from sofast_station.station.pictures import picture_path
+from sofast_station.live.operator_commands import post_command, take_commands
+from sofast_station.live.pictures import picture_path
 from sofast_station.station.service import Service
-from sofast_station.station.status import read_status
+from sofast_station.live.status import read_status
 
 
 def _wait_for(predicate, timeout_s=120.0):

@@ -104,8 +104,9 @@ def test_running_tally_matches_the_list_summary_and_keeps_a_fixed_size():
     records = []
     for i in range(400):
         verdict = ("pass", "pass", "pass", "fail", "fault")[i % 5]
-        records.append(_rec(f"S{i}", verdict, 5.42 + 0.003 * rng.standard_normal(), 5.35 + 0.002 * rng.standard_normal(),
-                            0.6, 0.5, reasons=["camera: lost"] if verdict == "fault" else [], cycle=0.5 + rng.random()))
+        fx, fy = 5.42 + 0.003 * rng.standard_normal(), 5.35 + 0.002 * rng.standard_normal()
+        records.append(_rec(f"S{i}", verdict, fx, fy, 0.6, 0.5, reasons=["camera: lost"] if verdict == "fault" else [],
+                            cycle=0.5 + rng.random()))
     tally = ShiftTally(cycle_window=50)
     sizes = []
     for i, rec in enumerate(records):

@@ -18,7 +18,7 @@ from sofast_station.calibrate.records import load_radiometric
 from sofast_station.config import load_config
 from sofast_station.devices.renderer import FringeRenderer
 from sofast_station.measure.analysis import analyse
-from sofast_station.twin.config import TrueFacet, TwinOptics
+from sofast_station.twin.parameters import TrueFacet, TwinOptics
 from sofast_station.twin.station import TwinStation
 from sofast_station.twin.truth import ground_truth
 from tests.conftest import ROOT

@@ -12,7 +12,7 @@ from sofast_station.config import load_config
 from sofast_station.devices.protocols import WARNING_BITS
 from sofast_station.qc import spc
 from sofast_station.station.drift import DriftMonitor, baseline_path, save_baseline
-from sofast_station.station.recipes import recipes_from_config
+from sofast_station.recipes import recipes_from_config
 from tests.report.test_quality_reports import SAMPLE
 
 

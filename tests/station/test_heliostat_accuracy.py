@@ -43,7 +43,7 @@ from sofast_station.measure.heliostat import analyse_heliostat
 from sofast_station.measure.pipeline import AnalysisSettings
 from sofast_station.measure.uncertainty import InputUncertainties
 from sofast_station.station.heliostat_study import HeliostatRig, scaled_camera
-from sofast_station.twin.config import TrueFacet, TwinOptics
+from sofast_station.twin.parameters import TrueFacet, TwinOptics
 from sofast_station.twin.heliostat import TrueHeliostat, draw_heliostat
 from tests.conftest import ROOT
 
@@ -56,7 +56,8 @@ def rig():
     cam = scaled_camera(CameraIntrinsics(1600, 1200, [[3000, 0, 799.5], [0, 3000, 599.5], [0, 0, 1]],
                                          [-0.03, 0.02, 0, 0, 0]), 4)
     geometry = layout_station(ENSEMBLE.layout_design(), cam, ScreenSpec(2600, 2600, 0.0011), separation_m=1.6)
-    return HeliostatRig(geometry, ENSEMBLE, FringeSet(), load_radiometric(ROOT / "calibration/simulated_radiometric.json"),
+    return HeliostatRig(geometry, ENSEMBLE, FringeSet(),
+                        load_radiometric(ROOT / "calibration/simulated_radiometric.json"),
                         AnalysisSettings(edge_window_px=3), uncertainty=InputUncertainties())
 
 

@@ -25,7 +25,8 @@ SHIPPED = ROOT / "fixtures/stations/heliostat-ensemble.toml"
 def small_heliostat_station(tmp_path, extra: str = "") -> str:
     """The shipped 2x2 heliostat station with a 400 x 300 camera (the same field of view), in *tmp_path*."""
     text = SHIPPED.read_text()
-    text = text.replace('facet = "../facets/heliostat_2x2.toml"', f'facet = "{ROOT / "fixtures/facets/heliostat_2x2.toml"}"')
+    text = text.replace('facet = "../facets/heliostat_2x2.toml"',
+                        f'facet = "{ROOT / "fixtures/facets/heliostat_2x2.toml"}"')
     text = text.replace('radiometric = "../../calibration/simulated_radiometric.json"',
                         f'radiometric = "{ROOT / "calibration/simulated_radiometric.json"}"')
     text = text.replace('data_dir = "~/sofast-station-data"', f'data_dir = "{tmp_path / "data"}"')
@@ -156,7 +157,8 @@ def test_the_line_journals_a_row_per_facet_and_dumps_that_reprocess_exactly(line
         assert "canting_mrad.x" in r and "canting_mrad_U.x" in r and "heliostat.canting_max_mrad" in r
     res = reprocess_dump(rows[0].dump_path)
     assert res.exact, res.differences
-    assert res.n_compared > 400 and res.record["facets"][1]["canting_mrad"] == rows[0].record["facets"][1]["canting_mrad"]
+    assert res.n_compared > 400
+    assert res.record["facets"][1]["canting_mrad"] == rows[0].record["facets"][1]["canting_mrad"]
 
 
 def test_the_certificate_and_the_page_show_the_heliostat_as_a_map_of_its_facets(line, tmp_path):
@@ -183,7 +185,8 @@ def test_the_certificate_and_the_page_show_the_heliostat_as_a_map_of_its_facets(
         rec = j.rows(serial="SIM-0002")[-1].record
     fig = draw_heliostat_certificate(rec, ensemble=cfg.ensemble, limit_mrad=0.5)
     text = "\n".join([t.get_text() for t in fig.texts] + [t.get_text() for ax in fig.axes for t in ax.texts]
-                     + [c.get_text().get_text() for ax in fig.axes for tb in ax.tables for c in tb.get_celld().values()])
+                     + [c.get_text().get_text() for ax in fig.axes for tb in ax.tables
+                        for c in tb.get_celld().values()])
     for words in ("Heliostat inspection certificate", "SIM-0002", "R1C2  OVER", "canting RMS", "FAIL",
                   "Data dump", "fail"):
         assert words in text, words

@@ -12,7 +12,7 @@ from sofast_station.devices.protocols import FacetRequest
 from sofast_station.errors import ConfigError
 from sofast_station.station.frames import capture_sequence, crop, crop_box, restore
 from sofast_station.station.factory import open_station
-from sofast_station.station.recipes import choose_recipe, recipes_from_config
+from sofast_station.recipes import choose_recipe, recipes_from_config
 from sofast_station.station.service import Service
 
 RECIPES = """

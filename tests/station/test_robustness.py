@@ -99,7 +99,7 @@ def test_a_killed_worker_is_replaced_and_the_line_goes_on(small_station_toml, tm
             killed.append(pid)
     try:
         service.runner.run(on_outcome=on_outcome)
-        starts = service.runner.worker.starts
+        takeovers = service.runner.worker.takeovers
     finally:
         service.close()
     finals = [a for a in robot.answers if a.kind in ("done", "fault")]
@@ -107,7 +107,7 @@ def test_a_killed_worker_is_replaced_and_the_line_goes_on(small_station_toml, tm
     by = {a.serial: a for a in finals}
     assert by["SIM-0002"].kind == "fault" and by["SIM-0002"].code == FAULT_CODES["worker"]
     assert all(by[s].kind == "done" for s in ("SIM-0001", "SIM-0003", "SIM-0004", "SIM-0005"))
-    assert killed and starts == 3                       # the first start and two restarts
+    assert killed and takeovers == 2                    # the standby took over after each death
     assert len(_rows(cfg.data_dir)) == 5
 
 
@@ -122,26 +122,27 @@ def test_a_worker_dead_before_the_analysis_began_costs_the_facet_nothing(small_s
     service = Service(cfg, simulated_facets=3, console=lambda line: None)
     robot = service.trigger
     worker = service.runner.worker
-    real_alive = worker.alive
 
     def on_outcome(outcome):
         if outcome.serial == "SIM-0001":
-            proc = next(iter(worker._pool._processes.values()))
+            active = worker._active
+            proc = next(iter(active.pool._processes.values()))
             os.kill(proc.pid, signal.SIGKILL)
             proc.join(60)
             assert proc.exitcode == -signal.SIGKILL
             asked = worker._tickets
-            monkeypatch.setattr(worker, "alive", lambda: worker._tickets == asked or real_alive())
+            real_alive = active.alive
+            monkeypatch.setattr(active, "alive", lambda: worker._tickets == asked or real_alive())
     try:
         with caplog.at_level("WARNING", logger="sofast_station.station.worker"):
             service.runner.run(on_outcome=on_outcome)
-        starts = worker.starts
+        takeovers = worker.takeovers
     finally:
         service.close()
     finals = {a.serial: a for a in robot.answers if a.kind in ("done", "fault")}
     assert sorted(finals) == ["SIM-0001", "SIM-0002", "SIM-0003"]
     assert all(a.kind == "done" for a in finals.values()), {s: (a.kind, a.code) for s, a in finals.items()}
-    assert starts == 2                                  # the first start and one restart
+    assert takeovers == 1                               # the standby took the facet over
     assert "died before this facet's analysis began" in caplog.text
     assert "died during the analysis" not in caplog.text
     rows = {r.serial: r.record for r in _rows(cfg.data_dir)}
@@ -312,7 +313,7 @@ def test_serials_from_outside_are_made_safe_once_for_every_use(small_station_tom
     from openpyxl import load_workbook
 
     from sofast_station.devices.protocols import FacetRequest
-    from sofast_station.serials import MAX_SERIAL_CHARS, clean_serial
+    from sofast_station.serials import MAX_SERIAL_CHARS, clean_serial, raw_for_record
 
     cfg = _config(small_station_toml, tmp_path / "d", run={"dump_every_n": 1, "warmup": False})
     service = Service(cfg, simulated_facets=[FacetRequest(serial=s) for s in BAD_SERIALS],
@@ -324,15 +325,20 @@ def test_serials_from_outside_are_made_safe_once_for_every_use(small_station_tom
     rows = _rows(cfg.data_dir)
     assert [r.serial for r in rows] == [clean_serial(s)[0] for s in BAD_SERIALS]
     assert rows[1].serial == "ABCD" and len(rows[3].serial) == MAX_SERIAL_CHARS
-    assert all(r.verdict == "pass" and r.dump_status == "written" for r in rows), [r.record.get("reasons") for r in rows]
+    assert all(r.verdict == "pass" and r.dump_status == "written" for r in rows), \
+        [r.record.get("reasons") for r in rows]
     for r in rows:
         path = Path(r.dump_path).resolve()
         assert path.is_relative_to((cfg.data_dir / "dumps").resolve())
         assert read_dump(path, load_frames=False).serial == r.serial
-    assert "serial_as_sent" in rows[1].record["request"]
+    # issue 28: what was changed is noted in the record, the serial as received kept as serial_raw
+    assert [r.record.get("serial_raw") for r in rows] == [raw_for_record(s) for s in BAD_SERIALS]
+    assert rows[1].record["serial_raw"] == "AB\x00CD" and rows[3].record["serial_raw"].endswith("(300 characters)")
+    assert "serial_as_sent" not in rows[1].record["request"]
     book = next((cfg.data_dir / "archive").glob("*.xlsx"))
     ws = load_workbook(book).active
     header = [c.value for c in ws[1]]
     cells = [row[header.index("serial")] for row in ws.iter_rows(min_row=2)]
-    assert cells[0].value == BAD_SERIALS[0] and cells[0].data_type == "s"      # text, not a formula
+    assert cells[0].value == clean_serial(BAD_SERIALS[0])[0] and cells[0].data_type == "s"   # text, not a formula
+    assert cells[0].value.startswith("=HYPERLINK(")
     assert not [p for p in tmp_path.rglob("*escape*") if not p.resolve().is_relative_to(cfg.data_dir.resolve())]

@@ -2,7 +2,8 @@
 error) and gives every facet's truth.
 
 Independent references: facet corners composed here with scipy's rotations and projected with OpenCV (not
-the twin's own transforms), the canting truth of perfect facets solved here with scipy's root finder (Levenberg-Marquardt).
+the twin's own transforms), the canting truth of perfect facets solved here with scipy's root finder
+(Levenberg-Marquardt).
 A 400 x 300 camera (the 2x2 heliostat spans about 240 px) keeps each trace under a second.
 """
 
@@ -20,7 +21,7 @@ from scipy.spatial.transform import Rotation
 from sofast_station.ensemble import load_ensemble
 from sofast_station.geometry import CameraIntrinsics, ScreenSpec
 from sofast_station.layout import layout_station
-from sofast_station.twin.config import TrueFacet, TwinOptics
+from sofast_station.twin.parameters import TrueFacet, TwinOptics
 from sofast_station.twin.heliostat import TrueHeliostat, TwinHeliostat, draw_heliostat, heliostat_truth, merge_traces
 from sofast_station.twin.station import TRACE_ARRAYS
 from tests.conftest import ROOT

@@ -35,7 +35,9 @@ def test_random_surface_has_configured_slope_rms(design, rms_mrad, corr_m, seed)
 
 def test_random_surface_is_reproducible_per_seed(design):
     x, y = _points_in_outline(design, 0.01)
-    make = lambda seed: TrueSurface(TrueFacet(slope_error_rms_mrad=1.0, surface_seed=seed), design)  # noqa: E731
+
+    def make(seed):
+        return TrueSurface(TrueFacet(slope_error_rms_mrad=1.0, surface_seed=seed), design)
     z_0 = TrueSurface(TrueFacet(), design).height(x, y)
     z_a, z_b, z_c = (make(seed).height(x, y) - z_0 for seed in (5, 5, 6))
     assert np.array_equal(z_a, z_b)

@@ -2,11 +2,19 @@
 
 from __future__ import annotations
 
+import math
+import types
+
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from sofast_station.errors import AnalysisError
-from sofast_station.twin import ground_truth
+from sofast_station.facet import FacetDesign
+from sofast_station.geometry import CameraIntrinsics, ScreenSpec
+from sofast_station.layout import layout_station
+from sofast_station.twin import TrueFacet, TwinOptics, TwinStation, ground_truth
+from sofast_station.twin import truth as truth_module
 
 KEYS = {"focal_length_x_m", "focal_length_y_m", "curvature_x_per_m", "curvature_y_per_m", "twist_mrad_per_m",
         "twist_e1_mrad_per_m", "twist_e2_mrad_per_m", "principal_focal_lengths_m", "axis_angle_rad",
@@ -74,17 +82,6 @@ def test_rich_facet_fits_and_skips_pixels_without_facet(rich_station):
 # The boresight frame (docs/conventions.md#boresight, #ground-truth) and the
 # higher-order model. Dish stations here use a quarter-resolution camera (same field of view): tracing takes
 # a tenth of a second and still gives ~36,000 facet pixels.
-
-import math
-import types
-
-from scipy.spatial.transform import Rotation
-
-from sofast_station.facet import FacetDesign
-from sofast_station.geometry import CameraIntrinsics, ScreenSpec
-from sofast_station.layout import layout_station
-from sofast_station.twin import TrueFacet, TwinOptics, TwinStation
-from sofast_station.twin import truth as truth_module
 
 GORE = FacetDesign(name="gore-5.33", kind="gore", focal_length_m=5.33,
                    outline_m=[[1.5, -0.2], [4.5, -0.55], [4.5, 0.55], [1.5, 0.2]],

@@ -17,9 +17,9 @@ import pytest
 from sofast_station.config import load_config
 from sofast_station.devices.protocols import FacetRequest
 from sofast_station.station.service import Service
-from tests.conftest import ROOT, SMALL_STATION
+from tests.conftest import ROOT, SMALL_STATION, require
 
-pytest.importorskip("asyncua", reason="asyncua is not installed ('setup-env test')")
+require("asyncua")
 
 EXTRA = """
 [run]
@@ -37,6 +37,7 @@ enabled = true
 endpoint = "opc.tcp://127.0.0.1:{port}/sofast-station/"
 anonymous = true
 users = {{ scada = "s3cret-pass" }}
+allow_plain_passwords = true   # loopback only; Sign & Encrypt with a certificate: test_opcua_security.py
 """
 
 

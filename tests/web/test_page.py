@@ -27,14 +27,12 @@ import pytest
 from sofast_station.config import load_config
 from sofast_station.devices.protocols import FacetRequest
 from sofast_station.serials import clean_serial
-from sofast_station.station.commands import commands_dir
+from sofast_station.live.operator_commands import commands_dir
 from sofast_station.station.service import Service
-from tests.conftest import ROOT, SMALL_STATION
+from tests.conftest import ROOT, SMALL_STATION, require, require_chromium
 
-CHROMIUM = "/usr/bin/chromium"
-playwright = pytest.importorskip("playwright.sync_api", reason="Playwright is not installed ('setup-env test')")
-if not (os.path.exists(CHROMIUM) and os.access(CHROMIUM, os.X_OK)):
-    pytest.skip("Debian's chromium is not installed ('setup-env test' installs it)", allow_module_level=True)
+playwright = require("playwright.sync_api")
+CHROMIUM = require_chromium()
 
 TOKEN = "line-token-for-tests"
 LONG = "L" * 280 + "-END-OF-LONG-SERIAL"           # 300 characters
@@ -154,8 +152,8 @@ def test_the_page_follows_the_line(line, monkeypatch):
                              "facets": page.inner_text("#shift .kpis div:first-child b")})
                 if outcome.serial in ("SIM-0001", "F-0002", "X-0006"):
                     page.screenshot(path=str(shots / f"page-after-{outcome.answer}.png"), full_page=True)
-                elif outcome.serial in (UNICODE, clean_serial(LONG)[0]):
-                    name = "unicode" if outcome.serial == UNICODE else "long"
+                elif outcome.serial in (clean_serial(UNICODE)[0], clean_serial(LONG)[0]):
+                    name = "unicode" if outcome.serial == clean_serial(UNICODE)[0] else "long"
                     page.screenshot(path=str(shots / f"page-serial-{name}.png"))
 
             requests = [FacetRequest(serial=s) for s in SERIALS]
@@ -172,7 +170,10 @@ def test_the_page_follows_the_line(line, monkeypatch):
             # page shows the start and end of what it kept when that is too long to show whole
             kept = clean_serial(LONG)[0]
             shown_long = kept[:29] + "…" + kept[-29:]
-            assert [s["serial"] for s in seen] == SERIALS[:4] + [shown_long] + SERIALS[5:], seen
+            # every serial as the station keeps it: "../../etc/passwd" and "</script>" are never a path
+            kept_all = [clean_serial(s)[0] for s in SERIALS]
+            assert kept_all[2] == "____etc_passwd" and "<script>" in kept_all[3]       # markup stays, escaped
+            assert [s["serial"] for s in seen] == kept_all[:4] + [shown_long] + kept_all[5:], seen
             assert seen[4]["title"] == kept
             assert [s["verdict"] for s in seen] == VERDICTS, seen
             assert [s["facets"] for s in seen] == [str(i) for i in range(1, 7)], seen

@@ -10,8 +10,8 @@ import sys
 import time
 import urllib.request
 
-from sofast_station.station.commands import post_command
-from sofast_station.station.status import read_status
+from sofast_station.live.operator_commands import post_command
+from sofast_station.live.status import read_status
 from tests.conftest import ROOT
 
 

@@ -49,10 +49,11 @@ SCHEMA_V1: tuple[tuple[str, str, str, str, str, bool], ...] = (
     ("/@facet", "attribute", "str", "", "facet design name", False),
 
     ("capture", "group", "", "", "the raw camera frames and the measured distance", True),
-    ("capture/frames", "dataset", "uint8 (n, h, w)", "DN",
+    ("capture/frames", "dataset", "uint8 or uint16 (n, h, w)", "DN",
      "camera frames cropped to the facet region, in capture order (dark, white, then the fringe frames of "
      "fringes/, x then y, coarse to fine, phase steps in order); gzip 4 + shuffle, one chunk per frame; "
-     "outside the crop the full frames are 0 by definition", True),
+     "outside the crop the full frames are 0 by definition; uint16 (little-endian) for a camera of more "
+     "than 8 bits", True),
     ("capture/frames_sha256", "dataset", "str (n,)", "",
      "SHA-256 (hex) of each cropped frame's bytes in C order, checked by read_dump", True),
     ("capture/crop_box", "dataset", "int64 (2,)", "px",
@@ -63,8 +64,10 @@ SCHEMA_V1: tuple[tuple[str, str, str, str, str, bool], ...] = (
      "measured distance from the screen centre to the design's measure point", True),
 
     ("fringes", "group", "", "", "the fringe definition (station.toml [fringes])", True),
-    ("fringes/periods_x", "dataset", "float64 (k,)", "cycles per screen width", "x fringe periods, coarse to fine", True),
-    ("fringes/periods_y", "dataset", "float64 (k,)", "cycles per screen height", "y fringe periods, coarse to fine", True),
+    ("fringes/periods_x", "dataset", "float64 (k,)", "cycles per screen width", "x fringe periods, coarse to fine",
+     True),
+    ("fringes/periods_y", "dataset", "float64 (k,)", "cycles per screen height", "y fringe periods, coarse to fine",
+     True),
     ("fringes/phase_steps", "dataset", "int64", "", "phase steps per period (shifts 2 pi k / steps)", True),
 
     ("calibration", "group", "", "", "calibration records in force at the measurement", True),
@@ -94,7 +97,8 @@ SCHEMA_V1: tuple[tuple[str, str, str, str, str, bool], ...] = (
     ("geometry/camera", "group", "", "", "camera intrinsics, OpenCV pinhole + 5-term distortion", True),
     ("geometry/camera/width_px", "dataset", "int64", "px", "image width", True),
     ("geometry/camera/height_px", "dataset", "int64", "px", "image height", True),
-    ("geometry/camera/matrix", "dataset", "float64 (3, 3)", "px", "camera matrix K [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]", True),
+    ("geometry/camera/matrix", "dataset", "float64 (3, 3)", "px",
+     "camera matrix K [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]", True),
     ("geometry/camera/distortion", "dataset", "float64 (5,)", "1", "distortion k1, k2, p1, p2, k3 (OpenCV)", True),
     ("geometry/screen", "group", "", "", "the flat display", True),
     ("geometry/screen/width_px", "dataset", "int64", "px", "display width", True),
@@ -102,10 +106,12 @@ SCHEMA_V1: tuple[tuple[str, str, str, str, str, bool], ...] = (
     ("geometry/screen/pitch_m", "dataset", "float64", "m", "display pixel pitch", True),
     ("geometry/screen_to_camera", "group", "", "", "pose mapping screen-frame points to the camera frame", True),
     ("geometry/screen_to_camera/rotation", "dataset", "float64 (3, 3)", "1", "rotation matrix", True),
-    ("geometry/screen_to_camera/translation", "dataset", "float64 (3,)", "m", "screen origin in the camera frame", True),
+    ("geometry/screen_to_camera/translation", "dataset", "float64 (3,)", "m", "screen origin in the camera frame",
+     True),
     ("geometry/fixture_to_camera", "group", "", "", "pose of the nominal facet frame in the camera frame", True),
     ("geometry/fixture_to_camera/rotation", "dataset", "float64 (3, 3)", "1", "rotation matrix", True),
-    ("geometry/fixture_to_camera/translation", "dataset", "float64 (3,)", "m", "fixture origin in the camera frame", True),
+    ("geometry/fixture_to_camera/translation", "dataset", "float64 (3,)", "m", "fixture origin in the camera frame",
+     True),
 
     ("design", "group", "", "", "the facet design (recipe), facet frame", True),
     ("design/name", "dataset", "str", "", "design name", True),
@@ -119,9 +125,11 @@ SCHEMA_V1: tuple[tuple[str, str, str, str, str, bool], ...] = (
      "one [facet.layout] entry", False),
 
     ("analysis", "group", "", "", "analysis settings (station.toml [analysis], defaults filled in)", True),
-    ("analysis/mask_threshold_dn", "dataset", "int64 or float64", "DN", "facet pixel when white - dark exceeds this", True),
+    ("analysis/mask_threshold_dn", "dataset", "int64 or float64", "DN", "facet pixel when white - dark exceeds this",
+     True),
     ("analysis/min_modulation_dn", "dataset", "int64 or float64", "DN", "least fringe amplitude kept", True),
-    ("analysis/consistency_sigmas", "dataset", "int64 or float64", "noise sigmas", "I0 + I2 = I1 + I3 check limit", True),
+    ("analysis/consistency_sigmas", "dataset", "int64 or float64", "noise sigmas", "I0 + I2 = I1 + I3 check limit",
+     True),
     ("analysis/guard_sigmas", "dataset", "int64 or float64", "position noise sigmas", "screen-edge guard band", True),
     ("analysis/subsample_step", "dataset", "int64", "pixels", "every n-th valid pixel while iterating", True),
     ("analysis/max_iterations", "dataset", "int64", "", "iteration limit", True),
@@ -145,7 +153,8 @@ SCHEMA_V1: tuple[tuple[str, str, str, str, str, bool], ...] = (
     ("config/station_name", "dataset", "str", "", "station name", True),
 
     ("result", "group", "", "", "the archived result; attributes: key figures (see below)", True),
-    ("result/record_json", "dataset", "str", "", "the result record as JSON text (null: infinite or not a number)", True),
+    ("result/record_json", "dataset", "str", "", "the result record as JSON text (null: infinite or not a number)",
+     True),
 )
 
 

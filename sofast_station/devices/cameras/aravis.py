@@ -547,7 +547,7 @@ class AravisCamera:
         if self._device is not None and self._lost_handler is not None:
             try:
                 self._device.disconnect(self._lost_handler)
-            except Exception as exc:  # noqa: BLE001 - closing must never raise
+            except Exception as exc:  # closing must never raise
                 log.debug("%s: disconnecting the control-lost handler failed: %s", self.description, exc)
         # Dropping the last references stops the stream thread and releases the device (stream first).
         held = [self._stream, self._device, cam]

@@ -551,7 +551,7 @@ class BaslerCamera:
                 getattr(cam, step)()
             except genicam.GenericException as exc:
                 log.debug("%s: %s failed while closing: %s", self.description, step, exc)
-            except Exception as exc:  # noqa: BLE001 - closing must never raise
+            except Exception as exc:  # closing must never raise
                 log.warning("%s: %s failed while closing: %s", self.description, step, exc)
         log.info("closed %s", self.description)
 

@@ -142,7 +142,8 @@ class SimulatedRobot(Handshake):
         self._state = BUSY
 
     def done(self, verdict: str, warnings: int = 0) -> None:
-        """The facet is measured: ``verdict`` is "pass", "fail", "invalid" or "indeterminate"; ``warnings`` the WARNING_BITS."""
+        """The facet is measured: ``verdict`` is "pass", "fail", "invalid" or "indeterminate"; ``warnings`` the
+        WARNING_BITS."""
         self._enter("done", (BUSY,))
         self._check_verdict(verdict)
         self._answer(Answer(self.current.serial, "done", time.monotonic(), verdict=verdict, warnings=int(warnings)))

@@ -21,7 +21,8 @@ D7    RI#    in           RECIPE bit 1
 STATUS code (bit 2, bit 1, bit 0): 0 offline, 1 ready, 2 busy, 3 done-pass, 4 done-fail, 5 done-invalid,
 6 fault, 7 done-indeterminate (the guarded decision rule could not decide). The station's outputs are
 UART outputs idling high when the chip is not in bit-bang mode, so 7 without a toggling heartbeat means
-"no station driving the pins". The code is only valid while the heartbeat toggles. Outputs sit on the pins that are outputs in the chip's UART mode and inputs on pins
+"no station driving the pins". The code is only valid while the heartbeat toggles. Outputs sit on the pins that are
+outputs in the chip's UART mode and inputs on pins
 that are inputs there, so that before the station configures bit-bang nothing drives against the PLC.
 
 Discrete I/O carries no serial number: the station makes one, "USB-<YYYYMMDD>-<NNNN>" (see

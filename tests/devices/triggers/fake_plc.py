@@ -139,7 +139,7 @@ async def _main(port: int, script: dict, events) -> None:
     events.put(("listening", port))
     try:
         await _program(port, script, events)
-    except Exception as exc:  # noqa: BLE001 - tell the test instead of dying silently
+    except Exception as exc:  # tell the test instead of dying silently
         events.put(("error", f"{type(exc).__name__}: {exc}"))
     await serving  # keep serving until the test kills the process
 

@@ -11,12 +11,12 @@ import pytest
 
 import usb  # noqa: F401  (a dependency: its absence must fail, not skip)
 
-from sofast_station.devices.protocols import FAULT_CODES  # noqa: E402
-from sofast_station.devices.triggers import _handshake, usbio  # noqa: E402
-from sofast_station.devices.triggers.usbio import UsbTrigger  # noqa: E402
-from sofast_station.errors import ConfigError, TriggerError  # noqa: E402
+from sofast_station.devices.protocols import FAULT_CODES
+from sofast_station.devices.triggers import _handshake, usbio
+from sofast_station.devices.triggers.usbio import UsbTrigger
+from sofast_station.errors import ConfigError, TriggerError
 
-from .virtual_ftdi import VirtualFtdi, VirtualUsbBackend  # noqa: E402
+from .virtual_ftdi import VirtualFtdi, VirtualUsbBackend
 
 ANSWERED = (usbio.DONE_PASS, usbio.DONE_FAIL, usbio.DONE_INVALID, usbio.STATUS_FAULT, usbio.DONE_INDETERMINATE)
 

@@ -1,4 +1,5 @@
-"""Configuration of the digital twin: the true facet and the optical nonidealities.
+"""The digital twin's parameters (``[simulation]`` in station.toml): the true facet and the optical
+nonidealities.
 
 Two frozen records, each with ``from_dict`` (rejects unknown keys, naming them) and ``to_dict``:
 

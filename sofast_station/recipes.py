@@ -18,13 +18,13 @@ import dataclasses
 import re
 from dataclasses import dataclass
 
-from ..devices.protocols import FacetRequest
-from ..ensemble import EnsembleDesign, is_ensemble_file, load_ensemble
-from ..errors import ConfigError, UnknownRecipeError
-from ..facet import FacetDesign, load_facet
-from ..measure.pipeline import AnalysisSettings
-from ..result.optical_figures import optics_for
-from ..result.verdict import Limits, Quality, limits_from_table, quality_from_table
+from .devices.protocols import FacetRequest
+from .ensemble import EnsembleDesign, is_ensemble_file, load_ensemble
+from .errors import ConfigError, UnknownRecipeError
+from .facet import FacetDesign, load_facet
+from .measure.pipeline import AnalysisSettings
+from .result.optical_figures import optics_for
+from .result.verdict import Limits, Quality, limits_from_table, quality_from_table
 
 _KEYS = {"facet", "serial_pattern", "alignment_point_m", "measure_point_m", "limits", "quality", "analysis",
          "optics"}

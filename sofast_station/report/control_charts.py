@@ -27,14 +27,15 @@ log = logging.getLogger(__name__)
 def select_records(records, *, recipe: str | None = None, facet: str | None = None, serial: str | None = None,
                    since=None, until=None) -> list[dict]:
     """Records matching the filters (recipe name, facet type, serial regular expression, period), in time
-    order."""
+    order. A record whose time cannot be read cannot be placed on a chart: it is left out with a warning
+    naming it (its serial and cycle)."""
     try:
         pattern = re.compile(serial) if serial else None
     except re.error as exc:
         raise ReportError(f"--serial {serial!r} is not a valid regular expression: {exc}") from None
     lo = parse_time(since) if since is not None else None
     hi = parse_time(until) if until is not None else None
-    out = []
+    out, timeless = [], []
     for r in records:
         if recipe is not None and (r.get("recipe") or "default") != recipe:
             continue
@@ -44,11 +45,15 @@ def select_records(records, *, recipe: str | None = None, facet: str | None = No
             continue
         try:
             t = parse_time(r["time"])
-        except (KeyError, TypeError, ValueError):
+        except (KeyError, TypeError, ValueError) as exc:
+            timeless.append(f"{r.get('serial', '?')} (cycle {r.get('cycle_id', '?')}: time {r.get('time')!r}, "
+                            f"{type(exc).__name__})")
             continue
         if (lo is not None and t < lo) or (hi is not None and t >= hi):
             continue
         out.append(r)
+    if timeless:
+        log.warning("%d record(s) left out: their time cannot be read: %s", len(timeless), "; ".join(timeless))
     out.sort(key=lambda r: parse_time(r["time"]))
     return out
 
@@ -214,7 +219,8 @@ def write_summary_workbook(charts: list[Chart], table: dict, path: Path, title: 
                    float(np.nanmean(c.values)) if np.any(np.isfinite(c.values)) else None, c.spec.design, c.spec.lsl,
                    c.spec.usl, b.centre if b else None, b.sigma if b else None, b.lcl if b else None,
                    b.ucl if b else None, b.n if b else None, cap.get("cp"), cap.get("cpk"), cap.get("pp"),
-                   cap.get("ppk"), len(marked), ", ".join(f"{r} ({len(v)})" for r, v in c.violations.items() if len(v))])
+                   cap.get("ppk"), len(marked),
+                   ", ".join(f"{r} ({len(v)})" for r, v in c.violations.items() if len(v))])
     ws.append([])
     ws.append([f"rules: {rule_set}: " + "; ".join(f"{r} {spc.RULE_TEXT[r]}" for r in spc.rules_of(rule_set))])
     ws.column_dimensions["A"].width = 28
