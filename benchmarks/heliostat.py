@@ -149,7 +149,8 @@ def heliostat(kind: str, scale: int, runs: int, rng, optics_runs: int, with_u: b
     for k, v in r.timings_s.items():
         group = k.split("_")[0] if k.startswith(("reduce_", "facet_")) else k
         steps[group] = steps.get(group, 0.0) + v
-    print("  last run's steps: " + ", ".join(f"{k} {v:.3f} s" for k, v in steps.items()))
+    # (reduce and facet: every facet's own seconds summed; the facets run side by side, so they overlap)
+    print("  last run's steps (facets' seconds summed): " + ", ".join(f"{k} {v:.3f} s" for k, v in steps.items()))
     if optics_runs and cfg.optics is not None:
         o_cold, o_walls, o_cpus = timed(lambda: analysis_optics(r, ens, cfg.optics), optics_runs)
         print(summary("  optics (3 traces + Monte Carlo)", o_cold, o_walls, o_cpus))
