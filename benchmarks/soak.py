@@ -209,7 +209,7 @@ def main(argv=None) -> int:
         fault_reasons: list = []
 
         def on_outcome(outcome) -> None:
-            tally.add(outcome.record, outcome.cycle_s)
+            tally.add(outcome.record)
             answers[outcome.answer] += 1
             if outcome.answer == "fault":
                 fault_reasons.append(outcome.record.get("reasons"))

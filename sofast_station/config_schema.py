@@ -195,6 +195,10 @@ SECTIONS: dict[str, dict[str, Key]] = {
         "radiometric": Key("str"), "stale": Key("str", choices=("warn", "refuse")),
         "max_age_h": _pos("h"), "max_dark_shift_dn": _nonneg("DN"), "warmup": Key("bool"),
         "warmup_min": _nonneg("min"), "routine": Key("table", doc="checked by calibrate.settings"),
+        "geometry": Key("str", choices=("records", "station.toml"),
+                        doc="measure with the newest screen and pose records, or [screen] and [layout] as entered"),
+        "screen": Key("table", doc="[calibration.screen]: calibrate screen, checked by calibrate.commission_settings"),
+        "pose": Key("table", doc="[calibration.pose]: calibrate pose, checked by calibrate.commission_settings"),
     },
     "optics": {
         "enabled": Key("bool", doc="compute the optical figures (docs/optics.md)"),
@@ -219,12 +223,16 @@ SECTIONS: dict[str, dict[str, Key]] = {
         "facet": Key("table", doc="[simulation.facet]: the twin's true facet (twin.parameters.TrueFacet, a rule "
                                   "below)"),
         "optics": Key("table", doc="[simulation.optics]: display, camera and noise (twin.parameters.TwinOptics)"),
+        "population": Key("table", doc="[simulation.population]: how the line's facets differ "
+                                       "(twin.population.FacetPopulation)"),
         "distance_error_m": Key("float", low=-1.0, high=1.0, doc="the simulated range finder's error, m"),
         "faults": Key("section:simulation_faults", doc="SERIAL = fault kind, injected (tests, benchmarks)"),
         "heliostat": Key("table", doc="[simulation.heliostat]: the twin's true heliostat (twin.heliostat, a rule "
                                       "below)"),
         "hang_s": _pos("how long a 'hung-analysis' fault hangs, s"),
         "slow_s": _pos("how long a 'slow-analysis' fault delays the analysis, s"),
+        "assembly": Key("table", doc="[simulation.assembly]: the twin's true screen and camera (twin.assembly."
+                                     "TrueAssembly, a rule below)"),
     },
     "simulation_faults": {"*": Key("str", choices=SIMULATED_FAULTS, doc="fault injected for this serial")},
     "run": {
@@ -247,6 +255,8 @@ SECTIONS: dict[str, dict[str, Key]] = {
         "trigger": Key("str", choices=("simulated", "modbus", "usb")), "trigger_options": Key("table"),
         "display_options": Key("table"), "camera": Key("str", choices=("basler", "aravis", "replay")),
         "camera_options": Key("table"), "range_finder_options": Key("table"),
+        "handheld_camera": Key("str", choices=("basler", "aravis"), doc="calibrate screen's second camera"),
+        "handheld_camera_options": Key("table", doc="its options, as camera_options"),
     },
     "recipes": {"*": Key("section:recipe", doc="[recipes.NAME]")},
     "heliostat": {
@@ -261,6 +271,11 @@ SECTIONS: dict[str, dict[str, Key]] = {
     "opcua": {"*": Key("any", doc="checked by its reader (READERS below)")},
     "drift": {"*": Key("any", doc="checked by its reader (READERS below)")},
     "acceptance": {"*": Key("table", doc="[acceptance.RECIPE], checked by report.acceptance (a rule below)")},
+    "certificate": {
+        "issuer": Key("str", doc="who issues the facet certificates (report certificate): the organisation"),
+        "address": Key("str", doc="the issuer's address, one line under its name"),
+        "signatory": Key("str", doc="name and role printed under the certificate's signature line"),
+    },
     "recipe": {
         "facet": Key("str"), "serial_pattern": Key("str"),
         "alignment_point_m": Key("floats", length=(2,)), "measure_point_m": Key("floats", length=(2,)),
@@ -272,7 +287,7 @@ SECTIONS: dict[str, dict[str, Key]] = {
 #: The sections that may appear at the top of station.toml (the others are nested tables).
 TOP_LEVEL = ["station", "camera", "screen", "layout", "fringes", "analysis", "limits", "quality", "calibration",
              "optics", "simulation", "run", "archive", "devices", "recipes", "web", "opcua", "acceptance", "drift",
-             "uncertainty", "heliostat"]
+             "uncertainty", "certificate", "heliostat"]
 
 
 def _check_value(key: Key, value, file: str, label: str, name: str) -> None:
@@ -411,13 +426,17 @@ def _rule_readers(raw: dict, where: str) -> None:
 
 
 def _rule_simulation(raw: dict, where: str) -> None:
-    """[simulation.facet] and [simulation.optics] through the twin's own records (types, ranges, keys)."""
+    """[simulation.facet], [simulation.optics] and [simulation.population] through the twin's own records
+    (types, ranges, keys)."""
     sim = raw.get("simulation")
     if not sim:
         return
+    from .twin.assembly import TrueAssembly
     from .twin.parameters import TrueFacet, TwinOptics
+    from .twin.population import FacetPopulation
 
-    for key, cls in (("facet", TrueFacet), ("optics", TwinOptics)):
+    for key, cls in (("facet", TrueFacet), ("optics", TwinOptics), ("population", FacetPopulation),
+                     ("assembly", TrueAssembly)):
         try:
             cls.from_dict(sim.get(key, {}))
         except ConfigError as exc:

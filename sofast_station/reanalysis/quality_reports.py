@@ -51,6 +51,9 @@ def add_options(rpt) -> None:
     rpt.add_argument("--baseline-from", default=None, metavar="DATE",
                      help="spc: control limits from this period instead (with --baseline-to)")
     rpt.add_argument("--baseline-to", default=None, metavar="DATE", help="spc: end of the baseline period")
+    rpt.add_argument("--any-design", action="store_true",
+                     help="diff: draw the difference of two facet types too (refused by default: it shows their "
+                          "designs' difference, not a change of shape)")
     rpt.add_argument("--save-baseline", action="store_true",
                      help="spc: save the control limits as the recipe's baseline for the line's drift alarms "
                           "(data_dir/quality/baseline-RECIPE.json; needs --recipe)")
@@ -146,9 +149,14 @@ def cmd_spc(args) -> int:
                           ewma_lambda=args.ewma)
     name = f"spc-{recipe.name}-{since or 'start'}-{until or 'now'}".replace(":", "")
     out = Path(args.out or ".")
-    title = (f"{source}: recipe {recipe.name}, {since or 'start'} to {until or 'now'}; limits from "
+    n = len(charts[0].values) if charts else 0
+    first, last = (charts[0].times[0], charts[0].times[-1]) if n else (None, None)
+    span = f"{first:%Y-%m-%d %H:%M} to {last:%Y-%m-%d %H:%M}" if n else f"{since or 'start'} to {until or 'now'}"
+    title = (f"Control charts, recipe {recipe.name} ({recipe.design.name}): {n} facets, {span}; control limits from "
              + (f"the baseline {args.baseline_from} to {args.baseline_to}" if baselines
-                else f"the first {args.baseline_n} facets") + f"; rules {args.rules}")
+                else f"the first {min(args.baseline_n, n)} facets")
+             + f"; rules {args.rules.replace('_', ' ')}")
+    log.info("report spc: %s (%s)", title, source)
     for p in (draw_charts(charts, out / f"{name}.png", title, ewma_lambda=args.ewma),
               draw_yield(yield_table(chosen), out / f"{name}-yield.png", title),
               write_summary_workbook(charts, yield_table(chosen), out / f"{name}.xlsx", title, args.rules)):
@@ -189,8 +197,10 @@ def cmd_acceptance(args) -> int:
     period = f"{since or 'start'} to {until or 'now'}"
     print(text(contract, results, period), flush=True)
     out = Path(args.out or ".")
+    log.info("report acceptance: recipe %s, %s, from the %s", recipe, period, source)
     print(draw(contract, results, out / f"acceptance-{recipe}-{since or 'start'}-{until or 'now'}.png".replace(":", ""),
-               f"{source}: recipe {recipe}, {period}"), flush=True)
+               f"Contract acceptance, recipe {recipe}: {len(chosen)} facets, {period}; population "
+               f"{contract.population}, confidence {100 * contract.confidence:g} %"), flush=True)
     return 0 if all(r["verdict"] == "pass" for r in results) else 1
 
 
@@ -231,7 +241,8 @@ def cmd_certificate(args) -> int:
             Path(args.out or ".") / f"certificate-{serial}.pdf"
         print(write_heliostat_certificate(rec, out, ensemble=recipe.ensemble,
                                           limit_mrad=recipe.limits.max_canting_mrad,
-                                          dump_path=dump if dump is not None and dump.exists() else None), flush=True)
+                                          dump_path=dump if dump is not None and dump.exists() else None,
+                                          issuer=config.raw.get("certificate") or {}), flush=True)
         return 0
     if dump is not None and dump.exists():
         try:
@@ -245,8 +256,11 @@ def cmd_certificate(args) -> int:
     # stays inside the --out folder.
     out = Path(args.out) if args.out and args.out.lower().endswith(".pdf") else \
         Path(args.out or ".") / f"certificate-{safe_name(serial, 64)}.pdf"
+    issuer = config.raw.get("certificate") or {}
+    if not issuer.get("issuer"):
+        log.warning("no [certificate] issuer in %s: the certificate says so in its heading", config.path)
     print(write_certificate(rec, out, specs=figure_specs(recipe.design.focal_length_m, recipe.limits),
-                            measured=measured, dump_path=dump), flush=True)
+                            measured=measured, dump_path=dump, issuer=issuer), flush=True)
     if len(rows) > 1:
         log.info("serial %s was tested %d times: the certificate shows the latest (%s)", serial, len(rows), row.time)
     return 0
@@ -254,13 +268,17 @@ def cmd_certificate(args) -> int:
 
 def cmd_diff(args) -> int:
     from ..errors import ConfigError
-    from ..report.diff import write_diff
+    from ..report.diff import check_same_design, common_grid_difference, diff_figures, diff_text, write_diff
     from .sources import load_measured
 
     if len(args.targets) != 3:
         raise ConfigError("'report diff' needs two measurements: report diff A B (dumps, or opencsp:DIR)")
     a, b = (load_measured(t) for t in args.targets[1:])
+    if not args.any_design:
+        check_same_design(a, b)
     out = Path(args.out) if args.out and args.out.lower().endswith(".png") else \
         Path(args.out or ".") / f"diff-{Path(a.path).stem}-{Path(b.path).stem}.png"
-    print(write_diff(a, b, out), flush=True)
+    d = common_grid_difference(a, b)
+    print(diff_text(a, b, diff_figures(a, b, d)), flush=True)
+    print(write_diff(a, b, out, d=d), flush=True)
     return 0

@@ -226,7 +226,7 @@ def cmd_run(args) -> int:
     tally = ShiftTally()
 
     def keep(outcome):
-        tally.add(outcome.record, outcome.cycle_s)
+        tally.add(outcome.record)              # its cycle time as the page shows it (cycle_seconds)
     runner = service.runner
     if args.max_cycles is not None:
         runner.expected_total = min(args.max_cycles, runner.expected_total or args.max_cycles)

@@ -31,6 +31,7 @@ from ..archive._common import trim_heap
 from ..errors import AnalysisTimeout, CameraError, StationError, TriggerError
 from ..result.faults import fault_reason
 from ..result.record import RecordHead, build_record
+from ..result.shift import cycle_seconds
 from ..result.verdict import judge
 from ..serials import clean_serial, raw_for_record
 from . import console as _console
@@ -104,7 +105,11 @@ class CycleOutcome:
     answer: str                       # pass | fail | invalid | fault
     record: dict
     fault_code: int = 0
+    #: The facet's cycle time (result/shift.py ``cycle_seconds``: trigger to journal row), what the console,
+    #: the page and OPC UA show; ``release_s``: trigger to the robot's release (its answer sent), what the
+    #: cycle benchmark times.
     cycle_s: float = 0.0
+    release_s: float = 0.0
     dumped: bool = False
     frames: np.ndarray | None = field(default=None, repr=False)
     #: The analysis's valid pixels (camera size) and its thinned per-pixel results, for the monitor.
@@ -616,7 +621,7 @@ class StationRunner:
         state["reason"] = reason
         log.error("%s: %s", request.serial, reason)
         record = self._fault_record(cycle_id, request, FAULT_CODES["timeout"], reason, {})
-        record["timings_s"]["until_journal"] = time.perf_counter() - t0
+        record["timings_s"]["until_journal"] = state["until_journal"] = time.perf_counter() - t0
         try:
             self.submit(cycle_id, record, None)
         except (OSError, StationError) as exc:
@@ -626,7 +631,7 @@ class StationRunner:
                 self.trigger.fault(FAULT_CODES["timeout"], reason)
         except TriggerError as exc:
             log.error("could not answer the robot: %s", exc)
-        self._report(record, "fault", time.perf_counter() - t0)
+        self._report(record, "fault")
         if stage == "capture":
             # Closing the camera is how a blocked grab is aborted; the station's thread then comes back.
             self._reopen_camera()
@@ -653,6 +658,11 @@ class StationRunner:
         record["reasons"] = [timeout_reason, note] + reasons
         record.update({"verdict": "fault", "fault_code": FAULT_CODES["timeout"], "late": True,
                        "late_by_s": round(late_by, 3)})
+        # The robot was answered at the deadline: that ends the facet's cycle (result/shift.py cycle_seconds);
+        # when the late result came is kept beside it.
+        timings = record.setdefault("timings_s", {})
+        timings["until_journal"] = state.get("until_journal")
+        timings["until_late_result"] = time.perf_counter() - t0
         outcome.answer, outcome.fault_code = "fault", FAULT_CODES["timeout"]
         wanted = self._dump_due(outcome, request) if dump is None else (dump and outcome.frames is not None)
         dump = captured.dump(outcome.sensitivities) if wanted else None
@@ -662,7 +672,7 @@ class StationRunner:
         except (OSError, StationError) as exc:
             log.error("%s: the late result of cycle %s could not be journaled: %s", outcome.serial,
                       outcome.cycle_id, exc)
-        outcome.cycle_s = time.perf_counter() - t0           # until the late result (the robot left earlier)
+        outcome.cycle_s = outcome.release_s = timings["until_journal"]   # the robot left at the timeout
         # The console already has this facet's line (the timeout): the log says what became of it.
         log.warning("%s: %s (cycle %s; the robot was answered timeout)", outcome.serial, note, outcome.cycle_id)
         if self.archiver is not None:
@@ -724,8 +734,9 @@ class StationRunner:
         except TriggerError as exc:
             log.error("%s: could not answer the robot: %s", outcome.serial, exc)
             self._reopen_trigger()
-        outcome.cycle_s = time.perf_counter() - t0
-        self._report(record, outcome.answer, outcome.cycle_s)
+        outcome.release_s = time.perf_counter() - t0
+        outcome.cycle_s = cycle_seconds(record)
+        self._report(record, outcome.answer)
         if self.archiver is not None:
             self.archiver.wake()
         for hook in self.hooks:
@@ -758,8 +769,10 @@ class StationRunner:
         return build_record(self._head(cycle_id, request, request.recipe or "", cal_warnings), fault=(code, reason),
                             timings=timings)
 
-    def _report(self, record: dict, answer: str, cycle_s: float) -> None:
-        """The facet's console line, its line in logs/station.log and the live status."""
+    def _report(self, record: dict, answer: str) -> None:
+        """The facet's console line, its line in logs/station.log and the live status; the cycle time shown is
+        the record's own (:func:`~sofast_station.result.shift.cycle_seconds`), as on the page and OPC UA."""
+        cycle_s = cycle_seconds(record)
         self.console(_console.facet_line(record, answer, cycle_s, self.cycles, self.expected_total))
         log.info("%s", _console.log_line(record, answer, cycle_s, self.cycles, self.expected_total))
         if answer != "fault" or not str((record.get("reasons") or [""])[0]).startswith(("camera", "timeout")):

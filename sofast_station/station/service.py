@@ -446,6 +446,8 @@ class Service:
                 if archiver_process else None
             self.station = open_station(config, seed=seed) if station is None else station
             self.trigger = open_trigger_from_config(config, simulated_facets)
+            if hasattr(self.trigger, "place") and hasattr(self.station, "place"):
+                self.trigger.place = self.station.place     # the simulated robot places the line's facets
             self.runner = StationRunner(self.station, self.trigger, self.journal, self.archiver_process,
                                         self.recipes, self.settings, self.submit, console=console)
             requests = getattr(self.trigger, "requests", None)

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import threading
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -15,7 +17,8 @@ from ..devices.simulated import SimulatedCamera, SimulatedDisplay, SimulatedRang
 from ..errors import ConfigError
 from .opened import Station
 
-_SIM_KEYS = {"seed", "facet", "optics", "distance_error_m", "faults", "hang_s", "slow_s", "heliostat"}
+_SIM_KEYS = {"seed", "facet", "optics", "population", "distance_error_m", "faults", "hang_s", "slow_s",
+             "assembly", "heliostat"}
 
 #: Faults the simulated station can inject for a given serial ([simulation.faults] SERIAL = KIND).
 FAULT_KINDS = SIMULATED_FAULTS
@@ -24,7 +27,13 @@ log = logging.getLogger(__name__)
 
 
 def build_twin(config: StationConfig, noise: bool = True):
-    """The digital twin described by ``[simulation]`` (true facet and optics) in the station's geometry."""
+    """The digital twin described by ``[simulation]`` (true facet and optics) in the station's geometry.
+
+    The twin's geometry is the one station.toml states (never one measured by a calibration: those are
+    estimates of the twin's truth), changed by ``[simulation.assembly]`` (a bowed screen of another pitch, a
+    misplaced camera: :class:`~sofast_station.twin.assembly.TrueAssembly`).
+    """
+    from ..twin.assembly import TrueAssembly, TrueScreen, true_geometry
     from ..twin.parameters import TrueFacet, TwinOptics
     from ..twin.station import TwinStation
 
@@ -35,27 +44,98 @@ def build_twin(config: StationConfig, noise: bool = True):
     try:
         facet = TrueFacet.from_dict(sim.get("facet", {}))
         optics = TwinOptics.from_dict(sim.get("optics", {}))
+        assembly = TrueAssembly.from_dict(sim.get("assembly", {}))
     except ConfigError as exc:
         raise ConfigError(f"{config.path} [simulation]: {exc}") from None
     if not noise:
         optics = optics.noise_free()
-    geometry = config.geometry
+    geometry = getattr(config, "stated_geometry", None) or config.geometry
     if config.camera_record is not None:
         # The analysis uses the camera record (an estimate); the twin's camera is the physical one, which
         # the [camera] table describes.
         geometry = dataclasses.replace(geometry, camera=config.camera_record["stated"])
+    screen = None if assembly.screen_is_ideal else TrueScreen(geometry.screen, assembly)
+    if not assembly.ideal:
+        geometry = true_geometry(geometry, assembly)
     if config.ensemble is not None:
+        if screen is not None:
+            raise ConfigError(f"{config.path} [simulation.assembly] bends or rescales the screen, which the "
+                              "heliostat twin does not trace: leave its screen terms out for a heliostat station")
         from ..twin.heliostat import TwinHeliostat, heliostat_from_simulation
         heliostat = heliostat_from_simulation(sim, config.ensemble, f"{config.path} [simulation]")
         return TwinHeliostat(geometry, config.ensemble, heliostat, optics)
     if "heliostat" in sim:
         raise ConfigError(f"{config.path} [simulation.heliostat] describes a heliostat, but [station] facet is a "
                           "single facet's file")
-    return TwinStation(geometry, config.design, facet, optics)
+    return TwinStation(geometry, config.design, facet, optics, screen_shape=screen)
 
 
+def build_population(config: StationConfig):
+    """``[simulation.population]`` (:class:`~sofast_station.twin.population.FacetPopulation`), or None when the
+    station measures the same facet every time."""
+    from ..twin.population import FacetPopulation
+
+    table = config.simulation.get("population")
+    if not table:
+        return None
+    try:
+        return FacetPopulation.from_dict(table)
+    except ConfigError as exc:
+        raise ConfigError(f"{config.path} [simulation.population]: {exc}") from None
+
+
+@dataclass
 class SimulatedStation(Station):
-    """The simulated station, with faults injected per serial for tests of the production loop."""
+    """The simulated station, with faults injected per serial for tests of the production loop, and with
+    ``[simulation.population]`` a line whose facets differ, each one placed by the simulated robot (:meth:`place`)."""
+
+    population: object | None = None
+    #: The twin of ``[simulation.facet]`` (what ``inspect`` measures), every drawn facet's starting point.
+    nominal_twin: object | None = None
+    #: The facets placed so far in this run, and the serial in the fixture.
+    placed: int = 0
+    serial_in_fixture: str | None = None
+    _next: dict = field(default_factory=dict, repr=False)
+
+    def place(self, request) -> None:
+        """The simulated robot puts the facet of *request* in the fixture (called before its trigger).
+
+        With a population, a serial not in the fixture is the line's next facet: facet k of the run, drawn
+        by :meth:`~sofast_station.twin.population.FacetPopulation.draw`; the same serial again (the robot
+        placing it once more) is the same facet. The next facet's twin is prepared in the background while
+        this one is measured, so a cycle does not wait for it.
+        """
+        if self.population is None or request.serial == self.serial_in_fixture:
+            return
+        twin = self._twin_of(self.placed)
+        self.twin = self.camera.twin = self.range_finder.twin = twin
+        self.serial_in_fixture = request.serial
+        self.placed += 1
+        self._prepare(self.placed)
+
+    def _twin_of(self, index: int):
+        job = self._next.pop(index, None)
+        if job is not None:
+            job["thread"].join()
+            if "twin" in job:
+                return job["twin"]
+            log.warning("the simulated facet %d could not be prepared in the background (%s); preparing it now",
+                        index, job.get("error"))
+        return self.nominal_twin.with_facet(self.population.draw(self.nominal_twin.facet, index,
+                                                                 self.config.design))
+
+    def _prepare(self, index: int) -> None:
+        job: dict = {}
+
+        def run():
+            try:
+                job["twin"] = self.nominal_twin.with_facet(self.population.draw(self.nominal_twin.facet, index,
+                                                                                self.config.design))
+            except Exception as exc:          # said when the facet is placed, and made again then
+                job["error"] = exc
+        job["thread"] = threading.Thread(target=run, name=f"twin-facet-{index}", daemon=True)
+        self._next = {index: job}
+        job["thread"].start()
 
     def arm_faults(self, serial: str) -> float:
         """Arm this cycle's fault (if [simulation.faults] names the serial); returns the seconds the
@@ -87,6 +167,20 @@ class SimulatedStation(Station):
         if optics is not None and design is not None:
             truth["optics"] = truth_optics(self.twin, valid, design, optics, self.design_traces)
         return truth
+
+    def handheld_camera(self, settings, seed: int | None = None):
+        """The second camera of ``calibrate screen``, with the twin's views of the screen
+        (:class:`~sofast_station.station.simulated_commission.SimulatedHandheld`: a Camera with ``place``)."""
+        from .simulated_commission import SimulatedHandheld
+
+        return SimulatedHandheld(self, settings, seed)
+
+    def mirror_placer(self, target, seed: int | None = None):
+        """The reference mirror of ``calibrate pose`` in the twin's fixture
+        (:class:`~sofast_station.station.simulated_commission.SimulatedMirror`: ``place`` and ``restore``)."""
+        from .simulated_commission import SimulatedMirror
+
+        return SimulatedMirror(self, target, seed)
 
     def reference_certificate(self) -> dict:
         """The facet in the fixture as a reference's certificate (``calibrate geometry``): the twin's truth,
@@ -129,7 +223,7 @@ def open_simulated(config: StationConfig, radiometric: RadiometricRecord, seed: 
     if bad:
         raise ConfigError(f"{config.path} [simulation.faults]: unknown fault kind(s) {bad}; use {FAULT_KINDS}")
     return SimulatedStation(config=config, display=display, camera=camera, range_finder=rangefinder,
-                            radiometric=radiometric, twin=twin)
+                            radiometric=radiometric, twin=twin, nominal_twin=twin, population=build_population(config))
 
 
 def truth_optics(twin, kept: np.ndarray, design, settings, cache=None) -> dict:

@@ -42,6 +42,11 @@ _BLOCK_PX = 96_000
 #: (:meth:`TwinStation.adopt_trace`). ``_hit_range_m`` is the distance from the camera centre to the hit.
 TRACE_ARRAYS = ("_x_facet_m", "_hit_range_m", "_slope", "_u_scr_m", "_path_m", "_on_screen")
 
+#: :meth:`TwinStation.with_facet` keeps the traced outline while the new shape moves its image by less than
+#: this, pixels: a fifth of the corner location's standard uncertainty ([uncertainty] corner_px = 0.1 px),
+#: and about the 64 sub-rays' own resolution of an edge pixel (1/128 px) times three.
+MAX_KEPT_EDGE_SHIFT_PX = 0.02
+
 #: The thread that finishes half of every captured frame (shared by all twins of the process).
 _FINISHER: ThreadPoolExecutor | None = None
 _FINISHER_LOCK = threading.Lock()
@@ -125,6 +130,10 @@ class TwinStation:
     trace_only : bool
         Only trace (no display sampling, no photometry): one facet of a picture that several traces make
         together (:class:`~sofast_station.twin.heliostat.TwinHeliostat`); it cannot capture.
+    screen_shape : TrueScreen, optional
+        The panel as it really is (bowed, twisted, another pitch: :mod:`sofast_station.twin.assembly`);
+        a flat screen of the stated pitch by default. *geometry* then holds the stated screen (the units
+        the fringes encode positions in) and the true poses.
 
     Attributes
     ----------
@@ -140,7 +149,7 @@ class TwinStation:
 
     def __init__(self, geometry: StationGeometry, design: FacetDesign, facet: TrueFacet = TrueFacet(),
                  optics: TwinOptics = TwinOptics(), supersample: int = 8, edge_band_px: float = 2.0,
-                 edge_sampling: str = "area", trace_only: bool = False):
+                 edge_sampling: str = "area", trace_only: bool = False, screen_shape=None):
         if edge_sampling not in ("area", "point"):
             raise GeometryError(f"edge_sampling must be 'area' or 'point', got {edge_sampling!r}")
         self._edge_sampling = edge_sampling
@@ -149,6 +158,7 @@ class TwinStation:
         if not edge_band_px >= 1.0:
             raise GeometryError(f"edge_band_px must be at least 1 pixel, got {edge_band_px}")
         self.geometry = geometry
+        self.screen_shape = screen_shape
         self.design = design
         self.facet = facet
         self.optics = optics
@@ -260,27 +270,37 @@ class TwinStation:
         self._seen_idx = rel_idx[seen]
         x_facet = x_rel[seen]
         d_in_facet = d_rel[seen]
+        self._hit_range_m = t_rel[seen]        # (a heliostat's traces are merged by the nearest hit)
 
-        # Reflection about the exact true normal, then the screen plane.
+        self._reflect(x_facet, d_in_facet)
+
+    def _reflect(self, x_facet: np.ndarray, d_in_facet: np.ndarray) -> None:
+        """Reflect the seen pixels' rays (hitting at *x_facet*, directions *d_in_facet*, facet frame) about the
+        exact true normal onto the screen plane; fills the per-seen-pixel arrays."""
         _, zx, zy = self.surface.height_and_slopes(x_facet[:, 0], x_facet[:, 1])
         normal = np.column_stack([-zx, -zy, np.ones_like(zx)])
         normal /= np.linalg.norm(normal, axis=1, keepdims=True)
         d_out_facet = d_in_facet - 2.0 * np.sum(d_in_facet * normal, axis=1, keepdims=True) * normal
         x_scr = self.facet_to_screen.apply(x_facet)
         d_out_scr = self.facet_to_screen.apply_vector(d_out_facet)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            path_m = -x_scr[:, 2] / d_out_scr[:, 2]
-        hits_plane = np.isfinite(path_m) & (path_m > 0)
-        path_m = np.where(hits_plane, path_m, np.nan)
-        t_scr = x_scr + path_m[:, None] * d_out_scr
         screen = self.geometry.screen
-        u_scr_m = np.column_stack([t_scr[:, 0] + 0.5 * screen.width_m, t_scr[:, 1] + 0.5 * screen.height_m])
+        if self.screen_shape is None:
+            with np.errstate(invalid="ignore", divide="ignore"):
+                path_m = -x_scr[:, 2] / d_out_scr[:, 2]
+            hits_plane = np.isfinite(path_m) & (path_m > 0)
+            path_m = np.where(hits_plane, path_m, np.nan)
+            t_scr = x_scr + path_m[:, None] * d_out_scr
+            u_scr_m = np.column_stack([t_scr[:, 0] + 0.5 * screen.width_m, t_scr[:, 1] + 0.5 * screen.height_m])
+        else:
+            # the panel as it really is: positions in the stated pitch's metres, as the fringes encode them
+            path_m, u_scr_m = self.screen_shape.trace(x_scr, d_out_scr)
+            hits_plane = np.isfinite(path_m)
         with np.errstate(invalid="ignore"):
             on_screen = hits_plane & (u_scr_m[:, 0] >= 0) & (u_scr_m[:, 0] < screen.width_m) \
                 & (u_scr_m[:, 1] >= 0) & (u_scr_m[:, 1] < screen.height_m)
 
         self._x_facet_m = x_facet
-        self._hit_range_m = t_rel[seen]
+        self._d_in_facet = d_in_facet
         self._slope = np.column_stack([zx, zy])
         self._u_scr_m = u_scr_m
         self._path_m = path_m
@@ -353,6 +373,57 @@ class TwinStation:
         levels = np.arange(256, dtype=np.float64) / 255.0
         self._luminance_lut = (optics.display_floor
                                + (1.0 - optics.display_floor) * levels ** optics.display_gamma).astype(np.float32)
+
+    def with_facet(self, facet: TrueFacet) -> "TwinStation":
+        """The same station with another facet in the fixture (a production line's next facet).
+
+        With the placement unchanged, only the shape differs by micrometres: every pixel that saw the
+        facet is intersected again with the new surface (Newton from its old hit, to 1e-12 m), reflected
+        about the new exact normal and followed to the screen; the facet's outline in the image, and so
+        each edge pixel's area coverage, is kept. A new trace would move the outline's image by
+        less than :data:`MAX_KEPT_EDGE_SHIFT_PX` (bounded here: the largest height change along the
+        outline times the steepest ray there, over the pixel's footprint), i.e. change an edge pixel's
+        coverage by a sub-ray or two; beyond that, or with another placement, the station is traced anew.
+        Every figure of the twin's truth is the new surface's, exactly. Shares the unchanged read-only
+        arrays.
+        """
+        if facet.placement_mm != self.facet.placement_mm or facet.placement_mrad != self.facet.placement_mrad:
+            return self._traced_anew(facet)
+        surface = TrueSurface(facet, self.design)
+        if self._edge_shift_px(surface) > MAX_KEPT_EDGE_SHIFT_PX:
+            return self._traced_anew(facet)
+        twin = copy.copy(self)
+        twin.facet, twin.surface = facet, surface
+        twin._samples = {}
+        for name in ("screen_position_m", "surface_point_facet_m", "slope_true", "on_screen"):
+            twin.__dict__.pop(name, None)
+        start = time.perf_counter()
+        d_in = self._d_in_facet
+        v_cam = self.camera_to_facet.translation
+        t_old = np.einsum("ij,ij->i", self._x_facet_m - v_cam, d_in)
+        t_new = surface.intersect(v_cam, d_in, start_m=t_old)
+        twin._reflect(v_cam + t_new[:, None] * d_in, d_in)
+        twin._prepare_sampling()
+        twin.trace_seconds = time.perf_counter() - start
+        return twin
+
+    def _traced_anew(self, facet: TrueFacet) -> "TwinStation":
+        return TwinStation(self.geometry, self.design, facet, self.optics, supersample=self._supersample,
+                           edge_band_px=self._edge_band_px, edge_sampling=self._edge_sampling)
+
+    def _edge_shift_px(self, surface: TrueSurface) -> float:
+        """How far, in pixels, the facet's outline would move in the image if this station's surface became
+        *surface* (first order: height change along the outline times the ray's tilt, over the footprint)."""
+        corners = self.design.outline_m
+        steps = np.linspace(0.0, 1.0, 256, endpoint=False)[:, None]
+        xy = np.concatenate([c0 + steps * (c1 - c0) for c0, c1 in zip(corners, np.roll(corners, -1, axis=0))])
+        z_old = self.surface.height(xy[:, 0], xy[:, 1])
+        dz = np.abs(surface.height(xy[:, 0], xy[:, 1]) - z_old)
+        ray = np.column_stack([xy, z_old]) - self.camera_to_facet.translation
+        distance = np.linalg.norm(ray, axis=1)
+        tilt = np.hypot(ray[:, 0], ray[:, 1]) / np.abs(ray[:, 2])
+        footprint_m = distance / float(np.max(np.diag(self.geometry.camera.matrix)[:2]))
+        return float(np.max(dz * tilt / footprint_m))
 
     def with_optics(self, optics: TwinOptics) -> "TwinStation":
         """The same traced station with other optics (exposure, noise, display): no new trace.

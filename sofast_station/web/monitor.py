@@ -132,6 +132,10 @@ async def _serve(config, web: WebSettings | None, opcua: OpcUaSettings | None, o
         await asyncio.wait([waiter, *tasks], return_when=asyncio.FIRST_COMPLETED)
     finally:
         if server is not None:
+            # End the pages' event streams first (each says "the monitor stopped" and closes), then stop the
+            # server: an open stream left to the server's shutdown is cancelled with a traceback.
+            app.hub.stopping = True
+            await asyncio.sleep(0.3)
             server.should_exit = True
         if publisher is not None:
             await publisher.stop()

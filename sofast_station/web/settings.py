@@ -50,6 +50,9 @@ class WebSettings:
         Local times ("HH:MM") at which a shift starts; the page's shift runs from the latest one.
     nice : int
         How much lower than the station the monitor process runs (os.nice increment, 0-19).
+    stale_after_s : float
+        The last verdict is shown greyed (no verdict colour), with its age, once it is older than this, in
+        seconds (60: three cycles of a 20 s line), or whenever the station is offline.
     """
 
     host: str = "127.0.0.1"
@@ -61,6 +64,7 @@ class WebSettings:
     certificate: str = ""
     key: str = ""
     allow_plain_http: bool = False
+    stale_after_s: float = 60.0
 
     @property
     def tls(self) -> bool:
@@ -150,7 +154,7 @@ def web_settings(config) -> WebSettings:
     if not isinstance(table, dict):
         raise ConfigError(f"{where} must be a table")
     _unknown(table, {"host", "port", "token", "keep_pictures", "shift_starts", "nice", "certificate", "key",
-                     "allow_plain_http"}, where)
+                     "allow_plain_http", "stale_after_s"}, where)
     d = WebSettings()
     host = table.get("host", d.host)
     if not isinstance(host, str) or not host.strip():
@@ -173,12 +177,17 @@ def web_settings(config) -> WebSettings:
     nice = table.get("nice", d.nice)
     if isinstance(nice, bool) or not isinstance(nice, int) or not 0 <= nice <= 19:
         raise ConfigError(f"{where} nice = {nice!r}: must be a whole number from 0 to 19")
+    stale = table.get("stale_after_s", d.stale_after_s)
+    if isinstance(stale, bool) or not isinstance(stale, (int, float)) or not 1.0 <= stale <= 86400.0:
+        raise ConfigError(f"{where} stale_after_s = {stale!r}: must be a number of seconds from 1 to 86400 (the "
+                          "last verdict is greyed once it is this old; 60 is three cycles of a 20 s line)")
     allow_plain = table.get("allow_plain_http", d.allow_plain_http)
     if not isinstance(allow_plain, bool):
         raise ConfigError(f"{where} allow_plain_http = {allow_plain!r}: must be true or false")
     cert, key = _pair(config, table, ("certificate", "key"), where, "(PEM files) to serve the page over HTTPS",
                       _check_tls_pair)
-    settings = WebSettings(host.strip(), port, token, keep, tuple(sorted(starts)), nice, cert, key, allow_plain)
+    settings = WebSettings(host.strip(), port, token, keep, tuple(sorted(starts)), nice, cert, key, allow_plain,
+                           float(stale))
     settings.exposure(where)
     return settings
 

@@ -85,7 +85,55 @@ def test_report_spc_draws_charts_and_writes_the_summary_workbook(station, tmp_pa
     assert fx[2] == 108
     facets = wb["facets"]
     assert isinstance(facets["A2"].value, dt.datetime) and isinstance(facets["C2"].value, float)
-    assert wb["yield"]["H2"].value == 1.0
+    yield_sheet = wb["yield"]
+    header = [c.value for c in yield_sheet[1]]
+    assert header[2:7] == ["pass", "fail", "indeterminate", "invalid", "fault"]
+    assert yield_sheet.cell(row=2, column=header.index("yield") + 1).value == 1.0
+
+
+def test_spc_charts_are_scaled_to_their_data_and_name_a_far_limit(station, tmp_path, monkeypatch):
+    """Scaled to the specification limits, the data were a flat line and the control limits invisible; the
+    journal's path was in the title."""
+    from sofast_station.report import control_charts as report_spc
+
+    figures = []
+    monkeypatch.setattr(report_spc, "savefig_atomic", lambda fig, path, dpi: figures.append(fig) or path)
+    journal = tmp_path / "j.sqlite3"
+    synthetic_journal(journal, 60)
+    assert main(["report", "spc", "--config", str(station), "--journal", str(journal), "--out", str(tmp_path)]) == 0
+    charts = figures[0]
+    title = charts._suptitle.get_text()
+    assert str(journal) not in title and "j.sqlite3" not in title
+    assert title.startswith("Control charts, recipe default (dish-5.33): 60 facets, 2026-11-20 06:00 to")
+    by_title = {ax.get_title().split(" (")[0]: ax for ax in charts.axes}
+    rms = by_title["slope error RMS vs parabola"]              # data about 0.7 mrad, limit 2 mrad
+    low, high = rms.get_ylim()
+    assert high < 1.0 and low > 0.5, (low, high)
+    assert any(t.get_text() == "USL 2 mrad above the view" for t in rms.texts)
+    lines = [ln.get_ydata()[0] for ln in rms.get_lines() if len(set(ln.get_ydata())) == 1]
+    assert any(low < y < high for y in lines)                   # the control limits are in view
+    fx = by_title["focal length f_x"]                           # 5.42 +- 0.01 m, USL 5.4366 m: in view
+    assert fx.get_ylim()[1] > 5.4366 and any("USL 5.4366" in t for t in fx.get_legend_handles_labels()[1])
+    assert rms.get_ylabel() == "slope error RMS vs parabola (mrad)"
+
+
+def test_acceptance_works_out_of_the_box_with_human_names_and_units(tmp_path, monkeypatch, capsys):
+    """The shipped station.toml had no contract, and the axes showed record keys without units."""
+    from sofast_station.report import acceptance as report_acceptance
+
+    figures = []
+    monkeypatch.setattr(report_acceptance, "savefig_atomic", lambda fig, path, dpi: figures.append(fig) or path)
+    journal = tmp_path / "j.sqlite3"
+    synthetic_journal(journal, 120, seed=2)
+    shipped = Path(__file__).parents[2] / "station.toml"
+    assert main(["report", "acceptance", "--config", str(shipped), "--journal", str(journal),
+                 "--out", str(tmp_path)]) in (0, 1)
+    out = capsys.readouterr().out
+    assert "slope deviation SD_2D,RMS: contract 1 mrad (at most +0.5 mrad)" in out
+    assert str(journal) not in figures[0]._suptitle.get_text()
+    labels = [ax.get_xlabel() for ax in figures[0].axes]
+    assert labels == ["slope error RMS vs design (mrad)", "focal length f_x (m)"], labels
+    assert "slope_rms_mrad" not in " ".join(labels)
 
 
 def test_report_spc_refuses_a_reversed_period_and_a_bad_date(station, tmp_path, caplog):

@@ -52,16 +52,23 @@ def _book_serials(data: Path) -> list[str]:
     return sorted(r["serial"] for b in (data / "archive").glob("*.xlsx") for r in read_workbook(b))
 
 
-def test_a_late_result_keeps_its_figures_and_its_dump(small_station_toml, tmp_path):
+def test_a_late_result_keeps_its_figures_its_dump_and_the_timeout_as_its_cycle_time(small_station_toml, tmp_path):
     """The analysis of SIM-0002 ends after the deadline: the robot hears "timeout", the row has the
-    figures, marked late, and the frames are dumped."""
+    figures, marked late, and the frames are dumped. Its cycle ended when the robot was answered: the
+    console's line and summary and the page's shift summary (from the journal) give the same cycle times
+    (the console once counted the wait for the late result, 19.87 s, where the page showed 10.6 s)."""
+    from sofast_station.result.shift import ShiftTally, cycle_seconds, summarize
+    from sofast_station.station.console import summary_text
+
     # the deadline is far beyond a facet's time even on a loaded machine; the slow analysis waits past it
     cfg = _config(small_station_toml, tmp_path / "d", faults={"SIM-0002": "slow-analysis"},
                   run={"deadline_s": 20.0}, slow_s=24.0)
-    service = Service(cfg, simulated_facets=3, console=lambda line: None)
+    lines: list[str] = []
+    service = Service(cfg, simulated_facets=3, console=lines.append)
     robot = service.trigger
+    tally = ShiftTally()                                 # what `sofast-station run` keeps for its summary
     try:
-        service.runner.run()
+        service.runner.run(on_outcome=lambda o: tally.add(o.record))
     finally:
         service.close()
     finals = {a.serial: a for a in robot.answers if a.kind in ("done", "fault")}
@@ -80,6 +87,16 @@ def test_a_late_result_keeps_its_figures_and_its_dump(small_station_toml, tmp_pa
     assert late.dump_status == "written"
     assert read_dump(late.dump_path, load_frames=False).cycle_id == late.cycle_id
     assert _book_serials(cfg.data_dir) == ["SIM-0001", "SIM-0002", "SIM-0003"]
+    # the late facet's cycle is the timeout's (about the 20 s deadline), not the ~25 s until its late result
+    timings = rec["timings_s"]
+    assert 19.0 < timings["until_journal"] < 21.0 < timings["until_late_result"], timings
+    console_summary, page_summary = tally.summary(), summarize([r.record for r in rows.values()])
+    assert console_summary.cycle_worst_s == page_summary.cycle_worst_s == max(
+        cycle_seconds(r.record) for r in rows.values())
+    assert console_summary.cycle_median_s == page_summary.cycle_median_s
+    assert summary_text(console_summary).splitlines()[-1] == summary_text(page_summary).splitlines()[-1]
+    timeout_line = next(ln for ln in lines if "SIM-0002" in ln)
+    assert f"{timings['until_journal']:6.2f}s" in timeout_line, timeout_line
 
 
 def test_a_killed_worker_is_replaced_and_the_line_goes_on(small_station_toml, tmp_path):

@@ -252,3 +252,86 @@ def test_the_page_is_served_over_https_with_its_certificate(small_station_toml, 
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.communicate()
+
+
+# --- issue 29: what the page shows -------------------------------------------------------------------------
+
+def _journal_records(data, records) -> None:
+    from sofast_station.archive import Journal
+
+    data.mkdir(parents=True, exist_ok=True)
+    with Journal(data / "journal.sqlite3") as journal:
+        for i, rec in enumerate(records):
+            journal.append(f"20261203T0000{i:05d}0-{i:08x}", rec)
+
+
+def _facet(i: int, verdict: str, recipe: str = "default", **figures) -> dict:
+    import datetime
+
+    from tests.report.test_quality_reports import SAMPLE
+
+    rec = json.loads(json.dumps(SAMPLE))
+    rec.update(serial=f"F-{i:04d}", verdict=verdict, recipe=recipe, cycle_id=f"c{i}",
+               time=(datetime.datetime.now().astimezone() - datetime.timedelta(seconds=60 - i)).isoformat(),
+               **{k: v for k, v in figures.items() if k != "rms"})
+    if "rms" in figures:
+        rec["slope_rms_mrad"]["design"]["magnitude"] = figures["rms"]
+    rec.setdefault("timings_s", {})["until_journal"] = 1.0 + 0.01 * i
+    return rec
+
+
+def test_indeterminate_facets_are_counted_on_the_page(small_station_toml):
+    """Two indeterminate facets showed "2 facets" and 0 in every class, yield 0 %."""
+    from sofast_station.web.data import LineData
+    from sofast_station.web.opcua import values
+    from sofast_station.web.render import shift_html
+
+    config = load_config(small_station_toml)
+    _journal_records(config.data_dir, [_facet(1, "indeterminate"), _facet(2, "indeterminate"), _facet(3, "pass")])
+    snap = LineData(config, WebSettings(shift_starts=("00:00",))).snapshot()
+    html = shift_html(snap)
+    assert "<b class='indeterminate-t'>2</b><span>indeterminate</span>" in html, html
+    assert "<b class='pass-t'>1</b><span>pass</span>" in html and "33.3 %" in html
+    assert values(snap)["Counters/Indeterminate"] == 2
+
+
+def test_the_charts_draw_the_limits_of_the_last_facets_recipe(small_station_toml):
+    """A facet failing a 0.7 mrad recipe limit was drawn far below the default recipe's 3 mrad line."""
+    from sofast_station.web.data import LineData
+    from sofast_station.web.render import shift_html
+
+    small_station_toml.write_text(small_station_toml.read_text() + '\n[recipes.strict]\nserial_pattern = "^S-"\n'
+                                  'limits = { max_slope_rms_mrad = { design = 0.7, parabola = 0.6 } }\n')
+    config = load_config(small_station_toml)
+    facets = [_facet(i, "pass", rms=0.5 + 0.01 * i) for i in range(5)]
+    facets += [_facet(10 + i, "fail" if i == 3 else "pass", "strict", rms=0.6 + 0.04 * i) for i in range(4)]
+    _journal_records(config.data_dir, facets)
+    snap = LineData(config, WebSettings(shift_starts=("00:00",))).snapshot()
+    chart = snap["chart"]
+    assert chart["recipe"] == "strict" and len(chart["serials"]) == 4       # the last facet's recipe only
+    rms = chart["panels"][1]
+    assert [lim for lim in rms["limits"] if lim[2] == "limit vs design"][0][0] == 0.7
+    html = shift_html(snap)
+    assert "Recipe strict" in html and "limit vs design 0.700" in html      # drawn: 0.72 failed it
+    assert "3.000" not in html
+    # readable axes: round ticks between the data and the limits, not only at the limits
+    svg = html[html.index("slope error RMS"):]
+    ticks = [t for t in ("0.60", "0.65", "0.70", "0.75") if f">{t}</text>" in svg]
+    assert len(ticks) >= 3, svg
+
+
+def test_a_limit_far_from_the_data_is_named_not_drawn():
+    from sofast_station.web.render import svg_chart
+
+    svg = svg_chart("slope error RMS (mrad)", [("vs design", [0.50, 0.52, 0.51], "#fff")],
+                    [(3.0, "#f00", "limit vs design")], decimals=3, unit="mrad")
+    assert "limit vs design 3.000" not in svg and "beyond the view: limit vs design 3 mrad ↑" in svg
+    assert ">0.50<" in svg or ">0.500<" in svg
+
+
+def test_the_page_has_an_icon(small_station_toml):
+    config = load_config(small_station_toml)
+    app = create_app(config, WebSettings())
+    for path in ("/favicon.ico", "/favicon.svg"):
+        status, headers, body = _call(app, "GET", path)
+        assert status == 200 and headers["content-type"].startswith("image/svg+xml") and b"<svg" in body

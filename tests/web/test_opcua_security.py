@@ -70,9 +70,18 @@ def test_passwords_without_encryption_are_a_decision(tmp_path):
 
 
 class _Data:
-    """What the publisher needs of LineData to start (it publishes nothing in this test)."""
+    """What the publisher needs of LineData to start (it publishes nothing in this test): the station's name
+    and recipes (the analog items' EURange comes from the default recipe's limits)."""
 
     config = SimpleNamespace(name="line-1")
+
+    @property
+    def recipes(self):
+        from sofast_station.config import load_config
+        from sofast_station.recipes import recipes_from_config
+        from tests.conftest import ROOT
+
+        return recipes_from_config(load_config(ROOT / "station.toml", use_camera_record=False))
 
     def close(self):
         pass
