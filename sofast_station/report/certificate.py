@@ -232,12 +232,9 @@ def draw_heliostat_certificate(record: dict, *, ensemble, limit_mrad: float | No
     reasons = record.get("reasons") or []
     lines.append("Verdict: " + str(record["verdict"]).upper() + (": " + "; ".join(reasons) if reasons else
                                                                  ": every facet within its limits"))
-    import textwrap
+    y -= 0.008
     for line in lines:
-        for part in textwrap.wrap(line, 118):
-            fig.text(0.06, y, part, fontsize=8.5)
-            y -= 0.016
-        y -= 0.004
+        y = _wrapped(fig, _LEFT, y, line, 110, fontsize=8.5) - 0.004
     top = min(y - 0.01, 0.80)
     ax = fig.add_axes((0.10, 0.37, 0.80, top - 0.37))
     draw_facet_map_on(ax, record, ensemble, limit_mrad, fontsize=7 if ensemble.n_facets > 9 else 8)
