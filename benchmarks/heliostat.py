@@ -14,7 +14,9 @@ analyse_heliostat` with every facet's uncertainty and the canting's). Each gets 
 first analysis (cold: the sensitivities computed, the kernels and caches filled) is reported on its own,
 then the median (min - max) of the timed runs, wall and process CPU (both threads), and the machine's load
 average before and after (the machine is shared: a busy machine makes every number longer, the ratios
-less so). The heliostats' optics (three traces and the canting's Monte Carlo) are timed apart.
+less so). The 2x2's ratio to the single facet is also taken in turn: the two analysed one after the other,
+run by run, the median of the pairs' ratios (a pair sees nearly one load; timed apart they may not). The
+heliostats' optics (three traces and the canting's Monte Carlo) are timed apart.
 
 ``--population N`` draws N 2x2 heliostats (canting 1 mrad RMS per facet and axis, facet heights to 0.2 mm,
 placements +-3 mm / +-2 mrad, the twin's default noise) at full resolution and prints the canting errors
@@ -61,6 +63,22 @@ def timed(fn, runs: int) -> tuple[float, list[float], list[float]]:
     return cold, walls, cpus
 
 
+def in_turn(one, other, runs: int) -> tuple[float, float]:
+    """*other*'s time over *one*'s, the two run one after the other *runs* times: the median of the pairs'
+    ratios, wall and process CPU. Timed apart, minutes from each other on a shared machine, the two see
+    different loads; a pair sees nearly the same."""
+    walls, cpus = [], []
+    for _ in range(runs):
+        times = []
+        for fn in (one, other):
+            t, c = time.perf_counter(), time.process_time()
+            fn()
+            times.append((time.perf_counter() - t, time.process_time() - c))
+        walls.append(times[1][0] / times[0][0])
+        cpus.append(times[1][1] / max(times[0][1], 1e-9))
+    return statistics.median(walls), statistics.median(cpus)
+
+
 def summary(name: str, cold: float, walls: list, cpus: list) -> str:
     return (f"{name:34s} cold {cold:6.2f} s   median {statistics.median(walls):6.3f} s "
             f"({min(walls):.3f} - {max(walls):.3f}), CPU {statistics.median(cpus):6.3f} s")
@@ -105,7 +123,7 @@ def single_facet(scale: int, runs: int, rng):
     cam = cfg.geometry.camera
     print(f"single facet: {cfg.design.name}, camera {cam.width_px} x {cam.height_px}, {a['n_points']:,} points")
     print(summary("  analysis (with U)", cold, walls, cpus))
-    return statistics.median(walls), statistics.median(cpus)
+    return statistics.median(walls), statistics.median(cpus), once
 
 
 def heliostat(kind: str, scale: int, runs: int, rng, optics_runs: int, with_u: bool = True):
@@ -154,7 +172,7 @@ def heliostat(kind: str, scale: int, runs: int, rng, optics_runs: int, with_u: b
     if optics_runs and cfg.optics is not None:
         o_cold, o_walls, o_cpus = timed(lambda: analysis_optics(r, ens, cfg.optics), optics_runs)
         print(summary("  optics (3 traces + Monte Carlo)", o_cold, o_walls, o_cpus))
-    return statistics.median(walls), statistics.median(cpus)
+    return statistics.median(walls), statistics.median(cpus), once
 
 
 def population(n: int, scale: int, rng) -> None:
@@ -348,12 +366,15 @@ def main(argv=None) -> int:
     prepare_analysis_process()
     print(f"load average before: {load()}")
     rng = np.random.default_rng(args.seed)
-    one_wall, one_cpu = single_facet(scale, runs, rng)
-    two_wall, two_cpu = heliostat("2x2", scale, runs, rng, optics_runs=max(1, runs // 2))
+    one_wall, one_cpu, one_once = single_facet(scale, runs, rng)
+    two_wall, two_cpu, two_once = heliostat("2x2", scale, runs, rng, optics_runs=max(1, runs // 2))
     # (quick: the 5x5 without its U, whose 25 facets' sensitivities take most of a minute to compute cold)
-    five_wall, five_cpu = heliostat("5x5", scale, runs, rng, optics_runs=max(1, runs // 2), with_u=not args.quick)
+    five_wall, five_cpu, _ = heliostat("5x5", scale, runs, rng, optics_runs=max(1, runs // 2), with_u=not args.quick)
     print(f"2x2 against one facet: {two_wall / one_wall:.2f} x the wall time, {two_cpu / one_cpu:.2f} x the CPU "
           f"(target: within 2 x)")
+    walls, cpus = in_turn(one_once, two_once, runs)
+    print(f"2x2 against one facet, taken in turn ({runs} pairs, each on the same load): median {walls:.2f} x the "
+          f"wall time, {cpus:.2f} x the CPU")
     print(f"5x5: {five_wall:.2f} s wall, {five_cpu:.2f} s CPU (target: at most 10 s)")
     if args.population:
         population(args.population, scale, rng)
