@@ -21,18 +21,21 @@ from .errors import ConfigError
 from .calibrate.commissioned import geometry_in_force
 from .calibrate.settings import CALIBRATION_KEYS, parse_calibration_table
 from .config_schema import add_dataclass_keys, validate
+from .ensemble import EnsembleDesign, is_ensemble_file, load_ensemble
 from .facet import FacetDesign, load_facet
 from .files import read_toml
 from .fringes import FringeSet
 from .geometry import CameraIntrinsics, ScreenSpec, StationGeometry
 from .layout import layout_station
+from .measure.heliostat import HeliostatSettings
 from .measure.pipeline import AnalysisSettings
 from .measure.uncertainty import InputUncertainties
 from .result.verdict import Limits, Quality, limits_from_table, quality_from_table
 
 log = logging.getLogger(__name__)
 
-for _section, _cls in (("analysis", AnalysisSettings), ("limits", Limits), ("quality", Quality)):
+for _section, _cls in (("analysis", AnalysisSettings), ("limits", Limits), ("quality", Quality),
+                       ("heliostat", HeliostatSettings)):
     add_dataclass_keys(_section, _cls)
 
 _STATION_KEYS = {"name", "data_dir", "backend", "facet"}
@@ -83,6 +86,11 @@ class StationConfig:
     #: Standard uncertainties of the station's inputs (``[uncertainty]``; docs/uncertainty.md), with a camera
     #: record's stated standard deviations where it has them, and the screen and pose records'.
     uncertainty: InputUncertainties = field(default_factory=InputUncertainties)
+    #: When ``[station] facet`` names a heliostat file: the heliostat (``design`` is then its bounding outline,
+    #: what the station is laid out for; docs/heliostats.md); None for a single facet.
+    ensemble: EnsembleDesign | None = None
+    #: ``[heliostat]``: how a heliostat's facets are told apart.
+    heliostat: HeliostatSettings = field(default_factory=HeliostatSettings)
     #: The geometry station.toml states ([camera] or its record, [screen], [layout]); ``geometry`` is what the
     #: analysis uses: this, or the screen and pose records in force (:mod:`sofast_station.calibrate.commissioned`).
     stated_geometry: StationGeometry | None = None
@@ -91,8 +99,9 @@ class StationConfig:
 
     @property
     def config_hash(self) -> str:
-        """SHA-256 (first 16 hex digits) of the station file and the facet file as loaded."""
-        blob = json.dumps({"station": self.raw, "facet": self.design.to_dict()}, sort_keys=True).encode()
+        """SHA-256 (first 16 hex digits) of the station file and the facet (or heliostat) file as loaded."""
+        design = self.design.to_dict() if self.ensemble is None else self.ensemble.to_dict()
+        blob = json.dumps({"station": self.raw, "facet": design}, sort_keys=True).encode()
         return hashlib.sha256(blob).hexdigest()[:16]
 
 
@@ -132,7 +141,12 @@ def load_config(path: str | Path, use_camera_record: bool = True) -> StationConf
     if not data_dir.is_absolute():
         data_dir = base / data_dir
     facet_path = base / _need(st, "facet", f"{where} [station]")
-    design = load_facet(facet_path)
+    ensemble = None
+    if is_ensemble_file(facet_path):      # a heliostat: laid out for its bounding outline
+        ensemble = load_ensemble(facet_path)
+        design = ensemble.layout_design()
+    else:
+        design = load_facet(facet_path)
     camera = _camera(raw.get("camera", {}), f"{where} [camera]")
     scr = raw.get("screen", {})
     _check_keys(scr, {"width_px", "height_px", "pitch_m", "pitch_x_m", "pitch_y_m"}, f"{where} [screen]")
@@ -195,12 +209,17 @@ def load_config(path: str | Path, use_camera_record: bool = True) -> StationConf
                 del checked[key]
     uncertainty = uncertainty.with_geometry_record(checked)
     uncertainty = _with_radiometric_record(uncertainty, data_dir, radiometric, geometry, fringes)
+    heliostat = HeliostatSettings(**raw.get("heliostat", {}))
+    if ensemble is None and (raw.get("heliostat") or limits.max_canting_mrad is not None):
+        raise ConfigError(f"{where}: [heliostat] and [limits] max_canting_mrad are for a heliostat, but [station] "
+                          f"facet = {str(st['facet'])!r} is a single facet's file; name a heliostat file "
+                          "(a [heliostat] table, docs/heliostats.md) or remove them")
     return StationConfig(path=path, name=str(st.get("name", path.stem)), data_dir=data_dir, backend=backend,
                          facet_path=facet_path, design=design, geometry=geometry, fringes=fringes,
                          analysis=analysis, limits=limits, quality=quality, radiometric_path=radiometric,
                          simulation=raw.get("simulation", {}), raw=raw, camera_record=camera_record,
-                         optics=_optics(raw, where), uncertainty=uncertainty, stated_geometry=stated_geometry,
-                         commissioned=commissioned)
+                         optics=_optics(raw, where), uncertainty=uncertainty, ensemble=ensemble,
+                         heliostat=heliostat, stated_geometry=stated_geometry, commissioned=commissioned)
 
 
 def _check_camera_uncertainty(uncertainty, camera, where: str) -> None:

@@ -163,6 +163,7 @@ SECTIONS: dict[str, dict[str, Key]] = {
         "max_spot_radius_mrad": _pos("radius holding 90 % of the power, seen from the facet, mrad"),
         "max_centroid_offset_mrad": _nonneg("beam centroid from the aim point, mrad"),
         "min_power_ratio": _nonneg("intercepted power / the design facet's"),
+        "max_canting_mrad": _nonneg("a heliostat's facets: largest canting error, mrad (docs/heliostats.md)"),
         "slope_rms_value": Key("str", choices=("measured", "corrected"),
                                doc="the slope RMS the limits apply to (docs/uncertainty.md)"),
         "decision_rule": Key("str", choices=("simple", "guarded"), doc="guarded: ISO 14253-1, with U"),
@@ -230,6 +231,8 @@ SECTIONS: dict[str, dict[str, Key]] = {
                                        "(twin.population.FacetPopulation)"),
         "distance_error_m": Key("float", low=-1.0, high=1.0, doc="the simulated range finder's error, m"),
         "faults": Key("section:simulation_faults", doc="SERIAL = fault kind, injected (tests, benchmarks)"),
+        "heliostat": Key("table", doc="[simulation.heliostat]: the twin's true heliostat (twin.heliostat, a rule "
+                                      "below)"),
         "hang_s": _pos("how long a 'hung-analysis' fault hangs, s"),
         "slow_s": _pos("how long a 'slow-analysis' fault delays the analysis, s"),
         "assembly": Key("table", doc="[simulation.assembly]: the twin's true screen and camera (twin.assembly."
@@ -260,6 +263,14 @@ SECTIONS: dict[str, dict[str, Key]] = {
         "handheld_camera_options": Key("table", doc="its options, as camera_options"),
     },
     "recipes": {"*": Key("section:recipe", doc="[recipes.NAME]")},
+    "heliostat": {
+        "window_margin": _nonneg("each facet's window: its nominal image widened by this fraction of its size"),
+        "window_margin_px": Key("int", low=0, doc="... and this many pixels"),
+        "min_area_fraction": _fraction("a facet covering less of its nominal image is hidden"),
+        "blank_dilation_px": Key("int", low=0, doc="neighbours blanked this far beyond their regions, px"),
+        "min_region_px": Key("int", low=1, doc="smaller responsive regions are specks, not facets"),
+        "facet_height_mm": _nonneg("standard uncertainty of a facet's height on the frame, mm"),
+    },
     "web": {"*": Key("any", doc="checked by its reader (READERS below)")},
     "opcua": {"*": Key("any", doc="checked by its reader (READERS below)")},
     "drift": {"*": Key("any", doc="checked by its reader (READERS below)")},
@@ -280,7 +291,7 @@ SECTIONS: dict[str, dict[str, Key]] = {
 #: The sections that may appear at the top of station.toml (the others are nested tables).
 TOP_LEVEL = ["station", "camera", "screen", "layout", "fringes", "analysis", "limits", "quality", "calibration",
              "optics", "simulation", "run", "archive", "devices", "recipes", "web", "opcua", "acceptance", "drift",
-             "uncertainty", "certificate"]
+             "uncertainty", "certificate", "heliostat"]
 
 
 def _check_value(key: Key, value, file: str, label: str, name: str) -> None:

@@ -19,6 +19,7 @@ import re
 from dataclasses import dataclass
 
 from .devices.protocols import FacetRequest
+from .ensemble import EnsembleDesign, is_ensemble_file, load_ensemble
 from .errors import ConfigError, UnknownRecipeError
 from .facet import FacetDesign, load_facet
 from .measure.pipeline import AnalysisSettings
@@ -39,12 +40,15 @@ class Recipe:
     serial_pattern: re.Pattern | None = None
     #: How the optical figures are computed (``[optics]`` with the recipe's ``optics`` table); None: off.
     optics: object | None = None
+    #: A heliostat recipe's heliostat (its facet file is a heliostat file; ``design`` is then its bounding
+    #: outline): the loop analyses its facets in one capture (docs/heliostats.md). None: a single facet.
+    ensemble: EnsembleDesign | None = None
 
 
 def default_recipe(config) -> Recipe:
-    """The station's own facet, settings and limits, under the name "default"."""
+    """The station's own facet (or heliostat), settings and limits, under the name "default"."""
     return Recipe("default", config.design, config.analysis, config.limits, config.quality,
-                  optics=getattr(config, "optics", None))
+                  optics=getattr(config, "optics", None), ensemble=getattr(config, "ensemble", None))
 
 
 def recipes_from_config(config) -> dict[str, Recipe]:
@@ -57,8 +61,18 @@ def recipes_from_config(config) -> dict[str, Recipe]:
         unknown = sorted(set(table) - _KEYS)
         if unknown:
             raise ConfigError(f"{where} has unknown key(s) {', '.join(unknown)}; allowed: {', '.join(sorted(_KEYS))}")
-        design = load_facet(config.path.parent / table["facet"]) if "facet" in table else config.design
+        design, ensemble = config.design, getattr(config, "ensemble", None)
+        if "facet" in table:
+            path = config.path.parent / table["facet"]
+            if is_ensemble_file(path):          # a heliostat recipe
+                ensemble = load_ensemble(path)
+                design = ensemble.layout_design()
+            else:
+                design, ensemble = load_facet(path), None
         overrides = {k: table[k] for k in ("alignment_point_m", "measure_point_m") if k in table}
+        if overrides and ensemble is not None:
+            raise ConfigError(f"{where}: alignment_point_m and measure_point_m are a facet's; a heliostat's are in "
+                              "its facets' files (and its measure_facet)")
         if overrides:
             design = FacetDesign.from_dict({**design.to_dict(), **overrides}, source=where)
         analysis = dataclasses.replace(config.analysis, **table.get("analysis", {}))
@@ -72,7 +86,7 @@ def recipes_from_config(config) -> dict[str, Recipe]:
             except re.error as exc:
                 raise ConfigError(f"{where}: serial_pattern is not a valid regular expression: {exc}") from None
         optics = optics_for(config.raw, str(config.path), name)
-        out[name] = Recipe(name, design, analysis, limits, quality, pattern, optics)
+        out[name] = Recipe(name, design, analysis, limits, quality, pattern, optics, ensemble)
     return out
 
 

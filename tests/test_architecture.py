@@ -22,7 +22,7 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = "sofast_station"
 
 #: The plain-data modules the math, the twin and everyone else share (records and their TOML reader).
-PLAIN_DATA = {"errors", "geometry", "facet", "fringes", "files"}
+PLAIN_DATA = {"errors", "geometry", "facet", "ensemble", "fringes", "files"}
 #: The floors of docs/architecture.md's picture, top to bottom (units: sub-packages, or top-level modules by
 #: name). A unit imports only its own floor and those below it; no two units import each other.
 FLOORS: tuple[tuple[str, frozenset], ...] = (
@@ -34,7 +34,7 @@ FLOORS: tuple[tuple[str, frozenset], ...] = (
     ("the result", frozenset({"result"})),
     ("routines, devices, oracle, math", frozenset({"calibrate", "devices", "twin", "measure", "qc", "optics",
                                                    "layout"})),
-    ("plain data", frozenset({"errors", "geometry", "facet", "fringes", "files", "serials", "commands",
+    ("plain data", frozenset({"errors", "geometry", "facet", "ensemble", "fringes", "files", "serials", "commands",
                               "(package)"})),
 )
 #: Standard-library modules that do I/O or run processes: none of them in the pure math.

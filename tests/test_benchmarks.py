@@ -90,3 +90,14 @@ def test_soak_benchmark_quick(repo_root):
     for line in ("12 cycles in", "growth/100 cycles", "after warm-up", "same ids as the journal: True",
                  "temporary files left: 0"):
         assert line in proc.stdout
+
+
+def test_heliostat_benchmark_quick(repo_root):
+    """benchmarks/heliostat.py at a quarter of the resolution: one facet, the 2x2 and the 5x5 heliostats."""
+    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "heliostat.py"), "--quick"],
+                          capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr
+    print(proc.stdout)
+    for line in ("single facet: dish-5.33, camera 400 x 300", "heliostat heliostat-2x2: 4 facets",
+                 "heliostat heliostat-5x5: 25 facets", "2x2 against one facet:", "load average after"):
+        assert line in proc.stdout

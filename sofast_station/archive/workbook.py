@@ -190,6 +190,31 @@ def flatten_record(cycle_id: str, record: dict, dump_file: str | None = None, js
     return {k: (_list_text(v) if isinstance(v, list) else v) for k, v in row.items()}
 
 
+#: A heliostat's record: what its facets' rows leave out (said once in the journal and the dump).
+_HELIOSTAT_NOT_IN_ROWS = ("facets", "canting_instructions", "pictures")
+
+
+def flatten_rows(cycle_id: str, record: dict, dump_file: str | None = None, json_safe: bool = False) -> list[dict]:
+    """The workbook rows of a record: one (:func:`flatten_record`), or for a heliostat's record
+    (``facets``) one per facet: its ``serial`` (the heliostat's and the facet's label), ``verdict`` and
+    ``reasons``, ``heliostat_serial``, ``heliostat_verdict``, ``facet_label``, its own figures (its canting
+    among them), then the heliostat's figures (``heliostat.*``, ``optics.*``) beside them, so a facet's row
+    reads on its own and the rows of a heliostat filter together."""
+    facets = record.get("facets")
+    if not isinstance(facets, list):
+        return [flatten_record(cycle_id, record, dump_file, json_safe)]
+    shared = {k: v for k, v in record.items() if k not in _HELIOSTAT_NOT_IN_ROWS}
+    rows = []
+    for f in facets:
+        own = {k: v for k, v in f.items() if k not in ("serial", "verdict", "reasons", "label")}
+        rec = {**shared, "serial": f.get("serial"), "verdict": f.get("verdict"), "reasons": f.get("reasons", []),
+               "heliostat_serial": record.get("serial"), "heliostat_verdict": record.get("verdict"),
+               "facet_label": f.get("label"), **own,
+               "heliostat_reasons": record.get("reasons", [])}
+        rows.append(flatten_record(cycle_id, rec, dump_file, json_safe))
+    return rows
+
+
 def column_unit(name: str) -> str:
     """The unit of a workbook column, from its name's suffix (the record's naming convention)."""
     n = name.lower()
@@ -367,7 +392,8 @@ def scan_part(path: Path) -> _PartScan:
         if not header or header[0] != "cycle_id":
             raise ArchiveError(f"workbook {path} does not start with a cycle_id column; it is not a results "
                                "workbook of this station")
-        ids = [v for (v,) in ws.iter_rows(min_row=2, max_col=1, values_only=True) if v is not None]
+        # (a heliostat's cycle has a row per facet: its id once, in sheet order)
+        ids = list(dict.fromkeys(v for (v,) in ws.iter_rows(min_row=2, max_col=1, values_only=True) if v is not None))
     except (OSError, ArchiveError):
         raise
     except Exception as exc:    # a damaged sheet inside a readable zip
@@ -413,13 +439,18 @@ def _recall(path: Path) -> _PartScan | None:
 
 
 def _file_rows(path: Path, wanted: set) -> dict:
-    """Cycle id -> {column: value} of the rows of *path* whose id is in *wanted* (rows the journal lacks)."""
+    """Cycle id -> [{column: value}, ...] of the rows of *path* whose id is in *wanted* (rows the journal
+    lacks; a heliostat's cycle has several)."""
     wb = _open_read_only(path)
     try:
         rows = _results_sheet(wb).iter_rows(values_only=True)
         header = list(next(rows, ()))
-        return {str(v[0]): {h: x for h, x in zip(header, v) if h is not None and x is not None}
-                for v in rows if v and v[0] is not None and str(v[0]) in wanted}
+        out: dict = {}
+        for v in rows:
+            if v and v[0] is not None and str(v[0]) in wanted:
+                out.setdefault(str(v[0]), []).append({h: x for h, x in zip(header, v)
+                                                      if h is not None and x is not None})
+        return out
     finally:
         wb.close()
 
@@ -464,8 +495,8 @@ class _PartWriter:
     header : list of str, optional
         The part's columns so far (its file's header): kept in their order, new ones added at the right.
     foreign : dict, optional
-        Cycle id -> {column: value} of rows of the old file the journal does not know (a journal started
-        afresh beside an existing workbook): kept as they were.
+        Cycle id -> [{column: value}, ...] of rows of the old file the journal does not know (a journal
+        started afresh beside an existing workbook): kept as they were.
     """
 
     def __init__(self, path: Path, slots: list, journal: Journal | None, given: dict | None = None,
@@ -485,10 +516,10 @@ class _PartWriter:
             fetched = self.journal.rows_by_ids(need) if need and self.journal is not None else {}
             for cycle_id in chunk:
                 row = self.given.get(cycle_id) or fetched.get(cycle_id)
-                if row is not None:
-                    yield flatten_record(row.cycle_id, row.record, row_dump_file(row), json_safe=True)
+                if row is not None:           # (a heliostat's cycle: one row per facet)
+                    yield from flatten_rows(row.cycle_id, row.record, row_dump_file(row), json_safe=True)
                 elif cycle_id in self.foreign:
-                    yield self.foreign[cycle_id]
+                    yield from self.foreign[cycle_id]
                 else:
                     raise ArchiveError(f"workbook {self.path}: cycle {cycle_id} is neither in the journal nor in "
                                        "the part")
@@ -502,8 +533,10 @@ class _PartWriter:
         from openpyxl.utils import get_column_letter
 
         columns = {name: i for i, name in enumerate(self.header)}
+        n_rows = 0
         for flat in self._flat_rows():                      # first pass: the columns (a sheet streams its
-            for name in flat:                               # header first)
+            n_rows += 1                                     # header first)
+            for name in flat:
                 if name not in columns:
                     columns[name] = len(self.header)
                     self.header.append(name)
@@ -512,7 +545,7 @@ class _PartWriter:
         ws.freeze_panes = "B2"
         for i, width in enumerate(_FIRST_WIDTHS, start=1):
             ws.column_dimensions[get_column_letter(i)].width = width
-        ws.auto_filter.ref = f"A1:{get_column_letter(max(len(self.header), 1))}{len(self.slots) + 1}"
+        ws.auto_filter.ref = f"A1:{get_column_letter(max(len(self.header), 1))}{n_rows + 1}"
         bold = Font(bold=True)
 
         def heading(text):

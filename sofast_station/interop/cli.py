@@ -27,6 +27,12 @@ def register(subparsers) -> None:
                        ("display", "DisplayShape HDF5"), ("orientation", "SpatialOrientation HDF5"),
                        ("calibration", "ImageCalibration HDF5"), ("facet", "facet definition JSON")):
         p.add_argument(f"--{name}", default=None, metavar="FILE", help=f"{what} (default: from --test-data)")
+    p.add_argument("--ensemble", default=None, metavar="FILE",
+                   help="OpenCSP's ensemble definition JSON: the measurement is a multi-facet one (every facet of "
+                        "--facet, placed and canted as the ensemble says; docs/heliostats.md)")
+    p.add_argument("--multi-facet", action="store_true",
+                   help="with --test-data: its multi-facet measurement (measurement_ensemble.h5, the split facet and "
+                        "its ensemble definition), when its files are present")
     p.add_argument("--focal-length", type=float, default=100.0, metavar="M",
                    help="design focal length, metres (OpenCSP keeps it with the processing, not the files)")
     p.add_argument("--robust", action="store_true", help="bisquare-weighted (robust) slope fits, like OpenCSP's "
@@ -112,15 +118,26 @@ def cmd_import_opencsp(args) -> int:
     from ..precompute import prepare_analysis_process
     from .opencsp import opencsp_test_data_paths, read_opencsp, read_opencsp_result
 
-    paths = opencsp_test_data_paths(Path(args.test_data)) if args.test_data else {}
-    for key in ("measurement", "camera", "display", "orientation", "calibration", "facet"):
-        if getattr(args, key):
+    paths = opencsp_test_data_paths(Path(args.test_data), args.multi_facet) if args.test_data else {}
+    if args.multi_facet and not args.test_data and not args.ensemble:
+        raise ConfigError("import-opencsp --multi-facet reads OpenCSP's test-data layout: give --test-data DIR (or "
+                          "--ensemble FILE with the measurement's files)")
+    for key in ("measurement", "camera", "display", "orientation", "calibration", "facet", "ensemble"):
+        if getattr(args, key, None):
             paths[key] = Path(getattr(args, key))
-        if key not in paths:
+        if key not in paths and key != "ensemble":
             raise ConfigError(f"import-opencsp needs --{key} (or --test-data with OpenCSP's folder layout)")
+    if "ensemble" in paths:
+        missing = [f"{k} {v}" for k, v in paths.items() if not Path(v).is_file()]
+        if missing:
+            raise ConfigError("the multi-facet measurement's files are not all present: missing " + "; ".join(missing)
+                              + " (OpenCSP's test data ships measurement_ensemble.h5, Facet_split_NSTTF.json and "
+                                "Ensemble_split_NSTTF_facet.json)")
     table = read_uncertainty_table(Path(args.uncertainty)) if args.uncertainty else None
     m = read_opencsp(**paths, focal_length_m=args.focal_length, uncertainty=table)
     prepare_analysis_process()      # as the station's worker: memory reused, kernels loaded first
+    if m.ensemble is not None:
+        return _import_ensemble(m, args)
     cache: dict = {}                # the uncertainty's sensitivities, per geometry and recipe
     a = m.analyse(robust=args.robust, uncertainty=m.uncertainty, sensitivity_cache=cache)
     fig = a.figures
@@ -149,6 +166,59 @@ def cmd_import_opencsp(args) -> int:
     if args.budget:
         from ..result.formatting import BUDGET_COLUMNS, budget_text
         print(budget_text(out, [c for c in BUDGET_COLUMNS if not c[0].startswith(("optical_tilt", "placement"))]))
+    return 0
+
+
+#: What a multi-facet import reports of each facet (with U): a facet's figures, and its canting.
+FACET_KEYS = FIGURE_KEYS[:-1] + ("canting_mrad",)
+
+
+def _import_ensemble(m, args) -> int:
+    """import-opencsp of a multi-facet measurement: every facet's figures and canting error (with U), the
+    facets' common tilt against their corners (OpenCSP has no fixture: no placement)."""
+    res = m.analyse_heliostat(uncertainty=m.uncertainty, sensitivity_cache={})
+    facets = []
+    for f in res.figures["facets"]:
+        entry = {"label": f["label"], "status": f["status"]}
+        if "canting_mrad" in f:
+            entry.update(figures_with_u(f, FACET_KEYS))
+            entry.pop("uncertainty_budget", None)
+        else:
+            entry["reason"] = f.get("reason")
+        facets.append(entry)
+    h = res.figures["heliostat"]
+    out = {"ensemble": m.ensemble.name, "measured": m.date,
+           "heliostat": {k: h[k] for k in ("n_facets", "n_measured", "common_tilt_mrad", "common_tilt_mrad_U",
+                                           "canting_rms_mrad", "canting_max_mrad", "canting_max_facet",
+                                           "corner_reprojection_rms_px", "measured_distance_m") if k in h},
+           "facets": facets, "input_uncertainties": m.uncertainty.to_dict(), "assumptions": list(m.assumptions)}
+    out = json_safe(out)
+    if args.json:
+        json.dump(out, sys.stdout, indent=1)
+        sys.stdout.write("\n")
+        return 0
+    lines = [f"OpenCSP multi-facet measurement {out['ensemble']} ({out['measured']}): {out['heliostat']['n_measured']}"
+             f" of {out['heliostat']['n_facets']} facets measured",
+             "  assumed (OpenCSP's files do not say):" + "".join(f"\n    - {a}" for a in out["assumptions"]),
+             "  figures are value ± U, the expanded uncertainty (k=2)",
+             "  facet   canting x (mrad)    canting y (mrad)    f x (m)               f y (m)               "
+             "slope RMS vs "
+             "parabola (mrad)"]
+    for f in facets:
+        if "canting_mrad" not in f:
+            lines.append(f"  {f['label']:<7} {f['status']}: {f.get('reason')}")
+            continue
+        c, u = f["canting_mrad"], f.get("canting_mrad_U") or {}
+        r = f["slope_rms_mrad"]["parabola"]["magnitude"]
+        ru = ((f.get("slope_rms_mrad_U") or {}).get("parabola") or {}).get("magnitude")
+        lines.append(f"  {f['label']:<7} {_pm(c['x'], u.get('x')):<19} {_pm(c['y'], u.get('y')):<19} "
+                     f"{_pm(f['focal_length_x_m'], f.get('focal_length_x_m_U')):<21} "
+                     f"{_pm(f['focal_length_y_m'], f.get('focal_length_y_m_U')):<21} {_pm(r, ru)}")
+    ct, cu = out["heliostat"]["common_tilt_mrad"], out["heliostat"].get("common_tilt_mrad_U") or {}
+    lines.append(f"  facets' common tilt against their corners {_pm(ct['x'], cu.get('x'))}, "
+                 f"{_pm(ct['y'], cu.get('y'))} "
+                 "mrad (where the ensemble points: not a canting error)")
+    print("\n".join(lines))
     return 0
 
 

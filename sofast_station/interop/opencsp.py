@@ -139,21 +139,10 @@ def mask_threshold(dark: np.ndarray, light: np.ndarray) -> float:
 
 
 def facet_from_opencsp(path: Path, focal_length_m: float, name: str = "opencsp-facet") -> FacetDesign:
-    """OpenCSP facet JSON (corners and centroid) as our FacetDesign (outline counter-clockwise)."""
-    try:
-        data = json.loads(Path(path).read_text())
-        c = data["v_facet_corners"]
-        corners = np.column_stack([c["x"], c["y"]]).astype(np.float64)
-        cen = data.get("v_centroid_facet", {"x": [0.0], "y": [0.0]})
-        centroid = [float(cen["x"][0]), float(cen["y"][0])]
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise ConfigError(f"{path} is not an OpenCSP facet definition ({exc})") from None
-    x, y = corners[:, 0], corners[:, 1]
-    if np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y) < 0:
-        corners = corners[::-1]
-    kind = "heliostat" if focal_length_m > 20 else "dish"
-    return FacetDesign(name=name, kind=kind, focal_length_m=focal_length_m, outline_m=corners,
-                       measure_point_m=centroid, alignment_point_m=centroid)
+    """OpenCSP facet JSON (corners and centroid) as our FacetDesign (outline counter-clockwise): the plain-data
+    reader (:func:`sofast_station.ensemble.facet_from_opencsp`), a heliostat facet above f = 20 m."""
+    from ..ensemble import facet_from_opencsp as read_facet
+    return read_facet(path, focal_length_m, name=name, kind="heliostat" if focal_length_m > 20 else "dish")
 
 
 def nominal_pose(camera: CameraIntrinsics, mask: np.ndarray, screen_centre_cam: np.ndarray,
@@ -256,6 +245,21 @@ class OpenCspMeasurement:
     assumptions: tuple = ()
     #: The inputs' standard uncertainties for this setup (:func:`opencsp_input_uncertainties`).
     uncertainty: InputUncertainties | None = None
+    #: A multi-facet measurement's ensemble (OpenCSP's DefinitionEnsemble); None for one facet.
+    ensemble: object | None = None
+
+    def analyse_heliostat(self, uncertainty: InputUncertainties | None = None, sensitivity_cache: dict | None = None):
+        """Our analysis of a multi-facet measurement (:func:`~sofast_station.measure.heliostat.analyse_heliostat`):
+        every facet's figures and canting error."""
+        from ..measure.heliostat import HeliostatSettings, analyse_heliostat
+
+        if self.ensemble is None:
+            raise ConfigError(f"measurement {self.name} is a single facet's: it has no ensemble definition")
+        # OpenCSP has no fixture: the nominal pose is the mask's centre, so each facet's window is wider
+        return analyse_heliostat(self.frames, self.fringes, self.geometry, self.ensemble, self.distance_m,
+                                 self.settings, HeliostatSettings(window_margin=0.15, window_margin_px=20),
+                                 screen=self.screen, rays_cam=ray_table(self.geometry.camera),
+                                 uncertainty=uncertainty, sensitivity_cache=sensitivity_cache)
 
     def analyse(self, robust: bool = False, pixel_mask: np.ndarray | None = None,
                 uncertainty: InputUncertainties | None = None, sensitivity_cache: dict | None = None,
@@ -283,9 +287,15 @@ class OpenCspMeasurement:
 
 
 def read_opencsp(measurement: Path, camera: Path, display: Path, orientation: Path, calibration: Path,
-                 facet: Path, focal_length_m: float = 100.0, uncertainty: dict | None = None) -> OpenCspMeasurement:
+                 facet: Path, focal_length_m: float = 100.0, uncertainty: dict | None = None,
+                 ensemble: Path | None = None) -> OpenCspMeasurement:
     """Read the six OpenCSP files of one facet measurement (see the module docstring); *uncertainty* (an
-    ``[uncertainty]`` table) overrides input uncertainties (:func:`opencsp_input_uncertainties`)."""
+    ``[uncertainty]`` table) overrides input uncertainties (:func:`opencsp_input_uncertainties`).
+
+    With *ensemble* (OpenCSP's ensemble definition JSON) the measurement is a multi-facet one: every facet
+    has the design of *facet*, placed and canted as the ensemble says; the measure point
+    (``v_measure_point_facet``, in ensemble coordinates for an ensemble) picks the facet the distance was
+    taken to (:meth:`OpenCspMeasurement.analyse_heliostat`)."""
     measurement, camera, display, orientation, calibration, facet = (
         Path(p) for p in (measurement, camera, display, orientation, calibration, facet))
     cam = camera_from_opencsp(camera)
@@ -313,7 +323,12 @@ def read_opencsp(measurement: Path, camera: Path, display: Path, orientation: Pa
     distance = float(_read(measurement, g + "dist_optic_screen"))
     mp = np.array(_read(measurement, g + "v_measure_point_facet"), np.float64).ravel()
     design = facet_from_opencsp(facet, focal_length_m, name=str(_read(measurement, g + "name")))
-    design = replace(design, measure_point_m=mp[:2].copy()) if np.any(mp[:2] != design.measure_point_m) else design
+    ens = None
+    if ensemble is not None:
+        ens = ensemble_with_measure_point(Path(ensemble), facet, focal_length_m, mp)
+        design = ens.layout_design()
+    elif np.any(mp[:2] != design.measure_point_m):
+        design = replace(design, measure_point_m=mp[:2].copy())
     threshold = mask_threshold(frames[0], frames[1])
     mask = (frames[1].astype(np.int64) - frames[0]) > threshold
     nominal = nominal_pose(cam, mask, screen.centre_camera(), distance)
@@ -335,20 +350,114 @@ def read_opencsp(measurement: Path, camera: Path, display: Path, orientation: Pa
         "corners: matched within 25 px of the nominal pose, 2 px RMS allowed, 3 px edge window",
     )
     inputs = opencsp_input_uncertainties(cam, uncertainty)
+    if ens is not None:
+        assumptions += (f"ensemble {Path(ensemble).name}: {ens.n_facets} facets of {Path(facet).name}, "
+                        "the distance taken "
+                        f"to facet {ens.facets[ens.measure_facet].label}",)
     return OpenCspMeasurement(design.name, str(_read(measurement, g + "date")), frames,
                               FringeSet(tuple(periods_x), tuple(periods_y)), geometry, screen, design, distance,
-                              settings, assumptions + _uncertainty_assumptions(inputs), inputs)
+                              settings, assumptions + _uncertainty_assumptions(inputs), inputs, ens)
 
 
-def opencsp_test_data_paths(root: Path) -> dict[str, Path]:
-    """The file layout of OpenCSP's ``opencsp/test/data`` (and of ``fixtures/opencsp``)."""
+def ensemble_with_measure_point(path: Path, facet: Path, focal_length_m: float, measure_point: np.ndarray):
+    """OpenCSP's ensemble definition *path*, every facet of the facet definition *facet*, the distance taken
+    to *measure_point* (ensemble coordinates): the facet whose outline holds it, its measure point moved
+    there."""
+    from ..ensemble import EnsembleDesign, ensemble_from_opencsp
+    from ..facet import on_outline
+
+    ens = ensemble_from_opencsp(path, facet, focal_length_m, name=Path(path).stem)
+    p = np.asarray(measure_point, np.float64).ravel()
+    p3 = np.array([p[0], p[1], p[2] if p.size > 2 else 0.0])
+    for i, f in enumerate(ens.facets):
+        local = f.rotation.T @ (p3 - f.position_m)
+        if on_outline(local[:2], f.design.outline_m):
+            facets = list(ens.facets)
+            facets[i] = replace(f, design=replace(f.design, measure_point_m=local[:2].copy()))
+            return EnsembleDesign(ens.name, tuple(facets), measure_facet=i)
+    raise ConfigError(f"{path}: the measurement's measure point {p.tolist()} (ensemble coordinates) lies on none of "
+                      "the ensemble's facets; the distance must be taken to a facet")
+
+
+def opencsp_test_data_paths(root: Path, multi_facet: bool = False) -> dict[str, Path]:
+    """The file layout of OpenCSP's ``opencsp/test/data`` (and of ``fixtures/opencsp``); *multi_facet*: its
+    two-facet measurement (``measurement_ensemble.h5``, the split NSTTF facet and its ensemble definition)."""
     root = Path(root)
-    return {"measurement": root / "sofast_fringe/data_measurement/measurement_facet.h5",
-            "camera": root / "sofast_common/camera_sofast_downsampled.h5",
-            "display": root / "sofast_common/display_distorted_2d.h5",
-            "orientation": root / "sofast_common/spatial_orientation.h5",
-            "calibration": root / "sofast_fringe/data_measurement/image_calibration.h5",
-            "facet": root / "sofast_common/Facet_NSTTF.json"}
+    paths = {"measurement": root / "sofast_fringe/data_measurement/measurement_facet.h5",
+             "camera": root / "sofast_common/camera_sofast_downsampled.h5",
+             "display": root / "sofast_common/display_distorted_2d.h5",
+             "orientation": root / "sofast_common/spatial_orientation.h5",
+             "calibration": root / "sofast_fringe/data_measurement/image_calibration.h5",
+             "facet": root / "sofast_common/Facet_NSTTF.json"}
+    if multi_facet:
+        paths.update(measurement=root / "sofast_fringe/data_measurement/measurement_ensemble.h5",
+                     facet=root / "sofast_common/Facet_split_NSTTF.json",
+                     ensemble=root / "sofast_common/Ensemble_split_NSTTF_facet.json")
+    return paths
+
+
+def export_opencsp(folder: Path, frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry,
+                   distance_m: float, measure_point_m, design: FacetDesign, ensemble=None, name: str = "measurement",
+                   date: str = "") -> dict[str, Path]:
+    """Write a capture as OpenCSP's files (what :func:`read_opencsp` reads; a twin capture to test it with, or
+    a station capture for OpenCSP): the measurement (mask and fringe images, y sets first; periods;
+    the distance and measure point: ensemble coordinates for an *ensemble*), the camera, a rectangular display
+    of the screen's size, the spatial orientation (OpenCSP's screen frame has y down the screen and z into it:
+    ours turned half a turn about x), an identity image calibration, the facet definition (corners clockwise
+    seen from the mirror) and, with *ensemble*, its ensemble definition. Returns the paths, keyed as
+    :func:`read_opencsp`'s arguments."""
+    import h5py
+    from scipy.spatial.transform import Rotation
+
+    from ..ensemble import ensemble_to_opencsp
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = {"measurement": folder / ("measurement_ensemble.h5" if ensemble is not None else "measurement_facet.h5"),
+             "camera": folder / "camera.h5", "display": folder / "display_rectangular.h5",
+             "orientation": folder / "spatial_orientation.h5", "calibration": folder / "image_calibration.h5",
+             "facet": folder / "facet.json"}
+    n_x, n_y = 4 * len(fringes.periods_x), 4 * len(fringes.periods_y)
+    if frames.shape[0] != 2 + n_x + n_y:
+        raise ConfigError(f"export_opencsp: {frames.shape[0]} frames, expected {2 + n_x + n_y} for these fringes")
+    fringe = np.concatenate([frames[2 + n_x:], frames[2:2 + n_x]])          # OpenCSP: y sets first
+    g = "MeasurementSofastFringe/"
+    with h5py.File(paths["measurement"], "w") as h:
+        h[g + "mask_images"] = np.moveaxis(frames[:2], 0, 2)
+        h[g + "fringe_images"] = np.moveaxis(fringe, 0, 2)
+        h[g + "fringe_periods_x"] = np.asarray(fringes.periods_x, np.float64)
+        h[g + "fringe_periods_y"] = np.asarray(fringes.periods_y, np.float64)
+        h[g + "dist_optic_screen"] = float(distance_m)
+        h[g + "v_measure_point_facet"] = np.asarray(measure_point_m, np.float64).reshape(3)
+        h[g + "name"] = name
+        h[g + "date"] = date
+    cam = geometry.camera
+    with h5py.File(paths["camera"], "w") as h:
+        h["Camera/intrinsic_mat"] = np.asarray(cam.matrix, np.float64)
+        h["Camera/image_shape_xy"] = np.array([cam.width_px, cam.height_px])
+        h["Camera/distortion_coef"] = np.asarray(cam.distortion, np.float64)
+    with h5py.File(paths["display"], "w") as h:
+        h["DisplayShape/screen_model"] = "rectangular2D"
+        h["DisplayShape/screen_x"] = float(geometry.screen.width_m)
+        h["DisplayShape/screen_y"] = float(geometry.screen.height_m)
+    flip = np.diag([1.0, -1.0, -1.0])                 # OpenCSP's screen frame in ours
+    r_screen_cam = geometry.screen_to_camera.rotation @ flip
+    with h5py.File(paths["orientation"], "w") as h:
+        h["SpatialOrientation/r_cam_screen"] = Rotation.from_matrix(r_screen_cam.T).as_rotvec()
+        h["SpatialOrientation/v_cam_screen_cam"] = np.asarray(geometry.screen_to_camera.translation, np.float64)
+    with h5py.File(paths["calibration"], "w") as h:
+        h["ImageCalibration/calibration_type"] = "ImageCalibrationScaling"
+        h["ImageCalibration/camera_values"] = np.arange(256, dtype=np.float64)
+        h["ImageCalibration/display_values"] = np.arange(256, dtype=np.float64)
+    corners = design.outline_m[::-1]                   # clockwise seen from the mirror, as OpenCSP lists them
+    c = design.measure_point_m
+    paths["facet"].write_text(json.dumps({
+        "v_facet_corners": {"x": corners[:, 0].tolist(), "y": corners[:, 1].tolist(), "z": [0.0] * len(corners)},
+        "v_centroid_facet": {"x": [float(c[0])], "y": [float(c[1])], "z": [0.0]}}, indent=1))
+    if ensemble is not None:
+        paths["ensemble"] = folder / "ensemble.json"
+        paths["ensemble"].write_text(json.dumps(ensemble_to_opencsp(ensemble), indent=1))
+    return paths
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,7 @@ import numpy as np
 from ..facet import FacetDesign
 from ..fringes import FringeSet
 from ..geometry import StationGeometry
-from .pipeline import Analysis, AnalysisSettings, reduce_stages, thread_pool, to_analysis
+from .pipeline import Analysis, AnalysisSettings, Reduction, reduce_stages, thread_pool, to_analysis
 from .screen import ScreenModel
 from .sensitivity_record import to_record
 from .uncertainty import InputUncertainties, sensitivity_key, uncertainty_figures
@@ -66,6 +66,19 @@ def analyse(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, d
     """
     reduction, timings = reduce_stages(frames, fringes, geometry, design, measured_distance_m, settings, screen,
                                        rays_cam, pixel_mask)
+    return finish_analysis(reduction, timings, fringes=fringes, geometry=geometry, design=design,
+                           measured_distance_m=measured_distance_m, settings=settings, screen=screen,
+                           uncertainty=uncertainty, sensitivity_cache=sensitivity_cache)
+
+
+def finish_analysis(reduction: Reduction, timings: dict, *, fringes: FringeSet, geometry: StationGeometry,
+                    design: FacetDesign, measured_distance_m: float, settings: AnalysisSettings = AnalysisSettings(),
+                    screen: ScreenModel | None = None, uncertainty: InputUncertainties | None = None,
+                    sensitivity_cache: dict | None = None) -> Analysis:
+    """The :class:`~.pipeline.Analysis` of a finished reduction (:func:`~.pipeline.reduce_stages`, or one
+    rerun from a stage with :func:`~.pipeline.rerun`), with every figure's expanded uncertainty when
+    *uncertainty* is given (as :func:`analyse`: its parameters of the same names). *timings* (seconds) gets
+    the uncertainty's."""
     if uncertainty is not None:
         t0 = time.perf_counter()
         key = sensitivity_key(geometry, design, fringes, settings, uncertainty, screen)

@@ -612,9 +612,11 @@ def pose_from_corners(found: np.ndarray, region: Region, rays: Rays, geometry: S
 
 
 def shape_and_boresight(rays: Rays, pose: CornerPoseResult, design: FacetDesign, measured_distance_m: float,
-                        settings: AnalysisSettings, pool=None, timer=None) -> Shape:
+                        settings: AnalysisSettings, pool=None, timer=None, subsample_only: bool = False) -> Shape:
     """Stage 5: shape and boresight iterated on the subsample, then every valid pixel's point and slope in
-    the boresighted facet frame."""
+    the boresighted facet frame. *subsample_only*: stop after the subsample (the converged solution and the
+    boresighted frame; ``points_m`` and ``slopes`` None), for a caller that only needs where the facet
+    points before it reduces every pixel (a heliostat's first pass, :mod:`~sofast_station.measure.heliostat`)."""
     pool = pool if pool is not None else _Serial()
     from .kernels import to_frame_every
 
@@ -636,6 +638,8 @@ def shape_and_boresight(rays: Rays, pose: CornerPoseResult, design: FacetDesign,
     from .kernels import halves, reflect
 
     to_moved = solution.motion.as_pose().compose(camera_to_facet)
+    if subsample_only:
+        return Shape(solution=solution, boresighted_to_camera=to_moved.inverse(), points_m=None, slopes=None)
     n = rays.rays.shape[1]
     points, slopes = np.empty((3, n)), np.empty((2, n))
     halves(pool, reflect, n, rays.rays, rays.screen_cam_m,
@@ -809,9 +813,13 @@ def default_screen(geometry: StationGeometry) -> ScreenModel:
 def reduce_stages(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, design: FacetDesign,
                   measured_distance_m: float, settings: AnalysisSettings = AnalysisSettings(),
                   screen: ScreenModel | None = None, rays_cam: np.ndarray | None = None,
-                  pixel_mask: np.ndarray | None = None) -> tuple[Reduction, dict]:
+                  pixel_mask: np.ndarray | None = None,
+                  stop_after_boresight: bool = False) -> tuple[Reduction, dict]:
     """Run every stage of the reduction (:func:`~sofast_station.measure.analysis.analyse` without the
-    uncertainty); returns the stages' outputs and their timings, seconds."""
+    uncertainty); returns the stages' outputs and their timings, seconds.
+
+    *stop_after_boresight*: stop once shape and boresight have converged on the subsample (the shape's
+    ``points_m`` and ``slopes``, the fits and the figures None); :func:`rerun` from ``"shape"`` finishes it."""
     with thread_pool(settings.threads) as pool:
         timer = _Timer()
         if screen is None:
@@ -824,7 +832,10 @@ def reduce_stages(frames: np.ndarray, fringes: FringeSet, geometry: StationGeome
         timer.lap("rays")
         pose = corners_and_pose(region, rays, geometry, design, measured_distance_m, settings)
         timer.lap("pose")
-        shape = shape_and_boresight(rays, pose, design, measured_distance_m, settings, pool, timer)
+        shape = shape_and_boresight(rays, pose, design, measured_distance_m, settings, pool, timer,
+                                    subsample_only=stop_after_boresight)
+        if stop_after_boresight:
+            return Reduction(region, phases, rays, pose, shape, None, None), dict(timer.timings)
         # The slope-curl check needs only the shape: it runs on a pool thread beside the fits.
         curl = pool.submit(slope_curl_of, region, rays, shape, phases, fringes, screen)
         fits = fit_models(shape, design, settings, pool)

@@ -232,6 +232,18 @@ def cmd_certificate(args) -> int:
     recipe = _recipe(config, rec.get("recipe") or "default")
     measured = None
     dump = Path(row.dump_path) if row.dump_path else None
+    if isinstance(rec.get("facets"), list):         # a heliostat: the map of its facets and their table
+        from ..report.certificate import write_heliostat_certificate
+        if recipe.ensemble is None:
+            raise ConfigError(f"serial {serial!r} is a heliostat's, but recipe {recipe.name!r} of this station file "
+                              "names no heliostat: pass the heliostat station's --config")
+        out = Path(args.out) if args.out and args.out.lower().endswith(".pdf") else \
+            Path(args.out or ".") / f"certificate-{serial}.pdf"
+        print(write_heliostat_certificate(rec, out, ensemble=recipe.ensemble,
+                                          limit_mrad=recipe.limits.max_canting_mrad,
+                                          dump_path=dump if dump is not None and dump.exists() else None,
+                                          issuer=config.raw.get("certificate") or {}), flush=True)
+        return 0
     if dump is not None and dump.exists():
         try:
             measured = load_measured(str(dump))

@@ -524,13 +524,16 @@ def reprocess_content(content: DumpContent, overrides: Overrides | None = None, 
     ReprocessResult
     """
     from ..result.faults import fault_reason
-    from ..result.record import RecordHead, build_record, now_iso
+    from ..result.record import build_record
     from ..result.verdict import judge
 
     t0 = time.perf_counter()
     overrides = overrides or Overrides()
     if archived is None:
         archived = content.record or None
+    if is_heliostat_dump(content):            # several facets in one capture (docs/heliostats.md)
+        return reprocess_heliostat(content, overrides, archived=archived, archived_source=archived_source,
+                                   read_s=read_s)
     notes: list[str] = []
     if archived is None:
         notes.append("the dump holds no archived result (its result group is missing)"
@@ -538,22 +541,7 @@ def reprocess_content(content: DumpContent, overrides: Overrides | None = None, 
                         f"cycle {content.cycle_id}") + ": nothing to compare")
     design = _design(content, overrides, notes)
     settings = _settings(content, overrides, notes)
-    distance = content.measured_distance_m
-    if overrides.measured_distance_m is not None:
-        distance = float(overrides.measured_distance_m)
-        notes.append(f"measured distance {distance:.6f} m (archived {content.measured_distance_m:.6f} m)")
-    rad = content.radiometric
-    rad_id = rad["record_id"]
-    if overrides.radiometric_path is not None:
-        from ..calibrate.records import load_radiometric
-        new_rad = load_radiometric(overrides.radiometric_path)
-        notes.append(calibration_note(content, new_rad))
-        rad_id = new_rad.record_id
-    base = archived or {}
-    head = RecordHead(serial=content.serial, time=content.time, station=content.station_name,
-                      config_hash=_config_hash(content.config_hash, overrides), calibration={"radiometric": rad_id},
-                      camera={"exposure_s": rad["exposure_s"], "gain": rad["gain"]}, facet=design.name,
-                      cycle_id=content.cycle_id, recipe=base.get("recipe", "default"))
+    head, distance = _head_and_distance(content, overrides, archived, notes, design.name)
     analysis = fault = None
     t1 = time.perf_counter()
     try:
@@ -580,16 +568,49 @@ def reprocess_content(content: DumpContent, overrides: Overrides | None = None, 
         record = build_record(head, figures=analysis.figures,
                               verdict=judge(analysis.figures, design, limits, quality), truth=truth,
                               measured_distance_m=distance, timings=timings)
+    design_note = {"name": design.name, "focal_length_m": design.focal_length_m,
+                   "alignment_point_m": design.alignment_point_m.tolist(),
+                   "measure_point_m": design.measure_point_m.tolist()}
+    return _compared(record, content, overrides, archived, archived_source, notes, design_note,
+                     analysis=analysis, design=design, seconds=time.perf_counter() - t0 + read_s)
+
+
+def _head_and_distance(content, overrides, archived: dict | None, notes: list, name: str):
+    """The reprocessed record's head (design *name*, the radiometric record an override names) and the
+    measured distance (the archived one, or the override's), with a note for each override."""
+    from ..result.record import RecordHead
+
+    distance = content.measured_distance_m
+    if overrides.measured_distance_m is not None:
+        distance = float(overrides.measured_distance_m)
+        notes.append(f"measured distance {distance:.6f} m (archived {content.measured_distance_m:.6f} m)")
+    rad = content.radiometric
+    rad_id = rad["record_id"]
+    if overrides.radiometric_path is not None:
+        from ..calibrate.records import load_radiometric
+        new_rad = load_radiometric(overrides.radiometric_path)
+        notes.append(calibration_note(content, new_rad))
+        rad_id = new_rad.record_id
+    head = RecordHead(serial=content.serial, time=content.time, station=content.station_name,
+                      config_hash=_config_hash(content.config_hash, overrides), calibration={"radiometric": rad_id},
+                      camera={"exposure_s": rad["exposure_s"], "gain": rad["gain"]}, facet=name,
+                      cycle_id=content.cycle_id, recipe=(archived or {}).get("recipe", "default"))
+    return head, distance
+
+
+def _compared(record: dict, content, overrides, archived: dict | None, archived_source: str, notes: list,
+              design_note: dict, *, analysis, design, seconds: float) -> "ReprocessResult":
+    """The reprocessed *record* as a JSON archive holds it, compared with *archived*, with its ``reprocess``
+    part (*design_note*: what design it was redone with)."""
+    from ..result.record import now_iso
+
     record = json.loads(to_json(record))     # exactly what a JSON archive holds (no numpy scalars)
     differences, n = compare_figures(archived, record) if archived else ({}, len(flatten_figures(record)))
-    seconds = time.perf_counter() - t0 + read_s
     record["timings_s"]["total"] = seconds
     record["reprocess"] = json_ready({
         "at": now_iso(), "software_version": __version__, "dump_software_version": content.software_version,
         "dump_schema_version": content.schema_version, "dump_created": content.created,
-        "design": {"name": design.name, "focal_length_m": design.focal_length_m,
-                   "alignment_point_m": design.alignment_point_m.tolist(),
-                   "measure_point_m": design.measure_point_m.tolist()},
+        "design": design_note,
         "archived_from": archived_source if archived else None, "overrides": overrides.to_dict(), "notes": notes,
         "exact": None if not archived else not differences, "figures_compared": n,
         "figures_different": len(differences), "blas_threads": blas_threads(),
@@ -604,6 +625,93 @@ def reprocess_content(content: DumpContent, overrides: Overrides | None = None, 
     record["reprocess"]["summary"] = res.summary()
     log.debug("%s: %s", res.path, record["reprocess"]["summary"])
     return res
+
+
+# -- a heliostat's dump (docs/heliostats.md) ---------------------------------------------------------
+def is_heliostat_dump(content) -> bool:
+    """Whether a dump's content is a heliostat's (its design carries the heliostat)."""
+    return isinstance(content.design, dict) and "ensemble" in content.design
+
+
+def _sensitivity_cache(content) -> dict | None:
+    """The dump's per-facet sensitivities as one cache (``{key: Sensitivities}``), or None."""
+    from ..measure.sensitivity_record import from_record
+
+    stored = content.sensitivities
+    if not isinstance(stored, dict) or "version" in stored:
+        return None
+    cache = {}
+    for rec in stored.values():
+        found = from_record(rec)
+        if found is not None:
+            cache[found[0]] = found[1]
+    return cache or None
+
+
+def reprocess_heliostat(content, overrides, *, archived: dict | None, archived_source: str = "dump",
+                        read_s: float = 0.0):
+    """Rerun a heliostat dump's analysis and compare with *archived* (see the module docstring).
+
+    Overrides that change the analysis settings, the measured distance or the radiometric record apply;
+    a facet file or an alignment point cannot replace a heliostat's facets (ConfigError).
+
+    Returns
+    -------
+    ReprocessResult
+    """
+    from ..ensemble import EnsembleDesign
+    from ..geometry import StationGeometry
+    from ..precompute import ray_table
+    from ..result.faults import fault_reason
+    from ..result.record import build_record
+    from ..station.heliostat import analyse_job, loop_record
+    from ..recipes import Recipe
+
+    t0 = time.perf_counter()
+    if overrides.facet_path is not None or overrides.alignment_point_m is not None \
+            or overrides.focal_length_m is not None:
+        raise ConfigError(f"dump {content.path} is a heliostat's: its facets' designs and alignment points are "
+                          "its heliostat file's; reprocess it without a facet file, focal length or alignment "
+                          "point override")
+    notes: list[str] = []
+    if archived is None:
+        notes.append("the dump holds no archived result: nothing to compare")
+    job = {k: content.design[k] for k in ("ensemble", "heliostat", "max_canting_mrad") if k in content.design}
+    ensemble = EnsembleDesign.from_dict(job["ensemble"])
+    settings = _settings(content, overrides, notes)
+    head, distance = _head_and_distance(content, overrides, archived, notes, ensemble.name)
+    recipe_name = head.recipe
+    geometry = StationGeometry.from_dict(content.geometry)
+    optics = _optics_settings(content, recipe_name, archived, overrides, notes)
+    limits, quality = _judge_settings(content, recipe_name, notes)
+    figures = fault = None
+    t1 = time.perf_counter()
+    try:
+        figures, _, _ = analyse_job(content.frames(), content.fringe_set(), geometry, job, settings, distance,
+                                    rays_cam=ray_table(geometry.camera), optics=optics,
+                                    uncertainty=_uncertainty_inputs(content, notes),
+                                    sensitivity_cache=_sensitivity_cache(content))
+    except StationError as exc:              # the analysis refuses the capture: a fault, as on the line
+        fault = fault_reason(exc)
+    t_analysis = time.perf_counter() - t1
+    if figures is None:
+        record = build_record(head, fault=fault, timings={"read": read_s, "analysis": t_analysis})
+    else:
+        recipe = Recipe(recipe_name, ensemble.layout_design(), settings, limits, quality, optics=optics,
+                        ensemble=ensemble)
+        record = loop_record(head, figures, recipe, None, measured_distance_m=distance,
+                             timings={"read": read_s, "analysis": t_analysis})
+        # the twin's truth for the same pixels (simulated stations), when nothing was changed
+        if overrides.empty and archived and isinstance(archived.get("facets"), list):
+            truth = {f.get("label"): f["truth"] for f in archived["facets"] if "truth" in f}
+            for f in record["facets"]:
+                if f.get("label") in truth:
+                    f["truth"] = truth[f["label"]]
+            if "truth" in archived:
+                record["truth"] = archived["truth"]
+    return _compared(record, content, overrides, archived, archived_source, notes,
+                     {"name": ensemble.name, "facets": ensemble.labels}, analysis=None,
+                     design=ensemble.layout_design(), seconds=time.perf_counter() - t0 + read_s)
 
 
 def reprocess_dump(path: str | Path, overrides: Overrides | None = None, *,

@@ -101,30 +101,8 @@ def write_certificate(record: dict, out_path: Path, *, specs, measured=None, dum
                           f"{'; '.join(record.get('reasons', []))}): no certificate")
     issuer = issuer or {}
     fig = Figure(figsize=(8.27, 11.69))               # A4 portrait
-    fig.text(_LEFT, 0.972, issuer.get("issuer") or "Issuer not set ([certificate] issuer in station.toml)",
-             fontsize=11, weight="bold", va="top")
-    if issuer.get("address"):
-        fig.text(_LEFT, 0.953, issuer["address"], fontsize=8.5, color="0.35", va="top")
-    fig.text(_RIGHT, 0.972, f"Certificate {record.get('cycle_id', '-')}", fontsize=7.5, color="0.35", ha="right",
-             va="top", family="monospace")
-    fig.text(_LEFT, 0.93, "Facet inspection certificate", fontsize=17, weight="bold", va="top")
+    y = certificate_head(fig, record, "Facet inspection certificate", issuer)
     verdict = str(record.get("verdict", "?")).upper()
-    fig.text(_RIGHT, 0.93, verdict, fontsize=17, weight="bold", ha="right", va="top",
-             color={"PASS": "tab:green", "FAIL": "tab:red"}.get(verdict, "tab:orange"))
-    _rule(fig, 0.897, 1.0, "0.2")
-    cal = record.get("calibration") or {}
-    head = [("Serial", record.get("serial", "?")), ("Facet type", record.get("facet", "?")),
-            ("Recipe", record.get("recipe") or "default"), ("Station", record.get("station", "?")),
-            ("Measured", str(record.get("time", "?"))[:19].replace("T", " ") + " (local time)"),
-            ("Software", f"sofast-station {record.get('software_version', '?')}, configuration "
-                         f"{record.get('config_hash', '?')}"),
-            ("Calibration in force", ", ".join(f"{k} {v}" for k, v in cal.items() if k != "warnings") or "-")]
-    if cal.get("warnings"):
-        head.append(("Calibration warnings", "; ".join(cal["warnings"])))
-    y = 0.885
-    for k, v in head:
-        fig.text(_LEFT, y, k, fontsize=9, weight="bold", va="top")
-        y = _wrapped(fig, 0.30, y, v, 78, fontsize=9)
     # The figures: a table of plain texts in fixed columns (a Matplotlib table clipped its cells).
     y -= 0.008
     coverage = " ± U (k = 2)" if record.get("coverage_factor") else ""
@@ -169,10 +147,114 @@ def write_certificate(record: dict, out_path: Path, *, specs, measured=None, dum
     _rule(fig, 0.115, 0.6, "0.2")
     fig.text(_LEFT, 0.108, issuer.get("signatory") or "Signature", fontsize=8.5, va="top")
     fig.text(0.62, 0.108, "Date", fontsize=8.5, va="top")
+    certificate_foot(fig, record, dump_path)
+    return savefig_atomic(fig, Path(out_path), dpi, fmt="pdf")
+
+
+def certificate_head(fig, record: dict, title: str, issuer: dict | None = None) -> float:
+    """The certificate's issuer, *title*, verdict and head (serial, type, recipe, station, time, software,
+    calibration) at the top of the A4 *fig*; returns the height below it (figure fraction)."""
+    issuer = issuer or {}
+    fig.text(_LEFT, 0.972, issuer.get("issuer") or "Issuer not set ([certificate] issuer in station.toml)",
+             fontsize=11, weight="bold", va="top")
+    if issuer.get("address"):
+        fig.text(_LEFT, 0.953, issuer["address"], fontsize=8.5, color="0.35", va="top")
+    fig.text(_RIGHT, 0.972, f"Certificate {record.get('cycle_id', '-')}", fontsize=7.5, color="0.35", ha="right",
+             va="top", family="monospace")
+    fig.text(_LEFT, 0.93, title, fontsize=17, weight="bold", va="top")
+    verdict = str(record.get("verdict", "?")).upper()
+    fig.text(_RIGHT, 0.93, verdict, fontsize=17, weight="bold", ha="right", va="top",
+             color={"PASS": "tab:green", "FAIL": "tab:red"}.get(verdict, "tab:orange"))
+    _rule(fig, 0.897, 1.0, "0.2")
+    cal = record.get("calibration") or {}
+    head = [("Serial", record.get("serial", "?")), ("Facet type", record.get("facet", "?")),
+            ("Recipe", record.get("recipe") or "default"), ("Station", record.get("station", "?")),
+            ("Measured", str(record.get("time", "?"))[:19].replace("T", " ") + " (local time)"),
+            ("Software", f"sofast-station {record.get('software_version', '?')}, configuration "
+                         f"{record.get('config_hash', '?')}"),
+            ("Calibration in force", ", ".join(f"{k} {v}" for k, v in cal.items() if k != "warnings") or "-")]
+    if cal.get("warnings"):
+        head.append(("Calibration warnings", "; ".join(cal["warnings"])))
+    y = 0.885
+    for k, v in head:
+        fig.text(_LEFT, y, k, fontsize=9, weight="bold", va="top")
+        y = _wrapped(fig, 0.30, y, v, 78, fontsize=9)
+    return y
+
+
+def certificate_foot(fig, record: dict, dump_path: Path | None) -> None:
+    """The dump's name and SHA-256 and the cycle id at the foot of the certificate's page."""
     if dump_path:
         fig.text(_LEFT, 0.065, f"Data dump {Path(dump_path).name}", fontsize=7, family="monospace", va="top")
         fig.text(_LEFT, 0.052, f"SHA-256 {sha256_of(Path(dump_path))}", fontsize=7, family="monospace", va="top")
     else:
         fig.text(_LEFT, 0.065, "Data dump: none", fontsize=7, family="monospace", va="top")
     fig.text(_LEFT, 0.039, f"Cycle {record.get('cycle_id', '-')}", fontsize=7, family="monospace", va="top")
+
+
+def write_heliostat_certificate(record: dict, out_path: Path, *, ensemble, limit_mrad: float | None = None,
+                                dump_path: Path | None = None, issuer: dict | None = None, dpi: int = 150) -> Path:
+    """Write a heliostat's certificate PDF (:func:`draw_heliostat_certificate`)."""
+    fig = draw_heliostat_certificate(record, ensemble=ensemble, limit_mrad=limit_mrad, dump_path=dump_path,
+                                     issuer=issuer)
     return savefig_atomic(fig, Path(out_path), dpi, fmt="pdf")
+
+
+def draw_heliostat_certificate(record: dict, *, ensemble, limit_mrad: float | None = None,
+                               dump_path: Path | None = None, issuer: dict | None = None):
+    """A heliostat's certificate page (A4, a Matplotlib figure): its head, the heliostat's figures, the map of
+    its facets (each with its canting error ± U and verdict) and a table of every facet's figures; the dump's
+    SHA-256."""
+    from matplotlib.figure import Figure
+
+    from ..result.formatting import with_u
+    from .heliostat import draw_facet_map_on
+
+    if record.get("verdict") in (None, "fault"):
+        raise ReportError(f"heliostat {record.get('serial')} has no figures (its cycle ended in a fault: "
+                          f"{'; '.join(record.get('reasons', []))}): no certificate")
+    fig = Figure(figsize=(8.27, 11.69))
+    y = certificate_head(fig, record, "Heliostat inspection certificate", issuer)
+    h = record["heliostat"]
+    ct, cu = h["common_tilt_mrad"], h.get("common_tilt_mrad_U") or {}
+    lines = [f"{h['n_measured']} of {h['n_facets']} facets measured; canting RMS {h['canting_rms_mrad']:.3f} mrad, "
+             f"largest {h['canting_max_mrad']:.3f} mrad ({h['canting_max_facet']})"
+             + (f", limit {limit_mrad:g} mrad" if limit_mrad is not None else ""),
+             f"facets' common tilt {with_u(ct['x'], cu.get('x'), '', 3)}, {with_u(ct['y'], cu.get('y'), '', 3)} mrad "
+             "(where the heliostat points against its corners: not a canting error)"]
+    o = record.get("optics")
+    if o:
+        m = o["measured"]
+        lines.append(f"optics at {o['conditions']['slant_range_m']:.1f} m: intercept "
+                     f"{with_u(m['intercept'], m.get('intercept_U'), '', 4)} (design {o['design']['intercept']:.4f}, "
+                     f"re-canted {o['corrected']['intercept']:.4f}), 90 % radius "
+                     f"{with_u(m['spot_radius_mrad'], m.get('spot_radius_mrad_U'), '', 3)} mrad")
+    reasons = record.get("reasons") or []
+    lines.append("Verdict: " + str(record["verdict"]).upper() + (": " + "; ".join(reasons) if reasons else
+                                                                 ": every facet within its limits"))
+    y -= 0.008
+    for line in lines:
+        y = _wrapped(fig, _LEFT, y, line, 110, fontsize=8.5) - 0.004
+    top = min(y - 0.01, 0.80)
+    ax = fig.add_axes((0.10, 0.37, 0.80, top - 0.37))
+    draw_facet_map_on(ax, record, ensemble, limit_mrad, fontsize=7 if ensemble.n_facets > 9 else 8)
+    rows = []
+    for f in record["facets"]:
+        if "canting_mrad" not in f:
+            rows.append([f["label"], f.get("verdict", f["status"]), f["status"], "", "", ""])
+            continue
+        c, u = f["canting_mrad"], f.get("canting_mrad_U") or {}
+        rows.append([f["label"], f["verdict"], with_u(c["x"], u.get("x"), "", 3, sign=True),
+                     with_u(c["y"], u.get("y"), "", 3, sign=True),
+                     f"{f['curvature_x_per_m']:.5f}, {f['curvature_y_per_m']:.5f}",
+                     f"{f['slope_rms_mrad']['parabola']['magnitude']:.3f}"])
+    height = min(0.25, 0.017 * (len(rows) + 1))
+    ax_t = fig.add_axes((0.06, 0.32 - height, 0.88, height))
+    ax_t.axis("off")
+    table = ax_t.table(cellText=rows, colLabels=["facet", "verdict", "canting x, mrad", "canting y, mrad",
+                                                 "focal power x, y, 1/m", "slope RMS, mrad"],
+                       loc="upper center", cellLoc="left", colWidths=(0.10, 0.12, 0.20, 0.20, 0.24, 0.14))
+    table.auto_set_font_size(False)
+    table.set_fontsize(6 if len(rows) > 12 else 8)
+    certificate_foot(fig, record, dump_path)
+    return fig

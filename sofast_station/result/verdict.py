@@ -48,6 +48,9 @@ class Limits:
         Largest distance of the beam's centroid from the aim point, seen from the facet's centre, mrad.
     min_power_ratio : float or None
         Smallest intercepted power over the design facet's.
+    max_canting_mrad : float or None
+        A heliostat's facets: largest canting error (its size, sqrt(x^2 + y^2)), mrad
+        (docs/conventions.md#canting); None: not judged.
     slope_rms_value : str
         Which slope RMS the limits apply to: ``"measured"`` (as computed from the measured slopes) or
         ``"corrected"`` (with the slope noise the capture's own noise explains removed in quadrature).
@@ -66,6 +69,7 @@ class Limits:
     max_spot_radius_mrad: float | None = None
     max_centroid_offset_mrad: float | None = None
     min_power_ratio: float | None = None
+    max_canting_mrad: float | None = None
     slope_rms_value: str = "measured"
     decision_rule: str = "simple"
 

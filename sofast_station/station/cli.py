@@ -163,7 +163,7 @@ def cmd_inspect(args) -> int:
         serial, note = clean_serial(args.serial)
         if note:
             log.warning("%s", note)
-        rec = inspect(station, serial, progress=progress)
+        rec = inspect(station, serial, progress=progress, pictures_dir=config.data_dir / "inspections")
         if note:                             # the serial as typed, when making it safe changed it
             rec["serial_raw"] = raw_for_record(args.serial)
     finally:
@@ -176,6 +176,9 @@ def cmd_inspect(args) -> int:
     if args.json:
         json.dump(rec, sys.stdout, indent=1)
         sys.stdout.write("\n")
+    elif "facets" in rec:                     # a heliostat: one line per facet, its optics, what to turn
+        from .heliostat import summary_text as heliostat_summary
+        print(heliostat_summary(rec))
     else:
         print(summary_text(rec))
         if args.budget:

@@ -34,11 +34,16 @@ def capture(station: Station, progress=None) -> tuple[np.ndarray, float]:
     return frames, distance
 
 
-def inspect(station: Station, serial: str, progress=None) -> dict:
-    """Measure the facet in the fixture and return its result record (with ``truth`` on the twin)."""
+def inspect(station: Station, serial: str, progress=None, pictures_dir=None) -> dict:
+    """Measure the facet in the fixture and return its result record (with ``truth`` on the twin); a heliostat
+    station's record has one entry per facet (:func:`~sofast_station.station.heliostat.inspect_heliostat`,
+    which writes its pictures to *pictures_dir* when given)."""
     t0 = time.perf_counter()
     frames, distance = capture(station, progress)
     t_capture = time.perf_counter() - t0
+    if station.config.ensemble is not None:
+        from .heliostat import inspect_heliostat
+        return inspect_heliostat(station, serial, frames, distance, t_capture, pictures_dir)
     rays = station.rays_cam
     t1 = time.perf_counter()
     analysis = analyse(frames, station.config.fringes, station.config.geometry, station.config.design, distance,

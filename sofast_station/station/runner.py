@@ -38,6 +38,8 @@ from ..live.operator_commands import take_commands, take_dump_next
 from .clock import StationClock
 from .drift import DriftMonitor
 from .frames import capture_sequence, crop, crop_box, restore
+from .heliostat import analysis_design, loop_record
+from .heliostat import crop_box as heliostat_crop_box
 from .link import LinkWatch
 from .opened import Station
 from ..recipes import Recipe, choose_recipe
@@ -227,7 +229,8 @@ class StationRunner:
         self.worker = AnalysisWorker(station.config.geometry, station.config.fringes, cam.shape,
                                      standby=settings.standby_worker)
         # The designs' optical traces are the same for every facet of a type: made now, not in a cycle.
-        self.worker.prepare_optics([(r.design, r.optics) for r in recipes.values() if r.optics is not None])
+        self.worker.prepare_optics([(r.design, r.optics) for r in recipes.values()
+                                    if r.optics is not None and r.ensemble is None])
         self._heartbeat_thread = threading.Thread(target=self._heartbeat, name="heartbeat", daemon=True)
         self._answer_lock = threading.Lock()
         self._calibration_policy = calibration_settings(station.config)[0]
@@ -396,7 +399,7 @@ class StationRunner:
             raw, _ = capture_sequence(self.station.display, self.station.camera, self.station.config.fringes,
                                       recipe.analysis.mask_threshold_dn, timeout_s=self.settings.camera_timeout_s)
             distance = float(self.station.range_finder.measure())
-            self.worker.warm_up(raw, recipe.design, recipe.analysis, distance,
+            self.worker.warm_up(raw, analysis_design(recipe, self.station.config), recipe.analysis, distance,
                                 timeout_s=max(60.0, 3 * self.settings.deadline_s), optics=recipe.optics,
                                 uncertainty=self.station.config.uncertainty)
             log.info("warm-up: one capture analysed in %.1f s", time.perf_counter() - t)
@@ -524,7 +527,9 @@ class StationRunner:
                                           recipe.analysis.mask_threshold_dn, timeout_s=self.settings.camera_timeout_s)
             captured.distance_m = float(self.station.range_finder.measure())
             timings["capture"] = time.perf_counter() - t
-            captured.box = crop_box(raw[0], raw[1], recipe.analysis.mask_threshold_dn)
+            # (a heliostat: the box around every facet, not its largest region)
+            captured.box = (heliostat_crop_box if recipe.ensemble is not None else crop_box)(
+                raw[0], raw[1], recipe.analysis.mask_threshold_dn)
             captured.frames, captured.full_shape = crop(raw, captured.box), raw.shape[1:]
             cal_warnings = self._check_calibration(raw[0])
             del raw
@@ -539,7 +544,8 @@ class StationRunner:
             t = time.perf_counter()
             state["stage"] = "analysis"
             try:
-                res = self.worker.analyse(captured.restored(), recipe.design, recipe.analysis, captured.distance_m,
+                res = self.worker.analyse(captured.restored(), analysis_design(recipe, self.station.config),
+                                          recipe.analysis, captured.distance_m,
                                           timeout_s=budget, hang_s=analysis_delay_s, optics=recipe.optics,
                                           uncertainty=self.station.config.uncertainty,
                                           late_s=self.settings.late_grace_s)
@@ -551,7 +557,8 @@ class StationRunner:
             timings["analysis"] = time.perf_counter() - t
             record = self._measured_record(cycle_id, request, recipe, res, captured.distance_m, notes, timings,
                                            cal_warnings)
-            self._check_drift(recipe.name, record)
+            if recipe.ensemble is None:           # (a heliostat's facets are not one facet's trend)
+                self._check_drift(recipe.name, record)
             return CycleOutcome(cycle_id, request.serial, record["verdict"], record, valid=res.valid,
                                 preview=res.preview, sensitivities=getattr(res, "sensitivities", None))
         except Exception as exc:          # a bad facet must never stop the line
@@ -568,8 +575,12 @@ class StationRunner:
         """The record of an analysed facet (in time or late): figures, verdict and, on the simulated station,
         the truth of the station's own facet type."""
         truth = self.station.truth(res.valid) if recipe.design.name == self.station.config.design.name else None
+        head = self._head(cycle_id, request, recipe.name, cal_warnings, facet=recipe.design.name)
+        if recipe.ensemble is not None:       # a heliostat: one entry per facet (docs/heliostats.md)
+            return loop_record(head, res.figures, recipe, truth, measured_distance_m=distance, capture_notes=notes,
+                               timings=timings)
         return build_record(
-            self._head(cycle_id, request, recipe.name, cal_warnings, facet=recipe.design.name),
+            head,
             figures=res.figures, verdict=judge(res.figures, recipe.design, recipe.limits, recipe.quality),
             truth=truth, measured_distance_m=distance, capture_notes=notes, **self._clock_note(),
             timings={**timings, **{f"analysis_{k}": v for k, v in res.figures.get("timings_s", {}).items()}})

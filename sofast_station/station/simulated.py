@@ -18,7 +18,7 @@ from ..errors import ConfigError
 from .opened import Station
 
 _SIM_KEYS = {"seed", "facet", "optics", "population", "distance_error_m", "faults", "hang_s", "slow_s",
-             "assembly"}
+             "assembly", "heliostat"}
 
 #: Faults the simulated station can inject for a given serial ([simulation.faults] SERIAL = KIND).
 FAULT_KINDS = SIMULATED_FAULTS
@@ -57,6 +57,16 @@ def build_twin(config: StationConfig, noise: bool = True):
     screen = None if assembly.screen_is_ideal else TrueScreen(geometry.screen, assembly)
     if not assembly.ideal:
         geometry = true_geometry(geometry, assembly)
+    if config.ensemble is not None:
+        if screen is not None:
+            raise ConfigError(f"{config.path} [simulation.assembly] bends or rescales the screen, which the "
+                              "heliostat twin does not trace: leave its screen terms out for a heliostat station")
+        from ..twin.heliostat import TwinHeliostat, heliostat_from_simulation
+        heliostat = heliostat_from_simulation(sim, config.ensemble, f"{config.path} [simulation]")
+        return TwinHeliostat(geometry, config.ensemble, heliostat, optics)
+    if "heliostat" in sim:
+        raise ConfigError(f"{config.path} [simulation.heliostat] describes a heliostat, but [station] facet is a "
+                          "single facet's file")
     return TwinStation(geometry, config.design, facet, optics, screen_shape=screen)
 
 
@@ -148,8 +158,11 @@ class SimulatedStation(Station):
         """The twin's ground truth at the pixels *valid* (:func:`~sofast_station.twin.truth.ground_truth`),
         with the optical figures of its exact surface (:func:`truth_optics`) when *optics* (the settings the
         measured ones were traced with) and the *design* are given."""
+        from ..twin.heliostat import TwinHeliostat, heliostat_truth
         from ..twin.truth import ground_truth
 
+        if isinstance(self.twin, TwinHeliostat):     # every facet's figures and canting, and the heliostat's
+            return heliostat_truth(self.twin, valid)
         truth = ground_truth(self.twin, valid)
         self._last_valid = np.asarray(valid, dtype=bool)
         if optics is not None and design is not None:

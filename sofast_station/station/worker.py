@@ -134,6 +134,17 @@ def _run(ticket: int, design: dict, settings: dict, distance_m: float, hang_s: f
         time.sleep(hang_s)
     t = time.perf_counter()
     frames = np.array(_STATE["frames"])  # a private copy: the station may refill the buffer after a timeout
+    if "ensemble" in design:             # a heliostat recipe (station/heliostat.py HeliostatJob)
+        from .heliostat import analyse_job
+        inputs = None if uncertainty is None else InputUncertainties.from_dict(uncertainty)
+        figures, valid, sensitivities = analyse_job(
+            frames, _STATE["fringes"], _STATE["geometry"], design, AnalysisSettings(**settings), distance_m,
+            rays_cam=_STATE["rays"], optics=optics, uncertainty=inputs,
+            sensitivity_cache=_STATE.setdefault("sensitivities", {}))
+        out = (figures, np.packbits(valid), valid.shape, time.perf_counter() - t, None, sensitivities)
+        del frames, valid
+        trim_heap()
+        return out
     facet = FacetDesign.from_dict(design)
     # Sensitivities are computed on the first facet of each recipe and kept for the worker's life.
     inputs = None if uncertainty is None else InputUncertainties.from_dict(uncertainty)
@@ -417,10 +428,14 @@ class AnalysisWorker:
         """Analyse one capture before the first facet, in the worker and in the standby; the capture (cropped
         to the facet) is kept to warm every later standby the same way."""
         from .frames import crop, crop_box
+        from .heliostat import HeliostatJob
+        from .heliostat import crop_box as heliostat_crop_box
 
         res = self.analyse(frames, design, settings, distance_m, timeout_s=timeout_s, optics=optics,
                            uncertainty=uncertainty)
-        box = crop_box(frames[0], frames[1], settings.mask_threshold_dn)
+        # (a heliostat: the box around every facet, not its largest region)
+        box = (heliostat_crop_box if isinstance(design, HeliostatJob) else crop_box)(
+            frames[0], frames[1], settings.mask_threshold_dn)
         self._warm_job = (crop(frames, box), box, frames.shape[1:],
                           (design.to_dict(), settings.to_dict(), float(distance_m), 0.0, optics,
                            None if uncertainty is None else uncertainty.to_dict()))

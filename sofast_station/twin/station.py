@@ -36,6 +36,10 @@ from .surface import TrueSurface
 #: working arrays (a few hundred kB each) stay in the core's cache between passes.
 _BLOCK_PX = 96_000
 
+#: What a trace leaves per seen pixel (in the order of ``_seen_idx``): what a merged trace must give
+#: (:meth:`TwinStation.adopt_trace`). ``_hit_range_m`` is the distance from the camera centre to the hit.
+TRACE_ARRAYS = ("_x_facet_m", "_hit_range_m", "_slope", "_u_scr_m", "_path_m", "_on_screen")
+
 #: :meth:`TwinStation.with_facet` keeps the traced outline while the new shape moves its image by less than
 #: this, pixels: a fifth of the corner location's standard uncertainty ([uncertainty] corner_px = 0.1 px).
 MAX_KEPT_EDGE_SHIFT_PX = 0.02
@@ -118,6 +122,9 @@ class TwinStation:
     edge_band_px : float
         Half-width of the band around the outline's image whose pixels ``edge_sampling = "grid"``
         supersamples, pixels (at least 1).
+    trace_only : bool
+        Only trace (no display sampling, no photometry): one facet of a picture that several traces make
+        together (:class:`~sofast_station.twin.heliostat.TwinHeliostat`); it cannot capture.
     screen_shape : TrueScreen, optional
         The panel as it really is (bowed, twisted, another pitch: :mod:`sofast_station.twin.assembly`);
         a flat screen of the stated pitch by default. *geometry* then holds the stated screen (the units
@@ -136,7 +143,8 @@ class TwinStation:
     """
 
     def __init__(self, geometry: StationGeometry, design: FacetDesign, facet: TrueFacet = TrueFacet(),
-                 optics: TwinOptics = TwinOptics(), edge_band_px: float = 2.0, screen_shape=None):
+                 optics: TwinOptics = TwinOptics(), edge_band_px: float = 2.0, trace_only: bool = False,
+                 screen_shape=None):
         if not edge_band_px >= 1.0:
             raise GeometryError(f"edge_band_px must be at least 1 pixel, got {edge_band_px}")
         self.geometry = geometry
@@ -156,9 +164,31 @@ class TwinStation:
         self._samples: dict = {}
         start = time.perf_counter()
         self._trace()
+        if not trace_only:
+            self._prepare_sampling()
+            self._prepare_photometry()
+        self.trace_seconds = time.perf_counter() - start
+
+    def adopt_trace(self, coverage: np.ndarray, seen_idx: np.ndarray, arrays: dict) -> None:
+        """Take the trace of another picture (several traces merged: :mod:`sofast_station.twin.heliostat`)
+        and prepare the captures from it: *coverage* (H, W), the seen pixels' flat indices *seen_idx*, and
+        each of :data:`TRACE_ARRAYS` for them, in that order."""
+        self._coverage = coverage
+        self._seen_idx = seen_idx
+        for name in TRACE_ARRAYS:
+            setattr(self, name, arrays[name])
+        # a merged picture draws no bevelled rim (TwinHeliostat refuses an optics with one)
+        self._rim_pos = np.zeros(0, dtype=np.int64)
+        self._rim_fraction = np.zeros(0)
+        self._rim_u_scr_m = np.empty((0, 2))
+        self._rim_coverage = np.zeros(coverage.shape, dtype=np.float64)
+        self._samples = {}
+        self.__dict__.pop("_seen_box", None)
+        for name in ("screen_position_m", "surface_point_facet_m", "slope_true", "on_screen",
+                     "rim_screen_position_m"):
+            self.__dict__.pop(name, None)
         self._prepare_sampling()
         self._prepare_photometry()
-        self.trace_seconds = time.perf_counter() - start
 
     # ------------------------------------------------------------------ trace
     def _facet_window(self) -> tuple[int, int, int, int]:
@@ -231,6 +261,7 @@ class TwinStation:
         self._seen_idx = rel_idx[seen]
         x_facet = x_rel[seen]
         d_in_facet = d_rel[seen]
+        self._hit_range_m = t_rel[seen]        # (a heliostat's traces are merged by the nearest hit)
 
         # Reflection about the exact true normal, then the screen plane.
         _, zx, zy = self.surface.height_and_slopes(x_facet[:, 0], x_facet[:, 1])

@@ -274,17 +274,23 @@ def ground_truth(station: TwinStation, kept: np.ndarray) -> dict:
         If the boresight iteration does not converge.
     """
     points_m, normals = exact_samples(station, kept)
+    return truth_from_samples(points_m, normals, station.design, station.facet)
+
+
+def truth_from_samples(points_m: np.ndarray, normals: np.ndarray, design: FacetDesign, facet) -> dict:
+    """:func:`ground_truth` of exact samples: *points_m* (n, 3) and unit *normals* (n, 3) in the true facet
+    frame of the true facet *facet* (a :class:`~sofast_station.twin.parameters.TrueFacet`: its placement)."""
     n = points_m.shape[0]
     if n < len(HIGHER_ORDER_TERMS):
         raise AnalysisError(f"ground truth needs at least {len(HIGHER_ORDER_TERMS)} kept pixels on the facet, "
                             f"got {n}")
-    frame = boresight_frame(points_m, normals, station.design)
+    frame = boresight_frame(points_m, normals, design)
     xy, slopes, p = frame["xy_m"], frame["slopes"], frame["parabola"]
     x, y = xy[:, 0], xy[:, 1]
     a, b, e = p["a"], p["b"], p["e"]
 
     parabola = np.column_stack(parabola_slopes(p, x, y))
-    f_design = station.design.focal_length_m
+    f_design = design.focal_length_m
     design = np.column_stack([x / (2 * f_design), y / (2 * f_design)])
 
     eigenvalues = np.linalg.eigvalsh(np.array([[a, 0.5 * e], [0.5 * e, b]]))[::-1]
@@ -303,7 +309,7 @@ def ground_truth(station: TwinStation, kept: np.ndarray) -> dict:
                            "parabola": _residual_rms_mrad(slopes, parabola),
                            "higher_order": _residual_rms_mrad(slopes, higher_order_slopes(xy, slopes))},
         "boresight_mrad": {"x": 1e3 * frame["alpha_rad"], "y": 1e3 * frame["beta_rad"]},
-        "optical_tilt_mrad": optical_tilt_mrad(station.facet.placement_mrad, frame["alpha_rad"], frame["beta_rad"]),
-        "placement": {"mm": list(station.facet.placement_mm), "mrad": list(station.facet.placement_mrad)},
+        "optical_tilt_mrad": optical_tilt_mrad(facet.placement_mrad, frame["alpha_rad"], frame["beta_rad"]),
+        "placement": {"mm": list(facet.placement_mm), "mrad": list(facet.placement_mrad)},
         "n_points": int(n),
     }

@@ -8,6 +8,7 @@ Routes
 ``GET /api/state``                  the same facts as JSON, for tools
 ``GET /facet/{cycle_id}/white.png`` the white frame with the found outline
 ``GET /facet/{cycle_id}/map.png``   the slope-error map
+``GET /facet/{cycle_id}/facets.png`` a heliostat's facets and their canting errors
 ``POST /action/{name}``             a guarded action (``dump-next``, ``pause``, ``resume``, ``remeasure``,
                                     ``serial`` with ``{"serial": ...}`` as JSON or ``serial=...`` as a form);
                                     needs the ``X-Station-Token`` header equal to ``[web] token``; refused
@@ -211,7 +212,7 @@ def create_app(config, settings) -> Starlette:
     """The page's application for the station of *config* (a StationConfig) with ``[web]`` *settings*."""
     data = LineData(config, settings)
     hub = Hub(data)
-    images = FacetImages(config.data_dir)
+    images = FacetImages(config.data_dir, config=config)
     tasks: list = []
 
     async def page(request: Request) -> Response:

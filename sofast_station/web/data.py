@@ -57,8 +57,33 @@ class FigureRow:
     ok: bool | None
 
 
+def heliostat_rows(record: dict, recipe) -> list[FigureRow]:
+    """A heliostat's figures for the page: each facet's canting error (its size, with U along it) against the
+    recipe's ``max_canting_mrad``, or its status when it was not measured."""
+    import math
+
+    limit = recipe.limits.max_canting_mrad if recipe is not None else None
+    rows = []
+    for f in record["facets"]:
+        c = f.get("canting_mrad")
+        if c is None:
+            rows.append(FigureRow(f"{f.get('label')}: {f.get('status')}", None, None, "", 3, "", False))
+            continue
+        size = math.hypot(c["x"], c["y"])
+        u = f.get("canting_mrad_U") or {}
+        big_u = (math.hypot(c["x"] * (u.get("x") or 0.0), c["y"] * (u.get("y") or 0.0)) / size
+                 if size > 0 and u else None)
+        rows.append(FigureRow(f"{f.get('label')} canting ({f.get('verdict', '')})", size, big_u, "mrad", 3,
+                              f"≤ {limit:g}" if limit is not None else "",
+                              None if limit is None else size <= limit))
+    return rows
+
+
 def figure_rows(record: dict, recipe) -> list[FigureRow]:
-    """The last facet's figures with their limits (from its recipe) and whether each is within them."""
+    """The last facet's figures with their limits (from its recipe) and whether each is within them; a
+    heliostat's are its facets' canting errors (:func:`heliostat_rows`)."""
+    if isinstance(record.get("facets"), list):
+        return heliostat_rows(record, recipe)
     rows = []
     lim = recipe.limits if recipe is not None else None
     f_design = recipe.design.focal_length_m if recipe is not None else None

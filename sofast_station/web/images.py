@@ -160,14 +160,64 @@ def map_png(pic, model: str = "design") -> bytes | None:
     return buf.tobytes() if ok else None
 
 
+def facet_map_png(record: dict, ensemble, limit_mrad: float | None) -> bytes:
+    """The map of a heliostat's facets (:func:`~sofast_station.report.heliostat.draw_facet_map`), PNG bytes."""
+    import io
+
+    from ..report.heliostat import draw_facet_map
+
+    buf = io.BytesIO()
+    draw_facet_map(record, ensemble, limit_mrad, title=f"{record.get('serial')}: "
+                   f"{str(record.get('verdict')).upper()}").savefig(buf, format="png", dpi=70)
+    return buf.getvalue()
+
+
 class FacetImages:
     """Renders and caches the PNGs of recent facets (a handful, in memory)."""
 
-    def __init__(self, data_dir: str | Path, cache: int = 16):
+    def __init__(self, data_dir: str | Path, cache: int = 16, config=None):
         self.data_dir = Path(data_dir)
+        #: The station's configuration: its recipes' heliostats, for the map of a heliostat's facets.
+        self.config = config
         self._cache: OrderedDict = OrderedDict()
         self._size = cache
         self._lock = threading.Lock()                # requests are served from a thread pool
+
+    def _facets(self, cycle_id: str) -> bytes | None:
+        """The map of the heliostat measured in *cycle_id* (its record from the journal, its heliostat from
+        its recipe); None for anything else."""
+        import json
+        import sqlite3
+
+        if self.config is None:
+            return None
+        key = (cycle_id, "facets")
+        with self._lock:
+            if key in self._cache:
+                return self._cache[key]
+        try:
+            con = sqlite3.connect(f"file:{self.data_dir / 'journal.sqlite3'}?mode=ro", uri=True, timeout=2.0)
+            try:
+                row = con.execute("SELECT record FROM cycles WHERE cycle_id = ?", (cycle_id,)).fetchone()
+            finally:
+                con.close()
+            record = json.loads(row[0]) if row else None
+            if not record or not isinstance(record.get("facets"), list):
+                return None
+            from ..recipes import recipes_from_config
+            recipes = recipes_from_config(self.config)
+            recipe = recipes.get(record.get("recipe") or "default", recipes["default"])
+            if recipe.ensemble is None:
+                return None
+            png = facet_map_png(record, recipe.ensemble, recipe.limits.max_canting_mrad)
+        except Exception as exc:          # a picture, never a broken page
+            log.warning("cannot draw the map of the facets of cycle %s: %s", cycle_id, exc)
+            return None
+        with self._lock:
+            self._cache[key] = png
+            while len(self._cache) > self._size:
+                self._cache.popitem(last=False)
+        return png
 
     def warm(self) -> None:
         """Import what drawing needs (OpenCV, the map's colour table): about 0.6 s once, at start."""
@@ -177,7 +227,10 @@ class FacetImages:
         _colour_table(SEQUENTIAL_CMAP)
 
     def get(self, cycle_id: str, kind: str) -> bytes | None:
-        """The PNG *kind* ("white" or "map") of *cycle_id*; None when there is none (or no such cycle)."""
+        """The PNG *kind* ("white", "map", or a heliostat's "facets") of *cycle_id*; None when there is none (or
+        no such cycle)."""
+        if kind == "facets":
+            return self._facets(cycle_id)
         if kind not in ("white", "map"):
             return None
         path = picture_path(self.data_dir, cycle_id)

@@ -125,7 +125,10 @@ def last_html(snap: dict) -> str:
         pictures = (f"<div class='pictures'><figure><img id='white' alt='white frame with the found outline' "
                     f"src='/facet/{cid}/white.png'><figcaption>camera's white frame, found outline</figcaption>"
                     f"</figure>")
-        if verdict != "fault":
+        if verdict != "fault" and isinstance(rec.get("facets"), list):      # a heliostat: the map of its facets
+            pictures += (f"<figure><img id='facets' alt='map of the heliostat's facets' src='/facet/{cid}/facets.png'>"
+                         f"<figcaption>its facets and their canting errors (mrad)</figcaption></figure>")
+        elif verdict != "fault":
             pictures += (f"<figure><img id='map' alt='slope-error map' src='/facet/{cid}/map.png'>"
                          f"<figcaption>slope error vs design (mrad)</figcaption></figure>")
         pictures += "</div>"

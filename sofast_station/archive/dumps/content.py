@@ -89,7 +89,8 @@ class DumpContent:
     @classmethod
     def build(cls, config, radiometric, *, cycle_id: str, record: dict, frames_cropped: np.ndarray,
               crop_box, full_shape, measured_distance_m: float, design=None, analysis=None,
-              facet_path: str | Path | None = None, sensitivities: dict | None = None) -> "DumpContent":
+              facet_path: str | Path | None = None, sensitivities: dict | None = None,
+              heliostat: dict | None = None) -> "DumpContent":
         """Assemble a dump's content from a loaded configuration and calibration.
 
         Parameters
@@ -113,7 +114,11 @@ class DumpContent:
             The facet file of *design*, kept as text; the station's facet file by default.
         sensitivities : dict, optional
             The uncertainty's sensitivities the analysis used (a record of
-            :func:`~sofast_station.measure.sensitivity_record.to_record`).
+            :func:`~sofast_station.measure.sensitivity_record.to_record`; a heliostat's: one per facet label).
+        heliostat : dict, optional
+            A heliostat's analysis (``ensemble``, ``heliostat`` settings, ``max_canting_mrad``:
+            :meth:`~sofast_station.station.heliostat.HeliostatJob.to_dict`), kept in ``design`` beside the
+            heliostat's bounding outline; re-analysis then analyses the heliostat (docs/dump-schema.md).
         """
         frames_cropped = np.ascontiguousarray(frames_cropped)
         box = _crop_origin(crop_box, frames_cropped.shape)
@@ -135,7 +140,8 @@ class DumpContent:
                    crop_box=box, full_shape=(int(full_shape[0]), int(full_shape[1])),
                    measured_distance_m=float(measured_distance_m), fringes=json_ready(config.fringes.to_dict()),
                    radiometric=json_ready(radiometric.to_dict()), geometry=json_ready(config.geometry.to_dict()),
-                   design=json_ready(design.to_dict()), analysis=json_ready(analysis.to_dict()),
+                   design=json_ready({**design.to_dict(), **(heliostat or {})}),
+                   analysis=json_ready(analysis.to_dict()),
                    station_toml=texts[0], facet_toml=texts[1], station_path=str(config.path),
                    facet_path=str(facet_path), station_name=str(config.name), record=rec,
                    sensitivities=None if sensitivities is None else json_ready(sensitivities))
