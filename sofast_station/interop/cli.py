@@ -109,15 +109,20 @@ def _pm(v, u, unit: str = "", digits: int = 3) -> str:
 
 def cmd_import_opencsp(args) -> int:
     from ..errors import ConfigError
-    from ..precompute import prepare_analysis_process
-    from .opencsp import opencsp_test_data_paths, read_opencsp, read_opencsp_result
+    from .paths import FILES, check_files, opencsp_test_data_paths
 
     paths = opencsp_test_data_paths(Path(args.test_data)) if args.test_data else {}
-    for key in ("measurement", "camera", "display", "orientation", "calibration", "facet"):
+    for key in FILES:
         if getattr(args, key):
             paths[key] = Path(getattr(args, key))
         if key not in paths:
             raise ConfigError(f"import-opencsp needs --{key} (or --test-data with OpenCSP's folder layout)")
+    for key in ("compare", "uncertainty"):
+        if getattr(args, key) and not Path(getattr(args, key)).is_file():
+            raise ConfigError(f"--{key} {getattr(args, key)} does not exist")
+    check_files(paths, Path(args.test_data) if args.test_data else None)   # before numpy and HDF5 are loaded
+    from ..precompute import prepare_analysis_process
+    from .opencsp import read_opencsp, read_opencsp_result
     table = read_uncertainty_table(Path(args.uncertainty)) if args.uncertainty else None
     m = read_opencsp(**paths, focal_length_m=args.focal_length, uncertainty=table)
     prepare_analysis_process()      # as the station's worker: memory reused, kernels loaded first

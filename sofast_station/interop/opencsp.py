@@ -48,6 +48,7 @@ from ..measure.pipeline import Analysis, AnalysisSettings
 from ..measure.screen import InterpolatedScreen
 from ..measure.uncertainty import InputUncertainties, Sensitivities
 from ..precompute import ray_table
+from .paths import opencsp_test_data_paths  # noqa: F401  (its public place until now)
 
 log = logging.getLogger(__name__)
 
@@ -338,17 +339,6 @@ def read_opencsp(measurement: Path, camera: Path, display: Path, orientation: Pa
     return OpenCspMeasurement(design.name, str(_read(measurement, g + "date")), frames,
                               FringeSet(tuple(periods_x), tuple(periods_y)), geometry, screen, design, distance,
                               settings, assumptions + _uncertainty_assumptions(inputs), inputs)
-
-
-def opencsp_test_data_paths(root: Path) -> dict[str, Path]:
-    """The file layout of OpenCSP's ``opencsp/test/data`` (and of ``fixtures/opencsp``)."""
-    root = Path(root)
-    return {"measurement": root / "sofast_fringe/data_measurement/measurement_facet.h5",
-            "camera": root / "sofast_common/camera_sofast_downsampled.h5",
-            "display": root / "sofast_common/display_distorted_2d.h5",
-            "orientation": root / "sofast_common/spatial_orientation.h5",
-            "calibration": root / "sofast_fringe/data_measurement/image_calibration.h5",
-            "facet": root / "sofast_common/Facet_NSTTF.json"}
 
 
 @dataclass(frozen=True)

@@ -245,10 +245,16 @@ def result_text(result, show_all: bool = False) -> str:
 
 def cmd_reprocess(args) -> int:
     single_thread_blas()
+    from ..errors import StationError
+
+    missing = [d for d in args.dumps if not Path(d).is_file()]
+    if len(missing) == len(args.dumps):          # nothing to do: say so at once, before numpy is loaded
+        from ..errors import DumpError
+        raise DumpError(f"{missing[0]} does not exist" if len(missing) == 1 else
+                        f"none of the {len(missing)} dumps exists ({missing[0]}, ...)")
     from ..precompute import prepare_analysis_process
 
     prepare_analysis_process()      # as the station's worker: memory reused, kernels loaded before the first dump
-    from ..errors import StationError
     from .batch import error_result
     from .reprocess import reprocess_dump
 
@@ -371,6 +377,11 @@ def cmd_report(args) -> int:
     if args.journal or args.results or args.since or args.until or args.config:
         from ..errors import ConfigError
         raise ConfigError("--journal, --results, --config, --from and --to belong to 'report trend'")
+    missing = [t for t in args.targets if not Path(t.removeprefix("opencsp:")).exists()]
+    if len(missing) == len(args.targets):        # nothing to draw: say so before numpy and h5py are loaded
+        from ..errors import DumpError
+        raise DumpError(f"{missing[0]} does not exist" if len(missing) == 1 else
+                        f"none of the {len(missing)} dumps exists ({missing[0]}, ...)")
     from ..report.maps import write_detail_maps, write_slope_error_maps
     from .sources import load_measured
 
