@@ -252,18 +252,24 @@ def cmd_reprocess(args) -> int:
         from ..errors import DumpError
         raise DumpError(f"{missing[0]} does not exist" if len(missing) == 1 else
                         f"none of the {len(missing)} dumps exists ({missing[0]}, ...)")
-    from ..precompute import prepare_analysis_process
+    overrides = overrides_from_args(args)
+    overrides.check()
+    from ..cache import open_cache
+    from ..files import station_data_dir
+    from ..precompute import keep_rays, prepare_analysis_process, use_disk_cache
 
     prepare_analysis_process()      # as the station's worker: memory reused, kernels loaded before the first dump
     from .batch import error_result
     from .reprocess import reprocess_dump
 
-    overrides = overrides_from_args(args)
-    overrides.check()
+    # The station's cache (data_dir/cache of the station file): sensitivities a dump does not carry and the
+    # camera's rays, kept across runs; the figures are the same bits without it (sofast_station/cache.py).
+    cache = open_cache(station_data_dir(default_config()))
+    use_disk_cache(cache)
     failed = differs = 0
     for i, dump in enumerate(args.dumps):
         try:
-            res = reprocess_dump(dump, overrides, journal=args.journal)
+            res = reprocess_dump(dump, overrides, journal=args.journal, disk_cache=cache)
         except StationError as exc:
             failed += 1
             if args.json:
@@ -283,6 +289,7 @@ def cmd_reprocess(args) -> int:
             if i:
                 print()
             print(result_text(res, args.all), flush=True)
+    keep_rays()
     if failed:
         log.error("%d of %d dump(s) could not be reprocessed", failed, len(args.dumps))
         return EXIT_FAILED
