@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import sys
 from pathlib import Path
 
@@ -126,7 +127,17 @@ def cmd_import_opencsp(args) -> int:
     table = read_uncertainty_table(Path(args.uncertainty)) if args.uncertainty else None
     m = read_opencsp(**paths, focal_length_m=args.focal_length, uncertainty=table)
     prepare_analysis_process()      # as the station's worker: memory reused, kernels loaded first
-    cache: dict = {}                # the uncertainty's sensitivities, per geometry and recipe
+    from ..cache import SensitivityStore, capture_basis, open_cache
+    from ..commands import default_config
+    from ..files import station_data_dir
+    from ..precompute import keep_rays, use_disk_cache
+
+    # The uncertainty's sensitivities (per geometry, recipe and inputs) and the camera's rays, computed from
+    # this measurement before and kept in the station's cache (data_dir/cache; sofast_station/cache.py): a
+    # second import of the same files reads them. The figures are the same bits either way.
+    disk = open_cache(station_data_dir(default_config()))
+    use_disk_cache(disk)
+    cache = SensitivityStore(disk, lambda: capture_basis(m.frames, m.distance_m, source="opencsp"))
     a = m.analyse(robust=args.robust, uncertainty=m.uncertainty, sensitivity_cache=cache)
     fig = a.figures
     out = {"facet": m.name, "measured": m.date, "robust": args.robust, **figures_with_u(fig),
@@ -138,13 +149,22 @@ def cmd_import_opencsp(args) -> int:
     out["optics"] = analysis_optics(a, m.design, OpticsSettings()).figures
     if args.compare:
         ref = read_opencsp_result(Path(args.compare))
+        # The sensitivities of the analysis above first (as before the cache), else those kept for OpenCSP's
+        # pixels (its mask is part of their key).
+        on_its_pixels = SensitivityStore(disk, lambda: capture_basis(m.frames, m.distance_m, ref.mask,
+                                                                     source="opencsp"), initial=dict(cache))
         theirs = m.analyse(robust=ref.robust, pixel_mask=ref.mask, uncertainty=m.uncertainty,
-                           sensitivity_cache=cache).figures
+                           sensitivity_cache=on_its_pixels).figures
         out["opencsp"] = {"file": args.compare, "robust": ref.robust, "focal_length_x_m": ref.focal_length_x_m,
                           "focal_length_y_m": ref.focal_length_y_m, "n_points": int(ref.mask.sum()),
                           "ours_on_its_pixels": theirs["subsample_fit"],
                           "ours_on_its_pixels_U": theirs.get("subsample_fit_U"),
                           "ours_on_its_pixels_U_random": theirs.get("subsample_fit_U_random")}
+    keep_rays()
+    hits = cache.hits + (on_its_pixels.hits if args.compare else 0)
+    if hits:
+        logging.getLogger(__name__).info("%d set(s) of the uncertainty's sensitivities read from the cache in %s "
+                                         "(computed from these files before)", hits, disk.directory)
     out = json_safe(out)
     if args.json:
         json.dump(out, sys.stdout, indent=1)
