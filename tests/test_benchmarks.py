@@ -90,3 +90,16 @@ def test_soak_benchmark_quick(repo_root):
     for line in ("12 cycles in", "growth/100 cycles", "after warm-up", "same ids as the journal: True",
                  "temporary files left: 0"):
         assert line in proc.stdout
+
+
+def test_commands_benchmark_quick(repo_root):
+    """benchmarks/commands.py: --help, the usage errors, reprocess and import-opencsp (native), one run each on
+    the small station (report's journal is left out: the slowest setup)."""
+    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "commands.py"), "--quick", "--only", "help",
+                           "--only", "usage error", "--only", "reprocess", "--only", "import-opencsp"],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    print(proc.stdout)
+    for line in ("sofast-station --help", "inspect --config nowhere.toml", "reprocess DUMP (cache cold)",
+                 "import-opencsp --robust, native (cache warm)", "| command | wall s", "load average after"):
+        assert line in proc.stdout
