@@ -170,6 +170,30 @@ def lower_priority(niceness: int = 10) -> None:
         log.debug("could not lower the priority: %s", exc)
 
 
+#: Environment variables that set the thread count of the BLAS/OpenMP libraries numpy may use.
+BLAS_THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS",
+                    "VECLIB_MAXIMUM_THREADS", "NUMEXPR_NUM_THREADS")
+
+
+def single_thread_blas() -> bool:
+    """Ask for BLAS on one thread, unless the user set a thread count explicitly (before numpy is loaded:
+    the libraries read it when they load; docs/conventions.md#determinism).
+
+    One thread gives the re-analysis its bit-exact results, and spares a one-off command the start of a
+    thread pool it does not need: on a busy machine, OpenBLAS's first call (scipy's triangulation of the
+    OpenCSP screen) took 0.3 to 1.2 s with its pool, half a millisecond without.
+
+    Returns
+    -------
+    bool
+        True when numpy was not loaded yet, so the setting takes effect in this process (it always
+        takes effect in processes started afterwards).
+    """
+    for var in BLAS_THREAD_VARS:
+        os.environ.setdefault(var, "1")
+    return "numpy" not in sys.modules
+
+
 def check_station_file(args: argparse.Namespace) -> None:
     """Refuse a command whose station file (``--config``) is missing or not TOML before the command loads
     anything: the mistake is reported in a tenth of a second, not after numpy, OpenCV and the analysis'

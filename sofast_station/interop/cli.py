@@ -7,7 +7,7 @@ import logging
 import sys
 from pathlib import Path
 
-from ..commands import add_command, json_safe
+from ..commands import add_command, json_safe, single_thread_blas
 
 
 def register(subparsers) -> None:
@@ -109,6 +109,7 @@ def _pm(v, u, unit: str = "", digits: int = 3) -> str:
 
 
 def cmd_import_opencsp(args) -> int:
+    single_thread_blas()            # before numpy: bit-exact as reprocess, and no BLAS thread pool to start
     from ..errors import ConfigError
     from .paths import FILES, check_files, opencsp_test_data_paths
 
