@@ -4,13 +4,17 @@
     .venv/bin/python benchmarks/soak.py --cycles 3000 --small  # a long run at 400 x 300
     .venv/bin/python benchmarks/soak.py --quick              # the test suite's smoke run
 
-Runs the real station (simulated devices, analysis worker process, archiver process) on a fresh data
-folder. Every ``--fault-every``-th facet gets an injected fault, in turn: a dark capture, a misplaced
-facet, a camera timeout, and an analysis that finishes after the deadline (a late result). Every
+Runs the real station (simulated devices, analysis worker and its standby, archiver process) on a fresh
+data folder. Every ``--fault-every``-th facet gets an injected fault, in turn: a dark capture, a misplaced
+facet, a camera timeout, and an analysis that finishes after the deadline (a late result).
+``--hung-percent P`` also makes P % of the other facets (drawn with a fixed seed) hang their analysis for
+good: each must cost the line that one facet (the deadline), the standby measuring the next; compare the
+cycles per minute with a run without (``--no-standby`` shows the line without a standby). Every
 ``--sample-every`` cycles it records the resident memory (VmRSS) and open file descriptors of the
-station, the analysis worker and the archiver, and reports for each the growth per 100 cycles (least
-squares) twice: after a warm-up (``--warmup`` cycles, default 20 % of the run, at least 50, so that
-start-up allocations, first-use caches and the allocator settling do not count) and over the whole run.
+station, the analysis worker, its standby and the archiver, and reports for each the growth per 100 cycles
+(least squares) twice: after a warm-up (``--warmup`` cycles, default 20 % of the run, at least 50, so that
+start-up allocations, first-use caches and the allocator settling do not count) and over the whole run;
+and, since a worker that times out is replaced, the growth of each process over its own life.
 ``--trace N`` also follows the station process's Python allocations with tracemalloc: a snapshot at the
 end of the warm-up, then every N cycles the sites that grew most since it; the archiver and the analysis
 worker log theirs every ``--trace-s`` seconds (``SOFAST_TRACEMALLOC_S``, sofast_station/station/memtrace.py).
@@ -116,6 +120,10 @@ def main(argv=None) -> int:
     p.add_argument("--no-truth", action="store_true",
                    help="skip the twin's ground truth per facet (a simulation extra a real station does not "
                         "compute; seconds per facet at full resolution)")
+    p.add_argument("--hung-percent", type=float, default=0.0, metavar="P",
+                   help="this percentage of the facets without another fault hang their analysis for good")
+    p.add_argument("--no-standby", action="store_true", help="[run] standby_worker = false")
+    p.add_argument("--seed", type=int, default=28, help="the draw of the hung facets (default 28)")
     p.add_argument("--quick", action="store_true", help="12 cycles at 400 x 300 (the test suite's smoke run)")
     args = p.parse_args(argv)
     if args.quick:
@@ -136,14 +144,23 @@ def main(argv=None) -> int:
         data = Path(args.data) if args.data else Path(tmp) / "data"
         cfg = load_config(config_path)
         faults = {f"SIM-{i:04d}": FAULT_CYCLE[(i // args.fault_every - 1) % len(FAULT_CYCLE)]
-                  for i in range(args.fault_every, args.cycles + 1, args.fault_every)}
-        raw = dict(cfg.raw, run={"deadline_s": args.deadline, "late_grace_s": 10.0, "dump_every_n": 25},
+                  for i in range(args.fault_every, args.cycles + 1, args.fault_every)} if args.fault_every else {}
+        if args.hung_percent > 0:
+            import random
+            free = [f"SIM-{i:04d}" for i in range(2, args.cycles + 1) if f"SIM-{i:04d}" not in faults]
+            hung = random.Random(args.seed).sample(free, round(args.cycles * args.hung_percent / 100.0))
+            faults.update({serial: "hung-analysis" for serial in hung})
+        raw = dict(cfg.raw, run={"deadline_s": args.deadline, "late_grace_s": 10.0, "dump_every_n": 25,
+                                 "standby_worker": not args.no_standby},
                    archive={"workbook_interval_s": 10.0})
         cfg = dataclasses.replace(cfg, data_dir=data, raw=raw,
                                   simulation={**cfg.simulation, "faults": faults, "slow_s": args.deadline + 2.0})
         cam = cfg.geometry.camera
+        kinds = Counter(faults.values())
         print(f"soak: {cfg.name}, camera {cam.width_px} x {cam.height_px}, {args.cycles} cycles, "
-              f"{len(faults)} injected faults ({', '.join(FAULT_CYCLE)} in turn), data in {data}", flush=True)
+              f"{len(faults)} injected faults ({', '.join(f'{n} {k}' for k, n in sorted(kinds.items()))}), "
+              f"deadline {args.deadline:g} s, standby worker {'off' if args.no_standby else 'on'}, data in {data}; "
+              f"load average {os.getloadavg()[0]:.1f} at the start", flush=True)
         if args.trace:
             from sofast_station.station.memtrace import ENV
             os.environ[ENV] = str(args.trace_s)           # the archiver and the worker inherit it
@@ -151,21 +168,26 @@ def main(argv=None) -> int:
         service = Service(cfg, simulated_facets=args.cycles, console=lambda line: None)
         print(f"station started in {time.perf_counter() - t0:.1f} s", flush=True)
         if args.no_truth:
-            service.runner.station.twin = None     # the camera keeps its own twin; only the truth goes
-        samples: dict[str, list[tuple[int, float, int]]] = {"station": [], "worker": [], "archiver": []}
+            service.runner.station.truth = lambda *a, **k: None   # what a real station knows: no truth
+        samples: dict[str, list[tuple[int, float, int]]] = {"station": [], "worker": [], "standby": [],
+                                                             "archiver": []}
+        by_pid: dict[tuple[str, int], list[tuple[int, float]]] = {}
         answers: Counter = Counter()
         late = [0]
-        pids: dict[str, set] = {"worker": set(), "archiver": set()}
+        pids: dict[str, set] = {"worker": set(), "standby": set(), "archiver": set()}
 
         def sample(n: int) -> None:
             worker = (service.runner.worker.pids() or [None])[0]
+            standby = (service.runner.worker.standby_pids() or [None])[0]
             archiver = service.archiver_process.pid
-            pids["worker"].add(worker)
-            pids["archiver"].add(archiver)
-            for name, pid in (("station", os.getpid()), ("worker", worker), ("archiver", archiver)):
+            for name, pid in (("worker", worker), ("standby", standby), ("archiver", archiver)):
+                pids[name].add(pid)
+            for name, pid in (("station", os.getpid()), ("worker", worker), ("standby", standby),
+                              ("archiver", archiver)):
                 s = proc_sample(pid)
                 if s is not None:
                     samples[name].append((n, *s))
+                    by_pid.setdefault((name, pid), []).append((n, s[0]))
 
         traced: dict = {}
 
@@ -184,9 +206,13 @@ def main(argv=None) -> int:
 
         tally = ShiftTally()                   # what `sofast-station run` keeps for its summary
 
+        fault_reasons: list = []
+
         def on_outcome(outcome) -> None:
-            tally.add(outcome.record, outcome.cycle_s)
+            tally.add(outcome.record)
             answers[outcome.answer] += 1
+            if outcome.answer == "fault":
+                fault_reasons.append(outcome.record.get("reasons"))
             late[0] += bool(outcome.record.get("late"))
             n = sum(answers.values())
             if n % args.sample_every == 0:
@@ -213,12 +239,18 @@ def main(argv=None) -> int:
             service.close()
         run_s, close_s = t_close - t_run, time.perf_counter() - t_close
         n = sum(answers.values())
-        print(f"{n} cycles in {run_s:.0f} s ({run_s / max(n, 1):.2f} s each), shutdown {close_s:.1f} s; answers: "
-              + ", ".join(f"{v} {k}" for k, v in sorted(answers.items())) + f"; {late[0]} late results kept; "
-              f"load average {os.getloadavg()[0]:.1f} at the end")
+        per_minute = 60.0 * n / run_s if run_s > 0 else float("nan")
+        by_kind = Counter(str((o or [""])[0]).split(":")[0] for o in fault_reasons)
+        print(f"{n} cycles in {run_s:.0f} s ({run_s / max(n, 1):.2f} s each, {per_minute:.2f} cycles per minute), "
+              f"shutdown {close_s:.1f} s; answers: " + ", ".join(f"{v} {k}" for k, v in sorted(answers.items()))
+              + f" (faults: {', '.join(f'{v} {k}' for k, v in sorted(by_kind.items()))}); {late[0]} late results "
+              f"kept; the standby took over {service.runner.worker.takeovers} times; load average "
+              f"{os.getloadavg()[0]:.1f} at the end")
 
         figures: dict = {"cycles": n, "camera": [cam.width_px, cam.height_px], "answers": dict(answers),
-                         "deadline_s": args.deadline, "truth": not args.no_truth,
+                         "deadline_s": args.deadline, "truth": not args.no_truth, "hung_percent": args.hung_percent,
+                         "standby": not args.no_standby, "cycles_per_minute": per_minute,
+                         "faults_by_kind": dict(by_kind), "takeovers": service.runner.worker.takeovers,
                          "late": late[0], "run_s": run_s, "warmup_cycles": warmup, "processes": {},
                          "load_average": os.getloadavg()}
         print(f"growth per 100 cycles (least squares): after the warm-up of {warmup} cycles, and over the whole run")
@@ -242,6 +274,21 @@ def main(argv=None) -> int:
             print(f"{name:<10} {rows[0][1]:8.1f} {at_warmup:10.1f} {rows[-1][1]:7.1f} {max(r[1] for r in rows):6.1f}"
                   f" {growth:+14.2f} {overall:+8.2f} {rows[0][2]:19d} {rows[-1][2]:5d}  "
                   f"({len(who)} process{'es' if len(who) > 1 else ''})")
+        # each process over its own life after the warm-up (a worker that timed out was replaced, so the
+        # worker's row above mixes processes), for those sampled at least 10 times
+        own = []
+        for (name, pid), rows in sorted(by_pid.items(), key=lambda kv: kv[1][0][0]):
+            later = [r for r in rows if r[0] >= warmup]
+            if len(later) >= 10:
+                g = slope_per_100([r[0] for r in later], [r[1] for r in later])
+                own.append({"process": name, "pid": pid, "cycles": [later[0][0], later[-1][0]], "samples": len(later),
+                            "rss_first_mb": later[0][1], "rss_last_mb": later[-1][1], "growth_mb_per_100": g})
+        figures["each_process"] = own
+        if own:
+            print("each process after the warm-up, over its own life (>= 10 samples): "
+                  + "; ".join(f"{o['process']} {o['pid']} cycles {o['cycles'][0]}-{o['cycles'][1]} "
+                              f"{o['rss_first_mb']:.0f}->{o['rss_last_mb']:.0f} MB {o['growth_mb_per_100']:+.2f}/100"
+                              for o in own))
 
         c = archive_checks(data)
         rows, book_ids, requested = c["journal_rows"], c["workbook_rows"], c["dumps_requested"]

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-GAMMA = 2.2          # the twin's default display gamma (sofast_station.twin.config.TwinOptics)
+GAMMA = 2.2          # the twin's default display gamma (sofast_station.twin.parameters.TwinOptics)
 N = 1024
 
 if __name__ == "__main__":

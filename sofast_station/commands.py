@@ -240,7 +240,7 @@ def build_parser(prog: str = "sofast-station", description: str = "", epilog: st
 def run(args: argparse.Namespace) -> int:
     """Run a parsed command: logging to stderr, a StationError is one line and exit code 2.
 
-    Exit codes (README "Exit codes"): 0 done; 1 the command ran but part of its work failed (batch: a
+    Exit codes (README, "The main commands"): 0 done; 1 the command ran but part of its work failed (batch: a
     dump failed or is unfinished); 2 a user's mistake or a station error, one line saying what to do (argparse
     usage errors too); 130 interrupted (Ctrl-C). Output piped into a reader that stops early (``head``)
     ends quietly with 0.

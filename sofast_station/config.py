@@ -96,7 +96,9 @@ def _camera(table: dict, where: str) -> CameraIntrinsics:
     f = _need(table, "focal_length_px", where)
     fx, fy = (f, f) if np.isscalar(f) else tuple(f)
     cx, cy = table.get("principal_point_px", [(w - 1) / 2.0, (h - 1) / 2.0])
-    dist = table.get("distortion", [0.0] * 5)
+    dist = list(table.get("distortion", [0.0] * 5))
+    if len(dist) == 4:                   # OpenCV's k1, k2, p1, p2: k3 = 0 (the schema allows 4 or 5 terms)
+        dist.append(0.0)
     try:
         return CameraIntrinsics(w, h, [[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dist)
     except ConfigError as exc:

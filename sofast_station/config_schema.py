@@ -126,7 +126,9 @@ SECTIONS: dict[str, dict[str, Key]] = {
         "width_px": Key("int", low=1), "height_px": Key("int", low=1),
         "focal_length_px": Key("float|floats", low=0.0, low_open=True, length=(2,), doc="f or [fx, fy], px"),
         "principal_point_px": Key("floats", length=(2,), doc="[cx, cy], px"),
-        "distortion": Key("floats", length=(4, 5, 8), doc="OpenCV k1, k2, p1, p2[, k3[, k4, k5, k6]]"),
+        "distortion": Key("floats", length=(4, 5), doc="OpenCV's k1, k2, p1, p2[, k3]: the 5-term model the "
+                          "analysis and the twin use (4 terms: k3 = 0); OpenCV's 8-term rational model is not "
+                          "supported, calibrate the camera with the 5-term model ('calibrate camera')"),
         "intrinsics": Key("str", doc="\"station.toml\" or \"record\" (checked with its own message)"),
     },
     "screen": {
@@ -216,6 +218,8 @@ SECTIONS: dict[str, dict[str, Key]] = {
         "facet": Key("table", doc="[simulation.facet]: the twin's true facet (twin.parameters.TrueFacet, a rule "
                                   "below)"),
         "optics": Key("table", doc="[simulation.optics]: display, camera and noise (twin.parameters.TwinOptics)"),
+        "population": Key("table", doc="[simulation.population]: how the line's facets differ "
+                                       "(twin.population.FacetPopulation)"),
         "distance_error_m": Key("float", low=-1.0, high=1.0, doc="the simulated range finder's error, m"),
         "faults": Key("section:simulation_faults", doc="SERIAL = fault kind, injected (tests, benchmarks)"),
         "hang_s": _pos("how long a 'hung-analysis' fault hangs, s"),
@@ -228,6 +232,8 @@ SECTIONS: dict[str, dict[str, Key]] = {
         "camera_timeout_s": _pos("s"), "min_free_gb": _nonneg("GB"), "dump_keep_days": _pos("days"),
         "dump_max_gb": _pos("GB"), "late_grace_s": _nonneg("s after the deadline a late analysis may take"),
         "warmup": Key("bool", doc="analyse one capture before reporting ready"),
+        "standby_worker": Key("bool", doc="keep a warm second analysis worker that takes over after a timeout or "
+                                          "a crash"),
     },
     "archive": {
         "workbook_period": Key("str", choices=("day", "shift")), "workbook_interval_s": _pos("s"),
@@ -246,6 +252,11 @@ SECTIONS: dict[str, dict[str, Key]] = {
     "opcua": {"*": Key("any", doc="checked by its reader (READERS below)")},
     "drift": {"*": Key("any", doc="checked by its reader (READERS below)")},
     "acceptance": {"*": Key("table", doc="[acceptance.RECIPE], checked by report.acceptance (a rule below)")},
+    "certificate": {
+        "issuer": Key("str", doc="who issues the facet certificates (report certificate): the organisation"),
+        "address": Key("str", doc="the issuer's address, one line under its name"),
+        "signatory": Key("str", doc="name and role printed under the certificate's signature line"),
+    },
     "recipe": {
         "facet": Key("str"), "serial_pattern": Key("str"),
         "alignment_point_m": Key("floats", length=(2,)), "measure_point_m": Key("floats", length=(2,)),
@@ -257,12 +268,13 @@ SECTIONS: dict[str, dict[str, Key]] = {
 #: The sections that may appear at the top of station.toml (the others are nested tables).
 TOP_LEVEL = ["station", "camera", "screen", "layout", "fringes", "analysis", "limits", "quality", "calibration",
              "optics", "simulation", "run", "archive", "devices", "recipes", "web", "opcua", "acceptance", "drift",
-             "uncertainty"]
+             "uncertainty", "certificate"]
 
 
 def _check_value(key: Key, value, file: str, label: str, name: str) -> None:
     def bad() -> ConfigError:
-        return ConfigError(f"{file} [{label}] {name} must be {key.allowed()}, got {value!r}")
+        what = f" ({key.doc})" if key.length and isinstance(value, list) and len(value) not in key.length else ""
+        return ConfigError(f"{file} [{label}] {name} must be {key.allowed()}, got {value!r}{what}")
 
     kind = key.kind
     if kind == "any":
@@ -395,13 +407,15 @@ def _rule_readers(raw: dict, where: str) -> None:
 
 
 def _rule_simulation(raw: dict, where: str) -> None:
-    """[simulation.facet] and [simulation.optics] through the twin's own records (types, ranges, keys)."""
+    """[simulation.facet], [simulation.optics] and [simulation.population] through the twin's own records
+    (types, ranges, keys)."""
     sim = raw.get("simulation")
     if not sim:
         return
     from .twin.parameters import TrueFacet, TwinOptics
+    from .twin.population import FacetPopulation
 
-    for key, cls in (("facet", TrueFacet), ("optics", TwinOptics)):
+    for key, cls in (("facet", TrueFacet), ("optics", TwinOptics), ("population", FacetPopulation)):
         try:
             cls.from_dict(sim.get(key, {}))
         except ConfigError as exc:

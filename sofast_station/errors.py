@@ -49,11 +49,23 @@ class AnalysisError(StationError):
 
 
 class AnalysisTimeout(StationError):
-    """The analysis did not finish before the cycle's deadline; the worker was restarted."""
+    """The analysis did not finish before the cycle's deadline; the standby worker took over.
+
+    Attributes
+    ----------
+    late : concurrent.futures.Future or None
+        The abandoned analysis, still running in its retired worker for up to the late grace: resolves to
+        the worker's result when it finishes in time, to None when it does not (the worker is then killed),
+        or to the analysis's own error. None when there is nothing to wait for.
+    """
+
+    def __init__(self, message: str = "", late=None):
+        super().__init__(message)
+        self.late = late
 
 
 class WorkerDied(StationError):
-    """The analysis worker process died (killed, out of memory); it is being restarted."""
+    """The analysis worker process died (killed, out of memory); the standby took over."""
 
 
 class CameraError(StationError):

@@ -50,7 +50,11 @@ def test_broken_toml_names_the_file(tmp_path):
     ("run", "dump_failed = 1", "[run] dump_failed must be true or false, got 1"),
     ("run", "deadline = 3", "[run] has unknown key(s) deadline; allowed:"),
     ("camera", 'width_px = "1600"', "[camera] width_px must be a whole number of at least 1, got '1600'"),
-    ("camera", "distortion = [0.1, 0.2]", "[camera] distortion must be a list of numbers of length 4 or 5 or 8"),
+    ("camera", "distortion = [0.1, 0.2]", "[camera] distortion must be a list of numbers of length 4 or 5, got"),
+    # issue 28: the schema allowed an 8-term model that the camera loader then refused
+    ("camera", "distortion = [-0.05, 0.1, 0.0002, -0.0001, 0.0, 0.01, 0.0, 0.0]",
+     "[camera] distortion must be a list of numbers of length 4 or 5, got [-0.05, 0.1, 0.0002, -0.0001, 0.0, 0.01, "
+     "0.0, 0.0] (OpenCV's k1, k2, p1, p2[, k3]: the 5-term model"),
     ("limits", "focal_length_tolerance = -0.02",
      "[limits] focal_length_tolerance must be a number above 0 and at most 1, got -0.02"),
     ("limits", "max_slope_rms_mrad = { design = -3.0 }", "[limits.max_slope_rms_mrad] design must be a number above 0"),
@@ -134,3 +138,12 @@ def test_an_unreadable_calibration_record_is_named_when_its_part_of_the_budget_i
         assert after == before
     else:                     # the shipped record's rounding was in the budget; the unreadable newest has none
         assert before.response_record_rad is not None and after.response_record_rad is None
+
+
+def test_a_four_term_distortion_loads_with_k3_zero(small_station_toml):
+    """Issue 28: what the schema allows, the camera loader takes: OpenCV's four terms mean k3 = 0."""
+    text = small_station_toml.read_text()
+    line = next(ln for ln in text.splitlines() if ln.startswith("distortion ="))
+    small_station_toml.write_text(text.replace(line, "distortion = [-0.05, 0.1, 0.0002, -0.0001]", 1))
+    cam = load_config(small_station_toml).geometry.camera
+    assert cam.distortion.tolist() == [-0.05, 0.1, 0.0002, -0.0001, 0.0]

@@ -14,7 +14,11 @@ from sofast_station.serials import MAX_SERIAL_CHARS, clean_serial
     ("", "NOSERIAL"),
     ("\x00\x00", "NOSERIAL"),
     ("=1+2", "=1+2"),                     # kept: the workbook stores it as text, never as a formula
-    ("../../x", "../../x"),               # kept: file names go through safe_name
+    ("../../x", "____x"),                 # never a path (issue 28): no separator, no '..', no leading dot
+    ("MF/2024\\001", "MF_2024_001"),
+    ("..", "_"),
+    (".hidden", "hidden"),
+    ("A.B-1.2", "A.B-1.2"),               # single dots inside are file-name safe
 ])
 def test_clean_serial(raw, clean):
     got, note = clean_serial(raw)

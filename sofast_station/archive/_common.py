@@ -183,6 +183,49 @@ def temp_path_for(final: Path) -> Path:
     return final.parent / f".{final.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp"
 
 
+def write_file_atomic(path: Path, write, mode: str = "wb", fsync: bool = False) -> Path:
+    """Write *path* whole or not at all: ``write(fh)`` fills a temporary file of :func:`temp_path_for` in the
+    same folder, which is then renamed into place.
+
+    On any failure (a full disk, a folder gone) the temporary file is removed before the error is raised,
+    so nothing is left behind; a process killed meanwhile leaves a name :func:`remove_stale_temp_files`
+    recognises. Without *fsync* the data may still be in the system's cache when it returns: for files that
+    say what is happening now (live status, pictures, commands); results are written with *fsync*.
+
+    Parameters
+    ----------
+    path : Path
+        The final file.
+    write : callable
+        Called with the open temporary file.
+    mode : str
+        ``"wb"`` or ``"w"`` (UTF-8 text).
+    fsync : bool
+        Flush the data to the disk before the rename.
+
+    Returns
+    -------
+    Path
+        *path*.
+    """
+    path = Path(path)
+    tmp = temp_path_for(path)
+    try:
+        with open(tmp, mode, **({"encoding": "utf-8"} if "b" not in mode else {})) as fh:
+            write(fh)
+            if fsync:
+                fh.flush()
+                os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            tmp.unlink(missing_ok=True)
+        except OSError:
+            pass
+        raise
+    return path
+
+
 def is_temp_file(path: Path) -> bool:
     """Whether *path* is named like a temporary file of :func:`temp_path_for`."""
     return _TEMP_RE.match(Path(path).name) is not None

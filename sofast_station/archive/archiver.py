@@ -30,7 +30,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..errors import ArchiveError
+from ..errors import ArchiveError, DumpError
 from ._common import parse_time, release_memory, remove_stale_temp_files
 from .dumps import COMPRESSION_LEVEL, DumpContent, disk_ok, dump_path_for, prune_dumps, read_dump, write_dump
 from .journal import Journal
@@ -154,6 +154,8 @@ class Archiver:
         self._last_prune = float("-inf")
         self._cleaned = False
         self._low_disk_logged = False
+        self._dump_problem: str | None = None          # why dumps wait, as last logged
+        self._pass_problem: tuple[str, float] | None = None   # a failing pass, as last logged (text, when)
 
     # -- the station's side -----------------------------------------------------------------------------
     def submit(self, cycle_id: str, record: dict, content: DumpContent | None = None, amend: bool = False) -> bool:
@@ -255,7 +257,7 @@ class Archiver:
         return ok
 
     def _dump_step(self, report: ArchiveReport) -> None:
-        pending = self.journal.pending_dumps()
+        pending = self.journal.pending_dump_rows()           # without the records: they come from the spool
         for i, row in enumerate(pending):
             if self._stop_requested():
                 report.dumps_waiting += len(pending) - i
@@ -299,13 +301,39 @@ class Archiver:
                 continue
             try:
                 write_dump(final, content, self.settings.compression_level)
+            except DumpError as exc:
+                # The content cannot make a dump (not the disk): writing it again will not help. Recorded as
+                # failed, the spool kept aside with its frames (spool/bad/), never retried at every pass.
+                reason = f"the spooled facet cannot be written as a dump: {exc}"
+                self.journal.mark_dump(row.cycle_id, None, error=reason)
+                report.dumps_failed[row.cycle_id] = reason
+                self._quarantine_spool(spool, "bad")
+                log.error("dump of cycle %s (serial %s) failed: %s; its spool is kept in %s", row.cycle_id,
+                          row.serial, reason, self.spool_dir / "bad")
+                continue
             except ArchiveError as exc:
                 report.dumps_waiting += 1
-                log.warning("dump of cycle %s waits in the spool: %s", row.cycle_id, exc)
+                self._dump_waits(row.cycle_id, exc)
                 continue
+            self._dump_waits(None, None)
             self.journal.mark_dump(row.cycle_id, final)
             self._remove_spool(spool, report)
             report.dumps_written.append(final)
+
+    def _dump_waits(self, cycle_id: str | None, exc: Exception | None) -> None:
+        """Log a dump that cannot be written now once, not at every pass (every 2 s: a dumps folder made
+        read-only mid-run filled the log); and once when dumps are written again."""
+        if exc is None:
+            if self._dump_problem is not None:
+                log.info("dumps are written again (they waited in the spool since: %s)", self._dump_problem)
+                self._dump_problem = None
+            return
+        cause = exc.__cause__ or exc                    # the same kind of failure, whichever cycle's dump
+        problem = f"{type(cause).__name__} {getattr(cause, 'strerror', None) or ''}".strip()
+        if problem != self._dump_problem:
+            log.warning("dump of cycle %s waits in the spool: %s (said once; the archiver tries again at every "
+                        "pass and says when dumps are written again)", cycle_id, exc)
+            self._dump_problem = problem
 
     def _remove_spool(self, spool: Path, report: ArchiveReport) -> None:
         try:
@@ -397,6 +425,22 @@ class Archiver:
             self.run_once()
         return ended
 
+    #: Seconds between two log lines of the same failing pass.
+    REPEAT_LOG_S = 600.0
+
+    def _pass_failed(self, exc: Exception) -> None:
+        """A pass that raised: the traceback once, then one line every :attr:`REPEAT_LOG_S` seconds while
+        the same error repeats (it is retried every pass, every couple of seconds)."""
+        text = f"{type(exc).__name__}: {exc}"
+        now = time.monotonic()
+        if self._pass_problem is None or self._pass_problem[0] != text:
+            log.error("archiver pass failed; retrying every %.0f s (said once, then every %.0f min while it "
+                      "repeats)", self.settings.poll_interval_s, self.REPEAT_LOG_S / 60, exc_info=exc)
+            self._pass_problem = (text, now)
+        elif now - self._pass_problem[1] >= self.REPEAT_LOG_S:
+            log.error("archiver passes still fail: %s", text)
+            self._pass_problem = (text, now)
+
     @property
     def running(self) -> bool:
         return self._thread is not None and self._thread.is_alive()
@@ -407,8 +451,11 @@ class Archiver:
             due = time.monotonic() - self._last_workbook >= self.workbook_gap_s
             try:
                 self.run_once(workbook=due)
-            except Exception:       # never stop archiving: log and retry on the next pass
-                log.exception("archiver pass failed; retrying in %.0f s", self.settings.poll_interval_s)
+                if self._pass_problem is not None:
+                    log.info("archiver passes work again")
+                    self._pass_problem = None
+            except Exception as exc:       # never stop archiving: log and retry on the next pass
+                self._pass_failed(exc)
             self._wake.wait(self.settings.poll_interval_s)
             self._wake.clear()
         log.debug("archiver thread stopped")

@@ -126,6 +126,24 @@ class JournalRow:
                    workbook_at, bool(dump_requested), dump_path, dump_error, dump_at)
 
 
+@dataclass(frozen=True)
+class PendingRow:
+    """A journal row without its record: what the archiver needs to schedule work on it.
+
+    The archiver's passes used to read the whole record of every pending row (about 50 kB of Python
+    objects each at full resolution) and hold them for the pass; with saves spaced by their CPU share, a
+    backlog of a hundred rows held several MB through a long save, and each pass left the archiver's memory
+    higher. The records are read where they are written, a hundred at a time.
+    """
+
+    seq: int
+    cycle_id: str
+    serial: str
+    time: str
+    journaled_at: str
+    late: bool
+
+
 class Journal:
     """The station's append-only journal of inspection cycles (SQLite, WAL, ``synchronous=FULL``).
 
@@ -373,6 +391,25 @@ class Journal:
     def pending_dumps(self) -> list[JournalRow]:
         """Rows whose dump is requested and neither written nor failed, in journal order."""
         return self._select("WHERE dump_requested = 1 AND dump_path IS NULL AND dump_error IS NULL")
+
+    def _select_pending(self, where: str, limit: int | None = None) -> list[PendingRow]:
+        tail = f" LIMIT {int(limit)}" if limit else ""
+        sql = (f"SELECT seq, cycle_id, serial, time, journaled_at, json_extract(record, '$.late') FROM cycles "
+               f"{where} ORDER BY seq{tail}")
+        with self._lock:
+            try:
+                rows = self._conn().execute(sql).fetchall()
+            except sqlite3.Error as exc:
+                raise self._error("reading", exc) from exc
+        return [PendingRow(int(q), c, s, t, j, bool(late)) for q, c, s, t, j, late in rows]
+
+    def pending_workbook_rows(self, limit: int | None = None) -> list[PendingRow]:
+        """:meth:`pending_workbook` without the records (the archiver's schedule)."""
+        return self._select_pending("WHERE workbook_path IS NULL", limit)
+
+    def pending_dump_rows(self) -> list[PendingRow]:
+        """:meth:`pending_dumps` without the records (the archiver's schedule)."""
+        return self._select_pending("WHERE dump_requested = 1 AND dump_path IS NULL AND dump_error IS NULL")
 
     def rows_in_workbook(self, workbook_path: str | Path) -> list[JournalRow]:
         """Rows recorded as written to *workbook_path*, in journal order."""

@@ -527,7 +527,9 @@ class _PartWriter:
             for flat in self._flat_rows():                  # second pass: the rows, streamed to the sheet
                 cells = [None] * width
                 for name, value in flat.items():
-                    if value is not None:
+                    # a column the first pass did not see: the row was amended (a late result) between the
+                    # passes; its journal row changed version, so it stays pending and is written whole again
+                    if value is not None and name in columns:
                         cells[columns[name]] = _cell(ws, name, value)
                 ws.append(cells)
             us = wb.create_sheet("units")
@@ -666,10 +668,18 @@ def _scan(path: Path, journal: Journal | None) -> _PartScan:
         return _rebuild(path, journal)
 
 
+def _is_late(row) -> bool:
+    """Whether a journal row (JournalRow or PendingRow) is an amended late result."""
+    late = getattr(row, "late", None)
+    return bool(row.record.get("late")) if late is None else late
+
+
 def _rewrite(scan: _PartScan, journal: Journal | None, given: dict, new: list | None = None) -> None:
     """Write *scan*'s part again with its rows (their records as the journal holds them now, or as *given*)
-    followed by the *new* rows; rows of the file the journal does not know are kept as they were."""
+    followed by the *new* rows; rows of the file the journal does not know are kept as they were. Rows
+    given without their record (PendingRow) are read from the journal as the part is written."""
     new = new or []
+    given = {k: r for k, r in given.items() if hasattr(r, "record")}
     known = set(given)
     if journal is not None:
         unknown = [i for i in scan.ids if i not in known]
@@ -680,7 +690,7 @@ def _rewrite(scan: _PartScan, journal: Journal | None, given: dict, new: list | 
     if foreign:
         log.warning("workbook %s holds %d row(s) the journal does not know (another journal?); they are kept",
                     scan.path, len(foreign))
-    given = dict(given, **{r.cycle_id: r for r in new})
+    given = dict(given, **{r.cycle_id: r for r in new if hasattr(r, "record")})
     scan.header = _PartWriter(scan.path, scan.ids + [r.cycle_id for r in new], journal, given, scan.header,
                               foreign).save()
     scan.ids = scan.ids + [r.cycle_id for r in new]
@@ -719,7 +729,7 @@ def append_rows(folder: Path, key: str, rows: list[JournalRow], settings: Workbo
                 present.setdefault(scan.path, []).append(r.cycle_id)
     versions = {r.cycle_id: r.journaled_at for r in rows}
     # A late result amends a row that may be in a book already: its row there is rewritten.
-    amended = {r.cycle_id: r for r in rows if r.record.get("late")}
+    amended = {r.cycle_id: r for r in rows if _is_late(r)}
     held = {i for ids in present.values() for i in ids}
     todo = [r for r in rows if r.cycle_id not in held]
     # a row twice in *rows* (cannot happen from the journal, whose ids are unique) would be written once
@@ -765,10 +775,12 @@ def write_pending(journal: Journal, folder: Path, settings: WorkbookSettings = W
     the others are still written. Never raises for such conditions: see the report.
     """
     report = WorkbookReport()
-    pending = journal.pending_workbook()
+    # The pending rows without their records: the part writer reads every record from the journal a
+    # hundred at a time, so a pass holds no more of them however large the backlog (PendingRow).
+    pending = journal.pending_workbook_rows()
     if not pending:
         return report
-    groups: dict[str, list[JournalRow]] = {}
+    groups: dict[str, list] = {}
     for r in pending:
         groups.setdefault(period_key(r.time, settings), []).append(r)
     for key, rows in groups.items():
@@ -776,7 +788,7 @@ def write_pending(journal: Journal, folder: Path, settings: WorkbookSettings = W
             added = append_rows(folder, key, rows, settings, journal)
         except (OSError, ArchiveError) as exc:
             target = workbook_path(folder, key, 1, settings.prefix)
-            done = {r.cycle_id for r in rows} - {r.cycle_id for r in journal.pending_workbook()}
+            done = {r.cycle_id for r in rows} - {r.cycle_id for r in journal.pending_workbook_rows()}
             waiting = len(rows) - len(done)
             report.waiting += waiting
             report.errors[str(target)] = f"{type(exc).__name__}: {exc}"

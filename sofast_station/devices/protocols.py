@@ -82,7 +82,7 @@ FAULT_CODES = {
     "display": 6,          # the display failed
     "calibration": 7,      # the calibration went stale mid-run and the station refuses ([calibration] stale)
     "recipe": 8,           # the PLC asked for a recipe station.toml does not define
-    "worker": 9,           # the analysis worker process died (killed, out of memory); it is restarted
+    "worker": 9,           # the analysis worker process died (killed, out of memory); the standby took over
     "archive": 10,         # the result could not be journaled (disk full, read-only): the station stops
     "internal": 99,        # a bug: see the log
 }

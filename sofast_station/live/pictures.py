@@ -19,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..archive._common import write_file_atomic
+
 log = logging.getLogger(__name__)
 
 THUMB_PX = 320
@@ -58,10 +60,7 @@ class FacetPictures:
         if path is None or outcome.frames is None:
             return None
         arrays = self._arrays(outcome)
-        tmp = path.with_name(f".{path.stem}.tmp")
-        with open(tmp, "wb") as fh:
-            np.savez(fh, **arrays)
-        os.replace(tmp, path)
+        write_file_atomic(path, lambda fh: np.savez(fh, **arrays))   # nothing left behind on a full disk
         self._written += 1
         if self._written % 20 == 1:
             self.prune()

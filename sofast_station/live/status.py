@@ -17,7 +17,7 @@ import logging
 import os
 from pathlib import Path
 
-from ..archive._common import pid_alive
+from ..archive._common import pid_alive, write_file_atomic
 
 log = logging.getLogger(__name__)
 
@@ -36,7 +36,6 @@ class StatusFile:
     def __init__(self, data_dir: str | Path):
         self.path = status_path(data_dir)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._tmp = self.path.with_name(f".status.{os.getpid()}.tmp")
         self.data: dict = {"state": "idle", "pid": os.getpid(), "serial": None, "cycle_id": None,
                            "alarms": {}, "manual_serial": None, "since": _now()}
 
@@ -47,8 +46,8 @@ class StatusFile:
         self.data.update(fields)
         self.data["updated"] = _now()
         try:
-            self._tmp.write_text(json.dumps(self.data), encoding="utf-8")
-            os.replace(self._tmp, self.path)
+            text = json.dumps(self.data)
+            write_file_atomic(self.path, lambda fh: fh.write(text), mode="w")
         except OSError as exc:
             log.warning("could not write the live status %s: %s", self.path, exc)
 

@@ -48,8 +48,8 @@ from pathlib import Path
 from typing import Callable, Iterable
 
 from .. import __version__
-from ..archive._common import (fault_point, fsync_dir, is_temp_file, now_iso, remove_stale_temp_files, temp_path_for,
-                               to_json)
+from ..archive._common import (fault_point, fsync_dir, is_temp_file, now_iso, remove_stale_temp_files, to_json,
+                               write_file_atomic)
 from ..errors import ArchiveError, StationError
 from ._env import single_thread_blas
 
@@ -184,32 +184,12 @@ def process_dump(dump: str, overrides: dict | None = None, journal: str | None =
 # -- files ------------------------------------------------------------------------------------------------
 def write_json_atomic(path: Path, obj: dict) -> None:
     """Write *obj* as JSON to a temporary file beside *path*, fsync it, and rename it into place."""
-    tmp = temp_path_for(path)
-    try:
-        with open(tmp, "w", encoding="utf-8") as fh:
-            fh.write(to_json(obj, indent=1))
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            tmp.unlink(missing_ok=True)
-        except OSError:
-            pass
-        raise
+    text = to_json(obj, indent=1)
+    write_file_atomic(path, lambda fh: fh.write(text), mode="w", fsync=True)
 
 
 def _write_bytes_atomic(path: Path, data: bytes) -> None:
-    tmp = temp_path_for(path)
-    try:
-        with open(tmp, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    write_file_atomic(path, lambda fh: fh.write(data), fsync=True)
     fsync_dir(path.parent)
 
 

@@ -57,7 +57,7 @@ def overrides_from_args(args):
 
 
 def register(subparsers) -> None:
-    """Add ``reprocess``, ``batch`` and ``report`` to a ``sofast-station`` subparsers object.
+    """Add ``reprocess``, ``batch``, ``report`` and ``export`` to a ``sofast-station`` subparsers object.
 
     Parameters
     ----------
@@ -129,7 +129,7 @@ def register(subparsers) -> None:
                      help="an arrow at every Nth camera row and column (default: 10, more on large images)")
     rpt.add_argument("--cmap", default="viridis", help="Matplotlib colour map of the magnitude (default viridis)")
     rpt.add_argument("--detail", default="parabola", choices=("design", "parabola", "higher_order", "none"),
-                     help="also write <dump>-detail-MODEL.png: e_x, e_y, magnitude, height error (um) and local "
+                     help="also write <dump>-detail-MODEL.png: e_x, e_y, magnitude, height error (µm) and local "
                           "focal power against this model (default parabola; none: skip)")
     rpt.add_argument("--separate", action="store_true", help="three files per dump instead of three panels")
     rpt.add_argument("--journal", metavar="PATH",
@@ -164,6 +164,23 @@ def register(subparsers) -> None:
     flux.add_argument("--grid-cells", type=int, default=None, help="flux: cells per side of the map")
     _add_overrides(rpt)
     rpt.set_defaults(func=cmd_report)
+
+    e = add_command(
+        subparsers, "export", help="write a measured surface for other tools (CSV, PLY, OpenCSP, SolTrace)",
+        description="""
+            export surface DUMP.h5 --format csv|ply|opencsp|soltrace: reprocess the dump and write its measured
+            points, normals, slope errors and height error in the facet frame, named and headed by the facet's
+            serial, with the units in the header (sofast_station/interop/export.py says what each format
+            holds). The OpenCSP file is in the layout of OpenCSP's SOFAST processing output; the SolTrace file
+            is a finite-element surface (.fed) of the design's height plus the measured height error.""")
+    e.add_argument("what", choices=("surface",), help="what to export: surface")
+    e.add_argument("dumps", nargs="+", metavar="DUMP", help="data dumps (HDF5) of the facets")
+    e.add_argument("--format", required=True, choices=("csv", "ply", "opencsp", "soltrace"),
+                   help="csv (one row per point), ply (binary point cloud with normals), opencsp (its processed-"
+                        "result HDF5), soltrace (finite-element surface .fed)")
+    e.add_argument("--out", default=".", metavar="DIR_OR_FILE",
+                   help="folder for the files (default: here), or the file when one dump is given")
+    e.set_defaults(func=cmd_export)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -432,6 +449,35 @@ def _flux_table(args) -> dict:
     return table
 
 
+#: The sun shape each shape option belongs to.
+_SUN_OPTIONS = {"csr": ("--csr", "buie"), "sigma_mrad": ("--sigma-mrad", "gaussian")}
+
+
+def _check_sun_options(args, table: dict, target) -> None:
+    """Refuse a sun-shape option that does not apply to the sun the map is drawn with (``--csr`` without the
+    Buie sun was silently ignored)."""
+    from ..errors import ConfigError
+
+    sun = table.get("sun", "pillbox")
+    for opt, (flag, shape) in _SUN_OPTIONS.items():
+        if getattr(args, opt) is not None and sun != shape:
+            where = "--sun" if args.sun is not None else f"{target}'s [optics] (or the default)"
+            raise ConfigError(f"{flag} applies to the {shape} sun, but the sun here is {sun} (from {where}): add "
+                              f"--sun {shape}, or leave {flag} out")
+
+
+def sun_text(sun: dict) -> str:
+    """The sun shape as the console and the map name it, e.g. ``Buie, circumsolar ratio 0.1``."""
+    shape = str(sun.get("shape", "?"))
+    if shape == "pillbox":
+        return f"pillbox, half-angle {sun.get('half_angle_mrad', 4.65):.2f} mrad"
+    if shape == "gaussian":
+        return f"Gaussian, sigma {sun.get('sigma_mrad'):g} mrad"
+    if shape == "buie":
+        return f"Buie, circumsolar ratio {sun.get('csr'):g}"
+    return shape
+
+
 def flux_text(name: str, figures: dict, path) -> str:
     """One facet's optical figures, as the console shows them."""
     f = figures
@@ -448,7 +494,8 @@ def flux_text(name: str, figures: dict, path) -> str:
     r90 = "-" if f["spot_radius_m"] is None else (f"{pm('spot_radius_m', 1000.0, 2)} mm "
                                                   f"({pm('spot_radius_mrad', 1.0, 3)} mrad)")
     d90 = "-" if d["spot_radius_m"] is None else f"{1000 * d['spot_radius_m']:.2f} mm"
-    return (f"{name}: target at {c['slant_range_m']:.3f} m, aperture {c['aperture']}\n"
+    return (f"{name}: sun {sun_text(c.get('sun') or {})}, DNI {c.get('dni_w_m2', 0):g} W/m², target at "
+            f"{c['slant_range_m']:.3f} m, aperture {c['aperture']}\n"
             f"  intercept {pm('intercept')} (design {d['intercept']:.4f}), power / design's "
             f"{pm('power_ratio_vs_design')}\n"
             f"  90 % spot radius {r90}, design {d90}; analytic (patent model) {1000 * f['analytic_spot_radius_m']:.2f} "
@@ -486,6 +533,7 @@ def _cmd_flux(args) -> int:
                 over = raw.get("recipes", {}).get(recipe, {}) if recipe != "default" else {}
                 table = {**raw.get("optics", {}), **(over.get("optics", {}) if isinstance(over, dict) else {}),
                          **cli_table, "enabled": True}
+            _check_sun_options(args, table, target)
             settings = optics_for({"optics": table}, f"{target} ([optics] and the command line)")
             opt = analysis_optics(res.analysis, res.design, settings)
             name = str(res.record.get("serial", "")) or Path(target).stem
@@ -539,6 +587,31 @@ def _cmd_trend(args) -> int:
 def main(argv: list[str] | None = None) -> int:
     """Run one re-analysis command (as ``sofast-station`` would), for tests and ``python -m``."""
     return run(build_parser().parse_args(argv))
+
+
+def cmd_export(args) -> int:
+    """``export surface DUMP... --format F``: one file per dump, named after its serial."""
+    from ..archive._common import safe_name
+    from ..errors import ReportError, StationError
+    from ..interop.export import SUFFIX, export_surface, surface_points
+    from .reprocess import reprocess_dump
+
+    out = Path(args.out)
+    single = len(args.dumps) == 1 and out.suffix.lower() == SUFFIX[args.format]
+    failed = 0
+    for dump in args.dumps:
+        try:
+            m = reprocess_dump(dump, None)
+            if m.analysis is None:
+                raise ReportError(f"cannot export {dump}: the analysis refused the capture "
+                                  f"({'; '.join(m.record.get('reasons', []))})")
+            points = surface_points(m.analysis, m.record, m.design)
+            path = out if single else out / f"surface-{safe_name(points.serial, 64)}{SUFFIX[args.format]}"
+            print(export_surface(points, args.format, path), flush=True)
+        except StationError as exc:
+            failed += 1
+            log.error("%s", exc if str(dump) in str(exc) else f"{dump}: {exc}")
+    return 2 if failed else 0
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -17,6 +17,22 @@ log = logging.getLogger(__name__)
 REPORTS = ("spc", "acceptance", "certificate", "diff")
 
 
+def ewma_lambda(text: str) -> float:
+    """argparse type of ``--ewma``: the EWMA's weight of the newest point, in (0, 1] (a usage error, exit 2,
+    otherwise; ``--ewma 5`` was a ValueError traceback)."""
+    import argparse
+    import math
+
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number: give the EWMA weight, e.g. 0.2") from None
+    if not (math.isfinite(value) and 0.0 < value <= 1.0):
+        raise argparse.ArgumentTypeError(f"{text} is not a weight between 0 (excluded) and 1: the EWMA's lambda is "
+                                         "the weight of the newest facet, e.g. 0.2 (0.05 to 0.3 are usual)")
+    return value
+
+
 def add_options(rpt) -> None:
     """Options of the quality reports on the ``report`` parser."""
     # --config (the station file) is the report command's own option, shared with 'report trend'
@@ -25,8 +41,9 @@ def add_options(rpt) -> None:
     rpt.add_argument("--facet-type", dest="facet_type", default=None,
                      help="spc: only this facet type (the record's 'facet', e.g. dish-5.33)")
     rpt.add_argument("--serial", default=None, metavar="REGEX", help="spc: only serials matching this pattern")
-    rpt.add_argument("--ewma", type=float, default=None, metavar="LAMBDA",
-                     help="spc: also draw an EWMA chart with this lambda (e.g. 0.2)")
+    rpt.add_argument("--ewma", type=ewma_lambda, default=None, metavar="LAMBDA",
+                     help="spc: also draw an EWMA chart with this weight of the newest facet, 0 < LAMBDA <= 1 "
+                          "(e.g. 0.2)")
     rpt.add_argument("--rules", default="western_electric", choices=("western_electric", "nelson", "beyond_limits"),
                      help="spc: the run rules")
     rpt.add_argument("--baseline-n", type=int, default=25, metavar="N",
@@ -34,6 +51,9 @@ def add_options(rpt) -> None:
     rpt.add_argument("--baseline-from", default=None, metavar="DATE",
                      help="spc: control limits from this period instead (with --baseline-to)")
     rpt.add_argument("--baseline-to", default=None, metavar="DATE", help="spc: end of the baseline period")
+    rpt.add_argument("--any-design", action="store_true",
+                     help="diff: draw the difference of two facet types too (refused by default: it shows their "
+                          "designs' difference, not a change of shape)")
     rpt.add_argument("--save-baseline", action="store_true",
                      help="spc: save the control limits as the recipe's baseline for the line's drift alarms "
                           "(data_dir/quality/baseline-RECIPE.json; needs --recipe)")
@@ -129,9 +149,14 @@ def cmd_spc(args) -> int:
                           ewma_lambda=args.ewma)
     name = f"spc-{recipe.name}-{since or 'start'}-{until or 'now'}".replace(":", "")
     out = Path(args.out or ".")
-    title = (f"{source}: recipe {recipe.name}, {since or 'start'} to {until or 'now'}; limits from "
+    n = len(charts[0].values) if charts else 0
+    first, last = (charts[0].times[0], charts[0].times[-1]) if n else (None, None)
+    span = f"{first:%Y-%m-%d %H:%M} to {last:%Y-%m-%d %H:%M}" if n else f"{since or 'start'} to {until or 'now'}"
+    title = (f"Control charts, recipe {recipe.name} ({recipe.design.name}): {n} facets, {span}; control limits from "
              + (f"the baseline {args.baseline_from} to {args.baseline_to}" if baselines
-                else f"the first {args.baseline_n} facets") + f"; rules {args.rules}")
+                else f"the first {min(args.baseline_n, n)} facets")
+             + f"; rules {args.rules.replace('_', ' ')}")
+    log.info("report spc: %s (%s)", title, source)
     for p in (draw_charts(charts, out / f"{name}.png", title, ewma_lambda=args.ewma),
               draw_yield(yield_table(chosen), out / f"{name}-yield.png", title),
               write_summary_workbook(charts, yield_table(chosen), out / f"{name}.xlsx", title, args.rules)):
@@ -172,13 +197,17 @@ def cmd_acceptance(args) -> int:
     period = f"{since or 'start'} to {until or 'now'}"
     print(text(contract, results, period), flush=True)
     out = Path(args.out or ".")
+    log.info("report acceptance: recipe %s, %s, from the %s", recipe, period, source)
     print(draw(contract, results, out / f"acceptance-{recipe}-{since or 'start'}-{until or 'now'}.png".replace(":", ""),
-               f"{source}: recipe {recipe}, {period}"), flush=True)
+               f"Contract acceptance, recipe {recipe}: {len(chosen)} facets, {period}; population "
+               f"{contract.population}, confidence {100 * contract.confidence:g} %"), flush=True)
     return 0 if all(r["verdict"] == "pass" for r in results) else 1
 
 
 def cmd_certificate(args) -> int:
+    from ..archive._common import safe_name
     from ..archive.journal import Journal
+    from ..serials import clean_serial
     from ..errors import ConfigError, StationError
     from ..report.certificate import write_certificate
     from .sources import load_measured
@@ -193,6 +222,9 @@ def cmd_certificate(args) -> int:
         raise ConfigError(f"no journal at {path}: this station has not measured anything yet")
     with Journal(path) as j:
         rows = j.rows(serial=serial)
+        safe = clean_serial(serial)[0]
+        if not rows and safe != serial:          # typed as printed; journaled as the station made it safe
+            rows = j.rows(serial=safe)
     if not rows:
         raise ConfigError(f"serial {serial!r} is not in the journal {path}")
     row = rows[-1]                         # the latest test of the serial
@@ -208,10 +240,15 @@ def cmd_certificate(args) -> int:
     elif dump is not None:
         log.warning("the dump %s named in the journal is missing: certificate without maps", dump)
         dump = None
+    # The serial names the file, never a path: a journaled serial (or one typed here) such as "../../x"
+    # stays inside the --out folder.
     out = Path(args.out) if args.out and args.out.lower().endswith(".pdf") else \
-        Path(args.out or ".") / f"certificate-{serial}.pdf"
+        Path(args.out or ".") / f"certificate-{safe_name(serial, 64)}.pdf"
+    issuer = config.raw.get("certificate") or {}
+    if not issuer.get("issuer"):
+        log.warning("no [certificate] issuer in %s: the certificate says so in its heading", config.path)
     print(write_certificate(rec, out, specs=figure_specs(recipe.design.focal_length_m, recipe.limits),
-                            measured=measured, dump_path=dump), flush=True)
+                            measured=measured, dump_path=dump, issuer=issuer), flush=True)
     if len(rows) > 1:
         log.info("serial %s was tested %d times: the certificate shows the latest (%s)", serial, len(rows), row.time)
     return 0
@@ -219,13 +256,17 @@ def cmd_certificate(args) -> int:
 
 def cmd_diff(args) -> int:
     from ..errors import ConfigError
-    from ..report.diff import write_diff
+    from ..report.diff import check_same_design, common_grid_difference, diff_figures, diff_text, write_diff
     from .sources import load_measured
 
     if len(args.targets) != 3:
         raise ConfigError("'report diff' needs two measurements: report diff A B (dumps, or opencsp:DIR)")
     a, b = (load_measured(t) for t in args.targets[1:])
+    if not args.any_design:
+        check_same_design(a, b)
     out = Path(args.out) if args.out and args.out.lower().endswith(".png") else \
         Path(args.out or ".") / f"diff-{Path(a.path).stem}-{Path(b.path).stem}.png"
-    print(write_diff(a, b, out), flush=True)
+    d = common_grid_difference(a, b)
+    print(diff_text(a, b, diff_figures(a, b, d)), flush=True)
+    print(write_diff(a, b, out, d=d), flush=True)
     return 0

@@ -27,6 +27,7 @@ import numpy as np
 from ..qc import acceptance as acc
 from ..qc.acceptance import Contract
 from ..result.record import figure_value
+from ..result.specs import figure_name
 from ..errors import ReportError
 from ._common import savefig_atomic
 
@@ -56,14 +57,16 @@ def text(contract: Contract, results: list[dict], period: str) -> str:
              f"confidence {100 * contract.confidence:g} %"]
     for r in results:
         f, ci = r["figure"], r["interval"]
-        lines.append(f"  {f.name} ({f.key}): contract {f.contract:g} ({'at most +' if f.sense == 'at_most' else '+-'}"
-                     f"{f.tolerance:g})")
+        unit = figure_name(f.key)[1]
+        u = f" {unit}" if unit else ""
+        lines.append(f"  {f.name}: contract {f.contract:g}{u} ({'at most +' if f.sense == 'at_most' else '+-'}"
+                     f"{f.tolerance:g}{u})")
         lines.append(f"    sample size (guideline Eq. 7, mu_e {f.expected_mean:g}, sigma_e {f.expected_std:g}, "
                      f"e* {100 * r['relative_error']:g} %): {r['required']}; measured {r['measured']}"
                      + (f"; MISSING {r['missing']}" if r["missing"] else ""))
         if ci["low"] is not None:
-            lines.append(f"    mean {ci['mean']:.5g}, {100 * contract.confidence:g} % interval "
-                         f"[{ci['low']:.5g}, {ci['high']:.5g}], sample std {ci['std']:.4g}")
+            lines.append(f"    mean {ci['mean']:.5g}{u}, {100 * contract.confidence:g} % interval "
+                         f"[{ci['low']:.5g}, {ci['high']:.5g}]{u}, sample standard deviation {ci['std']:.4g}{u}")
         lines.append(f"    {r['verdict'].upper()}: {r['why']}")
     overall = ("PASS" if all(r["verdict"] == "pass" for r in results) else
                "FAIL" if any(r["verdict"] == "fail" for r in results) else "UNDECIDED")
@@ -96,17 +99,20 @@ def draw(contract: Contract, results: list[dict], path: Path, title: str, dpi: i
                 w = r["weibull"]
                 ax.plot(xs, weibull_min.pdf(xs, w["shape"], scale=w["scale"]), color="tab:orange",
                         label=f"Weibull k {w['shape']:.3g}, lambda {w['scale']:.4g}")
-        ax.axvline(f.contract, color="tab:green", lw=1.5, label=f"contract {f.contract:g}")
+        u = f" {figure_name(f.key)[1]}".rstrip()
+        ax.axvline(f.contract, color="tab:green", lw=1.5, label=f"contract {f.contract:g}{u}")
         if f.sense == "two_sided":
             ax.axvline(f.contract - f.tolerance, color="tab:red", lw=1.0, ls="--")
-        ax.axvline(f.contract + f.tolerance, color="tab:red", lw=1.0, ls="--", label=f"tolerance {f.tolerance:g}")
+        ax.axvline(f.contract + f.tolerance, color="tab:red", lw=1.0, ls="--",
+                   label=f"contract {'+' if f.sense == 'at_most' else '±'} tolerance {f.tolerance:g}{u}")
         if ci["low"] is not None:
             ax.axvspan(ci["low"], ci["high"], color="tab:purple", alpha=0.2,
-                       label=f"mean {ci['mean']:.4g}, {100 * contract.confidence:g} % interval")
+                       label=f"mean {ci['mean']:.4g}{u}, its {100 * contract.confidence:g} % interval")
         ax.set_title(f"{f.name}: {r['verdict'].upper()}\n{r['measured']} measured, guideline sample {r['required']}"
                      + (f", {r['missing']} missing" if r["missing"] else ""), fontsize=10)
-        ax.set_xlabel(f.key)
-        ax.set_ylabel("density")
+        label, unit = figure_name(f.key)
+        ax.set_xlabel(f"{label} ({unit})" if unit else label)
+        ax.set_ylabel(f"probability density (1/{unit})" if unit else "probability density")
         ax.legend(fontsize=7)
     fig.suptitle(title, fontsize=11)
     return savefig_atomic(fig, Path(path), dpi)

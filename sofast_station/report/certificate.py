@@ -52,9 +52,32 @@ def figure_rows(record: dict, specs) -> list[list[str]]:
     return rows
 
 
+#: The page's margins and rows, in fractions of the A4 page (portrait).
+_LEFT, _RIGHT, _ROW = 0.07, 0.93, 0.0175
+#: The table's columns: (x, alignment) of figure, value ± U, unit, limits, within.
+_COLUMNS = ((0.07, "left"), (0.56, "right"), (0.58, "left"), (0.68, "left"), (0.93, "right"))
+
+
+def _wrapped(fig, x: float, y: float, text: str, width_chars: int, **style) -> float:
+    """*text* wrapped at *width_chars* from (x, y) down; returns the y under its last line."""
+    import textwrap
+
+    for line in textwrap.wrap(str(text), width_chars) or [""]:
+        fig.text(x, y, line, va="top", **style)
+        y -= _ROW
+    return y
+
+
+def _rule(fig, y: float, width: float = 0.6, colour: str = "0.6") -> None:
+    from matplotlib.lines import Line2D
+
+    fig.add_artist(Line2D([_LEFT, _RIGHT], [y, y], lw=width, color=colour))
+
+
 def write_certificate(record: dict, out_path: Path, *, specs, measured=None, dump_path: Path | None = None,
-                      dpi: int = 150) -> Path:
-    """Write the certificate PDF.
+                      issuer: dict | None = None, dpi: int = 150) -> Path:
+    """Write the certificate PDF: one A4 page, every text inside it and none over another (tested on the
+    PDF's own text positions).
 
     Parameters
     ----------
@@ -68,17 +91,27 @@ def write_certificate(record: dict, out_path: Path, *, specs, measured=None, dum
         The reprocessed dump (for the maps); without it the page says why there are no maps.
     dump_path : Path, optional
         The dump file, whose SHA-256 is printed.
+    issuer : dict, optional
+        ``[certificate]`` of station.toml: ``issuer``, ``address``, ``signatory`` (all optional).
     """
     from matplotlib.figure import Figure
 
     if record.get("verdict") in (None, "fault"):
         raise ReportError(f"facet {record.get('serial')} has no figures (its cycle ended in a fault: "
                           f"{'; '.join(record.get('reasons', []))}): no certificate")
+    issuer = issuer or {}
     fig = Figure(figsize=(8.27, 11.69))               # A4 portrait
-    fig.text(0.06, 0.965, "Facet inspection certificate", fontsize=17, weight="bold")
+    fig.text(_LEFT, 0.972, issuer.get("issuer") or "Issuer not set ([certificate] issuer in station.toml)",
+             fontsize=11, weight="bold", va="top")
+    if issuer.get("address"):
+        fig.text(_LEFT, 0.953, issuer["address"], fontsize=8.5, color="0.35", va="top")
+    fig.text(_RIGHT, 0.972, f"Certificate {record.get('cycle_id', '-')}", fontsize=7.5, color="0.35", ha="right",
+             va="top", family="monospace")
+    fig.text(_LEFT, 0.93, "Facet inspection certificate", fontsize=17, weight="bold", va="top")
     verdict = str(record.get("verdict", "?")).upper()
-    fig.text(0.94, 0.965, verdict, fontsize=17, weight="bold", ha="right",
+    fig.text(_RIGHT, 0.93, verdict, fontsize=17, weight="bold", ha="right", va="top",
              color={"PASS": "tab:green", "FAIL": "tab:red"}.get(verdict, "tab:orange"))
+    _rule(fig, 0.897, 1.0, "0.2")
     cal = record.get("calibration") or {}
     head = [("Serial", record.get("serial", "?")), ("Facet type", record.get("facet", "?")),
             ("Recipe", record.get("recipe") or "default"), ("Station", record.get("station", "?")),
@@ -88,24 +121,28 @@ def write_certificate(record: dict, out_path: Path, *, specs, measured=None, dum
             ("Calibration in force", ", ".join(f"{k} {v}" for k, v in cal.items() if k != "warnings") or "-")]
     if cal.get("warnings"):
         head.append(("Calibration warnings", "; ".join(cal["warnings"])))
-    y = 0.935
+    y = 0.885
     for k, v in head:
-        fig.text(0.06, y, k, fontsize=9, weight="bold")
-        fig.text(0.30, y, str(v), fontsize=9, wrap=True)
-        y -= 0.018
-    rows = figure_rows(record, specs)
-    ax_t = fig.add_axes((0.06, y - 0.03 - 0.024 * len(rows), 0.88, 0.024 * (len(rows) + 1)))
-    ax_t.axis("off")
-    table = ax_t.table(cellText=rows, colLabels=["figure", "value" + (" ± U (k = 2)" if record.get("coverage_factor")
-                                                                       else ""), "unit", "limits", "within"],
-                       loc="upper center", cellLoc="left", colWidths=(0.30, 0.26, 0.10, 0.24, 0.10))
-    table.auto_set_font_size(False)
-    table.set_fontsize(8.5)
-    y = y - 0.05 - 0.024 * len(rows)
+        fig.text(_LEFT, y, k, fontsize=9, weight="bold", va="top")
+        y = _wrapped(fig, 0.30, y, v, 78, fontsize=9)
+    # The figures: a table of plain texts in fixed columns (a Matplotlib table clipped its cells).
+    y -= 0.008
+    coverage = " ± U (k = 2)" if record.get("coverage_factor") else ""
+    titles = ("figure", "value" + coverage, "unit", "limits", "within")
+    for (x, align), title in zip(_COLUMNS, titles):
+        fig.text(x, y, title, fontsize=9, weight="bold", ha=align, va="top")
+    y -= _ROW + 0.002
+    _rule(fig, y + 0.004)
+    for row in figure_rows(record, specs):
+        for (x, align), cell in zip(_COLUMNS, row):
+            fig.text(x, y, cell, fontsize=9, ha=align, va="top",
+                     color="tab:red" if cell == "NO" else "black", weight="bold" if cell == "NO" else "normal")
+        y -= _ROW + 0.002
+    _rule(fig, y + 0.004)
+    y -= 0.006
     reasons = record.get("reasons") or []
-    fig.text(0.06, y, "Verdict: " + verdict + (": " + "; ".join(reasons) if reasons else
-                                               ": every figure within its limits"), fontsize=9, wrap=True)
-    y -= 0.02
+    y = _wrapped(fig, _LEFT, y, "Verdict: " + verdict + (": " + "; ".join(reasons) if reasons else
+                                                          ": every figure within its limits"), 100, fontsize=9)
     if measured is not None and getattr(measured, "analysis", None) is not None:
         a = measured.analysis
         f_design = getattr(getattr(measured, "design", None), "focal_length_m", None)
@@ -113,19 +150,29 @@ def write_certificate(record: dict, out_path: Path, *, specs, measured=None, dum
                                f_design, cells_across=120)
         d_parab = detail_maps(a.points_facet_m[0], a.points_facet_m[1], a.slopes, a.residuals_mrad, "parabola",
                               f_design, cells_across=120)
-        side = 0.37                                      # square maps on the A4 page
-        ax1 = fig.add_axes((0.07, 0.16, side, side * 8.27 / 11.69))
-        ax2 = fig.add_axes((0.55, 0.16, side, side * 8.27 / 11.69))
+        # Two square maps, each with its colour bar (which takes a share of its box) and labels: the left
+        # one's colour-bar label ends before the right one's y label begins (checked by the layout test).
+        side = 0.33
+        height = side * 8.27 / 11.69
+        bottom = max(0.235, y - 0.06 - height)
+        ax1 = fig.add_axes((0.11, bottom, side, height))
+        ax2 = fig.add_axes((0.60, bottom, side, height))
         draw_detail(fig, [ax1], d_design, which=("magnitude",))
         draw_detail(fig, [ax2], d_parab, which=("height",))
         ax1.set_title(f"slope error {MODEL_LABELS['design'].replace('compared with the ', 'vs ')}", fontsize=9)
+        ax2.set_title(ax2.get_title().replace(" (from slopes, least squares)", ""), fontsize=9)
     else:
-        fig.text(0.06, 0.5, "No data dump of this facet: no maps (the station dumps every n-th facet, failed "
-                            "ones, and on request: sofast-station dump-next).", fontsize=9, wrap=True)
+        _wrapped(fig, _LEFT, y - 0.02, "No data dump of this facet: no maps (the station dumps every n-th facet, "
+                 "failed ones, and on request: sofast-station dump-next).", 100, fontsize=9)
+    # Who issues it, and where it is signed.
+    fig.text(_LEFT, 0.175, "Issued by " + (issuer.get("issuer") or "-"), fontsize=9, va="top")
+    _rule(fig, 0.115, 0.6, "0.2")
+    fig.text(_LEFT, 0.108, issuer.get("signatory") or "Signature", fontsize=8.5, va="top")
+    fig.text(0.62, 0.108, "Date", fontsize=8.5, va="top")
     if dump_path:
-        fig.text(0.06, 0.055, f"Data dump {Path(dump_path).name}", fontsize=7, family="monospace")
-        fig.text(0.06, 0.042, f"SHA-256 {sha256_of(Path(dump_path))}", fontsize=7, family="monospace")
+        fig.text(_LEFT, 0.065, f"Data dump {Path(dump_path).name}", fontsize=7, family="monospace", va="top")
+        fig.text(_LEFT, 0.052, f"SHA-256 {sha256_of(Path(dump_path))}", fontsize=7, family="monospace", va="top")
     else:
-        fig.text(0.06, 0.055, "Data dump: none", fontsize=7, family="monospace")
-    fig.text(0.06, 0.029, f"Cycle {record.get('cycle_id', '-')}", fontsize=7, family="monospace")
+        fig.text(_LEFT, 0.065, "Data dump: none", fontsize=7, family="monospace", va="top")
+    fig.text(_LEFT, 0.039, f"Cycle {record.get('cycle_id', '-')}", fontsize=7, family="monospace", va="top")
     return savefig_atomic(fig, Path(out_path), dpi, fmt="pdf")

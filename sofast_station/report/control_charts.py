@@ -16,6 +16,7 @@ import numpy as np
 
 from ..archive._common import parse_time
 from ..qc import spc
+from ..qc.view import chart_view
 from ..result.record import figure_value
 from ..result.specs import FigureSpec
 from ..errors import ReportError
@@ -72,13 +73,37 @@ class Chart:
     capability: dict = field(default_factory=dict)
 
 
+#: The fewest facets whose moving ranges make control limits (their sigma is then known to about +-30 %;
+#: 20 to 25 are usual, Montgomery 2009, sec. 6.4): below it ``report spc`` refuses rather than draw
+#: limits from too few facets.
+MIN_BASELINE_FACETS = 10
+
+
 def build_charts(records: list[dict], specs: list[FigureSpec], *, baseline_n: int = 25, baselines: dict | None = None,
                  rule_set: str = "western_electric", ewma_lambda: float | None = None) -> list[Chart]:
-    """Charts of the measured (pass or fail) records: limits from *baselines* (figure key -> Baseline) or
-    from the first *baseline_n* facets."""
-    measured = [r for r in records if r.get("verdict") in ("pass", "fail")]
+    """Charts of the measured (pass, fail or indeterminate) records: limits from *baselines* (figure key ->
+    Baseline) or from the first *baseline_n* facets.
+
+    Raises
+    ------
+    ReportError
+        When no saved baseline is given and fewer than ``max(baseline_n, MIN_BASELINE_FACETS)`` facets were
+        measured: the control limits would not be the ones the title promises.
+    """
+    measured = [r for r in records if r.get("verdict") in ("pass", "fail", "indeterminate")]
     if not measured:
-        raise ReportError(f"no measured facet (pass or fail) among the {len(records)} selected record(s)")
+        raise ReportError(f"no measured facet (pass, fail or indeterminate) among the {len(records)} selected "
+                          "record(s): widen --from/--to, or check --recipe, --facet-type and --serial")
+    if baseline_n < MIN_BASELINE_FACETS:
+        raise ReportError(f"--baseline-n {baseline_n} is too few facets for control limits: give at least "
+                          f"{MIN_BASELINE_FACETS} (20 to 25 are usual)")
+    if baselines is None and len(measured) < baseline_n:
+        raise ReportError(f"the selection holds {len(measured)} measured facet(s), fewer than the {baseline_n} the "
+                          f"control limits come from (--baseline-n): measure more facets, widen --from/--to, or "
+                          f"give --baseline-n between {MIN_BASELINE_FACETS} and {len(measured)}"
+                          if len(measured) >= MIN_BASELINE_FACETS else
+                          f"the selection holds {len(measured)} measured facet(s): control limits need at least "
+                          f"{MIN_BASELINE_FACETS} (20 to 25 are usual); measure more facets or widen --from/--to")
     charts = []
     for s in specs:
         vals = np.array([np.nan if figure_value(r, s.key) is None else figure_value(r, s.key) for r in measured], float)
@@ -101,7 +126,10 @@ def build_charts(records: list[dict], specs: list[FigureSpec], *, baseline_n: in
 
 
 def yield_table(records: list[dict], shift_starts_h=(6.0, 14.0, 22.0)) -> dict:
-    """Counts of pass, fail, invalid and fault per day and per shift, and the yield pass / all."""
+    """Counts of each verdict (pass, fail, indeterminate, invalid, fault) per day and per shift, and the
+    yield pass / all."""
+    from ..result.shift import VERDICTS
+
     from ..archive.workbook import WorkbookSettings, period_key
 
     day_s = WorkbookSettings(period="day")
@@ -111,7 +139,7 @@ def yield_table(records: list[dict], shift_starts_h=(6.0, 14.0, 22.0)) -> dict:
         verdict = r.get("verdict") or "fault"
         for kind, settings in (("day", day_s), ("shift", shift_s)):
             key = period_key(r["time"], settings)
-            row = out[kind].setdefault(key, {"pass": 0, "fail": 0, "invalid": 0, "fault": 0})
+            row = out[kind].setdefault(key, {v: 0 for v in VERDICTS})
             row[verdict if verdict in row else "fault"] += 1
     for kind in out:
         for row in out[kind].values():
@@ -134,11 +162,22 @@ def draw_charts(charts: list[Chart], path: Path, title: str, *, ewma_lambda: flo
         s, x = c.spec, c.values
         i = np.arange(1, x.size + 1)
         ax.plot(i, x, "-o", color="0.25", ms=3, lw=0.7, label="facet")
-        if s.design is not None:
+        if s.design is not None and np.any(np.isfinite(x)) and \
+                abs(s.design - np.nanmean(x)) < 3 * (np.nanmax(x) - np.nanmin(x) + 1e-300):
             ax.axhline(s.design, color="tab:green", lw=1.0, ls="-", label=f"design {s.design:.6g}")
-        for lim, name in ((s.lsl, "LSL"), (s.usl, "USL")):
-            if lim is not None:
-                ax.axhline(lim, color="tab:red", lw=1.2, ls="-", label=f"{name} {lim:.6g}")
+        # Scaled to the data and control limits; a specification limit far from them is named, not drawn
+        # (qc/view.py): scaled to a 3 mrad limit, 0.5 mrad data were a flat line and their limits invisible.
+        keep = [] if c.baseline is None else [c.baseline.lcl, c.baseline.ucl]
+        view = chart_view(x, keep=keep, limits=[(s.lsl, "LSL"), (s.usl, "USL")])
+        ax.set_ylim(view.low, view.high)
+        for lim, name in view.shown:
+            ax.axhline(lim, color="tab:red", lw=1.2, ls="-", label=f"{name} {lim:.6g}")
+        for k, (value, name) in enumerate(view.above):        # named at the edge they lie beyond
+            ax.text(0.995, 0.97 - 0.1 * k, f"{name} {value:.6g} {s.unit} above the view", transform=ax.transAxes,
+                    ha="right", va="top", fontsize=8, color="tab:red")
+        for k, (value, name) in enumerate(view.below):
+            ax.text(0.995, 0.03 + 0.1 * k, f"{name} {value:.6g} {s.unit} below the view", transform=ax.transAxes,
+                    ha="right", va="bottom", fontsize=8, color="tab:red")
         if c.baseline is not None:
             b = c.baseline
             ax.axhline(b.centre, color="tab:blue", lw=0.9, ls="--", label=f"centre {b.centre:.6g}")
@@ -160,14 +199,14 @@ def draw_charts(charts: list[Chart], path: Path, title: str, *, ewma_lambda: flo
         if cap.get("cpk") is not None:
             extra = (f"   Cp {cap['cp']:.2f}" if cap.get("cp") is not None else "") + f"   Cpk {cap['cpk']:.2f}"
         ax.set_title(f"{s.label} ({s.unit}): {np.count_nonzero(np.isfinite(x))} facets{extra}", fontsize=10)
-        ax.set_ylabel(s.unit)
+        ax.set_ylabel(f"{s.label} ({s.unit})")
         ax.legend(fontsize=7, loc="upper left", ncol=3)
         mr = spc.moving_range(x)
         ax_mr.plot(i, mr, "-o", color="0.25", ms=2, lw=0.6)
         if c.baseline is not None:
             ax_mr.axhline(c.baseline.mr_bar, color="tab:blue", ls="--", lw=0.9)
             ax_mr.axhline(c.baseline.mr_ucl, color="tab:blue", ls=":", lw=0.9)
-        ax_mr.set_title("moving range", fontsize=9)
+        ax_mr.set_title(f"moving range ({s.unit})", fontsize=9)
     axes[-1][0].set_xlabel("facet (in time order)")
     axes[-1][1].set_xlabel("facet")
     fig.suptitle(title, fontsize=11)
@@ -225,14 +264,16 @@ def write_summary_workbook(charts: list[Chart], table: dict, path: Path, title: 
     ws.append([f"rules: {rule_set}: " + "; ".join(f"{r} {spc.RULE_TEXT[r]}" for r in spc.rules_of(rule_set))])
     ws.column_dimensions["A"].width = 28
     ys = wb.create_sheet("yield")
-    ys.append(["period", "kind", "pass", "fail", "invalid", "fault", "total", "yield"])
+    from ..result.shift import VERDICTS
+
+    ys.append(["period", "kind", *VERDICTS, "total", "yield"])
     for cell in ys[1]:
         cell.font = Font(bold=True)
     for kind in ("day", "shift"):
         for k in sorted(table[kind]):
             row = table[kind][k]
-            ys.append([k, kind, row["pass"], row["fail"], row["invalid"], row["fault"], row["total"], row["yield"]])
-            ys.cell(row=ys.max_row, column=8).number_format = "0.0%"
+            ys.append([k, kind, *(row[v] for v in VERDICTS), row["total"], row["yield"]])
+            ys.cell(row=ys.max_row, column=len(VERDICTS) + 4).number_format = "0.0%"
     fs = wb.create_sheet("facets")
     fs.append(["time", "serial"] + [f"{c.spec.label} ({c.spec.unit})" for c in charts])
     for cell in fs[1]:

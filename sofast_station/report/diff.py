@@ -1,7 +1,7 @@
 """The difference of two measurements of one facet type on their common grid (``report diff A B``).
 
 Both measurements' slopes are averaged into the same cells (facet frame); the difference B - A is shown
-as angles (mrad) in x and y, its magnitude, and the height difference integrated from it (um). Each
+as angles (mrad) in x and y, its magnitude, and the height difference integrated from it (µm). Each
 measurement's own tilt (its boresight) is removed first: the mean slope difference is subtracted, so a
 facet placed a little differently does not show as a shape change.
 """
@@ -46,11 +46,69 @@ def common_grid_difference(a, b, cells_across: int = 120) -> dict:
             "cell_m": cell, "n_cells": int(np.count_nonzero(np.isfinite(dx) & np.isfinite(dy)))}
 
 
-def write_diff(a, b, out_path: Path, dpi: int = 100) -> Path:
+def check_same_design(a, b) -> None:
+    """ReportError unless A and B are measurements of one facet type (the same design name and focal
+    length): a dish against a heliostat facet differs by their designs, which is no shape change."""
+    da, db = getattr(a, "design", None), getattr(b, "design", None)
+    name_a, name_b = (getattr(d, "name", None) or r.record.get("facet") for d, r in ((da, a), (db, b)))
+    f_a, f_b = (getattr(d, "focal_length_m", None) for d in (da, db))
+    same_f = f_a is None or f_b is None or math.isclose(f_a, f_b, rel_tol=1e-6)
+    if name_a != name_b or not same_f:
+        raise ReportError(f"A is a {name_a} facet (f {f_a:g} m) and B a {name_b} facet (f {f_b:g} m): their "
+                          "difference is that of their designs, not a change of shape. Compare two measurements of "
+                          "one facet type, or give --any-design to draw it anyway")
+
+
+def _label(m) -> str:
+    """A measurement in a title: its file (not its whole path), serial and time."""
+    return f"{Path(m.path).name} ({m.record.get('serial')}, {str(m.record.get('time', ''))[:19].replace('T', ' ')})"
+
+
+def diff_figures(a, b, d: dict) -> list[tuple[str, str, str, str, str]]:
+    """Rows (figure, A, B, B - A, unit) of the two measurements' reported figures and of the map's
+    difference, each ``value ± U`` where the records carry U (the one formatter,
+    :func:`~sofast_station.result.formatting.with_u`)."""
+    from ..result.formatting import with_u
+    from ..result.record import figure_uncertainty, figure_value
+
+    rows = []
+    for key, label, unit, decimals in (("focal_length_x_m", "focal length f_x", "m", 4),
+                                       ("focal_length_y_m", "focal length f_y", "m", 4),
+                                       ("twist_mrad_per_m", "twist", "mrad/m", 3),
+                                       ("slope_rms_mrad.design.magnitude", "slope error RMS vs design", "mrad", 3),
+                                       ("slope_rms_mrad.parabola.magnitude", "slope error RMS vs parabola", "mrad", 3)):
+        va, vb = figure_value(a.record, key), figure_value(b.record, key)
+        if va is None and vb is None:
+            continue
+        ua, ub = figure_uncertainty(a.record, key), figure_uncertainty(b.record, key)
+        u_diff = math.hypot(ua, ub) if ua is not None and ub is not None else None
+        diff = None if va is None or vb is None else vb - va
+        rows.append((label, with_u(va, ua, decimals=decimals), with_u(vb, ub, decimals=decimals),
+                     with_u(diff, u_diff, decimals=decimals, sign=True), unit))
+    rms = {k: float(np.sqrt(np.nanmean(d[k] ** 2))) for k in ("e_x_mrad", "e_y_mrad", "height_um")}
+    rows += [("slope difference x, RMS over the common grid", "", "", f"{rms['e_x_mrad']:.3f}", "mrad"),
+             ("slope difference y, RMS over the common grid", "", "", f"{rms['e_y_mrad']:.3f}", "mrad"),
+             ("height difference, RMS over the common grid", "", "", f"{rms['height_um']:.2f}", "µm")]
+    return rows
+
+
+def diff_text(a, b, rows) -> str:
+    """The figures of :func:`diff_figures` as an aligned table."""
+    head = ("figure", "A", "B", "B - A", "unit")
+    widths = [max(len(str(r[i])) for r in [head, *rows]) for i in range(5)]
+    line = "  ".join
+    out = [f"A: {_label(a)}", f"B: {_label(b)}",
+           line([head[0].ljust(widths[0])] + [h.rjust(w) for h, w in zip(head[1:4], widths[1:4])] + [head[4]])]
+    out += [line([r[0].ljust(widths[0])] + [str(v).rjust(w) for v, w in zip(r[1:4], widths[1:4])] + [r[4]])
+            for r in rows]
+    return "\n".join(out)
+
+
+def write_diff(a, b, out_path: Path, dpi: int = 100, d: dict | None = None) -> Path:
     from matplotlib.figure import Figure
 
-    d = common_grid_difference(a, b)
-    fig = Figure(figsize=(16.0, 9.5), layout="constrained")
+    d = common_grid_difference(a, b) if d is None else d
+    fig = Figure(figsize=(12.5, 10.5), layout="constrained")
     axes = fig.subplots(2, 2).ravel()
     rms = {k: float(np.sqrt(np.nanmean(d[k] ** 2))) for k in ("e_x_mrad", "e_y_mrad", "height_um")}
     for ax, axis in zip(axes[:2], "xy"):
@@ -58,9 +116,9 @@ def write_diff(a, b, out_path: Path, dpi: int = 100) -> Path:
                    f"slope difference {axis}, B - A (RMS {rms[f'e_{axis}_mrad']:.3f} mrad)", "mrad", signed=True)
     draw_field(fig, axes[2], np.hypot(d["e_x_mrad"], d["e_y_mrad"]), d["extent_m"], "slope difference magnitude",
                "mrad", signed=False)
-    draw_field(fig, axes[3], d["height_um"], d["extent_m"], f"height difference B - A (RMS {rms['height_um']:.2f} um)",
-               "um", signed=True)
-    fig.suptitle(f"A: {a.path} ({a.record.get('serial')}, {a.record.get('time')})\n"
-                 f"B: {b.path} ({b.record.get('serial')}, {b.record.get('time')}); common grid of {d['n_cells']} cells "
-                 f"of {1e3 * d['cell_m']:.1f} mm, mean tilt removed", fontsize=10)
+    draw_field(fig, axes[3], d["height_um"], d["extent_m"], f"height difference B - A (RMS {rms['height_um']:.2f} µm)",
+               "µm", signed=True)
+    fig.suptitle(f"B - A: {b.record.get('serial')} minus {a.record.get('serial')}, on a common grid of "
+                 f"{d['n_cells']} cells of {1e3 * d['cell_m']:.1f} mm, mean tilt removed\n"
+                 f"A: {_label(a)}\nB: {_label(b)}", fontsize=10)
     return savefig_atomic(fig, Path(out_path), dpi)

@@ -232,7 +232,7 @@ def scaled_arrows(x_m, y_m, u, v):
 
 def draw_arrows(ax, x_m, y_m, u, v, unit: str = "mrad", key_value: float | None = None, color: str = "black"):
     """Arrows of (u, v) on a decimated grid, scaled so the 95th-percentile arrow is 0.9 cell long (they
-    never tangle), with a length key of a round value under the axes in a readable font."""
+    never tangle), with a length key of a round value inside the map's corner."""
     from matplotlib import patheffects
 
     ax_, ay_, au, av, cell, ref = scaled_arrows(x_m, y_m, u, v)
@@ -241,8 +241,11 @@ def draw_arrows(ax, x_m, y_m, u, v, unit: str = "mrad", key_value: float | None 
                   headwidth=3.5, headlength=4.0, headaxislength=3.5, pivot="middle", zorder=3)
     q.set_path_effects([patheffects.withStroke(linewidth=1.5, foreground="white")])
     key = key_value or nice_round(ref)
-    ax.quiverkey(q, 0.62, -0.17, key, f"arrow: {key:g} {unit}", labelpos="E", coordinates="axes", color=color,
-                 fontproperties={"size": 10})
+    # The key inside the map's own corner, on a white box: under the axes it was cut off by the page's edge
+    # or ran into the x label.
+    qk = ax.quiverkey(q, 0.05, 0.05, key, f"arrow: {key:g} {unit}", labelpos="E", coordinates="axes", color=color,
+                      fontproperties={"size": 9}, zorder=5)
+    qk.text.set_bbox({"facecolor": "white", "alpha": 0.85, "edgecolor": "0.6", "boxstyle": "round,pad=0.2"})
     return q
 
 
@@ -371,8 +374,8 @@ def draw_detail(fig, axes, dm: DetailMaps, *, which=("e_x", "e_y", "magnitude", 
             draw_arrows(ax, x, y, ex, ey)
         elif name == "height":
             draw_field(fig, ax, dm.height_um, dm.extent_m,
-                       f"height error, {label}\nRMS {dm.height_rms_um:.2f} um (from slopes, least squares)",
-                       "height error (um)", signed=True)
+                       f"height error, {label}\nRMS {dm.height_rms_um:.2f} µm (from slopes, least squares)",
+                       "height error (µm)", signed=True)
         elif name == "curvature":
             draw_field(fig, ax, dm.kappa_dev_per_m, dm.extent_m, "local focal power minus design\n"
                        "(kappa_x + kappa_y) / 2 - 1/f", "(1/m)", signed=True)
@@ -382,7 +385,7 @@ def draw_detail(fig, axes, dm: DetailMaps, *, which=("e_x", "e_y", "magnitude", 
 
 def write_detail_maps(result, out_path: str | Path, model: str = "parabola", dpi: int = 100) -> Path:
     """The engineer's page of one model: e_x and e_y (diverging), magnitude with arrows, height error
-    (um) and local focal power, for a reprocessed dump or an OpenCSP import (anything with ``analysis``,
+    (µm) and local focal power, for a reprocessed dump or an OpenCSP import (anything with ``analysis``,
     ``record`` and optionally ``design``)."""
     from matplotlib.figure import Figure
 

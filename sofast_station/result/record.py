@@ -52,6 +52,8 @@ class RecordHead:
         The production loop's cycle and the recipe that applied (absent for a single ``inspect``).
     request : dict or None
         What the robot or the operator asked for (the loop's records).
+    serial_raw : str or None
+        The serial as received, when making it safe changed it (:mod:`sofast_station.serials`).
     software_version : str
     """
 
@@ -65,10 +67,12 @@ class RecordHead:
     cycle_id: str | None = None
     recipe: str | None = None
     request: dict | None = None
+    serial_raw: str | None = None
     software_version: str = __version__
 
     def to_dict(self) -> dict:
-        out = {"cycle_id": self.cycle_id, "serial": self.serial, "time": self.time, "recipe": self.recipe,
+        out = {"cycle_id": self.cycle_id, "serial": self.serial, "serial_raw": self.serial_raw, "time": self.time,
+               "recipe": self.recipe,
                "station": self.station, "facet": self.facet, "software_version": self.software_version,
                "config_hash": self.config_hash, "calibration": self.calibration, "camera": self.camera,
                "request": self.request}

@@ -27,7 +27,9 @@ SUMMARY_FIGURES = (
     ("slope_rms_mrad.parabola.magnitude", "slope RMS vs parabola", "mrad", 3),
 )
 
-VERDICTS = ("pass", "fail", "invalid", "fault")
+#: Every verdict a facet's record can carry, in the order the console, the page and OPC UA count them
+#: (``indeterminate``: within U of a limit under the guarded decision rule).
+VERDICTS = ("pass", "fail", "indeterminate", "invalid", "fault")
 
 
 @dataclass
@@ -46,14 +48,14 @@ class ShiftSummary:
     Attributes
     ----------
     counts : dict
-        Facets per verdict (pass, fail, invalid, fault).
+        Facets per verdict (:data:`VERDICTS`: pass, fail, indeterminate, invalid, fault).
     total : int
     yield_fraction : float or None
         Passed facets over all facets measured (faults included: a faulted facet did not pass).
     figures : dict
         Record path -> :class:`FigureStats` over the facets that have the figure.
     cycle_median_s, cycle_p95_s, cycle_worst_s : float or None
-        Cycle times, seconds.
+        Cycle times (:func:`cycle_seconds`), seconds.
     faults_by_kind : dict
         Fault kind (the reason's first word: camera, capture, timeout...) -> count.
     """
@@ -69,7 +71,13 @@ class ShiftSummary:
 
 
 def cycle_seconds(record: dict):
-    """Trigger to journal, seconds, as the record holds it (``timings_s.until_journal``), or None."""
+    """A facet's cycle time, seconds, or None: from the robot's trigger to the facet's journal row
+    (``timings_s.until_journal``), the moment its answer is decided; the robot hears it right after.
+
+    The one definition the console (each facet's line and the run's summary), the page and OPC UA show. A
+    facet whose analysis overran the deadline was answered "fault: timeout" at the deadline: its cycle
+    ends there, and the late result that came after (``timings_s.until_late_result``) does not lengthen it.
+    """
     return figure_value(record, "timings_s.until_journal")
 
 
@@ -115,14 +123,15 @@ class ShiftTally:
         self.total = 0
 
     def add(self, record: dict, cycle_s: float | None = None) -> None:
-        """Count one facet's *record*; its cycle time is *cycle_s* (seconds), else the record's own."""
+        """Count one facet's *record*; its cycle time is the record's own (:func:`cycle_seconds`) unless
+        *cycle_s* (seconds) is given."""
         verdict = str(record.get("verdict") or "fault")
         self.counts[verdict] = self.counts.get(verdict, 0) + 1
         self.total += 1
         if verdict == "fault":
             kind = fault_kind(record)
             self.faults[kind] = self.faults.get(kind, 0) + 1
-        elif verdict in ("pass", "fail", "invalid", "indeterminate"):
+        elif verdict in VERDICTS:
             for path, stats in self.figures.items():
                 v = figure_value(record, path)
                 if v is not None and math.isfinite(v):

@@ -45,3 +45,45 @@ def figure_specs(design_focal_length_m: float, limits) -> list[FigureSpec]:
         out.append(FigureSpec(f"slope_rms_mrad.{model}.magnitude", f"slope error RMS vs {model}", "mrad", None, None,
                               limits.max_slope_rms_mrad.get(model)))
     return out
+
+
+_MODELS = {"design": "design", "parabola": "fitted parabola", "higher_order": "higher-order fit"}
+_COMPONENTS = {"magnitude": "magnitude", "x": "x", "y": "y"}
+_NAMED = {
+    "focal_length_x_m": ("focal length f_x", "m"), "focal_length_y_m": ("focal length f_y", "m"),
+    "curvature_x_per_m": ("focal power kappa_x", "1/m"), "curvature_y_per_m": ("focal power kappa_y", "1/m"),
+    "twist_mrad_per_m": ("twist", "mrad/m"), "twist_e1_mrad_per_m": ("twist E_1", "mrad/m"),
+    "twist_e2_mrad_per_m": ("twist E_2", "mrad/m"), "valid_fraction": ("valid fraction of the facet", ""),
+    "optics.intercept": ("intercept factor", ""),
+    "optics.spot_radius_mrad": ("spot radius (90 % of the power)", "mrad"),
+    "optics.spot_radius_m": ("spot radius (90 % of the power)", "m"),
+    "optics.centroid_offset_mrad": ("beam centroid offset from the aim point", "mrad"),
+    "optics.power_ratio_vs_design": ("intercepted power over the design facet's", ""),
+}
+
+
+def figure_name(key: str) -> tuple[str, str]:
+    """A record figure's human name and unit, e.g. ``("slope error RMS vs design, magnitude", "mrad")`` for
+    ``slope_rms_mrad.design.magnitude``; an unknown key is its own name, with the unit its name ends in."""
+    if key in _NAMED:
+        return _NAMED[key]
+    parts = key.split(".")
+    axis = {"0": "x", "1": "y", "2": "z"}
+    if parts[0] == "principal_focal_lengths_m" and len(parts) == 2:
+        return (f"principal focal length {'shorter' if parts[1] == '0' else 'longer'}", "m")
+    if parts[0] in ("optical_tilt_mrad", "boresight_mrad") and len(parts) == 2:
+        return (f"{'optical tilt' if parts[0].startswith('optical') else 'boresight rotation'} about "
+                f"{parts[1]}", "mrad")
+    if parts[0] == "placement" and len(parts) == 3:
+        what = "placement offset" if parts[1] == "mm" else "placement rotation"
+        return f"{what} {axis.get(parts[2], parts[2])}", parts[1]
+    if parts[0] in ("slope_rms_mrad", "slope_rms_corrected_mrad") and len(parts) == 3:
+        what = "slope error RMS" + (" (noise-corrected)" if "corrected" in parts[0] else "")
+        model, comp = _MODELS.get(parts[1], parts[1]), _COMPONENTS.get(parts[2], parts[2])
+        return (f"{what} vs {model}" + ("" if comp == "magnitude" else f", {comp}"), "mrad")
+    tail = parts[-1]
+    for suffix, unit in (("_mrad_per_m", "mrad/m"), ("_per_m", "1/m"), ("_mrad", "mrad"), ("_mm", "mm"),
+                         ("_m", "m"), ("_s", "s")):
+        if tail.endswith(suffix):
+            return key, unit
+    return key, ""

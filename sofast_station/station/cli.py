@@ -148,7 +148,7 @@ def summary_text(rec: dict) -> str:
 def cmd_inspect(args) -> int:
     from ..archive._common import safe_name
     from ..config import load_config
-    from ..serials import clean_serial
+    from ..serials import clean_serial, raw_for_record
     from .factory import open_station
     from .inspection import inspect
 
@@ -164,6 +164,8 @@ def cmd_inspect(args) -> int:
         if note:
             log.warning("%s", note)
         rec = inspect(station, serial, progress=progress)
+        if note:                             # the serial as typed, when making it safe changed it
+            rec["serial_raw"] = raw_for_record(args.serial)
     finally:
         station.close()
     rec = json_safe(rec)
@@ -221,7 +223,7 @@ def cmd_run(args) -> int:
     tally = ShiftTally()
 
     def keep(outcome):
-        tally.add(outcome.record, outcome.cycle_s)
+        tally.add(outcome.record)              # its cycle time as the page shows it (cycle_seconds)
     runner = service.runner
     if args.max_cycles is not None:
         runner.expected_total = min(args.max_cycles, runner.expected_total or args.max_cycles)
@@ -254,6 +256,7 @@ def cmd_serve(args) -> int:
     if args.host is not None or args.port is not None:
         import dataclasses
         web = dataclasses.replace(web, host=args.host or web.host, port=web.port if args.port is None else args.port)
+        web.exposure(f"{config.path} [web] (with --host/--port)")     # beyond loopback: HTTPS or a decision
     opcua = opcua_settings(config)
 
     def ready(info):

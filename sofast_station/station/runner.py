@@ -16,6 +16,7 @@ from __future__ import annotations
 import dataclasses
 import datetime as _dt
 import logging
+import queue
 import threading
 import time
 import uuid
@@ -26,15 +27,18 @@ import numpy as np
 from ..calibrate.settings import calibration_settings
 from ..calibrate.store import check_cycle
 from ..devices.protocols import FAULT_CODES, WARNING_BITS, FacetRequest
+from ..archive._common import trim_heap
 from ..errors import AnalysisTimeout, CameraError, StationError, TriggerError
 from ..result.faults import fault_reason
 from ..result.record import RecordHead, build_record
+from ..result.shift import cycle_seconds
 from ..result.verdict import judge
-from ..serials import clean_serial
+from ..serials import clean_serial, raw_for_record
 from . import console as _console
 from ..live.operator_commands import take_commands, take_dump_next
 from .drift import DriftMonitor
 from .frames import capture_sequence, crop, crop_box, restore
+from .link import LinkWatch
 from .opened import Station
 from ..recipes import Recipe, choose_recipe
 from ..live.status import StatusFile
@@ -67,9 +71,13 @@ class RunSettings:
         Retention of dumps: older or beyond the total size, the oldest go first.
     late_grace_s : float
         An analysis still running at the deadline (the robot already answered "fault: timeout") may
-        finish this much later; its figures are then journaled and its frames dumped, marked late.
+        finish this much later, in its retired worker, while the standby measures the next facet; its
+        figures are then journaled and its frames dumped, marked late.
     warmup : bool
         Analyse one capture before the station reports ready, so the first facet is not the slowest.
+    standby_worker : bool
+        Keep a second analysis worker started and warm, which takes over at once after a timeout or a
+        crash, so the next facet is measured normally (a few hundred MB more memory at full resolution).
     """
 
     deadline_s: float = 10.0
@@ -83,6 +91,7 @@ class RunSettings:
     dump_max_gb: float = 50.0
     late_grace_s: float = 10.0
     warmup: bool = True
+    standby_worker: bool = True
 
 
 @dataclass
@@ -94,7 +103,11 @@ class CycleOutcome:
     answer: str                       # pass | fail | invalid | fault
     record: dict
     fault_code: int = 0
+    #: The facet's cycle time (result/shift.py ``cycle_seconds``: trigger to journal row), what the console,
+    #: the page and OPC UA show; ``release_s``: trigger to the robot's release (its answer sent), what the
+    #: cycle benchmark times.
     cycle_s: float = 0.0
+    release_s: float = 0.0
     dumped: bool = False
     frames: np.ndarray | None = field(default=None, repr=False)
     #: The analysis's valid pixels (camera size) and its thinned per-pixel results, for the monitor.
@@ -108,12 +121,14 @@ class CycleOutcome:
 class CycleCapture:
     """What a cycle captured and keeps until its answer: the frames cropped to the facet (what a dump keeps),
     the crop box in the camera image, the camera image's size and the measured distance (metres). Empty
-    when the capture failed."""
+    when the capture failed. ``late`` holds an analysis abandoned at the deadline that may still finish
+    (its future and what its record needs), for :meth:`StationRunner._follow_late`."""
 
     frames: np.ndarray | None = field(default=None, repr=False)
     box: tuple | None = None
     full_shape: tuple | None = None
     distance_m: float | None = None
+    late: tuple | None = field(default=None, repr=False)
 
     def restored(self) -> np.ndarray:
         """The frames at the camera's full size (outside the crop: 0), as the analysis takes them."""
@@ -181,10 +196,16 @@ class StationRunner:
         self.submit = submit
         self.console = console
         self.stop_event = threading.Event()
+        #: Late results of abandoned analyses, queued by the retired workers' threads, kept by the loop.
+        self._late_results: queue.SimpleQueue = queue.SimpleQueue()
+        #: The robot/PLC link: outages logged once, then once a minute; reconnects after a growing pause.
+        self.link = LinkWatch(settings.poll_s)
+        self._pause = self.stop_event.wait          # the pause between reconnects (tests give their own)
         self.cycles = 0
         self.fatal: StationError | None = None     # set when the station must stop (journal not writable)
         cam = station.config.geometry.camera
-        self.worker = AnalysisWorker(station.config.geometry, station.config.fringes, cam.shape)
+        self.worker = AnalysisWorker(station.config.geometry, station.config.fringes, cam.shape,
+                                     standby=settings.standby_worker)
         # The designs' optical traces are the same for every facet of a type: made now, not in a cycle.
         self.worker.prepare_optics([(r.design, r.optics) for r in recipes.values() if r.optics is not None])
         self._heartbeat_thread = threading.Thread(target=self._heartbeat, name="heartbeat", daemon=True)
@@ -243,13 +264,17 @@ class StationRunner:
 
     # ------------------------------------------------------------------ loop
     def _heartbeat(self) -> None:
+        warned = False
         while not self.stop_event.wait(self.settings.heartbeat_s):
-            if getattr(self.trigger.trigger, "finished", False):
-                continue                     # the simulated robot has placed its last facet
+            if getattr(self.trigger.trigger, "finished", False) or self.link.down:
+                continue                     # the last facet placed, or the link down: the loop reconnects
             try:
                 self.trigger.heartbeat()
+                warned = False
             except StationError as exc:
-                log.warning("heartbeat failed: %s", exc)
+                if not warned:               # once per failure streak, not every second
+                    log.warning("heartbeat failed: %s", exc)
+                warned = True
 
     def stop(self) -> None:
         """Finish the current facet, then stop."""
@@ -270,6 +295,7 @@ class StationRunner:
                 if max_cycles is not None and self.cycles >= max_cycles:
                     break
                 self.supervise()
+                self._keep_late_results()
                 for operator_request in self._take_commands():
                     done = self.cycle(operator_request)
                     if on_outcome is not None:
@@ -283,10 +309,9 @@ class StationRunner:
                     self.trigger.ready()
                     request = self.trigger.wait_for_facet(self.settings.poll_s)
                 except TriggerError as exc:
-                    log.error("robot/PLC handshake failed: %s; reconnecting", exc)
-                    self.status.alarm("plc", f"robot/PLC handshake failed: {exc}")
-                    self._reopen_trigger()
+                    self._link_failed(exc)
                     continue
+                self.link.ok()
                 self.status.alarm("plc", None)
                 if request is None:
                     if getattr(self.trigger.trigger, "finished", False):
@@ -351,13 +376,26 @@ class StationRunner:
             raw, _ = capture_sequence(self.station.display, self.station.camera, self.station.config.fringes,
                                       recipe.analysis.mask_threshold_dn, timeout_s=self.settings.camera_timeout_s)
             distance = float(self.station.range_finder.measure())
-            self.worker.analyse(raw, recipe.design, recipe.analysis, distance,
+            self.worker.warm_up(raw, recipe.design, recipe.analysis, distance,
                                 timeout_s=max(60.0, 3 * self.settings.deadline_s), optics=recipe.optics,
                                 uncertainty=self.station.config.uncertainty)
             log.info("warm-up: one capture analysed in %.1f s", time.perf_counter() - t)
         except StationError as exc:
             log.warning("warm-up capture not analysed (%s); the first facet may be slower", exc)
             self._reopen_camera()
+
+    def _link_failed(self, exc: BaseException) -> None:
+        """The handshake failed while waiting for a facet: alarm, reconnect, pause; logged by the link watch
+        once, then once a minute while the outage lasts (it was five lines a second)."""
+        pause = self.link.failed(exc)
+        self.status.alarm("plc", f"robot/PLC handshake failed: {exc}")
+        reopen = getattr(self.trigger.trigger, "reopen", None)
+        if reopen:
+            try:
+                reopen()
+            except StationError as again:
+                pause = self.link.failed(again)
+        self._pause(pause)
 
     def _reopen_trigger(self) -> None:
         reopen = getattr(self.trigger.trigger, "reopen", None)
@@ -377,7 +415,9 @@ class StationRunner:
         (:meth:`_expire`); the facet is measured (:meth:`_measure`: capture, crop, calibration check,
         analysis in the worker process, verdict, record); then its record is journaled, with its frames
         spooled when a dump is due, and only then the robot hears the answer (:meth:`_finish`, or
-        :meth:`_finish_late` when the watchdog answered first).
+        :meth:`_finish_late` when the watchdog answered first). An analysis abandoned at the deadline is
+        answered "timeout" now and its late result kept between facets (:meth:`_follow_late`), while the
+        standby worker measures the next facet.
 
         Never raises for a bad facet: any error in the measurement becomes a fault answer with its reason
         code (:mod:`sofast_station.result.faults`), and the loop takes the next facet.
@@ -403,14 +443,21 @@ class StationRunner:
             outcome = self._measure(cycle_id, request, state, t0, captured)
         finally:
             watchdog.cancel()
+            # A watchdog that has fired may still be answering the robot (journal, then the trigger): the
+            # loop's next ready() must come after that answer, not in the middle of it.
+            watchdog.join()
         outcome.frames = captured.frames
         if captured.frames is not None:
             outcome.record["crop_box"] = list(captured.box)
         with self._answer_lock:
-            late = state["answered"]
+            answered = state["answered"]
             state["answered"] = True
         try:
-            if late:
+            if captured.late is not None:
+                # The analysis was abandoned at the deadline and may still finish: the row is the timeout now
+                # (answered here, or by the watchdog), its figures and dump follow when the late result comes.
+                self._follow_late(outcome, request, t0, state, answered, captured)
+            elif answered:
                 self._finish_late(outcome, request, t0, state, captured)
             else:
                 self._finish(outcome, request, t0, captured)
@@ -420,16 +467,20 @@ class StationRunner:
 
     def _accept(self, request: FacetRequest, cycle_id: str) -> FacetRequest:
         """The request as the cycle uses it: one safe serial for the journal, workbook, dump and page (what
-        was sent is kept in the request's extras), or the serial an operator typed for this facet."""
+        was sent goes to the record's ``serial_raw``), or the serial an operator typed for this facet."""
         serial, note = clean_serial(request.serial)
         if note:
             log.warning("%s (cycle %s)", note, cycle_id)
             request = dataclasses.replace(request, serial=serial,
-                                          extra={**request.extra, "serial_as_sent": ascii(request.serial[:200])})
+                                          extra={**request.extra, "serial_raw": raw_for_record(request.serial)})
         if self._manual_serial is not None and not request.extra.get("operator"):
-            request = dataclasses.replace(request, serial=clean_serial(self._manual_serial)[0],
-                                          extra={**request.extra, "serial_read": request.serial,
-                                                 "serial_source": "operator"})
+            manual, note = clean_serial(self._manual_serial)
+            extra = {k: v for k, v in request.extra.items() if k != "serial_raw"}   # the robot's: serial_read now
+            extra.update(serial_read=request.serial, serial_source="operator")
+            if note:
+                log.warning("%s (cycle %s, typed by an operator)", note, cycle_id)
+                extra["serial_raw"] = raw_for_record(self._manual_serial)
+            request = dataclasses.replace(request, serial=manual, extra=extra)
             self._manual_serial = None
             self.status.data["manual_serial"] = None
         self._last_request = request
@@ -439,8 +490,9 @@ class StationRunner:
                  captured: CycleCapture) -> CycleOutcome:
         """Measure the facet: the recipe, the capture (cropped into *captured*, which the answer and the dump
         use), the calibration check on its dark frame, the analysis in the worker within what is left of
-        the deadline and its grace, the verdict and the record. Any error becomes a fault outcome.
-        *state*'s ``stage`` tells the watchdog what did not return."""
+        the deadline, the verdict and the record. Any error becomes a fault outcome; an analysis abandoned
+        at the deadline leaves its future in ``captured.late``. *state*'s ``stage`` tells the watchdog what
+        did not return."""
         timings: dict[str, float] = {}
         cal_warnings: list[str] = []
         try:
@@ -456,25 +508,29 @@ class StationRunner:
             captured.frames, captured.full_shape = crop(raw, captured.box), raw.shape[1:]
             cal_warnings = self._check_calibration(raw[0])
             del raw
-            # Past the deadline the watchdog answers "timeout"; the analysis may still finish within the
-            # grace period, and its figures are then journaled and dumped as a late result.
-            budget = self.settings.deadline_s - (time.perf_counter() - t0) - 0.3 + self.settings.late_grace_s
+            # At the deadline this thread answers "timeout" itself (just before the watchdog would) and the
+            # standby worker takes over for the next facet; the abandoned analysis may still finish within
+            # the late grace in its retired worker, and its figures are then journaled and dumped as a late
+            # result (_follow_late).
+            budget = self.settings.deadline_s - (time.perf_counter() - t0) - 0.3
             if budget <= 0:
                 raise AnalysisTimeout(f"the capture took {timings['capture']:.1f} s, past the "
                                       f"{self.settings.deadline_s:g} s deadline")
             t = time.perf_counter()
             state["stage"] = "analysis"
-            res = self.worker.analyse(captured.restored(), recipe.design, recipe.analysis, captured.distance_m,
-                                      timeout_s=budget, hang_s=analysis_delay_s, optics=recipe.optics,
-                                      uncertainty=self.station.config.uncertainty)
+            try:
+                res = self.worker.analyse(captured.restored(), recipe.design, recipe.analysis, captured.distance_m,
+                                          timeout_s=budget, hang_s=analysis_delay_s, optics=recipe.optics,
+                                          uncertainty=self.station.config.uncertainty,
+                                          late_s=self.settings.late_grace_s)
+            except AnalysisTimeout as exc:
+                if exc.late is not None:
+                    captured.late = (exc.late, recipe, captured.distance_m, notes, dict(timings),
+                                     list(cal_warnings), t)
+                raise
             timings["analysis"] = time.perf_counter() - t
-            # The ground truth (simulated station) is that of the station's own facet type.
-            truth = self.station.truth(res.valid) if recipe.design.name == self.station.config.design.name else None
-            record = build_record(
-                self._head(cycle_id, request, recipe.name, cal_warnings, facet=recipe.design.name),
-                figures=res.figures, verdict=judge(res.figures, recipe.design, recipe.limits, recipe.quality),
-                truth=truth, measured_distance_m=captured.distance_m, capture_notes=notes,
-                timings={**timings, **{f"analysis_{k}": v for k, v in res.figures.get("timings_s", {}).items()}})
+            record = self._measured_record(cycle_id, request, recipe, res, captured.distance_m, notes, timings,
+                                           cal_warnings)
             self._check_drift(recipe.name, record)
             return CycleOutcome(cycle_id, request.serial, record["verdict"], record, valid=res.valid,
                                 preview=res.preview, sensitivities=getattr(res, "sensitivities", None))
@@ -487,6 +543,59 @@ class StationRunner:
                 self.status.alarm("camera", f"camera lost at facet {request.serial}: {exc}")
                 self._reopen_camera()
             return CycleOutcome(cycle_id, request.serial, "fault", record, fault_code=code)
+
+    def _measured_record(self, cycle_id, request, recipe, res, distance, notes, timings, cal_warnings) -> dict:
+        """The record of an analysed facet (in time or late): figures, verdict and, on the simulated station,
+        the truth of the station's own facet type."""
+        truth = self.station.truth(res.valid) if recipe.design.name == self.station.config.design.name else None
+        return build_record(
+            self._head(cycle_id, request, recipe.name, cal_warnings, facet=recipe.design.name),
+            figures=res.figures, verdict=judge(res.figures, recipe.design, recipe.limits, recipe.quality),
+            truth=truth, measured_distance_m=distance, capture_notes=notes,
+            timings={**timings, **{f"analysis_{k}": v for k, v in res.figures.get("timings_s", {}).items()}})
+
+    def _follow_late(self, outcome: CycleOutcome, request: FacetRequest, t0: float, state: dict, answered: bool,
+                     captured: CycleCapture) -> None:
+        """An analysis abandoned at the deadline: journal and answer the timeout now (unless the watchdog did),
+        without the dump; when the retired worker's result comes (or its grace ends), the loop amends the row
+        with the figures, marked late, and dumps the frames, between facets (_finish_late)."""
+        future, recipe, distance, notes, timings, cal_warnings, t_analysis = captured.late
+        captured.late = None
+        wanted = self._dump_due(outcome, request)            # decided now: the flag file is for this facet
+        if not answered:
+            self._finish(outcome, request, t0, captured, dump=False)
+        state.setdefault("reason", (outcome.record.get("reasons") or ["timeout"])[0])
+        frames, cycle_id = outcome.frames, outcome.cycle_id
+        timeout_record = outcome.record
+
+        def done(fut) -> None:                     # in the retired worker's thread: hand it to the loop
+            self._late_results.put(lambda: keep(fut))
+
+        def keep(fut) -> None:                     # in the loop's thread, between facets
+            try:
+                res, error = fut.result(), None
+            except BaseException as exc:          # the analysis's own error, late: kept in the row
+                res, error = None, exc
+            try:
+                if res is not None:
+                    timings["analysis"] = time.perf_counter() - t_analysis
+                    record = self._measured_record(cycle_id, request, recipe, res, distance, notes, timings,
+                                                   cal_warnings)
+                    result = CycleOutcome(cycle_id, outcome.serial, record["verdict"], record,
+                                          sensitivities=res.sensitivities)
+                else:
+                    record = dict(timeout_record)
+                    record["reasons"] = [fault_reason(error)[1] if error is not None else
+                                         f"no result within the late grace of {self.settings.late_grace_s:g} s "
+                                         "(the abandoned worker was killed)"]
+                    result = CycleOutcome(cycle_id, outcome.serial, "fault", record, fault_code=outcome.fault_code)
+                result.frames = frames
+                self._finish_late(result, request, t0, state, captured, dump=wanted)
+            except Exception:                      # a late result must never stop the line
+                log.exception("%s: the late result of cycle %s could not be kept", outcome.serial, cycle_id)
+            finally:
+                result = None
+        future.add_done_callback(done)
 
     def _expire(self, cycle_id: str, request: FacetRequest, state: dict, t0: float) -> None:
         """Watchdog: the cycle reached its deadline with its thread still busy (a hung capture or a slow
@@ -501,7 +610,7 @@ class StationRunner:
         state["reason"] = reason
         log.error("%s: %s", request.serial, reason)
         record = self._fault_record(cycle_id, request, FAULT_CODES["timeout"], reason, {})
-        record["timings_s"]["until_journal"] = time.perf_counter() - t0
+        record["timings_s"]["until_journal"] = state["until_journal"] = time.perf_counter() - t0
         try:
             self.submit(cycle_id, record, None)
         except (OSError, StationError) as exc:
@@ -511,17 +620,19 @@ class StationRunner:
                 self.trigger.fault(FAULT_CODES["timeout"], reason)
         except TriggerError as exc:
             log.error("could not answer the robot: %s", exc)
-        self._report(record, "fault", time.perf_counter() - t0)
+        self._report(record, "fault")
         if stage == "capture":
             # Closing the camera is how a blocked grab is aborted; the station's thread then comes back.
             self._reopen_camera()
 
     def _finish_late(self, outcome: CycleOutcome, request: FacetRequest, t0: float, state: dict,
-                     captured: CycleCapture) -> None:
-        """The cycle's thread came back after the watchdog answered "timeout": keep what was measured.
+                     captured: CycleCapture, dump: bool | None = None) -> None:
+        """A result that came after the robot was answered "timeout" (the watchdog's, or this thread's at the
+        deadline): keep what was measured.
 
         The robot's answer stays the timeout; the journaled row gets the figures (or the fault) and is
-        marked late, and the frames are dumped (a timeout is a fault).
+        marked late, and the frames are dumped (a timeout is a fault). *dump* says whether (decided at the
+        deadline); None: decide now.
         """
         record = outcome.record
         late_by = time.perf_counter() - t0 - self.settings.deadline_s
@@ -536,15 +647,21 @@ class StationRunner:
         record["reasons"] = [timeout_reason, note] + reasons
         record.update({"verdict": "fault", "fault_code": FAULT_CODES["timeout"], "late": True,
                        "late_by_s": round(late_by, 3)})
+        # The robot was answered at the deadline: that ends the facet's cycle (result/shift.py cycle_seconds);
+        # when the late result came is kept beside it.
+        timings = record.setdefault("timings_s", {})
+        timings["until_journal"] = state.get("until_journal")
+        timings["until_late_result"] = time.perf_counter() - t0
         outcome.answer, outcome.fault_code = "fault", FAULT_CODES["timeout"]
-        dump = captured.dump(outcome.sensitivities) if self._dump_due(outcome, request) else None
+        wanted = self._dump_due(outcome, request) if dump is None else (dump and outcome.frames is not None)
+        dump = captured.dump(outcome.sensitivities) if wanted else None
         try:
             self.submit(outcome.cycle_id, record, dump, amend=True)
             outcome.dumped = dump is not None
         except (OSError, StationError) as exc:
             log.error("%s: the late result of cycle %s could not be journaled: %s", outcome.serial,
                       outcome.cycle_id, exc)
-        outcome.cycle_s = time.perf_counter() - t0           # until the late result (the robot left earlier)
+        outcome.cycle_s = outcome.release_s = timings["until_journal"]   # the robot left at the timeout
         # The console already has this facet's line (the timeout): the log says what became of it.
         log.warning("%s: %s (cycle %s; the robot was answered timeout)", outcome.serial, note, outcome.cycle_id)
         if self.archiver is not None:
@@ -569,10 +686,13 @@ class StationRunner:
         return bool(request.dump or (s.dump_every_n and self.cycles % s.dump_every_n == 0)
                     or (s.dump_failed and outcome.answer in ("fail", "invalid", "indeterminate", "fault")))
 
-    def _finish(self, outcome: CycleOutcome, request: FacetRequest, t0: float, captured: CycleCapture) -> None:
-        """Journal (and spool), then answer the robot: in that order."""
+    def _finish(self, outcome: CycleOutcome, request: FacetRequest, t0: float, captured: CycleCapture,
+                dump: bool = True) -> None:
+        """Journal (and spool), then answer the robot: in that order. *dump* False: no dump now (a late
+        result may follow, which brings it)."""
         record = outcome.record
-        dump = captured.dump(outcome.sensitivities) if self._dump_due(outcome, request) else None
+        wanted = dump and self._dump_due(outcome, request)
+        dump = captured.dump(outcome.sensitivities) if wanted else None
         record["timings_s"]["until_journal"] = time.perf_counter() - t0
         try:
             try:
@@ -603,8 +723,9 @@ class StationRunner:
         except TriggerError as exc:
             log.error("%s: could not answer the robot: %s", outcome.serial, exc)
             self._reopen_trigger()
-        outcome.cycle_s = time.perf_counter() - t0
-        self._report(record, outcome.answer, outcome.cycle_s)
+        outcome.release_s = time.perf_counter() - t0
+        outcome.cycle_s = cycle_seconds(record)
+        self._report(record, outcome.answer)
         if self.archiver is not None:
             self.archiver.wake()
         for hook in self.hooks:
@@ -625,24 +746,43 @@ class StationRunner:
     # ------------------------------------------------------------------ records
     def _head(self, cycle_id: str, request: FacetRequest, recipe_name: str, cal_warnings=(),
               facet: str | None = None) -> RecordHead:
-        """The head of this cycle's record (:class:`~sofast_station.result.record.RecordHead`)."""
+        """The head of this cycle's record (:class:`~sofast_station.result.record.RecordHead`); the serial as
+        received goes to ``serial_raw`` when making it safe changed it."""
+        extra = dict(request.extra)
+        raw = extra.pop("serial_raw", None)
         return self.station.record_head(request.serial, list(cal_warnings), facet=facet, cycle_id=cycle_id,
-                                        recipe=recipe_name,
-                                        request={"recipe": request.recipe, "dump": request.dump, **request.extra})
+                                        recipe=recipe_name, serial_raw=raw,
+                                        request={"recipe": request.recipe, "dump": request.dump, **extra})
 
     def _fault_record(self, cycle_id, request, code, reason, timings, cal_warnings=()) -> dict:
         return build_record(self._head(cycle_id, request, request.recipe or "", cal_warnings), fault=(code, reason),
                             timings=timings)
 
-    def _report(self, record: dict, answer: str, cycle_s: float) -> None:
-        """The facet's console line, its line in logs/station.log and the live status."""
+    def _report(self, record: dict, answer: str) -> None:
+        """The facet's console line, its line in logs/station.log and the live status; the cycle time shown is
+        the record's own (:func:`~sofast_station.result.shift.cycle_seconds`), as on the page and OPC UA."""
+        cycle_s = cycle_seconds(record)
         self.console(_console.facet_line(record, answer, cycle_s, self.cycles, self.expected_total))
         log.info("%s", _console.log_line(record, answer, cycle_s, self.cycles, self.expected_total))
         if answer != "fault" or not str((record.get("reasons") or [""])[0]).startswith(("camera", "timeout")):
             self.status.alarm("camera", None)
         self.status.update(state="paused" if self.paused else "fault" if answer == "fault" else "idle")
 
+    def _keep_late_results(self) -> None:
+        """Between facets, in the loop's thread: journal and dump the late results that came in (they are
+        queued by the retired workers' threads, so that the records, the spools of tens of MB and the
+        journal are written where every other facet's are, not in a thread per late result)."""
+        while True:
+            try:
+                keep = self._late_results.get_nowait()
+            except queue.Empty:
+                return
+            keep()
+            keep = None
+            trim_heap()                 # the late facet's frames and result: back to the system
+
     def close(self) -> None:
         self.stop_event.set()
-        self.worker.close()
+        self.worker.close()             # waits for an abandoned analysis within its grace: it queues its result
+        self._keep_late_results()
         self.status.close()

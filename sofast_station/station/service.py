@@ -128,8 +128,15 @@ class DataDirLock:
 
     def __init__(self, data_dir: Path, name: str = "station.lock", wait_s: float = 0.0, what: str = "station"):
         self.path = Path(data_dir) / name
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        self._fd = None
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as exc:
+            raise StationError(f"cannot open the {what}'s lock {self.path} ({exc.strerror or exc}): make the data "
+                               f"folder {data_dir} writable (permissions, a read-only mount, a full disk) or give "
+                               f"the station another data_dir (station.toml [station] data_dir, or "
+                               f"SOFAST_DATA_DIR), then start again") from None
         deadline = time.monotonic() + wait_s
         while True:
             try:
@@ -148,11 +155,21 @@ class DataDirLock:
                         f"SOFAST_DATA_DIR)") from None
                 time.sleep(0.1)
         previous = self._holder()
+        try:
+            os.ftruncate(self._fd, 0)
+            os.pwrite(self._fd, f"{os.getpid()}\n".encode(), 0)
+        except OSError as exc:
+            # A full disk (or a read-only one) refuses even the PID's few bytes: say so, not with a traceback.
+            os.close(self._fd)                       # and the flock with it: nothing is held
+            self._fd = None
+            raise StationError(
+                f"cannot write the {what}'s process id into {self.path} ({exc.strerror or exc}): the data "
+                f"folder {data_dir} is full or read-only; nothing was started. Free disk space or make it "
+                f"writable, or give the station another data_dir (station.toml [station] data_dir, or "
+                f"SOFAST_DATA_DIR), then start again") from None
         if previous and previous != os.getpid():
             log.warning("the %s lock %s was left by process %d, which is gone (killed?): taken over",
                         what, self.path, previous)
-        os.ftruncate(self._fd, 0)
-        os.pwrite(self._fd, f"{os.getpid()}\n".encode(), 0)
         self.recovered_from = previous if previous and previous != os.getpid() else None
 
     def _holder(self) -> int | None:
@@ -183,6 +200,18 @@ def recover_leftovers(data_dir: Path, journal: Journal) -> dict:
     removed = []
     for folder, recursive in (("archive", False), ("dumps", True), ("spool", False)):
         removed += remove_stale_temp_files(data_dir / folder, max_age_s=0.0, recursive=recursive)
+    # live/ and commands/ are written by the monitor too (a `serve` beside the station may be running):
+    # there only the temporary files of processes that are gone.
+    for folder, recursive in (("live", True), ("commands", False)):
+        removed += remove_stale_temp_files(data_dir / folder, recursive=recursive)
+    # Names of the live status's and the pictures' temporary files before they were made like the others
+    # (a full disk left them for good); only the station writes either, and this one has not started yet.
+    for leftover in [*(data_dir / "live").glob(".status.*.tmp"), *(data_dir / "live" / "facets").glob(".*.tmp")]:
+        try:
+            leftover.unlink()
+            removed.append(leftover)
+        except OSError as exc:
+            log.warning("could not remove the leftover temporary file %s: %s", leftover, exc)
     requeued = []
     for spool in spool_list(data_dir / "spool"):
         if journal.get(spool.stem) is not None:
@@ -402,8 +431,7 @@ class Service:
     def __init__(self, config: StationConfig, simulated_facets=None, seed: int | None = None, console=print,
                  archiver_process: bool = True, station=None):
         self.config = config
-        data_dir = config.data_dir
-        data_dir.mkdir(parents=True, exist_ok=True)
+        data_dir = config.data_dir                 # made by the lock, which says so when it cannot
         self.settings = run_settings(config)
         self.recipes = recipes_from_config(config)
         self.lock = DataDirLock(data_dir)          # before any device opens or anything is written
@@ -418,6 +446,8 @@ class Service:
                 if archiver_process else None
             self.station = open_station(config, seed=seed) if station is None else station
             self.trigger = open_trigger_from_config(config, simulated_facets)
+            if hasattr(self.trigger, "place") and hasattr(self.station, "place"):
+                self.trigger.place = self.station.place     # the simulated robot places the line's facets
             self.runner = StationRunner(self.station, self.trigger, self.journal, self.archiver_process,
                                         self.recipes, self.settings, self.submit, console=console)
             requests = getattr(self.trigger, "requests", None)

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import threading
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -15,7 +17,7 @@ from ..devices.simulated import SimulatedCamera, SimulatedDisplay, SimulatedRang
 from ..errors import ConfigError
 from .opened import Station
 
-_SIM_KEYS = {"seed", "facet", "optics", "distance_error_m", "faults", "hang_s", "slow_s"}
+_SIM_KEYS = {"seed", "facet", "optics", "population", "distance_error_m", "faults", "hang_s", "slow_s"}
 
 #: Faults the simulated station can inject for a given serial ([simulation.faults] SERIAL = KIND).
 FAULT_KINDS = SIMULATED_FAULTS
@@ -47,8 +49,72 @@ def build_twin(config: StationConfig, noise: bool = True):
     return TwinStation(geometry, config.design, facet, optics)
 
 
+def build_population(config: StationConfig):
+    """``[simulation.population]`` (:class:`~sofast_station.twin.population.FacetPopulation`), or None when the
+    station measures the same facet every time."""
+    from ..twin.population import FacetPopulation
+
+    table = config.simulation.get("population")
+    if not table:
+        return None
+    try:
+        return FacetPopulation.from_dict(table)
+    except ConfigError as exc:
+        raise ConfigError(f"{config.path} [simulation.population]: {exc}") from None
+
+
+@dataclass
 class SimulatedStation(Station):
-    """The simulated station, with faults injected per serial for tests of the production loop."""
+    """The simulated station, with faults injected per serial for tests of the production loop, and with
+    ``[simulation.population]`` a line whose facets differ, each one placed by the simulated robot (:meth:`place`)."""
+
+    population: object | None = None
+    #: The twin of ``[simulation.facet]`` (what ``inspect`` measures), every drawn facet's starting point.
+    nominal_twin: object | None = None
+    #: The facets placed so far in this run, and the serial in the fixture.
+    placed: int = 0
+    serial_in_fixture: str | None = None
+    _next: dict = field(default_factory=dict, repr=False)
+
+    def place(self, request) -> None:
+        """The simulated robot puts the facet of *request* in the fixture (called before its trigger).
+
+        With a population, a serial not in the fixture is the line's next facet: facet k of the run, drawn
+        by :meth:`~sofast_station.twin.population.FacetPopulation.draw`; the same serial again (the robot
+        placing it once more) is the same facet. The next facet's twin is prepared in the background while
+        this one is measured, so a cycle does not wait for it.
+        """
+        if self.population is None or request.serial == self.serial_in_fixture:
+            return
+        twin = self._twin_of(self.placed)
+        self.twin = self.camera.twin = self.range_finder.twin = twin
+        self.serial_in_fixture = request.serial
+        self.placed += 1
+        self._prepare(self.placed)
+
+    def _twin_of(self, index: int):
+        job = self._next.pop(index, None)
+        if job is not None:
+            job["thread"].join()
+            if "twin" in job:
+                return job["twin"]
+            log.warning("the simulated facet %d could not be prepared in the background (%s); preparing it now",
+                        index, job.get("error"))
+        return self.nominal_twin.with_facet(self.population.draw(self.nominal_twin.facet, index,
+                                                                 self.config.design))
+
+    def _prepare(self, index: int) -> None:
+        job: dict = {}
+
+        def run():
+            try:
+                job["twin"] = self.nominal_twin.with_facet(self.population.draw(self.nominal_twin.facet, index,
+                                                                                self.config.design))
+            except Exception as exc:          # said when the facet is placed, and made again then
+                job["error"] = exc
+        job["thread"] = threading.Thread(target=run, name=f"twin-facet-{index}", daemon=True)
+        self._next = {index: job}
+        job["thread"].start()
 
     def arm_faults(self, serial: str) -> float:
         """Arm this cycle's fault (if [simulation.faults] names the serial); returns the seconds the
@@ -119,7 +185,7 @@ def open_simulated(config: StationConfig, radiometric: RadiometricRecord, seed: 
     if bad:
         raise ConfigError(f"{config.path} [simulation.faults]: unknown fault kind(s) {bad}; use {FAULT_KINDS}")
     return SimulatedStation(config=config, display=display, camera=camera, range_finder=rangefinder,
-                            radiometric=radiometric, twin=twin)
+                            radiometric=radiometric, twin=twin, nominal_twin=twin, population=build_population(config))
 
 
 def truth_optics(twin, kept: np.ndarray, design, settings, cache=None) -> dict:

@@ -249,17 +249,26 @@ def repeatability_table(repeats: list[dict], config: StationConfig, paths=STUDY_
 
 
 def table_text(rows: list[dict]) -> str:
-    head = (f"{'figure':<36}{'mean':>12}{'std':>11}{'std error':>11}{'U_random':>11}{'U (k=2)':>11}"
-            f"{'err/U_rand':>11}{'%GRR':>8}  class")
-    lines = [head]
+    """The repeatability table, one aligned line per figure with its human name and unit (columns sized to
+    their contents, two spaces apart: the old fixed widths ran long names into the numbers)."""
+    from ..result.specs import figure_name
+
+    def g(v, fmt):
+        return "-" if v is None else format(v, fmt)
+    head = ("figure", "unit", "mean", "std", "std error", "U_random", "U (k=2)", "err/U_rand", "%GRR", "class")
+    body = []
     for r in rows:
-        def g(v, fmt):
-            return "-" if v is None else format(v, fmt)
-        lines.append(f"{r['figure']:<36}{g(r['mean'], '12.6g')}{g(r['std'], '11.3g')}{g(r['std_error'], '11.3g')}"
-                     f"{g(r['U_random'], '11.3g')}"
-                     f"{g(r['U'], '11.3g')}{g(r['std_over_U_random'], '11.2f')}{g(r['grr_percent'], '8.1f')}"
-                     f"  {r['grr_class'] or ''}")
-    return "\n".join(lines)
+        name, unit = figure_name(r["figure"])
+        body.append((name, unit, g(r["mean"], ".6g"), g(r["std"], ".3g"), g(r["std_error"], ".3g"),
+                     g(r["U_random"], ".3g"), g(r["U"], ".3g"), g(r["std_over_U_random"], ".2f"),
+                     g(r["grr_percent"], ".1f"), r["grr_class"] or ""))
+    widths = [max(len(str(line[i])) for line in (head, *body)) for i in range(len(head))]
+
+    def line(cells):
+        text = [str(cells[0]).ljust(widths[0]), str(cells[1]).ljust(widths[1])]
+        text += [str(c).rjust(w) for c, w in zip(cells[2:-1], widths[2:-1])]
+        return "  ".join(text + [str(cells[-1])]).rstrip()
+    return "\n".join([line(head)] + [line(b) for b in body])
 
 
 def repeatability_png(rows: list[dict], path, title: str) -> None:
@@ -270,7 +279,9 @@ def repeatability_png(rows: list[dict], path, title: str) -> None:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(14, 7), gridspec_kw={"width_ratios": [3, 1]})
-    names = [r["figure"] for r in rows if r["std_over_U_random"] is not None]
+    from ..result.specs import figure_name
+
+    names = [figure_name(r["figure"])[0] for r in rows if r["std_over_U_random"] is not None]
     ratios = [r["std_over_U_random"] for r in rows if r["std_over_U_random"] is not None]
     ax = axes[0]
     ax.barh(names, ratios, color=["tab:red" if x > 1.5 else "tab:blue" for x in ratios])
@@ -282,7 +293,7 @@ def repeatability_png(rows: list[dict], path, title: str) -> None:
     ax.set_title("repeatability against the stated random uncertainty")
     graded = [r for r in rows if r["grr_percent"] is not None]
     ax = axes[1]
-    ax.bar([r["figure"].replace("slope_rms_mrad.", "RMS ").replace(".magnitude", "") for r in graded],
+    ax.bar([figure_name(r["figure"])[0] for r in graded],
            [r["grr_percent"] for r in graded], color="tab:green")
     ax.axhline(10, color="tab:orange", linestyle="--", label="10 % acceptable")
     ax.axhline(30, color="tab:red", linestyle="--", label="30 % marginal")

@@ -1,15 +1,24 @@
-"""The analysis in a separate, killable process.
+"""The analysis in a separate, killable process, with a warm standby beside it.
 
 A hung analysis must not hang the line: the station runs :func:`~sofast_station.measure.analysis.analyse`
-in one long-lived worker process (spawned, so it shares no OpenGL or thread state with the station),
-hands it the frames through shared memory (no 35 MB pickle per facet), waits with a deadline, and kills
-and restarts the worker when the deadline passes. The worker computes the camera's pixel rays once.
+in a long-lived worker process (spawned, so it shares no OpenGL or thread state with the station), hands
+it the frames through shared memory (no 35 MB pickle per facet) and waits with a deadline. The worker
+computes the camera's pixel rays once.
+
+A second worker waits beside it, started, its optics traced and warmed on the warm-up capture: the
+*standby*. When an analysis passes the deadline, or the worker dies, the standby takes over at once and a
+new standby starts in the background, so the next facet is measured normally (it used to wait out the
+late grace and a restart, 8-9 s, and time out too). The abandoned worker is not killed at once: it may
+still finish within ``late_grace_s`` (its result is then journaled, marked late, through the
+:class:`concurrent.futures.Future` the timeout carries), at the lowest priority so that it never slows the
+facet the standby is measuring; then it is killed.
 
 A worker that dies *before* it begins a facet's analysis (killed or out of memory between facets, its
 death not yet seen when the next facet arrives) costs that facet nothing: the worker marks each analysis
-it begins in the shared memory, so the station knows the facet was never started, restarts the worker and
-analyses it again within the facet's time budget. A worker that dies *during* an analysis answers that
-facet with the worker fault (the facet itself may be what kills it), and the next facet is measured.
+it begins in the shared memory, so the station knows the facet was never started and analyses it on the
+standby within the facet's time budget. A worker that dies *during* an analysis answers that facet with
+the worker fault (the facet itself may be what kills it), and the next facet is measured on the standby.
+A worker killed while it starts is started again (:data:`START_ATTEMPTS` times).
 """
 
 from __future__ import annotations
@@ -19,7 +28,8 @@ import multiprocessing
 import os
 import threading
 import time
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures import CancelledError
 from concurrent.futures import TimeoutError as FutureTimeout
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
@@ -175,159 +185,65 @@ def _ping() -> bool:
 
 
 # --- station side -------------------------------------------------------------------------------------
-class AnalysisWorker:
-    """One analysis process with a shared frame buffer.
 
-    Parameters
-    ----------
-    geometry, fringes :
-        The station's geometry and fringe definition (fixed for the worker's life).
-    n_frames, shape :
-        Size of the frame stack it analyses.
+#: How often a worker that dies while it starts (killed, out of memory) is started again before the
+#: station gives up (it then says so, exit code 2): a kill -9 in the first seconds of `run` ended the run.
+START_ATTEMPTS = 3
+#: Longest wait for a worker to start (spawn, imports, pixel rays, optics traces), seconds.
+START_TIMEOUT_S = 120.0
+
+
+class _Process:
+    """One analysis process (a one-process pool) with its own shared frame buffer.
+
+    Each worker has its own buffer: a retired worker may still read its frames while the standby that took
+    over is given the next facet's.
     """
 
-    def __init__(self, geometry, fringes, shape: tuple[int, int]):
-        self._geometry = geometry.to_dict()
-        self._fringes = fringes.to_dict()
-        self._shape = (fringes.n_frames, *shape)
-        self._shm = SharedMemory(create=True, size=_frame_bytes(self._shape) + _BEGUN_BYTES)
-        self._frames = np.ndarray(self._shape, dtype=np.uint8, buffer=self._shm.buf)
-        self._begun = _begun_slot(self._shm, self._shape)
-        self._tickets = 0                        # analyses asked for so far
-        self._begun[0] = 0
-        self._pool = None
-        self._restarting: threading.Thread | None = None
-        self._optics_designs: list = []          # (design dict, OpticsSettings) traced at every (re)start
-        self.starts = 0
-        try:
-            self._start()
-        except BaseException:
-            self._shm.close()
-            self._shm.unlink()
-            raise
+    def __init__(self, shape: tuple[int, int, int]):
+        self.shape = shape
+        self.shm = SharedMemory(create=True, size=_frame_bytes(shape) + _BEGUN_BYTES)
+        self.frames = np.ndarray(shape, dtype=np.uint8, buffer=self.shm.buf)
+        self.begun = _begun_slot(self.shm, shape)
+        self.begun[0] = 0
+        self.pool: ProcessPoolExecutor | None = None
+        self.warm = False
 
-    def _start(self) -> None:
-        t = time.perf_counter()
+    def start(self, geometry: dict, fringes: dict, optics_designs: list, timeout_s: float = START_TIMEOUT_S) -> None:
+        """Spawn the process and wait until it has its pixel rays (and the designs' optical traces).
+
+        Raises BrokenProcessPool (it died), TimeoutError or OSError; the caller closes it then."""
         ctx = multiprocessing.get_context("spawn")
-        self._pool = ProcessPoolExecutor(max_workers=1, mp_context=ctx, initializer=_init,
-                                         initargs=(self._shm.name, self._shape, self._geometry, self._fringes))
-        try:
-            self._pool.submit(_ping).result(timeout=120)
-        except (BrokenProcessPool, FutureTimeout, OSError) as exc:
-            self._kill()
-            raise WorkerDied(f"the analysis worker could not start ({type(exc).__name__}: {exc}); see the log, "
-                             "and check memory and the Python environment") from None
-        if self._optics_designs:
-            self._pool.submit(_prepare_optics, self._optics_designs).result(timeout=120)
-        self.starts += 1
-        log.info("analysis worker ready in %.1f s (process %s)", time.perf_counter() - t, self.pids())
+        self.pool = ProcessPoolExecutor(max_workers=1, mp_context=ctx, initializer=_init,
+                                        initargs=(self.shm.name, self.shape, geometry, fringes))
+        self.pool.submit(_ping).result(timeout=timeout_s)
+        self.prepare(optics_designs, timeout_s)
+
+    def prepare(self, optics_designs: list, timeout_s: float = START_TIMEOUT_S) -> None:
+        if optics_designs:
+            self.pool.submit(_prepare_optics, optics_designs).result(timeout=timeout_s)
 
     def pids(self) -> list[int]:
-        """Process ids of the worker (empty while it is being restarted)."""
-        pool = self._pool
+        pool = self.pool
         return [p.pid for p in list((getattr(pool, "_processes", None) or {}).values())] if pool else []
 
     def alive(self) -> bool:
-        """Whether the worker process runs (False while a restart is under way, or after it died)."""
-        pool = self._pool
+        pool = self.pool
         if pool is None or getattr(pool, "_broken", False):
             return False
         procs = list((getattr(pool, "_processes", None) or {}).values())
         return bool(procs) and all(p.is_alive() for p in procs)
 
-    def supervise(self) -> bool:
-        """Between facets: restart a worker that died; True when a restart was started."""
-        if self._restarting is not None or self.alive():
-            return False
-        log.error("the analysis worker (process %s) is gone: restarting it", self.pids() or "?")
-        self._restart()
-        return True
-
-    def _restart(self) -> None:
-        self._kill()
-        # The new worker starts in the background: the robot gets its answer now, not after the start.
-        self._restarting = threading.Thread(target=self._restart_main, name="analysis-worker-restart", daemon=True)
-        self._restarting.start()
-
-    def _restart_main(self) -> None:
-        try:
-            self._start()
-        except StationError as exc:
-            log.error("%s", exc)
-
-    def _ready(self) -> None:
-        """Wait for a restart under way; start again when it failed."""
-        if self._restarting is not None:
-            self._restarting.join()
-            self._restarting = None
-        if self._pool is None:
-            self._start()
-
-    def analyse(self, frames: np.ndarray, design, settings, distance_m: float, timeout_s: float,
-                hang_s: float = 0.0, optics=None, uncertainty=None) -> WorkerResult:
-        """Analyse *frames* in the worker; :class:`AnalysisTimeout` after *timeout_s* (worker restarted).
-
-        With *optics* (OpticsSettings) the figures carry the facet's optical figures (``optics``).
-
-        Errors raised by the analysis (StationError subclasses) come back as themselves.
-        """
-        if frames.shape != self._shape or frames.dtype != np.uint8:
-            from ..errors import CaptureError
-            raise CaptureError(f"the capture is {frames.dtype} {frames.shape}, the station expects uint8 "
-                               f"{self._shape}; check the camera's pixel format and size")
-        t_end = time.perf_counter() + timeout_s
-        for attempt in (1, 2):
-            self._ready()                          # a restart under way: wait for the new worker
-            if not self.alive():
-                self.supervise()
-                self._ready()
-            left_s = t_end - time.perf_counter()
-            if left_s <= 0:
-                raise AnalysisTimeout(f"the analysis worker was being restarted for the facet's whole "
-                                      f"{timeout_s:.1f} s; the facet was not analysed")
-            np.copyto(self._frames, frames)
-            self._tickets += 1
-            fut = None
+    def lower_priority(self) -> None:
+        """Run at the lowest priority from now on (a retired worker must not slow the one measuring)."""
+        for pid in self.pids():
             try:
-                fut = self._pool.submit(_run, self._tickets, design.to_dict(), settings.to_dict(),
-                                        float(distance_m), float(hang_s), optics,
-                                        None if uncertainty is None else uncertainty.to_dict())
-                figures, packed, shape, seconds, preview, sensitivities = fut.result(timeout=max(left_s, 0.01))
-                break
-            except FutureTimeout:
-                log.error("analysis exceeded its %.1f s budget: restarting the analysis worker", timeout_s)
-                self._restart()
-                raise AnalysisTimeout(f"the analysis did not finish within {timeout_s:.1f} s; the worker was "
-                                      "restarted") from None
-            except (BrokenProcessPool, RuntimeError) as exc:
-                begun = int(self._begun[0]) == self._tickets
-                self._restart()
-                if begun or attempt == 2:
-                    log.error("the analysis worker died during the analysis (%s): restarting it", exc)
-                    raise WorkerDied("the analysis worker process died during this facet's analysis (killed or "
-                                     "out of memory); it is restarted, the next facet is measured") from None
-                log.warning("the analysis worker had died before this facet's analysis began (%s): restarting "
-                            "it and analysing the facet again", exc)
-            finally:
-                # An analysis error is raised from the future, which keeps it: the error's traceback holds
-                # this frame, and this frame the future, a reference cycle that would keep the cycle's
-                # frames (tens of MB at full resolution) until the garbage collector's rare full pass.
-                # Broken here.
-                fut = None
-        valid = np.unpackbits(packed, count=int(np.prod(shape))).astype(bool).reshape(shape)
-        return WorkerResult(figures, valid, seconds, preview, sensitivities)
+                os.setpriority(os.PRIO_PROCESS, pid, 19)
+            except OSError:
+                pass
 
-    def prepare_optics(self, designs: list, timeout_s: float = 120.0) -> None:
-        """Trace each (design, OpticsSettings)'s design surface in the worker now, so that no facet's cycle
-        pays for it; a restarted worker traces them again while it starts."""
-        self._optics_designs = [(d.to_dict(), o) for d, o in designs]
-        if designs:
-            t = time.perf_counter()
-            self._pool.submit(_prepare_optics, self._optics_designs).result(timeout=timeout_s)
-            log.info("optics: %d design trace(s) ready in %.2f s", len(designs), time.perf_counter() - t)
-
-    def _kill(self) -> None:
-        pool, self._pool = self._pool, None
+    def kill(self) -> None:
+        pool, self.pool = self.pool, None
         if pool is not None:
             procs = list((getattr(pool, "_processes", None) or {}).values())
             for proc in procs:
@@ -337,10 +253,375 @@ class AnalysisWorker:
                 proc.join(5)                 # reap it: a zombie's PID would keep its temporary files "alive"
 
     def close(self) -> None:
-        if self._restarting is not None:
-            self._restarting.join()
-            self._restarting = None
-        self._kill()
-        self._frames = self._begun = None
-        self._shm.close()
-        self._shm.unlink()
+        self.kill()
+        if self.shm is not None:
+            self.frames = self.begun = None
+            self.shm.close()
+            try:
+                self.shm.unlink()
+            except FileNotFoundError:
+                pass
+            self.shm = None
+
+
+def _result(out) -> WorkerResult:
+    figures, packed, shape, seconds, preview, sensitivities = out
+    valid = np.unpackbits(packed, count=int(np.prod(shape))).astype(bool).reshape(shape)
+    return WorkerResult(figures, valid, seconds, preview, sensitivities)
+
+
+class AnalysisWorker:
+    """The analysis process the station measures with, and its warm standby.
+
+    Parameters
+    ----------
+    geometry, fringes :
+        The station's geometry and fringe definition (fixed for the workers' lives).
+    shape : (int, int)
+        The camera frame's (rows, columns).
+    standby : bool
+        Keep a second worker started and warm, which takes over at once after a timeout or a crash
+        (``[run] standby_worker``); without it a replacement starts only then (seconds).
+    """
+
+    def __init__(self, geometry, fringes, shape: tuple[int, int], standby: bool = True):
+        self._geometry = geometry.to_dict()
+        self._fringes = fringes.to_dict()
+        self._shape = (fringes.n_frames, *shape)
+        self._use_standby = bool(standby)
+        self._lock = threading.Lock()
+        self._optics_designs: list = []          # (design dict, OpticsSettings) traced at every start
+        self._warm_job: tuple | None = None      # the warm-up capture (cropped) and its analysis's inputs
+        self._tickets = 0                        # analyses asked for so far
+        self._active: _Process | None = None
+        self._standby: _Process | None = None
+        self._standby_thread: threading.Thread | None = None
+        self._starting: list[_Process] = []      # being started (killed by close())
+        self._retired: list[tuple[_Process, threading.Thread]] = []
+        self._closed = False
+        self.starts = 0                          # worker processes started (the standbys included)
+        self.takeovers = 0                       # times the standby took over
+        self._active = self._new_process()
+        if self._use_standby:
+            self._launch_standby()
+
+    # -- starting ------------------------------------------------------------------------------------
+    def _new_process(self) -> _Process:
+        """A started worker; one killed while it starts is started again (START_ATTEMPTS in all)."""
+        for attempt in range(1, START_ATTEMPTS + 1):
+            t = time.perf_counter()
+            proc = _Process(self._shape)
+            with self._lock:
+                if self._closed:
+                    proc.close()
+                    raise WorkerDied("the station is closing: no analysis worker is started")
+                self._starting.append(proc)
+            try:
+                proc.start(self._geometry, self._fringes, self._optics_designs)
+            except (BrokenProcessPool, FutureTimeout, OSError) as exc:
+                proc.close()
+                if self._closed:
+                    raise WorkerDied("the station is closing: no analysis worker is started") from None
+                if attempt == START_ATTEMPTS:
+                    raise WorkerDied(f"the analysis worker could not start ({type(exc).__name__}: {exc}; "
+                                     f"{START_ATTEMPTS} attempts); see the log, and check memory and the Python "
+                                     "environment") from None
+                log.warning("the analysis worker died while starting (%s: %s): starting it again (attempt %d of "
+                            "%d)", type(exc).__name__, exc, attempt + 1, START_ATTEMPTS)
+                continue
+            finally:
+                with self._lock:
+                    if proc in self._starting:
+                        self._starting.remove(proc)
+            self.starts += 1
+            log.info("analysis worker ready in %.1f s (process %s)", time.perf_counter() - t, proc.pids())
+            return proc
+        raise AssertionError("unreachable")
+
+    def _launch_standby(self) -> None:
+        """Start a standby in the background (when none is there or starting)."""
+        with self._lock:
+            if self._closed or self._standby is not None or self._standby_thread is not None:
+                return
+            self._standby_thread = threading.Thread(target=self._standby_main, name="analysis-standby", daemon=True)
+            self._standby_thread.start()
+
+    def _standby_main(self) -> None:
+        try:
+            proc = self._new_process()
+            if self._warm_job is not None:
+                self._warm(proc)
+            with self._lock:
+                if self._closed:
+                    proc.close()
+                else:
+                    self._standby = proc
+        except StationError as exc:
+            if not self._closed:
+                log.error("no standby analysis worker: %s; the next timeout or crash waits for a new start", exc)
+        finally:
+            with self._lock:
+                self._standby_thread = None
+
+    def _wait_standby(self, until: float) -> None:
+        """Wait (until *until*, time.perf_counter seconds) for a standby being started or warmed."""
+        thread = self._standby_thread
+        if thread is not None:
+            thread.join(max(0.0, until - time.perf_counter()))
+
+    def _warm(self, proc: _Process) -> None:
+        """Analyse the warm-up capture on *proc* (its first analysis pays for imports, caches, page faults
+        and the uncertainty's sensitivities: seconds, paid here and not by a facet)."""
+        from .frames import restore
+
+        cropped, box, full, args = self._warm_job
+        np.copyto(proc.frames, restore(cropped, box, full))
+        try:
+            proc.pool.submit(_run, 0, *args).result(timeout=START_TIMEOUT_S)
+            proc.warm = True
+        except (BrokenProcessPool, FutureTimeout, RuntimeError, OSError) as exc:
+            log.warning("the standby worker's warm-up analysis failed (%s); it takes over cold", exc)
+        except StationError as exc:
+            log.warning("the standby worker's warm-up analysis failed (%s); it takes over cold", exc)
+
+    def prepare_optics(self, designs: list, timeout_s: float = START_TIMEOUT_S) -> None:
+        """Trace each (design, OpticsSettings)'s design surface in the workers now, so that no facet's cycle
+        pays for it; every worker started later traces them while it starts."""
+        self._optics_designs = [(d.to_dict(), o) for d, o in designs]
+        if not designs:
+            return
+        t = time.perf_counter()
+        for attempt in (1, 2):
+            try:
+                self._ensure_active(time.perf_counter() + timeout_s)
+                self._active.prepare(self._optics_designs, timeout_s)
+                break
+            except (BrokenProcessPool, RuntimeError) as exc:
+                if attempt == 2:
+                    raise WorkerDied(f"the analysis worker died twice while tracing the designs' optics ({exc})") \
+                        from None
+                log.warning("the analysis worker died while tracing the designs' optics (%s): replacing it", exc)
+                self._replace(self._active)
+        self._wait_standby(time.perf_counter() + timeout_s)
+        with self._lock:
+            standby = self._standby
+        if standby is not None:
+            try:
+                standby.prepare(self._optics_designs, timeout_s)
+            except (BrokenProcessPool, RuntimeError, FutureTimeout):
+                self._drop_standby(standby)
+        log.info("optics: %d design trace(s) ready in %.2f s", len(designs), time.perf_counter() - t)
+
+    def warm_up(self, frames: np.ndarray, design, settings, distance_m: float, timeout_s: float, optics=None,
+                uncertainty=None) -> WorkerResult:
+        """Analyse one capture before the first facet, in the worker and in the standby; the capture (cropped
+        to the facet) is kept to warm every later standby the same way."""
+        from .frames import crop, crop_box
+
+        res = self.analyse(frames, design, settings, distance_m, timeout_s=timeout_s, optics=optics,
+                           uncertainty=uncertainty)
+        box = crop_box(frames[0], frames[1], settings.mask_threshold_dn)
+        self._warm_job = (crop(frames, box), box, frames.shape[1:],
+                          (design.to_dict(), settings.to_dict(), float(distance_m), 0.0, optics,
+                           None if uncertainty is None else uncertainty.to_dict()))
+        self._active.warm = True
+        self._wait_standby(time.perf_counter() + timeout_s)
+        with self._lock:
+            standby = self._standby
+        if standby is not None and not standby.warm:
+            self._warm(standby)
+        return res
+
+    # -- taking over ---------------------------------------------------------------------------------
+    def _drop_standby(self, proc: _Process) -> None:
+        with self._lock:
+            if self._standby is proc:
+                self._standby = None
+        proc.close()
+        self._launch_standby()
+
+    def _promote(self) -> bool:
+        """The standby becomes the worker at once (True), and a new standby starts in the background."""
+        with self._lock:
+            proc, self._standby = self._standby, None
+        if proc is None:
+            return False
+        if not proc.alive():
+            log.warning("the standby analysis worker had died: starting another")
+            proc.close()
+            return False
+        self._active = proc
+        self.takeovers += 1
+        log.warning("the standby analysis worker (process %s) took over", proc.pids())
+        self._launch_standby()
+        return True
+
+    def _replace(self, proc: _Process | None) -> None:
+        """Close a dead or abandoned worker; the standby takes over, or a replacement starts."""
+        if proc is not None:
+            proc.close()
+        if proc is self._active or proc is None:
+            self._active = None
+            if not self._promote():
+                self._launch_standby()
+
+    def _ensure_active(self, until: float) -> None:
+        """A live worker to analyse with: the present one, else the standby at once, else the one being
+        started (waited for until *until*, time.perf_counter seconds), else one started now."""
+        if self._active is not None and self._active.alive():
+            return
+        if self._active is not None:
+            log.error("the analysis worker (process %s) is gone", self._active.pids() or "?")
+            self._replace(self._active)
+            if self._active is not None:
+                return
+        if self._promote():
+            return
+        self._launch_standby()
+        self._wait_standby(until)
+        if self._promote():
+            return
+        if time.perf_counter() >= until:
+            raise AnalysisTimeout("the analysis worker was being started for the facet's whole time budget; the "
+                                  "facet was not analysed")
+        self._active = self._new_process()
+
+    def supervise(self) -> bool:
+        """Between facets: a worker that died is replaced (the standby takes over), a dead standby restarted,
+        a missing standby started; True when the worker was replaced."""
+        replaced = False
+        if self._active is not None and not self._active.alive():
+            log.error("the analysis worker (process %s) is gone: replacing it", self._active.pids() or "?")
+            self._replace(self._active)
+            replaced = True
+        elif self._active is None and not self._promote():
+            self._launch_standby()               # none ready (a takeover's standby still starting): on its way
+        with self._lock:
+            standby = self._standby
+        if standby is not None and not standby.alive():
+            log.warning("the standby analysis worker (process %s) died: starting another", standby.pids() or "?")
+            self._drop_standby(standby)
+        elif self._use_standby:
+            self._launch_standby()
+        return replaced
+
+    def _retire(self, proc: _Process, fut, grace_s: float) -> Future:
+        """Abandon *proc*'s analysis at the deadline: the standby takes over now; *proc* keeps running it at
+        the lowest priority for up to *grace_s* seconds, then is killed. Returns the late result's future."""
+        late: Future = Future()
+        self._active = None
+        if not self._promote():
+            self._launch_standby()
+        proc.lower_priority()
+
+        def wait():
+            try:
+                late.set_result(_result(fut.result(timeout=max(grace_s, 0.0))))
+            except FutureTimeout:
+                log.warning("the abandoned analysis did not finish within the late grace (%.0f s): its worker "
+                            "(process %s) is killed", grace_s, proc.pids())
+                late.set_result(None)
+            except (BrokenProcessPool, RuntimeError, CancelledError):
+                late.set_result(None)
+            except BaseException as exc:           # the analysis's own error (a StationError)
+                late.set_exception(exc)
+            finally:
+                proc.close()
+                with self._lock:
+                    self._retired = [(p, t) for p, t in self._retired if p is not proc]
+        thread = threading.Thread(target=wait, name="analysis-retired", daemon=True)
+        with self._lock:
+            self._retired.append((proc, thread))
+        thread.start()
+        return late
+
+    # -- analysing -------------------------------------------------------------------------------------
+    def pids(self) -> list[int]:
+        """Process ids of the worker measuring (empty while none is ready)."""
+        proc = self._active
+        return proc.pids() if proc is not None else []
+
+    def standby_pids(self) -> list[int]:
+        """Process ids of the standby (empty while none is ready)."""
+        proc = self._standby
+        return proc.pids() if proc is not None else []
+
+    def alive(self) -> bool:
+        """Whether the worker measuring runs (False after it died, or while none is ready)."""
+        proc = self._active
+        return proc is not None and proc.alive()
+
+    def analyse(self, frames: np.ndarray, design, settings, distance_m: float, timeout_s: float,
+                hang_s: float = 0.0, optics=None, uncertainty=None, late_s: float = 0.0) -> WorkerResult:
+        """Analyse *frames*; :class:`AnalysisTimeout` after *timeout_s* seconds.
+
+        At the timeout the standby takes over at once; the abandoned analysis may still finish within
+        *late_s* seconds, through the timeout's ``late`` future. With *optics* (OpticsSettings) the figures
+        carry the facet's optical figures (``optics``). Errors raised by the analysis (StationError
+        subclasses) come back as themselves.
+        """
+        if frames.shape != self._shape or frames.dtype != np.uint8:
+            from ..errors import CaptureError
+            raise CaptureError(f"the capture is {frames.dtype} {frames.shape}, the station expects uint8 "
+                               f"{self._shape}; check the camera's pixel format and size")
+        t_end = time.perf_counter() + timeout_s
+        for attempt in (1, 2):
+            self._ensure_active(t_end)
+            proc = self._active
+            left_s = t_end - time.perf_counter()
+            if left_s <= 0:
+                raise AnalysisTimeout(f"the analysis worker was being replaced for the facet's whole "
+                                      f"{timeout_s:.1f} s; the facet was not analysed")
+            np.copyto(proc.frames, frames)
+            self._tickets += 1
+            fut = None
+            try:
+                fut = proc.pool.submit(_run, self._tickets, design.to_dict(), settings.to_dict(),
+                                       float(distance_m), float(hang_s), optics,
+                                       None if uncertainty is None else uncertainty.to_dict())
+                out = fut.result(timeout=max(left_s, 0.01))
+                break
+            except FutureTimeout:
+                log.error("the analysis exceeded its %.1f s budget: the standby worker takes over%s", timeout_s,
+                          f"; the analysis may still finish within {late_s:.0f} s" if late_s > 0 else "")
+                late = self._retire(proc, fut, late_s)
+                raise AnalysisTimeout(f"the analysis did not finish within {timeout_s:.1f} s; the standby worker "
+                                      "took over", late=late) from None
+            except (BrokenProcessPool, RuntimeError) as exc:
+                begun = int(proc.begun[0]) == self._tickets
+                self._replace(proc)
+                if begun or attempt == 2:
+                    log.error("the analysis worker died during the analysis (%s): replaced", exc)
+                    raise WorkerDied("the analysis worker process died during this facet's analysis (killed or "
+                                     "out of memory); the standby worker took over, the next facet is measured") \
+                        from None
+                log.warning("the analysis worker had died before this facet's analysis began (%s): analysing the "
+                            "facet on the standby", exc)
+            finally:
+                # An analysis error is raised from the future, which keeps it: the error's traceback holds
+                # this frame, and this frame the future, a reference cycle that would keep the cycle's
+                # frames (tens of MB at full resolution) until the garbage collector's rare full pass.
+                # Broken here.
+                fut = None
+        return _result(out)
+
+    def close(self, late_wait_s: float | None = None) -> None:
+        """Stop every worker. An abandoned analysis still within its grace is waited for (up to
+        *late_wait_s* seconds, default its grace) so that its result is kept; then everything is killed."""
+        with self._lock:
+            self._closed = True
+            starting = list(self._starting)
+            retired = list(self._retired)
+        for proc in starting:                     # a start under way ends now (its thread then gives up)
+            proc.kill()
+        for proc, thread in retired:
+            thread.join(late_wait_s)
+            proc.close()
+            thread.join(10)
+        thread = self._standby_thread
+        if thread is not None:
+            thread.join(30)
+        for proc in (self._active, self._standby):
+            if proc is not None:
+                proc.close()
+        self._active = self._standby = None

@@ -38,6 +38,11 @@ _EDGE_CHUNK_PX = 4096
 #: working arrays (a few hundred kB each) stay in the core's cache between passes.
 _BLOCK_PX = 96_000
 
+#: :meth:`TwinStation.with_facet` keeps the traced outline while the new shape moves its image by less than
+#: this, pixels: a fifth of the corner location's standard uncertainty ([uncertainty] corner_px = 0.1 px),
+#: and about the 64 sub-rays' own resolution of an edge pixel (1/128 px) times three.
+MAX_KEPT_EDGE_SHIFT_PX = 0.02
+
 #: The thread that finishes half of every captured frame (shared by all twins of the process).
 _FINISHER: ThreadPoolExecutor | None = None
 _FINISHER_LOCK = threading.Lock()
@@ -238,7 +243,11 @@ class TwinStation:
         x_facet = x_rel[seen]
         d_in_facet = d_rel[seen]
 
-        # Reflection about the exact true normal, then the screen plane.
+        self._reflect(x_facet, d_in_facet)
+
+    def _reflect(self, x_facet: np.ndarray, d_in_facet: np.ndarray) -> None:
+        """Reflect the seen pixels' rays (hitting at *x_facet*, directions *d_in_facet*, facet frame) about the
+        exact true normal onto the screen plane; fills the per-seen-pixel arrays."""
         _, zx, zy = self.surface.height_and_slopes(x_facet[:, 0], x_facet[:, 1])
         normal = np.column_stack([-zx, -zy, np.ones_like(zx)])
         normal /= np.linalg.norm(normal, axis=1, keepdims=True)
@@ -257,6 +266,7 @@ class TwinStation:
                 & (u_scr_m[:, 1] >= 0) & (u_scr_m[:, 1] < screen.height_m)
 
         self._x_facet_m = x_facet
+        self._d_in_facet = d_in_facet
         self._slope = np.column_stack([zx, zy])
         self._u_scr_m = u_scr_m
         self._path_m = path_m
@@ -329,6 +339,57 @@ class TwinStation:
         levels = np.arange(256, dtype=np.float64) / 255.0
         self._luminance_lut = (optics.display_floor
                                + (1.0 - optics.display_floor) * levels ** optics.display_gamma).astype(np.float32)
+
+    def with_facet(self, facet: TrueFacet) -> "TwinStation":
+        """The same station with another facet in the fixture (a production line's next facet).
+
+        With the placement unchanged, only the shape differs by micrometres: every pixel that saw the
+        facet is intersected again with the new surface (Newton from its old hit, to 1e-12 m), reflected
+        about the new exact normal and followed to the screen; the facet's outline in the image, and so
+        each edge pixel's area coverage, is kept. A new trace would move the outline's image by
+        less than :data:`MAX_KEPT_EDGE_SHIFT_PX` (bounded here: the largest height change along the
+        outline times the steepest ray there, over the pixel's footprint), i.e. change an edge pixel's
+        coverage by a sub-ray or two; beyond that, or with another placement, the station is traced anew.
+        Every figure of the twin's truth is the new surface's, exactly. Shares the unchanged read-only
+        arrays.
+        """
+        if facet.placement_mm != self.facet.placement_mm or facet.placement_mrad != self.facet.placement_mrad:
+            return self._traced_anew(facet)
+        surface = TrueSurface(facet, self.design)
+        if self._edge_shift_px(surface) > MAX_KEPT_EDGE_SHIFT_PX:
+            return self._traced_anew(facet)
+        twin = copy.copy(self)
+        twin.facet, twin.surface = facet, surface
+        twin._samples = {}
+        for name in ("screen_position_m", "surface_point_facet_m", "slope_true", "on_screen"):
+            twin.__dict__.pop(name, None)
+        start = time.perf_counter()
+        d_in = self._d_in_facet
+        v_cam = self.camera_to_facet.translation
+        t_old = np.einsum("ij,ij->i", self._x_facet_m - v_cam, d_in)
+        t_new = surface.intersect(v_cam, d_in, start_m=t_old)
+        twin._reflect(v_cam + t_new[:, None] * d_in, d_in)
+        twin._prepare_sampling()
+        twin.trace_seconds = time.perf_counter() - start
+        return twin
+
+    def _traced_anew(self, facet: TrueFacet) -> "TwinStation":
+        return TwinStation(self.geometry, self.design, facet, self.optics, supersample=self._supersample,
+                           edge_band_px=self._edge_band_px, edge_sampling=self._edge_sampling)
+
+    def _edge_shift_px(self, surface: TrueSurface) -> float:
+        """How far, in pixels, the facet's outline would move in the image if this station's surface became
+        *surface* (first order: height change along the outline times the ray's tilt, over the footprint)."""
+        corners = self.design.outline_m
+        steps = np.linspace(0.0, 1.0, 256, endpoint=False)[:, None]
+        xy = np.concatenate([c0 + steps * (c1 - c0) for c0, c1 in zip(corners, np.roll(corners, -1, axis=0))])
+        z_old = self.surface.height(xy[:, 0], xy[:, 1])
+        dz = np.abs(surface.height(xy[:, 0], xy[:, 1]) - z_old)
+        ray = np.column_stack([xy, z_old]) - self.camera_to_facet.translation
+        distance = np.linalg.norm(ray, axis=1)
+        tilt = np.hypot(ray[:, 0], ray[:, 1]) / np.abs(ray[:, 2])
+        footprint_m = distance / float(np.max(np.diag(self.geometry.camera.matrix)[:2]))
+        return float(np.max(dz * tilt / footprint_m))
 
     def with_optics(self, optics: TwinOptics) -> "TwinStation":
         """The same traced station with other optics (exposure, noise, display): no new trace.

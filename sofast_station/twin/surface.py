@@ -278,10 +278,12 @@ class TrueSurface:
         t = np.minimum(root_1, root_2)
         return np.where(np.isfinite(t) & (disc >= 0), t, np.nan)
 
-    def intersect(self, origin_m: np.ndarray, directions: np.ndarray, max_iterations: int = 50) -> np.ndarray:
+    def intersect(self, origin_m: np.ndarray, directions: np.ndarray, max_iterations: int = 50,
+                  start_m: np.ndarray | None = None) -> np.ndarray:
         """First intersection of rays with the full true surface.
 
-        Starts at the quadratic part's stable root (:meth:`paraboloid_hits`), then Newton on
+        Starts at the quadratic part's stable root (:meth:`paraboloid_hits`), or at *start_m* when given
+        (the hits on a surface a few micrometres away), then Newton on
         ``g(t) = z_surface(x(t), y(t)) - z(t)`` until the step is below 1e-12 m.
 
         Parameters
@@ -292,6 +294,8 @@ class TrueSurface:
             Unit ray directions, facet frame.
         max_iterations : int
             Newton iterations before giving up.
+        start_m : (n,) array, optional
+            Distances along the rays to start from, metres (NaN: a ray that misses).
 
         Returns
         -------
@@ -304,7 +308,7 @@ class TrueSurface:
             If Newton does not converge for some ray (a surface too rough for its quadratic start).
         """
         origin_m = np.asarray(origin_m, dtype=np.float64)
-        t = self.paraboloid_hits(origin_m, directions)
+        t = self.paraboloid_hits(origin_m, directions) if start_m is None else np.array(start_m, dtype=np.float64)
         active = np.flatnonzero(np.isfinite(t))
         for _ in range(max_iterations):
             if active.size == 0:

@@ -17,12 +17,13 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..archive._common import utc_key
+from ..archive._common import parse_time, utc_key
 from ..live.pictures import picture_path
+from ..live.status import read_status, status_path
 from ..recipes import recipes_from_config
 from ..result.record import figure_uncertainty, figure_value
 from ..result.shift import cycle_seconds, summarize
-from ..live.status import read_status, status_path
+from ..result.specs import figure_specs
 from ..result.verdict import LONG_FOCAL_LENGTH_M
 
 log = logging.getLogger(__name__)
@@ -224,9 +225,16 @@ class LineData:
         return info
 
     def alarms(self, status: dict, last: dict | None, calibration: dict, disk: dict) -> list:
-        """(kind, text) of every alarm in force: the loop's (camera, plc, drift-RECIPE from the control-chart
-        rules of station/drift.py) and the monitor's own (calibration, disk)."""
-        out = [(k, str(v)) for k, v in sorted((status.get("alarms") or {}).items())]
+        """(kind, text) of every alarm in force: ``offline`` when no station process runs, the loop's (camera,
+        plc, drift-RECIPE from the control-chart rules of station/drift.py) and the monitor's own
+        (calibration, disk)."""
+        out = []
+        if status.get("state", "offline") == "offline":
+            when = status.get("updated") or status.get("since")
+            heard = f" (last heard of {str(when)[:19].replace('T', ' ')})" if when else ""
+            out.append(("offline", "the station is not running" + heard
+                        + ": nothing on this page is live; start it with sofast-station run"))
+        out += [(k, str(v)) for k, v in sorted((status.get("alarms") or {}).items())]
         warnings = ((last or {}).get("calibration") or {}).get("warnings") or []
         if warnings:
             out.append(("calibration", "; ".join(warnings)))
@@ -249,36 +257,68 @@ class LineData:
         calibration = self.calibration()
         disk = self.disk()
         summary = summarize(records)
-        recipe = None
+        recipe_name, recipe = "default", None
         if last is not None:
-            recipe = self.recipes.get(last.get("recipe") or "default", self.recipes["default"])
-        chart = records[-CHART_FACETS:]
-        default = self.recipes["default"]
+            recipe_name = last.get("recipe") or "default"
+            recipe = self.recipes.get(recipe_name, self.recipes["default"])
         pic = picture_path(self.data_dir, last.get("cycle_id", "")) if last else None
+        age_s = time_s = None
+        if last is not None and last.get("time"):
+            try:
+                time_s = parse_time(last["time"]).timestamp()
+                age_s = max(0.0, now.timestamp() - time_s)
+            except (TypeError, ValueError):
+                age_s = time_s = None
         return {
             "now": now.isoformat(timespec="seconds"),
             "station": self.config.name,
             "status": status,
             "last": last,
+            "last_age_s": age_s,
+            "last_time_s": time_s,
+            "stale_after_s": self.settings.stale_after_s,
             "last_has_picture": bool(pic and pic.exists()),
             "figures": figure_rows(last, recipe) if last and last.get("verdict") != "fault" else [],
             "shift_start": self._shift_start.isoformat(timespec="minutes"),
             "summary": summary,
-            "chart": {
-                "serials": [r.get("serial", "") for r in chart],
-                "verdicts": [r.get("verdict") for r in chart],
-                "f_x": [figure_value(r, "focal_length_x_m") for r in chart],
-                "f_y": [figure_value(r, "focal_length_y_m") for r in chart],
-                "rms_design": [figure_value(r, "slope_rms_mrad.design.magnitude") for r in chart],
-                "rms_parabola": [figure_value(r, "slope_rms_mrad.parabola.magnitude") for r in chart],
-                "f_design": default.design.focal_length_m,
-                "f_tolerance": default.limits.focal_length_tolerance,
-                "rms_limits": dict(default.limits.max_slope_rms_mrad),
-                "cycle_s": [cycle_seconds(r) for r in chart],
-            },
+            "chart": chart_data(records, recipe_name, recipe or self.recipes["default"]),
             "calibration": calibration,
             "disk": disk,
             "alarms": self.alarms(status, last, calibration, disk),
             "token_required": bool(self.settings.token),
         }
+
+
+#: Colours of the charts' series, in order (the page's dark background).
+SERIES_COLOURS = ("#3b82f6", "#f59e0b", "#10b981", "#e879f9")
+
+
+def chart_data(records: list[dict], recipe_name: str, recipe) -> dict:
+    """The page's charts: the shift's last :data:`CHART_FACETS` facets of the last facet's recipe, each
+    figure with that recipe's limits (:func:`~sofast_station.result.specs.figure_specs`; focal powers in
+    place of focal lengths above 20 m).
+
+    Returns ``{"recipe", "serials", "verdicts", "cycle_s", "panels"}``; a panel is ``{"title", "unit",
+    "decimals", "series": [(name, values, colour)], "limits": [(value, colour, label)]}``.
+    """
+    chosen = [r for r in records if (r.get("recipe") or "default") == recipe_name][-CHART_FACETS:]
+    specs = {s.key: s for s in figure_specs(recipe.design.focal_length_m, recipe.limits)}
+    long_focus = recipe.design.focal_length_m > LONG_FOCAL_LENGTH_M
+    axes = ("curvature_x_per_m", "curvature_y_per_m") if long_focus else ("focal_length_x_m", "focal_length_y_m")
+    first = specs[axes[0]]
+    panels = [{"title": "focal powers (1/m)" if long_focus else "focal lengths (m)", "unit": first.unit,
+               "decimals": 6 if long_focus else 4,
+               "series": [(("kappa_" if long_focus else "f_") + axis[-1], [figure_value(r, key) for r in chosen],
+                           colour) for key, axis, colour in zip(axes, ("x", "y"), SERIES_COLOURS)],
+               "limits": [(first.lsl, "#ef4444", "LSL"), (first.usl, "#ef4444", "USL"),
+                          (first.design, "#9ca3af", "design")]}]
+    rms = [specs[f"slope_rms_mrad.{m}.magnitude"] for m in ("design", "parabola")]
+    panels.append({"title": "slope error RMS (mrad)", "unit": "mrad", "decimals": 3,
+                   "series": [(f"vs {s.key.split('.')[1]}", [figure_value(r, s.key) for r in chosen], colour)
+                              for s, colour in zip(rms, (SERIES_COLOURS[0], SERIES_COLOURS[2]))],
+                   "limits": [(s.usl, colour, f"limit vs {s.key.split('.')[1]}")
+                              for s, colour in zip(rms, ("#ef4444", "#a855f7"))]})
+    return {"recipe": recipe_name, "serials": [r.get("serial", "") for r in chosen],
+            "verdicts": [r.get("verdict") for r in chosen], "cycle_s": [cycle_seconds(r) for r in chosen],
+            "panels": panels}
 

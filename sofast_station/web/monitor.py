@@ -21,6 +21,7 @@ import signal
 import socket
 from pathlib import Path
 
+from ..archive._common import write_file_atomic
 from ..errors import StationError
 from .settings import OpcUaSettings, WebSettings
 
@@ -84,9 +85,11 @@ async def _serve(config, web: WebSettings | None, opcua: OpcUaSettings | None, o
     server = None
     tasks = []
     if web is not None:
+        exposure = web.exposure()                    # ConfigError beyond loopback without a decision
         app = create_app(config, web)
+        tls = {"ssl_certfile": web.certificate, "ssl_keyfile": web.key} if web.tls else {}
         server = _Server(uvicorn.Config(app, host=web.host, port=web.port, log_level="warning",
-                                               timeout_graceful_shutdown=5, lifespan="on", access_log=False))
+                                        timeout_graceful_shutdown=5, lifespan="on", access_log=False, **tls))
         sock = _bind(web.host, web.port)             # here, so a taken port is a clear error, not an exit
         tasks.append(asyncio.create_task(server.serve(sockets=[sock])))
         while not server.started:
@@ -96,8 +99,10 @@ async def _serve(config, web: WebSettings | None, opcua: OpcUaSettings | None, o
             await asyncio.sleep(0.05)
         host, port = server.servers[0].sockets[0].getsockname()[:2]
         shown = f"[{host}]" if ":" in host else host
-        info["url"] = f"http://{shown}:{port}/"
+        info["url"] = f"{'https' if web.tls else 'http'}://{shown}:{port}/"
         log.info("the line's page: %s%s", info["url"], "" if web.token else " (read-only: no [web] token)")
+        if exposure:
+            log.warning("%s", exposure)
     publisher = None
     if opcua is not None and opcua.enabled:
         from .opcua import OpcUaPublisher
@@ -114,9 +119,8 @@ async def _serve(config, web: WebSettings | None, opcua: OpcUaSettings | None, o
         tasks.append(asyncio.create_task(publisher.run()))
     path = monitor_info_path(config.data_dir)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".monitor.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(info), encoding="utf-8")
-    os.replace(tmp, path)
+    text = json.dumps(info)
+    write_file_atomic(path, lambda fh: fh.write(text), mode="w")
     if on_ready is not None:
         on_ready(info)
     stop = asyncio.Event()
@@ -128,6 +132,10 @@ async def _serve(config, web: WebSettings | None, opcua: OpcUaSettings | None, o
         await asyncio.wait([waiter, *tasks], return_when=asyncio.FIRST_COMPLETED)
     finally:
         if server is not None:
+            # End the pages' event streams first (each says "the monitor stopped" and closes), then stop the
+            # server: an open stream left to the server's shutdown is cancelled with a traceback.
+            app.hub.stopping = True
+            await asyncio.sleep(0.3)
             server.should_exit = True
         if publisher is not None:
             await publisher.stop()

@@ -11,8 +11,9 @@ from __future__ import annotations
 import html
 import math
 
+from ..qc.view import chart_view, nice_ticks
 from ..result.formatting import with_u
-from ..result.shift import SUMMARY_FIGURES
+from ..result.shift import SUMMARY_FIGURES, VERDICTS
 
 SECTIONS = ("state", "last", "shift", "station")
 _VERDICT_CLASS = {"pass": "pass", "fail": "fail", "invalid": "invalid", "indeterminate": "indeterminate",
@@ -40,6 +41,31 @@ def _short(serial, most: int = 60) -> str:
         return text
     keep = (most - 1) // 2
     return f"{text[:keep]}…{text[-keep:]}"
+
+
+def age_text(seconds) -> str:
+    """A verdict's age for the operator: "12 s ago", "17 min ago", "3.2 h ago" (the page's script says
+    the same as it ticks)."""
+    if seconds is None or not math.isfinite(seconds):
+        return "age unknown"
+    if seconds < 90:
+        return f"{seconds:.0f} s ago"
+    if seconds < 5400:
+        return f"{seconds / 60:.0f} min ago"
+    if seconds < 172800:
+        return f"{seconds / 3600:.1f} h ago"
+    return f"{seconds / 86400:.1f} days ago"
+
+
+def staleness(snap: dict) -> str | None:
+    """Why the last verdict is not live (the page greys it), or None while it is: the station is offline,
+    or the verdict is older than ``[web] stale_after_s``. (The page's script adds a lost connection.)"""
+    if (snap.get("status") or {}).get("state", "offline") == "offline":
+        return "the station is offline"
+    age, limit = snap.get("last_age_s"), snap.get("stale_after_s")
+    if age is not None and limit is not None and age > limit:
+        return f"no facet for more than {limit:g} s"
+    return None
 
 
 def _age(hours) -> str:
@@ -91,6 +117,9 @@ def last_html(snap: dict) -> str:
         table = (f"<table class='figures'><thead><tr><th>figure</th><th>{head}</th><th>limit</th><th></th></tr>"
                  f"</thead><tbody>{''.join(rows)}</tbody></table>")
     cid = esc(rec.get("cycle_id", ""))
+    stale = staleness(snap)
+    age = snap.get("last_age_s")
+    age_line = f"measured {age_text(age)}" + (f" · not live: {stale}" if stale else "")
     pictures = ""
     if snap.get("last_has_picture"):
         pictures = (f"<div class='pictures'><figure><img id='white' alt='white frame with the found outline' "
@@ -104,7 +133,10 @@ def last_html(snap: dict) -> str:
             f"<div class='facet-head'><div class='serial' title='{esc(rec.get('serial'))}'>"
             f"{esc(_short(rec.get('serial')))}</div><div class='meta'>recipe {esc(rec.get('recipe') or 'default')}"
             f" · {esc(rec.get('time'))} · cycle {cid}</div></div>"
-            f"<div class='verdict {cls}' data-verdict='{esc(verdict)}'>{esc(verdict.upper())}</div>"
+            f"<div class='verdict-box'><div id='verdict' class='verdict {cls}{' stale' if stale else ''}' "
+            f"data-verdict='{esc(verdict)}' data-time-s='{esc(snap.get('last_time_s') or '')}' "
+            f"data-stale-after-s='{esc(snap.get('stale_after_s'))}'><span class='word'>{esc(verdict.upper())}</span>"
+            f"</div></div><p id='verdict-age' class='verdict-age{' stale' if stale else ''}'>{esc(age_line)}</p>"
             + (f"<p class='muted'>{'; '.join(notes)}</p>" if notes else "")
             + (f"<ul class='reasons'>{reasons}</ul>" if reasons else "")
             + table + pictures)
@@ -116,7 +148,7 @@ def shift_html(snap: dict) -> str:
     yield_text = "–" if s.yield_fraction is None else f"{100 * s.yield_fraction:.1f} %"
     faults = ", ".join(f"{n} {esc(k)}" for k, n in s.faults_by_kind.items()) or "none"
     cycle = ("–" if s.cycle_median_s is None else
-             f"median {s.cycle_median_s:.2f} s · worst {s.cycle_worst_s:.2f} s")
+             f"median {s.cycle_median_s:.2f} s · 95th percentile {s.cycle_p95_s:.2f} s · worst {s.cycle_worst_s:.2f} s")
     stats = []
     for path, label, unit, decimals in SUMMARY_FIGURES:
         st = s.figures.get(path)
@@ -124,26 +156,20 @@ def shift_html(snap: dict) -> str:
             stats.append(f"<tr><th>{esc(label)}</th><td class='num'>{_num(st.mean, decimals)}</td>"
                          f"<td class='num'>{_num(st.std, decimals)}</td><td>{esc(unit)}</td></tr>")
     ch = snap["chart"]
-    f_lo, f_hi = ch["f_design"] * (1 - ch["f_tolerance"]), ch["f_design"] * (1 + ch["f_tolerance"])
-    f_chart = svg_chart("focal lengths of the last facets (m)",
-                        [("f_x", ch["f_x"], "#3b82f6"), ("f_y", ch["f_y"], "#f59e0b")],
-                        [(f_lo, "#ef4444", "limit"), (f_hi, "#ef4444", ""), (ch["f_design"], "#9ca3af", "design")],
-                        decimals=3) if ch["f_design"] <= 20 else ""
-    rms_limits = [(v, "#ef4444" if k == "design" else "#a855f7", f"limit {k}") for k, v in ch["rms_limits"].items()]
-    rms_chart = svg_chart("slope RMS of the last facets (mrad)",
-                          [("vs design", ch["rms_design"], "#3b82f6"), ("vs parabola", ch["rms_parabola"], "#10b981")],
-                          rms_limits, decimals=2, floor=0.0)
+    charts = "".join(svg_chart(p["title"], p["series"], p["limits"], decimals=p["decimals"], unit=p["unit"])
+                     for p in ch["panels"])
+    n_chart = len(ch["serials"])
+    colours = {"pass": "pass-t", "fail": "fail-t", "indeterminate": "indeterminate-t", "invalid": "invalid-t",
+               "fault": "fault-t"}
+    kpis = "".join(f"<div><b class='{colours[v]}'>{c.get(v, 0)}</b><span>{v}</span></div>" for v in VERDICTS)
     return (f"<h2>Shift <span class='muted'>since {esc(snap['shift_start'])}</span></h2>"
             f"<div class='kpis'><div><b>{s.total}</b><span>facets</span></div>"
-            f"<div><b>{yield_text}</b><span>yield</span></div>"
-            f"<div><b class='pass-t'>{c.get('pass', 0)}</b><span>pass</span></div>"
-            f"<div><b class='fail-t'>{c.get('fail', 0)}</b><span>fail</span></div>"
-            f"<div><b class='invalid-t'>{c.get('invalid', 0)}</b><span>invalid</span></div>"
-            f"<div><b class='fault-t'>{c.get('fault', 0)}</b><span>fault</span></div></div>"
-            f"<p>faults by kind: {faults}</p><p>cycle time: {cycle}</p>"
+            f"<div><b>{yield_text}</b><span>yield</span></div>{kpis}</div>"
+            f"<p>faults by kind: {faults}</p><p>cycle time (trigger to result): {cycle}</p>"
             + (f"<table class='stats'><thead><tr><th></th><th>mean</th><th>std</th><th></th></tr></thead>"
                f"<tbody>{''.join(stats)}</tbody></table>" if stats else "")
-            + f"<div class='charts'>{f_chart}{rms_chart}</div>")
+            + f"<h3>Recipe {esc(ch['recipe'])}: its last {n_chart} facet{'s' if n_chart != 1 else ''} of the shift, "
+              f"with its limits</h3><div class='charts'>{charts}</div>")
 
 
 def station_html(snap: dict) -> str:
@@ -172,22 +198,20 @@ def sections(snap: dict) -> dict:
 
 
 # -- charts -----------------------------------------------------------------------------------------------
-def svg_chart(title: str, series: list, limits: list, decimals: int = 3, floor: float | None = None,
-              width: int = 520, height: int = 170) -> str:
+def svg_chart(title: str, series: list, limits: list, decimals: int = 3, unit: str = "", width: int = 520,
+              height: int = 200) -> str:
     """A small line chart of *series* [(name, values (None: gap), colour)] with horizontal *limits*
-    [(value, colour, label)], as inline SVG."""
+    [(value, colour, label)], as inline SVG: scaled to the data (a limit far from it is named, not drawn:
+    :func:`~sofast_station.qc.view.chart_view`), round ticks on the value axis, the facets oldest to newest."""
     values = [v for _, vs, _ in series for v in vs if v is not None and math.isfinite(v)]
-    marks = [v for v, _, _ in limits if v is not None]
     if not values:
         return (f"<svg class='chart' viewBox='0 0 {width} {height}' role='img' aria-label='{esc(title)}'>"
                 f"<text x='8' y='18' class='ct'>{esc(title)}</text><text x='8' y='60' class='cl'>no facet measured"
                 f"</text></svg>")
-    lo, hi = min(values + marks), max(values + marks)
-    if floor is not None:
-        lo = min(lo, floor)
-    pad = (hi - lo) * 0.08 or max(abs(hi), 1.0) * 0.01
-    lo, hi = lo - pad, hi + pad
-    left, right, top, bottom = 58, 8, 26, 18
+    colour_of = {label: colour for _, colour, label in limits}
+    view = chart_view(values, limits=[(v, label) for v, _, label in limits])
+    lo, hi = view.low, view.high
+    left, right, top, bottom = 62, 10, 28, 42
     n = max(len(vs) for _, vs, _ in series)
 
     def x(i):
@@ -199,13 +223,20 @@ def svg_chart(title: str, series: list, limits: list, decimals: int = 3, floor: 
              f"<text x='8' y='16' class='ct'>{esc(title)}</text>",
              f"<rect x='{left}' y='{top}' width='{width - left - right}' height='{height - top - bottom}' "
              f"class='frame'/>"]
-    for v, colour, label in limits:
-        if v is None:
-            continue
-        parts.append(f"<line x1='{left}' x2='{width - right}' y1='{y(v):.1f}' y2='{y(v):.1f}' stroke='{colour}' "
-                     f"stroke-dasharray='5 4' stroke-width='1.5'/>")
-        parts.append(f"<text x='{left - 4}' y='{y(v) + 4:.1f}' class='cl' text-anchor='end'>{v:.{decimals}f}</text>")
-    legend_x = left + 190
+    ticks = nice_ticks(lo, hi, 5)
+    step = ticks[1] - ticks[0] if len(ticks) > 1 else 0
+    tick_decimals = next((d for d in range(13) if abs(round(step, d) - step) <= 1e-9 * step), decimals) \
+        if step > 0 else decimals
+    for t in ticks:
+        parts.append(f"<line x1='{left}' x2='{width - right}' y1='{y(t):.1f}' y2='{y(t):.1f}' class='grid'/>")
+        parts.append(f"<text x='{left - 5}' y='{y(t) + 4:.1f}' class='cl' text-anchor='end'>{t:.{tick_decimals}f}"
+                     f"</text>")
+    for v, label in view.shown:
+        parts.append(f"<line x1='{left}' x2='{width - right}' y1='{y(v):.1f}' y2='{y(v):.1f}' "
+                     f"stroke='{colour_of[label]}' stroke-dasharray='5 4' stroke-width='1.5'/>")
+        parts.append(f"<text x='{width - right - 4}' y='{y(v) - 3:.1f}' class='cl' text-anchor='end' "
+                     f"fill='{colour_of[label]}'>{esc(label)} {v:.{decimals}f}</text>")
+    legend_x = left + 200
     for name, vs, colour in series:
         path, pen = [], "M"
         for i, v in enumerate(vs):
@@ -221,5 +252,10 @@ def svg_chart(title: str, series: list, limits: list, decimals: int = 3, floor: 
                 parts.append(f"<circle cx='{x(i):.1f}' cy='{y(v):.1f}' r='2.5' fill='{colour}'/>")
         parts.append(f"<text x='{legend_x}' y='16' class='lg' fill='{colour}'>■ {esc(name)}</text>")
         legend_x += 110
+    parts.append(f"<text x='{left}' y='{height - 20}' class='cl'>facets, oldest to newest ({n})</text>")
+    beyond = [f"{label} {v:.{decimals}g} {unit} {'↑' if (v, label) in view.above else '↓'}"
+              for v, label in view.above + view.below]
+    if beyond:
+        parts.append(f"<text x='{left}' y='{height - 6}' class='cl'>beyond the view: {esc('; '.join(beyond))}</text>")
     parts.append("</svg>")
     return "".join(parts)

@@ -193,3 +193,71 @@ def test_long_workbook_saves_are_spaced_to_keep_their_share_of_a_core(setup, mon
     arch.run_once(dumps=False)
     assert arch.workbook_gap_s == 30.0
     assert journal.pending_workbook() == []
+
+
+def test_a_16_bit_capture_is_dumped_as_it_came(setup, small_config):
+    """Issue 28: a faulted facet of a 16-bit camera was retried at every pass and never dumped (the writer
+    took uint8 only). Its counts are dumped as they came, read back bit for bit."""
+    journal, data = setup
+    arch = Archiver(journal, data, ArchiverSettings(min_free_gb=0.0))
+    c = synthetic_content(small_config, "c16")
+    rng = np.random.default_rng(5)
+    c.frames_cropped = rng.integers(0, 4096, size=c.frames_cropped.shape, dtype=np.uint16)   # a 12-bit camera
+    arch.submit("c16", c.record, c)
+    report = arch.run_once()
+    assert report.dumps_written and report.dumps_waiting == 0 and not report.dumps_failed
+    back = read_dump(journal.get("c16").dump_path)
+    assert back.frames_cropped.dtype == np.uint16 and np.array_equal(back.frames_cropped, c.frames_cropped)
+
+
+def test_a_spool_that_cannot_make_a_dump_is_set_aside_not_retried(setup, small_config):
+    """A content error (here frames of float counts) is no disk problem: the dump is marked failed with the
+    reason after one pass and its spool kept aside in spool/bad/, instead of being retried at every pass."""
+    journal, data = setup
+    arch = Archiver(journal, data, ArchiverSettings(min_free_gb=0.0))
+    c = synthetic_content(small_config, "cf")
+    c.frames_cropped = c.frames_cropped.astype(np.float32)
+    arch.submit("cf", c.record, c)
+    report = arch.run_once()
+    assert list(report.dumps_failed) == ["cf"] and "8- or 16-bit" in report.dumps_failed["cf"]
+    assert journal.get("cf").dump_status == "failed"
+    assert [p.name for p in (data / "spool" / "bad").iterdir()] == [spool_path(data / "spool", "cf").name]
+    assert arch.run_once().dumps_failed == {}
+
+
+def test_a_dumps_folder_that_cannot_be_written_mid_run_is_said_once(setup, small_config, caplog):
+    """Issue 28: with dumps/ unwritable mid-run the archiver printed a traceback every 2 s. The folder of
+    the day is made impossible (a file stands where it belongs, which holds for root too): the dump waits
+    in the spool, said once over many passes; when the folder is fixed the dump is written and that is said."""
+    journal, data = setup
+    arch = Archiver(journal, data, ArchiverSettings(min_free_gb=0.0))
+    c = synthetic_content(small_config, "cw")
+    arch.submit("cw", c.record, c)
+    day = dump_path_for(data / "dumps", c.serial, c.time, c.cycle_id).parent
+    day.parent.mkdir(parents=True)
+    day.write_text("in the way")
+    with caplog.at_level("INFO", logger="sofast_station.archive"):
+        for _ in range(5):
+            report = arch.run_once()
+            assert report.dumps_waiting == 1 and not report.dumps_written
+        assert [r.levelname for r in caplog.records if "waits in the spool" in r.getMessage()] == ["WARNING"]
+        assert not [r for r in caplog.records if r.exc_info]
+        day.unlink()
+        assert arch.run_once().dumps_written
+    assert "dumps are written again" in caplog.text
+    assert journal.get("cw").dump_status == "written"
+
+
+def test_a_failing_pass_is_a_traceback_once_then_a_line_every_ten_minutes(setup, monkeypatch, caplog):
+    """The background pass retries every couple of seconds; the same error is logged with its traceback
+    once, then one line per REPEAT_LOG_S of the archiver's clock (a test clock here), not at every pass."""
+    journal, data = setup
+    arch = Archiver(journal, data, ArchiverSettings(min_free_gb=0.0))
+    clock = [1000.0]
+    monkeypatch.setattr(amod.time, "monotonic", lambda: clock[0])
+    with caplog.at_level("INFO", logger="sofast_station.archive"):
+        for _ in range(700):                            # 23 minutes of passes, one every 2 s
+            arch._pass_failed(PermissionError(13, "Permission denied"))
+            clock[0] += 2.0
+    lines = [r for r in caplog.records if "pass" in r.getMessage()]
+    assert len(lines) == 3 and lines[0].exc_info is not None and "still fail" in lines[1].getMessage()

@@ -320,3 +320,31 @@ def test_a_save_streams_its_sheets_beside_the_part(journal, tmp_path, monkeypatc
     assert list(system_tmp.iterdir()) == []                      # nothing of the save in the system's folder
     assert temp_files(folder) == []                              # and nothing left beside the part
     assert [r["cycle_id"] for r in read_workbook(workbook_path(folder, "2026-11-25"))] == ["cycle-1"]
+
+
+def test_a_row_amended_while_its_part_is_written_is_written_whole_at_the_next_pass(journal, tmp_path, monkeypatch):
+    """The part writer reads every record from the journal twice (the columns, then the rows). A late
+    result amended between the two reads brought a column the first did not see (a KeyError that failed the
+    pass, seen in a full-resolution soak). That pass now writes what its header holds; the amended row
+    stays pending and the next pass writes it whole."""
+    folder = tmp_path / "archive"
+    journal.append("c1", make_record("S-1", "2026-11-25T10:00:00.000+01:00"))
+    journal.append("c2", make_record("S-2", "2026-11-25T10:01:00.000+01:00"))
+    reads = []
+    real = journal.rows_by_ids
+
+    def rows_by_ids(ids):
+        reads.append(list(ids))
+        if len(reads) == 2:                              # the second pass over the rows begins: amend c2
+            rec = make_record("S-2", "2026-11-25T10:01:00.000+01:00", late=True, late_verdict="pass",
+                              late_by_s=1.5)
+            journal.amend("c2", rec)
+        return real(ids)
+    monkeypatch.setattr(journal, "rows_by_ids", rows_by_ids)
+    report = write_pending(journal, folder)
+    assert not report.errors
+    assert [r.cycle_id for r in journal.pending_workbook()] == ["c2"]     # amended meanwhile: still pending
+    monkeypatch.undo()
+    write_pending(journal, folder)
+    rows = {r["cycle_id"]: r for r in read_workbook(workbook_path(folder, "2026-11-25"))}
+    assert rows["c2"]["late"] is True and rows["c2"]["late_verdict"] == "pass" and journal.pending_workbook() == []

@@ -85,7 +85,55 @@ def test_report_spc_draws_charts_and_writes_the_summary_workbook(station, tmp_pa
     assert fx[2] == 108
     facets = wb["facets"]
     assert isinstance(facets["A2"].value, dt.datetime) and isinstance(facets["C2"].value, float)
-    assert wb["yield"]["H2"].value == 1.0
+    yield_sheet = wb["yield"]
+    header = [c.value for c in yield_sheet[1]]
+    assert header[2:7] == ["pass", "fail", "indeterminate", "invalid", "fault"]
+    assert yield_sheet.cell(row=2, column=header.index("yield") + 1).value == 1.0
+
+
+def test_spc_charts_are_scaled_to_their_data_and_name_a_far_limit(station, tmp_path, monkeypatch):
+    """Scaled to the specification limits, the data were a flat line and the control limits invisible; the
+    journal's path was in the title."""
+    from sofast_station.report import control_charts as report_spc
+
+    figures = []
+    monkeypatch.setattr(report_spc, "savefig_atomic", lambda fig, path, dpi: figures.append(fig) or path)
+    journal = tmp_path / "j.sqlite3"
+    synthetic_journal(journal, 60)
+    assert main(["report", "spc", "--config", str(station), "--journal", str(journal), "--out", str(tmp_path)]) == 0
+    charts = figures[0]
+    title = charts._suptitle.get_text()
+    assert str(journal) not in title and "j.sqlite3" not in title
+    assert title.startswith("Control charts, recipe default (dish-5.33): 60 facets, 2026-11-20 06:00 to")
+    by_title = {ax.get_title().split(" (")[0]: ax for ax in charts.axes}
+    rms = by_title["slope error RMS vs parabola"]              # data about 0.7 mrad, limit 2 mrad
+    low, high = rms.get_ylim()
+    assert high < 1.0 and low > 0.5, (low, high)
+    assert any(t.get_text() == "USL 2 mrad above the view" for t in rms.texts)
+    lines = [ln.get_ydata()[0] for ln in rms.get_lines() if len(set(ln.get_ydata())) == 1]
+    assert any(low < y < high for y in lines)                   # the control limits are in view
+    fx = by_title["focal length f_x"]                           # 5.42 +- 0.01 m, USL 5.4366 m: in view
+    assert fx.get_ylim()[1] > 5.4366 and any("USL 5.4366" in t for t in fx.get_legend_handles_labels()[1])
+    assert rms.get_ylabel() == "slope error RMS vs parabola (mrad)"
+
+
+def test_acceptance_works_out_of_the_box_with_human_names_and_units(tmp_path, monkeypatch, capsys):
+    """The shipped station.toml had no contract, and the axes showed record keys without units."""
+    from sofast_station.report import acceptance as report_acceptance
+
+    figures = []
+    monkeypatch.setattr(report_acceptance, "savefig_atomic", lambda fig, path, dpi: figures.append(fig) or path)
+    journal = tmp_path / "j.sqlite3"
+    synthetic_journal(journal, 120, seed=2)
+    shipped = Path(__file__).parents[2] / "station.toml"
+    assert main(["report", "acceptance", "--config", str(shipped), "--journal", str(journal),
+                 "--out", str(tmp_path)]) in (0, 1)
+    out = capsys.readouterr().out
+    assert "slope deviation SD_2D,RMS: contract 1 mrad (at most +0.5 mrad)" in out
+    assert str(journal) not in figures[0]._suptitle.get_text()
+    labels = [ax.get_xlabel() for ax in figures[0].axes]
+    assert labels == ["slope error RMS vs design (mrad)", "focal length f_x (m)"], labels
+    assert "slope_rms_mrad" not in " ".join(labels)
 
 
 def test_report_spc_refuses_a_reversed_period_and_a_bad_date(station, tmp_path, caplog):
@@ -115,3 +163,50 @@ def test_report_acceptance_counts_what_is_missing_then_passes(station, tmp_path,
     assert "overall: PASS" in out
     png = out.strip().splitlines()[-1]
     assert imread(png).shape[1] > 1000
+
+
+@pytest.mark.parametrize("value", ["5", "0", "-0.2", "nan"])
+def test_report_spc_refuses_an_ewma_weight_outside_0_to_1(station, tmp_path, value, capsys):
+    """Issue 28: `report spc --ewma 5` was a ValueError traceback; it is a usage error naming the range."""
+    journal = tmp_path / "j.sqlite3"
+    synthetic_journal(journal, 5)
+    with pytest.raises(SystemExit) as info:
+        main(["report", "spc", "--config", str(station), "--journal", str(journal), "--ewma", value])
+    assert info.value.code == 2
+    err = capsys.readouterr().err
+    assert "--ewma" in err and "Traceback" not in err
+    assert "between 0 (excluded) and 1" in err
+
+
+def test_a_certificate_of_a_path_like_serial_stays_in_its_folder(station, tmp_path, capsys):
+    """Issue 28: `report certificate ../../../x --out OUT` wrote the PDF above OUT and made stray folders. A
+    journal may hold such a serial (journaled before serials were made safe): the file stays inside OUT."""
+    journal = tmp_path / "deep" / "er" / "j.sqlite3"
+    journal.parent.mkdir(parents=True)
+    rec = json.loads(json.dumps(SAMPLE))
+    rec.pop("truth")
+    rec["serial"] = "../../../x"
+    with Journal(journal) as j:
+        j.append("c00001", rec)
+    out = tmp_path / "deep" / "er" / "out"
+    before = {p for p in tmp_path.rglob("*")}
+    assert main(["report", "certificate", "../../../x", "--config", str(station), "--journal", str(journal),
+                 "--out", str(out)]) == 0
+    pdf = Path(capsys.readouterr().out.strip())
+    assert pdf.resolve().parent == out.resolve() and pdf.suffix == ".pdf" and pdf.stat().st_size > 1000
+    made = {p for p in tmp_path.rglob("*")} - before
+    assert all(p.resolve().is_relative_to(out.resolve()) or p == out for p in made), sorted(made)
+
+
+def test_a_certificate_is_found_under_the_serial_as_printed(station, tmp_path, capsys):
+    """The station journals a serial made safe ("MF/2024/001" -> "MF_2024_001", the original in serial_raw);
+    the quality engineer types it as printed on the facet and gets its certificate."""
+    journal = tmp_path / "j.sqlite3"
+    rec = json.loads(json.dumps(SAMPLE))
+    rec.pop("truth")
+    rec.update(serial="MF_2024_001", serial_raw="MF/2024/001")
+    with Journal(journal) as j:
+        j.append("c00001", rec)
+    assert main(["report", "certificate", "MF/2024/001", "--config", str(station), "--journal", str(journal),
+                 "--out", str(tmp_path / "out")]) == 0
+    assert Path(capsys.readouterr().out.strip()).name == "certificate-MF_2024_001.pdf"

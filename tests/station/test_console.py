@@ -78,7 +78,7 @@ def test_shift_summary_yield_spread_and_cycle_times():
                 _rec("X1", "fault", reasons=["camera: lost"], cycle=times[31]),
                 _rec("X2", "fault", reasons=["timeout: no result within 10 s"], cycle=times[32])]
     s = summarize(records)
-    assert s.total == 33 and s.counts == {"pass": 30, "fail": 1, "invalid": 0, "fault": 2}
+    assert s.total == 33 and s.counts == {"pass": 30, "fail": 1, "indeterminate": 0, "invalid": 0, "fault": 2}
     assert s.yield_fraction == 30 / 33
     all_fx = np.append(fx, 5.9)
     st = s.figures["focal_length_x_m"]

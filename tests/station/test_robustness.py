@@ -52,16 +52,23 @@ def _book_serials(data: Path) -> list[str]:
     return sorted(r["serial"] for b in (data / "archive").glob("*.xlsx") for r in read_workbook(b))
 
 
-def test_a_late_result_keeps_its_figures_and_its_dump(small_station_toml, tmp_path):
+def test_a_late_result_keeps_its_figures_its_dump_and_the_timeout_as_its_cycle_time(small_station_toml, tmp_path):
     """The analysis of SIM-0002 ends after the deadline: the robot hears "timeout", the row has the
-    figures, marked late, and the frames are dumped."""
+    figures, marked late, and the frames are dumped. Its cycle ended when the robot was answered: the
+    console's line and summary and the page's shift summary (from the journal) give the same cycle times
+    (the console once counted the wait for the late result, 19.87 s, where the page showed 10.6 s)."""
+    from sofast_station.result.shift import ShiftTally, cycle_seconds, summarize
+    from sofast_station.station.console import summary_text
+
     # the deadline is far beyond a facet's time even on a loaded machine; the slow analysis waits past it
     cfg = _config(small_station_toml, tmp_path / "d", faults={"SIM-0002": "slow-analysis"},
                   run={"deadline_s": 20.0}, slow_s=24.0)
-    service = Service(cfg, simulated_facets=3, console=lambda line: None)
+    lines: list[str] = []
+    service = Service(cfg, simulated_facets=3, console=lines.append)
     robot = service.trigger
+    tally = ShiftTally()                                 # what `sofast-station run` keeps for its summary
     try:
-        service.runner.run()
+        service.runner.run(on_outcome=lambda o: tally.add(o.record))
     finally:
         service.close()
     finals = {a.serial: a for a in robot.answers if a.kind in ("done", "fault")}
@@ -80,6 +87,16 @@ def test_a_late_result_keeps_its_figures_and_its_dump(small_station_toml, tmp_pa
     assert late.dump_status == "written"
     assert read_dump(late.dump_path, load_frames=False).cycle_id == late.cycle_id
     assert _book_serials(cfg.data_dir) == ["SIM-0001", "SIM-0002", "SIM-0003"]
+    # the late facet's cycle is the timeout's (about the 20 s deadline), not the ~25 s until its late result
+    timings = rec["timings_s"]
+    assert 19.0 < timings["until_journal"] < 21.0 < timings["until_late_result"], timings
+    console_summary, page_summary = tally.summary(), summarize([r.record for r in rows.values()])
+    assert console_summary.cycle_worst_s == page_summary.cycle_worst_s == max(
+        cycle_seconds(r.record) for r in rows.values())
+    assert console_summary.cycle_median_s == page_summary.cycle_median_s
+    assert summary_text(console_summary).splitlines()[-1] == summary_text(page_summary).splitlines()[-1]
+    timeout_line = next(ln for ln in lines if "SIM-0002" in ln)
+    assert f"{timings['until_journal']:6.2f}s" in timeout_line, timeout_line
 
 
 def test_a_killed_worker_is_replaced_and_the_line_goes_on(small_station_toml, tmp_path):
@@ -99,7 +116,7 @@ def test_a_killed_worker_is_replaced_and_the_line_goes_on(small_station_toml, tm
             killed.append(pid)
     try:
         service.runner.run(on_outcome=on_outcome)
-        starts = service.runner.worker.starts
+        takeovers = service.runner.worker.takeovers
     finally:
         service.close()
     finals = [a for a in robot.answers if a.kind in ("done", "fault")]
@@ -107,7 +124,7 @@ def test_a_killed_worker_is_replaced_and_the_line_goes_on(small_station_toml, tm
     by = {a.serial: a for a in finals}
     assert by["SIM-0002"].kind == "fault" and by["SIM-0002"].code == FAULT_CODES["worker"]
     assert all(by[s].kind == "done" for s in ("SIM-0001", "SIM-0003", "SIM-0004", "SIM-0005"))
-    assert killed and starts == 3                       # the first start and two restarts
+    assert killed and takeovers == 2                    # the standby took over after each death
     assert len(_rows(cfg.data_dir)) == 5
 
 
@@ -122,26 +139,27 @@ def test_a_worker_dead_before_the_analysis_began_costs_the_facet_nothing(small_s
     service = Service(cfg, simulated_facets=3, console=lambda line: None)
     robot = service.trigger
     worker = service.runner.worker
-    real_alive = worker.alive
 
     def on_outcome(outcome):
         if outcome.serial == "SIM-0001":
-            proc = next(iter(worker._pool._processes.values()))
+            active = worker._active
+            proc = next(iter(active.pool._processes.values()))
             os.kill(proc.pid, signal.SIGKILL)
             proc.join(60)
             assert proc.exitcode == -signal.SIGKILL
             asked = worker._tickets
-            monkeypatch.setattr(worker, "alive", lambda: worker._tickets == asked or real_alive())
+            real_alive = active.alive
+            monkeypatch.setattr(active, "alive", lambda: worker._tickets == asked or real_alive())
     try:
         with caplog.at_level("WARNING", logger="sofast_station.station.worker"):
             service.runner.run(on_outcome=on_outcome)
-        starts = worker.starts
+        takeovers = worker.takeovers
     finally:
         service.close()
     finals = {a.serial: a for a in robot.answers if a.kind in ("done", "fault")}
     assert sorted(finals) == ["SIM-0001", "SIM-0002", "SIM-0003"]
     assert all(a.kind == "done" for a in finals.values()), {s: (a.kind, a.code) for s, a in finals.items()}
-    assert starts == 2                                  # the first start and one restart
+    assert takeovers == 1                               # the standby took the facet over
     assert "died before this facet's analysis began" in caplog.text
     assert "died during the analysis" not in caplog.text
     rows = {r.serial: r.record for r in _rows(cfg.data_dir)}
@@ -312,7 +330,7 @@ def test_serials_from_outside_are_made_safe_once_for_every_use(small_station_tom
     from openpyxl import load_workbook
 
     from sofast_station.devices.protocols import FacetRequest
-    from sofast_station.serials import MAX_SERIAL_CHARS, clean_serial
+    from sofast_station.serials import MAX_SERIAL_CHARS, clean_serial, raw_for_record
 
     cfg = _config(small_station_toml, tmp_path / "d", run={"dump_every_n": 1, "warmup": False})
     service = Service(cfg, simulated_facets=[FacetRequest(serial=s) for s in BAD_SERIALS],
@@ -330,10 +348,14 @@ def test_serials_from_outside_are_made_safe_once_for_every_use(small_station_tom
         path = Path(r.dump_path).resolve()
         assert path.is_relative_to((cfg.data_dir / "dumps").resolve())
         assert read_dump(path, load_frames=False).serial == r.serial
-    assert "serial_as_sent" in rows[1].record["request"]
+    # issue 28: what was changed is noted in the record, the serial as received kept as serial_raw
+    assert [r.record.get("serial_raw") for r in rows] == [raw_for_record(s) for s in BAD_SERIALS]
+    assert rows[1].record["serial_raw"] == "AB\x00CD" and rows[3].record["serial_raw"].endswith("(300 characters)")
+    assert "serial_as_sent" not in rows[1].record["request"]
     book = next((cfg.data_dir / "archive").glob("*.xlsx"))
     ws = load_workbook(book).active
     header = [c.value for c in ws[1]]
     cells = [row[header.index("serial")] for row in ws.iter_rows(min_row=2)]
-    assert cells[0].value == BAD_SERIALS[0] and cells[0].data_type == "s"      # text, not a formula
+    assert cells[0].value == clean_serial(BAD_SERIALS[0])[0] and cells[0].data_type == "s"   # text, not a formula
+    assert cells[0].value.startswith("=HYPERLINK(")
     assert not [p for p in tmp_path.rglob("*escape*") if not p.resolve().is_relative_to(cfg.data_dir.resolve())]

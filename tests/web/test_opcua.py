@@ -1,13 +1,14 @@
 """Issue 15: the station as an OPC UA server; an asyncua client reads the documented node tree and sees
-the verdict change after a facet."""
+the verdict change after a facet. Issue 29: as a SCADA integrator expects it: numbers are analog items
+with UN/CEFACT engineering units (and an EURange from the recipe's limits), times are DateTime, the
+state and the verdict enumerations."""
 
 from __future__ import annotations
 
+import datetime as dt
 import math
 import os
 import re
-import signal
-import socket
 import subprocess
 import sys
 import time
@@ -15,11 +16,13 @@ import time
 import pytest
 
 from sofast_station.config import load_config
+from sofast_station.web.opcua import UNECE_URI, unit_id
 from sofast_station.devices.protocols import FacetRequest
 from sofast_station.station.service import Service
-from tests.conftest import ROOT, SMALL_STATION, require
+from tests.conftest import ROOT, SMALL_STATION
+from tests.web.serving import free_port, stop_server
 
-require("asyncua")
+from asyncua import ua   # a test dependency: missing, the suite fails (setup-env test installs it)
 
 EXTRA = """
 [run]
@@ -37,13 +40,8 @@ enabled = true
 endpoint = "opc.tcp://127.0.0.1:{port}/sofast-station/"
 anonymous = true
 users = {{ scada = "s3cret-pass" }}
+allow_plain_passwords = true   # loopback only; Sign & Encrypt with a certificate: test_opcua_security.py
 """
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _documented_paths() -> list[str]:
@@ -52,11 +50,10 @@ def _documented_paths() -> list[str]:
 
 
 def test_opcua_client_sees_the_tree_and_the_verdict_change(tmp_path, monkeypatch):
-    from asyncua import ua
     from asyncua.sync import Client
 
     data = tmp_path / "data"
-    port = _free_port()
+    port = free_port()
     endpoint = f"opc.tcp://127.0.0.1:{port}/sofast-station/"
     config = tmp_path / "station.toml"
     config.write_text(SMALL_STATION.format(data_dir=data, facet=ROOT / "fixtures/facets/dish_5m33.toml",
@@ -86,8 +83,35 @@ def test_opcua_client_sees_the_tree_and_the_verdict_change(tmp_path, monkeypatch
             def node(path):
                 return root.get_child([f"{ns}:{p}" for p in path.split("/")])
 
-            assert node("LastFacet/Verdict").read_value() == ""
-            assert node("Station/State").read_value() == "offline"
+            client.load_data_type_definitions()            # the station's enumerations, as named values
+            verdict_type, state_type = ua.FacetVerdict, ua.StationState
+            # (asyncua names the member "pass_": pass is a Python keyword)
+            assert [v.name.rstrip("_") for v in verdict_type] == ["none", "pass", "fail", "indeterminate", "invalid",
+                                                                  "fault"]
+            assert verdict_type(node("LastFacet/Verdict").read_value()).name == "none"
+            assert state_type(node("Station/State").read_value()).name == "offline"
+            assert node("Alarms/Offline").read_value() is True
+            assert node("LastFacet/Verdict").read_data_type() == client.nodes.base_data_type.get_child(
+                ["0:Enumeration", f"{ns}:FacetVerdict"]).nodeid
+            # analog items: AnalogItemType with EURange where a limit applies, else BaseAnalogType; UNECE units
+            fx = node("LastFacet/FocalLengthX")
+            assert fx.read_type_definition() == ua.NodeId(ua.ObjectIds.AnalogItemType)
+            units = fx.get_child("0:EngineeringUnits").read_value()
+            assert (units.NamespaceUri, units.UnitId, units.DisplayName.Text) == (UNECE_URI, unit_id("MTR"), "m")
+            assert unit_id("MTR") == 5067858                  # "MTR": 0x4D5452 (OPC UA Part 8)
+            limits = fx.get_child("0:EURange").read_value()
+            assert (limits.Low, limits.High) == pytest.approx((5.33 * 0.98, 5.33 * 1.02))
+            twist = node("LastFacet/Twist")
+            assert twist.get_child("0:EngineeringUnits").read_value().UnitId == unit_id("C84")
+            assert twist.get_child("0:EURange").read_value().High == pytest.approx(1e-3)    # 1 mrad/m, in rad/m
+            rms = node("LastFacet/SlopeRmsDesign")
+            assert rms.get_child("0:EngineeringUnits").read_value().UnitId == unit_id("C25")
+            assert (rms.get_child("0:EURange").read_value().Low, rms.get_child("0:EURange").read_value().High) \
+                == (0.0, 3.0)
+            cycle = node("LastFacet/CycleTime")
+            assert cycle.read_type_definition() == ua.NodeId(ua.ObjectIds.BaseAnalogType)
+            assert cycle.get_child("0:EngineeringUnits").read_value().UnitId == unit_id("SEC")
+            assert node("Station/StateSince").read_data_type() == ua.NodeId(ua.ObjectIds.DateTime)
             seen = []
 
             def look(outcome):
@@ -96,8 +120,8 @@ def test_opcua_client_sees_the_tree_and_the_verdict_change(tmp_path, monkeypatch
                     assert time.monotonic() < end, "the OPC UA server did not publish the facet"
                     time.sleep(0.05)
                 seen.append({p: node(p).read_value() for p in (
-                    "LastFacet/Serial", "LastFacet/Verdict", "LastFacet/Reasons", "LastFacet/FocalLengthX_m",
-                    "Counters/Facets", "Counters/Pass", "Counters/Fault", "Counters/Yield")})
+                    "LastFacet/Serial", "LastFacet/Verdict", "LastFacet/Reasons", "LastFacet/FocalLengthX",
+                    "LastFacet/Time", "Counters/Facets", "Counters/Pass", "Counters/Fault", "Counters/Yield")})
 
             cfg = load_config(config)
             service = Service(cfg, simulated_facets=[FacetRequest("SIM-0001"), FacetRequest("X-0002")],
@@ -108,17 +132,19 @@ def test_opcua_client_sees_the_tree_and_the_verdict_change(tmp_path, monkeypatch
             finally:
                 service.close()
             first, second = seen
-            assert first["LastFacet/Serial"] == "SIM-0001" and first["LastFacet/Verdict"] == "pass"
-            assert first["LastFacet/FocalLengthX_m"] == pytest.approx(outcomes[0].record["focal_length_x_m"])
+            assert first["LastFacet/Serial"] == "SIM-0001" and verdict_type(first["LastFacet/Verdict"]).name == "pass_"
+            assert first["LastFacet/FocalLengthX"] == pytest.approx(outcomes[0].record["focal_length_x_m"])
+            measured = dt.datetime.fromisoformat(outcomes[0].record["time"])
+            assert abs((first["LastFacet/Time"].replace(tzinfo=dt.timezone.utc) - measured).total_seconds()) < 1e-3
             assert (first["Counters/Facets"], first["Counters/Pass"], first["Counters/Yield"]) == (1, 1, 1.0)
-            assert second["LastFacet/Serial"] == "X-0002" and second["LastFacet/Verdict"] == "fault"
+            assert second["LastFacet/Serial"] == "X-0002" and verdict_type(second["LastFacet/Verdict"]).name == "fault"
             assert "dark everywhere" in second["LastFacet/Reasons"][0]
-            assert math.isnan(second["LastFacet/FocalLengthX_m"])
+            assert math.isnan(second["LastFacet/FocalLengthX"])
             assert (second["Counters/Facets"], second["Counters/Fault"], second["Counters/Yield"]) == (2, 1, 0.5)
             # nobody writes: the verdict stays the station's
             with pytest.raises(ua.UaStatusCodeError):
-                node("LastFacet/Verdict").write_value(ua.Variant("pass", ua.VariantType.String))
-            assert node("LastFacet/Verdict").read_value() == "fault"
+                node("LastFacet/Verdict").write_value(ua.Variant(1, ua.VariantType.Int32))
+            assert verdict_type(node("LastFacet/Verdict").read_value()).name == "fault"
         finally:
             client.disconnect()
         # a configured user logs in (read-only as well); a wrong password is refused
@@ -136,12 +162,7 @@ def test_opcua_client_sees_the_tree_and_the_verdict_change(tmp_path, monkeypatch
             wrong.connect()
         wrong.disconnect()
     finally:
-        server.send_signal(signal.SIGTERM)
-        try:
-            server.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            server.kill()
-            server.wait()
+        stop_server(server)
 
 
 def test_counters_count_indeterminate_facets_apart():
@@ -159,4 +180,5 @@ def test_counters_count_indeterminate_facets_apart():
     assert (out["Counters/Indeterminate"], out["Counters/Pass"], out["Counters/Fail"], out["Counters/Fault"]) \
         == (2, 1, 1, 1)
     assert out["Counters/Facets"] == 5 and out["Counters/Yield"] == 0.2
+    assert out["LastFacet/Verdict"] == 5 and out["Station/State"] == 0          # fault; idle (enumerations)
     assert "Counters/Indeterminate" in _documented_paths()

@@ -15,24 +15,19 @@ from __future__ import annotations
 import http.client
 import json
 import os
-import signal
-import socket
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import pytest
+
+from playwright.sync_api import sync_playwright   # a test dependency: missing, the suite fails (setup-env test)
 
 from sofast_station.config import load_config
 from sofast_station.devices.protocols import FacetRequest
 from sofast_station.serials import clean_serial
 from sofast_station.live.operator_commands import commands_dir
 from sofast_station.station.service import Service
-from tests.conftest import ROOT, SMALL_STATION, require, require_chromium
-
-playwright = require("playwright.sync_api")
-CHROMIUM = require_chromium()
+from tests.conftest import ROOT, SMALL_STATION
+from tests.web.serving import free_port, launch_chromium, start_server, stop_server
 
 TOKEN = "line-token-for-tests"
 LONG = "L" * 280 + "-END-OF-LONG-SERIAL"           # 300 characters
@@ -58,35 +53,6 @@ shift_starts = ["00:00"]
 """
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _start_server(config: Path, data: Path) -> subprocess.Popen:
-    (data / "live" / "monitor.json").unlink(missing_ok=True)
-    env = dict(os.environ, PYTHONPATH=str(ROOT), SOFAST_DATA_DIR=str(data))
-    proc = subprocess.Popen([sys.executable, "-m", "sofast_station", "serve", "--config", str(config)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
-    end = time.monotonic() + 120
-    while not (data / "live" / "monitor.json").exists():
-        if proc.poll() is not None or time.monotonic() > end:
-            proc.kill()
-            raise AssertionError(f"the server did not start: {proc.communicate()}")
-        time.sleep(0.1)
-    return proc
-
-
-def _stop_server(proc: subprocess.Popen) -> None:
-    proc.send_signal(signal.SIGTERM)
-    try:
-        proc.wait(timeout=30)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.wait()
-
-
 def _raw_get(port: int, path: str) -> tuple[int, bytes]:
     """GET with the path sent exactly as given (no client-side normalisation of ../)."""
     conn = http.client.HTTPConnection("127.0.0.1", port, timeout=30)
@@ -103,7 +69,7 @@ def _raw_get(port: int, path: str) -> tuple[int, bytes]:
 def line(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("web")
     data = tmp / "data"
-    port = _free_port()
+    port = free_port()
     config = tmp / "station.toml"
     config.write_text(SMALL_STATION.format(data_dir=data, facet=ROOT / "fixtures/facets/dish_5m33.toml",
                                            radiometric=ROOT / "calibration/simulated_radiometric.json")
@@ -117,14 +83,11 @@ def test_the_page_follows_the_line(line, monkeypatch):
     config_path, data, port, shots = line
     monkeypatch.setenv("SOFAST_DATA_DIR", str(data))
     cfg = load_config(config_path)
-    server = _start_server(config_path, data)
+    server = start_server(config_path, data)
     url = f"http://127.0.0.1:{port}/"
     seen: list[dict] = []
-    from playwright.sync_api import sync_playwright
     with sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=CHROMIUM, args=[
-            "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-            "--disable-component-update", "--disable-sync", "--no-first-run"])
+        browser = launch_chromium(pw)
         try:
             page = browser.new_page(viewport={"width": 1500, "height": 1100})
             dialogs: list[str] = []
@@ -152,8 +115,8 @@ def test_the_page_follows_the_line(line, monkeypatch):
                              "facets": page.inner_text("#shift .kpis div:first-child b")})
                 if outcome.serial in ("SIM-0001", "F-0002", "X-0006"):
                     page.screenshot(path=str(shots / f"page-after-{outcome.answer}.png"), full_page=True)
-                elif outcome.serial in (UNICODE, clean_serial(LONG)[0]):
-                    name = "unicode" if outcome.serial == UNICODE else "long"
+                elif outcome.serial in (clean_serial(UNICODE)[0], clean_serial(LONG)[0]):
+                    name = "unicode" if outcome.serial == clean_serial(UNICODE)[0] else "long"
                     page.screenshot(path=str(shots / f"page-serial-{name}.png"))
 
             requests = [FacetRequest(serial=s) for s in SERIALS]
@@ -170,7 +133,10 @@ def test_the_page_follows_the_line(line, monkeypatch):
             # page shows the start and end of what it kept when that is too long to show whole
             kept = clean_serial(LONG)[0]
             shown_long = kept[:29] + "…" + kept[-29:]
-            assert [s["serial"] for s in seen] == SERIALS[:4] + [shown_long] + SERIALS[5:], seen
+            # every serial as the station keeps it: "../../etc/passwd" and "</script>" are never a path
+            kept_all = [clean_serial(s)[0] for s in SERIALS]
+            assert kept_all[2] == "____etc_passwd" and "<script>" in kept_all[3]       # markup stays, escaped
+            assert [s["serial"] for s in seen] == kept_all[:4] + [shown_long] + kept_all[5:], seen
             assert seen[4]["title"] == kept
             assert [s["verdict"] for s in seen] == VERDICTS, seen
             assert [s["facets"] for s in seen] == [str(i) for i in range(1, 7)], seen
@@ -201,15 +167,15 @@ def test_the_page_follows_the_line(line, monkeypatch):
             assert [(c["command"], c["serial"]) for c in posted] == [("serial", "HAND-7")]
 
             # the server restarts: the page reconnects by itself and shows the same last facet
-            _stop_server(server)
+            stop_server(server)
             page.wait_for_function("() => document.body.dataset.live === '0'", timeout=60_000)
-            server = _start_server(config_path, data)
+            server = start_server(config_path, data)
             page.wait_for_function("() => document.body.dataset.live === '1'", timeout=60_000)
             assert page.evaluate("window.__loadedOnce") is True
             assert page.get_attribute("#last .verdict", "data-verdict") == "fault"
         finally:
             browser.close()
-            _stop_server(server)
+            stop_server(server)
     for name in ("pass", "fail", "fault"):
         assert (shots / f"page-after-{name}.png").stat().st_size > 10_000
 
@@ -218,7 +184,7 @@ def test_no_file_outside_the_pictures_is_served(line, monkeypatch):
     """Whatever the request path holds (the serials' own text, ../, encoded slashes), only the page, its
     script and style, the JSON state and the pictures of data_dir/live/facets come back."""
     config_path, data, port, _ = line
-    server = _start_server(config_path, data)
+    server = start_server(config_path, data)
     try:
         secret = b"root:"
         outside = data.parent / "outside.png"
@@ -235,4 +201,4 @@ def test_no_file_outside_the_pictures_is_served(line, monkeypatch):
         status, body = _raw_get(port, "/api/state")
         assert status == 200 and json.loads(body)["station"]
     finally:
-        _stop_server(server)
+        stop_server(server)

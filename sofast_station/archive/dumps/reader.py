@@ -172,8 +172,8 @@ def _read_v1(f, path: Path, version: int, load_frames: bool, require_result: boo
         raise DumpError(f"dump {path} lacks the dataset(s) {', '.join(missing)} required by schema version "
                         f"{version}; the file is damaged or incomplete")
     frames_ds = f["capture/frames"]
-    if not isinstance(frames_ds, h5py.Dataset) or frames_ds.ndim != 3 or frames_ds.dtype != np.uint8:
-        raise DumpError(f"dump {path}: capture/frames must be an (n, h, w) uint8 dataset, got "
+    if not isinstance(frames_ds, h5py.Dataset) or frames_ds.ndim != 3 or frames_ds.dtype not in (np.uint8, np.uint16):
+        raise DumpError(f"dump {path}: capture/frames must be an (n, h, w) uint8 or uint16 dataset, got "
                         f"{getattr(frames_ds, 'shape', None)} {getattr(frames_ds, 'dtype', None)}")
     cap = f["capture"]
     frames = None

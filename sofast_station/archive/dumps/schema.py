@@ -49,10 +49,11 @@ SCHEMA_V1: tuple[tuple[str, str, str, str, str, bool], ...] = (
     ("/@facet", "attribute", "str", "", "facet design name", False),
 
     ("capture", "group", "", "", "the raw camera frames and the measured distance", True),
-    ("capture/frames", "dataset", "uint8 (n, h, w)", "DN",
+    ("capture/frames", "dataset", "uint8 or uint16 (n, h, w)", "DN",
      "camera frames cropped to the facet region, in capture order (dark, white, then the fringe frames of "
      "fringes/, x then y, coarse to fine, phase steps in order); gzip 4 + shuffle, one chunk per frame; "
-     "outside the crop the full frames are 0 by definition", True),
+     "outside the crop the full frames are 0 by definition; uint16 (little-endian) for a camera of more "
+     "than 8 bits", True),
     ("capture/frames_sha256", "dataset", "str (n,)", "",
      "SHA-256 (hex) of each cropped frame's bytes in C order, checked by read_dump", True),
     ("capture/crop_box", "dataset", "int64 (2,)", "px",

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ...errors import ArchiveError
+from ...errors import ArchiveError, DumpError
 from .._common import fault_point, fsync_dir, fsync_file, now_iso, temp_path_for, to_json
 from .content import DumpContent
 from .schema import (_JSON_ENCODING, _PLAIN_ENCODING, COMPRESSION_LEVEL, KEY_FIGURES, SCHEMA, SCHEMA_VERSION,
@@ -59,7 +59,7 @@ def _write_value(group, name: str, value, path: str) -> None:
         _set_description(sub, path)
         for k, v in value.items():
             if "/" in str(k) or not str(k):
-                raise ArchiveError(f"cannot store the key {k!r} of {path} in a dump")
+                raise DumpError(f"cannot store the key {k!r} of {path} in a dump")
             _write_value(sub, str(k), v, f"{path}/{k}")
         return
     encoding = _PLAIN_ENCODING
@@ -89,15 +89,27 @@ def _write_value(group, name: str, value, path: str) -> None:
     ds.attrs["encoding"] = encoding
 
 
+#: The camera counts a dump holds: 8-bit, or 16-bit (a camera of more than 8 bits); little-endian on disk.
+FRAME_DTYPES = (np.dtype(np.uint8), np.dtype("<u2"))
+
+
+def _shuffled(frame: np.ndarray) -> np.ndarray:
+    """The frame's bytes as HDF5's shuffle filter arranges them: every element's first byte, then every
+    second byte (the identity on 1-byte data)."""
+    if frame.dtype.itemsize == 1:
+        return frame
+    return np.ascontiguousarray(frame.reshape(-1).view(np.uint8).reshape(-1, frame.dtype.itemsize).T)
+
+
 def _frame_job(frame: np.ndarray, level: int) -> tuple[bytes, str]:
     # zlib and hashlib release the GIL on large buffers: frames compress in parallel, and the station's
     # own threads keep running meanwhile
-    return zlib.compress(frame, level), hashlib.sha256(frame).hexdigest()
+    return zlib.compress(_shuffled(frame), level), hashlib.sha256(frame).hexdigest()
 
 
 def _write_frames(ds, frames: np.ndarray, level: int) -> list[str]:
-    """Compress each frame (a zlib stream: HDF5's deflate filter; shuffle is the identity on 1-byte data)
-    on all cores and write it as the frame's chunk; return the frames' SHA-256 digests."""
+    """Compress each frame (the shuffle filter's byte order, then a zlib stream: HDF5's deflate filter) on
+    all cores and write it as the frame's chunk; return the frames' SHA-256 digests."""
     n = frames.shape[0]
     digests = []
     workers = max(1, min(n, os.cpu_count() or 1))
@@ -141,9 +153,12 @@ def write_dump(path: str | Path, content: DumpContent, compression_level: int = 
 
     Raises
     ------
+    DumpError
+        When the content cannot make a dump (frames of the wrong kind, a crop that does not fit, a value a
+        dump cannot hold): writing it again will not help.
     ArchiveError
-        When the content is inconsistent or the file cannot be written (disk full, permissions); the
-        cause is chained.
+        When the file cannot be written now (disk full, permissions, a folder in the way); the cause is
+        chained.
     """
     import h5py
 
@@ -151,19 +166,20 @@ def write_dump(path: str | Path, content: DumpContent, compression_level: int = 
     path = Path(path)
     level = int(compression_level)
     if not 0 <= level <= 9:
-        raise ArchiveError(f"dump {path}: compression level must be 0..9, got {compression_level}")
+        raise DumpError(f"dump {path}: compression level must be 0..9, got {compression_level}")
     frames = content.frames_cropped
-    if frames is None or frames.ndim != 3 or frames.dtype != np.uint8 or min(frames.shape) < 1:
-        raise ArchiveError(f"dump {path}: frames_cropped must be a non-empty (n, h, w) uint8 array, got "
-                           f"{None if frames is None else (frames.shape, frames.dtype)}")
-    frames = np.ascontiguousarray(frames)
+    if (frames is None or frames.ndim != 3 or frames.dtype.kind != "u" or frames.dtype.itemsize not in (1, 2)
+            or min(frames.shape) < 1):
+        raise DumpError(f"dump {path}: frames_cropped must be a non-empty (n, h, w) array of 8- or 16-bit camera "
+                        f"counts (uint8, uint16), got {None if frames is None else (frames.shape, frames.dtype)}")
+    frames = np.ascontiguousarray(frames, dtype=FRAME_DTYPES[frames.dtype.itemsize - 1])
     n, h, w = frames.shape
     restore_check = (content.crop_box[0] >= 0 and content.crop_box[1] >= 0
                      and content.crop_box[0] + h <= content.full_shape[0]
                      and content.crop_box[1] + w <= content.full_shape[1])
     if not restore_check:
-        raise ArchiveError(f"dump {path}: the crop {h} x {w} at {tuple(content.crop_box)} does not fit the full "
-                           f"frame {tuple(content.full_shape)}")
+        raise DumpError(f"dump {path}: the crop {h} x {w} at {tuple(content.crop_box)} does not fit the full "
+                        f"frame {tuple(content.full_shape)}")
     try:
         patterns = content.patterns
     except Exception as exc:                 # an unusable fringe definition still gets dumped
@@ -176,10 +192,10 @@ def write_dump(path: str | Path, content: DumpContent, compression_level: int = 
         patterns = None
     if patterns is None:
         patterns = [f"frame {i}" for i in range(n)]
-    path.parent.mkdir(parents=True, exist_ok=True)
     tmp = temp_path_for(path)
     created = now_iso()
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)      # in the try: a folder it cannot make is an ArchiveError
         with h5py.File(tmp, "w", track_order=True) as f:
             f.attrs["schema"] = SCHEMA
             f.attrs["schema_version"] = np.int64(SCHEMA_VERSION)
@@ -197,7 +213,7 @@ def write_dump(path: str | Path, content: DumpContent, compression_level: int = 
 
             cap = f.create_group("capture", track_order=True)
             _set_description(cap, "capture")
-            ds = cap.create_dataset("frames", shape=frames.shape, dtype=np.uint8, chunks=(1, h, w),
+            ds = cap.create_dataset("frames", shape=frames.shape, dtype=frames.dtype, chunks=(1, h, w),
                                     compression="gzip", compression_opts=level, shuffle=True)
             _set_description(ds, "capture/frames")
             digests = _write_frames(ds, frames, level)
@@ -232,7 +248,9 @@ def write_dump(path: str | Path, content: DumpContent, compression_level: int = 
             tmp.unlink(missing_ok=True)
         except OSError as exc2:
             log.warning("could not remove the temporary dump %s: %s", tmp, exc2)
-        if isinstance(exc, (OSError, ValueError, TypeError, RuntimeError)) and not isinstance(exc, ArchiveError):
+        if isinstance(exc, (ValueError, TypeError)):       # what the content holds, not the disk
+            raise DumpError(f"could not write the dump {path}: {type(exc).__name__}: {exc}") from exc
+        if isinstance(exc, (OSError, RuntimeError)) and not isinstance(exc, ArchiveError):
             raise ArchiveError(f"could not write the dump {path}: {type(exc).__name__}: {exc}") from exc
         raise
     fsync_dir(path.parent)

@@ -41,6 +41,9 @@ from ..protocols import FacetRequest
 from ._handshake import ANSWERED, BUSY, CLOSED, IDLE, READY, REQUESTED, PolledHandshake, pace, recipe_name
 
 log = logging.getLogger(__name__)
+# pymodbus logs every failed connect and request itself ("Connection to (host, port) failed"), which the
+# TriggerError raised here says with what to do: during a PLC outage those lines only filled the log.
+logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
 
 # STATUS values (station -> PLC).
 OFFLINE, STATUS_READY, STATUS_BUSY, STATUS_DONE, STATUS_FAULT = 0, 1, 2, 3, 4
@@ -162,6 +165,10 @@ class ModbusTrigger(PolledHandshake):
         self.ack_timeout_s = float(ack_timeout_s)
         self.poll_interval_s = float(poll_interval_s)
         self.heartbeat_interval_s = float(heartbeat_interval_s)
+        #: SEQUENCE of the last request taken. Kept across reconnects (reopen()): after an answer the PLC
+        #: acknowledged too late (the station had given up and reconnected), a request with another SEQUENCE
+        #: is the next facet, not a leftover of the interrupted cycle (docs/plc.md, rule 3).
+        self._last_sequence: int | None = None
         self._connect()
 
     def _connect(self) -> None:
@@ -171,7 +178,6 @@ class ModbusTrigger(PolledHandshake):
         self._regs = [0] * STATION_REGISTERS
         self._armed = False         # FACET_PRESENT seen at 0 since the last request: a 1 is a new one
         self._stale_warned = False
-        self._acked_sequence = None  # SEQUENCE of the facet last answered and acknowledged
         self._request: FacetRequest | None = None
         self._last_beat = time.monotonic()
         self._client = ModbusTcpClient(self.host, port=self.port, timeout=self.timeout_s, retries=0,
@@ -264,7 +270,7 @@ class ModbusTrigger(PolledHandshake):
         # The PLC may raise FACET_PRESENT only once it sees READY: read it before writing READY, so that
         # a 0 now makes any later 1 a new request, and a 1 now is a request left from an earlier cycle.
         plc = self._read_plc("reading the PLC block")
-        self._armed = self._armed or not plc[FACET_PRESENT] or self._raised_after_ack(plc)
+        self._armed = self._armed or not plc[FACET_PRESENT] or self._new_sequence(plc)
         self._regs[STATUS], self._regs[VERDICT], self._regs[FAULT_CODE] = STATUS_READY, 0, 0
         self._regs[WARNINGS] = 0
         self._write("writing STATUS=ready")
@@ -280,7 +286,7 @@ class ModbusTrigger(PolledHandshake):
             plc = self._read_plc("reading the PLC block")
             if not plc[FACET_PRESENT]:
                 self._armed, self._stale_warned = True, False
-            elif (self._armed or self._raised_after_ack(plc)) and not plc[ACK]:
+            elif (self._armed or self._new_sequence(plc)) and not plc[ACK]:
                 return self._take(plc)
             elif not self._stale_warned:
                 self._stale_warned = True
@@ -293,15 +299,17 @@ class ModbusTrigger(PolledHandshake):
             self._maybe_beat()
             pace(deadline, self.poll_interval_s)
 
-    def _raised_after_ack(self, plc: list[int]) -> bool:
-        """FACET_PRESENT is 1 with a SEQUENCE other than the facet just answered and acknowledged: the
-        PLC dropped and raised it again between two polls (a request right after the acknowledgement).
+    def _new_sequence(self, plc: list[int]) -> bool:
+        """FACET_PRESENT is 1 with a SEQUENCE other than the last request's: a new facet, although the station
+        never saw FACET_PRESENT at 0. The PLC acknowledged and raised the next request between two polls, or
+        acknowledged after the station had given up waiting and reconnected (the SEQUENCE outlives reconnects).
+        A request left up from the interrupted cycle itself keeps its SEQUENCE and stays stale.
         """
-        fresh = (self._acked_sequence is not None and bool(plc[FACET_PRESENT])
-                 and plc[SEQUENCE] != self._acked_sequence)
+        fresh = (self._last_sequence is not None and bool(plc[FACET_PRESENT])
+                 and plc[SEQUENCE] != self._last_sequence)
         if fresh and not self._armed:
-            log.info("%s: a new request (SEQUENCE %d) was raised right after the acknowledgement of SEQUENCE "
-                     "%d: taken", self.name, plc[SEQUENCE], self._acked_sequence)
+            log.info("%s: a new request (SEQUENCE %d) was raised right after the answer to SEQUENCE %d: taken",
+                     self.name, plc[SEQUENCE], self._last_sequence)
             self._armed = True
         return fresh
 
@@ -318,7 +326,7 @@ class ModbusTrigger(PolledHandshake):
         self._request = FacetRequest(serial=serial, recipe=recipe_name(plc[RECIPE_CODE], name, self.recipes),
                                      dump=bool(plc[DUMP_REQUEST]), extra=extra)
         self._armed = False
-        self._acked_sequence = None
+        self._last_sequence = plc[SEQUENCE]
         self._state = REQUESTED
         log.debug("%s: facet %s (sequence %d, recipe %r, dump %s)", self.name, serial, plc[SEQUENCE],
                   self._request.recipe, self._request.dump)
@@ -362,7 +370,6 @@ class ModbusTrigger(PolledHandshake):
             plc = self._read_plc("waiting for ACK")
             new_request = bool(plc[FACET_PRESENT]) and plc[SEQUENCE] != answered
             if plc[ACK] or new_request:       # a new SEQUENCE raised means the answer was read (ACK missed)
-                self._acked_sequence = answered
                 return (not plc[FACET_PRESENT]) or new_request
             return None
 

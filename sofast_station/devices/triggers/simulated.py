@@ -67,6 +67,9 @@ class SimulatedRobot(Handshake):
     fail_ack : iterable of int, optional
         Indices (from 0) of requests whose ``done``/``fault`` raises TriggerError as if the robot had not
         acknowledged, after recording the answer: to test the station's recovery.
+    place : callable, optional
+        ``place(request)`` puts the facet in the fixture before the robot triggers (the simulated station's
+        :meth:`~sofast_station.station.simulated.SimulatedStation.place`: a line whose facets differ).
 
     Attributes
     ----------
@@ -79,8 +82,9 @@ class SimulatedRobot(Handshake):
     name = "simulated robot"
 
     def __init__(self, requests: list[FacetRequest] | int, period_s: float = 0.0, *,
-                 fail_ack: Iterable[int] = ()):
+                 fail_ack: Iterable[int] = (), place=None):
         super().__init__()
+        self.place = place
         if isinstance(requests, int):
             if requests < 0:
                 raise ValueError(f"number of requests must be >= 0, not {requests}")
@@ -130,6 +134,8 @@ class SimulatedRobot(Handshake):
         if due > now:
             time.sleep(due - now)
         request = self.requests[self._next]
+        if self.place is not None:
+            self.place(request)                   # the robot puts the facet in the fixture, then triggers
         self._next += 1
         self._state = REQUESTED
         log.debug("simulated robot places facet %s", request.serial)

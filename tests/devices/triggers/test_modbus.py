@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import multiprocessing as mp
 import os
 import queue
@@ -352,3 +353,91 @@ def test_a_plc_down_at_start_is_retried_until_it_answers(plcs, caplog):
     assert opened and isinstance(opened[0], ModbusTrigger)
     assert "retrying every 0.2 s" in caplog.text
     opened[0].close()
+
+
+def _answer_not_acknowledged_in_time(plcs):
+    """A trigger whose answer to FIRST-1 (SEQUENCE 7) the PLC did not acknowledge within ``ack_timeout_s``
+    (the test is the PLC program: every write in order), and the observer that plays the PLC."""
+    plc = plcs({"facets": []})
+    obs = Observer(plc.port)
+    trigger = ModbusTrigger("127.0.0.1", plc.port, ack_timeout_s=0.3, heartbeat_interval_s=0.1)
+    obs.write_plc(plc_block({"serial": "FIRST-1"}, 7, present=0))
+    trigger.ready()
+    obs.write_plc(plc_block({"serial": "FIRST-1"}, 7))
+    assert _wait_request(trigger).serial == "FIRST-1"
+    trigger.busy()
+    with pytest.raises(TriggerError, match="did not acknowledge"):
+        trigger.done("pass")                           # the PLC is late: the station gives up waiting
+    return trigger, obs
+
+
+@pytest.mark.parametrize("moment", ["before-reopen", "after-reopen", "after-ready"])
+def test_a_late_acknowledgement_followed_at_once_by_the_next_request_is_taken(plcs, moment):
+    """Issue 28: the PLC acknowledges after ``ack_timeout_s`` (the station has reported it and reconnected),
+    drops FACET_PRESENT for under a millisecond and raises the next facet with a new SEQUENCE. Whenever
+    those two writes land in the station's recovery (before its reconnect, between reconnect and READY,
+    or after READY), the next facet is taken, as docs/plc.md promises; the request of the interrupted
+    cycle itself (its SEQUENCE) still is not."""
+    trigger, obs = _answer_not_acknowledged_in_time(plcs)
+
+    def late_ack_then_next_facet():
+        obs.write_plc(plc_block({"serial": "FIRST-1"}, 7, present=0, ack=1))      # the late acknowledgement
+        obs.write_plc(plc_block({"serial": "NEXT-2"}, 8, present=1, ack=0))       # the next facet at once
+
+    if moment == "before-reopen":
+        late_ack_then_next_facet()
+    trigger.reopen()                                   # the station's recovery (runner._reopen_trigger)
+    if moment == "after-reopen":
+        late_ack_then_next_facet()
+    trigger.ready()
+    if moment == "after-ready":
+        late_ack_then_next_facet()
+    request = trigger.wait_for_facet(1.0)
+    assert request is not None and request.serial == "NEXT-2" and request.extra["sequence"] == 8
+    trigger.busy()
+    assert obs.station()[modbus.SEQUENCE_ECHO] == 8
+    trigger.close()
+    obs.close()
+
+
+def test_after_a_reconnect_the_interrupted_cycles_own_request_stays_stale(plcs):
+    """The other side of the SEQUENCE rule: the station reconnects while the unacknowledged request is still
+    up with the SEQUENCE it answered; that is not a new facet until the PLC drops it and raises it again."""
+    trigger, obs = _answer_not_acknowledged_in_time(plcs)
+    trigger.reopen()
+    trigger.ready()
+    assert trigger.wait_for_facet(0.3) is None         # SEQUENCE 7 again: the interrupted cycle's request
+    obs.write_plc(plc_block({"serial": "FIRST-1"}, 7, present=0))
+    assert trigger.wait_for_facet(0.1) is None
+    obs.write_plc(plc_block({"serial": "FIRST-1"}, 7))  # placed again (a rising edge): taken
+    request = trigger.wait_for_facet(1.0)
+    assert request is not None and request.serial == "FIRST-1"
+    trigger.close()
+    obs.close()
+
+
+def test_a_plc_outage_is_said_once_then_once_a_minute(caplog):
+    """Issue 28: a PLC outage wrote about five log lines a second (the loop's failure, its failed reconnect,
+    the heartbeat's, pymodbus's own). The loop's link watch says it once, then once a minute, and once when
+    the link is back; reconnects are tried after a pause doubling up to MAX_PAUSE_S. On a test clock: a
+    ten-minute outage of a PLC that refuses every reconnect (the real ModbusTrigger against a closed port)."""
+    from sofast_station.station.link import MAX_PAUSE_S, LinkWatch
+
+    now = [1000.0]
+    watch = LinkWatch(first_pause_s=0.5, clock=lambda: now[0])
+    port = free_port()                                  # nobody listens there: the PLC is off
+    pauses = []
+    with caplog.at_level(logging.DEBUG):
+        while now[0] < 1000.0 + 600.0:
+            try:
+                ModbusTrigger("127.0.0.1", port, timeout_s=0.2)
+            except TriggerError as exc:
+                pauses.append(watch.failed(exc))
+                now[0] += pauses[-1]
+        watch.ok()
+    lines = [r for r in caplog.records if r.levelno >= logging.WARNING]
+    assert len(pauses) > 100                          # a reconnect every few seconds, all along
+    assert pauses[:4] == [0.5, 1.0, 2.0, 4.0] and max(pauses) == MAX_PAUSE_S
+    assert 10 <= len(lines) <= 13, [r.getMessage() for r in lines]   # the first, ~10 reminders, the recovery
+    assert "handshake failed" in lines[0].getMessage() and "back after 6" in lines[-1].getMessage()
+    assert not [r for r in caplog.records if r.name.startswith("pymodbus")]

@@ -1,0 +1,98 @@
+"""Issue 28: a hung or crashed analysis costs the line at most one facet.
+
+A warm standby worker takes over at once after a timeout or a crash, while the abandoned worker may still
+bring a late result; a worker killed while it starts is started again. Small (400 x 300) simulated station.
+No timing is asserted: a hung analysis never ends, so it meets any deadline; the test deadline is the suite's
+scaled one, and what is checked is the order of events (the next facet answered while the abandoned
+analysis is still within its grace), which a loop that waited out the grace could not produce.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import threading
+
+from sofast_station.archive import Journal, read_dump
+from sofast_station.config import load_config
+from sofast_station.devices.protocols import FAULT_CODES
+from sofast_station.station import worker as worker_module
+from sofast_station.station.service import Service, run_settings
+
+from .worker_faults import DIE_ONCE_ENV, ping_dies_once
+
+
+def _config(path, data, faults=None, run=None, **sim):
+    cfg = load_config(path)
+    raw = dict(cfg.raw, run={**(run or {})}, archive={"workbook_interval_s": 0.5})
+    simulation = {**cfg.simulation, "faults": faults or {}, **sim}
+    return dataclasses.replace(cfg, data_dir=data, raw=raw, simulation=simulation)
+
+
+def _rows(data):
+    with Journal(data / "journal.sqlite3") as journal:
+        return {r.serial: r for r in journal.rows()}
+
+
+def test_the_facet_after_a_hung_analysis_is_measured_while_the_hung_one_is_still_in_its_grace(
+        small_station_toml, tmp_path):
+    """SIM-0002's analysis hangs. At the deadline (the suite's scaled one) the robot hears "timeout", the
+    standby takes over at once and SIM-0003 is measured on it, while SIM-0002's abandoned analysis is still
+    within its (hour-long) grace: the loop no longer waits out the grace and a restart. Stopped, the
+    abandoned worker is killed and the facet's row says so, its frames dumped."""
+    cfg = _config(small_station_toml, tmp_path / "d", faults={"SIM-0002": "hung-analysis"},
+                  run={"late_grace_s": 3600.0}, hang_s=7200.0)
+    assert run_settings(cfg).deadline_s > 0              # the suite's scaled deadline, not one set here
+    service = Service(cfg, simulated_facets=3, console=lambda line: None)
+    robot, worker = service.trigger, service.runner.worker
+    seen: dict = {}
+    ids: dict[str, str] = {}
+
+    def on_outcome(outcome):
+        ids[outcome.serial] = outcome.cycle_id
+        seen[outcome.serial] = outcome.answer
+        if outcome.serial == "SIM-0003":             # SIM-0002's row as SIM-0003 is answered
+            with Journal(cfg.data_dir / "journal.sqlite3") as journal:
+                seen["SIM-0002 then"] = journal.get(ids["SIM-0002"]).record
+    runner = threading.Thread(target=service.runner.run, kwargs={"on_outcome": on_outcome}, daemon=True)
+    try:
+        runner.start()
+        runner.join(1200)                                # a loop waiting out the grace would still be in it
+        assert not runner.is_alive(), f"the loop is stuck after the hung analysis: {seen}"
+        worker.close(late_wait_s=0)                      # stop now: the abandoned analysis is given up
+    finally:
+        service.close()
+    finals = {a.serial: a for a in robot.answers if a.kind in ("done", "fault")}
+    assert finals["SIM-0002"].kind == "fault" and finals["SIM-0002"].code == FAULT_CODES["timeout"]
+    assert finals["SIM-0001"].kind == finals["SIM-0003"].kind == "done", finals
+    # SIM-0003 was answered (by the standby) while SIM-0002's row was still the bare timeout: its abandoned
+    # analysis was still within its grace
+    assert seen["SIM-0003"] == "pass" and seen["SIM-0002 then"]["verdict"] == "fault", seen
+    assert "late" not in seen["SIM-0002 then"]
+    assert worker.takeovers == 1
+    rows = _rows(cfg.data_dir)
+    late = rows["SIM-0002"].record
+    assert late["verdict"] == "fault" and late["late"] is True and late["fault_code"] == FAULT_CODES["timeout"]
+    assert any("no result within the late grace" in r for r in late["reasons"]), late["reasons"]
+    assert rows["SIM-0002"].dump_status == "written"
+    assert read_dump(rows["SIM-0002"].dump_path, load_frames=True).frames_cropped.shape[0] == 18
+    assert rows["SIM-0003"].verdict == "pass" and abs(rows["SIM-0003"].record["focal_length_x_m"] - 5.42) < 0.05
+
+
+def test_a_worker_killed_while_it_starts_is_started_again(small_station_toml, tmp_path, monkeypatch, caplog):
+    """Killed in the first seconds of `run`, before "analysis worker ready", the worker ended the run (exit
+    2, "could not start (BrokenProcessPool ...)", no facet answered). It is started again and the line runs."""
+    flag = tmp_path / "die-once"
+    flag.touch()
+    monkeypatch.setenv(DIE_ONCE_ENV, str(flag))
+    monkeypatch.setattr(worker_module, "_ping", ping_dies_once)
+    cfg = _config(small_station_toml, tmp_path / "d")
+    with caplog.at_level(logging.WARNING, logger="sofast_station.station.worker"):
+        service = Service(cfg, simulated_facets=2, console=lambda line: None, archiver_process=False)
+        try:
+            outcomes = service.runner.run()
+        finally:
+            service.close()
+    assert not flag.exists()                             # a worker did die while starting
+    assert "died while starting" in caplog.text
+    assert [o.answer for o in outcomes] == ["pass", "pass"]
