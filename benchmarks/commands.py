@@ -14,9 +14,12 @@ Commands: ``--help``; a usage error (an unknown option); a mistake found by the 
 file); ``inspect`` on the simulated station; ``reprocess DUMP`` of one full-resolution data dump, with the
 station's cache on disk warm (the camera's rays and any sensitivities kept by an earlier run: what a
 process engineer's second look costs) and cold (``data_dir/cache`` deleted before every run: the first
-look); ``import-opencsp --robust`` of OpenCSP's measured facet at its native 203 x 154 px and upsampled 8x
-(1624 x 1232 px, as ``benchmarks/analysis.py`` builds it), warm and cold; ``report DUMP`` (the slope-error
-maps of the dump); ``report spc`` (control charts of a journal the setup fills with ``run``).
+look), as dumped and with a design override (``--focal-length 5.4``: the dump's own sensitivities do not
+apply, so they are computed cold and read from the cache warm); ``import-opencsp --robust`` of OpenCSP's
+measured facet at its native 203 x 154 px and upsampled 8x (1624 x 1232 px, as ``benchmarks/analysis.py``
+builds it), warm and cold; ``report DUMP`` (the slope-error maps of the dump); ``report spc`` (control
+charts of a journal the setup fills with ``run`` on the small test station: the charts read records, not
+images).
 
 Setup (not timed): a temporary data_dir (``SOFAST_DATA_DIR``) holding the dump, the journal of
 ``run --facets N`` on the same station and the upsampled OpenCSP set. Every command runs once first,
@@ -88,6 +91,14 @@ def run_once(argv: list, env: dict, cwd: Path, log: Path) -> Run:
     return Run(wall, usage.ru_utime + usage.ru_stime, usage.ru_maxrss / 1024, proc.returncode)
 
 
+def small_station(path: Path) -> str:
+    """The small simulated dish station of the tests (400 x 300 px) written to *path*; its path."""
+    path.write_text((ROOT / "fixtures/stations/small_dish.toml.in").read_text().format(
+        name="Small simulated dish station (benchmark)", data_dir_line="", analysis="", twist="0.1",
+        facet=ROOT / "fixtures/facets/dish_5m33.toml", radiometric=ROOT / "calibration/simulated_radiometric.json"))
+    return str(path)
+
+
 def setup(tmp: Path, config: str, facets: int, scale: int | None, env: dict) -> dict:
     """The dump, the journal (*facets* > 0) and the OpenCSP sets the commands read (printed as they are made)."""
     import analysis as bench_analysis
@@ -97,7 +108,10 @@ def setup(tmp: Path, config: str, facets: int, scale: int | None, env: dict) -> 
     print(f"setup: {spec['what']} ({time.perf_counter() - t:.1f} s)", flush=True)
     if facets > 0:
         t = time.perf_counter()
-        proc = subprocess.run([sys.executable, "-m", "sofast_station", "run", "--config", config, "--facets",
+        # The journal's records come from the small station (the same facet design; control charts read
+        # records, not images, so the camera's size does not matter to them and 400 x 300 px is quick).
+        small = small_station(tmp / "small.toml")
+        proc = subprocess.run([sys.executable, "-m", "sofast_station", "run", "--config", small, "--facets",
                                str(facets)], capture_output=True, text=True, env=env, cwd=tmp)
         if proc.returncode != 0:
             raise SystemExit(f"setup: 'run --facets {facets}' failed:\n{proc.stderr[-2000:]}")
@@ -108,7 +122,7 @@ def setup(tmp: Path, config: str, facets: int, scale: int | None, env: dict) -> 
         sets[f"{scale}x"] = tmp / f"opencsp-{scale}x"
         bench_analysis.upsample_opencsp(OPENCSP, sets[f"{scale}x"], scale)
         print(f"setup: OpenCSP's facet upsampled {scale}x ({time.perf_counter() - t:.1f} s)", flush=True)
-    return {"dump": spec["dump"], "opencsp": sets}
+    return {"dump": spec["dump"], "opencsp": sets, "journal_station": str(tmp / "small.toml")}
 
 
 def commands(config: str, inputs: dict) -> list[Command]:
@@ -119,7 +133,13 @@ def commands(config: str, inputs: dict) -> list[Command]:
             Command("sofast-station inspect", "inspect", ["inspect", "--config", config]),
             Command("sofast-station reprocess DUMP (cache warm)", "reprocess", ["reprocess", inputs["dump"]]),
             Command("sofast-station reprocess DUMP (cache cold)", "reprocess", ["reprocess", inputs["dump"]],
-                    cold=True)]
+                    cold=True),
+            # An override the dump's sensitivities were not computed for: the uncertainty's sensitivities are
+            # computed from the dump (cold), or read from the cache a previous run filled (warm).
+            Command("sofast-station reprocess DUMP --focal-length 5.4 (cache warm)", "reprocess",
+                    ["reprocess", inputs["dump"], "--focal-length", "5.4"]),
+            Command("sofast-station reprocess DUMP --focal-length 5.4 (cache cold)", "reprocess",
+                    ["reprocess", inputs["dump"], "--focal-length", "5.4"], cold=True)]
     for size, folder in inputs["opencsp"].items():
         argv = ["import-opencsp", "--robust", "--test-data", str(folder)]
         rows += [Command(f"sofast-station import-opencsp --robust, {size} (cache warm)", "import-opencsp", argv),
@@ -127,7 +147,8 @@ def commands(config: str, inputs: dict) -> list[Command]:
                          cold=True)]
     rows += [Command("sofast-station report DUMP (slope-error maps)", "report", ["report", inputs["dump"], "--out",
                                                                                   "maps"]),
-             Command("sofast-station report spc", "report", ["report", "spc", "--config", config, "--out", "spc"])]
+             Command("sofast-station report spc", "report", ["report", "spc", "--baseline-n", "10", "--config",
+                                                             inputs["journal_station"], "--out", "spc"])]
     return rows
 
 
@@ -136,8 +157,9 @@ def main(argv=None) -> int:
     p.add_argument("--config", default=None,
                    help="the station (default: station.toml; with --quick the small test station)")
     p.add_argument("--runs", type=int, default=5, help="counted runs of each command (median quoted)")
-    p.add_argument("--facets", type=int, default=6,
-                   help="facets 'run' measures for the journal 'report spc' reads (measured only for 'report')")
+    p.add_argument("--facets", type=int, default=12,
+                   help="facets 'run' measures on the small station for the journal 'report spc' reads (control "
+                        "limits need 10; measured only for 'report')")
     p.add_argument("--opencsp-scale", type=int, default=8, help="the upsampled OpenCSP set (0: native only)")
     p.add_argument("--only", action="append", default=None, metavar="GROUP",
                    help="only these groups (help, 'usage error', inspect, reprocess, import-opencsp, report); "
@@ -149,21 +171,16 @@ def main(argv=None) -> int:
         with redirect_stdout(sys.stderr):
             inputs = setup(Path(args.setup_into), args.config, args.facets, args.opencsp_scale or None,
                            dict(os.environ))
-        print(json.dumps({"dump": inputs["dump"], "opencsp": {k: str(v) for k, v in inputs["opencsp"].items()}}))
+        print(json.dumps({**inputs, "opencsp": {k: str(v) for k, v in inputs["opencsp"].items()}}))
         return 0
     tmp = Path(tempfile.mkdtemp(prefix="sofast-commands-"))
     keep = False
     try:
         config = args.config
         if args.quick:
-            args.runs, args.opencsp_scale, args.facets = 1, 0, 3
+            args.runs, args.opencsp_scale, args.facets = 1, 0, 10
             if config is None:
-                config = str(tmp / "small.toml")
-                text = (ROOT / "fixtures/stations/small_dish.toml.in").read_text().format(
-                    name="Small simulated dish station (benchmark)", data_dir_line="", analysis="", twist="0.1",
-                    facet=ROOT / "fixtures/facets/dish_5m33.toml",
-                    radiometric=ROOT / "calibration/simulated_radiometric.json")
-                Path(config).write_text(text)
+                config = small_station(tmp / "small.toml")
         config = str(Path(config or ROOT / "station.toml").resolve())
         data = tmp / "data"
         # The station's data (dumps, journal, cache) in the temporary folder; a cycle deadline no loaded
