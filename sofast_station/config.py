@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import ConfigError
+from .calibrate.commissioned import geometry_in_force
 from .calibrate.settings import CALIBRATION_KEYS, parse_calibration_table
 from .config_schema import add_dataclass_keys, validate
 from .facet import FacetDesign, load_facet
@@ -79,8 +80,13 @@ class StationConfig:
     #: ``[optics]``: how the facet's optical figures are computed (None: ``enabled = false``).
     optics: object | None = None
     #: Standard uncertainties of the station's inputs (``[uncertainty]``; docs/uncertainty.md), with a camera
-    #: record's stated standard deviations where it has them.
+    #: record's stated standard deviations where it has them, and the screen and pose records'.
     uncertainty: InputUncertainties = field(default_factory=InputUncertainties)
+    #: The geometry station.toml states ([camera] or its record, [screen], [layout]); ``geometry`` is what the
+    #: analysis uses: this, or the screen and pose records in force (:mod:`sofast_station.calibrate.commissioned`).
+    stated_geometry: StationGeometry | None = None
+    #: The screen and pose records in force (``screen``, ``pose``: record id and path; ``warnings``), or None.
+    commissioned: dict | None = None
 
     @property
     def config_hash(self) -> str:
@@ -170,16 +176,27 @@ def load_config(path: str | Path, use_camera_record: bool = True) -> StationConf
     elif source not in ("station.toml", "record"):
         raise ConfigError(f"{where} [camera] intrinsics must be \"station.toml\" (the table's values) or "
                           f"\"record\" (the newest 'calibrate camera' record), got {source!r}")
+    stated_geometry = geometry
+    geometry, commissioned, commissioned_std = geometry_in_force(data_dir, stated_geometry, where,
+                                                                 cal.get("geometry", "records"))
     uncertainty = InputUncertainties.from_table(raw.get("uncertainty", {}), f"{where} [uncertainty]")
     if camera_record is not None:
         uncertainty = uncertainty.with_camera_record(camera_record)
-    uncertainty = uncertainty.with_geometry_record(_geometry_record_std(data_dir, geometry))
+    uncertainty = uncertainty.with_commission_records(commissioned_std)
+    checked = _geometry_record_std(data_dir, geometry)
+    if "fixture_rotation_mrad" in commissioned_std:
+        # the fixture pose measured by the pose calibration; a reference check that confirmed it better wins
+        for key in ("fixture_rotation_mrad", "fixture_translation_mm"):
+            if key in checked and max(checked[key]) >= max(commissioned_std[key]):
+                del checked[key]
+    uncertainty = uncertainty.with_geometry_record(checked)
     uncertainty = _with_radiometric_record(uncertainty, data_dir, radiometric, geometry, fringes)
     return StationConfig(path=path, name=str(st.get("name", path.stem)), data_dir=data_dir, backend=backend,
                          facet_path=facet_path, design=design, geometry=geometry, fringes=fringes,
                          analysis=analysis, limits=limits, quality=quality, radiometric_path=radiometric,
                          simulation=raw.get("simulation", {}), raw=raw, camera_record=camera_record,
-                         optics=_optics(raw, where), uncertainty=uncertainty)
+                         optics=_optics(raw, where), uncertainty=uncertainty, stated_geometry=stated_geometry,
+                         commissioned=commissioned)
 
 
 def _optics(raw: dict, where: str):

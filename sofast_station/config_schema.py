@@ -194,6 +194,10 @@ SECTIONS: dict[str, dict[str, Key]] = {
         "radiometric": Key("str"), "stale": Key("str", choices=("warn", "refuse")),
         "max_age_h": _pos("h"), "max_dark_shift_dn": _nonneg("DN"), "warmup": Key("bool"),
         "warmup_min": _nonneg("min"), "routine": Key("table", doc="checked by calibrate.settings"),
+        "geometry": Key("str", choices=("records", "station.toml"),
+                        doc="measure with the newest screen and pose records, or [screen] and [layout] as entered"),
+        "screen": Key("table", doc="[calibration.screen]: calibrate screen, checked by calibrate.commission_settings"),
+        "pose": Key("table", doc="[calibration.pose]: calibrate pose, checked by calibrate.commission_settings"),
     },
     "optics": {
         "enabled": Key("bool", doc="compute the optical figures (docs/optics.md)"),
@@ -224,6 +228,8 @@ SECTIONS: dict[str, dict[str, Key]] = {
         "faults": Key("section:simulation_faults", doc="SERIAL = fault kind, injected (tests, benchmarks)"),
         "hang_s": _pos("how long a 'hung-analysis' fault hangs, s"),
         "slow_s": _pos("how long a 'slow-analysis' fault delays the analysis, s"),
+        "assembly": Key("table", doc="[simulation.assembly]: the twin's true screen and camera (twin.assembly."
+                                     "TrueAssembly, a rule below)"),
     },
     "simulation_faults": {"*": Key("str", choices=SIMULATED_FAULTS, doc="fault injected for this serial")},
     "run": {
@@ -246,6 +252,8 @@ SECTIONS: dict[str, dict[str, Key]] = {
         "trigger": Key("str", choices=("simulated", "modbus", "usb")), "trigger_options": Key("table"),
         "display_options": Key("table"), "camera": Key("str", choices=("basler", "aravis", "replay")),
         "camera_options": Key("table"), "range_finder_options": Key("table"),
+        "handheld_camera": Key("str", choices=("basler", "aravis"), doc="calibrate screen's second camera"),
+        "handheld_camera_options": Key("table", doc="its options, as camera_options"),
     },
     "recipes": {"*": Key("section:recipe", doc="[recipes.NAME]")},
     "web": {"*": Key("any", doc="checked by its reader (READERS below)")},
@@ -412,10 +420,12 @@ def _rule_simulation(raw: dict, where: str) -> None:
     sim = raw.get("simulation")
     if not sim:
         return
+    from .twin.assembly import TrueAssembly
     from .twin.parameters import TrueFacet, TwinOptics
     from .twin.population import FacetPopulation
 
-    for key, cls in (("facet", TrueFacet), ("optics", TwinOptics), ("population", FacetPopulation)):
+    for key, cls in (("facet", TrueFacet), ("optics", TwinOptics), ("population", FacetPopulation),
+                     ("assembly", TrueAssembly)):
         try:
             cls.from_dict(sim.get(key, {}))
         except ConfigError as exc:

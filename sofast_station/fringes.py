@@ -14,6 +14,42 @@ from dataclasses import dataclass
 from .errors import ConfigError
 
 
+class DisplayImage:
+    """A fixed image of display commands (uint8, rows x columns, row 0 at the top), e.g. fiducials.
+
+    Hashable by its content, so a :class:`Pattern` that shows it can be cached like the others.
+    """
+
+    __slots__ = ("pixels", "name", "_digest")
+
+    def __init__(self, pixels, name: str = "image"):
+        import hashlib
+
+        import numpy as np
+
+        arr = np.ascontiguousarray(pixels)
+        if arr.dtype != np.uint8 or arr.ndim != 2 or arr.size == 0:
+            raise ConfigError(f"a display image must be a 2-D uint8 array of commands, got {arr.dtype} {arr.shape}")
+        arr = arr.copy()
+        arr.setflags(write=False)
+        self.pixels = arr
+        self.name = str(name)
+        self._digest = hashlib.sha256(arr.tobytes() + repr(arr.shape).encode()).hexdigest()
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.pixels.shape
+
+    def __hash__(self) -> int:
+        return hash(self._digest)
+
+    def __eq__(self, other) -> bool:
+        return isinstance(other, DisplayImage) and other._digest == self._digest
+
+    def __repr__(self) -> str:
+        return f"DisplayImage({self.name!r}, {self.shape[1]} x {self.shape[0]}, {self._digest[:8]})"
+
+
 @dataclass(frozen=True)
 class Pattern:
     """One display image.
@@ -21,6 +57,8 @@ class Pattern:
     ``kind == "uniform"``: every pixel shows ``command`` (0..255).
     ``kind == "fringe"``: a sinusoid along ``axis`` with ``periods`` cycles across the screen, shifted by
     ``shift_rad``, spanning the calibrated floor..maximum through the linearising lookup table.
+    ``kind == "image"``: the commands of ``image`` (a :class:`DisplayImage` of the display's size) as they
+    are, not through the lookup table (fiducials are black and white).
     """
 
     kind: str
@@ -28,11 +66,14 @@ class Pattern:
     periods: float = 0.0
     shift_rad: float = 0.0
     command: int = 0
+    image: DisplayImage | None = None
 
     @property
     def label(self) -> str:
         if self.kind == "uniform":
             return {0: "dark", 255: "white"}.get(self.command, f"uniform {self.command}")
+        if self.kind == "image":
+            return self.image.name if self.image is not None else "image"
         return f"{self.axis} p={self.periods:g} shift={self.shift_rad:.4f}"
 
 

@@ -185,26 +185,90 @@ class ScreenSpec:
         return cls(d["width_px"], d["height_px"], d["pitch_x_m"], d["pitch_y_m"])
 
 
+@dataclass(frozen=True, eq=False)
+class MeasuredScreen:
+    """A measured screen shape (``calibrate screen``): where, in the screen frame, each display position is.
+
+    Nodes on a full rectangular grid over the active area; positions between them are interpolated
+    linearly (:class:`~sofast_station.measure.screen.InterpolatedScreen`).
+
+    Parameters
+    ----------
+    nodes_px : (M, 2) array
+        Node positions in display pixels from the active area's left and bottom edges (a position of
+        ``u_x`` metres at the stated pitch is ``u_x / pitch_x`` pixels: the nodes do not depend on the pitch
+        station.toml states).
+    nodes_screen_m : (M, 3) array
+        Their screen-frame points, metres (the frame's origin the display's centre point, +z the normal there).
+    modes_m : (K, M, 3) array
+        The shape's independent uncertainty fields: every node's displacement at one standard deviation of
+        each (what the uncertainty budget moves the shape by).
+    record_id : str
+        The screen record it comes from.
+    """
+
+    nodes_px: np.ndarray
+    nodes_screen_m: np.ndarray
+    modes_m: np.ndarray
+    record_id: str = ""
+
+    def __post_init__(self):
+        uv = _finite_array("measured screen nodes_px", self.nodes_px, np.shape(self.nodes_px))
+        pts = _finite_array("measured screen nodes_screen_m", self.nodes_screen_m, np.shape(self.nodes_screen_m))
+        if uv.ndim != 2 or uv.shape[1] != 2 or uv.shape[0] < 4 or pts.shape != (uv.shape[0], 3):
+            raise ConfigError(f"a measured screen needs (M, 2) node positions and (M, 3) points, got {uv.shape} and "
+                              f"{pts.shape}")
+        modes = np.asarray(self.modes_m, dtype=np.float64).reshape(-1, uv.shape[0], 3)
+        modes = _finite_array("measured screen modes_m", modes, modes.shape)
+        object.__setattr__(self, "nodes_px", uv)
+        object.__setattr__(self, "nodes_screen_m", pts)
+        object.__setattr__(self, "modes_m", modes)
+        object.__setattr__(self, "record_id", str(self.record_id))
+
+    def __eq__(self, other) -> bool:
+        return (isinstance(other, MeasuredScreen) and self.record_id == other.record_id
+                and all(np.array_equal(getattr(self, k), getattr(other, k))
+                        for k in ("nodes_px", "nodes_screen_m", "modes_m")))
+
+    __hash__ = None
+
+    def to_dict(self) -> dict:
+        return {"nodes_px": self.nodes_px.tolist(), "nodes_screen_m": self.nodes_screen_m.tolist(),
+                "modes_m": self.modes_m.tolist(), "record_id": self.record_id}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "MeasuredScreen":
+        return cls(np.asarray(d["nodes_px"], float), np.asarray(d["nodes_screen_m"], float),
+                   np.asarray(d.get("modes_m", []), float), d.get("record_id", ""))
+
+
 @dataclass(frozen=True)
 class StationGeometry:
     """Everything geometric the analysis needs besides the facet design.
 
     ``screen_to_camera`` is the fixed camera/screen assembly; ``fixture_to_camera`` is where the facet
     frame sits when the facet is perfectly placed (used to order the detected corners and to start the
-    pose search).
+    pose search). ``measured_screen`` is the screen's measured shape when a screen record is in force (a
+    flat screen of the stated pitch otherwise).
     """
 
     camera: CameraIntrinsics
     screen: ScreenSpec
     screen_to_camera: Pose
     fixture_to_camera: Pose
+    measured_screen: MeasuredScreen | None = None
 
     def to_dict(self) -> dict:
-        return {"camera": self.camera.to_dict(), "screen": self.screen.to_dict(),
-                "screen_to_camera": self.screen_to_camera.to_dict(),
-                "fixture_to_camera": self.fixture_to_camera.to_dict()}
+        out = {"camera": self.camera.to_dict(), "screen": self.screen.to_dict(),
+               "screen_to_camera": self.screen_to_camera.to_dict(),
+               "fixture_to_camera": self.fixture_to_camera.to_dict()}
+        if self.measured_screen is not None:
+            out["measured_screen"] = self.measured_screen.to_dict()
+        return out
 
     @classmethod
     def from_dict(cls, d: dict) -> "StationGeometry":
+        measured = d.get("measured_screen")
         return cls(CameraIntrinsics.from_dict(d["camera"]), ScreenSpec.from_dict(d["screen"]),
-                   Pose.from_dict(d["screen_to_camera"]), Pose.from_dict(d["fixture_to_camera"]))
+                   Pose.from_dict(d["screen_to_camera"]), Pose.from_dict(d["fixture_to_camera"]),
+                   None if measured is None else MeasuredScreen.from_dict(measured))

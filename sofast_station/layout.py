@@ -96,3 +96,21 @@ def layout_station(design: FacetDesign, camera: CameraIntrinsics, screen: Screen
     return StationGeometry(camera=camera, screen=screen,
                            screen_to_camera=fixture_to_camera.compose(screen_to_fixture),
                            fixture_to_camera=fixture_to_camera)
+
+
+def mirror_seat(design: FacetDesign, window_centre_target_m) -> Pose:
+    """Where a flat reference target seated in the fixture lies: ``target_to_fixture``.
+
+    The fixture's locating pins hold it with its face in the design's tangent plane at the facet's middle
+    and the centre of its window (*window_centre_target_m*, target frame) on the middle; its x axis along
+    the fixture's x, its z axis (OpenCV's board frame: into the glass) away from the camera and screen.
+    """
+    centre_xy = design.middle_m
+    p_mid_fix = np.array([centre_xy[0], centre_xy[1], float(design.z(*centre_xy))])
+    f = design.focal_length_m
+    n_mid_fix = _unit(np.array([-centre_xy[0] / (2 * f), -centre_xy[1] / (2 * f), 1.0]))
+    z_t = -n_mid_fix
+    x_t = _perpendicular_part(_AXES["x"], z_t)
+    y_t = np.cross(z_t, x_t)
+    r = np.column_stack([x_t, y_t, z_t])                    # columns: target axes in the fixture frame
+    return Pose(r, p_mid_fix - r @ np.asarray(window_centre_target_m, dtype=np.float64))

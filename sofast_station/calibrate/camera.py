@@ -559,8 +559,10 @@ def read_images(paths: list[str | Path]) -> list[tuple[str, np.ndarray | None]]:
     return [(str(p), cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)) for p in paths]
 
 
-def save_camera(data_dir: str | Path, cal: CameraCalibration, source: str) -> Path:
-    """Write a camera record under ``data_dir/calibration/camera/``; returns its path.
+def save_camera(data_dir: str | Path, cal: CameraCalibration, source: str, folder: str = "camera") -> Path:
+    """Write a camera record under ``data_dir/calibration/<folder>/``; returns its path. *folder* is
+    ``camera`` (the station camera's records) or ``handheld`` (the second camera of ``calibrate screen``,
+    never taken for the station camera).
 
     A refused calibration (parameters not determined) is never written: CalibrationError saying why."""
     if cal.verdict == "refused":
@@ -570,7 +572,9 @@ def save_camera(data_dir: str | Path, cal: CameraCalibration, source: str) -> Pa
                 "camera": cal.intrinsics.to_dict(), "rms_px": cal.rms_px, "std_intrinsics": cal.std_intrinsics,
                 "fix_k3": cal.fix_k3, "fix_k2": cal.fix_k2, "quality": cal.quality, "board": cal.board.to_dict(),
                 "images": [r.to_dict() for r in cal.images]}
-    path, _ = write_record(data_dir, "camera", build)
+    if folder not in ("camera", "handheld"):
+        raise ValueError(f"camera records go to 'camera' or 'handheld', not {folder!r}")
+    path, _ = write_record(data_dir, folder, build)
     return path
 
 

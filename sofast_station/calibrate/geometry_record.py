@@ -27,7 +27,9 @@ def budget_std(record: dict | None, geometry=None) -> dict:
     if not check.get("within_tolerance"):
         return {}
     if geometry is not None and (record.get("screen_to_camera") != geometry.screen_to_camera.to_dict()
-                                 or record.get("screen") != geometry.screen.to_dict()):
+                                 or record.get("screen") != geometry.screen.to_dict()
+                                 or record.get("measured_screen") != (None if geometry.measured_screen is None
+                                                                      else geometry.measured_screen.record_id)):
         return {}
     det = check.get("determined") or {}
     out = {}
@@ -44,13 +46,23 @@ def budget_std(record: dict | None, geometry=None) -> dict:
 def geometry_provenance(config) -> dict:
     """The station's geometry as the analysis uses it, with where each part comes from."""
     geometry = config.geometry
-    return {"screen": geometry.screen.to_dict(), "screen_to_camera": geometry.screen_to_camera.to_dict(),
-            "camera": geometry.camera.to_dict(),
-            "provenance": {"screen": f"{config.path} [screen] (width_px, height_px, pitch_m as entered)",
-                           "screen_to_camera": f"{config.path} [layout] (the designed assembly: separation "
-                                               f"{config.raw.get('layout', {}).get('separation_m')} m along "
-                                               f"{config.raw.get('layout', {}).get('separation_axis', 'x')})",
-                           "camera": f"{config.path} [camera]"}}
+    provenance = {"screen": f"{config.path} [screen] (width_px, height_px, pitch_m as entered)",
+                  "screen_to_camera": f"{config.path} [layout] (the designed assembly: separation "
+                                      f"{config.raw.get('layout', {}).get('separation_m')} m along "
+                                      f"{config.raw.get('layout', {}).get('separation_axis', 'x')})",
+                  "camera": f"{config.path} [camera]"}
+    commissioned = getattr(config, "commissioned", None) or {}
+    if "screen" in commissioned:
+        provenance["screen"] = (f"screen record {commissioned['screen']['record_id']} "
+                                "(calibrate screen: its shape and pitch)")
+    if "pose" in commissioned:
+        provenance["screen_to_camera"] = f"pose record {commissioned['pose']['record_id']} (calibrate pose)"
+        provenance["fixture_to_camera"] = f"pose record {commissioned['pose']['record_id']} (calibrate pose)"
+    out = {"screen": geometry.screen.to_dict(), "screen_to_camera": geometry.screen_to_camera.to_dict(),
+           "camera": geometry.camera.to_dict(), "provenance": provenance}
+    if geometry.measured_screen is not None:
+        out["measured_screen"] = geometry.measured_screen.record_id
+    return out
 
 
 def save_geometry(data_dir: str | Path, config, check: dict | None, source: str) -> Path:

@@ -10,6 +10,8 @@
     warmup = false              # refuse to calibrate or inspect before the camera has warmed up
     warmup_min = 30.0           # ... for this long after the camera started
 
+    geometry = "records"       # measure with the newest screen and pose records ("station.toml": as entered)
+
     [calibration.routine]       # the daily radiometric routine (defaults shown)
     refresh_hz = 60.0           # the display's refresh rate: exposures are whole numbers of its periods
     max_exposure_periods = 2
@@ -34,6 +36,9 @@
     latency_repeats = 3
     discard_frames = 1
 
+``[calibration.screen]`` and ``[calibration.pose]`` (the geometry commissioning) are described and checked
+by :mod:`sofast_station.calibrate.commission_settings`.
+
 This module imports nothing from the rest of the station, so that ``config.py`` can use
 :data:`CALIBRATION_KEYS` and :func:`parse_calibration_table` when it loads the file.
 """
@@ -47,7 +52,8 @@ from dataclasses import dataclass
 from ..errors import ConfigError
 
 #: Keys the ``[calibration]`` table may hold.
-CALIBRATION_KEYS = {"radiometric", "stale", "max_age_h", "max_dark_shift_dn", "warmup", "warmup_min", "routine"}
+CALIBRATION_KEYS = {"radiometric", "stale", "max_age_h", "max_dark_shift_dn", "warmup", "warmup_min", "routine",
+                    "geometry", "screen", "pose"}
 
 
 @dataclass(frozen=True)
@@ -250,6 +256,14 @@ def parse_calibration_table(table: dict, where: str) -> tuple[CalibrationPolicy,
     if not isinstance(warmup, bool):
         raise ConfigError(f"{where} warmup must be true or false, got {warmup!r}")
     policy = CalibrationPolicy(stale=stale, warmup=warmup, **numbers)
+    geometry = table.get("geometry", "records")
+    if geometry not in ("records", "station.toml"):
+        raise ConfigError(f"{where} geometry must be \"records\" (measure with the newest screen and pose records) "
+                          f"or \"station.toml\" ([screen] and [layout] as entered), got {geometry!r}")
+    from .commission_settings import PoseSettings, ScreenSettings       # (plain data too)
+    base = where.rsplit(" ", 1)[0]
+    ScreenSettings.from_table(table.get("screen", {}), f"{base} [calibration.screen]")
+    PoseSettings.from_table(table.get("pose", {}), f"{base} [calibration.pose]")
     routine = table.get("routine", {})
     if not isinstance(routine, dict):
         raise ConfigError(f"{where} routine must be a table ([calibration.routine])")

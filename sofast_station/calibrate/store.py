@@ -38,7 +38,7 @@ from .settings import CalibrationPolicy, calibration_settings
 
 log = logging.getLogger(__name__)
 
-KINDS = ("radiometric", "camera", "geometry")
+KINDS = ("radiometric", "camera", "geometry", "screen", "pose", "handheld")
 
 _NAME = re.compile(r"^(?P<kind>[a-z]+)-(?P<stamp>\d{8}T\d{6})Z-(?P<seq>\d{3,})\.json$")
 

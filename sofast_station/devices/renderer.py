@@ -7,7 +7,8 @@ its centre position, so the image does not depend on the GPU:
 * fringe: ``t = (1 + cos(2 pi p u / L - shift)) / 2``, ``y = floor + (maximum - floor) t``, the command
   value is the linearising lookup table evaluated at ``y`` (linear interpolation between entries) and
   rounded to the nearest of 0..255;
-* uniform: every pixel shows the given command value.
+* uniform: every pixel shows the given command value;
+* image: every pixel shows its command of a fixed image (fiducials), not through the lookup table.
 
 ``u`` is the position along the fringe axis measured from the left edge (x) or the bottom edge (y) of the
 active area (docs/conventions.md#screen-positions): display column c is at
@@ -34,7 +35,7 @@ void main() { gl_Position = vec4(in_pos, 0.0, 1.0); }
 
 _FRAGMENT = """
 #version 330
-uniform int mode;            // 0: uniform command, 1: fringe
+uniform int mode;            // 0: uniform command, 1: fringe, 2: image
 uniform float command;       // uniform mode: command / 255
 uniform int axis;            // 0: x fringes, 1: y fringes
 uniform float periods;       // cycles across the active extent
@@ -44,11 +45,14 @@ uniform float max_level;     // linear response at the fringe maximum, 0..1
 uniform vec2 size;           // active area in display pixels
 uniform sampler2D lut;       // N x 1, command / 255 as a function of linear response
 uniform float lut_n;
+uniform sampler2D picture;   // image mode: the commands / 255, row 0 at the bottom (OpenGL's)
 out float frag;
 void main() {
     float value;
     if (mode == 0) {
         value = command;
+    } else if (mode == 2) {
+        value = texelFetch(picture, ivec2(gl_FragCoord.xy), 0).r;
     } else {
         float frac = (axis == 0) ? gl_FragCoord.x / size.x : gl_FragCoord.y / size.y;
         float t = 0.5 + 0.5 * cos(6.283185307179586 * periods * frac - shift);
@@ -120,6 +124,8 @@ class FringeRenderer:
         self._lut.filter = (self.ctx.LINEAR, self.ctx.LINEAR)
         self._lut.repeat_x = self._lut.repeat_y = False
         self._prog["lut"].value = 0
+        self._prog["picture"].value = 1
+        self._picture = None            # (DisplayImage, texture) of the last image drawn
         self._prog["lut_n"].value = float(lut.size)
         self._prog["size"].value = (float(self.width_px), float(self.height_px))
         self._fbo = None
@@ -141,6 +147,20 @@ class FringeRenderer:
             p["shift"].value = float(pattern.shift_rad)
             p["floor_level"].value = self.floor_level
             p["max_level"].value = self.max_level
+        elif pattern.kind == "image":
+            image = pattern.image
+            if image is None or image.shape != (self.height_px, self.width_px):
+                raise DisplayError(f"an image pattern must be {self.width_px} x {self.height_px} commands, got "
+                                   f"{None if image is None else image.shape[::-1]}")
+            if self._picture is None or self._picture[0] != image:
+                if self._picture is not None:
+                    self._picture[1].release()
+                tex = self.ctx.texture((self.width_px, self.height_px), 1,
+                                       (image.pixels[::-1].astype("f4") / 255.0).tobytes(), dtype="f4")
+                tex.filter = (self.ctx.NEAREST, self.ctx.NEAREST)
+                self._picture = (image, tex)
+            self._picture[1].use(location=1)
+            p["mode"].value = 2
         else:
             raise DisplayError(f"unknown pattern kind {pattern.kind!r}")
         self._lut.use(location=0)
@@ -162,6 +182,9 @@ class FringeRenderer:
         return np.stack([self.render(p) for p in patterns])
 
     def release(self) -> None:
+        if self._picture is not None:
+            self._picture[1].release()
+            self._picture = None
         for obj in (self._fbo, self._vao, self._vbo, self._lut, self._prog):
             if obj is not None:
                 obj.release()

@@ -33,7 +33,7 @@ from .mask import facet_region
 from .metrics import focal_length_m, principal_axes, rms_summary
 from .phase import FrameNoise, frame_noise, phase_and_modulation, position_sigma_m, unwrap_positions
 from .pose import fix_range, solve_corner_pose
-from .screen import FlatScreen, ScreenModel
+from .screen import FlatScreen, InterpolatedScreen, ScreenModel
 from .stats import median
 from .pose import placement
 from .surface import surface_z
@@ -721,8 +721,24 @@ class Reduction:
 
 
 def default_screen(geometry: StationGeometry) -> ScreenModel:
-    """The flat screen of *geometry*."""
-    return FlatScreen(geometry.screen.width_m, geometry.screen.height_m, geometry.screen_to_camera)
+    """The screen of *geometry*: its measured shape when it has one (``calibrate screen``'s, an interpolated
+    3-D screen), else the flat screen of its stated pitch."""
+    measured = geometry.measured_screen
+    if measured is None:
+        return FlatScreen(geometry.screen.width_m, geometry.screen.height_m, geometry.screen_to_camera)
+    scr = geometry.screen
+    pose = geometry.screen_to_camera
+    key = (scr.pitch_x_m, scr.pitch_y_m, scr.width_m, scr.height_m, pose.rotation.tobytes(), pose.translation.tobytes())
+    # built once per geometry (its triangulation is the expensive part) and kept with the measured screen
+    models = measured.__dict__.setdefault("_models", {})
+    model = models.get(key)
+    if model is None:
+        model = InterpolatedScreen(scr.width_m, scr.height_m, measured.nodes_px * [scr.pitch_x_m, scr.pitch_y_m],
+                                   measured.nodes_screen_m, pose, modes_m=measured.modes_m)
+        if len(models) >= 4:
+            models.clear()
+        models[key] = model
+    return model
 
 
 def reduce_stages(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, design: FacetDesign,

@@ -129,10 +129,14 @@ class InterpolatedScreen:
         The grid's second coordinate counts from the top edge (height - u_y), as in OpenCSP's display
         models. The grid is triangulated in its own coordinates, so where a grid cell's two diagonals are
         equally good the interpolation matches the program that measured it.
+    modes_m : (K, M, 3) array, optional
+        The measured shape's independent uncertainty fields (every node's displacement at one standard
+        deviation of each, screen frame, metres): :meth:`displaced` moves the shape along one.
     """
 
     def __init__(self, width_m: float, height_m: float, nodes_uv: np.ndarray, nodes_screen_m: np.ndarray,
-                 screen_to_camera: Pose, centre_screen_m=(0.0, 0.0, 0.0), v_from_top: bool = False):
+                 screen_to_camera: Pose, centre_screen_m=(0.0, 0.0, 0.0), v_from_top: bool = False,
+                 modes_m: np.ndarray | None = None):
         from scipy.interpolate import LinearNDInterpolator
 
         nodes_uv = np.asarray(nodes_uv, np.float64)
@@ -148,6 +152,8 @@ class InterpolatedScreen:
         self._interp = LinearNDInterpolator(nodes_uv, nodes_screen_m)
         self._centre = np.asarray(centre_screen_m, np.float64)
         self._v_from_top = bool(v_from_top)
+        self._modes = (np.zeros((0,) + nodes_screen_m.shape) if modes_m is None
+                       else np.asarray(modes_m, np.float64).reshape(-1, *nodes_screen_m.shape))
         self._grid = self._as_grid(nodes_uv, nodes_screen_m)
 
     def _as_grid(self, nodes_uv: np.ndarray, nodes_screen_m: np.ndarray):
@@ -223,7 +229,19 @@ class InterpolatedScreen:
         nodes = self._nodes_screen.copy()
         nodes[:, i] = self._centre[i] + (nodes[:, i] - self._centre[i]) * factor
         return InterpolatedScreen(self.width_m, self.height_m, self._nodes_uv, nodes, self.screen_to_camera,
-                                  self._centre, self._v_from_top)
+                                  self._centre, self._v_from_top, self._modes)
+
+    @property
+    def n_modes(self) -> int:
+        """How many independent uncertainty fields the measured shape carries."""
+        return int(self._modes.shape[0])
+
+    def displaced(self, mode: int, factor: float) -> "InterpolatedScreen":
+        """The shape moved along its uncertainty field *mode* by *factor* standard deviations (the nodes
+        displaced; the pose kept)."""
+        nodes = self._nodes_screen + float(factor) * self._modes[int(mode)]
+        return InterpolatedScreen(self.width_m, self.height_m, self._nodes_uv, nodes, self.screen_to_camera,
+                                  self._centre, self._v_from_top, self._modes)
 
     def fingerprint(self) -> str:
         """A short hash of the measured shape (grid, points, centre, extents): what cached sensitivities
@@ -231,7 +249,7 @@ class InterpolatedScreen:
         import hashlib
 
         h = hashlib.sha256()
-        for a in (self._nodes_uv, self._nodes_screen, self._centre,
+        for a in (self._nodes_uv, self._nodes_screen, self._centre, self._modes,
                   np.array([self.width_m, self.height_m, float(self._v_from_top)])):
             h.update(np.ascontiguousarray(a, np.float64).tobytes())
         return h.hexdigest()[:16]

@@ -7,7 +7,12 @@ with the station's other commands; the routines themselves see only the device p
     sofast-station calibrate radiometric [--config station.toml] [--ramp-step 5] [--frames 2] [--no-plot]
     sofast-station calibrate camera IMAGES... --board chessboard --squares 10x7 --square-mm 30
     sofast-station calibrate geometry [--reference reference.toml]
+    sofast-station calibrate screen [--views 8] [--model auto]
+    sofast-station calibrate pose [--target reference_mirror.toml] [--placements 4]
+    sofast-station calibrate commission
     sofast-station calibrate status
+
+Every command ends its summary with a ``verdict:`` line.
 
 Progress goes to the log (stderr); the summary to stdout (``--json``: one JSON object instead).
 """
@@ -47,35 +52,16 @@ def _emit(args, data: dict, text: str) -> None:
 
 def cmd_radiometric(args) -> int:
     from ..config import load_config
-    from .factory import open_station
-    from ..calibrate.radiometric import calibrate_radiometric, save_radiometric, summary_text
-    from ..calibrate.settings import calibration_settings
-    from ..calibrate.store import check_warmup
+    from .commissioning import run_radiometric
 
     config = load_config(args.config)
-    policy, settings = calibration_settings(config)
     overrides = {k: v for k, v in (("ramp_step", args.ramp_step), ("frames_per_level", args.frames),
                                    ("max_exposure_periods", args.max_exposure_periods),
                                    ("max_frames_per_level", args.max_frames), ("gain_max", args.gain_max))
                  if v is not None}
-    if overrides:
-        try:
-            settings = dataclasses.replace(settings, **overrides)
-        except ConfigError as exc:
-            raise ConfigError(f"command line: {exc}") from None
-    log.info("radiometric calibration of %s (%s); records in %s", config.name, config.backend,
-             config.data_dir / "calibration" / "radiometric")
-    station = open_station(config, seed=args.seed, noise=not args.noise_free, calibration_checks=False)
-    try:
-        check_warmup(policy, config.data_dir, station.camera)
-        result = calibrate_radiometric(station.display, station.camera, settings)
-        source = (f"sofast-station {__version__} calibrate radiometric on {config.name} ({config.backend} backend, "
-                  f"{type(station.camera).__name__}, {type(station.display).__name__})")
-        record = save_radiometric(config.data_dir, result, source, plot=not args.no_plot)
-    finally:
-        station.close()
-    _emit(args, {k: v for k, v in record.to_dict(curve=True).items() if k != "lut"} | {"path": str(record.path)},
-          summary_text(record, record.path))
+    step = run_radiometric(config, seed=args.seed, noise=not args.noise_free, plot=not args.no_plot,
+                           overrides=overrides)
+    _emit(args, {k: v for k, v in step.data.items() if k != "headline"} | {"verdict": step.verdict}, step.summary)
     return 0
 
 
@@ -93,8 +79,15 @@ def cmd_camera(args) -> int:
     cal = calibrate_camera_images(read_images(args.images), board, fix_k3=not args.k3, min_images=args.min_images,
                                   max_edge_width_px=args.max_edge_width, fix_k2=args.fix_k2)
     source = f"sofast-station {__version__} calibrate camera, {len(args.images)} image(s)"
-    path = save_camera(config.data_dir, cal, source)
+    path = save_camera(config.data_dir, cal, source, "handheld" if args.handheld else "camera")
     cam = config.geometry.camera
+    if args.handheld:
+        use = "calibrate screen uses this record for the second camera (the newest handheld record)."
+        _emit(args, {"path": str(path), "rms_px": cal.rms_px, "camera": cal.intrinsics.to_dict(),
+                     "std_intrinsics": cal.std_intrinsics, "verdict": cal.verdict, "quality": cal.quality,
+                     "images": [r.to_dict() for r in cal.images], "use": use},
+              summary_text(cal, path) + "\n" + use + f"\nverdict: {cal.verdict.upper()}")
+        return 0
     if cal.intrinsics.shape != cam.shape:
         log.warning("the images are %d x %d, the station's camera [camera] is %d x %d", cal.intrinsics.width_px,
                     cal.intrinsics.height_px, cam.width_px, cam.height_px)
@@ -106,29 +99,54 @@ def cmd_camera(args) -> int:
     _emit(args, {"path": str(path), "rms_px": cal.rms_px, "camera": cal.intrinsics.to_dict(),
                  "std_intrinsics": cal.std_intrinsics, "verdict": cal.verdict, "quality": cal.quality,
                  "images": [r.to_dict() for r in cal.images], "use": use},
-          summary_text(cal, path) + "\n" + use)
+          summary_text(cal, path) + "\n" + use + f"\nverdict: {cal.verdict.upper()}")
     return 0
 
 
 def cmd_geometry(args) -> int:
     from ..config import load_config
-    from ..calibrate.geometry import check_geometry, station_reference, summary_text
-    from .factory import open_station
-    from .inspection import inspect
-    from ..calibrate.geometry_record import save_geometry
+    from .commissioning import run_geometry
 
-    config = load_config(args.config)
-    station = open_station(config, seed=args.seed, noise=not args.noise_free)
-    try:
-        reference = station_reference(station, args.reference)
-        log.info("measuring the reference facet %s on %s", reference.name, config.name)
-        check = check_geometry(inspect(station, "GEOMETRY-REFERENCE"), reference, config.uncertainty)
-    finally:
-        station.close()
-    source = f"sofast-station {__version__} calibrate geometry with {reference.name}"
-    path = save_geometry(config.data_dir, config, check, source)
-    _emit(args, {"path": str(path), **check}, summary_text(check, path))
-    return 0 if check["within_tolerance"] else 1
+    step = run_geometry(load_config(args.config), reference=args.reference, seed=args.seed, noise=not args.noise_free)
+    _emit(args, {k: v for k, v in step.data.items() if k != "headline"} | {"verdict": step.verdict}, step.summary)
+    return 0 if step.verdict == "pass" else 1
+
+
+def _emit_step(args, step) -> int:
+    """Print a commissioning step (its summary ends with its verdict; --json: its data, verdict and summary);
+    the exit status: 1 when it was refused (no record), else 0."""
+    _emit(args, {k: v for k, v in step.data.items() if k != "headline"} | {"verdict": step.verdict,
+                                                                        "summary": step.summary}, step.summary)
+    return 1 if step.verdict == "refused" else 0
+
+
+def cmd_screen(args) -> int:
+    from ..config import load_config
+    from .commissioning import run_screen
+
+    return _emit_step(args, run_screen(load_config(args.config), views=args.views, model=args.model, seed=args.seed,
+                                       noise=not args.noise_free))
+
+
+def cmd_pose(args) -> int:
+    from ..config import load_config
+    from .commissioning import run_pose
+
+    return _emit_step(args, run_pose(load_config(args.config), placements=args.placements, target=args.target,
+                                     seed=args.seed, noise=not args.noise_free))
+
+
+def cmd_commission(args) -> int:
+    from ..config import load_config
+    from .commissioning import commission, commission_summary
+
+    name = load_config(args.config).name
+    steps, verdict = commission(args.config, seed=args.seed, noise=not args.noise_free, reference=args.reference,
+                                target=args.target)
+    text = "\n\n".join(s.summary for s in steps) + "\n\n" + commission_summary(name, steps, verdict)
+    _emit(args, {"verdict": verdict, "steps": [{"name": s.name, "verdict": s.verdict, "path": s.path,
+                                                "summary": s.summary} for s in steps]}, text)
+    return 0 if verdict in ("pass", "warn") else 1
 
 
 def cmd_status(args) -> int:
@@ -159,13 +177,26 @@ def cmd_status(args) -> int:
     else:
         camera_in_force = "station.toml [camera]"
         lines.append("  camera intrinsics: station.toml [camera] (set intrinsics = \"record\" to use a camera record)")
+    commissioned = config.commissioned or {}
+    if commissioned:
+        lines.append("  geometry: " + ", ".join(f"{k} record {commissioned[k]['record_id']}" for k in ("screen", "pose")
+                                                if k in commissioned) + " ([calibration] geometry = \"records\")")
+        status.warnings.extend(commissioned.get("warnings", []))
+    elif config.raw.get("calibration", {}).get("geometry") == "station.toml":
+        lines.append("  geometry: station.toml [screen] and [layout] ([calibration] geometry = \"station.toml\")")
+    else:
+        lines.append("  geometry: station.toml [screen] and [layout] "
+                     "(no screen or pose record: run calibrate commission)")
     lines += [f"  ! {w}" for w in status.warnings]
     data = {"in_force": status.describe, "age_h": status.age_h, "warnings": status.warnings,
-            "camera_intrinsics": camera_in_force, "records": {}}
+            "camera_intrinsics": camera_in_force, "records": {},
+            "geometry": {k: v for k, v in commissioned.items() if k != "warnings"}}
     for kind in KINDS:
         records = list_records(config.data_dir, kind)
         data["records"][kind] = [str(p) for p in records]
         lines.append(f"  {kind}: {len(records)} record(s)" + (f", newest {records[-1].name}" if records else ""))
+    lines.append(f"verdict: {'WARN (see the warnings above)' if status.warnings else 'OK'}")
+    data["verdict"] = "warn" if status.warnings else "ok"
     _emit(args, data, "\n".join(lines))
     return 0
 
@@ -177,12 +208,15 @@ def register(subparsers, default_config_path: str | None = None) -> argparse.Arg
     :class:`~sofast_station.errors.StationError` for the main program to report).
     """
     cal = add_command(
-        subparsers, "calibrate", help="calibration routines: radiometric (daily), camera, geometry, status",
+        subparsers, "calibrate",
+        help="calibration routines: radiometric (daily), camera, geometry, screen, pose, commission, status",
         description="""
             The station's calibrations (docs/calibration.md). Each writes a dated record (JSON, never
             overwritten) under data_dir/calibration/; inspection uses the newest and warns or refuses when
             it is stale, as [calibration] in the station file says. Run 'radiometric' every morning after
-            the camera's warm-up; 'camera' and 'geometry' when the optics or the assembly change.""")
+            the camera's warm-up; 'camera' and 'geometry' when the optics or the assembly change;
+            'commission' (radiometric, screen, pose, geometry) when the station is built or its screen or
+            camera was moved.""")
     sub = cal.add_subparsers(dest="calibrate_command", required=True, metavar="SUBCOMMAND", title="subcommands")
 
     def common(p, simulated=True):
@@ -244,6 +278,9 @@ def register(subparsers, default_config_path: str | None = None) -> argparse.Arg
     cam.add_argument("--min-images", type=int, default=5, metavar="N", help="fewest usable images")
     cam.add_argument("--max-edge-width", type=float, default=4.0, metavar="PX",
                      help="reject images whose edges are wider than this many pixels (blurred)")
+    cam.add_argument("--handheld", action="store_true",
+                     help="the images are of the second camera of 'calibrate screen': its record goes to "
+                          "data_dir/calibration/handheld/ and is never taken for the station's camera")
     cam.set_defaults(func=cmd_camera)
 
     geo = add_command(
@@ -259,6 +296,57 @@ def register(subparsers, default_config_path: str | None = None) -> argparse.Arg
                      help="the reference facet's certificate ([reference] table: certified focal lengths, "
                           "placement and their uncertainties); the simulated station's twin truth by default")
     geo.set_defaults(func=cmd_geometry)
+
+    scr = add_command(
+        sub, "screen", help="the screen's shape and pitch, from views of a second camera (commissioning)",
+        description="""
+            Measure the screen's shape and pixel pitch (docs/calibration.md#commissioning-the-geometry): a
+            calibrated second camera, held or on a tripod about a metre from the screen, takes views from
+            around it while the screen shows fiducials and fringes, a certified scale board fixed beside the
+            screen. Fits a flat, a distorted 2-D and a distorted 3-D model and keeps the simplest the
+            residuals allow; judges itself (pass / warn / refused: no record when the parameters are not
+            determined, with what to do) and writes a dated screen record, which the analysis then uses.
+            On a real station the technician is asked for each view; the camera is [devices]
+            handheld_camera, its calibration the newest 'calibrate camera --handheld' record or
+            [calibration.screen] camera.""")
+    common(scr)
+    scr.add_argument("--views", type=int, default=None, metavar="N",
+                     help="views to take (default: [calibration.screen] views, else 8)")
+    scr.add_argument("--model", choices=("auto", "flat", "distorted2d", "distorted3d"), default=None,
+                     help="the shape model (default: [calibration.screen] model, else auto: the simplest the "
+                          "residuals allow)")
+    scr.set_defaults(func=cmd_screen)
+
+    pose = add_command(
+        sub, "pose", help="the camera's pose against the screen, and the fixture's, from a reference mirror",
+        description="""
+            Measure the camera's pose against the screen (6 degrees of freedom) and the fixture's pose
+            (docs/calibration.md#the-cameras-pose): the reference mirror, a flat front-surface mirror in a
+            certified printed ChArUco frame, is seated in the fixture and then tilted by shims; at each
+            placement the station captures its fringes and reads the range finder. Uses the screen record
+            in force (run 'calibrate screen' first). Judges itself (pass / warn / refused) and writes a
+            dated pose record, which the analysis then uses with its stated uncertainties.""")
+    common(pose)
+    pose.add_argument("--target", default=None, metavar="FILE",
+                      help="the reference mirror's certificate ([mirror] table; default: [calibration.pose] target)")
+    pose.add_argument("--placements", type=int, default=None, metavar="N",
+                      help="placements to take (default: [calibration.pose] placements, else 4)")
+    pose.set_defaults(func=cmd_pose)
+
+    com = add_command(
+        sub, "commission", help="the whole commissioning: radiometric, screen, pose and geometry, one summary",
+        description="""
+            Commission the station: the radiometric calibration (with its display-latency self-test),
+            then 'calibrate screen', 'calibrate pose' and 'calibrate geometry' (the reference facet checks
+            the whole chain), in order, each with the records the earlier ones wrote. Stops at a step that
+            is refused or fails, and prints every step's summary and one commissioning summary ending with
+            the verdict.""")
+    common(com)
+    com.add_argument("--reference", default=None, metavar="FILE",
+                     help="the reference facet's certificate for the geometry check (the twin's truth by default "
+                          "on the simulated station)")
+    com.add_argument("--target", default=None, metavar="FILE", help="the reference mirror's certificate")
+    com.set_defaults(func=cmd_commission)
 
     st = add_command(
         sub, "status", help="the calibration in force, its age, and the records kept",

@@ -65,6 +65,10 @@ class Station:
         entry = {"radiometric": self.radiometric.record_id}
         if self.config.camera_record is not None:
             entry["camera"] = self.config.camera_record["record_id"]
+        commissioned = getattr(self.config, "commissioned", None)
+        for kind in ("screen", "pose"):
+            if commissioned and kind in commissioned:
+                entry[kind] = commissioned[kind]["record_id"]
         status = self.calibration
         if status is not None:
             entry["origin"] = status.origin

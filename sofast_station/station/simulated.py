@@ -17,7 +17,8 @@ from ..devices.simulated import SimulatedCamera, SimulatedDisplay, SimulatedRang
 from ..errors import ConfigError
 from .opened import Station
 
-_SIM_KEYS = {"seed", "facet", "optics", "population", "distance_error_m", "faults", "hang_s", "slow_s"}
+_SIM_KEYS = {"seed", "facet", "optics", "population", "distance_error_m", "faults", "hang_s", "slow_s",
+             "assembly"}
 
 #: Faults the simulated station can inject for a given serial ([simulation.faults] SERIAL = KIND).
 FAULT_KINDS = SIMULATED_FAULTS
@@ -26,7 +27,13 @@ log = logging.getLogger(__name__)
 
 
 def build_twin(config: StationConfig, noise: bool = True):
-    """The digital twin described by ``[simulation]`` (true facet and optics) in the station's geometry."""
+    """The digital twin described by ``[simulation]`` (true facet and optics) in the station's geometry.
+
+    The twin's geometry is the one station.toml states (never one measured by a calibration: those are
+    estimates of the twin's truth), changed by ``[simulation.assembly]`` (a bowed screen of another pitch, a
+    misplaced camera: :class:`~sofast_station.twin.assembly.TrueAssembly`).
+    """
+    from ..twin.assembly import TrueAssembly, TrueScreen, true_geometry
     from ..twin.parameters import TrueFacet, TwinOptics
     from ..twin.station import TwinStation
 
@@ -37,16 +44,20 @@ def build_twin(config: StationConfig, noise: bool = True):
     try:
         facet = TrueFacet.from_dict(sim.get("facet", {}))
         optics = TwinOptics.from_dict(sim.get("optics", {}))
+        assembly = TrueAssembly.from_dict(sim.get("assembly", {}))
     except ConfigError as exc:
         raise ConfigError(f"{config.path} [simulation]: {exc}") from None
     if not noise:
         optics = optics.noise_free()
-    geometry = config.geometry
+    geometry = getattr(config, "stated_geometry", None) or config.geometry
     if config.camera_record is not None:
         # The analysis uses the camera record (an estimate); the twin's camera is the physical one, which
         # the [camera] table describes.
         geometry = dataclasses.replace(geometry, camera=config.camera_record["stated"])
-    return TwinStation(geometry, config.design, facet, optics)
+    screen = None if assembly.screen_is_ideal else TrueScreen(geometry.screen, assembly)
+    if not assembly.ideal:
+        geometry = true_geometry(geometry, assembly)
+    return TwinStation(geometry, config.design, facet, optics, screen_shape=screen)
 
 
 def build_population(config: StationConfig):
@@ -143,6 +154,20 @@ class SimulatedStation(Station):
         if optics is not None and design is not None:
             truth["optics"] = truth_optics(self.twin, valid, design, optics, self.design_traces)
         return truth
+
+    def handheld_camera(self, settings, seed: int | None = None):
+        """The second camera of ``calibrate screen``, with the twin's views of the screen
+        (:class:`~sofast_station.station.simulated_commission.SimulatedHandheld`: a Camera with ``place``)."""
+        from .simulated_commission import SimulatedHandheld
+
+        return SimulatedHandheld(self, settings, seed)
+
+    def mirror_placer(self, target, seed: int | None = None):
+        """The reference mirror of ``calibrate pose`` in the twin's fixture
+        (:class:`~sofast_station.station.simulated_commission.SimulatedMirror`: ``place`` and ``restore``)."""
+        from .simulated_commission import SimulatedMirror
+
+        return SimulatedMirror(self, target, seed)
 
     def reference_certificate(self) -> dict:
         """The facet in the fixture as a reference's certificate (``calibrate geometry``): the twin's truth,

@@ -123,6 +123,10 @@ class TwinStation:
         ``"area"``: an edge pixel's value is the light on its covered area (the band's sub-rays).
         ``"point"``: only its centre ray counts, so a pixel is facet or background and a slightly tilted
         edge is a staircase (a renderer that point-samples; no blur either way unless the optics have it).
+    screen_shape : TrueScreen, optional
+        The panel as it really is (bowed, twisted, another pitch: :mod:`sofast_station.twin.assembly`);
+        a flat screen of the stated pitch by default. *geometry* then holds the stated screen (the units
+        the fringes encode positions in) and the true poses.
 
     Attributes
     ----------
@@ -138,7 +142,7 @@ class TwinStation:
 
     def __init__(self, geometry: StationGeometry, design: FacetDesign, facet: TrueFacet = TrueFacet(),
                  optics: TwinOptics = TwinOptics(), supersample: int = 8, edge_band_px: float = 2.0,
-                 edge_sampling: str = "area"):
+                 edge_sampling: str = "area", screen_shape=None):
         if edge_sampling not in ("area", "point"):
             raise GeometryError(f"edge_sampling must be 'area' or 'point', got {edge_sampling!r}")
         self._edge_sampling = edge_sampling
@@ -147,6 +151,7 @@ class TwinStation:
         if not edge_band_px >= 1.0:
             raise GeometryError(f"edge_band_px must be at least 1 pixel, got {edge_band_px}")
         self.geometry = geometry
+        self.screen_shape = screen_shape
         self.design = design
         self.facet = facet
         self.optics = optics
@@ -254,13 +259,18 @@ class TwinStation:
         d_out_facet = d_in_facet - 2.0 * np.sum(d_in_facet * normal, axis=1, keepdims=True) * normal
         x_scr = self.facet_to_screen.apply(x_facet)
         d_out_scr = self.facet_to_screen.apply_vector(d_out_facet)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            path_m = -x_scr[:, 2] / d_out_scr[:, 2]
-        hits_plane = np.isfinite(path_m) & (path_m > 0)
-        path_m = np.where(hits_plane, path_m, np.nan)
-        t_scr = x_scr + path_m[:, None] * d_out_scr
         screen = self.geometry.screen
-        u_scr_m = np.column_stack([t_scr[:, 0] + 0.5 * screen.width_m, t_scr[:, 1] + 0.5 * screen.height_m])
+        if self.screen_shape is None:
+            with np.errstate(invalid="ignore", divide="ignore"):
+                path_m = -x_scr[:, 2] / d_out_scr[:, 2]
+            hits_plane = np.isfinite(path_m) & (path_m > 0)
+            path_m = np.where(hits_plane, path_m, np.nan)
+            t_scr = x_scr + path_m[:, None] * d_out_scr
+            u_scr_m = np.column_stack([t_scr[:, 0] + 0.5 * screen.width_m, t_scr[:, 1] + 0.5 * screen.height_m])
+        else:
+            # the panel as it really is: positions in the stated pitch's metres, as the fringes encode them
+            path_m, u_scr_m = self.screen_shape.trace(x_scr, d_out_scr)
+            hits_plane = np.isfinite(path_m)
         with np.errstate(invalid="ignore"):
             on_screen = hits_plane & (u_scr_m[:, 0] >= 0) & (u_scr_m[:, 0] < screen.width_m) \
                 & (u_scr_m[:, 1] >= 0) & (u_scr_m[:, 1] < screen.height_m)

@@ -310,3 +310,45 @@ def test_a_dump_whose_fringe_definition_names_no_patterns_says_so(small_config, 
         names = [v.decode() if isinstance(v, bytes) else str(v) for v in f["capture/patterns"][()]]
     assert names == [f"frame {i}" for i in range(n)]
 
+
+def test_a_measured_screen_travels_in_the_dump_and_reanalyses_exactly(small_capture, tmp_path):
+    """A capture measured with a screen record in force (a bowed, twisted panel, its uncertainty fields): the
+    dump keeps the measured shape (geometry/measured_screen), and reanalysing it gives every figure exactly
+    as archived; the same frames with the flat screen give others (the shape was used)."""
+    import copy
+    import dataclasses
+
+    from sofast_station.archive.dumps import DumpContent
+    from sofast_station.geometry import MeasuredScreen
+    from sofast_station.measure.analysis import analyse
+    from sofast_station.measure.screen_shape import ScreenShape, parameter_names, shape_modes
+    from sofast_station.result.record import build_record
+
+    station, frames, distance, flat_analysis, _ = small_capture
+    cfg = station.config
+    scr = cfg.geometry.screen
+    names = parameter_names("distorted3d")
+    p = np.zeros(len(names))
+    p[0] = 2e-3
+    p[names.index("z:2,0")], p[names.index("z:1,1")] = -8e-4, 3e-4
+    shape = ScreenShape("distorted3d", scr.width_m, scr.height_m, p)
+    uv, pts = shape.grid(33, 19)
+    modes, _ = shape_modes(shape, np.diag(np.full(len(names), 1e-10)), uv, max_modes=2)
+    measured = MeasuredScreen(uv / [scr.pitch_x_m, scr.pitch_y_m], pts, modes, "screen-test-001")
+    geometry = dataclasses.replace(cfg.geometry, measured_screen=measured)
+    analysis = analyse(frames, cfg.fringes, geometry, cfg.design, distance, cfg.analysis)
+    assert analysis.figures["focal_length_x_m"] != flat_analysis.figures["focal_length_x_m"]
+    measured_station = copy.copy(station)
+    measured_station.config = dataclasses.replace(cfg, geometry=geometry)
+    record = build_record(measured_station.record_head("SIM-MS"), figures=analysis.figures, timings={"total": 1.0})
+    crop, box, full = crop_to_facet(frames, cfg.analysis.mask_threshold_dn)
+    content = DumpContent.from_station(measured_station, cycle_id="ms-1", record=record, frames_cropped=crop,
+                                       crop_box=box, full_shape=full, measured_distance_m=distance)
+    write_dump(tmp_path / "ms.h5", content)
+    with h5py.File(tmp_path / "ms.h5") as f:
+        assert f["geometry/measured_screen/modes_m"].shape == (2, uv.shape[0], 3)
+    back = read_dump(tmp_path / "ms.h5")
+    assert back.station_geometry().measured_screen == measured
+    again = back.analyse()
+    figures = {k: v for k, v in again.figures.items() if k != "timings_s"}
+    assert json_ready(figures) == {k: back.record[k] for k in figures}

@@ -177,8 +177,17 @@ SCHEMA_V2: tuple[tuple[str, str, str, str, str, bool], ...] = tuple(
         ("geometry/screen/pitch_y_m", "dataset", "float64", "m",
          "display pixel pitch along y (rows), non-square pixels", False))))
 
-# Optional in version 2 (written since the station keeps them): older readers ignore it.
+# Optional in version 2 (written since the station keeps them): older readers ignore them.
 SCHEMA_V2 = SCHEMA_V2 + (
+    ("geometry/measured_screen", "group", "", "",
+     "the screen's measured shape the analysis used (calibrate screen's record), when one was in force", False),
+    ("geometry/measured_screen/nodes_px", "dataset", "float64 (M, 2)", "px",
+     "grid nodes, display pixels from the active area's left and bottom edges", False),
+    ("geometry/measured_screen/nodes_screen_m", "dataset", "float64 (M, 3)", "m",
+     "the nodes' points in the screen frame (origin the display's centre point, +z its normal there)", False),
+    ("geometry/measured_screen/modes_m", "dataset", "float64 (K, M, 3) or (0,)", "m",
+     "the shape's independent uncertainty fields, every node's displacement at one standard deviation", False),
+    ("geometry/measured_screen/record_id", "dataset", "str", "", "the screen record it came from", False),
     ("result/sensitivities_json", "dataset", "str", "",
      "the uncertainty's sensitivities the analysis used, as JSON text (re-analysis reuses them for the same "
      "inputs)", False),)

@@ -202,6 +202,26 @@ class InputUncertainties:
             return self
         return dataclasses.replace(self, response_record_rad=float(value)) if np.isfinite(value) else self
 
+    def with_commission_records(self, std: dict | None) -> "InputUncertainties":
+        """Where the screen and pose records in force (``calibrate screen``, ``calibrate pose``) state the
+        standard uncertainties of the camera-to-screen pose (``screen_rotation_mrad``,
+        ``screen_translation_mm``), the pitch (``screen_pitch_relative``) and the fixture pose
+        (``fixture_rotation_mrad``, ``fixture_translation_mm``), use them instead of the ``[uncertainty]``
+        values: measured, not typed in."""
+        if not isinstance(std, dict) or not std:
+            return self
+        out = self
+        try:
+            for key in ("screen_rotation_mrad", "screen_translation_mm", "fixture_rotation_mrad",
+                        "fixture_translation_mm"):
+                if key in std and len(std[key]) == 3:
+                    out = dataclasses.replace(out, **{key: tuple(float(v) for v in std[key])})
+            if "screen_pitch_relative" in std:
+                out = dataclasses.replace(out, screen_pitch_relative=float(std["screen_pitch_relative"]))
+        except (TypeError, ValueError):
+            return self
+        return out
+
     def with_geometry_record(self, std: dict | None) -> "InputUncertainties":
         """Where the geometry record in force (``calibrate geometry``, within tolerance, made with the
         present geometry) states what it determined (``fixture_translation_mm``, ``fixture_rotation_mrad``:
@@ -231,6 +251,13 @@ class Input:
     u: float
     unit: str
     kind: str = "systematic"
+
+
+def screen_shape_inputs(screen) -> list[Input]:
+    """The rows of a measured screen's shape (``calibrate screen``): one per independent uncertainty field the
+    screen carries (:meth:`~sofast_station.measure.screen.InterpolatedScreen.displaced`), each at one standard
+    deviation; none for a flat screen."""
+    return [Input(f"screen shape {k + 1}", "screen shape", 1.0, "sd") for k in range(getattr(screen, "n_modes", 0))]
 
 
 def budget_inputs(inputs: InputUncertainties, n_corners: int) -> list[Input]:

@@ -25,7 +25,7 @@ from ..camera import project
 from ..fit import BISQUARE_C
 from ..pipeline import default_screen, pose_from_corners, rerun
 from .inputs import (RECORD_DERIVED_KEYS, SCALAR_PATHS, Input, InputUncertainties, budget_inputs, get_path,
-                     small_motion)
+                     screen_shape_inputs, small_motion)
 
 
 def _phase_error_shift(positions: np.ndarray, length_m: float, periods: float, amplitude_rad: float,
@@ -115,6 +115,9 @@ def _perturbed_run(red, inp: Input, sign: float, ctx: dict):
         g = dataclasses.replace(g, screen_to_camera=screen.screen_to_camera)
     elif name.startswith("screen pitch"):
         screen = screen.stretched(name[-1], 1.0 + step)
+    elif name.startswith("screen shape"):
+        # a measured shape's independent uncertainty field (its record's), one standard deviation per unit
+        screen = screen.displaced(int(name.split()[-1]) - 1, step)
     elif name.startswith("display response") or name.startswith("frame brightness"):
         pos = dict(phases.positions_m)
         quadrature = name.split()[-1]
@@ -194,7 +197,7 @@ def sensitivities(reduction, *, fringes, geometry, design, measured_distance_m: 
                  measured_distance_m=measured_distance_m, settings=settings, screen=screen, pose=nominal_pose,
                  with_curl=False)
     f0 = np.array([_value(base.figures, p) for p in SCALAR_PATHS])
-    rows = budget_inputs(inputs, len(reduction.pose.corners_px))
+    rows = budget_inputs(inputs, len(reduction.pose.corners_px)) + screen_shape_inputs(screen)
     lin = np.zeros((len(rows), len(SCALAR_PATHS)))
     cur = np.zeros_like(lin)
     for i, inp in enumerate(rows):

@@ -1,0 +1,294 @@
+"""The geometry commissioning run on a station: ``calibrate screen``, ``calibrate pose`` and the whole
+``calibrate commission`` (radiometric, screen, pose, geometry in order, one summary).
+
+Each step opens the station from its configuration, runs its routine (:mod:`sofast_station.calibrate`)
+through the device protocols, writes its record and returns a :class:`Step`: its verdict (``pass``,
+``warn``, ``fail``: a reference check outside tolerance, ``refused``: no record, the parameters were not
+determined or the routine could not run), a summary ending with that verdict, and its data. On a real
+station the technician is asked, on the console, for every view and placement; on the simulated station
+the twin's second camera and reference mirror move instead.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+from .. import __version__
+from ..calibrate.errors import CalibrationError
+from ..errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Step:
+    """One calibration step's outcome."""
+
+    name: str
+    verdict: str
+    summary: str
+    data: dict = field(default_factory=dict)
+    path: str | None = None
+
+    def line(self) -> str:
+        """One line for the commissioning summary."""
+        first = self.summary.splitlines()[-1] if self.verdict == "refused" else self.data.get("headline", "")
+        return f"  {self.name:12s} {self.verdict.upper():8s} {first}"
+
+
+def _prompt(what: str):
+    """``place(k, n, hint)`` for a real station: ask the technician on the console."""
+
+    def place(k: int, n: int, hint: str) -> None:
+        input(f"{what} {k + 1} of {n}: {hint}. Press Enter when ready ")
+
+    return place
+
+
+def _handheld_intrinsics(config, settings):
+    """The second camera's calibration: its newest ``handheld`` record, else [calibration.screen] camera."""
+    from ..calibrate.camera import load_camera_record
+    from ..calibrate.store import newest_record_path
+
+    path = newest_record_path(config.data_dir, "handheld")
+    if path is not None:
+        camera, record = load_camera_record(path)
+        std = record.get("std_intrinsics") or {}
+        prior = list(settings.camera.std)
+        try:
+            prior[:4] = [float(std["fx"]), float(std["fy"]), float(std["cx"]), float(std["cy"])]
+            if len(std.get("distortion", [])) == 5:
+                prior[4:] = [float(v) for v in std["distortion"]]
+        except (KeyError, TypeError, ValueError):
+            pass
+        return camera, tuple(prior), f"handheld camera record {path.name}"
+    if settings.camera.intrinsics is None:
+        raise ConfigError(f"{config.path} [calibration.screen]: no calibration of the second camera: run "
+                          "'sofast-station calibrate camera --handheld IMAGES...' with it, or give "
+                          "[calibration.screen] camera")
+    return settings.camera.intrinsics, tuple(settings.camera.std), f"{config.path} [calibration.screen] camera"
+
+
+def _open_handheld(station, config, settings, seed):
+    """The second camera and its ``place``: the twin's on the simulated station, else [devices]
+    handheld_camera's with the technician asked for every view."""
+    if hasattr(station, "handheld_camera"):
+        cam = station.handheld_camera(settings, seed)
+        return cam, cam.place
+    from ..devices.cameras import open_camera
+
+    dev = config.raw.get("devices", {})
+    kind = dev.get("handheld_camera")
+    if kind is None:
+        raise ConfigError(f"{config.path} [devices]: name the second camera of calibrate screen (handheld_camera = "
+                          "\"aravis\" or \"basler\", handheld_camera_options = {...})")
+    return open_camera(kind, **dict(dev.get("handheld_camera_options", {}))), _prompt("Second camera, view")
+
+
+def run_screen(config, *, views: int | None = None, model: str | None = None, seed: int | None = None,
+               noise: bool = True) -> Step:
+    """``calibrate screen`` on the station of *config*."""
+    import dataclasses
+
+    from ..calibrate.commission_settings import commission_settings
+    from ..calibrate.screen import calibrate_screen, save_screen, summary_text
+    from .factory import open_station
+
+    settings, _ = commission_settings(config.raw, config.path.parent, str(config.path))
+    if views is not None or model is not None:
+        try:
+            settings = dataclasses.replace(settings, views=views or settings.views, model=model or settings.model)
+        except ConfigError as exc:
+            raise ConfigError(f"command line: {exc}") from None
+    intrinsics, std, source_cam = _handheld_intrinsics(config, settings)
+    stated = (config.stated_geometry or config.geometry).screen
+    log.info("screen calibration of %s: %d views with the second camera (%s)", config.name, settings.views, source_cam)
+    station = open_station(config, seed=seed, noise=noise, calibration_checks=False)
+    try:
+        camera, place = _open_handheld(station, config, settings, seed)
+        try:
+            cal = calibrate_screen(station.display, camera, place, settings, stated, config.fringes, intrinsics, std)
+        except CalibrationError as exc:
+            return Step("screen", "refused", f"{exc}\nverdict: REFUSED")
+        finally:
+            camera.close()
+    finally:
+        station.close()
+    if cal.verdict == "refused":
+        return Step("screen", "refused", summary_text(cal), {"quality": cal.quality})
+    source = f"sofast-station {__version__} calibrate screen on {config.name} ({config.backend}; {source_cam})"
+    path = save_screen(config.data_dir, cal, source)
+    best = cal.fit.best
+    h = best.shape.height_summary()
+    rel = [best.shape.pitch_scale[0] - 1.0, best.shape.pitch_scale[1] - 1.0]
+    headline = (f"pitch {100 * rel[0]:+.3f} % / {100 * rel[1]:+.3f} % against station.toml, {best.shape.model}, "
+                f"sag {1e3 * h['sag_m']:+.3f} mm, twist {1e3 * h['twist_m']:+.3f} mm; {path.name}")
+    return Step("screen", cal.verdict, summary_text(cal, path),
+                {"path": str(path), "headline": headline, "quality": cal.quality, "model": best.shape.model,
+                 "pitch_vs_stated_relative": rel, "heights": h}, str(path))
+
+
+def run_pose(config, *, placements: int | None = None, target: str | None = None, seed: int | None = None,
+             noise: bool = True) -> Step:
+    """``calibrate pose`` on the station of *config*."""
+    import dataclasses
+
+    import numpy as np
+
+    from ..calibrate.commission_settings import commission_settings, load_mirror_target
+    from ..calibrate.pose import calibrate_pose, pose_std, save_pose, summary_text
+    from ..calibrate.screen import load_screen_record
+    from ..calibrate.store import newest_record_path
+    from ..measure.screen_shape import ScreenShape
+    from .factory import open_station
+
+    _, settings = commission_settings(config.raw, config.path.parent, str(config.path))
+    if placements is not None:
+        settings = dataclasses.replace(settings, placements=placements)
+    mirror = load_mirror_target(target or settings.target)
+    stated = config.stated_geometry or config.geometry
+    screen_path = newest_record_path(config.data_dir, "screen")
+    if screen_path is not None:
+        rec = load_screen_record(screen_path)
+        shape = ScreenShape.from_dict(rec["shape"])
+        cov = np.asarray(rec["covariance"], dtype=np.float64)
+        pitch_std = tuple(float(v) for v in np.sqrt(np.clip(np.diag(cov)[:2], 0.0, None)))
+        screen_record = rec["record_id"]
+    else:
+        shape = ScreenShape("flat", stated.screen.width_m, stated.screen.height_m)
+        pitch_std, screen_record = (0.0, 0.0), None
+    camera_std = None
+    if config.camera_record is not None and isinstance(config.camera_record.get("std"), dict):
+        s = config.camera_record["std"]
+        try:
+            camera_std = [float(s["fx"]), float(s["fy"]), float(s["cx"]), float(s["cy"]),
+                          *[float(v) for v in s.get("distortion", [0.0] * 5)]]
+        except (KeyError, TypeError, ValueError):
+            camera_std = None
+    log.info("pose calibration of %s: %d placements of %s", config.name, settings.placements, mirror.name)
+    station = open_station(config, seed=seed, noise=noise, calibration_checks=False)
+    try:
+        if hasattr(station, "mirror_placer"):
+            placer = station.mirror_placer(mirror, seed)
+            place, restore = placer.place, placer.restore
+        else:
+            place = _prompt("Reference mirror, placement")
+
+            def restore():
+                input("Take the reference mirror out of the fixture. Press Enter when done ")
+        try:
+            cal = calibrate_pose(station.display, station.camera, station.range_finder, place, settings, mirror,
+                                 stated, config.design, config.fringes, shape, pitch_std=pitch_std,
+                                 screen_record=screen_record, camera_std=camera_std,
+                                 distance_std_mm=config.uncertainty.distance_mm)
+        except CalibrationError as exc:
+            return Step("pose", "refused", f"{exc}\nverdict: REFUSED")
+        finally:
+            restore()
+    finally:
+        station.close()
+    if cal.verdict == "refused":
+        return Step("pose", "refused", summary_text(cal), {"quality": cal.quality})
+    source = f"sofast-station {__version__} calibrate pose on {config.name} ({config.backend}; {mirror.name})"
+    path = save_pose(config.data_dir, cal, source)
+    std = pose_std(cal.fit.screen_covariance)
+    headline = (f"screen depth U {2 * std['translation_mm'][2]:.2f} mm, rotation U "
+                f"{2 * max(std['rotation_mrad']):.2f} mrad (k=2); {path.name}")
+    return Step("pose", cal.verdict, summary_text(cal, path),
+                {"path": str(path), "headline": headline, "quality": cal.quality, "screen_std": std}, str(path))
+
+
+def run_geometry(config, *, reference: str | None = None, seed: int | None = None, noise: bool = True) -> Step:
+    """``calibrate geometry`` (the reference facet checks the whole chain) on the station of *config*."""
+    from ..calibrate.geometry import check_geometry, station_reference, summary_text
+    from ..calibrate.geometry_record import save_geometry
+    from .factory import open_station
+    from .inspection import inspect
+
+    station = open_station(config, seed=seed, noise=noise)
+    try:
+        ref = station_reference(station, reference)
+        log.info("measuring the reference facet %s on %s", ref.name, config.name)
+        check = check_geometry(inspect(station, "GEOMETRY-REFERENCE"), ref, config.uncertainty)
+    finally:
+        station.close()
+    source = f"sofast-station {__version__} calibrate geometry with {ref.name}"
+    path = save_geometry(config.data_dir, config, check, source)
+    verdict = "pass" if check["within_tolerance"] else "fail"
+    f = check["focal_lengths"]
+    rel = [f[a]["relative_error"] for a in ("x", "y")]
+    headline = ("f " + ", ".join(f"{a} {100 * r:+.4f} %" for a, r in zip("xy", rel) if r is not None)
+                + f" against the certificate; {path.name}")
+    return Step("geometry", verdict, summary_text(check, path) + f"\nverdict: {verdict.upper()}",
+                {"path": str(path), "headline": headline, **check}, str(path))
+
+
+def run_radiometric(config, *, seed: int | None = None, noise: bool = True, plot: bool = True,
+                    overrides: dict | None = None) -> Step:
+    """``calibrate radiometric`` (with its display-latency self-test) on the station of *config*."""
+    import dataclasses
+
+    from ..calibrate.radiometric import calibrate_radiometric, save_radiometric, summary_text
+    from ..calibrate.settings import calibration_settings
+    from ..calibrate.store import check_warmup
+    from .factory import open_station
+
+    policy, settings = calibration_settings(config)
+    if overrides:
+        try:
+            settings = dataclasses.replace(settings, **overrides)
+        except ConfigError as exc:
+            raise ConfigError(f"command line: {exc}") from None
+    log.info("radiometric calibration of %s (%s); records in %s", config.name, config.backend,
+             config.data_dir / "calibration" / "radiometric")
+    station = open_station(config, seed=seed, noise=noise, calibration_checks=False)
+    try:
+        check_warmup(policy, config.data_dir, station.camera)
+        result = calibrate_radiometric(station.display, station.camera, settings)
+        source = (f"sofast-station {__version__} calibrate radiometric on {config.name} ({config.backend} backend, "
+                  f"{type(station.camera).__name__}, {type(station.display).__name__})")
+        record = save_radiometric(config.data_dir, result, source, plot=plot)
+    finally:
+        station.close()
+    headline = (f"exposure {1e3 * record.exposure_s:.2f} ms, gain {record.gain:.3f}, display latency "
+                f"{record.latency_frames} frame(s); {record.path.name}")
+    data = {k: v for k, v in record.to_dict(curve=True).items() if k != "lut"} | {"path": str(record.path),
+                                                                               "headline": headline}
+    return Step("radiometric", "pass", summary_text(record, record.path) + "\nverdict: PASS", data, str(record.path))
+
+
+def commission(config_path, *, seed: int | None = None, noise: bool = True, reference: str | None = None,
+               target: str | None = None, progress=None) -> tuple[list[Step], str]:
+    """The whole commissioning: radiometric, screen, pose, geometry, in order; the configuration is read
+    again after each step (its records change the geometry in force). Stops at a step that is refused or
+    fails. Returns the steps and the overall verdict (the worst step's)."""
+    from ..config import load_config
+
+    say = progress or log.info
+    steps: list[Step] = []
+    runs = [("radiometric", lambda c: run_radiometric(c, seed=seed, noise=noise)),
+            ("screen", lambda c: run_screen(c, seed=seed, noise=noise)),
+            ("pose", lambda c: run_pose(c, target=target, seed=seed, noise=noise)),
+            ("geometry", lambda c: run_geometry(c, reference=reference, seed=seed, noise=noise))]
+    for k, (name, run) in enumerate(runs):
+        say(f"commissioning step {k + 1} of {len(runs)}: calibrate {name}")
+        step = run(load_config(config_path))
+        steps.append(step)
+        say(f"calibrate {name}: {step.verdict.upper()}")
+        if step.verdict in ("refused", "fail"):
+            break
+    order = ["pass", "warn", "fail", "refused"]
+    verdict = max((s.verdict for s in steps), key=order.index)
+    if len(steps) < len(runs) and verdict == "pass":
+        verdict = "fail"
+    return steps, verdict
+
+
+def commission_summary(config_name: str, steps: list[Step], verdict: str, total: int = 4) -> str:
+    lines = [f"Commissioning of {config_name}"]
+    lines += [s.line() for s in steps]
+    if len(steps) < total:
+        lines.append(f"  (stopped after {steps[-1].name}: the later steps need it)")
+    lines.append(f"verdict: {verdict.upper()}")
+    return "\n".join(lines)
