@@ -170,6 +170,61 @@ def lower_priority(niceness: int = 10) -> None:
         log.debug("could not lower the priority: %s", exc)
 
 
+#: Environment variables that set the thread count of the BLAS/OpenMP libraries numpy may use.
+BLAS_THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS",
+                    "VECLIB_MAXIMUM_THREADS", "NUMEXPR_NUM_THREADS")
+
+
+def single_thread_blas() -> bool:
+    """Ask for BLAS on one thread, unless the user set a thread count explicitly (before numpy is loaded:
+    the libraries read it when they load; docs/conventions.md#determinism).
+
+    One thread gives the re-analysis its bit-exact results, and spares a one-off command the start of a
+    thread pool it does not need: on a busy machine, OpenBLAS's first call (scipy's triangulation of the
+    OpenCSP screen) took 0.3 to 1.2 s with its pool, half a millisecond without.
+
+    Returns
+    -------
+    bool
+        True when numpy was not loaded yet, so the setting takes effect in this process (it always
+        takes effect in processes started afterwards).
+    """
+    for var in BLAS_THREAD_VARS:
+        os.environ.setdefault(var, "1")
+    return "numpy" not in sys.modules
+
+
+def check_station_file(args: argparse.Namespace) -> None:
+    """Refuse a command whose station file (``--config``) is missing or not TOML before the command loads
+    anything: the mistake is reported in a tenth of a second, not after numpy, OpenCV and the analysis'
+    kernels have been loaded (what ``load_config`` needs). Commands without ``--config``, or whose
+    ``--config`` was left unset (``report``), pass.
+
+    Raises
+    ------
+    ConfigError
+        Naming the file and what to do.
+    """
+    path = getattr(args, "config", None)
+    if not isinstance(path, (str, Path)) or not str(path):
+        return
+    import tomllib
+
+    from .errors import ConfigError
+
+    path = Path(path).expanduser().resolve()
+    # The words of files.read_toml, which load_config reads the file with (this module imports no other).
+    try:
+        tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"station file {path} does not exist; pass --config or run from the project "
+                          "folder") from None
+    except IsADirectoryError:
+        raise ConfigError(f"station file {path} is a folder: pass --config with the station.toml in it") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"station file {path} is not valid TOML: {exc}") from None
+
+
 def build_parser(prog: str = "sofast-station", description: str = "", epilog: str = "",
                  modules=COMMAND_MODULES) -> argparse.ArgumentParser:
     """The parser of every command of *modules* (by default all of :data:`COMMAND_MODULES`)."""
@@ -193,6 +248,7 @@ def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.DEBUG if getattr(args, "verbose", False) else logging.INFO, stream=sys.stderr,
                         format="%(asctime)s %(levelname)s %(message)s", datefmt="%H:%M:%S")
     try:
+        check_station_file(args)
         return args.func(args)
     except StationError as exc:
         log.error("%s", exc)

@@ -11,7 +11,6 @@ import dataclasses
 import hashlib
 import json
 import logging
-import os
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
@@ -23,7 +22,7 @@ from .calibrate.settings import CALIBRATION_KEYS, parse_calibration_table
 from .config_schema import add_dataclass_keys, validate
 from .ensemble import EnsembleDesign, is_ensemble_file, load_ensemble
 from .facet import FacetDesign, load_facet
-from .files import read_toml
+from .files import data_dir_of, read_toml
 from .fringes import FringeSet
 from .geometry import CameraIntrinsics, ScreenSpec, StationGeometry
 from .layout import layout_station
@@ -137,9 +136,7 @@ def load_config(path: str | Path, use_camera_record: bool = True) -> StationConf
     backend = st.get("backend", "simulated")
     if backend not in _BACKENDS:
         raise ConfigError(f"{where} [station] backend must be one of {_BACKENDS}, got {backend!r}")
-    data_dir = Path(os.environ.get("SOFAST_DATA_DIR") or st.get("data_dir", "~/sofast-station-data")).expanduser()
-    if not data_dir.is_absolute():
-        data_dir = base / data_dir
+    data_dir = data_dir_of(st, base)
     facet_path = base / _need(st, "facet", f"{where} [station]")
     ensemble = None
     if is_ensemble_file(facet_path):      # a heliostat: laid out for its bounding outline

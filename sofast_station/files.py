@@ -16,3 +16,36 @@ def read_toml(path: Path, what: str, hint: str = "") -> dict:
         raise ConfigError(f"{what} {path} does not exist{'; ' + hint if hint else ''}") from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise ConfigError(f"{what} {path} is not valid TOML: {exc}") from None
+
+
+#: Where a station writes when its file names no ``data_dir``.
+DEFAULT_DATA_DIR = "~/sofast-station-data"
+
+
+def data_dir_of(station_table: dict, base: Path) -> Path:
+    """The ``data_dir`` of a station file's ``[station]`` table: the environment variable ``SOFAST_DATA_DIR``
+    when set, else the table's (``~`` expanded; relative to the file's folder *base*), else
+    :data:`DEFAULT_DATA_DIR`."""
+    import os
+
+    data_dir = Path(os.environ.get("SOFAST_DATA_DIR") or station_table.get("data_dir", DEFAULT_DATA_DIR)).expanduser()
+    return data_dir if data_dir.is_absolute() else Path(base) / data_dir
+
+
+def station_data_dir(path: str | Path) -> Path | None:
+    """The ``data_dir`` of the station file *path* from its ``[station]`` table alone (no validation, nothing
+    loaded but the TOML), for a command that only keeps a cache there; None when the file cannot be read
+    (the command then goes without)."""
+    import os
+
+    path = Path(path).expanduser()
+    if os.environ.get("SOFAST_DATA_DIR"):
+        return Path(os.environ["SOFAST_DATA_DIR"]).expanduser()
+    try:
+        raw = tomllib.loads(path.read_text())
+    except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError):
+        return None
+    table = raw.get("station", {})
+    if not isinstance(table, dict) or not isinstance(table.get("data_dir", ""), str):
+        return None
+    return data_dir_of(table, path.resolve().parent)

@@ -23,6 +23,10 @@ MAX_CAMERAS = 2
 
 _TABLES: "OrderedDict[tuple, RayTable]" = OrderedDict()
 _LOCK = threading.Lock()
+#: The station's cache on disk this process keeps its rays in (:func:`use_disk_cache`), and how many
+#: pixels of each table were there when it was read or last written.
+_DISK = None
+_ON_DISK: dict = {}
 
 
 def _camera_key(camera: CameraIntrinsics) -> tuple:
@@ -42,11 +46,41 @@ def ray_table(camera: CameraIntrinsics) -> RayTable:
         table = _TABLES.get(key)
         if table is None:
             table = _TABLES[key] = RayTable(camera)
+            if _DISK is not None:
+                from .cache import load_rays
+                _ON_DISK[key] = load_rays(_DISK, table)
             while len(_TABLES) > MAX_CAMERAS:
-                _TABLES.popitem(last=False)
+                _ON_DISK.pop(_TABLES.popitem(last=False)[0], None)
         else:
             _TABLES.move_to_end(key)
         return table
+
+
+def use_disk_cache(cache) -> None:
+    """Keep this process's pixel rays in the station's cache on disk too (a
+    :class:`~sofast_station.cache.DiskCache`, or None: not): a ray table is filled from it when first
+    asked for, and :func:`keep_rays` writes back what the analyses added. For the commands that start a
+    process per use (``reprocess``, ``import-opencsp``, ``inspect``); the rays are the same bits either way."""
+    global _DISK
+    with _LOCK:
+        _DISK = cache
+
+
+def keep_rays() -> int:
+    """Write every ray table that gained pixels since it was read to the cache of :func:`use_disk_cache`;
+    returns how many tables were written."""
+    if _DISK is None:
+        return 0
+    from .cache import save_rays
+
+    written = 0
+    with _LOCK:
+        for key, table in _TABLES.items():
+            n = table.n_known
+            if n > _ON_DISK.get(key, 0) and save_rays(_DISK, table):
+                _ON_DISK[key] = n
+                written += 1
+    return written
 
 
 def keep_freed_memory() -> bool:

@@ -30,7 +30,7 @@ FLOORS: tuple[tuple[str, frozenset], ...] = (
     ("programs", frozenset({"reanalysis", "station", "interop"})),
     ("the monitor", frozenset({"web"})),
     ("shown and shared", frozenset({"report", "live"})),
-    ("configured and kept", frozenset({"config", "config_schema", "recipes", "archive", "precompute"})),
+    ("configured and kept", frozenset({"config", "config_schema", "recipes", "archive", "precompute", "cache"})),
     ("the result", frozenset({"result"})),
     ("routines, devices, oracle, math", frozenset({"calibrate", "devices", "twin", "measure", "qc", "optics",
                                                    "layout"})),

@@ -101,3 +101,16 @@ def test_heliostat_benchmark_quick(repo_root):
     for line in ("single facet: dish-5.33, camera 400 x 300", "heliostat heliostat-2x2: 4 facets",
                  "heliostat heliostat-5x5: 25 facets", "2x2 against one facet:", "load average after"):
         assert line in proc.stdout
+
+
+def test_commands_benchmark_quick(repo_root):
+    """benchmarks/commands.py: --help, the usage errors, reprocess and import-opencsp (native), one run each on
+    the small station (report's journal is left out: the slowest setup)."""
+    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "commands.py"), "--quick", "--only", "help",
+                           "--only", "usage error", "--only", "reprocess", "--only", "import-opencsp"],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    print(proc.stdout)
+    for line in ("sofast-station --help", "inspect --config nowhere.toml", "reprocess DUMP (cache cold)",
+                 "import-opencsp --robust, native (cache warm)", "| command | wall s", "load average after"):
+        assert line in proc.stdout

@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import json
+import logging
 import sys
 from pathlib import Path
 
-from ..commands import add_command, json_safe
+from ..commands import add_command, json_safe, single_thread_blas
 
 
 def register(subparsers) -> None:
@@ -114,31 +115,47 @@ def _pm(v, u, unit: str = "", digits: int = 3) -> str:
 
 
 def cmd_import_opencsp(args) -> int:
+    single_thread_blas()            # before numpy: bit-exact as reprocess, and no BLAS thread pool to start
     from ..errors import ConfigError
-    from ..precompute import prepare_analysis_process
-    from .opencsp import opencsp_test_data_paths, read_opencsp, read_opencsp_result
+    from .paths import FILES, check_files, opencsp_test_data_paths
 
     paths = opencsp_test_data_paths(Path(args.test_data), args.multi_facet) if args.test_data else {}
     if args.multi_facet and not args.test_data and not args.ensemble:
         raise ConfigError("import-opencsp --multi-facet reads OpenCSP's test-data layout: give --test-data DIR (or "
                           "--ensemble FILE with the measurement's files)")
-    for key in ("measurement", "camera", "display", "orientation", "calibration", "facet", "ensemble"):
+    for key in FILES:
         if getattr(args, key, None):
             paths[key] = Path(getattr(args, key))
         if key not in paths and key != "ensemble":
             raise ConfigError(f"import-opencsp needs --{key} (or --test-data with OpenCSP's folder layout)")
+    for key in ("compare", "uncertainty"):
+        if getattr(args, key) and not Path(getattr(args, key)).is_file():
+            raise ConfigError(f"--{key} {getattr(args, key)} does not exist")
     if "ensemble" in paths:
         missing = [f"{k} {v}" for k, v in paths.items() if not Path(v).is_file()]
         if missing:
             raise ConfigError("the multi-facet measurement's files are not all present: missing " + "; ".join(missing)
                               + " (OpenCSP's test data ships measurement_ensemble.h5, Facet_split_NSTTF.json and "
                                 "Ensemble_split_NSTTF_facet.json)")
+    check_files(paths, Path(args.test_data) if args.test_data else None)   # before numpy and HDF5 are loaded
+    from ..precompute import prepare_analysis_process
+    from .opencsp import read_opencsp, read_opencsp_result
     table = read_uncertainty_table(Path(args.uncertainty)) if args.uncertainty else None
     m = read_opencsp(**paths, focal_length_m=args.focal_length, uncertainty=table)
     prepare_analysis_process()      # as the station's worker: memory reused, kernels loaded first
     if m.ensemble is not None:
         return _import_ensemble(m, args)
-    cache: dict = {}                # the uncertainty's sensitivities, per geometry and recipe
+    from ..cache import SensitivityStore, capture_basis, open_cache
+    from ..commands import default_config
+    from ..files import station_data_dir
+    from ..precompute import keep_rays, use_disk_cache
+
+    # The uncertainty's sensitivities (per geometry, recipe and inputs) and the camera's rays, computed from
+    # this measurement before and kept in the station's cache (data_dir/cache; sofast_station/cache.py): a
+    # second import of the same files reads them. The figures are the same bits either way.
+    disk = open_cache(station_data_dir(default_config()))
+    use_disk_cache(disk)
+    cache = SensitivityStore(disk, lambda: capture_basis(m.frames, m.distance_m, source="opencsp"))
     a = m.analyse(robust=args.robust, uncertainty=m.uncertainty, sensitivity_cache=cache)
     fig = a.figures
     out = {"facet": m.name, "measured": m.date, "robust": args.robust, **figures_with_u(fig),
@@ -150,13 +167,22 @@ def cmd_import_opencsp(args) -> int:
     out["optics"] = analysis_optics(a, m.design, OpticsSettings()).figures
     if args.compare:
         ref = read_opencsp_result(Path(args.compare))
+        # The sensitivities of the analysis above first (as before the cache), else those kept for OpenCSP's
+        # pixels (its mask is part of their key).
+        on_its_pixels = SensitivityStore(disk, lambda: capture_basis(m.frames, m.distance_m, ref.mask,
+                                                                     source="opencsp"), initial=dict(cache))
         theirs = m.analyse(robust=ref.robust, pixel_mask=ref.mask, uncertainty=m.uncertainty,
-                           sensitivity_cache=cache).figures
+                           sensitivity_cache=on_its_pixels).figures
         out["opencsp"] = {"file": args.compare, "robust": ref.robust, "focal_length_x_m": ref.focal_length_x_m,
                           "focal_length_y_m": ref.focal_length_y_m, "n_points": int(ref.mask.sum()),
                           "ours_on_its_pixels": theirs["subsample_fit"],
                           "ours_on_its_pixels_U": theirs.get("subsample_fit_U"),
                           "ours_on_its_pixels_U_random": theirs.get("subsample_fit_U_random")}
+    keep_rays()
+    hits = cache.hits + (on_its_pixels.hits if args.compare else 0)
+    if hits:
+        logging.getLogger(__name__).info("%d set(s) of the uncertainty's sensitivities read from the cache in %s "
+                                         "(computed from these files before)", hits, disk.directory)
     out = json_safe(out)
     if args.json:
         json.dump(out, sys.stdout, indent=1)

@@ -48,6 +48,7 @@ from ..measure.pipeline import Analysis, AnalysisSettings
 from ..measure.screen import InterpolatedScreen
 from ..measure.uncertainty import InputUncertainties, Sensitivities
 from ..precompute import ray_table
+from .paths import opencsp_test_data_paths  # noqa: F401  (its public place until now)
 
 log = logging.getLogger(__name__)
 
@@ -106,12 +107,18 @@ def screen_nodes(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
 def reorder_frames(fringe_images: np.ndarray, n_y_sets: int, n_x_sets: int) -> np.ndarray:
     """OpenCSP (rows, cols, 4 (n_y + n_x)) with y sets first -> ours (4 (n_x + n_y), rows, cols), x first."""
-    n_y = 4 * n_y_sets
-    if fringe_images.shape[2] != n_y + 4 * n_x_sets:
-        raise ConfigError(f"OpenCSP fringe images hold {fringe_images.shape[2]} frames, expected "
-                          f"{n_y + 4 * n_x_sets} for {n_y_sets} y and {n_x_sets} x period(s)")
     stack = np.moveaxis(fringe_images, 2, 0)
-    return np.concatenate([stack[n_y:], stack[:n_y]])
+    return stack[fringe_order(fringe_images.shape[2], n_y_sets, n_x_sets)]
+
+
+def fringe_order(n_frames: int, n_y_sets: int, n_x_sets: int) -> list[int]:
+    """OpenCSP's fringe image index of each of our fringe frames: its x sets (stored after the y sets) first,
+    then its y sets (:func:`reorder_frames`)."""
+    n_y = 4 * n_y_sets
+    if n_frames != n_y + 4 * n_x_sets:
+        raise ConfigError(f"OpenCSP fringe images hold {n_frames} frames, expected "
+                          f"{n_y + 4 * n_x_sets} for {n_y_sets} y and {n_x_sets} x period(s)")
+    return list(range(n_y, n_frames)) + list(range(n_y))
 
 
 def response_function(camera_values: np.ndarray, display_values: np.ndarray):
@@ -122,6 +129,68 @@ def response_function(camera_values: np.ndarray, display_values: np.ndarray):
     cam, disp = cam[keep], disp[keep]
     table = np.interp(np.arange(256, dtype=np.float64), cam, disp, left=disp[0], right=disp[-1])
     return lambda img: table[np.asarray(img)]
+
+
+def count_table(camera_values: np.ndarray, display_values: np.ndarray) -> np.ndarray:
+    """(256,) uint16: our integer count (display value x :data:`COUNT_SCALE`, rounded) of each 8-bit camera
+    value, through OpenCSP's image calibration (:func:`response_function`). Rounding each of the 256
+    entries gives every pixel the bits rounding its own display value gives."""
+    respond = response_function(camera_values, display_values)
+    return np.rint(respond(np.arange(256)) * COUNT_SCALE).astype(np.uint16)
+
+
+def _camera_values(block: np.ndarray, path: Path) -> np.ndarray:
+    """*block* of OpenCSP images as camera values 0..255 (its image calibration is an 8-bit table)."""
+    block = np.asarray(block)
+    if block.dtype == np.uint8:
+        return block
+    if block.dtype.kind not in "iu" or (block.size and (block.min() < 0 or block.max() > 255)):
+        raise ConfigError(f"{path}: images of {block.dtype} values outside 0..255; the OpenCSP image calibration "
+                          "converts 8-bit camera values")
+    return block.astype(np.uint8)
+
+
+#: Camera rows converted at a time by :func:`read_frames` (a block of 32 fringe images at 1624 columns is
+#: 1.7 MB of 8-bit values).
+ROWS_PER_BLOCK = 32
+
+
+def read_frames(path: Path, counts: np.ndarray, n_y_sets: int, n_x_sets: int, shape: tuple[int, int],
+                camera_path: Path | None = None) -> np.ndarray:
+    """Our frames (dark, white, then the fringe frames in our order) from OpenCSP's measurement *path*, as
+    integer counts through the (256,) uint16 table *counts* (:func:`count_table`).
+
+    OpenCSP keeps its images pixel-major, (rows, columns, frames) of camera values. They are read a block of
+    :data:`ROWS_PER_BLOCK` rows at a time and each block is looked up in *counts* straight into its place
+    in our frame-major stack: the file's values are converted once, to 16-bit counts, with no float copy of
+    the capture (a 1624 x 1232 capture of 34 frames is 136 MB of counts; in float64 it was 1.1 GB, twice).
+    """
+    g = "MeasurementSofastFringe/"
+    try:
+        with h5py.File(path, "r") as h:
+            for key in ("fringe_images", "mask_images"):
+                if g + key not in h:
+                    raise ConfigError(f"{path} has no dataset {g + key!r}: is it the right OpenCSP file?")
+            fringe, masks = h[g + "fringe_images"], h[g + "mask_images"]
+            if fringe.shape[:2] != tuple(shape) or masks.shape[:2] != tuple(shape):
+                raise ConfigError(f"{path}: images are {fringe.shape[1]} x {fringe.shape[0]} px but the camera "
+                                  f"{camera_path or ''} is {shape[1]} x {shape[0]}".replace("  ", " "))
+            if fringe.ndim != 3 or masks.ndim != 3 or masks.shape[2] < 2:
+                raise ConfigError(f"{path}: fringe and mask images must be (rows, columns, frames) stacks "
+                                  "holding the dark and white images and every fringe image")
+            order = fringe_order(fringe.shape[2], n_y_sets, n_x_sets)
+            frames = np.empty((2 + len(order), *shape), dtype=np.uint16)
+            for r0 in range(0, shape[0], ROWS_PER_BLOCK):
+                r1 = min(r0 + ROWS_PER_BLOCK, shape[0])
+                mask_block = _camera_values(masks[r0:r1, :, :2], path)
+                fringe_block = _camera_values(fringe[r0:r1], path)
+                for k in range(2):
+                    np.take(counts, mask_block[:, :, k], out=frames[k, r0:r1], mode="clip")
+                for i, k in enumerate(order):
+                    np.take(counts, fringe_block[:, :, k], out=frames[2 + i, r0:r1], mode="clip")
+    except OSError as exc:
+        raise ConfigError(f"{path} is not a readable HDF5 file ({exc})") from None
+    return frames
 
 
 def mask_threshold(dark: np.ndarray, light: np.ndarray) -> float:
@@ -273,17 +342,35 @@ class OpenCspMeasurement:
         (which would count the same sets twice), so only the sensitivities go to and from the cache.
         """
         settings = replace(self.settings, robust_fit=robust)
-        local = None
-        if uncertainty is not None:
-            local = {} if sensitivity_cache is None else {
-                k: v for k, v in sensitivity_cache.items() if isinstance(v, Sensitivities)}
-        a = analyse(self.frames, self.fringes, self.geometry, overrides.get("design", self.design),
-                    overrides.get("distance_m", self.distance_m), settings, screen=self.screen,
-                    pixel_mask=pixel_mask, rays_cam=ray_table(self.geometry.camera), uncertainty=uncertainty,
-                    sensitivity_cache=local)
-        if sensitivity_cache is not None and local:
-            sensitivity_cache.update({k: v for k, v in local.items() if isinstance(v, Sensitivities)})
-        return a
+        local = None if uncertainty is None else _SensitivitiesOnly(sensitivity_cache)
+        return analyse(self.frames, self.fringes, self.geometry, overrides.get("design", self.design),
+                       overrides.get("distance_m", self.distance_m), settings, screen=self.screen,
+                       pixel_mask=pixel_mask, rays_cam=ray_table(self.geometry.camera), uncertainty=uncertainty,
+                       sensitivity_cache=local)
+
+
+class _SensitivitiesOnly(dict):
+    """One analysis's cache: the sensitivities are read from and written to the caller's *shared* cache
+    (a dict, or a :class:`~sofast_station.cache.SensitivityStore` that also keeps them on disk); anything
+    else the analysis keeps (the frame-brightness pool) stays with this analysis."""
+
+    def __init__(self, shared: dict | None):
+        super().__init__()
+        self._shared = shared
+
+    def get(self, key, default=None):
+        if dict.__contains__(self, key):
+            return dict.__getitem__(self, key)
+        found = None if self._shared is None else self._shared.get(key)
+        if isinstance(found, Sensitivities):
+            dict.__setitem__(self, key, found)
+            return found
+        return default
+
+    def __setitem__(self, key, value) -> None:
+        dict.__setitem__(self, key, value)
+        if self._shared is not None and isinstance(value, Sensitivities):
+            self._shared[key] = value
 
 
 def read_opencsp(measurement: Path, camera: Path, display: Path, orientation: Path, calibration: Path,
@@ -302,21 +389,14 @@ def read_opencsp(measurement: Path, camera: Path, display: Path, orientation: Pa
     g = "MeasurementSofastFringe/"
     periods_x = [float(v) for v in _read(measurement, g + "fringe_periods_x")]
     periods_y = [float(v) for v in _read(measurement, g + "fringe_periods_y")]
-    fringe_images = np.asarray(_read(measurement, g + "fringe_images"))
-    mask_images = np.asarray(_read(measurement, g + "mask_images"))
-    if fringe_images.shape[:2] != cam.shape or mask_images.shape[:2] != cam.shape:
-        raise ConfigError(f"{measurement}: images are {fringe_images.shape[1]} x {fringe_images.shape[0]} px but the "
-                          f"camera {camera} is {cam.width_px} x {cam.height_px}")
-    raw = np.concatenate([np.moveaxis(mask_images, 2, 0)[:2],
-                          reorder_frames(fringe_images, len(periods_y), len(periods_x))])
     cal_type = _read(calibration, "ImageCalibration/calibration_type")
     if cal_type not in ("ImageCalibrationScaling", "ImageCalibrationGlobal"):
         raise ConfigError(f"{calibration}: unsupported image calibration {cal_type!r}")
-    respond = response_function(_read(calibration, "ImageCalibration/camera_values"),
-                                _read(calibration, "ImageCalibration/display_values"))
-    # C order (frame by frame): np.concatenate of the moved axes keeps OpenCSP's pixel-major layout, and
-    # gathering the facet's pixels from that is ten times slower.
-    frames = np.ascontiguousarray(np.rint(respond(raw) * COUNT_SCALE).astype(np.uint16))
+    counts = count_table(_read(calibration, "ImageCalibration/camera_values"),
+                         _read(calibration, "ImageCalibration/display_values"))
+    # C order (frame by frame): gathering the facet's pixels from OpenCSP's pixel-major layout is ten times
+    # slower.
+    frames = read_frames(measurement, counts, len(periods_y), len(periods_x), cam.shape, camera)
     uv, pts = screen_nodes(display)
     to_cam = screen_to_camera(orientation)
     screen = InterpolatedScreen(1.0, 1.0, uv, pts, to_cam, v_from_top=True)
@@ -377,23 +457,6 @@ def ensemble_with_measure_point(path: Path, facet: Path, focal_length_m: float, 
             return EnsembleDesign(ens.name, tuple(facets), measure_facet=i)
     raise ConfigError(f"{path}: the measurement's measure point {p.tolist()} (ensemble coordinates) lies on none of "
                       "the ensemble's facets; the distance must be taken to a facet")
-
-
-def opencsp_test_data_paths(root: Path, multi_facet: bool = False) -> dict[str, Path]:
-    """The file layout of OpenCSP's ``opencsp/test/data`` (and of ``fixtures/opencsp``); *multi_facet*: its
-    two-facet measurement (``measurement_ensemble.h5``, the split NSTTF facet and its ensemble definition)."""
-    root = Path(root)
-    paths = {"measurement": root / "sofast_fringe/data_measurement/measurement_facet.h5",
-             "camera": root / "sofast_common/camera_sofast_downsampled.h5",
-             "display": root / "sofast_common/display_distorted_2d.h5",
-             "orientation": root / "sofast_common/spatial_orientation.h5",
-             "calibration": root / "sofast_fringe/data_measurement/image_calibration.h5",
-             "facet": root / "sofast_common/Facet_NSTTF.json"}
-    if multi_facet:
-        paths.update(measurement=root / "sofast_fringe/data_measurement/measurement_ensemble.h5",
-                     facet=root / "sofast_common/Facet_split_NSTTF.json",
-                     ensemble=root / "sofast_common/Ensemble_split_NSTTF_facet.json")
-    return paths
 
 
 def export_opencsp(folder: Path, frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry,

@@ -7,7 +7,7 @@ import numpy as np
 
 from ..geometry import CameraIntrinsics, Pose
 
-_UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-14)
+UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-14)
 # OpenCV 4 names the variant with a convergence criterion undistortPointsIter; OpenCV 5 folds it into
 # undistortPoints. The default (5 fixed iterations) leaves errors far above our needs near the corners.
 _undistort = getattr(cv2, "undistortPointsIter", cv2.undistortPoints)
@@ -27,7 +27,7 @@ def pixel_rays(camera: CameraIntrinsics, columns: np.ndarray, rows: np.ndarray) 
     """
     pts = np.column_stack([columns, rows]).astype(np.float64).reshape(-1, 1, 2)
     norm = _undistort(pts, camera.matrix, camera.distortion, None, np.eye(3), np.eye(3),
-                      _UNDISTORT_CRITERIA).reshape(-1, 2)
+                      UNDISTORT_CRITERIA).reshape(-1, 2)
     x, y = norm[:, 0], norm[:, 1]
     inv = 1.0 / np.sqrt(x * x + y * y + 1.0)
     return np.stack([x * inv, y * inv, inv])
@@ -110,6 +110,29 @@ class RayTable:
             self._rays[:, missing] = pixel_rays(self.camera, cols, rows)
             self._known[missing] = True
         self._full = bool(self._known.all()) if missing.size else self._full
+
+    @property
+    def n_known(self) -> int:
+        """How many pixels' rays are known."""
+        return int(np.count_nonzero(self._known))
+
+    def known(self) -> tuple[np.ndarray, np.ndarray]:
+        """The pixels computed so far: their flat (raster) indices (N,) and rays (3, N), a copy."""
+        idx = np.flatnonzero(self._known)
+        return idx, self._rays[:, idx]
+
+    def add_known(self, flat_idx: np.ndarray, rays: np.ndarray) -> None:
+        """Take rays computed earlier for this camera (:meth:`known` of a table of the same calibration, kept
+        elsewhere): the pixels *flat_idx* (N,) are then known with the rays (3, N)."""
+        flat_idx = np.asarray(flat_idx, dtype=np.int64)
+        rays = np.asarray(rays, dtype=np.float64)
+        if flat_idx.ndim != 1 or rays.shape != (3, flat_idx.size):
+            raise ValueError(f"need (N,) pixel indices and (3, N) rays, got {flat_idx.shape} and {rays.shape}")
+        if flat_idx.size and (flat_idx.min() < 0 or flat_idx.max() >= self._known.size):
+            raise ValueError(f"pixel indices outside the camera's {self._known.size} pixels")
+        self._rays[:, flat_idx] = rays
+        self._known[flat_idx] = True
+        self._full = bool(self._known.all())
 
     def take(self, flat_idx: np.ndarray) -> np.ndarray:
         """(3, N) unit rays, camera frame, of the pixels with flat (raster) indices *flat_idx*."""

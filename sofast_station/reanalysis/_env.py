@@ -9,25 +9,9 @@ whose nanny sets the same variables by default) inherit them.
 from __future__ import annotations
 
 import os
-import sys
 
-#: Environment variables that set the thread count of the BLAS/OpenMP libraries numpy may use.
-BLAS_THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS",
-                    "VECLIB_MAXIMUM_THREADS", "NUMEXPR_NUM_THREADS")
-
-
-def single_thread_blas() -> bool:
-    """Ask for BLAS on one thread, unless the user set a thread count explicitly.
-
-    Returns
-    -------
-    bool
-        True when numpy was not loaded yet, so the setting takes effect in this process (it always
-        takes effect in processes started afterwards).
-    """
-    for var in BLAS_THREAD_VARS:
-        os.environ.setdefault(var, "1")
-    return "numpy" not in sys.modules
+# Kept with the command registry, which every command (import-opencsp too) may import before numpy.
+from ..commands import BLAS_THREAD_VARS, single_thread_blas  # noqa: F401  (this module's API)
 
 
 def blas_threads() -> dict:

@@ -262,19 +262,31 @@ def result_text(result, show_all: bool = False) -> str:
 
 def cmd_reprocess(args) -> int:
     single_thread_blas()
-    from ..precompute import prepare_analysis_process
+    from ..errors import StationError
+
+    missing = [d for d in args.dumps if not Path(d).is_file()]
+    if len(missing) == len(args.dumps):          # nothing to do: say so at once, before numpy is loaded
+        from ..errors import DumpError
+        raise DumpError(f"{missing[0]} does not exist" if len(missing) == 1 else
+                        f"none of the {len(missing)} dumps exists ({missing[0]}, ...)")
+    overrides = overrides_from_args(args)
+    overrides.check()
+    from ..cache import open_cache
+    from ..files import station_data_dir
+    from ..precompute import keep_rays, prepare_analysis_process, use_disk_cache
 
     prepare_analysis_process()      # as the station's worker: memory reused, kernels loaded before the first dump
-    from ..errors import StationError
     from .batch import error_result
     from .reprocess import reprocess_dump
 
-    overrides = overrides_from_args(args)
-    overrides.check()
+    # The station's cache (data_dir/cache of the station file): sensitivities a dump does not carry and the
+    # camera's rays, kept across runs; the figures are the same bits without it (sofast_station/cache.py).
+    cache = open_cache(station_data_dir(default_config()))
+    use_disk_cache(cache)
     failed = differs = 0
     for i, dump in enumerate(args.dumps):
         try:
-            res = reprocess_dump(dump, overrides, journal=args.journal)
+            res = reprocess_dump(dump, overrides, journal=args.journal, disk_cache=cache)
         except StationError as exc:
             failed += 1
             if args.json:
@@ -294,6 +306,7 @@ def cmd_reprocess(args) -> int:
             if i:
                 print()
             print(result_text(res, args.all), flush=True)
+    keep_rays()
     if failed:
         log.error("%d of %d dump(s) could not be reprocessed", failed, len(args.dumps))
         return EXIT_FAILED
@@ -388,6 +401,11 @@ def cmd_report(args) -> int:
     if args.journal or args.results or args.since or args.until or args.config:
         from ..errors import ConfigError
         raise ConfigError("--journal, --results, --config, --from and --to belong to 'report trend'")
+    missing = [t for t in args.targets if not Path(t.removeprefix("opencsp:")).exists()]
+    if len(missing) == len(args.targets):        # nothing to draw: say so before numpy and h5py are loaded
+        from ..errors import DumpError
+        raise DumpError(f"{missing[0]} does not exist" if len(missing) == 1 else
+                        f"none of the {len(missing)} dumps exists ({missing[0]}, ...)")
     from ..report.maps import write_detail_maps, write_slope_error_maps
     from .sources import load_measured
 

@@ -434,6 +434,22 @@ def stored_sensitivities(content: DumpContent) -> dict | None:
     return None if stored is None else {stored[0]: stored[1]}
 
 
+def sensitivity_store(content: DumpContent, measured_distance_m: float, disk_cache=None) -> dict:
+    """The sensitivity cache of one dump's analysis: the dump's own sensitivities
+    (:func:`stored_sensitivities`), then those computed earlier from this dump with the same inputs in the
+    station's cache on disk (:class:`~sofast_station.cache.SensitivityStore`; its key names the dump's
+    frames, so nothing computed from another dump is used). Without *disk_cache*, a plain dict."""
+    from ..cache import SensitivityStore, capture_basis
+
+    def basis():
+        return capture_basis(content.frames_cropped, measured_distance_m, crop_box=list(content.crop_box),
+                             full_shape=list(content.full_shape))
+
+    stored = stored_sensitivities(content)
+    # A dump without sensitivities was analysed without a cache: its frame brightness stays its own.
+    return SensitivityStore(disk_cache, basis, initial=stored, pool=stored is not None)
+
+
 def _judge_settings(content: DumpContent, recipe: str, notes: list):
     """Limits and quality of the dumped station.toml (and of the record's recipe)."""
     from ..result.verdict import Limits, Quality, limits_from_table, quality_from_table
@@ -504,7 +520,7 @@ def _config_hash(archived_hash: str, overrides: Overrides) -> str:
 
 # -- the re-analysis -------------------------------------------------------------------------------------
 def reprocess_content(content: DumpContent, overrides: Overrides | None = None, *, archived: dict | None = None,
-                      archived_source: str = "dump", read_s: float = 0.0) -> ReprocessResult:
+                      archived_source: str = "dump", read_s: float = 0.0, disk_cache=None) -> ReprocessResult:
     """Rerun the analysis of a dump already read (with its frames) and compare it with *archived*.
 
     Parameters
@@ -518,6 +534,10 @@ def reprocess_content(content: DumpContent, overrides: Overrides | None = None, 
         Where *archived* came from, for the summary ("dump", or the journal's path).
     read_s : float
         Time it took to read the dump, seconds (for the record's timings).
+    disk_cache : DiskCache, optional
+        The station's cache on disk (:func:`~sofast_station.cache.open_cache`): sensitivities the dump does
+        not carry are looked for there (computed from this dump, by this code) before they are computed,
+        and kept there after. The figures are the same bits with or without it.
 
     Returns
     -------
@@ -547,7 +567,7 @@ def reprocess_content(content: DumpContent, overrides: Overrides | None = None, 
     try:
         analysis = content.analyse(design=design, settings=settings, measured_distance_m=distance,
                                    uncertainty=_uncertainty_inputs(content, notes),
-                                   sensitivity_cache=stored_sensitivities(content))
+                                   sensitivity_cache=sensitivity_store(content, distance, disk_cache))
     except (DumpError, ConfigError):
         raise
     except StationError as exc:              # the analysis refuses the capture: a fault, as on the line
@@ -715,7 +735,7 @@ def reprocess_heliostat(content, overrides, *, archived: dict | None, archived_s
 
 
 def reprocess_dump(path: str | Path, overrides: Overrides | None = None, *,
-                   journal: str | Path | None = None) -> ReprocessResult:
+                   journal: str | Path | None = None, disk_cache=None) -> ReprocessResult:
     """Read a dump, rerun its analysis from the raw frames, and compare with the archived result.
 
     Parameters
@@ -727,6 +747,8 @@ def reprocess_dump(path: str | Path, overrides: Overrides | None = None, *,
     journal : str or Path, optional
         The station's journal (``journal.sqlite3``): where to find the archived record when the dump
         has lost its ``result`` group.
+    disk_cache : DiskCache, optional
+        The station's cache on disk (:func:`reprocess_content`).
 
     Returns
     -------
@@ -749,4 +771,5 @@ def reprocess_dump(path: str | Path, overrides: Overrides | None = None, *,
         source = str(journal)
         if archived is None:
             log.warning("%s: cycle %s is not in the journal %s either", path, content.cycle_id, journal)
-    return reprocess_content(content, overrides, archived=archived, archived_source=source, read_s=read_s)
+    return reprocess_content(content, overrides, archived=archived, archived_source=source, read_s=read_s,
+                             disk_cache=disk_cache)

@@ -8,6 +8,7 @@ import json
 import subprocess
 import sys
 
+import h5py
 import numpy as np
 import pytest
 
@@ -352,3 +353,63 @@ def test_a_robust_fits_uncertainty_is_its_smooth_response(measurement):
                  for s in (1.0, -1.0)]
         actual = (moved[0] - moved[1]) / (2.0 * step_mm)
         assert stated == pytest.approx(actual, rel=0.1), (key, stated, actual)
+
+
+# ---- the streaming reader ---------------------------------------------------------------------------------
+def whole_file_frames(paths):
+    """Our frames from OpenCSP's files as the reader made them before it streamed: every image read at once,
+    through the calibration's response in float, rounded to counts."""
+    g = "MeasurementSofastFringe/"
+    with h5py.File(paths["measurement"], "r") as h:
+        fringe, masks = np.asarray(h[g + "fringe_images"]), np.asarray(h[g + "mask_images"])
+        n_y, n_x = len(h[g + "fringe_periods_y"]), len(h[g + "fringe_periods_x"])
+    with h5py.File(paths["calibration"], "r") as h:
+        respond = response_function(np.asarray(h["ImageCalibration/camera_values"]),
+                                    np.asarray(h["ImageCalibration/display_values"]))
+    raw = np.concatenate([np.moveaxis(masks, 2, 0)[:2], reorder_frames(fringe, n_y, n_x)])
+    return np.rint(respond(raw) * COUNT_SCALE).astype(np.uint16)
+
+
+@pytest.mark.parametrize("rows_per_block", [7, 32, 10_000])
+def test_streamed_frames_are_the_whole_file_conversion(paths, monkeypatch, rows_per_block):
+    """Blocks of rows that do not divide the image (7), the default, and one block: the same bits."""
+    import sofast_station.interop.opencsp as opencsp
+
+    monkeypatch.setattr(opencsp, "ROWS_PER_BLOCK", rows_per_block)
+    m = read_opencsp(**paths)
+    expected = whole_file_frames(paths)
+    assert m.frames.dtype == np.uint16 and m.frames.flags.c_contiguous
+    np.testing.assert_array_equal(m.frames, expected)
+
+
+def test_images_outside_eight_bits_are_refused_by_name(paths, tmp_path):
+    import shutil
+
+    from sofast_station.errors import ConfigError
+
+    bad = tmp_path / "measurement.h5"
+    shutil.copyfile(paths["measurement"], bad)
+    with h5py.File(bad, "r+") as h:
+        key = "MeasurementSofastFringe/fringe_images"
+        imgs = np.asarray(h[key]).astype(np.uint16)
+        imgs[0, 0, 0] = 300
+        del h[key]
+        h[key] = imgs
+    with pytest.raises(ConfigError, match="outside 0..255"):
+        read_opencsp(**dict(paths, measurement=bad))
+
+
+def test_a_second_import_reads_the_sensitivities_the_first_computed(repo_root, tmp_path):
+    """import-opencsp keeps the uncertainty's sensitivities in data_dir/cache: a second process importing
+    the same files reads them (saying so on stderr) and prints the same bits of every figure."""
+    import os
+
+    env = {**os.environ, "SOFAST_DATA_DIR": str(tmp_path / "data")}
+    argv = [sys.executable, "-m", "sofast_station", "import-opencsp", "--json", "--robust", "--test-data",
+            str(repo_root / "fixtures/opencsp/test_data")]
+    first = subprocess.run(argv, capture_output=True, text=True, timeout=300, env=env)
+    second = subprocess.run(argv, capture_output=True, text=True, timeout=300, env=env)
+    assert first.returncode == 0 and second.returncode == 0, first.stderr[-800:] + second.stderr[-800:]
+    assert "read from the cache" not in first.stderr
+    assert "1 set(s) of the uncertainty's sensitivities read from the cache" in second.stderr
+    assert json.loads(first.stdout) == json.loads(second.stdout)

@@ -1,0 +1,42 @@
+"""Where the files of an OpenCSP measurement are (standard library only, so that ``import-opencsp`` can
+check its inputs before it loads numpy and HDF5)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..errors import ConfigError
+
+#: What each file of an OpenCSP SOFAST fringe measurement holds (``import-opencsp``'s options).
+FILES = {"measurement": "MeasurementSofastFringe HDF5", "camera": "Camera HDF5", "display": "DisplayShape HDF5",
+         "orientation": "SpatialOrientation HDF5", "calibration": "ImageCalibration HDF5",
+         "facet": "facet definition JSON", "ensemble": "ensemble definition JSON"}
+
+
+def opencsp_test_data_paths(root: Path, multi_facet: bool = False) -> dict[str, Path]:
+    """The file layout of OpenCSP's ``opencsp/test/data`` (and of ``fixtures/opencsp``); *multi_facet*: its
+    two-facet measurement (``measurement_ensemble.h5``, the split NSTTF facet and its ensemble definition)."""
+    root = Path(root)
+    paths = {"measurement": root / "sofast_fringe/data_measurement/measurement_facet.h5",
+             "camera": root / "sofast_common/camera_sofast_downsampled.h5",
+             "display": root / "sofast_common/display_distorted_2d.h5",
+             "orientation": root / "sofast_common/spatial_orientation.h5",
+             "calibration": root / "sofast_fringe/data_measurement/image_calibration.h5",
+             "facet": root / "sofast_common/Facet_NSTTF.json"}
+    if multi_facet:
+        paths.update(measurement=root / "sofast_fringe/data_measurement/measurement_ensemble.h5",
+                     facet=root / "sofast_common/Facet_split_NSTTF.json",
+                     ensemble=root / "sofast_common/Ensemble_split_NSTTF_facet.json")
+    return paths
+
+
+def check_files(paths: dict[str, Path], test_data: Path | None = None) -> None:
+    """Every file of *paths* (keys of :data:`FILES`) exists, or a ConfigError names the first missing one
+    (and the ``--test-data`` folder it was looked for in)."""
+    if test_data is not None and not Path(test_data).is_dir():
+        raise ConfigError(f"--test-data {test_data} is not a folder: give the folder in the layout of OpenCSP's "
+                          "opencsp/test/data (fixtures/opencsp/test_data is one)")
+    for key, path in paths.items():
+        if not Path(path).is_file():
+            raise ConfigError(f"the {FILES.get(key, key)} file {path} does not exist (--{key}"
+                              f"{' or --test-data' if test_data is not None else ''})")
