@@ -531,9 +531,19 @@ class TwinStation:
             return hit[1]
         sample = self._display_sample(image)
         sample.setflags(write=False)
-        samples = self._samples
+        # The entry goes when its image goes. The callback holds the twin weakly: holding its dict would make a
+        # reference cycle (dict -> weakref -> callback -> dict) that only the cyclic garbage collector frees,
+        # so every twin a simulated line drew (one per facet) kept its samples, a hundred MB at full
+        # resolution, until a full collection.
+        owner = weakref.ref(self)
+
+        def forget(_, k=key):
+            twin = owner()
+            if twin is not None:
+                twin._samples.pop(k, None)
+
         # (the third item keeps the image's light term once :meth:`_cached_light` has formed it)
-        self._samples[key] = (weakref.ref(image, lambda _, k=key: samples.pop(k, None)), sample, [])
+        self._samples[key] = (weakref.ref(image, forget), sample, [])
         return sample
 
     def _cached_light(self, display_image: np.ndarray) -> np.ndarray | None:

@@ -109,3 +109,29 @@ def test_a_drawn_facet_is_traced_as_a_new_trace_would(small, design):
     # a facet placed elsewhere in the fixture is traced anew
     moved = small.with_facet(dataclasses.replace(facet, placement_mm=(1.0, 0.0, 0.0)))
     assert moved._coverage is not small._coverage and not np.array_equal(moved.coverage, small.coverage)
+
+
+def test_a_drawn_facets_twin_is_freed_when_dropped_without_the_garbage_collector(small, design):
+    """The simulated line draws a new twin per facet, each keeping its display samples (tens to a hundred MB
+    at full resolution). Their cache's weak-reference callback held the twin's dict, a reference cycle that
+    only a full garbage collection freed: a soak's station grew 470 MB per 100 cycles. Dropped, a twin must
+    go at once, by reference counting alone (the collector off), while the display image lives on."""
+    import gc
+    import weakref
+
+    screen = small.geometry.screen
+    image = np.full((screen.height_px, screen.width_px), 128, np.uint8)
+    image.setflags(write=False)                 # a rendered pattern: read-only, cached by the twin
+    twin = small.with_facet(LINE.draw(NOMINAL, 3, design))
+    gc.collect()
+    gc.disable()
+    try:
+        twin.capture(image)
+        assert twin._samples, "the read-only image was not cached: this test would prove nothing"
+        gone = weakref.ref(twin)
+        sample = weakref.ref(next(iter(twin._samples.values()))[1])      # the cached display sample
+        del twin
+        assert gone() is None and sample() is None, "the twin's display samples outlive it"
+        assert weakref.getweakrefcount(image) == 0
+    finally:
+        gc.enable()
