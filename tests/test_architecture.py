@@ -35,6 +35,7 @@ FLOORS: tuple[tuple[str, frozenset], ...] = (
     ("routines, devices, oracle, math", frozenset({"calibrate", "devices", "twin", "measure", "qc", "optics",
                                                    "layout"})),
     ("plain data", frozenset({"errors", "geometry", "facet", "ensemble", "fringes", "files", "serials", "commands",
+                              "gum",
                               "(package)"})),
 )
 #: Standard-library modules that do I/O or run processes: none of them in the pure math.

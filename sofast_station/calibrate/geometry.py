@@ -57,6 +57,7 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..files import read_toml
+from ..gum import with_u
 
 log = logging.getLogger(__name__)
 
@@ -264,7 +265,8 @@ def check_geometry(rec: dict, reference: GeometryReference, inputs=None, pitch_s
     if scale.get("flagged"):
         check["reasons"].append(
             f"the screen's scale: the certified focal lengths are met with the screen pitch "
-            f"{100 * scale['value']:+.2f} ± {100 * scale['U']:.2f} % (k = 2) off the configured [screen] pitch_m "
+            f"{with_u(scale['value'], scale['U'], ' %', 2, scale=100.0, sign=True)} (k = 2) off the configured "
+            "[screen] pitch_m "
             f"(tolerance {100 * reference.screen_scale_tolerance:g} %): measure the screen's active width and "
             "correct pitch_m (a wrong pitch scales every slope deviation the station measures)")
         check["within_tolerance"] = False

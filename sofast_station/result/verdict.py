@@ -14,6 +14,7 @@ from dataclasses import dataclass, field, fields
 from ..errors import ConfigError
 from ..facet import FacetDesign
 from ..measure.checks import curl_judgement
+from .formatting import with_u
 
 #: Above this design focal length (metres) limits are stated on curvature (docs/conventions.md#focal-power).
 LONG_FOCAL_LENGTH_M = 20.0
@@ -190,7 +191,7 @@ def misplacement(fig: dict, quality: Quality) -> list[str]:
     for name, v, ui, unit, limit in checked:
         ui = 0.0 if ui is None else float(ui)
         if v is not None and abs(v) - ui > limit:
-            beyond.append(f"{name} {v:+.1f} ± {ui:.1f} {unit}")
+            beyond.append(f"{name} {with_u(v, ui or None, ' ' + unit, 1, sign=True)}")
     if not beyond:
         return []
     return [f"the facet is misplaced in the fixture: placement {', '.join(beyond)}, beyond the fixture's limits "

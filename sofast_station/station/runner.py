@@ -595,6 +595,8 @@ class StationRunner:
         wanted = self._dump_due(outcome, request)            # decided now: the flag file is for this facet
         if not answered:
             self._finish(outcome, request, t0, captured, dump=False)
+            # the timeout's answer ends the facet's cycle, as when the watchdog answers (_expire)
+            state["until_journal"] = outcome.record["timings_s"]["until_journal"]
         state.setdefault("reason", (outcome.record.get("reasons") or ["timeout"])[0])
         frames, cycle_id = outcome.frames, outcome.cycle_id
         timeout_record = outcome.record

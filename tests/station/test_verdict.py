@@ -151,7 +151,8 @@ def test_a_facet_far_from_its_place_in_the_fixture_is_invalid_as_misplaced():
     moved = changed(placement={"mm": [152.0, 0.0, 0.0], "mrad": [0.0, 0.0, 44.0]}, placement_U=seated["placement_U"])
     v = judge(moved, DISH, Limits(), Quality())
     assert v["verdict"] == "invalid" and len(v["reasons"]) == 1
-    assert "misplaced in the fixture" in v["reasons"][0] and "x +152.0" in v["reasons"][0]
+    # each placement written with its U by the one digit rule (result/formatting.py: U to two digits)
+    assert "misplaced in the fixture" in v["reasons"][0] and "x +152 ± 11 mm" in v["reasons"][0], v["reasons"]
     assert "about z +44.0" in v["reasons"][0] and "reseat" in v["reasons"][0]
     # the corner pose's tilt is poorly resolved (a 400 x 300 dish seen on a coarsely supersampled edge came
     # out 46 mrad about x, 3.7 of its U): the tilt judged is the optical tilt, which the slopes fix
