@@ -244,13 +244,15 @@ def main(argv=None) -> int:
         print(f"{n} cycles in {run_s:.0f} s ({run_s / max(n, 1):.2f} s each, {per_minute:.2f} cycles per minute), "
               f"shutdown {close_s:.1f} s; answers: " + ", ".join(f"{v} {k}" for k, v in sorted(answers.items()))
               + f" (faults: {', '.join(f'{v} {k}' for k, v in sorted(by_kind.items()))}); {late[0]} late results "
-              f"kept; the standby took over {service.runner.worker.takeovers} times; load average "
+              f"kept; the standby took over {service.runner.worker.takeovers} times ({service.runner.worker.reruns} of "
+              f"them to rerun a hung analysis); load average "
               f"{os.getloadavg()[0]:.1f} at the end")
 
         figures: dict = {"cycles": n, "camera": [cam.width_px, cam.height_px], "answers": dict(answers),
                          "deadline_s": args.deadline, "truth": not args.no_truth, "hung_percent": args.hung_percent,
                          "standby": not args.no_standby, "cycles_per_minute": per_minute,
                          "faults_by_kind": dict(by_kind), "takeovers": service.runner.worker.takeovers,
+                         "reruns": service.runner.worker.reruns,
                          "late": late[0], "run_s": run_s, "warmup_cycles": warmup, "processes": {},
                          "load_average": os.getloadavg()}
         print(f"growth per 100 cycles (least squares): after the warm-up of {warmup} cycles, and over the whole run")

@@ -111,8 +111,8 @@ def _fraction(doc: str) -> Key:
 
 
 #: Faults the simulated station can inject for a serial ([simulation.faults] SERIAL = KIND).
-SIMULATED_FAULTS = ("dark", "camera-timeout", "misplaced", "hung-analysis", "hung-capture", "camera-disconnect",
-                    "lights-off", "slow-analysis", "worker-dies")
+SIMULATED_FAULTS = ("dark", "camera-timeout", "misplaced", "hung-analysis", "hung-facet", "hung-capture",
+                    "camera-disconnect", "lights-off", "slow-analysis", "worker-dies")
 
 #: Every section of station.toml and its keys.
 SECTIONS: dict[str, dict[str, Key]] = {
@@ -233,7 +233,7 @@ SECTIONS: dict[str, dict[str, Key]] = {
         "faults": Key("section:simulation_faults", doc="SERIAL = fault kind, injected (tests, benchmarks)"),
         "heliostat": Key("table", doc="[simulation.heliostat]: the twin's true heliostat (twin.heliostat, a rule "
                                       "below)"),
-        "hang_s": _pos("how long a 'hung-analysis' fault hangs, s"),
+        "hang_s": _pos("how long a 'hung-analysis' or 'hung-facet' fault hangs, s"),
         "slow_s": _pos("how long a 'slow-analysis' fault delays the analysis, s"),
         "assembly": Key("table", doc="[simulation.assembly]: the twin's true screen and camera (twin.assembly."
                                      "TrueAssembly, a rule below)"),

@@ -91,6 +91,11 @@ class Station:
         :meth:`~sofast_station.station.simulated.SimulatedStation.arm_faults`)."""
         return 0.0
 
+    def rerun_delay_s(self, serial: str) -> float:
+        """Fault injection for tests: how long a slow analysis's rerun on the standby waits before it starts,
+        seconds (a facet slow in itself is slow in every worker). A real station injects nothing: 0."""
+        return 0.0
+
     def truth(self, valid: np.ndarray, design=None, optics=None) -> dict | None:
         """The ground truth of the facet in the fixture at the pixels *valid* (the analysis kept them), for
         the result record; None: a real station knows none (the simulated station does,

@@ -44,7 +44,7 @@ from .link import LinkWatch
 from .opened import Station
 from ..recipes import Recipe, choose_recipe
 from ..live.status import StatusFile
-from .worker import AnalysisWorker
+from .worker import RERUN_FACTOR, AnalysisWorker
 
 log = logging.getLogger(__name__)
 
@@ -548,13 +548,19 @@ class StationRunner:
                                           recipe.analysis, captured.distance_m,
                                           timeout_s=budget, hang_s=analysis_delay_s, optics=recipe.optics,
                                           uncertainty=self.station.config.uncertainty,
-                                          late_s=self.settings.late_grace_s)
+                                          late_s=self.settings.late_grace_s,
+                                          rerun_hang_s=self.station.rerun_delay_s(request.serial))
             except AnalysisTimeout as exc:
                 if exc.late is not None:
                     captured.late = (exc.late, recipe, captured.distance_m, notes, dict(timings),
                                      list(cal_warnings), t)
                 raise
             timings["analysis"] = time.perf_counter() - t
+            if res.rerun_after_s is not None:
+                notes = [*notes, f"the analysis had not answered after {res.rerun_after_s:.1f} s (over "
+                                 f"{RERUN_FACTOR:g} times its usual time): it was run again on the standby worker; "
+                                 f"this is the {'rerun' if res.rerun_answer == 'standby' else 'first'} analysis's "
+                                 "result"]
             record = self._measured_record(cycle_id, request, recipe, res, captured.distance_m, notes, timings,
                                            cal_warnings)
             if recipe.ensemble is None:           # (a heliostat's facets are not one facet's trend)

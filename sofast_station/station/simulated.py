@@ -139,16 +139,28 @@ class SimulatedStation(Station):
 
     def arm_faults(self, serial: str) -> float:
         """Arm this cycle's fault (if [simulation.faults] names the serial); returns the seconds the
-        analysis must wait before it starts ("hung-analysis": ``hang_s``, "slow-analysis": ``slow_s``),
+        analysis must wait before it starts ("hung-analysis", "hung-facet": ``hang_s``, "slow-analysis":
+        ``slow_s``),
         -1 for "worker-dies" (the worker process exits mid-analysis), else 0."""
         kind = self.config.simulation.get("faults", {}).get(serial)
         self.camera.fault = kind if kind in ("dark", "camera-timeout", "misplaced", "hung-capture",
                                              "camera-disconnect", "lights-off") else None
-        if kind == "hung-analysis":
+        if kind in ("hung-analysis", "hung-facet"):
             return self.config.simulation.get("hang_s", 3600.0)
         if kind == "slow-analysis":          # finishes, but after the deadline: a late result
             return self.config.simulation.get("slow_s", 15.0)
         return -1.0 if kind == "worker-dies" else 0.0
+
+    def rerun_delay_s(self, serial: str) -> float:
+        """The delay of a slow analysis's rerun on the standby: a worker that hangs ("hung-analysis") hangs
+        once, and the rerun answers; a facet that hangs every worker ("hung-facet") or is slow in itself
+        ("slow-analysis") delays the rerun as much."""
+        kind = self.config.simulation.get("faults", {}).get(serial)
+        if kind == "hung-facet":
+            return self.config.simulation.get("hang_s", 3600.0)
+        if kind == "slow-analysis":
+            return self.config.simulation.get("slow_s", 15.0)
+        return 0.0
 
     def reopen_camera(self) -> None:
         self.camera.fault = None

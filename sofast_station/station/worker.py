@@ -26,9 +26,12 @@ from __future__ import annotations
 import logging
 import multiprocessing
 import os
+import statistics
 import threading
 import time
-from concurrent.futures import Future, ProcessPoolExecutor
+from collections import deque
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor
+from concurrent.futures import wait as wait_futures
 from concurrent.futures import CancelledError
 from concurrent.futures import TimeoutError as FutureTimeout
 from concurrent.futures.process import BrokenProcessPool
@@ -75,6 +78,11 @@ class WorkerResult:
     preview: dict | None = None
     #: The uncertainty's sensitivities the worker keeps for this recipe (a record, a few kB), for the dump.
     sensitivities: dict | None = None
+    #: When the first worker did not answer within :data:`RERUN_FACTOR` times the recipe's usual analysis
+    #: time and the facet was analysed again on the standby: the seconds waited before that; else None.
+    rerun_after_s: float | None = None
+    #: Whose answer this is when rerun: "standby" (the rerun's) or "first" (the slow worker's, first after all).
+    rerun_answer: str | None = None
 
 
 # --- worker process side -------------------------------------------------------------------------
@@ -202,6 +210,16 @@ def _ping() -> bool:
 START_ATTEMPTS = 3
 #: Longest wait for a worker to start (spawn, imports, pixel rays, optics traces), seconds.
 START_TIMEOUT_S = 120.0
+#: An analysis still running after this many times its recipe's usual time (the median of the last
+#: :data:`USUAL_OF` analyses) is run again on the warm standby; the first answer is the facet's. A worker
+#: that hangs (a deadlock, a stalled page-in, a stopped process) then costs the facet a few seconds, not a
+#: timeout; a facet that is slow in itself is slow in both and times out as before.
+RERUN_FACTOR = 3.0
+#: Never rerun before this many seconds (a quick recipe's scheduler hiccup is not a hang), seconds.
+RERUN_MIN_S = 1.0
+#: How many of a recipe's last analysis times make its usual time; none is rerun before :data:`RERUN_AFTER_N`.
+USUAL_OF = 15
+RERUN_AFTER_N = 3
 
 
 class _Process:
@@ -312,6 +330,8 @@ class AnalysisWorker:
         self._closed = False
         self.starts = 0                          # worker processes started (the standbys included)
         self.takeovers = 0                       # times the standby took over
+        self.reruns = 0                          # analyses run again on the standby (RERUN_FACTOR)
+        self._usual: dict[str, deque] = {}       # recipe key -> its last analyses' wall times, s
         self._active = self._new_process()
         if self._use_standby:
             self._launch_standby()
@@ -523,32 +543,11 @@ class AnalysisWorker:
     def _retire(self, proc: _Process, fut, grace_s: float) -> Future:
         """Abandon *proc*'s analysis at the deadline: the standby takes over now; *proc* keeps running it at
         the lowest priority for up to *grace_s* seconds, then is killed. Returns the late result's future."""
-        late: Future = Future()
         self._active = None
         if not self._promote():
             self._launch_standby()
         proc.lower_priority()
-
-        def wait():
-            try:
-                late.set_result(_result(fut.result(timeout=max(grace_s, 0.0))))
-            except FutureTimeout:
-                log.warning("the abandoned analysis did not finish within the late grace (%.0f s): its worker "
-                            "(process %s) is killed", grace_s, proc.pids())
-                late.set_result(None)
-            except (BrokenProcessPool, RuntimeError, CancelledError):
-                late.set_result(None)
-            except BaseException as exc:           # the analysis's own error (a StationError)
-                late.set_exception(exc)
-            finally:
-                proc.close()
-                with self._lock:
-                    self._retired = [(p, t) for p, t in self._retired if p is not proc]
-        thread = threading.Thread(target=wait, name="analysis-retired", daemon=True)
-        with self._lock:
-            self._retired.append((proc, thread))
-        thread.start()
-        return late
+        return self._retire_only(proc, fut, grace_s)
 
     # -- analysing -------------------------------------------------------------------------------------
     def pids(self) -> list[int]:
@@ -567,19 +566,27 @@ class AnalysisWorker:
         return proc is not None and proc.alive()
 
     def analyse(self, frames: np.ndarray, design, settings, distance_m: float, timeout_s: float,
-                hang_s: float = 0.0, optics=None, uncertainty=None, late_s: float = 0.0) -> WorkerResult:
+                hang_s: float = 0.0, optics=None, uncertainty=None, late_s: float = 0.0,
+                rerun_hang_s: float = 0.0) -> WorkerResult:
         """Analyse *frames*; :class:`AnalysisTimeout` after *timeout_s* seconds.
 
-        At the timeout the standby takes over at once; the abandoned analysis may still finish within
-        *late_s* seconds, through the timeout's ``late`` future. With *optics* (OpticsSettings) the figures
-        carry the facet's optical figures (``optics``). Errors raised by the analysis (StationError
-        subclasses) come back as themselves.
+        An analysis still running after :data:`RERUN_FACTOR` times the recipe's usual time is run again on
+        the warm standby (which becomes the worker; the slow one runs on at the lowest priority) and the
+        first of the two answers is the facet's (``WorkerResult.rerun_after_s`` says so). At the timeout the
+        standby takes over at once; the abandoned analysis may still finish within *late_s* seconds,
+        through the timeout's ``late`` future. With *optics* (OpticsSettings) the figures carry the facet's
+        optical figures (``optics``). Errors raised by the analysis (StationError subclasses) come back as
+        themselves. *hang_s* and *rerun_hang_s* are fault injection for tests (the first analysis's and
+        the rerun's delay).
         """
         if frames.shape != self._shape or frames.dtype != np.uint8:
             from ..errors import CaptureError
             raise CaptureError(f"the capture is {frames.dtype} {frames.shape}, the station expects uint8 "
                                f"{self._shape}; check the camera's pixel format and size")
         t_end = time.perf_counter() + timeout_s
+        key = str(getattr(design, "name", ""))
+        job = (design.to_dict(), settings.to_dict(), float(distance_m))
+        extra = (optics, None if uncertainty is None else uncertainty.to_dict())
         for attempt in (1, 2):
             self._ensure_active(t_end)
             proc = self._active
@@ -591,10 +598,21 @@ class AnalysisWorker:
             self._tickets += 1
             fut = None
             try:
-                fut = proc.pool.submit(_run, self._tickets, design.to_dict(), settings.to_dict(),
-                                       float(distance_m), float(hang_s), optics,
-                                       None if uncertainty is None else uncertainty.to_dict())
-                out = fut.result(timeout=max(left_s, 0.01))
+                t_submit = time.perf_counter()
+                fut = proc.pool.submit(_run, self._tickets, *job, float(hang_s), *extra)
+                rerun_at, usual = self._rerun_after(key)
+                if rerun_at is not None and rerun_at < left_s:
+                    try:
+                        out = fut.result(timeout=rerun_at)
+                    except FutureTimeout:
+                        res = self._rerun(proc, fut, frames, job, extra, rerun_hang_s, t_end, timeout_s, late_s,
+                                          rerun_at, usual)
+                        if res is not None:
+                            return res
+                        out = fut.result(timeout=max(t_end - time.perf_counter(), 0.01))
+                else:
+                    out = fut.result(timeout=max(left_s, 0.01))
+                self._note_time(key, time.perf_counter() - t_submit)
                 break
             except FutureTimeout:
                 log.error("the analysis exceeded its %.1f s budget: the standby worker takes over%s", timeout_s,
@@ -619,6 +637,108 @@ class AnalysisWorker:
                 # Broken here.
                 fut = None
         return _result(out)
+
+    # -- a slow analysis run again -------------------------------------------------------------------
+    def _note_time(self, key: str, seconds: float) -> None:
+        self._usual.setdefault(key, deque(maxlen=USUAL_OF)).append(seconds)
+
+    def _rerun_after(self, key: str) -> tuple[float | None, float]:
+        """(seconds after which this recipe's analysis is run again on the standby, None: not now; its usual
+        time, seconds)."""
+        times = self._usual.get(key)
+        if not self._use_standby or times is None or len(times) < RERUN_AFTER_N:
+            return None, 0.0
+        usual = statistics.median(times)
+        return max(RERUN_FACTOR * usual, RERUN_MIN_S), usual
+
+    def _rerun(self, proc: _Process, fut, frames, job, extra, hang_s: float, t_end: float, timeout_s: float,
+               late_s: float, waited_s: float, usual: float) -> WorkerResult | None:
+        """*proc*'s analysis has run *waited_s* seconds, RERUN_FACTOR times its *usual* (or RERUN_MIN_S): run it
+        again on the standby, which becomes the worker, and answer with the first result. None when no warm
+        standby is ready or too little time is left (the caller then waits for *proc* as before)."""
+        with self._lock:
+            standby = self._standby
+            ready = (standby is not None and standby.warm and standby.alive()
+                     and t_end - time.perf_counter() > 1.5 * usual)
+            if ready:
+                self._standby = None
+        if not ready:
+            return None
+        log.warning("the analysis has run %.1f s (its usual: %.2f s): it is run again on the standby worker "
+                    "(process %s); the first answer is the facet's", waited_s, usual, standby.pids())
+        self._active = standby
+        self.takeovers += 1
+        self.reruns += 1
+        self._launch_standby()
+        proc.lower_priority()
+        np.copyto(standby.frames, frames)
+        self._tickets += 1
+        again = standby.pool.submit(_run, self._tickets, *job, float(hang_s), *extra)
+        pending = {fut: proc, again: standby}
+        while pending:
+            left = t_end - time.perf_counter()
+            done, _ = wait_futures(list(pending), timeout=max(left, 0.0), return_when=FIRST_COMPLETED)
+            if not done:
+                break
+            for f in done:
+                who = pending.pop(f)
+                try:
+                    out = f.result()
+                except (BrokenProcessPool, RuntimeError, CancelledError) as exc:
+                    log.warning("the %s analysis's worker died (%s)", "rerun" if who is standby else "first", exc)
+                    if who is standby:
+                        self._replace(standby)
+                    continue
+                except BaseException:
+                    self._dismiss(proc)
+                    raise                                   # the analysis's own error: the facet's answer
+                self._dismiss(proc)
+                res = _result(out)
+                res.rerun_after_s = waited_s
+                res.rerun_answer = "standby" if who is standby else "first"
+                return res
+        if not pending:                                     # both workers died
+            raise WorkerDied("the analysis worker process died during this facet's analysis, and so did its "
+                             "rerun on the standby; the next facet is measured on a new worker")
+        log.error("the analysis and its rerun exceeded the %.1f s budget: both workers are retired", timeout_s)
+        first = None
+        for f, who in pending.items():
+            late = self._retire(who, f, late_s) if who is standby else self._retire_only(who, f, late_s)
+            first = first or late
+        raise AnalysisTimeout(f"the analysis did not finish within {timeout_s:.1f} s, nor its rerun on the "
+                              "standby worker; a new standby takes over", late=first)
+
+    def _dismiss(self, proc: _Process) -> None:
+        """The rerun facet is answered: the slow first worker, replaced by the standby, is closed (in the
+        background: killing and reaping it takes a moment). A rerun still going when the first worker
+        answered finishes on its own as the new worker's first job; its result is dropped."""
+        threading.Thread(target=proc.close, name="analysis-dismissed", daemon=True).start()
+
+    def _retire_only(self, proc: _Process, fut, grace_s: float) -> Future:
+        """*proc* is out of service (another worker took over): its analysis may still finish within
+        *grace_s* seconds (the returned future's result), then *proc* is killed."""
+        late: Future = Future()
+
+        def wait():
+            try:
+                late.set_result(_result(fut.result(timeout=max(grace_s, 0.0))))
+            except FutureTimeout:
+                log.warning("the abandoned analysis did not finish within the late grace (%.0f s): its worker "
+                            "(process %s) is killed", grace_s, proc.pids())
+                late.set_result(None)
+            except (BrokenProcessPool, RuntimeError, CancelledError):
+                late.set_result(None)
+            except BaseException as exc:
+                late.set_exception(exc)
+            finally:
+                proc.close()
+                with self._lock:
+                    self._retired = [(p, t) for p, t in self._retired if p is not proc]
+        thread = threading.Thread(target=wait, name="analysis-retired", daemon=True)
+        with self._lock:
+            self._retired.append((proc, thread))
+        thread.start()
+        return late
 
     def close(self, late_wait_s: float | None = None) -> None:
         """Stop every worker. An abandoned analysis still within its grace is waited for (up to

@@ -1,8 +1,9 @@
 """Issue 5: the production loop on the simulated station.
 
-Twenty facets on the full-resolution default station with four injected faults (a dark capture, a camera
-timeout, a misplaced facet, a hung analysis): twenty answers to the robot, every good facet within the
-core's tolerances of the twin's truth, every fault with its reason and the next facet measured, twenty rows
+Twenty facets on the full-resolution default station with three injected faults (a dark capture, a camera
+timeout, a misplaced facet) and a hung analysis worker: twenty answers to the robot, every good facet (the
+hung worker's one by its rerun on the standby) within the core's tolerances of the twin's truth, every
+fault with its reason and the next facet measured, twenty rows
 in the journal and the workbook, the requested dumps present, and a dump that reprocesses to exactly its
 archived figures.
 """
@@ -23,7 +24,9 @@ from sofast_station.result.record import FIGURE_KEYS
 from sofast_station.station.service import Service
 from tests.station.test_facets import FACETS, check_against_truth
 
-FAULTS = {"SIM-0004": "dark", "SIM-0008": "camera-timeout", "SIM-0012": "misplaced", "SIM-0016": "hung-analysis"}
+FAULTS = {"SIM-0004": "dark", "SIM-0008": "camera-timeout", "SIM-0012": "misplaced"}
+#: The analysis worker hangs on this facet: the facet is measured all the same, by its rerun on the standby.
+HUNG = "SIM-0016"
 
 
 @pytest.fixture(scope="module")
@@ -31,14 +34,14 @@ def twenty(repo_root, tmp_path_factory):
     data = tmp_path_factory.mktemp("run")
     cfg = load_config(repo_root / "station.toml")
     # Time is controlled, not raced: the deadline is far beyond a facet's time on a loaded machine (the
-    # worker is warmed up before the first facet), and the hung analysis never ends, so it times out and
-    # its worker is restarted after the grace. On a machine made very busy (load 14 on two cores a facet took
+    # worker is warmed up before the first facet), and the hung analysis never ends, so it is run again on
+    # the standby (after 3 times the usual analysis time) and its first worker killed. On a machine made very busy (load 14 on two cores a facet took
     # up to 80 s) a good facet may pass the deadline too: the grace lets its analysis finish, and it is then
     # checked as a late result (_late_by_load).
     raw = dict(cfg.raw, run={"deadline_s": 40.0, "late_grace_s": 60.0, "dump_every_n": 5},
                archive={"workbook_interval_s": 1.0})
     cfg = dataclasses.replace(cfg, data_dir=data, raw=raw,
-                              simulation={"seed": 3, "facet": FACETS["dish"][1], "faults": FAULTS,
+                              simulation={"seed": 3, "facet": FACETS["dish"][1], "faults": {**FAULTS, HUNG: "hung-analysis"},
                                           "hang_s": 3600.0})
     lines: list[str] = []
     service = Service(cfg, simulated_facets=20, console=lines.append)
@@ -67,8 +70,11 @@ def test_twenty_answers_and_the_line_goes_on(twenty):
     assert "dark everywhere" in by_serial["SIM-0004"].reason
     assert "camera" in by_serial["SIM-0008"].reason
     assert "cut off" in by_serial["SIM-0012"].reason or "misplaced" in by_serial["SIM-0012"].reason
-    assert "timeout" in by_serial["SIM-0016"].reason
-    # the facet after the hung analysis is measured (in time, or late on a very busy machine)
+    # the facet whose worker hung is measured by its rerun on the standby, and says so (in time, or late on
+    # a very busy machine); so is the facet after it
+    assert by_serial[HUNG].kind == "done" or HUNG in late
+    hung = next(o for o in outcomes if o.serial == HUNG)
+    assert any("run again on the standby worker" in n for n in hung.record["capture_notes"]), hung.record
     assert by_serial["SIM-0017"].kind == "done" or "SIM-0017" in late
 
 
@@ -89,7 +95,7 @@ def test_good_facets_meet_the_core_tolerances(twenty):
     _, _, outcomes, _ = twenty
     late = _late_by_load(outcomes)
     good = [o for o in outcomes if o.answer != "fault" or o.serial in late]
-    assert len(good) == 16
+    assert len(good) == 17                           # SIM-0016's by its rerun
     for o in good:
         check_against_truth(o.record, long_focus=False)
         assert o.record.get("late_verdict", o.record["verdict"]) == "pass", o.record["reasons"]
@@ -104,9 +110,9 @@ def test_journal_workbook_and_dumps(twenty):
         assert all(r.workbook_path for r in rows), "every row reached a workbook"
         books = sorted((cfg.data_dir / "archive").glob("*.xlsx"))
         assert books and sum(len(read_workbook(b)) for b in books) == 20
-        # dumps: every 5th facet, and every faulted one that has frames (dark, misplaced, hung analysis, and
-        # a facet measured late on a very busy machine)
-        wanted = {"SIM-0005", "SIM-0010", "SIM-0015", "SIM-0020", "SIM-0004", "SIM-0012", "SIM-0016"}
+        # dumps: every 5th facet, and every faulted one that has frames (dark, misplaced, and a facet measured
+        # late on a very busy machine)
+        wanted = {"SIM-0005", "SIM-0010", "SIM-0015", "SIM-0020", "SIM-0004", "SIM-0012"}
         wanted |= _late_by_load(outcomes)
         dumped = {r.serial for r in rows if r.dump_status == "written"}
         assert dumped == wanted

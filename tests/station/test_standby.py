@@ -36,13 +36,14 @@ def _rows(data):
 
 def test_the_facet_after_a_hung_analysis_is_measured_while_the_hung_one_is_still_in_its_grace(
         small_station_toml, tmp_path):
-    """SIM-0002's analysis hangs. At the deadline (the suite's scaled one) the robot hears "timeout", the
-    standby takes over at once and SIM-0003 is measured on it, while SIM-0002's abandoned analysis is still
-    within its (hour-long) grace: the loop no longer waits out the grace and a restart. Stopped, the
-    abandoned worker is killed and the facet's row says so, its frames dumped."""
-    cfg = _config(small_station_toml, tmp_path / "d", faults={"SIM-0002": "hung-analysis"},
-                  run={"late_grace_s": 3600.0}, hang_s=7200.0)
-    assert run_settings(cfg).deadline_s > 0              # the suite's scaled deadline, not one set here
+    """SIM-0002 hangs every worker it is given. At the deadline the robot hears "timeout", the standby
+    takes over at once and SIM-0003 is measured on it, while SIM-0002's abandoned analysis is still within
+    its (hour-long) grace: the loop no longer waits out the grace and a restart. Stopped, the abandoned
+    worker is killed and the facet's row says so, its frames dumped. The deadline, 30 s, is about a hundred
+    times this station's analysis (0.3 s) on a quiet machine."""
+    cfg = _config(small_station_toml, tmp_path / "d", faults={"SIM-0002": "hung-facet"},
+                  run={"late_grace_s": 3600.0, "deadline_s": 30.0}, hang_s=7200.0)
+    assert run_settings(cfg).deadline_s == 30.0
     service = Service(cfg, simulated_facets=3, console=lambda line: None)
     robot, worker = service.trigger, service.runner.worker
     seen: dict = {}
@@ -77,6 +78,47 @@ def test_the_facet_after_a_hung_analysis_is_measured_while_the_hung_one_is_still
     assert rows["SIM-0002"].dump_status == "written"
     assert read_dump(rows["SIM-0002"].dump_path, load_frames=True).frames_cropped.shape[0] == 18
     assert rows["SIM-0003"].verdict == "pass" and abs(rows["SIM-0003"].record["focal_length_x_m"] - 5.42) < 0.05
+
+
+def test_a_hung_worker_costs_its_facet_a_rerun_on_the_standby_not_a_timeout(small_station_toml, tmp_path):
+    """The worker hangs on SIM-0004 (its analysis would sleep two hours). After three times the recipe's
+    usual analysis time (at least 1 s) the facet is analysed again on the warm standby, which answers: the
+    robot hears SIM-0004's verdict, not "timeout", the record says it was rerun, the hung worker is killed,
+    and SIM-0005 is measured too. No time is asserted: the deadline is the suite's (120 s), which a hang
+    would reach; only the order of events is checked."""
+    cfg = _config(small_station_toml, tmp_path / "d", faults={"SIM-0004": "hung-analysis"}, hang_s=7200.0)
+    service = Service(cfg, simulated_facets=5, console=lambda line: None)
+    robot, worker = service.trigger, service.runner.worker
+    hung_pids: list[int] = []
+    outcomes = []
+
+    def on_outcome(outcome):
+        outcomes.append(outcome)
+        if outcome.serial == "SIM-0003":
+            hung_pids.extend(worker.pids())             # the worker that will hang on SIM-0004
+    try:
+        service.runner.run(on_outcome=on_outcome)
+    finally:
+        service.close()
+    finals = {a.serial: a for a in robot.answers if a.kind in ("done", "fault")}
+    assert [finals[f"SIM-{i:04d}"].kind for i in range(1, 6)] == ["done"] * 5, finals
+    by = {o.serial: o for o in outcomes}
+    notes = by["SIM-0004"].record["capture_notes"]
+    assert any("run again on the standby worker" in n and "the rerun analysis's result" in n for n in notes), notes
+    assert by["SIM-0004"].answer == "pass" and abs(by["SIM-0004"].record["focal_length_x_m"] - 5.42) < 0.05
+    assert worker.reruns >= 1 and worker.takeovers >= 1
+    assert hung_pids and not any(_alive(pid) for pid in hung_pids), hung_pids
+    rows = _rows(cfg.data_dir)
+    assert rows["SIM-0004"].verdict == "pass" and "late" not in rows["SIM-0004"].record
+
+
+def _alive(pid: int) -> bool:
+    """Whether process *pid* exists and is not a zombie."""
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
 
 
 def test_a_worker_killed_while_it_starts_is_started_again(small_station_toml, tmp_path, monkeypatch, caplog):
