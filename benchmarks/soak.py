@@ -14,6 +14,8 @@ cycles per minute with a run without (``--no-standby`` shows the line without a 
 station, the analysis worker, its standby and the archiver, and reports for each the growth per 100 cycles
 (least squares) twice: after a warm-up (``--warmup`` cycles, default 20 % of the run, at least 50, so that
 start-up allocations, first-use caches and the allocator settling do not count) and over the whole run;
+the growth of its high-water mark after the warm-up (robust to a process that swings between two levels
+within a cycle, as the station does by a capture's frames);
 and, since a worker that times out is replaced, the growth of each process over its own life.
 ``--trace N`` also follows the station process's Python allocations with tracemalloc: a snapshot at the
 end of the warm-up, then every N cycles the sites that grew most since it; the archiver and the analysis
@@ -68,6 +70,22 @@ def slope_per_100(xs: list[float], ys: list[float]) -> float:
     mx, my = sum(xs) / n, sum(ys) / n
     sxx = sum((x - mx) ** 2 for x in xs)
     return 100.0 * sum((x - mx) * (y - my) for x, y in zip(xs, ys)) / sxx if sxx else float("nan")
+
+
+def high_water_per_100(xs: list[float], ys: list[float]) -> float:
+    """Growth of the high-water mark, MB per 100 cycles: the largest sample of the second half of the
+    series less that of the first half, over the cycles between the halves' middles.
+
+    A process whose resident memory swings between two levels as it samples a cycle at different stages
+    (the station holds a capture's frames, 40 MB at full resolution, for part of each cycle) gives a
+    least-squares slope that is only where the swings happened to fall; a leak raises the high-water mark
+    as well as the mean."""
+    n = len(xs)
+    if n < 4:
+        return float("nan")
+    h = n // 2
+    span = (xs[h + (n - h) // 2] - xs[h // 2]) or float("nan")
+    return 100.0 * (max(ys[h:]) - max(ys[:h])) / span
 
 
 def archive_checks(data: Path) -> dict:
@@ -255,9 +273,11 @@ def main(argv=None) -> int:
                          "reruns": service.runner.worker.reruns,
                          "late": late[0], "run_s": run_s, "warmup_cycles": warmup, "processes": {},
                          "load_average": os.getloadavg()}
-        print(f"growth per 100 cycles (least squares): after the warm-up of {warmup} cycles, and over the whole run")
+        print(f"growth per 100 cycles (least squares): after the warm-up of {warmup} cycles, and over the whole run; "
+              "and of the high-water mark after the warm-up (high-water)")
         print("           RSS (MB):                          growth/100 cycles (MB):")
-        print("process       first  at warm-up   last    max  after warm-up  overall   open files first  last  (pids)")
+        print("process       first  at warm-up   last    max  after warm-up  overall  high-water   open files first  last"
+              "  (pids)")
         for name, rows in samples.items():
             if not rows:
                 continue
@@ -265,16 +285,19 @@ def main(argv=None) -> int:
             growth = slope_per_100([r[0] for r in later], [r[1] for r in later])
             overall = slope_per_100([r[0] for r in rows], [r[1] for r in rows])
             fd_growth = slope_per_100([r[0] for r in later], [r[2] for r in later])
+            high = high_water_per_100([r[0] for r in later], [r[1] for r in later])
             at_warmup = later[0][1] if later else float("nan")
             figures["processes"][name] = {"rss_first_mb": rows[0][1], "rss_at_warmup_mb": at_warmup,
                                           "rss_last_mb": rows[-1][1], "rss_max_mb": max(r[1] for r in rows),
                                           "rss_growth_mb_per_100_after_warmup": growth,
-                                          "rss_growth_mb_per_100_overall": overall, "fds_first": rows[0][2],
+                                          "rss_growth_mb_per_100_overall": overall,
+                                          "rss_high_water_growth_mb_per_100_after_warmup": high,
+                                          "rss_samples": [[r[0], r[1]] for r in rows], "fds_first": rows[0][2],
                                           "fds_last": rows[-1][2], "fds_max": max(r[2] for r in rows),
                                           "fds_growth_per_100_after_warmup": fd_growth, "samples": len(rows)}
             who = pids.get(name, {os.getpid()}) - {None}
             print(f"{name:<10} {rows[0][1]:8.1f} {at_warmup:10.1f} {rows[-1][1]:7.1f} {max(r[1] for r in rows):6.1f}"
-                  f" {growth:+14.2f} {overall:+8.2f} {rows[0][2]:19d} {rows[-1][2]:5d}  "
+                  f" {growth:+14.2f} {overall:+8.2f} {high:+11.2f} {rows[0][2]:19d} {rows[-1][2]:5d}  "
                   f"({len(who)} process{'es' if len(who) > 1 else ''})")
         # each process over its own life after the warm-up (a worker that timed out was replaced, so the
         # worker's row above mixes processes), for those sampled at least 10 times
