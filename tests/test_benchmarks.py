@@ -87,7 +87,7 @@ def test_soak_benchmark_quick(repo_root):
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr
     print(proc.stdout)
-    for line in ("12 cycles in", "growth/100 cycles", "after warm-up", "same ids as the journal: True",
+    for line in ("12 cycles in", "growth/100 cycles", "after warm-up", "high-water", "same ids as the journal: True",
                  "temporary files left: 0"):
         assert line in proc.stdout
 
