@@ -707,7 +707,7 @@ def population_png(cases: list[dict], summary: dict, path) -> None:
             ax.text(i, 100 * r["rate"] + 1, f"{r['k']}/{r['n']}", ha="center")
         ax.set_ylim(0, 110)
     fa = summary["good"]["false_alarms"]
-    ax.set_title(f"planted faults caught; false alarms {fa['k']}/{fa['n']}")
+    ax.set_title(f"planted faults caught\nfalse alarms: {fa['k']} of {fa['n']} good")
     ax.set_ylabel("% refused or invalid")
     fig.suptitle(f"population: {summary['n_stations']} stations, {summary['good']['n']} good captures")
     fig.tight_layout()
