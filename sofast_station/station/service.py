@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 
 from ..archive import Archiver, ArchiverSettings, DumpContent, Journal, WorkbookSettings
-from ..archive._common import remove_stale_temp_files, temp_path_for
+from ..archive._common import map_large_blocks, remove_stale_temp_files, temp_path_for
 from ..archive.spool import spool_get, spool_list
 from ..config import StationConfig
 from ..devices.protocols import FacetRequest
@@ -306,6 +306,7 @@ def _archiver_main(journal_path: str, data_dir: str, settings: ArchiverSettings,
     more; past *recycle_mb* of growth it drains and exits with :data:`RECYCLED_EXIT` to start afresh."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)      # the station decides when the archiver stops
     watch_parent()                                    # a killed station takes its archiver with it
+    map_large_blocks()                                # frames read and written per dump: never kept
     logging.basicConfig(level=logging.INFO, format="%(asctime)s archiver %(levelname)s %(message)s",
                         datefmt="%H:%M:%S")
     setup_logging(Path(data_dir), name="archiver.log")
