@@ -605,11 +605,23 @@ class AnalysisWorker:
                     try:
                         out = fut.result(timeout=rerun_at)
                     except FutureTimeout:
-                        res = self._rerun(proc, fut, frames, job, extra, rerun_hang_s, t_end, timeout_s, late_s,
-                                          rerun_at, usual)
-                        if res is not None:
-                            return res
-                        out = fut.result(timeout=max(t_end - time.perf_counter(), 0.01))
+                        # rerun on the standby; while none is ready (one still starting after an earlier
+                        # take-over) keep waiting for both, the slow analysis and a ready standby
+                        while True:
+                            res = self._rerun(proc, fut, frames, job, extra, rerun_hang_s, t_end, timeout_s,
+                                              late_s, time.perf_counter() - t_submit, usual)
+                            if res is not None:
+                                return res
+                            left = t_end - time.perf_counter()
+                            if left <= 1.5 * usual:
+                                out = fut.result(timeout=max(left, 0.01))
+                                break
+                            self._launch_standby()
+                            try:
+                                out = fut.result(timeout=min(0.5, left))
+                                break
+                            except FutureTimeout:
+                                continue
                 else:
                     out = fut.result(timeout=max(left_s, 0.01))
                 self._note_time(key, time.perf_counter() - t_submit)
@@ -653,9 +665,10 @@ class AnalysisWorker:
 
     def _rerun(self, proc: _Process, fut, frames, job, extra, hang_s: float, t_end: float, timeout_s: float,
                late_s: float, waited_s: float, usual: float) -> WorkerResult | None:
-        """*proc*'s analysis has run *waited_s* seconds, RERUN_FACTOR times its *usual* (or RERUN_MIN_S): run it
-        again on the standby, which becomes the worker, and answer with the first result. None when no warm
-        standby is ready or too little time is left (the caller then waits for *proc* as before)."""
+        """*proc*'s analysis has run *waited_s* seconds, at least RERUN_FACTOR times its *usual* (and RERUN_MIN_S):
+        run it again on the standby, which becomes the worker, and answer with the first result. None when no
+        warm standby is ready or too little time is left (the caller waits on and asks again, while time
+        is left for a rerun)."""
         with self._lock:
             standby = self._standby
             ready = (standby is not None and standby.warm and standby.alive()
