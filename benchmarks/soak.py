@@ -276,11 +276,11 @@ def main(argv=None) -> int:
                          "reruns": service.runner.worker.reruns,
                          "late": late[0], "run_s": run_s, "warmup_cycles": warmup, "processes": {},
                          "load_average": os.getloadavg()}
-        print(f"growth per 100 cycles (least squares): after the warm-up of {warmup} cycles, and over the whole run; "
-              "and of the high-water mark after the warm-up (high-water)")
+        print(f"growth per 100 cycles (least squares): after the warm-up of {warmup} cycles, and over the whole "
+              "run; and of the high-water mark after the warm-up (high-water)")
         print("           RSS (MB):                          growth/100 cycles (MB):")
-        print("process       first  at warm-up   last    max  after warm-up  overall  high-water   open files first  last"
-              "  (pids)")
+        print("process       first  at warm-up   last    max  after warm-up  overall  high-water"
+              "   open files first  last  (pids)")
         for name, rows in samples.items():
             if not rows:
                 continue

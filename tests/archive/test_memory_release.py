@@ -1,7 +1,7 @@
 """Issue 28: the archiver's memory stays flat at full resolution.
 
 A dump reads a facet's frames from the spool and compresses them (12.5 MB at full resolution). With glibc's
-default, once a block that size is freed the allocator serves the next ones from its heaps, where small
+default, once a block that size is freed the allocator may serve the next ones from its heaps, where small
 objects allocated meanwhile pin them: the process keeps them. ``map_large_blocks`` (called first thing in
 the archiver process) gives every block of 4 MB or more its own mapping, returned when freed. Run in a
 fresh interpreter each way, since the setting is per process.
@@ -49,7 +49,8 @@ def _kept_mb(mode: str) -> float:
 @pytest.mark.skipif(not Path("/proc/self/status").exists() or not sys.platform.startswith("linux"),
                     reason="glibc and /proc only")
 def test_freed_frames_go_back_to_the_system():
-    default, mapped = _kept_mb("default"), _kept_mb("mapped")
-    # glibc's default keeps one capture's frames (12 MB); the archiver's setting keeps none of them
-    assert mapped < 3.0, (default, mapped)
-    assert default > mapped + 8.0, (default, mapped)
+    # With the archiver's setting none of the six captures' frames is kept. (glibc's default kept one, 11.9
+    # MB, in a fresh interpreter on this machine class, but not in every process state: the dynamic
+    # threshold it raises depends on what was freed before, so the default is reported, not asserted.)
+    mapped = _kept_mb("mapped")
+    assert mapped < 3.0, (mapped, _kept_mb("default"))

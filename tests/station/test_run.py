@@ -35,14 +35,14 @@ def twenty(repo_root, tmp_path_factory):
     cfg = load_config(repo_root / "station.toml")
     # Time is controlled, not raced: the deadline is far beyond a facet's time on a loaded machine (the
     # worker is warmed up before the first facet), and the hung analysis never ends, so it is run again on
-    # the standby (after 3 times the usual analysis time) and its first worker killed. On a machine made very busy (load 14 on two cores a facet took
-    # up to 80 s) a good facet may pass the deadline too: the grace lets its analysis finish, and it is then
-    # checked as a late result (_late_by_load).
+    # the standby (after 3 times the usual analysis time) and its first worker killed. On a machine made
+    # very busy (load 14 on two cores a facet took up to 80 s) a good facet may pass the deadline too: the
+    # grace lets its analysis finish, and it is then checked as a late result (_late_by_load).
     raw = dict(cfg.raw, run={"deadline_s": 40.0, "late_grace_s": 60.0, "dump_every_n": 5},
                archive={"workbook_interval_s": 1.0})
+    faults = {**FAULTS, HUNG: "hung-analysis"}
     cfg = dataclasses.replace(cfg, data_dir=data, raw=raw,
-                              simulation={"seed": 3, "facet": FACETS["dish"][1], "faults": {**FAULTS, HUNG: "hung-analysis"},
-                                          "hang_s": 3600.0})
+                              simulation={"seed": 3, "facet": FACETS["dish"][1], "faults": faults, "hang_s": 3600.0})
     lines: list[str] = []
     service = Service(cfg, simulated_facets=20, console=lines.append)
     robot = service.trigger
