@@ -240,12 +240,13 @@ def upsample_opencsp(src: Path, dst: Path, scale: int) -> None:
             replace(h, g + key, resize(np.asarray(h[g + key])))
     with h5py.File(paths["camera"], "r+") as h:
         k = np.array(h["Camera/intrinsic_mat"], np.float64)
-        norm = k[2, 2]                       # OpenCSP's downsampled camera keeps K[2,2] = 1/8
+        # OpenCSP's downsampled camera keeps K[2,2] = 1/8, which OpenCV ignores: fx, fy, cx, cy are pixels
+        # as they stand, so the half-pixel shift is (scale - 1)/2 pixels, not scaled by K[2,2]
         k[0, 0] *= scale
         k[1, 1] *= scale
         k[0, 1] *= scale
-        k[0, 2] = scale * k[0, 2] + 0.5 * (scale - 1) * norm
-        k[1, 2] = scale * k[1, 2] + 0.5 * (scale - 1) * norm
+        k[0, 2] = scale * k[0, 2] + 0.5 * (scale - 1)
+        k[1, 2] = scale * k[1, 2] + 0.5 * (scale - 1)
         replace(h, "Camera/intrinsic_mat", k)
         shape = np.array(h["Camera/image_shape_xy"])
         replace(h, "Camera/image_shape_xy", (shape * scale).astype(shape.dtype))
