@@ -183,9 +183,6 @@ def main(argv=None) -> int:
             from sofast_station.station.memtrace import ENV
             os.environ[ENV] = str(args.trace_s)           # the archiver and the worker inherit it
         t0 = time.perf_counter()
-        from sofast_station.archive._common import map_large_blocks
-
-        map_large_blocks()      # as `sofast-station run` does for the station process
         service = Service(cfg, simulated_facets=args.cycles, console=lambda line: None)
         print(f"station started in {time.perf_counter() - t0:.1f} s", flush=True)
         if args.no_truth:

@@ -191,10 +191,7 @@ def map_large_blocks(threshold_bytes: int = LARGE_BLOCK_BYTES) -> bool:
     heaps, where they fragment and stay. The archiver reads a spool and writes a dump per faulted or
     scheduled facet: with the default it rose by 9 MB per 100 full-resolution cycles in steps (a
     320-cycle soak); in a loop of 240 dumps, run with and without, its memory was 24 MB lower and flat
-    (72.8 -> 75.3 MB against 96.8 -> 103.1 MB) with this threshold. The station process (`run`) sets it
-    too: it crops and spools a capture's frames every cycle. Not the analysis worker: it allocates and frees
-    hundreds of MB of per-pixel arrays per facet, which fresh mappings would make it zero page by page
-    each time; it trims its heap after each facet instead (:func:`trim_heap`). Call once, early in the process.
+    (72.8 -> 75.3 MB against 96.8 -> 103.1 MB) with this threshold. Call once, early in the process.
     """
     import ctypes
 

@@ -204,9 +204,6 @@ def cmd_run(args) -> int:
     if args.serve or opcua.enabled:
         from ..web.monitor import MonitorProcess
         monitor = MonitorProcess(config, web if args.serve else None, opcua)
-    from ..archive._common import map_large_blocks
-
-    map_large_blocks()          # a capture's frames, cropped and spooled every cycle: never kept once freed
     try:
         service = Service(config, simulated_facets=args.facets, seed=args.seed)
     except BaseException:
