@@ -192,6 +192,9 @@ def map_large_blocks(threshold_bytes: int = LARGE_BLOCK_BYTES) -> bool:
     scheduled facet: with the default it rose by 9 MB per 100 full-resolution cycles in steps (a
     320-cycle soak); in a loop of 240 dumps, run with and without, its memory was 24 MB lower and flat
     (72.8 -> 75.3 MB against 96.8 -> 103.1 MB) with this threshold. Call once, early in the process.
+    Not in the station or the analysis worker: they allocate and free dozens of such blocks per facet (the
+    twin's renders, the per-pixel arrays), and a fresh mapping is zeroed page by page each time (the
+    simulated line's cycle took 48 % longer with it in the station); the worker trims its heap instead.
     """
     import ctypes
 
