@@ -701,6 +701,8 @@ class AnalysisWorker:
                     log.warning("the %s analysis's worker died (%s)", "rerun" if who is standby else "first", exc)
                     if who is standby:
                         self._replace(standby)
+                    else:
+                        self._dismiss(proc)                 # its shared frame buffer goes with it
                     continue
                 except BaseException:
                     self._dismiss(proc)
