@@ -756,17 +756,17 @@ def inside_outline(outline: OutlineFit, cols: np.ndarray, rows: np.ndarray, inse
     The distance to a convex outline from inside is the least distance to its sides' curves, each measured
     along the side's normal (the curves' bow is a fraction of a pixel over the side).
     """
-    p = np.column_stack([np.asarray(cols, np.float64), np.asarray(rows, np.float64)])
+    cols, rows = np.asarray(cols, np.float64).ravel(), np.asarray(rows, np.float64).ravel()
     centre = outline.corners_px.mean(axis=0)
-    keep = np.ones(p.shape[0], dtype=bool)
+    keep = np.ones(cols.size, dtype=bool)
     for o_x, o_y, t_x, t_y, a, b, c in outline.sides:
-        o, t, n = np.array([o_x, o_y]), np.array([t_x, t_y]), np.array([-t_y, t_x])
 
-        def offset(q):
-            s = (q - o) @ t
-            return (q - o) @ n - (a + b * s + c * s * s)
-        inward = 1.0 if offset(centre[None, :])[0] > 0 else -1.0
-        keep &= inward * offset(p) >= inset_px
+        def offset(x, y):              # along the side's normal (-t_y, t_x), less the side's curve
+            dx, dy = x - o_x, y - o_y
+            s = dx * t_x + dy * t_y
+            return dy * t_x - dx * t_y - (a + b * s + c * s * s)
+        inward = 1.0 if offset(centre[0], centre[1]) > 0 else -1.0
+        keep &= inward * offset(cols, rows) >= inset_px
     return keep
 
 
