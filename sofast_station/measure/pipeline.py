@@ -750,6 +750,8 @@ def report_figures(region: Region, phases: Phases, rays: Rays, pose: CornerPoseR
         # the facet edge's blur (pixels) and what it may have smoothed away of the slope residuals: their
         # neighbouring pixels' mean square difference (the uncertainty's blur term, budget.combine)
         "edge_blur_px": region.outline.edge_blur_px if region.outline is not None else None,
+        # sides whose staircase edge lies along the pixel grid: their corners only to within a pixel
+        "outline_staircase_sides": corners_mod.staircase_sides(region.outline) if region.outline is not None else [],
         "slope_residual_neighbour_ms_mrad2": {
             m: {a: neighbour_difference_ms(e[i], pairs) for i, a in enumerate(("x", "y"))}
             for m, e in fits.residuals_mrad.items()},
