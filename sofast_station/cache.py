@@ -270,3 +270,37 @@ def save_rays(cache: DiskCache | None, table) -> bool:
     known = np.zeros(n, dtype=bool)
     known[idx] = True
     return cache.put("rays", _ray_key(table.camera), np.packbits(known).tobytes() + rays.tobytes())
+
+
+# -- a measured screen's grid split ------------------------------------------------------------------------
+def _split_key(nodes_uv: np.ndarray) -> dict:
+    from importlib.metadata import version
+
+    return {"nodes_uv": array_digest(np.ascontiguousarray(nodes_uv, np.float64)),
+            "scipy": version("scipy"), "code": code_fingerprint()}
+
+
+def load_screen_split(cache: DiskCache | None, nodes_uv: np.ndarray) -> np.ndarray | None:
+    """The grid split (:attr:`~sofast_station.measure.screen.InterpolatedScreen.split`) kept for a measured
+    screen's grid positions *nodes_uv*, or None."""
+    if cache is None:
+        return None
+    payload = cache.get("screen_split", _split_key(nodes_uv))
+    if payload is None or len(payload) < 8:
+        return None
+    rows, cols = (int(v) for v in np.frombuffer(payload, np.int32, 2))
+    try:
+        return np.unpackbits(np.frombuffer(payload, np.uint8, offset=8), count=rows * cols).astype(bool).reshape(
+            rows, cols)
+    except ValueError:
+        return None
+
+
+def save_screen_split(cache: DiskCache | None, nodes_uv: np.ndarray, split: np.ndarray | None) -> bool:
+    """Keep the grid split of a measured screen on the grid positions *nodes_uv* (the triangulation scipy
+    made: the key holds scipy's version)."""
+    if cache is None or split is None:
+        return False
+    split = np.asarray(split, dtype=bool)
+    return cache.put("screen_split", _split_key(nodes_uv),
+                     np.array(split.shape, np.int32).tobytes() + np.packbits(split).tobytes())

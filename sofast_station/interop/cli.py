@@ -138,22 +138,22 @@ def cmd_import_opencsp(args) -> int:
                               + " (OpenCSP's test data ships measurement_ensemble.h5, Facet_split_NSTTF.json and "
                                 "Ensemble_split_NSTTF_facet.json)")
     check_files(paths, Path(args.test_data) if args.test_data else None)   # before numpy and HDF5 are loaded
-    from ..precompute import prepare_analysis_process
-    from .opencsp import read_opencsp, read_opencsp_result
-    table = read_uncertainty_table(Path(args.uncertainty)) if args.uncertainty else None
-    m = read_opencsp(**paths, focal_length_m=args.focal_length, uncertainty=table)
-    prepare_analysis_process()      # as the station's worker: memory reused, kernels loaded first
-    if m.ensemble is not None:
-        return _import_ensemble(m, args)
     from ..cache import SensitivityStore, capture_basis, open_cache
     from ..commands import default_config
     from ..files import station_data_dir
-    from ..precompute import keep_rays, use_disk_cache
+    from ..precompute import keep_rays, prepare_analysis_process, use_disk_cache
+    from .opencsp import read_opencsp, read_opencsp_result
 
-    # The uncertainty's sensitivities (per geometry, recipe and inputs) and the camera's rays, computed from
-    # this measurement before and kept in the station's cache (data_dir/cache; sofast_station/cache.py): a
-    # second import of the same files reads them. The figures are the same bits either way.
+    # The uncertainty's sensitivities (per geometry, recipe and inputs), the camera's rays and the display
+    # grid's triangulation, computed from these files before and kept in the station's cache (data_dir/cache;
+    # sofast_station/cache.py): a second import of the same files reads them. The figures are the same bits
+    # either way.
     disk = open_cache(station_data_dir(default_config()))
+    table = read_uncertainty_table(Path(args.uncertainty)) if args.uncertainty else None
+    m = read_opencsp(**paths, focal_length_m=args.focal_length, uncertainty=table, cache=disk)
+    prepare_analysis_process()      # as the station's worker: memory reused, kernels loaded first
+    if m.ensemble is not None:
+        return _import_ensemble(m, args)
     use_disk_cache(disk)
     cache = SensitivityStore(disk, lambda: capture_basis(m.frames, m.distance_m, source="opencsp"))
     a = m.analyse(robust=args.robust, uncertainty=m.uncertainty, sensitivity_cache=cache)

@@ -68,8 +68,11 @@ def _read(path: Path, key: str):
 
 
 def _rotvec_to_matrix(rotvec: np.ndarray) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-    return Rotation.from_rotvec(np.asarray(rotvec, np.float64).ravel()).as_matrix()
+    """A rotation vector (radians about its axis) as a 3 x 3 matrix: OpenCV's Rodrigues formula, already
+    loaded for the corners (scipy.spatial.transform, which OpenCSP uses, costs 0.2-0.4 s of imports)."""
+    import cv2
+
+    return cv2.Rodrigues(np.asarray(rotvec, np.float64).reshape(3, 1))[0]
 
 
 def camera_from_opencsp(path: Path) -> CameraIntrinsics:
@@ -375,9 +378,10 @@ class _SensitivitiesOnly(dict):
 
 def read_opencsp(measurement: Path, camera: Path, display: Path, orientation: Path, calibration: Path,
                  facet: Path, focal_length_m: float = 100.0, uncertainty: dict | None = None,
-                 ensemble: Path | None = None) -> OpenCspMeasurement:
+                 ensemble: Path | None = None, cache=None) -> OpenCspMeasurement:
     """Read the six OpenCSP files of one facet measurement (see the module docstring); *uncertainty* (an
-    ``[uncertainty]`` table) overrides input uncertainties (:func:`opencsp_input_uncertainties`).
+    ``[uncertainty]`` table) overrides input uncertainties (:func:`opencsp_input_uncertainties`). *cache*
+    (a :class:`~sofast_station.cache.DiskCache`) keeps the display grid's triangulation between runs.
 
     With *ensemble* (OpenCSP's ensemble definition JSON) the measurement is a multi-facet one: every facet
     has the design of *facet*, placed and canted as the ensemble says; the measure point
@@ -399,7 +403,12 @@ def read_opencsp(measurement: Path, camera: Path, display: Path, orientation: Pa
     frames = read_frames(measurement, counts, len(periods_y), len(periods_x), cam.shape, camera)
     uv, pts = screen_nodes(display)
     to_cam = screen_to_camera(orientation)
-    screen = InterpolatedScreen(1.0, 1.0, uv, pts, to_cam, v_from_top=True)
+    from ..cache import load_screen_split, save_screen_split
+
+    split = load_screen_split(cache, uv)
+    screen = InterpolatedScreen(1.0, 1.0, uv, pts, to_cam, v_from_top=True, split=split)
+    if split is None:
+        save_screen_split(cache, uv, screen.split)
     distance = float(_read(measurement, g + "dist_optic_screen"))
     mp = np.array(_read(measurement, g + "v_measure_point_facet"), np.float64).ravel()
     design = facet_from_opencsp(facet, focal_length_m, name=str(_read(measurement, g + "name")))

@@ -42,16 +42,46 @@ def principal_axes(a: float, b: float, e: float) -> tuple[list, float]:
     return [focal_length_m(4.0 * lam) for lam in lambdas], float(0.5 * np.arctan2(e, a - b))
 
 
-def neighbour_difference_ms(values: np.ndarray, flat_idx: np.ndarray, width_px: int) -> float:
+def neighbour_pairs(flat_idx: np.ndarray, width_px: int) -> tuple:
+    """The pairs of side-by-side and of stacked neighbouring pixels among *flat_idx*.
+
+    Parameters
+    ----------
+    flat_idx : (N,) int array
+        The pixels' flat indices (raster order, strictly increasing) in an image *width_px* wide.
+    width_px : int
+
+    Returns
+    -------
+    tuple of two (first, second) pairs of int arrays
+        For side-by-side neighbours, then stacked ones: positions in *flat_idx* of each pair's first pixel
+        (raster order) and of its neighbour to the right (below). Pairs do not run across a row's end.
+    """
+    flat_idx = np.asarray(flat_idx, dtype=np.int64)
+    width_px = int(width_px)
+    pos = np.arange(flat_idx.size)
+    if flat_idx.size == 0:
+        return (pos, pos), (pos, pos)
+    # side by side: in a strictly increasing list, p + 1 can only be the next entry
+    right = (flat_idx[1:] == flat_idx[:-1] + 1) & ((flat_idx[:-1] % width_px) != width_px - 1)
+    # stacked: each pixel's position in the list looked up on the image (-1: not in the list)
+    lookup = np.full(int(flat_idx[-1]) + 1 + width_px, -1, dtype=np.int64)
+    lookup[flat_idx] = pos
+    below_at = lookup[flat_idx + width_px]
+    below = below_at >= 0
+    return (pos[:-1][right], pos[1:][right]), (pos[below], below_at[below])
+
+
+def neighbour_difference_ms(values: np.ndarray, pairs: tuple) -> float:
     """Mean square difference of *values* between side-by-side and stacked neighbouring pixels.
 
     Parameters
     ----------
     values : (N,) array
         One value per pixel (e.g. a slope residual, mrad).
-    flat_idx : (N,) int array
-        The pixels' flat indices (raster order, increasing) in an image *width_px* wide.
-    width_px : int
+    pairs : tuple
+        The pixels' neighbour pairs, :func:`neighbour_pairs` of their flat indices (computed once for any
+        number of value arrays on the same pixels).
 
     Returns
     -------
@@ -61,15 +91,9 @@ def neighbour_difference_ms(values: np.ndarray, flat_idx: np.ndarray, width_px: 
         plus twice the per-pixel noise variance.
     """
     values = np.asarray(values, dtype=np.float64)
-    flat_idx = np.asarray(flat_idx)
     total, count = 0.0, 0
-    for step in (1, int(width_px)):
-        nxt = np.searchsorted(flat_idx, flat_idx + step)
-        nxt = np.minimum(nxt, flat_idx.size - 1)
-        pair = flat_idx[nxt] == flat_idx + step
-        if step == 1:
-            pair &= (flat_idx % width_px) != width_px - 1        # not across a row's end
-        d = values[nxt[pair]] - values[pair]
+    for first, second in pairs:
+        d = values[second] - values[first]
         total += float(np.einsum("i,i->", d, d, optimize=False))      # einsum's own loop: the same bits always
         count += int(d.size)
     return total / count if count else 0.0

@@ -376,12 +376,12 @@ def phase_error_between_periods(sets: list, noise_dn: float = 0.0, mask: list | 
         r = float(p_f) / float(p_c)
         if r <= 1.0 or abs(r - round(r)) > 1e-9:
             continue
-        arrays = [np.asarray(v, dtype=np.float64).ravel() for v in (phi_c, phi_f, b_c, b_f)]
-        if mask is not None:
-            keep = np.asarray(mask[i], dtype=bool).ravel()
-            arrays = [v[keep] for v in arrays]
-        step = max(1, -(-arrays[0].size * len(sets) // MAX_NOISE_SAMPLES))
-        phi_c, phi_f, b_c, b_f = (v[::step] for v in arrays)
+        # every step-th of the pixels in the mask, gathered straight from the images (not masked first)
+        arrays = [np.asarray(v).ravel() for v in (phi_c, phi_f, b_c, b_f)]
+        pick = (np.flatnonzero(np.asarray(mask[i], dtype=bool).ravel()) if mask is not None
+                else np.arange(arrays[0].size))
+        step = max(1, -(-pick.size * len(sets) // MAX_NOISE_SAMPLES))
+        phi_c, phi_f, b_c, b_f = (v[pick[::step]].astype(np.float64, copy=False) for v in arrays)
         var_c = (noise_dn / (np.sqrt(2.0) * np.maximum(b_c, 1e-9))) ** 2
         var_f = (noise_dn / (np.sqrt(2.0) * np.maximum(b_f, 1e-9))) ** 2
         m = phi_c.size
@@ -395,11 +395,12 @@ def phase_error_between_periods(sets: list, noise_dn: float = 0.0, mask: list | 
         own_df = own_dc = [np.zeros(m)]
         kf, kc = ks[None, :] * phi_f[:, None], ks[None, :] * phi_c[:, None]
         harm = np.empty((m, 2 * ks.size))
-        harm[:, 0::2] = np.sin(kf) - r * np.sin(kc)
-        harm[:, 1::2] = np.cos(kf) - r * np.cos(kc)
+        sin_f, cos_f, sin_c, cos_c = np.sin(kf), np.cos(kf), np.sin(kc), np.cos(kc)
+        harm[:, 0::2] = sin_f - r * sin_c
+        harm[:, 1::2] = cos_f - r * cos_c
         h_df, h_dc = np.empty_like(harm), np.empty_like(harm)
-        h_df[:, 0::2], h_df[:, 1::2] = ks * np.cos(kf), -ks * np.sin(kf)
-        h_dc[:, 0::2], h_dc[:, 1::2] = -r * ks * np.cos(kc), r * ks * np.sin(kc)
+        h_df[:, 0::2], h_df[:, 1::2] = ks * cos_f, -ks * sin_f
+        h_dc[:, 0::2], h_dc[:, 1::2] = -r * ks * cos_c, r * ks * sin_c
         y = np.angle(np.exp(1j * (phi_f - r * phi_c)))
         blocks.append((np.column_stack(own), np.column_stack(own_df), np.column_stack(own_dc), harm, h_df, h_dc,
                        y, var_f, var_c, r))
@@ -422,11 +423,16 @@ def phase_error_between_periods(sets: list, noise_dn: float = 0.0, mask: list | 
     nf = d_f * np.sqrt(var_f)[:, None]
     nc = d_c * np.sqrt(var_c)[:, None]
     cross = d_f * var_f[:, None] - (ratio * var_c)[:, None] * d_c
+    # The normal equations over every pixel once; each round takes out the pixels it leaves out (a few: a
+    # coarse phase that slipped a fringe), rather than forming them again over the pixels it keeps.
+    xtx_all = x.T @ x - nf.T @ nf - nc.T @ nc
+    xty_all = x.T @ y - cross.sum(axis=0)
     keep = np.ones(n, dtype=bool)
     for _ in range(3):               # a pixel whose coarse phase slipped a fringe: leave it out
-        xk = x[keep]
-        xtx = xk.T @ xk - nf[keep].T @ nf[keep] - nc[keep].T @ nc[keep]
-        xty = xk.T @ y[keep] - cross[keep].sum(axis=0)
+        out = np.flatnonzero(~keep)
+        xo, nfo, nco = x[out], nf[out], nc[out]
+        xtx = xtx_all - (xo.T @ xo - nfo.T @ nfo - nco.T @ nco)
+        xty = xty_all - (xo.T @ y[out] - cross[out].sum(axis=0))
         if np.linalg.cond(xtx) > 1e10:
             return None
         coef = np.linalg.solve(xtx, xty)

@@ -30,7 +30,8 @@ from .camera import pixel_rays, project, to_frame
 from .boresight import Assembly, ShapeSolution, solve_shape
 from .fit import CubicFit, ParabolaFit, fit_cubic, fit_parabola, reweight_parabola
 from .mask import facet_region
-from .metrics import focal_length_m, neighbour_difference_ms, principal_axes, rms_summary
+from .metrics import (focal_length_m, neighbour_difference_ms, neighbour_pairs, principal_axes,
+                      rms_summary)
 from .phase import (FrameNoise, frame_noise, phase_and_modulation, phase_error_between_periods, position_sigma_m,
                     unwrap_positions)
 from .pose import fix_range, solve_corner_pose
@@ -687,6 +688,7 @@ def report_figures(region: Region, phases: Phases, rays: Rays, pose: CornerPoseR
     """
     fit, coeffs, cubic, solution = fits.parabola, fits.coefficients, fits.cubic, shape.solution
     idx, vidx = region.idx, rays.vidx
+    pairs = neighbour_pairs(vidx, geometry.camera.width_px)
     unwrap_stats = phases.unwrap
     # The boresight frame's tilt in the fixture: where the facet's optical axis at the alignment point
     # points, to the precision of the slopes (the corner pose's own tilt errors cancel).
@@ -748,8 +750,10 @@ def report_figures(region: Region, phases: Phases, rays: Rays, pose: CornerPoseR
         # the facet edge's blur (pixels) and what it may have smoothed away of the slope residuals: their
         # neighbouring pixels' mean square difference (the uncertainty's blur term, budget.combine)
         "edge_blur_px": region.outline.edge_blur_px if region.outline is not None else None,
+        # sides whose staircase edge lies along the pixel grid: their corners only to within a pixel
+        "outline_staircase_sides": corners_mod.staircase_sides(region.outline) if region.outline is not None else [],
         "slope_residual_neighbour_ms_mrad2": {
-            m: {a: neighbour_difference_ms(e[i], vidx, geometry.camera.width_px) for i, a in enumerate(("x", "y"))}
+            m: {a: neighbour_difference_ms(e[i], pairs) for i, a in enumerate(("x", "y"))}
             for m, e in fits.residuals_mrad.items()},
         "outline_agreement": pose.outline_agreement,
         "range_correction_m": pose.range_shift_m,

@@ -132,13 +132,14 @@ class InterpolatedScreen:
     modes_m : (K, M, 3) array, optional
         The measured shape's independent uncertainty fields (every node's displacement at one standard
         deviation of each, screen frame, metres): :meth:`displaced` moves the shape along one.
+    split : (rows, columns) bool array, optional
+        :attr:`split` of a screen on the same grid positions (e.g. kept in the station's cache): the
+        triangulation is then not built (nor scipy's interpolation loaded).
     """
 
     def __init__(self, width_m: float, height_m: float, nodes_uv: np.ndarray, nodes_screen_m: np.ndarray,
                  screen_to_camera: Pose, centre_screen_m=(0.0, 0.0, 0.0), v_from_top: bool = False,
-                 modes_m: np.ndarray | None = None):
-        from scipy.interpolate import LinearNDInterpolator
-
+                 modes_m: np.ndarray | None = None, split: np.ndarray | None = None):
         nodes_uv = np.asarray(nodes_uv, np.float64)
         nodes_screen_m = np.asarray(nodes_screen_m, np.float64)
         if nodes_uv.ndim != 2 or nodes_uv.shape[1] != 2 or nodes_screen_m.shape != (nodes_uv.shape[0], 3):
@@ -149,18 +150,37 @@ class InterpolatedScreen:
         self.width_m, self.height_m = float(width_m), float(height_m)
         self.screen_to_camera = screen_to_camera
         self._nodes_uv, self._nodes_screen = nodes_uv, nodes_screen_m
-        self._interp = LinearNDInterpolator(nodes_uv, nodes_screen_m)
+        self._interp_built = None
         self._centre = np.asarray(centre_screen_m, np.float64)
         self._v_from_top = bool(v_from_top)
         self._modes = (np.zeros((0,) + nodes_screen_m.shape) if modes_m is None
                        else np.asarray(modes_m, np.float64).reshape(-1, *nodes_screen_m.shape))
-        self._grid = self._as_grid(nodes_uv, nodes_screen_m)
+        self._grid = self._as_grid(nodes_uv, nodes_screen_m, split)
 
-    def _as_grid(self, nodes_uv: np.ndarray, nodes_screen_m: np.ndarray):
+    @property
+    def _interp(self):
+        """scipy's linear interpolation over the grid's triangulation, built when first needed (a screen
+        whose grid split is known, :attr:`split`, never needs it)."""
+        if self._interp_built is None:
+            from scipy.interpolate import LinearNDInterpolator
+
+            self._interp_built = LinearNDInterpolator(self._nodes_uv, self._nodes_screen)
+        return self._interp_built
+
+    @property
+    def split(self) -> np.ndarray | None:
+        """Per grid cell (rows by columns of the grid), whether the triangulation splits it along its main
+        diagonal (None when the nodes are not a full rectangular grid): it depends on the grid positions
+        alone, so a screen of the same positions (another shape, or this one stretched or displaced)
+        built with it skips the triangulation."""
+        return None if self._grid is None else self._grid[3]
+
+    def _as_grid(self, nodes_uv: np.ndarray, nodes_screen_m: np.ndarray, split: np.ndarray | None = None):
         """For nodes on a full rectangular grid (OpenCSP's display models): the grid and, per cell, which
         diagonal the triangulation split it along, so that :meth:`points_camera` finds a position's cell
         directly (a compiled kernel) instead of walking the triangulation (a tenth of the time), with the
-        same triangles. None when the nodes are not such a grid, or the two disagree (then scipy's)."""
+        same triangles. None when the nodes are not such a grid, or the two disagree (then scipy's). With
+        *split* (:attr:`split` of a screen on the same grid positions) the triangulation is not built."""
         xs, ys = np.unique(nodes_uv[:, 0]), np.unique(nodes_uv[:, 1])
         if xs.size < 2 or ys.size < 2 or xs.size * ys.size != nodes_uv.shape[0]:
             return None
@@ -169,6 +189,12 @@ class InterpolatedScreen:
         grid[row, col] = nodes_screen_m
         if not np.all(np.isfinite(grid)):
             return None
+        if split is not None:
+            split = np.asarray(split, dtype=bool)
+            if split.shape != (ys.size - 1, xs.size - 1):
+                raise ValueError(f"a grid split of shape {split.shape} for a grid of {ys.size - 1} x "
+                                 f"{xs.size - 1} cells")
+            return xs, ys, grid, split
         # the triangle holding a point at (0.2, 0.6) of each cell has both ends of the main diagonal or not
         gx, gy = np.meshgrid(xs[:-1] + 0.2 * np.diff(xs), ys[:-1] + 0.6 * np.diff(ys))
         tri = self._interp.tri
@@ -229,7 +255,7 @@ class InterpolatedScreen:
         nodes = self._nodes_screen.copy()
         nodes[:, i] = self._centre[i] + (nodes[:, i] - self._centre[i]) * factor
         return InterpolatedScreen(self.width_m, self.height_m, self._nodes_uv, nodes, self.screen_to_camera,
-                                  self._centre, self._v_from_top, self._modes)
+                                  self._centre, self._v_from_top, self._modes, split=self.split)
 
     @property
     def n_modes(self) -> int:
@@ -241,7 +267,7 @@ class InterpolatedScreen:
         displaced; the pose kept)."""
         nodes = self._nodes_screen + float(factor) * self._modes[int(mode)]
         return InterpolatedScreen(self.width_m, self.height_m, self._nodes_uv, nodes, self.screen_to_camera,
-                                  self._centre, self._v_from_top, self._modes)
+                                  self._centre, self._v_from_top, self._modes, split=self.split)
 
     def fingerprint(self) -> str:
         """A short hash of the measured shape (grid, points, centre, extents): what cached sensitivities

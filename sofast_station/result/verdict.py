@@ -169,6 +169,20 @@ def display_response(fig: dict, quality: Quality) -> tuple[list[str], list[str]]
     return [], []
 
 
+def staircase_warning(fig: dict) -> list[str]:
+    """A warning when sides of the facet's outline are point-sampled staircases along the pixel grid
+    (``fig["outline_staircase_sides"]``): their corners are known only to within a pixel, which the corner
+    pose's U carries (placement, boresight from corners, optical tilt); a camera turned a degree or two
+    about its axis gives every side steps and pins its corners to a few hundredths of a pixel."""
+    sides = fig.get("outline_staircase_sides") or []
+    if not sides:
+        return []
+    which = ", ".join(str(k) for k in sides)
+    return [f"side{'s' if len(sides) > 1 else ''} {which} of the facet's outline {'lie' if len(sides) > 1 else 'lies'} "
+            "along the pixel grid with a stepped (point-sampled) edge: the corners there are known only to "
+            "within a pixel (in the corner pose's U); turn the camera a degree or two about its axis"]
+
+
 def misplacement(fig: dict, quality: Quality) -> list[str]:
     """The reason a facet is misplaced in its fixture (empty when it is seated): a placement coordinate
     beyond ``max_placement_mm`` / ``max_placement_mrad`` by more than its U (k = 2; 0 when not stated).
@@ -217,6 +231,7 @@ def judge(fig: dict, design: FacetDesign, limits: Limits, quality: Quality) -> d
     one facet's figures; warnings say what weakens a result without invalidating it. The guarded decision
     rule uses the figures' ``name_U`` expanded uncertainties (missing ones count as 0)."""
     invalid, warnings = display_response(fig, quality)
+    warnings = warnings + staircase_warning(fig)
     curl = fig.get("slope_curl")
     turning = curl and curl_judgement(curl, quality.max_slope_curl_ratio, quality.min_slope_curl_per_m,
                                       quality.slope_curl_sigmas, quality.slope_curl_noise_tolerance)

@@ -71,3 +71,24 @@ def test_the_import_log_sees_a_heavy_library_when_one_is_loaded(tmp_path):
     proc, names = loaded_packages(["inspect", "--config", str(station)], tmp_path)
     assert proc.returncode == 2 and "nowhere.toml" in proc.stderr
     assert "numpy" in names
+
+
+def test_a_second_import_of_the_same_opencsp_files_builds_no_triangulation(repo_root, tmp_path, monkeypatch):
+    """The display grid's triangulation (scipy.interpolate, 0.2-0.5 s to load and build) is kept in the
+    station's cache by the first import of OpenCSP's files; the second reads which way each grid cell is
+    split and loads neither scipy's interpolation nor its rotations (OpenCV's Rodrigues serves)."""
+    monkeypatch.setenv("SOFAST_DATA_DIR", str(tmp_path / "data"))
+    argv = ["import-opencsp", "--test-data", str(repo_root / "fixtures" / "opencsp" / "test_data")]
+
+    def modules():
+        proc = subprocess.run([sys.executable, "-X", "importtime", "-m", "sofast_station", *argv],
+                              capture_output=True, text=True, timeout=300, cwd=tmp_path)
+        assert proc.returncode == 0, proc.stderr[-800:]
+        return proc.stdout, {line.rsplit("|", 1)[1].strip() for line in proc.stderr.splitlines()
+                             if line.startswith("import time:") and "|" in line}
+
+    first_out, first = modules()
+    second_out, second = modules()
+    assert "scipy.interpolate" in first               # the check can fail: the first run builds it
+    assert not {"scipy.interpolate", "scipy.spatial", "scipy.spatial.transform"} & second
+    assert second_out == first_out                    # the same figures, every printed digit

@@ -102,6 +102,22 @@ def test_camera_matrix_is_normalised(paths):
     assert cam.matrix[0, 2] == pytest.approx(101.5625)
 
 
+def test_rotation_vectors_become_the_matrices_scipy_makes():
+    """OpenCSP turns its screen's rotation vector into a matrix with scipy; ours uses OpenCV's Rodrigues
+    (already loaded): the same matrices to rounding, over random axes and angles up to pi."""
+    from scipy.spatial.transform import Rotation
+
+    from sofast_station.interop.opencsp import _rotvec_to_matrix
+
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        axis = rng.normal(size=3)
+        rotvec = axis / np.linalg.norm(axis) * rng.uniform(0.0, np.pi)
+        np.testing.assert_allclose(_rotvec_to_matrix(rotvec), Rotation.from_rotvec(rotvec).as_matrix(),
+                                   rtol=0, atol=1e-14)
+    np.testing.assert_allclose(_rotvec_to_matrix(np.zeros((3, 1))), np.eye(3), rtol=0, atol=0)
+
+
 def test_facet_corners_become_counter_clockwise(paths):
     d = facet_from_opencsp(paths["facet"], 100.0)
     x, y = d.outline_m[:, 0], d.outline_m[:, 1]

@@ -85,3 +85,30 @@ def test_corner_covariance_matches_the_scatter_over_noise():
         ratio = np.sqrt(w @ stated @ w / (w @ seen @ w))
         print(f"{name}: stated / seen {ratio:.2f}")
         assert 1 / 1.6 < ratio < 1.6, name
+
+
+@pytest.mark.parametrize("angle_deg", [0.0, 3.0])
+def test_a_point_sampled_side_along_the_pixel_grid_is_named_and_a_turned_one_is_pinned(angle_deg):
+    """Each pixel its centre ray (a staircase edge, as a ray tracer draws it). Along the pixel grid a side
+    has no step: the image places it only within a pixel at its ends, and staircase_sides names it;
+    turned 3 degrees every side steps through a dozen rows and the corners come within 0.05 px."""
+    from sofast_station.measure.corners import staircase_sides
+
+    c, s = np.cos(np.radians(angle_deg)), np.sin(np.radians(angle_deg))
+    half = np.array([[-120.15, -110.25], [120.15, -110.25], [120.15, 110.25], [-120.15, 110.25]])
+    true = half @ np.array([[c, s], [-s, c]]) + [160.37, 140.41]
+    cov = coverage_image(true, (280, 320), ss=1)
+    assert set(np.unique(cov)) == {0.0, 1.0}                    # point sampled: no partial pixel
+    rng = np.random.default_rng(1)
+    contrast = 180.0 * cov + rng.normal(0, 0.5, cov.shape)
+    fit = fit_outline(contrast, cov > 0.5, 4)
+    assert np.all(fit.quantised == 1)
+    err = np.linalg.norm(match_corners(fit.corners_px, true, tolerance_px=5) - true, axis=1)
+    if angle_deg == 0.0:
+        assert staircase_sides(fit) == [1, 2, 3, 4] and np.all(fit.steps == 0)
+        # the truth is within the pixel the image allows, and the stated model covariance says so
+        assert err.max() < 0.75
+        assert np.all(np.sqrt(np.diag(fit.corner_model_cov_px2)) > 0.2)
+    else:
+        assert staircase_sides(fit) == [] and np.all(fit.steps >= 10)
+        assert err.max() < 0.05, err

@@ -279,6 +279,39 @@ def test_a_measured_grid_screen_is_scipys_triangulation_found_directly():
     np.testing.assert_allclose(got, ref, rtol=0, atol=1e-14)
 
 
+def test_a_screen_given_the_grid_split_of_another_is_the_same_screen_without_a_triangulation(tmp_path):
+    """The split (which diagonal scipy's triangulation took in each cell) depends on the grid positions
+    alone: a screen built with it (from the station's cache) gives the same points to the bit, and builds
+    no triangulation; stretched and displaced screens keep it; the cache gives it back as stored."""
+    from sofast_station.cache import load_screen_split, open_cache, save_screen_split
+    from sofast_station.measure.screen import InterpolatedScreen
+
+    rng = np.random.default_rng(24)
+    xs, ys = np.cumsum(rng.uniform(0.05, 0.15, 11)), np.cumsum(rng.uniform(0.05, 0.15, 8))
+    gx, gy = np.meshgrid(xs, ys)
+    uv = np.column_stack([gx.ravel(), gy.ravel()])
+    pts = np.column_stack([uv * 0.5 + rng.normal(0, 0.002, uv.shape), rng.normal(0, 0.003, len(uv))])
+    pose = Pose(np.eye(3), np.array([0.1, -0.2, 3.0]))
+    first = InterpolatedScreen(1.0, 1.0, uv, pts, pose)
+    split = first.split
+    assert split.shape == (ys.size - 1, xs.size - 1)
+    cache = open_cache(tmp_path)
+    assert load_screen_split(cache, uv) is None
+    assert save_screen_split(cache, uv, split)
+    kept = load_screen_split(cache, uv)
+    np.testing.assert_array_equal(kept, split)
+    assert load_screen_split(cache, uv + 1e-9) is None               # other grid positions: not theirs
+    other_pts = pts + rng.normal(0, 0.001, pts.shape)                 # another shape on the same grid
+    again = InterpolatedScreen(1.0, 1.0, uv, other_pts, pose, split=kept)
+    assert again._interp_built is None
+    u, v = rng.uniform(xs[0], xs[-1], 5000), rng.uniform(ys[0], ys[-1], 5000)
+    np.testing.assert_array_equal(again.points_camera(u, v),
+                                  InterpolatedScreen(1.0, 1.0, uv, other_pts, pose).points_camera(u, v))
+    assert again.stretched("x", 1.001)._interp_built is None
+    with pytest.raises(ValueError, match="grid split of shape"):
+        InterpolatedScreen(1.0, 1.0, uv, pts, pose, split=kept[:-1])
+
+
 def test_gather_runs_is_numpys_fancy_index():
     from sofast_station.measure.pipeline import _runs
 

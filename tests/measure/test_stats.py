@@ -59,3 +59,30 @@ def test_camera_count_quantiles_from_the_histogram_are_numpys(dtype, monkeypatch
             assert quantile(x, q) == float(np.quantile(x, q)), (dtype, n, q)
         strided = x[: n - n % 5].reshape(5, -1)[:, ::2]      # not contiguous
         assert quantile(strided, 0.3) == float(np.quantile(strided, 0.3))
+
+
+def _neighbour_ms_by_image(values, flat_idx, width_px, height_px):
+    """The definition, written out on the image: every pair of valid neighbours, right then below."""
+    img = np.full(width_px * height_px, np.nan)
+    img[flat_idx] = values
+    img = img.reshape(height_px, width_px)
+    right = (img[:, 1:] - img[:, :-1]).ravel()
+    below = (img[1:, :] - img[:-1, :]).ravel()
+    d = np.concatenate([right[np.isfinite(right)], below[np.isfinite(below)]])
+    return float(np.mean(d * d)) if d.size else 0.0
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_neighbour_difference_from_the_pairs_is_the_image_definition(seed):
+    from sofast_station.measure.metrics import neighbour_difference_ms, neighbour_pairs
+
+    rng = np.random.default_rng(seed)
+    w, h = int(rng.integers(3, 40)), int(rng.integers(3, 40))
+    keep = rng.random(w * h) < rng.uniform(0.3, 0.95)
+    flat = np.flatnonzero(keep)
+    pairs = neighbour_pairs(flat, w)
+    for _ in range(3):                  # one set of pairs serves any number of value arrays
+        v = rng.normal(size=flat.size)
+        assert neighbour_difference_ms(v, pairs) == pytest.approx(_neighbour_ms_by_image(v, flat, w, h), rel=1e-12)
+    assert neighbour_difference_ms(np.ones(1), neighbour_pairs(np.array([5]), w)) == 0.0
+    assert neighbour_difference_ms(np.ones(0), neighbour_pairs(np.array([], dtype=int), w)) == 0.0

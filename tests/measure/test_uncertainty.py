@@ -578,3 +578,18 @@ def test_sensitivity_reruns_never_trip_the_captures_checks(rig, inputs):
                 uncertainty=dataclasses.replace(cfg.uncertainty, **inputs))
     assert a.figures["focal_length_x_m"] == base.figures["focal_length_x_m"]
     assert a.figures["focal_length_x_m_U"] > 3 * base.figures["focal_length_x_m_U"]
+
+
+def test_the_written_axis_angle_table_is_the_quantile_computed_afresh():
+    """budget._AXIS_U_95 is written into the source (computing it cost every command 0.08 s): it must be
+    what _projected_normal_quantile gives at each of its points (to rounding: numpy's exp and cos may
+    differ in the last bit between CPUs), and the quantile itself right where it is known in closed form."""
+    from sofast_station.measure.uncertainty import budget
+
+    fresh = np.array([0.5 * budget._projected_normal_quantile(1.0 / (2.0 * u)) for u in budget._AXIS_U_LIN])
+    assert budget._AXIS_U_95.shape == fresh.shape
+    np.testing.assert_allclose(budget._AXIS_U_95, fresh, rtol=1e-12, atol=0)
+    # d = 0: the direction is uniform on (-pi, pi], so the 95 % quantile of |theta| is 0.95 pi
+    assert budget._projected_normal_quantile(0.0) == pytest.approx(0.95 * np.pi, rel=1e-3)
+    # d large: theta ~ N(0, 1 / d^2), the quantile 1.96 / d (to the grid and the 1 / d^2 terms)
+    assert budget._projected_normal_quantile(20.0) == pytest.approx(1.959964 / 20.0, rel=1e-2)

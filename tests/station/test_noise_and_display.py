@@ -71,7 +71,10 @@ def test_noise_estimate_within_ten_percent(small, read_noise_dn):
     assert got == pytest.approx(expected, rel=0.1)
     verdict = judge(a.figures, cfg.design, cfg.limits, cfg.quality)
     assert a.figures["display_response"]["harmonic_ratio"] < cfg.quality.warn_display_harmonic_ratio
-    assert verdict["verdict"] == "pass" and not verdict["warnings"], verdict
+    # no warning about the display; the small station's sharp, square facet may have a side exactly along
+    # a pixel boundary, which the outline cannot tell from a point-sampled staircase (and warns of)
+    assert verdict["verdict"] == "pass", verdict
+    assert not [w for w in verdict["warnings"] if "pixel grid" not in w], verdict
 
 
 def test_uncorrected_gamma_is_invalid(small):
@@ -95,7 +98,8 @@ def test_slightly_nonlinear_display_warns_with_the_phase_error(small):
     verdict = judge(a.figures, cfg.design, cfg.limits, cfg.quality)
     print(a.figures["display_response"], verdict)
     assert verdict["verdict"] == "pass"
-    assert len(verdict["warnings"]) == 1 and "phase error up to" in verdict["warnings"][0]
+    display = [w for w in verdict["warnings"] if "pixel grid" not in w]     # (see the test above)
+    assert len(display) == 1 and "phase error up to" in display[0]
 
 
 def _true_phase_error_rad(cfg, images, optics) -> float:

@@ -177,3 +177,12 @@ def test_slopes_far_beyond_what_the_layout_allows_are_no_facet_of_the_recipes_ty
     assert v["verdict"] == "invalid" and "fringe sets swapped" in v["reasons"][0] and "82 times" in v["reasons"][0]
     bad = {**base, "slope_rms_mrad": {"design": {"magnitude": 4.0}, "parabola": {"magnitude": 1.5}}}
     assert judge(bad, heliostat, Limits(), Quality())["verdict"] == "fail"
+
+
+def test_sides_along_the_pixel_grid_warn_without_changing_the_verdict():
+    fig = changed(outline_staircase_sides=[2, 4])
+    out = judge(fig, DISH, Limits(), Quality())
+    assert out["verdict"] == "pass" and out["reasons"] == []
+    assert len(out["warnings"]) == 1 and "sides 2, 4 of the facet's outline lie along the pixel grid" in \
+        out["warnings"][0] and "turn the camera" in out["warnings"][0]
+    assert judge(changed(outline_staircase_sides=[]), DISH, Limits(), Quality())["warnings"] == []
