@@ -256,6 +256,16 @@ def test_label_areas_count_every_label():
     np.testing.assert_array_equal(kernels.label_areas(labels, 37), np.bincount(labels.ravel(), minlength=37))
 
 
+def _distorted_grid(rng, nx: int, ny: int):
+    """A measured screen's grid: uneven node positions (nx by ny), points near half of them in metres with
+    a little out of plane, and a pose 3 m away."""
+    xs, ys = np.cumsum(rng.uniform(0.05, 0.15, nx)), np.cumsum(rng.uniform(0.05, 0.15, ny))
+    gx, gy = np.meshgrid(xs, ys)
+    uv = np.column_stack([gx.ravel(), gy.ravel()])
+    pts = np.column_stack([uv * 0.5 + rng.normal(0, 0.002, uv.shape), rng.normal(0, 0.003, len(uv))])
+    return xs, ys, uv, pts, Pose(np.eye(3), np.array([0.1, -0.2, 3.0]))
+
+
 def test_a_measured_grid_screen_is_scipys_triangulation_found_directly():
     """A distorted screen on a rectangular grid (as OpenCSP's display models): the direct cell lookup gives
     scipy's piecewise-linear interpolation over the same triangles, NaN outside, on the edges too."""
@@ -264,11 +274,7 @@ def test_a_measured_grid_screen_is_scipys_triangulation_found_directly():
     from sofast_station.measure.screen import InterpolatedScreen
 
     rng = np.random.default_rng(21)
-    xs, ys = np.cumsum(rng.uniform(0.05, 0.15, 9)), np.cumsum(rng.uniform(0.05, 0.15, 7))
-    gx, gy = np.meshgrid(xs, ys)
-    uv = np.column_stack([gx.ravel(), gy.ravel()])
-    pts = np.column_stack([uv * 0.5 + rng.normal(0, 0.002, uv.shape), rng.normal(0, 0.003, len(uv))])
-    pose = Pose(np.eye(3), np.array([0.1, -0.2, 3.0]))
+    xs, ys, uv, pts, pose = _distorted_grid(rng, 9, 7)
     screen = InterpolatedScreen(1.0, 1.0, uv, pts, pose)
     assert screen._grid is not None
     u = np.concatenate([rng.uniform(xs[0] - 0.05, xs[-1] + 0.05, 20_000), xs, [xs[0], xs[-1]]])
@@ -287,11 +293,7 @@ def test_a_screen_given_the_grid_split_of_another_is_the_same_screen_without_a_t
     from sofast_station.measure.screen import InterpolatedScreen
 
     rng = np.random.default_rng(24)
-    xs, ys = np.cumsum(rng.uniform(0.05, 0.15, 11)), np.cumsum(rng.uniform(0.05, 0.15, 8))
-    gx, gy = np.meshgrid(xs, ys)
-    uv = np.column_stack([gx.ravel(), gy.ravel()])
-    pts = np.column_stack([uv * 0.5 + rng.normal(0, 0.002, uv.shape), rng.normal(0, 0.003, len(uv))])
-    pose = Pose(np.eye(3), np.array([0.1, -0.2, 3.0]))
+    xs, ys, uv, pts, pose = _distorted_grid(rng, 11, 8)
     first = InterpolatedScreen(1.0, 1.0, uv, pts, pose)
     split = first.split
     assert split.shape == (ys.size - 1, xs.size - 1)
