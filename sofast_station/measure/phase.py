@@ -424,15 +424,22 @@ def phase_error_between_periods(sets: list, noise_dn: float = 0.0, mask: list | 
     nc = d_c * np.sqrt(var_c)[:, None]
     cross = d_f * var_f[:, None] - (ratio * var_c)[:, None] * d_c
     # The normal equations over every pixel once; each round takes out the pixels it leaves out (a few: a
-    # coarse phase that slipped a fringe), rather than forming them again over the pixels it keeps.
+    # coarse phase that slipped a fringe), rather than forming them again over the pixels it keeps (when
+    # most are left out, over those kept: a difference of two near-equal sums would lose its digits).
+    def normal_equations(rows):
+        xr, nfr, ncr = x[rows], nf[rows], nc[rows]
+        return xr.T @ xr - nfr.T @ nfr - ncr.T @ ncr, xr.T @ y[rows] - cross[rows].sum(axis=0)
+
     xtx_all = x.T @ x - nf.T @ nf - nc.T @ nc
     xty_all = x.T @ y - cross.sum(axis=0)
     keep = np.ones(n, dtype=bool)
     for _ in range(3):               # a pixel whose coarse phase slipped a fringe: leave it out
         out = np.flatnonzero(~keep)
-        xo, nfo, nco = x[out], nf[out], nc[out]
-        xtx = xtx_all - (xo.T @ xo - nfo.T @ nfo - nco.T @ nco)
-        xty = xty_all - (xo.T @ y[out] - cross[out].sum(axis=0))
+        if 2 * out.size > n:
+            xtx, xty = normal_equations(np.flatnonzero(keep))
+        else:
+            xtx_out, xty_out = normal_equations(out)
+            xtx, xty = xtx_all - xtx_out, xty_all - xty_out
         if np.linalg.cond(xtx) > 1e10:
             return None
         coef = np.linalg.solve(xtx, xty)
