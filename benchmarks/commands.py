@@ -79,16 +79,20 @@ def load() -> str:
         return "unknown"
 
 
-def run_once(argv: list, env: dict, cwd: Path, log: Path) -> Run:
-    """``sofast-station *argv*`` in a fresh interpreter; its wall time, CPU time and peak memory."""
+def run_process(cmd: list, env: dict, cwd: Path, log: Path) -> Run:
+    """The command *cmd* as a child process (its output appended to *log*); its wall time, and its CPU time
+    and peak memory from the operating system's accounting of the finished child (``os.wait4``)."""
     with open(log, "ab") as out:
         t = time.perf_counter()
-        proc = subprocess.Popen([sys.executable, "-m", "sofast_station", *argv], stdout=out, stderr=out, env=env,
-                                cwd=cwd)
+        proc = subprocess.Popen(cmd, stdout=out, stderr=out, env=env, cwd=cwd)
         _, status, usage = os.wait4(proc.pid, 0)
         wall = time.perf_counter() - t
-    proc.returncode = os.waitstatus_to_exitcode(status)
-    return Run(wall, usage.ru_utime + usage.ru_stime, usage.ru_maxrss / 1024, proc.returncode)
+    return Run(wall, usage.ru_utime + usage.ru_stime, usage.ru_maxrss / 1024, os.waitstatus_to_exitcode(status))
+
+
+def run_once(argv: list, env: dict, cwd: Path, log: Path) -> Run:
+    """``sofast-station *argv*`` in a fresh interpreter; its wall time, CPU time and peak memory."""
+    return run_process([sys.executable, "-m", "sofast_station", *argv], env, cwd, log)
 
 
 def small_station(path: Path) -> str:

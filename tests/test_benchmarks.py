@@ -114,3 +114,25 @@ def test_commands_benchmark_quick(repo_root):
     for line in ("sofast-station --help", "inspect --config nowhere.toml", "reprocess DUMP (cache cold)",
                  "import-opencsp --robust, native (cache warm)", "| command | wall s", "load average after"):
         assert line in proc.stdout
+
+
+def test_vs_opencsp_benchmark_says_what_is_missing_and_runs_its_pairs(repo_root, tmp_path):
+    """benchmarks/vs_opencsp.py needs an environment with OpenCSP, which CI does not install: without one it
+    says so and what to do; with /bin/echo standing in for OpenCSP's python (it prints its arguments and
+    exits 0) the driver runs our import-opencsp against it in turn and prints its table."""
+    script = str(repo_root / "benchmarks" / "vs_opencsp.py")
+    for python, said in ((sys.executable, "cannot run OpenCSP's processing: OpenCSP is not importable"),
+                         (str(tmp_path / "nowhere" / "python"), "no such interpreter")):
+        proc = subprocess.run([sys.executable, script, "--opencsp-python", python], capture_output=True, text=True,
+                              timeout=300)
+        assert proc.returncode != 0 and said in proc.stderr, proc.stderr[-1000:]
+        assert "Traceback" not in proc.stderr
+    proc = subprocess.run([sys.executable, script, "--opencsp-python", "/bin/echo", "--sizes", "native", "--runs", "1"],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    print(proc.stdout)
+    for line in ("native: pair 1/1 done", "| native | ", "ours   f x 120.3", "load after"):
+        assert line in proc.stdout
+    bad = subprocess.run([sys.executable, script, "--opencsp-python", "/bin/echo", "--sizes", "huge"],
+                         capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "neither 'native' nor an upsampling" in bad.stderr
