@@ -94,6 +94,9 @@ class OutlineFit:
         an area-like side. A quantised side with fewer than :data:`MIN_STAIRCASE_STEPS` lies along the pixel
         grid: the image places it only within its interval (up to 1/n pixel) at its ends, whatever the fit
         (:func:`staircase_sides`).
+    design_sides : (N,) int array or None
+        The design outline's side (0-based: from its corner i to i + 1) each side was matched to, -1 where
+        no design outline was given or none matched.
     """
 
     corners_px: np.ndarray
@@ -105,6 +108,7 @@ class OutlineFit:
     quantised: np.ndarray | None = None
     edge_blur_px: float = 0.0
     steps: np.ndarray | None = None
+    design_sides: np.ndarray | None = None
 
 
 def rough_outline(region: np.ndarray, n_corners: int) -> np.ndarray:
@@ -662,7 +666,7 @@ def fit_outline(contrast: np.ndarray, region: np.ndarray, n_corners: int,
     centroid = rough.mean(axis=0)
     contrast = contrast.astype(np.float64, copy=False)
     shade = shading(contrast, region)
-    curves, rms, counts, noise_covs, model_covs, grids, profiles, steps = [], [], [], [], [], [], [], []
+    curves, rms, counts, noise_covs, model_covs, grids, profiles, steps, sides = [], [], [], [], [], [], [], [], []
     for i in range(n_corners):
         p0, p1 = rough[i], rough[(i + 1) % n_corners]
         d = p1 - p0
@@ -678,6 +682,7 @@ def fit_outline(contrast: np.ndarray, region: np.ndarray, n_corners: int,
                 "(the facet may be cut off or too small in the image)")
         profiles.append(coverage)
         bow, j = _nominal_side(nominal_px, n_corners, p0, p1)
+        sides.append(-1 if j is None else int(j))
         grid = quantisation(coverage, sigma)
         bow_sigma = BOW_SIGMA_PX if bow_sigma_px is None or j is None else float(bow_sigma_px[j])
         if grid:
@@ -712,18 +717,21 @@ def fit_outline(contrast: np.ndarray, region: np.ndarray, n_corners: int,
     model_cov = corner_covariance(corners, curves, model_covs)
     cov = corner_covariance(corners, curves, noise_covs) + model_cov
     return OutlineFit(corners, np.array(curves), np.array(rms), np.array(counts), cov, model_cov,
-                      np.array(grids), edge_blur_px(np.vstack(profiles)), np.array(steps))
+                      np.array(grids), edge_blur_px(np.vstack(profiles)), np.array(steps), np.array(sides))
 
 
 def staircase_sides(outline: OutlineFit) -> list[int]:
-    """The sides (1-based, in the outline's order) sampled as a staircase that lies along the pixel grid:
-    quantised, with fewer than :data:`MIN_STAIRCASE_STEPS` steps. Their corners are known only to within
-    the side's interval at its ends (up to a pixel for point sampling; the corner model's covariance holds
-    it); turning the camera a degree or two about its axis gives every side steps."""
+    """The sides sampled as a staircase that lies along the pixel grid: quantised, with fewer than
+    :data:`MIN_STAIRCASE_STEPS` steps; numbered as the design outline's sides (1: from its first corner to
+    its second) where the side was matched to one, else in the outline's own order. Their corners are known
+    only to within the side's interval at its ends (up to a pixel for point sampling; the corner model's
+    covariance holds it); turning the camera a degree or two about its axis gives every side steps."""
     if outline.steps is None or outline.quantised is None:
         return []
-    return [i + 1 for i, (n, k) in enumerate(zip(outline.quantised, outline.steps))
-            if n > 0 and 0 <= k < MIN_STAIRCASE_STEPS]
+    design = outline.design_sides if outline.design_sides is not None else np.full(len(outline.steps), -1)
+    return sorted((int(j) if j >= 0 else i) + 1
+                  for i, (n, k, j) in enumerate(zip(outline.quantised, outline.steps, design))
+                  if n > 0 and 0 <= k < MIN_STAIRCASE_STEPS)
 
 
 def edge_blur_px(coverage: np.ndarray, trim: float = 0.1) -> float:

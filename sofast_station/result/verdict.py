@@ -178,9 +178,10 @@ def staircase_warning(fig: dict) -> list[str]:
     if not sides:
         return []
     which = ", ".join(str(k) for k in sides)
-    return [f"side{'s' if len(sides) > 1 else ''} {which} of the facet's outline {'lie' if len(sides) > 1 else 'lies'} "
-            "along the pixel grid with a stepped (point-sampled) edge: the corners there are known only to "
-            "within a pixel (in the corner pose's U); turn the camera a degree or two about its axis"]
+    return [f"side{'s' if len(sides) > 1 else ''} {which} of the facet's outline (the design's numbering) "
+            f"{'lie' if len(sides) > 1 else 'lies'} along the pixel grid with a stepped (point-sampled) edge: the "
+            "corners there are known only to within a pixel (in the corner pose's U); turn the camera a degree "
+            "or two about its axis"]
 
 
 def misplacement(fig: dict, quality: Quality) -> list[str]:

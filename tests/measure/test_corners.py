@@ -112,3 +112,19 @@ def test_a_point_sampled_side_along_the_pixel_grid_is_named_and_a_turned_one_is_
     else:
         assert staircase_sides(fit) == [] and np.all(fit.steps >= 10)
         assert err.max() < 0.05, err
+
+
+def test_a_staircase_side_is_numbered_as_the_design_outlines_side():
+    """One side exactly along a pixel row, the other three slanted; the design outline listed from another
+    corner: the flagged side is named by the design's numbering (its third side here), not the image's."""
+    from sofast_station.measure.corners import staircase_sides
+
+    true = np.array([[40.3, 30.5], [280.6, 30.5], [290.2, 250.7], [35.1, 255.4]])
+    cov = coverage_image(true, (290, 330), ss=1)
+    contrast = 180.0 * cov + np.random.default_rng(2).normal(0, 0.5, cov.shape)
+    design = true[[2, 3, 0, 1]]                  # design corners c2, c3, c0, c1: side 3 runs c0 -> c1
+    t = np.linspace(0.0, 1.0, 16, endpoint=False)[:, None]
+    nominal = np.concatenate([design[i] + t * (design[(i + 1) % 4] - design[i]) for i in range(4)])
+    fit = fit_outline(contrast, cov > 0.5, 4, nominal_px=nominal)
+    assert sorted(fit.design_sides.tolist()) == [0, 1, 2, 3]
+    assert staircase_sides(fit) == [3]

@@ -183,6 +183,6 @@ def test_sides_along_the_pixel_grid_warn_without_changing_the_verdict():
     fig = changed(outline_staircase_sides=[2, 4])
     out = judge(fig, DISH, Limits(), Quality())
     assert out["verdict"] == "pass" and out["reasons"] == []
-    assert len(out["warnings"]) == 1 and "sides 2, 4 of the facet's outline lie along the pixel grid" in \
-        out["warnings"][0] and "turn the camera" in out["warnings"][0]
+    assert len(out["warnings"]) == 1 and "sides 2, 4 of the facet's outline (the design's numbering) lie along " \
+        "the pixel grid" in out["warnings"][0] and "turn the camera" in out["warnings"][0]
     assert judge(changed(outline_staircase_sides=[]), DISH, Limits(), Quality())["warnings"] == []
