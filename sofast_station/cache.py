@@ -274,10 +274,7 @@ def save_rays(cache: DiskCache | None, table) -> bool:
 
 # -- a measured screen's grid split ------------------------------------------------------------------------
 def _split_key(nodes_uv: np.ndarray) -> dict:
-    from importlib.metadata import version
-
-    return {"nodes_uv": array_digest(np.ascontiguousarray(nodes_uv, np.float64)),
-            "scipy": version("scipy"), "code": code_fingerprint()}
+    return {"nodes_uv": array_digest(np.ascontiguousarray(nodes_uv, np.float64)), "code": code_fingerprint()}
 
 
 def load_screen_split(cache: DiskCache | None, nodes_uv: np.ndarray) -> np.ndarray | None:
@@ -298,7 +295,7 @@ def load_screen_split(cache: DiskCache | None, nodes_uv: np.ndarray) -> np.ndarr
 
 def save_screen_split(cache: DiskCache | None, nodes_uv: np.ndarray, split: np.ndarray | None) -> bool:
     """Keep the grid split of a measured screen on the grid positions *nodes_uv* (the triangulation scipy
-    made: the key holds scipy's version)."""
+    made: the key's code fingerprint holds scipy's version)."""
     if cache is None or split is None:
         return False
     split = np.asarray(split, dtype=bool)

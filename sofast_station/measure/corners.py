@@ -482,6 +482,9 @@ def _quantised_side(points: np.ndarray, along_x: bool, n: int, sigma_px: float,
     polygon, and the spread between them) is the side's uncertainty. A side with many steps is pinned to
     a small fraction of a pixel; one nearly aligned with the pixel grid only to its interval, whatever
     the fit: that is what its image says.
+
+    Returns :func:`_fit_side`'s tuple and, last, the side's steps (how many times its edge positions
+    move to the next row or column; :func:`staircase_sides`).
     """
     s, e = (points[:, 0], points[:, 1]) if along_x else (points[:, 1], points[:, 0])
     order = np.argsort(s)
@@ -535,9 +538,9 @@ def _quantised_side(points: np.ndarray, along_x: bool, n: int, sigma_px: float,
     else:            # point = s (0, 1) + d' (-1, 0) with d' = -(a + b s + c s^2): t = (0, 1), n = (-1, 0)
         curve = np.array([0.0, 0.0, 0.0, 1.0, -a, -b, -c])
     if not with_cov:
-        return curve, rms, int(s.size)
+        return curve, rms, int(s.size), int(change.size)
     # (A, B, C) in u = (s - mid) / half: a covariance, so the sign of d' drops out
-    return curve, rms, int(s.size), (mid, half, cov)
+    return curve, rms, int(s.size), (mid, half, cov), int(change.size)
 
 
 def _lag1_inflation(res: np.ndarray) -> float:
@@ -692,10 +695,10 @@ def fit_outline(contrast: np.ndarray, region: np.ndarray, n_corners: int,
             excess = (np.round(coverage / q) * q - coverage).sum(axis=1)
             pts = pts.copy()
             pts[:, 1 if along_x else 0] -= inside_sign * excess
-            curve, r, n, model = _quantised_side(pts, along_x, grid, 0.0, bow, with_cov=True, bow_sigma_px=bow_sigma)
+            curve, r, n, model, k = _quantised_side(pts, along_x, grid, 0.0, bow, with_cov=True,
+                                                    bow_sigma_px=bow_sigma)
             noise = (model[0], model[1], np.zeros((3, 3)))
-            across, along = (pts[:, 1], pts[:, 0]) if along_x else (pts[:, 0], pts[:, 1])
-            steps.append(int(np.count_nonzero(np.abs(np.diff(across[np.argsort(along)])) > 1e-6)))
+            steps.append(k)
         else:
             steps.append(-1)
             curve, r, n, noise = _fit_side(pts, with_cov=True, bow_points=bow, bow_sigma_px=bow_sigma)
