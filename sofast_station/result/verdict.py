@@ -170,8 +170,9 @@ def display_response(fig: dict, quality: Quality) -> tuple[list[str], list[str]]
 
 
 def staircase_warning(fig: dict) -> list[str]:
-    """A warning when sides of the facet's outline are point-sampled staircases along the pixel grid
-    (``fig["outline_staircase_sides"]``): their corners are known only to within a pixel, which the corner
+    """A warning when sides of the facet's outline are staircases along the pixel grid (a point-sampled edge,
+    or an area-sampled one exactly on a pixel boundary, which its image cannot tell apart;
+    ``fig["outline_staircase_sides"]``): their corners are known only to within a pixel, which the corner
     pose's U carries (placement, boresight from corners, optical tilt); a camera turned a degree or two
     about its axis gives every side steps and pins its corners to a few hundredths of a pixel."""
     sides = fig.get("outline_staircase_sides") or []
@@ -179,9 +180,9 @@ def staircase_warning(fig: dict) -> list[str]:
         return []
     which = ", ".join(str(k) for k in sides)
     return [f"side{'s' if len(sides) > 1 else ''} {which} of the facet's outline (the design's numbering) "
-            f"{'lie' if len(sides) > 1 else 'lies'} along the pixel grid with a stepped (point-sampled) edge: the "
-            "corners there are known only to within a pixel (in the corner pose's U); turn the camera a degree "
-            "or two about its axis"]
+            f"{'lie' if len(sides) > 1 else 'lies'} along the pixel grid with no partly covered pixel (a stepped "
+            "edge, or one exactly on a pixel boundary): the corners there are known only to within a pixel (in the "
+            "corner pose's U); turn the camera a degree or two about its axis"]
 
 
 def misplacement(fig: dict, quality: Quality) -> list[str]:
