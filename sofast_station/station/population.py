@@ -706,6 +706,11 @@ def population_png(cases: list[dict], summary: dict, path) -> None:
         for i, r in enumerate(fr.values()):
             ax.text(i, 100 * r["rate"] + 1, f"{r['k']}/{r['n']}", ha="center")
         ax.set_ylim(0, 110)
+    else:
+        ax.text(0.5, 0.5, "no faults planted in this run\n(--no-faults)", ha="center", va="center",
+                transform=ax.transAxes)
+        ax.set_xticks([])
+        ax.set_yticks([])
     fa = summary["good"]["false_alarms"]
     ax.set_title(f"planted faults caught\nfalse alarms: {fa['k']} of {fa['n']} good")
     ax.set_ylabel("% refused or invalid")
