@@ -27,7 +27,7 @@ from ..geometry import Pose, StationGeometry
 from . import checks
 from . import corners as corners_mod
 from .camera import pixel_rays, project, to_frame
-from .boresight import Assembly, ShapeSolution, solve_shape
+from .boresight import Assembly, ShapeSolution, close_on_all_points, solve_shape
 from .fit import CubicFit, ParabolaFit, fit_cubic, fit_parabola, reweight_parabola
 from .mask import facet_region
 from .metrics import (focal_length_m, neighbour_difference_ms, neighbour_pairs, principal_axes,
@@ -344,6 +344,9 @@ class Shape:
     boresighted_to_camera: Pose
     points_m: np.ndarray
     slopes: np.ndarray
+    #: The parabola fitted to every point (the reported one, its F not yet set), when the boresight's
+    #: closing steps on every point made it (:func:`~.boresight.close_on_all_points`).
+    fit: object = None
 
 
 @dataclass(frozen=True)
@@ -638,17 +641,35 @@ def shape_and_boresight(rays: Rays, pose: CornerPoseResult, design: FacetDesign,
     # compiled pass (element-wise, half of the points on the pool: the same bits as numpy's chain).
     from .kernels import halves, reflect
 
-    to_moved = solution.motion.as_pose().compose(camera_to_facet)
     if subsample_only:
+        to_moved = solution.motion.as_pose().compose(camera_to_facet)
         return Shape(solution=solution, boresighted_to_camera=to_moved.inverse(), points_m=None, slopes=None)
     n = rays.rays.shape[1]
-    points, slopes = np.empty((3, n)), np.empty((2, n))
-    halves(pool, reflect, n, rays.rays, rays.screen_cam_m,
-           to_moved.rotation, to_moved.translation, solution.coefficients, points, slopes)
-    finite = np.isfinite(slopes[0]) & np.isfinite(slopes[1])
-    if not np.all(finite):
-        raise AnalysisError(f"{int((~finite).sum())} pixel rays miss the fitted surface; the fit diverged")
-    return Shape(solution=solution, boresighted_to_camera=to_moved.inverse(), points_m=points, slopes=slopes)
+
+    def reduce_all(motion, coefficients):
+        to_moved = motion.as_pose().compose(camera_to_facet)
+        points, slopes = np.empty((3, n)), np.empty((2, n))
+        halves(pool, reflect, n, rays.rays, rays.screen_cam_m, to_moved.rotation, to_moved.translation,
+               coefficients, points, slopes)
+        finite = np.isfinite(slopes[0]) & np.isfinite(slopes[1])
+        if not np.all(finite):
+            raise AnalysisError(f"{int((~finite).sum())} pixel rays miss the fitted surface; the fit diverged")
+        return points, slopes
+
+    solution, points, slopes, fit = close_on_all_points(
+        solution, design, measured_distance_m, subsample.screen_centre_m, reduce_all,
+        lambda p, s: all_points_parabola(p, s, solution.fit, settings, pool), settings.max_iterations)
+    to_moved = solution.motion.as_pose().compose(camera_to_facet)
+    return Shape(solution=solution, boresighted_to_camera=to_moved.inverse(), points_m=points, slopes=slopes,
+                 fit=fit)
+
+
+def all_points_parabola(points: np.ndarray, slopes: np.ndarray, subsample_fit, settings: AnalysisSettings, pool=None):
+    """The reported parabola fitted to every valid pixel: plain, or for a robust analysis one Newton step of
+    the bisquare estimate from the subsample's converged robust fit (:func:`~.fit.reweight_parabola`)."""
+    x, y, s_x, s_y = points[0], points[1], slopes[0], slopes[1]
+    return (reweight_parabola(x, y, s_x, s_y, subsample_fit, pool=pool) if settings.robust_fit
+            else fit_parabola(x, y, s_x, s_y))
 
 
 def fit_models(shape: Shape, design: FacetDesign, settings: AnalysisSettings, pool=None) -> Fits:
@@ -658,9 +679,8 @@ def fit_models(shape: Shape, design: FacetDesign, settings: AnalysisSettings, po
     x, y = shape.points_m[0], shape.points_m[1]
     s_x, s_y = shape.slopes[0], shape.slopes[1]
     cubic_task = pool.submit(fit_cubic, x, y, s_x, s_y)
-    # Robust: the bisquare iteration converged on the subsample; one Newton step over every point.
-    fit = (reweight_parabola(x, y, s_x, s_y, shape.solution.fit, pool=pool) if settings.robust_fit
-           else fit_parabola(x, y, s_x, s_y))
+    fit = shape.fit if shape.fit is not None else all_points_parabola(shape.points_m, shape.slopes,
+                                                                      shape.solution.fit, settings, pool)
     coeffs = fit.coefficients()
     coeffs[5] = float(design.z(*design.alignment_point_m)) - surface_z(coeffs, *design.alignment_point_m)
     cubic = cubic_task.result()
