@@ -16,8 +16,8 @@ import json
 import numpy as np
 import pytest
 
-from sofast_station.station.population import (EDGE_MODELS, FAULTS, KINDS, coverage_band, draw_station,
-                                               run_population, summarise, swap_sets)
+from sofast_station.station.population import (EDGE_MODELS, FAULTS, KINDS, MIN_OBSTRUCTED_FRACTION, coverage_band,
+                                               draw_station, obstruct, run_population, summarise, swap_sets)
 
 CAPTURES, PER_STATION, SEED = 24, 3, 0
 
@@ -89,6 +89,23 @@ def test_stated_uncertainty_covers_the_truth_as_claimed(population):
         assert r["n"] == CAPTURES, r
         assert lo <= r["coverage"], r
         assert r["figure"] in NONLINEAR + DESIGN_RMS or r["z_rms"] < 1.5, r
+
+
+def test_a_planted_obstruction_hides_part_of_the_facet_not_only_the_background_beside_it():
+    """A facet that fills little of its bounding box (a thin diagonal band, as a turned gore's trapezoid at
+    its worst): a bar reaching in from the box's side often lands beside it. Over 200 draws every planted
+    bar hides at least MIN_OBSTRUCTED_FRACTION of the facet's pixels (before: as few as 23 of 28,121)."""
+    rows, cols = np.mgrid[0:120, 0:160]
+    coverage = np.abs(rows - 0.75 * cols) < 6                # a band 12 px wide across the box's diagonal
+    frames = np.full((3, 120, 160), 200, np.uint8)
+    frames[0] = 10                                           # the dark frame
+    fractions = []
+    for seed in range(200):
+        out = obstruct(frames, coverage, np.random.default_rng(seed), 1.0)
+        hidden = np.any(out != frames, axis=0)
+        assert np.all(out[0][hidden] < 30)                   # dark where hidden
+        fractions.append(np.count_nonzero(hidden & coverage) / np.count_nonzero(coverage))
+    assert min(fractions) >= MIN_OBSTRUCTED_FRACTION
 
 
 def test_swapped_sets_on_the_same_frames_only_reorder_them():
