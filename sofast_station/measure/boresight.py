@@ -106,7 +106,8 @@ class ShapeSolution:
     Attributes
     ----------
     coefficients : (6,) array
-        (A, B, C, D, E, F) of the parabola fitted on the subsample, E = (E1 + E2)/2.
+        (A, B, C, D, E, F) of the parabola the points were last intersected with, E = (E1 + E2)/2: the
+        subsample's fit from :func:`solve_shape`, the all-point fit after :func:`close_on_all_points`.
     motion : Motion
     shape_iterations : int
         Shape fits done, over all boresight steps.
@@ -114,6 +115,9 @@ class ShapeSolution:
     converged : bool
     fit : ParabolaFit or None
         The last slope fit on the subsample (with a robust fit's weights and residual scale).
+    subsample_coefficients : (6,) array or None
+        After :func:`close_on_all_points`: the subsample's converged coefficients (what a program that stops
+        at the subsample reports); None before, when they are *coefficients*.
     """
 
     coefficients: np.ndarray
@@ -122,6 +126,7 @@ class ShapeSolution:
     boresight_iterations: int
     converged: bool
     fit: ParabolaFit | None = None
+    subsample_coefficients: np.ndarray | None = None
 
 
 _IDENTITY = np.eye(3)
@@ -281,5 +286,5 @@ def close_on_all_points(solution: ShapeSolution, design: FacetDesign, measured_d
                          np.array([xm, ym, float(surface_z(new, xm, ym))]), measured_distance_m)
         motion, coeffs = Motion(alpha, beta, t_z, motion.pivot_m), new
     out = ShapeSolution(coeffs, motion, solution.shape_iterations + step, solution.boresight_iterations + step,
-                        solution.converged and converged, solution.fit)
+                        solution.converged and converged, solution.fit, np.asarray(solution.coefficients, float))
     return out, points, slopes, fit

@@ -707,6 +707,7 @@ def report_figures(region: Region, phases: Phases, rays: Rays, pose: CornerPoseR
     computing the check here; *fringes* and *screen* let it judge the curl against each pixel's slope noise.
     """
     fit, coeffs, cubic, solution = fits.parabola, fits.coefficients, fits.cubic, shape.solution
+    subsample = solution.coefficients if solution.subsample_coefficients is None else solution.subsample_coefficients
     idx, vidx = region.idx, rays.vidx
     pairs = neighbour_pairs(vidx, geometry.camera.width_px)
     unwrap_stats = phases.unwrap
@@ -763,8 +764,8 @@ def report_figures(region: Region, phases: Phases, rays: Rays, pose: CornerPoseR
         "higher_order": cubic.to_dict(),
         # The converged fit on the subsample (every n-th valid pixel), before the all-points fit: what
         # programs that stop there (OpenCSP's SOFAST) report.
-        "subsample_fit": {"focal_length_x_m": focal_length_m(4.0 * float(solution.coefficients[0])),
-                          "focal_length_y_m": focal_length_m(4.0 * float(solution.coefficients[1])),
+        "subsample_fit": {"focal_length_x_m": focal_length_m(4.0 * float(subsample[0])),
+                          "focal_length_y_m": focal_length_m(4.0 * float(subsample[1])),
                           "n_points": int(-(-vidx.size // settings.subsample_step))},
         "corner_reprojection_rms_px": pose.reprojection_rms_px,
         # the facet edge's blur (pixels) and what it may have smoothed away of the slope residuals: their
