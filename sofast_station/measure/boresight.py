@@ -234,7 +234,6 @@ def solve_shape(assembly: Assembly, design: FacetDesign, measured_distance_m: fl
     return ShapeSolution(coeffs, Motion(alpha, beta, t_z, pivot), shape_total, outer, converged, fit)
 
 
-
 def close_on_all_points(solution: ShapeSolution, design: FacetDesign, measured_distance_m: float,
                         screen_centre_m: np.ndarray, reduce_all, fit_all, max_iterations: int = 20):
     """The boresight's conditions met by the parabola fitted to every valid pixel, not the subsample's.
@@ -242,9 +241,9 @@ def close_on_all_points(solution: ShapeSolution, design: FacetDesign, measured_d
     The iteration converges on the subsample (:func:`solve_shape`); the reported parabola is then fitted
     to every pixel, and on a facet that is not a parabola (a gore: its slope residuals against any
     parabola are structured, about 1 mrad) the two fits' normals at the alignment point differ by up to a
-    few tenths of a mrad. That tilt is not noise: it moved the design residual's RMS by as much as 5 % and
-    the boresight by as much, outside their U, against the definition's (and the twin's truth's) parabola
-    fitted to all the kept pixels. Here shape and boresight go on from the subsample's solution with every
+    few tenths of a mrad. That tilt is not noise: it moved the frame by as much and the design residual's
+    RMS by up to 5 %, outside their U, against the definition's (and the twin's truth's) parabola fitted to
+    all the kept pixels. Here shape and boresight go on from the subsample's solution with every
     pixel: ``reduce_all(motion, coefficients)`` intersects every ray with the model in the moved assembly
     (points (3, N), slopes (2, N)); ``fit_all(points, slopes)`` is the reported fit (a ParabolaFit). Each
     step re-fits and turns the assembly by the fitted normal's angle from the design's, then solves t_z,
@@ -280,6 +279,8 @@ def close_on_all_points(solution: ShapeSolution, design: FacetDesign, measured_d
         d_alpha = -float(np.arctan(fy) - np.arctan(design_sy))
         if max(abs(d_alpha), abs(d_beta)) < 1e-6 and kappa_converged(new, coeffs):
             converged = True
+            break
+        if step == max_iterations:           # not converged: keep the frame these points are in
             break
         alpha, beta = motion.alpha_rad + d_alpha, motion.beta_rad + d_beta
         t_z = _solve_t_z(centre, Motion(alpha, beta, 0.0, motion.pivot_m),
