@@ -327,6 +327,7 @@ class AnalysisWorker:
         self._standby_thread: threading.Thread | None = None
         self._starting: list[_Process] = []      # being started (killed by close())
         self._retired: list[tuple[_Process, threading.Thread]] = []
+        self._dismissed: list[threading.Thread] = []     # closing a worker a rerun replaced (_dismiss)
         self._closed = False
         self.starts = 0                          # worker processes started (the standbys included)
         self.takeovers = 0                       # times the standby took over
@@ -725,9 +726,19 @@ class AnalysisWorker:
 
     def _dismiss(self, proc: _Process) -> None:
         """The rerun facet is answered: the slow first worker, replaced by the standby, is closed (in the
-        background: killing and reaping it takes a moment). A rerun still going when the first worker
-        answered finishes on its own as the new worker's first job; its result is dropped."""
-        threading.Thread(target=proc.close, name="analysis-dismissed", daemon=True).start()
+        background: killing and reaping it takes a moment; :meth:`close` waits for it, so that no hung
+        analysis outlives the station). A rerun still going when the first worker answered finishes on its
+        own as the new worker's first job; its result is dropped."""
+        def close():
+            try:
+                proc.close()
+            finally:
+                with self._lock:
+                    self._dismissed = [t for t in self._dismissed if t is not threading.current_thread()]
+        thread = threading.Thread(target=close, name="analysis-dismissed", daemon=True)
+        with self._lock:
+            self._dismissed.append(thread)
+        thread.start()
 
     def _retire_only(self, proc: _Process, fut, grace_s: float) -> Future:
         """*proc* is out of service (another worker took over): its analysis may still finish within
@@ -762,8 +773,11 @@ class AnalysisWorker:
             self._closed = True
             starting = list(self._starting)
             retired = list(self._retired)
+            dismissed = list(self._dismissed)
         for proc in starting:                     # a start under way ends now (its thread then gives up)
             proc.kill()
+        for thread in dismissed:                  # a replaced worker being killed and reaped
+            thread.join(30)
         for proc, thread in retired:
             thread.join(late_wait_s)
             proc.close()
