@@ -159,6 +159,31 @@ def kappa_converged(new: np.ndarray, old: np.ndarray) -> bool:
     return bool(np.all(dk < 1e-6 * np.maximum(4.0 * np.abs(new[:2]), 1e-3)))
 
 
+def _model(fit: ParabolaFit, design: FacetDesign) -> np.ndarray:
+    """The fit's (A, B, C, D, E, F), F putting the model at the design height at the alignment point."""
+    xa, ya = (float(v) for v in design.alignment_point_m)
+    coeffs = fit.coefficients()
+    coeffs[5] = float(design.z(xa, ya)) - surface_z(coeffs, xa, ya)
+    return coeffs
+
+
+def _design_turn(coeffs: np.ndarray, design: FacetDesign) -> tuple[float, float]:
+    """(d_alpha, d_beta), radians: the turn of the assembly that brings the model's normal at the alignment
+    point onto the design's (R_y(beta) lowers every atan(s_x) by beta, R_x(alpha) raises atan(s_y) by alpha)."""
+    xa, ya = (float(v) for v in design.alignment_point_m)
+    fx, fy = surface_slopes(coeffs, xa, ya)
+    dx, dy = (float(v) for v in surface_slopes(design.coefficients, xa, ya))
+    return -float(np.arctan(fy) - np.arctan(dy)), float(np.arctan(fx) - np.arctan(dx))
+
+
+def _t_z_for(assembly: Assembly, alpha: float, beta: float, pivot: np.ndarray, coeffs: np.ndarray,
+             design: FacetDesign, distance_m: float) -> float:
+    """:func:`_solve_t_z` with the assembly turned by (alpha, beta) and the model's measure point."""
+    xm, ym = (float(v) for v in design.measure_point_m)
+    return _solve_t_z(assembly, Motion(alpha, beta, 0.0, pivot), np.array([xm, ym, float(surface_z(coeffs, xm, ym))]),
+                      distance_m)
+
+
 def solve_shape(assembly: Assembly, design: FacetDesign, measured_distance_m: float,
                 max_iterations: int = 20, robust: bool = False, pool=None) -> ShapeSolution:
     """Iterate shape fit and boresight to convergence (docs/conventions.md#iteration).
@@ -180,10 +205,8 @@ def solve_shape(assembly: Assembly, design: FacetDesign, measured_distance_m: fl
         Where a robust fit's second slope equation runs beside the first (the same bits either way).
     """
     xa, ya = (float(v) for v in design.alignment_point_m)
-    xm, ym = (float(v) for v in design.measure_point_m)
     z_align = float(design.z(xa, ya))
     pivot = np.array([xa, ya, z_align])
-    design_sx, design_sy = (float(v) for v in surface_slopes(design.coefficients, xa, ya))
     coeffs = design.coefficients.copy()
     coeffs[5] = z_align - surface_z(coeffs, xa, ya)
     alpha = beta = t_z = 0.0
@@ -209,22 +232,17 @@ def solve_shape(assembly: Assembly, design: FacetDesign, measured_distance_m: fl
             # A robust fit starts from the previous fit's weights: the same points, moved very little.
             fit = fit_parabola(pts[0], pts[1], sx, sy, robust=robust, start=fit, pool=pool,
                                robust_tolerance=tolerance)
-            new = fit.coefficients()
-            new[5] = z_align - surface_z(new, xa, ya)
+            new = _model(fit, design)
             shape_total += 1
             stable = kappa_converged(new, coeffs)
             coeffs = new
             if stable:
                 shape_done = True
                 break
-        fx, fy = surface_slopes(coeffs, xa, ya)
-        d_beta = float(np.arctan(fx) - np.arctan(design_sx))
-        d_alpha = -float(np.arctan(fy) - np.arctan(design_sy))
+        d_alpha, d_beta = _design_turn(coeffs, design)
         alpha += d_alpha
         beta += d_beta
-        z_measure = float(surface_z(coeffs, xm, ym))
-        t_z = _solve_t_z(assembly, Motion(alpha, beta, 0.0, pivot), np.array([xm, ym, z_measure]),
-                         measured_distance_m)
+        t_z = _t_z_for(assembly, alpha, beta, pivot, coeffs, design, measured_distance_m)
         if shape_done and inner == 1 and max(abs(d_alpha), abs(d_beta)) < 1e-6:
             if tolerance > FINAL_TOLERANCE:
                 tolerance = FINAL_TOLERANCE
@@ -235,7 +253,7 @@ def solve_shape(assembly: Assembly, design: FacetDesign, measured_distance_m: fl
 
 
 def close_on_all_points(solution: ShapeSolution, design: FacetDesign, measured_distance_m: float,
-                        screen_centre_m: np.ndarray, reduce_all, fit_all, max_iterations: int = 20):
+                        assembly: Assembly, reduce_all, fit_all, max_iterations: int = 20):
     """The boresight's conditions met by the parabola fitted to every valid pixel, not the subsample's.
 
     The iteration converges on the subsample (:func:`solve_shape`); the reported parabola is then fitted
@@ -252,8 +270,9 @@ def close_on_all_points(solution: ShapeSolution, design: FacetDesign, measured_d
 
     Parameters
     ----------
-    screen_centre_m : (3,) array
-        The screen centre in the corner-pose facet frame (the assembly's, unmoved), metres.
+    assembly : Assembly
+        The subsample's geometry in the corner-pose facet frame (:func:`solve_shape`'s): its screen centre
+        places t_z.
 
     Returns
     -------
@@ -262,29 +281,20 @@ def close_on_all_points(solution: ShapeSolution, design: FacetDesign, measured_d
         steps counted in its ``boresight_iterations``; the points and slopes of every pixel in the
         final frame; the fit of those points (the reported parabola, F not yet set).
     """
-    xa, ya = (float(v) for v in design.alignment_point_m)
-    xm, ym = (float(v) for v in design.measure_point_m)
-    z_align = float(design.z(xa, ya))
-    design_sx, design_sy = (float(v) for v in surface_slopes(design.coefficients, xa, ya))
     motion, coeffs = solution.motion, np.asarray(solution.coefficients, float)
-    centre = Assembly(np.zeros(3), np.zeros((3, 0)), np.zeros((3, 0)), np.asarray(screen_centre_m, float))
     converged = False
     for step in range(1, max_iterations + 1):
         points, slopes = reduce_all(motion, coeffs)
         fit = fit_all(points, slopes)
-        new = fit.coefficients()
-        new[5] = z_align - surface_z(new, xa, ya)
-        fx, fy = surface_slopes(new, xa, ya)
-        d_beta = float(np.arctan(fx) - np.arctan(design_sx))
-        d_alpha = -float(np.arctan(fy) - np.arctan(design_sy))
+        new = _model(fit, design)
+        d_alpha, d_beta = _design_turn(new, design)
         if max(abs(d_alpha), abs(d_beta)) < 1e-6 and kappa_converged(new, coeffs):
             converged = True
             break
         if step == max_iterations:           # not converged: keep the frame these points are in
             break
         alpha, beta = motion.alpha_rad + d_alpha, motion.beta_rad + d_beta
-        t_z = _solve_t_z(centre, Motion(alpha, beta, 0.0, motion.pivot_m),
-                         np.array([xm, ym, float(surface_z(new, xm, ym))]), measured_distance_m)
+        t_z = _t_z_for(assembly, alpha, beta, motion.pivot_m, new, design, measured_distance_m)
         motion, coeffs = Motion(alpha, beta, t_z, motion.pivot_m), new
     out = ShapeSolution(coeffs, motion, solution.shape_iterations + step, solution.boresight_iterations + step,
                         solution.converged and converged, solution.fit, np.asarray(solution.coefficients, float))

@@ -344,9 +344,9 @@ class Shape:
     boresighted_to_camera: Pose
     points_m: np.ndarray
     slopes: np.ndarray
-    #: The parabola fitted to every point (the reported one, its F not yet set), when the boresight's
-    #: closing steps on every point made it (:func:`~.boresight.close_on_all_points`).
-    fit: object = None
+    #: The parabola fitted to every point, the reported one (its F not yet set), from the boresight's
+    #: closing steps (:func:`~.boresight.close_on_all_points`); None with the subsample only.
+    fit: ParabolaFit | None = None
 
 
 @dataclass(frozen=True)
@@ -657,7 +657,7 @@ def shape_and_boresight(rays: Rays, pose: CornerPoseResult, design: FacetDesign,
         return points, slopes
 
     solution, points, slopes, fit = close_on_all_points(
-        solution, design, measured_distance_m, subsample.screen_centre_m, reduce_all,
+        solution, design, measured_distance_m, subsample, reduce_all,
         lambda p, s: all_points_parabola(p, s, solution.fit, settings, pool), settings.max_iterations)
     to_moved = solution.motion.as_pose().compose(camera_to_facet)
     return Shape(solution=solution, boresighted_to_camera=to_moved.inverse(), points_m=points, slopes=slopes,
@@ -672,15 +672,15 @@ def all_points_parabola(points: np.ndarray, slopes: np.ndarray, subsample_fit, s
             else fit_parabola(x, y, s_x, s_y))
 
 
-def fit_models(shape: Shape, design: FacetDesign, settings: AnalysisSettings, pool=None) -> Fits:
-    """Stage 6a: the all-points parabola (its F through the design z at the alignment point) and cubic, and
-    the slope residuals against design, parabola and cubic."""
+def fit_models(shape: Shape, design: FacetDesign, pool=None) -> Fits:
+    """Stage 6a: the all-points parabola (the boresight's closing fit, ``shape.fit``, its F through the
+    design z at the alignment point) and the cubic, and the slope residuals against design, parabola and
+    cubic."""
     pool = pool if pool is not None else _Serial()
     x, y = shape.points_m[0], shape.points_m[1]
     s_x, s_y = shape.slopes[0], shape.slopes[1]
     cubic_task = pool.submit(fit_cubic, x, y, s_x, s_y)
-    fit = shape.fit if shape.fit is not None else all_points_parabola(shape.points_m, shape.slopes,
-                                                                      shape.solution.fit, settings, pool)
+    fit = shape.fit
     coeffs = fit.coefficients()
     coeffs[5] = float(design.z(*design.alignment_point_m)) - surface_z(coeffs, *design.alignment_point_m)
     cubic = cubic_task.result()
@@ -707,7 +707,6 @@ def report_figures(region: Region, phases: Phases, rays: Rays, pose: CornerPoseR
     computing the check here; *fringes* and *screen* let it judge the curl against each pixel's slope noise.
     """
     fit, coeffs, cubic, solution = fits.parabola, fits.coefficients, fits.cubic, shape.solution
-    subsample = solution.coefficients if solution.subsample_coefficients is None else solution.subsample_coefficients
     idx, vidx = region.idx, rays.vidx
     pairs = neighbour_pairs(vidx, geometry.camera.width_px)
     unwrap_stats = phases.unwrap
@@ -764,8 +763,8 @@ def report_figures(region: Region, phases: Phases, rays: Rays, pose: CornerPoseR
         "higher_order": cubic.to_dict(),
         # The converged fit on the subsample (every n-th valid pixel), before the all-points fit: what
         # programs that stop there (OpenCSP's SOFAST) report.
-        "subsample_fit": {"focal_length_x_m": focal_length_m(4.0 * float(subsample[0])),
-                          "focal_length_y_m": focal_length_m(4.0 * float(subsample[1])),
+        "subsample_fit": {"focal_length_x_m": focal_length_m(4.0 * float(solution.subsample_coefficients[0])),
+                          "focal_length_y_m": focal_length_m(4.0 * float(solution.subsample_coefficients[1])),
                           "n_points": int(-(-vidx.size // settings.subsample_step))},
         "corner_reprojection_rms_px": pose.reprojection_rms_px,
         # the facet edge's blur (pixels) and what it may have smoothed away of the slope residuals: their
@@ -863,7 +862,7 @@ def reduce_stages(frames: np.ndarray, fringes: FringeSet, geometry: StationGeome
             return Reduction(region, phases, rays, pose, shape, None, None), dict(timer.timings)
         # The slope-curl check needs only the shape: it runs on a pool thread beside the fits.
         curl = pool.submit(slope_curl_of, region, rays, shape, phases, fringes, screen)
-        fits = fit_models(shape, design, settings, pool)
+        fits = fit_models(shape, design, pool)
         timer.lap("fit")
         figures = report_figures(region, phases, rays, pose, shape, fits, geometry, design, measured_distance_m,
                                  settings, curl=curl)
@@ -923,7 +922,7 @@ def rerun(reduction: Reduction, start: str, *, fringes: FringeSet, geometry: Sta
         shape = shape_and_boresight(rays, pose, design, measured_distance_m, settings, pool)
     else:
         shape = reduction.shape
-    fits = fit_models(shape, design, settings, pool) if order <= STAGES.index("fits") else reduction.fits
+    fits = fit_models(shape, design, pool) if order <= STAGES.index("fits") else reduction.fits
     figures = report_figures(region, phases, rays, pose, shape, fits, geometry, design, measured_distance_m,
                              settings, with_curl=with_curl, fringes=fringes, screen=screen)
     return Reduction(region, phases, rays, pose, shape, fits, figures)

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from sofast_station.config import load_config
-from sofast_station.measure.boresight import Motion, ShapeSolution, close_on_all_points
+from sofast_station.measure.boresight import Assembly, Motion, ShapeSolution, close_on_all_points
 from sofast_station.measure.fit import ParabolaFit
 
 
@@ -28,8 +28,8 @@ def _close(repo_root, tilt_of, max_iterations: int = 20):
     def fit_all(points, slopes):
         return ParabolaFit(a, a, np.tan(tilt_of(used)), 0.0, 0.0, 0.0)
 
-    out, points, _, _ = close_on_all_points(start, design, 5.0, np.array([0.0, 0.0, 10.0]), reduce_all, fit_all,
-                                            max_iterations)
+    assembly = Assembly(np.zeros(3), np.zeros((3, 0)), np.zeros((3, 0)), np.array([0.0, 0.0, 10.0]))  # screen centre
+    out, points, _, _ = close_on_all_points(start, design, 5.0, assembly, reduce_all, fit_all, max_iterations)
     return out, points, used, a
 
 
