@@ -340,30 +340,37 @@ def _analyse_case(st: PopulationStation, frames, distance: float, twin, place, w
 MIN_OBSTRUCTED_FRACTION = 0.02
 
 
+def _bar(shape: tuple, box: tuple, rng: np.random.Generator) -> np.ndarray:
+    """A bar (bool mask of *shape*) reaching in from one side of *box* (r0, r1, c0, c1): 15-35 % of the
+    box's extent deep, 30-70 % of that side's length long."""
+    r0, r1, c0, c1 = box
+    depth, length = rng.uniform(0.15, 0.35), rng.uniform(0.3, 0.7)
+    side = int(rng.integers(4))
+    mask = np.zeros(shape, dtype=bool)
+    if side in (0, 1):                                     # from the left or right
+        d = int(round(depth * (c1 - c0)))
+        n = int(round(length * (r1 - r0)))
+        start = r0 + int(rng.integers(0, max(1, r1 - r0 - n)))
+        cs = slice(c0 - 2, c0 + d) if side == 0 else slice(c1 - d, c1 + 2)
+        mask[start:start + n, cs] = True
+    else:                                                  # from the top or bottom
+        d = int(round(depth * (r1 - r0)))
+        n = int(round(length * (c1 - c0)))
+        start = c0 + int(rng.integers(0, max(1, c1 - c0 - n)))
+        rs = slice(r0 - 2, r0 + d) if side == 2 else slice(r1 - d, r1 + 2)
+        mask[rs, start:start + n] = True
+    return mask
+
+
 def obstruct(frames: np.ndarray, coverage: np.ndarray, rng: np.random.Generator, read_noise_dn: float) -> np.ndarray:
     """The frames with an unlit object between camera and facet: a bar reaching in from one side of the
-    facet's image (15-35 % of its extent, 30-70 % of that side's length), showing the dark frame's level
-    (room light only) with new read noise in every frame; drawn again until it hides at least
-    :data:`MIN_OBSTRUCTED_FRACTION` of the facet's pixels."""
+    facet's image (:func:`_bar`), showing the dark frame's level (room light only) with new read noise in
+    every frame; drawn again until it hides at least :data:`MIN_OBSTRUCTED_FRACTION` of the facet's pixels."""
     rows, cols = np.flatnonzero(coverage.any(axis=1)), np.flatnonzero(coverage.any(axis=0))
-    r0, r1, c0, c1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
+    box = (rows[0], rows[-1] + 1, cols[0], cols[-1] + 1)
     facet = int(np.count_nonzero(coverage))
     for _ in range(100):
-        depth, length = rng.uniform(0.15, 0.35), rng.uniform(0.3, 0.7)
-        side = int(rng.integers(4))
-        mask = np.zeros(coverage.shape, dtype=bool)
-        if side in (0, 1):                                     # from the left or right
-            d = int(round(depth * (c1 - c0)))
-            n = int(round(length * (r1 - r0)))
-            start = r0 + int(rng.integers(0, max(1, r1 - r0 - n)))
-            cs = slice(c0 - 2, c0 + d) if side == 0 else slice(c1 - d, c1 + 2)
-            mask[start:start + n, cs] = True
-        else:                                                  # from the top or bottom
-            d = int(round(depth * (r1 - r0)))
-            n = int(round(length * (c1 - c0)))
-            start = c0 + int(rng.integers(0, max(1, c1 - c0 - n)))
-            rs = slice(r0 - 2, r0 + d) if side == 2 else slice(r1 - d, r1 + 2)
-            mask[rs, start:start + n] = True
+        mask = _bar(coverage.shape, box, rng)
         if np.count_nonzero(mask & coverage) >= MIN_OBSTRUCTED_FRACTION * facet:
             break
     else:
