@@ -11,6 +11,8 @@ A facet file (TOML, in ``fixtures/facets/``) holds one ``[facet]`` table::
     alignment_point_m = [0.0, 0.0]   # the electronic boresight's alignment point
     edge_rim_m = 0.0                 # optional: a rim along the outline that may not reflect like the
                                      # mirror (a seamed or bevelled glass edge), metres wide
+    edge_rim_dark = false            # optional: true when that rim never shows the screen to the camera
+                                     # (a ground seam, a steep bevel)
 
 The facet frame's origin is the paraboloid vertex: the facet centre for on-axis facets, a point off the
 facet for gore facets (docs/conventions.md#facet-frame).
@@ -47,6 +49,11 @@ class FacetDesign:
         Width of a rim inside the outline whose surface is not the mirror's (a seamed or bevelled glass
         edge), metres: it may look lit or dark in the camera, so the corners' uncertainty includes it
         (docs/method.md, facet outline). 0: the mirror reaches the outline.
+    edge_rim_dark : bool
+        The rim never reflects the screen into the camera (a ground seam, or a bevel turned so steeply that
+        its reflection misses the screen): the edge found in the image is the rim's inner edge and the
+        outline lies the rim's width outside it. False (default): the rim may look lit or dark, and the
+        outline is put midway, uncertain by the rim's width / sqrt(12). Only with ``edge_rim_m > 0``.
     """
 
     name: str
@@ -57,6 +64,7 @@ class FacetDesign:
     alignment_point_m: np.ndarray
     layout: dict = field(default_factory=dict)
     edge_rim_m: float = 0.0
+    edge_rim_dark: bool = False
 
     def __post_init__(self):
         where = f"facet {self.name!r}"
@@ -83,6 +91,11 @@ class FacetDesign:
             raise ConfigError(f"{where}: edge_rim_m = {rim:g} m is not a narrow rim of this outline (its "
                               f"shortest side is {sides.min():g} m); give the rim's width in metres")
         object.__setattr__(self, "edge_rim_m", float(rim))
+        if not isinstance(self.edge_rim_dark, (bool, np.bool_)):
+            raise ConfigError(f"{where}: edge_rim_dark must be true or false, got {self.edge_rim_dark!r}")
+        if self.edge_rim_dark and not rim:
+            raise ConfigError(f"{where}: edge_rim_dark = true needs the rim's width, edge_rim_m (metres)")
+        object.__setattr__(self, "edge_rim_dark", bool(self.edge_rim_dark))
         for key in ("measure_point_m", "alignment_point_m"):
             p = np.array(getattr(self, key), dtype=np.float64)
             if p.shape != (2,) or not np.all(np.isfinite(p)):
@@ -135,6 +148,8 @@ class FacetDesign:
              "alignment_point_m": self.alignment_point_m.tolist(), "layout": dict(self.layout)}
         if self.edge_rim_m:         # (absent when there is none: designs and hashes from before it)
             d["edge_rim_m"] = self.edge_rim_m
+        if self.edge_rim_dark:
+            d["edge_rim_dark"] = True
         return d
 
     @classmethod
@@ -148,7 +163,7 @@ class FacetDesign:
             return cls(name=str(d["name"]), kind=str(d["kind"]), focal_length_m=d["focal_length_m"],
                        outline_m=outline, measure_point_m=d.get("measure_point_m", centre),
                        alignment_point_m=d.get("alignment_point_m", centre), layout=dict(d.get("layout", {})),
-                       edge_rim_m=d.get("edge_rim_m", 0.0))
+                       edge_rim_m=d.get("edge_rim_m", 0.0), edge_rim_dark=d.get("edge_rim_dark", False))
         except ConfigError as exc:            # name where the design came from (a file, a recipe)
             msg = str(exc)
             raise ConfigError(msg if source == "facet" or source in msg else f"{source}: {msg}") from None

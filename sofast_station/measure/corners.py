@@ -36,6 +36,10 @@ MAX_QUANTISED_GRID = 4
 #: 1 the lines through every row's interval still turn by up to a pixel at the ends (the population study:
 #: sides with 2 or more steps had corners within 0.012 px, sides with fewer up to 0.46 px off).
 MIN_STAIRCASE_STEPS = 2
+#: Standard deviation of a known-dark rim's width about the design's, as a fraction of it (a ground seam's
+#: width wanders along the edge; the design gives its nominal width): the model error of a side placed
+#: the rim's width outside the found edge (:func:`fit_outline`, ``rim_dark``).
+RIM_WIDTH_SIGMA = 0.1
 #: Standard deviation of a side's bow (its image's departure from a straight line at its ends, pixels)
 #: about the design's when :func:`fit_outline` is given no ``bow_sigma_px``.
 BOW_SIGMA_PX = 0.1
@@ -638,7 +642,8 @@ def _nominal_side(nominal_px: np.ndarray | None, n_corners: int, p0: np.ndarray,
 
 def fit_outline(contrast: np.ndarray, region: np.ndarray, n_corners: int,
                 half_width_px: int = EDGE_HALF_WIDTH_PX, nominal_px: np.ndarray | None = None,
-                bow_sigma_px: np.ndarray | None = None, rim_px: np.ndarray | None = None) -> OutlineFit:
+                bow_sigma_px: np.ndarray | None = None, rim_px: np.ndarray | None = None,
+                rim_dark: bool | np.ndarray = False) -> OutlineFit:
     """Sub-pixel corners of the facet outline.
 
     Parameters
@@ -664,6 +669,10 @@ def fit_outline(contrast: np.ndarray, region: np.ndarray, n_corners: int,
         reflect like the mirror (``FacetDesign.edge_rim_m``): lit, the found edge is the outline; dark, it
         is the rim's inner edge. The side is put midway, and the rim's width, as a uniform spread, joins
         its model error.
+    rim_dark : bool or (n_corners,) bool array
+        The rim is known dark (``FacetDesign.edge_rim_dark``), on every side or on each design side (in
+        *nominal_px*'s order) where True: the side is put the rim's width outside the found edge, uncertain
+        by :data:`RIM_WIDTH_SIGMA` of that width.
     """
     rough = rough_outline(region, n_corners)
     centroid = rough.mean(axis=0)
@@ -705,11 +714,14 @@ def fit_outline(contrast: np.ndarray, region: np.ndarray, n_corners: int,
             model = (noise[0], noise[1], np.diag([SIDE_MODEL_SIGMA_PX ** 2, SIDE_MODEL_SIGMA_PX ** 2, 0.0]))
         if rim_px is not None and j is not None and rim_px[j] > 0:
             # the outline lies between the found edge (rim lit) and a rim's width outward (rim dark)
+            w = float(rim_px[j])
             normal = np.array([-curve[3], curve[2]])
             outward = 1.0 if normal @ (mid - centroid) > 0 else -1.0
             curve = curve.copy()
-            curve[4] += outward * 0.5 * float(rim_px[j])
-            model = (model[0], model[1], model[2] + np.diag([float(rim_px[j]) ** 2 / 12.0, 0.0, 0.0]))
+            dark = bool(rim_dark if np.ndim(rim_dark) == 0 else rim_dark[j])
+            shift, spread2 = (w, (RIM_WIDTH_SIGMA * w) ** 2) if dark else (0.5 * w, w * w / 12.0)
+            curve[4] += outward * shift
+            model = (model[0], model[1], model[2] + np.diag([spread2, 0.0, 0.0]))
         curves.append(curve)
         noise_covs.append(noise)
         model_covs.append(model)
@@ -867,7 +879,8 @@ def _bows_px(points_px: np.ndarray, n_corners: int) -> np.ndarray:
 
 
 def outline_hints(design, camera, fixture_to_camera, per_side: int = 64) -> dict:
-    """:func:`fit_outline`'s ``nominal_px``, ``bow_sigma_px`` and ``rim_px`` for a facet design in a fixture.
+    """:func:`fit_outline`'s ``nominal_px``, ``bow_sigma_px``, ``rim_px`` and ``rim_dark`` for a facet design in
+    a fixture.
 
     The design outline on the design surface at the fixture's nominal pose gives each side's bow; how
     much that bow changes when the facet lies up to :data:`PLACEMENT_SPAN` off (turned about, or moved
@@ -877,6 +890,7 @@ def outline_hints(design, camera, fixture_to_camera, per_side: int = 64) -> dict
     side's pixels.
     """
     key = (design.outline_m.tobytes(), float(design.focal_length_m), float(design.edge_rim_m),
+           bool(design.edge_rim_dark),
            np.asarray(camera.matrix, np.float64).tobytes(), np.asarray(camera.distortion, np.float64).tobytes(),
            fixture_to_camera.rotation.tobytes(), fixture_to_camera.translation.tobytes(), int(per_side))
     hit = _HINTS.get(key)
@@ -920,7 +934,7 @@ def _outline_hints(design, camera, fixture_to_camera, per_side: int) -> dict:
     nominal.setflags(write=False)
     sigma = np.maximum(spread, 0.01)
     sigma.setflags(write=False)
-    return {"nominal_px": nominal, "bow_sigma_px": sigma, "rim_px": rim}
+    return {"nominal_px": nominal, "bow_sigma_px": sigma, "rim_px": rim, "rim_dark": bool(design.edge_rim_dark)}
 
 
 def _rotation(rvec: np.ndarray) -> np.ndarray:

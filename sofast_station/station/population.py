@@ -102,6 +102,10 @@ EDGE_MODELS = {
                                "vignetting_exponent": float(rng.uniform(2.0, 6.0))},
 }
 
+#: A bevel turned this far (mrad) or more is declared dark in its design (``FacetDesign.edge_rim_dark``), as
+#: the maker of a steeply ground seam would: its reflection of the camera's rays misses the screen.
+BEVEL_DARK_TILT_MRAD = 100.0
+
 #: The edge models in two groups the study reports apart: a sharp edge (the pixel's own sampling, a rim,
 #: vignetting) and one the lens blurs over a pixel or more.
 EDGE_GROUPS = {"sharp": ("area", "point", "grid", "bevel", "vignetting"), "blurred": ("blur", "defocus")}
@@ -187,8 +191,11 @@ class PopulationStation:
             cfg.geometry, camera=dataclasses.replace(cam, distortion=dist)))
         rim_mm = float(spec["optics"].get("bevel_width_mm", 0.0))
         if rim_mm > 0:
-            # a glass edge's seamed or bevelled rim is part of the facet type's design (facet.edge_rim_m)
-            cfg = dataclasses.replace(cfg, design=dataclasses.replace(cfg.design, edge_rim_m=1e-3 * rim_mm))
+            # a glass edge's seamed or bevelled rim is part of the facet type's design (facet.edge_rim_m);
+            # the drawn rims are ground steeply (BEVEL_DARK_TILT_MRAD and more), which the design says
+            dark = float(spec["optics"].get("bevel_tilt_mrad", 0.0)) >= BEVEL_DARK_TILT_MRAD
+            cfg = dataclasses.replace(cfg, design=dataclasses.replace(cfg.design, edge_rim_m=1e-3 * rim_mm,
+                                                                      edge_rim_dark=dark))
         self.config = cfg
         design = cfg.design
         kind = KINDS[spec["kind"]]

@@ -43,12 +43,12 @@ def scaled(kind: str, scale: int, k1: float | None = None):
 
 
 def measure(kind: str, scale: int, blur_px: float = 0.0, edge_sampling: str = "area", rz_mrad: float = 0.0,
-            k1: float | None = None, optics: dict | None = None, uncertainty: bool = False):
+            k1: float | None = None, optics: dict | None = None, uncertainty: bool = False, rim_dark: bool = False):
     cfg, facet = scaled(kind, scale, k1)
     optics = {"blur_px": blur_px, "edge_sampling": edge_sampling, **(optics or {})}
-    if optics.get("bevel_width_mm"):          # the design declares its glass rim
+    if optics.get("bevel_width_mm"):          # the design declares its glass rim (and, with rim_dark, its kind)
         rim_m = 1e-3 * optics["bevel_width_mm"]
-        cfg = dataclasses.replace(cfg, design=dataclasses.replace(cfg.design, edge_rim_m=rim_m))
+        cfg = dataclasses.replace(cfg, design=dataclasses.replace(cfg.design, edge_rim_m=rim_m, edge_rim_dark=rim_dark))
     twin = TwinStation(cfg.geometry, cfg.design, TrueFacet.from_dict({**facet, "placement_mrad": [0.0, 0.0, rz_mrad]}),
                        TwinOptics(**optics).noise_free())
     record = load_radiometric(ROOT / "calibration/simulated_radiometric.json")
@@ -108,17 +108,15 @@ def test_gore_twist_and_optical_tilt(blur_px):
 @pytest.mark.parametrize("model", ["disk blur", "bevelled rim"])
 def test_gore_twist_on_other_edge_models_through_a_distorting_lens(model):
     """Issue 26: on an independent renderer the gore's twist was 0.0065-0.0071 mrad/m off (its corners 0.7 px).
-    On the twin's other edge models (a 1.5 px defocus disk, a 2 mm dark glass rim the design declares),
-    through a lens with k1 = -0.3: within 0.002 mrad/m, the optical tilt within 0.05 mrad (the rim's within
-    0.15: its corners are only known to the rim's width). (Strong vignetting: 0.0002 mrad/m, left to the
-    corner tests, tests/station/test_corner_models.py.)"""
+    On the twin's other edge models (a 1.5 px defocus disk, a 2 mm glass rim the design declares dark),
+    through a lens with k1 = -0.3: within 0.002 mrad/m, the optical tilt within 0.05 mrad. (Strong
+    vignetting: 0.0002 mrad/m, left to the corner tests, tests/station/test_corner_models.py.)"""
     optics = {"disk blur": {"defocus_px": 1.5},
               "bevelled rim": {"bevel_width_mm": 2.0, "bevel_tilt_mrad": 400.0}}[model]
-    a, twin = measure("gore", 2, k1=-0.3, optics=optics)
+    a, twin = measure("gore", 2, k1=-0.3, optics=optics, rim_dark=True)
     twist, tilt = twist_and_tilt_errors(a, twin, f"{model}, k1 -0.3")
     assert abs(twist) < 0.002
-    limit = 0.15 if model == "bevelled rim" else 0.05
-    assert abs(tilt["x"]) < limit and abs(tilt["y"]) < limit
+    assert abs(tilt["x"]) < 0.05 and abs(tilt["y"]) < 0.05
 
 
 def test_gore_twist_on_point_sampled_edges_within_its_uncertainty():
