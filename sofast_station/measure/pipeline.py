@@ -212,6 +212,9 @@ class Region:
         Which of the region's pixels (``idx`` order) lie far enough inside the outline that none of their
         light comes from beyond it (:func:`~sofast_station.measure.corners.edge_inset_px`); only they may
         be used for the shape. None: no outline.
+    lit_rim_sides : tuple of int
+        Sides of the outline (the design's numbering from 1) whose rim the design declares dark but whose
+        fringes show it lit (:func:`check_dark_rim`); the outline was refitted with those rims put midway.
     """
 
     region: np.ndarray
@@ -221,6 +224,7 @@ class Region:
     outline: corners_mod.OutlineFit | None = None
     outline_error: Exception | None = None
     clear_of_edge: np.ndarray | None = None
+    lit_rim_sides: tuple = ()
 
 
 @dataclass(frozen=True)
@@ -404,12 +408,46 @@ def find_region(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometr
     _gather_runs(flat[half:], idx, runs, stack[half:])
     first.result()
     outline, error = outline.result()
-    clear = None
-    if outline is not None:
-        rows, cols = np.divmod(idx, cam.width_px)
-        clear = corners_mod.inside_outline(outline, cols, rows, corners_mod.edge_inset_px(outline.edge_blur_px))
     return Region(region=region, idx=idx, stack=stack, contrast=contrast.result(), outline=outline,
-                  outline_error=error, clear_of_edge=clear)
+                  outline_error=error, clear_of_edge=_clear_of_edge(outline, idx, cam.width_px))
+
+
+def _clear_of_edge(outline, idx: np.ndarray, width_px: int) -> np.ndarray | None:
+    """``Region.clear_of_edge`` of an outline (None without one)."""
+    if outline is None:
+        return None
+    rows, cols = np.divmod(idx, width_px)
+    return corners_mod.inside_outline(outline, cols, rows, corners_mod.edge_inset_px(outline.edge_blur_px))
+
+
+def check_dark_rim(region: Region, phases: Phases, geometry: StationGeometry, design: FacetDesign,
+                   settings: AnalysisSettings) -> Region:
+    """Stage 2b: does a rim the design declares dark (``FacetDesign.edge_rim_dark``) show the screen?
+
+    The outline was placed the rim's width outside the edge found in the image; where the decoded screen
+    positions on that edge jump away from the mirror's beside them (:func:`~.rim.rim_jumps`), the rim is
+    lit on that side and the outline is refitted with it put midway, as for a rim of unknown kind (its
+    width / sqrt(12) in the corners' U), the sides named in ``lit_rim_sides`` (the verdict warns). The
+    region is returned unchanged otherwise."""
+    from . import rim as rim_mod
+
+    outline = region.outline
+    if outline is None or not design.edge_rim_dark or outline.design_sides is None:
+        return region
+    hints = corners_mod.outline_hints(design, geometry.camera, geometry.fixture_to_camera)
+    sides = np.asarray(outline.design_sides)
+    shift = np.where(sides >= 0, hints["rim_px"][np.maximum(sides, 0)], 0.0)
+    positions = np.vstack([phases.positions_m["x"], phases.positions_m["y"]])
+    lit = rim_mod.lit_rim_sides(rim_mod.rim_jumps(outline, shift, region.region.shape, region.idx, positions),
+                                sides)
+    if not lit:
+        return region
+    dark = np.ones(len(design.outline_m), dtype=bool)
+    dark[np.asarray(lit) - 1] = False
+    refit = corners_mod.fit_outline(region.contrast, region.region, len(design.outline_m), settings.edge_window_px,
+                                    **{**hints, "rim_dark": dark})
+    return dataclasses.replace(region, outline=refit, lit_rim_sides=tuple(lit),
+                               clear_of_edge=_clear_of_edge(refit, region.idx, geometry.camera.width_px))
 
 
 def _outline_of(contrast: np.ndarray, region: np.ndarray, geometry: StationGeometry, design: FacetDesign,
@@ -772,6 +810,8 @@ def report_figures(region: Region, phases: Phases, rays: Rays, pose: CornerPoseR
         "edge_blur_px": region.outline.edge_blur_px if region.outline is not None else None,
         # sides whose staircase edge lies along the pixel grid: their corners only to within a pixel
         "outline_staircase_sides": corners_mod.staircase_sides(region.outline) if region.outline is not None else [],
+        # sides whose rim the design declares dark but whose fringes show it lit: put midway
+        "outline_lit_rim_sides": list(region.lit_rim_sides),
         "slope_residual_neighbour_ms_mrad2": {
             m: {a: neighbour_difference_ms(e[i], pairs) for i, a in enumerate(("x", "y"))}
             for m, e in fits.residuals_mrad.items()},
@@ -851,6 +891,11 @@ def reduce_stages(frames: np.ndarray, fringes: FringeSet, geometry: StationGeome
         region = find_region(frames, fringes, geometry, design, settings, pool)
         timer.lap("mask")
         phases = measure_phases(region, fringes, (screen.width_m, screen.height_m), settings, pixel_mask, pool)
+        checked = check_dark_rim(region, phases, geometry, design, settings)
+        if checked is not region:
+            # a lit rim moved the outline inward: the pixels clear of its edge are fewer
+            region = checked
+            phases = measure_phases(region, fringes, (screen.width_m, screen.height_m), settings, pixel_mask, pool)
         timer.lap("phase")
         rays = screen_points_and_rays(region, phases, geometry.camera, screen, rays_cam, pool)
         timer.lap("rays")

@@ -185,6 +185,22 @@ def staircase_warning(fig: dict) -> list[str]:
             "corner pose's U); turn the camera a degree or two about its axis"]
 
 
+def lit_rim_warning(fig: dict) -> list[str]:
+    """A warning when a rim the facet's design declares dark (``edge_rim_dark``) shows the screen on some
+    sides (``fig["outline_lit_rim_sides"]``, :func:`~sofast_station.measure.pipeline.check_dark_rim`): those
+    sides were put midway across the rim, their corners known to the rim's width / sqrt(12) (in the corner
+    pose's U), not to the few hundredths of a pixel a dark rim allows; the design's declaration is wrong
+    for this facet, or something lights its rim."""
+    sides = fig.get("outline_lit_rim_sides") or []
+    if not sides:
+        return []
+    which = ", ".join(str(k) for k in sides)
+    return [f"the glass rim the design declares dark (edge_rim_dark) shows the screen on side{'s' if len(sides) > 1 else ''} "
+            f"{which} of the facet's outline (the design's numbering): put midway across the rim, the corners there "
+            "known only to the rim's width (in the corner pose's U); if this facet type's rim is not ground dark, "
+            "set edge_rim_dark = false in its design"]
+
+
 def misplacement(fig: dict, quality: Quality) -> list[str]:
     """The reason a facet is misplaced in its fixture (empty when it is seated): a placement coordinate
     beyond ``max_placement_mm`` / ``max_placement_mrad`` by more than its U (k = 2; 0 when not stated).
@@ -233,7 +249,7 @@ def judge(fig: dict, design: FacetDesign, limits: Limits, quality: Quality) -> d
     one facet's figures; warnings say what weakens a result without invalidating it. The guarded decision
     rule uses the figures' ``name_U`` expanded uncertainties (missing ones count as 0)."""
     invalid, warnings = display_response(fig, quality)
-    warnings = warnings + staircase_warning(fig)
+    warnings = warnings + staircase_warning(fig) + lit_rim_warning(fig)
     curl = fig.get("slope_curl")
     turning = curl and curl_judgement(curl, quality.max_slope_curl_ratio, quality.min_slope_curl_per_m,
                                       quality.slope_curl_sigmas, quality.slope_curl_noise_tolerance)
