@@ -438,8 +438,8 @@ def check_dark_rim(region: Region, phases: Phases, geometry: StationGeometry, de
     sides = np.asarray(outline.design_sides)
     shift = np.where(sides >= 0, hints["rim_px"][np.maximum(sides, 0)], 0.0)
     positions = np.vstack([phases.positions_m["x"], phases.positions_m["y"]])
-    lit = rim_mod.lit_rim_sides(rim_mod.rim_jumps(outline, shift, region.region.shape, region.idx, positions),
-                                sides)
+    lit = rim_mod.lit_rim_sides(rim_mod.rim_jumps(outline, shift, region.region.shape, region.idx, positions,
+                                                  region.contrast), sides)
     if not lit:
         return region
     dark = np.ones(len(design.outline_m), dtype=bool)

@@ -37,6 +37,10 @@ from .corners import OutlineFit
 LIT_JUMP_SCATTER = 2.0
 #: ... and this many times its own standard error.
 LIT_JUMP_SIGMAS = 5.0
+#: A step along a side is used where the pixels 2 and 6 px inside its edge are lit (white - dark) at least
+#: this fraction of the facet's median: dimmer, the edge reflects the screen's border (the twin's strongest
+#: vignetting leaves 0.4 at the image's corners).
+FULL_LIGHT = 0.5
 #: Fraction of a side's residuals cut at either end before they are averaged.
 TRIM = 0.2
 #: Depths inside the found edge, pixels, at which each step along a side samples the positions.
@@ -46,7 +50,7 @@ MIN_SAMPLES = 20
 
 
 def rim_jumps(outline: OutlineFit, found_shift_px: np.ndarray, shape: tuple[int, int], idx: np.ndarray,
-              positions_m: np.ndarray) -> np.ndarray:
+              positions_m: np.ndarray, contrast: np.ndarray | None = None) -> np.ndarray:
     """Each side's jump, its standard error and its inner residuals' median length, metres on the screen:
     (n_sides, 3), NaN where fewer than :data:`MIN_SAMPLES` steps had all four samples decoded.
 
@@ -62,12 +66,18 @@ def rim_jumps(outline: OutlineFit, found_shift_px: np.ndarray, shape: tuple[int,
         Sorted flat indices of the pixels with decoded positions (the facet region).
     positions_m : (2, M) array
         Their decoded screen positions (x, y), metres; NaN where not decoded.
+    contrast : (rows, columns) array or None
+        White - dark, DN. Given, a step is used only where the pixels 2 and 6 px inside the edge are lit at
+        least :data:`FULL_LIGHT` times the facet's median: where the facet reflects the screen's own border,
+        its pixels see part of the screen and part of its frame, dimly, and their positions bend towards the
+        screen's inside without any rim.
     """
     rows_n, cols_n = shape
     corners = np.asarray(outline.corners_px, float)
     centroid = corners.mean(axis=0)
     n = len(outline.sides)
     out = np.full((n, 3), np.nan)
+    bright = FULL_LIGHT * float(np.median(contrast.ravel()[idx])) if contrast is not None and idx.size else 0.0
     for i, curve in enumerate(np.asarray(outline.sides, float)):
         o, t = curve[:2], curve[2:4]
         normal = np.array([-t[1], t[0]])
@@ -80,7 +90,7 @@ def rim_jumps(outline: OutlineFit, found_shift_px: np.ndarray, shape: tuple[int,
         inward = 1.0 if normal @ (centroid - (o + 0.5 * (s0 + s1) * t)) > 0 else -1.0
         shift = float(found_shift_px[i])
         found = o + s[:, None] * t + ((a + b * s + c * s * s) + inward * shift)[:, None] * normal
-        pos, depth = [], []
+        pos, depth, light = [], [], []
         for d in SAMPLE_DEPTHS_PX:
             px = np.rint(found + inward * d * normal)
             col, row = px[:, 0].astype(np.int64), px[:, 1].astype(np.int64)
@@ -89,6 +99,9 @@ def rim_jumps(outline: OutlineFit, found_shift_px: np.ndarray, shape: tuple[int,
             k = np.clip(np.searchsorted(idx, flat), 0, max(idx.size - 1, 0))
             hit = inside & (idx[k] == flat) if idx.size else np.zeros(inside.shape, bool)
             pos.append(np.where(hit[None, :], positions_m[:, k] if idx.size else np.nan, np.nan))
+            if contrast is not None:
+                light.append(np.where(inside, contrast[np.clip(row, 0, rows_n - 1), np.clip(col, 0, cols_n - 1)],
+                                      np.nan))
             # the pixel centre's own depth inside the found edge (rounding moved it by up to half a pixel)
             rel = px - o
             sc = rel @ t
@@ -96,16 +109,25 @@ def rim_jumps(outline: OutlineFit, found_shift_px: np.ndarray, shape: tuple[int,
         edge = _residual(pos[0], depth[0], pos[1], depth[1], pos[2], depth[2])
         inner = _residual(pos[1], depth[1], pos[2], depth[2], pos[3], depth[3])
         good = np.all(np.isfinite(edge), axis=0) & np.all(np.isfinite(inner), axis=0)
+        if contrast is not None:
+            with np.errstate(invalid="ignore"):
+                good &= (light[1] >= bright) & (light[3] >= bright)
         k = int(np.count_nonzero(good))
         if k < MIN_SAMPLES:
             continue
-        edge, inner = edge[:, good], inner[:, good]
+        # Only the residuals' part along the way the screen position moves across the side counts: a rim
+        # turned outward moves its reflection that way; along the side, a partly covered pixel's position
+        # may lean by a fraction of a pixel's worth (the screen's own border, the lens) without any rim.
+        across = np.median(pos[1][:, good] - pos[2][:, good], axis=1)
+        norm = np.hypot(*across)
+        if not norm > 0:
+            continue
+        across = across / norm
+        edge, inner = across @ edge[:, good], across @ inner[:, good]
         # trimmed means, not means: an edge pixel that is mostly background has little modulation, and now
         # and then a whole fringe's error
-        (mid_e, se_e), (mid_i, se_i) = _trimmed_mean(edge), _trimmed_mean(inner)
-        jump = mid_e - mid_i
-        se = np.hypot(se_e, se_i)
-        out[i] = np.hypot(*jump), np.hypot(*se), np.median(np.hypot(*inner))
+        (mid_e, se_e), (mid_i, se_i) = _trimmed_mean(edge[None, :]), _trimmed_mean(inner[None, :])
+        out[i] = abs(float(mid_e[0] - mid_i[0])), float(np.hypot(se_e[0], se_i[0])), float(np.median(np.abs(inner)))
     return out
 
 
