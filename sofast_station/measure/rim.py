@@ -11,15 +11,18 @@ rim, which adds no fringe), so it continues their trend.
 
 Per side, in the middle 80 % of its length, each step along the found edge compares the decoded screen
 position of the pixel on the edge with the straight line through the pixels 2 and 4 px inside it (the
-*edge residual*, a vector on the screen), and the pixel 2 px inside with the line through those 4 and 6 px
-inside (the *inner residual*: the capture's own noise and the position field's curvature, no rim in it).
-A lit rim moves every edge pixel's position the same way (its tilt turns the reflection outward along the
-whole side), so the side's mean edge residual less its mean inner residual, the *jump*, grows with the
-rim's share of the pixel and its tilt, while the noise averages out over the side's hundreds of steps.
-The means are trimmed (:data:`TRIM` cut at either end: a mostly-background edge pixel has little
-modulation, and now and then a whole fringe's error). The rim is lit when the jump is larger than both
-:data:`LIT_JUMP_SCATTER` times the inner residuals' median length (the pixel-to-pixel scatter) and
-:data:`LIT_JUMP_SIGMAS` times its own standard error.
+*edge residual*), and the pixel 2 px inside with the line through those 4 and 6 px inside (the *inner
+residual*: the capture's own noise and the position field's curvature, no rim in it), both along the way
+the screen position moves across the side (a rim turned outward moves its reflection that way; along the
+side, a partly covered pixel's position may lean by a fraction of a pixel's worth without any rim). A lit
+rim moves every edge pixel's position the same way, so the side's mean edge residual less its mean inner
+residual, the *jump*, grows with the rim's share of the pixel and its tilt, while the noise averages out
+over the side's hundreds of steps. The means are trimmed (:data:`TRIM` cut at either end: a
+mostly-background edge pixel has little modulation, and now and then a whole fringe's error); steps whose
+inner pixels are dim (under :data:`FULL_LIGHT` of the facet's median: the facet reflects the screen's
+border there) are left out. The rim is lit when the jump is larger than both :data:`LIT_JUMP_SCATTER`
+times the inner residuals' median size (the pixel-to-pixel scatter) and :data:`LIT_JUMP_SIGMAS` times its
+own standard error.
 
 Pure numpy: the outline, the pixels' flat indices and their decoded positions in, side numbers out.
 """
@@ -31,9 +34,9 @@ import numpy as np
 from .corners import OutlineFit
 
 #: A side's rim is lit when its jump exceeds this many times the median inner residual (chosen on the
-#: population's bevelled stations, seeds 5, 6 and 8 dark as drawn, 7 and 9 with the rims turned only 3-50
-#: mrad: no dark side of 363 flagged, the largest 2.07 times (and under 5 standard errors); 199 of the 295
-#: sides that a dark placement put more than 0.1 px wrong flagged; docs/uncertainty.md, "Corners")
+#: population's bevelled stations, seeds 5, 6 and 8 as drawn (dark), 7 and 9 with the rims turned only
+#: 3-50 mrad: no side of the 363 a dark placement puts within 0.05 px flagged, 228 of the 295 it puts more
+#: than 0.1 px wrong flagged; on seeds 10-12, one side of 203 and 95 of 120; docs/uncertainty.md, "Corners")
 LIT_JUMP_SCATTER = 2.0
 #: ... and this many times its own standard error.
 LIT_JUMP_SIGMAS = 5.0
