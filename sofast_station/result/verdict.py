@@ -195,7 +195,8 @@ def lit_rim_warning(fig: dict) -> list[str]:
     if not sides:
         return []
     which = ", ".join(str(k) for k in sides)
-    return [f"the glass rim the design declares dark (edge_rim_dark) shows the screen on side{'s' if len(sides) > 1 else ''} "
+    plural = "s" if len(sides) > 1 else ""
+    return [f"the glass rim the design declares dark (edge_rim_dark) shows the screen on side{plural} "
             f"{which} of the facet's outline (the design's numbering): put midway across the rim, the corners there "
             "known only to the rim's width (in the corner pose's U); if this facet type's rim is not ground dark, "
             "set edge_rim_dark = false in its design"]

@@ -28,7 +28,8 @@ def square_outline() -> OutlineFit:
 
 def field(rng, noise_m: float, jump_m: float = 0.0):
     """Region pixels (flat indices) and their screen positions (2, M), metres: a smooth curved field, noise,
-    and *jump_m* (about 3.5 times the residuals' scatter) added to the top row's pixels (the side from corner 0 to 1, design side 3)."""
+    and *jump_m* (about 3.5 times the residuals' scatter) added to the top row's pixels (the side from
+    corner 0 to 1, design side 3)."""
     rows, cols = np.mgrid[0:SHAPE[0], 0:SHAPE[1]]
     inside = (cols >= np.floor(LO)) & (cols <= np.ceil(HI)) & (rows >= np.floor(LO)) & (rows <= np.ceil(HI))
     idx = np.flatnonzero(inside)

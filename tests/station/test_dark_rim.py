@@ -24,7 +24,8 @@ def rim_px(kind: str, scale: int, width_mm: float, dark: bool) -> float:
 
     cfg, _ = scaled(kind, scale)
     design = dataclasses.replace(cfg.design, edge_rim_m=1e-3 * width_mm, edge_rim_dark=dark)
-    return float(np.median(corners.outline_hints(design, cfg.geometry.camera, cfg.geometry.fixture_to_camera)["rim_px"]))
+    hints = corners.outline_hints(design, cfg.geometry.camera, cfg.geometry.fixture_to_camera)
+    return float(np.median(hints["rim_px"]))
 
 
 @pytest.mark.parametrize("kind,scale", [("dish", 4), ("heliostat", 2)])
