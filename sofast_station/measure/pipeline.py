@@ -438,12 +438,13 @@ def check_dark_rim(region: Region, phases: Phases, geometry: StationGeometry, de
     sides = np.asarray(outline.design_sides)
     shift = np.where(sides >= 0, hints["rim_px"][np.maximum(sides, 0)], 0.0)
     positions = np.vstack([phases.positions_m["x"], phases.positions_m["y"]])
-    lit = rim_mod.lit_rim_sides(rim_mod.rim_jumps(outline, shift, region.region.shape, region.idx, positions,
-                                                  region.contrast), sides)
-    if not lit:
+    jumps = rim_mod.rim_jumps(outline, shift, region.region.shape, region.idx, positions, region.contrast)
+    flags = rim_mod.lit_rim_flags(jumps) & (sides >= 0)      # a side matched to no design side has no rim
+    if not flags.any():
         return region
+    lit = rim_mod.lit_rim_sides(jumps[flags], sides[flags])
     dark = np.ones(len(design.outline_m), dtype=bool)
-    dark[np.asarray(lit) - 1] = False
+    dark[sides[flags]] = False
     refit = corners_mod.fit_outline(region.contrast, region.region, len(design.outline_m), settings.edge_window_px,
                                     **{**hints, "rim_dark": dark})
     return dataclasses.replace(region, outline=refit, lit_rim_sides=tuple(lit),

@@ -153,13 +153,20 @@ def _residual(p0, d0, p1, d1, p2, d2) -> np.ndarray:
     return p0 - (p1 + (p2 - p1) * ((d0 - d1) / span)[None, :])
 
 
+def lit_rim_flags(jumps: np.ndarray) -> np.ndarray:
+    """(n_sides,) bool: which sides' jump (:func:`rim_jumps`) exceeds both :data:`LIT_JUMP_SCATTER` times
+    their inner scatter and :data:`LIT_JUMP_SIGMAS` times its standard error (False where not judged)."""
+    jump, se, scatter = np.asarray(jumps, float).T
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(jump) & (jump > LIT_JUMP_SCATTER * scatter) & (jump > LIT_JUMP_SIGMAS * se)
+
+
 def lit_rim_sides(jumps: np.ndarray, design_sides: np.ndarray | None) -> list[int]:
-    """The sides (the design's numbering from 1, else the outline's) whose jump (:func:`rim_jumps`) exceeds
-    both :data:`LIT_JUMP_SCATTER` times their inner scatter and :data:`LIT_JUMP_SIGMAS` times its standard
-    error: a rim declared dark that shows the screen."""
+    """The sides (the design's numbering from 1, else the outline's) that :func:`lit_rim_flags` flags: a
+    rim declared dark that shows the screen."""
+    flags = lit_rim_flags(jumps)
     sides = []
-    for i, (jump, se, scatter) in enumerate(np.asarray(jumps, float)):
-        if np.isfinite(jump) and jump > LIT_JUMP_SCATTER * scatter and jump > LIT_JUMP_SIGMAS * se:
-            j = -1 if design_sides is None else int(design_sides[i])
-            sides.append((j if j >= 0 else i) + 1)
+    for i in np.flatnonzero(flags):
+        j = -1 if design_sides is None else int(design_sides[i])
+        sides.append((j if j >= 0 else int(i)) + 1)
     return sorted(sides)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from sofast_station.measure.corners import OutlineFit
-from sofast_station.measure.rim import lit_rim_sides, rim_jumps
+from sofast_station.measure.rim import lit_rim_flags, lit_rim_sides, rim_jumps
 
 SHAPE = (400, 400)
 RIM_PX = 0.6
@@ -67,3 +67,11 @@ def test_a_side_without_decoded_pixels_is_not_judged():
     pos[:, :] = np.nan
     jumps = rim_jumps(outline, np.full(4, RIM_PX), SHAPE, idx, pos)
     assert np.all(np.isnan(jumps)) and lit_rim_sides(jumps, outline.design_sides) == []
+
+
+def test_flags_and_numbering():
+    jumps = np.array([[5.0, 0.5, 1.0], [1.5, 0.1, 1.0], [5.0, 2.0, 1.0], [np.nan, np.nan, np.nan]])
+    # only the first is over twice the scatter and five standard errors
+    assert rim_jumps is not None and list(lit_rim_flags(jumps)) == [True, False, False, False]
+    assert lit_rim_sides(jumps, np.array([2, 3, 0, 1])) == [3]
+    assert lit_rim_sides(jumps, np.array([-1, 3, 0, 1])) == [1]          # unmatched: the outline's own number
