@@ -72,6 +72,6 @@ def test_a_side_without_decoded_pixels_is_not_judged():
 def test_flags_and_numbering():
     jumps = np.array([[5.0, 0.5, 1.0], [1.5, 0.1, 1.0], [5.0, 2.0, 1.0], [np.nan, np.nan, np.nan]])
     # only the first is over twice the scatter and five standard errors
-    assert rim_jumps is not None and list(lit_rim_flags(jumps)) == [True, False, False, False]
+    assert list(lit_rim_flags(jumps)) == [True, False, False, False]
     assert lit_rim_sides(jumps, np.array([2, 3, 0, 1])) == [3]
     assert lit_rim_sides(jumps, np.array([-1, 3, 0, 1])) == [1]          # unmatched: the outline's own number
