@@ -159,7 +159,7 @@ def kappa_converged(new: np.ndarray, old: np.ndarray) -> bool:
     return bool(np.all(dk < 1e-6 * np.maximum(4.0 * np.abs(new[:2]), 1e-3)))
 
 
-def _model(fit: ParabolaFit, design: FacetDesign) -> np.ndarray:
+def model_coefficients(fit: ParabolaFit, design: FacetDesign) -> np.ndarray:
     """The fit's (A, B, C, D, E, F), F putting the model at the design height at the alignment point."""
     xa, ya = (float(v) for v in design.alignment_point_m)
     coeffs = fit.coefficients()
@@ -232,7 +232,7 @@ def solve_shape(assembly: Assembly, design: FacetDesign, measured_distance_m: fl
             # A robust fit starts from the previous fit's weights: the same points, moved very little.
             fit = fit_parabola(pts[0], pts[1], sx, sy, robust=robust, start=fit, pool=pool,
                                robust_tolerance=tolerance)
-            new = _model(fit, design)
+            new = model_coefficients(fit, design)
             shape_total += 1
             stable = kappa_converged(new, coeffs)
             coeffs = new
@@ -286,7 +286,7 @@ def close_on_all_points(solution: ShapeSolution, design: FacetDesign, measured_d
     for step in range(1, max_iterations + 1):
         points, slopes = reduce_all(motion, coeffs)
         fit = fit_all(points, slopes)
-        new = _model(fit, design)
+        new = model_coefficients(fit, design)
         d_alpha, d_beta = _design_turn(new, design)
         if max(abs(d_alpha), abs(d_beta)) < 1e-6 and kappa_converged(new, coeffs):
             converged = True

@@ -27,7 +27,7 @@ from ..geometry import Pose, StationGeometry
 from . import checks
 from . import corners as corners_mod
 from .camera import pixel_rays, project, to_frame
-from .boresight import Assembly, ShapeSolution, close_on_all_points, solve_shape
+from .boresight import Assembly, ShapeSolution, close_on_all_points, model_coefficients, solve_shape
 from .fit import CubicFit, ParabolaFit, fit_cubic, fit_parabola, reweight_parabola
 from .mask import facet_region
 from .metrics import (focal_length_m, neighbour_difference_ms, neighbour_pairs, principal_axes,
@@ -38,7 +38,6 @@ from .pose import fix_range, solve_corner_pose
 from .screen import FlatScreen, InterpolatedScreen, ScreenModel
 from .stats import median
 from .pose import placement
-from .surface import surface_z
 
 
 @dataclass(frozen=True)
@@ -720,8 +719,7 @@ def fit_models(shape: Shape, design: FacetDesign, pool=None) -> Fits:
     s_x, s_y = shape.slopes[0], shape.slopes[1]
     cubic_task = pool.submit(fit_cubic, x, y, s_x, s_y)
     fit = shape.fit
-    coeffs = fit.coefficients()
-    coeffs[5] = float(design.z(*design.alignment_point_m)) - surface_z(coeffs, *design.alignment_point_m)
+    coeffs = model_coefficients(fit, design)
     cubic = cubic_task.result()
     # Every model's residuals in one compiled pass over the points (half of them on the pool).
     from .kernels import halves, model_residuals
