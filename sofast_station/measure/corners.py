@@ -743,10 +743,16 @@ def staircase_sides(outline: OutlineFit) -> list[int]:
     covariance holds it); turning the camera a degree or two about its axis gives every side steps."""
     if outline.steps is None or outline.quantised is None:
         return []
-    design = outline.design_sides if outline.design_sides is not None else np.full(len(outline.steps), -1)
-    return sorted((int(j) if j >= 0 else i) + 1
-                  for i, (n, k, j) in enumerate(zip(outline.quantised, outline.steps, design))
+    return sorted(side_number(outline.design_sides, i) for i, (n, k) in enumerate(zip(outline.quantised, outline.steps))
                   if n > 0 and 0 <= k < MIN_STAIRCASE_STEPS)
+
+
+def side_number(design_sides: np.ndarray | None, i: int) -> int:
+    """How the figures and the verdict number the outline's side *i*: its design side from 1 (from the
+    design outline's corner 1 to corner 2 is side 1), or the outline's own number where it was matched to
+    none (*design_sides*: ``OutlineFit.design_sides``)."""
+    j = -1 if design_sides is None else int(design_sides[i])
+    return (j if j >= 0 else int(i)) + 1
 
 
 def edge_blur_px(coverage: np.ndarray, trim: float = 0.1) -> float:

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .corners import OutlineFit
+from .corners import OutlineFit, side_number
 
 #: A side's rim is lit when its jump exceeds this many times the median inner residual (chosen on the
 #: population's bevelled stations, seeds 5, 6 and 8 as drawn (dark), 7 and 9 with the rims turned only
@@ -129,21 +129,20 @@ def rim_jumps(outline: OutlineFit, found_shift_px: np.ndarray, shape: tuple[int,
         edge, inner = across @ edge[:, good], across @ inner[:, good]
         # trimmed means, not means: an edge pixel that is mostly background has little modulation, and now
         # and then a whole fringe's error
-        (mid_e, se_e), (mid_i, se_i) = _trimmed_mean(edge[None, :]), _trimmed_mean(inner[None, :])
-        out[i] = abs(float(mid_e[0] - mid_i[0])), float(np.hypot(se_e[0], se_i[0])), float(np.median(np.abs(inner)))
+        (mid_e, se_e), (mid_i, se_i) = _trimmed_mean(edge), _trimmed_mean(inner)
+        out[i] = abs(mid_e - mid_i), float(np.hypot(se_e, se_i)), float(np.median(np.abs(inner)))
     return out
 
 
-def _trimmed_mean(values: np.ndarray, trim: float = TRIM) -> tuple[np.ndarray, np.ndarray]:
-    """Each row's mean with the *trim* fraction of its values cut at either end, and that mean's standard
-    error (the winsorised variance over (1 - 2 trim)^2 K, Tukey and McLaughlin): (rows,), (rows,)."""
-    v = np.sort(values, axis=1)
-    k = v.shape[1]
+def _trimmed_mean(values: np.ndarray, trim: float = TRIM) -> tuple[float, float]:
+    """The mean of *values* (1-D) with the *trim* fraction cut at either end, and that mean's standard error
+    (the winsorised variance over (1 - 2 trim)^2 K, Tukey and McLaughlin)."""
+    v = np.sort(values)
+    k = v.size
     g = int(trim * k)
-    kept = v[:, g:k - g]
-    wins = np.clip(v, kept[:, :1], kept[:, -1:])
-    se = np.sqrt(wins.var(axis=1, ddof=1) / ((1.0 - 2.0 * g / k) ** 2 * k))
-    return kept.mean(axis=1), se
+    kept = v[g:k - g]
+    wins = np.clip(v, kept[0], kept[-1])
+    return float(kept.mean()), float(np.sqrt(wins.var(ddof=1) / ((1.0 - 2.0 * g / k) ** 2 * k)))
 
 
 def _residual(p0, d0, p1, d1, p2, d2) -> np.ndarray:
@@ -164,9 +163,4 @@ def lit_rim_flags(jumps: np.ndarray) -> np.ndarray:
 def lit_rim_sides(jumps: np.ndarray, design_sides: np.ndarray | None) -> list[int]:
     """The sides (the design's numbering from 1, else the outline's) that :func:`lit_rim_flags` flags: a
     rim declared dark that shows the screen."""
-    flags = lit_rim_flags(jumps)
-    sides = []
-    for i in np.flatnonzero(flags):
-        j = -1 if design_sides is None else int(design_sides[i])
-        sides.append((j if j >= 0 else int(i)) + 1)
-    return sorted(sides)
+    return sorted(side_number(design_sides, i) for i in np.flatnonzero(lit_rim_flags(jumps)))
