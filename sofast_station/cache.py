@@ -57,10 +57,10 @@ def code_fingerprint() -> str:
     global _CODE
     if _CODE is None:
         import cv2
-        import numba
         import scipy
 
         from . import __version__
+        from .measure.compiled import installed_version
 
         h = hashlib.sha256()
         root = Path(__file__).resolve().parent
@@ -68,7 +68,7 @@ def code_fingerprint() -> str:
             h.update(path.relative_to(root).as_posix().encode())
             h.update(path.read_bytes())
         h.update(json.dumps([__version__, np.__version__, scipy.__version__, cv2.__version__,
-                             numba.__version__]).encode())
+                             installed_version("numba")]).encode())
         _CODE = h.hexdigest()[:32]
     return _CODE
 

@@ -28,8 +28,9 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
+
+from .compiled import kernel
 
 #: (atan(u) - u)/u^3 as a polynomial in z = u^2 on [0, tan^2(pi/8)], lowest power first.
 _Q = (-0.3333333333333327, 0.19999999999954654, -0.14285714278306827, 0.11111110596745237,
@@ -50,7 +51,7 @@ _FMA = {**_JIT, "fastmath": {"contract"}}
 _VECTOR_SUMS = {**_JIT, "fastmath": {"contract", "reassoc"}}
 
 
-@numba.njit(inline="always", **_FMA)
+@kernel(inline="always", **_FMA)
 def _atan_reduced(u):
     """atan(u) for |u| <= tan(pi/8)."""
     z = u * u
@@ -68,7 +69,7 @@ def _atan_reduced(u):
     return u + u * z * q
 
 
-@numba.njit(inline="always", **_FMA)
+@kernel(inline="always", **_FMA)
 def _atan_unit(t):
     """atan(t) for 0 <= t <= 1 (both reductions computed and one selected: no branch to mispredict)."""
     big = t > _TAN_PI_8
@@ -79,7 +80,7 @@ def _atan_unit(t):
     return r + offset
 
 
-@numba.njit(inline="always", **_FMA)
+@kernel(inline="always", **_FMA)
 def _atan_scalar(x):
     """atan(x), radians, for any float64 x (nan stays nan; +-inf gives +-pi/2)."""
     a = abs(x)
@@ -92,7 +93,7 @@ def _atan_scalar(x):
     return math.copysign(r, x)
 
 
-@numba.njit(**_FMA)
+@kernel(**_FMA)
 def _atan_into(x, out):
     for i in range(x.size):
         out[i] = _atan_scalar(x[i])
@@ -110,7 +111,7 @@ def atan(x: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     return out
 
 
-@numba.njit(**_FMA)
+@kernel(**_FMA)
 def _phase_counts_into(frames, phase, modulation, consistency):
     for j in range(frames.shape[1]):
         i0 = np.int32(frames[0, j])
@@ -144,7 +145,7 @@ def phase_counts(frames: np.ndarray, phase: np.ndarray, modulation: np.ndarray, 
     _phase_counts_into(frames, phase, modulation, consistency)
 
 
-@numba.njit(inline="always", **_JIT)
+@kernel(inline="always", **_JIT)
 def _rotate_shift(rot, a, b, c, s0, s1, s2):
     """rot @ (a, b, c) + (s0, s1, s2), each row summed left to right as :func:`~.camera.to_frame` does."""
     return (((rot[0, 0] * a + rot[0, 1] * b) + rot[0, 2] * c) + s0,
@@ -152,7 +153,7 @@ def _rotate_shift(rot, a, b, c, s0, s1, s2):
             ((rot[2, 0] * a + rot[2, 1] * b) + rot[2, 2] * c) + s2)
 
 
-@numba.njit(inline="always", **_JIT)
+@kernel(inline="always", **_JIT)
 def _law_of_reflection(px, py, pz, cx, cy, cz, tx, ty, tz):
     """The slopes (s_x, s_y) at the point p seen from the camera centre c showing the screen point t, in the
     order of :func:`~.surface.normal_slopes` (n = a |b| + b |a| with a = c - p, b = t - p)."""
@@ -166,7 +167,7 @@ def _law_of_reflection(px, py, pz, cx, cy, cz, tx, ty, tz):
     return -(nx / nz), -(ny / nz)
 
 
-@numba.njit(**_JIT)
+@kernel(**_JIT)
 def _reflect_into(r0, r1, r2, w0_, w1_, w2_, rot, trans, origin, qk, coeffs, p0, p1, p2, s0, s1):
     a_ = coeffs[0]
     b_ = coeffs[1]
@@ -226,7 +227,7 @@ def reflect(rays_cam: np.ndarray, screen_cam_m: np.ndarray, rotation: np.ndarray
                   np.asarray(coeffs, dtype=np.float64), *(c[sl] for c in points), *(c[sl] for c in slopes))
 
 
-@numba.njit(**_JIT)
+@kernel(**_JIT)
 def _to_frame_every_into(v0, v1, v2, rot, shift, step, out):
     for i in range(out.shape[1]):
         j = i * step
@@ -243,7 +244,7 @@ def to_frame_every(v: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
     return out
 
 
-@numba.njit(**_JIT)
+@kernel(**_JIT)
 def _normal_slopes_into(px, py, pz, camera, tx_, ty_, tz_, s0, s1):
     cx, cy, cz = camera[0], camera[1], camera[2]
     for j in range(px.size):
@@ -261,7 +262,7 @@ def normal_slopes(points: np.ndarray, camera_m: np.ndarray, screen_points_m: np.
     return out
 
 
-@numba.njit(**_FMA)
+@kernel(**_FMA)
 def _residuals_into(x, y, s_x, s_y, lin, cubic, o0, o1, o2, o3, o4, o5):
     # lin: per linear model (design, parabola) 2A, C, E, 2B, D; cubic: x0, y0, h, then the x and y slopes'
     # coefficients of 1, u, v, u^2, uv, v^2 (every coefficient a local: the loop reads only the points)
@@ -310,7 +311,7 @@ _PIO2_LO = 6.077100506506192e-11
 _TWO_OVER_PI = 2.0 / math.pi
 
 
-@numba.njit(inline="always", **_FMA)
+@kernel(inline="always", **_FMA)
 def _sincos(x):
     """(sin x, cos x) of a float64 |x| < 1e5: quadrant reduction, then Taylor polynomials on |r| <= pi/4
     (truncation below 3e-14), the quadrant chosen by selects."""
@@ -330,7 +331,7 @@ def _sincos(x):
     return sin_x, cos_x
 
 
-@numba.njit(**_FMA)
+@kernel(**_FMA)
 def _cleaned_into(residual, phase, modulation, level, has_level, h2m, h3m, own0, own1, out):
     # float32 throughout; cos and sin of 2 phi from :func:`_sincos`
     two = np.float32(2.0)
@@ -384,7 +385,7 @@ def cleaned_residuals(residual: np.ndarray, phase: np.ndarray, modulation: np.nd
     return out
 
 
-@numba.njit(**_FMA)
+@kernel(**_FMA)
 def _noise_rows_into(phase, modulation, residual, level, has_level, stride, own, shared, r):
     for i in range(r.size):
         j = i * stride
@@ -418,7 +419,7 @@ def noise_rows(phase: np.ndarray, modulation: np.ndarray, residual: np.ndarray, 
     return own, shared, r
 
 
-@numba.njit(**_JIT)
+@kernel(**_JIT)
 def _consistency_into(modulation, cleaned, raw, limit, min_mod, inconsistent):
     bad_n = 0
     good_sum = 0.0
@@ -446,7 +447,7 @@ def consistency_set(modulation: np.ndarray, cleaned: np.ndarray, raw: np.ndarray
     return int(bad), float(good_sum)
 
 
-@numba.njit(**_VECTOR_SUMS)
+@kernel(**_VECTOR_SUMS)
 def trim_rounds(r, a, c, s, shrink, rounds, about):
     """The iteration of :func:`~sofast_station.measure.phase.trimmed_std` from the scale *s*: keep the values
     of *r* whose |deviation| *a* (from *about*, their median) is at most c s, take their standard deviation
@@ -480,7 +481,7 @@ def trim_rounds(r, a, c, s, shrink, rounds, about):
     return s
 
 
-@numba.njit(**_JIT)
+@kernel(**_JIT)
 def _minus_models_into(r, rows_a, coef_a, rows_b, coef_b, out):
     ka = rows_a.shape[0]
     kb = rows_b.shape[0]
@@ -509,7 +510,7 @@ def minus_models(r: np.ndarray, rows_a: np.ndarray, coef_a: np.ndarray, rows_b: 
     return out
 
 
-@numba.njit(**_JIT)
+@kernel(**_JIT)
 def _count_labels_into(labels, counts):
     for v in labels:
         counts[v] += 1
@@ -523,7 +524,7 @@ def label_areas(labels: np.ndarray, n_labels: int) -> np.ndarray:
     return counts
 
 
-@numba.njit(**_JIT)
+@kernel(**_JIT)
 def _grid_screen_into(u, v, xs, ys, grid, main_diagonal, tol, rot, trans, out):
     nx = xs.size
     ny = ys.size
@@ -575,7 +576,7 @@ def grid_screen_points(u: np.ndarray, v: np.ndarray, xs: np.ndarray, ys: np.ndar
     return out
 
 
-@numba.njit(**_JIT)
+@kernel(**_JIT)
 def _gather_runs_into(flat, src, dst, length, out):
     for f in range(flat.shape[0]):
         row = flat[f]
@@ -595,7 +596,7 @@ def gather_runs(flat: np.ndarray, idx: np.ndarray, runs: tuple[list, list], out:
 
 
 # ---------------------------------------------------------------------------------------------- unwrapping
-@numba.njit(**_JIT)
+@kernel(**_JIT)
 def _unwrap_into(phases, periods, big_l, whole, guard_sigmas, sigma, per_pixel, u_out, valid):
     n_sets = phases.shape[0]
     two_pi = 2.0 * math.pi
@@ -662,7 +663,7 @@ def unwrap(phases: list, periods: list, big_l: float, whole: bool, guard_sigmas:
 SUM_BLOCK = 16384
 
 
-@numba.njit(**_VECTOR_SUMS)
+@kernel(**_VECTOR_SUMS)
 def _cubic_sums_into(x, y, s_x, s_y, x0, y0, h, block, parts):
     # per block: the 21 products m_a m_b (a <= b, row-major over a) of m = (1, u, v, u^2, uv, v^2), then the
     # six m_k s_x and the six m_k s_y; each sum a local (a register), so the compiler runs it in vector lanes
@@ -752,7 +753,7 @@ def _cubic_sums_into(x, y, s_x, s_y, x0, y0, h, block, parts):
 _PAIR_INDEX = {(a, b): k for k, (a, b) in enumerate((a, b) for a in range(6) for b in range(a, 6))}
 
 
-@numba.njit(**_VECTOR_SUMS)
+@kernel(**_VECTOR_SUMS)
 def _parabola_sums_into(x, y, s_x, s_y, xm, ym, block, parts):
     n = x.size
     for b in range(parts.shape[0]):
@@ -778,7 +779,7 @@ def _parabola_sums_into(x, y, s_x, s_y, xm, ym, block, parts):
         acc[6], acc[7], acc[8], acc[9], acc[10] = a6, a7, a8, a9, a10
 
 
-@numba.njit(inline="always", **_VECTOR_SUMS)
+@kernel(inline="always", **_VECTOR_SUMS)
 def _newton_terms(c0, c2, s, k0, k1, k2, inv):
     """A point's nine terms of the bisquare Newton step (:func:`reweight_sums`)."""
     r = s - ((k0 * c0 + k1) + k2 * c2)
@@ -791,7 +792,7 @@ def _newton_terms(c0, c2, s, k0, k1, k2, inv):
     return c0 * wr, wr, c2 * wr, d0 * c0, d0, d0 * c2, dpsi, c2 * dpsi, c2 * dpsi * c2
 
 
-@numba.njit(**_VECTOR_SUMS)
+@kernel(**_VECTOR_SUMS)
 def _reweight_sums_into(x, y, s_x, s_y, xm, ym, kx, ky, inv_x, inv_y, block, parts):
     n = x.size
     kx0, kx1, kx2, ky0, ky1, ky2 = kx[0], kx[1], kx[2], ky[0], ky[1], ky[2]
@@ -874,7 +875,7 @@ def reweight_sums(x, y, s_x, s_y, xm: float, ym: float, k0x, k0y, sigma: tuple, 
 
 
 # --------------------------------------------------------------- the robust fit's reweighting (small subsamples)
-@numba.njit(**_VECTOR_SUMS)
+@kernel(**_VECTOR_SUMS)
 def weighted_sums(c0, c1, c2, target, w, out):
     """Over the points, for three columns: sum w c_a c_b for (a, b) = (0, 0), (0, 1), (0, 2), (1, 1), (1, 2),
     (2, 2), then sum w c_i target for i = 0, 1, 2, into *out* (9,)."""
@@ -895,7 +896,7 @@ def weighted_sums(c0, c1, c2, target, w, out):
     out[5], out[6], out[7], out[8] = s22, t0, t1, t2
 
 
-@numba.njit(**_VECTOR_SUMS)
+@kernel(**_VECTOR_SUMS)
 def residuals_and_leverage(c0, c1, c2, target, w, coef, quad, r, r_adj):
     """Residuals r = target - sum_i coef_i c_i (subtracted in column order), and r_adj = r / sqrt(1 - h) with
     the leverage h = w sum_p quad_p c_a c_b over the pairs of :func:`weighted_sums` (1 - h at least 1e-12
@@ -917,7 +918,7 @@ def residuals_and_leverage(c0, c1, c2, target, w, coef, quad, r, r_adj):
     return wrr, sw
 
 
-@numba.njit(**_JIT)
+@kernel(**_JIT)
 def bisquare_into(r, scale, w):
     """Tukey's bisquare weights (1 - u^2)^2 for |u| < 1, else 0, u = r * *scale* (1 / (c sigma)), into *w*."""
     for j in range(r.size):
@@ -926,7 +927,7 @@ def bisquare_into(r, scale, w):
         w[j] = q * q
 
 
-@numba.njit(**_JIT)
+@kernel(**_JIT)
 def _moved_into(v0, v1, v2, r, pivot, t_z, points, out):
     for j in range(v0.size):
         a, b, c = v0[j], v1[j], v2[j]
@@ -950,7 +951,7 @@ def moved(v: np.ndarray, rotation: np.ndarray, pivot_m: np.ndarray, t_z_m: float
     return out
 
 
-@numba.njit(**_JIT)
+@kernel(**_JIT)
 def sum_squares(c0, c1, c2):
     """(sum c0^2, sum c1^2, sum c2^2) in one pass (the robust fit's column scales)."""
     s0 = s1 = s2 = 0.0
@@ -961,7 +962,7 @@ def sum_squares(c0, c1, c2):
     return s0, s1, s2
 
 
-@numba.njit(**_JIT)
+@kernel(**_JIT)
 def _select_in_place(a, m, k):
     """The k-th smallest (0-based) of a[:m], by quickselect (median-of-three pivots) in place: afterwards
     a[k] holds it and a[:k] holds values no larger."""
@@ -994,7 +995,7 @@ def _select_in_place(a, m, k):
     return a[k]
 
 
-@numba.njit(**_JIT)
+@kernel(**_JIT)
 def median_in_window(a, about, absolute, lo, hi, scratch):
     """The median of the values v (a, or |a - about| when *absolute*; float64) when its order statistics
     lie in [lo, hi]: one pass counts the values below lo and gathers those in [lo, hi] into *scratch*
@@ -1028,7 +1029,7 @@ def median_in_window(a, about, absolute, lo, hi, scratch):
     return (lower + upper) / 2.0, True
 
 
-@numba.njit(**_JIT)
+@kernel(**_JIT)
 def _median_of(a, about, absolute, lo, hi, scratch):
     """:func:`median_in_window`, then (when the window misses) the selection over every value: the
     median of a (or of |a - about|), the same bits as ``np.median``; NaN when a value is NaN.
@@ -1065,7 +1066,7 @@ def _median_of(a, about, absolute, lo, hi, scratch):
     return m
 
 
-@numba.njit(**_JIT)
+@kernel(**_JIT)
 def _lu3(a, piv):
     """LU factors of the 3 x 3 *a* in place, with partial pivoting (LAPACK's getrf order); False when a
     pivot is exactly zero (singular)."""
@@ -1087,7 +1088,7 @@ def _lu3(a, piv):
     return True
 
 
-@numba.njit(**_JIT)
+@kernel(**_JIT)
 def _lu3_solve(lu, piv, b, x):
     for i in range(3):
         x[i] = b[i]
@@ -1108,7 +1109,7 @@ def _lu3_solve(lu, piv, b, x):
 SINGULAR, ILL_CONDITIONED = 1, 2
 
 
-@numba.njit(**_JIT)
+@kernel(**_JIT)
 def irls_bisquare(c0, c1, c2, target, w, scale, tolerance, max_iterations, sigma_guess, bisquare_c, mad_to_sigma,
                   window_sigmas, coef):
     """Iteratively reweighted least squares with Tukey's bisquare for three columns, the whole iteration

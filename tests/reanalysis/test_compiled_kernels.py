@@ -1,0 +1,137 @@
+"""The kernels built ahead of time (sofast_station/measure/compiled.py, sofast_station/build_kernels.py; issue 32).
+
+What must hold: a process that reprocesses a dump with the build loads no numba at all, and its figures
+are the JIT's bit for bit; the build's table keys argument types as the runtime does; a call the build
+has no entry for still runs (numba's JIT, the same values).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from sofast_station import build_kernels
+from sofast_station.measure import compiled, kernels
+from sofast_station.measure.kernel_signatures import SIGNATURES
+from tests.conftest import ROOT
+
+_REPROCESS = """
+import json, sys
+from sofast_station.cli import main
+rc = main(["reprocess", "--json", *sys.argv[1:]])
+print(json.dumps({"rc": rc, "numba": "numba" in sys.modules}))
+"""
+
+
+def _reprocess(dump, jit: bool, *extra) -> tuple[dict, dict]:
+    env = {**os.environ, compiled.ENV: "jit" if jit else ""}
+    out = subprocess.run([sys.executable, "-c", _REPROCESS, str(dump), *extra], env=env, cwd=ROOT,
+                         capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-2000:]
+    lines = out.stdout.strip().splitlines()
+    return json.loads(lines[-2]), json.loads(lines[-1])
+
+
+def _without_clock(record: dict) -> dict:
+    """The record less what a run's clock and process set (timings, pid, time of day)."""
+    record = dict(record)
+    record.pop("timings_s", None)
+    record["reprocess"] = {k: v for k, v in record.get("reprocess", {}).items() if k not in ("pid", "at")}
+    return record
+
+
+def test_setup_env_built_the_kernels_for_this_machine():
+    # The README's commands run ./setup-env, which builds them (gcc and Python's headers are among its
+    # Debian packages); without the build every command would start numba again (about a second).
+    if os.environ.get(compiled.ENV, "").lower() == "jit":
+        pytest.skip(f"{compiled.ENV}=jit: the build is switched off")
+    table = compiled.build()
+    assert table is not None, "no build of the kernels for these sources: run ./setup-env"
+    assert isinstance(kernels._atan_into, compiled.Kernel)
+    for name, entries in SIGNATURES.items():
+        assert len(table[name]) == len(entries), name
+
+
+def test_a_reprocess_on_the_build_loads_no_numba_and_gives_the_jits_figures_bit_for_bit(station_dumps):
+    if compiled.build() is None:
+        pytest.skip("no build of the kernels (test_setup_env_built_the_kernels_for_this_machine says why)")
+    dump = station_dumps.good[0]
+    for extra in ((), ("--focal-length", "5.4")):
+        built, built_proc = _reprocess(dump, False, *extra)
+        jit, jit_proc = _reprocess(dump, True, *extra)
+        assert built_proc == {"rc": 0, "numba": False}
+        assert jit_proc == {"rc": 0, "numba": True}
+        assert _without_clock(built) == _without_clock(jit)
+        assert built["focal_length_x_m"] == jit["focal_length_x_m"] and np.isfinite(built["focal_length_x_m"])
+
+
+def _array_for(word: str) -> np.ndarray:
+    """An array of the type a kernel_signatures word names (the build's key must be the runtime's)."""
+    dtype, shape = word.split(":")
+    ndim, layout, readonly = int(shape[0]), shape[1], shape.endswith("r")
+    np_dtype = {"f8": np.float64, "f4": np.float32, "i8": np.int64, "i4": np.int32, "u1": np.uint8,
+                "u2": np.uint16, "b1": np.bool_}[dtype]
+    a = np.zeros((3, 4, 5)[:ndim], dtype=np_dtype)
+    if layout == "F":
+        a = np.asfortranarray(a)
+    elif layout == "A":
+        a = np.zeros((6, 8, 10)[:ndim], dtype=np_dtype)[(slice(None, None, 2),) * ndim]
+    a.flags.writeable = not readonly
+    return a
+
+
+def test_the_builds_keys_are_the_runtimes_for_every_entry():
+    scalars = {"f8": 1.5, "f4": np.float32(1.5), "i8": 3, "bool": True}
+    n = 0
+    for name, entries in SIGNATURES.items():
+        assert hasattr(kernels, name), f"kernel_signatures names {name}, which kernels.py lacks"
+        for entry in entries:
+            args = tuple(scalars[w] if ":" not in w else _array_for(w) for w in entry.split())
+            built_key = tuple(k for _, k in (build_kernels.parse_word(w) for w in entry.split()))
+            assert compiled.argument_key(args) == built_key, (name, entry)
+            n += 1
+    assert n == sum(len(v) for v in SIGNATURES.values()) > 30
+
+
+def test_argument_keys_tell_apart_what_numba_compiles_apart():
+    c = np.zeros((3, 4))
+    assert compiled.argument_key((c,)) == (("<f8", 2, "C", True),)
+    assert compiled.argument_key((np.asfortranarray(c),))[0][2] == "F"
+    assert compiled.argument_key((c[:, ::2],))[0][2] == "A"
+    ro = c.copy()
+    ro.flags.writeable = False
+    assert compiled.argument_key((ro,))[0][3] is False
+    # Python's bool, int and float as numba types them; numpy scalars as their own type
+    assert compiled.argument_key((True, np.bool_(False), 3, 2.0, np.float64(2.0), np.float32(2.0), np.int32(1))) \
+        == ("bool", "bool", "int64", "float64", "float64", "float32", "int32")
+    assert compiled.argument_key((1 << 70,)) is None
+    assert compiled.argument_key(([1.0],)) is None
+    with pytest.raises(ValueError, match="f8:1C"):
+        build_kernels.parse_word("f8:C1")
+    with pytest.raises(ValueError, match="unknown scalar"):
+        build_kernels.parse_word("f16")
+
+
+def test_a_call_the_build_has_no_entry_for_runs_on_the_jit_with_the_same_values():
+    if compiled.build() is None:
+        pytest.skip("no build of the kernels")
+    # float32 arrays: the build has atan for float64 only; the JIT compiles it for float32 (what numba
+    # did for every call before the build)
+    x = np.linspace(-30.0, 30.0, 1001)
+    out64 = np.empty_like(x)
+    kernels._atan_into(x, out64)
+    x32 = x.astype(np.float32)
+    out32 = np.empty_like(x32)
+    kernels._atan_into(x32, out32)
+    assert np.allclose(out32, np.arctan(x32), atol=2e-7)
+    assert np.array_equal(out64, kernels.atan(x))
+    assert np.max(np.abs(out64 - np.arctan(x))) < 1e-15
+    # a kernel that only other kernels call (no entry at all)
+    a = np.array([5.0, 1.0, 3.0, 2.0, 4.0])
+    assert kernels._median_of(a, 0.0, False, -10.0, 10.0, np.empty(5)) == 3.0
+    assert kernels._median_of(a, 3.0, True, -np.inf, np.inf, np.empty(5)) == 1.0
