@@ -111,9 +111,10 @@ def keep_freed_memory() -> bool:
 def prepare_analysis_process() -> float:
     """What a process that analyses capture after capture does when it starts (``reprocess``, ``batch``'s
     workers, ``import-opencsp``; the station's worker through :func:`warm_up`): keep freed memory
-    (:func:`keep_freed_memory`) and load the analysis' compiled kernels (from numba's on-disk cache; the
-    first time after an install or an update they are compiled, 10 to 20 s), so the first analysis costs
-    what the others do. Returns the seconds it took."""
+    (:func:`keep_freed_memory`) and load the analysis' compiled kernels (the build ``setup-env`` made of
+    them, a millisecond; without one from numba's on-disk cache, about a second, or compiled, 10 to 20 s,
+    the first time after an install or an update), so the first analysis costs what the others do.
+    Returns the seconds it took."""
     from .measure.kernels import warm_up as load_kernels
 
     t = time.perf_counter()
@@ -130,8 +131,9 @@ def warm_up(camera: CameraIntrinsics) -> float:
     Returns
     -------
     float
-        Seconds it took (about 2 s for 1.9 MP, plus the kernels: about 0.5 s from numba's on-disk cache,
-        10 to 20 s the first time after an install or an update, when they are compiled and cached).
+        Seconds it took (about 2 s for 1.9 MP, plus the kernels: a millisecond from their build, about 1 s
+        from numba's on-disk cache, 10 to 20 s the first time after an install or an update without a
+        build, when they are compiled and cached).
     """
     t = time.perf_counter()
     prepare_analysis_process()

@@ -359,3 +359,19 @@ def test_the_period_sets_show_a_known_phase_error_past_spoiled_pixels(outliers):
     assert got.max_rad == pytest.approx(a, rel=0.02)
     assert got.rms_rad == pytest.approx(a / np.sqrt(2.0), rel=0.02)
     assert got.n_pixels <= n - 0.9 * bad.sum()
+
+
+def test_the_power_law_table_written_in_the_source_is_what_it_is_computed_from():
+    """phase._RATIOS and _PHASE_ERRORS are constants (computing them cost every command 0.03 s): they must
+    be what _power_law_table gives (to rounding: numpy's pow and cos may differ by a unit in the last place
+    from one processor to another), and must still say what the model says: a linear response (g = 1)
+    has no second harmonic and no phase error, and the ratio grows with the exponent."""
+    from sofast_station.measure import phase as ph
+
+    ratios, errors = ph._power_law_table(ph._EXPONENTS)
+    assert ph._RATIOS.shape == ph._PHASE_ERRORS.shape == ph._EXPONENTS.shape
+    np.testing.assert_allclose(ph._RATIOS, ratios, rtol=1e-13, atol=1e-16)
+    np.testing.assert_allclose(ph._PHASE_ERRORS, errors, rtol=1e-13, atol=1e-16)
+    linear = int(np.argmin(np.abs(ph._EXPONENTS - 1.0)))
+    assert abs(ph._RATIOS[linear]) < 1e-12 and ph._PHASE_ERRORS[linear] < 1e-12
+    assert np.all(np.diff(ph._RATIOS) > 0)          # the inverse lookup needs a monotonic table
