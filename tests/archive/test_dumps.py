@@ -352,3 +352,34 @@ def test_a_measured_screen_travels_in_the_dump_and_reanalyses_exactly(small_capt
     again = back.analyse()
     figures = {k: v for k, v in again.figures.items() if k != "timings_s"}
     assert json_ready(figures) == {k: back.record[k] for k in figures}
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+def test_frames_inflated_on_two_threads_are_what_hdf5_reads(tmp_path, dtype):
+    """reader._read_frames reads each frame's chunk as stored and inflates it itself (issue 32: half the
+    read of a full-resolution dump): the same bits as HDF5's own read for the writer's layout (one frame
+    per chunk, shuffled and deflated) with and without the shuffle; other layouts go to HDF5; a damaged
+    chunk is a DumpError naming the frame."""
+    import h5py
+
+    from sofast_station.archive.dumps.reader import _read_frames
+
+    rng = np.random.default_rng(7)
+    frames = rng.integers(0, np.iinfo(dtype).max, size=(4, 37, 53), endpoint=True).astype(dtype)
+    path = tmp_path / "frames.h5"
+    with h5py.File(path, "w") as f:
+        f.create_dataset("written", data=frames, chunks=(1, 37, 53), compression="gzip", compression_opts=4,
+                         shuffle=True)
+        f.create_dataset("no_shuffle", data=frames, chunks=(1, 37, 53), compression="gzip")
+        f.create_dataset("other_chunks", data=frames, chunks=(2, 37, 53), compression="gzip", shuffle=True)
+        f.create_dataset("plain", data=frames)
+    with h5py.File(path, "r") as f:
+        for name in ("written", "no_shuffle", "other_chunks", "plain"):
+            got = _read_frames(f[name], path)
+            assert got.dtype == dtype and np.array_equal(got, f[name][()]) and np.array_equal(got, frames), name
+        offset = f["written"].id.get_chunk_info(2).byte_offset
+    raw = bytearray(path.read_bytes())
+    raw[offset + 10:offset + 30] = bytes(20)
+    path.write_bytes(bytes(raw))
+    with h5py.File(path, "r") as f, pytest.raises(DumpError, match="frame 2"):
+        _read_frames(f["written"], path)

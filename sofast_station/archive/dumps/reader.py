@@ -6,6 +6,8 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import zlib
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -40,6 +42,44 @@ def _read_value(obj):
     if isinstance(value, np.ndarray):
         return value.tolist()
     return value.item() if hasattr(value, "item") else value
+
+
+#: HDF5's filter numbers: what the writer compresses the frames with (shuffle, then deflate).
+_H5Z_DEFLATE, _H5Z_SHUFFLE = 1, 2
+
+
+def _read_frames(ds, path: Path) -> np.ndarray:
+    """The frames of *ds*, the same bits as ``ds[()]`` in about half the time: the writer stores one frame
+    per chunk, shuffled and deflated, and HDF5 inflates chunk after chunk on one thread (0.07 s of a
+    full-resolution dump's 0.11 s of reading); here each chunk's bytes are read as stored and inflated on
+    two threads (zlib releases the GIL). A dataset laid out otherwise (other filters or chunks, a chunk
+    HDF5 marks as unfiltered) is read by HDF5."""
+    n, h, w = ds.shape
+    plist = ds.id.get_create_plist()
+    filters = [plist.get_filter(i)[0] for i in range(plist.get_nfilters())]
+    if ds.chunks != (1, h, w) or filters not in ([_H5Z_SHUFFLE, _H5Z_DEFLATE], [_H5Z_DEFLATE]):
+        return ds[()]
+    raw = [ds.id.read_direct_chunk((i, 0, 0)) for i in range(n)]
+    if any(mask != 0 for mask, _ in raw):
+        return ds[()]
+    out = np.empty((n, h, w), dtype=ds.dtype)
+    size = ds.dtype.itemsize
+
+    def inflate(i: int) -> None:
+        try:
+            data = np.frombuffer(zlib.decompress(raw[i][1]), dtype=np.uint8)
+        except zlib.error as exc:
+            raise DumpError(f"dump {path} is corrupt: frame {i}'s compressed data cannot be inflated ({exc})") \
+                from exc
+        if data.size != h * w * size:
+            raise DumpError(f"dump {path} is corrupt: frame {i} inflates to {data.size} bytes, not {h * w * size}")
+        if size > 1 and filters[0] == _H5Z_SHUFFLE:     # byte k of every value stored together
+            data = data.reshape(size, h * w).T
+        out[i] = np.ascontiguousarray(data).view(ds.dtype).reshape(h, w)
+
+    with ThreadPoolExecutor(2) as pool:
+        list(pool.map(inflate, range(n)))
+    return out
 
 
 def _what_is(path: Path) -> str:
@@ -178,12 +218,14 @@ def _read_v1(f, path: Path, version: int, load_frames: bool, require_result: boo
     cap = f["capture"]
     frames = None
     if load_frames:
-        frames = frames_ds[()]
         digests = _read_value(cap["frames_sha256"])
-        if len(digests) != frames.shape[0]:
-            raise DumpError(f"dump {path}: {len(digests)} frame digests for {frames.shape[0]} frames")
-        for i, frame in enumerate(frames):
-            if hashlib.sha256(frame).hexdigest() != digests[i]:
+        if len(digests) != frames_ds.shape[0]:
+            raise DumpError(f"dump {path}: {len(digests)} frame digests for {frames_ds.shape[0]} frames")
+        frames = _read_frames(frames_ds, path)
+        with ThreadPoolExecutor(2) as pool:         # hashlib releases the GIL
+            found = list(pool.map(lambda frame: hashlib.sha256(frame).hexdigest(), frames))
+        for i, (digest, expected) in enumerate(zip(found, digests)):
+            if digest != expected:
                 raise DumpError(f"dump {path} is corrupt: frame {i} does not match its SHA-256 digest")
     crop_box = tuple(int(v) for v in _read_value(cap["crop_box"]))
     full_shape = tuple(int(v) for v in _read_value(cap["full_shape"]))
