@@ -16,6 +16,15 @@ from tests.conftest import ROOT
 CHROMIUM = "/usr/bin/chromium"
 
 
+def shift_started_hours_ago(hours: float = 2.0) -> str:
+    """A shift start ("HH:MM", local time) *hours* before now: the facets a test journals now are in the
+    current shift whatever the time of day (a fixed "00:00" left out the facets a test made in the last
+    minute before midnight, when it ran just after)."""
+    import datetime
+
+    return (datetime.datetime.now() - datetime.timedelta(hours=hours)).strftime("%H:%M")
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

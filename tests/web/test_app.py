@@ -15,6 +15,7 @@ from sofast_station.live.operator_commands import commands_dir
 from sofast_station.web.app import create_app
 from sofast_station.web.render import last_html
 from sofast_station.web.settings import WebSettings, opcua_settings, web_settings
+from tests.web.serving import shift_started_hours_ago
 
 
 def _call(app, method: str, path: str, headers: dict | None = None, body: bytes = b"") -> tuple[int, dict, bytes]:
@@ -288,7 +289,7 @@ def test_indeterminate_facets_are_counted_on_the_page(small_station_toml):
 
     config = load_config(small_station_toml)
     _journal_records(config.data_dir, [_facet(1, "indeterminate"), _facet(2, "indeterminate"), _facet(3, "pass")])
-    snap = LineData(config, WebSettings(shift_starts=("00:00",))).snapshot()
+    snap = LineData(config, WebSettings(shift_starts=(shift_started_hours_ago(),))).snapshot()
     html = shift_html(snap)
     assert "<b class='indeterminate-t'>2</b><span>indeterminate</span>" in html, html
     assert "<b class='pass-t'>1</b><span>pass</span>" in html and "33.3 %" in html
@@ -306,7 +307,7 @@ def test_the_charts_draw_the_limits_of_the_last_facets_recipe(small_station_toml
     facets = [_facet(i, "pass", rms=0.5 + 0.01 * i) for i in range(5)]
     facets += [_facet(10 + i, "fail" if i == 3 else "pass", "strict", rms=0.6 + 0.04 * i) for i in range(4)]
     _journal_records(config.data_dir, facets)
-    snap = LineData(config, WebSettings(shift_starts=("00:00",))).snapshot()
+    snap = LineData(config, WebSettings(shift_starts=(shift_started_hours_ago(),))).snapshot()
     chart = snap["chart"]
     assert chart["recipe"] == "strict" and len(chart["serials"]) == 4       # the last facet's recipe only
     rms = chart["panels"][1]

@@ -27,7 +27,7 @@ from sofast_station.serials import clean_serial
 from sofast_station.live.operator_commands import commands_dir
 from sofast_station.station.service import Service
 from tests.conftest import ROOT, SMALL_STATION
-from tests.web.serving import free_port, launch_chromium, start_server, stop_server
+from tests.web.serving import free_port, launch_chromium, shift_started_hours_ago, start_server, stop_server
 
 TOKEN = "line-token-for-tests"
 LONG = "L" * 280 + "-END-OF-LONG-SERIAL"           # 300 characters
@@ -49,7 +49,7 @@ limits = {{ focal_length_tolerance = 0.005 }}
 token = "{token}"
 port = {port}
 nice = 0
-shift_starts = ["00:00"]
+shift_starts = ["{shift_start}"]
 """
 
 
@@ -73,7 +73,7 @@ def line(tmp_path_factory):
     config = tmp / "station.toml"
     config.write_text(SMALL_STATION.format(data_dir=data, facet=ROOT / "fixtures/facets/dish_5m33.toml",
                                            radiometric=ROOT / "calibration/simulated_radiometric.json")
-                      + EXTRA.format(port=port, token=TOKEN))
+                      + EXTRA.format(port=port, token=TOKEN, shift_start=shift_started_hours_ago()))
     shots = Path(os.environ.get("SOFAST_SCREENSHOTS") or tmp / "screenshots")
     shots.mkdir(parents=True, exist_ok=True)
     return config, data, port, shots

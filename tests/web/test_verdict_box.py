@@ -30,7 +30,7 @@ from playwright.sync_api import sync_playwright   # a test dependency: missing, 
 from sofast_station.archive import Journal
 from sofast_station.live.status import status_path
 from tests.conftest import ROOT, SMALL_STATION
-from tests.web.serving import free_port, launch_chromium, start_server, stop_server
+from tests.web.serving import free_port, launch_chromium, shift_started_hours_ago, start_server, stop_server
 
 SAMPLE = json.loads((ROOT / "tests/archive/full_record.json").read_text())
 VIEWPORTS = ((1920, 1080), (1024, 768), (800, 600))
@@ -45,7 +45,7 @@ def _station(tmp: Path, port: int, stale_after_s: float) -> tuple[Path, Path]:
     config = tmp / "station.toml"
     config.write_text(SMALL_STATION.format(data_dir=data, facet=ROOT / "fixtures/facets/dish_5m33.toml",
                                            radiometric=ROOT / "calibration/simulated_radiometric.json")
-                      + f'\n[web]\nport = {port}\nnice = 0\nshift_starts = ["00:00"]\n'
+                      + f'\n[web]\nport = {port}\nnice = 0\nshift_starts = ["{shift_started_hours_ago()}"]\n'
                       + f'stale_after_s = {stale_after_s}\n')
     (data / "live").mkdir(parents=True)
     return config, data
