@@ -464,7 +464,45 @@ class PeriodPhaseError:
     n_pixels: int
 
 
-def phase_error_between_periods(sets: list, noise_dn: float = 0.0, mask: list | None = None
+def _period_block(axis_sets: tuple, mask, n_axes: int, noise_dn: float, ks: np.ndarray) -> tuple | None:
+    """One axis's rows of :func:`phase_error_between_periods`' fit: its own and the harmonic regressors with
+    their derivatives by the fine and the coarse phase, the disagreement, both phases' noise variances and
+    the period ratio; None when the ratio is not a whole number above 1."""
+    phi_c, phi_f, b_c, b_f, p_c, p_f = axis_sets
+    r = float(p_f) / float(p_c)
+    if r <= 1.0 or abs(r - round(r)) > 1e-9:
+        return None
+    # every step-th of the pixels in the mask, gathered straight from the images (not masked first)
+    arrays = [np.asarray(v).ravel() for v in (phi_c, phi_f, b_c, b_f)]
+    pick = (np.flatnonzero(np.asarray(mask, dtype=bool).ravel()) if mask is not None
+            else np.arange(arrays[0].size))
+    step = max(1, -(-pick.size * n_axes // MAX_NOISE_SAMPLES))
+    phi_c, phi_f, b_c, b_f = (v[pick[::step]].astype(np.float64, copy=False) for v in arrays)
+    var_c = (noise_dn / (np.sqrt(2.0) * np.maximum(b_c, 1e-9))) ** 2
+    var_f = (noise_dn / (np.sqrt(2.0) * np.maximum(b_f, 1e-9))) ** 2
+    m = phi_c.size
+    # The axis's own term, a constant (a phase offset between its sets), then the shared harmonics; with
+    # each column's derivative by phi_f and by phi_c. (Each set's error at the phase's first harmonic, a
+    # frame brighter or dimmer than the others of its set, is not fitted: over the few radians of
+    # phase a small facet's coarse set sees, cos and sin phi_c are nearly the constant and the 4 phi_c
+    # terms, and the fit came apart; left in, room light jittering by 0.2 % of white from frame to
+    # frame adds about 0.7 mrad to the stated error, on the safe side.)
+    own = [np.ones(m)]
+    own_df = own_dc = [np.zeros(m)]
+    kf, kc = ks[None, :] * phi_f[:, None], ks[None, :] * phi_c[:, None]
+    harm = np.empty((m, 2 * ks.size))
+    sin_f, cos_f, sin_c, cos_c = np.sin(kf), np.cos(kf), np.sin(kc), np.cos(kc)
+    harm[:, 0::2] = sin_f - r * sin_c
+    harm[:, 1::2] = cos_f - r * cos_c
+    h_df, h_dc = np.empty_like(harm), np.empty_like(harm)
+    h_df[:, 0::2], h_df[:, 1::2] = ks * cos_f, -ks * sin_f
+    h_dc[:, 0::2], h_dc[:, 1::2] = -r * ks * cos_c, r * ks * sin_c
+    y = np.angle(np.exp(1j * (phi_f - r * phi_c)))
+    return (np.column_stack(own), np.column_stack(own_df), np.column_stack(own_dc), harm, h_df, h_dc,
+            y, var_f, var_c, r)
+
+
+def phase_error_between_periods(sets: list, noise_dn: float = 0.0, mask: list | None = None, pool=None
                                 ) -> PeriodPhaseError | None:
     """The phase error of the four-step phases, measured from the disagreement of two period sets.
 
@@ -493,6 +531,8 @@ def phase_error_between_periods(sets: list, noise_dn: float = 0.0, mask: list | 
         Per-frame intensity noise, DN.
     mask : list of bool arrays or None
         Per axis, the pixels to use (those whose phases are trusted).
+    pool : executor or None
+        Where each axis's regressors are formed (the axes at once, the same values); None: here.
 
     Returns
     -------
@@ -502,39 +542,12 @@ def phase_error_between_periods(sets: list, noise_dn: float = 0.0, mask: list | 
     """
     ks = np.array(PHASE_ERROR_HARMONICS, dtype=np.float64)
     n_own = 1
-    blocks = []
-    for i, (phi_c, phi_f, b_c, b_f, p_c, p_f) in enumerate(sets):
-        r = float(p_f) / float(p_c)
-        if r <= 1.0 or abs(r - round(r)) > 1e-9:
-            continue
-        # every step-th of the pixels in the mask, gathered straight from the images (not masked first)
-        arrays = [np.asarray(v).ravel() for v in (phi_c, phi_f, b_c, b_f)]
-        pick = (np.flatnonzero(np.asarray(mask[i], dtype=bool).ravel()) if mask is not None
-                else np.arange(arrays[0].size))
-        step = max(1, -(-pick.size * len(sets) // MAX_NOISE_SAMPLES))
-        phi_c, phi_f, b_c, b_f = (v[pick[::step]].astype(np.float64, copy=False) for v in arrays)
-        var_c = (noise_dn / (np.sqrt(2.0) * np.maximum(b_c, 1e-9))) ** 2
-        var_f = (noise_dn / (np.sqrt(2.0) * np.maximum(b_f, 1e-9))) ** 2
-        m = phi_c.size
-        # The axis's own term, a constant (a phase offset between its sets), then the shared harmonics; with
-        # each column's derivative by phi_f and by phi_c. (Each set's error at the phase's first harmonic, a
-        # frame brighter or dimmer than the others of its set, is not fitted: over the few radians of
-        # phase a small facet's coarse set sees, cos and sin phi_c are nearly the constant and the 4 phi_c
-        # terms, and the fit came apart; left in, room light jittering by 0.2 % of white from frame to
-        # frame adds about 0.7 mrad to the stated error, on the safe side.)
-        own = [np.ones(m)]
-        own_df = own_dc = [np.zeros(m)]
-        kf, kc = ks[None, :] * phi_f[:, None], ks[None, :] * phi_c[:, None]
-        harm = np.empty((m, 2 * ks.size))
-        sin_f, cos_f, sin_c, cos_c = np.sin(kf), np.cos(kf), np.sin(kc), np.cos(kc)
-        harm[:, 0::2] = sin_f - r * sin_c
-        harm[:, 1::2] = cos_f - r * cos_c
-        h_df, h_dc = np.empty_like(harm), np.empty_like(harm)
-        h_df[:, 0::2], h_df[:, 1::2] = ks * cos_f, -ks * sin_f
-        h_dc[:, 0::2], h_dc[:, 1::2] = -r * ks * cos_c, r * ks * sin_c
-        y = np.angle(np.exp(1j * (phi_f - r * phi_c)))
-        blocks.append((np.column_stack(own), np.column_stack(own_df), np.column_stack(own_dc), harm, h_df, h_dc,
-                       y, var_f, var_c, r))
+    args = [(v, None if mask is None else mask[i], len(sets), noise_dn, ks) for i, v in enumerate(sets)]
+    if pool is None:
+        blocks = [_period_block(*a) for a in args]
+    else:
+        blocks = [t.result() for t in [pool.submit(_period_block, *a) for a in args]]
+    blocks = [b for b in blocks if b is not None]
     if not blocks or sum(bl[6].size for bl in blocks) < MIN_PHASE_ERROR_PIXELS:
         return None
     n_axes = len(blocks)

@@ -553,7 +553,7 @@ def measure_phases(region: Region, fringes: FringeSet, screen_size_m: tuple[floa
     # The response's phase error as the coarse and fine sets show it (any shape of response), where they can.
     noise = noise.with_period_error(phase_error_between_periods(
         [(raw[a][0][0], raw[a][0][-1], raw[a][1][0], raw[a][1][-1], getattr(fringes, f"periods_{a}")[0],
-          getattr(fringes, f"periods_{a}")[-1]) for a in ("x", "y")], noise_dn, mask=[ok, ok]))
+          getattr(fringes, f"periods_{a}")[-1]) for a in ("x", "y")], noise_dn, mask=[ok, ok], pool=pool))
     dropped = {"low_modulation": int(low_mod.sum()), "inconsistent_frames": int(inconsistent.sum()),
                "excluded_by_pixel_mask": excluded, "near_edge": near_edge}
     return Phases(positions_m=positions, ok=ok, noise_dn=noise_dn,

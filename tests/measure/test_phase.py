@@ -375,3 +375,29 @@ def test_the_power_law_table_written_in_the_source_is_what_it_is_computed_from()
     linear = int(np.argmin(np.abs(ph._EXPONENTS - 1.0)))
     assert abs(ph._RATIOS[linear]) < 1e-12 and ph._PHASE_ERRORS[linear] < 1e-12
     assert np.all(np.diff(ph._RATIOS) > 0)          # the inverse lookup needs a monotonic table
+
+
+def test_the_period_sets_phase_error_is_the_same_bits_with_its_axes_on_a_pool():
+    """phase_error_between_periods forms each axis's regressors on the analysis' pool (issue 32): the same
+    figures, to the bit, as formed one after another; and it finds a fourth-harmonic error it is given."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from sofast_station.measure.phase import phase_error_between_periods
+
+    rng = np.random.default_rng(5)
+    sets = []
+    for p_c, p_f in ((1, 8), (1, 4)):
+        theta = rng.uniform(0.0, 2.0 * np.pi, 60_000)           # the coarse set's true phase
+        fine = p_f * theta
+
+        def seen(phi):
+            return np.angle(np.exp(1j * (phi + 0.004 * np.sin(4.0 * phi))))
+
+        sets.append((seen(theta).astype(np.float32), seen(fine).astype(np.float32),
+                     np.full(theta.size, 80.0, np.float32), np.full(theta.size, 80.0, np.float32), p_c, p_f))
+    mask = [rng.random(60_000) > 0.1 for _ in sets]
+    alone = phase_error_between_periods(sets, 0.5, mask=mask)
+    with ThreadPoolExecutor(2) as pool:
+        pooled = phase_error_between_periods(sets, 0.5, mask=mask, pool=pool)
+    assert alone == pooled
+    assert alone.max_rad == pytest.approx(0.004, rel=0.05)
