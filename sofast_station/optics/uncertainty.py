@@ -23,6 +23,7 @@ Pure numpy: no file, no hardware, no global state.
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -178,7 +179,6 @@ def optics_sensitivities(points_m: np.ndarray, slopes: np.ndarray, area_m2: np.n
                 "centroid_offset_mrad": f["centroid_offset_mrad"],
                 "power_ratio_vs_design": f["intercepted_w"] / d_int if d_int > 0 else None}
 
-    base = figures_of(s)
     h_k = CURVATURE_STEP * design.curvature_per_m
     h_r = RMS_STEP * max(slope_rms_mrad, 1e-3)
     rms_resid = 1e3 * float(np.sqrt(np.mean(np.sum(resid * resid, axis=0))))
@@ -188,9 +188,14 @@ def optics_sensitivities(points_m: np.ndarray, slopes: np.ndarray, area_m2: np.n
         "curvature y": (h_k, lambda sg: s + np.stack([zero, 0.5 * sg * h_k * (p[1] - y_a)])),
         "slope RMS": (h_r, lambda sg: fit + resid * max(0.0, 1.0 + sg * h_r / max(rms_resid, 1e-6))),
     }
+    # The seven traces are independent (each draws its own sun samples from the same seed): two at once.
+    slopes_of = [s] + [moved(sign) for _, moved in moves.values() for sign in (+1.0, -1.0)]
+    with ThreadPoolExecutor(2) as pool:
+        traced = list(pool.map(figures_of, slopes_of))
+    base = traced[0]
     out = {}
-    for name, (h, moved) in moves.items():
-        plus, minus = figures_of(moved(+1.0)), figures_of(moved(-1.0))
+    for i, (name, (h, _)) in enumerate(moves.items()):
+        plus, minus = traced[1 + 2 * i], traced[2 + 2 * i]
         out[name] = {}
         for path in PATHS:
             y0, yp, ym = _get(base, path), _get(plus, path), _get(minus, path)
