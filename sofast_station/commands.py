@@ -170,18 +170,22 @@ def lower_priority(niceness: int = 10) -> None:
         log.debug("could not lower the priority: %s", exc)
 
 
-#: Environment variables that set the thread count of the BLAS/OpenMP libraries numpy may use.
+#: Environment variables that set the thread count of the BLAS/OpenMP libraries numpy may use, and of
+#: OpenCV's own pool (whose idle workers wait for work by yielding the processor over and over: on two
+#: cores they took a tenth of a full-resolution reprocess from the analysis' own threads).
 BLAS_THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS",
-                    "VECLIB_MAXIMUM_THREADS", "NUMEXPR_NUM_THREADS")
+                    "VECLIB_MAXIMUM_THREADS", "NUMEXPR_NUM_THREADS", "OPENCV_FOR_THREADS_NUM")
 
 
 def single_thread_blas() -> bool:
-    """Ask for BLAS on one thread, unless the user set a thread count explicitly (before numpy is loaded:
-    the libraries read it when they load; docs/conventions.md#determinism).
+    """Ask for BLAS (and OpenCV) on one thread, unless the user set a thread count explicitly (before numpy
+    is loaded: the libraries read it when they load; docs/conventions.md#determinism).
 
     One thread gives the re-analysis its bit-exact results, and spares a one-off command the start of a
     thread pool it does not need: on a busy machine, OpenBLAS's first call (scipy's triangulation of the
-    OpenCSP screen) took 0.3 to 1.2 s with its pool, half a millisecond without.
+    OpenCSP screen) took 0.3 to 1.2 s with its pool, half a millisecond without. OpenCV's pool gave the
+    analysis nothing (its images are small) and its idle worker spun on the second core (1,400 yields of
+    the processor in one reprocess): 12 % of a reprocess's wall time.
 
     Returns
     -------

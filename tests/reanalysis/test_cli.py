@@ -51,4 +51,10 @@ def test_reprocess_runs_with_blas_on_one_thread(station_dumps):
     assert proc.returncode == 0, proc.stderr
     obj = json.loads(proc.stdout)
     assert set(obj["reprocess"]["blas_threads"].values()) == {"1"}
+    # and OpenCV's pool, whose idle worker otherwise spins on the second core (issue 32)
+    code = ("from sofast_station.reanalysis._env import single_thread_blas; single_thread_blas(); import cv2; "
+            "print(cv2.getNumThreads())")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=_env_without_blas_vars(),
+                         timeout=60)
+    assert out.returncode == 0 and out.stdout.strip() == "1", (out.stdout, out.stderr)
     assert obj["reprocess"]["exact"] is True and "BLAS on 1 thread" in obj["reprocess"]["summary"]
