@@ -4,9 +4,11 @@ numba compiles :mod:`.kernels` once and caches the machine code on disk, but eve
 imports numba and initialises its compiler to load that code (0.8 to 1.2 s on the machines of
 docs/performance.md): more than a whole ``reprocess`` of a dump takes otherwise. ``setup-env`` therefore
 also builds the kernels into an extension module with numba's ahead-of-time compiler
-(:mod:`sofast_station.build_kernels`): the same source, each kernel with its own options (fused multiply-adds, the
-regrouped sums, numpy's float semantics, the GIL released) for this machine's processor, one entry per
-argument types the analysis calls it with. Importing it takes a millisecond and loads no numba.
+(:mod:`sofast_station.build_kernels`): the same source, each kernel with its own options (fused
+multiply-adds, the regrouped sums, numpy's float semantics, the GIL released) for this machine's
+processor, one entry per argument types the analysis calls it with. Importing it takes a millisecond and
+loads no numba. A wrong argument type would crash such an entry (it does not check types as numba's JIT
+does), so every call is keyed on its arguments' exact types first (:func:`argument_key`).
 
 The module's name carries a digest of what its code depends on (:func:`build_digest`: the kernels'
 source, the list of argument types, the versions of Python, numpy and numba, the processor), so a build
