@@ -177,10 +177,12 @@ def prepare_twin(config: str, tmp: Path) -> dict:
             f"{cfg.design.name} ({cfg.name})"}
 
 
-def prepare_dump(config: str, tmp: Path, fits) -> dict:
-    """A twin capture, analysed once per fit, written as the station's data dumps (cropped frames, record
-    with the optical figures when the station traces them, the analysis settings with that fit, the
-    uncertainty's sensitivities the analysis kept), as a station configured for that fit writes them."""
+def prepare_dump(config: str, tmp: Path, fits, optics: bool = False) -> dict:
+    """A twin capture, analysed once per fit, written as the station's data dumps (cropped frames, record,
+    the analysis settings with that fit, the uncertainty's sensitivities the analysis kept), as a station
+    configured for that fit writes them. *optics*: the record carries the optical figures, as the
+    station's worker adds them (so ``reprocess`` traces them again, as it does a dump from the line);
+    without, ``reprocess_content`` analyses like the other paths here, which trace no optics."""
     import dataclasses
 
     from sofast_station.archive.dumps import DumpContent, crop_to_facet, write_dump
@@ -196,7 +198,8 @@ def prepare_dump(config: str, tmp: Path, fits) -> dict:
         settings = dataclasses.replace(cfg.analysis, robust_fit=fit == "robust")
         a = analyse(frames, cfg.fringes, cfg.geometry, cfg.design, distance, settings, uncertainty=cfg.uncertainty,
                     sensitivity_cache={})
-        add_optics(a, cfg.design, cfg.optics)           # the optical figures, as the station's worker adds them
+        if optics:
+            add_optics(a, cfg.design, cfg.optics)       # the optical figures, as the station's worker adds them
         record = build_record(station.record_head("BENCH-1"), figures=a.figures,
                               verdict=judge(a.figures, cfg.design, cfg.limits, cfg.quality), timings=dict(a.timings_s))
         content = DumpContent.from_station(station, cycle_id=f"bench-{fit}", record=record, frames_cropped=cropped,

@@ -108,7 +108,7 @@ def setup(tmp: Path, config: str, facets: int, scale: int | None, env: dict) -> 
     import analysis as bench_analysis
 
     t = time.perf_counter()
-    spec = bench_analysis.prepare_dump(config, tmp, ["plain"])
+    spec = bench_analysis.prepare_dump(config, tmp, ["plain"], optics=True)     # as a dump from the line
     print(f"setup: {spec['what']} ({time.perf_counter() - t:.1f} s)", flush=True)
     if facets > 0:
         t = time.perf_counter()
