@@ -231,6 +231,8 @@ class _Process:
 
     def __init__(self, shape: tuple[int, int, int]):
         self.shape = shape
+        # close() may run on two threads at once (a retired worker's waiter, and the station stopping)
+        self._closing = threading.Lock()
         self.shm = SharedMemory(create=True, size=_frame_bytes(shape) + _BEGUN_BYTES)
         self.frames = np.ndarray(shape, dtype=np.uint8, buffer=self.shm.buf)
         self.begun = _begun_slot(self.shm, shape)
@@ -282,15 +284,18 @@ class _Process:
                 proc.join(5)                 # reap it: a zombie's PID would keep its temporary files "alive"
 
     def close(self) -> None:
+        """Kill the process and free its shared frame buffer; a second call, from any thread, does nothing."""
         self.kill()
-        if self.shm is not None:
+        with self._closing:
+            shm, self.shm = self.shm, None
+            if shm is None:
+                return
             self.frames = self.begun = None
-            self.shm.close()
-            try:
-                self.shm.unlink()
-            except FileNotFoundError:
-                pass
-            self.shm = None
+        shm.close()
+        try:
+            shm.unlink()
+        except FileNotFoundError:
+            pass
 
 
 def _result(out) -> WorkerResult:
