@@ -532,7 +532,8 @@ def phase_error_between_periods(sets: list, noise_dn: float = 0.0, mask: list | 
     mask : list of bool arrays or None
         Per axis, the pixels to use (those whose phases are trusted).
     pool : executor or None
-        Where each axis's regressors are formed (the axes at once, the same values); None: here.
+        Forms the first half of the axes' regressors beside the rest (:func:`_map_halves`: the same
+        values); None: all here.
 
     Returns
     -------
@@ -543,11 +544,7 @@ def phase_error_between_periods(sets: list, noise_dn: float = 0.0, mask: list | 
     ks = np.array(PHASE_ERROR_HARMONICS, dtype=np.float64)
     n_own = 1
     args = [(v, None if mask is None else mask[i], len(sets), noise_dn, ks) for i, v in enumerate(sets)]
-    if pool is None:
-        blocks = [_period_block(*a) for a in args]
-    else:
-        blocks = [t.result() for t in [pool.submit(_period_block, *a) for a in args]]
-    blocks = [b for b in blocks if b is not None]
+    blocks = [b for b in _map_halves(pool, lambda a: _period_block(*a), args) if b is not None]
     if not blocks or sum(bl[6].size for bl in blocks) < MIN_PHASE_ERROR_PIXELS:
         return None
     n_axes = len(blocks)
