@@ -83,7 +83,7 @@ def build(out_dir: Path | None = None, log=print) -> Path:
     from .measure import kernels
     from .measure.kernel_signatures import SIGNATURES
 
-    out_dir = Path(out_dir or Path(kernels.__file__).resolve().parent)
+    out_dir = Path(out_dir or compiled.BUILD_DIR)
     name = compiled.module_name()
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="sofast-kernels-") as tmp:
@@ -130,7 +130,7 @@ def main(argv=None) -> int:
     p.add_argument("--out-dir", default=None, help="where to put the module (default: beside kernels.py)")
     p.add_argument("--force", action="store_true", help="build even when a build for these sources exists")
     args = p.parse_args(argv)
-    out_dir = Path(args.out_dir) if args.out_dir else Path(compiled.__file__).resolve().parent
+    out_dir = Path(args.out_dir or compiled.BUILD_DIR)
     name = compiled.module_name()
     if not args.force and (out_dir / f"{name}.json").exists() and list(out_dir.glob(f"{name}.*.so")):
         print(f"build_kernels: {name} is up to date (--force builds it again)", file=sys.stderr)

@@ -39,7 +39,8 @@ log = logging.getLogger(__name__)
 ENV = "SOFAST_KERNELS"
 #: Prefix of the built module's name (then the digest).
 MODULE_PREFIX = "_kernels_aot_"
-_HERE = Path(__file__).resolve().parent
+#: Where the build is looked for (and ``build_kernels`` puts it): beside the kernels, as a module of this package.
+BUILD_DIR = Path(__file__).resolve().parent
 
 _lock = threading.Lock()
 _state: dict = {}            # "build": the loaded table (or None); "jit": {kernel name: dispatcher}
@@ -74,7 +75,7 @@ def build_digest() -> str:
     """16 hex digits of everything the built machine code depends on; part of the module's name."""
     h = hashlib.sha256()
     for name in ("kernels.py", "kernel_signatures.py"):
-        h.update((_HERE / name).read_bytes())
+        h.update((BUILD_DIR / name).read_bytes())
     h.update(json.dumps([sys.version, np.__version__, installed_version("numba"), _processor()]).encode())
     return h.hexdigest()[:16]
 
@@ -116,7 +117,7 @@ def _load_build() -> dict | None:
     if os.environ.get(ENV, "").strip().lower() == "jit":
         return None
     name = module_name()
-    table_path = _HERE / f"{name}.json"
+    table_path = BUILD_DIR / f"{name}.json"
     if importlib.util.find_spec(f"{__package__}.{name}") is None or not table_path.exists():
         return None
     try:
