@@ -13,6 +13,8 @@ A facet file (TOML, in ``fixtures/facets/``) holds one ``[facet]`` table::
                                      # mirror (a seamed or bevelled glass edge), metres wide
     edge_rim_dark = false            # optional: true when that rim never shows the screen to the camera
                                      # (a ground seam, a steep bevel)
+    outline_known = true             # optional: false for a mirror of unknown outline (outline_m is then
+                                     # only its expected extent about its middle; no corners are used)
 
 The facet frame's origin is the paraboloid vertex: the facet centre for on-axis facets, a point off the
 facet for gore facets (docs/conventions.md#facet-frame).
@@ -54,6 +56,14 @@ class FacetDesign:
         its reflection misses the screen): the edge found in the image is the rim's inner edge and the
         outline lies the rim's width outside it. False (default): the rim may look lit or dark, and the
         outline is put midway, uncertain by the rim's width / sqrt(12). Only with ``edge_rim_m > 0``.
+    outline_known : bool
+        True (default): the outline is the mirror's, and the analysis finds its corners and places the facet
+        by them. False: a mirror of unknown outline (a calibration flat or sphere, a mirror cut to no
+        drawing; OpenCSP's "undefined" optic): ``outline_m`` is only its expected extent, the facet frame is
+        placed by the lit region's centroid at the measured distance, facing the camera and the screen, and
+        the figures measured against its corners (placement, boresight) are not reported (docs/method.md,
+        mirror of unknown outline). Its measure and alignment points are the frame's origin, the middle of
+        the lit region, and its optical tilt is the fitted normal's there.
     """
 
     name: str
@@ -65,6 +75,7 @@ class FacetDesign:
     layout: dict = field(default_factory=dict)
     edge_rim_m: float = 0.0
     edge_rim_dark: bool = False
+    outline_known: bool = True
 
     def __post_init__(self):
         where = f"facet {self.name!r}"
@@ -96,6 +107,17 @@ class FacetDesign:
         if self.edge_rim_dark and not rim:
             raise ConfigError(f"{where}: edge_rim_dark = true needs the rim's width, edge_rim_m (metres)")
         object.__setattr__(self, "edge_rim_dark", bool(self.edge_rim_dark))
+        if not isinstance(self.outline_known, (bool, np.bool_)):
+            raise ConfigError(f"{where}: outline_known must be true or false, got {self.outline_known!r}")
+        object.__setattr__(self, "outline_known", bool(self.outline_known))
+        if not self.outline_known:
+            if rim:
+                raise ConfigError(f"{where}: a mirror of unknown outline (outline_known = false) has no rim to "
+                                  "declare; leave edge_rim_m out")
+            for key in ("measure_point_m", "alignment_point_m"):
+                if np.any(np.asarray(getattr(self, key), dtype=np.float64) != 0.0):
+                    raise ConfigError(f"{where}: a mirror of unknown outline (outline_known = false) is measured "
+                                      f"and aligned at its middle, the origin of its frame: leave {key} out")
         for key in ("measure_point_m", "alignment_point_m"):
             p = np.array(getattr(self, key), dtype=np.float64)
             if p.shape != (2,) or not np.all(np.isfinite(p)):
@@ -150,6 +172,8 @@ class FacetDesign:
             d["edge_rim_m"] = self.edge_rim_m
         if self.edge_rim_dark:
             d["edge_rim_dark"] = True
+        if not self.outline_known:  # (absent for a known outline: designs and hashes from before it)
+            d["outline_known"] = False
         return d
 
     @classmethod
@@ -158,12 +182,14 @@ class FacetDesign:
         if missing:
             raise ConfigError(f"{source}: [facet] is missing {', '.join(missing)}")
         outline = np.asarray(d["outline_m"], dtype=np.float64)
-        centre = outline.mean(axis=0).tolist() if outline.ndim == 2 else [0.0, 0.0]
+        known = d.get("outline_known", True)
+        centre = outline.mean(axis=0).tolist() if outline.ndim == 2 and known is not False else [0.0, 0.0]
         try:
             return cls(name=str(d["name"]), kind=str(d["kind"]), focal_length_m=d["focal_length_m"],
                        outline_m=outline, measure_point_m=d.get("measure_point_m", centre),
                        alignment_point_m=d.get("alignment_point_m", centre), layout=dict(d.get("layout", {})),
-                       edge_rim_m=d.get("edge_rim_m", 0.0), edge_rim_dark=d.get("edge_rim_dark", False))
+                       edge_rim_m=d.get("edge_rim_m", 0.0), edge_rim_dark=d.get("edge_rim_dark", False),
+                       outline_known=known)
         except ConfigError as exc:            # name where the design came from (a file, a recipe)
             msg = str(exc)
             raise ConfigError(msg if source == "facet" or source in msg else f"{source}: {msg}") from None

@@ -24,7 +24,7 @@ import numpy as np
 from ..errors import GeometryError
 from ..facet import FacetDesign
 from ..geometry import Pose
-from .fit import ParabolaFit, fit_parabola
+from .fit import ParabolaFit, fit_surface
 from .surface import surface_slopes, surface_z
 
 
@@ -185,7 +185,7 @@ def _t_z_for(assembly: Assembly, alpha: float, beta: float, pivot: np.ndarray, c
 
 
 def solve_shape(assembly: Assembly, design: FacetDesign, measured_distance_m: float,
-                max_iterations: int = 20, robust: bool = False, pool=None) -> ShapeSolution:
+                max_iterations: int = 20, robust: bool = False, pool=None, surface: str = "parabolic") -> ShapeSolution:
     """Iterate shape fit and boresight to convergence (docs/conventions.md#iteration).
 
     Parameters
@@ -203,6 +203,9 @@ def solve_shape(assembly: Assembly, design: FacetDesign, measured_distance_m: fl
         runs on with it iterated to :data:`FINAL_TOLERANCE` until it converges again.
     pool : executor, optional
         Where a robust fit's second slope equation runs beside the first (the same bits either way).
+    surface : str
+        The shape model (:data:`~.fit.SURFACES`): the parabola, or a plane (the design's shape then only
+        starts the iteration).
     """
     xa, ya = (float(v) for v in design.alignment_point_m)
     z_align = float(design.z(xa, ya))
@@ -230,8 +233,8 @@ def solve_shape(assembly: Assembly, design: FacetDesign, measured_distance_m: fl
             reflect(moved.rays, moved.screen_m, _IDENTITY, _ZERO, coeffs, pts, slopes, 0, n, origin=moved.camera_m)
             sx, sy = slopes
             # A robust fit starts from the previous fit's weights: the same points, moved very little.
-            fit = fit_parabola(pts[0], pts[1], sx, sy, robust=robust, start=fit, pool=pool,
-                               robust_tolerance=tolerance)
+            fit = fit_surface(surface, pts[0], pts[1], sx, sy, robust=robust, start=fit, pool=pool,
+                              robust_tolerance=tolerance)
             new = model_coefficients(fit, design)
             shape_total += 1
             stable = kappa_converged(new, coeffs)

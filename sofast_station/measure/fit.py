@@ -338,3 +338,53 @@ def fit_cubic(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray) ->
         raise AnalysisError("the higher-order fit is ill-conditioned: the valid points cover too little of the facet")
     coef = np.linalg.solve(g, rhs / scale) / scale
     return CubicFit(coef, x0, y0, h)
+
+
+#: The shape models a facet may be fitted with (``[analysis] surface``): the paper's parabola, or a plane
+#: (OpenCSP's plano surface: constant slopes, for a flat mirror, or to measure only where a mirror points).
+SURFACES = ("parabolic", "plano")
+
+
+def bisquare_location(values: np.ndarray, tolerance: float = 1e-9, max_iterations: int = 50) -> float:
+    """The bisquare M-estimate of location of *values* (Tukey's weights, c = :data:`BISQUARE_C`, the scale
+    the median absolute deviation / :data:`MAD_TO_SIGMA`), from the median: the robust plane's slope."""
+    v = np.asarray(values, np.float64)
+    mu = float(np.median(v))
+    for _ in range(max_iterations):
+        r = v - mu
+        sigma = float(np.median(np.abs(r))) / MAD_TO_SIGMA
+        if not sigma > 0:
+            return mu
+        u = r / (BISQUARE_C * sigma)
+        w = np.where(np.abs(u) < 1.0, (1.0 - u * u) ** 2, 0.0)
+        total = float(np.sum(w))
+        if total <= 0:
+            raise AnalysisError("the robust plane fit has no point within its weights: too few valid points")
+        new = float(np.sum(w * v) / total)
+        if abs(new - mu) <= tolerance * max(sigma, 1e-300):
+            return new
+        mu = new
+    return mu
+
+
+def fit_plane(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray, robust: bool = False) -> ParabolaFit:
+    """The plano model: constant slopes s_x = C, s_y = D (A = B = E1 = E2 = 0), their mean, or with *robust*
+    their bisquare location (:func:`bisquare_location`). Returned as a :class:`ParabolaFit` so that the
+    boresight, the intersections and the residuals treat it as the parabola they already know."""
+    if x.size < 10:
+        raise AnalysisError(f"only {x.size} valid points: too few to fit a shape")
+    if robust:
+        c, d = bisquare_location(s_x), bisquare_location(s_y)
+    else:
+        c, d = float(np.sum(s_x) / s_x.size), float(np.sum(s_y) / s_y.size)
+    return ParabolaFit(0.0, 0.0, c, d, 0.0, 0.0)
+
+
+def fit_surface(surface: str, x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray, robust: bool = False,
+                start: ParabolaFit | None = None, pool=None, robust_tolerance: float = 1e-9) -> ParabolaFit:
+    """The slope fit of the shape model *surface* (:data:`SURFACES`): :func:`fit_parabola` or :func:`fit_plane`."""
+    if surface == "plano":
+        return fit_plane(x, y, s_x, s_y, robust=robust)
+    if surface != "parabolic":
+        raise ValueError(f"surface must be one of {SURFACES}, got {surface!r}")
+    return fit_parabola(x, y, s_x, s_y, robust=robust, start=start, pool=pool, robust_tolerance=robust_tolerance)

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import AnalysisError, CaptureError, FacetNotFoundError
+from ..errors import AnalysisError, CaptureError, ConfigError, FacetNotFoundError
 from ..facet import FacetDesign
 from ..fringes import FringeSet
 from ..geometry import Pose, StationGeometry
@@ -28,16 +28,15 @@ from . import checks
 from . import corners as corners_mod
 from .camera import pixel_rays, project, to_frame
 from .boresight import Assembly, ShapeSolution, close_on_all_points, model_coefficients, solve_shape
-from .fit import CubicFit, ParabolaFit, fit_cubic, fit_parabola, reweight_parabola
+from .fit import CubicFit, ParabolaFit, fit_cubic, fit_parabola, fit_plane, reweight_parabola
 from .mask import facet_region
 from .metrics import (focal_length_m, neighbour_difference_ms, neighbour_pairs, principal_axes,
                       rms_summary)
 from .phase import (FrameNoise, frame_noise, phase_and_modulation, phase_error_between_periods, position_sigma_m,
                     unwrap_positions)
-from .pose import fix_range, solve_corner_pose
+from .pose import fix_range, mask_centroid_px, placement, pose_facing, solve_corner_pose
 from .screen import FlatScreen, InterpolatedScreen, ScreenModel
 from .stats import median
-from .pose import placement
 
 
 @dataclass(frozen=True)
@@ -73,6 +72,10 @@ class AnalysisSettings:
     robust_fit : bool
         Fit the parabola by bisquare-weighted least squares, so outlying pixels (a facet edge that saw
         past the screen) do not pull the shape; residuals are still reported over every point.
+    surface : str
+        The shape model fitted to the slopes (:data:`~.fit.SURFACES`): ``"parabolic"`` (the paper's), or
+        ``"plano"`` (constant slopes: a flat mirror, or only where a mirror points; its focal lengths and
+        twist are not fitted, and are reported as not measured).
     threads : int
         Threads for the independent parts of the analysis (the x and y phases and unwrapping, the fits,
         the residuals of each model). Each part does the same arithmetic on any thread, so the figures
@@ -93,9 +96,19 @@ class AnalysisSettings:
     robust_fit: bool = False
     edge_window_px: int = 5
     threads: int = 2
+    surface: str = "parabolic"
+
+    def __post_init__(self):
+        from .fit import SURFACES
+
+        if self.surface not in SURFACES:
+            raise ConfigError(f"[analysis] surface must be one of {', '.join(SURFACES)}, got {self.surface!r}")
 
     def to_dict(self) -> dict:
-        return dict(self.__dict__)
+        d = dict(self.__dict__)
+        if d["surface"] == "parabolic":     # (absent for the parabola: settings and hashes from before it)
+            del d["surface"]
+        return d
 
 
 @dataclass
@@ -389,15 +402,19 @@ def find_region(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometr
         checks.check_response(dark, white, settings.mask_threshold_dn)
         region = facet_region(dark, white, settings.mask_threshold_dn, settings.max_hole_px)
         nominal_outline = outline_image_points(design, cam, geometry.fixture_to_camera)
-        checks.check_region(region, float(checks.projected_outline_mask(cam.shape, nominal_outline).sum()))
+        # (a mirror of unknown outline: its outline_m is only its expected extent, so its area is a guess;
+        # the region must still be whole and in view)
+        checks.check_region(region, float(checks.projected_outline_mask(cam.shape, nominal_outline).sum()),
+                            min_area_fraction=0.5 if design.outline_known else 0.0)
     except Exception:
         order.result()          # frames out of order explain the rest: that is the fault to report
         raise
     order.result()
     idx = np.flatnonzero(region)
     # The outline on a pool thread while the frames are gathered: its edge profiles say how far the
-    # lens's blur reaches inside the facet.
-    outline = pool.submit(_outline_of, contrast.result(), region, geometry, design, settings)
+    # lens's blur reaches inside the facet. A mirror of unknown outline has none to fit.
+    outline = pool.submit(_outline_of, contrast.result(), region, geometry, design, settings) \
+        if design.outline_known else _Serial._Done((None, None))
     flat = frames.reshape(frames.shape[0], -1)
     stack = np.empty((flat.shape[0], idx.size), dtype=flat.dtype)
     half = flat.shape[0] // 2
@@ -609,10 +626,21 @@ def _rays_of(camera, table, vidx: np.ndarray) -> np.ndarray:
 
 
 def corners_and_pose(region: Region, rays: Rays, geometry: StationGeometry, design: FacetDesign,
-                     measured_distance_m: float, settings: AnalysisSettings) -> CornerPoseResult:
+                     measured_distance_m: float, settings: AnalysisSettings,
+                     pixel_mask: np.ndarray | None = None) -> CornerPoseResult:
     """Stage 4: the facet's corners in the image, its pose from them, and the pose's range fixed by the
-    measured distance."""
+    measured distance.
+
+    A mirror of unknown outline is placed by its lit region's centroid, or with *pixel_mask* (the pixels the
+    caller allows, e.g. another program's for a like-with-like comparison) by the centroid of the region's
+    pixels it allows: the pixels measured are then the mirror."""
     cam = geometry.camera
+    if not design.outline_known:
+        # a mirror of unknown outline is placed by its lit region's centroid (pose_from_corners)
+        lit = region.region if pixel_mask is None else region.region & pixel_mask
+        centroid, cov = mask_centroid_px(lit)
+        result = pose_from_corners(centroid[None, :], region, rays, geometry, design, measured_distance_m, settings)
+        return dataclasses.replace(result, corner_sigma_px=float(np.sqrt(0.5 * np.trace(cov))), corner_cov_px2=cov)
     if region.outline is None:
         raise region.outline_error if region.outline_error is not None else \
             FacetNotFoundError("no facet outline was fitted")
@@ -630,14 +658,30 @@ def corners_and_pose(region: Region, rays: Rays, geometry: StationGeometry, desi
     return dataclasses.replace(result, corner_sigma_px=float(np.median(sigma)), corner_cov_px2=cov)
 
 
+def expected_corners_px(design: FacetDesign, geometry: StationGeometry) -> np.ndarray:
+    """Where the fixture's nominal pose puts the design's corners in the image, (n, 2) pixels; for a mirror of
+    unknown outline its one "corner", the middle of its frame (:func:`pose_from_corners`)."""
+    points = design.corners_3d() if design.outline_known else np.zeros((1, 3))
+    return project(geometry.camera, geometry.fixture_to_camera, points)
+
+
 def pose_from_corners(found: np.ndarray, region: Region, rays: Rays, geometry: StationGeometry,
                       design: FacetDesign, measured_distance_m: float,
                       settings: AnalysisSettings, agreement: float | None = None) -> CornerPoseResult:
     """Stage 4b: the pose from found corners (column, row) in design order, with its range fixed.
 
     The outline's agreement with the region is measured unless *agreement* is given (a rerun that
-    changes no pixel)."""
+    changes no pixel).
+
+    A mirror of unknown outline (``design.outline_known`` False) has one "corner", the lit region's centroid
+    (:func:`~.pose.mask_centroid_px`): its frame is placed there at the measured distance, facing camera
+    and screen (:func:`~.pose.pose_facing`); the range then needs no correction, and there is no outline to
+    agree with (``outline_agreement`` None)."""
     cam = geometry.camera
+    if not design.outline_known:
+        pose = pose_facing(cam, found[0], rays.screen_centre_cam_m, measured_distance_m)
+        return CornerPoseResult(corners_px=np.asarray(found, np.float64), reprojection_rms_px=0.0,
+                                facet_to_camera=pose, range_shift_m=0.0, outline_agreement=None)
     corners_3d = design.corners_3d()
     corner_pose = solve_corner_pose(cam, found, corners_3d, geometry.fixture_to_camera)
     if corner_pose.reprojection_rms_px > settings.max_corner_rms_px:
@@ -672,7 +716,7 @@ def shape_and_boresight(rays: Rays, pose: CornerPoseResult, design: FacetDesign,
                                         step),
                          to_frame(camera_to_facet, rays.screen_centre_cam_m[:, None])[:, 0])
     solution = solve_shape(subsample, design, measured_distance_m, settings.max_iterations, robust=settings.robust_fit,
-                           pool=pool if settings.robust_fit else None)
+                           pool=pool if settings.robust_fit else None, surface=settings.surface)
     if timer is not None:
         timer.lap("iterate")
     # Every valid pixel, taken from the camera frame straight into the boresighted facet frame, in one
@@ -706,6 +750,8 @@ def all_points_parabola(points: np.ndarray, slopes: np.ndarray, subsample_fit, s
     """The reported parabola fitted to every valid pixel: plain, or for a robust analysis one Newton step of
     the bisquare estimate from the subsample's converged robust fit (:func:`~.fit.reweight_parabola`)."""
     x, y, s_x, s_y = points[0], points[1], slopes[0], slopes[1]
+    if settings.surface == "plano":
+        return fit_plane(x, y, s_x, s_y, robust=settings.robust_fit)
     return (reweight_parabola(x, y, s_x, s_y, subsample_fit, pool=pool) if settings.robust_fit
             else fit_parabola(x, y, s_x, s_y))
 
@@ -758,7 +804,7 @@ def report_figures(region: Region, phases: Phases, rays: Rays, pose: CornerPoseR
         curl = slope_curl_of(region, rays, shape, phases, fringes, screen)
     else:
         curl = curl.result()
-    return {
+    figures = {
         "focal_length_x_m": focal_length_m(kx),
         "focal_length_y_m": focal_length_m(ky),
         "curvature_x_per_m": kx,
@@ -818,6 +864,47 @@ def report_figures(region: Region, phases: Phases, rays: Rays, pose: CornerPoseR
         "range_correction_m": pose.range_shift_m,
         "measured_distance_m": float(measured_distance_m),
     }
+    if not design.outline_known:
+        figures.update(unknown_outline_figures(pose))
+    if settings.surface != "parabolic":
+        figures.update(plano_figures(figures))
+    return figures
+
+
+#: What the plano model does not fit, and why (``not_measured`` in its figures).
+NOT_FITTED_BY_A_PLANE = {
+    key: "the plano model fits constant slopes (a plane): no curvature or twist"
+    for key in ("focal_length_x_m", "focal_length_y_m", "curvature_x_per_m", "curvature_y_per_m",
+                "twist_mrad_per_m", "twist_e1_mrad_per_m", "twist_e2_mrad_per_m", "principal_focal_lengths_m",
+                "axis_angle_rad")}
+
+
+def plano_figures(figures: dict) -> dict:
+    """The figures of the plano model that differ from the parabola's: those it does not fit are None and
+    named in ``not_measured``; ``surface`` says which model the residuals and the boresight are of."""
+    out = {key: None for key in NOT_FITTED_BY_A_PLANE}
+    out.update(surface="plano", not_measured={**(figures.get("not_measured") or {}), **NOT_FITTED_BY_A_PLANE},
+               subsample_fit={**figures["subsample_fit"], "focal_length_x_m": None, "focal_length_y_m": None})
+    return out
+
+
+#: What a mirror of unknown outline cannot report, and why (``not_measured`` in its figures).
+NOT_MEASURED_WITHOUT_OUTLINE = {
+    "placement": "the facet's placement in the fixture is measured by its corners, and the outline is unknown",
+    "boresight_mrad": "the boresight is the turn from the corner pose, and there are no corners (the frame is "
+                      "placed facing camera and screen, then turned onto the fitted normal)",
+    "corner_reprojection_rms_px": "no corners",
+}
+
+
+def unknown_outline_figures(pose: CornerPoseResult) -> dict:
+    """The figures of a mirror of unknown outline that differ from a facet's: those measured against its
+    corners are None and named, with the reason, in ``not_measured``; ``outline`` says so and
+    ``mirror_centre_px`` is where its frame was placed (the lit region's centroid, column and row)."""
+    out = {key: None for key in NOT_MEASURED_WITHOUT_OUTLINE}
+    out.update(outline="unknown", not_measured=dict(NOT_MEASURED_WITHOUT_OUTLINE),
+               mirror_centre_px=[float(v) for v in np.asarray(pose.corners_px, float)[0]])
+    return out
 
 
 def slope_curl_of(region: Region, rays: Rays, shape: Shape, phases: Phases | None = None,
@@ -898,7 +985,7 @@ def reduce_stages(frames: np.ndarray, fringes: FringeSet, geometry: StationGeome
         timer.lap("phase")
         rays = screen_points_and_rays(region, phases, geometry.camera, screen, rays_cam, pool)
         timer.lap("rays")
-        pose = corners_and_pose(region, rays, geometry, design, measured_distance_m, settings)
+        pose = corners_and_pose(region, rays, geometry, design, measured_distance_m, settings, pixel_mask)
         timer.lap("pose")
         shape = shape_and_boresight(rays, pose, design, measured_distance_m, settings, pool, timer,
                                     subsample_only=stop_after_boresight)

@@ -117,3 +117,70 @@ def placement(fixture_to_camera: Pose, facet_to_camera: Pose, design) -> dict:
     rx = np.arctan2(r[2, 1], r[2, 2])
     rz = np.arctan2(r[1, 0], r[0, 0])
     return {"mm": (1000.0 * t).tolist(), "mrad": [1000.0 * float(rx), 1000.0 * float(ry), 1000.0 * float(rz)]}
+
+
+def pose_facing(camera: CameraIntrinsics, point_px: np.ndarray, screen_centre_cam_m: np.ndarray,
+                distance_m: float) -> Pose:
+    """A mirror's frame placed by one image point and the measured distance, facing camera and screen.
+
+    The frame's origin lies on the camera ray through *point_px* (column, row), *distance_m* from the screen
+    centre (the far root: the mirror is beyond the screen's closest approach to the ray); its z axis bisects
+    the directions from there to the camera and to the screen centre (a mirror that shows the screen's
+    centre at that pixel); its x axis is the camera's x axis (image columns) laid into that plane, and y
+    completes the right-handed frame (up the image). This is how a mirror of unknown outline is placed
+    (OpenCSP places its "undefined" optic the same way, but turns its frame from the camera's by the
+    smallest rotation instead of laying x in the plane: the two differ by a turn about z of the order of
+    the square of the tilt, 0.1 mrad at OpenCSP's 0.18 rad).
+
+    Raises
+    ------
+    GeometryError
+        When the distance cannot be met along the ray (the screen centre is farther from the ray than
+        *distance_m*).
+    """
+    from .camera import pixel_rays
+
+    if not (np.isfinite(distance_m) and distance_m > 0):
+        raise GeometryError(f"measured distance must be a positive number of metres, got {distance_m}; "
+                            "re-enter or re-measure it")
+    point = np.asarray(point_px, np.float64).ravel()
+    ray = pixel_rays(camera, np.array([point[0]]), np.array([point[1]]))[:, 0]
+    centre = np.asarray(screen_centre_cam_m, np.float64)
+    # |t ray - s| = d  ->  t^2 - 2 t (ray . s) + |s|^2 - d^2 = 0, the far root
+    b = float(ray @ centre)
+    disc = b * b - float(centre @ centre) + distance_m ** 2
+    if disc < 0:
+        raise GeometryError(f"the measured distance {distance_m:.4f} m cannot be met along the camera's line of "
+                            "sight to the mirror's middle (the screen centre is farther from it); re-measure the "
+                            "distance or check the camera/screen calibration")
+    p = (b + np.sqrt(disc)) * ray
+    to_cam = -p / np.linalg.norm(p)
+    to_screen = (centre - p) / np.linalg.norm(centre - p)
+    z = (to_cam + to_screen) / np.linalg.norm(to_cam + to_screen)
+    x = np.array([1.0, 0.0, 0.0]) - z[0] * z
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    return Pose(np.column_stack([x, y, z]), p)
+
+
+def mask_centroid_px(region: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The centroid (column, row) of a boolean *region*, pixels, and its 2 x 2 covariance, pixels squared.
+
+    The region's area is known to its boundary: each boundary pixel (one with a neighbour outside) may
+    hold anything from none to all of the mirror's light, uniformly (variance 1/12 of a pixel's area), and
+    moves the centroid by (r_j - c) / N per unit of area, so cov = sum_j (r_j - c)(r_j - c)^T / (12 N^2).
+    Interior pixels are certain.
+    """
+    region = np.asarray(region, dtype=bool)
+    rows, cols = np.nonzero(region)
+    n = rows.size
+    if n == 0:
+        raise GeometryError("the lit region is empty: no mirror to place")
+    c = np.array([cols.mean(), rows.mean()])
+    padded = np.pad(region, 1)
+    inner = (padded[:-2, 1:-1] & padded[2:, 1:-1] & padded[1:-1, :-2] & padded[1:-1, 2:])
+    edge = region & ~inner
+    er, ec = np.nonzero(edge)
+    d = np.column_stack([ec - c[0], er - c[1]])
+    cov = np.einsum("ij,ik->jk", d, d) / (12.0 * n * n)     # einsum's own loop: the same bits on any BLAS
+    return c, cov

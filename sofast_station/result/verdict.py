@@ -272,10 +272,12 @@ def judge(fig: dict, design: FacetDesign, limits: Limits, quality: Quality) -> d
     if disagree > quality.max_unwrap_disagreement_fraction:
         invalid.append(f"{100 * disagree:.2f} % of pixels disagree between coarse and fine phase "
                        f"(maximum {100 * quality.max_unwrap_disagreement_fraction:g} %)")
-    if fig["outline_agreement"] < quality.min_outline_agreement:
+    # (a mirror of unknown outline has neither: no corners, no outline to agree with)
+    if fig["outline_agreement"] is not None and fig["outline_agreement"] < quality.min_outline_agreement:
         invalid.append(f"the corner pose does not match the mask (outline agreement {fig['outline_agreement']:.3f}, "
                        f"minimum {quality.min_outline_agreement}): partly lit or obstructed facet?")
-    if fig["corner_reprojection_rms_px"] > quality.max_corner_reprojection_px:
+    if fig["corner_reprojection_rms_px"] is not None and \
+            fig["corner_reprojection_rms_px"] > quality.max_corner_reprojection_px:
         invalid.append(f"corners do not fit the design outline ({fig['corner_reprojection_rms_px']:.2f} px RMS)")
     invalid.extend(misplacement(fig, quality))
     invalid.extend(implausible_shape(fig, design, quality))

@@ -27,6 +27,9 @@ def _nest(values: dict, figures: dict) -> dict:
             out[f"{top}_U"] = v
             continue
         template = figures[top]
+        if template is None:            # a figure this measurement does not report (an unknown outline's)
+            out[f"{top}_U"] = None
+            continue
         cur = out.setdefault(f"{top}_U", _empty_like(template))
         for p in path[1:-1]:
             cur = cur[p]

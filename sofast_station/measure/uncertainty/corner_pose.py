@@ -250,6 +250,8 @@ def pose_monte_carlo(reduction, *, geometry, design, inputs: InputUncertainties,
         ``{path: (mean square error, mean square error from the corners alone)}`` for :data:`POSE_PATHS`,
         in the figures' units squared; {} when the corners have no covariance.
     """
+    if not getattr(design, "outline_known", True):
+        return {}           # a mirror of unknown outline reports none of the corner pose's figures
     pose0 = reduction.pose
     cov = getattr(pose0, "corner_cov_px2", None)
     n_corners = np.asarray(pose0.corners_px, float).size

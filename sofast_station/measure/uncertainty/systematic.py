@@ -22,9 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ...errors import AnalysisError, StationError
-from ..camera import project
 from ..fit import BISQUARE_C
-from ..pipeline import default_screen, pose_from_corners, rerun
+from ..pipeline import default_screen, expected_corners_px, pose_from_corners, rerun
 from .inputs import (RECORD_DERIVED_KEYS, SCALAR_PATHS, Input, InputUncertainties, budget_inputs, get_path,
                      input_key, screen_shape_inputs, small_motion)
 
@@ -195,7 +194,7 @@ def sensitivities(reduction, *, fringes, geometry, design, measured_distance_m: 
            "design": design, "screen": screen, "screen_size_m": (screen.width_m, screen.height_m)}
     base = rerun(red, "rays", fringes=fringes, geometry=geometry, design=design,
                  measured_distance_m=measured_distance_m, settings=settings, screen=screen, with_curl=False)
-    nominal_corners = project(geometry.camera, geometry.fixture_to_camera, design.corners_3d())
+    nominal_corners = expected_corners_px(design, geometry)
     nominal_pose = pose_from_corners(nominal_corners, base.region, base.rays, geometry, design, measured_distance_m,
                                      settings, agreement=base.pose.outline_agreement)
     base = rerun(base, "shape", fringes=fringes, geometry=geometry, design=design,
