@@ -42,12 +42,12 @@ from ..errors import ConfigError
 from ..facet import FacetDesign
 from ..fringes import FringeSet
 from ..geometry import CameraIntrinsics, Pose, ScreenSpec, StationGeometry
-from ..measure.camera import pixel_rays
 from ..measure.analysis import analyse
 from ..measure.pipeline import Analysis, AnalysisSettings
 from ..measure.screen import InterpolatedScreen
 from ..measure.uncertainty import InputUncertainties, Sensitivities
 from ..precompute import ray_table
+from .opencsp_results import OpenCspResult, read_opencsp_result  # noqa: F401  (their public place until now)
 from .paths import opencsp_test_data_paths  # noqa: F401  (its public place until now)
 
 log = logging.getLogger(__name__)
@@ -219,29 +219,17 @@ def facet_from_opencsp(path: Path, focal_length_m: float, name: str = "opencsp-f
 
 def nominal_pose(camera: CameraIntrinsics, mask: np.ndarray, screen_centre_cam: np.ndarray,
                  distance_m: float) -> Pose:
-    """Where the facet is expected, for ordering its corners and starting the pose search.
+    """Where the facet is expected, for ordering its corners and starting the pose search (OpenCSP has no
+    fixture): facing camera and screen at the mask's centroid, at the measured distance from the screen
+    centre (:func:`~sofast_station.measure.pose.pose_facing`, as OpenCSP places a facet before its corners
+    refine it)."""
+    from ..errors import GeometryError
+    from ..measure.pose import mask_centroid_px, pose_facing
 
-    The facet's middle lies on the camera ray through the mask's centroid, at the measured distance from
-    the screen centre; its normal bisects the directions to camera and screen (it reflects the screen
-    into the camera); its x axis runs along the image's columns and y up the rows (the orientation OpenCSP
-    assumes for a facet's expected pose).
-    """
-    rows, cols = np.nonzero(mask)
-    ray = pixel_rays(camera, np.array([cols.mean()]), np.array([rows.mean()]))[:, 0]
-    # |t ray - s| = d  ->  t^2 - 2 t (ray . s) + |s|^2 - d^2 = 0, the far root
-    b = float(ray @ screen_centre_cam)
-    disc = b * b - float(screen_centre_cam @ screen_centre_cam) + distance_m ** 2
-    if disc < 0:
-        raise ConfigError("the measured optic-to-screen distance cannot be met along the line of sight to the "
-                          "facet; check the OpenCSP measurement's dist_optic_screen")
-    p = (b + np.sqrt(disc)) * ray
-    to_cam = -p / np.linalg.norm(p)
-    to_screen = (screen_centre_cam - p) / np.linalg.norm(screen_centre_cam - p)
-    z = (to_cam + to_screen) / np.linalg.norm(to_cam + to_screen)
-    x = np.array([1.0, 0.0, 0.0]) - z[0] * z
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    return Pose(np.column_stack([x, y, z]), p)
+    try:
+        return pose_facing(camera, mask_centroid_px(mask)[0], screen_centre_cam, distance_m)
+    except GeometryError as exc:
+        raise ConfigError(f"{exc} (OpenCSP measurement's dist_optic_screen)") from None
 
 
 #: Standard uncertainties (k = 1) of an OpenCSP/SOFAST setup's inputs where the camera matrix does not set
@@ -377,8 +365,8 @@ class _SensitivitiesOnly(dict):
 
 
 def read_opencsp(measurement: Path, camera: Path, display: Path, orientation: Path, calibration: Path,
-                 facet: Path, focal_length_m: float = 100.0, uncertainty: dict | None = None,
-                 ensemble: Path | None = None, cache=None) -> OpenCspMeasurement:
+                 facet: Path | None, focal_length_m: float = 100.0, uncertainty: dict | None = None,
+                 ensemble: Path | None = None, cache=None, corners_m: np.ndarray | None = None) -> OpenCspMeasurement:
     """Read the six OpenCSP files of one facet measurement (see the module docstring); *uncertainty* (an
     ``[uncertainty]`` table) overrides input uncertainties (:func:`opencsp_input_uncertainties`). *cache*
     (a :class:`~sofast_station.cache.DiskCache`) keeps the display grid's triangulation between runs.
@@ -386,9 +374,15 @@ def read_opencsp(measurement: Path, camera: Path, display: Path, orientation: Pa
     With *ensemble* (OpenCSP's ensemble definition JSON) the measurement is a multi-facet one: every facet
     has the design of *facet*, placed and canted as the ensemble says; the measure point
     (``v_measure_point_facet``, in ensemble coordinates for an ensemble) picks the facet the distance was
-    taken to (:meth:`OpenCspMeasurement.analyse_heliostat`)."""
-    measurement, camera, display, orientation, calibration, facet = (
-        Path(p) for p in (measurement, camera, display, orientation, calibration, facet))
+    taken to (:meth:`OpenCspMeasurement.analyse_heliostat`).
+
+    Without *facet* (None) the mirror's outline is unknown (OpenCSP's "undefined" optic): no corners are
+    used, its frame is placed at the lit region's centroid (:func:`undefined_mirror_design`); *corners_m*
+    ((n, 2) metres, as OpenCSP lists them) gives the facet's corners instead of a facet JSON (a processed
+    result's own ``DefinitionFacet``)."""
+    measurement, camera, display, orientation, calibration = (
+        Path(p) for p in (measurement, camera, display, orientation, calibration))
+    facet = None if facet is None else Path(facet)
     cam = camera_from_opencsp(camera)
     g = "MeasurementSofastFringe/"
     periods_x = [float(v) for v in _read(measurement, g + "fringe_periods_x")]
@@ -411,32 +405,44 @@ def read_opencsp(measurement: Path, camera: Path, display: Path, orientation: Pa
         save_screen_split(cache, uv, screen.split)
     distance = float(_read(measurement, g + "dist_optic_screen"))
     mp = np.array(_read(measurement, g + "v_measure_point_facet"), np.float64).ravel()
-    design = facet_from_opencsp(facet, focal_length_m, name=str(_read(measurement, g + "name")))
+    threshold = mask_threshold(frames[0], frames[1])
+    mask = (frames[1].astype(np.int64) - frames[0]) > threshold
+    name = str(_read(measurement, g + "name"))
+    if facet is not None:
+        design = facet_from_opencsp(facet, focal_length_m, name=name)
+    elif corners_m is not None:
+        design = facet_from_corners(corners_m, focal_length_m, name=name)
+    else:
+        design = undefined_mirror_design(cam, mask, distance, focal_length_m, name=name)
     ens = None
     if ensemble is not None:
         ens = ensemble_with_measure_point(Path(ensemble), facet, focal_length_m, mp)
         design = ens.layout_design()
-    elif np.any(mp[:2] != design.measure_point_m):
+    elif np.any(mp[:2] != design.measure_point_m) and design.outline_known:
         design = replace(design, measure_point_m=mp[:2].copy())
-    threshold = mask_threshold(frames[0], frames[1])
-    mask = (frames[1].astype(np.int64) - frames[0]) > threshold
     nominal = nominal_pose(cam, mask, screen.centre_camera(), distance)
     geometry = StationGeometry(cam, ScreenSpec(1000, 1000, 0.001), to_cam, nominal)
     settings = AnalysisSettings(mask_threshold_dn=threshold, min_modulation_dn=4.0 * COUNT_SCALE,
                                 max_hole_px=200, corner_tolerance_px=25.0, max_corner_rms_px=2.0, edge_window_px=3)
     log.info("OpenCSP measurement %s: %d x %d px, periods x %s, y %s, distance %.3f m", design.name,
              cam.width_px, cam.height_px, periods_x, periods_y, distance)
+    where = (f"alignment point {design.alignment_point_m.tolist()} m and measure point "
+             f"{design.measure_point_m.tolist()} m (facet frame; the measure point from the measurement)"
+             if design.outline_known else
+             "a mirror of unknown outline (no facet definition): its frame is placed at the lit region's centroid, "
+             "at the measured distance, facing camera and screen; measured and aligned there (OpenCSP's undefined "
+             "optic); placement and boresight are not measured (no corners)")
     assumptions = (
         f"design focal length {focal_length_m:g} m (OpenCSP's facet file has none; --focal-length sets it): the "
         "boresight aligns the fitted normal with this design's at the alignment point",
-        f"alignment point {design.alignment_point_m.tolist()} m and measure point {design.measure_point_m.tolist()} m "
-        "(facet frame; the measure point from the measurement)",
+        where,
         f"facet pixels: white - dark above {threshold:.0f} counts (x{COUNT_SCALE} after OpenCSP's response "
         "calibration), holes up to 200 px filled",
         f"nominal facet pose: the mask's centre at the measured distance {distance:.4f} m (OpenCSP has no fixture)",
         "display: OpenCSP's measured 2-D grid of screen points (no flat screen or pixel pitch assumed, so "
         "non-square display pixels need nothing more)",
-        "corners: matched within 25 px of the nominal pose, 2 px RMS allowed, 3 px edge window",
+        "corners: matched within 25 px of the nominal pose, 2 px RMS allowed, 3 px edge window"
+        if design.outline_known else "corners: none (unknown outline)",
     )
     inputs = opencsp_input_uncertainties(cam, uncertainty)
     if ens is not None:
@@ -448,24 +454,50 @@ def read_opencsp(measurement: Path, camera: Path, display: Path, orientation: Pa
                               settings, assumptions + _uncertainty_assumptions(inputs), inputs, ens)
 
 
+def facet_from_corners(corners_m: np.ndarray, focal_length_m: float, name: str = "opencsp-facet") -> FacetDesign:
+    """A facet design from OpenCSP's corner list ((n, 2) metres, as a ``DefinitionFacet`` lists them), measured
+    and aligned at the origin: what a processed result's own facet definition gives."""
+    corners = np.asarray(corners_m, np.float64)
+    x, y = corners[:, 0], corners[:, 1]
+    if float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y)) < 0:
+        corners = corners[::-1]
+    return FacetDesign(name=name, kind="heliostat" if focal_length_m > 20 else "dish", focal_length_m=focal_length_m,
+                       outline_m=corners, measure_point_m=[0.0, 0.0], alignment_point_m=[0.0, 0.0])
+
+
+def undefined_mirror_design(camera: CameraIntrinsics, mask: np.ndarray, distance_m: float, focal_length_m: float,
+                            name: str = "opencsp-mirror") -> FacetDesign:
+    """The design of a mirror of unknown outline (``outline_known`` False): its expected extent, a square about
+    its middle 1.5 times the lit region's larger image extent at the measured distance (only what the
+    region's checks expect of its size), and the design focal length; measured and aligned at its middle."""
+    rows, cols = np.nonzero(mask)
+    if rows.size == 0:
+        raise ConfigError("the measurement's mask images show no lit mirror (white - dark is nowhere above the "
+                          "threshold): is it the right measurement?")
+    f_px = 0.5 * float(camera.matrix[0, 0] + camera.matrix[1, 1])
+    half = 0.75 * max(np.ptp(cols) + 1, np.ptp(rows) + 1) * distance_m / f_px
+    outline = np.array([[half, -half], [half, half], [-half, half], [-half, -half]])
+    return FacetDesign(name=name, kind="heliostat" if focal_length_m > 20 else "dish", focal_length_m=focal_length_m,
+                       outline_m=outline, measure_point_m=[0.0, 0.0], alignment_point_m=[0.0, 0.0],
+                       outline_known=False)
+
+
 def ensemble_with_measure_point(path: Path, facet: Path, focal_length_m: float, measure_point: np.ndarray):
     """OpenCSP's ensemble definition *path*, every facet of the facet definition *facet*, the distance taken
-    to *measure_point* (ensemble coordinates): the facet whose outline holds it, its measure point moved
-    there."""
-    from ..ensemble import EnsembleDesign, ensemble_from_opencsp
-    from ..facet import on_outline
+    to *measure_point* (ensemble coordinates, as OpenCSP takes it): on a facet, that facet's design surface
+    there; in a gap between facets (a heliostat's centre often is), the point itself
+    (:meth:`~sofast_station.ensemble.EnsembleDesign.with_measure_point`)."""
+    from ..ensemble import ensemble_from_opencsp
 
     ens = ensemble_from_opencsp(path, facet, focal_length_m, name=Path(path).stem)
     p = np.asarray(measure_point, np.float64).ravel()
-    p3 = np.array([p[0], p[1], p[2] if p.size > 2 else 0.0])
-    for i, f in enumerate(ens.facets):
-        local = f.rotation.T @ (p3 - f.position_m)
-        if on_outline(local[:2], f.design.outline_m):
-            facets = list(ens.facets)
-            facets[i] = replace(f, design=replace(f.design, measure_point_m=local[:2].copy()))
-            return EnsembleDesign(ens.name, tuple(facets), measure_facet=i)
-    raise ConfigError(f"{path}: the measurement's measure point {p.tolist()} (ensemble coordinates) lies on none of "
-                      "the ensemble's facets; the distance must be taken to a facet")
+    try:
+        on_facet = ens.with_measure_point(p[:2])
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc} (the measurement's v_measure_point_facet)") from None
+    if on_facet.measure_point_xyz_m is None:
+        return on_facet
+    return ens.with_measure_point(p[:2], float(p[2]) if p.size > 2 else 0.0)
 
 
 def export_opencsp(folder: Path, frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry,
@@ -530,32 +562,3 @@ def export_opencsp(folder: Path, frames: np.ndarray, fringes: FringeSet, geometr
         paths["ensemble"] = folder / "ensemble.json"
         paths["ensemble"].write_text(json.dumps(ensemble_to_opencsp(ensemble), indent=1))
     return paths
-
-
-@dataclass(frozen=True)
-class OpenCspResult:
-    """What OpenCSP reported for a measurement (its ``data.h5`` processing output)."""
-
-    focal_length_x_m: float
-    focal_length_y_m: float
-    twist_e1_mrad_per_m: float
-    twist_e2_mrad_per_m: float
-    mask: np.ndarray
-    slopes: np.ndarray            # (2, N) at the mask's pixels, raster order, in OpenCSP's aligned frame
-    points_m: np.ndarray          # (3, N)
-    robust: bool
-
-
-def read_opencsp_result(path: Path) -> OpenCspResult:
-    """OpenCSP's processed result of a single facet (``DataSofastCalculation/facet/facet_000``).
-
-    OpenCSP's slope coefficients are (C, 2A, E1) for x and (D, E2, 2B) for y; they come from its fit on
-    every 10th point (its ``downsample``), which is what its focal lengths are.
-    """
-    g = "DataSofastCalculation/facet/facet_000/"
-    sc = np.asarray(_read(path, g + "SlopeSolverData/slope_coefs_facet"), np.float64)
-    robust = bool(_read(path, "DataSofastInput/optic_definition/facet_000/ParamsSurface/robust_least_squares"))
-    return OpenCspResult(1.0 / (2.0 * sc[0, 1]), 1.0 / (2.0 * sc[1, 2]), 1000.0 * sc[0, 2], 1000.0 * sc[1, 1],
-                         np.asarray(_read(path, g + "CalculationImageProcessingFacet/mask_processed"), bool),
-                         np.asarray(_read(path, g + "SlopeSolverData/slopes_facet_xy"), np.float64),
-                         np.asarray(_read(path, g + "SlopeSolverData/v_surf_points_facet"), np.float64), robust)
