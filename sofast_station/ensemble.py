@@ -7,7 +7,9 @@ A heliostat (an *ensemble* of facets, OpenCSP's ``DefinitionEnsemble``) is descr
     name = "heliostat-2x2"
     facet = "heliostat_0m6_100m.toml"   # the facets' shared design (a facet file, relative to this file)
     canting_focal_length_m = 100.0      # on-axis canting: see below (leave out for flat, uncanted facets)
-    measure_facet = "R1C1"              # the facet the range finder's distance is taken to
+    measure_facet = "R1C1"              # the facet the range finder's distance is taken to (its measure point)
+    # measure_point_m = [0.0, 0.0]      # or anywhere on the design surface, gaps included ([x, y, z]: a mark
+                                        # on the frame at that height); instead of measure_facet
     grid = { rows = 2, columns = 2, pitch_m = [0.65, 0.65] }   # facets R1C1 .. R2C2, row 1 at the top
 
     [[heliostat.facets]]                # or list the facets one by one (instead of grid)
@@ -44,6 +46,7 @@ definition JSON (``v_facet_corners``, ``v_centroid_facet``) are read by :func:`e
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from dataclasses import dataclass, field
@@ -52,7 +55,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import ConfigError
-from .facet import FacetDesign, load_facet
+from .facet import FacetDesign, load_facet, on_outline
 from .files import read_toml
 from .geometry import Pose
 
@@ -194,7 +197,13 @@ class EnsembleDesign:
     canting_focal_length_m : float or None
         The on-axis canting's focal length, metres; None when the facets are not canted by the rule.
     measure_facet : int
-        Index of the facet whose measure point the range finder's distance is taken to.
+        Index of the facet whose measure point the range finder's distance is taken to (with
+        *measure_point_xyz_m*: the facet nearest that point, which must be found for the distance to be
+        placed).
+    measure_point_xyz_m : (3,) array or None
+        The range finder's target in the heliostat frame when it is not a facet's measure point: anywhere on
+        the heliostat's design surface, gaps between facets included (a mark on the torque tube, the middle
+        of the layout), metres; None: the measure facet's measure point.
     adjusters : Adjusters or None
     layout : dict
         ``[heliostat.layout]``: the station layout's ``distance_m`` and ``max_slope_error_mrad``.
@@ -206,6 +215,7 @@ class EnsembleDesign:
     measure_facet: int = 0
     adjusters: Adjusters | None = None
     layout: dict = field(default_factory=dict)
+    measure_point_xyz_m: np.ndarray | None = None
 
     def __post_init__(self):
         if len(self.facets) < 2:
@@ -219,6 +229,8 @@ class EnsembleDesign:
             raise ConfigError(f"heliostat {self.name!r}: measure_facet {self.measure_facet} is not a facet index")
         object.__setattr__(self, "facets", tuple(self.facets))
         object.__setattr__(self, "measure_facet", int(self.measure_facet))
+        if self.measure_point_xyz_m is not None:
+            object.__setattr__(self, "measure_point_xyz_m", _vector3(self.measure_point_xyz_m, "measure_point_m"))
         _check_no_overlap(self)
 
     @property
@@ -250,9 +262,37 @@ class EnsembleDesign:
 
     @property
     def measure_point_m(self) -> np.ndarray:
-        """The range finder's target: the measure facet's measure point, heliostat frame, metres."""
+        """The range finder's target, heliostat frame, metres: :attr:`measure_point_xyz_m`, else the measure
+        facet's measure point."""
+        if self.measure_point_xyz_m is not None:
+            return np.array(self.measure_point_xyz_m)
         f = self.facets[self.measure_facet]
         return f.point_m(f.design.measure_point_m)
+
+    def with_measure_point(self, xy_m, z_m: float | None = None) -> "EnsembleDesign":
+        """This heliostat with the range finder's target at (x, y) of the heliostat frame (metres): on a facet,
+        the point of its design surface (that facet's measure point moved there); in a gap between facets,
+        the nearest facet's design surface extended to (x, y) (the heliostat's design surface there), or
+        at height *z_m* when given (a mark on the frame). Raises ConfigError outside the layout's bounding
+        rectangle."""
+        x, y = (float(v) for v in xy_m)
+        for i, f in enumerate(self.facets):
+            local = f.rotation.T @ (np.array([x, y, 0.0]) - f.position_m)
+            if on_outline(local[:2], f.design.outline_m) and z_m is None:
+                local = _surface_above(f, x, y)
+                facets = list(self.facets)
+                facets[i] = dataclasses.replace(f, design=dataclasses.replace(f.design, measure_point_m=local.copy()))
+                return dataclasses.replace(self, facets=tuple(facets), measure_facet=i, measure_point_xyz_m=None)
+        (x0, y0), (x1, y1) = self.outline_m()[[3, 1]]
+        if not (x0 <= x <= x1 and y0 <= y <= y1):
+            raise ConfigError(f"heliostat {self.name!r}: the measure point [{x:g}, {y:g}] m lies outside the facets' "
+                              f"layout (x {x0:g} to {x1:g}, y {y0:g} to {y1:g} m, heliostat frame)")
+        centres = np.array([f.point_m(f.design.centroid_m)[:2] for f in self.facets])
+        i = int(np.argmin(np.hypot(centres[:, 0] - x, centres[:, 1] - y)))
+        if z_m is None:
+            f = self.facets[i]
+            z_m = float(f.point_m(_surface_above(f, x, y))[2])
+        return dataclasses.replace(self, measure_facet=i, measure_point_xyz_m=np.array([x, y, float(z_m)]))
 
     def outline_m(self) -> np.ndarray:
         """The facets' bounding rectangle in the heliostat's x-y plane, counter-clockwise, (4, 2) metres."""
@@ -272,6 +312,8 @@ class EnsembleDesign:
         """Plain data (what a data dump keeps): every facet's design and pose in full."""
         return {"name": self.name, "canting_focal_length_m": self.canting_focal_length_m,
                 "measure_facet": self.measure_facet, "layout": dict(self.layout),
+                **({} if self.measure_point_xyz_m is None else
+                   {"measure_point_xyz_m": self.measure_point_xyz_m.tolist()}),
                 "adjusters": None if self.adjusters is None else self.adjusters.to_dict(),
                 "facets": [{"label": f.label, "design": f.design.to_dict(), "position_m": f.position_m.tolist(),
                             "rotation": f.rotation.tolist()} for f in self.facets]}
@@ -285,7 +327,19 @@ class EnsembleDesign:
         adj = d.get("adjusters")
         return cls(name=str(d["name"]), facets=facets, canting_focal_length_m=d.get("canting_focal_length_m"),
                    measure_facet=int(d.get("measure_facet", 0)), layout=dict(d.get("layout", {})),
-                   adjusters=None if adj is None else Adjusters.from_dict(adj))
+                   adjusters=None if adj is None else Adjusters.from_dict(adj),
+                   measure_point_xyz_m=d.get("measure_point_xyz_m"))
+
+
+def _surface_above(f: EnsembleFacet, x: float, y: float, steps: int = 5) -> np.ndarray:
+    """The facet-frame (x, y) of the point of facet *f*'s design surface (extended beyond its outline) that lies
+    above the heliostat frame's (*x*, *y*): fixed-point steps along the facet's small tilt (the error shrinks
+    by the tilt's square each step)."""
+    local = f.rotation.T @ (np.array([x, y, 0.0]) - f.position_m)
+    for _ in range(steps):
+        p = f.point_m(local[:2])
+        local = f.rotation.T @ (np.array([x, y, p[2]]) - f.position_m)
+    return local[:2]
 
 
 def _vector3(v, what: str) -> np.ndarray:
@@ -330,7 +384,8 @@ def on_axis_canting(x_m: float, y_m: float, focal_length_m: float) -> tuple[floa
     return (x_m * x_m + y_m * y_m) / (4.0 * f), 1e3 * rx, rotation_mrad(1e3 * rx, 1e3 * ry)
 
 
-_KEYS = {"name", "facet", "canting_focal_length_m", "measure_facet", "grid", "facets", "adjusters", "layout"}
+_KEYS = {"name", "facet", "canting_focal_length_m", "measure_facet", "measure_point_m", "grid", "facets", "adjusters",
+         "layout"}
 _FACET_KEYS = {"label", "position_m", "canting_mrad", "facet"}
 
 
@@ -433,8 +488,18 @@ def ensemble_from_dict(d: dict, base: Path, source: str) -> EnsembleDesign:
     if not isinstance(layout, dict):
         raise ConfigError(f"{source}: [heliostat.layout] must be a table")
     try:
-        return EnsembleDesign(name=name, facets=tuple(facets), canting_focal_length_m=focal, measure_facet=measure,
-                              adjusters=adjusters, layout=dict(layout))
+        out = EnsembleDesign(name=name, facets=tuple(facets), canting_focal_length_m=focal, measure_facet=measure,
+                             adjusters=adjusters, layout=dict(layout))
+        if "measure_point_m" in d:
+            if "measure_facet" in d:
+                raise ConfigError("give measure_point_m or measure_facet, not both")
+            mp = d["measure_point_m"]
+            if not isinstance(mp, list) or len(mp) not in (2, 3):
+                raise ConfigError(f"measure_point_m must be [x, y] (on the design surface) or [x, y, z] metres, "
+                                  f"heliostat frame, got {mp!r}")
+            values = [_number(v, "measure_point_m") for v in mp]
+            out = out.with_measure_point(values[:2], values[2] if len(values) == 3 else None)
+        return out
     except ConfigError as exc:
         raise ConfigError(f"{source}: {exc}") from None
 

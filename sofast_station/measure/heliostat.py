@@ -707,7 +707,9 @@ def analyse_heliostat(frames: np.ndarray, fringes: FringeSet, geometry: StationG
     # 1. every found facet reduced, up to its boresight on the subsample, with the distance the nominal pose
     #    gives it
     nominal = facet_distances(geometry.fixture_to_camera, ensemble, centre)
-    shift = measured_distance_m - nominal[ensemble.measure_facet]
+    # (the measure point's own nominal distance: a facet's measure point, or a point between facets)
+    shift = measured_distance_m - float(np.linalg.norm(geometry.fixture_to_camera.apply(ensemble.measure_point_m)
+                                                       - centre))
     geometries = {reg.index: _facet_geometry(geometry, ensemble, reg) for reg in todo}
     reductions, reasons = {}, {}
 
