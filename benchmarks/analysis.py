@@ -33,7 +33,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import shutil
 import statistics
 import subprocess
 import sys
@@ -215,46 +214,11 @@ def prepare_dump(config: str, tmp: Path, fits, optics: bool = False) -> dict:
 
 
 def upsample_opencsp(src: Path, dst: Path, scale: int) -> None:
-    """Copy OpenCSP's test data to *dst* with the facet measurement's frames and camera *scale* times larger.
+    """OpenCSP's measured facet upsampled *scale* times into *dst*
+    (:func:`sofast_station.interop.opencsp.upsample_test_data`)."""
+    from sofast_station.interop.opencsp import upsample_test_data
 
-    Frames are resized bilinearly (OpenCV's pixel-centre convention: destination pixel x samples source
-    position (x + 1/2)/scale - 1/2), so the camera matrix scales as f' = scale f, c' = scale c +
-    (scale - 1)/2; the distortion coefficients (normalised coordinates) are unchanged.
-    """
-    import cv2
-    import h5py
-    import numpy as np
-
-    from sofast_station.interop.opencsp import opencsp_test_data_paths
-
-    shutil.copytree(src, dst)
-    paths = opencsp_test_data_paths(dst)
-
-    def resize(stack):
-        h, w, n = stack.shape
-        return np.stack([cv2.resize(stack[:, :, k], (w * scale, h * scale), interpolation=cv2.INTER_LINEAR)
-                         for k in range(n)], axis=2)
-
-    def replace(h, key, value):
-        del h[key]
-        h[key] = value
-
-    with h5py.File(paths["measurement"], "r+") as h:
-        g = "MeasurementSofastFringe/"
-        for key in ("fringe_images", "mask_images"):
-            replace(h, g + key, resize(np.asarray(h[g + key])))
-    with h5py.File(paths["camera"], "r+") as h:
-        k = np.array(h["Camera/intrinsic_mat"], np.float64)
-        # OpenCSP's downsampled camera keeps K[2,2] = 1/8, which OpenCV ignores: fx, fy, cx, cy are pixels
-        # as they stand, so the half-pixel shift is (scale - 1)/2 pixels, not scaled by K[2,2]
-        k[0, 0] *= scale
-        k[1, 1] *= scale
-        k[0, 1] *= scale
-        k[0, 2] = scale * k[0, 2] + 0.5 * (scale - 1)
-        k[1, 2] = scale * k[1, 2] + 0.5 * (scale - 1)
-        replace(h, "Camera/intrinsic_mat", k)
-        shape = np.array(h["Camera/image_shape_xy"])
-        replace(h, "Camera/image_shape_xy", (shape * scale).astype(shape.dtype))
+    upsample_test_data(src, dst, scale)
 
 
 def prepare_opencsp(scale: int, tmp: Path) -> dict:

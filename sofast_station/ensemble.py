@@ -623,7 +623,11 @@ def ensemble_from_opencsp(ensemble_path: str | Path, facet_paths, focal_length_m
     if measure_facet is None:
         xy = np.array([f.position_m[:2] for f in facets])
         measure_facet = int(np.argmin(np.hypot(xy[:, 0], xy[:, 1])))
-    return EnsembleDesign(name=name or ensemble_path.stem, facets=tuple(facets), measure_facet=measure_facet)
+    try:
+        return EnsembleDesign(name=name or ensemble_path.stem, facets=tuple(facets), measure_facet=measure_facet)
+    except ConfigError as exc:          # name the files: the ensemble, and the facets it was given
+        given = ", ".join(sorted({Path(p).name for p in paths}))
+        raise ConfigError(f"{ensemble_path} with the facet definition {given}: {exc}") from None
 
 
 def ensemble_to_opencsp(ensemble: EnsembleDesign) -> dict:

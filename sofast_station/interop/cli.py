@@ -32,15 +32,30 @@ def register(subparsers) -> None:
                    help="OpenCSP's ensemble definition JSON: the measurement is a multi-facet one (every facet of "
                         "--facet, placed and canted as the ensemble says; docs/heliostats.md)")
     p.add_argument("--multi-facet", action="store_true",
-                   help="with --test-data: its multi-facet measurement (measurement_ensemble.h5, the split facet and "
-                        "its ensemble definition), when its files are present")
+                   help="with --test-data: its multi-facet measurement (measurement_ensemble.h5: a lab heliostat of 24 "
+                        "facets, Facet_lab_6x4.json and Ensemble_lab_6x4.json)")
+    p.add_argument("--split-facet", action="store_true",
+                   help="with --test-data: the single facet's measurement analysed as two halves "
+                        "(Facet_split_NSTTF.json and Ensemble_split_NSTTF_facet.json)")
     p.add_argument("--focal-length", type=float, default=100.0, metavar="M",
                    help="design focal length, metres (OpenCSP keeps it with the processing, not the files)")
     p.add_argument("--robust", action="store_true", help="bisquare-weighted (robust) slope fits, like OpenCSP's "
                    "robust_least_squares")
+    p.add_argument("--surface", choices=("parabolic", "plano"), default="parabolic",
+                   help="the shape model: OpenCSP's parabolic (default) or plano surface (a plane: where the mirror "
+                        "points, no focal length)")
+    p.add_argument("--undefined", action="store_true",
+                   help="a mirror of unknown outline (OpenCSP's undefined optic): no facet definition, the frame "
+                        "placed at the lit region's centroid; placement and boresight are then not measured")
     p.add_argument("--compare", default=None, metavar="FILE",
-                   help="OpenCSP's own result (its data.h5): also analyse on its pixels and print both "
+                   help="OpenCSP's own processing of the measurement (a data.h5): also redo it the way OpenCSP did "
+                        "(its calibration, screen model, fit and pixels) and print both, each figure with our U "
                         "(default: no comparison)")
+    p.add_argument("--conformance", action="store_true",
+                   help="with --test-data: redo every fringe result of OpenCSP's test data that way and print the "
+                        "table docs/opencsp.md shows (the measurement itself is not analysed on its own)")
+    p.add_argument("--what", nargs="+", default=None, metavar="FILE",
+                   help="say what each OpenCSP file holds and what the station does with it, and stop")
     p.add_argument("--uncertainty", default=None, metavar="FILE",
                    help="a TOML file whose [uncertainty] table (station.toml's keys, docs/uncertainty.md) overrides "
                         "the OpenCSP setup's input uncertainties (default: those of docs/opencsp.md)")
@@ -87,6 +102,8 @@ def figures_with_u(fig: dict, keys=FIGURE_KEYS) -> dict:
             if f"{k}{suffix}" in fig:
                 out[f"{k}{suffix}"] = fig[f"{k}{suffix}"]
     out["n_points"] = fig["n_points"]
+    # what this measurement does not report, and why (an unknown outline's, the plano model's)
+    out.update({k: fig[k] for k in ("surface", "outline", "mirror_centre_px", "not_measured") if k in fig})
     out.update({k: fig[k] for k in UNCERTAINTY_KEYS if k in fig})
     if isinstance(out.get("uncertainty_budget"), dict):
         out["uncertainty_budget"] = _budget_of(out["uncertainty_budget"], keys)
@@ -119,15 +136,30 @@ def cmd_import_opencsp(args) -> int:
     from ..errors import ConfigError
     from .paths import FILES, check_files, opencsp_test_data_paths
 
-    paths = opencsp_test_data_paths(Path(args.test_data), args.multi_facet) if args.test_data else {}
-    if args.multi_facet and not args.test_data and not args.ensemble:
-        raise ConfigError("import-opencsp --multi-facet reads OpenCSP's test-data layout: give --test-data DIR (or "
-                          "--ensemble FILE with the measurement's files)")
+    if args.what:
+        from .identify import describe
+
+        for f in args.what:
+            print(f"{f}: {describe(Path(f))}")
+        return 0
+    if args.conformance:
+        return _conformance(args)
+
+    paths = opencsp_test_data_paths(Path(args.test_data), args.multi_facet, args.split_facet) if args.test_data else {}
+    for flag in ("multi_facet", "split_facet"):
+        if getattr(args, flag) and not args.test_data:
+            raise ConfigError(f"import-opencsp --{flag.replace('_', '-')} reads OpenCSP's test-data layout: give "
+                              "--test-data DIR (or --ensemble FILE with the measurement's files)")
     for key in FILES:
         if getattr(args, key, None):
             paths[key] = Path(getattr(args, key))
-        if key not in paths and key != "ensemble":
+        if key not in paths and key != "ensemble" and not (key == "facet" and args.undefined):
             raise ConfigError(f"import-opencsp needs --{key} (or --test-data with OpenCSP's folder layout)")
+    if args.undefined:
+        if args.facet or "ensemble" in paths:
+            raise ConfigError("import-opencsp --undefined measures a mirror of unknown outline: leave out --facet, "
+                              "--ensemble and --multi-facet")
+        paths.pop("facet", None)
     for key in ("compare", "uncertainty"):
         if getattr(args, key) and not Path(getattr(args, key)).is_file():
             raise ConfigError(f"--{key} {getattr(args, key)} does not exist")
@@ -135,7 +167,8 @@ def cmd_import_opencsp(args) -> int:
         missing = [f"{k} {v}" for k, v in paths.items() if not Path(v).is_file()]
         if missing:
             raise ConfigError("the multi-facet measurement's files are not all present: missing " + "; ".join(missing)
-                              + " (OpenCSP's test data ships measurement_ensemble.h5, Facet_split_NSTTF.json and "
+                              + " (OpenCSP's test data ships measurement_ensemble.h5 with Facet_lab_6x4.json and "
+                                "Ensemble_lab_6x4.json, and Facet_split_NSTTF.json with "
                                 "Ensemble_split_NSTTF_facet.json)")
     check_files(paths, Path(args.test_data) if args.test_data else None)   # before numpy and HDF5 are loaded
     from ..cache import SensitivityStore, capture_basis, open_cache
@@ -150,7 +183,11 @@ def cmd_import_opencsp(args) -> int:
     # either way.
     disk = open_cache(station_data_dir(default_config()))
     table = read_uncertainty_table(Path(args.uncertainty)) if args.uncertainty else None
-    m = read_opencsp(**paths, focal_length_m=args.focal_length, uncertainty=table, cache=disk)
+    m = read_opencsp(**{"facet": None, **paths}, focal_length_m=args.focal_length, uncertainty=table, cache=disk)
+    if args.surface != "parabolic":
+        from dataclasses import replace
+
+        m.settings = replace(m.settings, surface=args.surface)
     prepare_analysis_process()      # as the station's worker: memory reused, kernels loaded first
     if m.ensemble is not None:
         return _import_ensemble(m, args)
@@ -164,20 +201,26 @@ def cmd_import_opencsp(args) -> int:
     # 'report flux --opencsp' draws the map and takes other conditions. With the analysis's U, the optics'.
     from ..optics import OpticsSettings
     from ..result.optical_figures import analysis_optics
-    out["optics"] = analysis_optics(a, m.design, OpticsSettings()).figures
+    out["optics"] = (None if fig.get("surface") == "plano" else    # a plane's fit says nothing of its focus
+                     analysis_optics(a, m.design, OpticsSettings()).figures)
+    compared = None
     if args.compare:
+        from .conformance import conform_file
+
         ref = read_opencsp_result(Path(args.compare))
         # The sensitivities of the analysis above first (as before the cache), else those kept for OpenCSP's
         # pixels (its mask is part of their key).
         on_its_pixels = SensitivityStore(disk, lambda: capture_basis(m.frames, m.distance_m, ref.mask,
                                                                      source="opencsp"), initial=dict(cache))
-        theirs = m.analyse(robust=ref.robust, pixel_mask=ref.mask, uncertainty=m.uncertainty,
-                           sensitivity_cache=on_its_pixels).figures
-        out["opencsp"] = {"file": args.compare, "robust": ref.robust, "focal_length_x_m": ref.focal_length_x_m,
-                          "focal_length_y_m": ref.focal_length_y_m, "n_points": int(ref.mask.sum()),
+        compared = conform_file(Path(args.compare), paths["measurement"], args.focal_length, on_its_pixels)
+        theirs = compared.figures
+        out["opencsp"] = {"file": args.compare, "robust": ref.robust, "surface": ref.surface, "optic": ref.optic,
+                          "focal_length_x_m": ref.focal_length_x_m, "focal_length_y_m": ref.focal_length_y_m,
+                          "n_points": int(ref.mask.sum()),
                           "ours_on_its_pixels": theirs["subsample_fit"],
                           "ours_on_its_pixels_U": theirs.get("subsample_fit_U"),
-                          "ours_on_its_pixels_U_random": theirs.get("subsample_fit_U_random")}
+                          "ours_on_its_pixels_U_random": theirs.get("subsample_fit_U_random"),
+                          **{k: v for k, v in compared.to_dict().items() if k in ("rows", "slopes")}}
     keep_rays()
     hits = cache.hits + (on_its_pixels.hits if args.compare else 0)
     if hits:
@@ -189,6 +232,10 @@ def cmd_import_opencsp(args) -> int:
         sys.stdout.write("\n")
         return 0
     print(summary_text(out, args.robust))
+    if compared is not None:
+        from .conformance import conformance_text
+
+        print(conformance_text(compared))
     if args.budget:
         from ..result.formatting import BUDGET_COLUMNS, budget_text
         print(budget_text(out, [c for c in BUDGET_COLUMNS if not c[0].startswith(("optical_tilt", "placement"))]))
@@ -197,6 +244,27 @@ def cmd_import_opencsp(args) -> int:
 
 #: What a multi-facet import reports of each facet (with U): a facet's figures, and its canting.
 FACET_KEYS = FIGURE_KEYS[:-1] + ("canting_mrad",)
+
+
+def _conformance(args) -> int:
+    """import-opencsp --conformance: every fringe result of OpenCSP's test data redone and compared."""
+    from ..errors import ConfigError
+    from .conformance import FRINGE_RESULTS, conform, conformance_text
+
+    if not args.test_data:
+        raise ConfigError("import-opencsp --conformance redoes OpenCSP's test data: give --test-data DIR "
+                          "(fixtures/opencsp/test_data is one)")
+    cache: dict = {}
+    results = [conform(Path(args.test_data), ds, args.focal_length, cache) for ds in FRINGE_RESULTS]
+    if args.json:
+        json.dump(json_safe([c.to_dict() for c in results]), sys.stdout, indent=1)
+        sys.stdout.write("\n")
+        return 0
+    print("\n".join(f"[{c.dataset}] " + conformance_text(c) for c in results))
+    outside = [f"{c.dataset}: {r.figure}" for c in results for r in c.rows if r.within_u is False]
+    print(f"{sum(len(c.rows) for c in results)} figures compared on {len(results)} results; outside U: "
+          + ("none" if not outside else "; ".join(outside) + " (docs/opencsp.md says why)"))
+    return 0
 
 
 def _import_ensemble(m, args) -> int:
@@ -258,17 +326,23 @@ def summary_text(out: dict, robust: bool) -> str:
 
     k = out.get("coverage_factor", 2)
     kk = f" (k={k:g})"
+    not_measured = out.get("not_measured") or {}
     lines = [f"OpenCSP measurement {out['facet']} ({out['measured']}), {out['n_points']} points"
-             f"{', robust fit' if robust else ''}",
+             f"{', robust fit' if robust else ''}{', plano surface' if out.get('surface') == 'plano' else ''}"
+             f"{', mirror of unknown outline' if out.get('outline') == 'unknown' else ''}",
              "  assumed (OpenCSP's files do not say):" + "".join(f"\n    - {a}" for a in out["assumptions"]),
-             f"  figures are value ± U, the expanded uncertainty{kk}",
-             f"  f x {_pm(out['focal_length_x_m'], u_of('focal_length_x_m'), ' m')}{kk}",
-             f"  f y {_pm(out['focal_length_y_m'], u_of('focal_length_y_m'), ' m')}{kk}",
-             f"  twist {_pm(out['twist_mrad_per_m'], u_of('twist_mrad_per_m'), ' mrad/m', 4)}{kk}"
-             f" (E1 {_pm(out['twist_e1_mrad_per_m'], u_of('twist_e1_mrad_per_m'), '', 4)}, E2 "
-             f"{_pm(out['twist_e2_mrad_per_m'], u_of('twist_e2_mrad_per_m'), '', 4)})"]
+             f"  figures are value ± U, the expanded uncertainty{kk}"]
+    if out["focal_length_x_m"] is None and "focal_length_x_m" in not_measured:
+        lines.append(f"  focal lengths and twist: not measured ({not_measured['focal_length_x_m']})")
+    else:
+        lines += [f"  f x {_pm(out['focal_length_x_m'], u_of('focal_length_x_m'), ' m')}{kk}",
+                  f"  f y {_pm(out['focal_length_y_m'], u_of('focal_length_y_m'), ' m')}{kk}",
+                  f"  twist {_pm(out['twist_mrad_per_m'], u_of('twist_mrad_per_m'), ' mrad/m', 4)}{kk}"
+                  f" (E1 {_pm(out['twist_e1_mrad_per_m'], u_of('twist_e1_mrad_per_m'), '', 4)}, E2 "
+                  f"{_pm(out['twist_e2_mrad_per_m'], u_of('twist_e2_mrad_per_m'), '', 4)})"]
     for model, r in out["slope_rms_mrad"].items():
-        lines.append(f"  slope RMS vs {model:<12} x {_pm(r['x'], u_of('slope_rms_mrad', model, 'x'))}  y "
+        shown = "plane" if model == "parabola" and out.get("surface") == "plano" else model
+        lines.append(f"  slope RMS vs {shown:<12} x {_pm(r['x'], u_of('slope_rms_mrad', model, 'x'))}  y "
                      f"{_pm(r['y'], u_of('slope_rms_mrad', model, 'y'))}  magnitude "
                      f"{_pm(r['magnitude'], u_of('slope_rms_mrad', model, 'magnitude'))} mrad{kk}")
     noise = out.get("slope_rms_noise_mrad")
@@ -277,9 +351,17 @@ def summary_text(out: dict, robust: bool) -> str:
         lines.append(f"    (the capture's own intensity noise explains {n['x']:.4f} x, {n['y']:.4f} y mrad of slope "
                      "noise)")
     b = out["boresight_mrad"]
-    lines.append(f"  boresight x {_pm(b['x'], u_of('boresight_mrad', 'x'), '', 2)}, y "
-                 f"{_pm(b['y'], u_of('boresight_mrad', 'y'), '', 2)} mrad{kk} (from the corner pose)")
+    if b is None:
+        lines.append(f"  boresight: not measured ({not_measured.get('boresight_mrad', 'no corners')})")
+    else:
+        lines.append(f"  boresight x {_pm(b['x'], u_of('boresight_mrad', 'x'), '', 2)}, y "
+                     f"{_pm(b['y'], u_of('boresight_mrad', 'y'), '', 2)} mrad{kk} "
+                     f"({'the plane' if out.get('surface') == 'plano' else 'the fitted normal'}'s tilt from the "
+                     "corner pose)")
     o = out["optics"]
+    if o is None:
+        lines.append("  optics: not computed (the plano model fits no curvature: a plane's focus is not measured)")
+        return "\n".join(lines)
     centroid_u = (o.get("centroid_offset_mrad_U") or {}).get("magnitude")
     lines.append(f"  optics (pillbox sun, target at {o['conditions']['slant_range_m']:g} m, aperture radius "
                  f"{o['conditions']['aperture']['radius_m']:.3f} m): "
@@ -287,15 +369,4 @@ def summary_text(out: dict, robust: bool) -> str:
                  f"90 % spot radius {_pm(o['spot_radius_m'], o.get('spot_radius_m_U'), ' m')} (design "
                  f"{o['design']['spot_radius_m']:.3f} m), centroid "
                  f"{_pm(o['centroid_offset_mrad']['magnitude'], centroid_u)} mrad off aim{kk}")
-    if "opencsp" in out:
-        o = out["opencsp"]
-        s_ = o["ours_on_its_pixels"]
-        u = o.get("ours_on_its_pixels_U") or {}
-        lines.append(f"  OpenCSP ({'robust' if o['robust'] else 'plain'} fit on every 10th of its {o['n_points']} "
-                     "pixels): "
-                     f"f_x {o['focal_length_x_m']:.3f} m, f_y {o['focal_length_y_m']:.3f} m (OpenCSP states no U); "
-                     f"ours on the same pixels: f_x {_pm(s_['focal_length_x_m'], u.get('focal_length_x_m'), ' m')} "
-                     f"({100 * (s_['focal_length_x_m'] / o['focal_length_x_m'] - 1):+.2f} %), f_y "
-                     f"{_pm(s_['focal_length_y_m'], u.get('focal_length_y_m'), ' m')} "
-                     f"({100 * (s_['focal_length_y_m'] / o['focal_length_y_m'] - 1):+.2f} %){kk}")
     return "\n".join(lines)

@@ -120,20 +120,38 @@ def _tilt_u(figures: dict) -> float | None:
 
 def conform(root: Path, dataset: str, focal_length_m: float = 100.0, cache: dict | None = None) -> Conformance:
     """Redo OpenCSP's processed result *dataset* (a key of :data:`FRINGE_RESULTS`) of the test data in *root*
-    with our pipeline, the way OpenCSP did it, and compare (module docstring).
-
-    *cache* keeps the uncertainty's sensitivities between calls (a dict, or the station's store)."""
-    from ..measure.analysis import finish_analysis
-    from ..measure.pipeline import reduce_stages
-    from ..measure.slope_noise import slope_covariance
-    from ..precompute import ray_table
-
+    with our pipeline, the way OpenCSP did it, and compare (:func:`conform_file`)."""
     if dataset not in FRINGE_RESULTS:
         raise ConfigError(f"unknown OpenCSP dataset {dataset!r}: one of {', '.join(FRINGE_RESULTS)}")
     root = Path(root)
     rel, what = FRINGE_RESULTS[dataset]
-    ref = read_opencsp_result(root / rel)
-    m = read_opencsp(root / MEASUREMENT, **result_inputs(root / rel), facet=None,
+    return conform_file(root / rel, root / MEASUREMENT, focal_length_m, cache, dataset=dataset, what=what)
+
+
+def conform_file(result: Path, measurement: Path, focal_length_m: float = 100.0, cache: dict | None = None,
+                 dataset: str = "", what: str = "") -> Conformance:
+    """Redo OpenCSP's processed *result* of the fringe *measurement* with our pipeline, the way OpenCSP did it,
+    and compare (module docstring). *cache* keeps the uncertainty's sensitivities between calls (a dict, or
+    the station's store).
+
+    Raises
+    ------
+    ConfigError
+        When *result* is not a fringe processing of one facet or mirror (a fixed-pattern one, say), naming
+        what it is."""
+    from ..measure.analysis import finish_analysis
+    from ..measure.pipeline import reduce_stages
+    from ..measure.slope_noise import slope_covariance
+    from ..precompute import ray_table
+    from .identify import describe
+
+    ref = read_opencsp_result(Path(result))
+    if ref.mask is None:
+        raise ConfigError(f"{result} is {describe(Path(result))}: slopes at a fixed pattern's dots, which the fringe "
+                          "measurement's pixels cannot be compared with (the fixed-pattern method is issue 42's)")
+    what = what or (f"{'robust' if ref.robust else 'plain'} {ref.surface} fit"
+                    f"{', mirror of unknown outline' if ref.optic == 'undefined' else ''}")
+    m = read_opencsp(Path(measurement), **result_inputs(Path(result)), facet=None,
                      corners_m=ref.corners_m if ref.optic == "facet" else None, focal_length_m=focal_length_m)
     settings = replace(m.settings, robust_fit=ref.robust, surface=ref.surface, subsample_step=ref.downsample)
     reduction, timings = reduce_stages(m.frames, m.fringes, m.geometry, m.design, m.distance_m, settings,
@@ -172,7 +190,7 @@ def conform(root: Path, dataset: str, focal_length_m: float = 100.0, cache: dict
                             ours_u.get(axis), diff,
                             f"OpenCSP's corner pose is turned {corner[axis]:+.1f} mrad about {axis} from ours"))
     slopes = _slope_comparison(ref, analysis, reduction, m, ours_to_cam, slope_covariance)
-    return Conformance(dataset, what, ref, rows, slopes, fig)
+    return Conformance(dataset or Path(result).stem, what, ref, rows, slopes, fig)
 
 
 def _slope_comparison(ref: OpenCspResult, analysis, reduction, m, ours_to_cam: np.ndarray, slope_covariance) -> dict:
@@ -197,3 +215,173 @@ def _slope_comparison(ref: OpenCspResult, analysis, reduction, m, ours_to_cam: n
             "max_mrad": [float(np.abs(d[i]).max()) for i in range(2)],
             "median_U_mrad": [float(np.median(u[i])) for i in range(2)],
             "fraction_within_U": float(np.mean(inside))}
+
+
+def split_facet_check(root: Path, focal_length_m: float = 100.0, cache: dict | None = None) -> dict:
+    """The single NSTTF facet's capture analysed whole and as two halves (OpenCSP's split-facet ensemble, the
+    measure point in the 42 mm gap between them), and each half's pointing set beside the whole facet's.
+
+    A half's pointing is its fitted normal at its centre (its optical frame's z). The whole facet predicts
+    it two ways: its fitted parabola's normal at the half's centre, and the mean of its measured slopes over
+    the half's pixels (the parabola plus its residual's mean there: the shape the half's own fit sees). The
+    second is the like-for-like one, checked within U: the two analyses read the same frames through the
+    same calibration, so the station inputs move both alike and cancel; what is left is each one's random
+    part (noise, corners, frame brightness), combined as if independent (U of the difference, k = 2).
+    Differences are slopes (mrad) along the half's x and y; every normal is compared in the camera frame.
+    """
+    from .paths import opencsp_test_data_paths
+
+    root = Path(root)
+    whole_m = read_opencsp(**opencsp_test_data_paths(root), focal_length_m=focal_length_m)
+    whole = whole_m.analyse(uncertainty=whole_m.uncertainty, sensitivity_cache=_SensitivitiesOnly(cache))
+    halves_m = read_opencsp(**opencsp_test_data_paths(root, split_facet=True), focal_length_m=focal_length_m)
+    halves = halves_m.analyse_heliostat(uncertainty=halves_m.uncertainty, sensitivity_cache={})
+    z = np.array([0.0, 0.0, 1.0])
+    co, w2c = whole.coefficients, whole.facet_to_camera
+    u_whole = whole.figures.get("optical_tilt_mrad_U_random") or {}
+    out = []
+    for i, a in sorted(halves.analyses.items()):
+        f2c = halves.facet_to_camera(i)
+        centre = w2c.inverse().apply(f2c.translation)
+        sx = 2.0 * co[0] * centre[0] + co[2] + co[4] * centre[1]
+        sy = 2.0 * co[1] * centre[1] + co[3] + co[4] * centre[0]
+        r0, c0, r1, c1 = halves.regions[i].window
+        pixels = np.zeros(whole.valid.shape, dtype=bool)
+        pixels[r0:r1, c0:c1] = a.valid
+        sel = pixels[whole.valid]
+        mean = whole.slopes[:, sel].mean(axis=1)
+
+        def diff(s_x, s_y):
+            """The half's normal less the whole's of slopes (s_x, s_y), as slopes in the half's frame, mrad."""
+            n = w2c.rotation @ np.array([-s_x, -s_y, 1.0])
+            p, q = f2c.rotation.T @ (f2c.rotation @ z), f2c.rotation.T @ n
+            return [1000.0 * float(-p[0] / p[2] + q[0] / q[2]), 1000.0 * float(-p[1] / p[2] + q[1] / q[2])]
+        u_half = a.figures.get("optical_tilt_mrad_U_random") or {}
+        # a slope along x is a tilt about y, and along y about x
+        u = [float(np.hypot(u_half["y"], u_whole["y"])), float(np.hypot(u_half["x"], u_whole["x"]))]
+        d_mean = diff(*mean)
+        out.append({"facet": halves.regions[i].label, "centre_in_whole_m": [float(centre[0]), float(centre[1])],
+                    "pixels": int(sel.sum()), "half_minus_whole_parabola_mrad": diff(sx, sy),
+                    "half_minus_whole_mean_slope_mrad": d_mean, "U_mrad": u,
+                    "within_U": bool(all(abs(d) <= uu for d, uu in zip(d_mean, u))),
+                    "canting_mrad": halves.figures["facets"][i].get("canting_mrad"),
+                    "canting_mrad_U": halves.figures["facets"][i].get("canting_mrad_U")})
+    return {"halves": out, "measure_point": halves_m.ensemble.measure_point_m.tolist(),
+            "whole_focal_length_m": [whole.figures["focal_length_x_m"], whole.figures["focal_length_y_m"]]}
+
+
+def ensemble_check(root: Path, focal_length_m: float = 100.0, cache: dict | None = None) -> dict:
+    """OpenCSP's multi-facet capture (a lab heliostat of 24 facets, ``measurement_ensemble.h5``; OpenCSP's
+    public data holds no processing of it to compare with) analysed facet by facet, and each facet's pointing
+    checked against the same capture analysed whole, as one mirror of unknown outline: the mean of the
+    whole's measured slopes over the facet's pixels (as :func:`split_facet_check`; U of the difference from
+    the two analyses' random parts, k = 2). Returns each facet's canting with U and the check."""
+    from .paths import opencsp_test_data_paths
+
+    root = Path(root)
+    paths = opencsp_test_data_paths(root, multi_facet=True)
+    heli_m = read_opencsp(**paths, focal_length_m=focal_length_m)
+    heli = heli_m.analyse_heliostat(uncertainty=heli_m.uncertainty, sensitivity_cache={})
+    whole_m = read_opencsp(**{**paths, "facet": None, "ensemble": None}, focal_length_m=focal_length_m)
+    whole = whole_m.analyse(uncertainty=whole_m.uncertainty, sensitivity_cache=_SensitivitiesOnly(cache))
+    w2c = whole.facet_to_camera
+    u_whole = whole.figures.get("optical_tilt_mrad_U_random") or {}
+    z = np.array([0.0, 0.0, 1.0])
+    out = []
+    for i, a in sorted(heli.analyses.items()):
+        f2c = heli.facet_to_camera(i)
+        r0, c0, r1, c1 = heli.regions[i].window
+        pixels = np.zeros(whole.valid.shape, dtype=bool)
+        pixels[r0:r1, c0:c1] = a.valid
+        sel = pixels[whole.valid]
+        mean = whole.slopes[:, sel].mean(axis=1)
+        n = w2c.rotation @ np.array([-mean[0], -mean[1], 1.0])
+        p, q = f2c.rotation.T @ (f2c.rotation @ z), f2c.rotation.T @ n
+        d = [1000.0 * float(-p[0] / p[2] + q[0] / q[2]), 1000.0 * float(-p[1] / p[2] + q[1] / q[2])]
+        u_f = a.figures.get("optical_tilt_mrad_U_random") or {}
+        u = [float(np.hypot(u_f["y"], u_whole["y"])), float(np.hypot(u_f["x"], u_whole["x"]))]
+        entry = heli.figures["facets"][i]
+        out.append({"facet": entry["label"], "pixels": int(sel.sum()), "facet_minus_whole_mean_slope_mrad": d,
+                    "U_mrad": u, "within_U": bool(all(abs(v) <= uu for v, uu in zip(d, u))),
+                    "canting_mrad": entry.get("canting_mrad"), "canting_mrad_U": entry.get("canting_mrad_U")})
+    return {"facets": out, "n_facets": heli.figures["heliostat"]["n_facets"],
+            "n_measured": heli.figures["heliostat"]["n_measured"], "assumptions": list(heli_m.assumptions)}
+
+
+#: The figures of OpenCSP's real capture that a release keeps (``fixtures/opencsp/release_figures.json``):
+#: the station's own analysis (its pixels, every point's fit), each screen model and fit, native and the
+#: capture upsampled 8x (what OpenCSP's camera took before it was downsampled).
+RELEASE_DISPLAYS = {"distorted2D": "sofast_common/display_distorted_2d.h5",
+                    "rectangular2D": "sofast_common/display_rectangular.h5",
+                    "distorted3D": "sofast_common/display_distorted_3d.h5"}
+RELEASE_CASES = tuple(f"{d}/{fit}/x1" for d in RELEASE_DISPLAYS for fit in ("plain", "robust")) + (
+    "distorted2D/plain/x8", "distorted2D/robust/x8")
+#: Scalar figures kept, and where each is in the figures.
+RELEASE_FIGURES = {"focal_length_x_m": ("focal_length_x_m",), "focal_length_y_m": ("focal_length_y_m",),
+                   "twist_mrad_per_m": ("twist_mrad_per_m",), "twist_e1_mrad_per_m": ("twist_e1_mrad_per_m",),
+                   "twist_e2_mrad_per_m": ("twist_e2_mrad_per_m",),
+                   "slope_rms_design_magnitude_mrad": ("slope_rms_mrad", "design", "magnitude"),
+                   "slope_rms_parabola_magnitude_mrad": ("slope_rms_mrad", "parabola", "magnitude"),
+                   "slope_rms_higher_order_magnitude_mrad": ("slope_rms_mrad", "higher_order", "magnitude"),
+                   "boresight_x_mrad": ("boresight_mrad", "x"), "boresight_y_mrad": ("boresight_mrad", "y")}
+
+
+def release_figures(root: Path, cases=RELEASE_CASES, work: Path | None = None, with_u: bool = False) -> dict:
+    """``{case: {figure: value (or [value, U] with *with_u*), "n_points": n}}`` of :data:`RELEASE_CASES` on the
+    test data in *root*; the 8x cases upsample the capture into *work* (a temporary folder)."""
+    import tempfile
+
+    from .opencsp import upsample_test_data
+    from .paths import opencsp_test_data_paths
+
+    root = Path(root)
+    out: dict = {}
+    tmp = None
+    for case in cases:
+        display, fit, scale = case.split("/")
+        scale = int(scale[1:])
+        if scale == 1:
+            paths = opencsp_test_data_paths(root)
+        else:
+            if work is None:
+                tmp = tempfile.TemporaryDirectory()
+                work = Path(tmp.name)
+            folder = Path(work) / f"x{scale}"
+            paths = (opencsp_test_data_paths(folder) if folder.exists() else upsample_test_data(root, folder, scale))
+        paths = {**paths, "display": root / RELEASE_DISPLAYS[display]}
+        m = read_opencsp(**paths)
+        a = m.analyse(robust=fit == "robust", uncertainty=m.uncertainty if with_u else None,
+                      sensitivity_cache={} if with_u else None)
+        fig = a.figures
+        entry = {}
+        for name, path in RELEASE_FIGURES.items():
+            v, u = fig, fig.get(f"{path[0]}_U") if with_u else None
+            for p in path:
+                v = v[p]
+            for p in path[1:]:
+                u = None if u is None else u[p]
+            entry[name] = [v, u] if with_u else v
+        entry["n_points"] = fig["n_points"]
+        out[case] = entry
+    if tmp is not None:
+        tmp.cleanup()
+    return out
+
+
+def conformance_text(c: Conformance) -> str:
+    """The comparison *c* as console lines: each figure as OpenCSP's, ours ± U (k = 2), the difference and
+    whether U holds it; then the slopes."""
+    def num(v, digits=4):
+        return "-" if v is None else f"{v:.{digits}g}"
+
+    lines = [f"OpenCSP's processing {c.result.path.name} ({c.what}): ours redone on its pixels, each figure ± U (k=2)"]
+    for r in c.rows:
+        verdict = {True: "within U", False: "outside U", None: ""}[r.within_u]
+        lines.append(f"  {r.figure}: OpenCSP {num(r.opencsp, 6)} {r.unit}, ours {num(r.ours, 6)} ± {num(r.U, 2)} "
+                     f"{r.unit}, difference {num(r.difference, 2)} {verdict}{f' ({r.note})' if r.note else ''}")
+    s = c.slopes
+    lines.append(f"  slopes at {s['pixels_compared']} of its {s['pixels_opencsp']} pixels: difference RMS "
+                 f"{s['rms_mrad'][0]:.4f} x, {s['rms_mrad'][1]:.4f} y mrad, 99th percentile {s['p99_mrad'][0]:.4f}, "
+                 f"{s['p99_mrad'][1]:.4f}; our per-pixel U from the noise alone {s['median_U_mrad'][0]:.3f}, "
+                 f"{s['median_U_mrad'][1]:.3f} (median); {100 * s['fraction_within_U']:.1f} % of pixels within it")
+    return "\n".join(lines)

@@ -48,7 +48,7 @@ from ..measure.screen import InterpolatedScreen
 from ..measure.uncertainty import InputUncertainties, Sensitivities
 from ..precompute import ray_table
 from .opencsp_results import OpenCspResult, read_opencsp_result  # noqa: F401  (their public place until now)
-from .paths import opencsp_test_data_paths  # noqa: F401  (its public place until now)
+from .paths import opencsp_test_data_paths
 
 log = logging.getLogger(__name__)
 
@@ -57,13 +57,16 @@ COUNT_SCALE = 256
 
 
 def _read(path: Path, key: str):
+    """Dataset *key* of the HDF5 file *path*; a ConfigError names what the file holds when it has no *key*."""
+    from .identify import describe
+
     try:
         with h5py.File(path, "r") as h:
             if key not in h:
-                raise ConfigError(f"{path} has no dataset {key!r}: is it the right OpenCSP file?")
+                raise ConfigError(f"{path} has no {key!r}: it is {describe(path)}")
             value = h[key][()]
     except OSError as exc:
-        raise ConfigError(f"{path} is not a readable HDF5 file ({exc})") from None
+        raise ConfigError(f"{path} is not a readable HDF5 file ({exc}): it is {describe(path)}") from None
     return value.decode() if isinstance(value, bytes) else value
 
 
@@ -78,9 +81,16 @@ def _rotvec_to_matrix(rotvec: np.ndarray) -> np.ndarray:
 def camera_from_opencsp(path: Path) -> CameraIntrinsics:
     """OpenCSP ``Camera``: the intrinsic matrix with K[2,2] normalised to 1 (see module docstring)."""
     k = np.array(_read(path, "Camera/intrinsic_mat"), dtype=np.float64)
-    w, h = (int(v) for v in _read(path, "Camera/image_shape_xy"))
+    # (OpenCSP has saved these as (2,), (2, 1), (5,) and (1, 5) arrays)
+    shape = np.asarray(_read(path, "Camera/image_shape_xy")).ravel()
+    dist = np.asarray(_read(path, "Camera/distortion_coef"), np.float64).ravel()
+    if k.shape != (3, 3) or shape.size != 2 or dist.size not in (4, 5, 8, 12, 14):
+        raise ConfigError(f"{path}: a Camera with an intrinsic matrix of shape {k.shape}, image shape {shape.tolist()} "
+                          f"and {dist.size} distortion coefficients: expected 3 x 3, [width, height] and OpenCV's 4, "
+                          "5, 8, 12 or 14")
+    w, h = (int(v) for v in shape)
     matrix = np.array([[k[0, 0], k[0, 1], k[0, 2]], [0.0, k[1, 1], k[1, 2]], [0.0, 0.0, 1.0]])
-    return CameraIntrinsics(w, h, matrix, np.array(_read(path, "Camera/distortion_coef"), np.float64))
+    return CameraIntrinsics(w, h, matrix, dist)
 
 
 def screen_to_camera(path: Path) -> Pose:
@@ -173,7 +183,9 @@ def read_frames(path: Path, counts: np.ndarray, n_y_sets: int, n_x_sets: int, sh
         with h5py.File(path, "r") as h:
             for key in ("fringe_images", "mask_images"):
                 if g + key not in h:
-                    raise ConfigError(f"{path} has no dataset {g + key!r}: is it the right OpenCSP file?")
+                    from .identify import describe
+
+                    raise ConfigError(f"{path} has no {g + key!r}: it is {describe(path)}")
             fringe, masks = h[g + "fringe_images"], h[g + "mask_images"]
             if fringe.shape[:2] != tuple(shape) or masks.shape[:2] != tuple(shape):
                 raise ConfigError(f"{path}: images are {fringe.shape[1]} x {fringe.shape[0]} px but the camera "
@@ -315,9 +327,12 @@ class OpenCspMeasurement:
 
         if self.ensemble is None:
             raise ConfigError(f"measurement {self.name} is a single facet's: it has no ensemble definition")
-        # OpenCSP has no fixture: the nominal pose is the mask's centre, so each facet's window is wider
+        # OpenCSP has no fixture: the nominal pose is the mask's centre, so each facet's window is wider. Its
+        # captures are downsampled 8x, where a heliostat's gaps are not resolved (its facets are told apart by
+        # the outer outline: split_joined) and a small facet holds a few hundred pixels, not thousands.
         return analyse_heliostat(self.frames, self.fringes, self.geometry, self.ensemble, self.distance_m,
-                                 self.settings, HeliostatSettings(window_margin=0.15, window_margin_px=20),
+                                 replace(self.settings, min_valid_px=100),
+                                 HeliostatSettings(window_margin=0.15, window_margin_px=20, split_joined=True),
                                  screen=self.screen, rays_cam=ray_table(self.geometry.camera),
                                  uncertainty=uncertainty, sensitivity_cache=sensitivity_cache)
 
@@ -383,20 +398,27 @@ def read_opencsp(measurement: Path, camera: Path, display: Path, orientation: Pa
     measurement, camera, display, orientation, calibration = (
         Path(p) for p in (measurement, camera, display, orientation, calibration))
     facet = None if facet is None else Path(facet)
+    # the small files first, so that a wrong one is named before the frames are read
     cam = camera_from_opencsp(camera)
     g = "MeasurementSofastFringe/"
-    periods_x = [float(v) for v in _read(measurement, g + "fringe_periods_x")]
-    periods_y = [float(v) for v in _read(measurement, g + "fringe_periods_y")]
+    periods_x = [float(v) for v in np.ravel(_read(measurement, g + "fringe_periods_x"))]
+    periods_y = [float(v) for v in np.ravel(_read(measurement, g + "fringe_periods_y"))]
     cal_type = _read(calibration, "ImageCalibration/calibration_type")
     if cal_type not in ("ImageCalibrationScaling", "ImageCalibrationGlobal"):
         raise ConfigError(f"{calibration}: unsupported image calibration {cal_type!r}")
     counts = count_table(_read(calibration, "ImageCalibration/camera_values"),
                          _read(calibration, "ImageCalibration/display_values"))
+    uv, pts = screen_nodes(display)
+    to_cam = screen_to_camera(orientation)
+    if facet is not None:
+        facet_from_opencsp(facet, focal_length_m)
+    if ensemble is not None:
+        from ..ensemble import ensemble_from_opencsp
+
+        ensemble_from_opencsp(ensemble, facet, focal_length_m)
     # C order (frame by frame): gathering the facet's pixels from OpenCSP's pixel-major layout is ten times
     # slower.
     frames = read_frames(measurement, counts, len(periods_y), len(periods_x), cam.shape, camera)
-    uv, pts = screen_nodes(display)
-    to_cam = screen_to_camera(orientation)
     from ..cache import load_screen_split, save_screen_split
 
     split = load_screen_split(cache, uv)
@@ -407,6 +429,8 @@ def read_opencsp(measurement: Path, camera: Path, display: Path, orientation: Pa
     mp = np.array(_read(measurement, g + "v_measure_point_facet"), np.float64).ravel()
     threshold = mask_threshold(frames[0], frames[1])
     mask = (frames[1].astype(np.int64) - frames[0]) > threshold
+    fringes = FringeSet(tuple(periods_x), tuple(periods_y))
+    frames, fringes, dropped = drop_stale_sets(frames, fringes, mask)
     name = str(_read(measurement, g + "name"))
     if facet is not None:
         design = facet_from_opencsp(facet, focal_length_m, name=name)
@@ -444,14 +468,53 @@ def read_opencsp(measurement: Path, camera: Path, display: Path, orientation: Pa
         "corners: matched within 25 px of the nominal pose, 2 px RMS allowed, 3 px edge window"
         if design.outline_known else "corners: none (unknown outline)",
     )
+    assumptions += tuple(dropped)
     inputs = opencsp_input_uncertainties(cam, uncertainty)
     if ens is not None:
-        assumptions += (f"ensemble {Path(ensemble).name}: {ens.n_facets} facets of {Path(facet).name}, "
-                        "the distance taken "
-                        f"to facet {ens.facets[ens.measure_facet].label}",)
-    return OpenCspMeasurement(design.name, str(_read(measurement, g + "date")), frames,
-                              FringeSet(tuple(periods_x), tuple(periods_y)), geometry, screen, design, distance,
+        to = (f"facet {ens.facets[ens.measure_facet].label}" if ens.measure_point_xyz_m is None else
+              f"the point {[round(v, 4) for v in ens.measure_point_xyz_m.tolist()]} m between the facets (ensemble "
+              "coordinates)")
+        assumptions += (f"ensemble {Path(ensemble).name}: {ens.n_facets} facets of {Path(facet).name}, the distance "
+                        f"taken to {to}",)
+    return OpenCspMeasurement(design.name, str(_read(measurement, g + "date")), frames, fringes, geometry, screen,
+                              design, distance,
                               settings, assumptions + _uncertainty_assumptions(inputs), inputs, ens)
+
+
+def drop_stale_sets(frames: np.ndarray, fringes: FringeSet, mask: np.ndarray) -> tuple[np.ndarray, FringeSet, list]:
+    """*frames* and *fringes* without the middle fringe sets with a frame captured before the display had
+    changed (:func:`~sofast_station.measure.checks.stale_frames`; OpenCSP does not check, and uses the set).
+    The station refuses such a capture (the set fails the four-step check at most of the facet); an
+    imported one cannot be taken again, and without the set the coarser and finer sets still unwrap (a pixel
+    whose phases then disagree is dropped and counted, as ever). The first and last sets of an axis are kept:
+    the analysis refuses the capture if one of them fails. Returns the frames, the fringes and a sentence
+    per dropped set."""
+    from ..measure.checks import stale_frames
+
+    bad = stale_frames(frames, fringes, mask)
+    if not bad:
+        return frames, fringes, []
+    keep = list(range(2))
+    periods = {"x": [], "y": []}
+    said = []
+    for axis, slices in fringes.slices().items():
+        ps = list(getattr(fringes, f"periods_{axis}"))
+        for j, (p, sl) in enumerate(zip(ps, slices)):
+            name = f"{axis} p={p:g}"
+            if name in bad and 0 < j < len(ps) - 1:
+                k, r = bad[name]
+                said.append(f"the {name} fringe set's frame {k} repeats frame {(k - 1) % 4} (it differs by {r:.2f} of "
+                            "the set's other steps: captured before the display had changed): the set is left "
+                            f"out, and the {axis} phases unwrap from p={ps[j - 1]:g} to p={ps[j + 1]:g} directly "
+                            "(OpenCSP uses the set as it is)")
+                continue
+            periods[axis].append(p)
+            keep.extend(range(sl.start, sl.stop))
+    if not said:
+        return frames, fringes, []
+    out = FringeSet(tuple(periods["x"]), tuple(periods["y"]), phase_steps=fringes.phase_steps)
+    log.warning("%s", "; ".join(said))
+    return np.ascontiguousarray(frames[keep]), out, said
 
 
 def facet_from_corners(corners_m: np.ndarray, focal_length_m: float, name: str = "opencsp-facet") -> FacetDesign:
@@ -562,3 +625,50 @@ def export_opencsp(folder: Path, frames: np.ndarray, fringes: FringeSet, geometr
         paths["ensemble"] = folder / "ensemble.json"
         paths["ensemble"].write_text(json.dumps(ensemble_to_opencsp(ensemble), indent=1))
     return paths
+
+
+def upsample_test_data(src: Path, dst: Path, scale: int) -> dict[str, Path]:
+    """The single-facet files of OpenCSP's test data *src* copied to *dst* (its layout), the measurement's
+    frames and the camera *scale* times larger: a full-resolution capture made from the real one (what
+    OpenCSP's own camera took before it was downsampled 8x). Returns the copies' paths (as
+    :func:`opencsp_test_data_paths`).
+
+    Frames are resized bilinearly (OpenCV's pixel-centre convention: destination pixel x samples source
+    position (x + 1/2)/scale - 1/2), so the camera matrix scales as f' = scale f, c' = scale c +
+    (scale - 1)/2; the distortion coefficients (normalised coordinates) are unchanged.
+    """
+    import shutil
+
+    import cv2
+
+    src_paths, dst_paths = opencsp_test_data_paths(Path(src)), opencsp_test_data_paths(Path(dst))
+    for key, path in src_paths.items():
+        dst_paths[key].parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(path, dst_paths[key])
+
+    def resize(stack):
+        h, w, n = stack.shape
+        return np.stack([cv2.resize(stack[:, :, k], (w * scale, h * scale), interpolation=cv2.INTER_LINEAR)
+                         for k in range(n)], axis=2)
+
+    def replace_in(h, key, value):
+        del h[key]
+        h[key] = value
+
+    with h5py.File(dst_paths["measurement"], "r+") as h:
+        g = "MeasurementSofastFringe/"
+        for key in ("fringe_images", "mask_images"):
+            replace_in(h, g + key, resize(np.asarray(h[g + key])))
+    with h5py.File(dst_paths["camera"], "r+") as h:
+        k = np.array(h["Camera/intrinsic_mat"], np.float64)
+        # OpenCSP's downsampled camera keeps K[2,2] = 1/8, which OpenCV ignores: fx, fy, cx, cy are pixels
+        # as they stand, so the half-pixel shift is (scale - 1)/2 pixels, not scaled by K[2,2]
+        k[0, 0] *= scale
+        k[1, 1] *= scale
+        k[0, 1] *= scale
+        k[0, 2] = scale * k[0, 2] + 0.5 * (scale - 1)
+        k[1, 2] = scale * k[1, 2] + 0.5 * (scale - 1)
+        replace_in(h, "Camera/intrinsic_mat", k)
+        shape = np.array(h["Camera/image_shape_xy"])
+        replace_in(h, "Camera/image_shape_xy", (shape * scale).astype(shape.dtype))
+    return dst_paths

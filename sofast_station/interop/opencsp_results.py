@@ -159,6 +159,11 @@ def _dataset(h, key: str, path: Path, what: str):
     return value.decode() if isinstance(value, bytes) else value
 
 
+def _optional(h, key: str):
+    """Dataset *key* of the open file *h*, or None when it has none."""
+    return h[key][()] if key in h else None
+
+
 def _rotation(rotvec) -> np.ndarray:
     import cv2
 
@@ -214,10 +219,11 @@ def read_opencsp_result(path: Path) -> OpenCspResult:
             inp = "DataSofastInput/optic_definition/facet_000/"
             params = inp + "ParamsSurface/"
             mask = _dataset(h, f + "CalculationImageProcessingFacet/mask_processed", path, "the processed mask")
-            r_cam_optic = _dataset(h, geo + "SpatialOrientation/r_cam_optic", path, "the optic's pose")
-            optic_to_cam = _rotation(r_cam_optic).T
-            origin = _dataset(h, geo + "SpatialOrientation/v_cam_optic_cam", path, "the optic's pose")
-            distance = _dataset(h, geo + "measure_point_screen_distance", path, "the distance")
+            # (the geometry is OpenCSP's own; a file written by `export surface` has only the surface)
+            r_cam_optic = _optional(h, geo + "SpatialOrientation/r_cam_optic")
+            optic_to_cam = None if r_cam_optic is None else _rotation(r_cam_optic).T
+            origin = _optional(h, geo + "SpatialOrientation/v_cam_optic_cam")
+            distance = _optional(h, geo + "measure_point_screen_distance")
             corners_key = inp + "DefinitionFacet/v_facet_corners"
         else:
             g = f
@@ -235,14 +241,17 @@ def read_opencsp_result(path: Path) -> OpenCspResult:
         if coefs.shape not in ((2,), (2, 3)):
             raise ConfigError(f"{path}: slope coefficients of shape {coefs.shape}: neither OpenCSP's parabolic "
                               "(2 x 3) nor its plano (2) surface; this reader supports those two")
+        alignment = _optional(h, g + "trans_alignment")
+        downsample = _optional(h, params + "downsample")
         return OpenCspResult(
-            path, layout, "facet" if corners is not None else "undefined", surface,
+            path, layout, "facet" if corners is not None or layout == "facet" else "undefined", surface,
             bool(_dataset(h, params + "robust_least_squares", path, "the fit")),
-            int(_dataset(h, params + "downsample", path, "the fit")), np.asarray(mask, bool),
+            1 if downsample is None else int(downsample), np.asarray(mask, bool),
             np.asarray(_dataset(h, g + "slopes_facet_xy", path, "slopes"), np.float64),
             np.asarray(_dataset(h, g + "v_surf_points_facet", path, "points"), np.float64), coefs,
-            np.asarray(_dataset(h, g + "trans_alignment", path, "the alignment"), np.float64)[:3, :3],
-            optic_to_cam, np.asarray(origin, np.float64).ravel(), corners, float(distance))
+            None if alignment is None else np.asarray(alignment, np.float64)[:3, :3], optic_to_cam,
+            None if origin is None else np.asarray(origin, np.float64).ravel(), corners,
+            None if distance is None else float(distance))
 
 
 def result_inputs(path: Path) -> dict[str, Path]:

@@ -13,9 +13,14 @@ FILES = {"measurement": "MeasurementSofastFringe HDF5", "camera": "Camera HDF5",
          "facet": "facet definition JSON", "ensemble": "ensemble definition JSON"}
 
 
-def opencsp_test_data_paths(root: Path, multi_facet: bool = False) -> dict[str, Path]:
-    """The file layout of OpenCSP's ``opencsp/test/data`` (and of ``fixtures/opencsp``); *multi_facet*: its
-    two-facet measurement (``measurement_ensemble.h5``, the split NSTTF facet and its ensemble definition)."""
+def opencsp_test_data_paths(root: Path, multi_facet: bool = False, split_facet: bool = False) -> dict[str, Path]:
+    """The file layout of OpenCSP's ``opencsp/test/data`` (and of ``fixtures/opencsp``).
+
+    *multi_facet*: its multi-facet fringe measurement, ``measurement_ensemble.h5``, a lab heliostat of 24
+    facets (``Facet_lab_6x4.json``, ``Ensemble_lab_6x4.json``; OpenCSP's example_process_facet_ensemble
+    pairs them so). *split_facet*: the single NSTTF facet's measurement analysed as two halves
+    (``Facet_split_NSTTF.json``, ``Ensemble_split_NSTTF_facet.json``; OpenCSP pairs these with its fixed-pattern
+    ensemble capture, which its public test data lacks)."""
     root = Path(root)
     paths = {"measurement": root / "sofast_fringe/data_measurement/measurement_facet.h5",
              "camera": root / "sofast_common/camera_sofast_downsampled.h5",
@@ -23,9 +28,14 @@ def opencsp_test_data_paths(root: Path, multi_facet: bool = False) -> dict[str, 
              "orientation": root / "sofast_common/spatial_orientation.h5",
              "calibration": root / "sofast_fringe/data_measurement/image_calibration.h5",
              "facet": root / "sofast_common/Facet_NSTTF.json"}
+    if multi_facet and split_facet:
+        raise ConfigError("--multi-facet and --split-facet are two different measurements: give one")
     if multi_facet:
         paths.update(measurement=root / "sofast_fringe/data_measurement/measurement_ensemble.h5",
-                     facet=root / "sofast_common/Facet_split_NSTTF.json",
+                     facet=root / "sofast_common/Facet_lab_6x4.json",
+                     ensemble=root / "sofast_common/Ensemble_lab_6x4.json")
+    if split_facet:
+        paths.update(facet=root / "sofast_common/Facet_split_NSTTF.json",
                      ensemble=root / "sofast_common/Ensemble_split_NSTTF_facet.json")
     return paths
 

@@ -508,3 +508,27 @@ def _curl_noise(slope_cov, right, left, down, up, i00, i01, i10, i11) -> tuple[n
     var_a = var((i01, -i00), (i11, -i10))
     var_s = 0.5 * (var((i01, i00), (i11, i10)) + var((i00, -i01), (i10, -i11)))
     return var_a, var_s
+
+
+def stale_frames(frames: np.ndarray, fringes, mask: np.ndarray, ratio: float = 0.5) -> dict:
+    """Four-step sets with a frame captured before the display had changed: ``{"y p=3.9": (k, r), ...}``,
+    k the set's frame (0-3) that barely differs from the one before it, r that difference over the set's
+    median step (the mean absolute change over the *mask*'s pixels, DN).
+
+    Between consecutive frames of a set the pattern moves by a quarter period, so every step changes the
+    image alike (r near 1: 0.77-1.26 on OpenCSP's two real captures); a frame the display had not yet
+    updated repeats its predecessor (r = 0.21 on the stale frame of OpenCSP's ensemble capture). Sets with
+    a step below *ratio* are named."""
+    sl = fringes.slices()
+    stack = frames[:, mask].astype(np.float64)
+    out = {}
+    for axis in ("x", "y"):
+        for p, s in zip(getattr(fringes, f"periods_{axis}"), sl[axis]):
+            f = stack[s]
+            n = f.shape[0]
+            steps = np.array([np.mean(np.abs(f[(k + 1) % n] - f[k])) for k in range(n)])
+            r = steps / max(float(np.median(steps)), 1e-12)
+            k = int(np.argmin(r))
+            if r[k] < ratio:
+                out[f"{axis} p={p:g}"] = ((k + 1) % n, float(r[k]))
+    return out

@@ -970,3 +970,48 @@ def match_corners(found_px: np.ndarray, expected_px: np.ndarray, tolerance_px: f
             f"the facet's corners are up to {worst:.0f} px from where the fixture puts them (tolerance "
             f"{tolerance_px:.0f} px); the facet is misplaced in the fixture or the station geometry is wrong")
     return found_px[order]
+
+
+def mask_outline_corners(region: np.ndarray, n_corners: int, end_fraction: float = 0.15) -> tuple[np.ndarray, float]:
+    """Corners of a region's outline from its boundary pixels alone: a straight line fitted (total least
+    squares) to each side's boundary pixels, moved half a pixel outward (a boundary pixel's centre lies half
+    a pixel inside the edge it marks), and adjacent lines intersected. The coarse route, for an outline too
+    near the image's border for :func:`fit_outline`'s edge profiles (they read the background up to 12 px
+    beyond the edge): what OpenCSP does with its masks.
+
+    Returns
+    -------
+    (corners, sigma_px)
+        (n_corners, 2) corners (column, row) in :func:`rough_outline`'s order, and each corner coordinate's
+        standard uncertainty: the sides' boundary pixels scatter about their lines by at least a pixel's
+        quantisation (1/sqrt(12)), and a line's end moves by that over the square root of its points, three
+        times (a line's end point, as for :func:`fit_outline`'s sides), pixels.
+    """
+    rough = rough_outline(region, n_corners)
+    contours, _ = cv2.findContours(region.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    contour = max(contours, key=cv2.contourArea).reshape(-1, 2).astype(np.float64)
+    centroid = rough.mean(axis=0)
+    lines, sigmas = [], []
+    for i in range(n_corners):
+        p0, p1 = rough[i], rough[(i + 1) % n_corners]
+        d = p1 - p0
+        length = float(np.hypot(*d))
+        t = (contour - p0) @ d / (length * length)
+        off = np.abs((contour - p0) @ np.array([-d[1], d[0]]) / length)
+        pts = contour[(t > end_fraction) & (t < 1.0 - end_fraction) & (off < 3.0)]
+        if len(pts) < 5:
+            raise FacetNotFoundError("the outline's side is too short to locate in the mask (the mirror is too small "
+                                     "in the image)")
+        mean = pts.mean(axis=0)
+        _, _, vt = np.linalg.svd(pts - mean, full_matrices=False)
+        normal = vt[1]
+        if (centroid - mean) @ normal > 0:          # outward
+            normal = -normal
+        res = (pts - mean) @ normal
+        lines.append((normal, float(mean @ normal) + 0.5))
+        sigmas.append(3.0 * max(float(np.sqrt(np.mean(res * res))), 1.0 / np.sqrt(12.0)) / np.sqrt(len(pts)))
+    corners = []
+    for i in range(n_corners):
+        (n1, c1), (n2, c2) = lines[i - 1], lines[i]
+        corners.append(np.linalg.solve(np.array([n1, n2]), np.array([c1, c2])))
+    return np.array(corners), float(np.median(sigmas))

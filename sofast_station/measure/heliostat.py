@@ -77,6 +77,16 @@ class HeliostatSettings:
         Standard uncertainty of a facet's height on the frame, along its normal, mm. A facet's distance comes
         from the heliostat's pose and the facet's design position, so its own height error is not measured:
         it enters its canting's U as an input of its own (independent between facets).
+    split_joined : bool
+        Facets whose regions touch in the image (gaps finer than the camera resolves, as in OpenCSP's
+        8x-downsampled captures, or one mirror analysed as several) are told apart by the heliostat's outer
+        outline and the design's layout (:func:`joined_pose`): the heliostat's pose from the outline's
+        corners, each facet's corners and pixels from its design outline there, its pointing from its own
+        slopes. False (the station's default): such a capture is refused, since on the line touching facets
+        mean a facet misplaced onto its neighbour.
+    joined_inset_px : float
+        A joined facet's pixels stop this far inside its design outline's image (beyond the edge's blur):
+        room for the unresolved gap and the outline's placement, pixels.
     """
 
     window_margin: float = 0.08
@@ -85,9 +95,14 @@ class HeliostatSettings:
     blank_dilation_px: int = 2
     min_region_px: int = 50
     facet_height_mm: float = 0.5
+    split_joined: bool = False
+    joined_inset_px: float = 1.0
 
     def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
+        d = dataclasses.asdict(self)
+        if not self.split_joined:       # (absent when off: settings and hashes from before it)
+            del d["split_joined"], d["joined_inset_px"]
+        return d
 
 
 @dataclass(frozen=True)
@@ -109,6 +124,9 @@ class FacetRegion:
         Its nominal image's area.
     reason : str
         Why it is not measured (empty when it is).
+    joined : bool
+        Its region touches its neighbours' (``HeliostatSettings.split_joined``): its corners and pixels come
+        from the heliostat's outline and its design (:func:`joined_pose`), not from its own edges.
     """
 
     index: int
@@ -119,6 +137,7 @@ class FacetRegion:
     area_px: int
     expected_area_px: float
     reason: str = ""
+    joined: bool = False
 
 
 def facet_frame_nominal(geometry: StationGeometry, ensemble: EnsembleDesign, i: int) -> Pose:
@@ -213,11 +232,14 @@ def find_facets(dark: np.ndarray, white: np.ndarray, geometry: StationGeometry, 
     belongs = [[c for c in range(1, n) if areas[c] >= settings.min_region_px and owner[c] == i and overlap[i, c] > 0]
                for i in range(ensemble.n_facets)]
     # one region, two facets: a large share of each of two nominal images
+    joined: dict[int, int] = {}
     for c in range(1, n):
         if areas[c] < settings.min_region_px:
             continue
         big = [i for i in range(ensemble.n_facets) if overlap[i, c] > 0.25 * expected[i]]
-        if len(big) > 1:
+        if len(big) > 1 and settings.split_joined:
+            joined.update({i: c for i in big})
+        elif len(big) > 1:
             names = ", ".join(ensemble.facets[i].label for i in big)
             raise FacetNotFoundError(f"facets {names} are one region in the image: no gap between them is seen (a "
                                      "facet misplaced onto its neighbour, or the camera out of focus); the facets "
@@ -228,6 +250,17 @@ def find_facets(dark: np.ndarray, white: np.ndarray, geometry: StationGeometry, 
         area = int(sum(areas[c] for c in comps))
         r0, c0, r1, c1 = windows[i]
         status, reason = "measured", ""
+        if i in joined:
+            # its share of the joined region; where exactly it lies comes from the heliostat's outline
+            c = joined[i]
+            area = int(overlap[i, c])
+            if area < settings.min_area_fraction * expected[i]:
+                status = "hidden"
+                reason = (f"facet {f.label} is partly hidden: {area} pixels respond where the design expects about "
+                          f"{expected[i]:.0f}; something covers it, or it is turned far from its design canting")
+            regions.append(FacetRegion(index=i, label=f.label, status=status, window=windows[i], components=(c,),
+                                       area_px=area, expected_area_px=float(expected[i]), reason=reason, joined=True))
+            continue
         if not comps:
             status = "missing"
             reason = (f"facet {f.label} is missing: nothing responds where the design puts it (not mounted, covered, "
@@ -290,6 +323,112 @@ def facet_frames(frames: np.ndarray, region: FacetRegion, labels: np.ndarray, di
         dark = out[0]
         out[:, other] = dark[other]
     return out
+
+
+@dataclass(frozen=True)
+class JoinedPose:
+    """The heliostat's pose from the outer outline of its joined facets (:func:`joined_pose`).
+
+    Attributes
+    ----------
+    heliostat_to_camera : Pose
+        Range fixed by the measured distance.
+    corners_px : (4, 2) array
+        The outline's corners found, in :func:`outer_corners`' order.
+    corner_sigma_px : float
+        Standard uncertainty of each corner coordinate (as a facet's, from its sides' fits), pixels.
+    reprojection_rms_px : float
+    edge_blur_px : float
+        The outline's edge blur (its pixels' reach inside it), pixels.
+    """
+
+    heliostat_to_camera: Pose
+    corners_px: np.ndarray
+    corner_sigma_px: float
+    reprojection_rms_px: float
+    edge_blur_px: float
+
+
+def outer_corners(ensemble: EnsembleDesign, indices) -> np.ndarray:
+    """The corners of the rectangle the facets *indices* fill (a grid of facets, or one mirror cut in parts),
+    counter-clockwise from (+x, -y) as a facet's outline: each the nearest of those facets' own corners, (4, 3)
+    metres, heliostat frame."""
+    corners = np.concatenate([ensemble.facets[i].corners_m() for i in indices])
+    (x0, y0), (x1, y1) = corners[:, :2].min(axis=0), corners[:, :2].max(axis=0)
+    out = []
+    for x, y in ((x1, y0), (x1, y1), (x0, y1), (x0, y0)):
+        out.append(corners[int(np.argmin(np.hypot(corners[:, 0] - x, corners[:, 1] - y)))])
+    return np.array(out)
+
+
+def joined_pose(contrast: np.ndarray, region: np.ndarray, geometry: StationGeometry, ensemble: EnsembleDesign,
+                indices, screen_centre_cam_m: np.ndarray, measured_distance_m: float,
+                settings: AnalysisSettings) -> JoinedPose:
+    """The heliostat's pose from the outer outline of facets whose regions touch (*region*, their union):
+    the outline's four corners (:func:`~sofast_station.measure.corners.fit_outline`) against
+    :func:`outer_corners`, one solvePnP from the fixture's nominal pose, the range fixed by the measured
+    distance. What OpenCSP does with its ensemble's perimeter before it looks for each facet's corners.
+
+    Raises
+    ------
+    FacetNotFoundError
+        The outline has no four corners near the design's, or they do not fit it.
+    """
+    from ..facet import FacetDesign
+    from . import corners as corners_mod
+    from .camera import project
+
+    cam = geometry.camera
+    outer = outer_corners(ensemble, indices)
+    # the outline as one facet, for the sides' bows where the fixture puts it (a hint; its surface is the
+    # heliostat's layout paraboloid, within millimetres of the facets' at the corners)
+    layout = FacetDesign(name=f"{ensemble.name} outline", kind="heliostat", focal_length_m=ensemble.focal_length_m,
+                         outline_m=outer[:, :2], measure_point_m=outer[:, :2].mean(axis=0),
+                         alignment_point_m=outer[:, :2].mean(axis=0))
+    try:
+        outline = corners_mod.fit_outline(contrast, region, 4, settings.edge_window_px,
+                                          **corners_mod.outline_hints(layout, cam, geometry.fixture_to_camera))
+        corners_px, blur = outline.corners_px, float(outline.edge_blur_px)
+        sigma = float(np.median(3.0 * np.asarray(outline.edge_rms_px, float)
+                                / np.sqrt(np.maximum(outline.n_edge_points, 1))))
+    except FacetNotFoundError:
+        # too near the image's border for the edges' profiles: the lines of the mask's boundary pixels
+        corners_px, sigma = corners_mod.mask_outline_corners(region, 4)
+        blur = 1.0
+    expected = project(cam, geometry.fixture_to_camera, outer)
+    found = corners_mod.match_corners(corners_px, expected, settings.corner_tolerance_px)
+    pose = solve_corner_pose(cam, found, outer, geometry.fixture_to_camera)
+    if pose.reprojection_rms_px > settings.max_corner_rms_px:
+        raise FacetNotFoundError(f"the joined facets' outer corners do not fit the heliostat's design "
+                                 f"({pose.reprojection_rms_px:.1f} px RMS): a facet missing from the outline's "
+                                 "edge, or not this heliostat")
+    h2c, _ = fix_range(pose.facet_to_camera, ensemble.measure_point_m, screen_centre_cam_m, measured_distance_m,
+                       settings.max_range_shift_m)
+    return JoinedPose(h2c, found, sigma, pose.reprojection_rms_px, blur)
+
+
+def joined_facet(geometry: StationGeometry, ensemble: EnsembleDesign, region: FacetRegion, pose: JoinedPose,
+                 settings: HeliostatSettings) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A joined facet where the heliostat's outline puts it, in its window: its design corners (n, 2), the
+    pixels it may use (its design outline's image less the edge's reach and ``joined_inset_px``) and the
+    pixels it owns (that image widened by ``blank_dilation_px``: the rest of the window is blanked)."""
+    from . import corners as corners_mod
+    from .camera import project
+
+    f = ensemble.facets[region.index]
+    f2c = pose.heliostat_to_camera.compose(f.to_heliostat)
+    r0, c0, r1, c1 = region.window
+    shift = np.array([c0, r0], dtype=np.float64)
+    corners = project(geometry.camera, f2c, f.design.corners_3d()) - shift
+    outline = outline_image_points(f.design, geometry.camera, f2c) - shift
+    poly = np.zeros((r1 - r0, c1 - c0), dtype=np.uint8)
+    cv2.fillPoly(poly, [np.round(outline * 16).astype(np.int32)], 1, shift=4)
+    # distance of each pixel centre inside the polygon to its boundary (pixels), and outside it
+    inside = cv2.distanceTransform(poly, cv2.DIST_L2, 5)
+    outside = cv2.distanceTransform(1 - poly, cv2.DIST_L2, 5)
+    keep = inside > corners_mod.edge_inset_px(pose.edge_blur_px) + settings.joined_inset_px
+    owned = (poly > 0) | (outside <= settings.blank_dilation_px)
+    return corners, keep, owned
 
 
 @dataclass(frozen=True)
@@ -712,15 +851,34 @@ def analyse_heliostat(frames: np.ndarray, fringes: FringeSet, geometry: StationG
                                                        - centre))
     geometries = {reg.index: _facet_geometry(geometry, ensemble, reg) for reg in todo}
     reductions, reasons = {}, {}
+    # facets whose regions touch (HeliostatSettings.split_joined): placed by the heliostat's outer outline
+    joined = {}
+    together = [r for r in todo if r.joined]
+    if together:
+        t = time.perf_counter()
+        union = np.isin(labels, sorted({c for r in together for c in r.components}))
+        contrast = np.subtract(frames[1], frames[0], dtype=np.float32)
+        jp = joined_pose(contrast, union, geometry, ensemble, [r.index for r in together], centre,
+                         measured_distance_m, settings)
+        joined = {r.index: joined_facet(geometry, ensemble, r, jp, heliostat) for r in together}
+        timings["joined_pose"] = time.perf_counter() - t
 
     def first(reg: FacetRegion):
         t = time.perf_counter()
         rays = None if rays_cam is None else WindowRays(rays_cam, reg.window, geometry.camera.width_px)
+        given = {}
+        if reg.index in joined:
+            corners, keep, owned = joined[reg.index]
+            r0, c0, r1, c1 = reg.window
+            window = np.array(frames[:, r0:r1, c0:c1], copy=True)
+            window[:, ~owned] = window[0][~owned]           # its neighbours blanked by its design outline
+            given = {"corners_px": corners, "corner_sigma_px": jp.corner_sigma_px, "pixel_mask": keep}
+        else:
+            window = facet_frames(frames, reg, labels, heliostat.blank_dilation_px)
         try:
-            return reduce_stages(facet_frames(frames, reg, labels, heliostat.blank_dilation_px), fringes,
-                                 geometries[reg.index], ensemble.facets[reg.index].design,
+            return reduce_stages(window, fringes, geometries[reg.index], ensemble.facets[reg.index].design,
                                  nominal[reg.index] + shift, settings, screen, rays,
-                                 stop_after_boresight=True), time.perf_counter() - t
+                                 stop_after_boresight=True, **given), time.perf_counter() - t
         except StationError as exc:
             return exc, time.perf_counter() - t
 

@@ -72,6 +72,9 @@ class AnalysisSettings:
     robust_fit : bool
         Fit the parabola by bisquare-weighted least squares, so outlying pixels (a facet edge that saw
         past the screen) do not pull the shape; residuals are still reported over every point.
+    min_valid_px : int
+        A capture with fewer pixels of trusted screen position is refused (a facet too small in the image,
+        or a capture without contrast); lower it only for small facets of a heliostat seen whole.
     surface : str
         The shape model fitted to the slopes (:data:`~.fit.SURFACES`): ``"parabolic"`` (the paper's), or
         ``"plano"`` (constant slopes: a flat mirror, or only where a mirror points; its focal lengths and
@@ -97,6 +100,7 @@ class AnalysisSettings:
     edge_window_px: int = 5
     threads: int = 2
     surface: str = "parabolic"
+    min_valid_px: int = 1000
 
     def __post_init__(self):
         from .fit import SURFACES
@@ -106,8 +110,11 @@ class AnalysisSettings:
 
     def to_dict(self) -> dict:
         d = dict(self.__dict__)
-        if d["surface"] == "parabolic":     # (absent for the parabola: settings and hashes from before it)
+        # (absent at their defaults: settings and hashes from before them)
+        if d["surface"] == "parabolic":
             del d["surface"]
+        if d["min_valid_px"] == 1000:
+            del d["min_valid_px"]
         return d
 
 
@@ -386,12 +393,13 @@ class Fits:
 
 
 def find_region(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, design: FacetDesign,
-                settings: AnalysisSettings, pool=None) -> Region:
+                settings: AnalysisSettings, pool=None, fit_outline: bool = True) -> Region:
     """Stage 1: check the capture and find the facet region from dark and white (refuses what cannot be
     analysed).
 
     On a *pool*, the frame-order check, the contrast image and half of the frames' gathering run beside
-    the rest; a fault of the frame order is still the one reported when several checks fail."""
+    the rest; a fault of the frame order is still the one reported when several checks fail. *fit_outline*
+    False: the caller gives the corners (no outline is fitted)."""
     pool = pool if pool is not None else _Serial()
     cam = geometry.camera
     checks.check_frames(frames, fringes, cam.shape)
@@ -414,7 +422,7 @@ def find_region(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometr
     # The outline on a pool thread while the frames are gathered: its edge profiles say how far the
     # lens's blur reaches inside the facet. A mirror of unknown outline has none to fit.
     outline = pool.submit(_outline_of, contrast.result(), region, geometry, design, settings) \
-        if design.outline_known else _Serial._Done((None, None))
+        if design.outline_known and fit_outline else _Serial._Done((None, None))
     flat = frames.reshape(frames.shape[0], -1)
     stack = np.empty((flat.shape[0], idx.size), dtype=flat.dtype)
     half = flat.shape[0] // 2
@@ -580,7 +588,7 @@ def measure_phases(region: Region, fringes: FringeSet, screen_size_m: tuple[floa
 
 
 def screen_points_and_rays(region: Region, phases: Phases, camera, screen: ScreenModel,
-                           rays_cam: np.ndarray | None = None, pool=None) -> Rays:
+                           rays_cam: np.ndarray | None = None, pool=None, min_valid_px: int = 1000) -> Rays:
     """Stage 3: screen points and pixel rays in the camera frame for the pixels with a trusted position.
 
     A measured screen model may not cover every position; those pixels are dropped. On a *pool*, the
@@ -602,7 +610,7 @@ def screen_points_and_rays(region: Region, phases: Phases, camera, screen: Scree
         ok[np.flatnonzero(ok)[~covered]] = False
         screen_cam = screen_cam[:, covered]
     vidx = idx[ok]
-    if vidx.size < 1000:
+    if vidx.size < min_valid_px:
         raise AnalysisError(f"only {vidx.size} pixels have a valid screen position (of {idx.size} facet "
                             "pixels); check fringe contrast, exposure and the display")
     if table:
@@ -627,14 +635,21 @@ def _rays_of(camera, table, vidx: np.ndarray) -> np.ndarray:
 
 def corners_and_pose(region: Region, rays: Rays, geometry: StationGeometry, design: FacetDesign,
                      measured_distance_m: float, settings: AnalysisSettings,
-                     pixel_mask: np.ndarray | None = None) -> CornerPoseResult:
+                     pixel_mask: np.ndarray | None = None, corners_px: np.ndarray | None = None,
+                     corner_sigma_px: float | None = None) -> CornerPoseResult:
     """Stage 4: the facet's corners in the image, its pose from them, and the pose's range fixed by the
     measured distance.
 
     A mirror of unknown outline is placed by its lit region's centroid, or with *pixel_mask* (the pixels the
     caller allows, e.g. another program's for a like-with-like comparison) by the centroid of the region's
-    pixels it allows: the pixels measured are then the mirror."""
+    pixels it allows: the pixels measured are then the mirror. *corners_px* ((n, 2), design order) are
+    corners the caller found otherwise (a heliostat's facet whose own edges are not seen, placed by the
+    heliostat's outline), standard uncertainty *corner_sigma_px* per coordinate."""
     cam = geometry.camera
+    if corners_px is not None:
+        result = pose_from_corners(np.asarray(corners_px, np.float64), region, rays, geometry, design,
+                                   measured_distance_m, settings)
+        return dataclasses.replace(result, corner_sigma_px=corner_sigma_px)
     if not design.outline_known:
         # a mirror of unknown outline is placed by its lit region's centroid (pose_from_corners)
         lit = region.region if pixel_mask is None else region.region & pixel_mask
@@ -964,17 +979,20 @@ def reduce_stages(frames: np.ndarray, fringes: FringeSet, geometry: StationGeome
                   measured_distance_m: float, settings: AnalysisSettings = AnalysisSettings(),
                   screen: ScreenModel | None = None, rays_cam: np.ndarray | None = None,
                   pixel_mask: np.ndarray | None = None,
-                  stop_after_boresight: bool = False) -> tuple[Reduction, dict]:
+                  stop_after_boresight: bool = False, corners_px: np.ndarray | None = None,
+                  corner_sigma_px: float | None = None) -> tuple[Reduction, dict]:
     """Run every stage of the reduction (:func:`~sofast_station.measure.analysis.analyse` without the
     uncertainty); returns the stages' outputs and their timings, seconds.
 
     *stop_after_boresight*: stop once shape and boresight have converged on the subsample (the shape's
-    ``points_m`` and ``slopes``, the fits and the figures None); :func:`rerun` from ``"shape"`` finishes it."""
+    ``points_m`` and ``slopes``, the fits and the figures None); :func:`rerun` from ``"shape"`` finishes it.
+    *corners_px* and *corner_sigma_px*: corners found by the caller (:func:`corners_and_pose`); no outline
+    is then fitted, and *pixel_mask* should keep the shape's pixels off the edges."""
     with thread_pool(settings.threads) as pool:
         timer = _Timer()
         if screen is None:
             screen = default_screen(geometry)
-        region = find_region(frames, fringes, geometry, design, settings, pool)
+        region = find_region(frames, fringes, geometry, design, settings, pool, fit_outline=corners_px is None)
         timer.lap("mask")
         phases = measure_phases(region, fringes, (screen.width_m, screen.height_m), settings, pixel_mask, pool)
         checked = check_dark_rim(region, phases, geometry, design, settings)
@@ -983,9 +1001,10 @@ def reduce_stages(frames: np.ndarray, fringes: FringeSet, geometry: StationGeome
             region = checked
             phases = measure_phases(region, fringes, (screen.width_m, screen.height_m), settings, pixel_mask, pool)
         timer.lap("phase")
-        rays = screen_points_and_rays(region, phases, geometry.camera, screen, rays_cam, pool)
+        rays = screen_points_and_rays(region, phases, geometry.camera, screen, rays_cam, pool, settings.min_valid_px)
         timer.lap("rays")
-        pose = corners_and_pose(region, rays, geometry, design, measured_distance_m, settings, pixel_mask)
+        pose = corners_and_pose(region, rays, geometry, design, measured_distance_m, settings, pixel_mask, corners_px,
+                                corner_sigma_px)
         timer.lap("pose")
         shape = shape_and_boresight(rays, pose, design, measured_distance_m, settings, pool, timer,
                                     subsample_only=stop_after_boresight)
@@ -1041,7 +1060,8 @@ def rerun(reduction: Reduction, start: str, *, fringes: FringeSet, geometry: Sta
     elif phases is None:
         phases = reduction.phases
     if order <= STAGES.index("rays"):
-        rays = screen_points_and_rays(region, phases, geometry.camera, screen, pool=pool)
+        rays = screen_points_and_rays(region, phases, geometry.camera, screen, pool=pool,
+                                      min_valid_px=settings.min_valid_px)
     else:
         rays = reduction.rays
     if order <= STAGES.index("pose"):
