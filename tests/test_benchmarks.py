@@ -127,12 +127,19 @@ def test_vs_opencsp_benchmark_says_what_is_missing_and_runs_its_pairs(repo_root,
                               timeout=300)
         assert proc.returncode != 0 and said in proc.stderr, proc.stderr[-1000:]
         assert "Traceback" not in proc.stderr
-    proc = subprocess.run([sys.executable, script, "--opencsp-python", "/bin/echo", "--sizes", "native", "--runs", "1"],
-                          capture_output=True, text=True, timeout=600)
+    proc = subprocess.run([sys.executable, script, "--opencsp-python", "/bin/echo", "--datasets", "robust",
+                           "--sizes", "native", "--runs", "1"], capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
     print(proc.stdout)
-    for line in ("native: pair 1/1 done", "| native | ", "ours   f x 120.3", "load after"):
+    for line in ("robust native: pair 1/1 done", "| robust | native | ", "ours   f x 120.3", "load after"):
         assert line in proc.stdout
+    # every dataset has its command (issue 48 item 7); without OpenCSP only ours runs, and the table says so
+    alone = subprocess.run([sys.executable, script, "--datasets", "plano,undefined,split_facet", "--sizes", "native",
+                            "--runs", "1"], capture_output=True, text=True, timeout=600)
+    assert alone.returncode == 0, alone.stdout[-2000:] + alone.stderr[-2000:]
+    for line in ("OpenCSP not run: give --opencsp-python", "| plano | native | ", "| undefined | native | ",
+                 "| split_facet | native | ", "| not run | not run |"):
+        assert line in alone.stdout
     bad = subprocess.run([sys.executable, script, "--opencsp-python", "/bin/echo", "--sizes", "huge"],
                          capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "neither 'native' nor an upsampling" in bad.stderr

@@ -190,7 +190,9 @@ def cmd_import_opencsp(args) -> int:
         m.settings = replace(m.settings, surface=args.surface)
     prepare_analysis_process()      # as the station's worker: memory reused, kernels loaded first
     if m.ensemble is not None:
-        return _import_ensemble(m, args)
+        # every facet's sensitivities (each under its own key) kept on disk as a single facet's are
+        return _import_ensemble(m, args, SensitivityStore(
+            disk, lambda: capture_basis(m.frames, m.distance_m, source="opencsp-ensemble")))
     use_disk_cache(disk)
     cache = SensitivityStore(disk, lambda: capture_basis(m.frames, m.distance_m, source="opencsp"))
     a = m.analyse(robust=args.robust, uncertainty=m.uncertainty, sensitivity_cache=cache)
@@ -267,10 +269,10 @@ def _conformance(args) -> int:
     return 0
 
 
-def _import_ensemble(m, args) -> int:
+def _import_ensemble(m, args, cache: dict | None = None) -> int:
     """import-opencsp of a multi-facet measurement: every facet's figures and canting error (with U), the
     facets' common tilt against their corners (OpenCSP has no fixture: no placement)."""
-    res = m.analyse_heliostat(uncertainty=m.uncertainty, sensitivity_cache={})
+    res = m.analyse_heliostat(uncertainty=m.uncertainty, sensitivity_cache={} if cache is None else cache)
     facets = []
     for f in res.figures["facets"]:
         entry = {"label": f["label"], "status": f["status"]}
