@@ -78,9 +78,12 @@ def _rotvec_to_matrix(rotvec: np.ndarray) -> np.ndarray:
 def camera_from_opencsp(path: Path) -> CameraIntrinsics:
     """OpenCSP ``Camera``: the intrinsic matrix with K[2,2] normalised to 1 (see module docstring)."""
     k = np.array(_read(path, "Camera/intrinsic_mat"), dtype=np.float64)
-    w, h = (int(v) for v in _read(path, "Camera/image_shape_xy"))
+    w, h = (int(v) for v in np.ravel(_read(path, "Camera/image_shape_xy")))     # (2,) or (2, 1) in OpenCSP's files
     matrix = np.array([[k[0, 0], k[0, 1], k[0, 2]], [0.0, k[1, 1], k[1, 2]], [0.0, 0.0, 1.0]])
-    return CameraIntrinsics(w, h, matrix, np.array(_read(path, "Camera/distortion_coef"), np.float64))
+    distortion = np.ravel(np.array(_read(path, "Camera/distortion_coef"), np.float64))
+    # OpenCV's 4-term model (k1 k2 p1 p2, OpenCSP's other cameras) is the 5-term one with k3 = 0
+    return CameraIntrinsics(w, h, matrix, np.pad(distortion, (0, 5 - distortion.size)) if distortion.size == 4
+                            else distortion)
 
 
 def screen_to_camera(path: Path) -> Pose:
