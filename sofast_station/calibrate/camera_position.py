@@ -176,9 +176,9 @@ def calibrate_camera_position(image: np.ndarray, name: str, camera: CameraIntrin
         result.reasons.append(f"reprojection RMS {fit.rms_px:.2f} px is over {RMS_WARN_PX:g} px: check the survey of "
                               "the markers and the camera's calibration")
     if abs(scale - 1.0) > 0.005:
-        result.reasons.append(f"the markers look {100 * (scale - 1):+.2f} % in size against the table: a table whose "
-                              "corners were surveyed inside (or outside) the markers' printed edges, e.g. on whole "
-                              "pixels; the pose rests on the markers' spacing and barely moves with it")
+        result.reasons.append(f"the markers look {100 * (scale - 1):+.2f} % in size against the table: were its "
+                              "corners surveyed inside (or outside) the markers' printed edges, e.g. on whole pixels? "
+                              "That biases the pose, most in depth: check the survey")
     if dropped:
         result.reasons.append(f"marker(s) {dropped} left out: they fit far worse than the others (moved since the "
                               "survey, or misread)")

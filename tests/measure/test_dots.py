@@ -91,7 +91,7 @@ def test_dots_are_located_within_their_u_over_three_scenes(scenes):
 
 def test_fixed_poses_carry_the_markers_uncertainty_into_the_dots(scenes):
     """With each pose from its markers alone (OpenCSP's method) the dots' U is larger than when the dots also
-    adjust the poses (by 14-20 % per axis here, with eight markers in each of three photographs): the poses'
+    adjust the poses (by 11-19 % per axis here, with eight markers in each of three photographs): the poses'
     uncertainty is carried into the dots either way."""
     views = scenes[0][2]
     joint = locate_dots(CAMERA, views)
