@@ -154,6 +154,10 @@ def _centroids(image: np.ndarray, starts: np.ndarray, radius_px: float, dark: bo
     r2 = offs[None, :] ** 2 + offs[:, None] ** 2
     ring = (r2 > (outer - 2.0) ** 2) & (r2 <= outer ** 2)
     background = np.median(patch[:, ring], axis=1)
+    # the centroid's disc never leaves the inner part of the patch (it may move 2 px): iterate on that alone
+    inner = half - int(np.ceil(reach + 3.0))
+    if inner > 0:
+        patch, uu, vv = patch[:, inner:-inner, inner:-inner], uu[:, :, inner:-inner], vv[:, inner:-inner, :]
     signal = np.clip((background[:, None, None] - patch) if dark else (patch - background[:, None, None]), 0.0, None)
     c = starts[ok].astype(np.float64)
     good = np.ones(len(c), bool)
@@ -237,11 +241,12 @@ def index_dots(centres_px: np.ndarray, origin_px, tolerance: float = 0.3) -> tup
     """Lattice indices of dots, counted from the dot nearest *origin_px*.
 
     i grows along the image's columns and j along its rows (the lattice's two directions nearest to them).
-    From the origin the walk goes breadth-first; the next dot in a direction is predicted from the last two
-    dots on that line (or, at the start of a line, from a neighbouring line's step) and accepted when one
-    lies within *tolerance* of a lattice step of the prediction and is not taken. Dots whose neighbours on
-    either side do not lie on a smooth line (a second difference beyond *tolerance* of a step: a stray
-    blob taken for a dot) are dropped.
+    From the origin the walk goes breadth-first, in waves (every place next to the dots indexed so far is
+    looked for at once); the next dot in a direction is predicted from the last two dots on that line (or,
+    at the start of a line, from a neighbouring line's step) and accepted when one lies within *tolerance*
+    of a lattice step of the prediction and is not taken (a dot two places claim goes to the nearer
+    prediction). Dots whose neighbours on either side do not lie on a smooth line (a second difference
+    beyond half *tolerance* of the two steps: a stray blob taken for a dot) are dropped.
 
     Parameters
     ----------
