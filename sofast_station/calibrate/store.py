@@ -38,7 +38,7 @@ from .settings import CalibrationPolicy, calibration_settings
 
 log = logging.getLogger(__name__)
 
-KINDS = ("radiometric", "camera", "geometry", "screen", "pose", "handheld")
+KINDS = ("radiometric", "camera", "geometry", "screen", "pose", "handheld", "cameraposition", "dots")
 
 _NAME = re.compile(r"^(?P<kind>[a-z]+)-(?P<stamp>\d{8}T\d{6})Z-(?P<seq>\d{3,})\.json$")
 
@@ -123,6 +123,23 @@ def write_record(data_dir: str | Path, kind: str, build: Callable[[str, str], di
             Path(tmp).unlink(missing_ok=True)
         log.info("wrote %s record %s", kind, path)
         return path, record_id
+
+
+def read_record(path: str | Path, kind: str, schema: int, what: str, redo: str) -> dict:
+    """A record file's JSON content, checked for its *kind* and *schema*; ConfigError naming the file (*what*:
+    e.g. "dots record") and what to do (*redo*) otherwise."""
+    path = Path(path)
+    try:
+        d = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"{what} {path} does not exist; {redo}") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{what} {path} is corrupt ({exc}); {redo}") from None
+    if not isinstance(d, dict) or d.get("kind") != kind:
+        raise ConfigError(f"{path} is not a {what}")
+    if d.get("schema") != schema:
+        raise ConfigError(f"{path} has schema {d.get('schema')!r}; this software reads schema {schema}")
+    return d
 
 
 def _json_safe(obj):

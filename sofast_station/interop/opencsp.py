@@ -84,13 +84,14 @@ def camera_from_opencsp(path: Path) -> CameraIntrinsics:
     # (OpenCSP has saved these as (2,), (2, 1), (5,) and (1, 5) arrays)
     shape = np.asarray(_read(path, "Camera/image_shape_xy")).ravel()
     dist = np.asarray(_read(path, "Camera/distortion_coef"), np.float64).ravel()
-    if k.shape != (3, 3) or shape.size != 2 or dist.size not in (4, 5, 8, 12, 14):
+    if k.shape != (3, 3) or shape.size != 2 or dist.size not in (4, 5):
         raise ConfigError(f"{path}: a Camera with an intrinsic matrix of shape {k.shape}, image shape {shape.tolist()} "
-                          f"and {dist.size} distortion coefficients: expected 3 x 3, [width, height] and OpenCV's 4, "
-                          "5, 8, 12 or 14")
+                          f"and {dist.size} distortion coefficients: expected 3 x 3, [width, height] and OpenCV's 4 or "
+                          "5 (k1 k2 p1 p2 [k3])")
     w, h = (int(v) for v in shape)
     matrix = np.array([[k[0, 0], k[0, 1], k[0, 2]], [0.0, k[1, 1], k[1, 2]], [0.0, 0.0, 1.0]])
-    return CameraIntrinsics(w, h, matrix, dist)
+    # OpenCV's 4-term model (k1 k2 p1 p2, OpenCSP's other cameras) is the 5-term one with k3 = 0
+    return CameraIntrinsics(w, h, matrix, np.pad(dist, (0, 5 - dist.size)))
 
 
 def screen_to_camera(path: Path) -> Pose:

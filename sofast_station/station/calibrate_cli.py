@@ -11,6 +11,9 @@ with the station's other commands; the routines themselves see only the device p
     sofast-station calibrate pose [--target reference_mirror.toml] [--placements 4]
     sofast-station calibrate commission
     sofast-station calibrate status
+    sofast-station calibrate camera-position PHOTO --markers CSV [--camera station|record|handheld|FILE]
+    sofast-station calibrate dots PHOTO... --origin COLUMN,ROW... --camera CAMERA --markers CSV
+    sofast-station calibrate screen-data DISTORTION.h5 --markers CSV --point-pairs CSV --projection FILE.h5
 
 Every command ends its summary with a ``verdict:`` line.
 
@@ -201,6 +204,198 @@ def cmd_status(args) -> int:
     return 0
 
 
+def _pair(option: str):
+    def parse(text: str) -> tuple[float, float]:
+        try:
+            a, b = (float(v) for v in text.replace(":", ",").split(","))
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{option} must be two numbers, e.g. 1201,828; got {text!r}") from None
+        return a, b
+    return parse
+
+
+def _photo_camera(spec: str, config) -> tuple:
+    """The camera of the photographs: ``station`` (the station's camera in force), ``record`` (the newest
+    camera record), ``handheld`` (the newest handheld record), or a file: a camera record (JSON) or OpenCSP's
+    Camera (HDF5). Returns (intrinsics, name, standard deviations (9,) or None, note or None)."""
+    import numpy as np
+
+    from ..calibrate.camera import load_camera_record
+    from ..calibrate.store import newest_record_path, record_dir
+
+    def from_record(path):
+        camera, record = load_camera_record(path)
+        std = record.get("std_intrinsics")
+        vector = None
+        if isinstance(std, dict):
+            try:
+                vector = np.array([std["fx"], std["fy"], std["cx"], std["cy"], *std["distortion"]], np.float64)
+            except (KeyError, TypeError, ValueError):
+                vector = None
+        return camera, str(path), vector, None
+
+    if spec in ("record", "handheld"):
+        path = newest_record_path(config.data_dir, "camera" if spec == "record" else "handheld")
+        if path is None:
+            raise ConfigError(f"--camera {spec}: there is no {spec if spec == 'handheld' else 'camera'} record in "
+                              f"{record_dir(config.data_dir, 'camera' if spec == 'record' else 'handheld')}: run "
+                              f"'sofast-station calibrate camera{' --handheld' if spec == 'handheld' else ''} "
+                              "IMAGES...' first, or give the camera's file")
+        return from_record(path)
+    if spec == "station":
+        if config.raw.get("camera", {}).get("intrinsics") == "record":
+            path = newest_record_path(config.data_dir, "camera")
+            if path is not None:
+                return from_record(path)
+        return config.geometry.camera, f"{config.path} [camera]", None, None
+    from pathlib import Path
+
+    path = Path(spec)
+    if path.suffix.lower() in (".h5", ".hdf5"):
+        from ..interop.opencsp_calibration import opencsp_camera
+
+        camera, note = opencsp_camera(path)
+        return camera, str(path), None, note
+    if path.suffix.lower() == ".json":
+        return from_record(path)
+    raise ConfigError(f"--camera {spec}: give station, record, handheld, a camera record (.json) or OpenCSP's Camera "
+                      "file (.h5)")
+
+
+def _photo_inputs(args) -> tuple:
+    """What both photogrammetric calibrations read first: the station file, the photographs' camera (with its
+    standard deviations and a note on OpenCSP's matrix, logged) and the marker table."""
+    from ..config import load_config
+    from ..calibrate.photo_inputs import read_marker_table
+
+    config = load_config(args.config, use_camera_record=False)
+    camera, camera_name, std, note = _photo_camera(args.camera, config)
+    if note:
+        log.info("%s", note)
+    return config, camera, camera_name, std, note, read_marker_table(args.markers)
+
+
+def cmd_camera_position(args) -> int:
+    from ..calibrate.camera_position import calibrate_camera_position, save_camera_position, summary_text
+    from ..calibrate.photo_inputs import read_photo
+
+    config, camera, camera_name, std, note, table = _photo_inputs(args)
+    image = read_photo(args.photo)
+    log.info("camera position from %s: camera %s, %d marker(s) in %s", args.photo, camera_name, len(table.ids),
+             args.markers)
+    result = calibrate_camera_position(image, args.photo, camera, camera_name, table, intrinsics_std=std,
+                                       dictionary=args.dictionary, refine=args.corners, min_markers=args.min_markers)
+    source = f"sofast-station {__version__} calibrate camera-position {args.photo}"
+    inputs = {"photo": str(args.photo), "camera": camera_name, "camera_note": note, "markers": str(args.markers)}
+    path = save_camera_position(config.data_dir, result, source, inputs)
+    _emit(args, {"path": str(path), **result.to_dict(), "inputs": inputs}, summary_text(result, path))
+    return 0
+
+
+def cmd_dots(args) -> int:
+    from ..calibrate.dot_locations import calibrate_dots, save_dots, summary_text
+    from ..calibrate.photo_inputs import read_photo
+
+    config, camera, camera_name, _, note, table = _photo_inputs(args)
+    if len(args.origin) != len(args.photos):
+        raise ConfigError(f"give one --origin COLUMN,ROW per photograph, in their order: {len(args.photos)} "
+                          f"photograph(s), {len(args.origin)} origin(s)")
+    photos = [(str(p), read_photo(p)) for p in args.photos]
+    cal = calibrate_dots(photos, args.origin, camera, camera_name, table, dictionary=args.dictionary,
+                         refine=args.corners, dark=not args.light_dots, dot_area_px=args.dot_area,
+                         min_circularity=args.min_circularity, min_views=args.min_views,
+                         progress=lambda text: log.info("%s", text))
+    source = f"sofast-station {__version__} calibrate dots, {len(photos)} photograph(s)"
+    inputs = {"photos": [str(p) for p in args.photos], "origins_px": [list(o) for o in args.origin],
+              "camera": camera_name, "camera_note": note, "markers": str(args.markers)}
+    path = save_dots(config.data_dir, cal, source, inputs)
+    text = summary_text(cal, path)
+    data = {"path": str(path), "verdict": cal.verdict, "reasons": cal.reasons, "dots_located":
+            int(cal.locations.located.sum()), "sigma_px": cal.solution.sigma_px, "rms_px": cal.solution.rms_px,
+            "photos": [p.to_dict() for p in cal.photos], "inputs": inputs}
+    if args.opencsp_out:
+        from ..interop.opencsp_calibration import write_dot_locations
+
+        write_dot_locations(args.opencsp_out, cal.locations)
+        text += f"\nOpenCSP's DotLocationsFixedPattern file: {args.opencsp_out}"
+        data["opencsp_out"] = str(args.opencsp_out)
+    if args.compare:
+        data["compare"], lines = _compare_dots(cal.locations, args.compare)
+        text = text.replace("\nverdict:", "\n" + lines + "\nverdict:")
+    _emit(args, data, text)
+    return 0
+
+
+def _compare_dots(ours, path) -> tuple[dict, str]:
+    """Our dots against OpenCSP's file *path*, dot by dot where both located one: per-axis RMS and largest
+    difference, and how many lie within our U."""
+    import numpy as np
+
+    from ..interop.opencsp_calibration import read_dot_locations
+
+    theirs = read_dot_locations(path)
+    xs = np.intersect1d(ours.x_index, theirs.x_index)
+    ys = np.intersect1d(ours.y_index, theirs.y_index)
+    a = ours.xyz_m[np.ix_(ys - ours.y_index[0], xs - ours.x_index[0])]
+    u = ours.xyz_U_m[np.ix_(ys - ours.y_index[0], xs - ours.x_index[0])]
+    b = theirs.xyz_m[np.ix_(ys - theirs.y_index[0], xs - theirs.x_index[0])]
+    both = np.all(np.isfinite(a), axis=2) & np.all(np.isfinite(b), axis=2)
+    d, u = (a - b)[both], u[both]
+    if d.size == 0:
+        raise ConfigError(f"{path} locates none of the dots this calibration located: another target, or other "
+                          "indices?")
+    rms, big = np.sqrt(np.mean(d ** 2, axis=0)), np.max(np.abs(d), axis=0)
+    within = np.mean(np.abs(d) <= u, axis=0)
+    data = {"file": str(path), "dots": int(both.sum()), "rms_m": rms.tolist(), "max_m": big.tolist(),
+            "within_U": within.tolist(), "median_U_m": np.median(u, axis=0).tolist()}
+    line = (f"  against {path}: {int(both.sum())} dots; difference RMS x {1000 * rms[0]:.3f}, y {1000 * rms[1]:.3f}, "
+            f"z {1000 * rms[2]:.3f} mm (largest {1000 * big[0]:.3f}, {1000 * big[1]:.3f}, {1000 * big[2]:.3f} mm); "
+            f"within our U: {100 * within[0]:.0f} %, {100 * within[1]:.0f} %, {100 * within[2]:.0f} % (that file's own "
+            "uncertainty is not in U)")
+    return data, line
+
+
+def cmd_screen_data(args) -> int:
+    import numpy as np
+
+    from ..calibrate.photo_inputs import read_marker_table
+    from ..interop.opencsp import screen_nodes
+    from ..interop.opencsp_calibration import (check_screen_data, read_image_projection, read_point_pairs,
+                                               read_screen_distortion)
+
+    fractions, xyz = read_screen_distortion(args.data)
+    table = read_marker_table(args.markers)
+    pairs = read_point_pairs(args.point_pairs)
+    projection = read_image_projection(args.projection)
+    display = screen_nodes(args.display) if args.display else None
+    log.info("checking %s (%d points) against %d fiducial marker(s)", args.data, len(fractions), len(pairs))
+    out = check_screen_data(fractions, xyz, table, pairs, projection, display)
+    mm = lambda v: ", ".join(f"{1000 * x:.3f}" for x in v)   # noqa: E731
+    fid = out["fiducials"]
+    lines = [f"Screen distortion data {args.data}: {out['nodes']} points",
+             f"  our screen model on the points returns them to {max(out['reproduction']['max_m']) * 1e9:.2g} nm",
+             f"  built on every other node ({out['holdout']['nodes_used']}), at the {out['holdout']['count']} others: "
+             f"RMS (x, y, z) {mm(out['holdout']['rms_m'])} mm, largest {mm(out['holdout']['max_m'])} mm",
+             f"  at the {len(fid['pairs'])} calibration fiducials, the data against the surveyed marker corners: RMS "
+             f"{mm(fid['rms_m'])} mm, largest {mm(fid['max_m'])} mm"]
+    lines += [f"    fiducial {r['fiducial']} / marker {r['marker']}: {mm(r['difference_m'])} mm" for r in fid["pairs"]]
+    verdict = "pass"
+    if max(fid["max_m"][:2]) > args.tolerance_mm / 1000.0:
+        verdict = "warn"
+        lines.append(f"    - a fiducial is more than {args.tolerance_mm:g} mm (in x or y) from its marker: is the "
+                     "point pairs file for this data, and the marker table the one the calibration used?")
+    if "display" in out:
+        d = out["display"]
+        m = np.asarray(d["map"])
+        lines.append(f"  against {args.display} over the active area: directly RMS (x, y) "
+                     f"{mm(d['direct']['rms_m'])} mm, "
+                     f"largest {mm(d['direct']['max_m'])} mm; after the best affine map (scale x {m[0, 0]:.5f}, y "
+                     f"{m[1, 1]:.5f}) RMS {mm(d['affine']['rms_m'])} mm, largest {mm(d['affine']['max_m'])} mm")
+    lines.append(f"verdict: {verdict.upper()}")
+    _emit(args, {**out, "verdict": verdict, "file": str(args.data)}, "\n".join(lines))
+    return 0
+
+
 def register(subparsers, default_config_path: str | None = None) -> argparse.ArgumentParser:
     """Add ``calibrate`` and its subcommands to the main parser's *subparsers*.
 
@@ -209,7 +404,8 @@ def register(subparsers, default_config_path: str | None = None) -> argparse.Arg
     """
     cal = add_command(
         subparsers, "calibrate",
-        help="calibration routines: radiometric (daily), camera, geometry, screen, pose, commission, status",
+        help="calibration routines: radiometric (daily), camera, geometry, screen, pose, commission, status, "
+             "camera-position, dots, screen-data",
         description="""
             The station's calibrations (docs/calibration.md). Each writes a dated record (JSON, never
             overwritten) under data_dir/calibration/; inspection uses the newest and warns or refuses when
@@ -356,4 +552,81 @@ def register(subparsers, default_config_path: str | None = None) -> argparse.Arg
             data_dir/calibration/. Nothing is measured.""")
     common(st, simulated=False)
     st.set_defaults(func=cmd_status)
+
+    def photo_options(p):
+        p.add_argument("--markers", required=True, metavar="CSV",
+                       help="the markers' surveyed corners: OpenCSP's CSV of marker id, corner id (4 x marker id + "
+                            "0..3, OpenCV's corner order), x, y, z in metres (required)")
+        p.add_argument("--dictionary", default="DICT_4X4_1000", help="the markers' ArUco dictionary (OpenCSP's)")
+        p.add_argument("--corners", choices=("edges", "contour", "subpix", "apriltag", "none"), default="edges",
+                       help="how marker corners are refined: edges (ours: each side located and the sides "
+                            "intersected), OpenCV's methods, or none (whole pixels, as OpenCSP)")
+
+    cpos = add_command(
+        sub, "camera-position", help="the camera's position from a photograph of surveyed ArUco markers",
+        description="""
+            The camera's pose in the markers' frame (docs/calibration.md#the-cameras-position-from-markers):
+            the camera photographs ArUco markers whose corners were surveyed (the screen frame's markers);
+            their corners are found to a fraction of a pixel, the pose is solved by least squares, and its
+            uncertainty (k = 2) comes from the corners' residuals (and the camera record's standard deviations,
+            when the camera is a record). Writes a dated cameraposition record with the pose in OpenCV's and in
+            OpenCSP's form (rvec, tvec).""")
+    common(cpos, simulated=False)
+    cpos.add_argument("photo", metavar="PHOTO", help="the camera's photograph of the markers")
+    cpos.add_argument("--camera", default="station", metavar="CAMERA",
+                      help="the camera: station (the station's camera in force), record (the newest camera record), "
+                           "handheld, a camera record .json or OpenCSP's Camera .h5")
+    photo_options(cpos)
+    cpos.add_argument("--min-markers", type=int, default=3, metavar="N", help="fewest markers of the table to be seen")
+    cpos.set_defaults(func=cmd_camera_position)
+
+    dots = add_command(
+        sub, "dots", help="a dot target's 3-D dot locations from photographs with surveyed ArUco markers",
+        description="""
+            Locate every dot of a fixed-pattern dot target (docs/calibration.md#a-dot-targets-dot-locations):
+            photograph the target and the surveyed markers from a few places (3 to 5, spread left and right)
+            with one calibrated camera, and give for every photograph the pixel of the same dot, the origin
+            (index 0, 0). Dots are found to a few hundredths of a pixel, indexed from the origin, and located
+            by a bundle adjustment of the camera poses and the dots (the markers fix the frame), each with
+            its U (k = 2). Writes a dated dots record (the grid of x and y indices and xyz); --opencsp-out
+            also writes OpenCSP's DotLocationsFixedPattern file.""")
+    common(dots, simulated=False)
+    dots.add_argument("photos", nargs="+", metavar="PHOTO", help="the photographs (two or more)")
+    dots.add_argument("--origin", action="append", type=_pair("--origin"), required=True, metavar="COLUMN,ROW",
+                      help="per photograph, in their order: a pixel on the origin dot (required, once per photograph)")
+    dots.add_argument("--camera", required=True, metavar="CAMERA",
+                      help="the camera of the photographs: handheld, record, station, a camera record .json or "
+                           "OpenCSP's Camera .h5 (required)")
+    photo_options(dots)
+    dots.add_argument("--dot-area", type=_pair("--dot-area"), default=(3.0, 2000.0), metavar="MIN,MAX",
+                      help="accepted dot areas in the photographs, square pixels")
+    dots.add_argument("--min-circularity", type=float, default=0.8, metavar="C",
+                      help="least circularity of a dot (a disc is 1, a square 0.785)")
+    dots.add_argument("--light-dots", action="store_true", help="the dots are light on a dark target")
+    dots.add_argument("--min-views", type=int, default=2, metavar="N", help="photographs that must show a dot")
+    dots.add_argument("--opencsp-out", default=None, metavar="FILE.h5",
+                      help="also write OpenCSP's DotLocationsFixedPattern HDF5 file")
+    dots.add_argument("--compare", default=None, metavar="FILE.h5",
+                      help="compare, dot by dot, with an OpenCSP DotLocationsFixedPattern file")
+    dots.set_defaults(func=cmd_dots)
+
+    scd = add_command(
+        sub, "screen-data", help="check OpenCSP's screen distortion data against its fiducial markers",
+        description="""
+            Check a screen shape measured by OpenCSP's display-shape calibration (its screen distortion
+            data: screen fractions and 3-D points, docs/calibration.md#opencsps-screen-shape-data): our screen
+            model built on it, its interpolation between nodes, and the shape at the calibration fiducials
+            against the surveyed markers paired with them; with --display, against an OpenCSP display model
+            of the same screen. Nothing is measured and no record is written.""")
+    common(scd, simulated=False)
+    scd.add_argument("data", metavar="DISTORTION.h5", help="OpenCSP's screen distortion data")
+    scd.add_argument("--markers", required=True, metavar="CSV", help="the marker table the calibration used (required)")
+    scd.add_argument("--point-pairs", required=True, metavar="CSV",
+                     help="OpenCSP's screen calibration point pairs: fiducial index, marker id (required)")
+    scd.add_argument("--projection", required=True, metavar="FILE.h5",
+                     help="OpenCSP's ImageProjection file: the active area the fiducials were shown in (required)")
+    scd.add_argument("--display", default=None, metavar="FILE.h5", help="an OpenCSP display model to compare with")
+    scd.add_argument("--tolerance-mm", type=float, default=5.0, metavar="MM",
+                     help="a fiducial further than this from its marker (in x or y) is a warning")
+    scd.set_defaults(func=cmd_screen_data)
     return cal

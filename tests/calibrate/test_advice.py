@@ -45,7 +45,8 @@ def parser_options(command: str) -> set[str]:
     return {s for a in sub._actions for s in a.option_strings}
 
 
-@pytest.mark.parametrize("module, command", [("radiometric.py", "radiometric"), ("camera.py", "camera")])
+@pytest.mark.parametrize("module, command", [("radiometric.py", "radiometric"), ("camera.py", "camera"),
+                                             ("camera_position.py", "camera-position"), ("dot_locations.py", "dots")])
 def test_advice_names_only_options_the_command_has(module, command):
     named = message_options(CALIBRATE / module)
     have = parser_options(command)

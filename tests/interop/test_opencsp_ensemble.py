@@ -16,7 +16,6 @@ import pytest
 from sofast_station.interop.opencsp import export_opencsp, read_opencsp
 from sofast_station.measure.pipeline import default_screen
 from sofast_station.twin.heliostat import heliostat_truth
-from tests.conftest import ROOT
 from tests.station import test_heliostat_accuracy as accuracy
 from tests.station.test_heliostat_accuracy import ENSEMBLE, TwinOptics, draw_heliostat
 

@@ -1,0 +1,735 @@
+"""A dot target's 3-D dot locations from photographs that also show ArUco markers of known position.
+
+The fixed-pattern (dot grid) method needs where every dot of its target is, in the markers' frame. The
+target is photographed from a few places; each photograph shows the dots and some of the markers
+(:mod:`sofast_station.measure.markers`). Steps, each a function here:
+
+1. :func:`find_dots`: candidate dots (OpenCV's ``SimpleBlobDetector``), each centred to a fraction of a pixel
+   by its background-subtracted intensity moments over a disc re-centred until it stops moving;
+2. :func:`index_dots`: the dots' lattice indices (i, j), counted from the dot nearest a given origin pixel,
+   i along the image's columns and j along its rows, by walking the lattice: each next dot is looked for
+   where its two predecessors on the same row or column say it should be;
+3. :func:`locate_dots`: a bundle adjustment of reprojection errors (pixels) over every photograph's camera
+   pose and every dot's position, the markers' corners known points that fix the frame; the noise of each
+   kind of observation (marker corners, dots) is estimated from its residuals, outliers beyond 5 sigma are
+   dropped, and each dot's covariance (the poses' uncertainty included) comes from the normal equations,
+   reduced to the poses by the Schur complement (a dot's 3 x 3 block is independent of the others'
+   given the poses, so 4000 dots cost no more than 4000 small inversions);
+4. the indices are turned so that x index grows along the markers' frame's +x axis (or the first of its
+   axes the lattice runs along) and y index along the next: :class:`DotLocations`, the (rows, columns, 3)
+   grid OpenCSP's ``DotLocationsFixedPattern`` holds, with x and y index vectors.
+
+Pure functions of arrays (numpy, OpenCV, scipy); no I/O.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from ..geometry import CameraIntrinsics, Pose
+from .bundle import camera_vector, moved, pose_derivative, project
+from .markers import solve_camera_pose
+
+
+# -- the grid --------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class DotLocations:
+    """A dot target's 3-D dot locations on its index grid (OpenCSP's ``DotLocationsFixedPattern``).
+
+    Attributes
+    ----------
+    x_index : (C,) int array
+        The x index of each grid column, increasing by one.
+    y_index : (R,) int array
+        The y index of each grid row, increasing by one.
+    xyz_m : (R, C, 3) float array
+        Dot (x index ``x_index[c]``, y index ``y_index[r]``) at ``xyz_m[r, c]``, metres, in the markers'
+        frame; NaN where the dot was not located.
+    xyz_U_m : (R, C, 3) float array or None
+        Expanded uncertainty (k = 2) of each coordinate, metres; None when unknown (OpenCSP's files).
+    covariance_m2 : (R, C, 3, 3) float array or None
+        Each dot's covariance, square metres.
+    """
+
+    x_index: np.ndarray
+    y_index: np.ndarray
+    xyz_m: np.ndarray
+    xyz_U_m: np.ndarray | None = None
+    covariance_m2: np.ndarray | None = field(default=None, compare=False)
+
+    def __post_init__(self):
+        x = np.asarray(self.x_index).astype(np.int64).ravel()
+        y = np.asarray(self.y_index).astype(np.int64).ravel()
+        xyz = np.asarray(self.xyz_m, np.float64)
+        if x.size == 0 or y.size == 0 or np.any(np.diff(x) != 1) or np.any(np.diff(y) != 1):
+            raise ValueError("dot indices must be consecutive integers, increasing by one")
+        if xyz.shape != (y.size, x.size, 3):
+            raise ValueError(f"dot locations must be (rows, columns, 3) = ({y.size}, {x.size}, 3), got {xyz.shape}")
+        object.__setattr__(self, "x_index", x)
+        object.__setattr__(self, "y_index", y)
+        object.__setattr__(self, "xyz_m", xyz)
+        if self.xyz_U_m is not None:
+            u = np.asarray(self.xyz_U_m, np.float64)
+            if u.shape != xyz.shape:
+                raise ValueError(f"dot uncertainties must have the locations' shape {xyz.shape}, got {u.shape}")
+            object.__setattr__(self, "xyz_U_m", u)
+
+    @property
+    def located(self) -> np.ndarray:
+        """(R, C) bool: the dots that were located."""
+        return np.all(np.isfinite(self.xyz_m), axis=2)
+
+    def dot(self, x_index: int, y_index: int) -> np.ndarray:
+        """The location (3,) of one dot, metres (NaN when it was not located); IndexError outside the grid."""
+        c, r = int(x_index) - int(self.x_index[0]), int(y_index) - int(self.y_index[0])
+        if not (0 <= c < self.x_index.size and 0 <= r < self.y_index.size):
+            raise IndexError(f"dot ({x_index}, {y_index}) is outside the grid x {self.x_index[0]}..{self.x_index[-1]}, "
+                             f"y {self.y_index[0]}..{self.y_index[-1]}")
+        return self.xyz_m[r, c]
+
+
+def dot_grid(indices: np.ndarray, xyz_m: np.ndarray, covariance_m2: np.ndarray | None = None) -> DotLocations:
+    """Scattered dots -> the index grid OpenCSP's fixed-pattern files hold.
+
+    Parameters
+    ----------
+    indices : (N, 2) int array
+        Each dot's (x index, y index), each pair once.
+    xyz_m : (N, 3) array
+        Its location, metres.
+    covariance_m2 : (N, 3, 3) array, optional
+        Its covariance: the grid then carries each coordinate's expanded uncertainty (k = 2) too.
+
+    Returns
+    -------
+    DotLocations
+        Spanning the smallest and largest indices; NaN where no dot was given.
+    """
+    indices = np.asarray(indices, np.int64).reshape(-1, 2)
+    xyz_m = np.asarray(xyz_m, np.float64).reshape(-1, 3)
+    if indices.shape[0] == 0 or indices.shape[0] != xyz_m.shape[0]:
+        raise ValueError(f"need as many indices as dots (and at least one), got {indices.shape[0]} and "
+                         f"{xyz_m.shape[0]}")
+    if np.unique(indices, axis=0).shape[0] != indices.shape[0]:
+        raise ValueError("each dot index (x, y) may be given once")
+    lo, hi = indices.min(axis=0), indices.max(axis=0)
+    shape = (int(hi[1] - lo[1] + 1), int(hi[0] - lo[0] + 1))
+    xyz = np.full(shape + (3,), np.nan)
+    rows, cols = indices[:, 1] - lo[1], indices[:, 0] - lo[0]
+    xyz[rows, cols] = xyz_m
+    cov = u = None
+    if covariance_m2 is not None:
+        cov = np.full(shape + (3, 3), np.nan)
+        cov[rows, cols] = np.asarray(covariance_m2, np.float64).reshape(-1, 3, 3)
+        u = 2.0 * np.sqrt(np.clip(np.diagonal(cov, axis1=2, axis2=3), 0.0, None))
+    return DotLocations(np.arange(lo[0], hi[0] + 1), np.arange(lo[1], hi[1] + 1), xyz, u, cov)
+
+
+# -- finding and indexing --------------------------------------------------------------------------------------
+def _centroids(image: np.ndarray, starts: np.ndarray, radius_px: float, dark: bool, iterations: int = 10):
+    """Background-subtracted intensity centroids of the dots near *starts*, each over a disc of 1.5 typical
+    radii (plus a pixel) re-centred until it stops moving; the background is the median of a ring two
+    pixels wide around the starting disc.
+
+    Noise in the disc pulls a centroid toward the disc's centre, which converges onto the dot's, so the
+    fixed point carries no bias from it. Returns the centres (N, 2) and a mask of those found (a dot too
+    near the image's edge, or with no signal, is not)."""
+    h, w = image.shape
+    reach = 1.5 * radius_px + 1.0
+    outer = reach + 0.5 * radius_px + 2.0
+    half = int(np.ceil(outer + 2))
+    centre = np.round(starts).astype(np.int64)
+    ok = (centre[:, 0] >= half) & (centre[:, 1] >= half) & (centre[:, 0] + half < w) & (centre[:, 1] + half < h)
+    out = np.full(starts.shape, np.nan)
+    if not ok.any():
+        return out, ok
+    c0 = centre[ok]
+    offs = np.arange(-half, half + 1)
+    uu = c0[:, 0, None, None] + offs[None, None, :]                          # (n, 1, S)
+    vv = c0[:, 1, None, None] + offs[None, :, None]                          # (n, S, 1)
+    patch = image[vv, uu].astype(np.float64)                                  # (n, S, S)
+    r2 = offs[None, :] ** 2 + offs[:, None] ** 2
+    ring = (r2 > (outer - 2.0) ** 2) & (r2 <= outer ** 2)
+    background = np.median(patch[:, ring], axis=1)
+    # the centroid's disc never leaves the inner part of the patch (it may move 2 px): iterate on that alone
+    inner = half - int(np.ceil(reach + 3.0))
+    if inner > 0:
+        patch, uu, vv = patch[:, inner:-inner, inner:-inner], uu[:, :, inner:-inner], vv[:, inner:-inner, :]
+    signal = np.clip((background[:, None, None] - patch) if dark else (patch - background[:, None, None]), 0.0, None)
+    c = starts[ok].astype(np.float64)
+    good = np.ones(len(c), bool)
+    for _ in range(iterations):
+        d2 = (uu - c[:, 0, None, None]) ** 2 + (vv - c[:, 1, None, None]) ** 2
+        weight = np.where(d2 <= reach * reach, signal, 0.0)
+        total = weight.sum(axis=(1, 2))
+        good = total > 0
+        new = c.copy()
+        new[good, 0] = (weight * uu).sum(axis=(1, 2))[good] / total[good]
+        new[good, 1] = (weight * vv).sum(axis=(1, 2))[good] / total[good]
+        shift = np.max(np.hypot(*(new - c).T), initial=0.0)
+        c = new
+        if shift < 1e-3:
+            break
+    found = np.flatnonzero(ok)
+    good = good & np.all(np.abs(c - c0) < 2.0, axis=1)       # a centroid that ran off: not a lone dot
+    out[found[good]] = c[good]
+    ok[found[~good]] = False
+    return out, ok
+
+
+def find_dots(image: np.ndarray, *, dark: bool = True, min_area_px: float = 3.0, max_area_px: float = 2000.0,
+              min_circularity: float = 0.6) -> tuple[np.ndarray, np.ndarray]:
+    """Round dots in a grey photograph, each centred to a fraction of a pixel.
+
+    Parameters
+    ----------
+    image : (H, W) uint8 array
+    dark : bool
+        Dark dots on a light target (the default), else light dots on a dark one.
+    min_area_px, max_area_px : float
+        Accepted blob areas, square pixels.
+    min_circularity : float
+        4 pi area / perimeter^2 of an accepted blob (1 for a disc).
+
+    Returns
+    -------
+    centres_px : (N, 2) array
+        (column, row), pixels (centres at integers).
+    diameters_px : (N,) array
+        OpenCV's blob diameters, pixels.
+    """
+    img = np.asarray(image)
+    if img.ndim != 2 or img.dtype != np.uint8:
+        raise ValueError(f"find_dots needs a grey uint8 image, got {img.dtype} {img.shape}")
+    if not 0 < min_area_px < max_area_px:
+        raise ValueError(f"need 0 < min_area_px < max_area_px, got {min_area_px}, {max_area_px}")
+    params = cv2.SimpleBlobDetector_Params()
+    # thresholds beyond the image's median grey find no dark dot a lattice walk needs (they sit on a lighter
+    # target) and cost half the detector's time; light dots: the thresholds start at the median
+    median = float(np.median(img[::4, ::4]))
+    if dark:
+        params.maxThreshold = float(np.clip(median + 10.0, params.minThreshold + 20.0, 250.0))
+    else:
+        params.minThreshold = float(np.clip(median - 10.0, 5.0, params.maxThreshold - 20.0))
+    params.filterByColor = True
+    params.blobColor = 0 if dark else 255
+    params.minDistBetweenBlobs = 2.0
+    params.filterByArea = True
+    params.minArea = float(min_area_px)
+    params.maxArea = float(max_area_px)
+    params.filterByCircularity = True
+    params.minCircularity = float(min_circularity)
+    params.filterByConvexity = False
+    params.filterByInertia = False
+    keypoints = cv2.SimpleBlobDetector_create(params).detect(img)
+    if not keypoints:
+        return np.zeros((0, 2)), np.zeros(0)
+    starts = np.array([k.pt for k in keypoints], np.float64)
+    sizes = np.array([k.size for k in keypoints], np.float64)
+    # a blob far larger or smaller than the typical one is not one of the dots
+    typical = float(np.median(sizes))
+    keep = (sizes <= 2.0 * typical) & (sizes >= 0.5 * typical)
+    starts, sizes = starts[keep], sizes[keep]
+    centres, found = _centroids(img, starts, max(typical / 2.0, 1.0), dark)
+    return centres[found], sizes[found]
+
+
+def index_dots(centres_px: np.ndarray, origin_px, tolerance: float = 0.3) -> tuple[np.ndarray, np.ndarray]:
+    """Lattice indices of dots, counted from the dot nearest *origin_px*.
+
+    i grows along the image's columns and j along its rows (the lattice's two directions nearest to them).
+    From the origin the walk goes breadth-first, in waves (every place next to the dots indexed so far is
+    looked for at once); the next dot in a direction is predicted from the last two dots on that line (or,
+    at the start of a line, from a neighbouring line's step) and accepted when one lies within *tolerance*
+    of a lattice step of the prediction and is not taken (a dot two places claim goes to the nearer
+    prediction). Dots whose neighbours on either side do not lie on a smooth line (a second difference
+    beyond half *tolerance* of the two steps: a stray blob taken for a dot) are dropped.
+
+    Parameters
+    ----------
+    centres_px : (N, 2) array
+    origin_px : (2,) sequence
+        Pixel near the dot whose index is (0, 0).
+    tolerance : float
+        Fraction of the local lattice step.
+
+    Returns
+    -------
+    indices : (M, 2) int array
+        (i, j) of the indexed dots.
+    points_px : (M, 2) array
+        Their centres.
+
+    Raises
+    ------
+    ValueError
+        No dot near the origin (within half a lattice step), or too few dots around it to start.
+    """
+    from scipy.spatial import cKDTree
+
+    pts = np.asarray(centres_px, np.float64).reshape(-1, 2)
+    if pts.shape[0] < 9:
+        raise ValueError(f"only {pts.shape[0]} dots found: a lattice needs at least a 3 x 3 block")
+    tree = cKDTree(pts)
+    origin = np.asarray(origin_px, np.float64).ravel()
+    dist, first = tree.query(origin)
+    near_d, near_i = tree.query(pts[first], k=9)
+    step = float(np.median(near_d[1:5]))
+    if dist > 0.5 * step:
+        raise ValueError(f"no dot within half a lattice step ({0.5 * step:.1f} px) of the origin ({origin[0]:.1f}, "
+                         f"{origin[1]:.1f}): the nearest is {dist:.1f} px away")
+    vecs = pts[near_i[1:5]] - pts[first]
+    unit = vecs / np.linalg.norm(vecs, axis=1)[:, None]
+    e_i, e_j = vecs[int(np.argmax(unit[:, 0]))], vecs[int(np.argmax(unit[:, 1]))]
+    if abs(np.dot(e_i, e_j)) > 0.5 * np.linalg.norm(e_i) * np.linalg.norm(e_j):
+        raise ValueError(f"the dots around the origin ({origin[0]:.1f}, {origin[1]:.1f}) do not form a square lattice")
+    # the walk, in waves: every dot next to the indexed ones is looked for at once (one tree query per wave)
+    span = int(np.ceil(4 * np.sqrt(pts.shape[0]))) + 8
+    grid = np.full((2 * span + 1, 2 * span + 1, 2), np.nan)                 # positions by index, origin at [span, span]
+    grid[span, span] = pts[first]
+    taken = np.zeros(pts.shape[0], bool)
+    taken[first] = True
+    basis = np.array([e_i, -e_i, e_j, -e_j])
+    dirs = np.array([(1, 0), (-1, 0), (0, 1), (0, -1)])
+    frontier = np.array([[span, span]])
+    while frontier.size:
+        cand, pred, step = [], [], []
+        for k, (d, guess) in enumerate(zip(dirs, basis)):
+            nxt = frontier + d
+            inside = np.all((nxt >= 1) & (nxt < 2 * span), axis=1)
+            f, nxt = frontier[inside], nxt[inside]
+            free = np.isnan(grid[nxt[:, 0], nxt[:, 1], 0])
+            f, nxt = f[free], nxt[free]
+            here = grid[f[:, 0], f[:, 1]]
+            back = grid[f[:, 0] - d[0], f[:, 1] - d[1]]
+            delta = here - back                                              # from the last two on the line
+            # at the start of a line: a neighbouring line's step, else the origin's
+            for side in ((d[1], d[0]), (-d[1], -d[0])):
+                a_ = grid[f[:, 0] + side[0], f[:, 1] + side[1]]
+                b_ = grid[nxt[:, 0] + side[0], nxt[:, 1] + side[1]]
+                fill = np.isnan(delta[:, 0]) & ~np.isnan(a_[:, 0]) & ~np.isnan(b_[:, 0])
+                delta[fill] = (b_ - a_)[fill]
+            delta[np.isnan(delta[:, 0])] = guess
+            cand.append(nxt)
+            pred.append(here + delta)
+            step.append(np.linalg.norm(delta, axis=1))
+        cand, pred, step = np.concatenate(cand), np.concatenate(pred), np.concatenate(step)
+        if cand.size == 0:
+            break
+        # one candidate per grid place (the first direction that reached it), one grid place per dot
+        _, first_of = np.unique(cand[:, 0] * (2 * span + 1) + cand[:, 1], return_index=True)
+        cand, pred, step = cand[first_of], pred[first_of], step[first_of]
+        dist, hit = tree.query(pred)
+        ok = (dist <= tolerance * step) & ~taken[hit]
+        order = np.argsort(dist[ok])
+        hit_ok, cand_ok = hit[ok][order], cand[ok][order]
+        _, once = np.unique(hit_ok, return_index=True)                      # a dot claimed twice: the nearer
+        hit_ok, cand_ok = hit_ok[once], cand_ok[once]
+        grid[cand_ok[:, 0], cand_ok[:, 1]] = pts[hit_ok]
+        taken[hit_ok] = True
+        frontier = cand_ok
+    # a stray blob taken for a dot bends its row or column: drop dots whose second difference is off
+    bad = np.zeros(grid.shape[:2], bool)
+    for axis in (0, 1):
+        prev, nxt = np.roll(grid, 1, axis=axis), np.roll(grid, -1, axis=axis)
+        second = np.linalg.norm(prev - 2 * grid + nxt, axis=2)
+        span_ = np.linalg.norm(nxt - prev, axis=2)
+        with np.errstate(invalid="ignore"):
+            bad |= second > tolerance * 0.5 * span_
+    keep = ~np.isnan(grid[:, :, 0]) & ~bad
+    rows, cols = np.nonzero(keep)
+    return np.column_stack([rows - span, cols - span]).astype(np.int64), grid[rows, cols]
+
+
+# -- the bundle adjustment -------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class DotView:
+    """One photograph's observations.
+
+    Attributes
+    ----------
+    name : str
+    marker_world_m : (K, 3) array
+        Known marker corners it shows (world, metres) ...
+    marker_px : (K, 2) array
+        ... and where it shows them, pixels.
+    dot_indices : (N, 2) int array
+        Lattice indices of the dots it shows (the same dot has the same index in every view) ...
+    dot_px : (N, 2) array
+        ... and where, pixels.
+    """
+
+    name: str
+    marker_world_m: np.ndarray
+    marker_px: np.ndarray
+    dot_indices: np.ndarray
+    dot_px: np.ndarray
+
+
+@dataclass
+class DotSolution:
+    """What :func:`locate_dots` found.
+
+    Attributes
+    ----------
+    locations : DotLocations
+        The dots on their grid (x and y index as turned into the markers' frame), with U (k = 2).
+    index_map : (2, 3) int array
+        How view indices (i, j, 1) became (x index, y index): ``[x, y] = index_map @ [i, j, 1]``.
+    poses : list of Pose
+        Each view's world -> camera pose.
+    pose_std : list of (6,) arrays
+        Standard uncertainty of each pose's small motion about and along its own axes (rad, m).
+    sigma_px : dict
+        Noise per kind of observation ("markers", "dots"), estimated from the residuals, pixels.
+    rms_px : dict
+        RMS residual per kind (per coordinate), pixels.
+    views : list of dict
+        Per view: name, marker corners and dots used, their RMS residuals, outliers dropped.
+    dots_used : int
+        Dots located (seen, after outliers, in at least ``min_views`` views).
+    dots_dropped : int
+        Dots indexed but not located (seen in fewer views).
+    outliers : int
+        Observations dropped as outliers.
+    iterations : int
+        Gauss-Newton steps over all rounds.
+    dot_residuals_px : (D, V, 2) array
+        Each located dot's residual in each view (NaN where not seen or dropped), in the order of
+        ``dot_indices``.
+    dot_indices : (D, 2) int array
+        The located dots' (x index, y index).
+    """
+
+    locations: DotLocations
+    index_map: np.ndarray
+    poses: list
+    pose_std: list
+    sigma_px: dict
+    rms_px: dict
+    views: list
+    dots_used: int
+    dots_dropped: int
+    outliers: int
+    iterations: int
+    dot_residuals_px: np.ndarray
+    dot_indices: np.ndarray
+
+
+class _Observations:
+    """Flat arrays of the observations: markers (view, world point, pixel) and dots (view, dot, pixel)."""
+
+    def __init__(self, views: list[DotView], dot_keys: list[tuple[int, int]], min_views: int):
+        self.min_views = min_views
+        lookup = {k: n for n, k in enumerate(dot_keys)}
+        mv, mw, mp, dv, dd, dp = [], [], [], [], [], []
+        for v, view in enumerate(views):
+            mv.append(np.full(len(view.marker_px), v))
+            mw.append(view.marker_world_m)
+            mp.append(view.marker_px)
+            for key, px in zip(map(tuple, view.dot_indices.tolist()), view.dot_px):
+                if key in lookup:
+                    dv.append(v)
+                    dd.append(lookup[key])
+                    dp.append(px)
+        self.m_view = np.concatenate(mv).astype(np.int64)
+        self.m_world = np.concatenate(mw).reshape(-1, 3)
+        self.m_px = np.concatenate(mp).reshape(-1, 2)
+        self.d_view = np.asarray(dv, np.int64)
+        self.d_dot = np.asarray(dd, np.int64)
+        self.d_px = np.asarray(dp, np.float64).reshape(-1, 2)
+        self.m_keep = np.ones(len(self.m_view), bool)
+        self.d_keep = np.ones(len(self.d_view), bool)
+
+
+def _residuals(cam: np.ndarray, poses: list[Pose], dots: np.ndarray, obs: _Observations, derivatives: bool):
+    """Marker and dot residuals (projected - measured, pixels) and, with *derivatives*, their Jacobians:
+    markers d/d(pose) (M, 2, 6); dots d/d(pose) (N, 2, 6) and d/d(dot) (N, 2, 3)."""
+    out = []
+    for which, views, world, px in (("m", obs.m_view, obs.m_world, obs.m_px),
+                                    ("d", obs.d_view, dots[obs.d_dot] if len(obs.d_dot) else np.zeros((0, 3)),
+                                     obs.d_px)):
+        r = np.zeros((len(views), 2))
+        jp = np.zeros((len(views), 2, 6)) if derivatives else None
+        jx = np.zeros((len(views), 2, 3)) if derivatives else None
+        for v, pose in enumerate(poses):
+            sel = np.flatnonzero(views == v)
+            if sel.size == 0:
+                continue
+            pc = pose.apply(world[sel])
+            if derivatives:
+                pix, d_pt, _ = project(cam, pc, derivatives=True)
+                jp[sel] = np.matmul(d_pt, pose_derivative(pose, world[sel]))
+                jx[sel] = d_pt @ pose.rotation
+            else:
+                pix = project(cam, pc)
+            r[sel] = pix - px[sel]
+        out.append((r, jp, jx))
+    return out
+
+
+def _gram(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Per observation ``a^T b`` of (n, 2, p) and (n, 2, q) Jacobians: (n, p, q) (written out: einsum and
+    matmul over thousands of tiny matrices are ten times slower)."""
+    return a[:, 0, :, None] * b[:, 0, None, :] + a[:, 1, :, None] * b[:, 1, None, :]
+
+
+def _normal_equations(obs, res, w_m: float, w_d: float, n_views: int, n_dots: int):
+    """The normal equations' blocks: poses (V, 6, 6) and gradient (V, 6), dots (D, 3, 3) and (D, 3), and the
+    pose-dot coupling (D, V, 6, 3). A view sees a dot once, so per view every index is distinct. A dot left
+    with too few observations (outliers dropped) gets a unit block: it stays where it is and is not
+    reported."""
+    (rm, jpm, _), (rd, jpd, jxd) = res
+    hpp = np.zeros((n_views, 6, 6))
+    gp = np.zeros((n_views, 6))
+    hdd = np.zeros((n_dots, 3, 3))
+    gd = np.zeros((n_dots, 3))
+    hpd = np.zeros((n_dots, n_views, 6, 3))
+    for v in range(n_views):
+        m = np.flatnonzero((obs.m_view == v) & obs.m_keep)
+        d = np.flatnonzero((obs.d_view == v) & obs.d_keep)
+        jm, jp, jx = jpm[m].reshape(-1, 6), jpd[d], jxd[d]
+        hpp[v] = w_m * jm.T @ jm + w_d * jp.reshape(-1, 6).T @ jp.reshape(-1, 6)
+        gp[v] = w_m * jm.T @ rm[m].ravel() + w_d * jp.reshape(-1, 6).T @ rd[d].ravel()
+        dots = obs.d_dot[d]
+        hdd[dots] += w_d * _gram(jx, jx)
+        gd[dots] += w_d * (jx[:, 0, :] * rd[d, 0, None] + jx[:, 1, :] * rd[d, 1, None])
+        hpd[dots, v] = w_d * _gram(jp, jx)
+    dead = np.bincount(obs.d_dot[obs.d_keep], minlength=n_dots) < obs.min_views
+    hdd[dead] = np.eye(3)
+    gd[dead] = 0.0
+    hpd[dead] = 0.0
+    return hpp, gp, hdd, gd, hpd
+
+
+def _reduce(b: np.ndarray, hdd_inv: np.ndarray) -> np.ndarray:
+    """``sum_d b_d H_dd^-1 b_d^T`` for b (D, 6V, 3): the dots' share of the Schur complement."""
+    t = np.matmul(b, hdd_inv)                                            # (D, 6V, 3)
+    n = b.shape[1]
+    return t.transpose(1, 0, 2).reshape(n, -1) @ b.transpose(1, 0, 2).reshape(n, -1).T
+
+
+def _block_diagonal(blocks: np.ndarray) -> np.ndarray:
+    n = blocks.shape[0]
+    out = np.zeros((6 * n, 6 * n))
+    for v in range(n):
+        out[6 * v:6 * v + 6, 6 * v:6 * v + 6] = blocks[v]
+    return out
+
+
+def _quadratic(j: np.ndarray, c: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """Per observation ``trace(j c k^T)`` for j (n, 2, p), c (n, p, q), k (n, 2, q)."""
+    return np.sum(np.matmul(j, c) * k, axis=(1, 2))
+
+
+def locate_dots(camera: CameraIntrinsics, views: list[DotView], *, min_views: int = 2, refine_poses: bool = True,
+                outlier_sigmas: float = 5.0, max_iterations: int = 60, progress=None) -> DotSolution:
+    """Every dot's 3-D location, and its covariance, from several photographs (see the module docstring).
+
+    Parameters
+    ----------
+    camera : CameraIntrinsics
+        The camera that took every photograph.
+    views : list of DotView
+        At least two; each with at least 4 known marker corners (its pose's start comes from them).
+    min_views : int
+        A dot is located when at least this many views see it (2 at the least).
+    refine_poses : bool
+        Adjust the poses with the dots too (a bundle adjustment). False: each pose is its markers' alone
+        (what OpenCSP does), its uncertainty still carried into the dots'.
+    outlier_sigmas : float
+        Observations whose normalised residual exceeds this are dropped (and counted).
+    progress : callable, optional
+        ``progress(text)`` for a line per round.
+
+    Raises
+    ------
+    ValueError
+        Fewer than two views, a view without enough markers, no dot in enough views.
+    """
+    if len(views) < 2:
+        raise ValueError(f"locating dots needs photographs from at least 2 places, got {len(views)}")
+    min_views = max(2, int(min_views))
+    say = progress or (lambda text: None)
+    cam = camera_vector(camera)
+    poses, marker_fits = [], []
+    for view in views:
+        if len(view.marker_px) < 4:
+            raise ValueError(f"{view.name}: {len(view.marker_px)} known marker corners; a camera pose needs at "
+                             "least 4 (one whole marker), better 3 markers or more spread over the photograph")
+        fit = solve_camera_pose(camera, view.marker_world_m, view.marker_px)
+        poses.append(fit.world_to_camera)
+        marker_fits.append(fit)
+    counts: dict[tuple[int, int], int] = {}
+    for view in views:
+        for key in map(tuple, np.asarray(view.dot_indices).tolist()):
+            counts[key] = counts.get(key, 0) + 1
+    keys = sorted(k for k, n in counts.items() if n >= min_views)
+    dropped_dots = len(counts) - len(keys)
+    if not keys:
+        raise ValueError(f"no dot is seen in {min_views} photographs: are the origins the same dot in every "
+                         "photograph?")
+    obs = _Observations(views, keys, min_views)
+    n_views, n_dots = len(views), len(keys)
+    # start: each dot where its rays (from the markers' poses) cross
+    from .camera import pixel_rays
+    normal, rhs = np.zeros((n_dots, 3, 3)), np.zeros((n_dots, 3))
+    for v, pose in enumerate(poses):
+        sel = np.flatnonzero(obs.d_view == v)
+        if sel.size == 0:
+            continue
+        u = pixel_rays(camera, obs.d_px[sel, 0], obs.d_px[sel, 1]).T @ pose.rotation     # world directions
+        p = np.eye(3) - u[:, :, None] * u[:, None, :]
+        normal[obs.d_dot[sel]] += p
+        rhs[obs.d_dot[sel]] += p @ pose.inverse().translation
+    dots = np.linalg.solve(normal, rhs[:, :, None])[:, :, 0]
+    sigma = {"markers": max(float(np.median([f.sigma_px for f in marker_fits])), 0.01), "dots": 0.1}
+    iterations = 0
+    outliers = 0
+    for round_ in range(8):
+        w_m, w_d = 1.0 / sigma["markers"] ** 2, 1.0 / sigma["dots"] ** 2
+        lam = 1e-3
+        res = _residuals(cam, poses, dots, obs, True)
+
+        def cost(rs):
+            return w_m * np.sum(rs[0][0][obs.m_keep] ** 2) + w_d * np.sum(rs[1][0][obs.d_keep] ** 2)
+
+        current = cost(res)
+        for _ in range(max_iterations):
+            iterations += 1
+            hpp, gp, hdd, gd, hpd = _normal_equations(obs, res, w_m, w_d, n_views, n_dots)
+            damp_d = hdd + lam * np.einsum("nii->ni", hdd)[:, :, None] * np.eye(3)
+            hdd_inv = np.linalg.inv(damp_d)
+            b = hpd.reshape(n_dots, n_views * 6, 3)
+            if refine_poses:
+                damp_p = hpp + lam * np.einsum("nii->ni", hpp)[:, :, None] * np.eye(6)
+                s = _block_diagonal(damp_p) - _reduce(b, hdd_inv)
+                rhs = -gp.ravel() + np.matmul(b, np.matmul(hdd_inv, gd[:, :, None])).sum(axis=0).ravel()
+                dp = np.linalg.solve(s, rhs)
+                dx = -np.matmul(hdd_inv, (gd + np.matmul(dp, b))[:, :, None])[:, :, 0]
+            else:
+                dp = np.zeros(n_views * 6)
+                dx = -np.matmul(hdd_inv, gd[:, :, None])[:, :, 0]
+            if np.max(np.abs(dp), initial=0.0) < 1e-9 and np.max(np.abs(dx)) < 1e-9:
+                break                        # converged: steps of a nanometre (poses: a nanoradian)
+            trial_poses = [moved(p, dp[6 * v:6 * v + 6]) for v, p in enumerate(poses)]
+            trial_dots = dots + dx
+            trial = _residuals(cam, trial_poses, trial_dots, obs, True)
+            new = cost(trial)
+            if new <= current:
+                gain = current - new
+                poses, dots, res, current = trial_poses, trial_dots, trial, new
+                lam = max(lam / 10.0, 1e-9)
+                if gain <= 1e-10 * current:
+                    break                    # no cost left to gain
+            else:
+                lam *= 10.0
+                if lam > 1e8:
+                    break
+        # covariance, redundancy and the noise of each kind
+        hpp, gp, hdd, gd, hpd = _normal_equations(obs, res, w_m, w_d, n_views, n_dots)
+        hdd_inv = np.linalg.inv(hdd)
+        b = hpd.reshape(n_dots, n_views * 6, 3)
+        (rm, jpm, _), (rd, jpd, jxd) = res
+        if refine_poses:
+            cpp = np.linalg.inv(_block_diagonal(hpp) - _reduce(b, hdd_inv))
+        else:
+            # each pose from its markers alone: its covariance from the markers' normal equations
+            hm = np.stack([w_m * jpm[(obs.m_view == v) & obs.m_keep].reshape(-1, 6).T
+                           @ jpm[(obs.m_view == v) & obs.m_keep].reshape(-1, 6) for v in range(n_views)])
+            cpp = _block_diagonal(np.linalg.inv(hm))
+        cpd = -np.matmul(np.matmul(cpp, b), hdd_inv)                          # (D, 6V, 3)
+        cdd = hdd_inv - np.matmul(hdd_inv, np.matmul(b.transpose(0, 2, 1), cpd))
+        # hat-matrix diagonal per observation: how much of it the parameters absorb
+        blocks = np.stack([cpp[6 * v:6 * v + 6, 6 * v:6 * v + 6] for v in range(n_views)])
+        hm_ = w_m * _quadratic(jpm, blocks[obs.m_view], jpm)
+        v_, d_ = obs.d_view, obs.d_dot
+        cvd = cpd.reshape(n_dots, n_views, 6, 3)[d_, v_]
+        if refine_poses:
+            hd_ = w_d * (_quadratic(jpd, blocks[v_], jpd) + 2 * _quadratic(jpd, cvd, jxd)
+                         + _quadratic(jxd, cdd[d_], jxd))
+        else:                                   # the dots do not move the poses: only their own parameters count
+            hd_ = w_d * _quadratic(jxd, hdd_inv[d_], jxd)
+        red_m = 2 * obs.m_keep.sum() - hm_[obs.m_keep].sum()
+        red_d = 2 * obs.d_keep.sum() - hd_[obs.d_keep].sum()
+        ssr_m = float(np.sum(rm[obs.m_keep] ** 2))
+        ssr_d = float(np.sum(rd[obs.d_keep] ** 2))
+        new_sigma = {"markers": float(np.sqrt(ssr_m / red_m)) if red_m > 0.5 else sigma["markers"],
+                     "dots": float(np.sqrt(ssr_d / red_d)) if red_d > 0.5 else sigma["dots"]}
+        # outliers, judged with the new noise
+        norm_m = np.linalg.norm(rm, axis=1) / new_sigma["markers"]
+        norm_d = np.linalg.norm(rd, axis=1) / new_sigma["dots"]
+        bad_m = obs.m_keep & (norm_m > outlier_sigmas)
+        bad_d = obs.d_keep & (norm_d > outlier_sigmas)
+        converged = all(abs(new_sigma[k] / sigma[k] - 1) < 0.01 for k in sigma) and not bad_m.any() and not bad_d.any()
+        say(f"round {round_ + 1}: marker corners {new_sigma['markers']:.3f} px, dots {new_sigma['dots']:.3f} px "
+            f"(noise from the residuals), {int(bad_m.sum() + bad_d.sum())} outlier(s)")
+        sigma = new_sigma
+        if converged:
+            break
+        # drop the worst outliers first (one bad point inflates its neighbours' residuals)
+        if bad_m.any() or bad_d.any():
+            worst = max(norm_m[obs.m_keep].max(initial=0.0), norm_d[obs.d_keep].max(initial=0.0))
+            cut = max(outlier_sigmas, 0.5 * worst)
+            drop_m = obs.m_keep & (norm_m > cut)
+            drop_d = obs.d_keep & (norm_d > cut)
+            obs.m_keep &= ~drop_m
+            obs.d_keep &= ~drop_d
+            outliers += int(drop_m.sum() + drop_d.sum())
+            seen = np.bincount(obs.d_dot[obs.d_keep], minlength=n_dots)
+            obs.d_keep &= seen[obs.d_dot] >= min_views
+    seen = np.bincount(obs.d_dot[obs.d_keep], minlength=n_dots)
+    located = seen >= min_views
+    (rm, _, _), (rd, _, _) = _residuals(cam, poses, dots, obs, False)
+    view_rows = []
+    for v, view in enumerate(views):
+        mk = (obs.m_view == v) & obs.m_keep
+        dk = (obs.d_view == v) & obs.d_keep
+        view_rows.append({"name": view.name, "marker_corners": int(mk.sum()), "dots": int(dk.sum()),
+                          "marker_rms_px": float(np.sqrt(np.mean(rm[mk] ** 2))) if mk.any() else None,
+                          "dot_rms_px": float(np.sqrt(np.mean(rd[dk] ** 2))) if dk.any() else None,
+                          "outliers": int(((obs.m_view == v) & ~obs.m_keep).sum()
+                                          + ((obs.d_view == v) & ~obs.d_keep).sum())})
+    rms = {"markers": float(np.sqrt(np.mean(rm[obs.m_keep] ** 2))),
+           "dots": float(np.sqrt(np.mean(rd[obs.d_keep] ** 2))) if obs.d_keep.any() else float("nan")}
+    residual_grid = np.full((n_dots, n_views, 2), np.nan)
+    residual_grid[obs.d_dot[obs.d_keep], obs.d_view[obs.d_keep]] = rd[obs.d_keep]
+    ij = np.asarray(keys, np.int64)[located]
+    index_map = orient_indices(np.asarray(keys, np.int64)[located], dots[located])
+    xy = (index_map[:, :2] @ ij.T).T + index_map[:, 2]
+    grid = dot_grid(xy, dots[located], cdd[located])
+    pose_std = [np.sqrt(np.clip(np.diag(cpp[6 * v:6 * v + 6, 6 * v:6 * v + 6]), 0, None)) for v in range(n_views)]
+    return DotSolution(grid, index_map, poses, pose_std, sigma, rms, view_rows, int(located.sum()),
+                       dropped_dots + int((~located).sum()), outliers, iterations, residual_grid[located], xy)
+
+
+def orient_indices(indices: np.ndarray, xyz_m: np.ndarray) -> np.ndarray:
+    """The (2, 3) integer map turning lattice indices (i, j) into (x index, y index) that grow along the
+    world's axes: x index along the world axis the lattice runs along first in the order x, y, z, y index
+    along the next, each positive. The origin keeps index (0, 0).
+
+    Raises
+    ------
+    ValueError
+        Fewer than two neighbouring dots along either lattice direction.
+    """
+    indices = np.asarray(indices, np.int64)
+    lookup = {tuple(k): n for n, k in enumerate(indices.tolist())}
+    steps = []
+    for d in ((1, 0), (0, 1)):
+        pairs = [(n, lookup[(k[0] + d[0], k[1] + d[1])]) for k, n in lookup.items()
+                 if (k[0] + d[0], k[1] + d[1]) in lookup]
+        if not pairs:
+            raise ValueError("the located dots have no neighbours along a lattice direction")
+        a, b = np.array(pairs).T
+        steps.append(np.mean(xyz_m[b] - xyz_m[a], axis=0))
+    axis_i = int(np.argmax(np.abs(steps[0])))
+    order_j = np.argsort(-np.abs(steps[1]))
+    axis_j = int(order_j[0] if order_j[0] != axis_i else order_j[1])
+    sign_i, sign_j = int(np.sign(steps[0][axis_i])), int(np.sign(steps[1][axis_j]))
+    rows = {axis_i: np.array([sign_i, 0, 0]), axis_j: np.array([0, sign_j, 0])}
+    first, second = sorted(rows)
+    return np.vstack([rows[first], rows[second]]).astype(np.int64)
