@@ -12,6 +12,26 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+#: The layouts of OpenCSP's processed results (:func:`~.opencsp_results.read_opencsp_result` reads them): key
+#: -> (the group that tells it, what it is).
+LAYOUTS = {
+    "facet": ("DataSofastCalculation/facet/facet_000/SlopeSolverData/slope_coefs_facet",
+              "a fringe measurement's processing (ProcessSofastFringe, current layout)"),
+    "older": ("DataSofastCalculation/facet/facet_000/slope_coefs_facet",
+              "a fringe measurement's processing (ProcessSofastFringe, earlier layout)"),
+    "fixed": ("DataSofastInput/ParamsSofastFixed",
+              "a fixed-pattern measurement's processing (ProcessSofastFixed): slopes at the dots"),
+}
+
+
+def result_layout(h) -> str | None:
+    """Which of :data:`LAYOUTS` the open HDF5 file *h* holds (None: none of them)."""
+    for name, (key, _) in LAYOUTS.items():
+        if key in h:
+            return name
+    return None
+
+
 #: HDF5 top-level groups or datasets -> (what OpenCSP object it is, what the station does with it).
 HDF5_KINDS = (
     ("MeasurementSofastFringe", "a SOFAST fringe measurement (MeasurementSofastFringe)",
@@ -23,15 +43,18 @@ HDF5_KINDS = (
      "read by `import-opencsp --compare` (fringe results of one facet or mirror; a multi-facet result is not "
      "read)"),
     ("DotLocationsFixedPattern", "the 3-D locations of a fixed pattern's dots (DotLocationsFixedPattern)",
-     "not used yet: the fixed-pattern method is issue 42's"),
+     "read by `calibrate dots --compare` (beside dots located from photographs); the fixed-pattern method "
+     "that measures with them is issue 42's"),
     ("Camera", "a camera's intrinsics and distortion (Camera)", "read by `import-opencsp --camera`"),
     ("DisplayShape", "a screen's shape (DisplayShape)", "read by `import-opencsp --display`"),
     ("SpatialOrientation", "the camera-to-screen pose (SpatialOrientation)", "read by `import-opencsp --orientation`"),
     ("ImageCalibration", "a display-to-camera response (ImageCalibration)", "read by `import-opencsp --calibration`"),
     ("ImageProjection", "the projector window's layout on the desktop (ImageProjection)",
-     "not needed: the station's own display draws its fringes (docs/opencsp.md)"),
+     "read by `calibrate screen-data --projection` (the screen's pixel layout); import-opencsp does not need it: "
+     "the station's own display draws its fringes"),
     ("pts_xy_screen_fraction", "a screen-shape calibration's distortion data (screen fractions and 3-D points)",
-     "not read by import-opencsp (a DisplayShape file holds the same grid)"),
+     "checked by `calibrate screen-data` (docs/calibration.md); import-opencsp reads the same grid from a "
+     "DisplayShape file"),
 )
 
 
@@ -46,8 +69,6 @@ def _hdf5_kind(path: Path) -> str | None:
     for key, what, support in HDF5_KINDS:
         if key in keys:
             if key == "DataSofastCalculation":
-                from .opencsp_results import LAYOUTS, result_layout
-
                 with h5py.File(path, "r") as h:
                     layout = result_layout(h)
                 if layout is None:
@@ -83,11 +104,11 @@ def _csv_kind(path: Path) -> str:
         return "a file that cannot be read"
     first = head[0].lower() if head else ""
     if "marker id" in first and "corner id" in first:
-        return ("ArUco markers' corner locations (marker, corner, x, y, z in metres); read by the calibrations that "
-                "locate a camera or a dot target from photographs of markers (docs/calibration.md)")
+        return ("ArUco markers' corner locations (marker, corner, x, y, z in metres); read by `calibrate "
+                "camera-position --markers` and `calibrate dots --markers` (docs/calibration.md)")
     if "display calibration point" in first:
-        return ("a screen-shape calibration's point pairs (screen point, marker); read by `calibrate` for the "
-                "screen's shape from photographs (docs/calibration.md)")
+        return ("a screen-shape calibration's point pairs (screen point, marker); read by `calibrate screen-data "
+                "--point-pairs` (docs/calibration.md)")
     if first and all(_is_number(v) for v in first.split(",")):
         return "a CSV of numbers (OpenCSP's camera_rvec_tvec.csv holds a rotation vector and a translation)"
     return "a CSV file of none of OpenCSP's layouts"
@@ -114,8 +135,9 @@ def describe(path: Path) -> str:
     if magic.startswith(b"\x89HDF"):
         return _hdf5_kind(path) or "an HDF5 file that cannot be read (damaged or cut short)"
     if magic.startswith(b"\x89PNG") or magic.startswith(b"\xff\xd8"):
-        return ("a photograph (PNG or JPEG): OpenCSP's calibrations locate a camera, a dot target or a screen's shape "
-                "from such photographs; `calibrate` reads them (docs/calibration.md), import-opencsp does not")
+        return ("a photograph (PNG or JPEG): `calibrate camera-position` locates the camera from one of markers, "
+                "`calibrate dots` a dot target from several, `calibrate camera` the intrinsics from a board's "
+                "(docs/calibration.md); import-opencsp does not read photographs")
     if suffix == ".json":
         return _json_kind(path) or "a JSON file that cannot be read"
     if suffix == ".csv":

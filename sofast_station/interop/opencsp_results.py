@@ -33,17 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError
-
-#: The layouts :func:`read_opencsp_result` reads: key -> (the group that tells it, what it is).
-LAYOUTS = {
-    "facet": ("DataSofastCalculation/facet/facet_000/SlopeSolverData/slope_coefs_facet",
-              "a fringe measurement's processing (ProcessSofastFringe, current layout)"),
-    "older": ("DataSofastCalculation/facet/facet_000/slope_coefs_facet",
-              "a fringe measurement's processing (ProcessSofastFringe, earlier layout)"),
-    "fixed": ("DataSofastInput/ParamsSofastFixed",
-              "a fixed-pattern measurement's processing (ProcessSofastFixed): slopes at the dots"),
-}
-
+from .identify import LAYOUTS, describe, result_layout  # noqa: F401  (LAYOUTS: their public place here too)
 
 @dataclass(frozen=True)
 class OpenCspResult:
@@ -170,14 +160,6 @@ def _rotation(rotvec) -> np.ndarray:
     return cv2.Rodrigues(np.asarray(rotvec, np.float64).reshape(3, 1))[0]
 
 
-def result_layout(h) -> str | None:
-    """Which of :data:`LAYOUTS` the open HDF5 file *h* holds (None: none of them)."""
-    for name, (key, _) in LAYOUTS.items():
-        if key in h:
-            return name
-    return None
-
-
 def read_opencsp_result(path: Path) -> OpenCspResult:
     """OpenCSP's processed result *path* of a single facet or mirror (any of :data:`LAYOUTS`).
 
@@ -197,8 +179,6 @@ def read_opencsp_result(path: Path) -> OpenCspResult:
     with h:
         layout = result_layout(h)
         if layout is None:
-            from .identify import describe
-
             raise ConfigError(f"{path} is not an OpenCSP processing result: {describe(path)}")
         f = "DataSofastCalculation/facet/facet_000/"
         if layout == "fixed":
