@@ -133,7 +133,7 @@ def heliostat(kind: str, scale: int, runs: int, rng, optics_runs: int, with_u: b
     from sofast_station.config import load_config
     from sofast_station.measure.heliostat import analyse_heliostat
     from sofast_station.precompute import warm_up
-    from sofast_station.station.heliostat import analysis_optics
+    from sofast_station.job.heliostat import analysis_optics
     from sofast_station.station.heliostat_study import HeliostatRig
     from sofast_station.twin.parameters import TwinOptics
     from sofast_station.twin.heliostat import draw_heliostat

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import tomllib
 from pathlib import Path
 
@@ -49,3 +50,9 @@ def station_data_dir(path: str | Path) -> Path | None:
     if not isinstance(table, dict) or not isinstance(table.get("data_dir", ""), str):
         return None
     return data_dir_of(table, path.resolve().parent)
+
+
+def safe_name(text: str, limit: int = 80) -> str:
+    """*text* reduced to characters safe in file names on every platform (letters, digits, ``-_.``)."""
+    out = re.sub(r"[^A-Za-z0-9._-]+", "_", str(text)).strip("._") or "x"
+    return out[:limit]

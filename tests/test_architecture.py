@@ -28,6 +28,7 @@ PLAIN_DATA = {"errors", "geometry", "facet", "ensemble", "fringes", "files"}
 FLOORS: tuple[tuple[str, frozenset], ...] = (
     ("entry", frozenset({"__main__", "cli"})),
     ("programs", frozenset({"reanalysis", "station", "interop"})),
+    ("the jobs", frozenset({"job"})),
     ("the monitor", frozenset({"web"})),
     ("shown and shared", frozenset({"report", "live"})),
     ("configured and kept", frozenset({"config", "config_schema", "recipes", "archive", "precompute", "cache",
@@ -191,6 +192,13 @@ def check_rules(graph: Graph) -> list[str]:
             bad.append(f"only __main__ imports {PACKAGE}.cli: {imp.source} line {imp.line} imports it")
     forbid([f"{PACKAGE}.commands"], lambda u: u in {"commands", "errors", "(package)"}, lambda lib: lib in stdlib,
            "commands.py (the registry) imports only the standard library, errors and the package's version")
+    # 9. a job analyses, judges and records a measurement: the math, the optics, the result and its reports, the
+    #    plain data; never the devices, the loop, the archive, the twin or a program
+    allowed_by_job = {"job", "measure", "optics", "result", "report"} | PLAIN_DATA
+    for imp in graph.imports:
+        if unit(imp.source) == "job" and imp.target in project and unit(imp.target) not in allowed_by_job:
+            bad.append(f"job/ imports only the math, the optics, the result, its reports and the plain data: "
+                       f"{imp.source} line {imp.line} imports {imp.target}")
     # 8. the floors: no import runs back up a floor, no two units import each other
     units = {unit(m) for m in project}
     for name in sorted(u for u in units if floor_of(u) is None):
@@ -304,6 +312,7 @@ def test_each_rule_catches_a_violation(tmp_path):
         "optics/trace.py": "from ..station import optics\n",
         "result/record.py": "def f():\n    from ..station import runner\n",
         "live/status.py": "def f():\n    from ..web import data\n",
+        "job/facet.py": "def g():\n    from ..archive import journal\n",
     }
     for rel, code in planted.items():
         path = pkg / rel
@@ -312,6 +321,6 @@ def test_each_rule_catches_a_violation(tmp_path):
     for rule in ("measure/ may import", "qc/ may import", "optics/ may import", "twin/ shares no code",
                  "calibrate/ never imports twin/", "devices/ imports only", "archive/ imports nothing",
                  "only __main__ imports", "commands.py (the registry)", "no import runs back up a floor",
-                 "no two units import each other"):
+                 "no two units import each other", "job/ imports only"):
         assert any(b.startswith(rule) for b in broken), f"{rule!r} not reported; got:\n" + "\n".join(broken)
     assert any("sqlite3" in b for b in broken) and any("lazy" in b and "twin" in b for b in broken)

@@ -17,6 +17,8 @@ import signal
 import time
 from pathlib import Path
 
+from ..files import safe_name  # noqa: F401  (the archive's names use it; its home is files.py)
+
 log = logging.getLogger(__name__)
 
 #: Environment variable naming the fault-injection point at which the process SIGKILLs itself.
@@ -139,12 +141,6 @@ def check_period(since, until, what: str = "--from/--to") -> None:
 def now_iso() -> str:
     """Local date and time with its UTC offset, ISO 8601, to the millisecond."""
     return _dt.datetime.now().astimezone().isoformat(timespec="milliseconds")
-
-
-def safe_name(text: str, limit: int = 80) -> str:
-    """*text* reduced to characters safe in file names on every platform (letters, digits, ``-_.``)."""
-    out = re.sub(r"[^A-Za-z0-9._-]+", "_", str(text)).strip("._") or "x"
-    return out[:limit]
 
 
 def release_memory() -> None:

@@ -591,7 +591,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def cmd_export(args) -> int:
     """``export surface DUMP... --format F``: one file per dump, named after its serial."""
-    from ..archive._common import safe_name
+    from ..files import safe_name
     from ..errors import ReportError, StationError
     from ..interop.export import SUFFIX, export_surface, surface_points
     from .reprocess import reprocess_dump

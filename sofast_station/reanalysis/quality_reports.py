@@ -205,7 +205,7 @@ def cmd_acceptance(args) -> int:
 
 
 def cmd_certificate(args) -> int:
-    from ..archive._common import safe_name
+    from ..files import safe_name
     from ..archive.journal import Journal
     from ..serials import clean_serial
     from ..errors import ConfigError, StationError

@@ -405,19 +405,33 @@ def calibration_note(content: DumpContent, record) -> str:
 
 
 def _uncertainty_inputs(content: DumpContent, notes: list):
-    """The input uncertainties of the dumped station.toml's ``[uncertainty]`` (the defaults without one).
+    """The input uncertainties the line used (the dump's own record of them, 0.4.0 on), else those of the dumped
+    station.toml's ``[uncertainty]`` (the defaults without one) with what the dumped radiometric record states
+    of the display response (as the station derives it: ``config.py``).
 
     The sensitivities are computed from each dump itself (not shared between dumps), so a dump's
     re-analysis gives the same bits whatever else a batch worker analysed before it."""
     from ..measure.uncertainty import InputUncertainties
 
+    if isinstance(content.uncertainty_inputs, dict):
+        try:
+            return InputUncertainties.from_dict(content.uncertainty_inputs)
+        except (ConfigError, TypeError, ValueError) as exc:
+            notes.append(f"the dump's input uncertainties could not be read ({exc}): those of its station.toml are "
+                         "used")
     try:
         raw = tomllib.loads(content.station_toml) if content.station_toml.strip() else {}
-        return InputUncertainties.from_table(raw.get("uncertainty", {}), f"station.toml of dump {content.path} "
-                                                                          "[uncertainty]")
+        out = InputUncertainties.from_table(raw.get("uncertainty", {}), f"station.toml of dump {content.path} "
+                                                                         "[uncertainty]")
     except (tomllib.TOMLDecodeError, ConfigError, TypeError) as exc:
         notes.append(f"the dump's [uncertainty] could not be read ({exc}): the default input uncertainties are used")
-        return InputUncertainties()
+        out = InputUncertainties()
+    rad, fr, scr = content.radiometric, content.fringes, (content.geometry or {}).get("screen", {})
+    try:
+        samples = (scr["width_px"] / fr["periods_x"][-1], scr["height_px"] / fr["periods_y"][-1])
+        return out.with_radiometric_record(rad["lut"], rad["floor_level"], rad["max_level"], samples)
+    except (KeyError, TypeError, IndexError, ZeroDivisionError):
+        return out
 
 
 def stored_sensitivities(content: DumpContent) -> dict | None:
@@ -543,56 +557,95 @@ def reprocess_content(content: DumpContent, overrides: Overrides | None = None, 
     -------
     ReprocessResult
     """
+    from ..job import Capture
+    from ..precompute import ray_table
     from ..result.faults import fault_reason
     from ..result.record import build_record
-    from ..result.verdict import judge
 
     t0 = time.perf_counter()
     overrides = overrides or Overrides()
     if archived is None:
         archived = content.record or None
-    if is_heliostat_dump(content):            # several facets in one capture (docs/heliostats.md)
-        return reprocess_heliostat(content, overrides, archived=archived, archived_source=archived_source,
-                                   read_s=read_s)
     notes: list[str] = []
     if archived is None:
         notes.append("the dump holds no archived result (its result group is missing)"
                      + ("" if archived_source == "dump" else f" and the journal {archived_source} has no row for "
                         f"cycle {content.cycle_id}") + ": nothing to compare")
-    design = _design(content, overrides, notes)
-    settings = _settings(content, overrides, notes)
-    head, distance = _head_and_distance(content, overrides, archived, notes, design.name)
-    analysis = fault = None
+    job, head, distance = job_of_dump(content, overrides, notes, archived)
+    heliostat = job.kind == "heliostat"
+    geometry = content.station_geometry()
+    outcome = fault = None
     t1 = time.perf_counter()
     try:
-        analysis = content.analyse(design=design, settings=settings, measured_distance_m=distance,
-                                   uncertainty=_uncertainty_inputs(content, notes),
-                                   sensitivity_cache=sensitivity_store(content, distance, disk_cache))
+        outcome = job.analyse(Capture(content.frames(), distance, content.fringe_set(), geometry,
+                                      ray_table(geometry.camera)),
+                              uncertainty=_uncertainty_inputs(content, notes),
+                              sensitivity_cache=(_sensitivity_cache(content) if heliostat else
+                                                 sensitivity_store(content, distance, disk_cache)))
     except (DumpError, ConfigError):
         raise
     except StationError as exc:              # the analysis refuses the capture: a fault, as on the line
         fault = fault_reason(exc)
     t_analysis = time.perf_counter() - t1
-    if analysis is None:
-        record = build_record(head, fault=fault, timings={"read": read_s, "analysis": t_analysis})
+    timings = {"read": read_s, "analysis": t_analysis}
+    if outcome is None:
+        record = build_record(head, fault=fault, timings=timings)
     else:
-        optics = _optics_settings(content, head.recipe, archived, overrides, notes)
-        if optics is not None:
-            from ..result.optical_figures import add_optics
-            add_optics(analysis, design, optics)
-        timings = {"read": read_s, "analysis": t_analysis,
-                   **{f"analysis_{k}": v for k, v in analysis.timings_s.items()}}
-        limits, quality = _judge_settings(content, head.recipe, notes)
         # the twin's truth for the same pixels (simulated stations), when nothing was changed
-        truth = archived["truth"] if overrides.empty and archived and "truth" in archived else None
-        record = build_record(head, figures=analysis.figures,
-                              verdict=judge(analysis.figures, design, limits, quality), truth=truth,
-                              measured_distance_m=distance, timings=timings)
-    design_note = {"name": design.name, "focal_length_m": design.focal_length_m,
-                   "alignment_point_m": design.alignment_point_m.tolist(),
-                   "measure_point_m": design.measure_point_m.tolist()}
+        truth = archived.get("truth") if overrides.empty and archived and not heliostat else None
+        # what the line noted of the capture itself (its retakes) is the capture's: kept
+        capture = {"capture_notes": archived["capture_notes"]} if archived and "capture_notes" in archived else {}
+        record = job.record(head, outcome.figures, truth, timings, measured_distance_m=distance, **capture)
+        if heliostat and overrides.empty and archived and isinstance(archived.get("facets"), list):
+            truth = {f.get("label"): f["truth"] for f in archived["facets"] if "truth" in f}
+            for f in record["facets"]:
+                if f.get("label") in truth:
+                    f["truth"] = truth[f["label"]]
+            if "truth" in archived:
+                record["truth"] = archived["truth"]
+    if heliostat:
+        design = job.ensemble.layout_design()
+        design_note = {"name": job.ensemble.name, "facets": job.ensemble.labels}
+    else:
+        design = job.design
+        design_note = {"name": design.name, "focal_length_m": design.focal_length_m,
+                       "alignment_point_m": design.alignment_point_m.tolist(),
+                       "measure_point_m": design.measure_point_m.tolist()}
+    analysis = None if outcome is None or heliostat else outcome.detail
     return _compared(record, content, overrides, archived, archived_source, notes, design_note,
                      analysis=analysis, design=design, seconds=time.perf_counter() - t0 + read_s)
+
+
+def job_of_dump(content, overrides: Overrides, notes: list, archived: dict | None):
+    """The job a dump was measured with (:mod:`sofast_station.job`), changed by *overrides*, with the head of
+    its new record and the measured distance: ``(job, head, distance)``. Each choice the dump could not
+    settle, or an override changed, is a line of *notes*.
+
+    A heliostat's dump takes overrides of the analysis settings, the measured distance and the radiometric
+    record; a facet file, focal length or alignment point cannot replace its facets (ConfigError)."""
+    from ..job import FacetJob
+    from ..job.heliostat import heliostat_job_of
+
+    if is_heliostat_dump(content):
+        if overrides.facet_path is not None or overrides.alignment_point_m is not None \
+                or overrides.focal_length_m is not None:
+            raise ConfigError(f"dump {content.path} is a heliostat's: its facets' designs and alignment points are "
+                              "its heliostat file's; reprocess it without a facet file, focal length or alignment "
+                              "point override")
+        dumped = {k: content.design[k] for k in ("ensemble", "heliostat", "max_canting_mrad") if k in content.design}
+        settings = _settings(content, overrides, notes)
+        name = dumped["ensemble"]["name"]
+        design = None
+    else:
+        design = _design(content, overrides, notes)
+        settings = _settings(content, overrides, notes)
+        name = design.name
+    head, distance = _head_and_distance(content, overrides, archived, notes, name)
+    optics = _optics_settings(content, head.recipe, archived, overrides, notes)
+    limits, quality = _judge_settings(content, head.recipe, notes)
+    if design is None:
+        return heliostat_job_of(dumped, settings, limits, quality, optics), head, distance
+    return FacetJob(design, settings, limits, quality, optics), head, distance
 
 
 def _head_and_distance(content, overrides, archived: dict | None, notes: list, name: str):
@@ -666,72 +719,6 @@ def _sensitivity_cache(content) -> dict | None:
         if found is not None:
             cache[found[0]] = found[1]
     return cache or None
-
-
-def reprocess_heliostat(content, overrides, *, archived: dict | None, archived_source: str = "dump",
-                        read_s: float = 0.0):
-    """Rerun a heliostat dump's analysis and compare with *archived* (see the module docstring).
-
-    Overrides that change the analysis settings, the measured distance or the radiometric record apply;
-    a facet file or an alignment point cannot replace a heliostat's facets (ConfigError).
-
-    Returns
-    -------
-    ReprocessResult
-    """
-    from ..ensemble import EnsembleDesign
-    from ..geometry import StationGeometry
-    from ..precompute import ray_table
-    from ..result.faults import fault_reason
-    from ..result.record import build_record
-    from ..station.heliostat import analyse_job, loop_record
-    from ..recipes import Recipe
-
-    t0 = time.perf_counter()
-    if overrides.facet_path is not None or overrides.alignment_point_m is not None \
-            or overrides.focal_length_m is not None:
-        raise ConfigError(f"dump {content.path} is a heliostat's: its facets' designs and alignment points are "
-                          "its heliostat file's; reprocess it without a facet file, focal length or alignment "
-                          "point override")
-    notes: list[str] = []
-    if archived is None:
-        notes.append("the dump holds no archived result: nothing to compare")
-    job = {k: content.design[k] for k in ("ensemble", "heliostat", "max_canting_mrad") if k in content.design}
-    ensemble = EnsembleDesign.from_dict(job["ensemble"])
-    settings = _settings(content, overrides, notes)
-    head, distance = _head_and_distance(content, overrides, archived, notes, ensemble.name)
-    recipe_name = head.recipe
-    geometry = StationGeometry.from_dict(content.geometry)
-    optics = _optics_settings(content, recipe_name, archived, overrides, notes)
-    limits, quality = _judge_settings(content, recipe_name, notes)
-    figures = fault = None
-    t1 = time.perf_counter()
-    try:
-        figures, _, _ = analyse_job(content.frames(), content.fringe_set(), geometry, job, settings, distance,
-                                    rays_cam=ray_table(geometry.camera), optics=optics,
-                                    uncertainty=_uncertainty_inputs(content, notes),
-                                    sensitivity_cache=_sensitivity_cache(content))
-    except StationError as exc:              # the analysis refuses the capture: a fault, as on the line
-        fault = fault_reason(exc)
-    t_analysis = time.perf_counter() - t1
-    if figures is None:
-        record = build_record(head, fault=fault, timings={"read": read_s, "analysis": t_analysis})
-    else:
-        recipe = Recipe(recipe_name, ensemble.layout_design(), settings, limits, quality, optics=optics,
-                        ensemble=ensemble)
-        record = loop_record(head, figures, recipe, None, measured_distance_m=distance,
-                             timings={"read": read_s, "analysis": t_analysis})
-        # the twin's truth for the same pixels (simulated stations), when nothing was changed
-        if overrides.empty and archived and isinstance(archived.get("facets"), list):
-            truth = {f.get("label"): f["truth"] for f in archived["facets"] if "truth" in f}
-            for f in record["facets"]:
-                if f.get("label") in truth:
-                    f["truth"] = truth[f["label"]]
-            if "truth" in archived:
-                record["truth"] = archived["truth"]
-    return _compared(record, content, overrides, archived, archived_source, notes,
-                     {"name": ensemble.name, "facets": ensemble.labels}, analysis=None,
-                     design=ensemble.layout_design(), seconds=time.perf_counter() - t0 + read_s)
 
 
 def reprocess_dump(path: str | Path, overrides: Overrides | None = None, *,

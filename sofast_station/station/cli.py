@@ -146,7 +146,7 @@ def summary_text(rec: dict) -> str:
 
 
 def cmd_inspect(args) -> int:
-    from ..archive._common import safe_name
+    from ..files import safe_name
     from ..config import load_config
     from ..serials import clean_serial, raw_for_record
     from .factory import open_station

@@ -84,7 +84,7 @@ def drift_settings(config) -> dict[str, DriftSettings]:
 
 
 def baseline_path(data_dir: Path, recipe: str) -> Path:
-    from ..archive._common import safe_name
+    from ..files import safe_name
 
     return Path(data_dir) / "quality" / f"baseline-{safe_name(recipe)}.json"
 

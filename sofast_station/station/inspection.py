@@ -1,9 +1,12 @@
-"""One inspection: capture the fringe sequence, analyse it, and assemble the facet's result.
+"""One inspection: capture the fringe sequence as the line does, analyse it, and assemble the facet's result.
 
 The station (:class:`~sofast_station.station.opened.Station`, opened by
 :func:`~sofast_station.station.factory.open_station`) holds the devices behind their protocols; ``inspect``
-cannot tell a simulated camera from a real one. On the simulated station the result also carries ``truth``,
-the twin's ground truth for the pixels the analysis kept.
+cannot tell a simulated camera from a real one. It measures through the line's own sequence
+(:func:`~sofast_station.station.frames.capture_sequence`: a four-step set that fails its check is retaken;
+the capture cropped to the facet and restored, so the analysis sees what a dump keeps) and the recipe's job
+(:mod:`sofast_station.job`), so its record is the line's. On the simulated station the result also carries
+``truth``, the twin's ground truth for the pixels the analysis kept.
 """
 
 from __future__ import annotations
@@ -12,14 +15,16 @@ import time
 
 import numpy as np
 
-from ..measure.analysis import analyse
-from ..result.record import build_record
-from ..result.verdict import judge
+from ..job import Capture
+from ..recipes import default_recipe
+from .frames import capture_sequence, crop, restore
 from .opened import Station
 
 
 def capture(station: Station, progress=None) -> tuple[np.ndarray, float]:
-    """Show every pattern and grab a frame for each; returns (frames, measured distance in metres)."""
+    """Show every pattern once and grab a frame for each, with no retake and no crop: ``(frames, measured
+    distance in metres)``. The raw capture, for studies that analyse one capture several ways; ``inspect``
+    and the line capture through :func:`~sofast_station.station.frames.capture_sequence`."""
     patterns = station.config.fringes.patterns()
     frames = None
     for i, pattern in enumerate(patterns):
@@ -30,37 +35,39 @@ def capture(station: Station, progress=None) -> tuple[np.ndarray, float]:
         frames[i] = frame
         if progress:
             progress(i + 1, len(patterns))
-    distance = float(station.range_finder.measure())
-    return frames, distance
+    return frames, float(station.range_finder.measure())
 
 
-def inspect(station: Station, serial: str, progress=None, pictures_dir=None) -> dict:
-    """Measure the facet in the fixture and return its result record (with ``truth`` on the twin); a heliostat
-    station's record has one entry per facet (:func:`~sofast_station.station.heliostat.inspect_heliostat`,
-    which writes its pictures to *pictures_dir* when given)."""
+def inspect(station: Station, serial: str, progress=None, pictures_dir=None, recipe=None) -> dict:
+    """Measure the facet in the fixture with *recipe* (the station's default) and return its result record
+    (with ``truth`` on the twin); a heliostat station's record has one entry per facet, and its pictures are
+    written to *pictures_dir* when given."""
     t0 = time.perf_counter()
-    frames, distance = capture(station, progress)
-    t_capture = time.perf_counter() - t0
-    if station.config.ensemble is not None:
-        from .heliostat import inspect_heliostat
-        return inspect_heliostat(station, serial, frames, distance, t_capture, pictures_dir)
-    rays = station.rays_cam
-    t1 = time.perf_counter()
-    analysis = analyse(frames, station.config.fringes, station.config.geometry, station.config.design, distance,
-                       station.config.analysis, rays_cam=rays, uncertainty=station.config.uncertainty,
-                       sensitivity_cache=station.sensitivity_cache)
-    t_analysis = time.perf_counter() - t1
-    optics = getattr(station.config, "optics", None)
-    if optics is not None:
-        from ..result.optical_figures import DesignTraces, add_optics
-        if station.design_traces is None:
-            station.design_traces = DesignTraces()
-        add_optics(analysis, station.config.design, optics, station.design_traces)
-    timings = {"capture": t_capture, **{f"analysis_{k}": v for k, v in analysis.timings_s.items()},
-               "analysis": t_analysis}
     config = station.config
-    record = build_record(station.record_head(serial), figures=analysis.figures,
-                          verdict=judge(analysis.figures, config.design, config.limits, config.quality),
-                          truth=station.truth(analysis.valid, config.design, optics), timings=timings)
+    recipe = recipe or default_recipe(config)
+    job = station.job_for(recipe)
+    raw, notes = capture_sequence(station.display, station.camera, config.fringes, recipe.analysis.mask_threshold_dn,
+                                  progress=progress)
+    distance = float(station.range_finder.measure())
+    box = job.crop_box(raw[0], raw[1])
+    frames = restore(crop(raw, box), box, raw.shape[1:])
+    del raw
+    t_capture = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    if station.design_traces is None:
+        from ..result.optical_figures import DesignTraces
+        station.design_traces = DesignTraces()
+    outcome = job.analyse(Capture(frames, distance, config.fringes, config.geometry, station.rays_cam),
+                          uncertainty=config.uncertainty, sensitivity_cache=station.sensitivity_cache,
+                          design_traces=station.design_traces)
+    timings = {"capture": t_capture, "analysis": time.perf_counter() - t1}
+    record = job.record(station.record_head(serial, facet=job.name), outcome.figures,
+                        station.truth(outcome.valid, job), timings, measured_distance_m=distance,
+                        capture_notes=notes)
+    record["crop_box"] = list(box)
+    if pictures_dir is not None:
+        pictures = job.pictures(record, outcome, pictures_dir)
+        if pictures:
+            record["pictures"] = pictures
     record["timings_s"]["total"] = time.perf_counter() - t0
     return record

@@ -84,21 +84,17 @@ class Station:
                           calibration=self.calibration_entry(warnings),
                           camera={"exposure_s": self.radiometric.exposure_s, "gain": self.radiometric.gain}, **more)
 
-    def arm_faults(self, serial: str) -> float:
-        """Fault injection for tests of the production loop, at the start of each cycle: returns how long
-        the analysis waits before it starts, seconds (negative: the worker dies mid-analysis). A real station
-        injects nothing: 0 (the simulated station arms what ``[simulation.faults]`` names for *serial*,
-        :meth:`~sofast_station.station.simulated.SimulatedStation.arm_faults`)."""
-        return 0.0
+    def job_for(self, recipe, serial: str | None = None):
+        """The job that measures a facet of *recipe* on this station (:func:`~sofast_station.job.job_for`). The
+        simulated station may give one that injects the faults its tests ask for *serial*
+        (:meth:`~sofast_station.station.simulated.SimulatedStation.job_for`); a real station never does."""
+        from ..job import job_for
 
-    def rerun_delay_s(self, serial: str) -> float:
-        """Fault injection for tests: how long a slow analysis's rerun on the standby waits before it starts,
-        seconds (a facet slow in itself is slow in every worker). A real station injects nothing: 0."""
-        return 0.0
+        return job_for(recipe, self.config)
 
-    def truth(self, valid: np.ndarray, design=None, optics=None) -> dict | None:
+    def truth(self, valid: np.ndarray, job=None) -> dict | None:
         """The ground truth of the facet in the fixture at the pixels *valid* (the analysis kept them), for
-        the result record; None: a real station knows none (the simulated station does,
+        the result record of *job*; None: a real station knows none (the simulated station does,
         :class:`~sofast_station.station.simulated.SimulatedStation`)."""
         return None
 

@@ -31,15 +31,12 @@ from ..errors import AnalysisTimeout, CameraError, StationError, TriggerError
 from ..result.faults import fault_reason
 from ..result.record import RecordHead, build_record
 from ..result.shift import cycle_seconds
-from ..result.verdict import judge
 from ..serials import clean_serial, raw_for_record
 from . import console as _console
 from ..live.operator_commands import take_commands, take_dump_next
 from .clock import StationClock
 from .drift import DriftMonitor
-from .frames import capture_sequence, crop, crop_box, restore
-from .heliostat import analysis_design, loop_record
-from .heliostat import crop_box as heliostat_crop_box
+from .frames import capture_sequence, crop, restore
 from .link import LinkWatch
 from .opened import Station
 from ..recipes import Recipe, choose_recipe
@@ -399,8 +396,8 @@ class StationRunner:
             raw, _ = capture_sequence(self.station.display, self.station.camera, self.station.config.fringes,
                                       recipe.analysis.mask_threshold_dn, timeout_s=self.settings.camera_timeout_s)
             distance = float(self.station.range_finder.measure())
-            self.worker.warm_up(raw, analysis_design(recipe, self.station.config), recipe.analysis, distance,
-                                timeout_s=max(60.0, 3 * self.settings.deadline_s), optics=recipe.optics,
+            self.worker.warm_up(raw, self.station.job_for(recipe), distance,
+                                timeout_s=max(60.0, 3 * self.settings.deadline_s),
                                 uncertainty=self.station.config.uncertainty)
             log.info("warm-up: one capture analysed in %.1f s", time.perf_counter() - t)
         except StationError as exc:
@@ -520,16 +517,16 @@ class StationRunner:
         cal_warnings: list[str] = []
         try:
             recipe = choose_recipe(self.recipes, request)
-            analysis_delay_s = self.station.arm_faults(request.serial)
+            # the recipe's job (the simulated station may give one that injects the faults its tests ask for)
+            job = self.station.job_for(recipe, request.serial)
             t = time.perf_counter()
             state["stage"] = "capture"
             raw, notes = capture_sequence(self.station.display, self.station.camera, self.station.config.fringes,
                                           recipe.analysis.mask_threshold_dn, timeout_s=self.settings.camera_timeout_s)
             captured.distance_m = float(self.station.range_finder.measure())
             timings["capture"] = time.perf_counter() - t
-            # (a heliostat: the box around every facet, not its largest region)
-            captured.box = (heliostat_crop_box if recipe.ensemble is not None else crop_box)(
-                raw[0], raw[1], recipe.analysis.mask_threshold_dn)
+            # (a heliostat's job: the box around every facet, not its largest region)
+            captured.box = job.crop_box(raw[0], raw[1])
             captured.frames, captured.full_shape = crop(raw, captured.box), raw.shape[1:]
             cal_warnings = self._check_calibration(raw[0])
             del raw
@@ -544,15 +541,12 @@ class StationRunner:
             t = time.perf_counter()
             state["stage"] = "analysis"
             try:
-                res = self.worker.analyse(captured.restored(), analysis_design(recipe, self.station.config),
-                                          recipe.analysis, captured.distance_m,
-                                          timeout_s=budget, hang_s=analysis_delay_s, optics=recipe.optics,
+                res = self.worker.analyse(captured.restored(), job, captured.distance_m, timeout_s=budget,
                                           uncertainty=self.station.config.uncertainty,
-                                          late_s=self.settings.late_grace_s,
-                                          rerun_hang_s=self.station.rerun_delay_s(request.serial))
+                                          late_s=self.settings.late_grace_s)
             except AnalysisTimeout as exc:
                 if exc.late is not None:
-                    captured.late = (exc.late, recipe, captured.distance_m, notes, dict(timings),
+                    captured.late = (exc.late, recipe, job, captured.distance_m, notes, dict(timings),
                                      list(cal_warnings), t)
                 raise
             timings["analysis"] = time.perf_counter() - t
@@ -561,9 +555,9 @@ class StationRunner:
                                  f"{RERUN_FACTOR:g} times its usual time): it was run again on the standby worker; "
                                  f"this is the {'rerun' if res.rerun_answer == 'standby' else 'first'} analysis's "
                                  "result"]
-            record = self._measured_record(cycle_id, request, recipe, res, captured.distance_m, notes, timings,
+            record = self._measured_record(cycle_id, request, recipe, job, res, captured.distance_m, notes, timings,
                                            cal_warnings)
-            if recipe.ensemble is None:           # (a heliostat's facets are not one facet's trend)
+            if job.kind == "facet":               # (a heliostat's facets are not one facet's trend)
                 self._check_drift(recipe.name, record)
             return CycleOutcome(cycle_id, request.serial, record["verdict"], record, valid=res.valid,
                                 preview=res.preview, sensitivities=getattr(res, "sensitivities", None))
@@ -577,26 +571,20 @@ class StationRunner:
                 self._reopen_camera()
             return CycleOutcome(cycle_id, request.serial, "fault", record, fault_code=code)
 
-    def _measured_record(self, cycle_id, request, recipe, res, distance, notes, timings, cal_warnings) -> dict:
-        """The record of an analysed facet (in time or late): figures, verdict and, on the simulated station,
-        the truth of the station's own facet type."""
-        truth = self.station.truth(res.valid) if recipe.design.name == self.station.config.design.name else None
-        head = self._head(cycle_id, request, recipe.name, cal_warnings, facet=recipe.design.name)
-        if recipe.ensemble is not None:       # a heliostat: one entry per facet (docs/heliostats.md)
-            return loop_record(head, res.figures, recipe, truth, measured_distance_m=distance, capture_notes=notes,
-                               timings=timings)
-        return build_record(
-            head,
-            figures=res.figures, verdict=judge(res.figures, recipe.design, recipe.limits, recipe.quality),
-            truth=truth, measured_distance_m=distance, capture_notes=notes, **self._clock_note(),
-            timings={**timings, **{f"analysis_{k}": v for k, v in res.figures.get("timings_s", {}).items()}})
+    def _measured_record(self, cycle_id, request, recipe, job, res, distance, notes, timings, cal_warnings) -> dict:
+        """The record of an analysed facet (in time or late): the job's record of its figures, with, on the
+        simulated station, the truth of the station's own facet type."""
+        truth = self.station.truth(res.valid, job) if job.name == self.station.config.design.name else None
+        head = self._head(cycle_id, request, recipe.name, cal_warnings, facet=job.name)
+        return job.record(head, res.figures, truth, timings, measured_distance_m=distance, capture_notes=notes,
+                          **self._clock_note())
 
     def _follow_late(self, outcome: CycleOutcome, request: FacetRequest, t0: float, state: dict, answered: bool,
                      captured: CycleCapture) -> None:
         """An analysis abandoned at the deadline: journal and answer the timeout now (unless the watchdog did),
         without the dump; when the retired worker's result comes (or its grace ends), the loop amends the row
         with the figures, marked late, and dumps the frames, between facets (_finish_late)."""
-        future, recipe, distance, notes, timings, cal_warnings, t_analysis = captured.late
+        future, recipe, job, distance, notes, timings, cal_warnings, t_analysis = captured.late
         captured.late = None
         wanted = self._dump_due(outcome, request)            # decided now: the flag file is for this facet
         if not answered:
@@ -618,7 +606,7 @@ class StationRunner:
             try:
                 if res is not None:
                     timings["analysis"] = time.perf_counter() - t_analysis
-                    record = self._measured_record(cycle_id, request, recipe, res, distance, notes, timings,
+                    record = self._measured_record(cycle_id, request, recipe, job, res, distance, notes, timings,
                                                    cal_warnings)
                     result = CycleOutcome(cycle_id, outcome.serial, record["verdict"], record,
                                           sensitivities=res.sensitivities)

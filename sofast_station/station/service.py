@@ -466,15 +466,14 @@ class Service:
         if dump is not None:
             recipe = self.recipes.get(record.get("recipe") or "default", self.recipes["default"])
             facet_path = self.config.raw.get("recipes", {}).get(recipe.name, {}).get("facet")
-            from .heliostat import analysis_design
-            job = analysis_design(recipe, self.config)
+            job = self.station.job_for(recipe)
             content = DumpContent.from_station(
                 self.station, cycle_id=cycle_id, record=record, frames_cropped=dump["frames"],
                 crop_box=dump["crop_box"], full_shape=dump["full_shape"],
                 measured_distance_m=dump["measured_distance_m"], design=recipe.design, analysis=recipe.analysis,
                 facet_path=(self.config.path.parent / facet_path) if facet_path else None,
                 sensitivities=dump.get("sensitivities"),
-                heliostat=None if recipe.ensemble is None else job.to_dict())
+                heliostat=job.dumped())
         self.archiver.submit(cycle_id, record, content, amend=amend)
 
     def close(self) -> None:

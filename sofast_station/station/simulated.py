@@ -137,39 +137,31 @@ class SimulatedStation(Station):
         self._next = {index: job}
         job["thread"].start()
 
-    def arm_faults(self, serial: str) -> float:
-        """Arm this cycle's fault (if [simulation.faults] names the serial); returns the seconds the
-        analysis must wait before it starts ("hung-analysis", "hung-facet": ``hang_s``, "slow-analysis":
-        ``slow_s``),
-        -1 for "worker-dies" (the worker process exits mid-analysis), else 0."""
-        kind = self.config.simulation.get("faults", {}).get(serial)
+    def job_for(self, recipe, serial: str | None = None):
+        """The recipe's job, with this cycle's fault armed when ``[simulation.faults]`` names *serial*: a fault of
+        the camera ("dark", "camera-timeout", ...) is armed in the simulated camera, one of the analysis
+        ("hung-analysis", "hung-facet", "slow-analysis", "worker-dies") wraps the job
+        (:class:`~sofast_station.station.simulated_faults.FaultyJob`), which misbehaves in the analysis worker
+        as the fault says; with no serial (the warm-up) nothing is armed."""
+        from .simulated_faults import faulty_job
+
+        job = super().job_for(recipe, serial)
+        if serial is None:
+            return job
+        sim = self.config.simulation
+        kind = sim.get("faults", {}).get(serial)
         self.camera.fault = kind if kind in ("dark", "camera-timeout", "misplaced", "hung-capture",
                                              "camera-disconnect", "lights-off") else None
-        if kind in ("hung-analysis", "hung-facet"):
-            return self.config.simulation.get("hang_s", 3600.0)
-        if kind == "slow-analysis":          # finishes, but after the deadline: a late result
-            return self.config.simulation.get("slow_s", 15.0)
-        return -1.0 if kind == "worker-dies" else 0.0
-
-    def rerun_delay_s(self, serial: str) -> float:
-        """The delay of a slow analysis's rerun on the standby: a worker that hangs ("hung-analysis") hangs
-        once, and the rerun answers; a facet that hangs every worker ("hung-facet") or is slow in itself
-        ("slow-analysis") delays the rerun as much."""
-        kind = self.config.simulation.get("faults", {}).get(serial)
-        if kind == "hung-facet":
-            return self.config.simulation.get("hang_s", 3600.0)
-        if kind == "slow-analysis":
-            return self.config.simulation.get("slow_s", 15.0)
-        return 0.0
+        return faulty_job(job, kind, hang_s=sim.get("hang_s", 3600.0), slow_s=sim.get("slow_s", 15.0))
 
     def reopen_camera(self) -> None:
         self.camera.fault = None
         self.camera.release_hang()
 
-    def truth(self, valid: np.ndarray, design=None, optics=None) -> dict:
+    def truth(self, valid: np.ndarray, job=None) -> dict:
         """The twin's ground truth at the pixels *valid* (:func:`~sofast_station.twin.truth.ground_truth`),
-        with the optical figures of its exact surface (:func:`truth_optics`) when *optics* (the settings the
-        measured ones were traced with) and the *design* are given."""
+        with the optical figures of its exact surface (:func:`truth_optics`) when *job* (a facet's) traces its
+        optical figures: the same truth whoever measured the facet (``inspect`` or the line)."""
         from ..twin.heliostat import TwinHeliostat, heliostat_truth
         from ..twin.truth import ground_truth
 
@@ -177,7 +169,11 @@ class SimulatedStation(Station):
             return heliostat_truth(self.twin, valid)
         truth = ground_truth(self.twin, valid)
         self._last_valid = np.asarray(valid, dtype=bool)
+        design, optics = getattr(job, "design", None), getattr(job, "optics", None)
         if optics is not None and design is not None:
+            if self.design_traces is None:
+                from ..result.optical_figures import DesignTraces
+                self.design_traces = DesignTraces()
             truth["optics"] = truth_optics(self.twin, valid, design, optics, self.design_traces)
         return truth
 

@@ -1,6 +1,6 @@
 """The analysis in a separate, killable process, with a warm standby beside it.
 
-A hung analysis must not hang the line: the station runs :func:`~sofast_station.measure.analysis.analyse`
+A hung analysis must not hang the line: the station runs its recipe's job (:mod:`sofast_station.job`)
 in a long-lived worker process (spawned, so it shares no OpenGL or thread state with the station), hands
 it the frames through shared memory (no 35 MB pickle per facet) and waits with a deadline. The worker
 computes the camera's pixel rays once.
@@ -126,58 +126,29 @@ def _init(shm_name: str, shape: tuple[int, int, int], geometry: dict, fringes: d
     start_from_env("worker")                    # off unless SOFAST_TRACEMALLOC_S is set (leak hunts)
 
 
-def _run(ticket: int, design: dict, settings: dict, distance_m: float, hang_s: float, optics=None,
-         uncertainty: dict | None = None):
+def _run(ticket: int, job, distance_m: float, uncertainty: dict | None = None, attempt: int = 0):
+    """Analyse the frames in the shared memory as *job* says (a :class:`~sofast_station.job.Job`, sent pickled with
+    its ``kind``): the figures, the kept pixels (packed), the seconds, the operator's preview and the
+    sensitivities. *attempt*: 0 for a facet's analysis, 1 for its rerun on the standby."""
     from ..archive._common import trim_heap
-    from ..facet import FacetDesign
-    from ..measure.analysis import analyse
-    from ..measure.pipeline import AnalysisSettings
+    from ..job import Capture
     from ..measure.uncertainty import InputUncertainties
-    from ..result.optical_figures import DesignTraces, add_optics
+    from ..result.optical_figures import DesignTraces
 
     _STATE["begun"][0] = ticket          # begun: from here a death is this facet's (see the module's text)
-    if hang_s < 0:                       # fault injection for tests: the worker dies mid-analysis
-        os._exit(9)
-    if hang_s > 0:                       # fault injection for tests: an analysis that hangs
-        time.sleep(hang_s)
     t = time.perf_counter()
     frames = np.array(_STATE["frames"])  # a private copy: the station may refill the buffer after a timeout
-    if "ensemble" in design:             # a heliostat recipe (station/heliostat.py HeliostatJob)
-        from .heliostat import analyse_job
-        inputs = None if uncertainty is None else InputUncertainties.from_dict(uncertainty)
-        figures, valid, sensitivities = analyse_job(
-            frames, _STATE["fringes"], _STATE["geometry"], design, AnalysisSettings(**settings), distance_m,
-            rays_cam=_STATE["rays"], optics=optics, uncertainty=inputs,
-            sensitivity_cache=_STATE.setdefault("sensitivities", {}))
-        out = (figures, np.packbits(valid), valid.shape, time.perf_counter() - t, None, sensitivities)
-        del frames, valid
-        trim_heap()
-        return out
-    facet = FacetDesign.from_dict(design)
-    # Sensitivities are computed on the first facet of each recipe and kept for the worker's life.
     inputs = None if uncertainty is None else InputUncertainties.from_dict(uncertainty)
-    a = analyse(frames, _STATE["fringes"], _STATE["geometry"], facet, distance_m,
-                AnalysisSettings(**settings), rays_cam=_STATE["rays"], uncertainty=inputs,
-                sensitivity_cache=_STATE.setdefault("sensitivities", {}))
-    # The optical figures (intercept, spot size, aim), with the design's trace kept for the next facet.
-    add_optics(a, facet, optics, _STATE.setdefault("design_traces", DesignTraces()))
-    out = (a.figures, np.packbits(a.valid), a.valid.shape, time.perf_counter() - t, _preview(a), a.sensitivities)
-    del a, frames
+    # Sensitivities are computed on the first facet of each recipe, the design's optical trace for each design,
+    # and kept for the worker's life.
+    out = job.analyse(Capture(frames, float(distance_m), _STATE["fringes"], _STATE["geometry"], _STATE["rays"]),
+                      uncertainty=inputs, sensitivity_cache=_STATE.setdefault("sensitivities", {}),
+                      design_traces=_STATE.setdefault("design_traces", DesignTraces()), attempt=attempt)
+    result = (out.figures, np.packbits(out.valid), out.valid.shape, time.perf_counter() - t, out.preview,
+              out.sensitivities)
+    del out, frames
     trim_heap()                          # the per-pixel arrays' pages go back: the worker's memory stays flat
-    return out
-
-
-def _preview(a, most: int = 6000) -> dict:
-    """A thinned copy of the per-pixel results for the operator's slope-error map: every k-th camera row
-    and column (at most about *most* points), as float32; a few hundred kB, a few ms."""
-    rows, cols = np.nonzero(a.valid)
-    k = max(1, int(np.ceil(np.sqrt(rows.size / most))))
-    pick = (rows % k == 0) & (cols % k == 0)
-    return {"step_px": k, "rows": rows[pick].astype(np.int32), "cols": cols[pick].astype(np.int32),
-            "points_xy_m": np.asarray(a.points_facet_m[:2, pick], dtype=np.float32),
-            "residuals_mrad": {m: np.asarray([e[0][pick], e[1][pick]], dtype=np.float32)
-                               for m, e in a.residuals_mrad.items()},
-            "corners_px": np.asarray(a.corners_px, dtype=np.float32)}
+    return result
 
 
 def _prepare_optics(designs: list) -> int:
@@ -449,22 +420,15 @@ class AnalysisWorker:
                 self._drop_standby(standby)
         log.info("optics: %d design trace(s) ready in %.2f s", len(designs), time.perf_counter() - t)
 
-    def warm_up(self, frames: np.ndarray, design, settings, distance_m: float, timeout_s: float, optics=None,
-                uncertainty=None) -> WorkerResult:
-        """Analyse one capture before the first facet, in the worker and in the standby; the capture (cropped
-        to the facet) is kept to warm every later standby the same way."""
-        from .frames import crop, crop_box
-        from .heliostat import HeliostatJob
-        from .heliostat import crop_box as heliostat_crop_box
+    def warm_up(self, frames: np.ndarray, job, distance_m: float, timeout_s: float, uncertainty=None) -> WorkerResult:
+        """Analyse one capture as *job* says before the first facet, in the worker and in the standby; the capture
+        (cropped as the job crops) is kept to warm every later standby the same way."""
+        from .frames import crop
 
-        res = self.analyse(frames, design, settings, distance_m, timeout_s=timeout_s, optics=optics,
-                           uncertainty=uncertainty)
-        # (a heliostat: the box around every facet, not its largest region)
-        box = (heliostat_crop_box if isinstance(design, HeliostatJob) else crop_box)(
-            frames[0], frames[1], settings.mask_threshold_dn)
+        res = self.analyse(frames, job, distance_m, timeout_s=timeout_s, uncertainty=uncertainty)
+        box = job.crop_box(frames[0], frames[1])
         self._warm_job = (crop(frames, box), box, frames.shape[1:],
-                          (design.to_dict(), settings.to_dict(), float(distance_m), 0.0, optics,
-                           None if uncertainty is None else uncertainty.to_dict()))
+                          (job, float(distance_m), None if uncertainty is None else uncertainty.to_dict()))
         self._active.warm = True
         self._wait_standby(time.perf_counter() + timeout_s)
         with self._lock:
@@ -571,28 +535,25 @@ class AnalysisWorker:
         proc = self._active
         return proc is not None and proc.alive()
 
-    def analyse(self, frames: np.ndarray, design, settings, distance_m: float, timeout_s: float,
-                hang_s: float = 0.0, optics=None, uncertainty=None, late_s: float = 0.0,
-                rerun_hang_s: float = 0.0) -> WorkerResult:
-        """Analyse *frames*; :class:`AnalysisTimeout` after *timeout_s* seconds.
+    def analyse(self, frames: np.ndarray, job, distance_m: float, timeout_s: float, uncertainty=None,
+                late_s: float = 0.0) -> WorkerResult:
+        """Analyse *frames* as *job* says (a :class:`~sofast_station.job.Job`); :class:`AnalysisTimeout` after
+        *timeout_s* seconds.
 
         An analysis still running after :data:`RERUN_FACTOR` times the recipe's usual time is run again on
         the warm standby (which becomes the worker; the slow one runs on at the lowest priority) and the
         first of the two answers is the facet's (``WorkerResult.rerun_after_s`` says so). At the timeout the
         standby takes over at once; the abandoned analysis may still finish within *late_s* seconds,
-        through the timeout's ``late`` future. With *optics* (OpticsSettings) the figures carry the facet's
-        optical figures (``optics``). Errors raised by the analysis (StationError subclasses) come back as
-        themselves. *hang_s* and *rerun_hang_s* are fault injection for tests (the first analysis's and
-        the rerun's delay).
+        through the timeout's ``late`` future. Errors raised by the analysis (StationError subclasses) come back
+        as themselves.
         """
         if frames.shape != self._shape or frames.dtype != np.uint8:
             from ..errors import CaptureError
             raise CaptureError(f"the capture is {frames.dtype} {frames.shape}, the station expects uint8 "
                                f"{self._shape}; check the camera's pixel format and size")
         t_end = time.perf_counter() + timeout_s
-        key = str(getattr(design, "name", ""))
-        job = (design.to_dict(), settings.to_dict(), float(distance_m))
-        extra = (optics, None if uncertainty is None else uncertainty.to_dict())
+        key = str(job.name)
+        args = (job, float(distance_m), None if uncertainty is None else uncertainty.to_dict())
         for attempt in (1, 2):
             self._ensure_active(t_end)
             proc = self._active
@@ -605,7 +566,7 @@ class AnalysisWorker:
             fut = None
             try:
                 t_submit = time.perf_counter()
-                fut = proc.pool.submit(_run, self._tickets, *job, float(hang_s), *extra)
+                fut = proc.pool.submit(_run, self._tickets, *args, 0)
                 rerun_at, usual = self._rerun_after(key)
                 if rerun_at is not None and rerun_at < left_s:
                     try:
@@ -614,8 +575,8 @@ class AnalysisWorker:
                         # rerun on the standby; while none is ready (one still starting after an earlier
                         # take-over) keep waiting for both, the slow analysis and a ready standby
                         while True:
-                            res = self._rerun(proc, fut, frames, job, extra, rerun_hang_s, t_end, timeout_s,
-                                              late_s, time.perf_counter() - t_submit, usual)
+                            res = self._rerun(proc, fut, frames, args, t_end, timeout_s, late_s,
+                                              time.perf_counter() - t_submit, usual)
                             if res is not None:
                                 return res
                             left = t_end - time.perf_counter()
@@ -669,8 +630,8 @@ class AnalysisWorker:
         usual = statistics.median(times)
         return max(RERUN_FACTOR * usual, RERUN_MIN_S), usual
 
-    def _rerun(self, proc: _Process, fut, frames, job, extra, hang_s: float, t_end: float, timeout_s: float,
-               late_s: float, waited_s: float, usual: float) -> WorkerResult | None:
+    def _rerun(self, proc: _Process, fut, frames, args: tuple, t_end: float, timeout_s: float, late_s: float,
+               waited_s: float, usual: float) -> WorkerResult | None:
         """*proc*'s analysis has run *waited_s* seconds, at least RERUN_FACTOR times its *usual* (and RERUN_MIN_S):
         run it again on the standby, which becomes the worker, and answer with the first result. None when no
         warm standby is ready or too little time is left (the caller waits on and asks again, while time
@@ -692,7 +653,7 @@ class AnalysisWorker:
         proc.lower_priority()
         np.copyto(standby.frames, frames)
         self._tickets += 1
-        again = standby.pool.submit(_run, self._tickets, *job, float(hang_s), *extra)
+        again = standby.pool.submit(_run, self._tickets, *args, 1)
         pending = {fut: proc, again: standby}
         while pending:
             left = t_end - time.perf_counter()

@@ -77,6 +77,11 @@ class DumpContent:
     #: (:mod:`~sofast_station.measure.sensitivity_record`), or None: re-analysis reuses them when its inputs
     #: are the same, instead of computing them from this capture.
     sensitivities: dict | None = field(default=None, compare=False)
+    #: The input uncertainties in force when the facet was measured
+    #: (:meth:`~sofast_station.measure.uncertainty.InputUncertainties.to_dict`: station.toml's ``[uncertainty]``
+    #: with what the radiometric, camera and commissioning records state), or None (dumps before 0.4.0):
+    #: re-analysis states the same U as the line.
+    uncertainty_inputs: dict | None = field(default=None, compare=False)
 
     def __post_init__(self):
         if self.frames_cropped is not None:
@@ -90,7 +95,7 @@ class DumpContent:
     def build(cls, config, radiometric, *, cycle_id: str, record: dict, frames_cropped: np.ndarray,
               crop_box, full_shape, measured_distance_m: float, design=None, analysis=None,
               facet_path: str | Path | None = None, sensitivities: dict | None = None,
-              heliostat: dict | None = None) -> "DumpContent":
+              heliostat: dict | None = None, uncertainty_inputs: dict | None = None) -> "DumpContent":
         """Assemble a dump's content from a loaded configuration and calibration.
 
         Parameters
@@ -117,8 +122,10 @@ class DumpContent:
             :func:`~sofast_station.measure.sensitivity_record.to_record`; a heliostat's: one per facet label).
         heliostat : dict, optional
             A heliostat's analysis (``ensemble``, ``heliostat`` settings, ``max_canting_mrad``:
-            :meth:`~sofast_station.station.heliostat.HeliostatJob.to_dict`), kept in ``design`` beside the
+            :meth:`~sofast_station.job.heliostat.HeliostatJob.dumped`), kept in ``design`` beside the
             heliostat's bounding outline; re-analysis then analyses the heliostat (docs/dump-schema.md).
+        uncertainty_inputs : dict, optional
+            The input uncertainties the analysis used; the station's (``config.uncertainty``) by default.
         """
         frames_cropped = np.ascontiguousarray(frames_cropped)
         box = _crop_origin(crop_box, frames_cropped.shape)
@@ -144,7 +151,10 @@ class DumpContent:
                    analysis=json_ready(analysis.to_dict()),
                    station_toml=texts[0], facet_toml=texts[1], station_path=str(config.path),
                    facet_path=str(facet_path), station_name=str(config.name), record=rec,
-                   sensitivities=None if sensitivities is None else json_ready(sensitivities))
+                   sensitivities=None if sensitivities is None else json_ready(sensitivities),
+                   uncertainty_inputs=json_ready(uncertainty_inputs if uncertainty_inputs is not None else
+                                                 (None if getattr(config, "uncertainty", None) is None
+                                                  else config.uncertainty.to_dict())))
 
     @classmethod
     def from_station(cls, station, **kwargs) -> "DumpContent":
@@ -161,6 +171,7 @@ class DumpContent:
         meta = {k: getattr(self, k) for k in self._META_FIELDS}
         meta["crop_box"], meta["full_shape"] = list(self.crop_box), list(self.full_shape)
         meta["sensitivities"] = self.sensitivities
+        meta["uncertainty_inputs"] = self.uncertainty_inputs
         meta["spool_kind"] = "sofast-station-dump-content"
         return {"frames_cropped": self.frames_cropped}, meta
 
@@ -175,7 +186,8 @@ class DumpContent:
             raise ArchiveError(f"the spool lacks {exc.args[0]!r}") from None
         kw["crop_box"], kw["full_shape"] = tuple(kw["crop_box"]), tuple(kw["full_shape"])
         return cls(cycle_id=metadata["cycle_id"], frames_cropped=arrays["frames_cropped"],
-                   sensitivities=metadata.get("sensitivities"), **kw)     # (absent in older spools)
+                   sensitivities=metadata.get("sensitivities"),           # (absent in older spools)
+                   uncertainty_inputs=metadata.get("uncertainty_inputs"), **kw)
 
     # -- use ----------------------------------------------------------------------------------------
     @property

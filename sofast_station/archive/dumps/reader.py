@@ -250,6 +250,13 @@ def _read_v1(f, path: Path, version: int, load_frames: bool, require_result: boo
         except (json.JSONDecodeError, TypeError) as exc:
             log.warning("dump %s: result/sensitivities_json is not valid JSON (%s); the re-analysis computes the "
                         "sensitivities afresh", path, exc)
+    inputs = None
+    if "result/uncertainty_inputs_json" in f:     # optional (0.4.0 on): re-analysis states the line's U with it
+        try:
+            inputs = json.loads(_read_value(f["result/uncertainty_inputs_json"]))
+        except (json.JSONDecodeError, TypeError) as exc:
+            log.warning("dump %s: result/uncertainty_inputs_json is not valid JSON (%s); the re-analysis takes the "
+                        "input uncertainties from the dumped station.toml and radiometric record", path, exc)
     return DumpContent(
         cycle_id=attrs["cycle_id"], serial=attrs["serial"], time=attrs["time"],
         software_version=attrs["software_version"], config_hash=attrs["config_hash"], frames_cropped=frames,
@@ -259,7 +266,7 @@ def _read_v1(f, path: Path, version: int, load_frames: bool, require_result: boo
         geometry=_read_value(f["geometry"]), design=_read_value(f["design"]), analysis=_read_value(f["analysis"]),
         station_toml=cfg["station_toml"], facet_toml=cfg["facet_toml"], station_path=cfg["station_path"],
         facet_path=cfg["facet_path"], station_name=cfg["station_name"], record=record, schema_version=version,
-        created=created, path=path, sensitivities=sensitivities)
+        created=created, path=path, sensitivities=sensitivities, uncertainty_inputs=inputs)
 
 
 def _read_v2(f, path: Path, version: int, load_frames: bool, require_result: bool) -> DumpContent:

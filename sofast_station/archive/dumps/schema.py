@@ -190,7 +190,10 @@ SCHEMA_V2 = SCHEMA_V2 + (
     ("geometry/measured_screen/record_id", "dataset", "str", "", "the screen record it came from", False),
     ("result/sensitivities_json", "dataset", "str", "",
      "the uncertainty's sensitivities the analysis used, as JSON text (re-analysis reuses them for the same "
-     "inputs)", False),)
+     "inputs)", False),
+    ("result/uncertainty_inputs_json", "dataset", "str", "",
+     "the input uncertainties in force (station.toml's [uncertainty] with what the radiometric, camera and "
+     "commissioning records state), as JSON text: re-analysis states the same U as the line (0.4.0 on)", False),)
 
 #: The layout this software writes.
 SCHEMA_CURRENT = SCHEMA_V2

@@ -239,6 +239,9 @@ def write_dump(path: str | Path, content: DumpContent, compression_level: int = 
             _write_value(res, "record_json", to_json(content.record), "result/record_json")
             if content.sensitivities is not None:
                 _write_value(res, "sensitivities_json", to_json(content.sensitivities), "result/sensitivities_json")
+            if content.uncertainty_inputs is not None:
+                _write_value(res, "uncertainty_inputs_json", to_json(content.uncertainty_inputs),
+                             "result/uncertainty_inputs_json")
             for k, v in _flat_figures(content.record).items():
                 res.attrs[k] = v
         fsync_file(tmp)

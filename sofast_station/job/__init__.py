@@ -1,0 +1,38 @@
+"""What one measurement is, whoever asks for it: a *job* per kind of measurement.
+
+The programs (``inspect``, the production loop and its analysis worker, ``reprocess``) do not analyse, judge
+or build records themselves: each takes the job of its recipe (:func:`job_for`; a dump's:
+:func:`~sofast_station.reanalysis.reprocess.job_of_dump`), hands it a :class:`Capture` and gets an
+:class:`Outcome` (:meth:`analyse`), then asks it for the record (:meth:`record`). So a facet measured by
+``inspect``, by the line and again by ``reprocess`` from its dump is one record, bit for bit (timings and
+the cycle's own keys aside; tests/job/test_front_doors.py).
+
+The kinds:
+
+* :class:`~.facet.FacetJob`: one facet (its design, analysis settings, limits, quality and optics); a mirror
+  of unknown outline (``FacetDesign.outline_known``) and the plano model (``AnalysisSettings.surface``) are
+  options of it, not kinds;
+* :class:`~.heliostat.HeliostatJob`: a heliostat's facets in one capture, each facet's figures and canting.
+
+A job is plain data (frozen dataclasses of designs and settings): the analysis worker receives it pickled,
+with its ``kind``, and calls the same :meth:`analyse`. The simulated station may wrap a job to inject faults
+into the worker (:mod:`sofast_station.station.simulated_faults`); production code has no test hooks.
+"""
+
+from __future__ import annotations
+
+from .base import Capture, Job, Outcome
+from .facet import FacetJob
+from .heliostat import HeliostatJob
+
+
+def job_for(recipe, config) -> Job:
+    """The job of *recipe* (:class:`~sofast_station.recipes.Recipe`) on the station of *config*: a heliostat
+    recipe's :class:`HeliostatJob` (with the station's ``[heliostat]`` settings), else a :class:`FacetJob`."""
+    if recipe.ensemble is not None:
+        return HeliostatJob(recipe.ensemble, config.heliostat, recipe.analysis, recipe.limits, recipe.quality,
+                            recipe.optics)
+    return FacetJob(recipe.design, recipe.analysis, recipe.limits, recipe.quality, recipe.optics)
+
+
+__all__ = ["Capture", "FacetJob", "HeliostatJob", "Job", "Outcome", "job_for"]
