@@ -127,6 +127,8 @@ def summary_text(rec: dict) -> str:
                      f"{note}{extra}")
 
     pair("boresight rotation (x, y)", "boresight_mrad", "mrad", "   (from the corner pose)")
+    for key, why in (rec.get("not_measured") or {}).items():        # an unknown outline's, the plano model's
+        lines.append(f"  {key.replace('_', ' '):<26} not measured: {why}")
     pair("optical tilt in fixture", "optical_tilt_mrad", "mrad")
     pl = rec.get("placement")
     if pl:
@@ -163,7 +165,17 @@ def cmd_inspect(args) -> int:
         serial, note = clean_serial(args.serial)
         if note:
             log.warning("%s", note)
-        rec = inspect(station, serial, progress=progress, pictures_dir=config.data_dir / "inspections")
+        recipe = None
+        if args.recipe is not None:
+            from ..recipes import recipes_from_config
+
+            recipes = recipes_from_config(config)
+            if args.recipe not in recipes:
+                from ..errors import ConfigError
+                raise ConfigError(f"--recipe {args.recipe!r} is not one of {config.path}'s recipes: "
+                                  f"{', '.join(sorted(recipes))} ([recipes.NAME] tables)")
+            recipe = recipes[args.recipe]
+        rec = inspect(station, serial, progress=progress, pictures_dir=config.data_dir / "inspections", recipe=recipe)
         if note:                             # the serial as typed, when making it safe changed it
             rec["serial_raw"] = raw_for_record(args.serial)
     finally:
@@ -318,6 +330,10 @@ def register(subparsers) -> None:
             Progress goes to stderr; with --json stdout holds one JSON object and nothing else.""")
     add_config_option(ins)
     ins.add_argument("--serial", default="SIM-0001", help="the facet's serial number")
+    ins.add_argument("--recipe", default=None, metavar="NAME",
+                     help="measure with station.toml's [recipes.NAME] (its facet design, settings and limits; a facet "
+                          "file with outline_known = false measures a mirror of unknown outline) instead of the "
+                          "station's own")
     ins.add_argument("--json", action="store_true", help="print one JSON object and nothing else on stdout")
     ins.add_argument("--seed", type=int, default=None,
                      help="simulated station: noise seed (default: the [simulation] seed of the station file)")
