@@ -8,8 +8,10 @@ aravis    :class:`.aravis.AravisCamera` (Aravis 0.8)    Debian ``gir1.2-aravis-0
 replay    :class:`.replay.ReplayCamera`                 nothing
 ========  ============================================  ==========================================
 
-Backends are imported only when asked for, so a station without pypylon or Aravis can still use the
-others; asking for one whose library is missing raises
+The two GenICam backends are one camera, :class:`.genicam.GenICamCamera`, over a transport
+(:class:`.basler.PylonTransport`, :class:`.aravis.AravisTransport`) that holds only what its library does
+its own way. Backends are imported only when asked for, so a station without pypylon or Aravis can still
+use the others; asking for one whose library is missing raises
 :class:`~sofast_station.devices.cameras._common.CameraBackendMissingError` naming what to install.
 
 Every error a backend raises is a :class:`~sofast_station.errors.CameraError`:

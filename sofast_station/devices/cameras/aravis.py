@@ -1,11 +1,9 @@
-"""GigE Vision (and USB3 Vision) cameras through Aravis 0.8, via GObject introspection.
+"""GigE Vision (and USB3 Vision) cameras through Aravis 0.8, via GObject introspection: the Aravis transport
+of :class:`~sofast_station.devices.cameras.genicam.GenICamCamera`.
 
-Acquisition runs continuously from ``open`` to ``close`` into a small pool of buffers. By default every
-``grab`` fires a software trigger and returns the frame that trigger produced: frames that reached the
-host before the trigger was sent (stale ones, or a late frame of an earlier, timed-out trigger) are
-recycled, judged by the host time at which the frame's first packet arrived. ``trigger="freerun"``
-returns the first frame arriving after the call (its exposure may have begun before it); any other value
-names a hardware trigger line ("Line0", "Line1") and ``grab`` waits for the next frame.
+Acquisition streams into a small pool of buffers. Each buffer carries the host time at which its first
+packet arrived, so a frame that reached the host before a software trigger was sent (a stale one, or a
+late frame of an earlier, timed-out trigger) is recognised and recycled.
 
 Disconnects: Aravis reports a lost camera through the device's ``control-lost`` signal (heartbeat), and a
 control command to a camera that has gone away fails after Aravis's retries (5 x 0.5 s on Aravis 0.8.26).
@@ -28,10 +26,10 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from ...errors import CameraDisconnectedError, CameraError, CameraTimeoutError
-from ._common import (CameraBackendMissingError, CameraFrameSizeError, CameraIncompleteFrameError,
-                      CameraNotFoundError, CameraSettingError, check_exposure, check_frame_shape, check_gain,
-                      check_in_range, check_pixel_format, check_shape, to_uint8)
+from ...errors import CameraDisconnectedError, CameraError
+from ._common import (CameraBackendMissingError, CameraIncompleteFrameError, CameraNotFoundError, CameraSettingError,
+                      to_uint8)
+from .genicam import Delivery, GenICamCamera, GenICamTransport
 
 log = logging.getLogger(__name__)
 
@@ -39,6 +37,9 @@ log = logging.getLogger(__name__)
 PIP_REQUIREMENT = "PyGObject<3.51"
 DEBIAN_PACKAGES = "gir1.2-aravis-0.8"
 BUILD_PREREQUISITES = "libgirepository1.0-dev libcairo2-dev pkg-config python3-dev gcc"
+
+#: ArvCamera's calls for exposure and gain: get_NAME, get_NAME_bounds, set_NAME.
+_QUANTITY_CALLS = {"exposure": "exposure_time", "gain": "gain"}
 
 
 def _import_aravis():
@@ -97,451 +98,224 @@ def _release(held: list, description: str) -> None:
     log.debug("%s: released in %.2f s", description, time.monotonic() - t0)
 
 
-class AravisCamera:
-    """Camera backend for GenICam cameras (GigE Vision, USB3 Vision) through Aravis 0.8.
+class AravisTransport(GenICamTransport):
+    """Aravis's side of a GenICam camera: an ``ArvCamera``, its device's nodes and an ``ArvStream``.
 
     Parameters
     ----------
     device_id : str or None
-        What Aravis opens: the camera's IP address (opened directly, no discovery broadcast), or a device
-        id ("<vendor>-<model>-<serial>", as ``arv-tool-0.8`` lists them) or serial number, found by a
-        GigE Vision discovery broadcast on every network interface; None takes the first camera found.
-    expected_shape : tuple of int
-        (rows, columns) in pixels every frame must have.
-    pixel_format : str
-        GenICam PixelFormat to set: "Mono8" (default) or an unpacked "Mono10", "Mono12", "Mono16", whose
-        8 most significant bits are returned.
-    trigger : str
-        "software" (default: each grab fires a software trigger), "freerun", or a trigger source line
-        such as "Line0" (hardware trigger).
-    features : mapping of str to object, optional
-        GenICam features to set after opening, in order, before anything else, e.g. ``{"Width": 1600,
-        "Height": 1200}``. A command feature is executed when its value is True or None.
-    exposure_s : float, optional
-        Exposure time to set on opening, seconds.
-    gain : float, optional
-        Gain to set on opening, in the camera's unit (usually dB).
+        The camera's IP address (opened directly), a device id or serial number (found by discovery),
+        or None for the first camera found.
     n_buffers : int
-        Frame buffers in the stream's pool.
+        Frame buffers in the stream's pool (at least 2).
     auto_packet_size : bool
         On GigE Vision, let Aravis find the largest packet size the network path carries.
-
-    Attributes
-    ----------
-    shape : tuple of int
-        (rows, columns) of the frames, pixels.
-    device_id, vendor, model, serial : str
-        The opened camera's identity (``device_id`` is "<vendor>-<model>-<serial>", as Aravis lists it).
-    exposure_s : float
-        The exposure time the camera reports, seconds.
-    gain : float
-        The gain the camera reports, in its unit.
-    frames_grabbed, frames_dropped : int
-        Frames returned by ``grab``, and stale frames recycled, since opening.
-
-    Raises
-    ------
-    CameraBackendMissingError
-        PyGObject or the Aravis typelib is not installed.
-    CameraNotFoundError
-        No camera answers to ``device_id`` (the message lists the cameras found).
-    CameraFrameSizeError
-        The camera's region differs from ``expected_shape``.
-    CameraSettingError
-        A setting is not supported, not writable or out of range.
-    CameraError
-        The camera could not be opened or could not start streaming.
     """
 
-    def __init__(self, device_id: str | None, expected_shape: tuple[int, int], pixel_format: str = "Mono8", *,
-                 trigger: str = "software", features: Mapping[str, object] | None = None,
-                 exposure_s: float | None = None, gain: float | None = None, n_buffers: int = 4,
-                 auto_packet_size: bool = True):
-        self.shape = check_shape(expected_shape)
-        self.pixel_format = str(pixel_format)
-        self._bits = check_pixel_format(self.pixel_format)
-        self.trigger = str(trigger).strip()
-        if self.trigger.lower() in ("software", "freerun"):
-            self.trigger = self.trigger.lower()
-        if not self.trigger:
-            raise CameraSettingError('trigger must be "software", "freerun" or a trigger line such as "Line0"')
-        self.requested_id = device_id
+    feature_hint = "check the name (arv-tool-0.8 features lists them)"
+    trigger_line_example = "Line0"
+
+    def __init__(self, device_id: str | None, n_buffers: int = 4, auto_packet_size: bool = True):
+        super().__init__(device_id)
+        self.n_buffers = max(2, int(n_buffers))
+        self.auto_packet_size = bool(auto_packet_size)
         self.device_id = ""
-        self.vendor = ""
-        self.model = ""
-        self.serial = ""
-        self.exposure_s = float("nan")
-        self.gain = float("nan")
-        self.frames_grabbed = 0
-        self.frames_dropped = 0
-        self._camera = None
         self._device = None
         self._stream = None
         self._lost_handler = None
         self._lost = threading.Event()   # set from Aravis's heartbeat thread on "control-lost"
-        self._broken = False             # a disconnect was seen: do not talk to the camera when closing
         self._acquiring = False
         self._release_thread: threading.Thread | None = None
-        self._Aravis, self._GLib = _import_aravis()
-        try:
-            self._open(features or {}, max(2, int(n_buffers)), bool(auto_packet_size))
-            if exposure_s is not None:
-                self.set_exposure(exposure_s)
-            if gain is not None:
-                self.set_gain(gain)
-            self._start()
-        except BaseException:
-            self.close()
-            raise
+        self._Aravis = self._GLib = None
 
-    # -- opening ---------------------------------------------------------------------------------
+    # A disconnect seen here, or Aravis's heartbeat reporting the camera lost.
+    broken = property(lambda self: self._broken or self._lost.is_set(),
+                      lambda self, value: setattr(self, "_broken", bool(value)))
 
     @property
-    def description(self) -> str:
-        """The camera as named in messages, e.g. "Aravis Fake (serial GV01)"."""
-        if self.serial or self.model:
-            return f"{self.vendor} {self.model} (serial {self.serial})".strip()
-        return f"camera {self.requested_id}" if self.requested_id else "Aravis camera"
+    def loss(self) -> str:
+        return "lost contact (no heartbeat answer)" if self._lost.is_set() else "was disconnected"
 
-    def _open(self, features: Mapping[str, object], n_buffers: int, auto_packet_size: bool) -> None:
+    def load(self) -> None:
+        self._Aravis, self._GLib = _import_aravis()
+        self.error_types = (self._GLib.Error,)
+
+    def unopened_description(self) -> str:
+        return f"camera {self.requested}" if self.requested else "Aravis camera"
+
+    def _detail(self, exc) -> str:
+        return exc.message
+
+    def open(self) -> None:
         Aravis, GLib = self._Aravis, self._GLib
         try:
-            self._camera = Aravis.Camera.new(self.requested_id)
+            self.handle = Aravis.Camera.new(self.requested)
         except GLib.Error as exc:
-            wanted = repr(self.requested_id) if self.requested_id else "any camera"
-            if _is_ip_address(self.requested_id):
+            wanted = repr(self.requested) if self.requested else "any camera"
+            if _is_ip_address(self.requested):
                 found = ""          # addressed directly: no discovery broadcast just for the message
             else:
                 try:
-                    cams = list_cameras()
                     found = "; cameras found: " + (", ".join(f"{c['device_id']} at {c['address']}"
-                                                             for c in cams) or "none")
+                                                             for c in list_cameras()) or "none")
                 except GLib.Error:
                     found = ""
             raise CameraNotFoundError(
                 f"Aravis could not open {wanted} ({exc.message}{found}); check the camera's power and cable, "
                 "that it is on this computer's subnet (arv-tool-0.8 lists the cameras), and that no other "
                 "program controls it") from exc
-        if self._camera is None:
-            raise CameraNotFoundError(f"Aravis found no camera {self.requested_id or ''}; check power and cable")
-        self._device = self._camera.get_device()
+        if self.handle is None:
+            raise CameraNotFoundError(f"Aravis found no camera {self.requested or ''}; check power and cable")
+        self._device = self.handle.get_device()
         lost = self._lost
         self._lost_handler = self._device.connect("control-lost", lambda *_: lost.set())
-        try:
-            self.vendor = self._camera.get_vendor_name() or ""
-            self.model = self._camera.get_model_name() or ""
-            self.serial = self._camera.get_device_serial_number() or ""
-            self.device_id = f"{self.vendor}-{self.model}-{self.serial}"
-        except GLib.Error as exc:
-            raise self._classify(exc, "reading the camera's identity") from exc
-        log.info("opened %s as %r", self.description, self.requested_id)
+        with self.failures("reading the camera's identity"):
+            self.vendor = self.handle.get_vendor_name() or ""
+            self.model = self.handle.get_model_name() or ""
+            self.serial = self.handle.get_device_serial_number() or ""
+        self.device_id = f"{self.vendor}-{self.model}-{self.serial}"
 
-        for name, value in features.items():
-            self._set_feature(name, value)
+    # -- nodes -----------------------------------------------------------------------------------
+
+    def _node(self, name: str):
         try:
-            if self._camera.get_pixel_format_as_string() != self.pixel_format:
-                self._camera.set_pixel_format_from_string(self.pixel_format)
-            _, _, width, height = self._camera.get_region()
-        except GLib.Error as exc:
-            raise self._classify(exc, f"setting the pixel format {self.pixel_format}", setting=True) from exc
-        if (int(height), int(width)) != self.shape:
-            raise CameraFrameSizeError(
-                f"{self.description} is set to frames of {height} x {width} pixels (rows x columns) but the "
-                f"station expects {self.shape[0]} x {self.shape[1]}: make the camera's Width/Height (region "
-                "of interest) and the station's camera size (station.toml [camera]) agree")
-        self._configure_trigger()
-        if auto_packet_size and self._camera.is_gv_device():
+            node = self._device.get_feature(name)
+            return node if node is not None and self.handle.is_feature_available(name) else None
+        except self._GLib.Error:
+            return None
+
+    def feature_kind(self, name: str) -> str | None:
+        node = self._node(name)
+        if node is None:
+            return None
+        return "command" if isinstance(node, self._Aravis.GcCommand) else "value"
+
+    def read(self, name: str):
+        Aravis, device, node = self._Aravis, self._device, self._node(name)
+        try:
+            if node is None:
+                return None
+            if isinstance(node, Aravis.GcString):          # strings and enumerations, by entry name
+                return device.get_string_feature_value(name)
+            if isinstance(node, Aravis.GcInteger):
+                return device.get_integer_feature_value(name)
+            if isinstance(node, Aravis.GcFloat):
+                return device.get_float_feature_value(name)
+            return node.get_value_as_string()
+        except self._GLib.Error:
+            return None
+
+    def write(self, name: str, value, required: bool) -> None:
+        if isinstance(value, bool):
+            value = "true" if value else "false"
+        self._node(name).set_value_from_string(str(value))
+
+    def execute(self, name: str) -> None:
+        self._node(name).execute()
+
+    # -- exposure (microseconds) and gain: Aravis's camera calls, which know the vendors' feature names --
+
+    def quantity(self, name: str) -> float:
+        return float(getattr(self.handle, f"get_{_QUANTITY_CALLS[name]}")())
+
+    def quantity_range(self, name: str) -> tuple[float, float]:
+        if name == "gain" and not self.handle.is_gain_available():
+            raise CameraSettingError(f"{self.description} has no gain setting")
+        return tuple(getattr(self.handle, f"get_{_QUANTITY_CALLS[name]}_bounds")())
+
+    def set_quantity(self, name: str, value: float) -> None:
+        getattr(self.handle, f"set_{_QUANTITY_CALLS[name]}")(value)
+
+    # -- acquisition -----------------------------------------------------------------------------
+
+    def prepare_acquisition(self) -> None:
+        cam = self.handle
+        if self.auto_packet_size and cam.is_gv_device():
             try:
-                size = self._camera.gv_auto_packet_size()
-                log.debug("%s: GigE Vision packet size %d bytes", self.description, size)
-            except GLib.Error as exc:   # not fatal: the camera keeps its packet size
+                log.debug("%s: GigE Vision packet size %d bytes", self.description, cam.gv_auto_packet_size())
+            except self._GLib.Error as exc:   # not fatal: the camera keeps its packet size
                 log.warning("%s: finding the packet size failed (%s); keeping the camera's",
                             self.description, exc.message)
-        try:
-            self._camera.set_acquisition_mode(Aravis.AcquisitionMode.CONTINUOUS)
-            payload = self._camera.get_payload()
-            self._stream = self._camera.create_stream(None, None)
-        except GLib.Error as exc:
-            raise self._classify(exc, "creating the image stream") from exc
+        payload = cam.get_payload()
+        self._stream = cam.create_stream(None, None)
         if self._stream is None:
             raise CameraError(f"{self.description}: Aravis could not create an image stream (a firewall "
                               "blocking UDP, or no free port?)")
-        for _ in range(n_buffers):
-            self._stream.push_buffer(Aravis.Buffer.new_allocate(payload))
-        self.exposure_s = self._read_exposure_s()
-        self.gain = self._read_gain()
+        for _ in range(self.n_buffers):
+            self._stream.push_buffer(self._Aravis.Buffer.new_allocate(payload))
 
-    def _configure_trigger(self) -> None:
-        if self._has("TriggerSelector"):
-            self._set_feature("TriggerSelector", "FrameStart")
-        if self.trigger == "freerun":
-            if self._has("TriggerMode"):
-                self._set_feature("TriggerMode", "Off")
-        else:
-            self._set_feature("TriggerMode", "On")
-            self._set_feature("TriggerSource", "Software" if self.trigger == "software" else self.trigger)
-
-    def _start(self) -> None:
-        try:
-            self._camera.start_acquisition()
-        except self._GLib.Error as exc:
-            raise self._classify(exc, "starting the acquisition") from exc
+    def start(self) -> None:
+        self.handle.start_acquisition()
         self._acquiring = True
 
-    # -- GenICam features ------------------------------------------------------------------------
+    def drop_waiting(self) -> int:
+        dropped = 0
+        while (buf := self._stream.try_pop_buffer()) is not None:
+            self._stream.push_buffer(buf)
+            dropped += 1
+        return dropped
 
-    def _has(self, name: str) -> bool:
-        try:
-            return bool(self._camera.is_feature_available(name))
-        except self._GLib.Error:
-            return False
+    def software_trigger(self, timeout_s: float) -> bool:
+        self.handle.software_trigger()
+        return True
 
-    def _set_feature(self, name: str, value) -> None:
-        """Set (or execute) one GenICam feature; raise CameraSettingError naming it on failure."""
-        GLib = self._GLib
-        node = self._device.get_feature(name)
-        if node is None or not self._has(name):
-            raise CameraSettingError(f"{self.description} has no feature {name!r}: check the name "
-                                     "(arv-tool-0.8 features lists them) or the camera model")
-        try:
-            if type(node).__name__ == "GcCommand":
-                if value not in (None, True):
-                    raise CameraSettingError(f"{name} is a command: give it the value true to execute it")
-                node.execute()
-            else:
-                if isinstance(value, bool):
-                    value = "true" if value else "false"
-                node.set_value_from_string(str(value))
-        except GLib.Error as exc:
-            raise self._classify(exc, f"setting {name} to {value!r}", setting=True) from exc
-        log.debug("%s: %s = %r", self.description, name, value)
-
-    # -- exposure and gain -----------------------------------------------------------------------
-
-    def _read_exposure_s(self) -> float:
-        try:
-            return float(self._camera.get_exposure_time()) * 1e-6
-        except self._GLib.Error:
-            return float("nan")
-
-    def _read_gain(self) -> float:
-        try:
-            return float(self._camera.get_gain())
-        except self._GLib.Error:
-            return float("nan")
-
-    @property
-    def exposure_range_s(self) -> tuple[float, float]:
-        """(shortest, longest) exposure time the camera accepts, seconds."""
-        low, high = self._camera.get_exposure_time_bounds()
-        return low * 1e-6, high * 1e-6
-
-    @property
-    def gain_range(self) -> tuple[float, float]:
-        """(lowest, highest) gain the camera accepts, in its unit."""
-        low, high = self._camera.get_gain_bounds()
-        return float(low), float(high)
-
-    def set_exposure(self, seconds: float) -> None:
-        """Set the exposure time.
-
-        Parameters
-        ----------
-        seconds : float
-            Exposure time, seconds (Aravis writes microseconds to ExposureTime or ExposureTimeAbs;
-            :attr:`exposure_s` holds the value the camera reports).
-
-        Raises
-        ------
-        CameraSettingError
-            Outside the camera's range, or not writable.
-        CameraDisconnectedError
-            The camera does not answer.
-        """
-        seconds = check_exposure(seconds)
-        cam = self._require_open()
-        GLib = self._GLib
-        us = seconds * 1e6
-        try:
-            if cam.is_exposure_auto_available():
-                cam.set_exposure_time_auto(self._Aravis.Auto.OFF)
-            low, high = cam.get_exposure_time_bounds()
-            check_in_range("exposure", us, low, high, "s", scale=1e-6)
-            cam.set_exposure_time(us)
-            self.exposure_s = float(cam.get_exposure_time()) * 1e-6
-        except GLib.Error as exc:
-            raise self._classify(exc, f"setting the exposure to {seconds:g} s", setting=True) from exc
-        log.debug("%s: exposure %.6f s (asked %.6f s)", self.description, self.exposure_s, seconds)
-
-    def set_gain(self, gain: float) -> None:
-        """Set the gain.
-
-        Parameters
-        ----------
-        gain : float
-            In the camera's unit (dB for SFNC ``Gain``; raw counts where the camera only has
-            ``GainRaw``). :attr:`gain` holds the value the camera reports.
-
-        Raises
-        ------
-        CameraSettingError
-            Outside the camera's range (:attr:`gain_range`), or no writable gain.
-        CameraDisconnectedError
-            The camera does not answer.
-        """
-        gain = check_gain(gain)
-        cam = self._require_open()
-        GLib = self._GLib
-        try:
-            if not cam.is_gain_available():
-                raise CameraSettingError(f"{self.description} has no gain setting")
-            if cam.is_gain_auto_available():
-                cam.set_gain_auto(self._Aravis.Auto.OFF)
-            low, high = cam.get_gain_bounds()
-            check_in_range("gain", gain, low, high, "(camera units)")
-            cam.set_gain(gain)
-            self.gain = float(cam.get_gain())
-        except GLib.Error as exc:
-            raise self._classify(exc, f"setting the gain to {gain:g}", setting=True) from exc
-        log.debug("%s: gain %g (asked %g)", self.description, self.gain, gain)
-
-    # -- grabbing --------------------------------------------------------------------------------
-
-    def _require_open(self):
-        if self._camera is None:
-            raise CameraError(f"{self.description} is closed; open a new camera")
-        if self._broken or self._lost.is_set():
-            self._broken = True
-            raise CameraDisconnectedError(f"{self.description} lost contact (no heartbeat answer); check the "
-                                          "cable, power and network, then close and reopen the camera")
-        return self._camera
-
-    def _classify(self, exc, action: str, setting: bool = False) -> CameraError:
-        """Turn a GLib.Error from Aravis into the station's camera error."""
-        Aravis = self._Aravis
-        timeout_codes = {int(Aravis.DeviceError.TIMEOUT), int(Aravis.DeviceError.TRANSFER_ERROR),
-                         int(Aravis.DeviceError.NOT_CONNECTED)}
-        is_device_error = exc.domain == "arv-device-error-quark"
-        if self._lost.is_set() or (is_device_error and exc.code in timeout_codes):
-            self._broken = True
-            return CameraDisconnectedError(f"{self.description} does not answer while {action} ({exc.message}): "
-                                           "check the cable, power and network, then close and reopen the camera")
-        if setting:
-            return CameraSettingError(f"{self.description}: {action} failed: {exc.message}")
-        return CameraError(f"{self.description} failed while {action}: {exc.message}")
-
-    def _probe(self) -> None:
-        """Read a register; raise CameraDisconnectedError when the camera does not answer."""
-        if self._lost.is_set():
-            self._require_open()
-        try:
-            # Address 0 is a bootstrap register of every GigE Vision (and USB3 Vision) device: one
-            # read, never served from a feature cache.
-            answer = self._device.read_register(0)
-        except self._GLib.Error as exc:
-            raise self._classify(exc, "checking whether it still answers") from exc
-        if answer is False or (isinstance(answer, tuple) and answer and answer[0] is False):
-            self._broken = True
-            raise CameraDisconnectedError(f"{self.description} does not answer a register read; check the "
-                                          "cable, power and network, then close and reopen the camera")
-
-    def grab(self, timeout_s: float = 2.0) -> np.ndarray:
-        """Grab one frame.
-
-        Parameters
-        ----------
-        timeout_s : float
-            Longest wait for the frame, seconds. (Finding out that a camera has gone can take longer:
-            Aravis retries a control command for about 2.5 s.)
-
-        Returns
-        -------
-        numpy.ndarray
-            (rows, columns) uint8 counts.
-
-        Raises
-        ------
-        CameraTimeoutError
-            No frame within ``timeout_s`` while the camera still answers.
-        CameraDisconnectedError
-            The camera stopped answering; close it and open a new one.
-        CameraIncompleteFrameError
-            The frame arrived damaged (lost packets: check the network card, packet size, packet delay).
-        CameraFrameSizeError
-            The frame's size differs from ``expected_shape``.
-        CameraError
-            The camera was closed, or Aravis failed otherwise.
-        """
-        Aravis, GLib = self._Aravis, self._GLib
-        cam = self._require_open()
+    def next_frame(self, timeout_s: float, bits: int) -> Delivery | None:
         stream = self._stream
-        deadline = time.monotonic() + max(0.0, float(timeout_s))
-        # Recycle frames that are already waiting: they were exposed before this call.
-        while (buf := stream.try_pop_buffer()) is not None:
+        timeout_us = int(timeout_s * 1e6)
+        buf = stream.timeout_pop_buffer(timeout_us) if timeout_us > 0 else stream.try_pop_buffer()
+        if buf is None:
+            return None
+        try:
+            arrived_ns = buf.get_system_timestamp()
+            status = buf.get_status()
+            if status != self._Aravis.BufferStatus.SUCCESS:
+                return Delivery(None, status.value_nick, arrived_ns)
+            return Delivery(self._to_array(buf, bits), "", arrived_ns)
+        finally:
             stream.push_buffer(buf)
-            self.frames_dropped += 1
-        sent_ns = time.time_ns()
-        if self.trigger == "software":
-            try:
-                cam.software_trigger()
-            except GLib.Error as exc:
-                raise self._classify(exc, "sending a software trigger") from exc
-        while True:
-            remaining_us = int(max(0.0, deadline - time.monotonic()) * 1e6)
-            buf = stream.timeout_pop_buffer(remaining_us) if remaining_us > 0 else stream.try_pop_buffer()
-            if buf is None:
-                self._probe()
-                self._require_open()
-                source = {"software": "after a software trigger", "freerun": "in free run"}.get(
-                    self.trigger, f"from trigger line {self.trigger}")
-                raise CameraTimeoutError(f"{self.description}: no frame {source} within {timeout_s:g} s; "
-                                         "check the trigger, exposure time and frame rate")
-            try:
-                # A frame whose first packet reached the host before the trigger is a late, stale one.
-                if self.trigger == "software" and buf.get_system_timestamp() < sent_ns:
-                    self.frames_dropped += 1
-                    continue
-                status = buf.get_status()
-                if status != Aravis.BufferStatus.SUCCESS:
-                    self._require_open()
-                    raise CameraIncompleteFrameError(
-                        f"{self.description} delivered a damaged frame ({status.value_nick}); check the "
-                        "network card, packet size and inter-packet delay (or the USB link)")
-                frame = self._to_array(buf)
-            finally:
-                stream.push_buffer(buf)
-            break
-        self.frames_grabbed += 1
-        return check_frame_shape(frame, self.shape, self.description)
 
-    def _to_array(self, buf) -> np.ndarray:
+    def _to_array(self, buf, bits: int) -> np.ndarray:
         width, height = buf.get_image_width(), buf.get_image_height()
         data = buf.get_image_data() if hasattr(buf, "get_image_data") else buf.get_data()
-        itemsize = 1 if self._bits == 8 else 2
+        itemsize = 1 if bits == 8 else 2
         if len(data) < width * height * itemsize:
             raise CameraIncompleteFrameError(f"{self.description} delivered {len(data)} bytes for a frame of "
                                              f"{height} x {width} pixels; check the pixel format")
         dtype = np.uint8 if itemsize == 1 else np.dtype("<u2")
-        image = np.frombuffer(data, dtype=dtype, count=width * height).reshape(height, width)
-        return to_uint8(image, self._bits)
+        return to_uint8(np.frombuffer(data, dtype=dtype, count=width * height).reshape(height, width), bits)
 
-    # -- closing ---------------------------------------------------------------------------------
+    def check_alive(self) -> None:
+        """Read a register; raise CameraDisconnectedError when the camera does not answer."""
+        if self.broken:
+            return          # already known: the camera's next check says so
+        with self.failures("checking whether it still answers"):
+            # Address 0 is a bootstrap register of every GigE Vision (and USB3 Vision) device: one
+            # read, never served from a feature cache.
+            answer = self._device.read_register(0)
+        if answer is False or (isinstance(answer, tuple) and answer and answer[0] is False):
+            self.broken = True
+            raise CameraDisconnectedError(f"{self.description} does not answer a register read; check the "
+                                          "cable, power and network, then close and reopen the camera")
 
-    def close(self) -> None:
-        """Stop the acquisition and release the camera (idempotent, never raises, returns at once).
+    def _verdict(self, exc, setting: bool) -> str | None:
+        device_error = self._Aravis.DeviceError
+        lost_codes = {int(device_error.TIMEOUT), int(device_error.TRANSFER_ERROR), int(device_error.NOT_CONNECTED)}
+        if self._lost.is_set() or (exc.domain == "arv-device-error-quark" and exc.code in lost_codes):
+            return "gone"
+        return None
+
+    def release(self) -> None:
+        """Stop the acquisition and drop the camera; returns at once.
 
         A camera that has gone away is released in a background thread: Aravis's clean-up still sends it
         a few control commands and waits for their retries (about 7.5 s on Aravis 0.8.26).
         """
-        cam, self._camera = self._camera, None
-        if cam is None:
-            return
-        GLib = self._GLib
-        if self._acquiring and not (self._broken or self._lost.is_set()):
+        cam, self.handle = self.handle, None
+        if self._acquiring and not self.broken:
             try:
                 cam.stop_acquisition()
-            except GLib.Error as exc:
-                self._broken = self._broken or exc.domain == "arv-device-error-quark"
+            except self._GLib.Error as exc:
+                self.broken = self.broken or exc.domain == "arv-device-error-quark"
                 log.debug("%s: stopping the acquisition failed while closing: %s", self.description, exc.message)
         self._acquiring = False
         if self._device is not None and self._lost_handler is not None:
@@ -553,24 +327,54 @@ class AravisCamera:
         held = [self._stream, self._device, cam]
         self._lost_handler = self._stream = self._device = None
         del cam
-        if self._broken or self._lost.is_set():
+        if self.broken:
             thread = threading.Thread(target=_release, args=(held, self.description), daemon=True,
                                       name="aravis-release")
             thread.start()
             self._release_thread = thread
         else:
             _release(held, self.description)
-        log.info("closed %s", self.description)
-
-    def __enter__(self) -> "AravisCamera":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-    def __repr__(self) -> str:
-        state = "closed" if self._camera is None else ("disconnected" if self._broken else "open")
-        return f"<AravisCamera {self.description}, {self.shape[0]} x {self.shape[1]}, {state}>"
 
 
-__all__ = ["AravisCamera", "list_cameras"]
+class AravisCamera(GenICamCamera):
+    """A GenICam camera (GigE Vision, USB3 Vision) through Aravis 0.8: :class:`~.genicam.GenICamCamera`
+    over an :class:`AravisTransport`.
+
+    Parameters
+    ----------
+    device_id : str or None
+        What Aravis opens: the camera's IP address (opened directly, no discovery broadcast), or a device
+        id ("<vendor>-<model>-<serial>", as ``arv-tool-0.8`` lists them) or serial number, found by a
+        GigE Vision discovery broadcast on every network interface; None takes the first camera found.
+    expected_shape, pixel_format, trigger, features, exposure_s, gain
+        As for :class:`~.genicam.GenICamCamera` (a trigger line is e.g. "Line0"; the gain is usually dB).
+    n_buffers : int
+        Frame buffers in the stream's pool.
+    auto_packet_size : bool
+        On GigE Vision, let Aravis find the largest packet size the network path carries.
+
+    Attributes
+    ----------
+    requested_id : str or None
+        What was asked for.
+    device_id, vendor, model, serial : str
+        The opened camera's identity (``device_id`` is "<vendor>-<model>-<serial>", as Aravis lists it).
+
+    The other attributes, and the errors raised, are :class:`~.genicam.GenICamCamera`'s.
+    """
+
+    def __init__(self, device_id: str | None, expected_shape: tuple[int, int], pixel_format: str = "Mono8", *,
+                 trigger: str = "software", features: Mapping[str, object] | None = None,
+                 exposure_s: float | None = None, gain: float | None = None, n_buffers: int = 4,
+                 auto_packet_size: bool = True):
+        self.requested_id = device_id
+        super().__init__(AravisTransport(device_id, n_buffers, auto_packet_size), expected_shape, pixel_format,
+                         trigger=trigger, features=features, exposure_s=exposure_s, gain=gain)
+
+    @property
+    def device_id(self) -> str:
+        """The opened camera's "<vendor>-<model>-<serial>"."""
+        return self._transport.device_id
+
+
+__all__ = ["AravisCamera", "AravisTransport", "list_cameras"]
