@@ -48,7 +48,8 @@ class Outcome:
     sensitivities : dict or None
         The uncertainty's sensitivities as records (what a dump keeps).
     preview : dict or None
-        A thinned copy of the per-pixel results for the operator's map (a facet's).
+        A thinned copy of the per-pixel results for the operator's map (a facet's; the worker fills it,
+        :meth:`Job.preview`).
     detail : object or None
         The analysis itself (per-pixel arrays, a heliostat's traces), for pictures in the same process; never
         sent between processes.
@@ -79,6 +80,9 @@ class Job(Protocol):
         """Reduce *capture* to figures (with their U given the input *uncertainty*). *sensitivity_cache* keeps the
         uncertainty's sensitivities between captures; *design_traces* the design's optical traces; *attempt*
         is 0 for an analysis, 1 for its rerun on the standby worker."""
+
+    def preview(self, outcome: Outcome) -> dict | None:
+        """The operator's thinned map of *outcome*'s per-pixel results, or None (what the line's page shows)."""
 
     def record(self, head, figures: dict, truth: dict | None = None, timings: dict | None = None, **extra) -> dict:
         """The result record of *figures* (an :class:`Outcome`'s) judged against the job's limits, with the

@@ -77,7 +77,12 @@ class FacetJob:
         a = analyse(capture.frames, capture.fringes, capture.geometry, self.design, capture.distance_m, self.analysis,
                     rays_cam=capture.rays_cam, uncertainty=uncertainty, sensitivity_cache=sensitivity_cache)
         add_optics(a, self.design, self.optics, design_traces)
-        return Outcome(a.figures, a.valid, a.sensitivities, preview(a), a)
+        return Outcome(a.figures, a.valid, a.sensitivities, None, a)
+
+    def preview(self, outcome: Outcome) -> dict | None:
+        """The operator's thinned slope-error map of *outcome* (:func:`preview`; 0.1-0.2 s at full resolution,
+        so only the line's worker asks for it)."""
+        return None if outcome.detail is None else preview(outcome.detail)
 
     def record(self, head, figures: dict, truth: dict | None = None, timings: dict | None = None, **extra) -> dict:
         """The facet's record (:func:`~sofast_station.result.record.build_record`), judged by

@@ -126,6 +126,10 @@ class HeliostatJob:
                                 optics=figures.get("optics"), instructions=figures.get("canting_instructions"),
                                 timings=merged_timings(timings, figures), **extra)
 
+    def preview(self, outcome: Outcome) -> dict | None:
+        """A heliostat has no operator's map of one facet's slope errors."""
+        return None
+
     def dumped(self) -> dict:
         """What a data dump keeps of the job beside the heliostat's layout design (``design`` of dump schema 2:
         ``ensemble``, ``heliostat``, ``max_canting_mrad``; :func:`heliostat_job_of`)."""

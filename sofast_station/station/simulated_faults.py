@@ -56,6 +56,9 @@ class FaultyJob:
             time.sleep(delay)
         return self.job.analyse(capture, attempt=attempt, **kwargs)
 
+    def preview(self, outcome):
+        return self.job.preview(outcome)
+
     def record(self, head, figures, truth=None, timings=None, **extra):
         return self.job.record(head, figures, truth, timings, **extra)
 

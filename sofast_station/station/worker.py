@@ -144,7 +144,7 @@ def _run(ticket: int, job, distance_m: float, uncertainty: dict | None = None, a
     out = job.analyse(Capture(frames, float(distance_m), _STATE["fringes"], _STATE["geometry"], _STATE["rays"]),
                       uncertainty=inputs, sensitivity_cache=_STATE.setdefault("sensitivities", {}),
                       design_traces=_STATE.setdefault("design_traces", DesignTraces()), attempt=attempt)
-    result = (out.figures, np.packbits(out.valid), out.valid.shape, time.perf_counter() - t, out.preview,
+    result = (out.figures, np.packbits(out.valid), out.valid.shape, time.perf_counter() - t, job.preview(out),
               out.sensitivities)
     del out, frames
     trim_heap()                          # the per-pixel arrays' pages go back: the worker's memory stays flat
