@@ -43,7 +43,7 @@ import cv2
 import numpy as np
 
 from ..ensemble import EnsembleDesign
-from ..errors import AnalysisError, FacetNotFoundError, GeometryError, StationError
+from ..errors import AnalysisError, CaptureError, FacetNotFoundError, GeometryError, StationError
 from ..fringes import FringeSet
 from ..geometry import CameraIntrinsics, Pose, StationGeometry
 from .pipeline import Analysis, AnalysisSettings, default_screen, outline_image_points
@@ -822,37 +822,93 @@ def analyse_heliostat(frames: np.ndarray, fringes: FringeSet, geometry: StationG
     AnalysisError
         No facet could be analysed (every facet's reason is named).
     """
-    from ..errors import CaptureError
-    from .analysis import finish_analysis
-    from .pipeline import pose_from_corners, reduce_stages, rerun, thread_pool
-
     t0 = time.perf_counter()
     timings: dict = {}
-    if frames.ndim != 3 or frames.shape[1:] != geometry.camera.shape:
-        raise CaptureError(f"frames have shape {frames.shape}, expected (n, {geometry.camera.shape[0]}, "
-                           f"{geometry.camera.shape[1]}) for this camera")
-    if not (np.isfinite(measured_distance_m) and measured_distance_m > 0):
-        raise GeometryError(f"measured distance must be a positive number of metres, got {measured_distance_m}")
+    _check_capture(frames, geometry, measured_distance_m)
     screen = screen if screen is not None else default_screen(geometry)
     centre = screen.centre_camera()
     regions, labels = find_facets(frames[0], frames[1], geometry, ensemble, settings.mask_threshold_dn, heliostat)
     timings["find_facets"] = time.perf_counter() - t0
     todo = [r for r in regions if r.status == "measured"]
-    total = 2 * len(todo)
-    done = 0
+    tick = _counter(progress, 2 * len(todo))
+    geometries = {reg.index: _facet_geometry(geometry, ensemble, reg) for reg in todo}
 
-    # Facets are analysed side by side, *settings.threads* at a time, each also using the analysis's own
-    # pool for its halves (:func:`_each`): a facet's arithmetic is the same on any thread, so the same bits.
-    # 1. every found facet reduced, up to its boresight on the subsample, with the distance the nominal pose
-    #    gives it
+    reductions, reasons = reduce_to_boresight(frames, fringes, geometry, ensemble, regions, labels, geometries,
+                                              centre, measured_distance_m, settings, heliostat, screen, rays_cam,
+                                              timings, tick)
+    t = time.perf_counter()
+    pose = corner_pose_tilted(reductions, regions, geometry, ensemble, centre, measured_distance_m, settings)
+    timings["heliostat_pose"] = time.perf_counter() - t
+    analyses = finish_facets(reductions, fringes, geometries, ensemble, pose.distances_m, settings, screen,
+                             uncertainty, sensitivity_cache, reasons, timings, tick)
+    t = time.perf_counter()
+    h2c = pose.heliostat_to_camera
+    design_rot = {i: ensemble.facets[i].rotation for i in analyses}
+    cant = canting_errors(design_rot, {i: h2c.rotation.T @ a.facet_to_camera.rotation for i, a in analyses.items()})
+    tilt = cant["tilt_mrad"]
+    optical_to_camera = Pose(h2c.rotation @ _rot_xy(1e-3 * tilt[0], 1e-3 * tilt[1]), h2c.translation)
+    spread = None if uncertainty is None else facet_tilt_spread(analyses, heliostat)
+    facets_out, valid = facet_entries(regions, reasons, analyses, cant, pose.distances_m, spread,
+                                      geometry.camera.shape)
+    helio = heliostat_entry(ensemble, regions, analyses, pose, cant, optical_to_camera, geometry, centre,
+                            measured_distance_m, settings, uncertainty, spread)
+    timings["canting"] = time.perf_counter() - t
+    timings["total"] = time.perf_counter() - t0
+    out = HeliostatAnalysis(figures={"heliostat": helio, "facets": facets_out}, regions=regions, analyses=analyses,
+                            pose=pose, valid=valid, timings_s=timings)
+    out._optical_to_camera = optical_to_camera
+    out._errors = cant["errors"]
+    out._design_rotations = design_rot
+    return out
+
+
+def _check_capture(frames: np.ndarray, geometry: StationGeometry, measured_distance_m: float) -> None:
+    """Refuse frames that do not fit the camera, and a distance that is not a positive number of metres."""
+    if frames.ndim != 3 or frames.shape[1:] != geometry.camera.shape:
+        raise CaptureError(f"frames have shape {frames.shape}, expected (n, {geometry.camera.shape[0]}, "
+                           f"{geometry.camera.shape[1]}) for this camera")
+    if not (np.isfinite(measured_distance_m) and measured_distance_m > 0):
+        raise GeometryError(f"measured distance must be a positive number of metres, got {measured_distance_m}")
+
+
+def _counter(progress, total: int):
+    """A callable that counts one more step done and reports ``progress(done, total)`` (if given)."""
+    done = [0]
+
+    def tick():
+        done[0] += 1
+        if progress:
+            progress(done[0], total)
+    return tick
+
+
+def _no_facet(ensemble: EnsembleDesign, reasons: dict, regions: list = ()) -> AnalysisError:
+    """The error when no facet could be analysed, every facet's reason named."""
+    return AnalysisError("no facet of the heliostat could be analysed: "
+                         + "; ".join(f"{ensemble.facets[i].label}: {m}" for i, m in sorted(reasons.items()))
+                         + "".join(f"; {r.label}: {r.reason}" for r in regions if r.status != "measured"))
+
+
+def reduce_to_boresight(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometry, ensemble: EnsembleDesign,
+                        regions: list, labels: np.ndarray, geometries: dict, centre: np.ndarray,
+                        measured_distance_m: float, settings: AnalysisSettings, heliostat: HeliostatSettings,
+                        screen: ScreenModel, rays_cam, timings: dict, tick) -> tuple[dict, dict]:
+    """First pass: every found facet reduced up to its boresight on the subsample
+    (:func:`~sofast_station.measure.pipeline.reduce_stages`), with the distance the fixture's nominal pose
+    gives it (shifted as the measured distance is from the measure point's own nominal distance). Facets whose
+    regions touch (``HeliostatSettings.split_joined``) are placed by the heliostat's outer outline
+    (:func:`joined_pose`). Facets run *settings.threads* at a time (:func:`_each`): a facet's arithmetic is the
+    same on any thread, so the same bits.
+
+    Returns (reductions, reasons): facet index -> (Reduction, its timings); facet index -> why it was refused.
+    Raises AnalysisError when no facet could be reduced."""
+    from .pipeline import reduce_stages
+
+    todo = [r for r in regions if r.status == "measured"]
     nominal = facet_distances(geometry.fixture_to_camera, ensemble, centre)
-    # (the measure point's own nominal distance: a facet's measure point, or a point between facets)
     shift = measured_distance_m - float(np.linalg.norm(geometry.fixture_to_camera.apply(ensemble.measure_point_m)
                                                        - centre))
-    geometries = {reg.index: _facet_geometry(geometry, ensemble, reg) for reg in todo}
-    reductions, reasons = {}, {}
-    # facets whose regions touch (HeliostatSettings.split_joined): placed by the heliostat's outer outline
-    joined = {}
+    joined, jp = {}, None
     together = [r for r in todo if r.joined]
     if together:
         t = time.perf_counter()
@@ -882,21 +938,23 @@ def analyse_heliostat(frames: np.ndarray, fringes: FringeSet, geometry: StationG
         except StationError as exc:
             return exc, time.perf_counter() - t
 
+    reductions, reasons = {}, {}
     for reg, (out, timings[f"reduce_{reg.label}"]) in zip(todo, _each(first, todo, settings.threads)):
         if isinstance(out, StationError):
             reasons[reg.index] = str(out)
         else:
             reductions[reg.index] = out
-        done += 1
-        if progress:
-            progress(done, total)
+        tick()
     if not reductions:
-        raise AnalysisError("no facet of the heliostat could be analysed: "
-                            + "; ".join(f"{ensemble.facets[i].label}: {m}" for i, m in sorted(reasons.items()))
-                            + "".join(f"; {r.label}: {r.reason}" for r in regions if r.status != "measured"))
+        raise _no_facet(ensemble, reasons, regions)
+    return reductions, reasons
 
-    # 2. the heliostat's corner pose, turned to the facets' optical tilt, and every facet's distance from it
-    t = time.perf_counter()
+
+def corner_pose_tilted(reductions: dict, regions: list, geometry: StationGeometry, ensemble: EnsembleDesign,
+                       centre: np.ndarray, measured_distance_m: float, settings: AnalysisSettings) -> HeliostatPose:
+    """The heliostat's corner pose from every reduced facet's corners (:func:`heliostat_pose`), and each facet's
+    distance from that pose turned to the facets' mean optical tilt (the corners of a nearly flat heliostat
+    resolve its tilt to milliradians, the facets' normals to hundredths)."""
     corners, covs = {}, {}
     for i, (red, _) in reductions.items():
         r0, c0, _, _ = regions[i].window
@@ -905,16 +963,25 @@ def analyse_heliostat(frames: np.ndarray, fringes: FringeSet, geometry: StationG
     pose = heliostat_pose(corners, covs, geometry, ensemble, centre, measured_distance_m, settings.max_range_shift_m,
                           settings.max_corner_rms_px)
     h2c = pose.heliostat_to_camera
-    design_rot = {i: ensemble.facets[i].rotation for i in reductions}
-    first_cant = canting_errors(design_rot, {i: h2c.rotation.T @ red.shape.boresighted_to_camera.rotation
-                                             for i, (red, _) in reductions.items()})
+    first_cant = canting_errors({i: ensemble.facets[i].rotation for i in reductions},
+                                {i: h2c.rotation.T @ red.shape.boresighted_to_camera.rotation
+                                 for i, (red, _) in reductions.items()})
     distances = facet_distances(tilted(h2c, ensemble, first_cant["tilt_mrad"]), ensemble, centre)
-    pose = dataclasses.replace(pose, distances_m=distances)
-    timings["heliostat_pose"] = time.perf_counter() - t
+    return dataclasses.replace(pose, distances_m=distances)
 
-    # 3. every facet's shape over every pixel, its fits and figures from its corner pose at that distance, with
-    #    their uncertainty
-    analyses: dict[int, Analysis] = {}
+
+def finish_facets(reductions: dict, fringes: FringeSet, geometries: dict, ensemble: EnsembleDesign, distances: dict,
+                  settings: AnalysisSettings, screen: ScreenModel, uncertainty, sensitivity_cache: dict | None,
+                  reasons: dict, timings: dict, tick) -> dict:
+    """Second pass: every reduced facet's corner pose at its distance
+    (:func:`~sofast_station.measure.pipeline.pose_from_corners`), its shape over every pixel and its fits and
+    figures (:func:`~sofast_station.measure.pipeline.rerun` from the shape), finished with their uncertainties
+    (:func:`~sofast_station.measure.analysis.finish_analysis`).
+
+    Returns facet index -> Analysis; a facet refused here has its reason added to *reasons*. Raises
+    AnalysisError when no facet could be analysed."""
+    from .analysis import finish_analysis
+    from .pipeline import pose_from_corners, rerun, thread_pool
 
     def second(i: int):
         t = time.perf_counter()
@@ -937,55 +1004,65 @@ def analyse_heliostat(frames: np.ndarray, fringes: FringeSet, geometry: StationG
         except StationError as exc:
             return exc, time.perf_counter() - t
 
+    analyses: dict[int, Analysis] = {}
     keys = sorted(reductions)
     for i, (out, timings[f"facet_{ensemble.facets[i].label}"]) in zip(keys, _each(second, keys, settings.threads)):
         if isinstance(out, StationError):
             reasons[i] = str(out)
         else:
             analyses[i] = out
-        done += 1
-        if progress:
-            progress(done, total)
+        tick()
     if not analyses:
-        raise AnalysisError("no facet of the heliostat could be analysed: "
-                            + "; ".join(f"{ensemble.facets[i].label}: {m}" for i, m in sorted(reasons.items())))
+        raise _no_facet(ensemble, reasons)
+    return analyses
 
-    # 4. canting against the heliostat's optical frame, and its uncertainty
-    t = time.perf_counter()
-    design_rot = {i: ensemble.facets[i].rotation for i in analyses}
-    cant = canting_errors(design_rot, {i: h2c.rotation.T @ a.facet_to_camera.rotation for i, a in analyses.items()})
-    tilt = cant["tilt_mrad"]
-    optical_to_camera = Pose(h2c.rotation @ _rot_xy(1e-3 * tilt[0], 1e-3 * tilt[1]), h2c.translation)
-    keys = sorted(analyses)
-    n = len(keys)
+
+@dataclass(frozen=True)
+class TiltSpread:
+    """What a canting error's U is made of, per measured facet: its optical tilt's sensitivities to the
+    station's inputs (scaled to this capture; None when it has none) and its random U (k = 2, mrad, per
+    axis "x", "y"; a facet's own height on the frame included)."""
+
+    sensitivities: dict
+    u_random: dict
+
+    def random(self, ax: str) -> dict:
+        """Facet index -> its random U about axis *ax* (or None)."""
+        return {j: None if u is None else u[ax] for j, u in self.u_random.items()}
+
+
+def facet_tilt_spread(analyses: dict, heliostat: HeliostatSettings) -> TiltSpread:
+    """Every measured facet's optical-tilt sensitivities and random U (:class:`TiltSpread`): a facet's height on
+    the frame is its own, its share of the distance, independent between facets
+    (``HeliostatSettings.facet_height_mm``)."""
+    from .sensitivity_record import from_record
+
     sens, u_rand = {}, {}
-    if uncertainty is not None:
-        from .sensitivity_record import from_record
-        for i, a in analyses.items():
-            rec = from_record(a.sensitivities) if a.sensitivities is not None else None
-            sens[i] = None if not rec else capture_scaled(rec[1], a.figures)
-            u = a.figures.get("optical_tilt_mrad_U_random")
-            u_rand[i] = None if u is None else dict(u)
-            # a facet's height on the frame is its own: its share of the distance, independent between facets
-            if sens[i] is not None and u_rand[i] is not None and heliostat.facet_height_mm > 0:
-                r = [k for k, inp in enumerate(sens[i].inputs) if inp.name == "distance"]
-                if r:
-                    scale = heliostat.facet_height_mm / sens[i].inputs[r[0]].u
-                    for ax in "xy":
-                        c = float(sens[i].linear[r[0], sens[i].paths.index(("optical_tilt_mrad", ax))]) * scale
-                        u_rand[i][ax] = math.hypot(u_rand[i][ax], 2.0 * c)
+    for i, a in analyses.items():
+        rec = from_record(a.sensitivities) if a.sensitivities is not None else None
+        sens[i] = None if not rec else capture_scaled(rec[1], a.figures)
+        u = a.figures.get("optical_tilt_mrad_U_random")
+        u_rand[i] = None if u is None else dict(u)
+        if sens[i] is not None and u_rand[i] is not None and heliostat.facet_height_mm > 0:
+            r = [k for k, inp in enumerate(sens[i].inputs) if inp.name == "distance"]
+            if r:
+                scale = heliostat.facet_height_mm / sens[i].inputs[r[0]].u
+                for ax in "xy":
+                    c = float(sens[i].linear[r[0], sens[i].paths.index(("optical_tilt_mrad", ax))]) * scale
+                    u_rand[i][ax] = math.hypot(u_rand[i][ax], 2.0 * c)
+    return TiltSpread(sens, u_rand)
 
-    def u_of(weights, ax):
-        return combined_u(weights, sens, {j: None if u_rand[j] is None else u_rand[j][ax] for j in keys},
-                          ("optical_tilt_mrad", ax))
 
+def facet_entries(regions: list, reasons: dict, analyses: dict, cant: dict, distances: dict,
+                  spread: TiltSpread | None, shape: tuple) -> tuple[list, np.ndarray]:
+    """One JSON-ready entry per facet of the design (label, status, window; a measured facet's figures, corners in
+    the whole image, canting and distance, and with *spread* the canting's U), and every measured facet's valid
+    pixels in the whole image (*shape*)."""
     cant_u = {}
-    if uncertainty is not None:
-        cant_u = {ax: canting_u(sens, {j: None if u_rand[j] is None else u_rand[j][ax] for j in keys},
-                                ("optical_tilt_mrad", ax)) for ax in "xy"}
-
+    if spread is not None:
+        cant_u = {ax: canting_u(spread.sensitivities, spread.random(ax), ("optical_tilt_mrad", ax)) for ax in "xy"}
     facets_out = []
-    valid = np.zeros(geometry.camera.shape, dtype=bool)
+    valid = np.zeros(shape, dtype=bool)
     for reg in regions:
         i = reg.index
         entry = {"index": i, "label": reg.label, "status": reg.status, "window": list(reg.window),
@@ -1004,10 +1081,21 @@ def analyse_heliostat(frames: np.ndarray, fringes: FringeSet, geometry: StationG
             entry["canting_mrad"] = {"x": rx, "y": ry}
             entry["canting_rz_mrad"] = cant["rz_mrad"][i]
             entry["measured_distance_m"] = distances[i]
-            if uncertainty is not None:
+            if spread is not None:
                 entry["canting_mrad_U"] = {ax: cant_u[ax][i] for ax in "xy"}
         facets_out.append(entry)
-    pl = _placement_about_origin(geometry.fixture_to_camera, h2c)
+    return facets_out, valid
+
+
+def heliostat_entry(ensemble: EnsembleDesign, regions: list, analyses: dict, pose: HeliostatPose, cant: dict,
+                    optical_to_camera: Pose, geometry: StationGeometry, centre: np.ndarray,
+                    measured_distance_m: float, settings: AnalysisSettings, uncertainty,
+                    spread: TiltSpread | None) -> dict:
+    """The heliostat's own JSON-ready figures: its placement in the fixture, counts, common and optical tilt,
+    canting RMS and maximum; with *uncertainty* (and *spread*) their U (k = 2)."""
+    keys = sorted(analyses)
+    h2c = pose.heliostat_to_camera
+    tilt = cant["tilt_mrad"]
     in_fixture = _placement_about_origin(geometry.fixture_to_camera, optical_to_camera)["mrad"]
     magnitudes = [math.hypot(*cant["canting_mrad"][i]) for i in keys]
     helio = {
@@ -1015,7 +1103,7 @@ def analyse_heliostat(frames: np.ndarray, fringes: FringeSet, geometry: StationG
         "n_facets": ensemble.n_facets,
         "n_measured": len(analyses),
         "n_missing": sum(r.status == "missing" for r in regions),
-        "placement": pl,
+        "placement": _placement_about_origin(geometry.fixture_to_camera, h2c),
         "corner_reprojection_rms_px": pose.reprojection_rms_px,
         "range_correction_m": pose.range_shift_m,
         "measured_distance_m": float(measured_distance_m),
@@ -1025,25 +1113,20 @@ def analyse_heliostat(frames: np.ndarray, fringes: FringeSet, geometry: StationG
         "canting_max_mrad": float(max(magnitudes)),
         "canting_max_facet": ensemble.facets[keys[int(np.argmax(magnitudes))]].label,
     }
-    if uncertainty is not None:
-        mean_w = {j: 1.0 / n for j in keys}
-        helio["optical_tilt_mrad_U"] = {ax: u_of(mean_w, ax) for ax in "xy"}
-        pu = _pose_uncertainty(pose, geometry, ensemble, centre, measured_distance_m, settings, uncertainty)
-        helio["placement_U"] = pu
-        # The common tilt is the optical frame's tilt less the corner pose's: the fixture cancels, the corners'
-        # own tilt error dominates.
-        fix = 2.0 * np.asarray(uncertainty.fixture_rotation_mrad, float)
-        ot = helio["optical_tilt_mrad_U"]
-        helio["common_tilt_mrad_U"] = {
-            ax: (None if ot[ax] is None or pu["mrad"][k] is None else
-                 float(math.sqrt(max(ot[ax] ** 2 - fix[k] ** 2, 0.0) + max(pu["mrad"][k] ** 2 - fix[k] ** 2, 0.0))))
-            for k, ax in enumerate("xy")}
-        helio["coverage_factor"] = 2
-    timings["canting"] = time.perf_counter() - t
-    timings["total"] = time.perf_counter() - t0
-    out = HeliostatAnalysis(figures={"heliostat": helio, "facets": facets_out}, regions=regions, analyses=analyses,
-                            pose=pose, valid=valid, timings_s=timings)
-    out._optical_to_camera = optical_to_camera
-    out._errors = cant["errors"]
-    out._design_rotations = design_rot
-    return out
+    if uncertainty is None or spread is None:
+        return helio
+    mean_w = {j: 1.0 / len(keys) for j in keys}
+    helio["optical_tilt_mrad_U"] = {ax: combined_u(mean_w, spread.sensitivities, spread.random(ax),
+                                                   ("optical_tilt_mrad", ax)) for ax in "xy"}
+    pu = _pose_uncertainty(pose, geometry, ensemble, centre, measured_distance_m, settings, uncertainty)
+    helio["placement_U"] = pu
+    # The common tilt is the optical frame's tilt less the corner pose's: the fixture cancels, the corners'
+    # own tilt error dominates.
+    fix = 2.0 * np.asarray(uncertainty.fixture_rotation_mrad, float)
+    ot = helio["optical_tilt_mrad_U"]
+    helio["common_tilt_mrad_U"] = {
+        ax: (None if ot[ax] is None or pu["mrad"][k] is None else
+             float(math.sqrt(max(ot[ax] ** 2 - fix[k] ** 2, 0.0) + max(pu["mrad"][k] ** 2 - fix[k] ** 2, 0.0))))
+        for k, ax in enumerate("xy")}
+    helio["coverage_factor"] = 2
+    return helio
