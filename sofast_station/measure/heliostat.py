@@ -785,6 +785,10 @@ def analyse_heliostat(frames: np.ndarray, fringes: FringeSet, geometry: StationG
     pipeline.rerun` from the shape), finished with their uncertainties
     (:func:`~sofast_station.measure.analysis.finish_analysis`).
 
+    The steps, each a function of its own: :func:`find_facets`, :func:`reduce_to_boresight`,
+    :func:`corner_pose_tilted`, :func:`finish_facets`, :func:`canting_errors`, and the record's parts
+    :func:`facet_tilt_spread`, :func:`facet_entries` and :func:`heliostat_entry`.
+
     Parameters
     ----------
     frames : (n, rows, columns) integer array
