@@ -19,29 +19,29 @@ import logging
 import queue
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from ..calibrate.settings import calibration_settings
 from ..calibrate.store import check_cycle
-from ..devices.protocols import FAULT_CODES, WARNING_BITS, FacetRequest
+from ..devices.protocols import FacetRequest
 from ..archive._common import trim_heap
-from ..errors import AnalysisTimeout, CameraError, StationError, TriggerError
-from ..result.faults import fault_reason
-from ..result.record import RecordHead, build_record
+from ..errors import StationError, TriggerError
+from ..result.record import RecordHead
 from ..result.shift import cycle_seconds
 from ..serials import clean_serial, raw_for_record
 from . import console as _console
-from ..live.operator_commands import take_commands, take_dump_next
+from ..live.operator_commands import take_commands
 from .clock import StationClock
 from .drift import DriftMonitor
-from .frames import capture_sequence, crop, restore
+from .cycle import Cycle, CycleOutcome
+from .frames import capture_sequence
 from .link import LinkWatch
 from .opened import Station
-from ..recipes import Recipe, choose_recipe
+from ..recipes import Recipe
 from ..live.status import StatusFile
-from .worker import RERUN_FACTOR, AnalysisWorker
+from .worker import AnalysisWorker
 
 log = logging.getLogger(__name__)
 
@@ -91,52 +91,6 @@ class RunSettings:
     late_grace_s: float = 10.0
     warmup: bool = True
     standby_worker: bool = True
-
-
-@dataclass
-class CycleOutcome:
-    """One facet's cycle, as answered to the robot and journaled."""
-
-    cycle_id: str
-    serial: str
-    answer: str                       # pass | fail | invalid | fault
-    record: dict
-    fault_code: int = 0
-    #: The facet's cycle time (result/shift.py ``cycle_seconds``: trigger to journal row), what the console,
-    #: the page and OPC UA show; ``release_s``: trigger to the robot's release (its answer sent), what the
-    #: cycle benchmark times.
-    cycle_s: float = 0.0
-    release_s: float = 0.0
-    dumped: bool = False
-    frames: np.ndarray | None = field(default=None, repr=False)
-    #: The analysis's valid pixels (camera size) and its thinned per-pixel results, for the monitor.
-    valid: np.ndarray | None = field(default=None, repr=False)
-    preview: dict | None = field(default=None, repr=False)
-    #: The uncertainty's sensitivities the analysis used (a record), written into the facet's dump.
-    sensitivities: dict | None = field(default=None, repr=False)
-
-
-@dataclass
-class CycleCapture:
-    """What a cycle captured and keeps until its answer: the frames cropped to the facet (what a dump keeps),
-    the crop box in the camera image, the camera image's size and the measured distance (metres). Empty
-    when the capture failed. ``late`` holds an analysis abandoned at the deadline that may still finish
-    (its future and what its record needs), for :meth:`StationRunner._follow_late`."""
-
-    frames: np.ndarray | None = field(default=None, repr=False)
-    box: tuple | None = None
-    full_shape: tuple | None = None
-    distance_m: float | None = None
-    late: tuple | None = field(default=None, repr=False)
-
-    def restored(self) -> np.ndarray:
-        """The frames at the camera's full size (outside the crop: 0), as the analysis takes them."""
-        return restore(self.frames, self.box, self.full_shape)
-
-    def dump(self, sensitivities: dict | None) -> dict:
-        """What :meth:`Service.submit <sofast_station.station.service.Service.submit>` spools for a dump."""
-        return {"frames": self.frames, "crop_box": self.box, "full_shape": self.full_shape,
-                "measured_distance_m": self.distance_m, "sensitivities": sensitivities}
 
 
 def new_cycle_id() -> str:
@@ -208,7 +162,6 @@ class StationRunner:
         #: The wall clock, watched for steps; cycle ids go on from the journal's newest (station/clock.py).
         last_id, last_time = _journal_newest(journal)
         self.clock = StationClock(last_cycle_id=last_id, last_time=last_time)
-        self._clock_warning: str | None = None
         self.archiver = archiver
         self.recipes = recipes
         self.settings = settings
@@ -216,7 +169,7 @@ class StationRunner:
         self.console = console
         self.stop_event = threading.Event()
         #: Late results of abandoned analyses, queued by the retired workers' threads, kept by the loop.
-        self._late_results: queue.SimpleQueue = queue.SimpleQueue()
+        self.late_results: queue.SimpleQueue = queue.SimpleQueue()
         #: The robot/PLC link: outages logged once, then once a minute; reconnects after a growing pause.
         self.link = LinkWatch(settings.poll_s)
         self._pause = self.stop_event.wait          # the pause between reconnects (tests give their own)
@@ -229,7 +182,7 @@ class StationRunner:
         self.worker.prepare_optics([(r.design, r.optics) for r in recipes.values()
                                     if r.optics is not None and r.ensemble is None])
         self._heartbeat_thread = threading.Thread(target=self._heartbeat, name="heartbeat", daemon=True)
-        self._answer_lock = threading.Lock()
+        self.answer_lock = threading.Lock()
         self._calibration_policy = calibration_settings(station.config)[0]
         self._calibration_warned = False
         #: How many facets this run expects (the console's n/N), when known.
@@ -243,7 +196,7 @@ class StationRunner:
         #: Drift alarms: the control-chart rules on each recipe's recent facets (off without a baseline).
         self.drift = DriftMonitor(station.config, recipes, journal)
 
-    def _check_drift(self, recipe: str, record: dict) -> None:
+    def check_drift(self, recipe: str, record: dict) -> None:
         """Drift alarm: the rules on the recipe's recent facets; alarms go to the record (journal row),
         the log, the status file (console and web page); the PLC's warning bit follows with the answer."""
         try:
@@ -257,7 +210,7 @@ class StationRunner:
             self.status.alarm(f"drift-{recipe}", f"drift in recipe {recipe} at facet {record.get('serial')}: "
                                                  + " | ".join(alarms))
 
-    def _check_calibration(self, dark_frame: np.ndarray) -> list[str]:
+    def check_calibration(self, dark_frame: np.ndarray) -> list[str]:
         """Judge the calibration again for this facet (age, and the dark level of its dark frame).
 
         Returns the warnings for the facet's record; raises StaleCalibrationError when the station refuses
@@ -402,7 +355,7 @@ class StationRunner:
             log.info("warm-up: one capture analysed in %.1f s", time.perf_counter() - t)
         except StationError as exc:
             log.warning("warm-up capture not analysed (%s); the first facet may be slower", exc)
-            self._reopen_camera()
+            self.reopen_camera()
 
     def _link_failed(self, exc: BaseException) -> None:
         """The handshake failed while waiting for a facet: alarm, reconnect, pause; logged by the link watch
@@ -417,7 +370,7 @@ class StationRunner:
                 pause = self.link.failed(again)
         self._pause(pause)
 
-    def _reopen_trigger(self) -> None:
+    def reopen_trigger(self) -> None:
         reopen = getattr(self.trigger.trigger, "reopen", None)
         if reopen:
             try:
@@ -428,64 +381,16 @@ class StationRunner:
 
     # ------------------------------------------------------------------ one cycle
     def cycle(self, request: FacetRequest) -> CycleOutcome:
-        """One facet, from the robot's request to its answer (docs/architecture.md, steps 3-9).
-
-        The request's serial is made safe (or replaced by one an operator typed); the robot hears busy;
-        a watchdog will answer "fault: timeout" at the deadline whatever this thread is doing
-        (:meth:`_expire`); the facet is measured (:meth:`_measure`: capture, crop, calibration check,
-        analysis in the worker process, verdict, record); then its record is journaled, with its frames
-        spooled when a dump is due, and only then the robot hears the answer (:meth:`_finish`, or
-        :meth:`_finish_late` when the watchdog answered first). An analysis abandoned at the deadline is
-        answered "timeout" now and its late result kept between facets (:meth:`_follow_late`), while the
-        standby worker measures the next facet.
-
-        Never raises for a bad facet: any error in the measurement becomes a fault answer with its reason
-        code (:mod:`sofast_station.result.faults`), and the loop takes the next facet.
-        """
+        """One facet, from the robot's request to its answer: a :class:`~sofast_station.station.cycle.Cycle`
+        of its own (docs/architecture.md, steps 3-9), with the next cycle id from the line's clock and the
+        request accepted (:meth:`accept`). Never raises for a bad facet."""
         t0 = time.perf_counter()
-        cycle_id, self._clock_warning = self.clock.next_cycle()
+        cycle_id, clock_warning = self.clock.next_cycle()
         self.cycles += 1
-        request = self._accept(request, cycle_id)
-        self.status.update(state="measuring", serial=request.serial, cycle_id=cycle_id)
-        try:
-            if not request.extra.get("operator"):       # a re-measurement: the robot did not ask
-                self.trigger.busy()
-        except TriggerError as exc:
-            log.error("%s: could not signal busy: %s", request.serial, exc)
-        # The watchdog answers the robot at the deadline whatever this thread is doing.
-        state = {"answered": False, "stage": "start"}
-        watchdog = threading.Timer(max(0.1, self.settings.deadline_s - 0.2), self._expire,
-                                   args=(cycle_id, request, state, t0))
-        watchdog.daemon = True
-        watchdog.start()
-        captured = CycleCapture()
-        try:
-            outcome = self._measure(cycle_id, request, state, t0, captured)
-        finally:
-            watchdog.cancel()
-            # A watchdog that has fired may still be answering the robot (journal, then the trigger): the
-            # loop's next ready() must come after that answer, not in the middle of it.
-            watchdog.join()
-        outcome.frames = captured.frames
-        if captured.frames is not None:
-            outcome.record["crop_box"] = list(captured.box)
-        with self._answer_lock:
-            answered = state["answered"]
-            state["answered"] = True
-        try:
-            if captured.late is not None:
-                # The analysis was abandoned at the deadline and may still finish: the row is the timeout now
-                # (answered here, or by the watchdog), its figures and dump follow when the late result comes.
-                self._follow_late(outcome, request, t0, state, answered, captured)
-            elif answered:
-                self._finish_late(outcome, request, t0, state, captured)
-            else:
-                self._finish(outcome, request, t0, captured)
-        finally:
-            outcome.frames = None             # nothing of the frames outlives the cycle
-        return outcome
+        request = self.accept(request, cycle_id)
+        return Cycle(self, request, cycle_id, clock_warning, t0=t0).run()
 
-    def _accept(self, request: FacetRequest, cycle_id: str) -> FacetRequest:
+    def accept(self, request: FacetRequest, cycle_id: str) -> FacetRequest:
         """The request as the cycle uses it: one safe serial for the journal, workbook, dump and page (what
         was sent goes to the record's ``serial_raw``), or the serial an operator typed for this facet."""
         serial, note = clean_serial(request.serial)
@@ -506,196 +411,7 @@ class StationRunner:
         self._last_request = request
         return request
 
-    def _measure(self, cycle_id: str, request: FacetRequest, state: dict, t0: float,
-                 captured: CycleCapture) -> CycleOutcome:
-        """Measure the facet: the recipe, the capture (cropped into *captured*, which the answer and the dump
-        use), the calibration check on its dark frame, the analysis in the worker within what is left of
-        the deadline, the verdict and the record. Any error becomes a fault outcome; an analysis abandoned
-        at the deadline leaves its future in ``captured.late``. *state*'s ``stage`` tells the watchdog what
-        did not return."""
-        timings: dict[str, float] = {}
-        cal_warnings: list[str] = []
-        try:
-            recipe = choose_recipe(self.recipes, request)
-            # the recipe's job (the simulated station may give one that injects the faults its tests ask for)
-            job = self.station.job_for(recipe, request.serial)
-            t = time.perf_counter()
-            state["stage"] = "capture"
-            raw, notes = capture_sequence(self.station.display, self.station.camera, self.station.config.fringes,
-                                          recipe.analysis.mask_threshold_dn, timeout_s=self.settings.camera_timeout_s)
-            captured.distance_m = float(self.station.range_finder.measure())
-            timings["capture"] = time.perf_counter() - t
-            # (a heliostat's job: the box around every facet, not its largest region)
-            captured.box = job.crop_box(raw[0], raw[1])
-            captured.frames, captured.full_shape = crop(raw, captured.box), raw.shape[1:]
-            cal_warnings = self._check_calibration(raw[0])
-            del raw
-            # At the deadline this thread answers "timeout" itself (just before the watchdog would) and the
-            # standby worker takes over for the next facet; the abandoned analysis may still finish within
-            # the late grace in its retired worker, and its figures are then journaled and dumped as a late
-            # result (_follow_late).
-            budget = self.settings.deadline_s - (time.perf_counter() - t0) - 0.3
-            if budget <= 0:
-                raise AnalysisTimeout(f"the capture took {timings['capture']:.1f} s, past the "
-                                      f"{self.settings.deadline_s:g} s deadline")
-            t = time.perf_counter()
-            state["stage"] = "analysis"
-            try:
-                res = self.worker.analyse(captured.restored(), job, captured.distance_m, timeout_s=budget,
-                                          uncertainty=self.station.config.uncertainty,
-                                          late_s=self.settings.late_grace_s)
-            except AnalysisTimeout as exc:
-                if exc.late is not None:
-                    captured.late = (exc.late, recipe, job, captured.distance_m, notes, dict(timings),
-                                     list(cal_warnings), t)
-                raise
-            timings["analysis"] = time.perf_counter() - t
-            if res.rerun_after_s is not None:
-                notes = [*notes, f"the analysis had not answered after {res.rerun_after_s:.1f} s (over "
-                                 f"{RERUN_FACTOR:g} times its usual time): it was run again on the standby worker; "
-                                 f"this is the {'rerun' if res.rerun_answer == 'standby' else 'first'} analysis's "
-                                 "result"]
-            record = self._measured_record(cycle_id, request, recipe, job, res, captured.distance_m, notes, timings,
-                                           cal_warnings)
-            if job.kind == "facet":               # (a heliostat's facets are not one facet's trend)
-                self._check_drift(recipe.name, record)
-            return CycleOutcome(cycle_id, request.serial, record["verdict"], record, valid=res.valid,
-                                preview=res.preview, sensitivities=getattr(res, "sensitivities", None))
-        except Exception as exc:          # a bad facet must never stop the line
-            code, reason = fault_reason(exc)
-            if code == FAULT_CODES["internal"]:
-                log.exception("%s: internal error", request.serial)
-            record = self._fault_record(cycle_id, request, code, reason, timings, cal_warnings)
-            if isinstance(exc, CameraError):
-                self.status.alarm("camera", f"camera lost at facet {request.serial}: {exc}")
-                self._reopen_camera()
-            return CycleOutcome(cycle_id, request.serial, "fault", record, fault_code=code)
-
-    def _measured_record(self, cycle_id, request, recipe, job, res, distance, notes, timings, cal_warnings) -> dict:
-        """The record of an analysed facet (in time or late): the job's record of its figures, with, on the
-        simulated station, the truth of the station's own facet type."""
-        truth = self.station.truth(res.valid, job) if job.name == self.station.config.design.name else None
-        head = self._head(cycle_id, request, recipe.name, cal_warnings, facet=job.name)
-        return job.record(head, res.figures, truth, timings, measured_distance_m=distance, capture_notes=notes,
-                          **self._clock_note())
-
-    def _follow_late(self, outcome: CycleOutcome, request: FacetRequest, t0: float, state: dict, answered: bool,
-                     captured: CycleCapture) -> None:
-        """An analysis abandoned at the deadline: journal and answer the timeout now (unless the watchdog did),
-        without the dump; when the retired worker's result comes (or its grace ends), the loop amends the row
-        with the figures, marked late, and dumps the frames, between facets (_finish_late)."""
-        future, recipe, job, distance, notes, timings, cal_warnings, t_analysis = captured.late
-        captured.late = None
-        wanted = self._dump_due(outcome, request)            # decided now: the flag file is for this facet
-        if not answered:
-            self._finish(outcome, request, t0, captured, dump=False)
-            # the timeout's answer ends the facet's cycle, as when the watchdog answers (_expire)
-            state["until_journal"] = outcome.record["timings_s"]["until_journal"]
-        state.setdefault("reason", (outcome.record.get("reasons") or ["timeout"])[0])
-        frames, cycle_id = outcome.frames, outcome.cycle_id
-        timeout_record = outcome.record
-
-        def done(fut) -> None:                     # in the retired worker's thread: hand it to the loop
-            self._late_results.put(lambda: keep(fut))
-
-        def keep(fut) -> None:                     # in the loop's thread, between facets
-            try:
-                res, error = fut.result(), None
-            except BaseException as exc:          # the analysis's own error, late: kept in the row
-                res, error = None, exc
-            try:
-                if res is not None:
-                    timings["analysis"] = time.perf_counter() - t_analysis
-                    record = self._measured_record(cycle_id, request, recipe, job, res, distance, notes, timings,
-                                                   cal_warnings)
-                    result = CycleOutcome(cycle_id, outcome.serial, record["verdict"], record,
-                                          sensitivities=res.sensitivities)
-                else:
-                    record = dict(timeout_record)
-                    record["reasons"] = [fault_reason(error)[1] if error is not None else
-                                         f"no result within the late grace of {self.settings.late_grace_s:g} s "
-                                         "(the abandoned worker was killed)"]
-                    result = CycleOutcome(cycle_id, outcome.serial, "fault", record, fault_code=outcome.fault_code)
-                result.frames = frames
-                self._finish_late(result, request, t0, state, captured, dump=wanted)
-            except Exception:                      # a late result must never stop the line
-                log.exception("%s: the late result of cycle %s could not be kept", outcome.serial, cycle_id)
-            finally:
-                result = None
-        future.add_done_callback(done)
-
-    def _expire(self, cycle_id: str, request: FacetRequest, state: dict, t0: float) -> None:
-        """Watchdog: the cycle reached its deadline with its thread still busy (a hung capture or a slow
-        analysis): journal and answer "fault: timeout" now; the cycle's thread may still bring a late result."""
-        with self._answer_lock:
-            if state["answered"]:
-                return
-            state["answered"] = True
-            stage = state["stage"]
-        reason = (f"timeout: no result within the {self.settings.deadline_s:g} s cycle deadline "
-                  f"({stage} did not return)")
-        state["reason"] = reason
-        log.error("%s: %s", request.serial, reason)
-        record = self._fault_record(cycle_id, request, FAULT_CODES["timeout"], reason, {})
-        record["timings_s"]["until_journal"] = state["until_journal"] = time.perf_counter() - t0
-        try:
-            self.submit(cycle_id, record, None)
-        except (OSError, StationError) as exc:
-            self._journal_failed(exc)
-        try:
-            if not request.extra.get("operator"):
-                self.trigger.fault(FAULT_CODES["timeout"], reason)
-        except TriggerError as exc:
-            log.error("could not answer the robot: %s", exc)
-        self._report(record, "fault")
-        if stage == "capture":
-            # Closing the camera is how a blocked grab is aborted; the station's thread then comes back.
-            self._reopen_camera()
-
-    def _finish_late(self, outcome: CycleOutcome, request: FacetRequest, t0: float, state: dict,
-                     captured: CycleCapture, dump: bool | None = None) -> None:
-        """A result that came after the robot was answered "timeout" (the watchdog's, or this thread's at the
-        deadline): keep what was measured.
-
-        The robot's answer stays the timeout; the journaled row gets the figures (or the fault) and is
-        marked late, and the frames are dumped (a timeout is a fault). *dump* says whether (decided at the
-        deadline); None: decide now.
-        """
-        record = outcome.record
-        late_by = time.perf_counter() - t0 - self.settings.deadline_s
-        timeout_reason = state.get("reason", "timeout")
-        reasons = list(record.get("reasons", []))
-        if outcome.answer != "fault":
-            record["late_verdict"] = outcome.answer
-            note = (f"late result: the analysis finished {late_by:.1f} s after the deadline; its verdict would "
-                    f"have been {outcome.answer}")
-        else:
-            note = f"late: {reasons.pop(0) if reasons else 'fault'}"
-        record["reasons"] = [timeout_reason, note] + reasons
-        record.update({"verdict": "fault", "fault_code": FAULT_CODES["timeout"], "late": True,
-                       "late_by_s": round(late_by, 3)})
-        # The robot was answered at the deadline: that ends the facet's cycle (result/shift.py cycle_seconds);
-        # when the late result came is kept beside it.
-        timings = record.setdefault("timings_s", {})
-        timings["until_journal"] = state.get("until_journal")
-        timings["until_late_result"] = time.perf_counter() - t0
-        outcome.answer, outcome.fault_code = "fault", FAULT_CODES["timeout"]
-        wanted = self._dump_due(outcome, request) if dump is None else (dump and outcome.frames is not None)
-        dump = captured.dump(outcome.sensitivities) if wanted else None
-        try:
-            self.submit(outcome.cycle_id, record, dump, amend=True)
-            outcome.dumped = dump is not None
-        except (OSError, StationError) as exc:
-            log.error("%s: the late result of cycle %s could not be journaled: %s", outcome.serial,
-                      outcome.cycle_id, exc)
-        outcome.cycle_s = outcome.release_s = timings["until_journal"]   # the robot left at the timeout
-        # The console already has this facet's line (the timeout): the log says what became of it.
-        log.warning("%s: %s (cycle %s; the robot was answered timeout)", outcome.serial, note, outcome.cycle_id)
-        if self.archiver is not None:
-            self.archiver.wake()
-        outcome.valid = outcome.preview = None         # as after the hooks of an answered facet
-
-    def _journal_failed(self, exc: BaseException) -> None:
+    def journal_failed(self, exc: BaseException) -> None:
         """The journal cannot be written: after this facet's fault answer the station stops."""
         log.critical("the journal cannot be written (%s): the station stops after answering this facet; free "
                      "disk space or fix the data folder's permissions, then start again", exc)
@@ -704,65 +420,7 @@ class StationRunner:
                                        f"permissions of {self.station.config.data_dir}, then start again")
         self.stop_event.set()
 
-    def _dump_due(self, outcome: CycleOutcome, request: FacetRequest) -> bool:
-        s = self.settings
-        if outcome.frames is None:
-            return False
-        if take_dump_next(self.station.config.data_dir):
-            return True
-        return bool(request.dump or (s.dump_every_n and self.cycles % s.dump_every_n == 0)
-                    or (s.dump_failed and outcome.answer in ("fail", "invalid", "indeterminate", "fault")))
-
-    def _finish(self, outcome: CycleOutcome, request: FacetRequest, t0: float, captured: CycleCapture,
-                dump: bool = True) -> None:
-        """Journal (and spool), then answer the robot: in that order. *dump* False: no dump now (a late
-        result may follow, which brings it)."""
-        record = outcome.record
-        wanted = dump and self._dump_due(outcome, request)
-        dump = captured.dump(outcome.sensitivities) if wanted else None
-        record["timings_s"]["until_journal"] = time.perf_counter() - t0
-        try:
-            try:
-                self.submit(outcome.cycle_id, record, dump)
-                outcome.dumped = dump is not None
-            except (OSError, StationError) as exc:
-                if dump is None:
-                    raise
-                # The row matters more than the dump: keep the row, say why the dump is missing.
-                log.error("%s: the frames for the dump could not be spooled (%s); journaling the row without",
-                          outcome.serial, exc)
-                record.setdefault("reasons", []).append(f"dump not written: {exc}")
-                self.submit(outcome.cycle_id, record, None)
-        except (OSError, StationError) as exc:
-            # Not even the row could be written: the robot must still hear that this facet was not recorded.
-            self._journal_failed(exc)
-            reason = f"archive: the result could not be journaled ({exc})"
-            record.update({"verdict": "fault", "fault_code": FAULT_CODES["archive"]})
-            record["reasons"] = [reason] + list(record.get("reasons", []))
-            outcome.answer, outcome.fault_code = "fault", FAULT_CODES["archive"]
-        try:
-            if request.extra.get("operator"):
-                pass                                   # a re-measurement: the robot did not ask
-            elif outcome.answer == "fault":
-                self.trigger.fault(outcome.fault_code, record["reasons"][0] if record.get("reasons") else "fault")
-            else:
-                self.trigger.done(outcome.answer, warnings=WARNING_BITS["drift"] if record.get("drift_alarms") else 0)
-        except TriggerError as exc:
-            log.error("%s: could not answer the robot: %s", outcome.serial, exc)
-            self._reopen_trigger()
-        outcome.release_s = time.perf_counter() - t0
-        outcome.cycle_s = cycle_seconds(record)
-        self._report(record, outcome.answer)
-        if self.archiver is not None:
-            self.archiver.wake()
-        for hook in self.hooks:
-            try:
-                hook(outcome)
-            except Exception:                  # the monitor's extras must never stop the line
-                log.exception("%s: a facet hook failed", outcome.serial)
-        outcome.valid = outcome.preview = outcome.sensitivities = None   # the hooks and the dump had them
-
-    def _reopen_camera(self) -> None:
+    def reopen_camera(self) -> None:
         reopen = getattr(self.station, "reopen_camera", None)
         if reopen:
             try:
@@ -771,7 +429,7 @@ class StationRunner:
                 log.error("could not reopen the camera: %s", exc)
 
     # ------------------------------------------------------------------ records
-    def _head(self, cycle_id: str, request: FacetRequest, recipe_name: str, cal_warnings=(),
+    def head(self, cycle_id: str, request: FacetRequest, recipe_name: str, cal_warnings=(),
               facet: str | None = None) -> RecordHead:
         """The head of this cycle's record (:class:`~sofast_station.result.record.RecordHead`), dated by the
         runner's clock (station/clock.py); the serial as received goes to ``serial_raw`` when making it safe
@@ -783,15 +441,7 @@ class StationRunner:
                                         request={"recipe": request.recipe, "dump": request.dump, **extra})
         return dataclasses.replace(head, time=self.clock.now_iso())
 
-    def _clock_note(self) -> dict:
-        """``{"clock_warning": ...}`` when the wall clock stepped back before this cycle (else empty)."""
-        return {"clock_warning": self._clock_warning} if self._clock_warning else {}
-
-    def _fault_record(self, cycle_id, request, code, reason, timings, cal_warnings=()) -> dict:
-        return build_record(self._head(cycle_id, request, request.recipe or "", cal_warnings), fault=(code, reason),
-                            timings=timings, **self._clock_note())
-
-    def _report(self, record: dict, answer: str) -> None:
+    def report(self, record: dict, answer: str) -> None:
         """The facet's console line, its line in logs/station.log and the live status; the cycle time shown is
         the record's own (:func:`~sofast_station.result.shift.cycle_seconds`), as on the page and OPC UA."""
         cycle_s = cycle_seconds(record)
@@ -807,7 +457,7 @@ class StationRunner:
         journal are written where every other facet's are, not in a thread per late result)."""
         while True:
             try:
-                keep = self._late_results.get_nowait()
+                keep = self.late_results.get_nowait()
             except queue.Empty:
                 return
             keep()
