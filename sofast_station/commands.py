@@ -15,13 +15,10 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import json
 import logging
-import math
 import os
 import re
 import sys
-import tempfile
 import textwrap
 from pathlib import Path
 
@@ -110,35 +107,6 @@ def add_config_option(parser: argparse.ArgumentParser, default: str | None = Non
     parser.add_argument("--config", metavar="FILE", default=default or default_config(),
                         help="the station file (default: ./station.toml if present, else the one beside the "
                              "package)")
-
-
-def json_safe(obj):
-    """Replace NaN and infinities by None: JSON has no Infinity (an infinite f is null:
-    docs/conventions.md#focal-power)."""
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: json_safe(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [json_safe(v) for v in obj]
-    if hasattr(obj, "item"):          # numpy scalar
-        return json_safe(obj.item())
-    return obj
-
-
-def write_json_atomic(path: Path, data: dict) -> None:
-    """Write JSON to a temporary file in the same folder, flush it to disk, then rename it into place."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as fh:
-            json.dump(data, fh, indent=1)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def positive_int(text: str) -> int:

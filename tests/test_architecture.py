@@ -36,7 +36,8 @@ FLOORS: tuple[tuple[str, frozenset], ...] = (
     ("the result", frozenset({"result"})),
     ("routines, devices, oracle, math", frozenset({"calibrate", "devices", "twin", "measure", "qc", "optics",
                                                    "layout"})),
-    ("plain data", frozenset({"errors", "geometry", "facet", "ensemble", "fringes", "files", "serials", "commands",
+    ("plain data", frozenset({"errors", "geometry", "facet", "ensemble", "fringes", "files", "times", "memory",
+                              "serials", "commands",
                               "gum",
                               "(package)"})),
 )

@@ -31,7 +31,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..errors import ArchiveError, DumpError
-from ._common import parse_time, release_memory, remove_stale_temp_files
+from ..files import remove_stale_temp_files
+from ..memory import release_memory
+from ..times import parse_time
 from .dumps import COMPRESSION_LEVEL, DumpContent, disk_ok, dump_path_for, prune_dumps, read_dump, write_dump
 from .journal import Journal
 from .spool import spool_get, spool_list, spool_path, spool_put

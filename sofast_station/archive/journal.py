@@ -26,7 +26,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..errors import ArchiveError
-from ._common import fault_point, now_iso, to_json, utc_key
+from ._common import fault_point
+from ..files import to_json
+from ..times import now_iso, utc_key
 
 log = logging.getLogger(__name__)
 

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ArchiveError
-from ._common import is_temp_file, safe_name, temp_path_for, to_json
+from ..files import is_temp_file, safe_name, temp_path_for, to_json
 
 log = logging.getLogger(__name__)
 

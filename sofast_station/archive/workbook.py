@@ -47,7 +47,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..errors import ArchiveError
-from ._common import fault_point, fsync_dir, json_ready, parse_time, safe_name, temp_path_for
+from ._common import fault_point
+from ..files import fsync_dir, json_ready, safe_name, temp_path_for
+from ..times import parse_time
 from .journal import Journal, JournalRow
 
 log = logging.getLogger(__name__)

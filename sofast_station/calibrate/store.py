@@ -20,9 +20,7 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import logging
-import os
 import re
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,6 +29,7 @@ from typing import Callable
 import numpy as np
 
 from ..errors import ConfigError
+from ..files import write_json_atomic
 from ..fringes import Pattern
 from .errors import StaleCalibrationError, WarmupError
 from .records import RadiometricRecord, load_radiometric
@@ -107,20 +106,11 @@ def write_record(data_dir: str | Path, kind: str, build: Callable[[str, str], di
             seq += 1
             continue
         data = build(record_id, created_iso)
-        fd, tmp = tempfile.mkstemp(dir=folder, prefix=f".{record_id}.", suffix=".tmp")
         try:
-            with os.fdopen(fd, "w") as fh:
-                json.dump(_json_safe(data), fh, indent=1)
-                fh.write("\n")
-                fh.flush()
-                os.fsync(fh.fileno())
-            try:
-                os.link(tmp, path)          # fails if the name was taken meanwhile: never overwrite
-            except FileExistsError:
-                seq += 1
-                continue
-        finally:
-            Path(tmp).unlink(missing_ok=True)
+            write_json_atomic(path, data, replace=False)     # never overwrite: the name may be taken meanwhile
+        except FileExistsError:
+            seq += 1
+            continue
         log.info("wrote %s record %s", kind, path)
         return path, record_id
 
@@ -140,26 +130,6 @@ def read_record(path: str | Path, kind: str, schema: int, what: str, redo: str) 
     if d.get("schema") != schema:
         raise ConfigError(f"{path} has schema {d.get('schema')!r}; this software reads schema {schema}")
     return d
-
-
-def _json_safe(obj):
-    """Plain JSON data: numpy scalars and arrays to Python, non-finite floats to None."""
-    if isinstance(obj, dict):
-        return {str(k): _json_safe(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_json_safe(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _json_safe(obj.tolist())
-    if isinstance(obj, (np.bool_,)):
-        return bool(obj)
-    if isinstance(obj, np.integer):
-        return int(obj)
-    if isinstance(obj, (float, np.floating)):
-        value = float(obj)
-        return value if np.isfinite(value) else None
-    if isinstance(obj, Path):
-        return str(obj)
-    return obj
 
 
 def parse_created(record: RadiometricRecord, where: str) -> _dt.datetime:

@@ -7,7 +7,8 @@ import logging
 import sys
 from pathlib import Path
 
-from ..commands import add_command, json_safe, single_thread_blas
+from ..commands import add_command, single_thread_blas
+from ..files import json_ready
 
 
 def register(subparsers) -> None:
@@ -228,7 +229,7 @@ def cmd_import_opencsp(args) -> int:
     if hits:
         logging.getLogger(__name__).info("%d set(s) of the uncertainty's sensitivities read from the cache in %s "
                                          "(computed from these files before)", hits, disk.directory)
-    out = json_safe(out)
+    out = json_ready(out)
     if args.json:
         json.dump(out, sys.stdout, indent=1)
         sys.stdout.write("\n")
@@ -259,7 +260,7 @@ def _conformance(args) -> int:
     cache: dict = {}
     results = [conform(Path(args.test_data), ds, args.focal_length, cache) for ds in FRINGE_RESULTS]
     if args.json:
-        json.dump(json_safe([c.to_dict() for c in results]), sys.stdout, indent=1)
+        json.dump(json_ready([c.to_dict() for c in results]), sys.stdout, indent=1)
         sys.stdout.write("\n")
         return 0
     print("\n".join(f"[{c.dataset}] " + conformance_text(c) for c in results))
@@ -288,7 +289,7 @@ def _import_ensemble(m, args, cache: dict | None = None) -> int:
                                            "canting_rms_mrad", "canting_max_mrad", "canting_max_facet",
                                            "corner_reprojection_rms_px", "measured_distance_m") if k in h},
            "facets": facets, "input_uncertainties": m.uncertainty.to_dict(), "assumptions": list(m.assumptions)}
-    out = json_safe(out)
+    out = json_ready(out)
     if args.json:
         json.dump(out, sys.stdout, indent=1)
         sys.stdout.write("\n")

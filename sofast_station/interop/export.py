@@ -162,7 +162,7 @@ def export_surface(points: SurfacePoints, fmt: str, path: Path) -> Path:
     """Write *points* as *fmt* (:data:`FORMATS`) to *path*, atomically (a temporary file renamed)."""
     import os
 
-    from ..archive._common import temp_path_for
+    from ..files import temp_path_for
 
     if fmt not in WRITERS:
         raise ConfigError(f"unknown export format {fmt!r}: use one of {', '.join(FORMATS)}")

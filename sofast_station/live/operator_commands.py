@@ -30,7 +30,7 @@ import uuid
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..archive._common import write_file_atomic
+from ..files import write_file_atomic
 from ..errors import CommandError
 
 log = logging.getLogger(__name__)

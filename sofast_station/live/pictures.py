@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..archive._common import write_file_atomic
+from ..files import write_file_atomic
 
 log = logging.getLogger(__name__)
 

@@ -17,7 +17,7 @@ import logging
 import os
 from pathlib import Path
 
-from ..archive._common import pid_alive, write_file_atomic
+from ..files import pid_alive, write_file_atomic
 
 log = logging.getLogger(__name__)
 

@@ -48,8 +48,9 @@ from pathlib import Path
 from typing import Callable, Iterable
 
 from .. import __version__
-from ..archive._common import (fault_point, fsync_dir, is_temp_file, now_iso, remove_stale_temp_files, to_json,
-                               write_file_atomic)
+from ..archive._common import fault_point
+from ..files import fsync_dir, is_temp_file, remove_stale_temp_files, write_file_atomic, write_json_atomic
+from ..times import now_iso
 from ..errors import ArchiveError, StationError
 from ._env import single_thread_blas
 
@@ -182,12 +183,6 @@ def process_dump(dump: str, overrides: dict | None = None, journal: str | None =
 
 
 # -- files ------------------------------------------------------------------------------------------------
-def write_json_atomic(path: Path, obj: dict) -> None:
-    """Write *obj* as JSON to a temporary file beside *path*, fsync it, and rename it into place."""
-    text = to_json(obj, indent=1)
-    write_file_atomic(path, lambda fh: fh.write(text), mode="w", fsync=True)
-
-
 def _write_bytes_atomic(path: Path, data: bytes) -> None:
     write_file_atomic(path, lambda fh: fh.write(data), fsync=True)
     fsync_dir(path.parent)

@@ -557,7 +557,7 @@ def _cmd_trend(args) -> int:
 
     if len(args.targets) > 1:
         raise ConfigError("'report trend' takes no dumps: use --journal PATH or --results DIR")
-    from ..archive._common import check_period, parse_bound
+    from ..times import check_period, parse_bound
     args.since, args.until = parse_bound(args.since, "--from"), parse_bound(args.until, "--to")
     check_period(args.since, args.until)
     if args.journal and args.results:

@@ -60,12 +60,12 @@ def add_options(rpt) -> None:
 
 
 def parse_date(text, what: str):
-    from ..archive._common import parse_bound
+    from ..times import parse_bound
     return parse_bound(text, what)
 
 
 def check_range(since, until, what: str = "--from/--to") -> None:
-    from ..archive._common import check_period
+    from ..times import check_period
     check_period(since, until, what)
 
 

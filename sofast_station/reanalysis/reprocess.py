@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ..archive._common import json_ready, to_json
+from ..files import json_ready, to_json
 from ..archive.dumps import DumpContent, read_dump
 from ..errors import ArchiveError, ConfigError, DumpError, StationError
 from ._env import blas_on_one_thread, blas_threads

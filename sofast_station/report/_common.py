@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from ..archive._common import temp_path_for
+from ..files import temp_path_for
 
 
 def savefig_atomic(fig, path: Path, dpi: int, fmt: str = "png") -> Path:

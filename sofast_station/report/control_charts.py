@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..archive._common import parse_time
+from ..times import parse_time
 from ..qc import spc
 from ..qc.view import chart_view
 from ..result.record import figure_value

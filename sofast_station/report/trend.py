@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..archive._common import parse_time, utc_key
+from ..times import parse_time, utc_key
 from ..result.verdict import LONG_FOCAL_LENGTH_M
 from ..errors import ReportError
 from ._common import savefig_atomic

@@ -31,6 +31,7 @@ import sys
 from .. import __version__
 from ..commands import add_command, add_config_option
 from ..errors import ConfigError
+from ..files import json_ready
 
 log = logging.getLogger(__name__)
 
@@ -46,8 +47,7 @@ def _squares(text: str) -> tuple[int, int]:
 
 def _emit(args, data: dict, text: str) -> None:
     if getattr(args, "json", False):
-        from ..calibrate.store import _json_safe
-        json.dump(_json_safe(data), sys.stdout, indent=1)
+        json.dump(json_ready(data), sys.stdout, indent=1, allow_nan=False)
         sys.stdout.write("\n")
     else:
         print(text)

@@ -11,7 +11,8 @@ import logging
 import sys
 from pathlib import Path
 
-from ..commands import add_command, add_config_option, json_safe, positive_int, write_json_atomic
+from ..commands import add_command, add_config_option, positive_int
+from ..files import json_ready, write_json_atomic
 from ..errors import StationError
 from ..result.formatting import budget_text, shown_decimals, value_and_u, with_u
 
@@ -180,7 +181,7 @@ def cmd_inspect(args) -> int:
             rec["serial_raw"] = raw_for_record(args.serial)
     finally:
         station.close()
-    rec = json_safe(rec)
+    rec = json_ready(rec)
     # the serial never makes a path: no '/', no '..' (the result stays inside data_dir/inspections)
     out = config.data_dir / "inspections" / f"{safe_name(rec['serial'], 64)}-{rec['time'][:19].replace(':', '')}.json"
     write_json_atomic(out, rec)
@@ -284,7 +285,7 @@ def cmd_serve(args) -> int:
 
 def cmd_archive_export(args) -> int:
     from ..archive import Journal, export_workbook
-    from ..archive._common import check_period, parse_bound
+    from ..times import check_period, parse_bound
     from ..config import load_config
 
     args.since = parse_bound(args.since, "--from")

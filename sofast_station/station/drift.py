@@ -91,7 +91,7 @@ def baseline_path(data_dir: Path, recipe: str) -> Path:
 
 def save_baseline(data_dir: Path, recipe: str, baselines: dict, period: dict) -> Path:
     """Write a recipe's baseline (figure key -> :class:`~sofast_station.qc.spc.Baseline`) atomically."""
-    from ..commands import write_json_atomic
+    from ..files import write_json_atomic
 
     path = baseline_path(data_dir, recipe)
     write_json_atomic(path, {"recipe": recipe, "period": period,

@@ -796,7 +796,7 @@ def study(captures: int, seed: int = 0, per_station: int = 10, kinds=tuple(KINDS
     faults caught) under *out_dir* (nothing written without one). Returns ``{"summary", "text", "paths"}``."""
     import datetime as _dt
 
-    from ..commands import json_safe, write_json_atomic
+    from ..files import json_ready, write_json_atomic
     from ..result.verdict import Quality
 
     t0 = time.perf_counter()
@@ -816,7 +816,7 @@ def study(captures: int, seed: int = 0, per_station: int = 10, kinds=tuple(KINDS
         out_dir.mkdir(parents=True, exist_ok=True)
         stem = out_dir / f"population-{seed}-{captures}"
         paths = {"json": stem.with_suffix(".json"), "text": stem.with_suffix(".txt"), "png": stem.with_suffix(".png")}
-        write_json_atomic(paths["json"], json_safe({"seed": seed, "captures": captures, "per_station": per_station,
+        write_json_atomic(paths["json"], json_ready({"seed": seed, "captures": captures, "per_station": per_station,
                                                     "kinds": list(kinds), "edges": list(edges), "faults": list(faults),
                                                     "date": when, "command": command, "summary": summary,
                                                     "cases": cases}))

@@ -26,7 +26,7 @@ import numpy as np
 from ..calibrate.settings import calibration_settings
 from ..calibrate.store import check_cycle
 from ..devices.protocols import FacetRequest
-from ..archive._common import trim_heap
+from ..memory import trim_heap
 from ..errors import StationError, TriggerError
 from ..result.record import RecordHead
 from ..result.shift import cycle_seconds

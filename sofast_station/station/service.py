@@ -19,7 +19,8 @@ import time
 from pathlib import Path
 
 from ..archive import Archiver, ArchiverSettings, DumpContent, Journal, WorkbookSettings
-from ..archive._common import map_large_blocks, remove_stale_temp_files, temp_path_for
+from ..files import remove_stale_temp_files, temp_path_for
+from ..memory import map_large_blocks
 from ..archive.spool import spool_get, spool_list
 from ..config import StationConfig
 from ..devices.protocols import FacetRequest

@@ -11,7 +11,8 @@ import logging
 import sys
 from pathlib import Path
 
-from ..commands import add_command, add_config_option, json_safe, write_json_atomic
+from ..commands import add_command, add_config_option
+from ..files import json_ready, write_json_atomic
 
 log = logging.getLogger("sofast_station")
 
@@ -40,10 +41,10 @@ def cmd_study_repeatability(args) -> int:
     repeatability_png(rows, png, f"repeatability of {config.design.name}: {args.facets} placements within "
                                  f"±{args.placement_mm:g} mm, ±{args.placement_mrad:g} mrad, new noise each")
     table = out_dir / f"repeatability-{config.design.name}-{args.facets}.json"
-    write_json_atomic(table, json_safe({"rows": rows, "facets": args.facets, "seed": args.seed,
+    write_json_atomic(table, json_ready({"rows": rows, "facets": args.facets, "seed": args.seed,
                                         "placement": {"mm": list(placement.mm), "mrad": list(placement.mrad)}}))
     if args.json:
-        json.dump(json_safe(rows), sys.stdout, indent=1)
+        json.dump(json_ready(rows), sys.stdout, indent=1)
         sys.stdout.write("\n")
     else:
         print(table_text(rows))
@@ -86,7 +87,7 @@ def cmd_study_population(args) -> int:
                    faults=faults, out_dir=out_dir, command=command, progress=ProgressLog(stations))
     summary = result["summary"]
     if args.json:
-        json.dump(json_safe(summary), sys.stdout, indent=1)
+        json.dump(json_ready(summary), sys.stdout, indent=1)
         sys.stdout.write("\n")
     else:
         print(result["text"])

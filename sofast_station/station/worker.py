@@ -130,7 +130,7 @@ def _run(ticket: int, job, distance_m: float, uncertainty: dict | None = None, a
     """Analyse the frames in the shared memory as *job* says (a :class:`~sofast_station.job.Job`, sent pickled with
     its ``kind``): the figures, the kept pixels (packed), the seconds, the operator's preview and the
     sensitivities. *attempt*: 0 for a facet's analysis, 1 for its rerun on the standby."""
-    from ..archive._common import trim_heap
+    from ..memory import trim_heap
     from ..job import Capture
     from ..measure.uncertainty import InputUncertainties
     from ..result.optical_figures import DesignTraces

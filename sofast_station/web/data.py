@@ -17,7 +17,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..archive._common import parse_time, utc_key
+from ..times import parse_time, utc_key
 from ..live.pictures import picture_path
 from ..live.status import read_status, status_path
 from ..recipes import recipes_from_config

@@ -21,7 +21,7 @@ import signal
 import socket
 from pathlib import Path
 
-from ..archive._common import write_file_atomic
+from ..files import write_file_atomic
 from ..errors import StationError
 from .settings import OpcUaSettings, WebSettings
 

@@ -18,7 +18,7 @@ import hmac
 import logging
 import math
 
-from ..archive._common import parse_time
+from ..times import parse_time
 from ..errors import ConfigError
 from ..result.record import figure_uncertainty, figure_value
 from ..result.shift import cycle_seconds

@@ -11,7 +11,7 @@ import h5py
 import numpy as np
 import pytest
 
-from sofast_station.archive._common import json_ready
+from sofast_station.files import json_ready
 from sofast_station.archive.dumps import (SCHEMA_V1, SCHEMA_V2, SCHEMA_VERSION, crop_to_facet, disk_ok, prune_dumps,
                                           read_dump, restore_frames, write_dump)
 from sofast_station.archive.dumps import writer as dump_writer

@@ -21,7 +21,7 @@ ROOT = Path(__file__).resolve().parents[2]
 PROBE = """
 import sys
 import numpy as np
-from sofast_station.archive._common import map_large_blocks
+from sofast_station.memory import map_large_blocks
 
 def rss_mb():
     with open("/proc/self/status") as fh:

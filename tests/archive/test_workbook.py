@@ -11,7 +11,7 @@ import pytest
 from openpyxl import load_workbook
 
 from sofast_station.archive import workbook as wbmod
-from sofast_station.archive._common import is_temp_file
+from sofast_station.files import is_temp_file
 from sofast_station.archive.journal import Journal
 from sofast_station.archive.workbook import (FIRST_COLUMNS, WorkbookSettings, export_workbook, period_key,
                                              read_workbook, workbook_path, write_pending)

@@ -5,7 +5,7 @@ import subprocess
 import sys
 
 from sofast_station.cli import main
-from sofast_station.commands import json_safe as _json_safe
+from sofast_station.files import json_ready as _json_safe
 
 KEYS = {"serial", "focal_length_x_m", "focal_length_y_m", "twist_mrad_per_m", "slope_rms_mrad",
         "curvature_x_per_m", "curvature_y_per_m", "twist_e1_mrad_per_m", "twist_e2_mrad_per_m", "n_points",

@@ -14,7 +14,7 @@ import json
 import numpy as np
 import pytest
 
-from sofast_station.archive._common import to_json
+from sofast_station.files import to_json
 from sofast_station.config import load_config
 from sofast_station.devices.cameras.replay import ReplayCamera
 from sofast_station.devices.protocols import FacetRequest

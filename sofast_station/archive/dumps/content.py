@@ -10,7 +10,7 @@ import numpy as np
 
 from ... import __version__
 from ...errors import ArchiveError, DumpError
-from .._common import json_ready
+from ...files import json_ready
 from .schema import SCHEMA_VERSION
 
 log = logging.getLogger("sofast_station.archive.dumps")

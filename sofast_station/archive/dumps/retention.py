@@ -7,7 +7,8 @@ import shutil
 import time
 from pathlib import Path
 
-from .._common import is_temp_file, parse_time, safe_name
+from ...files import is_temp_file, safe_name
+from ...times import parse_time
 
 log = logging.getLogger("sofast_station.archive.dumps")
 

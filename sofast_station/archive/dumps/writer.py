@@ -16,7 +16,9 @@ from pathlib import Path
 import numpy as np
 
 from ...errors import ArchiveError, DumpError
-from .._common import fault_point, fsync_dir, fsync_file, now_iso, temp_path_for, to_json
+from .._common import fault_point
+from ...files import fsync_dir, fsync_file, temp_path_for, to_json
+from ...times import now_iso
 from .content import DumpContent
 from .schema import (_JSON_ENCODING, _PLAIN_ENCODING, COMPRESSION_LEVEL, KEY_FIGURES, SCHEMA, SCHEMA_VERSION,
                      _describe)
