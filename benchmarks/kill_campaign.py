@@ -2,6 +2,7 @@
 
     .venv/bin/python benchmarks/kill_campaign.py --kills 30          # 30 kills on a 400 x 300 station
     .venv/bin/python benchmarks/kill_campaign.py --two-runs 100      # two runs on one data folder
+    .venv/bin/python benchmarks/kill_campaign.py --quick             # the test suite's smoke run
 
 ``--kills N``: runs ``sofast-station run`` (the real command, a fresh process) on one data folder and,
 N times, waits for a facet and a random 0.5 to 6 s more, then sends SIGKILL to the station, the worker or
@@ -14,6 +15,10 @@ Then the archive is checked: every facet line printed (answered) has its journal
 is in exactly one workbook row, every requested dump is readable, no temporary file and no process is
 left. (A station killed between journaling and printing leaves a row without a printed line: those are
 counted, at most one per station kill.)
+
+``--quick``: three kills, one each of the station, the worker and the archiver, 0.1 to 1 s after a facet, the
+line going on for 2 facets after a worker or archiver kill (the test suite's run; the archive checks are the
+same).
 
 ``--two-runs N``: a run of N facets; while it runs a second ``run`` on the same data folder must refuse
 (naming the first one's PID); then a second run of N facets; 2 N rows, none lost or duplicated.
@@ -137,7 +142,10 @@ def check_archive(data: Path, answered: int, station_kills: int) -> dict:
             "station_kills": station_kills, **result}
 
 
-def campaign(kills: int, seed: int, folder: Path, archiver_kills: int = 10) -> int:
+def campaign(kills: int, seed: int, folder: Path, archiver_kills: int = 10, wait_s: tuple[float, float] = (0.5, 6.0),
+             go_on: int = 3) -> int:
+    """*kills* kills, each *wait_s* (a uniform range, s) after a facet; after a worker or archiver kill the line
+    must go on with *go_on* facets, some of them passes."""
     rng = random.Random(seed)
     config = write_config(folder)
     data = folder / "data"
@@ -158,7 +166,7 @@ def campaign(kills: int, seed: int, folder: Path, archiver_kills: int = 10) -> i
             problems.append(f"kill {k}: the station measured nothing (exit {station.proc.poll()}): "
                             + " | ".join(station.err[-5:]))
             break
-        time.sleep(rng.uniform(0.5, 6.0))
+        time.sleep(rng.uniform(*wait_s))
         worker, archiver = station.worker_and_archiver()
         all_pids |= {p for p in (worker, archiver) if p} | children(station.proc.pid)
         target = plan[k - 1]
@@ -189,7 +197,7 @@ def campaign(kills: int, seed: int, folder: Path, archiver_kills: int = 10) -> i
             station = Station(config, 100000, env)
             note = "restarted"
         else:
-            ok = station.wait_facets(before + 3, 300)
+            ok = station.wait_facets(before + go_on, 300)
             recent = station.facets()[before:]
             passes = sum(" PASS " in ln for ln in recent)
             if not ok or not passes:
@@ -254,13 +262,17 @@ def main(argv=None) -> int:
     p.add_argument("--archiver", type=int, default=10, help="at least this many of the kills hit the archiver")
     p.add_argument("--seed", type=int, default=11)
     p.add_argument("--keep", default=None, help="keep the data folder here")
+    p.add_argument("--quick", action="store_true", help="3 kills, one of each, short waits (the test suite's run)")
     args = p.parse_args(argv)
+    wait_s, go_on = (0.5, 6.0), 3
+    if args.quick:
+        args.kills, args.archiver, wait_s, go_on = 3, 1, (0.1, 1.0), 2
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(args.keep) if args.keep else Path(tmp)
         folder.mkdir(parents=True, exist_ok=True)
         if args.two_runs:
             return two_runs(args.two_runs, folder)
-        return campaign(args.kills, args.seed, folder, args.archiver)
+        return campaign(args.kills, args.seed, folder, args.archiver, wait_s, go_on)
 
 
 if __name__ == "__main__":
