@@ -247,6 +247,9 @@ SECTIONS: dict[str, dict[str, Key]] = {
         "warmup": Key("bool", doc="analyse one capture before reporting ready"),
         "standby_worker": Key("bool", doc="keep a warm second analysis worker that takes over after a timeout or "
                                           "a crash"),
+        "alarm_faults_in_row": Key("int", low=1, high=1000, doc="the line alarm after this many faults in a row"),
+        "alarm_yield_window": Key("int", low=5, high=1000,
+                                  doc="the line alarm's yield rule: the newest facets of a recipe it judges"),
     },
     "archive": {
         "workbook_period": Key("str", choices=("day", "shift")), "workbook_interval_s": _pos("s"),

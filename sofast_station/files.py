@@ -102,9 +102,9 @@ def to_json(obj, indent: int | None = None) -> str:
 
 
 def write_json_atomic(path: Path, obj, replace: bool = True) -> Path:
-    """Write *obj* as JSON (:func:`to_json`, one-space indent, a final newline) whole or not at all, flushed to the
-    disk before it takes its name (:func:`write_file_atomic`; its folder made when missing); *replace* False: never overwrite (FileExistsError
-    when the name is taken)."""
+    """Write *obj* as JSON (:func:`to_json`, one-space indent, a final newline) whole or not at all, flushed to
+    the disk before it takes its name (:func:`write_file_atomic`; its folder made when missing). *replace*
+    False: never overwrite (FileExistsError when the name is taken)."""
     text = to_json(obj, indent=1) + "\n"
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     return write_file_atomic(path, lambda fh: fh.write(text), mode="w", fsync=True, replace=replace)

@@ -91,6 +91,8 @@ FAULT_CODES = {
 #: Warning bits sent to the robot/PLC with a "done" answer (the line goes on; docs/plc.md).
 WARNING_BITS = {
     "drift": 1,            # a control-chart rule flagged the recipe's recent facets (a drift alarm)
+    "line": 2,             # the line is failing as a line (faults in a row, yield collapse, cycles at the deadline,
+                           # a machine too slow for the deadline): result/health.py; sent with done and fault
 }
 
 
@@ -111,7 +113,7 @@ class Trigger(Protocol):
 
     def done(self, verdict: str, warnings: int = 0) -> None: ...
 
-    def fault(self, code: int, reason: str) -> None: ...
+    def fault(self, code: int, reason: str, warnings: int = 0) -> None: ...
 
     def heartbeat(self) -> None: ...
 

@@ -126,8 +126,10 @@ def build_charts(records: list[dict], specs: list[FigureSpec], *, baseline_n: in
 
 
 def yield_table(records: list[dict], shift_starts_h=(6.0, 14.0, 22.0)) -> dict:
-    """Counts of each verdict (pass, fail, indeterminate, invalid, fault) per day and per shift, and the
-    yield pass / all."""
+    """Counts of each verdict (pass, fail, indeterminate, invalid, fault) per day and per shift, the station's
+    own faults among them (``station_fault``), and the yield: pass over every facet but the station's faults
+    (:data:`~sofast_station.result.health.STATION_FAULT_KINDS`, the line's health, not the facets')."""
+    from ..result.health import station_fault
     from ..result.shift import VERDICTS
 
     from ..archive.workbook import WorkbookSettings, period_key
@@ -139,13 +141,15 @@ def yield_table(records: list[dict], shift_starts_h=(6.0, 14.0, 22.0)) -> dict:
         verdict = r.get("verdict") or "fault"
         for kind, settings in (("day", day_s), ("shift", shift_s)):
             key = period_key(r["time"], settings)
-            row = out[kind].setdefault(key, {v: 0 for v in VERDICTS})
+            row = out[kind].setdefault(key, {**{v: 0 for v in VERDICTS}, "station_fault": 0})
             row[verdict if verdict in row else "fault"] += 1
+            row["station_fault"] += station_fault(r)
     for kind in out:
         for row in out[kind].values():
-            n = sum(row.values())
+            n = sum(row[v] for v in VERDICTS)
             row["total"] = n
-            row["yield"] = row["pass"] / n if n else None
+            judged = n - row["station_fault"]
+            row["yield"] = row["pass"] / judged if judged else None
     return out
 
 
@@ -266,14 +270,14 @@ def write_summary_workbook(charts: list[Chart], table: dict, path: Path, title: 
     ys = wb.create_sheet("yield")
     from ..result.shift import VERDICTS
 
-    ys.append(["period", "kind", *VERDICTS, "total", "yield"])
+    ys.append(["period", "kind", *VERDICTS, "total", "station faults", "yield"])
     for cell in ys[1]:
         cell.font = Font(bold=True)
     for kind in ("day", "shift"):
         for k in sorted(table[kind]):
             row = table[kind][k]
-            ys.append([k, kind, *(row[v] for v in VERDICTS), row["total"], row["yield"]])
-            ys.cell(row=ys.max_row, column=len(VERDICTS) + 4).number_format = "0.0%"
+            ys.append([k, kind, *(row[v] for v in VERDICTS), row["total"], row["station_fault"], row["yield"]])
+            ys.cell(row=ys.max_row, column=len(VERDICTS) + 5).number_format = "0.0%"
     fs = wb.create_sheet("facets")
     fs.append(["time", "serial"] + [f"{c.spec.label} ({c.spec.unit})" for c in charts])
     for cell in fs[1]:

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .faults import fault_kind
+from .health import STATION_FAULT_KINDS
 from .record import figure_value
 
 #: The figures a shift summary describes: (path in the record, label, unit, decimals).
@@ -51,13 +52,18 @@ class ShiftSummary:
         Facets per verdict (:data:`VERDICTS`: pass, fail, indeterminate, invalid, fault).
     total : int
     yield_fraction : float or None
-        Passed facets over all facets measured (faults included: a faulted facet did not pass).
+        Passed facets over the facets the station could judge: every facet but the station's own faults (a
+        timeout, a camera, a dead worker...: :data:`~sofast_station.result.health.STATION_FAULT_KINDS`), which
+        count against the line's health, not the facets'; a capture, geometry or analysis fault stays in (it
+        may be the facet's own). None when there is none.
     figures : dict
         Record path -> :class:`FigureStats` over the facets that have the figure.
     cycle_median_s, cycle_p95_s, cycle_worst_s : float or None
         Cycle times (:func:`cycle_seconds`), seconds.
     faults_by_kind : dict
         Fault kind (the reason's first word: camera, capture, timeout...) -> count.
+    station_faults : int
+        Faults of the station (left out of the yield).
     """
 
     counts: dict
@@ -68,6 +74,12 @@ class ShiftSummary:
     cycle_p95_s: float | None
     cycle_worst_s: float | None
     faults_by_kind: dict = field(default_factory=dict)
+    station_faults: int = 0
+
+    @property
+    def judged(self) -> int:
+        """The facets the yield is over: all but the station's faults."""
+        return self.total - self.station_faults
 
 
 def cycle_seconds(record: dict):
@@ -121,6 +133,7 @@ class ShiftTally:
         self.cycle_s: deque = deque(maxlen=cycle_window)
         self.worst_s: float | None = None
         self.total = 0
+        self.station_faults = 0
 
     def add(self, record: dict, cycle_s: float | None = None) -> None:
         """Count one facet's *record*; its cycle time is the record's own (:func:`cycle_seconds`) unless
@@ -131,6 +144,7 @@ class ShiftTally:
         if verdict == "fault":
             kind = fault_kind(record)
             self.faults[kind] = self.faults.get(kind, 0) + 1
+            self.station_faults += kind in STATION_FAULT_KINDS
         elif verdict in VERDICTS:
             for path, stats in self.figures.items():
                 v = figure_value(record, path)
@@ -149,9 +163,10 @@ class ShiftTally:
         if self.cycle_s:
             times = np.fromiter(self.cycle_s, float, len(self.cycle_s))
             med, p95 = float(np.percentile(times, 50)), float(np.percentile(times, 95))
-        return ShiftSummary(dict(self.counts), self.total, self.counts["pass"] / self.total if self.total else None,
+        judged = self.total - self.station_faults
+        return ShiftSummary(dict(self.counts), self.total, self.counts["pass"] / judged if judged else None,
                             {path: st.stats() for path, st in self.figures.items()}, med, p95, self.worst_s,
-                            dict(sorted(self.faults.items())))
+                            dict(sorted(self.faults.items())), self.station_faults)
 
 
 def summarize(records, cycle_s: list[float] | None = None) -> ShiftSummary:

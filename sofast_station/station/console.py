@@ -102,7 +102,10 @@ def summary_text(summary: ShiftSummary) -> str:
              f"{c.get('invalid', 0)} invalid, {c.get('fault', 0)} fault"
              + (f", {c['indeterminate']} indeterminate" if c.get("indeterminate") else "")]
     if summary.yield_fraction is not None:
-        lines[0] += f"; yield {100 * summary.yield_fraction:.1f} % ({c.get('pass', 0)}/{summary.total})"
+        lines[0] += f"; yield {100 * summary.yield_fraction:.1f} % ({c.get('pass', 0)}/{summary.judged})"
+        if summary.station_faults:
+            lines[0] += (f" ({summary.station_faults} fault(s) of the station not counted against the facets: "
+                         "the line's health)")
     if summary.faults_by_kind:
         lines.append("faults: " + ", ".join(f"{n} {k}" for k, n in summary.faults_by_kind.items()))
     if any(s.n for s in summary.figures.values()):

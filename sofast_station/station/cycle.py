@@ -271,9 +271,10 @@ class Cycle:
             line.submit(self.cycle_id, record, None)
         except (OSError, StationError) as exc:
             line.journal_failed(exc)
+        warnings = line.judge_line(record, self.until_journal)
         try:
             if not request.extra.get("operator"):
-                line.trigger.fault(FAULT_CODES["timeout"], reason)
+                line.trigger.fault(FAULT_CODES["timeout"], reason, warnings=warnings)
         except TriggerError as exc:
             log.error("could not answer the robot: %s", exc)
         line.report(record, "fault")
@@ -318,13 +319,16 @@ class Cycle:
             record.update({"verdict": "fault", "fault_code": FAULT_CODES["archive"]})
             record["reasons"] = [reason] + list(record.get("reasons", []))
             outcome.answer, outcome.fault_code = "fault", FAULT_CODES["archive"]
+        warnings = line.judge_line(record, cycle_seconds(record))
         try:
             if self.request.extra.get("operator"):
                 pass                                   # a re-measurement: the robot did not ask
             elif outcome.answer == "fault":
-                line.trigger.fault(outcome.fault_code, record["reasons"][0] if record.get("reasons") else "fault")
+                line.trigger.fault(outcome.fault_code, record["reasons"][0] if record.get("reasons") else "fault",
+                                   warnings=warnings)
             else:
-                line.trigger.done(outcome.answer, warnings=WARNING_BITS["drift"] if record.get("drift_alarms") else 0)
+                line.trigger.done(outcome.answer,
+                                  warnings=warnings | (WARNING_BITS["drift"] if record.get("drift_alarms") else 0))
         except TriggerError as exc:
             log.error("%s: could not answer the robot: %s", outcome.serial, exc)
             line.reopen_trigger()

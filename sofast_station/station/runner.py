@@ -25,9 +25,10 @@ import numpy as np
 
 from ..calibrate.settings import calibration_settings
 from ..calibrate.store import check_cycle
-from ..devices.protocols import FacetRequest
+from ..devices.protocols import WARNING_BITS, FacetRequest
 from ..memory import trim_heap
 from ..errors import StationError, TriggerError
+from ..result.health import HealthSettings, LineHealth
 from ..result.record import RecordHead
 from ..result.shift import cycle_seconds
 from ..serials import clean_serial, raw_for_record
@@ -77,6 +78,9 @@ class RunSettings:
     standby_worker : bool
         Keep a second analysis worker started and warm, which takes over at once after a timeout or a
         crash, so the next facet is measured normally (a few hundred MB more memory at full resolution).
+    alarm_faults_in_row, alarm_yield_window : int
+        The line alarm's rules (:mod:`sofast_station.result.health`): faults in a row, and the newest facets of
+        a recipe whose yield is compared with its recent yield.
     """
 
     deadline_s: float = 10.0
@@ -91,6 +95,24 @@ class RunSettings:
     late_grace_s: float = 10.0
     warmup: bool = True
     standby_worker: bool = True
+    alarm_faults_in_row: int = 3
+    alarm_yield_window: int = 20
+
+
+def _recent_by_recipe(journal, n: int = 1000) -> dict:
+    """Recipe name -> its newest journaled records (oldest first), for the line-health yield baseline; empty when
+    the journal cannot be read (the rule then starts from this run's facets)."""
+    out: dict = {}
+    if journal is None:
+        return out
+    try:
+        rows = journal.recent(n)
+    except Exception as exc:           # the alarm is an aid: never stop the line for it
+        log.warning("line health: cannot read the journal's recent facets: %s", exc)
+        return out
+    for row in rows:
+        out.setdefault(str(row.record.get("recipe") or "default"), []).append(row.record)
+    return out
 
 
 def new_cycle_id() -> str:
@@ -195,6 +217,10 @@ class StationRunner:
         self._last_request: FacetRequest | None = None
         #: Drift alarms: the control-chart rules on each recipe's recent facets (off without a baseline).
         self.drift = DriftMonitor(station.config, recipes, journal)
+        #: The line's own health (result/health.py): faults in a row, yield collapse, cycles at the deadline.
+        self.health = LineHealth(settings.deadline_s, HealthSettings(faults_in_row=settings.alarm_faults_in_row,
+                                                                     yield_window=settings.alarm_yield_window),
+                                 _recent_by_recipe(journal))
 
     def check_drift(self, recipe: str, record: dict) -> None:
         """Drift alarm: the rules on the recipe's recent facets; alarms go to the record (journal row),
@@ -209,6 +235,28 @@ class StationRunner:
             log.warning("%s: DRIFT ALARM, recipe %s: %s", record.get("serial"), recipe, " | ".join(alarms))
             self.status.alarm(f"drift-{recipe}", f"drift in recipe {recipe} at facet {record.get('serial')}: "
                                                  + " | ".join(alarms))
+
+    def judge_line(self, record: dict, cycle_s: float | None) -> int:
+        """The line's health after one answered facet (:class:`~sofast_station.result.health.LineHealth`): an alarm
+        raised or cleared goes to the status file (the page, OPC UA), the log and the console; returns the
+        warning bits the robot/PLC gets with this answer (``WARNING_BITS["line"]`` while any line alarm holds)."""
+        try:
+            changed = self.health.add(str(record.get("recipe") or "default"), record, cycle_s)
+        except Exception:                   # an aid, never a reason to stop the line
+            log.exception("the line-health check failed; the facet is answered without it")
+            return 0
+        self._line_alarms(changed)
+        return WARNING_BITS["line"] if self.health.alarms else 0
+
+    def _line_alarms(self, changed: dict) -> None:
+        for name, text in changed.items():
+            self.status.alarm(name, text)
+            if text is not None:
+                log.error("LINE ALARM: %s", text)
+                self.console(f"LINE ALARM: {text}")
+            else:
+                log.warning("line alarm %s cleared", name)
+                self.console(f"line alarm cleared ({name})")
 
     def check_calibration(self, dark_frame: np.ndarray) -> list[str]:
         """Judge the calibration again for this facet (age, and the dark level of its dark frame).
@@ -349,10 +397,21 @@ class StationRunner:
             raw, _ = capture_sequence(self.station.display, self.station.camera, self.station.config.fringes,
                                       recipe.analysis.mask_threshold_dn, timeout_s=self.settings.camera_timeout_s)
             distance = float(self.station.range_finder.measure())
-            self.worker.warm_up(raw, self.station.job_for(recipe), distance,
-                                timeout_s=max(60.0, 3 * self.settings.deadline_s),
-                                uncertainty=self.station.config.uncertainty)
-            log.info("warm-up: one capture analysed in %.1f s", time.perf_counter() - t)
+            capture_s = time.perf_counter() - t
+            job = self.station.job_for(recipe)
+            for first in (True, False):
+                t_an = time.perf_counter()
+                self.worker.warm_up(raw, job, distance, timeout_s=max(60.0, 3 * self.settings.deadline_s),
+                                    uncertainty=self.station.config.uncertainty)
+                if first:
+                    log.info("warm-up: one capture analysed in %.1f s", time.perf_counter() - t)
+            # the second analysis is what every facet pays: with the capture, it must fit the deadline
+            analysis_s = time.perf_counter() - t_an
+            log.info("warm-up: a capture takes %.1f s and an analysis %.1f s (deadline %g s)", capture_s, analysis_s,
+                     self.settings.deadline_s)
+            text = self.health.startup(capture_s, analysis_s)
+            if text is not None:
+                self._line_alarms({"line-startup": text})
         except StationError as exc:
             log.warning("warm-up capture not analysed (%s); the first facet may be slower", exc)
             self.reopen_camera()

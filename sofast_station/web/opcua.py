@@ -93,6 +93,8 @@ TREE = {
         ("Disk", BOOLEAN, "data_dir nearly full", None),
         ("Camera", BOOLEAN, "camera lost", None),
         ("Plc", BOOLEAN, "robot/PLC handshake lost", None),
+        ("Line", BOOLEAN, "the line is failing as a line: faults in a row, yield far below the recipe's recent "
+                          "yield, cycles at the deadline, or a machine too slow for it (result/health.py)", None),
         ("Messages", STRINGS, "every alarm in force, as text", None),
     ],
 }
@@ -156,7 +158,7 @@ def values(snap: dict) -> dict:
         out[f"Counters/{verdict.capitalize()}"] = int(s.counts.get(verdict, 0))
     kinds = {kind.split("-", 1)[0] for kind, _ in snap["alarms"]}      # drift-RECIPE -> drift
     out["Alarms/Active"] = bool(kinds)
-    for name in ("Offline", "Calibration", "Drift", "Disk", "Camera", "Plc"):
+    for name in ("Offline", "Calibration", "Drift", "Disk", "Camera", "Plc", "Line"):
         out[f"Alarms/{name}"] = name.lower() in kinds
     out["Alarms/Messages"] = [f"{kind}: {text}" for kind, text in snap["alarms"]]
     return out

@@ -168,7 +168,9 @@ def shift_html(snap: dict) -> str:
     return (f"<h2>Shift <span class='muted'>since {esc(snap['shift_start'])}</span></h2>"
             f"<div class='kpis'><div><b>{s.total}</b><span>facets</span></div>"
             f"<div><b>{yield_text}</b><span>yield</span></div>{kpis}</div>"
-            f"<p>faults by kind: {faults}</p><p>cycle time (trigger to result): {cycle}</p>"
+            + (f"<p class='muted'>yield over {s.judged} facets: {s.station_faults} fault(s) of the station "
+               "(timeouts, camera...) count against the line's health, not the facets'</p>" if s.station_faults else "")
+            + f"<p>faults by kind: {faults}</p><p>cycle time (trigger to result): {cycle}</p>"
             + (f"<table class='stats'><thead><tr><th></th><th>mean</th><th>std</th><th></th></tr></thead>"
                f"<tbody>{''.join(stats)}</tbody></table>" if stats else "")
             + f"<h3>Recipe {esc(ch['recipe'])}: its last {n_chart} facet{'s' if n_chart != 1 else ''} of the shift, "

@@ -229,6 +229,33 @@ def test_the_archiver_starts_afresh_past_its_memory_bound(small_station_toml, tm
     assert "starts afresh" in (cfg.data_dir / "logs" / "archiver.log").read_text()
 
 
+def test_a_line_that_faults_facet_after_facet_raises_the_line_alarm_and_a_good_facet_clears_it(small_station_toml,
+                                                                                                 tmp_path):
+    """Issue 43, item 1: three faults in a row (dark frames: the lights went out) raise the line alarm: the third
+    fault's answer and the PLC's warning bit say so, the console prints it, the status file holds it; the next
+    measured facet clears it (and its answer no longer carries the bit)."""
+    from sofast_station.devices.protocols import WARNING_BITS
+
+    cfg = _config(small_station_toml, tmp_path / "d", faults={f"SIM-000{i}": "dark" for i in (1, 2, 3)},
+                  run={"warmup": False, "standby_worker": False})
+    lines: list[str] = []
+    service = Service(cfg, simulated_facets=4, console=lines.append)
+    robot = service.trigger
+    seen = []
+    service.runner.hooks.append(lambda o: seen.append(dict(service.runner.status.data.get("alarms") or {})))
+    try:
+        service.runner.run()
+    finally:
+        service.close()
+    finals = [a for a in robot.answers if a.kind in ("done", "fault")]
+    assert [(a.kind, a.warnings) for a in finals] == [("fault", 0), ("fault", 0), ("fault", WARNING_BITS["line"]),
+                                                       ("done", 0)]
+    assert "line-faults" in seen[2] and "last 3 facets were all faults (capture x3)" in seen[2]["line-faults"]
+    assert "line-faults" not in seen[3]
+    assert any(ln.startswith("LINE ALARM: the line is failing") for ln in lines)
+    assert any("line alarm cleared (line-faults)" in ln for ln in lines)
+
+
 def test_a_full_disk_answers_the_facet_in_progress_then_stops(small_station_toml, tmp_path):
     """The journal cannot be written from the third facet on (an injected ENOSPC): that facet is
     answered with the archive fault code, then the station stops with a message saying what to do."""

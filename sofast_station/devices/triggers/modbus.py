@@ -17,7 +17,8 @@ address    name                written by meaning
 3          HEARTBEAT           station    +1 (mod 65536) at least every second while the station runs
 4          CYCLE               station    +1 (mod 65536) for every facet answered (done or fault)
 5          SEQUENCE_ECHO       station    the PLC's SEQUENCE of the facet being answered
-6          WARNINGS            station    with STATUS=done: warning bits, bit 0 = drift alarm (else 0)
+6          WARNINGS            station    with STATUS=done or fault: warning bits, bit 0 = drift alarm (done
+                                          only), bit 1 = line alarm (the line's health) (else 0)
 100        FACET_PRESENT       PLC        1: a facet waits for inspection (the request), 0: none
 101        ACK                 PLC        1: the PLC has read the done/fault answer
 102        DUMP_REQUEST        PLC        1: write a full data dump of this facet
@@ -349,13 +350,14 @@ class ModbusTrigger(PolledHandshake):
         self._regs[WARNINGS] = int(warnings) & 0xFFFF
         self._answer(STATUS_DONE, f"done ({verdict})")
 
-    def fault(self, code: int, reason: str) -> None:
-        """FAULT_CODE, STATUS = fault, CYCLE + 1; returns once the PLC acknowledged (ACK = 1), else raises
-        TriggerError after ``ack_timeout_s``. The reason goes to the log (the PLC gets the code)."""
+    def fault(self, code: int, reason: str, warnings: int = 0) -> None:
+        """FAULT_CODE, WARNINGS (the WARNING_BITS: the line's health), STATUS = fault, CYCLE + 1; returns once the
+        PLC acknowledged (ACK = 1), else raises TriggerError after ``ack_timeout_s``. The reason goes to the log
+        (the PLC gets the code)."""
         self._enter("fault", (BUSY,))
         code = self._check_fault_code(code)
         log.warning("%s: fault %d for facet %s: %s", self.name, code, self._request.serial, reason)
-        self._regs[VERDICT], self._regs[FAULT_CODE], self._regs[WARNINGS] = 0, code, 0
+        self._regs[VERDICT], self._regs[FAULT_CODE], self._regs[WARNINGS] = 0, code, int(warnings) & 0xFFFF
         self._answer(STATUS_FAULT, f"fault ({code})")
 
     def _answer(self, status: int, what: str) -> None:

@@ -154,11 +154,13 @@ class SimulatedRobot(Handshake):
         self._check_verdict(verdict)
         self._answer(Answer(self.current.serial, "done", time.monotonic(), verdict=verdict, warnings=int(warnings)))
 
-    def fault(self, code: int, reason: str) -> None:
-        """The facet could not be measured: fault ``code`` (FAULT_CODES) and a reason for the log."""
+    def fault(self, code: int, reason: str, warnings: int = 0) -> None:
+        """The facet could not be measured: fault ``code`` (FAULT_CODES) and a reason for the log; ``warnings``
+        the WARNING_BITS (the line's health)."""
         self._enter("fault", (BUSY,))
         code = self._check_fault_code(code)
-        self._answer(Answer(self.current.serial, "fault", time.monotonic(), code=code, reason=str(reason)))
+        self._answer(Answer(self.current.serial, "fault", time.monotonic(), code=code, reason=str(reason),
+                            warnings=int(warnings)))
 
     def _answer(self, answer: Answer) -> None:
         index = self._next - 1

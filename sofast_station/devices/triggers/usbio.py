@@ -331,8 +331,8 @@ class UsbTrigger(PolledHandshake):
         self._check_verdict(verdict)
         self._answer(DONE_CODES[verdict], f"done-{verdict}")
 
-    def fault(self, code: int, reason: str) -> None:
-        """STATUS = fault (discrete I/O carries no fault code: ``code`` and ``reason`` go to the log);
+    def fault(self, code: int, reason: str, warnings: int = 0) -> None:
+        """STATUS = fault (discrete I/O carries no fault code nor ``warnings``: ``code`` and ``reason`` go to the log);
         returns once the PLC dropped FACET_PRESENT, else raises TriggerError after ``ack_timeout_s``."""
         self._enter("fault", (BUSY,))
         code = self._check_fault_code(code)

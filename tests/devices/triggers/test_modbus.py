@@ -131,7 +131,8 @@ def test_full_multi_facet_handshake(plcs):
     trigger = ModbusTrigger("127.0.0.1", plc.port, recipes={2: "dish-5m33"})
     answers = [("done", "pass"), ("done", "fail"), ("fault", FAULT_CODES["capture"]), ("done", "invalid"),
                ("done", "indeterminate")]
-    warnings = [WARNING_BITS["drift"], 0, 0, 0, 0]         # a drift alarm rides with the first answer
+    # a drift alarm rides with the first answer, the line alarm with the fault (and the answer after it)
+    warnings = [WARNING_BITS["drift"], 0, WARNING_BITS["line"], WARNING_BITS["line"] | WARNING_BITS["drift"], 0]
     requests = []
     for answer, warn in zip(answers, warnings):
         trigger.ready()
@@ -142,7 +143,7 @@ def test_full_multi_facet_handshake(plcs):
         if answer[0] == "done":
             trigger.done(answer[1], warnings=warn)
         else:
-            trigger.fault(answer[1], "dark frame")
+            trigger.fault(answer[1], "dark frame", warnings=warn)
         assert 0.015 < time.monotonic() - t0 < 2.0  # returned on the PLC's (delayed) acknowledgement
     assert [r.serial for r in requests] == [f["serial"] for f in facets]
     assert [r.recipe for r in requests] == ["dish-5m33", "gore-inner", "7", "", ""]
