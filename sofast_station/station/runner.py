@@ -212,6 +212,11 @@ class StationRunner:
         #: Called with each answered CycleOutcome, after the robot's answer (the monitor's pictures).
         self.hooks: list = []
         self.status = StatusFile(station.config.data_dir)
+        # the records this line measures with, for the page: a record written meanwhile is not in force until
+        # the next start (and calibrate refuses to write one while the line runs)
+        in_force = {k: v for k, v in station.calibration_entry().items() if k != "warnings"}
+        in_force["radiometric_created"] = station.radiometric.created
+        self.status.update(in_force=in_force)
         self.paused = False
         self._manual_serial: str | None = None
         self._last_request: FacetRequest | None = None

@@ -138,7 +138,7 @@ class LineData:
         self._rows: list[tuple[int, str, dict]] = []     # (seq, time_utc, record) of the shift
         self._last_seq = 0
         self._shift_key: str | None = None
-        self._calibration: tuple[float, dict] | None = None
+        self._calibration: tuple[float, dict, dict | None] | None = None
         self._disk: tuple[float, dict] | None = None
 
     # -- the journal, read-only -------------------------------------------------------------------------
@@ -204,10 +204,14 @@ class LineData:
         return json.loads(rows[0][0]) if rows else None
 
     # -- the station --------------------------------------------------------------------------------------
-    def calibration(self) -> dict:
-        """The radiometric record in force, its age and the allowed age (re-read every 30 s)."""
+    def calibration(self, status: dict | None = None) -> dict:
+        """The calibration records in force, the radiometric record's age and the allowed age (re-read every
+        30 s). While the line runs they are the ones it loaded (its live *status*'s ``in_force``: the screen,
+        pose and camera records too); a newer radiometric record written since is named as waiting
+        (``newer``). Without a running line: the record the next start would use."""
         now = time.monotonic()
-        if self._calibration and now - self._calibration[0] < 30:
+        live = (status or {}).get("in_force") if (status or {}).get("state", "offline") != "offline" else None
+        if self._calibration and now - self._calibration[0] < 30 and self._calibration[2] == live:
             return self._calibration[1]
         from ..calibrate.settings import calibration_settings
         from ..calibrate.store import select_radiometric
@@ -220,9 +224,18 @@ class LineData:
             if created is not None and created.tzinfo is not None:
                 info["age_h"] = (_dt.datetime.now(created.tzinfo) - created).total_seconds() / 3600.0
             info["exempt"] = status.origin == "shipped default" and self.config.backend == "simulated"
+            if live and live.get("radiometric"):
+                newest = status.record.record_id
+                info.update(record=live["radiometric"], origin=live.get("origin", info["origin"]))
+                info["others"] = {k: live[k] for k in ("camera", "screen", "pose") if live.get(k)}
+                info["newer"] = newest if newest != live["radiometric"] else None
+                made = live.get("radiometric_created")
+                made = _dt.datetime.fromisoformat(made) if made else None
+                info["age_h"] = (None if made is None or made.tzinfo is None else
+                                 (_dt.datetime.now(made.tzinfo) - made).total_seconds() / 3600.0)
         except Exception as exc:                  # the page must show the rest whatever the record holds
             info["error"] = str(exc)
-        self._calibration = (now, info)
+        self._calibration = (now, info, live)
         return info
 
     def disk(self) -> dict:
@@ -279,7 +292,7 @@ class LineData:
         records = [r for _, _, r in self._rows]
         last = self.last_record()
         status = read_status(self.data_dir)
-        calibration = self.calibration()
+        calibration = self.calibration(status)
         disk = self.disk()
         summary = summarize(records)
         recipe_name, recipe = "default", None

@@ -184,6 +184,12 @@ def station_html(snap: dict) -> str:
         cal_text = (f"radiometric record {esc(cal['record'])} ({esc(cal.get('origin'))}), {esc(_age(cal.get('age_h')))}"
                     + (" (the simulated station's shipped record does not age)" if cal.get("exempt") else
                        f", allowed {cal['max_age_h']:g} h" if cal.get("max_age_h") else ""))
+        others = cal.get("others") or {}
+        if others:
+            cal_text += "; " + ", ".join(f"{esc(k)} record {esc(v)}" for k, v in sorted(others.items()))
+        if cal.get("newer"):
+            cal_text += (f" <span class='fail-t'>(a newer radiometric record {esc(cal['newer'])} waits: the line "
+                         "takes it at its next start)</span>")
     else:
         cal_text = esc(cal.get("error") or "no calibration in force")
     free = "–" if disk.get("free_gb") is None else f"{disk['free_gb']:.1f} GB"
