@@ -20,8 +20,8 @@ the station reports focal lengths, twist and slope errors for every facet, with 
 hardware attached the station is simulated by a ray-traced digital twin whose facet has a known shape.
 
 The station is described by a station file (--config; ./station.toml by default). Everything it writes
-goes under the file's data_dir (~/sofast-station-data unless set; the environment variable
-SOFAST_DATA_DIR overrides it).
+goes under the file's data_dir (one folder per station; ~/sofast-station-data unless set; the environment
+variable SOFAST_DATA_DIR overrides it).
 
 Commands by user:
   the production line       inspect, run, dump-next, archive export

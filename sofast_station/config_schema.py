@@ -118,6 +118,7 @@ SIMULATED_FAULTS = ("dark", "camera-timeout", "misplaced", "hung-analysis", "hun
 SECTIONS: dict[str, dict[str, Key]] = {
     "station": {
         "name": Key("str", doc="shown in every record"),
+        "id": Key("str", doc="the station's identity, carried by every calibration record it makes (default: name)"),
         "data_dir": Key("str", doc="where everything the station writes goes"),
         "backend": Key("str", choices=("simulated", "hardware"), doc="the twin or real devices"),
         "facet": Key("str", doc="facet design file, relative to station.toml"),

@@ -51,7 +51,7 @@ def _handheld_intrinsics(config, settings):
     from ..calibrate.camera import load_camera_record
     from ..calibrate.store import newest_record_path
 
-    path = newest_record_path(config.data_dir, "handheld")
+    path = newest_record_path(config.data_dir, "handheld", config.identity)
     if path is not None:
         camera, record = load_camera_record(path)
         std = record.get("std_intrinsics") or {}
@@ -118,7 +118,7 @@ def run_screen(config, *, views: int | None = None, model: str | None = None, se
     if cal.verdict == "refused":
         return Step("screen", "refused", summary_text(cal), {"quality": cal.quality})
     source = f"sofast-station {__version__} calibrate screen on {config.name} ({config.backend}; {source_cam})"
-    path = save_screen(config.data_dir, cal, source)
+    path = save_screen(config.data_dir, cal, source, station=config.identity)
     best = cal.fit.best
     h = best.shape.height_summary()
     rel = [best.shape.pitch_scale[0] - 1.0, best.shape.pitch_scale[1] - 1.0]
@@ -148,7 +148,7 @@ def run_pose(config, *, placements: int | None = None, target: str | None = None
         settings = dataclasses.replace(settings, placements=placements)
     mirror = load_mirror_target(target or settings.target)
     stated = config.stated_geometry or config.geometry
-    screen_path = newest_record_path(config.data_dir, "screen")
+    screen_path = newest_record_path(config.data_dir, "screen", config.identity)
     if screen_path is not None:
         rec = load_screen_record(screen_path)
         shape = ScreenShape.from_dict(rec["shape"])
@@ -191,7 +191,7 @@ def run_pose(config, *, placements: int | None = None, target: str | None = None
     if cal.verdict == "refused":
         return Step("pose", "refused", summary_text(cal), {"quality": cal.quality})
     source = f"sofast-station {__version__} calibrate pose on {config.name} ({config.backend}; {mirror.name})"
-    path = save_pose(config.data_dir, cal, source)
+    path = save_pose(config.data_dir, cal, source, station=config.identity)
     std = pose_std(cal.fit.screen_covariance)
     headline = (f"screen depth U {2 * std['translation_mm'][2]:.2f} mm, rotation U "
                 f"{2 * max(std['rotation_mrad']):.2f} mrad (k=2); {path.name}")
@@ -228,7 +228,7 @@ def run_geometry(config, *, reference: str | None = None, seed: int | None = Non
     finally:
         station.close()
     source = f"sofast-station {__version__} calibrate geometry with {ref.name}"
-    path = save_geometry(config.data_dir, config, check, source)
+    path = save_geometry(config.data_dir, config, check, source, station=config.identity)
     verdict = "pass" if check["within_tolerance"] else "fail"
     f = check["focal_lengths"]
     rel = [f[a]["relative_error"] for a in ("x", "y")]
@@ -262,7 +262,7 @@ def run_radiometric(config, *, seed: int | None = None, noise: bool = True, plot
         result = calibrate_radiometric(station.display, station.camera, settings)
         source = (f"sofast-station {__version__} calibrate radiometric on {config.name} ({config.backend} backend, "
                   f"{type(station.camera).__name__}, {type(station.display).__name__})")
-        record = save_radiometric(config.data_dir, result, source, plot=plot)
+        record = save_radiometric(config.data_dir, result, source, plot=plot, station=config.identity)
     finally:
         station.close()
     headline = (f"exposure {1e3 * record.exposure_s:.2f} ms, gain {record.gain:.3f}, display latency "

@@ -29,7 +29,7 @@ def small_heliostat_station(tmp_path, extra: str = "") -> str:
                         f'facet = "{ROOT / "fixtures/facets/heliostat_2x2.toml"}"')
     text = text.replace('radiometric = "../../calibration/simulated_radiometric.json"',
                         f'radiometric = "{ROOT / "calibration/simulated_radiometric.json"}"')
-    text = text.replace('data_dir = "~/sofast-station-data"', f'data_dir = "{tmp_path / "data"}"')
+    text = text.replace('data_dir = "~/sofast-station-data/sim-heliostat-2x2"', f'data_dir = "{tmp_path / "data"}"')
     text = re.sub(r"width_px = 1600\nheight_px = 1200\nfocal_length_px = 3000.0\nprincipal_point_px = \[799.5, 599.5\]",
                   "width_px = 400\nheight_px = 300\nfocal_length_px = 750.0\nprincipal_point_px = [199.5, 149.5]", text)
     text += "\n[analysis]\nedge_window_px = 3\n" + extra
