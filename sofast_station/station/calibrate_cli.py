@@ -29,7 +29,7 @@ import logging
 import sys
 
 from .. import __version__
-from ..commands import add_command, add_config_option
+from ..commands import add_command, add_config_option, positive_int
 from ..errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -507,7 +507,7 @@ def register(subparsers, default_config_path: str | None = None) -> argparse.Arg
             handheld_camera, its calibration the newest 'calibrate camera --handheld' record or
             [calibration.screen] camera.""")
     common(scr)
-    scr.add_argument("--views", type=int, default=None, metavar="N",
+    scr.add_argument("--views", type=positive_int, default=None, metavar="N",
                      help="views to take (default: [calibration.screen] views, else 8)")
     scr.add_argument("--model", choices=("auto", "flat", "distorted2d", "distorted3d"), default=None,
                      help="the shape model (default: [calibration.screen] model, else auto: the simplest the "
@@ -526,7 +526,7 @@ def register(subparsers, default_config_path: str | None = None) -> argparse.Arg
     common(pose)
     pose.add_argument("--target", default=None, metavar="FILE",
                       help="the reference mirror's certificate ([mirror] table; default: [calibration.pose] target)")
-    pose.add_argument("--placements", type=int, default=None, metavar="N",
+    pose.add_argument("--placements", type=positive_int, default=None, metavar="N",
                       help="placements to take (default: [calibration.pose] placements, else 4)")
     pose.set_defaults(func=cmd_pose)
 
