@@ -45,3 +45,13 @@ def test_every_pointer_into_the_conventions_names_a_section_that_exists():
     internal = re.findall(r"\]\(#([a-z0-9-]+)\)", CONVENTIONS.read_text())
     bad += [f"docs/conventions.md link #{name}" for name in internal if name not in anchors]
     assert not bad, "pointers to missing sections of docs/conventions.md:\n" + "\n".join(bad)
+
+
+def test_the_readme_is_short_and_opens_with_its_two_commands():
+    """Issue 43: at most 150 lines, the two commands of its first lines as they were, and the heliostat
+    station said in plain words (no powers of ten: its paragraph gave focal powers as +5.5e-4 /m)."""
+    lines = (ROOT / "README.md").read_text().splitlines()
+    assert len(lines) <= 150, len(lines)
+    assert lines[6:8] == ["    ./setup-env && .venv/bin/sofast-station inspect",
+                          "    ./setup-env test && .venv/bin/python -m pytest -q"]
+    assert not [line for line in lines if re.search(r"\de-\d", line)]
