@@ -123,8 +123,9 @@ def canting_instructions(record: dict, ensemble: EnsembleDesign, limit_mrad: flo
     Returns
     -------
     dict
-        ``heliostat``, ``serial``, ``viewpoint`` ("behind"), ``limit_mrad``, ``resolution`` (how well the
-        canting is known against the limit, with a ``warning`` when U is more than a third of it),
+        ``heliostat``, ``serial``, ``viewpoint`` ("behind"), ``limit_mrad``, ``resolution_U`` (how well the
+        canting is known against the limit, with a ``warning`` when U is more than a third of it; named as an
+        uncertainty, ``_U``: a reprocess recomputes the U's, so it is shown, not compared bit for bit),
         ``thread_pitch_mm``, ``raise_turn``, ``turn_step``, ``screw_labels`` and ``facets``: per facet
         ``label``, ``place`` (seen from behind), ``status``, ``action`` (``"turn"``, ``"leave"`` or
         ``"not measured"``), ``canting_mrad`` and ``canting_mrad_U``, ``size_mrad``, ``turn_mrad``
@@ -137,7 +138,7 @@ def canting_instructions(record: dict, ensemble: EnsembleDesign, limit_mrad: flo
     by_label = {f["label"]: f for f in record.get("facets", [])}
     places = facet_places(ensemble)
     out = {"heliostat": ensemble.name, "serial": record.get("serial"), "viewpoint": "behind", "limit_mrad": limit_mrad,
-           "resolution": canting_resolution(list(by_label.values()), limit_mrad),
+           "resolution_U": canting_resolution(list(by_label.values()), limit_mrad),
            "thread_pitch_mm": None if adjusters is None else adjusters.thread_pitch_mm,
            "raise_turn": None if adjusters is None else adjusters.raise_turn,
            "turn_step": None if adjusters is None else adjusters.turn_step,
@@ -201,7 +202,7 @@ def instructions_text(instructions: dict) -> str:
              f"Seen from {VIEWPOINT}; the facet map is drawn the same way."]
     if limit is not None:
         lines.append(f"Limit: {limit:g} mrad of canting error per facet.")
-    res = ins.get("resolution")
+    res = ins.get("resolution_U")
     if res:
         lines.append(f"Measurement: each facet's canting is known to {res['U_mrad']:.2f} mrad or better (its "
                      f"uncertainty U, k = 2; least well {res['facet']}): test uncertainty ratio {res['ratio']:.1f} "

@@ -152,9 +152,6 @@ def judge_heliostat(facets: list[dict], designs: dict, limits: Limits, quality: 
         e.update(v)
         reasons[v["verdict"]].extend(f"{label}: {r}" for r in v["reasons"])
         warnings.extend(f"{label}: {w}" for w in v["warnings"])
-    resolution = canting_resolution(facets, limits.max_canting_mrad)
-    if resolution and resolution["warning"]:
-        warnings.append(f"heliostat: {resolution['warning']}")
     heliostat_fail = judge_optics(None if optics is None else optics.get("measured"), limits)
     reasons["fail"].extend(f"heliostat: {r}" for r in heliostat_fail)
     for verdict in _ORDER[:-1]:

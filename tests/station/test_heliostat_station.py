@@ -98,21 +98,16 @@ def test_the_instructions_turns_bring_the_twins_facets_back(record):
     record's instructions give (whole 1/8 turns of its screws), applied to each facet turned by its *true*
     canting, leave it within the rounding bound (tests/report/test_canting_instructions.py) plus what the
     measurement got wrong (under 0.05 mrad per axis here, checked above); every facet it says to leave is
-    within the limit in truth, and the resolution against the limit is stated."""
+    within the limit in truth, and the resolution against the limit is stated (under resolution_U: from the
+    U's, which a reprocess recomputes, so it is not compared bit for bit)."""
     from tests.report.test_canting_instructions import rounding_bound_mrad, tilt_after
 
     adj = load_ensemble(ROOT / "fixtures/facets/heliostat_2x2.toml").adjusters
     ins = record["canting_instructions"]
     assert ins["viewpoint"] == "behind" and ins["screw_labels"] == ["A", "B", "C"] and ins["turn_step"] == 0.125
-    res = ins["resolution"]
+    res = ins["resolution_U"]
     assert res["limit_mrad"] == 0.5 and res["ratio"] == pytest.approx(0.5 / res["U_mrad"])
-    assert (res["warning"] is None) == (not any("barely tells" in w for w in record["warnings"]))
-    # a limit this measurement resolves less than three times over is warned about, in the heliostat's warnings
-    import copy
-    tight = judge_heliostat(copy.deepcopy(record["facets"]), DESIGNS, Limits(max_canting_mrad=2.0 * res["U_mrad"]),
-                            Quality())
-    assert any(w.startswith("heliostat: the measurement barely tells the canting limit apart") for w in
-               tight["warnings"])
+    assert (res["warning"] is None) == (res["ratio"] >= 3.0)
     truth = {f["label"]: f["truth"]["canting_mrad"] for f in record["facets"]}
     measured = {f["label"]: f["canting_mrad"] for f in record["facets"]}
     turned = [f for f in ins["facets"] if f["action"] == "turn"]
@@ -228,7 +223,7 @@ def test_the_certificate_and_the_page_show_the_heliostat_as_a_map_of_its_facets(
     text = "\n".join([t.get_text() for t in fig.texts] + [t.get_text() for ax in fig.axes for t in ax.texts]
                      + [c.get_text().get_text() for ax in fig.axes for tb in ax.tables
                         for c in tb.get_celld().values()])
-    for words in ("Heliostat inspection certificate", "SIM-0002", "R1C2  OVER", "canting RMS", "FAIL",
+    for words in ("Heliostat inspection certificate", "SIM-0002", "OVER: ADJUST", "canting RMS", "FAIL",
                   "Data dump", "fail"):
         assert words in text, words
     snap = LineData(cfg, web_settings(cfg)).snapshot()
