@@ -4,11 +4,12 @@
 
 numba's ahead-of-time compiler (``numba.pycc``) turns every kernel of :mod:`.measure.kernels`, for each argument
 types of :mod:`.measure.kernel_signatures`, into one extension module beside them, named by
-:func:`.measure.compiled.build_digest`, with a table (``<module>.json``: export -> kernel and argument key) that
-:mod:`.measure.compiled` loads instead of numba. ``pycc`` compiles every export with one set of default options;
-here each kernel gets its own, as its JIT would (``kernels._JIT``, ``_FMA``, ``_VECTOR_SUMS``: numpy's float
-semantics, the GIL released, the fused multiply-adds and regrouped sums it was written for), for this
-processor ('host', as the JIT), so the two give the same bits (tests/measure/test_compiled.py).
+:func:`.measure.compiled.build_digest`, with a table (``<module>.json``: the module file's size and SHA-256, and
+export -> kernel and argument key) that :mod:`.measure.compiled` loads instead of numba when the module matches it.
+``pycc`` compiles every export with one set of default options; here each kernel gets its own, as its JIT would
+(``kernels._JIT``, ``_FMA``, ``_VECTOR_SUMS``: numpy's float semantics, the GIL released, the fused multiply-adds
+and regrouped sums it was written for), for this processor ('host', as the JIT), so the two give the same bits
+(tests/measure/test_compiled.py).
 
 Needs a C compiler and Python's headers (Debian: gcc, python3-dev). Takes 20 to 40 s. Exits 1, saying
 why, when it cannot build: the analysis then runs on numba's JIT as before, only each fresh process
@@ -118,11 +119,24 @@ def build(out_dir: Path | None = None, log=print) -> Path:
         target = out_dir / built.name
         shutil.move(str(built), target.with_suffix(".tmp"))
         os.replace(target.with_suffix(".tmp"), target)
+        # The module's size and SHA-256 go into its table: a copy cut short would kill the process that loads
+        # it (SIGBUS), so compiled._load_build loads only the module the build wrote.
+        record = {"file": target.name, "size": target.stat().st_size, "sha256": compiled.file_digest(target)}
         table_path = out_dir / f"{name}.json"
-        table_path.with_suffix(".tmp").write_text(json.dumps(table, indent=0))
+        table_path.with_suffix(".tmp").write_text(json.dumps({"module": record, "entries": table}, indent=0))
         os.replace(table_path.with_suffix(".tmp"), table_path)
     log(f"build_kernels: {target.name} in {time.perf_counter() - t0:.1f} s")
     return target
+
+
+def _sound(out_dir: Path, name: str) -> bool:
+    """Whether *out_dir* holds the build *name* as it was written (its module's size and SHA-256 those its
+    table records): one cut short or damaged is built again."""
+    path = compiled.module_file(out_dir, name)
+    try:
+        return path is not None and compiled._unsound(path, json.loads((out_dir / f"{name}.json").read_text())) is None
+    except (OSError, ValueError):
+        return False
 
 
 def main(argv=None) -> int:
@@ -132,7 +146,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     out_dir = Path(args.out_dir or compiled.BUILD_DIR)
     name = compiled.module_name()
-    if not args.force and (out_dir / f"{name}.json").exists() and list(out_dir.glob(f"{name}.*.so")):
+    if not args.force and _sound(out_dir, name):
         print(f"build_kernels: {name} is up to date (--force builds it again)", file=sys.stderr)
         return 0
     os.environ[compiled.ENV] = "jit"

@@ -13,22 +13,49 @@ import sys
 
 from . import commands
 
-DESCRIPTION = """\
+#: Every command, by the user who runs it: what ``--help`` lists (tests/cli/test_commands.py checks that every
+#: command and subcommand the parser has is here, so a new one cannot be left out of ``--help``).
+USERS = (
+    ("the production line", ("inspect", "run", "dump-next", "archive export")),
+    ("the operator", ("serve", "run --serve")),
+    ("the morning calibration", ("calibrate radiometric", "calibrate status", "calibrate camera",
+                                 "calibrate geometry")),
+    ("commissioning", ("calibrate commission", "calibrate screen", "calibrate pose", "calibrate camera-position",
+                       "calibrate dots", "calibrate screen-data")),
+    ("the process engineer", ("reprocess", "batch", "report DUMP", "report trend", "report flux", "export surface",
+                              "import-opencsp")),
+    ("the quality engineer", ("report spc", "report acceptance", "report certificate SERIAL", "report diff A B")),
+    ("the metrologist", ("study repeatability", "study population")),
+)
+
+
+def users_text(users=USERS) -> str:
+    """The "Commands by user" lines: a command's subcommands after its first one joined by " | "."""
+    lines = []
+    for user, theirs in users:
+        said: list[str] = []
+        for command in theirs:
+            head, _, rest = command.partition(" ")
+            if said and rest and not rest.startswith("-") and said[-1].split(" ")[0] == head:
+                said[-1] += f" | {rest}"
+            else:
+                said.append(command)
+        lines.append(f"  {user:<25} {', '.join(said)}")
+    return "\n".join(lines)
+
+
+DESCRIPTION = f"""\
 sofast-station measures concentrating-solar mirror facets by fringe reflection (deflectometry), after
 Sandia's SOFAST: an LCD shows phase-shifted fringes, a camera watches their reflection in the facet, and
 the station reports focal lengths, twist and slope errors for every facet, with a verdict. With no
 hardware attached the station is simulated by a ray-traced digital twin whose facet has a known shape.
 
 The station is described by a station file (--config; ./station.toml by default). Everything it writes
-goes under the file's data_dir (~/sofast-station-data unless set; the environment variable
-SOFAST_DATA_DIR overrides it).
+goes under the file's data_dir (one folder per station; ~/sofast-station-data unless set; the environment
+variable SOFAST_DATA_DIR overrides it).
 
 Commands by user:
-  the production line       inspect, run, dump-next, archive export
-  the operator              serve (the line's web page, OPC UA), run --serve
-  the morning calibration   calibrate radiometric | camera | geometry | status
-  the process engineer      reprocess, batch, report, report trend, import-opencsp
-  the quality engineer      report spc | acceptance | certificate SERIAL | diff A B
+{users_text()}
 """
 
 EPILOG = """\

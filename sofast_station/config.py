@@ -37,7 +37,7 @@ for _section, _cls in (("analysis", AnalysisSettings), ("limits", Limits), ("qua
                        ("heliostat", HeliostatSettings)):
     add_dataclass_keys(_section, _cls)
 
-_STATION_KEYS = {"name", "data_dir", "backend", "facet"}
+_STATION_KEYS = {"name", "id", "data_dir", "backend", "facet"}
 _CAMERA_KEYS = {"width_px", "height_px", "focal_length_px", "principal_point_px", "distortion", "intrinsics"}
 _LAYOUT_KEYS = {"separation_m", "separation_axis", "screen_offset_m"}
 _BACKENDS = ("simulated", "hardware")
@@ -95,6 +95,14 @@ class StationConfig:
     stated_geometry: StationGeometry | None = None
     #: The screen and pose records in force (``screen``, ``pose``: record id and path; ``warnings``), or None.
     commissioned: dict | None = None
+    #: ``[station] id``: the station's identity, which every calibration record it makes carries (its name when
+    #: the file gives none); a record made by another station is refused (:mod:`sofast_station.calibrate.store`).
+    station_id: str = ""
+
+    @property
+    def identity(self) -> dict:
+        """What a calibration record keeps of the station that made it (``id``, ``name``, ``file``)."""
+        return {"id": self.station_id or self.name, "name": self.name, "file": str(self.path)}
 
     @property
     def config_hash(self) -> str:
@@ -137,6 +145,12 @@ def load_config(path: str | Path, use_camera_record: bool = True) -> StationConf
     if backend not in _BACKENDS:
         raise ConfigError(f"{where} [station] backend must be one of {_BACKENDS}, got {backend!r}")
     data_dir = data_dir_of(st, base)
+    name = str(st.get("name", path.stem))
+    station_id = st.get("id", name)
+    if not isinstance(station_id, str) or not station_id.strip():
+        raise ConfigError(f"{where} [station] id = {station_id!r}: must be a non-empty string naming this station "
+                          "(every calibration record it makes carries it), e.g. \"line-2-dish\"")
+    identity = {"id": station_id.strip(), "name": name, "file": str(path)}
     facet_path = base / _need(st, "facet", f"{where} [station]")
     ensemble = None
     if is_ensemble_file(facet_path):      # a heliostat: laid out for its bounding outline
@@ -185,38 +199,39 @@ def load_config(path: str | Path, use_camera_record: bool = True) -> StationConf
     camera_record = None
     source = raw.get("camera", {}).get("intrinsics", "station.toml")
     if source == "record" and use_camera_record:
-        recorded, camera_record = camera_from_record(data_dir, geometry.camera, f"{where} [camera]")
+        recorded, camera_record = camera_from_record(data_dir, geometry.camera, f"{where} [camera]", identity)
         geometry = dataclasses.replace(geometry, camera=recorded)
     elif source not in ("station.toml", "record"):
         raise ConfigError(f"{where} [camera] intrinsics must be \"station.toml\" (the table's values) or "
                           f"\"record\" (the newest 'calibrate camera' record), got {source!r}")
     stated_geometry = geometry
     geometry, commissioned, commissioned_std = geometry_in_force(data_dir, stated_geometry, where,
-                                                                 cal.get("geometry", "records"))
+                                                                 cal.get("geometry", "records"), identity)
     uncertainty = InputUncertainties.from_table(raw.get("uncertainty", {}), f"{where} [uncertainty]")
     _check_camera_uncertainty(uncertainty, geometry.camera, f"{where} [uncertainty]")
     if camera_record is not None:
         uncertainty = uncertainty.with_camera_record(camera_record)
     uncertainty = uncertainty.with_commission_records(commissioned_std)
-    checked = _geometry_record_std(data_dir, geometry)
+    checked = _geometry_record_std(data_dir, geometry, identity)
     if "fixture_rotation_mrad" in commissioned_std:
         # the fixture pose measured by the pose calibration; a reference check that confirmed it better wins
         for key in ("fixture_rotation_mrad", "fixture_translation_mm"):
             if key in checked and max(checked[key]) >= max(commissioned_std[key]):
                 del checked[key]
     uncertainty = uncertainty.with_geometry_record(checked)
-    uncertainty = _with_radiometric_record(uncertainty, data_dir, radiometric, geometry, fringes)
+    uncertainty = _with_radiometric_record(uncertainty, data_dir, radiometric, geometry, fringes, identity)
     heliostat = HeliostatSettings(**raw.get("heliostat", {}))
     if ensemble is None and (raw.get("heliostat") or limits.max_canting_mrad is not None):
         raise ConfigError(f"{where}: [heliostat] and [limits] max_canting_mrad are for a heliostat, but [station] "
                           f"facet = {str(st['facet'])!r} is a single facet's file; name a heliostat file "
                           "(a [heliostat] table, docs/heliostats.md) or remove them")
-    return StationConfig(path=path, name=str(st.get("name", path.stem)), data_dir=data_dir, backend=backend,
+    return StationConfig(path=path, name=name, data_dir=data_dir, backend=backend,
                          facet_path=facet_path, design=design, geometry=geometry, fringes=fringes,
                          analysis=analysis, limits=limits, quality=quality, radiometric_path=radiometric,
                          simulation=raw.get("simulation", {}), raw=raw, camera_record=camera_record,
                          optics=_optics(raw, where), uncertainty=uncertainty, ensemble=ensemble,
-                         heliostat=heliostat, stated_geometry=stated_geometry, commissioned=commissioned)
+                         heliostat=heliostat, stated_geometry=stated_geometry, commissioned=commissioned,
+                         station_id=identity["id"])
 
 
 def _check_camera_uncertainty(uncertainty, camera, where: str) -> None:
@@ -245,7 +260,7 @@ def _optics(raw: dict, where: str):
     return optics
 
 
-def _geometry_record_std(data_dir: Path, geometry) -> dict:
+def _geometry_record_std(data_dir: Path, geometry, station: dict | None = None) -> dict:
     """What the newest geometry record (``calibrate geometry``) lends the uncertainty budget, if it was
     within tolerance and made with this geometry (:func:`~sofast_station.calibrate.geometry_record.budget_std`);
     {} when there is none, it does not apply, or it cannot be read (logged: what it would have lent is then
@@ -253,7 +268,7 @@ def _geometry_record_std(data_dir: Path, geometry) -> dict:
     from .calibrate.geometry_record import budget_std, load_geometry_record
     from .calibrate.store import newest_record_path
 
-    path = newest_record_path(data_dir, "geometry")
+    path = newest_record_path(data_dir, "geometry", station)
     if path is None:
         return {}
     try:
@@ -269,14 +284,15 @@ def _geometry_record_std(data_dir: Path, geometry) -> dict:
     return lent
 
 
-def _with_radiometric_record(uncertainty, data_dir: Path, shipped: Path | None, geometry, fringes):
+def _with_radiometric_record(uncertainty, data_dir: Path, shipped: Path | None, geometry, fringes,
+                             station: dict | None = None):
     """*uncertainty* with the display-response part the radiometric record in force states (the newest
     under *data_dir*, else the shipped default; :meth:`InputUncertainties.with_radiometric_record`);
     unchanged when there is none or it cannot be read (logged; opening the station reports it too)."""
     from .calibrate.records import load_radiometric
     from .calibrate.store import newest_record_path
 
-    path = newest_record_path(data_dir, "radiometric") or shipped
+    path = newest_record_path(data_dir, "radiometric", station) or shipped
     if path is None:
         return uncertainty
     try:
@@ -290,7 +306,8 @@ def _with_radiometric_record(uncertainty, data_dir: Path, shipped: Path | None, 
     return uncertainty.with_radiometric_record(record.lut, record.floor_level, record.max_level, samples)
 
 
-def camera_from_record(data_dir: Path, stated: CameraIntrinsics, where: str) -> tuple[CameraIntrinsics, dict]:
+def camera_from_record(data_dir: Path, stated: CameraIntrinsics, where: str,
+                       station: dict | None = None) -> tuple[CameraIntrinsics, dict]:
     """The intrinsics of the newest camera record under *data_dir* (``[camera] intrinsics = "record"``).
 
     The record must be for a camera of the [camera] table's size; a missing, corrupt or mismatched record
@@ -299,7 +316,7 @@ def camera_from_record(data_dir: Path, stated: CameraIntrinsics, where: str) -> 
     from .calibrate.camera import load_camera_record
     from .calibrate.store import newest_record_path, record_dir
 
-    path = newest_record_path(data_dir, "camera")
+    path = newest_record_path(data_dir, "camera", station)
     if path is None:
         raise ConfigError(f"{where}: intrinsics = \"record\" but there is no camera record in "
                           f"{record_dir(data_dir, 'camera')}: run 'sofast-station calibrate camera IMAGES...', or "

@@ -114,10 +114,16 @@ def _fraction(doc: str) -> Key:
 SIMULATED_FAULTS = ("dark", "camera-timeout", "misplaced", "hung-analysis", "hung-facet", "hung-capture",
                     "camera-disconnect", "lights-off", "slow-analysis", "worker-dies")
 
+#: The longest [run] late_grace_s, s: an abandoned analysis keeps a worker (and a core) busy at low priority
+#: while the standby measures; ten minutes is thirty cycles of a 20 s line, far more than any analysis that is
+#: merely slow takes (1e12 s was accepted: an analysis that never ends was never killed).
+LATE_GRACE_MAX_S = 600.0
+
 #: Every section of station.toml and its keys.
 SECTIONS: dict[str, dict[str, Key]] = {
     "station": {
         "name": Key("str", doc="shown in every record"),
+        "id": Key("str", doc="the station's identity, carried by every calibration record it makes (default: name)"),
         "data_dir": Key("str", doc="where everything the station writes goes"),
         "backend": Key("str", choices=("simulated", "hardware"), doc="the twin or real devices"),
         "facet": Key("str", doc="facet design file, relative to station.toml"),
@@ -243,7 +249,8 @@ SECTIONS: dict[str, dict[str, Key]] = {
         "deadline_s": _pos("trigger to answer, s"), "dump_every_n": Key("int", low=0),
         "dump_failed": Key("bool"), "heartbeat_s": _pos("s"), "poll_s": _pos("s"),
         "camera_timeout_s": _pos("s"), "min_free_gb": _nonneg("GB"), "dump_keep_days": _pos("days"),
-        "dump_max_gb": _pos("GB"), "late_grace_s": _nonneg("s after the deadline a late analysis may take"),
+        "dump_max_gb": _pos("GB"), "late_grace_s": Key("float", low=0.0, high=LATE_GRACE_MAX_S,
+                                                    doc="s after the deadline a late analysis may take"),
         "warmup": Key("bool", doc="analyse one capture before reporting ready"),
         "standby_worker": Key("bool", doc="keep a warm second analysis worker that takes over after a timeout or "
                                           "a crash"),

@@ -20,10 +20,11 @@ A heliostat (an *ensemble* of facets, OpenCSP's ``DefinitionEnsemble``) is descr
 
     [heliostat.adjusters]               # optional: how a facet is turned (canting instructions in turns)
     points_m = [[0.25, -0.25], [0.25, 0.25], [-0.25, 0.0]]    # the adjusting screws, facet frame (x, y)
-    names = ["lower right", "upper right", "left"]
+    names = ["A", "B", "C"]             # the labels marked on the frame at each screw (the facet map shows them)
     thread_pitch_mm = 1.0               # height change per full turn
     fixed = 2                           # index of a fixed pivot (not turned); leave out: all three turn
     raise_turn = "clockwise"            # which way a screw turns to raise the facet there (seen from the back)
+    turn_step = 0.125                   # the finest turn a crew sets with a wrench: turns are rounded to it
 
     [heliostat.layout]                  # where the station's camera and screen go (sofast_station.layout)
     distance_m = 4.0
@@ -98,6 +99,9 @@ class Adjusters:
     raise_turn : str
         ``"clockwise"`` or ``"counterclockwise"``: the way a screw turns to raise the facet at it, seen
         from the back of the frame.
+    turn_step : float
+        The finest part of a turn a crew sets with a wrench (1/8 by default): the canting instructions'
+        turns are whole multiples of it.
     """
 
     points_m: np.ndarray
@@ -105,6 +109,7 @@ class Adjusters:
     thread_pitch_mm: float
     fixed: int | None = None
     raise_turn: str = "clockwise"
+    turn_step: float = 0.125
 
     def __post_init__(self):
         pts = np.array(self.points_m, dtype=np.float64)
@@ -131,20 +136,26 @@ class Adjusters:
                               f"that does not turn, got {self.fixed!r}")
         if self.raise_turn not in _TURNS:
             raise ConfigError(f"heliostat adjusters: raise_turn must be one of {_TURNS}, got {self.raise_turn!r}")
+        step = self.turn_step
+        if isinstance(step, bool) or not isinstance(step, (int, float)) or not (0.0 < step <= 1.0):
+            raise ConfigError(f"heliostat adjusters: turn_step must be the finest part of a turn a crew sets (0 to 1, "
+                              f"e.g. 0.125 for 1/8 turn), got {step!r}")
+        object.__setattr__(self, "turn_step", float(step))
 
     def to_dict(self) -> dict:
         return {"points_m": self.points_m.tolist(), "names": list(self.names), "thread_pitch_mm": self.thread_pitch_mm,
-                "fixed": self.fixed, "raise_turn": self.raise_turn}
+                "fixed": self.fixed, "raise_turn": self.raise_turn, "turn_step": self.turn_step}
 
     @classmethod
     def from_dict(cls, d: dict, source: str = "heliostat") -> "Adjusters":
-        unknown = sorted(set(d) - {"points_m", "names", "thread_pitch_mm", "fixed", "raise_turn"})
+        unknown = sorted(set(d) - {"points_m", "names", "thread_pitch_mm", "fixed", "raise_turn", "turn_step"})
         if unknown:
             raise ConfigError(f"{source}: [heliostat.adjusters] has unknown key(s) {', '.join(unknown)}")
         if "points_m" not in d or "thread_pitch_mm" not in d:
             raise ConfigError(f"{source}: [heliostat.adjusters] needs points_m and thread_pitch_mm")
         return cls(points_m=d["points_m"], names=tuple(d.get("names", ())), thread_pitch_mm=d["thread_pitch_mm"],
-                   fixed=d.get("fixed"), raise_turn=d.get("raise_turn", "clockwise"))
+                   fixed=d.get("fixed"), raise_turn=d.get("raise_turn", "clockwise"),
+                   turn_step=d.get("turn_step", 0.125))
 
 
 @dataclass(frozen=True)

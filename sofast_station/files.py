@@ -42,7 +42,14 @@ def data_dir_of(station_table: dict, base: Path) -> Path:
     :data:`DEFAULT_DATA_DIR`."""
     import os
 
-    data_dir = Path(os.environ.get("SOFAST_DATA_DIR") or station_table.get("data_dir", DEFAULT_DATA_DIR)).expanduser()
+    return resolve_data_dir(os.environ.get("SOFAST_DATA_DIR") or station_table.get("data_dir", DEFAULT_DATA_DIR),
+                            base)
+
+
+def resolve_data_dir(value: str | Path, base: Path) -> Path:
+    """A data folder as written (*value*: ``~`` expanded; relative to *base*) as a path. Every station's data
+    folder is resolved here, once (the test suite watches this one place: tests/conftest.py)."""
+    data_dir = Path(value).expanduser()
     return data_dir if data_dir.is_absolute() else Path(base) / data_dir
 
 
@@ -54,7 +61,7 @@ def station_data_dir(path: str | Path) -> Path | None:
 
     path = Path(path).expanduser()
     if os.environ.get("SOFAST_DATA_DIR"):
-        return Path(os.environ["SOFAST_DATA_DIR"]).expanduser()
+        return resolve_data_dir(os.environ["SOFAST_DATA_DIR"], Path.cwd())
     try:
         raw = tomllib.loads(path.read_text())
     except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError):

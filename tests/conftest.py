@@ -35,6 +35,59 @@ def repo_root() -> Path:
     return ROOT
 
 
+#: The user's own data folder (files.DEFAULT_DATA_DIR under the real home), which no test may read or write.
+USER_DATA = Path("~/sofast-station-data").expanduser()
+
+
+def _listing(folder: Path) -> dict:
+    """{path: (size, mtime_ns)} of everything under *folder* ({} when it does not exist)."""
+    out = {}
+    for top, dirs, files in os.walk(folder):
+        for name in dirs + files:
+            try:
+                st = os.lstat(os.path.join(top, name))
+            except OSError:
+                continue
+            out[os.path.join(top, name)] = (st.st_size, st.st_mtime_ns)
+    return out
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _never_the_users_data():
+    """Fail any test that reads or writes the user's ~/sofast-station-data (issue 43).
+
+    Every station resolves its data folder through ``files.resolve_data_dir``; here it raises when the folder
+    it resolves lies in the user's (a module or session fixture that loads a station file before the
+    per-test ``SOFAST_DATA_DIR`` below is set, or a station file whose data_dir is the default). Session
+    scoped, so it is in place before any module fixture runs. Commands run as subprocesses resolve in their
+    own process: what they write there is caught by comparing the folder's listing (sizes, mtimes) at the
+    session's end with its start.
+    """
+    from sofast_station import files
+
+    resolve = files.resolve_data_dir
+
+    def guarded(value, base):
+        path = resolve(value, base)
+        if path.absolute() == USER_DATA or USER_DATA in path.absolute().parents:
+            pytest.fail(f"a test resolved the user's data folder {path} (data_dir {str(value)!r}): a station file "
+                        "loaded outside a test's SOFAST_DATA_DIR (a module fixture?) or with the default data_dir; "
+                        "give it a tmp_path data_dir or set SOFAST_DATA_DIR", pytrace=True)
+        return path
+
+    before = _listing(USER_DATA)
+    files.resolve_data_dir = guarded
+    try:
+        yield
+    finally:
+        files.resolve_data_dir = resolve
+    after = _listing(USER_DATA)
+    if after != before:
+        changed = sorted(set(after.items()) ^ set(before.items()))
+        pytest.fail(f"the test session changed the user's data folder {USER_DATA}: {len(changed)} entries, e.g. "
+                    f"{changed[0][0]}", pytrace=False)
+
+
 @pytest.fixture(autouse=True)
 def _data_dir(tmp_path, monkeypatch):
     """Every test's station data (journal, results, records) goes to its own temporary folder."""
@@ -45,6 +98,17 @@ def _data_dir(tmp_path, monkeypatch):
     # `batch` and `report` lower their own process's priority (issue 11). Called in-process from a test,
     # that would renice the whole pytest run for every later test; tests/test_priority.py checks it apart.
     monkeypatch.setenv("SOFAST_NICE", "0")
+
+
+def load_station(path, data_dir, **kwargs):
+    """``load_config(path)`` with the station's data in *data_dir* (``SOFAST_DATA_DIR`` set while it loads, so
+    the records it reads are that folder's): for a module or session fixture, which runs before the per-test
+    ``SOFAST_DATA_DIR`` of :func:`_data_dir` is set."""
+    from sofast_station.config import load_config
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("SOFAST_DATA_DIR", str(data_dir))
+        return load_config(path, **kwargs)
 
 
 #: The small simulated dish station (400 x 300 camera) as a str.format template of {data_dir}, {facet} and

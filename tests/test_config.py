@@ -50,6 +50,10 @@ def test_broken_toml_names_the_file(tmp_path):
     ("run", "camera_timeout_s = 20.0", "[run] camera_timeout_s = 20.0: must be shorter than deadline_s"),
     ("run", "dump_failed = 1", "[run] dump_failed must be true or false, got 1"),
     ("run", "deadline = 3", "[run] has unknown key(s) deadline; allowed:"),
+    # issue 43: an abandoned analysis given 1e12 s of grace was accepted (never killed)
+    ("run", "late_grace_s = 1e12",
+     "[run] late_grace_s must be a number of at least 0 and at most 600, got 1000000000000.0"),
+    ("station", 'id = ""', "[station] id = '': must be a non-empty string naming this station"),
     ("camera", 'width_px = "1600"', "[camera] width_px must be a whole number of at least 1, got '1600'"),
     ("camera", "distortion = [0.1, 0.2]", "[camera] distortion must be a list of numbers of length 4 or 5, got"),
     # issue 28: the schema allowed an 8-term model that the camera loader then refused

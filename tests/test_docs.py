@@ -230,3 +230,11 @@ def test_the_path_check_finds_a_planted_stale_reference_and_nothing_that_is_not_
         "OpenCSP's `example_process_facet_ensemble.py`; ./setup-env test; .venv/bin/python; tests/test_docs.py:12",
     ])
     assert stale_references(fine, "fine", names) == []
+def test_the_readme_is_short_and_opens_with_its_two_commands():
+    """Issue 43: at most 150 lines, the two commands of its first lines as they were, and the heliostat
+    station said in plain words (no powers of ten: its paragraph gave focal powers as +5.5e-4 /m)."""
+    lines = (ROOT / "README.md").read_text().splitlines()
+    assert len(lines) <= 150, len(lines)
+    assert lines[6:8] == ["    ./setup-env && .venv/bin/sofast-station inspect",
+                          "    ./setup-env test && .venv/bin/python -m pytest -q"]
+    assert not [line for line in lines if re.search(r"\de-\d", line)]

@@ -559,10 +559,12 @@ def read_images(paths: list[str | Path]) -> list[tuple[str, np.ndarray | None]]:
     return [(str(p), cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)) for p in paths]
 
 
-def save_camera(data_dir: str | Path, cal: CameraCalibration, source: str, folder: str = "camera") -> Path:
+def save_camera(data_dir: str | Path, cal: CameraCalibration, source: str, folder: str = "camera",
+                station: dict | None = None) -> Path:
     """Write a camera record under ``data_dir/calibration/<folder>/``; returns its path. *folder* is
     ``camera`` (the station camera's records) or ``handheld`` (the second camera of ``calibrate screen``,
-    never taken for the station camera).
+    never taken for the station camera); *station*, the identity of the station it is made on
+    (:func:`~sofast_station.calibrate.store.write_record`).
 
     A refused calibration (parameters not determined) is never written: CalibrationError saying why."""
     if cal.verdict == "refused":
@@ -574,7 +576,7 @@ def save_camera(data_dir: str | Path, cal: CameraCalibration, source: str, folde
                 "images": [r.to_dict() for r in cal.images]}
     if folder not in ("camera", "handheld"):
         raise ValueError(f"camera records go to 'camera' or 'handheld', not {folder!r}")
-    path, _ = write_record(data_dir, folder, build)
+    path, _ = write_record(data_dir, folder, build, station=station)
     return path
 
 

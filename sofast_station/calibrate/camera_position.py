@@ -188,13 +188,15 @@ def calibrate_camera_position(image: np.ndarray, name: str, camera: CameraIntrin
     return result
 
 
-def save_camera_position(data_dir: str | Path, result: CameraPosition, source: str, inputs: dict) -> Path:
-    """Write a ``cameraposition`` record under ``data_dir/calibration/cameraposition/``; returns its path."""
+def save_camera_position(data_dir: str | Path, result: CameraPosition, source: str, inputs: dict,
+                         station: dict | None = None) -> Path:
+    """Write a ``cameraposition`` record under ``data_dir/calibration/cameraposition/`` (*station*: the identity
+    of the station it is made on); returns its path."""
     def build(record_id: str, created: str) -> dict:
         return {"schema": SCHEMA, "kind": KIND, "record_id": record_id, "created": created, "source": source,
                 "inputs": inputs, **result.to_dict()}
 
-    path, _ = write_record(data_dir, KIND, build)
+    path, _ = write_record(data_dir, KIND, build, station=station)
     return path
 
 

@@ -13,7 +13,9 @@ record's for the camera-to-screen rotation and translation and the fixture pose,
 the pitch, and the shape's own uncertainty fields as the ``screen shape`` rows. Without records (or with
 ``geometry = "station.toml"``) the station measures with station.toml's [screen] and [layout], as before.
 
-A record for another display (its pixels) or another camera (its image size) is a ConfigError naming the
+A record made by another station (:func:`~sofast_station.calibrate.store.check_station`), or for another
+display (its pixels, or a pitch more than :data:`PITCH_TOLERANCE` off the one [screen] states: another
+station's screen of the same pixel count) or another camera (its image size) is a ConfigError naming the
 file and what to do; a pose record made with an older screen record is used, with a warning to repeat
 ``calibrate pose``.
 """
@@ -33,10 +35,15 @@ from .store import newest_record_path
 log = logging.getLogger(__name__)
 
 GEOMETRY_SOURCES = ("records", "station.toml")
+#: Largest relative difference between a screen record's measured pitch and the pitch [screen] states that
+#: is still taken for this screen: a screen calibration finds a display's pitch within a few tenths of a
+#: percent of its data sheet (1 % on the twin's station 1, tests/calibrate/test_commission.py); a record 10 %
+#: off is another display of the same pixel count, and would put every focal length about 9 mm off.
+PITCH_TOLERANCE = 0.03
 
 
-def geometry_in_force(data_dir: str | Path, stated: StationGeometry, where: str,
-                      source: str = "records") -> tuple[StationGeometry, dict | None, dict]:
+def geometry_in_force(data_dir: str | Path, stated: StationGeometry, where: str, source: str = "records",
+                      station: dict | None = None) -> tuple[StationGeometry, dict | None, dict]:
     """The geometry the analysis uses, what it comes from, and what the records lend the budget.
 
     Parameters
@@ -49,6 +56,8 @@ def geometry_in_force(data_dir: str | Path, stated: StationGeometry, where: str,
         The station file, for messages.
     source : str
         ``"records"`` or ``"station.toml"`` (``[calibration] geometry``).
+    station : dict, optional
+        The station's identity (``StationConfig.identity``): a record another station made is refused.
 
     Returns
     -------
@@ -69,7 +78,7 @@ def geometry_in_force(data_dir: str | Path, stated: StationGeometry, where: str,
     from .screen import load_screen_record
 
     geometry, info, std = stated, {"warnings": []}, {}
-    screen_path = newest_record_path(data_dir, "screen")
+    screen_path = newest_record_path(data_dir, "screen", station)
     if screen_path is not None:
         rec = load_screen_record(screen_path)
         made_for = ScreenSpec.from_dict(rec["stated_screen"])
@@ -79,6 +88,7 @@ def geometry_in_force(data_dir: str | Path, stated: StationGeometry, where: str,
                               f"but {where} [screen] says {stated.screen.width_px} x {stated.screen.height_px}: run "
                               "'sofast-station calibrate screen' for this display, or set [calibration] geometry = "
                               "\"station.toml\"")
+        _check_pitch(rec, screen_path, stated.screen, where)
         grid = rec["grid"]
         uv = np.asarray(grid["nodes_uv_m"], dtype=np.float64)
         nodes_px = uv / [made_for.pitch_x_m, made_for.pitch_y_m]          # the record's own stated pitch
@@ -88,7 +98,7 @@ def geometry_in_force(data_dir: str | Path, stated: StationGeometry, where: str,
         std["screen_pitch_relative"] = max(float(rec["pitch_m"][a]["std"]) / float(rec["pitch_m"][a]["value"])
                                            for a in ("x", "y"))
         info["screen"] = {"record_id": rec["record_id"], "path": str(screen_path)}
-    pose_path = newest_record_path(data_dir, "pose")
+    pose_path = newest_record_path(data_dir, "pose", station)
     if pose_path is not None:
         rec = load_pose_record(pose_path)
         cam = rec.get("camera", {})
@@ -118,3 +128,21 @@ def geometry_in_force(data_dir: str | Path, stated: StationGeometry, where: str,
     for w in info["warnings"]:
         log.warning("%s", w)
     return geometry, info, std
+
+
+def _check_pitch(record: dict, path: Path, stated: ScreenSpec, where: str) -> None:
+    """Refuse a screen record whose measured pitch is more than :data:`PITCH_TOLERANCE` off [screen]'s: it is
+    not this display (the same pixel count, another size)."""
+    try:
+        measured = {a: float(record["pitch_m"][a]["value"]) for a in ("x", "y")}
+    except (KeyError, TypeError, ValueError):
+        raise ConfigError(f"screen record {path} has no measured pitch: rerun 'sofast-station calibrate screen'") \
+            from None
+    for axis, said in (("x", stated.pitch_x_m), ("y", stated.pitch_y_m)):
+        off = measured[axis] / said - 1.0
+        if abs(off) > PITCH_TOLERANCE:
+            raise ConfigError(f"screen record {path} measured a pitch of {1e6 * measured[axis]:.1f} um in {axis}, "
+                              f"{100 * off:+.1f} % off the {1e6 * said:.1f} um {where} [screen] states (more than "
+                              f"{100 * PITCH_TOLERANCE:g} %): it is another display's (another station's record?). "
+                              "Run 'sofast-station calibrate screen' for this display; if the record is right, "
+                              "correct [screen] pitch_m")

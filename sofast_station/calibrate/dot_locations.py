@@ -184,14 +184,16 @@ def dot_record(cal: DotCalibration) -> dict:
             "verdict": cal.verdict, "reasons": cal.reasons}
 
 
-def save_dots(data_dir: str | Path, cal: DotCalibration, source: str, inputs: dict) -> Path:
-    """Write a ``dots`` record under ``data_dir/calibration/dots/``; returns its path."""
+def save_dots(data_dir: str | Path, cal: DotCalibration, source: str, inputs: dict,
+              station: dict | None = None) -> Path:
+    """Write a ``dots`` record under ``data_dir/calibration/dots/`` (*station*: the identity of the station it
+    is made on); returns its path."""
     content = dot_record(cal)
 
     def build(record_id: str, created: str) -> dict:
         return {"record_id": record_id, "created": created, "source": source, "inputs": inputs, **content}
 
-    path, _ = write_record(data_dir, KIND, build)
+    path, _ = write_record(data_dir, KIND, build, station=station)
     return path
 
 

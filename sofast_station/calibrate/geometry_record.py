@@ -65,12 +65,14 @@ def geometry_provenance(config) -> dict:
     return out
 
 
-def save_geometry(data_dir: str | Path, config, check: dict | None, source: str) -> Path:
-    """Write a geometry record (the station's geometry, its provenance and the reference check)."""
+def save_geometry(data_dir: str | Path, config, check: dict | None, source: str,
+                  station: dict | None = None) -> Path:
+    """Write a geometry record (the station's geometry, its provenance and the reference check; *station*: the
+    identity of the station it is made on)."""
     def build(record_id: str, created: str) -> dict:
         return {"schema": SCHEMA, "kind": "geometry", "record_id": record_id, "created": created, "source": source,
                 **geometry_provenance(config), "reference_check": check}
-    path, _ = write_record(data_dir, "geometry", build)
+    path, _ = write_record(data_dir, "geometry", build, station=station)
     return path
 
 

@@ -324,8 +324,9 @@ def _indices(reports) -> list:
     return out
 
 
-def save_pose(data_dir: str | Path, cal: PoseCalibration, source: str) -> Path:
-    """Write the pose record. A refused calibration is never written: CalibrationError saying why."""
+def save_pose(data_dir: str | Path, cal: PoseCalibration, source: str, station: dict | None = None) -> Path:
+    """Write the pose record (*station*: the identity of the station it is made on). A refused calibration is
+    never written: CalibrationError saying why."""
     if cal.verdict == "refused":
         q = cal.quality
         raise CalibrationError("pose calibration refused (no record written): " + "; ".join(q["refuse_reasons"])
@@ -336,7 +337,7 @@ def save_pose(data_dir: str | Path, cal: PoseCalibration, source: str) -> Path:
         return {"schema": SCHEMA, "kind": "pose", "record_id": record_id, "created": created, "source": source,
                 **content}
 
-    path, _ = write_record(data_dir, "pose", build)
+    path, _ = write_record(data_dir, "pose", build, station=station)
     return path
 
 

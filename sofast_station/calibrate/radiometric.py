@@ -752,8 +752,9 @@ def calibrate_radiometric(display, camera, settings: RadiometricSettings = Radio
 
 # -- the record and its plot ----------------------------------------------------------------------------
 def save_radiometric(data_dir: str | Path, result: RadiometricResult, source: str,
-                     plot: bool = True) -> RadiometricRecord:
-    """Write *result* as a new dated record under ``data_dir/calibration/radiometric/`` (and its PNG plot).
+                     plot: bool = True, station: dict | None = None) -> RadiometricRecord:
+    """Write *result* as a new dated record under ``data_dir/calibration/radiometric/`` (and its PNG plot);
+    *station*: the identity of the station it is made on.
 
     Returns
     -------
@@ -761,7 +762,8 @@ def save_radiometric(data_dir: str | Path, result: RadiometricResult, source: st
         As read back from the file (``path`` set).
     """
     path, _ = write_record(data_dir, "radiometric",
-                           lambda rid, created: result.record(rid, created, source).to_dict(curve=True))
+                           lambda rid, created: result.record(rid, created, source).to_dict(curve=True),
+                           station=station)
     record = load_radiometric(path)
     if plot:
         try:

@@ -391,8 +391,9 @@ def screen_record_content(cal: ScreenCalibration, nodes: tuple[int, int] = (65, 
     }
 
 
-def save_screen(data_dir: str | Path, cal: ScreenCalibration, source: str) -> Path:
-    """Write the screen record. A refused calibration is never written: CalibrationError saying why."""
+def save_screen(data_dir: str | Path, cal: ScreenCalibration, source: str, station: dict | None = None) -> Path:
+    """Write the screen record (*station*: the identity of the station it is made on). A refused calibration is
+    never written: CalibrationError saying why."""
     if cal.verdict == "refused":
         raise CalibrationError(refusal_text(cal))
     content = screen_record_content(cal)
@@ -401,7 +402,7 @@ def save_screen(data_dir: str | Path, cal: ScreenCalibration, source: str) -> Pa
         return {"schema": SCHEMA, "kind": "screen", "record_id": record_id, "created": created, "source": source,
                 **content}
 
-    path, _ = write_record(data_dir, "screen", build)
+    path, _ = write_record(data_dir, "screen", build, station=station)
     return path
 
 

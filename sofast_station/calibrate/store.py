@@ -6,6 +6,12 @@ never overwritten, so the folder is the history. The newest record is the last f
 (the name carries the creation time in UTC). Companion files (the radiometric routine's PNG plot) share
 the record's stem.
 
+Every record a command makes carries the identity of the station that made it (``station``: its ``id``, name
+and file; ``[station] id`` in station.toml, else its name), and a station never uses another station's record:
+:func:`newest_record_path` given the station's identity refuses (ConfigError) a newest record made by another
+station, e.g. one copied from another station's data_dir, or two stations sharing one ``SOFAST_DATA_DIR``. A
+record made before records carried it (or written by a test without it) names no station and is used.
+
 The radiometric record in force is the newest one under ``data_dir``, else the shipped default named by
 ``[calibration] radiometric`` (reported as such), else none (a linear display assumed). It is stale when
 it is older than ``max_age_h`` (the simulated station's shipped default is exempt: the twin does not age),
@@ -59,10 +65,65 @@ def list_records(data_dir: str | Path, kind: str) -> list[Path]:
     return sorted(names, key=lambda p: p.name)
 
 
-def newest_record_path(data_dir: str | Path, kind: str) -> Path | None:
-    """The newest record file of *kind*, or None."""
+#: The command that makes a record of each kind (for the message refusing another station's record).
+_MADE_BY = {"radiometric": "calibrate radiometric", "camera": "calibrate camera IMAGES...",
+            "geometry": "calibrate geometry", "screen": "calibrate screen", "pose": "calibrate pose",
+            "handheld": "calibrate camera --handheld IMAGES...", "cameraposition": "calibrate camera-position",
+            "dots": "calibrate dots"}
+
+
+def newest_record_path(data_dir: str | Path, kind: str, station: dict | None = None) -> Path | None:
+    """The newest record file of *kind*, or None.
+
+    Parameters
+    ----------
+    data_dir : path
+    kind : str
+    station : dict, optional
+        The identity of the station that will use the record (``StationConfig.identity``): a newest record
+        made by another station is refused (:func:`check_station`).
+    """
     records = list_records(data_dir, kind)
-    return records[-1] if records else None
+    if not records:
+        return None
+    if station is not None:
+        check_station(records[-1], kind, station)
+    return records[-1]
+
+
+def check_station(path: str | Path, kind: str, station: dict) -> None:
+    """Refuse the record file *path* when another station made it.
+
+    Parameters
+    ----------
+    path : path
+        A record file.
+    kind : str
+        Its kind (for the message: the command that makes this station its own).
+    station : dict
+        ``id``, ``name`` and ``file`` of the station that would use it.
+
+    Raises
+    ------
+    ConfigError
+        The record names a station whose id is not *station*'s: which station made it, which one is asking,
+        and what to do. A record naming no station (made before records carried it) passes, and so does one
+        that cannot be read (its reader names that problem).
+    """
+    try:
+        made = json.loads(Path(path).read_text()).get("station")
+    except (OSError, ValueError, AttributeError):
+        return
+    if made is None:
+        return
+    made = made if isinstance(made, dict) else {"id": made}
+    if made.get("id") == station["id"]:
+        return
+    by = f"station {made.get('id')!r}" + (f" ({made['file']})" if made.get("file") else "")
+    raise ConfigError(f"{kind} record {path} was made by {by}, not by this station {station['id']!r} "
+                      f"({station.get('file', '')}): a station never uses another station's calibration. Give each "
+                      "station a data_dir of its own ([station] data_dir; SOFAST_DATA_DIR overrides it for every "
+                      f"station), or run 'sofast-station {_MADE_BY.get(kind, 'calibrate')}' on this station")
 
 
 def now_local() -> _dt.datetime:
@@ -71,7 +132,7 @@ def now_local() -> _dt.datetime:
 
 
 def write_record(data_dir: str | Path, kind: str, build: Callable[[str, str], dict],
-                 created: _dt.datetime | None = None) -> tuple[Path, str]:
+                 created: _dt.datetime | None = None, station: dict | None = None) -> tuple[Path, str]:
     """Write a new record file exclusively (never replacing one), atomically and durably.
 
     Parameters
@@ -85,6 +146,9 @@ def write_record(data_dir: str | Path, kind: str, build: Callable[[str, str], di
         time (ISO 8601 with the local UTC offset).
     created : datetime, optional
         Creation time (tz-aware); now by default.
+    station : dict, optional
+        The identity of the station the record is made on (``StationConfig.identity``), stored as its
+        ``station``: another station never uses the record (:func:`check_station`).
 
     Returns
     -------
@@ -106,6 +170,8 @@ def write_record(data_dir: str | Path, kind: str, build: Callable[[str, str], di
             seq += 1
             continue
         data = build(record_id, created_iso)
+        if station is not None:
+            data = {**data, "station": dict(station)}
         try:
             write_json_atomic(path, data, replace=False)     # never overwrite: the name may be taken meanwhile
         except FileExistsError:
@@ -211,7 +277,7 @@ def select_radiometric(config, tolerant: bool = False) -> CalibrationStatus:
         message names the file).
     """
     try:
-        newest = newest_record_path(config.data_dir, "radiometric")
+        newest = newest_record_path(config.data_dir, "radiometric", getattr(config, "identity", None))
         if newest is not None:
             record = load_radiometric(newest)
             return CalibrationStatus(record, "data_dir", newest)

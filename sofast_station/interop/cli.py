@@ -321,6 +321,8 @@ def _import_ensemble(m, args, cache: dict | None = None) -> int:
 
 def summary_text(out: dict, robust: bool) -> str:
     """The console summary of import-opencsp's result *out*: every figure as value ± U (k = 2)."""
+    from ..result.formatting import aperture_text
+
     def u_of(key, *sub):
         v = out.get(f"{key}_U")
         for s_ in sub:
@@ -366,8 +368,8 @@ def summary_text(out: dict, robust: bool) -> str:
         lines.append("  optics: not computed (the plano model fits no curvature: a plane's focus is not measured)")
         return "\n".join(lines)
     centroid_u = (o.get("centroid_offset_mrad_U") or {}).get("magnitude")
-    lines.append(f"  optics (pillbox sun, target at {o['conditions']['slant_range_m']:g} m, aperture radius "
-                 f"{o['conditions']['aperture']['radius_m']:.3f} m): "
+    lines.append(f"  optics (pillbox sun, target at {o['conditions']['slant_range_m']:g} m, aperture "
+                 f"{aperture_text(o['conditions']['aperture'])}): "
                  f"intercept {_pm(o['intercept'], o.get('intercept_U'), '', 4)}, "
                  f"90 % spot radius {_pm(o['spot_radius_m'], o.get('spot_radius_m_U'), ' m')} (design "
                  f"{o['design']['spot_radius_m']:.3f} m), centroid "

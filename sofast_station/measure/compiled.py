@@ -14,13 +14,19 @@ The module's name carries a digest of what its code depends on (:func:`build_dig
 source, the list of argument types, the versions of Python, numpy and numba, the processor), so a build
 made before an update is never loaded; a kernel called with argument types the build has no entry for
 (:func:`argument_key`) is compiled by numba's JIT on first use, as without a build. ``SOFAST_KERNELS=jit``
-ignores the build (the tests compare the two, bit for bit).
+ignores the build (the tests compare the two, bit for bit); any other value but ``auto`` is refused.
+
+A build is loaded only when it is sound: its table records the module file's size and SHA-256, and a module
+that does not match them (a copy cut short, which would kill the process with SIGBUS as it loads) or a table
+naming entries the module lacks is left alone, with a warning saying what to do, and numba's JIT runs the
+kernels instead.
 """
 
 from __future__ import annotations
 
 import hashlib
 import importlib
+import importlib.machinery
 import importlib.util
 import json
 import logging
@@ -33,10 +39,15 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import ConfigError
+
 log = logging.getLogger(__name__)
 
 #: The environment variable that turns the ahead-of-time build off ("jit").
 ENV = "SOFAST_KERNELS"
+#: Its values: "auto" (the default, also when unset or empty: the build when there is a sound one, else numba's
+#: JIT) and "jit" (numba's JIT always).
+MODES = ("auto", "jit")
 #: Prefix of the built module's name (then the digest).
 MODULE_PREFIX = "_kernels_aot_"
 #: Where the build is looked for (and ``build_kernels`` puts it): beside the kernels, as a module of this package.
@@ -112,25 +123,98 @@ def argument_key(args: tuple) -> tuple | None:
     return tuple(key)
 
 
-def _load_build() -> dict | None:
-    """{kernel name: {argument key: compiled function}} of the build for these sources, or None."""
-    if os.environ.get(ENV, "").strip().lower() == "jit":
+def kernel_mode() -> str:
+    """``SOFAST_KERNELS`` as one of :data:`MODES` ("auto" when unset or empty).
+
+    Raises
+    ------
+    ConfigError
+        Any other value (a misspelt "jit" would otherwise pass unnoticed), naming the values allowed.
+    """
+    value = os.environ.get(ENV, "").strip().lower() or "auto"
+    if value not in MODES:
+        raise ConfigError(f"{ENV}={os.environ[ENV]!r} is not a kernel mode: use {ENV}=jit (numba's JIT) or "
+                          f"{ENV}=auto (the build setup-env made, else the JIT), or leave it unset")
+    return value
+
+
+def module_file(folder: Path, name: str) -> Path | None:
+    """The extension module *name* in *folder* (any of this Python's extension suffixes), or None."""
+    for suffix in importlib.machinery.EXTENSION_SUFFIXES:
+        if (folder / f"{name}{suffix}").is_file():
+            return folder / f"{name}{suffix}"
+    return None
+
+
+def file_digest(path: Path) -> str:
+    """SHA-256 of a file, hex (a millisecond for the build's megabyte)."""
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+_REBUILD = (f"run ./setup-env to rebuild it (or set {ENV}=jit to use numba's JIT without this warning); numba "
+            "compiles the kernels meanwhile, so each fresh process starts about a second later")
+
+
+def _unsound(path: Path, table: dict) -> str | None:
+    """Why the module file *path* is not the one its build recorded in *table* (None: it is)."""
+    recorded = table.get("module") if isinstance(table, dict) else None
+    if not isinstance(recorded, dict) or not isinstance(table.get("entries"), dict):
+        return "its table records no size and checksum of the module (a build of an older setup-env)"
+    size = path.stat().st_size
+    if size != recorded.get("size"):
+        cut = "cut short: " if isinstance(recorded.get("size"), int) and size < recorded["size"] else ""
+        return f"{cut}{size} bytes, the build wrote {recorded.get('size')} (loading it could crash the process)"
+    if file_digest(path) != recorded.get("sha256"):
+        return "damaged: its SHA-256 is not the one the build recorded (loading it could crash the process)"
+    return None
+
+
+def _load_build(folder: Path | None = None) -> dict | None:
+    """{kernel name: {argument key: compiled function}} of the build for these sources in *folder* (default
+    :data:`BUILD_DIR`), or None: no build, ``SOFAST_KERNELS=jit``, or a build that is not sound (a warning
+    says which and what to do).
+
+    Raises
+    ------
+    ConfigError
+        ``SOFAST_KERNELS`` is neither unset, "auto" nor "jit".
+    """
+    if kernel_mode() == "jit":
         return None
+    folder = Path(folder or BUILD_DIR)
     name = module_name()
-    table_path = BUILD_DIR / f"{name}.json"
-    if importlib.util.find_spec(f"{__package__}.{name}") is None or not table_path.exists():
+    table_path = folder / f"{name}.json"
+    path = module_file(folder, name)
+    if path is None or not table_path.exists():
         return None
     try:
-        module = importlib.import_module(f"{__package__}.{name}")
-        entries = json.loads(table_path.read_text())
-    except (ImportError, OSError, ValueError) as e:
-        log.warning("the kernels' ahead-of-time build %s could not be loaded (%s); numba compiles them "
-                    "instead (run ./setup-env to rebuild it)", name, e)
+        table = json.loads(table_path.read_text())
+        why = _unsound(path, table)
+    except (OSError, ValueError) as e:
+        why = f"its table {table_path.name} cannot be read ({e})"
+    if why is not None:
+        log.warning("the kernels' ahead-of-time build %s is not loaded: %s; %s", path, why, _REBUILD)
         return None
-    table: dict = {}
-    for export, (kernel, key) in entries.items():
-        table.setdefault(kernel, {})[_as_key(key)] = getattr(module, export)
-    return table
+    try:
+        spec = importlib.util.spec_from_file_location(f"{__package__}.{name}", path)
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+    except (ImportError, OSError) as e:
+        log.warning("the kernels' ahead-of-time build %s could not be loaded (%s); %s", path, e, _REBUILD)
+        return None
+    entries = table["entries"]
+    try:
+        missing = sorted(export for export in entries if not callable(getattr(module, export, None)))
+        if missing:
+            raise ValueError(f"its table names {len(missing)} entries the module lacks ({', '.join(missing[:3])}"
+                             f"{', ...' if len(missing) > 3 else ''})")
+        built: dict = {}
+        for export, (kernel, key) in entries.items():
+            built.setdefault(kernel, {})[_as_key(key)] = getattr(module, export)
+    except (TypeError, ValueError) as e:
+        log.warning("the kernels' ahead-of-time build %s is not loaded: %s; %s", path, e, _REBUILD)
+        return None
+    return built
 
 
 def _as_key(key: list) -> tuple:

@@ -267,7 +267,9 @@ def cmd_reprocess(args) -> int:
     missing = [d for d in args.dumps if not Path(d).is_file()]
     if len(missing) == len(args.dumps):          # nothing to do: say so at once, before numpy is loaded
         from ..errors import DumpError
-        raise DumpError(f"{missing[0]} does not exist" if len(missing) == 1 else
+        word = "" if Path(missing[0]).suffix or "/" in missing[0] else \
+            f" (and is not a report: {', '.join(REPORT_WORDS)})"
+        raise DumpError(f"{missing[0]} does not exist{word}" if len(missing) == 1 else
                         f"none of the {len(missing)} dumps exists ({missing[0]}, ...)")
     overrides = overrides_from_args(args)
     overrides.check()
@@ -386,6 +388,11 @@ def cmd_batch(args) -> int:
 
 
 # -- report ---------------------------------------------------------------------------------------------
+#: The reports 'report' makes besides a dump's maps (its first word; quality_reports.REPORTS are the quality
+#: engineer's): 'sofast-station --help' lists each (sofast_station/cli.py USERS).
+REPORT_WORDS = ("trend", "flux", "spc", "acceptance", "certificate", "diff")
+
+
 def cmd_report(args) -> int:
     single_thread_blas()
     lower_priority()
@@ -404,7 +411,9 @@ def cmd_report(args) -> int:
     missing = [t for t in args.targets if not Path(t.removeprefix("opencsp:")).exists()]
     if len(missing) == len(args.targets):        # nothing to draw: say so before numpy and h5py are loaded
         from ..errors import DumpError
-        raise DumpError(f"{missing[0]} does not exist" if len(missing) == 1 else
+        word = "" if Path(missing[0]).suffix or "/" in missing[0] else \
+            f" (and is not a report: {', '.join(REPORT_WORDS)})"
+        raise DumpError(f"{missing[0]} does not exist{word}" if len(missing) == 1 else
                         f"none of the {len(missing)} dumps exists ({missing[0]}, ...)")
     from ..report.maps import write_detail_maps, write_slope_error_maps
     from .sources import load_measured

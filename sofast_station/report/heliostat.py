@@ -4,10 +4,12 @@
 side by side on one colour scale, each with the aperture, the aim point, the beam's centroid and where each
 facet's own beam lands (its label), and each panel's intercept and 90 % radius with their U.
 
-``draw_facet_map`` draws the heliostat as seen from the mirrors (x right, y up, the heliostat frame): each
-facet where it sits, coloured by its canting error's size against the limit, with an arrow the way its
-optical axis leans (exaggerated) and its canting ``x ± U, y ± U`` in mrad; a facet missing, hidden or not
-measured is drawn hatched with its status.
+``draw_facet_map`` draws the heliostat as the crew sees it from behind, at its adjusting screws (the canting
+instructions' one viewpoint, :mod:`sofast_station.report.canting`: the heliostat frame's +x runs to the left):
+each facet where it sits, coloured by its canting error's size against the limit, with its label, its error
+``size ± U`` in mrad and what to do; each adjusting screw where it is, with the label the heliostat file gives
+it and, on a facet to adjust, its turn (a curved arrow the way it turns, seen from behind, and how far: the
+words of the instructions); a facet missing, hidden or not measured is drawn hatched with its status.
 """
 
 from __future__ import annotations
@@ -92,10 +94,12 @@ def save_heliostat_flux(optics, path: Path, title: str = "", dpi: int = 110) -> 
 
 
 def draw_facet_map(record: dict, ensemble, limit_mrad: float | None = None, title: str = "") -> "Figure":  # noqa: F821
-    """A Matplotlib figure (Agg): the heliostat's facets as seen from the mirrors, each with its canting error.
+    """A Matplotlib figure (Agg): the heliostat's facets seen from behind, each with its canting error and, where
+    there are screws, what to turn (module docstring).
 
     *record* is a heliostat record (``facets`` entries with ``label``, ``status``, ``canting_mrad`` and
-    ``canting_mrad_U``); *limit_mrad* (``[limits] max_canting_mrad``) sets the colour scale's end (red)."""
+    ``canting_mrad_U``; its ``canting_instructions`` when it has them, else they are made here); *limit_mrad*
+    (``[limits] max_canting_mrad``) sets the colour scale's end (red)."""
     from matplotlib.figure import Figure
 
     n = ensemble.n_facets
@@ -108,12 +112,16 @@ def draw_facet_map(record: dict, ensemble, limit_mrad: float | None = None, titl
     if limit_mrad:
         bar.ax.axhline(limit_mrad, color="black", lw=2.0)
     h = record.get("heliostat", {})
-    sub = ""
+    sub = "seen from behind, at the adjusting screws"
     if "canting_rms_mrad" in h:
         sub = (f"canting RMS {h['canting_rms_mrad']:.3f} mrad, largest {h['canting_max_mrad']:.3f} mrad "
-               f"({h.get('canting_max_facet', '')}); arrows: where each facet's optical axis leans")
+               f"({h.get('canting_max_facet', '')}); {sub}")
     ax.set_title(f"{title}\n{sub}".strip(), fontsize=11)
     return fig
+
+
+#: The curved arrows of a screw's turn, seen from behind (the map's and the sheet's viewpoint).
+_TURN_GLYPH = {"clockwise": "\u21bb", "counterclockwise": "\u21ba"}
 
 
 def draw_facet_map_on(ax, record: dict, ensemble, limit_mrad: float | None = None, fontsize: int = 9):
@@ -121,52 +129,69 @@ def draw_facet_map_on(ax, record: dict, ensemble, limit_mrad: float | None = Non
     scale (norm, colour map)."""
     from matplotlib import colormaps
     from matplotlib.colors import Normalize
-    from matplotlib.patches import FancyArrow, Polygon
+    from matplotlib.patches import Circle, Polygon
 
+    from .canting import canting_instructions, size_u
+
+    instructions = record.get("canting_instructions") or canting_instructions(record, ensemble, limit_mrad)
+    todo = {f["label"]: f for f in instructions["facets"]}
     facets = {f["label"]: f for f in record["facets"]}
     mags = [math.hypot(f["canting_mrad"]["x"], f["canting_mrad"]["y"]) for f in facets.values() if "canting_mrad" in f]
     # the colour scale runs to 1.5 times the limit: green well within it, orange near it, red beyond
     top = 1.5 * limit_mrad if limit_mrad else (max(mags) if mags else 1.0) or 1.0
     norm = Normalize(0.0, top)
     cmap = colormaps["RdYlGn_r"]
-    xy = ensemble.corners_m()[:, :2]
+    # seen from behind: the heliostat's +x runs to the left, so every x is drawn mirrored
+    behind = np.array([-1.0, 1.0])
+    xy = ensemble.corners_m()[:, :2] * behind
     span = float(np.max(xy.max(axis=0) - xy.min(axis=0)))
-    n = ensemble.n_facets
-    pitch = span / max(1.0, math.sqrt(n))
-    # the arrow in the facet's lower half, its text in the upper: an error at the scale's end (or beyond)
-    # draws an arrow a fifth of a facet long, so it stays on its facet and off its text
-    arrow_scale = 0.2 * pitch / max(top, 1e-9)
+    pitch = span / max(1.0, math.sqrt(ensemble.n_facets))
+    adjusters = ensemble.adjusters
     font = fontsize
     for ef in ensemble.facets:
-        corners = ef.corners_m()[:, :2]
+        corners = ef.corners_m()[:, :2] * behind
         f = facets.get(ef.label, {"status": "missing"})
         centre = corners.mean(axis=0)
-        if "canting_mrad" in f:
-            c = f["canting_mrad"]
-            mag = math.hypot(c["x"], c["y"])
-            ax.add_patch(Polygon(corners, closed=True, fc=cmap(norm(min(mag, top))), ec="black", lw=1.0))
-            # the optical axis leans towards (ry, -rx) in the facet's frame
-            stretch = arrow_scale * min(1.0, top / mag) if mag > 0 else 0.0
-            dx, dy = c["y"] * stretch, -c["x"] * stretch
-            if math.hypot(dx, dy) > 1e-9:
-                ax.add_patch(FancyArrow(centre[0], centre[1] - 0.2 * pitch, dx, dy, width=0.012 * pitch,
-                                        head_width=0.05 * pitch, length_includes_head=True, color="black"))
-            u = f.get("canting_mrad_U") or {}
-            over = limit_mrad is not None and mag > limit_mrad
-            ax.text(centre[0], centre[1] + 0.4 * pitch,
-                    f"{ef.label}{'  OVER' if over else ''}\nx {_pm(c['x'], u.get('x'), '{:+.3f}')}\n"
-                    f"y {_pm(c['y'], u.get('y'), '{:+.3f}')} mrad", ha="center", va="top", fontsize=font,
-                    fontweight="bold" if over else "normal")
-        else:
+        if "canting_mrad" not in f:
             ax.add_patch(Polygon(corners, closed=True, fc="lightgrey", ec="black", lw=1.0, hatch="//"))
             ax.text(centre[0], centre[1], f"{ef.label}\n{f.get('status', 'missing')}", ha="center", va="center",
                     fontsize=font)
+            continue
+        c = f["canting_mrad"]
+        mag = math.hypot(c["x"], c["y"])
+        ax.add_patch(Polygon(corners, closed=True, fc=cmap(norm(min(mag, top))), ec="black", lw=1.0))
+        entry = todo.get(ef.label, {})
+        adjust = entry.get("action") == "turn"
+        what = ("ADJUST" if limit_mrad is None else "OVER: ADJUST") if adjust else "leave it"
+        ax.text(centre[0], centre[1], f"{ef.label}\n{_pm(mag, size_u(f))} mrad\n{what}", ha="center",
+                va="center", fontsize=font, fontweight="bold" if adjust else "normal")
+        if adjusters is None:
+            continue
+        screws = {s["name"]: s for s in entry.get("screws", [])}
+        origin = np.asarray(ef.position_m[:2], dtype=np.float64)
+        for name, point in zip(adjusters.names, adjusters.points_m):
+            # the screw where it sits on the frame (the design canting's few mrad do not move it on the map)
+            at = (origin + ef.rotation[:2, :2] @ point) * behind
+            ax.add_patch(Circle(at, 0.045 * pitch, fc="white", ec="black", lw=0.8))
+            ax.text(at[0], at[1], name, ha="center", va="center", fontsize=font - 1, fontweight="bold")
+            s = screws.get(name)
+            if adjust and s is not None:
+                said = "leave" if s["direction"] == "leave" else \
+                    f"{_TURN_GLYPH[s['direction']]} {s['turns_text'].split(' turn')[0]}"
+                # inside the facet: above a screw in its lower part, below one in its upper part or middle
+                up = at[1] < centre[1] - 0.1 * pitch
+                ax.text(at[0], at[1] + (0.06 if up else -0.06) * pitch, said, ha="center",
+                        va="bottom" if up else "top", fontsize=font + (0 if said == "leave" else 2), fontweight="bold")
     pad = 0.05 * span
     ax.set_xlim(xy[:, 0].min() - pad, xy[:, 0].max() + pad)
     ax.set_ylim(xy[:, 1].min() - pad, xy[:, 1].max() + pad)
     ax.set_aspect("equal")
-    ax.set_xlabel("heliostat x, m (seen from the mirrors)")
-    ax.set_ylabel("heliostat y, m")
+    ax.set_xticks([])
+    ax.set_yticks([])
+    turns = "" if adjusters is None else (
+        f"\nscrews {', '.join(adjusters.names)} as marked on the frame; turn {_TURN_GLYPH['clockwise']} clockwise, "
+        f"{_TURN_GLYPH['counterclockwise']} counterclockwise")
+    ax.set_xlabel(f"as seen standing behind the heliostat, at its screws{turns}")
     return norm, cmap
 
 

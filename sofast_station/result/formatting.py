@@ -27,6 +27,14 @@ BUDGET_COLUMNS = (("focal_length_x_m", "f x", "m"), ("focal_length_y_m", "f y", 
                   ("placement.mm.0", "place x", "mm"), ("placement.mrad.2", "place rz", "mrad"))
 
 
+def aperture_text(aperture: dict) -> str:
+    """A receiver aperture (the record's ``optics.conditions.aperture``) in words: "a circle of 0.500 m radius",
+    "a 1.200 m x 0.800 m rectangle" (never its dict)."""
+    if aperture.get("shape") == "rectangle":
+        return f"a {aperture['width_m']:.3f} m x {aperture['height_m']:.3f} m rectangle"
+    return f"a circle of {aperture['radius_m']:.3f} m radius"
+
+
 def budget_text(rec: dict, columns=BUDGET_COLUMNS) -> str:
     """The uncertainty budget as one table: input groups against figures, standard-uncertainty
     contributions (k = 1), then the combined standard and expanded uncertainties."""

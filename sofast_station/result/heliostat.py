@@ -65,6 +65,50 @@ def judge_canting(entry: dict, limits: Limits) -> tuple[list[str], list[str]]:
     return [], []
 
 
+#: The test uncertainty ratio wanted: the canting limit at least this many times the canting's U (a measurement
+#: whose U is more than a third of the limit barely tells a facet within it from one beyond).
+WANTED_RATIO = 3.0
+
+
+def canting_resolution(facets: list[dict], limit_mrad: float | None) -> dict | None:
+    """How well the facets' canting is known against its limit: the test uncertainty ratio, the limit over the
+    largest U (a facet's U the larger of its two axes', k = 2: the error's direction is not known before it is
+    measured), and a warning in plain words when U is more than a third of the limit (ratio below
+    :data:`WANTED_RATIO`). None without a limit or without a measured facet's U.
+
+    Returns
+    -------
+    dict or None
+        ``limit_mrad``, ``U_mrad`` (the largest), ``facet`` (whose), ``ratio``, ``wanted_ratio``,
+        ``coarse_facets`` (every facet with U over a third of the limit) and ``warning`` (None when there is
+        none).
+    """
+    if limit_mrad is None:
+        return None
+    us = []
+    for f in facets:
+        u = f.get("canting_mrad_U") or {}
+        if "canting_mrad" in f and u.get("x") is not None and u.get("y") is not None:
+            us.append((max(float(u["x"]), float(u["y"])), f["label"]))
+    if not us:
+        return None
+    worst_u, worst = max(us)
+    ratio = limit_mrad / worst_u if worst_u > 0 else math.inf
+    coarse = [label for u, label in us if u > limit_mrad / WANTED_RATIO]
+    warning = None
+    if coarse:
+        which = (f"facet {coarse[0]}'s canting is" if len(coarse) == 1
+                 else f"the canting of all {len(us)} facets measured is" if len(coarse) == len(us)
+                 else f"the canting of {len(coarse)} of the {len(us)} facets measured is")
+        warning = (f"the measurement barely tells the canting limit apart: {which} known only to "
+                   f"{worst_u:.2f} mrad (U, k = 2; at worst, {worst}), more than a third of the {limit_mrad:g} mrad "
+                   f"limit (test uncertainty ratio {ratio:.1f}; {WANTED_RATIO:g} or more is wanted). A facet near "
+                   "the limit may be passed or failed wrongly: measure with more camera pixels on each facet (a longer "
+                   "lens or a closer camera), or agree a wider limit")
+    return {"limit_mrad": limit_mrad, "U_mrad": worst_u, "facet": worst, "ratio": ratio,
+            "wanted_ratio": WANTED_RATIO, "coarse_facets": coarse, "warning": warning}
+
+
 def _worst(verdicts) -> str:
     return min(verdicts, key=_ORDER.index) if verdicts else "invalid"
 

@@ -179,10 +179,11 @@ def staircase_warning(fig: dict) -> list[str]:
     if not sides:
         return []
     which = ", ".join(str(k) for k in sides)
-    return [f"side{'s' if len(sides) > 1 else ''} {which} of the facet's outline (the design's numbering) "
-            f"{'lie' if len(sides) > 1 else 'lies'} along the pixel grid with no partly covered pixel (a stepped "
-            "edge, or one exactly on a pixel boundary): the corners there are known only to within a pixel (in the "
-            "corner pose's U); turn the camera a degree or two about its axis"]
+    many = len(sides) > 1
+    return [f"edge{'s' if many else ''} {which} of the facet (numbered as in its design file) "
+            f"{'line' if many else 'lines'} up exactly with the camera's pixel grid, so the facet's corners there "
+            "are known only to about one pixel: its position in the fixture is less certain (its U says by how "
+            "much); the verdict is not affected. To avoid it, turn the camera a degree or two about its lens axis"]
 
 
 def lit_rim_warning(fig: dict) -> list[str]:
@@ -196,10 +197,11 @@ def lit_rim_warning(fig: dict) -> list[str]:
         return []
     which = ", ".join(str(k) for k in sides)
     plural = "s" if len(sides) > 1 else ""
-    return [f"the glass rim the design declares dark (edge_rim_dark) shows the screen on side{plural} "
-            f"{which} of the facet's outline (the design's numbering): put midway across the rim, the corners there "
-            "known only to the rim's width (in the corner pose's U); if this facet type's rim is not ground dark, "
-            "set edge_rim_dark = false in its design"]
+    return [f"the glass rim, which the facet's design file says is dark (edge_rim_dark), shows the screen on "
+            f"edge{plural} {which} of the facet (numbered as in its design file): the edge is taken midway across "
+            "the rim, so the corners there are known only to the rim's width and the facet's position in the fixture "
+            "is less certain (its U says by how much); the verdict is not affected. If this facet type's rim is not "
+            "ground dark, set edge_rim_dark = false in its design file"]
 
 
 def misplacement(fig: dict, quality: Quality) -> list[str]:

@@ -29,7 +29,7 @@ import logging
 import sys
 
 from .. import __version__
-from ..commands import add_command, add_config_option
+from ..commands import add_command, add_config_option, positive_int
 from ..errors import ConfigError
 from ..files import json_ready
 
@@ -82,7 +82,8 @@ def cmd_camera(args) -> int:
     cal = calibrate_camera_images(read_images(args.images), board, fix_k3=not args.k3, min_images=args.min_images,
                                   max_edge_width_px=args.max_edge_width, fix_k2=args.fix_k2)
     source = f"sofast-station {__version__} calibrate camera, {len(args.images)} image(s)"
-    path = save_camera(config.data_dir, cal, source, "handheld" if args.handheld else "camera")
+    path = save_camera(config.data_dir, cal, source, "handheld" if args.handheld else "camera",
+                       station=config.identity)
     cam = config.geometry.camera
     if args.handheld:
         use = "calibrate screen uses this record for the second camera (the newest handheld record)."
@@ -172,7 +173,7 @@ def cmd_status(args) -> int:
     if camera_source == "record":
         try:
             camera_in_force = camera_from_record(config.data_dir, config.geometry.camera,
-                                                 f"{config.path} [camera]")[1]["path"].name
+                                                 f"{config.path} [camera]", config.identity)[1]["path"].name
         except ConfigError as exc:
             camera_in_force = None
             status.warnings.append(str(exc))
@@ -235,7 +236,7 @@ def _photo_camera(spec: str, config) -> tuple:
         return camera, str(path), vector, None
 
     if spec in ("record", "handheld"):
-        path = newest_record_path(config.data_dir, "camera" if spec == "record" else "handheld")
+        path = newest_record_path(config.data_dir, "camera" if spec == "record" else "handheld", config.identity)
         if path is None:
             raise ConfigError(f"--camera {spec}: there is no {spec if spec == 'handheld' else 'camera'} record in "
                               f"{record_dir(config.data_dir, 'camera' if spec == 'record' else 'handheld')}: run "
@@ -244,7 +245,7 @@ def _photo_camera(spec: str, config) -> tuple:
         return from_record(path)
     if spec == "station":
         if config.raw.get("camera", {}).get("intrinsics") == "record":
-            path = newest_record_path(config.data_dir, "camera")
+            path = newest_record_path(config.data_dir, "camera", config.identity)
             if path is not None:
                 return from_record(path)
         return config.geometry.camera, f"{config.path} [camera]", None, None
@@ -287,7 +288,7 @@ def cmd_camera_position(args) -> int:
                                        dictionary=args.dictionary, refine=args.corners, min_markers=args.min_markers)
     source = f"sofast-station {__version__} calibrate camera-position {args.photo}"
     inputs = {"photo": str(args.photo), "camera": camera_name, "camera_note": note, "markers": str(args.markers)}
-    path = save_camera_position(config.data_dir, result, source, inputs)
+    path = save_camera_position(config.data_dir, result, source, inputs, station=config.identity)
     _emit(args, {"path": str(path), **result.to_dict(), "inputs": inputs}, summary_text(result, path))
     return 0
 
@@ -308,7 +309,7 @@ def cmd_dots(args) -> int:
     source = f"sofast-station {__version__} calibrate dots, {len(photos)} photograph(s)"
     inputs = {"photos": [str(p) for p in args.photos], "origins_px": [list(o) for o in args.origin],
               "camera": camera_name, "camera_note": note, "markers": str(args.markers)}
-    path = save_dots(config.data_dir, cal, source, inputs)
+    path = save_dots(config.data_dir, cal, source, inputs, station=config.identity)
     text = summary_text(cal, path)
     data = {"path": str(path), "verdict": cal.verdict, "reasons": cal.reasons, "dots_located":
             int(cal.locations.located.sum()), "sigma_px": cal.solution.sigma_px, "rms_px": cal.solution.rms_px,
@@ -506,7 +507,7 @@ def register(subparsers, default_config_path: str | None = None) -> argparse.Arg
             handheld_camera, its calibration the newest 'calibrate camera --handheld' record or
             [calibration.screen] camera.""")
     common(scr)
-    scr.add_argument("--views", type=int, default=None, metavar="N",
+    scr.add_argument("--views", type=positive_int, default=None, metavar="N",
                      help="views to take (default: [calibration.screen] views, else 8)")
     scr.add_argument("--model", choices=("auto", "flat", "distorted2d", "distorted3d"), default=None,
                      help="the shape model (default: [calibration.screen] model, else auto: the simplest the "
@@ -525,7 +526,7 @@ def register(subparsers, default_config_path: str | None = None) -> argparse.Arg
     common(pose)
     pose.add_argument("--target", default=None, metavar="FILE",
                       help="the reference mirror's certificate ([mirror] table; default: [calibration.pose] target)")
-    pose.add_argument("--placements", type=int, default=None, metavar="N",
+    pose.add_argument("--placements", type=positive_int, default=None, metavar="N",
                       help="placements to take (default: [calibration.pose] placements, else 4)")
     pose.set_defaults(func=cmd_pose)
 

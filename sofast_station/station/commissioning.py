@@ -51,7 +51,7 @@ def _handheld_intrinsics(config, settings):
     from ..calibrate.camera import load_camera_record
     from ..calibrate.store import newest_record_path
 
-    path = newest_record_path(config.data_dir, "handheld")
+    path = newest_record_path(config.data_dir, "handheld", config.identity)
     if path is not None:
         camera, record = load_camera_record(path)
         std = record.get("std_intrinsics") or {}
@@ -86,6 +86,45 @@ def _open_handheld(station, config, settings, seed):
     return open_camera(kind, **dict(dev.get("handheld_camera_options", {}))), _prompt("Second camera, view")
 
 
+def _enough(what: str, wanted: int, least: int, from_command_line: bool, config, section: str) -> None:
+    """Refuse, before anything is measured, to take fewer *what* (views, placements) than the calibration needs
+    to keep a record: the routine would take them all, then refuse."""
+    if wanted < least:
+        said = f"--{what} {wanted}" if from_command_line else f"{config.path} [calibration.{section}] {what} = {wanted}"
+        raise ConfigError(f"{said}: calibrate {section} needs at least {least} usable {what} ([calibration.{section}] "
+                          f"min_{what}) and refuses fewer; take at least {least}")
+
+
+def check_commission(config, *, reference: str | None = None, target: str | None = None) -> None:
+    """Every input of ``calibrate commission`` read and checked before its first step runs (the radiometric
+    step took minutes before a mistyped ``--target`` stopped the pose step): the steps' settings, the views and
+    placements they take, the reference mirror's certificate and the reference facet's.
+
+    Raises
+    ------
+    ConfigError
+        Naming the argument or key and what to do.
+    """
+    from ..calibrate.commission_settings import commission_settings, load_mirror_target
+    from ..calibrate.geometry import load_reference
+
+    screen, pose = commission_settings(config.raw, config.path.parent, str(config.path))
+    _enough("views", screen.views, screen.min_views, False, config, "screen")
+    _enough("placements", pose.placements, pose.min_placements, False, config, "pose")
+    try:
+        load_mirror_target(target or pose.target)
+    except ConfigError as exc:
+        raise ConfigError(f"{'--target' if target else f'{config.path} [calibration.pose] target'}: {exc}") from None
+    if reference:
+        try:
+            load_reference(reference)
+        except ConfigError as exc:
+            raise ConfigError(f"--reference: {exc}") from None
+    elif config.backend != "simulated":
+        raise ConfigError(f"{config.path}: a hardware station needs the reference facet's certificate for the "
+                          "geometry step (--reference FILE with a [reference] table)")
+
+
 def run_screen(config, *, views: int | None = None, model: str | None = None, seed: int | None = None,
                noise: bool = True) -> Step:
     """``calibrate screen`` on the station of *config*."""
@@ -97,10 +136,10 @@ def run_screen(config, *, views: int | None = None, model: str | None = None, se
 
     settings, _ = commission_settings(config.raw, config.path.parent, str(config.path))
     if views is not None or model is not None:
-        try:
-            settings = dataclasses.replace(settings, views=views or settings.views, model=model or settings.model)
-        except ConfigError as exc:
-            raise ConfigError(f"command line: {exc}") from None
+        # `views or ...` took --views 0 for "the default" and ran the station file's views without a word
+        settings = dataclasses.replace(settings, views=settings.views if views is None else views,
+                                       model=model or settings.model)
+    _enough("views", settings.views, settings.min_views, views is not None, config, "screen")
     intrinsics, std, source_cam = _handheld_intrinsics(config, settings)
     stated = (config.stated_geometry or config.geometry).screen
     log.info("screen calibration of %s: %d views with the second camera (%s)", config.name, settings.views, source_cam)
@@ -118,7 +157,7 @@ def run_screen(config, *, views: int | None = None, model: str | None = None, se
     if cal.verdict == "refused":
         return Step("screen", "refused", summary_text(cal), {"quality": cal.quality})
     source = f"sofast-station {__version__} calibrate screen on {config.name} ({config.backend}; {source_cam})"
-    path = save_screen(config.data_dir, cal, source)
+    path = save_screen(config.data_dir, cal, source, station=config.identity)
     best = cal.fit.best
     h = best.shape.height_summary()
     rel = [best.shape.pitch_scale[0] - 1.0, best.shape.pitch_scale[1] - 1.0]
@@ -146,9 +185,10 @@ def run_pose(config, *, placements: int | None = None, target: str | None = None
     _, settings = commission_settings(config.raw, config.path.parent, str(config.path))
     if placements is not None:
         settings = dataclasses.replace(settings, placements=placements)
+    _enough("placements", settings.placements, settings.min_placements, placements is not None, config, "pose")
     mirror = load_mirror_target(target or settings.target)
     stated = config.stated_geometry or config.geometry
-    screen_path = newest_record_path(config.data_dir, "screen")
+    screen_path = newest_record_path(config.data_dir, "screen", config.identity)
     if screen_path is not None:
         rec = load_screen_record(screen_path)
         shape = ScreenShape.from_dict(rec["shape"])
@@ -191,7 +231,7 @@ def run_pose(config, *, placements: int | None = None, target: str | None = None
     if cal.verdict == "refused":
         return Step("pose", "refused", summary_text(cal), {"quality": cal.quality})
     source = f"sofast-station {__version__} calibrate pose on {config.name} ({config.backend}; {mirror.name})"
-    path = save_pose(config.data_dir, cal, source)
+    path = save_pose(config.data_dir, cal, source, station=config.identity)
     std = pose_std(cal.fit.screen_covariance)
     headline = (f"screen depth U {2 * std['translation_mm'][2]:.2f} mm, rotation U "
                 f"{2 * max(std['rotation_mrad']):.2f} mrad (k=2); {path.name}")
@@ -228,7 +268,7 @@ def run_geometry(config, *, reference: str | None = None, seed: int | None = Non
     finally:
         station.close()
     source = f"sofast-station {__version__} calibrate geometry with {ref.name}"
-    path = save_geometry(config.data_dir, config, check, source)
+    path = save_geometry(config.data_dir, config, check, source, station=config.identity)
     verdict = "pass" if check["within_tolerance"] else "fail"
     f = check["focal_lengths"]
     rel = [f[a]["relative_error"] for a in ("x", "y")]
@@ -262,7 +302,7 @@ def run_radiometric(config, *, seed: int | None = None, noise: bool = True, plot
         result = calibrate_radiometric(station.display, station.camera, settings)
         source = (f"sofast-station {__version__} calibrate radiometric on {config.name} ({config.backend} backend, "
                   f"{type(station.camera).__name__}, {type(station.display).__name__})")
-        record = save_radiometric(config.data_dir, result, source, plot=plot)
+        record = save_radiometric(config.data_dir, result, source, plot=plot, station=config.identity)
     finally:
         station.close()
     headline = (f"exposure {1e3 * record.exposure_s:.2f} ms, gain {record.gain:.3f}, display latency "
@@ -274,12 +314,14 @@ def run_radiometric(config, *, seed: int | None = None, noise: bool = True, plot
 
 def commission(config_path, *, seed: int | None = None, noise: bool = True, reference: str | None = None,
                target: str | None = None, progress=None) -> tuple[list[Step], str]:
-    """The whole commissioning: radiometric, screen, pose, geometry, in order; the configuration is read
-    again after each step (its records change the geometry in force). Stops at a step that is refused or
-    fails. Returns the steps and the overall verdict (the worst step's)."""
+    """The whole commissioning: radiometric, screen, pose, geometry, in order, once every input is checked
+    (:func:`check_commission`); the configuration is read again after each step (its records change the
+    geometry in force). Stops at a step that is refused or fails. Returns the steps and the overall verdict
+    (the worst step's)."""
     from ..config import load_config
 
     say = progress or log.info
+    check_commission(load_config(config_path), reference=reference, target=target)
     steps: list[Step] = []
     runs = [("radiometric", lambda c: run_radiometric(c, seed=seed, noise=noise)),
             ("screen", lambda c: run_screen(c, seed=seed, noise=noise)),

@@ -103,6 +103,8 @@ async def _serve(config, web: WebSettings | None, opcua: OpcUaSettings | None, o
         log.info("the line's page: %s%s", info["url"], "" if web.token else " (read-only: no [web] token)")
         if exposure:
             log.warning("%s", exposure)
+        for warning in web.warnings:                 # the certificate expired, or about to
+            log.warning("%s", warning)
     publisher = None
     if opcua is not None and opcua.enabled:
         from .opcua import OpcUaPublisher
@@ -116,6 +118,8 @@ async def _serve(config, web: WebSettings | None, opcua: OpcUaSettings | None, o
             raise StationError(f"cannot start the OPC UA server at {opcua.endpoint}: {exc}; set [opcua] endpoint "
                                "in the station file") from None
         info["opcua"] = publisher.endpoint
+        for warning in opcua.warnings:
+            log.warning("%s", warning)
         tasks.append(asyncio.create_task(publisher.run()))
     path = monitor_info_path(config.data_dir)
     path.parent.mkdir(parents=True, exist_ok=True)

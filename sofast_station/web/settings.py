@@ -65,6 +65,8 @@ class WebSettings:
     key: str = ""
     allow_plain_http: bool = False
     stale_after_s: float = 60.0
+    #: What the monitor logs as it starts to serve (the certificate expired, or about to: :func:`certificate_dates`).
+    warnings: tuple = ()
 
     @property
     def tls(self) -> bool:
@@ -130,6 +132,8 @@ class OpcUaSettings:
     private_key: str = ""
     security_none: bool = True
     allow_plain_passwords: bool = False
+    #: What the monitor logs as it starts the server (the certificate expired, or about to).
+    warnings: tuple = ()
 
     @property
     def encrypted(self) -> bool:
@@ -186,8 +190,9 @@ def web_settings(config) -> WebSettings:
         raise ConfigError(f"{where} allow_plain_http = {allow_plain!r}: must be true or false")
     cert, key = _pair(config, table, ("certificate", "key"), where, "(PEM files) to serve the page over HTTPS",
                       _check_tls_pair)
+    warnings = (certificate_dates(cert, f"{where} certificate"),) if cert else ()
     settings = WebSettings(host.strip(), port, token, keep, tuple(sorted(starts)), nice, cert, key, allow_plain,
-                           float(stale))
+                           float(stale), tuple(w for w in warnings if w))
     settings.exposure(where)
     return settings
 
@@ -270,26 +275,82 @@ def opcua_settings(config) -> OpcUaSettings:
                           "(the server then offers Basic256Sha256 Sign & Encrypt and encrypts passwords; "
                           "docs/opcua.md), or set allow_plain_passwords = true to decide for clear text on a network "
                           "you trust")
+    warnings = (certificate_dates(cert, f"{where} certificate"),) if cert else ()
     return OpcUaSettings(table.get("enabled", d.enabled), endpoint, namespace, anonymous, dict(users), cert, key,
-                         security_none, allow_plain)
+                         security_none, allow_plain, tuple(w for w in warnings if w))
+
+
+def _load(path: str, pem, der, what: str, where: str):
+    """A certificate or key file read by *pem* or *der* (by its first bytes); ConfigError naming it otherwise."""
+    data = Path(path).read_bytes()
+    try:
+        return pem(data) if data.lstrip().startswith(b"-----BEGIN") else der(data)
+    except (ValueError, TypeError) as exc:
+        raise ConfigError(f"{where} {what} = {path!r} cannot be read ({exc}): give a PEM or DER file"
+                          + (", unencrypted" if what == "private_key" else "")) from None
+
+
+def _read_certificate(path: str, where: str):
+    from cryptography import x509
+
+    return _load(path, x509.load_pem_x509_certificate, x509.load_der_x509_certificate, "certificate", where)
+
+
+#: A certificate that expires within this many days is announced as the monitor starts (time to renew it).
+EXPIRY_NOTICE_DAYS = 14
+
+
+def certificate_dates(path: str, where: str, now=None) -> str | None:
+    """A warning when the certificate *path* (PEM or DER; the first of a PEM chain) is not valid now or expires
+    within :data:`EXPIRY_NOTICE_DAYS` days (*now*: tz-aware, the present by default); None when it is valid.
+
+    An expired certificate still loads (the ssl module and asyncua do not look at its dates), and every
+    browser and OPC UA client then refuses the station or asks the operator to click through: said at the
+    start, it is renewed before that, or at least understood.
+    """
+    import datetime as dt
+
+    cert = _read_certificate(path, where)
+    now = now or dt.datetime.now(dt.timezone.utc)
+    start, end = cert.not_valid_before_utc, cert.not_valid_after_utc
+    renew = "make a new certificate (docs/network.md, docs/opcua.md) and restart the station"
+    def days(delta) -> str:
+        return f"{delta.days} day{'' if delta.days == 1 else 's'}"
+    if now > end:
+        return (f"{where} {path} expired on {end:%Y-%m-%d %H:%M} UTC ({days(now - end)} ago): browsers and OPC UA "
+                f"clients refuse it or warn their users; {renew}")
+    if now < start:
+        return (f"{where} {path} is not valid before {start:%Y-%m-%d %H:%M} UTC (is this computer's clock right?): "
+                f"clients refuse it until then; check the clock, or {renew}")
+    if end - now < dt.timedelta(days=EXPIRY_NOTICE_DAYS):
+        return f"{where} {path} expires on {end:%Y-%m-%d %H:%M} UTC, in {days(end - now)}: {renew} before then"
+    return None
+
+
+#: Key sizes OPC UA's Basic256Sha256 policy allows for the application's RSA key (OPC 10000-7), bits.
+OPCUA_RSA_BITS = (2048, 4096)
 
 
 def _check_opcua_pair(certificate: str, private_key: str, where: str) -> None:
-    """The OPC UA certificate (PEM or DER) and private key (PEM or DER, unencrypted) load and belong together
-    (read with the cryptography package, which asyncua uses; imported only when they are given)."""
-    from cryptography import x509
+    """The OPC UA certificate (PEM or DER) and private key (PEM or DER, unencrypted) load, belong together and
+    are what Basic256Sha256 signs and encrypts with: an RSA key of 2048 to 4096 bits (read with the
+    cryptography package, which asyncua uses; imported only when they are given)."""
     from cryptography.hazmat.primitives import serialization
+    from cryptography.hazmat.primitives.asymmetric import rsa
 
-    def load(path, pem, der, what):
-        data = Path(path).read_bytes()
-        try:
-            return pem(data) if data.lstrip().startswith(b"-----BEGIN") else der(data)
-        except (ValueError, TypeError) as exc:
-            raise ConfigError(f"{where} {what} = {path!r} cannot be read ({exc}): give a PEM or DER file"
-                              + (", unencrypted" if what == "private_key" else "")) from None
-    cert = load(certificate, x509.load_pem_x509_certificate, x509.load_der_x509_certificate, "certificate")
-    key = load(private_key, lambda b: serialization.load_pem_private_key(b, None),
-               lambda b: serialization.load_der_private_key(b, None), "private_key")
+    cert = _read_certificate(certificate, where)
+    key = _load(private_key, lambda b: serialization.load_pem_private_key(b, None),
+                lambda b: serialization.load_der_private_key(b, None), "private_key", where)
     if cert.public_key().public_numbers() != key.public_key().public_numbers():
         raise ConfigError(f"{where} certificate = {certificate!r} and private_key = {private_key!r} do not belong "
                           "together: give the key the certificate was made for")
+    public = cert.public_key()
+    if not isinstance(public, rsa.RSAPublicKey):
+        kind = type(public).__name__.replace("PublicKey", "").lstrip("_") or "non-RSA"
+        raise ConfigError(f"{where} certificate = {certificate!r} holds an {kind} key, but the Basic256Sha256 policy "
+                          "signs and encrypts with RSA (clients could not connect): give an RSA certificate of "
+                          f"{OPCUA_RSA_BITS[0]} to {OPCUA_RSA_BITS[1]} bits (docs/opcua.md makes one)")
+    if not OPCUA_RSA_BITS[0] <= public.key_size <= OPCUA_RSA_BITS[1]:
+        raise ConfigError(f"{where} certificate = {certificate!r} holds a {public.key_size}-bit RSA key; "
+                          f"Basic256Sha256 needs {OPCUA_RSA_BITS[0]} to {OPCUA_RSA_BITS[1]} bits: make a new "
+                          "certificate (docs/opcua.md)")

@@ -11,6 +11,7 @@ import pytest
 from sofast_station.station.calibrate_cli import register
 from sofast_station.calibrate.store import list_records
 from sofast_station.config import load_config
+from sofast_station.errors import ConfigError
 from sofast_station.station.factory import open_station
 
 
@@ -55,3 +56,52 @@ def test_bad_routine_options_are_refused(small_station_toml):
     from sofast_station.errors import ConfigError
     with pytest.raises(ConfigError, match="command line: .*ramp_step"):
         run(["calibrate", "radiometric", "--config", str(small_station_toml), "--ramp-step", "0"])
+
+
+# -- arguments checked before anything is measured (issue 43) -------------------------------------------------
+
+def _nothing_may_open(monkeypatch):
+    """Fail the test if a station opens or a commissioning step starts: the refusals below come first."""
+    from sofast_station.station import commissioning, factory
+
+    def opened(*args, **kwargs):
+        raise AssertionError("a station was opened before the arguments were checked")
+    monkeypatch.setattr(factory, "open_station", opened)
+    monkeypatch.setattr(commissioning, "run_radiometric", opened)
+
+
+def test_calibrate_screen_refuses_views_it_cannot_use(small_station_toml, capsys, monkeypatch):
+    """`calibrate screen --views 0` ran the station file's views without a word (`views or default`). Zero is
+    a usage error (exit 2, naming --views); fewer than the calibration needs to keep a record (min_views 4) is
+    refused before the station opens, naming the least it takes; likewise --placements for calibrate pose."""
+    from sofast_station.cli import main
+
+    _nothing_may_open(monkeypatch)
+    with pytest.raises(SystemExit) as exit_:
+        main(["calibrate", "screen", "--config", str(small_station_toml), "--views", "0"])
+    assert exit_.value.code == 2 and "argument --views: must be at least 1, got 0" in capsys.readouterr().err
+    with pytest.raises(ConfigError, match=r"--views 2: calibrate screen needs at least 4 usable views"):
+        run(["calibrate", "screen", "--config", str(small_station_toml), "--views", "2"])
+    with pytest.raises(ConfigError, match=r"--placements 1: calibrate pose needs at least 3 usable placements"):
+        run(["calibrate", "pose", "--config", str(small_station_toml), "--placements", "1"])
+
+
+def test_calibrate_commission_checks_every_argument_before_its_first_step(small_station_toml, tmp_path, caplog,
+                                                                          monkeypatch):
+    """`calibrate commission --target missing.toml` ran the radiometric step (minutes on a real station) before
+    the pose step found the target missing. Now a missing or broken --target or --reference stops it at once,
+    in one line (exit 2), and no step runs, no record is written."""
+    from sofast_station.cli import main
+
+    _nothing_may_open(monkeypatch)
+    caplog.set_level(logging.ERROR)
+    config = str(small_station_toml)
+    assert main(["calibrate", "commission", "--config", config, "--target", str(tmp_path / "missing.toml")]) == 2
+    (line,) = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
+    assert line.startswith("--target: reference mirror file") and "missing.toml does not exist" in line
+    (tmp_path / "reference.toml").write_text("[reference]\nfocal_length_x_m = 5.4\n")
+    caplog.clear()
+    assert main(["calibrate", "commission", "--config", config, "--reference", str(tmp_path / "reference.toml")]) == 2
+    (line,) = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
+    assert line.startswith("--reference:") and "is missing focal_length_y_m" in line
+    assert not (load_config(small_station_toml).data_dir / "calibration").exists()

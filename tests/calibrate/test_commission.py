@@ -36,10 +36,12 @@ def commissioned(tmp_path_factory):
             mp.setenv("SOFAST_DATA_DIR", str(path.parent / "data"))
             screen = run_screen(load_config(path))
             pose = run_pose(load_config(path))
+            station_id = load_config(path).identity["id"]
             # the figures of a noise-free capture: what is left is the geometry's (the calibrations ran on
             # noisy frames); a noisy quarter-resolution capture scatters f by 0.004 % by itself
             errors = figure_errors(path, noise=False)
-        out[seed] = {"assembly": assembly, "path": path, "screen": screen, "pose": pose, "errors": errors}
+        out[seed] = {"assembly": assembly, "path": path, "screen": screen, "pose": pose, "errors": errors,
+                     "station_id": station_id}
         print(f"\nstation {seed}: {assembly}\n  screen {screen.verdict}: {screen.data.get('headline')}\n  pose "
               f"{pose.verdict}: {pose.data.get('headline')}")
         for k, v in errors.items():
@@ -74,6 +76,9 @@ def test_the_screen_record_finds_the_bow_and_the_pitch(commissioned):
             assert abs(p["value"] / 0.000275 - true_scale) < 3 * p["std"] / 0.000275, (seed, axis)
         assert abs(rec["pitch_vs_stated_relative"][0]) > 0.005           # found: station.toml is off
         pose = json.loads(Path(c["pose"].path).read_text())
+        # both carry the station that made them (issue 43: another station never uses them)
+        made_by = {"id": c["station_id"], "name": c["station_id"], "file": str(c["path"].resolve())}
+        assert rec["station"] == made_by and pose["station"] == made_by
         assert abs(pose["pitch_scale"][0] - true_scale) < 1e-4
         if c["assembly"]["screen_sag_mm"] >= 0.3:
             assert rec["model"] == "distorted3d"

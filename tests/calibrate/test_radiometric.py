@@ -39,13 +39,13 @@ import pytest
 
 from sofast_station.calibrate.radiometric import calibrate_radiometric, save_radiometric
 from sofast_station.calibrate.settings import calibration_settings
-from sofast_station.config import load_config
 from sofast_station.devices.renderer import FringeRenderer, identity_lut
 from sofast_station.fringes import Pattern
 from sofast_station.station import simulated as simulated_station
 from sofast_station.station.factory import open_station
 from sofast_station.station.inspection import inspect
 from tests.station.test_facets import FACETS, check_against_truth
+from tests.conftest import load_station
 
 OPTICS = {"display_gamma": 2.35, "camera_offset_dn": 7.3, "knee_dn": 243.0, "white_dn": 96.0,
           "display_latency_s": 0.04, "ambient_jitter": 0.05}
@@ -56,10 +56,10 @@ REPEATS = 3
 @pytest.fixture(scope="module")
 def setup(repo_root, tmp_path_factory):
     """The configuration, and the twin traced once (open_station reuses it: the trace is deterministic)."""
-    cfg = load_config(repo_root / "station.toml")
+    cfg = load_station(repo_root / "station.toml", tmp_path_factory.mktemp("radiometric") / "data")
     raw = dict(cfg.raw)
     raw["calibration"] = {**raw.get("calibration", {}), "routine": ROUTINE}
-    cfg = dataclasses.replace(cfg, raw=raw, data_dir=tmp_path_factory.mktemp("radiometric") / "data",
+    cfg = dataclasses.replace(cfg, raw=raw,
                               simulation={"seed": 1, "facet": FACETS["dish"][1], "optics": OPTICS})
     twin = simulated_station.build_twin(cfg, noise=True)
     with pytest.MonkeyPatch.context() as mp:

@@ -4,6 +4,7 @@ has a help text; the help is plain text."""
 from __future__ import annotations
 
 import argparse
+import itertools
 import subprocess
 import sys
 
@@ -61,6 +62,43 @@ def test_top_level_help_is_plain_text_and_lists_the_commands():
         assert markup not in out
     for name in ("inspect", "run", "calibrate", "reprocess", "batch", "report", "import-opencsp", "archive"):
         assert f"\n    {name}" in out, name
+
+
+def _listed_by_user(help_text: str) -> set[str]:
+    """The commands the help's "Commands by user" block names ("calibrate screen | pose" is both), each as its
+    words up to the first placeholder or option ("report certificate SERIAL" -> "report certificate")."""
+    block = help_text.split("Commands by user:\n")[1].split("\n\n")[0]
+    out = set()
+    for line in block.splitlines():
+        for item in line.strip().split("  ")[-1].strip().split(", "):
+            first, *more = item.split(" | ")
+            head = first.split(" ")[0]
+            for said in [first] + [f"{head} {m}" for m in more]:
+                words = [w for w in said.split(" ")]
+                kept = list(itertools.takewhile(lambda w: not (w.isupper() or w.startswith("-")), words))
+                out.add(" ".join(kept))
+    return out
+
+
+def test_help_lists_every_command_and_subcommand_by_its_user():
+    """Issue 43: --help's "Commands by user" left out calibrate screen, pose and commission, batch's neighbours
+    export surface and report flux, and the study commands. Now every command and subcommand the parser has
+    (and every report 'report' makes, and export's one kind) is in it, under its user."""
+    from sofast_station.reanalysis.cli import REPORT_WORDS
+    from sofast_station.reanalysis.quality_reports import REPORTS
+
+    listed = _listed_by_user(build_parser().format_help())
+    wanted = set()
+    for path, sub in ALL:
+        if any(isinstance(a, argparse._SubParsersAction) for a in sub._actions):
+            continue                                    # calibrate, study, archive: their subcommands are
+        kinds = [a for a in sub._actions if not a.option_strings and a.choices]
+        # a command whose first word picks what it does (export surface) is listed with that word
+        wanted |= {" ".join(path + (c,)) for c in kinds[0].choices} if kinds else {" ".join(path)}
+    wanted |= {f"report {w}" for w in REPORT_WORDS}
+    assert set(REPORTS) <= set(REPORT_WORDS)
+    assert not wanted - listed, f"not in --help: {sorted(wanted - listed)}"
+    assert not listed - wanted, f"listed but no such command: {sorted(listed - wanted)}"
 
 
 def test_building_the_parser_loads_no_numpy():

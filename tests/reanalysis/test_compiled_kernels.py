@@ -135,3 +135,79 @@ def test_a_call_the_build_has_no_entry_for_runs_on_the_jit_with_the_same_values(
     a = np.array([5.0, 1.0, 3.0, 2.0, 4.0])
     assert kernels._median_of(a, 0.0, False, -10.0, 10.0, np.empty(5)) == 3.0
     assert kernels._median_of(a, 3.0, True, -np.inf, np.inf, np.empty(5)) == 1.0
+
+
+# -- a build that is not sound, and a mode nobody meant (issue 43) --------------------------------------------
+_LOAD_FROM = """
+import json, sys
+from pathlib import Path
+from sofast_station.measure import compiled
+print(json.dumps({"loaded": compiled._load_build(Path(sys.argv[1])) is not None}))
+"""
+
+
+def _copy_of_the_build(tmp_path) -> tuple:
+    """The installed build's module and table copied into *tmp_path* (the tests damage the copy)."""
+    import shutil
+
+    if compiled.build() is None:
+        pytest.skip("no build of the kernels (test_setup_env_built_the_kernels_for_this_machine says why)")
+    name = compiled.module_name()
+    module = compiled.module_file(compiled.BUILD_DIR, name)
+    shutil.copy(module, tmp_path / module.name)
+    shutil.copy(compiled.BUILD_DIR / f"{name}.json", tmp_path / f"{name}.json")
+    return tmp_path / module.name, tmp_path / f"{name}.json"
+
+
+def _load_in_a_fresh_process(folder) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-c", _LOAD_FROM, str(folder)], cwd=ROOT, capture_output=True, text=True,
+                          timeout=120, env={**os.environ, compiled.ENV: ""})
+
+
+def test_a_build_cut_short_is_left_alone_with_what_to_do(tmp_path):
+    """A module cut to half its size killed every command with SIGBUS as it loaded, without a word (issue
+    43): now it is not loaded, the process goes on on numba's JIT, and the warning says what to do."""
+    module, _ = _copy_of_the_build(tmp_path)
+    with open(module, "r+b") as fh:
+        fh.truncate(module.stat().st_size // 2)
+    out = _load_in_a_fresh_process(tmp_path)
+    assert out.returncode == 0, f"exit {out.returncode} (-7: SIGBUS) {out.stderr[-1500:]}"
+    assert json.loads(out.stdout.splitlines()[-1]) == {"loaded": False}
+    assert "cut short" in out.stderr and "./setup-env" in out.stderr and f"{compiled.ENV}=jit" in out.stderr
+
+
+def test_a_table_naming_entries_the_module_lacks_is_left_alone_with_what_to_do(tmp_path):
+    """It ended in an AttributeError traceback (compiled._load_build); now a warning naming the entry."""
+    _, table_path = _copy_of_the_build(tmp_path)
+    table = json.loads(table_path.read_text())
+    entries = table["entries"] if "entries" in table else table
+    entries["_atan_into__99"] = entries["_atan_into__0"]
+    table_path.write_text(json.dumps(table))
+    out = _load_in_a_fresh_process(tmp_path)
+    assert out.returncode == 0, out.stderr[-1500:]
+    assert "Traceback" not in out.stderr
+    assert json.loads(out.stdout.splitlines()[-1]) == {"loaded": False}
+    assert "_atan_into__99" in out.stderr and "./setup-env" in out.stderr
+
+
+def test_the_build_as_written_is_loaded_from_its_folder(tmp_path):
+    """The same copy, undamaged, is loaded (the checks above refuse the damage, not the copy)."""
+    _copy_of_the_build(tmp_path)
+    out = _load_in_a_fresh_process(tmp_path)
+    assert json.loads(out.stdout.splitlines()[-1]) == {"loaded": True}, out.stderr[-1500:]
+
+
+def test_a_kernel_mode_nobody_meant_is_refused_in_one_line(small_station_toml):
+    """SOFAST_KERNELS=garbage was ignored (the build used as if unset); now every command that loads a station
+    refuses it in one line naming the values allowed, exit 2."""
+    out = subprocess.run([sys.executable, "-m", "sofast_station", "calibrate", "status", "--config",
+                          str(small_station_toml)], cwd=ROOT, capture_output=True, text=True, timeout=120,
+                         env={**os.environ, compiled.ENV: "garbage"})
+    assert out.returncode == 2, out.stderr[-1500:]
+    assert "Traceback" not in out.stderr
+    (line,) = [line for line in out.stderr.splitlines() if "ERROR" in line]
+    assert "SOFAST_KERNELS='garbage'" in line and "SOFAST_KERNELS=jit" in line and "SOFAST_KERNELS=auto" in line
+    for value in ("", "auto", " JIT "):
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setenv(compiled.ENV, value)
+            assert compiled.kernel_mode() == (value.strip().lower() or "auto")

@@ -37,10 +37,41 @@ def record():
 def test_the_facet_map_names_every_facet_with_its_canting_and_marks_the_missing(tmp_path):
     fig = draw_facet_map(record(), ENSEMBLE, limit_mrad=1.0, title="H-1")
     words = texts(fig)
-    for w in ("R1C1", "x +0.200 ± 0.050", "R1C2\nmissing", "R2C1  OVER", "y +0.400 ± 0.060", "largest 1.550 mrad"):
+    for w in ("R1C1\n0.224 ± 0.050 mrad\nleave it", "R1C2\nmissing", "R2C1\n1.552 ± 0.051 mrad\nOVER: ADJUST",
+              "largest 1.550 mrad", "seen from behind"):
         assert w in words, w
     path = save_facet_map(record(), ENSEMBLE, tmp_path / "map.png", limit_mrad=1.0)
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and path.stat().st_size > 20_000
+
+
+def test_the_facet_map_is_seen_from_behind_and_shows_the_sheets_turns():
+    """Issue 43: the map's arrows and signs agree with the sheet. Drawn from behind (the sheet's one
+    viewpoint), the facets at +x (R1C2, R2C2) are on the left; each screw of a facet to adjust carries the
+    sheet's turn for it, its curved arrow the way the sheet says (seen from behind), next to the screw's label
+    where the screw is."""
+    from sofast_station.report.canting import canting_instructions
+
+    fig = draw_facet_map(record(), ENSEMBLE, limit_mrad=1.0, title="H-1")
+    ax = fig.axes[0]
+    at = {t.get_text().split("\n")[0]: t.get_position() for t in ax.texts}
+    assert at["R2C2"][0] < 0 < at["R2C1"][0] and at["R1C2"][0] < 0 < at["R1C1"][0]
+    assert at["R1C1"][1] > 0 > at["R2C1"][1]
+    ins = {f["label"]: f for f in canting_instructions(record(), ENSEMBLE, 1.0)["facets"]}
+    glyph = {"clockwise": "\u21bb", "counterclockwise": "\u21ba"}
+    drawn = [t for t in ax.texts if t.get_text()[:1] in glyph.values() or t.get_text() == "leave"]
+    expected = [("leave" if s["direction"] == "leave"
+                 else f"{glyph[s['direction']]} {s['turns_text'].split(' turn')[0]}")
+                for f in ins.values() if f["action"] == "turn" for s in f["screws"]]
+    assert sorted(t.get_text() for t in drawn) == sorted(expected) and len(expected) == 6      # R2C1, R2C2
+    # each turn is drawn beside its own screw's label: R2C1's screws A, B, C, from behind (x mirrored)
+    labels = [t for t in ax.texts if t.get_text() in ("A", "B", "C")]
+    r2c1 = ENSEMBLE.facets[2]
+    for s in ins["R2C1"]["screws"]:
+        point = ENSEMBLE.adjusters.points_m[ENSEMBLE.adjusters.names.index(s["name"])]
+        where = np.array([-(r2c1.position_m[0] + point[0]), r2c1.position_m[1] + point[1]])
+        assert [t for t in labels if t.get_text() == s["name"] and np.allclose(t.get_position(), where, atol=0.02)]
+        said = min(drawn, key=lambda t: np.hypot(*(np.array(t.get_position()) - where)))
+        assert said.get_text().startswith("leave" if s["direction"] == "leave" else glyph[s["direction"]]), s
 
 
 def test_the_flux_maps_are_written_with_their_figures(tmp_path):

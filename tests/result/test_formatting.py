@@ -55,3 +55,11 @@ def test_no_module_writes_a_value_with_its_u_by_its_own_rule():
              for p in sorted((ROOT / "sofast_station").rglob("*.py")) if p.name not in ("formatting.py", "gum.py")
              for i, line in enumerate(p.read_text().splitlines(), 1) if own_rule.search(line)]
     assert not found, "values with U formatted outside sofast_station/result/formatting.py:\n" + "\n".join(found)
+
+
+def test_an_aperture_is_said_in_words_not_as_its_dict():
+    """Issue 43: the heliostat summary printed "aperture {'shape': 'circle', 'radius_m': 0.5}"."""
+    from sofast_station.result.formatting import aperture_text
+
+    assert aperture_text({"shape": "circle", "radius_m": 0.5}) == "a circle of 0.500 m radius"
+    assert aperture_text({"shape": "rectangle", "width_m": 1.2, "height_m": 0.8}) == "a 1.200 m x 0.800 m rectangle"

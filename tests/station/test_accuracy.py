@@ -15,19 +15,19 @@ import dataclasses
 import numpy as np
 import pytest
 
-from sofast_station.config import load_config
 from sofast_station.measure.analysis import analyse
 from sofast_station.station.factory import open_station
 from sofast_station.station.inspection import capture
 from sofast_station.twin.truth import ground_truth
 from tests.station.test_facets import FACETS, check_against_truth
+from tests.conftest import load_station
 
 MODELS = ("design", "parabola", "higher_order")
 
 
 @pytest.fixture(scope="module")
-def noisy_station(repo_root):
-    cfg = load_config(repo_root / "station.toml")
+def noisy_station(repo_root, tmp_path_factory):
+    cfg = load_station(repo_root / "station.toml", tmp_path_factory.mktemp("accuracy") / "data")
     cfg = dataclasses.replace(cfg, simulation={"seed": 1, "facet": FACETS["dish"][1]})
     station = open_station(cfg, seed=1, noise=True)
     yield station

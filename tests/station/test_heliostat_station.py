@@ -10,6 +10,7 @@ beyond its 0.5 mrad limit) and the other three within 0.45 mrad, so the heliosta
 from __future__ import annotations
 
 import json
+import math
 import re
 
 import pytest
@@ -29,7 +30,7 @@ def small_heliostat_station(tmp_path, extra: str = "") -> str:
                         f'facet = "{ROOT / "fixtures/facets/heliostat_2x2.toml"}"')
     text = text.replace('radiometric = "../../calibration/simulated_radiometric.json"',
                         f'radiometric = "{ROOT / "calibration/simulated_radiometric.json"}"')
-    text = text.replace('data_dir = "~/sofast-station-data"', f'data_dir = "{tmp_path / "data"}"')
+    text = text.replace('data_dir = "~/sofast-station-data/sim-heliostat-2x2"', f'data_dir = "{tmp_path / "data"}"')
     text = re.sub(r"width_px = 1600\nheight_px = 1200\nfocal_length_px = 3000.0\nprincipal_point_px = \[799.5, 599.5\]",
                   "width_px = 400\nheight_px = 300\nfocal_length_px = 750.0\nprincipal_point_px = [199.5, 149.5]", text)
     text += "\n[analysis]\nedge_window_px = 3\n" + extra
@@ -90,6 +91,41 @@ def test_the_record_carries_optics_instructions_and_pictures(record):
     assert ins["R1C2"]["action"] == "turn" and len(ins["R1C2"]["screws"]) == 3
     for kind in ("facet_map", "flux_maps"):
         assert open(record["pictures"][kind], "rb").read(4) == b"\x89PNG"
+
+
+def test_the_instructions_turns_bring_the_twins_facets_back(record):
+    """Issue 43: the twin's heliostat has known canting errors (R1C2 canted 0.8 mrad on purpose). The turns the
+    record's instructions give (whole 1/8 turns of its screws), applied to each facet turned by its *true*
+    canting, leave it within the rounding bound (tests/report/test_canting_instructions.py) plus what the
+    measurement got wrong (under 0.05 mrad per axis here, checked above); every facet it says to leave is
+    within the limit in truth, and the resolution against the limit is stated (under resolution_U: from the
+    U's, which a reprocess recomputes, so it is not compared bit for bit)."""
+    from tests.report.test_canting_instructions import rounding_bound_mrad, tilt_after
+
+    adj = load_ensemble(ROOT / "fixtures/facets/heliostat_2x2.toml").adjusters
+    ins = record["canting_instructions"]
+    assert ins["viewpoint"] == "behind" and ins["screw_labels"] == ["A", "B", "C"] and ins["turn_step"] == 0.125
+    res = ins["resolution_U"]
+    assert res["limit_mrad"] == 0.5 and res["ratio"] == pytest.approx(0.5 / res["U_mrad"])
+    assert (res["warning"] is None) == (res["ratio"] >= 3.0)
+    truth = {f["label"]: f["truth"]["canting_mrad"] for f in record["facets"]}
+    measured = {f["label"]: f["canting_mrad"] for f in record["facets"]}
+    turned = [f for f in ins["facets"] if f["action"] == "turn"]
+    assert [f["label"] for f in turned] == ["R1C2"]
+    for f in ins["facets"]:
+        t = truth[f["label"]]
+        if f["action"] == "leave":
+            assert math.hypot(t["x"], t["y"]) <= 0.5, f["label"]
+            continue
+        moves = [s["steps"] * ins["turn_step"] * ins["thread_pitch_mm"] for s in f["screws"]]
+        assert [s["direction"] for s in f["screws"]] == [
+            "leave" if m == 0 else "clockwise" if m > 0 else "counterclockwise" for m in moves]
+        left = math.hypot(*tilt_after(adj, t["x"], t["y"], moves))
+        wrong = math.hypot(measured[f["label"]]["x"] - t["x"], measured[f["label"]]["y"] - t["y"])
+        assert left <= rounding_bound_mrad(adj) + wrong + 0.01, (f["label"], left, wrong)
+        assert math.hypot(t["x"], t["y"]) > 0.5 and left < 0.5
+        print(f"\n{f['label']}: true canting {math.hypot(t['x'], t['y']):.3f} mrad, after the turns "
+              f"{left:.3f} mrad (the sheet says {f['after_mrad']:.3f}; measured off truth by {wrong:.3f})")
 
 
 LIMITS = Limits(max_canting_mrad=0.5)
@@ -187,7 +223,7 @@ def test_the_certificate_and_the_page_show_the_heliostat_as_a_map_of_its_facets(
     text = "\n".join([t.get_text() for t in fig.texts] + [t.get_text() for ax in fig.axes for t in ax.texts]
                      + [c.get_text().get_text() for ax in fig.axes for tb in ax.tables
                         for c in tb.get_celld().values()])
-    for words in ("Heliostat inspection certificate", "SIM-0002", "R1C2  OVER", "canting RMS", "FAIL",
+    for words in ("Heliostat inspection certificate", "SIM-0002", "OVER: ADJUST", "canting RMS", "FAIL",
                   "Data dump", "fail"):
         assert words in text, words
     snap = LineData(cfg, web_settings(cfg)).snapshot()

@@ -19,10 +19,10 @@ import sys
 import pytest
 
 from sofast_station.archive import Journal, read_dump, read_workbook
-from sofast_station.config import load_config
 from sofast_station.result.record import FIGURE_KEYS
 from sofast_station.station.service import Service
 from tests.station.test_facets import FACETS, check_against_truth
+from tests.conftest import load_station
 
 FAULTS = {"SIM-0004": "dark", "SIM-0008": "camera-timeout", "SIM-0012": "misplaced"}
 #: The analysis worker hangs on this facet: the facet is measured all the same, by its rerun on the standby.
@@ -32,7 +32,7 @@ HUNG = "SIM-0016"
 @pytest.fixture(scope="module")
 def twenty(repo_root, tmp_path_factory):
     data = tmp_path_factory.mktemp("run")
-    cfg = load_config(repo_root / "station.toml")
+    cfg = load_station(repo_root / "station.toml", data)
     # Time is controlled, not raced: the deadline is far beyond a facet's time on a loaded machine (the
     # worker is warmed up before the first facet), and the hung analysis never ends, so it is run again on
     # the standby (after 3 times the usual analysis time) and its first worker killed. On a machine made

@@ -183,8 +183,8 @@ def test_sides_along_the_pixel_grid_warn_without_changing_the_verdict():
     fig = changed(outline_staircase_sides=[2, 4])
     out = judge(fig, DISH, Limits(), Quality())
     assert out["verdict"] == "pass" and out["reasons"] == []
-    assert len(out["warnings"]) == 1 and "sides 2, 4 of the facet's outline (the design's numbering) lie along " \
-        "the pixel grid" in out["warnings"][0] and "turn the camera" in out["warnings"][0]
+    assert len(out["warnings"]) == 1 and "edges 2, 4 of the facet (numbered as in its design file) line up " \
+        "exactly with the camera's pixel grid" in out["warnings"][0] and "turn the camera" in out["warnings"][0]
     assert judge(changed(outline_staircase_sides=[]), DISH, Limits(), Quality())["warnings"] == []
 
 
@@ -192,6 +192,6 @@ def test_a_dark_declared_rim_that_shows_the_screen_warns_without_changing_the_ve
     out = judge(changed(outline_lit_rim_sides=[3]), DISH, Limits(), Quality())
     assert out["verdict"] == "pass" and out["reasons"] == []
     assert len(out["warnings"]) == 1
-    assert "declares dark (edge_rim_dark) shows the screen on side 3 of the facet's outline" in out["warnings"][0]
+    assert "says is dark (edge_rim_dark), shows the screen on edge 3 of the facet" in out["warnings"][0]
     assert "set edge_rim_dark = false" in out["warnings"][0]
     assert judge(changed(outline_lit_rim_sides=[]), DISH, Limits(), Quality())["warnings"] == []

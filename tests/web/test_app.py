@@ -100,8 +100,9 @@ def test_serials_are_rendered_as_text():
 TOKEN = {"x-station-token": "a-long-token"}
 
 
-def _make_tls_pair(folder, host="127.0.0.1"):
-    """A throwaway self-signed certificate and key for *host* (PEM files in *folder*; nothing committed)."""
+def _make_tls_pair(folder, host="127.0.0.1", expired: bool = False):
+    """A throwaway self-signed certificate and key for *host* (PEM files in *folder*; nothing committed); with
+    *expired*, one that was valid for a year until yesterday."""
     import datetime
     import ipaddress
 
@@ -114,8 +115,9 @@ def _make_tls_pair(folder, host="127.0.0.1"):
     name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, host)])
     now = datetime.datetime.now(datetime.timezone.utc)
     cert = (x509.CertificateBuilder().subject_name(name).issuer_name(name).public_key(key.public_key())
-            .serial_number(x509.random_serial_number()).not_valid_before(now - datetime.timedelta(minutes=5))
-            .not_valid_after(now + datetime.timedelta(days=2))
+            .serial_number(x509.random_serial_number())
+            .not_valid_before(now - datetime.timedelta(days=366 if expired else 0, minutes=5))
+            .not_valid_after(now + datetime.timedelta(days=-1 if expired else 30))
             .add_extension(x509.SubjectAlternativeName([x509.IPAddress(ipaddress.ip_address(host))]), critical=False)
             .sign(key, hashes.SHA256()))
     cert_path, key_path = folder / "page-cert.pem", folder / "page-key.pem"
@@ -253,6 +255,45 @@ def test_the_page_is_served_over_https_with_its_certificate(small_station_toml, 
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.communicate()
+
+
+def test_an_expired_certificate_is_served_with_a_warning(small_station_toml, tmp_path):
+    """Issue 43: a certificate that expired yesterday was served without a word (the ssl module loads it; the
+    operator's browser then refuses the page). `serve` still serves it, and says at the start that it expired,
+    when and what to do; a certificate valid for 30 more days is not warned about, one of 10 days is."""
+    import datetime
+    import os
+    import subprocess
+    import sys
+
+    from sofast_station.web.settings import certificate_dates
+    from tests.conftest import ROOT
+
+    cert, key = _make_tls_pair(tmp_path, expired=True)
+    (warning,) = web_settings(_with_web(load_config(small_station_toml), certificate=str(cert), key=str(key))).warnings
+    assert "expired on" in warning and "1 day ago" in warning and "make a new certificate" in warning
+    (tmp_path / "good").mkdir()
+    good, _ = _make_tls_pair(tmp_path / "good")
+    now = datetime.datetime.now(datetime.timezone.utc)
+    assert certificate_dates(str(good), "[web]", now) is None
+    assert "in 10 days" in certificate_dates(str(good), "[web]", now + datetime.timedelta(days=19))
+    small_station_toml.write_text(small_station_toml.read_text()
+                                  + f'\n[web]\nport = 0\nnice = 0\ncertificate = "{cert}"\nkey = "{key}"\n')
+    proc = subprocess.Popen([sys.executable, "-m", "sofast_station", "serve", "--config", str(small_station_toml)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    try:
+        line = proc.stdout.readline()                 # printed once the page is served, after the warnings
+        assert line.startswith("the line's page: https://127.0.0.1:"), (line, proc.poll())
+    finally:
+        proc.terminate()
+        try:
+            _, err = proc.communicate(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            _, err = proc.communicate()
+    (logged,) = [e for e in err.splitlines() if "expired on" in e]
+    assert "WARNING" in logged and str(cert) in logged
 
 
 # --- issue 29: what the page shows -------------------------------------------------------------------------

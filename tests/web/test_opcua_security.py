@@ -69,6 +69,33 @@ def test_passwords_without_encryption_are_a_decision(tmp_path):
         _settings(tmp_path, security_none=False)
 
 
+def test_a_certificate_basic256sha256_cannot_use_is_refused_at_load(tmp_path):
+    """Issue 43: an EC certificate (the page's kind) was accepted for OPC UA, whose Basic256Sha256 policy signs
+    and encrypts with RSA: no client could connect. Refused at load, naming the key and what to give."""
+    import datetime
+
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes, serialization
+    from cryptography.hazmat.primitives.asymmetric import ec
+    from cryptography.x509.oid import NameOID
+
+    key = ec.generate_private_key(ec.SECP256R1())
+    name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "station")])
+    now = datetime.datetime.now(datetime.timezone.utc)
+    cert = (x509.CertificateBuilder().subject_name(name).issuer_name(name).public_key(key.public_key())
+            .serial_number(x509.random_serial_number()).not_valid_before(now)
+            .not_valid_after(now + datetime.timedelta(days=30)).sign(key, hashes.SHA256()))
+    (tmp_path / "ec.der").write_bytes(cert.public_bytes(serialization.Encoding.DER))
+    (tmp_path / "ec-key.pem").write_bytes(key.private_bytes(serialization.Encoding.PEM,
+                                                            serialization.PrivateFormat.PKCS8,
+                                                            serialization.NoEncryption()))
+    with pytest.raises(ConfigError, match=r"holds an EC key, but the Basic256Sha256 policy signs and encrypts with "
+                                          r"RSA.*RSA certificate of 2048 to 4096 bits"):
+        _settings(tmp_path, enabled=True, certificate="ec.der", private_key="ec-key.pem")
+    rsa_cert, rsa_key = _app_certificate(tmp_path, "server", "urn:sofast-station:server", server=True)
+    assert _settings(tmp_path, enabled=True, certificate=rsa_cert.name, private_key=rsa_key.name).encrypted
+
+
 class _Data:
     """What the publisher needs of LineData to start (it publishes nothing in this test): the station's name
     and recipes (the analog items' EURange comes from the default recipe's limits)."""
