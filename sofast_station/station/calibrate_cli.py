@@ -45,6 +45,37 @@ def _squares(text: str) -> tuple[int, int]:
     return a, b
 
 
+def _line_stopped(fn):
+    """Run the calibration command *fn* only while no line runs on the station's data folder, and keep the line
+    from starting until it is done (the data folder's lock, as ``run`` takes it): a record written while the line
+    runs would be named by the page while the line still measured with the one it had loaded."""
+    import functools
+
+    @functools.wraps(fn)
+    def guarded(args) -> int:
+        from ..files import station_data_dir
+        from .service import DataDirLock, StationLocked
+
+        data_dir = station_data_dir(args.config)
+        if data_dir is None:
+            return fn(args)                     # the station file cannot be read: load_config says why
+        try:
+            lock = DataDirLock(data_dir, what="calibration")
+        except StationLocked as exc:
+            if exc.holder_what in (None, "station"):
+                raise StationLocked(
+                    f"the line is running on {data_dir} (process {exc.holder or '?'}): a calibration now would change "
+                    "the records it measures with while it goes on with the old ones. Stop the line (Ctrl-C in its "
+                    "window, or stop its service), calibrate, then start it again: it takes the newest records at its "
+                    "start", exc.holder, exc.holder_what) from None
+            raise
+        try:
+            return fn(args)
+        finally:
+            lock.release()
+    return guarded
+
+
 def _emit(args, data: dict, text: str) -> None:
     if getattr(args, "json", False):
         json.dump(json_ready(data), sys.stdout, indent=1, allow_nan=False)
@@ -447,7 +478,7 @@ def register(subparsers, default_config_path: str | None = None) -> argparse.Arg
     rad.add_argument("--gain-max", type=float, default=None, metavar="G",
                      help="highest camera gain the gain search may use (default: the station file's gain_max)")
     rad.add_argument("--no-plot", action="store_true", help="do not write the PNG plot of the response")
-    rad.set_defaults(func=cmd_radiometric)
+    rad.set_defaults(func=_line_stopped(cmd_radiometric))
 
     cam = add_command(
         sub, "camera", help="camera intrinsics and distortion from chessboard or ChArUco images",
@@ -478,7 +509,7 @@ def register(subparsers, default_config_path: str | None = None) -> argparse.Arg
     cam.add_argument("--handheld", action="store_true",
                      help="the images are of the second camera of 'calibrate screen': its record goes to "
                           "data_dir/calibration/handheld/ and is never taken for the station's camera")
-    cam.set_defaults(func=cmd_camera)
+    cam.set_defaults(func=_line_stopped(cmd_camera))
 
     geo = add_command(
         sub, "geometry", help="measure a reference facet of known shape and report the geometry error",
@@ -492,7 +523,7 @@ def register(subparsers, default_config_path: str | None = None) -> argparse.Arg
     geo.add_argument("--reference", default=None, metavar="FILE",
                      help="the reference facet's certificate ([reference] table: certified focal lengths, "
                           "placement and their uncertainties); the simulated station's twin truth by default")
-    geo.set_defaults(func=cmd_geometry)
+    geo.set_defaults(func=_line_stopped(cmd_geometry))
 
     scr = add_command(
         sub, "screen", help="the screen's shape and pitch, from views of a second camera (commissioning)",
@@ -512,7 +543,7 @@ def register(subparsers, default_config_path: str | None = None) -> argparse.Arg
     scr.add_argument("--model", choices=("auto", "flat", "distorted2d", "distorted3d"), default=None,
                      help="the shape model (default: [calibration.screen] model, else auto: the simplest the "
                           "residuals allow)")
-    scr.set_defaults(func=cmd_screen)
+    scr.set_defaults(func=_line_stopped(cmd_screen))
 
     pose = add_command(
         sub, "pose", help="the camera's pose against the screen, and the fixture's, from a reference mirror",
@@ -528,7 +559,7 @@ def register(subparsers, default_config_path: str | None = None) -> argparse.Arg
                       help="the reference mirror's certificate ([mirror] table; default: [calibration.pose] target)")
     pose.add_argument("--placements", type=positive_int, default=None, metavar="N",
                       help="placements to take (default: [calibration.pose] placements, else 4)")
-    pose.set_defaults(func=cmd_pose)
+    pose.set_defaults(func=_line_stopped(cmd_pose))
 
     com = add_command(
         sub, "commission", help="the whole commissioning: radiometric, screen, pose and geometry, one summary",
@@ -543,7 +574,7 @@ def register(subparsers, default_config_path: str | None = None) -> argparse.Arg
                      help="the reference facet's certificate for the geometry check (the twin's truth by default "
                           "on the simulated station)")
     com.add_argument("--target", default=None, metavar="FILE", help="the reference mirror's certificate")
-    com.set_defaults(func=cmd_commission)
+    com.set_defaults(func=_line_stopped(cmd_commission))
 
     st = add_command(
         sub, "status", help="the calibration in force, its age, and the records kept",
@@ -579,7 +610,7 @@ def register(subparsers, default_config_path: str | None = None) -> argparse.Arg
                            "handheld, a camera record .json or OpenCSP's Camera .h5")
     photo_options(cpos)
     cpos.add_argument("--min-markers", type=int, default=3, metavar="N", help="fewest markers of the table to be seen")
-    cpos.set_defaults(func=cmd_camera_position)
+    cpos.set_defaults(func=_line_stopped(cmd_camera_position))
 
     dots = add_command(
         sub, "dots", help="a dot target's 3-D dot locations from photographs with surveyed ArUco markers",
@@ -609,7 +640,7 @@ def register(subparsers, default_config_path: str | None = None) -> argparse.Arg
                       help="also write OpenCSP's DotLocationsFixedPattern HDF5 file")
     dots.add_argument("--compare", default=None, metavar="FILE.h5",
                       help="compare, dot by dot, with an OpenCSP DotLocationsFixedPattern file")
-    dots.set_defaults(func=cmd_dots)
+    dots.set_defaults(func=_line_stopped(cmd_dots))
 
     scd = add_command(
         sub, "screen-data", help="check OpenCSP's screen distortion data against its fiducial markers",

@@ -117,7 +117,12 @@ def open_trigger_from_config(config: StationConfig, simulated_facets: list[Facet
 
 
 class StationLocked(StationError):
-    """Another station runs on this data folder."""
+    """Another station (or a calibration, or an archiver) runs on this data folder: ``holder`` its process id,
+    ``holder_what`` what it is ("station", "calibration"), when its lock file says."""
+
+    def __init__(self, message: str, holder: int | None = None, holder_what: str | None = None):
+        super().__init__(message)
+        self.holder, self.holder_what = holder, holder_what
 
 
 class DataDirLock:
@@ -148,17 +153,17 @@ class DataDirLock:
                     os.close(self._fd)
                     raise StationError(f"cannot lock {self.path}: {exc}") from None
                 if time.monotonic() >= deadline:
-                    holder = self._holder()
+                    holder, holder_what = self._holder(), self._holder_what()
                     os.close(self._fd)
                     raise StationLocked(
-                        f"another {what} (process {holder or '?'}) is running on the data folder {data_dir}: "
-                        f"stop it first, or give this one its own data_dir (station.toml [station] data_dir, or "
-                        f"SOFAST_DATA_DIR)") from None
+                        f"another {holder_what or what} (process {holder or '?'}) is running on the data folder "
+                        f"{data_dir}: stop it first, or give this one its own data_dir (station.toml [station] "
+                        f"data_dir, or SOFAST_DATA_DIR)", holder, holder_what) from None
                 time.sleep(0.1)
         previous = self._holder()
         try:
             os.ftruncate(self._fd, 0)
-            os.pwrite(self._fd, f"{os.getpid()}\n".encode(), 0)
+            os.pwrite(self._fd, f"{os.getpid()} {what}\n".encode(), 0)
         except OSError as exc:
             # A full disk (or a read-only one) refuses even the PID's few bytes: say so, not with a traceback.
             os.close(self._fd)                       # and the flock with it: nothing is held
@@ -173,12 +178,21 @@ class DataDirLock:
                         what, self.path, previous)
         self.recovered_from = previous if previous and previous != os.getpid() else None
 
-    def _holder(self) -> int | None:
+    def _read(self) -> list[str]:
         try:
-            text = os.pread(self._fd, 32, 0).decode(errors="replace").strip()
-            return int(text) if text.isdigit() else None
+            return os.pread(self._fd, 64, 0).decode(errors="replace").split()
         except OSError:
-            return None
+            return []
+
+    def _holder(self) -> int | None:
+        """The process id the lock file names (its first word), or None."""
+        words = self._read()
+        return int(words[0]) if words and words[0].isdigit() else None
+
+    def _holder_what(self) -> str | None:
+        """What holds the lock ("station", "calibration"...; its second word), or None (an older file)."""
+        words = self._read()
+        return words[1] if len(words) > 1 and words[1].isalpha() else None
 
     def release(self) -> None:
         if self._fd is not None:

@@ -377,3 +377,40 @@ def test_the_page_has_an_icon(small_station_toml):
     for path in ("/favicon.ico", "/favicon.svg"):
         status, headers, body = _call(app, "GET", path)
         assert status == 200 and headers["content-type"].startswith("image/svg+xml") and b"<svg" in body
+
+
+def test_the_page_names_the_records_the_running_line_uses_and_a_newer_one_as_waiting(small_station_toml):
+    """Issue 43, item 4: while the line runs, the page shows the records it loaded (its live status), not the
+    newest on disk; a radiometric record written since is named as waiting for the next start."""
+    import datetime
+    import os
+    import shutil
+
+    from sofast_station.calibrate.store import record_dir
+    from sofast_station.live.status import StatusFile
+    from sofast_station.web.data import LineData
+    from sofast_station.web.render import station_html
+    from tests.conftest import ROOT
+
+    config = load_config(small_station_toml)
+    made = (datetime.datetime.now().astimezone() - datetime.timedelta(hours=2)).isoformat(timespec="seconds")
+    status = StatusFile(config.data_dir)
+    status.update(state="idle", pid=os.getpid(), in_force={"radiometric": "radiometric-20261206T040000Z-001",
+                                                            "radiometric_created": made, "origin": "data_dir",
+                                                            "screen": "screen-20261205T120000Z-001"})
+    folder = record_dir(config.data_dir, "radiometric")
+    folder.mkdir(parents=True)
+    newer = json.loads((ROOT / "calibration/simulated_radiometric.json").read_text())
+    newer["record_id"] = "radiometric-20261206T070000Z-001"
+    (folder / "radiometric-20261206T070000Z-001.json").write_text(json.dumps(newer))
+    try:
+        snap = LineData(config, WebSettings(shift_starts=(shift_started_hours_ago(),))).snapshot()
+    finally:
+        status.close()
+        shutil.rmtree(folder)
+    cal = snap["calibration"]
+    assert cal["record"] == "radiometric-20261206T040000Z-001" and cal["newer"] == "radiometric-20261206T070000Z-001"
+    assert cal["others"] == {"screen": "screen-20261205T120000Z-001"} and 1.9 < cal["age_h"] < 2.1
+    html = station_html(snap)
+    assert "radiometric record radiometric-20261206T040000Z-001" in html and "screen record screen-2026" in html
+    assert "a newer radiometric record radiometric-20261206T070000Z-001 waits" in html
