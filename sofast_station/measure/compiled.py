@@ -259,8 +259,10 @@ def _jit(name: str):
         if "jit" not in _state:
             import numba
 
-            log.info("a kernel was called with argument types the ahead-of-time build has no entry for: "
-                     "numba loads (or compiles) the kernels")
+            # a warning, not a note: it costs this process about a second (numba's start), or 10-20 s to compile
+            log.warning("kernel %s was called with argument types the ahead-of-time build has no entry for: numba "
+                        "loads (or compiles) the kernels, about a second, in this process; if this recurs, add "
+                        "the types to measure/kernel_signatures.py and run ./setup-env", name)
             namespace = dict(sys.modules[_registry[0].py_func.__module__].__dict__)
             dispatchers = {}
             for k in _registry:

@@ -70,6 +70,29 @@ def test_a_reprocess_on_the_build_loads_no_numba_and_gives_the_jits_figures_bit_
         assert built["focal_length_x_m"] == jit["focal_length_x_m"] and np.isfinite(built["focal_length_x_m"])
 
 
+_NUMBA_FREE = """
+import json, sys
+from sofast_station.cli import main
+rc = main(sys.argv[1:])
+print(json.dumps({"rc": rc, "numba": "numba" in sys.modules}))
+"""
+
+
+@pytest.mark.parametrize("command", ["inspect", "import-opencsp"])
+def test_inspect_and_import_opencsp_on_the_build_load_no_numba(command, small_station_toml, tmp_path):
+    """Issue 46, item 8: not only reprocess; the README's first command and the OpenCSP route too."""
+    if compiled.build() is None:
+        pytest.skip("no build of the kernels (test_setup_env_built_the_kernels_for_this_machine says why)")
+    if command == "inspect":
+        argv = ["inspect", "--config", str(small_station_toml), "--noise-free", "--json"]
+    else:
+        argv = ["import-opencsp", "--test-data", str(ROOT / "fixtures/opencsp/test_data"), "--json"]
+    out = subprocess.run([sys.executable, "-c", _NUMBA_FREE, *argv], cwd=tmp_path, capture_output=True, text=True,
+                         timeout=600, env={**os.environ, compiled.ENV: "", "SOFAST_DATA_DIR": str(tmp_path / "d")})
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert json.loads(out.stdout.strip().splitlines()[-1]) == {"rc": 0, "numba": False}, out.stderr[-2000:]
+
+
 def _array_for(word: str) -> np.ndarray:
     """An array of the type a kernel_signatures word names (the build's key must be the runtime's)."""
     dtype, shape = word.split(":")
