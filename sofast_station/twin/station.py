@@ -82,25 +82,17 @@ class TwinStation:
 
     Parameters
     ----------
-    geometry : StationGeometry
-        Camera intrinsics, screen, and the true camera/screen/fixture poses.
-    design : FacetDesign
-        The facet design (outline, centroid, measure point).
-    facet : TrueFacet
-        The true shape and placement.
+    geometry, design, facet, edge_band_px, screen_shape
+        The station, the facet's design, the true facet and how its edge is traced: as
+        :class:`~sofast_station.twin.trace.FacetTrace`'s. With *screen_shape* (the panel as it really is,
+        :mod:`sofast_station.twin.assembly`), *geometry* holds the stated screen (the units the fringes encode
+        positions in) and the true poses.
     optics : TwinOptics
         Display, reflection, ambient, camera response, noise, vignetting, and the edge model
         (``edge_sampling``, ``edge_grid``, ``blur_px``, ``defocus_px``, ``bevel_*``; see
         :mod:`sofast_station.twin.edges`).
-    edge_band_px : float
-        Half-width of the band around the outline's image whose pixels ``edge_sampling = "grid"``
-        supersamples, pixels (at least 1).
     trace_only : bool
         Only trace (no renderer, no sensor): it cannot capture.
-    screen_shape : TrueScreen, optional
-        The panel as it really is (bowed, twisted, another pitch: :mod:`sofast_station.twin.assembly`);
-        a flat screen of the stated pitch by default. *geometry* then holds the stated screen (the units
-        the fringes encode positions in) and the true poses.
 
     Attributes
     ----------
