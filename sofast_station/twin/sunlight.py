@@ -94,7 +94,7 @@ class Sunlight:
         ``("circle", radius_m)`` or ``("rectangle", width_m, height_m)``, metres; None: a circle of radius
         ``2 L 4.65 mrad``.
     samples : int
-        Quasi-random samples of the facet and the sun's radial distribution (a power of two keeps the Sobol
+        Quasi-random samples of the facet, each with one azimuth of the sun's rays (a power of two keeps the Sobol
         sequence balanced).
     seed : int
         Seed of the Sobol sequence's scrambling.
