@@ -226,7 +226,6 @@ class TwinHeliostat(TwinStation):
         self.design = ensemble.layout_design()
         self.facet = first.facet
         self.surface = first.surface
-        self._edge_band_px = edge_band_px
         coverage, seen, owner, arrays = merge_traces(self.facet_twins, geometry.camera.shape)
         self.owner = owner
         self.adopt_trace(coverage, seen, arrays)
