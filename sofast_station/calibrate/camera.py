@@ -391,6 +391,23 @@ def grid_deviation(corners: np.ndarray, grid: tuple[int, int]) -> tuple[float, f
     return bend, error
 
 
+def _trim_outside(grid_pts: np.ndarray, width: int, height: int) -> np.ndarray:
+    """The grid (rows, cols, 2) without the outer rows and columns that hold corners outside the image
+    (the detector extrapolates a board cut by the image's edge by a row): one at a time, the side with
+    the most such corners first."""
+    g = grid_pts
+    while g.shape[0] and g.shape[1]:
+        out = ~np.all((g >= 0) & (g <= (width - 1, height - 1)), axis=2)
+        if not out.any():
+            break
+        sides = {"top": out[0].sum(), "bottom": out[-1].sum(), "left": out[:, 0].sum(), "right": out[:, -1].sum()}
+        worst = max(sides, key=sides.get)
+        if sides[worst] == 0:
+            return g[:0]                       # outside corners only inside the grid: not a board's edge
+        g = {"top": g[1:], "bottom": g[:-1], "left": g[:, 1:], "right": g[:, :-1]}[worst]
+    return g
+
+
 def find_chessboard(image: np.ndarray, inner: tuple[int, int],
                     notes: list[str] | None = None) -> tuple[np.ndarray, tuple[int, int]] | None:
     """The inner corners of a chessboard in a grey image, or of the largest part of it in view.
@@ -437,9 +454,14 @@ def find_chessboard(image: np.ndarray, inner: tuple[int, int],
         pts = np.asarray(corners, dtype=np.float32).reshape(-1, 2)
         h, w = image.shape[:2]
         note = notes.append if notes is not None else (lambda text: None)
-        if len(pts) != rows * cols or not np.all((pts >= 0) & (pts <= (w - 1, h - 1))):
+        if len(pts) != rows * cols:
+            continue
+        kept = _trim_outside(pts.reshape(rows, cols, 2), w, h)
+        if min(kept.shape[:2]) < m:
             note(f"a {cols} x {rows} grid reaching outside the image")
             continue
+        rows, cols = kept.shape[:2]
+        pts = np.ascontiguousarray(kept.reshape(-1, 2))
         if not cells_alternate(image, pts, (cols, rows)):
             note(f"a {cols} x {rows} grid whose cells are not alternately dark and light")
             continue
