@@ -78,11 +78,20 @@ MIN_PART = 4
 #: board lit unevenly, whose weak corners the detector's global tests reject (docs/calibration.md).
 CLAHE_CLIP = 3.0
 CLAHE_TILES = (8, 8)
+#: The image is searched at full size, then halved again and again (down to MIN_SEARCH_SIDE pixels along
+#: its shorter side) until the whole board is found: the detector, asked for a part of a board whose
+#: squares are large (a board seen close, reaching past the image's edge), grows grids that skip every
+#: other row or column; on the image made smaller, where the squares are about 10 to 20 px, it grows the
+#: right one.
+MIN_SEARCH_SIDE = 150
 #: A grid found is a chessboard's only within these (:func:`grid_deviation`): the bend of a run of four
 #: corners over its length, and its cross-ratio's relative error (docs/calibration.md gives what true and
 #: wrong grids show).
 MAX_BEND = 0.1
 MAX_CROSS_RATIO_ERROR = 0.1
+#: ... and its corners within this many local spacings of where their neighbours put them
+#: (:func:`grid_outliers`; the outer rows holding one are dropped).
+MAX_OFF_SPACING = 0.25
 
 
 @dataclass(frozen=True)
@@ -391,21 +400,51 @@ def grid_deviation(corners: np.ndarray, grid: tuple[int, int]) -> tuple[float, f
     return bend, error
 
 
-def _trim_outside(grid_pts: np.ndarray, width: int, height: int) -> np.ndarray:
-    """The grid (rows, cols, 2) without the outer rows and columns that hold corners outside the image
-    (the detector extrapolates a board cut by the image's edge by a row): one at a time, the side with
-    the most such corners first."""
-    g = grid_pts
-    while g.shape[0] and g.shape[1]:
-        out = ~np.all((g >= 0) & (g <= (width - 1, height - 1)), axis=2)
-        if not out.any():
-            break
-        sides = {"top": out[0].sum(), "bottom": out[-1].sum(), "left": out[:, 0].sum(), "right": out[:, -1].sum()}
+def _trim(grid_pts: np.ndarray, bad: np.ndarray) -> np.ndarray:
+    """The grid (rows, cols, 2) without the outer rows and columns that hold *bad* corners (rows, cols),
+    one at a time, the side with the most first; empty when a bad corner is not on the grid's edge."""
+    g, b = grid_pts, bad
+    while g.shape[0] and g.shape[1] and b.any():
+        sides = {"top": b[0].sum(), "bottom": b[-1].sum(), "left": b[:, 0].sum(), "right": b[:, -1].sum()}
         worst = max(sides, key=sides.get)
         if sides[worst] == 0:
-            return g[:0]                       # outside corners only inside the grid: not a board's edge
-        g = {"top": g[1:], "bottom": g[:-1], "left": g[:, 1:], "right": g[:, :-1]}[worst]
+            return g[:0]
+        cut = {"top": np.s_[1:, :], "bottom": np.s_[:-1, :], "left": np.s_[:, 1:], "right": np.s_[:, :-1]}[worst]
+        g, b = g[cut], b[cut]
     return g
+
+
+def grid_outliers(corners: np.ndarray, grid: tuple[int, int], reach: int = 2) -> np.ndarray:
+    """How far each corner lies from where its neighbours put it, in local corner spacings (rows, cols).
+
+    For each corner, a homography from grid to image fitted to the corners within *reach* places of it
+    (itself left out, at least a 3 x 3 spread) predicts it; the distance to the prediction is divided by
+    the predicted distance to the next corner. A homography holds over a few squares through any lens a
+    calibration meets: on true grids the largest value is under 0.17 (docs/calibration.md); a corner
+    refined onto the board's border, or given another's place, is half a spacing or more off. NaN where
+    too few neighbours.
+    """
+    import cv2
+
+    cols, rows = grid
+    g = np.asarray(corners, dtype=np.float64).reshape(rows, cols, 2)
+    jj, ii = np.mgrid[0:rows, 0:cols]
+    out = np.full((rows, cols), np.nan)
+    for r in range(rows):
+        for c in range(cols):
+            near = (np.abs(jj - r) <= reach) & (np.abs(ii - c) <= reach)
+            near[r, c] = False
+            src = np.column_stack([ii[near], jj[near]]).astype(np.float64)
+            if len(src) < 6 or np.ptp(src[:, 0]) < 2 or np.ptp(src[:, 1]) < 2:
+                continue
+            h, _ = cv2.findHomography(src, g[near], 0)
+            if h is None:
+                continue
+            p = h @ np.array([[c, c + 1, c], [r, r, r + 1], [1.0, 1.0, 1.0]])
+            p = (p[:2] / p[2]).T
+            spacing = min(np.linalg.norm(p[1] - p[0]), np.linalg.norm(p[2] - p[0]))
+            out[r, c] = np.linalg.norm(p[0] - g[r, c]) / spacing
+    return out
 
 
 def find_chessboard(image: np.ndarray, inner: tuple[int, int],
@@ -414,16 +453,18 @@ def find_chessboard(image: np.ndarray, inner: tuple[int, int],
 
     OpenCV's sector-based detector (``findChessboardCornersSBWithMeta``) with ``CALIB_CB_EXHAUSTIVE`` and
     ``CALIB_CB_LARGER``, asked for a grid of at least m x m corners (:func:`smallest_part`) so that it
-    returns the whole board or the largest part of it it can grow, twice: on the image locally equalised
-    (CLAHE: a board lit unevenly, whose weaker corners fail the detector's global tests, see
-    docs/calibration.md), then, unless that found the whole board, on the image as it is with
-    ``CALIB_CB_NORMALIZE_IMAGE`` (global equalisation: squares larger than CLAHE's tiles). The larger grid
-    wins.
+    returns the whole board or the largest part of it it can grow, on the image locally equalised (CLAHE:
+    a board lit unevenly, whose weaker corners fail the detector's global tests, see docs/calibration.md)
+    and on the image as it is with ``CALIB_CB_NORMALIZE_IMAGE`` (global equalisation: squares larger than
+    CLAHE's tiles), at full size, then halved again and again (:data:`MIN_SEARCH_SIDE`), until the whole
+    board is found. The largest grid that checks out wins; its corners are refined on the full image.
 
     The detector, asked for a part of a board, sometimes grows a wrong grid (skipping a row of corners,
     or taking the board's border for a row) on a board seen close and cut by the image's edge: a grid is
     taken only when its cells alternate dark and light (:func:`cells_alternate`) and its corners, refined
-    (:func:`_refine`), keep straight runs and their cross-ratios (:func:`grid_deviation`).
+    (:func:`_refine`), lie where their neighbours put them (:func:`grid_outliers`; an outer row or column
+    holding one is dropped, as one reaching outside the image is) and keep straight runs and their
+    cross-ratios (:func:`grid_deviation`).
 
     Parameters
     ----------
@@ -446,17 +487,22 @@ def find_chessboard(image: np.ndarray, inner: tuple[int, int],
     best = None
     flags = cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_LARGER
     clahe = cv2.createCLAHE(clipLimit=CLAHE_CLIP, tileGridSize=CLAHE_TILES)
-    for prepared, extra in ((lambda: clahe.apply(image), 0), (lambda: image, cv2.CALIB_CB_NORMALIZE_IMAGE)):
-        found, corners, meta = cv2.findChessboardCornersSBWithMeta(prepared(), (m, m), flags | extra)
+    h, w = image.shape[:2]
+    scales = [0.5 ** k for k in range(8) if 0.5 ** k * min(h, w) >= MIN_SEARCH_SIDE] or [1.0]
+    for scale, equalise in ((scale, equalise) for scale in scales for equalise in (True, False)):
+        img = image if scale == 1 else cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+        found, corners, meta = cv2.findChessboardCornersSBWithMeta(
+            clahe.apply(img) if equalise else img, (m, m), flags | (0 if equalise else cv2.CALIB_CB_NORMALIZE_IMAGE))
         if not found or corners is None or meta is None:
             continue
         rows, cols = meta.shape[:2]
-        pts = np.asarray(corners, dtype=np.float32).reshape(-1, 2)
-        h, w = image.shape[:2]
+        # back to the full image's pixels (pixel centres at whole numbers in both)
+        pts = ((np.asarray(corners, dtype=np.float64).reshape(-1, 2) + 0.5) / scale - 0.5).astype(np.float32)
         note = notes.append if notes is not None else (lambda text: None)
         if len(pts) != rows * cols:
             continue
-        kept = _trim_outside(pts.reshape(rows, cols, 2), w, h)
+        g = pts.reshape(rows, cols, 2)
+        kept = _trim(g, ~np.all((g >= 0) & (g <= (w - 1, h - 1)), axis=2))
         if min(kept.shape[:2]) < m:
             note(f"a {cols} x {rows} grid reaching outside the image")
             continue
@@ -466,6 +512,14 @@ def find_chessboard(image: np.ndarray, inner: tuple[int, int],
             note(f"a {cols} x {rows} grid whose cells are not alternately dark and light")
             continue
         pts = _refine(image, pts)
+        # a corner refined off its place (onto the board's border, at the image's edge): its row goes
+        off = grid_outliers(pts, (cols, rows))
+        kept = _trim(pts.reshape(rows, cols, 2), np.nan_to_num(off) > MAX_OFF_SPACING)
+        if min(kept.shape[:2]) < m:
+            note(f"a {cols} x {rows} grid with corners off their neighbours' lines (by {np.nanmax(off):.2f} spacings)")
+            continue
+        rows, cols = kept.shape[:2]
+        pts = np.ascontiguousarray(kept.reshape(-1, 2))
         bend, ratio_error = grid_deviation(pts, (cols, rows))
         if bend > MAX_BEND or ratio_error > MAX_CROSS_RATIO_ERROR:
             note(f"a {cols} x {rows} grid whose corners are out of line (bend {bend:.2f}, cross-ratio error "
