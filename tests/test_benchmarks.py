@@ -136,3 +136,14 @@ def test_vs_opencsp_benchmark_says_what_is_missing_and_runs_its_pairs(repo_root,
     bad = subprocess.run([sys.executable, script, "--opencsp-python", "/bin/echo", "--sizes", "huge"],
                          capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "neither 'native' nor an upsampling" in bad.stderr
+
+
+def test_camera_calibration_benchmark_quick(repo_root):
+    """benchmarks/camera_calibration.py: five half-size photographs, the command once."""
+    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "camera_calibration.py"), "--quick"],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    print(proc.stdout)
+    for line in ("5 photographs of an 18 x 23 inner-corner board, 813 x 618 px", "whole command: wall", "found: ",
+                 "images used", "load average after"):
+        assert line in proc.stdout
