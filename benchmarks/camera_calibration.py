@@ -129,6 +129,7 @@ def main(argv=None) -> int:
         env = {**os.environ, "SOFAST_DATA_DIR": str(tmp / "data")}
         cmd = [sys.executable, "-m", "sofast_station", "calibrate", "camera", *map(str, files), "--squares", "19x24",
                "--square-mm", "25", "--config", small_station(tmp / "station.toml"), "--json"]
+        cmd += ["--k3"] if args.camera == "wide" else []        # a wide-angle lens needs k3
         print(f"load average before: {load()}", flush=True)
         first = tmp / "first.log"
         runs = [run_process(cmd, env, tmp, first if k == 0 else tmp / "command.log")
