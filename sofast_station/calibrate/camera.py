@@ -488,6 +488,7 @@ def find_chessboard(image: np.ndarray, inner: tuple[int, int],
     flags = cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_LARGER
     clahe = cv2.createCLAHE(clipLimit=CLAHE_CLIP, tileGridSize=CLAHE_TILES)
     h, w = image.shape[:2]
+    note = notes.append if notes is not None else (lambda text: None)
     scales = [0.5 ** k for k in range(8) if 0.5 ** k * min(h, w) >= MIN_SEARCH_SIDE] or [1.0]
     for scale, equalise in ((scale, equalise) for scale in scales for equalise in (True, False)):
         img = image if scale == 1 else cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
@@ -498,7 +499,6 @@ def find_chessboard(image: np.ndarray, inner: tuple[int, int],
         rows, cols = meta.shape[:2]
         # back to the full image's pixels (pixel centres at whole numbers in both)
         pts = ((np.asarray(corners, dtype=np.float64).reshape(-1, 2) + 0.5) / scale - 0.5).astype(np.float32)
-        note = notes.append if notes is not None else (lambda text: None)
         if len(pts) != rows * cols:
             continue
         g = pts.reshape(rows, cols, 2)
@@ -513,10 +513,10 @@ def find_chessboard(image: np.ndarray, inner: tuple[int, int],
             continue
         pts = _refine(image, pts)
         # a corner refined off its place (onto the board's border, at the image's edge): its row goes
-        off = grid_outliers(pts, (cols, rows))
-        kept = _trim(pts.reshape(rows, cols, 2), np.nan_to_num(off) > MAX_OFF_SPACING)
+        off = np.nan_to_num(grid_outliers(pts, (cols, rows)))      # NaN: too few neighbours to judge
+        kept = _trim(pts.reshape(rows, cols, 2), off > MAX_OFF_SPACING)
         if min(kept.shape[:2]) < m:
-            note(f"a {cols} x {rows} grid with corners off their neighbours' lines (by {np.nanmax(off):.2f} spacings)")
+            note(f"a {cols} x {rows} grid with corners off their neighbours' lines (by {off.max():.2f} spacings)")
             continue
         rows, cols = kept.shape[:2]
         pts = np.ascontiguousarray(kept.reshape(-1, 2))
