@@ -4,7 +4,7 @@ were rendered from (tests/calibrate/photos.py, which shares no code with the pac
 The reported case: ten photographs of an 18 x 23 inner-corner chessboard through the NSTTF SOFAST
 camera's long lens (1626 x 1236 px, f 5492 px, k1 -0.144, k2 1.61), eight of which were rejected as
 "board not found". Here the same lens on a half-size sensor (813 x 618 px: the same field of view and
-distortion, squares of 6 to 40 px), and a short wide-angle lens with 24 % barrel distortion at the
+distortion, corners 5 to 55 px apart), and a short wide-angle lens with 24 % barrel distortion at the
 image's corners (1920 x 1080 px scaled to 640 x 360), each seen in tilted views, near and far, some with
 the board reaching past the image's edge, under a lamp's light gradient and the lens's vignetting, with
 a slight blur, shot and read noise, 8-bit quantisation, JPEG and 16-bit files.
