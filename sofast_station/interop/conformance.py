@@ -490,7 +490,9 @@ RELEASE_DISPLAYS = {"distorted2D": "sofast_common/display_distorted_2d.h5",
                     "rectangular2D": "sofast_common/display_rectangular.h5",
                     "distorted3D": "sofast_common/display_distorted_3d.h5"}
 RELEASE_CASES = tuple(f"{d}/{fit}/x1" for d in RELEASE_DISPLAYS for fit in ("plain", "robust")) + (
-    "distorted2D/plain/x8", "distorted2D/robust/x8")
+    "distorted2D/plain/x8", "distorted2D/robust/x8", "fixed/plain/x1")
+#: The fixed-pattern capture's case (``sofast_fixed/``, the fixed-pattern method; its own dots, not a display).
+FIXED_CASE = "fixed/plain/x1"
 #: Scalar figures kept, and where each is in the figures.
 RELEASE_FIGURES = {"focal_length_x_m": ("focal_length_x_m",), "focal_length_y_m": ("focal_length_y_m",),
                    "twist_mrad_per_m": ("twist_mrad_per_m",), "twist_e1_mrad_per_m": ("twist_e1_mrad_per_m",),
@@ -515,6 +517,14 @@ def release_figures(root: Path, cases=RELEASE_CASES, work: Path | None = None, w
     for case in cases:
         display, fit, scale = case.split("/")
         scale = int(scale[1:])
+        if display == "fixed":
+            from .opencsp_fixed import read_opencsp_fixed
+            from .paths import opencsp_fixed_paths
+
+            fm = read_opencsp_fixed(**opencsp_fixed_paths(root))
+            out[case] = _release_entry(fm.analyse(uncertainty=fm.uncertainty if with_u else None,
+                                                  sensitivity_cache={} if with_u else None).figures, with_u)
+            continue
         if scale == 1:
             paths = opencsp_test_data_paths(root)
         else:
@@ -527,20 +537,24 @@ def release_figures(root: Path, cases=RELEASE_CASES, work: Path | None = None, w
         m = read_opencsp(**paths)
         a = m.analyse(robust=fit == "robust", uncertainty=m.uncertainty if with_u else None,
                       sensitivity_cache={} if with_u else None)
-        fig = a.figures
-        entry = {}
-        for name, path in RELEASE_FIGURES.items():
-            v, u = fig, fig.get(f"{path[0]}_U") if with_u else None
-            for p in path:
-                v = v[p]
-            for p in path[1:]:
-                u = None if u is None else u[p]
-            entry[name] = [v, u] if with_u else v
-        entry["n_points"] = fig["n_points"]
-        out[case] = entry
+        out[case] = _release_entry(a.figures, with_u)
     if tmp is not None:
         tmp.cleanup()
     return out
+
+
+def _release_entry(fig: dict, with_u: bool) -> dict:
+    """The figures of :data:`RELEASE_FIGURES` (each [value, U] with *with_u*) and the points kept."""
+    entry = {}
+    for name, path in RELEASE_FIGURES.items():
+        v, u = fig, fig.get(f"{path[0]}_U") if with_u else None
+        for p in path:
+            v = v[p]
+        for p in path[1:]:
+            u = None if u is None else u[p]
+        entry[name] = [v, u] if with_u else v
+    entry["n_points"] = fig["n_points"]
+    return entry
 
 
 def conformance_text(c: Conformance) -> str:
