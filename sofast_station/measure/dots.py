@@ -144,77 +144,14 @@ def _centroids(image: np.ndarray, starts: np.ndarray, radius_px: float, dark: bo
     a pixel clipped to weight 0 moves nothing), ``background_dn`` (the ring's median), ``ring_sigma_dn``
     (the ring's scatter, 1.4826 times its median absolute deviation: the image's noise beside the dot) and
     ``depth_dn`` (the largest background-subtracted signal in the disc)."""
-    h, w = image.shape
-    reach = 1.5 * radius_px + 1.0
-    outer = reach + 0.5 * radius_px + 2.0
-    half = int(np.ceil(outer + 2))
-    centre = np.round(starts).astype(np.int64)
-    ok = (centre[:, 0] >= half) & (centre[:, 1] >= half) & (centre[:, 0] + half < w) & (centre[:, 1] + half < h)
-    out = np.full(starts.shape, np.nan)
-    info = {"cov_unit_px2": np.full((len(starts), 2, 2), np.nan), "background_dn": np.full(len(starts), np.nan),
-            "ring_sigma_dn": np.full(len(starts), np.nan), "depth_dn": np.full(len(starts), np.nan)}
-    if not ok.any():
-        return (out, ok, info) if details else (out, ok)
-    c0 = centre[ok]
-    offs = np.arange(-half, half + 1)
-    uu = c0[:, 0, None, None] + offs[None, None, :]                          # (n, 1, S)
-    vv = c0[:, 1, None, None] + offs[None, :, None]                          # (n, S, 1)
-    patch = image[vv, uu].astype(np.float64)                                  # (n, S, S)
-    r2 = offs[None, :] ** 2 + offs[:, None] ** 2
-    ring = (r2 > (outer - 2.0) ** 2) & (r2 <= outer ** 2)
-    ring_values = patch[:, ring]
-    background = np.median(ring_values, axis=1)
-    # the centroid's disc never leaves the inner part of the patch (it may move 2 px): iterate on that alone
-    inner = half - int(np.ceil(reach + 3.0))
-    if inner > 0:
-        patch, uu, vv = patch[:, inner:-inner, inner:-inner], uu[:, :, inner:-inner], vv[:, inner:-inner, :]
-    signal = np.clip((background[:, None, None] - patch) if dark else (patch - background[:, None, None]), 0.0, None)
-    c = starts[ok].astype(np.float64)
-    good = np.ones(len(c), bool)
-    # Each dot is iterated until its own centre moves by less than a thousandth of a pixel (the others stop
-    # sooner: most converge in three or four steps), in the patch's own coordinates (the same for every dot).
-    lu, lv = uu[0, 0, :] - c0[0, 0], vv[0, :, 0] - c0[0, 1]
-    active = np.arange(len(c))
-    for _ in range(iterations):
-        if active.size == 0:
-            break
-        cu, cv = c[active, 0] - c0[active, 0], c[active, 1] - c0[active, 1]
-        d2 = (lu[None, None, :] - cu[:, None, None]) ** 2 + (lv[None, :, None] - cv[:, None, None]) ** 2
-        weight = np.where(d2 <= reach * reach, signal[active], 0.0)
-        total = weight.sum(axis=(1, 2))
-        live = total > 0
-        good[active[~live]] = False
-        new_u = weight.sum(axis=1) @ lu
-        new_v = weight.sum(axis=2) @ lv
-        moved = np.zeros(active.size)
-        a = active[live]
-        new = np.column_stack([c0[a, 0] + new_u[live] / total[live], c0[a, 1] + new_v[live] / total[live]])
-        moved[live] = np.hypot(*(new - c[a]).T)
-        c[a] = new
-        active = active[live & (moved >= 1e-3)]
-    found = np.flatnonzero(ok)
-    good = good & np.all(np.abs(c - c0) < 2.0, axis=1)       # a centroid that ran off: not a lone dot
-    out[found[good]] = c[good]
-    ok[found[~good]] = False
+    from .kernels import dot_centroids
+
+    centres, ok, cov, background, ring_sigma, depth = dot_centroids(image, np.asarray(starts, np.float64),
+                                                                     radius_px, dark, iterations)
     if not details:
-        return out, ok
-    d2 = (uu - c[:, 0, None, None]) ** 2 + (vv - c[:, 1, None, None]) ** 2
-    weight = np.where(d2 <= reach * reach, signal, 0.0)
-    moving = weight > 0
-    total = np.maximum(weight.sum(axis=(1, 2)), 1e-300)
-    du, dv = np.where(moving, uu - c[:, 0, None, None], 0.0), np.where(moving, vv - c[:, 1, None, None], 0.0)
-    cov = np.empty((len(c), 2, 2))
-    cov[:, 0, 0] = (du * du).sum(axis=(1, 2))
-    cov[:, 1, 1] = (dv * dv).sum(axis=(1, 2))
-    cov[:, 0, 1] = cov[:, 1, 0] = (du * dv).sum(axis=(1, 2))
-    cov[good] /= (total[good] ** 2)[:, None, None]
-    mad = np.median(np.abs(ring_values - background[:, None]), axis=1)
-    sel = found[good]
-    info["cov_unit_px2"][sel] = cov[good]
-    info["background_dn"][sel] = background[good]
-    info["ring_sigma_dn"][sel] = 1.4826 * mad[good]
-    info["depth_dn"][sel] = weight.max(axis=(1, 2))[good]
-    return out, ok, info
+        return centres, ok
+    return centres, ok, {"cov_unit_px2": cov, "background_dn": background, "ring_sigma_dn": ring_sigma,
+                         "depth_dn": depth}
 
 
 def find_dots(image: np.ndarray, *, dark: bool = True, min_area_px: float = 3.0, max_area_px: float = 2000.0,
@@ -583,16 +520,22 @@ def index_dots(centres_px: np.ndarray, origin_px, tolerance: float = 0.3, return
         who[cand_ok[:, 0], cand_ok[:, 1]] = hit_ok
         taken[hit_ok] = True
         frontier = cand_ok
-    # a stray blob taken for a dot bends its row or column: drop dots whose second difference is off
-    bad = np.zeros(grid.shape[:2], bool)
+    # a stray blob taken for a dot bends its row or column: drop dots whose second difference is off (on the
+    # indexed places' box only, with a free place on every side: the grid is mostly empty)
+    filled = np.nonzero(~np.isnan(grid[:, :, 0]))
+    r0, r1 = filled[0].min() - 1, filled[0].max() + 2
+    c0, c1 = filled[1].min() - 1, filled[1].max() + 2
+    box = grid[r0:r1, c0:c1]
+    bad = np.zeros(box.shape[:2], bool)
     for axis in (0, 1):
-        prev, nxt = np.roll(grid, 1, axis=axis), np.roll(grid, -1, axis=axis)
-        second = np.linalg.norm(prev - 2 * grid + nxt, axis=2)
+        prev, nxt = np.roll(box, 1, axis=axis), np.roll(box, -1, axis=axis)
+        second = np.linalg.norm(prev - 2 * box + nxt, axis=2)
         span_ = np.linalg.norm(nxt - prev, axis=2)
         with np.errstate(invalid="ignore"):
             bad |= second > tolerance * 0.5 * span_
-    keep = ~np.isnan(grid[:, :, 0]) & ~bad
+    keep = ~np.isnan(box[:, :, 0]) & ~bad
     rows, cols = np.nonzero(keep)
+    rows, cols = rows + r0, cols + c0
     out = np.column_stack([rows - span, cols - span]).astype(np.int64), grid[rows, cols]
     return (*out, who[rows, cols]) if return_which else out
 
