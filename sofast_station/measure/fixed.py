@@ -15,10 +15,12 @@ commissioned shape). The steps:
 3. their lattice indices, counted from the pattern's origin: the origin mark's pixel (OpenCSP's capture stores
    it; :func:`find_origin_mark` finds a mark brighter than the lit pattern beside the origin dot, as in
    OpenCSP's capture), the walk of :func:`~sofast_station.measure.dots.index_dots` in the image's directions,
-   turned into the pattern's index directions as the nominal geometry predicts them
-   (:func:`predicted_index_axes`). A dot that cannot be indexed is dropped and counted, never guessed; a
-   grid seen twice is refused: dots closer together than its pitch allows (two grids interleaved,
-   :func:`check_spacing`), or a second lattice among the dots left over (:func:`second_lattice`);
+   turned into the pattern's index directions: +y is where the origin mark lies from the origin dot, x the
+   other way a mirror's picture of the grid runs (:func:`mark_index_axes`), or both as the nominal geometry
+   predicts them when there is no mark (:func:`predicted_index_axes`). A dot that cannot be indexed is
+   dropped and counted, never guessed; a grid seen twice is refused: dots closer together than its pitch
+   allows (two grids interleaved, :func:`check_spacing`), or a second lattice among the dots left over
+   (:func:`second_lattice`);
 4. each indexed dot's 3-D location (:func:`dot_screen`: a screen model on the grid of dot locations, each
    position a dot's column and row in it) and the ray through its sub-pixel centre; from there the reduction
    is the fringe method's own, unchanged (:func:`~.pipeline.corners_and_pose`,
@@ -316,11 +318,38 @@ def dot_region(image: np.ndarray, background: np.ndarray, geometry: StationGeome
     threshold = float(settings.mask_threshold_dn)
     if dark is None:
         threshold = max(threshold, otsu_level(contrast[::2, ::2].ravel()))
-    region = facet_region(np.zeros(contrast.shape, np.float32), contrast, threshold, settings.max_hole_px)
+    # whole counts in the camera's own type take facet_region's fast path (OpenCV's subtraction)
+    kind = np.uint8 if float(contrast.max(initial=0.0)) <= 255 else np.uint16
+    counts = np.clip(np.round(contrast), 0, np.iinfo(kind).max).astype(kind)
+    region = facet_region(np.zeros(counts.shape, kind), counts, threshold, settings.max_hole_px)
     nominal = outline_image_points(design, geometry.camera, geometry.fixture_to_camera)
     checks.check_region(region, float(checks.projected_outline_mask(geometry.camera.shape, nominal).sum()),
                         min_area_fraction=0.5 if design.outline_known else 0.0)
     return region, contrast
+
+
+def lit_background(image: np.ndarray, max_diameter_px: float, dark: bool = True) -> np.ndarray:
+    """:func:`~.dots.pattern_background` of *image* where it is lit, the image itself elsewhere (float32): the
+    lit area found first on a picture four times smaller (its box, widened by the filling square), so the
+    filling of a two-megapixel frame costs what the facet's box costs."""
+    import cv2
+
+    img = np.asarray(image)
+    h, w = img.shape
+    k = 2 * int(np.ceil(max_diameter_px)) + 1
+    out = img.astype(np.float32)
+    if min(h, w) < 64:
+        return pattern_background(img, max_diameter_px, dark)
+    small = cv2.resize(img, (w // 4, h // 4), interpolation=cv2.INTER_AREA)
+    small_bg = pattern_background(small, max(max_diameter_px / 4.0, 1.0), dark)
+    lit = small_bg > otsu_level(small_bg.ravel())
+    rows, cols = np.flatnonzero(lit.any(axis=1)), np.flatnonzero(lit.any(axis=0))
+    if rows.size == 0:
+        return out
+    r0, r1 = max(4 * rows[0] - 2 * k, 0), min(4 * rows[-1] + 4 + 2 * k, h)
+    c0, c1 = max(4 * cols[0] - 2 * k, 0), min(4 * cols[-1] + 4 + 2 * k, w)
+    out[r0:r1, c0:c1] = pattern_background(img[r0:r1, c0:c1], max_diameter_px, dark)
+    return out
 
 
 def find_origin_mark(image: np.ndarray, region: np.ndarray, background: np.ndarray, diameter_px: float,
@@ -337,10 +366,16 @@ def find_origin_mark(image: np.ndarray, region: np.ndarray, background: np.ndarr
     import cv2
 
     k = 2 * int(np.ceil(2.0 * max(diameter_px, 1.0))) + 1
+    rr, cc = np.flatnonzero(region.any(axis=1)), np.flatnonzero(region.any(axis=0))
+    if rr.size == 0:
+        return None
+    r0, r1 = max(rr[0] - k, 0), min(rr[-1] + k + 1, region.shape[0])
+    c0, c1 = max(cc[0] - k, 0), min(cc[-1] + k + 1, region.shape[1])
+    bg = np.asarray(background[r0:r1, c0:c1], np.float32)
     square = cv2.getStructuringElement(cv2.MORPH_RECT, (k, k))
-    level = cv2.morphologyEx(background, cv2.MORPH_OPEN, square)
-    excess = background - level
-    inner = cv2.erode(region.astype(np.uint8), square).astype(bool)
+    level = cv2.morphologyEx(bg, cv2.MORPH_OPEN, square)
+    excess = bg - level
+    inner = cv2.erode(region[r0:r1, c0:c1].astype(np.uint8), square).astype(bool)
     spot = inner & (excess > np.maximum(0.25 * level, 8.0 * max(noise_dn, 0.5)))
     if not spot.any():
         return None
@@ -349,27 +384,27 @@ def find_origin_mark(image: np.ndarray, region: np.ndarray, background: np.ndarr
     best = int(np.argmax(strength[1:])) + 1
     rows, cols = np.nonzero(labels == best)
     # the spot's own light above the pattern: the image itself (the background keeps the spot's top only)
-    w = np.clip(np.asarray(image, np.float64)[rows, cols] - level[rows, cols], 0.0, None)
+    w = np.clip(np.asarray(image, np.float64)[r0 + rows, c0 + cols] - level[rows, cols], 0.0, None)
     if not w.sum() > 0:
         w = excess[rows, cols].astype(np.float64)
-    return np.array([float(np.sum(w * cols) / np.sum(w)), float(np.sum(w * rows) / np.sum(w))])
+    return np.array([c0 + float(np.sum(w * cols) / np.sum(w)), r0 + float(np.sum(w * rows) / np.sum(w))])
 
 
 def lattice_steps(indices: np.ndarray, points_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per dot, the image's steps (pixels) to its next dots along the two lattice directions: (N, 2) each, the
     central difference where both neighbours are indexed, else one-sided, else the median step."""
-    lookup = {tuple(k): n for n, k in enumerate(np.asarray(indices).tolist())}
+    indices = np.asarray(indices, np.int64)
+    lo = indices.min(axis=0) - 1
+    shape = tuple(indices.max(axis=0) - lo + 2)
+    grid = np.full(shape + (2,), np.nan)                   # positions by index, a free place on every side
+    a, b = (indices - lo).T
+    grid[a, b] = points_px
     out = []
     for d in ((1, 0), (0, 1)):
-        step = np.full((len(indices), 2), np.nan)
-        for n, (a, b) in enumerate(np.asarray(indices).tolist()):
-            fwd, back = lookup.get((a + d[0], b + d[1])), lookup.get((a - d[0], b - d[1]))
-            if fwd is not None and back is not None:
-                step[n] = 0.5 * (points_px[fwd] - points_px[back])
-            elif fwd is not None:
-                step[n] = points_px[fwd] - points_px[n]
-            elif back is not None:
-                step[n] = points_px[n] - points_px[back]
+        fwd, back = grid[a + d[0], b + d[1]], grid[a - d[0], b - d[1]]
+        step = np.where(np.isnan(fwd), points_px - back, fwd - points_px)
+        both = ~np.isnan(fwd[:, 0]) & ~np.isnan(back[:, 0])
+        step[both] = 0.5 * (fwd[both] - back[both])
         missing = np.isnan(step[:, 0])
         if missing.all():
             raise DotsNotFoundError("the indexed dots have no neighbours along a lattice direction")
@@ -378,11 +413,23 @@ def lattice_steps(indices: np.ndarray, points_px: np.ndarray) -> tuple[np.ndarra
     return out[0], out[1]
 
 
-def predicted_grid_jacobian(geometry: StationGeometry, design: FacetDesign, dots: DotLocations, screen) -> np.ndarray:
+def dots_plane(dots: DotLocations, screen) -> tuple:
+    """The located dots' best plane in the camera frame and the affine map from it to their grid column and row:
+    (centre (3,), basis (3, 3) rows: in-plane x, y and the normal, affine (3, 2))."""
+    rows, cols = np.nonzero(dots.located)
+    uv = np.column_stack([cols, rows]).astype(np.float64)
+    pts = screen.points_camera(uv[:, 0], uv[:, 1])
+    centre = pts.mean(axis=1)
+    _, _, vt = np.linalg.svd((pts - centre[:, None]).T, full_matrices=False)
+    local = vt[:2] @ (pts - centre[:, None])
+    affine, *_ = np.linalg.lstsq(np.column_stack([local.T, np.ones(local.shape[1])]), uv, rcond=None)
+    return centre, vt, affine
+
+
+def predicted_grid_jacobian(geometry: StationGeometry, design: FacetDesign, plane: tuple) -> np.ndarray:
     """(2, 2): how far the dot grid's column and row move per pixel (column, row) of the image at the facet's
     centroid, as the nominal geometry predicts it: the design facet at the fixture's nominal pose reflects the
-    camera's rays there and a pixel along each image axis onto the dots' grid (a plane fitted to the located
-    dots, their column and row an affine map of it)."""
+    camera's rays there and a pixel along each image axis onto the dots' grid (*plane*: :func:`dots_plane`)."""
     cam, f2c = geometry.camera, geometry.fixture_to_camera
     c = design.centroid_m
     p0 = project(cam, f2c, np.array([[c[0], c[1], float(design.z(*c))]]))[0]
@@ -404,17 +451,36 @@ def predicted_grid_jacobian(geometry: StationGeometry, design: FacetDesign, dots
     hit = np.vstack([x, y, design.z(x, y)])
     # into the camera frame, onto the plane of the dots
     q, r_cam = f2c.rotation @ hit + f2c.translation[:, None], f2c.rotation @ r
-    rows, cols = np.nonzero(dots.located)
-    uv = np.column_stack([cols, rows]).astype(np.float64)
-    pts = screen.points_camera(uv[:, 0], uv[:, 1])
-    centre = pts.mean(axis=1)
-    _, _, vt = np.linalg.svd((pts - centre[:, None]).T, full_matrices=False)
+    centre, vt, affine = plane
     s = ((centre - q.T) @ vt[2]) / (r_cam.T @ vt[2])
     on = q + s * r_cam
-    local = vt[:2] @ (pts - centre[:, None])
-    affine, *_ = np.linalg.lstsq(np.column_stack([local.T, np.ones(local.shape[1])]), uv, rcond=None)
     grid = np.column_stack([(vt[:2] @ (on - centre[:, None])).T, np.ones(3)]) @ affine      # (3, 2) column, row
     return np.column_stack([grid[1] - grid[0], grid[2] - grid[0]]) / h
+
+
+#: A prediction of the grid's picture is trusted when a design focal length 2 % longer or shorter changes its
+#: scale by less than this share: near the centre of curvature the facet's own curvature decides the scale.
+STEADY_PREDICTION = 0.1
+
+
+def grid_prediction(geometry: StationGeometry, design: FacetDesign, dots: DotLocations, screen) -> tuple:
+    """(jac, steady): the nominal geometry's grid Jacobian (:func:`predicted_grid_jacobian`) and whether it
+    can be trusted: whether the design's focal length 2 % longer and shorter changes the predicted grid step in
+    the image by less than :data:`STEADY_PREDICTION` (far from the facet's centre of curvature, as OpenCSP's
+    10 m to a 100 m facet; at the station's fringe layout, the centre of curvature between camera and screen,
+    a facet pictures the grid at a scale and even orientation its own curvature decides)."""
+    import dataclasses as dc
+
+    plane = dots_plane(dots, screen)
+    jac = predicted_grid_jacobian(geometry, design, plane)
+    step = np.linalg.norm(np.linalg.inv(jac), axis=0)
+    steady = True
+    for k in (1.02, 1.0 / 1.02):
+        other = predicted_grid_jacobian(geometry, dc.replace(design, focal_length_m=design.focal_length_m * k),
+                                        plane)
+        change = np.abs(np.linalg.norm(np.linalg.inv(other), axis=0) / step - 1.0)
+        steady &= bool(np.all(change < STEADY_PREDICTION))
+    return jac, steady
 
 
 def predicted_index_axes(jac: np.ndarray, step_i_px: np.ndarray, step_j_px: np.ndarray) -> np.ndarray:
@@ -433,6 +499,11 @@ def predicted_index_axes(jac: np.ndarray, step_i_px: np.ndarray, step_j_px: np.n
     axes = np.zeros((2, 2), np.int64)
     for k, step in enumerate((np.median(step_i_px, axis=0), np.median(step_j_px, axis=0))):
         g = jac @ step
+        if not 1.0 / 3.0 <= np.linalg.norm(g) <= 3.0:
+            raise ConfigError(f"the nominal geometry cannot predict the dot grid's picture here: a lattice step "
+                              f"of {np.linalg.norm(step):.1f} px is {np.linalg.norm(g):.3g} grid steps by it (a facet "
+                              "near its centre of curvature pictures the grid at a scale its own curvature decides): "
+                              "show the origin mark, or give the fixed pattern's index_axes")
         j = int(np.argmax(np.abs(g)))
         if not np.abs(g[j]) >= np.cos(np.radians(35.0)) * np.linalg.norm(g):
             raise ConfigError(f"the dot grid's picture runs between its axes (a lattice step of {step.round(2)} px "
@@ -606,9 +677,10 @@ def _check_frame(image: np.ndarray, shape: tuple[int, int], name: str = "dot fra
     return img
 
 
-def _index_pattern(found: PatternDots, origin_px, jac: np.ndarray, fixed: FixedSettings):
+def _index_pattern(found: PatternDots, origin_px, jac: np.ndarray, steady: bool, fixed: FixedSettings):
     """Indices of the found dots from the origin: (indices (M, 2), which of found (M,), image steps i and j
-    per indexed dot, axes); *jac* the nominal geometry's grid Jacobian."""
+    per indexed dot, axes, where the axes came from); *jac* the nominal geometry's grid Jacobian, *steady*
+    whether it can be trusted (:func:`grid_prediction`)."""
     try:
         ij, pts, which = index_dots(found.centres_px, origin_px, fixed.index_tolerance, return_which=True)
     except ValueError as exc:
@@ -620,10 +692,42 @@ def _index_pattern(found: PatternDots, origin_px, jac: np.ndarray, fixed: FixedS
         raise TooFewDotsError(f"only {len(ij)} dots follow a lattice from the origin at ({origin_px[0]:.1f}, "
                               f"{origin_px[1]:.1f}) px")
     step_i, step_j = lattice_steps(ij, pts)
-    axes = (np.asarray(fixed.index_axes, np.int64) if fixed.index_axes is not None
-            else predicted_index_axes(jac, step_i, step_j))
+    if fixed.index_axes is not None:
+        axes, how = np.asarray(fixed.index_axes, np.int64), "given"
+    else:
+        origin_dot = pts[np.flatnonzero(np.all(ij == 0, axis=1))[0]]
+        axes = mark_index_axes(np.asarray(origin_px, np.float64) - origin_dot, step_i, step_j, jac)
+        how = "mark"
+        if axes is None:
+            if not steady:
+                raise ConfigError("the dot grid's picture cannot be predicted here (the facet is near its centre of "
+                                  "curvature, where its own curvature turns the picture) and the origin was given on "
+                                  "a dot, not beside it: show the origin mark, or give the fixed pattern's "
+                                  "index_axes")
+            axes, how = predicted_index_axes(jac, step_i, step_j), "predicted"
     index = np.asarray(fixed.origin_index, np.int64)[None, :] + ij @ axes.T
-    return index, which, step_i, step_j, axes
+    return index, which, step_i, step_j, axes, how
+
+
+def mark_index_axes(mark_from_dot_px: np.ndarray, step_i_px: np.ndarray, step_j_px: np.ndarray,
+                    jac: np.ndarray) -> np.ndarray | None:
+    """The index axes (as :func:`predicted_index_axes`) from the origin mark: it lies beside the origin dot along
+    the grid's +y (OpenCSP's capture: 4 px below it, a third of a step; :class:`LcdDotGrid` draws it so), so the
+    image's vector from the dot to the mark (*mark_from_dot_px*) names the lattice direction that is +y; the
+    other is x, its sign that of a mirror's picture of the grid (the sign of the nominal geometry's Jacobian
+    *jac*'s determinant: one reflection, whether the picture is upright or upside down). None when the mark
+    does not lie clearly along one lattice direction (a pixel given on the origin dot itself)."""
+    m = np.column_stack([np.median(step_i_px, axis=0), np.median(step_j_px, axis=0)])
+    c = np.linalg.solve(m, np.asarray(mark_from_dot_px, np.float64))       # the mark in lattice steps
+    k = int(np.argmax(np.abs(c)))
+    if not (abs(c[k]) >= 0.15 and abs(c[1 - k]) <= 0.5 * abs(c[k])):
+        return None
+    s_y = int(np.sign(c[k]))
+    hand = int(np.sign(np.linalg.det(jac))) or 1
+    axes = np.zeros((2, 2), np.int64)
+    axes[1, k] = s_y
+    axes[0, 1 - k] = hand * s_y if k == 1 else -hand * s_y
+    return axes
 
 
 def reduce_fixed(image: np.ndarray, dots: DotLocations, geometry: StationGeometry, design: FacetDesign,
@@ -673,7 +777,7 @@ def reduce_fixed(image: np.ndarray, dots: DotLocations, geometry: StationGeometr
     screen = dot_screen(dots, geometry.screen_to_camera, screen_centre_m) if screen is None else screen
     with thread_pool(settings.threads) as pool:
         timer = _Timer()
-        background = pattern_background(img, fixed.max_dot_diameter_px, fixed.dark_dots)
+        background = lit_background(img, fixed.max_dot_diameter_px, fixed.dark_dots)
         region_mask, contrast = dot_region(img, background, geometry, design, settings, white, dark)
         outline = pool.submit(_outline_of, contrast, region_mask, geometry, design, settings) \
             if design.outline_known else _Serial._Done((None, None))
@@ -690,8 +794,9 @@ def reduce_fixed(image: np.ndarray, dots: DotLocations, geometry: StationGeometr
                                     "blobs too large or long, "
                                     f"{found.small} too small): is the dot pattern shown and in focus, and are the "
                                     "dots dark on a lit background?")
-        jac = predicted_grid_jacobian(geometry, design, dots, screen)
-        check_spacing(found.centres_px, jac)
+        jac, steady = grid_prediction(geometry, design, dots, screen)
+        if steady:
+            check_spacing(found.centres_px, jac)
         if origin_px is None:
             origin_px = find_origin_mark(img, region_mask, background, found.diameter_px, found.noise_dn)
             if origin_px is None:
@@ -701,7 +806,7 @@ def reduce_fixed(image: np.ndarray, dots: DotLocations, geometry: StationGeometr
         else:
             origin_px = np.asarray(origin_px, np.float64).ravel()
             origin_from = "given"
-        index, which, step_i, step_j, axes = _index_pattern(found, origin_px, jac, fixed)
+        index, which, step_i, step_j, axes, axes_from = _index_pattern(found, origin_px, jac, steady, fixed)
         timer.lap("dots")
         step = float(np.median(np.linalg.norm(np.vstack([step_i, step_j]), axis=1)))
         left = np.ones(len(found.centres_px), bool)
@@ -756,7 +861,8 @@ def reduce_fixed(image: np.ndarray, dots: DotLocations, geometry: StationGeometr
             lattice_index=index[s], index_per_px=jac[s], depth_dn=found.depth_dn[which][s], dropped=dropped,
             found={"found": int(len(found.centres_px)), "indexed": int(len(which)), "origin_px": origin_px.tolist(),
                    "origin_from": origin_from, "origin_index": [int(v) for v in fixed.origin_index],
-                   "index_axes": axes.tolist(), "step_px": step, "diameter_px": float(found.diameter_px),
+                   "index_axes": axes.tolist(), "index_axes_from": axes_from, "step_px": step,
+                   "diameter_px": float(found.diameter_px),
                    "centroid_sigma_px": float(np.sqrt(np.median(0.5 * np.trace(found.cov_px2[which], axis1=1,
                                                                                axis2=2))))})
         timer.lap("phase")
