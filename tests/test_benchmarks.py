@@ -143,3 +143,14 @@ def test_vs_opencsp_benchmark_says_what_is_missing_and_runs_its_pairs(repo_root,
     bad = subprocess.run([sys.executable, script, "--opencsp-python", "/bin/echo", "--sizes", "huge"],
                          capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "neither 'native' nor an upsampling" in bad.stderr
+
+
+def test_fixed_pattern_benchmark_quick(repo_root):
+    """benchmarks/fixed_pattern.py: OpenCSP's fixed capture and fringe capture (native), the heliostat twin at a
+    quarter of its resolution, each facet measured both ways (issue 42 item 6)."""
+    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "fixed_pattern.py"), "--quick"],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    print(proc.stdout)
+    for line in ("opencsp  fixed", "opencsp  fringe", "twin     fixed", "twin     fringe", "fixed over fringe"):
+        assert line in proc.stdout
