@@ -300,7 +300,7 @@ def lcd_dot_locations(grid: LcdDotGrid, screen) -> DotLocations:
 # -- region, origin, indices ---------------------------------------------------------------------------------
 def dot_region(image: np.ndarray, background: np.ndarray, geometry: StationGeometry, design: FacetDesign,
                settings: AnalysisSettings, white: np.ndarray | None = None,
-               dark: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+               dark: np.ndarray | None = None, box: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The facet's region and the contrast image its outline is fitted on: from a white (and a dark) frame
     when given, else from the dot frame's lit background with its dots filled in (*background*,
     :func:`~.dots.pattern_background`: the edge stays where it is). Without a dark frame the region is what is
@@ -312,26 +312,34 @@ def dot_region(image: np.ndarray, background: np.ndarray, geometry: StationGeome
     FacetNotFoundError
         The region is cut off at the image's border or much smaller than the design's (:func:`~.checks.check_region`).
     """
-    lit = np.asarray(background if white is None else white, np.float32)
-    base = np.zeros_like(lit) if dark is None else np.asarray(dark, np.float32)
-    contrast = lit - base
+    h, w = np.shape(image)
+    # (only where the lit area is when no white frame says otherwise: *box*, :func:`lit_background`'s)
+    r0, r1, c0, c1 = box if box is not None and white is None else (0, h, 0, w)
+    lit = np.asarray((background if white is None else white)[r0:r1, c0:c1], np.float32)
+    base = 0.0 if dark is None else np.asarray(dark[r0:r1, c0:c1], np.float32)
+    contrast = np.zeros((h, w), np.float32)
+    contrast[r0:r1, c0:c1] = lit - base
+    part = contrast[r0:r1, c0:c1]
     threshold = float(settings.mask_threshold_dn)
     if dark is None:
-        threshold = max(threshold, otsu_level(contrast[::2, ::2].ravel()))
+        whole = np.asarray(background if white is None else white, np.float32)
+        threshold = max(threshold, otsu_level(whole[::2, ::2].ravel()))
     # whole counts in the camera's own type take facet_region's fast path (OpenCV's subtraction)
-    kind = np.uint8 if float(contrast.max(initial=0.0)) <= 255 else np.uint16
-    counts = np.clip(np.round(contrast), 0, np.iinfo(kind).max).astype(kind)
-    region = facet_region(np.zeros(counts.shape, kind), counts, threshold, settings.max_hole_px)
+    kind = np.uint8 if float(part.max(initial=0.0)) <= 255 else np.uint16
+    counts = np.clip(np.round(part), 0, np.iinfo(kind).max).astype(kind)
+    region = np.zeros((h, w), bool)
+    region[r0:r1, c0:c1] = facet_region(np.zeros(counts.shape, kind), counts, threshold, settings.max_hole_px)
     nominal = outline_image_points(design, geometry.camera, geometry.fixture_to_camera)
     checks.check_region(region, float(checks.projected_outline_mask(geometry.camera.shape, nominal).sum()),
                         min_area_fraction=0.5 if design.outline_known else 0.0)
     return region, contrast
 
 
-def lit_background(image: np.ndarray, max_diameter_px: float, dark: bool = True) -> np.ndarray:
-    """:func:`~.dots.pattern_background` of *image* where it is lit, the image itself elsewhere (float32): the
-    lit area found first on a picture four times smaller (its box, widened by the filling square), so the
-    filling of a two-megapixel frame costs what the facet's box costs."""
+def lit_background(image: np.ndarray, max_diameter_px: float, dark: bool = True) -> tuple[np.ndarray, tuple]:
+    """:func:`~.dots.pattern_background` of *image* where it is lit, the image itself elsewhere (float32), and
+    that lit box (row 0, row 1, column 0, column 1): the lit area is found first on a picture four times
+    smaller (its box widened by the filling square), so the filling of a two-megapixel frame costs what the
+    facet's box costs."""
     import cv2
 
     img = np.asarray(image)
@@ -339,17 +347,17 @@ def lit_background(image: np.ndarray, max_diameter_px: float, dark: bool = True)
     k = 2 * int(np.ceil(max_diameter_px)) + 1
     out = img.astype(np.float32)
     if min(h, w) < 64:
-        return pattern_background(img, max_diameter_px, dark)
+        return pattern_background(img, max_diameter_px, dark), (0, h, 0, w)
     small = cv2.resize(img, (w // 4, h // 4), interpolation=cv2.INTER_AREA)
     small_bg = pattern_background(small, max(max_diameter_px / 4.0, 1.0), dark)
     lit = small_bg > otsu_level(small_bg.ravel())
     rows, cols = np.flatnonzero(lit.any(axis=1)), np.flatnonzero(lit.any(axis=0))
     if rows.size == 0:
-        return out
+        return out, (0, h, 0, w)
     r0, r1 = max(4 * rows[0] - 2 * k, 0), min(4 * rows[-1] + 4 + 2 * k, h)
     c0, c1 = max(4 * cols[0] - 2 * k, 0), min(4 * cols[-1] + 4 + 2 * k, w)
     out[r0:r1, c0:c1] = pattern_background(img[r0:r1, c0:c1], max_diameter_px, dark)
-    return out
+    return out, (int(r0), int(r1), int(c0), int(c1))
 
 
 def find_origin_mark(image: np.ndarray, region: np.ndarray, background: np.ndarray, diameter_px: float,
@@ -777,8 +785,8 @@ def reduce_fixed(image: np.ndarray, dots: DotLocations, geometry: StationGeometr
     screen = dot_screen(dots, geometry.screen_to_camera, screen_centre_m) if screen is None else screen
     with thread_pool(settings.threads) as pool:
         timer = _Timer()
-        background = lit_background(img, fixed.max_dot_diameter_px, fixed.dark_dots)
-        region_mask, contrast = dot_region(img, background, geometry, design, settings, white, dark)
+        background, box = lit_background(img, fixed.max_dot_diameter_px, fixed.dark_dots)
+        region_mask, contrast = dot_region(img, background, geometry, design, settings, white, dark, box)
         outline = pool.submit(_outline_of, contrast, region_mask, geometry, design, settings) \
             if design.outline_known else _Serial._Done((None, None))
         top = np.iinfo(img.dtype).max
