@@ -30,7 +30,6 @@ from __future__ import annotations
 import argparse
 import os
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
@@ -38,13 +37,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))          # run from a checkout, installed or not
-
-
-def _uptime() -> str:
-    try:
-        return subprocess.run(["uptime"], capture_output=True, text=True, check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "load average unknown"
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from analysis import _uptime  # noqa: E402  (the machine's load, as the analysis benchmark prints it)
 
 
 def timed(once, runs: int) -> dict:

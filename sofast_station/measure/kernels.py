@@ -556,10 +556,11 @@ def _dot_centroids_into(image, starts, radius, dark, iterations, centres, ok, co
         bg = np.median(ring)
         cx, cy = starts[k, 0], starts[k, 1]
         live = True
+        tot = suu = svv = suv = top = 0.0
         for _ in range(iterations):
-            tot = 0.0
-            sx = 0.0
-            sy = 0.0
+            # the weights over the disc about (cx, cy): the next centre, and the moments about this one (the
+            # covariance's, from the last pass: the centre has moved by under a thousandth of a pixel)
+            tot = sx = sy = suu = svv = suv = top = 0.0
             for dy in range(-win, win + 1):
                 v = cv + dy
                 for dx in range(-win, win + 1):
@@ -570,6 +571,10 @@ def _dot_centroids_into(image, starts, radius, dark, iterations, centres, ok, co
                             tot += s
                             sx += s * u
                             sy += s * v
+                            suu += (u - cx) * (u - cx)
+                            svv += (v - cy) * (v - cy)
+                            suv += (u - cx) * (v - cy)
+                            top = max(top, s)
             if tot <= 0.0:
                 live = False
                 break
@@ -580,23 +585,6 @@ def _dot_centroids_into(image, starts, radius, dark, iterations, centres, ok, co
                 break
         if not live or abs(cx - cu) >= 2.0 or abs(cy - cv) >= 2.0:
             continue
-        tot = 0.0
-        suu = 0.0
-        svv = 0.0
-        suv = 0.0
-        top = 0.0
-        for dy in range(-win, win + 1):
-            v = cv + dy
-            for dx in range(-win, win + 1):
-                u = cu + dx
-                if (u - cx) * (u - cx) + (v - cy) * (v - cy) <= reach2:
-                    s = (bg - image[v, u]) if dark else (image[v, u] - bg)
-                    if s > 0.0:
-                        tot += s
-                        suu += (u - cx) * (u - cx)
-                        svv += (v - cy) * (v - cy)
-                        suv += (u - cx) * (v - cy)
-                        top = max(top, s)
         ok[k] = True
         centres[k, 0] = cx
         centres[k, 1] = cy
