@@ -407,7 +407,9 @@ def image_noise_dn(image: np.ndarray, mask: np.ndarray | None = None) -> float:
     cover less than half of *mask*."""
     img = np.asarray(image, np.float32)
     lap = 4.0 * img[1:-1, 1:-1] - img[:-2, 1:-1] - img[2:, 1:-1] - img[1:-1, :-2] - img[1:-1, 2:]
-    values = lap if mask is None else lap[np.asarray(mask)[1:-1, 1:-1]]
+    # every other row and column: the median of a quarter of the values is as good, for a quarter of the time
+    lap = lap[::2, ::2]
+    values = lap if mask is None else lap[np.asarray(mask)[1:-1:2, 1:-1:2]]
     if values.size == 0:
         return 0.0
     return float(1.4826 * np.median(np.abs(values)) / np.sqrt(20.0))

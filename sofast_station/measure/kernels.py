@@ -533,12 +533,23 @@ def _dot_centroids_into(image, starts, radius, dark, iterations, centres, ok, co
     ring_lo, ring_hi = (outer - 2.0) ** 2, outer * outer
     half = int(math.ceil(outer + 2.0))
     win = int(math.ceil(reach + 3.0))             # the centroid's window: its disc may move 2 px
+    # the ring's offsets, once for every dot
     n_ring = 0
     for dy in range(-half, half + 1):
         for dx in range(-half, half + 1):
             r2 = dx * dx + dy * dy
             if ring_lo < r2 <= ring_hi:
                 n_ring += 1
+    ring_dx = np.empty(n_ring, np.int64)
+    ring_dy = np.empty(n_ring, np.int64)
+    m = 0
+    for dy in range(-half, half + 1):
+        for dx in range(-half, half + 1):
+            r2 = dx * dx + dy * dy
+            if ring_lo < r2 <= ring_hi:
+                ring_dx[m] = dx
+                ring_dy[m] = dy
+                m += 1
     ring = np.empty(n_ring)
     for k in range(starts.shape[0]):
         cu = int(round(starts[k, 0]))
@@ -546,13 +557,8 @@ def _dot_centroids_into(image, starts, radius, dark, iterations, centres, ok, co
         ok[k] = False
         if cu < half or cv < half or cu + half >= w or cv + half >= h:
             continue
-        m = 0
-        for dy in range(-half, half + 1):
-            for dx in range(-half, half + 1):
-                r2 = dx * dx + dy * dy
-                if ring_lo < r2 <= ring_hi:
-                    ring[m] = image[cv + dy, cu + dx]
-                    m += 1
+        for m in range(n_ring):
+            ring[m] = image[cv + ring_dy[m], cu + ring_dx[m]]
         bg = np.median(ring)
         cx, cy = starts[k, 0], starts[k, 1]
         live = True
