@@ -284,6 +284,8 @@ def test_uncertainty_coverage_benchmark_quick(repo_root, tmp_path):
     assert "34 captures from 17 file(s)" in merged.stdout
     assert "errors against the drawn inputs (least squares over 34 captures" in merged.stdout
     assert "residual std" in merged.stdout
+
+
 def test_camera_calibration_benchmark_quick(repo_root):
     """benchmarks/camera_calibration.py: five half-size photographs, the command once."""
     proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "camera_calibration.py"), "--quick"],
@@ -292,4 +294,15 @@ def test_camera_calibration_benchmark_quick(repo_root):
     print(proc.stdout)
     for line in ("5 photographs of an 18 x 23 inner-corner board, 813 x 618 px", "whole command: wall", "found: ",
                  "images used", "load average after"):
+        assert line in proc.stdout
+
+
+def test_fixed_pattern_benchmark_quick(repo_root):
+    """benchmarks/fixed_pattern.py: OpenCSP's fixed capture and fringe capture (native), the heliostat twin at a
+    quarter of its resolution, each facet measured both ways (issue 42 item 6)."""
+    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "fixed_pattern.py"), "--quick"],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    print(proc.stdout)
+    for line in ("opencsp  fixed", "opencsp  fringe", "twin     fixed", "twin     fringe", "fixed over fringe"):
         assert line in proc.stdout
