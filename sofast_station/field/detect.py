@@ -5,21 +5,25 @@ threshold that tells the facets from what lies around them, connected regions as
 facets, each facet's edges as straight lines, corners where they cross), with sub-pixel edges in place of
 the Hough transform:
 
-1. **The channel.** Of a colour photo, the channel whose histogram around the heliostat separates best into
-   two classes (Otsu's between-class over total variance; mirrors of the sky are bluest).
-2. **The regions.** Otsu's threshold around where the heliostat should be (its design projected at the
-   commanded orientation, :func:`detect_facets`' *predicted_px*), a morphological opening (a pixel-wide
-   bridge between two facets is no gap), connected regions of either polarity (a facet may mirror
-   something darker than the ground beside it): the polarity whose regions match the predicted facets best.
+1. **The facets' colour.** DLR take the colour plane with the best contrast (mostly blue: the mirrors show
+   the sky). No one plane always parts a facet from both the ground and the steel behind its gaps (in red
+   the sky-lit facet is as dark as the beams, in blue as bright as sandy ground), so here each pixel's
+   distance in colour from the facets' own colour is used: one of the main colours around the heliostat
+   (k-means), the one whose regions match the layout best.
+2. **The regions.** Otsu's threshold of that distance (or a half or a quarter of it: the steel behind the
+   gaps may lie between the facets' colour and the ground's) around where the heliostat should be (its design
+   projected at the commanded orientation, :func:`detect_facets`' *predicted_px*), a morphological opening
+   (a thin bridge between two facets is no gap; widened until the facets stand apart), connected regions.
 3. **Which facet is which.** The predicted layout slides over the regions: the shift that puts the most
    predicted facet centres on region centroids (a neighbour's facets never line up with the layout's grid
    as the heliostat's own do), then an affine map from predicted to found centres takes up the zoom's and
    the roll's error. A region holding the centres of two facets is *merged*; one much smaller than its
    prediction *partly hidden*; one that touches the photo's edge *cut off*; each is named with its reason
    and left out.
-4. **Sub-pixel edges.** Across each side of a facet's rough outline, the image's derivative (Gaussian
-   smoothed, sampled every quarter pixel along the side's normal) peaks where the edge is: the 50 % level of
-   a symmetric blur whatever the levels on either side, so a dark beam or the lit ground behind a gap, or
+4. **Sub-pixel edges.** Across each side of a facet's rough outline, the colour gradient's size (each
+   channel Gaussian smoothed and differentiated, sampled every quarter pixel along the side's normal) peaks
+   where the edge is: the 50 % level of a symmetric blur whatever the colours on either side, so a dark
+   beam or the lit ground behind a gap, or
    a neighbouring facet two pixels away, leave it in place. The points are taken to the ideal (undistorted)
    image, where a straight edge is a straight line; a line through them (total least squares, outliers
    dropped), and the corners where adjacent lines cross.
@@ -41,7 +45,6 @@ from scipy.spatial import cKDTree
 
 from ..errors import CaptureError, FacetNotFoundError
 from ..geometry import CameraIntrinsics
-from ..measure.corners import rough_outline
 
 #: Standard deviation of the Gaussian smoothing before the derivative, pixels.
 SMOOTHING_PX = 1.0
@@ -49,8 +52,11 @@ SMOOTHING_PX = 1.0
 SEARCH_HALF_WIDTH_PX = 3.5
 #: Half-width of the search across a side placed by the layout's homography, pixels.
 SECOND_HALF_WIDTH_PX = 2.0
-#: A facet's corners may stray this far from the layout's homography through the others, pixels (a canting
-#: error of 10 mrad moves a 1 m facet's corners by 5 mm out of the layout's plane).
+#: A facet whose corners stray further than this from the layout's homography through the others is fitted
+#: again, narrower, from where the homography puts it (pixels; a neighbour's edge beside it may have been
+#: taken), and left out when they still stray further than LAYOUT_TOLERANCE_PX (a canting error of 10 mrad
+#: moves a 1 m facet's corners by 5 mm out of the layout's plane).
+REFIT_PX = 0.75
 LAYOUT_TOLERANCE_PX = 2.5
 #: Sampling step across a side, pixels.
 ACROSS_STEP_PX = 0.25
@@ -69,7 +75,6 @@ MIN_EDGE_POINTS = 8
 MIN_FOUND_FRACTION = 0.5
 #: A facet whose pixels are at the sensor's top level for more than this share is overexposed.
 SATURATED_FACET_SHARE = 0.3
-CHANNELS = ("red", "green", "blue")
 
 
 @dataclass(frozen=True)
@@ -113,24 +118,21 @@ class Detection:
     left_out : dict
         Label -> why that facet is not among them (not found, merged with ..., partly hidden, cut off,
         overexposed, edges not found).
-    channel : str
-        The channel used (``red``, ``green``, ``blue`` or ``grey``).
-    polarity : int
-        +1 when the facets are brighter than what lies around them, -1 when darker.
+    facet_colour : tuple
+        The facets' colour (one value per channel) whose distance was segmented and differentiated.
     shift_px : (2,) array
         How far the heliostat lies from where it was predicted (the affine map's move of its middle), pixels.
     scale : float
         Its size against the prediction (the affine map's).
     threshold : float
-        Otsu's threshold in the channel's units.
+        Otsu's threshold of the colour distance.
     saturated_fraction : float
         Share of the found facets' pixels at the sensor's top level.
     """
 
     facets: dict
     left_out: dict
-    channel: str
-    polarity: int
+    facet_colour: tuple
     shift_px: np.ndarray
     scale: float
     threshold: float
@@ -150,6 +152,42 @@ def check_photo(image: np.ndarray, camera: CameraIntrinsics, what: str = "the ph
                            f"{camera.height_px}: give the intrinsics of the camera (and zoom) that took it, or the "
                            "photo as the camera wrote it (not resized or cropped)")
     return image
+
+
+def _distance(colours: np.ndarray, colour) -> np.ndarray:
+    """Each pixel's distance (Euclidean over the channels) from *colour*: a pixel that mixes the facet's colour f
+    with another b by a fraction a lies a (b - f) away, so the distance is linear in the mixing across an edge
+    (its derivative peaks at the edge's middle, whatever lies beside the facet)."""
+    d = colours - np.asarray(colour, dtype=np.float32)
+    return np.sqrt(np.sum(d * d, axis=-1)).astype(np.float32)
+
+
+def _candidate_colours(colours: np.ndarray, k: int = 4) -> list:
+    """The main colours around the heliostat (k-means over a sample of the pixels), most common first: one of
+    them is the facets'."""
+    pix = colours.reshape(-1, colours.shape[-1])
+    pix = pix[:: max(1, pix.shape[0] // 20000)].astype(np.float32)
+    k = min(k, len(np.unique(pix, axis=0)))
+    if k < 2:
+        return [pix.mean(axis=0)]
+    criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 0.5)
+    cv2.setRNGSeed(0)                 # the same photo gives the same clusters
+    _, lab, centres = cv2.kmeans(pix, k, None, criteria, 3, cv2.KMEANS_PP_CENTERS)
+    counts = np.bincount(lab.ravel(), minlength=k)
+    return [centres[i] for i in np.argsort(-counts)]
+
+
+def _gradients(colours: np.ndarray, roi) -> tuple:
+    """Each channel's derivatives along columns and rows (Gaussian smoothed, Sobel), lists of C (H, W) arrays,
+    and the noise of the colour gradient's size across an edge (the channels' robust spreads in quadrature)."""
+    gx, gy, var = [], [], 0.0
+    for c in range(colours.shape[-1]):
+        smooth = cv2.GaussianBlur(np.ascontiguousarray(colours[..., c]), (0, 0), SMOOTHING_PX)
+        gx.append(cv2.Sobel(smooth, cv2.CV_32F, 1, 0, ksize=3) / 8.0)
+        gy.append(cv2.Sobel(smooth, cv2.CV_32F, 0, 1, ksize=3) / 8.0)
+        g = np.concatenate([gx[-1][roi].ravel(), gy[-1][roi].ravel()])
+        var += (1.4826 * float(np.median(np.abs(g - np.median(g))))) ** 2
+    return gx, gy, math.sqrt(var) + 1e-6
 
 
 def _top_level(image: np.ndarray) -> float:
@@ -230,100 +268,108 @@ def detect_facets(image: np.ndarray, camera: CameraIntrinsics, predicted_px: dic
     h, w = image.shape[:2]
     (x0, y0), (x1, y1) = allc.min(axis=0) - margin, allc.max(axis=0) + margin
     c0, r0, c1, r1 = int(max(x0, 0)), int(max(y0, 0)), int(min(x1, w - 1)), int(min(y1, h - 1))
+    where = f"({centres.mean(axis=0)[0]:.0f}, {centres.mean(axis=0)[1]:.0f})"
     if c1 - c0 < 8 or r1 - r0 < 8:
-        raise FacetNotFoundError(f"the heliostat should be at pixels ({centres.mean(axis=0)[0]:.0f}, "
-                                 f"{centres.mean(axis=0)[1]:.0f}), outside the {w} x {h} photo: is the camera pointed "
-                                 "at it, and its position and the camera's right?")
+        raise FacetNotFoundError(f"the heliostat should be at pixels {where}, outside the {w} x {h} photo: is the "
+                                 "camera pointed at it, and are its position and the camera's right?")
     roi = (slice(r0, r1 + 1), slice(c0, c1 + 1))
     top = _top_level(image)
-    # 1. the channel
-    if image.ndim == 3:
-        best = max(range(3), key=lambda c: _otsu(image[roi][..., c].astype(np.float64))[1])
-        gray, channel = image[..., best].astype(np.float32), CHANNELS[best]
-    else:
-        gray, channel = image.astype(np.float32), "grey"
-    sub = gray[roi].astype(np.float64)
-    threshold, _ = _otsu(sub)
-    # 2.-3. regions of either polarity, matched to the layout
+    colours = image.astype(np.float32).reshape(h, w, -1)
+    # 1.-3. the facets' colour, the regions of that colour opened until facets stand apart, matched to the layout
+    facet_px = math.sqrt(float(np.median(areas)))
     best_match = None
-    for polarity in (1, -1):
-        binary = ((polarity * (sub - threshold)) > 0).astype(np.uint8)
-        binary = cv2.morphologyEx(binary, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
-        n, lab, stats, cents = cv2.connectedComponentsWithStats(binary, connectivity=4)
-        match = _match(lab, stats, cents, centres - [c0, r0], areas, labels, pred, (c0, r0))
-        if best_match is None or match["score"] > best_match["score"]:
-            best_match = dict(match, polarity=polarity, lab=lab, stats=stats)
+    good = 0.8 * len(labels)
+    for colour in _candidate_colours(colours[roi]):
+        sub = _distance(colours[roi], colour)
+        otsu, _ = _otsu(sub)
+        # Otsu's threshold parts the facets' colour from the farthest (the ground); the steel behind the gaps may
+        # lie between: nearer thresholds part the facets from it too
+        for threshold in (otsu, 0.5 * otsu, 0.25 * otsu):
+            binary = (sub < threshold).astype(np.uint8)
+            for size in (3, 5, 9, 15, 25):
+                if size > 0.4 * facet_px and size > 3:
+                    break
+                opened = cv2.morphologyEx(binary, cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_ELLIPSE,
+                                                                                             (size, size)))
+                _, lab, stats, cents = cv2.connectedComponentsWithStats(opened, connectivity=4)
+                match = _match(lab, stats, cents, centres - [c0, r0], areas, (c0, r0))
+                if best_match is None or match["score"] > best_match["score"]:
+                    best_match = dict(match, colour=colour, threshold=threshold)
+                if match["score"] >= good:
+                    break
+            if best_match["score"] >= good:
+                break
+        if best_match["score"] >= good:
+            break
     m = best_match
-    if m["score"] < max(3, min_found_fraction * len(labels)) * 0.5:
-        raise FacetNotFoundError(f"no heliostat found near pixels ({centres.mean(axis=0)[0]:.0f}, "
-                                 f"{centres.mean(axis=0)[1]:.0f}) of the photo (within {margin:.0f} px): nothing there "
-                                 f"looks like its {len(labels)} facets (is the camera pointed at it; is it in the "
-                                 "photo; are its position, design and the camera's intrinsics right?)")
-    # 4.-5. each facet's edges
-    smooth = cv2.GaussianBlur(gray, (0, 0), SMOOTHING_PX)
-    gx = cv2.Sobel(smooth, cv2.CV_32F, 1, 0, ksize=3) / 8.0
-    gy = cv2.Sobel(smooth, cv2.CV_32F, 0, 1, ksize=3) / 8.0
-    g_roi = np.concatenate([gx[roi].ravel(), gy[roi].ravel()])
-    noise = 1.4826 * float(np.median(np.abs(g_roi - np.median(g_roi)))) + 1e-6
-    facets, left_out, sat_of = {}, dict(m["left_out"]), {}
-    sat_pixels = total_pixels = 0
-    second = []                       # facets fitted again from the layout's homography
+    if m["score"] < max(3.0, 0.5 * min_found_fraction * len(labels)):
+        raise FacetNotFoundError(f"no heliostat found near pixels {where} of the photo (within {margin:.0f} px): "
+                                 f"nothing there looks like its {len(labels)} facets (is the camera pointed at it; "
+                                 "is it in the photo; are its position, design and the camera's intrinsics right?)")
+    # 4.-5. each facet's edges, from its outline where the layout's map puts it: the colour gradient
+    gray = _distance(colours, m["colour"])
+    threshold = m["threshold"]
+    gx, gy, noise = _gradients(colours, roi)
+    # which facets share a region (at the lightest opening): merged unless an edge between them is found
+    binary = (gray < threshold).astype(np.uint8)
+    _, lab_full = cv2.connectedComponents(cv2.morphologyEx(binary, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)),
+                                          connectivity=4)
+    hom = m["homography"]
+    owners: dict = {}
     for label in labels:
-        if label in left_out:
+        c = np.round(_homography(hom, pred[label].mean(axis=0)[None])[0]).astype(int)
+        if 0 <= c[0] < w and 0 <= c[1] < h and lab_full[c[1], c[0]] > 0:
+            owners.setdefault(int(lab_full[c[1], c[0]]), []).append(label)
+    shared = {lab: [x for x in members if x != lab] for members in owners.values() if len(members) > 1
+              for lab in members}
+    facets, left_out, sat_of = {}, {}, {}
+    sat_pixels = total_pixels = 0
+
+    def fit(label, rough, half_width):
+        others = shared.get(label)
+        try:
+            found = _fit_facet(label, gx, gy, rough, noise, camera, sat_of.get(label, 0.0), half_width)
+        except FacetNotFoundError as exc:
+            left_out[label] = (f"merged with {', '.join(others)} (no gap seen)" if others else str(exc))
+            return
+        facets[label] = found
+        left_out.pop(label, None)
+
+    for label in labels:
+        rough = _homography(hom, pred[label])
+        if np.any(rough < 2) or np.any(rough[:, 0] > w - 3) or np.any(rough[:, 1] > h - 3):
+            left_out[label] = "cut off by the photo's edge"
             continue
-        mask = np.zeros((h, w), dtype=bool)
-        mask[roi] = m["lab"] == m["components"][label]
-        if label in m["shared"]:
-            # its own part of a region it shares: inside its predicted outline
-            inside = np.zeros((h, w), dtype=np.uint8)
-            cv2.fillPoly(inside, [np.round(_apply(m["affine"], pred[label]) * 16).astype(np.int32)], 1, shift=4)
-            mask &= inside.astype(bool)
-        facet_vals = gray[mask]
-        sat = sat_of[label] = float(np.mean(facet_vals >= top)) if facet_vals.size else 0.0
-        sat_pixels += int(np.sum(facet_vals >= top))
-        total_pixels += int(facet_vals.size)
+        inside = np.zeros((h, w), dtype=np.uint8)
+        cv2.fillPoly(inside, [np.round(rough * 16).astype(np.int32)], 1, shift=4)
+        vals = colours[inside.astype(bool)].max(axis=-1)
+        sat = sat_of[label] = float(np.mean(vals >= top)) if vals.size else 0.0
+        sat_pixels += int(np.sum(vals >= top))
+        total_pixels += int(vals.size)
         if sat > SATURATED_FACET_SHARE:
             left_out[label] = f"overexposed ({100 * sat:.0f} % of its pixels at the sensor's top level)"
             continue
-        if label in m["shared"]:
-            second.append(label)
-            continue
-        try:
-            rough = _order_like(rough_outline(mask, len(pred[label])), _apply(m["affine"], pred[label]))
-            facets[label] = _fit_facet(label, gx, gy, rough, noise, camera, sat, SEARCH_HALF_WIDTH_PX)
-        except FacetNotFoundError:
-            second.append(label)
-    # The layout's homography from the facets found (a planar layout's corners to within its canting's
-    # millimetres): where every facet's corners are, to a fraction of a pixel. A facet that shares its region
-    # with a neighbour, or whose region was not its shape, is fitted from there; one whose corners stray from
-    # it by more than LAYOUT_TOLERANCE_PX was misled by something beside it and is fitted again too.
+        fit(label, rough, SEARCH_HALF_WIDTH_PX)
+    # The layout's homography again, from the corners found (a planar layout's corners to within its canting's
+    # millimetres): a facet whose corners stray from it by more than LAYOUT_TOLERANCE_PX was misled by something
+    # beside it and is fitted again, narrower, from where it puts it.
     if len(facets) >= 2:
         src = np.vstack([pred[k] for k in facets])
         dst = np.vstack([facets[k].corners_px for k in facets])
-        hom, _ = cv2.findHomography(src, dst, cv2.RANSAC, 1.0)
-        if hom is not None:
-            for label in list(facets):
-                guess = _homography(hom, pred[label])
-                if np.max(np.hypot(*(facets[label].corners_px - guess).T)) > LAYOUT_TOLERANCE_PX:
+        hom2, _ = cv2.findHomography(src, dst, cv2.RANSAC, 1.0)
+        if hom2 is not None:
+            for label in labels:
+                if label in left_out and not left_out[label].startswith(("merged", "its edges", "the edges")):
+                    continue
+                guess = _homography(hom2, pred[label])
+                if label in facets and np.max(np.hypot(*(facets[label].corners_px - guess).T)) <= REFIT_PX:
+                    continue
+                facets.pop(label, None)
+                fit(label, guess, SECOND_HALF_WIDTH_PX)
+                if label in facets and np.max(np.hypot(*(facets[label].corners_px - guess).T)) > LAYOUT_TOLERANCE_PX:
                     del facets[label]
-                    second.append(label)
-            for label in second:
-                guess = _homography(hom, pred[label])
-                others = m["shared"].get(label)
-                try:
-                    fit = _fit_facet(label, gx, gy, guess, noise, camera, sat_of.get(label, 0.0), SECOND_HALF_WIDTH_PX)
-                    if np.max(np.hypot(*(fit.corners_px - guess).T)) > LAYOUT_TOLERANCE_PX:
-                        raise FacetNotFoundError("its corners stray from the heliostat's layout by more than "
-                                                 f"{LAYOUT_TOLERANCE_PX:g} px (an edge of something beside it taken)")
-                    facets[label] = fit
-                except FacetNotFoundError as exc:
-                    left_out[label] = (f"merged with {', '.join(others)} (no edge between them)" if others
-                                       else str(exc))
-    for label in second:
-        if label not in facets and label not in left_out:
-            others = m["shared"].get(label)
-            left_out[label] = (f"merged with {', '.join(others)} (no gap seen)" if others else
-                               "its edges were not found")
+                    left_out[label] = (f"its corners stray from the heliostat's layout by more than "
+                                       f"{LAYOUT_TOLERANCE_PX:g} px (an edge of something beside it taken?)")
     saturated = sat_pixels / max(total_pixels, 1)
     over = [k for k, v in left_out.items() if v.startswith("overexposed")]
     if len(facets) < max(3, min_found_fraction * len(labels)):
@@ -341,84 +387,74 @@ def detect_facets(image: np.ndarray, camera: CameraIntrinsics, predicted_px: dic
         reasons = "; ".join(f"{k}: {v}" for k, v in list(left_out.items())[:6])
         raise FacetNotFoundError(f"only {len(facets)} of the heliostat's {len(labels)} facets found ({reasons}): too "
                                  "few to measure it")
-    a = m["affine"]
     mid = centres.mean(axis=0)
-    return Detection(facets={k: facets[k] for k in labels if k in facets}, left_out=left_out, channel=channel,
-                     polarity=int(m["polarity"]), shift_px=_apply(a, mid[None])[0] - mid,
-                     scale=float(math.sqrt(abs(np.linalg.det(a[:, :2])))), threshold=float(threshold),
-                     saturated_fraction=float(saturated))
+    moved = _homography(hom, mid[None])[0]
+    scale = math.sqrt(abs(np.linalg.det(_jacobian(hom, mid))))
+    return Detection(facets={k: facets[k] for k in labels if k in facets},
+                     left_out={k: left_out[k] for k in labels if k in left_out},
+                     facet_colour=tuple(float(v) for v in m["colour"]), shift_px=moved - mid, scale=float(scale),
+                     threshold=float(threshold), saturated_fraction=float(saturated))
 
 
-def _match(lab, stats, cents, centres, areas, labels, pred, offset) -> dict:
-    """Which region is which facet (module docstring, step 3): the shift of the layout that puts most
-    predicted centres on region centroids, then an affine map fitted to the pairs."""
+def _jacobian(hom: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """d(homography(p)) / dp, (2, 2)."""
+    e = 1e-3
+    cols = []
+    for step in ([e, 0.0], [0.0, e]):
+        cols.append((_homography(hom, (p + step)[None])[0] - _homography(hom, (p - step)[None])[0]) / (2 * e))
+    return np.column_stack(cols)
+
+
+def _match(lab, stats, cents, centres, areas, offset) -> dict:
+    """Where the layout lies among the regions (module docstring, step 3): the shift that puts most predicted
+    centres on region centroids, then a homography (an affine map with fewer than 4 pairs) from the
+    predicted centres to the centroids they met, in the photo's pixels."""
     n_comp = stats.shape[0]
     idx = np.arange(1, n_comp)
-    big = idx[(stats[idx, cv2.CC_STAT_AREA] > 0.25 * np.median(areas))
-              & (stats[idx, cv2.CC_STAT_AREA] < 4.0 * len(labels) * np.max(areas))]
-    empty = {"score": 0.0, "left_out": {k: "not found" for k in labels}, "components": {}, "affine": np.hstack(
-        [np.eye(2), np.zeros((2, 1))])}
+    comp_area = stats[idx, cv2.CC_STAT_AREA]
+    big = idx[(comp_area > 0.3 * np.median(areas)) & (comp_area < 2.5 * np.max(areas))]
+    off = np.asarray(offset, dtype=np.float64)
     if big.size == 0:
-        return empty
+        return {"score": 0.0, "homography": np.eye(3)}
     pitch = math.sqrt(float(np.median(areas)))
-    tree = cKDTree(cents[big])
+    pts = cents[big]
+    tree = cKDTree(pts)
 
-    def score(m_aff):
-        p = _apply(m_aff, centres)
-        d, _ = tree.query(p)
+    def score(mapped):
+        d, _ = tree.query(mapped)
         return float(np.sum(np.clip(1.0 - d / (0.3 * pitch), 0.0, None)))
 
-    best, best_s = None, -1.0
     extent = float(np.max(np.ptp(centres, axis=0))) + pitch
-    for t in (cents[big][:, None, :] - centres[None, :, :]).reshape(-1, 2):
-        aff = np.hstack([np.eye(2), t[:, None]])
-        s = score(aff) - float(np.hypot(*t)) / (50.0 * extent)
-        if s > best_s:
-            best, best_s = aff, s
-    aff = best
-    for _ in range(3):                           # the affine map from the pairs it gives
-        p = _apply(aff, centres)
-        d, j = tree.query(p)
+    shifts = (pts[:, None, :] - centres[None, :, :]).reshape(-1, 2)
+    d, _ = tree.query((centres[None, :, :] + shifts[:, None, :]).reshape(-1, 2))
+    votes = np.clip(1.0 - d.reshape(len(shifts), -1) / (0.3 * pitch), 0.0, None).sum(axis=1)
+    votes -= np.hypot(shifts[:, 0], shifts[:, 1]) / (50.0 * extent)      # the nearer of equal shifts
+    best_t = shifts[int(np.argmax(votes))]
+    aff = np.hstack([np.eye(2), best_t[:, None]])
+    for _ in range(3):                           # an affine map from the pairs it gives
+        d, j = tree.query(_apply(aff, centres))
         ok = d < 0.3 * pitch
-        if ok.sum() < 4:
+        if ok.sum() < 3:
             break
-        aff = _affine(centres[ok], cents[big][j[ok]])
-    p = _apply(aff, centres)
-    scale2 = abs(float(np.linalg.det(aff[:, :2])))
-    h, w = lab.shape
-    owner, left_out, components = {}, {}, {}
-    for k, label in enumerate(labels):
-        c = np.round(p[k]).astype(int)
-        if not (0 <= c[0] < w and 0 <= c[1] < h) or lab[c[1], c[0]] == 0:
-            left_out[label] = "not found where its centre should be (hidden, missing, or too dark)"
-            continue
-        owner.setdefault(int(lab[c[1], c[0]]), []).append(label)
-    full_h, full_w = offset[1] + h, offset[0] + w
-    shared = {}
-    for comp, members in owner.items():
-        for label in members:
-            x, y, bw, bh, area = stats[comp]
-            expected = areas[labels.index(label)] * scale2
-            if len(members) > 1 or area > AREA_RATIO[1] * expected:
-                # one region for several facets, or joined to a neighbour's facet: the facet's part of it is what
-                # lies inside its predicted outline (its edges then decide whether there is a gap)
-                shared[label] = [m for m in members if m != label]
-            elif x == 0 or y == 0 or x + bw >= w or y + bh >= h:
-                at_photo_edge = (offset[0] + x == 0 or offset[1] + y == 0 or offset[0] + x + bw >= full_w
-                                 or offset[1] + y + bh >= full_h)
-                left_out[label] = ("cut off by the photo's edge" if at_photo_edge else
-                                   "its region runs out of the search window (joined to something beside it)")
-                continue
-            elif area < AREA_RATIO[0] * expected:
-                left_out[label] = f"partly hidden ({100 * area / expected:.0f} % of its area seen)"
-                continue
-            components[label] = comp
-    s = score(aff) if len(components) else 0.0
+        aff = _affine(centres[ok], pts[j[ok]])
+    hom = np.vstack([aff, [0.0, 0.0, 1.0]])
+    d, j = tree.query(_apply(aff, centres))
+    ok = d < 0.3 * pitch
+    if ok.sum() >= 5:
+        got, _ = cv2.findHomography(centres[ok], pts[j[ok]], cv2.RANSAC, 0.1 * pitch)
+        if got is not None:
+            hom = got
+            d, j = tree.query(_homography(hom, centres))
+            ok = d < 0.3 * pitch
+    # each region counts once, for the facet nearest its centroid
+    used = len(set(j[ok].tolist()))
+    s = min(score(_homography(hom, centres)), float(used))
     # the map in the photo's pixels (it was found in the search window's)
-    off = np.asarray(offset, dtype=np.float64)
-    full = np.hstack([aff[:, :2], (aff[:, 2] + off - aff[:, :2] @ off)[:, None]])
-    return {"score": min(s, float(len(components))), "left_out": left_out, "components": components,
-            "shared": shared, "affine": full}
+    return {"score": s, "homography": _shift(off) @ hom @ _shift(-off)}
+
+
+def _shift(t) -> np.ndarray:
+    return np.array([[1.0, 0.0, t[0]], [0.0, 1.0, t[1]], [0.0, 0.0, 1.0]])
 
 
 def _order_like(rough: np.ndarray, predicted: np.ndarray) -> np.ndarray:
@@ -434,13 +470,13 @@ def _order_like(rough: np.ndarray, predicted: np.ndarray) -> np.ndarray:
     return best
 
 
-def _sample(img: np.ndarray, pts: np.ndarray) -> np.ndarray:
-    """Bilinear samples of *img* at (..., 2) pixel positions."""
+def _sample(planes: list, pts: np.ndarray) -> np.ndarray:
+    """Bilinear samples of each (H, W) array of *planes* at (..., 2) pixel positions: (..., C)."""
     shape = pts.shape[:-1]
     p = pts.reshape(-1, 2).astype(np.float32)
-    out = cv2.remap(img, p[:, 0].reshape(-1, 1), p[:, 1].reshape(-1, 1), cv2.INTER_LINEAR,
-                    borderMode=cv2.BORDER_REPLICATE)
-    return out.reshape(shape)
+    out = [cv2.remap(plane, p[:, 0].reshape(-1, 1), p[:, 1].reshape(-1, 1), cv2.INTER_LINEAR,
+                     borderMode=cv2.BORDER_REPLICATE).reshape(shape) for plane in planes]
+    return np.stack(out, axis=-1)
 
 
 def _edge_points(gx, gy, p0, p1, inward, noise, half_width=SEARCH_HALF_WIDTH_PX) -> np.ndarray:
@@ -456,7 +492,10 @@ def _edge_points(gx, gy, p0, p1, inward, noise, half_width=SEARCH_HALF_WIDTH_PX)
         return np.empty((0, 2))
     o = np.arange(-half_width, half_width + 1e-9, ACROSS_STEP_PX)
     pts = p0 + s[:, None, None] * t + o[None, :, None] * n_out
-    prof = np.abs(_sample(gx, pts) * n_out[0] + _sample(gy, pts) * n_out[1])
+    # the colour gradient's size along the normal: for a pixel mixing two colours f and b by a fraction a, each
+    # channel's derivative is (f - b) da/dn, so the size is |f - b| |da/dn|: it peaks where a does, whatever
+    # the two colours
+    prof = np.sqrt(np.sum((_sample(gx, pts) * n_out[0] + _sample(gy, pts) * n_out[1]) ** 2, axis=-1))
     inner = prof[:, 1:-1]
     is_peak = (inner >= prof[:, :-2]) & (inner > prof[:, 2:]) & (inner > MIN_PEAK_SIGMAS * noise)
     dist = np.where(is_peak, np.abs(o[1:-1])[None, :], np.inf)

@@ -253,8 +253,10 @@ def _solve(problem: _Problem, starts: list) -> tuple:
     fits = []
     for x0 in starts:
         try:
-            r = least_squares(problem.residuals, np.asarray(x0, dtype=np.float64), method="lm", x_scale=1e-3,
-                              xtol=1e-12, ftol=1e-12, max_nfev=400)
+            # a soft-L1 loss beyond 3 standard deviations: a corner pulled by a glint in a gap (a neighbour's
+            # bright sliver seen through it) leans on the fit less than its square would
+            r = least_squares(problem.residuals, np.asarray(x0, dtype=np.float64), method="trf", loss="soft_l1",
+                              f_scale=3.0, x_scale=1e-3, xtol=1e-12, ftol=1e-12, max_nfev=400)
         except (ValueError, np.linalg.LinAlgError):
             continue
         if np.all(np.isfinite(r.x)):
@@ -381,7 +383,8 @@ def solve_orientation(found: dict, place: HeliostatPlace, camera: TowerCamera, *
         if "size" in changes:
             size = changes["size"]
         p2 = _problem(found, pl, cam, size)        # the corners' pixels stay: they are what was measured
-        r = least_squares(p2.residuals, x, method="lm", x_scale=1e-3, xtol=1e-12, ftol=1e-12, max_nfev=200)
+        r = least_squares(p2.residuals, x, method="trf", loss="soft_l1", f_scale=3.0, x_scale=1e-3, xtol=1e-12,
+                          ftol=1e-12, max_nfev=200)
         delta = _components(r.x) - base
         total = total + np.outer(delta, delta)
         budget.append({"input": label, "u": float(u), "unit": unit, "azimuth_mrad": float(delta[0]),
