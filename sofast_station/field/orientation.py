@@ -5,8 +5,9 @@ gives for a trial azimuth and elevation. Here the same information is used whole
 (:mod:`.detect`) against the design's corners projected through the camera, for six unknowns
 
 * the heliostat's azimuth, elevation and its spin about its normal (docs/field.md#frames),
-* the camera's pointing about its own x and y axes (pan and tilt: a pan-tilt head's readback is not good
-  to a milliradian; the heliostat's known position, where the photo shows it, fixes them), and
+* the camera's pointing, its optical axis's azimuth and elevation (pan and tilt: a pan-tilt head's readback
+  is not good to a milliradian; the heliostat's known position, where the photo shows it, fixes them; the
+  camera's roll about its axis from level stays as given whichever way it points), and
 * the image's scale (a zoom factor): as in DLR's side ratios and angles, only the facets' shape in the
   photo decides the orientation, not their size. Their size is the focal length over the range times the
   facets' size, and each of those is known to a few tenths of a percent at best; through the
@@ -22,6 +23,7 @@ Uncertainty (GUM, docs/uncertainty.md): the corners' noise through the fit's cov
 the residuals say the noise is larger than the corners' own estimate); each given input (camera position,
 heliostat position, camera roll, focal length, facet size, pivot offset) by its standard uncertainty and
 the change of the whole solution when it moves by that much (finite differences of the fit, re-solved);
+each facet's canting about each of its axes through the fit's linear response (75 inputs on a 5 x 5);
 combined in quadrature and expanded with k = 2. The figures are the normal's pointing components
 (azimuth times cos(elevation), and elevation: the angles on the sky), their U, and the tracking error
 against the commanded normal with the same U (the commanded normal is exact by definition).
@@ -77,7 +79,9 @@ class TowerCamera:
 class InputUncertainty:
     """Standard uncertainties of the given inputs (docs/field.md#uncertainty). Defaults: the DLR paper's
     Table 3 (30 mm for the camera's and the heliostat's positions per axis, 1 mm for a facet's size), a
-    levelled head's roll (0.5 mrad), a calibrated zoom's focal length (0.2 %) and the pivot's offset (1 cm).
+    levelled head's roll (0.5 mrad), a calibrated zoom's focal length (0.2 %), the pivot's offset (1 cm) and
+    each facet's canting about its own axes (0.5 mrad: the line's canting limit; a facet turned on the frame
+    moves its corners together, which the corners' own noise does not describe).
     """
 
     camera_position_m: float = 0.03
@@ -86,6 +90,7 @@ class InputUncertainty:
     focal_length_rel: float = 0.002
     facet_size_mm: float = 1.0
     pivot_offset_m: float = 0.01
+    facet_canting_mrad: float = 0.5
 
     def to_dict(self) -> dict:
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
@@ -164,11 +169,20 @@ class _Problem:
     camera: TowerCamera
     r_fc0: np.ndarray              # nominal camera rotation
 
+    def __post_init__(self):
+        self.axis = azimuth_elevation(self.r_fc0[2])
+
+    def pointing(self, d_az: float, d_el: float) -> np.ndarray:
+        """The camera's rotation with its optical axis moved by (d_az, d_el) in azimuth and elevation from
+        the nominal, its roll about it kept (a level camera stays level whichever way it points)."""
+        c = self.camera.position_m
+        return look_at(c, c + direction(self.axis[0] + d_az, self.axis[1] + d_el), 1e-3 * self.camera.roll_mrad)
+
     def project(self, params: np.ndarray) -> np.ndarray:
-        az, el, spin, dx, dy, log_scale = params
+        az, el, spin, d_az, d_el, log_scale = params
         r_h = heliostat_rotation(az, el, spin)
         world = self.corners_h @ r_h.T + heliostat_origin(self.place, r_h)
-        r_fc = small_rotation([dx, dy, 0.0]) @ self.r_fc0
+        r_fc = self.pointing(d_az, d_el)
         cam = (world - self.camera.position_m) @ r_fc.T
         k = self.camera.intrinsics.matrix
         m = math.exp(log_scale)
@@ -189,7 +203,7 @@ class Orientation:
         Unit normal, field frame.
     azimuth_rad, elevation_rad, spin_rad : float
     camera_correction_mrad : (2,) array
-        How far the camera pointed from its nominal pointing, about its x and y axes (tilt, pan).
+        How far the camera's optical axis pointed from the heliostat's pivot: (azimuth, elevation), mrad.
     covariance_mrad2 : (2, 2) array
         Combined covariance of the normal's (azimuth x cos(elevation), elevation) components, mrad^2.
     budget : list of dict
@@ -284,13 +298,14 @@ def _starts(problem: _Problem, commanded: tuple | None) -> list:
     for rvec, tvec in zip(rvecs[:n], tvecs[:n]):
         r_rel, _ = cv2.Rodrigues(rvec)
         t = np.asarray(tvec, float).ravel()
-        a = problem.r_fc0 @ (problem.place.position_m - problem.camera.position_m)
-        a /= np.linalg.norm(a)
-        b = t / np.linalg.norm(t)
-        omega = np.cross(a, b)
-        r_fc = small_rotation([omega[0], omega[1], 0.0]) @ problem.r_fc0
-        az, el, spin = heliostat_angles(r_fc.T @ r_rel)
-        starts.append([az, el, spin, omega[0], omega[1], 0.0])
+        # the camera's pointing from where the photo shows the heliostat's middle
+        seen = problem.camera.position_m + problem.r_fc0.T @ t
+        a0 = azimuth_elevation(problem.place.position_m - problem.camera.position_m)
+        a1 = azimuth_elevation(seen - problem.camera.position_m)
+        d_az = -((a1[0] - a0[0] + math.pi) % (2 * math.pi) - math.pi)
+        d_el = -(a1[1] - a0[1])
+        az, el, spin = heliostat_angles(problem.pointing(d_az, d_el).T @ r_rel)
+        starts.append([az, el, spin, d_az, d_el, 0.0])
     return starts
 
 
@@ -403,6 +418,35 @@ def solve_orientation(found: dict, place: HeliostatPlace, camera: TowerCamera, *
     moved("focal length", uc.focal_length_rel, "relative", focal=uc.focal_length_rel)
     moved("facet size", uc.facet_size_mm, "mm", size=1e-3 * uc.facet_size_mm)
     moved("pivot offset", uc.pivot_offset_m, "m", pivot=uc.pivot_offset_m)
+    # each facet's canting (independent between facets, about each of its axes), through the fit's linear
+    # response: the parameters move by -pinv(J) (the residuals' change when that facet turns by u)
+    if uc.facet_canting_mrad:
+        pinv = np.linalg.pinv(jac)
+        base_px = problem.project(x)
+        acc = np.zeros((2, 2))
+        design = facet_corners_h(place.ensemble)
+        start = 0
+        for label in [k for k in found if k in design]:
+            f = place.ensemble.facets[place.ensemble.index(label)]
+            n = len(design[label])
+            local = f.design.corners_3d()
+            mid = local.mean(axis=0)
+            for axis in range(3):
+                omega = np.zeros(3)
+                omega[axis] = 1e-3 * uc.facet_canting_mrad
+                turned = f.to_heliostat.apply(mid + (local - mid) @ small_rotation(omega).T)
+                moved_corners = problem.corners_h.copy()
+                moved_corners[start:start + n] = turned
+                trial = _Problem(moved_corners, problem.observed, problem.whiten, place, camera, problem.r_fc0)
+                dr = problem.whiten @ (trial.project(x) - base_px).ravel()
+                dx = -pinv @ dr
+                dc = np.array([1e3 * dx[0] * math.cos(x[1]), 1e3 * dx[1]])
+                acc += np.outer(dc, dc)
+            start += n
+        total = total + acc
+        budget.append({"input": "facet canting (each facet, each axis)", "u": float(uc.facet_canting_mrad),
+                       "unit": "mrad", "azimuth_mrad": float(math.sqrt(acc[0, 0])),
+                       "elevation_mrad": float(math.sqrt(acc[1, 1]))})
     residual_px = problem.project(x) - problem.observed
     return Orientation(normal=direction(x[0], x[1]), azimuth_rad=float(x[0]), elevation_rad=float(x[1]),
                        spin_rad=float(x[2]), camera_correction_mrad=1e3 * np.array([x[3], x[4]]),
@@ -423,8 +467,8 @@ def orientation_figures(result: Orientation, commanded_normal=None) -> dict:
            "pointing_U_mrad": {"azimuth": float(big_u[0]), "elevation": float(big_u[1]),
                                "largest": K_COVERAGE * result.u_angle_mrad, "k": K_COVERAGE},
            "spin_mrad": 1e3 * result.spin_rad,
-           "camera_correction_mrad": {"tilt": float(result.camera_correction_mrad[0]),
-                                      "pan": float(result.camera_correction_mrad[1])},
+           "camera_correction_mrad": {"azimuth": float(result.camera_correction_mrad[0]),
+                                      "elevation": float(result.camera_correction_mrad[1])},
            "facets_used": result.n_facets, "corners_used": result.n_corners,
            "reprojection_rms_px": result.reprojection_rms_px, "chi2_per_dof": result.chi2_per_dof,
            "uncertainty_budget": result.budget}
