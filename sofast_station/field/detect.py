@@ -46,7 +46,7 @@ from scipy.spatial import cKDTree
 from ..errors import CaptureError, FacetNotFoundError
 from ..geometry import CameraIntrinsics
 
-#: Standard deviation of the Gaussian smoothing before the derivative, pixels.
+#: Standard deviation of the Gaussian smoothing before the derivative, pixels (at most: narrow gaps get less).
 SMOOTHING_PX = 1.0
 #: Half-width of the search across a rough side, pixels (the rough outline is good to a pixel or two).
 SEARCH_HALF_WIDTH_PX = 3.5
@@ -69,8 +69,13 @@ MIN_PEAK_SIGMAS = 6.0
 CORNER_MODEL_PX = 0.05
 #: A facet's region must hold this share of its predicted area, at least and at most.
 AREA_RATIO = (0.7, 1.4)
-#: Fewest edge points a side needs.
+#: Fewest edge points a side needs, and the least share of its length they must cover (a side mostly hidden
+#: by something in front places its line poorly: the facet is left out as partly hidden).
 MIN_EDGE_POINTS = 8
+MIN_SIDE_SHARE = 0.5
+#: Gaps between facets narrower than this in the photo (pixels) cannot part them (the edge search spans
+#: SEARCH_HALF_WIDTH_PX either side, the blur a pixel or so).
+MIN_GAP_PX = 2.5
 #: Fewest facets, as a share of the design's, for a photo to count as showing the heliostat.
 MIN_FOUND_FRACTION = 0.5
 #: A facet whose pixels are at the sensor's top level for more than this share is overexposed.
@@ -177,12 +182,12 @@ def _candidate_colours(colours: np.ndarray, k: int = 4) -> list:
     return [centres[i] for i in np.argsort(-counts)]
 
 
-def _gradients(colours: np.ndarray, roi) -> tuple:
+def _gradients(colours: np.ndarray, roi, smoothing: float = SMOOTHING_PX) -> tuple:
     """Each channel's derivatives along columns and rows (Gaussian smoothed, Sobel), lists of C (H, W) arrays,
     and the noise of the colour gradient's size across an edge (the channels' robust spreads in quadrature)."""
     gx, gy, var = [], [], 0.0
     for c in range(colours.shape[-1]):
-        smooth = cv2.GaussianBlur(np.ascontiguousarray(colours[..., c]), (0, 0), SMOOTHING_PX)
+        smooth = cv2.GaussianBlur(np.ascontiguousarray(colours[..., c]), (0, 0), smoothing)
         gx.append(cv2.Sobel(smooth, cv2.CV_32F, 1, 0, ksize=3) / 8.0)
         gy.append(cv2.Sobel(smooth, cv2.CV_32F, 0, 1, ksize=3) / 8.0)
         g = np.concatenate([gx[-1][roi].ravel(), gy[-1][roi].ravel()])
@@ -309,7 +314,11 @@ def detect_facets(image: np.ndarray, camera: CameraIntrinsics, predicted_px: dic
     # 4.-5. each facet's edges, from its outline where the layout's map puts it: the colour gradient
     gray = _distance(colours, m["colour"])
     threshold = m["threshold"]
-    gx, gy, noise = _gradients(colours, roi)
+    # the smoothing: a Gaussian of SMOOTHING_PX, narrower where the gaps are narrow (a gap's two edges, each
+    # blurred, pull each other's derivative peak towards the gap's middle once the gap is under about 2.5
+    # of their widths: a 4 px gap with 1 px smoothing and 1 px blur moves the edges by about 0.1 px)
+    smoothing = float(np.clip(_gap_px(pred) / 6.0, 0.5, SMOOTHING_PX))
+    gx, gy, noise = _gradients(colours, roi, smoothing)
     # which facets share a region (at the lightest opening): merged unless an edge between them is found
     binary = (gray < threshold).astype(np.uint8)
     _, lab_full = cv2.connectedComponents(cv2.morphologyEx(binary, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)),
@@ -337,7 +346,8 @@ def detect_facets(image: np.ndarray, camera: CameraIntrinsics, predicted_px: dic
 
     for label in labels:
         rough = _homography(hom, pred[label])
-        if np.any(rough < 2) or np.any(rough[:, 0] > w - 3) or np.any(rough[:, 1] > h - 3):
+        margin = SEARCH_HALF_WIDTH_PX + 3.0 * SMOOTHING_PX + 2.0     # the edge search and its smoothing
+        if np.any(rough < margin) or np.any(rough[:, 0] > w - 1 - margin) or np.any(rough[:, 1] > h - 1 - margin):
             left_out[label] = "cut off by the photo's edge"
             continue
         inside = np.zeros((h, w), dtype=np.uint8)
@@ -379,6 +389,11 @@ def detect_facets(image: np.ndarray, camera: CameraIntrinsics, predicted_px: dic
                                "level (the sun's reflection?); take it again with a shorter exposure or when the "
                                "facets do not mirror the sun towards the camera")
         merged = sorted(k for k, v in left_out.items() if v.startswith("merged"))
+        gap = _gap_px(pred)
+        if gap < MIN_GAP_PX:
+            raise FacetNotFoundError(f"facets merged: the gaps between the heliostat's facets are about {gap:.1f} px "
+                                     f"in the photo, too narrow to part them (only {len(facets)} of {len(labels)} "
+                                     "found): the heliostat is too small in the photo; zoom in")
         if merged and len(merged) >= 0.5 * (len(labels) - len(facets)):
             named = ", ".join(merged[:6]) + ("..." if len(merged) > 6 else "")
             raise FacetNotFoundError(f"facets merged: {len(merged)} of the heliostat's {len(labels)} facets show no "
@@ -394,6 +409,19 @@ def detect_facets(image: np.ndarray, camera: CameraIntrinsics, predicted_px: dic
                      left_out={k: left_out[k] for k in labels if k in left_out},
                      facet_colour=tuple(float(v) for v in m["colour"]), shift_px=moved - mid, scale=float(scale),
                      threshold=float(threshold), saturated_fraction=float(saturated))
+
+
+def _gap_px(pred: dict) -> float:
+    """The gaps between the facets in the predicted picture: the median, over the facets, of the distance from
+    a corner to the nearest corner of another facet (the gap's diagonal at a shared corner), pixels."""
+    labels = list(pred)
+    if len(labels) < 2:
+        return math.inf
+    pts = np.vstack([pred[k] for k in labels])
+    owner = np.repeat(np.arange(len(labels)), [len(pred[k]) for k in labels])
+    d = np.hypot(*(pts[:, None, :] - pts[None, :, :]).transpose(2, 0, 1))
+    d[owner[:, None] == owner[None, :]] = np.inf
+    return float(np.median(d.min(axis=1)) / math.sqrt(2.0))
 
 
 def _jacobian(hom: np.ndarray, p: np.ndarray) -> np.ndarray:
@@ -587,6 +615,10 @@ def _fit_facet(label, gx, gy, rough, noise, camera, sat, half_width) -> FacetFou
         pts = _edge_points(gx, gy, p0, p1, inward, noise, half_width)
         if len(pts) < MIN_EDGE_POINTS:
             raise FacetNotFoundError(f"the edges of side {i + 1} were not found (too little contrast, or hidden)")
+        expected = max(float(np.hypot(*(p1 - p0))) - 2.0 * END_TRIM_PX, 1.0)
+        if len(pts) < MIN_SIDE_SHARE * expected:
+            share = 100 * len(pts) / expected
+            raise FacetNotFoundError(f"partly hidden (side {i + 1}: {share:.0f} % of its edge seen)")
         m, nn, r, c, v_off, v_ang = _fit_line(_undistort(camera, pts))
         lines.append((m, nn))
         rms.append(r)

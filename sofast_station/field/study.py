@@ -31,6 +31,8 @@ from .orientation import (HeliostatPlace, InputUncertainty, TowerCamera, heliost
 DLR_ORIENTATION_MRAD = 4.0
 DLR_ORIENTATION_SHARE = 0.8
 DLR_FACET_NORMAL_MRAD = 1.6
+#: The canting photos' zoom leaves the heliostat this much room (it turns by 30 degrees between them).
+CANTING_ROOM = 1.2
 
 
 @dataclass(frozen=True)
@@ -233,7 +235,7 @@ def canting_campaign(site: TwinSite, ensemble: EnsembleDesign, rng: np.random.Ge
     for label, (rx, ry) in (damaged or {}).items():
         errors[ensemble.index(label), :2] += (rx, ry)
     distance = float(np.linalg.norm(pos - site.camera_m))
-    intr = site.intrinsics(ensemble, distance * 1.1)          # a little room: the heliostat turns
+    intr = site.intrinsics(ensemble, distance / CANTING_ROOM)          # room: the heliostat turns
     uc = site.uncertainty
     known_cam = TowerCamera(intr, site.camera_m + uc.camera_position_m * rng.standard_normal(3), 0.0)
     known_place = HeliostatPlace(ensemble, pos + uc.heliostat_position_m * rng.standard_normal(3), 0.0, "TWIN")
@@ -307,7 +309,7 @@ def factory_record(truth: dict, serial: str, rng: np.random.Generator, u_mrad: f
             "note": "made from the field twin's truth for trying the field commands: not a measurement"}
 
 
-def write_campaign(out_dir, seed: int = 0, photos: int = 10, ensemble_file=None) -> dict:
+def write_campaign(out_dir, seed: int = 0, photos: int = 10, ensemble_file=None, site: TwinSite | None = None) -> dict:
     """A campaign on the twin written as files the commands read: a site file, its layout, one photo for
     ``field orientation`` and *photos* for ``field canting`` (each with its notes), and a factory record in
     which facet R2C2 sat 3 mrad elsewhere (a facet knocked in transport). Returns their paths."""
@@ -320,7 +322,7 @@ def write_campaign(out_dir, seed: int = 0, photos: int = 10, ensemble_file=None)
     ensemble_file = Path(ensemble_file or Path(__file__).resolve().parents[2] / "fixtures" / "facets" /
                          "heliostat_5x5.toml").resolve()
     ensemble = load_ensemble(ensemble_file)
-    site = TwinSite()
+    site = site or TwinSite()
     rng = np.random.default_rng(seed)
     position = np.array([25.0, 80.0, site.pivot_height_m])
     serial = "H-0042"
@@ -358,13 +360,13 @@ distortion = [0.0, 0.0, 0.0, 0.0, 0.0]
     campaign = canting_campaign(site, ensemble, rng, photos=photos, position=position,
                                 damaged={"R2C2": (3.0, -2.0)})
     names = []
+    intr_canting = campaign["shots"][0].camera_known.intrinsics
     for i, s in enumerate(campaign["shots"]):
         name = out / f"canting-{i:02d}.png"
         cv2.imwrite(str(name), s.image[..., ::-1])
         notes = {"heliostat": serial, "commanded": {"azimuth_deg": math.degrees(s.commanded[0]),
                                                     "elevation_deg": math.degrees(s.commanded[1])},
-                 "focal_px": float(site.intrinsics(ensemble, 1.1 * float(np.linalg.norm(position - site.camera_m)))
-                                   .matrix[0, 0])}
+                 "focal_px": float(intr_canting.matrix[0, 0])}
         name.with_suffix(".json").write_text(json.dumps(notes, indent=1))
         names.append(name)
     paths["canting"] = names
