@@ -143,3 +143,13 @@ def test_vs_opencsp_benchmark_says_what_is_missing_and_runs_its_pairs(repo_root,
     bad = subprocess.run([sys.executable, script, "--opencsp-python", "/bin/echo", "--sizes", "huge"],
                          capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "neither 'native' nor an upsampling" in bad.stderr
+
+
+def test_field_benchmark_quick(repo_root):
+    """benchmarks/field.py: a heliostat's canting from 6 twin photos of 640 x 480 and one orientation."""
+    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "field.py"), "--quick"],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    print(proc.stdout)
+    for line in ("camera 640 x 480", "canting from", "the issue: under a minute", "orientation from one photo"):
+        assert line in proc.stdout
