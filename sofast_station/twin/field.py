@@ -38,12 +38,11 @@ from ..ensemble import EnsembleDesign
 from ..errors import ConfigError, GeometryError
 from ..geometry import CameraIntrinsics
 from .camera import TwinCamera
+from .heliostat import TILT_TOLERANCE_RAD, _angles
 from .station import rotation_zyx
 
 #: Half-angle of the sun's disk, radians.
 SUN_HALF_ANGLE_RAD = 4.65e-3
-#: The tilt iteration of the canting truth stops when both updates are below this, radians.
-TILT_TOLERANCE_RAD = 1e-12
 #: Colours (red, green, blue) of the clear sky, the ground and painted steel; the sun's light is white.
 SKY_RGB = (0.42, 0.62, 1.0)
 GROUND_RGB = (1.0, 0.82, 0.62)
@@ -472,11 +471,6 @@ def facet_truth(camera: TowerCamera, heliostat: FieldHeliostat) -> dict:
         if float(n @ (camera.position_m - corners.mean(axis=0))) > 0:
             out[f.label] = camera.project(corners)
     return out
-
-
-def _angles(r: np.ndarray) -> tuple[float, float]:
-    """(rx, ry) of R = R_z R_y R_x, radians (its third row)."""
-    return math.atan2(r[2, 1], r[2, 2]), -math.asin(max(-1.0, min(1.0, r[2, 0])))
 
 
 def canting_truth(heliostat: FieldHeliostat, labels=None) -> dict:
