@@ -31,8 +31,9 @@ from .orientation import (HeliostatPlace, InputUncertainty, TowerCamera, heliost
 DLR_ORIENTATION_MRAD = 4.0
 DLR_ORIENTATION_SHARE = 0.8
 DLR_FACET_NORMAL_MRAD = 1.6
-#: The canting photos' zoom leaves the heliostat this much room (it turns by 30 degrees between them).
-CANTING_ROOM = 1.2
+#: The canting photos are zoomed in by this against the orientation photos' (the heliostat spans two thirds of
+#: the photo: its gaps 5 px or more, which the canting needs to beat a milliradian; it turns by 30 degrees).
+CANTING_ZOOM = 1.1
 
 
 @dataclass(frozen=True)
@@ -235,7 +236,7 @@ def canting_campaign(site: TwinSite, ensemble: EnsembleDesign, rng: np.random.Ge
     for label, (rx, ry) in (damaged or {}).items():
         errors[ensemble.index(label), :2] += (rx, ry)
     distance = float(np.linalg.norm(pos - site.camera_m))
-    intr = site.intrinsics(ensemble, distance / CANTING_ROOM)          # room: the heliostat turns
+    intr = site.intrinsics(ensemble, distance / CANTING_ZOOM)          # zoomed in: gaps of 5 px or more
     uc = site.uncertainty
     known_cam = TowerCamera(intr, site.camera_m + uc.camera_position_m * rng.standard_normal(3), 0.0)
     known_place = HeliostatPlace(ensemble, pos + uc.heliostat_position_m * rng.standard_normal(3), 0.0, "TWIN")

@@ -13,7 +13,7 @@ from sofast_station.field.canting import Canting, compare_with_factory, solve_ca
 from sofast_station.field.study import TwinSite, canting_campaign, factory_record, measure_canting
 
 #: Zoomed so that the heliostat, turned, spans about two thirds of the photo (facets of 50 px, gaps of 5 px)
-SITE = TwinSite(width_px=640, height_px=480, fill=0.8)
+SITE = TwinSite(width_px=640, height_px=480)
 ROOT = Path(__file__).resolve().parents[2]
 
 
