@@ -279,6 +279,65 @@ def cmd_canting(args) -> int:
     return 0
 
 
+def cmd_prescription(args) -> int:
+    single_thread_blas()
+    import csv
+    import io
+
+    import numpy as np
+
+    from ..ensemble import load_ensemble
+    from ..errors import ConfigError
+    from .inputs import load_site, read_layout, write_prescribed_heliostat
+    from .prescription import facet_normals, prescribed_ensemble, prescription_mrad
+    from .sun import sun_direction
+
+    site = load_site(args.site)
+    if site.layout_file is None:
+        raise ConfigError(f"site file {site.path} names no layout ([site] layout = \"layout.csv\")")
+    layout = read_layout(site.layout_file)
+    sun = None
+    if args.time:
+        sun = sun_direction(args.time, site.latitude_deg, site.longitude_deg, site.altitude_m)
+    out = Path(args.out) if args.out else site.path.resolve().parent / "prescriptions"
+    rule = f"off axis at {args.time}" if args.time else "on axis at the slant range"
+    rows, doc = [], {"site": site.name, "rule": rule, "aim_point_m": site.aim_point_m.tolist(), "heliostats": {}}
+    for serial, row in layout.items():
+        design_file = row["design"] or site.heliostat_file
+        if design_file is None:
+            raise ConfigError(f"heliostat {serial!r}: its layout row names no design and the site file no "
+                              "[site] heliostat")
+        ensemble = load_ensemble(design_file)
+        normals = facet_normals(ensemble, row["position_m"], site.aim_point_m, sun, site.pivot_offset_m)
+        mrad = prescription_mrad(ensemble, normals)
+        named = prescribed_ensemble(ensemble, normals, name=f"{ensemble.name} for {serial}")
+        slant = float(np.linalg.norm(site.aim_point_m - row["position_m"]))
+        path = write_prescribed_heliostat(out / f"{serial}.toml", design_file, named,
+                                          {k: {"x": v["x"], "y": v["y"]} for k, v in mrad.items()},
+                                          f"The canting heliostat {serial} asks for at {row['position_m'].tolist()} m "
+                                          f"(slant range {slant:.1f} m; {doc['rule']}), written by "
+                                          "'sofast-station field prescription' (docs/field.md)")
+        change = max(math.hypot(v["change"]["x"], v["change"]["y"]) for v in mrad.values())
+        doc["heliostats"][serial] = {"file": str(path), "slant_range_m": slant, "facets": mrad,
+                                     "largest_change_mrad": change}
+        rows.append((serial, f"{slant:.2f}", f"{change:.3f}", str(path)))
+    buf = io.StringIO()
+    writer = csv.writer(buf)
+    writer.writerow(["serial", "slant_range_m", "largest_change_from_design_mrad", "heliostat_file"])
+    writer.writerows(rows)
+    (out / "prescriptions.csv").write_text(buf.getvalue())
+    write_json_atomic(out / "prescriptions.json", json_safe(doc))
+    if args.json:
+        json.dump(json_safe(doc), sys.stdout, indent=1)
+        sys.stdout.write("\n")
+        return 0
+    print(f"Canting prescriptions for {len(rows)} heliostats of {site.name} ({doc['rule']}):")
+    for serial, slant, change, path in rows:
+        print(f"  {serial:<10} slant range {slant} m, largest change from the design's canting {change} mrad: {path}")
+    print(f"  table {out / 'prescriptions.csv'}")
+    return 0
+
+
 def register(subparsers) -> None:
     """Add ``field orientation`` and ``field canting`` to the ``sofast-station`` *subparsers*."""
     field = add_command(subparsers, "field", help="the heliostat in the field, from the tower's camera",
@@ -331,3 +390,18 @@ def register(subparsers) -> None:
                           "of the one the photo's time gives")
     ori.set_defaults(func=cmd_orientation)
     can.set_defaults(func=cmd_canting)
+    pre = add_command(sub, "prescription", help="each heliostat's canting for its place in the field",
+                      description="""
+            For every heliostat of the site's field layout, the canting its place asks for: on axis at its
+            slant range to the aim point (default), or off axis for the sun at --time (pvlib). Writes one
+            heliostat file per serial (the design with each facet's prescribed canting: the line measures
+            the heliostat against it like any design) and prescriptions.csv / .json with each one's largest
+            change from the design's canting.""")
+    pre.add_argument("--site", metavar="FILE", required=True, help="the site file (its layout and aim point)")
+    pre.add_argument("--time", metavar="ISO", default=None,
+                     help="off-axis canting for the sun at this moment (with its time zone); default: on axis")
+    pre.add_argument("--out", metavar="DIR", default=None,
+                     help="folder for the heliostat files and the table (default: prescriptions/ beside the site "
+                          "file)")
+    pre.add_argument("--json", action="store_true", help="print the prescriptions as JSON on stdout")
+    pre.set_defaults(func=cmd_prescription)

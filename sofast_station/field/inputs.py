@@ -270,3 +270,46 @@ def read_record(path, serial: str | None = None) -> dict:
         raise ConfigError(f"factory record {path} is not a heliostat's record (it has no facets list): give the "
                           "JSON of 'sofast-station inspect --json' for the heliostat, or the station's journal")
     return record
+
+
+def _toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, float, np.integer, np.floating)):
+        return repr(float(v)) if isinstance(v, (float, np.floating)) else str(int(v))
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, (list, tuple, np.ndarray)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise ConfigError(f"cannot write {v!r} to a heliostat file")
+
+
+def write_prescribed_heliostat(path, source_file, ensemble, prescription: dict, comment: str) -> Path:
+    """A heliostat file (ensemble.py's format) for *ensemble* with each facet's canting from *prescription*
+    ({label: {"x", "y"}} mrad), the rest (its facets' design files, adjusters, layout, measure point) as
+    *source_file* (the heliostat file it was drawn from) says."""
+    path = Path(path)
+    source_file = Path(source_file)
+    table = read_toml(source_file, "heliostat file").get("heliostat", {})
+    lines = [f"# {line}" for line in comment.splitlines()] + ["[heliostat]", f"name = {_toml_value(ensemble.name)}"]
+    if "facet" in table:
+        lines.append(f"facet = {_toml_value((source_file.parent / table['facet']).resolve().as_posix())}")
+    for key in ("measure_facet", "measure_point_m"):
+        if key in table:
+            lines.append(f"{key} = {_toml_value(table[key])}")
+    per_facet = {e.get("label"): e for e in table.get("facets", []) if isinstance(e, dict)}
+    for f in ensemble.facets:
+        c = prescription[f.label]
+        lines += ["", "[[heliostat.facets]]", f"label = {_toml_value(f.label)}",
+                  f"position_m = {_toml_value(f.position_m.tolist())}",
+                  f"canting_mrad = {_toml_value([c['x'], c['y']])}"]
+        own = per_facet.get(f.label, {}).get("facet")
+        if own:
+            lines.append(f"facet = {_toml_value((source_file.parent / own).resolve().as_posix())}")
+    for name in ("adjusters", "layout"):
+        sub = table.get(name)
+        if isinstance(sub, dict) and sub:
+            lines += ["", f"[heliostat.{name}]"] + [f"{k} = {_toml_value(v)}" for k, v in sub.items()]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("\n".join(lines) + "\n")
+    return path
