@@ -10,7 +10,7 @@ import sys
 
 from tests.test_architecture import PACKAGE, PLAIN_DATA, STDLIB_IO, Graph, unit
 
-MATH = ("geometry", "sun", "detect", "orientation", "canting")
+MATH = ("geometry", "sun", "detect", "orientation", "canting", "prescription")
 LIBRARIES = {"numpy", "scipy", "cv2", "numba", "pvlib", "pandas"}
 
 
