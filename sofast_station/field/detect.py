@@ -133,6 +133,9 @@ class Detection:
         Otsu's threshold of the colour distance.
     saturated_fraction : float
         Share of the found facets' pixels at the sensor's top level.
+    placed_px : dict
+        Label -> (N, 2) where the layout's map put each facet's corners (its found ones where it was found):
+        where a facet left out should have been.
     """
 
     facets: dict
@@ -142,6 +145,7 @@ class Detection:
     scale: float
     threshold: float
     saturated_fraction: float
+    placed_px: dict = None
 
 
 def check_photo(image: np.ndarray, camera: CameraIntrinsics, what: str = "the photo") -> np.ndarray:
@@ -408,7 +412,8 @@ def detect_facets(image: np.ndarray, camera: CameraIntrinsics, predicted_px: dic
     return Detection(facets={k: facets[k] for k in labels if k in facets},
                      left_out={k: left_out[k] for k in labels if k in left_out},
                      facet_colour=tuple(float(v) for v in m["colour"]), shift_px=moved - mid, scale=float(scale),
-                     threshold=float(threshold), saturated_fraction=float(saturated))
+                     threshold=float(threshold), saturated_fraction=float(saturated),
+                     placed_px={k: _homography(hom, pred[k]) for k in labels})
 
 
 def _gap_px(pred: dict) -> float:

@@ -73,6 +73,7 @@ def _write(path, img) -> Path:
 
 
 def _left_out(img, predicted: dict, detection, s: float) -> None:
+    predicted = detection.placed_px or predicted          # where the layout's map puts them, if it was found
     for label, why in detection.left_out.items():
         if label in predicted:
             _outline(img, predicted[label], s, RED, 1, dashed=True)
@@ -98,13 +99,13 @@ def orientation_png(path, image: np.ndarray, detection, figures: dict, arrows_px
             cv2.arrowedLine(img, _pt(a, s), _pt(b, s), colour, 2, cv2.LINE_AA, tipLength=0.08)
     lines = [title,
              f"normal: azimuth {figures['azimuth_deg']:.3f} +- {figures['azimuth_deg_U']:.3f} deg, elevation "
-             f"{figures['elevation_deg']:.3f} +- {figures['elevation_deg_U']:.3f} deg (U, k=2); "
-             f"{figures['facets_used']} facets (green), reprojection {figures['reprojection_rms_px']:.2f} px"]
+             f"{figures['elevation_deg']:.3f} +- {figures['elevation_deg_U']:.3f} deg (U, k=2)",
+             f"{figures['facets_used']} facets (green), corners' reprojection {figures['reprojection_rms_px']:.2f} px"]
     if "tracking_error_mrad" in figures:
         t, u = figures["tracking_error_mrad"], figures["tracking_error_mrad_U"]
         lines.append(f"tracking error {t['angle']:.2f} +- {u['angle']:.2f} mrad (azimuth {t['azimuth']:+.2f} +- "
-                     f"{u['azimuth']:.2f}, elevation {t['elevation']:+.2f} +- {u['elevation']:.2f}): orange measured, "
-                     "white commanded")
+                     f"{u['azimuth']:.2f}, elevation {t['elevation']:+.2f} +- {u['elevation']:.2f})")
+        lines.append("arrows: the normal measured (orange) and commanded (white)")
     return _write(path, _band(img, lines))
 
 
@@ -140,8 +141,8 @@ def canting_png(path, image: np.ndarray, detection, figures: dict, comparison: d
                     cv2.FONT_HERSHEY_SIMPLEX, 0.35, WHITE, 1, cv2.LINE_AA)
     _left_out(img, predicted, detection, s)
     lines = [title, f"canting error RMS {figures['canting_rms_mrad']:.2f} mrad, largest "
-                    f"{figures['canting_max_mrad']:.2f} mrad ({figures['canting_max_facet']}); arrows: where each "
-                    "facet's normal leans (x, y in mrad)"]
+                    f"{figures['canting_max_mrad']:.2f} mrad ({figures['canting_max_facet']})",
+             "arrows: where each facet's normal leans, magnified (x, y in mrad)"]
     if comparison is not None and comparison.get("facets"):
         lines.append(f"against the factory record ({comparison.get('serial')}): "
                      + (f"flagged {', '.join(comparison['flagged'])} (red)" if comparison["flagged"]
