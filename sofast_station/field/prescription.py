@@ -4,8 +4,9 @@ A heliostat at field position P aiming at the tower's aim point A focuses best w
 where the facet sits, reflects the sun's central ray onto A:
 
 * **on axis** (the usual factory rule): the sun, the heliostat's normal and the aim point in one line, the
-  facets on a paraboloid of focal length equal to the slant range |A - P| (docs/conventions.md#heliostat-
-  frame: ``canting_focal_length_m``); a facet at (x, y) on the frame is turned to that paraboloid's normal;
+  facets on a paraboloid of focal length equal to the slant range |A - P|
+  (docs/conventions.md#heliostat-frame: ``canting_focal_length_m``); a facet at (x, y) on the frame is
+  turned to that paraboloid's normal;
 * **off axis** for a chosen moment: the sun where pvlib puts it then, the heliostat tracking (its normal the
   bisector of the sun and the aim point, seen from its origin), and each facet turned so that the sun's ray
   reflected at the facet's middle meets A (the rule of the DLR paper's "ideal" heliostat for that hour).
