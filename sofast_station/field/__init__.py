@@ -15,6 +15,9 @@ orientation
 canting
     Every facet's corners in 3-D by bundle adjustment over several photographs, each facet's normal and
     canting error with U, and the comparison with the factory's record of the same serial.
+prescription
+    The canting a heliostat's place in the field asks for (on axis at its slant range, or off axis for a
+    moment), as a design the line measures against.
 
 Files and the command: ``inputs`` (the site file, the field layout, photographs and their notes),
 ``picture`` (the PNGs people look at), ``cli`` (``sofast-station field ...``); ``study`` runs the

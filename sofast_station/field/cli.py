@@ -44,8 +44,6 @@ def _setup(site, place, photo: Path, args, *, need_command: bool) -> dict:
     (from --commanded, its notes' ``commanded``, or its time and the sun), the predicted corners."""
     import dataclasses
 
-    import numpy as np
-
     from ..errors import ConfigError
     from ..geometry import CameraIntrinsics
     from .detect import check_photo
@@ -92,7 +90,7 @@ def _setup(site, place, photo: Path, args, *, need_command: bool) -> dict:
     predicted = predict_corners(place, rotation, camera, r_fc)
     return {"photo": photo, "image": image, "camera": camera, "time": time, "commanded": commanded,
             "commanded_normal": normal, "predicted": predicted, "rotation": rotation, "pointing": r_fc,
-            "notes": notes, "np": np}
+            "notes": notes}
 
 
 def _out_dir(args, photo: Path) -> Path:
