@@ -306,3 +306,13 @@ def test_fixed_pattern_benchmark_quick(repo_root):
     print(proc.stdout)
     for line in ("opencsp  fixed", "opencsp  fringe", "twin     fixed", "twin     fringe", "fixed over fringe"):
         assert line in proc.stdout
+
+
+def test_field_benchmark_quick(repo_root):
+    """benchmarks/field.py: a heliostat's canting from 6 twin photos of 640 x 480 and one orientation."""
+    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "field.py"), "--quick"],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    print(proc.stdout)
+    for line in ("camera 640 x 480", "canting from", "the issue: under a minute", "orientation from one photo"):
+        assert line in proc.stdout
