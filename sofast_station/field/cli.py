@@ -10,7 +10,8 @@ import math
 import sys
 from pathlib import Path
 
-from ..commands import add_command, json_safe, single_thread_blas, write_json_atomic
+from ..commands import add_command, single_thread_blas
+from ..files import json_ready, write_json_atomic
 
 log = logging.getLogger("sofast_station")
 
@@ -119,7 +120,7 @@ def cmd_orientation(args) -> int:
               "orientation": figures, "detection": _detection_dict(detection)}
     out = _out_dir(args, photo)
     json_path = out / f"{photo.stem}-orientation.json"
-    write_json_atomic(json_path, json_safe(record))
+    write_json_atomic(json_path, json_ready(record))
     # the normals as arrows from the heliostat's middle, the heliostat's size long
     from .geometry import azimuth_elevation, direction, heliostat_rotation, look_at
 
@@ -135,7 +136,7 @@ def cmd_orientation(args) -> int:
     png = orientation_png(out / f"{photo.stem}-orientation.png", s["image"], detection, figures, arrows,
                           s["predicted"], f"{place.serial} ({place.ensemble.name}) in {photo.name}")
     if args.json:
-        json.dump(json_safe(record), sys.stdout, indent=1)
+        json.dump(json_ready(record), sys.stdout, indent=1)
         sys.stdout.write("\n")
         return 0
     u = figures["pointing_U_mrad"]
@@ -242,13 +243,13 @@ def cmd_canting(args) -> int:
     if comparison is not None:
         doc["factory"] = comparison
     json_path = out / f"{stem}.json"
-    write_json_atomic(json_path, json_safe(doc))
+    write_json_atomic(json_path, json_ready(doc))
     s, detection = first
     png = canting_png(out / f"{stem}.png", s["image"], detection, figures, comparison, s["predicted"],
                       f"{place.serial} ({place.ensemble.name}): canting from {len(used)} photos, shown on "
                       f"{s['photo'].name}")
     if args.json:
-        json.dump(json_safe(doc), sys.stdout, indent=1)
+        json.dump(json_ready(doc), sys.stdout, indent=1)
         sys.stdout.write("\n")
         return 0
     print(f"Heliostat {place.serial} ({place.ensemble.name}): canting from {len(used)} of {len(photos)} photos")
@@ -324,9 +325,9 @@ def cmd_prescription(args) -> int:
     writer.writerow(["serial", "slant_range_m", "largest_change_from_design_mrad", "heliostat_file"])
     writer.writerows(rows)
     (out / "prescriptions.csv").write_text(buf.getvalue())
-    write_json_atomic(out / "prescriptions.json", json_safe(doc))
+    write_json_atomic(out / "prescriptions.json", json_ready(doc))
     if args.json:
-        json.dump(json_safe(doc), sys.stdout, indent=1)
+        json.dump(json_ready(doc), sys.stdout, indent=1)
         sys.stdout.write("\n")
         return 0
     print(f"Canting prescriptions for {len(rows)} heliostats of {site.name} ({doc['rule']}):")
