@@ -205,26 +205,44 @@ def _fmt(v) -> str:
 
 
 def comparison_table(result, show_all: bool = False) -> str:
-    """Archived versus new, one figure a line: the main figures and every changed one (or all)."""
-    from .reprocess import HEADLINE, flatten_figures
+    """Archived versus new, one figure a line (``value ± U`` where the record has its U, by the one rule:
+    :func:`~sofast_station.result.formatting.with_u`), the value's difference and its U's: the main
+    figures and every one whose value or U changed (or all)."""
+    from .reprocess import HEADLINE, figure_of_uncertainty, flatten_figures, flatten_uncertainties
+
+    def u_by_figure(record) -> dict:
+        """Figure name -> (its U's flat name, U) of a record."""
+        if not record:
+            return {}
+        return {figure_of_uncertainty(k): (k, v) for k, v in flatten_uncertainties(record).items()
+                if not k.endswith("_U_random") and "_U_random." not in k and "_U_random[" not in k}
 
     new = flatten_figures(result.record)
     old = flatten_figures(result.archived) if result.archived else {}
-    new_u = flatten_figures(result.record, uncertainties=True)
-    old_u = flatten_figures(result.archived, uncertainties=True) if result.archived else {}
+    new_u, old_u = u_by_figure(result.record), u_by_figure(result.archived)
 
-    def value_u(value, name, flat):
-        """``value ± U`` where the record has the figure's expanded uncertainty."""
-        top, dot, rest = name.partition(".")
-        top, bracket, index = top.partition("[")
-        u = flat.get(f"{top}_U{bracket}{index}{dot}{rest}")
+    def value_u(value, u) -> str:
         if u is None or not isinstance(value, (int, float)) or isinstance(value, bool):
             return _fmt(value)
         return with_u(value, u)
 
+    def u_change(name) -> str:
+        """How the figure's U moved: "0", "+0.00019 (+20 %)", "(absent)"..."""
+        key = (new_u.get(name) or old_u.get(name) or (None,))[0]
+        d = result.differences.get(key) if key else None
+        if key is None or not old:
+            return ""
+        if d is None:
+            return "0"
+        if d["difference"] is None:
+            return "changed"
+        a = d["archived"]
+        return f"{d['difference']:+.2g}" + (f" ({100 * d['difference'] / a:+.0f} %)" if a else "")
+
+    moved_u = {d.get("uncertainty_of") for d in result.differences.values()}
     names = list(new) + [k for k in old if k not in new]
-    shown = names if show_all else [k for k in names if k in HEADLINE or k in result.differences]
-    lines = [f"  {'figure':<40} {'archived':>24} {'new':>24} {'new - archived':>16}"]
+    shown = names if show_all else [k for k in names if k in HEADLINE or k in result.differences or k in moved_u]
+    lines = [f"  {'figure':<40} {'archived':>24} {'new':>24} {'new - archived':>16} {'U: new - archived':>18}"]
     for name in shown:
         a, b = old.get(name, "(absent)" if old else "-"), new.get(name, "(absent)")
         d = result.differences.get(name)
@@ -236,10 +254,11 @@ def comparison_table(result, show_all: bool = False) -> str:
             diff = f"{d['difference']:+.3e}"
         else:
             diff = "changed"
-        lines.append(f"  {name:<40} {value_u(a, name, old_u):>24} {value_u(b, name, new_u):>24} {diff:>16}")
+        lines.append(f"  {name:<40} {value_u(a, (old_u.get(name) or (0, None))[1]):>24} "
+                     f"{value_u(b, (new_u.get(name) or (0, None))[1]):>24} {diff:>16} {u_change(name):>18}".rstrip())
     hidden = len(names) - len(shown)
     if hidden:
-        lines.append(f"  ({hidden} more figure(s), all identical to the archive; --all lists them)"
+        lines.append(f"  ({hidden} more figure(s), each and its U identical to the archive; --all lists them)"
                      if old else f"  ({hidden} more figure(s); --all lists them)")
     return "\n".join(lines)
 
