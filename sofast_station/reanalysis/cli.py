@@ -20,7 +20,7 @@ from pathlib import Path
 from ..commands import add_command
 from ..commands import build_parser as _build_parser
 from ..commands import default_config, lower_priority, run
-from ..result.formatting import with_u
+from ..result.formatting import aperture_text, with_u
 from ._env import single_thread_blas
 
 log = logging.getLogger(__name__)
@@ -267,9 +267,11 @@ def result_text(result, show_all: bool = False) -> str:
     """The human-readable report of one reprocessed dump."""
     rec = result.record
     wrap = textwrap.TextWrapper(width=110, initial_indent="  ", subsequent_indent="    ")
+    from ..report.summary import head_line
+
     out = [str(result.path),
-           f"  facet {rec.get('serial')} ({rec.get('facet')}), measured {rec.get('time')}, cycle {rec.get('cycle_id')};"
-           f" dump schema {result.schema_version}, measured by sofast-station {result.dump_software_version}"]
+           f"  {head_line(rec)}; cycle {rec.get('cycle_id')}; dump schema {result.schema_version}, measured by "
+           f"sofast-station {result.dump_software_version}"]
     for note in result.notes:
         out.append(wrap.fill(f"note: {note}"))
     if rec.get("verdict") == "fault":
@@ -523,7 +525,7 @@ def flux_text(name: str, figures: dict, path) -> str:
                                                   f"({pm('spot_radius_mrad', 1.0, 3)} mrad)")
     d90 = "-" if d["spot_radius_m"] is None else f"{1000 * d['spot_radius_m']:.2f} mm"
     return (f"{name}: sun {sun_text(c.get('sun') or {})}, DNI {c.get('dni_w_m2', 0):g} W/m², target at "
-            f"{c['slant_range_m']:.3f} m, aperture {c['aperture']}\n"
+            f"{c['slant_range_m']:.3f} m, aperture {aperture_text(c['aperture'])}\n"
             f"  intercept {pm('intercept')} (design {d['intercept']:.4f}), power / design's "
             f"{pm('power_ratio_vs_design')}\n"
             f"  90 % spot radius {r90}, design {d90}; analytic (patent model) {1000 * f['analytic_spot_radius_m']:.2f} "
