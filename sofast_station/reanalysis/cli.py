@@ -25,7 +25,7 @@ from ._env import single_thread_blas
 
 log = logging.getLogger(__name__)
 
-#: Exit codes: some dump could not be reprocessed; with --check, some figure differs from the archive.
+#: Exit codes: some dump could not be reprocessed; with --check, some figure (or its U) differs from the archive.
 EXIT_FAILED = 2
 EXIT_DIFFERS = 3
 
@@ -78,7 +78,7 @@ def register(subparsers) -> None:
     rep.add_argument("--journal", metavar="PATH",
                      help="the station's journal.sqlite3: the archived record of a dump that has lost its own")
     rep.add_argument("--check", action="store_true",
-                     help=f"exit with {EXIT_DIFFERS} when a figure differs from the archive")
+                     help=f"exit with {EXIT_DIFFERS} when a figure or its U differs from the archive")
     _add_overrides(rep)
     rep.set_defaults(func=cmd_reprocess)
 

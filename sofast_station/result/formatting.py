@@ -25,8 +25,8 @@ def figure_decimals(key: str) -> int:
         return 6
     if head.startswith("placement"):
         return 2
-    if head.endswith("_m") or head.startswith(("intercept", "power_ratio")) or ".intercept" in key \
-            or ".power_ratio" in key:
+    if head.endswith("_m") and not head.endswith("_per_m") or head.startswith(("intercept", "power_ratio")) \
+            or ".intercept" in key or ".power_ratio" in key:
         return 4
     return 3
 

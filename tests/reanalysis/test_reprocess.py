@@ -9,6 +9,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import re
 import subprocess
 import sys
 
@@ -60,6 +61,31 @@ def test_a_faulted_capture_reprocesses_to_the_same_fault(station_dumps):
     assert res.analysis is None and res.record["verdict"] == "fault"
     assert res.record["reasons"] == res.archived["reasons"] and "dark" in res.record["reasons"][0]
     assert res.exact is True, res.differences
+
+
+def test_a_u_that_moved_is_a_difference_the_table_names(station_dumps):
+    """Issue 43: reprocess said "0 difference" while report showed another U, because it compared no U. An
+    archived U 20 % larger than the one the frames give (every value the same) is now a difference: named in
+    ``differences`` with its figure, in the table's U column, and in the summary (same software: NOT
+    reproduced); the values' column still says 0."""
+    import copy
+
+    from sofast_station.reanalysis.cli import comparison_table
+    from sofast_station.reanalysis.reprocess import reprocess_content
+
+    content = read_dump(station_dumps.good[0])
+    archived = copy.deepcopy(content.record)
+    archived["focal_length_x_m_U"] *= 1.2
+    archived["slope_rms_mrad_U"]["design"]["magnitude"] *= 1.2
+    res = reprocess_content(content, archived=archived)
+    assert set(res.differences) == {"focal_length_x_m_U", "slope_rms_mrad_U.design.magnitude"}
+    assert res.differences["focal_length_x_m_U"]["uncertainty_of"] == "focal_length_x_m"
+    assert res.exact is False and "2 of" in res.summary() and "(only U)" in res.summary()
+    assert "NOT reproduced" in res.summary() and res.record["reprocess"]["uncertainties_different"] == 2
+    cells = {row[0]: row for row in (re.split(r"\s{2,}", ln.strip()) for ln in comparison_table(res).splitlines()[1:])}
+    for name in ("focal_length_x_m", "slope_rms_mrad.design.magnitude"):
+        assert cells[name][3] == "0" and cells[name][4].endswith("(-17 %)"), cells[name]   # (1 - 1.2) / 1.2
+    assert cells["focal_length_y_m"][3:] == ["0", "0"]
 
 
 def test_an_archived_fault_that_now_analyses_is_named_as_such(station_dumps):
