@@ -249,3 +249,31 @@ def test_the_facets_u_came_from_evidence_the_dump_keeps(station_dumps):
     assert len(content.sensitivities["frame_pool"]) == fb["captures"] - 1 and content.sensitivities["optics"]
     assert content.uncertainty_inputs["response_record_rad"] > 0
     assert "record" in content.record["uncertainty_budget"]["display_response"]["source"]
+
+
+def test_a_report_of_an_older_dump_says_its_u_are_the_reanalysiss(station_dumps, tmp_path, caplog):
+    """An older dump keeps no frame-brightness pool: its re-analysis has the capture's own frame brightness, so
+    ``report`` and ``report diff`` (which reprocess it) would show another U than the line's without a word;
+    they say whose U they show, and what the dump lacks."""
+    import json
+    import logging
+
+    import h5py
+
+    from sofast_station.reanalysis.sources import load_measured
+    from tests.reanalysis.conftest import copy_dump
+
+    dump = copy_dump(station_dumps.good[1], tmp_path / station_dumps.good[1].name)
+    with h5py.File(dump, "r+") as f:
+        raw = f["result/sensitivities_json"][()]
+        sens = json.loads(raw.decode() if isinstance(raw, bytes) else raw)
+        del sens["frame_pool"]                       # as the station wrote it before the pool was kept
+        del f["result/sensitivities_json"]
+        f["result"].create_dataset("sensitivities_json", data=json.dumps(sens), dtype=h5py.string_dtype())
+    with caplog.at_level(logging.WARNING):
+        m = load_measured(str(dump))
+    assert "the U shown are the re-analysis's, not the line's" in caplog.text
+    assert "does not keep the frame-brightness pool" in caplog.text
+    line = read_dump(station_dumps.good[1], load_frames=False).record
+    assert m.record["focal_length_x_m"] == line["focal_length_x_m"]
+    assert m.record["focal_length_x_m_U"] != line["focal_length_x_m_U"]     # what the warning is about
