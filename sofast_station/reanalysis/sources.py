@@ -6,10 +6,13 @@ anything else is a dump. Both come back as a :class:`Measured` with the analysis
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..errors import ReportError
+
+log = logging.getLogger(__name__)
 
 
 class _NoOverrides:
@@ -51,6 +54,10 @@ def load_measured(spec: str, overrides=None, focal_length_m: float = 100.0) -> M
     from .reprocess import reprocess_dump
 
     res = reprocess_dump(spec, overrides)
+    if res.u_missing and res.overrides.empty:
+        # an older dump: the figures are the line's, their U the re-analysis's own (reprocess lists them)
+        log.warning("%s: the U shown are the re-analysis's, not the line's: the dump does not keep %s the line's U "
+                    "came from ('reprocess %s' shows both)", spec, " nor ".join(res.u_missing), spec)
     if res.analysis is None:
         raise ReportError(f"cannot draw {spec}: the analysis refused the capture "
                           f"({'; '.join(res.record.get('reasons', []))})")

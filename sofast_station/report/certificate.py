@@ -13,7 +13,7 @@ from pathlib import Path
 
 from ..errors import ReportError
 from ._common import savefig_atomic
-from .maps import MODEL_LABELS, detail_maps, draw_detail, value_with_u
+from .maps import MODEL_LABELS, detail_maps, draw_detail
 
 
 def sha256_of(path: Path) -> str:
@@ -33,22 +33,16 @@ def _limit_text(spec) -> str:
 
 
 def figure_rows(record: dict, specs) -> list[list[str]]:
-    """Rows (figure, value ± U, unit, limits, within) of the certificate's table."""
-    from ..result.formatting import with_u
+    """Rows (figure, value ± U, unit, limits, within) of the certificate's table, each figure as every screen
+    writes it (:func:`~sofast_station.result.formatting.figure_text`)."""
+    from ..result.formatting import figure_text
     from ..result.record import figure_value
 
     rows = []
     for s in specs:
         v = figure_value(record, s.key)
-        if s.key.startswith("slope_rms_mrad."):
-            model = s.key.split(".")[1]
-            u = ((record.get("slope_rms_mrad_U") or {}).get(model) or {}).get("magnitude")
-            shown = with_u(v, u if isinstance(u, (int, float)) else None, decimals=3)
-        else:
-            digits = 6 if "curvature" in s.key else 3 if "mrad" in s.key else 4
-            shown = value_with_u(record, s.key, digits)
         ok = "-" if v is None else ("yes" if (s.lsl is None or v >= s.lsl) and (s.usl is None or v <= s.usl) else "NO")
-        rows.append([s.label, shown, s.unit, _limit_text(s), ok])
+        rows.append([s.label, figure_text(record, s.key), s.unit, _limit_text(s), ok])
     return rows
 
 
@@ -207,7 +201,7 @@ def draw_heliostat_certificate(record: dict, *, ensemble, limit_mrad: float | No
     SHA-256."""
     from matplotlib.figure import Figure
 
-    from ..result.formatting import with_u
+    from ..result.formatting import figure_text
     from .heliostat import draw_facet_map_on
 
     if record.get("verdict") in (None, "fault"):
@@ -216,19 +210,18 @@ def draw_heliostat_certificate(record: dict, *, ensemble, limit_mrad: float | No
     fig = Figure(figsize=(8.27, 11.69))
     y = certificate_head(fig, record, "Heliostat inspection certificate", issuer)
     h = record["heliostat"]
-    ct, cu = h["common_tilt_mrad"], h.get("common_tilt_mrad_U") or {}
     lines = [f"{h['n_measured']} of {h['n_facets']} facets measured; canting RMS {h['canting_rms_mrad']:.3f} mrad, "
              f"largest {h['canting_max_mrad']:.3f} mrad ({h['canting_max_facet']})"
              + (f", limit {limit_mrad:g} mrad" if limit_mrad is not None else ""),
-             f"facets' common tilt {with_u(ct['x'], cu.get('x'), '', 3)}, {with_u(ct['y'], cu.get('y'), '', 3)} mrad "
+             f"facets' common tilt {figure_text(h, 'common_tilt_mrad.x')}, {figure_text(h, 'common_tilt_mrad.y')} mrad "
              "(where the heliostat points against its corners: not a canting error)"]
     o = record.get("optics")
     if o:
         m = o["measured"]
         lines.append(f"optics at {o['conditions']['slant_range_m']:.1f} m: intercept "
-                     f"{with_u(m['intercept'], m.get('intercept_U'), '', 4)} (design {o['design']['intercept']:.4f}, "
+                     f"{figure_text(m, 'intercept')} (design {o['design']['intercept']:.4f}, "
                      f"re-canted {o['corrected']['intercept']:.4f}), 90 % radius "
-                     f"{with_u(m['spot_radius_mrad'], m.get('spot_radius_mrad_U'), '', 3)} mrad")
+                     f"{figure_text(m, 'spot_radius_mrad')} mrad")
     reasons = record.get("reasons") or []
     lines.append("Verdict: " + str(record["verdict"]).upper() + (": " + "; ".join(reasons) if reasons else
                                                                  ": every facet within its limits"))
@@ -243,9 +236,8 @@ def draw_heliostat_certificate(record: dict, *, ensemble, limit_mrad: float | No
         if "canting_mrad" not in f:
             rows.append([f["label"], f.get("verdict", f["status"]), f["status"], "", "", ""])
             continue
-        c, u = f["canting_mrad"], f.get("canting_mrad_U") or {}
-        rows.append([f["label"], f["verdict"], with_u(c["x"], u.get("x"), "", 3, sign=True),
-                     with_u(c["y"], u.get("y"), "", 3, sign=True),
+        rows.append([f["label"], f["verdict"], figure_text(f, "canting_mrad.x", sign=True),
+                     figure_text(f, "canting_mrad.y", sign=True),
                      f"{f['curvature_x_per_m']:.5f}, {f['curvature_y_per_m']:.5f}",
                      f"{f['slope_rms_mrad']['parabola']['magnitude']:.3f}"])
     height = min(0.25, 0.017 * (len(rows) + 1))
