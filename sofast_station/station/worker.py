@@ -209,10 +209,11 @@ PROGRESS_POLL_S = 0.1
 #: (its parent-watch thread wakes twice a second for microseconds).
 STALLED_CPU_SHARE = 0.02
 #: The niceness of an abandoned analysis within its late grace, above the station's (0-19). Not the lowest:
-#: at 19 it gets 1.5 % of what a process of the station's priority gets, so on a machine busy with other
-#: work it never finished within the grace (no late result kept); at 5 it gets a third, while the worker
-#: measuring the next facet keeps three quarters of a contested core (docs/reliability.md, "Under load").
-RETIRED_NICE = 5
+#: at 19 it gets 1.5 % of what a process of the station's priority gets, and on a machine busy with other
+#: work it did not finish within the grace (0 of 5 late results kept beside two spinning processes; 1 of 4
+#: at 5, a third of the share); at 2 it gets two thirds (4 of 4 kept), while the worker measuring the next
+#: facet still wins a contested core 61 to 39 (docs/reliability.md, "Under load").
+RETIRED_NICE = 2
 
 
 _CLOCK_TICK_S = 1.0 / os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 0.01
