@@ -27,21 +27,13 @@ from sofast_station.station import worker as worker_module
 from sofast_station.station.simulated_faults import FaultyJob, faulty_job
 from sofast_station.station.worker import AnalysisWorker, _Progress
 
-from .worker_faults import QuickJob
+from .worker_faults import QuickJob, alive
 
 
 def _frames(shape, grey: int) -> np.ndarray:
     frames = np.zeros(shape, dtype=np.uint8)
     frames[1] = grey                       # the white frame: the stand-in job's one figure
     return frames
-
-
-def _alive(pid: int) -> bool:
-    try:
-        with open(f"/proc/{pid}/stat") as fh:
-            return fh.read().rsplit(")", 1)[1].split()[0] != "Z"
-    except OSError:
-        return False
 
 
 def test_a_stalled_worker_is_told_from_a_busy_one():
@@ -117,7 +109,7 @@ def test_a_slow_machine_keeps_its_late_results_and_a_hung_rerun_gives_the_first_
     assert late is not None, "no late result: the rerun's answer was not kept"
     assert late.figures["white_mean_dn"] == 11 and late.figures["attempt"] == 1 and late.rerun_answer == "standby"
     end = time.monotonic() + 60
-    while any(_alive(pid) for pid in first_pids):
+    while any(alive(pid) for pid in first_pids):
         assert time.monotonic() < end, "the hung first worker was left running after the late result came"
         time.sleep(0.1)
 

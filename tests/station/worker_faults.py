@@ -40,3 +40,12 @@ class QuickJob:
 
     def preview(self, outcome):
         return None
+
+
+def alive(pid: int) -> bool:
+    """Whether process *pid* exists and is not a zombie (from /proc)."""
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
