@@ -101,6 +101,20 @@ def test_soak_benchmark_quick(repo_root):
         assert line in proc.stdout
 
 
+def test_monitor_under_load_benchmark_quick(repo_root):
+    """benchmarks/monitor_under_load.py: the monitor at its default nice beside one spinning process, three
+    requests each (about 9 s of CPU, the spinning process's included)."""
+    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "monitor_under_load.py"), "--quick"],
+                          capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr
+    print(proc.stdout)
+    for line in ("1 spinning process(es)", "nice  page up, s  OPC UA up, s", "load average before -> after"):
+        assert line in proc.stdout
+    from sofast_station.web.settings import WebSettings
+
+    assert proc.stdout.strip().splitlines()[-1].split()[0] == str(WebSettings().nice)   # the row of the default
+
+
 def test_heliostat_benchmark_quick(repo_root):
     """benchmarks/heliostat.py at a quarter of the resolution: one facet, the 2x2 and the 5x5 heliostats."""
     proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "heliostat.py"), "--quick"],

@@ -416,12 +416,16 @@ REPORT_WORDS = ("trend", "flux", "spc", "acceptance", "certificate", "diff")
 
 def cmd_report(args) -> int:
     single_thread_blas()
-    lower_priority()
     from ..errors import StationError
 
+    # The priority is lowered (batch work beside the line) once the inputs are checked, on each path below:
+    # a refusal (a faulted facet, a serial never measured, a dump that is not there) then answers at once,
+    # where at niceness 10 on a busy machine its checks alone waited seconds for a core.
     if args.targets[0] == "trend":
+        lower_priority()
         return _cmd_trend(args)
     if args.targets[0] == "flux":
+        lower_priority()
         return _cmd_flux(args)
     from .quality_reports import REPORTS, run as run_quality_report
     if args.targets[0] in REPORTS:
@@ -436,6 +440,7 @@ def cmd_report(args) -> int:
             f" (and is not a report: {', '.join(REPORT_WORDS)})"
         raise DumpError(f"{missing[0]} does not exist{word}" if len(missing) == 1 else
                         f"none of the {len(missing)} dumps exists ({missing[0]}, ...)")
+    lower_priority()
     from ..report.maps import write_detail_maps, write_slope_error_maps
     from .sources import load_measured
 

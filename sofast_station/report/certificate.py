@@ -13,7 +13,6 @@ from pathlib import Path
 
 from ..errors import ReportError
 from ._common import savefig_atomic
-from .maps import MODEL_LABELS, detail_maps, draw_detail
 
 
 def sha256_of(path: Path) -> str:
@@ -68,6 +67,15 @@ def _rule(fig, y: float, width: float = 0.6, colour: str = "0.6") -> None:
     fig.add_artist(Line2D([_LEFT, _RIGHT], [y, y], lw=width, color=colour))
 
 
+def refuse_faulted(record: dict) -> None:
+    """Refuse a certificate for a facet (or heliostat) whose cycle ended in a fault: ReportError naming it and
+    its reasons. Checked on the journal's record before anything heavy (the dump's reprocessing)."""
+    if record.get("verdict") in (None, "fault"):
+        what = "heliostat" if isinstance(record.get("facets"), list) else "facet"
+        raise ReportError(f"{what} {record.get('serial')} has no figures (its cycle ended in a fault: "
+                          f"{'; '.join(record.get('reasons', []))}): no certificate")
+
+
 def write_certificate(record: dict, out_path: Path, *, specs, measured=None, dump_path: Path | None = None,
                       issuer: dict | None = None, dpi: int = 150) -> Path:
     """Write the certificate PDF: one A4 page, every text inside it and none over another (tested on the
@@ -90,9 +98,9 @@ def write_certificate(record: dict, out_path: Path, *, specs, measured=None, dum
     """
     from matplotlib.figure import Figure
 
-    if record.get("verdict") in (None, "fault"):
-        raise ReportError(f"facet {record.get('serial')} has no figures (its cycle ended in a fault: "
-                          f"{'; '.join(record.get('reasons', []))}): no certificate")
+    from .maps import MODEL_LABELS, detail_maps, draw_detail
+
+    refuse_faulted(record)
     issuer = issuer or {}
     fig = Figure(figsize=(8.27, 11.69))               # A4 portrait
     y = certificate_head(fig, record, "Facet inspection certificate", issuer)
@@ -204,9 +212,7 @@ def draw_heliostat_certificate(record: dict, *, ensemble, limit_mrad: float | No
     from ..result.formatting import figure_text
     from .heliostat import draw_facet_map_on
 
-    if record.get("verdict") in (None, "fault"):
-        raise ReportError(f"heliostat {record.get('serial')} has no figures (its cycle ended in a fault: "
-                          f"{'; '.join(record.get('reasons', []))}): no certificate")
+    refuse_faulted(record)
     fig = Figure(figsize=(8.27, 11.69))
     y = certificate_head(fig, record, "Heliostat inspection certificate", issuer)
     h = record["heliostat"]
