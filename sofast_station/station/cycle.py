@@ -185,12 +185,13 @@ class Cycle:
             job = line.station.job_for(recipe, request.serial)
             t = time.perf_counter()
             self.stage = "capture"
-            raw, notes = capture_sequence(line.station.display, line.station.camera, line.station.config.fringes,
-                                          recipe.analysis.mask_threshold_dn, timeout_s=line.settings.camera_timeout_s)
+            raw, notes = capture_sequence(line.station.display, line.station.camera,
+                                          job.shows(line.station.config.fringes), recipe.analysis.mask_threshold_dn,
+                                          timeout_s=line.settings.camera_timeout_s)
             captured.distance_m = float(line.station.range_finder.measure())
             timings["capture"] = time.perf_counter() - t
             # (a heliostat's job: the box around every facet, not its largest region)
-            captured.box = job.crop_box(raw[0], raw[1])
+            captured.box = job.crop_box(*raw[:2])
             captured.frames, captured.full_shape = crop(raw, captured.box), raw.shape[1:]
             cal_warnings = line.check_calibration(raw[0])
             del raw

@@ -399,11 +399,11 @@ class StationRunner:
         t = time.perf_counter()
         try:
             recipe = self.recipes["default"]
-            raw, _ = capture_sequence(self.station.display, self.station.camera, self.station.config.fringes,
+            job = self.station.job_for(recipe)
+            raw, _ = capture_sequence(self.station.display, self.station.camera, job.shows(self.station.config.fringes),
                                       recipe.analysis.mask_threshold_dn, timeout_s=self.settings.camera_timeout_s)
             distance = float(self.station.range_finder.measure())
             capture_s = time.perf_counter() - t
-            job = self.station.job_for(recipe)
             for first in (True, False):
                 t_an = time.perf_counter()
                 self.worker.warm_up(raw, job, distance, timeout_s=max(60.0, 3 * self.settings.deadline_s),
