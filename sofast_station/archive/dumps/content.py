@@ -192,7 +192,12 @@ class DumpContent:
     # -- use ----------------------------------------------------------------------------------------
     @property
     def patterns(self) -> list[str]:
-        """Label of the display image of each frame."""
+        """Label of the display image of each frame (a fixed-pattern capture's: dark, white and the dots, or the
+        dots alone)."""
+        fixed = self.design.get("fixed") if isinstance(self.design, dict) else None
+        if isinstance(fixed, dict):
+            dots = f"dot grid {fixed.get('grid', {}).get('pitch_px')} px"
+            return ["dark", "white", dots] if fixed.get("white_frame") else [dots]
         return [p.label for p in self.fringe_set().patterns()]
 
     def frames(self) -> np.ndarray:
