@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from sofast_station.files import json_ready
-from sofast_station.archive.dumps import (SCHEMA_V1, SCHEMA_V2, SCHEMA_V3, SCHEMA_VERSION, crop_to_facet, disk_ok, prune_dumps,
-                                          read_dump, restore_frames, write_dump)
+from sofast_station.archive.dumps import (SCHEMA_V1, SCHEMA_V2, SCHEMA_V3, SCHEMA_VERSION, crop_to_facet, disk_ok,
+                                          prune_dumps, read_dump, restore_frames, write_dump)
 from sofast_station.archive.dumps import writer as dump_writer
 from sofast_station.archive.spool import spool_get, spool_list, spool_put
 from sofast_station.errors import ArchiveError, DumpError

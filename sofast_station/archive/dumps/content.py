@@ -11,7 +11,7 @@ import numpy as np
 from ... import __version__
 from ...errors import ArchiveError, DumpError
 from ...files import json_ready
-from .schema import SCHEMA_VERSION
+from .schema import FRINGE_SCHEMA_VERSION, SCHEMA_VERSION
 
 log = logging.getLogger("sofast_station.archive.dumps")
 
@@ -70,7 +70,8 @@ class DumpContent:
     facet_path: str
     station_name: str
     record: dict
-    schema_version: int = SCHEMA_VERSION
+    #: (what the writer labels it: a fringe capture 2, a fixed-pattern one 3)
+    schema_version: int = FRINGE_SCHEMA_VERSION
     created: str = ""
     path: Path | None = field(default=None, compare=False)
     #: The uncertainty's sensitivities the station's analysis used
@@ -151,6 +152,8 @@ class DumpContent:
                    analysis=json_ready(analysis.to_dict()),
                    station_toml=texts[0], facet_toml=texts[1], station_path=str(config.path),
                    facet_path=str(facet_path), station_name=str(config.name), record=rec,
+                   schema_version=(SCHEMA_VERSION if (heliostat or {}).get("method") == "fixed"
+                                   else FRINGE_SCHEMA_VERSION),
                    sensitivities=None if sensitivities is None else json_ready(sensitivities),
                    uncertainty_inputs=json_ready(uncertainty_inputs if uncertainty_inputs is not None else
                                                  (None if getattr(config, "uncertainty", None) is None

@@ -15,7 +15,7 @@ import numpy as np
 from ... import __version__
 from ...errors import DumpError
 from .content import DumpContent
-from .schema import _JSON_ENCODING, _PLAIN_ENCODING, SCHEMA, SCHEMA_V1, SCHEMA_V2, SCHEMA_V3, SCHEMA_VERSION
+from .schema import _JSON_ENCODING, _PLAIN_ENCODING, SCHEMA, SCHEMA_V1, SCHEMA_V2, SCHEMA_VERSION
 
 log = logging.getLogger("sofast_station.archive.dumps")
 
