@@ -89,7 +89,7 @@ def doors(tmp_path_factory):
         service.close()
     dumps = sorted((tmp / "line-data" / "dumps").rglob("*.h5"))
     assert len(dumps) == 1, dumps
-    return job, by_inspect, outcomes[0].record, reprocess_dump(dumps[0]).record, dumps[0]
+    return job, by_inspect, outcomes[0].record, reprocess_dump(dumps[0]).record, dumps[0], frames, cfg
 
 
 def test_a_fixed_recipe_measures_one_dot_frame_against_the_twins_truth(doors):
@@ -111,7 +111,7 @@ def test_the_dot_frame_makes_the_same_record_through_inspect_the_line_and_reproc
     method and its dots), whichever program measured it; the line's dump is a schema-3 dump."""
     import h5py
 
-    _, *records, dump = doors
+    _, *records, dump = doors[:5]
     a, b, c = (measured(r) for r in records)
     for name, other in (("the line", b), ("reprocess", c)):
         differ = sorted(k for k in set(a) | set(other) if a.get(k) != other.get(k))
@@ -131,7 +131,7 @@ def test_an_older_reader_refuses_a_fixed_dump_clearly(doors, monkeypatch):
 
     monkeypatch.setattr(reader, "SCHEMA_VERSION", 2)
     with pytest.raises(DumpError, match="newer sofast-station.*schema version 3.*upgrade"):
-        reader.read_dump(doors[-1])
+        reader.read_dump(doors[4])
 
 
 def test_a_fixed_recipe_on_a_dish_station_is_refused_with_what_to_do(tmp_path):
@@ -147,3 +147,46 @@ def test_a_fixed_recipe_on_a_dish_station_is_refused_with_what_to_do(tmp_path):
     fine = quarter_heliostat(tmp_path, '\n[recipes.dots]\nmethod = "fixed"\nfixed = { pitch_px = 6 }\n')
     with pytest.raises(ConfigError, match=r"pitch_px to \d+ or more"):
         recipes_from_config(load_config(fine))
+
+
+def test_bad_dot_captures_are_faults_that_say_what_is_wrong(doors):
+    """What the line answers for a dot capture it cannot measure (result/faults.py: a capture fault, code 3,
+    its reason saying which): a frame with no dots (the lit display alone), the origin mark gone (its spot
+    painted over with the pattern's level), too few dots (a recipe asking for more than the facet shows) and
+    the grid seen twice (a second copy of the picture half a step off along both image axes, the origin
+    mark kept: a second reflection)."""
+    from sofast_station.job import Capture
+    from sofast_station.result.faults import fault_reason
+
+    job, rec = doors[0], doors[1]
+    frame, cfg = doors[5][0], doors[6]
+    step = rec["dots"]["step_px"]
+
+    def fault(image, j=job):
+        try:
+            j.analyse(Capture(image[None], rec["measured_distance_m"], cfg.fringes, cfg.geometry))
+        except Exception as exc:              # the station's fault mapping, as the line's cycle applies it
+            return fault_reason(exc)
+        raise AssertionError("the capture was measured")
+
+    import cv2
+
+    k = 2 * int(np.ceil(step)) + 1        # a closing wider than a dot fills every dot with the lit level
+    lit = cv2.morphologyEx(frame, cv2.MORPH_CLOSE, np.ones((k, k), np.uint8))
+    code, reason = fault(lit)
+    assert code == 3 and reason.startswith("capture: no dot grid on the facet"), reason
+    no_mark = frame.copy()
+    u, v = np.round(rec["dots"]["origin_px"]).astype(int)
+    patch = no_mark[v - 3:v + 4, u - 3:u + 4]
+    patch[patch > np.median(frame[frame > 30])] = np.uint8(np.median(frame[frame > 30]))
+    code, reason = fault(no_mark)
+    assert code == 3 and "no origin mark" in reason, reason
+    greedy = dataclasses.replace(job, fixed=dataclasses.replace(
+        job.fixed, settings=dataclasses.replace(job.fixed.settings, min_dots=5 * rec["n_points"])))
+    code, reason = fault(frame, greedy)
+    assert code == 3 and f"only {rec['n_points']} dots on the facet could be used" in reason, reason
+    shift = int(round(step / 2))
+    twice = np.minimum(frame, np.roll(frame, (shift, shift), axis=(0, 1)))
+    twice[v - 3:v + 4, u - 3:u + 4] = frame[v - 3:v + 4, u - 3:u + 4]           # the mark as it was
+    code, reason = fault(twice)
+    assert code == 3 and ("seen twice" in reason or "closer together" in reason), reason
