@@ -13,7 +13,7 @@ compared with the twin's truth at the points each kept.
 
 Per method: per figure the coverage of |error| <= U and the RMS of error / (U / 2) (both ends of the coverage
 band: :func:`~sofast_station.station.population.coverage_band`), the points per facet, the capture time
-(frames x (settle + exposure) from the station's radiometric record: its latency calibration's settle time)
+(frames x (settle + exposure): :func:`frame_time_s`, the settle time the station's display waits)
 and the analysis's CPU time.
 """
 
@@ -35,6 +35,17 @@ from .study import Placement, capture_record, perturbed_geometry
 FIXED_KINDS = ("heliostat", "flat")
 #: The fixed-pattern recipe the study measures with: dots about 12 camera pixels apart on the nominal facet.
 RECIPE_TABLE = {"spacing_px": 12.0}
+
+
+def frame_time_s(config, radiometric) -> float:
+    """Seconds one frame takes to capture on the station of *config*: the display's settle time (its latency
+    calibration's, in the radiometric record, or station.toml's ``[devices] display_options.settle_s`` until
+    one exists, 0.05 s by default: as the station's display waits) plus the exposure."""
+    if radiometric.settle_s is not None:
+        settle = float(radiometric.settle_s)
+    else:
+        settle = float(dict(config.raw.get("devices", {}).get("display_options", {})).get("settle_s", 0.05))
+    return settle + float(radiometric.exposure_s)
 
 
 def _dot_image(st: PopulationStation, grid):
@@ -86,7 +97,7 @@ def run_methods(captures: int, seed: int = 0, per_station: int = 5, kinds=FIXED_
             dots = dot_locations(fixed.grid, cfg.geometry)
             dot_img = _dot_image(st, fixed.grid)
             cal = st.calibration
-            frame_s = float(cal.settle_s or 0.0) + float(cal.exposure_s)
+            frame_s = frame_time_s(cfg, cal)
             fixed_cache: dict = {}
             rng = np.random.default_rng([seed, spec["index"], 0x3E7D])
             n = min(per_station, captures - sum(c["method"] == "fringe" for c in cases))
