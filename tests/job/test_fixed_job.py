@@ -39,20 +39,13 @@ from sofast_station.station.service import Service
 from tests.conftest import ROOT, load_station
 from tests.job.test_front_doors import measured
 
-HELIOSTAT = ROOT / "fixtures/stations/heliostat.toml"
-
-
 def quarter_heliostat(folder, recipes: str = "") -> object:
-    """The heliostat station at a quarter of its resolution, its data in *folder*, with *recipes* appended."""
-    text = HELIOSTAT.read_text()
-    for key, value in (("width_px = 1600", "width_px = 400"), ("height_px = 1200", "height_px = 300"),
-                       ("focal_length_px = 3000.0", "focal_length_px = 750.0"),
-                       ("principal_point_px = [799.5, 599.5]", "principal_point_px = [199.5, 149.5]"),
-                       ("width_px = 2400", "width_px = 600"), ("height_px = 2400", "height_px = 600"),
-                       ("pitch_m = 0.0011", "pitch_m = 0.0044")):
-        text = text.replace(key, value, 1)
-    text = re.sub(r'data_dir = ".*"', f'data_dir = "{folder / "data"}"', text)
-    text = text.replace('"../../', f'"{ROOT}/').replace('"../', f'"{HELIOSTAT.parent.parent}/')
+    """The heliostat station at a quarter of its resolution (the fixed-pattern benchmark's ``--quick`` one), its
+    data in *folder*, with *recipes* appended."""
+    from benchmarks.fixed_pattern import quick_heliostat
+
+    path = quick_heliostat(folder)
+    text = re.sub(r'data_dir = ".*"', f'data_dir = "{folder / "data"}"', path.read_text())
     path = folder / "station.toml"
     path.write_text(text + recipes)
     return path
