@@ -183,3 +183,31 @@ def test_bad_dot_captures_are_faults_that_say_what_is_wrong(doors):
     twice[v - 3:v + 4, u - 3:u + 4] = frame[v - 3:v + 4, u - 3:u + 4]           # the mark as it was
     code, reason = fault(twice)
     assert code == 3 and ("seen twice" in reason or "closer together" in reason), reason
+
+
+def test_the_method_and_its_dots_on_every_screen(doors):
+    """inspect's summary, the line's page and the certificate's head say how the facet was measured and on how
+    many dots (``result.formatting.method_text``); the workbook's row has the method and the dots' counts."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from sofast_station.archive.workbook import flatten_record
+    from sofast_station.report.certificate import certificate_head
+    from sofast_station.report.summary import record_text
+    from sofast_station.web.render import last_html
+
+    rec = doors[1]
+    said = f"fixed pattern (dot grid), {rec['n_points']:,} dots"
+    text = record_text(rec)
+    assert f"dots (fixed pattern)      {rec['n_points']:>14,}" in text and "median dot depth" in text, text
+    assert said in last_html({"last": {**rec, "cycle_id": "c1"}})
+    fig = plt.figure(figsize=(8.27, 11.69))
+    try:
+        certificate_head(fig, rec, "Facet certificate")
+        assert said in [t.get_text() for t in fig.texts]
+    finally:
+        plt.close(fig)
+    row = flatten_record("c1", rec)
+    assert row["method"] == "fixed" and row["n_points"] == rec["n_points"] and row["dots.used"] == rec["n_points"]
