@@ -26,6 +26,7 @@ import re
 import numpy as np
 import pytest
 
+from sofast_station.archive.dumps import read_dump
 from sofast_station.config import load_config
 from sofast_station.devices.cameras.replay import ReplayCamera
 from sofast_station.devices.protocols import FacetRequest
@@ -111,6 +112,9 @@ def test_the_dot_frame_makes_the_same_record_through_inspect_the_line_and_reproc
         assert not differ, f"inspect and {name} differ in {differ}: " + "; ".join(
             f"{k}: {a.get(k)!r} / {other.get(k)!r}" for k in differ[:3])
     assert records[2]["reprocess"]["exact"] is True
+    again = read_dump(dump).analyse().figures           # the dump's own re-analysis (without U)
+    assert again["method"] == "fixed" and again["n_points"] == a["n_points"]
+    assert again["focal_length_x_m"] == a["focal_length_x_m"]
     with h5py.File(dump) as f:
         assert int(f.attrs["schema_version"]) == 3 and f["capture/frames"].shape[0] == 1
         assert json.loads(json.dumps(f["design/method"][()].decode())) == "fixed"

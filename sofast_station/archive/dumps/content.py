@@ -236,7 +236,9 @@ class DumpContent:
 
         Keyword arguments replace any of ``fringes``, ``geometry``, ``design``, ``measured_distance_m``,
         ``settings`` (e.g. another facet model or alignment point); ``uncertainty`` and
-        ``sensitivity_cache`` are passed on (the figures' expanded uncertainties).
+        ``sensitivity_cache`` are passed on (the figures' expanded uncertainties). A fixed-pattern capture
+        (``design["method"] == "fixed"``, schema 3) is analysed by the fixed-pattern method, its dot locations
+        from the dumped grid on the dumped screen (``fringes`` does not apply to it).
 
         Returns
         -------
@@ -253,6 +255,18 @@ class DumpContent:
             raise TypeError(f"unknown override(s) {sorted(unknown)}; allowed: {sorted(args)}")
         args.update(overrides)
         args.update(passed)
+        if isinstance(self.design, dict) and self.design.get("method") == "fixed":
+            from ...measure.fixed import FixedCapture, analyse_fixed, lcd_dot_locations
+            from ...measure.pipeline import default_screen
+
+            if "fringes" in overrides:
+                raise TypeError("a fixed-pattern capture has no fringes to replace")
+            fixed = FixedCapture.from_dict(self.design["fixed"])
+            frames, geometry = self.frames(), args["geometry"]
+            dark, white = (frames[0], frames[1]) if fixed.white_frame else (None, None)
+            return analyse_fixed(frames[fixed.n_frames - 1], lcd_dot_locations(fixed.grid, default_screen(geometry)),
+                                 geometry, args["design"], args["measured_distance_m"], args["settings"],
+                                 fixed.settings, white=white, dark=dark, **passed)
         # The camera's rays are kept per process: re-analysing many dumps of one station computes them once.
         return analyse(self.frames(), **args, rays_cam=ray_table(args["geometry"].camera))
 
