@@ -70,6 +70,13 @@ def doors(tmp_path_factory):
             station.display.show(pattern)
             frames.append(station.camera.grab())
         frames = np.stack(frames)
+        # and what a recipe that allows a dark and a white frame shows first (the same placement)
+        white_job = dataclasses.replace(job, fixed=dataclasses.replace(job.fixed, white_frame=True))
+        lit = []
+        for pattern in white_job.shows(cfg.fringes).patterns()[:2]:
+            station.display.show(pattern)
+            lit.append(station.camera.grab())
+        white_capture = (white_job, np.stack([*lit, frames[0]]))
         station.camera = ReplayCamera(frames, loop=True)
         by_inspect = inspect(station, "DOTS-1", recipe=recipe)
     finally:
@@ -83,7 +90,8 @@ def doors(tmp_path_factory):
         service.close()
     dumps = sorted((tmp / "line-data" / "dumps").rglob("*.h5"))
     assert len(dumps) == 1, dumps
-    return job, by_inspect, outcomes[0].record, reprocess_dump(dumps[0]).record, dumps[0], frames, cfg
+    return (job, by_inspect, outcomes[0].record, reprocess_dump(dumps[0]).record, dumps[0], frames, cfg,
+            white_capture)
 
 
 def test_a_fixed_recipe_measures_one_dot_frame_against_the_twins_truth(doors):
@@ -215,3 +223,22 @@ def test_the_method_and_its_dots_on_every_screen(doors):
         plt.close(fig)
     row = flatten_record("c1", rec)
     assert row["method"] == "fixed" and row["n_points"] == rec["n_points"] and row["dots.used"] == rec["n_points"]
+
+
+def test_a_recipe_with_a_white_frame_takes_the_facet_from_white_minus_dark(doors):
+    """``white_frame = true``: the capture is dark, white, then the dots (3 frames); the job crops to the
+    facet's region in white - dark and measures the same facet, its focal lengths within the module
+    docstring's tolerance of the twin's truth (the same placement as the one-frame capture's)."""
+    from sofast_station.job import Capture
+
+    rec, cfg = doors[1], doors[6]
+    job, frames = doors[7]
+    assert [p.label for p in job.shows(None).patterns()[:2]] == ["dark", "white"] and len(frames) == 3
+    r0, c0, r1, c1 = job.crop_box(frames[0], frames[1])
+    rows, cols = np.nonzero(frames[1].astype(int) - frames[0].astype(int) > cfg.analysis.mask_threshold_dn)
+    assert r0 <= rows.min() and r1 > rows.max() and c0 <= cols.min() and c1 > cols.max()
+    out = job.analyse(Capture(frames, rec["measured_distance_m"], cfg.fringes, cfg.geometry))
+    fig = out.figures
+    assert fig["method"] == "fixed" and fig["n_points"] >= 200
+    for axis in "xy":
+        assert abs(fig[f"focal_length_{axis}_m"] - rec["truth"][f"focal_length_{axis}_m"]) <= 3.0
