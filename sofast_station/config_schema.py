@@ -284,6 +284,7 @@ SECTIONS: dict[str, dict[str, Key]] = {
     "web": {"*": Key("any", doc="checked by its reader (READERS below)")},
     "opcua": {"*": Key("any", doc="checked by its reader (READERS below)")},
     "drift": {"*": Key("any", doc="checked by its reader (READERS below)")},
+    "marks": {"*": Key("any", doc="the fixture's marks; checked by its reader (READERS below)")},
     "acceptance": {"*": Key("table", doc="[acceptance.RECIPE], checked by report.acceptance (a rule below)")},
     "certificate": {
         "issuer": Key("str", doc="who issues the facet certificates (report certificate): the organisation"),
@@ -301,7 +302,7 @@ SECTIONS: dict[str, dict[str, Key]] = {
 #: The sections that may appear at the top of station.toml (the others are nested tables).
 TOP_LEVEL = ["station", "camera", "screen", "layout", "fringes", "analysis", "limits", "quality", "calibration",
              "optics", "simulation", "run", "archive", "devices", "recipes", "web", "opcua", "acceptance", "drift",
-             "uncertainty", "certificate", "heliostat"]
+             "uncertainty", "certificate", "heliostat", "marks"]
 
 
 def _check_value(key: Key, value, file: str, label: str, name: str) -> None:
@@ -424,6 +425,7 @@ READERS = {
     "web": "sofast_station.web.settings:web_settings",
     "opcua": "sofast_station.web.settings:opcua_settings",
     "drift": "sofast_station.station.drift:drift_settings",
+    "marks": "sofast_station.calibrate.marks:mark_settings",
 }
 
 

@@ -39,6 +39,7 @@ from .drift import DriftMonitor
 from .cycle import Cycle, CycleOutcome
 from .frames import capture_sequence
 from .link import LinkWatch
+from .marks import ALARM as GEOMETRY_ALARM, MarkCheck
 from .opened import Station
 from ..recipes import Recipe
 from ..live.status import StatusFile
@@ -226,6 +227,11 @@ class StationRunner:
         self.health = LineHealth(settings.deadline_s, HealthSettings(faults_in_row=settings.alarm_faults_in_row,
                                                                      yield_window=settings.alarm_yield_window),
                                  _recent_by_recipe(journal))
+        #: The fixture's marks in every white frame (station/marks.py): a moved camera stops the judging.
+        self.marks = MarkCheck.open(station.config)
+        self._geometry_alarm: str | None = None
+        if self.marks is not None and self.marks.held:
+            self._raise_geometry_alarm(self.marks.alarm_text())
 
     def check_drift(self, recipe: str, record: dict) -> None:
         """Drift alarm: the rules on the recipe's recent facets; alarms go to the record (journal row),
@@ -251,7 +257,31 @@ class StationRunner:
             log.exception("the line-health check failed; the facet is answered without it")
             return 0
         self._line_alarms(changed)
-        return WARNING_BITS["line"] if self.health.alarms else 0
+        return WARNING_BITS["line"] if self.health.alarms or self._geometry_alarm else 0
+
+    def station_checks(self, white: np.ndarray, cycle_id: str | None = None, serial: str | None = None) -> dict:
+        """The line's checks of itself on this cycle's white frame: the fixture's marks
+        (:class:`~sofast_station.station.marks.MarkCheck`). Returns the record's ``station_checks`` (empty
+        without marks); its ``marks.withhold``, when set, is why the facet must not be judged. The geometry
+        alarm follows the marks' hold."""
+        if self.marks is None:
+            return {}
+        try:
+            entry = self.marks.check(white, cycle_id, serial)
+        except Exception as exc:              # a bug in the check must not judge facets on an unchecked camera
+            log.exception("the fixture marks' check failed")
+            entry = {"withhold": f"the fixture marks' check failed ({exc}): the facet is not judged; see the log"}
+        if entry.get("withhold") and self.marks.held:
+            self._raise_geometry_alarm(self.marks.alarm_text())
+        elif entry.get("withhold"):
+            log.warning("%s: %s", serial, entry["withhold"])
+        return {"marks": entry}
+
+    def _raise_geometry_alarm(self, text: str | None) -> None:
+        if text is None or text == self._geometry_alarm:
+            return
+        self._geometry_alarm = text
+        self._line_alarms({GEOMETRY_ALARM: text})
 
     def _line_alarms(self, changed: dict) -> None:
         for name, text in changed.items():
@@ -417,6 +447,10 @@ class StationRunner:
             text = self.health.startup(capture_s, analysis_s)
             if text is not None:
                 self._line_alarms({"line-startup": text})
+            # a camera moved while the station was off is caught before the first facet
+            found = self.station_checks(raw[1], None, "warm-up").get("marks", {})
+            if found.get("withhold"):
+                log.error("warm-up: %s", found["withhold"])
         except StationError as exc:
             log.warning("warm-up capture not analysed (%s); the first facet may be slower", exc)
             self.reopen_camera()
@@ -494,7 +528,7 @@ class StationRunner:
 
     # ------------------------------------------------------------------ records
     def head(self, cycle_id: str, request: FacetRequest, recipe_name: str, cal_warnings=(),
-              facet: str | None = None) -> RecordHead:
+              facet: str | None = None, checks: dict | None = None) -> RecordHead:
         """The head of this cycle's record (:class:`~sofast_station.result.record.RecordHead`), dated by the
         runner's clock (station/clock.py); the serial as received goes to ``serial_raw`` when making it safe
         changed it."""
@@ -502,7 +536,8 @@ class StationRunner:
         raw = extra.pop("serial_raw", None)
         head = self.station.record_head(request.serial, list(cal_warnings), facet=facet, cycle_id=cycle_id,
                                         recipe=recipe_name, serial_raw=raw,
-                                        request={"recipe": request.recipe, "dump": request.dump, **extra})
+                                        request={"recipe": request.recipe, "dump": request.dump, **extra},
+                                        station_checks=checks or None)
         return dataclasses.replace(head, time=self.clock.now_iso())
 
     def report(self, record: dict, answer: str) -> None:
