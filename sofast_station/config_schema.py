@@ -243,6 +243,9 @@ SECTIONS: dict[str, dict[str, Key]] = {
         "slow_s": _pos("how long a 'slow-analysis' fault delays the analysis, s"),
         "assembly": Key("table", doc="[simulation.assembly]: the twin's true screen and camera (twin.assembly."
                                      "TrueAssembly, a rule below)"),
+        "temperature": Key("table", doc="[simulation.temperature]: the simulated hall's start_c, k_per_100 (its "
+                                        "warming per hundred facets) and screen_above_k ([temperature] source = "
+                                        "\"simulated\"; devices/thermometer.py)"),
     },
     "simulation_faults": {"*": Key("str", choices=SIMULATED_FAULTS, doc="fault injected for this serial")},
     "run": {
@@ -285,6 +288,7 @@ SECTIONS: dict[str, dict[str, Key]] = {
     "opcua": {"*": Key("any", doc="checked by its reader (READERS below)")},
     "drift": {"*": Key("any", doc="checked by its reader (READERS below)")},
     "marks": {"*": Key("any", doc="the fixture's marks; checked by its reader (READERS below)")},
+    "temperature": {"*": Key("any", doc="the temperature readings; checked by its reader (READERS below)")},
     "acceptance": {"*": Key("table", doc="[acceptance.RECIPE], checked by report.acceptance (a rule below)")},
     "certificate": {
         "issuer": Key("str", doc="who issues the facet certificates (report certificate): the organisation"),
@@ -302,7 +306,7 @@ SECTIONS: dict[str, dict[str, Key]] = {
 #: The sections that may appear at the top of station.toml (the others are nested tables).
 TOP_LEVEL = ["station", "camera", "screen", "layout", "fringes", "analysis", "limits", "quality", "calibration",
              "optics", "simulation", "run", "archive", "devices", "recipes", "web", "opcua", "acceptance", "drift",
-             "uncertainty", "certificate", "heliostat", "marks"]
+             "uncertainty", "certificate", "heliostat", "marks", "temperature"]
 
 
 def _check_value(key: Key, value, file: str, label: str, name: str) -> None:
@@ -426,6 +430,7 @@ READERS = {
     "opcua": "sofast_station.web.settings:opcua_settings",
     "drift": "sofast_station.station.drift:drift_settings",
     "marks": "sofast_station.calibrate.marks:mark_settings",
+    "temperature": "sofast_station.devices.thermometer:temperature_settings",
 }
 
 

@@ -284,3 +284,24 @@ def test_uncertainty_coverage_benchmark_quick(repo_root, tmp_path):
     assert "34 captures from 17 file(s)" in merged.stdout
     assert "errors against the drawn inputs (least squares over 34 captures" in merged.stdout
     assert "residual std" in merged.stdout
+
+
+def test_marks_benchmark_quick(repo_root):
+    """benchmarks/marks.py: the check's cost on a 400 x 300 station, 5 good cycles, every camera move."""
+    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "marks.py"), "--quick"],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    print(proc.stdout)
+    for line in ("== cost of the check: camera 400 x 300", "wall ms per check", "good cycles: 5, false alarms",
+                 "turn 0.2 mrad about x", "shift 1 mm along y"):
+        assert line in proc.stdout
+
+
+def test_placement_tilt_benchmark_quick(repo_root):
+    """benchmarks/placement_tilt.py: 2 captures of the ideal 400 x 300 dish, the corners' and the slopes' tilt."""
+    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "placement_tilt.py"), "--quick"],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    print(proc.stdout)
+    for line in ("== ideal 400 x 300 dish: 2 captures", "about x: corners", "slopes", "own boresight"):
+        assert line in proc.stdout

@@ -289,48 +289,22 @@ def implied_pose_u(turn_rad: np.ndarray, fixture_to_camera_rotation: np.ndarray,
     return {"rotation_mrad": (1e3 * rotation).tolist(), "translation_mm": (1e3 * translation).tolist()}
 
 
-#: The figures a change of the fixture's pose reaches, and how (docs/uncertainty.md: "the fixture pose reaches
-#: placement and optical_tilt_mrad only"): a turn of the fixture frame about its x (y, z) axis turns the facet's
-#: placement and the boresight frame's tilt in it by as much; a slide moves the placement by as much.
-_ROTATION_FIGURES = (("placement_U", "mrad", 0), ("placement_U", "mrad", 1), ("placement_U", "mrad", 2),
-                     ("optical_tilt_mrad_U", "x", None), ("optical_tilt_mrad_U", "y", None))
-
-
 def widen_for_pose(figures: dict, pose_u: dict, coverage_factor: float = 2.0) -> dict:
-    """Grow the expanded uncertainties of the figures the fixture's pose reaches by *pose_u*
-    (:func:`implied_pose_u`), in quadrature: ``U' = sqrt(U^2 + (k u)^2)``. Changes *figures* in place (the
-    ``*_U`` entries) and returns what was added, per figure (k = 2), for the record.
+    """Add the fixture pose *pose_u* leaves unknown (:func:`implied_pose_u`) to the figures' budget, as its
+    row ``fixture marks: camera shift`` (:func:`~sofast_station.measure.budget_rows.add_budget_row`), and grow
+    the expanded uncertainties it reaches in quadrature: ``U' = sqrt(U^2 + (k u)^2)``. Changes *figures* in
+    place; returns what was added to each U (k = 2).
 
-    A figure without an uncertainty is left alone; so is a record without the figure."""
+    What it reaches (docs/uncertainty.md: the fixture pose reaches ``placement`` and ``optical_tilt_mrad``
+    only): a turn of the fixture frame about its x (y, z) axis turns the facet's placement and the boresight
+    frame's tilt in it by as much; a slide moves the placement by as much."""
+    from .budget_rows import add_budget_row
+
     rot = [float(v) for v in pose_u.get("rotation_mrad", (0.0, 0.0, 0.0))]
     tra = [float(v) for v in pose_u.get("translation_mm", (0.0, 0.0, 0.0))]
-    added: dict = {}
-
-    def grow(container, key, extra_u):
-        if not isinstance(container, (dict, list)):
-            return None
-        try:
-            value = container[key]
-        except (KeyError, IndexError, TypeError):
-            return None
-        if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value):
-            return None
-        container[key] = float(math.hypot(value, coverage_factor * extra_u))
-        return coverage_factor * extra_u
-
-    for name, sub, index in _ROTATION_FIGURES:
-        node = figures.get(name)
-        if not isinstance(node, dict):
-            continue
-        axis = {"x": 0, "y": 1}.get(sub, index)
-        target, key = (node.get(sub), index) if index is not None else (node, sub)
-        got = grow(target, key, rot[axis])
-        if got is not None:
-            added[f"{name[:-2]}.{sub}" + (f".{index}" if index is not None else "")] = got
-    node = figures.get("placement_U")
-    if isinstance(node, dict):
-        for i in range(3):
-            got = grow(node.get("mm"), i, tra[i])
-            if got is not None:
-                added[f"placement.mm.{i}"] = got
-    return added
+    contributions = {f"placement.mrad.{i}": rot[i] for i in range(3)}
+    contributions.update({f"placement.mm.{i}": tra[i] for i in range(3)})
+    contributions.update({"optical_tilt_mrad.x": rot[0], "optical_tilt_mrad.y": rot[1]})
+    inputs = [f"apparent turn about the fixture's {a} ({r:.3g} mrad)" for a, r in zip("xyz", rot)]
+    inputs += [f"its sideways slide along {a} ({t:.3g} mm)" for a, t in zip("xyz", tra)]
+    return add_budget_row(figures, "fixture marks: camera shift", inputs, contributions, coverage_factor)

@@ -303,7 +303,10 @@ def run_marks(config, *, seed: int | None = None, noise: bool = True, confirmed_
         station.close()
     pose = newest_record_path(config.data_dir, "pose", config.identity)
     source = f"sofast-station {__version__} calibrate marks on {config.name} ({config.backend})"
-    extra = {"pose_record": pose.stem if pose is not None else None, "confirmed_by": confirmed_by}
+    from .temperature import read_temperature
+
+    extra = {"pose_record": pose.stem if pose is not None else None, "confirmed_by": confirmed_by,
+             "temperature_c": read_temperature(config)}
     path, record_id = save_marks_record(config.data_dir, found, settings, config.geometry, source,
                                         station=config.identity, extra=extra)
     ended = clear_hold(config.data_dir)

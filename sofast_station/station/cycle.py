@@ -27,6 +27,7 @@ from ..errors import AnalysisTimeout, CameraError, StationError, TriggerError
 from ..live.operator_commands import take_dump_next
 from ..recipes import choose_recipe
 from ..measure.fixture_marks import widen_for_pose
+from ..measure.thermal import widen_for_temperature
 from ..result.faults import fault_reason
 from ..result.record import build_record
 from ..result.shift import cycle_seconds
@@ -256,6 +257,11 @@ class Cycle:
         if pose_u:
             # what the marks' small shift leaves unknown of the fixture's pose, in the U's it reaches
             self.checks["marks"]["widened_U"] = widen_for_pose(res.figures, pose_u)
+        thermal = self.checks.get("temperature", {}).get("u")
+        if thermal and self.line.temperature is not None:
+            # the screen's and the fixture's expansion since commissioning, in the U's they reach
+            self.checks["temperature"]["widened_U"] = widen_for_temperature(res.figures, thermal,
+                                                                            self.line.temperature.pitch_u)
         head = self.line.head(self.cycle_id, self.request, recipe.name, cal_warnings, facet=job.name,
                               checks=self.checks)
         return job.record(head, res.figures, truth, timings, measured_distance_m=self.captured.distance_m,

@@ -41,6 +41,7 @@ from .frames import capture_sequence
 from .link import LinkWatch
 from .marks import ALARM as GEOMETRY_ALARM, MarkCheck
 from .opened import Station
+from .temperature import TemperatureCheck
 from ..recipes import Recipe
 from ..live.status import StatusFile
 from .worker import AnalysisWorker
@@ -232,6 +233,8 @@ class StationRunner:
         self._geometry_alarm: str | None = None
         if self.marks is not None and self.marks.held:
             self._raise_geometry_alarm(self.marks.alarm_text())
+        #: The screen's and the hall's temperature per facet (station/temperature.py), in every row and budget.
+        self.temperature = TemperatureCheck.open(station.config, self.marks.record if self.marks else None)
 
     def check_drift(self, recipe: str, record: dict) -> None:
         """Drift alarm: the rules on the recipe's recent facets; alarms go to the record (journal row),
@@ -260,12 +263,17 @@ class StationRunner:
         return WARNING_BITS["line"] if self.health.alarms or self._geometry_alarm else 0
 
     def station_checks(self, white: np.ndarray, cycle_id: str | None = None, serial: str | None = None) -> dict:
-        """The line's checks of itself on this cycle's white frame: the fixture's marks
-        (:class:`~sofast_station.station.marks.MarkCheck`). Returns the record's ``station_checks`` (empty
-        without marks); its ``marks.withhold``, when set, is why the facet must not be judged. The geometry
-        alarm follows the marks' hold."""
+        """The line's checks of itself on this cycle: the fixture's marks in its white frame
+        (:class:`~sofast_station.station.marks.MarkCheck`) and the temperature
+        (:class:`~sofast_station.station.temperature.TemperatureCheck`). Returns the record's ``station_checks``
+        (empty without either); its ``marks.withhold``, when set, is why the facet must not be judged. The
+        geometry alarm follows the marks' hold."""
+        checks: dict = {}
+        if self.temperature is not None:
+            checks["temperature"] = self.temperature.check()
         if self.marks is None:
-            return {}
+            self._show_health(checks, serial)
+            return checks
         try:
             entry = self.marks.check(white, cycle_id, serial)
         except Exception as exc:              # a bug in the check must not judge facets on an unchecked camera
@@ -275,7 +283,30 @@ class StationRunner:
             self._raise_geometry_alarm(self.marks.alarm_text())
         elif entry.get("withhold"):
             log.warning("%s: %s", serial, entry["withhold"])
-        return {"marks": entry}
+        checks["marks"] = entry
+        self._show_health(checks, serial)
+        return checks
+
+    def _show_health(self, checks: dict, serial: str | None) -> None:
+        """The page's lines on the station's own health (the status file's ``station_health``), from this cycle's
+        checks: beside the facets' verdicts, so the operator sees the station judged too."""
+        health = {}
+        marks = checks.get("marks")
+        if marks is not None:
+            limit = self.marks.settings.max_turn_mrad if self.marks is not None else float("nan")
+            turn = marks.get("turn_mrad")
+            health["geometry (fixture marks)"] = (
+                f"HOLD: {marks['withhold']}" if marks.get("withhold") else
+                f"{marks.get('found')}/{marks.get('marks')} marks where commissioned: apparent camera turn "
+                f"{(turn[0] ** 2 + turn[1] ** 2) ** 0.5:.3f} mrad (limit {limit:g}) at {serial}" if turn else "-")
+        temp = checks.get("temperature")
+        if temp is not None:
+            health["temperature"] = (f"not read: {temp['error']}" if temp.get("error") else
+                                     f"hall {temp['hall_c']:.1f} degC, screen {temp['screen_c']:.1f} degC: "
+                                     f"{temp['delta_k']['hall']:+.1f} K and {temp['delta_k']['screen']:+.1f} K from "
+                                     f"commissioning ({temp['commissioned']['from']}), in every facet's U")
+        if health and health != self.status.data.get("station_health"):
+            self.status.update(station_health=health)
 
     def _raise_geometry_alarm(self, text: str | None) -> None:
         if text is None or text == self._geometry_alarm:
@@ -565,6 +596,8 @@ class StationRunner:
 
     def close(self) -> None:
         self.stop_event.set()
+        if self.temperature is not None:
+            self.temperature.close()
         self.worker.close()             # waits for an abandoned analysis within its grace: it queues its result
         self._keep_late_results()
         self.status.close()

@@ -18,7 +18,7 @@ from ..errors import ConfigError
 from .opened import Station
 
 _SIM_KEYS = {"seed", "facet", "optics", "population", "distance_error_m", "faults", "hang_s", "slow_s",
-             "assembly", "heliostat"}
+             "assembly", "heliostat", "temperature"}
 
 #: Faults the simulated station can inject for a given serial ([simulation.faults] SERIAL = KIND).
 FAULT_KINDS = SIMULATED_FAULTS

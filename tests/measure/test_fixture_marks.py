@@ -72,8 +72,13 @@ def test_an_apparent_turn_is_the_fixture_pose_it_leaves_unknown():
 
 
 def test_a_small_motion_widens_the_placement_and_the_optical_tilt_in_quadrature():
+    """The fixture pose a small shift leaves unknown is a budget row of its own: each reached figure's combined
+    standard uncertainty and its U (k = 2) grow in quadrature by it; figures it does not reach are untouched."""
+    names = ["focal_length_x_m", "optical_tilt_mrad.x", "optical_tilt_mrad.y", "placement.mm.0", "placement.mrad.1"]
     figures = {"placement_U": {"mm": [0.6, 0.6, 0.3], "mrad": [30.0, 40.0, 2.0]},
-               "optical_tilt_mrad_U": {"x": 1.0, "y": None}, "focal_length_x_m_U": 0.001}
+               "optical_tilt_mrad_U": {"x": 1.0, "y": None}, "focal_length_x_m_U": 0.001,
+               "uncertainty_budget": {"figures": names, "rows": [],
+                                      "combined_standard": [0.0005, 0.5, None, 0.3, 20.0]}}
     added = widen_for_pose(figures, {"rotation_mrad": [0.05, 0.02, 0.0], "translation_mm": [0.4, 0.0, 0.0]})
     assert figures["optical_tilt_mrad_U"]["x"] == pytest.approx(math.hypot(1.0, 0.1))
     assert figures["optical_tilt_mrad_U"]["y"] is None                      # no U: nothing to widen
@@ -81,6 +86,13 @@ def test_a_small_motion_widens_the_placement_and_the_optical_tilt_in_quadrature(
     assert figures["placement_U"]["mm"][0] == pytest.approx(math.hypot(0.6, 0.8))
     assert figures["focal_length_x_m_U"] == 0.001                            # the fixture pose does not reach f
     assert added["optical_tilt_mrad.x"] == pytest.approx(0.1) and "optical_tilt_mrad.y" not in added
+    budget = figures["uncertainty_budget"]
+    row = budget["rows"][-1]
+    assert row["group"] == "fixture marks: camera shift"
+    assert row["contributions"] == [0.0, 0.05, 0.02, 0.4, 0.02]
+    combined = budget["combined_standard"]
+    assert combined[2] is None                                  # a figure without a stated one stays so
+    assert [combined[i] for i in (0, 1, 3, 4)] == pytest.approx([0.0005, math.hypot(0.5, 0.05), 0.5, 20.0], rel=1e-3)
 
 
 @pytest.fixture(scope="module")

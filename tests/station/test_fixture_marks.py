@@ -19,6 +19,17 @@ from sofast_station.config import load_config
 from sofast_station.devices.protocols import FAULT_CODES, WARNING_BITS
 
 ROOT = Path(__file__).resolve().parents[2]
+#: A hall warming by 5 K a facet (issue 44 item 4), the screen 1 K above it; commissioned at 20 degC.
+TEMPERATURE_TABLE = """
+[temperature]
+source = "simulated"
+commissioned_c = 20.0
+
+[simulation.temperature]
+start_c = 20.0
+k_per_100 = 500.0
+screen_above_k = 1.0
+"""
 MARKS_TABLE = '''
 [marks]
 centres_mm = [[-450, -380], [0, -380], [450, -380], [-450, 380], [0, 380], [450, 380], [-500, 0], [500, 0]]
@@ -66,7 +77,8 @@ def marked_station(tmp_path) -> Path:
     path = tmp_path / "station.toml"
     path.write_text(SMALL_STATION.format(data_dir=tmp_path / "data", facet=ROOT / "fixtures/facets/dish_5m33.toml",
                                          radiometric=ROOT / "calibration/simulated_radiometric.json")
-                    + MARKS_TABLE + "\n[run]\ndeadline_s = 600.0\nwarmup = false\nstandby_worker = false\n")
+                    + MARKS_TABLE + "\n[run]\ndeadline_s = 600.0\nwarmup = false\nstandby_worker = false\n"
+                    + TEMPERATURE_TABLE)
     return path
 
 
@@ -76,8 +88,13 @@ def test_a_moved_camera_holds_the_line_until_the_marks_are_taken_again(marked_st
     the twin's camera is then turned by 0.2 mrad. The next two facets are withheld: the robot hears fault 7
     (calibration) with the reason and the line's warning bit; the page's alarm is raised (status line-geometry,
     which OPC UA's Alarms/Line follows); every row says what the marks showed. The hold outlives the line (a
-    restart is held too), and a newer marks record (calibrate marks) ends it."""
-    from sofast_station.archive import Journal
+    restart is held too), and a newer marks record (calibrate marks) ends it.
+
+    The hall warms by 5 K a facet (item 4): every row, and every dump (the withheld facets' frames are dumped)
+    holds the reading; `calibrate marks` took the commissioning's (20 / 21 degC, the simulated hall's first
+    reading); the judged facet's budget has the thermal row: its placement's U grows by twice the structure's
+    expansion, 12e-6 /K x the camera's 10.66 m to the fixture x sqrt(dT^2 + 0.5^2) along its line of sight."""
+    from sofast_station.archive import Journal, read_dump
     from sofast_station.live.status import read_status
     from sofast_station.station.commissioning import run_marks
     from sofast_station.station.marks import MarkCheck
@@ -112,6 +129,13 @@ def test_a_moved_camera_holds_the_line_until_the_marks_are_taken_again(marked_st
             "calibration": {}, "disk": {}, "station": "s", "shift_start": None,
             "alarms": sorted(status["alarms"].items())}
     assert values(snap)["Alarms/Line"] is True
+    # the page shows the station's own health beside the facets' (item 5)
+    from sofast_station.web.render import station_html
+
+    page = station_html({**snap, "calibration": {}, "disk": {"workbook_backlog": 0, "dump_backlog": 0,
+                                                              "spool_files": 0}})
+    assert "geometry (fixture marks)" in page and "HOLD: the camera has moved by 0.7 px" in page
+    assert "hall 30.0 degC, screen 31.0 degC: +10.0 K and +10.0 K from commissioning" in page
     assert any(line.startswith("LINE ALARM: geometry: the camera has moved") for line in lines)
     journal = Journal(config.data_dir / "journal.sqlite3")
     try:
@@ -120,6 +144,17 @@ def test_a_moved_camera_holds_the_line_until_the_marks_are_taken_again(marked_st
         journal.close()
     first = rows["SIM-0001"]["station_checks"]["marks"]
     assert first["withhold"] is None and first["found"] == 8
+    hall = [rows[s]["station_checks"]["temperature"]["hall_c"] for s in ("SIM-0001", "SIM-0002", "SIM-0003")]
+    assert hall == [20.0, 25.0, 30.0]
+    temp = rows["SIM-0001"]["station_checks"]["temperature"]
+    assert temp["commissioned"]["from"].startswith("marks record") and temp["screen_c"] == 21.0
+    along = 12e-6 * 10.66e3 * 0.5                        # dT = 0: the reading's own 0.5 K
+    assert sum(temp["u"]["fixture_translation_mm"]) == pytest.approx(along, rel=0.02)
+    assert max(v for k, v in temp["widened_U"].items() if k.startswith("placement.mm")) == pytest.approx(
+        2 * along, rel=0.02)
+    dumps = sorted((config.data_dir / "dumps").rglob("*.h5"))
+    assert dumps and all(read_dump(d, load_frames=False).record["station_checks"]["temperature"]["hall_c"] in
+                         (25.0, 30.0) for d in dumps)
     assert first["widened_U"]["optical_tilt_mrad.x"] == pytest.approx(2 * first["pose_u"]["rotation_mrad"][0])
     assert first["widened_U"]["placement.mm.0"] == pytest.approx(2 * first["pose_u"]["translation_mm"][0])
     for serial in ("SIM-0002", "SIM-0003"):
