@@ -258,6 +258,8 @@ SECTIONS: dict[str, dict[str, Key]] = {
         "standby_worker": Key("bool", doc="keep a warm second analysis worker that takes over after a timeout or "
                                           "a crash"),
         "alarm_faults_in_row": Key("int", low=1, high=1000, doc="the line alarm after this many faults in a row"),
+        "reference_every_h": Key("float", low=0.0, high=8760.0,
+                                 doc="warn when no reference was measured for this long, h (0: never)"),
         "alarm_yield_window": Key("int", low=5, high=1000,
                                   doc="the line alarm's yield rule: the newest facets of a recipe it judges"),
     },
@@ -300,6 +302,8 @@ SECTIONS: dict[str, dict[str, Key]] = {
         "alignment_point_m": Key("floats", length=(2,)), "measure_point_m": Key("floats", length=(2,)),
         "limits": Key("section:limits"), "quality": Key("section:quality"), "analysis": Key("section:analysis"),
         "optics": Key("section:optics", doc="over [optics] for this recipe"),
+        "reference": Key("str", doc="a reference recipe: its facet's certificate file ([reference] table), or "
+                                    "\"twin\" (the simulated station's truth)"),
     },
 }
 

@@ -33,6 +33,7 @@ from ..result.record import build_record
 from ..result.shift import cycle_seconds
 from .frames import capture_sequence, crop, restore
 from .marks import CameraMoved
+from .reference import ReferenceFailed
 from .worker import RERUN_FACTOR
 
 log = logging.getLogger("sofast_station.station.runner")    # the line's log, as station/link.py's
@@ -203,6 +204,8 @@ class Cycle:
             withhold = self.checks.get("marks", {}).get("withhold")
             if withhold:
                 raise CameraMoved(withhold)
+            if line.reference.hold and getattr(recipe, "reference", None) is None:
+                raise ReferenceFailed(line.reference.hold)       # a reference judges the station: it is measured
             del raw
             # At the deadline this thread answers "timeout" itself (just before the watchdog would) and the
             # standby worker takes over for the next facet; the abandoned analysis may still finish within
@@ -264,8 +267,12 @@ class Cycle:
                                                                             self.line.temperature.pitch_u)
         head = self.line.head(self.cycle_id, self.request, recipe.name, cal_warnings, facet=job.name,
                               checks=self.checks)
-        return job.record(head, res.figures, truth, timings, measured_distance_m=self.captured.distance_m,
-                          capture_notes=notes, **self.clock_note())
+        record = job.record(head, res.figures, truth, timings, measured_distance_m=self.captured.distance_m,
+                            capture_notes=notes, **self.clock_note())
+        if getattr(recipe, "reference", None) is not None:
+            # a reference judges the station: its verdict is its certificate's comparison (station/reference.py)
+            record.setdefault("station_checks", {})["reference"] = self.line.judge_reference(record, recipe)
+        return record
 
     def fault_record(self, code: int, reason: str, timings: dict, cal_warnings=()) -> dict:
         head = self.line.head(self.cycle_id, self.request, self.request.recipe or "", cal_warnings,

@@ -41,6 +41,7 @@ from .frames import capture_sequence
 from .link import LinkWatch
 from .marks import ALARM as GEOMETRY_ALARM, MarkCheck
 from .opened import Station
+from .reference import AGE_ALARM, ALARM as REFERENCE_ALARM, ReferenceCheck
 from .temperature import TemperatureCheck
 from ..recipes import Recipe
 from ..live.status import StatusFile
@@ -83,6 +84,9 @@ class RunSettings:
     alarm_faults_in_row, alarm_yield_window : int
         The line alarm's rules (:mod:`sofast_station.result.health`): faults in a row, and the newest facets of
         a recipe whose yield is compared with its recent yield.
+    reference_every_h : float
+        Warn (the alarm ``line-reference-age``) when no reference recipe's facet was measured for this long,
+        hours; 0: never (:mod:`sofast_station.station.reference`).
     """
 
     deadline_s: float = 10.0
@@ -99,6 +103,7 @@ class RunSettings:
     standby_worker: bool = True
     alarm_faults_in_row: int = 3
     alarm_yield_window: int = 20
+    reference_every_h: float = 0.0
 
 
 def _recent_by_recipe(journal, n: int = 1000) -> dict:
@@ -235,6 +240,12 @@ class StationRunner:
             self._raise_geometry_alarm(self.marks.alarm_text())
         #: The screen's and the hall's temperature per facet (station/temperature.py), in every row and budget.
         self.temperature = TemperatureCheck.open(station.config, self.marks.record if self.marks else None)
+        #: The reference every shift (station/reference.py): its last result, the hold it may put the line on.
+        pose = (getattr(station.config, "commissioned", None) or {}).get("pose") or {}
+        self.reference = ReferenceCheck(station.config.data_dir, settings.reference_every_h, pose.get("record_id"))
+        self._reference_age: str | None = None
+        if self.reference.hold:
+            self._line_alarms({REFERENCE_ALARM: self.reference.hold})
 
     def check_drift(self, recipe: str, record: dict) -> None:
         """Drift alarm: the rules on the recipe's recent facets; alarms go to the record (journal row),
@@ -260,7 +271,22 @@ class StationRunner:
             log.exception("the line-health check failed; the facet is answered without it")
             return 0
         self._line_alarms(changed)
-        return WARNING_BITS["line"] if self.health.alarms or self._geometry_alarm else 0
+        held = self._geometry_alarm or self.reference.hold
+        return WARNING_BITS["line"] if self.health.alarms or held else 0
+
+    def judge_reference(self, record: dict, recipe) -> dict:
+        """A reference recipe's facet judged against its certificate (:mod:`sofast_station.station.reference`):
+        its verdict becomes the comparison's; beyond the limits the line holds (alarm ``line-reference``), within
+        them a hold ends. Returns the record's ``station_checks.reference``."""
+        from ..calibrate.geometry import load_reference, station_reference
+
+        twin = recipe.reference == "twin"
+        certificate = station_reference(self.station) if twin else load_reference(recipe.reference)
+        before = self.reference.hold
+        entry = self.reference.judged(record, certificate, recipe.name)
+        if self.reference.hold != before:
+            self._line_alarms({REFERENCE_ALARM: self.reference.hold})
+        return entry
 
     def station_checks(self, white: np.ndarray, cycle_id: str | None = None, serial: str | None = None) -> dict:
         """The line's checks of itself on this cycle: the fixture's marks in its white frame
@@ -271,6 +297,10 @@ class StationRunner:
         checks: dict = {}
         if self.temperature is not None:
             checks["temperature"] = self.temperature.check()
+        age = self.reference.age_text()
+        if age != self._reference_age:
+            self._reference_age = age
+            self._line_alarms({AGE_ALARM: age})
         if self.marks is None:
             self._show_health(checks, serial)
             return checks
@@ -305,6 +335,13 @@ class StationRunner:
                                      f"hall {temp['hall_c']:.1f} degC, screen {temp['screen_c']:.1f} degC: "
                                      f"{temp['delta_k']['hall']:+.1f} K and {temp['delta_k']['screen']:+.1f} K from "
                                      f"commissioning ({temp['commissioned']['from']}), in every facet's U")
+        last = self.reference.state.get("last")
+        if self.reference.hold:
+            health["reference"] = f"HOLD: {self.reference.hold}"
+        elif last:
+            health["reference"] = (f"{last.get('serial')} ({last.get('recipe')}) at {last.get('time')}: "
+                                   f"{last.get('errors') or 'judged'}, within its certificate's limits; "
+                                   f"f x / y errors of the last references: {self.reference.trend_text()}")
         if health and health != self.status.data.get("station_health"):
             self.status.update(station_health=health)
 
