@@ -4,16 +4,14 @@ judged against its certificate; beyond its limits the line judges no facet until
 from __future__ import annotations
 
 import datetime as _dt
-from pathlib import Path
 
 import pytest
 
 from sofast_station.calibrate.geometry import GeometryReference
-from sofast_station.config import load_config
 from sofast_station.devices.protocols import FAULT_CODES, WARNING_BITS
 from sofast_station.station.reference import ReferenceCheck, judge_reference
+from tests.station.line_run import small_line, run_line
 
-ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_a_reference_of_unknown_outline_is_judged_by_its_focal_lengths(tmp_path):
@@ -50,22 +48,11 @@ def test_a_reference_beyond_its_limits_holds_the_line_until_one_passes(tmp_path)
     warning bit), the page's alarm line-reference and its health line say so, and the hold is kept on disk (a
     restart holds too). The range finder set right, REF-2 passes and ends the hold: SIM-2 is judged again, and the
     page's health line trends both references' errors."""
-    from tests.conftest import SMALL_STATION
-
-    from sofast_station.archive import Journal
-    from sofast_station.devices.protocols import FacetRequest
     from sofast_station.live.status import read_status
-    from sofast_station.station.service import Service
 
-    path = tmp_path / "station.toml"
-    path.write_text(SMALL_STATION.format(data_dir=tmp_path / "data", facet=ROOT / "fixtures/facets/dish_5m33.toml",
-                                         radiometric=ROOT / "calibration/simulated_radiometric.json")
-                    + '\n[recipes.reference]\nserial_pattern = "^REF-"\nreference = "twin"\n'
-                    + "\n[run]\ndeadline_s = 600.0\nwarmup = false\nstandby_worker = false\n")
-    config = load_config(path)
     serials = ["REF-1", "SIM-1", "REF-2", "SIM-2"]
-    service = Service(config, simulated_facets=[FacetRequest(s) for s in serials], console=lambda line: None)
-    robot = service.trigger
+    recipe = '\n[recipes.reference]\nserial_pattern = "^REF-"\nreference = "twin"\n'
+    config, service = small_line(tmp_path, serials, recipe)
     service.station.range_finder.error_m = 0.08
     seen = {}
 
@@ -75,12 +62,7 @@ def test_a_reference_beyond_its_limits_holds_the_line_until_one_passes(tmp_path)
             seen["held_on_disk"] = ReferenceCheck(config.data_dir).hold
             service.station.range_finder.error_m = 0.0
 
-    try:
-        service.runner.run(on_outcome=between)
-        final_status = read_status(config.data_dir)
-    finally:
-        service.close()
-    answers = {a.serial: a for a in robot.answers if a.kind in ("done", "fault")}
+    answers, final_status, rows = run_line(config, service, between)
     assert answers["REF-1"].kind == "done" and answers["REF-1"].verdict == "fail"
     assert answers["SIM-1"].kind == "fault" and answers["SIM-1"].code == FAULT_CODES["calibration"]
     assert answers["SIM-1"].warnings & WARNING_BITS["line"]
@@ -95,11 +77,6 @@ def test_a_reference_beyond_its_limits_holds_the_line_until_one_passes(tmp_path)
     # the page's health line trends the references: REF-1 failed (f about +0.7 %), REF-2 within 0.1 %
     trend = final_status["station_health"]["reference"].split("last references: ")[1]
     assert trend.startswith("REF-1 +0.") and "FAIL; REF-2 " in trend and not trend.endswith("FAIL")
-    journal = Journal(config.data_dir / "journal.sqlite3")
-    try:
-        rows = {r.serial: r.record for r in journal.rows()}
-    finally:
-        journal.close()
     ref1 = rows["REF-1"]["station_checks"]["reference"]
     assert not ref1["within"] and ref1["focal_lengths"]["x"]["relative_error"] > 0.005
     # its own verdict against the recipe's facet limits is kept beside (80 mm out of place: invalid)
