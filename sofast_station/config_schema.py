@@ -260,6 +260,9 @@ SECTIONS: dict[str, dict[str, Key]] = {
         "alarm_faults_in_row": Key("int", low=1, high=1000, doc="the line alarm after this many faults in a row"),
         "reference_every_h": Key("float", low=0.0, high=8760.0,
                                  doc="warn when no reference was measured for this long, h (0: never)"),
+        "display_level_tolerance": Key("float", low=0.0, high=0.5,
+                                       doc="the display's self-test: alarm when the fringes' mean level departs "
+                                           "from the radiometric table's by more (0: no check)"),
         "alarm_yield_window": Key("int", low=5, high=1000,
                                   doc="the line alarm's yield rule: the newest facets of a recipe it judges"),
     },

@@ -305,3 +305,13 @@ def test_placement_tilt_benchmark_quick(repo_root):
     print(proc.stdout)
     for line in ("== ideal 400 x 300 dish: 2 captures", "about x: corners", "slopes", "own boresight"):
         assert line in proc.stdout
+
+
+def test_display_check_benchmark_quick(repo_root):
+    """benchmarks/display_check.py: the display's self-test's cost at 1600 x 1200 and 400 x 300."""
+    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "display_check.py"), "--quick"],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    print(proc.stdout)
+    for line in ("== the display's self-test", "camera 1600 x 1200: 20 checks", "camera 400 x 300: 20 checks"):
+        assert line in proc.stdout

@@ -200,7 +200,7 @@ class Cycle:
             captured.frames, captured.full_shape = crop(raw, captured.box), raw.shape[1:]
             cal_warnings = line.check_calibration(raw[0])
             # the fixture's marks in the white frame: a camera that moved since commissioning judges no facet
-            self.checks = line.station_checks(raw[1], self.cycle_id, request.serial)
+            self.checks = line.station_checks(raw[1], self.cycle_id, request.serial, frames=captured.frames)
             withhold = self.checks.get("marks", {}).get("withhold")
             if withhold:
                 raise CameraMoved(withhold)

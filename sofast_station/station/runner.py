@@ -42,6 +42,7 @@ from .link import LinkWatch
 from .marks import ALARM as GEOMETRY_ALARM, MarkCheck
 from .opened import Station
 from .reference import AGE_ALARM, ALARM as REFERENCE_ALARM, ReferenceCheck
+from .display import ALARM as DISPLAY_ALARM, DisplayCheck
 from .temperature import TemperatureCheck
 from ..recipes import Recipe
 from ..live.status import StatusFile
@@ -87,6 +88,9 @@ class RunSettings:
     reference_every_h : float
         Warn (the alarm ``line-reference-age``) when no reference recipe's facet was measured for this long,
         hours; 0: never (:mod:`sofast_station.station.reference`).
+    display_level_tolerance : float
+        The display's self-test (:mod:`sofast_station.station.display`): the alarm ``line-display`` when the
+        fringes' mean level departs from the radiometric table's by more; 0: no check.
     """
 
     deadline_s: float = 10.0
@@ -104,6 +108,7 @@ class RunSettings:
     alarm_faults_in_row: int = 3
     alarm_yield_window: int = 20
     reference_every_h: float = 0.0
+    display_level_tolerance: float = 0.015
 
 
 def _recent_by_recipe(journal, n: int = 1000) -> dict:
@@ -244,6 +249,11 @@ class StationRunner:
         pose = (getattr(station.config, "commissioned", None) or {}).get("pose") or {}
         self.reference = ReferenceCheck(station.config.data_dir, settings.reference_every_h, pose.get("record_id"))
         self._reference_age: str | None = None
+        #: The display's response on every facet (station/display.py): an alarm, no hold.
+        self.display = None
+        if settings.display_level_tolerance > 0 and getattr(station, "radiometric", None) is not None:
+            self.display = DisplayCheck(station.radiometric, station.config.fringes, settings.display_level_tolerance,
+                                        recipes["default"].analysis.mask_threshold_dn)
         if self.reference.hold:
             self._line_alarms({REFERENCE_ALARM: self.reference.hold})
 
@@ -271,7 +281,7 @@ class StationRunner:
             log.exception("the line-health check failed; the facet is answered without it")
             return 0
         self._line_alarms(changed)
-        held = self._geometry_alarm or self.reference.hold
+        held = self._geometry_alarm or self.reference.hold or (self.display is not None and self.display.alarm)
         return WARNING_BITS["line"] if self.health.alarms or held else 0
 
     def judge_reference(self, record: dict, recipe) -> dict:
@@ -288,15 +298,26 @@ class StationRunner:
             self._line_alarms({REFERENCE_ALARM: self.reference.hold})
         return entry
 
-    def station_checks(self, white: np.ndarray, cycle_id: str | None = None, serial: str | None = None) -> dict:
+    def station_checks(self, white: np.ndarray, cycle_id: str | None = None, serial: str | None = None,
+                       frames: np.ndarray | None = None) -> dict:
         """The line's checks of itself on this cycle: the fixture's marks in its white frame
-        (:class:`~sofast_station.station.marks.MarkCheck`) and the temperature
-        (:class:`~sofast_station.station.temperature.TemperatureCheck`). Returns the record's ``station_checks``
+        (:class:`~sofast_station.station.marks.MarkCheck`), the temperature
+        (:class:`~sofast_station.station.temperature.TemperatureCheck`) and, given the cycle's *frames*, the
+        display's response (:class:`~sofast_station.station.display.DisplayCheck`). Returns the record's
+        ``station_checks``
         (empty without either); its ``marks.withhold``, when set, is why the facet must not be judged. The
         geometry alarm follows the marks' hold."""
         checks: dict = {}
         if self.temperature is not None:
             checks["temperature"] = self.temperature.check()
+        if self.display is not None and frames is not None:
+            before = self.display.alarm
+            try:
+                checks["display"] = self.display.check(frames)
+            except Exception:                    # a bug in the self-test must not stop the line
+                log.exception("the display's self-test failed; the facet is measured without it")
+            if self.display.alarm != before:
+                self._line_alarms({DISPLAY_ALARM: self.display.alarm})
         age = self.reference.age_text()
         if age != self._reference_age:
             self._reference_age = age
@@ -335,6 +356,12 @@ class StationRunner:
                                      f"hall {temp['hall_c']:.1f} degC, screen {temp['screen_c']:.1f} degC: "
                                      f"{temp['delta_k']['hall']:+.1f} K and {temp['delta_k']['screen']:+.1f} K from "
                                      f"commissioning ({temp['commissioned']['from']}), in every facet's U")
+        display = checks.get("display")
+        if display is not None and "error" in display:
+            health["display (response)"] = (
+                f"{'ALARM: ' if self.display.alarm else ''}fringes' mean level {display['level']:.4f} of the white, "
+                f"the radiometric table draws {display['expected_level']:.4f} ({display['error']:+.4f}, tolerance "
+                f"{display['tolerance']:g})")
         last = self.reference.state.get("last")
         if self.reference.hold:
             health["reference"] = f"HOLD: {self.reference.hold}"

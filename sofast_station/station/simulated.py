@@ -180,6 +180,16 @@ class SimulatedStation(Station):
         self.nominal_twin = nominal
         self.twin = self.camera.twin = self.range_finder.twin = nominal.with_facet(in_fixture)
 
+    def change_display(self, **optics) -> None:
+        """Change the twin's display (tests of its self-test, station/display.py): e.g. ``display_gamma=2.5``, a
+        picture mode changed behind the radiometric table's back. The facet in the fixture and the next are seen
+        through it."""
+        changed = dataclasses.replace(self.nominal_twin.optics, **optics)
+        self._next = {}
+        self.nominal_twin = self.nominal_twin.with_optics(changed)
+        self.twin = self.camera.twin = self.range_finder.twin = self.twin.with_optics(
+            dataclasses.replace(self.twin.optics, **optics))
+
     def reopen_camera(self) -> None:
         self.camera.fault = None
         self.camera.release_hang()
