@@ -27,7 +27,7 @@ PLAIN_DATA = {"errors", "geometry", "facet", "ensemble", "fringes", "files"}
 #: name). A unit imports only its own floor and those below it; no two units import each other.
 FLOORS: tuple[tuple[str, frozenset], ...] = (
     ("entry", frozenset({"__main__", "cli"})),
-    ("programs", frozenset({"reanalysis", "station", "interop"})),
+    ("programs", frozenset({"reanalysis", "station", "interop", "field"})),
     ("the jobs", frozenset({"job"})),
     ("the monitor", frozenset({"web"})),
     ("shown and shared", frozenset({"report", "live"})),

@@ -141,6 +141,11 @@ def figure_value(record: dict, path: str):
 
 def figure_uncertainty(record: dict, path: str):
     """The expanded uncertainty (k = 2) of the figure at *path*: the sibling ``NAME_U`` of the path's
-    first key, with the same nesting (``slope_rms_mrad_U.design.magnitude``); None when absent."""
-    head, _, rest = path.partition(".")
-    return figure_value(record, f"{head}_U" + (f".{rest}" if rest else ""))
+    first key, with the same nesting (``slope_rms_mrad_U.design.magnitude``), or of a deeper key
+    (``optics.intercept_U``, ``optics.centroid_offset_mrad_U.x``); None when absent."""
+    parts = path.split(".")
+    for i in range(len(parts)):
+        u = figure_value(record, ".".join(parts[:i] + [parts[i] + "_U"] + parts[i + 1:]))
+        if u is not None:
+            return u
+    return None

@@ -103,7 +103,9 @@ def cmd_radiometric(args) -> int:
 
 def cmd_camera(args) -> int:
     from ..config import load_config
-    from ..calibrate.camera import BoardSpec, calibrate_camera_images, read_images, save_camera, summary_text
+    from pathlib import Path
+
+    from ..calibrate.camera import BoardSpec, calibrate_camera_images, save_camera, summary_text
 
     config = load_config(args.config, use_camera_record=False)     # the record may not exist yet: we make it
     if args.board == "charuco" and args.marker_mm is None:
@@ -112,8 +114,9 @@ def cmd_camera(args) -> int:
                       (args.marker_mm or 0.0) / 1000.0, args.dictionary, args.legacy)
     if args.fix_k2 and args.k3:
         raise ConfigError("--fix-k2 holds k3 at 0 too: give --fix-k2 or --k3, not both")
-    cal = calibrate_camera_images(read_images(args.images), board, fix_k3=not args.k3, min_images=args.min_images,
-                                  max_edge_width_px=args.max_edge_width, fix_k2=args.fix_k2)
+    # the files are read in the threads that search them (one progress line per image on the log)
+    cal = calibrate_camera_images([(str(p), Path(p)) for p in args.images], board, fix_k3=not args.k3,
+                                  min_images=args.min_images, max_edge_width_px=args.max_edge_width, fix_k2=args.fix_k2)
     source = f"sofast-station {__version__} calibrate camera, {len(args.images)} image(s)"
     path = save_camera(config.data_dir, cal, source, "handheld" if args.handheld else "camera",
                        station=config.identity)
@@ -508,8 +511,10 @@ def register(subparsers, default_config_path: str | None = None) -> argparse.Arg
         sub, "camera", help="camera intrinsics and distortion from chessboard or ChArUco images",
         description="""
             Calibrate the camera's intrinsics (focal length, principal point) and distortion from images of
-            a chessboard or ChArUco board, and store them as a dated camera record. Blurred images and
-            images where the board is not found are reported and skipped. The calibration judges itself
+            a chessboard or ChArUco board, and store them as a dated camera record. Each image is judged
+            as it is searched (one line of progress per image); a chessboard partly out of view is used
+            for the part in view; blurred images and images where the board is not found are reported
+            and skipped. The calibration judges itself
             (pass / warn / refused) from the reprojection RMS, the parameters' standard deviations and how
             the views cover the image; a refused calibration (parameters not determined) writes no record
             and says what to do (docs/calibration.md). The station uses the record when
@@ -518,7 +523,8 @@ def register(subparsers, default_config_path: str | None = None) -> argparse.Arg
     cam.add_argument("images", nargs="+", metavar="IMAGE", help="board images (any format OpenCV reads)")
     cam.add_argument("--board", choices=("chessboard", "charuco"), default="chessboard", help="the board's kind")
     cam.add_argument("--squares", type=_squares, required=True, metavar="NxM",
-                     help="squares across x down, e.g. 10x7 (required)")
+                     help="squares (not inner corners) across x down, e.g. 10x7 for a board of 9 x 6 inner "
+                          "corners (required)")
     cam.add_argument("--square-mm", type=float, required=True, metavar="MM", help="side of a square, mm (required)")
     cam.add_argument("--marker-mm", type=float, default=None, metavar="MM",
                      help="ChArUco: side of a marker, mm (required for ChArUco)")
