@@ -9,6 +9,7 @@ import pytest
 
 from sofast_station.calibrate.geometry import GeometryReference
 from sofast_station.devices.protocols import FAULT_CODES, WARNING_BITS
+from sofast_station.result.shift import summarize
 from sofast_station.station.reference import ReferenceCheck, judge_reference
 from tests.station.line_run import small_line, run_line
 
@@ -47,7 +48,7 @@ def test_a_reference_beyond_its_limits_holds_the_line_until_one_passes(tmp_path)
     judged beyond its limits (its verdict "fail", f_x named), the line holds: SIM-1 is withheld (fault 7, the line's
     warning bit), the page's alarm line-reference and its health line say so, and the hold is kept on disk (a
     restart holds too). The range finder set right, REF-2 passes and ends the hold: SIM-2 is judged again, and the
-    page's health line trends both references' errors."""
+    page's health line trends both references' errors; the shift's summary counts the references apart."""
     from sofast_station.live.status import read_status
 
     serials = ["REF-1", "SIM-1", "REF-2", "SIM-2"]
@@ -83,3 +84,6 @@ def test_a_reference_beyond_its_limits_holds_the_line_until_one_passes(tmp_path)
     assert rows["REF-1"]["recipe"] == "reference" and rows["REF-1"]["facet_verdict"] == "invalid"
     ref2 = rows["REF-2"]["station_checks"]["reference"]
     assert ref2["within"] and abs(ref2["focal_lengths"]["x"]["relative_error"]) < 0.001
+    # the shift's summary (page, console, OPC UA) leaves the references out of the facets and the yield
+    summary = summarize(list(rows.values()))
+    assert summary.references == 2 and summary.total == 2 and summary.station_faults == 1
