@@ -46,7 +46,8 @@ log = logging.getLogger(__name__)
 #: Keys of a result record that describe the cycle rather than measure the facet: not compared.
 NOT_FIGURES = frozenset({"cycle_id", "serial", "time", "recipe", "station", "facet", "software_version", "config_hash",
                          "calibration", "camera", "request", "capture_notes", "crop_box", "timings_s", "truth",
-                         "reprocess", "dump", "status", "archived", "differences", "error", "error_type"})
+                         "reprocess", "dump", "status", "archived", "differences", "error", "error_type",
+                         "station_checks"})   # the line's checks of itself on that cycle (display, temperature, reference)
 
 #: The reported figures (docs/conventions.md#reported-figures; flattened names): the comparison table shows them
 #: whether or not they changed, and the other (diagnostic) figures only when they changed.
