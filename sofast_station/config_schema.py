@@ -295,6 +295,8 @@ SECTIONS: dict[str, dict[str, Key]] = {
         "alignment_point_m": Key("floats", length=(2,)), "measure_point_m": Key("floats", length=(2,)),
         "limits": Key("section:limits"), "quality": Key("section:quality"), "analysis": Key("section:analysis"),
         "optics": Key("section:optics", doc="over [optics] for this recipe"),
+        "prescriptions": Key("str", doc="a heliostat recipe's folder of SERIAL.toml canting prescriptions "
+                                        "(field prescription; docs/field.md)"),
     },
 }
 

@@ -10,6 +10,11 @@ In station.toml::
     limits = { focal_length_tolerance = 0.01 }
     quality = { min_valid_fraction = 0.85 }
     optics = { aperture = { shape = "circle", radius_m = 0.05 } }   # over [optics] (docs/optics.md)
+
+    [recipes.field-5x5]                     # a heliostat recipe
+    facet = "fixtures/facets/heliostat_5x5.toml"
+    prescriptions = "site/prescriptions"    # 'field prescription' output: a heliostat whose serial has its
+                                            # SERIAL.toml there is judged against that canting (docs/field.md)
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ from __future__ import annotations
 import dataclasses
 import re
 from dataclasses import dataclass
+from pathlib import Path
 
 from .devices.protocols import FacetRequest
 from .ensemble import EnsembleDesign, is_ensemble_file, load_ensemble
@@ -27,7 +33,7 @@ from .result.optical_figures import optics_for
 from .result.verdict import Limits, Quality, limits_from_table, quality_from_table
 
 _KEYS = {"facet", "serial_pattern", "alignment_point_m", "measure_point_m", "limits", "quality", "analysis",
-         "optics"}
+         "optics", "prescriptions"}
 
 
 @dataclass(frozen=True)
@@ -43,6 +49,10 @@ class Recipe:
     #: A heliostat recipe's heliostat (its facet file is a heliostat file; ``design`` is then its bounding
     #: outline): the loop analyses its facets in one capture (docs/heliostats.md). None: a single facet.
     ensemble: EnsembleDesign | None = None
+    #: A heliostat recipe's folder of canting prescriptions (``sofast-station field prescription``'s
+    #: ``SERIAL.toml``): a heliostat whose serial has a file there is judged against its own place in the field
+    #: (:func:`~sofast_station.job.job_for`). None: every heliostat against the recipe's design.
+    prescriptions: Path | None = None
 
 
 def default_recipe(config) -> Recipe:
@@ -86,8 +96,23 @@ def recipes_from_config(config) -> dict[str, Recipe]:
             except re.error as exc:
                 raise ConfigError(f"{where}: serial_pattern is not a valid regular expression: {exc}") from None
         optics = optics_for(config.raw, str(config.path), name)
-        out[name] = Recipe(name, design, analysis, limits, quality, pattern, optics, ensemble)
+        out[name] = Recipe(name, design, analysis, limits, quality, pattern, optics, ensemble,
+                           _prescriptions(table, ensemble, config.path.parent, where))
     return out
+
+
+def _prescriptions(table: dict, ensemble, base: Path, where: str) -> Path | None:
+    """A heliostat recipe's ``prescriptions`` folder (relative to station.toml), checked; None without one."""
+    if "prescriptions" not in table:
+        return None
+    if ensemble is None:
+        raise ConfigError(f"{where}: prescriptions is a heliostat's (canting per serial); this recipe measures a "
+                          "single facet: name a heliostat file as its facet, or remove prescriptions")
+    folder = (base / str(table["prescriptions"])).resolve()
+    if not folder.is_dir():
+        raise ConfigError(f"{where}: prescriptions folder {folder} does not exist; write it with 'sofast-station "
+                          "field prescription --site SITE.toml' (docs/field.md) or correct the path")
+    return folder
 
 
 def choose_recipe(recipes: dict[str, Recipe], request: FacetRequest) -> Recipe:
