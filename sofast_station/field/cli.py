@@ -1,5 +1,6 @@
-"""``sofast-station field orientation`` and ``sofast-station field canting``: the heliostat in the field,
-from the tower's camera (docs/field.md). Registered in :data:`sofast_station.commands.COMMAND_MODULES`.
+"""``sofast-station field orientation``, ``canting``, ``prescription`` and ``spot``: the heliostat in the field,
+from the tower's camera, its place in the layout and its spot on the tower's target (docs/field.md).
+Registered in :data:`sofast_station.commands.COMMAND_MODULES`.
 """
 
 from __future__ import annotations
@@ -337,6 +338,123 @@ def cmd_prescription(args) -> int:
     return 0
 
 
+def _photo_scale(notes: dict, photo: Path):
+    import numpy as np
+
+    from ..errors import ConfigError
+    from .spot import PhotoScale
+
+    try:
+        pixel_m = float(notes["pixel_m"])
+        aim = np.array([float(v) for v in notes["aim_px"]], dtype=np.float64)
+    except (KeyError, TypeError, ValueError):
+        raise ConfigError(f"BCS photo {photo}: its notes ({photo.with_suffix('.json').name}) need pixel_m (metres of "
+                          "the target per pixel) and aim_px [column, row] (the aim point's pixel); "
+                          "docs/field.md#spot") from None
+    if not (pixel_m > 0 and aim.shape == (2,) and np.all(np.isfinite(aim))):
+        raise ConfigError(f"BCS photo {photo}: pixel_m must be positive and aim_px two pixel coordinates")
+    return PhotoScale(pixel_m, aim, float(notes.get("pixel_m_rel_u", 0.005)), float(notes.get("aim_px_u", 0.5)))
+
+
+def _figure_line(name: str, f: dict) -> str:
+    c, u = f["centroid_m"], f["centroid_m_U"]
+    return (f"{name}: centroid x {c['x']:+.3f} +- {u['x']:.3f} m, y {c['y']:+.3f} +- {u['y']:.3f} m; 90 % radius "
+            f"{f['spot_radius_m']:.3f} +- {f['spot_radius_m_U']:.3f} m")
+
+
+def cmd_spot(args) -> int:
+    single_thread_blas()
+    import numpy as np
+
+    from ..errors import ConfigError
+    from ..files import safe_name
+    from .geometry import azimuth_elevation
+    from .inputs import heliostat_place, load_site, read_notes, read_photo, read_record
+    from .picture import spot_png
+    from .spot import (SpotScene, compare_spots, facet_models, facing_target, photo_extent, photo_figures,
+                       predict_spot)
+    from .sun import sun_direction
+
+    site = load_site(args.site)
+    record = read_record(args.factory, args.heliostat)
+    serial = args.heliostat or record.get("serial")
+    if not serial:
+        raise ConfigError("the factory record names no serial: give --heliostat SERIAL")
+    place = heliostat_place(site, serial, _triple(args.position))
+    models = facet_models(record)
+    photo = Path(args.photo) if args.photo else None
+    notes = read_notes(photo) if photo is not None else {}
+    times = list(args.time or []) or ([notes["time"]] if "time" in notes else [])
+    if not times:
+        raise ConfigError("no moment for the spot: give --time ISO (with its time zone), or a --photo whose notes "
+                          "(PHOTO.json) hold its time")
+    azimuth = args.target_azimuth if args.target_azimuth is not None else notes.get("target_azimuth_deg")
+    plane = facing_target(site.aim_point_m, place.position_m, azimuth)
+    dni = args.dni or float(notes.get("dni_w_m2", 900.0))
+    out_dir = Path(args.out) if args.out else (photo.parent if photo is not None else Path(args.factory).parent)
+    stem = safe_name(str(serial), 64)
+    doc = {"serial": serial, "site": site.name, "position_m": place.position_m.tolist(),
+           "target": {"centre_m": plane.centre_m.tolist(), "normal": plane.normal.tolist(),
+                      "axes": "x level to the right seen from the field, y up the target; metres from the aim point"},
+           "factory_record": {"time": record.get("time"), "canting_reference": record.get("canting_reference")},
+           "facets_traced": [m.label for m in models], "dni_w_m2": dni, "spots": []}
+    first = None
+    for k, when in enumerate(times):
+        sun = sun_direction(when, site.latitude_deg, site.longitude_deg, site.altitude_m)
+        scene = SpotScene(place.position_m, place.pivot_offset_m, plane, sun)
+        pred = predict_spot(models, place.ensemble, scene, dni_w_m2=dni, reflectivity=args.reflectivity)
+        az, el = azimuth_elevation(sun)
+        entry = {"time": str(when), "sun": {"azimuth_deg": math.degrees(az), "elevation_deg": math.degrees(el)},
+                 "predicted": pred["figures"]}
+        shown = None
+        if photo is not None and k == 0:
+            scale = _photo_scale(notes, photo)
+            image = read_photo(photo)
+            dark = read_photo(photo.parent / notes["dark"]) if notes.get("dark") else None
+            fig = photo_figures(image, scale, dark)
+            entry["photo"] = {"file": str(photo), **fig}
+            entry["comparison"] = compare_spots(pred["figures"], fig)
+            grey = image.mean(axis=2) if image.ndim == 3 else image.astype(np.float64)
+            shown = {"image": grey - fig["background"], "extent_m": photo_extent(image.shape, scale), "figures": fig}
+        doc["spots"].append(entry)
+        if first is None:
+            first = (pred, shown, entry)
+    json_path = out_dir / f"{stem}-spot.json"
+    write_json_atomic(json_path, json_ready(doc))
+    pred, shown, entry = first
+    lines = [_figure_line("predicted", pred["figures"])]
+    if shown is not None:
+        lines.append(_figure_line("photographed", shown["figures"]))
+        comp = entry["comparison"]
+        lines.append("field check of the factory record: " + (f"FLAGGED {', '.join(comp['flagged'])}"
+                                                              if comp["flagged"] else "within the combined U"))
+    title = (f"{serial} on the target at {entry['time']} (sun az {entry['sun']['azimuth_deg']:.1f}, el "
+             f"{entry['sun']['elevation_deg']:.1f} deg; slant range {pred['figures']['slant_range_m']:.1f} m)")
+    png = spot_png(out_dir / f"{stem}-spot.png", pred, shown, title, lines)
+    doc["json"], doc["png"] = str(json_path), str(png)
+    if args.json:
+        json.dump(json_ready(doc), sys.stdout, indent=1)
+        sys.stdout.write("\n")
+        return 0
+    print(f"Spot of heliostat {serial} at {place.position_m.tolist()} m on the target at {site.aim_point_m.tolist()} m "
+          f"(U, k=2; {len(models)} facets from the factory record):")
+    for e in doc["spots"]:
+        f = e["predicted"]
+        print(f"  {e['time']} (sun azimuth {e['sun']['azimuth_deg']:.1f}, elevation {e['sun']['elevation_deg']:.1f} "
+              f"deg; slant range {f['slant_range_m']:.1f} m, incidence {f['incidence_angle_deg']:.1f} deg)")
+        print("    " + _figure_line("predicted", f))
+        if "photo" in e:
+            print("    " + _figure_line("photographed", e["photo"]))
+            for key in ("centroid_x_m", "centroid_y_m", "spot_radius_m"):
+                c = e["comparison"][key]
+                print(f"    {key}: difference {c['difference']:+.3f} m, combined U {c['U']:.3f} m"
+                      + ("  FLAGGED" if c["flagged"] else ""))
+            print("    (the centroid's difference holds the heliostat's tracking error on the day as well as its "
+                  "facets')")
+    print(f"  wrote {json_path} and {png}")
+    return 0
+
+
 def register(subparsers) -> None:
     """Add ``field orientation`` and ``field canting`` to the ``sofast-station`` *subparsers*."""
     field = add_command(subparsers, "field", help="the heliostat in the field, from the tower's camera",
@@ -404,3 +522,29 @@ def register(subparsers) -> None:
                           "file)")
     pre.add_argument("--json", action="store_true", help="print the prescriptions as JSON on stdout")
     pre.set_defaults(func=cmd_prescription)
+    spot = add_command(sub, "spot", help="the heliostat's spot on the tower's target from its factory record",
+                       description="""
+            The flux the heliostat will throw on the tower's calibration target (or receiver) where it stands,
+            from the factory's record of its facets (canting, curvature, slope errors) and the sun at --time
+            (pvlib), with U (k=2); with --photo, the spot photographed on that target (a BCS image, its scale in
+            its notes) beside it: centroid and 90 % radius differences against the combined U, flagged beyond
+            it. Writes SERIAL-spot.json and SERIAL-spot.png (docs/field.md#spot).""")
+    spot.add_argument("factory", metavar="FACTORY",
+                      help="the factory's record: the JSON of 'sofast-station inspect --json', or the station's "
+                           "journal")
+    spot.add_argument("--site", metavar="FILE", required=True, help="the site file (its latitude, aim point, layout)")
+    spot.add_argument("--heliostat", metavar="SERIAL", default=None,
+                      help="the heliostat's serial in the layout (default: the record's)")
+    spot.add_argument("--position", metavar="X,Y,Z", default=None, help="its pivot instead of the layout's, metres")
+    spot.add_argument("--time", metavar="ISO", action="append", default=None,
+                      help="a moment for the spot, with its time zone (repeat for several; default: the photo's)")
+    spot.add_argument("--photo", metavar="BCS", default=None,
+                      help="a photo of the lit target; its notes (BCS.json): pixel_m, aim_px, time, and optionally "
+                           "pixel_m_rel_u, aim_px_u, dark, target_azimuth_deg, dni_w_m2")
+    spot.add_argument("--target-azimuth", type=float, default=None,
+                      help="the way the target faces, degrees clockwise from north (default: towards the heliostat)")
+    spot.add_argument("--dni", type=float, default=None, help="direct normal irradiance, W/m^2 (default 900)")
+    spot.add_argument("--reflectivity", type=float, default=0.94, help="the mirrors' reflectivity (default 0.94)")
+    spot.add_argument("--out", metavar="DIR", default=None, help="folder for the JSON and PNG (default: the photo's)")
+    spot.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
+    spot.set_defaults(func=cmd_spot)

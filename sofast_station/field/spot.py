@@ -415,7 +415,7 @@ def photo_figures(image: np.ndarray, scale: PhotoScale, dark: np.ndarray | None 
     -------
     dict
         ``centroid_m`` {x, y} with ``centroid_m_U``, ``spot_radius_m`` with ``spot_radius_m_U``, ``background``,
-        ``noise``, ``peak`` (the spot's brightest pixel over the full scale).
+        ``noise``, ``peak_counts`` (the spot's brightest pixel).
 
     Raises
     ------
@@ -450,10 +450,13 @@ def photo_figures(image: np.ndarray, scale: PhotoScale, dark: np.ndarray | None 
     raw = np.asarray(image)
     raw = raw.max(axis=2) if raw.ndim == 3 else raw
     if full is not None:
-        saturated = int(np.count_nonzero(raw[spot] >= full))
-        if saturated > max(3, 0.001 * int(spot.sum())):
-            raise CaptureError(f"the BCS photo is overexposed: {saturated} pixels of the spot at full scale; take it "
-                               "with a shorter exposure or a denser filter")
+        # clipped pixels share the photo's top value (a 12-bit camera's top is 4095 in a 16-bit file, so the
+        # plateau is looked for, not the container's full scale); a lit spot's noise leaves its top to a few
+        top = raw[spot].max()
+        saturated = int(np.count_nonzero(raw[spot] == top))
+        if saturated > max(5, 0.002 * int(spot.sum())):
+            raise CaptureError(f"the BCS photo is overexposed: {saturated} pixels of the spot share its top value "
+                               f"{int(top)} (clipped); take it with a shorter exposure or a denser filter")
     p = float(scale.pixel_m)
     x0 = -(float(scale.aim_px[0]) + 0.5) * p
     y0 = -(h - 0.5 - float(scale.aim_px[1])) * p
@@ -475,7 +478,7 @@ def photo_figures(image: np.ndarray, scale: PhotoScale, dark: np.ndarray | None 
     u_r = math.sqrt(spread[2] ** 2 + (scale.pixel_m_rel_u * c[2]) ** 2)
     return {"centroid_m": {"x": float(c[0]), "y": float(c[1])}, "centroid_m_U": {"x": 2 * u_x, "y": 2 * u_y},
             "spot_radius_m": float(c[2]), "spot_radius_m_U": 2 * u_r, "background": level, "noise": noise,
-            "peak": None if full is None else float(raw[spot].max()) / full}
+            "peak_counts": float(raw[spot].max())}
 
 
 def _spot_region(signal: np.ndarray, threshold: float) -> np.ndarray:
@@ -502,3 +505,11 @@ def compare_spots(predicted: dict, photographed: dict) -> dict:
         out[key] = {"predicted": a, "photographed": b, "difference": b - a, "U": u, "flagged": abs(b - a) > u}
     out["flagged"] = [k for k, v in out.items() if v["flagged"]]
     return out
+
+
+def photo_extent(shape: tuple, scale: PhotoScale) -> tuple[float, float, float, float]:
+    """(x0, x1, y0, y1): the target plane's stretch a photo of *shape* (rows, columns) covers, metres."""
+    h, w = shape[:2]
+    p = float(scale.pixel_m)
+    ax, ay = float(scale.aim_px[0]), float(scale.aim_px[1])
+    return -(ax + 0.5) * p, (w - 0.5 - ax) * p, -(h - 0.5 - ay) * p, (ay + 0.5) * p

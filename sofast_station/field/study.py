@@ -381,5 +381,73 @@ distortion = [0.0, 0.0, 0.0, 0.0, 0.0]
     return paths
 
 
+def write_spot_campaign(out_dir, seed: int = 0, knocked: dict | None = None, time: str = "2026-06-21T10:00:00+00:00",
+                        position=(30.0, 95.0, 1.6), peak: float = 0.7) -> dict:
+    """Files for ``field spot`` on the twin: a site file and layout, a factory record of heliostat H-0042 (the
+    2x2 heliostat of fixtures/facets with drawn canting errors of 0.8 mrad per axis, U 0.2 mrad; its facets'
+    curvature the design's, no slope scatter) and a BCS photo of its spot on a target facing it at *time*, taken
+    by the twin (:mod:`sofast_station.twin.field_spot`) of the true heliostat: the factory's, with *knocked*
+    {label: (dx, dy) mrad} facets turned since. Returns their paths and the truth (the twin's spot's centroid
+    and 90 % radius on the target)."""
+    from ..ensemble import load_ensemble
+    from ..twin.field import FieldHeliostat
+    from ..twin.field_spot import bcs_photo, map_centroid_radius, spot_flux, tracking
+    from .sun import sun_direction
+
+    import cv2
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    design = Path(__file__).resolve().parents[2] / "fixtures" / "facets" / "heliostat_2x2.toml"
+    ensemble = load_ensemble(design)
+    site = TwinSite()
+    rng = np.random.default_rng(seed)
+    cant = 0.8 * rng.standard_normal((ensemble.n_facets, 2))
+    cant -= cant.mean(axis=0)
+    serial, pos = "H-0042", np.asarray(position, dtype=np.float64)
+    (out / "layout.csv").write_text(f"id,x,y,z\n{serial},{pos[0]},{pos[1]},{pos[2]}\n")
+    (out / "site.toml").write_text(f"""# field spot on the twin (field.study.write_spot_campaign, seed {seed})
+[site]
+name = "twin field"
+latitude_deg = {site.latitude_deg}
+longitude_deg = {site.longitude_deg}
+altitude_m = {site.altitude_m}
+layout = "layout.csv"
+heliostat = "{design.as_posix()}"
+aim_point_m = {site.aim_m.tolist()}
+
+[camera]
+position_m = {site.camera_m.tolist()}
+width_px = 800
+height_px = 600
+matrix = [[8000.0, 0.0, 399.5], [0.0, 8000.0, 299.5], [0.0, 0.0, 1.0]]
+""")
+    facets = [{"label": f.label, "status": "measured", "canting_mrad": {"x": float(c[0]), "y": float(c[1])},
+               "canting_mrad_U": {"x": 0.2, "y": 0.2}, "curvature_x_per_m": f.design.curvature_per_m,
+               "curvature_y_per_m": f.design.curvature_per_m}
+              for f, c in zip(ensemble.facets, cant)]
+    (out / "factory.json").write_text(json.dumps({"serial": serial, "facet": ensemble.name, "facets": facets,
+                                                  "note": "made by the field twin: not a measurement"}, indent=1))
+    true = cant.copy()
+    for k, f in enumerate(ensemble.facets):
+        true[k] += np.asarray((knocked or {}).get(f.label, (0.0, 0.0)))
+    sun = sun_direction(time, site.latitude_deg, site.longitude_deg, site.altitude_m)
+    az, el = tracking(pos, site.aim_m, sun)
+    heliostat = FieldHeliostat(ensemble, pos, az, el, canting_errors_mrad=np.column_stack([true, np.zeros(4)]))
+    d = site.aim_m - pos
+    normal = np.array([d[0], d[1], 0.0])
+    normal = -normal / np.linalg.norm(normal)
+    half = 2.5
+    flux = spot_flux(heliostat, site.aim_m, normal, sun, half_width_m=half, cells=161, seed=seed)
+    cx, cy, r90 = map_centroid_radius(flux, half)
+    pixel_m, aim_px = 0.01, (230.4, 210.6)
+    photo = bcs_photo(flux, half, (420, 460), pixel_m, aim_px, rng, peak=peak)
+    cv2.imwrite(str(out / "bcs.png"), photo)
+    (out / "bcs.json").write_text(json.dumps({"time": time, "pixel_m": pixel_m, "aim_px": list(aim_px),
+                                              "heliostat": serial}, indent=1))
+    return {"site": out / "site.toml", "factory": out / "factory.json", "photo": out / "bcs.png",
+            "truth": {"centroid_m": {"x": cx, "y": cy}, "spot_radius_m": r90}}
+
+
 __all__ = ["TwinSite", "orientation_shot", "measure_orientation", "orientation_population", "canting_campaign",
-           "measure_canting", "factory_record", "write_campaign"]
+           "measure_canting", "factory_record", "write_campaign", "write_spot_campaign"]
