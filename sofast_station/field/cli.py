@@ -455,6 +455,150 @@ def cmd_spot(args) -> int:
     return 0
 
 
+def read_observers(path) -> list:
+    """Observer points from a CSV (``name, x, y, z`` metres, field frame; a header names the columns loosely) or
+    a TOML file (``[[observer]]`` tables with ``name`` and ``position_m``)."""
+    import csv
+
+    from ..errors import ConfigError
+    from ..files import read_toml
+
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"observers file {path} does not exist")
+    out = []
+    if path.suffix.lower() == ".toml":
+        for k, t in enumerate(read_toml(path, "observers file").get("observer", [])):
+            try:
+                pos = [float(v) for v in t["position_m"]]
+            except (KeyError, TypeError, ValueError):
+                pos = []
+            if len(pos) != 3:
+                raise ConfigError(f"observers file {path}: [[observer]] {k + 1} needs position_m = [x, y, z] metres")
+            out.append((str(t.get("name", f"observer {k + 1}")), pos))
+    else:
+        rows = list(csv.reader(path.read_text().splitlines()))
+        head = [h.strip().lower() for h in rows[0]] if rows else []
+        cols = {}
+        for key, names in (("name", ("name", "id", "observer", "point")), ("x", ("x", "x_m", "east")),
+                           ("y", ("y", "y_m", "north")), ("z", ("z", "z_m", "height", "height_m"))):
+            cols[key] = next((i for i, h in enumerate(head) if h in names), None)
+        if None in (cols["x"], cols["y"], cols["z"]):
+            raise ConfigError(f"observers file {path}: its header must name x, y and z (metres, field frame), got "
+                              f"{', '.join(head) or 'nothing'}")
+        for k, row in enumerate(rows[1:]):
+            if not any(c.strip() for c in row):
+                continue
+            try:
+                pos = [float(row[cols[a]]) for a in "xyz"]
+            except (IndexError, ValueError):
+                raise ConfigError(f"observers file {path}, line {k + 2}: x, y, z must be numbers, got {row}") from None
+            name = row[cols["name"]].strip() if cols["name"] is not None else f"observer {k + 1}"
+            out.append((name, pos))
+    if not out:
+        raise ConfigError(f"observers file {path} lists no observer")
+    return out
+
+
+def cmd_glare(args) -> int:
+    single_thread_blas()
+    import numpy as np
+
+    from ..errors import ConfigError
+    from ..files import safe_name
+    from .geometry import azimuth_elevation, direction, heliostat_rotation
+    from .glare import (OCULAR_TRANSMISSION, PUPIL_M, EYE_FOCAL_M, Sunlight, camera_glare, facet_glare,
+                        heliostat_samples, sun_seen_directly)
+    from .inputs import heliostat_place, load_site, read_notes, read_photo, read_record
+    from .picture import hazard_chart
+    from .spot import facet_models
+    from .sun import commanded_normal, sun_direction
+
+    eye = {"eye_focal_m": EYE_FOCAL_M, "pupil_m": PUPIL_M, "ocular_transmission": OCULAR_TRANSMISSION,
+           "source": "the patent's Eqs. (47), (48) (Ho, Ghanbari and Diver 2011)"}
+    note = ("E_r = E_c (d_p / (f omega))^2 tau, f 17 mm, d_p 2 mm, tau 0.5 (the patent's Eqs. 47-48). The hazard "
+            "thresholds are not drawn: no quotable source in this build (docs/field.md#glare).")
+    if args.sun_image or args.glare_image:
+        if not (args.sun_image and args.glare_image):
+            raise ConfigError("the camera route needs both --sun-image and --glare-image (same lens and zoom)")
+        sun_img, glare_img = Path(args.sun_image), Path(args.glare_image)
+        sn, gn = read_notes(sun_img), read_notes(glare_img)
+        dni = args.dni if args.dni is not None else sn.get("dni_w_m2")
+        factor = {}
+        for name, n in (("sun", sn), ("glare", gn)):
+            factor[name] = float(n.get("exposure_s", 1.0)) * float(n.get("filter_transmission", 1.0))
+        res = camera_glare(read_photo(sun_img), read_photo(glare_img), None if dni is None else float(dni),
+                           sun_factor=factor["sun"], glare_factor=factor["glare"])
+        ref = sun_seen_directly(float(dni))
+        doc = {"route": "camera", "sun_image": str(sun_img), "glare_image": str(glare_img), "dni_w_m2": float(dni),
+               "eye": eye, "glare": res, "sun_seen_directly": ref}
+        out = Path(args.out) if args.out else glare_img.parent
+        stem = safe_name(glare_img.stem, 64)
+        points = [{"name": glare_img.stem, **res}]
+    else:
+        if not (args.factory and args.site and args.observers):
+            raise ConfigError("give a factory record with --site and --observers (the measured route), or "
+                              "--sun-image and --glare-image with --dni (the camera route)")
+        if not args.time:
+            raise ConfigError("give --time ISO (with its time zone): the sun's position at that moment (pvlib)")
+        site = load_site(args.site)
+        record = read_record(args.factory, args.heliostat)
+        serial = args.heliostat or record.get("serial")
+        place = heliostat_place(site, serial, _triple(args.position))
+        models = facet_models(record)
+        if args.facet:
+            models = [m for m in models if m.label == args.facet]
+            if not models:
+                raise ConfigError(f"facet {args.facet!r} is not a measured facet of the record")
+        sun = sun_direction(args.time, site.latitude_deg, site.longitude_deg, site.altitude_m)
+        if args.commanded:
+            az, el = _pair(args.commanded, "--commanded")
+            normal = direction(math.radians(az), math.radians(el))
+        else:
+            normal = commanded_normal(sun, place.position_m, site.aim_point_m)
+        rot = heliostat_rotation(*azimuth_elevation(normal))
+        origin = np.asarray(place.position_m, float) + place.pivot_offset_m * rot[:, 2]
+        pts, nrm, areas = heliostat_samples(models, place.ensemble, rot, origin, per_facet=args.samples)
+        dni = float(args.dni if args.dni is not None else 900.0)
+        light = Sunlight(sun, dni, args.sun)
+        points = []
+        for name, pos in read_observers(args.observers):
+            g = facet_glare(pts, nrm, areas, pos, light, args.reflectivity)
+            if g["glare"] and g["source_samples"] < 50:
+                g["warning"] = (f"the source covers only {g['source_samples']} samples: raise --samples for a finer "
+                                "estimate")
+            points.append({"name": name, "position_m": pos, **g})
+        ref = sun_seen_directly(dni)
+        az_n, el_n = azimuth_elevation(normal)
+        doc = {"route": "measured", "serial": serial, "time": args.time, "dni_w_m2": dni, "sun_shape": args.sun,
+               "reflectivity": args.reflectivity, "facets": [m.label for m in models],
+               "heliostat_normal": {"azimuth_deg": math.degrees(az_n), "elevation_deg": math.degrees(el_n),
+                                    "how": "commanded" if args.commanded else "tracking the aim point"},
+               "eye": eye, "observers": points, "sun_seen_directly": ref}
+        out = Path(args.out) if args.out else Path(args.factory).parent
+        stem = f"{safe_name(str(serial), 64)}-glare"
+    json_path = out / f"{stem}.json"
+    write_json_atomic(json_path, json_ready(doc))
+    png = hazard_chart(out / f"{stem}.png", points, ref, f"glare: {stem}", note)
+    doc["json"], doc["png"] = str(json_path), str(png)
+    if args.json:
+        json.dump(json_ready(doc), sys.stdout, indent=1)
+        sys.stdout.write("\n")
+        return 0
+    print(f"Glare ({doc['route']} route; the sun seen directly: {1e-4 * ref['retinal_w_m2']:.3g} W/cm^2 on the retina "
+          f"at {1e3 * ref['omega_rad']:.2f} mrad):")
+    for p in points:
+        if p.get("omega_rad"):
+            print(f"  {p['name']}: retinal irradiance {1e-4 * p['retinal_w_m2']:.3g} W/cm^2, subtended angle "
+                  f"{1e3 * p['omega_rad']:.2f} mrad, corneal irradiance {p['corneal_w_m2']:.4g} W/m^2"
+                  + (f" ({p['warning']})" if p.get("warning") else ""))
+        else:
+            print(f"  {p['name']}: no glare (the sun's disc is seen in no mirror from there)")
+    print("  the hazard class is not given: the thresholds' source is missing (docs/field.md#glare)")
+    print(f"  wrote {json_path} and {png}")
+    return 0
+
+
 def register(subparsers) -> None:
     """Add ``field orientation`` and ``field canting`` to the ``sofast-station`` *subparsers*."""
     field = add_command(subparsers, "field", help="the heliostat in the field, from the tower's camera",
@@ -548,3 +692,35 @@ def register(subparsers) -> None:
     spot.add_argument("--out", metavar="DIR", default=None, help="folder for the JSON and PNG (default: the photo's)")
     spot.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
     spot.set_defaults(func=cmd_spot)
+    gl = add_command(sub, "glare", help="glint and glare: retinal irradiance and subtended angle for observers",
+                     description="""
+            The glint or glare an observer sees in the heliostat: the retinal irradiance and the subtended
+            source angle (the patent's Eqs. 47-48), from the factory's measured facets at the heliostat's field
+            position (tracking the aim point at --time, or --commanded) for each observer of --observers (a CSV
+            of name, x, y, z or a TOML of [[observer]]); or by the camera route, from an image of the sun and one
+            of the glare source (same lens and zoom) with the DNI. Writes the JSON and the chart PNG (retinal
+            irradiance against subtended angle). The hazard class is not given (docs/field.md#glare).""")
+    gl.add_argument("factory", metavar="FACTORY", nargs="?", default=None,
+                    help="the factory's record (inspect --json, or the station's journal) for the measured route")
+    gl.add_argument("--site", metavar="FILE", default=None, help="the site file")
+    gl.add_argument("--observers", metavar="FILE", default=None, help="observer points: CSV or TOML, metres")
+    gl.add_argument("--heliostat", metavar="SERIAL", default=None, help="the serial (default: the record's)")
+    gl.add_argument("--position", metavar="X,Y,Z", default=None, help="its pivot instead of the layout's, metres")
+    gl.add_argument("--facet", metavar="LABEL", default=None, help="one facet only (default: every measured facet)")
+    gl.add_argument("--time", metavar="ISO", default=None, help="the moment (with its time zone): the sun by pvlib")
+    gl.add_argument("--commanded", metavar="AZ,EL", default=None,
+                    help="the heliostat's orientation, degrees (stow, standby), instead of tracking the aim point")
+    gl.add_argument("--sun", choices=("pillbox", "buie"), default="pillbox", help="the sun's shape (default pillbox)")
+    gl.add_argument("--dni", type=float, default=None,
+                    help="direct normal irradiance, W/m^2 (measured route: default 900; camera route: required, or "
+                         "dni_w_m2 in the sun image's notes)")
+    gl.add_argument("--reflectivity", type=float, default=0.94, help="the mirrors' reflectivity (default 0.94)")
+    gl.add_argument("--samples", type=int, default=6000, help="samples per facet (default 6000)")
+    gl.add_argument("--sun-image", metavar="IMAGE", default=None,
+                    help="camera route: the sun through a neutral density filter (notes: exposure_s, "
+                         "filter_transmission, dni_w_m2)")
+    gl.add_argument("--glare-image", metavar="IMAGE", default=None,
+                    help="camera route: the glare source, same lens and zoom (notes: exposure_s, filter_transmission)")
+    gl.add_argument("--out", metavar="DIR", default=None, help="folder for the JSON and the chart")
+    gl.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
+    gl.set_defaults(func=cmd_glare)

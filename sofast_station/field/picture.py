@@ -214,3 +214,37 @@ def spot_png(path, predicted: dict, photo: dict | None, title: str, lines: list)
     gap = np.zeros((size, 6, 3), np.uint8)
     body = panels[0] if len(panels) == 1 else np.hstack([panels[0], gap, panels[1]])
     return _write(path, _band(body, [title, *lines]))
+
+
+def hazard_chart(path, points: list, reference: dict, title: str, note: str) -> Path:
+    """The glare chart: retinal irradiance (W/cm^2) against the subtended source angle (mrad), log-log, each
+    observer's point labelled, the sun seen directly as a reference (``points``: dicts of ``name``,
+    ``omega_rad``, ``retinal_w_m2``; those without glare are listed below the plot)."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(8.0, 6.0), dpi=110)
+    ax = fig.add_subplot(1, 1, 1)
+    seen = [p for p in points if p.get("omega_rad")]
+    for p in seen:
+        x, y = 1e3 * p["omega_rad"], 1e-4 * p["retinal_w_m2"]
+        ax.plot(x, y, "o", color="tab:orange", ms=7)
+        ax.annotate(p["name"], (x, y), textcoords="offset points", xytext=(6, 4), fontsize=8)
+    ax.plot(1e3 * reference["omega_rad"], 1e-4 * reference["retinal_w_m2"], "*", color="gold", ms=14,
+            markeredgecolor="k", label="the sun seen directly")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlim(0.1, 1000.0)
+    ax.set_ylim(1e-6, 1e3)
+    ax.set_xlabel("subtended source angle (mrad)")
+    ax.set_ylabel("retinal irradiance (W/cm$^2$)")
+    ax.set_title(title, fontsize=10)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(loc="upper right", fontsize=8)
+    none = [p["name"] for p in points if not p.get("omega_rad")]
+    text = note + (f"\nno glare (the sun's disc seen in no mirror): {', '.join(none)}" if none else "")
+    fig.text(0.01, 0.01, text, fontsize=7, va="bottom")
+    fig.subplots_adjust(bottom=0.18)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(str(path))
+    return path
