@@ -516,8 +516,8 @@ def cmd_glare(args) -> int:
 
     eye = {"eye_focal_m": EYE_FOCAL_M, "pupil_m": PUPIL_M, "ocular_transmission": OCULAR_TRANSMISSION,
            "source": "the patent's Eqs. (47), (48) (Ho, Ghanbari and Diver 2011)"}
-    note = ("E_r = E_c (d_p / (f omega))^2 tau, f 17 mm, d_p 2 mm, tau 0.5 (the patent's Eqs. 47-48). The hazard "
-            "thresholds are not drawn: no quotable source in this build (docs/field.md#glare).")
+    note = ("E_r = E_c (d_p / (f omega))^2 tau, f 17 mm, d_p 2 mm, tau 0.5 (the patent's Eqs. 47-48).\n"
+            "The hazard thresholds are not drawn: no quotable source in this build (docs/field.md#glare).")
     if args.sun_image or args.glare_image:
         if not (args.sun_image and args.glare_image):
             raise ConfigError("the camera route needs both --sun-image and --glare-image (same lens and zoom)")

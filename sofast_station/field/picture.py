@@ -243,7 +243,7 @@ def hazard_chart(path, points: list, reference: dict, title: str, note: str) -> 
     none = [p["name"] for p in points if not p.get("omega_rad")]
     text = note + (f"\nno glare (the sun's disc seen in no mirror): {', '.join(none)}" if none else "")
     fig.text(0.01, 0.01, text, fontsize=7, va="bottom")
-    fig.subplots_adjust(bottom=0.18)
+    fig.subplots_adjust(bottom=0.2)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(str(path))
