@@ -356,6 +356,13 @@ def _photo_scale(notes: dict, photo: Path):
     return PhotoScale(pixel_m, aim, float(notes.get("pixel_m_rel_u", 0.005)), float(notes.get("aim_px_u", 0.5)))
 
 
+def _print_json(doc: dict) -> int:
+    """*doc* as JSON on stdout (``--json``); the command's exit status 0."""
+    json.dump(json_ready(doc), sys.stdout, indent=1)
+    sys.stdout.write("\n")
+    return 0
+
+
 def _figure_line(name: str, f: dict) -> str:
     c, u = f["centroid_m"], f["centroid_m_U"]
     return (f"{name}: centroid x {c['x']:+.3f} +- {u['x']:.3f} m, y {c['y']:+.3f} +- {u['y']:.3f} m; 90 % radius "
@@ -433,9 +440,7 @@ def cmd_spot(args) -> int:
     png = spot_png(out_dir / f"{stem}-spot.png", pred, shown, title, lines)
     doc["json"], doc["png"] = str(json_path), str(png)
     if args.json:
-        json.dump(json_ready(doc), sys.stdout, indent=1)
-        sys.stdout.write("\n")
-        return 0
+        return _print_json(doc)
     print(f"Spot of heliostat {serial} at {place.position_m.tolist()} m on the target at {site.aim_point_m.tolist()} m "
           f"(U, k=2; {len(models)} facets from the factory record):")
     for e in doc["spots"]:
@@ -582,9 +587,7 @@ def cmd_glare(args) -> int:
     png = hazard_chart(out / f"{stem}.png", points, ref, f"glare: {stem}", note)
     doc["json"], doc["png"] = str(json_path), str(png)
     if args.json:
-        json.dump(json_ready(doc), sys.stdout, indent=1)
-        sys.stdout.write("\n")
-        return 0
+        return _print_json(doc)
     print(f"Glare ({doc['route']} route; the sun seen directly: {1e-4 * ref['retinal_w_m2']:.3g} W/cm^2 on the retina "
           f"at {1e3 * ref['omega_rad']:.2f} mrad):")
     for p in points:

@@ -43,6 +43,7 @@ import numpy as np
 
 from ..errors import CaptureError, ConfigError
 from ..optics.sun import BUIE_OUTER_RAD, SUN_HALF_ANGLE_RAD, buie_radiance
+from .spot import refuse_clipped
 
 #: The eye's focal length, metres (the patent's Eq. (47): f = 0.017 m).
 EYE_FOCAL_M = 0.017
@@ -167,16 +168,6 @@ def _level(img: np.ndarray) -> tuple[float, float]:
     return level, max(1.4826 * float(np.median(np.abs(border - level))), 1e-9)
 
 
-def _clipped(raw: np.ndarray, region: np.ndarray) -> int:
-    """Pixels of *region* sharing the image's top value (clipped), for an integer image; 0 for floats."""
-    raw = np.asarray(raw)
-    if not np.issubdtype(raw.dtype, np.integer) or not region.any():
-        return 0
-    raw = raw.max(axis=2) if raw.ndim == 3 else raw
-    top = raw[region].max()
-    return int(np.count_nonzero(raw[region] == top))
-
-
 def _source(img: np.ndarray, what: str, hint: str) -> tuple[np.ndarray, float, float]:
     """(half-level region, its pixel sum over the level within the widened region, noise) of the brightest
     source in *img*."""
@@ -218,18 +209,13 @@ def camera_glare(sun_image, glare_image, dni_w_m2: float | None, *, sun_factor: 
                           "measured when it was taken (W/m^2); give it")
     sun = _grey(sun_image)
     disc, sun_sum, _ = _source(sun, "sun", "is the sun in the image, the filter not too dense?")
-    clipped = _clipped(sun_image, disc)
-    if clipped > max(5, 0.002 * int(disc.sum())):
-        raise CaptureError(f"the sun image is overexposed: {clipped} pixels of its disc share its top value "
-                           "(clipped); use a denser neutral density filter or a shorter exposure")
+    refuse_clipped(sun_image, disc, "the sun image", "of its disc",
+                   "use a denser neutral density filter or a shorter exposure")
     r_sun_px = math.sqrt(disc.sum() / math.pi)
     rad_per_px = SUN_HALF_ANGLE_RAD / r_sun_px           # the patent's Eq. (8), small angles
     glare = _grey(glare_image)
     src, glare_sum, _ = _source(glare, "glare source", "is the mirror's glint in view?")
-    clipped = _clipped(glare_image, src)
-    if clipped > max(5, 0.002 * int(src.sum())):
-        raise CaptureError(f"the glare image is overexposed: {clipped} pixels of the source share its top value "
-                           "(clipped); use a denser filter or a shorter exposure")
+    refuse_clipped(glare_image, src, "the glare image", "of the source", "use a denser filter or a shorter exposure")
     corneal = dni_w_m2 * (glare_sum / glare_factor) / (sun_sum / sun_factor)
     omega = 2.0 * math.sqrt(src.sum() / math.pi) * rad_per_px
     return {"corneal_w_m2": corneal, "omega_rad": omega, "retinal_w_m2": float(retinal_irradiance(corneal, omega)),

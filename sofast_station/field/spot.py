@@ -423,7 +423,6 @@ def photo_figures(image: np.ndarray, scale: PhotoScale, dark: np.ndarray | None 
         No spot above the noise, the spot touching the photo's edge (cut off), or overexposed.
     """
     img = np.asarray(image)
-    full = float(np.iinfo(img.dtype).max) if np.issubdtype(img.dtype, np.integer) else None
     if img.ndim == 3:
         img = img.mean(axis=2)
     img = img.astype(np.float64)
@@ -449,14 +448,7 @@ def photo_figures(image: np.ndarray, scale: PhotoScale, dark: np.ndarray | None 
         raise CaptureError("the spot is cut off: it reaches the BCS photo's edge; frame the whole target")
     raw = np.asarray(image)
     raw = raw.max(axis=2) if raw.ndim == 3 else raw
-    if full is not None:
-        # clipped pixels share the photo's top value (a 12-bit camera's top is 4095 in a 16-bit file, so the
-        # plateau is looked for, not the container's full scale); a lit spot's noise leaves its top to a few
-        top = raw[spot].max()
-        saturated = int(np.count_nonzero(raw[spot] == top))
-        if saturated > max(5, 0.002 * int(spot.sum())):
-            raise CaptureError(f"the BCS photo is overexposed: {saturated} pixels of the spot share its top value "
-                               f"{int(top)} (clipped); take it with a shorter exposure or a denser filter")
+    refuse_clipped(image, spot, "the BCS photo", "of the spot", "take it with a shorter exposure or a denser filter")
     p = float(scale.pixel_m)
     x0 = -(float(scale.aim_px[0]) + 0.5) * p
     y0 = -(h - 0.5 - float(scale.aim_px[1])) * p
@@ -479,6 +471,21 @@ def photo_figures(image: np.ndarray, scale: PhotoScale, dark: np.ndarray | None 
     return {"centroid_m": {"x": float(c[0]), "y": float(c[1])}, "centroid_m_U": {"x": 2 * u_x, "y": 2 * u_y},
             "spot_radius_m": float(c[2]), "spot_radius_m_U": 2 * u_r, "background": level, "noise": noise,
             "peak_counts": float(raw[spot].max())}
+
+
+def refuse_clipped(image, region: np.ndarray, what: str, part: str, remedy: str) -> None:
+    """CaptureError when more than 5 pixels (and 0.2 %) of *region* share the image's top value there: clipped
+    (a 12-bit camera's top is 4095 in a 16-bit file, so the plateau is looked for, not the container's full
+    scale; a lit source's noise leaves its top to a few pixels). Float images are not checked."""
+    raw = np.asarray(image)
+    if not np.issubdtype(raw.dtype, np.integer) or not region.any():
+        return
+    raw = raw.max(axis=2) if raw.ndim == 3 else raw
+    top = raw[region].max()
+    clipped = int(np.count_nonzero(raw[region] == top))
+    if clipped > max(5, 0.002 * int(region.sum())):
+        raise CaptureError(f"{what} is overexposed: {clipped} pixels {part} share its top value {int(top)} (clipped); "
+                           f"{remedy}")
 
 
 def _spot_region(signal: np.ndarray, threshold: float) -> np.ndarray:

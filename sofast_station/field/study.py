@@ -310,6 +310,30 @@ def factory_record(truth: dict, serial: str, rng: np.random.Generator, u_mrad: f
             "note": "made from the field twin's truth for trying the field commands: not a measurement"}
 
 
+def _site_text(site: TwinSite, heliostat_file: Path, width_px: int, height_px: int, matrix: list, made_by: str) -> str:
+    """A site file (docs/field.md#the-site-file) of the twin's field: its place, layout.csv beside it, the
+    heliostat file, the aim point and the tower camera."""
+    return f"""# A field on the twin (sofast_station.field.study.{made_by})
+[site]
+name = "twin field"
+latitude_deg = {site.latitude_deg}
+longitude_deg = {site.longitude_deg}
+altitude_m = {site.altitude_m}
+layout = "layout.csv"
+heliostat = "{Path(heliostat_file).as_posix()}"
+aim_point_m = {site.aim_m.tolist()}
+pivot_offset_m = 0.0
+
+[camera]
+position_m = {site.camera_m.tolist()}
+roll_mrad = 0.0
+width_px = {width_px}
+height_px = {height_px}
+matrix = {matrix}
+distortion = [0.0, 0.0, 0.0, 0.0, 0.0]
+"""
+
+
 def write_campaign(out_dir, seed: int = 0, photos: int = 10, ensemble_file=None, site: TwinSite | None = None) -> dict:
     """A campaign on the twin written as files the commands read: a site file, its layout, one photo for
     ``field orientation`` and *photos* for ``field canting`` (each with its notes), and a factory record in
@@ -332,26 +356,8 @@ def write_campaign(out_dir, seed: int = 0, photos: int = 10, ensemble_file=None,
     shot = orientation_shot(site, ensemble, rng, position=position)
     intr = site.intrinsics(ensemble, float(np.linalg.norm(position - site.camera_m)))
     k = intr.matrix
-    site_text = f"""# A field on the twin (sofast_station.field.study.write_campaign, seed {seed})
-[site]
-name = "twin field"
-latitude_deg = {site.latitude_deg}
-longitude_deg = {site.longitude_deg}
-altitude_m = {site.altitude_m}
-layout = "layout.csv"
-heliostat = "{ensemble_file.as_posix()}"
-aim_point_m = {site.aim_m.tolist()}
-pivot_offset_m = 0.0
-
-[camera]
-position_m = {site.camera_m.tolist()}
-roll_mrad = 0.0
-width_px = {intr.width_px}
-height_px = {intr.height_px}
-matrix = {k.tolist()}
-distortion = [0.0, 0.0, 0.0, 0.0, 0.0]
-"""
-    (out / "site.toml").write_text(site_text)
+    (out / "site.toml").write_text(_site_text(site, ensemble_file, intr.width_px, intr.height_px, k.tolist(),
+                                              f"write_campaign, seed {seed}"))
     paths = {"site": out / "site.toml", "layout": out / "layout.csv"}
     cv2.imwrite(str(out / "orientation.png"), shot.image[..., ::-1])
     (out / "orientation.json").write_text(json.dumps({"heliostat": serial, "time": shot.time,
@@ -406,22 +412,9 @@ def write_spot_campaign(out_dir, seed: int = 0, knocked: dict | None = None, tim
     cant -= cant.mean(axis=0)
     serial, pos = "H-0042", np.asarray(position, dtype=np.float64)
     (out / "layout.csv").write_text(f"id,x,y,z\n{serial},{pos[0]},{pos[1]},{pos[2]}\n")
-    (out / "site.toml").write_text(f"""# field spot on the twin (field.study.write_spot_campaign, seed {seed})
-[site]
-name = "twin field"
-latitude_deg = {site.latitude_deg}
-longitude_deg = {site.longitude_deg}
-altitude_m = {site.altitude_m}
-layout = "layout.csv"
-heliostat = "{design.as_posix()}"
-aim_point_m = {site.aim_m.tolist()}
-
-[camera]
-position_m = {site.camera_m.tolist()}
-width_px = 800
-height_px = 600
-matrix = [[8000.0, 0.0, 399.5], [0.0, 8000.0, 299.5], [0.0, 0.0, 1.0]]
-""")
+    (out / "site.toml").write_text(_site_text(site, design, 800, 600, [[8000.0, 0.0, 399.5], [0.0, 8000.0, 299.5],
+                                                                      [0.0, 0.0, 1.0]],
+                                              f"write_spot_campaign, seed {seed}"))
     facets = [{"label": f.label, "status": "measured", "canting_mrad": {"x": float(c[0]), "y": float(c[1])},
                "canting_mrad_U": {"x": 0.2, "y": 0.2}, "curvature_x_per_m": f.design.curvature_per_m,
                "curvature_y_per_m": f.design.curvature_per_m}
