@@ -13,6 +13,7 @@ from pathlib import Path
 
 from ..commands import add_command, single_thread_blas
 from ..files import json_ready, write_json_atomic
+from ..gum import with_u
 
 log = logging.getLogger("sofast_station")
 
@@ -146,13 +147,14 @@ def cmd_orientation(args) -> int:
     print(f"  facets found   {len(detection.facets)} of {len(s['predicted'])}"
           + (f"; left out: {'; '.join(f'{k} {v}' for k, v in detection.left_out.items())}" if detection.left_out
              else ""))
-    print(f"  normal         azimuth {figures['azimuth_deg']:.3f} ± {figures['azimuth_deg_U']:.3f} deg, elevation "
-          f"{figures['elevation_deg']:.3f} ± {figures['elevation_deg_U']:.3f} deg (U, k=2); on the sky ± "
-          f"{u['azimuth']:.2f} mrad, ± {u['elevation']:.2f} mrad")
+    print(f"  normal         azimuth {with_u(figures['azimuth_deg'], figures['azimuth_deg_U'], ' deg')}, elevation "
+          f"{with_u(figures['elevation_deg'], figures['elevation_deg_U'], ' deg')} (U, k=2); on the sky "
+          f"U {u['azimuth']:.2g} mrad, {u['elevation']:.2g} mrad")
     if "tracking_error_mrad" in figures:
         t, tu = figures["tracking_error_mrad"], figures["tracking_error_mrad_U"]
-        print(f"  tracking error {t['angle']:.2f} ± {tu['angle']:.2f} mrad (azimuth {t['azimuth']:+.2f} ± "
-              f"{tu['azimuth']:.2f}, elevation {t['elevation']:+.2f} ± {tu['elevation']:.2f} mrad) against "
+        print(f"  tracking error {with_u(t['angle'], tu['angle'], ' mrad')} (azimuth "
+              f"{with_u(t['azimuth'], tu['azimuth'], sign=True)}, elevation "
+              f"{with_u(t['elevation'], tu['elevation'], ' mrad', sign=True)}) against "
               f"commanded {figures['commanded']['azimuth_deg']:.3f}, {figures['commanded']['elevation_deg']:.3f} deg")
     else:
         print("  tracking error not known: no commanded orientation (give the photo's time or --commanded)")
@@ -261,7 +263,7 @@ def cmd_canting(args) -> int:
     print(head + ("     factory x, y       diff x, y    U comb. x, y" if comparison else ""))
     for f in figures["facets"]:
         c, u = f["canting_mrad"], f["canting_mrad_U"]
-        line = f"  {f['label']:<7} {c['x']:+8.2f} ± {u['x']:4.2f}    {c['y']:+8.2f} ± {u['y']:4.2f}"
+        line = f"  {f['label']:<7} {with_u(c['x'], u['x'], sign=True):>15}   {with_u(c['y'], u['y'], sign=True):>15}"
         r = rows.get(f["label"])
         if r is not None:
             line += (f"   {r['factory_mrad']['x']:+6.2f}, {r['factory_mrad']['y']:+6.2f}   "

@@ -127,16 +127,18 @@ async def _serve(config, web: WebSettings | None, opcua: OpcUaSettings | None, o
         for warning in opcua.warnings:
             log.warning("%s", warning)
         tasks.append(asyncio.create_task(publisher.run()))
+    # The stop handlers before monitor.json: whoever sees the file may stop the monitor at once (a SIGTERM
+    # before them ends it abruptly, and a stopped, starved one could not be told from a dead one).
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
     path = monitor_info_path(config.data_dir)
     path.parent.mkdir(parents=True, exist_ok=True)
     text = json.dumps(info)
     write_file_atomic(path, lambda fh: fh.write(text), mode="w")
     if on_ready is not None:
         on_ready(info)
-    stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, stop.set)
     try:
         waiter = asyncio.create_task(stop.wait())
         await asyncio.wait([waiter, *tasks], return_when=asyncio.FIRST_COMPLETED)
