@@ -365,10 +365,12 @@ def _print_json(doc: dict) -> int:
     return 0
 
 
-def _figure_line(name: str, f: dict) -> str:
+def _figure_line(name: str, f: dict, ascii_only: bool = False) -> str:
+    """A spot's figures in one line, each value with its U (GUM's two digits; ``+-`` for the picture's font)."""
     c, u = f["centroid_m"], f["centroid_m_U"]
-    return (f"{name}: centroid x {c['x']:+.3f} +- {u['x']:.3f} m, y {c['y']:+.3f} +- {u['y']:.3f} m; 90 % radius "
-            f"{f['spot_radius_m']:.3f} +- {f['spot_radius_m_U']:.3f} m")
+    text = (f"{name}: centroid x {with_u(c['x'], u['x'], ' m', sign=True)}, y {with_u(c['y'], u['y'], ' m', sign=True)}"
+            f"; 90 % radius {with_u(f['spot_radius_m'], f['spot_radius_m_U'], ' m')}")
+    return text.replace("±", "+-") if ascii_only else text
 
 
 def cmd_spot(args) -> int:
@@ -431,9 +433,9 @@ def cmd_spot(args) -> int:
     json_path = out_dir / f"{stem}-spot.json"
     write_json_atomic(json_path, json_ready(doc))
     pred, shown, entry = first
-    lines = [_figure_line("predicted", pred["figures"])]
+    lines = [_figure_line("predicted", pred["figures"], ascii_only=True)]
     if shown is not None:
-        lines.append(_figure_line("photographed", shown["figures"]))
+        lines.append(_figure_line("photographed", shown["figures"], ascii_only=True))
         comp = entry["comparison"]
         lines.append("field check of the factory record: " + (f"FLAGGED {', '.join(comp['flagged'])}"
                                                               if comp["flagged"] else "within the combined U"))
@@ -454,7 +456,7 @@ def cmd_spot(args) -> int:
             print("    " + _figure_line("photographed", e["photo"]))
             for key in ("centroid_x_m", "centroid_y_m", "spot_radius_m"):
                 c = e["comparison"][key]
-                print(f"    {key}: difference {c['difference']:+.3f} m, combined U {c['U']:.3f} m"
+                print(f"    {key}: difference {with_u(c['difference'], c['U'], ' m', sign=True)} (the combined U)"
                       + ("  FLAGGED" if c["flagged"] else ""))
             print("    (the centroid's difference holds the heliostat's tracking error on the day as well as its "
                   "facets')")
