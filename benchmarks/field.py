@@ -77,6 +77,8 @@ def main(argv=None) -> int:
     p.add_argument("--photos", type=int, default=None, help="canting photos (default 12; 6 with --quick)")
     p.add_argument("--population", type=int, default=0, metavar="N", help="orientation positions per seed")
     p.add_argument("--canting-population", type=int, default=0, metavar="N", help="canting heliostats per seed")
+    p.add_argument("--spot-population", type=int, default=0, metavar="N",
+                   help="spot predictions against the twin's own trace per seed")
     p.add_argument("--seeds", default="1", help="comma-separated seeds of the populations")
     p.add_argument("--json", default=None, metavar="FILE", help="write the populations' results as JSON")
     args = p.parse_args(argv)
@@ -134,6 +136,18 @@ def main(argv=None) -> int:
               f"U within 4 mrad {100 * np.mean(dlr_u <= 4):.1f} % (the paper: 80 %); within U "
               f"{100 * np.mean([c['within_U'] for c in cases]):.1f} %")
         out["orientation"] = summaries
+    if args.spot_population:
+        from sofast_station.field.study import spot_population
+
+        spots = []
+        for seed in seeds:
+            s = spot_population(args.spot_population, seed)
+            spots.append(s)
+            big, rms, u = (np.array(s[k]) * 1e3 for k in ("largest_m", "rms_m", "median_U_m"))
+            print(f"spot population, seed {seed}: {len(s['cases'])} cases; the prediction less the twin's spot "
+                  f"(centroid x, y; 90 % radius): largest {big.round(1).tolist()} mm, RMS {rms.round(1).tolist()} mm, "
+                  f"median U {u.round(1).tolist()} mm, within U {[round(100 * w) for w in s['share_within_U']]} %")
+        out["spot"] = spots
     if args.canting_population:
         rows = []
         for seed in seeds:

@@ -442,5 +442,65 @@ def write_spot_campaign(out_dir, seed: int = 0, knocked: dict | None = None, tim
             "truth": {"centroid_m": {"x": cx, "y": cy}, "spot_radius_m": r90}}
 
 
+def spot_population(n: int, seed: int, ensemble_file=None, site: TwinSite | None = None) -> dict:
+    """The spot's prediction against the twin's own trace over *n* drawn cases: heliostats 40 to 160 m from the
+    tower within +-70 deg, the sun 20 deg or more above the horizon on a drawn day and hour, canting errors of
+    1 mrad per axis (U 0.1 mrad), every second case with flat facets. Returns each case's differences and the
+    prediction's U (centroid x, y; 90 % radius), metres."""
+    from ..ensemble import load_ensemble
+    from ..twin.field import FieldHeliostat
+    from ..twin.field_spot import map_centroid_radius, spot_flux, tracking
+    from .spot import FacetModel, SpotScene, facing_target, predict_spot
+    from .sun import sun_direction
+
+    site = site or TwinSite()
+    ensemble = load_ensemble(ensemble_file or Path(__file__).resolve().parents[2] / "fixtures" / "facets" /
+                             "heliostat_2x2.toml")
+    labels = [f.label for f in ensemble.facets]
+    size = float(np.max(np.abs([f.position_m[:2] for f in ensemble.facets])))
+    rng = np.random.default_rng(seed)
+    cases = []
+    while len(cases) < n:
+        r, a = rng.uniform(40.0, 160.0), math.radians(rng.uniform(-70.0, 70.0))
+        pos = np.array([r * math.sin(a), r * math.cos(a), site.pivot_height_m])
+        hour = rng.uniform(7.0, 17.0)
+        when = f"2026-{int(rng.integers(1, 13)):02d}-15T{int(hour):02d}:{int(60 * (hour % 1)):02d}:00+00:00"
+        sun = sun_direction(when, site.latitude_deg, site.longitude_deg, site.altitude_m) \
+            if _sun_up(when, site) else None
+        if sun is None or math.degrees(math.asin(sun[2])) < 20.0:
+            continue
+        cant = rng.normal(0.0, 1.0, (len(labels), 2))
+        cant -= cant.mean(axis=0)
+        flat = len(cases) % 2 == 1
+        plane = facing_target(site.aim_m, pos)
+        twin = FieldHeliostat(ensemble, pos, *tracking(pos, site.aim_m, sun),
+                              canting_errors_mrad=np.column_stack([cant, np.zeros(len(labels))]))
+        slant = float(np.linalg.norm(site.aim_m - pos))
+        half = 3.0 * slant * 4.65e-3 + 2.0 * size + 0.5
+        flux = spot_flux(twin, site.aim_m, plane.normal, sun, half_width_m=half, cells=161, seed=len(cases),
+                         curvature_per_m={k: (0.0, 0.0) for k in labels} if flat else None)
+        tx, ty, tr = map_centroid_radius(flux, half)
+        models = [FacetModel(k, cant[i], np.full(2, 0.1), np.zeros(2) if flat else None)
+                  for i, k in enumerate(labels)]
+        f = predict_spot(models, ensemble, SpotScene(pos, 0.0, plane, sun), half_width_m=half,
+                         seed=len(cases) + 1)["figures"]
+        cases.append({"time": when, "position_m": pos.tolist(), "slant_range_m": slant, "flat": flat,
+                      "twin_radius_m": tr,
+                      "difference_m": [f["centroid_m"]["x"] - tx, f["centroid_m"]["y"] - ty, f["spot_radius_m"] - tr],
+                      "U_m": [f["centroid_m_U"]["x"], f["centroid_m_U"]["y"], f["spot_radius_m_U"]]})
+    d = np.abs(np.array([c["difference_m"] for c in cases]))
+    u = np.array([c["U_m"] for c in cases])
+    return {"seed": seed, "cases": cases, "largest_m": d.max(axis=0).tolist(),
+            "rms_m": np.sqrt(np.mean(d ** 2, axis=0)).tolist(), "median_U_m": np.median(u, axis=0).tolist(),
+            "share_within_U": np.mean(d <= u, axis=0).tolist()}
+
+
+def _sun_up(when: str, site: TwinSite) -> bool:
+    from .sun import sun_position
+
+    return bool(sun_position([when], site.latitude_deg, site.longitude_deg, site.altitude_m)[0][1] > 0)
+
+
 __all__ = ["TwinSite", "orientation_shot", "measure_orientation", "orientation_population", "canting_campaign",
-           "measure_canting", "factory_record", "write_campaign", "write_spot_campaign"]
+           "measure_canting", "factory_record", "write_campaign", "write_spot_campaign",
+           "spot_population"]
