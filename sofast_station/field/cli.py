@@ -509,6 +509,15 @@ def read_observers(path) -> list:
     return out
 
 
+def _glare_value(p: dict, key: str, unit: str, scale: float) -> str:
+    """A glare figure with its U from the canting; a U under 0.01 % of the value (the retinal irradiance of a
+    uniform sun does not depend on the source's size) is said in words, not as digits."""
+    value, u = p[key], p.get(f"{key}_U")
+    if u is not None and u < 1e-4 * abs(value):
+        return f"{with_u(value, None, unit, 4, scale=scale)} (U from the canting under 0.01 %)"
+    return with_u(value, u, unit, 4, scale=scale)
+
+
 def cmd_glare(args) -> int:
     single_thread_blas()
     import numpy as np
@@ -516,8 +525,8 @@ def cmd_glare(args) -> int:
     from ..errors import ConfigError
     from ..files import safe_name
     from .geometry import azimuth_elevation, direction, heliostat_rotation
-    from .glare import (OCULAR_TRANSMISSION, PUPIL_M, EYE_FOCAL_M, Sunlight, camera_glare, facet_glare,
-                        heliostat_samples, sun_seen_directly)
+    from .glare import (EYE_FOCAL_M, OCULAR_TRANSMISSION, PUPIL_M, Sunlight, camera_glare, observers_glare,
+                        sun_seen_directly)
     from .inputs import heliostat_place, load_site, read_notes, read_photo, read_record
     from .picture import hazard_chart
     from .spot import facet_models
@@ -567,16 +576,14 @@ def cmd_glare(args) -> int:
             normal = commanded_normal(sun, place.position_m, site.aim_point_m)
         rot = heliostat_rotation(*azimuth_elevation(normal))
         origin = np.asarray(place.position_m, float) + place.pivot_offset_m * rot[:, 2]
-        pts, nrm, areas = heliostat_samples(models, place.ensemble, rot, origin, per_facet=args.samples)
         dni = float(args.dni if args.dni is not None else 900.0)
         light = Sunlight(sun, dni, args.sun)
-        points = []
-        for name, pos in read_observers(args.observers):
-            g = facet_glare(pts, nrm, areas, pos, light, args.reflectivity)
+        points = observers_glare(models, place.ensemble, rot, origin, read_observers(args.observers), light,
+                                 args.reflectivity, per_facet=args.samples)
+        for g in points:
             if g["glare"] and g["source_samples"] < 50:
                 g["warning"] = (f"the source covers only {g['source_samples']} samples: raise --samples for a finer "
                                 "estimate")
-            points.append({"name": name, "position_m": pos, **g})
         ref = sun_seen_directly(dni)
         az_n, el_n = azimuth_elevation(normal)
         doc = {"route": "measured", "serial": serial, "time": args.time, "dni_w_m2": dni, "sun_shape": args.sun,
@@ -596,8 +603,9 @@ def cmd_glare(args) -> int:
           f"at {1e3 * ref['omega_rad']:.2f} mrad):")
     for p in points:
         if p.get("omega_rad"):
-            print(f"  {p['name']}: retinal irradiance {1e-4 * p['retinal_w_m2']:.3g} W/cm^2, subtended angle "
-                  f"{1e3 * p['omega_rad']:.2f} mrad, corneal irradiance {p['corneal_w_m2']:.4g} W/m^2"
+            print(f"  {p['name']}: retinal irradiance {_glare_value(p, 'retinal_w_m2', ' W/cm^2', 1e-4)}, "
+                  f"subtended angle {_glare_value(p, 'omega_rad', ' mrad', 1e3)}, corneal irradiance "
+                  f"{_glare_value(p, 'corneal_w_m2', ' W/m^2', 1.0)}"
                   + (f" ({p['warning']})" if p.get("warning") else ""))
         else:
             print(f"  {p['name']}: no glare (the sun's disc is seen in no mirror from there)")

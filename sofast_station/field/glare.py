@@ -220,3 +220,55 @@ def camera_glare(sun_image, glare_image, dni_w_m2: float | None, *, sun_factor: 
     omega = 2.0 * math.sqrt(src.sum() / math.pi) * rad_per_px
     return {"corneal_w_m2": corneal, "omega_rad": omega, "retinal_w_m2": float(retinal_irradiance(corneal, omega)),
             "sun_radius_px": r_sun_px, "mrad_per_px": 1e3 * rad_per_px, "source_px": int(src.sum())}
+
+
+#: Draws of the canting's Monte Carlo for the glare's U.
+GLARE_DRAWS = 8
+
+
+def observers_glare(models: list, ensemble, rotation: np.ndarray, origin_m, observers: list, sun: Sunlight,
+                    reflectivity: float = 0.94, per_facet: int = 6000, draws: int = GLARE_DRAWS,
+                    seed: int = 1) -> list:
+    """Each observer's glare (:func:`facet_glare`) of the heliostat's measured facets, with U (k = 2) from
+    *draws* draws of every facet's canting within its U (each axis a normal draw of U/2).
+
+    Parameters
+    ----------
+    models : list of FacetModel
+    ensemble : EnsembleDesign
+    rotation, origin_m
+        The heliostat frame in the field (heliostat -> field) and its origin.
+    observers : list of (name, (3,) position)
+    sun : Sunlight
+    reflectivity, per_facet, draws, seed
+
+    Returns
+    -------
+    list of dict
+        Per observer: ``name``, ``position_m``, :func:`facet_glare`'s figures, ``corneal_w_m2_U``,
+        ``omega_rad_U`` and ``retinal_w_m2_U`` (over the draws that saw glare; None without glare or with fewer
+        than 3 such draws), ``glare_in_draws`` (the share of the draws that saw the sun's disc).
+    """
+    import dataclasses
+
+    base = heliostat_samples(models, ensemble, rotation, origin_m, per_facet, seed)
+    rng = np.random.default_rng([seed, 51])
+    drawn = []
+    for _ in range(draws):
+        turned = [dataclasses.replace(m, canting_mrad=m.canting_mrad + 0.5 * m.canting_u_mrad * rng.standard_normal(2))
+                  for m in models]
+        drawn.append(heliostat_samples(turned, ensemble, rotation, origin_m, per_facet, seed))
+    out = []
+    for name, pos in observers:
+        g = facet_glare(*base, pos, sun, reflectivity)
+        runs = [facet_glare(*d, pos, sun, reflectivity) for d in drawn]
+        seen = [r for r in runs if r["glare"]]
+        u = {}
+        for key in ("corneal_w_m2", "omega_rad", "retinal_w_m2"):
+            if g["glare"] and len(seen) >= 3:
+                u[f"{key}_U"] = 2.0 * float(np.sqrt(np.mean([(r[key] - g[key]) ** 2 for r in seen])))
+            else:
+                u[f"{key}_U"] = None
+        out.append({"name": name, "position_m": list(pos), **g, **u,
+                    "glare_in_draws": len(seen) / draws if draws else None})
+    return out

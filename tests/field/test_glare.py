@@ -96,7 +96,9 @@ def test_the_glare_command_for_observers_and_by_camera(tmp_path, capsys, caplog)
                  str(tmp_path / "obs.csv"), "--time", when, "--json", "--out", str(tmp_path)]) == 0
     doc = json.loads(capsys.readouterr().out)
     tower, road = doc["observers"]
-    assert tower["glare"] and not road["glare"]
+    assert tower["glare"] and not road["glare"] and tower["glare_in_draws"] == 1.0
+    # the canting's U (0.2 mrad) moves no facet out of the sun's image: the source stays the four facets whole
+    assert tower["omega_rad_U"] < 1e-3 * tower["omega_rad"] and road["omega_rad_U"] is None
     assert abs(tower["retinal_w_m2"] / (RHO * SUN_RETINAL) - 1) < 0.01
     pos, aim = np.array([30.0, 95.0, 1.6]), np.array([0.0, 0.0, 45.0])
     from sofast_station.field.sun import sun_direction
