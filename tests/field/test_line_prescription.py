@@ -11,6 +11,7 @@ here from the twin's truth against the design by the small-angle rule of zero-me
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -61,6 +62,24 @@ def test_the_serials_prescription_else_the_design(tmp_path):
     write_prescription(tmp_path, "H-0005", {}, other)
     with pytest.raises(ConfigError, match="is not the heliostat 'heliostat-2x2'"):
         canting_design(base, tmp_path, "H-0005")
+
+
+def test_the_dump_keeps_the_design_and_its_reference(tmp_path):
+    """A prescription job's dump entry (HeliostatJob.dumped) holds the prescribed design and canting_reference,
+    and the job a dump gives back (heliostat_job_of, as reprocess takes it) judges against the same: the same
+    facet rotations and the same reference."""
+    from sofast_station.job.heliostat import HeliostatJob, heliostat_job_of
+    from sofast_station.measure.heliostat import HeliostatSettings
+    from sofast_station.measure.pipeline import AnalysisSettings
+
+    write_prescription(tmp_path, "H-0042")
+    design, ref = canting_design(load_ensemble(DESIGN), tmp_path, "H-0042")
+    job = HeliostatJob(design, HeliostatSettings(), AnalysisSettings(), canting_reference=ref)
+    dumped = json.loads(json.dumps(job.dumped()))            # as the dump keeps it: JSON-ready
+    back = heliostat_job_of(dumped, AnalysisSettings())
+    assert back.canting_reference == ref
+    for a, b in zip(back.ensemble.facets, design.facets):
+        assert np.allclose(a.rotation, b.rotation, atol=1e-12), a.label
 
 
 def test_a_recipe_names_its_prescriptions(tmp_path):
