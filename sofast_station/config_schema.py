@@ -307,6 +307,8 @@ SECTIONS: dict[str, dict[str, Key]] = {
         "optics": Key("section:optics", doc="over [optics] for this recipe"),
         "reference": Key("str", doc="a reference recipe: its facet's certificate file ([reference] table), or "
                                     "\"twin\" (the simulated station's truth)"),
+        "prescriptions": Key("str", doc="a heliostat recipe's folder of SERIAL.toml canting prescriptions "
+                                        "(field prescription; docs/field.md)"),
     },
 }
 

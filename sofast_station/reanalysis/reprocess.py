@@ -759,7 +759,8 @@ def job_of_dump(content, overrides: Overrides, notes: list, archived: dict | Non
             raise ConfigError(f"dump {content.path} is a heliostat's: its facets' designs and alignment points are "
                               "its heliostat file's; reprocess it without a facet file, focal length or alignment "
                               "point override")
-        dumped = {k: content.design[k] for k in ("ensemble", "heliostat", "max_canting_mrad") if k in content.design}
+        dumped = {k: content.design[k] for k in ("ensemble", "heliostat", "max_canting_mrad", "canting_reference")
+                  if k in content.design}
         settings = _settings(content, overrides, notes)
         name = dumped["ensemble"]["name"]
         design = None
