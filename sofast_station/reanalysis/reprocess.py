@@ -47,7 +47,7 @@ log = logging.getLogger(__name__)
 NOT_FIGURES = frozenset({"cycle_id", "serial", "time", "recipe", "station", "facet", "software_version", "config_hash",
                          "calibration", "camera", "request", "capture_notes", "crop_box", "timings_s", "truth",
                          "reprocess", "dump", "status", "archived", "differences", "error", "error_type",
-                         "station_checks"})   # the line's checks of itself on that cycle (display, temperature, reference)
+                         "station_checks"})   # the line's checks of itself (display, temperature, reference)
 
 #: The reported figures (docs/conventions.md#reported-figures; flattened names): the comparison table shows them
 #: whether or not they changed, and the other (diagnostic) figures only when they changed.
