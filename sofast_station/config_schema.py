@@ -307,6 +307,8 @@ SECTIONS: dict[str, dict[str, Key]] = {
         "optics": Key("section:optics", doc="over [optics] for this recipe"),
         "reference": Key("str", doc="a reference recipe: its facet's certificate file ([reference] table), or "
                                     "\"twin\" (the simulated station's truth)"),
+        "prescriptions": Key("str", doc="a heliostat recipe's folder of SERIAL.toml canting prescriptions "
+                                        "(field prescription; docs/field.md)"),
         "method": Key("str", choices=("fringe", "fixed"),
                       doc="the fringes' 18 frames (default) or one frame of a dot grid (docs/method.md)"),
         "fixed": Key("section:fixed", doc="the dot grid of method = \"fixed\""),

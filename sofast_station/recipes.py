@@ -17,6 +17,11 @@ In station.toml::
     facet = "fixtures/facets/dish_5m33.toml"
     serial_pattern = "^REF-"
     reference = "certificates/REF-1.toml"   # its certificate ([reference] table), or "twin"
+
+    [recipes.field-5x5]                     # a heliostat recipe
+    facet = "fixtures/facets/heliostat_5x5.toml"
+    prescriptions = "site/prescriptions"    # 'field prescription' output: a heliostat whose serial has its
+                                            # SERIAL.toml there is judged against that canting (docs/field.md)
 """
 
 from __future__ import annotations
@@ -24,6 +29,7 @@ from __future__ import annotations
 import dataclasses
 import re
 from dataclasses import dataclass
+from pathlib import Path
 
 from .devices.protocols import FacetRequest
 from .ensemble import EnsembleDesign, is_ensemble_file, load_ensemble
@@ -34,7 +40,7 @@ from .result.optical_figures import optics_for
 from .result.verdict import Limits, Quality, limits_from_table, quality_from_table
 
 _KEYS = {"facet", "serial_pattern", "alignment_point_m", "measure_point_m", "limits", "quality", "analysis",
-         "optics", "reference", "method", "fixed"}
+         "optics", "reference", "prescriptions", "method", "fixed"}
 #: A recipe's fixed-pattern table's keys and defaults (config_schema's section "fixed").
 FIXED_DEFAULTS = {"pitch_px": None, "spacing_px": 12.0, "diameter": 0.4, "white_frame": False, "min_dots": 100,
                   "index_tolerance": 0.45}
@@ -56,6 +62,10 @@ class Recipe:
     #: A reference recipe's certificate (a [reference] file's path, or "twin": the simulated station's truth):
     #: its facet judges the station, not itself (:mod:`sofast_station.station.reference`). None: a facet.
     reference: str | None = None
+    #: A heliostat recipe's folder of canting prescriptions (``sofast-station field prescription``'s
+    #: ``SERIAL.toml``): a heliostat whose serial has a file there is judged against its own place in the field
+    #: (:func:`~sofast_station.job.job_for`). None: every heliostat against the recipe's design.
+    prescriptions: Path | None = None
     #: The fixed-pattern method's dot grid and settings (``method = "fixed"``,
     #: :class:`~sofast_station.measure.fixed.FixedCapture`); None: the fringes.
     fixed: object | None = None
@@ -145,7 +155,8 @@ def recipes_from_config(config) -> dict[str, Recipe]:
                 raise ConfigError(f"{where}: the fixed-pattern method measures one facet; a heliostat recipe "
                                   "measures with the fringes")
             fixed = fixed_capture(table.get("fixed", {}), config, design, where)
-        out[name] = Recipe(name, design, analysis, limits, quality, pattern, optics, ensemble, reference, fixed)
+        out[name] = Recipe(name, design, analysis, limits, quality, pattern, optics, ensemble, reference,
+                           _prescriptions(table, ensemble, config.path.parent, where), fixed=fixed)
     return out
 
 
@@ -169,6 +180,20 @@ def _reference(value, config, where: str, ensemble) -> str:
     except ConfigError as exc:
         raise ConfigError(f"{where} reference: {exc}") from None
     return str(path)
+
+
+def _prescriptions(table: dict, ensemble, base: Path, where: str) -> Path | None:
+    """A heliostat recipe's ``prescriptions`` folder (relative to station.toml), checked; None without one."""
+    if "prescriptions" not in table:
+        return None
+    if ensemble is None:
+        raise ConfigError(f"{where}: prescriptions is a heliostat's (canting per serial); this recipe measures a "
+                          "single facet: name a heliostat file as its facet, or remove prescriptions")
+    folder = (base / str(table["prescriptions"])).resolve()
+    if not folder.is_dir():
+        raise ConfigError(f"{where}: prescriptions folder {folder} does not exist; write it with 'sofast-station "
+                          "field prescription --site SITE.toml' (docs/field.md) or correct the path")
+    return folder
 
 
 def choose_recipe(recipes: dict[str, Recipe], request: FacetRequest) -> Recipe:

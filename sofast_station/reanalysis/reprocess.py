@@ -46,7 +46,8 @@ log = logging.getLogger(__name__)
 #: Keys of a result record that describe the cycle rather than measure the facet: not compared.
 NOT_FIGURES = frozenset({"cycle_id", "serial", "time", "recipe", "station", "facet", "software_version", "config_hash",
                          "calibration", "camera", "request", "capture_notes", "crop_box", "timings_s", "truth",
-                         "reprocess", "dump", "status", "archived", "differences", "error", "error_type"})
+                         "reprocess", "dump", "status", "archived", "differences", "error", "error_type",
+                         "station_checks"})   # the line's checks of itself (display, temperature, reference)
 
 #: The reported figures (docs/conventions.md#reported-figures; flattened names): the comparison table shows them
 #: whether or not they changed, and the other (diagnostic) figures only when they changed.
@@ -759,7 +760,8 @@ def job_of_dump(content, overrides: Overrides, notes: list, archived: dict | Non
             raise ConfigError(f"dump {content.path} is a heliostat's: its facets' designs and alignment points are "
                               "its heliostat file's; reprocess it without a facet file, focal length or alignment "
                               "point override")
-        dumped = {k: content.design[k] for k in ("ensemble", "heliostat", "max_canting_mrad") if k in content.design}
+        dumped = {k: content.design[k] for k in ("ensemble", "heliostat", "max_canting_mrad", "canting_reference")
+                  if k in content.design}
         settings = _settings(content, overrides, notes)
         name = dumped["ensemble"]["name"]
         design = None
