@@ -317,6 +317,8 @@ def flatten_figures(record: dict, uncertainties: bool = False) -> dict:
     def walk(name: str, value) -> None:
         if isinstance(value, dict):
             for k, v in value.items():
+                if k == "station_checks":                  # a heliostat's facets carry the cycle's checks too
+                    continue
                 if uncertainties or not is_uncertainty_key(str(k)):     # nested ones too (optics' _U)
                     walk(f"{name}.{k}" if name else str(k), v)
         elif isinstance(value, (list, tuple)) and value and all(
