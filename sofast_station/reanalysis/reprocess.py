@@ -753,6 +753,7 @@ def job_of_dump(content, overrides: Overrides, notes: list, archived: dict | Non
     A heliostat's dump takes overrides of the analysis settings, the measured distance and the radiometric
     record; a facet file, focal length or alignment point cannot replace its facets (ConfigError)."""
     from ..job import FacetJob
+    from ..job.fixed import fixed_job_of
     from ..job.heliostat import heliostat_job_of
 
     if is_heliostat_dump(content):
@@ -775,6 +776,8 @@ def job_of_dump(content, overrides: Overrides, notes: list, archived: dict | Non
     limits, quality = _judge_settings(content, head.recipe, notes)
     if design is None:
         return heliostat_job_of(dumped, settings, limits, quality, optics), head, distance
+    if content.design.get("method") == "fixed":
+        return fixed_job_of(content.design, design, settings, limits, quality, optics), head, distance
     return FacetJob(design, settings, limits, quality, optics), head, distance
 
 
