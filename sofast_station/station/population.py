@@ -893,3 +893,51 @@ def study(captures: int, seed: int = 0, per_station: int = 10, kinds=tuple(KINDS
         paths["text"].write_text(text + "\n")
         population_png(cases, summary, paths["png"])
     return {"summary": summary, "text": text, "paths": paths, "cases": cases}
+
+
+# ------------------------------------------------------------------------------ after commissioning
+def commissioned_cases(config_path, captures: int, seed: int = 0, progress=None) -> list[dict]:
+    """Captures of a commissioned simulated station measured with its records, against the twin's truth.
+
+    The station file *config_path* (its ``data_dir`` holding the screen and pose records ``calibrate screen``
+    and ``calibrate pose`` wrote on this station's twin) is read with its records in force: the analysis's
+    geometry is the records' (the measured screen, the screen's and the fixture's poses) and its budget's
+    geometry rows their stated uncertainties. Each capture: the twin's true facet placed anew within the
+    fixture tolerance (:class:`~.study.Placement`), new noise, the range finder's reading drawn with
+    ``[uncertainty] distance_mm``; the twin keeps its true assembly (what the commissioning measured). The
+    cases are :func:`run_population`'s good captures (``figures``, ``U``, ``truth``), so :func:`summarise`
+    tallies them; ``index`` is *seed* (one station)."""
+    from ..config import load_config
+    from ..twin.station import TwinStation
+    from ..twin.truth import ground_truth
+    from .simulated import build_twin
+
+    cfg = load_config(Path(config_path))
+    twin0 = build_twin(cfg, noise=True)
+    images, _ = _render(cfg)
+    from ..calibrate.records import load_radiometric
+
+    cal = load_radiometric(cfg.radiometric_path)
+    rng = np.random.default_rng([int(seed), 0xC0AA])
+    placement = Placement()
+    cache: dict = {}
+    cases = []
+    for j in range(captures):
+        place = placement.draw(rng)
+        facet = dataclasses.replace(twin0.facet, placement_mm=tuple(place[0]), placement_mrad=tuple(place[1]))
+        twin = TwinStation(twin0.geometry, cfg.design, facet, twin0.optics, screen_shape=twin0.screen_shape)
+        noise = np.random.default_rng(rng.integers(2**63))
+        frames = np.stack([twin.capture(img, noise, exposure_s=cal.exposure_s, gain=cal.gain,
+                                        flicker_phase=float(noise.random())) for img in images])
+        distance = twin.measured_distance_m() + float(rng.normal(0.0, 1e-3 * cfg.uncertainty.distance_mm))
+        t0 = time.perf_counter()
+        a = analyse(frames, cfg.fringes, cfg.geometry, cfg.design, distance, cfg.analysis,
+                    uncertainty=cfg.uncertainty, sensitivity_cache=cache)
+        case = {"index": int(seed), "kind": "dish", "edge": "area", "case": "good", "capture": j,
+                "outcome": judge(a.figures, cfg.design, cfg.limits, cfg.quality)["verdict"],
+                "seconds": time.perf_counter() - t0,
+                **capture_record(a.figures, ground_truth(twin, a.valid), place)}
+        cases.append(case)
+        if progress:
+            progress(case)
+    return cases
