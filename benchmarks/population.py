@@ -11,7 +11,7 @@ under --out (default: a temporary folder, printed). ``--merge`` makes the tallie
 (seeds run in parallel processes, each its own stations) without analysing anything. ``--held-out`` runs the
 frozen held-out seeds (``population.HELD_OUT_SEEDS``, --captures split between them) and prints their merged
 tallies: the check of the population claims on seeds the method was never tuned on, once per release
-(docs/uncertainty.md#held-out); never run it while developing. Nothing is asserted here;
+(docs/uncertainty.md#held-out-seeds); never run it while developing. Nothing is asserted here;
 tests/station/test_population.py runs a small population in CI.
 """
 

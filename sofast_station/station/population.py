@@ -611,9 +611,10 @@ def coverage_rows(cases: list[dict], paths=SCALAR_PATHS, corrected: bool = True)
     return rows
 
 
-#: The frozen held-out seeds (issue 47, item 7; drawn from os.urandom on 2026-12-06, docs/uncertainty.md#held-out):
-#: population claims are checked on them once per release (``benchmarks/population.py --held-out``) and never
-#: while developing or tuning the method, so that what they show was not fitted to them.
+#: The frozen held-out seeds (issue 47, item 7; drawn from os.urandom on 2026-12-06,
+#: docs/uncertainty.md#held-out-seeds): population claims are checked on them once per release
+#: (``benchmarks/population.py --held-out``) and never while developing or tuning the method, so that what they
+#: show was not fitted to them.
 HELD_OUT_SEEDS = (99227, 97297, 5211, 37169)
 
 
