@@ -317,6 +317,8 @@ def flatten_figures(record: dict, uncertainties: bool = False) -> dict:
     def walk(name: str, value) -> None:
         if isinstance(value, dict):
             for k, v in value.items():
+                if k == "station_checks":                  # a heliostat's facets carry the cycle's checks too
+                    continue
                 if uncertainties or not is_uncertainty_key(str(k)):     # nested ones too (optics' _U)
                     walk(f"{name}.{k}" if name else str(k), v)
         elif isinstance(value, (list, tuple)) and value and all(
@@ -751,6 +753,7 @@ def job_of_dump(content, overrides: Overrides, notes: list, archived: dict | Non
     A heliostat's dump takes overrides of the analysis settings, the measured distance and the radiometric
     record; a facet file, focal length or alignment point cannot replace its facets (ConfigError)."""
     from ..job import FacetJob
+    from ..job.fixed import fixed_job_of
     from ..job.heliostat import heliostat_job_of
 
     if is_heliostat_dump(content):
@@ -773,6 +776,8 @@ def job_of_dump(content, overrides: Overrides, notes: list, archived: dict | Non
     limits, quality = _judge_settings(content, head.recipe, notes)
     if design is None:
         return heliostat_job_of(dumped, settings, limits, quality, optics), head, distance
+    if content.design.get("method") == "fixed":
+        return fixed_job_of(content.design, design, settings, limits, quality, optics), head, distance
     return FacetJob(design, settings, limits, quality, optics), head, distance
 
 
