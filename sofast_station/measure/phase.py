@@ -334,6 +334,14 @@ class FrameNoise:
         the period sets; None from the harmonic).
     phase_error_from : str
         "periods" or "harmonic".
+    harmonic_offsets_dn : tuple of float
+        Each set's mean of the fitted harmonic over its pixels, DN (x sets, then y sets): the part of a set's
+        mean residual that is the display's static response, not a brightness change between its frames.
+        A facet that sees a short stretch of a coarse fringe sees nearly one phase, so its harmonic
+        4 c_2 cos(2 phi + psi) does not average out over the pixels: on the population's dish stations
+        (display gamma 2.227 against the table's 2.2) it made every set's mean 1.2-2.1 DN with the room
+        light steady, the frame-to-frame brightness read as 0.8 DN instead of 0.05, and the slope RMS
+        values' U twice their errors' spread (:func:`~.uncertainty.frame_brightness_dn` takes it out).
     """
 
     noise_dn: float
@@ -345,6 +353,7 @@ class FrameNoise:
     phase_error_rms_rad: float | None = None
     phase_error_u_rad: float | None = None
     phase_error_from: str = "harmonic"
+    harmonic_offsets_dn: tuple = ()
 
     def with_period_error(self, measured: "PeriodPhaseError | None") -> "FrameNoise":
         """This estimate with the phase error the period sets show (:func:`phase_error_between_periods`),
@@ -431,9 +440,13 @@ def frame_noise(phases, modulations, residuals, level=None, pool=None) -> FrameN
     # r = 4 c_2 cos(2 phi + psi): the ratio c_2 / b, signed by the cosine part (power laws have psi = 0, pi).
     ratio = 0.25 * float(np.hypot(harmonic[0], harmonic[1])) * (1.0 if harmonic[0] >= 0 else -1.0)
     noise = intensity_noise_dn(np.concatenate([_stride(cleaned[k]) for k in good]))
+    # the shared harmonic's mean over each set's (sampled) pixels: static, not a brightness change
+    offsets = tuple(float(np.mean(harmonic @ samples[k][1])) if samples[k][1].shape[1] else 0.0
+                    for k in range(n_sets))
     return FrameNoise(noise_dn=noise, frame_noise_dn=float(np.hypot(noise, QUANTISATION_NOISE_DN)),
                       harmonic_ratio=abs(ratio), signed_harmonic_ratio=ratio,
-                      phase_error_rad=phase_error_from_harmonic(ratio), residuals=cleaned)
+                      phase_error_rad=phase_error_from_harmonic(ratio), residuals=cleaned,
+                      harmonic_offsets_dn=offsets)
 
 
 #: Harmonics of the phase (k phi) in the four-step phase error a static nonlinearity leaves: the response's
