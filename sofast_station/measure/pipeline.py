@@ -795,7 +795,7 @@ def shape_and_boresight(rays: Rays, pose: CornerPoseResult, design: FacetDesign,
     heights_of = None
     if uses_surface_heights(design, measured_distance_m) and settings.surface == "parabolic":
         def heights_of(p, s, c):
-            return surface_heights(p, s, c, design, step)
+            return surface_heights(p, s, c, design)
     solution, points, slopes, fit = close_on_all_points(
         solution, design, measured_distance_m, subsample, reduce_all,
         lambda p, s: all_points_parabola(p, s, solution.fit, settings, pool), settings.max_iterations,
@@ -805,19 +805,28 @@ def shape_and_boresight(rays: Rays, pose: CornerPoseResult, design: FacetDesign,
                  fit=fit)
 
 
-def surface_heights(points: np.ndarray, slopes: np.ndarray, coefficients: np.ndarray, design: FacetDesign,
-                    step: int) -> tuple[np.ndarray, float]:
+#: Points :func:`surface_heights` integrates at most (every k-th of the facet's valid pixels), and about
+#: how many of them each grid cell gets: with fewer the grid is coarser (empty cells carry the heights on
+#: flat, which biases them).
+HEIGHT_POINTS = 60_000
+HEIGHT_POINTS_PER_CELL = 4
+
+
+def surface_heights(points: np.ndarray, slopes: np.ndarray, coefficients: np.ndarray,
+                    design: FacetDesign) -> tuple[np.ndarray, float]:
     """The facet's heights above the model *coefficients*: at every point (N,) and at the design's measure
-    point, metres, with zero mean over the points. The slope residuals of every *step*-th point integrate
-    to them on a grid (:func:`~.heights.height_grid`, about 96 cells along the facet: 0.2-0.5 um RMS from
-    the exact heights of a random field of 2-4 cm correlation), read at each point by bilinear
-    interpolation."""
+    point, metres, with zero mean over the points. The slope residuals of at most :data:`HEIGHT_POINTS`
+    points integrate to them on a grid (:func:`~.heights.height_grid`) of up to 96 cells along the facet and
+    about :data:`HEIGHT_POINTS_PER_CELL` points per cell (0.2-0.5 um RMS from the exact heights of a random
+    field of 2-4 cm correlation at 96 cells), read at each point by bilinear interpolation."""
     from .heights import height_grid
     from .surface import surface_slopes
 
     x, y = points[0], points[1]
+    step = max(1, x.size // HEIGHT_POINTS)
+    cells = int(min(96, max(8, np.sqrt(x.size / step / HEIGHT_POINTS_PER_CELL))))
     mx, my = surface_slopes(coefficients, x[::step], y[::step])
-    grid = height_grid(x[::step], y[::step], slopes[0, ::step] - mx, slopes[1, ::step] - my)
+    grid = height_grid(x[::step], y[::step], slopes[0, ::step] - mx, slopes[1, ::step] - my, cells=cells)
     at_points = grid.at(x, y)
     mean = float(np.sum(at_points) / at_points.size)
     at_points -= mean
