@@ -9,7 +9,9 @@ data folder. Every ``--fault-every``-th facet gets an injected fault, in turn: a
 facet, a camera timeout, and an analysis that finishes after the deadline (a late result).
 ``--hung-percent P`` also makes P % of the other facets (drawn with a fixed seed) hang their analysis for
 good: each must cost the line that one facet (the deadline), the standby measuring the next; compare the
-cycles per minute with a run without (``--no-standby`` shows the line without a standby). Every
+cycles per minute with a run without (``--no-standby`` shows the line without a standby). ``--burners N``
+runs N processes spinning at the normal priority beside the line (a machine busy with other work); the
+journal then says how many facets past the deadline kept their late result. Every
 ``--sample-every`` cycles it records the resident memory (VmRSS) and open file descriptors of the
 station, the analysis worker, its standby and the archiver, and reports for each the growth per 100 cycles
 (least squares) twice: after a warm-up (``--warmup`` cycles, default 20 % of the run, at least 50, so that
@@ -142,6 +144,9 @@ def main(argv=None) -> int:
                    help="this percentage of the facets without another fault hang their analysis for good")
     p.add_argument("--no-standby", action="store_true", help="[run] standby_worker = false")
     p.add_argument("--seed", type=int, default=28, help="the draw of the hung facets (default 28)")
+    p.add_argument("--burners", type=int, default=0,
+                   help="processes spinning at the normal priority beside the run (a machine busy with other "
+                        "work, as 'yes > /dev/null' makes it)")
     p.add_argument("--quick", action="store_true", help="12 cycles at 400 x 300 (the test suite's smoke run)")
     args = p.parse_args(argv)
     if args.quick:
@@ -249,12 +254,17 @@ def main(argv=None) -> int:
             timer = threading.Timer(60.0 * args.minutes, service.runner.stop)
             timer.daemon = True
             timer.start()
+        import subprocess
+        burners = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(args.burners)]
         t_run = time.perf_counter()
         try:
             service.runner.run(on_outcome=on_outcome)
         finally:
             t_close = time.perf_counter()
             service.close()
+            for b in burners:
+                b.kill()
+                b.wait()
         run_s, close_s = t_close - t_run, time.perf_counter() - t_close
         n = sum(answers.values())
         per_minute = 60.0 * n / run_s if run_s > 0 else float("nan")
@@ -315,6 +325,14 @@ def main(argv=None) -> int:
                               f"{o['rss_first_mb']:.0f}->{o['rss_last_mb']:.0f} MB {o['growth_mb_per_100']:+.2f}/100"
                               for o in own))
 
+        from sofast_station.archive import Journal
+        with Journal(data / "journal.sqlite3") as journal:
+            past = [r.record for r in journal.rows() if r.record.get("late")]
+        kept = sum("late_verdict" in rec for rec in past)
+        figures["past_deadline"], figures["late_kept"] = len(past), kept
+        print(f"past the deadline: {len(past)} facets, {kept} of them with their late result kept (figures "
+              f"journaled), {len(past) - kept} without (no result within the late grace); {args.burners} spinning "
+              "process(es) beside the run")
         c = archive_checks(data)
         rows, book_ids, requested = c["journal_rows"], c["workbook_rows"], c["dumps_requested"]
         temps, spools = c["temp_files"], c["orphan_spools"]

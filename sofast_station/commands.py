@@ -34,6 +34,7 @@ COMMAND_MODULES = (
     "sofast_station.reanalysis.cli",         # the process and quality engineers: reprocess, batch, report
     "sofast_station.interop.cli",            # import-opencsp
     "sofast_station.station.study_cli",      # study repeatability (the twin)
+    "sofast_station.field.cli",              # field orientation | canting (the tower's camera)
 )
 
 

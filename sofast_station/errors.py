@@ -36,6 +36,26 @@ class DisplayNotShowingError(CaptureError):
     """The white and dark frames are the same: the display shows nothing the camera can see."""
 
 
+class DotPatternError(CaptureError):
+    """A fixed-pattern (dot grid) capture that cannot be measured (:mod:`sofast_station.measure.fixed`)."""
+
+
+class DotsNotFoundError(DotPatternError):
+    """No dot grid stands out in the frame."""
+
+
+class OriginNotFoundError(DotPatternError):
+    """The dot grid's origin (its mark, or the pixel the capture gives) has no dot beside it."""
+
+
+class TooFewDotsError(DotPatternError):
+    """Too few dots could be indexed and located on the facet."""
+
+
+class DoubleLatticeError(DotPatternError):
+    """The frame shows the dot grid twice (a second lattice beside the first: a second reflection)."""
+
+
 class DisplayError(StationError):
     """The fringe display could not be created or did not show what was asked."""
 

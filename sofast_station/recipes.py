@@ -10,6 +10,11 @@ In station.toml::
     limits = { focal_length_tolerance = 0.01 }
     quality = { min_valid_fraction = 0.85 }
     optics = { aperture = { shape = "circle", radius_m = 0.05 } }   # over [optics] (docs/optics.md)
+
+    [recipes.reference]                     # judges the station (docs/reliability.md#a-reference-every-shift)
+    facet = "fixtures/facets/dish_5m33.toml"
+    serial_pattern = "^REF-"
+    reference = "certificates/REF-1.toml"   # its certificate ([reference] table), or "twin"
 """
 
 from __future__ import annotations
@@ -27,7 +32,7 @@ from .result.optical_figures import optics_for
 from .result.verdict import Limits, Quality, limits_from_table, quality_from_table
 
 _KEYS = {"facet", "serial_pattern", "alignment_point_m", "measure_point_m", "limits", "quality", "analysis",
-         "optics"}
+         "optics", "reference"}
 
 
 @dataclass(frozen=True)
@@ -43,6 +48,9 @@ class Recipe:
     #: A heliostat recipe's heliostat (its facet file is a heliostat file; ``design`` is then its bounding
     #: outline): the loop analyses its facets in one capture (docs/heliostats.md). None: a single facet.
     ensemble: EnsembleDesign | None = None
+    #: A reference recipe's certificate (a [reference] file's path, or "twin": the simulated station's truth):
+    #: its facet judges the station, not itself (:mod:`sofast_station.station.reference`). None: a facet.
+    reference: str | None = None
 
 
 def default_recipe(config) -> Recipe:
@@ -86,8 +94,33 @@ def recipes_from_config(config) -> dict[str, Recipe]:
             except re.error as exc:
                 raise ConfigError(f"{where}: serial_pattern is not a valid regular expression: {exc}") from None
         optics = optics_for(config.raw, str(config.path), name)
-        out[name] = Recipe(name, design, analysis, limits, quality, pattern, optics, ensemble)
+        reference = table.get("reference")
+        if reference is not None:
+            reference = _reference(reference, config, where, ensemble)
+        out[name] = Recipe(name, design, analysis, limits, quality, pattern, optics, ensemble, reference)
     return out
+
+
+def _reference(value, config, where: str, ensemble) -> str:
+    """A recipe's ``reference``: "twin" (the simulated station's truth) or a certificate file, read now so a
+    mistake stops the station at its start."""
+    from .calibrate.geometry import load_reference
+
+    if ensemble is not None:
+        raise ConfigError(f"{where}: reference is a single facet's certificate; a heliostat recipe cannot be one")
+    if value == "twin":
+        if config.backend != "simulated":
+            raise ConfigError(f"{where}: reference = \"twin\" is the simulated station's truth; a hardware station "
+                              "names the reference facet's certificate (a [reference] file)")
+        return "twin"
+    if not isinstance(value, str) or not value:
+        raise ConfigError(f"{where}: reference must name the reference facet's certificate file, got {value!r}")
+    path = config.path.parent / value
+    try:
+        load_reference(path)
+    except ConfigError as exc:
+        raise ConfigError(f"{where} reference: {exc}") from None
+    return str(path)
 
 
 def choose_recipe(recipes: dict[str, Recipe], request: FacetRequest) -> Recipe:

@@ -101,6 +101,20 @@ def test_soak_benchmark_quick(repo_root):
         assert line in proc.stdout
 
 
+def test_monitor_under_load_benchmark_quick(repo_root):
+    """benchmarks/monitor_under_load.py: the monitor at its default nice beside one spinning process, three
+    requests each (about 9 s of CPU, the spinning process's included)."""
+    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "monitor_under_load.py"), "--quick"],
+                          capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr
+    print(proc.stdout)
+    for line in ("1 spinning process(es)", "nice  page up, s  OPC UA up, s", "load average before -> after"):
+        assert line in proc.stdout
+    from sofast_station.web.settings import WebSettings
+
+    assert proc.stdout.strip().splitlines()[-1].split()[0] == str(WebSettings().nice)   # the row of the default
+
+
 def test_heliostat_benchmark_quick(repo_root):
     """benchmarks/heliostat.py at a quarter of the resolution: one facet, the 2x2 and the 5x5 heliostats."""
     proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "heliostat.py"), "--quick"],
@@ -284,3 +298,66 @@ def test_uncertainty_coverage_benchmark_quick(repo_root, tmp_path):
     assert "34 captures from 17 file(s)" in merged.stdout
     assert "errors against the drawn inputs (least squares over 34 captures" in merged.stdout
     assert "residual std" in merged.stdout
+
+
+def test_marks_benchmark_quick(repo_root):
+    """benchmarks/marks.py: the check's cost on a 400 x 300 station, 5 good cycles, every camera move."""
+    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "marks.py"), "--quick"],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    print(proc.stdout)
+    for line in ("== cost of the check: camera 400 x 300", "wall ms per check", "good cycles: 5, false alarms",
+                 "turn 0.2 mrad about x", "shift 1 mm along y"):
+        assert line in proc.stdout
+
+
+def test_placement_tilt_benchmark_quick(repo_root):
+    """benchmarks/placement_tilt.py: 2 captures of the ideal 400 x 300 dish, the corners' and the slopes' tilt."""
+    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "placement_tilt.py"), "--quick"],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    print(proc.stdout)
+    for line in ("== ideal 400 x 300 dish: 2 captures", "about x: corners", "slopes", "own boresight"):
+        assert line in proc.stdout
+
+
+def test_display_check_benchmark_quick(repo_root):
+    """benchmarks/display_check.py: the display's self-test's cost at 1600 x 1200 and 400 x 300."""
+    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "display_check.py"), "--quick"],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    print(proc.stdout)
+    for line in ("== the display's self-test", "camera 1600 x 1200: 20 checks", "camera 400 x 300: 20 checks"):
+        assert line in proc.stdout
+
+
+def test_camera_calibration_benchmark_quick(repo_root):
+    """benchmarks/camera_calibration.py: five half-size photographs, the command once."""
+    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "camera_calibration.py"), "--quick"],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    print(proc.stdout)
+    for line in ("5 photographs of an 18 x 23 inner-corner board, 813 x 618 px", "whole command: wall", "found: ",
+                 "images used", "load average after"):
+        assert line in proc.stdout
+
+
+def test_fixed_pattern_benchmark_quick(repo_root):
+    """benchmarks/fixed_pattern.py: OpenCSP's fixed capture and fringe capture (native), the heliostat twin at a
+    quarter of its resolution, each facet measured both ways (issue 42 item 6)."""
+    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "fixed_pattern.py"), "--quick"],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    print(proc.stdout)
+    for line in ("opencsp  fixed", "opencsp  fringe", "twin     fixed", "twin     fringe", "fixed over fringe"):
+        assert line in proc.stdout
+
+
+def test_field_benchmark_quick(repo_root):
+    """benchmarks/field.py: a heliostat's canting from 6 twin photos of 640 x 480 and one orientation."""
+    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "field.py"), "--quick"],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    print(proc.stdout)
+    for line in ("camera 640 x 480", "canting from", "the issue: under a minute", "orientation from one photo"):
+        assert line in proc.stdout

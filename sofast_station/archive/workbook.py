@@ -49,6 +49,7 @@ from pathlib import Path
 from ..errors import ArchiveError
 from ._common import fault_point
 from ..files import fsync_dir, json_ready, safe_name, temp_path_for
+from ..gum import u_decimals
 from ..times import parse_time
 from .journal import Journal, JournalRow
 
@@ -243,14 +244,42 @@ def column_unit(name: str) -> str:
     return ""
 
 
-def number_format(column: str, value) -> str | None:
-    """Excel number format for a cell of *column* holding *value* (None: leave General)."""
+def uncertainty_column(column: str, row: dict) -> str | None:
+    """The column of *row* that holds the expanded uncertainty of *column*: the record's ``NAME_U`` sibling at
+    the figure's level (``focal_length_x_m_U``, ``slope_rms_mrad_U.design.x``, ``optics.intercept_U``), or
+    None."""
+    parts = column.split(".")
+    for i in range(len(parts)):
+        name = ".".join(parts[:i] + [parts[i] + "_U"] + parts[i + 1:])
+        if name in row:
+            return name
+    return None
+
+
+def shown_decimals(row: dict) -> dict:
+    """Column -> decimals its cell shows, for each figure of *row* with an expanded uncertainty and for that
+    U's own column: the decimals of U's two significant digits (GUM 7.2.6), the place the console, the page
+    and the certificate write the figure to (:func:`~sofast_station.gum.with_u`); the cell keeps every digit."""
+    out = {}
+    for name, value in row.items():
+        u_name = uncertainty_column(name, row) if isinstance(value, float) else None
+        d = None if u_name is None else u_decimals(row[u_name])
+        if d is not None:
+            out[name] = out[u_name] = max(d, 0)       # a U of 100 or more: a format cannot round to tens
+    return out
+
+
+def number_format(column: str, value, decimals: int | None = None) -> str | None:
+    """Excel number format for a cell of *column* holding *value* (None: leave General); *decimals* (a figure
+    with its U: :func:`shown_decimals`) fixes the places shown."""
     if isinstance(value, _dt.datetime):
         return "yyyy-mm-dd hh:mm:ss"
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         return None
     if isinstance(value, int):
         return "0"
+    if decimals is not None:
+        return "0." + "0" * decimals if decimals > 0 else "0"
     name = column.lower()
     if name.startswith("timings_s."):
         return "0.000"
@@ -457,12 +486,13 @@ def _file_rows(path: Path, wanted: set) -> dict:
         wb.close()
 
 
-def _cell(ws, column: str, value):
-    """What goes into a write-only sheet for *value* in *column*: the value, or a styled cell."""
+def _cell(ws, column: str, value, decimals: int | None = None):
+    """What goes into a write-only sheet for *value* in *column* (shown to *decimals* places when given): the
+    value, or a styled cell."""
     from openpyxl.cell import WriteOnlyCell
 
     value = _cell_value(value)
-    fmt = number_format(column, value)
+    fmt = number_format(column, value, decimals)
     if isinstance(value, str):
         if value[:1] in ("=", "#"):
             cell = WriteOnlyCell(ws, value)
@@ -561,11 +591,12 @@ class _PartWriter:
             width = len(self.header)
             for flat in self._flat_rows():                  # second pass: the rows, streamed to the sheet
                 cells = [None] * width
+                shown = shown_decimals(flat)
                 for name, value in flat.items():
                     # a column the first pass did not see: the row was amended (a late result) between the
                     # passes; its journal row changed version, so it stays pending and is written whole again
                     if value is not None and name in columns:
-                        cells[columns[name]] = _cell(ws, name, value)
+                        cells[columns[name]] = _cell(ws, name, value, shown.get(name))
                 ws.append(cells)
             us = wb.create_sheet("units")
             us.column_dimensions["A"].width = 44

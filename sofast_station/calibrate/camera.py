@@ -3,12 +3,19 @@
 Every image is either used or rejected with a reason:
 
 * the file cannot be read, or its size differs from the first image's;
-* the board is not found (chessboard: ``cv2.findChessboardCornersSB``; ChArUco: no marker or corner);
-* too few corners (ChArUco: fewer than ``min_corners``, or all on one line);
+* the board is not found (chessboard: no grid that checks out of at least :func:`smallest_part` inner
+  corners along each side, see :func:`find_chessboard`; ChArUco: no marker or corner);
+* the chessboard found is larger than the board stated (``--squares`` counts squares, not inner corners);
+* too few corners (fewer than ``min_corners``; ChArUco: or all on one line);
 * blurred: the board's edges are wider than ``max_edge_width_px`` (contrast over the steepest gradients
   near the corners; a focused edge is about 2 px wide, a Gaussian blur of sigma adds about 2.5 sigma);
 * after the first calibration, a reprojection RMS more than three times the median of the images (and
   above 0.5 px): the corners were misdetected; the rest is calibrated again.
+
+A chessboard may be partly out of view: the part found is used, its corners numbered from the part's own
+first corner (a plain chessboard does not say which part of it is seen; each view has its own pose, so
+the intrinsics do not need to know). Images are read and searched in parallel threads (OpenCV releases
+the GIL), one line of progress per image.
 
 The model is OpenCV's pinhole with distortion k1, k2, p1, p2, k3 (k3 held at 0 unless asked for: a
 long-focus lens cannot tell it from k1 and k2; k2 too may be held at 0). The result is stored as a camera
@@ -26,6 +33,10 @@ from __future__ import annotations
 
 import json
 import logging
+import math
+import os
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -55,6 +66,32 @@ DISTORTION_CORNER_PX = (0.5, 2.0)
 COVERAGE_GRID = (8, 6)
 MIN_COVERAGE = 0.6
 CORNER_ZONE = 0.2
+
+#: Chessboard search (:func:`find_chessboard`): the smallest part of the board accepted, as a fraction of
+#: its inner corners along its shorter side (the same count along both sides, so that the detector takes
+#: the part in either orientation), at least MIN_PART corners: a board partly out of view. The detector
+#: grows the part it finds as a rectangle of the board's squares, so a board cut diagonally by the image's
+#: edge gives it a part much smaller than what is in view (a quarter of the shorter side lets it take one).
+PARTIAL_FRACTION = 0.25
+MIN_PART = 4
+#: Local contrast equalisation before the search (OpenCV's CLAHE: clip limit, tiles across x down): a
+#: board lit unevenly, whose weak corners the detector's global tests reject (docs/calibration.md).
+CLAHE_CLIP = 3.0
+CLAHE_TILES = (8, 8)
+#: The image is searched at full size, then halved again and again (down to MIN_SEARCH_SIDE pixels along
+#: its shorter side) until the whole board is found: the detector, asked for a part of a board whose
+#: squares are large (a board seen close, reaching past the image's edge), grows grids that skip every
+#: other row or column; on the image made smaller, where the squares are about 10 to 20 px, it grows the
+#: right one.
+MIN_SEARCH_SIDE = 150
+#: A grid found is a chessboard's only within these (:func:`grid_deviation`): the bend of a run of four
+#: corners over its length, and its cross-ratio's relative error (docs/calibration.md gives what true and
+#: wrong grids show).
+MAX_BEND = 0.1
+MAX_CROSS_RATIO_ERROR = 0.1
+#: ... and its corners within this many local spacings of where their neighbours put them
+#: (:func:`grid_outliers`; the outer rows holding one are dropped).
+MAX_OFF_SPACING = 0.25
 
 
 @dataclass(frozen=True)
@@ -106,9 +143,7 @@ class BoardSpec:
 
     def chessboard_points(self) -> np.ndarray:
         """Board-frame points (n_corners, 3), metres, in OpenCV's chessboard corner order (rows of x)."""
-        j, i = np.mgrid[1:self.squares_y, 1:self.squares_x]
-        return np.column_stack([i.ravel() * self.square_m, j.ravel() * self.square_m,
-                                np.zeros(i.size)]).astype(np.float32)
+        return grid_points(self.squares_x - 1, self.squares_y - 1, self.square_m)
 
     def charuco(self):
         """The OpenCV CharucoBoard."""
@@ -141,6 +176,12 @@ class ImageResult:
         Median edge width near the corners, pixels.
     rms_px : float or None
         Reprojection RMS of its corners after calibration, pixels.
+    grid : tuple of int or None
+        Chessboard: the inner corners found, across x down (the board's, or a part of it, maybe turned).
+    partial : bool
+        Chessboard: only a part of the board was found (partly out of view).
+    shape : tuple of int or None
+        The image's (height, width), pixels.
     """
 
     name: str
@@ -149,12 +190,25 @@ class ImageResult:
     corners: int = 0
     edge_width_px: float | None = None
     rms_px: float | None = None
+    grid: tuple[int, int] | None = None
+    partial: bool = False
+    shape: tuple[int, int] | None = None
     object_points: np.ndarray | None = field(default=None, repr=False)
     image_points: np.ndarray | None = field(default=None, repr=False)
 
     def to_dict(self) -> dict:
         return {"name": self.name, "accepted": self.accepted, "reason": self.reason, "corners": self.corners,
-                "edge_width_px": self.edge_width_px, "rms_px": self.rms_px}
+                "edge_width_px": self.edge_width_px, "rms_px": self.rms_px,
+                "grid": list(self.grid) if self.grid else None, "partial": self.partial}
+
+    def describe(self) -> str:
+        """One line: the corners found and the edge width, or why the image was rejected."""
+        if not self.accepted:
+            return f"rejected: {self.reason}"
+        part = (f" (a {self.grid[0]} x {self.grid[1]} part of the board: partly out of view)" if self.partial
+                else "")
+        width = "" if self.edge_width_px is None else f", edges {self.edge_width_px:.1f} px"
+        return f"{self.corners} corners{part}{width}"
 
 
 @dataclass
@@ -231,6 +285,12 @@ def _spacing(points: np.ndarray) -> float:
     return float(np.median(d.min(axis=1)))
 
 
+def _refine_half(corners: np.ndarray, clear_fraction: float = 0.5) -> int:
+    """Half-width (pixels) of :func:`_refine`'s window: half of *clear_fraction* of the corner spacing,
+    2 to 11 px."""
+    return int(np.clip(round(0.5 * clear_fraction * _spacing(corners)), 2, 11))
+
+
 def _refine(img: np.ndarray, corners: np.ndarray, clear_fraction: float = 0.5) -> np.ndarray:
     """Saddle-point refinement of chessboard corners.
 
@@ -240,10 +300,236 @@ def _refine(img: np.ndarray, corners: np.ndarray, clear_fraction: float = 0.5) -
     """
     import cv2
     pts = np.asarray(corners, dtype=np.float32).reshape(-1, 1, 2)
-    half = int(np.clip(round(0.5 * clear_fraction * _spacing(pts)), 2, 11))
+    half = _refine_half(pts, clear_fraction)
     out = cv2.cornerSubPix(img, pts.copy(), (half, half), (-1, -1),
                            (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 50, 1e-3))
     return out.reshape(-1, 2).astype(np.float32)
+
+
+def grid_points(cols: int, rows: int, square_m: float) -> np.ndarray:
+    """Board-frame points (cols * rows, 3), metres, of a grid of cols x rows corners one square apart, row
+    after row (x along a row), the first at (square_m, square_m): a chessboard's inner corners."""
+    j, i = np.mgrid[1:rows + 1, 1:cols + 1]
+    return np.column_stack([i.ravel() * square_m, j.ravel() * square_m, np.zeros(i.size)]).astype(np.float32)
+
+
+def smallest_part(inner: tuple[int, int]) -> int:
+    """Inner corners along each side of the smallest part of a chessboard that :func:`find_chessboard`
+    accepts (:data:`PARTIAL_FRACTION` of the shorter side, at least :data:`MIN_PART`, at most the side)."""
+    return min(min(inner), max(MIN_PART, math.ceil(PARTIAL_FRACTION * min(inner))))
+
+
+def cells_alternate(image: np.ndarray, corners: np.ndarray, grid: tuple[int, int]) -> bool:
+    """Whether a grid of corners is a chessboard's: every cell one square, alternately dark and light.
+
+    Each cell (four neighbouring corners) is sampled at its centre and at four points 30 % and 70 % of the
+    way along both of its sides (bilinearly between its corners); its value is their mean, its spread their
+    range. The grid is a chessboard's when every pair of neighbouring cells differs with the sign the
+    chessboard's parity gives, by at least a quarter of the median difference, and more than twice the
+    spread of either cell. A grid that skips a row of corners (cells of two squares), or whose outer row
+    lies on the board's border, fails: the sector-based detector, asked for a part of a board, grows such
+    grids on boards seen close and cut diagonally by the image's edge.
+
+    Parameters
+    ----------
+    image : (H, W) uint8 array
+    corners : (cols * rows, 2) array
+        Pixels, row after row.
+    grid : (cols, rows)
+    """
+    from scipy.ndimage import map_coordinates
+
+    cols, rows = grid
+    if cols < 2 or rows < 2:
+        return False
+    g = np.asarray(corners, dtype=np.float64).reshape(rows, cols, 2)
+    p00, p01, p10, p11 = g[:-1, :-1], g[:-1, 1:], g[1:, :-1], g[1:, 1:]
+    samples = []
+    for a, b in ((0.5, 0.5), (0.3, 0.3), (0.7, 0.3), (0.3, 0.7), (0.7, 0.7)):
+        pt = (1 - a) * (1 - b) * p00 + a * (1 - b) * p01 + (1 - a) * b * p10 + a * b * p11
+        samples.append(map_coordinates(np.asarray(image, dtype=np.float64), [pt[..., 1].ravel(), pt[..., 0].ravel()],
+                                       order=1, mode="nearest").reshape(pt.shape[:2]))
+    samples = np.stack(samples)
+    value, spread = samples.mean(axis=0), np.ptp(samples, axis=0)
+    parity = np.where((np.add.outer(np.arange(rows - 1), np.arange(cols - 1)) % 2) == 0, 1.0, -1.0)
+    # parity-corrected differences of neighbouring cells (across, then down): one sign on a chessboard
+    diffs = [(value[:, :-1] - value[:, 1:]) * parity[:, :-1], (value[:-1, :] - value[1:, :]) * parity[:-1, :]]
+    spreads = [np.maximum(spread[:, :-1], spread[:, 1:]), np.maximum(spread[:-1, :], spread[1:, :])]
+    d = np.concatenate([x.ravel() for x in diffs])
+    sp = np.concatenate([x.ravel() for x in spreads])
+    if d.size == 0:
+        return False
+    d = d * np.sign(np.median(d))
+    typical = float(np.median(d))
+    return bool(typical > 0 and np.all(d >= 0.25 * typical) and np.all(d > 2.0 * sp))
+
+
+def grid_deviation(corners: np.ndarray, grid: tuple[int, int]) -> tuple[float, float]:
+    """How far a grid of corners is from a chessboard's seen through a lens: the largest bend and the
+    largest cross-ratio error over every run of four neighbouring corners along a row or a column.
+
+    A projection keeps straight lines straight and the cross-ratio of four equally spaced points at
+    4/3, however strong the perspective; a lens's distortion bends a run of four corners only a little.
+    A corner given the wrong place in the grid (a row shifted by one corner, two grid places on one
+    corner, a row skipped) breaks one or the other by a large fraction.
+
+    Returns
+    -------
+    (bend, cross_ratio_error)
+        Largest distance of a run's middle corners from the line through its ends, over that line's
+        length; largest ``|cross-ratio / (4/3) - 1|`` (infinite where a run's corners are not in order).
+    """
+    cols, rows = grid
+    g = np.asarray(corners, dtype=np.float64).reshape(rows, cols, 2)
+    bend, error = 0.0, 0.0
+    for run in (g, g.transpose(1, 0, 2)):
+        if run.shape[1] < 4:
+            continue
+        p0, p1, p2, p3 = (run[:, k:run.shape[1] - 3 + k] for k in range(4))
+        chord = p3 - p0
+        length = np.linalg.norm(chord, axis=2)
+        u = chord / np.maximum(length, 1e-9)[..., None]
+        t1, t2 = (np.sum((p - p0) * u, axis=2) for p in (p1, p2))
+        s1, s2 = (np.abs(u[..., 0] * (p - p0)[..., 1] - u[..., 1] * (p - p0)[..., 0]) for p in (p1, p2))
+        bend = max(bend, float(np.max(np.maximum(s1, s2) / np.maximum(length, 1e-9))))
+        ordered = (t1 > 0) & (t2 > t1) & (length > t2)
+        if not np.all(ordered):
+            return bend, float("inf")
+        ratio = t2 * (length - t1) / (length * (t2 - t1))
+        error = max(error, float(np.max(np.abs(ratio / (4.0 / 3.0) - 1.0))))
+    return bend, error
+
+
+def _trim(grid_pts: np.ndarray, bad: np.ndarray) -> np.ndarray:
+    """The grid (rows, cols, 2) without the outer rows and columns that hold *bad* corners (rows, cols),
+    one at a time, the side with the most first; empty when a bad corner is not on the grid's edge."""
+    g, b = grid_pts, bad
+    while g.shape[0] and g.shape[1] and b.any():
+        sides = {"top": b[0].sum(), "bottom": b[-1].sum(), "left": b[:, 0].sum(), "right": b[:, -1].sum()}
+        worst = max(sides, key=sides.get)
+        if sides[worst] == 0:
+            return g[:0]
+        cut = {"top": np.s_[1:, :], "bottom": np.s_[:-1, :], "left": np.s_[:, 1:], "right": np.s_[:, :-1]}[worst]
+        g, b = g[cut], b[cut]
+    return g
+
+
+def grid_outliers(corners: np.ndarray, grid: tuple[int, int], reach: int = 2) -> np.ndarray:
+    """How far each corner lies from where its neighbours put it, in local corner spacings (rows, cols).
+
+    For each corner, a homography from grid to image fitted to the corners within *reach* places of it
+    (itself left out, at least a 3 x 3 spread) predicts it; the distance to the prediction is divided by
+    the predicted distance to the next corner. A homography holds over a few squares through any lens a
+    calibration meets: on true grids the largest value is under 0.17 (docs/calibration.md); a corner
+    refined onto the board's border, or given another's place, is half a spacing or more off. NaN where
+    too few neighbours.
+    """
+    import cv2
+
+    cols, rows = grid
+    g = np.asarray(corners, dtype=np.float64).reshape(rows, cols, 2)
+    jj, ii = np.mgrid[0:rows, 0:cols]
+    out = np.full((rows, cols), np.nan)
+    for r in range(rows):
+        for c in range(cols):
+            near = (np.abs(jj - r) <= reach) & (np.abs(ii - c) <= reach)
+            near[r, c] = False
+            src = np.column_stack([ii[near], jj[near]]).astype(np.float64)
+            if len(src) < 6 or np.ptp(src[:, 0]) < 2 or np.ptp(src[:, 1]) < 2:
+                continue
+            h, _ = cv2.findHomography(src, g[near], 0)
+            if h is None:
+                continue
+            p = h @ np.array([[c, c + 1, c], [r, r, r + 1], [1.0, 1.0, 1.0]])
+            p = (p[:2] / p[2]).T
+            spacing = min(np.linalg.norm(p[1] - p[0]), np.linalg.norm(p[2] - p[0]))
+            out[r, c] = np.linalg.norm(p[0] - g[r, c]) / spacing
+    return out
+
+
+def find_chessboard(image: np.ndarray, inner: tuple[int, int],
+                    notes: list[str] | None = None) -> tuple[np.ndarray, tuple[int, int]] | None:
+    """The inner corners of a chessboard in a grey image, or of the largest part of it in view.
+
+    OpenCV's sector-based detector (``findChessboardCornersSBWithMeta``) with ``CALIB_CB_EXHAUSTIVE`` and
+    ``CALIB_CB_LARGER``, asked for a grid of at least m x m corners (:func:`smallest_part`) so that it
+    returns the whole board or the largest part of it it can grow, on the image locally equalised (CLAHE:
+    a board lit unevenly, whose weaker corners fail the detector's global tests, see docs/calibration.md)
+    and on the image as it is with ``CALIB_CB_NORMALIZE_IMAGE`` (global equalisation: squares larger than
+    CLAHE's tiles), at full size, then halved again and again (:data:`MIN_SEARCH_SIDE`), until the whole
+    board is found. The largest grid that checks out wins; its corners are refined on the full image.
+
+    The detector, asked for a part of a board, sometimes grows a wrong grid (skipping a row of corners,
+    or taking the board's border for a row) on a board seen close and cut by the image's edge: a grid is
+    taken only when its cells alternate dark and light (:func:`cells_alternate`) and its corners, refined
+    (:func:`_refine`), lie where their neighbours put them (:func:`grid_outliers`; an outer row or column
+    holding one is dropped, as one reaching outside the image is) and keep straight runs and their
+    cross-ratios (:func:`grid_deviation`).
+
+    Parameters
+    ----------
+    image : (H, W) uint8 array
+    inner : (int, int)
+        The board's inner corners, across x down.
+    notes : list, optional
+        Receives why a grid the detector found was not taken.
+
+    Returns
+    -------
+    (corners, grid) or None
+        Refined corners (n, 2) float32, pixels, row after row of a grid (cols, rows) = ``grid``, which may be
+        larger than *inner* (the caller judges that), or the board turned; None when no grid was found.
+    """
+    import cv2
+
+    m = smallest_part(inner)
+    whole = inner[0] * inner[1]
+    best = None
+    flags = cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_LARGER
+    clahe = cv2.createCLAHE(clipLimit=CLAHE_CLIP, tileGridSize=CLAHE_TILES)
+    h, w = image.shape[:2]
+    note = notes.append if notes is not None else (lambda text: None)
+    scales = [0.5 ** k for k in range(8) if 0.5 ** k * min(h, w) >= MIN_SEARCH_SIDE] or [1.0]
+    for scale, equalise in ((scale, equalise) for scale in scales for equalise in (True, False)):
+        img = image if scale == 1 else cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+        found, corners, meta = cv2.findChessboardCornersSBWithMeta(
+            clahe.apply(img) if equalise else img, (m, m), flags | (0 if equalise else cv2.CALIB_CB_NORMALIZE_IMAGE))
+        if not found or corners is None or meta is None:
+            continue
+        rows, cols = meta.shape[:2]
+        # back to the full image's pixels (pixel centres at whole numbers in both)
+        pts = ((np.asarray(corners, dtype=np.float64).reshape(-1, 2) + 0.5) / scale - 0.5).astype(np.float32)
+        if len(pts) != rows * cols:
+            continue
+        g = pts.reshape(rows, cols, 2)
+        kept = _trim(g, ~np.all((g >= 0) & (g <= (w - 1, h - 1)), axis=2))
+        if min(kept.shape[:2]) < m:
+            note(f"a {cols} x {rows} grid reaching outside the image")
+            continue
+        rows, cols = kept.shape[:2]
+        pts = np.ascontiguousarray(kept.reshape(-1, 2))
+        if not cells_alternate(image, pts, (cols, rows)):
+            note(f"a {cols} x {rows} grid whose cells are not alternately dark and light")
+            continue
+        pts = _refine(image, pts)
+        # a corner refined off its place (onto the board's border, at the image's edge): its row goes
+        off = np.nan_to_num(grid_outliers(pts, (cols, rows)))      # NaN: too few neighbours to judge
+        kept = _trim(pts.reshape(rows, cols, 2), off > MAX_OFF_SPACING)
+        if min(kept.shape[:2]) < m:
+            note(f"a {cols} x {rows} grid with corners off their neighbours' lines (by {off.max():.2f} spacings)")
+            continue
+        rows, cols = kept.shape[:2]
+        pts = np.ascontiguousarray(kept.reshape(-1, 2))
+        bend, ratio_error = grid_deviation(pts, (cols, rows))
+        if bend > MAX_BEND or ratio_error > MAX_CROSS_RATIO_ERROR:
+            note(f"a {cols} x {rows} grid whose corners are out of line (bend {bend:.2f}, cross-ratio error "
+                 f"{ratio_error:.2f})")
+            continue
+        if best is None or len(pts) > len(best[0]):
+            best = (pts, (int(cols), int(rows)))
+        if len(pts) >= whole:
+            break
+    return best
 
 
 def detect_board(image: np.ndarray, board: BoardSpec, name: str = "", min_corners: int = 12,
@@ -257,7 +543,7 @@ def detect_board(image: np.ndarray, board: BoardSpec, name: str = "", min_corner
     name : str
         For messages.
     min_corners : int
-        ChArUco: fewest corners accepted (a chessboard is found whole or not at all).
+        Fewest corners accepted (a chessboard partly out of view; ChArUco).
     max_edge_width_px : float
         Images whose edges are wider are rejected as blurred, pixels.
 
@@ -274,16 +560,41 @@ def detect_board(image: np.ndarray, board: BoardSpec, name: str = "", min_corner
         img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
     if img.dtype != np.uint8:
         raise CalibrationError(f"{name}: board images must be 8-bit, got {img.dtype}")
+    out.shape = img.shape[:2]
     if board.kind == "chessboard":
-        pattern = (board.squares_x - 1, board.squares_y - 1)
-        found, corners = cv2.findChessboardCornersSB(img, pattern, flags=cv2.CALIB_CB_NORMALIZE_IMAGE
-                                                     | cv2.CALIB_CB_EXHAUSTIVE)
-        if not found or corners is None:
-            out.reason = (f"board not found (a {pattern[0]} x {pattern[1]} inner-corner chessboard, whole and with "
-                          "a white border, must be in view)")
+        inner = (board.squares_x - 1, board.squares_y - 1)
+        notes: list[str] = []
+        found = find_chessboard(img, inner, notes)
+        if found is None:
+            m = smallest_part(inner)
+            seen = f"; not taken: {', '.join(dict.fromkeys(notes))}" if notes else ""
+            out.reason = (f"board not found: no chessboard grid of {m} x {m} inner corners or more (the board has "
+                          f"{inner[0]} x {inner[1]}){seen}; the board, or a good part of it, must be in view, in "
+                          "focus and lit")
             return out
-        img_pts = _refine(img, corners)
-        obj_pts = board.chessboard_points()
+        corners, out.grid = found
+        cols, rows = out.grid
+        out.corners = cols * rows
+        if not ((cols <= inner[0] and rows <= inner[1]) or (cols <= inner[1] and rows <= inner[0])):
+            out.reason = (f"board larger than stated: {cols} x {rows} inner corners found, but a {board.squares_x} x "
+                          f"{board.squares_y}-square board has {inner[0]} x {inner[1]}; --squares counts squares, not "
+                          f"inner corners (a board of {cols} x {rows} inner corners has {cols + 1} x {rows + 1} "
+                          "squares)")
+            return out
+        out.partial = cols * rows < board.n_corners
+        obj_pts = grid_points(cols, rows, board.square_m)
+        # a corner whose refinement window leaves the image (a board partly out of view) would be refined
+        # on replicated border pixels: leave it out
+        half = _refine_half(corners) + 1
+        h, w = img.shape
+        keep = ((corners[:, 0] >= half) & (corners[:, 0] <= w - 1 - half) & (corners[:, 1] >= half)
+                & (corners[:, 1] <= h - 1 - half))
+        obj_pts, img_pts = obj_pts[keep], corners[keep]
+        if len(img_pts) < min_corners:
+            out.corners = len(img_pts)
+            out.reason = (f"too few corners: {len(img_pts)} of {board.n_corners} clear of the image's edge, at least "
+                          f"{min_corners} needed")
+            return out
     else:
         cb = board.charuco()
         detector = cv2.aruco.CharucoDetector(cb)
@@ -437,16 +748,83 @@ def judge_calibration(intrinsics: CameraIntrinsics, rms_px: float, std: dict, po
             "measures": measures, "thresholds": thresholds, "advice": advice, "coverage_text": cover}
 
 
-def calibrate_camera_images(images: list[tuple[str, np.ndarray | None]], board: BoardSpec, *, fix_k3: bool = True,
-                            min_images: int = 5, min_corners: int = 12, max_edge_width_px: float = 4.0,
-                            outlier_factor: float = 3.0, fix_k2: bool = False,
-                            refuse: bool = True) -> CameraCalibration:
+def read_image(path: str | Path) -> np.ndarray | None:
+    """A grey 8-bit image from a file, or None when OpenCV cannot read it.
+
+    A deeper image (a 12-bit camera's 16-bit PNG or TIFF) is scaled to 8 bits by its own brightness (its
+    99.9th percentile reads 255): OpenCV's plain 8-bit reading divides by 256, which leaves 12-bit data
+    the values 0..15.
+    """
+    import cv2
+    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH)
+    if img is None or img.dtype == np.uint8:
+        return img
+    values = np.nan_to_num(img.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    top = float(np.percentile(values, 99.9))
+    top = top if top > 0 else float(values.max())
+    if top <= 0:
+        return np.zeros(values.shape, dtype=np.uint8)
+    return np.clip(np.round(values * (255.0 / top)), 0, 255).astype(np.uint8)
+
+
+def judge_images(images: list[tuple[str, np.ndarray | str | Path | None]], board: BoardSpec, *, min_corners: int = 12,
+                 max_edge_width_px: float = 4.0, workers: int | None = None,
+                 progress: Callable[[str], None] | None = None) -> list[ImageResult]:
+    """Read and search the board images in parallel threads (OpenCV releases the GIL).
+
+    Parameters
+    ----------
+    images : list of (name, image)
+        A grey uint8 array, a file to read (:func:`read_image`), or None (a file that could not be read).
+    board : BoardSpec
+    min_corners, max_edge_width_px : see :func:`detect_board`
+    workers : int, optional
+        Threads (default: the machine's cores).
+    progress : callable, optional
+        Receives one line per image, in the given order, as it is judged (default: the log):
+        ``image 3/10 DSC0003.png: 414 corners, edges 2.8 px`` or ``...: rejected: <reason>``.
+
+    Returns
+    -------
+    list of ImageResult
+        In the given order; an image whose size differs from the first readable one's is rejected.
+    """
+    say = progress or log.info
+    items = list(images)
+
+    def judge(item) -> ImageResult:
+        name, img = item
+        if isinstance(img, (str, os.PathLike)):
+            img = read_image(img)
+        if img is None:
+            return ImageResult(name, reason="cannot be read as an image")
+        return detect_board(img, board, name, min_corners, max_edge_width_px)
+
+    results: list[ImageResult] = []
+    size = None
+    with ThreadPoolExecutor(max_workers=max(1, workers or os.cpu_count() or 1)) as pool:
+        for k, res in enumerate(pool.map(judge, items), 1):
+            if res.shape is not None:
+                size = size or res.shape
+                if res.shape != size:
+                    res = ImageResult(res.name, reason=f"size {res.shape[1]} x {res.shape[0]} differs from the first "
+                                                       f"image's {size[1]} x {size[0]}", shape=res.shape)
+            say(f"image {k}/{len(items)} {res.name}: {res.describe()}")
+            results.append(res)
+    return results
+
+
+def calibrate_camera_images(images: list[tuple[str, np.ndarray | str | Path | None]], board: BoardSpec, *,
+                            fix_k3: bool = True, min_images: int = 5, min_corners: int = 12,
+                            max_edge_width_px: float = 4.0, outlier_factor: float = 3.0, fix_k2: bool = False,
+                            refuse: bool = True, workers: int | None = None,
+                            progress: Callable[[str], None] | None = None) -> CameraCalibration:
     """Intrinsics and distortion from board images.
 
     Parameters
     ----------
     images : list of (name, image)
-        Grey uint8 images (None: the file could not be read).
+        Grey uint8 images, files to read, or None (the file could not be read): :func:`judge_images`.
     board : BoardSpec
     fix_k3 : bool
         Hold k3 at 0.
@@ -460,6 +838,7 @@ def calibrate_camera_images(images: list[tuple[str, np.ndarray | None]], board: 
     refuse : bool
         Raise when :func:`judge_calibration` refuses (else the refused calibration is returned, its
         ``quality`` saying so).
+    workers, progress : see :func:`judge_images`
 
     Returns
     -------
@@ -474,23 +853,9 @@ def calibrate_camera_images(images: list[tuple[str, np.ndarray | None]], board: 
     """
     import cv2
 
-    results: list[ImageResult] = []
-    size = None
-    for name, img in images:
-        if img is None:
-            results.append(ImageResult(name, reason="cannot be read as an image"))
-            continue
-        shape = np.asarray(img).shape[:2]
-        if size is None:
-            size = shape
-        if shape != size:
-            results.append(ImageResult(name, reason=f"size {shape[1]} x {shape[0]} differs from the first image's "
-                                                    f"{size[1]} x {size[0]}"))
-            continue
-        res = detect_board(img, board, name, min_corners, max_edge_width_px)
-        log.info("%s: %s", name, f"{res.corners} corners, edges {res.edge_width_px:.1f} px" if res.accepted
-                 else f"rejected: {res.reason}")
-        results.append(res)
+    results = judge_images(images, board, min_corners=min_corners, max_edge_width_px=max_edge_width_px,
+                           workers=workers, progress=progress)
+    size = next((r.shape for r in results if r.accepted), None)
 
     def solve(used: list[ImageResult]):
         flags = cv2.CALIB_FIX_K3 if (fix_k3 or fix_k2) else 0
@@ -554,9 +919,8 @@ def refusal_text(cal: CameraCalibration) -> str:
 
 
 def read_images(paths: list[str | Path]) -> list[tuple[str, np.ndarray | None]]:
-    """Read image files as grey uint8 (None for a file OpenCV cannot read)."""
-    import cv2
-    return [(str(p), cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)) for p in paths]
+    """Read image files as grey uint8 (None for a file OpenCV cannot read): :func:`read_image`."""
+    return [(str(p), read_image(p)) for p in paths]
 
 
 def save_camera(data_dir: str | Path, cal: CameraCalibration, source: str, folder: str = "camera",
@@ -619,7 +983,8 @@ def summary_text(cal: CameraCalibration, path: Path | None = None) -> str:
             lines.append("    what to do: " + "; ".join(q["advice"]))
     for r in cal.images:
         if r.accepted:
-            lines.append(f"  {r.name}: used, {r.corners} corners, RMS {r.rms_px:.3f} px, edges "
+            part = f" (a {r.grid[0]} x {r.grid[1]} part of the board)" if r.partial else ""
+            lines.append(f"  {r.name}: used, {r.corners} corners{part}, RMS {r.rms_px:.3f} px, edges "
                          f"{r.edge_width_px:.1f} px")
         else:
             lines.append(f"  {r.name}: rejected: {r.reason}")

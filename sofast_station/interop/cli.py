@@ -29,6 +29,13 @@ def register(subparsers) -> None:
                        ("display", "DisplayShape HDF5"), ("orientation", "SpatialOrientation HDF5"),
                        ("calibration", "ImageCalibration HDF5"), ("facet", "facet definition JSON")):
         p.add_argument(f"--{name}", default=None, metavar="FILE", help=f"{what} (default: from --test-data)")
+    p.add_argument("--dots", default=None, metavar="FILE",
+                   help="OpenCSP's DotLocationsFixedPattern HDF5: the dot locations of a fixed-pattern (dot grid) "
+                        "measurement (--measurement a MeasurementSofastFixed file; docs/opencsp.md)")
+    p.add_argument("--fixed", action="store_true",
+                   help="with --test-data: its fixed-pattern (dot grid) measurement (sofast_fixed/: one dot frame, "
+                        "its dot locations; the full-size camera camera_sofast.h5), measured by the fixed-pattern "
+                        "method (docs/method.md)")
     p.add_argument("--ensemble", default=None, metavar="FILE",
                    help="OpenCSP's ensemble definition JSON: the measurement is a multi-facet one (every facet of "
                         "--facet, placed and canted as the ensemble says; docs/heliostats.md)")
@@ -145,6 +152,8 @@ def cmd_import_opencsp(args) -> int:
         return 0
     if args.conformance:
         return _conformance(args)
+    if args.fixed or args.dots or (args.measurement and _is_fixed(Path(args.measurement))):
+        return _import_fixed(args)
 
     paths = opencsp_test_data_paths(Path(args.test_data), args.multi_facet, args.split_facet) if args.test_data else {}
     for flag in ("multi_facet", "split_facet"):
@@ -257,8 +266,13 @@ def _conformance(args) -> int:
     if not args.test_data:
         raise ConfigError("import-opencsp --conformance redoes OpenCSP's test data: give --test-data DIR "
                           "(fixtures/opencsp/test_data is one)")
+    from .conformance import FIXED_RESULT, conform_fixed
+    from .paths import opencsp_fixed_paths
+
     cache: dict = {}
     results = [conform(Path(args.test_data), ds, args.focal_length, cache) for ds in FRINGE_RESULTS]
+    results.append(conform_fixed(opencsp_fixed_paths(Path(args.test_data)), Path(args.test_data) / FIXED_RESULT,
+                                 args.focal_length, cache))
     if args.json:
         json.dump(json_ready([c.to_dict() for c in results]), sys.stdout, indent=1)
         sys.stdout.write("\n")
@@ -267,6 +281,87 @@ def _conformance(args) -> int:
     outside = [f"{c.dataset}: {r.figure}" for c in results for r in c.rows if r.within_u is False]
     print(f"{sum(len(c.rows) for c in results)} figures compared on {len(results)} results; outside U: "
           + ("none" if not outside else "; ".join(outside) + " (docs/opencsp.md says why)"))
+    return 0
+
+
+def _is_fixed(path: Path) -> bool:
+    """Whether *path* is an OpenCSP fixed-pattern measurement (an HDF5 file with a MeasurementSofastFixed group)."""
+    try:
+        import h5py
+
+        with h5py.File(path, "r") as h:
+            return "MeasurementSofastFixed" in h
+    except OSError:
+        return False
+
+
+def _import_fixed(args) -> int:
+    """import-opencsp of a fixed-pattern (dot grid) measurement: the fixed-pattern method's figures with U, and
+    with --compare OpenCSP's processing beside them (:func:`~.conformance.conform_fixed`)."""
+    from ..cache import SensitivityStore, capture_basis, open_cache
+    from ..commands import default_config
+    from ..errors import ConfigError
+    from ..files import station_data_dir
+    from .opencsp_fixed import read_opencsp_fixed
+    from .paths import FIXED_FILES, check_files, opencsp_fixed_paths
+
+    for flag in ("ensemble", "multi_facet", "split_facet", "robust"):
+        if getattr(args, flag):
+            raise ConfigError(f"import-opencsp --{flag.replace('_', '-')} is for fringe measurements; a fixed-pattern "
+                              "measurement is one facet, plain fit")
+    paths = opencsp_fixed_paths(Path(args.test_data)) if args.test_data else {}
+    for key in FIXED_FILES:
+        if getattr(args, key, None):
+            paths[key] = Path(getattr(args, key))
+        if key not in paths and not (key == "facet" and args.undefined):
+            raise ConfigError(f"import-opencsp of a fixed-pattern measurement needs --{key} (or --test-data with "
+                              "OpenCSP's folder layout and --fixed)")
+    if args.undefined:
+        paths.pop("facet", None)
+    for key in ("compare", "uncertainty"):
+        if getattr(args, key) and not Path(getattr(args, key)).is_file():
+            raise ConfigError(f"--{key} {getattr(args, key)} does not exist")
+    check_files(paths, Path(args.test_data) if args.test_data else None)
+    disk = open_cache(station_data_dir(default_config()))
+    table = read_uncertainty_table(Path(args.uncertainty)) if args.uncertainty else None
+    m = read_opencsp_fixed(**{"facet": None, **paths}, focal_length_m=args.focal_length, uncertainty=table)
+    if args.surface != "parabolic":
+        from dataclasses import replace
+
+        m.settings = replace(m.settings, surface=args.surface)
+    cache = SensitivityStore(disk, lambda: capture_basis(m.image, m.distance_m, source="opencsp-fixed"))
+    a = m.analyse(uncertainty=m.uncertainty, sensitivity_cache=cache)
+    fig = a.figures
+    out = {"facet": m.name, "measured": m.date, "method": "fixed", "robust": False, **figures_with_u(fig),
+           "dots": fig.get("dots"), "dropped": fig.get("dropped"),
+           "input_uncertainties": m.uncertainty.to_dict(), "assumptions": list(m.assumptions)}
+    from ..optics import OpticsSettings
+    from ..result.optical_figures import analysis_optics
+    out["optics"] = (None if fig.get("surface") == "plano" else
+                     analysis_optics(a, m.design, OpticsSettings()).figures)
+    compared = None
+    if args.compare:
+        from .conformance import conform_fixed
+
+        compared = conform_fixed(paths, Path(args.compare), args.focal_length, cache)
+        out["opencsp"] = {"file": args.compare,
+                          **{k: v for k, v in compared.to_dict().items() if k in ("rows", "slopes")}}
+    out = json_ready(out)
+    if args.json:
+        json.dump(out, sys.stdout, indent=1)
+        sys.stdout.write("\n")
+        return 0
+    d = out["dots"] or {}
+    print(summary_text(out, False).replace(f"{out['n_points']} points", f"{out['n_points']} dots (fixed pattern)", 1))
+    print(f"  dots: {d.get('found')} found, {d.get('indexed')} indexed from the origin ({d.get('origin_from')} at "
+          f"{[round(v, 1) for v in d.get('origin_px') or []]} px), {d.get('used')} used; dropped: {out['dropped']}")
+    if compared is not None:
+        from .conformance import conformance_text
+
+        print(conformance_text(compared))
+    if args.budget:
+        from ..result.formatting import BUDGET_COLUMNS, budget_text
+        print(budget_text(out, [c for c in BUDGET_COLUMNS if not c[0].startswith(("optical_tilt", "placement"))]))
     return 0
 
 

@@ -43,6 +43,9 @@ FRINGE_RESULTS = {
 }
 #: The capture every fringe result is a processing of.
 MEASUREMENT = "sofast_fringe/data_measurement/measurement_facet.h5"
+#: OpenCSP's processing of its fixed-pattern (dot grid) capture: slopes and surface points at its dots, in its
+#: aligned facet frame; no fit and no pose kept (:func:`conform_fixed`).
+FIXED_RESULT = "sofast_fixed/data_expected/calculation_facet.h5"
 
 
 @dataclass(frozen=True)
@@ -148,7 +151,8 @@ def conform_file(result: Path, measurement: Path, focal_length_m: float = 100.0,
     ref = read_opencsp_result(Path(result))
     if ref.mask is None:
         raise ConfigError(f"{result} is {describe(Path(result))}: slopes at a fixed pattern's dots, which the fringe "
-                          "measurement's pixels cannot be compared with (the fixed-pattern method is issue 42's)")
+                          "measurement's pixels cannot be compared with (compare it with the fixed-pattern "
+                          "measurement: import-opencsp --fixed --compare)")
     what = what or (f"{'robust' if ref.robust else 'plain'} {ref.surface} fit"
                     f"{', mirror of unknown outline' if ref.optic == 'undefined' else ''}")
     m = read_opencsp(Path(measurement), **result_inputs(Path(result)), facet=None,
@@ -215,6 +219,177 @@ def _slope_comparison(ref: OpenCspResult, analysis, reduction, m, ours_to_cam: n
             "max_mrad": [float(np.abs(d[i]).max()) for i in range(2)],
             "median_U_mrad": [float(np.median(u[i])) for i in range(2)],
             "fraction_within_U": float(np.mean(inside))}
+
+
+def register_points(theirs_xy: np.ndarray, ours_xy: np.ndarray, start_m: float = 0.008, tol_m: float = 0.003,
+                    rounds: int = 4) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, np.ndarray]:
+    """OpenCSP's points matched to ours on the facet: the 2-D rigid motion (rotation about z, shift) that best
+    lays its points (N, 2) onto ours (M, 2), from nearest neighbours within *start_m*, then within *tol_m*
+    (each program places its facet frame by its own corners: millimetres apart), least squares on the pairs
+    (Kabsch). Returns the pairs' indices into ours and into theirs, the residual distances (metres), the
+    rotation (mrad) and the shift (metres)."""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(ours_xy)
+    rot, shift = np.eye(2), np.zeros(2)
+    for k in range(rounds):
+        d, nn = tree.query(theirs_xy @ rot.T + shift)
+        m = d < (start_m if k == 0 else tol_m)
+        if m.sum() < 3:
+            raise ConfigError(f"OpenCSP's points and ours do not overlap on the facet ({int(m.sum())} within "
+                              f"{1000 * (start_m if k == 0 else tol_m):g} mm): is it the same capture and facet?")
+        a, b = theirs_xy[m], ours_xy[nn[m]]
+        ca, cb = a.mean(axis=0), b.mean(axis=0)
+        u, _, vt = np.linalg.svd((a - ca).T @ (b - cb))
+        rot = (u @ vt).T
+        if np.linalg.det(rot) < 0:                       # a rotation, never a reflection
+            vt[-1] *= -1
+            rot = (u @ vt).T
+        shift = cb - ca @ rot.T
+    d, nn = tree.query(theirs_xy @ rot.T + shift)
+    m = d < tol_m
+    return nn[m], np.flatnonzero(m), d[m], 1000.0 * float(np.arctan2(rot[1, 0], rot[0, 0])), shift
+
+
+def conform_fixed(paths: dict, result: Path, focal_length_m: float = 100.0, cache: dict | None = None,
+                  dataset: str = "fixed", what: str = "") -> Conformance:
+    """Our fixed-pattern analysis of OpenCSP's dot-grid capture (*paths*: :func:`~.paths.opencsp_fixed_paths`'s
+    keys) beside OpenCSP's processing of it (*result*, its ``calculation_facet.h5``: slopes and surface points
+    at its dots in its aligned frame, no fit and no pose).
+
+    Its dots are matched to ours on the facet (:func:`register_points`). OpenCSP's figures are the fit its
+    parameters say it made (a plain parabola on every dot, ``ParamsSurface``) redone on its own final slopes at
+    its own points (the file keeps no coefficients): on every dot each program uses (OpenCSP's include the dots
+    the facet's edge cuts, ours not), and on the dots both use. Every slope is compared in each program's own
+    aligned frame, less the two frames' mean difference (each is turned onto its own fit's normal at the
+    alignment point, over different dots), against our per-dot U from the image's noise through the centroids.
+    """
+    from ..measure.analysis import finish_analysis
+    from ..measure.fit import fit_parabola
+    from ..measure.fixed import DotPattern, fixed_settings_for, reduce_fixed
+    from ..measure.slope_noise import slope_covariance
+    from .identify import describe
+    from .opencsp_fixed import read_opencsp_fixed
+
+    ref = read_opencsp_result(Path(result))
+    if ref.layout != "fixed":
+        raise ConfigError(f"{result} is {describe(Path(result))}: not a fixed-pattern processing (give the fringe "
+                          "result to a fringe measurement's --compare)")
+    m = read_opencsp_fixed(**paths, focal_length_m=focal_length_m)
+    settings = replace(m.settings, robust_fit=ref.robust, surface=ref.surface)
+    reduction, timings = reduce_fixed(m.image, m.dots, m.geometry, m.design, m.distance_m, settings, m.fixed,
+                                      origin_px=m.origin_px, screen=m.screen)
+    analysis = finish_analysis(reduction, timings, fringes=DotPattern(m.fixed), geometry=m.geometry,
+                               design=m.design, measured_distance_m=m.distance_m,
+                               settings=fixed_settings_for(settings, m.fixed), screen=m.screen,
+                               uncertainty=m.uncertainty, sensitivity_cache=_SensitivitiesOnly(cache))
+    fig = analysis.figures
+    ours_p, ours_s = analysis.points_facet_m, analysis.slopes
+    a, b, dist, turn_mrad, shift = register_points(ref.points_m[:2].T, ours_p[:2].T)
+    theirs_all = fit_parabola(*ref.points_m[:2], *ref.slopes)
+    theirs_common = fit_parabola(*ref.points_m[:2, b], *ref.slopes[:, b])
+    ours_common = fit_parabola(*ours_p[:2, a], *ours_s[:, a])
+    n_t, n_o, n_c = ref.slopes.shape[1], ours_s.shape[1], len(a)
+    rows: list[Row] = []
+    for axis, k in (("x", "a"), ("y", "b")):
+        key = f"focal_length_{axis}_m"
+        theirs = 1.0 / (4.0 * getattr(theirs_all, k))
+        rows.append(Row(f"f {axis} (plain fit, every dot each uses: OpenCSP {n_t}, ours {n_o})", "m", theirs,
+                        fig[key], fig.get(f"{key}_U"), fig[key] - theirs,
+                        "OpenCSP's fit includes the dots the facet's edge cuts"))
+    for axis, k in (("x", "a"), ("y", "b")):
+        key = f"focal_length_{axis}_m"
+        theirs, ours = 1.0 / (4.0 * getattr(theirs_common, k)), 1.0 / (4.0 * getattr(ours_common, k))
+        rows.append(Row(f"f {axis} (plain fit on the {n_c} dots both use)", "m", theirs, ours, fig.get(f"{key}_U"),
+                        ours - theirs))
+    for name, k in (("twist_e1_mrad_per_m", "e1"), ("twist_e2_mrad_per_m", "e2")):
+        theirs, ours = 1000.0 * getattr(theirs_common, k), 1000.0 * getattr(ours_common, k)
+        rows.append(Row(f"twist {k.upper()} (plain fit on the {n_c} dots both use)", "mrad/m", theirs, ours,
+                        fig.get(f"{name}_U"), ours - theirs))
+    # slopes, each in its program's own aligned frame, less the frames' mean difference
+    d = 1000.0 * (np.arctan(ours_s[:, a]) - np.arctan(ref.slopes[:, b]))
+    tilt = d.mean(axis=1)
+    for i, axis in enumerate("xy"):
+        rows.append(Row(f"the two aligned frames' mean slope difference, {axis}", "mrad", 0.0, float(tilt[i]), None,
+                        float(tilt[i]), "each frame is turned onto its own fit's normal, over different dots"))
+    dd = d - tilt[:, None]
+    # per-dot U (k = 2) from the image's noise through the centroids: the rays' order is the valid dots'
+    vx, vy, _ = slope_covariance(reduction, DotPattern(m.fixed), m.screen, a)
+    u = 2000.0 * np.sqrt(np.vstack([vx, vy])) / (1.0 + ours_s[:, a] ** 2)
+    inside = np.all(np.abs(dd) <= u, axis=0)
+    centres = _centre_differences(reduction, m, a, dd)
+    slopes = {"points": "dots", "pixels_compared": int(n_c), "pixels_opencsp": int(n_t),
+              "registration": {"rotation_mrad": turn_mrad, "shift_mm": (1000.0 * shift).tolist(),
+                               "residual_median_mm": 1000.0 * float(np.median(dist)),
+                               "residual_max_mm": 1000.0 * float(dist.max())},
+              "frames_mean_difference_mrad": tilt.tolist(),
+              "rms_mrad": [float(np.sqrt(np.mean(dd[i] ** 2))) for i in range(2)],
+              "p99_mrad": [float(np.percentile(np.abs(dd[i]), 99)) for i in range(2)],
+              "max_mrad": [float(np.abs(dd[i]).max()) for i in range(2)],
+              "median_U_mrad": [float(np.median(u[i])) for i in range(2)],
+              "fraction_within_U": float(np.mean(inside)),
+              "fraction_within_U_both": float(np.mean(np.all(np.abs(dd) <= np.sqrt(2.0) * u, axis=0))),
+              "centres": centres}
+    if centres.get("dots"):
+        sel = centres.pop("_selection")
+        rest = centres.pop("_rest")
+        centres["fraction_within_U_after"] = float(np.mean(np.all(np.abs(rest) <= u[:, sel], axis=0)))
+    return Conformance(dataset, what or "fixed pattern (dot grid), plain fit on every dot", ref, rows, slopes, fig)
+
+
+#: OpenCSP's blob detector for its fixed pattern (``ProcessSofastFixed.__init__``): OpenCV's, dark blobs of 3 to
+#: 30 px, no shape filters, OpenCV's default thresholds.
+OPENCSP_BLOBS = {"minDistBetweenBlobs": 2.0, "filterByArea": True, "minArea": 3.0, "maxArea": 30.0,
+                 "filterByCircularity": False, "filterByConvexity": False, "filterByInertia": False}
+
+
+def opencsp_dot_centres(image: np.ndarray) -> np.ndarray:
+    """The dots' centres (N, 2) as OpenCSP finds them: OpenCV's blob detector with OpenCSP's parameters
+    (:data:`OPENCSP_BLOBS`; each centre the mean of its blob's contour centres over the thresholds)."""
+    import cv2
+
+    params = cv2.SimpleBlobDetector_Params()
+    for k, v in OPENCSP_BLOBS.items():
+        setattr(params, k, v)
+    return np.array([k.pt for k in cv2.SimpleBlobDetector_create(params).detect(np.asarray(image, np.uint8))])
+
+
+def _centre_differences(reduction, m, ours_idx: np.ndarray, diff_mrad: np.ndarray) -> dict:
+    """How much of the slope differences at our valid dots *ours_idx* (*diff_mrad*, (2, n), less the frames'
+    mean) the two programs' centres of the same dots explain: OpenCSP's (:func:`opencsp_dot_centres`) against
+    ours, each offset d (pixels) making its ray see the grid J d away from the dot it is given (J:
+    ``DotPhases.index_per_px``), which puts its slope -G J d off (G: the slope's derivative with respect to the
+    grid position, :func:`~sofast_station.measure.slope_noise.slope_jacobian`): ours less its, G J d."""
+    from scipy.spatial import cKDTree
+
+    from ..measure.slope_noise import slope_jacobian
+
+    theirs = opencsp_dot_centres(m.image)
+    take = np.flatnonzero(reduction.rays.ok)[ours_idx]            # the dots in the region's (phases') order
+    ours_px = reduction.region.points_px[take]
+    d, nn = cKDTree(theirs).query(ours_px)
+    sel = d < 1.0
+    if sel.sum() < 3:
+        return {}
+    dp = theirs[nn[sel]] - ours_px[sel]
+    ph = reduction.phases
+    pts = reduction.shape.points_m[:, ours_idx[sel]]
+    cam_to_b = reduction.shape.boresighted_to_camera.inverse()
+    _, gx, gy = slope_jacobian(pts, cam_to_b, m.screen, ph.positions_m["x"][take[sel]], ph.positions_m["y"][take[sel]])
+    du = np.einsum("nij,nj->ni", ph.index_per_px[take[sel]], dp)    # grid steps (x, y) their centre is off ours
+    # ours minus theirs: its ray truly sees the grid du further than the dot it is given, so its slope is off
+    # by -G du, and ours less its is G du
+    predicted = 1000.0 * (gx * du[:, 0] + gy * du[:, 1])
+    predicted = predicted / (1.0 + reduction.shape.slopes[:, ours_idx[sel]] ** 2)
+    predicted -= predicted.mean(axis=1, keepdims=True)
+    observed = diff_mrad[:, sel]
+    rest = observed - predicted
+    return {"dots": int(sel.sum()),
+            "centre_difference_rms_px": [float(np.sqrt(np.mean(dp[:, i] ** 2))) for i in range(2)],
+            "predicted_rms_mrad": [float(np.sqrt(np.mean(predicted[i] ** 2))) for i in range(2)],
+            "remaining_rms_mrad": [float(np.sqrt(np.mean(rest[i] ** 2))) for i in range(2)],
+            "correlation": [float(np.corrcoef(observed[i], predicted[i])[0, 1]) for i in range(2)],
+            "_selection": np.flatnonzero(sel), "_rest": rest}
 
 
 def split_facet_check(root: Path, focal_length_m: float = 100.0, cache: dict | None = None) -> dict:
@@ -315,7 +490,9 @@ RELEASE_DISPLAYS = {"distorted2D": "sofast_common/display_distorted_2d.h5",
                     "rectangular2D": "sofast_common/display_rectangular.h5",
                     "distorted3D": "sofast_common/display_distorted_3d.h5"}
 RELEASE_CASES = tuple(f"{d}/{fit}/x1" for d in RELEASE_DISPLAYS for fit in ("plain", "robust")) + (
-    "distorted2D/plain/x8", "distorted2D/robust/x8")
+    "distorted2D/plain/x8", "distorted2D/robust/x8", "fixed/plain/x1")
+#: The fixed-pattern capture's case (``sofast_fixed/``, the fixed-pattern method; its own dots, not a display).
+FIXED_CASE = "fixed/plain/x1"
 #: Scalar figures kept, and where each is in the figures.
 RELEASE_FIGURES = {"focal_length_x_m": ("focal_length_x_m",), "focal_length_y_m": ("focal_length_y_m",),
                    "twist_mrad_per_m": ("twist_mrad_per_m",), "twist_e1_mrad_per_m": ("twist_e1_mrad_per_m",),
@@ -340,6 +517,14 @@ def release_figures(root: Path, cases=RELEASE_CASES, work: Path | None = None, w
     for case in cases:
         display, fit, scale = case.split("/")
         scale = int(scale[1:])
+        if display == "fixed":
+            from .opencsp_fixed import read_opencsp_fixed
+            from .paths import opencsp_fixed_paths
+
+            fm = read_opencsp_fixed(**opencsp_fixed_paths(root))
+            out[case] = _release_entry(fm.analyse(uncertainty=fm.uncertainty if with_u else None,
+                                                  sensitivity_cache={} if with_u else None).figures, with_u)
+            continue
         if scale == 1:
             paths = opencsp_test_data_paths(root)
         else:
@@ -352,20 +537,24 @@ def release_figures(root: Path, cases=RELEASE_CASES, work: Path | None = None, w
         m = read_opencsp(**paths)
         a = m.analyse(robust=fit == "robust", uncertainty=m.uncertainty if with_u else None,
                       sensitivity_cache={} if with_u else None)
-        fig = a.figures
-        entry = {}
-        for name, path in RELEASE_FIGURES.items():
-            v, u = fig, fig.get(f"{path[0]}_U") if with_u else None
-            for p in path:
-                v = v[p]
-            for p in path[1:]:
-                u = None if u is None else u[p]
-            entry[name] = [v, u] if with_u else v
-        entry["n_points"] = fig["n_points"]
-        out[case] = entry
+        out[case] = _release_entry(a.figures, with_u)
     if tmp is not None:
         tmp.cleanup()
     return out
+
+
+def _release_entry(fig: dict, with_u: bool) -> dict:
+    """The figures of :data:`RELEASE_FIGURES` (each [value, U] with *with_u*) and the points kept."""
+    entry = {}
+    for name, path in RELEASE_FIGURES.items():
+        v, u = fig, fig.get(f"{path[0]}_U") if with_u else None
+        for p in path:
+            v = v[p]
+        for p in path[1:]:
+            u = None if u is None else u[p]
+        entry[name] = [v, u] if with_u else v
+    entry["n_points"] = fig["n_points"]
+    return entry
 
 
 def conformance_text(c: Conformance) -> str:
@@ -374,14 +563,34 @@ def conformance_text(c: Conformance) -> str:
     def num(v, digits=4):
         return "-" if v is None else f"{v:.{digits}g}"
 
-    lines = [f"OpenCSP's processing {c.result.path.name} ({c.what}): ours redone on its pixels, each figure ± U (k=2)"]
+    where = "on its pixels" if c.slopes.get("points", "pixels") == "pixels" else "on our own dots"
+    lines = [f"OpenCSP's processing {c.result.path.name} ({c.what}): ours redone {where}, each figure ± U (k=2)"]
     for r in c.rows:
         verdict = {True: "within U", False: "outside U", None: ""}[r.within_u]
         lines.append(f"  {r.figure}: OpenCSP {num(r.opencsp, 6)} {r.unit}, ours {num(r.ours, 6)} ± {num(r.U, 2)} "
                      f"{r.unit}, difference {num(r.difference, 2)} {verdict}{f' ({r.note})' if r.note else ''}")
     s = c.slopes
-    lines.append(f"  slopes at {s['pixels_compared']} of its {s['pixels_opencsp']} pixels: difference RMS "
+    what = s.get("points", "pixels")
+    if "registration" in s:
+        r = s["registration"]
+        lines.append(f"  its {what} matched to ours on the facet after turning its points "
+                     f"{r['rotation_mrad']:+.2f} mrad and shifting them ({r['shift_mm'][0]:+.2f}, "
+                     f"{r['shift_mm'][1]:+.2f}) mm (each program's corners place its frame): "
+                     f"{r['residual_median_mm']:.2f} mm apart (median), at most "
+                     f"{r['residual_max_mm']:.2f}; slopes less the frames' mean difference")
+    lines.append(f"  slopes at {s['pixels_compared']} of its {s['pixels_opencsp']} {what}: difference RMS "
                  f"{s['rms_mrad'][0]:.4f} x, {s['rms_mrad'][1]:.4f} y mrad, 99th percentile {s['p99_mrad'][0]:.4f}, "
-                 f"{s['p99_mrad'][1]:.4f}; our per-pixel U from the noise alone {s['median_U_mrad'][0]:.3f}, "
-                 f"{s['median_U_mrad'][1]:.3f} (median); {100 * s['fraction_within_U']:.1f} % of pixels within it")
+                 f"{s['p99_mrad'][1]:.4f}; our per-{what[:-1]} U from the noise alone {s['median_U_mrad'][0]:.3f}, "
+                 f"{s['median_U_mrad'][1]:.3f} (median); {100 * s['fraction_within_U']:.1f} % of {what} within it"
+                 + (f", {100 * s['fraction_within_U_both']:.1f} % within sqrt(2) of it (OpenCSP's centres noisy as "
+                    "ours)" if "fraction_within_U_both" in s else ""))
+    cs = s.get("centres") or {}
+    if cs.get("dots"):
+        lines.append(f"  OpenCSP's centres of the same dots (its blob detector) lie "
+                     f"{cs['centre_difference_rms_px'][0]:.3f}, {cs['centre_difference_rms_px'][1]:.3f} px from ours "
+                     "(RMS); through each dot's geometry that is "
+                     f"{cs['predicted_rms_mrad'][0]:.4f}, {cs['predicted_rms_mrad'][1]:.4f} mrad of slope (correlation "
+                     f"{cs['correlation'][0]:.2f}, {cs['correlation'][1]:.2f} with the differences); left: "
+                     f"{cs['remaining_rms_mrad'][0]:.4f}, {cs['remaining_rms_mrad'][1]:.4f} mrad RMS, "
+                     f"{100 * cs['fraction_within_U_after']:.1f} % of dots within our U")
     return "\n".join(lines)

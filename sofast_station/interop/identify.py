@@ -37,14 +37,14 @@ HDF5_KINDS = (
     ("MeasurementSofastFringe", "a SOFAST fringe measurement (MeasurementSofastFringe)",
      "read by `import-opencsp --measurement`"),
     ("MeasurementSofastFixed", "a SOFAST fixed-pattern (dot grid) measurement (MeasurementSofastFixed)",
-     "not analysed yet: the fixed-pattern method is issue 42's; its processed result is read by "
-     "`import-opencsp --compare`"),
+     "read by `import-opencsp --fixed` (or `--measurement` with `--dots`): the fixed-pattern method "
+     "(docs/method.md)"),
     ("DataSofastCalculation", "OpenCSP's processing of a measurement (its data.h5)",
      "read by `import-opencsp --compare` (fringe results of one facet or mirror; a multi-facet result is not "
      "read)"),
     ("DotLocationsFixedPattern", "the 3-D locations of a fixed pattern's dots (DotLocationsFixedPattern)",
-     "read by `calibrate dots --compare` (beside dots located from photographs); the fixed-pattern method "
-     "that measures with them is issue 42's"),
+     "read by `import-opencsp --dots` (a fixed-pattern measurement's dots) and by `calibrate dots --compare` "
+     "(beside dots located from photographs)"),
     ("Camera", "a camera's intrinsics and distortion (Camera)", "read by `import-opencsp --camera`"),
     ("DisplayShape", "a screen's shape (DisplayShape)", "read by `import-opencsp --display`"),
     ("SpatialOrientation", "the camera-to-screen pose (SpatialOrientation)", "read by `import-opencsp --orientation`"),
@@ -75,8 +75,7 @@ def _hdf5_kind(path: Path) -> str | None:
                     return ("OpenCSP's processing of a measurement, of no layout this reader knows (a multi-facet "
                             "result, or another version's); not read")
                 if layout == "fixed":
-                    return (f"{LAYOUTS['fixed'][1]}; read, but not compared yet: the fixed-pattern method is issue "
-                            "42's")
+                    return f"{LAYOUTS['fixed'][1]}; read by `import-opencsp --fixed --compare`"
                 return f"{LAYOUTS[layout][1]}; read by `import-opencsp --compare`"
             return f"{what}; {support}"
     return f"an HDF5 file with {', '.join(sorted(keys)) or 'nothing'} at its top level, none of OpenCSP's objects"

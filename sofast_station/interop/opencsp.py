@@ -673,3 +673,4 @@ def upsample_test_data(src: Path, dst: Path, scale: int) -> dict[str, Path]:
         shape = np.array(h["Camera/image_shape_xy"])
         replace_in(h, "Camera/image_shape_xy", (shape * scale).astype(shape.dtype))
     return dst_paths
+

@@ -40,6 +40,23 @@ def opencsp_test_data_paths(root: Path, multi_facet: bool = False, split_facet: 
     return paths
 
 
+#: What each file of an OpenCSP fixed-pattern (dot grid) measurement holds (``import-opencsp --fixed``).
+FIXED_FILES = {"measurement": "MeasurementSofastFixed HDF5", "dots": "DotLocationsFixedPattern HDF5",
+               "camera": "Camera HDF5", "orientation": "SpatialOrientation HDF5", "facet": "facet definition JSON"}
+
+
+def opencsp_fixed_paths(root: Path) -> dict[str, Path]:
+    """The files of the fixed-pattern measurement in OpenCSP's ``opencsp/test/data`` layout (and
+    ``fixtures/opencsp``): its one dot frame, the dots' locations, the full-size camera (OpenCSP processes this
+    capture with ``camera_sofast.h5``: it was not downsampled), the spatial orientation and the NSTTF facet."""
+    root = Path(root)
+    return {"measurement": root / "sofast_fixed/data_measurement/measurement_facet.h5",
+            "dots": root / "sofast_fixed/data_measurement/fixed_pattern_dot_locations.h5",
+            "camera": root / "sofast_common/camera_sofast.h5",
+            "orientation": root / "sofast_common/spatial_orientation.h5",
+            "facet": root / "sofast_common/Facet_NSTTF.json"}
+
+
 def check_files(paths: dict[str, Path], test_data: Path | None = None) -> None:
     """Every file of *paths* (keys of :data:`FILES`) exists, or a ConfigError names the first missing one
     (and the ``--test-data`` folder it was looked for in)."""
@@ -48,5 +65,5 @@ def check_files(paths: dict[str, Path], test_data: Path | None = None) -> None:
                           "opencsp/test/data (fixtures/opencsp/test_data is one)")
     for key, path in paths.items():
         if not Path(path).is_file():
-            raise ConfigError(f"the {FILES.get(key, key)} file {path} does not exist (--{key}"
+            raise ConfigError(f"the {FILES.get(key) or FIXED_FILES.get(key, key)} file {path} does not exist (--{key}"
                               f"{' or --test-data' if test_data is not None else ''})")

@@ -12,6 +12,7 @@ from ..measure.analysis import analyse
 from ..measure.mask import facet_region
 from ..measure.pipeline import AnalysisSettings
 from ..optics import OpticsSettings
+from ..optics.uncertainty import sensitivities_to_record
 from ..result.optical_figures import add_optics
 from ..result.record import build_record
 from ..result.verdict import Limits, Quality, judge
@@ -76,8 +77,13 @@ class FacetJob:
         """:func:`~sofast_station.measure.analysis.analyse` of the capture, then its optical figures."""
         a = analyse(capture.frames, capture.fringes, capture.geometry, self.design, capture.distance_m, self.analysis,
                     rays_cam=capture.rays_cam, uncertainty=uncertainty, sensitivity_cache=sensitivity_cache)
-        add_optics(a, self.design, self.optics, design_traces)
-        return Outcome(a.figures, a.valid, a.sensitivities, None, a)
+        traced = add_optics(a, self.design, self.optics, design_traces)
+        sensitivities = a.sensitivities
+        if sensitivities is not None and traced is not None and traced.sensitivities is not None:
+            # the optical figures' too (those of the first facet of the type, on the line): a dump's re-analysis
+            # states the line's optical U with them
+            sensitivities = {**sensitivities, "optics": sensitivities_to_record(traced.sensitivities)}
+        return Outcome(a.figures, a.valid, sensitivities, None, a)
 
     def preview(self, outcome: Outcome) -> dict | None:
         """The operator's thinned slope-error map of *outcome* (:func:`preview`; 0.1-0.2 s at full resolution,

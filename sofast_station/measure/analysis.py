@@ -88,12 +88,13 @@ def finish_analysis(reduction: Reduction, timings: dict, *, fringes: FringeSet, 
                 settings=settings, inputs=uncertainty, screen=screen, cache=sensitivity_cache, cache_key=key,
                 pool=pool)
         sensitivity_s = extra.pop("_sensitivity_seconds")
+        frame_pool = extra.pop("_frame_pool")
         reduction.figures.update(extra)
         timings["uncertainty"] = time.perf_counter() - t0
         if sensitivity_s:
             timings["uncertainty_sensitivities"] = sensitivity_s
         if sensitivity_cache is not None and key in sensitivity_cache:
             analysis = to_analysis(reduction, timings)
-            analysis.sensitivities = to_record(key, sensitivity_cache[key])
+            analysis.sensitivities = to_record(key, sensitivity_cache[key], frame_pool)
             return analysis
     return to_analysis(reduction, timings)

@@ -129,55 +129,29 @@ def dot_grid(indices: np.ndarray, xyz_m: np.ndarray, covariance_m2: np.ndarray |
 
 
 # -- finding and indexing --------------------------------------------------------------------------------------
-def _centroids(image: np.ndarray, starts: np.ndarray, radius_px: float, dark: bool, iterations: int = 10):
+def _centroids(image: np.ndarray, starts: np.ndarray, radius_px: float, dark: bool, iterations: int = 10,
+               details: bool = False):
     """Background-subtracted intensity centroids of the dots near *starts*, each over a disc of 1.5 typical
     radii (plus a pixel) re-centred until it stops moving; the background is the median of a ring two
     pixels wide around the starting disc.
 
     Noise in the disc pulls a centroid toward the disc's centre, which converges onto the dot's, so the
     fixed point carries no bias from it. Returns the centres (N, 2) and a mask of those found (a dot too
-    near the image's edge, or with no signal, is not)."""
-    h, w = image.shape
-    reach = 1.5 * radius_px + 1.0
-    outer = reach + 0.5 * radius_px + 2.0
-    half = int(np.ceil(outer + 2))
-    centre = np.round(starts).astype(np.int64)
-    ok = (centre[:, 0] >= half) & (centre[:, 1] >= half) & (centre[:, 0] + half < w) & (centre[:, 1] + half < h)
-    out = np.full(starts.shape, np.nan)
-    if not ok.any():
-        return out, ok
-    c0 = centre[ok]
-    offs = np.arange(-half, half + 1)
-    uu = c0[:, 0, None, None] + offs[None, None, :]                          # (n, 1, S)
-    vv = c0[:, 1, None, None] + offs[None, :, None]                          # (n, S, 1)
-    patch = image[vv, uu].astype(np.float64)                                  # (n, S, S)
-    r2 = offs[None, :] ** 2 + offs[:, None] ** 2
-    ring = (r2 > (outer - 2.0) ** 2) & (r2 <= outer ** 2)
-    background = np.median(patch[:, ring], axis=1)
-    # the centroid's disc never leaves the inner part of the patch (it may move 2 px): iterate on that alone
-    inner = half - int(np.ceil(reach + 3.0))
-    if inner > 0:
-        patch, uu, vv = patch[:, inner:-inner, inner:-inner], uu[:, :, inner:-inner], vv[:, inner:-inner, :]
-    signal = np.clip((background[:, None, None] - patch) if dark else (patch - background[:, None, None]), 0.0, None)
-    c = starts[ok].astype(np.float64)
-    good = np.ones(len(c), bool)
-    for _ in range(iterations):
-        d2 = (uu - c[:, 0, None, None]) ** 2 + (vv - c[:, 1, None, None]) ** 2
-        weight = np.where(d2 <= reach * reach, signal, 0.0)
-        total = weight.sum(axis=(1, 2))
-        good = total > 0
-        new = c.copy()
-        new[good, 0] = (weight * uu).sum(axis=(1, 2))[good] / total[good]
-        new[good, 1] = (weight * vv).sum(axis=(1, 2))[good] / total[good]
-        shift = np.max(np.hypot(*(new - c).T), initial=0.0)
-        c = new
-        if shift < 1e-3:
-            break
-    found = np.flatnonzero(ok)
-    good = good & np.all(np.abs(c - c0) < 2.0, axis=1)       # a centroid that ran off: not a lone dot
-    out[found[good]] = c[good]
-    ok[found[~good]] = False
-    return out, ok
+    near the image's edge, or with no signal, is not); with *details* also a dict of (N, ...) arrays (NaN
+    where not found): ``cov_unit_px2`` (N, 2, 2), the centroid's covariance per unit pixel-noise variance
+    (the centroid c = sum w x / W moves by -(x - c) / W for a unit change of a pixel of weight w > 0, and the
+    pixels' noise is independent: sum over the disc's pixels of weight above 0 of (x - c)(x - c)^T / W^2;
+    a pixel clipped to weight 0 moves nothing), ``background_dn`` (the ring's median), ``ring_sigma_dn``
+    (the ring's scatter, 1.4826 times its median absolute deviation: the image's noise beside the dot) and
+    ``depth_dn`` (the largest background-subtracted signal in the disc)."""
+    from .kernels import dot_centroids
+
+    centres, ok, cov, background, ring_sigma, depth = dot_centroids(image, np.asarray(starts, np.float64),
+                                                                     radius_px, dark, iterations)
+    if not details:
+        return centres, ok
+    return centres, ok, {"cov_unit_px2": cov, "background_dn": background, "ring_sigma_dn": ring_sigma,
+                         "depth_dn": depth}
 
 
 def find_dots(image: np.ndarray, *, dark: bool = True, min_area_px: float = 3.0, max_area_px: float = 2000.0,
@@ -237,7 +211,216 @@ def find_dots(image: np.ndarray, *, dark: bool = True, min_area_px: float = 3.0,
     return centres[found], sizes[found]
 
 
-def index_dots(centres_px: np.ndarray, origin_px, tolerance: float = 0.3) -> tuple[np.ndarray, np.ndarray]:
+@dataclass(frozen=True)
+class PatternDots:
+    """The dots of a lit dot pattern in one frame (:func:`find_pattern_dots`).
+
+    Attributes
+    ----------
+    centres_px : (N, 2) array
+        Sub-pixel centres (column, row), pixels (pixel centres at integers).
+    cov_px2 : (N, 2, 2) array
+        Each centre's covariance from the image's noise (``noise_dn``), square pixels.
+    area_px : (N,) int array
+        Pixels of each dot's blob (beyond the detection threshold).
+    depth_dn : (N,) array
+        How far each dot goes below its background (dark dots; above it for light ones), DN.
+    background_dn : (N,) array
+        The lit pattern's level around each dot, DN.
+    noise_dn : float
+        The image's noise beside the dots (the median of the dots' rings' robust scatter), DN.
+    merged : int
+        Blobs dropped as more than one dot (longer than wide by :data:`MERGED_ELONGATION`, or over
+        :data:`MERGED_AREA` times the typical dot's area: neighbours run together, a scratch).
+    small : int
+        Blobs dropped as too small to be a dot (under :data:`SMALL_AREA` of the typical area: noise, dust).
+    unmeasured : int
+        Blobs whose centre could not be measured (too near the image's edge, or its centroid ran off).
+    diameter_px : float
+        The typical dot's diameter (that of a disc of the median area), pixels.
+    """
+
+    centres_px: np.ndarray
+    cov_px2: np.ndarray
+    area_px: np.ndarray
+    depth_dn: np.ndarray
+    background_dn: np.ndarray
+    noise_dn: float
+    merged: int = 0
+    small: int = 0
+    unmeasured: int = 0
+    diameter_px: float = float("nan")
+
+
+#: A blob more than this many times the typical dot's area is several dots run together (a dot magnified by
+#: the mirror stays under it: up to 2.2 times in OpenCSP's capture).
+MERGED_AREA = 3.5
+#: A blob whose longest axis is this many times its shortest is dots run together (two touching discs: 2;
+#: a dot seen obliquely in a curved mirror: under 1.4 in OpenCSP's capture).
+MERGED_ELONGATION = 1.6
+#: A blob under this fraction of the typical dot's area is not a dot.
+SMALL_AREA = 0.3
+
+
+def otsu_level(values: np.ndarray) -> float:
+    """Otsu's threshold of *values* (OpenCV's, on the values scaled to 0..255): the level between a bimodal
+    set's two modes (a lit facet and its dark surroundings, dots and their lit background)."""
+    lo, hi = float(np.min(values)), float(np.max(values))
+    if not hi > lo:
+        return hi
+    scaled = np.round((values - lo) * (255.0 / (hi - lo))).astype(np.uint8).reshape(-1, 1)
+    level, _ = cv2.threshold(scaled, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+    return lo + float(level) * (hi - lo) / 255.0
+
+
+def pattern_background(image: np.ndarray, max_diameter_px: float, dark: bool = True) -> np.ndarray:
+    """The lit pattern with its dots filled in: a grey closing (dark dots; an opening for light ones) with a
+    square of 2 *max_diameter_px* + 1 pixels, float32. A straight or convex edge of the lit area is where it
+    was (the closing moves it out by the square's half width and back), a dot or a notch narrower than the
+    square is filled with its surroundings' level."""
+    k = 2 * int(np.ceil(max_diameter_px)) + 1
+    op = cv2.MORPH_CLOSE if dark else cv2.MORPH_OPEN
+    img = np.asarray(image)
+    if img.dtype not in (np.uint8, np.uint16):
+        img = img.astype(np.float32)
+    return cv2.morphologyEx(img, op, cv2.getStructuringElement(cv2.MORPH_RECT, (k, k))).astype(np.float32)
+
+
+def find_pattern_dots(image: np.ndarray, mask: np.ndarray | None = None, *, dark: bool = True,
+                      max_diameter_px: float = 24.0, min_area_px: float = 3.0,
+                      background: np.ndarray | None = None) -> PatternDots:
+    """The dots of a lit dot pattern (a display's, or a lit target's, seen in a mirror), each centred to a
+    fraction of a pixel with its covariance.
+
+    Unlike :func:`find_dots` (photographs of a target under room light, OpenCV's blob detector over
+    many thresholds: a second for a two-megapixel frame), the pattern's lit background is filled in over
+    the dots (:func:`pattern_background`), the dots' depth below it thresholded once (Otsu's threshold of
+    the depth over *mask*), and each connected blob is a candidate: a blob far larger than the typical one,
+    or much longer than wide, is dropped as merged dots, one far smaller as noise; each kept blob is centred
+    by its background-subtracted intensity moments over a disc (:func:`_centroids`), which also gives its
+    covariance from the image's noise.
+
+    Parameters
+    ----------
+    image : (H, W) integer array
+        The frame, camera counts (DN).
+    mask : (H, W) bool array, optional
+        Where the pattern is seen (a facet's region): only blobs centred there count, and the work is done
+        on its bounding box.
+    dark : bool
+        Dark dots on a lit background (the default), else lit dots on a dark one.
+    max_diameter_px : float
+        The largest dot diameter expected in the image, pixels (the filling square is twice that).
+    min_area_px : float
+        Smaller blobs are never dots, square pixels.
+    background : (H, W) float32 array, optional
+        :func:`pattern_background` of *image* when the caller has it already.
+
+    Returns
+    -------
+    PatternDots
+        Empty (no centres) when no dot stands out from the background.
+    """
+    img = np.asarray(image)
+    if img.ndim != 2 or img.dtype.kind not in "ui":
+        raise ValueError(f"find_pattern_dots needs a grey integer image, got {img.dtype} {img.shape}")
+    h, w = img.shape
+    margin = 2 * int(np.ceil(max_diameter_px)) + 2
+    if mask is not None:
+        mask = np.asarray(mask, bool)
+        if mask.shape != img.shape:
+            raise ValueError(f"the mask is {mask.shape}, the image {img.shape}")
+        rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+        if rows.size == 0:
+            return _no_dots()
+        r0, r1 = max(rows[0] - margin, 0), min(rows[-1] + margin + 1, h)
+        c0, c1 = max(cols[0] - margin, 0), min(cols[-1] + margin + 1, w)
+    else:
+        r0, r1, c0, c1 = 0, h, 0, w
+    box = img[r0:r1, c0:c1]
+    bg = pattern_background(box, max_diameter_px, dark) if background is None else background[r0:r1, c0:c1]
+    depth = (bg - box) if dark else (box - bg)
+    inside = np.ones(box.shape, bool) if mask is None else mask[r0:r1, c0:c1]
+    if not inside.any():
+        return _no_dots()
+    # Otsu's threshold between the dots and their background, but never within the image's noise (a lit area
+    # without dots has a depth of noise only, which Otsu's threshold would split all the same)
+    level = max(otsu_level(depth[inside]), 6.0 * image_noise_dn(box, inside))
+    binary = ((depth > level) & (depth > 0)).astype(np.uint8)
+    n, labels, stats, centroids = cv2.connectedComponentsWithStats(binary, connectivity=8)
+    if n <= 1:
+        return _no_dots()
+    elongation = _elongation(labels, n)[1:]
+    stats, centroids = stats[1:], centroids[1:]
+    centre_px = np.round(centroids).astype(np.int64)
+    on = inside[np.clip(centre_px[:, 1], 0, box.shape[0] - 1), np.clip(centre_px[:, 0], 0, box.shape[1] - 1)]
+    area = stats[on, cv2.CC_STAT_AREA].astype(np.int64)
+    elongation = elongation[on]
+    starts = centroids[on] + [c0, r0]
+    big = area >= min_area_px
+    if not big.any():
+        return _no_dots()
+    typical = float(np.median(area[big]))
+    # A dot seen through a curved mirror is magnified where the mirror is (its image up to twice the typical
+    # area in OpenCSP's capture), but stays round; dots run together are as long as two.
+    merged = big & ((elongation > MERGED_ELONGATION) | (area > MERGED_AREA * typical))
+    small = ~big | (area < SMALL_AREA * typical)
+    keep = ~merged & ~small
+    # each dot centred over a disc of its own blob's size, in classes of half a pixel of radius
+    radius = np.maximum(np.round(2.0 * np.sqrt(area[keep] / np.pi)) / 2.0, 1.0)
+    centres, found = np.full((int(keep.sum()), 2), np.nan), np.zeros(int(keep.sum()), bool)
+    info = {k: np.full((int(keep.sum()),) + shape, np.nan)
+            for k, shape in (("cov_unit_px2", (2, 2)), ("background_dn", ()), ("ring_sigma_dn", ()), ("depth_dn", ()))}
+    for r in np.unique(radius):
+        sel = np.flatnonzero(radius == r)
+        c, ok, part = _centroids(img, starts[keep][sel], float(r), dark, details=True)
+        centres[sel], found[sel] = c, ok
+        for k in info:
+            info[k][sel] = part[k]
+    noise = float(np.nanmedian(info["ring_sigma_dn"][found])) if found.any() else float("nan")
+    return PatternDots(centres[found], noise ** 2 * info["cov_unit_px2"][found], area[keep][found],
+                       info["depth_dn"][found], info["background_dn"][found], noise, int(merged.sum()),
+                       int(small.sum()), int((~found).sum()), 2.0 * np.sqrt(typical / np.pi))
+
+
+def _elongation(labels: np.ndarray, n: int) -> np.ndarray:
+    """Per connected component of *labels* (0..n-1), the ratio of its longest to its shortest axis from its
+    pixels' second moments (1 for a disc, 2 for two discs side by side; a one-pixel-wide line: its length
+    over 0.29)."""
+    at = np.flatnonzero(labels)                   # the components' pixels only (the background is label 0)
+    flat = labels.ravel()[at]
+    rows, cols = np.divmod(at, labels.shape[1])
+    count = np.maximum(np.bincount(flat, minlength=n).astype(np.float64), 1.0)
+    mean_r = np.bincount(flat, rows, n) / count
+    mean_c = np.bincount(flat, cols, n) / count
+    # a pixel is a unit square: 1/12 of spread on each axis of its own
+    var_r = np.bincount(flat, rows * rows, n) / count - mean_r ** 2 + 1.0 / 12.0
+    var_c = np.bincount(flat, cols * cols, n) / count - mean_c ** 2 + 1.0 / 12.0
+    cov = np.bincount(flat, rows * cols, n) / count - mean_r * mean_c
+    half_sum, root = 0.5 * (var_r + var_c), np.sqrt(0.25 * (var_r - var_c) ** 2 + cov ** 2)
+    return np.sqrt((half_sum + root) / np.maximum(half_sum - root, 1e-12))
+
+
+def image_noise_dn(image: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """The image's pixel noise (DN, one standard deviation) from its 4-neighbour Laplacian: for independent noise
+    of sigma its variance is 20 sigma^2, and its median absolute value is little moved by edges and dots that
+    cover less than half of *mask*."""
+    img = np.asarray(image, np.float32)
+    lap = 4.0 * img[1:-1, 1:-1] - img[:-2, 1:-1] - img[2:, 1:-1] - img[1:-1, :-2] - img[1:-1, 2:]
+    # every other row and column: the median of a quarter of the values is as good, for a quarter of the time
+    lap = lap[::2, ::2]
+    values = lap if mask is None else lap[np.asarray(mask)[1:-1:2, 1:-1:2]]
+    if values.size == 0:
+        return 0.0
+    return float(1.4826 * np.median(np.abs(values)) / np.sqrt(20.0))
+
+
+def _no_dots() -> PatternDots:
+    return PatternDots(np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros(0, np.int64), np.zeros(0), np.zeros(0),
+                       float("nan"))
+
+
+def index_dots(centres_px: np.ndarray, origin_px, tolerance: float = 0.3, return_which: bool = False):
     """Lattice indices of dots, counted from the dot nearest *origin_px*.
 
     i grows along the image's columns and j along its rows (the lattice's two directions nearest to them).
@@ -256,12 +439,17 @@ def index_dots(centres_px: np.ndarray, origin_px, tolerance: float = 0.3) -> tup
     tolerance : float
         Fraction of the local lattice step.
 
+    return_which : bool
+        Also return which of *centres_px* each indexed dot is.
+
     Returns
     -------
     indices : (M, 2) int array
         (i, j) of the indexed dots.
     points_px : (M, 2) array
         Their centres.
+    which : (M,) int array
+        With *return_which*: each indexed dot's row in *centres_px*.
 
     Raises
     ------
@@ -290,6 +478,8 @@ def index_dots(centres_px: np.ndarray, origin_px, tolerance: float = 0.3) -> tup
     span = int(np.ceil(4 * np.sqrt(pts.shape[0]))) + 8
     grid = np.full((2 * span + 1, 2 * span + 1, 2), np.nan)                 # positions by index, origin at [span, span]
     grid[span, span] = pts[first]
+    who = np.full(grid.shape[:2], -1, np.int64)                            # the dot at each place
+    who[span, span] = first
     taken = np.zeros(pts.shape[0], bool)
     taken[first] = True
     basis = np.array([e_i, -e_i, e_j, -e_j])
@@ -329,19 +519,27 @@ def index_dots(centres_px: np.ndarray, origin_px, tolerance: float = 0.3) -> tup
         _, once = np.unique(hit_ok, return_index=True)                      # a dot claimed twice: the nearer
         hit_ok, cand_ok = hit_ok[once], cand_ok[once]
         grid[cand_ok[:, 0], cand_ok[:, 1]] = pts[hit_ok]
+        who[cand_ok[:, 0], cand_ok[:, 1]] = hit_ok
         taken[hit_ok] = True
         frontier = cand_ok
-    # a stray blob taken for a dot bends its row or column: drop dots whose second difference is off
-    bad = np.zeros(grid.shape[:2], bool)
+    # a stray blob taken for a dot bends its row or column: drop dots whose second difference is off (on the
+    # indexed places' box only, with a free place on every side: the grid is mostly empty)
+    filled = np.nonzero(~np.isnan(grid[:, :, 0]))
+    r0, r1 = filled[0].min() - 1, filled[0].max() + 2
+    c0, c1 = filled[1].min() - 1, filled[1].max() + 2
+    box = grid[r0:r1, c0:c1]
+    bad = np.zeros(box.shape[:2], bool)
     for axis in (0, 1):
-        prev, nxt = np.roll(grid, 1, axis=axis), np.roll(grid, -1, axis=axis)
-        second = np.linalg.norm(prev - 2 * grid + nxt, axis=2)
+        prev, nxt = np.roll(box, 1, axis=axis), np.roll(box, -1, axis=axis)
+        second = np.linalg.norm(prev - 2 * box + nxt, axis=2)
         span_ = np.linalg.norm(nxt - prev, axis=2)
         with np.errstate(invalid="ignore"):
             bad |= second > tolerance * 0.5 * span_
-    keep = ~np.isnan(grid[:, :, 0]) & ~bad
+    keep = ~np.isnan(box[:, :, 0]) & ~bad
     rows, cols = np.nonzero(keep)
-    return np.column_stack([rows - span, cols - span]).astype(np.int64), grid[rows, cols]
+    rows, cols = rows + r0, cols + c0
+    out = np.column_stack([rows - span, cols - span]).astype(np.int64), grid[rows, cols]
+    return (*out, who[rows, cols]) if return_which else out
 
 
 # -- the bundle adjustment -------------------------------------------------------------------------------------

@@ -26,6 +26,10 @@ SIGNATURES: dict[str, list[str]] = {
     "_cubic_sums_into": [
         "f8:1C f8:1C f8:1C f8:1C f8 f8 f8 i8 f8:2C",
     ],
+    "_dot_centroids_into": [
+        "u1:2C f8:2C f8 bool i8 f8:2C b1:1C f8:3C f8:1C f8:1C f8:1C",
+        "u2:2C f8:2C f8 bool i8 f8:2C b1:1C f8:3C f8:1C f8:1C f8:1C",
+    ],
     "_gather_runs_into": [
         "u2:2C i8:1C i8:1C i8:1C u2:2C",
         "u1:2C i8:1C i8:1C i8:1C u1:2C",

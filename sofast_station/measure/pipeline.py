@@ -235,16 +235,22 @@ class Region:
     lit_rim_sides : tuple of int
         Sides of the outline (the design's numbering from 1) whose rim the design declares dark but whose
         fringes show it lit (:func:`check_dark_rim`); the outline was refitted with those rims put midway.
+    points_px : (M, 2) array or None
+        Where the region's points are seen when they are not the pixels' centres, (column, row) pixels: a
+        fixed pattern's dots (:mod:`~sofast_station.measure.fixed`), one per dot, ``idx`` then the pixel
+        each centre lies in. The rays (:func:`screen_points_and_rays`) go through these points; ``stack``
+        is None (there are no frames per point).
     """
 
     region: np.ndarray
     idx: np.ndarray
-    stack: np.ndarray
+    stack: np.ndarray | None
     contrast: np.ndarray
     outline: corners_mod.OutlineFit | None = None
     outline_error: Exception | None = None
     clear_of_edge: np.ndarray | None = None
     lit_rim_sides: tuple = ()
+    points_px: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -630,6 +636,8 @@ def screen_points_and_rays(region: Region, phases: Phases, camera, screen: Scree
                            rays_cam: np.ndarray | None = None, pool=None, min_valid_px: int = 1000) -> Rays:
     """Stage 3: screen points and pixel rays in the camera frame for the pixels with a trusted position.
 
+    A region whose points are not pixel centres (``Region.points_px``: a fixed pattern's dots) has each
+    point's ray computed through the camera model at its own sub-pixel position (*rays_cam* is not used).
     A measured screen model may not cover every position; those pixels are dropped. On a *pool*, the
     pixel rays and half of the screen points are formed beside the other half: each point and each ray
     on its own, and the points in the same two halves on one thread or two, so the same values.
@@ -637,8 +645,15 @@ def screen_points_and_rays(region: Region, phases: Phases, camera, screen: Scree
     pool = pool if pool is not None else _Serial()
     ok = phases.ok.copy()
     idx = region.idx
-    table = rays_cam is None or (hasattr(rays_cam, "take") and not isinstance(rays_cam, np.ndarray))
-    rays_task = pool.submit(_rays_of, camera, rays_cam, idx[ok]) if table else None
+    points_px = getattr(region, "points_px", None)
+    if points_px is not None:
+        # points seen between pixel centres (a fixed pattern's dots): their own rays, through the camera model
+        rays_cam = None
+        rays_task = pool.submit(pixel_rays, camera, points_px[ok, 0], points_px[ok, 1])
+        table = True
+    else:
+        table = rays_cam is None or (hasattr(rays_cam, "take") and not isinstance(rays_cam, np.ndarray))
+        rays_task = pool.submit(_rays_of, camera, rays_cam, idx[ok]) if table else None
     u_x, u_y = phases.positions_m["x"][ok], phases.positions_m["y"][ok]
     half = u_x.size // 2
     first = pool.submit(screen.points_camera, u_x[:half], u_y[:half])
@@ -878,9 +893,7 @@ def report_figures(region: Region, phases: Phases, rays: Rays, pose: CornerPoseR
     computing the check here; *fringes* and *screen* let it judge the curl against each pixel's slope noise.
     """
     fit, coeffs, cubic, solution = fits.parabola, fits.coefficients, fits.cubic, shape.solution
-    idx, vidx = region.idx, rays.vidx
-    pairs = neighbour_pairs(vidx, geometry.camera.width_px)
-    unwrap_stats = phases.unwrap
+    vidx = rays.vidx
     # The boresight frame's tilt in the fixture: where the facet's optical axis at the alignment point
     # points, to the precision of the slopes (the corner pose's own tilt errors cancel).
     tilt = placement(geometry.fixture_to_camera, shape.boresighted_to_camera, design)["mrad"]
@@ -892,6 +905,11 @@ def report_figures(region: Region, phases: Phases, rays: Rays, pose: CornerPoseR
         curl = slope_curl_of(region, rays, shape, phases, fringes, screen)
     else:
         curl = curl.result()
+    # What the capture says about itself (points kept and dropped, contrast, noise, curl) is the method's:
+    # a fixed pattern's stage knows its own (``DotPhases.capture_figures``), the fringes' is below.
+    own = getattr(phases, "capture_figures", None)
+    capture = (own(region, rays, fits, geometry, curl) if own is not None
+               else fringe_capture_figures(region, phases, rays, fits, geometry, curl))
     figures = {
         "focal_length_x_m": focal_length_m(kx),
         "focal_length_y_m": focal_length_m(ky),
@@ -906,6 +924,53 @@ def report_figures(region: Region, phases: Phases, rays: Rays, pose: CornerPoseR
                          "F": coeffs[5]},
         "slope_rms_mrad": {name: rms_summary(*e) for name, e in fits.residuals_mrad.items()},
         "n_points": int(vidx.size),
+        **{k: capture.pop(k) for k in CAPTURE_KEYS},
+        "iterations": {"shape": solution.shape_iterations, "boresight": solution.boresight_iterations,
+                       "converged": solution.converged},
+        "boresight_mrad": {"x": 1000.0 * solution.motion.alpha_rad, "y": 1000.0 * solution.motion.beta_rad},
+        "placement": placement(geometry.fixture_to_camera, pose.facet_to_camera, design),
+        "optical_tilt_mrad": {"x": tilt[0], "y": tilt[1]},
+        "higher_order": cubic.to_dict(),
+        # The converged fit on the subsample (every n-th valid pixel), before the all-points fit: what
+        # programs that stop there (OpenCSP's SOFAST) report.
+        "subsample_fit": {"focal_length_x_m": focal_length_m(4.0 * float(solution.subsample_coefficients[0])),
+                          "focal_length_y_m": focal_length_m(4.0 * float(solution.subsample_coefficients[1])),
+                          "n_points": int(-(-vidx.size // settings.subsample_step))},
+        "corner_reprojection_rms_px": pose.reprojection_rms_px,
+        # the facet edge's blur (pixels) and what it may have smoothed away of the slope residuals: their
+        # neighbouring pixels' mean square difference (the uncertainty's blur term, budget.combine)
+        "edge_blur_px": region.outline.edge_blur_px if region.outline is not None else None,
+        # sides whose staircase edge lies along the pixel grid: their corners only to within a pixel
+        "outline_staircase_sides": corners_mod.staircase_sides(region.outline) if region.outline is not None else [],
+        # sides whose rim the design declares dark but whose fringes show it lit: put midway
+        "outline_lit_rim_sides": list(region.lit_rim_sides),
+        "slope_residual_neighbour_ms_mrad2": capture.pop("slope_residual_neighbour_ms_mrad2"),
+        "outline_agreement": pose.outline_agreement,
+        "range_correction_m": pose.range_shift_m,
+        "measured_distance_m": float(measured_distance_m),
+        **capture,
+    }
+    if not design.outline_known:
+        figures.update(unknown_outline_figures(pose))
+    if settings.surface != "parabolic":
+        figures.update(plano_figures(figures))
+    return figures
+
+
+#: The capture's own figures, in the order the figures list them (after ``n_points``).
+CAPTURE_KEYS = ("valid_fraction", "facet_pixels", "median_modulation_dn", "intensity_noise_dn", "slope_curl",
+                "display_response", "dropped", "unwrap_disagreements")
+
+
+def fringe_capture_figures(region: Region, phases: Phases, rays: Rays, fits: Fits, geometry: StationGeometry,
+                           curl: dict | None) -> dict:
+    """What a fringe capture says about itself (:data:`CAPTURE_KEYS` and the slope residuals' neighbour
+    differences): the pixels kept and dropped and why, the fringes' contrast, the frames' noise, the display's
+    response, the slope-curl check's result *curl*."""
+    idx, vidx = region.idx, rays.vidx
+    unwrap_stats = phases.unwrap
+    pairs = neighbour_pairs(vidx, geometry.camera.width_px)
+    return {
         # of the pixels clear of the edge's blur (the others are left out by design, not for a fault)
         "valid_fraction": float(vidx.size / max(idx.size - phases.dropped.get("near_edge", 0), 1)),
         "facet_pixels": int(idx.size),
@@ -926,37 +991,10 @@ def report_figures(region: Region, phases: Phases, rays: Rays, pose: CornerPoseR
                     **{f"{k}_{a}": getattr(unwrap_stats[a], k) for a in ("x", "y")
                        for k in ("coarse_out_of_range", "disagreements", "edge_guard")}},
         "unwrap_disagreements": int(unwrap_stats["x"].disagreements + unwrap_stats["y"].disagreements),
-        "iterations": {"shape": solution.shape_iterations, "boresight": solution.boresight_iterations,
-                       "converged": solution.converged},
-        "boresight_mrad": {"x": 1000.0 * solution.motion.alpha_rad, "y": 1000.0 * solution.motion.beta_rad},
-        "placement": placement(geometry.fixture_to_camera, pose.facet_to_camera, design),
-        "optical_tilt_mrad": {"x": tilt[0], "y": tilt[1]},
-        "higher_order": cubic.to_dict(),
-        # The converged fit on the subsample (every n-th valid pixel), before the all-points fit: what
-        # programs that stop there (OpenCSP's SOFAST) report.
-        "subsample_fit": {"focal_length_x_m": focal_length_m(4.0 * float(solution.subsample_coefficients[0])),
-                          "focal_length_y_m": focal_length_m(4.0 * float(solution.subsample_coefficients[1])),
-                          "n_points": int(-(-vidx.size // settings.subsample_step))},
-        "corner_reprojection_rms_px": pose.reprojection_rms_px,
-        # the facet edge's blur (pixels) and what it may have smoothed away of the slope residuals: their
-        # neighbouring pixels' mean square difference (the uncertainty's blur term, budget.combine)
-        "edge_blur_px": region.outline.edge_blur_px if region.outline is not None else None,
-        # sides whose staircase edge lies along the pixel grid: their corners only to within a pixel
-        "outline_staircase_sides": corners_mod.staircase_sides(region.outline) if region.outline is not None else [],
-        # sides whose rim the design declares dark but whose fringes show it lit: put midway
-        "outline_lit_rim_sides": list(region.lit_rim_sides),
         "slope_residual_neighbour_ms_mrad2": {
             m: {a: neighbour_difference_ms(e[i], pairs) for i, a in enumerate(("x", "y"))}
             for m, e in fits.residuals_mrad.items()},
-        "outline_agreement": pose.outline_agreement,
-        "range_correction_m": pose.range_shift_m,
-        "measured_distance_m": float(measured_distance_m),
     }
-    if not design.outline_known:
-        figures.update(unknown_outline_figures(pose))
-    if settings.surface != "parabolic":
-        figures.update(plano_figures(figures))
-    return figures
 
 
 #: What the plano model does not fit, and why (``not_measured`` in its figures).
@@ -999,7 +1037,11 @@ def slope_curl_of(region: Region, rays: Rays, shape: Shape, phases: Phases | Non
                   fringes: FringeSet | None = None, screen: ScreenModel | None = None) -> dict:
     """The slope-curl check (:func:`~sofast_station.measure.checks.slope_curl`) of a shape's valid pixels;
     with *phases*, *fringes* and *screen*, against the slope noise of each pixel
-    (:func:`~sofast_station.measure.slope_noise.slope_covariance`)."""
+    (:func:`~sofast_station.measure.slope_noise.slope_covariance`). A stage that knows its own points'
+    neighbours (a fixed pattern's dots on their lattice: ``DotPhases.slope_curl``) checks it there."""
+    own = getattr(phases, "slope_curl", None)
+    if own is not None:
+        return own(region, rays, shape, screen)
     valid = np.zeros(region.region.shape, dtype=bool)
     valid.ravel()[rays.vidx] = True
     cov = None

@@ -39,7 +39,12 @@ def pixel_noise_dn(phases, stack, take: np.ndarray) -> np.ndarray | float:
 
 def position_sigmas_m(phases, stack, take: np.ndarray, fringes, screen_size_m: tuple[float, float]) -> dict:
     """``{"x": (n,), "y": (n,)}``: the screen-position noise (metres) of the region's pixels *take*, from
-    the finest set's modulation and each pixel's own frame noise (:func:`pixel_noise_dn`)."""
+    the finest set's modulation and each pixel's own frame noise (:func:`pixel_noise_dn`); for a stage that
+    measured its points' position noise itself (``position_sigma_m``: a fixed pattern's dots, from their
+    centroids' covariance, in the units of its positions) that."""
+    own = getattr(phases, "position_sigma_m", None)
+    if own is not None:
+        return {a: np.asarray(own[a])[take] for a in ("x", "y")}
     noise_dn = pixel_noise_dn(phases, stack, take)
     return {a: position_sigma_m(phases.finest_modulation_dn[a][take], noise_dn, getattr(fringes, f"periods_{a}")[-1],
                                 length)

@@ -204,6 +204,29 @@ def optics_sensitivities(points_m: np.ndarray, slopes: np.ndarray, area_m2: np.n
     return out
 
 
+def sensitivities_to_record(sens: dict) -> dict:
+    """:func:`optics_sensitivities`' ``{input: {path: (c, q)}}`` as JSON-ready lists (a dump keeps the line's:
+    its facets' optical U were computed with those of the first facet of their type). Floats go through JSON
+    as their shortest round-tripping text, and a NaN as null, so :func:`sensitivities_from_record` gives
+    the same bits back."""
+    def num(v):
+        v = float(v)
+        return None if math.isnan(v) else v
+    return {str(name): {str(path): [num(c), num(q)] for path, (c, q) in by_path.items()}
+            for name, by_path in sens.items()}
+
+
+def sensitivities_from_record(record) -> dict | None:
+    """The sensitivities of a record of :func:`sensitivities_to_record`; None for anything else."""
+    def num(v):
+        return math.nan if v is None else float(v)
+    try:
+        return {str(name): {str(path): (num(c), num(q)) for path, (c, q) in by_path.items()}
+                for name, by_path in record.items()}
+    except (AttributeError, TypeError, ValueError):
+        return None
+
+
 def optics_uncertainty(sens: dict, scene, measured_hits: Hits, measured_figures: dict, design_hits: Hits,
                        design_figures: dict, surface_u: SurfaceUncertainty, fraction: float = 0.9) -> dict:
     """The ``_U`` and ``_U_random`` siblings (k = 2) of the optical figures of one traced facet.

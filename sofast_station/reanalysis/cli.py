@@ -20,12 +20,12 @@ from pathlib import Path
 from ..commands import add_command
 from ..commands import build_parser as _build_parser
 from ..commands import default_config, lower_priority, run
-from ..result.formatting import with_u
+from ..result.formatting import aperture_text, with_u
 from ._env import single_thread_blas
 
 log = logging.getLogger(__name__)
 
-#: Exit codes: some dump could not be reprocessed; with --check, some figure differs from the archive.
+#: Exit codes: some dump could not be reprocessed; with --check, some figure (or its U) differs from the archive.
 EXIT_FAILED = 2
 EXIT_DIFFERS = 3
 
@@ -78,7 +78,7 @@ def register(subparsers) -> None:
     rep.add_argument("--journal", metavar="PATH",
                      help="the station's journal.sqlite3: the archived record of a dump that has lost its own")
     rep.add_argument("--check", action="store_true",
-                     help=f"exit with {EXIT_DIFFERS} when a figure differs from the archive")
+                     help=f"exit with {EXIT_DIFFERS} when a figure or its U differs from the archive")
     _add_overrides(rep)
     rep.set_defaults(func=cmd_reprocess)
 
@@ -205,26 +205,44 @@ def _fmt(v) -> str:
 
 
 def comparison_table(result, show_all: bool = False) -> str:
-    """Archived versus new, one figure a line: the main figures and every changed one (or all)."""
-    from .reprocess import HEADLINE, flatten_figures
+    """Archived versus new, one figure a line (``value ± U`` where the record has its U, by the one rule:
+    :func:`~sofast_station.result.formatting.with_u`), the value's difference and its U's: the main
+    figures and every one whose value or U changed (or all)."""
+    from .reprocess import HEADLINE, figure_of_uncertainty, flatten_figures, flatten_uncertainties
+
+    def u_by_figure(record) -> dict:
+        """Figure name -> (its U's flat name, U) of a record."""
+        if not record:
+            return {}
+        return {figure_of_uncertainty(k): (k, v) for k, v in flatten_uncertainties(record).items()
+                if not k.endswith("_U_random") and "_U_random." not in k and "_U_random[" not in k}
 
     new = flatten_figures(result.record)
     old = flatten_figures(result.archived) if result.archived else {}
-    new_u = flatten_figures(result.record, uncertainties=True)
-    old_u = flatten_figures(result.archived, uncertainties=True) if result.archived else {}
+    new_u, old_u = u_by_figure(result.record), u_by_figure(result.archived)
 
-    def value_u(value, name, flat):
-        """``value ± U`` where the record has the figure's expanded uncertainty."""
-        top, dot, rest = name.partition(".")
-        top, bracket, index = top.partition("[")
-        u = flat.get(f"{top}_U{bracket}{index}{dot}{rest}")
+    def value_u(value, u) -> str:
         if u is None or not isinstance(value, (int, float)) or isinstance(value, bool):
             return _fmt(value)
         return with_u(value, u)
 
+    def u_change(name) -> str:
+        """How the figure's U moved: "0", "+0.00019 (+20 %)", "(absent)"..."""
+        key = (new_u.get(name) or old_u.get(name) or (None,))[0]
+        d = result.differences.get(key) if key else None
+        if key is None or not old:
+            return ""
+        if d is None:
+            return "0"
+        if d["difference"] is None:
+            return "changed"
+        a = d["archived"]
+        return f"{d['difference']:+.2g}" + (f" ({100 * d['difference'] / a:+.0f} %)" if a else "")
+
+    moved_u = {d.get("uncertainty_of") for d in result.differences.values()}
     names = list(new) + [k for k in old if k not in new]
-    shown = names if show_all else [k for k in names if k in HEADLINE or k in result.differences]
-    lines = [f"  {'figure':<40} {'archived':>24} {'new':>24} {'new - archived':>16}"]
+    shown = names if show_all else [k for k in names if k in HEADLINE or k in result.differences or k in moved_u]
+    lines = [f"  {'figure':<40} {'archived':>24} {'new':>24} {'new - archived':>16} {'U: new - archived':>18}"]
     for name in shown:
         a, b = old.get(name, "(absent)" if old else "-"), new.get(name, "(absent)")
         d = result.differences.get(name)
@@ -236,10 +254,11 @@ def comparison_table(result, show_all: bool = False) -> str:
             diff = f"{d['difference']:+.3e}"
         else:
             diff = "changed"
-        lines.append(f"  {name:<40} {value_u(a, name, old_u):>24} {value_u(b, name, new_u):>24} {diff:>16}")
+        lines.append(f"  {name:<40} {value_u(a, (old_u.get(name) or (0, None))[1]):>24} "
+                     f"{value_u(b, (new_u.get(name) or (0, None))[1]):>24} {diff:>16} {u_change(name):>18}".rstrip())
     hidden = len(names) - len(shown)
     if hidden:
-        lines.append(f"  ({hidden} more figure(s), all identical to the archive; --all lists them)"
+        lines.append(f"  ({hidden} more figure(s), each and its U identical to the archive; --all lists them)"
                      if old else f"  ({hidden} more figure(s); --all lists them)")
     return "\n".join(lines)
 
@@ -248,9 +267,11 @@ def result_text(result, show_all: bool = False) -> str:
     """The human-readable report of one reprocessed dump."""
     rec = result.record
     wrap = textwrap.TextWrapper(width=110, initial_indent="  ", subsequent_indent="    ")
+    from ..report.summary import head_line
+
     out = [str(result.path),
-           f"  facet {rec.get('serial')} ({rec.get('facet')}), measured {rec.get('time')}, cycle {rec.get('cycle_id')};"
-           f" dump schema {result.schema_version}, measured by sofast-station {result.dump_software_version}"]
+           f"  {head_line(rec)}; cycle {rec.get('cycle_id')}; dump schema {result.schema_version}, measured by "
+           f"sofast-station {result.dump_software_version}"]
     for note in result.notes:
         out.append(wrap.fill(f"note: {note}"))
     if rec.get("verdict") == "fault":
@@ -395,12 +416,16 @@ REPORT_WORDS = ("trend", "flux", "spc", "acceptance", "certificate", "diff")
 
 def cmd_report(args) -> int:
     single_thread_blas()
-    lower_priority()
     from ..errors import StationError
 
+    # The priority is lowered (batch work beside the line) once the inputs are checked, on each path below:
+    # a refusal (a faulted facet, a serial never measured, a dump that is not there) then answers at once,
+    # where at niceness 10 on a busy machine its checks alone waited seconds for a core.
     if args.targets[0] == "trend":
+        lower_priority()
         return _cmd_trend(args)
     if args.targets[0] == "flux":
+        lower_priority()
         return _cmd_flux(args)
     from .quality_reports import REPORTS, run as run_quality_report
     if args.targets[0] in REPORTS:
@@ -415,6 +440,7 @@ def cmd_report(args) -> int:
             f" (and is not a report: {', '.join(REPORT_WORDS)})"
         raise DumpError(f"{missing[0]} does not exist{word}" if len(missing) == 1 else
                         f"none of the {len(missing)} dumps exists ({missing[0]}, ...)")
+    lower_priority()
     from ..report.maps import write_detail_maps, write_slope_error_maps
     from .sources import load_measured
 
@@ -504,7 +530,7 @@ def flux_text(name: str, figures: dict, path) -> str:
                                                   f"({pm('spot_radius_mrad', 1.0, 3)} mrad)")
     d90 = "-" if d["spot_radius_m"] is None else f"{1000 * d['spot_radius_m']:.2f} mm"
     return (f"{name}: sun {sun_text(c.get('sun') or {})}, DNI {c.get('dni_w_m2', 0):g} W/m², target at "
-            f"{c['slant_range_m']:.3f} m, aperture {c['aperture']}\n"
+            f"{c['slant_range_m']:.3f} m, aperture {aperture_text(c['aperture'])}\n"
             f"  intercept {pm('intercept')} (design {d['intercept']:.4f}), power / design's "
             f"{pm('power_ratio_vs_design')}\n"
             f"  90 % spot radius {r90}, design {d90}; analytic (patent model) {1000 * f['analytic_spot_radius_m']:.2f} "

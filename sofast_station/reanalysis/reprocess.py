@@ -166,9 +166,10 @@ class ReprocessResult:
         neither has it.
     differences : dict
         Flattened figure name -> ``{"archived", "new", "difference"}`` (difference = new - archived for
-        numbers, else None) for every compared figure that is not identical.
+        numbers, else None) for every compared figure or U that is not identical (a U's entry names its
+        figure under ``"uncertainty_of"``: :func:`compare_figures`).
     n_compared : int
-        Number of figures compared.
+        Number of figures and U compared.
     notes : list of str
         What the overrides can and cannot change, and anything else the engineer should know.
     analysis : Analysis or None
@@ -178,6 +179,9 @@ class ReprocessResult:
         The design the analysis used (the dumped one, or the overridden one).
     seconds : float
         Wall time of read and analysis, seconds.
+    u_missing : list of str
+        What of the line's uncertainty the dump does not keep ("its input uncertainties", "the frame-brightness
+        pool"; an older dump's): its U may then differ from the archive's, and the notes say why.
     """
 
     path: Path
@@ -193,10 +197,11 @@ class ReprocessResult:
     analysis: object | None = field(default=None, repr=False)
     design: object | None = field(default=None, repr=False)
     seconds: float = 0.0
+    u_missing: list = field(default_factory=list)
 
     @property
     def exact(self) -> bool | None:
-        """True when every archived figure was reproduced bit for bit; None without an archived record."""
+        """True when every archived figure and U was reproduced bit for bit; None without an archived record."""
         if self.archived is None:
             return None
         return not self.differences
@@ -205,37 +210,47 @@ class ReprocessResult:
     def same_software(self) -> bool:
         return self.dump_software_version == __version__
 
+    @property
+    def uncertainty_differences(self) -> dict:
+        """The entries of :attr:`differences` that are a figure's U (``name_U``, ``name_U_random``)."""
+        return {k: d for k, d in self.differences.items() if "uncertainty_of" in d}
+
     def summary(self) -> str:
-        """One sentence: reproduced exactly, or how many figures differ and why that may be."""
+        """One sentence: reproduced exactly, or how many figures and U differ and why that may be."""
         n, k = self.n_compared, len(self.differences)
+        n_u = len(self.uncertainty_differences)
         threads = "BLAS on 1 thread" if blas_on_one_thread() else f"BLAS threads {blas_threads()}"
         if self.archived is None:
-            return (f"no archived result in the dump or the journal: {n} figures computed from the frames, "
+            return (f"no archived result in the dump or the journal: {n} figures and U computed from the frames, "
                     "nothing to compare")
         where = "" if self.archived_source == "dump" else f" (archived record from {self.archived_source})"
+        differ = f"{k} of {n} figures and U differ from the archive{where}" + (
+            "" if not n_u else f" ({n_u} of them U)" if n_u < k else " (only U)")
         if not self.overrides.empty:
             if k == 0:
-                return f"no figure changed: all {n} figures identical to the archive{where} despite the overrides"
-            return f"{k} of {n} figures differ from the archive{where} with the overrides applied"
+                return (f"no figure changed: all {n} figures and U identical to the archive{where} despite the "
+                        "overrides")
+            return f"{differ} with the overrides applied"
         if k == 0:
-            return (f"reproduced exactly: all {n} archived figures identical{where} (sofast-station {__version__}, "
-                    f"dump schema {self.schema_version}, {threads})")
+            return (f"reproduced exactly: all {n} archived figures and U identical{where} (sofast-station "
+                    f"{__version__}, dump schema {self.schema_version}, {threads})")
+        if n_u == k and self.u_missing:
+            return (f"{differ}: every value reproduced, but the dump does not keep {' nor '.join(self.u_missing)} "
+                    "the line's U came from (see the notes)")
         was, now = self.archived.get("verdict"), self.record.get("verdict")
-        if k and (was == "fault") != (now == "fault"):
+        if (was == "fault") != (now == "fault"):
             why = "; ".join((self.archived if was == "fault" else self.record).get("reasons", []))
-            return (f"{k} of {n} figures differ: the archive holds verdict {was!r}, reprocessing gives {now!r}"
-                    f" ({why})")
+            return f"{differ}: the archive holds verdict {was!r}, reprocessing gives {now!r} ({why})"
         one_sided = [name for name, d in self.differences.items() if _ABSENT in (d["archived"], d["new"])]
         if one_sided:
-            return (f"{k} of {n} figures differ from the archive{where}, and {len(one_sided)} figure(s) exist on "
-                    f"one side only (e.g. {one_sided[0]}): the dump was measured by other analysis code (dump "
-                    f"written by sofast-station {self.dump_software_version}, this is {__version__})")
+            return (f"{differ}, and {len(one_sided)} exist on one side only (e.g. {one_sided[0]}): the dump was "
+                    f"measured by other analysis code (dump written by sofast-station {self.dump_software_version}, "
+                    f"this is {__version__})")
         if self.same_software:
-            return (f"NOT reproduced: {k} of {n} figures differ from the archive{where} although the software "
-                    f"version is the same ({__version__}): the platform (CPU, numpy or BLAS build) or the BLAS "
-                    f"threads differ ({threads})")
-        return (f"{k} of {n} figures differ from the archive{where}: the versions differ (the dump was measured "
-                f"by sofast-station {self.dump_software_version}, this is {__version__})")
+            return (f"NOT reproduced: {differ} although the software version is the same ({__version__}): the "
+                    f"platform (CPU, numpy or BLAS build) or the BLAS threads differ ({threads})")
+        return (f"{differ}: the versions differ (the dump was measured by sofast-station "
+                f"{self.dump_software_version}, this is {__version__})")
 
     def to_json(self) -> dict:
         """The JSON object of ``reprocess --json`` and of a batch result file (JSON-ready)."""
@@ -248,10 +263,32 @@ class ReprocessResult:
 
 # -- comparison ------------------------------------------------------------------------------------------
 def is_uncertainty_key(key: str) -> bool:
-    """Keys of the uncertainty (``name_U``, ``name_U_random``, the budget): they come from sensitivities
-    cached per geometry and recipe (on the line, from its first facet), so a re-analysis, which computes
-    them from the dump itself, may differ in their last digits; they are shown, not compared exactly."""
+    """Keys of the uncertainty: ``name_U``, ``name_U_random`` and the budget (flattened apart from the
+    figures: :func:`flatten_figures`, :func:`flatten_uncertainties`)."""
     return key.endswith("_U") or key.endswith("_U_random") or key == "uncertainty_budget"
+
+
+def figure_of_uncertainty(name: str) -> str | None:
+    """The flat figure name a flat uncertainty name belongs to (``slope_rms_mrad_U.design.x`` ->
+    ``slope_rms_mrad.design.x``, ``facets[1].canting_mrad_U.y`` -> ``facets[1].canting_mrad.y``); None for
+    a name that is no U (nor a random part ``_U_random``)."""
+    parts = name.split(".")
+    for i, part in enumerate(parts):
+        base, bracket, index = part.partition("[")
+        for suffix in ("_U", "_U_random"):
+            if base.endswith(suffix):
+                parts[i] = base[:-len(suffix)] + bracket + index
+                return ".".join(parts)
+    return None
+
+
+def flatten_uncertainties(record: dict) -> dict:
+    """Every expanded uncertainty of a record (``name_U``) and its random part (``name_U_random``) under a flat
+    name (as :func:`flatten_figures` names the figures: ``slope_rms_mrad_U.design.x``), the budget left out
+    (a table of three significant digits, derived from them)."""
+    figures = flatten_figures(record)
+    return {k: v for k, v in flatten_figures(record, uncertainties=True).items()
+            if k not in figures and not k.startswith("uncertainty_budget")}
 
 
 def flatten_figures(record: dict, uncertainties: bool = False) -> dict:
@@ -311,7 +348,9 @@ _ABSENT = "(absent)"
 
 
 def compare_figures(archived: dict, new: dict) -> tuple[dict, int]:
-    """Compare two records figure by figure, exactly (bit for bit for floats).
+    """Compare two records figure by figure, and each figure's U (``name_U``, ``name_U_random``), exactly (bit
+    for bit for floats): the dump keeps what the line's U came from (its input uncertainties, sensitivities
+    and frame-brightness pool), so a re-analysis states the same U, and a U that moved is a difference.
 
     Parameters
     ----------
@@ -321,21 +360,26 @@ def compare_figures(archived: dict, new: dict) -> tuple[dict, int]:
     Returns
     -------
     differences : dict
-        Flat name -> ``{"archived": a, "new": b, "difference": b - a or None}`` for every figure that is
-        not identical; a figure present on one side only has ``"(absent)"`` on the other.
+        Flat name -> ``{"archived": a, "new": b, "difference": b - a or None}`` for every figure or U that is
+        not identical; a figure present on one side only has ``"(absent)"`` on the other. A U's entry (its
+        name ``..._U...``) also names its figure under ``"uncertainty_of"``.
     n_compared : int
-        Number of figures compared (the union of both sides).
+        Number of figures and U compared (the union of both sides).
     """
     fa, fb = flatten_figures(archived), flatten_figures(new)
+    ua, ub = flatten_uncertainties(archived), flatten_uncertainties(new)
     names = list(fb) + [k for k in fa if k not in fb]
+    u_names = list(ub) + [k for k in ua if k not in ub]
     diffs = {}
-    for name in names:
-        a, b = fa.get(name, _ABSENT), fb.get(name, _ABSENT)
+    for name, (old, new_) in [*((n, (fa, fb)) for n in names), *((n, (ua, ub)) for n in u_names)]:
+        a, b = old.get(name, _ABSENT), new_.get(name, _ABSENT)
         if _same(a, b):
             continue
         d = float(b) - float(a) if _is_number(a) and _is_number(b) else None
         diffs[name] = {"archived": a, "new": b, "difference": d}
-    return diffs, len(names)
+        if old is ua:
+            diffs[name]["uncertainty_of"] = figure_of_uncertainty(name)
+    return diffs, len(names) + len(u_names)
 
 
 # -- pieces of the re-analysis ---------------------------------------------------------------------------
@@ -434,18 +478,54 @@ def _uncertainty_inputs(content: DumpContent, notes: list):
         return out
 
 
+def _cache_entries(record) -> dict:
+    """One sensitivity record as entries of an analysis's sensitivity cache: ``{key: Sensitivities}``, and
+    the frame-brightness pool the line's analysis found (``{("frame brightness", key): deque}``) when the
+    record keeps it; {} for a record this software cannot read."""
+    from collections import deque
+
+    from ..measure.sensitivity_record import frame_pool_of, from_record
+    from ..measure.uncertainty.capture_evidence import FRAME_POOL_CAPTURES
+
+    found = from_record(record)
+    if found is None:
+        return {}
+    out = {found[0]: found[1]}
+    pool = frame_pool_of(record)
+    if pool is not None:
+        out[("frame brightness", found[0])] = deque(pool, maxlen=FRAME_POOL_CAPTURES)
+    return out
+
+
 def stored_sensitivities(content: DumpContent) -> dict | None:
-    """The dump's own sensitivities as a cache for its analysis (``{key: Sensitivities}``), or None.
+    """The dump's own sensitivities as a cache for its analysis (``{key: Sensitivities}``, with the line's
+    frame-brightness pool under ``("frame brightness", key)`` when the dump keeps it), or None.
 
     The analysis uses them only when its inputs hash to the same key (the same geometry, recipe and input
     uncertainties as the station's); otherwise, and for a dump without them, it computes them from the
-    dump's capture. A fresh dict per dump: nothing carries over from one dump to the next, so a dump's
-    result does not depend on the order of a batch or on its worker.
+    dump's capture. The pool is the earlier captures' frame brightness the line pooled this capture with, so
+    the re-analysis states the line's U. A fresh dict per dump: nothing carries over from one dump to the
+    next, so a dump's result does not depend on the order of a batch or on its worker.
     """
-    from ..measure.sensitivity_record import from_record
+    stored = _cache_entries(content.sensitivities) if content.sensitivities is not None else {}
+    return stored or None
 
-    stored = from_record(content.sensitivities) if content.sensitivities is not None else None
-    return None if stored is None else {stored[0]: stored[1]}
+
+def stored_design_traces(content: DumpContent, job):
+    """A cache of the design's optical trace holding the optical figures' sensitivities the line used (the
+    dump's, kept for the design and optics settings they were computed for), so the optical figures' U is the
+    line's; None when the dump keeps none (they are then computed from this capture)."""
+    from ..optics.uncertainty import sensitivities_from_record
+    from ..result.optical_figures import DesignTraces
+
+    stored = content.sensitivities
+    optical = (sensitivities_from_record(stored["optics"]) if isinstance(stored, dict)
+               and isinstance(stored.get("optics"), dict) else None)
+    if optical is None or getattr(job, "optics", None) is None:
+        return None
+    traces = DesignTraces(1)
+    traces.sensitivities[DesignTraces.key(job.design, job.optics)] = optical
+    return traces
 
 
 def sensitivity_store(content: DumpContent, measured_distance_m: float, disk_cache=None) -> dict:
@@ -573,6 +653,7 @@ def reprocess_content(content: DumpContent, overrides: Overrides | None = None, 
                         f"cycle {content.cycle_id}") + ": nothing to compare")
     job, head, distance = job_of_dump(content, overrides, notes, archived)
     heliostat = job.kind == "heliostat"
+    u_missing = uncertainty_not_kept(content, archived, notes)
     geometry = content.station_geometry()
     outcome = fault = None
     t1 = time.perf_counter()
@@ -581,7 +662,8 @@ def reprocess_content(content: DumpContent, overrides: Overrides | None = None, 
                                       ray_table(geometry.camera)),
                               uncertainty=_uncertainty_inputs(content, notes),
                               sensitivity_cache=(_sensitivity_cache(content) if heliostat else
-                                                 sensitivity_store(content, distance, disk_cache)))
+                                                 sensitivity_store(content, distance, disk_cache)),
+                              design_traces=None if heliostat else stored_design_traces(content, job))
     except (DumpError, ConfigError):
         raise
     except StationError as exc:              # the analysis refuses the capture: a fault, as on the line
@@ -613,7 +695,51 @@ def reprocess_content(content: DumpContent, overrides: Overrides | None = None, 
                        "measure_point_m": design.measure_point_m.tolist()}
     analysis = None if outcome is None or heliostat else outcome.detail
     return _compared(record, content, overrides, archived, archived_source, notes, design_note,
-                     analysis=analysis, design=design, seconds=time.perf_counter() - t0 + read_s)
+                     analysis=analysis, design=design, seconds=time.perf_counter() - t0 + read_s, u_missing=u_missing)
+
+
+def uncertainty_not_kept(content: DumpContent, archived: dict | None, notes: list) -> list[str]:
+    """What the line's U came from that *content* (an older dump) does not keep, each said in *notes*: the
+    input uncertainties in force (0.4.0 on: ``result/uncertainty_inputs_json``; without them the dumped
+    station.toml's ``[uncertainty]`` and radiometric record stand in, and the camera, geometry and
+    commissioning records that lent the line's budget are missing), the sensitivities (computed from the
+    dump's capture instead of the station's warm-up capture), the optical figures' sensitivities (the first
+    facet's of the type, on the line) and the frame-brightness pool (the earlier captures this capture's frame
+    brightness was pooled with; without it, the capture's own few degrees of freedom widen or narrow its U).
+    Empty for a dump that keeps them all: its U is the line's, bit for bit."""
+    from ..measure.sensitivity_record import frame_pool_of
+
+    if archived is not None and not flatten_uncertainties(archived):
+        return []                                  # the line stated no U: nothing to explain
+    missing = []
+    if not isinstance(content.uncertainty_inputs, dict):
+        missing.append("its input uncertainties")
+        notes.append("the dump does not keep the input uncertainties the line used (dumps before 0.4.0): they are "
+                     "taken from its station.toml's [uncertainty] and its radiometric record; what the station's "
+                     "camera, geometry or commissioning records lent the line's budget is not in the dump, so U "
+                     "may differ from the archive's")
+    stored = content.sensitivities
+    records = [] if not isinstance(stored, dict) else [stored] if "version" in stored else list(stored.values())
+    if not records:
+        missing.append("its sensitivities")
+        notes.append("the dump does not keep the uncertainty's sensitivities the line used: they are computed from "
+                     "its own capture (the line's came from its warm-up capture), so U may differ from the "
+                     "archive's in its last digits")
+    elif "optics" in (archived or {}) and isinstance(stored, dict) and "version" in stored \
+            and "optics" not in stored:
+        missing.append("the optical figures' sensitivities")
+        notes.append("the dump does not keep the optical figures' sensitivities the line used (those of the first "
+                     "facet of its type): they are computed from its own capture, so the optical figures' U may "
+                     "differ from the archive's")
+    if records and any(frame_pool_of(r) is None for r in records):
+        missing.append("the frame-brightness pool")
+        fb = ((archived or {}).get("uncertainty_budget") or {}).get("frame_brightness") or {}
+        line = (f": {fb['pooled_dn']} DN from {fb['captures']} captures, {fb['dof']} degrees of freedom"
+                if fb.get("source") == "pooled" else "")
+        notes.append("the dump does not keep the frame-brightness pool the line's U used (the line pools each "
+                     f"capture's frame-to-frame brightness with the earlier captures'{line}); the re-analysis has "
+                     "only the capture's own, with fewer degrees of freedom, so U differs from the archive's")
+    return missing
 
 
 def job_of_dump(content, overrides: Overrides, notes: list, archived: dict | None):
@@ -672,7 +798,7 @@ def _head_and_distance(content, overrides, archived: dict | None, notes: list, n
 
 
 def _compared(record: dict, content, overrides, archived: dict | None, archived_source: str, notes: list,
-              design_note: dict, *, analysis, design, seconds: float) -> "ReprocessResult":
+              design_note: dict, *, analysis, design, seconds: float, u_missing: list) -> "ReprocessResult":
     """The reprocessed *record* as a JSON archive holds it, compared with *archived*, with its ``reprocess``
     part (*design_note*: what design it was redone with)."""
     from ..result.record import now_iso
@@ -686,7 +812,9 @@ def _compared(record: dict, content, overrides, archived: dict | None, archived_
         "design": design_note,
         "archived_from": archived_source if archived else None, "overrides": overrides.to_dict(), "notes": notes,
         "exact": None if not archived else not differences, "figures_compared": n,
-        "figures_different": len(differences), "blas_threads": blas_threads(),
+        "figures_different": len(differences),
+        "uncertainties_different": sum("uncertainty_of" in d for d in differences.values()),
+        "blas_threads": blas_threads(),
         "platform": f"{platform.system()} {platform.machine()} Python {platform.python_version()} "
                     f"numpy {np.__version__}",
         "host": platform.node(), "pid": os.getpid()})
@@ -694,7 +822,7 @@ def _compared(record: dict, content, overrides, archived: dict | None, archived_
                           differences=differences, n_compared=n, overrides=overrides,
                           dump_software_version=content.software_version, schema_version=content.schema_version,
                           archived_source=archived_source, notes=notes, analysis=analysis, design=design,
-                          seconds=seconds)
+                          seconds=seconds, u_missing=u_missing)
     record["reprocess"]["summary"] = res.summary()
     log.debug("%s: %s", res.path, record["reprocess"]["summary"])
     return res
@@ -707,17 +835,14 @@ def is_heliostat_dump(content) -> bool:
 
 
 def _sensitivity_cache(content) -> dict | None:
-    """The dump's per-facet sensitivities as one cache (``{key: Sensitivities}``), or None."""
-    from ..measure.sensitivity_record import from_record
-
+    """The dump's per-facet sensitivities as one cache (``{key: Sensitivities}``, with each facet's frame-
+    brightness pool where the dump keeps it: :func:`stored_sensitivities`), or None."""
     stored = content.sensitivities
     if not isinstance(stored, dict) or "version" in stored:
         return None
     cache = {}
     for rec in stored.values():
-        found = from_record(rec)
-        if found is not None:
-            cache[found[0]] = found[1]
+        cache.update(_cache_entries(rec))
     return cache or None
 
 

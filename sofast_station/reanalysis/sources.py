@@ -6,10 +6,13 @@ anything else is a dump. Both come back as a :class:`Measured` with the analysis
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..errors import ReportError
+
+log = logging.getLogger(__name__)
 
 
 class _NoOverrides:
@@ -33,17 +36,31 @@ def is_opencsp(spec: str) -> bool:
     return str(spec).startswith("opencsp:")
 
 
+def check_measured(spec: str) -> None:
+    """Refuse at once what :func:`load_measured` could not read: a dump that is missing or unreadable (its
+    metadata read, not its frames), or a folder not in OpenCSP's test-data layout (DumpError or ReportError
+    naming it), so that a command given two inputs does not reprocess the first before refusing the second."""
+    if is_opencsp(spec):
+        from ..interop.opencsp import opencsp_test_data_paths
+
+        root = Path(str(spec)[len("opencsp:"):])
+        missing = [str(p) for p in opencsp_test_data_paths(root).values() if not p.exists()]
+        if missing:
+            raise ReportError(f"{root} is not a folder in OpenCSP's test-data layout: missing {', '.join(missing)}")
+        return
+    from ..archive.dumps import read_dump
+
+    read_dump(spec, load_frames=False, require_result=False)
+
+
 def load_measured(spec: str, overrides=None, focal_length_m: float = 100.0) -> Measured:
     """A dump (reprocessed with *overrides*) or ``opencsp:DIR`` (analysed with *focal_length_m*)."""
     if is_opencsp(spec):
         from ..interop.opencsp import opencsp_test_data_paths, read_opencsp
 
         root = Path(str(spec)[len("opencsp:"):])
-        paths = opencsp_test_data_paths(root)
-        missing = [str(p) for p in paths.values() if not p.exists()]
-        if missing:
-            raise ReportError(f"{root} is not a folder in OpenCSP's test-data layout: missing {', '.join(missing)}")
-        m = read_opencsp(**paths, focal_length_m=focal_length_m)
+        check_measured(spec)
+        m = read_opencsp(**opencsp_test_data_paths(root), focal_length_m=focal_length_m)
         a = m.analyse(robust=True, uncertainty=m.uncertainty)      # every figure with its U (docs/opencsp.md)
         rec = {"serial": m.name, "facet": m.design.name, "time": m.date, "station": "OpenCSP import",
                **a.figures}
@@ -51,6 +68,10 @@ def load_measured(spec: str, overrides=None, focal_length_m: float = 100.0) -> M
     from .reprocess import reprocess_dump
 
     res = reprocess_dump(spec, overrides)
+    if res.u_missing and res.overrides.empty:
+        # an older dump: the figures are the line's, their U the re-analysis's own (reprocess lists them)
+        log.warning("%s: the U shown are the re-analysis's, not the line's: the dump does not keep %s the line's U "
+                    "came from ('reprocess %s' shows both)", spec, " nor ".join(res.u_missing), spec)
     if res.analysis is None:
         raise ReportError(f"cannot draw {spec}: the analysis refused the capture "
                           f"({'; '.join(res.record.get('reasons', []))})")

@@ -8,7 +8,9 @@ write; finding the records, recipes and measurements is the report command's par
 - ``control_charts.py``: individuals and moving-range charts, yield, summary workbook (``report spc``; the
   statistics are :mod:`sofast_station.qc.spc`);
 - ``acceptance.py``: a contract's evaluation and its histograms (``report acceptance``);
-- ``certificate.py``, ``diff.py``, ``flux.py``: one facet's certificate, two measurements compared, the flux map.
+- ``certificate.py``, ``diff.py``, ``flux.py``: one facet's certificate, two measurements compared, the flux map;
+- ``summary.py``: a record in words (``inspect``'s summary, the maps' text, ``reprocess``'s head), each figure as
+  every screen writes it.
 
 The modules are imported only when used (the package imports nothing), so that the command line can put
 BLAS on one thread before numpy loads.

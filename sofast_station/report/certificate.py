@@ -13,7 +13,6 @@ from pathlib import Path
 
 from ..errors import ReportError
 from ._common import savefig_atomic
-from .maps import MODEL_LABELS, detail_maps, draw_detail, value_with_u
 
 
 def sha256_of(path: Path) -> str:
@@ -33,22 +32,16 @@ def _limit_text(spec) -> str:
 
 
 def figure_rows(record: dict, specs) -> list[list[str]]:
-    """Rows (figure, value ± U, unit, limits, within) of the certificate's table."""
-    from ..result.formatting import with_u
+    """Rows (figure, value ± U, unit, limits, within) of the certificate's table, each figure as every screen
+    writes it (:func:`~sofast_station.result.formatting.figure_text`)."""
+    from ..result.formatting import figure_text
     from ..result.record import figure_value
 
     rows = []
     for s in specs:
         v = figure_value(record, s.key)
-        if s.key.startswith("slope_rms_mrad."):
-            model = s.key.split(".")[1]
-            u = ((record.get("slope_rms_mrad_U") or {}).get(model) or {}).get("magnitude")
-            shown = with_u(v, u if isinstance(u, (int, float)) else None, decimals=3)
-        else:
-            digits = 6 if "curvature" in s.key else 3 if "mrad" in s.key else 4
-            shown = value_with_u(record, s.key, digits)
         ok = "-" if v is None else ("yes" if (s.lsl is None or v >= s.lsl) and (s.usl is None or v <= s.usl) else "NO")
-        rows.append([s.label, shown, s.unit, _limit_text(s), ok])
+        rows.append([s.label, figure_text(record, s.key), s.unit, _limit_text(s), ok])
     return rows
 
 
@@ -74,6 +67,15 @@ def _rule(fig, y: float, width: float = 0.6, colour: str = "0.6") -> None:
     fig.add_artist(Line2D([_LEFT, _RIGHT], [y, y], lw=width, color=colour))
 
 
+def refuse_faulted(record: dict) -> None:
+    """Refuse a certificate for a facet (or heliostat) whose cycle ended in a fault: ReportError naming it and
+    its reasons. Checked on the journal's record before anything heavy (the dump's reprocessing)."""
+    if record.get("verdict") in (None, "fault"):
+        what = "heliostat" if isinstance(record.get("facets"), list) else "facet"
+        raise ReportError(f"{what} {record.get('serial')} has no figures (its cycle ended in a fault: "
+                          f"{'; '.join(record.get('reasons', []))}): no certificate")
+
+
 def write_certificate(record: dict, out_path: Path, *, specs, measured=None, dump_path: Path | None = None,
                       issuer: dict | None = None, dpi: int = 150) -> Path:
     """Write the certificate PDF: one A4 page, every text inside it and none over another (tested on the
@@ -96,9 +98,9 @@ def write_certificate(record: dict, out_path: Path, *, specs, measured=None, dum
     """
     from matplotlib.figure import Figure
 
-    if record.get("verdict") in (None, "fault"):
-        raise ReportError(f"facet {record.get('serial')} has no figures (its cycle ended in a fault: "
-                          f"{'; '.join(record.get('reasons', []))}): no certificate")
+    from .maps import MODEL_LABELS, detail_maps, draw_detail
+
+    refuse_faulted(record)
     issuer = issuer or {}
     fig = Figure(figsize=(8.27, 11.69))               # A4 portrait
     y = certificate_head(fig, record, "Facet inspection certificate", issuer)
@@ -207,28 +209,25 @@ def draw_heliostat_certificate(record: dict, *, ensemble, limit_mrad: float | No
     SHA-256."""
     from matplotlib.figure import Figure
 
-    from ..result.formatting import with_u
+    from ..result.formatting import figure_text
     from .heliostat import draw_facet_map_on
 
-    if record.get("verdict") in (None, "fault"):
-        raise ReportError(f"heliostat {record.get('serial')} has no figures (its cycle ended in a fault: "
-                          f"{'; '.join(record.get('reasons', []))}): no certificate")
+    refuse_faulted(record)
     fig = Figure(figsize=(8.27, 11.69))
     y = certificate_head(fig, record, "Heliostat inspection certificate", issuer)
     h = record["heliostat"]
-    ct, cu = h["common_tilt_mrad"], h.get("common_tilt_mrad_U") or {}
     lines = [f"{h['n_measured']} of {h['n_facets']} facets measured; canting RMS {h['canting_rms_mrad']:.3f} mrad, "
              f"largest {h['canting_max_mrad']:.3f} mrad ({h['canting_max_facet']})"
              + (f", limit {limit_mrad:g} mrad" if limit_mrad is not None else ""),
-             f"facets' common tilt {with_u(ct['x'], cu.get('x'), '', 3)}, {with_u(ct['y'], cu.get('y'), '', 3)} mrad "
+             f"facets' common tilt {figure_text(h, 'common_tilt_mrad.x')}, {figure_text(h, 'common_tilt_mrad.y')} mrad "
              "(where the heliostat points against its corners: not a canting error)"]
     o = record.get("optics")
     if o:
         m = o["measured"]
         lines.append(f"optics at {o['conditions']['slant_range_m']:.1f} m: intercept "
-                     f"{with_u(m['intercept'], m.get('intercept_U'), '', 4)} (design {o['design']['intercept']:.4f}, "
+                     f"{figure_text(m, 'intercept')} (design {o['design']['intercept']:.4f}, "
                      f"re-canted {o['corrected']['intercept']:.4f}), 90 % radius "
-                     f"{with_u(m['spot_radius_mrad'], m.get('spot_radius_mrad_U'), '', 3)} mrad")
+                     f"{figure_text(m, 'spot_radius_mrad')} mrad")
     reasons = record.get("reasons") or []
     lines.append("Verdict: " + str(record["verdict"]).upper() + (": " + "; ".join(reasons) if reasons else
                                                                  ": every facet within its limits"))
@@ -243,9 +242,8 @@ def draw_heliostat_certificate(record: dict, *, ensemble, limit_mrad: float | No
         if "canting_mrad" not in f:
             rows.append([f["label"], f.get("verdict", f["status"]), f["status"], "", "", ""])
             continue
-        c, u = f["canting_mrad"], f.get("canting_mrad_U") or {}
-        rows.append([f["label"], f["verdict"], with_u(c["x"], u.get("x"), "", 3, sign=True),
-                     with_u(c["y"], u.get("y"), "", 3, sign=True),
+        rows.append([f["label"], f["verdict"], figure_text(f, "canting_mrad.x", sign=True),
+                     figure_text(f, "canting_mrad.y", sign=True),
                      f"{f['curvature_x_per_m']:.5f}, {f['curvature_y_per_m']:.5f}",
                      f"{f['slope_rms_mrad']['parabola']['magnitude']:.3f}"])
     height = min(0.25, 0.017 * (len(rows) + 1))

@@ -66,25 +66,25 @@ def _label(m) -> str:
 
 def diff_figures(a, b, d: dict) -> list[tuple[str, str, str, str, str]]:
     """Rows (figure, A, B, B - A, unit) of the two measurements' reported figures and of the map's
-    difference, each ``value ± U`` where the records carry U (the one formatter,
-    :func:`~sofast_station.result.formatting.with_u`)."""
-    from ..result.formatting import with_u
+    difference, each ``value ± U`` where the records carry U, as every screen writes them
+    (:func:`~sofast_station.result.formatting.figure_text`)."""
+    from ..result.formatting import figure_decimals, figure_text, with_u
     from ..result.record import figure_uncertainty, figure_value
 
     rows = []
-    for key, label, unit, decimals in (("focal_length_x_m", "focal length f_x", "m", 4),
-                                       ("focal_length_y_m", "focal length f_y", "m", 4),
-                                       ("twist_mrad_per_m", "twist", "mrad/m", 3),
-                                       ("slope_rms_mrad.design.magnitude", "slope error RMS vs design", "mrad", 3),
-                                       ("slope_rms_mrad.parabola.magnitude", "slope error RMS vs parabola", "mrad", 3)):
+    for key, label, unit in (("focal_length_x_m", "focal length f_x", "m"),
+                             ("focal_length_y_m", "focal length f_y", "m"),
+                             ("twist_mrad_per_m", "twist", "mrad/m"),
+                             ("slope_rms_mrad.design.magnitude", "slope error RMS vs design", "mrad"),
+                             ("slope_rms_mrad.parabola.magnitude", "slope error RMS vs parabola", "mrad")):
         va, vb = figure_value(a.record, key), figure_value(b.record, key)
         if va is None and vb is None:
             continue
         ua, ub = figure_uncertainty(a.record, key), figure_uncertainty(b.record, key)
         u_diff = math.hypot(ua, ub) if ua is not None and ub is not None else None
         diff = None if va is None or vb is None else vb - va
-        rows.append((label, with_u(va, ua, decimals=decimals), with_u(vb, ub, decimals=decimals),
-                     with_u(diff, u_diff, decimals=decimals, sign=True), unit))
+        rows.append((label, figure_text(a.record, key), figure_text(b.record, key),
+                     with_u(diff, u_diff, decimals=figure_decimals(key), sign=True), unit))
     rms = {k: float(np.sqrt(np.nanmean(d[k] ** 2))) for k in ("e_x_mrad", "e_y_mrad", "height_um")}
     rows += [("slope difference x, RMS over the common grid", "", "", f"{rms['e_x_mrad']:.3f}", "mrad"),
              ("slope difference y, RMS over the common grid", "", "", f"{rms['e_y_mrad']:.3f}", "mrad"),

@@ -27,15 +27,14 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ..result.formatting import with_u
-from ..result.verdict import LONG_FOCAL_LENGTH_M
+from ..result.formatting import figure_text
+from .summary import MODELS, figure_lines
 from ..errors import ReportError
 from ._common import savefig_atomic
 
 log = logging.getLogger(__name__)
 
-#: The three models of the paper's Figs. 8-10, in order, with their panel labels.
-MODELS = ("design", "parabola", "higher_order")
+#: The three models of the paper's Figs. 8-10 (:data:`MODELS`, in order) with their panel labels.
 MODEL_LABELS = {"design": "compared with the design", "parabola": "compared with the fitted parabola",
                 "higher_order": "compared with the higher-order model (3rd order in z)"}
 
@@ -406,40 +405,6 @@ def write_detail_maps(result, out_path: str | Path, model: str = "parabola", dpi
     return savefig_atomic(fig, Path(out_path), dpi)
 
 
-def value_with_u(rec: dict, key: str, digits: int = 4, scale: float = 1.0) -> str:
-    """``value ± U`` (:func:`~sofast_station.result.formatting.with_u`) when the record carries ``key_U``
-    (expanded uncertainty, k = 2), else the value to *digits* decimals."""
-    u = rec.get(f"{key}_U")
-    return with_u(rec.get(key), u if isinstance(u, (int, float)) else None, decimals=digits, scale=scale)
-
-
-def figure_lines(rec: dict) -> str:
-    """The reported figures of a record as lines of text, with ± U where the record has it."""
-    long_f = any(isinstance(rec.get(k), (int, float)) and abs(rec[k]) > LONG_FOCAL_LENGTH_M
-                 for k in ("focal_length_x_m", "focal_length_y_m")) or rec.get("focal_length_x_m") is None
-    lines = []
-    if long_f:
-        lines += [f"kappa x     {value_with_u(rec, 'curvature_x_per_m', 6)} 1/m",
-                  f"kappa y     {value_with_u(rec, 'curvature_y_per_m', 6)} 1/m"]
-    else:
-        lines += [f"f x         {value_with_u(rec, 'focal_length_x_m')} m",
-                  f"f y         {value_with_u(rec, 'focal_length_y_m')} m"]
-    lines.append(f"twist       {value_with_u(rec, 'twist_mrad_per_m', 3)} mrad/m")
-    rms = rec.get("slope_rms_mrad") or {}
-    rms_u = rec.get("slope_rms_mrad_U") or {}
-    for model in MODELS:
-        r = rms.get(model)
-        if not r:
-            continue
-        u = (rms_u.get(model) or {}).get("magnitude")
-        lines.append(f"slope RMS {model:<12} {with_u(r['magnitude'], u, ' mrad', 3)}")
-    if rec.get("coverage_factor"):
-        lines.append(f"(± U: expanded uncertainty, k = {rec['coverage_factor']})")
-    if rec.get("verdict"):
-        lines.append(f"verdict     {str(rec['verdict']).upper()}")
-    return "\n".join(lines)
-
-
 def _titles(result, maps: dict) -> dict:
     """Each model map's title: the model, its focal lengths and slope RMS, each ``± U`` (expanded, k = 2,
     said in the page's title) where the record carries it: every figure shown is a measurement result."""
@@ -447,7 +412,7 @@ def _titles(result, maps: dict) -> dict:
     f_design = getattr(result.design, "focal_length_m", None)
 
     def fmt_f(key):
-        return "inf" if rec.get(key) is None else value_with_u(rec, key, 3)
+        return figure_text(rec, key, missing="inf")
 
     head = {"design": MODEL_LABELS["design"] + (f" (f {f_design:g} m)" if f_design else ""),
             "parabola": MODEL_LABELS["parabola"] + f"\nf_x {fmt_f('focal_length_x_m')} m, "
@@ -455,9 +420,8 @@ def _titles(result, maps: dict) -> dict:
             "higher_order": MODEL_LABELS["higher_order"]}
     out = {}
     for model, m in maps.items():
-        r = rec.get("slope_rms_mrad", {}).get(model) or m.rms_mrad
-        u = (rec.get("slope_rms_mrad_U") or {}).get(model) or {}
-        x, y, mag = (with_u(r[a], u.get(a), decimals=3) for a in ("x", "y", "magnitude"))
+        shown = rec if (rec.get("slope_rms_mrad") or {}).get(model) else {"slope_rms_mrad": {model: m.rms_mrad}}
+        x, y, mag = (figure_text(shown, f"slope_rms_mrad.{model}.{a}") for a in ("x", "y", "magnitude"))
         out[model] = f"{head[model]}\nslope error RMS (mrad) x {x}, y {y},\nmagnitude {mag}"
     return out
 

@@ -3,19 +3,66 @@
 GUM 7.2.6: the uncertainty is given to (at most) two significant digits, and the value is rounded to the
 same decimal place. Every place that shows a figure with its U (the station's console and ``inspect``,
 ``import-opencsp``, the line's page, ``reprocess``, the flux text, the map titles, the certificate) goes
-through :func:`with_u`, so one figure reads the same wherever it is shown. A value without U keeps the
-number of decimals its caller chose for it. :func:`budget_text` writes the uncertainty budget as a table.
+through :func:`with_u`, so one figure reads the same wherever it is shown; a record's figure by its dotted
+key goes through :func:`figure_text` (or :func:`figure_parts` for a table's two columns), which also gives a
+figure without U the same decimals everywhere (:func:`figure_decimals`). The workbook shows each figure's
+cell with the decimals of its U (:func:`number_format_decimals`). :func:`budget_text` writes the uncertainty
+budget as a table.
 """
 
 from __future__ import annotations
 
 from ..gum import MAX_DECIMALS, _fixed, u_decimals, value_and_u, with_u  # noqa: F401 (their public place)
+from .record import figure_uncertainty, figure_value
 
 
-def shown_decimals(value, u, decimals: int = 4) -> int:
-    """The decimals :func:`with_u` shows *value* with (for a column beside it, the truth say, to match)."""
-    d = u_decimals(u)
-    return decimals if d is None or value is None else max(d, 0)
+def figure_decimals(key: str) -> int:
+    """The decimals a record's figure (dotted *key*, in its own unit) is shown with when it has no U (a U sets
+    them: GUM 7.2.6): focal powers (1/m) 6, lengths in metres (focal lengths) 4 (0.1 mm), intercept and power
+    ratios 4, placements (mm, mrad) 2, everything else (mrad, mrad/m, rad) 3."""
+    head = key.split(".")[0]
+    if "curvature" in head:
+        return 6
+    if head.startswith("placement"):
+        return 2
+    if head.endswith("_m") and not head.endswith("_per_m") or head.startswith(("intercept", "power_ratio")) \
+            or ".intercept" in key or ".power_ratio" in key:
+        return 4
+    return 3
+
+
+def figure_parts(record: dict, key: str, *, scale: float = 1.0, sign: bool = False) -> tuple[str, str | None] | None:
+    """The figure at dotted *key* of *record* and its U (``NAME_U``, k = 2) as two texts by GUM's rule
+    (:func:`value_and_u`; the U text None without U); None when the record has no such figure."""
+    value = figure_value(record, key)
+    if value is None:
+        return None
+    return value_and_u(value, figure_uncertainty(record, key), figure_decimals(key), scale=scale, sign=sign)
+
+
+#: A focal length and its focal power: with the power measured, a missing focal length is infinite.
+_POWER_OF = {"focal_length_x_m": "curvature_x_per_m", "focal_length_y_m": "curvature_y_per_m"}
+
+
+def figure_text(record: dict, key: str, unit: str = "", *, scale: float = 1.0, sign: bool = False,
+                missing: str = "-") -> str:
+    """``value ± U unit`` of the figure at dotted *key* of *record* (:func:`with_u` with its ``NAME_U`` and
+    :func:`figure_decimals`): the one way a record's figure is written on every screen and page; *missing*
+    when the record has no value (a focal length of a flat facet is written ``inf``)."""
+    value = figure_value(record, key)
+    if value is None and key in _POWER_OF and figure_value(record, _POWER_OF[key]) is not None:
+        missing = "inf"                  # a focal power below 4e-9 /m: the focal length is infinite (JSON null)
+    return with_u(value, figure_uncertainty(record, key), unit, figure_decimals(key), scale=scale, sign=sign,
+                  missing=missing)
+
+
+def number_format_decimals(value, u) -> int | None:
+    """The decimals a workbook cell of a figure with expanded uncertainty *u* shows, so that it reads as the
+    console and the page write it (:func:`with_u`: U's two significant digits); None without a U. A U of 100 or
+    more (shown to tens) gets 0: a cell's format cannot round to tens."""
+    if value is None or u_decimals(u) is None:
+        return None
+    return max(u_decimals(u), 0)
 
 
 #: Figures shown as columns of ``inspect --budget`` (the record's budget has every scalar figure).

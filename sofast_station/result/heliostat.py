@@ -208,7 +208,8 @@ def heliostat_record(head: RecordHead, figures: dict, ensemble, limits: Limits, 
     if optics is not None:
         out["optics"] = optics
     if instructions is not None:
-        out["canting_instructions"] = instructions
+        # made by the job before the record had a serial: the instructions name the heliostat they are for
+        out["canting_instructions"] = {**instructions, "serial": head.serial}
     out.update(verdict)
     if truth is not None:
         out["truth"] = {"heliostat": truth.get("heliostat")}

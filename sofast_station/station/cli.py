@@ -14,138 +14,17 @@ from pathlib import Path
 from ..commands import add_command, add_config_option, positive_int
 from ..files import json_ready, write_json_atomic
 from ..errors import StationError
-from ..result.formatting import budget_text, shown_decimals, value_and_u, with_u
+from ..result.formatting import budget_text
 
 log = logging.getLogger("sofast_station")
 
 
-def _fmt(v, unit="", digits=4):
-    if v is None:
-        return "inf" if unit == " m" else "-"
-    return f"{v:.{digits}f}{unit}"
-
-
-def optics_lines(opt: dict | None, truth: dict | None = None) -> list[str]:
-    """The optical figures of a record (``optics``), with their ``_U`` uncertainty and truth when present."""
-    if not opt:
-        return []
-
-    def show(d, key, fmt, scale=1.0, u=None):
-        """The value, `` ± U`` when ``key_U`` is in *d* (or *key* in *u*, for a nested figure's U); *fmt* gives
-        the decimals (and sign) of a value without U."""
-        big_u = d.get(f"{key}_U") if u is None else u.get(key)
-        decimals = int(fmt.split(".")[1].rstrip("f}"))
-        return with_u(d.get(key), big_u, decimals=decimals, scale=scale, sign="+" in fmt)
-
-    def extra(key, fmt, scale=1.0, sub=None):
-        if not truth:
-            return ""
-        v = truth.get(key) if sub is None else (truth.get(key) or {}).get(sub)
-        return f"   (truth {'-' if v is None else fmt.format(v * scale)})"
-
-    c = opt["conditions"]
-    ap = c["aperture"]
-    ap_text = (f"circle r {1000 * ap['radius_m']:.1f} mm" if ap["shape"] == "circle"
-               else f"rectangle {1000 * ap['width_m']:.1f} x {1000 * ap['height_m']:.1f} mm")
-    off = opt["centroid_offset_mrad"]
-    off_u = opt.get("centroid_offset_mrad_U") or {}
-    return [f"  optics: {c['sun']['shape']} sun, DNI {c['dni_w_m2']:g} W/m^2, reflectivity {c['reflectivity']:g}, "
-            f"target at {c['slant_range_m']:.3f} m, aperture {ap_text}",
-            f"    intercept factor        {show(opt, 'intercept', '{:.4f}'):>12}   (design "
-            f"{opt['design']['intercept']:.4f}){extra('intercept', '{:.4f}')}",
-            f"    90 % spot radius        {show(opt, 'spot_radius_m', '{:.2f}', 1000.0):>12} mm   (design "
-            f"{_fmt(opt['design']['spot_radius_m'] and 1000 * opt['design']['spot_radius_m'], '', 2)} mm; analytic "
-            f"{1000 * opt['analytic_spot_radius_m']:.2f} mm){extra('spot_radius_m', '{:.2f}', 1000.0)}",
-            f"    centroid offset         {show(off, 'magnitude', '{:.3f}', u=off_u):>12} mrad "
-            f"(x {show(off, 'x', '{:+.3f}', u=off_u)}, y {show(off, 'y', '{:+.3f}', u=off_u)})"
-            f"{extra('centroid_offset_mrad', '{:.3f}', sub='magnitude')}",
-            f"    power / design's        {show(opt, 'power_ratio_vs_design', '{:.4f}'):>12}"
-            f"{extra('power_ratio_vs_design', '{:.4f}')}"]
-
-
-def _pm(v, u, unit="", digits=4):
-    """``5.4183 ± 0.0021 m`` (:func:`~sofast_station.result.formatting.with_u`), or the value to *digits*
-    decimals without an uncertainty."""
-    return _fmt(v, unit, digits) if v is None else with_u(v, u, unit, digits)
-
-
 def summary_text(rec: dict) -> str:
-    """A readable summary of one result record (``value ± U`` where the record has ``name_U``, k = 2)."""
-    lines = [f"Facet {rec['serial']} ({rec['facet']}) on {rec['station']}, {rec['time']}",
-             f"  verdict: {rec['verdict'].upper()}" + "".join(f"\n    - {r}" for r in rec.get("reasons", []))
-             + "".join(f"\n    warning: {w}" for w in rec.get("warnings", []))]
-    truth = rec.get("truth")
-    k = rec.get("coverage_factor")
-    if k is not None:
-        lines.append(f"  figures are value ± U, the expanded uncertainty (k={k:g})")
+    """A readable summary of one result record, a facet's or a heliostat's (``value ± U`` where the record has
+    ``name_U``, k = 2): :func:`sofast_station.report.summary.record_text`, the one summary of a record."""
+    from ..report.summary import record_text
 
-    def row(label, key, unit="", digits=4, scale=1.0):
-        v = rec.get(key)
-        v = None if v is None else v * scale
-        u = rec.get(f"{key}_U")
-        u = None if u is None else u * scale
-        digits = shown_decimals(v, u, digits)         # the truth to the value's decimals
-        t = None if not truth or truth.get(key) is None else truth[key] * scale
-        extra = f"   (truth {_fmt(t, unit, digits)})" if truth is not None else ""
-        lines.append(f"  {label:<26}{_pm(v, u, unit, digits):>24}{extra}")
-
-    row("focal length x", "focal_length_x_m", " m")
-    row("focal length y", "focal_length_y_m", " m")
-    row("twist", "twist_mrad_per_m", " mrad/m")
-    row("twist E1 / E2", "twist_e1_mrad_per_m", " mrad/m")
-    row("", "twist_e2_mrad_per_m", " mrad/m")
-    rms_u = rec.get("slope_rms_mrad_U") or {}
-    lines.append("  slope error RMS (mrad)        x        y   magnitude" + ("      ± U" if rms_u else ""))
-    for model, rms in rec["slope_rms_mrad"].items():
-        t = truth["slope_rms_mrad"].get(model) if truth else None
-        u = (rms_u.get(model) or {}).get("magnitude")
-        magnitude, big_u = ("-", None) if rms["magnitude"] is None else value_and_u(rms["magnitude"], u, 3)
-        text = f"    {model:<22}{_fmt(rms['x'], '', 3):>9}{_fmt(rms['y'], '', 3):>9}{magnitude:>12}"
-        if big_u is not None:
-            text += f" ± {big_u}"
-        if t:
-            text += f"   (truth {t['x']:.3f} {t['y']:.3f} {t['magnitude']:.3f})"
-        lines.append(text)
-    noise = rec.get("slope_rms_noise_mrad")
-    corrected = rec.get("slope_rms_corrected_mrad")
-    if noise and corrected:
-        n = next(iter(noise.values()))
-        lines.append(f"    {'noise explained':<22}{n['x']:9.3f}{n['y']:9.3f}{n['magnitude']:12.3f}"
-                     "   (slope noise the capture's own noise explains)")
-        lines.append("    with that noise removed in quadrature:")
-        for model, c in corrected.items():
-            lines.append(f"    {model:<22}{_fmt(c['x'], '', 3):>9}{_fmt(c['y'], '', 3):>9}"
-                         f"{_fmt(c['magnitude'], '', 3):>12}")
-
-    def pair(label, key, unit, note=""):
-        v = rec.get(key)
-        if not v:
-            return
-        u = rec.get(f"{key}_U") or {}
-        tt = truth.get(key) if truth else None
-        extra = f"   (truth {tt['x']:.3f}, {tt['y']:.3f})" if tt else ""
-        lines.append(f"  {label:<28}{_pm(v['x'], u.get('x'), '', 3)}, {_pm(v['y'], u.get('y'), '', 3)} {unit}"
-                     f"{note}{extra}")
-
-    pair("boresight rotation (x, y)", "boresight_mrad", "mrad", "   (from the corner pose)")
-    for key, why in (rec.get("not_measured") or {}).items():        # an unknown outline's, the plano model's
-        lines.append(f"  {key.replace('_', ' '):<26} not measured: {why}")
-    pair("optical tilt in fixture", "optical_tilt_mrad", "mrad")
-    pl = rec.get("placement")
-    if pl:
-        pu = rec.get("placement_U") or {"mm": [None] * 3, "mrad": [None] * 3}
-        lines.append("  placement in fixture       " + ", ".join(_pm(v, u, "", 2) for v, u in zip(pl["mm"], pu["mm"]))
-                     + " mm, " + ", ".join(_pm(v, u, "", 2) for v, u in zip(pl["mrad"], pu["mrad"])) + " mrad")
-    lines.extend(optics_lines(rec.get("optics"), (truth or {}).get("optics")))
-    lines.append(f"  points                    {rec['n_points']:>14,}   "
-                 f"({100 * rec['valid_fraction']:.1f} % of the facet's pixels)")
-    lines.append(f"  median modulation         {rec['median_modulation_dn']:>11.1f} DN")
-    it = rec["iterations"]
-    lines.append(f"  iterations                {it['shape']:>9} shape, {it['boresight']} boresight "
-                 f"({'converged' if it['converged'] else 'NOT converged'})")
-    t = rec["timings_s"]
-    lines.append(f"  time: capture {t['capture']:.2f} s, analysis {t['analysis']:.2f} s, total {t['total']:.2f} s")
-    return "\n".join(lines)
+    return record_text(rec)
 
 
 def cmd_inspect(args) -> int:
@@ -189,12 +68,9 @@ def cmd_inspect(args) -> int:
     if args.json:
         json.dump(rec, sys.stdout, indent=1)
         sys.stdout.write("\n")
-    elif "facets" in rec:                     # a heliostat: one line per facet, its optics, what to turn
-        from .heliostat import summary_text as heliostat_summary
-        print(heliostat_summary(rec))
-    else:
+    else:                                     # a heliostat's: one line per facet, its optics, what to turn
         print(summary_text(rec))
-        if args.budget:
+        if args.budget and "facets" not in rec:
             print(budget_text(rec))
     return 0
 

@@ -8,17 +8,18 @@ column. A figure shows ``value ± U`` when the record carries its expanded uncer
 
 from __future__ import annotations
 
-from ..result.formatting import value_and_u, with_u
+from ..result.formatting import figure_decimals, figure_parts, with_u
 from ..result.record import figure_uncertainty, figure_value
 from ..result.shift import SUMMARY_FIGURES, ShiftSummary
 
-#: Console columns: (heading, record path, decimals without U, width of the value, width of its "± U"). A
-#: value with its U is written by GUM's rule (U to two significant digits, the value to the same place).
+#: Console columns: (heading, record path, width of the value, width of its "± U"). A figure is written as every
+#: screen writes it (:func:`~sofast_station.result.formatting.figure_parts`: with its U by GUM's rule, U to two
+#: significant digits and the value to the same place; without, to the figure's own decimals).
 _FIGURES = (
-    ("f_x (m)", "focal_length_x_m", 4, 7, 10),
-    ("f_y (m)", "focal_length_y_m", 4, 7, 10),
-    ("RMS design", "slope_rms_mrad.design.magnitude", 2, 5, 8),
-    ("RMS parab.", "slope_rms_mrad.parabola.magnitude", 2, 5, 8),
+    ("f_x (m)", "focal_length_x_m", 7, 10),
+    ("f_y (m)", "focal_length_y_m", 7, 10),
+    ("RMS design", "slope_rms_mrad.design.magnitude", 5, 8),
+    ("RMS parab.", "slope_rms_mrad.parabola.magnitude", 5, 8),
 )
 SERIAL_WIDTH = 16
 _VERDICT_WIDTH = 13                  # INDETERMINATE
@@ -42,18 +43,18 @@ def _count_width(total: int | None) -> int:
     return max(5, 2 * digits + 1)
 
 
-def _figure_cell(record: dict, path: str, decimals: int, width: int, u_width: int) -> str:
-    value = figure_value(record, path)
-    if value is None:
+def _figure_cell(record: dict, path: str, width: int, u_width: int) -> str:
+    parts = figure_parts(record, path)
+    if parts is None:
         return f"{'-':>{width}}" + " " * u_width
-    text, u = value_and_u(value, figure_uncertainty(record, path), decimals)
+    text, u = parts
     return f"{text:>{width}}" + (f" ± {u:<{u_width - 3}}" if u is not None else " " * u_width)
 
 
 def header(total: int | None = None) -> str:
     """The heading line of :func:`facet_line`'s columns."""
     cells = [f"{'n':>{_count_width(total)}}", f"{'serial':<{SERIAL_WIDTH}}", f"{'verdict':<{_VERDICT_WIDTH}}"]
-    for head, _, _, width, u_width in _FIGURES:
+    for head, _, width, u_width in _FIGURES:
         cells.append(f"{head:>{width + u_width}}")
     cells.append(f"{'cycle':>7}")
     return "  ".join(cells) + "  reasons"
@@ -64,8 +65,8 @@ def facet_line(record: dict, answer: str, cycle_s: float | None, n: int | None =
     """One facet's console line, aligned with :func:`header` whatever its verdict."""
     cells = [_count_cell(n, total, _count_width(total)), f"{_serial_cell(record.get('serial', '')):<{SERIAL_WIDTH}}",
              f"{answer.upper():<{_VERDICT_WIDTH}}"]
-    for _, path, decimals, width, u_width in _FIGURES:
-        cells.append(_figure_cell(record, path, decimals, width, u_width))
+    for _, path, width, u_width in _FIGURES:
+        cells.append(_figure_cell(record, path, width, u_width))
     cells.append(f"{cycle_s:6.2f}s" if cycle_s is not None else f"{'-':>7}")
     text = "  ".join(cells)
     notes = list(record.get("reasons") or []) if answer in ("fail", "invalid", "indeterminate", "fault") else []
@@ -82,10 +83,11 @@ def log_line(record: dict, answer: str, cycle_s: float | None, n: int | None = N
     parts = [f"facet {n}/{total}" if n and total else f"facet {n}" if n else "facet",
              f"serial={record.get('serial', '')!r}", f"cycle={record.get('cycle_id', '')}",
              f"recipe={record.get('recipe') or 'default'}", f"verdict={answer}"]
-    for _, path, decimals, _, _ in _FIGURES:
+    for _, path, _, _ in _FIGURES:
         value = figure_value(record, path)
-        if value is not None:
-            text = with_u(value, figure_uncertainty(record, path), decimals=decimals + 2).replace(" ± ", "±")
+        if value is not None:       # two more decimals than the screens for a value without U, to look into later
+            text = with_u(value, figure_uncertainty(record, path), decimals=figure_decimals(path) + 2
+                          ).replace(" ± ", "±")
             parts.append(f"{path.replace('slope_rms_mrad.', 'rms_').replace('.magnitude', '')}={text}")
     if cycle_s is not None:
         parts.append(f"cycle_s={cycle_s:.3f}")

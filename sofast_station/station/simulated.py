@@ -18,7 +18,7 @@ from ..errors import ConfigError
 from .opened import Station
 
 _SIM_KEYS = {"seed", "facet", "optics", "population", "distance_error_m", "faults", "hang_s", "slow_s",
-             "assembly", "heliostat"}
+             "assembly", "heliostat", "temperature"}
 
 #: Faults the simulated station can inject for a given serial ([simulation.faults] SERIAL = KIND).
 FAULT_KINDS = SIMULATED_FAULTS
@@ -67,7 +67,11 @@ def build_twin(config: StationConfig, noise: bool = True):
     if "heliostat" in sim:
         raise ConfigError(f"{config.path} [simulation.heliostat] describes a heliostat, but [station] facet is a "
                           "single facet's file")
-    return TwinStation(geometry, config.design, facet, optics, screen_shape=screen)
+    from ..calibrate.marks import mark_settings
+
+    marks = mark_settings(config)
+    return TwinStation(geometry, config.design, facet, optics, screen_shape=screen,
+                       marks=None if marks is None else marks.design)
 
 
 def build_population(config: StationConfig):
@@ -96,6 +100,8 @@ class SimulatedStation(Station):
     placed: int = 0
     serial_in_fixture: str | None = None
     _next: dict = field(default_factory=dict, repr=False)
+    #: The twin's sunlight plans (:func:`truth_optics`), one per design and optics settings.
+    _sunlit_plans: dict = field(default_factory=dict, repr=False)
 
     def place(self, request) -> None:
         """The simulated robot puts the facet of *request* in the fixture (called before its trigger).
@@ -154,6 +160,36 @@ class SimulatedStation(Station):
                                              "camera-disconnect", "lights-off") else None
         return faulty_job(job, kind, hang_s=sim.get("hang_s", 3600.0), slow_s=sim.get("slow_s", 15.0))
 
+    def move_camera(self, turn_mrad=(0.0, 0.0, 0.0), shift_mm=(0.0, 0.0, 0.0)) -> None:
+        """Bump the twin's camera (tests and benchmarks of the fixture marks' check): turned by *turn_mrad* about
+        and shifted by *shift_mm* along its own axes, on top of ``[simulation.assembly]``; the screen and the
+        fixture stay. The next facet placed, and the one in the fixture, are seen from there."""
+        import copy
+
+        from ..twin.assembly import TrueAssembly
+
+        sim = copy.deepcopy(self.config.simulation)
+        assembly = TrueAssembly.from_dict(sim.get("assembly", {}))
+        sim["assembly"] = {**assembly.to_dict(),
+                           "camera_turn_mrad": [a + float(b) for a, b in zip(assembly.camera_turn_mrad, turn_mrad)],
+                           "camera_shift_mm": [a + float(b) for a, b in zip(assembly.camera_shift_mm, shift_mm)]}
+        nominal = build_twin(dataclasses.replace(self.config, simulation=sim), noise=True)
+        nominal = nominal.with_optics(self.nominal_twin.optics)          # the station's own optics (noise or none)
+        in_fixture = self.twin.facet if self.twin is not None else nominal.facet
+        self._next = {}
+        self.nominal_twin = nominal
+        self.twin = self.camera.twin = self.range_finder.twin = nominal.with_facet(in_fixture)
+
+    def change_display(self, **optics) -> None:
+        """Change the twin's display (tests of its self-test, station/display.py): e.g. ``display_gamma=2.5``, a
+        picture mode changed behind the radiometric table's back. The facet in the fixture and the next are seen
+        through it."""
+        changed = dataclasses.replace(self.nominal_twin.optics, **optics)
+        self._next = {}
+        self.nominal_twin = self.nominal_twin.with_optics(changed)
+        self.twin = self.camera.twin = self.range_finder.twin = self.twin.with_optics(
+            dataclasses.replace(self.twin.optics, **optics))
+
     def reopen_camera(self) -> None:
         self.camera.fault = None
         self.camera.release_hang()
@@ -171,10 +207,8 @@ class SimulatedStation(Station):
         self._last_valid = np.asarray(valid, dtype=bool)
         design, optics = getattr(job, "design", None), getattr(job, "optics", None)
         if optics is not None and design is not None:
-            if self.design_traces is None:
-                from ..result.optical_figures import DesignTraces
-                self.design_traces = DesignTraces()
-            truth["optics"] = truth_optics(self.twin, valid, design, optics, self.design_traces)
+            truth["optics"] = truth_optics(self.twin, valid, design, optics, self._sunlit_plans,
+                                           boresight_mrad=truth["boresight_mrad"])
         return truth
 
     def handheld_camera(self, settings, seed: int | None = None):
@@ -238,25 +272,45 @@ def open_simulated(config: StationConfig, radiometric: RadiometricRecord, seed: 
                             radiometric=radiometric, twin=twin, nominal_twin=twin, population=build_population(config))
 
 
-def truth_optics(twin, kept: np.ndarray, design, settings, cache=None) -> dict:
-    """The optical figures of the twin's exact surface at the kept pixels, in the boresight frame the twin's
-    own ground truth defines: what the measured figures should be."""
-    from ..optics import facet_optics
-    from ..result.optical_figures import DesignTraces
-    from ..twin.station import rotation_zyx
-    from ..twin.truth import boresight_frame, exact_samples, ground_truth
+def sunlight_of(settings):
+    """The twin's record (:class:`~sofast_station.twin.sunlight.Sunlight`) of a recipe's optics settings (an
+    :class:`~sofast_station.optics.OpticsSettings`, read attribute by attribute: the twin's truth shares no code
+    with the optics it checks)."""
+    from ..twin.sunlight import Sunlight
 
-    points, normals = exact_samples(twin, kept)
-    frame = boresight_frame(points, normals, design)
+    sun, ap = settings.sun, settings.aperture
+    aperture = None if ap is None else (("circle", ap.radius_m) if ap.shape == "circle"
+                                        else ("rectangle", ap.width_m, ap.height_m))
+    return Sunlight(sun=sun.kind, half_angle_mrad=sun.half_angle_mrad, sigma_mrad=sun.sigma_mrad, csr=sun.csr,
+                    dni_w_m2=settings.dni_w_m2, reflectivity=settings.reflectivity,
+                    incidence_angle_deg=settings.incidence_angle_deg, slant_range_m=settings.slant_range_m,
+                    aperture=aperture)
+
+
+def truth_optics(twin, kept: np.ndarray, design, settings, plans: dict | None = None,
+                 boresight_mrad: dict | None = None) -> dict:
+    """The optical figures of the twin's true facet in the sunlight of *settings*: what the measured figures
+    should be.
+
+    The twin traces its own true surface over the whole outline (:func:`~sofast_station.twin.sunlight.
+    facet_in_sunlight`; nothing of ``optics/``), in the boresight frame its ground truth defines at the kept
+    pixels (*boresight_mrad*, ``ground_truth(twin, kept)["boresight_mrad"]``; computed when not given).
+    *plans* keeps the sunlight's samples and the design's figures per design and settings (they do not
+    depend on the facet)."""
+    from ..twin.sunlight import facet_in_sunlight, sunlit_plan
+    from ..twin.trace import rotation_zyx
+
+    if boresight_mrad is None:
+        from ..twin.truth import ground_truth
+        boresight_mrad = ground_truth(twin, kept)["boresight_mrad"]
+    sunlight = sunlight_of(settings)
+    key = (id(design), sunlight)
+    plan = None if plans is None else plans.get(key)
+    if plan is None or plan[0] is not design:
+        plan = (design, sunlit_plan(design, sunlight))
+        if plans is not None:
+            plans[key] = plan
     x_a, y_a = (float(c) for c in design.alignment_point_m)
     pivot = np.array([x_a, y_a, float(design.z(x_a, y_a))])
-    r = rotation_zyx(frame["alpha_rad"], frame["beta_rad"], 0.0)
-    moved = (points - pivot) @ r.T + pivot
-    truth = ground_truth(twin, kept)
-    camera_m = r @ (twin.camera_to_facet.translation - pivot) + pivot
-    scene, design_result = (cache or DesignTraces(1)).get(design, settings)
-    kappa = 0.5 * (truth["curvature_x_per_m"] + truth["curvature_y_per_m"])
-    res = facet_optics(moved.T, frame["slopes"].T, camera_m, design, settings,
-                       slope_error_mrad=truth["slope_rms_mrad"]["parabola"]["magnitude"], focal_power_per_m=kappa,
-                       scene=scene, design_result=design_result)
-    return res.figures
+    rotation = rotation_zyx(1e-3 * boresight_mrad["x"], 1e-3 * boresight_mrad["y"], 0.0)
+    return facet_in_sunlight(twin.surface, plan[1], sunlight, rotation, pivot)

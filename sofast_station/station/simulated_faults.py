@@ -7,8 +7,12 @@ worker and loop carry no test hooks:
 
 * "hung-analysis": the worker hangs (``hang_s``) on its first attempt; the rerun on the standby answers;
 * "hung-facet": every attempt hangs (the facet itself hangs any worker);
-* "slow-analysis": every attempt waits ``slow_s`` and then answers (a late result);
+* "slow-analysis": every attempt works slowly for ``slow_s`` and then answers (a late result);
 * "worker-dies": the worker process exits in the middle of the analysis.
+
+A hang sleeps: the worker is neither runnable nor using the processor, as in a deadlock or a stalled page-in,
+and the worker's watch sees it stalled. Slow work keeps the worker runnable, in short bursts of computing
+(:data:`BUSY_SHARE` of a core), as an analysis on a machine busy with other work: progressing, only slowly.
 """
 
 from __future__ import annotations
@@ -21,6 +25,23 @@ from dataclasses import dataclass
 #: None for the worker's death. ``hang`` and ``slow`` stand for ``hang_s`` and ``slow_s``.
 DELAYS = {"hung-analysis": ("hang", 0.0), "hung-facet": ("hang", "hang"), "slow-analysis": ("slow", "slow"),
           "worker-dies": (None, None)}
+#: The faults whose waits are slow work, not a hang.
+BUSY = frozenset({"slow-analysis"})
+#: The share of a core slow work computes, in bursts every :data:`BUSY_PERIOD_S` seconds: enough to be seen
+#: progressing, little enough that a test's slow facet costs a tenth of its wait in processor time.
+BUSY_SHARE = 0.1
+BUSY_PERIOD_S = 0.02
+
+
+def work_slowly(seconds: float, share: float = BUSY_SHARE, period_s: float = BUSY_PERIOD_S) -> None:
+    """Compute in bursts for *seconds* (wall clock): *share* of every *period_s* seconds spinning, the rest
+    asleep, so the process is runnable and uses about *share* of a core, as slow work does."""
+    end = time.perf_counter() + seconds
+    while (now := time.perf_counter()) < end:
+        burst_end = min(now + share * period_s, end)
+        while time.perf_counter() < burst_end:
+            pass
+        time.sleep(max(0.0, min((1.0 - share) * period_s, end - time.perf_counter())))
 
 
 @dataclass(frozen=True)
@@ -31,6 +52,8 @@ class FaultyJob:
     job: object
     fault: str
     delays_s: tuple
+    #: Whether the waits are slow work (runnable, computing a little) rather than a hang (asleep).
+    busy: bool = False
 
     @property
     def kind(self) -> str:
@@ -41,7 +64,7 @@ class FaultyJob:
         return self.job.name
 
     def __getattr__(self, name):              # design, analysis, optics, limits...: the job's own
-        if name in ("job", "fault", "delays_s"):
+        if name in ("job", "fault", "delays_s", "busy"):
             raise AttributeError(name)
         return getattr(self.job, name)
 
@@ -52,7 +75,9 @@ class FaultyJob:
         delay = self.delays_s[min(attempt, len(self.delays_s) - 1)]
         if delay is None:
             os._exit(9)                       # the worker dies mid-analysis (what the fault is for)
-        if delay > 0:
+        if delay > 0 and self.busy:
+            work_slowly(delay)
+        elif delay > 0:
             time.sleep(delay)
         return self.job.analyse(capture, attempt=attempt, **kwargs)
 
@@ -71,4 +96,4 @@ def faulty_job(job, fault: str | None, hang_s: float, slow_s: float):
     if fault not in DELAYS:
         return job
     seconds = {"hang": float(hang_s), "slow": float(slow_s)}
-    return FaultyJob(job, fault, tuple(seconds.get(d, d) for d in DELAYS[fault]))
+    return FaultyJob(job, fault, tuple(seconds.get(d, d) for d in DELAYS[fault]), busy=fault in BUSY)

@@ -10,8 +10,8 @@ A second worker waits beside it, started, its optics traced and warmed on the wa
 new standby starts in the background, so the next facet is measured normally (it used to wait out the
 late grace and a restart, 8-9 s, and time out too). The abandoned worker is not killed at once: it may
 still finish within ``late_grace_s`` (its result is then journaled, marked late, through the
-:class:`concurrent.futures.Future` the timeout carries), at the lowest priority so that it never slows the
-facet the standby is measuring; then it is killed.
+:class:`concurrent.futures.Future` the timeout carries), at a lower priority (:data:`RETIRED_NICE`) so
+that it slows the facet the standby is measuring little, yet finishes on a busy machine; then it is killed.
 
 A worker that dies *before* it begins a facet's analysis (killed or out of memory between facets, its
 death not yet seen when the next facet arrives) costs that facet nothing: the worker marks each analysis
@@ -19,6 +19,14 @@ it begins in the shared memory, so the station knows the facet was never started
 standby within the facet's time budget. A worker that dies *during* an analysis answers that facet with
 the worker fault (the facet itself may be what kills it), and the next facet is measured on the standby.
 A worker killed while it starts is started again (:data:`START_ATTEMPTS` times).
+
+An analysis that has not answered after :data:`RERUN_FACTOR` times its usual time is run again on the
+standby only when its worker has *stalled* (:class:`_Progress`: neither runnable nor using the processor
+over the last stretch: a deadlock, a stalled page-in, a stopped process). An analysis that is merely slow,
+because the machine is busy, keeps computing: the analysis is deterministic, so a rerun would compute the
+same thing on the same busy cores, halve the processor each of the two gets and let both miss the deadline
+(on a loaded machine 0 of 4 late results were kept that way). When a rerun and its first analysis are both
+abandoned at the deadline, whichever answers first within the grace is the late result.
 """
 
 from __future__ import annotations
@@ -182,15 +190,81 @@ START_ATTEMPTS = 3
 #: Longest wait for a worker to start (spawn, imports, pixel rays, optics traces), seconds.
 START_TIMEOUT_S = 120.0
 #: An analysis still running after this many times its recipe's usual time (the median of the last
-#: :data:`USUAL_OF` analyses) is run again on the warm standby; the first answer is the facet's. A worker
-#: that hangs (a deadlock, a stalled page-in, a stopped process) then costs the facet a few seconds, not a
-#: timeout; a facet that is slow in itself is slow in both and times out as before.
+#: :data:`USUAL_OF` analyses), in a worker that has stalled (:class:`_Progress`), is run again on the warm
+#: standby; the first answer is the facet's. A worker that hangs (a deadlock, a stalled page-in, a stopped
+#: process) then costs the facet a few seconds, not a timeout; an analysis that keeps computing (a facet
+#: slow in itself, or a busy machine) is left to finish, or to time out and come late.
 RERUN_FACTOR = 3.0
-#: Never rerun before this many seconds (a quick recipe's scheduler hiccup is not a hang), seconds.
+#: Never rerun before this many seconds (a quick recipe's scheduler hiccup is not a hang), seconds; also the
+#: shortest stretch without progress that makes a worker stalled.
 RERUN_MIN_S = 1.0
 #: How many of a recipe's last analysis times make its usual time; none is rerun before :data:`RERUN_AFTER_N`.
 USUAL_OF = 15
 RERUN_AFTER_N = 3
+#: How often the station looks at a slow analysis's worker (its state and processor time), seconds.
+PROGRESS_POLL_S = 0.1
+#: A worker that used less than this share of a core over a stretch, and was never seen runnable in it, has
+#: stalled. An analysis computing on a busy machine is runnable whenever it is looked at and gets a few per
+#: cent of a core even at a load of 50 on two cores; a blocked one (asleep, in a page-in, stopped) gets none
+#: (its parent-watch thread wakes twice a second for microseconds).
+STALLED_CPU_SHARE = 0.02
+#: The niceness of an abandoned analysis within its late grace, above the station's (0-19). Not the lowest:
+#: at 19 it gets 1.5 % of what a process of the station's priority gets, and on a machine busy with other
+#: work it did not finish within the grace (0 of 5 late results kept beside two spinning processes; 1 of 4
+#: at 5, a third of the share); at 2 it gets two thirds (4 of 4 kept), while the worker measuring the next
+#: facet still wins a contested core 61 to 39 (docs/reliability.md, "Under load").
+RETIRED_NICE = 2
+
+
+_CLOCK_TICK_S = 1.0 / os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 0.01
+
+
+def process_state(pid: int) -> tuple[str, float] | None:
+    """Process *pid*'s scheduler state (``R`` runnable, ``S`` asleep, ``D`` waiting on the disk, ``T``
+    stopped...) and its processor time so far (user + system, every thread), seconds, from ``/proc``; None
+    where that cannot be read (not Linux, or the process is gone)."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as fh:
+            fields = fh.read().rsplit(b")", 1)[1].split()
+        return fields[0].decode("ascii", "replace"), (int(fields[11]) + int(fields[12])) * _CLOCK_TICK_S
+    except (OSError, IndexError, ValueError):
+        return None
+
+
+class _Progress:
+    """Whether a worker's analysis is progressing: its state and processor time, sampled as the station waits.
+
+    A worker that was never runnable and used (almost) no processor over a stretch has *stalled*: waiting on a
+    lock, a page-in or a signal, not on the processor. One that computes slowly on a busy machine is runnable
+    (waiting for a core counts) and does use some: it is *progressing*, and a rerun beside it would only
+    share the same cores.
+    """
+
+    def __init__(self, pids: list[int]):
+        self.pids = list(pids)
+        self.samples: deque = deque()            # (time.perf_counter(), runnable, processor seconds)
+
+    def sample(self, now: float | None = None) -> None:
+        now = time.perf_counter() if now is None else now
+        states = [process_state(pid) for pid in self.pids]
+        if not states or any(s is None for s in states):
+            self.samples.append((now, None, None))   # unknown: treated as stalled (a rerun, as before)
+            return
+        self.samples.append((now, any(s[0] == "R" for s in states), sum(s[1] for s in states)))
+
+    def stalled(self, window_s: float, now: float | None = None) -> bool:
+        """True when the samples cover the last *window_s* seconds and show no progress in them (or cannot
+        be read); False while they do not cover it yet."""
+        now = time.perf_counter() if now is None else now
+        while len(self.samples) > 1 and self.samples[1][0] <= now - window_s:
+            self.samples.popleft()               # keep one sample at or before the stretch's start
+        if not self.samples or self.samples[0][0] > now - window_s + PROGRESS_POLL_S:
+            return False
+        if any(runnable is None for _, runnable, _ in self.samples):
+            return True
+        used = self.samples[-1][2] - self.samples[0][2]
+        return not any(runnable for _, runnable, _ in self.samples) and \
+            used < max(2 * _CLOCK_TICK_S, STALLED_CPU_SHARE * window_s)
 
 
 class _Process:
@@ -237,10 +311,14 @@ class _Process:
         return bool(procs) and all(p.is_alive() for p in procs)
 
     def lower_priority(self) -> None:
-        """Run at the lowest priority from now on (a retired worker must not slow the one measuring)."""
+        """Run :data:`RETIRED_NICE` below the station from now on (a retired worker must not slow the one
+        measuring much, yet still finish within its grace on a busy machine)."""
+        if not hasattr(os, "setpriority"):
+            return
+        target = min(19, os.getpriority(os.PRIO_PROCESS, 0) + RETIRED_NICE)
         for pid in self.pids():
             try:
-                os.setpriority(os.PRIO_PROCESS, pid, 19)
+                os.setpriority(os.PRIO_PROCESS, pid, max(target, os.getpriority(os.PRIO_PROCESS, pid)))
             except OSError:
                 pass
 
@@ -267,6 +345,39 @@ class _Process:
             shm.unlink()
         except FileNotFoundError:
             pass
+
+
+def _first_late(lates: list[tuple[Future, _Process, str]], rerun_after_s: float) -> Future:
+    """One late result for an analysis and its rerun, both abandoned at the deadline: the first of *lates*
+    (each ``(future, worker, "first" | "standby")``) to bring figures (or the analysis's own error); None
+    when neither does within its grace. The other worker is then killed at once: its result would be
+    dropped, and it takes a core from the line until its grace ends."""
+    out: Future = Future()
+    lock = threading.Lock()
+    left = [len(lates)]
+
+    def done(fut: Future, answer: str) -> None:
+        with lock:
+            left[0] -= 1
+            if out.done():
+                return
+            error = fut.exception()
+            res = None if error is not None else fut.result()
+            if error is None and res is None and left[0] > 0:
+                return                           # this one gave nothing; the other may still
+            if error is not None:
+                out.set_exception(error)
+            else:
+                if res is not None:
+                    res.rerun_after_s, res.rerun_answer = rerun_after_s, answer
+                out.set_result(res)
+        for other, proc, _ in lates:
+            if not other.done():
+                proc.kill()                      # its waiter then sees the pool broken and closes it
+
+    for fut, _, answer in lates:
+        fut.add_done_callback(lambda f, a=answer: done(f, a))
+    return out
 
 
 def _result(out) -> WorkerResult:
@@ -512,7 +623,8 @@ class AnalysisWorker:
 
     def _retire(self, proc: _Process, fut, grace_s: float) -> Future:
         """Abandon *proc*'s analysis at the deadline: the standby takes over now; *proc* keeps running it at
-        the lowest priority for up to *grace_s* seconds, then is killed. Returns the late result's future."""
+        a lower priority (:data:`RETIRED_NICE`) for up to *grace_s* seconds, then is killed. Returns the late
+        result's future."""
         self._active = None
         if not self._promote():
             self._launch_standby()
@@ -540,12 +652,13 @@ class AnalysisWorker:
         """Analyse *frames* as *job* says (a :class:`~sofast_station.job.Job`); :class:`AnalysisTimeout` after
         *timeout_s* seconds.
 
-        An analysis still running after :data:`RERUN_FACTOR` times the recipe's usual time is run again on
-        the warm standby (which becomes the worker; the slow one runs on at the lowest priority) and the
-        first of the two answers is the facet's (``WorkerResult.rerun_after_s`` says so). At the timeout the
-        standby takes over at once; the abandoned analysis may still finish within *late_s* seconds,
-        through the timeout's ``late`` future. Errors raised by the analysis (StationError subclasses) come back
-        as themselves.
+        An analysis still running after :data:`RERUN_FACTOR` times the recipe's usual time in a worker that
+        has stalled (:class:`_Progress`) is run again on the warm standby (which becomes the worker; the
+        stalled one runs on at a lower priority) and the first of the two answers is the facet's
+        (``WorkerResult.rerun_after_s`` says so); one that is still computing (a busy machine) is left to
+        finish. At the timeout the standby takes over at once; the abandoned analysis (or the first of it and
+        its rerun) may still finish within *late_s* seconds, through the timeout's ``late`` future. Errors
+        raised by the analysis (StationError subclasses) come back as themselves.
         """
         if frames.shape != self._shape or frames.dtype != np.uint8:
             from ..errors import CaptureError
@@ -569,26 +682,10 @@ class AnalysisWorker:
                 fut = proc.pool.submit(_run, self._tickets, *args, 0)
                 rerun_at, usual = self._rerun_after(key)
                 if rerun_at is not None and rerun_at < left_s:
-                    try:
-                        out = fut.result(timeout=rerun_at)
-                    except FutureTimeout:
-                        # rerun on the standby; while none is ready (one still starting after an earlier
-                        # take-over) keep waiting for both, the slow analysis and a ready standby
-                        while True:
-                            res = self._rerun(proc, fut, frames, args, t_end, timeout_s, late_s,
-                                              time.perf_counter() - t_submit, usual)
-                            if res is not None:
-                                return res
-                            left = t_end - time.perf_counter()
-                            if left <= 1.5 * usual:
-                                out = fut.result(timeout=max(left, 0.01))
-                                break
-                            self._launch_standby()
-                            try:
-                                out = fut.result(timeout=min(0.5, left))
-                                break
-                            except FutureTimeout:
-                                continue
+                    out = self._wait_or_rerun(proc, fut, frames, args, t_submit, t_end, timeout_s, late_s,
+                                              rerun_at, usual)
+                    if isinstance(out, WorkerResult):
+                        return out
                 else:
                     out = fut.result(timeout=max(left_s, 0.01))
                 self._note_time(key, time.perf_counter() - t_submit)
@@ -630,6 +727,39 @@ class AnalysisWorker:
         usual = statistics.median(times)
         return max(RERUN_FACTOR * usual, RERUN_MIN_S), usual
 
+    def _wait_or_rerun(self, proc: _Process, fut, frames, args: tuple, t_submit: float, t_end: float,
+                       timeout_s: float, late_s: float, rerun_at: float, usual: float):
+        """Wait for *proc*'s analysis until *t_end*, watching its progress: past *rerun_at* seconds, once its
+        worker has stalled for ``max(usual, RERUN_MIN_S)`` seconds, run it again on the standby (the
+        rerun's :class:`WorkerResult`); while no warm standby is ready, one is started and the wait goes on.
+        Returns the analysis's raw output, or a WorkerResult from :meth:`_rerun`; raises FutureTimeout at
+        *t_end* (as ``fut.result`` would)."""
+        window = max(usual, RERUN_MIN_S)
+        # Samples from here on cover the stretch before rerun_at; until then the wait is a plain one.
+        watch_from = t_submit + rerun_at - window - PROGRESS_POLL_S
+        progress: _Progress | None = None
+        while True:
+            now = time.perf_counter()
+            left = t_end - now
+            if left <= 0:
+                raise FutureTimeout()
+            step = PROGRESS_POLL_S if progress is not None else max(watch_from - now, PROGRESS_POLL_S)
+            try:
+                return fut.result(timeout=min(step, left))
+            except FutureTimeout:
+                pass
+            now = time.perf_counter()
+            if progress is None:
+                progress = _Progress(proc.pids())
+            progress.sample(now)
+            waited = now - t_submit
+            if waited < rerun_at or t_end - now <= 1.5 * usual or not progress.stalled(window, now):
+                continue
+            res = self._rerun(proc, fut, frames, args, t_end, timeout_s, late_s, waited, usual)
+            if res is not None:
+                return res
+            self._launch_standby()               # none ready (one still starting after a take-over): wait on
+
     def _rerun(self, proc: _Process, fut, frames, args: tuple, t_end: float, timeout_s: float, late_s: float,
                waited_s: float, usual: float) -> WorkerResult | None:
         """*proc*'s analysis has run *waited_s* seconds, at least RERUN_FACTOR times its *usual* (and RERUN_MIN_S):
@@ -644,8 +774,9 @@ class AnalysisWorker:
                 self._standby = None
         if not ready:
             return None
-        log.warning("the analysis has run %.1f s (its usual: %.2f s): it is run again on the standby worker "
-                    "(process %s); the first answer is the facet's", waited_s, usual, standby.pids())
+        log.warning("the analysis has run %.1f s (its usual: %.2f s) and its worker has stalled (neither "
+                    "computing nor waiting for a core): it is run again on the standby worker (process %s); the "
+                    "first answer is the facet's", waited_s, usual, standby.pids())
         self._active = standby
         self.takeovers += 1
         self.reruns += 1
@@ -682,13 +813,14 @@ class AnalysisWorker:
         if not pending:                                     # both workers died
             raise WorkerDied("the analysis worker process died during this facet's analysis, and so did its "
                              "rerun on the standby; the next facet is measured on a new worker")
-        log.error("the analysis and its rerun exceeded the %.1f s budget: both workers are retired", timeout_s)
-        first = None
+        log.error("the analysis and its rerun exceeded the %.1f s budget: both workers are retired; the first "
+                  "of them to finish within %.0f s gives the late result", timeout_s, late_s)
+        lates = []
         for f, who in pending.items():
             late = self._retire(who, f, late_s) if who is standby else self._retire_only(who, f, late_s)
-            first = first or late
+            lates.append((late, who, "standby" if who is standby else "first"))
         raise AnalysisTimeout(f"the analysis did not finish within {timeout_s:.1f} s, nor its rerun on the "
-                              "standby worker; a new standby takes over", late=first)
+                              "standby worker; a new standby takes over", late=_first_late(lates, waited_s))
 
     def _dismiss(self, proc: _Process) -> None:
         """The rerun facet is answered: the slow first worker, replaced by the standby, is closed (in the

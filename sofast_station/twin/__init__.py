@@ -12,7 +12,9 @@ TrueSurface
 TwinCamera
     OpenCV pinhole + 5-term distortion: ``project`` and ``pixel_rays``.
 TwinStation
-    The traced station: ``capture(display_image, rng)`` and the test-support accessors.
+    The traced station: ``capture(display_image, rng)`` and the test-support accessors. It composes the
+    facet's trace (``trace.FacetTrace``), the renderer of what the camera sees (``render.TwinRenderer``) and
+    the camera's sensor (``sensor.TwinSensor``).
 TrueHeliostat, TwinHeliostat, heliostat_truth
     A heliostat: several facets in one picture, each its own shape and canting error, and their truth.
 ground_truth

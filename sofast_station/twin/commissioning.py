@@ -31,7 +31,8 @@ from .assembly import TrueScreen
 from .board import PlanarTarget
 from .camera import TwinCamera
 from .parameters import TwinOptics
-from .station import TwinStation, rook_lattice
+from . import sensor
+from .station import rook_lattice
 
 #: What a sub-ray hits.
 _NOTHING, _BEZEL, _BOARD, _DISPLAY = 0, 1, 2, 3
@@ -422,10 +423,15 @@ class MirrorScene:
         v = self._view
         return np.all((v.kind == _DISPLAY).reshape(-1, v.subs), axis=1).reshape(v.shape)
 
-    # the sensor's exposure x gain and the display's flicker, exactly as the twin station forms them (they
-    # read only the optics)
-    sensor_scale = TwinStation.sensor_scale
-    flicker_factor = TwinStation.flicker_factor
+    def sensor_scale(self, exposure_s: float | None = None, gain: float | None = None) -> float:
+        """The sensor's exposure x gain, as the twin station's sensor forms it (:func:`~sofast_station.twin.sensor.
+        exposure_scale`)."""
+        return sensor.exposure_scale(self.optics, exposure_s, gain)
+
+    def flicker_factor(self, exposure_s: float | None = None, phase: float | None = None) -> float:
+        """The display's flicker over an exposure, as the twin station's sensor sees it
+        (:func:`~sofast_station.twin.sensor.flicker_factor`)."""
+        return sensor.flicker_factor(self.optics, exposure_s, phase)
 
     def capture(self, display_image: np.ndarray, rng: np.random.Generator | None = None, *,
                 exposure_s: float | None = None, gain: float | None = None, flicker_phase: float | None = None,

@@ -1,10 +1,10 @@
 """The twin of a heliostat: several facets on a frame, each with its own true shape and canting error.
 
-Every facet is traced as the single-facet twin traces one (:class:`~sofast_station.twin.station.TwinStation`,
+Every facet is traced as the single-facet twin traces one (:class:`~sofast_station.twin.trace.FacetTrace`,
 in the frame where that facet really is), and the traces are merged pixel by pixel: a pixel that sees
 several facets sees the nearest (a facet hiding part of another), and its coverage is the sum of theirs
 (the edge pixels of neighbours a gap of less than a pixel apart). The merged picture is captured by the
-single-facet twin's own image formation. A ray reflected by one facet and blocked by another on its way
+single-facet twin's own renderer and sensor. A ray reflected by one facet and blocked by another on its way
 to the screen is not modelled: the facets of a heliostat turn by a few milliradians against each other.
 
 Frames (docs/conventions.md#heliostat-frame): the true heliostat frame is placed in the fixture by
@@ -30,7 +30,8 @@ from ..errors import ConfigError, GeometryError
 from ..geometry import Pose, StationGeometry
 from .camera import TwinCamera
 from .parameters import TrueFacet, TwinOptics, _check_keys, _vector
-from .station import TRACE_ARRAYS, TwinStation, facet_to_fixture_pose, rotation_zyx
+from .station import TwinStation
+from .trace import TRACE_ARRAYS, FacetTrace, facet_to_fixture_pose, rotation_zyx
 from .truth import truth_from_samples
 
 #: The heliostat optical frame's tilt iteration stops when both updates are below this, radians.
@@ -180,7 +181,8 @@ class TwinHeliostat(TwinStation):
     Attributes
     ----------
     facet_twins : dict
-        Facet index -> its trace (a trace-only :class:`TwinStation`, in the frame where it really is).
+        Facet index -> its trace (a :class:`~sofast_station.twin.trace.FacetTrace`, in the frame where it
+        really is).
     heliostat_to_fixture : Pose
     """
 
@@ -205,18 +207,18 @@ class TwinHeliostat(TwinStation):
         self.optics = optics
         self.camera = TwinCamera(geometry.camera)
         self.heliostat_to_fixture = heliostat_to_fixture(heliostat)
-        self.facet_twins: dict[int, TwinStation] = {}
+        self.facet_twins: dict[int, FacetTrace] = {}
         for i, (ef, tf) in enumerate(zip(ensemble.facets, heliostat.facets)):
             if ef.label in heliostat.missing:
                 continue
             nominal = geometry.fixture_to_camera.compose(self.heliostat_to_fixture).compose(ef.to_heliostat)
-            twin = TwinStation(dataclasses.replace(geometry, fixture_to_camera=nominal), ef.design, tf, optics,
-                               edge_band_px=edge_band_px, trace_only=True)
+            trace = FacetTrace(dataclasses.replace(geometry, fixture_to_camera=nominal), ef.design, tf, optics,
+                               edge_band_px=edge_band_px)
             if ef.label in heliostat.obstructed:
-                _obstruct(twin, heliostat.obstructed[ef.label])
-            twin._seen_coverage = twin._coverage.ravel()[twin._seen_idx]
-            twin._coverage = None           # a full image each: only the merged one is kept
-            self.facet_twins[i] = twin
+                _obstruct(trace, heliostat.obstructed[ef.label])
+            trace.seen_coverage = trace.coverage.ravel()[trace.seen_idx]
+            trace.coverage = None           # a full image each: only the merged one is kept
+            self.facet_twins[i] = trace
         if not self.facet_twins:
             raise GeometryError("every facet of the heliostat is missing: there is nothing to see")
         first = next(iter(self.facet_twins.values()))
@@ -224,7 +226,6 @@ class TwinHeliostat(TwinStation):
         self.design = ensemble.layout_design()
         self.facet = first.facet
         self.surface = first.surface
-        self._edge_band_px = edge_band_px
         coverage, seen, owner, arrays = merge_traces(self.facet_twins, geometry.camera.shape)
         self.owner = owner
         self.adopt_trace(coverage, seen, arrays)
@@ -247,24 +248,27 @@ class TwinHeliostat(TwinStation):
     def owner_image(self) -> np.ndarray:
         """(H, W) int: the index of the facet each pixel sees, -1 where it sees none."""
         out = np.full(self.geometry.camera.shape[0] * self.geometry.camera.shape[1], -1, dtype=np.int32)
-        out[self._seen_idx] = self.owner
+        out[self.trace.seen_idx] = self.owner
         return out.reshape(self.geometry.camera.shape)
 
 
-def _obstruct(twin: TwinStation, fraction: float) -> None:
-    """Hide the facet's +x side (*fraction* of its width) from the camera in a trace-only twin."""
-    outline = twin.design.outline_m
+def _obstruct(trace: FacetTrace, fraction: float) -> None:
+    """Hide the facet's +x side (*fraction* of its width) from the camera in a facet's trace."""
+    outline = trace.design.outline_m
     x_cut = outline[:, 0].max() - fraction * (outline[:, 0].max() - outline[:, 0].min())
-    keep = twin._x_facet_m[:, 0] < x_cut
-    hidden = twin._seen_idx[~keep]
-    twin._coverage.ravel()[hidden] = 0.0
-    twin._seen_idx = twin._seen_idx[keep]
+    keep = trace.x_facet_m[:, 0] < x_cut
+    hidden = trace.seen_idx[~keep]
+    trace.coverage.ravel()[hidden] = 0.0
+    trace.seen_idx = trace.seen_idx[keep]
     for name in TRACE_ARRAYS:
-        setattr(twin, name, getattr(twin, name)[keep])
+        setattr(trace, name, getattr(trace, name)[keep])
 
 
 def merge_traces(twins: dict, shape: tuple) -> tuple:
     """The picture several traces make together: at each pixel the nearest hit, the coverages summed.
+
+    *twins* maps a key to a trace (:class:`~sofast_station.twin.trace.FacetTrace`) with ``seen_coverage``, its
+    seen pixels' coverage.
 
     Returns
     -------
@@ -274,14 +278,14 @@ def merge_traces(twins: dict, shape: tuple) -> tuple:
     owner : (n,) int array
         The facet (key of *twins*) each sees.
     arrays : dict
-        Each of :data:`~sofast_station.twin.station.TRACE_ARRAYS` for those pixels.
+        Each of :data:`~sofast_station.twin.trace.TRACE_ARRAYS` for those pixels.
     """
     keys = list(twins)
-    idx = np.concatenate([twins[k]._seen_idx for k in keys])
-    which = np.concatenate([np.full(twins[k]._seen_idx.size, j, dtype=np.int32) for j, k in enumerate(keys)])
-    row = np.concatenate([np.arange(twins[k]._seen_idx.size) for k in keys])
-    cov = np.concatenate([twins[k]._seen_coverage for k in keys])
-    hit = np.concatenate([twins[k]._hit_range_m for k in keys])
+    idx = np.concatenate([twins[k].seen_idx for k in keys])
+    which = np.concatenate([np.full(twins[k].seen_idx.size, j, dtype=np.int32) for j, k in enumerate(keys)])
+    row = np.concatenate([np.arange(twins[k].seen_idx.size) for k in keys])
+    cov = np.concatenate([twins[k].seen_coverage for k in keys])
+    hit = np.concatenate([twins[k].hit_range_m for k in keys])
     order = np.lexsort((hit, idx))                  # by pixel, nearest first
     idx, which, row, cov = idx[order], which[order], row[order], cov[order]
     first = np.ones(idx.size, dtype=bool)
@@ -339,16 +343,16 @@ def heliostat_truth(twin: TwinHeliostat, kept: np.ndarray) -> dict:
         ``placement`` (the true placement, echoed).
     """
     kept = np.asarray(kept, dtype=bool).ravel()
-    on = kept[twin._seen_idx]
+    on = kept[twin.trace.seen_idx]
     figures, errors = {}, {}
     for i, ft in twin.facet_twins.items():
         sel = on & (twin.owner == i)
         if np.count_nonzero(sel) < 9:
             continue
         # the facet's own trace, at the pixels of the merged picture that see it and were kept
-        pos = np.searchsorted(ft._seen_idx, twin._seen_idx[sel])
-        points = np.array(ft._x_facet_m[pos], dtype=np.float64)
-        slopes = ft._slope[pos]
+        pos = np.searchsorted(ft.seen_idx, twin.trace.seen_idx[sel])
+        points = np.array(ft.x_facet_m[pos], dtype=np.float64)
+        slopes = ft.slope[pos]
         normals = np.column_stack([-slopes[:, 0], -slopes[:, 1], np.ones(len(slopes))])
         normals /= np.linalg.norm(normals, axis=1, keepdims=True)
         truth = truth_from_samples(points, normals, ft.design, ft.facet)

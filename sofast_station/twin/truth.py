@@ -19,7 +19,8 @@ import numpy as np
 
 from ..errors import AnalysisError
 from ..facet import FacetDesign
-from .station import TwinStation, rotation_zyx
+from .station import TwinStation
+from .trace import rotation_zyx
 
 #: Focal power below which a focal length is reported as infinite (None), 1/m.
 INFINITE_FOCUS_KAPPA_PER_M = 4e-9

@@ -21,6 +21,7 @@ from ..times import parse_time, utc_key
 from ..live.pictures import picture_path
 from ..live.status import read_status, status_path
 from ..recipes import recipes_from_config
+from ..result.formatting import figure_decimals
 from ..result.record import figure_uncertainty, figure_value
 from ..result.shift import cycle_seconds, summarize
 from ..result.specs import figure_specs
@@ -93,8 +94,9 @@ def figure_rows(record: dict, recipe) -> list[FigureRow]:
             path = f"curvature_{axis}_per_m"
             v = figure_value(record, path)
             k0, tol = 1.0 / f_design, lim.curvature_tolerance_per_m
-            rows.append(FigureRow(f"curvature {axis}", v, figure_uncertainty(record, path), "1/m", 6,
-                                  f"{k0 - tol:.6f} to {k0 + tol:.6f}", None if v is None else abs(v - k0) <= tol))
+            rows.append(FigureRow(f"curvature {axis}", v, figure_uncertainty(record, path), "1/m",
+                                  figure_decimals(path), f"{k0 - tol:.6f} to {k0 + tol:.6f}",
+                                  None if v is None else abs(v - k0) <= tol))
         else:
             path = f"focal_length_{axis}_m"
             v = figure_value(record, path)
@@ -103,10 +105,12 @@ def figure_rows(record: dict, recipe) -> list[FigureRow]:
                 lo, hi = f_design * (1 - lim.focal_length_tolerance), f_design * (1 + lim.focal_length_tolerance)
                 limit = f"{lo:.3f} to {hi:.3f}"
                 ok = None if v is None else lo <= v <= hi
-            rows.append(FigureRow(f"focal length {axis}", v, figure_uncertainty(record, path), "m", 4, limit, ok))
+            rows.append(FigureRow(f"focal length {axis}", v, figure_uncertainty(record, path), "m",
+                                  figure_decimals(path), limit, ok))
     v = figure_value(record, "twist_mrad_per_m")
     t = lim.max_twist_mrad_per_m if lim is not None else None
-    rows.append(FigureRow("twist", v, figure_uncertainty(record, "twist_mrad_per_m"), "mrad/m", 3,
+    rows.append(FigureRow("twist", v, figure_uncertainty(record, "twist_mrad_per_m"), "mrad/m",
+                          figure_decimals("twist_mrad_per_m"),
                           f"|t| ≤ {t:g}" if t is not None else "", None if v is None or t is None else abs(v) <= t))
     for model in ("design", "parabola", "higher_order"):
         path = f"slope_rms_mrad.{model}.magnitude"
@@ -115,7 +119,8 @@ def figure_rows(record: dict, recipe) -> list[FigureRow]:
             continue
         m = lim.max_slope_rms_mrad.get(model) if lim is not None else None
         rows.append(FigureRow(f"slope RMS vs {model.replace('_', ' ')}", v, figure_uncertainty(record, path),
-                              "mrad", 3, f"≤ {m:g}" if m is not None else "", None if m is None else v <= m))
+                              "mrad", figure_decimals(path), f"≤ {m:g}" if m is not None else "",
+                              None if m is None else v <= m))
     return rows
 
 

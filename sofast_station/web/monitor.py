@@ -28,6 +28,12 @@ from .settings import OpcUaSettings, WebSettings
 log = logging.getLogger(__name__)
 
 
+#: The longest the monitor takes to stop its servers once asked (the page's event streams, uvicorn, OPC UA,
+#: their tasks), seconds: well within :meth:`MonitorProcess.stop`'s wait, so a stop is clean unless the
+#: machine gives the monitor no processor at all.
+STOP_BUDGET_S = 6.0
+
+
 def monitor_info_path(data_dir) -> Path:
     return Path(data_dir) / "live" / "monitor.json"
 
@@ -121,33 +127,50 @@ async def _serve(config, web: WebSettings | None, opcua: OpcUaSettings | None, o
         for warning in opcua.warnings:
             log.warning("%s", warning)
         tasks.append(asyncio.create_task(publisher.run()))
+    # The stop handlers before monitor.json: whoever sees the file may stop the monitor at once (a SIGTERM
+    # before them ends it abruptly, and a stopped, starved one could not be told from a dead one).
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
     path = monitor_info_path(config.data_dir)
     path.parent.mkdir(parents=True, exist_ok=True)
     text = json.dumps(info)
     write_file_atomic(path, lambda fh: fh.write(text), mode="w")
     if on_ready is not None:
         on_ready(info)
-    stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, stop.set)
     try:
         waiter = asyncio.create_task(stop.wait())
         await asyncio.wait([waiter, *tasks], return_when=asyncio.FIRST_COMPLETED)
     finally:
-        if server is not None:
-            # End the pages' event streams first (each says "the monitor stopped" and closes), then stop the
-            # server: an open stream left to the server's shutdown is cancelled with a traceback.
-            app.hub.stopping = True
-            await asyncio.sleep(0.3)
-            server.should_exit = True
-        if publisher is not None:
-            await publisher.stop()
-        for t in tasks:
-            try:
-                await asyncio.wait_for(t, timeout=5)
-            except (asyncio.TimeoutError, asyncio.CancelledError, Exception):
-                t.cancel()
+        await shut_down(app.hub if server is not None else None, server, publisher, tasks)
+
+
+async def shut_down(hub, server, publisher, tasks: list, budget_s: float = STOP_BUDGET_S) -> None:
+    """Stop the page's server and the OPC UA server within *budget_s* seconds in all: what has not ended by
+    then is cancelled (it was: the stream's grace, then the OPC UA server, then 5 s per task, one after the
+    other, which a starved monitor did not finish within the station's 10 s wait)."""
+    loop = asyncio.get_running_loop()
+    end = loop.time() + budget_s
+    if server is not None:
+        # End the pages' event streams first (each says "the monitor stopped" and closes), then stop the
+        # server: an open stream left to the server's shutdown is cancelled with a traceback.
+        hub.stopping = True
+        await asyncio.sleep(0.3)
+        server.should_exit = True
+    if publisher is not None:
+        try:
+            await asyncio.wait_for(publisher.stop(), timeout=max(0.1, end - loop.time()))
+        except Exception as exc:                    # a timeout, or asyncua's own error: the process ends anyway
+            log.warning("the OPC UA server did not stop cleanly (%s); the monitor ends all the same",
+                        type(exc).__name__)
+    pending = [t for t in tasks if not t.done()]
+    if pending:
+        _, pending = await asyncio.wait(pending, timeout=max(0.1, end - loop.time()))
+    for t in pending:
+        t.cancel()
+    if pending:
+        await asyncio.wait(pending, timeout=1.0)
 
 
 def serve(config, web: WebSettings | None, opcua: OpcUaSettings | None, nice: int = 0, on_ready=None) -> None:
@@ -174,7 +197,8 @@ class MonitorProcess:
     """The monitor beside the station's loop, in a spawned process at lower priority."""
 
     def __init__(self, config, web: WebSettings | None, opcua: OpcUaSettings | None):
-        monitor_info_path(config.data_dir).unlink(missing_ok=True)
+        self._info = monitor_info_path(config.data_dir)
+        self._info.unlink(missing_ok=True)
         ctx = multiprocessing.get_context("spawn")
         nice = (web or WebSettings()).nice
         self._proc = ctx.Process(target=_monitor_main, name="sofast-monitor", args=(config, web, opcua, nice),
@@ -186,10 +210,19 @@ class MonitorProcess:
         return self._proc.pid
 
     def stop(self, timeout_s: float = 10.0) -> None:
+        """Ask the monitor to stop (SIGTERM: both servers stop cleanly, within :data:`STOP_BUDGET_S`) and wait
+        up to *timeout_s* seconds; a monitor still stopping then is ended (SIGKILL). Nothing is lost either
+        way: the monitor only reads the station's files (and posts the operator's commands whole)."""
         if self._proc.is_alive():
-            self._proc.terminate()                       # SIGTERM: both servers stop cleanly
+            self._proc.terminate()
             self._proc.join(timeout_s)
-        if self._proc.is_alive():
-            log.error("the monitor did not stop within %.0f s; killing it", timeout_s)
-            self._proc.kill()
-            self._proc.join(5)
+        if not self._proc.is_alive():
+            return
+        load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+        log.warning("the monitor (page and OPC UA) was still stopping %.0f s after it was asked to (load average "
+                    "%.1f on %d cores: a busy machine gives it little processor time); it was ended. Nothing of "
+                    "the line's is lost: the monitor only reads the station's files", timeout_s, load,
+                    os.cpu_count() or 1)
+        self._proc.kill()
+        self._proc.join(5)
+        self._info.unlink(missing_ok=True)           # where it listened: it no longer does

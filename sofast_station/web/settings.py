@@ -49,7 +49,10 @@ class WebSettings:
     shift_starts : tuple of str
         Local times ("HH:MM") at which a shift starts; the page's shift runs from the latest one.
     nice : int
-        How much lower than the station the monitor process runs (os.nice increment, 0-19).
+        How much lower than the station the monitor process runs (os.nice increment, 0-19). 2 by default:
+        close enough to the station's share that the page and OPC UA keep answering on a busy machine (at 10
+        the monitor got about 1 s of processor in 2 minutes and OPC UA never came up), while the measuring
+        loop still wins a contested core (docs/reliability.md, "Under load").
     stale_after_s : float
         The last verdict is shown greyed (no verdict colour), with its age, once it is older than this, in
         seconds (60: three cycles of a 20 s line), or whenever the station is offline.
@@ -60,7 +63,7 @@ class WebSettings:
     token: str = ""
     keep_pictures: int = 200
     shift_starts: tuple = ("06:00", "14:00", "22:00")
-    nice: int = 10
+    nice: int = 2
     certificate: str = ""
     key: str = ""
     allow_plain_http: bool = False

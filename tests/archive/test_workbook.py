@@ -107,6 +107,25 @@ def test_number_formats_and_header(journal, tmp_path):
     assert ws.cell(2, cols["coefficients.C"]).number_format == "0.000000E+00"
 
 
+def test_a_figure_with_its_u_shows_the_decimals_every_screen_writes_it_with(journal, tmp_path):
+    """Issue 43: f_x read 5.420522 (0.000969) in the workbook and 5.42052 ± 0.00097 on the console. A figure's
+    cell and its U's show U's two significant digits' place (GUM 7.2.6), the values kept whole; nested figures
+    (slope RMS) and a U of tens too; a figure without U keeps its column's format."""
+    rec = make_record(focal_length_x_m=5.420521550041019, focal_length_x_m_U=0.000969132939163216,
+                      twist_mrad_per_m=-1.0, twist_mrad_per_m_U=63.2)
+    rec["slope_rms_mrad_U"] = {"design": {"x": 0.0049, "y": 0.0034, "magnitude": 0.00431}}
+    journal.append("c1", rec)
+    write_pending(journal, tmp_path)
+    ws = load_workbook(workbook_path(tmp_path, "2026-03-02"))["results"]
+    cols = {c.value: c.column for c in ws[1]}
+    for column, fmt in (("focal_length_x_m", "0.00000"), ("focal_length_x_m_U", "0.00000"),
+                        ("slope_rms_mrad.design.magnitude", "0.0000"), ("slope_rms_mrad_U.design.magnitude", "0.0000"),
+                        ("twist_mrad_per_m", "0"), ("twist_mrad_per_m_U", "0"),
+                        ("focal_length_y_m", "0.000000"), ("slope_rms_mrad.parabola.x", "0.0000")):
+        assert ws.cell(2, cols[column]).number_format == fmt, column
+    assert ws.cell(2, cols["focal_length_x_m"]).value == 5.420521550041019          # every digit kept
+
+
 def test_one_book_per_local_day_and_per_shift(journal, tmp_path):
     late = make_record("A", "2026-03-01T23:30:00.000+01:00")       # 22:30 UTC, but the 1st locally
     early = make_record("B", "2026-03-02T00:10:00.000+01:00")      # 23:10 UTC on the 1st, the 2nd locally

@@ -42,7 +42,8 @@ def inspected(inspections):
 
 
 def test_inspection_reports_optical_figures_that_match_the_twins_truth(inspected):
-    """The measured facet's trace agrees with the trace of the twin's exact surface at the same pixels."""
+    """The measured facet's trace agrees with the twin's own trace of its true surface (twin/sunlight.py, which
+    shares nothing with optics/)."""
     _, rec = inspected
     opt, truth = rec["optics"], rec["truth"]["optics"]
     assert opt["conditions"]["aperture"] == {"shape": "circle", "radius_m": 0.028}
@@ -124,9 +125,10 @@ def test_optical_figures_reach_the_journal_and_the_workbook_row(inspected, tmp_p
 
 
 def test_optical_figures_carry_an_uncertainty_that_covers_the_twins_truth(inspections):
-    """Each noisy capture's optical figures lie within their stated U (k = 2) of the trace of the twin's exact
-    surface, and U is not absurd: at most 10 x the figures' spread over the three captures plus their
-    difference from truth, and within stated bounds."""
+    """Each noisy capture's optical figures lie within their stated U (k = 2) of the twin's own trace of its true
+    surface (twin/sunlight.py: its own standard deviation, 1e-4 to 2e-4 of each figure, is a tenth of U or less),
+    and U is not absurd: at most 10 x the figures' spread over the three captures plus their difference from
+    truth, and within stated bounds."""
     _, records, sensitivities = inspections
     assert len(sensitivities) == 1          # computed on the first facet, kept for the next two
     errors = {"intercept": [], "spot_radius_m": []}

@@ -19,12 +19,15 @@ from tests.conftest import ROOT, SMALL_STATION
 
 @dataclass(frozen=True)
 class StationDumps:
-    """The dumps of one run: ``good`` (3 dumps), ``fault`` (the dark capture), the journal and its folder."""
+    """The dumps of one run: ``good`` (3 dumps), ``fault`` (the dark capture), the journal and its folder, the
+    station file and the lines the line printed on its console."""
 
     good: tuple[Path, ...]
     fault: Path
     journal: Path
     folder: Path
+    config: Path
+    console: tuple[str, ...]
 
 
 @pytest.fixture(scope="session")
@@ -41,7 +44,8 @@ def station_dumps(tmp_path_factory) -> StationDumps:
     # Dumps, not a cycle-time test: a generous deadline keeps the fixture independent of machine load.
     path.write_text(text + "\n[run]\ndump_every_n = 1\ndeadline_s = 60\n")
     cfg = dataclasses.replace(load_config(path), data_dir=d / "data")
-    service = Service(cfg, simulated_facets=4, console=lambda line: None)
+    console: list[str] = []
+    service = Service(cfg, simulated_facets=4, console=console.append)
     try:
         service.runner.run()
     finally:
@@ -55,7 +59,7 @@ def station_dumps(tmp_path_factory) -> StationDumps:
     assert rows["SIM-0004"].verdict == "fault"
     good = tuple(Path(rows[s].dump_path) for s in ("SIM-0001", "SIM-0002", "SIM-0003"))
     return StationDumps(good=good, fault=Path(rows["SIM-0004"].dump_path), journal=d / "data" / "journal.sqlite3",
-                        folder=d / "data" / "dumps")
+                        folder=d / "data" / "dumps", config=path, console=tuple(console))
 
 
 def copy_dump(src: Path, dst: Path) -> Path:

@@ -32,7 +32,7 @@ def test_report_flux_options_change_the_conditions(station_dumps, tmp_path, caps
     assert main(["report", "flux", str(dump), "--out", str(tmp_path / "a.png"), "--aperture", "0.02",
                  "--dni", "800", "--sun", "gaussian", "--sigma-mrad", "2.5"]) == 0
     out = capsys.readouterr().out
-    assert "aperture {'shape': 'circle', 'radius_m': 0.02}" in out
+    assert "aperture a circle of 0.020 m radius" in out
     assert (tmp_path / "a.png").exists()
     intercept = float(out.split("intercept ")[1].split()[0])
     assert intercept < 0.9                       # a 20 mm aperture cannot hold a 25 mm sun image

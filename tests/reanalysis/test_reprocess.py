@@ -9,6 +9,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import re
 import subprocess
 import sys
 
@@ -62,6 +63,31 @@ def test_a_faulted_capture_reprocesses_to_the_same_fault(station_dumps):
     assert res.exact is True, res.differences
 
 
+def test_a_u_that_moved_is_a_difference_the_table_names(station_dumps):
+    """Issue 43: reprocess said "0 difference" while report showed another U, because it compared no U. An
+    archived U 20 % larger than the one the frames give (every value the same) is now a difference: named in
+    ``differences`` with its figure, in the table's U column, and in the summary (same software: NOT
+    reproduced); the values' column still says 0."""
+    import copy
+
+    from sofast_station.reanalysis.cli import comparison_table
+    from sofast_station.reanalysis.reprocess import reprocess_content
+
+    content = read_dump(station_dumps.good[0])
+    archived = copy.deepcopy(content.record)
+    archived["focal_length_x_m_U"] *= 1.2
+    archived["slope_rms_mrad_U"]["design"]["magnitude"] *= 1.2
+    res = reprocess_content(content, archived=archived)
+    assert set(res.differences) == {"focal_length_x_m_U", "slope_rms_mrad_U.design.magnitude"}
+    assert res.differences["focal_length_x_m_U"]["uncertainty_of"] == "focal_length_x_m"
+    assert res.exact is False and "2 of" in res.summary() and "(only U)" in res.summary()
+    assert "NOT reproduced" in res.summary() and res.record["reprocess"]["uncertainties_different"] == 2
+    cells = {row[0]: row for row in (re.split(r"\s{2,}", ln.strip()) for ln in comparison_table(res).splitlines()[1:])}
+    for name in ("focal_length_x_m", "slope_rms_mrad.design.magnitude"):
+        assert cells[name][3] == "0" and cells[name][4].endswith("(-17 %)"), cells[name]   # (1 - 1.2) / 1.2
+    assert cells["focal_length_y_m"][3:] == ["0", "0"]
+
+
 def test_an_archived_fault_that_now_analyses_is_named_as_such(station_dumps):
     from sofast_station.reanalysis.reprocess import reprocess_content
 
@@ -85,10 +111,15 @@ def test_without_the_stored_result_group_the_figures_are_still_reproduced(statio
     assert "no archived result" in res.summary() and "result group is missing" in res.notes[0]
     archived = read_dump(original, load_frames=False).record
     differences, n = compare_figures(archived, res.record)
-    assert differences == {} and n > 60
-    # the journal still has the row: with it the comparison is made, and exact
+    assert n > 60 and not [k for k, d in differences.items() if "uncertainty_of" not in d], differences
+    # the journal still has the row: with it the comparison is made; every value is the archive's, but what the
+    # line's U came from (its input uncertainties, its sensitivities and frame-brightness pool) was in the
+    # result group, so U moved, and the summary and notes say why
     res = reprocess_dump(bare, journal=station_dumps.journal)
-    assert res.exact is True and str(station_dumps.journal) in res.summary()
+    assert res.exact is False and res.differences and res.differences == res.uncertainty_differences
+    assert str(station_dumps.journal) in res.summary() and "every value reproduced" in res.summary()
+    assert res.u_missing == ["its input uncertainties", "its sensitivities"]
+    assert any("does not keep the input uncertainties" in n for n in res.notes)
 
 
 def _set_frame(path, index: int, frame: np.ndarray) -> None:
@@ -355,7 +386,11 @@ def test_a_hand_written_schema_1_dump_is_read_and_reproduced(station_dumps, tmp_
     assert back.schema_version == 1 and back.cycle_id == content.cycle_id
     assert np.array_equal(back.frames_cropped, content.frames_cropped)
     res = reprocess_dump(v1)
-    assert res.exact is True, res.differences
+    # every value reproduced; a schema-1 dump keeps neither the input uncertainties nor the sensitivities the
+    # line's U came from, so the U that moved are listed, and the notes say why
+    assert res.differences == res.uncertainty_differences, res.differences
+    assert res.u_missing == ["its input uncertainties", "its sensitivities"]
+    assert "every value reproduced" in res.summary()
 
 
 @pytest.mark.parametrize("json_mode", [False, True], ids=["table", "json"])
@@ -425,9 +460,12 @@ def test_dumps_carry_the_stations_sensitivities_and_reprocess_reuses_them_in_any
     first = [u_figures(reprocess_content(c)) for c in contents]
     second = [u_figures(reprocess_content(c)) for c in reversed(contents)][::-1]
     assert first == second
-    # Without the record (an older dump), they are computed from the capture: a cost, not another figure.
+    # Without the record (an older dump), they are computed from the capture: a cost, and U of the capture's
+    # own (its frame brightness not pooled with the line's earlier captures): every value is the archive's, and
+    # the U that moved are named, with why
     bare = read_dump(station_dumps.good[0])
     bare.sensitivities = None
     res = reprocess_content(bare)
-    assert res.exact is True and res.record["timings_s"]["analysis_uncertainty_sensitivities"] > 0
+    assert res.record["timings_s"]["analysis_uncertainty_sensitivities"] > 0
+    assert res.differences == res.uncertainty_differences and res.u_missing == ["its sensitivities"]
     assert set(u_figures(res)) == set(first[0])

@@ -210,3 +210,60 @@ def test_a_certificate_is_found_under_the_serial_as_printed(station, tmp_path, c
     assert main(["report", "certificate", "MF/2024/001", "--config", str(station), "--journal", str(journal),
                  "--out", str(tmp_path / "out")]) == 0
     assert Path(capsys.readouterr().out.strip()).name == "certificate-MF_2024_001.pdf"
+
+
+@pytest.fixture
+def nothing_heavy(monkeypatch):
+    """Fails a test that reprocesses a measurement, loads the station file or lowers the priority; the calls to
+    lower the priority are listed (a refusal must come before it: on a busy machine, niceness 10 made the
+    refusal's own checks wait for a core)."""
+    from sofast_station import commands
+    from sofast_station.reanalysis import quality_reports, sources
+
+    def forbidden(what):
+        def call(*args, **kwargs):
+            raise AssertionError(f"{what} before the refusal")
+        return call
+
+    monkeypatch.setattr(sources, "load_measured", forbidden("a measurement was reprocessed"))
+    monkeypatch.setattr(quality_reports, "_config", forbidden("the station file was loaded"))
+    lowered: list[int] = []
+    monkeypatch.setattr(commands, "lower_priority", lambda *a, **k: lowered.append(1))
+    return lowered
+
+
+def test_a_certificate_of_a_faulted_facet_is_refused_before_any_heavy_work(station, tmp_path, capsys, caplog,
+                                                                           nothing_heavy):
+    """Issue 43: `report certificate` of a faulted facet took 7 min 26 s to refuse on a busy machine: it
+    reprocessed the facet's dump (for the maps) at niceness 10, then refused. The refusal now comes from the
+    journal's record, before the dump is reprocessed, the station file loaded or the priority lowered; so
+    does the refusal of a serial never measured."""
+    import os
+
+    journal = Path(os.environ["SOFAST_DATA_DIR"]) / "journal.sqlite3"      # the station's own journal
+    journal.parent.mkdir(parents=True)
+    dump = tmp_path / "F-0001.h5"
+    dump.write_bytes(b"a dump the refusal must not open")
+    rec = json.loads(json.dumps(SAMPLE))
+    rec.pop("truth")
+    rec.update(serial="F-0001", verdict="fault", fault_code=7, reasons=["capture: the white frame is dark everywhere"])
+    with Journal(journal) as j:
+        j.append("c00001", rec, dump_requested=True)
+        j.mark_dump("c00001", dump)
+    for serial, words in (("F-0001", "its cycle ended in a fault: capture: the white frame is dark"),
+                          ("NEVER-MEASURED", "serial 'NEVER-MEASURED' is not in the journal")):
+        caplog.clear()
+        assert main(["report", "certificate", serial, "--config", str(station), "--out", str(tmp_path / "out")]) == 2
+        assert words in caplog.text, caplog.text
+    assert nothing_heavy == [] and not (tmp_path / "out").exists()
+
+
+def test_report_diff_refuses_an_unreadable_second_input_before_reprocessing_the_first(tmp_path, caplog,
+                                                                                       nothing_heavy, repo_root):
+    """`report diff A B` reprocessed A (minutes for a full-resolution dump) before finding that B cannot be
+    read. Both are checked first (a dump's metadata, an OpenCSP folder's files)."""
+    broken = tmp_path / "broken.h5"
+    broken.write_bytes(b"not HDF5 at all")
+    opencsp = f"opencsp:{repo_root / 'fixtures/opencsp/test_data'}"
+    assert main(["report", "diff", opencsp, str(broken), "--out", str(tmp_path / "out")]) == 2
+    assert "broken.h5" in caplog.text and nothing_heavy == []

@@ -63,3 +63,25 @@ def test_an_aperture_is_said_in_words_not_as_its_dict():
 
     assert aperture_text({"shape": "circle", "radius_m": 0.5}) == "a circle of 0.500 m radius"
     assert aperture_text({"shape": "rectangle", "width_m": 1.2, "height_m": 0.8}) == "a 1.200 m x 0.800 m rectangle"
+
+
+def test_a_records_figure_is_written_one_way_by_its_key():
+    """figure_text: a record's figure by its dotted key with its NAME_U sibling (nested ones too), by GUM's rule;
+    without a U, every screen gives a figure the same decimals (the console showed slope RMS to 2, the page to
+    3); a flat facet's missing focal length is infinite, a missing figure a dash."""
+    from sofast_station.result.formatting import figure_parts, figure_text
+
+    rec = {"focal_length_x_m": 5.420521550041019, "focal_length_x_m_U": 0.000969132939163216,
+           "focal_length_y_m": None, "curvature_y_per_m": 1e-10, "curvature_x_per_m": 0.18448412,
+           "twist_mrad_per_m": 0.23114, "slope_rms_mrad": {"design": {"x": 0.56241, "magnitude": 0.76093}},
+           "slope_rms_mrad_U": {"design": {"magnitude": 0.0043}},
+           "optics": {"intercept": 0.91234567, "intercept_U": 0.0271}}
+    assert figure_text(rec, "focal_length_x_m", " m") == "5.42052 ± 0.00097 m"
+    assert figure_parts(rec, "focal_length_x_m") == ("5.42052", "0.00097")
+    assert figure_text(rec, "slope_rms_mrad.design.magnitude") == "0.7609 ± 0.0043"
+    assert figure_text(rec, "optics.intercept") == "0.912 ± 0.027"
+    assert figure_text(rec, "slope_rms_mrad.design.x") == "0.562"          # no U: 3 decimals, everywhere
+    assert figure_text(rec, "twist_mrad_per_m", " mrad/m") == "0.231 mrad/m"
+    assert figure_text(rec, "curvature_x_per_m") == "0.184484"
+    assert figure_text(rec, "focal_length_y_m") == "inf" and figure_text(rec, "twist_e1_mrad_per_m") == "-"
+    assert figure_parts(rec, "twist_e1_mrad_per_m") is None

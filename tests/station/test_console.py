@@ -49,7 +49,7 @@ def test_every_kind_of_row_lines_up_with_the_header():
     for line in lines:
         assert line[c_end - 1] == "s" and line[c_end - 6:c_end - 1].strip().replace(".", "").isdigit(), (head, line)
     # the figures sit right-aligned under their headings (a dash when missing)
-    f_end = head.index("f_x (m)") + len("f_x (m)") - console._FIGURES[0][4]   # the value ends before its "± U" room
+    f_end = head.index("f_x (m)") + len("f_x (m)") - console._FIGURES[0][3]   # the value ends before its "± U" room
     assert lines[0][f_end - 6:f_end] == "5.4183" and lines[3][f_end - 1] == "-"
     assert "".join(ch for ch in lines[3][head.index("verdict") + 7:c_end - 7] if ch not in " -") == ""
 

@@ -73,6 +73,22 @@ def test_inspect_answers_every_facet_with_its_canting_and_truth(record):
     assert record["truth"]["heliostat"]["placement"]["mm"] == [1.0, -0.6, 0.8]
 
 
+def test_its_summary_says_the_aperture_in_words_and_each_figure_with_its_u(record):
+    """Issue 43: the heliostat's summary printed "aperture {'shape': ...}" (a Python dict); it is the one record
+    summary now (report/summary.py), each figure written as every screen writes it."""
+    from sofast_station.report.summary import record_text
+    from sofast_station.result.formatting import figure_text
+
+    text = record_text(record)
+    assert "{'shape'" not in text and "aperture a circle of " in text, text
+    assert text.startswith("Heliostat H-0042 (heliostat-2x2)") and "canting RMS" in text
+    for f in record["facets"]:
+        line = next(ln for ln in text.splitlines() if ln.strip().startswith(f["label"] + " "))
+        for key in ("canting_mrad.x", "curvature_x_per_m", "slope_rms_mrad.parabola.magnitude"):
+            assert figure_text(f, key, sign=key.startswith("canting")) in line, (key, line)
+        assert " ± " in line
+
+
 def test_the_verdict_is_each_facets_and_the_heliostats(record):
     by = {f["label"]: f for f in record["facets"]}
     assert by["R1C2"]["verdict"] == "fail"
@@ -104,6 +120,7 @@ def test_the_instructions_turns_bring_the_twins_facets_back(record):
 
     adj = load_ensemble(ROOT / "fixtures/facets/heliostat_2x2.toml").adjusters
     ins = record["canting_instructions"]
+    assert ins["serial"] == record["serial"]             # made before the record had one: named after
     assert ins["viewpoint"] == "behind" and ins["screw_labels"] == ["A", "B", "C"] and ins["turn_step"] == 0.125
     res = ins["resolution_U"]
     assert res["limit_mrad"] == 0.5 and res["ratio"] == pytest.approx(0.5 / res["U_mrad"])

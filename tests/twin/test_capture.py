@@ -138,8 +138,8 @@ def test_a_kept_pattern_renders_the_same_frame_as_a_fresh_image(rich_station, op
         first = station.capture(kept, None if seed is None else np.random.default_rng(seed))
         again = station.capture(kept, None if seed is None else np.random.default_rng(seed))
         assert np.array_equal(fresh, first) and np.array_equal(first, again)
-    assert station._cached_light(kept) is not None and station._cached_light(pattern) is None
-    r0, r1, c0, c1, _ = station._seen_box         # the box leaves dark pixels on every side to check
+    assert station.renderer.cached_light(kept) is not None and station.renderer.cached_light(pattern) is None
+    r0, r1, c0, c1, _ = station.renderer.seen_box   # the box leaves dark pixels on every side to check
     height, width = station.geometry.camera.shape
     assert r0 > 0 and c0 > 0 and r1 < height and c1 < width
 

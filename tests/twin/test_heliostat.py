@@ -23,7 +23,7 @@ from sofast_station.geometry import CameraIntrinsics, ScreenSpec
 from sofast_station.layout import layout_station
 from sofast_station.twin.parameters import TrueFacet, TwinOptics
 from sofast_station.twin.heliostat import TrueHeliostat, TwinHeliostat, draw_heliostat, heliostat_truth, merge_traces
-from sofast_station.twin.station import TRACE_ARRAYS
+from sofast_station.twin.trace import TRACE_ARRAYS
 from tests.conftest import ROOT
 
 ENSEMBLE = load_ensemble(ROOT / "fixtures/facets/heliostat_2x2.toml")
@@ -117,10 +117,10 @@ def test_a_missing_and_a_half_hidden_facet():
 
 
 def fake_trace(idx, hit, value, cov):
-    t = SimpleNamespace(_seen_idx=np.asarray(idx), _hit_range_m=np.asarray(hit, float),
-                        _seen_coverage=np.asarray(cov, float))
+    t = SimpleNamespace(seen_idx=np.asarray(idx), hit_range_m=np.asarray(hit, float),
+                        seen_coverage=np.asarray(cov, float))
     for name in TRACE_ARRAYS:
-        if name != "_hit_range_m":
+        if name != "hit_range_m":
             setattr(t, name, np.column_stack([np.asarray(value, float)] * 2))
     return t
 
@@ -132,7 +132,7 @@ def test_the_merged_picture_keeps_the_nearest_hit_and_adds_coverages():
     coverage, seen, owner, arrays = merge_traces({7: a, 8: b, 9: c}, (1, 6))
     assert seen.tolist() == [1, 2, 3, 4]
     assert owner.tolist() == [9, 7, 8, 8]                 # pixel 1: c is nearer; pixel 3: b is nearer
-    assert arrays["_x_facet_m"][:, 0].tolist() == [100, 20, 300, 400]
+    assert arrays["x_facet_m"][:, 0].tolist() == [100, 20, 300, 400]
     assert coverage.ravel().tolist() == pytest.approx([0, 1.0, 1.0, 0.7, 1.0, 0])   # summed, at most 1
 
 

@@ -16,12 +16,15 @@ ALLOWED_PROJECT_MODULES = {"sofast_station.geometry", "sofast_station.facet", "s
                            "sofast_station.errors"}
 
 
-def test_importing_the_twin_loads_neither_measure_nor_calibrate_nor_cv2():
+def test_importing_the_twin_loads_neither_measure_nor_optics_nor_calibrate_nor_cv2():
+    """The twin, its optical truth (twin/sunlight.py) among it, loads nothing of the pipeline it checks."""
     code = ("import json, sys\n"
             "import sofast_station.twin, sofast_station.twin.truth, sofast_station.twin.station\n"
-            "import sofast_station.twin.board, sofast_station.twin.heliostat\n"
+            "import sofast_station.twin.board, sofast_station.twin.heliostat, sofast_station.twin.sunlight\n"
+            "import sofast_station.twin.trace, sofast_station.twin.render, sofast_station.twin.sensor\n"
             "bad = sorted(m for m in sys.modules if m.startswith('sofast_station.measure') or m == 'cv2'"
-            " or m.startswith('cv2.') or m.startswith('sofast_station.calibrate'))\n"
+            " or m.startswith('cv2.') or m.startswith('sofast_station.calibrate')"
+            " or m.startswith('sofast_station.optics'))\n"
             "print(json.dumps(bad))\n")
     env = dict(os.environ, PYTHONPATH=str(REPO))
     out = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=env, capture_output=True, text=True, check=True)

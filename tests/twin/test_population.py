@@ -89,11 +89,11 @@ def test_a_drawn_facet_is_traced_as_a_new_trace_would(small, design):
                                 dents=({"x_m": 0.1, "y_m": -0.05, "depth_m": -2e-4, "radius_m": 0.03},))
     fast = small.with_facet(facet)
     anew = TwinStation(small.geometry, design, facet, small.optics)
-    assert fast._coverage is small._coverage and fast.surface.facet == facet    # the outline was kept
-    common, i_fast, i_anew = np.intersect1d(fast._seen_idx, anew._seen_idx, return_indices=True)
-    assert common.size > 0.999 * anew._seen_idx.size
-    np.testing.assert_allclose(fast._u_scr_m[i_fast], anew._u_scr_m[i_anew], rtol=0, atol=1e-9)   # metres
-    np.testing.assert_allclose(fast._slope[i_fast], anew._slope[i_anew], rtol=0, atol=1e-12)
+    assert fast.trace.coverage is small.trace.coverage and fast.surface.facet == facet    # the outline was kept
+    common, i_fast, i_anew = np.intersect1d(fast.trace.seen_idx, anew.trace.seen_idx, return_indices=True)
+    assert common.size > 0.999 * anew.trace.seen_idx.size
+    np.testing.assert_allclose(fast.trace.u_scr_m[i_fast], anew.trace.u_scr_m[i_anew], rtol=0, atol=1e-9)   # metres
+    np.testing.assert_allclose(fast.trace.slope[i_fast], anew.trace.slope[i_anew], rtol=0, atol=1e-12)
     # The kept outline moves less than MAX_KEPT_EDGE_SHIFT_PX: only pixels the edge crosses change their (exact
     # area) coverage, each by at most that shift times the edge's length in the pixel (sqrt 2 at most).
     changed = np.abs(fast.coverage - anew.coverage) > 0
@@ -108,7 +108,7 @@ def test_a_drawn_facet_is_traced_as_a_new_trace_would(small, design):
     assert fast.measured_distance_m() == anew.measured_distance_m()
     # a facet placed elsewhere in the fixture is traced anew
     moved = small.with_facet(dataclasses.replace(facet, placement_mm=(1.0, 0.0, 0.0)))
-    assert moved._coverage is not small._coverage and not np.array_equal(moved.coverage, small.coverage)
+    assert moved.trace.coverage is not small.trace.coverage and not np.array_equal(moved.coverage, small.coverage)
 
 
 def test_a_drawn_facets_twin_is_freed_when_dropped_without_the_garbage_collector(small, design):
@@ -127,9 +127,9 @@ def test_a_drawn_facets_twin_is_freed_when_dropped_without_the_garbage_collector
     gc.disable()
     try:
         twin.capture(image)
-        assert twin._samples, "the read-only image was not cached: this test would prove nothing"
+        assert twin.renderer._samples, "the read-only image was not cached: this test would prove nothing"
         gone = weakref.ref(twin)
-        sample = weakref.ref(next(iter(twin._samples.values()))[1])      # the cached display sample
+        sample = weakref.ref(next(iter(twin.renderer._samples.values()))[1])      # the cached display sample
         del twin
         assert gone() is None and sample() is None, "the twin's display samples outlive it"
         assert weakref.getweakrefcount(image) == 0

@@ -161,8 +161,52 @@ def test_opcua_client_sees_the_tree_and_the_verdict_change(tmp_path, monkeypatch
         with pytest.raises(ua.UaStatusCodeError):
             wrong.connect()
         wrong.disconnect()
+        _the_documented_example_waits_out_a_slow_server(server.pid, endpoint)
     finally:
         stop_server(server)
+
+
+def _the_documented_example_waits_out_a_slow_server(server_pid: int, endpoint: str) -> None:
+    """Issue 43: the example of docs/opcua.md failed 3 of 3 at `load_data_type_definitions()` on a loaded
+    machine: its client waited asyncua's default 4 s per request, and the starved server answered later. Here
+    the example (the documented code as written, its endpoint the test server's) runs against a server that
+    stops answering for 8 s, as a monitor given no processor does: the server is stopped (SIGSTOP) just
+    before the client loads the data type definitions and continued 8 s later. A client that waits 4 s
+    fails there; the documented one reads the last facet's verdict and units."""
+    import signal
+    import textwrap
+
+    text = (ROOT / "docs" / "opcua.md").read_text().split("## Reading it", 1)[1]
+    code = text.split("```python\n", 1)[1].split("```", 1)[0]
+    documented = "opc.tcp://127.0.0.1:4840/sofast-station/"
+    assert documented in code and "load_data_type_definitions()" in code
+    lines = code.replace(documented, endpoint).splitlines()
+    at = next(i for i, line in enumerate(lines) if "load_data_type_definitions()" in line)
+    indent = lines[at][:len(lines[at]) - len(lines[at].lstrip())]
+    lines.insert(at, f"{indent}import os, signal; os.kill({server_pid}, signal.SIGSTOP)  # continued 8 s later")
+    script = "\n".join(lines) + "\n"
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    example = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               text=True, env=env)
+    try:
+        end = time.monotonic() + 120
+        while _state(server_pid) != "T":               # stopped by the example, connected
+            assert example.poll() is None, example.communicate()
+            assert time.monotonic() < end, "the example did not start"
+            time.sleep(0.02)
+        time.sleep(8.0)
+    finally:
+        os.kill(server_pid, signal.SIGCONT)
+    out, err = example.communicate(timeout=300)
+    assert example.returncode == 0, textwrap.shorten(err, 2000)
+    verdict, figure = out.splitlines()
+    assert verdict == "fault"                           # the last facet (X-0002) was a fault
+    assert figure.startswith("nan m within ")           # no focal length, its unit and the recipe's limits
+
+
+def _state(pid: int) -> str:
+    with open(f"/proc/{pid}/stat") as fh:
+        return fh.read().rsplit(")", 1)[1].split()[0]
 
 
 def test_counters_count_indeterminate_facets_apart():

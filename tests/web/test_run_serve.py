@@ -31,7 +31,8 @@ def test_run_serve_starts_and_stops_the_page(small_station_toml, tmp_path):
         info = json.loads((data / "live" / "monitor.json").read_text())
         pid = info["pid"]
         assert pid != proc.pid
-        assert os.getpriority(os.PRIO_PROCESS, pid) >= min(19, os.getpriority(os.PRIO_PROCESS, proc.pid) + 10)
+        # [web] nice (2 unless set) below the station: close to its share, so it serves on a busy machine
+        assert os.getpriority(os.PRIO_PROCESS, pid) == min(19, os.getpriority(os.PRIO_PROCESS, proc.pid) + 2)
         with urllib.request.urlopen(info["url"] + "api/state", timeout=30) as r:
             state = json.loads(r.read())
         assert state["station"].startswith("Small simulated") and state["state"] == "paused"

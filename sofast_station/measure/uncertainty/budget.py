@@ -381,6 +381,9 @@ def uncertainty_figures(reduction, *, fringes, geometry, design, measured_distan
     pool = None
     if cache is not None and cache_key is not None:
         pool = cache.setdefault(("frame brightness", cache_key), deque(maxlen=FRAME_POOL_CAPTURES))
+    # The pool as this capture found it: kept with the sensitivities (a dump's), so that a re-analysis of the
+    # capture pools it with the same earlier captures and states the same U (the line's pool is its own).
+    pool_before = None if pool is None else [list(entry) for entry in pool]
     frame = pooled_frame_brightness(*frame_brightness_dn(reduction), pool)
     response = display_response_u(reduction, inputs)
     pose_mc = (pose_monte_carlo(reduction, geometry=geometry, design=design, inputs=inputs) if pose_task is None
@@ -392,6 +395,7 @@ def uncertainty_figures(reduction, *, fringes, geometry, design, measured_distan
                                                      for k, v in frame.items()}
     out["uncertainty_budget"]["display_response"] = {k: (_sig(v, 4) if isinstance(v, float) else v)
                                                      for k, v in response.items()}
-    # Not a figure (a timing): :func:`~sofast_station.measure.analysis.analyse` moves it to the timings.
+    # Not figures (a timing, the pool): :func:`~sofast_station.measure.analysis.analyse` takes them out.
     out["_sensitivity_seconds"] = sens.seconds if fresh else 0.0
+    out["_frame_pool"] = pool_before
     return out

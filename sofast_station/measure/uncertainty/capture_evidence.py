@@ -105,7 +105,8 @@ def display_response_u(reduction, inputs: InputUncertainties) -> dict:
         for a capture's evidence ``estimate_rad`` (E), ``estimate_u_rad`` (u(E)) and ``harmonic_ratio``
         (signed r); ``record_rad`` when a record's value is in it.
     """
-    if inputs.response_phase_rad <= 0:
+    if inputs.response_phase_rad <= 0 or not getattr(reduction.phases, "four_step", True):
+        # (a capture without four-step sets, a fixed pattern's, has no phase for a response to shift)
         return {"u_rad": 0.0, "source": "off"}
     fn = getattr(reduction.phases, "noise", None)
     ratio = getattr(fn, "signed_harmonic_ratio", None)
@@ -171,9 +172,10 @@ def capture_scales(reduction, sens: Sensitivities, inputs: InputUncertainties,
         sigma_f = float(frame_sigma_dn)
     ok = reduction.rays.ok
     amp = {}
-    for a in ("x", "y"):
-        b = float(median(reduction.phases.finest_modulation_dn[a][ok]))
-        amp[a] = sigma_f / (np.sqrt(2.0) * max(b, 1e-9))
+    if any(inp.group == "frame-to-frame brightness" for inp in sens.inputs):
+        for a in ("x", "y"):
+            b = float(median(reduction.phases.finest_modulation_dn[a][ok]))
+            amp[a] = sigma_f / (np.sqrt(2.0) * max(b, 1e-9))
     for i, inp in enumerate(sens.inputs):
         if inp.group == "corner location" and per_coordinate is not None and inp.u > 0:
             scales[i] = per_coordinate[corner_rows.index(i)] / inp.u

@@ -274,8 +274,11 @@ def screen_shape_inputs(screen) -> list[Input]:
     return [Input(f"screen shape {k + 1}", "screen shape", 1.0, "sd") for k in range(getattr(screen, "n_modes", 0))]
 
 
-def budget_inputs(inputs: InputUncertainties, n_corners: int) -> list[Input]:
-    """The systematic and corner rows of the budget for *inputs* (zero-uncertainty inputs are left out)."""
+def budget_inputs(inputs: InputUncertainties, n_corners: int, four_step: bool = True) -> list[Input]:
+    """The systematic and corner rows of the budget for *inputs* (zero-uncertainty inputs are left out).
+
+    *four_step* False: a capture without four-step fringe sets (a fixed pattern's one frame) has no phase,
+    so no display-response or frame-to-frame brightness rows."""
     rows = [Input("distance", "measured distance", inputs.distance_mm, "mm"),
             Input("camera fx", "camera focal length", inputs.camera_focal_px, "px"),
             Input("camera fy", "camera focal length", inputs.camera_focal_px, "px"),
@@ -289,15 +292,15 @@ def budget_inputs(inputs: InputUncertainties, n_corners: int) -> list[Input]:
              for a, u in zip("xyz", inputs.screen_translation_mm)]
     rows += [Input("screen pitch x", "screen pitch", inputs.screen_pitch_relative, "1"),
              Input("screen pitch y", "screen pitch", inputs.screen_pitch_relative, "1"),
-             Input("display response cos", "display response", inputs.response_phase_rad, "rad"),
-             Input("display response sin", "display response", inputs.response_phase_rad, "rad")]
+             Input("display response cos", "display response", inputs.response_phase_rad if four_step else 0.0, "rad"),
+             Input("display response sin", "display response", inputs.response_phase_rad if four_step else 0.0, "rad")]
     rows += [Input(f"fixture r{a}", "fixture pose", u, "mrad") for a, u in zip("xyz", inputs.fixture_rotation_mrad)]
     rows += [Input(f"fixture t{a}", "fixture pose", u, "mm") for a, u in zip("xyz", inputs.fixture_translation_mm)]
     rows += [Input(f"corner {i} {c}", "corner location", inputs.corner_px, "px", "random")
              for i in range(n_corners) for c in "uv"]
     # Scaled per capture by the amplitude its own consistency residuals give (:func:`capture_scales`).
     rows += [Input(f"frame brightness {a} {q}", "frame-to-frame brightness", FRAME_PHASE_REF_RAD, "rad", "random")
-             for a in "xy" for q in ("cos", "sin")]
+             for a in "xy" for q in ("cos", "sin") if four_step]
     return [r for r in rows if r.u > 0]
 
 

@@ -201,7 +201,8 @@ def sensitivities(reduction, *, fringes, geometry, design, measured_distance_m: 
                  measured_distance_m=measured_distance_m, settings=settings, screen=screen, pose=nominal_pose,
                  with_curl=False)
     f0 = np.array([_value(base.figures, p) for p in SCALAR_PATHS])
-    rows = budget_inputs(inputs, len(reduction.pose.corners_px)) + screen_shape_inputs(screen)
+    rows = (budget_inputs(inputs, len(reduction.pose.corners_px), four_step_sets(reduction))
+            + screen_shape_inputs(screen))
     lin = np.zeros((len(rows), len(SCALAR_PATHS)))
     cur = np.zeros_like(lin)
     for i, inp in enumerate(rows):
@@ -220,6 +221,13 @@ def sensitivities(reduction, *, fringes, geometry, design, measured_distance_m: 
         lin[i] = 0.5 * (plus - minus)
         cur[i] = 0.5 * (plus + minus) - f0
     return Sensitivities(rows, list(SCALAR_PATHS), lin, cur, int(base.rays.vidx.size), time.perf_counter() - t0)
+
+
+def four_step_sets(reduction) -> bool:
+    """Whether *reduction*'s capture has four-step fringe sets (whose phase a display response or a frame's
+    brightness can shift): a phase stage says so when it has none (``four_step = False``: a fixed pattern's
+    one frame)."""
+    return bool(getattr(reduction.phases, "four_step", True))
 
 
 def _value(figures: dict, path: tuple) -> float:
