@@ -27,7 +27,7 @@ USERS = (
                               "import-opencsp")),
     ("the quality engineer", ("report spc", "report acceptance", "report certificate SERIAL", "report diff A B")),
     ("the metrologist", ("study repeatability", "study population")),
-    ("the field engineer", ("field orientation", "field canting", "field prescription")),
+    ("the field engineer", ("field orientation", "field canting", "field prescription", "field spot", "field glare")),
 )
 
 

@@ -359,5 +359,6 @@ def test_field_benchmark_quick(repo_root):
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr
     print(proc.stdout)
-    for line in ("camera 640 x 480", "canting from", "the issue: under a minute", "orientation from one photo"):
+    for line in ("camera 640 x 480", "canting from", "the issue: under a minute", "orientation from one photo",
+                 "spot on the target"):
         assert line in proc.stdout

@@ -12,6 +12,7 @@ import hashlib
 from pathlib import Path
 
 from ..errors import ReportError
+from ..result.formatting import method_text
 from ._common import savefig_atomic
 
 
@@ -171,6 +172,7 @@ def certificate_head(fig, record: dict, title: str, issuer: dict | None = None) 
     cal = record.get("calibration") or {}
     head = [("Serial", record.get("serial", "?")), ("Facet type", record.get("facet", "?")),
             ("Recipe", record.get("recipe") or "default"), ("Station", record.get("station", "?")),
+            ("Measured by", method_text(record) or "-"),
             ("Measured", str(record.get("time", "?"))[:19].replace("T", " ") + " (local time)"),
             ("Software", f"sofast-station {record.get('software_version', '?')}, configuration "
                          f"{record.get('config_hash', '?')}"),
