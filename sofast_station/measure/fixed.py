@@ -612,6 +612,11 @@ class DotPhases:
         Dots dropped, by cause.
     found : dict
         The detection's counts (dots found, indexed, merged, too small, unmeasured), the origin and the axes.
+    position_model_sigma_m : dict or None
+        ``{"x": (M,), "y": (M,)}``: each dot's position error on the grid (grid steps) from its centroid's model
+        error (:data:`CENTROID_MODEL_PX`), carried as *position_sigma_m* is: independent from dot to dot, so the
+        fits' covariance holds it; not part of the slope noise floor (it is partly the footprint's smoothing,
+        which lowers a slope RMS rather than raising it).
     """
 
     positions_m: dict
@@ -627,6 +632,7 @@ class DotPhases:
     four_step = False
     noise = None
     set_offsets_dn: dict = field(default_factory=dict)
+    position_model_sigma_m: dict | None = None
 
     def capture_figures(self, region: Region, rays, fits, geometry: StationGeometry, curl) -> dict:
         """What the capture says about itself (the fringe method's keys, :data:`~.pipeline.CAPTURE_KEYS`, and the
@@ -861,10 +867,11 @@ def reduce_fixed(image: np.ndarray, dots: DotLocations, geometry: StationGeometr
         m = np.stack([step_i, step_j], axis=2)                       # pixels per (i, j) step
         per_index = m @ np.linalg.inv(axes).astype(np.float64)       # pixels per (x, y) index step
         jac = np.linalg.inv(per_index)                              # index steps per pixel
-        # the centroids' noise and their model error (independent per dot: CENTROID_MODEL_PX) alike
-        cov_c = found.cov_px2[which] + CENTROID_MODEL_PX ** 2 * np.eye(2)
-        cov_pos = jac @ cov_c @ np.swapaxes(jac, 1, 2)
+        cov_pos = jac @ found.cov_px2[which] @ np.swapaxes(jac, 1, 2)
         sigma = {"x": np.sqrt(np.clip(cov_pos[:, 0, 0], 0, None)), "y": np.sqrt(np.clip(cov_pos[:, 1, 1], 0, None))}
+        # the centroids' model error, independent per dot (CENTROID_MODEL_PX), through the same grid steps
+        cov_mod = CENTROID_MODEL_PX ** 2 * jac @ np.swapaxes(jac, 1, 2)
+        model_sigma = {"x": np.sqrt(cov_mod[:, 0, 0]), "y": np.sqrt(cov_mod[:, 1, 1])}
         ok = located & clear
         dropped = {"not_indexed": int(left.sum()), "merged": int(found.merged), "too_small": int(found.small),
                    "unmeasured": int(found.unmeasured), "no_location": int((~located).sum()),
@@ -879,6 +886,7 @@ def reduce_fixed(image: np.ndarray, dots: DotLocations, geometry: StationGeometr
         phases = DotPhases(
             positions_m={"x": col[s].astype(np.float64), "y": row[s].astype(np.float64)}, ok=ok[s],
             position_sigma_m={a: v[s] for a, v in sigma.items()}, noise_dn=float(found.noise_dn),
+            position_model_sigma_m={a: v[s] for a, v in model_sigma.items()},
             lattice_index=index[s], index_per_px=jac[s], depth_dn=found.depth_dn[which][s], dropped=dropped,
             found={"found": int(len(found.centres_px)), "indexed": int(len(which)), "origin_px": origin_px.tolist(),
                    "origin_from": origin_from, "origin_index": [int(v) for v in fixed.origin_index],
