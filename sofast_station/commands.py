@@ -18,12 +18,14 @@ import importlib
 import logging
 import os
 import re
+import shutil
 import sys
 import textwrap
+import tomllib
 from pathlib import Path
 
 from . import __version__
-from .errors import StationError
+from .errors import ConfigError, StationError
 
 log = logging.getLogger("sofast_station")
 
@@ -81,7 +83,6 @@ class HelpFormatter(argparse.RawDescriptionHelpFormatter):
 
 def _terminal_width() -> int:
     try:
-        import shutil
         return shutil.get_terminal_size().columns
     except (OSError, ValueError):           # pragma: no cover
         return 100
@@ -181,9 +182,6 @@ def check_station_file(args: argparse.Namespace) -> None:
     path = getattr(args, "config", None)
     if not isinstance(path, (str, Path)) or not str(path):
         return
-    import tomllib
-
-    from .errors import ConfigError
 
     path = Path(path).expanduser().resolve()
     # The words of files.read_toml, which load_config reads the file with (this module imports no other).
