@@ -20,13 +20,14 @@ USERS = (
     ("the operator", ("serve", "run --serve")),
     ("the morning calibration", ("calibrate radiometric", "calibrate status", "calibrate camera",
                                  "calibrate geometry")),
-    ("commissioning", ("calibrate commission", "calibrate screen", "calibrate pose", "calibrate camera-position",
-                       "calibrate dots", "calibrate screen-data")),
+    ("commissioning", ("calibrate commission", "calibrate screen", "calibrate pose", "calibrate marks",
+                       "calibrate confirm-geometry", "calibrate camera-position", "calibrate dots",
+                       "calibrate screen-data")),
     ("the process engineer", ("reprocess", "batch", "report DUMP", "report trend", "report flux", "export surface",
                               "import-opencsp")),
     ("the quality engineer", ("report spc", "report acceptance", "report certificate SERIAL", "report diff A B")),
     ("the metrologist", ("study repeatability", "study population")),
-    ("the field engineer", ("field orientation", "field canting", "field prescription")),
+    ("the field engineer", ("field orientation", "field canting", "field prescription", "field spot", "field glare")),
 )
 
 

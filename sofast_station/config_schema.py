@@ -243,6 +243,9 @@ SECTIONS: dict[str, dict[str, Key]] = {
         "slow_s": _pos("how long a 'slow-analysis' fault delays the analysis, s"),
         "assembly": Key("table", doc="[simulation.assembly]: the twin's true screen and camera (twin.assembly."
                                      "TrueAssembly, a rule below)"),
+        "temperature": Key("table", doc="[simulation.temperature]: the simulated hall's start_c, k_per_100 (its "
+                                        "warming per hundred facets) and screen_above_k ([temperature] source = "
+                                        "\"simulated\"; devices/thermometer.py)"),
     },
     "simulation_faults": {"*": Key("str", choices=SIMULATED_FAULTS, doc="fault injected for this serial")},
     "run": {
@@ -255,6 +258,11 @@ SECTIONS: dict[str, dict[str, Key]] = {
         "standby_worker": Key("bool", doc="keep a warm second analysis worker that takes over after a timeout or "
                                           "a crash"),
         "alarm_faults_in_row": Key("int", low=1, high=1000, doc="the line alarm after this many faults in a row"),
+        "reference_every_h": Key("float", low=0.0, high=8760.0,
+                                 doc="warn when no reference was measured for this long, h (0: never)"),
+        "display_level_tolerance": Key("float", low=0.0, high=0.5,
+                                       doc="the display's self-test: alarm when the fringes' mean level departs "
+                                           "from the radiometric table's by more (0: no check)"),
         "alarm_yield_window": Key("int", low=5, high=1000,
                                   doc="the line alarm's yield rule: the newest facets of a recipe it judges"),
     },
@@ -284,6 +292,8 @@ SECTIONS: dict[str, dict[str, Key]] = {
     "web": {"*": Key("any", doc="checked by its reader (READERS below)")},
     "opcua": {"*": Key("any", doc="checked by its reader (READERS below)")},
     "drift": {"*": Key("any", doc="checked by its reader (READERS below)")},
+    "marks": {"*": Key("any", doc="the fixture's marks; checked by its reader (READERS below)")},
+    "temperature": {"*": Key("any", doc="the temperature readings; checked by its reader (READERS below)")},
     "acceptance": {"*": Key("table", doc="[acceptance.RECIPE], checked by report.acceptance (a rule below)")},
     "certificate": {
         "issuer": Key("str", doc="who issues the facet certificates (report certificate): the organisation"),
@@ -295,13 +305,17 @@ SECTIONS: dict[str, dict[str, Key]] = {
         "alignment_point_m": Key("floats", length=(2,)), "measure_point_m": Key("floats", length=(2,)),
         "limits": Key("section:limits"), "quality": Key("section:quality"), "analysis": Key("section:analysis"),
         "optics": Key("section:optics", doc="over [optics] for this recipe"),
+        "reference": Key("str", doc="a reference recipe: its facet's certificate file ([reference] table), or "
+                                    "\"twin\" (the simulated station's truth)"),
+        "prescriptions": Key("str", doc="a heliostat recipe's folder of SERIAL.toml canting prescriptions "
+                                        "(field prescription; docs/field.md)"),
     },
 }
 
 #: The sections that may appear at the top of station.toml (the others are nested tables).
 TOP_LEVEL = ["station", "camera", "screen", "layout", "fringes", "analysis", "limits", "quality", "calibration",
              "optics", "simulation", "run", "archive", "devices", "recipes", "web", "opcua", "acceptance", "drift",
-             "uncertainty", "certificate", "heliostat"]
+             "uncertainty", "certificate", "heliostat", "marks", "temperature"]
 
 
 def _check_value(key: Key, value, file: str, label: str, name: str) -> None:
@@ -424,6 +438,8 @@ READERS = {
     "web": "sofast_station.web.settings:web_settings",
     "opcua": "sofast_station.web.settings:opcua_settings",
     "drift": "sofast_station.station.drift:drift_settings",
+    "marks": "sofast_station.calibrate.marks:mark_settings",
+    "temperature": "sofast_station.devices.thermometer:temperature_settings",
 }
 
 

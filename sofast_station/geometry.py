@@ -281,3 +281,44 @@ class StationGeometry:
         return cls(CameraIntrinsics.from_dict(d["camera"]), ScreenSpec.from_dict(d["screen"]),
                    Pose.from_dict(d["screen_to_camera"]), Pose.from_dict(d["fixture_to_camera"]),
                    None if measured is None else MeasuredScreen.from_dict(measured))
+
+
+@dataclass(frozen=True, eq=False)
+class FixtureMarks:
+    """Fixed marks on the fixture's frame beside the facet: white discs the camera sees in every frame
+    (``[marks]`` in station.toml; docs/reliability.md#the-station-checks-itself).
+
+    Plain data: the station locates them in each cycle's white frame against their commissioned image
+    positions (a moved camera moves them all), and the digital twin draws them where they are.
+
+    Parameters
+    ----------
+    centres_m : (N, 3) array
+        Each disc's centre in the fixture frame (the nominal facet frame), metres.
+    diameter_m : float
+        The discs' diameter, metres. Each disc lies in the plane through its centre normal to the fixture
+        frame's z axis (facing the camera and screen, as the facet does).
+    """
+
+    centres_m: np.ndarray
+    diameter_m: float
+
+    def __post_init__(self):
+        centres = np.array(self.centres_m, dtype=np.float64)
+        if centres.ndim != 2 or centres.shape[1] != 3 or len(centres) < 3:
+            raise ConfigError(f"fixture marks need at least 3 centres of 3 coordinates, got shape {centres.shape}")
+        centres = _finite_array("fixture mark centres", centres, centres.shape)
+        if not (np.isfinite(self.diameter_m) and 0 < float(self.diameter_m) < 1.0):
+            raise ConfigError(f"fixture mark diameter must be a positive length below 1 m, got {self.diameter_m!r}")
+        object.__setattr__(self, "centres_m", centres)
+        object.__setattr__(self, "diameter_m", float(self.diameter_m))
+
+    def __len__(self) -> int:
+        return len(self.centres_m)
+
+    def to_dict(self) -> dict:
+        return {"centres_m": self.centres_m.tolist(), "diameter_m": self.diameter_m}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "FixtureMarks":
+        return cls(np.asarray(d["centres_m"], float), float(d["diameter_m"]))

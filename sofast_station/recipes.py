@@ -10,6 +10,16 @@ In station.toml::
     limits = { focal_length_tolerance = 0.01 }
     quality = { min_valid_fraction = 0.85 }
     optics = { aperture = { shape = "circle", radius_m = 0.05 } }   # over [optics] (docs/optics.md)
+
+    [recipes.reference]                     # judges the station (docs/reliability.md#a-reference-every-shift)
+    facet = "fixtures/facets/dish_5m33.toml"
+    serial_pattern = "^REF-"
+    reference = "certificates/REF-1.toml"   # its certificate ([reference] table), or "twin"
+
+    [recipes.field-5x5]                     # a heliostat recipe
+    facet = "fixtures/facets/heliostat_5x5.toml"
+    prescriptions = "site/prescriptions"    # 'field prescription' output: a heliostat whose serial has its
+                                            # SERIAL.toml there is judged against that canting (docs/field.md)
 """
 
 from __future__ import annotations
@@ -17,6 +27,7 @@ from __future__ import annotations
 import dataclasses
 import re
 from dataclasses import dataclass
+from pathlib import Path
 
 from .devices.protocols import FacetRequest
 from .ensemble import EnsembleDesign, is_ensemble_file, load_ensemble
@@ -27,7 +38,7 @@ from .result.optical_figures import optics_for
 from .result.verdict import Limits, Quality, limits_from_table, quality_from_table
 
 _KEYS = {"facet", "serial_pattern", "alignment_point_m", "measure_point_m", "limits", "quality", "analysis",
-         "optics"}
+         "optics", "reference", "prescriptions"}
 
 
 @dataclass(frozen=True)
@@ -43,6 +54,13 @@ class Recipe:
     #: A heliostat recipe's heliostat (its facet file is a heliostat file; ``design`` is then its bounding
     #: outline): the loop analyses its facets in one capture (docs/heliostats.md). None: a single facet.
     ensemble: EnsembleDesign | None = None
+    #: A reference recipe's certificate (a [reference] file's path, or "twin": the simulated station's truth):
+    #: its facet judges the station, not itself (:mod:`sofast_station.station.reference`). None: a facet.
+    reference: str | None = None
+    #: A heliostat recipe's folder of canting prescriptions (``sofast-station field prescription``'s
+    #: ``SERIAL.toml``): a heliostat whose serial has a file there is judged against its own place in the field
+    #: (:func:`~sofast_station.job.job_for`). None: every heliostat against the recipe's design.
+    prescriptions: Path | None = None
 
 
 def default_recipe(config) -> Recipe:
@@ -86,8 +104,48 @@ def recipes_from_config(config) -> dict[str, Recipe]:
             except re.error as exc:
                 raise ConfigError(f"{where}: serial_pattern is not a valid regular expression: {exc}") from None
         optics = optics_for(config.raw, str(config.path), name)
-        out[name] = Recipe(name, design, analysis, limits, quality, pattern, optics, ensemble)
+        reference = table.get("reference")
+        if reference is not None:
+            reference = _reference(reference, config, where, ensemble)
+        out[name] = Recipe(name, design, analysis, limits, quality, pattern, optics, ensemble, reference,
+                           _prescriptions(table, ensemble, config.path.parent, where))
     return out
+
+
+def _reference(value, config, where: str, ensemble) -> str:
+    """A recipe's ``reference``: "twin" (the simulated station's truth) or a certificate file, read now so a
+    mistake stops the station at its start."""
+    from .calibrate.geometry import load_reference
+
+    if ensemble is not None:
+        raise ConfigError(f"{where}: reference is a single facet's certificate; a heliostat recipe cannot be one")
+    if value == "twin":
+        if config.backend != "simulated":
+            raise ConfigError(f"{where}: reference = \"twin\" is the simulated station's truth; a hardware station "
+                              "names the reference facet's certificate (a [reference] file)")
+        return "twin"
+    if not isinstance(value, str) or not value:
+        raise ConfigError(f"{where}: reference must name the reference facet's certificate file, got {value!r}")
+    path = config.path.parent / value
+    try:
+        load_reference(path)
+    except ConfigError as exc:
+        raise ConfigError(f"{where} reference: {exc}") from None
+    return str(path)
+
+
+def _prescriptions(table: dict, ensemble, base: Path, where: str) -> Path | None:
+    """A heliostat recipe's ``prescriptions`` folder (relative to station.toml), checked; None without one."""
+    if "prescriptions" not in table:
+        return None
+    if ensemble is None:
+        raise ConfigError(f"{where}: prescriptions is a heliostat's (canting per serial); this recipe measures a "
+                          "single facet: name a heliostat file as its facet, or remove prescriptions")
+    folder = (base / str(table["prescriptions"])).resolve()
+    if not folder.is_dir():
+        raise ConfigError(f"{where}: prescriptions folder {folder} does not exist; write it with 'sofast-station "
+                          "field prescription --site SITE.toml' (docs/field.md) or correct the path")
+    return folder
 
 
 def choose_recipe(recipes: dict[str, Recipe], request: FacetRequest) -> Recipe:

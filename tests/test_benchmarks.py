@@ -300,6 +300,37 @@ def test_uncertainty_coverage_benchmark_quick(repo_root, tmp_path):
     assert "residual std" in merged.stdout
 
 
+def test_marks_benchmark_quick(repo_root):
+    """benchmarks/marks.py: the check's cost on a 400 x 300 station, 5 good cycles, every camera move."""
+    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "marks.py"), "--quick"],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    print(proc.stdout)
+    for line in ("== cost of the check: camera 400 x 300", "wall ms per check", "good cycles: 5, false alarms",
+                 "turn 0.2 mrad about x", "shift 1 mm along y"):
+        assert line in proc.stdout
+
+
+def test_placement_tilt_benchmark_quick(repo_root):
+    """benchmarks/placement_tilt.py: 2 captures of the ideal 400 x 300 dish, the corners' and the slopes' tilt."""
+    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "placement_tilt.py"), "--quick"],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    print(proc.stdout)
+    for line in ("== ideal 400 x 300 dish: 2 captures", "about x: corners", "slopes", "own boresight"):
+        assert line in proc.stdout
+
+
+def test_display_check_benchmark_quick(repo_root):
+    """benchmarks/display_check.py: the display's self-test's cost at 1600 x 1200 and 400 x 300."""
+    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "display_check.py"), "--quick"],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    print(proc.stdout)
+    for line in ("== the display's self-test", "camera 1600 x 1200: 20 checks", "camera 400 x 300: 20 checks"):
+        assert line in proc.stdout
+
+
 def test_camera_calibration_benchmark_quick(repo_root):
     """benchmarks/camera_calibration.py: five half-size photographs, the command once."""
     proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "camera_calibration.py"), "--quick"],
@@ -328,5 +359,6 @@ def test_field_benchmark_quick(repo_root):
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr
     print(proc.stdout)
-    for line in ("camera 640 x 480", "canting from", "the issue: under a minute", "orientation from one photo"):
+    for line in ("camera 640 x 480", "canting from", "the issue: under a minute", "orientation from one photo",
+                 "spot on the target"):
         assert line in proc.stdout

@@ -44,7 +44,7 @@ from .settings import CalibrationPolicy, calibration_settings
 
 log = logging.getLogger(__name__)
 
-KINDS = ("radiometric", "camera", "geometry", "screen", "pose", "handheld", "cameraposition", "dots")
+KINDS = ("radiometric", "camera", "geometry", "screen", "pose", "handheld", "cameraposition", "dots", "marks")
 
 _NAME = re.compile(r"^(?P<kind>[a-z]+)-(?P<stamp>\d{8}T\d{6})Z-(?P<seq>\d{3,})\.json$")
 
@@ -70,7 +70,7 @@ def list_records(data_dir: str | Path, kind: str) -> list[Path]:
 _MADE_BY = {"radiometric": "calibrate radiometric", "camera": "calibrate camera IMAGES...",
             "geometry": "calibrate geometry", "screen": "calibrate screen", "pose": "calibrate pose",
             "handheld": "calibrate camera --handheld IMAGES...", "cameraposition": "calibrate camera-position",
-            "dots": "calibrate dots"}
+            "dots": "calibrate dots", "marks": "calibrate marks"}
 
 
 def newest_record_path(data_dir: str | Path, kind: str, station: dict | None = None) -> Path | None:

@@ -6,6 +6,8 @@ simulated camera looks at whatever the display currently shows through the twin'
 
 from __future__ import annotations
 
+import dataclasses
+
 import math
 import threading
 
@@ -136,13 +138,23 @@ class SimulatedCamera:
         shown = self.display.image
         self.display.advance(max(self.exposure_s, 1.0 / self.twin.optics.refresh_hz))
         if fault == "dark":
-            return self.twin.capture(np.zeros_like(shown), self.rng, **settings)
+            return self._unlit().capture(np.zeros_like(shown), self.rng, **settings)
         frame = self.twin.capture(shown, self.rng, **settings)
         if fault == "misplaced":
             frame = np.roll(frame, 220, axis=1)   # the facet far from where the fixture should hold it
         if fault == "lights-off":                 # the room light seen at calibration is gone
             frame = np.maximum(frame.astype(np.int16) - LIGHTS_OFF_DN, 0).astype(np.uint8)
         return frame
+
+    def _unlit(self):
+        """The twin with nothing in view lit (the dark fault: a covered lens, no light), the fixture's marks,
+        which the hall lights, dark too."""
+        if getattr(self, "_unlit_of", None) is not self.twin:
+            twin = self.twin
+            if getattr(twin, "mark_coverage", None) is not None:
+                twin = twin.with_optics(dataclasses.replace(twin.optics, mark_radiance=0.0))
+            self._unlit_of, self._unlit_twin = self.twin, twin
+        return self._unlit_twin
 
     def release_hang(self) -> None:
         """Let a hung grab return (the station reopening the camera)."""

@@ -1,5 +1,6 @@
-"""``sofast-station field orientation`` and ``sofast-station field canting``: the heliostat in the field,
-from the tower's camera (docs/field.md). Registered in :data:`sofast_station.commands.COMMAND_MODULES`.
+"""``sofast-station field orientation``, ``canting``, ``prescription`` and ``spot``: the heliostat in the field,
+from the tower's camera, its place in the layout and its spot on the tower's target (docs/field.md).
+Registered in :data:`sofast_station.commands.COMMAND_MODULES`.
 """
 
 from __future__ import annotations
@@ -339,6 +340,280 @@ def cmd_prescription(args) -> int:
     return 0
 
 
+def _photo_scale(notes: dict, photo: Path):
+    import numpy as np
+
+    from ..errors import ConfigError
+    from .spot import PhotoScale
+
+    try:
+        pixel_m = float(notes["pixel_m"])
+        aim = np.array([float(v) for v in notes["aim_px"]], dtype=np.float64)
+    except (KeyError, TypeError, ValueError):
+        raise ConfigError(f"BCS photo {photo}: its notes ({photo.with_suffix('.json').name}) need pixel_m (metres of "
+                          "the target per pixel) and aim_px [column, row] (the aim point's pixel); "
+                          "docs/field.md#spot") from None
+    if not (pixel_m > 0 and aim.shape == (2,) and np.all(np.isfinite(aim))):
+        raise ConfigError(f"BCS photo {photo}: pixel_m must be positive and aim_px two pixel coordinates")
+    return PhotoScale(pixel_m, aim, float(notes.get("pixel_m_rel_u", 0.005)), float(notes.get("aim_px_u", 0.5)))
+
+
+def _print_json(doc: dict) -> int:
+    """*doc* as JSON on stdout (``--json``); the command's exit status 0."""
+    json.dump(json_ready(doc), sys.stdout, indent=1)
+    sys.stdout.write("\n")
+    return 0
+
+
+def _figure_line(name: str, f: dict, ascii_only: bool = False) -> str:
+    """A spot's figures in one line, each value with its U (GUM's two digits; ``+-`` for the picture's font)."""
+    c, u = f["centroid_m"], f["centroid_m_U"]
+    text = (f"{name}: centroid x {with_u(c['x'], u['x'], ' m', sign=True)}, y {with_u(c['y'], u['y'], ' m', sign=True)}"
+            f"; 90 % radius {with_u(f['spot_radius_m'], f['spot_radius_m_U'], ' m')}")
+    return text.replace("±", "+-") if ascii_only else text
+
+
+def cmd_spot(args) -> int:
+    single_thread_blas()
+    import numpy as np
+
+    from ..errors import ConfigError
+    from ..files import safe_name
+    from .geometry import azimuth_elevation
+    from .inputs import heliostat_place, load_site, read_notes, read_photo, read_record
+    from .picture import spot_png
+    from .spot import (SpotScene, compare_spots, facet_models, facing_target, photo_extent, photo_figures,
+                       predict_spot)
+    from .sun import sun_direction
+
+    site = load_site(args.site)
+    record = read_record(args.factory, args.heliostat)
+    serial = args.heliostat or record.get("serial")
+    if not serial:
+        raise ConfigError("the factory record names no serial: give --heliostat SERIAL")
+    place = heliostat_place(site, serial, _triple(args.position))
+    models = facet_models(record)
+    photo = Path(args.photo) if args.photo else None
+    notes = read_notes(photo) if photo is not None else {}
+    times = list(args.time or []) or ([notes["time"]] if "time" in notes else [])
+    if not times:
+        raise ConfigError("no moment for the spot: give --time ISO (with its time zone), or a --photo whose notes "
+                          "(PHOTO.json) hold its time")
+    azimuth = args.target_azimuth if args.target_azimuth is not None else notes.get("target_azimuth_deg")
+    plane = facing_target(site.aim_point_m, place.position_m, azimuth)
+    dni = args.dni or float(notes.get("dni_w_m2", 900.0))
+    out_dir = Path(args.out) if args.out else (photo.parent if photo is not None else Path(args.factory).parent)
+    stem = safe_name(str(serial), 64)
+    doc = {"serial": serial, "site": site.name, "position_m": place.position_m.tolist(),
+           "target": {"centre_m": plane.centre_m.tolist(), "normal": plane.normal.tolist(),
+                      "axes": "x level to the right seen from the field, y up the target; metres from the aim point"},
+           "factory_record": {"time": record.get("time"), "canting_reference": record.get("canting_reference")},
+           "facets_traced": [m.label for m in models], "dni_w_m2": dni, "spots": []}
+    first = None
+    for k, when in enumerate(times):
+        sun = sun_direction(when, site.latitude_deg, site.longitude_deg, site.altitude_m)
+        scene = SpotScene(place.position_m, place.pivot_offset_m, plane, sun)
+        pred = predict_spot(models, place.ensemble, scene, dni_w_m2=dni, reflectivity=args.reflectivity)
+        az, el = azimuth_elevation(sun)
+        entry = {"time": str(when), "sun": {"azimuth_deg": math.degrees(az), "elevation_deg": math.degrees(el)},
+                 "predicted": pred["figures"]}
+        shown = None
+        if photo is not None and k == 0:
+            scale = _photo_scale(notes, photo)
+            image = read_photo(photo)
+            dark = read_photo(photo.parent / notes["dark"]) if notes.get("dark") else None
+            fig = photo_figures(image, scale, dark)
+            entry["photo"] = {"file": str(photo), **fig}
+            entry["comparison"] = compare_spots(pred["figures"], fig)
+            grey = image.mean(axis=2) if image.ndim == 3 else image.astype(np.float64)
+            shown = {"image": grey - fig["background"], "extent_m": photo_extent(image.shape, scale), "figures": fig}
+        doc["spots"].append(entry)
+        if first is None:
+            first = (pred, shown, entry)
+    json_path = out_dir / f"{stem}-spot.json"
+    write_json_atomic(json_path, json_ready(doc))
+    pred, shown, entry = first
+    lines = [_figure_line("predicted", pred["figures"], ascii_only=True)]
+    if shown is not None:
+        lines.append(_figure_line("photographed", shown["figures"], ascii_only=True))
+        comp = entry["comparison"]
+        lines.append("field check of the factory record: " + (f"FLAGGED {', '.join(comp['flagged'])}"
+                                                              if comp["flagged"] else "within the combined U"))
+    title = (f"{serial} on the target at {entry['time']} (sun az {entry['sun']['azimuth_deg']:.1f}, el "
+             f"{entry['sun']['elevation_deg']:.1f} deg; slant range {pred['figures']['slant_range_m']:.1f} m)")
+    png = spot_png(out_dir / f"{stem}-spot.png", pred, shown, title, lines)
+    doc["json"], doc["png"] = str(json_path), str(png)
+    if args.json:
+        return _print_json(doc)
+    print(f"Spot of heliostat {serial} at {place.position_m.tolist()} m on the target at {site.aim_point_m.tolist()} m "
+          f"(U, k=2; {len(models)} facets from the factory record):")
+    for e in doc["spots"]:
+        f = e["predicted"]
+        print(f"  {e['time']} (sun azimuth {e['sun']['azimuth_deg']:.1f}, elevation {e['sun']['elevation_deg']:.1f} "
+              f"deg; slant range {f['slant_range_m']:.1f} m, incidence {f['incidence_angle_deg']:.1f} deg)")
+        print("    " + _figure_line("predicted", f))
+        if "photo" in e:
+            print("    " + _figure_line("photographed", e["photo"]))
+            for key in ("centroid_x_m", "centroid_y_m", "spot_radius_m"):
+                c = e["comparison"][key]
+                print(f"    {key}: difference {with_u(c['difference'], c['U'], ' m', sign=True)} (the combined U)"
+                      + ("  FLAGGED" if c["flagged"] else ""))
+            print("    (the centroid's difference holds the heliostat's tracking error on the day as well as its "
+                  "facets')")
+    print(f"  wrote {json_path} and {png}")
+    return 0
+
+
+def read_observers(path) -> list:
+    """Observer points from a CSV (``name, x, y, z`` metres, field frame; a header names the columns loosely) or
+    a TOML file (``[[observer]]`` tables with ``name`` and ``position_m``)."""
+    import csv
+
+    from ..errors import ConfigError
+    from ..files import read_toml
+
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"observers file {path} does not exist")
+    out = []
+    if path.suffix.lower() == ".toml":
+        for k, t in enumerate(read_toml(path, "observers file").get("observer", [])):
+            try:
+                pos = [float(v) for v in t["position_m"]]
+            except (KeyError, TypeError, ValueError):
+                pos = []
+            if len(pos) != 3:
+                raise ConfigError(f"observers file {path}: [[observer]] {k + 1} needs position_m = [x, y, z] metres")
+            out.append((str(t.get("name", f"observer {k + 1}")), pos))
+    else:
+        rows = list(csv.reader(path.read_text().splitlines()))
+        head = [h.strip().lower() for h in rows[0]] if rows else []
+        cols = {}
+        for key, names in (("name", ("name", "id", "observer", "point")), ("x", ("x", "x_m", "east")),
+                           ("y", ("y", "y_m", "north")), ("z", ("z", "z_m", "height", "height_m"))):
+            cols[key] = next((i for i, h in enumerate(head) if h in names), None)
+        if None in (cols["x"], cols["y"], cols["z"]):
+            raise ConfigError(f"observers file {path}: its header must name x, y and z (metres, field frame), got "
+                              f"{', '.join(head) or 'nothing'}")
+        for k, row in enumerate(rows[1:]):
+            if not any(c.strip() for c in row):
+                continue
+            try:
+                pos = [float(row[cols[a]]) for a in "xyz"]
+            except (IndexError, ValueError):
+                raise ConfigError(f"observers file {path}, line {k + 2}: x, y, z must be numbers, got {row}") from None
+            name = row[cols["name"]].strip() if cols["name"] is not None else f"observer {k + 1}"
+            out.append((name, pos))
+    if not out:
+        raise ConfigError(f"observers file {path} lists no observer")
+    return out
+
+
+def _glare_value(p: dict, key: str, unit: str, scale: float) -> str:
+    """A glare figure with its U from the canting; a U under 0.01 % of the value (the retinal irradiance of a
+    uniform sun does not depend on the source's size) is said in words, not as digits."""
+    value, u = p[key], p.get(f"{key}_U")
+    if u is not None and u < 1e-4 * abs(value):
+        return f"{with_u(value, None, unit, 4, scale=scale)} (U from the canting under 0.01 %)"
+    return with_u(value, u, unit, 4, scale=scale)
+
+
+def cmd_glare(args) -> int:
+    single_thread_blas()
+    import numpy as np
+
+    from ..errors import ConfigError
+    from ..files import safe_name
+    from .geometry import azimuth_elevation, direction, heliostat_rotation
+    from .glare import (EYE_FOCAL_M, OCULAR_TRANSMISSION, PUPIL_M, Sunlight, camera_glare, observers_glare,
+                        sun_seen_directly)
+    from .inputs import heliostat_place, load_site, read_notes, read_photo, read_record
+    from .picture import hazard_chart
+    from .spot import facet_models
+    from .sun import commanded_normal, sun_direction
+
+    eye = {"eye_focal_m": EYE_FOCAL_M, "pupil_m": PUPIL_M, "ocular_transmission": OCULAR_TRANSMISSION,
+           "source": "the patent's Eqs. (47), (48) (Ho, Ghanbari and Diver 2011)"}
+    note = ("E_r = E_c (d_p / (f omega))^2 tau, f 17 mm, d_p 2 mm, tau 0.5 (the patent's Eqs. 47-48).\n"
+            "The hazard thresholds are not drawn: no quotable source in this build (docs/field.md#glare).")
+    if args.sun_image or args.glare_image:
+        if not (args.sun_image and args.glare_image):
+            raise ConfigError("the camera route needs both --sun-image and --glare-image (same lens and zoom)")
+        sun_img, glare_img = Path(args.sun_image), Path(args.glare_image)
+        sn, gn = read_notes(sun_img), read_notes(glare_img)
+        dni = args.dni if args.dni is not None else sn.get("dni_w_m2")
+        factor = {}
+        for name, n in (("sun", sn), ("glare", gn)):
+            factor[name] = float(n.get("exposure_s", 1.0)) * float(n.get("filter_transmission", 1.0))
+        res = camera_glare(read_photo(sun_img), read_photo(glare_img), None if dni is None else float(dni),
+                           sun_factor=factor["sun"], glare_factor=factor["glare"])
+        ref = sun_seen_directly(float(dni))
+        doc = {"route": "camera", "sun_image": str(sun_img), "glare_image": str(glare_img), "dni_w_m2": float(dni),
+               "eye": eye, "glare": res, "sun_seen_directly": ref}
+        out = Path(args.out) if args.out else glare_img.parent
+        stem = safe_name(glare_img.stem, 64)
+        points = [{"name": glare_img.stem, **res}]
+    else:
+        if not (args.factory and args.site and args.observers):
+            raise ConfigError("give a factory record with --site and --observers (the measured route), or "
+                              "--sun-image and --glare-image with --dni (the camera route)")
+        if not args.time:
+            raise ConfigError("give --time ISO (with its time zone): the sun's position at that moment (pvlib)")
+        site = load_site(args.site)
+        record = read_record(args.factory, args.heliostat)
+        serial = args.heliostat or record.get("serial")
+        place = heliostat_place(site, serial, _triple(args.position))
+        models = facet_models(record)
+        if args.facet:
+            models = [m for m in models if m.label == args.facet]
+            if not models:
+                raise ConfigError(f"facet {args.facet!r} is not a measured facet of the record")
+        sun = sun_direction(args.time, site.latitude_deg, site.longitude_deg, site.altitude_m)
+        if args.commanded:
+            az, el = _pair(args.commanded, "--commanded")
+            normal = direction(math.radians(az), math.radians(el))
+        else:
+            normal = commanded_normal(sun, place.position_m, site.aim_point_m)
+        rot = heliostat_rotation(*azimuth_elevation(normal))
+        origin = np.asarray(place.position_m, float) + place.pivot_offset_m * rot[:, 2]
+        dni = float(args.dni if args.dni is not None else 900.0)
+        light = Sunlight(sun, dni, args.sun)
+        points = observers_glare(models, place.ensemble, rot, origin, read_observers(args.observers), light,
+                                 args.reflectivity, per_facet=args.samples)
+        for g in points:
+            if g["glare"] and g["source_samples"] < 50:
+                g["warning"] = (f"the source covers only {g['source_samples']} samples: raise --samples for a finer "
+                                "estimate")
+        ref = sun_seen_directly(dni)
+        az_n, el_n = azimuth_elevation(normal)
+        doc = {"route": "measured", "serial": serial, "time": args.time, "dni_w_m2": dni, "sun_shape": args.sun,
+               "reflectivity": args.reflectivity, "facets": [m.label for m in models],
+               "heliostat_normal": {"azimuth_deg": math.degrees(az_n), "elevation_deg": math.degrees(el_n),
+                                    "how": "commanded" if args.commanded else "tracking the aim point"},
+               "eye": eye, "observers": points, "sun_seen_directly": ref}
+        out = Path(args.out) if args.out else Path(args.factory).parent
+        stem = f"{safe_name(str(serial), 64)}-glare"
+    json_path = out / f"{stem}.json"
+    write_json_atomic(json_path, json_ready(doc))
+    png = hazard_chart(out / f"{stem}.png", points, ref, f"glare: {stem}", note)
+    doc["json"], doc["png"] = str(json_path), str(png)
+    if args.json:
+        return _print_json(doc)
+    print(f"Glare ({doc['route']} route; the sun seen directly: {1e-4 * ref['retinal_w_m2']:.3g} W/cm^2 on the retina "
+          f"at {1e3 * ref['omega_rad']:.2f} mrad):")
+    for p in points:
+        if p.get("omega_rad"):
+            print(f"  {p['name']}: retinal irradiance {_glare_value(p, 'retinal_w_m2', ' W/cm^2', 1e-4)}, "
+                  f"subtended angle {_glare_value(p, 'omega_rad', ' mrad', 1e3)}, corneal irradiance "
+                  f"{_glare_value(p, 'corneal_w_m2', ' W/m^2', 1.0)}"
+                  + (f" ({p['warning']})" if p.get("warning") else ""))
+        else:
+            print(f"  {p['name']}: no glare (the sun's disc is seen in no mirror from there)")
+    print("  the hazard class is not given: the thresholds' source is missing (docs/field.md#glare)")
+    print(f"  wrote {json_path} and {png}")
+    return 0
+
+
 def register(subparsers) -> None:
     """Add ``field orientation`` and ``field canting`` to the ``sofast-station`` *subparsers*."""
     field = add_command(subparsers, "field", help="the heliostat in the field, from the tower's camera",
@@ -406,3 +681,61 @@ def register(subparsers) -> None:
                           "file)")
     pre.add_argument("--json", action="store_true", help="print the prescriptions as JSON on stdout")
     pre.set_defaults(func=cmd_prescription)
+    spot = add_command(sub, "spot", help="the heliostat's spot on the tower's target from its factory record",
+                       description="""
+            The flux the heliostat will throw on the tower's calibration target (or receiver) where it stands,
+            from the factory's record of its facets (canting, curvature, slope errors) and the sun at --time
+            (pvlib), with U (k=2); with --photo, the spot photographed on that target (a BCS image, its scale in
+            its notes) beside it: centroid and 90 % radius differences against the combined U, flagged beyond
+            it. Writes SERIAL-spot.json and SERIAL-spot.png (docs/field.md#spot).""")
+    spot.add_argument("factory", metavar="FACTORY",
+                      help="the factory's record: the JSON of 'sofast-station inspect --json', or the station's "
+                           "journal")
+    spot.add_argument("--site", metavar="FILE", required=True, help="the site file (its latitude, aim point, layout)")
+    spot.add_argument("--heliostat", metavar="SERIAL", default=None,
+                      help="the heliostat's serial in the layout (default: the record's)")
+    spot.add_argument("--position", metavar="X,Y,Z", default=None, help="its pivot instead of the layout's, metres")
+    spot.add_argument("--time", metavar="ISO", action="append", default=None,
+                      help="a moment for the spot, with its time zone (repeat for several; default: the photo's)")
+    spot.add_argument("--photo", metavar="BCS", default=None,
+                      help="a photo of the lit target; its notes (BCS.json): pixel_m, aim_px, time, and optionally "
+                           "pixel_m_rel_u, aim_px_u, dark, target_azimuth_deg, dni_w_m2")
+    spot.add_argument("--target-azimuth", type=float, default=None,
+                      help="the way the target faces, degrees clockwise from north (default: towards the heliostat)")
+    spot.add_argument("--dni", type=float, default=None, help="direct normal irradiance, W/m^2 (default 900)")
+    spot.add_argument("--reflectivity", type=float, default=0.94, help="the mirrors' reflectivity (default 0.94)")
+    spot.add_argument("--out", metavar="DIR", default=None, help="folder for the JSON and PNG (default: the photo's)")
+    spot.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
+    spot.set_defaults(func=cmd_spot)
+    gl = add_command(sub, "glare", help="glint and glare: retinal irradiance and subtended angle for observers",
+                     description="""
+            The glint or glare an observer sees in the heliostat: the retinal irradiance and the subtended
+            source angle (the patent's Eqs. 47-48), from the factory's measured facets at the heliostat's field
+            position (tracking the aim point at --time, or --commanded) for each observer of --observers (a CSV
+            of name, x, y, z or a TOML of [[observer]]); or by the camera route, from an image of the sun and one
+            of the glare source (same lens and zoom) with the DNI. Writes the JSON and the chart PNG (retinal
+            irradiance against subtended angle). The hazard class is not given (docs/field.md#glare).""")
+    gl.add_argument("factory", metavar="FACTORY", nargs="?", default=None,
+                    help="the factory's record (inspect --json, or the station's journal) for the measured route")
+    gl.add_argument("--site", metavar="FILE", default=None, help="the site file")
+    gl.add_argument("--observers", metavar="FILE", default=None, help="observer points: CSV or TOML, metres")
+    gl.add_argument("--heliostat", metavar="SERIAL", default=None, help="the serial (default: the record's)")
+    gl.add_argument("--position", metavar="X,Y,Z", default=None, help="its pivot instead of the layout's, metres")
+    gl.add_argument("--facet", metavar="LABEL", default=None, help="one facet only (default: every measured facet)")
+    gl.add_argument("--time", metavar="ISO", default=None, help="the moment (with its time zone): the sun by pvlib")
+    gl.add_argument("--commanded", metavar="AZ,EL", default=None,
+                    help="the heliostat's orientation, degrees (stow, standby), instead of tracking the aim point")
+    gl.add_argument("--sun", choices=("pillbox", "buie"), default="pillbox", help="the sun's shape (default pillbox)")
+    gl.add_argument("--dni", type=float, default=None,
+                    help="direct normal irradiance, W/m^2 (measured route: default 900; camera route: required, or "
+                         "dni_w_m2 in the sun image's notes)")
+    gl.add_argument("--reflectivity", type=float, default=0.94, help="the mirrors' reflectivity (default 0.94)")
+    gl.add_argument("--samples", type=int, default=6000, help="samples per facet (default 6000)")
+    gl.add_argument("--sun-image", metavar="IMAGE", default=None,
+                    help="camera route: the sun through a neutral density filter (notes: exposure_s, "
+                         "filter_transmission, dni_w_m2)")
+    gl.add_argument("--glare-image", metavar="IMAGE", default=None,
+                    help="camera route: the glare source, same lens and zoom (notes: exposure_s, filter_transmission)")
+    gl.add_argument("--out", metavar="DIR", default=None, help="folder for the JSON and the chart")
+    gl.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
+    gl.set_defaults(func=cmd_glare)

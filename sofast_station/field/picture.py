@@ -148,3 +148,103 @@ def canting_png(path, image: np.ndarray, detection, figures: dict, comparison: d
                      + (f"flagged {', '.join(comparison['flagged'])} (red)" if comparison["flagged"]
                         else "no facet beyond the combined U"))
     return _write(path, _band(img, lines))
+
+
+def _panel(values: np.ndarray, extent_m: tuple, size: int, colour_map: int | None) -> tuple[np.ndarray, callable]:
+    """*values* (row 0 at the lowest y) drawn *size* pixels square with the highest y on top, and the map from
+    target metres (x, y) to the panel's pixels."""
+    x0, x1, y0, y1 = extent_m
+    v = np.asarray(values, dtype=np.float64)[::-1]
+    top = float(np.percentile(v, 99.9)) if np.any(v > 0) else 1.0
+    grey = np.clip(255.0 * v / max(top, 1e-12), 0, 255).astype(np.uint8)
+    grey = cv2.resize(grey, (size, size), interpolation=cv2.INTER_AREA)
+    img = cv2.applyColorMap(grey, colour_map) if colour_map is not None else cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)
+
+    def to_px(x: float, y: float) -> tuple[int, int]:
+        return int(round((x - x0) / (x1 - x0) * size)), int(round((y1 - y) / (y1 - y0) * size))
+    return img, to_px
+
+
+def _mark(img, to_px, fig: dict, colour, size: int) -> None:
+    c = fig["centroid_m"]
+    cx, cy = to_px(c["x"], c["y"])
+    cv2.drawMarker(img, (cx, cy), colour, cv2.MARKER_CROSS, 18, 2, cv2.LINE_AA)
+    r_px = abs(to_px(c["x"] + fig["spot_radius_m"], c["y"])[0] - cx)
+    cv2.circle(img, (cx, cy), max(r_px, 1), colour, 1, cv2.LINE_AA)
+
+
+def spot_png(path, predicted: dict, photo: dict | None, title: str, lines: list) -> Path:
+    """The predicted spot (its flux map) and, when given, the photographed one side by side on the same
+    scale: each with its centroid (cross) and its 90 % circle; the other's centroid in white on each.
+
+    *predicted*: :func:`~.spot.predict_spot`'s dict; *photo*: ``{"image": (H, W) array of the background-
+    subtracted photo, "extent_m": (x0, x1, y0, y1), "figures": ...}``."""
+    size = 520
+    hw = predicted["origin_m"][0]
+    n = predicted["flux_w_m2"].shape[0]
+    ext = (hw, hw + n * predicted["cell_m"], hw, hw + n * predicted["cell_m"])
+    left, to_px = _panel(predicted["flux_w_m2"], ext, size, cv2.COLORMAP_INFERNO)
+    _mark(left, to_px, predicted["figures"], GREEN, size)
+    panels = [left]
+    labels = ["predicted from the factory record"]
+    if photo is not None:
+        # the photo resampled onto the prediction's extent
+        img = np.asarray(photo["image"], dtype=np.float64)
+        px0, px1, py0, py1 = photo["extent_m"]
+        h, w = img.shape
+        xs = np.linspace(ext[0], ext[1], size)
+        ys = np.linspace(ext[3], ext[2], size)
+        cols = np.clip(((xs - px0) / (px1 - px0) * w).astype(int), -1, w)
+        rows = np.clip(((py1 - ys) / (py1 - py0) * h).astype(int), -1, h)
+        grid = np.zeros((size, size))
+        ok_c, ok_r = (cols >= 0) & (cols < w), (rows >= 0) & (rows < h)
+        grid[np.ix_(ok_r, ok_c)] = img[np.ix_(rows[ok_r], cols[ok_c])]
+        right, _ = _panel(grid[::-1], ext, size, cv2.COLORMAP_INFERNO)
+        _mark(right, to_px, photo["figures"], ORANGE, size)
+        pc = predicted["figures"]["centroid_m"]
+        cv2.drawMarker(right, to_px(pc["x"], pc["y"]), WHITE, cv2.MARKER_TILTED_CROSS, 12, 1, cv2.LINE_AA)
+        oc = photo["figures"]["centroid_m"]
+        cv2.drawMarker(left, to_px(oc["x"], oc["y"]), WHITE, cv2.MARKER_TILTED_CROSS, 12, 1, cv2.LINE_AA)
+        panels.append(right)
+        labels.append("photographed (BCS)")
+    for img, text in zip(panels, labels):
+        cv2.putText(img, text, (8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.5, WHITE, 1, cv2.LINE_AA)
+        cv2.putText(img, f"{ext[1] - ext[0]:.2f} m wide; cross: centroid, circle: 90 % of the power",
+                    (8, size - 10), cv2.FONT_HERSHEY_SIMPLEX, 0.42, WHITE, 1, cv2.LINE_AA)
+    gap = np.zeros((size, 6, 3), np.uint8)
+    body = panels[0] if len(panels) == 1 else np.hstack([panels[0], gap, panels[1]])
+    return _write(path, _band(body, [title, *lines]))
+
+
+def hazard_chart(path, points: list, reference: dict, title: str, note: str) -> Path:
+    """The glare chart: retinal irradiance (W/cm^2) against the subtended source angle (mrad), log-log, each
+    observer's point labelled, the sun seen directly as a reference (``points``: dicts of ``name``,
+    ``omega_rad``, ``retinal_w_m2``; those without glare are listed below the plot)."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(8.0, 6.0), dpi=110)
+    ax = fig.add_subplot(1, 1, 1)
+    seen = [p for p in points if p.get("omega_rad")]
+    for p in seen:
+        x, y = 1e3 * p["omega_rad"], 1e-4 * p["retinal_w_m2"]
+        ax.plot(x, y, "o", color="tab:orange", ms=7)
+        ax.annotate(p["name"], (x, y), textcoords="offset points", xytext=(6, 4), fontsize=8)
+    ax.plot(1e3 * reference["omega_rad"], 1e-4 * reference["retinal_w_m2"], "*", color="gold", ms=14,
+            markeredgecolor="k", label="the sun seen directly")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlim(0.1, 1000.0)
+    ax.set_ylim(1e-6, 1e3)
+    ax.set_xlabel("subtended source angle (mrad)")
+    ax.set_ylabel("retinal irradiance (W/cm$^2$)")
+    ax.set_title(title, fontsize=10)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(loc="upper right", fontsize=8)
+    none = [p["name"] for p in points if not p.get("omega_rad")]
+    text = note + (f"\nno glare (the sun's disc seen in no mirror): {', '.join(none)}" if none else "")
+    fig.text(0.01, 0.01, text, fontsize=7, va="bottom")
+    fig.subplots_adjust(bottom=0.2)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(str(path))
+    return path

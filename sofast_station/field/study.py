@@ -310,6 +310,30 @@ def factory_record(truth: dict, serial: str, rng: np.random.Generator, u_mrad: f
             "note": "made from the field twin's truth for trying the field commands: not a measurement"}
 
 
+def _site_text(site: TwinSite, heliostat_file: Path, width_px: int, height_px: int, matrix: list, made_by: str) -> str:
+    """A site file (docs/field.md#the-site-file) of the twin's field: its place, layout.csv beside it, the
+    heliostat file, the aim point and the tower camera."""
+    return f"""# A field on the twin (sofast_station.field.study.{made_by})
+[site]
+name = "twin field"
+latitude_deg = {site.latitude_deg}
+longitude_deg = {site.longitude_deg}
+altitude_m = {site.altitude_m}
+layout = "layout.csv"
+heliostat = "{Path(heliostat_file).as_posix()}"
+aim_point_m = {site.aim_m.tolist()}
+pivot_offset_m = 0.0
+
+[camera]
+position_m = {site.camera_m.tolist()}
+roll_mrad = 0.0
+width_px = {width_px}
+height_px = {height_px}
+matrix = {matrix}
+distortion = [0.0, 0.0, 0.0, 0.0, 0.0]
+"""
+
+
 def write_campaign(out_dir, seed: int = 0, photos: int = 10, ensemble_file=None, site: TwinSite | None = None) -> dict:
     """A campaign on the twin written as files the commands read: a site file, its layout, one photo for
     ``field orientation`` and *photos* for ``field canting`` (each with its notes), and a factory record in
@@ -332,26 +356,8 @@ def write_campaign(out_dir, seed: int = 0, photos: int = 10, ensemble_file=None,
     shot = orientation_shot(site, ensemble, rng, position=position)
     intr = site.intrinsics(ensemble, float(np.linalg.norm(position - site.camera_m)))
     k = intr.matrix
-    site_text = f"""# A field on the twin (sofast_station.field.study.write_campaign, seed {seed})
-[site]
-name = "twin field"
-latitude_deg = {site.latitude_deg}
-longitude_deg = {site.longitude_deg}
-altitude_m = {site.altitude_m}
-layout = "layout.csv"
-heliostat = "{ensemble_file.as_posix()}"
-aim_point_m = {site.aim_m.tolist()}
-pivot_offset_m = 0.0
-
-[camera]
-position_m = {site.camera_m.tolist()}
-roll_mrad = 0.0
-width_px = {intr.width_px}
-height_px = {intr.height_px}
-matrix = {k.tolist()}
-distortion = [0.0, 0.0, 0.0, 0.0, 0.0]
-"""
-    (out / "site.toml").write_text(site_text)
+    (out / "site.toml").write_text(_site_text(site, ensemble_file, intr.width_px, intr.height_px, k.tolist(),
+                                              f"write_campaign, seed {seed}"))
     paths = {"site": out / "site.toml", "layout": out / "layout.csv"}
     cv2.imwrite(str(out / "orientation.png"), shot.image[..., ::-1])
     (out / "orientation.json").write_text(json.dumps({"heliostat": serial, "time": shot.time,
@@ -381,5 +387,120 @@ distortion = [0.0, 0.0, 0.0, 0.0, 0.0]
     return paths
 
 
+def write_spot_campaign(out_dir, seed: int = 0, knocked: dict | None = None, time: str = "2026-06-21T10:00:00+00:00",
+                        position=(30.0, 95.0, 1.6), peak: float = 0.7) -> dict:
+    """Files for ``field spot`` on the twin: a site file and layout, a factory record of heliostat H-0042 (the
+    2x2 heliostat of fixtures/facets with drawn canting errors of 0.8 mrad per axis, U 0.2 mrad; its facets'
+    curvature the design's, no slope scatter) and a BCS photo of its spot on a target facing it at *time*, taken
+    by the twin (:mod:`sofast_station.twin.field_spot`) of the true heliostat: the factory's, with *knocked*
+    {label: (dx, dy) mrad} facets turned since. Returns their paths and the truth (the twin's spot's centroid
+    and 90 % radius on the target)."""
+    from ..ensemble import load_ensemble
+    from ..twin.field import FieldHeliostat
+    from ..twin.field_spot import bcs_photo, map_centroid_radius, spot_flux, tracking
+    from .sun import sun_direction
+
+    import cv2
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    design = Path(__file__).resolve().parents[2] / "fixtures" / "facets" / "heliostat_2x2.toml"
+    ensemble = load_ensemble(design)
+    site = TwinSite()
+    rng = np.random.default_rng(seed)
+    cant = 0.8 * rng.standard_normal((ensemble.n_facets, 2))
+    cant -= cant.mean(axis=0)
+    serial, pos = "H-0042", np.asarray(position, dtype=np.float64)
+    (out / "layout.csv").write_text(f"id,x,y,z\n{serial},{pos[0]},{pos[1]},{pos[2]}\n")
+    (out / "site.toml").write_text(_site_text(site, design, 800, 600, [[8000.0, 0.0, 399.5], [0.0, 8000.0, 299.5],
+                                                                      [0.0, 0.0, 1.0]],
+                                              f"write_spot_campaign, seed {seed}"))
+    facets = [{"label": f.label, "status": "measured", "canting_mrad": {"x": float(c[0]), "y": float(c[1])},
+               "canting_mrad_U": {"x": 0.2, "y": 0.2}, "curvature_x_per_m": f.design.curvature_per_m,
+               "curvature_y_per_m": f.design.curvature_per_m}
+              for f, c in zip(ensemble.facets, cant)]
+    (out / "factory.json").write_text(json.dumps({"serial": serial, "facet": ensemble.name, "facets": facets,
+                                                  "note": "made by the field twin: not a measurement"}, indent=1))
+    true = cant.copy()
+    for k, f in enumerate(ensemble.facets):
+        true[k] += np.asarray((knocked or {}).get(f.label, (0.0, 0.0)))
+    sun = sun_direction(time, site.latitude_deg, site.longitude_deg, site.altitude_m)
+    az, el = tracking(pos, site.aim_m, sun)
+    heliostat = FieldHeliostat(ensemble, pos, az, el, canting_errors_mrad=np.column_stack([true, np.zeros(4)]))
+    d = site.aim_m - pos
+    normal = np.array([d[0], d[1], 0.0])
+    normal = -normal / np.linalg.norm(normal)
+    half = 2.5
+    flux = spot_flux(heliostat, site.aim_m, normal, sun, half_width_m=half, cells=161, seed=seed)
+    cx, cy, r90 = map_centroid_radius(flux, half)
+    pixel_m, aim_px = 0.01, (230.4, 210.6)
+    photo = bcs_photo(flux, half, (420, 460), pixel_m, aim_px, rng, peak=peak)
+    cv2.imwrite(str(out / "bcs.png"), photo)
+    (out / "bcs.json").write_text(json.dumps({"time": time, "pixel_m": pixel_m, "aim_px": list(aim_px),
+                                              "heliostat": serial}, indent=1))
+    return {"site": out / "site.toml", "factory": out / "factory.json", "photo": out / "bcs.png",
+            "truth": {"centroid_m": {"x": cx, "y": cy}, "spot_radius_m": r90}}
+
+
+def spot_population(n: int, seed: int, ensemble_file=None, site: TwinSite | None = None) -> dict:
+    """The spot's prediction against the twin's own trace over *n* drawn cases: heliostats 40 to 160 m from the
+    tower within +-70 deg, the sun 20 deg or more above the horizon on a drawn day and hour, canting errors of
+    1 mrad per axis (U 0.1 mrad), every second case with flat facets. Returns each case's differences and the
+    prediction's U (centroid x, y; 90 % radius), metres."""
+    from ..ensemble import load_ensemble
+    from ..twin.field import FieldHeliostat
+    from ..twin.field_spot import map_centroid_radius, spot_flux, tracking
+    from .spot import FacetModel, SpotScene, facing_target, predict_spot
+    from .sun import sun_direction
+
+    site = site or TwinSite()
+    ensemble = load_ensemble(ensemble_file or Path(__file__).resolve().parents[2] / "fixtures" / "facets" /
+                             "heliostat_2x2.toml")
+    labels = [f.label for f in ensemble.facets]
+    size = float(np.max(np.abs([f.position_m[:2] for f in ensemble.facets])))
+    rng = np.random.default_rng(seed)
+    cases = []
+    while len(cases) < n:
+        r, a = rng.uniform(40.0, 160.0), math.radians(rng.uniform(-70.0, 70.0))
+        pos = np.array([r * math.sin(a), r * math.cos(a), site.pivot_height_m])
+        hour = rng.uniform(7.0, 17.0)
+        when = f"2026-{int(rng.integers(1, 13)):02d}-15T{int(hour):02d}:{int(60 * (hour % 1)):02d}:00+00:00"
+        sun = sun_direction(when, site.latitude_deg, site.longitude_deg, site.altitude_m) \
+            if _sun_up(when, site) else None
+        if sun is None or math.degrees(math.asin(sun[2])) < 20.0:
+            continue
+        cant = rng.normal(0.0, 1.0, (len(labels), 2))
+        cant -= cant.mean(axis=0)
+        flat = len(cases) % 2 == 1
+        plane = facing_target(site.aim_m, pos)
+        twin = FieldHeliostat(ensemble, pos, *tracking(pos, site.aim_m, sun),
+                              canting_errors_mrad=np.column_stack([cant, np.zeros(len(labels))]))
+        slant = float(np.linalg.norm(site.aim_m - pos))
+        half = 3.0 * slant * 4.65e-3 + 2.0 * size + 0.5
+        flux = spot_flux(twin, site.aim_m, plane.normal, sun, half_width_m=half, cells=161, seed=len(cases),
+                         curvature_per_m={k: (0.0, 0.0) for k in labels} if flat else None)
+        tx, ty, tr = map_centroid_radius(flux, half)
+        models = [FacetModel(k, cant[i], np.full(2, 0.1), np.zeros(2) if flat else None)
+                  for i, k in enumerate(labels)]
+        f = predict_spot(models, ensemble, SpotScene(pos, 0.0, plane, sun), half_width_m=half,
+                         seed=len(cases) + 1)["figures"]
+        cases.append({"time": when, "position_m": pos.tolist(), "slant_range_m": slant, "flat": flat,
+                      "twin_radius_m": tr,
+                      "difference_m": [f["centroid_m"]["x"] - tx, f["centroid_m"]["y"] - ty, f["spot_radius_m"] - tr],
+                      "U_m": [f["centroid_m_U"]["x"], f["centroid_m_U"]["y"], f["spot_radius_m_U"]]})
+    d = np.abs(np.array([c["difference_m"] for c in cases]))
+    u = np.array([c["U_m"] for c in cases])
+    return {"seed": seed, "cases": cases, "largest_m": d.max(axis=0).tolist(),
+            "rms_m": np.sqrt(np.mean(d ** 2, axis=0)).tolist(), "median_U_m": np.median(u, axis=0).tolist(),
+            "share_within_U": np.mean(d <= u, axis=0).tolist()}
+
+
+def _sun_up(when: str, site: TwinSite) -> bool:
+    from .sun import sun_position
+
+    return bool(sun_position([when], site.latitude_deg, site.longitude_deg, site.altitude_m)[0][1] > 0)
+
+
 __all__ = ["TwinSite", "orientation_shot", "measure_orientation", "orientation_population", "canting_campaign",
-           "measure_canting", "factory_record", "write_campaign"]
+           "measure_canting", "factory_record", "write_campaign", "write_spot_campaign",
+           "spot_population"]

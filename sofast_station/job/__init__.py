@@ -23,15 +23,22 @@ from __future__ import annotations
 
 from .base import Capture, Job, Outcome
 from .facet import FacetJob
-from .heliostat import HeliostatJob
+from .heliostat import HeliostatJob, canting_design
 
 
-def job_for(recipe, config) -> Job:
+def job_for(recipe, config, serial: str | None = None) -> Job:
     """The job of *recipe* (:class:`~sofast_station.recipes.Recipe`) on the station of *config*: a heliostat
-    recipe's :class:`HeliostatJob` (with the station's ``[heliostat]`` settings), else a :class:`FacetJob`."""
+    recipe's :class:`HeliostatJob` (with the station's ``[heliostat]`` settings), else a :class:`FacetJob`.
+
+    A heliostat recipe with a ``prescriptions`` folder measures the heliostat *serial* against its own canting
+    prescription when the folder holds ``SERIAL.toml`` (:func:`~.heliostat.canting_design`), else against the
+    recipe's design; its record's ``canting_reference`` says which."""
     if recipe.ensemble is not None:
-        return HeliostatJob(recipe.ensemble, config.heliostat, recipe.analysis, recipe.limits, recipe.quality,
-                            recipe.optics)
+        ensemble, reference = recipe.ensemble, None
+        if getattr(recipe, "prescriptions", None) is not None:
+            ensemble, reference = canting_design(recipe.ensemble, recipe.prescriptions, serial)
+        return HeliostatJob(ensemble, config.heliostat, recipe.analysis, recipe.limits, recipe.quality,
+                            recipe.optics, canting_reference=reference)
     return FacetJob(recipe.design, recipe.analysis, recipe.limits, recipe.quality, recipe.optics)
 
 

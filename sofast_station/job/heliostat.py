@@ -61,6 +61,56 @@ def heliostat_crop_box(dark: np.ndarray, white: np.ndarray, threshold_dn: float,
             min(h, int(rows[-1]) + 1 + margin_px), min(w, int(cols[-1]) + 1 + margin_px))
 
 
+def canting_design(ensemble: EnsembleDesign, folder, serial: str | None) -> tuple[EnsembleDesign, dict]:
+    """The design heliostat *serial* is judged against: its canting prescription ``folder/SERIAL.toml``
+    (``sofast-station field prescription``, docs/field.md) when the folder has one, else *ensemble* (the recipe's
+    design); and what the record says of it (``canting_reference``).
+
+    The prescription must be the same heliostat (its facets' labels, designs and places on the frame) with only
+    the canting changed: the capture is laid out for the recipe's. Its name stays the recipe's design's (the
+    record's ``facet``, the station's truth), only the canting changes.
+
+    Returns
+    -------
+    (EnsembleDesign, dict)
+        The design; ``{"source": "prescription", "file", "serial"}`` or ``{"source": "design", "design",
+        "note"}`` (why no prescription applied).
+
+    Raises
+    ------
+    ConfigError
+        The prescription file does not load, or is another heliostat's layout.
+    """
+    import dataclasses
+    from pathlib import Path
+
+    from ..ensemble import load_ensemble
+    from ..errors import ConfigError
+    from ..files import safe_name
+
+    folder = Path(folder)
+    design = {"source": "design", "design": ensemble.name}
+    if not serial:
+        return ensemble, {**design, "note": "no serial: the recipe's design"}
+    if safe_name(serial, 200) != serial:
+        return ensemble, {**design, "note": f"the serial {serial!r} is not a plain file name: no prescription is "
+                                            f"looked up in {folder}"}
+    path = folder / f"{serial}.toml"
+    if not path.is_file():
+        return ensemble, {**design, "note": f"{path.name} is not in {folder}: the serial is not in the field layout"}
+    prescribed = load_ensemble(path)
+    theirs = {f.label: f for f in prescribed.facets}
+    for f in ensemble.facets:
+        g = theirs.get(f.label)
+        if (g is None or len(theirs) != len(ensemble.facets) or g.design.name != f.design.name
+                or not np.allclose(g.position_m[:2], f.position_m[:2], atol=1e-3)):
+            raise ConfigError(f"canting prescription {path} is not the heliostat {ensemble.name!r} of the recipe "
+                              f"(facet {f.label}: its label, design or place on the frame differs): write it from the "
+                              "same heliostat file ('sofast-station field prescription') or correct the recipe")
+    prescribed = dataclasses.replace(prescribed, name=ensemble.name)
+    return prescribed, {"source": "prescription", "file": str(path), "serial": serial}
+
+
 def write_pictures(record: dict, ensemble: EnsembleDesign, traced: HeliostatOptics | None, folder,
                    limit_mrad: float | None) -> dict:
     """The heliostat's PNGs in *folder*: the map of its facets and, with its optics, its flux maps; returns
@@ -91,6 +141,9 @@ class HeliostatJob:
     limits: Limits = Limits()
     quality: Quality = Quality()
     optics: OpticsSettings | None = None
+    #: What the canting is judged against when the recipe names prescriptions (:func:`canting_design`): the
+    #: record's ``canting_reference``; None: the design, unsaid.
+    canting_reference: dict | None = None
     kind: ClassVar[str] = "heliostat"
 
     @property
@@ -124,7 +177,8 @@ class HeliostatJob:
         """The heliostat's record, one entry per facet (:func:`~sofast_station.result.heliostat.heliostat_record`)."""
         return heliostat_record(head, figures, self.ensemble, self.limits, self.quality, truth=truth,
                                 optics=figures.get("optics"), instructions=figures.get("canting_instructions"),
-                                timings=merged_timings(timings, figures), **extra)
+                                timings=merged_timings(timings, figures), canting_reference=self.canting_reference,
+                                **extra)
 
     def preview(self, outcome: Outcome) -> dict | None:
         """A heliostat has no operator's map of one facet's slope errors."""
@@ -132,9 +186,13 @@ class HeliostatJob:
 
     def dumped(self) -> dict:
         """What a data dump keeps of the job beside the heliostat's layout design (``design`` of dump schema 2:
-        ``ensemble``, ``heliostat``, ``max_canting_mrad``; :func:`heliostat_job_of`)."""
-        return {"ensemble": self.ensemble.to_dict(), "heliostat": self.heliostat.to_dict(),
-                "max_canting_mrad": self.limits.max_canting_mrad}
+        ``ensemble``, ``heliostat``, ``max_canting_mrad``, and ``canting_reference`` when it has one;
+        :func:`heliostat_job_of`)."""
+        out = {"ensemble": self.ensemble.to_dict(), "heliostat": self.heliostat.to_dict(),
+               "max_canting_mrad": self.limits.max_canting_mrad}
+        if self.canting_reference is not None:
+            out["canting_reference"] = self.canting_reference
+        return out
 
     def pictures(self, record: dict, outcome: Outcome, folder) -> dict | None:
         """The map of its facets and its flux maps as PNG in *folder* (:func:`write_pictures`), from the same
@@ -153,4 +211,4 @@ def heliostat_job_of(dumped: dict, analysis: AnalysisSettings, limits: Limits = 
 
     limits = dataclasses.replace(limits, max_canting_mrad=dumped.get("max_canting_mrad", limits.max_canting_mrad))
     return HeliostatJob(EnsembleDesign.from_dict(dumped["ensemble"]), HeliostatSettings(**dumped["heliostat"]),
-                        analysis, limits, quality, optics)
+                        analysis, limits, quality, optics, canting_reference=dumped.get("canting_reference"))

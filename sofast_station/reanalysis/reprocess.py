@@ -64,7 +64,8 @@ log = logging.getLogger(__name__)
 #: Keys of a result record that describe the cycle rather than measure the facet: not compared.
 NOT_FIGURES = frozenset({"cycle_id", "serial", "time", "recipe", "station", "facet", "software_version", "config_hash",
                          "calibration", "camera", "request", "capture_notes", "crop_box", "timings_s", "truth",
-                         "reprocess", "dump", "status", "archived", "differences", "error", "error_type"})
+                         "reprocess", "dump", "status", "archived", "differences", "error", "error_type",
+                         "station_checks"})   # the line's checks of itself (display, temperature, reference)
 
 #: The reported figures (docs/conventions.md#reported-figures; flattened names): the comparison table shows them
 #: whether or not they changed, and the other (diagnostic) figures only when they changed.
@@ -332,6 +333,8 @@ def flatten_figures(record: dict, uncertainties: bool = False) -> dict:
     def walk(name: str, value) -> None:
         if isinstance(value, dict):
             for k, v in value.items():
+                if k == "station_checks":                  # a heliostat's facets carry the cycle's checks too
+                    continue
                 if uncertainties or not is_uncertainty_key(str(k)):     # nested ones too (optics' _U)
                     walk(f"{name}.{k}" if name else str(k), v)
         elif isinstance(value, (list, tuple)) and value and all(
@@ -741,7 +744,8 @@ def job_of_dump(content, overrides: Overrides, notes: list, archived: dict | Non
             raise ConfigError(f"dump {content.path} is a heliostat's: its facets' designs and alignment points are "
                               "its heliostat file's; reprocess it without a facet file, focal length or alignment "
                               "point override")
-        dumped = {k: content.design[k] for k in ("ensemble", "heliostat", "max_canting_mrad") if k in content.design}
+        dumped = {k: content.design[k] for k in ("ensemble", "heliostat", "max_canting_mrad", "canting_reference")
+                  if k in content.design}
         settings = _settings(content, overrides, notes)
         name = dumped["ensemble"]["name"]
         design = None

@@ -41,7 +41,7 @@ STATION_FAULT_KINDS = frozenset({"timeout", "camera", "display", "calibration", 
 
 #: The line's alarm names (the status file's keys; the page, OPC UA's ``Alarms/Line`` and the PLC's
 #: warning bit ``line`` follow any of them).
-ALARMS = ("line-faults", "line-yield", "line-deadline", "line-startup")
+ALARMS = ("line-faults", "line-yield", "line-deadline", "line-startup", "line-geometry")
 
 
 def station_fault(record: dict) -> bool:

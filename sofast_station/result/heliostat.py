@@ -12,7 +12,10 @@ The record (``inspect --json``, the journal, the dump, the workbook's rows) is t
   ``verdict``, ``reasons`` and ``warnings``, and on the twin its ``truth`` (the facet's figures and canting);
 * ``optics``: the heliostat's design, measured and re-canted traces
   (:func:`~sofast_station.optics.heliostat.heliostat_optics`), when ``[optics]`` is on;
-* ``canting_instructions``: per facet which way and how far to turn it (:mod:`sofast_station.report.canting`).
+* ``canting_instructions``: per facet which way and how far to turn it (:mod:`sofast_station.report.canting`);
+* ``canting_reference`` (when the recipe names canting prescriptions, docs/field.md): what the canting errors
+  are against: ``{"source": "prescription", "file", "serial"}`` (the heliostat's own place in the field) or
+  ``{"source": "design", "design", "note"}`` (its serial has no prescription).
 
 The verdict (:func:`judge_heliostat`): each measured facet as a single facet (:func:`~.verdict.judge`, its
 optical limits left to the heliostat) and its canting against ``[limits] max_canting_mrad``; the heliostat
@@ -163,7 +166,7 @@ def judge_heliostat(facets: list[dict], designs: dict, limits: Limits, quality: 
 
 def heliostat_record(head: RecordHead, figures: dict, ensemble, limits: Limits, quality: Quality, *,
                      truth: dict | None = None, optics: dict | None = None, instructions: dict | None = None,
-                     timings: dict | None = None, **extra) -> dict:
+                     timings: dict | None = None, canting_reference: dict | None = None, **extra) -> dict:
     """A heliostat's result record (see the module docstring).
 
     Parameters
@@ -181,6 +184,9 @@ def heliostat_record(head: RecordHead, figures: dict, ensemble, limits: Limits, 
     instructions : dict, optional
         :func:`~sofast_station.report.canting.canting_instructions`.
     timings : dict, optional
+    canting_reference : dict, optional
+        What the canting is against (:func:`~sofast_station.job.heliostat.canting_design`); None: the design,
+        unsaid.
     **extra
         More keys after the heliostat's figures (``measured_distance_m``, ``capture_notes``...).
     """
@@ -203,12 +209,15 @@ def heliostat_record(head: RecordHead, figures: dict, ensemble, limits: Limits, 
     verdict = judge_heliostat(facets, designs, limits, quality, optics)
     out = head.to_dict()
     out["heliostat"] = dict(figures["heliostat"])
+    if canting_reference is not None:
+        out["canting_reference"] = dict(canting_reference)
     out.update(extra)
     out["facets"] = facets
     if optics is not None:
         out["optics"] = optics
     if instructions is not None:
-        out["canting_instructions"] = instructions
+        # made by the job before the record had a serial: the instructions name the heliostat they are for
+        out["canting_instructions"] = {**instructions, "serial": head.serial}
     out.update(verdict)
     if truth is not None:
         out["truth"] = {"heliostat": truth.get("heliostat")}

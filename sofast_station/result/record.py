@@ -54,6 +54,9 @@ class RecordHead:
         What the robot or the operator asked for (the loop's records).
     serial_raw : str or None
         The serial as received, when making it safe changed it (:mod:`sofast_station.serials`).
+    station_checks : dict or None
+        What the line's checks of itself found in this cycle (``marks``: the fixture's marks,
+        :mod:`sofast_station.station.marks`; ``temperature``); absent when none ran.
     software_version : str
     """
 
@@ -68,6 +71,7 @@ class RecordHead:
     recipe: str | None = None
     request: dict | None = None
     serial_raw: str | None = None
+    station_checks: dict | None = None
     software_version: str = __version__
 
     def to_dict(self) -> dict:
@@ -75,7 +79,7 @@ class RecordHead:
                "recipe": self.recipe,
                "station": self.station, "facet": self.facet, "software_version": self.software_version,
                "config_hash": self.config_hash, "calibration": self.calibration, "camera": self.camera,
-               "request": self.request}
+               "request": self.request, "station_checks": self.station_checks}
         return {k: v for k, v in out.items() if v is not None}
 
 

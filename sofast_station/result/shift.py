@@ -64,6 +64,9 @@ class ShiftSummary:
         Fault kind (the reason's first word: camera, capture, timeout...) -> count.
     station_faults : int
         Faults of the station (left out of the yield).
+    references : int
+        Reference facets measured (a reference recipe's rows, ``station_checks.reference``): they judge the
+        station, not the production, so they are left out of the counts, the yield and the figures.
     """
 
     counts: dict
@@ -75,6 +78,7 @@ class ShiftSummary:
     cycle_worst_s: float | None
     faults_by_kind: dict = field(default_factory=dict)
     station_faults: int = 0
+    references: int = 0
 
     @property
     def judged(self) -> int:
@@ -134,10 +138,15 @@ class ShiftTally:
         self.worst_s: float | None = None
         self.total = 0
         self.station_faults = 0
+        self.references = 0
 
     def add(self, record: dict, cycle_s: float | None = None) -> None:
         """Count one facet's *record*; its cycle time is the record's own (:func:`cycle_seconds`) unless
-        *cycle_s* (seconds) is given."""
+        *cycle_s* (seconds) is given. A reference's row is counted apart (:attr:`ShiftSummary.references`)."""
+        if isinstance(record.get("station_checks"), dict) and "reference" in record["station_checks"]:
+            self.references += 1                   # it judged the station (station/reference.py), not a facet
+            self.add_cycle(cycle_s if cycle_s is not None else cycle_seconds(record))
+            return
         verdict = str(record.get("verdict") or "fault")
         self.counts[verdict] = self.counts.get(verdict, 0) + 1
         self.total += 1
@@ -166,7 +175,7 @@ class ShiftTally:
         judged = self.total - self.station_faults
         return ShiftSummary(dict(self.counts), self.total, self.counts["pass"] / judged if judged else None,
                             {path: st.stats() for path, st in self.figures.items()}, med, p95, self.worst_s,
-                            dict(sorted(self.faults.items())), self.station_faults)
+                            dict(sorted(self.faults.items())), self.station_faults, self.references)
 
 
 def summarize(records, cycle_s: list[float] | None = None) -> ShiftSummary:

@@ -10,6 +10,8 @@ with the station's other commands; the routines themselves see only the device p
     sofast-station calibrate screen [--views 8] [--model auto]
     sofast-station calibrate pose [--target reference_mirror.toml] [--placements 4]
     sofast-station calibrate commission
+    sofast-station calibrate marks
+    sofast-station calibrate confirm-geometry [--reference reference.toml]
     sofast-station calibrate status
     sofast-station calibrate camera-position PHOTO --markers CSV [--camera station|record|handheld|FILE]
     sofast-station calibrate dots PHOTO... --origin COLUMN,ROW... --camera CAMERA --markers CSV
@@ -176,15 +178,37 @@ def cmd_pose(args) -> int:
 
 def cmd_commission(args) -> int:
     from ..config import load_config
-    from .commissioning import commission, commission_summary
+    from .commissioning import commission, commission_steps, commission_summary
 
-    name = load_config(args.config).name
+    config = load_config(args.config)
     steps, verdict = commission(args.config, seed=args.seed, noise=not args.noise_free, reference=args.reference,
                                 target=args.target)
-    text = "\n\n".join(s.summary for s in steps) + "\n\n" + commission_summary(name, steps, verdict)
+    text = "\n\n".join(s.summary for s in steps) + "\n\n" + commission_summary(
+        config.name, steps, verdict, total=len(commission_steps(config)))
     _emit(args, {"verdict": verdict, "steps": [{"name": s.name, "verdict": s.verdict, "path": s.path,
                                                 "summary": s.summary} for s in steps]}, text)
     return 0 if verdict in ("pass", "warn") else 1
+
+
+def cmd_marks(args) -> int:
+    from ..config import load_config
+    from .commissioning import run_marks
+
+    return _emit_step(args, run_marks(load_config(args.config), seed=args.seed, noise=not args.noise_free))
+
+
+def cmd_confirm_geometry(args) -> int:
+    from ..config import load_config
+    from .commissioning import confirm_geometry
+
+    steps = confirm_geometry(load_config(args.config), reference=args.reference, seed=args.seed,
+                             noise=not args.noise_free)
+    verdict = "pass" if steps[-1].name == "marks" and steps[-1].verdict == "pass" else "fail"
+    text = "\n\n".join(s.summary for s in steps) + f"\n\nGeometry confirmation: {verdict.upper()}\nverdict: " \
+        f"{verdict.upper()}"
+    _emit(args, {"verdict": verdict, "steps": [{"name": s.name, "verdict": s.verdict, "path": s.path,
+                                                "summary": s.summary} for s in steps]}, text)
+    return 0 if verdict == "pass" else 1
 
 
 def cmd_status(args) -> int:
@@ -439,8 +463,8 @@ def register(subparsers, default_config_path: str | None = None) -> argparse.Arg
     """
     cal = add_command(
         subparsers, "calibrate",
-        help="calibration routines: radiometric (daily), camera, geometry, screen, pose, commission, status, "
-             "camera-position, dots, screen-data",
+        help="calibration routines: radiometric (daily), camera, geometry, screen, pose, commission, marks, "
+             "confirm-geometry, status, camera-position, dots, screen-data",
         description="""
             The station's calibrations (docs/calibration.md). Each writes a dated record (JSON, never
             overwritten) under data_dir/calibration/; inspection uses the newest and warns or refuses when
@@ -581,6 +605,30 @@ def register(subparsers, default_config_path: str | None = None) -> argparse.Arg
                           "on the simulated station)")
     com.add_argument("--target", default=None, metavar="FILE", help="the reference mirror's certificate")
     com.set_defaults(func=_line_stopped(cmd_commission))
+
+    mk = add_command(
+        sub, "marks", help="the fixture's marks: their places now become the commissioned ones",
+        description="""
+            Show white, grab a few frames and find every fixture mark ([marks] in the station file) near where
+            the geometry in force puts it; their mean places become the commissioned ones (a dated marks
+            record), which every cycle then checks its white frame against: a camera that moved stops the
+            line from judging facets (docs/reliability.md#the-station-checks-itself). A new record also ends
+            such a hold. After a moved camera, prefer 'confirm-geometry', which checks a reference first.""")
+    common(mk)
+    mk.set_defaults(func=_line_stopped(cmd_marks))
+
+    cg = add_command(
+        sub, "confirm-geometry", help="after a moved camera: check a reference facet, then take the marks' new places",
+        description="""
+            The line holds (judges no facet) when the fixture's marks show that the camera has moved. Put the
+            reference facet in the fixture and run this: it measures the reference against its certificate
+            ('calibrate geometry'); within tolerance, the geometry is confirmed and the marks' new places
+            become the commissioned ones ('calibrate marks'), which ends the hold at the line's next start.
+            Outside tolerance nothing is taken: recommission with 'calibrate commission'.""")
+    common(cg)
+    cg.add_argument("--reference", default=None, metavar="FILE",
+                    help="the reference facet's certificate (the twin's truth by default on the simulated station)")
+    cg.set_defaults(func=_line_stopped(cmd_confirm_geometry))
 
     st = add_command(
         sub, "status", help="the calibration in force, its age, and the records kept",

@@ -278,6 +278,86 @@ def run_geometry(config, *, reference: str | None = None, seed: int | None = Non
                 {"path": str(path), "headline": headline, **check}, str(path))
 
 
+def run_marks(config, *, seed: int | None = None, noise: bool = True, confirmed_by: str | None = None) -> Step:
+    """``calibrate marks`` on the station of *config*: the fixture's marks' places now become the commissioned
+    ones (a new ``marks`` record, which also ends a hold the line put itself on; :mod:`sofast_station.calibrate.marks`).
+    *confirmed_by*: the geometry record of the reference check that confirmed the geometry first
+    (``calibrate confirm-geometry``)."""
+    import numpy as np
+
+    from ..calibrate.marks import clear_hold, commission_marks, focal_px, mark_settings, save_marks_record
+    from ..calibrate.store import newest_record_path
+    from .factory import open_station
+
+    settings = mark_settings(config)
+    if settings is None:
+        raise ConfigError(f"{config.path} has no [marks] table: describe the fixture's marks (centres_mm, diameter_mm; "
+                          "docs/reliability.md#the-station-checks-itself) before commissioning them")
+    station = open_station(config, seed=seed, noise=noise, calibration_checks=False)
+    try:
+        try:
+            found = commission_marks(station.display, station.camera, settings, config.geometry)
+        except CalibrationError as exc:
+            return Step("marks", "refused", f"{exc}\nverdict: REFUSED")
+    finally:
+        station.close()
+    pose = newest_record_path(config.data_dir, "pose", config.identity)
+    source = f"sofast-station {__version__} calibrate marks on {config.name} ({config.backend})"
+    from .temperature import read_temperature
+
+    extra = {"pose_record": pose.stem if pose is not None else None, "confirmed_by": confirmed_by,
+             "temperature_c": read_temperature(config)}
+    path, record_id = save_marks_record(config.data_dir, found, settings, config.geometry, source,
+                                        station=config.identity, extra=extra)
+    ended = clear_hold(config.data_dir)
+    off = np.hypot(*(found.positions_px - found.predicted_px).T)
+    spread = float(np.sqrt(np.mean(found.std_px ** 2))) if found.frames > 1 else float("nan")
+    f = focal_px(config.geometry)
+    headline = (f"{len(off)} marks, {spread:.3f} px repeatability (RMS over {found.frames} frames), "
+                f"{off.max():.1f} px ({1e3 * off.max() / f:.2f} mrad) at most from where the geometry puts them; "
+                f"{path.name}")
+    lines = [f"Fixture marks of {config.name}: {len(off)} found in {found.frames} white frames; record {path}",
+             f"  image radius {found.radius_px:.1f} px, contrast {found.contrast_dn.min():.0f} DN at least",
+             f"  repeatability {spread:.4f} px RMS per coordinate (a cycle's check stops the line at "
+             f"{settings.max_turn_mrad:g} mrad = {1e-3 * settings.max_turn_mrad * f:.2f} px)",
+             f"  found {np.median(off):.2f} px (median), {off.max():.2f} px (worst) from the geometry's prediction"]
+    if confirmed_by:
+        lines.append(f"  the geometry was confirmed first by the reference check {confirmed_by}")
+    if ended:
+        lines.append("  the line's hold (a moved camera) is ended: the station judges facets again at its next start")
+    lines.append("verdict: PASS")
+    return Step("marks", "pass", "\n".join(lines),
+                {"path": str(path), "record_id": record_id, "headline": headline, "positions_px": found.positions_px,
+                 "std_px": found.std_px, "hold_ended": ended}, str(path))
+
+
+def confirm_geometry(config, *, reference: str | None = None, seed: int | None = None,
+                     noise: bool = True) -> list[Step]:
+    """``calibrate confirm-geometry``: after the marks showed a moved camera, a reference facet measured against
+    its certificate (``calibrate geometry``) confirms the geometry still measures right; only then the marks'
+    new places are taken as the commissioned ones (``calibrate marks``), which ends the line's hold. A check
+    outside tolerance takes nothing: recommission (``calibrate commission``)."""
+    steps = [run_geometry(config, reference=reference, seed=seed, noise=noise)]
+    if steps[0].verdict == "pass":
+        from pathlib import Path
+
+        steps.append(run_marks(config, seed=seed, noise=noise,
+                               confirmed_by=Path(steps[0].path).stem if steps[0].path else None))
+    else:
+        steps[0].summary += ("\nThe geometry is not confirmed: the marks' places are not taken and the line stays on "
+                             "hold. Recommission the station: 'sofast-station calibrate commission'")
+    return steps
+
+
+def commission_steps(config) -> list[str]:
+    """The steps ``calibrate commission`` runs on the station of *config*, in order (``marks`` when it has
+    ``[marks]``)."""
+    from ..calibrate.marks import mark_settings
+
+    names = ["radiometric", "screen", "pose", "geometry"]
+    return names + (["marks"] if mark_settings(config) is not None else [])
+
+
 def run_radiometric(config, *, seed: int | None = None, noise: bool = True, plot: bool = True,
                     overrides: dict | None = None) -> Step:
     """``calibrate radiometric`` (with its display-latency self-test) on the station of *config*."""
@@ -315,18 +395,22 @@ def run_radiometric(config, *, seed: int | None = None, noise: bool = True, plot
 def commission(config_path, *, seed: int | None = None, noise: bool = True, reference: str | None = None,
                target: str | None = None, progress=None) -> tuple[list[Step], str]:
     """The whole commissioning: radiometric, screen, pose, geometry, in order, once every input is checked
-    (:func:`check_commission`); the configuration is read again after each step (its records change the
-    geometry in force). Stops at a step that is refused or fails. Returns the steps and the overall verdict
-    (the worst step's)."""
+    (:func:`check_commission`), then, on a station with fixture marks, their places (``marks``: the geometry
+    the reference confirmed is the one the marks keep watch over); the configuration is read again after each
+    step (its records change the geometry in force). Stops at a step that is refused or fails. Returns the
+    steps and the overall verdict (the worst step's)."""
     from ..config import load_config
 
     say = progress or log.info
-    check_commission(load_config(config_path), reference=reference, target=target)
+    first = load_config(config_path)
+    check_commission(first, reference=reference, target=target)
     steps: list[Step] = []
-    runs = [("radiometric", lambda c: run_radiometric(c, seed=seed, noise=noise)),
-            ("screen", lambda c: run_screen(c, seed=seed, noise=noise)),
-            ("pose", lambda c: run_pose(c, target=target, seed=seed, noise=noise)),
-            ("geometry", lambda c: run_geometry(c, reference=reference, seed=seed, noise=noise))]
+    every = {"radiometric": lambda c: run_radiometric(c, seed=seed, noise=noise),
+             "screen": lambda c: run_screen(c, seed=seed, noise=noise),
+             "pose": lambda c: run_pose(c, target=target, seed=seed, noise=noise),
+             "geometry": lambda c: run_geometry(c, reference=reference, seed=seed, noise=noise),
+             "marks": lambda c: run_marks(c, seed=seed, noise=noise)}
+    runs = [(name, every[name]) for name in commission_steps(first)]
     for k, (name, run) in enumerate(runs):
         say(f"commissioning step {k + 1} of {len(runs)}: calibrate {name}")
         step = run(load_config(config_path))

@@ -26,10 +26,14 @@ from ..devices.protocols import FAULT_CODES, WARNING_BITS, FacetRequest
 from ..errors import AnalysisTimeout, CameraError, StationError, TriggerError
 from ..live.operator_commands import take_dump_next
 from ..recipes import choose_recipe
+from ..measure.fixture_marks import widen_for_pose
+from ..measure.thermal import widen_for_temperature
 from ..result.faults import fault_reason
 from ..result.record import build_record
 from ..result.shift import cycle_seconds
 from .frames import capture_sequence, crop, restore
+from .marks import CameraMoved
+from .reference import ReferenceFailed
 from .worker import RERUN_FACTOR
 
 log = logging.getLogger("sofast_station.station.runner")    # the line's log, as station/link.py's
@@ -125,6 +129,8 @@ class Cycle:
         self.stage = "start"
         self.reason: str | None = None
         self.until_journal: float | None = None
+        #: What the line's checks of itself found on this cycle's frames (the record's ``station_checks``).
+        self.checks: dict = {}
 
     # ------------------------------------------------------------------ the cycle
     def run(self) -> CycleOutcome:
@@ -193,6 +199,13 @@ class Cycle:
             captured.box = job.crop_box(raw[0], raw[1])
             captured.frames, captured.full_shape = crop(raw, captured.box), raw.shape[1:]
             cal_warnings = line.check_calibration(raw[0])
+            # the fixture's marks in the white frame: a camera that moved since commissioning judges no facet
+            self.checks = line.station_checks(raw[1], self.cycle_id, request.serial, frames=captured.frames)
+            withhold = self.checks.get("marks", {}).get("withhold")
+            if withhold:
+                raise CameraMoved(withhold)
+            if line.reference.hold and getattr(recipe, "reference", None) is None:
+                raise ReferenceFailed(line.reference.hold)       # a reference judges the station: it is measured
             del raw
             # At the deadline this thread answers "timeout" itself (just before the watchdog would) and the
             # standby worker takes over for the next facet; the abandoned analysis may still finish within
@@ -243,12 +256,27 @@ class Cycle:
         simulated station, the truth of the station's own facet type."""
         station = self.line.station
         truth = station.truth(res.valid, job) if job.name == station.config.design.name else None
-        head = self.line.head(self.cycle_id, self.request, recipe.name, cal_warnings, facet=job.name)
-        return job.record(head, res.figures, truth, timings, measured_distance_m=self.captured.distance_m,
-                          capture_notes=notes, **self.clock_note())
+        pose_u = self.checks.get("marks", {}).get("pose_u")
+        if pose_u:
+            # what the marks' small shift leaves unknown of the fixture's pose, in the U's it reaches
+            self.checks["marks"]["widened_U"] = widen_for_pose(res.figures, pose_u)
+        thermal = self.checks.get("temperature", {}).get("u")
+        if thermal and self.line.temperature is not None:
+            # the screen's and the fixture's expansion since commissioning, in the U's they reach
+            self.checks["temperature"]["widened_U"] = widen_for_temperature(res.figures, thermal,
+                                                                            self.line.temperature.pitch_u)
+        head = self.line.head(self.cycle_id, self.request, recipe.name, cal_warnings, facet=job.name,
+                              checks=self.checks)
+        record = job.record(head, res.figures, truth, timings, measured_distance_m=self.captured.distance_m,
+                            capture_notes=notes, **self.clock_note())
+        if getattr(recipe, "reference", None) is not None:
+            # a reference judges the station: its verdict is its certificate's comparison (station/reference.py)
+            record.setdefault("station_checks", {})["reference"] = self.line.judge_reference(record, recipe)
+        return record
 
     def fault_record(self, code: int, reason: str, timings: dict, cal_warnings=()) -> dict:
-        head = self.line.head(self.cycle_id, self.request, self.request.recipe or "", cal_warnings)
+        head = self.line.head(self.cycle_id, self.request, self.request.recipe or "", cal_warnings,
+                              checks=self.checks)
         return build_record(head, fault=(code, reason), timings=timings, **self.clock_note())
 
     # ------------------------------------------------------------------ answers

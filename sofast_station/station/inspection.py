@@ -15,7 +15,7 @@ import time
 
 import numpy as np
 
-from ..job import Capture
+from ..job import Capture, job_for
 from ..recipes import default_recipe
 from .frames import capture_sequence, crop, restore
 from .opened import Station
@@ -45,7 +45,8 @@ def inspect(station: Station, serial: str, progress=None, pictures_dir=None, rec
     t0 = time.perf_counter()
     config = station.config
     recipe = recipe or default_recipe(config)
-    job = station.job_for(recipe)
+    # (the recipe's job for this serial: its canting prescription, if the recipe has them; no simulated faults)
+    job = job_for(recipe, config, serial)
     raw, notes = capture_sequence(station.display, station.camera, config.fringes, recipe.analysis.mask_threshold_dn,
                                   progress=progress)
     distance = float(station.range_finder.measure())

@@ -87,10 +87,11 @@ class Station:
     def job_for(self, recipe, serial: str | None = None):
         """The job that measures a facet of *recipe* on this station (:func:`~sofast_station.job.job_for`). The
         simulated station may give one that injects the faults its tests ask for *serial*
-        (:meth:`~sofast_station.station.simulated.SimulatedStation.job_for`); a real station never does."""
+        (:meth:`~sofast_station.station.simulated.SimulatedStation.job_for`); a real station never does. A
+        heliostat recipe with canting prescriptions judges *serial* against its own (docs/field.md)."""
         from ..job import job_for
 
-        return job_for(recipe, self.config)
+        return job_for(recipe, self.config, serial)
 
     def truth(self, valid: np.ndarray, job=None) -> dict | None:
         """The ground truth of the facet in the fixture at the pixels *valid* (the analysis kept them), for

@@ -39,7 +39,11 @@ from .drift import DriftMonitor
 from .cycle import Cycle, CycleOutcome
 from .frames import capture_sequence
 from .link import LinkWatch
+from .marks import ALARM as GEOMETRY_ALARM, MarkCheck
 from .opened import Station
+from .reference import AGE_ALARM, ALARM as REFERENCE_ALARM, ReferenceCheck
+from .display import ALARM as DISPLAY_ALARM, DisplayCheck
+from .temperature import TemperatureCheck
 from ..recipes import Recipe
 from ..live.status import StatusFile
 from .worker import AnalysisWorker
@@ -81,6 +85,12 @@ class RunSettings:
     alarm_faults_in_row, alarm_yield_window : int
         The line alarm's rules (:mod:`sofast_station.result.health`): faults in a row, and the newest facets of
         a recipe whose yield is compared with its recent yield.
+    reference_every_h : float
+        Warn (the alarm ``line-reference-age``) when no reference recipe's facet was measured for this long,
+        hours; 0: never (:mod:`sofast_station.station.reference`).
+    display_level_tolerance : float
+        The display's self-test (:mod:`sofast_station.station.display`): the alarm ``line-display`` when the
+        fringes' mean level departs from the radiometric table's by more; 0: no check.
     """
 
     deadline_s: float = 10.0
@@ -97,6 +107,8 @@ class RunSettings:
     standby_worker: bool = True
     alarm_faults_in_row: int = 3
     alarm_yield_window: int = 20
+    reference_every_h: float = 0.0
+    display_level_tolerance: float = 0.015
 
 
 def _recent_by_recipe(journal, n: int = 1000) -> dict:
@@ -226,6 +238,24 @@ class StationRunner:
         self.health = LineHealth(settings.deadline_s, HealthSettings(faults_in_row=settings.alarm_faults_in_row,
                                                                      yield_window=settings.alarm_yield_window),
                                  _recent_by_recipe(journal))
+        #: The fixture's marks in every white frame (station/marks.py): a moved camera stops the judging.
+        self.marks = MarkCheck.open(station.config)
+        self._geometry_alarm: str | None = None
+        if self.marks is not None and self.marks.held:
+            self._raise_geometry_alarm(self.marks.alarm_text())
+        #: The screen's and the hall's temperature per facet (station/temperature.py), in every row and budget.
+        self.temperature = TemperatureCheck.open(station.config, self.marks.record if self.marks else None)
+        #: The reference every shift (station/reference.py): its last result, the hold it may put the line on.
+        pose = (getattr(station.config, "commissioned", None) or {}).get("pose") or {}
+        self.reference = ReferenceCheck(station.config.data_dir, settings.reference_every_h, pose.get("record_id"))
+        self._reference_age: str | None = None
+        #: The display's response on every facet (station/display.py): an alarm, no hold.
+        self.display = None
+        if settings.display_level_tolerance > 0 and getattr(station, "radiometric", None) is not None:
+            self.display = DisplayCheck(station.radiometric, station.config.fringes, settings.display_level_tolerance,
+                                        recipes["default"].analysis.mask_threshold_dn)
+        if self.reference.hold:
+            self._line_alarms({REFERENCE_ALARM: self.reference.hold})
 
     def check_drift(self, recipe: str, record: dict) -> None:
         """Drift alarm: the rules on the recipe's recent facets; alarms go to the record (journal row),
@@ -251,7 +281,102 @@ class StationRunner:
             log.exception("the line-health check failed; the facet is answered without it")
             return 0
         self._line_alarms(changed)
-        return WARNING_BITS["line"] if self.health.alarms else 0
+        held = self._geometry_alarm or self.reference.hold or (self.display is not None and self.display.alarm)
+        return WARNING_BITS["line"] if self.health.alarms or held else 0
+
+    def judge_reference(self, record: dict, recipe) -> dict:
+        """A reference recipe's facet judged against its certificate (:mod:`sofast_station.station.reference`):
+        its verdict becomes the comparison's; beyond the limits the line holds (alarm ``line-reference``), within
+        them a hold ends. Returns the record's ``station_checks.reference``."""
+        from ..calibrate.geometry import load_reference, station_reference
+
+        twin = recipe.reference == "twin"
+        certificate = station_reference(self.station) if twin else load_reference(recipe.reference)
+        before = self.reference.hold
+        entry = self.reference.judged(record, certificate, recipe.name)
+        if self.reference.hold != before:
+            self._line_alarms({REFERENCE_ALARM: self.reference.hold})
+        return entry
+
+    def station_checks(self, white: np.ndarray, cycle_id: str | None = None, serial: str | None = None,
+                       frames: np.ndarray | None = None) -> dict:
+        """The line's checks of itself on this cycle: the fixture's marks in its white frame
+        (:class:`~sofast_station.station.marks.MarkCheck`), the temperature
+        (:class:`~sofast_station.station.temperature.TemperatureCheck`) and, given the cycle's *frames*, the
+        display's response (:class:`~sofast_station.station.display.DisplayCheck`). Returns the record's
+        ``station_checks``
+        (empty without either); its ``marks.withhold``, when set, is why the facet must not be judged. The
+        geometry alarm follows the marks' hold."""
+        checks: dict = {}
+        if self.temperature is not None:
+            checks["temperature"] = self.temperature.check()
+        if self.display is not None and frames is not None:
+            before = self.display.alarm
+            try:
+                checks["display"] = self.display.check(frames)
+            except Exception:                    # a bug in the self-test must not stop the line
+                log.exception("the display's self-test failed; the facet is measured without it")
+            if self.display.alarm != before:
+                self._line_alarms({DISPLAY_ALARM: self.display.alarm})
+        age = self.reference.age_text()
+        if age != self._reference_age:
+            self._reference_age = age
+            self._line_alarms({AGE_ALARM: age})
+        if self.marks is None:
+            self._show_health(checks, serial)
+            return checks
+        try:
+            entry = self.marks.check(white, cycle_id, serial)
+        except Exception as exc:              # a bug in the check must not judge facets on an unchecked camera
+            log.exception("the fixture marks' check failed")
+            entry = {"withhold": f"the fixture marks' check failed ({exc}): the facet is not judged; see the log"}
+        if entry.get("withhold") and self.marks.held:
+            self._raise_geometry_alarm(self.marks.alarm_text())
+        elif entry.get("withhold"):
+            log.warning("%s: %s", serial, entry["withhold"])
+        checks["marks"] = entry
+        self._show_health(checks, serial)
+        return checks
+
+    def _show_health(self, checks: dict, serial: str | None) -> None:
+        """The page's lines on the station's own health (the status file's ``station_health``), from this cycle's
+        checks: beside the facets' verdicts, so the operator sees the station judged too."""
+        health = {}
+        marks = checks.get("marks")
+        if marks is not None:
+            limit = self.marks.settings.max_turn_mrad if self.marks is not None else float("nan")
+            turn = marks.get("turn_mrad")
+            health["geometry (fixture marks)"] = (
+                f"HOLD: {marks['withhold']}" if marks.get("withhold") else
+                f"{marks.get('found')}/{marks.get('marks')} marks where commissioned: apparent camera turn "
+                f"{(turn[0] ** 2 + turn[1] ** 2) ** 0.5:.3f} mrad (limit {limit:g}) at {serial}" if turn else "-")
+        temp = checks.get("temperature")
+        if temp is not None:
+            health["temperature"] = (f"not read: {temp['error']}" if temp.get("error") else
+                                     f"hall {temp['hall_c']:.1f} degC, screen {temp['screen_c']:.1f} degC: "
+                                     f"{temp['delta_k']['hall']:+.1f} K and {temp['delta_k']['screen']:+.1f} K from "
+                                     f"commissioning ({temp['commissioned']['from']}), in every facet's U")
+        display = checks.get("display")
+        if display is not None and "error" in display:
+            health["display (response)"] = (
+                f"{'ALARM: ' if self.display.alarm else ''}fringes' mean level {display['level']:.4f} of the white, "
+                f"the radiometric table draws {display['expected_level']:.4f} ({display['error']:+.4f}, tolerance "
+                f"{display['tolerance']:g})")
+        last = self.reference.state.get("last")
+        if self.reference.hold:
+            health["reference"] = f"HOLD: {self.reference.hold}"
+        elif last:
+            health["reference"] = (f"{last.get('serial')} ({last.get('recipe')}) at {last.get('time')}: "
+                                   f"{last.get('errors') or 'judged'}, within its certificate's limits; "
+                                   f"f x / y errors of the last references: {self.reference.trend_text()}")
+        if health and health != self.status.data.get("station_health"):
+            self.status.update(station_health=health)
+
+    def _raise_geometry_alarm(self, text: str | None) -> None:
+        if text is None or text == self._geometry_alarm:
+            return
+        self._geometry_alarm = text
+        self._line_alarms({GEOMETRY_ALARM: text})
 
     def _line_alarms(self, changed: dict) -> None:
         for name, text in changed.items():
@@ -417,6 +542,10 @@ class StationRunner:
             text = self.health.startup(capture_s, analysis_s)
             if text is not None:
                 self._line_alarms({"line-startup": text})
+            # a camera moved while the station was off is caught before the first facet
+            found = self.station_checks(raw[1], None, "warm-up").get("marks", {})
+            if found.get("withhold"):
+                log.error("warm-up: %s", found["withhold"])
         except StationError as exc:
             log.warning("warm-up capture not analysed (%s); the first facet may be slower", exc)
             self.reopen_camera()
@@ -494,7 +623,7 @@ class StationRunner:
 
     # ------------------------------------------------------------------ records
     def head(self, cycle_id: str, request: FacetRequest, recipe_name: str, cal_warnings=(),
-              facet: str | None = None) -> RecordHead:
+              facet: str | None = None, checks: dict | None = None) -> RecordHead:
         """The head of this cycle's record (:class:`~sofast_station.result.record.RecordHead`), dated by the
         runner's clock (station/clock.py); the serial as received goes to ``serial_raw`` when making it safe
         changed it."""
@@ -502,7 +631,8 @@ class StationRunner:
         raw = extra.pop("serial_raw", None)
         head = self.station.record_head(request.serial, list(cal_warnings), facet=facet, cycle_id=cycle_id,
                                         recipe=recipe_name, serial_raw=raw,
-                                        request={"recipe": request.recipe, "dump": request.dump, **extra})
+                                        request={"recipe": request.recipe, "dump": request.dump, **extra},
+                                        station_checks=checks or None)
         return dataclasses.replace(head, time=self.clock.now_iso())
 
     def report(self, record: dict, answer: str) -> None:
@@ -530,6 +660,8 @@ class StationRunner:
 
     def close(self) -> None:
         self.stop_event.set()
+        if self.temperature is not None:
+            self.temperature.close()
         self.worker.close()             # waits for an abandoned analysis within its grace: it queues its result
         self._keep_late_results()
         self.status.close()

@@ -481,7 +481,9 @@ class Service:
         if dump is not None:
             recipe = self.recipes.get(record.get("recipe") or "default", self.recipes["default"])
             facet_path = self.config.raw.get("recipes", {}).get(recipe.name, {}).get("facet")
-            job = self.station.job_for(recipe)
+            # the job the cycle measured with: a heliostat's canting prescription is its serial's (no simulated fault)
+            from ..job import job_for
+            job = job_for(recipe, self.config, record.get("serial"))
             content = DumpContent.from_station(
                 self.station, cycle_id=cycle_id, record=record, frames_cropped=dump["frames"],
                 crop_box=dump["crop_box"], full_shape=dump["full_shape"],

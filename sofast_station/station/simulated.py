@@ -18,7 +18,7 @@ from ..errors import ConfigError
 from .opened import Station
 
 _SIM_KEYS = {"seed", "facet", "optics", "population", "distance_error_m", "faults", "hang_s", "slow_s",
-             "assembly", "heliostat"}
+             "assembly", "heliostat", "temperature"}
 
 #: Faults the simulated station can inject for a given serial ([simulation.faults] SERIAL = KIND).
 FAULT_KINDS = SIMULATED_FAULTS
@@ -67,7 +67,11 @@ def build_twin(config: StationConfig, noise: bool = True):
     if "heliostat" in sim:
         raise ConfigError(f"{config.path} [simulation.heliostat] describes a heliostat, but [station] facet is a "
                           "single facet's file")
-    return TwinStation(geometry, config.design, facet, optics, screen_shape=screen)
+    from ..calibrate.marks import mark_settings
+
+    marks = mark_settings(config)
+    return TwinStation(geometry, config.design, facet, optics, screen_shape=screen,
+                       marks=None if marks is None else marks.design)
 
 
 def build_population(config: StationConfig):
@@ -155,6 +159,36 @@ class SimulatedStation(Station):
         self.camera.fault = kind if kind in ("dark", "camera-timeout", "misplaced", "hung-capture",
                                              "camera-disconnect", "lights-off") else None
         return faulty_job(job, kind, hang_s=sim.get("hang_s", 3600.0), slow_s=sim.get("slow_s", 15.0))
+
+    def move_camera(self, turn_mrad=(0.0, 0.0, 0.0), shift_mm=(0.0, 0.0, 0.0)) -> None:
+        """Bump the twin's camera (tests and benchmarks of the fixture marks' check): turned by *turn_mrad* about
+        and shifted by *shift_mm* along its own axes, on top of ``[simulation.assembly]``; the screen and the
+        fixture stay. The next facet placed, and the one in the fixture, are seen from there."""
+        import copy
+
+        from ..twin.assembly import TrueAssembly
+
+        sim = copy.deepcopy(self.config.simulation)
+        assembly = TrueAssembly.from_dict(sim.get("assembly", {}))
+        sim["assembly"] = {**assembly.to_dict(),
+                           "camera_turn_mrad": [a + float(b) for a, b in zip(assembly.camera_turn_mrad, turn_mrad)],
+                           "camera_shift_mm": [a + float(b) for a, b in zip(assembly.camera_shift_mm, shift_mm)]}
+        nominal = build_twin(dataclasses.replace(self.config, simulation=sim), noise=True)
+        nominal = nominal.with_optics(self.nominal_twin.optics)          # the station's own optics (noise or none)
+        in_fixture = self.twin.facet if self.twin is not None else nominal.facet
+        self._next = {}
+        self.nominal_twin = nominal
+        self.twin = self.camera.twin = self.range_finder.twin = nominal.with_facet(in_fixture)
+
+    def change_display(self, **optics) -> None:
+        """Change the twin's display (tests of its self-test, station/display.py): e.g. ``display_gamma=2.5``, a
+        picture mode changed behind the radiometric table's back. The facet in the fixture and the next are seen
+        through it."""
+        changed = dataclasses.replace(self.nominal_twin.optics, **optics)
+        self._next = {}
+        self.nominal_twin = self.nominal_twin.with_optics(changed)
+        self.twin = self.camera.twin = self.range_finder.twin = self.twin.with_optics(
+            dataclasses.replace(self.twin.optics, **optics))
 
     def reopen_camera(self) -> None:
         self.camera.fault = None

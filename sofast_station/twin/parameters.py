@@ -246,6 +246,10 @@ class TwinOptics:
         The rim's specular reflectance relative to the facet's, [0, 1].
     vignetting_exponent : float
         Shape of the fall-off: ``1 - vignetting (r / r_corner)^vignetting_exponent`` (2: quadratic).
+    mark_radiance : float
+        What the fixture's marks (``[marks]``, :mod:`sofast_station.twin.marks`), white discs lit by the hall's
+        lights, send the camera, as a fraction of the display's white seen in the facet: the same in every
+        frame. A matt white target under 500 lx reads about 150 cd/m^2, half an office LCD's white: 0.5.
     """
 
     display_gamma: float = 2.2
@@ -272,6 +276,7 @@ class TwinOptics:
     bevel_tilt_mrad: float = 0.0
     bevel_reflectance: float = 1.0
     vignetting_exponent: float = 2.0
+    mark_radiance: float = 0.5
 
     def __post_init__(self):
         owner = "TwinOptics"
@@ -298,6 +303,7 @@ class TwinOptics:
             ("camera_offset_dn", 0 <= self.camera_offset_dn < 255, "must lie in [0, 255)"),
             ("white_dn", self.white_dn > self.camera_offset_dn, "must exceed camera_offset_dn"),
             ("read_noise_dn", self.read_noise_dn >= 0, "must be >= 0"),
+            ("mark_radiance", 0 <= self.mark_radiance <= 1, "must lie in [0, 1]"),
             ("electrons_per_dn", self.electrons_per_dn >= 0, "must be >= 0 (0 turns shot noise off)"),
             ("vignetting", 0 <= self.vignetting < 1, "must lie in [0, 1)"),
             ("reference_exposure_s", self.reference_exposure_s > 0, "must be a positive time in seconds"),

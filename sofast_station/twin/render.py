@@ -77,9 +77,11 @@ class TwinRenderer:
         DN per unit of ambient light (zero off the facet).
     """
 
-    def __init__(self, trace: FacetTrace, optics: TwinOptics):
+    def __init__(self, trace: FacetTrace, optics: TwinOptics, mark_coverage: np.ndarray | None = None):
         self.trace = trace
         self.optics = optics
+        #: The fixture's marks' share of each pixel (:mod:`sofast_station.twin.marks`), or None.
+        self.mark_coverage = mark_coverage
         self.screen = trace.geometry.screen
         #: Display samples of the read-only images seen so far (id -> (weak reference, sample, [light])).
         self._samples: dict = {}
@@ -164,8 +166,13 @@ class TwinRenderer:
                         else self.vignetting[some].max() if some.any() else 1.0)
         self.gain_dn = (optics.white_dn - optics.camera_offset_dn) / ((optics.reflectance + optics.ambient) * vig_max)
         scale = self.gain_dn * self.vignetting
-        self.dn_base = (optics.camera_offset_dn
-                        + scale * (1.0 - trace.coverage) * optics.background).astype(np.float32)
+        uncovered = 1.0 - trace.coverage
+        marks = 0.0
+        if self.mark_coverage is not None:
+            # the fixture's marks, lit by the hall, in every frame alike (twin/marks.py); they hide the background
+            uncovered = uncovered - self.mark_coverage
+            marks = self.mark_coverage * optics.mark_radiance
+        self.dn_base = (optics.camera_offset_dn + scale * (uncovered * optics.background + marks)).astype(np.float32)
         self.dn_per_ambient = (scale * trace.coverage).astype(np.float32)
         self._dn_per_luminance = (self.dn_per_ambient.ravel()[trace.seen_idx] * optics.reflectance).astype(np.float32)
         levels = np.arange(256, dtype=np.float64) / 255.0

@@ -28,6 +28,7 @@ from ..geometry import StationGeometry
 from . import edges
 from .noise import scratch_f32
 from .parameters import TrueFacet, TwinOptics
+from .marks import mark_coverage
 from .render import TwinRenderer
 from .sensor import TwinSensor, exposure_scale, flicker_factor
 from .trace import MAX_KEPT_EDGE_SHIFT_PX, TRACE_ARRAYS, FacetTrace, facet_to_fixture_pose, rotation_zyx
@@ -93,6 +94,9 @@ class TwinStation:
         :mod:`sofast_station.twin.edges`).
     trace_only : bool
         Only trace (no renderer, no sensor): it cannot capture.
+    marks : FixtureMarks or None
+        The fixture's marks (``[marks]``), drawn in every frame where the true fixture pose puts them
+        (:mod:`sofast_station.twin.marks`); None: the fixture has none.
 
     Attributes
     ----------
@@ -109,15 +113,23 @@ class TwinStation:
         Wall time of the trace and of the renderer's preparation, seconds.
     """
 
+    #: No marks unless given (a heliostat's twin, which sets up its own traces, has none).
+    marks = None
+    mark_coverage = None
+
     def __init__(self, geometry: StationGeometry, design: FacetDesign, facet: TrueFacet = TrueFacet(),
                  optics: TwinOptics = TwinOptics(), edge_band_px: float = 2.0, trace_only: bool = False,
-                 screen_shape=None):
+                 screen_shape=None, marks=None):
         start = time.perf_counter()
         self.optics = optics
         self._show(FacetTrace(geometry, design, facet, optics, edge_band_px=edge_band_px, screen_shape=screen_shape))
+        self.marks = marks
+        #: The marks' share of each pixel (H, W), or None (they do not move with the facet: made once).
+        self.mark_coverage = None if marks is None else mark_coverage(
+            marks, geometry.fixture_to_camera, self.trace.camera, geometry.camera.shape)
         self.renderer = self.sensor = None
         if not trace_only:
-            self._light(TwinRenderer(self.trace, optics))
+            self._light(TwinRenderer(self.trace, optics, self.mark_coverage))
         self.trace_seconds = time.perf_counter() - start
 
     def _show(self, trace: FacetTrace) -> None:
@@ -142,7 +154,7 @@ class TwinStation:
         self.trace = FacetTrace.merged(self.geometry, coverage, seen_idx, arrays, self.optics)
         for name in _VIEWS:
             self.__dict__.pop(name, None)
-        self._light(TwinRenderer(self.trace, self.optics))
+        self._light(TwinRenderer(self.trace, self.optics, self.mark_coverage))
 
     # ------------------------------------------------------------- the next facet, other optics
     def with_facet(self, facet: TrueFacet) -> "TwinStation":
@@ -163,7 +175,7 @@ class TwinStation:
             if self.trace.keeps_outline(trace):
                 twin._light(self.renderer.with_trace(trace), self.sensor)
             else:
-                twin._light(TwinRenderer(trace, self.optics))
+                twin._light(TwinRenderer(trace, self.optics, self.mark_coverage))
         twin.trace_seconds = time.perf_counter() - start
         return twin
 
@@ -176,7 +188,7 @@ class TwinStation:
         """
         if any(getattr(optics, name) != getattr(self.optics, name) for name in edges.TRACE_FIELDS):
             return TwinStation(self.geometry, self.design, self.facet, optics, edge_band_px=self.trace.edge_band_px,
-                               screen_shape=self.screen_shape)
+                               screen_shape=self.screen_shape, marks=self.marks)
         twin = copy.copy(self)
         twin.optics = optics
         twin._light(self.renderer.with_optics(optics))

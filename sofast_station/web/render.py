@@ -194,8 +194,13 @@ def station_html(snap: dict) -> str:
         cal_text = esc(cal.get("error") or "no calibration in force")
     free = "–" if disk.get("free_gb") is None else f"{disk['free_gb']:.1f} GB"
     alarms = "".join(f"<li class='alarm'><b>{esc(kind)}</b>: {esc(text)}</li>" for kind, text in snap["alarms"])
+    # the line's checks of itself on the last facet (station/runner.py station_checks): beside the facets' verdicts
+    health = (snap.get("status") or {}).get("station_health") or {}
+    checks = "".join(f"<tr><th>{esc(name)}</th><td>{esc(text)}</td></tr>" for name, text in sorted(health.items())
+                     if isinstance(text, str))
     return (f"<h2>Station</h2><table class='station'>"
             f"<tr><th>state</th><td>{state_html(snap)}</td></tr>"
+            + checks +
             f"<tr><th>calibration in force</th><td>{cal_text}</td></tr>"
             f"<tr><th>free disk</th><td>{esc(free)} (data_dir)</td></tr>"
             f"<tr><th>archive backlog</th><td>{disk['workbook_backlog']} rows for the workbook, "

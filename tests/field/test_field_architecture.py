@@ -37,3 +37,7 @@ def test_the_twin_field_does_not_reach_the_field_package():
     reached = graph.reach([f"{PACKAGE}.twin.field"])
     assert not [m for m in reached if m.startswith(f"{PACKAGE}.field") or m.startswith(f"{PACKAGE}.measure")]
     assert "cv2" not in reached
+    # the twin's spot, BCS photo and glare images on their own: not the field's, the optics' or the measure's
+    reached = graph.reach([f"{PACKAGE}.twin.field_spot", f"{PACKAGE}.twin.glare_images"])
+    banned = tuple(f"{PACKAGE}.{unit}" for unit in ("field", "measure", "optics"))
+    assert not [m for m in reached if m in banned or m.startswith(tuple(b + "." for b in banned))]

@@ -26,7 +26,7 @@ from tests.conftest import ROOT, SMALL_STATION
 
 #: What a record says of its cycle rather than of the facet.
 CYCLE_KEYS = ("cycle_id", "time", "recipe", "request", "timings_s", "reprocess", "crop_box", "serial_raw",
-              "calibration")
+              "calibration", "station_checks")
 
 
 def measured(record: dict) -> dict:

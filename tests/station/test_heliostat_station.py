@@ -120,6 +120,7 @@ def test_the_instructions_turns_bring_the_twins_facets_back(record):
 
     adj = load_ensemble(ROOT / "fixtures/facets/heliostat_2x2.toml").adjusters
     ins = record["canting_instructions"]
+    assert ins["serial"] == record["serial"]             # made before the record had one: named after
     assert ins["viewpoint"] == "behind" and ins["screw_labels"] == ["A", "B", "C"] and ins["turn_step"] == 0.125
     res = ins["resolution_U"]
     assert res["limit_mrad"] == 0.5 and res["ratio"] == pytest.approx(0.5 / res["U_mrad"])
