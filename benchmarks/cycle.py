@@ -2,6 +2,8 @@
 
     .venv/bin/python benchmarks/cycle.py               # default full-resolution station, 20 facets
     .venv/bin/python benchmarks/cycle.py --quick       # the test suite's smoke run: 3 facets
+    .venv/bin/python benchmarks/cycle.py --config fixtures/stations/heliostat.toml            # the fringes ...
+    .venv/bin/python benchmarks/cycle.py --config fixtures/stations/heliostat.toml --fixed    # ... and a dot grid
 
 So that the figure is what real hardware would see, the camera replays one capture rendered by the
 digital twin beforehand (its render time is reported separately), waiting per frame for a modelled
@@ -13,6 +15,10 @@ critical path. Prints, for each stage, the first facet on its own (after the wor
 and the median and worst of the others; then runs the same facets again with a two-worker
 ``sofast-station batch`` re-analysing the first run's dumps beside the line (``--batch-workers``), to show
 what a process engineer's batch costs the line. Nothing is asserted.
+
+``--fixed`` measures every facet by the fixed-pattern method instead (a recipe of ``method = "fixed"``,
+``fixed = { spacing_px = 12 }``, named by every request: one dot frame per facet; issue 42 item 6 asks its
+whole cycle to take at most half the fringes'), on a station whose layout allows it (the heliostat's).
 """
 
 from __future__ import annotations
@@ -58,8 +64,12 @@ def main(argv=None) -> int:
                    help="then the same facets again with 'sofast-station batch --workers N' re-analysing the first "
                         "run's dumps beside the line (0: skip)")
     p.add_argument("--quick", action="store_true", help="3 facets (the test suite's smoke run)")
+    p.add_argument("--fixed", action="store_true",
+                   help="the fixed-pattern method (one dot frame) instead of the fringes (a heliostat-like layout)")
     args = p.parse_args(argv)
     n = 3 if args.quick else args.facets
+    import os
+    os.environ.setdefault("SOFAST_DATA_DIR", tempfile.mkdtemp(prefix="cycle-bench-"))   # never the user's
 
     import logging
     logging.basicConfig(level=logging.WARNING)
@@ -73,12 +83,27 @@ def main(argv=None) -> int:
 
     cfg = load_config(args.config)
     cam = cfg.geometry.camera
+    recipes = {}
+    if args.fixed:
+        from sofast_station.job import job_for
+        from sofast_station.recipes import recipes_from_config
+
+        recipes = {"dots": {"method": "fixed", "fixed": {"spacing_px": 12.0}}}
+        job = job_for(recipes_from_config(dataclasses.replace(cfg, raw=dict(cfg.raw, recipes=recipes)))["dots"], cfg)
     t = time.perf_counter()
     twin_station = open_station(cfg, seed=1)
     t_trace = time.perf_counter() - t
     try:
         t = time.perf_counter()
-        frames, distance = capture(twin_station)
+        if args.fixed:                     # the dot grid the recipe's job shows, through the twin's display
+            import numpy as np
+            shots = []
+            for pattern in job.shows(cfg.fringes).patterns():
+                twin_station.display.show(pattern)
+                shots.append(twin_station.camera.grab())
+            frames, distance = np.stack(shots), float(twin_station.range_finder.measure())
+        else:
+            frames, distance = capture(twin_station)
         t_render = time.perf_counter() - t
     finally:
         twin_station.close()
@@ -90,7 +115,8 @@ def main(argv=None) -> int:
 
     def line(data: Path, dump_every: int):
         """Run the real service with replay hardware on *data* for n facets: (outcomes, start s, close s)."""
-        raw = dict(cfg.raw, run={"dump_every_n": dump_every}, archive={"workbook_interval_s": 5.0})
+        raw = dict(cfg.raw, run={"dump_every_n": dump_every, **({"warmup": False} if args.fixed else {})},
+                   archive={"workbook_interval_s": 5.0}, **({"recipes": recipes} if recipes else {}))
         bench_cfg = dataclasses.replace(cfg, data_dir=data, raw=raw, simulation={})
         lines: list[str] = []
         service = Service.__new__(Service)           # the real service, with replay hardware
@@ -99,7 +125,11 @@ def main(argv=None) -> int:
                           range_finder=FixedRangeFinder(distance),
                           radiometric=load_radiometric(cfg.radiometric_path), twin=None)
         t = time.perf_counter()
-        Service.__init__(service, bench_cfg, simulated_facets=n, console=lines.append, station=devices)
+        requests = n
+        if args.fixed:                     # every facet by the fixed recipe (the warm-up's default is the fringes)
+            from sofast_station.devices.protocols import FacetRequest
+            requests = [FacetRequest(f"DOTS-{i + 1:04d}", recipe="dots") for i in range(n)]
+        Service.__init__(service, bench_cfg, simulated_facets=requests, console=lines.append, station=devices)
         t_start = time.perf_counter() - t
         try:
             outcomes = service.runner.run()

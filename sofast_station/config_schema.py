@@ -309,6 +309,18 @@ SECTIONS: dict[str, dict[str, Key]] = {
                                     "\"twin\" (the simulated station's truth)"),
         "prescriptions": Key("str", doc="a heliostat recipe's folder of SERIAL.toml canting prescriptions "
                                         "(field prescription; docs/field.md)"),
+        "method": Key("str", choices=("fringe", "fixed"),
+                      doc="the fringes' 18 frames (default) or one frame of a dot grid (docs/method.md)"),
+        "fixed": Key("section:fixed", doc="the dot grid of method = \"fixed\""),
+    },
+    "fixed": {
+        "pitch_px": Key("int", low=6, doc="dot spacing on the display, pixels (default: from spacing_px)"),
+        "spacing_px": Key("float", low=7, doc="the dots' spacing in the camera's picture of the nominal facet, "
+                          "pixels, when pitch_px is not given (default 12)"),
+        "diameter": Key("float", low=0.1, high=0.6, doc="dot diameter, share of the pitch (default 0.4)"),
+        "white_frame": Key("bool", doc="a dark and a white frame before the dots (3 frames; default false: one)"),
+        "min_dots": Key("int", low=9, doc="fewer dots used: too few dots (default 100)"),
+        "index_tolerance": Key("float", low=0.1, high=0.5, doc="of a lattice step (default 0.45)"),
     },
 }
 

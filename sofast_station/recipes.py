@@ -10,6 +10,8 @@ In station.toml::
     limits = { focal_length_tolerance = 0.01 }
     quality = { min_valid_fraction = 0.85 }
     optics = { aperture = { shape = "circle", radius_m = 0.05 } }   # over [optics] (docs/optics.md)
+    method = "fixed"                        # one frame of a dot grid, not the 18 of the fringes
+    fixed = { spacing_px = 12, white_frame = false }   # the dot grid (docs/method.md, "On the station")
 
     [recipes.reference]                     # judges the station (docs/reliability.md#a-reference-every-shift)
     facet = "fixtures/facets/dish_5m33.toml"
@@ -38,7 +40,10 @@ from .result.optical_figures import optics_for
 from .result.verdict import Limits, Quality, limits_from_table, quality_from_table
 
 _KEYS = {"facet", "serial_pattern", "alignment_point_m", "measure_point_m", "limits", "quality", "analysis",
-         "optics", "reference", "prescriptions"}
+         "optics", "reference", "prescriptions", "method", "fixed"}
+#: A recipe's fixed-pattern table's keys and defaults (config_schema's section "fixed").
+FIXED_DEFAULTS = {"pitch_px": None, "spacing_px": 12.0, "diameter": 0.4, "white_frame": False, "min_dots": 100,
+                  "index_tolerance": 0.45}
 
 
 @dataclass(frozen=True)
@@ -61,6 +66,38 @@ class Recipe:
     #: ``SERIAL.toml``): a heliostat whose serial has a file there is judged against its own place in the field
     #: (:func:`~sofast_station.job.job_for`). None: every heliostat against the recipe's design.
     prescriptions: Path | None = None
+    #: The fixed-pattern method's dot grid and settings (``method = "fixed"``,
+    #: :class:`~sofast_station.measure.fixed.FixedCapture`); None: the fringes.
+    fixed: object | None = None
+
+    @property
+    def method(self) -> str:
+        return "fringe" if self.fixed is None else "fixed"
+
+
+def fixed_capture(table: dict, config, design: FacetDesign, where: str):
+    """The :class:`~sofast_station.measure.fixed.FixedCapture` of a recipe's ``fixed`` table on the station of
+    *config*: the dot grid on its display (``pitch_px``, or the pitch that pictures the dots ``spacing_px``
+    camera pixels apart on the nominal facet), checked against the station's layout
+    (:func:`~sofast_station.measure.fixed.check_fixed_layout`: a ConfigError naming what to change when the
+    lattice cannot be indexed there)."""
+    from .measure.fixed import FixedCapture, FixedSettings, LcdDotGrid, check_fixed_layout, pitch_for_spacing
+    from .measure.pipeline import default_screen
+
+    unknown = sorted(set(table) - set(FIXED_DEFAULTS))
+    if unknown:
+        raise ConfigError(f"{where}.fixed has unknown key(s) {', '.join(unknown)}; allowed: "
+                          f"{', '.join(sorted(FIXED_DEFAULTS))}")
+    t = {**FIXED_DEFAULTS, **table}
+    geometry, scr = config.geometry, config.geometry.screen
+    screen = default_screen(geometry)
+    pitch = t["pitch_px"] or pitch_for_spacing(geometry, design, scr.width_px, scr.height_px, screen,
+                                               float(t["spacing_px"]))
+    grid = LcdDotGrid(int(scr.width_px), int(scr.height_px), int(pitch), max(2.0, float(t["diameter"]) * int(pitch)))
+    check_fixed_layout(geometry, design, grid, screen, where)
+    settings = FixedSettings(min_dots=int(t["min_dots"]), index_tolerance=float(t["index_tolerance"]),
+                             max_dot_diameter_px=max(24.0, 2.0 * float(t["spacing_px"])))
+    return FixedCapture(grid, settings, bool(t["white_frame"]))
 
 
 def default_recipe(config) -> Recipe:
@@ -107,8 +144,19 @@ def recipes_from_config(config) -> dict[str, Recipe]:
         reference = table.get("reference")
         if reference is not None:
             reference = _reference(reference, config, where, ensemble)
+        method = table.get("method", "fringe")
+        if method not in ("fringe", "fixed"):
+            raise ConfigError(f"{where}: method must be \"fringe\" or \"fixed\", got {method!r}")
+        if "fixed" in table and method != "fixed":
+            raise ConfigError(f"{where}: a fixed table is for method = \"fixed\"; this recipe measures with {method}")
+        fixed = None
+        if method == "fixed":
+            if ensemble is not None:
+                raise ConfigError(f"{where}: the fixed-pattern method measures one facet; a heliostat recipe "
+                                  "measures with the fringes")
+            fixed = fixed_capture(table.get("fixed", {}), config, design, where)
         out[name] = Recipe(name, design, analysis, limits, quality, pattern, optics, ensemble, reference,
-                           _prescriptions(table, ensemble, config.path.parent, where))
+                           _prescriptions(table, ensemble, config.path.parent, where), fixed=fixed)
     return out
 
 

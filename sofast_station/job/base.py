@@ -72,8 +72,13 @@ class Job(Protocol):
     def name(self) -> str:
         """The design's name (the record's ``facet``, the worker's key for its usual analysis time)."""
 
+    def shows(self, fringes):
+        """What the capture shows, in order (the station's *fringes*, a :class:`~sofast_station.fringes.FringeSet`,
+        or another set of patterns with ``patterns()``, ``slices()`` and ``n_frames``: a fixed pattern's)."""
+
     def crop_box(self, dark: np.ndarray, white: np.ndarray) -> tuple[int, int, int, int]:
-        """(row0, col0, row1, col1), end-exclusive: what of the capture the station keeps and analyses."""
+        """(row0, col0, row1, col1), end-exclusive: what of the capture the station keeps and analyses; the
+        programs hand it the capture's first two frames (``*frames[:2]``: one, when the capture is one frame)."""
 
     def analyse(self, capture: Capture, *, uncertainty=None, sensitivity_cache: dict | None = None,
                 design_traces=None, attempt: int = 0) -> Outcome:

@@ -49,6 +49,16 @@ def preview(a, most: int = 6000) -> dict:
             "corners_px": np.asarray(a.corners_px, dtype=np.float32)}
 
 
+def with_optics_sensitivities(a, traced) -> dict | None:
+    """The analysis *a*'s sensitivities as records, with the optical figures' (*traced*'s) when it has them."""
+    sensitivities = a.sensitivities
+    if sensitivities is not None and traced is not None and traced.sensitivities is not None:
+        # the optical figures' too (those of the first facet of the type, on the line): a dump's re-analysis
+        # states the line's optical U with them
+        sensitivities = {**sensitivities, "optics": sensitivities_to_record(traced.sensitivities)}
+    return sensitivities
+
+
 @dataclass(frozen=True)
 class FacetJob:
     """One facet: its design, the analysis's settings, the limits and quality it is judged by, and the optics
@@ -68,6 +78,10 @@ class FacetJob:
     def name(self) -> str:
         return self.design.name
 
+    def shows(self, fringes):
+        """What the capture shows: the station's fringe set (dark, white, the fringes)."""
+        return fringes
+
     def crop_box(self, dark: np.ndarray, white: np.ndarray) -> tuple[int, int, int, int]:
         """The facet region's box and a margin (:func:`facet_crop_box`)."""
         return facet_crop_box(dark, white, self.analysis.mask_threshold_dn)
@@ -78,12 +92,7 @@ class FacetJob:
         a = analyse(capture.frames, capture.fringes, capture.geometry, self.design, capture.distance_m, self.analysis,
                     rays_cam=capture.rays_cam, uncertainty=uncertainty, sensitivity_cache=sensitivity_cache)
         traced = add_optics(a, self.design, self.optics, design_traces)
-        sensitivities = a.sensitivities
-        if sensitivities is not None and traced is not None and traced.sensitivities is not None:
-            # the optical figures' too (those of the first facet of the type, on the line): a dump's re-analysis
-            # states the line's optical U with them
-            sensitivities = {**sensitivities, "optics": sensitivities_to_record(traced.sensitivities)}
-        return Outcome(a.figures, a.valid, sensitivities, None, a)
+        return Outcome(a.figures, a.valid, with_optics_sensitivities(a, traced), None, a)
 
     def preview(self, outcome: Outcome) -> dict | None:
         """The operator's thinned slope-error map of *outcome* (:func:`preview`; 0.1-0.2 s at full resolution,

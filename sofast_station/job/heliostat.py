@@ -150,6 +150,10 @@ class HeliostatJob:
     def name(self) -> str:
         return self.ensemble.name
 
+    def shows(self, fringes):
+        """What the capture shows: the station's fringe set."""
+        return fringes
+
     def crop_box(self, dark: np.ndarray, white: np.ndarray) -> tuple[int, int, int, int]:
         """The box around every facet (:func:`heliostat_crop_box`), not the largest region's."""
         return heliostat_crop_box(dark, white, self.analysis.mask_threshold_dn)

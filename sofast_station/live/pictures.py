@@ -70,7 +70,7 @@ class FacetPictures:
     def _arrays(outcome) -> dict:
         frames = outcome.frames                      # cropped: (n, h, w), frame 1 the white frame
         box = outcome.record.get("crop_box")         # (row0, col0, row1, col1) in camera pixels, end-exclusive
-        white = frames[1]
+        white = frames[1] if len(frames) > 1 else frames[0]    # a fixed pattern's one frame: the dots
         step = max(1, int(np.ceil(max(white.shape) / THUMB_PX)))
         out = {"white": np.ascontiguousarray(white[::step, ::step]), "step_px": np.int32(step),
                "crop_box": np.asarray(box if box is not None else [0, 0, *white.shape],

@@ -912,3 +912,85 @@ def analyse_fixed(image: np.ndarray, dots: DotLocations, geometry: StationGeomet
     return finish_analysis(reduction, timings, fringes=DotPattern(fixed), geometry=geometry, design=design,
                            measured_distance_m=measured_distance_m, settings=fixed_settings_for(settings, fixed),
                            screen=screen, uncertainty=uncertainty, sensitivity_cache=sensitivity_cache)
+
+
+# -- a recipe's fixed pattern on the station's display -------------------------------------------------------------
+@dataclass(frozen=True)
+class FixedCapture:
+    """How a station measures a facet with the fixed-pattern method: the dot grid its display shows, the
+    method's settings, and whether the recipe allows a dark and a white frame before the dot frame (the
+    facet's region and corners from them: two more frames, a sharper edge).
+
+    Attributes
+    ----------
+    grid : LcdDotGrid
+    settings : FixedSettings
+    white_frame : bool
+        Dark, white, then the dots (3 frames); False: the dot frame alone.
+    """
+
+    grid: LcdDotGrid
+    settings: FixedSettings = FixedSettings()
+    white_frame: bool = False
+
+    @property
+    def n_frames(self) -> int:
+        return 3 if self.white_frame else 1
+
+    def to_dict(self) -> dict:
+        return {"grid": dataclasses.asdict(self.grid), "settings": self.settings.to_dict(),
+                "white_frame": bool(self.white_frame)}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "FixedCapture":
+        s = dict(d["settings"])
+        s["origin_index"] = tuple(s.get("origin_index", (0, 0)))
+        if s.get("index_axes") is not None:
+            s["index_axes"] = np.asarray(s["index_axes"], np.int64)
+        return cls(LcdDotGrid(**d["grid"]), FixedSettings(**s), bool(d.get("white_frame", False)))
+
+
+#: Fewest camera pixels between neighbouring dots' pictures the method is set up for: the dots are filled in
+#: and centred over windows of about a pitch; closer, neighbouring dots run together.
+MIN_SPACING_PX = 7.0
+
+
+def grid_spacing_px(geometry: StationGeometry, design: FacetDesign, grid: LcdDotGrid, screen) -> tuple[float, bool]:
+    """(spacing, steady): how many camera pixels apart the nominal facet pictures *grid*'s neighbouring dots
+    (the smaller of its two directions, at the facet's centroid) and whether that picture can be predicted
+    (:func:`grid_prediction`: far enough from the facet's centre of curvature that its own slope errors do
+    not scramble the lattice). *screen*: the display's model (:func:`~.pipeline.default_screen`)."""
+    dots = lcd_dot_locations(grid, screen)
+    jac, steady = grid_prediction(geometry, design, dots, dot_screen(dots, geometry.screen_to_camera))
+    return float(np.min(np.linalg.norm(np.linalg.inv(jac), axis=0))), steady
+
+
+def check_fixed_layout(geometry: StationGeometry, design: FacetDesign, grid: LcdDotGrid, screen,
+                       where: str = "the recipe") -> float:
+    """The camera pixels between the dots' pictures (:func:`grid_spacing_px`); a ConfigError naming what to
+    change when the station's layout cannot index the dot grid: the facet near its centre of curvature (the
+    dish stations' layout, where a dot moves by twice the distance times the local slope error: half a pitch
+    per mrad) or the dots' pictures closer than :data:`MIN_SPACING_PX`."""
+    spacing, steady = grid_spacing_px(geometry, design, grid, screen)
+    if not steady:
+        raise ConfigError(f"{where}: the fixed-pattern method cannot index the dot grid on this station's layout: "
+                          f"facet {design.name!r} is seen near its centre of curvature, where its own slope errors "
+                          "scramble the dots' lattice; measure it with method = \"fringe\", or lay the station out "
+                          "for the fixed pattern (the screen well inside or beyond the centre of curvature, as the "
+                          "heliostat station is: docs/method.md)")
+    if spacing < MIN_SPACING_PX:
+        need = int(np.ceil(int(grid.pitch_px) * MIN_SPACING_PX / max(spacing, 1e-9)))
+        raise ConfigError(f"{where}: the fixed pattern's dots would be only {spacing:.1f} camera pixels apart on "
+                          f"the facet (pitch {grid.pitch_px} display pixels); at least {MIN_SPACING_PX:g} are "
+                          f"needed: set fixed.pitch_px to {need} or more")
+    return spacing
+
+
+def pitch_for_spacing(geometry: StationGeometry, design: FacetDesign, width_px: int, height_px: int, screen,
+                      spacing_px: float) -> int:
+    """The display pitch (pixels) that puts the dots' pictures about *spacing_px* camera pixels apart on the
+    nominal facet: the picture's spacing is proportional to the pitch (the dots' screen positions are), so one
+    trial grid's spacing scales it."""
+    trial = LcdDotGrid(int(width_px), int(height_px), 40, 16.0)
+    got, _ = grid_spacing_px(geometry, design, trial, screen)
+    return max(6, int(round(40 * float(spacing_px) / max(got, 1e-9))))

@@ -45,6 +45,7 @@ from ..errors import ArchiveError, ConfigError, DumpError, StationError
 from ..facet import FacetDesign, load_facet
 from ..files import json_ready, to_json
 from ..job import Capture, FacetJob
+from ..job.fixed import fixed_job_of
 from ..job.heliostat import heliostat_job_of
 from ..measure.pipeline import AnalysisSettings
 from ..measure.sensitivity_record import frame_pool_of, from_record
@@ -758,6 +759,8 @@ def job_of_dump(content, overrides: Overrides, notes: list, archived: dict | Non
     limits, quality = _judge_settings(content, head.recipe, notes)
     if design is None:
         return heliostat_job_of(dumped, settings, limits, quality, optics), head, distance
+    if content.design.get("method") == "fixed":
+        return fixed_job_of(content.design, design, settings, limits, quality, optics), head, distance
     return FacetJob(design, settings, limits, quality, optics), head, distance
 
 

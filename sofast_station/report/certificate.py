@@ -16,7 +16,7 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
 from ..errors import ReportError
-from ..result.formatting import figure_text
+from ..result.formatting import figure_text, method_text
 from ..result.record import figure_value
 from ._common import savefig_atomic
 from .heliostat import draw_facet_map_on
@@ -168,6 +168,7 @@ def certificate_head(fig, record: dict, title: str, issuer: dict | None = None) 
     cal = record.get("calibration") or {}
     head = [("Serial", record.get("serial", "?")), ("Facet type", record.get("facet", "?")),
             ("Recipe", record.get("recipe") or "default"), ("Station", record.get("station", "?")),
+            ("Measured by", method_text(record) or "-"),
             ("Measured", str(record.get("time", "?"))[:19].replace("T", " ") + " (local time)"),
             ("Software", f"sofast-station {record.get('software_version', '?')}, configuration "
                          f"{record.get('config_hash', '?')}"),

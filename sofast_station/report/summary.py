@@ -156,7 +156,11 @@ def _facet_text(rec: dict) -> list[str]:
     if rec.get("placement"):
         lines.append("  placement in fixture       " + placement_text(rec))
     lines.extend(optics_lines(rec.get("optics"), (truth or {}).get("optics")))
-    if "n_points" in rec:
+    if "n_points" in rec and rec.get("method") == "fixed":        # one point per dot (docs/method.md)
+        lines.append(f"  dots (fixed pattern)      {rec['n_points']:>14,}   "
+                     f"({100 * rec['valid_fraction']:.1f} % of the dots on the facet)")
+        lines.append(f"  median dot depth          {rec['median_modulation_dn']:>11.1f} DN")
+    elif "n_points" in rec:
         lines.append(f"  points                    {rec['n_points']:>14,}   "
                      f"({100 * rec['valid_fraction']:.1f} % of the facet's pixels)")
         lines.append(f"  median modulation         {rec['median_modulation_dn']:>11.1f} DN")

@@ -111,3 +111,15 @@ def budget_text(rec: dict, columns=BUDGET_COLUMNS) -> str:
     lines.append(f"  sensitivities from {b.get('sensitivity_points')} points, computed once per geometry and "
                  "recipe; docs/uncertainty.md")
     return "\n".join(lines)
+
+
+def method_text(record: dict) -> str | None:
+    """How a facet was measured and on how many points, as every screen writes it: ``fixed pattern (dot grid),
+    289 dots`` or ``fringes, 47,414 points`` (a record's ``method``, absent for the fringes, and ``n_points``);
+    None for a record without figures (a fault, a heliostat's)."""
+    n = record.get("n_points")
+    if not isinstance(n, (int, float)):
+        return None
+    if record.get("method") == "fixed":
+        return f"fixed pattern (dot grid), {int(n):,} dots"
+    return f"fringes, {int(n):,} points"

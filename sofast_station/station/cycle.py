@@ -191,16 +191,23 @@ class Cycle:
             job = line.station.job_for(recipe, request.serial)
             t = time.perf_counter()
             self.stage = "capture"
-            raw, notes = capture_sequence(line.station.display, line.station.camera, line.station.config.fringes,
+            shown = job.shows(line.station.config.fringes)
+            raw, notes = capture_sequence(line.station.display, line.station.camera, shown,
                                           recipe.analysis.mask_threshold_dn, timeout_s=line.settings.camera_timeout_s)
             captured.distance_m = float(line.station.range_finder.measure())
             timings["capture"] = time.perf_counter() - t
             # (a heliostat's job: the box around every facet, not its largest region)
-            captured.box = job.crop_box(raw[0], raw[1])
+            captured.box = job.crop_box(*raw[:2])
             captured.frames, captured.full_shape = crop(raw, captured.box), raw.shape[1:]
-            cal_warnings = line.check_calibration(raw[0])
+            # which frame is dark and which white is what the capture showed (a fixed pattern's one frame has
+            # neither: no dark level to check, the marks, lit by the hall, in its dot frame, no fringes to check
+            # the display's response on)
+            labels = [p.label for p in shown.patterns()]
+            cal_warnings = line.check_calibration(raw[labels.index("dark")] if "dark" in labels else None)
             # the fixture's marks in the white frame: a camera that moved since commissioning judges no facet
-            self.checks = line.station_checks(raw[1], self.cycle_id, request.serial, frames=captured.frames)
+            self.checks = line.station_checks(raw[labels.index("white")] if "white" in labels else raw[0],
+                                              self.cycle_id, request.serial,
+                                              frames=captured.frames if any(shown.slices().values()) else None)
             withhold = self.checks.get("marks", {}).get("withhold")
             if withhold:
                 raise CameraMoved(withhold)

@@ -85,6 +85,8 @@ def capture_sequence(display, camera, fringes: FringeSet, threshold_dn: float, r
         if progress:
             progress(i + 1, len(patterns))
     notes = []
+    if not any(fringes.slices().values()):     # a fixed pattern's capture: no four-step set to check
+        return frames, notes
     idx = np.flatnonzero(facet_region(frames[0], frames[1], threshold_dn))
     if idx.size < 100:
         return frames, notes

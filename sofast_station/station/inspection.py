@@ -47,10 +47,10 @@ def inspect(station: Station, serial: str, progress=None, pictures_dir=None, rec
     recipe = recipe or default_recipe(config)
     # (the recipe's job for this serial: its canting prescription, if the recipe has them; no simulated faults)
     job = job_for(recipe, config, serial)
-    raw, notes = capture_sequence(station.display, station.camera, config.fringes, recipe.analysis.mask_threshold_dn,
-                                  progress=progress)
+    raw, notes = capture_sequence(station.display, station.camera, job.shows(config.fringes),
+                                  recipe.analysis.mask_threshold_dn, progress=progress)
     distance = float(station.range_finder.measure())
-    box = job.crop_box(raw[0], raw[1])
+    box = job.crop_box(*raw[:2])
     frames = restore(crop(raw, box), box, raw.shape[1:])
     del raw
     t_capture = time.perf_counter() - t0

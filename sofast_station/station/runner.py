@@ -388,7 +388,7 @@ class StationRunner:
                 log.warning("line alarm %s cleared", name)
                 self.console(f"line alarm cleared ({name})")
 
-    def check_calibration(self, dark_frame: np.ndarray) -> list[str]:
+    def check_calibration(self, dark_frame: np.ndarray | None) -> list[str]:
         """Judge the calibration again for this facet (age, and the dark level of its dark frame).
 
         Returns the warnings for the facet's record; raises StaleCalibrationError when the station refuses
@@ -398,7 +398,8 @@ class StationRunner:
         status = self.station.calibration
         if status is None:
             return []
-        dark_dn = float(np.mean(dark_frame, dtype=np.float64))
+        # (a capture without a dark frame, a fixed pattern's one frame: its age only)
+        dark_dn = None if dark_frame is None else float(np.mean(dark_frame, dtype=np.float64))
         try:
             warnings = check_cycle(status, self._calibration_policy, dark_dn).warnings
         except StationError:
@@ -524,11 +525,11 @@ class StationRunner:
         t = time.perf_counter()
         try:
             recipe = self.recipes["default"]
-            raw, _ = capture_sequence(self.station.display, self.station.camera, self.station.config.fringes,
+            job = self.station.job_for(recipe)
+            raw, _ = capture_sequence(self.station.display, self.station.camera, job.shows(self.station.config.fringes),
                                       recipe.analysis.mask_threshold_dn, timeout_s=self.settings.camera_timeout_s)
             distance = float(self.station.range_finder.measure())
             capture_s = time.perf_counter() - t
-            job = self.station.job_for(recipe)
             for first in (True, False):
                 t_an = time.perf_counter()
                 self.worker.warm_up(raw, job, distance, timeout_s=max(60.0, 3 * self.settings.deadline_s),

@@ -68,8 +68,8 @@ class FaultyJob:
             raise AttributeError(name)
         return getattr(self.job, name)
 
-    def crop_box(self, dark, white):
-        return self.job.crop_box(dark, white)
+    def crop_box(self, *frames):
+        return self.job.crop_box(*frames)
 
     def analyse(self, capture, *, attempt: int = 0, **kwargs):
         delay = self.delays_s[min(attempt, len(self.delays_s) - 1)]

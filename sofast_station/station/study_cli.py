@@ -96,6 +96,35 @@ def cmd_study_population(args) -> int:
     return 0 if summary["good"]["false_alarms"]["k"] == 0 and missed == 0 else 1
 
 
+def cmd_study_methods(args) -> int:
+    from ..errors import StationError
+    from .methods_study import FIXED_KINDS, study_methods
+    from .population import EDGE_MODELS
+
+    if args.captures < 1 or args.per_station < 1:
+        raise StationError(f"--captures and --per-station must be at least 1, got {args.captures} and "
+                           f"{args.per_station}")
+    kinds = tuple(args.kinds.split(",")) if args.kinds else FIXED_KINDS
+    bad = [k for k in kinds if k not in FIXED_KINDS]
+    if bad:
+        raise StationError(f"--kinds: {', '.join(bad)} cannot be measured by the fixed method (its layout puts the "
+                           f"centre of curvature between camera and screen); use some of {', '.join(FIXED_KINDS)}")
+    if args.out:
+        out_dir = Path(args.out)
+    else:
+        from ..config import load_config
+        out_dir = load_config(args.config).data_dir / "studies"
+    result = study_methods(args.captures, seed=args.seed, per_station=args.per_station, kinds=kinds,
+                           edges=tuple(EDGE_MODELS), out_dir=out_dir)
+    if args.json:
+        json.dump(json_ready(result["summary"]), sys.stdout, indent=1)
+        sys.stdout.write("\n")
+    else:
+        print(result["text"])
+        print("\n".join(f"{k} {v}" for k, v in result["paths"].items()))
+    return 0
+
+
 def register(subparsers) -> None:
     """Add ``study repeatability`` to the ``sofast-station`` *subparsers*."""
     study = add_command(subparsers, "study", help="measurement studies on the simulated station",
@@ -145,3 +174,21 @@ def register(subparsers) -> None:
     pop.add_argument("--out", default=None, help="folder for the JSON, table and PNG (default data_dir/studies)")
     pop.add_argument("--json", action="store_true", help="print the tallies as JSON on stdout")
     pop.set_defaults(func=cmd_study_population)
+    met = add_command(
+        sub, "methods", help="the fringes and the fixed pattern on the same facets: error, U coverage, points, time",
+        description="""
+            Both methods on the same captures of the population study's stations (the heliostat facet's and
+            the nearly flat facet's: the layouts that index a dot grid): each capture photographed with the
+            18 fringe frames and with one frame of a dot grid (spacing 12 camera px), each analysed with its
+            U against the twin's truth. Per method: per figure the coverage of |error| <= U and the RMS of
+            error / (U / 2), the points per facet, the capture time (frames x (settle + exposure)) and the
+            analysis's CPU time (docs/method.md, "Choosing the method"). Writes methods-SEED-N.json / .txt
+            under data_dir/studies/ (or --out).""")
+    add_config_option(met)
+    met.add_argument("--captures", type=int, default=40, metavar="N", help="captures in all (each both ways)")
+    met.add_argument("--per-station", type=int, default=5, metavar="M", help="captures per drawn station")
+    met.add_argument("--seed", type=int, default=0, help="seed of the population")
+    met.add_argument("--kinds", default=None, help="comma-separated kinds (default: heliostat,flat)")
+    met.add_argument("--out", default=None, help="folder for the JSON and table (default data_dir/studies)")
+    met.add_argument("--json", action="store_true", help="print the summary as JSON on stdout")
+    met.set_defaults(func=cmd_study_methods)

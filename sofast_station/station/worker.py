@@ -112,6 +112,14 @@ def _begun_slot(shm: SharedMemory, shape: tuple[int, int, int]) -> np.ndarray:
     return np.ndarray((1,), dtype=np.int64, buffer=shm.buf, offset=_frame_bytes(shape))
 
 
+def _fill(buffer: np.ndarray, frames: np.ndarray) -> None:
+    """*frames* into the shared *buffer*, the rest of it black: a capture of fewer frames than the fringes'
+    (a fixed pattern's: its job reads its own first frames) fits the buffer the fringes sized."""
+    n = frames.shape[0]
+    np.copyto(buffer[:n], frames)
+    buffer[n:] = 0
+
+
 def _init(shm_name: str, shape: tuple[int, int, int], geometry: dict, fringes: dict) -> None:
     from ..fringes import FringeSet
     from ..geometry import StationGeometry
@@ -494,7 +502,7 @@ class AnalysisWorker:
         from .frames import restore
 
         cropped, box, full, args = self._warm_job
-        np.copyto(proc.frames, restore(cropped, box, full))
+        _fill(proc.frames, restore(cropped, box, full))
         try:
             proc.pool.submit(_run, 0, *args).result(timeout=START_TIMEOUT_S)
             proc.warm = True
@@ -537,7 +545,7 @@ class AnalysisWorker:
         from .frames import crop
 
         res = self.analyse(frames, job, distance_m, timeout_s=timeout_s, uncertainty=uncertainty)
-        box = job.crop_box(frames[0], frames[1])
+        box = job.crop_box(*frames[:2])
         self._warm_job = (crop(frames, box), box, frames.shape[1:],
                           (job, float(distance_m), None if uncertainty is None else uncertainty.to_dict()))
         self._active.warm = True
@@ -660,7 +668,8 @@ class AnalysisWorker:
         its rerun) may still finish within *late_s* seconds, through the timeout's ``late`` future. Errors
         raised by the analysis (StationError subclasses) come back as themselves.
         """
-        if frames.shape != self._shape or frames.dtype != np.uint8:
+        if (frames.ndim != 3 or not 1 <= frames.shape[0] <= self._shape[0] or frames.shape[1:] != self._shape[1:]
+                or frames.dtype != np.uint8):
             from ..errors import CaptureError
             raise CaptureError(f"the capture is {frames.dtype} {frames.shape}, the station expects uint8 "
                                f"{self._shape}; check the camera's pixel format and size")
@@ -674,7 +683,7 @@ class AnalysisWorker:
             if left_s <= 0:
                 raise AnalysisTimeout(f"the analysis worker was being replaced for the facet's whole "
                                       f"{timeout_s:.1f} s; the facet was not analysed")
-            np.copyto(proc.frames, frames)
+            _fill(proc.frames, frames)
             self._tickets += 1
             fut = None
             try:
@@ -782,7 +791,7 @@ class AnalysisWorker:
         self.reruns += 1
         self._launch_standby()
         proc.lower_priority()
-        np.copyto(standby.frames, frames)
+        _fill(standby.frames, frames)
         self._tickets += 1
         again = standby.pool.submit(_run, self._tickets, *args, 1)
         pending = {fut: proc, again: standby}

@@ -12,7 +12,7 @@ import html
 import math
 
 from ..qc.view import chart_view, nice_ticks
-from ..result.formatting import with_u
+from ..result.formatting import method_text, with_u
 from ..result.shift import SUMMARY_FIGURES, VERDICTS
 
 SECTIONS = ("state", "last", "shift", "station")
@@ -135,7 +135,8 @@ def last_html(snap: dict) -> str:
     return (f"<h2>Last facet</h2>"
             f"<div class='facet-head'><div class='serial' title='{esc(rec.get('serial'))}'>"
             f"{esc(_short(rec.get('serial')))}</div><div class='meta'>recipe {esc(rec.get('recipe') or 'default')}"
-            f" · {esc(rec.get('time'))} · cycle {cid}</div></div>"
+            + (f" · {esc(method_text(rec))}" if method_text(rec) else "")
+            + f" · {esc(rec.get('time'))} · cycle {cid}</div></div>"
             f"<div class='verdict-box'><div id='verdict' class='verdict {cls}{' stale' if stale else ''}' "
             f"data-verdict='{esc(verdict)}' data-time-s='{esc(snap.get('last_time_s') or '')}' "
             f"data-stale-after-s='{esc(snap.get('stale_after_s'))}'><span class='word'>{esc(verdict.upper())}</span>"

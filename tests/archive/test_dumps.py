@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from sofast_station.files import json_ready
-from sofast_station.archive.dumps import (SCHEMA_V1, SCHEMA_V2, SCHEMA_VERSION, crop_to_facet, disk_ok, prune_dumps,
-                                          read_dump, restore_frames, write_dump)
+from sofast_station.archive.dumps import (SCHEMA_V1, SCHEMA_V2, SCHEMA_V3, SCHEMA_VERSION, crop_to_facet, disk_ok,
+                                          prune_dumps, read_dump, restore_frames, write_dump)
 from sofast_station.archive.dumps import writer as dump_writer
 from sofast_station.archive.spool import spool_get, spool_list, spool_put
 from sofast_station.errors import ArchiveError, DumpError
@@ -48,7 +48,7 @@ def test_round_trip_is_bit_exact(dump_file, small_config):
     path, content = dump_file
     back = read_dump(path)
     assert_same_content(content, back)
-    assert back.path == path and back.created and back.schema_version == SCHEMA_VERSION == 2
+    assert back.path == path and back.created and back.schema_version == 2 and SCHEMA_VERSION == 3
     # the typed records come back equal to the configuration's
     assert back.station_geometry().to_dict() == small_config.geometry.to_dict()
     assert back.fringe_set() == small_config.fringes
@@ -90,7 +90,7 @@ def test_every_group_and_dataset_is_described(dump_file):
                 assert p[2:] in f.attrs, p
     assert "capture/frames" in seen and "geometry/camera/matrix" in seen
     doc = (ROOT / "docs" / "dump-schema.md").read_text()
-    for p, *_ in SCHEMA_V1 + SCHEMA_V2:
+    for p, *_ in SCHEMA_V1 + SCHEMA_V2 + SCHEMA_V3:
         name = p[2:] if p.startswith("/@") else p
         assert f"`{name}`" in doc, f"docs/dump-schema.md does not describe {p}"
 

@@ -28,10 +28,10 @@ Re-analysis::
 from .content import DumpContent, crop_to_facet, restore_frames
 from .reader import read_dump
 from .retention import disk_ok, dump_name, dump_path_for, list_dumps, prune_dumps
-from .schema import COMPRESSION_LEVEL, KEY_FIGURES, SCHEMA, SCHEMA_V1, SCHEMA_V2, SCHEMA_VERSION
+from .schema import COMPRESSION_LEVEL, KEY_FIGURES, SCHEMA, SCHEMA_V1, SCHEMA_V2, SCHEMA_V3, SCHEMA_VERSION
 from .writer import DumpStats, write_dump
 
-__all__ = ["COMPRESSION_LEVEL", "KEY_FIGURES", "SCHEMA", "SCHEMA_V1", "SCHEMA_V2", "SCHEMA_VERSION", "DumpContent",
-           "DumpStats",
+__all__ = ["COMPRESSION_LEVEL", "KEY_FIGURES", "SCHEMA", "SCHEMA_V1", "SCHEMA_V2", "SCHEMA_V3", "SCHEMA_VERSION",
+           "DumpContent", "DumpStats",
            "crop_to_facet", "disk_ok", "dump_name", "dump_path_for", "list_dumps", "prune_dumps", "read_dump",
            "restore_frames", "write_dump"]

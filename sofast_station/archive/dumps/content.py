@@ -15,7 +15,7 @@ from ...facet import FacetDesign
 from ...files import json_ready
 from ...fringes import FringeSet
 from ...geometry import StationGeometry
-from .schema import SCHEMA_VERSION
+from .schema import FRINGE_SCHEMA_VERSION, SCHEMA_VERSION
 
 log = logging.getLogger("sofast_station.archive.dumps")
 
@@ -74,7 +74,8 @@ class DumpContent:
     facet_path: str
     station_name: str
     record: dict
-    schema_version: int = SCHEMA_VERSION
+    #: (what the writer labels it: a fringe capture 2, a fixed-pattern one 3)
+    schema_version: int = FRINGE_SCHEMA_VERSION
     created: str = ""
     path: Path | None = field(default=None, compare=False)
     #: The uncertainty's sensitivities the station's analysis used
@@ -155,6 +156,8 @@ class DumpContent:
                    analysis=json_ready(analysis.to_dict()),
                    station_toml=texts[0], facet_toml=texts[1], station_path=str(config.path),
                    facet_path=str(facet_path), station_name=str(config.name), record=rec,
+                   schema_version=(SCHEMA_VERSION if (heliostat or {}).get("method") == "fixed"
+                                   else FRINGE_SCHEMA_VERSION),
                    sensitivities=None if sensitivities is None else json_ready(sensitivities),
                    uncertainty_inputs=json_ready(uncertainty_inputs if uncertainty_inputs is not None else
                                                  (None if getattr(config, "uncertainty", None) is None
@@ -196,7 +199,12 @@ class DumpContent:
     # -- use ----------------------------------------------------------------------------------------
     @property
     def patterns(self) -> list[str]:
-        """Label of the display image of each frame."""
+        """Label of the display image of each frame (a fixed-pattern capture's: dark, white and the dots, or the
+        dots alone)."""
+        fixed = self.design.get("fixed") if isinstance(self.design, dict) else None
+        if isinstance(fixed, dict):
+            dots = f"dot grid {fixed.get('grid', {}).get('pitch_px')} px"
+            return ["dark", "white", dots] if fixed.get("white_frame") else [dots]
         return [p.label for p in self.fringe_set().patterns()]
 
     def frames(self) -> np.ndarray:
@@ -229,7 +237,9 @@ class DumpContent:
 
         Keyword arguments replace any of ``fringes``, ``geometry``, ``design``, ``measured_distance_m``,
         ``settings`` (e.g. another facet model or alignment point); ``uncertainty`` and
-        ``sensitivity_cache`` are passed on (the figures' expanded uncertainties).
+        ``sensitivity_cache`` are passed on (the figures' expanded uncertainties). A fixed-pattern capture
+        (``design["method"] == "fixed"``, schema 3) is analysed by the fixed-pattern method, its dot locations
+        from the dumped grid on the dumped screen (``fringes`` does not apply to it).
 
         Returns
         -------
@@ -247,6 +257,19 @@ class DumpContent:
             raise TypeError(f"unknown override(s) {sorted(unknown)}; allowed: {sorted(args)}")
         args.update(overrides)
         args.update(passed)
+        if isinstance(self.design, dict) and self.design.get("method") == "fixed":
+            # lazy: measure/ costs ~170 ms CPU; the journal's users (report trend, spc, field) never analyse
+            from ...measure.fixed import FixedCapture, analyse_fixed, lcd_dot_locations
+            from ...measure.pipeline import default_screen
+
+            if "fringes" in overrides:
+                raise TypeError("a fixed-pattern capture has no fringes to replace")
+            fixed = FixedCapture.from_dict(self.design["fixed"])
+            frames, geometry = self.frames(), args["geometry"]
+            dark, white = (frames[0], frames[1]) if fixed.white_frame else (None, None)
+            return analyse_fixed(frames[fixed.n_frames - 1], lcd_dot_locations(fixed.grid, default_screen(geometry)),
+                                 geometry, args["design"], args["measured_distance_m"], args["settings"],
+                                 fixed.settings, white=white, dark=dark, **passed)
         # The camera's rays are kept per process: re-analysing many dumps of one station computes them once.
         return analyse(self.frames(), **args, rays_cam=ray_table(args["geometry"].camera))
 

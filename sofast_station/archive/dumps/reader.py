@@ -282,6 +282,21 @@ def _read_v2(f, path: Path, version: int, load_frames: bool, require_result: boo
     return _read_v1(f, path, version, load_frames, require_result, table=SCHEMA_V2)
 
 
+def _read_v3(f, path: Path, version: int, load_frames: bool, require_result: bool) -> DumpContent:
+    """Reader of schema version 3 (:data:`SCHEMA_V3`): version 2's layout and a fixed-pattern capture
+    (``design/method`` "fixed" with its ``design/fixed``)."""
+    method = _read_value(f["design/method"]) if "design/method" in f else "fringe"
+    if method == "fixed" and "design/fixed" not in f:
+        raise DumpError(f"dump {path} is a fixed-pattern capture (design/method \"fixed\") but lacks design/fixed "
+                        "(the dot grid it showed); the file is damaged or incomplete")
+    content = _read_v2(f, path, version, load_frames, require_result)
+    n = f["capture/frames"].shape[0]
+    if method == "fixed" and n != (3 if content.design["fixed"].get("white_frame") else 1):
+        raise DumpError(f"dump {path} holds {n} frames for a fixed-pattern capture "
+                        f"({'dark, white and dots' if content.design['fixed'].get('white_frame') else 'the dots'})")
+    return content
+
+
 #: The reader of each schema version this software reads (a new layout adds its version here and keeps
 #: the readers of the older ones).
-_READERS = {1: _read_v1, 2: _read_v2}
+_READERS = {1: _read_v1, 2: _read_v2, 3: _read_v3}

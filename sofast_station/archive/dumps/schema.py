@@ -17,8 +17,13 @@ log = logging.getLogger("sofast_station.archive.dumps")
 SCHEMA = "sofast-station-dump"
 #: Version of the layout this software writes (and the newest it reads). Version 2 (non-square display
 #: pixels): ``geometry/screen`` holds ``pitch_x_m`` and ``pitch_y_m`` where the pixels are not square,
-#: ``pitch_m`` where they are; version 1 always had ``pitch_m``.
-SCHEMA_VERSION = 2
+#: ``pitch_m`` where they are; version 1 always had ``pitch_m``. Version 3 (the fixed-pattern method): a
+#: facet measured from a dot grid (``design/method`` "fixed", ``design/fixed``: the grid and the method's
+#: settings; ``capture/frames`` the dot frame, after a dark and a white one when the recipe took them), which
+#: a reader of version 2 would take for a fringe capture: it refuses it instead.
+SCHEMA_VERSION = 3
+#: The version of a fringe capture's dump: 2, read by every reader since (a fringe dump has nothing of 3's).
+FRINGE_SCHEMA_VERSION = 2
 
 #: gzip level of the frames (lossless; level 4 is within 1 % of level 9's size at a third of the time).
 COMPRESSION_LEVEL = 4
@@ -196,8 +201,33 @@ SCHEMA_V2 = SCHEMA_V2 + (
      "the input uncertainties in force (station.toml's [uncertainty] with what the radiometric, camera and "
      "commissioning records state), as JSON text: re-analysis states the same U as the line (0.4.0 on)", False),)
 
+def _v3(entry):
+    if entry[0] == "/@schema_version":
+        return (entry[0], *entry[1:4], "layout version of this file (3: a fixed-pattern capture; 2: a fringe one)",
+                True)
+    if entry[0] == "capture/frames":
+        return (entry[0], *entry[1:4], entry[4] + "; a fixed-pattern capture (design/method \"fixed\"): the dot "
+                "frame, after a dark and a white frame when design/fixed/white_frame", True)
+    return entry
+
+
+#: Schema version 3: version 2 and a facet measured by the fixed-pattern (dot grid) method.
+SCHEMA_V3: tuple[tuple[str, str, str, str, str, bool], ...] = tuple(_v3(e) for e in SCHEMA_V2) + (
+    ("design/method", "dataset", "str", "", '"fixed": measured from one frame of a dot grid (absent: the fringes)',
+     False),
+    ("design/fixed", "group", "", "", "the fixed pattern (required when design/method is \"fixed\")", False),
+    ("design/fixed/white_frame", "dataset", "bool", "", "a dark and a white frame came before the dot frame", False),
+    ("design/fixed/grid", "group", "", "", "the dot grid the display showed (LcdDotGrid)", False),
+    ("design/fixed/grid/*", "dataset", "from the value", "display px (background: command 0..255; mark_offset: "
+     "pitches)", "width_px, height_px, pitch_px, diameter_px, background, mark_diameter_px, mark_offset", False),
+    ("design/fixed/settings", "group", "", "", "the fixed-pattern method's settings (FixedSettings)", False),
+    ("design/fixed/settings/*", "dataset", "from the value", "px where the name ends _px; index_tolerance: lattice "
+     "steps", "dark_dots, max_dot_diameter_px, index_tolerance, min_dots, origin_index, index_axes, "
+     "second_lattice_fraction, subsample_step, edge_margin_px", False),
+)
+
 #: The layout this software writes.
-SCHEMA_CURRENT = SCHEMA_V2
+SCHEMA_CURRENT = SCHEMA_V3
 
 _PLAIN_ENCODING = "plain"
 _JSON_ENCODING = "json"

@@ -20,7 +20,16 @@ from ...files import fsync_dir, fsync_file, temp_path_for, to_json
 from ...times import now_iso
 from .._common import fault_point
 from .content import DumpContent
-from .schema import _JSON_ENCODING, _PLAIN_ENCODING, COMPRESSION_LEVEL, KEY_FIGURES, SCHEMA, SCHEMA_VERSION, _describe
+from .schema import (
+    _JSON_ENCODING,
+    _PLAIN_ENCODING,
+    COMPRESSION_LEVEL,
+    FRINGE_SCHEMA_VERSION,
+    KEY_FIGURES,
+    SCHEMA,
+    SCHEMA_VERSION,
+    _describe,
+)
 
 log = logging.getLogger("sofast_station.archive.dumps")
 
@@ -201,7 +210,9 @@ def write_dump(path: str | Path, content: DumpContent, compression_level: int = 
         path.parent.mkdir(parents=True, exist_ok=True)      # in the try: a folder it cannot make is an ArchiveError
         with h5py.File(tmp, "w", track_order=True) as f:
             f.attrs["schema"] = SCHEMA
-            f.attrs["schema_version"] = np.int64(SCHEMA_VERSION)
+            fixed = isinstance(content.design, dict) and content.design.get("method") == "fixed"
+            # a fringe capture stays version 2, which every reader since reads; a fixed one needs 3's reader
+            f.attrs["schema_version"] = np.int64(SCHEMA_VERSION if fixed else FRINGE_SCHEMA_VERSION)
             f.attrs["description"] = (f"sofast-station data dump of facet {content.serial}, cycle {content.cycle_id}: "
                                       "raw frames and everything needed to redo the analysis; layout: "
                                       "docs/dump-schema.md")
