@@ -21,7 +21,6 @@ import re
 import shutil
 import sys
 import textwrap
-import tomllib
 from pathlib import Path
 
 from . import __version__
@@ -182,6 +181,9 @@ def check_station_file(args: argparse.Namespace) -> None:
     path = getattr(args, "config", None)
     if not isinstance(path, (str, Path)) or not str(path):
         return
+
+    # lazy: tomllib costs ~10 ms (its patterns); the entry point (cli.py imports this module) needs none
+    import tomllib
 
     path = Path(path).expanduser().resolve()
     # The words of files.read_toml, which load_config reads the file with (this module imports no other).
