@@ -18,7 +18,6 @@ import importlib
 import logging
 import os
 import re
-import shutil
 import sys
 import textwrap
 from pathlib import Path
@@ -81,6 +80,9 @@ class HelpFormatter(argparse.RawDescriptionHelpFormatter):
 
 
 def _terminal_width() -> int:
+    # lazy: shutil brings bz2, lzma and zlib (~3 ms CPU); importing the entry point needs none, a help text does
+    import shutil
+
     try:
         return shutil.get_terminal_size().columns
     except (OSError, ValueError):           # pragma: no cover
