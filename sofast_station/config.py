@@ -219,7 +219,7 @@ def load_config(path: str | Path, use_camera_record: bool = True) -> StationConf
             if key in checked and max(checked[key]) >= max(commissioned_std[key]):
                 del checked[key]
     uncertainty = uncertainty.with_geometry_record(checked)
-    uncertainty = _with_radiometric_record(uncertainty, data_dir, radiometric, geometry, fringes, identity)
+    uncertainty, fringes = _with_radiometric_record(uncertainty, data_dir, radiometric, geometry, fringes, identity)
     heliostat = HeliostatSettings(**raw.get("heliostat", {}))
     if ensemble is None and (raw.get("heliostat") or limits.max_canting_mrad is not None):
         raise ConfigError(f"{where}: [heliostat] and [limits] max_canting_mrad are for a heliostat, but [station] "
@@ -287,23 +287,25 @@ def _geometry_record_std(data_dir: Path, geometry, station: dict | None = None) 
 def _with_radiometric_record(uncertainty, data_dir: Path, shipped: Path | None, geometry, fringes,
                              station: dict | None = None):
     """*uncertainty* with the display-response part the radiometric record in force states (the newest
-    under *data_dir*, else the shipped default; :meth:`InputUncertainties.with_radiometric_record`);
+    under *data_dir*, else the shipped default; :meth:`InputUncertainties.with_radiometric_record`), and
+    *fringes* as the display draws them through its table (:meth:`FringeSet.drawn_through`); both
     unchanged when there is none or it cannot be read (logged; opening the station reports it too)."""
     from .calibrate.records import load_radiometric
     from .calibrate.store import newest_record_path
 
     path = newest_record_path(data_dir, "radiometric", station) or shipped
     if path is None:
-        return uncertainty
+        return uncertainty, fringes
     try:
         record = load_radiometric(path)
     except (ConfigError, OSError) as exc:
         log.warning("the radiometric record %s cannot be read (%s): the uncertainty budget's display response "
                     "leaves out the rounding of its lookup table to 8-bit commands", path, exc)
-        return uncertainty
+        return uncertainty, fringes
     scr = geometry.screen
     samples = (scr.width_px / fringes.periods_x[-1], scr.height_px / fringes.periods_y[-1])
-    return uncertainty.with_radiometric_record(record.lut, record.floor_level, record.max_level, samples)
+    return (uncertainty.with_radiometric_record(record.lut, record.floor_level, record.max_level, samples),
+            fringes.drawn_through(record.lut, record.floor_level, record.max_level, scr.width_px, scr.height_px))
 
 
 def camera_from_record(data_dir: Path, stated: CameraIntrinsics, where: str,

@@ -9,7 +9,7 @@ steps) that is 2 + 16 = 18 frames. Image k of a set shows I_k = a + b cos(phi - 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from .errors import ConfigError
 
@@ -79,11 +79,19 @@ class Pattern:
 
 @dataclass(frozen=True)
 class FringeSet:
-    """Periods (cycles across the active extent) per axis, increasing, and the number of phase steps."""
+    """Periods (cycles across the active extent) per axis, increasing, and the number of phase steps.
+
+    ``drawn`` is how the station's display draws them, not part of the definition (not compared): the
+    radiometric record's lookup table the fringes go through and the display's size,
+    ``(lut, floor_level, max_level, width_px, height_px)`` (:meth:`drawn_through`), or empty when unknown.
+    From it the analysis knows the phase error each set shows from its rounding to whole 8-bit commands
+    (:func:`~sofast_station.measure.phase.drawn_phase_error`) and takes it off the screen positions.
+    """
 
     periods_x: tuple[float, ...] = (1.0, 4.0)
     periods_y: tuple[float, ...] = (1.0, 4.0)
     phase_steps: int = 4
+    drawn: tuple = field(default=(), compare=False, hash=False, repr=False)
 
     def __post_init__(self):
         for name in ("periods_x", "periods_y"):
@@ -97,6 +105,20 @@ class FringeSet:
             raise ConfigError(f"fringes.phase_steps must be 4 (the phase and consistency formulas assume "
                               f"quarter-period shifts), got {self.phase_steps}")
         object.__setattr__(self, "phase_steps", int(self.phase_steps))
+
+    def drawn_through(self, lut, floor_level: float, max_level: float, width_px: int, height_px: int) -> "FringeSet":
+        """This definition as a display of *width_px* x *height_px* pixels draws it through the lookup table
+        *lut* (command / 255 against linear level 0..1) between *floor_level* and *max_level*."""
+        import dataclasses
+
+        drawn = (tuple(float(v) for v in lut), float(floor_level), float(max_level), int(width_px), int(height_px))
+        return dataclasses.replace(self, drawn=drawn)
+
+    def samples_per_period(self, axis: str, periods: float) -> float | None:
+        """Display pixels per period of the set (*axis*, *periods*) as drawn, or None when not known."""
+        if not self.drawn:
+            return None
+        return float(self.drawn[3 if axis == "x" else 4]) / float(periods)
 
     @property
     def n_frames(self) -> int:
@@ -122,12 +144,25 @@ class FringeSet:
         return out
 
     def to_dict(self) -> dict:
-        return {"periods_x": list(self.periods_x), "periods_y": list(self.periods_y),
-                "phase_steps": self.phase_steps}
+        out = {"periods_x": list(self.periods_x), "periods_y": list(self.periods_y), "phase_steps": self.phase_steps}
+        if self.drawn:
+            lut, floor_level, max_level, width_px, height_px = self.drawn
+            out["drawn"] = {"lut": list(lut), "floor_level": floor_level, "max_level": max_level,
+                            "display_px": [width_px, height_px]}
+        return out
 
     @classmethod
     def from_dict(cls, d: dict) -> "FringeSet":
-        unknown = set(d) - {"periods_x", "periods_y", "phase_steps"}
+        """From :meth:`to_dict` (or station.toml's [fringes], which has no ``drawn``: the station adds it)."""
+        unknown = set(d) - {"periods_x", "periods_y", "phase_steps", "drawn"}
         if unknown:
             raise ConfigError(f"[fringes] has unknown keys: {', '.join(sorted(unknown))}")
-        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
+        out = cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items() if k != "drawn"})
+        drawn = d.get("drawn")
+        if drawn:
+            try:
+                out = out.drawn_through(drawn["lut"], drawn["floor_level"], drawn["max_level"], *drawn["display_px"])
+            except (KeyError, TypeError, ValueError) as exc:
+                raise ConfigError(f"[fringes] drawn must hold lut, floor_level, max_level and display_px, got "
+                                  f"{sorted(drawn) if isinstance(drawn, dict) else drawn!r} ({exc})") from None
+        return out

@@ -224,6 +224,19 @@ def test_commission_study_benchmark_quick(repo_root, tmp_path):
     assert all(math.isfinite(v) for e in study[0]["errors"].values() for v in e.values())
 
 
+def test_commission_coverage_benchmark_quick(repo_root, tmp_path):
+    """benchmarks/commission_coverage.py --quick: one drawn station (seed 1) commissioned with noise (screen from 3
+    views, pose from 2 placements), then two captures measured with its records in force against the twin's
+    truth; the records' fixture against the truth and the coverage table from both ends. About 15 s CPU."""
+    proc, _ = _run(repo_root, "commission_coverage.py", "--quick", "--out", str(tmp_path))
+    line = next(ln for ln in proc.stdout.splitlines() if ln.startswith("station 1: fixture off the truth by"))
+    assert len(_numbers(line)) >= 16 and "refused" not in line
+    assert "2 captures on 1 commissioned stations" in proc.stdout
+    assert "coverage and RMS of error / (U / 2) per figure" in proc.stdout
+    saved = json.loads((tmp_path / "commission-coverage.json").read_text())
+    assert len(saved["cases"]) == 2 and [f["seed"] for f in saved["fixtures"]] == [1]
+
+
 def test_geometry_sensitivity_benchmark(repo_root, small_station_toml):
     """benchmarks/geometry_sensitivity.py as it is (its default is the tests' 400 x 300 station): one capture,
     then each of the twelve moves of the screen or the camera. About 3 s CPU."""
@@ -263,7 +276,7 @@ def test_population_benchmark_quick(repo_root, tmp_path):
     assert "population study, seed 0: 1 good captures on 1 stations (1 each; kinds dish; edge models area)" in \
         proc.stdout
     for line in ("false INVALID / refusal on good captures:", "planted faults caught (refused or invalid):",
-                 "validity checks on the good captures", "coverage of |error| <= U (k = 2) per figure",
+                 "validity checks on the good captures", "coverage and RMS of error / (U / 2) per figure",
                  "corners against the twin's true corner pixels per edge model"):
         assert line in proc.stdout
     for fault in ("swapped", "gamma", "obstruction", "misplaced"):

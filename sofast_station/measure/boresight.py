@@ -6,7 +6,8 @@ along z; no x or y translation and no rotation about z (those stay where the cor
 Four unknowns meet four conditions:
 
 * F (the model's constant) gives the design z at (x_a, y_a);
-* t_z keeps the measured distance from the screen centre to the measure point on the model;
+* t_z keeps the measured distance from the screen centre to the measure point on the model (on a nearly
+  flat facet, on the facet's surface: the model plus what it misses there, :func:`close_on_all_points`);
 * (alpha, beta) make the fitted parabola's normal at (x_a, y_a) the design normal.
 
 Shape and boresight are iterated alternately: each outer step re-fits the shape to convergence for the
@@ -177,11 +178,32 @@ def _design_turn(coeffs: np.ndarray, design: FacetDesign) -> tuple[float, float]
 
 
 def _t_z_for(assembly: Assembly, alpha: float, beta: float, pivot: np.ndarray, coeffs: np.ndarray,
-             design: FacetDesign, distance_m: float) -> float:
-    """:func:`_solve_t_z` with the assembly turned by (alpha, beta) and the model's measure point."""
+             design: FacetDesign, distance_m: float, height_m: float = 0.0) -> float:
+    """:func:`_solve_t_z` with the assembly turned by (alpha, beta) and the measure point: the model's, raised
+    by *height_m* (the facet's own height above the model there)."""
     xm, ym = (float(v) for v in design.measure_point_m)
-    return _solve_t_z(assembly, Motion(alpha, beta, 0.0, pivot), np.array([xm, ym, float(surface_z(coeffs, xm, ym))]),
-                      distance_m)
+    return _solve_t_z(assembly, Motion(alpha, beta, 0.0, pivot),
+                      np.array([xm, ym, float(surface_z(coeffs, xm, ym)) + float(height_m)]), distance_m)
+
+
+#: A facet whose design focal power times the squared measured distance is below this (metres) is
+#: intersected with its measured surface, not with the model alone (:func:`close_on_all_points`): there a
+#: height error of 1 um moves its focal length by more than 1 ppm (delta kappa = 2 dz / D^2). The heliostat
+#: facet of f 100 m at 4 m is 0.16 m, at 10 m 1 m; the dish at its centre of curvature 22 m.
+SURFACE_HEIGHT_LEVERAGE_M = 2.0
+#: The heights a nearly flat facet's slope residuals integrate to are taken as settled when their value at
+#: the measure point changes by less than this between two steps, metres.
+SURFACE_HEIGHT_TOLERANCE_M = 1e-8
+#: The model's constant is moved by this to find how each pixel's slope changes with the height it is
+#: intersected at, metres.
+HEIGHT_STEP_M = 1e-6
+
+
+def uses_surface_heights(design: FacetDesign, distance_m: float) -> bool:
+    """Whether a facet is intersected with its measured surface (:data:`SURFACE_HEIGHT_LEVERAGE_M`)."""
+    f = design.focal_length_m
+    power = 0.0 if f is None or not np.isfinite(f) else 1.0 / abs(float(f))
+    return power * float(distance_m) ** 2 < SURFACE_HEIGHT_LEVERAGE_M
 
 
 def solve_shape(assembly: Assembly, design: FacetDesign, measured_distance_m: float,
@@ -256,7 +278,7 @@ def solve_shape(assembly: Assembly, design: FacetDesign, measured_distance_m: fl
 
 
 def close_on_all_points(solution: ShapeSolution, design: FacetDesign, measured_distance_m: float,
-                        assembly: Assembly, reduce_all, fit_all, max_iterations: int = 20):
+                        assembly: Assembly, reduce_all, fit_all, max_iterations: int = 20, heights_of=None):
     """The boresight's conditions met by the parabola fitted to every valid pixel, not the subsample's.
 
     The iteration converges on the subsample (:func:`solve_shape`); the reported parabola is then fitted
@@ -270,6 +292,20 @@ def close_on_all_points(solution: ShapeSolution, design: FacetDesign, measured_d
     step re-fits and turns the assembly by the fitted normal's angle from the design's, then solves t_z,
     until the fitted shape no longer changes (:func:`kappa_converged`) and the turn is below 1 microradian;
     usually two steps.
+
+    **A nearly flat facet far from the screen** (*heights_of* given, :func:`uses_surface_heights`): each
+    pixel is intersected with the facet's surface, not the model. The surface departs from the parabola
+    by the heights its slope residuals integrate to (0.3 mrad of slope error over 4 cm is 10-15 um, up to
+    50 um on the population's heliostat facets), and a pixel intersected that far off gets a slope error
+    that grows across the facet (the reflection's directions turn by height / distance): delta kappa =
+    2 dz / D^2 about, which a facet of f 100 m at 4 m reads as 125 ppm of f per 10 um. Two parts:
+    the range finder measures to the surface, so t_z keeps the distance to the model plus the surface's
+    height above it at the measure point (the model through the surface's mean, not through one bump of
+    it: f of the f 600 m facet at 3.5 m was 0.24 % short for a 28 um dip under its measure point); and
+    each pixel's point and slope are moved to its height above the model, to first order (its slope's
+    change per metre of height from a second intersection with the model's constant moved by
+    :data:`HEIGHT_STEP_M`). ``heights_of(points, slopes, coefficients)`` returns the heights above the
+    model at the points and at the measure point, metres (zero mean over the points).
 
     Parameters
     ----------
@@ -286,18 +322,30 @@ def close_on_all_points(solution: ShapeSolution, design: FacetDesign, measured_d
     """
     motion, coeffs = solution.motion, np.asarray(solution.coefficients, float)
     converged = False
+    height = 0.0                              # the surface's height above the model at the measure point
     for step in range(1, max_iterations + 1):
         points, slopes = reduce_all(motion, coeffs)
+        settled = True
+        if heights_of is not None:
+            at_points, at_measure = heights_of(points, slopes, coeffs)
+            raised = coeffs.copy()
+            raised[5] += HEIGHT_STEP_M
+            points_up, slopes_up = reduce_all(motion, raised)
+            scale = at_points / HEIGHT_STEP_M
+            points = points + (points_up - points) * scale
+            slopes = slopes + (slopes_up - slopes) * scale
+            settled = abs(at_measure - height) < SURFACE_HEIGHT_TOLERANCE_M
+            height = at_measure
         fit = fit_all(points, slopes)
         new = model_coefficients(fit, design)
         d_alpha, d_beta = _design_turn(new, design)
-        if max(abs(d_alpha), abs(d_beta)) < 1e-6 and kappa_converged(new, coeffs):
+        if max(abs(d_alpha), abs(d_beta)) < 1e-6 and kappa_converged(new, coeffs) and settled:
             converged = True
             break
         if step == max_iterations:           # not converged: keep the frame these points are in
             break
         alpha, beta = motion.alpha_rad + d_alpha, motion.beta_rad + d_beta
-        t_z = _t_z_for(assembly, alpha, beta, motion.pivot_m, new, design, measured_distance_m)
+        t_z = _t_z_for(assembly, alpha, beta, motion.pivot_m, new, design, measured_distance_m, height)
         motion, coeffs = Motion(alpha, beta, t_z, motion.pivot_m), new
     out = ShapeSolution(coeffs, motion, solution.shape_iterations + step, solution.boresight_iterations + step,
                         solution.converged and converged, solution.fit, np.asarray(solution.coefficients, float))

@@ -17,6 +17,7 @@ fixed at zero. Each connected region of valid cells is solved on its own (its ow
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -193,3 +194,76 @@ def slope_differences(slopes, residuals_mrad) -> tuple[np.ndarray, np.ndarray]:
     s = np.asarray(slopes, dtype=np.float64)
     ex, ey = (np.asarray(e, dtype=np.float64) * 1e-3 for e in residuals_mrad)
     return s[0] - np.tan(np.arctan(s[0]) - ex), s[1] - np.tan(np.arctan(s[1]) - ey)
+
+
+@dataclass(frozen=True)
+class HeightGrid:
+    """Heights on a regular grid of cell centres (x0 + (j + 1/2) cell, y0 + (i + 1/2) cell), metres, read
+    anywhere by bilinear interpolation (:meth:`at`; clamped at the grid's outer cell centres)."""
+
+    x0_m: float
+    y0_m: float
+    cell_m: float
+    heights_m: np.ndarray
+
+    def at(self, x_m, y_m) -> np.ndarray:
+        h = self.heights_m
+        ny, nx = h.shape
+        u = np.clip((np.asarray(x_m, dtype=np.float64) - self.x0_m) / self.cell_m - 0.5, 0.0, nx - 1.0)
+        v = np.clip((np.asarray(y_m, dtype=np.float64) - self.y0_m) / self.cell_m - 0.5, 0.0, ny - 1.0)
+        j = np.minimum(u.astype(np.int64), max(nx - 2, 0))
+        i = np.minimum(v.astype(np.int64), max(ny - 2, 0))
+        tu, tv = u - j, v - i
+        j1, i1 = np.minimum(j + 1, nx - 1), np.minimum(i + 1, ny - 1)
+        return ((1.0 - tv) * ((1.0 - tu) * h[i, j] + tu * h[i, j1]) + tv * ((1.0 - tu) * h[i1, j] + tu * h[i1, j1]))
+
+
+def integrate_full_grid(s_x, s_y, cell_m: float) -> np.ndarray:
+    """:func:`integrate_slopes` on a grid with no empty cell, solved by the discrete cosine transform.
+
+    On a full rectangular grid the least-squares normal equations of the trapezoid differences are the
+    grid's Laplacian with reflecting (Neumann) edges, which the type-II DCT diagonalises (eigenvalues
+    2 - 2 cos(pi k / n) per axis): a few milliseconds for 128 x 128 cells where the sparse solve takes a
+    second. Heights have zero mean.
+    """
+    from scipy.fft import dctn, idctn
+
+    sx = np.asarray(s_x, dtype=np.float64)
+    sy = np.asarray(s_y, dtype=np.float64)
+    if sx.shape != sy.shape or sx.ndim != 2 or not (np.all(np.isfinite(sx)) and np.all(np.isfinite(sy))):
+        raise ValueError(f"s_x and s_y must be finite 2-D arrays of one shape, got {sx.shape} and {sy.shape}")
+    ny, nx = sx.shape
+    dx = cell_m * 0.5 * (sx[:, :-1] + sx[:, 1:])          # h[i, j+1] - h[i, j]
+    dy = cell_m * 0.5 * (sy[:-1, :] + sy[1:, :])          # h[i+1, j] - h[i, j]
+    rhs = np.zeros((ny, nx))                              # G^T d: the differences' divergence
+    rhs[:, :-1] -= dx
+    rhs[:, 1:] += dx
+    rhs[:-1, :] -= dy
+    rhs[1:, :] += dy
+    lam = (2.0 - 2.0 * np.cos(np.pi * np.arange(ny) / ny))[:, None] + (2.0 - 2.0 * np.cos(np.pi * np.arange(nx) / nx))
+    coef = dctn(rhs, type=2, norm="ortho", workers=1)
+    lam[0, 0] = 1.0
+    coef /= lam
+    coef[0, 0] = 0.0                                      # the mean: free, set to zero
+    return idctn(coef, type=2, norm="ortho", workers=1)
+
+
+def height_grid(x_m, y_m, g_x, g_y, cells: int = 96) -> HeightGrid:
+    """The heights whose slopes are *g_x*, *g_y* at scattered points (x_m, y_m), on a grid of about *cells*
+    square cells along the points' longer extent (:func:`grid_slopes`, then :func:`integrate_full_grid`).
+
+    Cells no point falls in take slopes 0: beyond a facet's outline in its bounding box (a gore's corners)
+    the heights are carried on flat, which leaves those inside as the masked least-squares would within
+    the grid's resolution. Meant for slopes that are small departures from a model (a facet's slope
+    residuals), whose heights are what the model misses.
+    """
+    x = np.asarray(x_m, dtype=np.float64)
+    y = np.asarray(y_m, dtype=np.float64)
+    span = max(float(np.ptp(x)), float(np.ptp(y)), 1e-9)
+    cell = span / max(int(cells), 4)
+    extent = (float(x.min()) - 0.5 * cell, float(x.max()) + 0.5 * cell,
+              float(y.min()) - 0.5 * cell, float(y.max()) + 0.5 * cell)
+    grid = grid_slopes(x, y, g_x, g_y, cell, extent_m=extent)
+    sx = np.where(np.isfinite(grid["s_x"]), grid["s_x"], 0.0)
+    sy = np.where(np.isfinite(grid["s_y"]), grid["s_y"], 0.0)
+    return HeightGrid(grid["extent_m"][0], grid["extent_m"][2], cell, integrate_full_grid(sx, sy, cell))

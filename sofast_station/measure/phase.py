@@ -6,6 +6,8 @@ I_0 - I_2 = 2b cos(phi), I_1 - I_3 = 2b sin(phi) and I_0 + I_2 - I_1 - I_3 = 0.
 
 from __future__ import annotations
 
+import functools
+
 import dataclasses
 import math
 from dataclasses import dataclass
@@ -334,6 +336,14 @@ class FrameNoise:
         the period sets; None from the harmonic).
     phase_error_from : str
         "periods" or "harmonic".
+    harmonic_offsets_dn : tuple of float
+        Each set's mean of the fitted harmonic over its pixels, DN (x sets, then y sets): the part of a set's
+        mean residual that is the display's static response, not a brightness change between its frames.
+        A facet that sees a short stretch of a coarse fringe sees nearly one phase, so its harmonic
+        4 c_2 cos(2 phi + psi) does not average out over the pixels: on the population's dish stations
+        (display gamma 2.227 against the table's 2.2) it made every set's mean 1.2-2.1 DN with the room
+        light steady, the frame-to-frame brightness read as 0.8 DN instead of 0.05, and the slope RMS
+        values' U twice their errors' spread (:func:`~.uncertainty.frame_brightness_dn` takes it out).
     """
 
     noise_dn: float
@@ -345,6 +355,7 @@ class FrameNoise:
     phase_error_rms_rad: float | None = None
     phase_error_u_rad: float | None = None
     phase_error_from: str = "harmonic"
+    harmonic_offsets_dn: tuple = ()
 
     def with_period_error(self, measured: "PeriodPhaseError | None") -> "FrameNoise":
         """This estimate with the phase error the period sets show (:func:`phase_error_between_periods`),
@@ -431,9 +442,72 @@ def frame_noise(phases, modulations, residuals, level=None, pool=None) -> FrameN
     # r = 4 c_2 cos(2 phi + psi): the ratio c_2 / b, signed by the cosine part (power laws have psi = 0, pi).
     ratio = 0.25 * float(np.hypot(harmonic[0], harmonic[1])) * (1.0 if harmonic[0] >= 0 else -1.0)
     noise = intensity_noise_dn(np.concatenate([_stride(cleaned[k]) for k in good]))
+    # the shared harmonic's mean over each set's (sampled) pixels: static, not a brightness change
+    offsets = tuple(float(np.mean(harmonic @ samples[k][1])) if samples[k][1].shape[1] else 0.0
+                    for k in range(n_sets))
     return FrameNoise(noise_dn=noise, frame_noise_dn=float(np.hypot(noise, QUANTISATION_NOISE_DN)),
                       harmonic_ratio=abs(ratio), signed_harmonic_ratio=ratio,
-                      phase_error_rad=phase_error_from_harmonic(ratio), residuals=cleaned)
+                      phase_error_rad=phase_error_from_harmonic(ratio), residuals=cleaned,
+                      harmonic_offsets_dn=offsets)
+
+
+#: Harmonics kept of the phase error the fringes' rounding to whole commands leaves (:func:`drawn_phase_error`):
+#: multiples of 4 up to this, and up to a sixth of a period's display pixels (a camera pixel's footprint on
+#: the screen, a pixel or so, and the decoded position's own error, a few tenths of one, blur the finer ripple).
+DRAWN_MAX_HARMONIC = 64
+#: Samples over one period of :func:`drawn_phase_error`'s table.
+DRAWN_TABLE_SIZE = 2048
+
+
+@functools.lru_cache(maxsize=32)
+def drawn_phase_error(lut: tuple, floor_level: float, max_level: float, samples_per_period: float) -> tuple | None:
+    """The four-step phase error of a fringe set as the display draws it, over one period (rad).
+
+    The station draws a set's fringes through its radiometric record's lookup table (*lut*, a tuple: command / 255
+    against linear response level 0..1, :mod:`~sofast_station.devices.renderer`) and rounds each display
+    pixel's command to a whole 8-bit value. With *samples_per_period* (a whole number n) display pixels per
+    period, pixel i shows phase 2 pi (i + 1/2) / n in every period, so its rounding error, and the phase
+    error e_i a four-step phase makes of the four rounded levels (seen through the response the table
+    inverts), repeat with the period: a fixed ripple of a few tenths of a mrad per harmonic, all multiples
+    of 4. It differs from set to set (n differs: the coarse set samples the same rounding function 4 times
+    as densely), so the coarse and fine sets' disagreement cannot measure it
+    (:func:`phase_error_between_periods` takes it as known), and on a nearly flat facet far from the
+    screen its projection on a straight line over the patch the facet reflects reads as focal power
+    (issue 47: f 50-110 ppm off at 10 m). Returned as the ripple's harmonics up to
+    :data:`DRAWN_MAX_HARMONIC` (and n / 6) sampled at phases 2 pi j / M, M = :data:`DRAWN_TABLE_SIZE`;
+    None when n is not a whole number of at least 8 (the ripple does not repeat with the phase). Kept for
+    the process (the same record and display give the same table every capture).
+    """
+    n_float = float(samples_per_period)
+    n = int(round(n_float))
+    if n < 8 or abs(n_float - n) > 1e-9:
+        return None
+    lut = np.asarray(lut, dtype=np.float64)
+    grid = np.linspace(0.0, 1.0, lut.size)
+    phi = 2.0 * np.pi * (np.arange(n) + 0.5) / n
+    seen = []
+    for k in range(4):
+        level = floor_level + (max_level - floor_level) * 0.5 * (1.0 + np.cos(phi - 0.5 * np.pi * k))
+        command = np.floor(255.0 * np.interp(level, grid, lut) + 0.5)     # the shader's rounding
+        seen.append(np.interp(command / 255.0, lut, grid))
+    error = np.angle(np.exp(1j * (np.arctan2(seen[1] - seen[3], seen[0] - seen[2]) - phi)))
+    top = min(DRAWN_MAX_HARMONIC, n // 6)
+    ks = np.arange(1, top + 1)
+    # e(phi) = mean + sum_k a_k cos k phi + b_k sin k phi from the n samples (their discrete Fourier terms)
+    a = 2.0 / n * (np.cos(np.outer(ks, phi)) @ error)
+    b = 2.0 / n * (np.sin(np.outer(ks, phi)) @ error)
+    table_phi = 2.0 * np.pi * np.arange(DRAWN_TABLE_SIZE) / DRAWN_TABLE_SIZE
+    table = float(np.mean(error)) + a @ np.cos(np.outer(ks, table_phi)) + b @ np.sin(np.outer(ks, table_phi))
+    return tuple(float(v) for v in table)
+
+
+def drawn_error_at(table, phase_rad: np.ndarray) -> np.ndarray:
+    """A :func:`drawn_phase_error` table (rad, over one period) at the phases *phase_rad* (periodic linear
+    interpolation)."""
+    values = np.asarray(table, dtype=np.float64)
+    m = values.size
+    grid = 2.0 * np.pi * np.arange(m) / m
+    return np.interp(np.asarray(phase_rad, dtype=np.float64), grid, values, period=2.0 * np.pi)
 
 
 #: Harmonics of the phase (k phi) in the four-step phase error a static nonlinearity leaves: the response's
@@ -456,19 +530,35 @@ class PeriodPhaseError:
         Standard uncertainty of ``max_rad`` from the fit's noise, rad.
     n_pixels : int
         Pixels (of every axis together) the fit used.
+    harmonics : tuple of int
+        The harmonics k of the phase fitted (:data:`PHASE_ERROR_HARMONICS`).
+    coefficients : tuple of float
+        e(phi) = sum_k a_k sin(k phi) + b_k cos(k phi): (a_k, b_k) per harmonic in *harmonics*' order, rad, as
+        fitted (the noise's share of their power is taken out of ``max_rad`` and ``rms_rad`` only: the
+        coefficients themselves are unbiased, which is what a correction needs).
     """
 
     max_rad: float
     rms_rad: float
     u_rad: float
     n_pixels: int
+    harmonics: tuple = ()
+    coefficients: tuple = ()
+
+    def error_at(self, phase_rad: np.ndarray) -> np.ndarray:
+        """e(phi), rad, at the (measured) four-step phases *phase_rad*: what the response added to them."""
+        phi = np.asarray(phase_rad, dtype=np.float64)
+        e = np.zeros(phi.shape)
+        for k, a, b in zip(self.harmonics, self.coefficients[0::2], self.coefficients[1::2]):
+            e += a * np.sin(k * phi) + b * np.cos(k * phi)
+        return e
 
 
 def _period_block(axis_sets: tuple, mask, n_axes: int, noise_dn: float, ks: np.ndarray) -> tuple | None:
     """One axis's rows of :func:`phase_error_between_periods`' fit: its own and the harmonic regressors with
     their derivatives by the fine and the coarse phase, the disagreement, both phases' noise variances and
     the period ratio; None when the ratio is not a whole number above 1."""
-    phi_c, phi_f, b_c, b_f, p_c, p_f = axis_sets
+    phi_c, phi_f, b_c, b_f, p_c, p_f, *known = axis_sets
     r = float(p_f) / float(p_c)
     if r <= 1.0 or abs(r - round(r)) > 1e-9:
         return None
@@ -478,6 +568,10 @@ def _period_block(axis_sets: tuple, mask, n_axes: int, noise_dn: float, ks: np.n
             else np.arange(arrays[0].size))
     step = max(1, -(-pick.size * n_axes // MAX_NOISE_SAMPLES))
     phi_c, phi_f, b_c, b_f = (v[pick[::step]].astype(np.float64, copy=False) for v in arrays)
+    # a known part of each set's error (the fringes' rounding as drawn: drawn_error_at), taken off the
+    # disagreement: e_known_f(phi_f) - r e_known_c(phi_c)
+    known = known[0] if known else None
+    known_part = 0.0 if known is None else (drawn_error_at(known[1], phi_f) - r * drawn_error_at(known[0], phi_c))
     var_c = (noise_dn / (np.sqrt(2.0) * np.maximum(b_c, 1e-9))) ** 2
     var_f = (noise_dn / (np.sqrt(2.0) * np.maximum(b_f, 1e-9))) ** 2
     m = phi_c.size
@@ -497,7 +591,7 @@ def _period_block(axis_sets: tuple, mask, n_axes: int, noise_dn: float, ks: np.n
     h_df, h_dc = np.empty_like(harm), np.empty_like(harm)
     h_df[:, 0::2], h_df[:, 1::2] = ks * cos_f, -ks * sin_f
     h_dc[:, 0::2], h_dc[:, 1::2] = -r * ks * cos_c, r * ks * sin_c
-    y = np.angle(np.exp(1j * (phi_f - r * phi_c)))
+    y = np.angle(np.exp(1j * (phi_f - r * phi_c))) - known_part
     return (np.column_stack(own), np.column_stack(own_df), np.column_stack(own_dc), harm, h_df, h_dc,
             y, var_f, var_c, r)
 
@@ -524,9 +618,11 @@ def phase_error_between_periods(sets: list, noise_dn: float = 0.0, mask: list | 
 
     Parameters
     ----------
-    sets : list of (phase_coarse, phase_fine, modulation_coarse, modulation_fine, p_coarse, p_fine)
+    sets : list of (phase_coarse, phase_fine, modulation_coarse, modulation_fine, p_coarse, p_fine[, known])
         Per axis: the wrapped phases (rad) and modulations (DN) of its coarsest and finest sets (the same
-        pixels) and their period counts.
+        pixels) and their period counts; optionally *known* = (coarse table, fine table), each set's error
+        as drawn (:func:`drawn_phase_error`, or None), which differs between the sets and is taken off the
+        disagreement before e is fitted: e is then what the response adds beyond the drawing.
     noise_dn : float
         Per-frame intensity noise, DN.
     mask : list of bool arrays or None
@@ -599,7 +695,8 @@ def phase_error_between_periods(sets: list, noise_dn: float = 0.0, mask: list | 
     at = int(np.argmax(np.abs(e)))
     u_max = float(np.sqrt(basis[at] @ cov_h @ basis[at]))
     return PeriodPhaseError(max_rad=float(shrink * np.abs(e[at])), rms_rad=float(shrink * np.sqrt(np.mean(e * e))),
-                            u_rad=u_max, n_pixels=int(keep.sum()))
+                            u_rad=u_max, n_pixels=int(keep.sum()), harmonics=tuple(int(k) for k in ks),
+                            coefficients=tuple(float(c) for c in harm))
 
 
 #: Brightness bins of each kind (equal counts, equal widths) over which :func:`noise_by_level` fits the

@@ -27,13 +27,14 @@ from ..geometry import Pose, StationGeometry
 from . import checks
 from . import corners as corners_mod
 from .camera import pixel_rays, project, to_frame
-from .boresight import Assembly, ShapeSolution, close_on_all_points, model_coefficients, solve_shape
+from .boresight import (Assembly, ShapeSolution, close_on_all_points, model_coefficients, solve_shape,
+                        uses_surface_heights)
 from .fit import CubicFit, ParabolaFit, fit_cubic, fit_parabola, fit_plane, reweight_parabola
 from .mask import facet_region
 from .metrics import (focal_length_m, neighbour_difference_ms, neighbour_pairs, principal_axes,
                       rms_summary)
-from .phase import (FrameNoise, frame_noise, phase_and_modulation, phase_error_between_periods, position_sigma_m,
-                    unwrap_positions)
+from .phase import (FrameNoise, drawn_error_at, drawn_phase_error, frame_noise, phase_and_modulation,
+                    phase_error_between_periods, position_sigma_m, unwrap_positions)
 from .pose import fix_range, mask_centroid_px, placement, pose_facing, solve_corner_pose
 from .screen import FlatScreen, InterpolatedScreen, ScreenModel
 from .stats import median
@@ -582,15 +583,53 @@ def measure_phases(region: Region, fringes: FringeSet, screen_size_m: tuple[floa
     checks.check_phase_sets(inconsistent_fraction,
                             {a: unwrap_stats[a].disagreements / idx.size for a in ("x", "y")})
     # The response's phase error as the coarse and fine sets show it (any shape of response), where they can.
-    noise = noise.with_period_error(phase_error_between_periods(
+    # Each set's error as the display draws it (the fringes' rounding), where the station's record says it.
+    drawn = {a: (drawn_table(fringes, a, getattr(fringes, f"periods_{a}")[0]),
+                 drawn_table(fringes, a, getattr(fringes, f"periods_{a}")[-1])) for a in ("x", "y")}
+    known = all(t is not None for a in ("x", "y") for t in drawn[a])
+    measured = phase_error_between_periods(
         [(raw[a][0][0], raw[a][0][-1], raw[a][1][0], raw[a][1][-1], getattr(fringes, f"periods_{a}")[0],
-          getattr(fringes, f"periods_{a}")[-1]) for a in ("x", "y")], noise_dn, mask=[ok, ok], pool=pool))
+          getattr(fringes, f"periods_{a}")[-1], *((drawn[a],) if known else ())) for a in ("x", "y")],
+        noise_dn, mask=[ok, ok], pool=pool)
+    noise = noise.with_period_error(measured)
+    if known and measured is not None:
+        positions = {a: corrected_positions(positions[a], raw[a][0][-1], measured, drawn[a][1],
+                                            getattr(fringes, f"periods_{a}")[-1], lengths[a]) for a in ("x", "y")}
     dropped = {"low_modulation": int(low_mod.sum()), "inconsistent_frames": int(inconsistent.sum()),
                "excluded_by_pixel_mask": excluded, "near_edge": near_edge}
     return Phases(positions_m=positions, ok=ok, noise_dn=noise_dn,
                   finest_modulation_dn={a: raw[a][1][-1] for a in ("x", "y")}, min_modulation_dn=min_mod,
                   dropped=dropped, unwrap=unwrap_stats, noise=noise,
                   set_offsets_dn=offsets)
+
+
+def drawn_table(fringes: FringeSet, axis: str, periods: float):
+    """The phase error table of set (*axis*, *periods*) as the display draws it (:func:`~.phase.drawn_phase_error`),
+    or None when the fringes do not say how they are drawn (``FringeSet.drawn``) or it does not repeat."""
+    n = fringes.samples_per_period(axis, periods)
+    if n is None:
+        return None
+    lut, floor_level, max_level = fringes.drawn[:3]
+    return drawn_phase_error(lut, floor_level, max_level, n)
+
+
+def corrected_positions(position_m: np.ndarray, fine_phase_rad: np.ndarray, measured, drawn_table,
+                        fine_periods: float, length_m: float) -> np.ndarray:
+    """Screen positions with the four-step phase's known errors taken out (metres along one axis).
+
+    The position comes from the finest phase, so a phase error e(phi_f) moves it by L e / (2 pi p_f): a
+    ripple along the screen with a quarter of the finest period and its multiples. Two parts, both fixed
+    functions of the phase: the fringes' rounding to whole 8-bit commands as the display draws them
+    (*drawn_table*, :func:`~.phase.drawn_phase_error`, from the station's radiometric record), and what a
+    response not quite linearised adds (a gamma missed, a camera's knee), which the coarse and fine sets
+    measure once the drawn part is taken off their disagreement (*measured*,
+    :func:`~.phase.phase_error_between_periods`). The ripple's projection on a straight line over the screen
+    patch a facet reflects is a scale error of the positions, which a nearly flat facet far from the screen
+    reads as focal power: f of the 1.2 m heliostat facet at 10 m was 50-110 ppm off with the ripple left in
+    (issue 47; docs/method.md, "Nearly flat facets far from the screen").
+    """
+    e = measured.error_at(fine_phase_rad) + drawn_error_at(drawn_table, fine_phase_rad)
+    return position_m - (length_m / (2.0 * np.pi * float(fine_periods))) * e
 
 
 def screen_points_and_rays(region: Region, phases: Phases, camera, screen: ScreenModel,
@@ -768,12 +807,46 @@ def shape_and_boresight(rays: Rays, pose: CornerPoseResult, design: FacetDesign,
             raise AnalysisError(f"{int((~finite).sum())} pixel rays miss the fitted surface; the fit diverged")
         return points, slopes
 
+    heights_of = None
+    if uses_surface_heights(design, measured_distance_m) and settings.surface == "parabolic":
+        def heights_of(p, s, c):
+            return surface_heights(p, s, c, design)
     solution, points, slopes, fit = close_on_all_points(
         solution, design, measured_distance_m, subsample, reduce_all,
-        lambda p, s: all_points_parabola(p, s, solution.fit, settings, pool), settings.max_iterations)
+        lambda p, s: all_points_parabola(p, s, solution.fit, settings, pool), settings.max_iterations,
+        heights_of=heights_of)
     to_moved = solution.motion.as_pose().compose(camera_to_facet)
     return Shape(solution=solution, boresighted_to_camera=to_moved.inverse(), points_m=points, slopes=slopes,
                  fit=fit)
+
+
+#: Points :func:`surface_heights` integrates at most (every k-th of the facet's valid pixels), and about
+#: how many of them each grid cell gets: with fewer the grid is coarser (empty cells carry the heights on
+#: flat, which biases them).
+HEIGHT_POINTS = 60_000
+HEIGHT_POINTS_PER_CELL = 4
+
+
+def surface_heights(points: np.ndarray, slopes: np.ndarray, coefficients: np.ndarray,
+                    design: FacetDesign) -> tuple[np.ndarray, float]:
+    """The facet's heights above the model *coefficients*: at every point (N,) and at the design's measure
+    point, metres, with zero mean over the points. The slope residuals of at most :data:`HEIGHT_POINTS`
+    points integrate to them on a grid (:func:`~.heights.height_grid`) of up to 96 cells along the facet and
+    about :data:`HEIGHT_POINTS_PER_CELL` points per cell (0.2-0.5 um RMS from the exact heights of a random
+    field of 2-4 cm correlation at 96 cells), read at each point by bilinear interpolation."""
+    from .heights import height_grid
+    from .surface import surface_slopes
+
+    x, y = points[0], points[1]
+    step = max(1, x.size // HEIGHT_POINTS)
+    cells = int(min(96, max(8, np.sqrt(x.size / step / HEIGHT_POINTS_PER_CELL))))
+    mx, my = surface_slopes(coefficients, x[::step], y[::step])
+    grid = height_grid(x[::step], y[::step], slopes[0, ::step] - mx, slopes[1, ::step] - my, cells=cells)
+    at_points = grid.at(x, y)
+    mean = float(np.sum(at_points) / at_points.size)
+    at_points -= mean
+    xm, ym = (float(v) for v in design.measure_point_m)
+    return at_points, float(grid.at(xm, ym)) - mean
 
 
 def all_points_parabola(points: np.ndarray, slopes: np.ndarray, subsample_fit, settings: AnalysisSettings, pool=None):

@@ -146,10 +146,18 @@ class SimulatedMirror:
         """The true ``target_to_fixture`` of placement k: the seat, tilted about the window's centre by the
         shim under edge k (none for k = 0), plus a little of the placing's randomness."""
         tilt = np.zeros(3)
+        jitter = self._rng.normal(0.0, PLACEMENT_JITTER_RAD, 2)
         if k > 0:
             axis, sign = [(1, -1.0), (0, 1.0), (1, 1.0), (0, -1.0)][(k - 1) % 4]
             tilt[axis] = sign * SHIM_TILT_RAD
-        tilt[:2] += self._rng.normal(0.0, PLACEMENT_JITTER_RAD, 2)
+            # a shim never lifts an edge by exactly its nominal height: the tilted placements' own randomness
+            tilt[:2] += jitter
+        # Seated, the mirror sits as its certificate says its seat repeats (seating_u_*), no worse: the pose
+        # calibration takes that placement as the fixture's pose and carries the certificate's repeatability.
+        # (Until 2026-12-05 the seated placement also drew the shims' 0.5 mrad per axis, ten times the
+        # certificate's 0.05 mrad: the commissioned fixture was off by that much, outside its stated
+        # uncertainty, and so was every optical tilt measured with it: 0.73 +- 0.21 mrad against the
+        # twin's -0.007 on the shipped station, issue 47.)
         seat_err = np.concatenate([self._rng.normal(0.0, 1e-3 * self.target.seating_u_mrad, 3),
                                    self._rng.normal(0.0, 1e-3 * self.target.seating_u_mm, 3)])
         r = _rotation(*(tilt + seat_err[:3]))

@@ -7,6 +7,7 @@ import argparse
 import dataclasses
 import json
 
+import numpy as np
 import pytest
 
 from sofast_station.calibrate.geometry import (check_geometry, compare_to_reference, load_reference,
@@ -30,9 +31,11 @@ def measured(tmp_path_factory):
     cfg = small_config(folder)
     station = open_station(cfg, noise=False)
     try:
-        check = check_geometry(inspect(station, "GEOMETRY-REFERENCE"), station_reference(station), cfg.uncertainty)
+        rec = inspect(station, "GEOMETRY-REFERENCE")
+        check = check_geometry(rec, station_reference(station), cfg.uncertainty)
     finally:
         station.close()
+    check["_budget"] = rec["uncertainty_budget"]
     return cfg, check
 
 
@@ -61,7 +64,24 @@ def test_the_reference_facet_agrees_with_the_station_geometry(measured, monkeypa
     for key in ("fixture_translation_mm", "fixture_rotation_mrad"):
         assert all(s > 0 for s in det[key]["std"])
         assert all(abs(o) < 3 * s for o, s in zip(det[key]["offset"], det[key]["std"]))
-    assert 0 < det["distance_mm"]["std"] < 50
+    # The distance is confirmed as well as the focal lengths' other uncertainties allow: those over f's
+    # sensitivity to the distance (mm of distance per metre of f). Its window from the budget's rows: no
+    # better than the screen's depth row alone (a screen nearer the camera and a longer distance move f
+    # alike: the same place of the surface against the screen), no worse than all of U(f) (k = 1) but the
+    # distance's own; a window guessed wide (0 to 50 mm before) passed a std a hundred times off.
+    budget = check.pop("_budget")
+    rows = {r["group"]: r for r in budget["rows"]}
+    per_mm = []
+    for axis in ("x", "y"):
+        j = budget["figures"].index(f"focal_length_{axis}_m")
+        c = rows["measured distance"]["contributions"][j] / cfg.uncertainty.distance_mm
+        depth = rows["camera-to-screen translation"]["contributions"][j]
+        rest = np.sqrt(sum((r["contributions"][j] or 0.0) ** 2 for r in budget["rows"]
+                           if r["group"] != "measured distance"))
+        per_mm.append((depth / c, rest / c))
+    low, high = min(a for a, _ in per_mm), min(b for _, b in per_mm)
+    print(f"distance confirmed to {det['distance_mm']['std']:.3f} mm (window {low:.3f}-{high:.3f} mm)")
+    assert low <= det["distance_mm"]["std"] <= high * (1 + 1e-9)
     path = save_geometry(cfg.data_dir, cfg, check, "tests")
     record = load_geometry_record(path)
     assert path.parent == cfg.data_dir / "calibration" / "geometry"

@@ -336,8 +336,22 @@ def test_normal_slopes_kernel_is_the_numpy_function_bit_for_bit():
                                   np.stack(normal_slopes(points, camera, screen)))
 
 
+def _median_window_holds(values: np.ndarray, lo: float, hi: float) -> bool:
+    """Whether the median's order statistics (the middle one, or the two middle ones of an even count) all
+    lie in [lo, hi], from numpy's sort: what median_in_window must find (and nothing else)."""
+    v = np.sort(values)
+    n = v.size
+    if n == 0 or np.isnan(v).any():
+        return False
+    low, high = (v[n // 2], v[n // 2]) if n % 2 else (v[n // 2 - 1], v[n // 2])
+    return bool(lo <= low and high <= hi)
+
+
 def test_median_near_a_guess_is_numpys_median_bit_for_bit():
-    """Windows that hold the median, that miss it, none at all; odd and even counts, ties, |a - about|."""
+    """Windows that hold the median, that miss it, none at all; odd and even counts, ties, |a - about|.
+    ``median_in_window`` must say found exactly where its window holds the median's order statistics (from
+    numpy's sort, :func:`_median_window_holds`), and then give numpy's median bit for bit: a kernel that
+    never found (and so always fell back to the full selection) would fail, as one that found wrongly."""
     rng = np.random.default_rng(11)
     scratch = np.empty(5000)
     for n in (1, 2, 3, 64, 65, 999, 1000, 4096, 4097):
@@ -354,6 +368,8 @@ def test_median_near_a_guess_is_numpys_median_bit_for_bit():
                     got = kernels._median_of(a, about, absolute, lo, hi, scratch)
                     assert got == ref, (n, kind, absolute, lo, hi)
                     m, found = kernels.median_in_window(a, about, absolute, lo, hi, scratch)
+                    values = np.abs(a - about) if absolute else a
+                    assert found == _median_window_holds(values, lo, hi), (n, kind, absolute, lo, hi)
                     assert (not found) or m == ref
     # a NaN makes the median NaN, as numpy's
     a = rng.normal(size=101)

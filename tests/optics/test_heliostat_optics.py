@@ -62,12 +62,26 @@ def test_a_canted_facet_sends_its_beam_twice_its_error_away_and_recanting_brings
 
 
 def test_the_cantings_u_spreads_the_measured_figures():
+    """Each facet's beam moves by twice its canting (the law of reflection): a canting U of 0.4 mrad (k = 2)
+    is a standard turn of 0.2 mrad per axis, the facet's beam 0.4 mrad; the centroid is the mean of the four
+    facets' beams, weighted by the power they reflect (equal here: the turned facet's beam moves the
+    centroid by 6 / 4 mrad), so it moves by 0.4 / sqrt(4) = 0.2 mrad per axis, and the magnitude of an
+    offset along x (1.5 mrad, far beyond that spread) by its x part: U (k = 2) = 0.4 mrad. U is the standard
+    deviation of ``u_draws`` draws (ddof 1), so U / 0.4 lies within sqrt(chi2(d) / d), d = draws - 1, at
+    probability 0.999 (two-sided)."""
+    from scipy.stats import chi2
+
     u = [0.4, 0.4]
     o = heliostat_optics(surfaces({"R1C2": (0.0, 3.0)}, u=u), ENSEMBLE, SETTINGS).figures
-    assert o["measured"]["u_draws"] >= 10
-    # each facet's beam moves by 2 x its canting: a 0.2 mrad standard turn moves the centroid by about
-    # 2 x 0.2 / sqrt(4 facets) = 0.2 mrad per axis; U (k = 2) of the magnitude near 2 x that
-    assert 0.15 < o["measured"]["centroid_offset_mrad_U"]["magnitude"] < 0.8
+    m = o["measured"]
+    d = m["u_draws"] - 1
+    assert m["u_draws"] >= 10
+    assert m["centroid_offset_mrad"]["x"] == pytest.approx(6.0 / 4, abs=0.05)      # equal weights
+    expected = 2.0 * (2.0 * 0.5 * u[0]) / np.sqrt(4)
+    low, high = (expected * np.sqrt(chi2.ppf(q, d) / d) for q in (0.0005, 0.9995))
+    print(f"centroid U {m['centroid_offset_mrad_U']['magnitude']:.3f} mrad, expected {expected:.2f} "
+          f"({low:.2f}-{high:.2f} for {m['u_draws']} draws)")
+    assert low < m["centroid_offset_mrad_U"]["magnitude"] < high
     assert o["measured"]["spot_radius_mrad_U"] > 0.0
     none = heliostat_optics(surfaces({"R1C2": (0.0, 3.0)}, u=[0.0, 0.0]), ENSEMBLE, SETTINGS).figures
     assert none["measured"]["spot_radius_mrad_U"] == 0.0

@@ -16,8 +16,8 @@ import json
 import numpy as np
 import pytest
 
-from sofast_station.station.population import (EDGE_MODELS, FAULTS, KINDS, MIN_OBSTRUCTED_FRACTION, coverage_band,
-                                               draw_station, obstruct, run_population, summarise, swap_sets)
+from sofast_station.station.population import (EDGE_MODELS, FAULTS, KINDS, MIN_OBSTRUCTED_FRACTION, draw_station,
+                                               obstruct, outside, run_population, summarise, swap_sets)
 
 CAPTURES, PER_STATION, SEED = 24, 3, 0
 
@@ -63,32 +63,60 @@ def test_every_planted_fault_is_caught(population):
 
 #: Figures whose U is a linearisation that fails where U is of the figure's own size: f = 1/kappa of the f 100
 #: and 600 m facets (their curvatures are judged instead) and the axis angle of a nearly round facet (A - B
-#: within its noise): their errors have heavy tails, so only their coverage is claimed, not their RMS.
+#: within its noise, U then pi / 2 by design): their errors have heavy tails, so only their coverage is
+#: claimed, not their RMS (the population study's 500 captures: f y of the flat facet 85 %, RMS e/u 1.30;
+#: the axis angle 99 %, 0.79; docs/uncertainty.md).
 NONLINEAR = ("focal_length_x_m", "focal_length_y_m", "principal_focal_lengths_m.0", "principal_focal_lengths_m.1",
              "axis_angle_rad")
-#: The slope RMS against the design: it moves with the corner pose's rotation through the boresight, which
-#: on a gore seen by a point-sampling camera is off by tens of mrad (within its own U), far beyond the
-#: linear sensitivity its U is built from (seed 0's gore stations: 0.06-0.12 mrad against a U of 0.01;
-#: 90.8 % coverage over the 390 sharp-edged captures of the benchmark): its coverage is claimed, its RMS
-#: of error / (U / 2) is open (docs/uncertainty.md).
-DESIGN_RMS = ("slope_rms_mrad.design.x", "slope_rms_mrad.design.y", "slope_rms_mrad.design.magnitude")
+#: The family's false-alarm probability: each cell (a figure over all captures, over one facet kind or over
+#: one edge model) is judged at this over the number of cells (Bonferroni), both sides.
+FAMILY_FALSE_ALARM = 0.01
+
+
+def claim_cells(summary: dict) -> dict:
+    """The coverage cells the claim is judged on: ``{group: rows}`` for all captures, each facet kind and
+    each edge model (:func:`~sofast_station.station.population.coverage_rows`)."""
+    cells = {"all": summary["coverage"]}
+    for k, t in summary["coverage_by_kind"].items():
+        cells[f"kind {k}"] = [dict(r, figure=f) for f, r in t.items()]
+    for e, rows in summary["coverage_by_edge"].items():
+        cells[f"edge {e}"] = rows
+    return cells
+
+
+def judge_claim(summary: dict, label: str) -> list[str]:
+    """Every cell outside the band the claim (95 +- 3 % coverage, RMS of error / (U / 2) 0.7-1.3) leaves for
+    its count, at the family's false-alarm probability split over the cells."""
+    cells = claim_cells(summary)
+    n_cells = sum(len(rows) for rows in cells.values())
+    alarm = FAMILY_FALSE_ALARM / n_cells
+    bad = []
+    for group, rows in cells.items():
+        for r in rows:
+            print(f"{label} {group:<16} {r['figure']:<44} {100 * r['coverage']:5.1f} % of {r['n']:2d}, "
+                  f"rms e/u {r['z_rms']:.2f}")
+        bad += [f"{group}: {line}" for line in outside(rows, alarm, rms_exempt=NONLINEAR)]
+    return bad
 
 
 def test_stated_uncertainty_covers_the_truth_as_claimed(population):
-    """The 95 % claim of U (k = 2) on this many judged captures: each figure's coverage within the band a
-    right claim leaves with probability 0.999 (binomial; 24 captures: 75-100 %), and the RMS of
-    error / (U / 2) below 1.5 (a U stated half as large as it should be gives 2; a sample RMS of 24 normal
-    values exceeds 1.5 with probability 4e-4), but for :data:`NONLINEAR` and :data:`DESIGN_RMS`."""
+    """The claim of U (k = 2), from both sides: each figure's coverage of |error| <= U within 95 +- 3 % and
+    its RMS of error / (U / 2) within 0.7-1.3 (1 for a right U; a U twice too large gives 0.5, half as large
+    2), over the 24 captures, over each facet kind (6) and each edge model (3-9): a cell outside the band
+    that claim leaves for its count fails, whichever side.
+
+    The bands, derived for n cases: coverage, the binomial quantiles of n draws at a true coverage of 92 %
+    (low end) and 98 % (high end); RMS, for normal errors whose standard deviation is s times U / 2,
+    n RMS^2 / s^2 is chi-square with n degrees of freedom, so the band is 0.7 sqrt(chi2_a(n) / n) ..
+    1.3 sqrt(chi2_1-a(n) / n). Each at a false-alarm probability of a = 0.01 over the number of cells, both
+    sides (Bonferroni: the family of some 370 cells falsely fails with probability at most 0.01). For 24
+    captures: coverage at least 62.5 %, RMS 0.32-2.13 (a U stated three times too large or too small leaves
+    that: issue 47 found some twice too large on another renderer, which a 500-capture run resolves);
+    for 6: at least 17 %, RMS 0.08-3.0. :data:`NONLINEAR` figures are judged on their coverage only."""
     _, summary = population
-    rows = summary["coverage"]
-    assert rows
-    lo, hi = coverage_band(min(r["n"] for r in rows))
-    for r in rows:
-        print(f"{r['figure']:<40} {100 * r['coverage']:5.1f} % of {r['n']}, rms e/u {r['z_rms']:.2f}")
-    for r in rows:
-        assert r["n"] == CAPTURES, r
-        assert lo <= r["coverage"], r
-        assert r["figure"] in NONLINEAR + DESIGN_RMS or r["z_rms"] < 1.5, r
+    assert summary["coverage"] and all(r["n"] == CAPTURES for r in summary["coverage"])
+    bad = judge_claim(summary, "seed 0")
+    assert not bad, "\n".join(bad)
 
 
 def test_corners_within_a_tenth_of_a_pixel_where_the_image_holds_them(population):
@@ -145,7 +173,7 @@ def test_study_population_command(tmp_path, capsys, small_station_toml):
                               "--out", str(tmp_path / "out")])
     assert args.func(args) == 0
     out = capsys.readouterr().out
-    assert "false INVALID / refusal on good captures: 0 of 2" in out and "coverage of |error| <= U" in out
+    assert "false INVALID / refusal on good captures: 0 of 2" in out and "coverage and RMS of error / (U / 2)" in out
     saved = json.loads((tmp_path / "out" / "population-0-2.json").read_text())
     assert saved["summary"]["good"]["n"] == 2 and len(saved["cases"]) == 2
     assert "sofast-station study population --captures 2" in saved["command"]
@@ -159,7 +187,8 @@ def test_study_population_command(tmp_path, capsys, small_station_toml):
 #: The fit figures and slope RMS values the pixels within an edge's blur spoiled (their linear U: all but
 #: the principal focal lengths and the axis angle, whose coverage only is claimed, :data:`NONLINEAR`).
 BLUR_FIGURES = ("curvature_x_per_m", "curvature_y_per_m", "twist_mrad_per_m", "twist_e1_mrad_per_m",
-                "twist_e2_mrad_per_m", "principal_focal_lengths_m", "axis_angle_rad", "slope_rms_mrad")
+                "twist_e2_mrad_per_m", "principal_focal_lengths_m", "axis_angle_rad", "slope_rms_mrad",
+                "slope_rms_corrected_mrad")
 BLURRED_CAPTURES, BLURRED_SEED = 16, 3
 
 
@@ -172,10 +201,11 @@ def test_blurred_and_defocused_edges_leave_the_fit_figures_and_slope_rms_covered
     U holds what the blur smooths away.
 
     Eight stations (the four kinds twice; blur or defocus drawn, 400 x 300 cameras), two captures each:
-    16 captures. Each figure's coverage within what a right 95 % claim shows on 16 with probability
-    0.999 (binomial: at least 11 of 16), and the RMS of error / (U / 2) below 1.5 for the figures whose U
-    is linear (a sample RMS of 16 normal values exceeds 1.5 with probability 0.003; the code before this
-    change gave 2.7 for the twist and 3-11 for the slope RMS values). The measured blur within 0.3 px of
+    16 captures. Each figure's coverage and RMS of error / (U / 2) within the band the claim leaves for its
+    count, both sides, over all 16, per kind and per edge model, as
+    :func:`test_stated_uncertainty_covers_the_truth_as_claimed` derives it (the code before this change gave
+    2.7 for the twist and 3-11 for the slope RMS values; the noise-corrected values left the blur's loss out
+    of their U until 2026-12-05: RMS 18-36 on defocused dishes). The measured blur within 0.3 px of
     the twin's point-spread function's standard deviation (its noise is a few hundredths; the disk's
     second moment r / 2 is what it measures)."""
     cases = run_population(BLURRED_CAPTURES, seed=BLURRED_SEED, per_station=2, edges=("blur", "defocus"),
@@ -186,11 +216,12 @@ def test_blurred_and_defocused_edges_leave_the_fit_figures_and_slope_rms_covered
     for c in cases:
         print(f"{c['kind']:<10}{c['edge']:<8} psf {c['psf_sigma_px']:.2f} px, measured {c['edge_blur_px']:.2f} px")
         assert abs(c["edge_blur_px"] - c["psf_sigma_px"]) < 0.3, c
-    lo, _ = coverage_band(BLURRED_CAPTURES)
     rows = [r for r in summary["coverage"] if r["figure"].split(".")[0] in BLUR_FIGURES]
-    assert len(rows) == 2 + 3 + 2 + 1 + 9
-    for r in rows:
-        print(f"{r['figure']:<40} {100 * r['coverage']:5.1f} % of {r['n']}, rms e/u {r['z_rms']:.2f}")
-    for r in rows:
-        assert r["n"] == BLURRED_CAPTURES and lo <= r["coverage"], r
-        assert r["figure"] in NONLINEAR or r["z_rms"] < 1.5, r
+    assert len(rows) == 2 + 3 + 2 + 1 + 9 + 9 and all(r["n"] == BLURRED_CAPTURES for r in rows)
+    blurred = {**summary, "coverage": rows,
+               "coverage_by_kind": {k: {f: r for f, r in t.items() if f.split(".")[0] in BLUR_FIGURES}
+                                    for k, t in summary["coverage_by_kind"].items()},
+               "coverage_by_edge": {e: [r for r in t if r["figure"].split(".")[0] in BLUR_FIGURES]
+                                    for e, t in summary["coverage_by_edge"].items()}}
+    bad = judge_claim(blurred, "blurred")
+    assert not bad, "\n".join(bad)

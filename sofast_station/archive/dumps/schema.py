@@ -75,6 +75,15 @@ SCHEMA_V1: tuple[tuple[str, str, str, str, str, bool], ...] = (
     ("fringes/periods_y", "dataset", "float64 (k,)", "cycles per screen height", "y fringe periods, coarse to fine",
      True),
     ("fringes/phase_steps", "dataset", "int64", "", "phase steps per period (shifts 2 pi k / steps)", True),
+    ("fringes/drawn", "group", "", "", "how the display drew the fringes (the radiometric record's table and "
+     "the display's size), from which the analysis takes the fringes' rounding to 8-bit commands off the "
+     "positions; absent when the station had no radiometric record", False),
+    ("fringes/drawn/lut", "dataset", "float64 (N,)", "command / 255",
+     "the table the fringes went through (the radiometric record's lut)", False),
+    ("fringes/drawn/floor_level", "dataset", "float64", "linear response level 0..1", "the fringes' minimum", False),
+    ("fringes/drawn/max_level", "dataset", "float64", "linear response level 0..1", "the fringes' maximum", False),
+    ("fringes/drawn/display_px", "dataset", "int64 (2,)", "px", "(width, height) of the display's active area",
+     False),
 
     ("calibration", "group", "", "", "calibration records in force at the measurement", True),
     ("calibration/radiometric", "group", "", "", "the radiometric (display -> camera) calibration record", True),

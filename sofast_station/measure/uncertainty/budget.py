@@ -12,9 +12,10 @@ import numpy as np
 
 from .capture_evidence import (FRAME_POOL_CAPTURES, capture_scales, display_response_u, frame_brightness_dn,
                                pooled_frame_brightness)
-from .corner_pose import POSE_DRAWS, POSE_GROUPS, pose_monte_carlo
+from .corner_pose import CAMERA_DRAWN, POSE_DRAWS, POSE_GROUPS, pose_monte_carlo
 from .inputs import COVERAGE_FACTOR, RMS_AXES, InputUncertainties, get_path, path_name
 from .intensity_noise import NoisePropagation, noise_propagation
+from .shape_pose import beyond_linear, pose_fields, shape_monte_carlo
 from .systematic import Sensitivities, sensitivities
 
 
@@ -150,21 +151,21 @@ def _clean(v: float):
 
 #: Budget groups of the camera intrinsics (the Monte Carlo draws them for the corner pose only).
 CAMERA_GROUPS = ("camera focal length", "camera principal point", "camera distortion")
+#: Budget groups the shape figures' Monte Carlo stands for (:func:`~.shape_pose.shape_monte_carlo`): the
+#: corners and the camera, through the corner pose and the rays.
+SHAPE_GROUPS = ("corner location", *CAMERA_GROUPS)
 
 
 def boresight_ray_path(sens: Sensitivities, contrib: np.ndarray) -> dict:
-    """The camera intrinsics' contribution (standard, mrad) to the boresight through the rays, which the
-    corner pose's Monte Carlo does not draw: ``{("boresight_mrad", a): u}``.
+    """The camera intrinsics' contribution (standard, mrad) to the boresight through the rays alone:
+    ``{("boresight_mrad", a): u}``, for reading (the budget's ``pose_monte_carlo.boresight_camera_rays``).
 
     The boresight is the rotation from the corner pose to the frame the measured surface defines. The
     Monte Carlo draws how the intrinsics move the corner pose; they also turn the measured surface's frame,
     since every pixel's ray turns with them (by 1 / f per pixel of the principal point). The optical tilt
     is that frame's tilt in the fixture, in which the corner pose's own tilt cancels, so the camera rows'
-    contributions to ``optical_tilt_mrad`` (finite differences of the whole reduction) are this path. On
-    the coverage twin (f = 3409 px) the boresight errors minus the placement rotations' follow the principal
-    point by +0.29 to +0.30 mrad per px on three seeds; the optical tilt's row is 0.293. The two paths are
-    nearly independent (the Monte Carlo's corner pose follows the principal point by 0.01-0.02 mrad per
-    px), so this adds in quadrature.
+    contributions to ``optical_tilt_mrad`` (finite differences of the whole reduction) are this path. The
+    Monte Carlo carries it draw by draw with the corner pose (:func:`boresight_ray_coefficients`).
     """
     rows = np.array([inp.group in CAMERA_GROUPS for inp in sens.inputs])
     out = {}
@@ -175,9 +176,33 @@ def boresight_ray_path(sens: Sensitivities, contrib: np.ndarray) -> dict:
     return out
 
 
+def boresight_ray_coefficients(sens: Sensitivities) -> dict:
+    """The boresight's turn through the rays per standard deviation of each camera input the corner pose's
+    Monte Carlo draws (:data:`~.corner_pose.CAMERA_DRAWN`), mrad: the camera rows' linear parts of the
+    optical tilt (:func:`boresight_ray_path`), ``{("boresight_mrad", a): (9,) array}``, for
+    :func:`~.corner_pose.pose_monte_carlo` to add draw by draw.
+
+    Until 2026-12-05 this path was added to the Monte Carlo's U in quadrature, as independent of the corner
+    pose's: on the dish it nearly is (the corner pose follows the principal point by 0.01-0.02 mrad per px,
+    the rays by 0.29), but a facet whose corners are not at one depth (the heliostat and the nearly flat
+    facet of the population) reads part of the principal point's shift as a turn, the same way the rays
+    turn, and the boresight's U was 2-3 times its errors' spread there (RMS of error / (U / 2) 0.3-0.55)."""
+    out = {}
+    for a in ("x", "y"):
+        if ("optical_tilt_mrad", a) not in sens.paths:
+            continue
+        j = sens.paths.index(("optical_tilt_mrad", a))
+        coef = np.zeros(len(CAMERA_DRAWN))
+        for i, inp in enumerate(sens.inputs):
+            if inp.name in CAMERA_DRAWN and np.isfinite(sens.linear[i, j]):
+                coef[CAMERA_DRAWN.index(inp.name)] = sens.linear[i, j]
+        out[("boresight_mrad", a)] = coef
+    return out
+
+
 def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs: InputUncertainties,
             scales: np.ndarray | None = None, corner_cov: np.ndarray | None = None,
-            pose_mc: dict | None = None) -> dict:
+            pose_mc: dict | None = None, shape_mc: dict | None = None) -> dict:
     """The figures' expanded uncertainties, the noise floor and the budget, as figure keys to add.
 
     Returns ``{"name_U": ..., "name_U_random": ..., "coverage_factor": 2, "slope_rms_noise_mrad": ...,
@@ -192,8 +217,11 @@ def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs:
     pixel, split into independent rows (C = M M^T, row contributions M^T J) so the budget still adds up.
 
     *pose_mc* (:func:`pose_monte_carlo`): for the corner-pose figures, the mean square errors it drew stand
-    for the rows of :data:`POSE_GROUPS` (the other rows are added to them in quadrature, and for the
-    boresight the camera intrinsics' path through the rays, :func:`boresight_ray_path`).
+    for the rows of :data:`POSE_GROUPS` (the other rows are added to them in quadrature; for the boresight
+    the Monte Carlo holds the camera intrinsics' path through the rays too, :func:`boresight_ray_coefficients`).
+
+    *shape_mc* (:func:`~.shape_pose.shape_monte_carlo`): for the shape figures it names, the mean square change
+    the corner pose's draws give stands for the corner rows (random); the other rows as they are.
     """
     sc = np.ones(len(sens.inputs)) if scales is None else np.asarray(scales, float)
     linear = sens.linear * sc[:, None]
@@ -230,7 +258,18 @@ def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs:
             if p in pose_mc:
                 ms_all, ms_corners = pose_mc[p]
                 u_rand[j] = np.sqrt(ms_corners + u_rand_o2[j])
-                u[j] = max(np.sqrt(ms_all + u_sys_o2[j] + u_rand_o2[j] + rays.get(p, 0.0) ** 2), u_rand[j])
+                u[j] = max(np.sqrt(ms_all + u_sys_o2[j] + u_rand_o2[j]), u_rand[j])
+    if shape_mc:
+        drawn = np.array([inp.group in SHAPE_GROUPS for inp in sens.inputs])
+        sys_o, rand_o = ~drawn & (kinds == "systematic"), ~drawn & (kinds == "random")
+        off_o = np.nansum(sens.curvature[sys_o] * (sc[sys_o] ** 2)[:, None], axis=0)
+        u_sys_o2 = np.nansum(contrib[sys_o] ** 2, axis=0) + off_o ** 2
+        u_rand_o2 = np.nansum(contrib[rand_o] ** 2, axis=0) + noise_col ** 2
+        for j, p in enumerate(sens.paths):
+            if p in shape_mc and p not in (pose_mc or {}):
+                ms_all, ms_corners = shape_mc[p]
+                u_rand[j] = np.sqrt(ms_corners + u_rand_o2[j])
+                u[j] = max(np.sqrt(ms_all + u_sys_o2[j] + u_rand_o2[j]), u_rand[j])
     k = COVERAGE_FACTOR
     values = {p: get_path(figures, p) for p in sens.paths}
     total, random = {}, {}
@@ -255,9 +294,12 @@ def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs:
             corrected[m][a] = None if r is None else float(np.sqrt(max(r * r - s * s, 0.0)))
             p = ("slope_rms_mrad", m, a)
             corrected_u[m][a] = total.get(p)
-            if total.get(p) is not None and r is not None:       # the noise's bias, uncorrected: in quadrature
-                total[p] = float(np.hypot(total[p], k * (r - corrected[m][a])))
-                total[p] = float(np.hypot(total[p], k * blur_bias_mrad(figures, m, a, noise_mrad[m])))
+            if total.get(p) is not None and r is not None:
+                # what a lens's blur smooths away lowers the measured and the noise-corrected value alike
+                blur = k * blur_bias_mrad(figures, m, a, noise_mrad[m])
+                corrected_u[m][a] = float(np.hypot(total[p], blur))
+                # the noise's bias, uncorrected in the measured value: in quadrature
+                total[p] = float(np.hypot(np.hypot(total[p], k * (r - corrected[m][a])), blur))
     out = _nest(total, figures)
     out.update({k2 + "_random": v for k2, v in _nest(random, figures).items()})
     out.update(_subsample_fit_u(figures, sens.paths, u, u_rand, noise_col))
@@ -266,6 +308,10 @@ def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs:
     out["slope_rms_corrected_mrad"] = corrected
     out["slope_rms_corrected_mrad_U"] = corrected_u
     out["uncertainty_budget"] = budget_table(sens, contrib, noise_col, u, u_rand, inputs, sc, offset)
+    if shape_mc:
+        out["uncertainty_budget"]["shape_monte_carlo"] = {
+            "figures": [path_name(p) for p in sens.paths if p in shape_mc], "groups": list(SHAPE_GROUPS),
+            "draws": POSE_DRAWS}
     if pose_mc:
         out["uncertainty_budget"]["pose_monte_carlo"] = {
             "figures": [path_name(p) for p in sens.paths if p in pose_mc], "groups": list(POSE_GROUPS),
@@ -374,8 +420,10 @@ def uncertainty_figures(reduction, *, fringes, geometry, design, measured_distan
                              measured_distance_m=measured_distance_m, settings=settings, inputs=inputs, screen=screen)
         if cache is not None and cache_key is not None:
             cache[cache_key] = sens
+    rays = boresight_ray_coefficients(sens)
+    frames: dict = {}
     pose_task = None if pool is None else pool.submit(pose_monte_carlo, reduction, geometry=geometry, design=design,
-                                                      inputs=inputs)
+                                                      inputs=inputs, ray_paths=rays, frames=frames)
     noise = noise_propagation(reduction, fringes=fringes, geometry=geometry, design=design, settings=settings,
                               screen=screen)
     pool = None
@@ -386,11 +434,16 @@ def uncertainty_figures(reduction, *, fringes, geometry, design, measured_distan
     pool_before = None if pool is None else [list(entry) for entry in pool]
     frame = pooled_frame_brightness(*frame_brightness_dn(reduction), pool)
     response = display_response_u(reduction, inputs)
-    pose_mc = (pose_monte_carlo(reduction, geometry=geometry, design=design, inputs=inputs) if pose_task is None
-               else pose_task.result())
+    pose_mc = (pose_monte_carlo(reduction, geometry=geometry, design=design, inputs=inputs, ray_paths=rays,
+                                frames=frames) if pose_task is None else pose_task.result())
+    shape_mc = {}
+    if beyond_linear(frames):
+        fields = pose_fields(reduction, fringes=fringes, geometry=geometry, design=design,
+                             measured_distance_m=measured_distance_m, settings=settings, inputs=inputs, screen=screen)
+        shape_mc = shape_monte_carlo(fields, frames)
     out = combine(reduction.figures, sens, noise, inputs,
                   capture_scales(reduction, sens, inputs, frame["sigma_dn"], response["u_rad"]),
-                  getattr(reduction.pose, "corner_cov_px2", None), pose_mc)
+                  getattr(reduction.pose, "corner_cov_px2", None), pose_mc, shape_mc)
     out["uncertainty_budget"]["frame_brightness"] = {k: (_sig(v, 4) if isinstance(v, float) else v)
                                                      for k, v in frame.items()}
     out["uncertainty_budget"]["display_response"] = {k: (_sig(v, 4) if isinstance(v, float) else v)

@@ -41,6 +41,19 @@ def _rotations(w: np.ndarray) -> np.ndarray:
     return np.eye(3) + np.sin(theta)[:, None, None] * kx + (1.0 - np.cos(theta))[:, None, None] * (kx @ kx)
 
 
+def rotation_vectors(rotation: np.ndarray) -> np.ndarray:
+    """Rotation vectors (n, 3), radians, of rotation matrices *rotation* (n, 3, 3): the inverse of
+    :func:`_rotations` for angles below pi."""
+    skew = np.stack([rotation[:, 2, 1] - rotation[:, 1, 2], rotation[:, 0, 2] - rotation[:, 2, 0],
+                     rotation[:, 1, 0] - rotation[:, 0, 1]], axis=1)
+    cos = np.clip(0.5 * (np.trace(rotation, axis1=1, axis2=2) - 1.0), -1.0, 1.0)
+    sin = 0.5 * np.linalg.norm(skew, axis=1)
+    theta = np.arctan2(sin, cos)
+    # theta / sin(theta) -> 1 for a small turn
+    scale = np.where(sin > 1e-12, theta / np.where(sin > 1e-12, sin, 1.0), 1.0)
+    return 0.5 * skew * scale[:, None]
+
+
 def _project_batch(rotation, translation, points, matrix, distortion, jacobian: bool = False):
     """Image positions (n, m, 2) of *points* (m, 3) under n poses (*rotation* (n, 3, 3), *translation*
     (n, 3)) and n cameras (*matrix* (n, 3, 3), *distortion* (n, 5): k1, k2, p1, p2, k3): the arithmetic of
@@ -184,7 +197,8 @@ def pose_draws(corners_px: np.ndarray, corner_factor: np.ndarray, geometry, inpu
     Returns
     -------
     dict of arrays over the draws
-        ``corner_noise_px`` (draws, n, 2), the camera's ``matrix`` (draws, 3, 3) and ``distortion``
+        ``camera_z`` (draws, 9): the camera's draws in standard deviations (f_x, f_y, c_x, c_y, then
+        k1, k2, p1, p2, k3), ``corner_noise_px`` (draws, n, 2), the camera's ``matrix`` (draws, 3, 3) and ``distortion``
         (draws, 5), ``fixture_rotation`` (draws, 3, 3) and ``fixture_translation`` (draws, 3) of the
         fixture-to-camera pose, ``distance_m`` (draws,): the measured distance's error, metres.
     """
@@ -200,7 +214,8 @@ def pose_draws(corners_px: np.ndarray, corner_factor: np.ndarray, geometry, inpu
     k[:, (0, 1, 0, 1), (0, 1, 2, 2)] += z_k * u_k
     # The fixture moved by a small motion (fixture_to_camera.compose(small_motion(...))), on arrays.
     d_rot = _rotation_batch(1e-3 * z_f[:, :3] * np.asarray(inputs.fixture_rotation_mrad))
-    return {"corner_noise_px": (z_c @ np.asarray(corner_factor).T).reshape(draws, *corners.shape),
+    return {"camera_z": np.column_stack([z_k, z_d]),
+            "corner_noise_px": (z_c @ np.asarray(corner_factor).T).reshape(draws, *corners.shape),
             "matrix": k, "distortion": cam.distortion[None] + z_d * np.asarray(inputs.camera_distortion)[None],
             "fixture_rotation": fix0.rotation @ d_rot,
             "fixture_translation": (fix0.rotation @ (1e-3 * z_f[:, 3:] * np.asarray(inputs.fixture_translation_mm)).T).T
@@ -208,8 +223,13 @@ def pose_draws(corners_px: np.ndarray, corner_factor: np.ndarray, geometry, inpu
             "distance_m": 1e-3 * inputs.distance_mm * z_r[:, 0]}
 
 
+#: The camera inputs of :func:`pose_draws`' ``camera_z`` columns, as the budget names them.
+CAMERA_DRAWN = ("camera fx", "camera fy", "camera cx", "camera cy", "camera k1", "camera k2", "camera p1",
+                "camera p2", "camera k3")
+
+
 def pose_monte_carlo(reduction, *, geometry, design, inputs: InputUncertainties, draws: int = POSE_DRAWS,
-                     seed: int = 12) -> dict:
+                     seed: int = 12, ray_paths: dict | None = None, frames: dict | None = None) -> dict:
     """Mean squared error of the corner-pose figures (boresight, placement) when the inputs the corner
     pose depends on are drawn from their distributions (GUM Supplement 1): the corners' noise from their
     covariance (``corner_cov_px2``), the camera's focal lengths, principal point and distortion, the
@@ -242,7 +262,19 @@ def pose_monte_carlo(reduction, *, geometry, design, inputs: InputUncertainties,
 
     The boresight is the rotation from the corner pose to the frame the measured surface defines, which
     does not depend on the corner pose: its error is the corner pose's rotation error (about the facet's
-    x and y), with the opposite sign.
+    x and y), with the opposite sign, and the turn of the surface's frame the drawn camera gives every
+    pixel's ray. *ray_paths* ``{boresight path: (9,) coefficients}`` is that turn per standard deviation of
+    each camera input (:data:`CAMERA_DRAWN`; the camera rows of the optical tilt's finite differences,
+    :func:`~.budget.boresight_ray_coefficients`), carried draw by draw with the pose the same camera gives:
+    the two are not independent. A principal point off by 1 px turns a heliostat station's corner pose by
+    0.75 mrad (its facet's corners are not all at one depth, so the shift is partly read as a turn) and its
+    rays by 1.37 mrad the same way (quarter-resolution camera, f 750 px): the boresight moves by their
+    difference, 0.6 mrad. Added in quadrature, the two made its U 2.6 times its errors' spread there.
+
+    *frames*, a dict, receives the draws as errors of the facet's frame, for the shape figures' Monte Carlo
+    (:func:`~.shape_pose.shape_monte_carlo`): ``rotation`` (n, 3, 3) and ``translation`` (n, 3, metres) of
+    every input drawn, the estimated frame being the true one moved by them (facet axes), the camera's
+    draws ``camera_z`` (n, 9), and ``corners``: the same two of the corners' noise alone.
 
     Returns
     -------
@@ -309,11 +341,24 @@ def pose_monte_carlo(reduction, *, geometry, design, inputs: InputUncertainties,
                    np.concatenate([dr["distance_m"], np.zeros(draws)]))
     err = errors(true_r, est)
     d_all, d_corners = err[:draws], err[draws:]
+    for j, p in enumerate(POSE_PATHS):
+        coef = None if ray_paths is None else ray_paths.get(p)
+        if coef is not None:
+            # the drawn camera's turn of the rays, on the analysis's side (a true input of +z u is an
+            # analysis input of -z u): the column's sign is the pose's rotation error's opposite
+            d_all[:, j] = d_all[:, j] - dr["camera_z"] @ np.asarray(coef, float)
     # A draw whose pose cannot be solved says nothing about the others.
     good = np.all(np.isfinite(d_all), axis=1) & np.all(np.isfinite(d_corners), axis=1)
     n = int(good.sum())
     if n < draws // 2:
         return {}
+    if frames is not None:
+        # the estimated frame is the true one moved by (R, t): R = R_true^T R_est, t = R_true^T (t_est - t_true)
+        rt = np.swapaxes(true_r, 1, 2)
+        rot, trans = rt @ est[0], (rt @ (est[1] - true_t)[..., None])[..., 0]
+        frames.update({"rotation": rot[:draws][good], "translation": trans[:draws][good],
+                       "camera_z": dr["camera_z"][good],
+                       "corners": {"rotation": rot[draws:][good], "translation": trans[draws:][good]}})
     sq_all = np.mean(d_all[good] ** 2, axis=0)
     sq_corners = np.mean(d_corners[good] ** 2, axis=0)
     return {p: (float(sq_all[j]), float(sq_corners[j])) for j, p in enumerate(POSE_PATHS)}

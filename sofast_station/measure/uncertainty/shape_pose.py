@@ -1,0 +1,226 @@
+"""The shape figures' part from the corner pose, by Monte Carlo over its draws: the capture's residual fields
+and figures moved by each draw's error of the corner pose, through the pipeline's own response to it.
+
+The corner pose places the frame the shape is measured in; the electronic boresight then turns that frame
+until the fitted parabola's normal at the alignment point is the design's. A nearly frontal facet's four
+corners leave the pose's rotation uncertain by several mrad and, with point-sampled edges on a
+quarter-resolution camera, by tens of mrad and its place by tens of mm; the boresight takes out the tilt,
+not the rest: the surface is reconstructed along each pixel's ray at the depth the misplaced frame gives
+it, so the slopes change across the facet, and on an off-axis facet (a gore) the frame's error changes
+which parabola fits it best. That reaches the twist, the curvatures and above all the slope RMS against
+the design, which any such change raises whatever its sign: far from linear at that scale (on a
+population gore the design's slope RMS y was 0.061 mrad high for a pose 70 mrad and 96 mm off, 0.001
+with the twin's true pose, against a U of 0.009 from the finite differences at one corner standard
+deviation).
+
+The pipeline's response to the frame is smooth: the shape stage rerun with the corner pose moved by
++-2 mrad about, or +-2 mm along, each facet axis gives per parameter the change of every point's slope
+residual (against the design and the parabola) and of the fitted figures (:func:`pose_fields`); with
+those, the residual field with the true pose taken out predicted that gore's design slope RMS y to
+0.004 mrad (0.809 against the truth's 0.805, measured 0.866). Every draw of the corners' noise
+(:func:`~.corner_pose.pose_monte_carlo`'s own draws, as frame errors) then moves the capture's fields
+and figures by the linear fields (the RMS recomputed from the moved field, exactly quadratic) and the
+figures by their linear and quadratic parts: :func:`shape_monte_carlo`. Its mean square change stands for
+the budget's corner rows of :data:`SHAPE_PATHS`.
+
+The camera's draws are carried the same way, draw by draw with the pose the same camera gives: a wrong camera
+moves the corner pose and every pixel's ray together, and the two partly cancel in the design residual (a Monte
+Carlo of the pose alone, tried before this one, stated the design's slope RMS x four times its errors' spread).
+:func:`pose_fields` also takes each camera input's field with the corner pose held (the rays alone), and
+:func:`shape_monte_carlo` moves the fields by the draw's frame error and its camera together, so the budget's
+camera rows (:data:`~.budget.SHAPE_GROUPS`) are the Monte Carlo's too.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from ...errors import StationError
+from ..pipeline import default_screen, rerun, screen_points_and_rays
+from .corner_pose import CAMERA_DRAWN, rotation_vectors
+from .inputs import RMS_AXES, get_path, small_motion
+from .systematic import decimated
+
+#: The figures whose corner rows this Monte Carlo replaces.
+SHAPE_PATHS: tuple[tuple, ...] = (
+    ("focal_length_x_m",), ("focal_length_y_m",), ("curvature_x_per_m",), ("curvature_y_per_m",),
+    ("twist_mrad_per_m",), ("twist_e1_mrad_per_m",), ("twist_e2_mrad_per_m",),
+    ("principal_focal_lengths_m", 0), ("principal_focal_lengths_m", 1),
+    *[("slope_rms_mrad", m, a) for m in ("design", "parabola") for a in RMS_AXES])
+#: Slope-RMS models whose residual fields are moved (the others' figures by their own responses).
+FIELD_MODELS = ("design", "parabola")
+#: Points of the capture the reruns use (every n-th valid pixel): the fields are smooth over the facet.
+FIELD_POINTS = 4000
+#: The corner pose's moves the fields are taken from: about each facet axis (mrad), along it (mm).
+FIELD_STEP = (2.0, 2.0)
+
+
+@dataclasses.dataclass
+class PoseFields:
+    """The pipeline's response to the corner pose and to the camera's rays at one capture (:func:`pose_fields`).
+
+    Attributes
+    ----------
+    residuals : dict
+        ``{model: (2, m) array}`` the capture's slope residuals (x, y; mrad) at the decimated points.
+    fields : dict
+        ``{model: (6 + 9, 2, m) array}`` their change per mrad of turn about, then per mm along, the facet's
+        x, y, z (the corner pose moved), then per standard deviation of each camera input of
+        :data:`~.corner_pose.CAMERA_DRAWN` with the corner pose held (the rays alone).
+    linear, curvature : dict
+        ``{path: (15,) array}`` each figure's change per unit of each of those (c) and its curvature part
+        ``(f(+h) + f(-h)) / 2 - f(0)`` per unit squared.
+    """
+
+    residuals: dict
+    fields: dict
+    linear: dict
+    curvature: dict
+
+
+def pose_fields(reduction, *, fringes, geometry, design, measured_distance_m: float, settings, inputs, screen=None,
+                max_points: int = FIELD_POINTS, step: tuple = FIELD_STEP) -> PoseFields | None:
+    """The shape stage rerun on a decimated copy of *reduction* with its corner pose moved by +-*step* about
+    and along each facet axis (the facet frame composed with the move: the pose Monte Carlo's frame errors),
+    and with each camera input of *inputs* moved by +-1 standard deviation, the corner pose held: the
+    residual fields' and figures' response (30 reruns on about *max_points* points; 0.1-0.2 s of CPU on the
+    population's 400 x 300 stations). None when a rerun fails."""
+
+    if getattr(reduction, "shape", None) is None or reduction.shape.points_m is None:
+        return None
+    settings = dataclasses.replace(settings, max_range_shift_m=float("inf"), max_corner_rms_px=float("inf"),
+                                   robust_fit=False)
+    kw = dict(fringes=fringes, design=design, measured_distance_m=measured_distance_m, settings=settings,
+              with_curl=False)
+    paths = [p for p in SHAPE_PATHS if p[0] != "slope_rms_mrad" or p[1] not in FIELD_MODELS]
+    u_cam = np.array([inputs.camera_focal_px] * 2 + [inputs.camera_principal_px] * 2 + list(inputs.camera_distortion))
+    try:
+        screen = screen if screen is not None else default_screen(geometry)
+        base = rerun(decimated(reduction, max_points), "rays", geometry=geometry, screen=screen, **kw)
+        res0 = {m: np.array(base.fits.residuals_mrad[m], np.float64) for m in FIELD_MODELS}
+        fig0 = {p: get_path(base.figures, p) for p in paths}
+        n = 6 + len(CAMERA_DRAWN)
+        fields = {m: np.zeros((n,) + res0[m].shape) for m in FIELD_MODELS}
+        linear = {p: np.zeros(n) for p in paths}
+        curvature = {p: np.zeros(n) for p in paths}
+
+        def moved(k, sign):
+            if k < 6:
+                v = np.zeros(6)
+                v[k] = sign * (step[0] if k < 3 else step[1])
+                move = small_motion(rotation_mrad=v[:3], translation_mm=v[3:])
+                pose = dataclasses.replace(base.pose, facet_to_camera=base.pose.facet_to_camera.compose(move))
+                return rerun(base, "shape", geometry=geometry, screen=screen, pose=pose, **kw)
+            # the camera moved, its rays with it, the corner pose held
+            i = k - 6
+            cam = geometry.camera
+            matrix, dist = cam.matrix.copy(), cam.distortion.copy()
+            if i < 4:
+                matrix[((0, 0), (1, 1), (0, 2), (1, 2))[i]] += sign * u_cam[i]
+            else:
+                dist[i - 4] += sign * u_cam[i]
+            g = dataclasses.replace(geometry, camera=dataclasses.replace(cam, matrix=matrix, distortion=dist))
+            rays = screen_points_and_rays(base.region, base.phases, g.camera, screen,
+                                          min_valid_px=settings.min_valid_px)
+            if not np.array_equal(rays.vidx, base.rays.vidx):
+                raise ValueError("the moved camera's rays keep other pixels")
+            return rerun(dataclasses.replace(base, rays=rays), "shape", geometry=g, screen=screen, pose=base.pose,
+                         **kw)
+
+        for k in range(n):
+            h = (step[0] if k < 3 else step[1]) if k < 6 else 1.0
+            if k >= 6 and u_cam[k - 6] <= 0:
+                continue
+            plus, minus = moved(k, 1.0), moved(k, -1.0)
+            for m in FIELD_MODELS:
+                fields[m][k] = (np.asarray(plus.fits.residuals_mrad[m]) - np.asarray(minus.fits.residuals_mrad[m])) \
+                    / (2.0 * h)
+            for p in paths:
+                fp, fm = get_path(plus.figures, p), get_path(minus.figures, p)
+                if None in (fp, fm, fig0[p]):
+                    linear[p][k] = curvature[p][k] = np.nan
+                    continue
+                linear[p][k] = (fp - fm) / (2.0 * h)
+                curvature[p][k] = (0.5 * (fp + fm) - fig0[p]) / (h * h)
+    except (StationError, ValueError, np.linalg.LinAlgError):
+        return None
+    return PoseFields(res0, fields, linear, curvature)
+
+
+def beyond_linear(frames: dict, step: tuple = FIELD_STEP) -> bool:
+    """Whether the corner pose's draws (:func:`~.corner_pose.pose_monte_carlo`'s *frames*) move the facet's
+    frame beyond the fields' own step: an RMS turn about the facet's x or y above ``step[0]`` mrad, or an
+    RMS shift along any axis above ``step[1]`` mm. Within it the pipeline's response to the frame is the
+    linear one the budget's finite differences (at one standard deviation of the corners and the camera)
+    carry already, and :func:`shape_monte_carlo` adds its cost and nothing else.
+
+    Measured (2026-12-06): on seed 0's first eight population stations (400 x 300 cameras) the draws moved
+    the dish's frame by 3-6 mrad and 3 mm RMS, and the Monte Carlo changed none of its U in the third
+    digit; the gore's by 10-23 mrad and 10-30 mm, and its design slope RMS y's U went from 0.014 to 0.048
+    mrad (error 0.061). On the shipped dish station (1600 x 1200) they move it by 0.6 / 1.1 mrad and
+    0.8 mm, the Monte Carlo's mean square change of the design's slope RMS y is 3e-12 mrad^2, and it cost
+    0.32 s of CPU per facet (0.60 against 0.92 s, ``benchmarks/analysis.py``): skipped there."""
+    rot = frames.get("rotation")
+    if rot is None or len(rot) == 0:
+        return False
+    turn = 1e3 * np.sqrt(np.mean(rotation_vectors(np.asarray(rot, np.float64))[:, :2] ** 2, axis=0))
+    shift = 1e3 * np.sqrt(np.mean(np.asarray(frames["translation"], np.float64) ** 2, axis=0))
+    return bool(np.any(turn > step[0]) or np.any(shift > step[1]))
+
+
+def _draws(frames: dict) -> np.ndarray:
+    """The draws as the fields' parameters (n, 15): the frame's turn (mrad) about and shift (mm) along the
+    facet's axes, then the analysis's camera error in standard deviations (a true input of +z is an
+    analysis input of -z)."""
+    rot = np.asarray(frames["rotation"], np.float64)
+    d = np.column_stack([1e3 * rotation_vectors(rot), 1e3 * np.asarray(frames["translation"], np.float64)])
+    z = frames.get("camera_z")
+    z = np.zeros((len(d), 9)) if z is None else -np.asarray(z, np.float64)
+    return np.column_stack([d, z])
+
+
+def shape_monte_carlo(fields: PoseFields | None, frames: dict) -> dict:
+    """Mean square change of the shape figures (:data:`SHAPE_PATHS`) over the draws of the corner pose's Monte
+    Carlo: each draw's error of the frame and its camera (through the rays, the pose held) move the
+    capture's residual fields, whose RMS is taken again, and its figures by their linear and quadratic parts.
+
+    Parameters
+    ----------
+    fields : PoseFields
+        The capture's response (:func:`pose_fields`).
+    frames : dict
+        :func:`~.corner_pose.pose_monte_carlo`'s *frames*: ``rotation`` (n, 3, 3) and ``translation`` (n, 3)
+        of each draw's frame error (radians, metres), ``camera_z`` (n, 9), and ``corners`` (the corners'
+        noise alone: its ``rotation`` and ``translation``).
+
+    Returns
+    -------
+    dict
+        ``{path: (mean square change, mean square change from the corners alone)}`` in the figures' units
+        squared; {} without fields or draws.
+    """
+    if fields is None or frames.get("rotation") is None or len(frames["rotation"]) == 0:
+        return {}
+    runs = [_draws(frames), _draws(frames["corners"])]
+    out: dict = {}
+    for m in FIELD_MODELS:
+        r0, f = fields.residuals[m], fields.fields[m]
+        n = r0.shape[1]
+        ms0 = np.mean(r0 ** 2, axis=1)                                      # (2,)
+        g = np.einsum("kam,am->ka", f, r0) / n                              # (k, 2): <r0, F_k>
+        h = np.einsum("kam,lam->kla", f, f) / n                             # (k, k, 2): <F_k, F_l>
+        for a in RMS_AXES:
+            out[("slope_rms_mrad", m, a)] = []
+        for d in runs:
+            ms = np.clip(ms0[None] + 2.0 * d @ g + np.einsum("dk,kla,dl->da", d, h, d), 0.0, None)
+            for a, v, base in (("x", ms[:, 0], ms0[0]), ("y", ms[:, 1], ms0[1]),
+                               ("magnitude", ms.sum(axis=1), ms0.sum())):
+                out[("slope_rms_mrad", m, a)].append(float(np.mean((np.sqrt(v) - np.sqrt(base)) ** 2)))
+    for p, c in fields.linear.items():
+        q = fields.curvature[p]
+        if not (np.all(np.isfinite(c)) and np.all(np.isfinite(q))):
+            continue
+        out[p] = [float(np.mean((d @ c + (d * d) @ q) ** 2)) for d in runs]
+    return {p: tuple(v) for p, v in out.items()}
