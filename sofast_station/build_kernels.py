@@ -37,6 +37,7 @@ _DTYPES = {"f8": "<f8", "f4": "<f4", "i8": "<i8", "i4": "<i4", "u1": "|u1", "u2"
 def parse_word(word: str):
     """One argument of a :data:`.measure.kernel_signatures.SIGNATURES` entry: (numba type, argument key of
     :func:`.measure.compiled.argument_key`)."""
+    # lazy: numba and its AOT compiler cost ~520 ms CPU and only a build needs them
     from numba import types
 
     numba_types = {"f8": types.float64, "f4": types.float32, "i8": types.int64, "i4": types.int32,
@@ -55,6 +56,7 @@ def parse_word(word: str):
 
 def _compile_with_own_options(dispatchers: dict):
     """numba.pycc's per-export compile step, made to use each kernel's own JIT options."""
+    # lazy: numba and its AOT compiler cost ~520 ms CPU and only a build needs them
     import numba.pycc.compiler as pycc_compiler
     from numba.core.compiler import Flags
 
@@ -77,10 +79,12 @@ def build(out_dir: Path | None = None, log=print) -> Path:
     if os.environ.get(compiled.ENV) != "jit":
         raise RuntimeError(f"build() needs numba's dispatchers: run it with {compiled.ENV}=jit "
                            "(python -m sofast_station.build_kernels sets it)")
+    # lazy: numba and its AOT compiler cost ~520 ms CPU and only a build needs them
     import numba
     import numba.pycc.compiler as pycc_compiler
     from numba.pycc import CC
 
+    # lazy: kernels.py must load after main() sets SOFAST_KERNELS=jit (build() checks it)
     from .measure import kernels
     from .measure.kernel_signatures import SIGNATURES
 

@@ -32,8 +32,13 @@ import logging
 import sqlite3
 from pathlib import Path
 
+import cv2
+import diskcache
 import numpy as np
 
+from . import __version__
+from .measure.camera import UNDISTORT_CRITERIA
+from .measure.compiled import installed_version
 from .measure.sensitivity_record import from_record, to_record
 from .measure.uncertainty import Sensitivities
 
@@ -56,11 +61,6 @@ def code_fingerprint() -> str:
     misses every value computed before it."""
     global _CODE
     if _CODE is None:
-        import cv2
-
-        from . import __version__
-        from .measure.compiled import installed_version
-
         h = hashlib.sha256()
         root = Path(__file__).resolve().parent
         for path in sorted((root / "measure").rglob("*.py")):
@@ -102,8 +102,6 @@ class DiskCache:
     """
 
     def __init__(self, directory: Path):
-        import diskcache
-
         self.directory = Path(directory)
         self._store = diskcache.Cache(str(self.directory), size_limit=SIZE_LIMIT_BYTES,
                                       eviction_policy="least-recently-stored")
@@ -124,8 +122,6 @@ class DiskCache:
 
     def get(self, kind: str, key: dict) -> bytes | None:
         """The bytes stored for *key* of *kind*, or None (absent, or stored for another key)."""
-        import diskcache
-
         name, text = self._name(kind, key)
         try:
             value = self._store.get(name)
@@ -139,8 +135,6 @@ class DiskCache:
 
     def put(self, kind: str, key: dict, payload: bytes) -> bool:
         """Store *payload* for *key* of *kind* (with the key itself); False when the cache could not take it."""
-        import diskcache
-
         name, text = self._name(kind, key)
         try:
             return bool(self._store.set(name, text + b"\0" + payload))
@@ -232,10 +226,6 @@ class SensitivityStore(dict):
 
 # -- the camera's pixel rays --------------------------------------------------------------------------------
 def _ray_key(camera) -> dict:
-    import cv2
-
-    from .measure.camera import UNDISTORT_CRITERIA
-
     return {"camera": [int(camera.width_px), int(camera.height_px),
                        np.asarray(camera.matrix, np.float64).tobytes().hex(),
                        np.asarray(camera.distortion, np.float64).tobytes().hex()],

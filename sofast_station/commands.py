@@ -23,7 +23,7 @@ import textwrap
 from pathlib import Path
 
 from . import __version__
-from .errors import StationError
+from .errors import ConfigError, StationError
 
 log = logging.getLogger("sofast_station")
 
@@ -80,8 +80,10 @@ class HelpFormatter(argparse.RawDescriptionHelpFormatter):
 
 
 def _terminal_width() -> int:
+    # lazy: shutil brings bz2, lzma and zlib (~3 ms CPU); importing the entry point needs none, a help text does
+    import shutil
+
     try:
-        import shutil
         return shutil.get_terminal_size().columns
     except (OSError, ValueError):           # pragma: no cover
         return 100
@@ -181,9 +183,9 @@ def check_station_file(args: argparse.Namespace) -> None:
     path = getattr(args, "config", None)
     if not isinstance(path, (str, Path)) or not str(path):
         return
-    import tomllib
 
-    from .errors import ConfigError
+    # lazy: tomllib costs ~10 ms (its patterns); the entry point (cli.py imports this module) needs none
+    import tomllib
 
     path = Path(path).expanduser().resolve()
     # The words of files.read_toml, which load_config reads the file with (this module imports no other).

@@ -40,8 +40,6 @@ def data_dir_of(station_table: dict, base: Path) -> Path:
     """The ``data_dir`` of a station file's ``[station]`` table: the environment variable ``SOFAST_DATA_DIR``
     when set, else the table's (``~`` expanded; relative to the file's folder *base*), else
     :data:`DEFAULT_DATA_DIR`."""
-    import os
-
     return resolve_data_dir(os.environ.get("SOFAST_DATA_DIR") or station_table.get("data_dir", DEFAULT_DATA_DIR),
                             base)
 
@@ -57,8 +55,6 @@ def station_data_dir(path: str | Path) -> Path | None:
     """The ``data_dir`` of the station file *path* from its ``[station]`` table alone (no validation, nothing
     loaded but the TOML), for a command that only keeps a cache there; None when the file cannot be read
     (the command then goes without)."""
-    import os
-
     path = Path(path).expanduser()
     if os.environ.get("SOFAST_DATA_DIR"):
         return resolve_data_dir(os.environ["SOFAST_DATA_DIR"], Path.cwd())

@@ -3,6 +3,9 @@ nothing where they do not exist)."""
 
 from __future__ import annotations
 
+import ctypes
+import gc
+
 
 def release_memory() -> None:
     """Give the memory a large piece of work freed back to the system (a full garbage collection, then
@@ -12,8 +15,6 @@ def release_memory() -> None:
     MB; freed, that memory would otherwise stay with the long-lived archiver process at its high-water
     mark.
     """
-    import gc
-
     gc.collect()
     trim_heap()
 
@@ -27,8 +28,6 @@ def trim_heap() -> None:
     from 558 to 585 MB over 30 facets without it and stayed between 454 and 485 MB over 60 with it.
     Costs about a millisecond.
     """
-    import ctypes
-
     try:
         ctypes.CDLL("libc.so.6").malloc_trim(0)
     except (OSError, AttributeError):
@@ -53,8 +52,6 @@ def map_large_blocks(threshold_bytes: int = LARGE_BLOCK_BYTES) -> bool:
     twin's renders, the per-pixel arrays), and a fresh mapping is zeroed page by page each time (the
     simulated line's cycle took 48 % longer with it in the station); the worker trims its heap instead.
     """
-    import ctypes
-
     try:
         return bool(ctypes.CDLL("libc.so.6").mallopt(-3, int(threshold_bytes)))   # -3: M_MMAP_THRESHOLD
     except (OSError, AttributeError):

@@ -15,8 +15,10 @@ from collections import OrderedDict
 
 import numpy as np
 
+from .cache import load_rays, save_rays
 from .geometry import CameraIntrinsics
 from .measure.camera import RayTable
+from .measure.kernels import warm_up as load_kernels
 
 #: Ray tables kept (one per camera calibration; 25 bytes per pixel each: 48 MB for 1.9 MP).
 MAX_CAMERAS = 2
@@ -47,7 +49,6 @@ def ray_table(camera: CameraIntrinsics) -> RayTable:
         if table is None:
             table = _TABLES[key] = RayTable(camera)
             if _DISK is not None:
-                from .cache import load_rays
                 _ON_DISK[key] = load_rays(_DISK, table)
             while len(_TABLES) > MAX_CAMERAS:
                 _ON_DISK.pop(_TABLES.popitem(last=False)[0], None)
@@ -71,7 +72,6 @@ def keep_rays() -> int:
     returns how many tables were written."""
     if _DISK is None:
         return 0
-    from .cache import save_rays
 
     written = 0
     with _LOCK:
@@ -115,8 +115,6 @@ def prepare_analysis_process() -> float:
     them, a millisecond; without one from numba's on-disk cache, about a second, or compiled, 10 to 20 s,
     the first time after an install or an update), so the first analysis costs what the others do.
     Returns the seconds it took."""
-    from .measure.kernels import warm_up as load_kernels
-
     t = time.perf_counter()
     keep_freed_memory()
     load_kernels()

@@ -47,10 +47,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..errors import ArchiveError
-from ._common import fault_point
 from ..files import fsync_dir, json_ready, safe_name, temp_path_for
 from ..gum import u_decimals
 from ..times import parse_time
+from ._common import fault_point
+from .dumps import dump_name
 from .journal import Journal, JournalRow
 
 log = logging.getLogger(__name__)
@@ -305,7 +306,6 @@ def row_dump_file(row: JournalRow) -> str | None:
     if row.dump_path:
         return Path(row.dump_path).name
     if row.dump_requested and not row.dump_error:
-        from .dumps import dump_name
         try:
             return dump_name(row.serial, row.time, row.cycle_id)
         except (TypeError, ValueError):
@@ -315,6 +315,7 @@ def row_dump_file(row: JournalRow) -> str | None:
 
 def _cell_value(value):
     if isinstance(value, str):
+        # lazy: openpyxl costs ~135 ms CPU; every user of the journal loads this module (archive/__init__.py)
         from openpyxl.cell.cell import ILLEGAL_CHARACTERS_RE
         value = ILLEGAL_CHARACTERS_RE.sub("\N{REPLACEMENT CHARACTER}", value)
         if len(value) > _MAX_CELL_CHARS:
@@ -391,6 +392,7 @@ class _PartScan:
 
 
 def _open_read_only(path: Path):
+    # lazy: openpyxl costs ~135 ms CPU; every user of the journal loads this module (archive/__init__.py)
     from openpyxl import load_workbook
 
     try:
@@ -489,6 +491,7 @@ def _file_rows(path: Path, wanted: set) -> dict:
 def _cell(ws, column: str, value, decimals: int | None = None):
     """What goes into a write-only sheet for *value* in *column* (shown to *decimals* places when given): the
     value, or a styled cell."""
+    # lazy: openpyxl costs ~135 ms CPU; every user of the journal loads this module (archive/__init__.py)
     from openpyxl.cell import WriteOnlyCell
 
     value = _cell_value(value)
@@ -559,6 +562,10 @@ class _PartWriter:
 
     def save(self) -> list:
         """Write the part (atomically, :func:`save_atomic`); returns its header."""
+        # lazy: openpyxl costs ~135 ms CPU; every user of the journal loads this module (archive/__init__.py)
+        # lazy: openpyxl costs ~135 ms CPU; every user of the journal loads this module (archive/__init__.py)
+        # lazy: openpyxl costs ~135 ms CPU; every user of the journal loads this module (archive/__init__.py)
+        # lazy: openpyxl costs ~135 ms CPU; every user of the journal loads this module (archive/__init__.py)
         from openpyxl import Workbook
         from openpyxl.cell import WriteOnlyCell
         from openpyxl.styles import Font
@@ -623,6 +630,7 @@ def _stream_beside(ws, path: Path) -> None:
     no public option for it: its sheet writer takes the file as *out* and registers it for its own
     clean-up (the test ``test_a_save_streams_its_sheets_beside_the_part`` guards this).
     """
+    # lazy: openpyxl costs ~135 ms CPU; every user of the journal loads this module (archive/__init__.py)
     from openpyxl.worksheet._writer import ALL_TEMP_FILES, WorksheetWriter
 
     out = temp_path_for(path.with_name(path.name + ".sheet"))

@@ -40,6 +40,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from ..errors import ConfigError
@@ -147,7 +148,6 @@ class BoardSpec:
 
     def charuco(self):
         """The OpenCV CharucoBoard."""
-        import cv2
         name = self.dictionary
         if not hasattr(cv2.aruco, name):
             raise ConfigError(f"unknown ArUco dictionary {name!r}; use an OpenCV name such as DICT_5X5_100")
@@ -298,7 +298,6 @@ def _refine(img: np.ndarray, corners: np.ndarray, clear_fraction: float = 0.5) -
     window reaching half of *clear_fraction* of the corner spacing (at most 11 px) from the corner, brings
     that to a few hundredths.
     """
-    import cv2
     pts = np.asarray(corners, dtype=np.float32).reshape(-1, 1, 2)
     half = _refine_half(pts, clear_fraction)
     out = cv2.cornerSubPix(img, pts.copy(), (half, half), (-1, -1),
@@ -337,6 +336,7 @@ def cells_alternate(image: np.ndarray, corners: np.ndarray, grid: tuple[int, int
         Pixels, row after row.
     grid : (cols, rows)
     """
+    # lazy: scipy.ndimage costs ~250 ms CPU; config.py loads this module's record reader at every start
     from scipy.ndimage import map_coordinates
 
     cols, rows = grid
@@ -424,8 +424,6 @@ def grid_outliers(corners: np.ndarray, grid: tuple[int, int], reach: int = 2) ->
     refined onto the board's border, or given another's place, is half a spacing or more off. NaN where
     too few neighbours.
     """
-    import cv2
-
     cols, rows = grid
     g = np.asarray(corners, dtype=np.float64).reshape(rows, cols, 2)
     jj, ii = np.mgrid[0:rows, 0:cols]
@@ -480,8 +478,6 @@ def find_chessboard(image: np.ndarray, inner: tuple[int, int],
         Refined corners (n, 2) float32, pixels, row after row of a grid (cols, rows) = ``grid``, which may be
         larger than *inner* (the caller judges that), or the board turned; None when no grid was found.
     """
-    import cv2
-
     m = smallest_part(inner)
     whole = inner[0] * inner[1]
     best = None
@@ -552,8 +548,6 @@ def detect_board(image: np.ndarray, board: BoardSpec, name: str = "", min_corner
     ImageResult
         ``accepted`` with object and image points, or a reason.
     """
-    import cv2
-
     out = ImageResult(name)
     img = np.asarray(image)
     if img.ndim == 3:
@@ -755,7 +749,6 @@ def read_image(path: str | Path) -> np.ndarray | None:
     99.9th percentile reads 255): OpenCV's plain 8-bit reading divides by 256, which leaves 12-bit data
     the values 0..15.
     """
-    import cv2
     img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH)
     if img is None or img.dtype == np.uint8:
         return img
@@ -851,8 +844,6 @@ def calibrate_camera_images(images: list[tuple[str, np.ndarray | str | Path | No
         Fewer than *min_images* usable images (the message lists why each was rejected), or parameters not
         determined (the message says which and what to do).
     """
-    import cv2
-
     results = judge_images(images, board, min_corners=min_corners, max_edge_width_px=max_edge_width_px,
                            workers=workers, progress=progress)
     size = next((r.shape for r in results if r.accepted), None)

@@ -22,8 +22,18 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..geometry import CameraIntrinsics
-from ..measure.markers import (DEFAULT_DICTIONARY, MarkerTable, PoseFit, camera_position, detect_markers,
-                               drop_worst_marker, marker_correspondences, opencsp_rvec_tvec, solve_camera_pose)
+from ..gum import value_and_u
+from ..measure.markers import (
+    DEFAULT_DICTIONARY,
+    MarkerTable,
+    PoseFit,
+    camera_position,
+    detect_markers,
+    drop_worst_marker,
+    marker_correspondences,
+    opencsp_rvec_tvec,
+    solve_camera_pose,
+)
 from .errors import CalibrationError
 from .photo_inputs import check_photo_size
 from .store import read_record, write_record
@@ -217,8 +227,6 @@ def load_camera_position(path: str | Path) -> dict:
 
 def summary_text(result: CameraPosition, path: Path | None = None) -> str:
     """The command's summary: the pose with its U, OpenCSP's form, the residuals, the verdict."""
-    from ..gum import value_and_u
-
     def vec(values, cov, scale=1.0, unit=""):
         u = 2.0 * np.sqrt(np.clip(np.diag(cov), 0.0, None))
         parts = []

@@ -33,7 +33,7 @@ This module imports nothing from the rest of the station but the plain data.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -347,5 +347,4 @@ def commission_settings(raw: dict, base: Path, where: str) -> tuple[ScreenSettin
         # relative to the station file; else the shipped certificates of the project (fixtures/targets)
         shipped = Path(__file__).resolve().parents[2] / target
         target = base / target if (base / target).exists() or not shipped.exists() else shipped
-    from dataclasses import replace
     return screen, replace(pose, target=str(target))

@@ -74,8 +74,9 @@ def geometry_in_force(data_dir: str | Path, stated: StationGeometry, where: str,
                           f"or \"station.toml\" ([screen] and [layout] as entered), got {source!r}")
     if source == "station.toml":
         return stated, None, {}
+    # lazy: pose.py, screen.py bring OpenCV's fiducials (~50 ms CPU); config.py imports this module for every command
     from .pose import load_pose_record
-    from .screen import load_screen_record
+    from .screen import load_screen_record  # lazy: as pose.py, the line above
 
     geometry, info, std = stated, {"warnings": []}, {}
     screen_path = newest_record_path(data_dir, "screen", station)

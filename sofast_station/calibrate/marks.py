@@ -30,6 +30,8 @@ from ..errors import ConfigError
 from ..files import write_json_atomic
 from ..fringes import Pattern
 from ..geometry import FixtureMarks, StationGeometry
+from ..measure.camera import project
+from ..measure.fixture_marks import locate_marks
 from .errors import CalibrationError
 from .store import newest_record_path, read_record, record_dir, write_record
 
@@ -157,8 +159,6 @@ def focal_px(geometry: StationGeometry) -> float:
 
 def predicted_px(settings: MarkSettings, geometry: StationGeometry) -> np.ndarray:
     """Where the geometry projects each mark's centre, (N, 2) pixels."""
-    from ..measure.camera import project
-
     return project(geometry.camera, geometry.fixture_to_camera, settings.design.centres_m)
 
 
@@ -185,8 +185,6 @@ def commission_marks(display, camera, settings: MarkSettings, geometry: StationG
     CalibrationError
         When a mark is not found in every frame: which, where it was sought and what to check.
     """
-    from ..measure.fixture_marks import locate_marks
-
     predicted = predicted_px(settings, geometry)
     radius = image_radius_px(settings, geometry)
     search = 1e-3 * settings.commission_search_mrad * focal_px(geometry)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from ..geometry import CameraIntrinsics
@@ -86,8 +87,6 @@ def read_marker_table(path: str | Path) -> MarkerTable:
 def read_photo(path: str | Path):
     """A photograph as a grey uint8 image (colour converted, 16-bit scaled to 8), or a CalibrationError naming
     the file."""
-    import cv2
-
     path = Path(path)
     if not path.is_file():
         raise CalibrationError(f"photograph {path} does not exist")

@@ -32,6 +32,9 @@ import numpy as np
 from ..errors import ConfigError
 from ..fringes import FringeSet, Pattern
 from ..geometry import Pose, StationGeometry
+from ..layout import mirror_seat
+from ..measure.bundle import motion_between
+from ..measure.fiducials import CharucoLayout, detect_charuco
 from .commission_settings import MirrorTarget, PoseSettings
 from .errors import CalibrationError
 from .store import write_record
@@ -99,8 +102,6 @@ def placement_hints(n: int) -> list[str]:
 
 
 def target_layout(target: MirrorTarget):
-    from ..measure.fiducials import CharucoLayout
-
     return CharucoLayout(target.squares[0], target.squares[1], target.square_m, target.marker_m, target.dictionary,
                          target.first_id)
 
@@ -108,8 +109,8 @@ def target_layout(target: MirrorTarget):
 def analyse_placement(label: str, frames: np.ndarray, distance_m: float, target: MirrorTarget, stated: StationGeometry,
                       fringes: FringeSet, settings: PoseSettings, layout=None):
     """One placement's observations: (MirrorPlacement or None, PlacementReport)."""
+    # lazy: measure/commission.py costs ~300 ms CPU (scipy.optimize); config loads this module's record reader
     from ..measure.commission import MirrorPlacement, _pnp, decode_positions, fringe_samples, target_border
-    from ..measure.fiducials import detect_charuco
 
     layout = layout if layout is not None else target_layout(target)
     report = PlacementReport(label, distance_m=float(distance_m))
@@ -176,7 +177,7 @@ def calibrate_pose(display, camera, range_finder, place: Callable[[int, int, str
     CalibrationError
         Too few usable placements (what to do is in the message).
     """
-    from ..layout import mirror_seat
+    # lazy: measure/commission.py costs ~300 ms CPU (scipy.optimize); config loads this module's record reader
     from ..measure.commission import fit_pose, transformed_covariance
 
     say = progress or log.info
@@ -288,8 +289,6 @@ def judge_pose(cal: PoseCalibration) -> dict:
 
 def _difference(stated: Pose, measured: Pose) -> dict:
     """How far a measured pose is from the stated one: the small motion of the stated frame (mrad, mm)."""
-    from ..measure.bundle import motion_between
-
     d = motion_between(stated, measured)
     return {"rotation_mrad": [float(1e3 * v) for v in d[:3]], "translation_mm": [float(1e3 * v) for v in d[3:]]}
 

@@ -62,6 +62,11 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from scipy.interpolate import PchipInterpolator
+from scipy.ndimage import uniform_filter
+from scipy.optimize import minimize
 
 from ..fringes import Pattern
 from .errors import CalibrationError
@@ -117,7 +122,6 @@ class ResponseFit:
         """Response, DN, at *command* (within the domain)."""
         v = np.asarray(command, dtype=np.float64)
         if self.method == "pchip-isotonic":
-            from scipy.interpolate import PchipInterpolator
             return PchipInterpolator(self.knots, self.values, extrapolate=True)(v)
         return np.polynomial.Chebyshev(self.coefficients, domain=list(self.domain))(v)
 
@@ -165,7 +169,6 @@ def fit_monotone_response(commands: np.ndarray, response_dn: np.ndarray, order: 
     if _increasing(fit, lo, hi):
         return fit
     log.info("the %d-order response polynomial is not increasing over commands %g..%g: constraining it", order, lo, hi)
-    from scipy.optimize import minimize
     t = (v - lo) / (hi - lo) * 2 - 1
     a = np.polynomial.chebyshev.chebvander(t, order)
     grid = np.linspace(-1, 1, 256)
@@ -355,7 +358,6 @@ def smooth_within(image: np.ndarray, mask: np.ndarray, size_px: int) -> np.ndarr
     """Box mean of *image* over a ``size_px`` square, using only pixels inside *mask* (normalised convolution)."""
     if size_px <= 1:
         return np.asarray(image, dtype=np.float64)
-    from scipy.ndimage import uniform_filter
     weight = uniform_filter(mask.astype(np.float64), size_px, mode="constant")
     total = uniform_filter(np.where(mask, image, 0.0).astype(np.float64), size_px, mode="constant")
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -775,9 +777,6 @@ def save_radiometric(data_dir: str | Path, result: RadiometricResult, source: st
 
 def plot_radiometric(record: RadiometricRecord, out: str | Path) -> Path:
     """PNG of the measured and fitted response, the fit residuals and the lookup table."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
     c = record.curve or {}
     if "commands" not in c:
         raise ValueError(f"record {record.record_id} holds no measured response to plot")

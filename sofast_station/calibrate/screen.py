@@ -30,6 +30,8 @@ import numpy as np
 from ..errors import ConfigError
 from ..fringes import DisplayImage, FringeSet, Pattern
 from ..geometry import CameraIntrinsics, ScreenSpec
+from ..measure.fiducials import CharucoLayout, detect_charuco, screen_fiducials
+from ..measure.screen_shape import ScreenShape, shape_modes
 from .commission_settings import ScreenSettings
 from .errors import CalibrationError
 from .store import write_record
@@ -122,16 +124,12 @@ def view_hints(n: int) -> list[str]:
 
 def screen_fiducials_for(stated: ScreenSpec, settings: ScreenSettings):
     """The fiducials shown on the screen."""
-    from ..measure.fiducials import screen_fiducials
-
     return screen_fiducials(stated.width_px, stated.height_px, settings.fiducial_squares,
                             dictionary=settings.fiducial_dictionary)
 
 
 def board_layout(settings: ScreenSettings):
     """The scale board's ChArUco layout (metres)."""
-    from ..measure.fiducials import CharucoLayout
-
     b = settings.board
     return CharucoLayout(b.squares[0], b.squares[1], b.square_m, b.marker_m, b.dictionary, b.first_id)
 
@@ -143,8 +141,8 @@ def analyse_view(label: str, frames: np.ndarray, stated: ScreenSpec, fringes: Fr
     *frames*: the fiducial frame, then the fringe sequence (dark, white, fringes). A view is left out, with
     the reason, when too few fiducial corners are found or its fringes decode nowhere.
     """
+    # lazy: measure/commission.py costs ~300 ms CPU (scipy.optimize); config loads this module's record reader
     from ..measure.commission import ScreenView, decode_positions, fringe_samples
-    from ..measure.fiducials import detect_charuco
 
     fiducials = fiducials if fiducials is not None else screen_fiducials_for(stated, settings)
     board = board if board is not None else board_layout(settings)
@@ -215,6 +213,7 @@ def calibrate_screen(display, camera, place: Callable[[int, int, str], None], se
     CalibrationError
         Too few usable views, or no view sees the scale board (what to do is in the message).
     """
+    # lazy: measure/commission.py costs ~300 ms CPU (scipy.optimize); config loads this module's record reader
     from ..measure.commission import fit_screen
 
     say = progress or log.info
@@ -292,8 +291,6 @@ def _spread_deg(poses) -> float:
 def judge_screen(cal: ScreenCalibration, views) -> dict:
     """The screen calibration's verdict: ``pass``, ``warn`` or ``refused`` (module docstring; thresholds are
     this module's constants)."""
-    from ..measure.screen_shape import shape_modes
-
     best = cal.fit.best
     sol = best.solution
     stated = cal.stated
@@ -344,8 +341,6 @@ def judge_screen(cal: ScreenCalibration, views) -> dict:
 
 def screen_record_content(cal: ScreenCalibration, nodes: tuple[int, int] = (65, 37), max_modes: int = 4) -> dict:
     """What the screen record holds (besides its id, date and source)."""
-    from ..measure.screen_shape import shape_modes
-
     best = cal.fit.best
     sol = best.solution
     stated = cal.stated
@@ -430,7 +425,6 @@ def load_screen_record(path: str | Path) -> dict:
         pts = np.asarray(grid["nodes_screen_m"], dtype=np.float64)
         modes = np.asarray(grid.get("modes_m", []), dtype=np.float64).reshape(-1, uv.shape[0], 3)
         ScreenSpec.from_dict(d["stated_screen"])
-        from ..measure.screen_shape import ScreenShape
         ScreenShape.from_dict(d["shape"])
         float(d["pitch_m"]["x"]["std"])
         float(d["pitch_m"]["y"]["std"])

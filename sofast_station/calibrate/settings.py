@@ -50,6 +50,7 @@ import math
 from dataclasses import dataclass
 
 from ..errors import ConfigError
+from .commission_settings import PoseSettings, ScreenSettings
 
 #: Keys the ``[calibration]`` table may hold.
 CALIBRATION_KEYS = {"radiometric", "stale", "max_age_h", "max_dark_shift_dn", "warmup", "warmup_min", "routine",
@@ -260,7 +261,6 @@ def parse_calibration_table(table: dict, where: str) -> tuple[CalibrationPolicy,
     if geometry not in ("records", "station.toml"):
         raise ConfigError(f"{where} geometry must be \"records\" (measure with the newest screen and pose records) "
                           f"or \"station.toml\" ([screen] and [layout] as entered), got {geometry!r}")
-    from .commission_settings import PoseSettings, ScreenSettings       # (plain data too)
     base = where.rsplit(" ", 1)[0]
     ScreenSettings.from_table(table.get("screen", {}), f"{base} [calibration.screen]")
     PoseSettings.from_table(table.get("pose", {}), f"{base} [calibration.pose]")

@@ -34,6 +34,7 @@ from typing import Callable
 
 import numpy as np
 
+from ..devices.renderer import identity_lut
 from ..errors import ConfigError
 from ..files import write_json_atomic
 from ..fringes import Pattern
@@ -254,7 +255,6 @@ class CalibrationStatus:
 
 
 def _no_calibration(config) -> CalibrationStatus:
-    from ..devices.renderer import identity_lut
     record = RadiometricRecord("none", "", "no calibration: linear display assumed", identity_lut(), 0.0, 1.0,
                                1 / 60, 1.0)
     return CalibrationStatus(record, "none", None, exempt=config.backend == "simulated")

@@ -30,6 +30,7 @@ import os
 import threading
 import time
 
+import moderngl
 import numpy as np
 
 from ..errors import DisplayError
@@ -70,6 +71,7 @@ _egl_unbinds = 0                             # how often an EGL context had to b
 
 def _import_glfw():
     try:
+        # optional: glfw is the hardware extra (the LCD's window)
         import glfw
     except ImportError as exc:
         raise DisplayError(f"the LCD display cannot load glfw ({exc}): {_SETUP_HINT}") from exc
@@ -308,7 +310,6 @@ class LcdDisplay:
         self._wait_for_placement(glfw, window)
 
         try:
-            import moderngl
             self.ctx = ctx = moderngl.create_context(require=330)
         except Exception as exc:
             raise DisplayError(

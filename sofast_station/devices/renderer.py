@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import logging
 
+import moderngl
 import numpy as np
 
 from ..errors import DisplayError
@@ -71,10 +72,6 @@ def identity_lut(n: int = 1024) -> np.ndarray:
 
 def create_offscreen_context():
     """A headless OpenGL 3.3 context through EGL (Mesa llvmpipe when there is no GPU)."""
-    try:
-        import moderngl
-    except ImportError as exc:  # pragma: no cover - dependency is declared in pyproject
-        raise DisplayError(f"moderngl is not installed ({exc}); run the README's setup command") from exc
     try:
         return moderngl.create_standalone_context(backend="egl", require=330)
     except Exception as exc:

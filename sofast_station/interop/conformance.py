@@ -21,14 +21,26 @@ docs/opencsp.md tabulates what it gives on every dataset of OpenCSP's test data.
 
 from __future__ import annotations
 
+import tempfile
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
+import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ..errors import ConfigError
-from .opencsp import _SensitivitiesOnly, read_opencsp
+from ..measure.analysis import finish_analysis
+from ..measure.fit import fit_parabola
+from ..measure.fixed import DotPattern, fixed_settings_for, reduce_fixed
+from ..measure.pipeline import reduce_stages
+from ..measure.slope_noise import slope_covariance, slope_jacobian
+from ..precompute import ray_table
+from .identify import describe
+from .opencsp import _SensitivitiesOnly, read_opencsp, upsample_test_data
+from .opencsp_fixed import read_opencsp_fixed
 from .opencsp_results import OpenCspResult, read_opencsp_result, result_inputs
+from .paths import opencsp_fixed_paths, opencsp_test_data_paths
 
 #: The datasets of OpenCSP's test data that :func:`conform` redoes: name -> (result file, what it is),
 #: relative to the test-data folder (``opencsp/test/data``'s layout; ``fixtures/opencsp/test_data``).
@@ -142,12 +154,6 @@ def conform_file(result: Path, measurement: Path, focal_length_m: float = 100.0,
     ConfigError
         When *result* is not a fringe processing of one facet or mirror (a fixed-pattern one, say), naming
         what it is."""
-    from ..measure.analysis import finish_analysis
-    from ..measure.pipeline import reduce_stages
-    from ..measure.slope_noise import slope_covariance
-    from ..precompute import ray_table
-    from .identify import describe
-
     ref = read_opencsp_result(Path(result))
     if ref.mask is None:
         raise ConfigError(f"{result} is {describe(Path(result))}: slopes at a fixed pattern's dots, which the fringe "
@@ -228,8 +234,6 @@ def register_points(theirs_xy: np.ndarray, ours_xy: np.ndarray, start_m: float =
     (each program places its facet frame by its own corners: millimetres apart), least squares on the pairs
     (Kabsch). Returns the pairs' indices into ours and into theirs, the residual distances (metres), the
     rotation (mrad) and the shift (metres)."""
-    from scipy.spatial import cKDTree
-
     tree = cKDTree(ours_xy)
     rot, shift = np.eye(2), np.zeros(2)
     for k in range(rounds):
@@ -264,13 +268,6 @@ def conform_fixed(paths: dict, result: Path, focal_length_m: float = 100.0, cach
     aligned frame, less the two frames' mean difference (each is turned onto its own fit's normal at the
     alignment point, over different dots), against our per-dot U from the image's noise through the centroids.
     """
-    from ..measure.analysis import finish_analysis
-    from ..measure.fit import fit_parabola
-    from ..measure.fixed import DotPattern, fixed_settings_for, reduce_fixed
-    from ..measure.slope_noise import slope_covariance
-    from .identify import describe
-    from .opencsp_fixed import read_opencsp_fixed
-
     ref = read_opencsp_result(Path(result))
     if ref.layout != "fixed":
         raise ConfigError(f"{result} is {describe(Path(result))}: not a fixed-pattern processing (give the fringe "
@@ -346,8 +343,6 @@ OPENCSP_BLOBS = {"minDistBetweenBlobs": 2.0, "filterByArea": True, "minArea": 3.
 def opencsp_dot_centres(image: np.ndarray) -> np.ndarray:
     """The dots' centres (N, 2) as OpenCSP finds them: OpenCV's blob detector with OpenCSP's parameters
     (:data:`OPENCSP_BLOBS`; each centre the mean of its blob's contour centres over the thresholds)."""
-    import cv2
-
     params = cv2.SimpleBlobDetector_Params()
     for k, v in OPENCSP_BLOBS.items():
         setattr(params, k, v)
@@ -360,10 +355,6 @@ def _centre_differences(reduction, m, ours_idx: np.ndarray, diff_mrad: np.ndarra
     ours, each offset d (pixels) making its ray see the grid J d away from the dot it is given (J:
     ``DotPhases.index_per_px``), which puts its slope -G J d off (G: the slope's derivative with respect to the
     grid position, :func:`~sofast_station.measure.slope_noise.slope_jacobian`): ours less its, G J d."""
-    from scipy.spatial import cKDTree
-
-    from ..measure.slope_noise import slope_jacobian
-
     theirs = opencsp_dot_centres(m.image)
     take = np.flatnonzero(reduction.rays.ok)[ours_idx]            # the dots in the region's (phases') order
     ours_px = reduction.region.points_px[take]
@@ -404,8 +395,6 @@ def split_facet_check(root: Path, focal_length_m: float = 100.0, cache: dict | N
     part (noise, corners, frame brightness), combined as if independent (U of the difference, k = 2).
     Differences are slopes (mrad) along the half's x and y; every normal is compared in the camera frame.
     """
-    from .paths import opencsp_test_data_paths
-
     root = Path(root)
     whole_m = read_opencsp(**opencsp_test_data_paths(root), focal_length_m=focal_length_m)
     whole = whole_m.analyse(uncertainty=whole_m.uncertainty, sensitivity_cache=_SensitivitiesOnly(cache))
@@ -451,8 +440,6 @@ def ensemble_check(root: Path, focal_length_m: float = 100.0, cache: dict | None
     checked against the same capture analysed whole, as one mirror of unknown outline: the mean of the
     whole's measured slopes over the facet's pixels (as :func:`split_facet_check`; U of the difference from
     the two analyses' random parts, k = 2). Returns each facet's canting with U and the check."""
-    from .paths import opencsp_test_data_paths
-
     root = Path(root)
     paths = opencsp_test_data_paths(root, multi_facet=True)
     heli_m = read_opencsp(**paths, focal_length_m=focal_length_m)
@@ -506,11 +493,6 @@ RELEASE_FIGURES = {"focal_length_x_m": ("focal_length_x_m",), "focal_length_y_m"
 def release_figures(root: Path, cases=RELEASE_CASES, work: Path | None = None, with_u: bool = False) -> dict:
     """``{case: {figure: value (or [value, U] with *with_u*), "n_points": n}}`` of :data:`RELEASE_CASES` on the
     test data in *root*; the 8x cases upsample the capture into *work* (a temporary folder)."""
-    import tempfile
-
-    from .opencsp import upsample_test_data
-    from .paths import opencsp_test_data_paths
-
     root = Path(root)
     out: dict = {}
     tmp = None
@@ -518,9 +500,6 @@ def release_figures(root: Path, cases=RELEASE_CASES, work: Path | None = None, w
         display, fit, scale = case.split("/")
         scale = int(scale[1:])
         if display == "fixed":
-            from .opencsp_fixed import read_opencsp_fixed
-            from .paths import opencsp_fixed_paths
-
             fm = read_opencsp_fixed(**opencsp_fixed_paths(root))
             out[case] = _release_entry(fm.analyse(uncertainty=fm.uncertainty if with_u else None,
                                                   sensitivity_cache={} if with_u else None).figures, with_u)

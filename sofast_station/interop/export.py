@@ -24,12 +24,16 @@ Formats (each file names the facet's serial in its header and in its file name):
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
+import h5py
 import numpy as np
 
 from ..errors import ConfigError
+from ..files import temp_path_for
+from ..measure.heights import grid_slopes, integrate_slopes
 
 FORMATS = ("csv", "ply", "opencsp", "soltrace")
 SUFFIX = {"csv": ".csv", "ply": ".ply", "opencsp": ".h5", "soltrace": ".fed"}
@@ -73,8 +77,6 @@ class SurfacePoints:
 
 def surface_points(analysis, record: dict, design, cells_across: int = 160) -> SurfacePoints:
     """The export's arrays from an analysis (a reprocessed dump), its record and its facet design."""
-    from ..measure.heights import grid_slopes, integrate_slopes
-
     x, y, z = (np.asarray(c, np.float64) for c in analysis.points_facet_m)
     s = np.asarray(analysis.slopes, np.float64)
     n = np.stack([-s[0], -s[1], np.ones_like(s[0])])
@@ -130,8 +132,6 @@ def write_ply(p: SurfacePoints, path: Path) -> None:
 
 
 def write_opencsp(p: SurfacePoints, path: Path) -> None:
-    import h5py
-
     c = p.coefficients
     g = "DataSofastCalculation/facet/facet_000/"
     with h5py.File(path, "w") as h:
@@ -160,10 +160,6 @@ WRITERS = {"csv": write_csv, "ply": write_ply, "opencsp": write_opencsp, "soltra
 
 def export_surface(points: SurfacePoints, fmt: str, path: Path) -> Path:
     """Write *points* as *fmt* (:data:`FORMATS`) to *path*, atomically (a temporary file renamed)."""
-    import os
-
-    from ..files import temp_path_for
-
     if fmt not in WRITERS:
         raise ConfigError(f"unknown export format {fmt!r}: use one of {', '.join(FORMATS)}")
     path = Path(path)

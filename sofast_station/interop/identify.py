@@ -12,6 +12,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import h5py
+
 #: The layouts of OpenCSP's processed results (:func:`~.opencsp_results.read_opencsp_result` reads them): key
 #: -> (the group that tells it, what it is).
 LAYOUTS = {
@@ -59,8 +61,6 @@ HDF5_KINDS = (
 
 
 def _hdf5_kind(path: Path) -> str | None:
-    import h5py
-
     try:
         with h5py.File(path, "r") as h:
             keys = set(h.keys())

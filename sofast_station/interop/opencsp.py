@@ -32,21 +32,30 @@ from __future__ import annotations
 
 import json
 import logging
+import shutil
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+import cv2
 import h5py
 import numpy as np
 
-from ..errors import ConfigError
+from ..cache import load_screen_split, save_screen_split
+from ..ensemble import ensemble_from_opencsp, ensemble_to_opencsp
+from ..ensemble import facet_from_opencsp as read_facet
+from ..errors import ConfigError, GeometryError
 from ..facet import FacetDesign
 from ..fringes import FringeSet
 from ..geometry import CameraIntrinsics, Pose, ScreenSpec, StationGeometry
 from ..measure.analysis import analyse
+from ..measure.checks import stale_frames
+from ..measure.heliostat import HeliostatSettings, analyse_heliostat
 from ..measure.pipeline import Analysis, AnalysisSettings
+from ..measure.pose import mask_centroid_px, pose_facing
 from ..measure.screen import InterpolatedScreen
 from ..measure.uncertainty import InputUncertainties, Sensitivities
 from ..precompute import ray_table
+from .identify import describe
 from .opencsp_results import OpenCspResult, read_opencsp_result  # noqa: F401  (their public place until now)
 from .paths import opencsp_test_data_paths
 
@@ -58,8 +67,6 @@ COUNT_SCALE = 256
 
 def _read(path: Path, key: str):
     """Dataset *key* of the HDF5 file *path*; a ConfigError names what the file holds when it has no *key*."""
-    from .identify import describe
-
     try:
         with h5py.File(path, "r") as h:
             if key not in h:
@@ -73,8 +80,6 @@ def _read(path: Path, key: str):
 def _rotvec_to_matrix(rotvec: np.ndarray) -> np.ndarray:
     """A rotation vector (radians about its axis) as a 3 x 3 matrix: OpenCV's Rodrigues formula, already
     loaded for the corners (scipy.spatial.transform, which OpenCSP uses, costs 0.2-0.4 s of imports)."""
-    import cv2
-
     return cv2.Rodrigues(np.asarray(rotvec, np.float64).reshape(3, 1))[0]
 
 
@@ -184,8 +189,6 @@ def read_frames(path: Path, counts: np.ndarray, n_y_sets: int, n_x_sets: int, sh
         with h5py.File(path, "r") as h:
             for key in ("fringe_images", "mask_images"):
                 if g + key not in h:
-                    from .identify import describe
-
                     raise ConfigError(f"{path} has no {g + key!r}: it is {describe(path)}")
             fringe, masks = h[g + "fringe_images"], h[g + "mask_images"]
             if fringe.shape[:2] != tuple(shape) or masks.shape[:2] != tuple(shape):
@@ -216,8 +219,6 @@ def mask_threshold(dark: np.ndarray, light: np.ndarray) -> float:
     screen) the background responds too; Otsu's threshold on the difference image separates the facet's
     bright mode from the room's, as OpenCSP's histogram threshold does.
     """
-    import cv2
-
     diff = np.clip((light.astype(np.int64) - dark) / COUNT_SCALE, 0, 255).astype(np.uint8)
     level, _ = cv2.threshold(diff, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
     return float(level) * COUNT_SCALE
@@ -226,7 +227,6 @@ def mask_threshold(dark: np.ndarray, light: np.ndarray) -> float:
 def facet_from_opencsp(path: Path, focal_length_m: float, name: str = "opencsp-facet") -> FacetDesign:
     """OpenCSP facet JSON (corners and centroid) as our FacetDesign (outline counter-clockwise): the plain-data
     reader (:func:`sofast_station.ensemble.facet_from_opencsp`), a heliostat facet above f = 20 m."""
-    from ..ensemble import facet_from_opencsp as read_facet
     return read_facet(path, focal_length_m, name=name, kind="heliostat" if focal_length_m > 20 else "dish")
 
 
@@ -236,9 +236,6 @@ def nominal_pose(camera: CameraIntrinsics, mask: np.ndarray, screen_centre_cam: 
     fixture): facing camera and screen at the mask's centroid, at the measured distance from the screen
     centre (:func:`~sofast_station.measure.pose.pose_facing`, as OpenCSP places a facet before its corners
     refine it)."""
-    from ..errors import GeometryError
-    from ..measure.pose import mask_centroid_px, pose_facing
-
     try:
         return pose_facing(camera, mask_centroid_px(mask)[0], screen_centre_cam, distance_m)
     except GeometryError as exc:
@@ -324,8 +321,6 @@ class OpenCspMeasurement:
     def analyse_heliostat(self, uncertainty: InputUncertainties | None = None, sensitivity_cache: dict | None = None):
         """Our analysis of a multi-facet measurement (:func:`~sofast_station.measure.heliostat.analyse_heliostat`):
         every facet's figures and canting error."""
-        from ..measure.heliostat import HeliostatSettings, analyse_heliostat
-
         if self.ensemble is None:
             raise ConfigError(f"measurement {self.name} is a single facet's: it has no ensemble definition")
         # OpenCSP has no fixture: the nominal pose is the mask's centre, so each facet's window is wider. Its
@@ -414,13 +409,10 @@ def read_opencsp(measurement: Path, camera: Path, display: Path, orientation: Pa
     if facet is not None:
         facet_from_opencsp(facet, focal_length_m)
     if ensemble is not None:
-        from ..ensemble import ensemble_from_opencsp
-
         ensemble_from_opencsp(ensemble, facet, focal_length_m)
     # C order (frame by frame): gathering the facet's pixels from OpenCSP's pixel-major layout is ten times
     # slower.
     frames = read_frames(measurement, counts, len(periods_y), len(periods_x), cam.shape, camera)
-    from ..cache import load_screen_split, save_screen_split
 
     split = load_screen_split(cache, uv)
     screen = InterpolatedScreen(1.0, 1.0, uv, pts, to_cam, v_from_top=True, split=split)
@@ -490,8 +482,6 @@ def drop_stale_sets(frames: np.ndarray, fringes: FringeSet, mask: np.ndarray) ->
     whose phases then disagree is dropped and counted, as ever). The first and last sets of an axis are kept:
     the analysis refuses the capture if one of them fails. Returns the frames, the fringes and a sentence
     per dropped set."""
-    from ..measure.checks import stale_frames
-
     bad = stale_frames(frames, fringes, mask)
     if not bad:
         return frames, fringes, []
@@ -551,8 +541,6 @@ def ensemble_with_measure_point(path: Path, facet: Path, focal_length_m: float, 
     to *measure_point* (ensemble coordinates, as OpenCSP takes it): on a facet, that facet's design surface
     there; in a gap between facets (a heliostat's centre often is), the point itself
     (:meth:`~sofast_station.ensemble.EnsembleDesign.with_measure_point`)."""
-    from ..ensemble import ensemble_from_opencsp
-
     ens = ensemble_from_opencsp(path, facet, focal_length_m, name=Path(path).stem)
     p = np.asarray(measure_point, np.float64).ravel()
     try:
@@ -574,10 +562,8 @@ def export_opencsp(folder: Path, frames: np.ndarray, fringes: FringeSet, geometr
     ours turned half a turn about x), an identity image calibration, the facet definition (corners clockwise
     seen from the mirror) and, with *ensemble*, its ensemble definition. Returns the paths, keyed as
     :func:`read_opencsp`'s arguments."""
-    import h5py
+    # lazy: scipy.spatial.transform costs ~300 ms CPU; only writing OpenCSP's files needs it, no reader does
     from scipy.spatial.transform import Rotation
-
-    from ..ensemble import ensemble_to_opencsp
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
@@ -638,10 +624,6 @@ def upsample_test_data(src: Path, dst: Path, scale: int) -> dict[str, Path]:
     position (x + 1/2)/scale - 1/2), so the camera matrix scales as f' = scale f, c' = scale c +
     (scale - 1)/2; the distortion coefficients (normalised coordinates) are unchanged.
     """
-    import shutil
-
-    import cv2
-
     src_paths, dst_paths = opencsp_test_data_paths(Path(src)), opencsp_test_data_paths(Path(dst))
     for key, path in src_paths.items():
         dst_paths[key].parent.mkdir(parents=True, exist_ok=True)

@@ -22,18 +22,26 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import h5py
 import numpy as np
 
 from ..errors import ConfigError
 from ..geometry import CameraIntrinsics
 from ..measure.dots import DotLocations
+from ..measure.screen_data import (
+    affine_residuals,
+    holdout_interpolation,
+    local_quadratic,
+    node_reproduction,
+    screen_model,
+    shape_at,
+)
+from .opencsp import camera_from_opencsp
 
 DOTS_GROUP = "DotLocationsFixedPattern"
 
 
 def _h5(path: Path, keys: list[str], what: str) -> dict:
-    import h5py
-
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"{path} does not exist (expected OpenCSP's {what})")
@@ -69,7 +77,6 @@ def opencsp_camera(path: str | Path) -> tuple[CameraIntrinsics, str | None]:
     if shape.size != 2 or dist.size not in (4, 5):
         raise ConfigError(f"{path}: need image_shape_xy (2 numbers) and 4 or 5 distortion coefficients, got "
                           f"{shape.tolist()} and {dist.size}")
-    from .opencsp import camera_from_opencsp
 
     camera = camera_from_opencsp(path)
     note = None
@@ -96,8 +103,6 @@ def read_dot_locations(path: str | Path) -> DotLocations:
 
 def write_dot_locations(path: str | Path, dots: DotLocations) -> Path:
     """Write *dots* as OpenCSP's ``DotLocationsFixedPattern`` HDF5 file (atomically: a temporary file renamed)."""
-    import h5py
-
     path = Path(path)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
@@ -179,8 +184,6 @@ def check_screen_data(fractions: np.ndarray, xyz_m: np.ndarray, table, pairs: np
       the active area, assuming the model spans the main window's width and the active area's rows (as
       OpenCSP's test data's models do): direct and after the best affine map.
     """
-    from ..measure.screen_data import affine_residuals, holdout_interpolation, local_quadratic, node_reproduction
-
     out = {"nodes": int(len(fractions)), "reproduction": node_reproduction(fractions, xyz_m),
            "holdout": holdout_interpolation(fractions, xyz_m)}
     fid = fiducial_fractions(projection["active_area_size_x"], projection["active_area_size_y"])
@@ -201,7 +204,6 @@ def check_screen_data(fractions: np.ndarray, xyz_m: np.ndarray, table, pairs: np
         d_fr, d_xyz = display
         x0, width = projection["active_area_position_x"], projection["main_window_size_x"]
         mapped = np.column_stack([(x0 + fractions[:, 0] * projection["active_area_size_x"]) / width, fractions[:, 1]])
-        from ..measure.screen_data import screen_model, shape_at
 
         model = shape_at(screen_model(d_fr, d_xyz), mapped)
         out["display"] = affine_residuals(model[:, :2], xyz_m[:, :2])

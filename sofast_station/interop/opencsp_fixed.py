@@ -13,12 +13,24 @@ import numpy as np
 from ..errors import ConfigError
 from ..facet import FacetDesign
 from ..geometry import ScreenSpec, StationGeometry
+from ..measure.dots import otsu_level, pattern_background
+from ..measure.fixed import FixedSettings, analyse_fixed, dot_screen, reduce_fixed
 from ..measure.pipeline import Analysis, AnalysisSettings
 from ..measure.screen import InterpolatedScreen
 from ..measure.uncertainty import InputUncertainties
-from .opencsp import (_camera_values, _read, _SensitivitiesOnly, _uncertainty_assumptions, camera_from_opencsp,
-                      facet_from_opencsp, nominal_pose, opencsp_input_uncertainties, screen_to_camera,
-                      undefined_mirror_design)
+from .opencsp import (
+    _camera_values,
+    _read,
+    _SensitivitiesOnly,
+    _uncertainty_assumptions,
+    camera_from_opencsp,
+    facet_from_opencsp,
+    nominal_pose,
+    opencsp_input_uncertainties,
+    screen_to_camera,
+    undefined_mirror_design,
+)
+from .opencsp_calibration import read_dot_locations
 
 log = logging.getLogger(__name__)
 
@@ -50,8 +62,6 @@ class OpenCspFixedMeasurement:
     def reduce(self, fixed=None):
         """The stages of the reduction (:func:`~sofast_station.measure.fixed.reduce_fixed`) without the
         uncertainty; *fixed* overrides the import's :class:`~sofast_station.measure.fixed.FixedSettings`."""
-        from ..measure.fixed import reduce_fixed
-
         return reduce_fixed(self.image, self.dots, self.geometry, self.design, self.distance_m, self.settings,
                             fixed or self.fixed, origin_px=self.origin_px, screen=self.screen)
 
@@ -60,8 +70,6 @@ class OpenCspFixedMeasurement:
         """Our analysis of the measurement (:func:`~sofast_station.measure.fixed.analyse_fixed`), with every
         figure's U (k = 2) when *uncertainty* is given (e.g. :attr:`uncertainty`); only the sensitivities go to and
         from *sensitivity_cache* (as :meth:`OpenCspMeasurement.analyse`)."""
-        from ..measure.fixed import analyse_fixed
-
         local = None if uncertainty is None else _SensitivitiesOnly(sensitivity_cache)
         return analyse_fixed(self.image, self.dots, self.geometry, self.design, self.distance_m, self.settings,
                              fixed or self.fixed, origin_px=self.origin_px, screen=self.screen,
@@ -98,10 +106,6 @@ def read_opencsp_fixed(measurement: Path, dots: Path, camera: Path, orientation:
     at the lit region's centroid at the measured distance (OpenCSP has no fixture), and predicts the same
     index directions (:func:`~sofast_station.measure.fixed.predicted_index_axes`); the import takes OpenCSP's.
     """
-    from ..measure.dots import otsu_level, pattern_background
-    from ..measure.fixed import FixedSettings, dot_screen
-    from .opencsp_calibration import read_dot_locations
-
     measurement, dots_path, camera, orientation = (Path(p) for p in (measurement, dots, camera, orientation))
     cam = camera_from_opencsp(camera)
     to_cam = screen_to_camera(orientation)

@@ -30,10 +30,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
+import h5py
 import numpy as np
 
 from ..errors import ConfigError
 from .identify import LAYOUTS, describe, result_layout  # noqa: F401  (LAYOUTS: their public place here too)
+
 
 @dataclass(frozen=True)
 class OpenCspResult:
@@ -155,8 +158,6 @@ def _optional(h, key: str):
 
 
 def _rotation(rotvec) -> np.ndarray:
-    import cv2
-
     return cv2.Rodrigues(np.asarray(rotvec, np.float64).reshape(3, 1))[0]
 
 
@@ -169,8 +170,6 @@ def read_opencsp_result(path: Path) -> OpenCspResult:
         When the file cannot be read, or holds none of the layouts (one line naming the file and what it
         holds instead: :func:`~sofast_station.interop.identify.identify`).
     """
-    import h5py
-
     path = Path(path)
     try:
         h = h5py.File(path, "r")

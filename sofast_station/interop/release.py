@@ -13,8 +13,12 @@ from __future__ import annotations
 import argparse
 import json
 import re
+import subprocess
 import sys
 from pathlib import Path
+
+from .. import __version__
+from .conformance import release_figures
 
 ROOT = Path(__file__).resolve().parents[2]
 RELEASE_FILE = ROOT / "fixtures/opencsp/release_figures.json"
@@ -91,13 +95,10 @@ def main(argv=None) -> int:
     p.add_argument("--write", action="store_true", help="keep the current figures as this release's (at a release)")
     p.add_argument("--test-data", default=str(ROOT / "fixtures/opencsp/test_data"), metavar="DIR")
     args = p.parse_args(argv)
-    from .. import __version__
-    from .conformance import release_figures
 
     if args.write:
         cases = release_figures(Path(args.test_data), with_u=True)
         previous = json.loads(RELEASE_FILE.read_text()) if RELEASE_FILE.exists() else {}
-        import subprocess
 
         commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, cwd=ROOT).stdout.strip()
         RELEASE_FILE.write_text(json.dumps({"release": __version__, "commit": commit, "what": previous.get("what", ""),

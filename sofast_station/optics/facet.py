@@ -18,6 +18,7 @@ import numpy as np
 from ..facet import FacetDesign
 from .sun import SUN_HALF_ANGLE_RAD, SunShape
 from .trace import Aperture, Hits, Target, flux_map, make_target, spot_figures, trace
+from .uncertainty import optics_sensitivities, optics_uncertainty
 
 #: The fraction of the reflected power the spot radius holds (docs/conventions.md, "Optics").
 SPOT_FRACTION = 0.9
@@ -372,7 +373,6 @@ def facet_optics(points_m: np.ndarray, slopes: np.ndarray, camera_m: np.ndarray,
     }
     rows = None
     if surface_u is not None:
-        from .uncertainty import optics_sensitivities, optics_uncertainty
         if sensitivities is None:
             sensitivities = optics_sensitivities(points_m, slopes, areas, design, settings, scene, d,
                                                  slope_error_mrad, SPOT_FRACTION)

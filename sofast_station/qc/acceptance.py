@@ -34,6 +34,7 @@ from ..errors import ConfigError
 
 def z_for(confidence: float) -> float:
     """Two-sided standard normal deviate for *confidence* (0.95 -> 1.959964)."""
+    # lazy: scipy.stats costs ~950 ms CPU; config.py loads this module to check [acceptance] at every start
     from scipy.stats import norm
 
     if not 0 < confidence < 1:
@@ -95,6 +96,7 @@ def mean_interval(x, confidence: float = 0.95, population: int | None = None) ->
     dict
         ``n``, ``mean``, ``std`` (sample), ``half_width``, ``low``, ``high`` (None where undefined).
     """
+    # lazy: scipy.stats costs ~950 ms CPU; config.py loads this module to check [acceptance] at every start
     from scipy.stats import t as student_t
 
     a = np.asarray(x, dtype=np.float64)
@@ -167,6 +169,7 @@ def fit_weibull(x) -> dict | None:
     None when the values are not all positive (a Weibull describes a positive quantity such as
     SD_2D,RMS; the guideline's Fig. 4 shows one with k = 2, a Rayleigh distribution).
     """
+    # lazy: scipy.stats costs ~950 ms CPU; config.py loads this module to check [acceptance] at every start
     from scipy.stats import weibull_min
 
     a = np.asarray(x, dtype=np.float64)

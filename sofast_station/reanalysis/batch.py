@@ -38,21 +38,32 @@ import hashlib
 import io
 import json
 import logging
+import multiprocessing
 import os
 import time
 import traceback
 from collections import deque
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
 from typing import Callable, Iterable
 
+from openpyxl import Workbook
+from openpyxl.cell import WriteOnlyCell
+from openpyxl.styles import Font
+
 from .. import __version__
 from ..archive._common import fault_point
-from ..files import fsync_dir, is_temp_file, remove_stale_temp_files, write_file_atomic, write_json_atomic
-from ..times import now_iso
+from ..archive.workbook import EXCEL_MAX_ROWS, _cell_value, number_format
 from ..errors import ArchiveError, StationError
+from ..files import fsync_dir, is_temp_file, remove_stale_temp_files, write_file_atomic, write_json_atomic
+from ..precompute import prepare_analysis_process
+from ..station.worker import watch_parent
+from ..times import now_iso
 from ._env import single_thread_blas
+from .reprocess import HEADLINE, Overrides, flatten_figures, reprocess_dump
 
 log = logging.getLogger(__name__)
 
@@ -169,8 +180,6 @@ def process_dump(dump: str, overrides: dict | None = None, journal: str | None =
     dict
         ``ReprocessResult.to_json()``, or :func:`error_result`.
     """
-    from .reprocess import Overrides, reprocess_dump
-
     fault_point(f"reprocess:{Path(dump).name}")       # crash tests: a dump that kills its worker
     try:
         return reprocess_dump(dump, Overrides.from_dict(overrides), journal=journal).to_json()
@@ -316,8 +325,6 @@ def run_batch(sources: Iterable[str | Path], out_dir: str | Path, overrides=None
     KeyboardInterrupt
         After the summary of the finished dumps has been written.
     """
-    from .reprocess import Overrides
-
     t0 = time.perf_counter()
     if overrides is None or isinstance(overrides, dict):
         overrides = Overrides.from_dict(overrides)
@@ -372,10 +379,6 @@ def run_batch(sources: Iterable[str | Path], out_dir: str | Path, overrides=None
 def _run_local(todo: list[Path], workers: int, overrides: dict, journal: str | None,
                on_result: Callable[[Path, dict], None]) -> None:
     """Reprocess *todo* on *workers* spawned processes, replacing a pool whose worker died."""
-    import multiprocessing
-    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-    from concurrent.futures.process import BrokenProcessPool
-
     single_thread_blas()                         # the spawned workers load numpy with BLAS on one thread
     ctx = multiprocessing.get_context("spawn")   # no inherited threads, OpenGL or HDF5 state
     # A batch ended by SIGTERM or SIGKILL cannot stop its pool: each worker exits by itself once its parent
@@ -431,9 +434,6 @@ def _worker_start(parent_pid: int) -> None:
     """A local batch worker's start: exit with the batch (:func:`watch_parent`), and keep the memory an
     analysis frees for the next dump's and load the compiled kernels
     (:func:`~sofast_station.precompute.prepare_analysis_process`, as the station's worker does)."""
-    from ..precompute import prepare_analysis_process
-    from ..station.worker import watch_parent
-
     watch_parent(parent_pid)
     prepare_analysis_process()
 
@@ -455,6 +455,7 @@ def _run_dask(todo: list[Path], scheduler: str, overrides: dict, journal: str | 
               on_result: Callable[[Path, dict], None], timeout_s: float = 30.0) -> None:
     """Reprocess *todo* on the Dask cluster at *scheduler*; results come back here."""
     try:
+        # optional: Dask is the cluster extra (batch --scheduler)
         from distributed import Client, as_completed
     except ImportError as exc:
         raise BatchError("--scheduler needs Dask: pip install 'dask[distributed]>=2024.8'") from exc
@@ -482,8 +483,6 @@ def _run_dask(todo: list[Path], scheduler: str, overrides: dict, journal: str | 
 # -- the summary ------------------------------------------------------------------------------------------
 def summary_row(obj: dict, result_name: str) -> dict:
     """One summary row of a result object: fixed columns, then every figure, then archived headline figures."""
-    from .reprocess import HEADLINE, flatten_figures
-
     rep = obj.get("reprocess", {}) or {}
     diffs = obj.get("differences") or {}
     row = {"dump": obj.get("dump"), "result": result_name, "status": obj.get("status"), "error": obj.get("error"),
@@ -548,12 +547,6 @@ def _summarise(summary: BatchSummary, dumps: list[Path], names: dict, results: P
 
 def _write_xlsx(path: Path, columns: list[str], rows: list[dict]) -> list[Path]:
     """The summary workbook (write-only openpyxl), split into parts at Excel's row limit, saved atomically."""
-    from openpyxl import Workbook
-    from openpyxl.cell import WriteOnlyCell
-    from openpyxl.styles import Font
-
-    from ..archive.workbook import EXCEL_MAX_ROWS, _cell_value, number_format
-
     limit = EXCEL_MAX_ROWS - 1
     parts = [rows[i:i + limit] for i in range(0, max(len(rows), 1), limit)] or [[]]
     written = []

@@ -30,15 +30,34 @@ import os
 import platform
 import time
 import tomllib
+from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from .. import __version__
-from ..files import json_ready, to_json
 from ..archive.dumps import DumpContent, read_dump
+from ..archive.journal import Journal
+from ..cache import SensitivityStore, capture_basis
+from ..calibrate.records import load_radiometric
 from ..errors import ArchiveError, ConfigError, DumpError, StationError
+from ..facet import FacetDesign, load_facet
+from ..files import json_ready, to_json
+from ..job import Capture, FacetJob
+from ..job.fixed import fixed_job_of
+from ..job.heliostat import heliostat_job_of
+from ..measure.pipeline import AnalysisSettings
+from ..measure.sensitivity_record import frame_pool_of, from_record
+from ..measure.uncertainty import InputUncertainties
+from ..measure.uncertainty.capture_evidence import FRAME_POOL_CAPTURES
+from ..optics import OpticsSettings
+from ..optics.uncertainty import sensitivities_from_record
+from ..precompute import ray_table
+from ..result.faults import fault_reason
+from ..result.optical_figures import DesignTraces, optics_for
+from ..result.record import RecordHead, build_record, now_iso
+from ..result.verdict import Limits, Quality, limits_from_table, quality_from_table
 from ._env import blas_on_one_thread, blas_threads
 
 log = logging.getLogger(__name__)
@@ -135,10 +154,8 @@ class Overrides:
             Naming the facet or calibration file and what is wrong with it.
         """
         if self.facet_path is not None:
-            from ..facet import load_facet
             load_facet(self.facet_path)
         if self.radiometric_path is not None:
-            from ..calibrate.records import load_radiometric
             load_radiometric(self.radiometric_path)
 
     @classmethod
@@ -387,8 +404,6 @@ def compare_figures(archived: dict, new: dict) -> tuple[dict, int]:
 
 # -- pieces of the re-analysis ---------------------------------------------------------------------------
 def _settings(content: DumpContent, overrides: Overrides, notes: list):
-    from ..measure.pipeline import AnalysisSettings
-
     known = {f.name for f in dataclasses.fields(AnalysisSettings)}
     dumped = dict(content.analysis)
     unknown = sorted(set(dumped) - known)
@@ -407,8 +422,6 @@ def _settings(content: DumpContent, overrides: Overrides, notes: list):
 
 
 def _design(content: DumpContent, overrides: Overrides, notes: list):
-    from ..facet import FacetDesign, load_facet
-
     design = content.facet_design()
     if overrides.facet_path is not None:
         old = design
@@ -458,8 +471,6 @@ def _uncertainty_inputs(content: DumpContent, notes: list):
 
     The sensitivities are computed from each dump itself (not shared between dumps), so a dump's
     re-analysis gives the same bits whatever else a batch worker analysed before it."""
-    from ..measure.uncertainty import InputUncertainties
-
     if isinstance(content.uncertainty_inputs, dict):
         try:
             return InputUncertainties.from_dict(content.uncertainty_inputs)
@@ -485,11 +496,6 @@ def _cache_entries(record) -> dict:
     """One sensitivity record as entries of an analysis's sensitivity cache: ``{key: Sensitivities}``, and
     the frame-brightness pool the line's analysis found (``{("frame brightness", key): deque}``) when the
     record keeps it; {} for a record this software cannot read."""
-    from collections import deque
-
-    from ..measure.sensitivity_record import frame_pool_of, from_record
-    from ..measure.uncertainty.capture_evidence import FRAME_POOL_CAPTURES
-
     found = from_record(record)
     if found is None:
         return {}
@@ -518,9 +524,6 @@ def stored_design_traces(content: DumpContent, job):
     """A cache of the design's optical trace holding the optical figures' sensitivities the line used (the
     dump's, kept for the design and optics settings they were computed for), so the optical figures' U is the
     line's; None when the dump keeps none (they are then computed from this capture)."""
-    from ..optics.uncertainty import sensitivities_from_record
-    from ..result.optical_figures import DesignTraces
-
     stored = content.sensitivities
     optical = (sensitivities_from_record(stored["optics"]) if isinstance(stored, dict)
                and isinstance(stored.get("optics"), dict) else None)
@@ -536,8 +539,6 @@ def sensitivity_store(content: DumpContent, measured_distance_m: float, disk_cac
     (:func:`stored_sensitivities`), then those computed earlier from this dump with the same inputs in the
     station's cache on disk (:class:`~sofast_station.cache.SensitivityStore`; its key names the dump's
     frames, so nothing computed from another dump is used). Without *disk_cache*, a plain dict."""
-    from ..cache import SensitivityStore, capture_basis
-
     def basis():
         return capture_basis(content.frames_cropped, measured_distance_m, crop_box=list(content.crop_box),
                              full_shape=list(content.full_shape))
@@ -549,8 +550,6 @@ def sensitivity_store(content: DumpContent, measured_distance_m: float, disk_cac
 
 def _judge_settings(content: DumpContent, recipe: str, notes: list):
     """Limits and quality of the dumped station.toml (and of the record's recipe)."""
-    from ..result.verdict import Limits, Quality, limits_from_table, quality_from_table
-
     if not content.station_toml.strip():
         notes.append("the dump holds no station.toml text: the verdict uses the default limits")
         return Limits(), Quality()
@@ -578,8 +577,6 @@ def _optics_settings(content: DumpContent, recipe: str, archived: dict | None, o
     A record archived by software without optical figures is compared like for like: no trace then, unless
     the re-analysis changes something anyway (overrides).
     """
-    from ..result.optical_figures import optics_for
-
     if archived is not None and "optics" not in archived and overrides.empty:
         if archived.get("verdict") != "fault":
             notes.append("the archived record has no optical figures: not traced, so the comparison stays like "
@@ -590,13 +587,10 @@ def _optics_settings(content: DumpContent, recipe: str, archived: dict | None, o
         return optics_for(raw, f"station.toml of dump {content.path}", recipe)
     except (tomllib.TOMLDecodeError, ConfigError) as exc:
         notes.append(f"the dump's [optics] could not be read ({exc}): optical figures with the defaults")
-        from ..optics import OpticsSettings
         return OpticsSettings()
 
 
 def _archived_from_journal(journal: str | Path, cycle_id: str) -> dict | None:
-    from ..archive.journal import Journal
-
     journal = Path(journal)
     if not journal.is_file():
         raise ArchiveError(f"journal {journal} does not exist")
@@ -640,11 +634,6 @@ def reprocess_content(content: DumpContent, overrides: Overrides | None = None, 
     -------
     ReprocessResult
     """
-    from ..job import Capture
-    from ..precompute import ray_table
-    from ..result.faults import fault_reason
-    from ..result.record import build_record
-
     t0 = time.perf_counter()
     overrides = overrides or Overrides()
     if archived is None:
@@ -710,8 +699,6 @@ def uncertainty_not_kept(content: DumpContent, archived: dict | None, notes: lis
     facet's of the type, on the line) and the frame-brightness pool (the earlier captures this capture's frame
     brightness was pooled with; without it, the capture's own few degrees of freedom widen or narrow its U).
     Empty for a dump that keeps them all: its U is the line's, bit for bit."""
-    from ..measure.sensitivity_record import frame_pool_of
-
     if archived is not None and not flatten_uncertainties(archived):
         return []                                  # the line stated no U: nothing to explain
     missing = []
@@ -752,10 +739,6 @@ def job_of_dump(content, overrides: Overrides, notes: list, archived: dict | Non
 
     A heliostat's dump takes overrides of the analysis settings, the measured distance and the radiometric
     record; a facet file, focal length or alignment point cannot replace its facets (ConfigError)."""
-    from ..job import FacetJob
-    from ..job.fixed import fixed_job_of
-    from ..job.heliostat import heliostat_job_of
-
     if is_heliostat_dump(content):
         if overrides.facet_path is not None or overrides.alignment_point_m is not None \
                 or overrides.focal_length_m is not None:
@@ -784,8 +767,6 @@ def job_of_dump(content, overrides: Overrides, notes: list, archived: dict | Non
 def _head_and_distance(content, overrides, archived: dict | None, notes: list, name: str):
     """The reprocessed record's head (design *name*, the radiometric record an override names) and the
     measured distance (the archived one, or the override's), with a note for each override."""
-    from ..result.record import RecordHead
-
     distance = content.measured_distance_m
     if overrides.measured_distance_m is not None:
         distance = float(overrides.measured_distance_m)
@@ -793,7 +774,6 @@ def _head_and_distance(content, overrides, archived: dict | None, notes: list, n
     rad = content.radiometric
     rad_id = rad["record_id"]
     if overrides.radiometric_path is not None:
-        from ..calibrate.records import load_radiometric
         new_rad = load_radiometric(overrides.radiometric_path)
         notes.append(calibration_note(content, new_rad))
         rad_id = new_rad.record_id
@@ -808,8 +788,6 @@ def _compared(record: dict, content, overrides, archived: dict | None, archived_
               design_note: dict, *, analysis, design, seconds: float, u_missing: list) -> "ReprocessResult":
     """The reprocessed *record* as a JSON archive holds it, compared with *archived*, with its ``reprocess``
     part (*design_note*: what design it was redone with)."""
-    from ..result.record import now_iso
-
     record = json.loads(to_json(record))     # exactly what a JSON archive holds (no numpy scalars)
     differences, n = compare_figures(archived, record) if archived else ({}, len(flatten_figures(record)))
     record["timings_s"]["total"] = seconds

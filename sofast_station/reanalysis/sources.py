@@ -10,7 +10,10 @@ import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from ..archive.dumps import read_dump
 from ..errors import ReportError
+from ..interop.opencsp import opencsp_test_data_paths, read_opencsp
+from .reprocess import reprocess_dump
 
 log = logging.getLogger(__name__)
 
@@ -41,14 +44,11 @@ def check_measured(spec: str) -> None:
     metadata read, not its frames), or a folder not in OpenCSP's test-data layout (DumpError or ReportError
     naming it), so that a command given two inputs does not reprocess the first before refusing the second."""
     if is_opencsp(spec):
-        from ..interop.opencsp import opencsp_test_data_paths
-
         root = Path(str(spec)[len("opencsp:"):])
         missing = [str(p) for p in opencsp_test_data_paths(root).values() if not p.exists()]
         if missing:
             raise ReportError(f"{root} is not a folder in OpenCSP's test-data layout: missing {', '.join(missing)}")
         return
-    from ..archive.dumps import read_dump
 
     read_dump(spec, load_frames=False, require_result=False)
 
@@ -56,8 +56,6 @@ def check_measured(spec: str) -> None:
 def load_measured(spec: str, overrides=None, focal_length_m: float = 100.0) -> Measured:
     """A dump (reprocessed with *overrides*) or ``opencsp:DIR`` (analysed with *focal_length_m*)."""
     if is_opencsp(spec):
-        from ..interop.opencsp import opencsp_test_data_paths, read_opencsp
-
         root = Path(str(spec)[len("opencsp:"):])
         check_measured(spec)
         m = read_opencsp(**opencsp_test_data_paths(root), focal_length_m=focal_length_m)
@@ -65,7 +63,6 @@ def load_measured(spec: str, overrides=None, focal_length_m: float = 100.0) -> M
         rec = {"serial": m.name, "facet": m.design.name, "time": m.date, "station": "OpenCSP import",
                **a.figures}
         return Measured(root, a, rec, m.design, kind="opencsp")
-    from .reprocess import reprocess_dump
 
     res = reprocess_dump(spec, overrides)
     if res.u_missing and res.overrides.empty:

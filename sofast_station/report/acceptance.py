@@ -23,13 +23,16 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from matplotlib.figure import Figure
+from scipy.stats import norm, weibull_min
 
+from ..errors import ReportError
 from ..qc import acceptance as acc
 from ..qc.acceptance import Contract
 from ..result.record import figure_value
 from ..result.specs import figure_name
-from ..errors import ReportError
 from ._common import savefig_atomic
+
 
 def evaluate(contract: Contract, records: list[dict]) -> list[dict]:
     """Per contract figure: the guideline sample size, what is missing, the observed mean with its
@@ -77,9 +80,6 @@ def text(contract: Contract, results: list[dict], period: str) -> str:
 def draw(contract: Contract, results: list[dict], path: Path, title: str, dpi: int = 100) -> Path:
     """A histogram per contract figure with the fitted normal and Weibull densities, the contract value,
     its tolerance and the mean's confidence interval."""
-    from matplotlib.figure import Figure
-    from scipy.stats import norm, weibull_min
-
     if not results:
         raise ReportError("no contract figure to draw")
     fig = Figure(figsize=(7.0 * len(results), 5.2), layout="constrained")

@@ -35,6 +35,7 @@ from fractions import Fraction
 import numpy as np
 
 from ..ensemble import EnsembleDesign
+from ..result.formatting import with_u
 from ..result.heliostat import canting_resolution
 
 #: Screw motions below this are "leave" when a facet is turned exactly (a hundredth of a millimetre), mm.
@@ -179,7 +180,6 @@ def canting_instructions(record: dict, ensemble: EnsembleDesign, limit_mrad: flo
 
 
 def _pm(v: float, u) -> str:
-    from ..result.formatting import with_u
     return with_u(v, u, "", 3)
 
 

@@ -9,11 +9,18 @@ record in force; the SHA-256 of the dump. Drawn with Matplotlib's PDF backend.
 from __future__ import annotations
 
 import hashlib
+import textwrap
 from pathlib import Path
 
+from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
+
 from ..errors import ReportError
-from ..result.formatting import method_text
+from ..result.formatting import figure_text, method_text
+from ..result.record import figure_value
 from ._common import savefig_atomic
+from .heliostat import draw_facet_map_on
+from .maps import MODEL_LABELS, detail_maps, draw_detail
 
 
 def sha256_of(path: Path) -> str:
@@ -35,9 +42,6 @@ def _limit_text(spec) -> str:
 def figure_rows(record: dict, specs) -> list[list[str]]:
     """Rows (figure, value ± U, unit, limits, within) of the certificate's table, each figure as every screen
     writes it (:func:`~sofast_station.result.formatting.figure_text`)."""
-    from ..result.formatting import figure_text
-    from ..result.record import figure_value
-
     rows = []
     for s in specs:
         v = figure_value(record, s.key)
@@ -54,8 +58,6 @@ _COLUMNS = ((0.07, "left"), (0.56, "right"), (0.58, "left"), (0.68, "left"), (0.
 
 def _wrapped(fig, x: float, y: float, text: str, width_chars: int, **style) -> float:
     """*text* wrapped at *width_chars* from (x, y) down; returns the y under its last line."""
-    import textwrap
-
     for line in textwrap.wrap(str(text), width_chars) or [""]:
         fig.text(x, y, line, va="top", **style)
         y -= _ROW
@@ -63,8 +65,6 @@ def _wrapped(fig, x: float, y: float, text: str, width_chars: int, **style) -> f
 
 
 def _rule(fig, y: float, width: float = 0.6, colour: str = "0.6") -> None:
-    from matplotlib.lines import Line2D
-
     fig.add_artist(Line2D([_LEFT, _RIGHT], [y, y], lw=width, color=colour))
 
 
@@ -97,10 +97,6 @@ def write_certificate(record: dict, out_path: Path, *, specs, measured=None, dum
     issuer : dict, optional
         ``[certificate]`` of station.toml: ``issuer``, ``address``, ``signatory`` (all optional).
     """
-    from matplotlib.figure import Figure
-
-    from .maps import MODEL_LABELS, detail_maps, draw_detail
-
     refuse_faulted(record)
     issuer = issuer or {}
     fig = Figure(figsize=(8.27, 11.69))               # A4 portrait
@@ -209,11 +205,6 @@ def draw_heliostat_certificate(record: dict, *, ensemble, limit_mrad: float | No
     """A heliostat's certificate page (A4, a Matplotlib figure): its head, the heliostat's figures, the map of
     its facets (each with its canting error ± U and verdict) and a table of every facet's figures; the dump's
     SHA-256."""
-    from matplotlib.figure import Figure
-
-    from ..result.formatting import figure_text
-    from .heliostat import draw_facet_map_on
-
     refuse_faulted(record)
     fig = Figure(figsize=(8.27, 11.69))
     y = certificate_head(fig, record, "Heliostat inspection certificate", issuer)

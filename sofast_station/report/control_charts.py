@@ -13,13 +13,19 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from matplotlib.figure import Figure
+from openpyxl import Workbook
+from openpyxl.styles import Font
 
-from ..times import parse_time
+from ..archive.workbook import WorkbookSettings, period_key, save_atomic
+from ..errors import ReportError
 from ..qc import spc
 from ..qc.view import chart_view
+from ..result.health import station_fault
 from ..result.record import figure_value
+from ..result.shift import VERDICTS
 from ..result.specs import FigureSpec
-from ..errors import ReportError
+from ..times import parse_time
 from ._common import savefig_atomic
 
 log = logging.getLogger(__name__)
@@ -129,11 +135,6 @@ def yield_table(records: list[dict], shift_starts_h=(6.0, 14.0, 22.0)) -> dict:
     """Counts of each verdict (pass, fail, indeterminate, invalid, fault) per day and per shift, the station's
     own faults among them (``station_fault``), and the yield: pass over every facet but the station's faults
     (:data:`~sofast_station.result.health.STATION_FAULT_KINDS`, the line's health, not the facets')."""
-    from ..result.health import station_fault
-    from ..result.shift import VERDICTS
-
-    from ..archive.workbook import WorkbookSettings, period_key
-
     day_s = WorkbookSettings(period="day")
     shift_s = WorkbookSettings(period="shift", shift_starts_h=tuple(shift_starts_h))
     out = {"day": {}, "shift": {}}
@@ -157,8 +158,6 @@ def draw_charts(charts: list[Chart], path: Path, title: str, *, ewma_lambda: flo
                 dpi: int = 100) -> Path:
     """One row per figure: individuals chart (values, design, spec limits, centre and control limits,
     rule violations marked) and its moving-range chart; an EWMA line when *ewma_lambda* is given."""
-    from matplotlib.figure import Figure
-
     n = len(charts)
     fig = Figure(figsize=(15.0, 2.9 * n + 0.8), layout="constrained")
     axes = fig.subplots(n, 2, width_ratios=(3.2, 1.0), squeeze=False)
@@ -219,8 +218,6 @@ def draw_charts(charts: list[Chart], path: Path, title: str, *, ewma_lambda: flo
 
 def draw_yield(table: dict, path: Path, title: str, dpi: int = 100) -> Path:
     """Yield per day and per shift as bars, with the facet counts."""
-    from matplotlib.figure import Figure
-
     fig = Figure(figsize=(12.0, 6.5), layout="constrained")
     for ax, kind in zip(fig.subplots(2, 1), ("day", "shift")):
         keys = sorted(table[kind])
@@ -240,11 +237,6 @@ def draw_yield(table: dict, path: Path, title: str, dpi: int = 100) -> Path:
 def write_summary_workbook(charts: list[Chart], table: dict, path: Path, title: str, rule_set: str) -> Path:
     """A workbook with a ``summary`` sheet (one row per figure: limits, baseline, Cp/Cpk, violations), a
     ``yield`` sheet and a ``facets`` sheet (time as an Excel date, each figure a number)."""
-    from openpyxl import Workbook
-    from openpyxl.styles import Font
-
-    from ..archive.workbook import save_atomic
-
     wb = Workbook()
     ws = wb.active
     ws.title = "summary"
@@ -268,7 +260,6 @@ def write_summary_workbook(charts: list[Chart], table: dict, path: Path, title: 
     ws.append([f"rules: {rule_set}: " + "; ".join(f"{r} {spc.RULE_TEXT[r]}" for r in spc.rules_of(rule_set))])
     ws.column_dimensions["A"].width = 28
     ys = wb.create_sheet("yield")
-    from ..result.shift import VERDICTS
 
     ys.append(["period", "kind", *VERDICTS, "total", "station faults", "yield"])
     for cell in ys[1]:

@@ -12,16 +12,18 @@ import math
 from pathlib import Path
 
 import numpy as np
+from matplotlib.figure import Figure
 
 from ..errors import ReportError
+from ..measure.heights import grid_slopes, integrate_slopes
+from ..result.formatting import figure_decimals, figure_text, with_u
+from ..result.record import figure_uncertainty, figure_value
 from ._common import savefig_atomic
 from .maps import draw_field
 
 
 def common_grid_difference(a, b, cells_across: int = 120) -> dict:
     """B - A on the common grid: ``e_x_mrad``, ``e_y_mrad``, ``height_um``, ``extent_m``, ``cell_m``, ``n_cells``."""
-    from ..measure.heights import grid_slopes, integrate_slopes
-
     pa, pb = a.analysis.points_facet_m, b.analysis.points_facet_m
     x0 = max(float(pa[0].min()), float(pb[0].min()))
     x1 = min(float(pa[0].max()), float(pb[0].max()))
@@ -68,9 +70,6 @@ def diff_figures(a, b, d: dict) -> list[tuple[str, str, str, str, str]]:
     """Rows (figure, A, B, B - A, unit) of the two measurements' reported figures and of the map's
     difference, each ``value ± U`` where the records carry U, as every screen writes them
     (:func:`~sofast_station.result.formatting.figure_text`)."""
-    from ..result.formatting import figure_decimals, figure_text, with_u
-    from ..result.record import figure_uncertainty, figure_value
-
     rows = []
     for key, label, unit in (("focal_length_x_m", "focal length f_x", "m"),
                              ("focal_length_y_m", "focal length f_y", "m"),
@@ -105,8 +104,6 @@ def diff_text(a, b, rows) -> str:
 
 
 def write_diff(a, b, out_path: Path, dpi: int = 100, d: dict | None = None) -> Path:
-    from matplotlib.figure import Figure
-
     d = common_grid_difference(a, b) if d is None else d
     fig = Figure(figsize=(12.5, 10.5), layout="constrained")
     axes = fig.subplots(2, 2).ravel()

@@ -14,14 +14,13 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import TYPE_CHECKING
+
+from matplotlib.figure import Figure
+from matplotlib.patches import Circle, Rectangle
 
 from ..errors import ReportError
 from ..result.formatting import with_u
 from ._common import savefig_atomic
-
-if TYPE_CHECKING:
-    from matplotlib.figure import Figure
 
 log = logging.getLogger(__name__)
 
@@ -34,9 +33,6 @@ def _fmt(value, fmt: str, u=None) -> str:
 
 def draw_flux_maps(res, title: str = "") -> Figure:
     """A Matplotlib figure (Agg) of the measured and the design flux maps of a FacetOptics result."""
-    from matplotlib.figure import Figure
-    from matplotlib.patches import Circle, Rectangle
-
     scene = res.scene
     half = scene.grid_half_width_m
     scale, unit, lf = (1.0, "m", "{:.3f}") if half > 1.0 else (1000.0, "mm", "{:.1f}")

@@ -18,24 +18,26 @@ import math
 from pathlib import Path
 
 import numpy as np
+from matplotlib import colormaps
+from matplotlib.cm import ScalarMappable
+from matplotlib.colors import Normalize
+from matplotlib.figure import Figure
+from matplotlib.patches import Circle, Polygon, Rectangle
 
+from ..result.formatting import with_u
 from ._common import savefig_atomic
+from .canting import canting_instructions, size_u
 
 
 def _pm(value, u, fmt: str = "{:.3f}") -> str:
     """*value* with `` ± U`` when its expanded uncertainty *u* is known (the one formatter, GUM's rounding),
     else in *fmt* (its decimals and sign)."""
-    from ..result.formatting import with_u
-
     decimals = int(fmt.split(".")[1][0])
     return with_u(value, u, "", decimals, sign="+" in fmt)
 
 
-def draw_heliostat_flux(optics, title: str = "") -> "Figure":  # noqa: F821
+def draw_heliostat_flux(optics, title: str = "") -> "Figure":
     """A Matplotlib figure (Agg) of a heliostat's design, measured and re-canted flux maps."""
-    from matplotlib.figure import Figure
-    from matplotlib.patches import Circle, Rectangle
-
     scene = optics.scene
     half = scene.grid_half_width_m
     scale, unit = (1.0, "m") if half > 1.0 else (1000.0, "mm")
@@ -93,20 +95,17 @@ def save_heliostat_flux(optics, path: Path, title: str = "", dpi: int = 110) -> 
     return savefig_atomic(draw_heliostat_flux(optics, title), Path(path), dpi)
 
 
-def draw_facet_map(record: dict, ensemble, limit_mrad: float | None = None, title: str = "") -> "Figure":  # noqa: F821
+def draw_facet_map(record: dict, ensemble, limit_mrad: float | None = None, title: str = "") -> "Figure":
     """A Matplotlib figure (Agg): the heliostat's facets seen from behind, each with its canting error and, where
     there are screws, what to turn (module docstring).
 
     *record* is a heliostat record (``facets`` entries with ``label``, ``status``, ``canting_mrad`` and
     ``canting_mrad_U``; its ``canting_instructions`` when it has them, else they are made here); *limit_mrad*
     (``[limits] max_canting_mrad``) sets the colour scale's end (red)."""
-    from matplotlib.figure import Figure
-
     n = ensemble.n_facets
     fig = Figure(figsize=(9.0, 8.5) if n <= 9 else (12.0, 11.0), layout="constrained")
     ax = fig.subplots()
     norm, cmap = draw_facet_map_on(ax, record, ensemble, limit_mrad, fontsize=9 if n <= 9 else 7)
-    from matplotlib.cm import ScalarMappable
     bar = fig.colorbar(ScalarMappable(norm, cmap), ax=ax, shrink=0.8, extend="max" if limit_mrad else "neither",
                        label="canting error, mrad" + (f" (the line: the limit, {limit_mrad:g})" if limit_mrad else ""))
     if limit_mrad:
@@ -127,12 +126,6 @@ _TURN_GLYPH = {"clockwise": "\u21bb", "counterclockwise": "\u21ba"}
 def draw_facet_map_on(ax, record: dict, ensemble, limit_mrad: float | None = None, fontsize: int = 9):
     """Draw the map of the facets (:func:`draw_facet_map`) into the Matplotlib axes *ax*; returns its colour
     scale (norm, colour map)."""
-    from matplotlib import colormaps
-    from matplotlib.colors import Normalize
-    from matplotlib.patches import Circle, Polygon
-
-    from .canting import canting_instructions, size_u
-
     instructions = record.get("canting_instructions") or canting_instructions(record, ensemble, limit_mrad)
     todo = {f["label"]: f for f in instructions["facets"]}
     facets = {f["label"]: f for f in record["facets"]}

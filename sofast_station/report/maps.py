@@ -27,10 +27,11 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ..result.formatting import figure_text
-from .summary import MODELS, figure_lines
 from ..errors import ReportError
+from ..measure.heights import curvature_map, grid_slopes, integrate_slopes, slope_differences
+from ..result.formatting import figure_text
 from ._common import savefig_atomic
+from .summary import MODELS, figure_lines
 
 log = logging.getLogger(__name__)
 
@@ -204,8 +205,6 @@ def robust_top(values, signed: bool = False, percentile: float = ROBUST_PERCENTI
 def decimated_arrows(x_m, y_m, u, v, across: int = ARROWS_ACROSS):
     """Mean of (u, v) in a regular grid of about *across* cells along the longer side: arrow positions
     (cell centres with data), vectors and the cell size (metres)."""
-    from ..measure.heights import grid_slopes
-
     x = np.asarray(x_m, float)
     y = np.asarray(y_m, float)
     cell = max(float(np.ptp(x)), float(np.ptp(y)), 1e-9) / max(int(across), 1)
@@ -232,6 +231,7 @@ def scaled_arrows(x_m, y_m, u, v):
 def draw_arrows(ax, x_m, y_m, u, v, unit: str = "mrad", key_value: float | None = None, color: str = "black"):
     """Arrows of (u, v) on a decimated grid, scaled so the 95th-percentile arrow is 0.9 cell long (they
     never tangle), with a length key of a round value inside the map's corner."""
+    # lazy: matplotlib costs ~650 ms CPU; the monitor imports this module for the maps' data (drawn with OpenCV)
     from matplotlib import patheffects
 
     ax_, ay_, au, av, cell, ref = scaled_arrows(x_m, y_m, u, v)
@@ -335,8 +335,6 @@ def detail_maps(x_m, y_m, slopes, residuals_mrad: dict, model: str = "parabola",
     cells_across : int
         Grid cells along the facet's longer side.
     """
-    from ..measure.heights import curvature_map, grid_slopes, integrate_slopes, slope_differences
-
     if model not in residuals_mrad:
         raise ReportError(f"no residuals for model {model!r} (have {', '.join(residuals_mrad)})")
     x = np.asarray(x_m, float)
@@ -386,6 +384,7 @@ def write_detail_maps(result, out_path: str | Path, model: str = "parabola", dpi
     """The engineer's page of one model: e_x and e_y (diverging), magnitude with arrows, height error
     (µm) and local focal power, for a reprocessed dump or an OpenCSP import (anything with ``analysis``,
     ``record`` and optionally ``design``)."""
+    # lazy: matplotlib costs ~650 ms CPU; the monitor imports this module for the maps' data (drawn with OpenCV)
     from matplotlib.figure import Figure
 
     a = getattr(result, "analysis", None)
@@ -459,6 +458,7 @@ def write_slope_error_maps(result, out_dir: str | Path, *, vmax_mrad: float | No
     ReportError
         When the analysis refused the capture (nothing to draw).
     """
+    # lazy: matplotlib costs ~650 ms CPU; the monitor imports this module for the maps' data (drawn with OpenCV)
     from matplotlib.figure import Figure
 
     if result.analysis is None:

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from ..result.formatting import aperture_text, figure_decimals, figure_parts, figure_text, with_u
 from ..result.verdict import LONG_FOCAL_LENGTH_M
+from .canting import instructions_text
 
 #: The slope-error models, in the order they are shown (the paper's Figs. 8-10).
 MODELS = ("design", "parabola", "higher_order")
@@ -182,8 +183,6 @@ def placement_text(rec: dict) -> str:
 def _heliostat_text(rec: dict) -> list[str]:
     """A heliostat's record: the heliostat, one line per facet (its canting, focal powers and slope error, with
     the twin's truth where there is one), its optics and what to turn."""
-    from .canting import instructions_text
-
     h = rec["heliostat"]
     lines = ["  figures are value ± U, the expanded uncertainty (k=2)",
              f"  {h['n_measured']} of {h['n_facets']} facets measured"

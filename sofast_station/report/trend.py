@@ -10,10 +10,13 @@ import logging
 from pathlib import Path
 
 import numpy as np
+from matplotlib.dates import AutoDateLocator, ConciseDateFormatter
+from matplotlib.figure import Figure
 
-from ..times import parse_time, utc_key
-from ..result.verdict import LONG_FOCAL_LENGTH_M
+from ..archive.journal import Journal
 from ..errors import ReportError
+from ..result.verdict import LONG_FOCAL_LENGTH_M
+from ..times import parse_time, utc_key
 from ._common import savefig_atomic
 from .maps import MODEL_LABELS, MODELS
 
@@ -31,8 +34,6 @@ def _in_period(time_iso, since, until) -> bool:
 
 def trend_records_from_journal(journal: str | Path, since=None, until=None) -> list[dict]:
     """The journal's records with time in ``[since, until)`` (ISO 8601; None is open), in time order."""
-    from ..archive.journal import Journal
-
     journal = Path(journal)
     if not journal.is_file():
         raise ReportError(f"journal {journal} does not exist")
@@ -90,9 +91,6 @@ def write_trend(records: list[dict], out_path: str | Path, *, title: str = "", d
     ReportError
         When no record in *records* has figures.
     """
-    from matplotlib.dates import AutoDateLocator, ConciseDateFormatter
-    from matplotlib.figure import Figure
-
     rows = [r for r in records if isinstance(r.get("slope_rms_mrad"), dict) and r.get("time")]
     if not rows:
         raise ReportError(f"no measured facet in the period ({len(records)} record(s), none with figures)")

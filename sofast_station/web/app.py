@@ -29,6 +29,7 @@ import hmac
 import json
 import logging
 import time
+import urllib.parse
 
 from starlette.applications import Starlette
 from starlette.requests import Request
@@ -145,8 +146,6 @@ def _same_origin(request: Request) -> bool:
 async def _serial_of(request: Request):
     """The ``serial`` of an action's body: JSON ``{"serial": ...}`` or a form ``serial=...``; None when the
     body holds none. CommandError when the body is neither."""
-    import urllib.parse
-
     body = await request.body()
     kind = request.headers.get("content-type", "").split(";")[0].strip().lower()
     if kind == "application/x-www-form-urlencoded":

@@ -10,6 +10,7 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import logging
+import math
 import os
 import shutil
 import sqlite3
@@ -17,7 +18,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..times import parse_time, utc_key
+from ..calibrate.settings import calibration_settings
+from ..calibrate.store import select_radiometric
 from ..live.pictures import picture_path
 from ..live.status import read_status, status_path
 from ..recipes import recipes_from_config
@@ -26,6 +28,7 @@ from ..result.record import figure_uncertainty, figure_value
 from ..result.shift import cycle_seconds, summarize
 from ..result.specs import figure_specs
 from ..result.verdict import LONG_FOCAL_LENGTH_M
+from ..times import parse_time, utc_key
 
 log = logging.getLogger(__name__)
 
@@ -61,8 +64,6 @@ class FigureRow:
 def heliostat_rows(record: dict, recipe) -> list[FigureRow]:
     """A heliostat's figures for the page: each facet's canting error (its size, with U along it) against the
     recipe's ``max_canting_mrad``, or its status when it was not measured."""
-    import math
-
     limit = recipe.limits.max_canting_mrad if recipe is not None else None
     rows = []
     for f in record["facets"]:
@@ -218,8 +219,6 @@ class LineData:
         live = (status or {}).get("in_force") if (status or {}).get("state", "offline") != "offline" else None
         if self._calibration and now - self._calibration[0] < 30 and self._calibration[2] == live:
             return self._calibration[1]
-        from ..calibrate.settings import calibration_settings
-        from ..calibrate.store import select_radiometric
         info: dict = {"record": None, "origin": None, "age_h": None, "max_age_h": None}
         try:
             status = select_radiometric(self.config, tolerant=True)

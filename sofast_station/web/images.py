@@ -13,14 +13,19 @@ serial or any other text from a request.
 from __future__ import annotations
 
 import functools
+import io
+import json
 import logging
+import sqlite3
 import threading
 from collections import OrderedDict
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from ..live.pictures import picture_path
+from ..recipes import recipes_from_config
 
 log = logging.getLogger(__name__)
 
@@ -45,8 +50,6 @@ class _Thinned:
 
 def white_png(pic) -> bytes:
     """The white frame (grey) with the found outline (green) and corners (red), PNG bytes."""
-    import cv2
-
     white = pic["white"]
     img = cv2.cvtColor(white, cv2.COLOR_GRAY2BGR)
     scale = max(1, int(np.ceil(360 / max(white.shape))))      # small crops are enlarged for the page
@@ -75,6 +78,7 @@ _FONT = 0                                         # cv2.FONT_HERSHEY_SIMPLEX
 @functools.lru_cache(maxsize=4)
 def _colour_table(name: str) -> np.ndarray:
     """256 x 3 BGR uint8 table of the matplotlib colour map *name* (the report's colours)."""
+    # lazy: the page serves first; warm() loads these (~300 ms CPU) in a thread at start
     import matplotlib
 
     rgba = matplotlib.colormaps[name](np.linspace(0.0, 1.0, 256))
@@ -82,8 +86,6 @@ def _colour_table(name: str) -> np.ndarray:
 
 
 def _text(img, text: str, org, scale: float = 0.42, colour=(30, 30, 30), thick: int = 1) -> None:
-    import cv2
-
     cv2.putText(img, text, (int(org[0]), int(org[1])), _FONT, scale, colour, thick, cv2.LINE_AA)
 
 
@@ -96,8 +98,7 @@ def map_png(pic, model: str = "design") -> bytes | None:
     with OpenCV instead of matplotlib: the monitor draws one per facet while the line runs, and
     matplotlib's layout and text took 0.4-0.6 s of CPU a map against 30-50 ms here. Facet +x to the
     right, +y up; a scale bar stands in for the axes."""
-    import cv2
-
+    # lazy: the page serves first; warm() loads these (~300 ms CPU) in a thread at start
     from ..report.maps import SEQUENTIAL_CMAP, nice_round, robust_top, scaled_arrows, slope_error_maps
 
     if "map_rows" not in pic.files or pic["map_rows"].size < 10:
@@ -162,8 +163,7 @@ def map_png(pic, model: str = "design") -> bytes | None:
 
 def facet_map_png(record: dict, ensemble, limit_mrad: float | None) -> bytes:
     """The map of a heliostat's facets (:func:`~sofast_station.report.heliostat.draw_facet_map`), PNG bytes."""
-    import io
-
+    # lazy: report/heliostat.py brings matplotlib.figure (~750 ms CPU), needed only for a heliostat's map
     from ..report.heliostat import draw_facet_map
 
     buf = io.BytesIO()
@@ -186,9 +186,6 @@ class FacetImages:
     def _facets(self, cycle_id: str) -> bytes | None:
         """The map of the heliostat measured in *cycle_id* (its record from the journal, its heliostat from
         its recipe); None for anything else."""
-        import json
-        import sqlite3
-
         if self.config is None:
             return None
         key = (cycle_id, "facets")
@@ -204,7 +201,6 @@ class FacetImages:
             record = json.loads(row[0]) if row else None
             if not record or not isinstance(record.get("facets"), list):
                 return None
-            from ..recipes import recipes_from_config
             recipes = recipes_from_config(self.config)
             recipe = recipes.get(record.get("recipe") or "default", recipes["default"])
             if recipe.ensemble is None:
@@ -220,9 +216,8 @@ class FacetImages:
         return png
 
     def warm(self) -> None:
-        """Import what drawing needs (OpenCV, the map's colour table): about 0.6 s once, at start."""
-        import cv2  # noqa: F401
-
+        """Import what drawing needs (the report's maps, matplotlib's colour table): about 0.3 s of CPU, at start."""
+        # lazy: the page serves first; warm() loads these (~300 ms CPU) in a thread at start
         from ..report.maps import SEQUENTIAL_CMAP
         _colour_table(SEQUENTIAL_CMAP)
 

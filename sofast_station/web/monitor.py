@@ -13,6 +13,7 @@ port chosen by the system (``port = 0``) can be found.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import logging
 import multiprocessing
@@ -21,8 +22,9 @@ import signal
 import socket
 from pathlib import Path
 
-from ..files import write_file_atomic
 from ..errors import StationError
+from ..files import write_file_atomic
+from ..live.logs import setup_logging
 from .settings import OpcUaSettings, WebSettings
 
 log = logging.getLogger(__name__)
@@ -66,8 +68,7 @@ def _bind(host: str, port: int) -> socket.socket:
 
 
 def _server_class():
-    import contextlib
-
+    # lazy: uvicorn, starlette cost ~490 ms CPU; the station's process imports this module only to start the monitor
     import uvicorn
 
     class Server(uvicorn.Server):
@@ -80,10 +81,12 @@ def _server_class():
 
 
 async def _serve(config, web: WebSettings | None, opcua: OpcUaSettings | None, on_ready=None) -> None:
+    # lazy: uvicorn, starlette cost ~490 ms CPU; the station's process imports this module only to start the monitor
     import uvicorn
 
     _Server = _server_class()
 
+    # lazy: uvicorn, starlette cost ~490 ms CPU; the station's process imports this module only to start the monitor
     from .app import create_app
     from .data import LineData
 
@@ -113,6 +116,7 @@ async def _serve(config, web: WebSettings | None, opcua: OpcUaSettings | None, o
             log.warning("%s", warning)
     publisher = None
     if opcua is not None and opcua.enabled:
+        # lazy: ~95 ms CPU, only with [opcua] enabled (asyncua, optional, loads when it starts)
         from .opcua import OpcUaPublisher
         publisher = OpcUaPublisher(LineData(config, web or WebSettings()), opcua)
         try:
@@ -180,8 +184,6 @@ def serve(config, web: WebSettings | None, opcua: OpcUaSettings | None, nice: in
 
 
 def _monitor_main(config, web, opcua, nice) -> None:
-    from ..live.logs import setup_logging
-
     logging.basicConfig(level=logging.INFO, format="%(asctime)s monitor %(levelname)s %(message)s",
                         datefmt="%H:%M:%S")
     setup_logging(Path(config.data_dir), name="monitor.log")

@@ -18,10 +18,11 @@ import hmac
 import logging
 import math
 
-from ..times import parse_time
 from ..errors import ConfigError
 from ..result.record import figure_uncertainty, figure_value
 from ..result.shift import cycle_seconds
+from ..result.specs import figure_specs
+from ..times import parse_time
 from .settings import OpcUaSettings
 
 log = logging.getLogger(__name__)
@@ -168,8 +169,6 @@ def eu_ranges(recipe) -> dict:
     """The analog items' EURange ("Folder/Name" -> (low, high), node units) from *recipe*'s limits (its
     specification limits, :func:`~sofast_station.result.specs.figure_specs`; focal lengths from the focal
     powers' limits above 20 m)."""
-    from ..result.specs import figure_specs
-
     out = {"Counters/Yield": (0.0, 1.0)}
     for spec in figure_specs(recipe.design.focal_length_m, recipe.limits):
         axis = spec.key[-3].upper() if spec.key.startswith(("focal_length_", "curvature_")) else None
@@ -198,6 +197,7 @@ def _refuse_clear_text_passwords(server, ua) -> None:
     refused here with BadIdentityTokenRejected, before its password is even compared. On the Sign & Encrypt
     channel the whole message, password included, is encrypted.
     """
+    # optional: asyncua is the opcua extra
     from asyncua.common.utils import ServiceError
 
     iserver = server.iserver
@@ -244,12 +244,14 @@ class OpcUaPublisher:
 
     async def start(self) -> None:
         try:
+            # optional: asyncua is the opcua extra
             from asyncua import Server, ua
             from asyncua.crypto.permission_rules import User, UserRole
             from asyncua.server.user_managers import UserManager
         except ImportError:
             raise ConfigError("[opcua] enabled = true needs the asyncua library: pip install "
                               "'sofast-station[opcua]' (or set enabled = false)") from None
+        # optional: asyncua is the opcua extra
         from asyncua.crypto.permission_rules import USER_TYPES, PermissionRuleset
 
         users = dict(self.settings.users)
@@ -290,6 +292,7 @@ class OpcUaPublisher:
         if not self.settings.allow_plain_passwords:
             _refuse_clear_text_passwords(server, ua)
         idx = await server.register_namespace(self.settings.namespace)
+        # optional: asyncua is the opcua extra
         from asyncua.common.structures104 import new_enum
 
         enums = {kind: (await new_enum(server, idx, kind, list(names))).nodeid for kind, names in ENUMS.items()}

@@ -6,8 +6,10 @@ Importing this module imports no web or OPC UA library.
 
 from __future__ import annotations
 
+import datetime as dt
 import ipaddress
 import re
+import ssl
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -229,8 +231,6 @@ def _pair(config, table: dict, names: tuple, where: str, purpose: str, check) ->
 
 def _check_tls_pair(certificate: str, key: str, where: str) -> None:
     """The page's certificate and key load together (the ssl module's own check)."""
-    import ssl
-
     try:
         ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER).load_cert_chain(certificate, key)
     except (ssl.SSLError, OSError, ValueError) as exc:
@@ -294,6 +294,7 @@ def _load(path: str, pem, der, what: str, where: str):
 
 
 def _read_certificate(path: str, where: str):
+    # optional: cryptography comes with asyncua (the opcua extra), not as a dependency of ours
     from cryptography import x509
 
     return _load(path, x509.load_pem_x509_certificate, x509.load_der_x509_certificate, "certificate", where)
@@ -311,8 +312,6 @@ def certificate_dates(path: str, where: str, now=None) -> str | None:
     browser and OPC UA client then refuses the station or asks the operator to click through: said at the
     start, it is renewed before that, or at least understood.
     """
-    import datetime as dt
-
     cert = _read_certificate(path, where)
     now = now or dt.datetime.now(dt.timezone.utc)
     start, end = cert.not_valid_before_utc, cert.not_valid_after_utc
@@ -338,6 +337,7 @@ def _check_opcua_pair(certificate: str, private_key: str, where: str) -> None:
     """The OPC UA certificate (PEM or DER) and private key (PEM or DER, unencrypted) load, belong together and
     are what Basic256Sha256 signs and encrypts with: an RSA key of 2048 to 4096 bits (read with the
     cryptography package, which asyncua uses; imported only when they are given)."""
+    # optional: cryptography comes with asyncua (the opcua extra), not as a dependency of ours
     from cryptography.hazmat.primitives import serialization
     from cryptography.hazmat.primitives.asymmetric import rsa
 

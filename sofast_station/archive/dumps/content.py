@@ -9,8 +9,12 @@ from pathlib import Path
 import numpy as np
 
 from ... import __version__
+from ...calibrate.records import RadiometricRecord
 from ...errors import ArchiveError, DumpError
+from ...facet import FacetDesign
 from ...files import json_ready
+from ...fringes import FringeSet
+from ...geometry import StationGeometry
 from .schema import FRINGE_SCHEMA_VERSION, SCHEMA_VERSION
 
 log = logging.getLogger("sofast_station.archive.dumps")
@@ -210,23 +214,20 @@ class DumpContent:
         return restore_frames(self.frames_cropped, self.crop_box, self.full_shape)
 
     def fringe_set(self):
-        from ...fringes import FringeSet
         return FringeSet.from_dict(self.fringes)
 
     def station_geometry(self):
-        from ...geometry import StationGeometry
         return StationGeometry.from_dict(self.geometry)
 
     def facet_design(self):
-        from ...facet import FacetDesign
         return FacetDesign.from_dict(self.design, source=f"dump {self.path}")
 
     def analysis_settings(self):
+        # lazy: measure/ costs ~170 ms CPU; the journal's users (report trend, spc, field) never analyse
         from ...measure.pipeline import AnalysisSettings
         return AnalysisSettings(**self.analysis)
 
     def radiometric_record(self):
-        from ...calibrate.records import RadiometricRecord
         r = self.radiometric
         return RadiometricRecord(r["record_id"], r["created"], r["source"], np.asarray(r["lut"], dtype=np.float64),
                                  r["floor_level"], r["max_level"], r["exposure_s"], r["gain"])
@@ -244,6 +245,7 @@ class DumpContent:
         -------
         sofast_station.measure.pipeline.Analysis
         """
+        # lazy: measure/ costs ~170 ms CPU; the journal's users (report trend, spc, field) never analyse
         from ...measure.analysis import analyse
         from ...precompute import ray_table
 
@@ -256,6 +258,7 @@ class DumpContent:
         args.update(overrides)
         args.update(passed)
         if isinstance(self.design, dict) and self.design.get("method") == "fixed":
+            # lazy: measure/ costs ~170 ms CPU; the journal's users (report trend, spc, field) never analyse
             from ...measure.fixed import FixedCapture, analyse_fixed, lcd_dot_locations
             from ...measure.pipeline import default_screen
 

@@ -8,6 +8,7 @@ in :mod:`.reader`.
 
 from __future__ import annotations
 
+import fnmatch
 import logging
 
 log = logging.getLogger("sofast_station.archive.dumps")
@@ -242,8 +243,6 @@ _JSON_ENCODING = "json"
 
 
 def _schema_entry(path: str):
-    import fnmatch
-
     for entry in SCHEMA_CURRENT:
         if entry[0] == path or ("*" in entry[0] and fnmatch.fnmatchcase(path, entry[0])):
             return entry

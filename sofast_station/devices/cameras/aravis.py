@@ -45,6 +45,7 @@ _QUANTITY_CALLS = {"exposure": "exposure_time", "gain": "gain"}
 def _import_aravis():
     """Return (Aravis, GLib) or raise CameraBackendMissingError naming what to install."""
     try:
+        # optional: PyGObject and Aravis are the hardware extra
         import gi
     except ImportError as exc:
         raise CameraBackendMissingError(
@@ -53,6 +54,7 @@ def _import_aravis():
             f"Aravis itself comes with apt-get install {DEBIAN_PACKAGES}") from exc
     try:
         gi.require_version("Aravis", "0.8")
+        # optional: PyGObject and Aravis are the hardware extra
         from gi.repository import Aravis, GLib
     except (ValueError, ImportError) as exc:
         raise CameraBackendMissingError(

@@ -35,6 +35,7 @@ _QUANTITY_NODES = {"exposure": ("ExposureTime", "ExposureTimeAbs"), "gain": ("Ga
 def _import_pylon():
     """Return (pylon, genicam) from pypylon, or raise CameraBackendMissingError naming the package."""
     try:
+        # optional: pypylon is the hardware extra
         from pypylon import genicam, pylon
     except ImportError as exc:
         raise CameraBackendMissingError(

@@ -128,6 +128,7 @@ class UsbTrigger(PolledHandshake):
                  usb_timeout_s: float = 0.5, serial_prefix: str = "USB",
                  counter_file: str | os.PathLike | None = None):
         super().__init__()
+        # optional: the USB I/O's driver (pyusb), loaded only when this trigger is chosen
         import usb.core
         import usb.util
 
@@ -147,6 +148,7 @@ class UsbTrigger(PolledHandshake):
         self._open()
 
     def _open(self) -> None:
+        # optional: the USB I/O's driver (pyusb), loaded only when this trigger is chosen
         import usb.core
 
         self._state = IDLE
