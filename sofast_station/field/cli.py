@@ -382,7 +382,8 @@ def cmd_spot(args) -> int:
     from .geometry import azimuth_elevation
     from .inputs import heliostat_place, load_site, read_notes, read_photo, read_record
     from .picture import spot_png
-    from .spot import SpotScene, compare_spots, facet_models, facing_target, photo_extent, photo_figures, predict_spot
+    from .spot import (SpotScene, compare_spots, facet_models, facing_target, photo_extent, photo_figures,
+                       predict_spot)
     from .sun import sun_direction
 
     site = load_site(args.site)
@@ -524,15 +525,8 @@ def cmd_glare(args) -> int:
     from ..errors import ConfigError
     from ..files import safe_name
     from .geometry import azimuth_elevation, direction, heliostat_rotation
-    from .glare import (
-        EYE_FOCAL_M,
-        OCULAR_TRANSMISSION,
-        PUPIL_M,
-        Sunlight,
-        camera_glare,
-        observers_glare,
-        sun_seen_directly,
-    )
+    from .glare import (EYE_FOCAL_M, OCULAR_TRANSMISSION, PUPIL_M, Sunlight, camera_glare, observers_glare,
+                        sun_seen_directly)
     from .inputs import heliostat_place, load_site, read_notes, read_photo, read_record
     from .picture import hazard_chart
     from .spot import facet_models

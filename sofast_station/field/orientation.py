@@ -43,15 +43,8 @@ from scipy.optimize import least_squares
 from ..ensemble import EnsembleDesign
 from ..errors import AnalysisError, GeometryError
 from ..geometry import CameraIntrinsics
-from .geometry import (
-    azimuth_elevation,
-    direction,
-    heliostat_angles,
-    heliostat_rotation,
-    look_at,
-    pointing_error_mrad,
-    small_rotation,
-)
+from .geometry import (azimuth_elevation, direction, heliostat_angles, heliostat_rotation, look_at,
+                       pointing_error_mrad, small_rotation)
 
 K_COVERAGE = 2.0
 
