@@ -543,6 +543,17 @@ def predicted_index_axes(jac: np.ndarray, step_i_px: np.ndarray, step_j_px: np.n
 #: Dots closer together than this share of the step the nominal geometry predicts are a grid seen twice.
 MIN_STEP_SHARE = 0.75
 
+#: Standard uncertainty (pixels, per axis) of a dot's centroid as the image of its screen centre, beyond the
+#: image's noise: the dot's picture is the disc's pre-image through the facet's local slopes, sampled by the
+#: pixels and centred over a window, so its centroid is not exactly the picture of the disc's centre. The
+#: error is the dot's own (its edge pixels, the slopes under its footprint), independent from dot to dot,
+#: and the same with or without noise. On noise-free frames of the methods study's stations (nominal
+#: geometry, seed 0, stations 0-11: heliostat and flat, every edge model) each dot's centroid against the
+#: pixel where the twin images the dot's centre was 0.05-0.16 px RMS per axis (0.09 over the 12 stations,
+#: neighbouring dots' errors correlated -0.3 to 0.3); a uniform disc of radius R px sampled at pixel centres
+#: alone gives sqrt(1 / (12 pi R)), 0.11 px at R = 2.4. docs/uncertainty.md, "Dot centroid model".
+CENTROID_MODEL_PX = 0.10
+
 
 def check_spacing(centres_px: np.ndarray, jac: np.ndarray) -> None:
     """Refuse dots closer together than :data:`MIN_STEP_SHARE` of the shorter grid step the nominal geometry
@@ -619,6 +630,11 @@ class DotPhases:
         Dots dropped, by cause.
     found : dict
         The detection's counts (dots found, indexed, merged, too small, unmeasured), the origin and the axes.
+    position_model_sigma_m : dict or None
+        ``{"x": (M,), "y": (M,)}``: each dot's position error on the grid (grid steps) from its centroid's model
+        error (:data:`CENTROID_MODEL_PX`), carried as *position_sigma_m* is: independent from dot to dot, so the
+        fits' covariance holds it; not part of the slope noise floor (it is partly the footprint's smoothing,
+        which lowers a slope RMS rather than raising it).
     """
 
     positions_m: dict
@@ -634,6 +650,7 @@ class DotPhases:
     four_step = False
     noise = None
     set_offsets_dn: dict = field(default_factory=dict)
+    position_model_sigma_m: dict | None = None
 
     def capture_figures(self, region: Region, rays, fits, geometry: StationGeometry, curl) -> dict:
         """What the capture says about itself (the fringe method's keys, :data:`~.pipeline.CAPTURE_KEYS`, and the
@@ -868,6 +885,9 @@ def reduce_fixed(image: np.ndarray, dots: DotLocations, geometry: StationGeometr
         jac = np.linalg.inv(per_index)                              # index steps per pixel
         cov_pos = jac @ found.cov_px2[which] @ np.swapaxes(jac, 1, 2)
         sigma = {"x": np.sqrt(np.clip(cov_pos[:, 0, 0], 0, None)), "y": np.sqrt(np.clip(cov_pos[:, 1, 1], 0, None))}
+        # the centroids' model error, independent per dot (CENTROID_MODEL_PX), through the same grid steps
+        cov_mod = CENTROID_MODEL_PX ** 2 * jac @ np.swapaxes(jac, 1, 2)
+        model_sigma = {"x": np.sqrt(cov_mod[:, 0, 0]), "y": np.sqrt(cov_mod[:, 1, 1])}
         ok = located & clear
         dropped = {"not_indexed": int(left.sum()), "merged": int(found.merged), "too_small": int(found.small),
                    "unmeasured": int(found.unmeasured), "no_location": int((~located).sum()),
@@ -882,11 +902,12 @@ def reduce_fixed(image: np.ndarray, dots: DotLocations, geometry: StationGeometr
         phases = DotPhases(
             positions_m={"x": col[s].astype(np.float64), "y": row[s].astype(np.float64)}, ok=ok[s],
             position_sigma_m={a: v[s] for a, v in sigma.items()}, noise_dn=float(found.noise_dn),
+            position_model_sigma_m={a: v[s] for a, v in model_sigma.items()},
             lattice_index=index[s], index_per_px=jac[s], depth_dn=found.depth_dn[which][s], dropped=dropped,
             found={"found": int(len(found.centres_px)), "indexed": int(len(which)), "origin_px": origin_px.tolist(),
                    "origin_from": origin_from, "origin_index": [int(v) for v in fixed.origin_index],
                    "index_axes": axes.tolist(), "index_axes_from": axes_from, "step_px": step,
-                   "diameter_px": float(found.diameter_px),
+                   "diameter_px": float(found.diameter_px), "centroid_model_px": CENTROID_MODEL_PX,
                    "centroid_sigma_px": float(np.sqrt(np.median(0.5 * np.trace(found.cov_px2[which], axis1=1,
                                                                                axis2=2))))})
         timer.lap("phase")

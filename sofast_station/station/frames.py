@@ -1,4 +1,4 @@
-"""Capture helpers: the sequence with its four-step check and retake, and the facet crop.
+"""Capture helpers: the sequence with its four-step check and retake, and the crop (its box is the job's: job/).
 
 The station analyses exactly the frames it archives: the capture is cropped to the facet's region
 (plus a margin for the edge and corner windows), and the analysis runs on the crop restored into an
@@ -16,24 +16,6 @@ from ..measure.mask import facet_region
 from ..measure.phase import frame_noise, phase_and_modulation
 
 log = logging.getLogger(__name__)
-
-#: Pixels kept around the facet region: the corner windows reach 14 px beyond the edge.
-CROP_MARGIN_PX = 32
-
-
-def crop_box(dark: np.ndarray, white: np.ndarray, threshold_dn: float, margin_px: int = CROP_MARGIN_PX
-             ) -> tuple[int, int, int, int]:
-    """(row0, col0, row1, col1), end-exclusive: the facet region's bounding box widened by *margin_px*,
-    clipped to the image. The whole image when nothing responds (the analysis then says why)."""
-    region = facet_region(dark, white, threshold_dn)
-    h, w = dark.shape
-    if not region.any():
-        return 0, 0, h, w
-    rows = np.flatnonzero(region.any(axis=1))
-    cols = np.flatnonzero(region.any(axis=0))
-    return (max(0, int(rows[0]) - margin_px), max(0, int(cols[0]) - margin_px),
-            min(h, int(rows[-1]) + 1 + margin_px), min(w, int(cols[-1]) + 1 + margin_px))
-
 
 def crop(frames: np.ndarray, box: tuple[int, int, int, int]) -> np.ndarray:
     r0, c0, r1, c1 = box

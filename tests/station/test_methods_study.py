@@ -7,10 +7,19 @@ same settle + exposure), with one point per dot (a few hundred against tens of t
 lengths lie within their U of the twin's truth (the U is a 95 % claim: over this seed's two captures and two
 axes an error beyond U would be a 1-in-20 event per figure, and the population study's coverage,
 docs/method.md, is the statistical check). A dish station's layout is refused by name.
+
+Both ends of the fixed method's U on the figures its centroid model error reaches (docs/uncertainty.md, "Dot
+centroid model"): the twist E and the slope RMS about the parabola (x, y), with the focal lengths, over the two
+captures. Low end: each error within its U. High end: the ten values of error / (U / 2) pooled have an RMS of
+at least 0.3: for a right U they are about standard normal, so their mean square is about chi-square with 10
+degrees of freedom over 10, below 0.09 with probability 2e-6 (fewer effective degrees of freedom, as f x and
+the slope RMS x share errors, make it at most 2e-4 at 6); a U stated three times too large would fail it.
+Before the model error the twist's and slope RMS values' errors were 2-5 times U / 2 on this population.
 """
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from sofast_station.station.methods_study import run_methods, summarise_methods
@@ -30,9 +39,14 @@ def test_both_methods_measure_the_same_captures(cases):
         assert a["n_frames"] == 18 and b["n_frames"] == 1
         assert b["capture_s"] == pytest.approx(a["capture_s"] / 18)
         assert 150 <= b["n_points"] < a["n_points"] / 50
-        for name in ("focal_length_x_m", "focal_length_y_m"):
+    z = []
+    for b in fixed:
+        for name in ("focal_length_x_m", "focal_length_y_m", "twist_mrad_per_m", "slope_rms_mrad.parabola.x",
+                     "slope_rms_mrad.parabola.y"):
             err = b["figures"][name] - b["truth"][name]
             assert abs(err) <= b["U"][name], (name, err, b["U"][name])
+            z.append(err / (b["U"][name] / 2))
+    assert np.sqrt(np.mean(np.square(z))) >= 0.3, z
     s = summarise_methods(cases)
     assert s["fixed"]["frames"] == 1 and s["fringe"]["frames"] == 18 and s["layout_refused"] == []
     assert {r["figure"] for r in s["fixed"]["coverage"]} >= {"focal_length_x_m", "twist_mrad_per_m"}

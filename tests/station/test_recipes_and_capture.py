@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
 
@@ -10,9 +9,10 @@ from sofast_station.archive import Journal
 from sofast_station.config import load_config
 from sofast_station.devices.protocols import FacetRequest
 from sofast_station.errors import ConfigError
-from sofast_station.station.frames import capture_sequence, crop, crop_box, restore
-from sofast_station.station.factory import open_station
+from sofast_station.job.facet import facet_crop_box as crop_box
 from sofast_station.recipes import choose_recipe, recipes_from_config
+from sofast_station.station.factory import open_station
+from sofast_station.station.frames import capture_sequence, crop, restore
 from sofast_station.station.service import Service
 
 RECIPES = """

@@ -87,8 +87,13 @@ def noise_propagation(reduction, *, fringes, geometry, design, settings, screen=
     s0, gx, gy = slope_jacobian(points, red.shape.boresighted_to_camera.inverse(), screen,
                                 red.phases.positions_m["x"][take], red.phases.positions_m["y"][take])
     var = (gx * sig_u["x"]) ** 2 + (gy * sig_u["y"]) ** 2        # (2, n) slope variance
+    angle_sig = 1000.0 * np.sqrt(var) / (1.0 + s0 ** 2)          # mrad: the noise floor's
+    # A fixed pattern's dots also carry their centroids' model error (fixed.CENTROID_MODEL_PX): independent per
+    # dot, so the fits hold it as they hold the noise; the noise floor does not (docs/uncertainty.md).
+    model = getattr(red.phases, "position_model_sigma_m", None)
+    if model is not None:
+        var = var + (gx * model["x"][take]) ** 2 + (gy * model["y"][take]) ** 2
     sig_s = np.sqrt(var)
-    angle_sig = 1000.0 * sig_s / (1.0 + s0 ** 2)                 # mrad
     noise = {"x": float(np.sqrt(np.mean(angle_sig[0] ** 2))), "y": float(np.sqrt(np.mean(angle_sig[1] ** 2)))}
     noise["magnitude"] = float(np.hypot(noise["x"], noise["y"]))
     x, y = points[0], points[1]
