@@ -16,7 +16,6 @@ from pathlib import Path
 
 import numpy as np
 
-from .calibrate.camera import load_camera_record
 from .calibrate.commissioned import geometry_in_force
 from .calibrate.geometry_record import budget_std, load_geometry_record
 from .calibrate.records import load_radiometric
@@ -312,6 +311,9 @@ def camera_from_record(data_dir: Path, stated: CameraIntrinsics, where: str,
     The record must be for a camera of the [camera] table's size; a missing, corrupt or mismatched record
     is a ConfigError naming the file and what to do.
     """
+    # lazy: calibrate.camera, ~20-30 ms at every start (-X importtime); only intrinsics = "record" needs it
+    from .calibrate.camera import load_camera_record
+
     path = newest_record_path(data_dir, "camera", station)
     if path is None:
         raise ConfigError(f"{where}: intrinsics = \"record\" but there is no camera record in "
