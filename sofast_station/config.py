@@ -16,11 +16,14 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import ConfigError
 from .calibrate.commissioned import geometry_in_force
+from .calibrate.geometry_record import budget_std, load_geometry_record
+from .calibrate.records import load_radiometric
 from .calibrate.settings import CALIBRATION_KEYS, parse_calibration_table
+from .calibrate.store import newest_record_path, record_dir
 from .config_schema import add_dataclass_keys, validate
 from .ensemble import EnsembleDesign, is_ensemble_file, load_ensemble
+from .errors import ConfigError
 from .facet import FacetDesign, load_facet
 from .files import data_dir_of, read_toml
 from .fringes import FringeSet
@@ -29,7 +32,8 @@ from .layout import layout_station
 from .measure.heliostat import HeliostatSettings
 from .measure.pipeline import AnalysisSettings
 from .measure.uncertainty import InputUncertainties
-from .result.verdict import Limits, Quality, limits_from_table, quality_from_table
+from .result.optical_figures import optics_for
+from .result.verdict import OPTICAL_LIMITS, Limits, Quality, limits_from_table, quality_from_table
 
 log = logging.getLogger(__name__)
 
@@ -250,8 +254,6 @@ def _check_camera_uncertainty(uncertainty, camera, where: str) -> None:
 def _optics(raw: dict, where: str):
     """``[optics]`` as OpticsSettings (None when disabled); validated in
     :mod:`sofast_station.result.optical_figures`."""
-    from .result.optical_figures import optics_for
-    from .result.verdict import OPTICAL_LIMITS
     optics = optics_for(raw, where)
     used = [k for k in OPTICAL_LIMITS if raw.get("limits", {}).get(k) is not None]
     if optics is None and used:
@@ -265,9 +267,6 @@ def _geometry_record_std(data_dir: Path, geometry, station: dict | None = None) 
     within tolerance and made with this geometry (:func:`~sofast_station.calibrate.geometry_record.budget_std`);
     {} when there is none, it does not apply, or it cannot be read (logged: what it would have lent is then
     left to ``[uncertainty]``)."""
-    from .calibrate.geometry_record import budget_std, load_geometry_record
-    from .calibrate.store import newest_record_path
-
     path = newest_record_path(data_dir, "geometry", station)
     if path is None:
         return {}
@@ -290,9 +289,6 @@ def _with_radiometric_record(uncertainty, data_dir: Path, shipped: Path | None, 
     under *data_dir*, else the shipped default; :meth:`InputUncertainties.with_radiometric_record`), and
     *fringes* as the display draws them through its table (:meth:`FringeSet.drawn_through`); both
     unchanged when there is none or it cannot be read (logged; opening the station reports it too)."""
-    from .calibrate.records import load_radiometric
-    from .calibrate.store import newest_record_path
-
     path = newest_record_path(data_dir, "radiometric", station) or shipped
     if path is None:
         return uncertainty, fringes
@@ -315,8 +311,8 @@ def camera_from_record(data_dir: Path, stated: CameraIntrinsics, where: str,
     The record must be for a camera of the [camera] table's size; a missing, corrupt or mismatched record
     is a ConfigError naming the file and what to do.
     """
+    # lazy: calibrate.camera, ~20-30 ms at every start (-X importtime); only intrinsics = "record" needs it
     from .calibrate.camera import load_camera_record
-    from .calibrate.store import newest_record_path, record_dir
 
     path = newest_record_path(data_dir, "camera", station)
     if path is None:

@@ -21,11 +21,15 @@ and adds no dependency to the measuring loop.
 
 from __future__ import annotations
 
+import dataclasses
+import importlib
 import math
 from dataclasses import dataclass
+from types import SimpleNamespace
 from typing import Callable
 
 from .errors import ConfigError
+from .qc.acceptance import contract_from_config
 
 
 @dataclass(frozen=True)
@@ -457,9 +461,6 @@ READERS = {
 
 def _rule_readers(raw: dict, where: str) -> None:
     """Run the reader of every section in :data:`READERS` that the file has."""
-    import importlib
-    from types import SimpleNamespace
-
     config = SimpleNamespace(path=where, raw=raw)
     for section, target in READERS.items():
         if section in raw:
@@ -473,6 +474,7 @@ def _rule_simulation(raw: dict, where: str) -> None:
     sim = raw.get("simulation")
     if not sim:
         return
+    # lazy: the twin's package, ~770 ms CPU (+536 modules, scipy); config.py loads this at every start
     from .twin.assembly import TrueAssembly
     from .twin.parameters import TrueFacet, TwinOptics
     from .twin.population import FacetPopulation
@@ -490,10 +492,6 @@ def _rule_acceptance(raw: dict, where: str) -> None:
     """[acceptance.RECIPE] contracts are checked by their reader (sofast_station/qc/acceptance.py)."""
     if not raw.get("acceptance"):
         return
-    from types import SimpleNamespace
-
-    from .qc.acceptance import contract_from_config
-
     for recipe in raw["acceptance"]:
         contract_from_config(SimpleNamespace(path=where, raw=raw), recipe)
 
@@ -507,8 +505,6 @@ def add_dataclass_keys(section: str, cls) -> None:
     """Declare every field of the dataclass *cls* read from [*section*] that the schema does not list yet,
     typed by its default (a safety net: a field added to e.g. ``Quality`` is accepted, and type-checked,
     before someone writes its range here)."""
-    import dataclasses
-
     keys = SECTIONS.setdefault(section, {})
     for f in dataclasses.fields(cls):
         if f.name in keys:

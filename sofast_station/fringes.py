@@ -8,8 +8,12 @@ steps) that is 2 + 16 = 18 frames. Image k of a set shows I_k = a + b cos(phi - 
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
 import math
 from dataclasses import dataclass, field
+
+import numpy as np
 
 from .errors import ConfigError
 
@@ -23,10 +27,6 @@ class DisplayImage:
     __slots__ = ("pixels", "name", "_digest")
 
     def __init__(self, pixels, name: str = "image"):
-        import hashlib
-
-        import numpy as np
-
         arr = np.ascontiguousarray(pixels)
         if arr.dtype != np.uint8 or arr.ndim != 2 or arr.size == 0:
             raise ConfigError(f"a display image must be a 2-D uint8 array of commands, got {arr.dtype} {arr.shape}")
@@ -109,8 +109,6 @@ class FringeSet:
     def drawn_through(self, lut, floor_level: float, max_level: float, width_px: int, height_px: int) -> "FringeSet":
         """This definition as a display of *width_px* x *height_px* pixels draws it through the lookup table
         *lut* (command / 255 against linear level 0..1) between *floor_level* and *max_level*."""
-        import dataclasses
-
         drawn = (tuple(float(v) for v in lut), float(floor_level), float(max_level), int(width_px), int(height_px))
         return dataclasses.replace(self, drawn=drawn)
 

@@ -31,11 +31,13 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
+from .calibrate.geometry import load_reference
 from .devices.protocols import FacetRequest
 from .ensemble import EnsembleDesign, is_ensemble_file, load_ensemble
 from .errors import ConfigError, UnknownRecipeError
 from .facet import FacetDesign, load_facet
-from .measure.pipeline import AnalysisSettings
+from .measure.fixed import FixedCapture, FixedSettings, LcdDotGrid, check_fixed_layout, pitch_for_spacing
+from .measure.pipeline import AnalysisSettings, default_screen
 from .result.optical_figures import optics_for
 from .result.verdict import Limits, Quality, limits_from_table, quality_from_table
 
@@ -81,9 +83,6 @@ def fixed_capture(table: dict, config, design: FacetDesign, where: str):
     camera pixels apart on the nominal facet), checked against the station's layout
     (:func:`~sofast_station.measure.fixed.check_fixed_layout`: a ConfigError naming what to change when the
     lattice cannot be indexed there)."""
-    from .measure.fixed import FixedCapture, FixedSettings, LcdDotGrid, check_fixed_layout, pitch_for_spacing
-    from .measure.pipeline import default_screen
-
     unknown = sorted(set(table) - set(FIXED_DEFAULTS))
     if unknown:
         raise ConfigError(f"{where}.fixed has unknown key(s) {', '.join(unknown)}; allowed: "
@@ -163,8 +162,6 @@ def recipes_from_config(config) -> dict[str, Recipe]:
 def _reference(value, config, where: str, ensemble) -> str:
     """A recipe's ``reference``: "twin" (the simulated station's truth) or a certificate file, read now so a
     mistake stops the station at its start."""
-    from .calibrate.geometry import load_reference
-
     if ensemble is not None:
         raise ConfigError(f"{where}: reference is a single facet's certificate; a heliostat recipe cannot be one")
     if value == "twin":

@@ -37,11 +37,11 @@ COMMAND_LAYER = ({m.removeprefix("sofast_station.").replace(".", "/") + ".py" fo
 DONE = {"reanalysis", "interop", "report", "web", "calibrate", "archive", "devices", "result", "optics", "qc",
         "live", "cache.py", "precompute.py", "memory.py", "files.py", "commands.py", "build_kernels.py",
         "errors.py", "geometry.py", "facet.py", "ensemble.py", "serials.py", "times.py", "gum.py", "layout.py",
-        "__init__.py", "__main__.py", "cli.py"}
+        "__init__.py", "__main__.py", "cli.py", "job", "twin", "fringes.py", "recipes.py",
+        "config.py", "config_schema.py", "field"}
 
 #: Units not moved yet: their unmarked imports inside functions today (a ceiling; lower it as they move).
-NOT_YET = {"station": 160, "measure": 65, "field": 41, "job": 10, "twin": 2, "config.py": 8, "config_schema.py": 8,
-           "fringes.py": 3, "recipes.py": 3}
+NOT_YET = {"station": 160, "measure": 3}
 
 MARK = re.compile(r"#\s*(lazy|optional|cycle):\s*\S")
 _IMPORT_LINE = re.compile(r"\s*(from\s+\S+\s+import\b|import\s)")

@@ -40,6 +40,7 @@ from ..ensemble import EnsembleDesign, angles_mrad, rotation_mrad
 from ..errors import AnalysisError
 from ..geometry import CameraIntrinsics, Pose
 from ..measure import bundle
+from .geometry import azimuth_elevation, direction
 from .orientation import facet_corners_h
 
 K_COVERAGE = 2.0
@@ -469,8 +470,6 @@ def canting_orientations(camera_m, heliostat_m, *, count: int = 12, spread_deg: 
     that shows the ground shows the camera what lies around it: its edges vanish) and, with *sun* (a unit
     vector), at least *min_sun_angle_deg* from the sun (the sun's reflection overexposes the photo).
     """
-    from .geometry import azimuth_elevation, direction
-
     c = np.asarray(camera_m, dtype=np.float64)
     h = np.asarray(heliostat_m, dtype=np.float64)
     az0, el0 = azimuth_elevation(c - h)

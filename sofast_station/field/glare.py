@@ -36,14 +36,16 @@ invent constants. The chart shows E_r against omega for each observer beside the
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import ndimage
 
 from ..errors import CaptureError, ConfigError
 from ..optics.sun import BUIE_OUTER_RAD, SUN_HALF_ANGLE_RAD, buie_radiance
-from .spot import refuse_clipped
+from .spot import _facet_samples, _in_frame, _turn, refuse_clipped
 
 #: The eye's focal length, metres (the patent's Eq. (47): f = 0.017 m).
 EYE_FOCAL_M = 0.017
@@ -142,8 +144,6 @@ def heliostat_samples(models: list, ensemble, rotation: np.ndarray, origin_m, pe
                       seed: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Every facet's samples (:mod:`.spot`'s model of the factory record) in the field: points (3, N), unit
     normals (3, N), areas (N,), for the heliostat frame *rotation* (heliostat -> field) at *origin_m*."""
-    from .spot import _facet_samples, _in_frame, _turn
-
     pts, nrm, area = [], [], []
     for m, rot, pos, p, s, a in _facet_samples(ensemble, models, per_facet, np.random.default_rng([seed, 41])):
         ph, sh = _in_frame(p, s, rot @ _turn(*m.canting_mrad), pos)
@@ -171,8 +171,6 @@ def _level(img: np.ndarray) -> tuple[float, float]:
 def _source(img: np.ndarray, what: str, hint: str) -> tuple[np.ndarray, float, float]:
     """(half-level region, its pixel sum over the level within the widened region, noise) of the brightest
     source in *img*."""
-    from scipy import ndimage
-
     level, noise = _level(img)
     signal = img - level
     peak = float(ndimage.uniform_filter(signal, 3).max())
@@ -249,8 +247,6 @@ def observers_glare(models: list, ensemble, rotation: np.ndarray, origin_m, obse
         ``omega_rad_U`` and ``retinal_w_m2_U`` (over the draws that saw glare; None without glare or with fewer
         than 3 such draws), ``glare_in_draws`` (the share of the draws that saw the sun's disc).
     """
-    import dataclasses
-
     base = heliostat_samples(models, ensemble, rotation, origin_m, per_facet, seed)
     rng = np.random.default_rng([seed, 51])
     drawn = []

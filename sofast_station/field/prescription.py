@@ -29,7 +29,7 @@ import math
 
 import numpy as np
 
-from ..ensemble import EnsembleDesign, EnsembleFacet
+from ..ensemble import EnsembleDesign, EnsembleFacet, angles_mrad
 from ..errors import GeometryError
 from .geometry import azimuth_elevation, heliostat_rotation
 
@@ -100,8 +100,6 @@ def prescribed_ensemble(ensemble: EnsembleDesign, normals: dict, name: str | Non
 def prescription_mrad(ensemble: EnsembleDesign, normals: dict) -> dict:
     """Each facet's prescribed canting (rx, ry) mrad {label: {"x", "y"}}, and its change from the design's
     canting (``change``): what the assembler turns it by from the factory's rule."""
-    from ..ensemble import angles_mrad
-
     out = {}
     for f in ensemble.facets:
         r = _canting_rotation(normals[f.label])

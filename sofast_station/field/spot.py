@@ -34,6 +34,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy import ndimage
 
 from ..ensemble import EnsembleDesign
 from ..errors import CaptureError, ConfigError
@@ -453,8 +454,6 @@ def photo_figures(image: np.ndarray, scale: PhotoScale, dark: np.ndarray | None 
     x0 = -(float(scale.aim_px[0]) + 0.5) * p
     y0 = -(h - 0.5 - float(scale.aim_px[1])) * p
     values = []
-    from scipy import ndimage
-
     smooth = ndimage.uniform_filter(signal, 5)
     for k in PHOTO_THRESHOLDS:
         # the spot where its 5 x 5 mean stands k times that mean's noise (the pixel's / 5) above the target,
@@ -491,8 +490,6 @@ def refuse_clipped(image, region: np.ndarray, what: str, part: str, remedy: str)
 def _spot_region(signal: np.ndarray, threshold: float) -> np.ndarray:
     """The pixels above *threshold* joined to the brightest (after a 3 x 3 mean, so that a noise pixel is not
     it): the spot, without the noise's stray pixels elsewhere on the target."""
-    from scipy import ndimage
-
     labels, _ = ndimage.label(signal > threshold)
     top = np.unravel_index(int(np.argmax(ndimage.uniform_filter(signal, 3))), signal.shape)
     if labels[top] == 0:

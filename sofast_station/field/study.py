@@ -12,19 +12,36 @@ shot and read noise, neighbours beside and behind, and the sky's light as the mi
 
 from __future__ import annotations
 
+import datetime as dt
 import json
 import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
 
-from ..ensemble import EnsembleDesign
+from ..ensemble import EnsembleDesign, load_ensemble
 from ..geometry import CameraIntrinsics, Pose
-from .geometry import azimuth_elevation, direction, heliostat_rotation
-from .orientation import (HeliostatPlace, InputUncertainty, TowerCamera, heliostat_origin, nominal_pointing,
-                          predict_corners)
+from ..twin.field import Exposure, FieldHeliostat, Sky, camera_rotation, canting_truth, render
+from ..twin.field import TowerCamera as TwinTowerCamera
+from ..twin.field_spot import bcs_photo, map_centroid_radius, spot_flux, tracking
+from .canting import PhotoCorners, canting_figures, canting_orientations, compare_with_factory, solve_canting
+from .detect import detect_facets
+from .geometry import azimuth_elevation, direction, heliostat_rotation, pointing_error_mrad
+from .orientation import (
+    HeliostatPlace,
+    InputUncertainty,
+    TowerCamera,
+    heliostat_origin,
+    nominal_pointing,
+    orientation_figures,
+    predict_corners,
+    solve_orientation,
+)
+from .spot import FacetModel, SpotScene, facing_target, predict_spot
+from .sun import commanded_normal, sun_direction, sun_position
 
 #: The published figures this is measured against (the DLR paper): the orientation within 4 mrad in 80 % of
 #: positions, a facet's normal to 1.6 mrad.
@@ -80,10 +97,6 @@ def draw_position(site: TwinSite, rng: np.random.Generator) -> np.ndarray:
 
 def draw_time(site: TwinSite, rng: np.random.Generator, min_elevation_deg: float = 20.0) -> tuple:
     """A moment of a drawn day (2027) with the sun at least *min_elevation_deg* high: (ISO text, sun vector)."""
-    import datetime as dt
-
-    from .sun import sun_position
-
     for _ in range(200):
         day = dt.datetime(2027, 1, 1, tzinfo=dt.timezone.utc) + dt.timedelta(days=int(rng.integers(0, 365)))
         moment = day + dt.timedelta(hours=float(rng.uniform(6.0, 18.0)) - site.longitude_deg / 15.0)
@@ -119,10 +132,6 @@ class Shot:
 def orientation_shot(site: TwinSite, ensemble: EnsembleDesign, rng: np.random.Generator, *,
                      position=None, neighbours: bool = True, canting_mrad: float = 0.5) -> Shot:
     """A heliostat tracking with a drawn error, photographed (module docstring)."""
-    from ..twin.field import Exposure, FieldHeliostat, Sky, camera_rotation, render
-    from ..twin.field import TowerCamera as TwinTowerCamera
-    from .sun import commanded_normal
-
     pos = draw_position(site, rng) if position is None else np.asarray(position, float)
     moment, sun = draw_time(site, rng)
     cmd_n = commanded_normal(sun, pos, site.aim_m)
@@ -160,10 +169,6 @@ def orientation_shot(site: TwinSite, ensemble: EnsembleDesign, rng: np.random.Ge
 
 def measure_orientation(shot: Shot, uncertainty: InputUncertainty) -> dict:
     """The command's path on a shot: detection, the fit and its U; against the truth."""
-    from .detect import detect_facets
-    from .geometry import pointing_error_mrad
-    from .orientation import orientation_figures, solve_orientation
-
     t0 = time.process_time()
     predicted = predict_corners(shot.place_known, heliostat_rotation(*shot.commanded), shot.camera_known,
                                 nominal_pointing(shot.camera_known, shot.place_known))
@@ -226,10 +231,6 @@ def canting_campaign(site: TwinSite, ensemble: EnsembleDesign, rng: np.random.Ge
                      neighbours: bool = False) -> dict:
     """A heliostat with drawn canting errors (and *damaged* {label: (rx, ry) mrad} on top), turned to
     ``photos`` orientations whose mirrors show the sky and photographed at each: the shots, and its truth."""
-    from ..twin.field import Exposure, FieldHeliostat, Sky, camera_rotation, render
-    from ..twin.field import TowerCamera as TwinTowerCamera
-    from .canting import canting_orientations
-
     pos = draw_position(site, rng) if position is None else np.asarray(position, float)
     moment, sun = draw_time(site, rng)
     errors = canting_mrad * rng.standard_normal((ensemble.n_facets, 3))
@@ -260,10 +261,6 @@ def canting_campaign(site: TwinSite, ensemble: EnsembleDesign, rng: np.random.Ge
 def measure_canting(shots: list, uncertainty: InputUncertainty, factory: dict | None = None) -> dict:
     """The command's path on a campaign: every photo's detection, the bundle, the canting with U (and the
     comparison with a factory record), against the truth (the twin's canting of the facets measured)."""
-    from ..twin.field import canting_truth
-    from .canting import PhotoCorners, canting_figures, compare_with_factory, solve_canting
-    from .detect import detect_facets
-
     t0 = time.process_time()
     photos, refused = [], []
     for k, shot in enumerate(shots):
@@ -338,10 +335,6 @@ def write_campaign(out_dir, seed: int = 0, photos: int = 10, ensemble_file=None,
     """A campaign on the twin written as files the commands read: a site file, its layout, one photo for
     ``field orientation`` and *photos* for ``field canting`` (each with its notes), and a factory record in
     which facet R2C2 sat 3 mrad elsewhere (a facet knocked in transport). Returns their paths."""
-    import cv2
-
-    from ..ensemble import load_ensemble
-
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     ensemble_file = Path(ensemble_file or Path(__file__).resolve().parents[2] / "fixtures" / "facets" /
@@ -377,8 +370,6 @@ def write_campaign(out_dir, seed: int = 0, photos: int = 10, ensemble_file=None,
         name.with_suffix(".json").write_text(json.dumps(notes, indent=1))
         names.append(name)
     paths["canting"] = names
-    from ..twin.field import canting_truth
-
     truth = canting_truth(campaign["shots"][0].twin_heliostat)
     record = factory_record(truth, serial, rng, changed={"R2C2": (3.0, -2.0)})
     (out / "factory.json").write_text(json.dumps(record, indent=1))
@@ -395,13 +386,6 @@ def write_spot_campaign(out_dir, seed: int = 0, knocked: dict | None = None, tim
     by the twin (:mod:`sofast_station.twin.field_spot`) of the true heliostat: the factory's, with *knocked*
     {label: (dx, dy) mrad} facets turned since. Returns their paths and the truth (the twin's spot's centroid
     and 90 % radius on the target)."""
-    from ..ensemble import load_ensemble
-    from ..twin.field import FieldHeliostat
-    from ..twin.field_spot import bcs_photo, map_centroid_radius, spot_flux, tracking
-    from .sun import sun_direction
-
-    import cv2
-
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     design = Path(__file__).resolve().parents[2] / "fixtures" / "facets" / "heliostat_2x2.toml"
@@ -447,12 +431,6 @@ def spot_population(n: int, seed: int, ensemble_file=None, site: TwinSite | None
     tower within +-70 deg, the sun 20 deg or more above the horizon on a drawn day and hour, canting errors of
     1 mrad per axis (U 0.1 mrad), every second case with flat facets. Returns each case's differences and the
     prediction's U (centroid x, y; 90 % radius), metres."""
-    from ..ensemble import load_ensemble
-    from ..twin.field import FieldHeliostat
-    from ..twin.field_spot import map_centroid_radius, spot_flux, tracking
-    from .spot import FacetModel, SpotScene, facing_target, predict_spot
-    from .sun import sun_direction
-
     site = site or TwinSite()
     ensemble = load_ensemble(ensemble_file or Path(__file__).resolve().parents[2] / "fixtures" / "facets" /
                              "heliostat_2x2.toml")
@@ -496,8 +474,6 @@ def spot_population(n: int, seed: int, ensemble_file=None, site: TwinSite | None
 
 
 def _sun_up(when: str, site: TwinSite) -> bool:
-    from .sun import sun_position
-
     return bool(sun_position([when], site.latitude_deg, site.longitude_deg, site.altitude_m)[0][1] > 0)
 
 

@@ -43,6 +43,7 @@ def sun_position(times, latitude_deg: float, longitude_deg: float, altitude_m: f
     altitude_m : float
         The site's height above sea level, metres (for the refraction's pressure).
     """
+    # lazy: pandas and pvlib, ~770 ms CPU (+876 modules); spot.py and glare.py load this for commanded_normal
     import pandas as pd
     from pvlib.solarposition import get_solarposition
 

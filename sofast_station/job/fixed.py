@@ -12,6 +12,7 @@ the screen's model, :func:`~sofast_station.measure.fixed.lcd_dot_locations`). It
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import ClassVar
@@ -68,8 +69,6 @@ _LOCATIONS: dict = {}
 def dot_locations(grid: LcdDotGrid, geometry) -> DotLocations:
     """*grid*'s dots on the display of *geometry* (its measured screen, or the flat screen of its pitch), kept
     per grid and geometry (a process analyses one station's facets)."""
-    import json
-
     key = (grid, json.dumps(geometry.to_dict(), sort_keys=True, default=str))
     if key not in _LOCATIONS:
         if len(_LOCATIONS) >= 8:

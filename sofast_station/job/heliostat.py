@@ -7,13 +7,17 @@ The analysis itself is :func:`~sofast_station.measure.heliostat.analyse_heliosta
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import ClassVar
 
 import numpy as np
 
-from ..ensemble import EnsembleDesign
+from ..ensemble import EnsembleDesign, load_ensemble
+from ..errors import ConfigError
+from ..files import safe_name
 from ..measure.heliostat import HeliostatSettings, analyse_heliostat
 from ..measure.pipeline import AnalysisSettings
 from ..optics.facet import OpticsSettings, outline_area_m2
@@ -81,13 +85,6 @@ def canting_design(ensemble: EnsembleDesign, folder, serial: str | None) -> tupl
     ConfigError
         The prescription file does not load, or is another heliostat's layout.
     """
-    import dataclasses
-    from pathlib import Path
-
-    from ..ensemble import load_ensemble
-    from ..errors import ConfigError
-    from ..files import safe_name
-
     folder = Path(folder)
     design = {"source": "design", "design": ensemble.name}
     if not serial:
@@ -115,9 +112,7 @@ def write_pictures(record: dict, ensemble: EnsembleDesign, traced: HeliostatOpti
                    limit_mrad: float | None) -> dict:
     """The heliostat's PNGs in *folder*: the map of its facets and, with its optics, its flux maps; returns
     ``{"facet_map": path, "flux_maps": path}`` (as text)."""
-    from pathlib import Path
-
-    from ..files import safe_name
+    # lazy: Matplotlib, ~360 ms CPU; job/__init__.py loads this for every inspect and reprocess, only pictures need it
     from ..report.heliostat import save_facet_map, save_heliostat_flux
 
     folder = Path(folder)
@@ -211,8 +206,6 @@ def heliostat_job_of(dumped: dict, analysis: AnalysisSettings, limits: Limits = 
                      optics: OpticsSettings | None = None) -> HeliostatJob:
     """The :class:`HeliostatJob` of a dump's design entry (:meth:`HeliostatJob.dumped`), its canting limit the
     dumped one."""
-    import dataclasses
-
     limits = dataclasses.replace(limits, max_canting_mrad=dumped.get("max_canting_mrad", limits.max_canting_mrad))
     return HeliostatJob(EnsembleDesign.from_dict(dumped["ensemble"]), HeliostatSettings(**dumped["heliostat"]),
                         analysis, limits, quality, optics, canting_reference=dumped.get("canting_reference"))

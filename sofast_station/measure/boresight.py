@@ -26,6 +26,7 @@ from ..errors import GeometryError
 from ..facet import FacetDesign
 from ..geometry import Pose
 from .fit import ParabolaFit, fit_surface
+from .kernels import moved, reflect
 from .surface import surface_slopes, surface_z
 
 
@@ -60,8 +61,6 @@ class Assembly:
     screen_centre_m: np.ndarray
 
     def moved(self, motion: "Motion") -> "Assembly":
-        from .kernels import moved
-
         # rays and screen points in one compiled pass each (the same bits as Motion's numpy arithmetic)
         r = motion.rotation
         return Assembly(motion.point(self.camera_m), moved(self.rays, r, motion.pivot_m, 0.0, False),
@@ -242,8 +241,6 @@ def solve_shape(assembly: Assembly, design: FacetDesign, measured_distance_m: fl
     # A robust fit's weights are iterated loosely while the assembly moves; once the loop has converged
     # it runs once more with the weights iterated to the final tolerance (which then also has to hold).
     tolerance = STEERING_TOLERANCE if robust else FINAL_TOLERANCE
-    from .kernels import reflect
-
     n = assembly.rays.shape[1]
     pts, slopes = np.empty((3, n)), np.empty((2, n))
     for outer in range(1, max_iterations + 1):

@@ -500,6 +500,7 @@ def nested_model_test(chi2_simple: float, chi2_rich: float, extra_params: int, d
         ``F``, the critical value at *confidence*, and ``needed`` (the simpler model leaves significantly
         more than noise).
     """
+    # lazy: scipy.stats, ~1 s CPU; recipes.py loads this (via fixed.py) at every station start
     from scipy.stats import f as f_dist
 
     if extra_params <= 0 or dof_rich <= 0:

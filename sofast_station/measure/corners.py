@@ -15,6 +15,7 @@ import numpy as np
 
 from ..errors import FacetNotFoundError
 from ..geometry import Pose
+from .camera import project
 
 #: Half-width (pixels) of the window across an edge over which coverage is summed (default).
 EDGE_HALF_WIDTH_PX = 5
@@ -174,8 +175,6 @@ def shading(contrast: np.ndarray, region: np.ndarray, degree: int = SHADING_DEGR
     fall-off of 1.5 % over the window). A polynomial fitted to tens of thousands of pixels gives that
     slope with next to no noise, where each point's own plateau would give it with a lot.
     """
-    import cv2
-
     h, w = contrast.shape
     any_rows, any_cols = np.flatnonzero(region.any(axis=1)), np.flatnonzero(region.any(axis=0))
     if any_rows.size < 20 or any_cols.size < 20:
@@ -912,8 +911,6 @@ def corner_covariance(corners: np.ndarray, curves: list, covs: list) -> np.ndarr
 def outline_points_px(design, camera, facet_to_camera, per_side: int = 64) -> np.ndarray:
     """Image points (column, row) along the design outline on the design surface, *per_side* per side
     (each side's block starting at its corner), seen through *camera* with the facet at *facet_to_camera*."""
-    from .camera import project
-
     corners = design.outline_m
     t = np.linspace(0.0, 1.0, per_side, endpoint=False)[:, None]
     xy = np.concatenate([corners[i] + t * (corners[(i + 1) % len(corners)] - corners[i])
@@ -994,8 +991,6 @@ def _outline_hints(design, camera, fixture_to_camera, per_side: int) -> dict:
 
 
 def _rotation(rvec: np.ndarray) -> np.ndarray:
-    import cv2
-
     return cv2.Rodrigues(np.asarray(rvec, np.float64))[0]
 
 

@@ -31,6 +31,8 @@ import numpy as np
 
 from ..geometry import CameraIntrinsics, Pose
 from .bundle import camera_vector, moved, pose_derivative, project
+from .camera import pixel_rays
+from .kernels import dot_centroids
 from .markers import solve_camera_pose
 
 
@@ -144,8 +146,6 @@ def _centroids(image: np.ndarray, starts: np.ndarray, radius_px: float, dark: bo
     a pixel clipped to weight 0 moves nothing), ``background_dn`` (the ring's median), ``ring_sigma_dn``
     (the ring's scatter, 1.4826 times its median absolute deviation: the image's noise beside the dot) and
     ``depth_dn`` (the largest background-subtracted signal in the disc)."""
-    from .kernels import dot_centroids
-
     centres, ok, cov, background, ring_sigma, depth = dot_centroids(image, np.asarray(starts, np.float64),
                                                                      radius_px, dark, iterations)
     if not details:
@@ -458,6 +458,7 @@ def index_dots(centres_px: np.ndarray, origin_px, tolerance: float = 0.3, return
     ValueError
         No dot near the origin (within half a lattice step), or too few dots around it to start.
     """
+    # lazy: scipy.spatial, ~470 ms CPU; recipes.py loads this (via fixed.py) at every start
     from scipy.spatial import cKDTree
 
     pts = np.asarray(centres_px, np.float64).reshape(-1, 2)
@@ -776,7 +777,6 @@ def locate_dots(camera: CameraIntrinsics, views: list[DotView], *, min_views: in
     obs = _Observations(views, keys, min_views)
     n_views, n_dots = len(views), len(keys)
     # start: each dot where its rays (from the markers' poses) cross
-    from .camera import pixel_rays
     normal, rhs = np.zeros((n_dots, 3, 3)), np.zeros((n_dots, 3))
     for v, pose in enumerate(poses):
         sel = np.flatnonzero(obs.d_view == v)

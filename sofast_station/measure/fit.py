@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import AnalysisError
+from .kernels import ILL_CONDITIONED, SINGULAR, cubic_sums, irls_bisquare, parabola_sums, reweight_sums, sum_squares
 
 
 def _solve_scaled(gram: np.ndarray, rhs: np.ndarray, scale: np.ndarray) -> np.ndarray:
@@ -94,8 +95,6 @@ def robust_weights(columns: list[np.ndarray], target: np.ndarray, max_iterations
     (coefficients, weights, sigma)
         sigma is the residual scale of the last reweighting (slope units; NaN when none was done).
     """
-    from .kernels import ILL_CONDITIONED, SINGULAR, irls_bisquare, sum_squares
-
     if len(columns) != 3:
         raise ValueError(f"robust_weights fits three columns (a slope equation), got {len(columns)}")
     n = target.size
@@ -167,8 +166,6 @@ def fit_parabola(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray,
 def _plain_parabola(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray) -> ParabolaFit:
     """:func:`fit_parabola` without weights: both equations' columns are xc, 1, yc, so every sum they need
     comes from one compiled pass over the points (the centred columns are never formed)."""
-    from .kernels import parabola_sums
-
     xm = float(np.sum(x) / x.size)
     ym = float(np.sum(y) / y.size)
     xx, x1, xy, yy, y1, xsx, sx1, ysx, ysy, sy1, xsy = parabola_sums(x, y, s_x, s_y, xm, ym)
@@ -221,8 +218,6 @@ def reweight_parabola(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.nda
     # The start in centred coordinates: s_x = 2A xc + (C + 2A xm + E1 ym) + E1 yc, and alike for s_y.
     k0x = np.array([2.0 * start.a, start.c + 2.0 * start.a * xm + start.e1 * ym, start.e1])
     k0y = np.array([2.0 * start.b, start.d + 2.0 * start.b * ym + start.e2 * xm, start.e2])
-    from .kernels import reweight_sums
-
     sums = reweight_sums(x, y, s_x, s_y, xm, ym, k0x, k0y, start.sigma, BISQUARE_C, pool=pool)
     rms_x, rms_y = np.sqrt(sums[0] / x.size), np.sqrt(sums[1] / x.size)
     kx = k0x + _newton_solve(sums[2:11], np.array([rms_x, 1.0, rms_y]))
@@ -304,8 +299,6 @@ def fit_cubic(x: np.ndarray, y: np.ndarray, s_x: np.ndarray, s_y: np.ndarray) ->
     h = float(max(np.max(x) - x0, x0 - np.min(x), np.max(y) - y0, y0 - np.min(y), 1e-9))
     # The monomials and their sums block by block in cache (the blocks' sums added in order: one sum
     # over all points but for the last bits).
-    from .kernels import cubic_sums
-
     sums = cubic_sums(x, y, s_x, s_y, x0, y0, h, _GRAM_PAIRS)
     nb = len(_BASE)
     gram_b = np.empty((nb, nb))

@@ -39,22 +39,44 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
-from ..errors import (CaptureError, ConfigError, DotsNotFoundError, DoubleLatticeError, OriginNotFoundError,
-                      TooFewDotsError)
+from ..errors import (
+    CaptureError,
+    ConfigError,
+    DotsNotFoundError,
+    DoubleLatticeError,
+    OriginNotFoundError,
+    TooFewDotsError,
+)
 from ..facet import FacetDesign
 from ..geometry import Pose, StationGeometry
 from . import checks
 from . import corners as corners_mod
+from .analysis import finish_analysis
 from .camera import pixel_rays, project
 from .dots import DotLocations, PatternDots, find_pattern_dots, index_dots, otsu_level, pattern_background
 from .mask import facet_region
 from .metrics import neighbour_difference_ms, neighbour_pairs
-from .pipeline import (Analysis, AnalysisSettings, Reduction, Region, _outline_of, _Serial,
-                       _Timer, corners_and_pose, fit_models, outline_image_points, report_figures,
-                       screen_points_and_rays, shape_and_boresight, thread_pool)
+from .pipeline import (
+    Analysis,
+    AnalysisSettings,
+    Reduction,
+    Region,
+    _outline_of,
+    _Serial,
+    _Timer,
+    corners_and_pose,
+    fit_models,
+    outline_image_points,
+    report_figures,
+    screen_points_and_rays,
+    shape_and_boresight,
+    thread_pool,
+)
 from .screen import InterpolatedScreen
+from .slope_noise import slope_covariance
 from .stats import median
 
 
@@ -340,8 +362,6 @@ def lit_background(image: np.ndarray, max_diameter_px: float, dark: bool = True)
     that lit box (row 0, row 1, column 0, column 1): the lit area is found first on a picture four times
     smaller (its box widened by the filling square), so the filling of a two-megapixel frame costs what the
     facet's box costs."""
-    import cv2
-
     img = np.asarray(image)
     h, w = img.shape
     k = 2 * int(np.ceil(max_diameter_px)) + 1
@@ -371,8 +391,6 @@ def find_origin_mark(image: np.ndarray, region: np.ndarray, background: np.ndarr
     stands above that by a quarter of the level and by 8 times the image's noise *noise_dn*, on the facet and
     clear of its edge by the square's size; the brightest such spot's intensity-weighted centre.
     """
-    import cv2
-
     k = 2 * int(np.ceil(2.0 * max(diameter_px, 1.0))) + 1
     rr, cc = np.flatnonzero(region.any(axis=1)), np.flatnonzero(region.any(axis=0))
     if rr.size == 0:
@@ -477,14 +495,12 @@ def grid_prediction(geometry: StationGeometry, design: FacetDesign, dots: DotLoc
     the image by less than :data:`STEADY_PREDICTION` (far from the facet's centre of curvature, as OpenCSP's
     10 m to a 100 m facet; at the station's fringe layout, the centre of curvature between camera and screen,
     a facet pictures the grid at a scale and even orientation its own curvature decides)."""
-    import dataclasses as dc
-
     plane = dots_plane(dots, screen)
     jac = predicted_grid_jacobian(geometry, design, plane)
     step = np.linalg.norm(np.linalg.inv(jac), axis=0)
     steady = True
     for k in (1.02, 1.0 / 1.02):
-        other = predicted_grid_jacobian(geometry, dc.replace(design, focal_length_m=design.focal_length_m * k),
+        other = predicted_grid_jacobian(geometry, dataclasses.replace(design, focal_length_m=design.focal_length_m * k),
                                         plane)
         change = np.abs(np.linalg.norm(np.linalg.inv(other), axis=0) / step - 1.0)
         steady &= bool(np.all(change < STEADY_PREDICTION))
@@ -543,6 +559,7 @@ def check_spacing(centres_px: np.ndarray, jac: np.ndarray) -> None:
     """Refuse dots closer together than :data:`MIN_STEP_SHARE` of the shorter grid step the nominal geometry
     predicts (*jac*: :func:`predicted_grid_jacobian`; its inverse is pixels per grid step): two grids
     interleaved (a second one half a step off looks like one finer grid, which indexing would follow)."""
+    # lazy: scipy.spatial, ~470 ms CPU; recipes.py loads this at every station start
     from scipy.spatial import cKDTree
 
     if len(centres_px) < 9:
@@ -562,6 +579,7 @@ def second_lattice(points_px: np.ndarray, step_px: float, min_points: int) -> in
     do not (scattered dust, stray blobs); a step within a factor 1.5 of the indexed lattice's *step_px*."""
     if len(points_px) < max(min_points, 9):
         return 0
+    # lazy: scipy.spatial, ~470 ms CPU; recipes.py loads this at every station start
     from scipy.spatial import cKDTree
 
     tree = cKDTree(points_px)
@@ -678,8 +696,6 @@ class DotPhases:
     def slope_curl(self, region: Region, rays, shape, screen) -> dict:
         """The slope-curl check (:func:`~.checks.slope_curl`) on the dots' lattice: each dot a "pixel" of the
         lattice, its neighbours the dots beside it, against each dot's slope noise."""
-        from .slope_noise import slope_covariance
-
         flat, perm, width = self._order(rays)
         height = int(flat.max() // width + 1)
         valid = np.zeros((height, width), dtype=bool)
@@ -925,8 +941,6 @@ def analyse_fixed(image: np.ndarray, dots: DotLocations, geometry: StationGeomet
     The parameters are :func:`reduce_fixed`'s, and *uncertainty* and *sensitivity_cache* :func:`~.analysis.analyse`'s.
     The figures carry ``method = "fixed"`` and ``dots`` (found, indexed, used, the origin, the lattice's axes).
     """
-    from .analysis import finish_analysis
-
     screen = dot_screen(dots, geometry.screen_to_camera, screen_centre_m) if screen is None else screen
     reduction, timings = reduce_fixed(image, dots, geometry, design, measured_distance_m, settings, fixed,
                                       origin_px=origin_px, white=white, dark=dark, screen=screen)

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from .budget_rows import add_budget_row
 from .dots import _centroids
 
 
@@ -298,8 +299,6 @@ def widen_for_pose(figures: dict, pose_u: dict, coverage_factor: float = 2.0) ->
     What it reaches (docs/uncertainty.md: the fixture pose reaches ``placement`` and ``optical_tilt_mrad``
     only): a turn of the fixture frame about its x (y, z) axis turns the facet's placement and the boresight
     frame's tilt in it by as much; a slide moves the placement by as much."""
-    from .budget_rows import add_budget_row
-
     rot = [float(v) for v in pose_u.get("rotation_mrad", (0.0, 0.0, 0.0))]
     tra = [float(v) for v in pose_u.get("translation_mm", (0.0, 0.0, 0.0))]
     contributions = {f"placement.mrad.{i}": rot[i] for i in range(3)}

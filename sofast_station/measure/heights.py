@@ -95,6 +95,7 @@ def integrate_slopes(s_x, s_y, cell_m: float) -> np.ndarray:
         Heights, metres, zero mean over each connected measured region; NaN outside it and on
         isolated cells (no neighbour to integrate from).
     """
+    # lazy: scipy.sparse, ~260 ms CPU; config.py loads this (via pipeline.py) at every start
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
     from scipy.sparse.linalg import spsolve
@@ -226,6 +227,7 @@ def integrate_full_grid(s_x, s_y, cell_m: float) -> np.ndarray:
     2 - 2 cos(pi k / n) per axis): a few milliseconds for 128 x 128 cells where the sparse solve takes a
     second. Heights have zero mean.
     """
+    # lazy: scipy.fft, ~320 ms CPU; config.py loads this (via pipeline.py) at every start
     from scipy.fft import dctn, idctn
 
     sx = np.asarray(s_x, dtype=np.float64)

@@ -37,6 +37,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import cv2
@@ -44,11 +45,25 @@ import numpy as np
 
 from ..ensemble import EnsembleDesign
 from ..errors import AnalysisError, CaptureError, FacetNotFoundError, GeometryError, StationError
+from ..facet import FacetDesign
 from ..fringes import FringeSet
 from ..geometry import CameraIntrinsics, Pose, StationGeometry
-from .pipeline import Analysis, AnalysisSettings, default_screen, outline_image_points
+from . import corners as corners_mod
+from .analysis import finish_analysis
+from .camera import project
+from .pipeline import (
+    Analysis,
+    AnalysisSettings,
+    default_screen,
+    outline_image_points,
+    pose_from_corners,
+    reduce_stages,
+    rerun,
+    thread_pool,
+)
 from .pose import fix_range, solve_corner_pose
 from .screen import ScreenModel
+from .sensitivity_record import from_record
 
 #: Facet statuses: analysed, or why not.
 STATUSES = ("measured", "missing", "hidden", "cut off", "invalid")
@@ -198,6 +213,7 @@ def find_facets(dark: np.ndarray, white: np.ndarray, geometry: StationGeometry, 
     FacetNotFoundError
         When nothing responds, or one region spans two facets' nominal images (no gap between them).
     """
+    # lazy: scipy.ndimage, ~360 ms CPU; config.py loads this at every start
     from scipy.ndimage import find_objects
 
     h, w = geometry.camera.shape
@@ -374,10 +390,6 @@ def joined_pose(contrast: np.ndarray, region: np.ndarray, geometry: StationGeome
     FacetNotFoundError
         The outline has no four corners near the design's, or they do not fit it.
     """
-    from ..facet import FacetDesign
-    from . import corners as corners_mod
-    from .camera import project
-
     cam = geometry.camera
     outer = outer_corners(ensemble, indices)
     # the outline as one facet, for the sides' bows where the fixture puts it (a hint; its surface is the
@@ -412,9 +424,6 @@ def joined_facet(geometry: StationGeometry, ensemble: EnsembleDesign, region: Fa
     """A joined facet where the heliostat's outline puts it, in its window: its design corners (n, 2), the
     pixels it may use (its design outline's image less the edge's reach and ``joined_inset_px``) and the
     pixels it owns (that image widened by ``blank_dilation_px``: the rest of the window is blanked)."""
-    from . import corners as corners_mod
-    from .camera import project
-
     f = ensemble.facets[region.index]
     f2c = pose.heliostat_to_camera.compose(f.to_heliostat)
     r0, c0, r1, c1 = region.window
@@ -756,8 +765,6 @@ def _each(fn, items: list, threads: int):
     if threads <= 1 or len(items) <= 1:
         yield from (fn(x) for x in items)
         return
-    from concurrent.futures import ThreadPoolExecutor
-
     with ThreadPoolExecutor(max_workers=min(threads, len(items)), thread_name_prefix="facet") as pool:
         yield from pool.map(fn, items)
 
@@ -906,8 +913,6 @@ def reduce_to_boresight(frames: np.ndarray, fringes: FringeSet, geometry: Statio
 
     Returns (reductions, reasons): facet index -> (Reduction, its timings); facet index -> why it was refused.
     Raises AnalysisError when no facet could be reduced."""
-    from .pipeline import reduce_stages
-
     todo = [r for r in regions if r.status == "measured"]
     nominal = facet_distances(geometry.fixture_to_camera, ensemble, centre)
     shift = measured_distance_m - float(np.linalg.norm(geometry.fixture_to_camera.apply(ensemble.measure_point_m)
@@ -984,9 +989,6 @@ def finish_facets(reductions: dict, fringes: FringeSet, geometries: dict, ensemb
 
     Returns facet index -> Analysis; a facet refused here has its reason added to *reasons*. Raises
     AnalysisError when no facet could be analysed."""
-    from .analysis import finish_analysis
-    from .pipeline import pose_from_corners, rerun, thread_pool
-
     def second(i: int):
         t = time.perf_counter()
         red, tim = reductions[i]
@@ -1039,8 +1041,6 @@ def facet_tilt_spread(analyses: dict, heliostat: HeliostatSettings) -> TiltSprea
     """Every measured facet's optical-tilt sensitivities and random U (:class:`TiltSpread`): a facet's height on
     the frame is its own, its share of the distance, independent between facets
     (``HeliostatSettings.facet_height_mm``)."""
-    from .sensitivity_record import from_record
-
     sens, u_rand = {}, {}
     for i, a in analyses.items():
         rec = from_record(a.sensitivities) if a.sensitivities is not None else None

@@ -25,6 +25,7 @@ import cv2
 import numpy as np
 
 from ..geometry import CameraIntrinsics, Pose
+from .camera import pixel_rays
 
 #: OpenCSP's dictionary for its calibration markers.
 DEFAULT_DICTIONARY = "DICT_4X4_1000"
@@ -140,8 +141,6 @@ def _bilinear(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
 def _to_normalised(camera: CameraIntrinsics | None, px: np.ndarray) -> np.ndarray:
     if camera is None:
         return px
-    from .camera import pixel_rays
-
     rays = pixel_rays(camera, px[:, 0], px[:, 1])
     return (rays[:2] / rays[2]).T
 

@@ -8,6 +8,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from .kernels import label_areas
+
 
 def facet_region(dark: np.ndarray, white: np.ndarray, threshold_dn: float,
                  max_hole_px: int = 2000) -> np.ndarray:
@@ -36,8 +38,6 @@ def facet_region(dark: np.ndarray, white: np.ndarray, threshold_dn: float,
     else:
         wide = np.int16 if white.dtype == np.uint8 else np.int64       # no overflow for 16-bit counts
         responsive = (white.astype(wide) - dark.astype(wide)) > threshold_dn
-    from .kernels import label_areas
-
     # The labelling without OpenCV's statistics (they cost four times the labelling itself): the areas
     # by one compiled count, the box from the region's rows and columns.
     n, labels = cv2.connectedComponents(responsive.view(np.uint8), connectivity=8)

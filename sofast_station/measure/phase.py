@@ -6,15 +6,14 @@ I_0 - I_2 = 2b cos(phi), I_1 - I_3 = 2b sin(phi) and I_0 + I_2 - I_1 - I_3 = 0.
 
 from __future__ import annotations
 
-import functools
-
 import dataclasses
+import functools
 import math
 from dataclasses import dataclass
 
 import numpy as np
 
-from .kernels import minus_models
+from .kernels import cleaned_residuals, minus_models, noise_rows, phase_counts, trim_rounds, unwrap
 from .stats import median, quantile
 
 TWO_PI = 2.0 * np.pi
@@ -84,8 +83,6 @@ def _phase_and_modulation_counts(frames: np.ndarray) -> tuple[np.ndarray, np.nda
       the correctly rounded hypot, as the C library's float hypot computes it;
     * consistency: (I_0 + I_2) - (I_1 + I_3) in integers, exact.
     """
-    from .kernels import phase_counts
-
     shape = frames.shape[1:]
     flat = np.ascontiguousarray(frames).reshape(4, -1)
     phase, modulation, consistency = (np.empty(flat.shape[1], dtype=np.float32) for _ in range(3))
@@ -122,8 +119,6 @@ def trimmed_std(r: np.ndarray, trim_sigmas: float = TRIM_SIGMAS, rounds: int = 5
     # Variance of a standard Gaussian truncated to |z| <= c, relative to 1.
     frac = math.erf(c / math.sqrt(2.0))
     shrink = 1.0 - 2.0 * c * np.exp(-0.5 * c * c) / np.sqrt(2.0 * np.pi) / frac
-    from .kernels import trim_rounds
-
     return float(trim_rounds(r, a, c, s, float(shrink), int(rounds), about))
 
 
@@ -395,8 +390,6 @@ def frame_noise(phases, modulations, residuals, level=None, pool=None) -> FrameN
         """Set k's regressors on every stride-th pixel (double precision): its own offset (and mean level),
         then the shared harmonics (the sixth survives the residual too: its sign alternates with the
         step), and its residuals (:func:`~.kernels.noise_rows`, one compiled pass)."""
-        from .kernels import noise_rows
-
         r = np.asarray(residuals[k]).ravel()
         stride = max(1, -(-r.size * n_sets // MAX_NOISE_SAMPLES))
         return noise_rows(phases[k], modulations[k], r, level, stride)
@@ -434,8 +427,6 @@ def frame_noise(phases, modulations, residuals, level=None, pool=None) -> FrameN
             break
         good.remove(worst)
     def clean(k):
-        from .kernels import cleaned_residuals
-
         return cleaned_residuals(residuals[k], phases[k], modulations[k], level, harmonic, own_coefs[k])
 
     cleaned = _map_halves(pool, clean, range(n_sets))
@@ -923,8 +914,6 @@ def unwrap_positions(phases: list[np.ndarray] | tuple[np.ndarray, ...], periods,
         raise ValueError(f"guard_sigmas must be at least 4 (docs/conventions.md#unwrapping), got {guard_sigmas}")
     big_l = float(length_m)
     whole = all(abs(p - round(p)) < 1e-12 for p in periods)
-    from .kernels import unwrap
-
     shape = np.shape(phases[0])
     sigma = np.asarray(position_sigma_m, dtype=np.float64)
     if sigma.ndim > 0:

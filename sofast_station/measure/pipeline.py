@@ -26,18 +26,36 @@ from ..fringes import FringeSet
 from ..geometry import Pose, StationGeometry
 from . import checks
 from . import corners as corners_mod
+from . import rim as rim_mod
+from .boresight import (
+    Assembly,
+    ShapeSolution,
+    close_on_all_points,
+    model_coefficients,
+    solve_shape,
+    uses_surface_heights,
+)
 from .camera import pixel_rays, project, to_frame
-from .boresight import (Assembly, ShapeSolution, close_on_all_points, model_coefficients, solve_shape,
-                        uses_surface_heights)
-from .fit import CubicFit, ParabolaFit, fit_cubic, fit_parabola, fit_plane, reweight_parabola
+from .fit import SURFACES, CubicFit, ParabolaFit, fit_cubic, fit_parabola, fit_plane, reweight_parabola
+from .heights import height_grid
+from .kernels import consistency_set, gather_runs, halves, model_residuals, reflect, to_frame_every
 from .mask import facet_region
-from .metrics import (focal_length_m, neighbour_difference_ms, neighbour_pairs, principal_axes,
-                      rms_summary)
-from .phase import (FrameNoise, drawn_error_at, drawn_phase_error, frame_noise, phase_and_modulation,
-                    phase_error_between_periods, position_sigma_m, unwrap_positions)
+from .metrics import focal_length_m, neighbour_difference_ms, neighbour_pairs, principal_axes, rms_summary
+from .phase import (
+    FrameNoise,
+    drawn_error_at,
+    drawn_phase_error,
+    frame_noise,
+    phase_and_modulation,
+    phase_error_between_periods,
+    position_sigma_m,
+    unwrap_positions,
+)
 from .pose import fix_range, mask_centroid_px, placement, pose_facing, solve_corner_pose
 from .screen import FlatScreen, InterpolatedScreen, ScreenModel
+from .slope_noise import slope_covariance
 from .stats import median
+from .surface import surface_slopes
 
 
 @dataclass(frozen=True)
@@ -104,8 +122,6 @@ class AnalysisSettings:
     min_valid_px: int = 1000
 
     def __post_init__(self):
-        from .fit import SURFACES
-
         if self.surface not in SURFACES:
             raise ConfigError(f"[analysis] surface must be one of {', '.join(SURFACES)}, got {self.surface!r}")
 
@@ -460,8 +476,6 @@ def check_dark_rim(region: Region, phases: Phases, geometry: StationGeometry, de
     lit on that side and the outline is refitted with it put midway, as for a rim of unknown kind (its
     width / sqrt(12) in the corners' U), the sides named in ``lit_rim_sides`` (the verdict warns). The
     region is returned unchanged otherwise."""
-    from . import rim as rim_mod
-
     outline = region.outline
     if outline is None or not design.edge_rim_dark or outline.design_sides is None:
         return region
@@ -506,8 +520,6 @@ def _gather_runs(flat: np.ndarray, idx: np.ndarray, runs: tuple[list, list], out
     """``out[:] = flat[:, idx]`` copied run by run: a facet's pixels are a few hundred runs of whole row
     segments (:func:`~.kernels.gather_runs`: compiled, without the GIL, so the two halves of the frames
     are copied at once; a Python loop of slice copies held the GIL between its hundreds of small copies)."""
-    from .kernels import gather_runs
-
     gather_runs(flat, idx, runs, out)
 
 
@@ -551,8 +563,6 @@ def measure_phases(region: Region, fringes: FringeSet, screen_size_m: tuple[floa
     cons_limit = settings.consistency_sigmas * 2.0 * noise_dn + 1.0
     inconsistent_fraction = {}
     offsets: dict = {"x": [], "y": []}
-    from .kernels import consistency_set
-
     for axis in ("x", "y"):
         for p, b, r, r_raw in zip(getattr(fringes, f"periods_{axis}"), raw[axis][1], cleaned[axis], raw[axis][2]):
             # the modulation limit, |r| > limit, and the mean raw residual of the consistent pixels (before
@@ -773,8 +783,6 @@ def shape_and_boresight(rays: Rays, pose: CornerPoseResult, design: FacetDesign,
     boresighted frame; ``points_m`` and ``slopes`` None), for a caller that only needs where the facet
     points before it reduces every pixel (a heliostat's first pass, :mod:`~sofast_station.measure.heliostat`)."""
     pool = pool if pool is not None else _Serial()
-    from .kernels import to_frame_every
-
     camera_to_facet = pose.facet_to_camera.inverse()
     step = settings.subsample_step
     # every step-th ray and screen point, gathered and taken into the facet frame in one compiled pass each
@@ -790,8 +798,6 @@ def shape_and_boresight(rays: Rays, pose: CornerPoseResult, design: FacetDesign,
         timer.lap("iterate")
     # Every valid pixel, taken from the camera frame straight into the boresighted facet frame, in one
     # compiled pass (element-wise, half of the points on the pool: the same bits as numpy's chain).
-    from .kernels import halves, reflect
-
     if subsample_only:
         to_moved = solution.motion.as_pose().compose(camera_to_facet)
         return Shape(solution=solution, boresighted_to_camera=to_moved.inverse(), points_m=None, slopes=None)
@@ -834,9 +840,6 @@ def surface_heights(points: np.ndarray, slopes: np.ndarray, coefficients: np.nda
     points integrate to them on a grid (:func:`~.heights.height_grid`) of up to 96 cells along the facet and
     about :data:`HEIGHT_POINTS_PER_CELL` points per cell (0.2-0.5 um RMS from the exact heights of a random
     field of 2-4 cm correlation at 96 cells), read at each point by bilinear interpolation."""
-    from .heights import height_grid
-    from .surface import surface_slopes
-
     x, y = points[0], points[1]
     step = max(1, x.size // HEIGHT_POINTS)
     cells = int(min(96, max(8, np.sqrt(x.size / step / HEIGHT_POINTS_PER_CELL))))
@@ -871,8 +874,6 @@ def fit_models(shape: Shape, design: FacetDesign, pool=None) -> Fits:
     coeffs = model_coefficients(fit, design)
     cubic = cubic_task.result()
     # Every model's residuals in one compiled pass over the points (half of them on the pool).
-    from .kernels import halves, model_residuals
-
     e = np.empty((6, x.size))
     halves(pool, model_residuals, x.size, x, y, s_x, s_y,
            [design.coefficients, coeffs], [cubic.x0, cubic.y0, cubic.h, *np.concatenate(cubic.slope_coefficients())],
@@ -1046,8 +1047,6 @@ def slope_curl_of(region: Region, rays: Rays, shape: Shape, phases: Phases | Non
     valid.ravel()[rays.vidx] = True
     cov = None
     if phases is not None and fringes is not None and screen is not None:
-        from .slope_noise import slope_covariance
-
         stages = Reduction(region, phases, rays, None, shape, None, {})
 
         def cov(points):

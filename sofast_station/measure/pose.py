@@ -9,7 +9,7 @@ import numpy as np
 
 from ..errors import GeometryError
 from ..geometry import CameraIntrinsics, Pose
-from .camera import project
+from .camera import pixel_rays, project
 
 
 @dataclass(frozen=True)
@@ -138,8 +138,6 @@ def pose_facing(camera: CameraIntrinsics, point_px: np.ndarray, screen_centre_ca
         When the distance cannot be met along the ray (the screen centre is farther from the ray than
         *distance_m*).
     """
-    from .camera import pixel_rays
-
     if not (np.isfinite(distance_m) and distance_m > 0):
         raise GeometryError(f"measured distance must be a positive number of metres, got {distance_m}; "
                             "re-enter or re-measure it")

@@ -14,12 +14,14 @@ along its own axes through its centre, :meth:`~ScreenModel.stretched` scales one
 from __future__ import annotations
 
 import copy
+import hashlib
 from dataclasses import dataclass, replace
 from typing import Protocol
 
 import numpy as np
 
 from ..geometry import Pose
+from .kernels import grid_screen_points
 
 
 class ScreenModel(Protocol):
@@ -162,6 +164,7 @@ class InterpolatedScreen:
         """scipy's linear interpolation over the grid's triangulation, built when first needed (a screen
         whose grid split is known, :attr:`split`, never needs it)."""
         if self._interp_built is None:
+            # lazy: scipy.interpolate, ~620 ms CPU; config.py loads this at every start
             from scipy.interpolate import LinearNDInterpolator
 
             self._interp_built = LinearNDInterpolator(self._nodes_uv, self._nodes_screen)
@@ -211,8 +214,6 @@ class InterpolatedScreen:
         # check against the triangulation at points all over the grid
         rng = np.random.default_rng(0)
         probe = np.column_stack([rng.uniform(xs[0], xs[-1], 4000), rng.uniform(ys[0], ys[-1], 4000)])
-        from .kernels import grid_screen_points
-
         mine = grid_screen_points(probe[:, 0], probe[:, 1], *out, np.eye(3), np.zeros(3))
         if not np.allclose(mine.T, self._interp(probe), rtol=0.0, atol=1e-12):
             return None
@@ -224,8 +225,6 @@ class InterpolatedScreen:
             v = self.height_m - v
         r, t = self.screen_to_camera.rotation, self.screen_to_camera.translation
         if self._grid is not None:
-            from .kernels import grid_screen_points
-
             return grid_screen_points(np.asarray(u_x_m, np.float64), v, *self._grid, r, t)
         pts = self._interp(np.column_stack([np.asarray(u_x_m, np.float64), v]))
         return np.stack([r[i, 0] * pts[:, 0] + r[i, 1] * pts[:, 1] + r[i, 2] * pts[:, 2] + t[i] for i in range(3)])
@@ -272,8 +271,6 @@ class InterpolatedScreen:
     def fingerprint(self) -> str:
         """A short hash of the measured shape (grid, points, centre, extents): what cached sensitivities
         computed with this screen depend on besides the pose."""
-        import hashlib
-
         h = hashlib.sha256()
         for a in (self._nodes_uv, self._nodes_screen, self._centre, self._modes,
                   np.array([self.width_m, self.height_m, float(self._v_from_top)])):

@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from .camera import to_frame
+from .kernels import normal_slopes  # surface.normal_slopes in one compiled pass
 from .phase import noise_at_level, noise_by_level, position_sigma_m
 
 
@@ -62,8 +63,6 @@ def slope_jacobian(points_m: np.ndarray, camera_to_frame, screen, u_x: np.ndarra
     s0, d_ux, d_uy : (2, n) arrays
         The slopes (s_x, s_y), d(s_x, s_y)/du_x and d(s_x, s_y)/du_y (1/m).
     """
-    from .kernels import normal_slopes      # surface.normal_slopes in one compiled pass
-
     camera_m = camera_to_frame.translation
     s0 = normal_slopes(points_m, camera_m, to_frame(camera_to_frame, screen.points_camera(u_x, u_y)))
     s_dx = normal_slopes(points_m, camera_m, to_frame(camera_to_frame, screen.points_camera(u_x + delta_m, u_y)))

@@ -64,6 +64,7 @@ import functools
 import math
 
 import numpy as np
+from scipy.ndimage import convolve, gaussian_filter
 
 from ..errors import GeometryError
 from .outline import inside_outline, signed_distance_to_outline
@@ -435,8 +436,6 @@ def apply_psf(dn: np.ndarray, optics) -> np.ndarray:
     black level, which is not light) passes unchanged and the light of a scene away from the image's
     borders is conserved.
     """
-    from scipy.ndimage import convolve, gaussian_filter
-
     if optics.blur_px > 0:
         dn = gaussian_filter(dn, float(optics.blur_px), mode="nearest", truncate=4.0)
     if optics.defocus_px > 0:

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -188,8 +189,6 @@ class TwinHeliostat(TwinStation):
 
     def __init__(self, geometry: StationGeometry, ensemble: EnsembleDesign, heliostat: TrueHeliostat,
                  optics: TwinOptics = TwinOptics(), edge_band_px: float = 2.0):
-        import time
-
         if len(heliostat.facets) != ensemble.n_facets:
             raise ConfigError(f"the true heliostat has {len(heliostat.facets)} facets, its design "
                               f"{ensemble.name!r} {ensemble.n_facets}")
