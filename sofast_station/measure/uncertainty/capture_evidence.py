@@ -79,7 +79,7 @@ def pooled_frame_brightness(own_dn: float, dof: int, pool) -> dict:
         return own | {"pooled_dn": pooled}
     # The F distribution's quantile (scipy.stats' f.ppf computes this very function; scipy.stats itself
     # takes a second to import, which the first pooled capture paid)
-    from scipy.special import fdtri
+    from scipy.special import fdtri  # lazy: scipy.special costs ~0.5 s at import; only a pooled capture needs it
     limit = float(fdtri(dof, max(n - dof, 1), FRAME_POOL_QUANTILE))
     if pooled > 0 and own_dn ** 2 / pooled ** 2 > limit:
         return own | {"pooled_dn": pooled, "captures": len(pool)}

@@ -5,10 +5,10 @@ solved at once (:func:`solve_poses_batch`), because that pose is far from linear
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from .inputs import InputUncertainties
-
 
 #: Figures the corner pose decides (their U comes from :func:`pose_monte_carlo`).
 POSE_PATHS: tuple[tuple, ...] = (("boresight_mrad", "x"), ("boresight_mrad", "y"),
@@ -132,8 +132,6 @@ def solve_poses_batch(corners_px: np.ndarray, points: np.ndarray, matrix: np.nda
     -------
     (rotation (n, 3, 3), translation (n, 3), converged (n,) bool: stopped by *epsilon* within *max_iter*)
     """
-    import cv2
-
     n = corners_px.shape[0]
     points = np.asarray(points, np.float64)
     obs = np.asarray(corners_px, np.float64).reshape(n, -1)
