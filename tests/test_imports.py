@@ -41,7 +41,7 @@ DONE = {"reanalysis", "interop", "report", "web", "calibrate", "archive", "devic
         "config.py", "config_schema.py", "field", "measure"}
 
 #: Units not moved yet: their unmarked imports inside functions today (a ceiling; lower it as they move).
-NOT_YET = {"station": 160}
+NOT_YET = {"station": 35}
 
 MARK = re.compile(r"#\s*(lazy|optional|cycle):\s*\S")
 _IMPORT_LINE = re.compile(r"\s*(from\s+\S+\s+import\b|import\s)")
