@@ -26,7 +26,7 @@ USERS = (
     ("the process engineer", ("reprocess", "batch", "report DUMP", "report trend", "report flux", "export surface",
                               "import-opencsp")),
     ("the quality engineer", ("report spc", "report acceptance", "report certificate SERIAL", "report diff A B")),
-    ("the metrologist", ("study repeatability", "study population")),
+    ("the metrologist", ("study repeatability", "study population", "study methods")),
     ("the field engineer", ("field orientation", "field canting", "field prescription", "field spot", "field glare")),
 )
 

@@ -130,3 +130,43 @@ def small_station_toml(tmp_path) -> Path:
 # The camera tests' --camera-serial / --camera-kind / --camera-shape options (real hardware, opt-in)
 # must be known wherever pytest starts.
 from tests.devices.cameras.conftest import pytest_addoption  # noqa: E402,F401
+
+
+#: Long tests left out of the README's test command (CI: it must stay under 15 minutes on two cores) and run
+#: with ``pytest -m slow`` (before a release: ``pytest -m "slow or not slow"`` runs everything). Each is a long
+#: run of a claim that a test or a benchmark's quick mode in the default set also checks, named beside it.
+LONG_TESTS = {
+    # the line's robustness: the kill campaign's and the soak's quick modes run the real `run` command
+    "tests/station/test_robustness.py::test_a_late_result_keeps_its_figures_its_dump_and_the_timeout_as_its_cycle_time":
+        "test_worker_load.py (late results kept), soak --quick",
+    "tests/station/test_robustness.py::test_a_killed_worker_is_replaced_and_the_line_goes_on": "kill_campaign --quick",
+    "tests/station/test_robustness.py::test_the_stations_children_die_with_it_and_a_second_run_is_refused":
+        "kill_campaign --quick",
+    "tests/station/test_standby.py::test_the_facet_after_a_hung_analysis_is_measured_while_the_hung_one_is_still_in_"
+    "its_grace": "test_standby.py's hung-worker rerun, test_worker_load.py",
+    "tests/reanalysis/test_batch.py::test_a_killed_batch_of_50_resumes_without_redoing_or_losing_any":
+        "test_batch.py's resume tests",
+    "tests/reanalysis/test_batch.py::test_dask_cluster_gives_the_same_results_as_the_local_run": "test_batch.py",
+    # accuracy and coverage over repeats: the population's both-ends coverage test covers them in CI
+    "tests/station/test_accuracy.py::test_ten_noisy_repeats": "test_population.py (both ends)",
+    "tests/station/test_capture_causes.py::test_shipped_heliostat_station_fails_on_focal_power_not_invalid_for_seeds_"
+    "1_to_10": "test_capture_causes.py's other seeds",
+    "tests/station/test_population.py::test_blurred_and_defocused_edges_leave_the_fit_figures_and_slope_rms_covered":
+        "test_population.py's edge models",
+    "tests/station/test_heliostat_accuracy.py::test_canting_within_0_05_mrad_of_truth_over_a_population":
+        "test_heliostat_station.py (canting against truth)",
+    "tests/station/test_heliostat_accuracy.py::test_canting_is_covered_by_its_u_when_the_station_is_not_known_exactly":
+        "test_heliostat_station.py",
+    # calibrations: the commissioning benchmarks' quick modes run `calibrate commission` on drawn stations
+    "tests/calibrate/test_commission.py": "commission_coverage --quick, commission_study --quick",
+    "tests/calibrate/test_store.py::test_room_light_change_mid_run_marks_the_rows_or_refuses_the_facets":
+        "test_store.py's staleness tests",
+    "tests/calibrate/test_camera.py::test_charuco_images": "test_camera_photos.py, camera_calibration --quick",
+}
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        nodeid = item.nodeid.split("[")[0]
+        if nodeid in LONG_TESTS or nodeid.split("::")[0] in LONG_TESTS:
+            item.add_marker(pytest.mark.slow)

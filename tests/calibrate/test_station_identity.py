@@ -56,16 +56,16 @@ def _screen_record(data_dir: Path, stated: ScreenSpec, scale: float, station: di
 
 
 def test_each_shipped_station_has_a_data_folder_and_an_identity_of_its_own(monkeypatch, tmp_path):
-    """Loaded as a user would (no SOFAST_DATA_DIR; the home folder a temporary one here), the six shipped
-    stations resolve six different data folders under ~/sofast-station-data and six different identities."""
+    """Loaded as a user would (no SOFAST_DATA_DIR; the home folder a temporary one here), the seven shipped
+    stations resolve seven different data folders under ~/sofast-station-data and seven different identities."""
     monkeypatch.delenv("SOFAST_DATA_DIR")
     monkeypatch.setenv("HOME", str(tmp_path))
-    assert len(SHIPPED) == 6
+    assert len(SHIPPED) == 7                 # station.toml and six in fixtures/stations
     configs = [load_config(path) for path in SHIPPED]
     folders = {c.data_dir for c in configs}
-    assert len(folders) == 6, sorted(map(str, folders))
+    assert len(folders) == 7, sorted(map(str, folders))
     assert all(f.parent == tmp_path / "sofast-station-data" for f in folders)
-    assert len({c.identity["id"] for c in configs}) == 6
+    assert len({c.identity["id"] for c in configs}) == 7
 
 
 def test_the_heliostat_station_does_not_take_the_dish_stations_radiometric_record(monkeypatch, tmp_path):

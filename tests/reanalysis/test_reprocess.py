@@ -339,6 +339,13 @@ def _write_v1_by_hand(path, content) -> None:
         fr.create_dataset("periods_x", data=np.array(content.fringes["periods_x"], np.float64))
         fr.create_dataset("periods_y", data=np.array(content.fringes["periods_y"], np.float64))
         fr.create_dataset("phase_steps", data=np.int64(content.fringes["phase_steps"]))
+        if "drawn" in content.fringes:      # an optional group (issue 47): how the display drew the fringes
+            d = content.fringes["drawn"]
+            dr = fr.create_group("drawn")
+            dr.create_dataset("lut", data=np.array(d["lut"], np.float64))
+            dr.create_dataset("floor_level", data=np.float64(d["floor_level"]))
+            dr.create_dataset("max_level", data=np.float64(d["max_level"]))
+            dr.create_dataset("display_px", data=np.array(d["display_px"], np.int64))
         rad = f.create_group("calibration/radiometric")
         r = content.radiometric
         rad.create_dataset("schema", data=np.int64(r["schema"]))
