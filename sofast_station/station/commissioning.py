@@ -11,12 +11,34 @@ the twin's second camera and reference mirror move instead.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
 
 from .. import __version__
+from ..calibrate.camera import load_camera_record
+from ..calibrate.commission_settings import commission_settings, load_mirror_target
 from ..calibrate.errors import CalibrationError
+from ..calibrate.geometry import check_geometry, load_reference, pitch_sensitivities, station_reference
+from ..calibrate.geometry import summary_text as geometry_summary
+from ..calibrate.geometry_record import save_geometry
+from ..calibrate.pose import calibrate_pose, pose_std, save_pose
+from ..calibrate.pose import summary_text as pose_summary
+from ..calibrate.screen import calibrate_screen, load_screen_record, save_screen
+from ..calibrate.screen import summary_text as screen_summary
+from ..calibrate.settings import calibration_settings
+from ..calibrate.store import check_warmup, newest_record_path
+from ..config import load_config
+from ..devices.cameras import open_camera
 from ..errors import ConfigError
+from ..measure.screen_shape import ScreenShape
+from ..measure.uncertainty import sensitivity_key
+from .factory import open_station
+from .inspection import inspect
+from .temperature import read_temperature
 
 log = logging.getLogger(__name__)
 
@@ -48,9 +70,6 @@ def _prompt(what: str):
 
 def _handheld_intrinsics(config, settings):
     """The second camera's calibration: its newest ``handheld`` record, else [calibration.screen] camera."""
-    from ..calibrate.camera import load_camera_record
-    from ..calibrate.store import newest_record_path
-
     path = newest_record_path(config.data_dir, "handheld", config.identity)
     if path is not None:
         camera, record = load_camera_record(path)
@@ -76,7 +95,6 @@ def _open_handheld(station, config, settings, seed):
     if hasattr(station, "handheld_camera"):
         cam = station.handheld_camera(settings, seed)
         return cam, cam.place
-    from ..devices.cameras import open_camera
 
     dev = config.raw.get("devices", {})
     kind = dev.get("handheld_camera")
@@ -105,9 +123,6 @@ def check_commission(config, *, reference: str | None = None, target: str | None
     ConfigError
         Naming the argument or key and what to do.
     """
-    from ..calibrate.commission_settings import commission_settings, load_mirror_target
-    from ..calibrate.geometry import load_reference
-
     screen, pose = commission_settings(config.raw, config.path.parent, str(config.path))
     _enough("views", screen.views, screen.min_views, False, config, "screen")
     _enough("placements", pose.placements, pose.min_placements, False, config, "pose")
@@ -128,12 +143,6 @@ def check_commission(config, *, reference: str | None = None, target: str | None
 def run_screen(config, *, views: int | None = None, model: str | None = None, seed: int | None = None,
                noise: bool = True) -> Step:
     """``calibrate screen`` on the station of *config*."""
-    import dataclasses
-
-    from ..calibrate.commission_settings import commission_settings
-    from ..calibrate.screen import calibrate_screen, save_screen, summary_text
-    from .factory import open_station
-
     settings, _ = commission_settings(config.raw, config.path.parent, str(config.path))
     if views is not None or model is not None:
         # `views or ...` took --views 0 for "the default" and ran the station file's views without a word
@@ -155,7 +164,7 @@ def run_screen(config, *, views: int | None = None, model: str | None = None, se
     finally:
         station.close()
     if cal.verdict == "refused":
-        return Step("screen", "refused", summary_text(cal), {"quality": cal.quality})
+        return Step("screen", "refused", screen_summary(cal), {"quality": cal.quality})
     source = f"sofast-station {__version__} calibrate screen on {config.name} ({config.backend}; {source_cam})"
     path = save_screen(config.data_dir, cal, source, station=config.identity)
     best = cal.fit.best
@@ -163,7 +172,7 @@ def run_screen(config, *, views: int | None = None, model: str | None = None, se
     rel = [best.shape.pitch_scale[0] - 1.0, best.shape.pitch_scale[1] - 1.0]
     headline = (f"pitch {100 * rel[0]:+.3f} % / {100 * rel[1]:+.3f} % against station.toml, {best.shape.model}, "
                 f"sag {1e3 * h['sag_m']:+.3f} mm, twist {1e3 * h['twist_m']:+.3f} mm; {path.name}")
-    return Step("screen", cal.verdict, summary_text(cal, path),
+    return Step("screen", cal.verdict, screen_summary(cal, path),
                 {"path": str(path), "headline": headline, "quality": cal.quality, "model": best.shape.model,
                  "pitch_vs_stated_relative": rel, "heights": h}, str(path))
 
@@ -171,17 +180,6 @@ def run_screen(config, *, views: int | None = None, model: str | None = None, se
 def run_pose(config, *, placements: int | None = None, target: str | None = None, seed: int | None = None,
              noise: bool = True) -> Step:
     """``calibrate pose`` on the station of *config*."""
-    import dataclasses
-
-    import numpy as np
-
-    from ..calibrate.commission_settings import commission_settings, load_mirror_target
-    from ..calibrate.pose import calibrate_pose, pose_std, save_pose, summary_text
-    from ..calibrate.screen import load_screen_record
-    from ..calibrate.store import newest_record_path
-    from ..measure.screen_shape import ScreenShape
-    from .factory import open_station
-
     _, settings = commission_settings(config.raw, config.path.parent, str(config.path))
     if placements is not None:
         settings = dataclasses.replace(settings, placements=placements)
@@ -229,21 +227,19 @@ def run_pose(config, *, placements: int | None = None, target: str | None = None
     finally:
         station.close()
     if cal.verdict == "refused":
-        return Step("pose", "refused", summary_text(cal), {"quality": cal.quality})
+        return Step("pose", "refused", pose_summary(cal), {"quality": cal.quality})
     source = f"sofast-station {__version__} calibrate pose on {config.name} ({config.backend}; {mirror.name})"
     path = save_pose(config.data_dir, cal, source, station=config.identity)
     std = pose_std(cal.fit.screen_covariance)
     headline = (f"screen depth U {2 * std['translation_mm'][2]:.2f} mm, rotation U "
                 f"{2 * max(std['rotation_mrad']):.2f} mrad (k=2); {path.name}")
-    return Step("pose", cal.verdict, summary_text(cal, path),
+    return Step("pose", cal.verdict, pose_summary(cal, path),
                 {"path": str(path), "headline": headline, "quality": cal.quality, "screen_std": std}, str(path))
 
 
 def sensitivities_in_force(station):
     """The uncertainty's sensitivities the station's analyses used (from its cache; None when it has none):
     the geometry check reads the screen pitch's from them."""
-    from ..measure.uncertainty import sensitivity_key
-
     config = station.config
     if getattr(config, "uncertainty", None) is None:
         return None
@@ -253,11 +249,6 @@ def sensitivities_in_force(station):
 
 def run_geometry(config, *, reference: str | None = None, seed: int | None = None, noise: bool = True) -> Step:
     """``calibrate geometry`` (the reference facet checks the whole chain) on the station of *config*."""
-    from ..calibrate.geometry import check_geometry, pitch_sensitivities, station_reference, summary_text
-    from ..calibrate.geometry_record import save_geometry
-    from .factory import open_station
-    from .inspection import inspect
-
     station = open_station(config, seed=seed, noise=noise)
     try:
         log.info("measuring the reference facet on %s", config.name)
@@ -274,7 +265,7 @@ def run_geometry(config, *, reference: str | None = None, seed: int | None = Non
     rel = [f[a]["relative_error"] for a in ("x", "y")]
     headline = ("f " + ", ".join(f"{a} {100 * r:+.4f} %" for a, r in zip("xy", rel) if r is not None)
                 + f" against the certificate; {path.name}")
-    return Step("geometry", verdict, summary_text(check, path) + f"\nverdict: {verdict.upper()}",
+    return Step("geometry", verdict, geometry_summary(check, path) + f"\nverdict: {verdict.upper()}",
                 {"path": str(path), "headline": headline, **check}, str(path))
 
 
@@ -283,11 +274,8 @@ def run_marks(config, *, seed: int | None = None, noise: bool = True, confirmed_
     ones (a new ``marks`` record, which also ends a hold the line put itself on; :mod:`sofast_station.calibrate.marks`).
     *confirmed_by*: the geometry record of the reference check that confirmed the geometry first
     (``calibrate confirm-geometry``)."""
-    import numpy as np
-
+    # lazy: calibrate.marks costs ~340 ms CPU (+219 modules, scipy) after this module; only marks need it
     from ..calibrate.marks import clear_hold, commission_marks, focal_px, mark_settings, save_marks_record
-    from ..calibrate.store import newest_record_path
-    from .factory import open_station
 
     settings = mark_settings(config)
     if settings is None:
@@ -303,7 +291,6 @@ def run_marks(config, *, seed: int | None = None, noise: bool = True, confirmed_
         station.close()
     pose = newest_record_path(config.data_dir, "pose", config.identity)
     source = f"sofast-station {__version__} calibrate marks on {config.name} ({config.backend})"
-    from .temperature import read_temperature
 
     extra = {"pose_record": pose.stem if pose is not None else None, "confirmed_by": confirmed_by,
              "temperature_c": read_temperature(config)}
@@ -339,8 +326,6 @@ def confirm_geometry(config, *, reference: str | None = None, seed: int | None =
     outside tolerance takes nothing: recommission (``calibrate commission``)."""
     steps = [run_geometry(config, reference=reference, seed=seed, noise=noise)]
     if steps[0].verdict == "pass":
-        from pathlib import Path
-
         steps.append(run_marks(config, seed=seed, noise=noise,
                                confirmed_by=Path(steps[0].path).stem if steps[0].path else None))
     else:
@@ -352,6 +337,7 @@ def confirm_geometry(config, *, reference: str | None = None, seed: int | None =
 def commission_steps(config) -> list[str]:
     """The steps ``calibrate commission`` runs on the station of *config*, in order (``marks`` when it has
     ``[marks]``)."""
+    # lazy: calibrate.marks costs ~340 ms CPU (+219 modules, scipy); the other steps never need it
     from ..calibrate.marks import mark_settings
 
     names = ["radiometric", "screen", "pose", "geometry"]
@@ -361,12 +347,9 @@ def commission_steps(config) -> list[str]:
 def run_radiometric(config, *, seed: int | None = None, noise: bool = True, plot: bool = True,
                     overrides: dict | None = None) -> Step:
     """``calibrate radiometric`` (with its display-latency self-test) on the station of *config*."""
-    import dataclasses
-
-    from ..calibrate.radiometric import calibrate_radiometric, save_radiometric, summary_text
-    from ..calibrate.settings import calibration_settings
-    from ..calibrate.store import check_warmup
-    from .factory import open_station
+    # lazy: calibrate.radiometric costs ~1 s CPU (+684 modules, scipy) after this module; only it needs it
+    from ..calibrate.radiometric import calibrate_radiometric, save_radiometric
+    from ..calibrate.radiometric import summary_text as radiometric_summary
 
     policy, settings = calibration_settings(config)
     if overrides:
@@ -389,7 +372,8 @@ def run_radiometric(config, *, seed: int | None = None, noise: bool = True, plot
                 f"{record.latency_frames} frame(s); {record.path.name}")
     data = {k: v for k, v in record.to_dict(curve=True).items() if k != "lut"} | {"path": str(record.path),
                                                                                "headline": headline}
-    return Step("radiometric", "pass", summary_text(record, record.path) + "\nverdict: PASS", data, str(record.path))
+    return Step("radiometric", "pass", radiometric_summary(record, record.path) + "\nverdict: PASS", data,
+                str(record.path))
 
 
 def commission(config_path, *, seed: int | None = None, noise: bool = True, reference: str | None = None,
@@ -399,8 +383,6 @@ def commission(config_path, *, seed: int | None = None, noise: bool = True, refe
     the reference confirmed is the one the marks keep watch over); the configuration is read again after each
     step (its records change the geometry in force). Stops at a step that is refused or fails. Returns the
     steps and the overall verdict (the worst step's)."""
-    from ..config import load_config
-
     say = progress or log.info
     first = load_config(config_path)
     check_commission(first, reference=reference, target=target)

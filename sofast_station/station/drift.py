@@ -34,6 +34,10 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError
+from ..files import safe_name, write_json_atomic
+from ..qc.spc import RULE_TEXT, Baseline, alarm_at_last
+from ..result.record import figure_value
+from ..result.specs import figure_specs
 
 log = logging.getLogger(__name__)
 
@@ -84,15 +88,11 @@ def drift_settings(config) -> dict[str, DriftSettings]:
 
 
 def baseline_path(data_dir: Path, recipe: str) -> Path:
-    from ..files import safe_name
-
     return Path(data_dir) / "quality" / f"baseline-{safe_name(recipe)}.json"
 
 
 def save_baseline(data_dir: Path, recipe: str, baselines: dict, period: dict) -> Path:
     """Write a recipe's baseline (figure key -> :class:`~sofast_station.qc.spc.Baseline`) atomically."""
-    from ..files import write_json_atomic
-
     path = baseline_path(data_dir, recipe)
     write_json_atomic(path, {"recipe": recipe, "period": period,
                              "figures": {k: b.to_dict() for k, b in baselines.items()}})
@@ -101,8 +101,6 @@ def save_baseline(data_dir: Path, recipe: str, baselines: dict, period: dict) ->
 
 def load_baseline(data_dir: Path, recipe: str) -> dict | None:
     """A recipe's saved baseline (figure key -> Baseline), or None when there is none."""
-    from ..qc.spc import Baseline
-
     path = baseline_path(data_dir, recipe)
     if not path.exists():
         return None
@@ -176,9 +174,6 @@ class DriftMonitor:
             self._history[recipe] = self._prime(recipe, s.window)
         hist = self._history[recipe]
         hist.append(record)
-        from ..qc.spc import RULE_TEXT, alarm_at_last
-        from ..result.record import figure_value
-        from ..result.specs import figure_specs
 
         if recipe not in self._specs:
             r = self.recipes.get(recipe)

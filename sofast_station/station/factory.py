@@ -9,7 +9,10 @@ import logging
 import numpy as np
 
 from ..calibrate.records import RadiometricRecord
+from ..calibrate.store import check_opened_station, open_calibration
 from ..config import StationConfig
+from ..devices.cameras import open_camera
+from ..devices.lcd import LcdDisplay
 from ..errors import ConfigError
 from .opened import Station
 
@@ -26,11 +29,11 @@ def open_station(config: StationConfig, seed: int | None = None, noise: bool = T
     open the station with ``calibration_checks=False``: no staleness checks, and an unreadable record
     falls back to a linear display with a warning (the routine is what replaces it).
     """
-    from ..calibrate.store import check_opened_station, open_calibration
-
     status = open_calibration(config, checks=calibration_checks)
     radiometric = status.record
     if config.backend == "simulated":
+        # A real station's run, inspect and calibrate open their station here and never need the twin.
+        # lazy: the twin costs ~850 ms CPU (+649 modules, scipy) after this module's own imports
         from .simulated import open_simulated
         station = open_simulated(config, radiometric, seed=seed, noise=noise)
     else:
@@ -71,9 +74,6 @@ def open_hardware(config: StationConfig, radiometric: RadiometricRecord) -> Stat
         camera_options = { serial = "40012345" }
         range_finder_options = { distance_m = 10.6612 }
     """
-    from ..devices.cameras import open_camera
-    from ..devices.lcd import LcdDisplay
-
     dev = config.raw.get("devices", {})
     where = f"{config.path} [devices]"
     scr, cam = config.geometry.screen, config.geometry.camera
@@ -90,6 +90,8 @@ def open_hardware(config: StationConfig, radiometric: RadiometricRecord) -> Stat
         kind = dev.get("camera", "basler")
         options = dict(dev.get("camera_options", {}))
         if kind == "replay" and "dump" in options:      # serve a data dump's frames, as captured
+            # Inspect and calibrate open their station here; only a replay camera serving a dump needs it.
+            # lazy: the archive package costs ~55 ms CPU (+18 modules) after this module's imports
             from ..archive import read_dump
             options = {"frames": read_dump(options.pop("dump")).frames(), "loop": True, **options}
         elif kind != "replay":

@@ -11,15 +11,20 @@ twin's truth (:func:`~sofast_station.twin.heliostat.heliostat_truth`). Used by t
 from __future__ import annotations
 
 import dataclasses
+import time
 from dataclasses import dataclass
 
 import numpy as np
 
+from ..devices.renderer import FringeRenderer
 from ..ensemble import EnsembleDesign
 from ..fringes import FringeSet
 from ..geometry import StationGeometry
 from ..measure.heliostat import HeliostatSettings, analyse_heliostat
 from ..measure.pipeline import AnalysisSettings
+from ..precompute import ray_table
+from ..twin.heliostat import TwinHeliostat, heliostat_truth
+from .study import perturbed_geometry
 
 
 @dataclass
@@ -57,9 +62,6 @@ class HeliostatRig:
     def __init__(self, geometry: StationGeometry, ensemble: EnsembleDesign, fringes: FringeSet, radiometric,
                  analysis: AnalysisSettings = AnalysisSettings(), heliostat: HeliostatSettings = HeliostatSettings(),
                  uncertainty=None):
-        from ..devices.renderer import FringeRenderer
-        from ..precompute import ray_table
-
         self.geometry, self.ensemble, self.fringes = geometry, ensemble, fringes
         self.analysis, self.heliostat, self.uncertainty = analysis, heliostat, uncertainty
         scr = geometry.screen
@@ -74,7 +76,6 @@ class HeliostatRig:
         self.cache: dict = {}
 
     def twin(self, true_heliostat, optics, geometry: StationGeometry | None = None):
-        from ..twin.heliostat import TwinHeliostat
         return TwinHeliostat(geometry or self.geometry, self.ensemble, true_heliostat, optics)
 
     def capture(self, twin, rng: np.random.Generator | None) -> np.ndarray:
@@ -85,13 +86,8 @@ class HeliostatRig:
         """Trace, photograph, analyse and compare one heliostat. With *perturb*, the twin's station (camera,
         screen, fixture, pitch) and the measured distance are drawn from ``[uncertainty]`` (*rng*); *drawn*, a
         dict, then receives each input's draw (:func:`~sofast_station.station.study.perturbed_geometry`)."""
-        import time
-
-        from ..twin.heliostat import heliostat_truth
-
         geometry, distance_error = self.geometry, 0.0
         if perturb:
-            from .study import perturbed_geometry
             geometry, distance_error = perturbed_geometry(self.geometry, self.uncertainty, rng, drawn)
         twin = self.twin(true_heliostat, optics, geometry)
         frames = self.capture(twin, rng if optics.has_noise else None)

@@ -17,6 +17,7 @@ import numpy as np
 
 from ..job import Capture, job_for
 from ..recipes import default_recipe
+from ..result.optical_figures import DesignTraces
 from .frames import capture_sequence, crop, restore
 from .opened import Station
 
@@ -56,7 +57,6 @@ def inspect(station: Station, serial: str, progress=None, pictures_dir=None, rec
     t_capture = time.perf_counter() - t0
     t1 = time.perf_counter()
     if station.design_traces is None:
-        from ..result.optical_figures import DesignTraces
         station.design_traces = DesignTraces()
     outcome = job.analyse(Capture(frames, distance, config.fringes, config.geometry, station.rays_cam),
                           uncertainty=config.uncertainty, sensitivity_cache=station.sensitivity_cache,

@@ -26,8 +26,19 @@ import time
 from pathlib import Path
 
 import numpy as np
+from scipy.stats import beta
 
+from ..calibrate.marks import clear_hold, commission_marks, mark_settings
+from ..calibrate.records import load_radiometric
+from ..config import load_config
 from ..fringes import Pattern
+from ..twin.assembly import TrueAssembly, true_geometry
+from ..twin.marks import mark_image_centres_px
+from ..twin.parameters import TrueFacet, TwinOptics
+from ..twin.station import TwinStation
+from .marks import MarkCheck
+from .population import DEFAULT_STATION, KINDS, _records_from, draw_station, kind_config
+from .study import Placement
 
 #: The camera moves the check is asked to catch (the issue's: a turn of 0.2 mrad, a shift of 1 mm), about and
 #: along the camera's own axes (x along the image's columns, y down its rows, z the optical axis), and the two
@@ -84,15 +95,8 @@ class MarkStation:
     """
 
     def __init__(self, index: int, seed: int, data_dir: Path, full: bool = False):
-        from ..calibrate.marks import mark_settings
-        from ..calibrate.records import load_radiometric
-        from ..twin.parameters import TrueFacet, TwinOptics
-        from .population import DEFAULT_STATION, KINDS, _records_from, draw_station, kind_config
-
         self.spec = draw_station(index, seed, kinds=("dish",))
         if full:
-            from ..config import load_config
-
             with _records_from(data_dir):
                 cfg = dataclasses.replace(load_config(DEFAULT_STATION), data_dir=data_dir)
         else:
@@ -120,9 +124,6 @@ class MarkStation:
     def twin(self, placement=((0.0, 0.0, 0.0), (0.0, 0.0, 0.0)), turn_mrad=(0.0, 0.0, 0.0),
              shift_mm=(0.0, 0.0, 0.0)):
         """The station's twin with the facet at *placement* (mm, mrad) and the camera turned and shifted."""
-        from ..twin.assembly import TrueAssembly, true_geometry
-        from ..twin.station import TwinStation
-
         geometry = self.config.geometry
         if any(turn_mrad) or any(shift_mm):
             geometry = true_geometry(geometry, TrueAssembly(camera_turn_mrad=tuple(turn_mrad),
@@ -138,9 +139,6 @@ class MarkStation:
 
     def commission(self, rng: np.random.Generator):
         """``calibrate marks`` on this station: the commissioned record (as the line loads it) and its check."""
-        from ..calibrate.marks import commission_marks
-        from .marks import MarkCheck
-
         display = _Display(self.white.shape)
         found = commission_marks(display, _Camera(self, display, rng), self.settings, self.config.geometry)
         record = {"record_id": "marks-study", "positions_px": found.positions_px}
@@ -149,8 +147,6 @@ class MarkStation:
 
 def check_once(check, frame: np.ndarray) -> dict:
     """One check of *frame*, forgetting any hold it leaves (each capture judged on its own)."""
-    from ..calibrate.marks import clear_hold
-
     entry = check.check(frame)
     if check.hold is not None:
         check.hold = None
@@ -162,8 +158,6 @@ def good_cycles(station: MarkStation, check, n: int, rng: np.random.Generator, p
     """*n* good cycles: the facet placed anew every *place_every* cycles, each frame checked. Each outcome:
     ``withheld`` (a false alarm), the apparent turn and roll against their limits, the shift against its own
     noise, the residual RMS, the marks found, the check's time."""
-    from .study import Placement
-
     s = station.settings
     out = []
     twin = station.twin0
@@ -200,7 +194,6 @@ def binomial_upper(n: int, failures: int = 0, confidence: float = 0.95) -> float
         return 1.0
     if failures == 0:
         return 1.0 - (1.0 - confidence) ** (1.0 / n)
-    from scipy.stats import beta
 
     return float(beta.ppf(confidence, failures + 1, n - failures))
 
@@ -229,7 +222,5 @@ def run_study(stations: int, cycles: int, seed: int, data_dir: Path, full: bool 
 
 def _truth_px(station: MarkStation) -> np.ndarray:
     """Where the twin draws the marks' centres, pixels (its own camera model and the true fixture pose)."""
-    from ..twin.marks import mark_image_centres_px
-
     twin = station.twin0
     return mark_image_centres_px(station.settings.design, twin.geometry.fixture_to_camera, twin.trace.camera)

@@ -13,6 +13,7 @@ import logging
 import os
 import threading
 import time
+import tracemalloc
 
 log = logging.getLogger(__name__)
 
@@ -21,8 +22,6 @@ ENV = "SOFAST_TRACEMALLOC_S"
 
 def growth_lines(snapshot, baseline, top: int = 8, strip: str = "") -> list[str]:
     """The *top* sites of *snapshot* that grew most since *baseline* (tracemalloc snapshots), as text."""
-    import tracemalloc
-
     snapshot = snapshot.filter_traces([tracemalloc.Filter(False, tracemalloc.__file__),
                                        tracemalloc.Filter(False, "<frozen*")])
     stats = snapshot.compare_to(baseline, "traceback")
@@ -43,8 +42,6 @@ def start_from_env(name: str) -> bool:
         return False
     if period <= 0:
         return False
-    import tracemalloc
-
     root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))) + "/"
 
     def watch():

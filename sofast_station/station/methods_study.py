@@ -25,9 +25,16 @@ from pathlib import Path
 
 import numpy as np
 
+from ..calibrate.records import load_radiometric
+from ..devices.renderer import FringeRenderer
 from ..errors import ConfigError, StationError
+from ..files import json_ready, write_json_atomic
+from ..fringes import Pattern
+from ..job.fixed import dot_locations, grid_image
 from ..measure.analysis import analyse
 from ..measure.fixed import analyse_fixed
+from ..recipes import fixed_capture
+from ..twin.truth import ground_truth
 from .population import EDGE_MODELS, PopulationStation, coverage_band, coverage_rows, draw_station
 from .study import Placement, capture_record, perturbed_geometry
 
@@ -50,11 +57,6 @@ def frame_time_s(config, radiometric) -> float:
 
 def _dot_image(st: PopulationStation, grid):
     """The display's picture of *grid* (the station's renderer, as the line's simulated display draws it)."""
-    from ..calibrate.records import load_radiometric
-    from ..devices.renderer import FringeRenderer
-    from ..fringes import Pattern
-    from ..job.fixed import grid_image
-
     record = load_radiometric(st.config.radiometric_path)
     scr = st.config.geometry.screen
     with FringeRenderer(scr.width_px, scr.height_px, lut=record.lut, floor_level=record.floor_level,
@@ -63,8 +65,6 @@ def _dot_image(st: PopulationStation, grid):
 
 
 def _case(method: str, analysed, twin, place, cpu_s: float, capture_s: float, n_frames: int) -> dict:
-    from ..twin.truth import ground_truth
-
     fig = analysed.figures
     return {"method": method, "n_points": int(fig["n_points"]), "analysis_cpu_s": cpu_s, "capture_s": capture_s,
             "n_frames": n_frames, **capture_record(fig, ground_truth(twin, analysed.valid), place)}
@@ -75,9 +75,6 @@ def run_methods(captures: int, seed: int = 0, per_station: int = 5, kinds=FIXED_
     """Both methods on every capture of the drawn stations until *captures* captures (*per_station* on each):
     one case per method and capture (``method``, ``index``, ``kind``, ``capture``, the figures, U and truth,
     ``n_points``, ``analysis_cpu_s``, ``capture_s``), or ``outcome`` "refused" with its ``error``."""
-    from ..job.fixed import dot_locations
-    from ..recipes import fixed_capture
-
     cases: list[dict] = []
     images: dict = {}
     placement = Placement()
@@ -192,8 +189,6 @@ def study_methods(captures: int, seed: int = 0, per_station: int = 5, kinds=FIXE
                   out_dir: Path | None = None, progress=None) -> dict:
     """:func:`run_methods`, :func:`summarise_methods` and :func:`methods_text`; the cases and the summary as
     ``methods-SEED-N.json`` (and the table as .txt) under *out_dir* when given."""
-    from ..files import json_ready, write_json_atomic
-
     t0 = time.perf_counter()
     cases = run_methods(captures, seed, per_station, kinds, edges, progress)
     summary = summarise_methods(cases)

@@ -14,6 +14,7 @@ import numpy as np
 from ..calibrate.records import RadiometricRecord
 from ..config import StationConfig
 from ..devices.protocols import Camera, Display, RangeFinder
+from ..job import job_for
 from ..precompute import ray_table
 from ..result.record import RecordHead, now_iso
 
@@ -89,8 +90,6 @@ class Station:
         simulated station may give one that injects the faults its tests ask for *serial*
         (:meth:`~sofast_station.station.simulated.SimulatedStation.job_for`); a real station never does. A
         heliostat recipe with canting prescriptions judges *serial* against its own (docs/field.md)."""
-        from ..job import job_for
-
         return job_for(recipe, self.config, serial)
 
     def truth(self, valid: np.ndarray, job=None) -> dict | None:

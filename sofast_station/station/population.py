@@ -30,21 +30,33 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import datetime as _dt
 import logging
 import math
 import os
+import sys
 import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from scipy.stats import beta, binom, chi2
 
+from ..calibrate.records import load_radiometric
+from ..config import load_config
+from ..devices.renderer import FringeRenderer, identity_lut
 from ..errors import StationError
+from ..files import json_ready, write_json_atomic
 from ..measure.analysis import analyse
-from ..measure.uncertainty import SCALAR_PATHS
+from ..measure.checks import curl_judgement
+from ..measure.uncertainty import SCALAR_PATHS, path_name
+from ..result.verdict import Quality, judge
+from ..twin.parameters import TrueFacet, TwinOptics
+from ..twin.station import TwinStation
+from ..twin.truth import ground_truth
+from .simulated import build_twin
 from .study import Placement, capture_record, perturbed_geometry
-from ..result.verdict import judge
 
 log = logging.getLogger(__name__)
 
@@ -135,8 +147,6 @@ def _records_from(folder: Path):
 def kind_config(kind: str, data_dir: Path):
     """The station of facet *kind*, its camera scaled to :data:`CAMERA_WIDTH_PX` (same field of view),
     its records (none) from *data_dir*."""
-    from ..config import load_config
-
     path = DEFAULT_STATION if KINDS[kind].station == "station.toml" else FIXTURES.parent / KINDS[kind].station
     if not path.exists():
         raise StationError(f"the population's {kind} station {path} is missing: the study runs from a source "
@@ -180,8 +190,6 @@ class PopulationStation:
     facet, the displayed images (linearised, and not: the gamma fault) and the sensitivity cache."""
 
     def __init__(self, spec: dict, data_dir: Path, images: dict):
-        from ..twin.parameters import TrueFacet, TwinOptics
-
         self.spec = spec
         cfg = kind_config(spec["kind"], data_dir)
         cam = cfg.geometry.camera
@@ -215,8 +223,6 @@ class PopulationStation:
         self.cache: dict = {}
 
     def twin(self, geometry, placement_mm, placement_mrad, optics=None):
-        from ..twin.station import TwinStation
-
         facet = dataclasses.replace(self.facet, placement_mm=tuple(placement_mm), placement_mrad=tuple(placement_mrad))
         return TwinStation(geometry, self.config.design, facet, optics or self.optics)
 
@@ -230,8 +236,6 @@ class PopulationStation:
 
     @property
     def calibration(self):
-        from ..calibrate.records import load_radiometric
-
         if not hasattr(self, "_calibration"):
             self._calibration = load_radiometric(self.config.radiometric_path)
         return self._calibration
@@ -240,9 +244,6 @@ class PopulationStation:
 def _render(cfg) -> tuple:
     """The station's fringe images through its radiometric table, and through an identity table (a
     display left unlinearised: the gamma fault)."""
-    from ..calibrate.records import load_radiometric
-    from ..devices.renderer import FringeRenderer, identity_lut
-
     record = load_radiometric(cfg.radiometric_path)
     scr = cfg.geometry.screen
     out = []
@@ -283,8 +284,6 @@ def classify(outcome: str, reasons: list[str], error: str | None) -> str:
 
 def _statistics(fig: dict, verdict_quality) -> dict:
     """Each validity check's statistic of one capture (what its threshold judges)."""
-    from ..measure.checks import curl_judgement
-
     q = verdict_quality
     out = {"valid_fraction": fig["valid_fraction"], "median_modulation_dn": fig["median_modulation_dn"],
            "unwrap_disagreement_fraction": fig["unwrap_disagreements"] / max(fig["facet_pixels"], 1),
@@ -312,8 +311,6 @@ def _statistics(fig: dict, verdict_quality) -> dict:
 
 def _analyse_case(st: PopulationStation, frames, distance: float, twin, place, with_uncertainty: bool) -> dict:
     """Analyse and judge one capture; the truth and coverage record of a good one."""
-    from ..twin.truth import ground_truth
-
     cfg = st.config
     t0 = time.perf_counter()
     try:
@@ -482,8 +479,6 @@ def run_population(captures: int, seed: int = 0, per_station: int = 10, kinds=tu
 # ------------------------------------------------------------------------------ tallies
 def _rate(k: int, n: int) -> dict:
     """k of n with the 95 % Clopper-Pearson interval of the rate."""
-    from scipy.stats import beta
-
     lo = 0.0 if k == 0 else float(beta.ppf(0.025, k, n - k + 1))
     hi = 1.0 if k == n else float(beta.ppf(0.975, k + 1, n - k))
     return {"k": int(k), "n": int(n), "rate": (k / n) if n else None, "ci95": [lo, hi]}
@@ -493,8 +488,6 @@ def summarise(cases: list[dict], quality=None) -> dict:
     """The population's tallies: false alarms on good captures (by check, by kind), detection of each
     planted fault (and by what), the checks' statistics against their thresholds on good captures, and
     per figure the coverage of |error against truth| <= U over the good captures that were judged."""
-    from ..result.verdict import Quality
-
     q = quality or Quality()
     good = [c for c in cases if c["case"] == "good"]
     alarms = [c for c in good if c["outcome"] in ("refused", "invalid")]
@@ -575,8 +568,6 @@ def coverage_rows(cases: list[dict], paths=SCALAR_PATHS, corrected: bool = True)
     axis's: its error is taken modulo pi (into [-pi/2, pi/2)). With *corrected*, also the noise-corrected
     slope RMS values (``slope_rms_corrected_mrad.<model>.<axis>``: the cases' ``corrected`` and
     ``U_corrected`` against the slope RMS's truth, which has no noise)."""
-    from ..measure.uncertainty import path_name
-
     def row(name, triples):
         z = []
         for v, t, u in triples:
@@ -629,8 +620,6 @@ def coverage_band(n: int, claim=CLAIM_COVERAGE, false_alarm: float = 1e-3) -> tu
     holds the observed fraction with probability 1 - *false_alarm* (two-sided) for a true coverage at the
     claim's low end (the band's low end) and at its high end (its high end). *claim* is a (low, high)
     range of true coverages or one value."""
-    from scipy.stats import binom
-
     low, high = (claim, claim) if np.ndim(claim) == 0 else claim
     lo = binom.ppf(false_alarm / 2, n, low) / n
     hi = binom.isf(false_alarm / 2, n, high) / n
@@ -643,8 +632,6 @@ def rms_band(n: int, claim=CLAIM_RMS, false_alarm: float = 1e-3) -> tuple[float,
     RMS lies in s sqrt(chi2_{a/2}(n) / n) .. s sqrt(chi2_{1-a/2}(n) / n) with probability 1 - a (a =
     *false_alarm*); the band takes s at the claim's low end for its low end and at its high end for its
     high end."""
-    from scipy.stats import chi2
-
     low, high = (claim, claim) if np.ndim(claim) == 0 else claim
     return (float(low * np.sqrt(chi2.ppf(false_alarm / 2, n) / n)),
             float(high * np.sqrt(chi2.isf(false_alarm / 2, n) / n)))
@@ -763,9 +750,11 @@ def summary_text(summary: dict) -> str:
 def population_png(cases: list[dict], summary: dict, path) -> None:
     """Three panels: coverage per figure with the band a right 95 % claim allows, the curl statistic of
     good and swapped captures against its threshold, and each fault's detection rate."""
+    # Only the chart draws: the other studies import this module and never do.
+    # lazy: matplotlib.pyplot costs ~350 ms CPU (+176 modules) after this module; Agg chosen before pyplot loads
     import matplotlib
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # lazy: as matplotlib above
 
     fig, axes = plt.subplots(1, 3, figsize=(18, 8), gridspec_kw={"width_ratios": [2.2, 1.2, 1]})
     ax = axes[0]
@@ -784,7 +773,6 @@ def population_png(cases: list[dict], summary: dict, path) -> None:
     ax.set_xlabel("|error against truth| <= U (k = 2), % of good captures")
     ax.set_title("coverage of the stated uncertainty")
     ax = axes[1]
-    from ..result.verdict import Quality
     q = Quality()
     for label, kind, color in (("good captures", "good", "tab:blue"), ("swapped sets", "swapped", "tab:red")):
         pts = [(c["statistics"]["curl_sigmas"], c["statistics"]["curl_ratio"]) for c in cases
@@ -832,8 +820,6 @@ class ProgressLog:
     left at the pace so far. :meth:`close` writes the last station's line."""
 
     def __init__(self, total_stations: int, stream=None):
-        import sys
-
         self.total = total_stations
         self.stream = stream or sys.stderr
         self.t0 = time.perf_counter()
@@ -871,11 +857,6 @@ def study(captures: int, seed: int = 0, per_station: int = 10, kinds=tuple(KINDS
     """Run the population and write what it found: ``population-<seed>-<captures>.json`` (every case and
     the tallies), ``.txt`` (the readable table) and ``.png`` (coverage, the curl against its threshold,
     faults caught) under *out_dir* (nothing written without one). Returns ``{"summary", "text", "paths"}``."""
-    import datetime as _dt
-
-    from ..files import json_ready, write_json_atomic
-    from ..result.verdict import Quality
-
     t0 = time.perf_counter()
     cases = run_population(captures, seed=seed, per_station=per_station, kinds=kinds, edges=edges, faults=faults,
                            progress=progress)
@@ -914,15 +895,9 @@ def commissioned_cases(config_path, captures: int, seed: int = 0, progress=None)
     ``[uncertainty] distance_mm``; the twin keeps its true assembly (what the commissioning measured). The
     cases are :func:`run_population`'s good captures (``figures``, ``U``, ``truth``), so :func:`summarise`
     tallies them; ``index`` is *seed* (one station)."""
-    from ..config import load_config
-    from ..twin.station import TwinStation
-    from ..twin.truth import ground_truth
-    from .simulated import build_twin
-
     cfg = load_config(Path(config_path))
     twin0 = build_twin(cfg, noise=True)
     images, _ = _render(cfg)
-    from ..calibrate.records import load_radiometric
 
     cal = load_radiometric(cfg.radiometric_path)
     rng = np.random.default_rng([int(seed), 0xC0AA])

@@ -29,6 +29,7 @@ import math
 from pathlib import Path
 
 from ..calibrate.errors import StaleCalibrationError
+from ..calibrate.geometry import compare_to_reference
 from ..files import write_json_atomic
 
 log = logging.getLogger(__name__)
@@ -54,8 +55,6 @@ def _now() -> _dt.datetime:
 def judge_reference(record: dict, reference) -> dict:
     """Compare a reference facet's *record* with its certificate (*reference*, a GeometryReference): the
     station's errors, within the certificate's limits or not (module docstring)."""
-    from ..calibrate.geometry import compare_to_reference
-
     figures = dict(record)
     placed = isinstance(record.get("placement"), dict)
     tilt = record.get("optical_tilt_mrad")

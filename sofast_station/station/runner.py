@@ -23,29 +23,33 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..calibrate.geometry import load_reference, station_reference
 from ..calibrate.settings import calibration_settings
 from ..calibrate.store import check_cycle
 from ..devices.protocols import WARNING_BITS, FacetRequest
-from ..memory import trim_heap
 from ..errors import StationError, TriggerError
+from ..live.operator_commands import take_commands
+from ..live.status import StatusFile
+from ..memory import trim_heap
+from ..recipes import Recipe
 from ..result.health import HealthSettings, LineHealth
 from ..result.record import RecordHead
 from ..result.shift import cycle_seconds
 from ..serials import clean_serial, raw_for_record
 from . import console as _console
-from ..live.operator_commands import take_commands
 from .clock import StationClock
-from .drift import DriftMonitor
 from .cycle import Cycle, CycleOutcome
+from .display import ALARM as DISPLAY_ALARM
+from .display import DisplayCheck
+from .drift import DriftMonitor
 from .frames import capture_sequence
 from .link import LinkWatch
-from .marks import ALARM as GEOMETRY_ALARM, MarkCheck
+from .marks import ALARM as GEOMETRY_ALARM
+from .marks import MarkCheck
 from .opened import Station
-from .reference import AGE_ALARM, ALARM as REFERENCE_ALARM, ReferenceCheck
-from .display import ALARM as DISPLAY_ALARM, DisplayCheck
+from .reference import AGE_ALARM, ReferenceCheck
+from .reference import ALARM as REFERENCE_ALARM
 from .temperature import TemperatureCheck
-from ..recipes import Recipe
-from ..live.status import StatusFile
 from .worker import AnalysisWorker
 
 log = logging.getLogger(__name__)
@@ -288,8 +292,6 @@ class StationRunner:
         """A reference recipe's facet judged against its certificate (:mod:`sofast_station.station.reference`):
         its verdict becomes the comparison's; beyond the limits the line holds (alarm ``line-reference``), within
         them a hold ends. Returns the record's ``station_checks.reference``."""
-        from ..calibrate.geometry import load_reference, station_reference
-
         twin = recipe.reference == "twin"
         certificate = station_reference(self.station) if twin else load_reference(recipe.reference)
         before = self.reference.hold

@@ -19,17 +19,20 @@ import time
 from pathlib import Path
 
 from ..archive import Archiver, ArchiverSettings, DumpContent, Journal, WorkbookSettings
-from ..files import remove_stale_temp_files, temp_path_for
-from ..memory import map_large_blocks
 from ..archive.spool import spool_get, spool_list
 from ..config import StationConfig
 from ..devices.protocols import FacetRequest
+from ..devices.triggers import open_trigger
 from ..errors import ArchiveError, ConfigError, StationError, TriggerError
+from ..files import remove_stale_temp_files, temp_path_for
+from ..job import job_for
 from ..live.logs import setup_logging
+from ..live.pictures import FacetPictures
+from ..memory import map_large_blocks
+from ..recipes import recipes_from_config
 from ..web.settings import web_settings
 from .factory import open_station
-from ..live.pictures import FacetPictures
-from ..recipes import recipes_from_config
+from .memtrace import start_from_env
 from .runner import RunSettings, StationRunner
 from .worker import watch_parent
 
@@ -91,8 +94,6 @@ def open_trigger_from_config(config: StationConfig, simulated_facets: list[Facet
 
     A PLC that cannot be reached is tried again every *retry_s* seconds until it answers (None: raise).
     """
-    from ..devices.triggers import open_trigger
-
     dev = config.raw.get("devices", {})
     unknown = sorted(set(dev) - _DEVICE_KEYS)
     if unknown:
@@ -325,7 +326,6 @@ def _archiver_main(journal_path: str, data_dir: str, settings: ArchiverSettings,
     logging.basicConfig(level=logging.INFO, format="%(asctime)s archiver %(levelname)s %(message)s",
                         datefmt="%H:%M:%S")
     setup_logging(Path(data_dir), name="archiver.log")
-    from .memtrace import start_from_env
     start_from_env("archiver")                        # off unless SOFAST_TRACEMALLOC_S is set (leak hunts)
     # One archiver per data folder, even for the instant a killed station's archiver takes to notice.
     lock = DataDirLock(Path(data_dir), name="archiver.lock", wait_s=30.0, what="archiver")
@@ -482,7 +482,6 @@ class Service:
             recipe = self.recipes.get(record.get("recipe") or "default", self.recipes["default"])
             facet_path = self.config.raw.get("recipes", {}).get(recipe.name, {}).get("facet")
             # the job the cycle measured with: a heliostat's canting prescription is its serial's (no simulated fault)
-            from ..job import job_for
             job = job_for(recipe, self.config, record.get("serial"))
             content = DumpContent.from_station(
                 self.station, cycle_id=cycle_id, record=record, frames_cropped=dump["frames"],

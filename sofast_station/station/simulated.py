@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import logging
 import threading
@@ -9,13 +10,24 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..calibrate.marks import mark_settings
 from ..calibrate.records import RadiometricRecord
 from ..config import StationConfig
 from ..config_schema import SIMULATED_FAULTS
 from ..devices.renderer import FringeRenderer
 from ..devices.simulated import SimulatedCamera, SimulatedDisplay, SimulatedRangeFinder
 from ..errors import ConfigError
+from ..twin.assembly import TrueAssembly, TrueScreen, true_geometry
+from ..twin.heliostat import TwinHeliostat, heliostat_from_simulation, heliostat_truth
+from ..twin.parameters import TrueFacet, TwinOptics
+from ..twin.population import FacetPopulation
+from ..twin.station import TwinStation
+from ..twin.sunlight import Sunlight, facet_in_sunlight, sunlit_plan
+from ..twin.trace import rotation_zyx
+from ..twin.truth import ground_truth
 from .opened import Station
+from .simulated_commission import SimulatedHandheld, SimulatedMirror
+from .simulated_faults import faulty_job
 
 _SIM_KEYS = {"seed", "facet", "optics", "population", "distance_error_m", "faults", "hang_s", "slow_s",
              "assembly", "heliostat", "temperature"}
@@ -33,10 +45,6 @@ def build_twin(config: StationConfig, noise: bool = True):
     estimates of the twin's truth), changed by ``[simulation.assembly]`` (a bowed screen of another pitch, a
     misplaced camera: :class:`~sofast_station.twin.assembly.TrueAssembly`).
     """
-    from ..twin.assembly import TrueAssembly, TrueScreen, true_geometry
-    from ..twin.parameters import TrueFacet, TwinOptics
-    from ..twin.station import TwinStation
-
     sim = config.simulation
     unknown = sorted(set(sim) - _SIM_KEYS)
     if unknown:
@@ -61,13 +69,11 @@ def build_twin(config: StationConfig, noise: bool = True):
         if screen is not None:
             raise ConfigError(f"{config.path} [simulation.assembly] bends or rescales the screen, which the "
                               "heliostat twin does not trace: leave its screen terms out for a heliostat station")
-        from ..twin.heliostat import TwinHeliostat, heliostat_from_simulation
         heliostat = heliostat_from_simulation(sim, config.ensemble, f"{config.path} [simulation]")
         return TwinHeliostat(geometry, config.ensemble, heliostat, optics)
     if "heliostat" in sim:
         raise ConfigError(f"{config.path} [simulation.heliostat] describes a heliostat, but [station] facet is a "
                           "single facet's file")
-    from ..calibrate.marks import mark_settings
 
     marks = mark_settings(config)
     return TwinStation(geometry, config.design, facet, optics, screen_shape=screen,
@@ -77,8 +83,6 @@ def build_twin(config: StationConfig, noise: bool = True):
 def build_population(config: StationConfig):
     """``[simulation.population]`` (:class:`~sofast_station.twin.population.FacetPopulation`), or None when the
     station measures the same facet every time."""
-    from ..twin.population import FacetPopulation
-
     table = config.simulation.get("population")
     if not table:
         return None
@@ -149,8 +153,6 @@ class SimulatedStation(Station):
         ("hung-analysis", "hung-facet", "slow-analysis", "worker-dies") wraps the job
         (:class:`~sofast_station.station.simulated_faults.FaultyJob`), which misbehaves in the analysis worker
         as the fault says; with no serial (the warm-up) nothing is armed."""
-        from .simulated_faults import faulty_job
-
         job = super().job_for(recipe, serial)
         if serial is None:
             return job
@@ -164,10 +166,6 @@ class SimulatedStation(Station):
         """Bump the twin's camera (tests and benchmarks of the fixture marks' check): turned by *turn_mrad* about
         and shifted by *shift_mm* along its own axes, on top of ``[simulation.assembly]``; the screen and the
         fixture stay. The next facet placed, and the one in the fixture, are seen from there."""
-        import copy
-
-        from ..twin.assembly import TrueAssembly
-
         sim = copy.deepcopy(self.config.simulation)
         assembly = TrueAssembly.from_dict(sim.get("assembly", {}))
         sim["assembly"] = {**assembly.to_dict(),
@@ -198,9 +196,6 @@ class SimulatedStation(Station):
         """The twin's ground truth at the pixels *valid* (:func:`~sofast_station.twin.truth.ground_truth`),
         with the optical figures of its exact surface (:func:`truth_optics`) when *job* (a facet's) traces its
         optical figures: the same truth whoever measured the facet (``inspect`` or the line)."""
-        from ..twin.heliostat import TwinHeliostat, heliostat_truth
-        from ..twin.truth import ground_truth
-
         if isinstance(self.twin, TwinHeliostat):     # every facet's figures and canting, and the heliostat's
             return heliostat_truth(self.twin, valid)
         truth = ground_truth(self.twin, valid)
@@ -214,15 +209,11 @@ class SimulatedStation(Station):
     def handheld_camera(self, settings, seed: int | None = None):
         """The second camera of ``calibrate screen``, with the twin's views of the screen
         (:class:`~sofast_station.station.simulated_commission.SimulatedHandheld`: a Camera with ``place``)."""
-        from .simulated_commission import SimulatedHandheld
-
         return SimulatedHandheld(self, settings, seed)
 
     def mirror_placer(self, target, seed: int | None = None):
         """The reference mirror of ``calibrate pose`` in the twin's fixture
         (:class:`~sofast_station.station.simulated_commission.SimulatedMirror`: ``place`` and ``restore``)."""
-        from .simulated_commission import SimulatedMirror
-
         return SimulatedMirror(self, target, seed)
 
     def reference_certificate(self) -> dict:
@@ -231,8 +222,6 @@ class SimulatedStation(Station):
         truth of the twin is stated: the analysis leaves out the pixels within the edge's blur, and over a
         1-pixel ring a facet's best-fit f differs by a few hundredths of a percent), else over every pixel
         that sees the facet, and its placement; exact (zero uncertainty)."""
-        from ..twin.truth import ground_truth
-
         kept = getattr(self, "_last_valid", None)
         truth = ground_truth(self.twin, kept if kept is not None else np.asarray(self.twin.coverage) > 0.5)
         return {"name": f"twin's true facet ({self.config.design.name})",
@@ -276,8 +265,6 @@ def sunlight_of(settings):
     """The twin's record (:class:`~sofast_station.twin.sunlight.Sunlight`) of a recipe's optics settings (an
     :class:`~sofast_station.optics.OpticsSettings`, read attribute by attribute: the twin's truth shares no code
     with the optics it checks)."""
-    from ..twin.sunlight import Sunlight
-
     sun, ap = settings.sun, settings.aperture
     aperture = None if ap is None else (("circle", ap.radius_m) if ap.shape == "circle"
                                         else ("rectangle", ap.width_m, ap.height_m))
@@ -297,11 +284,7 @@ def truth_optics(twin, kept: np.ndarray, design, settings, plans: dict | None = 
     pixels (*boresight_mrad*, ``ground_truth(twin, kept)["boresight_mrad"]``; computed when not given).
     *plans* keeps the sunlight's samples and the design's figures per design and settings (they do not
     depend on the facet)."""
-    from ..twin.sunlight import facet_in_sunlight, sunlit_plan
-    from ..twin.trace import rotation_zyx
-
     if boresight_mrad is None:
-        from ..twin.truth import ground_truth
         boresight_mrad = ground_truth(twin, kept)["boresight_mrad"]
     sunlight = sunlight_of(settings)
     key = (id(design), sunlight)

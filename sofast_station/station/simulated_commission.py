@@ -15,6 +15,12 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..geometry import Pose
+from ..layout import mirror_seat
+from ..measure.fiducials import CharucoLayout
+from ..twin.assembly import TrueScreen
+from ..twin.board import PlanarTarget
+from ..twin.commissioning import HandheldCamera, MirrorScene, ScreenScene, handheld_poses, sub_rays
+from ..twin.station import rotation_zyx
 
 log = logging.getLogger(__name__)
 
@@ -32,14 +38,10 @@ PLACEMENT_JITTER_RAD = 0.0005
 
 
 def _rotation(rx: float, ry: float, rz: float) -> np.ndarray:
-    from ..twin.station import rotation_zyx
-
     return rotation_zyx(rx, ry, rz)
 
 
 def _true_screen(twin):
-    from ..twin.assembly import TrueScreen
-
     return twin.screen_shape if twin.screen_shape is not None else TrueScreen(twin.geometry.screen)
 
 
@@ -58,10 +60,6 @@ class SimulatedHandheld:
     """
 
     def __init__(self, station, settings, seed: int | None = None):
-        from ..measure.fiducials import CharucoLayout
-        from ..twin.board import PlanarTarget
-        from ..twin.commissioning import HandheldCamera, ScreenScene, handheld_poses
-
         intrinsics = settings.camera.intrinsics
         if intrinsics is None:
             raise ConfigError("the simulated station's second camera is [calibration.screen] camera: give its "
@@ -124,10 +122,6 @@ class SimulatedMirror:
     """
 
     def __init__(self, station, target, seed: int | None = None):
-        from ..layout import mirror_seat
-        from ..measure.fiducials import CharucoLayout
-        from ..twin.board import PlanarTarget
-
         self.station = station
         self.target = target
         seed = station.config.simulation.get("seed", 0) if seed is None else seed
@@ -165,14 +159,11 @@ class SimulatedMirror:
         return self.seat.compose(Pose(r, c - r @ c + seat_err[3:]))
 
     def place(self, k: int, n: int, hint: str) -> None:
-        from ..twin.commissioning import MirrorScene
-
         log.info("simulated reference mirror: placement %d of %d (%s)", k + 1, n, hint)
         twin = self.station.twin
         pose = self.placement(k)
         self.placements.append(pose)
         if self._rays is None:
-            from ..twin.commissioning import sub_rays
             self._rays = sub_rays(twin.geometry.camera, self.supersample)
         self.scene = MirrorScene(twin.geometry, _true_screen(twin), self.print, self.target.window_m, pose,
                                  twin.optics, measure_point_m=self.target.measure_point,

@@ -18,10 +18,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..calibrate.store import open_calibration
 from ..config import StationConfig
+from ..devices.renderer import FringeRenderer
 from ..errors import StationError
 from ..measure.analysis import analyse
 from ..measure.uncertainty import SCALAR_PATHS, InputUncertainties, get_path, path_name, small_motion
+from ..result.specs import figure_name
+from ..twin.parameters import TrueFacet, TwinOptics
+from ..twin.station import TwinStation
+from ..twin.truth import ground_truth
 
 log = logging.getLogger(__name__)
 
@@ -52,10 +58,6 @@ class TwinRig:
     placement (and per perturbed geometry), frames captured with a given noise stream."""
 
     def __init__(self, config: StationConfig):
-        from ..calibrate.store import open_calibration
-        from ..devices.renderer import FringeRenderer
-        from ..twin.parameters import TrueFacet, TwinOptics
-
         if config.backend != "simulated":
             raise StationError(f"{config.path}: studies run on the simulated station (backend = \"simulated\"), "
                                f"this one is {config.backend!r}")
@@ -72,8 +74,6 @@ class TwinRig:
         self.gain = radiometric.gain
 
     def twin(self, placement_mm, placement_mrad, geometry=None):
-        from ..twin.station import TwinStation
-
         facet = dataclasses.replace(self.facet, placement_mm=tuple(placement_mm), placement_mrad=tuple(placement_mrad))
         return TwinStation(geometry if geometry is not None else self.config.geometry, self.config.design, facet,
                            self.optics)
@@ -178,8 +178,6 @@ def run_repeats(config: StationConfig, n: int, seed: int = 0, placement: Placeme
     pool): ``steady`` holds those figures, so ``figures - steady`` is the part of each error the
     frame-to-frame brightness made, and ``U_brightness`` the budget's frame-brightness rows (k = 2) that
     state it. The repeats themselves are the same as without it."""
-    from ..twin.truth import ground_truth
-
     rig = TwinRig(config)
     rng = np.random.default_rng(seed)
     cache: dict = {}
@@ -257,8 +255,6 @@ def repeatability_table(repeats: list[dict], config: StationConfig, paths=STUDY_
 def table_text(rows: list[dict]) -> str:
     """The repeatability table, one aligned line per figure with its human name and unit (columns sized to
     their contents, two spaces apart: the old fixed widths ran long names into the numbers)."""
-    from ..result.specs import figure_name
-
     def g(v, fmt):
         return "-" if v is None else format(v, fmt)
     head = ("figure", "unit", "mean", "std", "std error", "U_random", "U (k=2)", "err/U_rand", "%GRR", "class")
@@ -280,12 +276,13 @@ def table_text(rows: list[dict]) -> str:
 def repeatability_png(rows: list[dict], path, title: str) -> None:
     """Bars of std / U_random per figure (the 1.5 line is the study's pass mark), and %GRR where a
     tolerance applies (10 % and 30 % lines)."""
+    # Only the chart draws: the other studies import this module and never do.
+    # lazy: matplotlib.pyplot costs ~350 ms CPU (+176 modules) after this module; Agg chosen before pyplot loads
     import matplotlib
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # lazy: as matplotlib above
 
     fig, axes = plt.subplots(1, 2, figsize=(14, 7), gridspec_kw={"width_ratios": [3, 1]})
-    from ..result.specs import figure_name
 
     names = [figure_name(r["figure"])[0] for r in rows if r["std_over_U_random"] is not None]
     ratios = [r["std_over_U_random"] for r in rows if r["std_over_U_random"] is not None]

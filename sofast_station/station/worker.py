@@ -38,17 +38,27 @@ import statistics
 import threading
 import time
 from collections import deque
-from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor
-from concurrent.futures import wait as wait_futures
-from concurrent.futures import CancelledError
+from concurrent.futures import FIRST_COMPLETED, CancelledError, Future, ProcessPoolExecutor
 from concurrent.futures import TimeoutError as FutureTimeout
+from concurrent.futures import wait as wait_futures
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from multiprocessing.shared_memory import SharedMemory
 
 import numpy as np
 
-from ..errors import AnalysisTimeout, StationError, WorkerDied
+from ..errors import AnalysisTimeout, CaptureError, StationError, WorkerDied
+from ..facet import FacetDesign
+from ..fringes import FringeSet
+from ..geometry import StationGeometry
+from ..job import Capture
+from ..measure.uncertainty import InputUncertainties
+from ..memory import trim_heap
+from ..optics import design_samples, facet_optics
+from ..precompute import ray_table, warm_up
+from ..result.optical_figures import DesignTraces
+from .frames import crop, restore
+from .memtrace import start_from_env
 
 log = logging.getLogger(__name__)
 
@@ -121,10 +131,6 @@ def _fill(buffer: np.ndarray, frames: np.ndarray) -> None:
 
 
 def _init(shm_name: str, shape: tuple[int, int, int], geometry: dict, fringes: dict) -> None:
-    from ..fringes import FringeSet
-    from ..geometry import StationGeometry
-    from ..precompute import ray_table, warm_up
-
     watch_parent()
     shm = SharedMemory(name=shm_name)
     _STATE["shm"] = shm
@@ -137,8 +143,8 @@ def _init(shm_name: str, shape: tuple[int, int, int], geometry: dict, fringes: d
     # What the analysis imports on first use, imported here rather than in a facet's cycle: the
     # uncertainty's pooled frame brightness needs scipy.special's F quantile from the second capture on
     # (the warm-up capture being the first).
+    # lazy: scipy.special costs ~0.5 s; the station's process imports this module and never needs it
     import scipy.special  # noqa: F401
-    from .memtrace import start_from_env
     start_from_env("worker")                    # off unless SOFAST_TRACEMALLOC_S is set (leak hunts)
 
 
@@ -146,11 +152,6 @@ def _run(ticket: int, job, distance_m: float, uncertainty: dict | None = None, a
     """Analyse the frames in the shared memory as *job* says (a :class:`~sofast_station.job.Job`, sent pickled with
     its ``kind``): the figures, the kept pixels (packed), the seconds, the operator's preview and the
     sensitivities. *attempt*: 0 for a facet's analysis, 1 for its rerun on the standby."""
-    from ..memory import trim_heap
-    from ..job import Capture
-    from ..measure.uncertainty import InputUncertainties
-    from ..result.optical_figures import DesignTraces
-
     _STATE["begun"][0] = ticket          # begun: from here a death is this facet's (see the module's text)
     t = time.perf_counter()
     frames = np.array(_STATE["frames"])  # a private copy: the station may refill the buffer after a timeout
@@ -168,13 +169,6 @@ def _run(ticket: int, job, distance_m: float, uncertainty: dict | None = None, a
 
 
 def _prepare_optics(designs: list) -> int:
-    from ..facet import FacetDesign
-    from ..result.optical_figures import DesignTraces
-
-    import numpy as np
-
-    from ..optics import design_samples, facet_optics
-
     cache = _STATE.setdefault("design_traces", DesignTraces(max(4, len(designs))))
     for design, optics in designs:
         facet = FacetDesign.from_dict(design)
@@ -499,8 +493,6 @@ class AnalysisWorker:
     def _warm(self, proc: _Process) -> None:
         """Analyse the warm-up capture on *proc* (its first analysis pays for imports, caches, page faults
         and the uncertainty's sensitivities: seconds, paid here and not by a facet)."""
-        from .frames import restore
-
         cropped, box, full, args = self._warm_job
         _fill(proc.frames, restore(cropped, box, full))
         try:
@@ -542,8 +534,6 @@ class AnalysisWorker:
     def warm_up(self, frames: np.ndarray, job, distance_m: float, timeout_s: float, uncertainty=None) -> WorkerResult:
         """Analyse one capture as *job* says before the first facet, in the worker and in the standby; the capture
         (cropped as the job crops) is kept to warm every later standby the same way."""
-        from .frames import crop
-
         res = self.analyse(frames, job, distance_m, timeout_s=timeout_s, uncertainty=uncertainty)
         box = job.crop_box(*frames[:2])
         self._warm_job = (crop(frames, box), box, frames.shape[1:],
@@ -670,7 +660,6 @@ class AnalysisWorker:
         """
         if (frames.ndim != 3 or not 1 <= frames.shape[0] <= self._shape[0] or frames.shape[1:] != self._shape[1:]
                 or frames.dtype != np.uint8):
-            from ..errors import CaptureError
             raise CaptureError(f"the capture is {frames.dtype} {frames.shape}, the station expects uint8 "
                                f"{self._shape}; check the camera's pixel format and size")
         t_end = time.perf_counter() + timeout_s
