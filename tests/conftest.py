@@ -157,6 +157,10 @@ LONG_TESTS = {
         "test_heliostat_station.py (canting against truth)",
     "tests/station/test_heliostat_accuracy.py::test_canting_is_covered_by_its_u_when_the_station_is_not_known_exactly":
         "test_heliostat_station.py",
+    "tests/station/test_population_line.py::test_the_simulated_line_makes_different_facets_and_its_drift_raises_"
+    "the_alarm": "test_drift.py (the drift alarm on the line)",
+    "tests/archive/test_workbook.py::test_the_memory_of_a_save_does_not_grow_with_the_rows_of_its_part":
+        "archiver_memory --rows 60 (test_benchmarks_studies.py)",
     # calibrations: the commissioning benchmarks' quick modes run `calibrate commission` on drawn stations
     "tests/calibrate/test_commission.py": "commission_coverage --quick, commission_study --quick",
     "tests/calibrate/test_store.py::test_room_light_change_mid_run_marks_the_rows_or_refuses_the_facets":
