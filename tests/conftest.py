@@ -161,6 +161,11 @@ LONG_TESTS = {
     "the_alarm": "test_drift.py (the drift alarm on the line)",
     "tests/archive/test_workbook.py::test_the_memory_of_a_save_does_not_grow_with_the_rows_of_its_part":
         "archiver_memory --rows 60 (test_benchmarks_studies.py)",
+    "tests/station/test_facets.py::test_gore_misplaced_in_the_fixture": "test_population.py (drawn placements)",
+    # the plant's view: the web benchmark's quick run follows three facets with the page open in chromium, and
+    # test_opcua.py runs docs/opcua.md's client against the server
+    "tests/web/test_page.py::test_the_page_follows_the_line": "web --quick (test_benchmarks.py)",
+    "tests/web/test_opcua.py::test_opcua_client_sees_the_tree_and_the_verdict_change": "test_opcua.py's docs example",
     # calibrations: the commissioning benchmarks' quick modes run `calibrate commission` on drawn stations
     "tests/calibrate/test_commission.py": "commission_coverage --quick, commission_study --quick",
     "tests/calibrate/test_store.py::test_room_light_change_mid_run_marks_the_rows_or_refuses_the_facets":
