@@ -147,6 +147,17 @@ LONG_TESTS = {
     "tests/reanalysis/test_batch.py::test_a_killed_batch_of_50_resumes_without_redoing_or_losing_any":
         "test_batch.py's resume tests",
     "tests/reanalysis/test_batch.py::test_dask_cluster_gives_the_same_results_as_the_local_run": "test_batch.py",
+    "tests/station/test_robustness.py::test_a_worker_dead_before_the_analysis_began_costs_the_facet_nothing":
+        "kill_campaign --quick (the worker killed)",
+    "tests/station/test_robustness.py::test_a_killed_archiver_is_replaced_and_nothing_is_lost":
+        "kill_campaign --quick (the archiver killed)",
+    "tests/station/test_robustness.py::test_the_archiver_starts_afresh_past_its_memory_bound":
+        "archiver_memory --rows 60 (test_benchmarks_studies.py)",
+    "tests/web/test_run_serve.py::test_run_serve_starts_and_stops_the_page": "web --quick (the monitor as run --serve)",
+    "tests/reanalysis/test_reprocess.py::test_alignment_point_changes_exactly_the_figures_that_depend_on_it":
+        "test_reprocess.py's design focal length override",
+    "tests/calibrate/test_radiometric.py::test_inspection_after_calibration_meets_the_noisy_repeat_tolerances":
+        "commission_coverage --quick (calibrate, then inspect)",
     # accuracy and coverage over repeats: the population's both-ends coverage test covers them in CI
     "tests/station/test_accuracy.py::test_ten_noisy_repeats": "test_population.py (both ends)",
     "tests/station/test_capture_causes.py::test_shipped_heliostat_station_fails_on_focal_power_not_invalid_for_seeds_"
