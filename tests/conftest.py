@@ -158,6 +158,12 @@ LONG_TESTS = {
         "test_reprocess.py's design focal length override",
     "tests/calibrate/test_radiometric.py::test_inspection_after_calibration_meets_the_noisy_repeat_tolerances":
         "commission_coverage --quick (calibrate, then inspect)",
+    # the line's twenty facets: the soak's and the kill campaign's quick runs run the real `run` command
+    "tests/station/test_run.py::test_twenty_answers_and_the_line_goes_on": "soak --quick, kill_campaign --quick",
+    "tests/station/test_run.py::test_good_facets_meet_the_core_tolerances": "test_facets.py, test_population.py",
+    "tests/station/test_run.py::test_journal_workbook_and_dumps": "soak --quick (journal, dumps), tests/archive",
+    "tests/station/test_run.py::test_a_dump_reprocesses_to_exactly_its_archived_figures":
+        "test_front_doors.py, test_reprocess.py",
     # accuracy and coverage over repeats: the population's both-ends coverage test covers them in CI
     "tests/station/test_accuracy.py::test_ten_noisy_repeats": "test_population.py (both ends)",
     "tests/station/test_capture_causes.py::test_shipped_heliostat_station_fails_on_focal_power_not_invalid_for_seeds_"
