@@ -237,8 +237,8 @@ def draw_heliostat_certificate(record: dict, *, ensemble, limit_mrad: float | No
             continue
         rows.append([f["label"], f["verdict"], figure_text(f, "canting_mrad.x", sign=True),
                      figure_text(f, "canting_mrad.y", sign=True),
-                     f"{f['curvature_x_per_m']:.5f}, {f['curvature_y_per_m']:.5f}",
-                     f"{f['slope_rms_mrad']['parabola']['magnitude']:.3f}"])
+                     f"{figure_text(f, 'curvature_x_per_m')}, {figure_text(f, 'curvature_y_per_m')}",
+                     figure_text(f, "slope_rms_mrad.parabola.magnitude")])
     height = min(0.25, 0.017 * (len(rows) + 1))
     ax_t = fig.add_axes((0.06, 0.32 - height, 0.88, height))
     ax_t.axis("off")

@@ -13,6 +13,7 @@ budget as a table.
 from __future__ import annotations
 
 from ..gum import MAX_DECIMALS, _fixed, u_decimals, value_and_u, with_u  # noqa: F401 (their public place)
+from .focal import interval_text, is_linear
 from .record import figure_uncertainty, figure_value
 
 
@@ -34,6 +35,9 @@ def figure_decimals(key: str) -> int:
 def figure_parts(record: dict, key: str, *, scale: float = 1.0, sign: bool = False) -> tuple[str, str | None] | None:
     """The figure at dotted *key* of *record* and its U (``NAME_U``, k = 2) as two texts by GUM's rule
     (:func:`value_and_u`; the U text None without U); None when the record has no such figure."""
+    interval = _nonlinear_interval(record, key)
+    if interval is not None:             # a nearly flat facet's f: its interval, one text
+        return interval_text(interval, compact=True), None
     value = figure_value(record, key)
     if value is None:
         return None
@@ -44,12 +48,26 @@ def figure_parts(record: dict, key: str, *, scale: float = 1.0, sign: bool = Fal
 _POWER_OF = {"focal_length_x_m": "curvature_x_per_m", "focal_length_y_m": "curvature_y_per_m"}
 
 
+def _nonlinear_interval(record: dict, key: str) -> list | None:
+    """The focal length's exact interval (``NAME_interval``) where its linear U does not stand for it (the
+    focal power's U more than a tenth of the power: result/focal.py); None elsewhere."""
+    if key not in _POWER_OF or not isinstance(record.get(key + "_interval"), list):
+        return None
+    power = _POWER_OF[key]
+    if is_linear(figure_value(record, power), figure_uncertainty(record, power)):
+        return None
+    return record[key + "_interval"]
+
+
 def figure_text(record: dict, key: str, unit: str = "", *, scale: float = 1.0, sign: bool = False,
                 missing: str = "-") -> str:
     """``value ± U unit`` of the figure at dotted *key* of *record* (:func:`with_u` with its ``NAME_U`` and
     :func:`figure_decimals`): the one way a record's figure is written on every screen and page; *missing*
     when the record has no value (a focal length of a flat facet is written ``inf``)."""
     value = figure_value(record, key)
+    interval = _nonlinear_interval(record, key)
+    if interval is not None:             # a nearly flat facet: f's interval from its focal power's U
+        return interval_text(interval, unit)
     if value is None and key in _POWER_OF and figure_value(record, _POWER_OF[key]) is not None:
         missing = "inf"                  # a focal power below 4e-9 /m: the focal length is infinite (JSON null)
     return with_u(value, figure_uncertainty(record, key), unit, figure_decimals(key), scale=scale, sign=sign,

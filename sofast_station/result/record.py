@@ -17,6 +17,7 @@ import datetime as _dt
 from dataclasses import dataclass
 
 from .. import __version__
+from .focal import focal_length_interval
 
 #: Figures copied from an analysis into the result first (and compared with the twin's truth).
 FIGURE_KEYS = ("focal_length_x_m", "focal_length_y_m", "curvature_x_per_m", "curvature_y_per_m",
@@ -117,6 +118,10 @@ def build_record(head: RecordHead, *, figures: dict | None = None, verdict: dict
     if figures is not None:
         out.update({k: figures[k] for k in FIGURE_KEYS})
         out.update({k: v for k, v in figures.items() if k not in FIGURE_KEYS and k != "timings_s"})
+        for axis in ("x", "y"):      # f's exact interval from the focal power's U (result/focal.py)
+            interval = focal_length_interval(out.get(f"curvature_{axis}_per_m"), out.get(f"curvature_{axis}_per_m_U"))
+            if interval is not None:
+                out[f"focal_length_{axis}_m_interval"] = interval
     out.update(extra)
     if fault is not None:
         code, reason = fault

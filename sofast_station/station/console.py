@@ -48,6 +48,8 @@ def _figure_cell(record: dict, path: str, width: int, u_width: int) -> str:
     if parts is None:
         return f"{'-':>{width}}" + " " * u_width
     text, u = parts
+    if u is None and len(text) > width:      # a nearly flat facet's f interval: the whole cell
+        return f"{text:>{width + u_width}}"
     return f"{text:>{width}}" + (f" ± {u:<{u_width - 3}}" if u is not None else " " * u_width)
 
 
