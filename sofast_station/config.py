@@ -23,7 +23,7 @@ from .calibrate.settings import CALIBRATION_KEYS, parse_calibration_table
 from .calibrate.store import newest_record_path, record_dir
 from .config_schema import add_dataclass_keys, validate
 from .ensemble import EnsembleDesign, is_ensemble_file, load_ensemble
-from .errors import ConfigError
+from .errors import ConfigError, check_table
 from .facet import FacetDesign, load_facet
 from .files import data_dir_of, read_toml
 from .fringes import FringeSet
@@ -48,9 +48,7 @@ _BACKENDS = ("simulated", "hardware")
 
 
 def _check_keys(table: dict, allowed: set, where: str) -> None:
-    unknown = sorted(set(table) - allowed)
-    if unknown:
-        raise ConfigError(f"{where} has unknown key(s) {', '.join(unknown)}; allowed: {', '.join(sorted(allowed))}")
+    check_table(table, allowed, where)
 
 
 def _need(table: dict, key: str, where: str):

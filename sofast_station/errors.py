@@ -16,6 +16,22 @@ class ConfigError(StationError):
     """The configuration (station.toml, a facet file, a calibration record) is missing or invalid."""
 
 
+def check_table(table, allowed, where: str) -> dict:
+    """*table* of a station or facet file, checked: a table (dict) holding only the *allowed* keys.
+
+    Raises
+    ------
+    ConfigError
+        ``"<where> must be a table"``, or naming the unknown keys and every allowed one.
+    """
+    if not isinstance(table, dict):
+        raise ConfigError(f"{where} must be a table")
+    unknown = sorted(set(table) - set(allowed))
+    if unknown:
+        raise ConfigError(f"{where} has unknown key(s) {', '.join(unknown)}; allowed: {', '.join(sorted(allowed))}")
+    return table
+
+
 class UnknownRecipeError(ConfigError):
     """The PLC asked for a recipe that station.toml does not define (its own fault code, "recipe")."""
 

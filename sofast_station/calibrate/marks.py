@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import ConfigError
+from ..errors import ConfigError, check_table
 from ..files import write_json_atomic
 from ..fringes import Pattern
 from ..geometry import FixtureMarks, StationGeometry
@@ -98,11 +98,7 @@ def mark_settings(config) -> MarkSettings | None:
     if table is None:
         return None
     where = f"{config.path} [marks]"
-    if not isinstance(table, dict):
-        raise ConfigError(f"{where} must be a table")
-    unknown = sorted(set(table) - _KEYS)
-    if unknown:
-        raise ConfigError(f"{where} has unknown key(s) {', '.join(unknown)}; allowed: {', '.join(sorted(_KEYS))}")
+    check_table(table, _KEYS, where)
     centres = table.get("centres_mm")
     if not isinstance(centres, list) or len(centres) < 3 or not all(
             isinstance(c, list) and len(c) in (2, 3) and all(isinstance(v, (int, float)) and not isinstance(v, bool)

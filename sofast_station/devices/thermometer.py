@@ -20,7 +20,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-from ..errors import ConfigError, StationError
+from ..errors import ConfigError, StationError, check_table
 
 SOURCES = ("fixed", "modbus", "simulated")
 
@@ -85,11 +85,7 @@ def temperature_settings(config) -> TemperatureSettings | None:
     if table is None:
         return None
     where = f"{config.path} [temperature]"
-    if not isinstance(table, dict):
-        raise ConfigError(f"{where} must be a table")
-    unknown = sorted(set(table) - _KEYS)
-    if unknown:
-        raise ConfigError(f"{where} has unknown key(s) {', '.join(unknown)}; allowed: {', '.join(sorted(_KEYS))}")
+    check_table(table, _KEYS, where)
     source = table.get("source", "fixed")
     if source not in SOURCES:
         raise ConfigError(f"{where} source must be one of {', '.join(map(repr, SOURCES))}, got {source!r}")

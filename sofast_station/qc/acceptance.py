@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import ConfigError
+from ..errors import ConfigError, check_table
 
 
 def z_for(confidence: float) -> float:
@@ -221,10 +221,7 @@ def contract_from_config(config, recipe: str) -> Contract:
         raise ConfigError(f"{config.path} has no [acceptance.{recipe}] table: add the contract's population, "
                           f"confidence, relative_error and figures (docs/quality.md)"
                           + (f"; tables present: {', '.join(sorted(tables))}" if tables else ""))
-    t = tables[recipe]
-    unknown = sorted(set(t) - _KEYS)
-    if unknown:
-        raise ConfigError(f"{where} has unknown key(s) {', '.join(unknown)}; allowed: {', '.join(sorted(_KEYS))}")
+    t = check_table(tables[recipe], _KEYS, where)
     population = t.get("population")
     if isinstance(population, bool) or not isinstance(population, int) or population < 1:
         raise ConfigError(f"{where}: population = {population!r} must be a whole number of facets >= 1")
@@ -241,12 +238,7 @@ def contract_from_config(config, recipe: str) -> Contract:
     out = []
     for key, f in figs.items():
         fw = f"{where} figures.{key}"
-        if not isinstance(f, dict):
-            raise ConfigError(f"{fw} must be a table")
-        unknown = sorted(set(f) - _FIGURE_KEYS)
-        if unknown:
-            raise ConfigError(f"{fw} has unknown key(s) {', '.join(unknown)}; "
-                              f"allowed: {', '.join(sorted(_FIGURE_KEYS))}")
+        check_table(f, _FIGURE_KEYS, fw)
         contract = _number(f, "contract", fw)
         sense = f.get("sense", "two_sided")
         if sense not in ("two_sided", "at_most"):
