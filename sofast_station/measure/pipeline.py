@@ -886,13 +886,13 @@ def pose_on_measured_surface(pose: CornerPoseResult, fits: Fits, rays: Rays, geo
                              design: FacetDesign, measured_distance_m: float, settings: AnalysisSettings) -> Pose:
     """The corner pose again (range fixed), with the design's corners and measure point lifted onto the
     measured surface (the higher-order model): the facet frame in which that surface touches the design at
-    the outline's centroid (:func:`~.pose.departure_from_design_m`), the frame `placement` and
+    the outline's centroid (:func:`~.pose.departure_from_design_m`), the frame ``placement`` and
     ``boresight_mrad`` are stated in.
 
     The corners alone cannot tell a facet's twist or curvature from its tilt: on the gore, turned 20 mrad
     about its normal on the twin, a twist of 0.42 mrad/m left the corners at design height turned by
     1.29 mrad about x (1.1 times its U) where their image positions were within 0.02 px; on the measured
-    surface, 0.04 mrad (docs/method.md, "The corner pose on the measured surface"). The shape was measured
+    surface, -0.10 mrad (docs/method.md, "The corner pose on the measured surface"). The shape was measured
     in the first pose's frame; the boresight frame, which the surface defines, does not depend on it. A
     mirror of unknown outline has no corners: its pose is returned as it is.
     """
