@@ -33,7 +33,7 @@ from ..errors import ConfigError
 from ..measure.analysis import finish_analysis
 from ..measure.fit import fit_parabola
 from ..measure.fixed import DotPattern, fixed_settings_for, reduce_fixed
-from ..measure.pipeline import reduce_stages
+from ..measure.pipeline import pose_on_measured_surface, reduce_stages
 from ..measure.slope_noise import slope_covariance, slope_jacobian
 from ..precompute import ray_table
 from .identify import describe
@@ -190,8 +190,11 @@ def conform_file(result: Path, measurement: Path, focal_length_m: float = 100.0,
                     _tilt_u(fig), angle, "no frame convention in it"))
     if ref.surface == "plano":
         theirs_t, ours_t, ours_u = ref.tilt_mrad(), fig["boresight_mrad"], fig.get("boresight_mrad_U") or {}
-        # the two corner poses' difference, in our corner pose's axes (small angles)
-        d = reduction.pose.facet_to_camera.rotation.T @ ref.optic_to_camera
+        # the two corner poses' difference, in our corner pose's axes (small angles): ours with the corners on
+        # the measured surface, the one our boresight is stated from
+        ours_pose = pose_on_measured_surface(reduction.pose, reduction.fits, reduction.rays, m.geometry, m.design,
+                                             m.distance_m, settings)
+        d = ours_pose.rotation.T @ ref.optic_to_camera
         corner = {"x": 1000.0 * float(np.arctan2(d[2, 1], d[2, 2])),
                   "y": -1000.0 * float(np.arcsin(np.clip(d[2, 0], -1.0, 1.0)))}
         for axis in "xy":

@@ -248,6 +248,11 @@ class CubicFit:
         u, v = (x - self.x0) / self.h, (y - self.y0) / self.h
         return self._slopes([None, u, v, u * u, u * v, v * v])
 
+    def height(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Model height z at facet-frame (x, y), metres, up to the model's free constant (taken as 0)."""
+        u, v = (np.asarray(x, np.float64) - self.x0) / self.h, (np.asarray(y, np.float64) - self.y0) / self.h
+        return sum(c * u ** i * v ** j for c, (i, j) in zip(self.coefficients, CUBIC_TERMS))
+
     def slope_coefficients(self) -> tuple[np.ndarray, np.ndarray]:
         """Each slope (dz/dx, dz/dy) as a quadratic in (u, v): its coefficients of 1, u, v, u^2, uv, v^2."""
         cx, cy = np.zeros(len(_BASE)), np.zeros(len(_BASE))

@@ -51,7 +51,7 @@ from .phase import (
     position_sigma_m,
     unwrap_positions,
 )
-from .pose import fix_range, mask_centroid_px, placement, pose_facing, solve_corner_pose
+from .pose import departure_from_design_m, fix_range, mask_centroid_px, placement, pose_facing, solve_corner_pose
 from .screen import FlatScreen, InterpolatedScreen, ScreenModel
 from .slope_noise import slope_covariance
 from .stats import median
@@ -882,6 +882,44 @@ def fit_models(shape: Shape, design: FacetDesign, pool=None) -> Fits:
     return Fits(parabola=fit, coefficients=coeffs, cubic=cubic, residuals_mrad=residuals)
 
 
+def pose_on_measured_surface(pose: CornerPoseResult, fits: Fits, rays: Rays, geometry: StationGeometry,
+                             design: FacetDesign, measured_distance_m: float, settings: AnalysisSettings) -> Pose:
+    """The corner pose again (range fixed), with the design's corners and measure point lifted onto the
+    measured surface (the higher-order model): the facet frame in which that surface touches the design at
+    the outline's centroid (:func:`~.pose.departure_from_design_m`), the frame ``placement`` and
+    ``boresight_mrad`` are stated in.
+
+    The corners alone cannot tell a facet's twist or curvature from its tilt: on the gore, turned 20 mrad
+    about its normal on the twin, a twist of 0.42 mrad/m left the corners at design height turned by
+    1.29 mrad about x (1.1 times its U) where their image positions were within 0.02 px; on the measured
+    surface, -0.10 mrad (docs/method.md, "The corner pose on the measured surface"). The shape was measured
+    in the first pose's frame; the boresight frame, which the surface defines, does not depend on it. A
+    mirror of unknown outline has no corners: its pose is returned as it is.
+    """
+    if not design.outline_known:
+        return pose.facet_to_camera
+    cubic = fits.cubic
+    points = np.vstack([design.outline_m, design.measure_point_m])
+    lift = departure_from_design_m(design, cubic.height, cubic.slopes, points)
+    corners_3d = design.corners_3d()
+    corners_3d[:, 2] += lift[:-1]
+    measure_point = np.array([*design.measure_point_m, float(design.z(*design.measure_point_m)) + lift[-1]])
+    # from the first pose: the same valley of the reprojection error, a few tenths of a mrad along it
+    lifted = solve_corner_pose(geometry.camera, pose.corners_px, corners_3d, pose.facet_to_camera)
+    facet_to_camera, _ = fix_range(lifted.facet_to_camera, measure_point, rays.screen_centre_cam_m,
+                                   measured_distance_m, settings.max_range_shift_m)
+    return facet_to_camera
+
+
+def boresight_from(facet_to_camera: Pose, boresighted_to_camera: Pose) -> dict:
+    """``boresight_mrad`` of the boresight frame relative to the facet frame *facet_to_camera*: the (alpha,
+    beta) of M = R_y(beta) R_x(alpha) with M the rotation taking the facet frame's axes to the boresight
+    frame's (:class:`~.boresight.Motion`), read as ``placement`` reads its rx, ry."""
+    m = boresighted_to_camera.rotation.T @ facet_to_camera.rotation
+    return {"x": 1000.0 * float(np.arctan2(m[2, 1], m[2, 2])),
+            "y": -1000.0 * float(np.arcsin(np.clip(m[2, 0], -1.0, 1.0)))}
+
+
 def report_figures(region: Region, phases: Phases, rays: Rays, pose: CornerPoseResult, shape: Shape, fits: Fits,
                    geometry: StationGeometry, design: FacetDesign, measured_distance_m: float,
                    settings: AnalysisSettings, with_curl: bool = True, curl=None, fringes: FringeSet | None = None,
@@ -898,6 +936,8 @@ def report_figures(region: Region, phases: Phases, rays: Rays, pose: CornerPoseR
     # The boresight frame's tilt in the fixture: where the facet's optical axis at the alignment point
     # points, to the precision of the slopes (the corner pose's own tilt errors cancel).
     tilt = placement(geometry.fixture_to_camera, shape.boresighted_to_camera, design)["mrad"]
+    # The corners where the measured surface puts them, not on the design surface: placement and boresight.
+    facet_to_camera = pose_on_measured_surface(pose, fits, rays, geometry, design, measured_distance_m, settings)
     kx, ky = 4.0 * fit.a, 4.0 * fit.b
     principal, angle = principal_axes(fit.a, fit.b, fit.e)
     if not with_curl:
@@ -928,8 +968,10 @@ def report_figures(region: Region, phases: Phases, rays: Rays, pose: CornerPoseR
         **{k: capture.pop(k) for k in CAPTURE_KEYS},
         "iterations": {"shape": solution.shape_iterations, "boresight": solution.boresight_iterations,
                        "converged": solution.converged},
-        "boresight_mrad": {"x": 1000.0 * solution.motion.alpha_rad, "y": 1000.0 * solution.motion.beta_rad},
-        "placement": placement(geometry.fixture_to_camera, pose.facet_to_camera, design),
+        "boresight_mrad": ({"x": 1000.0 * solution.motion.alpha_rad, "y": 1000.0 * solution.motion.beta_rad}
+                           if facet_to_camera is pose.facet_to_camera
+                           else boresight_from(facet_to_camera, shape.boresighted_to_camera)),
+        "placement": placement(geometry.fixture_to_camera, facet_to_camera, design),
         "optical_tilt_mrad": {"x": tilt[0], "y": tilt[1]},
         "higher_order": cubic.to_dict(),
         # The converged fit on the subsample (every n-th valid pixel), before the all-points fit: what

@@ -101,6 +101,38 @@ def fix_range(facet_to_camera: Pose, measure_point_facet_m: np.ndarray, screen_c
     return Pose(facet_to_camera.rotation, facet_to_camera.translation + mu * u), float(mu)
 
 
+def departure_from_design_m(design, height_m, slopes, xy_m: np.ndarray) -> np.ndarray:
+    """The measured surface's height above the design surface at facet-frame points *xy_m* (n, 2), less that
+    departure's tangent plane at the outline's centroid, metres.
+
+    A facet whose focal lengths, twist or higher-order shape differ from the design's has its corners off
+    the design surface: in the frame where its surface touches the design at its middle (height and
+    normal, the twin's true facet frame, ``twin/surface.py``) they lie this far above it. For the quadratic
+    part that is ``dA u^2 + dB v^2 + dE u v`` about the centroid (u, v): no tilt of the frame enters it,
+    only the surface's second and higher derivatives, which the fringes measure to a fraction of a per
+    cent. On the gore a twist of 0.12 mrad/m lifts its wide end's corners by -+0.08 mm, and four corners
+    at design height then turned the corner pose by 0.40 mrad about x (docs/method.md, "The corner pose on
+    the measured surface").
+
+    Parameters
+    ----------
+    design : FacetDesign
+    height_m : callable (x, y) -> z
+        The measured surface's height, metres, up to a constant (it cancels).
+    slopes : callable (x, y) -> (dz/dx, dz/dy)
+        Its slopes.
+    xy_m : (n, 2) array
+        Facet-frame points, metres.
+    """
+    xy = np.asarray(xy_m, np.float64).reshape(-1, 2)
+    cx, cy = (float(v) for v in design.centroid_m)
+    x, y = xy[:, 0], xy[:, 1]
+    sx, sy = (float(np.ravel(v)[0]) for v in slopes(np.array([cx]), np.array([cy])))
+    k = 1.0 / (2.0 * design.focal_length_m)           # the design's slopes are k (x, y)
+    offset = float(np.ravel(height_m(np.array([cx]), np.array([cy])))[0]) - float(design.z(cx, cy))
+    return (height_m(x, y) - design.z(x, y) - offset - (sx - k * cx) * (x - cx) - (sy - k * cy) * (y - cy))
+
+
 def placement(fixture_to_camera: Pose, facet_to_camera: Pose, design) -> dict:
     """The facet's placement in the fixture, as found by the corner pose.
 
