@@ -67,7 +67,9 @@ def geometry_in_force(data_dir: str | Path, stated: StationGeometry, where: str,
         record is in force.
     std : dict
         ``[uncertainty]`` keys the records state (``screen_rotation_mrad``, ``screen_translation_mm``,
-        ``screen_pitch_relative``, ``fixture_rotation_mrad``, ``fixture_translation_mm``).
+        ``screen_pitch_relative``, ``fixture_rotation_mrad``, ``fixture_translation_mm``), and the pose
+        record's joint covariance of the screen's and the fixture's poses (``pose_covariance``, mrad and mm)
+        where it has one.
     """
     if source not in GEOMETRY_SOURCES:
         raise ConfigError(f"{where} [calibration] geometry must be \"records\" (the newest screen and pose records) "
@@ -75,7 +77,7 @@ def geometry_in_force(data_dir: str | Path, stated: StationGeometry, where: str,
     if source == "station.toml":
         return stated, None, {}
     # lazy: pose.py, screen.py bring OpenCV's fiducials (~50 ms CPU); config.py imports this module for every command
-    from .pose import load_pose_record
+    from .pose import joint_covariance_mrad_mm, load_pose_record
     from .screen import load_screen_record  # lazy: as pose.py, the line above
 
     geometry, info, std = stated, {"warnings": []}, {}
@@ -114,6 +116,9 @@ def geometry_in_force(data_dir: str | Path, stated: StationGeometry, where: str,
                     "screen_translation_mm": tuple(rec["screen_std"]["translation_mm"]),
                     "fixture_rotation_mrad": tuple(rec["fixture_std"]["rotation_mrad"]),
                     "fixture_translation_mm": tuple(rec["fixture_std"]["translation_mm"])})
+        joint = joint_covariance_mrad_mm(rec)        # validated by load_pose_record; None in older records
+        if joint is not None:
+            std["pose_covariance"] = joint
         info["pose"] = {"record_id": rec["record_id"], "path": str(pose_path)}
         used = rec.get("screen_record")
         newest = info.get("screen", {}).get("record_id")

@@ -85,6 +85,8 @@ class PoseCalibration:
     screen_record: str | None
     fixture_to_camera: Pose | None = None
     fixture_covariance: np.ndarray | None = None
+    #: (12, 12): the screen's small motion (6) then the fixture's (6), rad and m (:func:`joint_pose_covariance`).
+    joint_covariance: np.ndarray | None = None
     quality: dict = field(default_factory=dict)
 
     @property
@@ -178,7 +180,7 @@ def calibrate_pose(display, camera, range_finder, place: Callable[[int, int, str
         Too few usable placements (what to do is in the message).
     """
     # lazy: measure/commission.py costs ~300 ms CPU (scipy.optimize); config loads this module's record reader
-    from ..measure.commission import fit_pose, transformed_covariance
+    from ..measure.commission import fit_pose
 
     say = progress or log.info
     layout = target_layout(target)
@@ -221,12 +223,50 @@ def calibrate_pose(display, camera, range_finder, place: Callable[[int, int, str
         raise CalibrationError(f"the pose cannot be fitted ({exc}); seat the mirror again and repeat") from None
     cal = PoseCalibration(fit, reports, target, stated, screen_record)
     seat = mirror_seat(design, target.window_centre_m)
-    fixture, cov = transformed_covariance(fit.targets[0], fit.target_covariances[0],
-                                          lambda t: t.compose(seat.inverse()))
     seating = np.diag([(1e-3 * target.seating_u_mrad) ** 2] * 3 + [(1e-3 * target.seating_u_mm) ** 2] * 3)
-    cal.fixture_to_camera, cal.fixture_covariance = fixture, cov + seating
+    cal.fixture_to_camera, cal.joint_covariance = joint_pose_covariance(fit, seat, seating)
+    cal.fixture_covariance = cal.joint_covariance[6:, 6:]
     cal.quality = judge_pose(cal)
     return cal
+
+
+#: The joint covariance's parameters, in order (the budget's rows of the screen's and the fixture's pose).
+JOINT_PARAMETERS = ("screen rx", "screen ry", "screen rz", "screen tx", "screen ty", "screen tz",
+                    "fixture rx", "fixture ry", "fixture rz", "fixture tx", "fixture ty", "fixture tz")
+
+
+def joint_pose_covariance(fit, seat: Pose, seating: np.ndarray) -> tuple[Pose, np.ndarray]:
+    """The fixture's pose and the (12, 12) covariance of the screen's and the fixture's small motions together.
+
+    The fit finds the seated mirror's pose (target 0) and the screen's in one least-squares problem: the
+    mirror's tilt is fixed by its printed frame to milliradians only, the fringes then say where the screen is
+    as seen through that mirror, so their errors are correlated, and they largely cancel in what a facet
+    measured at the same place reports in the fixture (its optical tilt). The covariance is the fit's own
+    (Gauss-Newton, its weighted Jacobian at the solution: ``solution.covariance["joint"]``), the mirror's block
+    carried to the fixture by the first-order derivative of ``fixture = target o seat^-1``; the seat's
+    repeatability (*seating*, rad^2 and m^2) is independent of the fit and adds to the fixture's block only.
+
+    Returns
+    -------
+    fixture_to_camera : Pose
+    covariance : (12, 12) array
+        The screen's rotation (rad) and shift (m) about and along its own axes through its centre, then the
+        fixture's about and along its own: :data:`JOINT_PARAMETERS`.
+    """
+    # lazy: measure/commission.py costs ~300 ms CPU (scipy.optimize); config loads this module's record reader
+    from ..measure.commission import motion_jacobian
+
+    sol = fit.solution
+    slices = dict(sol.order)
+    joint = sol.covariance["joint"]
+    idx = np.r_[np.arange(slices["screen"].start, slices["screen"].stop),
+                np.arange(slices["target 0"].start, slices["target 0"].stop)]
+    fixture, jac = motion_jacobian(fit.targets[0], lambda t: t.compose(seat.inverse()))
+    carry = np.eye(12)
+    carry[6:, 6:] = jac
+    cov = carry @ joint[np.ix_(idx, idx)] @ carry.T
+    cov[6:, 6:] += seating
+    return fixture, 0.5 * (cov + cov.T)
 
 
 def pose_std(covariance: np.ndarray) -> dict:
@@ -304,6 +344,9 @@ def pose_record_content(cal: PoseCalibration) -> dict:
         "screen_vs_stated": _difference(cal.stated.screen_to_camera, fit.screen_to_camera),
         "fixture_to_camera": cal.fixture_to_camera.to_dict(), "fixture_covariance": cal.fixture_covariance.tolist(),
         "fixture_std": pose_std(cal.fixture_covariance),
+        **({} if cal.joint_covariance is None else
+           {"joint_covariance": {"parameters": list(JOINT_PARAMETERS), "units": "rad, m",
+                                 "matrix": cal.joint_covariance.tolist()}}),
         "fixture_vs_stated": _difference(cal.stated.fixture_to_camera, cal.fixture_to_camera),
         "pitch_scale": list(fit.pitch_scale),
         "target": cal.target.to_dict(),
@@ -360,10 +403,38 @@ def load_pose_record(path: str | Path) -> dict:
                 values = [float(v) for v in d[key][part]]
                 if len(values) != 3 or not all(math.isfinite(v) and v >= 0 for v in values):
                     raise ValueError(f"{key}.{part}")
+        if "joint_covariance" in d:
+            joint_covariance_mrad_mm(d)
     except (KeyError, TypeError, ValueError, ConfigError) as exc:
         raise ConfigError(f"pose record {path} lacks or garbles {exc}; {redo}") from None
     d["path"] = str(path)
     return d
+
+
+def joint_covariance_mrad_mm(record: dict) -> np.ndarray | None:
+    """The pose record's joint covariance of the screen's and the fixture's poses in the budget's units (mrad
+    and mm: :data:`JOINT_PARAMETERS`), or None for a record made before it was kept (schema 1 records until
+    2026-12-06: the budget then takes the twelve standard uncertainties as independent rows).
+
+    Raises
+    ------
+    ValueError
+        ``joint_covariance`` is not a finite, symmetric, positive semi-definite (12, 12) matrix of those
+        parameters.
+    """
+    joint = record.get("joint_covariance")
+    if joint is None:
+        return None
+    if not isinstance(joint, dict) or tuple(joint.get("parameters", ())) != JOINT_PARAMETERS:
+        raise ValueError("joint_covariance.parameters")
+    cov = np.asarray(joint.get("matrix"), dtype=np.float64)
+    if cov.shape != (12, 12) or not np.all(np.isfinite(cov)) or not np.allclose(cov, cov.T, rtol=1e-9, atol=0.0):
+        raise ValueError("joint_covariance.matrix (12 x 12, finite, symmetric)")
+    scale = 1e3 * np.ones(12)              # rad -> mrad, m -> mm alike
+    cov = cov * np.outer(scale, scale)
+    if np.linalg.eigvalsh(cov).min() < -1e-9 * max(np.abs(np.diag(cov)).max(), 1e-300):
+        raise ValueError("joint_covariance.matrix (not positive semi-definite)")
+    return cov
 
 
 def summary_text(cal: PoseCalibration, path: Path | None = None) -> str:

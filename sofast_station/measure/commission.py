@@ -796,12 +796,9 @@ def fit_pose(placements: list[MirrorPlacement], camera: CameraIntrinsics, shape:
                    (1.0 + float(pitch[0]), 1.0 + float(pitch[1])), sol)
 
 
-def transformed_covariance(pose: Pose, covariance: np.ndarray, to_other) -> tuple[Pose, np.ndarray]:
-    """The covariance of a pose derived from another: ``other = to_other(pose)``.
-
-    *covariance* is that of *pose*'s small motion about its own axes; the result is that of *other*'s
-    about its own axes (finite differences of the map, first order).
-    """
+def motion_jacobian(pose: Pose, to_other) -> tuple[Pose, np.ndarray]:
+    """``other = to_other(pose)`` and the (6, 6) derivative of *other*'s small motion (about and along its own
+    axes) with respect to *pose*'s (finite differences of the map, first order)."""
     other0 = to_other(pose)
     jac = np.zeros((6, 6))
     step = 1e-7
@@ -810,4 +807,5 @@ def transformed_covariance(pose: Pose, covariance: np.ndarray, to_other) -> tupl
         d[i] = step
         jac[:, i] = (bundle.motion_between(other0, to_other(bundle.moved(pose, d)))
                      - bundle.motion_between(other0, to_other(bundle.moved(pose, -d)))) / (2 * step)
-    return other0, jac @ covariance @ jac.T
+    return other0, jac
+

@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from sofast_station.config import load_config
@@ -118,6 +119,12 @@ def test_the_budget_takes_the_records_uncertainties(commissioned, monkeypatch):
     assert u.fixture_translation_mm == pytest.approx(tuple(pose["fixture_std"]["translation_mm"]))
     assert u.screen_pitch_relative == pytest.approx(max(screen["pitch_m"][a]["std"] / screen["pitch_m"][a]["value"]
                                                         for a in "xy"))
+    # the record's joint covariance of the screen's and the fixture's poses (mrad, mm), its diagonal the stds
+    joint = np.asarray(u.pose_covariance)
+    np.testing.assert_allclose(joint, 1e6 * np.asarray(pose["joint_covariance"]["matrix"]))
+    np.testing.assert_allclose(np.sqrt(np.diag(joint)), [*pose["screen_std"]["rotation_mrad"],
+                               *pose["screen_std"]["translation_mm"], *pose["fixture_std"]["rotation_mrad"],
+                               *pose["fixture_std"]["translation_mm"]], rtol=1e-9)
     assert config.geometry.measured_screen.record_id == screen["record_id"]
     model = default_screen(config.geometry)
     assert model.n_modes == len(screen["grid"]["modes_m"]) > 0

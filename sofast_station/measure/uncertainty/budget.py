@@ -12,8 +12,9 @@ import numpy as np
 
 from .capture_evidence import (FRAME_POOL_CAPTURES, capture_scales, display_response_u, frame_brightness_dn,
                                pooled_frame_brightness)
-from .corner_pose import CAMERA_DRAWN, POSE_DRAWS, POSE_GROUPS, pose_monte_carlo
-from .inputs import COVERAGE_FACTOR, RMS_AXES, InputUncertainties, get_path, path_name
+from .corner_pose import CAMERA_DRAWN, POSE_DRAWS, POSE_GROUPS, POSE_PATHS, pose_monte_carlo
+from .inputs import (COVERAGE_FACTOR, POSE_ROWS, RMS_AXES, InputUncertainties, get_path, path_name,
+                     pose_row_covariance)
 from .intensity_noise import NoisePropagation, noise_propagation
 from .shape_pose import beyond_linear, pose_fields, shape_monte_carlo
 from .systematic import Sensitivities, sensitivities
@@ -176,6 +177,26 @@ def boresight_ray_path(sens: Sensitivities, contrib: np.ndarray) -> dict:
     return out
 
 
+def screen_pose_coefficients(sens: Sensitivities) -> dict:
+    """Each corner-pose figure's change per mrad and mm of the screen's pose (the screen rows' linear parts per
+    unit, in the order of :data:`~.inputs.POSE_ROWS`' first six; 0 for a row the budget leaves out),
+    ``{path: (6,) array}``, for :func:`~.corner_pose.pose_monte_carlo` to add draw by draw with the fixture's
+    draws where the pose record correlates them."""
+    names = [inp.name for inp in sens.inputs]
+    out = {}
+    for p in POSE_PATHS:
+        if p not in sens.paths:
+            continue
+        j = sens.paths.index(p)
+        coef = np.zeros(6)
+        for k, name in enumerate(POSE_ROWS[:6]):
+            if name in names:
+                i = names.index(name)
+                coef[k] = sens.linear[i, j] / sens.inputs[i].u if np.isfinite(sens.linear[i, j]) else 0.0
+        out[p] = coef
+    return out
+
+
 def boresight_ray_coefficients(sens: Sensitivities) -> dict:
     """The boresight's turn through the rays per standard deviation of each camera input the corner pose's
     Monte Carlo draws (:data:`~.corner_pose.CAMERA_DRAWN`), mrad: the camera rows' linear parts of the
@@ -200,6 +221,27 @@ def boresight_ray_coefficients(sens: Sensitivities) -> dict:
     return out
 
 
+def covariance_factor(cov: np.ndarray) -> np.ndarray:
+    """M with M M^T = *cov*, lower triangular (Cholesky) where *cov* is positive definite: component k then
+    holds input k's part not explained by the inputs before it, so a budget table's group of the first
+    inputs carries what the later ones share with them. Else (semi-definite) from its eigenvectors."""
+    cov = 0.5 * (cov + cov.T)
+    try:
+        return np.linalg.cholesky(cov)
+    except np.linalg.LinAlgError:
+        w, v = np.linalg.eigh(cov)
+        return v * np.sqrt(np.clip(w, 0.0, None))[None, :]
+
+
+def correlated_rows(sens: Sensitivities, rows: list, factor: np.ndarray) -> np.ndarray:
+    """The linear contributions of correlated inputs *rows* as independent rows: with C = M M^T their
+    covariance (*factor* M, in the inputs' units) and J the sensitivities per unit, the rows M^T J, whose
+    root sum of squares is sqrt(J^T C J) for every figure (the budget still adds up)."""
+    u_ref = np.array([sens.inputs[i].u for i in rows])
+    jac = sens.linear[rows] / u_ref[:, None]                               # figure per unit of the input
+    return factor.T @ np.nan_to_num(jac)
+
+
 def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs: InputUncertainties,
             scales: np.ndarray | None = None, corner_cov: np.ndarray | None = None,
             pose_mc: dict | None = None, shape_mc: dict | None = None) -> dict:
@@ -215,25 +257,28 @@ def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs:
     *corner_cov* (2n x 2n, pixels squared, the corners' coordinates in budget order): the corner rows'
     linear parts are then carried with their correlations, as sqrt(J^T C J) with J the sensitivities per
     pixel, split into independent rows (C = M M^T, row contributions M^T J) so the budget still adds up.
+    The screen's and the fixture's pose rows alike where *inputs* holds the pose record's joint covariance
+    (:func:`~.inputs.pose_row_covariance`): the pose calibration finds the fixture through the mirror seated
+    in it, seen through the screen pose it finds, so their errors largely cancel in the optical tilt.
 
     *pose_mc* (:func:`pose_monte_carlo`): for the corner-pose figures, the mean square errors it drew stand
-    for the rows of :data:`POSE_GROUPS` (the other rows are added to them in quadrature; for the boresight
+    for the rows of the groups it names (:data:`POSE_GROUPS`, and the screen's pose where it drew it with the
+    fixture's) (the other rows are added to them in quadrature; for the boresight
     the Monte Carlo holds the camera intrinsics' path through the rays too, :func:`boresight_ray_coefficients`).
 
     *shape_mc* (:func:`~.shape_pose.shape_monte_carlo`): for the shape figures it names, the mean square change
     the corner pose's draws give stands for the corner rows (random); the other rows as they are.
     """
     sc = np.ones(len(sens.inputs)) if scales is None else np.asarray(scales, float)
-    linear = sens.linear * sc[:, None]
+    linear = (sens.linear * sc[:, None]).copy()
     rows = [i for i, inp in enumerate(sens.inputs) if inp.group == "corner location"]
     if corner_cov is not None and np.shape(corner_cov) == (len(rows), len(rows)) and rows \
             and np.all(np.isfinite(corner_cov)):
-        u_ref = np.array([sens.inputs[i].u for i in rows])
-        jac = sens.linear[rows] / u_ref[:, None]                           # figure per pixel
         w, v = np.linalg.eigh(0.5 * (corner_cov + corner_cov.T))
-        m = v * np.sqrt(np.clip(w, 0.0, None))[None, :]
-        linear = linear.copy()
-        linear[rows] = m.T @ np.nan_to_num(jac)
+        linear[rows] = correlated_rows(sens, rows, v * np.sqrt(np.clip(w, 0.0, None))[None, :])
+    joint = pose_row_covariance(inputs, sens.inputs)
+    if joint is not None:
+        linear[joint[0]] = correlated_rows(sens, joint[0], covariance_factor(joint[1]))
     contrib = np.sqrt(linear ** 2 + 2.0 * (sens.curvature * (sc ** 2)[:, None]) ** 2)
     kinds = np.array([i.kind for i in sens.inputs])
     u_sys2 = np.nansum(contrib[kinds == "systematic"] ** 2, axis=0)
@@ -249,7 +294,8 @@ def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs:
     u = np.sqrt(u_sys2 + u_rand ** 2)
     rays = boresight_ray_path(sens, contrib) if pose_mc else {}
     if pose_mc:
-        other = np.array([inp.group not in POSE_GROUPS for inp in sens.inputs])
+        drawn_groups = pose_mc.get("groups", POSE_GROUPS)
+        other = np.array([inp.group not in drawn_groups for inp in sens.inputs])
         sys_o, rand_o = other & (kinds == "systematic"), other & (kinds == "random")
         off_o = np.nansum(sens.curvature[sys_o] * (sc[sys_o] ** 2)[:, None], axis=0)
         u_sys_o2 = np.nansum(contrib[sys_o] ** 2, axis=0) + off_o ** 2
@@ -315,7 +361,8 @@ def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs:
             "draws": POSE_DRAWS}
     if pose_mc:
         out["uncertainty_budget"]["pose_monte_carlo"] = {
-            "figures": [path_name(p) for p in sens.paths if p in pose_mc], "groups": list(POSE_GROUPS),
+            "figures": [path_name(p) for p in sens.paths if p in pose_mc],
+            "groups": list(pose_mc.get("groups", POSE_GROUPS)),
             "draws": POSE_DRAWS,
             "boresight_camera_rays": {path_name(p): _sig(v) for p, v in rays.items()}}
     return out
@@ -456,9 +503,11 @@ def uncertainty_figures(reduction, *, fringes, geometry, design, measured_distan
         if cache is not None and cache_key is not None:
             cache[cache_key] = sens
     rays = boresight_ray_coefficients(sens)
+    screen_paths = screen_pose_coefficients(sens)
     frames: dict = {}
     pose_task = None if pool is None else pool.submit(pose_monte_carlo, reduction, geometry=geometry, design=design,
-                                                      inputs=inputs, ray_paths=rays, frames=frames)
+                                                      inputs=inputs, ray_paths=rays, frames=frames,
+                                                      screen_paths=screen_paths)
     noise = noise_propagation(reduction, fringes=fringes, geometry=geometry, design=design, settings=settings,
                               screen=screen)
     pool = None
@@ -470,7 +519,7 @@ def uncertainty_figures(reduction, *, fringes, geometry, design, measured_distan
     frame = pooled_frame_brightness(*frame_brightness_dn(reduction), pool)
     response = display_response_u(reduction, inputs)
     pose_mc = (pose_monte_carlo(reduction, geometry=geometry, design=design, inputs=inputs, ray_paths=rays,
-                                frames=frames) if pose_task is None else pose_task.result())
+                                frames=frames, screen_paths=screen_paths) if pose_task is None else pose_task.result())
     shape_mc = {}
     if beyond_linear(frames):
         fields = pose_fields(reduction, fringes=fringes, geometry=geometry, design=design,

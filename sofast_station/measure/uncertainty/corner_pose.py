@@ -8,7 +8,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from .inputs import InputUncertainties
+from .inputs import InputUncertainties, pose_covariance_mrad_mm
 
 #: Figures the corner pose decides (their U comes from :func:`pose_monte_carlo`).
 POSE_PATHS: tuple[tuple, ...] = (("boresight_mrad", "x"), ("boresight_mrad", "y"),
@@ -17,6 +17,9 @@ POSE_PATHS: tuple[tuple, ...] = (("boresight_mrad", "x"), ("boresight_mrad", "y"
 #: Budget groups the Monte Carlo of the corner pose draws (the other groups' contributions are added to it).
 POSE_GROUPS = ("measured distance", "camera focal length", "camera principal point", "camera distortion",
                "fixture pose", "corner location")
+#: Budget groups it draws as well where the pose record's joint covariance correlates the screen's pose with the
+#: fixture's (:func:`pose_draws`, :func:`pose_monte_carlo`'s *screen_paths*).
+SCREEN_GROUPS = ("camera-to-screen rotation", "camera-to-screen translation")
 #: Draws of the Monte Carlo (each solves the 4-corner pose twice: all inputs, corners alone).
 POSE_DRAWS = 200
 
@@ -183,7 +186,7 @@ def solve_poses_batch(corners_px: np.ndarray, points: np.ndarray, matrix: np.nda
 
 
 def pose_draws(corners_px: np.ndarray, corner_factor: np.ndarray, geometry, inputs: InputUncertainties,
-               draws: int = POSE_DRAWS, seed: int = 12) -> dict:
+               draws: int = POSE_DRAWS, seed: int = 12, with_screen: bool = False) -> dict:
     """The inputs :func:`pose_monte_carlo` draws: the noise of the *corners_px* (n, 2), ``corner_factor @ z``
     (C = M M^T, the corners' covariance in pixels squared), the camera's focal lengths, principal point and
     distortion, the fixture pose and the measured distance's error from *inputs*.
@@ -198,7 +201,11 @@ def pose_draws(corners_px: np.ndarray, corner_factor: np.ndarray, geometry, inpu
         ``camera_z`` (draws, 9): the camera's draws in standard deviations (f_x, f_y, c_x, c_y, then
         k1, k2, p1, p2, k3), ``corner_noise_px`` (draws, n, 2), the camera's ``matrix`` (draws, 3, 3) and ``distortion``
         (draws, 5), ``fixture_rotation`` (draws, 3, 3) and ``fixture_translation`` (draws, 3) of the
-        fixture-to-camera pose, ``distance_m`` (draws,): the measured distance's error, metres.
+        fixture-to-camera pose, ``distance_m`` (draws,): the measured distance's error, metres. With
+        *with_screen* and a joint covariance of the screen's and the fixture's poses in *inputs*
+        (:func:`~.inputs.pose_covariance_mrad_mm`), also ``screen_motion`` (draws, 6): the screen's true small
+        motion from the stated one, mrad and mm, drawn jointly with the fixture's (six more standard normals
+        after the others, so that the draws without it stay as they were).
     """
     rng = np.random.default_rng(seed)
     corners = np.asarray(corners_px, np.float64)
@@ -210,15 +217,28 @@ def pose_draws(corners_px: np.ndarray, corner_factor: np.ndarray, geometry, inpu
                     inputs.camera_principal_px])
     k = np.repeat(cam.matrix[None], draws, axis=0)
     k[:, (0, 1, 0, 1), (0, 1, 2, 2)] += z_k * u_k
+    fixture = z_f * np.concatenate([inputs.fixture_rotation_mrad, inputs.fixture_translation_mm])
+    joint = pose_covariance_mrad_mm(inputs) if with_screen else None
+    screen = None
+    if joint is not None:
+        z_s = rng.standard_normal((draws, 6))
+        z_s = (z_s - z_s.mean(axis=0)) / z_s.std(axis=0)
+        # fixture first: its draws are L_ff z_f, the screen's L_sf z_f + L_ss z_s (C = L L^T, fixture then screen)
+        order = np.r_[6:12, 0:6]
+        low = np.linalg.cholesky(joint[np.ix_(order, order)] + 1e-12 * np.eye(12) * np.trace(joint) / 12)
+        drawn = np.column_stack([z_f, z_s]) @ low.T
+        fixture, screen = drawn[:, :6], drawn[:, 6:]
     # The fixture moved by a small motion (fixture_to_camera.compose(small_motion(...))), on arrays.
-    d_rot = _rotation_batch(1e-3 * z_f[:, :3] * np.asarray(inputs.fixture_rotation_mrad))
-    return {"camera_z": np.column_stack([z_k, z_d]),
-            "corner_noise_px": (z_c @ np.asarray(corner_factor).T).reshape(draws, *corners.shape),
-            "matrix": k, "distortion": cam.distortion[None] + z_d * np.asarray(inputs.camera_distortion)[None],
-            "fixture_rotation": fix0.rotation @ d_rot,
-            "fixture_translation": (fix0.rotation @ (1e-3 * z_f[:, 3:] * np.asarray(inputs.fixture_translation_mm)).T).T
-            + fix0.translation,
-            "distance_m": 1e-3 * inputs.distance_mm * z_r[:, 0]}
+    d_rot = _rotation_batch(1e-3 * fixture[:, :3])
+    out = {"camera_z": np.column_stack([z_k, z_d]),
+           "corner_noise_px": (z_c @ np.asarray(corner_factor).T).reshape(draws, *corners.shape),
+           "matrix": k, "distortion": cam.distortion[None] + z_d * np.asarray(inputs.camera_distortion)[None],
+           "fixture_rotation": fix0.rotation @ d_rot,
+           "fixture_translation": (fix0.rotation @ (1e-3 * fixture[:, 3:]).T).T + fix0.translation,
+           "distance_m": 1e-3 * inputs.distance_mm * z_r[:, 0]}
+    if screen is not None:
+        out["screen_motion"] = screen
+    return out
 
 
 #: The camera inputs of :func:`pose_draws`' ``camera_z`` columns, as the budget names them.
@@ -227,7 +247,8 @@ CAMERA_DRAWN = ("camera fx", "camera fy", "camera cx", "camera cy", "camera k1",
 
 
 def pose_monte_carlo(reduction, *, geometry, design, inputs: InputUncertainties, draws: int = POSE_DRAWS,
-                     seed: int = 12, ray_paths: dict | None = None, frames: dict | None = None) -> dict:
+                     seed: int = 12, ray_paths: dict | None = None, frames: dict | None = None,
+                     screen_paths: dict | None = None) -> dict:
     """Mean squared error of the corner-pose figures (boresight, placement) when the inputs the corner
     pose depends on are drawn from their distributions (GUM Supplement 1): the corners' noise from their
     covariance (``corner_cov_px2``), the camera's focal lengths, principal point and distortion, the
@@ -269,6 +290,14 @@ def pose_monte_carlo(reduction, *, geometry, design, inputs: InputUncertainties,
     rays by 1.37 mrad the same way (quarter-resolution camera, f 750 px): the boresight moves by their
     difference, 0.6 mrad. Added in quadrature, the two made its U 2.6 times its errors' spread there.
 
+    *screen_paths* ``{path: (6,) coefficients}``: each figure's change per mrad and mm of the screen's pose
+    (:data:`~.inputs.POSE_ROWS`' first six; the linear parts of their finite differences,
+    :func:`~.budget.screen_pose_coefficients`). Where *inputs* holds the pose record's joint covariance of the
+    screen's and the fixture's poses, the screen's error is drawn with the fixture's (:func:`pose_draws`) and
+    its turn of the figures added draw by draw, as the rays' above: the pose calibration finds the fixture
+    through the mirror seated in it, seen through the screen pose it finds, so the two are not independent.
+    The result then names the budget groups it stands for, :data:`SCREEN_GROUPS` included (``"groups"``).
+
     *frames*, a dict, receives the draws as errors of the facet's frame, for the shape figures' Monte Carlo
     (:func:`~.shape_pose.shape_monte_carlo`): ``rotation`` (n, 3, 3) and ``translation`` (n, 3, metres) of
     every input drawn, the estimated frame being the true one moved by them (facet axes), the camera's
@@ -278,7 +307,9 @@ def pose_monte_carlo(reduction, *, geometry, design, inputs: InputUncertainties,
     -------
     dict
         ``{path: (mean square error, mean square error from the corners alone)}`` for :data:`POSE_PATHS`,
-        in the figures' units squared; {} when the corners have no covariance.
+        in the figures' units squared, and ``"groups"``: the budget groups the draws stand for
+        (:data:`POSE_GROUPS`, with :data:`SCREEN_GROUPS` where the screen was drawn); {} when the corners have
+        no covariance.
     """
     if not getattr(design, "outline_known", True):
         return {}           # a mirror of unknown outline reports none of the corner pose's figures
@@ -329,7 +360,8 @@ def pose_monte_carlo(reduction, *, geometry, design, inputs: InputUncertainties,
                                 -1000.0 * np.arcsin(np.clip(rf[:, 2, 0], -1.0, 1.0)),
                                 1000.0 * np.arctan2(rf[:, 1, 0], rf[:, 0, 0])])
 
-    dr = pose_draws(np.zeros((n_corners // 2, 2)), m, geometry, inputs, draws, seed)
+    dr = pose_draws(np.zeros((n_corners // 2, 2)), m, geometry, inputs, draws, seed,
+                    with_screen=screen_paths is not None)
     # In one batch of poses: all inputs drawn, then the corners alone.
     true_r = np.concatenate([dr["fixture_rotation"], nominal(fix0.rotation, draws)])
     true_t = np.concatenate([dr["fixture_translation"], nominal(fix0.translation, draws)])
@@ -345,6 +377,10 @@ def pose_monte_carlo(reduction, *, geometry, design, inputs: InputUncertainties,
             # the drawn camera's turn of the rays, on the analysis's side (a true input of +z u is an
             # analysis input of -z u): the column's sign is the pose's rotation error's opposite
             d_all[:, j] = d_all[:, j] - dr["camera_z"] @ np.asarray(coef, float)
+        coef = None if "screen_motion" not in dr else screen_paths.get(p)
+        if coef is not None:
+            # the true screen moved by +w is the analysis's screen moved by -w, as the fixture's draws
+            d_all[:, j] = d_all[:, j] - dr["screen_motion"] @ np.nan_to_num(np.asarray(coef, float))
     # A draw whose pose cannot be solved says nothing about the others.
     good = np.all(np.isfinite(d_all), axis=1) & np.all(np.isfinite(d_corners), axis=1)
     n = int(good.sum())
@@ -359,4 +395,5 @@ def pose_monte_carlo(reduction, *, geometry, design, inputs: InputUncertainties,
                        "corners": {"rotation": rot[draws:][good], "translation": trans[draws:][good]}})
     sq_all = np.mean(d_all[good] ** 2, axis=0)
     sq_corners = np.mean(d_corners[good] ** 2, axis=0)
-    return {p: (float(sq_all[j]), float(sq_corners[j])) for j, p in enumerate(POSE_PATHS)}
+    groups = POSE_GROUPS + (SCREEN_GROUPS if "screen_motion" in dr else ())
+    return {"groups": groups, **{p: (float(sq_all[j]), float(sq_corners[j])) for j, p in enumerate(POSE_PATHS)}}

@@ -60,7 +60,11 @@ def small_motion(rotation_mrad=(0.0, 0.0, 0.0), translation_mm=(0.0, 0.0, 0.0)) 
 
 
 #: Fields of :class:`InputUncertainties` that come from records, not from ``[uncertainty]``.
-RECORD_DERIVED_KEYS = ("response_record_rad",)
+RECORD_DERIVED_KEYS = ("response_record_rad", "pose_covariance")
+#: The budget's rows of the screen's and the fixture's pose, in the order of ``pose_covariance`` (the pose
+#: record's ``joint_covariance``, :data:`~sofast_station.calibrate.pose.JOINT_PARAMETERS`).
+POSE_ROWS = ("screen rx", "screen ry", "screen rz", "screen tx", "screen ty", "screen tz",
+             "fixture rx", "fixture ry", "fixture rz", "fixture tx", "fixture ty", "fixture tz")
 
 
 def lut_phase_error_rad(lut, floor_level: float, max_level: float, samples_per_period: float) -> float:
@@ -122,6 +126,11 @@ class InputUncertainties:
         Not a station.toml key: the 4-times-phase error the radiometric record in force leaves with 8-bit
         display commands (:func:`lut_phase_error_rad`), set from the record (:meth:`with_radiometric_record`);
         None when there is none.
+    pose_covariance : tuple of 12 tuples of 12 floats, or None
+        Not a station.toml key: the pose record's joint covariance of the screen's and the fixture's poses
+        (:data:`POSE_ROWS`, mrad and mm), set from the record (:meth:`with_commission_records`); its
+        correlations join the twelve rows (:func:`pose_row_covariance`). None: the rows are independent (no
+        record, a record made before it was kept, or a geometry record's fixture pose in force).
     """
 
     distance_mm: float = 0.5
@@ -136,9 +145,10 @@ class InputUncertainties:
     fixture_translation_mm: tuple = (0.5, 0.5, 0.5)
     corner_px: float = 0.1
     response_record_rad: float | None = None
+    pose_covariance: tuple | None = None
 
     def to_dict(self) -> dict:
-        return {f.name: (list(v) if isinstance(v, tuple) else v)
+        return {f.name: (_listed(v) if isinstance(v, tuple) else v)
                 for f in dataclasses.fields(self) for v in [getattr(self, f.name)]}
 
     @classmethod
@@ -167,7 +177,11 @@ class InputUncertainties:
         :meth:`from_table`, the record-derived ones taken as they are."""
         out = cls.from_table({k: v for k, v in d.items() if k not in RECORD_DERIVED_KEYS})
         record = d.get("response_record_rad")
-        return out if record is None else dataclasses.replace(out, response_record_rad=float(record))
+        if record is not None:
+            out = dataclasses.replace(out, response_record_rad=float(record))
+        if d.get("pose_covariance") is not None:
+            out = dataclasses.replace(out, pose_covariance=_frozen_matrix(d["pose_covariance"]))
+        return out
 
     def with_camera_record(self, record: dict | None) -> "InputUncertainties":
         """Where the camera record in force states its parameters' standard deviations (``std``: the
@@ -207,7 +221,9 @@ class InputUncertainties:
         standard uncertainties of the camera-to-screen pose (``screen_rotation_mrad``,
         ``screen_translation_mm``), the pitch (``screen_pitch_relative``) and the fixture pose
         (``fixture_rotation_mrad``, ``fixture_translation_mm``), use them instead of the ``[uncertainty]``
-        values: measured, not typed in."""
+        values: measured, not typed in. The pose record's joint covariance of the screen's and the fixture's
+        poses (``pose_covariance``, (12, 12), mrad and mm: :data:`POSE_ROWS`), where it has one, correlates
+        their rows."""
         if not isinstance(std, dict) or not std:
             return self
         out = self
@@ -218,6 +234,8 @@ class InputUncertainties:
                     out = dataclasses.replace(out, **{key: tuple(float(v) for v in std[key])})
             if "screen_pitch_relative" in std:
                 out = dataclasses.replace(out, screen_pitch_relative=float(std["screen_pitch_relative"]))
+            if std.get("pose_covariance") is not None:
+                out = dataclasses.replace(out, pose_covariance=_frozen_matrix(std["pose_covariance"]))
         except (TypeError, ValueError):
             return self
         return out
@@ -234,12 +252,58 @@ class InputUncertainties:
         try:
             for key in ("fixture_translation_mm", "fixture_rotation_mrad"):
                 if key in std and len(std[key]) == 3:
-                    out = dataclasses.replace(out, **{key: tuple(float(v) for v in std[key])})
+                    # another measurement's fixture pose, not correlated with the pose record's screen
+                    out = dataclasses.replace(out, pose_covariance=None,
+                                              **{key: tuple(float(v) for v in std[key])})
             if "distance_mm" in std:
                 out = dataclasses.replace(out, distance_mm=max(out.distance_mm, float(std["distance_mm"])))
         except (TypeError, ValueError):
             return self
         return out
+
+
+def _listed(value):
+    """A tuple (of tuples) as lists, JSON-ready."""
+    return [_listed(v) if isinstance(v, tuple) else v for v in value]
+
+
+def _frozen_matrix(value) -> tuple:
+    """A (12, 12) covariance (mrad, mm) as a tuple of tuples (the dataclass is frozen and hashed);
+    ValueError when it is not a finite symmetric one."""
+    cov = np.asarray(value, dtype=np.float64)
+    if cov.shape != (len(POSE_ROWS), len(POSE_ROWS)) or not np.all(np.isfinite(cov)) \
+            or not np.allclose(cov, cov.T, rtol=1e-9, atol=0.0):
+        raise ValueError("pose_covariance must be a finite, symmetric 12 x 12 matrix")
+    return tuple(tuple(float(v) for v in row) for row in cov)
+
+
+def pose_row_covariance(inputs: "InputUncertainties", rows: list) -> tuple[list, np.ndarray] | None:
+    """Where the budget's *rows* (:class:`Input`) hold the screen's and the fixture's pose rows and *inputs* a
+    joint covariance of them: their indices in *rows* and their covariance in the rows' units (mrad, mm),
+    the record's correlations at the rows' own standard uncertainties (they are the record's, so the matrix
+    is the record's). None: no joint covariance, or fewer than two of those rows (independent, as before)."""
+    cov = pose_covariance_mrad_mm(inputs)
+    names = [r.name for r in rows]
+    at = [(names.index(n), k) for k, n in enumerate(POSE_ROWS) if n in names]
+    if cov is None or len(at) < 2:
+        return None
+    idx, k = (list(v) for v in zip(*at))
+    return idx, cov[np.ix_(k, k)]
+
+
+def pose_covariance_mrad_mm(inputs: "InputUncertainties") -> np.ndarray | None:
+    """The (12, 12) covariance of the screen's and the fixture's pose rows (:data:`POSE_ROWS`, mrad and mm):
+    the record's correlations at *inputs*' standard uncertainties (the record's own, where they are in force,
+    so the record's matrix). None without a joint covariance, or where the record states a zero one."""
+    if inputs.pose_covariance is None:
+        return None
+    cov = np.asarray(inputs.pose_covariance, dtype=np.float64)
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    if np.any(sd <= 0.0):
+        return None
+    u = np.concatenate([inputs.screen_rotation_mrad, inputs.screen_translation_mm, inputs.fixture_rotation_mrad,
+                        inputs.fixture_translation_mm]).astype(np.float64)
+    return cov / np.outer(sd, sd) * np.outer(u, u)
 
 
 @dataclass(frozen=True)
