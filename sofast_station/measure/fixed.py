@@ -684,6 +684,9 @@ class DotPhases:
         None: each dot is centred on its own image, so the lens's blur does not average neighbouring dots'
         slopes (what that figure measures for the uncertainty's blur term)."""
         on_facet = int(self.ok.size - self.dropped.get("near_edge", 0))
+        # the lattice's neighbour pairs once for every model and axis (the uncertainty's shape reruns call this
+        # dozens of times per capture: sorting the lattice six times was a tenth of the analysis's CPU)
+        pairs = self._pairs(rays)
         return {
             "valid_fraction": float(rays.vidx.size / max(on_facet, 1)),
             "facet_pixels": int(region.region.sum()),
@@ -696,7 +699,7 @@ class DotPhases:
             "slope_residual_neighbour_ms_mrad2": None,
             "method": "fixed",
             "dots": {**self.found, "used": int(rays.vidx.size),
-                     "lattice_neighbour_ms_mrad2": {m: {a: neighbour_difference_ms(e[i], self._pairs(rays))
+                     "lattice_neighbour_ms_mrad2": {m: {a: neighbour_difference_ms(e[i], pairs)
                                                         for i, a in enumerate(("x", "y"))}
                                                     for m, e in fits.residuals_mrad.items()},
                      "centroid_sigma_px": self.found.get("centroid_sigma_px")},
