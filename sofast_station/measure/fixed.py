@@ -554,6 +554,30 @@ MIN_STEP_SHARE = 0.75
 #: alone gives sqrt(1 / (12 pi R)), 0.11 px at R = 2.4. docs/uncertainty.md, "Dot centroid model".
 CENTROID_MODEL_PX = 0.10
 
+#: Standard uncertainty (pixels, per coordinate) of each corner the dot frame's outline gives, beyond the
+#: outline fit's own covariance: the sides are fitted on the dot frame's lit background with its dots
+#: filled in (:func:`~.dots.pattern_background`), not on a white frame, and their corners are off the
+#: twin's true corner pixels by more than the fit states. On ``study methods`` (seed 0, 59 captures of 12
+#: stations, every edge model) they were 0.17 px RMS per coordinate off against 0.07 stated (chi-square of
+#: the 8 coordinates: median 106); less each capture's common shift and scale of the four (which move the
+#: placement in mm and the range, not the turn), 0.10 px. With the twin's true corners the boresight x was
+#: covered 100 % (RMS of error / (U / 2) 0.59), with the found ones 74.6 % (1.69). Added in quadrature to
+#: every corner coordinate's variance, independent from corner to corner (docs/uncertainty.md, "Dot
+#: frame's corners").
+CORNER_MODEL_PX = 0.10
+
+
+def with_corner_model(pose):
+    """*pose* (:class:`~.pipeline.CornerPoseResult`) with :data:`CORNER_MODEL_PX` added to its corners'
+    covariance (and their median standard uncertainty); unchanged without a covariance (a mirror of unknown
+    outline, placed by its region's centroid)."""
+    cov = getattr(pose, "corner_cov_px2", None)
+    if cov is None or len(pose.corners_px) < 3:
+        return pose
+    cov = np.asarray(cov, np.float64) + CORNER_MODEL_PX ** 2 * np.eye(len(cov))
+    sigma = None if pose.corner_sigma_px is None else float(np.hypot(pose.corner_sigma_px, CORNER_MODEL_PX))
+    return dataclasses.replace(pose, corner_cov_px2=cov, corner_sigma_px=sigma)
+
 
 def check_spacing(centres_px: np.ndarray, jac: np.ndarray) -> None:
     """Refuse dots closer together than :data:`MIN_STEP_SHARE` of the shorter grid step the nominal geometry
@@ -660,6 +684,9 @@ class DotPhases:
         None: each dot is centred on its own image, so the lens's blur does not average neighbouring dots'
         slopes (what that figure measures for the uncertainty's blur term)."""
         on_facet = int(self.ok.size - self.dropped.get("near_edge", 0))
+        # the lattice's neighbour pairs once for every model and axis (the uncertainty's shape reruns call this
+        # dozens of times per capture: sorting the lattice six times was a tenth of the analysis's CPU)
+        pairs = self._pairs(rays)
         return {
             "valid_fraction": float(rays.vidx.size / max(on_facet, 1)),
             "facet_pixels": int(region.region.sum()),
@@ -672,7 +699,7 @@ class DotPhases:
             "slope_residual_neighbour_ms_mrad2": None,
             "method": "fixed",
             "dots": {**self.found, "used": int(rays.vidx.size),
-                     "lattice_neighbour_ms_mrad2": {m: {a: neighbour_difference_ms(e[i], self._pairs(rays))
+                     "lattice_neighbour_ms_mrad2": {m: {a: neighbour_difference_ms(e[i], pairs)
                                                         for i, a in enumerate(("x", "y"))}
                                                     for m, e in fits.residuals_mrad.items()},
                      "centroid_sigma_px": self.found.get("centroid_sigma_px")},
@@ -908,12 +935,14 @@ def reduce_fixed(image: np.ndarray, dots: DotLocations, geometry: StationGeometr
                    "origin_from": origin_from, "origin_index": [int(v) for v in fixed.origin_index],
                    "index_axes": axes.tolist(), "index_axes_from": axes_from, "step_px": step,
                    "diameter_px": float(found.diameter_px), "centroid_model_px": CENTROID_MODEL_PX,
+                   "corner_model_px": CORNER_MODEL_PX,
                    "centroid_sigma_px": float(np.sqrt(np.median(0.5 * np.trace(found.cov_px2[which], axis1=1,
                                                                                axis2=2))))})
         timer.lap("phase")
         rays = screen_points_and_rays(region, phases, cam, screen, pool=pool, min_valid_px=int(fixed.min_dots))
         timer.lap("rays")
-        pose = corners_and_pose(region, rays, geometry, design, measured_distance_m, settings)
+        # the dot frame's corners carry their model error (CORNER_MODEL_PX) besides the outline fit's
+        pose = with_corner_model(corners_and_pose(region, rays, geometry, design, measured_distance_m, settings))
         timer.lap("pose")
         shape = shape_and_boresight(rays, pose, design, measured_distance_m, settings, pool, timer)
         fits = fit_models(shape, design, pool)
