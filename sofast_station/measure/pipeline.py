@@ -51,7 +51,8 @@ from .phase import (
     position_sigma_m,
     unwrap_positions,
 )
-from .pose import departure_from_design_m, fix_range, mask_centroid_px, placement, pose_facing, solve_corner_pose
+from .pose import (departure_from_design_m, fix_range, mask_centroid_px, placement, pose_facing, refine_corner_pose,
+                   solve_corner_pose)
 from .screen import FlatScreen, InterpolatedScreen, ScreenModel
 from .slope_noise import slope_covariance
 from .stats import median
@@ -905,8 +906,8 @@ def pose_on_measured_surface(pose: CornerPoseResult, fits: Fits, rays: Rays, geo
     corners_3d[:, 2] += lift[:-1]
     measure_point = np.array([*design.measure_point_m, float(design.z(*design.measure_point_m)) + lift[-1]])
     # from the first pose: the same valley of the reprojection error, a few tenths of a mrad along it
-    lifted = solve_corner_pose(geometry.camera, pose.corners_px, corners_3d, pose.facet_to_camera)
-    facet_to_camera, _ = fix_range(lifted.facet_to_camera, measure_point, rays.screen_centre_cam_m,
+    lifted = refine_corner_pose(geometry.camera, pose.corners_px, corners_3d, pose.facet_to_camera)
+    facet_to_camera, _ = fix_range(lifted, measure_point, rays.screen_centre_cam_m,
                                    measured_distance_m, settings.max_range_shift_m)
     return facet_to_camera
 

@@ -215,7 +215,8 @@ def comparison_table(result, show_all: bool = False) -> str:
         if not record:
             return {}
         return {figure_of_uncertainty(k): (k, v) for k, v in flatten_uncertainties(record).items()
-                if not k.endswith("_U_random") and "_U_random." not in k and "_U_random[" not in k}
+                if not k.endswith("_U_random") and "_U_random." not in k and "_U_random[" not in k
+                and "_interval[" not in k}
 
     new = flatten_figures(result.record)
     old = flatten_figures(result.archived) if result.archived else {}

@@ -281,21 +281,23 @@ class ReprocessResult:
 
 # -- comparison ------------------------------------------------------------------------------------------
 def is_uncertainty_key(key: str) -> bool:
-    """Keys of the uncertainty: ``name_U``, ``name_U_random`` and the budget (flattened apart from the
-    figures: :func:`flatten_figures`, :func:`flatten_uncertainties`)."""
-    return key.endswith("_U") or key.endswith("_U_random") or key == "uncertainty_budget"
+    """Keys of the uncertainty: ``name_U``, ``name_U_random``, a focal length's interval from its focal power's U
+    (``focal_length_x_m_interval``, result/focal.py) and the budget (flattened apart from the figures:
+    :func:`flatten_figures`, :func:`flatten_uncertainties`)."""
+    return key.endswith(("_U", "_U_random", "_interval")) or key == "uncertainty_budget"
 
 
 def figure_of_uncertainty(name: str) -> str | None:
     """The flat figure name a flat uncertainty name belongs to (``slope_rms_mrad_U.design.x`` ->
     ``slope_rms_mrad.design.x``, ``facets[1].canting_mrad_U.y`` -> ``facets[1].canting_mrad.y``); None for
-    a name that is no U (nor a random part ``_U_random``)."""
+    a name that is no U (nor a random part ``_U_random``, nor a focal length's interval:
+    ``focal_length_x_m_interval[1]`` -> ``focal_length_x_m``)."""
     parts = name.split(".")
     for i, part in enumerate(parts):
         base, bracket, index = part.partition("[")
-        for suffix in ("_U", "_U_random"):
-            if base.endswith(suffix):
-                parts[i] = base[:-len(suffix)] + bracket + index
+        for suffix in ("_U", "_U_random", "_interval"):
+            if base.endswith(suffix):      # an interval's ends ([0], [1]) are of the one figure
+                parts[i] = base[:-len(suffix)] + ("" if suffix == "_interval" else bracket + index)
                 return ".".join(parts)
     return None
 
