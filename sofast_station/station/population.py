@@ -216,7 +216,10 @@ class PopulationStation:
                 focal.append(1.0 / kappa if kappa != 0 else math.inf)
         self.facet = TrueFacet.from_dict({**spec["facet"], "focal_length_x_m": focal[0], "focal_length_y_m": focal[1]})
         self.optics = TwinOptics.from_dict(spec["optics"])
-        key = (cfg.geometry.screen.width_px, cfg.geometry.screen.height_px)
+        # the rendered fringes depend on the screen's size and on the periods drawn (the heliostat station
+        # draws 16, the flat one of the same screen 4)
+        key = (cfg.geometry.screen.width_px, cfg.geometry.screen.height_px, tuple(cfg.fringes.periods_x),
+               tuple(cfg.fringes.periods_y))
         if key not in images:
             images[key] = _render(cfg)
         self.images, self.images_linear = images[key]
