@@ -191,8 +191,21 @@ LONG_TESTS = {
 }
 
 
+#: The longest test files, longest first (each 50-260 s of one core on a quiet machine). The run hands whole
+#: files to its two workers in collection order (``--dist loadfile``), so these go first: started last, the
+#: benchmarks' quick runs left one worker running them alone for minutes while the other had finished
+#: (longest-processing-time-first scheduling). Only the order changes, never what runs.
+LONGEST_FILES = ("tests/test_benchmarks.py", "tests/test_benchmarks_studies.py",
+                 "tests/station/test_corners_on_twin.py", "tests/interop/test_opencsp.py",
+                 "tests/cli/test_user_mistakes.py", "tests/station/test_population.py",
+                 "tests/reanalysis/test_reprocess.py", "tests/station/test_heliostat_station.py")
+
+
 def pytest_collection_modifyitems(config, items):
     for item in items:
         nodeid = item.nodeid.split("[")[0]
         if nodeid in LONG_TESTS or nodeid.split("::")[0] in LONG_TESTS:
             item.add_marker(pytest.mark.slow)
+    rank = {name: i for i, name in enumerate(LONGEST_FILES)}
+    order = {id(item): i for i, item in enumerate(items)}
+    items.sort(key=lambda item: (rank.get(item.nodeid.split("::")[0], len(rank)), order[id(item)]))

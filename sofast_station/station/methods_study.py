@@ -1,15 +1,15 @@
 """Choosing between the methods, measured (issue 42 item 5): the fringes and the fixed pattern on the same
 facets of the population study's stations (``sofast-station study methods``).
 
-Each station is drawn as :mod:`~sofast_station.station.population` draws it (its kind, true facet, lens,
-edge model and the twin's optics, from the same seed), on the kinds whose layout lets the fixed method index
-its dot grid (the heliostat facet's and the nearly flat facet's stations: a dish's is refused,
-:func:`~sofast_station.measure.fixed.check_fixed_layout`). Each of its captures is one placement of the
-facet and one draw of the station's geometry within its stated uncertainties (in the twin only), photographed
-both ways: the station's 18 fringe frames, and one frame of the dot grid a fixed-pattern recipe of
-``spacing_px = 12`` shows (:func:`~sofast_station.recipes.fixed_capture`), each with its own noise. Both are
-analysed with their U (each method's sensitivities kept per station, as a station's worker keeps them) and
-compared with the twin's truth at the points each kept.
+Each station is drawn as :mod:`~sofast_station.station.population` draws it (its kind, true facet, lens, edge model
+and the twin's optics, from the same seed), on the kinds whose layout lets the fixed method index its dot grid (the
+heliostat facet's and the nearly flat facet's stations: a dish's is refused,
+:func:`~sofast_station.measure.fixed.check_fixed_layout`). Each of its captures is one placement of the facet and
+one draw of the station's geometry within its stated uncertainties (in the twin only), photographed both ways: the
+station's fringe frames (26 on the heliostat station, 18 on the flat one), and one frame of the dot grid a
+fixed-pattern recipe of ``spacing_px = 12`` shows (:func:`~sofast_station.recipes.fixed_capture`), each with its
+own noise. Both are analysed with their U (each method's sensitivities kept per station, as a station's worker
+keeps them) and compared with the twin's truth at the points each kept.
 
 Per method: per figure the coverage of |error| <= U and the RMS of error / (U / 2) (both ends of the coverage
 band: :func:`~sofast_station.station.population.coverage_band`), the points per facet, the capture time

@@ -1,12 +1,12 @@
 """Issue 42 item 5: both methods on the same capture of a population station (station/methods_study.py).
 
-One drawn heliostat-facet station (seed 0, station 0: 400 x 300 camera), two placements, each photographed
-with the 18 fringe frames and with one dot frame. What must hold whatever the draw: both methods measured
-every capture; the fixed method used one frame, so its capture time is 1/18 of the fringes' (frames x the
+One drawn heliostat-facet station (seed 0, station 0: 400 x 300 camera), two placements, each photographed with the
+26 fringe frames (16 periods at the finest) and with one dot frame. What must hold whatever the draw: both methods
+measured every capture; the fixed method used one frame, so its capture time is 1/26 of the fringes' (frames x the
 same settle + exposure), with one point per dot (a few hundred against tens of thousands of pixels); its focal
-lengths lie within their U of the twin's truth (the U is a 95 % claim: over this seed's two captures and two
-axes an error beyond U would be a 1-in-20 event per figure, and the population study's coverage,
-docs/method.md, is the statistical check). A dish station's layout is refused by name.
+lengths lie within their U of the twin's truth (the U is a 95 % claim: over this seed's two captures and two axes
+an error beyond U would be a 1-in-20 event per figure, and the population study's coverage, docs/method.md, is the
+statistical check). A dish station's layout is refused by name.
 
 Both ends of the fixed method's U on the figures its centroid model error reaches (docs/uncertainty.md, "Dot
 centroid model"): the twist E and the slope RMS about the parabola (x, y), with the focal lengths, over the two
@@ -32,6 +32,10 @@ import pytest
 from sofast_station.station.methods_study import run_methods, summarise_methods
 
 
+#: The heliostat station's fringe capture: dark, white, and 4 phase steps of 3 periods (1, 4, 16) in x and y.
+FRINGE_FRAMES = 2 + 2 * 3 * 4
+
+
 @pytest.fixture(scope="module")
 def cases():
     return run_methods(2, seed=0, per_station=2, kinds=("heliostat",))
@@ -43,8 +47,8 @@ def test_both_methods_measure_the_same_captures(cases):
     assert [c["outcome"] for c in fringe + fixed] == ["measured"] * 4, [c.get("error") for c in cases]
     for a, b in zip(fringe, fixed):
         assert (a["index"], a["capture"]) == (b["index"], b["capture"]) and a["truth"] != {}
-        assert a["n_frames"] == 18 and b["n_frames"] == 1
-        assert b["capture_s"] == pytest.approx(a["capture_s"] / 18)
+        assert a["n_frames"] == FRINGE_FRAMES and b["n_frames"] == 1
+        assert b["capture_s"] == pytest.approx(a["capture_s"] / FRINGE_FRAMES)
         assert 150 <= b["n_points"] < a["n_points"] / 50
     z, z_boresight = [], []
     for b in fixed:
@@ -57,7 +61,7 @@ def test_both_methods_measure_the_same_captures(cases):
     assert np.sqrt(np.mean(np.square(z))) >= 0.3, z
     assert np.sqrt(np.mean(np.square(z_boresight))) >= 0.15, z_boresight
     s = summarise_methods(cases)
-    assert s["fixed"]["frames"] == 1 and s["fringe"]["frames"] == 18 and s["layout_refused"] == []
+    assert s["fixed"]["frames"] == 1 and s["fringe"]["frames"] == FRINGE_FRAMES and s["layout_refused"] == []
     assert {r["figure"] for r in s["fixed"]["coverage"]} >= {"focal_length_x_m", "twist_mrad_per_m"}
 
 
