@@ -188,6 +188,15 @@ LONG_TESTS = {
     "tests/calibrate/test_store.py::test_room_light_change_mid_run_marks_the_rows_or_refuses_the_facets":
         "test_store.py's staleness tests",
     "tests/calibrate/test_camera.py::test_charuco_images": "test_camera_photos.py, camera_calibration --quick",
+    # benchmarks' quick runs whose harness the default set's benchmark tests share and whose work other tests do
+    "tests/test_benchmarks.py::test_commands_benchmark_reprocess_and_import_quick":
+        "test_commands_benchmark_quick (the harness), test_reprocess.py, test_opencsp.py (the commands)",
+    "tests/test_benchmarks.py::test_heliostat_benchmark_quick":
+        "test_heliostat_station.py (a heliostat measured on the line), test_line_prescription.py (the 5x5)",
+    "tests/test_benchmarks.py::test_monitor_under_load_benchmark_quick":
+        "test_monitor_stop.py, test_run_serve.py (the monitor at its nice), web --quick",
+    "tests/test_benchmarks.py::test_robust_ratio_benchmark_quick":
+        "test_analysis_benchmark_dump_and_opencsp_paths_quick (plain and robust fits timed)",
 }
 
 
