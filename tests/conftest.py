@@ -196,7 +196,18 @@ LONG_TESTS = {
     "tests/test_benchmarks.py::test_monitor_under_load_benchmark_quick":
         "test_monitor_stop.py, test_run_serve.py (the monitor at its nice), web --quick",
     "tests/test_benchmarks.py::test_robust_ratio_benchmark_quick":
-        "test_analysis_benchmark_dump_and_opencsp_paths_quick (plain and robust fits timed)",
+        "test_analysis_benchmark_quick (the harness), test_fit.py (plain and robust fits)",
+    "tests/test_benchmarks.py::test_analysis_benchmark_dump_and_opencsp_paths_quick":
+        "test_analysis_benchmark_quick (the harness), test_reprocess.py, test_opencsp.py (the dump and OpenCSP paths)",
+    "tests/test_benchmarks.py::test_vs_opencsp_benchmark_says_what_is_missing_and_runs_its_pairs":
+        "tests/interop (every OpenCSP dataset through import-opencsp)",
+    "tests/test_benchmarks_studies.py::test_fixed_pattern_benchmark_quick":
+        "test_fixed_job.py, test_opencsp_fixed.py (both methods' analyses of the same facet)",
+    "tests/test_benchmarks_studies.py::test_population_benchmark_quick": "test_population.py (the same study)",
+    "tests/test_benchmarks_studies.py::test_uncertainty_coverage_benchmark_quick":
+        "test_population.py (coverage from both ends)",
+    "tests/test_benchmarks_studies.py::test_geometry_sensitivity_benchmark": "test_uncertainty.py (the geometry rows)",
+    "tests/test_benchmarks_studies.py::test_field_benchmark_quick": "tests/field (each field command on the twin)",
 }
 
 
