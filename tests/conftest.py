@@ -212,7 +212,7 @@ LONG_TESTS = {
 
 
 #: The longest test files, longest first (each 50-260 s of one core on a quiet machine). The run hands whole
-#: files to its two workers in collection order (``--dist loadfile``), so these go first: started last, the
+#: files to its workers in collection order (``--dist loadfile``), so these go first: started last, the
 #: benchmarks' quick runs left one worker running them alone for minutes while the other had finished
 #: (longest-processing-time-first scheduling). Only the order changes, never what runs.
 LONGEST_FILES = ("tests/test_benchmarks.py", "tests/test_benchmarks_studies.py",
