@@ -8,21 +8,17 @@ children), measured on the 2-core development machine at a load average of 5 to 
 import subprocess
 import sys
 
+from tests.benchmark_run import _run
+
 
 def test_analysis_benchmark_quick(repo_root, small_station_toml):
-    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "analysis.py"), "--quick", "--config",
-                           str(small_station_toml)], capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stderr
-    print(proc.stdout)
+    proc, _ = _run(repo_root, "analysis.py", "--quick", "--config", str(small_station_toml))
     for line in ("camera: 400 x 300", "valid pixels:", "total", "memory: peak resident"):
         assert line in proc.stdout
 
 
 def test_cycle_benchmark_quick(repo_root, small_station_toml):
-    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "cycle.py"), "--quick", "--config",
-                           str(small_station_toml)], capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stderr
-    print(proc.stdout)
+    proc, _ = _run(repo_root, "cycle.py", "--quick", "--config", str(small_station_toml))
     for line in ("camera 400 x 300", "the station alone: answers 3 pass", "trigger -> release",
                  "render and image one capture", "first   median", "with a 2-worker batch beside it"):
         assert line in proc.stdout
@@ -34,10 +30,7 @@ def test_web_benchmark_quick(repo_root, small_station_toml):
     from tests.conftest import require_chromium
 
     require_chromium()
-    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "web.py"), "--quick", "--config",
-                           str(small_station_toml)], capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stderr
-    print(proc.stdout)
+    proc, _ = _run(repo_root, "web.py", "--quick", "--config", str(small_station_toml))
     for line in ("camera 400 x 300", "without the page: cycle median", "with the page   : cycle median",
                  "CPU during the facets: monitor", "each round, with against without", "median cycle: without"):
         assert line in proc.stdout
@@ -61,37 +54,25 @@ def test_analysis_benchmark_dump_and_opencsp_paths_quick(repo_root, small_statio
 
 def test_robust_ratio_benchmark_quick(repo_root, small_station_toml):
     """benchmarks/robust_ratio.py: the small station's twin capture, plain and robust in one process."""
-    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "robust_ratio.py"), "--quick", "--config",
-                           str(small_station_toml), "--source", "twin"], capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stderr
-    print(proc.stdout)
+    proc, _ = _run(repo_root, "robust_ratio.py", "--quick", "--config", str(small_station_toml), "--source", "twin")
     for line in ("== source twin: 400 x 300", "CPU s per analysis, median of 1", "robust/plain:", "summary:"):
         assert line in proc.stdout
 
 
 def test_twin_render_benchmark_quick(repo_root, small_station_toml):
-    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "twin_render.py"), "--quick", "--config",
-                           str(small_station_toml)], capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stderr
-    print(proc.stdout)
+    proc, _ = _run(repo_root, "twin_render.py", "--quick", "--config", str(small_station_toml))
     for line in ("camera 400 x 300, 18 frames", "capture over 2 runs: wall", "cpu"):
         assert line in proc.stdout
 
 
 def test_optics_benchmark_quick(repo_root, small_station_toml):
-    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "optics.py"), "--quick", "--config",
-                           str(small_station_toml)], capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stderr
-    print(proc.stdout)
+    proc, _ = _run(repo_root, "optics.py", "--quick", "--config", str(small_station_toml))
     for line in ("20,000 points", "per-facet optical figures: median", "load average", "intercept"):
         assert line in proc.stdout
 
 
 def test_soak_benchmark_quick(repo_root):
-    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "soak.py"), "--quick"],
-                          capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stderr
-    print(proc.stdout)
+    proc, _ = _run(repo_root, "soak.py", "--quick")
     for line in ("12 cycles in", "growth/100 cycles", "after warm-up", "high-water", "same ids as the journal: True",
                  "temporary files left: 0"):
         assert line in proc.stdout
@@ -100,10 +81,7 @@ def test_soak_benchmark_quick(repo_root):
 def test_monitor_under_load_benchmark_quick(repo_root):
     """benchmarks/monitor_under_load.py: the monitor at its default nice beside one spinning process, three
     requests each (about 9 s of CPU, the spinning process's included)."""
-    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "monitor_under_load.py"), "--quick"],
-                          capture_output=True, text=True, timeout=900)
-    assert proc.returncode == 0, proc.stderr
-    print(proc.stdout)
+    proc, _ = _run(repo_root, "monitor_under_load.py", "--quick", timeout=900)
     for line in ("1 spinning process(es)", "nice  page up, s  OPC UA up, s", "load average before -> after"):
         assert line in proc.stdout
     from sofast_station.web.settings import WebSettings
@@ -113,10 +91,7 @@ def test_monitor_under_load_benchmark_quick(repo_root):
 
 def test_heliostat_benchmark_quick(repo_root):
     """benchmarks/heliostat.py at a quarter of the resolution: one facet, the 2x2 and the 5x5 heliostats."""
-    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "heliostat.py"), "--quick"],
-                          capture_output=True, text=True, timeout=900)
-    assert proc.returncode == 0, proc.stderr
-    print(proc.stdout)
+    proc, _ = _run(repo_root, "heliostat.py", "--quick", timeout=900)
     for line in ("single facet: dish-5.33, camera 400 x 300", "heliostat heliostat-2x2: 4 facets",
                  "heliostat heliostat-5x5: 25 facets", "2x2 against one facet:", "load average after"):
         assert line in proc.stdout
@@ -125,10 +100,7 @@ def test_heliostat_benchmark_quick(repo_root):
 def test_commands_benchmark_quick(repo_root):
     """benchmarks/commands.py: --help and the usage errors, one run each (its table and the load it ran at;
     the heavy groups are the next test's, in -m slow: each of their commands has its own tests)."""
-    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "commands.py"), "--quick", "--only", "help",
-                           "--only", "usage error"], capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
-    print(proc.stdout)
+    proc, _ = _run(repo_root, "commands.py", "--quick", "--only", "help", "--only", "usage error")
     for line in ("sofast-station --help", "inspect --config nowhere.toml", "| command | wall s", "load average after"):
         assert line in proc.stdout
 
@@ -136,11 +108,7 @@ def test_commands_benchmark_quick(repo_root):
 def test_commands_benchmark_reprocess_and_import_quick(repo_root):
     """benchmarks/commands.py: reprocess and import-opencsp (native), one run each on the small station
     (report's journal is left out: the slowest setup)."""
-    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "commands.py"), "--quick",
-                           "--only", "reprocess", "--only", "import-opencsp"], capture_output=True, text=True,
-                          timeout=600)
-    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
-    print(proc.stdout)
+    proc, _ = _run(repo_root, "commands.py", "--quick", "--only", "reprocess", "--only", "import-opencsp")
     for line in ("reprocess DUMP (cache cold)", "import-opencsp --robust, native (cache warm)", "| command | wall s"):
         assert line in proc.stdout
 

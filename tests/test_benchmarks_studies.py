@@ -5,8 +5,6 @@ processes share them)."""
 import json
 import math
 import re
-import subprocess
-import sys
 
 from tests.benchmark_run import _numbers, _run
 
@@ -137,10 +135,7 @@ def test_uncertainty_coverage_benchmark_quick(repo_root, tmp_path):
 
 def test_marks_benchmark_quick(repo_root):
     """benchmarks/marks.py: the check's cost on a 400 x 300 station, 5 good cycles, every camera move."""
-    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "marks.py"), "--quick"],
-                          capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stderr
-    print(proc.stdout)
+    proc, _ = _run(repo_root, "marks.py", "--quick")
     for line in ("== cost of the check: camera 400 x 300", "wall ms per check", "good cycles: 5, false alarms",
                  "turn 0.2 mrad about x", "shift 1 mm along y"):
         assert line in proc.stdout
@@ -148,30 +143,21 @@ def test_marks_benchmark_quick(repo_root):
 
 def test_placement_tilt_benchmark_quick(repo_root):
     """benchmarks/placement_tilt.py: 2 captures of the ideal 400 x 300 dish, the corners' and the slopes' tilt."""
-    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "placement_tilt.py"), "--quick"],
-                          capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stderr
-    print(proc.stdout)
+    proc, _ = _run(repo_root, "placement_tilt.py", "--quick")
     for line in ("== ideal 400 x 300 dish: 2 captures", "about x: corners", "slopes", "own boresight"):
         assert line in proc.stdout
 
 
 def test_display_check_benchmark_quick(repo_root):
     """benchmarks/display_check.py: the display's self-test's cost at 1600 x 1200 and 400 x 300."""
-    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "display_check.py"), "--quick"],
-                          capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stderr
-    print(proc.stdout)
+    proc, _ = _run(repo_root, "display_check.py", "--quick")
     for line in ("== the display's self-test", "camera 1600 x 1200: 20 checks", "camera 400 x 300: 20 checks"):
         assert line in proc.stdout
 
 
 def test_camera_calibration_benchmark_quick(repo_root):
     """benchmarks/camera_calibration.py: five half-size photographs, the command once."""
-    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "camera_calibration.py"), "--quick"],
-                          capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
-    print(proc.stdout)
+    proc, _ = _run(repo_root, "camera_calibration.py", "--quick")
     for line in ("5 photographs of an 18 x 23 inner-corner board, 813 x 618 px", "whole command: wall", "found: ",
                  "images used", "load average after"):
         assert line in proc.stdout
@@ -180,20 +166,14 @@ def test_camera_calibration_benchmark_quick(repo_root):
 def test_fixed_pattern_benchmark_quick(repo_root):
     """benchmarks/fixed_pattern.py: OpenCSP's fixed capture and fringe capture (native), the heliostat twin at a
     quarter of its resolution, each facet measured both ways (issue 42 item 6)."""
-    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "fixed_pattern.py"), "--quick"],
-                          capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stderr
-    print(proc.stdout)
+    proc, _ = _run(repo_root, "fixed_pattern.py", "--quick")
     for line in ("opencsp  fixed", "opencsp  fringe", "twin     fixed", "twin     fringe", "fixed over fringe"):
         assert line in proc.stdout
 
 
 def test_field_benchmark_quick(repo_root):
     """benchmarks/field.py: a heliostat's canting from 6 twin photos of 640 x 480 and one orientation."""
-    proc = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "field.py"), "--quick"],
-                          capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stderr
-    print(proc.stdout)
+    proc, _ = _run(repo_root, "field.py", "--quick")
     for line in ("camera 640 x 480", "canting from", "the issue: under a minute", "orientation from one photo",
                  "spot on the target"):
         assert line in proc.stdout
