@@ -233,18 +233,19 @@ def draw_heliostat_certificate(record: dict, *, ensemble, limit_mrad: float | No
     rows = []
     for f in record["facets"]:
         if "canting_mrad" not in f:
-            rows.append([f["label"], f.get("verdict", f["status"]), f["status"], "", "", ""])
+            rows.append([f["label"], f.get("verdict", f["status"]), f["status"], "", "", "", ""])
             continue
         rows.append([f["label"], f["verdict"], figure_text(f, "canting_mrad.x", sign=True),
                      figure_text(f, "canting_mrad.y", sign=True),
-                     f"{figure_text(f, 'curvature_x_per_m')}, {figure_text(f, 'curvature_y_per_m')}",
+                     figure_text(f, "curvature_x_per_m"), figure_text(f, "curvature_y_per_m"),
                      figure_text(f, "slope_rms_mrad.parabola.magnitude")])
     height = min(0.25, 0.017 * (len(rows) + 1))
     ax_t = fig.add_axes((0.06, 0.32 - height, 0.88, height))
     ax_t.axis("off")
+    # each focal power with its U in a column of its own: both in one cell ran past its edge
     table = ax_t.table(cellText=rows, colLabels=["facet", "verdict", "canting x, mrad", "canting y, mrad",
-                                                 "focal power x, y, 1/m", "slope RMS, mrad"],
-                       loc="upper center", cellLoc="left", colWidths=(0.10, 0.12, 0.20, 0.20, 0.24, 0.14))
+                                                 "focal power x, 1/m", "focal power y, 1/m", "slope RMS, mrad"],
+                       loc="upper center", cellLoc="left", colWidths=(0.08, 0.10, 0.14, 0.14, 0.19, 0.19, 0.16))
     table.auto_set_font_size(False)
     table.set_fontsize(6 if len(rows) > 12 else 8)
     certificate_foot(fig, record, dump_path)
