@@ -118,6 +118,9 @@ class ShapeSolution:
     subsample_coefficients : (6,) array or None
         After :func:`close_on_all_points`: the subsample's converged coefficients (what a program that stops
         at the subsample reports); None before, when they are *coefficients*.
+    surface_height_m : float
+        After :func:`close_on_all_points` on a nearly flat facet far from the screen: the measured surface's
+        height above the model at the measure point, metres (0 otherwise).
     """
 
     coefficients: np.ndarray
@@ -127,6 +130,7 @@ class ShapeSolution:
     converged: bool
     fit: ParabolaFit | None = None
     subsample_coefficients: np.ndarray | None = None
+    surface_height_m: float = 0.0
 
 
 _IDENTITY = np.eye(3)
@@ -319,7 +323,7 @@ def close_on_all_points(solution: ShapeSolution, design: FacetDesign, measured_d
     """
     motion, coeffs = solution.motion, np.asarray(solution.coefficients, float)
     converged = False
-    height = 0.0                              # the surface's height above the model at the measure point
+    height = solution.surface_height_m        # the surface's height above the model at the measure point
     for step in range(1, max_iterations + 1):
         points, slopes = reduce_all(motion, coeffs)
         settled = True
@@ -345,5 +349,6 @@ def close_on_all_points(solution: ShapeSolution, design: FacetDesign, measured_d
         t_z = _t_z_for(assembly, alpha, beta, motion.pivot_m, new, design, measured_distance_m, height)
         motion, coeffs = Motion(alpha, beta, t_z, motion.pivot_m), new
     out = ShapeSolution(coeffs, motion, solution.shape_iterations + step, solution.boresight_iterations + step,
-                        solution.converged and converged, solution.fit, np.asarray(solution.coefficients, float))
+                        solution.converged and converged, solution.fit, np.asarray(solution.coefficients, float),
+                        height)
     return out, points, slopes, fit

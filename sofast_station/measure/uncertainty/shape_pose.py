@@ -112,7 +112,7 @@ def pose_fields(reduction, *, fringes, geometry, design, measured_distance_m: fl
                 v[k] = sign * (step[0] if k < 3 else step[1])
                 move = small_motion(rotation_mrad=v[:3], translation_mm=v[3:])
                 pose = dataclasses.replace(base.pose, facet_to_camera=base.pose.facet_to_camera.compose(move))
-                return rerun(base, "shape", geometry=geometry, screen=screen, pose=pose, **kw)
+                return rerun(base, "shape", geometry=geometry, screen=screen, pose=pose, warm=True, **kw)
             # the camera moved, its rays with it, the corner pose held
             i = k - 6
             cam = geometry.camera
@@ -127,7 +127,7 @@ def pose_fields(reduction, *, fringes, geometry, design, measured_distance_m: fl
             if not np.array_equal(rays.vidx, base.rays.vidx):
                 raise ValueError("the moved camera's rays keep other pixels")
             return rerun(dataclasses.replace(base, rays=rays), "shape", geometry=g, screen=screen, pose=base.pose,
-                         **kw)
+                         warm=True, **kw)
 
         for k in range(n):
             h = (step[0] if k < 3 else step[1]) if k < 6 else 1.0

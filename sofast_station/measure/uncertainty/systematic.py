@@ -145,11 +145,11 @@ def _perturbed_run(red, inp: Input, sign: float, ctx: dict):
         pose = pose_from_corners(corners, red.region, red.rays, g, design, distance, settings,
                                  agreement=red.pose.outline_agreement)
         return rerun(red, "shape", fringes=fringes, geometry=g, design=design, measured_distance_m=distance,
-                     settings=settings, screen=screen, pose=pose, with_curl=False)
+                     settings=settings, screen=screen, pose=pose, with_curl=False, warm=True)
     else:
         raise ValueError(f"unknown input {name!r}")
     return rerun(red, start, fringes=fringes, geometry=g, design=design, measured_distance_m=distance,
-                 settings=settings, screen=screen, phases=phases, with_curl=False)
+                 settings=settings, screen=screen, phases=phases, with_curl=False, warm=True)
 
 
 @dataclass
