@@ -184,7 +184,7 @@ LONG_TESTS = {
     "tests/web/test_page.py::test_the_page_follows_the_line": "web --quick (test_benchmarks.py)",
     "tests/web/test_opcua.py::test_opcua_client_sees_the_tree_and_the_verdict_change": "test_opcua.py's docs example",
     # calibrations: the commissioning benchmarks' quick modes run `calibrate commission` on drawn stations
-    "tests/calibrate/test_commission.py": "commission_coverage --quick, commission_study --quick",
+    "tests/calibrate/test_commission.py": "commission_coverage --quick",
     "tests/calibrate/test_store.py::test_room_light_change_mid_run_marks_the_rows_or_refuses_the_facets":
         "test_store.py's staleness tests",
     "tests/calibrate/test_camera.py::test_charuco_images": "test_camera_photos.py, camera_calibration --quick",
@@ -208,6 +208,15 @@ LONG_TESTS = {
         "test_population.py (coverage from both ends)",
     "tests/test_benchmarks_studies.py::test_geometry_sensitivity_benchmark": "test_uncertainty.py (the geometry rows)",
     "tests/test_benchmarks_studies.py::test_field_benchmark_quick": "tests/field (each field command on the twin)",
+    "tests/test_benchmarks.py::test_cycle_benchmark_quick":
+        "test_commands_benchmark_quick (the harness), soak --quick and kill_campaign --quick (the line's cycles)",
+    "tests/test_benchmarks_studies.py::test_commission_study_benchmark_quick":
+        "commission_coverage --quick (`calibrate commission` on a drawn station, then its facets measured)",
+    # a parameter of a test whose other parameters stay in the default set
+    "tests/station/test_heliostat_far.py::test_focal_length_within_0_002_percent_of_truth[3]": "its seed 9",
+    "tests/station/test_heliostat_far.py::test_focal_length_within_0_002_percent_of_truth[17]": "its seed 9",
+    "tests/station/test_corners_on_twin.py::test_gore_twist_at_its_own_resolution_on_a_coarse_supersampled_edge"
+    "[3.0]": "its turn of -8 mrad",
 }
 
 
@@ -224,7 +233,7 @@ LONGEST_FILES = ("tests/test_benchmarks.py", "tests/test_benchmarks_studies.py",
 def pytest_collection_modifyitems(config, items):
     for item in items:
         nodeid = item.nodeid.split("[")[0]
-        if nodeid in LONG_TESTS or nodeid.split("::")[0] in LONG_TESTS:
+        if item.nodeid in LONG_TESTS or nodeid in LONG_TESTS or nodeid.split("::")[0] in LONG_TESTS:
             item.add_marker(pytest.mark.slow)
     rank = {name: i for i, name in enumerate(LONGEST_FILES)}
     order = {id(item): i for i, item in enumerate(items)}

@@ -7,7 +7,8 @@ The truth is the twin's exact surface fitted the way the pipeline fits, over the
 station's measured errors are -5.6 to +3.1 ppm (x) and -5.9 to -1.1 ppm (y) on these seeds, and with the
 default 4 fringe periods (1.2 m each, about the screen patch the facet reflects) they were +23 to +42 ppm
 (x) and +6 to +18 ppm (y) with the display's rounding taken off, 52-101 ppm without (docs/method.md,
-"Nearly flat facets far from the screen"). 3 captures, about 23 s of CPU.
+"Nearly flat facets far from the screen"). 3 captures, about 8 s of CPU each: seed 9 in the default set, 3
+and 17 with ``-m slow`` (tests/conftest.py LONG_TESTS).
 """
 
 from __future__ import annotations
