@@ -153,7 +153,8 @@ LONG_TESTS = {
         "kill_campaign --quick (the archiver killed)",
     "tests/station/test_robustness.py::test_the_archiver_starts_afresh_past_its_memory_bound":
         "archiver_memory --rows 60 (test_benchmarks_studies.py)",
-    "tests/web/test_run_serve.py::test_run_serve_starts_and_stops_the_page": "web --quick (the monitor as run --serve)",
+    "tests/web/test_run_serve.py::test_run_serve_starts_and_stops_the_page":
+        "test_verdict_box.py and test_monitor_stop.py (serve's page in chromium, and its end as run --serve ends it)",
     "tests/reanalysis/test_reprocess.py::test_alignment_point_changes_exactly_the_figures_that_depend_on_it":
         "test_reprocess.py's design focal length override",
     "tests/calibrate/test_radiometric.py::test_inspection_after_calibration_meets_the_noisy_repeat_tolerances":
@@ -181,20 +182,21 @@ LONG_TESTS = {
     "tests/station/test_facets.py::test_gore_misplaced_in_the_fixture": "test_population.py (drawn placements)",
     # the plant's view: the web benchmark's quick run follows three facets with the page open in chromium, and
     # test_opcua.py runs docs/opcua.md's client against the server
-    "tests/web/test_page.py::test_the_page_follows_the_line": "web --quick (test_benchmarks.py)",
+    "tests/web/test_page.py::test_the_page_follows_the_line":
+        "test_page.py's other test on the same line, test_verdict_box.py (the page in chromium)",
     "tests/web/test_opcua.py::test_opcua_client_sees_the_tree_and_the_verdict_change": "test_opcua.py's docs example",
     # calibrations: the commissioning benchmarks' quick modes run `calibrate commission` on drawn stations
     "tests/calibrate/test_commission.py": "commission_coverage --quick",
     "tests/calibrate/test_store.py::test_room_light_change_mid_run_marks_the_rows_or_refuses_the_facets":
         "test_store.py's staleness tests",
-    "tests/calibrate/test_camera.py::test_charuco_images": "test_camera_photos.py, camera_calibration --quick",
+    "tests/calibrate/test_camera.py::test_charuco_images": "test_camera_photos.py",
     # benchmarks' quick runs whose harness the default set's benchmark tests share and whose work other tests do
     "tests/test_benchmarks.py::test_commands_benchmark_reprocess_and_import_quick":
         "test_commands_benchmark_quick (the harness), test_reprocess.py, test_opencsp.py (the commands)",
     "tests/test_benchmarks.py::test_heliostat_benchmark_quick":
         "test_heliostat_station.py (a heliostat measured on the line), test_line_prescription.py (the 5x5)",
     "tests/test_benchmarks.py::test_monitor_under_load_benchmark_quick":
-        "test_monitor_stop.py, test_run_serve.py (the monitor at its nice), web --quick",
+        "test_monitor_stop.py (the monitor starved and stopped), test_verdict_box.py (its page)",
     "tests/test_benchmarks.py::test_robust_ratio_benchmark_quick":
         "test_analysis_benchmark_quick (the harness), test_fit.py (plain and robust fits)",
     "tests/test_benchmarks.py::test_analysis_benchmark_dump_and_opencsp_paths_quick":
@@ -208,6 +210,10 @@ LONG_TESTS = {
         "test_population.py (coverage from both ends)",
     "tests/test_benchmarks_studies.py::test_geometry_sensitivity_benchmark": "test_uncertainty.py (the geometry rows)",
     "tests/test_benchmarks_studies.py::test_field_benchmark_quick": "tests/field (each field command on the twin)",
+    "tests/test_benchmarks.py::test_web_benchmark_quick":
+        "test_commands_benchmark_quick (the harness), test_verdict_box.py (the page in chromium), test_page.py",
+    "tests/test_benchmarks_studies.py::test_camera_calibration_benchmark_quick":
+        "test_camera_photos.py and test_camera.py (calibrate camera on rendered photographs)",
     "tests/test_benchmarks.py::test_cycle_benchmark_quick":
         "test_commands_benchmark_quick (the harness), soak --quick and kill_campaign --quick (the line's cycles)",
     "tests/test_benchmarks_studies.py::test_commission_study_benchmark_quick":
