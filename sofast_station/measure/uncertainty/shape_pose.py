@@ -103,7 +103,7 @@ def pose_fields(reduction, *, fringes, geometry, design, measured_distance_m: fl
     u_cam = np.array([inputs.camera_focal_px] * 2 + [inputs.camera_principal_px] * 2 + list(inputs.camera_distortion))
     try:
         screen = screen if screen is not None else default_screen(geometry)
-        base = rerun(decimated(reduction, max_points), "rays", geometry=geometry, screen=screen, **kw)
+        base = rerun(decimated(reduction, max_points), "rays", geometry=geometry, screen=screen, warm=True, **kw)
         res0 = {m: np.array(base.fits.residuals_mrad[m], np.float64) for m in FIELD_MODELS}
         fig0 = {p: get_path(base.figures, p) for p in paths}
         n = 6 + len(CAMERA_DRAWN)
