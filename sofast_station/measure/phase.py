@@ -501,6 +501,37 @@ def drawn_error_at(table, phase_rad: np.ndarray) -> np.ndarray:
     return np.interp(np.asarray(phase_rad, dtype=np.float64), grid, values, period=2.0 * np.pi)
 
 
+def drawn_error_slope_at(table, phase_rad: np.ndarray) -> np.ndarray:
+    """The derivative de/dphi (dimensionless) of a :func:`drawn_phase_error` table at the phases *phase_rad*
+    (the table's periodic central differences, interpolated as :func:`drawn_error_at`)."""
+    values = np.asarray(table, dtype=np.float64)
+    slope = (np.roll(values, -1) - np.roll(values, 1)) * (values.size / (4.0 * np.pi))
+    return drawn_error_at(slope, phase_rad)
+
+
+def drawn_gain(fringes, axis: str, position_m: np.ndarray, length_m: float) -> np.ndarray | None:
+    """How much a phase error of the finest set of *axis* moves the corrected screen position, per the
+    uncorrected move: ``1 - e'(phi)`` at each position (metres along the screen of *length_m*), or None when
+    the fringes do not say how they are drawn (``FringeSet.drawn``).
+
+    The analysis takes the drawn fringes' known error e(phi) off each pixel's phase
+    (:func:`~.pipeline.corrected_positions`), so a phase error d of the capture (noise, a frame brighter than
+    the others) is corrected by e(phi + d) - e(phi) too: the position moves by (1 - e'(phi)) d. Over a period
+    e' averages to 0, so the gain's mean square is 1 + mean(e'^2): a few per cent on the stations' displays.
+    (The part of the correction the period sets measure, a response not quite linearised, is left out: its
+    coefficients are not kept, and it is a tenth of the drawn part on a calibrated display.)"""
+    periods = getattr(fringes, f"periods_{axis}")[-1]
+    n = fringes.samples_per_period(axis, periods) if getattr(fringes, "drawn", ()) else None
+    if n is None:
+        return None
+    lut, floor_level, max_level = fringes.drawn[:3]
+    table = drawn_phase_error(lut, floor_level, max_level, n)
+    if table is None:
+        return None
+    phase = 2.0 * np.pi * float(periods) * np.asarray(position_m, dtype=np.float64) / float(length_m)
+    return 1.0 - drawn_error_slope_at(table, phase)
+
+
 #: Harmonics of the phase (k phi) in the four-step phase error a static nonlinearity leaves: the response's
 #: 3rd and 5th harmonics alias into the fundamental as a 4 phi error, the 7th and 9th as 8 phi.
 PHASE_ERROR_HARMONICS = (4, 8)

@@ -13,7 +13,7 @@ import numpy as np
 
 from .camera import to_frame
 from .kernels import normal_slopes  # surface.normal_slopes in one compiled pass
-from .phase import noise_at_level, noise_by_level, position_sigma_m
+from .phase import drawn_gain, noise_at_level, noise_by_level, position_sigma_m
 
 
 def pixel_noise_dn(phases, stack, take: np.ndarray) -> np.ndarray | float:
@@ -40,16 +40,22 @@ def pixel_noise_dn(phases, stack, take: np.ndarray) -> np.ndarray | float:
 
 def position_sigmas_m(phases, stack, take: np.ndarray, fringes, screen_size_m: tuple[float, float]) -> dict:
     """``{"x": (n,), "y": (n,)}``: the screen-position noise (metres) of the region's pixels *take*, from
-    the finest set's modulation and each pixel's own frame noise (:func:`pixel_noise_dn`); for a stage that
+    the finest set's modulation and each pixel's own frame noise (:func:`pixel_noise_dn`), through the drawn
+    fringes' correction (:func:`~.phase.drawn_gain`); for a stage that
     measured its points' position noise itself (``position_sigma_m``: a fixed pattern's dots, from their
     centroids' covariance, in the units of its positions) that."""
     own = getattr(phases, "position_sigma_m", None)
     if own is not None:
         return {a: np.asarray(own[a])[take] for a in ("x", "y")}
     noise_dn = pixel_noise_dn(phases, stack, take)
-    return {a: position_sigma_m(phases.finest_modulation_dn[a][take], noise_dn, getattr(fringes, f"periods_{a}")[-1],
-                                length)
-            for a, length in zip("xy", screen_size_m)}
+    out = {}
+    for a, length in zip("xy", screen_size_m):
+        sigma = position_sigma_m(phases.finest_modulation_dn[a][take], noise_dn, getattr(fringes, f"periods_{a}")[-1],
+                                 length)
+        # the drawn fringes' correction passes the phase noise on with its gain (1 - e'(phi))
+        gain = drawn_gain(fringes, a, phases.positions_m[a][take], length)
+        out[a] = sigma if gain is None else sigma * np.abs(gain)
+    return out
 
 
 def slope_jacobian(points_m: np.ndarray, camera_to_frame, screen, u_x: np.ndarray, u_y: np.ndarray,

@@ -401,3 +401,38 @@ def test_the_period_sets_phase_error_is_the_same_bits_with_its_axes_on_a_pool():
         pooled = phase_error_between_periods(sets, 0.5, mask=mask, pool=pool)
     assert alone == pooled
     assert alone.max_rad == pytest.approx(0.004, rel=0.05)
+
+
+def test_the_drawn_correction_passes_a_phase_error_on_with_its_gain():
+    """``drawn_gain``: a phase error d of the finest set moves the corrected position by (1 - e'(phi)) d.
+
+    Checked against the correction itself (``pipeline.corrected_positions``, which interpolates the table's
+    values, where the gain takes the table's central-difference slope): a 1920-pixel display drawing 16 periods
+    of 120 pixels through a gamma-2.2 table, the position's change for d = 0.01 rad at 400 phases over a
+    period. The two differ by the table's interpolation over d (a few 1e-3 of e' for a ripple of at most
+    n / 6 = 20 harmonics on 2048 samples); the tolerance is 2 % of e''s largest value, which is itself checked
+    to be worth a gain (above 1 %)."""
+    from sofast_station.measure.phase import drawn_gain
+    from sofast_station.measure.pipeline import corrected_positions, drawn_table
+
+    lut = tuple(float(v) for v in np.linspace(0.0, 1.0, 256) ** (1 / 2.2))
+    fringes = FringeSet(periods_x=(1, 4, 16), periods_y=(1, 4, 16)).drawn_through(lut, 0.05, 0.95, 1920, 1080)
+    assert drawn_gain(FringeSet(periods_x=(1, 4, 16), periods_y=(1, 4, 16)), "x", np.zeros(3), 1.0) is None
+    length_m, periods, d = 0.528, 16, 0.01
+    table = drawn_table(fringes, "x", periods)
+
+    class _NoMeasuredError:
+        def error_at(self, phase):
+            return np.zeros_like(phase)
+
+    phi = np.linspace(0.0, 2.0 * np.pi, 400, endpoint=False) + 0.0013
+    cycle = 2.0 * np.pi * 7                                   # the 8th period of the screen
+    position = length_m * (phi + cycle) / (2.0 * np.pi * periods)
+    step = length_m * d / (2.0 * np.pi * periods)
+    moved = corrected_positions(position + step, phi + d, _NoMeasuredError(), table, periods, length_m)
+    still = corrected_positions(position, phi, _NoMeasuredError(), table, periods, length_m)
+    seen = (moved - still) / step
+    gain = drawn_gain(fringes, "x", position + 0.5 * step, length_m)
+    slope = np.max(np.abs(gain - 1.0))
+    assert slope > 0.01
+    assert np.max(np.abs(seen - gain)) < 0.02 * slope

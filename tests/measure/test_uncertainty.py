@@ -404,10 +404,12 @@ def test_frame_brightness_rows_state_what_a_known_brightness_change_does(rig):
     the sigma_f it used. The x rows and the y rows are each right to a few per cent (on the coverage twin
     with the seeds' drawn ambients: 1.00-1.01 with the per-pixel ratio of the ambient to the modulation).
 
-    The rows are checked on the decoding they model: without the correction of the display's 8-bit rounding
-    (``FringeSet.drawn``, issue 47). That correction takes e(phi) off each pixel's phase, so a phase error d
-    moves the position by (1 - e'(phi)) d: on this twin the twist e1's response grows by 4.9 % (0.00165 against
-    the row's 0.00157 per DN), which the budget does not carry yet (a known gap, docs/uncertainty.md)."""
+    The rows are checked on the decoding they model in full: without the correction of the display's 8-bit
+    rounding (``FringeSet.drawn``, issue 47). With it, the twist e1's response to the x frames is 0.00165 per
+    DN against 0.00157 without: the drawn part's gain (1 - e'(phi)) the rows now carry
+    (:func:`~sofast_station.measure.phase.drawn_gain`) makes the row 0.00159; the rest, and 0.00020 per DN from
+    the y frames, is the period sets' measured phase error refitted with a brighter frame (fitted over both
+    axes' pixels), which the rows do not model yet (docs/uncertainty.md)."""
     from sofast_station.measure.analysis import analyse as run
 
     cfg = rig.config

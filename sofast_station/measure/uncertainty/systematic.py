@@ -23,6 +23,7 @@ import numpy as np
 
 from ...errors import AnalysisError, StationError
 from ..fit import BISQUARE_C
+from ..phase import drawn_gain
 from ..pipeline import default_screen, expected_corners_px, pose_from_corners, rerun
 from .inputs import (RECORD_DERIVED_KEYS, SCALAR_PATHS, Input, InputUncertainties, budget_inputs, get_path,
                      input_key, screen_shape_inputs, small_motion)
@@ -128,7 +129,10 @@ def _perturbed_run(red, inp: Input, sign: float, ctx: dict):
             if axis in axes:
                 p = getattr(fringes, f"periods_{axis}")[-1]
                 moved = pos[axis].copy()
-                moved[ok] += _phase_error_shift(moved[ok], length, p, step, harmonic, quadrature)
+                shift = _phase_error_shift(moved[ok], length, p, step, harmonic, quadrature)
+                # the drawn fringes' correction passes a phase error on with its gain (1 - e'(phi))
+                gain = drawn_gain(fringes, axis, moved[ok], length)
+                moved[ok] += shift if gain is None else gain * shift
                 pos[axis] = moved
         phases = dataclasses.replace(phases, positions_m=pos)
     elif name.startswith("fixture"):
