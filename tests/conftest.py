@@ -226,14 +226,16 @@ LONG_TESTS = {
 }
 
 
-#: The longest test files, longest first (each 50-260 s of one core on a quiet machine). The run hands whole
+#: The longest test files, longest first (each 35-100 s of a worker in the default run, 2026-12-06). The run hands whole
 #: files to its workers in collection order (``--dist loadfile``), so these go first: started last, the
 #: benchmarks' quick runs left one worker running them alone for minutes while the other had finished
 #: (longest-processing-time-first scheduling). Only the order changes, never what runs.
-LONGEST_FILES = ("tests/test_benchmarks.py", "tests/test_benchmarks_studies.py",
-                 "tests/station/test_corners_on_twin.py", "tests/interop/test_opencsp.py",
-                 "tests/cli/test_user_mistakes.py", "tests/station/test_population.py",
-                 "tests/reanalysis/test_reprocess.py", "tests/station/test_heliostat_station.py")
+LONGEST_FILES = ("tests/station/test_population.py", "tests/test_benchmarks_studies.py",
+                 "tests/reanalysis/test_reprocess.py", "tests/station/test_heliostat_station.py",
+                 "tests/station/test_corners_on_twin.py", "tests/station/test_robustness.py",
+                 "tests/test_benchmarks.py", "tests/reanalysis/test_compiled_kernels.py",
+                 "tests/interop/test_opencsp.py", "tests/reanalysis/test_batch.py",
+                 "tests/cli/test_user_mistakes.py")
 
 
 def pytest_collection_modifyitems(config, items):
