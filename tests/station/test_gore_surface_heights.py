@@ -23,12 +23,10 @@ from __future__ import annotations
 
 import dataclasses
 
-import numpy as np
 import pytest
 
 from sofast_station.measure import pipeline
-from sofast_station.station.population import PopulationStation, draw_station
-from sofast_station.twin.truth import ground_truth
+from tests.station.population_capture import noise_free_capture, truth_of
 
 #: Gore stations of the population of seed 0 with the 2 x 2 grid's edges.
 STATIONS = (21, 41)
@@ -43,21 +41,10 @@ def images():
 
 @pytest.mark.parametrize("index", STATIONS)
 def test_gore_slope_rms_y_with_the_true_pose(index, images, tmp_path):
-    spec = draw_station(index, 0)
-    assert spec["kind"] == "gore"
-    st = PopulationStation(spec, tmp_path, images)
-    cfg = st.config
-    twin = st.twin(cfg.geometry, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), optics=st.optics.noise_free())
-    frames = st.capture(twin, np.random.default_rng(index))          # noise-free: the rng draws the flicker phase
-    distance = twin.measured_distance_m()
-    args = dict(fringes=cfg.fringes, geometry=cfg.geometry, design=cfg.design, measured_distance_m=distance,
-                settings=cfg.analysis)
-    found, _ = pipeline.reduce_stages(frames, cfg.fringes, cfg.geometry, cfg.design, distance, cfg.analysis)
+    _, twin, found, args = noise_free_capture(index, "gore", images, tmp_path)
     true_pose = dataclasses.replace(found.pose, facet_to_camera=twin.facet_to_camera)
     red = pipeline.rerun(found, "shape", pose=true_pose, **args)
-    valid = np.zeros(cfg.geometry.camera.shape, dtype=bool)
-    valid.ravel()[red.rays.vidx] = True
-    truth = ground_truth(twin, valid)
+    truth = truth_of(twin, red)
     err = {m: red.figures["slope_rms_mrad"][m]["y"] - truth["slope_rms_mrad"][m]["y"] for m in ("parabola", "design")}
     print(f"station {index}: slope RMS y error, parabola {err['parabola']:+.5f}, design {err['design']:+.5f} mrad "
           f"(true {truth['slope_rms_mrad']['parabola']['y']:.4f}, {truth['slope_rms_mrad']['design']['y']:.4f})")
