@@ -206,9 +206,9 @@ HEIGHT_STEP_M = 1e-6
 #: (:func:`uses_surface_heights`): the slope error per metre of height error, radians per metre, that the
 #: point's shift along its ray gives (the ray's mean inclination to the facet frame's z axis times the
 #: design's slope gradient, half its focal power). The population's gore (viewed along its normal 3.75 m off
-#: its parent's axis, rays inclined 0.3-0.35 in its frame) has 0.03 /m; the dish viewed on axis from 11 m,
-#: 0.002 /m; the heliostat and flat facets 0.001 and 0.0002 /m. At 0.01 /m, 100 um of height above the model
-#: moves a slope by 1 urad.
+#: its parent's axis, its rays inclined 0.31 on average in its frame) has 0.03 /m; the dish, viewed on its axis
+#: (0.024), 0.002 /m; the heliostat and flat facets 0.001 and 0.0002 /m (the population's stations, measured).
+#: At 0.01 /m, 100 um of height above the model moves a slope by 1 urad.
 OFF_AXIS_SLOPE_PER_M = 0.01
 
 
