@@ -824,7 +824,9 @@ def shape_and_boresight(rays: Rays, pose: CornerPoseResult, design: FacetDesign,
         return points, slopes
 
     heights_of = None
-    if uses_surface_heights(design, measured_distance_m) and settings.surface == "parabolic":
+    r = subsample.rays
+    inclination = float(np.mean(np.hypot(r[0], r[1]) / np.maximum(np.abs(r[2]), 1e-12))) if r.shape[1] else 0.0
+    if uses_surface_heights(design, measured_distance_m, inclination) and settings.surface == "parabolic":
         def heights_of(p, s, c):
             return surface_heights(p, s, c, design)
     solution, points, slopes, fit = close_on_all_points(

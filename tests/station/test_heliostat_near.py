@@ -33,8 +33,7 @@ import numpy as np
 import pytest
 
 from sofast_station.measure import pipeline
-from sofast_station.station.population import PopulationStation, draw_station
-from sofast_station.twin.truth import ground_truth
+from tests.station.population_capture import noise_free_capture, truth_of
 
 #: Stations of the population of seed 0 that are heliostat stations (kinds in turn: every fourth from 2).
 STATIONS = (2, 6, 10)
@@ -42,10 +41,8 @@ STATIONS = (2, 6, 10)
 LIMIT_PPM = 120.0
 
 
-def _errors_ppm(station, twin, reduction) -> list[float]:
-    valid = np.zeros(station.config.geometry.camera.shape, dtype=bool)
-    valid.ravel()[reduction.rays.vidx] = True
-    truth = ground_truth(twin, valid)
+def _errors_ppm(twin, reduction) -> list[float]:
+    truth = truth_of(twin, reduction)
     return [1e6 * (reduction.figures[k] / truth[k] - 1) for k in ("focal_length_x_m", "focal_length_y_m")]
 
 
@@ -56,17 +53,9 @@ def images():
 
 @pytest.mark.parametrize("index", STATIONS)
 def test_focal_length_against_truth_stage_by_stage(index, images, tmp_path):
-    spec = draw_station(index, 0)
-    assert spec["kind"] == "heliostat"
-    st = PopulationStation(spec, tmp_path, images)
-    cfg = st.config
+    st, twin, whole, args = noise_free_capture(index, "heliostat", images, tmp_path)
+    spec, cfg = st.spec, st.config
     assert cfg.fringes.periods_x[-1] == 16 and cfg.fringes.drawn, "the station's fringes as shipped"
-    twin = st.twin(cfg.geometry, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), optics=st.optics.noise_free())
-    frames = st.capture(twin, np.random.default_rng(index))          # noise-free: the rng draws the flicker phase
-    distance = twin.measured_distance_m()
-    args = dict(fringes=cfg.fringes, geometry=cfg.geometry, design=cfg.design, measured_distance_m=distance,
-                settings=cfg.analysis)
-    whole, _ = pipeline.reduce_stages(frames, cfg.fringes, cfg.geometry, cfg.design, distance, cfg.analysis)
 
     # the twin's true screen position of every pixel the analysis kept
     phases = whole.phases
@@ -78,7 +67,7 @@ def test_focal_length_against_truth_stage_by_stage(index, images, tmp_path):
     true_pose = dataclasses.replace(positions.pose, facet_to_camera=twin.facet_to_camera)
     both = pipeline.rerun(positions, "shape", pose=true_pose, **args)
 
-    errors = {name: _errors_ppm(st, twin, r) for name, r in
+    errors = {name: _errors_ppm(twin, r) for name, r in
               (("pipeline", whole), ("true positions", positions), ("true positions and pose", both))}
     for name, (ex, ey) in errors.items():
         print(f"station {index} (k1 {spec['k1']:+.2f}, {spec['edge']}) {name}: f x {ex:+.1f} ppm, y {ey:+.1f} ppm")
