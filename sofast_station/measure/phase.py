@@ -501,6 +501,17 @@ def drawn_error_at(table, phase_rad: np.ndarray) -> np.ndarray:
     return np.interp(np.asarray(phase_rad, dtype=np.float64), grid, values, period=2.0 * np.pi)
 
 
+def drawn_table(fringes, axis: str, periods: float):
+    """The phase error table of set (*axis*, *periods*) as the display draws it (:func:`drawn_phase_error`), or
+    None when the fringes (a :class:`~sofast_station.fringes.FringeSet`) do not say how they are drawn
+    (``FringeSet.drawn``) or it does not repeat."""
+    n = fringes.samples_per_period(axis, periods)
+    if n is None:
+        return None
+    lut, floor_level, max_level = fringes.drawn[:3]
+    return drawn_phase_error(lut, floor_level, max_level, n)
+
+
 def drawn_error_slope_at(table, phase_rad: np.ndarray) -> np.ndarray:
     """The derivative de/dphi (dimensionless) of a :func:`drawn_phase_error` table at the phases *phase_rad*
     (the table's periodic central differences, interpolated as :func:`drawn_error_at`)."""
@@ -521,11 +532,7 @@ def drawn_gain(fringes, axis: str, position_m: np.ndarray, length_m: float) -> n
     (The part of the correction the period sets measure, a response not quite linearised, is left out: its
     coefficients are not kept, and it is a tenth of the drawn part on a calibrated display.)"""
     periods = getattr(fringes, f"periods_{axis}")[-1]
-    n = fringes.samples_per_period(axis, periods) if getattr(fringes, "drawn", ()) else None
-    if n is None:
-        return None
-    lut, floor_level, max_level = fringes.drawn[:3]
-    table = drawn_phase_error(lut, floor_level, max_level, n)
+    table = drawn_table(fringes, axis, periods)
     if table is None:
         return None
     phase = 2.0 * np.pi * float(periods) * np.asarray(position_m, dtype=np.float64) / float(length_m)

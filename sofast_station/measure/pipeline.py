@@ -44,7 +44,7 @@ from .metrics import focal_length_m, neighbour_difference_ms, neighbour_pairs, p
 from .phase import (
     FrameNoise,
     drawn_error_at,
-    drawn_phase_error,
+    drawn_table,
     frame_noise,
     phase_and_modulation,
     phase_error_between_periods,
@@ -612,16 +612,6 @@ def measure_phases(region: Region, fringes: FringeSet, screen_size_m: tuple[floa
                   finest_modulation_dn={a: raw[a][1][-1] for a in ("x", "y")}, min_modulation_dn=min_mod,
                   dropped=dropped, unwrap=unwrap_stats, noise=noise,
                   set_offsets_dn=offsets)
-
-
-def drawn_table(fringes: FringeSet, axis: str, periods: float):
-    """The phase error table of set (*axis*, *periods*) as the display draws it (:func:`~.phase.drawn_phase_error`),
-    or None when the fringes do not say how they are drawn (``FringeSet.drawn``) or it does not repeat."""
-    n = fringes.samples_per_period(axis, periods)
-    if n is None:
-        return None
-    lut, floor_level, max_level = fringes.drawn[:3]
-    return drawn_phase_error(lut, floor_level, max_level, n)
 
 
 def corrected_positions(position_m: np.ndarray, fine_phase_rad: np.ndarray, measured, drawn_table,

@@ -412,8 +412,8 @@ def test_the_drawn_correction_passes_a_phase_error_on_with_its_gain():
     period. The two differ by the table's interpolation over d (a few 1e-3 of e' for a ripple of at most
     n / 6 = 20 harmonics on 2048 samples); the tolerance is 2 % of e''s largest value, which is itself checked
     to be worth a gain (above 1 %)."""
-    from sofast_station.measure.phase import drawn_gain
-    from sofast_station.measure.pipeline import corrected_positions, drawn_table
+    from sofast_station.measure.phase import drawn_gain, drawn_table
+    from sofast_station.measure.pipeline import corrected_positions
 
     lut = tuple(float(v) for v in np.linspace(0.0, 1.0, 256) ** (1 / 2.2))
     fringes = FringeSet(periods_x=(1, 4, 16), periods_y=(1, 4, 16)).drawn_through(lut, 0.05, 0.95, 1920, 1080)
