@@ -55,11 +55,6 @@ FIELD_MODELS = ("design", "parabola")
 FIELD_POINTS = 4000
 #: The corner pose's moves the fields are taken from: about each facet axis (mrad), along it (mm).
 FIELD_STEP = (2.0, 2.0)
-#: The camera inputs' fields by forward differences at +1 standard deviation (their curvature part taken as 0),
-#: not central ones: a camera's standard deviation moves the rays far less than the corner pose's step, and its
-#: response is linear there. Measured on OpenCSP's fixed capture (2026-12-06): every U within 0.3 % of the
-#: central differences' (f x 2.4245 -> 2.4189 m), and 7 of its 28 reruns left out (the uncertainty 468 -> 285 ms).
-CAMERA_ONE_SIDED = True
 
 
 @dataclasses.dataclass
@@ -89,7 +84,7 @@ def pose_fields(reduction, *, fringes, geometry, design, measured_distance_m: fl
                 max_points: int = FIELD_POINTS, step: tuple = FIELD_STEP) -> PoseFields | None:
     """The shape stage rerun on a decimated copy of *reduction* with its corner pose moved by +-*step* about
     and along each facet axis (the facet frame composed with the move: the pose Monte Carlo's frame errors),
-    and with each camera input of *inputs* moved by +1 standard deviation (:data:`CAMERA_ONE_SIDED`), the corner
+    and with each camera input of *inputs* moved by +1 standard deviation (a forward difference), the corner
     pose held: the residual fields' and figures' response (21 reruns on about *max_points* points; 0.1-0.2 s of
     CPU on the population's 400 x 300 stations). None when a rerun fails."""
 
@@ -138,7 +133,11 @@ def pose_fields(reduction, *, fringes, geometry, design, measured_distance_m: fl
             h = (step[0] if k < 3 else step[1]) if k < 6 else 1.0
             if k >= 6 and u_cam[k - 6] <= 0:
                 continue
-            one_sided = k >= 6 and CAMERA_ONE_SIDED
+            # The camera inputs' fields by forward differences at +1 standard deviation (their curvature part
+            # 0), not central ones: a camera's standard deviation moves the rays far less than the corner pose's
+            # step, and the response is linear there. On OpenCSP's fixed capture (2026-12-06) every U within
+            # 0.3 % of the central differences' (f x 2.4245 -> 2.4189 m), 7 of its 28 reruns left out.
+            one_sided = k >= 6
             plus = moved(k, 1.0)
             minus = base if one_sided else moved(k, -1.0)
             span = h if one_sided else 2.0 * h
