@@ -38,6 +38,7 @@ from .boresight import (
 from .camera import pixel_rays, project, to_frame
 from .fit import SURFACES, CubicFit, ParabolaFit, fit_cubic, fit_parabola, fit_plane, reweight_parabola
 from .heights import height_grid
+from .jumps import isolated_jumps
 from .kernels import consistency_set, gather_runs, halves, model_residuals, reflect, to_frame_every
 from .mask import facet_region
 from .metrics import focal_length_m, neighbour_difference_ms, neighbour_pairs, principal_axes, rms_summary
@@ -606,8 +607,13 @@ def measure_phases(region: Region, fringes: FringeSet, screen_size_m: tuple[floa
     if known and measured is not None:
         positions = {a: corrected_positions(positions[a], raw[a][0][-1], measured, drawn[a][1],
                                             getattr(fringes, f"periods_{a}")[-1], lengths[a]) for a in ("x", "y")}
+    # a pixel whose position leaps from all its neighbours' (a wrong fringe order on the rim) is no surface
+    sigma = {a: position_sigma_m(raw[a][1][-1], noise_dn, getattr(fringes, f"periods_{a}")[-1], lengths[a])
+             for a in ("x", "y")}
+    jumps = isolated_jumps(region.region.shape, idx, ok, positions, sigma)
+    ok &= ~jumps
     dropped = {"low_modulation": int(low_mod.sum()), "inconsistent_frames": int(inconsistent.sum()),
-               "excluded_by_pixel_mask": excluded, "near_edge": near_edge}
+               "excluded_by_pixel_mask": excluded, "near_edge": near_edge, "isolated_jump": int(jumps.sum())}
     return Phases(positions_m=positions, ok=ok, noise_dn=noise_dn,
                   finest_modulation_dn={a: raw[a][1][-1] for a in ("x", "y")}, min_modulation_dn=min_mod,
                   dropped=dropped, unwrap=unwrap_stats, noise=noise,
@@ -1035,6 +1041,7 @@ def fringe_capture_figures(region: Region, phases: Phases, rays: Rays, fits: Fit
                     "outside_screen_model": rays.off_model,
                     "excluded_by_pixel_mask": phases.dropped["excluded_by_pixel_mask"],
                     "near_edge": phases.dropped.get("near_edge", 0),
+                    "isolated_jump": phases.dropped.get("isolated_jump", 0),
                     **{f"{k}_{a}": getattr(unwrap_stats[a], k) for a in ("x", "y")
                        for k in ("coarse_out_of_range", "disagreements", "edge_guard")}},
         "unwrap_disagreements": int(unwrap_stats["x"].disagreements + unwrap_stats["y"].disagreements),

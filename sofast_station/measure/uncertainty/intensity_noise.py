@@ -125,7 +125,11 @@ def noise_propagation(reduction, *, fringes, geometry, design, settings, screen=
     sig_by = 1000.0 * np.sqrt(va @ cov_x @ va * sub) / (1 + s_a[0] ** 2)
     sigma[("boresight_mrad", "x")] = sigma[("optical_tilt_mrad", "x")] = float(sig_bx)
     sigma[("boresight_mrad", "y")] = sigma[("optical_tilt_mrad", "y")] = float(sig_by)
-    # Slope RMS values: mean(e^2) with e = t + n has variance (4 mean(t^2) s^2 + 2 s^4) / N.
+    # Slope RMS values: mean(e^2) with e = t + n has variance (4 mean(t^2) s^2 + 2 mean(sigma^4)) / N, the
+    # noise power's own spread from each point's sigma (s^4 only when every point is as noisy: the dim rim and
+    # the vignetted corners are noisier, and the power of a mixture spreads more).
+    quart = {a: float(np.mean(angle_sig[i] ** 4)) for i, a in enumerate("xy")}
+    quart["magnitude"] = quart["x"] + quart["y"]          # var(n_x^2 + n_y^2) = 2 sigma_x^4 + 2 sigma_y^4
     for model in red.fits.residuals_mrad:
         # mean(e^2) from the reported RMS (the same sums; squared back, within a unit of the last place)
         rms = red.figures["slope_rms_mrad"][model]
@@ -133,6 +137,6 @@ def noise_propagation(reduction, *, fringes, geometry, design, settings, screen=
         ms["magnitude"] = ms["x"] + ms["y"]
         s2 = {a: noise[a] ** 2 for a in RMS_AXES}
         for a in RMS_AXES:
-            var_ms = (4 * max(ms[a] - s2[a], 0.0) * s2[a] + 2 * s2[a] ** 2) / n_all
+            var_ms = (4 * max(ms[a] - s2[a], 0.0) * s2[a] + 2 * quart[a]) / n_all
             sigma[("slope_rms_mrad", model, a)] = float(np.sqrt(var_ms) / (2 * np.sqrt(max(ms[a], 1e-30))))
     return NoisePropagation(sigma, noise)
