@@ -16,7 +16,7 @@ from .corner_pose import CAMERA_DRAWN, POSE_DRAWS, POSE_GROUPS, POSE_PATHS, pose
 from .inputs import (COVERAGE_FACTOR, POSE_ROWS, RMS_AXES, InputUncertainties, get_path, path_name,
                      pose_row_covariance)
 from .intensity_noise import NoisePropagation, noise_propagation
-from .shape_pose import beyond_linear, pose_fields, shape_monte_carlo
+from .shape_pose import DIFFERENCE_PATH, beyond_linear, pose_fields, shape_monte_carlo
 from .systematic import Sensitivities, sensitivities
 
 
@@ -114,9 +114,14 @@ def axis_angle_u(u_linear: float) -> float:
     return min(0.5 * np.pi, max(COVERAGE_FACTOR * u, float(np.interp(np.log(u), np.log(_AXIS_U_LIN), _AXIS_U_95))))
 
 
-def _axis_angle_floor(figures: dict, paths: list, u: np.ndarray) -> float:
+def _axis_angle_floor(figures: dict, paths: list, u: np.ndarray, u_difference: float | None = None) -> float:
     """The axis angle's expanded uncertainty (k = 2, rad) that the curvatures' and the twist's own standard
-    uncertainties *u* imply, their errors taken as independent.
+    uncertainties *u* imply, the twist's error taken as independent of theirs.
+
+    *u_difference*: the standard uncertainty of kappa_x - kappa_y itself (1/m; :func:`_difference_u`), with the
+    rows that move both curvatures alike cancelled; without it the curvatures' errors are taken as independent,
+    which on a dish (the range and the camera's focal length move both alike) stated the axis angle's U 2.5
+    times its errors' spread (RMS of error / (U/2) 0.40 on the population's dishes at fcbd89e).
 
     The angle is half the direction of v = (A - B, E), A - B = (kappa_x - kappa_y) / 4 and E = twist / 1000.
     The vectors within k standard deviations of the measured one (an ellipse of half-axes k sigma) turn
@@ -133,7 +138,8 @@ def _axis_angle_floor(figures: dict, paths: list, u: np.ndarray) -> float:
         return 0.0
     d, e = 0.25 * (kx - ky), 1e-3 * tw
     k = COVERAGE_FACTOR
-    r_d, r_e = k * 0.25 * float(np.hypot(u[jx], u[jy])), k * 1e-3 * float(u[jt])
+    u_d = float(np.hypot(u[jx], u[jy])) if u_difference is None else float(u_difference)
+    r_d, r_e = k * 0.25 * u_d, k * 1e-3 * float(u[jt])
     if not np.isfinite(r_d + r_e) or not np.isfinite(d + e):
         return 0.0
     if r_d <= 0.0 or r_e <= 0.0:
@@ -144,6 +150,28 @@ def _axis_angle_floor(figures: dict, paths: list, u: np.ndarray) -> float:
     turn = 0.5 * (np.arctan2(e + r_e * np.sin(t), d + r_d * np.cos(t)) - np.arctan2(e, d))
     turn = (turn + 0.5 * np.pi) % np.pi - 0.5 * np.pi
     return float(min(np.max(np.abs(turn)), 0.5 * np.pi))
+
+
+def _difference_u(sens: Sensitivities, linear: np.ndarray, scales: np.ndarray, kinds: np.ndarray,
+                  noise_col: np.ndarray, shape_mc: dict | None, pose_mc: dict | None) -> tuple:
+    """The standard uncertainty of kappa_x - kappa_y (1/m), total and random, from the budget's signed rows
+    (*linear*: their columns differenced, so a row that moves both curvatures alike cancels) and the shape
+    Monte Carlo's own difference where it stands for its groups; (None, None) where the curvatures are not
+    both in the budget, or the pose Monte Carlo stands for them (its draws are not differenced)."""
+    kx, ky = ("curvature_x_per_m",), ("curvature_y_per_m",)
+    if kx not in sens.paths or ky not in sens.paths or kx in (pose_mc or {}) or ky in (pose_mc or {}):
+        return None, None
+    jx, jy = sens.paths.index(kx), sens.paths.index(ky)
+    lin = linear[:, jx] - linear[:, jy]
+    cur = (sens.curvature[:, jx] - sens.curvature[:, jy]) * scales ** 2
+    con2 = lin ** 2 + 2.0 * cur ** 2
+    mc = (shape_mc or {}).get(DIFFERENCE_PATH) if (kx in (shape_mc or {}) and ky in (shape_mc or {})) else None
+    use = np.ones(len(kinds), bool) if mc is None else np.array([i.group not in SHAPE_GROUPS for i in sens.inputs])
+    sysm, randm = use & (kinds == "systematic"), use & (kinds == "random")
+    rand2 = float(np.nansum(con2[randm])) + float(noise_col[jx] ** 2 + noise_col[jy] ** 2)
+    sys2 = float(np.nansum(con2[sysm])) + float(np.nansum(cur[sysm])) ** 2
+    ms_all, ms_corners = mc if mc is not None else (0.0, 0.0)
+    return float(np.sqrt(sys2 + rand2 + ms_all)), float(np.sqrt(rand2 + ms_corners))
 
 
 def _clean(v: float):
@@ -333,6 +361,7 @@ def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs:
                 ms_all, ms_corners = shape_mc[p]
                 u_rand[j] = np.sqrt(ms_corners + u_rand_o2[j])
                 u[j] = max(np.sqrt(ms_all + u_sys_o2[j] + u_rand_o2[j]), u_rand[j])
+    u_diff = _difference_u(sens, linear, sc, kinds, noise_col, shape_mc, pose_mc)
     k = COVERAGE_FACTOR
     values = {p: get_path(figures, p) for p in sens.paths}
     total, random = {}, {}
@@ -341,7 +370,7 @@ def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs:
             total[p] = random[p] = None
             continue
         if p == ("axis_angle_rad",):
-            floor, floor_rand = (_axis_angle_floor(figures, sens.paths, v) for v in (u, u_rand))
+            floor, floor_rand = (_axis_angle_floor(figures, sens.paths, v, w) for v, w in zip((u, u_rand), u_diff))
             total[p] = _clean(max(axis_angle_u(u[j]), floor))
             random[p] = _clean(max(axis_angle_u(u_rand[j]), floor_rand))
             continue

@@ -49,6 +49,8 @@ SHAPE_PATHS: tuple[tuple, ...] = (
     ("twist_mrad_per_m",), ("twist_e1_mrad_per_m",), ("twist_e2_mrad_per_m",),
     ("principal_focal_lengths_m", 0), ("principal_focal_lengths_m", 1),
     *[("slope_rms_mrad", m, a) for m in ("design", "parabola") for a in RMS_AXES])
+#: The curvatures' difference kappa_x - kappa_y (1/m), carried beside the figures for the axis angle's bound.
+DIFFERENCE_PATH = ("curvature_difference_per_m",)
 #: Slope-RMS models whose residual fields are moved (the others' figures by their own responses).
 FIELD_MODELS = ("design", "parabola")
 #: Points of the capture the reruns use (every n-th valid pixel): the fields are smooth over the facet.
@@ -225,8 +227,16 @@ def shape_monte_carlo(fields: PoseFields | None, frames: dict) -> dict:
             for a, v, base in (("x", ms[:, 0], ms0[0]), ("y", ms[:, 1], ms0[1]),
                                ("magnitude", ms.sum(axis=1), ms0.sum())):
                 out[("slope_rms_mrad", m, a)].append(float(np.mean((np.sqrt(v) - np.sqrt(base)) ** 2)))
-    for p, c in fields.linear.items():
-        q = fields.curvature[p]
+    responses = dict(fields.linear)
+    curvatures = dict(fields.curvature)
+    kx, ky = ("curvature_x_per_m",), ("curvature_y_per_m",)
+    if kx in responses and ky in responses:
+        # their difference, which fixes the axis angle: a common change (a camera's focal length, the range)
+        # moves both curvatures alike and leaves it
+        responses[DIFFERENCE_PATH] = responses[kx] - responses[ky]
+        curvatures[DIFFERENCE_PATH] = curvatures[kx] - curvatures[ky]
+    for p, c in responses.items():
+        q = curvatures[p]
         if not (np.all(np.isfinite(c)) and np.all(np.isfinite(q))):
             continue
         out[p] = [float(np.mean((d @ c + (d * d) @ q) ** 2)) for d in runs]
