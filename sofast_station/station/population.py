@@ -564,13 +564,21 @@ def summarise(cases: list[dict], quality=None) -> dict:
 CORRECTED_PREFIX = "slope_rms_corrected_mrad."
 
 
+#: Focal lengths: f = 1/kappa, whose U is kappa's mapped (U(f) = U(kappa) f^2) and is written as kappa's interval
+#: mapped through 1/kappa where that is not linear (:mod:`sofast_station.result.focal`).
+FOCAL_PREFIXES = ("focal_length_", "principal_focal_lengths_m")
+
+
 def coverage_rows(cases: list[dict], paths=SCALAR_PATHS, corrected: bool = True) -> list[dict]:
     """Per figure over *cases* (with ``figures``, ``truth`` and ``U``): how many, the fraction with
     |error against truth| <= U, and the RMS of error / (U / 2) (1 for a right U whatever the figure's
     scale, so it may be pooled over facet kinds where the errors' spread may not). The axis angle is an
-    axis's: its error is taken modulo pi (into [-pi/2, pi/2)). With *corrected*, also the noise-corrected
-    slope RMS values (``slope_rms_corrected_mrad.<model>.<axis>``: the cases' ``corrected`` and
-    ``U_corrected`` against the slope RMS's truth, which has no noise)."""
+    axis's: its error is taken modulo pi (into [-pi/2, pi/2)). A focal length is judged as the station states
+    it, by its power 1/f against U / f^2 (:data:`FOCAL_PREFIXES`): the same where U is a small fraction of f,
+    and the exact interval's coverage where it is not (a nearly flat facet's f of hundreds of metres, U
+    thousands: judged on f itself, its RMS of error / (U / 2) was 0.43 with U from a normal kappa). With
+    *corrected*, also the noise-corrected slope RMS values (``slope_rms_corrected_mrad.<model>.<axis>``: the
+    cases' ``corrected`` and ``U_corrected`` against the slope RMS's truth, which has no noise)."""
     def row(name, triples):
         z = []
         for v, t, u in triples:
@@ -579,6 +587,9 @@ def coverage_rows(cases: list[dict], paths=SCALAR_PATHS, corrected: bool = True)
             err = v - t
             if name == "axis_angle_rad":
                 err = (err + 0.5 * math.pi) % math.pi - 0.5 * math.pi
+            if name.startswith(FOCAL_PREFIXES) and v != 0 and t != 0:
+                # f = 1/kappa is stated by kappa's interval (result/focal.py): judged where it is normal
+                err, u = 1.0 / v - 1.0 / t, u / (v * v)
             z.append(err / (u / 2.0))
         if not z:
             return None
