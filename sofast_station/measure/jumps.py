@@ -65,25 +65,43 @@ def isolated_jumps(shape: tuple[int, int], idx: np.ndarray, ok: np.ndarray, posi
     take = np.flatnonzero(ok)
     if take.size < 9:
         return out
-    r, c = np.divmod(idx[take], cols)
+    flat = idx[take]
+    # the trusted pixels' box, padded by one pixel of NaN: whole-image slices of it stand for the neighbours
+    r0, r1 = int(flat.min() // cols), int(flat.max() // cols) + 1
+    width = cols + 2
+    padded = flat + (flat // cols - r0) * 2 - r0 * cols + width + 1   # flat index into the (r1 - r0 + 2, cols + 2) box
     for axis in ("x", "y"):
-        img = np.full((rows + 2, cols + 2), np.nan)
-        img[r + 1, c + 1] = positions_m[axis][take]
-        steps = [np.abs(np.diff(img, axis=k)) for k in (0, 1)]
-        step = max(float(np.nanmedian(s)) if np.any(np.isfinite(s)) else 0.0 for s in steps)
-        sig = np.broadcast_to(np.asarray(sigma_m[axis], float), idx.shape)[take]
-        limit = JUMP_STEPS * step + JUMP_SIGMAS * sig
-        # candidates first: a leap from a neighbour along a row or a column, both sides (cheap differences)
-        own = img[r + 1, c + 1]
-        near = np.fmax.reduce([np.abs(own - img[r + 1 + dr, c + 1 + dc]) for dr, dc in _OFFSETS[1::2]])
-        cand = np.flatnonzero(near > limit)
+        # float32 is ample for a test at tens of the field's steps, and halves the slices' memory traffic
+        img = np.full((r1 - r0 + 2, width), np.nan, dtype=np.float32)
+        img.ravel()[padded] = positions_m[axis][take]
+        step = _typical_step(img)
+        sig_all = np.asarray(sigma_m[axis], float)
+        # candidates first: a leap from every 4-neighbour present beyond the smallest pixel's limit
+        floor = JUMP_STEPS * step + JUMP_SIGMAS * float(np.min(sig_all))
+        mid = img[1:-1, 1:-1]
+        near = np.fmax(np.fmax(np.abs(mid - img[:-2, 1:-1]), np.abs(mid - img[2:, 1:-1])),
+                       np.fmax(np.abs(mid - img[1:-1, :-2]), np.abs(mid - img[1:-1, 2:])))
+        cand = np.flatnonzero(near.ravel()[flat - r0 * cols] > floor)
         if cand.size == 0:
             continue
-        rc, cc = r[cand] + 1, c[cand] + 1
-        nb = np.stack([img[rc + dr, cc + dc] for dr, dc in _OFFSETS])
+        limit = JUMP_STEPS * step + JUMP_SIGMAS * np.broadcast_to(sig_all, idx.shape)[take[cand]]
+        at = padded[cand]
+        own = img.ravel()[at]
+        nb = np.stack([img.ravel()[at + dr * width + dc] for dr, dc in _OFFSETS])
         n = np.count_nonzero(np.isfinite(nb), axis=0)
         with np.errstate(invalid="ignore"):
-            agree = np.count_nonzero(np.abs(nb - own[cand]) <= limit[cand], axis=0)
+            agree = np.count_nonzero(np.abs(nb - own) <= limit, axis=0)
         bad = (n >= MIN_NEIGHBOURS) & (agree <= MAX_AGREEING)
         out[take[cand[bad]]] = True
     return out
+
+
+def _typical_step(img: np.ndarray, stride: int = 16) -> float:
+    """The field's typical change from one pixel to the next (the image's units): the median absolute
+    difference between neighbours along rows and along columns, the larger, on every *stride*-th row and
+    column (the median of a smooth field's steps needs no more)."""
+    steps = []
+    for d in (np.diff(img[::stride], axis=1), np.diff(img[:, ::stride], axis=0)):
+        d = np.abs(d[np.isfinite(d)])
+        steps.append(float(np.median(d)) if d.size else 0.0)
+    return max(steps)
