@@ -808,11 +808,13 @@ def shape_and_boresight(rays: Rays, pose: CornerPoseResult, design: FacetDesign,
         to_moved = solution.motion.as_pose().compose(camera_to_facet)
         return Shape(solution=solution, boresighted_to_camera=to_moved.inverse(), points_m=None, slopes=None)
     n = rays.rays.shape[1]
+    # without a pool, one kernel call per step, not two halves in turn (the uncertainty's reruns: the same values)
+    split = None if isinstance(pool, _Serial) else pool
 
     def reduce_all(motion, coefficients):
         to_moved = motion.as_pose().compose(camera_to_facet)
         points, slopes = np.empty((3, n)), np.empty((2, n))
-        halves(pool, reflect, n, rays.rays, rays.screen_cam_m, to_moved.rotation, to_moved.translation,
+        halves(split, reflect, n, rays.rays, rays.screen_cam_m, to_moved.rotation, to_moved.translation,
                coefficients, points, slopes)
         finite = np.isfinite(slopes[0]) & np.isfinite(slopes[1])
         if not np.all(finite):
