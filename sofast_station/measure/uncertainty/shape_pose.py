@@ -40,8 +40,8 @@ import numpy as np
 from ...errors import StationError
 from ..boresight import Motion, ShapeSolution
 from ..camera import moved_rays
-from ..pipeline import (NOT_FITTED_BY_A_PLANE, default_screen, parabola_figures, quadratic_residuals, rerun,
-                        shape_and_boresight)
+from ..pipeline import (NOT_FITTED_BY_A_PLANE, default_screen, parabola_figures, pose_from_corners,
+                        quadratic_residuals, screen_points_and_rays, shape_and_boresight)
 from .corner_pose import CAMERA_DRAWN, rotation_vectors
 from .inputs import RMS_AXES, get_path, small_motion
 from .systematic import decimated
@@ -100,40 +100,41 @@ def pose_fields(reduction, *, fringes, geometry, design, measured_distance_m: fl
         return None
     settings = dataclasses.replace(settings, max_range_shift_m=float("inf"), max_corner_rms_px=float("inf"),
                                    robust_fit=False)
-    kw = dict(fringes=fringes, design=design, measured_distance_m=measured_distance_m, settings=settings,
-              with_curl=False)
     paths = [p for p in SHAPE_PATHS if p[0] != "slope_rms_mrad" or p[1] not in FIELD_MODELS]
     u_cam = np.array([inputs.camera_focal_px] * 2 + [inputs.camera_principal_px] * 2 + list(inputs.camera_distortion))
+
+    def response(rays, pose, start):
+        # the shape stage alone, from *start*: the residuals of FIELD_MODELS and the parabola's figures are all
+        # the fields read (no cubic, no report_figures: a third of a full rerun's cost)
+        shape = shape_and_boresight(rays, pose, design, measured_distance_m, settings, start=start)
+        figures = (parabola_figures(shape.fit) if settings.surface == "parabolic"
+                   else dict.fromkeys(NOT_FITTED_BY_A_PLANE))
+        return shape.solution, quadratic_residuals(shape, design), figures
+
     try:
         screen = screen if screen is not None else default_screen(geometry)
-        base = rerun(decimated(reduction, max_points), "rays", geometry=geometry, screen=screen, warm=True, **kw)
-        res0 = {m: np.array(base.fits.residuals_mrad[m], np.float64) for m in FIELD_MODELS}
-        fig0 = base.figures
+        # the decimated capture from its rays on (pipeline.rerun's stages from "rays", the shape stage lean)
+        dec = decimated(reduction, max_points)
+        rays0 = screen_points_and_rays(dec.region, dec.phases, geometry.camera, screen,
+                                       min_valid_px=settings.min_valid_px)
+        pose0 = pose_from_corners(reduction.pose.corners_px, dec.region, rays0, geometry, design, measured_distance_m,
+                                  settings, agreement=reduction.pose.outline_agreement)
+        sol0, res0, fig0 = response(rays0, pose0, reduction.shape.solution)
         n = 6 + len(CAMERA_DRAWN)
         fields = {m: np.zeros((n,) + res0[m].shape) for m in FIELD_MODELS}
         linear = {p: np.zeros(n) for p in paths}
         curvature = {p: np.zeros(n) for p in paths}
-        camera_rays = moved_rays(geometry.camera, base.rays.rays, u_cam)
-
-        def response(rays, pose, start):
-            # the shape stage alone, from *start*: the residuals of FIELD_MODELS and the parabola's figures
-            # are all the fields read (no cubic, no report_figures: a third of a full rerun's cost)
-            shape = shape_and_boresight(rays, pose, design, measured_distance_m, settings, start=start)
-            figures = (parabola_figures(shape.fit) if settings.surface == "parabolic"
-                       else dict.fromkeys(NOT_FITTED_BY_A_PLANE))
-            return shape.solution, quadratic_residuals(shape, design), figures
+        camera_rays = moved_rays(geometry.camera, rays0.rays, u_cam)
 
         def moved(k, sign, plus=None):
             if k < 6:
                 v = np.zeros(6)
                 v[k] = sign * (step[0] if k < 3 else step[1])
                 move = small_motion(rotation_mrad=v[:3], translation_mm=v[3:])
-                pose = dataclasses.replace(base.pose, facet_to_camera=base.pose.facet_to_camera.compose(move))
-                start = carried_start(base.shape.solution, move) if plus is None else \
-                    mirrored_start(base.shape.solution, plus)
-                return response(base.rays, pose, start)
+                pose = dataclasses.replace(pose0, facet_to_camera=pose0.facet_to_camera.compose(move))
+                return response(rays0, pose, carried_start(sol0, move) if plus is None else mirrored_start(sol0, plus))
             # the camera moved by +1 standard deviation of input k - 6, its rays with it, the corner pose held
-            return response(dataclasses.replace(base.rays, rays=camera_rays[k - 6]), base.pose, base.shape.solution)
+            return response(dataclasses.replace(rays0, rays=camera_rays[k - 6]), pose0, sol0)
 
         for k in range(n):
             h = (step[0] if k < 3 else step[1]) if k < 6 else 1.0
@@ -145,7 +146,7 @@ def pose_fields(reduction, *, fringes, geometry, design, measured_distance_m: fl
             # 0.3 % of the central differences' (f x 2.4245 -> 2.4189 m), 7 of its 28 reruns left out.
             one_sided = k >= 6
             plus = moved(k, 1.0)
-            minus = (base.shape.solution, res0, fig0) if one_sided else moved(k, -1.0, plus[0])
+            minus = (sol0, res0, fig0) if one_sided else moved(k, -1.0, plus[0])
             span = h if one_sided else 2.0 * h
             for m in FIELD_MODELS:
                 fields[m][k] = (np.asarray(plus[1][m]) - np.asarray(minus[1][m])) / span
