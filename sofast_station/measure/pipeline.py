@@ -812,10 +812,13 @@ def shape_and_boresight(rays: Rays, pose: CornerPoseResult, design: FacetDesign,
     split = None if isinstance(pool, _Serial) else pool
 
     def reduce_all(motion, coefficients):
-        to_moved = motion.as_pose().compose(camera_to_facet)
+        # motion.as_pose().compose(camera_to_facet)'s rotation and translation, the same arithmetic without
+        # the two Poses' checks (twice a step, 60 steps per capture in the uncertainty's reruns)
+        r = motion.rotation
+        shift = motion.pivot_m - r @ motion.pivot_m + np.array([0.0, 0.0, motion.t_z_m])
         points, slopes = np.empty((3, n)), np.empty((2, n))
-        halves(split, reflect, n, rays.rays, rays.screen_cam_m, to_moved.rotation, to_moved.translation,
-               coefficients, points, slopes)
+        halves(split, reflect, n, rays.rays, rays.screen_cam_m, r @ camera_to_facet.rotation,
+               r @ camera_to_facet.translation + shift, coefficients, points, slopes)
         finite = np.isfinite(slopes[0]) & np.isfinite(slopes[1])
         if not np.all(finite):
             raise AnalysisError(f"{int((~finite).sum())} pixel rays miss the fitted surface; the fit diverged")
