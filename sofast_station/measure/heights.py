@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -227,6 +228,16 @@ class HeightGrid:
                 + tv * (su * flat.take(k + di) + tu * flat.take(k + (di + dj))))
 
 
+@lru_cache(maxsize=16)
+def _laplacian_eigenvalues(ny: int, nx: int) -> np.ndarray:
+    """The Neumann grid Laplacian's eigenvalues, 2 - 2 cos(pi k / n) per axis summed, with the mean's (0, 0)
+    set to 1 (:func:`integrate_full_grid` divides by them; read-only, kept per grid size)."""
+    lam = (2.0 - 2.0 * np.cos(np.pi * np.arange(ny) / ny))[:, None] + (2.0 - 2.0 * np.cos(np.pi * np.arange(nx) / nx))
+    lam[0, 0] = 1.0
+    lam.setflags(write=False)
+    return lam
+
+
 def integrate_full_grid(s_x, s_y, cell_m: float) -> np.ndarray:
     """:func:`integrate_slopes` on a grid with no empty cell, solved by the discrete cosine transform.
 
@@ -250,10 +261,8 @@ def integrate_full_grid(s_x, s_y, cell_m: float) -> np.ndarray:
     rhs[:, 1:] += dx
     rhs[:-1, :] -= dy
     rhs[1:, :] += dy
-    lam = (2.0 - 2.0 * np.cos(np.pi * np.arange(ny) / ny))[:, None] + (2.0 - 2.0 * np.cos(np.pi * np.arange(nx) / nx))
     coef = dctn(rhs, type=2, norm="ortho", workers=1)
-    lam[0, 0] = 1.0
-    coef /= lam
+    coef /= _laplacian_eigenvalues(ny, nx)
     coef[0, 0] = 0.0                                      # the mean: free, set to zero
     return idctn(coef, type=2, norm="ortho", workers=1)
 
@@ -269,10 +278,10 @@ def height_grid(x_m, y_m, g_x, g_y, cells: int = 96) -> HeightGrid:
     """
     x = np.asarray(x_m, dtype=np.float64)
     y = np.asarray(y_m, dtype=np.float64)
-    span = max(float(np.ptp(x)), float(np.ptp(y)), 1e-9)
+    x0, x1, y0, y1 = float(x.min()), float(x.max()), float(y.min()), float(y.max())
+    span = max(x1 - x0, y1 - y0, 1e-9)                    # (np.ptp's, from the same extremes)
     cell = span / max(int(cells), 4)
-    extent = (float(x.min()) - 0.5 * cell, float(x.max()) + 0.5 * cell,
-              float(y.min()) - 0.5 * cell, float(y.max()) + 0.5 * cell)
+    extent = (x0 - 0.5 * cell, x1 + 0.5 * cell, y0 - 0.5 * cell, y1 + 0.5 * cell)
     grid = grid_slopes(x, y, g_x, g_y, cell, extent_m=extent)
     sx = np.where(np.isfinite(grid["s_x"]), grid["s_x"], 0.0)
     sy = np.where(np.isfinite(grid["s_y"]), grid["s_y"], 0.0)
