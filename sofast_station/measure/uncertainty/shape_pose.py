@@ -93,8 +93,8 @@ def pose_fields(reduction, *, fringes, geometry, design, measured_distance_m: fl
     camera's rays to first order, :func:`~..camera.moved_rays`), the corner pose held: the residual fields' and
     figures' response. 21 reruns of the shape stage alone on about *max_points* points, each started where its
     frame converges (:func:`carried_start`, :func:`mirrored_start`): on OpenCSP's fixed capture (3,537 points,
-    2026-12-06) 67 steps of the boresight's iteration and about 85 ms of CPU, against 97 steps and 175-190 ms
-    for full reruns from the capture's own solution, every U within 0.02 %. None when a rerun fails."""
+    2026-12-06) 59 steps of the boresight's iteration and 70-76 ms of CPU, against 89 steps and 180-205 ms for
+    full reruns from the capture's own solution, every U within 0.03 %. None when a rerun fails."""
 
     if getattr(reduction, "shape", None) is None or reduction.shape.points_m is None:
         return None
