@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -54,7 +55,8 @@ def grid_slopes(x_m, y_m, s_x, s_y, cell_m: float, extent_m=None, min_points: in
     if not (math.isfinite(cell_m) and cell_m > 0):
         raise ValueError(f"cell_m must be a positive length in metres, got {cell_m}")
     keep = np.isfinite(x) & np.isfinite(y) & np.isfinite(sx) & np.isfinite(sy)
-    x, y, sx, sy = x[keep], y[keep], sx[keep], sy[keep]
+    if not keep.all():                    # (no copies when every point is finite, as a facet's are)
+        x, y, sx, sy = x[keep], y[keep], sx[keep], sy[keep]
     if extent_m is None:
         if x.size == 0:
             raise ValueError("no finite points to grid")
@@ -65,10 +67,12 @@ def grid_slopes(x_m, y_m, s_x, s_y, cell_m: float, extent_m=None, min_points: in
     ix = np.floor((x - x0) / cell_m).astype(np.int64)
     iy = np.floor((y - y0) / cell_m).astype(np.int64)
     ok = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny)
-    flat = iy[ok] * nx + ix[ok]
+    if not ok.all():
+        ix, iy, sx, sy = ix[ok], iy[ok], sx[ok], sy[ok]
+    flat = iy * nx + ix
     count = np.bincount(flat, minlength=nx * ny).astype(np.float64)
-    mean_x = np.bincount(flat, sx[ok], minlength=nx * ny)
-    mean_y = np.bincount(flat, sy[ok], minlength=nx * ny)
+    mean_x = np.bincount(flat, sx, minlength=nx * ny)
+    mean_y = np.bincount(flat, sy, minlength=nx * ny)
     full = count >= max(1, int(min_points))
     with np.errstate(invalid="ignore", divide="ignore"):
         gx = np.where(full, mean_x / count, np.nan).reshape(ny, nx)
@@ -215,8 +219,23 @@ class HeightGrid:
         j = np.minimum(u.astype(np.int64), max(nx - 2, 0))
         i = np.minimum(v.astype(np.int64), max(ny - 2, 0))
         tu, tv = u - j, v - i
-        j1, i1 = np.minimum(j + 1, nx - 1), np.minimum(i + 1, ny - 1)
-        return ((1.0 - tv) * ((1.0 - tu) * h[i, j] + tu * h[i, j1]) + tv * ((1.0 - tu) * h[i1, j] + tu * h[i1, j1]))
+        # the four neighbours by flat index (j + 1 is in the grid but on a grid one cell wide): the same
+        # values as h[i, j], ..., in two thirds of the time (the uncertainty's reruns read it every step)
+        flat, k = h.ravel(), i * nx + j
+        dj, di = min(nx - 1, 1), min(ny - 1, 1) * nx
+        su = 1.0 - tu
+        return ((1.0 - tv) * (su * flat.take(k) + tu * flat.take(k + dj))
+                + tv * (su * flat.take(k + di) + tu * flat.take(k + (di + dj))))
+
+
+@lru_cache(maxsize=16)
+def _laplacian_eigenvalues(ny: int, nx: int) -> np.ndarray:
+    """The Neumann grid Laplacian's eigenvalues, 2 - 2 cos(pi k / n) per axis summed, with the mean's (0, 0)
+    set to 1 (:func:`integrate_full_grid` divides by them; read-only, kept per grid size)."""
+    lam = (2.0 - 2.0 * np.cos(np.pi * np.arange(ny) / ny))[:, None] + (2.0 - 2.0 * np.cos(np.pi * np.arange(nx) / nx))
+    lam[0, 0] = 1.0
+    lam.setflags(write=False)
+    return lam
 
 
 def integrate_full_grid(s_x, s_y, cell_m: float) -> np.ndarray:
@@ -242,10 +261,8 @@ def integrate_full_grid(s_x, s_y, cell_m: float) -> np.ndarray:
     rhs[:, 1:] += dx
     rhs[:-1, :] -= dy
     rhs[1:, :] += dy
-    lam = (2.0 - 2.0 * np.cos(np.pi * np.arange(ny) / ny))[:, None] + (2.0 - 2.0 * np.cos(np.pi * np.arange(nx) / nx))
     coef = dctn(rhs, type=2, norm="ortho", workers=1)
-    lam[0, 0] = 1.0
-    coef /= lam
+    coef /= _laplacian_eigenvalues(ny, nx)
     coef[0, 0] = 0.0                                      # the mean: free, set to zero
     return idctn(coef, type=2, norm="ortho", workers=1)
 
@@ -261,10 +278,10 @@ def height_grid(x_m, y_m, g_x, g_y, cells: int = 96) -> HeightGrid:
     """
     x = np.asarray(x_m, dtype=np.float64)
     y = np.asarray(y_m, dtype=np.float64)
-    span = max(float(np.ptp(x)), float(np.ptp(y)), 1e-9)
+    x0, x1, y0, y1 = float(x.min()), float(x.max()), float(y.min()), float(y.max())
+    span = max(x1 - x0, y1 - y0, 1e-9)                    # (np.ptp's, from the same extremes)
     cell = span / max(int(cells), 4)
-    extent = (float(x.min()) - 0.5 * cell, float(x.max()) + 0.5 * cell,
-              float(y.min()) - 0.5 * cell, float(y.max()) + 0.5 * cell)
+    extent = (x0 - 0.5 * cell, x1 + 0.5 * cell, y0 - 0.5 * cell, y1 + 0.5 * cell)
     grid = grid_slopes(x, y, g_x, g_y, cell, extent_m=extent)
     sx = np.where(np.isfinite(grid["s_x"]), grid["s_x"], 0.0)
     sy = np.where(np.isfinite(grid["s_y"]), grid["s_y"], 0.0)

@@ -808,12 +808,17 @@ def shape_and_boresight(rays: Rays, pose: CornerPoseResult, design: FacetDesign,
         to_moved = solution.motion.as_pose().compose(camera_to_facet)
         return Shape(solution=solution, boresighted_to_camera=to_moved.inverse(), points_m=None, slopes=None)
     n = rays.rays.shape[1]
+    # without a pool, one kernel call per step, not two halves in turn (the uncertainty's reruns: the same values)
+    split = None if isinstance(pool, _Serial) else pool
 
     def reduce_all(motion, coefficients):
-        to_moved = motion.as_pose().compose(camera_to_facet)
+        # motion.as_pose().compose(camera_to_facet)'s rotation and translation, the same arithmetic without
+        # the two Poses' checks (twice a step, 60 steps per capture in the uncertainty's reruns)
+        r = motion.rotation
+        shift = motion.pivot_m - r @ motion.pivot_m + np.array([0.0, 0.0, motion.t_z_m])
         points, slopes = np.empty((3, n)), np.empty((2, n))
-        halves(pool, reflect, n, rays.rays, rays.screen_cam_m, to_moved.rotation, to_moved.translation,
-               coefficients, points, slopes)
+        halves(split, reflect, n, rays.rays, rays.screen_cam_m, r @ camera_to_facet.rotation,
+               r @ camera_to_facet.translation + shift, coefficients, points, slopes)
         finite = np.isfinite(slopes[0]) & np.isfinite(slopes[1])
         if not np.all(finite):
             raise AnalysisError(f"{int((~finite).sum())} pixel rays miss the fitted surface; the fit diverged")
@@ -892,6 +897,21 @@ def fit_models(shape: Shape, design: FacetDesign, pool=None) -> Fits:
     return Fits(parabola=fit, coefficients=coeffs, cubic=cubic, residuals_mrad=residuals)
 
 
+#: The cubic :func:`quadratic_residuals` gives :func:`~.kernels.model_residuals` (no slope, unit scale): its
+#: rows are not read.
+_NO_CUBIC = np.array([0.0, 0.0, 1.0] + [0.0] * 12)
+
+
+def quadratic_residuals(shape: Shape, design: FacetDesign) -> dict:
+    """:func:`fit_models`' slope residuals against the design and the all-points parabola alone (the same
+    bits; mrad, ``{model: (2, N)}``), without the cubic's fit: what the uncertainty's shape reruns read."""
+    x, y = shape.points_m[0], shape.points_m[1]
+    e = np.empty((6, x.size))
+    model_residuals(x, y, shape.slopes[0], shape.slopes[1],
+                    [design.coefficients, model_coefficients(shape.fit, design)], _NO_CUBIC, e, 0, x.size)
+    return {"design": e[0:2], "parabola": e[2:4]}
+
+
 def pose_on_measured_surface(pose: CornerPoseResult, fits: Fits, rays: Rays, geometry: StationGeometry,
                              design: FacetDesign, measured_distance_m: float, settings: AnalysisSettings) -> Pose:
     """The corner pose again (range fixed), with the design's corners and measure point lifted onto the
@@ -948,8 +968,6 @@ def report_figures(region: Region, phases: Phases, rays: Rays, pose: CornerPoseR
     tilt = placement(geometry.fixture_to_camera, shape.boresighted_to_camera, design)["mrad"]
     # The corners where the measured surface puts them, not on the design surface: placement and boresight.
     facet_to_camera = pose_on_measured_surface(pose, fits, rays, geometry, design, measured_distance_m, settings)
-    kx, ky = 4.0 * fit.a, 4.0 * fit.b
-    principal, angle = principal_axes(fit.a, fit.b, fit.e)
     if not with_curl:
         curl = None
     elif curl is None:
@@ -962,15 +980,7 @@ def report_figures(region: Region, phases: Phases, rays: Rays, pose: CornerPoseR
     capture = (own(region, rays, fits, geometry, curl) if own is not None
                else fringe_capture_figures(region, phases, rays, fits, geometry, curl))
     figures = {
-        "focal_length_x_m": focal_length_m(kx),
-        "focal_length_y_m": focal_length_m(ky),
-        "curvature_x_per_m": kx,
-        "curvature_y_per_m": ky,
-        "twist_mrad_per_m": 1000.0 * fit.e,
-        "twist_e1_mrad_per_m": 1000.0 * fit.e1,
-        "twist_e2_mrad_per_m": 1000.0 * fit.e2,
-        "principal_focal_lengths_m": principal,
-        "axis_angle_rad": angle,
+        **parabola_figures(fit),
         "coefficients": {"A": coeffs[0], "B": coeffs[1], "C": coeffs[2], "D": coeffs[3], "E": coeffs[4],
                          "F": coeffs[5]},
         "slope_rms_mrad": {name: rms_summary(*e) for name, e in fits.residuals_mrad.items()},
@@ -1008,6 +1018,18 @@ def report_figures(region: Region, phases: Phases, rays: Rays, pose: CornerPoseR
     if settings.surface != "parabolic":
         figures.update(plano_figures(figures))
     return figures
+
+
+def parabola_figures(fit: ParabolaFit) -> dict:
+    """The reported figures the all-points parabola *fit* alone gives (before :func:`plano_figures`): focal
+    lengths (metres), curvatures (1/m), twists (mrad/m), the principal focal lengths and the shorter's axis
+    angle (radians); :func:`report_figures`' and the uncertainty's reruns' (which need no more)."""
+    kx, ky = 4.0 * fit.a, 4.0 * fit.b
+    principal, angle = principal_axes(fit.a, fit.b, fit.e)
+    return {"focal_length_x_m": focal_length_m(kx), "focal_length_y_m": focal_length_m(ky),
+            "curvature_x_per_m": kx, "curvature_y_per_m": ky, "twist_mrad_per_m": 1000.0 * fit.e,
+            "twist_e1_mrad_per_m": 1000.0 * fit.e1, "twist_e2_mrad_per_m": 1000.0 * fit.e2,
+            "principal_focal_lengths_m": principal, "axis_angle_rad": angle}
 
 
 #: The capture's own figures, in the order the figures list them (after ``n_points``).

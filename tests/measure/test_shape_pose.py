@@ -63,3 +63,66 @@ def test_it_runs_only_where_the_draws_move_the_frame_beyond_the_fields_step():
     shifted = dict(inside, translation=1e-3 * rng.normal(size=(2000, 3)) * [0.5, 0.5, 3.0])
     assert beyond_linear(turned) and beyond_linear(shifted)
     assert not beyond_linear({"rotation": None}) and shape_monte_carlo(None, inside) == {}
+
+
+@pytest.fixture(scope="module")
+def opencsp_fixed_reduction(repo_root):
+    """OpenCSP's real fixed-pattern capture of its NSTTF facet (fixtures/opencsp), reduced: the reduction and
+    pose_fields' keyword arguments."""
+    from sofast_station.interop.opencsp_fixed import read_opencsp_fixed
+    from sofast_station.interop.paths import opencsp_fixed_paths
+    from sofast_station.measure.fixed import DotPattern, reduce_fixed
+
+    fm = read_opencsp_fixed(**opencsp_fixed_paths(repo_root / "fixtures/opencsp/test_data"))
+    reduction, _ = reduce_fixed(fm.image, fm.dots, fm.geometry, fm.design, fm.distance_m, fm.settings, fm.fixed,
+                                origin_px=fm.origin_px, screen=fm.screen)
+    return reduction, dict(fringes=DotPattern(fm.fixed), geometry=fm.geometry, design=fm.design,
+                           measured_distance_m=fm.distance_m, settings=fm.settings, inputs=fm.uncertainty,
+                           screen=fm.screen)
+
+
+def test_the_reruns_started_where_their_frame_converges_end_where_they_did(opencsp_fixed_reduction, monkeypatch):
+    """pose_fields on OpenCSP's fixed capture (3,537 points) with each corner-pose rerun started where its frame
+    converges (carried_start, then mirrored_start for the opposite move) against the same reruns started from the
+    capture's own solution (both starts replaced by it, as the reruns were before). The boresight's iteration
+    stops within 1 microradian of turn and 1e-6 of curvature whatever it starts from, which over the 2 mrad / 2 mm
+    steps is about 5e-4 of a response: every residual field (RMS of the difference, per parameter) and every
+    figure's linear and quadratic change over one step must agree to 1e-3 of the largest (measured 1e-4). A
+    turn about the facet's x axis through the boresight's pivot (this facet's alignment point is its origin) is
+    the boresight's to take out (R_y(beta) R_x(alpha) R_x(d) = R_y(beta) R_x(alpha + d)): started from the
+    carried motion, its reruns converge in one step (from the capture's own motion, five) and its fields are
+    zero to rounding; about y the boresight's own turn about x leaves a part about z (alpha d), measured, so
+    those take more than one step but fewer than from the capture's motion."""
+    from sofast_station.measure.uncertainty import shape_pose
+
+    reduction, kw = opencsp_fixed_reduction
+    steps = []
+    solve = shape_pose.shape_and_boresight
+
+    def counted(*args, **kwargs):
+        shape = solve(*args, **kwargs)
+        steps.append(shape.solution.boresight_iterations)
+        return shape
+
+    monkeypatch.setattr(shape_pose, "shape_and_boresight", counted)
+    ours = shape_pose.pose_fields(reduction, **kw)
+    ours_steps = list(steps)
+    monkeypatch.setattr(shape_pose, "carried_start", lambda solution, move: solution)
+    monkeypatch.setattr(shape_pose, "mirrored_start", lambda solution, plus: solution)
+    steps.clear()
+    plain = shape_pose.pose_fields(reduction, **kw)
+    assert ours is not None and plain is not None
+    # the first solve is the unmoved capture's, then the turn about x (plus, minus), then about y
+    assert ours_steps[1:3] == [1, 1]
+    assert all(o < p for o, p in zip(ours_steps[1:5], steps[1:5])) and sum(ours_steps) < sum(steps)
+    h = np.array([2.0] * 6 + [1.0] * 9)                                   # each parameter's step (mrad, mm, sigma)
+    for m in shape_pose.FIELD_MODELS:
+        rms = np.sqrt(np.mean(plain.fields[m] ** 2, axis=(1, 2)))
+        diff = np.sqrt(np.mean((ours.fields[m] - plain.fields[m]) ** 2, axis=(1, 2)))
+        assert np.all(diff <= 1e-3 * rms.max()), m
+        assert np.sqrt(np.mean(ours.fields[m][0] ** 2)) <= 1e-9 * rms.max(), m
+        np.testing.assert_array_equal(ours.residuals[m], plain.residuals[m])
+    for p, c in plain.linear.items():
+        scale = np.max(np.abs(c * h))
+        assert np.max(np.abs((ours.linear[p] - c) * h)) <= 1e-3 * scale, p
+        assert np.max(np.abs((ours.curvature[p] - plain.curvature[p]) * h * h)) <= 1e-3 * scale, p
