@@ -451,8 +451,10 @@ DRAWN_TABLE_SIZE = 2048
 
 
 @functools.lru_cache(maxsize=32)
-def drawn_phase_error(lut: tuple, floor_level: float, max_level: float, samples_per_period: float) -> tuple | None:
-    """The four-step phase error of a fringe set as the display draws it, over one period (rad).
+def drawn_phase_error(lut: tuple, floor_level: float, max_level: float, samples_per_period: float,
+                      footprint_px: tuple = (0.0, 0.0)) -> tuple | None:
+    """The four-step phase error of a fringe set as the display draws it and a camera pixel sees it, over one
+    period (rad).
 
     The station draws a set's fringes through its radiometric record's lookup table (*lut*, a tuple: command / 255
     against linear response level 0..1, :mod:`~sofast_station.devices.renderer`) and rounds each display
@@ -468,6 +470,15 @@ def drawn_phase_error(lut: tuple, floor_level: float, max_level: float, samples_
     :data:`DRAWN_MAX_HARMONIC` (and n / 6) sampled at phases 2 pi j / M, M = :data:`DRAWN_TABLE_SIZE`;
     None when n is not a whole number of at least 8 (the ripple does not repeat with the phase). Kept for
     the process (the same record and display give the same table every capture).
+
+    A camera pixel integrates the display over its footprint on the screen, a parallelogram whose edges span
+    *footprint_px* = (a, b) display pixels along the fringes' axis (:func:`pixel_footprint_px`): harmonic k
+    (k cycles over n display pixels) reaches the phase multiplied by sinc(k a / n) sinc(k b / n). Far from
+    the screen this is no detail: a pixel of the population's heliostat station (400 x 300 camera, 4 m from a
+    1.1 mm pitch screen) spans about 9.7 display pixels, and the ripple's strongest harmonics of the
+    16-period set (k 14 to 24 of n = 150) reach it at a tenth or less; the table of a point's view took them
+    off at full depth, and left 28 um RMS of ripple in the positions of a twin that integrates the footprint
+    (issue 47, docs/method.md "Nearly flat facets far from the screen"). (0, 0): a point's view.
     """
     n_float = float(samples_per_period)
     n = int(round(n_float))
@@ -487,6 +498,8 @@ def drawn_phase_error(lut: tuple, floor_level: float, max_level: float, samples_
     # e(phi) = mean + sum_k a_k cos k phi + b_k sin k phi from the n samples (their discrete Fourier terms)
     a = 2.0 / n * (np.cos(np.outer(ks, phi)) @ error)
     b = 2.0 / n * (np.sin(np.outer(ks, phi)) @ error)
+    seen_by_pixel = np.sinc(ks * float(footprint_px[0]) / n) * np.sinc(ks * float(footprint_px[1]) / n)
+    a, b = a * seen_by_pixel, b * seen_by_pixel
     table_phi = 2.0 * np.pi * np.arange(DRAWN_TABLE_SIZE) / DRAWN_TABLE_SIZE
     table = float(np.mean(error)) + a @ np.cos(np.outer(ks, table_phi)) + b @ np.sin(np.outer(ks, table_phi))
     return tuple(float(v) for v in table)
@@ -501,15 +514,77 @@ def drawn_error_at(table, phase_rad: np.ndarray) -> np.ndarray:
     return np.interp(np.asarray(phase_rad, dtype=np.float64), grid, values, period=2.0 * np.pi)
 
 
-def drawn_table(fringes, axis: str, periods: float):
-    """The phase error table of set (*axis*, *periods*) as the display draws it (:func:`drawn_phase_error`), or
-    None when the fringes (a :class:`~sofast_station.fringes.FringeSet`) do not say how they are drawn
-    (``FringeSet.drawn``) or it does not repeat."""
+def drawn_table(fringes, axis: str, periods: float, footprint_px: dict | None = None):
+    """The phase error table of set (*axis*, *periods*) as the display draws it and a camera pixel of footprint
+    ``footprint_px[axis]`` (display pixels, :func:`pixel_footprint_px`; none: a point) sees it
+    (:func:`drawn_phase_error`), or None when the fringes (a :class:`~sofast_station.fringes.FringeSet`) do not
+    say how they are drawn (``FringeSet.drawn``) or it does not repeat."""
     n = fringes.samples_per_period(axis, periods)
     if n is None:
         return None
     lut, floor_level, max_level = fringes.drawn[:3]
-    return drawn_phase_error(lut, floor_level, max_level, n)
+    footprint = tuple((footprint_px or {}).get(axis, (0.0, 0.0)))
+    return drawn_phase_error(lut, floor_level, max_level, n, footprint)
+
+
+#: A pixel's footprint is rounded to this many decimals of a display pixel (:func:`pixel_footprint_px`): the
+#: table it picks is kept per footprint, and a hundredth of a display pixel moves no harmonic by 1e-3 of itself.
+FOOTPRINT_DECIMALS = 2
+
+
+#: Pixels whose neighbours' steps :func:`pixel_footprint_px` takes the median of, at most (a fixed stride beyond).
+FOOTPRINT_SAMPLES = 20_000
+
+
+def pixel_footprint_px(shape: tuple, idx: np.ndarray, ok: np.ndarray, positions_m: dict, display_px: dict,
+                       lengths_m: dict) -> dict:
+    """The camera pixels' footprint on the screen along each fringe axis, display pixels.
+
+    A pixel's footprint is the image of its square on the screen, a parallelogram whose edges are the
+    screen position's steps from one pixel to the next along the image's columns and rows. Per axis a,
+    ``(|du_a / d column|, |du_a / d row|)`` in display pixels: the median over pixels with trusted positions
+    and a trusted neighbour (robust to the facet's slope errors and to the odd wrong position; at most
+    :data:`FOOTPRINT_SAMPLES` pixels in a fixed stride: 20 ms at 1600 x 1200 where every pixel gave 490), rounded to
+    :data:`FOOTPRINT_DECIMALS`.
+
+    Parameters
+    ----------
+    shape : (rows, columns)
+        The camera image's.
+    idx : (M,) int array
+        Flat image indices of the pixels, increasing.
+    ok : (M,) bool array
+        Pixels with trusted positions.
+    positions_m : dict
+        ``{"x": (M,), "y": (M,)}`` screen positions, metres.
+    display_px, lengths_m : dict
+        Per axis, the display's pixels across the screen and the screen's length, metres.
+
+    Returns
+    -------
+    dict
+        ``{"x": (a, b), "y": (a, b)}``, display pixels ((0, 0) for an axis without two neighbouring pixels).
+    """
+    width = shape[1]
+    trusted = np.flatnonzero(ok)
+    trusted = trusted[::max(1, trusted.size // FOOTPRINT_SAMPLES)]
+    pairs = []
+    for step in (1, width):                                   # the next column, the next row
+        target = idx[trusted] + step
+        at = np.minimum(np.searchsorted(idx, target), idx.size - 1)
+        good = (idx[at] == target) & ok[at]
+        if step == 1:
+            good &= idx[trusted] % width != width - 1          # not the next row's first pixel
+        pairs.append((trusted[good], at[good]))
+    out = {}
+    for axis in ("x", "y"):
+        scale = display_px[axis] / lengths_m[axis]
+        steps = []
+        for i, j in pairs:
+            d = np.abs(positions_m[axis][j] - positions_m[axis][i]) * scale
+            steps.append(round(float(np.median(d)), FOOTPRINT_DECIMALS) if d.size else 0.0)
+        out[axis] = tuple(steps)
+    return out
 
 
 def drawn_error_slope_at(table, phase_rad: np.ndarray) -> np.ndarray:
@@ -520,10 +595,12 @@ def drawn_error_slope_at(table, phase_rad: np.ndarray) -> np.ndarray:
     return drawn_error_at(slope, phase_rad)
 
 
-def drawn_gain(fringes, axis: str, position_m: np.ndarray, length_m: float) -> np.ndarray | None:
+def drawn_gain(fringes, axis: str, position_m: np.ndarray, length_m: float,
+               footprint_px: dict | None = None) -> np.ndarray | None:
     """How much a phase error of the finest set of *axis* moves the corrected screen position, per the
     uncorrected move: ``1 - e'(phi)`` at each position (metres along the screen of *length_m*), or None when
-    the fringes do not say how they are drawn (``FringeSet.drawn``).
+    the fringes do not say how they are drawn (``FringeSet.drawn``). *footprint_px*: the camera pixels'
+    footprint the correction used (``Phases.footprint_px``, :func:`pixel_footprint_px`).
 
     The analysis takes the drawn fringes' known error e(phi) off each pixel's phase
     (:func:`~.pipeline.corrected_positions`), so a phase error d of the capture (noise, a frame brighter than
@@ -532,7 +609,7 @@ def drawn_gain(fringes, axis: str, position_m: np.ndarray, length_m: float) -> n
     (The part of the correction the period sets measure, a response not quite linearised, is left out: its
     coefficients are not kept, and it is a tenth of the drawn part on a calibrated display.)"""
     periods = getattr(fringes, f"periods_{axis}")[-1]
-    table = drawn_table(fringes, axis, periods)
+    table = drawn_table(fringes, axis, periods, footprint_px)
     if table is None:
         return None
     phase = 2.0 * np.pi * float(periods) * np.asarray(position_m, dtype=np.float64) / float(length_m)

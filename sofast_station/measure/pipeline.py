@@ -49,6 +49,7 @@ from .phase import (
     frame_noise,
     phase_and_modulation,
     phase_error_between_periods,
+    pixel_footprint_px,
     position_sigma_m,
     unwrap_positions,
 )
@@ -301,6 +302,10 @@ class Phases:
         ``{"x": [...], "y": [...]}`` per four-step set, the mean consistency residual I0 + I2 - I1 - I3
         over the consistent pixels, DN: frame-to-frame brightness changes (room light, display), which
         the uncertainty turns into a phase error (:mod:`sofast_station.measure.uncertainty`).
+    footprint_px : dict
+        ``{"x": (a, b), "y": (a, b)}``: the camera pixels' footprint on the screen along each axis, display
+        pixels (:func:`~.phase.pixel_footprint_px`), with which the drawn fringes' correction was seen; empty
+        when the fringes do not say how they are drawn.
     """
 
     positions_m: dict
@@ -312,6 +317,7 @@ class Phases:
     unwrap: dict
     noise: FrameNoise | None = None
     set_offsets_dn: dict = field(default_factory=dict)
+    footprint_px: dict = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -595,9 +601,14 @@ def measure_phases(region: Region, fringes: FringeSet, screen_size_m: tuple[floa
     checks.check_phase_sets(inconsistent_fraction,
                             {a: unwrap_stats[a].disagreements / idx.size for a in ("x", "y")})
     # The response's phase error as the coarse and fine sets show it (any shape of response), where they can.
-    # Each set's error as the display draws it (the fringes' rounding), where the station's record says it.
-    drawn = {a: (drawn_table(fringes, a, getattr(fringes, f"periods_{a}")[0]),
-                 drawn_table(fringes, a, getattr(fringes, f"periods_{a}")[-1])) for a in ("x", "y")}
+    # Each set's error as the display draws it (the fringes' rounding), where the station's record says it, as
+    # the camera's pixels see it: each averages the display over its footprint on the screen.
+    footprint = {}
+    if fringes.drawn:
+        footprint = pixel_footprint_px(region.region.shape, idx, ok, positions, dict(zip("xy", fringes.drawn[3:5])),
+                                       lengths)
+    drawn = {a: (drawn_table(fringes, a, getattr(fringes, f"periods_{a}")[0], footprint),
+                 drawn_table(fringes, a, getattr(fringes, f"periods_{a}")[-1], footprint)) for a in ("x", "y")}
     known = all(t is not None for a in ("x", "y") for t in drawn[a])
     measured = phase_error_between_periods(
         [(raw[a][0][0], raw[a][0][-1], raw[a][1][0], raw[a][1][-1], getattr(fringes, f"periods_{a}")[0],
@@ -617,7 +628,7 @@ def measure_phases(region: Region, fringes: FringeSet, screen_size_m: tuple[floa
     return Phases(positions_m=positions, ok=ok, noise_dn=noise_dn,
                   finest_modulation_dn={a: raw[a][1][-1] for a in ("x", "y")}, min_modulation_dn=min_mod,
                   dropped=dropped, unwrap=unwrap_stats, noise=noise,
-                  set_offsets_dn=offsets)
+                  set_offsets_dn=offsets, footprint_px=footprint)
 
 
 def corrected_positions(position_m: np.ndarray, fine_phase_rad: np.ndarray, measured, drawn_table,

@@ -53,7 +53,7 @@ def position_sigmas_m(phases, stack, take: np.ndarray, fringes, screen_size_m: t
         sigma = position_sigma_m(phases.finest_modulation_dn[a][take], noise_dn, getattr(fringes, f"periods_{a}")[-1],
                                  length)
         # the drawn fringes' correction passes the phase noise on with its gain (1 - e'(phi))
-        gain = drawn_gain(fringes, a, phases.positions_m[a][take], length)
+        gain = drawn_gain(fringes, a, phases.positions_m[a][take], length, getattr(phases, "footprint_px", None))
         out[a] = sigma if gain is None else sigma * np.abs(gain)
     return out
 

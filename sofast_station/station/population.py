@@ -82,6 +82,11 @@ class Kind:
         The random slope error's RMS and correlation length, uniform.
     cubic_per_m2 : float
         Standard deviation of each cubic shape coefficient, 1/m^2.
+    screen_grid : int
+        The twin's sub-rays per camera pixel side whose display light a pixel averages
+        (:class:`~sofast_station.twin.parameters.TwinOptics` ``screen_grid``): more than 1 where a pixel of the
+        400 x 300 camera covers several display pixels, as a camera integrates them. The heliostat and flat
+        stations' pixels span 9-10 display pixels: 4 x 4, sub-rays 2.5 display pixels apart.
     """
 
     station: str
@@ -89,13 +94,14 @@ class Kind:
     slope_error_mrad: tuple
     correlation_m: tuple
     cubic_per_m2: float = 0.0
+    screen_grid: int = 1
 
 
 KINDS = {
     "dish": Kind("station.toml", 0.01, (0.2, 1.0), (0.015, 0.04), 1e-4),
     "gore": Kind("fixtures/stations/gore.toml", 0.01, (0.2, 1.0), (0.02, 0.05), 1e-4),
-    "heliostat": Kind("fixtures/stations/heliostat.toml", 0.8, (0.15, 0.6), (0.02, 0.06)),
-    "flat": Kind("fixtures/stations/flat.toml", 0.8, (0.15, 0.6), (0.02, 0.06)),
+    "heliostat": Kind("fixtures/stations/heliostat.toml", 0.8, (0.15, 0.6), (0.02, 0.06), screen_grid=4),
+    "flat": Kind("fixtures/stations/flat.toml", 0.8, (0.15, 0.6), (0.02, 0.06), screen_grid=4),
 }
 
 
@@ -215,7 +221,7 @@ class PopulationStation:
                 kappa = 1.0 / design.focal_length_m + kind.focal_spread * u * cfg.limits.curvature_tolerance_per_m
                 focal.append(1.0 / kappa if kappa != 0 else math.inf)
         self.facet = TrueFacet.from_dict({**spec["facet"], "focal_length_x_m": focal[0], "focal_length_y_m": focal[1]})
-        self.optics = TwinOptics.from_dict(spec["optics"])
+        self.optics = TwinOptics.from_dict({"screen_grid": kind.screen_grid, **spec["optics"]})
         # the rendered fringes depend on the screen's size and on the periods drawn (the heliostat station
         # draws 16, the flat one of the same screen 4)
         key = (cfg.geometry.screen.width_px, cfg.geometry.screen.height_px, tuple(cfg.fringes.periods_x),

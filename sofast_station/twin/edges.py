@@ -22,6 +22,7 @@ in its ``[simulation.optics]`` table, and code passes ``TwinOptics(...)`` to
     bevel_reflectance = 0.5        # its specular reflectance relative to the facet's
     vignetting = 0.6               # relative fall-off at the farthest image corner
     vignetting_exponent = 4.0      # ... as 1 - vignetting (r / r_corner)^exponent
+    screen_grid = 4                # sub-rays per pixel side whose display light a pixel averages (1: centre ray)
 
 The models
 ----------
@@ -51,7 +52,14 @@ The models
     that of the farthest image corner; exponent 2 (the default) is the classic quadratic fall-off, larger
     exponents keep the middle bright and fall off steeply toward the corners.
 
-Models (a), (b) and (d) decide the pixels' coverage and screen points, so they are fixed when the station
+(f) ``screen_grid``: how a pixel samples the display it sees in the facet. 1 (the default): at its centre
+    ray's screen point. n > 1: the mean of the display's light at the screen points of n x n sub-rays on a
+    regular grid over the pixel (:meth:`~sofast_station.twin.trace.FacetTrace._footprint`): the pixel
+    integrates the display over its footprint on the screen, as a camera does. It matters where a pixel
+    covers several display pixels (the population's heliostat and flat stations: 9-10), where the centre
+    ray alone sees the display's pixel steps and the fringes' rounding at full depth.
+
+Models (a), (b), (d) and (f) decide the pixels' coverage and screen points, so they are fixed when the station
 is traced; (c) and (e) act on the light and can change with :meth:`TwinStation.with_optics`.
 
 This module is pure numpy/scipy (no twin state): :class:`~sofast_station.twin.station.TwinStation` calls it
@@ -79,7 +87,7 @@ CHORD_PX = 0.2
 _SNAP = 1e-9
 
 #: Fields of TwinOptics that change the trace (coverage, screen points), not only the light.
-TRACE_FIELDS = ("edge_sampling", "edge_grid", "bevel_width_mm", "bevel_tilt_mrad")
+TRACE_FIELDS = ("edge_sampling", "edge_grid", "bevel_width_mm", "bevel_tilt_mrad", "screen_grid")
 
 
 # ----------------------------------------------------------------- exact area coverage

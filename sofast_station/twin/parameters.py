@@ -246,6 +246,12 @@ class TwinOptics:
         The rim's specular reflectance relative to the facet's, [0, 1].
     vignetting_exponent : float
         Shape of the fall-off: ``1 - vignetting (r / r_corner)^vignetting_exponent`` (2: quadratic).
+    screen_grid : int
+        Sub-rays per pixel side whose display samples a pixel averages (:mod:`sofast_station.twin.edges`,
+        model (f)): 1 (the default) samples the display at the screen point of each pixel's centre ray only;
+        n (2 to 8) averages the display's light at the screen points of n x n sub-rays on a regular grid over
+        the pixel, each traced to the true surface and reflected about its own exact normal: the pixel
+        integrates the display over its footprint on the screen, as a camera does.
     mark_radiance : float
         What the fixture's marks (``[marks]``, :mod:`sofast_station.twin.marks`), white discs lit by the hall's
         lights, send the camera, as a fraction of the display's white seen in the facet: the same in every
@@ -277,6 +283,7 @@ class TwinOptics:
     bevel_reflectance: float = 1.0
     vignetting_exponent: float = 2.0
     mark_radiance: float = 0.5
+    screen_grid: int = 1
 
     def __post_init__(self):
         owner = "TwinOptics"
@@ -288,9 +295,14 @@ class TwinOptics:
             raise ConfigError(f"{owner}.edge_grid must be a whole number of sub-rays per pixel side from 2 to 16, "
                               f"got {grid!r}")
         object.__setattr__(self, "edge_grid", int(grid))
+        grid = self.screen_grid
+        if isinstance(grid, bool) or not isinstance(grid, numbers.Integral) or not 1 <= grid <= 8:
+            raise ConfigError(f"{owner}.screen_grid must be a whole number of sub-rays per pixel side from 1 to 8 "
+                              f"(1: the centre ray only), got {grid!r}")
+        object.__setattr__(self, "screen_grid", int(grid))
         for f in dataclasses.fields(self):
             value = getattr(self, f.name)
-            if (f.name == "knee_dn" and value is None) or f.name in ("edge_sampling", "edge_grid"):
+            if (f.name == "knee_dn" and value is None) or f.name in ("edge_sampling", "edge_grid", "screen_grid"):
                 continue
             object.__setattr__(self, f.name, _number(owner, f.name, value))
         checks = [

@@ -16,6 +16,7 @@ from __future__ import annotations
 import weakref
 
 import numpy as np
+from scipy import sparse
 
 from ..errors import DisplayError
 from . import edges
@@ -122,7 +123,10 @@ class TwinRenderer:
         trace = self.trace
         screen = self.screen
         pitch_x, pitch_y = screen.pitch_m, screen.pitch_y_m              # columns, rows (may differ)
-        u_scr_m = np.concatenate([trace.u_scr_m, trace.rim_u_scr_m])
+        n = trace.u_scr_m.shape[0]
+        footprint = trace.footprint_u_scr_m               # (n, m, 2): m sub-rays per pixel, averaged
+        m = footprint.shape[1]
+        u_scr_m = np.concatenate([footprint.transpose(1, 0, 2).reshape(m * n, 2), trace.rim_u_scr_m])
         with np.errstate(invalid="ignore"):
             col = u_scr_m[:, 0] / pitch_x - 0.5                       # continuous display column
             row = (screen.height_m - u_scr_m[:, 1]) / pitch_y - 0.5    # continuous display row
@@ -145,12 +149,25 @@ class TwinRenderer:
         weights = np.stack([(1 - frac_r) * (1 - frac_c), (1 - frac_r) * frac_c,
                             frac_r * (1 - frac_c), frac_r * frac_c])
         weights = np.where(good, weights, 0.0)
-        n = trace.u_scr_m.shape[0]
+        weights[:, :m * n] /= m
         if trace.rim_pos.size:
-            weights[:, trace.rim_pos] *= 1.0 - trace.rim_fraction
-            weights[:, n:] *= trace.rim_fraction * self.optics.bevel_reflectance
-        self._sample_idx, self._rim_idx = idx[:, :n], idx[:, n:]
-        self._sample_w, self._rim_w = weights[:, :n].astype(np.float32), weights[:, n:].astype(np.float32)
+            for j in range(m):
+                weights[:, j * n + trace.rim_pos] *= 1.0 - trace.rim_fraction
+            weights[:, m * n:] *= trace.rim_fraction * self.optics.bevel_reflectance
+        # (4 m, n): the four bilinear corners of each of the m sub-rays, sub-ray after sub-ray
+        self._sample_idx, self._rim_idx = idx[:, :m * n].reshape(4 * m, n), idx[:, m * n:]
+        self._sample_w = weights[:, :m * n].reshape(4 * m, n).astype(np.float32)
+        self._rim_w = weights[:, m * n:].astype(np.float32)
+        self._footprint_matrix = None
+        if m > 1:
+            # A footprint's 4 m taps fall on a few display pixels (a 9.7 x 0.4 pixel footprint: about 22 of
+            # its 64): summed into one sparse row per pixel, a frame's samples are one product, a third of
+            # the 4 m passes' cost.
+            rows = np.broadcast_to(np.arange(n), (4 * m, n))
+            window_size = (self._win_r1 - self._win_r0 + 1) * win_w
+            self._footprint_matrix = sparse.csr_matrix(
+                (self._sample_w.ravel(), (rows.ravel(), self._sample_idx.ravel())), shape=(n, window_size))
+            self._footprint_matrix.sum_duplicates()
 
     def _prepare_photometry(self) -> None:
         """Vignetting, gain, and the per-pixel affine terms of the linear response."""
@@ -197,8 +214,11 @@ class TwinRenderer:
                 window[r_lo - self._win_r0:r_hi - self._win_r0 + 1, c_lo - self._win_c0:c_hi - self._win_c0 + 1] = \
                     self._luminance_lut[image[r_lo - 1:r_hi, c_lo - 1:c_hi]]
             flat = window.ravel()
-            for k in range(4):
-                sample += self._sample_w[k] * flat[self._sample_idx[k]]
+            if self._footprint_matrix is not None:
+                sample += self._footprint_matrix @ flat
+            else:
+                for k in range(4):
+                    sample += self._sample_w[k] * flat[self._sample_idx[k]]
             if trace.rim_pos.size:
                 rim = np.zeros(trace.rim_pos.size, dtype=np.float32)
                 for k in range(4):

@@ -32,7 +32,7 @@ from .surface import TrueSurface
 
 #: What a trace leaves per seen pixel (in the order of :attr:`FacetTrace.seen_idx`): what a merged trace must
 #: give (:meth:`FacetTrace.merged`). ``hit_range_m`` is the distance from the camera centre to the hit.
-TRACE_ARRAYS = ("x_facet_m", "hit_range_m", "slope", "u_scr_m", "path_m", "on_screen")
+TRACE_ARRAYS = ("x_facet_m", "hit_range_m", "slope", "u_scr_m", "path_m", "on_screen", "footprint_u_scr_m")
 
 #: :meth:`FacetTrace.with_facet` keeps the traced outline while the new shape moves its image by less than
 #: this, pixels: a fifth of the corner location's standard uncertainty ([uncertainty] corner_px = 0.1 px).
@@ -111,6 +111,11 @@ class FacetTrace:
         metres), its distance from the camera centre (m), the exact slopes (dz/dx, dz/dy) there, the screen
         point (u_x, u_y) metres it reflects to, the path from the hit to the screen (m, NaN when the
         reflected ray misses the screen plane), and whether it lands on the active area.
+    footprint_u_scr_m : (n, m, 2) array
+        The screen points (u_x, u_y) metres of each seen pixel's m = n x n sub-rays (n ``optics.screen_grid``,
+        a regular grid over the pixel, reflected about the true surface's exact normals; NaN where one misses
+        the screen plane, :meth:`_footprint`): the pixel's footprint on the screen, whose display light the
+        renderer averages. With ``screen_grid = 1`` it is :attr:`u_scr_m` (m = 1, a view).
     d_in_facet : (n, 3) array
         The centre rays' unit directions, true facet frame.
     rim_pos, rim_fraction, rim_u_scr_m : arrays
@@ -251,6 +256,7 @@ class FacetTrace:
         self.d_in_facet = d_in_facet
         self.slope = np.column_stack([zx, zy])
         self.u_scr_m, self.path_m, self.on_screen = self.reflect_to_screen(x_facet, d_in_facet, normal)
+        self.footprint_u_scr_m = self._footprint(self.surface, self.u_scr_m)
 
         # A bevelled rim: its part of a pixel reflects about the rim's tilted normal, elsewhere on the screen.
         rim = rim_rel[seen] / coverage_rel[seen]
@@ -265,6 +271,51 @@ class FacetTrace:
         rim_image = np.zeros(n_px)
         rim_image[self.seen_idx[self.rim_pos]] = coverage_rel[seen][self.rim_pos] * self.rim_fraction
         self.rim_coverage = rim_image.reshape(height, width)
+
+    def _footprint(self, surface: TrueSurface, u_scr_m: np.ndarray) -> np.ndarray:
+        """The seen pixels' footprints on the screen (:attr:`footprint_u_scr_m`) on *surface*: the screen
+        points of ``screen_grid`` x ``screen_grid`` sub-rays per pixel, or the centre rays' *u_scr_m* when 1.
+
+        A camera pixel integrates the display over its footprint: at 4 m from a 1.1 mm pitch screen, a pixel
+        of the population's 400 x 300 camera covers about ten display pixels, and sampling the display at the
+        centre ray's point alone sees the display's pixel steps and the fringes' rounding at full depth.
+
+        The rays through a half-pixel lattice (each pixel's corners, the middles of its sides and its centre:
+        neighbours share all but the centre) are traced to the true surface, reflected about its exact normal
+        there and followed to the screen; a sub-ray's screen point is their biquadratic (Lagrange)
+        interpolation, exact for a screen map that is quadratic over the pixel. Tracing every sub-ray cost
+        1.8 s for a station of 49,000 seen pixels at 4 x 4, the lattice 0.4 s; the pixel's own corners alone
+        (bilinear) put the footprint's centroid three times as far from its centre as it is (the map's
+        curvature), 56 instead of 21 um of position error on a drawn heliostat station."""
+        n = self.optics.screen_grid
+        if n <= 1:
+            return u_scr_m[:, None, :]
+        width = self.geometry.camera.width_px
+        v_px, u_px = np.divmod(self.seen_idx, width)
+        # node (i, j) of the lattice is the image point (i / 2 - 1/2, j / 2 - 1/2): pixel (u, v)'s nine are
+        # i = 2u + (0, 1, 2), j = 2v + (0, 1, 2)
+        lattice_w = 2 * width + 1
+        steps = np.arange(3)
+        node_ids = ((2 * v_px[None, None, :] + steps[:, None, None]) * lattice_w
+                    + 2 * u_px[None, None, :] + steps[None, :, None]).reshape(9, -1)     # (j, i) -> 3 j + i
+        rim = np.arange(9) != 4                   # the centre (node 4) is the centre ray, traced already
+        unique, which = np.unique(node_ids[rim], return_inverse=True)
+        n_v, n_u = np.divmod(unique, lattice_w)
+        v_cam_facet = self.camera_to_facet.translation
+        d_in = self.camera_to_facet.apply_vector(self.camera.pixel_rays(0.5 * n_u - 0.5, 0.5 * n_v - 0.5))
+        t = surface.intersect(v_cam_facet, d_in)
+        x_facet = v_cam_facet + t[:, None] * d_in
+        _, zx, zy = surface.height_and_slopes(x_facet[:, 0], x_facet[:, 1])
+        node_scr = np.empty((9, self.seen_idx.size, 2))                                       # (9, n, 2)
+        node_scr[rim] = self.reflect_to_screen(x_facet, d_in, _unit_normals(zx, zy))[0][which.reshape(8, -1)]
+        node_scr[4] = u_scr_m
+        out = np.empty((self.seen_idx.size, n * n, 2))
+        for k, (du, dv) in enumerate(edges.grid_offsets(n)):
+            # quadratic Lagrange weights on the nodes -1/2, 0, +1/2 of each axis
+            wu = np.array([2 * du * (du - 0.5), 1 - 4 * du * du, 2 * du * (du + 0.5)])
+            wv = np.array([2 * dv * (dv - 0.5), 1 - 4 * dv * dv, 2 * dv * (dv + 0.5)])
+            out[:, k] = np.tensordot(np.outer(wv, wu).ravel(), node_scr, axes=1)
+        return out
 
     def reflect_to_screen(self, x_facet: np.ndarray, d_in_facet: np.ndarray, normal: np.ndarray):
         """Screen coordinates (u_x, u_y) metres, path length (m, NaN when the plane is missed) and whether
@@ -321,6 +372,7 @@ class FacetTrace:
         trace.x_facet_m = x_facet
         trace.slope = np.column_stack([zx, zy])
         trace.u_scr_m, trace.path_m, trace.on_screen = trace.reflect_to_screen(x_facet, d_in, normal)
+        trace.footprint_u_scr_m = trace._footprint(surface, trace.u_scr_m)
         trace.trace_seconds = time.perf_counter() - start
         return trace
 

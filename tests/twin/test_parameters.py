@@ -37,9 +37,12 @@ def test_unknown_keys_are_named(cls, data, key):
     (TwinOptics, {"white_dn": 3.0}),
     (TwinOptics, {"knee_dn": 300.0}),
     (TwinOptics, {"reflectance": "high"}),
+    (TwinOptics, {"screen_grid": 0}),
+    (TwinOptics, {"screen_grid": 9}),
+    (TwinOptics, {"screen_grid": 2.5}),
 ])
 def test_invalid_values_raise_config_error(cls, data):
-    with pytest.raises(ConfigError):
+    with pytest.raises(ConfigError, match=next(iter(data)) if "screen_grid" in data else None):
         cls.from_dict(data)
 
 

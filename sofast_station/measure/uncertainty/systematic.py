@@ -131,7 +131,7 @@ def _perturbed_run(red, inp: Input, sign: float, ctx: dict):
                 moved = pos[axis].copy()
                 shift = _phase_error_shift(moved[ok], length, p, step, harmonic, quadrature)
                 # the drawn fringes' correction passes a phase error on with its gain (1 - e'(phi))
-                gain = drawn_gain(fringes, axis, moved[ok], length)
+                gain = drawn_gain(fringes, axis, moved[ok], length, phases.footprint_px)
                 moved[ok] += shift if gain is None else gain * shift
                 pos[axis] = moved
         phases = dataclasses.replace(phases, positions_m=pos)
