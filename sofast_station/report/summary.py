@@ -138,8 +138,10 @@ def _facet_text(rec: dict) -> list[str]:
                      "   (slope noise the capture's own noise explains)")
         lines.append("    with that noise removed in quadrature:")
         for model, c in corrected.items():
-            lines.append(f"    {model:<20}" + "".join(f"{'-' if c[a] is None else f'{c[a]:.3f}':>18}"
-                                                       for a in ("x", "y", "magnitude")))
+            # with its own U (slope_rms_corrected_mrad_U) where the record carries one
+            lines.append(f"    {model:<20}" + "".join(
+                f"{'-' if c[a] is None else figure_text(rec, f'slope_rms_corrected_mrad.{model}.{a}'):>18}"
+                for a in ("x", "y", "magnitude")))
 
     def pair(label, key, unit, note=""):
         if not rec.get(key):
