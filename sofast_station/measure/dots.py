@@ -32,7 +32,7 @@ import numpy as np
 from ..geometry import CameraIntrinsics, Pose
 from .bundle import camera_vector, moved, pose_derivative, project
 from .camera import pixel_rays
-from .kernels import dot_centroids
+from .kernels import dot_centroids, lattice_walk
 from .markers import solve_camera_pose
 
 
@@ -464,6 +464,8 @@ def index_dots(centres_px: np.ndarray, origin_px, tolerance: float = 0.3, return
     pts = np.asarray(centres_px, np.float64).reshape(-1, 2)
     if pts.shape[0] < 9:
         raise ValueError(f"only {pts.shape[0]} dots found: a lattice needs at least a 3 x 3 block")
+    if not np.isfinite(pts).all():
+        raise ValueError("the dots' centres must be finite pixels (drop the dots that were not centred)")
     tree = cKDTree(pts)
     origin = np.asarray(origin_px, np.float64).ravel()
     dist, first = tree.query(origin)
@@ -477,55 +479,12 @@ def index_dots(centres_px: np.ndarray, origin_px, tolerance: float = 0.3, return
     e_i, e_j = vecs[int(np.argmax(unit[:, 0]))], vecs[int(np.argmax(unit[:, 1]))]
     if abs(np.dot(e_i, e_j)) > 0.5 * np.linalg.norm(e_i) * np.linalg.norm(e_j):
         raise ValueError(f"the dots around the origin ({origin[0]:.1f}, {origin[1]:.1f}) do not form a square lattice")
-    # the walk, in waves: every dot next to the indexed ones is looked for at once (one tree query per wave)
+    # the walk, in waves (every place next to the indexed ones is looked for at once), compiled: a wave's
+    # arrays are a few hundred dots, where numpy's calls cost more than their work
     span = int(np.ceil(4 * np.sqrt(pts.shape[0]))) + 8
-    grid = np.full((2 * span + 1, 2 * span + 1, 2), np.nan)                 # positions by index, origin at [span, span]
-    grid[span, span] = pts[first]
-    who = np.full(grid.shape[:2], -1, np.int64)                            # the dot at each place
-    who[span, span] = first
-    taken = np.zeros(pts.shape[0], bool)
-    taken[first] = True
-    basis = np.array([e_i, -e_i, e_j, -e_j])
-    dirs = np.array([(1, 0), (-1, 0), (0, 1), (0, -1)])
-    frontier = np.array([[span, span]])
-    while frontier.size:
-        # the four directions at once, direction by direction in this order (which decides, below, the
-        # direction a place reached from two is predicted from)
-        f = np.tile(frontier, (4, 1))
-        d = np.repeat(dirs, len(frontier), axis=0)
-        guess = np.repeat(basis, len(frontier), axis=0)
-        nxt = f + d
-        inside = np.all((nxt >= 1) & (nxt < 2 * span), axis=1)
-        f, nxt, d, guess = f[inside], nxt[inside], d[inside], guess[inside]
-        free = np.isnan(grid[nxt[:, 0], nxt[:, 1], 0])
-        f, nxt, d, guess = f[free], nxt[free], d[free], guess[free]
-        here = grid[f[:, 0], f[:, 1]]
-        back = grid[f[:, 0] - d[:, 0], f[:, 1] - d[:, 1]]
-        delta = here - back                                                  # from the last two on the line
-        # at the start of a line: a neighbouring line's step, else the origin's
-        for side in (d[:, ::-1], -d[:, ::-1]):
-            a_ = grid[f[:, 0] + side[:, 0], f[:, 1] + side[:, 1]]
-            b_ = grid[nxt[:, 0] + side[:, 0], nxt[:, 1] + side[:, 1]]
-            fill = np.isnan(delta[:, 0]) & ~np.isnan(a_[:, 0]) & ~np.isnan(b_[:, 0])
-            delta[fill] = (b_ - a_)[fill]
-        unset = np.isnan(delta[:, 0])
-        delta[unset] = guess[unset]
-        cand, pred, step = nxt, here + delta, np.linalg.norm(delta, axis=1)
-        if cand.size == 0:
-            break
-        # one candidate per grid place (the first direction that reached it), one grid place per dot
-        _, first_of = np.unique(cand[:, 0] * (2 * span + 1) + cand[:, 1], return_index=True)
-        cand, pred, step = cand[first_of], pred[first_of], step[first_of]
-        dist, hit = tree.query(pred)
-        ok = (dist <= tolerance * step) & ~taken[hit]
-        order = np.argsort(dist[ok])
-        hit_ok, cand_ok = hit[ok][order], cand[ok][order]
-        _, once = np.unique(hit_ok, return_index=True)                      # a dot claimed twice: the nearer
-        hit_ok, cand_ok = hit_ok[once], cand_ok[once]
-        grid[cand_ok[:, 0], cand_ok[:, 1]] = pts[hit_ok]
-        who[cand_ok[:, 0], cand_ok[:, 1]] = hit_ok
-        taken[hit_ok] = True
-        frontier = cand_ok
+    extent = float(np.max(np.ptp(pts, axis=0)))
+    grid, who = lattice_walk(pts, int(first), np.array([e_i, -e_i, e_j, -e_j]), float(tolerance),
+                             max(step, extent / 1024.0, 1e-3), span)
     # a stray blob taken for a dot bends its row or column: drop dots whose second difference is off (on the
     # indexed places' box only, with a free place on every side: the grid is mostly empty)
     filled = np.nonzero(~np.isnan(grid[:, :, 0]))

@@ -38,6 +38,9 @@ SIGNATURES: dict[str, list[str]] = {
         "f8:1C f8:1C f8:1C f8:1C f8:3C b1:2C f8 f8:2C f8:1C f8:2C",
         "f8:1C f8:1C f8:1C f8:1C f8:3C b1:2C f8 f8:2F f8:1C f8:2C",
     ],
+    "_lattice_walk_into": [
+        "f8:2C i8 f8:2C f8 f8 f8:3C i8:2C",
+    ],
     "_minus_models_into": [
         "f8:1C f8:2C f8:1C f8:2C f8:1C f8:1C",
     ],

@@ -524,6 +524,72 @@ def label_areas(labels: np.ndarray, n_labels: int) -> np.ndarray:
     return counts
 
 
+#: Histogram bins for a dot's ring of whole counts (:func:`_dot_centroids_into`): a ring spanning more counts
+#: (a 16-bit frame's bright edge) takes numpy's median instead.
+_RING_BINS = 1024
+
+
+@kernel(inline="always", **_JIT)
+def _kth_pair(hist, span, k):
+    """The offsets of the k-th and (k+1)-th smallest (0-based) of the values counted by ``hist[:span]``."""
+    seen = 0
+    a = -1
+    for i in range(span):
+        seen += hist[i]
+        if a < 0 and seen > k:
+            a = i
+        if seen > k + 1:
+            return a, i
+    return a, span - 1
+
+
+@kernel(inline="always", **_JIT)
+def _counted_median(hist, span, base, n):
+    """The median of the *n* whole values ``base + i`` counted by ``hist[:span]``: numpy's (the middle value,
+    or the mean of the middle two as ``(a + b) / 2``), so the same bits as ``np.median`` of the values."""
+    half = n >> 1
+    if n & 1 == 0:
+        a, b = _kth_pair(hist, span, half - 1)
+        return ((base + a) + (base + b)) / 2
+    a, b = _kth_pair(hist, span, half)
+    return base + a
+
+
+@kernel(inline="always", **_JIT)
+def _counted_mad(hist, span, base, n, centre):
+    """The median of ``|v - centre|`` over the *n* values ``v = base + i`` counted by ``hist[:span]`` (the same
+    bits as ``np.median(np.abs(v - centre))``): the distances in increasing order, walking out from *centre*
+    on both sides."""
+    half = n >> 1
+    k1 = half - 1 if n & 1 == 0 else half
+    left = int(math.floor(centre - base))          # offsets at or below centre, walked down
+    right = left + 1                               # offsets above it, walked up
+    seen = 0
+    a = b = -1.0
+    while True:
+        dl = (centre - (base + left)) if left >= 0 else np.inf
+        dr = ((base + right) - centre) if right < span else np.inf
+        if dl <= dr:
+            c = hist[left]
+            d = dl
+            left -= 1
+        else:
+            c = hist[right]
+            d = dr
+            right += 1
+        if c == 0:
+            continue
+        if a < 0.0 and seen + c > k1:
+            a = d
+        if seen + c > half:
+            b = d
+            break
+        seen += c
+    if n & 1 == 0:
+        return (a + b) / 2
+    return b
+
+
 @kernel(**_JIT)
 def _dot_centroids_into(image, starts, radius, dark, iterations, centres, ok, cov, background, ring_sigma, depth):
     h, w = image.shape
@@ -551,15 +617,33 @@ def _dot_centroids_into(image, starts, radius, dark, iterations, centres, ok, co
                 ring_dy[m] = dy
                 m += 1
     ring = np.empty(n_ring)
+    hist = np.zeros(_RING_BINS, np.int64)
     for k in range(starts.shape[0]):
         cu = int(round(starts[k, 0]))
         cv = int(round(starts[k, 1]))
         ok[k] = False
         if cu < half or cv < half or cu + half >= w or cv + half >= h:
             continue
+        lo_v, hi_v, whole = np.inf, -np.inf, True
         for m in range(n_ring):
             ring[m] = image[cv + ring_dy[m], cu + ring_dx[m]]
-        bg = np.median(ring)
+            lo_v = min(lo_v, ring[m])
+            hi_v = max(hi_v, ring[m])
+            whole &= ring[m] == math.floor(ring[m])
+        # the ring's median and its median absolute deviation: from the counts of its whole values when it has
+        # a few hundred (a camera's counts: numba's np.median, a selection on a copy, was most of the kernel's
+        # time), numpy's otherwise; the same values either way
+        if whole and n_ring > 0 and hi_v - lo_v < _RING_BINS:
+            base = lo_v
+            span = int(hi_v - lo_v) + 1
+            for m in range(n_ring):
+                hist[int(ring[m] - base)] += 1
+            bg = _counted_median(hist, span, base, n_ring)
+            spread = _counted_mad(hist, span, base, n_ring, bg)
+            hist[:span] = 0
+        else:
+            bg = np.median(ring)
+            spread = np.median(np.abs(ring - bg))
         cx, cy = starts[k, 0], starts[k, 1]
         live = True
         tot = suu = svv = suv = top = 0.0
@@ -599,7 +683,7 @@ def _dot_centroids_into(image, starts, radius, dark, iterations, centres, ok, co
         cov[k, 0, 1] = suv / (tot * tot)
         cov[k, 1, 0] = suv / (tot * tot)
         background[k] = bg
-        ring_sigma[k] = 1.4826 * np.median(np.abs(ring - bg))
+        ring_sigma[k] = 1.4826 * spread
         depth[k] = top
 
 
@@ -618,6 +702,145 @@ def dot_centroids(image: np.ndarray, starts: np.ndarray, radius_px: float, dark:
         _dot_centroids_into(img, np.ascontiguousarray(starts, dtype=np.float64), float(radius_px), bool(dark),
                             int(iterations), centres, ok, cov, background, ring_sigma, depth)
     return centres, ok, cov, background, ring_sigma, depth
+
+
+@kernel(**_JIT)
+def _lattice_walk_into(pts, first, basis, tolerance, cell, grid, who):
+    n = pts.shape[0]
+    size = grid.shape[0]
+    # the dots in square buckets of *cell* pixels (a lattice step): the nearest dot to a prediction is looked
+    # for in the buckets its tolerance reaches
+    x0, y0, x1, y1 = np.inf, np.inf, -np.inf, -np.inf
+    for p in range(n):
+        x0, x1 = min(x0, pts[p, 0]), max(x1, pts[p, 0])
+        y0, y1 = min(y0, pts[p, 1]), max(y1, pts[p, 1])
+    nx = int(math.floor((x1 - x0) / cell)) + 1
+    ny = int(math.floor((y1 - y0) / cell)) + 1
+    start = np.zeros(nx * ny + 1, np.int64)
+    bucket = np.empty(n, np.int64)
+    for p in range(n):
+        b = int(math.floor((pts[p, 1] - y0) / cell)) * nx + int(math.floor((pts[p, 0] - x0) / cell))
+        bucket[p] = b
+        start[b + 1] += 1
+    for b in range(nx * ny):
+        start[b + 1] += start[b]
+    members = np.empty(n, np.int64)
+    fill = start[:-1].copy()
+    for p in range(n):
+        members[fill[bucket[p]]] = p
+        fill[bucket[p]] += 1
+    taken = np.zeros(n, np.bool_)
+    best = np.full(n, np.inf)                     # this wave's nearest claim on each dot ...
+    claim = np.full(n, -1, np.int64)              # ... and the candidate making it
+    seen = np.full((size, size), -1, np.int64)    # the wave that last made a place a candidate
+    span = size // 2
+    grid[span, span, 0], grid[span, span, 1] = pts[first, 0], pts[first, 1]
+    who[span, span] = first
+    taken[first] = True
+    dirs = ((1, 0), (-1, 0), (0, 1), (0, -1))
+    frontier = np.empty((n, 2), np.int64)
+    frontier[0, 0], frontier[0, 1] = span, span
+    n_front = 1
+    cand = np.empty((4 * n, 2), np.int64)
+    cand_xy = np.empty((4 * n, 2))
+    cand_hit = np.empty(4 * n, np.int64)
+    hits = np.empty(n, np.int64)
+    wave = 0
+    while n_front > 0:
+        # every free place next to the frontier, from the first direction (in the order of *dirs*) that
+        # reaches it, its dot predicted from the grid as it stood before this wave
+        n_cand = 0
+        for d in range(4):
+            dr, dc = dirs[d]
+            for f in range(n_front):
+                fr, fc = frontier[f, 0], frontier[f, 1]
+                r, c = fr + dr, fc + dc
+                if r < 1 or c < 1 or r >= size - 1 or c >= size - 1:
+                    continue
+                if grid[r, c, 0] == grid[r, c, 0] or seen[r, c] == wave:
+                    continue
+                seen[r, c] = wave
+                # from the last two on the line; at its start a neighbouring line's step, else the origin's
+                ex = grid[fr, fc, 0] - grid[fr - dr, fc - dc, 0]
+                ey = grid[fr, fc, 1] - grid[fr - dr, fc - dc, 1]
+                for sgn in (1, -1):
+                    if ex != ex:
+                        sr, sc = sgn * dc, sgn * dr
+                        ax, bx = grid[fr + sr, fc + sc, 0], grid[r + sr, c + sc, 0]
+                        if ax == ax and bx == bx:
+                            ex = bx - ax
+                            ey = grid[r + sr, c + sc, 1] - grid[fr + sr, fc + sc, 1]
+                if ex != ex:
+                    ex, ey = basis[d, 0], basis[d, 1]
+                cand[n_cand, 0], cand[n_cand, 1] = r, c
+                cand_xy[n_cand, 0] = grid[fr, fc, 0] + ex
+                cand_xy[n_cand, 1] = grid[fr, fc, 1] + ey
+                # the nearest dot, when within tolerance of the step (and so within the buckets searched)
+                reach = tolerance * math.sqrt(ex * ex + ey * ey)
+                qx, qy = cand_xy[n_cand, 0], cand_xy[n_cand, 1]
+                wide = reach * 1.000001 + 1e-9
+                bx0 = max(int(math.floor((qx - wide - x0) / cell)), 0)
+                bx1 = min(int(math.floor((qx + wide - x0) / cell)), nx - 1)
+                by0 = max(int(math.floor((qy - wide - y0) / cell)), 0)
+                by1 = min(int(math.floor((qy + wide - y0) / cell)), ny - 1)
+                near, near_d2 = -1, np.inf
+                for by in range(by0, by1 + 1):
+                    for bx in range(bx0, bx1 + 1):
+                        b = by * nx + bx
+                        for m in range(start[b], start[b + 1]):
+                            p = members[m]
+                            dx, dy = pts[p, 0] - qx, pts[p, 1] - qy
+                            d2 = dx * dx + dy * dy
+                            if d2 < near_d2 or (d2 == near_d2 and p < near):
+                                near, near_d2 = p, d2
+                cand_hit[n_cand] = -1
+                if near >= 0 and not taken[near]:
+                    dist = math.sqrt(near_d2)
+                    if dist <= reach:
+                        cand_hit[n_cand] = near
+                        # a dot two places claim goes to the nearer prediction
+                        if dist < best[near]:
+                            best[near] = dist
+                            claim[near] = n_cand
+                n_cand += 1
+        wave += 1
+        n_hits = 0
+        for k in range(n_cand):
+            p = cand_hit[k]
+            if p >= 0 and claim[p] == k:
+                hits[n_hits] = p
+                n_hits += 1
+        hits_sorted = np.sort(hits[:n_hits])
+        n_front = 0
+        for h in range(n_hits):
+            p = hits_sorted[h]
+            k = claim[p]
+            r, c = cand[k, 0], cand[k, 1]
+            grid[r, c, 0], grid[r, c, 1] = pts[p, 0], pts[p, 1]
+            who[r, c] = p
+            taken[p] = True
+            best[p] = np.inf
+            claim[p] = -1
+            frontier[n_front, 0], frontier[n_front, 1] = r, c
+            n_front += 1
+        for k in range(n_cand):
+            p = cand_hit[k]
+            if p >= 0:
+                best[p] = np.inf
+                claim[p] = -1
+
+
+def lattice_walk(pts: np.ndarray, first: int, basis: np.ndarray, tolerance: float, cell_px: float, span: int):
+    """The breadth-first walk of :func:`~.dots.index_dots` (which documents it) in one compiled pass: (positions
+    by index (2 span + 1, 2 span + 1, 2), NaN where no dot; the dot at each place, -1 where none), the origin's
+    dot at [span, span]. *basis* (4, 2): the origin's steps along +i, -i, +j, -j; *cell_px*: the buckets' size
+    for the nearest-dot look-ups (a lattice step)."""
+    size = 2 * int(span) + 1
+    grid = np.full((size, size, 2), np.nan)
+    who = np.full((size, size), -1, np.int64)
+    _lattice_walk_into(np.ascontiguousarray(pts, dtype=np.float64), int(first),
+                       np.ascontiguousarray(basis, dtype=np.float64), float(tolerance), float(cell_px), grid, who)
+    return grid, who
 
 
 @kernel(**_JIT)
@@ -1334,6 +1557,7 @@ def warm_up() -> None:
     label_areas(np.zeros((2, 2), dtype=np.int32), 1)
     for dtype in (np.uint8, np.uint16):
         dot_centroids(np.zeros((4, 4), dtype=dtype), np.zeros((1, 2)), 1.0, True)
+    lattice_walk(np.zeros((1, 2)), 0, np.eye(4, 2), 0.3, 1.0, 1)
     normal_slopes(np.ones((3, 2)), np.zeros(3), np.ones((3, 2)))
     for phase_dtype in (np.float32, np.float64):
         for sigma in (np.zeros(1), 0.0):

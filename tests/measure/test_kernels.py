@@ -428,3 +428,41 @@ def test_the_compiled_bisquare_iteration_is_the_textbook_one():
     status, _ = kernels.irls_bisquare(*cols, bad, np.ones(n), scale, 1e-9, 50, np.nan, 4.685, 0.6745, 0.01,
                                       np.empty(3))
     assert status == kernels.ILL_CONDITIONED
+
+
+def test_dot_centroids_ring_background_and_scatter_are_numpys_median_and_mad():
+    """Each dot's background is the median of its ring (pixels whose squared distance from the rounded start
+    lies in ((o - 2)^2, o^2], o = 2 r + 3 for the radius r) and its scatter 1.4826 times the median absolute
+    deviation about it (:func:`~sofast_station.measure.dots._centroids`). The kernel finds both from the counts
+    of the ring's whole values: here against numpy's median and MAD of the same pixels, bit for bit, for radii
+    whose rings hold an odd and an even number of pixels, 8- and 16-bit frames, flat rings (every pixel one
+    value), and 16-bit rings spanning more counts than the kernel's histogram (numpy's median then)."""
+    rng = np.random.default_rng(42)
+    checked = {"odd": 0, "even": 0, "wide": 0}
+    for dtype, top in ((np.uint8, 255), (np.uint16, 4095), (np.uint16, 65535)):
+        for spread in (0, 3, 40, 3000):
+            image = np.clip(rng.normal(top // 3, spread, (120, 160)), 0, top).astype(dtype)
+            starts = rng.uniform(25, 95, (30, 2))
+            for radius in (1.0, 1.5, 2.5, 4.0):
+                _, ok, _, background, ring_sigma, _ = kernels.dot_centroids(image, starts, radius, True)
+                outer = 2.0 * radius + 3.0
+                for k in np.flatnonzero(ok):
+                    cu, cv = (int(round(v)) for v in starts[k])
+                    dy, dx = np.mgrid[-12:13, -12:13]
+                    r2 = dx * dx + dy * dy
+                    ring = image[cv + dy, cu + dx][((outer - 2.0) ** 2 < r2) & (r2 <= outer ** 2)].astype(float)
+                    bg = np.median(ring)
+                    assert background[k] == bg, (dtype, spread, radius, k)
+                    assert ring_sigma[k] == 1.4826 * np.median(np.abs(ring - bg)), (dtype, spread, radius, k)
+                    checked["odd" if ring.size % 2 else "even"] += 1
+                    checked["wide"] += int(np.ptp(ring) >= 1024)
+    assert min(checked["even"], checked["wide"]) > 20, checked
+    # a ring's pixel count is a multiple of four (it is symmetric under quarter turns): the odd counts' branch
+    # of the counted median, on its own
+    for n in (1, 2, 3, 7, 84, 85, 301):
+        for span in (1, 2, 9, 200):
+            values = rng.integers(17, 17 + span, n).astype(float)
+            hist = np.bincount((values - 17).astype(np.int64), minlength=1024)
+            bg = kernels._counted_median(hist, span, 17.0, n)
+            assert bg == np.median(values), (n, span)
+            assert kernels._counted_mad(hist, span, 17.0, n, bg) == np.median(np.abs(values - bg)), (n, span)
