@@ -60,7 +60,7 @@ def isolated_jumps(shape: tuple[int, int], idx: np.ndarray, ok: np.ndarray, posi
     -------
     (M,) bool array, True where a trusted pixel's position leaps from its neighbours' in either axis.
     """
-    rows, cols = shape
+    cols = shape[1]
     out = np.zeros(idx.size, dtype=bool)
     take = np.flatnonzero(ok)
     if take.size < 9:

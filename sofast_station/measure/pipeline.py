@@ -557,10 +557,12 @@ def measure_phases(region: Region, fringes: FringeSet, screen_size_m: tuple[floa
     cleaned = {"x": noise.residuals[:n_x], "y": noise.residuals[n_x:]}
     lengths = {"x": screen_size_m[0], "y": screen_size_m[1]}
 
+    sigma = {}                          # each axis's finest position noise, metres: the guard band's, the faults'
+
     def unwrap_axis(axis):
         periods = getattr(fringes, f"periods_{axis}")
-        sigma = position_sigma_m(raw[axis][1][-1], noise_dn, periods[-1], lengths[axis])
-        return unwrap_positions(raw[axis][0], periods, lengths[axis], sigma, settings.guard_sigmas)
+        sigma[axis] = position_sigma_m(raw[axis][1][-1], noise_dn, periods[-1], lengths[axis])
+        return unwrap_positions(raw[axis][0], periods, lengths[axis], sigma[axis], settings.guard_sigmas)
 
     # Unwrapping needs only the phases and the noise: it runs on the pool while the consistency check
     # and the modulation limit go over the sets here.
@@ -619,8 +621,6 @@ def measure_phases(region: Region, fringes: FringeSet, screen_size_m: tuple[floa
         positions = {a: corrected_positions(positions[a], raw[a][0][-1], measured, drawn[a][1],
                                             getattr(fringes, f"periods_{a}")[-1], lengths[a]) for a in ("x", "y")}
     # a pixel whose position leaps from all its neighbours' (a wrong fringe order on the rim) is no surface
-    sigma = {a: position_sigma_m(raw[a][1][-1], noise_dn, getattr(fringes, f"periods_{a}")[-1], lengths[a])
-             for a in ("x", "y")}
     jumps = isolated_jumps(region.region.shape, idx, ok, positions, sigma)
     ok &= ~jumps
     dropped = {"low_modulation": int(low_mod.sum()), "inconsistent_frames": int(inconsistent.sum()),
