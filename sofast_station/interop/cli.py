@@ -78,7 +78,7 @@ FIGURE_KEYS = ("focal_length_x_m", "focal_length_y_m", "curvature_x_per_m", "cur
                "principal_focal_lengths_m", "axis_angle_rad", "twist_mrad_per_m", "twist_e1_mrad_per_m",
                "twist_e2_mrad_per_m", "slope_rms_mrad", "boresight_mrad", "subsample_fit")
 #: The noise floor of the slope RMS values and the budget (as in the station's result record).
-UNCERTAINTY_KEYS = ("coverage_factor", "slope_rms_noise_mrad", "slope_rms_corrected_mrad",
+UNCERTAINTY_KEYS = ("coverage_factor", "slope_rms_noise_mrad", "slope_rms_noise_mrad_U", "slope_rms_corrected_mrad",
                     "slope_rms_corrected_mrad_U", "intensity_noise_dn", "uncertainty_budget")
 
 
@@ -447,9 +447,9 @@ def summary_text(out: dict, robust: bool) -> str:
                      f"{_pm(r['magnitude'], u_of('slope_rms_mrad', model, 'magnitude'))} mrad{kk}")
     noise = out.get("slope_rms_noise_mrad")
     if noise:
-        n = next(iter(noise.values()))
-        lines.append(f"    (the capture's own intensity noise explains {n['x']:.4f} x, {n['y']:.4f} y mrad of slope "
-                     "noise)")
+        model, n = next(iter(noise.items()))
+        nx, ny = (_pm(n[a], u_of("slope_rms_noise_mrad", model, a)) for a in ("x", "y"))
+        lines.append(f"    (the capture's own intensity noise explains {nx} x, {ny} y mrad of slope noise{kk})")
     b = out["boresight_mrad"]
     if b is None:
         lines.append(f"  boresight: not measured ({not_measured.get('boresight_mrad', 'no corners')})")

@@ -38,16 +38,19 @@ def pixel_noise_dn(phases, stack, take: np.ndarray) -> np.ndarray | float:
     return noise_at_level(model, level[take])
 
 
-def position_sigmas_m(phases, stack, take: np.ndarray, fringes, screen_size_m: tuple[float, float]) -> dict:
+def position_sigmas_m(phases, stack, take: np.ndarray, fringes, screen_size_m: tuple[float, float],
+                      noise_dn=None) -> dict:
     """``{"x": (n,), "y": (n,)}``: the screen-position noise (metres) of the region's pixels *take*, from
     the finest set's modulation and each pixel's own frame noise (:func:`pixel_noise_dn`), through the drawn
     fringes' correction (:func:`~.phase.drawn_gain`); for a stage that
     measured its points' position noise itself (``position_sigma_m``: a fixed pattern's dots, from their
-    centroids' covariance, in the units of its positions) that."""
+    centroids' covariance, in the units of its positions) that. *noise_dn*: the pixels' frame noise when the
+    caller has it already (:func:`pixel_noise_dn` of the same *take*)."""
     own = getattr(phases, "position_sigma_m", None)
     if own is not None:
         return {a: np.asarray(own[a])[take] for a in ("x", "y")}
-    noise_dn = pixel_noise_dn(phases, stack, take)
+    if noise_dn is None:
+        noise_dn = pixel_noise_dn(phases, stack, take)
     out = {}
     for a, length in zip("xy", screen_size_m):
         sigma = position_sigma_m(phases.finest_modulation_dn[a][take], noise_dn, getattr(fringes, f"periods_{a}")[-1],

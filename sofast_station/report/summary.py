@@ -133,9 +133,11 @@ def _facet_text(rec: dict) -> list[str]:
         lines.append(text)
     noise, corrected = rec.get("slope_rms_noise_mrad"), rec.get("slope_rms_corrected_mrad")
     if noise and corrected:
-        n = next(iter(noise.values()))
-        lines.append(f"    {'noise explained':<20}{n['x']:18.3f}{n['y']:18.3f}{n['magnitude']:18.3f}"
-                     "   (slope noise the capture's own noise explains)")
+        model = next(iter(noise))
+        # with its own U (slope_rms_noise_mrad_U) where the record carries one
+        lines.append(f"    {'noise explained':<20}" + "".join(
+            f"{figure_text(rec, f'slope_rms_noise_mrad.{model}.{a}'):>18}" for a in ("x", "y", "magnitude"))
+            + "   (slope noise the capture's own noise explains)")
         lines.append("    with that noise removed in quadrature:")
         for model, c in corrected.items():
             # with its own U (slope_rms_corrected_mrad_U) where the record carries one

@@ -15,7 +15,7 @@ from .capture_evidence import (FRAME_POOL_CAPTURES, capture_scales, display_resp
 from .corner_pose import CAMERA_DRAWN, POSE_DRAWS, POSE_GROUPS, POSE_PATHS, pose_monte_carlo
 from .inputs import (COVERAGE_FACTOR, POSE_ROWS, RMS_AXES, InputUncertainties, get_path, path_name,
                      pose_row_covariance)
-from .intensity_noise import NoisePropagation, noise_propagation
+from .intensity_noise import NoisePropagation, noise_propagation, with_frame_brightness
 from .shape_pose import DIFFERENCE_PATH, beyond_linear, pose_fields, shape_monte_carlo
 from .systematic import Sensitivities, sensitivities
 
@@ -293,7 +293,8 @@ def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs:
     """The figures' expanded uncertainties, the noise floor and the budget, as figure keys to add.
 
     Returns ``{"name_U": ..., "name_U_random": ..., "coverage_factor": 2, "slope_rms_noise_mrad": ...,
-    "slope_rms_corrected_mrad": ..., "slope_rms_corrected_mrad_U": ..., "uncertainty_budget": ...}``.
+    "slope_rms_noise_mrad_U": ..., "slope_rms_corrected_mrad": ..., "slope_rms_corrected_mrad_U": ...,
+    "uncertainty_budget": ...}``.
     The measured slope RMS's U also covers the noise's bias b (the measured value minus the noise-corrected
     one), which the measured value does not remove, as every uncorrected offset here: U = k sqrt(u^2 + b^2).
     (Added linearly, U = k u + b, it over-stated the slope RMS x's U by about 6 % on the twin: 1000 captures
@@ -398,6 +399,10 @@ def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs:
     out.update(_subsample_fit_u(figures, sens.paths, u, u_rand, noise_col))
     out["coverage_factor"] = 2
     out["slope_rms_noise_mrad"] = noise_mrad
+    floor_u = getattr(noise, "slope_noise_u_mrad", None)
+    if floor_u:
+        # the noise floor is a figure too: its U as the slope noise this capture's points carry
+        out["slope_rms_noise_mrad_U"] = {m: {a: _clean(k * floor_u[a]) for a in RMS_AXES} for m in noise_mrad}
     out["slope_rms_corrected_mrad"] = corrected
     out["slope_rms_corrected_mrad_U"] = corrected_u
     out["uncertainty_budget"] = budget_table(sens, contrib, noise_col, u, u_rand, inputs, sc, offset)
@@ -565,7 +570,12 @@ def uncertainty_figures(reduction, *, fringes, geometry, design, measured_distan
     # The pool as this capture found it: kept with the sensitivities (a dump's), so that a re-analysis of the
     # capture pools it with the same earlier captures and states the same U (the line's pool is its own).
     pool_before = None if pool is None else [list(entry) for entry in pool]
-    frame = pooled_frame_brightness(*frame_brightness_dn(reduction), pool)
+    own_dn, own_dof = frame_brightness_dn(reduction)
+    frame = pooled_frame_brightness(own_dn, own_dof, pool)
+    # The room light's change between frames spreads the slopes as pixel noise does: part of the noise floor.
+    # This capture's own estimate (not widened: the floor's U carries its spread), not the pool's: the floor is
+    # the noise this capture carries, and a figure reprocessed from its frames alone (the pool is not dumped)
+    noise = with_frame_brightness(noise, own_dn, own_dof)
     response = display_response_u(reduction, inputs)
     pose_mc = (pose_monte_carlo(reduction, geometry=geometry, design=design, inputs=inputs, ray_paths=rays,
                                 frames=frames, screen_paths=screen_paths) if pose_task is None else pose_task.result())
