@@ -195,7 +195,8 @@ def with_frame_brightness(noise: NoisePropagation, sigma_dn: float, dof: int) ->
     (``slope_noise_per_dn_mrad``); its U adds that term's own estimate's spread, a variance from *dof* values
     known to sqrt(2 / dof) of itself.
 
-    Measured (2026-12-06, three captures of one twin per station, their slope noise about their mean): on the
+    Measured (2026-12-06, three captures of one twin per station, their slope noise about their mean, the
+    frame brightness from the three captures' sets together): on the
     40 drawn stations of seed 0's population the realized noise was 0.95-1.52 times the pixel noise's floor
     alone (mean +3.6 %, RMS 9.7 %; the most at the stations with the most room-light jitter), and 0.84-1.34
     times the floor with this term (mean +0.1 %, RMS 5.9 %); on 24 of seed 1 +8.0 % and 14.8 % alone, +0.1 %
