@@ -30,9 +30,16 @@ SIGNATURES: dict[str, list[str]] = {
         "u1:2C f8:2C f8 bool i8 f8:2C b1:1C f8:3C f8:1C f8:1C f8:1C",
         "u2:2C f8:2C f8 bool i8 f8:2C b1:1C f8:3C f8:1C f8:1C f8:1C",
     ],
+    "_bilinear_into": [
+        "f8:2C f8 f8 f8 f8:1C f8:1C f8:1C",
+        "f8:2Cr f8 f8 f8 f8:1C f8:1C f8:1C",
+    ],
     "_gather_runs_into": [
         "u2:2C i8:1C i8:1C i8:1C u2:2C",
         "u1:2C i8:1C i8:1C i8:1C u1:2C",
+    ],
+    "_grid_divergence_into": [
+        "f8:1C f8:1C f8:1C f8:1C f8 f8 f8 f8 f8:2C f8:2C f8:2C f8:2C",
     ],
     "_grid_screen_into": [
         "f8:1C f8:1C f8:1C f8:1C f8:3C b1:2C f8 f8:2C f8:1C f8:2C",

@@ -466,3 +466,78 @@ def test_dot_centroids_ring_background_and_scatter_are_numpys_median_and_mad():
             bg = kernels._counted_median(hist, span, 17.0, n)
             assert bg == np.median(values), (n, span)
             assert kernels._counted_mad(hist, span, 17.0, n, bg) == np.median(np.abs(values - bg)), (n, span)
+
+
+def _numpy_bilinear(h: np.ndarray, x0: float, y0: float, cell: float, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """HeightGrid.at as it was in numpy (clip, truncate, four takes by flat index), which the kernel replaces."""
+    ny, nx = h.shape
+    u = np.clip((x - x0) / cell - 0.5, 0.0, nx - 1.0)
+    v = np.clip((y - y0) / cell - 0.5, 0.0, ny - 1.0)
+    j = np.minimum(u.astype(np.int64), max(nx - 2, 0))
+    i = np.minimum(v.astype(np.int64), max(ny - 2, 0))
+    tu, tv = u - j, v - i
+    flat, k = h.ravel(), i * nx + j
+    dj, di = min(nx - 1, 1), min(ny - 1, 1) * nx
+    su = 1.0 - tu
+    return ((1.0 - tv) * (su * flat.take(k) + tu * flat.take(k + dj))
+            + tv * (su * flat.take(k + di) + tu * flat.take(k + (di + dj))))
+
+
+@pytest.mark.parametrize("shape", [(29, 31), (1, 7), (6, 1), (1, 1), (2, 2)])
+def test_bilinear_is_numpys_clip_and_takes_bit_for_bit(shape):
+    """Random heights read at every cell centre, at random points inside and beyond the outer centres
+    (clamped), on grids one cell wide or high too."""
+    rng = np.random.default_rng(31)
+    h = rng.normal(0.0, 1e-5, shape)
+    x0, y0, cell = -0.61, 0.37, 0.043
+    ny, nx = shape
+    # every cell centre, the outer ones' edges exactly, then random points inside and beyond
+    centres = np.meshgrid(x0 + (np.arange(nx + 1) + 0.5) * cell, y0 + (np.arange(ny + 1) + 0.5) * cell)
+    cx, cy = (g.ravel() for g in centres)
+    x = np.concatenate([cx, [x0, x0 - cell], rng.uniform(x0 - 0.2, x0 + (nx + 4) * cell, 4000)])
+    y = np.concatenate([cy, [y0 - cell, y0], rng.uniform(y0 - 0.2, y0 + (ny + 4) * cell, 4000)])
+    got = kernels.bilinear(h, x0, y0, cell, x, y)
+    ref = _numpy_bilinear(h, x0, y0, cell, x, y)
+    assert np.array_equal(got.view(np.int64), ref.view(np.int64))          # the same bits, zeros' signs too
+    assert np.all(np.isnan(kernels.bilinear(h, x0, y0, cell, np.array([np.nan, 0.1]), np.array([0.5, np.inf]))))
+
+
+def test_grid_divergence_is_grid_slopes_then_the_full_grids_divergence_bit_for_bit():
+    """Scattered slopes (some not finite, some beyond the grid, cells left empty) binned, their empty cells
+    set to 0 and the trapezoid differences' divergence taken, by numpy (grid_slopes, then
+    integrate_full_grid's expression) and by the kernel: the same bits; and height_grid's heights are
+    integrate_full_grid's of grid_slopes' cells."""
+    from sofast_station.measure.heights import grid_slopes, height_grid, integrate_full_grid
+
+    rng = np.random.default_rng(37)
+    for n, cells in ((3537, 29), (200, 12), (9, 4)):
+        x, y = rng.uniform(-0.6, 0.6, n), rng.uniform(-0.5, 0.4, n)
+        keep = np.hypot(x, y) < 0.55                  # a round facet in its box: the box's corners empty
+        x, y = x[keep], y[keep]
+        g_x, g_y = rng.normal(0, 1e-3, x.size), rng.normal(0, 1e-3, x.size)
+        g_x[::97] = np.nan
+        g_y[5::89] = np.inf
+        cell = 1.2 / cells
+        x0, y0 = float(x.min()) - 0.5 * cell, float(y.min()) - 0.3 * cell
+        extent = (x0, float(x.max()) - 2 * cell, y0, float(y.max()) + 0.5 * cell)   # some points beyond it
+        g = grid_slopes(x, y, g_x, g_y, cell, extent_m=extent)
+        sx = np.where(np.isfinite(g["s_x"]), g["s_x"], 0.0)
+        sy = np.where(np.isfinite(g["s_y"]), g["s_y"], 0.0)
+        dx = cell * 0.5 * (sx[:, :-1] + sx[:, 1:])
+        dy = cell * 0.5 * (sy[:-1, :] + sy[1:, :])
+        rhs = np.zeros(sx.shape)
+        rhs[:, :-1] -= dx
+        rhs[:, 1:] += dx
+        rhs[:-1, :] -= dy
+        rhs[1:, :] += dy
+        got = kernels.grid_divergence(x, y, g_x, g_y, x0, y0, cell, sx.shape)
+        assert (sx == 0.0).any() and np.array_equal(got.view(np.int64), rhs.view(np.int64))
+        ok = np.isfinite(g_x) & np.isfinite(g_y)
+        grid = height_grid(x[ok], y[ok], g_x[ok], g_y[ok], cells=cells)
+        span = max(np.ptp(x[ok]), np.ptp(y[ok]))
+        full = grid_slopes(x[ok], y[ok], g_x[ok], g_y[ok], span / cells, extent_m=(
+            x[ok].min() - 0.5 * span / cells, x[ok].max() + 0.5 * span / cells,
+            y[ok].min() - 0.5 * span / cells, y[ok].max() + 0.5 * span / cells))
+        ref = integrate_full_grid(np.nan_to_num(full["s_x"], nan=0.0), np.nan_to_num(full["s_y"], nan=0.0),
+                                  span / cells)
+        assert grid.heights_m.shape == ref.shape and np.array_equal(grid.heights_m, ref)
