@@ -32,7 +32,7 @@ import numpy as np
 from ..geometry import CameraIntrinsics, Pose
 from .bundle import camera_vector, moved, pose_derivative, project
 from .camera import pixel_rays
-from .kernels import dot_centroids, lattice_walk
+from .kernels import dot_centroids, label_moments, lattice_walk
 from .markers import solve_camera_pose
 
 
@@ -387,16 +387,15 @@ def _elongation(labels: np.ndarray, n: int) -> np.ndarray:
     """Per connected component of *labels* (0..n-1), the ratio of its longest to its shortest axis from its
     pixels' second moments (1 for a disc, 2 for two discs side by side; a one-pixel-wide line: its length
     over 0.29)."""
-    at = np.flatnonzero(labels)                   # the components' pixels only (the background is label 0)
-    flat = labels.ravel()[at]
-    rows, cols = np.divmod(at, labels.shape[1])
-    count = np.maximum(np.bincount(flat, minlength=n).astype(np.float64), 1.0)
-    mean_r = np.bincount(flat, rows, n) / count
-    mean_c = np.bincount(flat, cols, n) / count
+    # the components' pixels' moments in one compiled pass (the background, label 0, left out)
+    count, s_r, s_c, s_rr, s_cc, s_rc = label_moments(labels, n)
+    count = np.maximum(count, 1.0)
+    mean_r = s_r / count
+    mean_c = s_c / count
     # a pixel is a unit square: 1/12 of spread on each axis of its own
-    var_r = np.bincount(flat, rows * rows, n) / count - mean_r ** 2 + 1.0 / 12.0
-    var_c = np.bincount(flat, cols * cols, n) / count - mean_c ** 2 + 1.0 / 12.0
-    cov = np.bincount(flat, rows * cols, n) / count - mean_r * mean_c
+    var_r = s_rr / count - mean_r ** 2 + 1.0 / 12.0
+    var_c = s_cc / count - mean_c ** 2 + 1.0 / 12.0
+    cov = s_rc / count - mean_r * mean_c
     half_sum, root = 0.5 * (var_r + var_c), np.sqrt(0.25 * (var_r - var_c) ** 2 + cov ** 2)
     return np.sqrt((half_sum + root) / np.maximum(half_sum - root, 1e-12))
 

@@ -34,6 +34,10 @@ SIGNATURES: dict[str, list[str]] = {
         "f8:2C f8 f8 f8 f8:1C f8:1C f8:1C",
         "f8:2Cr f8 f8 f8 f8:1C f8:1C f8:1C",
     ],
+    "_fill_holes_into": [
+        "i4:2C i8 i8:1C b1:1C b1:2A",
+        "i4:2C i8 i8:1C b1:1C b1:2C",
+    ],
     "_gather_runs_into": [
         "u2:2C i8:1C i8:1C i8:1C u2:2C",
         "u1:2C i8:1C i8:1C i8:1C u1:2C",
@@ -44,6 +48,9 @@ SIGNATURES: dict[str, list[str]] = {
     "_grid_screen_into": [
         "f8:1C f8:1C f8:1C f8:1C f8:3C b1:2C f8 f8:2C f8:1C f8:2C",
         "f8:1C f8:1C f8:1C f8:1C f8:3C b1:2C f8 f8:2F f8:1C f8:2C",
+    ],
+    "_label_moments_into": [
+        "i4:2C f8:2C",
     ],
     "_lattice_walk_into": [
         "f8:2C i8 f8:2C f8 f8 f8:3C i8:2C",

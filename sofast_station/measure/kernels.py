@@ -524,6 +524,55 @@ def label_areas(labels: np.ndarray, n_labels: int) -> np.ndarray:
     return counts
 
 
+@kernel(**_JIT)
+def _label_moments_into(labels, sums):
+    h, w = labels.shape
+    for r in range(h):
+        for c in range(w):
+            k = labels[r, c]
+            if k != 0:
+                sums[0, k] += 1.0
+                sums[1, k] += r
+                sums[2, k] += c
+                sums[3, k] += r * r
+                sums[4, k] += c * c
+                sums[5, k] += r * c
+
+
+def label_moments(labels: np.ndarray, n_labels: int) -> np.ndarray:
+    """Per label 1 .. n_labels - 1 of an OpenCV labelling (int32, 2-D), its pixels' count and the sums of
+    their row, column, row^2, column^2 and row x column (pixels; label 0's all 0): (6, n_labels), each sum
+    taken in raster order, so the same bits as np.bincount of the labelled pixels (tested), in one pass."""
+    sums = np.zeros((6, n_labels))
+    _label_moments_into(np.ascontiguousarray(labels, dtype=np.int32), sums)
+    return sums
+
+
+@kernel(**_JIT)
+def _fill_holes_into(labels, max_area, area, edge, region):
+    h, w = labels.shape
+    for r in range(h):
+        for c in range(w):
+            k = labels[r, c]
+            area[k] += 1
+            if r == 0 or c == 0 or r == h - 1 or c == w - 1:
+                edge[k] = True
+    for r in range(h):
+        for c in range(w):
+            k = labels[r, c]
+            if k != 0 and not edge[k] and area[k] <= max_area:
+                region[r, c] = True
+
+
+def fill_holes(labels: np.ndarray, n_labels: int, max_area_px: int, region: np.ndarray) -> None:
+    """Set in *region* (bool, the labelling's shape) the pixels of every label 1 .. n_labels - 1 of *labels*
+    (an OpenCV labelling, int32) that touches none of the box's four edges and has at most *max_area_px*
+    pixels: a region's holes, from the labelling of its box's complement, in one pass without OpenCV's
+    statistics."""
+    area = np.zeros(n_labels, dtype=np.int64)
+    edge = np.zeros(n_labels, dtype=np.bool_)
+    _fill_holes_into(np.ascontiguousarray(labels, dtype=np.int32), int(max_area_px), area, edge, region)
+
 #: Histogram bins for a dot's ring of whole counts (:func:`_dot_centroids_into`): a ring spanning more counts
 #: (a 16-bit frame's bright edge) takes numpy's median instead.
 _RING_BINS = 1024
@@ -1647,6 +1696,8 @@ def warm_up() -> None:
     to_frame_every(np.zeros((3, 2)), np.eye(3), np.zeros(3), 1)
     trim_rounds(x, x, 1.0, 1.0, 1.0, 1, 0.0)
     label_areas(np.zeros((2, 2), dtype=np.int32), 1)
+    label_moments(np.zeros((2, 2), dtype=np.int32), 1)
+    fill_holes(np.zeros((2, 2), dtype=np.int32), 1, 1, np.zeros((3, 3), dtype=np.bool_)[:2, :2])
     for dtype in (np.uint8, np.uint16):
         dot_centroids(np.zeros((4, 4), dtype=dtype), np.zeros((1, 2)), 1.0, True)
     lattice_walk(np.zeros((1, 2)), 0, np.eye(4, 2), 0.3, 1.0, 1)

@@ -541,3 +541,45 @@ def test_grid_divergence_is_grid_slopes_then_the_full_grids_divergence_bit_for_b
         ref = integrate_full_grid(np.nan_to_num(full["s_x"], nan=0.0), np.nan_to_num(full["s_y"], nan=0.0),
                                   span / cells)
         assert grid.heights_m.shape == ref.shape and np.array_equal(grid.heights_m, ref)
+
+
+def test_label_moments_are_numpys_bincounts_of_the_labelled_pixels_bit_for_bit():
+    """Blobs of a random binary picture labelled by OpenCV: each label's count and sums of row, column and
+    their products as np.bincount of its pixels in raster order gives them (what dots._elongation took)."""
+    import cv2
+
+    rng = np.random.default_rng(41)
+    binary = (cv2.GaussianBlur(rng.uniform(size=(300, 420)), (0, 0), 2.0) > 0.52).astype(np.uint8)
+    n, labels = cv2.connectedComponents(binary, connectivity=8)
+    assert n > 50
+    at = np.flatnonzero(labels)
+    flat = labels.ravel()[at]
+    rows, cols = np.divmod(at, labels.shape[1])
+    ref = np.stack([np.bincount(flat, minlength=n).astype(np.float64)]
+                   + [np.bincount(flat, w, n) for w in (rows, cols, rows * rows, cols * cols, rows * cols)])
+    ref[:, 0] = 0.0
+    np.testing.assert_array_equal(kernels.label_moments(labels, n), ref)
+
+
+def test_fill_holes_is_opencvs_statistics_rule():
+    """The holes a region's box fills: the labels of its complement (4-connected) that touch no edge of the
+    box and have at most max_area pixels, as OpenCV's statistics (bounding box, area) select them; in a
+    view of a larger array too."""
+    import cv2
+
+    rng = np.random.default_rng(43)
+    for max_area in (0, 5, 40, 10_000):
+        whole = np.zeros((220, 260), bool)
+        box = whole[10:210, 20:250]
+        box[:] = cv2.GaussianBlur(rng.uniform(size=box.shape), (0, 0), 1.5) > 0.47
+        before = box.copy()
+        n, labels, stats, _ = cv2.connectedComponentsWithStats((~box).view(np.uint8), connectivity=4)
+        x, y, bw, bh, area = (stats[:, k] for k in range(5))
+        fill = ~((x == 0) | (y == 0) | (x + bw == box.shape[1]) | (y + bh == box.shape[0])) & (area <= max_area)
+        fill[0] = False
+        n2, labels2 = cv2.connectedComponents((~box).view(np.uint8), connectivity=4)
+        assert n2 == n and np.array_equal(labels2, labels)
+        kernels.fill_holes(labels2, n2, max_area, box)
+        np.testing.assert_array_equal(box, before | fill[labels])
+        assert max_area == 0 or (box != before).any()
+        assert not whole[:10].any() and not whole[:, :20].any()
