@@ -32,7 +32,7 @@ import numpy as np
 from ..geometry import CameraIntrinsics, Pose
 from .bundle import camera_vector, moved, pose_derivative, project
 from .camera import pixel_rays
-from .kernels import dot_centroids, label_moments, lattice_walk
+from .kernels import dot_centroids, label_moments, laplacian_median, lattice_walk
 from .markers import solve_camera_pose
 
 
@@ -404,6 +404,11 @@ def image_noise_dn(image: np.ndarray, mask: np.ndarray | None = None) -> float:
     """The image's pixel noise (DN, one standard deviation) from its 4-neighbour Laplacian: for independent noise
     of sigma its variance is 20 sigma^2, and its median absolute value is little moved by edges and dots that
     cover less than half of *mask*."""
+    if np.asarray(image).dtype in (np.uint8, np.uint16):
+        # whole counts: their Laplacians counted in one compiled pass, the median read from the counts (numpy's
+        # median of the same values below, in float32: the same bits, a fifth of the time)
+        inside = np.ones(np.shape(image), bool) if mask is None else mask
+        return float(1.4826 * np.float32(laplacian_median(image, inside)) / np.sqrt(20.0))
     img = np.asarray(image, np.float32)
     # every other row and column: the median of a quarter of the values is as good, for a quarter of the time
     # (the Laplacian is formed at those pixels only: the same values as every pixel's, subsampled)

@@ -583,3 +583,33 @@ def test_fill_holes_is_opencvs_statistics_rule():
         np.testing.assert_array_equal(box, before | fill[labels])
         assert max_area == 0 or (box != before).any()
         assert not whole[:10].any() and not whole[:, :20].any()
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+def test_laplacian_median_is_numpys_float32_median_of_the_subsampled_laplacian(dtype):
+    """Noisy pictures with edges (odd and even sizes, odd and even counts of masked values, views): the
+    median of the absolute Laplacian at every other pixel counted from the histogram is numpy's median of
+    the float32 Laplacians; image_noise_dn gives the numpy chain's bits."""
+    from sofast_station.measure.dots import image_noise_dn
+
+    rng = np.random.default_rng(47)
+    top = np.iinfo(dtype).max
+    for shape in ((61, 80), (64, 77), (9, 9), (3, 40)):
+        img = np.clip(rng.normal(0.3 * top, 0.01 * top + 2, shape) + (np.arange(shape[1]) > shape[1] // 2) * 0.4 * top,
+                      0, top).astype(dtype)
+        big = np.zeros((shape[0] + 4, shape[1] + 6), dtype)
+        big[2:-2, 3:-3] = img
+        view = big[2:-2, 3:-3]
+        for mask in (np.ones(shape, bool), rng.uniform(size=shape) < 0.6, np.zeros(shape, bool)):
+            f = img.astype(np.float32)
+            c = f[1:-1:2, 1:-1:2]
+            lap = 4.0 * c - f[:-2:2, 1:-1:2][:c.shape[0], :c.shape[1]] - f[2::2, 1:-1:2][:c.shape[0], :c.shape[1]] \
+                - f[1:-1:2, :-2:2][:c.shape[0], :c.shape[1]] - f[1:-1:2, 2::2][:c.shape[0], :c.shape[1]]
+            values = np.abs(lap[mask[1:-1:2, 1:-1:2]])
+            ref = np.median(values) if values.size else 0.0
+            got = kernels.laplacian_median(view, mask)
+            assert got == ref and np.float32(got) == ref
+            ref_noise = float(1.4826 * np.median(values) / np.sqrt(20.0)) if values.size else 0.0
+            assert image_noise_dn(view, mask) == ref_noise
+    assert kernels.laplacian_median(np.zeros((2, 2), dtype), np.ones((2, 2), bool)) == 0.0
+
