@@ -850,7 +850,7 @@ def reduce_fixed(image: np.ndarray, dots: DotLocations, geometry: StationGeometr
         outline = pool.submit(_outline_of, contrast, region_mask, geometry, design, settings) \
             if design.outline_known else _Serial._Done((None, None))
         top = np.iinfo(img.dtype).max
-        saturated = float(np.count_nonzero(img[region_mask] >= top)) / max(int(region_mask.sum()), 1)
+        saturated = float(np.count_nonzero((img >= top) & region_mask)) / max(np.count_nonzero(region_mask), 1)
         if saturated > settings.max_saturated_fraction:
             raise CaptureError(f"{100 * saturated:.1f} % of the facet's pixels are saturated ({top} DN) in the dot "
                                "frame: lower the exposure or gain, or dim the room light")

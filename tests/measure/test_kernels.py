@@ -545,7 +545,8 @@ def test_grid_divergence_is_grid_slopes_then_the_full_grids_divergence_bit_for_b
 
 def test_label_moments_are_numpys_bincounts_of_the_labelled_pixels_bit_for_bit():
     """Blobs of a random binary picture labelled by OpenCV: each label's count and sums of row, column and
-    their products as np.bincount of its pixels in raster order gives them (what dots._elongation took)."""
+    their products as np.bincount of its pixels in raster order gives them (what dots._elongation took), and
+    the areas and centroids OpenCV's statistics give (what find_pattern_dots took)."""
     import cv2
 
     rng = np.random.default_rng(41)
@@ -558,7 +559,13 @@ def test_label_moments_are_numpys_bincounts_of_the_labelled_pixels_bit_for_bit()
     ref = np.stack([np.bincount(flat, minlength=n).astype(np.float64)]
                    + [np.bincount(flat, w, n) for w in (rows, cols, rows * rows, cols * cols, rows * cols)])
     ref[:, 0] = 0.0
-    np.testing.assert_array_equal(kernels.label_moments(labels, n), ref)
+    got = kernels.label_moments(labels, n)
+    np.testing.assert_array_equal(got, ref)
+    # find_pattern_dots' blob areas and centroids: OpenCV's statistics of the same labelling, bit for bit
+    n2, labels2, stats, centroids = cv2.connectedComponentsWithStats(binary, connectivity=8)
+    assert n2 == n and np.array_equal(labels2, labels)
+    np.testing.assert_array_equal(got[0, 1:].astype(np.int64), stats[1:, cv2.CC_STAT_AREA])
+    np.testing.assert_array_equal(np.column_stack([got[2, 1:] / got[0, 1:], got[1, 1:] / got[0, 1:]]), centroids[1:])
 
 
 def test_fill_holes_is_opencvs_statistics_rule():
