@@ -82,6 +82,10 @@ SIGNATURES: dict[str, list[str]] = {
         "u2:2C f4:1C f4:1C f4:1C",
         "u1:2C f4:1C f4:1C f4:1C",
     ],
+    "_reflect_blend_into": [
+        "f8:1A f8:1A f8:1A f8:1A f8:1A f8:1A f8:2C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C",
+        "f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:2C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C",
+    ],
     "_reflect_into": [
         "f8:1A f8:1A f8:1A f8:1A f8:1A f8:1A f8:2C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C",
         "f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:2C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C",

@@ -167,40 +167,78 @@ def _law_of_reflection(px, py, pz, cx, cy, cz, tx, ty, tz):
     return -(nx / nz), -(ny / nz)
 
 
+@kernel(inline="always", **_JIT)
+def _reflect_one(rot, t0, t1_, t2_, ox, oy, oz, k_x, k_y, qc, a_, b_, e_, r0, r1, r2, w0, w1, w2):
+    """One ray's point on the quadratic and the law of reflection's slopes there (:func:`reflect`)."""
+    ux, uy, uz = _rotate_shift(rot, r0, r1, r2, 0.0, 0.0, 0.0)
+    tx, ty, tz = _rotate_shift(rot, w0, w1, w2, t0, t1_, t2_)
+    # intersect_quadratic
+    qa = (ux * a_ * ux + uy * b_ * uy) + ux * e_ * uy
+    qb = (ux * k_x + uy * k_y) - uz
+    disc = qb * qb - qa * 4.0 * qc
+    miss = disc < 0.0
+    root = math.sqrt(disc if (disc >= 0.0 or disc != disc) else 0.0)
+    q = (math.copysign(root, qb) + qb) * -0.5
+    t1 = qc / q
+    t2 = q / qa
+    t1 = t1 if t1 > 0.0 else np.inf
+    t2 = t2 if t2 > 0.0 else np.inf
+    t = t2 if (t2 < t1 or t2 != t2) else t1
+    if miss or not np.isfinite(t):
+        t = np.nan
+    px = t * ux + ox
+    py = t * uy + oy
+    pz = t * uz + oz
+    s_x, s_y = _law_of_reflection(px, py, pz, ox, oy, oz, tx, ty, tz)
+    return px, py, pz, s_x, s_y
+
+
 @kernel(**_JIT)
 def _reflect_into(r0, r1, r2, w0_, w1_, w2_, rot, trans, origin, qk, coeffs, p0, p1, p2, s0, s1):
-    a_ = coeffs[0]
-    b_ = coeffs[1]
-    e_ = coeffs[4]
-    ox = origin[0]
-    oy = origin[1]
-    oz = origin[2]
+    a_, b_, e_ = coeffs[0], coeffs[1], coeffs[4]
+    ox, oy, oz = origin[0], origin[1], origin[2]
     t0, t1_, t2_ = trans[0], trans[1], trans[2]
     k_x, k_y, qc = qk[0], qk[1], qk[2]
     for j in range(r0.size):
-        ux, uy, uz = _rotate_shift(rot, r0[j], r1[j], r2[j], 0.0, 0.0, 0.0)
-        tx, ty, tz = _rotate_shift(rot, w0_[j], w1_[j], w2_[j], t0, t1_, t2_)
-        # intersect_quadratic
-        qa = (ux * a_ * ux + uy * b_ * uy) + ux * e_ * uy
-        qb = (ux * k_x + uy * k_y) - uz
-        disc = qb * qb - qa * 4.0 * qc
-        miss = disc < 0.0
-        root = math.sqrt(disc if (disc >= 0.0 or disc != disc) else 0.0)
-        q = (math.copysign(root, qb) + qb) * -0.5
-        t1 = qc / q
-        t2 = q / qa
-        t1 = t1 if t1 > 0.0 else np.inf
-        t2 = t2 if t2 > 0.0 else np.inf
-        t = t2 if (t2 < t1 or t2 != t2) else t1
-        if miss or not np.isfinite(t):
-            t = np.nan
-        px = t * ux + ox
-        py = t * uy + oy
-        pz = t * uz + oz
-        p0[j] = px
-        p1[j] = py
-        p2[j] = pz
-        s0[j], s1[j] = _law_of_reflection(px, py, pz, ox, oy, oz, tx, ty, tz)
+        p0[j], p1[j], p2[j], s0[j], s1[j] = _reflect_one(rot, t0, t1_, t2_, ox, oy, oz, k_x, k_y, qc, a_, b_, e_,
+                                                         r0[j], r1[j], r2[j], w0_[j], w1_[j], w2_[j])
+
+
+@kernel(**_JIT)
+def _reflect_blend_into(r0, r1, r2, w0_, w1_, w2_, rot, trans, origin, qk, coeffs, scale, p0, p1, p2, s0, s1):
+    a_, b_, e_ = coeffs[0], coeffs[1], coeffs[4]
+    ox, oy, oz = origin[0], origin[1], origin[2]
+    t0, t1_, t2_ = trans[0], trans[1], trans[2]
+    k_x, k_y, qc = qk[0], qk[1], qk[2]
+    missed = 0
+    for j in range(r0.size):
+        px, py, pz, sx, sy = _reflect_one(rot, t0, t1_, t2_, ox, oy, oz, k_x, k_y, qc, a_, b_, e_,
+                                          r0[j], r1[j], r2[j], w0_[j], w1_[j], w2_[j])
+        if not (np.isfinite(sx) and np.isfinite(sy)):
+            missed += 1
+        # base + (moved - base) * scale, numpy's order
+        c = scale[j]
+        p0[j] = p0[j] + (px - p0[j]) * c
+        p1[j] = p1[j] + (py - p1[j]) * c
+        p2[j] = p2[j] + (pz - p2[j]) * c
+        s0[j] = s0[j] + (sx - s0[j]) * c
+        s1[j] = s1[j] + (sy - s1[j]) * c
+    return missed
+
+
+def _reflect_args(rays_cam, screen_cam_m, rotation, translation, coeffs, origin, lo, hi) -> list:
+    """:func:`reflect`'s kernel arguments before the outputs: the columns lo:hi, the frame, the quadratic's
+    coefficients of the ray parameter."""
+    a_, b_, c_, d_, e_, f_ = (float(v) for v in coeffs)
+    origin = translation if origin is None else origin
+    ox, oy, oz = (float(v) for v in origin)
+    qk = np.array([2.0 * a_ * ox + c_ + e_ * oy, 2.0 * b_ * oy + d_ + e_ * ox,
+                   a_ * ox * ox + b_ * oy * oy + c_ * ox + d_ * oy + e_ * ox * oy + f_ - oz])
+    sl = slice(lo, hi)        # (slices: a loop over 0..n-1 vectorises, one over lo..hi does not)
+    return [*(c[sl] for c in rays_cam), *(c[sl] for c in screen_cam_m),
+            np.array(rotation, dtype=np.float64), np.array(translation, dtype=np.float64),   # (writable
+            np.array([ox, oy, oz]), qk,                                                       # copies)
+            np.asarray(coeffs, dtype=np.float64)]
 
 
 def reflect(rays_cam: np.ndarray, screen_cam_m: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
@@ -215,16 +253,23 @@ def reflect(rays_cam: np.ndarray, screen_cam_m: np.ndarray, rotation: np.ndarray
     The arithmetic of :func:`~.camera.to_frame`, :func:`~.surface.intersect_quadratic` and
     :func:`~.surface.normal_slopes` in the same order, in one pass: the same bits (tested). With the
     identity rotation and a zero translation, those of the last two alone."""
-    a_, b_, c_, d_, e_, f_ = (float(v) for v in coeffs)
-    origin = translation if origin is None else origin
-    ox, oy, oz = (float(v) for v in origin)
-    qk = np.array([2.0 * a_ * ox + c_ + e_ * oy, 2.0 * b_ * oy + d_ + e_ * ox,
-                   a_ * ox * ox + b_ * oy * oy + c_ * ox + d_ * oy + e_ * ox * oy + f_ - oz])
-    sl = slice(lo, hi)        # (slices: a loop over 0..n-1 vectorises, one over lo..hi does not)
-    _reflect_into(*(c[sl] for c in rays_cam), *(c[sl] for c in screen_cam_m),
-                  np.array(rotation, dtype=np.float64), np.array(translation, dtype=np.float64),   # (writable
-                  np.array([ox, oy, oz]), qk,                                                       # copies)
-                  np.asarray(coeffs, dtype=np.float64), *(c[sl] for c in points), *(c[sl] for c in slopes))
+    sl = slice(lo, hi)
+    _reflect_into(*_reflect_args(rays_cam, screen_cam_m, rotation, translation, coeffs, origin, lo, hi),
+                  *(c[sl] for c in points), *(c[sl] for c in slopes))
+
+
+def reflect_blend(rays_cam: np.ndarray, screen_cam_m: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
+                  coeffs: np.ndarray, scale: np.ndarray, points: np.ndarray, slopes: np.ndarray, lo: int, hi: int,
+                  origin: np.ndarray | None = None) -> int:
+    """:func:`reflect` with the model *coeffs*, each of the columns lo:hi of *points* (3, N) and *slopes*
+    (2, N) moved toward it in place: ``base + (reflected - base) * scale`` (*scale* (N,)), numpy's
+    arithmetic in one pass, the same bits (tested); the intersection with a model raised a little, and
+    each pixel moved to its own height above the model to first order (:func:`~.boresight.close_on_all_points`).
+    Returns how many of those columns' reflected slopes are not finite (rays that miss)."""
+    sl = slice(lo, hi)
+    return int(_reflect_blend_into(*_reflect_args(rays_cam, screen_cam_m, rotation, translation, coeffs, origin,
+                                                  lo, hi), scale[sl], *(c[sl] for c in points),
+                                   *(c[sl] for c in slopes)))
 
 
 @kernel(**_JIT)
@@ -1710,6 +1755,7 @@ def warm_up() -> None:
         phase_counts(np.zeros((4, 1), dtype=dtype), *out)
     one = np.ones((3, 1))
     reflect(one, one, np.eye(3), np.zeros(3), np.zeros(6), np.empty((3, 1)), np.empty((2, 1)), 0, 1)
+    reflect_blend(one, one, np.eye(3), np.zeros(3), np.zeros(6), np.ones(1), np.zeros((3, 1)), np.zeros((2, 1)), 0, 1)
     model_residuals(x, x, x, x, [np.zeros(6)] * 2, np.ones(15), np.empty((6, 2)), 0, 2)
     cubic_sums(x, x, x, x, 0.0, 0.0, 1.0, [(0, 0)])
     parabola_sums(x, x, x, x, 0.0, 0.0)

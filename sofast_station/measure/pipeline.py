@@ -39,7 +39,7 @@ from .camera import pixel_rays, project, to_frame
 from .fit import SURFACES, CubicFit, ParabolaFit, fit_cubic, fit_parabola, fit_plane, reweight_parabola
 from .heights import height_grid
 from .jumps import isolated_jumps
-from .kernels import consistency_set, gather_runs, halves, model_residuals, reflect, to_frame_every
+from .kernels import consistency_set, gather_runs, halves, model_residuals, reflect, reflect_blend, to_frame_every
 from .mask import facet_region
 from .metrics import focal_length_m, neighbour_difference_ms, neighbour_pairs, principal_axes, rms_summary
 from .phase import (
@@ -835,6 +835,19 @@ def shape_and_boresight(rays: Rays, pose: CornerPoseResult, design: FacetDesign,
             raise AnalysisError(f"{int((~finite).sum())} pixel rays miss the fitted surface; the fit diverged")
         return points, slopes
 
+    def raise_all(motion, coefficients, points, slopes, scale):
+        # reduce_all's intersection with *coefficients*, each pixel's point and slope moved toward it in place
+        # (close_on_all_points' first-order move to its height), in one compiled pass per half
+        r = motion.rotation
+        shift = motion.pivot_m - r @ motion.pivot_m + np.array([0.0, 0.0, motion.t_z_m])
+        args = (rays.rays, rays.screen_cam_m, r @ camera_to_facet.rotation, r @ camera_to_facet.translation + shift,
+                coefficients, scale, points, slopes)
+        mid = n // 2 if split is not None and n >= 2048 else 0
+        first = split.submit(reflect_blend, *args, 0, mid) if mid else None
+        missed = reflect_blend(*args, mid, n) + (first.result() if first is not None else 0)
+        if missed:
+            raise AnalysisError(f"{missed} pixel rays miss the fitted surface; the fit diverged")
+
     heights_of = None
     r = subsample.rays
     inclination = float(np.mean(np.hypot(r[0], r[1]) / np.maximum(np.abs(r[2]), 1e-12))) if r.shape[1] else 0.0
@@ -844,7 +857,7 @@ def shape_and_boresight(rays: Rays, pose: CornerPoseResult, design: FacetDesign,
     solution, points, slopes, fit = close_on_all_points(
         solution, design, measured_distance_m, subsample, reduce_all,
         lambda p, s: all_points_parabola(p, s, solution.fit, settings, pool), settings.max_iterations,
-        heights_of=heights_of)
+        heights_of=heights_of, raise_all=raise_all)
     if start is not None:
         solution = dataclasses.replace(solution, subsample_coefficients=start.subsample_coefficients)
     to_moved = solution.motion.as_pose().compose(camera_to_facet)

@@ -92,6 +92,30 @@ def test_reflect_gives_numpys_chain_bits():
     np.testing.assert_array_equal(slopes, slopes_ref)
 
 
+def test_reflect_blend_is_reflect_then_numpys_move_bit_for_bit():
+    """Points and slopes moved in place toward the intersection with a raised model, by a scale per point
+    (close_on_all_points' move to each pixel's height): reflect's bits, then numpy's base + (up - base) *
+    scale, over two halves as on the pool; the rays that miss are counted."""
+    rng = np.random.default_rng(19)
+    rays, screen, pose = _random_assembly(rng, 30_000)
+    rays[:, :7] = (np.array([0.9, 0.0, 0.1]) / np.hypot(0.9, 0.1))[:, None]   # they miss
+    coeffs = np.array([0.047, 0.046, 0.001, -0.002, 0.0005, 0.0])
+    n = rays.shape[1]
+    base_p, base_s = np.empty((3, n)), np.empty((2, n))
+    kernels.reflect(rays, screen, pose.rotation, pose.translation, coeffs, base_p, base_s, 0, n)
+    raised = coeffs + [0, 0, 0, 0, 0, 1e-5]
+    up_p, up_s = np.empty((3, n)), np.empty((2, n))
+    kernels.reflect(rays, screen, pose.rotation, pose.translation, raised, up_p, up_s, 0, n)
+    scale = rng.normal(0.0, 2.0, n)
+    ref_p, ref_s = base_p + (up_p - base_p) * scale, base_s + (up_s - base_s) * scale
+    p, sl = base_p.copy(), base_s.copy()
+    missed = sum(kernels.reflect_blend(rays, screen, pose.rotation, pose.translation, raised, scale, p, sl, lo, hi)
+                 for lo, hi in ((0, n // 2), (n // 2, n)))
+    assert missed == int((~(np.isfinite(up_s[0]) & np.isfinite(up_s[1]))).sum()) == 7
+    np.testing.assert_array_equal(p, ref_p)
+    np.testing.assert_array_equal(sl, ref_s)
+
+
 def test_model_residuals_are_numpys_to_the_last_bits():
     rng = np.random.default_rng(12)
     n = 40_000
