@@ -269,14 +269,15 @@ def _solve_divergence(rhs: np.ndarray) -> np.ndarray:
     return idctn(coef, type=2, norm="ortho", workers=1)
 
 
-def height_grid(x_m, y_m, g_x, g_y, cells: int = 96) -> HeightGrid:
+def height_grid(x_m, y_m, g_x, g_y, cells: int = 96, model=None) -> HeightGrid:
     """The heights whose slopes are *g_x*, *g_y* at scattered points (x_m, y_m), on a grid of about *cells*
     square cells along the points' longer extent (:func:`grid_slopes`, then :func:`integrate_full_grid`).
 
     Cells no point falls in take slopes 0: beyond a facet's outline in its bounding box (a gore's corners)
     the heights are carried on flat, which leaves those inside as the masked least-squares would within
     the grid's resolution. Meant for slopes that are small departures from a model (a facet's slope
-    residuals), whose heights are what the model misses.
+    residuals), whose heights are what the model misses: *g_x*, *g_y* less the slopes of the quadratic *model*
+    (A, B, C, D, E, F; :func:`~.surface.surface_slopes`) when given.
     """
     x = np.asarray(x_m, dtype=np.float64)
     y = np.asarray(y_m, dtype=np.float64)
@@ -288,4 +289,4 @@ def height_grid(x_m, y_m, g_x, g_y, cells: int = 96) -> HeightGrid:
     # in one compiled pass (the same bits; the uncertainty's reruns grid a few thousand points 60 times)
     x0, x1, y0, y1 = extent
     shape = (max(1, int(math.ceil((y1 - y0) / cell - 1e-9))), max(1, int(math.ceil((x1 - x0) / cell - 1e-9))))
-    return HeightGrid(x0, y0, cell, _solve_divergence(grid_divergence(x, y, g_x, g_y, x0, y0, cell, shape)))
+    return HeightGrid(x0, y0, cell, _solve_divergence(grid_divergence(x, y, g_x, g_y, x0, y0, cell, shape, model)))

@@ -1645,11 +1645,15 @@ def irls_bisquare(c0, c1, c2, target, w, scale, tolerance, max_iterations, sigma
 
 
 @kernel(**_JIT)
-def _grid_divergence_into(x, y, g_x, g_y, x0, y0, cell, half_cell, count, s_x, s_y, rhs):
+def _grid_divergence_into(x, y, g_x, g_y, model, x0, y0, cell, half_cell, count, s_x, s_y, rhs):
     ny, nx = rhs.shape
-    # grid_slopes' binning: each finite point's slopes summed into its cell in the points' order (bincount's)
+    m0, m1, m2, m3, m4 = model[0], model[1], model[2], model[3], model[4]
+    # grid_slopes' binning: each finite point's slopes (less the model's, surface_slopes' arithmetic) summed
+    # into its cell in the points' order (bincount's)
     for k in range(x.size):
-        xk, yk, a, b = x[k], y[k], g_x[k], g_y[k]
+        xk, yk = x[k], y[k]
+        a = g_x[k] - ((m0 * xk + m1) + m2 * yk)
+        b = g_y[k] - ((m3 * yk + m4) + m2 * xk)
         if not (np.isfinite(xk) and np.isfinite(yk) and np.isfinite(a) and np.isfinite(b)):
             continue
         fx = math.floor((xk - x0) / cell)
@@ -1683,15 +1687,19 @@ def _grid_divergence_into(x, y, g_x, g_y, x0, y0, cell, half_cell, count, s_x, s
 
 
 def grid_divergence(x: np.ndarray, y: np.ndarray, g_x: np.ndarray, g_y: np.ndarray, x0: float, y0: float,
-                    cell: float, shape: tuple) -> np.ndarray:
-    """:func:`~.heights.grid_slopes`' cells' mean slopes of the points (x, y) (metres; slopes *g_x*, *g_y*)
-    on the grid of *shape* (ny, nx) cells of side *cell* from (*x0*, *y0*), the empty cells' taken as 0,
-    and :func:`~.heights.integrate_full_grid`'s right-hand side of them (the trapezoid differences'
-    divergence, metres), in one compiled pass: the same bits as numpy's chain (tested). (ny, nx)."""
+                    cell: float, shape: tuple, model=None) -> np.ndarray:
+    """:func:`~.heights.grid_slopes`' cells' mean slopes of the points (x, y) (metres; slopes *g_x*, *g_y*,
+    less those of the quadratic *model* (A, B, C, D, E, F) when given, :func:`~.surface.surface_slopes`'
+    arithmetic) on the grid of *shape* (ny, nx) cells of side *cell* from (*x0*, *y0*), the empty cells'
+    taken as 0, and :func:`~.heights.integrate_full_grid`'s right-hand side of them (the trapezoid
+    differences' divergence, metres), in one compiled pass: the same bits as numpy's chain (tested). (ny, nx)."""
     args = [np.ascontiguousarray(v, dtype=np.float64) for v in (x, y, g_x, g_y)]
+    # 2A, C, E, 2B, D: a zero model subtracts exactly 0 (s - (+0.0) is s)
+    a, b, c, d, e = (0.0,) * 5 if model is None else (float(v) for v in tuple(model)[:5])
+    terms = np.array([2.0 * a, c, e, 2.0 * b, d])
     count, s_x, s_y = (np.zeros(shape) for _ in range(3))
     rhs = np.empty(shape)
-    _grid_divergence_into(*args, float(x0), float(y0), float(cell), float(cell) * 0.5, count, s_x, s_y, rhs)
+    _grid_divergence_into(*args, terms, float(x0), float(y0), float(cell), float(cell) * 0.5, count, s_x, s_y, rhs)
     return rhs
 
 

@@ -58,7 +58,6 @@ from .pose import (departure_from_design_m, fix_range, mask_centroid_px, placeme
 from .screen import FlatScreen, InterpolatedScreen, ScreenModel
 from .slope_noise import slope_covariance
 from .stats import median
-from .surface import surface_slopes
 
 
 @dataclass(frozen=True)
@@ -882,8 +881,8 @@ def surface_heights(points: np.ndarray, slopes: np.ndarray, coefficients: np.nda
     x, y = points[0], points[1]
     step = max(1, x.size // HEIGHT_POINTS)
     cells = int(min(96, max(8, np.sqrt(x.size / step / HEIGHT_POINTS_PER_CELL))))
-    mx, my = surface_slopes(coefficients, x[::step], y[::step])
-    grid = height_grid(x[::step], y[::step], slopes[0, ::step] - mx, slopes[1, ::step] - my, cells=cells)
+    # the slope residuals from the model formed as they are gridded (surface_slopes' arithmetic, one pass)
+    grid = height_grid(x[::step], y[::step], slopes[0, ::step], slopes[1, ::step], cells=cells, model=coefficients)
     at_points = grid.at(x, y)
     mean = float(np.sum(at_points) / at_points.size)
     at_points -= mean

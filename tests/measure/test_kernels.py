@@ -12,7 +12,8 @@ from sofast_station.measure import kernels
 from sofast_station.measure.camera import to_frame
 from sofast_station.measure.fit import CUBIC_TERMS, CubicFit
 from sofast_station.measure.phase import phase_and_modulation
-from sofast_station.measure.surface import intersect_quadratic, normal_slopes, surface_slopes_of_points
+from sofast_station.measure.surface import (intersect_quadratic, normal_slopes, surface_slopes,
+                                           surface_slopes_of_points)
 
 
 def _ulps(got: np.ndarray, ref: np.ndarray) -> np.ndarray:
@@ -527,10 +528,10 @@ def test_bilinear_is_numpys_clip_and_takes_bit_for_bit(shape):
 
 
 def test_grid_divergence_is_grid_slopes_then_the_full_grids_divergence_bit_for_bit():
-    """Scattered slopes (some not finite, some beyond the grid, cells left empty) binned, their empty cells
-    set to 0 and the trapezoid differences' divergence taken, by numpy (grid_slopes, then
-    integrate_full_grid's expression) and by the kernel: the same bits; and height_grid's heights are
-    integrate_full_grid's of grid_slopes' cells."""
+    """Scattered slopes (some not finite, some beyond the grid, cells left empty) less a quadratic model's
+    (surface_slopes), binned, their empty cells set to 0 and the trapezoid differences' divergence taken, by
+    numpy (grid_slopes, then integrate_full_grid's expression) and by the kernel: the same bits, with and
+    without the model; and height_grid's heights are integrate_full_grid's of grid_slopes' cells."""
     from sofast_station.measure.heights import grid_slopes, height_grid, integrate_full_grid
 
     rng = np.random.default_rng(37)
@@ -544,7 +545,9 @@ def test_grid_divergence_is_grid_slopes_then_the_full_grids_divergence_bit_for_b
         cell = 1.2 / cells
         x0, y0 = float(x.min()) - 0.5 * cell, float(y.min()) - 0.3 * cell
         extent = (x0, float(x.max()) - 2 * cell, y0, float(y.max()) + 0.5 * cell)   # some points beyond it
-        g = grid_slopes(x, y, g_x, g_y, cell, extent_m=extent)
+        model = rng.normal(0.0, [0.05, 0.05, 1e-3, 1e-3, 1e-3, 1e-3])
+        m_x, m_y = surface_slopes(model, x, y)
+        g = grid_slopes(x, y, g_x - m_x, g_y - m_y, cell, extent_m=extent)
         sx = np.where(np.isfinite(g["s_x"]), g["s_x"], 0.0)
         sy = np.where(np.isfinite(g["s_y"]), g["s_y"], 0.0)
         dx = cell * 0.5 * (sx[:, :-1] + sx[:, 1:])
@@ -554,12 +557,22 @@ def test_grid_divergence_is_grid_slopes_then_the_full_grids_divergence_bit_for_b
         rhs[:, 1:] += dx
         rhs[:-1, :] -= dy
         rhs[1:, :] += dy
-        got = kernels.grid_divergence(x, y, g_x, g_y, x0, y0, cell, sx.shape)
+        got = kernels.grid_divergence(x, y, g_x, g_y, x0, y0, cell, sx.shape, model)
         assert (sx == 0.0).any() and np.array_equal(got.view(np.int64), rhs.view(np.int64))
+        # without a model: the slopes themselves
+        plain = grid_slopes(x, y, g_x, g_y, cell, extent_m=extent)
+        sx0 = np.where(np.isfinite(plain["s_x"]), plain["s_x"], 0.0)
+        sy0 = np.where(np.isfinite(plain["s_y"]), plain["s_y"], 0.0)
+        rhs0 = np.zeros(sx.shape)
+        rhs0[:, :-1] -= cell * 0.5 * (sx0[:, :-1] + sx0[:, 1:])
+        rhs0[:, 1:] += cell * 0.5 * (sx0[:, :-1] + sx0[:, 1:])
+        rhs0[:-1, :] -= cell * 0.5 * (sy0[:-1, :] + sy0[1:, :])
+        rhs0[1:, :] += cell * 0.5 * (sy0[:-1, :] + sy0[1:, :])
+        np.testing.assert_array_equal(kernels.grid_divergence(x, y, g_x, g_y, x0, y0, cell, sx.shape), rhs0)
         ok = np.isfinite(g_x) & np.isfinite(g_y)
-        grid = height_grid(x[ok], y[ok], g_x[ok], g_y[ok], cells=cells)
+        grid = height_grid(x[ok], y[ok], g_x[ok], g_y[ok], cells=cells, model=model)
         span = max(np.ptp(x[ok]), np.ptp(y[ok]))
-        full = grid_slopes(x[ok], y[ok], g_x[ok], g_y[ok], span / cells, extent_m=(
+        full = grid_slopes(x[ok], y[ok], g_x[ok] - m_x[ok], g_y[ok] - m_y[ok], span / cells, extent_m=(
             x[ok].min() - 0.5 * span / cells, x[ok].max() + 0.5 * span / cells,
             y[ok].min() - 0.5 * span / cells, y[ok].max() + 0.5 * span / cells))
         ref = integrate_full_grid(np.nan_to_num(full["s_x"], nan=0.0), np.nan_to_num(full["s_y"], nan=0.0),
