@@ -340,8 +340,8 @@ def dot_region(image: np.ndarray, background: np.ndarray, geometry: StationGeome
     lit = np.asarray((background if white is None else white)[r0:r1, c0:c1], np.float32)
     base = 0.0 if dark is None else np.asarray(dark[r0:r1, c0:c1], np.float32)
     contrast = np.zeros((h, w), np.float32)
-    contrast[r0:r1, c0:c1] = lit - base
     part = contrast[r0:r1, c0:c1]
+    np.subtract(lit, base, out=part)
     threshold = float(settings.mask_threshold_dn)
     if dark is None:
         whole = np.asarray(background if white is None else white, np.float32)
@@ -352,7 +352,7 @@ def dot_region(image: np.ndarray, background: np.ndarray, geometry: StationGeome
     region = np.zeros((h, w), bool)
     region[r0:r1, c0:c1] = facet_region(np.zeros(counts.shape, kind), counts, threshold, settings.max_hole_px)
     nominal = outline_image_points(design, geometry.camera, geometry.fixture_to_camera)
-    checks.check_region(region, float(checks.projected_outline_mask(geometry.camera.shape, nominal).sum()),
+    checks.check_region(region, float(np.count_nonzero(checks.projected_outline_mask(geometry.camera.shape, nominal))),
                         min_area_fraction=0.5 if design.outline_known else 0.0)
     return region, contrast
 

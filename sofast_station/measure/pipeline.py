@@ -442,7 +442,7 @@ def find_region(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometr
         nominal_outline = outline_image_points(design, cam, geometry.fixture_to_camera)
         # (a mirror of unknown outline: its outline_m is only its expected extent, so its area is a guess;
         # the region must still be whole and in view)
-        checks.check_region(region, float(checks.projected_outline_mask(cam.shape, nominal_outline).sum()),
+        checks.check_region(region, float(np.count_nonzero(checks.projected_outline_mask(cam.shape, nominal_outline))),
                             min_area_fraction=0.5 if design.outline_known else 0.0)
     except Exception:
         order.result()          # frames out of order explain the rest: that is the fault to report
