@@ -297,7 +297,8 @@ def solve_shape(assembly: Assembly, design: FacetDesign, measured_distance_m: fl
 
 
 def close_on_all_points(solution: ShapeSolution, design: FacetDesign, measured_distance_m: float,
-                        assembly: Assembly, reduce_all, fit_all, max_iterations: int = 20, heights_of=None):
+                        assembly: Assembly, reduce_all, fit_all, max_iterations: int = 20, heights_of=None,
+                        raise_all=None):
     """The boresight's conditions met by the parabola fitted to every valid pixel, not the subsample's.
 
     The iteration converges on the subsample (:func:`solve_shape`); the reported parabola is then fitted
@@ -325,6 +326,9 @@ def close_on_all_points(solution: ShapeSolution, design: FacetDesign, measured_d
     change per metre of height from a second intersection with the model's constant moved by
     :data:`HEIGHT_STEP_M`). ``heights_of(points, slopes, coefficients)`` returns the heights above the
     model at the points and at the measure point, metres (zero mean over the points).
+    ``raise_all(motion, coefficients, points, slopes, scale)``, when given, does the second intersection and
+    the move in one: *points* and *slopes* moved in place to ``base + (raised - base) * scale``, numpy's
+    arithmetic here (the same bits; :func:`~.kernels.reflect_blend`).
 
     Parameters
     ----------
@@ -349,10 +353,13 @@ def close_on_all_points(solution: ShapeSolution, design: FacetDesign, measured_d
             at_points, at_measure = heights_of(points, slopes, coeffs)
             raised = coeffs.copy()
             raised[5] += HEIGHT_STEP_M
-            points_up, slopes_up = reduce_all(motion, raised)
             scale = at_points / HEIGHT_STEP_M
-            points = points + (points_up - points) * scale
-            slopes = slopes + (slopes_up - slopes) * scale
+            if raise_all is not None:
+                raise_all(motion, raised, points, slopes, scale)
+            else:
+                points_up, slopes_up = reduce_all(motion, raised)
+                points = points + (points_up - points) * scale
+                slopes = slopes + (slopes_up - slopes) * scale
             settled = abs(at_measure - height) < SURFACE_HEIGHT_TOLERANCE_M
             height = at_measure
         fit = fit_all(points, slopes)

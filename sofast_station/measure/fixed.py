@@ -340,8 +340,8 @@ def dot_region(image: np.ndarray, background: np.ndarray, geometry: StationGeome
     lit = np.asarray((background if white is None else white)[r0:r1, c0:c1], np.float32)
     base = 0.0 if dark is None else np.asarray(dark[r0:r1, c0:c1], np.float32)
     contrast = np.zeros((h, w), np.float32)
-    contrast[r0:r1, c0:c1] = lit - base
     part = contrast[r0:r1, c0:c1]
+    np.subtract(lit, base, out=part)
     threshold = float(settings.mask_threshold_dn)
     if dark is None:
         whole = np.asarray(background if white is None else white, np.float32)
@@ -352,7 +352,7 @@ def dot_region(image: np.ndarray, background: np.ndarray, geometry: StationGeome
     region = np.zeros((h, w), bool)
     region[r0:r1, c0:c1] = facet_region(np.zeros(counts.shape, kind), counts, threshold, settings.max_hole_px)
     nominal = outline_image_points(design, geometry.camera, geometry.fixture_to_camera)
-    checks.check_region(region, float(checks.projected_outline_mask(geometry.camera.shape, nominal).sum()),
+    checks.check_region(region, float(np.count_nonzero(checks.projected_outline_mask(geometry.camera.shape, nominal))),
                         min_area_fraction=0.5 if design.outline_known else 0.0)
     return region, contrast
 
@@ -368,7 +368,9 @@ def lit_background(image: np.ndarray, max_diameter_px: float, dark: bool = True)
     out = img.astype(np.float32)
     if min(h, w) < 64:
         return pattern_background(img, max_diameter_px, dark), (0, h, 0, w)
-    small = cv2.resize(img, (w // 4, h // 4), interpolation=cv2.INTER_AREA)
+    # (the frame cut to whole blocks of 4 x 4 first: OpenCV's block average, a third of its general area
+    # resampling's time when a side is not a multiple of 4; the last 1-3 rows or columns only widen the box)
+    small = cv2.resize(img[:h // 4 * 4, :w // 4 * 4], (w // 4, h // 4), interpolation=cv2.INTER_AREA)
     small_bg = pattern_background(small, max(max_diameter_px / 4.0, 1.0), dark)
     lit = small_bg > otsu_level(small_bg.ravel())
     rows, cols = np.flatnonzero(lit.any(axis=1)), np.flatnonzero(lit.any(axis=0))
@@ -850,7 +852,7 @@ def reduce_fixed(image: np.ndarray, dots: DotLocations, geometry: StationGeometr
         outline = pool.submit(_outline_of, contrast, region_mask, geometry, design, settings) \
             if design.outline_known else _Serial._Done((None, None))
         top = np.iinfo(img.dtype).max
-        saturated = float(np.count_nonzero(img[region_mask] >= top)) / max(int(region_mask.sum()), 1)
+        saturated = float(np.count_nonzero((img >= top) & region_mask)) / max(np.count_nonzero(region_mask), 1)
         if saturated > settings.max_saturated_fraction:
             raise CaptureError(f"{100 * saturated:.1f} % of the facet's pixels are saturated ({top} DN) in the dot "
                                "frame: lower the exposure or gain, or dim the room light")

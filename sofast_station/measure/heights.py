@@ -22,6 +22,8 @@ from functools import lru_cache
 
 import numpy as np
 
+from .kernels import bilinear, grid_divergence
+
 
 def grid_slopes(x_m, y_m, s_x, s_y, cell_m: float, extent_m=None, min_points: int = 1) -> dict:
     """Average scattered slopes into square cells.
@@ -212,20 +214,15 @@ class HeightGrid:
     heights_m: np.ndarray
 
     def at(self, x_m, y_m) -> np.ndarray:
-        h = self.heights_m
-        ny, nx = h.shape
-        u = np.clip((np.asarray(x_m, dtype=np.float64) - self.x0_m) / self.cell_m - 0.5, 0.0, nx - 1.0)
-        v = np.clip((np.asarray(y_m, dtype=np.float64) - self.y0_m) / self.cell_m - 0.5, 0.0, ny - 1.0)
-        j = np.minimum(u.astype(np.int64), max(nx - 2, 0))
-        i = np.minimum(v.astype(np.int64), max(ny - 2, 0))
-        tu, tv = u - j, v - i
-        # the four neighbours by flat index (j + 1 is in the grid but on a grid one cell wide): the same
-        # values as h[i, j], ..., in two thirds of the time (the uncertainty's reruns read it every step)
-        flat, k = h.ravel(), i * nx + j
-        dj, di = min(nx - 1, 1), min(ny - 1, 1) * nx
-        su = 1.0 - tu
-        return ((1.0 - tv) * (su * flat.take(k) + tu * flat.take(k + dj))
-                + tv * (su * flat.take(k + di) + tu * flat.take(k + (di + dj))))
+        """The heights at the points (*x_m*, *y_m*) (metres, arrays of one shape or scalars; NaN at a point
+        not finite), metres, an array of their shape."""
+        x = np.asarray(x_m, dtype=np.float64)
+        y = np.asarray(y_m, dtype=np.float64)
+        if x.shape != y.shape:
+            raise ValueError(f"x_m and y_m must have one shape, got {x.shape} and {y.shape}")
+        # one compiled pass (the same bits as numpy's clip, take and bilinear expression): the uncertainty's
+        # reruns read the grid twice a step, 120 times per capture, on a few thousand points
+        return bilinear(self.heights_m, self.x0_m, self.y0_m, self.cell_m, x.ravel(), y.ravel()).reshape(x.shape)
 
 
 @lru_cache(maxsize=16)
@@ -246,9 +243,6 @@ def integrate_full_grid(s_x, s_y, cell_m: float) -> np.ndarray:
     2 - 2 cos(pi k / n) per axis): a few milliseconds for 128 x 128 cells where the sparse solve takes a
     second. Heights have zero mean.
     """
-    # lazy: scipy.fft, ~320 ms CPU; config.py loads this (via pipeline.py) at every start
-    from scipy.fft import dctn, idctn
-
     sx = np.asarray(s_x, dtype=np.float64)
     sy = np.asarray(s_y, dtype=np.float64)
     if sx.shape != sy.shape or sx.ndim != 2 or not (np.all(np.isfinite(sx)) and np.all(np.isfinite(sy))):
@@ -261,20 +255,29 @@ def integrate_full_grid(s_x, s_y, cell_m: float) -> np.ndarray:
     rhs[:, 1:] += dx
     rhs[:-1, :] -= dy
     rhs[1:, :] += dy
+    return _solve_divergence(rhs)
+
+
+def _solve_divergence(rhs: np.ndarray) -> np.ndarray:
+    """The zero-mean heights whose Neumann Laplacian is *rhs* (:func:`integrate_full_grid`'s solve), metres."""
+    # lazy: scipy.fft, ~320 ms CPU; config.py loads this (via pipeline.py) at every start
+    from scipy.fft import dctn, idctn
+
     coef = dctn(rhs, type=2, norm="ortho", workers=1)
-    coef /= _laplacian_eigenvalues(ny, nx)
+    coef /= _laplacian_eigenvalues(*rhs.shape)
     coef[0, 0] = 0.0                                      # the mean: free, set to zero
     return idctn(coef, type=2, norm="ortho", workers=1)
 
 
-def height_grid(x_m, y_m, g_x, g_y, cells: int = 96) -> HeightGrid:
+def height_grid(x_m, y_m, g_x, g_y, cells: int = 96, model=None) -> HeightGrid:
     """The heights whose slopes are *g_x*, *g_y* at scattered points (x_m, y_m), on a grid of about *cells*
     square cells along the points' longer extent (:func:`grid_slopes`, then :func:`integrate_full_grid`).
 
     Cells no point falls in take slopes 0: beyond a facet's outline in its bounding box (a gore's corners)
     the heights are carried on flat, which leaves those inside as the masked least-squares would within
     the grid's resolution. Meant for slopes that are small departures from a model (a facet's slope
-    residuals), whose heights are what the model misses.
+    residuals), whose heights are what the model misses: *g_x*, *g_y* less the slopes of the quadratic *model*
+    (A, B, C, D, E, F; :func:`~.surface.surface_slopes`) when given.
     """
     x = np.asarray(x_m, dtype=np.float64)
     y = np.asarray(y_m, dtype=np.float64)
@@ -282,7 +285,8 @@ def height_grid(x_m, y_m, g_x, g_y, cells: int = 96) -> HeightGrid:
     span = max(x1 - x0, y1 - y0, 1e-9)                    # (np.ptp's, from the same extremes)
     cell = span / max(int(cells), 4)
     extent = (x0 - 0.5 * cell, x1 + 0.5 * cell, y0 - 0.5 * cell, y1 + 0.5 * cell)
-    grid = grid_slopes(x, y, g_x, g_y, cell, extent_m=extent)
-    sx = np.where(np.isfinite(grid["s_x"]), grid["s_x"], 0.0)
-    sy = np.where(np.isfinite(grid["s_y"]), grid["s_y"], 0.0)
-    return HeightGrid(grid["extent_m"][0], grid["extent_m"][2], cell, integrate_full_grid(sx, sy, cell))
+    # grid_slopes' cells on that extent, its empty cells' slopes 0, and integrate_full_grid's right-hand side,
+    # in one compiled pass (the same bits; the uncertainty's reruns grid a few thousand points 60 times)
+    x0, x1, y0, y1 = extent
+    shape = (max(1, int(math.ceil((y1 - y0) / cell - 1e-9))), max(1, int(math.ceil((x1 - x0) / cell - 1e-9))))
+    return HeightGrid(x0, y0, cell, _solve_divergence(grid_divergence(x, y, g_x, g_y, x0, y0, cell, shape, model)))

@@ -14,6 +14,10 @@ SIGNATURES: dict[str, list[str]] = {
     "_atan_into": [
         "f8:1C f8:1C",
     ],
+    "_bilinear_into": [
+        "f8:2C f8 f8 f8 f8:1C f8:1C f8:1C",
+        "f8:2Cr f8 f8 f8 f8:1C f8:1C f8:1C",
+    ],
     "_cleaned_into": [
         "f4:1C f4:1C f4:1C f4:1C bool f4:1C f4:1C f4 f4 f4:1C",
     ],
@@ -30,13 +34,29 @@ SIGNATURES: dict[str, list[str]] = {
         "u1:2C f8:2C f8 bool i8 f8:2C b1:1C f8:3C f8:1C f8:1C f8:1C",
         "u2:2C f8:2C f8 bool i8 f8:2C b1:1C f8:3C f8:1C f8:1C f8:1C",
     ],
+    "_fill_holes_into": [
+        "i4:2C i8 i8:1C b1:1C b1:2A",
+        "i4:2C i8 i8:1C b1:1C b1:2C",
+    ],
     "_gather_runs_into": [
         "u2:2C i8:1C i8:1C i8:1C u2:2C",
         "u1:2C i8:1C i8:1C i8:1C u1:2C",
     ],
+    "_grid_divergence_into": [
+        "f8:1C f8:1C f8:1C f8:1C f8:1C f8 f8 f8 f8 f8:2C f8:2C f8:2C f8:2C",
+    ],
     "_grid_screen_into": [
         "f8:1C f8:1C f8:1C f8:1C f8:3C b1:2C f8 f8:2C f8:1C f8:2C",
         "f8:1C f8:1C f8:1C f8:1C f8:3C b1:2C f8 f8:2F f8:1C f8:2C",
+    ],
+    "_label_moments_into": [
+        "i4:2C f8:2C",
+    ],
+    "_laplacian_counts_into": [
+        "u1:2A b1:2A i8:1C",
+        "u2:2A b1:2A i8:1C",
+        "u1:2C b1:2C i8:1C",
+        "u2:2C b1:2C i8:1C",
     ],
     "_lattice_walk_into": [
         "f8:2C i8 f8:2C f8 f8 f8:3C i8:2C",
@@ -61,6 +81,10 @@ SIGNATURES: dict[str, list[str]] = {
     "_phase_counts_into": [
         "u2:2C f4:1C f4:1C f4:1C",
         "u1:2C f4:1C f4:1C f4:1C",
+    ],
+    "_reflect_blend_into": [
+        "f8:1A f8:1A f8:1A f8:1A f8:1A f8:1A f8:2C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C",
+        "f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:2C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C",
     ],
     "_reflect_into": [
         "f8:1A f8:1A f8:1A f8:1A f8:1A f8:1A f8:2C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C",

@@ -167,40 +167,78 @@ def _law_of_reflection(px, py, pz, cx, cy, cz, tx, ty, tz):
     return -(nx / nz), -(ny / nz)
 
 
+@kernel(inline="always", **_JIT)
+def _reflect_one(rot, t0, t1_, t2_, ox, oy, oz, k_x, k_y, qc, a_, b_, e_, r0, r1, r2, w0, w1, w2):
+    """One ray's point on the quadratic and the law of reflection's slopes there (:func:`reflect`)."""
+    ux, uy, uz = _rotate_shift(rot, r0, r1, r2, 0.0, 0.0, 0.0)
+    tx, ty, tz = _rotate_shift(rot, w0, w1, w2, t0, t1_, t2_)
+    # intersect_quadratic
+    qa = (ux * a_ * ux + uy * b_ * uy) + ux * e_ * uy
+    qb = (ux * k_x + uy * k_y) - uz
+    disc = qb * qb - qa * 4.0 * qc
+    miss = disc < 0.0
+    root = math.sqrt(disc if (disc >= 0.0 or disc != disc) else 0.0)
+    q = (math.copysign(root, qb) + qb) * -0.5
+    t1 = qc / q
+    t2 = q / qa
+    t1 = t1 if t1 > 0.0 else np.inf
+    t2 = t2 if t2 > 0.0 else np.inf
+    t = t2 if (t2 < t1 or t2 != t2) else t1
+    if miss or not np.isfinite(t):
+        t = np.nan
+    px = t * ux + ox
+    py = t * uy + oy
+    pz = t * uz + oz
+    s_x, s_y = _law_of_reflection(px, py, pz, ox, oy, oz, tx, ty, tz)
+    return px, py, pz, s_x, s_y
+
+
 @kernel(**_JIT)
 def _reflect_into(r0, r1, r2, w0_, w1_, w2_, rot, trans, origin, qk, coeffs, p0, p1, p2, s0, s1):
-    a_ = coeffs[0]
-    b_ = coeffs[1]
-    e_ = coeffs[4]
-    ox = origin[0]
-    oy = origin[1]
-    oz = origin[2]
+    a_, b_, e_ = coeffs[0], coeffs[1], coeffs[4]
+    ox, oy, oz = origin[0], origin[1], origin[2]
     t0, t1_, t2_ = trans[0], trans[1], trans[2]
     k_x, k_y, qc = qk[0], qk[1], qk[2]
     for j in range(r0.size):
-        ux, uy, uz = _rotate_shift(rot, r0[j], r1[j], r2[j], 0.0, 0.0, 0.0)
-        tx, ty, tz = _rotate_shift(rot, w0_[j], w1_[j], w2_[j], t0, t1_, t2_)
-        # intersect_quadratic
-        qa = (ux * a_ * ux + uy * b_ * uy) + ux * e_ * uy
-        qb = (ux * k_x + uy * k_y) - uz
-        disc = qb * qb - qa * 4.0 * qc
-        miss = disc < 0.0
-        root = math.sqrt(disc if (disc >= 0.0 or disc != disc) else 0.0)
-        q = (math.copysign(root, qb) + qb) * -0.5
-        t1 = qc / q
-        t2 = q / qa
-        t1 = t1 if t1 > 0.0 else np.inf
-        t2 = t2 if t2 > 0.0 else np.inf
-        t = t2 if (t2 < t1 or t2 != t2) else t1
-        if miss or not np.isfinite(t):
-            t = np.nan
-        px = t * ux + ox
-        py = t * uy + oy
-        pz = t * uz + oz
-        p0[j] = px
-        p1[j] = py
-        p2[j] = pz
-        s0[j], s1[j] = _law_of_reflection(px, py, pz, ox, oy, oz, tx, ty, tz)
+        p0[j], p1[j], p2[j], s0[j], s1[j] = _reflect_one(rot, t0, t1_, t2_, ox, oy, oz, k_x, k_y, qc, a_, b_, e_,
+                                                         r0[j], r1[j], r2[j], w0_[j], w1_[j], w2_[j])
+
+
+@kernel(**_JIT)
+def _reflect_blend_into(r0, r1, r2, w0_, w1_, w2_, rot, trans, origin, qk, coeffs, scale, p0, p1, p2, s0, s1):
+    a_, b_, e_ = coeffs[0], coeffs[1], coeffs[4]
+    ox, oy, oz = origin[0], origin[1], origin[2]
+    t0, t1_, t2_ = trans[0], trans[1], trans[2]
+    k_x, k_y, qc = qk[0], qk[1], qk[2]
+    missed = 0
+    for j in range(r0.size):
+        px, py, pz, sx, sy = _reflect_one(rot, t0, t1_, t2_, ox, oy, oz, k_x, k_y, qc, a_, b_, e_,
+                                          r0[j], r1[j], r2[j], w0_[j], w1_[j], w2_[j])
+        if not (np.isfinite(sx) and np.isfinite(sy)):
+            missed += 1
+        # base + (moved - base) * scale, numpy's order
+        c = scale[j]
+        p0[j] = p0[j] + (px - p0[j]) * c
+        p1[j] = p1[j] + (py - p1[j]) * c
+        p2[j] = p2[j] + (pz - p2[j]) * c
+        s0[j] = s0[j] + (sx - s0[j]) * c
+        s1[j] = s1[j] + (sy - s1[j]) * c
+    return missed
+
+
+def _reflect_args(rays_cam, screen_cam_m, rotation, translation, coeffs, origin, lo, hi) -> list:
+    """:func:`reflect`'s kernel arguments before the outputs: the columns lo:hi, the frame, the quadratic's
+    coefficients of the ray parameter."""
+    a_, b_, c_, d_, e_, f_ = (float(v) for v in coeffs)
+    origin = translation if origin is None else origin
+    ox, oy, oz = (float(v) for v in origin)
+    qk = np.array([2.0 * a_ * ox + c_ + e_ * oy, 2.0 * b_ * oy + d_ + e_ * ox,
+                   a_ * ox * ox + b_ * oy * oy + c_ * ox + d_ * oy + e_ * ox * oy + f_ - oz])
+    sl = slice(lo, hi)        # (slices: a loop over 0..n-1 vectorises, one over lo..hi does not)
+    return [*(c[sl] for c in rays_cam), *(c[sl] for c in screen_cam_m),
+            np.array(rotation, dtype=np.float64), np.array(translation, dtype=np.float64),   # (writable
+            np.array([ox, oy, oz]), qk,                                                       # copies)
+            np.asarray(coeffs, dtype=np.float64)]
 
 
 def reflect(rays_cam: np.ndarray, screen_cam_m: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
@@ -215,16 +253,23 @@ def reflect(rays_cam: np.ndarray, screen_cam_m: np.ndarray, rotation: np.ndarray
     The arithmetic of :func:`~.camera.to_frame`, :func:`~.surface.intersect_quadratic` and
     :func:`~.surface.normal_slopes` in the same order, in one pass: the same bits (tested). With the
     identity rotation and a zero translation, those of the last two alone."""
-    a_, b_, c_, d_, e_, f_ = (float(v) for v in coeffs)
-    origin = translation if origin is None else origin
-    ox, oy, oz = (float(v) for v in origin)
-    qk = np.array([2.0 * a_ * ox + c_ + e_ * oy, 2.0 * b_ * oy + d_ + e_ * ox,
-                   a_ * ox * ox + b_ * oy * oy + c_ * ox + d_ * oy + e_ * ox * oy + f_ - oz])
-    sl = slice(lo, hi)        # (slices: a loop over 0..n-1 vectorises, one over lo..hi does not)
-    _reflect_into(*(c[sl] for c in rays_cam), *(c[sl] for c in screen_cam_m),
-                  np.array(rotation, dtype=np.float64), np.array(translation, dtype=np.float64),   # (writable
-                  np.array([ox, oy, oz]), qk,                                                       # copies)
-                  np.asarray(coeffs, dtype=np.float64), *(c[sl] for c in points), *(c[sl] for c in slopes))
+    sl = slice(lo, hi)
+    _reflect_into(*_reflect_args(rays_cam, screen_cam_m, rotation, translation, coeffs, origin, lo, hi),
+                  *(c[sl] for c in points), *(c[sl] for c in slopes))
+
+
+def reflect_blend(rays_cam: np.ndarray, screen_cam_m: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
+                  coeffs: np.ndarray, scale: np.ndarray, points: np.ndarray, slopes: np.ndarray, lo: int, hi: int,
+                  origin: np.ndarray | None = None) -> int:
+    """:func:`reflect` with the model *coeffs*, each of the columns lo:hi of *points* (3, N) and *slopes*
+    (2, N) moved toward it in place: ``base + (reflected - base) * scale`` (*scale* (N,)), numpy's
+    arithmetic in one pass, the same bits (tested); the intersection with a model raised a little, and
+    each pixel moved to its own height above the model to first order (:func:`~.boresight.close_on_all_points`).
+    Returns how many of those columns' reflected slopes are not finite (rays that miss)."""
+    sl = slice(lo, hi)
+    return int(_reflect_blend_into(*_reflect_args(rays_cam, screen_cam_m, rotation, translation, coeffs, origin,
+                                                  lo, hi), scale[sl], *(c[sl] for c in points),
+                                   *(c[sl] for c in slopes)))
 
 
 @kernel(**_JIT)
@@ -523,6 +568,89 @@ def label_areas(labels: np.ndarray, n_labels: int) -> np.ndarray:
     _count_labels_into(np.ascontiguousarray(labels).ravel(), counts)
     return counts
 
+
+@kernel(**_JIT)
+def _label_moments_into(labels, sums):
+    h, w = labels.shape
+    for r in range(h):
+        for c in range(w):
+            k = labels[r, c]
+            if k != 0:
+                sums[0, k] += 1.0
+                sums[1, k] += r
+                sums[2, k] += c
+                sums[3, k] += r * r
+                sums[4, k] += c * c
+                sums[5, k] += r * c
+
+
+def label_moments(labels: np.ndarray, n_labels: int) -> np.ndarray:
+    """Per label 1 .. n_labels - 1 of an OpenCV labelling (int32, 2-D), its pixels' count and the sums of
+    their row, column, row^2, column^2 and row x column (pixels; label 0's all 0): (6, n_labels), each sum
+    taken in raster order, so the same bits as np.bincount of the labelled pixels (tested), in one pass."""
+    sums = np.zeros((6, n_labels))
+    _label_moments_into(np.ascontiguousarray(labels, dtype=np.int32), sums)
+    return sums
+
+
+@kernel(**_JIT)
+def _fill_holes_into(labels, max_area, area, edge, region):
+    h, w = labels.shape
+    for r in range(h):
+        for c in range(w):
+            k = labels[r, c]
+            area[k] += 1
+            if r == 0 or c == 0 or r == h - 1 or c == w - 1:
+                edge[k] = True
+    for r in range(h):
+        for c in range(w):
+            k = labels[r, c]
+            if k != 0 and not edge[k] and area[k] <= max_area:
+                region[r, c] = True
+
+
+def fill_holes(labels: np.ndarray, n_labels: int, max_area_px: int, region: np.ndarray) -> None:
+    """Set in *region* (bool, the labelling's shape) the pixels of every label 1 .. n_labels - 1 of *labels*
+    (an OpenCV labelling, int32) that touches none of the box's four edges and has at most *max_area_px*
+    pixels: a region's holes, from the labelling of its box's complement, in one pass without OpenCV's
+    statistics."""
+    area = np.zeros(n_labels, dtype=np.int64)
+    edge = np.zeros(n_labels, dtype=np.bool_)
+    _fill_holes_into(np.ascontiguousarray(labels, dtype=np.int32), int(max_area_px), area, edge, region)
+
+@kernel(**_JIT)
+def _laplacian_counts_into(img, mask, hist):
+    rows = (img.shape[0] - 1) // 2
+    cols = (img.shape[1] - 1) // 2
+    n = 0
+    for i in range(rows):
+        r = 1 + 2 * i
+        for j in range(cols):
+            c = 1 + 2 * j
+            if mask[r, c]:
+                v = np.int64(img[r, c])
+                lap = (((4 * v - np.int64(img[r - 1, c])) - np.int64(img[r + 1, c])) - np.int64(img[r, c - 1])) \
+                    - np.int64(img[r, c + 1])
+                hist[abs(lap)] += 1
+                n += 1
+    return n
+
+
+def laplacian_median(image: np.ndarray, mask: np.ndarray) -> float:
+    """The median of the absolute 4-neighbour Laplacian of a whole-count image (uint8 or uint16, 2-D) at every
+    other row and column (rows and columns 1, 3, ..., inside the border) where *mask* (bool, the image's
+    shape) is set; 0.0 when none is. Whole counts give whole Laplacians, so they are counted in a histogram
+    (one pass, no copy) and the median is read from it: the same value as numpy's median of them in float32
+    (the two middle values' mean, exact below 2^23; tested)."""
+    img = np.asarray(image)
+    hist = np.zeros(4 * int(np.iinfo(img.dtype).max) + 1, dtype=np.int64)
+    n = _laplacian_counts_into(img, np.asarray(mask, dtype=np.bool_), hist)
+    if n == 0:
+        return 0.0
+    cum = np.cumsum(hist)
+    high = int(np.searchsorted(cum, n // 2 + 1))            # the (n // 2)-th value (from 0)
+    low = high if n % 2 else int(np.searchsorted(cum, n // 2))
+    return 0.5 * (low + high)
 
 #: Histogram bins for a dot's ring of whole counts (:func:`_dot_centroids_into`): a ring spanning more counts
 #: (a 16-bit frame's bright edge) takes numpy's median instead.
@@ -1516,6 +1644,106 @@ def irls_bisquare(c0, c1, c2, target, w, scale, tolerance, max_iterations, sigma
     return 0, sigma
 
 
+@kernel(**_JIT)
+def _grid_divergence_into(x, y, g_x, g_y, model, x0, y0, cell, half_cell, count, s_x, s_y, rhs):
+    ny, nx = rhs.shape
+    m0, m1, m2, m3, m4 = model[0], model[1], model[2], model[3], model[4]
+    # grid_slopes' binning: each finite point's slopes (less the model's, surface_slopes' arithmetic) summed
+    # into its cell in the points' order (bincount's)
+    for k in range(x.size):
+        xk, yk = x[k], y[k]
+        a = g_x[k] - ((m0 * xk + m1) + m2 * yk)
+        b = g_y[k] - ((m3 * yk + m4) + m2 * xk)
+        if not (np.isfinite(xk) and np.isfinite(yk) and np.isfinite(a) and np.isfinite(b)):
+            continue
+        fx = math.floor((xk - x0) / cell)
+        fy = math.floor((yk - y0) / cell)
+        if fx >= 0.0 and fx < nx and fy >= 0.0 and fy < ny:
+            i, j = int(fy), int(fx)
+            count[i, j] += 1.0
+            s_x[i, j] += a
+            s_y[i, j] += b
+    # the cells' mean slopes, 0 where no point fell (or the mean is not finite), as height_grid fills them
+    for i in range(ny):
+        for j in range(nx):
+            c = count[i, j]
+            mx = s_x[i, j] / c if c >= 1.0 else np.nan
+            my = s_y[i, j] / c if c >= 1.0 else np.nan
+            s_x[i, j] = mx if np.isfinite(mx) else 0.0
+            s_y[i, j] = my if np.isfinite(my) else 0.0
+    # integrate_full_grid's divergence of the trapezoid differences, each cell's four terms in numpy's order
+    for i in range(ny):
+        for j in range(nx):
+            r = 0.0
+            if j < nx - 1:
+                r = r - half_cell * (s_x[i, j] + s_x[i, j + 1])
+            if j >= 1:
+                r = r + half_cell * (s_x[i, j - 1] + s_x[i, j])
+            if i < ny - 1:
+                r = r - half_cell * (s_y[i, j] + s_y[i + 1, j])
+            if i >= 1:
+                r = r + half_cell * (s_y[i - 1, j] + s_y[i, j])
+            rhs[i, j] = r
+
+
+def grid_divergence(x: np.ndarray, y: np.ndarray, g_x: np.ndarray, g_y: np.ndarray, x0: float, y0: float,
+                    cell: float, shape: tuple, model=None) -> np.ndarray:
+    """:func:`~.heights.grid_slopes`' cells' mean slopes of the points (x, y) (metres; slopes *g_x*, *g_y*,
+    less those of the quadratic *model* (A, B, C, D, E, F) when given, :func:`~.surface.surface_slopes`'
+    arithmetic) on the grid of *shape* (ny, nx) cells of side *cell* from (*x0*, *y0*), the empty cells'
+    taken as 0, and :func:`~.heights.integrate_full_grid`'s right-hand side of them (the trapezoid
+    differences' divergence, metres), in one compiled pass: the same bits as numpy's chain (tested). (ny, nx)."""
+    args = [np.ascontiguousarray(v, dtype=np.float64) for v in (x, y, g_x, g_y)]
+    # 2A, C, E, 2B, D: a zero model subtracts exactly 0 (s - (+0.0) is s)
+    a, b, c, d, e = (0.0,) * 5 if model is None else (float(v) for v in tuple(model)[:5])
+    terms = np.array([2.0 * a, c, e, 2.0 * b, d])
+    count, s_x, s_y = (np.zeros(shape) for _ in range(3))
+    rhs = np.empty(shape)
+    _grid_divergence_into(*args, terms, float(x0), float(y0), float(cell), float(cell) * 0.5, count, s_x, s_y, rhs)
+    return rhs
+
+
+@kernel(**_JIT)
+def _bilinear_into(h, x0, y0, cell, x, y, out):
+    ny, nx = h.shape
+    top_u, top_v = nx - 1.0, ny - 1.0
+    last_j, last_i = max(nx - 2, 0), max(ny - 2, 0)
+    dj, di = min(nx - 1, 1), min(ny - 1, 1)
+    for k in range(x.size):
+        u = (x[k] - x0) / cell - 0.5
+        v = (y[k] - y0) / cell - 0.5
+        if not (np.isfinite(u) and np.isfinite(v)):
+            out[k] = np.nan
+            continue
+        # numpy's clip: the larger of (u, 0), then the smaller of (that, top)
+        u = u if u > 0.0 else 0.0
+        u = u if u < top_u else top_u
+        v = v if v > 0.0 else 0.0
+        v = v if v < top_v else top_v
+        j = min(int(u), last_j)
+        i = min(int(v), last_i)
+        tu, tv = u - j, v - i
+        su = 1.0 - tu
+        out[k] = ((1.0 - tv) * (su * h[i, j] + tu * h[i, j + dj])
+                  + tv * (su * h[i + di, j] + tu * h[i + di, j + dj]))
+
+
+def bilinear(heights_m: np.ndarray, x0: float, y0: float, cell: float, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """:class:`~.heights.HeightGrid`'s bilinear reading of the (ny, nx) *heights_m* on the cell centres
+    (x0 + (j + 1/2) cell, y0 + (i + 1/2) cell), clamped at the outer ones, at the 1-D points (*x*, *y*),
+    metres, in one compiled pass: the same bits as its numpy expression (tested); NaN at a point not finite
+    (where numpy's indexing would fail)."""
+    h = np.ascontiguousarray(heights_m, dtype=np.float64)
+    x = np.ascontiguousarray(x, dtype=np.float64)
+    y = np.ascontiguousarray(y, dtype=np.float64)
+    if h.ndim != 2 or 0 in h.shape or x.ndim != 1 or x.shape != y.shape:
+        raise ValueError(f"bilinear takes a non-empty 2-D grid and two 1-D arrays of one length, got shapes "
+                         f"{h.shape}, {x.shape} and {y.shape}")
+    out = np.empty(x.size)
+    _bilinear_into(h, float(x0), float(y0), float(cell), x, y, out)
+    return out
+
+
 def halves(pool, fn, n: int, *args) -> None:
     """``fn(*args, lo, hi)`` over 0:n, the first half on *pool* (an executor, or None) beside the second:
     for the element-wise kernels here, the same values on one thread or two."""
@@ -1535,6 +1763,7 @@ def warm_up() -> None:
         phase_counts(np.zeros((4, 1), dtype=dtype), *out)
     one = np.ones((3, 1))
     reflect(one, one, np.eye(3), np.zeros(3), np.zeros(6), np.empty((3, 1)), np.empty((2, 1)), 0, 1)
+    reflect_blend(one, one, np.eye(3), np.zeros(3), np.zeros(6), np.ones(1), np.zeros((3, 1)), np.zeros((2, 1)), 0, 1)
     model_residuals(x, x, x, x, [np.zeros(6)] * 2, np.ones(15), np.empty((6, 2)), 0, 2)
     cubic_sums(x, x, x, x, 0.0, 0.0, 1.0, [(0, 0)])
     parabola_sums(x, x, x, x, 0.0, 0.0)
@@ -1555,6 +1784,10 @@ def warm_up() -> None:
     to_frame_every(np.zeros((3, 2)), np.eye(3), np.zeros(3), 1)
     trim_rounds(x, x, 1.0, 1.0, 1.0, 1, 0.0)
     label_areas(np.zeros((2, 2), dtype=np.int32), 1)
+    label_moments(np.zeros((2, 2), dtype=np.int32), 1)
+    for dtype in (np.uint8, np.uint16):
+        laplacian_median(np.zeros((5, 5), dtype=dtype)[:4, :4], np.ones((5, 5), dtype=np.bool_)[:4, :4])
+    fill_holes(np.zeros((2, 2), dtype=np.int32), 1, 1, np.zeros((3, 3), dtype=np.bool_)[:2, :2])
     for dtype in (np.uint8, np.uint16):
         dot_centroids(np.zeros((4, 4), dtype=dtype), np.zeros((1, 2)), 1.0, True)
     lattice_walk(np.zeros((1, 2)), 0, np.eye(4, 2), 0.3, 1.0, 1)
@@ -1568,3 +1801,5 @@ def warm_up() -> None:
                        np.eye(3), np.zeros(3))
     minus_models(x, np.ones((1, 2)), np.ones(1))
     minus_models(x, np.ones((1, 2)), np.ones(1), np.ones((4, 2)), np.ones(4))
+    grid_divergence(x, x, x, x, 0.0, 0.0, 1.0, (2, 2))
+    bilinear(np.zeros((2, 2)), 0.0, 0.0, 1.0, x, x)

@@ -8,7 +8,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from .kernels import label_areas
+from .kernels import fill_holes, label_areas
 
 
 def facet_region(dark: np.ndarray, white: np.ndarray, threshold_dn: float,
@@ -54,10 +54,8 @@ def facet_region(dark: np.ndarray, white: np.ndarray, threshold_dn: float,
     c0, r0 = int(cols[0]), int(rows[0])
     bw0, bh0 = int(cols[-1]) - c0 + 1, int(rows[-1]) - r0 + 1
     box = region[r0:r0 + bh0, c0:c0 + bw0]
-    n_h, labels_h, stats_h, _ = cv2.connectedComponentsWithStats((~box).view(np.uint8), connectivity=4)
-    x, y, bw, bh, area = (stats_h[:, k] for k in range(5))
-    touches_border = (x == 0) | (y == 0) | (x + bw == bw0) | (y + bh == bh0)
-    fill = ~touches_border & (area <= max_hole_px)
-    fill[0] = False
-    box |= fill[labels_h]
+    # (the labelling alone, the holes' areas and whether they touch the box's edge by one compiled pass:
+    # OpenCV's statistics cost three times the labelling)
+    n_h, labels_h = cv2.connectedComponents((~box).view(np.uint8), connectivity=4)
+    fill_holes(labels_h, n_h, max_hole_px, box)
     return region

@@ -39,7 +39,7 @@ from .camera import pixel_rays, project, to_frame
 from .fit import SURFACES, CubicFit, ParabolaFit, fit_cubic, fit_parabola, fit_plane, reweight_parabola
 from .heights import height_grid
 from .jumps import isolated_jumps
-from .kernels import consistency_set, gather_runs, halves, model_residuals, reflect, to_frame_every
+from .kernels import consistency_set, gather_runs, halves, model_residuals, reflect, reflect_blend, to_frame_every
 from .mask import facet_region
 from .metrics import focal_length_m, neighbour_difference_ms, neighbour_pairs, principal_axes, rms_summary
 from .phase import (
@@ -58,7 +58,6 @@ from .pose import (departure_from_design_m, fix_range, mask_centroid_px, placeme
 from .screen import FlatScreen, InterpolatedScreen, ScreenModel
 from .slope_noise import slope_covariance
 from .stats import median
-from .surface import surface_slopes
 
 
 @dataclass(frozen=True)
@@ -443,7 +442,7 @@ def find_region(frames: np.ndarray, fringes: FringeSet, geometry: StationGeometr
         nominal_outline = outline_image_points(design, cam, geometry.fixture_to_camera)
         # (a mirror of unknown outline: its outline_m is only its expected extent, so its area is a guess;
         # the region must still be whole and in view)
-        checks.check_region(region, float(checks.projected_outline_mask(cam.shape, nominal_outline).sum()),
+        checks.check_region(region, float(np.count_nonzero(checks.projected_outline_mask(cam.shape, nominal_outline))),
                             min_area_fraction=0.5 if design.outline_known else 0.0)
     except Exception:
         order.result()          # frames out of order explain the rest: that is the fault to report
@@ -835,6 +834,19 @@ def shape_and_boresight(rays: Rays, pose: CornerPoseResult, design: FacetDesign,
             raise AnalysisError(f"{int((~finite).sum())} pixel rays miss the fitted surface; the fit diverged")
         return points, slopes
 
+    def raise_all(motion, coefficients, points, slopes, scale):
+        # reduce_all's intersection with *coefficients*, each pixel's point and slope moved toward it in place
+        # (close_on_all_points' first-order move to its height), in one compiled pass per half
+        r = motion.rotation
+        shift = motion.pivot_m - r @ motion.pivot_m + np.array([0.0, 0.0, motion.t_z_m])
+        args = (rays.rays, rays.screen_cam_m, r @ camera_to_facet.rotation, r @ camera_to_facet.translation + shift,
+                coefficients, scale, points, slopes)
+        mid = n // 2 if split is not None and n >= 2048 else 0
+        first = split.submit(reflect_blend, *args, 0, mid) if mid else None
+        missed = reflect_blend(*args, mid, n) + (first.result() if first is not None else 0)
+        if missed:
+            raise AnalysisError(f"{missed} pixel rays miss the fitted surface; the fit diverged")
+
     heights_of = None
     r = subsample.rays
     inclination = float(np.mean(np.hypot(r[0], r[1]) / np.maximum(np.abs(r[2]), 1e-12))) if r.shape[1] else 0.0
@@ -844,7 +856,7 @@ def shape_and_boresight(rays: Rays, pose: CornerPoseResult, design: FacetDesign,
     solution, points, slopes, fit = close_on_all_points(
         solution, design, measured_distance_m, subsample, reduce_all,
         lambda p, s: all_points_parabola(p, s, solution.fit, settings, pool), settings.max_iterations,
-        heights_of=heights_of)
+        heights_of=heights_of, raise_all=raise_all)
     if start is not None:
         solution = dataclasses.replace(solution, subsample_coefficients=start.subsample_coefficients)
     to_moved = solution.motion.as_pose().compose(camera_to_facet)
@@ -869,8 +881,8 @@ def surface_heights(points: np.ndarray, slopes: np.ndarray, coefficients: np.nda
     x, y = points[0], points[1]
     step = max(1, x.size // HEIGHT_POINTS)
     cells = int(min(96, max(8, np.sqrt(x.size / step / HEIGHT_POINTS_PER_CELL))))
-    mx, my = surface_slopes(coefficients, x[::step], y[::step])
-    grid = height_grid(x[::step], y[::step], slopes[0, ::step] - mx, slopes[1, ::step] - my, cells=cells)
+    # the slope residuals from the model formed as they are gridded (surface_slopes' arithmetic, one pass)
+    grid = height_grid(x[::step], y[::step], slopes[0, ::step], slopes[1, ::step], cells=cells, model=coefficients)
     at_points = grid.at(x, y)
     mean = float(np.sum(at_points) / at_points.size)
     at_points -= mean

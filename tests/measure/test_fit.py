@@ -140,3 +140,24 @@ def test_one_weighted_pass_is_the_same_on_two_threads():
         two = reweight_parabola(x, y, sx, sy, sub, pool=pool)
     one = reweight_parabola(x, y, sx, sy, sub)
     assert one == two and one.sigma == two.sigma
+
+
+def test_the_paired_solve_is_two_single_solves_bit_for_bit():
+    """fit_parabola's two normal equations solved together (one stacked solve and condition number) give
+    _solve_scaled's bits for each; a singular or ill-conditioned pair raises what the single solves raise."""
+    from sofast_station.measure.fit import _solve_scaled, _solve_scaled_pair
+
+    rng = np.random.default_rng(61)
+    for _ in range(50):
+        a = rng.normal(size=(2, 40, 3)) * rng.uniform(0.01, 10.0, size=(2, 1, 3))
+        grams, rhs = np.swapaxes(a, 1, 2) @ a, rng.normal(size=(2, 3))
+        scales = np.sqrt(np.einsum("kij,kij->kj", a, a) / 40)
+        ref = np.array([_solve_scaled(grams[k], rhs[k], scales[k]) for k in range(2)])
+        assert np.array_equal(_solve_scaled_pair(grams, rhs, scales), ref)
+    singular = grams.copy()
+    singular[1] = 0.0
+    ill = grams.copy()
+    ill[0] = np.outer([1.0, 2.0, 3.0], [1.0, 2.0, 3.0]) + 1e-14 * np.eye(3)
+    for bad, what in ((singular, "singular"), (ill, "ill-conditioned")):
+        with pytest.raises(AnalysisError, match=what):
+            _solve_scaled_pair(bad, rhs, np.ones((2, 3)))

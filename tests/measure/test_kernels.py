@@ -12,7 +12,8 @@ from sofast_station.measure import kernels
 from sofast_station.measure.camera import to_frame
 from sofast_station.measure.fit import CUBIC_TERMS, CubicFit
 from sofast_station.measure.phase import phase_and_modulation
-from sofast_station.measure.surface import intersect_quadratic, normal_slopes, surface_slopes_of_points
+from sofast_station.measure.surface import (intersect_quadratic, normal_slopes, surface_slopes,
+                                           surface_slopes_of_points)
 
 
 def _ulps(got: np.ndarray, ref: np.ndarray) -> np.ndarray:
@@ -90,6 +91,30 @@ def test_reflect_gives_numpys_chain_bits():
     assert np.isnan(points_ref).any()
     np.testing.assert_array_equal(points, points_ref)
     np.testing.assert_array_equal(slopes, slopes_ref)
+
+
+def test_reflect_blend_is_reflect_then_numpys_move_bit_for_bit():
+    """Points and slopes moved in place toward the intersection with a raised model, by a scale per point
+    (close_on_all_points' move to each pixel's height): reflect's bits, then numpy's base + (up - base) *
+    scale, over two halves as on the pool; the rays that miss are counted."""
+    rng = np.random.default_rng(19)
+    rays, screen, pose = _random_assembly(rng, 30_000)
+    rays[:, :7] = (np.array([0.9, 0.0, 0.1]) / np.hypot(0.9, 0.1))[:, None]   # they miss
+    coeffs = np.array([0.047, 0.046, 0.001, -0.002, 0.0005, 0.0])
+    n = rays.shape[1]
+    base_p, base_s = np.empty((3, n)), np.empty((2, n))
+    kernels.reflect(rays, screen, pose.rotation, pose.translation, coeffs, base_p, base_s, 0, n)
+    raised = coeffs + [0, 0, 0, 0, 0, 1e-5]
+    up_p, up_s = np.empty((3, n)), np.empty((2, n))
+    kernels.reflect(rays, screen, pose.rotation, pose.translation, raised, up_p, up_s, 0, n)
+    scale = rng.normal(0.0, 2.0, n)
+    ref_p, ref_s = base_p + (up_p - base_p) * scale, base_s + (up_s - base_s) * scale
+    p, sl = base_p.copy(), base_s.copy()
+    missed = sum(kernels.reflect_blend(rays, screen, pose.rotation, pose.translation, raised, scale, p, sl, lo, hi)
+                 for lo, hi in ((0, n // 2), (n // 2, n)))
+    assert missed == int((~(np.isfinite(up_s[0]) & np.isfinite(up_s[1]))).sum()) == 7
+    np.testing.assert_array_equal(p, ref_p)
+    np.testing.assert_array_equal(sl, ref_s)
 
 
 def test_model_residuals_are_numpys_to_the_last_bits():
@@ -466,3 +491,169 @@ def test_dot_centroids_ring_background_and_scatter_are_numpys_median_and_mad():
             bg = kernels._counted_median(hist, span, 17.0, n)
             assert bg == np.median(values), (n, span)
             assert kernels._counted_mad(hist, span, 17.0, n, bg) == np.median(np.abs(values - bg)), (n, span)
+
+
+def _numpy_bilinear(h: np.ndarray, x0: float, y0: float, cell: float, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """HeightGrid.at as it was in numpy (clip, truncate, four takes by flat index), which the kernel replaces."""
+    ny, nx = h.shape
+    u = np.clip((x - x0) / cell - 0.5, 0.0, nx - 1.0)
+    v = np.clip((y - y0) / cell - 0.5, 0.0, ny - 1.0)
+    j = np.minimum(u.astype(np.int64), max(nx - 2, 0))
+    i = np.minimum(v.astype(np.int64), max(ny - 2, 0))
+    tu, tv = u - j, v - i
+    flat, k = h.ravel(), i * nx + j
+    dj, di = min(nx - 1, 1), min(ny - 1, 1) * nx
+    su = 1.0 - tu
+    return ((1.0 - tv) * (su * flat.take(k) + tu * flat.take(k + dj))
+            + tv * (su * flat.take(k + di) + tu * flat.take(k + (di + dj))))
+
+
+@pytest.mark.parametrize("shape", [(29, 31), (1, 7), (6, 1), (1, 1), (2, 2)])
+def test_bilinear_is_numpys_clip_and_takes_bit_for_bit(shape):
+    """Random heights read at every cell centre, at random points inside and beyond the outer centres
+    (clamped), on grids one cell wide or high too."""
+    rng = np.random.default_rng(31)
+    h = rng.normal(0.0, 1e-5, shape)
+    x0, y0, cell = -0.61, 0.37, 0.043
+    ny, nx = shape
+    # every cell centre, the outer ones' edges exactly, then random points inside and beyond
+    centres = np.meshgrid(x0 + (np.arange(nx + 1) + 0.5) * cell, y0 + (np.arange(ny + 1) + 0.5) * cell)
+    cx, cy = (g.ravel() for g in centres)
+    x = np.concatenate([cx, [x0, x0 - cell], rng.uniform(x0 - 0.2, x0 + (nx + 4) * cell, 4000)])
+    y = np.concatenate([cy, [y0 - cell, y0], rng.uniform(y0 - 0.2, y0 + (ny + 4) * cell, 4000)])
+    got = kernels.bilinear(h, x0, y0, cell, x, y)
+    ref = _numpy_bilinear(h, x0, y0, cell, x, y)
+    assert np.array_equal(got.view(np.int64), ref.view(np.int64))          # the same bits, zeros' signs too
+    assert np.all(np.isnan(kernels.bilinear(h, x0, y0, cell, np.array([np.nan, 0.1]), np.array([0.5, np.inf]))))
+
+
+def test_grid_divergence_is_grid_slopes_then_the_full_grids_divergence_bit_for_bit():
+    """Scattered slopes (some not finite, some beyond the grid, cells left empty) less a quadratic model's
+    (surface_slopes), binned, their empty cells set to 0 and the trapezoid differences' divergence taken, by
+    numpy (grid_slopes, then integrate_full_grid's expression) and by the kernel: the same bits, with and
+    without the model; and height_grid's heights are integrate_full_grid's of grid_slopes' cells."""
+    from sofast_station.measure.heights import grid_slopes, height_grid, integrate_full_grid
+
+    rng = np.random.default_rng(37)
+    for n, cells in ((3537, 29), (200, 12), (9, 4)):
+        x, y = rng.uniform(-0.6, 0.6, n), rng.uniform(-0.5, 0.4, n)
+        keep = np.hypot(x, y) < 0.55                  # a round facet in its box: the box's corners empty
+        x, y = x[keep], y[keep]
+        g_x, g_y = rng.normal(0, 1e-3, x.size), rng.normal(0, 1e-3, x.size)
+        g_x[::97] = np.nan
+        g_y[5::89] = np.inf
+        cell = 1.2 / cells
+        x0, y0 = float(x.min()) - 0.5 * cell, float(y.min()) - 0.3 * cell
+        extent = (x0, float(x.max()) - 2 * cell, y0, float(y.max()) + 0.5 * cell)   # some points beyond it
+        model = rng.normal(0.0, [0.05, 0.05, 1e-3, 1e-3, 1e-3, 1e-3])
+        m_x, m_y = surface_slopes(model, x, y)
+        g = grid_slopes(x, y, g_x - m_x, g_y - m_y, cell, extent_m=extent)
+        sx = np.where(np.isfinite(g["s_x"]), g["s_x"], 0.0)
+        sy = np.where(np.isfinite(g["s_y"]), g["s_y"], 0.0)
+        dx = cell * 0.5 * (sx[:, :-1] + sx[:, 1:])
+        dy = cell * 0.5 * (sy[:-1, :] + sy[1:, :])
+        rhs = np.zeros(sx.shape)
+        rhs[:, :-1] -= dx
+        rhs[:, 1:] += dx
+        rhs[:-1, :] -= dy
+        rhs[1:, :] += dy
+        got = kernels.grid_divergence(x, y, g_x, g_y, x0, y0, cell, sx.shape, model)
+        assert (sx == 0.0).any() and np.array_equal(got.view(np.int64), rhs.view(np.int64))
+        # without a model: the slopes themselves
+        plain = grid_slopes(x, y, g_x, g_y, cell, extent_m=extent)
+        sx0 = np.where(np.isfinite(plain["s_x"]), plain["s_x"], 0.0)
+        sy0 = np.where(np.isfinite(plain["s_y"]), plain["s_y"], 0.0)
+        rhs0 = np.zeros(sx.shape)
+        rhs0[:, :-1] -= cell * 0.5 * (sx0[:, :-1] + sx0[:, 1:])
+        rhs0[:, 1:] += cell * 0.5 * (sx0[:, :-1] + sx0[:, 1:])
+        rhs0[:-1, :] -= cell * 0.5 * (sy0[:-1, :] + sy0[1:, :])
+        rhs0[1:, :] += cell * 0.5 * (sy0[:-1, :] + sy0[1:, :])
+        np.testing.assert_array_equal(kernels.grid_divergence(x, y, g_x, g_y, x0, y0, cell, sx.shape), rhs0)
+        ok = np.isfinite(g_x) & np.isfinite(g_y)
+        grid = height_grid(x[ok], y[ok], g_x[ok], g_y[ok], cells=cells, model=model)
+        span = max(np.ptp(x[ok]), np.ptp(y[ok]))
+        full = grid_slopes(x[ok], y[ok], g_x[ok] - m_x[ok], g_y[ok] - m_y[ok], span / cells, extent_m=(
+            x[ok].min() - 0.5 * span / cells, x[ok].max() + 0.5 * span / cells,
+            y[ok].min() - 0.5 * span / cells, y[ok].max() + 0.5 * span / cells))
+        ref = integrate_full_grid(np.nan_to_num(full["s_x"], nan=0.0), np.nan_to_num(full["s_y"], nan=0.0),
+                                  span / cells)
+        assert grid.heights_m.shape == ref.shape and np.array_equal(grid.heights_m, ref)
+
+
+def test_label_moments_are_numpys_bincounts_of_the_labelled_pixels_bit_for_bit():
+    """Blobs of a random binary picture labelled by OpenCV: each label's count and sums of row, column and
+    their products as np.bincount of its pixels in raster order gives them (what dots._elongation took), and
+    the areas and centroids OpenCV's statistics give (what find_pattern_dots took)."""
+    import cv2
+
+    rng = np.random.default_rng(41)
+    binary = (cv2.GaussianBlur(rng.uniform(size=(300, 420)), (0, 0), 2.0) > 0.52).astype(np.uint8)
+    n, labels = cv2.connectedComponents(binary, connectivity=8)
+    assert n > 50
+    at = np.flatnonzero(labels)
+    flat = labels.ravel()[at]
+    rows, cols = np.divmod(at, labels.shape[1])
+    ref = np.stack([np.bincount(flat, minlength=n).astype(np.float64)]
+                   + [np.bincount(flat, w, n) for w in (rows, cols, rows * rows, cols * cols, rows * cols)])
+    ref[:, 0] = 0.0
+    got = kernels.label_moments(labels, n)
+    np.testing.assert_array_equal(got, ref)
+    # find_pattern_dots' blob areas and centroids: OpenCV's statistics of the same labelling, bit for bit
+    n2, labels2, stats, centroids = cv2.connectedComponentsWithStats(binary, connectivity=8)
+    assert n2 == n and np.array_equal(labels2, labels)
+    np.testing.assert_array_equal(got[0, 1:].astype(np.int64), stats[1:, cv2.CC_STAT_AREA])
+    np.testing.assert_array_equal(np.column_stack([got[2, 1:] / got[0, 1:], got[1, 1:] / got[0, 1:]]), centroids[1:])
+
+
+def test_fill_holes_is_opencvs_statistics_rule():
+    """The holes a region's box fills: the labels of its complement (4-connected) that touch no edge of the
+    box and have at most max_area pixels, as OpenCV's statistics (bounding box, area) select them; in a
+    view of a larger array too."""
+    import cv2
+
+    rng = np.random.default_rng(43)
+    for max_area in (0, 5, 40, 10_000):
+        whole = np.zeros((220, 260), bool)
+        box = whole[10:210, 20:250]
+        box[:] = cv2.GaussianBlur(rng.uniform(size=box.shape), (0, 0), 1.5) > 0.47
+        before = box.copy()
+        n, labels, stats, _ = cv2.connectedComponentsWithStats((~box).view(np.uint8), connectivity=4)
+        x, y, bw, bh, area = (stats[:, k] for k in range(5))
+        fill = ~((x == 0) | (y == 0) | (x + bw == box.shape[1]) | (y + bh == box.shape[0])) & (area <= max_area)
+        fill[0] = False
+        n2, labels2 = cv2.connectedComponents((~box).view(np.uint8), connectivity=4)
+        assert n2 == n and np.array_equal(labels2, labels)
+        kernels.fill_holes(labels2, n2, max_area, box)
+        np.testing.assert_array_equal(box, before | fill[labels])
+        assert max_area == 0 or (box != before).any()
+        assert not whole[:10].any() and not whole[:, :20].any()
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+def test_laplacian_median_is_numpys_float32_median_of_the_subsampled_laplacian(dtype):
+    """Noisy pictures with edges (odd and even sizes, odd and even counts of masked values, views): the
+    median of the absolute Laplacian at every other pixel counted from the histogram is numpy's median of
+    the float32 Laplacians; image_noise_dn gives the numpy chain's bits."""
+    from sofast_station.measure.dots import image_noise_dn
+
+    rng = np.random.default_rng(47)
+    top = np.iinfo(dtype).max
+    for shape in ((61, 80), (64, 77), (9, 9), (3, 40)):
+        img = np.clip(rng.normal(0.3 * top, 0.01 * top + 2, shape) + (np.arange(shape[1]) > shape[1] // 2) * 0.4 * top,
+                      0, top).astype(dtype)
+        big = np.zeros((shape[0] + 4, shape[1] + 6), dtype)
+        big[2:-2, 3:-3] = img
+        view = big[2:-2, 3:-3]
+        for mask in (np.ones(shape, bool), rng.uniform(size=shape) < 0.6, np.zeros(shape, bool)):
+            f = img.astype(np.float32)
+            c = f[1:-1:2, 1:-1:2]
+            lap = 4.0 * c - f[:-2:2, 1:-1:2][:c.shape[0], :c.shape[1]] - f[2::2, 1:-1:2][:c.shape[0], :c.shape[1]] \
+                - f[1:-1:2, :-2:2][:c.shape[0], :c.shape[1]] - f[1:-1:2, 2::2][:c.shape[0], :c.shape[1]]
+            values = np.abs(lap[mask[1:-1:2, 1:-1:2]])
+            ref = np.median(values) if values.size else 0.0
+            got = kernels.laplacian_median(view, mask)
+            assert got == ref and np.float32(got) == ref
+            ref_noise = float(1.4826 * np.median(values) / np.sqrt(20.0)) if values.size else 0.0
+            assert image_noise_dn(view, mask) == ref_noise
+    assert kernels.laplacian_median(np.zeros((2, 2), dtype), np.ones((2, 2), bool)) == 0.0
+

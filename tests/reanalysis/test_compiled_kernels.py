@@ -140,6 +140,46 @@ def test_argument_keys_tell_apart_what_numba_compiles_apart():
         build_kernels.parse_word("f16")
 
 
+def _arrays_of_every_kind() -> list:
+    """Arrays differing in each thing numba compiles apart: dtype (a byte-swapped one too), ndim, layout
+    (C, F, neither, one element: both), writability, alignment."""
+    out = []
+    for dtype in (np.float64, np.dtype(">f8"), np.float32, np.int64, np.int32, np.uint8, np.uint16, np.bool_):
+        for shape in ((5,), (1,), (3, 4), (1, 1), (2, 3, 4)):
+            c = np.zeros(shape, dtype=dtype)
+            out += [c, np.asfortranarray(c), c[(slice(None, None, 2),) * c.ndim], c.T]
+    ro = np.zeros((3, 4))
+    ro.flags.writeable = False
+    unaligned = np.zeros(41, dtype=np.uint8)[1:].view(np.float64)
+    return out + [ro, ro[:, ::2], unaligned, np.zeros(5)[:4]]
+
+
+def test_equal_quick_keys_have_equal_argument_keys_and_a_kernel_keeps_the_build_entry_for_each():
+    """A kernel keeps the entry it chose per quick_key (cheaper than argument_key): two calls whose quick
+    keys are equal must be the same types to numba, or a second call could run an entry built for
+    others (and crash). Every pair of arguments of every kind; then a kernel's kept entries are the ones
+    argument_key picks."""
+    values = _arrays_of_every_kind() + [True, False, 3, -(1 << 63), 2.0, np.float64(2.0), np.float32(2.0),
+                                        np.int32(1), np.bool_(True), 1 << 63, [1.0], None]
+    quick = [compiled.quick_key((v,)) for v in values]
+    keys = [compiled.argument_key((v,)) for v in values]
+    assert len({q for q in quick if q is not None}) > 100
+    for q, k in zip(quick, keys):
+        for q2, k2 in zip(quick, keys):
+            if q is not None and q == q2:
+                assert k == k2
+    assert compiled.quick_key((np.float64(2.0),)) is None and compiled.quick_key((1 << 63,)) is None
+    if compiled.build() is None:
+        pytest.skip("no build of the kernels: nothing kept")
+    x = np.linspace(-3.0, 3.0, 11)
+    out = np.empty_like(x)
+    k = kernels._atan_into
+    k(x, out)
+    k(x[:5].copy(), out[:5])
+    assert k.known[compiled.quick_key((x, out))] is k.entries[compiled.argument_key((x, out))]
+    assert np.array_equal(out[5:], kernels.atan(x)[5:])
+
+
 def test_a_call_the_build_has_no_entry_for_runs_on_the_jit_with_the_same_values():
     if compiled.build() is None:
         pytest.skip("no build of the kernels")
