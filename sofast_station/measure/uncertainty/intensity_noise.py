@@ -71,8 +71,9 @@ class NoisePropagation:
 #: floor misses of the slope noise a capture's points really carry beyond the points' finite number.
 #: Measured (2026-12-06) against the slope noise of three captures of the same twin about their mean, on 40
 #: drawn stations of seed 0's population (every kind and edge model; 80 axis values): realized / predicted
-#: 0.84-1.34, mean 1.001, RMS of the difference 5.9 %. Checked on 24 stations of seed 1: RMS 6.5 %, and a
-#: U with 6 % covered 95.8 % (RMS of error / (U / 2) 0.89); tests/measure/test_noise_floor.py draws others.
+#: 0.84-1.34, mean 1.001, RMS of the difference 5.9 %. Checked on 24 stations of seed 1: RMS 6.5 %. Each
+#: capture against its own floor and U: :func:`with_frame_brightness`; tests/measure/test_noise_floor.py draws
+#: others.
 NOISE_FLOOR_MODEL_RELATIVE = 0.06
 
 
@@ -193,7 +194,12 @@ def with_frame_brightness(noise: NoisePropagation, sigma_dn: float, dof: int) ->
     budget's frame-brightness row, but across the fringe's phases it spreads the slopes as pixel noise does.
     The floor s becomes sqrt(s^2 + (sigma_dn g)^2), g the slope noise per DN
     (``slope_noise_per_dn_mrad``); its U adds that term's own estimate's spread, a variance from *dof* values
-    known to sqrt(2 / dof) of itself.
+    known to sqrt(2 / dof) of itself, and the capture's own draw of it: the finest set's four frames, whose
+    change's cosine and sine parts (two degrees of freedom) move the positions, spread its power by as much
+    as it is. Each capture against its own floor and U (2026-12-06; its slope noise about the mean of three
+    captures of one twin, the pose held): seed 0's 40 stations, 240 values, 95.8 % inside U and RMS of error /
+    (U / 2) 1.13 without the draw, 96.7 % and 0.88 with it; seed 1's 24 stations, 144 values, 93.8 % and 1.09
+    without, 96.5 % and 0.77 with.
 
     Measured (2026-12-06, three captures of one twin per station, their slope noise about their mean, the
     frame brightness from the three captures' sets together): on the
@@ -212,7 +218,10 @@ def with_frame_brightness(noise: NoisePropagation, sigma_dn: float, dof: int) ->
         s0, jit2 = floor[a], (sigma_dn * per_dn[a]) ** 2
         total = float(np.sqrt(s0 * s0 + jit2))
         if total > 0:
-            u_jit = jit2 * np.sqrt(2.0 / dof) / (2.0 * total)
+            # the estimate's spread (2 / dof), and this capture's own draw of the change: only the finest set's
+            # four frames move its positions, and their change's two parts the four-step phase sees (its cosine
+            # and sine; the mean is the pixel's offset) carry a power known to 2 / 2 of itself
+            u_jit = jit2 * np.sqrt(2.0 / dof + 1.0) / (2.0 * total)
             u0 = floor_u.get(a, 0.0) * (s0 / total if s0 > 0 else 0.0)   # the pixel part's, on the new floor
             floor_u[a] = float(np.hypot(u0, u_jit))
         floor[a] = total
