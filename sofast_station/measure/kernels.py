@@ -1744,14 +1744,14 @@ def bilinear(heights_m: np.ndarray, x0: float, y0: float, cell: float, x: np.nda
     return out
 
 
-def halves(pool, fn, n: int, *args) -> None:
+def halves(pool, fn, n: int, *args) -> list:
     """``fn(*args, lo, hi)`` over 0:n, the first half on *pool* (an executor, or None) beside the second:
-    for the element-wise kernels here, the same values on one thread or two."""
+    for the element-wise kernels here, the same values on one thread or two. Returns the calls' results, one
+    per half run (a count such a kernel returns is their sum)."""
     mid = n // 2 if pool is not None and n >= 2048 else 0
     first = pool.submit(fn, *args, 0, mid) if mid else None
-    fn(*args, mid, n)
-    if first is not None:
-        first.result()
+    second = fn(*args, mid, n)
+    return [second] if first is None else [first.result(), second]
 
 
 def warm_up() -> None:

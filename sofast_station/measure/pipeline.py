@@ -821,14 +821,16 @@ def shape_and_boresight(rays: Rays, pose: CornerPoseResult, design: FacetDesign,
     # without a pool, one kernel call per step, not two halves in turn (the uncertainty's reruns: the same values)
     split = None if isinstance(pool, _Serial) else pool
 
-    def reduce_all(motion, coefficients):
+    def frame(motion):
         # motion.as_pose().compose(camera_to_facet)'s rotation and translation, the same arithmetic without
         # the two Poses' checks (twice a step, 60 steps per capture in the uncertainty's reruns)
         r = motion.rotation
         shift = motion.pivot_m - r @ motion.pivot_m + np.array([0.0, 0.0, motion.t_z_m])
+        return r @ camera_to_facet.rotation, r @ camera_to_facet.translation + shift
+
+    def reduce_all(motion, coefficients):
         points, slopes = np.empty((3, n)), np.empty((2, n))
-        halves(split, reflect, n, rays.rays, rays.screen_cam_m, r @ camera_to_facet.rotation,
-               r @ camera_to_facet.translation + shift, coefficients, points, slopes)
+        halves(split, reflect, n, rays.rays, rays.screen_cam_m, *frame(motion), coefficients, points, slopes)
         finite = np.isfinite(slopes[0]) & np.isfinite(slopes[1])
         if not np.all(finite):
             raise AnalysisError(f"{int((~finite).sum())} pixel rays miss the fitted surface; the fit diverged")
@@ -837,13 +839,8 @@ def shape_and_boresight(rays: Rays, pose: CornerPoseResult, design: FacetDesign,
     def raise_all(motion, coefficients, points, slopes, scale):
         # reduce_all's intersection with *coefficients*, each pixel's point and slope moved toward it in place
         # (close_on_all_points' first-order move to its height), in one compiled pass per half
-        r = motion.rotation
-        shift = motion.pivot_m - r @ motion.pivot_m + np.array([0.0, 0.0, motion.t_z_m])
-        args = (rays.rays, rays.screen_cam_m, r @ camera_to_facet.rotation, r @ camera_to_facet.translation + shift,
-                coefficients, scale, points, slopes)
-        mid = n // 2 if split is not None and n >= 2048 else 0
-        first = split.submit(reflect_blend, *args, 0, mid) if mid else None
-        missed = reflect_blend(*args, mid, n) + (first.result() if first is not None else 0)
+        missed = sum(halves(split, reflect_blend, n, rays.rays, rays.screen_cam_m, *frame(motion), coefficients,
+                            scale, points, slopes))
         if missed:
             raise AnalysisError(f"{missed} pixel rays miss the fitted surface; the fit diverged")
 
