@@ -21,7 +21,8 @@ first, cold analysis and reused after, as the station's worker and ``import-open
 
 Printed per facet and method: frame size, points, f x and f y (and the twin's true ones), the median process
 CPU time per analysis (both threads) and wall time of the steady runs, the stages of the last one; then the
-fixed method's CPU over the fringe method's. Nothing is asserted: the numbers depend on the machine and its
+fixed method's CPU over the fringe method's: the medians' ratio and the median of each round's own ratio (the
+runs interleave, :func:`timed`). Nothing is asserted: the numbers depend on the machine and its
 load (``uptime`` is printed before and after).
 """
 
@@ -41,17 +42,28 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from analysis import _uptime  # noqa: E402  (the machine's load, as the analysis benchmark prints it)
 
 
-def timed(once, runs: int) -> dict:
-    """One cold analysis, then *runs* steady ones: the steady runs' median CPU and wall seconds, the last
-    analysis and its stages."""
-    out = []
+def timed(analyses: dict, runs: int) -> dict:
+    """Each of *analyses* (``{name: once}``) once cold, then *runs* rounds in which each runs once, in turn: per
+    name the steady runs' median CPU and wall seconds, their CPU per round, the last analysis and its stages.
+
+    Interleaved rather than one after the other: this machine's CPU time for the same analysis drifts by a
+    third over a minute (other tenants of the host), and a method timed a minute after the other carried that
+    drift into the ratio (0.21 and 0.28 for the same code, 2026-12-06). Each round's ratio compares runs
+    seconds apart."""
+    out: dict = {name: [] for name in analyses}
+    last: dict = {}
     for _ in range(runs + 1):
-        t, c = time.perf_counter(), time.process_time()
-        a = once()
-        out.append((time.process_time() - c, time.perf_counter() - t))
-    steady = out[1:]
-    return {"cold_cpu": out[0][0], "cpu": statistics.median(c for c, _ in steady),
-            "wall": statistics.median(w for _, w in steady), "analysis": a}
+        for name, once in analyses.items():
+            t, c = time.perf_counter(), time.process_time()
+            last[name] = once()
+            out[name].append((time.process_time() - c, time.perf_counter() - t))
+    res = {}
+    for name, times in out.items():
+        steady = times[1:]
+        res[name] = {"cold_cpu": times[0][0], "cpu": statistics.median(c for c, _ in steady),
+                     "wall": statistics.median(w for _, w in steady), "cpus": [c for c, _ in steady],
+                     "analysis": last[name]}
+    return res
 
 
 def line(facet: str, method: str, what: str, res: dict, truth=None) -> None:
@@ -70,20 +82,19 @@ def bench_opencsp(runs: int, quick: bool) -> dict:
 
     src = ROOT / "fixtures/opencsp/test_data"
     fm = read_opencsp_fixed(**opencsp_fixed_paths(src))
-    fixed_cache: dict = {}
-    fixed = timed(lambda: fm.analyse(uncertainty=fm.uncertainty, sensitivity_cache=fixed_cache), runs)
-    fixed_alone = timed(lambda: fm.analyse(), runs)
-    line("opencsp", "fixed", f"{fm.image.shape[1]} x {fm.image.shape[0]} px, one frame", fixed)
     with tempfile.TemporaryDirectory() as tmp:
         scale = 1 if quick else 8
         paths = opencsp_test_data_paths(src) if scale == 1 else upsample_test_data(src, Path(tmp) / "x8", scale)
         m = read_opencsp(**paths)
-        cache: dict = {}
-        fringe = timed(lambda: m.analyse(uncertainty=m.uncertainty, sensitivity_cache=cache), runs)
-        fringe_alone = timed(lambda: m.analyse(), runs)
+    fixed_cache: dict = {}
+    cache: dict = {}
+    res = timed({"fixed": lambda: fm.analyse(uncertainty=fm.uncertainty, sensitivity_cache=fixed_cache),
+                 "fringe": lambda: m.analyse(uncertainty=m.uncertainty, sensitivity_cache=cache),
+                 "fixed_alone": lambda: fm.analyse(), "fringe_alone": lambda: m.analyse()}, runs)
+    line("opencsp", "fixed", f"{fm.image.shape[1]} x {fm.image.shape[0]} px, one frame", res["fixed"])
     cam = m.geometry.camera
-    line("opencsp", "fringe", f"{cam.width_px} x {cam.height_px} px, {m.frames.shape[0]} frames", fringe)
-    return {"fixed": fixed, "fringe": fringe, "fixed_alone": fixed_alone, "fringe_alone": fringe_alone}
+    line("opencsp", "fringe", f"{cam.width_px} x {cam.height_px} px, {m.frames.shape[0]} frames", res["fringe"])
+    return res
 
 
 def lcd_grid_for(cfg, twin, target_px: float = 12.0):
@@ -153,22 +164,23 @@ def bench_twin(config: str, runs: int) -> dict:
     frame = twin.capture(grid.image(), np.random.default_rng(2))
     rays = ray_table(cfg.geometry.camera)
     cache: dict = {}
-    fringe = timed(lambda: analyse(frames, cfg.fringes, cfg.geometry, cfg.design, distance, cfg.analysis,
-                                   rays_cam=rays, uncertainty=cfg.uncertainty, sensitivity_cache=cache), runs)
-    fringe_alone = timed(lambda: analyse(frames, cfg.fringes, cfg.geometry, cfg.design, distance, cfg.analysis,
-                                         rays_cam=rays), runs)
     fixed_cache: dict = {}
-    fixed = timed(lambda: analyse_fixed(frame, dots, cfg.geometry, cfg.design, distance, cfg.analysis, FixedSettings(),
-                                        uncertainty=cfg.uncertainty, sensitivity_cache=fixed_cache), runs)
-    fixed_alone = timed(lambda: analyse_fixed(frame, dots, cfg.geometry, cfg.design, distance, cfg.analysis,
-                                              FixedSettings()), runs)
+    res = timed({
+        "fixed": lambda: analyse_fixed(frame, dots, cfg.geometry, cfg.design, distance, cfg.analysis, FixedSettings(),
+                                       uncertainty=cfg.uncertainty, sensitivity_cache=fixed_cache),
+        "fringe": lambda: analyse(frames, cfg.fringes, cfg.geometry, cfg.design, distance, cfg.analysis,
+                                  rays_cam=rays, uncertainty=cfg.uncertainty, sensitivity_cache=cache),
+        "fixed_alone": lambda: analyse_fixed(frame, dots, cfg.geometry, cfg.design, distance, cfg.analysis,
+                                             FixedSettings()),
+        "fringe_alone": lambda: analyse(frames, cfg.fringes, cfg.geometry, cfg.design, distance, cfg.analysis,
+                                        rays_cam=rays)}, runs)
     cam = cfg.geometry.camera
-    for name, res in (("fringe", fringe), ("fixed", fixed)):
-        truth = ground_truth(twin, res["analysis"].valid)
+    for name in ("fringe", "fixed"):
+        truth = ground_truth(twin, res[name]["analysis"].valid)
         what = f"{cam.width_px} x {cam.height_px} px, " + (
             f"{frames.shape[0]} frames" if name == "fringe" else f"one frame, dots every {grid.pitch_px} LCD px")
-        line("twin", name, what, res, (truth["focal_length_x_m"], truth["focal_length_y_m"]))
-    return {"fixed": fixed, "fringe": fringe, "fixed_alone": fixed_alone, "fringe_alone": fringe_alone}
+        line("twin", name, what, res[name], (truth["focal_length_x_m"], truth["focal_length_y_m"]))
+    return res
 
 
 def main(argv=None) -> int:
@@ -176,7 +188,8 @@ def main(argv=None) -> int:
     ap.add_argument("--config", default=None,
                     help="the simulated station (default fixtures/stations/heliostat.toml; --quick: it at a quarter "
                          "of its resolution)")
-    ap.add_argument("--runs", type=int, default=5, help="steady analyses per facet and method (after a cold one)")
+    ap.add_argument("--runs", type=int, default=5, help="steady rounds per facet (after a cold one): each analysis "
+                    "once per round")
     ap.add_argument("--quick", action="store_true", help="1 run each, OpenCSP's fringe capture at native size")
     args = ap.parse_args(argv)
     runs = 1 if args.quick else max(1, args.runs)
@@ -184,18 +197,22 @@ def main(argv=None) -> int:
 
     single_thread_blas()
     print(f"before: {_uptime()}")
-    print(f"fixed-pattern method beside the fringe method, {runs} steady run(s) each after a cold one, with U")
+    print(f"fixed-pattern method beside the fringe method, {runs} steady round(s) after a cold one (each analysis "
+          "once per round, in turn), with U")
     with tempfile.TemporaryDirectory() as tmp:
         # the station's records and cache go to a temporary folder, never the user's data folder
         os.environ["SOFAST_DATA_DIR"] = str(Path(tmp) / "data")
         config = args.config or str(quick_heliostat(Path(tmp)) if args.quick else HELIOSTAT)
         results = {"opencsp": bench_opencsp(runs, args.quick), "twin": bench_twin(config, runs)}
-    print("\nfixed over fringe, CPU per analysis (median of the steady runs; issue 42: at most 0.25)")
+    print("\nfixed over fringe, CPU per analysis (median of the steady runs, and of the rounds' own ratios; "
+          "issue 42: at most 0.25)")
     for what, key in (("with U", ""), ("the measurement alone (no U)", "_alone")):
         print(f"  {what}:")
         for facet, r in results.items():
             fx, fr = r["fixed" + key]["cpu"], r["fringe" + key]["cpu"]
-            print(f"    {facet:<8} fixed {fx:.3f} s / fringe {fr:.3f} s = {fx / fr:.2f}")
+            rounds = [a / b for a, b in zip(r["fixed" + key]["cpus"], r["fringe" + key]["cpus"])]
+            print(f"    {facet:<8} fixed {fx:.3f} s / fringe {fr:.3f} s = {fx / fr:.2f}; per round "
+                  f"{statistics.median(rounds):.3f} (median; {min(rounds):.3f}-{max(rounds):.3f})")
     print("  the uncertainty's part, CPU (with U less without): "
           + ", ".join(f"{facet} fixed {r['fixed']['cpu'] - r['fixed_alone']['cpu']:.3f} s, fringe "
                       f"{r['fringe']['cpu'] - r['fringe_alone']['cpu']:.3f} s" for facet, r in results.items()))
