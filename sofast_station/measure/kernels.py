@@ -1748,22 +1748,28 @@ def bilinear(heights_m: np.ndarray, x0: float, y0: float, cell: float, x: np.nda
 
 
 @kernel(inline="always", **_JIT)
+def _skew_series_into(v0, v1, v2, a, b, out):
+    """*out* (3, 3) = I + a V + b V V, V the cross-product matrix of (v0, v1, v2): a rotation by Rodrigues'
+    formula (:func:`_rodrigues_into`) and the left Jacobian of SO(3) (:func:`_left_jacobian_into`) alike."""
+    out[0, 0] = 1.0 + b * (-v2 * v2 - v1 * v1)
+    out[0, 1] = -a * v2 + b * (v1 * v0)
+    out[0, 2] = a * v1 + b * (v2 * v0)
+    out[1, 0] = a * v2 + b * (v0 * v1)
+    out[1, 1] = 1.0 + b * (-v2 * v2 - v0 * v0)
+    out[1, 2] = -a * v0 + b * (v2 * v1)
+    out[2, 0] = -a * v1 + b * (v0 * v2)
+    out[2, 1] = a * v0 + b * (v1 * v2)
+    out[2, 2] = 1.0 + b * (-v1 * v1 - v0 * v0)
+
+
+@kernel(inline="always", **_JIT)
 def _rodrigues_into(w0, w1, w2, r):
     """*r* (3, 3): the rotation of the rotation vector (w0, w1, w2), radians, by Rodrigues' formula
-    (:func:`~.uncertainty.corner_pose._rotations`' arithmetic: I + sin(theta) K + (1 - cos(theta)) K K)."""
+    (:func:`~.uncertainty.corner_pose._rotations`' arithmetic: I + sin(theta) K + (1 - cos(theta)) K K, K the
+    cross-product matrix of the unit axis)."""
     theta = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
     d = theta if theta >= 1e-300 else 1.0
-    k0, k1, k2 = w0 / d, w1 / d, w2 / d
-    s, c = math.sin(theta), 1.0 - math.cos(theta)
-    r[0, 0] = 1.0 + c * (-k2 * k2 - k1 * k1)
-    r[0, 1] = -s * k2 + c * (k1 * k0)
-    r[0, 2] = s * k1 + c * (k2 * k0)
-    r[1, 0] = s * k2 + c * (k0 * k1)
-    r[1, 1] = 1.0 + c * (-k2 * k2 - k0 * k0)
-    r[1, 2] = -s * k0 + c * (k2 * k1)
-    r[2, 0] = -s * k1 + c * (k0 * k2)
-    r[2, 1] = s * k0 + c * (k1 * k2)
-    r[2, 2] = 1.0 + c * (-k1 * k1 - k0 * k0)
+    _skew_series_into(w0 / d, w1 / d, w2 / d, math.sin(theta), 1.0 - math.cos(theta), r)
 
 
 @kernel(inline="always", **_JIT)
@@ -1775,15 +1781,7 @@ def _left_jacobian_into(w0, w1, w2, j):
         a, b = 0.5, 1.0 / 6.0
     else:
         a, b = (1.0 - math.cos(theta)) / theta ** 2, (theta - math.sin(theta)) / theta ** 3
-    j[0, 0] = 1.0 + b * (-w2 * w2 - w1 * w1)
-    j[0, 1] = -a * w2 + b * (w1 * w0)
-    j[0, 2] = a * w1 + b * (w2 * w0)
-    j[1, 0] = a * w2 + b * (w0 * w1)
-    j[1, 1] = 1.0 + b * (-w2 * w2 - w0 * w0)
-    j[1, 2] = -a * w0 + b * (w2 * w1)
-    j[2, 0] = -a * w1 + b * (w0 * w2)
-    j[2, 1] = a * w0 + b * (w1 * w2)
-    j[2, 2] = 1.0 + b * (-w1 * w1 - w0 * w0)
+    _skew_series_into(w0, w1, w2, a, b, j)
 
 
 @kernel(inline="always", **_JIT)
