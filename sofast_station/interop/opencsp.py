@@ -351,10 +351,17 @@ class OpenCspMeasurement:
                        sensitivity_cache=local)
 
 
+def _per_recipe(value) -> bool:
+    """Whether a cached *value* is the same for every capture of a recipe (:class:`_SensitivitiesOnly`)."""
+    return isinstance(value, Sensitivities) or bool(getattr(type(value), "per_recipe", False))
+
+
 class _SensitivitiesOnly(dict):
-    """One analysis's cache: the sensitivities are read from and written to the caller's *shared* cache
-    (a dict, or a :class:`~sofast_station.cache.SensitivityStore` that also keeps them on disk); anything
-    else the analysis keeps (the frame-brightness pool) stays with this analysis."""
+    """One analysis's cache: the sensitivities, and anything else the same for every capture of a recipe (a
+    value whose type says ``per_recipe``: a fixed pattern's predicted grid picture,
+    :class:`~sofast_station.measure.fixed.GridPrediction`), are read from and written to the caller's *shared*
+    cache (a dict, or a :class:`~sofast_station.cache.SensitivityStore` that also keeps the sensitivities on
+    disk); anything else the analysis keeps (the frame-brightness pool) stays with this analysis."""
 
     def __init__(self, shared: dict | None):
         super().__init__()
@@ -364,14 +371,14 @@ class _SensitivitiesOnly(dict):
         if dict.__contains__(self, key):
             return dict.__getitem__(self, key)
         found = None if self._shared is None else self._shared.get(key)
-        if isinstance(found, Sensitivities):
+        if _per_recipe(found):
             dict.__setitem__(self, key, found)
             return found
         return default
 
     def __setitem__(self, key, value) -> None:
         dict.__setitem__(self, key, value)
-        if self._shared is not None and isinstance(value, Sensitivities):
+        if self._shared is not None and _per_recipe(value):
             self._shared[key] = value
 
 

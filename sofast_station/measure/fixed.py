@@ -37,7 +37,10 @@ arrays and plain records: no file, no hardware, no state.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import cv2
 import numpy as np
@@ -509,6 +512,52 @@ def grid_prediction(geometry: StationGeometry, design: FacetDesign, dots: DotLoc
     return jac, steady
 
 
+@dataclass(frozen=True)
+class GridPrediction:
+    """:func:`grid_prediction`'s (jac, steady) as a caller's cache keeps it (:func:`kept_grid_prediction`);
+    *jac* read-only. The same for every capture of a recipe (``per_recipe``: an import's one-analysis cache
+    shares it with its caller's, as the sensitivities)."""
+
+    jac: np.ndarray
+    steady: bool
+    per_recipe: ClassVar[bool] = True
+
+
+def grid_prediction_key(geometry: StationGeometry, design: FacetDesign, dots: DotLocations, screen) -> tuple:
+    """What :func:`grid_prediction` depends on, as a key of a caller's cache: ``("grid prediction", hash)``,
+    the hash (16 hex digits) of the geometry and the design (their ``to_dict``, as the sensitivities' key),
+    the dots' grid and locations, and the screen model (its type, shape fingerprint and pose). By content,
+    not by identity: a recipe's objects rebuilt equal (a station's worker builds them per capture) find it."""
+    h = hashlib.sha256(json.dumps({"geometry": geometry.to_dict(), "design": design.to_dict()}, sort_keys=True,
+                                  default=str).encode())
+    for a in (dots.x_index, dots.y_index, dots.xyz_m):
+        h.update(np.ascontiguousarray(a).tobytes())
+    h.update(repr(type(screen)).encode())
+    if hasattr(screen, "fingerprint"):
+        h.update(screen.fingerprint().encode())
+    pose = getattr(screen, "screen_to_camera", None)
+    if pose is not None:
+        h.update(np.ascontiguousarray(pose.rotation, np.float64).tobytes())
+        h.update(np.ascontiguousarray(pose.translation, np.float64).tobytes())
+    return "grid prediction", h.hexdigest()[:16]
+
+
+def kept_grid_prediction(geometry: StationGeometry, design: FacetDesign, dots: DotLocations, screen,
+                         cache: dict | None = None) -> tuple:
+    """:func:`grid_prediction`, kept in *cache* (a caller's dict, e.g. :func:`analyse_fixed`'s
+    *sensitivity_cache*) under :func:`grid_prediction_key` as a :class:`GridPrediction`: the same for every
+    capture of a recipe (3-4 ms each). Without *cache*, computed."""
+    if cache is None:
+        return grid_prediction(geometry, design, dots, screen)
+    key = grid_prediction_key(geometry, design, dots, screen)
+    kept = cache.get(key)
+    if not isinstance(kept, GridPrediction):
+        jac, steady = grid_prediction(geometry, design, dots, screen)
+        jac.setflags(write=False)           # shared by every capture that finds it
+        kept = cache[key] = GridPrediction(jac, steady)
+    return kept.jac, kept.steady
+
+
 def predicted_index_axes(jac: np.ndarray, step_i_px: np.ndarray, step_j_px: np.ndarray) -> np.ndarray:
     """(2, 2) integer matrix turning the image's lattice steps (i, j: :func:`~.dots.index_dots`) into the
     pattern's index steps, ``(x, y) = origin + axes @ (i, j)``, as the nominal geometry predicts them: the
@@ -804,7 +853,7 @@ def reduce_fixed(image: np.ndarray, dots: DotLocations, geometry: StationGeometr
                  measured_distance_m: float, settings: AnalysisSettings = AnalysisSettings(),
                  fixed: FixedSettings = FixedSettings(), *, origin_px=None, white: np.ndarray | None = None,
                  dark: np.ndarray | None = None, screen: InterpolatedScreen | None = None,
-                 screen_centre_m=(0.0, 0.0, 0.0)) -> tuple[Reduction, dict]:
+                 screen_centre_m=(0.0, 0.0, 0.0), cache: dict | None = None) -> tuple[Reduction, dict]:
     """Every stage of the fixed-pattern reduction (:func:`analyse_fixed` without the uncertainty); returns the
     stages' outputs and their timings, seconds.
 
@@ -829,6 +878,9 @@ def reduce_fixed(image: np.ndarray, dots: DotLocations, geometry: StationGeometr
         A white (and a dark) frame for the facet's region and corners, when the recipe takes them.
     screen : InterpolatedScreen, optional
         :func:`dot_screen` of *dots* when the caller keeps it.
+    cache : dict, optional
+        Where the grid's predicted picture is kept between captures (:func:`kept_grid_prediction`; the caller's,
+        e.g. :func:`analyse_fixed`'s *sensitivity_cache*); without it, computed for this capture.
 
     Raises
     ------
@@ -864,7 +916,7 @@ def reduce_fixed(image: np.ndarray, dots: DotLocations, geometry: StationGeometr
                                     "blobs too large or long, "
                                     f"{found.small} too small): is the dot pattern shown and in focus, and are the "
                                     "dots dark on a lit background?")
-        jac, steady = grid_prediction(geometry, design, dots, screen)
+        jac, steady = kept_grid_prediction(geometry, design, dots, screen, cache)
         if steady:
             check_spacing(found.centres_px, jac)
         if origin_px is None:
@@ -969,12 +1021,14 @@ def analyse_fixed(image: np.ndarray, dots: DotLocations, geometry: StationGeomet
     *uncertainty* (the station inputs' :class:`~.uncertainty.InputUncertainties`) is given: the stages of
     :func:`reduce_fixed`, then :func:`~.analysis.finish_analysis`, as the fringe method's :func:`~.analysis.analyse`.
 
-    The parameters are :func:`reduce_fixed`'s, and *uncertainty* and *sensitivity_cache* :func:`~.analysis.analyse`'s.
-    The figures carry ``method = "fixed"`` and ``dots`` (found, indexed, used, the origin, the lattice's axes).
+    The parameters are :func:`reduce_fixed`'s, and *uncertainty* and *sensitivity_cache* :func:`~.analysis.analyse`'s;
+    *sensitivity_cache* also keeps the grid's predicted picture (:func:`kept_grid_prediction`). The figures carry
+    ``method = "fixed"`` and ``dots`` (found, indexed, used, the origin, the lattice's axes).
     """
     screen = dot_screen(dots, geometry.screen_to_camera, screen_centre_m) if screen is None else screen
     reduction, timings = reduce_fixed(image, dots, geometry, design, measured_distance_m, settings, fixed,
-                                      origin_px=origin_px, white=white, dark=dark, screen=screen)
+                                      origin_px=origin_px, white=white, dark=dark, screen=screen,
+                                      cache=sensitivity_cache)
     return finish_analysis(reduction, timings, fringes=DotPattern(fixed), geometry=geometry, design=design,
                            measured_distance_m=measured_distance_m, settings=fixed_settings_for(settings, fixed),
                            screen=screen, uncertainty=uncertainty, sensitivity_cache=sensitivity_cache)

@@ -96,6 +96,9 @@ SIGNATURES: dict[str, list[str]] = {
     "_reweight_sums_into": [
         "f8:1C f8:1C f8:1C f8:1C f8 f8 f8:1C f8:1C f8 f8 i8 f8:2C",
     ],
+    "_solve_poses_into": [
+        "f8:3C f8:2C f8:3C f8:2C f8:1C i8 f8 f8:3C f8:2C b1:1C",
+    ],
     "_to_frame_every_into": [
         "f8:1A f8:1A f8:1A f8:2C f8:1C i8 f8:2C",
         "f8:1C f8:1C f8:1C f8:2C f8:1C i8 f8:2C",

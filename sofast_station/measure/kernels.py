@@ -1514,40 +1514,43 @@ def _median_of(a, about, absolute, lo, hi, scratch):
 
 
 @kernel(**_JIT)
-def _lu3(a, piv):
-    """LU factors of the 3 x 3 *a* in place, with partial pivoting (LAPACK's getrf order); False when a
-    pivot is exactly zero (singular)."""
-    for k in range(3):
+def _lu(a, piv):
+    """LU factors of the square *a* (3 x 3, 6 x 6) in place, with partial pivoting (LAPACK's getrf order); False
+    when a pivot is exactly zero (singular)."""
+    n = a.shape[0]
+    for k in range(n):
         p = k
-        for i in range(k + 1, 3):
+        for i in range(k + 1, n):
             if abs(a[i, k]) > abs(a[p, k]):
                 p = i
         piv[k] = p
         if a[p, k] == 0.0:
             return False
         if p != k:
-            for j in range(3):
+            for j in range(n):
                 a[k, j], a[p, j] = a[p, j], a[k, j]
-        for i in range(k + 1, 3):
+        for i in range(k + 1, n):
             a[i, k] /= a[k, k]
-            for j in range(k + 1, 3):
+            for j in range(k + 1, n):
                 a[i, j] -= a[i, k] * a[k, j]
     return True
 
 
 @kernel(**_JIT)
-def _lu3_solve(lu, piv, b, x):
-    for i in range(3):
+def _lu_solve(lu, piv, b, x):
+    """x = a^-1 b from :func:`_lu`'s factors *lu* and pivots *piv* of a."""
+    n = lu.shape[0]
+    for i in range(n):
         x[i] = b[i]
-    for k in range(3):
+    for k in range(n):
         p = piv[k]
         if p != k:
             x[k], x[p] = x[p], x[k]
-    for i in range(3):
+    for i in range(n):
         for j in range(i):
             x[i] -= lu[i, j] * x[j]
-    for i in range(2, -1, -1):
-        for j in range(i + 1, 3):
+    for i in range(n - 1, -1, -1):
+        for j in range(i + 1, n):
             x[i] -= lu[i, j] * x[j]
         x[i] /= lu[i, i]
 
@@ -1600,9 +1603,9 @@ def irls_bisquare(c0, c1, c2, target, w, scale, tolerance, max_iterations, sigma
                 lu[i, j] = g[i, j]
         if not np.isfinite(g).all():
             return ILL_CONDITIONED, sigma
-        if not _lu3(lu, piv):
+        if not _lu(lu, piv):
             return SINGULAR, sigma
-        _lu3_solve(lu, piv, rhs, sol)
+        _lu_solve(lu, piv, rhs, sol)
         lam = np.abs(np.linalg.eigvalsh(g))
         if not lam.min() > 0.0 or lam.max() > 1e12 * lam.min():
             return ILL_CONDITIONED, sigma
@@ -1612,12 +1615,12 @@ def irls_bisquare(c0, c1, c2, target, w, scale, tolerance, max_iterations, sigma
         for i in range(3):
             for j in range(3):
                 lu[i, j] = gram[i, j]
-        if not _lu3(lu, piv):
+        if not _lu(lu, piv):
             return SINGULAR, sigma
         for j in range(3):
             unit[:] = 0.0
             unit[j] = 1.0
-            _lu3_solve(lu, piv, unit, col)
+            _lu_solve(lu, piv, unit, col)
             for i in range(3):
                 inv[i, j] = col[i]
         quad[0], quad[1], quad[2] = inv[0, 0], 2.0 * inv[0, 1], 2.0 * inv[0, 2]
@@ -1744,6 +1747,190 @@ def bilinear(heights_m: np.ndarray, x0: float, y0: float, cell: float, x: np.nda
     return out
 
 
+@kernel(inline="always", **_JIT)
+def _skew_series_into(v0, v1, v2, a, b, out):
+    """*out* (3, 3) = I + a V + b V V, V the cross-product matrix of (v0, v1, v2): a rotation by Rodrigues'
+    formula (:func:`_rodrigues_into`) and the left Jacobian of SO(3) (:func:`_left_jacobian_into`) alike."""
+    out[0, 0] = 1.0 + b * (-v2 * v2 - v1 * v1)
+    out[0, 1] = -a * v2 + b * (v1 * v0)
+    out[0, 2] = a * v1 + b * (v2 * v0)
+    out[1, 0] = a * v2 + b * (v0 * v1)
+    out[1, 1] = 1.0 + b * (-v2 * v2 - v0 * v0)
+    out[1, 2] = -a * v0 + b * (v2 * v1)
+    out[2, 0] = -a * v1 + b * (v0 * v2)
+    out[2, 1] = a * v0 + b * (v1 * v2)
+    out[2, 2] = 1.0 + b * (-v1 * v1 - v0 * v0)
+
+
+@kernel(inline="always", **_JIT)
+def _rodrigues_into(w0, w1, w2, r):
+    """*r* (3, 3): the rotation of the rotation vector (w0, w1, w2), radians, by Rodrigues' formula
+    (:func:`~.uncertainty.corner_pose._rotations`' arithmetic: I + sin(theta) K + (1 - cos(theta)) K K, K the
+    cross-product matrix of the unit axis)."""
+    theta = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+    d = theta if theta >= 1e-300 else 1.0
+    _skew_series_into(w0 / d, w1 / d, w2 / d, math.sin(theta), 1.0 - math.cos(theta), r)
+
+
+@kernel(inline="always", **_JIT)
+def _left_jacobian_into(w0, w1, w2, j):
+    """*j* (3, 3): the left Jacobian of SO(3) at the rotation vector (w0, w1, w2), exp(w + d) = exp(J d) exp(w)
+    (:func:`~.uncertainty.corner_pose._left_jacobian`: I + a W + b W W, W the cross-product matrix of w)."""
+    theta = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+    if theta < 1e-8:
+        a, b = 0.5, 1.0 / 6.0
+    else:
+        a, b = (1.0 - math.cos(theta)) / theta ** 2, (theta - math.sin(theta)) / theta ** 3
+    _skew_series_into(w0, w1, w2, a, b, j)
+
+
+@kernel(inline="always", **_JIT)
+def _pose_normal_equations(p, obs, points, k, dist, rot, jl, jac, err, jtj, jte):
+    """The reprojection error's norm (pixels) of the pose *p* (Rodrigues vector, translation) for the *points*
+    (m, 3) seen at *obs* (m, 2) by the camera *k* (3, 3), *dist* (k1, k2, p1, p2, k3); *jtj* (6, 6) and *jte* (6,)
+    receive the normal equations J^T J and J^T e of the error e (projected minus seen, *err* (2 m,)) with its
+    Jacobian J (*jac* (2 m, 6): :func:`~.uncertainty.corner_pose._project_batch`'s, the rotation's columns
+    through the left Jacobian of SO(3)); *rot*, *jl* (3, 3) are scratch."""
+    _rodrigues_into(p[0], p[1], p[2], rot)
+    _left_jacobian_into(p[0], p[1], p[2], jl)
+    fx, s, cx, fy, cy = k[0, 0], k[0, 1], k[0, 2], k[1, 1], k[1, 2]
+    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
+    for q in range(points.shape[0]):
+        a0, a1, a2 = points[q, 0], points[q, 1], points[q, 2]
+        rp0 = rot[0, 0] * a0 + rot[0, 1] * a1 + rot[0, 2] * a2         # R X
+        rp1 = rot[1, 0] * a0 + rot[1, 1] * a1 + rot[1, 2] * a2
+        rp2 = rot[2, 0] * a0 + rot[2, 1] * a1 + rot[2, 2] * a2
+        iz = 1.0 / (rp2 + p[5])
+        x, y = (rp0 + p[3]) * iz, (rp1 + p[4]) * iz
+        r2 = x * x + y * y
+        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+        yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+        err[2 * q] = fx * xd + s * yd + cx - obs[q, 0]
+        err[2 * q + 1] = fy * yd + cy - obs[q, 1]
+        d_rad = 2.0 * (k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2))
+        dxd_dx = radial + d_rad * x * x + 2.0 * p1 * y + 6.0 * p2 * x
+        dxd_dy = d_rad * x * y + 2.0 * p1 * x + 2.0 * p2 * y
+        dyd_dy = radial + d_rad * y * y + 6.0 * p1 * y + 2.0 * p2 * x
+        for row in range(2):
+            if row == 0:
+                dx, dy = fx * dxd_dx + s * dxd_dy, fx * dxd_dy + s * dyd_dy
+            else:
+                dx, dy = fy * dxd_dy, fy * dyd_dy
+            # d/dXc of (X/Z, Y/Z); a rotation w on the left moves R X by w x R X, so d/dw = (R X) x d/dXc
+            g0, g1, g2 = dx * iz, dy * iz, -(dx * x + dy * y) * iz
+            c0, c1, c2 = rp1 * g2 - rp2 * g1, rp2 * g0 - rp0 * g2, rp0 * g1 - rp1 * g0
+            e = 2 * q + row
+            for col in range(3):
+                jac[e, col] = c0 * jl[0, col] + c1 * jl[1, col] + c2 * jl[2, col]
+            jac[e, 3], jac[e, 4], jac[e, 5] = g0, g1, g2
+    sq = 0.0
+    for e in range(err.size):
+        sq += err[e] * err[e]
+    for a in range(6):
+        v = 0.0
+        for e in range(err.size):
+            v += jac[e, a] * err[e]
+        jte[a] = v
+        for b in range(a, 6):
+            v = 0.0
+            for e in range(err.size):
+                v += jac[e, a] * jac[e, b]
+            jtj[a, b] = v
+            jtj[b, a] = v
+    return math.sqrt(sq)
+
+
+@kernel(**_JIT)
+def _solve_poses_into(obs, points, matrix, distortion, start, max_iter, epsilon, rotation, translation, converged):
+    """:func:`solve_poses`' Levenberg-Marquardt, one draw after another (its docstring says what it does)."""
+    m = points.shape[0]
+    jac = np.empty((2 * m, 6))
+    err = np.empty(2 * m)
+    jtj, jtj_new, a = np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 6))
+    jte, jte_new, step = np.empty(6), np.empty(6), np.empty(6)
+    prev, new = np.empty(6), np.empty(6)
+    piv = np.empty(6, np.int64)
+    rot, jl = np.empty((3, 3)), np.empty((3, 3))
+    for i in range(obs.shape[0]):
+        k, dist, seen = matrix[i], distortion[i], obs[i]
+        prev[:] = start
+        prev_norm = _pose_normal_equations(prev, seen, points, k, dist, rot, jl, jac, err, jtj, jte)
+        lam = -3
+        iters = 0
+        done = False
+        solved = True
+        while True:
+            damp = 1.0 + 10.0 ** float(lam)
+            for r in range(6):
+                for c in range(6):
+                    a[r, c] = jtj[r, c] * damp if r == c else jtj[r, c]
+            if not _lu(a, piv):
+                solved = False              # the draw's corners leave its pose undetermined
+                break
+            _lu_solve(a, piv, jte, step)
+            for r in range(6):
+                new[r] = prev[r] - step[r]
+            norm = _pose_normal_equations(new, seen, points, k, dist, rot, jl, jac, err, jtj_new, jte_new)
+            if not norm <= prev_norm:
+                lam += 1
+                if lam <= 16:
+                    continue                # redone from the same point with more damping
+            lam = max(lam - 1, -16)
+            iters += 1
+            moved = size = 0.0
+            for r in range(6):
+                moved += (new[r] - prev[r]) * (new[r] - prev[r])
+                size += prev[r] * prev[r]
+            if math.sqrt(moved) / max(math.sqrt(size), 1e-300) < epsilon:
+                done = True
+                break
+            if iters >= max_iter:
+                break
+            prev_norm = norm
+            prev, new = new, prev
+            jtj, jtj_new = jtj_new, jtj
+            jte, jte_new = jte_new, jte
+        converged[i] = done
+        if not solved:
+            rotation[i] = math.nan
+            translation[i] = math.nan
+            continue
+        _rodrigues_into(new[0], new[1], new[2], rotation[i])
+        translation[i, 0], translation[i, 1], translation[i, 2] = new[3], new[4], new[5]
+
+
+def solve_poses(corners_px: np.ndarray, points: np.ndarray, matrix: np.ndarray, distortion: np.ndarray,
+                start: np.ndarray, max_iter: int, epsilon: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """n camera-from-object poses, each refined from the pose *start* (6,) (Rodrigues vector, radians, then
+    translation) so that *points* (m, 3) project through the camera *matrix* (n, 3, 3), *distortion* (n, 5)
+    onto the *corners_px* (n, m, 2) with the least squared reprojection error, pixels: the Levenberg-Marquardt of
+    :func:`~.uncertainty.corner_pose.solve_poses_batch`, its numpy version (the reference), one compiled pass
+    over the draws (that one's cost is numpy's per-call overhead on arrays of a few hundred small matrices).
+
+    Per draw the same algorithm: the parameters, the analytic Jacobian (the rotation's through the left Jacobian
+    of SO(3)), Marquardt's damping (J^T J's diagonal times 1 + 10^l, l from -3, up by one and the step redone from
+    the same point while the error grows, accepted anyway above 16, down by one after each accepted step, not
+    below -16), stopping at a relative parameter change below *epsilon* or after *max_iter* accepted steps. The
+    6 x 6 step is solved by LU with partial pivoting (:func:`_lu`); where a pivot is exactly zero (the draw's
+    corners leave its pose undetermined) the draw is marked, its rotation and translation NaN and not converged,
+    instead of the numpy version's pseudo-inverse step: the Monte Carlo drops such a draw.
+
+    Returns
+    -------
+    (rotation (n, 3, 3), translation (n, 3), converged (n,) bool: stopped by *epsilon* within *max_iter*)
+    """
+    # copies, C-ordered and writeable, whatever the caller's (the build's one entry; a few kB)
+    obs, points, matrix, distortion, start = (np.array(a, dtype=np.float64, order="C")
+                                              for a in (corners_px, points, matrix, distortion, start))
+    n = obs.shape[0]
+    rotation, translation = np.empty((n, 3, 3)), np.empty((n, 3))
+    converged = np.zeros(n, dtype=np.bool_)
+    _solve_poses_into(obs, points, matrix, distortion, start.ravel(), int(max_iter), float(epsilon), rotation,
+                      translation, converged)
+    return rotation, translation, converged
+
+
 def halves(pool, fn, n: int, *args) -> list:
     """``fn(*args, lo, hi)`` over 0:n, the first half on *pool* (an executor, or None) beside the second:
     for the element-wise kernels here, the same values on one thread or two. Returns the calls' results, one
@@ -1803,3 +1990,5 @@ def warm_up() -> None:
     minus_models(x, np.ones((1, 2)), np.ones(1), np.ones((4, 2)), np.ones(4))
     grid_divergence(x, x, x, x, 0.0, 0.0, 1.0, (2, 2))
     bilinear(np.zeros((2, 2)), 0.0, 0.0, 1.0, x, x)
+    solve_poses(np.zeros((1, 4, 2)), np.eye(4, 3) + [0.0, 0.0, 1.0], np.eye(3)[None], np.zeros((1, 5)), np.zeros(6), 1,
+                1e-7)

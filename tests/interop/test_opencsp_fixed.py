@@ -83,3 +83,24 @@ def test_import_opencsp_fixed_reports_the_methods_figures_and_the_files_are_name
                           "--dots", str(root / "sofast_common/camera_sofast.h5")], capture_output=True, text=True,
                          timeout=120)
     assert bad.returncode == 2 and "Traceback" not in bad.stderr and "camera_sofast.h5" in bad.stderr
+
+
+def test_an_imports_one_analysis_cache_shares_the_grid_prediction_with_its_callers():
+    """An import analyses with a cache of its own that shares with the caller's only what is the same for every
+    capture of a recipe: the sensitivities and the fixed pattern's predicted grid picture (a GridPrediction);
+    the frame-brightness pool stays with the one analysis."""
+    from collections import deque
+
+    import numpy as np
+
+    from sofast_station.interop.opencsp import _SensitivitiesOnly
+    from sofast_station.measure.fixed import GridPrediction
+
+    shared: dict = {}
+    kept = GridPrediction(np.eye(2), True)
+    local = _SensitivitiesOnly(shared)
+    local[("grid prediction", "0123")] = kept
+    local[("frame brightness", "0123")] = deque()
+    assert shared == {("grid prediction", "0123"): kept}
+    assert _SensitivitiesOnly(shared).get(("grid prediction", "0123")) is kept
+    assert _SensitivitiesOnly(shared).get(("frame brightness", "0123")) is None

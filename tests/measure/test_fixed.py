@@ -280,3 +280,39 @@ def test_fixed_settings_refuse_what_cannot_work():
     r = np.array([3.0, 10.0])
     np.testing.assert_allclose(screen.points_camera(r, r)[:, 0],
                                scene.screen_to_camera().apply(scene.dots().xyz_m[3, 3]), atol=1e-15)
+
+
+def test_the_grid_prediction_is_kept_per_recipe_in_the_callers_cache(monkeypatch):
+    """A caller's cache (analyse_fixed's sensitivity_cache) keeps the grid's predicted picture per recipe: a
+    second capture with the same cache, its geometry, design and dots rebuilt equal (as a station's worker
+    builds them per capture), does not compute it again and reduces to the figures it gives without a cache,
+    bit for bit; a design of another focal length (which moves the prediction) computes its own."""
+    import json
+
+    from sofast_station.measure import fixed as fixed_mod
+
+    calls = []
+    real = fixed_mod.grid_prediction
+
+    def counted(geometry, design, dots, screen):
+        calls.append(design.focal_length_m)
+        return real(geometry, design, dots, screen)
+
+    monkeypatch.setattr(fixed_mod, "grid_prediction", counted)
+    scene = Scene()
+
+    def figures(seed, cache, focal_length_m=20.0):
+        fig = reduce_fixed(scene.render(1.0, seed), scene.dots(), scene.geometry(), scene.design(focal_length_m),
+                           scene.measured_distance_m(), SETTINGS, cache=cache)[0].figures
+        return json.dumps({k: v for k, v in fig.items() if not k.startswith("timings")}, sort_keys=True, default=str)
+
+    cache: dict = {}
+    figures(0, cache)
+    assert calls == [20.0]
+    second = figures(1, cache)
+    assert calls == [20.0]
+    assert second == figures(1, None) and calls == [20.0, 20.0]
+    figures(1, cache, 24.0)
+    assert calls == [20.0, 20.0, 24.0]
+    kept = [v for k, v in cache.items() if isinstance(k, tuple) and k[0] == "grid prediction"]
+    assert len(kept) == 2 and not np.allclose(kept[0].jac, kept[1].jac, rtol=1e-3, atol=0)

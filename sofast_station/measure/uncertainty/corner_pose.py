@@ -8,6 +8,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from ..kernels import solve_poses
 from .inputs import InputUncertainties, pose_covariance_mrad_mm
 
 #: Figures the corner pose decides (their U comes from :func:`pose_monte_carlo`).
@@ -114,6 +115,27 @@ PNP_EPSILON = float(np.finfo(np.float32).eps)
 def solve_poses_batch(corners_px: np.ndarray, points: np.ndarray, matrix: np.ndarray, distortion: np.ndarray,
                       rotation0: np.ndarray, translation0: np.ndarray, max_iter: int = PNP_MAX_ITER,
                       epsilon: float = PNP_EPSILON) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """n camera-from-object poses, each refined from (*rotation0* (3, 3), *translation0* (3,)) so that *points*
+    (m, 3) project onto its *corners_px* (n, m, 2) with the least squared reprojection error in pixels: the
+    algorithm of :func:`_solve_poses_batch_numpy` (which documents it, and stays as its reference), in one
+    compiled pass over the draws (:func:`~sofast_station.measure.kernels.solve_poses`): on numpy the draws'
+    tiny arrays cost a call's overhead each, 9 ms of CPU per capture's Monte Carlo. A draw whose step cannot be
+    solved (a singular 6 x 6 system, its corners leaving the pose undetermined) comes back NaN and not
+    converged, which the Monte Carlo drops, where the numpy version takes a pseudo-inverse step.
+
+    Returns
+    -------
+    (rotation (n, 3, 3), translation (n, 3), converged (n,) bool: stopped by *epsilon* within *max_iter*)
+    """
+    rvec0 = cv2.Rodrigues(np.asarray(rotation0, np.float64))[0].ravel()
+    start = np.concatenate([rvec0, np.asarray(translation0, np.float64).ravel()])
+    return solve_poses(corners_px, points, matrix, distortion, start, max_iter, epsilon)
+
+
+def _solve_poses_batch_numpy(corners_px: np.ndarray, points: np.ndarray, matrix: np.ndarray,
+                             distortion: np.ndarray, rotation0: np.ndarray, translation0: np.ndarray,
+                             max_iter: int = PNP_MAX_ITER,
+                             epsilon: float = PNP_EPSILON) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """n camera-from-object poses at once, each refined from (*rotation0* (3, 3), *translation0* (3,)) so
     that *points* (m, 3) project onto its *corners_px* (n, m, 2) with the least squared reprojection error in
     pixels: what the station's own corner pose (:func:`~sofast_station.measure.pose.solve_corner_pose`,
@@ -259,8 +281,9 @@ def pose_monte_carlo(reduction, *, geometry, design, inputs: InputUncertainties,
     about y moves by -3.2 mrad for f_x - f_y = +1 px and +2.5 mrad for -1 px, and the slope itself shifts
     with the corners' own noise), so a sensitivity taken at one point, once per geometry, made U of the
     rotation about y cover 91 % of the errors instead of 95 %. All draws' 4-point poses are solved at once
-    (:func:`solve_poses_batch`: 34-36 ms of CPU per facet against 95-100 ms for OpenCV's solvePnP one at a
-    time, on a quiet machine), so it is drawn for every capture, with its own corner covariance, at the
+    (:func:`solve_poses_batch`: 34-36 ms of CPU per facet as numpy arrays against 95-100 ms for OpenCV's
+    solvePnP one at a time, on a quiet machine; compiled since 2026-12-06, the whole Monte Carlo 2 ms for
+    OpenCSP's fixed capture against 6-10 ms), so it is drawn for every capture, with its own corner covariance, at the
     expected pose (the facet where the fixture's nominal pose puts it; GUM 5.1.3). Not at the capture's found
     corners: their own noise moves that point towards the near-frontal pose's two-fold ambiguity, where
     the pose turns fastest, and U then scattered from 3 to 13 mrad between captures of the same facet and
