@@ -75,8 +75,8 @@ def register(subparsers) -> None:
 #: The figures import-opencsp reports, each with its ``_U`` and ``_U_random`` (k = 2) where it has one.
 #: Not the placement and optical tilt: they are measured against a fixture, and OpenCSP has none.
 FIGURE_KEYS = ("focal_length_x_m", "focal_length_y_m", "curvature_x_per_m", "curvature_y_per_m",
-               "principal_focal_lengths_m", "axis_angle_rad", "twist_mrad_per_m", "twist_e1_mrad_per_m",
-               "twist_e2_mrad_per_m", "slope_rms_mrad", "boresight_mrad", "subsample_fit")
+               "principal_focal_lengths_m", "principal_curvatures_per_m", "axis_angle_rad", "twist_mrad_per_m",
+               "twist_e1_mrad_per_m", "twist_e2_mrad_per_m", "slope_rms_mrad", "boresight_mrad", "subsample_fit")
 #: The noise floor of the slope RMS values and the budget (as in the station's result record).
 UNCERTAINTY_KEYS = ("coverage_factor", "slope_rms_noise_mrad", "slope_rms_noise_mrad_U", "slope_rms_corrected_mrad",
                     "slope_rms_corrected_mrad_U", "intensity_noise_dn", "uncertainty_budget")

@@ -30,16 +30,21 @@ def focal_length_m(curvature_per_m: float) -> float | None:
     return 1.0 / curvature_per_m
 
 
+def principal_curvatures(a: float, b: float, e: float) -> list[float]:
+    """The principal focal powers (1/m), larger first: 4 lambda for the eigenvalues lambda of
+    [[A, E/2], [E/2, B]] (the larger power is the shorter positive focal length)."""
+    mean = 0.5 * (a + b)
+    half = float(np.hypot(0.5 * (a - b), 0.5 * e))
+    return [4.0 * (mean + half), 4.0 * (mean - half)]
+
+
 def principal_axes(a: float, b: float, e: float) -> tuple[list, float]:
     """Principal focal lengths (shorter first, metres or None) and the axis angle of the shorter, radians.
 
-    From the eigenvalues lambda of [[A, E/2], [E/2, B]], f = 1/(4 lambda); the angle
-    (1/2) atan2(E, A - B) is measured from +x toward +y.
+    f = 1 / kappa of :func:`principal_curvatures`; the angle (1/2) atan2(E, A - B) is measured from +x
+    toward +y.
     """
-    mean = 0.5 * (a + b)
-    half = np.hypot(0.5 * (a - b), 0.5 * e)
-    lambdas = (mean + half, mean - half)      # larger lambda = shorter positive focal length
-    return [focal_length_m(4.0 * lam) for lam in lambdas], float(0.5 * np.arctan2(e, a - b))
+    return [focal_length_m(k) for k in principal_curvatures(a, b, e)], float(0.5 * np.arctan2(e, a - b))
 
 
 def neighbour_pairs(flat_idx: np.ndarray, width_px: int) -> tuple:

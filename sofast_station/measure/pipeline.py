@@ -41,7 +41,8 @@ from .heights import height_grid
 from .jumps import isolated_jumps
 from .kernels import consistency_set, gather_runs, halves, model_residuals, reflect, reflect_blend, to_frame_every
 from .mask import facet_region
-from .metrics import focal_length_m, neighbour_difference_ms, neighbour_pairs, principal_axes, rms_summary
+from .metrics import (focal_length_m, neighbour_difference_ms, neighbour_pairs, principal_axes,
+                      principal_curvatures, rms_summary)
 from .phase import (
     FrameNoise,
     drawn_error_at,
@@ -1042,14 +1043,15 @@ def report_figures(region: Region, phases: Phases, rays: Rays, pose: CornerPoseR
 
 def parabola_figures(fit: ParabolaFit) -> dict:
     """The reported figures the all-points parabola *fit* alone gives (before :func:`plano_figures`): focal
-    lengths (metres), curvatures (1/m), twists (mrad/m), the principal focal lengths and the shorter's axis
-    angle (radians); :func:`report_figures`' and the uncertainty's reruns' (which need no more)."""
+    lengths (metres), curvatures (1/m), twists (mrad/m), the principal focal lengths and powers and the
+    shorter's axis angle (radians); :func:`report_figures`' and the uncertainty's reruns' (which need no more)."""
     kx, ky = 4.0 * fit.a, 4.0 * fit.b
     principal, angle = principal_axes(fit.a, fit.b, fit.e)
     return {"focal_length_x_m": focal_length_m(kx), "focal_length_y_m": focal_length_m(ky),
             "curvature_x_per_m": kx, "curvature_y_per_m": ky, "twist_mrad_per_m": 1000.0 * fit.e,
             "twist_e1_mrad_per_m": 1000.0 * fit.e1, "twist_e2_mrad_per_m": 1000.0 * fit.e2,
-            "principal_focal_lengths_m": principal, "axis_angle_rad": angle}
+            "principal_focal_lengths_m": principal,
+            "principal_curvatures_per_m": principal_curvatures(fit.a, fit.b, fit.e), "axis_angle_rad": angle}
 
 
 #: The capture's own figures, in the order the figures list them (after ``n_points``).
@@ -1098,7 +1100,7 @@ NOT_FITTED_BY_A_PLANE = {
     key: "the plano model fits constant slopes (a plane): no curvature or twist"
     for key in ("focal_length_x_m", "focal_length_y_m", "curvature_x_per_m", "curvature_y_per_m",
                 "twist_mrad_per_m", "twist_e1_mrad_per_m", "twist_e2_mrad_per_m", "principal_focal_lengths_m",
-                "axis_angle_rad")}
+                "principal_curvatures_per_m", "axis_angle_rad")}
 
 
 def plano_figures(figures: dict) -> dict:

@@ -22,7 +22,12 @@ from .focal import focal_length_interval
 #: Figures copied from an analysis into the result first (and compared with the twin's truth).
 FIGURE_KEYS = ("focal_length_x_m", "focal_length_y_m", "curvature_x_per_m", "curvature_y_per_m",
                "twist_mrad_per_m", "twist_e1_mrad_per_m", "twist_e2_mrad_per_m", "principal_focal_lengths_m",
-               "axis_angle_rad", "slope_rms_mrad", "n_points", "boresight_mrad", "optical_tilt_mrad")
+               "principal_curvatures_per_m", "axis_angle_rad", "slope_rms_mrad", "n_points", "boresight_mrad",
+               "optical_tilt_mrad")
+
+#: Figures added after 0.3.1: an analysis of an older version (a dump's, a test's hand-written figures) may lack
+#: them, and its record then has them as None (not measured) rather than failing.
+ADDED_FIGURE_KEYS = ("principal_curvatures_per_m",)
 
 
 def now_iso() -> str:
@@ -116,7 +121,7 @@ def build_record(head: RecordHead, *, figures: dict | None = None, verdict: dict
         raise ValueError("a record has either figures or a fault")
     out = head.to_dict()
     if figures is not None:
-        out.update({k: figures[k] for k in FIGURE_KEYS})
+        out.update({k: figures[k] if k not in ADDED_FIGURE_KEYS else figures.get(k) for k in FIGURE_KEYS})
         out.update({k: v for k, v in figures.items() if k not in FIGURE_KEYS and k != "timings_s"})
         for axis in ("x", "y"):      # f's exact interval from the focal power's U (result/focal.py)
             interval = focal_length_interval(out.get(f"curvature_{axis}_per_m"), out.get(f"curvature_{axis}_per_m_U"))

@@ -71,6 +71,8 @@ def figure_name(key: str) -> tuple[str, str]:
     axis = {"0": "x", "1": "y", "2": "z"}
     if parts[0] == "principal_focal_lengths_m" and len(parts) == 2:
         return (f"principal focal length {'shorter' if parts[1] == '0' else 'longer'}", "m")
+    if parts[0] == "principal_curvatures_per_m" and len(parts) == 2:
+        return (f"principal focal power {'larger' if parts[1] == '0' else 'smaller'}", "1/m")
     if parts[0] in ("optical_tilt_mrad", "boresight_mrad") and len(parts) == 2:
         return (f"{'optical tilt' if parts[0].startswith('optical') else 'boresight rotation'} about "
                 f"{parts[1]}", "mrad")

@@ -261,6 +261,7 @@ def ground_truth(station: TwinStation, kept: np.ndarray) -> dict:
         ``curvature_y_per_m`` (4B), ``twist_mrad_per_m`` (1000 E), ``twist_e1_mrad_per_m``,
         ``twist_e2_mrad_per_m``, ``principal_focal_lengths_m`` ([f1, f2], from the eigenvalues of
         [[A, E/2], [E/2, B]] in decreasing order, i.e. the shorter first for a concave facet),
+        ``principal_curvatures_per_m`` ([4 lambda1, 4 lambda2], the same eigenvalues, larger first),
         ``axis_angle_rad`` (0.5 atan2(E, A - B)), ``coefficients`` ([A, B, C, D, E]),
         ``slope_rms_mrad`` ({"design" | "parabola" | "higher_order": {"x", "y", "magnitude"}}),
         ``boresight_mrad`` ({"x": 1000 alpha, "y": 1000 beta}: the rotation R_y(beta) R_x(alpha) about the
@@ -304,6 +305,7 @@ def truth_from_samples(points_m: np.ndarray, normals: np.ndarray, design: FacetD
         "twist_e1_mrad_per_m": 1e3 * p["e1"],
         "twist_e2_mrad_per_m": 1e3 * p["e2"],
         "principal_focal_lengths_m": [_focal_length(4 * float(lam)) for lam in eigenvalues],
+        "principal_curvatures_per_m": [4 * float(lam) for lam in eigenvalues],
         "axis_angle_rad": 0.5 * float(np.arctan2(e, a - b)),
         "coefficients": [a, b, p["c"], p["d"], e],
         "slope_rms_mrad": {"design": _residual_rms_mrad(slopes, design),

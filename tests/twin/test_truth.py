@@ -17,7 +17,8 @@ from sofast_station.twin import TrueFacet, TwinOptics, TwinStation, ground_truth
 from sofast_station.twin import truth as truth_module
 
 KEYS = {"focal_length_x_m", "focal_length_y_m", "curvature_x_per_m", "curvature_y_per_m", "twist_mrad_per_m",
-        "twist_e1_mrad_per_m", "twist_e2_mrad_per_m", "principal_focal_lengths_m", "axis_angle_rad",
+        "twist_e1_mrad_per_m", "twist_e2_mrad_per_m", "principal_focal_lengths_m", "principal_curvatures_per_m",
+        "axis_angle_rad",
         "coefficients", "slope_rms_mrad", "boresight_mrad", "optical_tilt_mrad", "placement", "n_points"}
 
 
@@ -37,6 +38,7 @@ def test_pure_paraboloid_is_recovered_exactly(parabola_station):
     lam = np.linalg.eigvalsh([[1 / (4 * 5.42), 0.5e-4], [0.5e-4, 1 / (4 * 5.35)]])   # ascending
     f_short, f_long = 1 / (4 * lam[1]), 1 / (4 * lam[0])
     assert truth["principal_focal_lengths_m"] == pytest.approx([f_short, f_long], rel=1e-9)
+    assert truth["principal_curvatures_per_m"] == pytest.approx([1 / f_short, 1 / f_long], rel=1e-9)
     # the axis of the shorter focal length (larger curvature, here near y) at 0.5 atan2(E, A - B)
     assert truth["axis_angle_rad"] == pytest.approx(0.5 * np.arctan2(1e-4, a - b), rel=1e-9)
     lam, vec = np.linalg.eigh([[a, e / 2], [e / 2, b]])
@@ -64,6 +66,7 @@ def test_flat_facet_has_no_focal_length(flat_station):
     truth = ground_truth(flat_station, flat_station.coverage >= 1)
     assert truth["focal_length_x_m"] is None and truth["focal_length_y_m"] is None
     assert truth["principal_focal_lengths_m"] == [None, None]
+    assert truth["principal_curvatures_per_m"] == pytest.approx([0.0, 0.0], abs=1e-9)
 
 
 def test_rich_facet_fits_and_skips_pixels_without_facet(rich_station):

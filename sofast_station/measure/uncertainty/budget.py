@@ -178,6 +178,38 @@ def _clean(v: float):
     return None if v is None or not np.isfinite(v) else float(v)
 
 
+#: Each focal length's path and its focal power's (f = 1 / kappa).
+FOCAL_POWER_PATHS = {("focal_length_x_m",): ("curvature_x_per_m",), ("focal_length_y_m",): ("curvature_y_per_m",),
+                     ("principal_focal_lengths_m", 0): ("principal_curvatures_per_m", 0),
+                     ("principal_focal_lengths_m", 1): ("principal_curvatures_per_m", 1)}
+
+
+def _focal_from_power(figures: dict, paths: list, columns: tuple, contrib: np.ndarray, offset: np.ndarray) -> None:
+    """Each focal length's uncertainty from its focal power's, in place: u(f) = u(kappa) / kappa^2 in every
+    column of *columns* (1-D, one value per path) and every row of *contrib* (rows x paths); its part of
+    *offset* likewise, with the sign of f's (df = -dkappa / kappa^2).
+
+    f = 1 / kappa. The budget's rows and the shape Monte Carlo's responses of f itself are differences of f over
+    a step of each input; on a nearly flat facet (f tens of km) the step moves kappa by as much as kappa, f leaps
+    (through infinity where kappa changes sign) and those differences are noise: on the population (seed 0, 2000
+    points in the shape Monte Carlo's fields) a flat facet's second principal focal length read 72 times its
+    U / 2 from the truth by its power. kappa's responses are smooth, so f's U is taken from them, linear where it
+    means anything (result/focal.py writes kappa's interval mapped through 1 / kappa where it does not); kappa's
+    coverage is then f's by construction."""
+    for f_path, k_path in FOCAL_POWER_PATHS.items():
+        if f_path not in paths or k_path not in paths:
+            continue
+        kappa = get_path(figures, k_path)
+        if kappa is None or get_path(figures, f_path) is None or not np.isfinite(kappa) or kappa == 0:
+            continue
+        jf, jk = paths.index(f_path), paths.index(k_path)
+        scale = 1.0 / (kappa * kappa)
+        for col in columns:
+            col[jf] = col[jk] * scale
+        contrib[:, jf] = contrib[:, jk] * scale
+        offset[jf] = -offset[jk] * scale
+
+
 #: Budget groups of the camera intrinsics (the Monte Carlo draws them for the corner pose only).
 CAMERA_GROUPS = ("camera focal length", "camera principal point", "camera distortion")
 #: Budget groups the shape figures' Monte Carlo stands for (:func:`~.shape_pose.shape_monte_carlo`): the
@@ -362,6 +394,7 @@ def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs:
                 ms_all, ms_corners = shape_mc[p]
                 u_rand[j] = np.sqrt(ms_corners + u_rand_o2[j])
                 u[j] = max(np.sqrt(ms_all + u_sys_o2[j] + u_rand_o2[j]), u_rand[j])
+    _focal_from_power(figures, sens.paths, (u, u_rand, noise_col), contrib, offset)
     u_diff = _difference_u(sens, linear, sc, kinds, noise_col, shape_mc, pose_mc)
     k = COVERAGE_FACTOR
     values = {p: get_path(figures, p) for p in sens.paths}

@@ -24,7 +24,8 @@ RMS_AXES = ("x", "y", "magnitude")
 SCALAR_PATHS: tuple[tuple, ...] = (
     ("focal_length_x_m",), ("focal_length_y_m",), ("curvature_x_per_m",), ("curvature_y_per_m",),
     ("twist_mrad_per_m",), ("twist_e1_mrad_per_m",), ("twist_e2_mrad_per_m",),
-    ("principal_focal_lengths_m", 0), ("principal_focal_lengths_m", 1), ("axis_angle_rad",),
+    ("principal_focal_lengths_m", 0), ("principal_focal_lengths_m", 1), ("principal_curvatures_per_m", 0),
+    ("principal_curvatures_per_m", 1), ("axis_angle_rad",),
     *[("slope_rms_mrad", m, a) for m in MODELS for a in RMS_AXES],
     ("boresight_mrad", "x"), ("boresight_mrad", "y"), ("optical_tilt_mrad", "x"), ("optical_tilt_mrad", "y"),
     *[("placement", "mm", i) for i in range(3)], *[("placement", "mrad", i) for i in range(3)],

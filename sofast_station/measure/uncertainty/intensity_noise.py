@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..metrics import principal_axes
+from ..metrics import principal_axes, principal_curvatures
 from ..pipeline import default_screen
 from ..slope_noise import pixel_noise_dn as _pixel_noise_dn
 from ..slope_noise import position_sigmas_m, slope_jacobian
@@ -21,12 +21,14 @@ def _fit_figures(a: float, b: float, e1: float, e2: float) -> dict:
     """The fit's scalar figures as functions of A, B, E1, E2 (for their Jacobian)."""
     e = 0.5 * (e1 + e2)
     (p1, p2), angle = principal_axes(a, b, e)
+    k1, k2 = principal_curvatures(a, b, e)
     kx, ky = 4.0 * a, 4.0 * b
     return {("focal_length_x_m",): 1.0 / kx if kx else np.nan, ("focal_length_y_m",): 1.0 / ky if ky else np.nan,
             ("curvature_x_per_m",): kx, ("curvature_y_per_m",): ky, ("twist_mrad_per_m",): 1000.0 * e,
             ("twist_e1_mrad_per_m",): 1000.0 * e1, ("twist_e2_mrad_per_m",): 1000.0 * e2,
             ("principal_focal_lengths_m", 0): np.nan if p1 is None else p1,
-            ("principal_focal_lengths_m", 1): np.nan if p2 is None else p2, ("axis_angle_rad",): angle}
+            ("principal_focal_lengths_m", 1): np.nan if p2 is None else p2,
+            ("principal_curvatures_per_m", 0): k1, ("principal_curvatures_per_m", 1): k2, ("axis_angle_rad",): angle}
 
 
 def _line_fit_covariance(u: np.ndarray, v: np.ndarray, sigma: np.ndarray) -> np.ndarray:

@@ -50,8 +50,8 @@ from .systematic import decimated
 SHAPE_PATHS: tuple[tuple, ...] = (
     ("focal_length_x_m",), ("focal_length_y_m",), ("curvature_x_per_m",), ("curvature_y_per_m",),
     ("twist_mrad_per_m",), ("twist_e1_mrad_per_m",), ("twist_e2_mrad_per_m",),
-    ("principal_focal_lengths_m", 0), ("principal_focal_lengths_m", 1),
-    *[("slope_rms_mrad", m, a) for m in ("design", "parabola") for a in RMS_AXES])
+    ("principal_focal_lengths_m", 0), ("principal_focal_lengths_m", 1), ("principal_curvatures_per_m", 0),
+    ("principal_curvatures_per_m", 1), *[("slope_rms_mrad", m, a) for m in ("design", "parabola") for a in RMS_AXES])
 #: The curvatures' difference kappa_x - kappa_y (1/m), carried beside the figures for the axis angle's bound.
 DIFFERENCE_PATH = ("curvature_difference_per_m",)
 #: Slope-RMS models whose residual fields are moved (the others' figures by their own responses).
