@@ -81,6 +81,29 @@ def test_every_reported_scalar_has_an_expanded_uncertainty(two_captures):
     assert budget["combined_standard"][f] == pytest.approx(fig["focal_length_x_m_U"] / 2, rel=1e-2)
 
 
+def test_a_focal_lengths_u_is_its_focal_powers(two_captures):
+    """Issue 47: f = 1 / kappa, and f's U (total, random, every budget row) is kappa's mapped linearly, U(kappa)
+    / kappa^2, for f_x, f_y and both principal focal lengths: the rows of f itself (differences over an input's
+    step) are noise on a nearly flat facet, where the step moves kappa by as much as kappa. Whether kappa's U is
+    right is the population's test (tests/station/test_population.py)."""
+    (a, _), _ = two_captures
+    fig = a.figures
+    u = {k[:-2]: v for k, v in fig.items() if k.endswith("_U")}
+    ur = {k[:-9]: v for k, v in fig.items() if k.endswith("_U_random")}
+    budget = fig["uncertainty_budget"]
+    pairs = [(("focal_length_x_m",), ("curvature_x_per_m",)), (("focal_length_y_m",), ("curvature_y_per_m",)),
+             *[(("principal_focal_lengths_m", i), ("principal_curvatures_per_m", i)) for i in (0, 1)]]
+    for f_path, k_path in pairs:
+        f, kappa = get_path(fig, f_path), get_path(fig, k_path)
+        assert f == pytest.approx(1.0 / kappa, rel=1e-12), path_name(f_path)
+        assert get_path(u, f_path) == pytest.approx(get_path(u, k_path) * f * f, rel=1e-9), path_name(f_path)
+        assert get_path(ur, f_path) == pytest.approx(get_path(ur, k_path) * f * f, rel=1e-9), path_name(f_path)
+        jf, jk = (budget["figures"].index(path_name(p)) for p in (f_path, k_path))
+        for row in budget["rows"]:
+            cf, ck = row["contributions"][jf], row["contributions"][jk]
+            assert (cf is None) == (ck is None) and (cf is None or cf == pytest.approx(ck * f * f, rel=2e-2, abs=0))
+
+
 def test_noise_explained_matches_the_scatter_between_two_captures(two_captures):
     (a, b), _ = two_captures
     both = np.flatnonzero((a.valid & b.valid).ravel())
