@@ -67,29 +67,29 @@ def test_the_residual_fields_rms_is_recomputed_per_draw_and_the_figures_moved_to
         assert out[p][1] < out[p][0], p                      # the corners alone move the frame less
 
 
-@pytest.mark.parametrize("gradient, without_below", [(0.0, 0.8), (10.0, None)])
+@pytest.mark.parametrize("gradient, without_below", [(0.0, 0.75), (10.0, None)])
 def test_the_slope_rms_u_is_right_sized_where_the_measured_frame_is_itself_off(gradient, without_below):
-    """Issue 47, item 6: a synthetic population of 300 captures. The true design residual r_t (2 x 400 points)
+    """Issue 47, item 6: a synthetic population of 200 captures. The true design residual r_t (2 x 200 points)
     is moved by three linear fields F (0.01 mrad per unit) by the capture's own frame error d_t ~ N(0, 1) per
     parameter; the Monte Carlo draws 400 frame errors of the same spread about that measured frame, and each
     capture's U = 2 sqrt(its mean square change) is compared with its slope RMS x's error against r_t's. Without
     a true gradient (r_t orthogonal to the fields: any frame error raises the RMS, the round facet's design x)
     the Monte Carlo about the displaced frame stated the error's mean square about twice (RMS of error / (U / 2)
-    0.74, measured without displaced_gradient_factor; 0.90 with it); with a strong one (r_t having 10 units of
-    F_0) it is linear and the factor changes little (1.04 -> 1.05). RMS within 0.8-1.2 and coverage of
-    |error| <= U at least 90 % (300 cases: the RMS's own spread is about 5 %)."""
+    0.67, measured without displaced_gradient_factor; 0.83 with it); with a strong one (r_t having 10 units of
+    F_0) it is linear (1.00). RMS within 0.8-1.2 and coverage of |error| <= U at least 90 % (200 cases: the
+    RMS's own spread is about 5 %); without the factor below 0.75."""
     from sofast_station.measure.uncertainty import shape_pose
 
     def population(factor_on: bool):
         rng = np.random.default_rng(11)
-        m, k = 400, 3
+        m, k = 200, 3
         f = np.zeros((15, 2, m))
         f[:k] = rng.normal(0.0, 0.01, (k, 2, m))
         q, _ = np.linalg.qr(f[:k].reshape(k, -1).T)
         flat = rng.normal(0.0, 0.05, 2 * m)
         r_t = (flat - q @ (q.T @ flat)).reshape(2, m) + gradient * f[0]
         z = []
-        for _ in range(300):
+        for _ in range(200):
             d_t = np.zeros(15)
             d_t[:k] = rng.normal(size=k)
             r0 = r_t + np.einsum("k,kam->am", d_t, f)
