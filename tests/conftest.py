@@ -223,6 +223,18 @@ LONG_TESTS = {
     "tests/station/test_heliostat_far.py::test_focal_length_within_0_002_percent_of_truth[17]": "its seed 9",
     "tests/station/test_corners_on_twin.py::test_gore_twist_at_its_own_resolution_on_a_coarse_supersampled_edge"
     "[3.0]": "its turn of -8 mrad",
+    # 2026-12-07: this machine runs the default set in 11:42-12:13 (the day before's, 8:39), and setup-env in 2:37
+    "tests/station/test_heliostat_near.py::test_focal_length_against_truth_stage_by_stage[2]": "its stations 6 and 10",
+    "tests/station/test_dark_rim.py::test_a_dark_rim_declared_dark_puts_the_corners_on_the_outline[heliostat-2]":
+        "its dish",
+    "tests/station/test_dark_rim.py::test_a_rim_declared_dark_that_shows_the_screen_is_named_and_put_midway"
+    "[heliostat-2]": "its dish",
+    "tests/station/test_corners_on_twin.py::test_corners_within_a_tenth_of_a_pixel[blurred-heliostat]":
+        "its sharp heliostat, its blurred dish and gore",
+    "tests/station/test_standby.py::test_a_hung_worker_costs_its_facet_a_rerun_on_the_standby_not_a_timeout":
+        "test_worker_load.py (a hung rerun gives the first answer)",
+    "tests/station/test_robustness.py::test_a_killed_stations_leftovers_are_recovered":
+        "kill_campaign --quick (the station killed and restarted: no temp files, no orphan spools)",
 }
 
 
