@@ -157,10 +157,15 @@ STEERING_TOLERANCE = 1e-5
 FINAL_TOLERANCE = 1e-9
 
 
-def kappa_converged(new: np.ndarray, old: np.ndarray) -> bool:
-    """|delta kappa| < 1e-6 max(|kappa|, 1e-3 /m) for both kappa_x = 4A and kappa_y = 4B."""
+#: The shape's convergence: the relative change of kappa_x and kappa_y between two steps below which the
+#: fitted shape no longer changes (:func:`kappa_converged`).
+KAPPA_TOLERANCE = 1e-6
+
+
+def kappa_converged(new: np.ndarray, old: np.ndarray, tolerance: float = KAPPA_TOLERANCE) -> bool:
+    """|delta kappa| < *tolerance* max(|kappa|, 1e-3 /m) for both kappa_x = 4A and kappa_y = 4B."""
     dk = 4.0 * np.abs(new[:2] - old[:2])
-    return bool(np.all(dk < 1e-6 * np.maximum(4.0 * np.abs(new[:2]), 1e-3)))
+    return bool(np.all(dk < tolerance * np.maximum(4.0 * np.abs(new[:2]), 1e-3)))
 
 
 def model_coefficients(fit: ParabolaFit, design: FacetDesign) -> np.ndarray:
@@ -298,7 +303,8 @@ def solve_shape(assembly: Assembly, design: FacetDesign, measured_distance_m: fl
 
 def close_on_all_points(solution: ShapeSolution, design: FacetDesign, measured_distance_m: float,
                         assembly: Assembly, reduce_all, fit_all, max_iterations: int = 20, heights_of=None,
-                        raise_all=None):
+                        raise_all=None, kappa_tolerance: float = KAPPA_TOLERANCE,
+                        height_tolerance_m: float = SURFACE_HEIGHT_TOLERANCE_M):
     """The boresight's conditions met by the parabola fitted to every valid pixel, not the subsample's.
 
     The iteration converges on the subsample (:func:`solve_shape`); the reported parabola is then fitted
@@ -360,12 +366,12 @@ def close_on_all_points(solution: ShapeSolution, design: FacetDesign, measured_d
                 points_up, slopes_up = reduce_all(motion, raised)
                 points = points + (points_up - points) * scale
                 slopes = slopes + (slopes_up - slopes) * scale
-            settled = abs(at_measure - height) < SURFACE_HEIGHT_TOLERANCE_M
+            settled = abs(at_measure - height) < height_tolerance_m
             height = at_measure
         fit = fit_all(points, slopes)
         new = model_coefficients(fit, design)
         d_alpha, d_beta = _design_turn(new, design)
-        if max(abs(d_alpha), abs(d_beta)) < 1e-6 and kappa_converged(new, coeffs) and settled:
+        if max(abs(d_alpha), abs(d_beta)) < 1e-6 and kappa_converged(new, coeffs, kappa_tolerance) and settled:
             converged = True
             break
         if step == max_iterations:           # not converged: keep the frame these points are in

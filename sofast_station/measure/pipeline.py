@@ -30,6 +30,8 @@ from . import rim as rim_mod
 from .boresight import (
     Assembly,
     ShapeSolution,
+    KAPPA_TOLERANCE,
+    SURFACE_HEIGHT_TOLERANCE_M,
     close_on_all_points,
     model_coefficients,
     solve_shape,
@@ -786,7 +788,8 @@ def pose_from_corners(found: np.ndarray, region: Region, rays: Rays, geometry: S
 
 def shape_and_boresight(rays: Rays, pose: CornerPoseResult, design: FacetDesign, measured_distance_m: float,
                         settings: AnalysisSettings, pool=None, timer=None, subsample_only: bool = False,
-                        start=None) -> Shape:
+                        start=None, kappa_tolerance: float = KAPPA_TOLERANCE,
+                        height_tolerance_m: float = SURFACE_HEIGHT_TOLERANCE_M) -> Shape:
     """Stage 5: shape and boresight iterated on the subsample, then every valid pixel's point and slope in
     the boresighted facet frame. *subsample_only*: stop after the subsample (the converged solution and the
     boresighted frame; ``points_m`` and ``slopes`` None), for a caller that only needs where the facet
@@ -854,7 +857,8 @@ def shape_and_boresight(rays: Rays, pose: CornerPoseResult, design: FacetDesign,
     solution, points, slopes, fit = close_on_all_points(
         solution, design, measured_distance_m, subsample, reduce_all,
         lambda p, s: all_points_parabola(p, s, solution.fit, settings, pool), settings.max_iterations,
-        heights_of=heights_of, raise_all=raise_all)
+        heights_of=heights_of, raise_all=raise_all, kappa_tolerance=kappa_tolerance,
+        height_tolerance_m=height_tolerance_m)
     if start is not None:
         solution = dataclasses.replace(solution, subsample_coefficients=start.subsample_coefficients)
     to_moved = solution.motion.as_pose().compose(camera_to_facet)

@@ -146,10 +146,11 @@ def opencsp_fixed_reduction(repo_root):
 def test_the_reruns_started_where_their_frame_converges_end_where_they_did(opencsp_fixed_reduction, monkeypatch):
     """pose_fields on OpenCSP's fixed capture (3,537 points) with each corner-pose rerun started where its frame
     converges (carried_start, then mirrored_start for the opposite move) against the same reruns started from the
-    capture's own solution (both starts replaced by it, as the reruns were before). The boresight's iteration
-    stops within 1 microradian of turn and 1e-6 of curvature whatever it starts from, which over the 2 mrad / 2 mm
-    steps is about 5e-4 of a response: every residual field (RMS of the difference, per parameter) and every
-    figure's linear and quadratic change over one step must agree to 1e-3 of the largest (measured 1e-4). A
+    capture's own solution (both starts replaced by it, as the reruns were before). The reruns' iteration stops
+    within 1 microradian of turn and 1e-5 of curvature (FIELD_TOLERANCE) whatever it starts from, which over the
+    2 mrad / 2 mm steps is about 5e-3 of a response: every residual field (RMS of the difference, per parameter)
+    and every figure's linear and quadratic change over one step must agree to 1e-2 of the largest (measured
+    2026-12-07: 2.7e-3 and 1.1e-3; 1e-4 with the analysis's own tolerance). A
     turn about the facet's x axis through the boresight's pivot (this facet's alignment point is its origin) is
     the boresight's to take out (R_y(beta) R_x(alpha) R_x(d) = R_y(beta) R_x(alpha + d)): started from the
     carried motion, its reruns converge in one step (from the capture's own motion, five) and its fields are
@@ -181,13 +182,13 @@ def test_the_reruns_started_where_their_frame_converges_end_where_they_did(openc
     for m in shape_pose.FIELD_MODELS:
         rms = np.sqrt(np.mean(plain.fields[m] ** 2, axis=(1, 2)))
         diff = np.sqrt(np.mean((ours.fields[m] - plain.fields[m]) ** 2, axis=(1, 2)))
-        assert np.all(diff <= 1e-3 * rms.max()), m
+        assert np.all(diff <= 1e-2 * rms.max()), m
         assert np.sqrt(np.mean(ours.fields[m][0] ** 2)) <= 1e-9 * rms.max(), m
         np.testing.assert_array_equal(ours.residuals[m], plain.residuals[m])
     for p, c in plain.linear.items():
         scale = np.max(np.abs(c * h))
-        assert np.max(np.abs((ours.linear[p] - c) * h)) <= 1e-3 * scale, p
-        assert np.max(np.abs((ours.curvature[p] - plain.curvature[p]) * h * h)) <= 1e-3 * scale, p
+        assert np.max(np.abs((ours.linear[p] - c) * h)) <= 1e-2 * scale, p
+        assert np.max(np.abs((ours.curvature[p] - plain.curvature[p]) * h * h)) <= 1e-2 * scale, p
 
 
 def test_the_fields_from_every_second_dot_give_the_monte_carlo_of_every_dot(opencsp_fixed_reduction):
