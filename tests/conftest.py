@@ -225,6 +225,8 @@ LONG_TESTS = {
     "[3.0]": "its turn of -8 mrad",
     # 2026-12-07: this machine runs the default set in 11:42-12:13 (the day before's, 8:39), and setup-env in 2:37
     "tests/station/test_heliostat_near.py::test_focal_length_against_truth_stage_by_stage[2]": "its stations 6 and 10",
+    "tests/station/test_heliostat_blurred.py::test_a_blurred_heliostats_focal_length_with_and_without_the_blurs_shift"
+    "[42]": "its station 34",
     "tests/station/test_dark_rim.py::test_a_dark_rim_declared_dark_puts_the_corners_on_the_outline[heliostat-2]":
         "its dish",
     "tests/station/test_dark_rim.py::test_a_rim_declared_dark_that_shows_the_screen_is_named_and_put_midway"

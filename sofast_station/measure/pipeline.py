@@ -26,6 +26,7 @@ from ..fringes import FringeSet
 from ..geometry import Pose, StationGeometry
 from . import checks
 from . import corners as corners_mod
+from . import deblur
 from . import rim as rim_mod
 from .boresight import (
     Assembly,
@@ -625,6 +626,12 @@ def measure_phases(region: Region, fringes: FringeSet, screen_size_m: tuple[floa
     # a pixel whose position leaps from all its neighbours' (a wrong fringe order on the rim) is no surface
     jumps = isolated_jumps(region.region.shape, idx, ok, positions, sigma)
     ok &= ~jumps
+    # a lens that blurs the facet's edge blurs the fringes too: the positions' first-order shift taken off
+    blur = region.outline.edge_blur_px if getattr(region, "outline", None) is not None else 0.0
+    if blur >= deblur.MIN_BLUR_PX:
+        rows, cols = np.divmod(idx, region.region.shape[1])
+        positions = {a: positions[a] - deblur.blur_shift_m(cols, rows, ok, positions[a], raw[a][1][-1], blur)
+                     for a in ("x", "y")}
     dropped = {"low_modulation": int(low_mod.sum()), "inconsistent_frames": int(inconsistent.sum()),
                "excluded_by_pixel_mask": excluded, "near_edge": near_edge, "isolated_jump": int(jumps.sum())}
     return Phases(positions_m=positions, ok=ok, noise_dn=noise_dn,
