@@ -302,6 +302,27 @@ def correlated_rows(sens: Sensitivities, rows: list, factor: np.ndarray) -> np.n
     return factor.T @ np.nan_to_num(jac)
 
 
+def displaced_slope_squared(linear: np.ndarray, curvature: np.ndarray, own: np.ndarray) -> np.ndarray:
+    """Each row's squared linear part with what the measured point's own displacement adds to it taken out:
+    max(c^2 - 4 q^2, 0) for the rows *own* marks (one input's own row, *linear* c and *curvature* q per unit
+    standard deviation, (rows, figures)), c^2 for the others (rows mixed by a covariance).
+
+    The sensitivities are differences about the measured point, which the input's own error has moved from the
+    truth by z standard deviations. For a response f(z) = g z + q z^2 the slope there is g + 2 q z, so its square
+    is g^2 + 4 q^2 on average, while the error f(z) - f(0) spreads by g^2 + 2 q^2 about its mean q (which the
+    budget's offset term carries). A figure that any error of the input raises (a slope RMS with no true
+    gradient, g = 0: the design residual x of a round facet) had its row stated as sqrt(6) q instead of
+    sqrt(2) q: on the population's heliostat the noise-corrected design slope RMS x's U was about twice its
+    errors' spread (RMS of error / (U / 2) 0.46, issue 47). Like :func:`~.shape_pose.displaced_gradient_factor`
+    for the corner pose's draws; the terms between inputs (the slope of one input's row moved by another's
+    error) are not measured by one-at-a-time differences and stay in."""
+    c2 = np.asarray(linear, float) ** 2
+    out = c2.copy()
+    mask = np.asarray(own, bool)
+    out[mask] = np.maximum(c2[mask] - 4.0 * np.asarray(curvature, float)[mask] ** 2, 0.0)
+    return out
+
+
 def corrected_rms_u(measured: float, corrected: float, measured_u: float) -> float:
     """The expanded uncertainty of a noise-corrected slope RMS c = sqrt(r^2 - s^2) from the measured RMS r's
     *measured_u* (mrad; noise floor s, its spread in r's).
@@ -349,15 +370,19 @@ def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs:
     """
     sc = np.ones(len(sens.inputs)) if scales is None else np.asarray(scales, float)
     linear = (sens.linear * sc[:, None]).copy()
+    own = np.ones(len(sens.inputs), bool)           # rows that are still one input's own (not mixed below)
     rows = [i for i, inp in enumerate(sens.inputs) if inp.group == "corner location"]
     if corner_cov is not None and np.shape(corner_cov) == (len(rows), len(rows)) and rows \
             and np.all(np.isfinite(corner_cov)):
         w, v = np.linalg.eigh(0.5 * (corner_cov + corner_cov.T))
         linear[rows] = correlated_rows(sens, rows, v * np.sqrt(np.clip(w, 0.0, None))[None, :])
+        own[rows] = False
     joint = pose_row_covariance(inputs, sens.inputs)
     if joint is not None:
         linear[joint[0]] = correlated_rows(sens, joint[0], covariance_factor(joint[1]))
-    contrib = np.sqrt(linear ** 2 + 2.0 * (sens.curvature * (sc ** 2)[:, None]) ** 2)
+        own[joint[0]] = False
+    curv = sens.curvature * (sc ** 2)[:, None]
+    contrib = np.sqrt(displaced_slope_squared(linear, curv, own) + 2.0 * curv ** 2)
     kinds = np.array([i.kind for i in sens.inputs])
     u_sys2 = np.nansum(contrib[kinds == "systematic"] ** 2, axis=0)
     # A response that curves (q != 0) does not only spread the figure: for a normal input its mean moves by q
