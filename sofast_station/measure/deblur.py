@@ -27,6 +27,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .fit import monomial_powers, monomials
+
 #: The measured edge blur (pixels, ``Outline.edge_blur_px``: beyond the pixel's own square) below which the
 #: positions are left as they are: on the population (seed 0, 500 captures) sharp edges measured up to 0.29 px
 #: (pixel-area sampling, vignetting), and a blur that small moves f by a sixth of what 0.7 px does.
@@ -37,14 +39,6 @@ FIT_POINTS = 20_000
 #: amplitude logarithm's (quadratic: its slope may).
 POSITION_DEGREE = 3
 AMPLITUDE_DEGREE = 2
-
-
-def _powers(degree: int) -> list[tuple[int, int]]:
-    return [(i, j) for i in range(degree + 1) for j in range(degree + 1 - i)]
-
-
-def _design(u: np.ndarray, v: np.ndarray, powers) -> np.ndarray:
-    return np.column_stack([u ** i * v ** j for i, j in powers])
 
 
 def _derivative(coeffs: np.ndarray, powers, u: np.ndarray, v: np.ndarray, du: int, dv: int) -> np.ndarray:
@@ -85,7 +79,7 @@ def blur_shift_m(columns_px: np.ndarray, rows_px: np.ndarray, ok: np.ndarray, po
         raise ValueError("blur_shift_m needs columns, rows, ok, positions and amplitudes of one shape")
     shift = np.zeros(u_all.shape)
     use = np.flatnonzero(np.asarray(ok, bool) & np.isfinite(s_all) & (a_all > 0))
-    powers_s, powers_a = _powers(POSITION_DEGREE), _powers(AMPLITUDE_DEGREE)
+    powers_s, powers_a = monomial_powers(POSITION_DEGREE), monomial_powers(AMPLITUDE_DEGREE)
     if use.size < 4 * len(powers_s) or not sigma_px > 0:
         return shift
     use = use[::max(1, use.size // max_points)]
@@ -93,8 +87,8 @@ def blur_shift_m(columns_px: np.ndarray, rows_px: np.ndarray, ok: np.ndarray, po
     u0, v0 = float(np.mean(u_all[use])), float(np.mean(v_all[use]))
     scale = max(float(np.std(u_all[use])), float(np.std(v_all[use])), 1.0)
     un, vn = (u_all[use] - u0) / scale, (v_all[use] - v0) / scale
-    cs, *_ = np.linalg.lstsq(_design(un, vn, powers_s), s_all[use], rcond=None)
-    ca, *_ = np.linalg.lstsq(_design(un, vn, powers_a), np.log(a_all[use]), rcond=None)
+    cs, *_ = np.linalg.lstsq(monomials(un, vn, POSITION_DEGREE), s_all[use], rcond=None)
+    ca, *_ = np.linalg.lstsq(monomials(un, vn, AMPLITUDE_DEGREE), np.log(a_all[use]), rcond=None)
     uu, vv = (u_all - u0) / scale, (v_all - v0) / scale
     lap = (_derivative(cs, powers_s, uu, vv, 2, 0) + _derivative(cs, powers_s, uu, vv, 0, 2)) / scale ** 2
     grad = (_derivative(ca, powers_a, uu, vv, 1, 0) * _derivative(cs, powers_s, uu, vv, 1, 0)

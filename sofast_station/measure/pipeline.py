@@ -627,7 +627,7 @@ def measure_phases(region: Region, fringes: FringeSet, screen_size_m: tuple[floa
     jumps = isolated_jumps(region.region.shape, idx, ok, positions, sigma)
     ok &= ~jumps
     # a lens that blurs the facet's edge blurs the fringes too: the positions' first-order shift taken off
-    blur = region.outline.edge_blur_px if getattr(region, "outline", None) is not None else 0.0
+    blur = region.outline.edge_blur_px if region.outline is not None else 0.0
     if blur >= deblur.MIN_BLUR_PX:
         rows, cols = np.divmod(idx, region.region.shape[1])
         positions = {a: positions[a] - deblur.blur_shift_m(cols, rows, ok, positions[a], raw[a][1][-1], blur)

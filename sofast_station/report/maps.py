@@ -28,6 +28,7 @@ import numpy as np
 
 from .. import __version__
 from ..errors import ReportError
+from ..measure.fit import monomials
 from ..measure.heights import curvature_map, grid_slopes, integrate_slopes, slope_differences
 from ..result.formatting import figure_text
 from ._common import savefig_atomic
@@ -76,10 +77,6 @@ class SlopeErrorMap:
     rms_mrad: dict
 
 
-def _poly_terms(u: np.ndarray, v: np.ndarray, degree: int = 3) -> np.ndarray:
-    return np.stack([u ** i * v ** j for i in range(degree + 1) for j in range(degree + 1 - i)], axis=1)
-
-
 def auto_arrow_step(pixels_across: int, most: int = 32) -> int:
     """Every 10th pixel, as in the paper, unless that puts more than *most* arrows across the facet (a
     1600 x 1200 camera sees the facet about 770 pixels wide: every 25th pixel)."""
@@ -116,7 +113,7 @@ def slope_error_maps(analysis, arrow_step_px: int | None = None, max_cells: int 
     # the inverse map (x, y) -> (column, row), a cubic in centred and scaled coordinates
     x0, y0 = float(np.mean(x)), float(np.mean(y))
     s = float(max(np.ptp(x), np.ptp(y), 1e-9)) / 2.0
-    terms = _poly_terms((x - x0) / s, (y - y0) / s)
+    terms = monomials((x - x0) / s, (y - y0) / s, 3)
     kc, *_ = np.linalg.lstsq(terms, cols.astype(np.float64), rcond=None)
     kr, *_ = np.linalg.lstsq(terms, rows.astype(np.float64), rcond=None)
     misfit = float(np.max(np.hypot(terms @ kc - cols, terms @ kr - rows)))
@@ -129,7 +126,7 @@ def slope_error_maps(analysis, arrow_step_px: int | None = None, max_cells: int 
     gx = xmin + (np.arange(nx) + 0.5) * cell
     gy = ymin + (np.arange(ny) + 0.5) * cell
     gxx, gyy = np.meshgrid(gx, gy)
-    gterms = _poly_terms((gxx.ravel() - x0) / s, (gyy.ravel() - y0) / s)
+    gterms = monomials((gxx.ravel() - x0) / s, (gyy.ravel() - y0) / s, 3)
     gc = np.rint(gterms @ kc).astype(np.int64)
     gr = np.rint(gterms @ kr).astype(np.int64)
     h, w = analysis.valid.shape
