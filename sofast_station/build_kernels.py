@@ -11,7 +11,9 @@ export -> kernel and argument key) that :mod:`.measure.compiled` loads instead o
 and regrouped sums it was written for), for this processor ('host', as the JIT), so the two give the same bits
 (tests/measure/test_compiled.py).
 
-Needs a C compiler and Python's headers (Debian: gcc, python3-dev). Takes 20 to 40 s. Exits 1, saying
+Needs a C compiler and Python's headers (Debian: gcc, python3-dev). Takes 70 to 80 s of one core on the
+2-core machine CI runs on (2026-12-07; 115-130 s while it JIT-compiled each kernel first to learn its
+return type, which kernel_signatures now declares). Exits 1, saying
 why, when it cannot build: the analysis then runs on numba's JIT as before, only each fresh process
 starts about a second later.
 """
@@ -54,8 +56,31 @@ def parse_word(word: str):
             (_DTYPES[dtype], ndim, layout, not readonly))
 
 
+def parse_entry(entry: str):
+    """A :data:`.measure.kernel_signatures.SIGNATURES` entry: ([(numba type, argument key)] of its arguments,
+    its declared return type as a numba type: ``none`` without ``->``)."""
+    # lazy: numba and its AOT compiler cost ~520 ms CPU and only a build needs them
+    from numba import types
+
+    args, arrow, returned = entry.partition("->")
+    parsed = [parse_word(w) for w in args.split()]
+    returned = returned.strip()
+    if not arrow:
+        return parsed, types.none
+    words = returned[1:-1].split(",") if returned.startswith("(") and returned.endswith(")") else [returned]
+    scalars = []
+    for w in (w.strip() for w in words):
+        if w not in _SCALARS:
+            raise ValueError(f"cannot read the return type {returned!r} of {entry!r} (a scalar, one of "
+                             f"{', '.join(_SCALARS)}, or a tuple of them: (i8, f8))")
+        scalars.append(parse_word(w)[0])
+    return parsed, (types.Tuple(scalars) if returned.startswith("(") else scalars[0])
+
+
 def _compile_with_own_options(dispatchers: dict):
-    """numba.pycc's per-export compile step, made to use each kernel's own JIT options."""
+    """numba.pycc's per-export compile step, made to use each kernel's own JIT options, and to type each
+    export as the JIT would (its return type inferred, not imposed) and check that against the one
+    kernel_signatures declares: an imposed type numba would cast to, where it can, silently."""
     # lazy: numba and its AOT compiler cost ~520 ms CPU and only a build needs them
     import numba.pycc.compiler as pycc_compiler
     from numba.core.compiler import Flags
@@ -68,7 +93,12 @@ def _compile_with_own_options(dispatchers: dict):
         d.targetdescr.options.parse_as_flags(own, {k: v for k, v in d.targetoptions.items() if k != "cache"})
         for name in ("no_compile", "no_cpython_wrapper", "no_cfunc_wrapper"):
             setattr(own, name, getattr(flags, name))
-        return original(typingctx, targetctx, func, args, return_type, own, locals=locals, library=library)
+        result = original(typingctx, targetctx, func, args, None, own, locals=locals, library=library)
+        inferred = result.signature.return_type
+        if inferred != return_type:
+            raise ValueError(f"kernel_signatures declares {func.__name__}({', '.join(map(str, args))}) to return "
+                             f"{return_type}, but it returns {inferred}: correct its '->' there")
+        return result
 
     return original, compile_extra
 
@@ -102,10 +132,8 @@ def build(out_dir: Path | None = None, log=print) -> Path:
                 raise ValueError(f"kernel_signatures names {kernel_name!r}, which is not a kernel of kernels.py")
             dispatchers[d.py_func] = d
             for i, entry in enumerate(entries):
-                parsed = [parse_word(w) for w in entry.split()]
+                parsed, return_type = parse_entry(entry)
                 argtypes = tuple(t for t, _ in parsed)
-                d.compile(argtypes)                      # the JIT's return type (and a check that it types)
-                return_type = d.overloads[argtypes].signature.return_type
                 export = f"{kernel_name}__{i}"
                 cc.export(export, return_type(*argtypes))(d.py_func)
                 table[export] = [kernel_name, [k for _, k in parsed]]

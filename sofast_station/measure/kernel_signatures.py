@@ -4,6 +4,10 @@
 One string per entry, one word per argument: an array as ``dtype:ndim layout`` (numpy's short dtype
 codes: f8 float64, f4 float32, i8 int64, i4 int32, u1 uint8, u2 uint16, b1 bool; layout C, F or A for
 any strides; a trailing ``r`` for a read-only array), a scalar as ``f8``, ``f4``, ``i8`` or ``bool``.
+An entry whose kernel returns a value ends in its type: ``-> i8``, ``-> f8``, ``-> bool`` or a tuple of
+those, ``-> (i8, f8)``; without one the kernel returns nothing. The build checks each against the type numba
+infers (a wrong one stops it, naming the entry): declared, the build needs no JIT compile to learn it, and
+numba's JIT warms its cache beside the build instead of before it (half a minute of setup-env).
 These are the types the commands and the station call the kernels with (read from numba's cache of a
 full test run); a call with other types is compiled by numba's JIT, as without a build
 (:class:`.compiled.Kernel`). Kernels called only from other kernels are compiled into their callers and
@@ -22,7 +26,7 @@ SIGNATURES: dict[str, list[str]] = {
         "f4:1C f4:1C f4:1C f4:1C bool f4:1C f4:1C f4 f4 f4:1C",
     ],
     "_consistency_into": [
-        "f4:1C f4:1C f4:1C f4 f8:1C b1:1C",
+        "f4:1C f4:1C f4:1C f4 f8:1C b1:1C -> (i8, f8)",
     ],
     "_count_labels_into": [
         "i4:1C i8:1C",
@@ -53,10 +57,10 @@ SIGNATURES: dict[str, list[str]] = {
         "i4:2C f8:2C",
     ],
     "_laplacian_counts_into": [
-        "u1:2A b1:2A i8:1C",
-        "u2:2A b1:2A i8:1C",
-        "u1:2C b1:2C i8:1C",
-        "u2:2C b1:2C i8:1C",
+        "u1:2A b1:2A i8:1C -> i8",
+        "u2:2A b1:2A i8:1C -> i8",
+        "u1:2C b1:2C i8:1C -> i8",
+        "u2:2C b1:2C i8:1C -> i8",
     ],
     "_lattice_walk_into": [
         "f8:2C i8 f8:2C f8 f8 f8:3C i8:2C",
@@ -83,8 +87,8 @@ SIGNATURES: dict[str, list[str]] = {
         "u1:2C f4:1C f4:1C f4:1C",
     ],
     "_reflect_blend_into": [
-        "f8:1A f8:1A f8:1A f8:1A f8:1A f8:1A f8:2C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C",
-        "f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:2C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C",
+        "f8:1A f8:1A f8:1A f8:1A f8:1A f8:1A f8:2C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C -> i8",
+        "f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:2C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C -> i8",
     ],
     "_reflect_into": [
         "f8:1A f8:1A f8:1A f8:1A f8:1A f8:1A f8:2C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C",
@@ -105,28 +109,28 @@ SIGNATURES: dict[str, list[str]] = {
         "f8:1C f8:1C f8:1C f8:2F f8:1C i8 f8:2C",
     ],
     "_unwrap_into": [
-        "f4:2C f8:1C f8 bool f8 f8:1C bool f8:1C b1:1C",
-        "f4:2C f8:1C f8 bool f8 f8:1Cr bool f8:1C b1:1C",
-        "f8:2C f8:1C f8 bool f8 f8:1C bool f8:1C b1:1C",
-        "f8:2C f8:1C f8 bool f8 f8:1Cr bool f8:1C b1:1C",
+        "f4:2C f8:1C f8 bool f8 f8:1C bool f8:1C b1:1C -> (i8, i8, i8)",
+        "f4:2C f8:1C f8 bool f8 f8:1Cr bool f8:1C b1:1C -> (i8, i8, i8)",
+        "f8:2C f8:1C f8 bool f8 f8:1C bool f8:1C b1:1C -> (i8, i8, i8)",
+        "f8:2C f8:1C f8 bool f8 f8:1Cr bool f8:1C b1:1C -> (i8, i8, i8)",
     ],
     "bisquare_into": [
         "f8:1C f8 f8:1C",
     ],
     "irls_bisquare": [
-        "f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8 i8 f8 f8 f8 f8 f8:1C",
+        "f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8 i8 f8 f8 f8 f8 f8:1C -> (i8, f8)",
     ],
     "median_in_window": [
-        "f8:1C f8 bool f8 f8 f8:1C",
+        "f8:1C f8 bool f8 f8 f8:1C -> (f8, bool)",
     ],
     "residuals_and_leverage": [
-        "f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C",
+        "f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C -> (f8, f8)",
     ],
     "sum_squares": [
-        "f8:1C f8:1C f8:1C",
+        "f8:1C f8:1C f8:1C -> (f8, f8, f8)",
     ],
     "trim_rounds": [
-        "f8:1C f8:1C f8 f8 f8 i8 f8",
+        "f8:1C f8:1C f8 f8 f8 i8 f8 -> f8",
     ],
     "weighted_sums": [
         "f8:1C f8:1C f8:1C f8:1C f8:1C f8:1C",

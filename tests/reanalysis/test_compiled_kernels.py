@@ -114,8 +114,9 @@ def test_the_builds_keys_are_the_runtimes_for_every_entry():
     for name, entries in SIGNATURES.items():
         assert hasattr(kernels, name), f"kernel_signatures names {name}, which kernels.py lacks"
         for entry in entries:
-            args = tuple(scalars[w] if ":" not in w else _array_for(w) for w in entry.split())
-            built_key = tuple(k for _, k in (build_kernels.parse_word(w) for w in entry.split()))
+            words = entry.partition("->")[0].split()
+            args = tuple(scalars[w] if ":" not in w else _array_for(w) for w in words)
+            built_key = tuple(k for _, k in build_kernels.parse_entry(entry)[0])
             assert compiled.argument_key(args) == built_key, (name, entry)
             n += 1
     assert n == sum(len(v) for v in SIGNATURES.values()) > 30
@@ -274,3 +275,38 @@ def test_a_kernel_mode_nobody_meant_is_refused_in_one_line(small_station_toml):
         with pytest.MonkeyPatch.context() as mp:
             mp.setenv(compiled.ENV, value)
             assert compiled.kernel_mode() == (value.strip().lower() or "auto")
+
+
+@pytest.mark.filterwarnings("ignore::PendingDeprecationWarning")      # numba.pycc's own notice
+def test_a_declared_return_type_is_read_and_a_wrong_one_stops_the_build(tmp_path):
+    """kernel_signatures declares each entry's return type (the build no longer JIT-compiles a kernel to learn
+    it); the build types each export as the JIT does and stops, naming the entry, where the two differ, rather
+    than let numba cast the kernel's value to the declared type."""
+    import numba
+    import numba.pycc.compiler as pycc_compiler
+    from numba import types
+    from numba.pycc import CC
+
+    args, returned = build_kernels.parse_entry("f8:1C i8 -> (i8, f8)")
+    assert [t for t, _ in args] == [types.Array(types.float64, 1, "C"), types.int64]
+    assert returned == types.Tuple((types.int64, types.float64))
+    assert build_kernels.parse_entry("u1:2Cr")[1] == types.none
+    with pytest.raises(ValueError, match="return type"):
+        build_kernels.parse_entry("f8:1C -> f8:1C")
+
+    @numba.njit
+    def length(x):
+        return x.shape[0]
+
+    parsed, wrong = build_kernels.parse_entry("f8:1C -> f8")        # it returns an int64
+    cc = CC("_kernels_wrong_return")
+    cc.output_dir = str(tmp_path)
+    cc.export("length", wrong(*[t for t, _ in parsed]))(length.py_func)
+    original, patched = build_kernels._compile_with_own_options({length.py_func: length})
+    pycc_compiler.compile_extra = patched
+    try:
+        with pytest.raises(ValueError, match=r"declares length\(array\(float64, 1d, C\)\) to return float64, but it "
+                                             r"returns int64"):
+            cc.compile()
+    finally:
+        pycc_compiler.compile_extra = original
