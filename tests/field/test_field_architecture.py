@@ -8,14 +8,20 @@ from __future__ import annotations
 
 import sys
 
+import pytest
+
 from tests.test_architecture import PACKAGE, PLAIN_DATA, STDLIB_IO, Graph, unit
 
 MATH = ("geometry", "sun", "detect", "orientation", "canting", "prescription")
 LIBRARIES = {"numpy", "scipy", "cv2", "numba", "pvlib", "pandas"}
 
 
-def test_the_field_math_imports_only_the_math_and_the_plain_data():
-    graph = Graph()
+@pytest.fixture(scope="module")
+def graph():
+    return Graph()
+
+
+def test_the_field_math_imports_only_the_math_and_the_plain_data(graph):
     starts = [f"{PACKAGE}.field.{m}" for m in MATH]
     assert all(s in graph.modules for s in starts)
     stdlib = set(sys.stdlib_module_names) | {"__future__"}
@@ -32,8 +38,7 @@ def test_the_field_math_imports_only_the_math_and_the_plain_data():
     assert not bad, "field math imports beyond the math and the plain data:\n" + "\n".join(bad)
 
 
-def test_the_twin_field_does_not_reach_the_field_package():
-    graph = Graph()
+def test_the_twin_field_does_not_reach_the_field_package(graph):
     reached = graph.reach([f"{PACKAGE}.twin.field"])
     assert not [m for m in reached if m.startswith(f"{PACKAGE}.field") or m.startswith(f"{PACKAGE}.measure")]
     assert "cv2" not in reached
