@@ -44,8 +44,11 @@ def test_corrected_slope_rms_is_covered_by_its_u_at_every_ratio_to_the_noise(rat
 
 
 def test_corrected_u_grows_where_the_figure_nears_its_noise_floor():
-    """The magnification r / c: with r's U fixed, c's U for c = 0.3 under r = 1 is at least 1 / 0.3 of r's;
-    for c = r (no noise) it is r's; for c = 0 it is sqrt(2 r U(r))."""
+    """The magnification r / c: with r's U fixed, c's U for c = 0.3 under r = 1 is about 1 / 0.3 of r's;
+    for c = r (no noise) it is r's; for c = 0 it is the upper end of r's interval mapped, sqrt(2 r U + U^2).
+    And r's interval maps onto c's as it is, U(r)^2 included: for r 0.263, c 0.258, U(r) 0.082 (a heliostat of
+    the population) c's U is 0.0843, not the 0.104 the interval c^2 +- 2 r U(r) gave."""
     assert corrected_rms_u(1.0, 1.0, 0.01) == pytest.approx(0.01, rel=0.01)
-    assert corrected_rms_u(1.0, 0.3, 0.001) >= 0.001 / 0.3
-    assert corrected_rms_u(1.0, 0.0, 0.01) == pytest.approx(np.sqrt(0.02))
+    assert corrected_rms_u(1.0, 0.3, 0.001) == pytest.approx(0.001 / 0.3, rel=0.01)
+    assert corrected_rms_u(1.0, 0.0, 0.01) == pytest.approx(np.sqrt(0.02 + 1e-4))
+    assert corrected_rms_u(0.263, 0.258, 0.082) == pytest.approx(0.0843, abs=5e-4)

@@ -333,17 +333,23 @@ def corrected_rms_u(measured: float, corrected: float, measured_u: float) -> flo
     """The expanded uncertainty of a noise-corrected slope RMS c = sqrt(r^2 - s^2) from the measured RMS r's
     *measured_u* (mrad; noise floor s, its spread in r's).
 
-    c^2 = r^2 - s^2 moves by 2 r dr, so c by (r / c) dr: the correction magnifies r's uncertainty by r / c
-    (1.7 on a nearly flat facet whose noise floor is as large as its figure). Where that linear step reaches
-    below zero (c within its own uncertainty of 0), the value is known only to lie between 0 and
-    sqrt(c^2 + 2 r U(r)), and the half-width covers both ends. (Stated as r's own U, the corrected values on
-    the population's flat facets were covered 88-95 % with RMS of error / (U / 2) 1.2-4.0: docs/uncertainty.md.)
+    The correction is monotone in r, so r's interval r +- U(r) maps onto c's exactly: from
+    sqrt((r - U)^2 - s^2) (0 where r - U lies below the floor) to sqrt((r + U)^2 - s^2), and the half-width is
+    the larger side. Where c is well above its uncertainty that is (r / c) U(r): the correction magnifies r's
+    uncertainty by r / c (1.7 on a nearly flat facet whose noise floor is as large as its figure). Where the
+    interval reaches below the floor the value is known only to lie between 0 and the upper end.
+
+    (Until 2026-12-07 the interval was taken in c^2 as c^2 +- 2 r U(r), which leaves out U(r)^2 and so reached
+    lower than r's own interval does: on the population's heliostats with a low figure (c 0.26 mrad, c^2 within
+    0.65 of 2 r U) that side was 1.25 times r / c U(r), and their corrected design slope RMS x's RMS of error /
+    (U / 2) 0.48. Stated as r's own U, the corrected values on the population's flat facets were covered 88-95 %
+    with RMS of error / (U / 2) 1.2-4.0: docs/uncertainty.md.)
     """
-    big = 2.0 * measured * measured_u                    # k u(c^2) = 2 r U(r)
-    c2 = corrected * corrected
-    if big >= c2:                                       # anywhere from 0 to sqrt(c^2 + k u(c^2))
-        return float(max(corrected, np.sqrt(c2 + big) - corrected))
-    return float(corrected - np.sqrt(c2 - big))
+    floor2 = max(measured * measured - corrected * corrected, 0.0)     # s^2
+    low_r, high_r = measured - measured_u, measured + measured_u
+    low = np.sqrt(low_r * low_r - floor2) if low_r > 0.0 and low_r * low_r > floor2 else 0.0
+    high = np.sqrt(high_r * high_r - floor2)
+    return float(max(corrected - low, high - corrected))
 
 
 def combine(figures: dict, sens: Sensitivities, noise: NoisePropagation, inputs: InputUncertainties,
