@@ -9,9 +9,9 @@ export -> kernel and argument key) that :mod:`.measure.compiled` loads instead o
 ``pycc`` compiles every export with one set of default options; here each kernel gets its own, as its JIT would
 (``kernels._JIT``, ``_FMA``, ``_VECTOR_SUMS``: numpy's float semantics, the GIL released, the fused multiply-adds
 and regrouped sums it was written for), for this processor ('host', as the JIT), so the two give the same bits
-(tests/measure/test_compiled.py).
+(tests/reanalysis/test_compiled_kernels.py).
 
-Needs a C compiler and Python's headers (Debian: gcc, python3-dev). Takes 70 to 80 s of one core on the
+Needs a C compiler and Python's headers (Debian: gcc, python3-dev). Takes 50 to 80 s of one core on the
 2-core machine CI runs on (2026-12-07; 115-130 s while it JIT-compiled each kernel first to learn its
 return type, which kernel_signatures now declares). Exits 1, saying
 why, when it cannot build: the analysis then runs on numba's JIT as before, only each fresh process
