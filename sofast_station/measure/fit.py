@@ -29,7 +29,6 @@ def _solve_scaled(gram: np.ndarray, rhs: np.ndarray, scale: np.ndarray) -> np.nd
     return sol / scale
 
 
-
 def monomial_powers(degree: int) -> list[tuple[int, int]]:
     """The exponents (i, j) of the monomials u^i v^j of total degree at most *degree*, i outer, j inner."""
     return [(i, j) for i in range(degree + 1) for j in range(degree + 1 - i)]
@@ -38,6 +37,7 @@ def monomial_powers(degree: int) -> list[tuple[int, int]]:
 def monomials(u: np.ndarray, v: np.ndarray, degree: int) -> np.ndarray:
     """The design matrix (N, K) of those monomials at the points (*u*, *v*) ((N,) each), in that order."""
     return np.stack([u ** i * v ** j for i, j in monomial_powers(degree)], axis=1)
+
 
 @dataclass(frozen=True)
 class ParabolaFit:
