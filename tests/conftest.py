@@ -227,10 +227,6 @@ LONG_TESTS = {
     "tests/station/test_heliostat_near.py::test_focal_length_against_truth_stage_by_stage[2]": "its stations 6 and 10",
     "tests/station/test_heliostat_blurred.py::test_a_blurred_heliostats_focal_length_with_and_without_the_blurs_shift"
     "[42]": "its station 34",
-    # 2026-12-07: a fresh clone's .ci/run took 13:30 and then 14:43 on this machine (the tests 10:36 and 11:23)
-    "tests/station/test_heliostat_near.py::test_focal_length_against_truth_stage_by_stage[6]": "its station 10",
-    "tests/station/test_facets.py::test_noise_free_against_truth[heliostat]":
-        "its dish and gore, test_heliostat_far.py's seed 9 and test_heliostat_near.py's station 10",
     "tests/station/test_dark_rim.py::test_a_dark_rim_declared_dark_puts_the_corners_on_the_outline[heliostat-2]":
         "its dish",
     "tests/station/test_dark_rim.py::test_a_rim_declared_dark_that_shows_the_screen_is_named_and_put_midway"

@@ -26,7 +26,7 @@ and 10 (k1 -0.10, defocused lens):
 The issue's 20 ppm is not met at 4 m on 8-bit frames (docs/method.md states it as open): the asserts are guards
 at about 1.4 times these stations' largest error per stage, so a change that makes a stage worse fails.
 
-3 drawn stations, about 12 s of CPU; stations 2 and 6 run with ``-m slow`` (tests/conftest.py), station 10 in
+3 drawn stations, about 12 s of CPU; station 2 runs with ``-m slow`` (tests/conftest.py), stations 6 and 10 in
 the default set.
 """
 
