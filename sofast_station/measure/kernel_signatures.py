@@ -46,8 +46,8 @@ SIGNATURES: dict[str, list[str]] = {
         "u2:2C i8:1C i8:1C i8:1C u2:2C",
         "u1:2C i8:1C i8:1C i8:1C u1:2C",
     ],
-    "_grid_divergence_into": [
-        "f8:1C f8:1C f8:1C f8:1C f8:1C f8 f8 f8 f8 f8:2C f8:2C f8:2C f8:2C",
+    "_grid_sums_into": [
+        "f8:1C f8:1C f8:1C f8:1C f8:1C f8 f8 f8 f8:2C f8:2C f8:2C f8:2C f8:2C",
     ],
     "_grid_screen_into": [
         "f8:1C f8:1C f8:1C f8:1C f8:3C b1:2C f8 f8:2C f8:1C f8:2C",

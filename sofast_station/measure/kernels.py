@@ -1655,11 +1655,11 @@ def irls_bisquare(c0, c1, c2, target, w, scale, tolerance, max_iterations, sigma
 
 
 @kernel(**_JIT)
-def _grid_divergence_into(x, y, g_x, g_y, model, x0, y0, cell, half_cell, count, s_x, s_y, rhs):
-    ny, nx = rhs.shape
+def _grid_sums_into(x, y, g_x, g_y, model, x0, y0, cell, count, s_x, s_y, o_x, o_y):
+    ny, nx = count.shape
     m0, m1, m2, m3, m4 = model[0], model[1], model[2], model[3], model[4]
-    # grid_slopes' binning: each finite point's slopes (less the model's, surface_slopes' arithmetic) summed
-    # into its cell in the points' order (bincount's)
+    # grid_slopes' binning: each finite point's slopes (less the model's, surface_slopes' arithmetic) and its
+    # offset from its cell's centre summed into its cell in the points' order (bincount's)
     for k in range(x.size):
         xk, yk = x[k], y[k]
         a = g_x[k] - ((m0 * xk + m1) + m2 * yk)
@@ -1673,44 +1673,24 @@ def _grid_divergence_into(x, y, g_x, g_y, model, x0, y0, cell, half_cell, count,
             count[i, j] += 1.0
             s_x[i, j] += a
             s_y[i, j] += b
-    # the cells' mean slopes, 0 where no point fell (or the mean is not finite), as height_grid fills them
-    for i in range(ny):
-        for j in range(nx):
-            c = count[i, j]
-            mx = s_x[i, j] / c if c >= 1.0 else np.nan
-            my = s_y[i, j] / c if c >= 1.0 else np.nan
-            s_x[i, j] = mx if np.isfinite(mx) else 0.0
-            s_y[i, j] = my if np.isfinite(my) else 0.0
-    # integrate_full_grid's divergence of the trapezoid differences, each cell's four terms in numpy's order
-    for i in range(ny):
-        for j in range(nx):
-            r = 0.0
-            if j < nx - 1:
-                r = r - half_cell * (s_x[i, j] + s_x[i, j + 1])
-            if j >= 1:
-                r = r + half_cell * (s_x[i, j - 1] + s_x[i, j])
-            if i < ny - 1:
-                r = r - half_cell * (s_y[i, j] + s_y[i + 1, j])
-            if i >= 1:
-                r = r + half_cell * (s_y[i - 1, j] + s_y[i, j])
-            rhs[i, j] = r
+            o_x[i, j] += xk - (x0 + (j + 0.5) * cell)
+            o_y[i, j] += yk - (y0 + (i + 0.5) * cell)
 
 
-def grid_divergence(x: np.ndarray, y: np.ndarray, g_x: np.ndarray, g_y: np.ndarray, x0: float, y0: float,
-                    cell: float, shape: tuple, model=None) -> np.ndarray:
-    """:func:`~.heights.grid_slopes`' cells' mean slopes of the points (x, y) (metres; slopes *g_x*, *g_y*,
-    less those of the quadratic *model* (A, B, C, D, E, F) when given, :func:`~.surface.surface_slopes`'
-    arithmetic) on the grid of *shape* (ny, nx) cells of side *cell* from (*x0*, *y0*), the empty cells'
-    taken as 0, and :func:`~.heights.integrate_full_grid`'s right-hand side of them (the trapezoid
-    differences' divergence, metres), in one compiled pass: the same bits as numpy's chain (tested). (ny, nx)."""
+def grid_sums(x: np.ndarray, y: np.ndarray, g_x: np.ndarray, g_y: np.ndarray, x0: float, y0: float,
+              cell: float, shape: tuple, model=None) -> tuple[np.ndarray, ...]:
+    """:func:`~.heights.grid_slopes`' binning of the points (x, y) (metres; slopes *g_x*, *g_y*, less those of
+    the quadratic *model* (A, B, C, D, E, F) when given, :func:`~.surface.surface_slopes`' arithmetic) on the
+    grid of *shape* (ny, nx) cells of side *cell* from (*x0*, *y0*), in one compiled pass: per cell the count
+    of its points and the sums of their slopes and of their offsets from its centre (metres), each (ny, nx),
+    the same bits as numpy's bincounts (tested)."""
     args = [np.ascontiguousarray(v, dtype=np.float64) for v in (x, y, g_x, g_y)]
     # 2A, C, E, 2B, D: a zero model subtracts exactly 0 (s - (+0.0) is s)
     a, b, c, d, e = (0.0,) * 5 if model is None else (float(v) for v in tuple(model)[:5])
     terms = np.array([2.0 * a, c, e, 2.0 * b, d])
-    count, s_x, s_y = (np.zeros(shape) for _ in range(3))
-    rhs = np.empty(shape)
-    _grid_divergence_into(*args, terms, float(x0), float(y0), float(cell), float(cell) * 0.5, count, s_x, s_y, rhs)
-    return rhs
+    sums = tuple(np.zeros(shape) for _ in range(5))
+    _grid_sums_into(*args, terms, float(x0), float(y0), float(cell), *sums)
+    return sums
 
 
 @kernel(**_JIT)
@@ -1995,7 +1975,7 @@ def warm_up() -> None:
                        np.eye(3), np.zeros(3))
     minus_models(x, np.ones((1, 2)), np.ones(1))
     minus_models(x, np.ones((1, 2)), np.ones(1), np.ones((4, 2)), np.ones(4))
-    grid_divergence(x, x, x, x, 0.0, 0.0, 1.0, (2, 2))
+    grid_sums(x, x, x, x, 0.0, 0.0, 1.0, (2, 2))
     bilinear(np.zeros((2, 2)), 0.0, 0.0, 1.0, x, x)
     solve_poses(np.zeros((1, 4, 2)), np.eye(4, 3) + [0.0, 0.0, 1.0], np.eye(3)[None], np.zeros((1, 5)), np.zeros(6), 1,
                 1e-7)

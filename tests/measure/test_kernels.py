@@ -527,12 +527,12 @@ def test_bilinear_is_numpys_clip_and_takes_bit_for_bit(shape):
     assert np.all(np.isnan(kernels.bilinear(h, x0, y0, cell, np.array([np.nan, 0.1]), np.array([0.5, np.inf]))))
 
 
-def test_grid_divergence_is_grid_slopes_then_the_full_grids_divergence_bit_for_bit():
+def test_grid_sums_are_grid_slopes_bincounts_and_height_grid_its_centred_integral_bit_for_bit():
     """Scattered slopes (some not finite, some beyond the grid, cells left empty) less a quadratic model's
-    (surface_slopes), binned, their empty cells set to 0 and the trapezoid differences' divergence taken, by
-    numpy (grid_slopes, then integrate_full_grid's expression) and by the kernel: the same bits, with and
-    without the model; and height_grid's heights are integrate_full_grid's of grid_slopes' cells."""
-    from sofast_station.measure.heights import grid_slopes, height_grid, integrate_full_grid
+    (surface_slopes), binned by numpy (grid_slopes' bincounts) and by the kernel: each cell's count and sums of
+    slopes and of offsets from its centre, the same bits, with and without the model; and height_grid's heights
+    are integrate_full_grid's of grid_slopes' cells moved to their centres (centred_slopes), empty ones 0."""
+    from sofast_station.measure.heights import centred_slopes, grid_slopes, height_grid, integrate_full_grid
 
     rng = np.random.default_rng(37)
     for n, cells in ((3537, 29), (200, 12), (9, 4)):
@@ -547,36 +547,22 @@ def test_grid_divergence_is_grid_slopes_then_the_full_grids_divergence_bit_for_b
         extent = (x0, float(x.max()) - 2 * cell, y0, float(y.max()) + 0.5 * cell)   # some points beyond it
         model = rng.normal(0.0, [0.05, 0.05, 1e-3, 1e-3, 1e-3, 1e-3])
         m_x, m_y = surface_slopes(model, x, y)
-        g = grid_slopes(x, y, g_x - m_x, g_y - m_y, cell, extent_m=extent)
-        sx = np.where(np.isfinite(g["s_x"]), g["s_x"], 0.0)
-        sy = np.where(np.isfinite(g["s_y"]), g["s_y"], 0.0)
-        dx = cell * 0.5 * (sx[:, :-1] + sx[:, 1:])
-        dy = cell * 0.5 * (sy[:-1, :] + sy[1:, :])
-        rhs = np.zeros(sx.shape)
-        rhs[:, :-1] -= dx
-        rhs[:, 1:] += dx
-        rhs[:-1, :] -= dy
-        rhs[1:, :] += dy
-        got = kernels.grid_divergence(x, y, g_x, g_y, x0, y0, cell, sx.shape, model)
-        assert (sx == 0.0).any() and np.array_equal(got.view(np.int64), rhs.view(np.int64))
-        # without a model: the slopes themselves
-        plain = grid_slopes(x, y, g_x, g_y, cell, extent_m=extent)
-        sx0 = np.where(np.isfinite(plain["s_x"]), plain["s_x"], 0.0)
-        sy0 = np.where(np.isfinite(plain["s_y"]), plain["s_y"], 0.0)
-        rhs0 = np.zeros(sx.shape)
-        rhs0[:, :-1] -= cell * 0.5 * (sx0[:, :-1] + sx0[:, 1:])
-        rhs0[:, 1:] += cell * 0.5 * (sx0[:, :-1] + sx0[:, 1:])
-        rhs0[:-1, :] -= cell * 0.5 * (sy0[:-1, :] + sy0[1:, :])
-        rhs0[1:, :] += cell * 0.5 * (sy0[:-1, :] + sy0[1:, :])
-        np.testing.assert_array_equal(kernels.grid_divergence(x, y, g_x, g_y, x0, y0, cell, sx.shape), rhs0)
+        for mod, (a, b) in ((model, (g_x - m_x, g_y - m_y)), (None, (g_x, g_y))):
+            g = grid_slopes(x, y, a, b, cell, extent_m=extent)
+            count, s_x, s_y, o_x, o_y = kernels.grid_sums(x, y, g_x, g_y, x0, y0, cell, g["s_x"].shape, mod)
+            assert (count == 0).any() and np.array_equal(count, g["count"])
+            full = count > 0
+            for got, ref in ((s_x, g["s_x"]), (s_y, g["s_y"]), (o_x, g["offset_x_m"]), (o_y, g["offset_y_m"])):
+                assert np.array_equal((got[full] / count[full]).view(np.int64), ref[full].view(np.int64))
+                assert np.all(got[~full] == 0.0) and np.all(np.isnan(ref[~full]))
         ok = np.isfinite(g_x) & np.isfinite(g_y)
         grid = height_grid(x[ok], y[ok], g_x[ok], g_y[ok], cells=cells, model=model)
         span = max(np.ptp(x[ok]), np.ptp(y[ok]))
         full = grid_slopes(x[ok], y[ok], g_x[ok] - m_x[ok], g_y[ok] - m_y[ok], span / cells, extent_m=(
             x[ok].min() - 0.5 * span / cells, x[ok].max() + 0.5 * span / cells,
             y[ok].min() - 0.5 * span / cells, y[ok].max() + 0.5 * span / cells))
-        ref = integrate_full_grid(np.nan_to_num(full["s_x"], nan=0.0), np.nan_to_num(full["s_y"], nan=0.0),
-                                  span / cells)
+        c_x, c_y = centred_slopes(full["s_x"], full["s_y"], full["offset_x_m"], full["offset_y_m"], span / cells)
+        ref = integrate_full_grid(np.nan_to_num(c_x, nan=0.0), np.nan_to_num(c_y, nan=0.0), span / cells)
         assert grid.heights_m.shape == ref.shape and np.array_equal(grid.heights_m, ref)
 
 

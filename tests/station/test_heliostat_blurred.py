@@ -10,10 +10,12 @@ its part that grows across the facet read as 100-230 ppm of f. Measured on seed 
 * station 34 (Gaussian blur, edge blur measured 0.65 px): -122/-115 and -19/-9
 * station 42 (defocused lens, 0.79 px): -118/-100 and -44/-27
 
-(unrounded frames at one refresh phase: -113/-131 and -10/-25 on station 34, -109/-104 and -36/-30 on 42). The
-asserts: with the correction within 1.4 times the largest of these two stations' errors, without it beyond 90
-ppm on both axes, so the test fails if the correction stops working. Station 42 runs with ``-m slow`` (its
-cover here: station 34, the same path). About 6 s of CPU per station.
+(unrounded frames at one refresh phase: -113/-131 and -10/-25 on station 34, -109/-104 and -36/-30 on 42). Since
+the heights' cells are centred (measure/heights.py, centred_slopes): station 34 -83/-102 and +20/+3, station 42
+-123/-98 and -49/-24 (the heights had taken up to 40 ppm off station 34's x without it and with it). The
+asserts: with the correction within 1.4 times the largest of these two stations' errors before the centring,
+without it beyond 75 ppm on both axes, so the test fails if the correction stops working. Station 42 runs
+with ``-m slow`` (its cover here: station 34, the same path). About 6 s of CPU per station.
 """
 
 from __future__ import annotations
@@ -46,4 +48,4 @@ def test_a_blurred_heliostats_focal_length_with_and_without_the_blurs_shift(inde
     print(f"station {index} ({st.spec['edge']}, edge blur {blur:.2f} px): f x / y {without[0]:+.1f} / "
           f"{without[1]:+.1f} ppm without the blur's shift, {with_shift[0]:+.1f} / {with_shift[1]:+.1f} with it")
     assert max(map(abs, with_shift)) < LIMITS[index]
-    assert min(map(abs, without)) > 90.0
+    assert min(map(abs, without)) > 75.0
