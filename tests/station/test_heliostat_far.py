@@ -4,7 +4,8 @@ fixtures/stations/heliostat-10m.toml) measured within 0.002 % of its like-for-li
 The truth is the twin's exact surface fitted the way the pipeline fits, over the pixels the analysis kept
 (:func:`~sofast_station.twin.truth.ground_truth`). Three true facets (the fixture's 95 / 104 m, twist and
 0.3 mrad of slope error, three surface seeds), noise-free captures. Tolerance: the issue's 20 ppm of f; this
-station's measured errors are -5.6 to +3.1 ppm (x) and -5.9 to -1.1 ppm (y) on these seeds, and with the
+station's measured errors are -4.5 to +3.6 ppm (x) and -6.2 to -1.5 ppm (y) on these seeds (-5.6 to +3.1 and
+-5.9 to -1.1 before the height cells were centred, 2026-12-07), and with the
 default 4 fringe periods (1.2 m each, about the screen patch the facet reflects) they were +23 to +42 ppm
 (x) and +6 to +18 ppm (y) with the display's rounding taken off, 52-101 ppm without (docs/method.md,
 "Nearly flat facets far from the screen"). 3 captures, about 8 s of CPU each: seed 9 in the default set, 3
