@@ -4,8 +4,8 @@ All functions are pure (numpy in, numpy out). Lengths in metres, slopes dimensio
 
 Gridding: the measured points (scattered in facet x, y, one per camera pixel) are averaged into square
 cells of side ``cell_m``; a cell holds the mean slope of the points that fall in it (or NaN), which is the
-slope at those points' centroid, not at the cell's centre. For the heights a facet's shape is read at
-(:func:`height_grid`) each cell's mean is moved to its centre to first order (:func:`centred_slopes`).
+slope at those points' centroid, not at the cell's centre. For the heights a facet is intersected at
+(:func:`height_grid`), each cell's mean is first moved to its centre (:func:`centred_slopes`).
 
 Integration: the heights h on the cell centres minimise
 
