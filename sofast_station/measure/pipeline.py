@@ -893,7 +893,7 @@ def surface_heights(points: np.ndarray, slopes: np.ndarray, coefficients: np.nda
 
     On seed 0's 13 population heliostat stations (f 100 m at 10 m, 0.2-0.6 mrad of slope error of 2-6 cm
     correlation; noise-free frames the camera did not round, the twin's true screen positions and pose), f was
-    12.6 ppm RMS and up to 51 ppm off like-for-like truth with 96 cells of uncentred means; 3.5 and 9.8 ppm with
+    12.6 ppm RMS and up to 51 ppm off like-for-like truth with 96 cells of uncentred means; 3.5 and 10.2 ppm with
     these (docs/method.md)."""
     x, y = points[0], points[1]
     step = max(1, x.size // HEIGHT_POINTS)
