@@ -33,7 +33,7 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..files import temp_path_for
-from ..measure.heights import centred_slopes, grid_slopes, integrate_slopes
+from ..measure.heights import grid_slopes, integrate_slopes
 
 FORMATS = ("csv", "ply", "opencsp", "soltrace")
 SUFFIX = {"csv": ".csv", "ply": ".ply", "opencsp": ".h5", "soltrace": ".fed"}
@@ -84,8 +84,8 @@ def surface_points(analysis, record: dict, design, cells_across: int = 160) -> S
     ex, ey = (np.asarray(e, np.float64) for e in analysis.residuals_mrad["design"])
     spacing = math.sqrt(max(float(np.ptp(x)) * float(np.ptp(y)), 1e-18) / max(x.size, 1))
     cell = max(max(float(np.ptp(x)), float(np.ptp(y)), 1e-9) / cells_across, 1.5 * spacing)
-    g = grid_slopes(x, y, np.tan(1e-3 * ex), np.tan(1e-3 * ey), cell)
-    heights = integrate_slopes(*centred_slopes(g["s_x"], g["s_y"], g["offset_x_m"], g["offset_y_m"], cell), cell)
+    g = grid_slopes(x, y, np.tan(1e-3 * ex), np.tan(1e-3 * ey), cell, centred=True)
+    heights = integrate_slopes(g["s_x"], g["s_y"], cell)
     x0, _, y0, _ = g["extent_m"]
     col = np.clip(((x - x0) / cell).astype(int), 0, heights.shape[1] - 1)
     row = np.clip(((y - y0) / cell).astype(int), 0, heights.shape[0] - 1)

@@ -27,7 +27,8 @@ import numpy as np
 from .kernels import bilinear, grid_sums
 
 
-def grid_slopes(x_m, y_m, s_x, s_y, cell_m: float, extent_m=None, min_points: int = 1) -> dict:
+def grid_slopes(x_m, y_m, s_x, s_y, cell_m: float, extent_m=None, min_points: int = 1,
+                centred: bool = False) -> dict:
     """Average scattered slopes into square cells.
 
     Parameters
@@ -42,13 +43,17 @@ def grid_slopes(x_m, y_m, s_x, s_y, cell_m: float, extent_m=None, min_points: in
         Grid edges; the points' bounding box (padded by one cell) by default.
     min_points : int
         A cell with fewer points is left empty (NaN).
+    centred : bool
+        Each cell's mean slope moved from its points' centroid to its centre (:func:`centred_slopes`): for
+        what takes differences between cells (heights, curvature, two measurements' difference).
 
     Returns
     -------
     dict
-        ``s_x``, ``s_y`` (ny, nx) mean slopes, NaN where empty; ``offset_x_m``, ``offset_y_m`` (ny, nx) the
-        mean offset of the cell's points from its centre, metres, NaN where empty; ``count`` (ny, nx) points
-        per cell; ``x_m`` (nx,), ``y_m`` (ny,) cell centres; ``extent_m`` grid edges; ``cell_m``.
+        ``s_x``, ``s_y`` (ny, nx) mean slopes (at the cells' centres with *centred*), NaN where empty;
+        ``offset_x_m``, ``offset_y_m`` (ny, nx) the mean offset of the cell's points from its centre, metres,
+        NaN where empty; ``count`` (ny, nx) points per cell; ``x_m`` (nx,), ``y_m`` (ny,) cell centres;
+        ``extent_m`` grid edges; ``cell_m``.
     """
     x = np.asarray(x_m, dtype=np.float64).ravel()
     y = np.asarray(y_m, dtype=np.float64).ravel()
@@ -80,31 +85,33 @@ def grid_slopes(x_m, y_m, s_x, s_y, cell_m: float, extent_m=None, min_points: in
     with np.errstate(invalid="ignore", divide="ignore"):
         gx, gy, ox, oy = (np.where(full, np.bincount(flat, v, minlength=nx * ny) / count, np.nan).reshape(ny, nx)
                           for v in (sx, sy, x - (x0 + (ix + 0.5) * cell_m), y - (y0 + (iy + 0.5) * cell_m)))
+    if centred:
+        gx, gy = centred_slopes(gx, gy, ox, oy, cell_m)
     return {"s_x": gx, "s_y": gy, "offset_x_m": ox, "offset_y_m": oy, "count": count.reshape(ny, nx).astype(np.int64),
             "x_m": x0 + (np.arange(nx) + 0.5) * cell_m, "y_m": y0 + (np.arange(ny) + 0.5) * cell_m,
             "extent_m": (x0, x0 + nx * cell_m, y0, y0 + ny * cell_m), "cell_m": float(cell_m)}
 
 
-def _filled_gradient(s: np.ndarray, filled: np.ndarray, cell_m: float, axis: int) -> np.ndarray:
-    """ds/d(axis) per metre of the gridded *s* on its *filled* cells: the central difference where both
-    neighbours along *axis* are filled, one-sided where one is, 0 where neither is (and on empty cells)."""
-    s = np.moveaxis(np.where(filled, s, 0.0), axis, 0)
-    f = np.moveaxis(filled, axis, 0)
-    ahead, behind = np.zeros_like(f), np.zeros_like(f)
-    ahead[:-1] = f[:-1] & f[1:]
-    behind[1:] = f[1:] & f[:-1]
-    d_ahead, d_behind = np.zeros_like(s), np.zeros_like(s)
-    d_ahead[:-1] = (s[1:] - s[:-1]) / cell_m
-    d_behind[1:] = (s[1:] - s[:-1]) / cell_m
-    g = np.where(ahead & behind, 0.5 * (d_ahead + d_behind),
-                 np.where(ahead, d_ahead, np.where(behind, d_behind, 0.0)))
-    return np.moveaxis(g, 0, axis)
+def _difference(s: np.ndarray, cell_m: float, axis: int) -> np.ndarray:
+    """ds/d(axis) per metre of the gridded *s* (NaN where empty): the central difference where both neighbours
+    along *axis* are finite, one-sided where one is, NaN where neither is."""
+    fwd = (np.roll(s, -1, axis) - s) / cell_m
+    bwd = (s - np.roll(s, 1, axis)) / cell_m
+    edge_lo = [slice(None)] * 2
+    edge_lo[axis] = 0
+    edge_hi = [slice(None)] * 2
+    edge_hi[axis] = s.shape[axis] - 1
+    bwd[tuple(edge_lo)] = np.nan
+    fwd[tuple(edge_hi)] = np.nan
+    central = 0.5 * (fwd + bwd)
+    return np.where(np.isfinite(central), central, np.where(np.isfinite(fwd), fwd, bwd))
 
 
 def centred_slopes(s_x, s_y, offset_x_m, offset_y_m, cell_m: float) -> tuple[np.ndarray, np.ndarray]:
     """Gridded mean slopes (:func:`grid_slopes`) moved from their points' centroid to the cell's centre, to
     first order: s(centre) = s(mean) - grad s . offset, the gradient by differences of the neighbouring
-    cells' means (:func:`_filled_gradient`). NaN where a cell is empty.
+    cells' means (:func:`_difference`; none where a cell has no neighbour along an axis). NaN where a cell is
+    empty.
 
     A cell's mean slope is the slope at its points' centroid, which on a camera's pixel lattice sits up to
     half a cell off the centre in a pattern that beats with the grid (a moire), and at a facet's rim always
@@ -125,7 +132,8 @@ def centred_slopes(s_x, s_y, offset_x_m, offset_y_m, cell_m: float) -> tuple[np.
     filled = np.isfinite(sx) & np.isfinite(sy) & np.isfinite(ox) & np.isfinite(oy)
     out = []
     for s in (sx, sy):
-        move = _filled_gradient(s, filled, cell_m, 1) * ox + _filled_gradient(s, filled, cell_m, 0) * oy
+        s = np.where(filled, s, np.nan)
+        move = np.nan_to_num(_difference(s, cell_m, 1)) * ox + np.nan_to_num(_difference(s, cell_m, 0)) * oy
         out.append(np.where(filled, s - move, np.nan))
     return out[0], out[1]
 
@@ -212,21 +220,8 @@ def curvature_map(s_x, s_y, cell_m: float) -> dict:
     sx = np.asarray(s_x, dtype=np.float64)
     sy = np.asarray(s_y, dtype=np.float64)
 
-    def derivative(s, axis):
-        fwd = (np.roll(s, -1, axis) - s) / cell_m
-        bwd = (s - np.roll(s, 1, axis)) / cell_m
-        n = s.shape[axis]
-        edge_lo = [slice(None)] * 2
-        edge_lo[axis] = 0
-        edge_hi = [slice(None)] * 2
-        edge_hi[axis] = n - 1
-        bwd[tuple(edge_lo)] = np.nan
-        fwd[tuple(edge_hi)] = np.nan
-        central = 0.5 * (fwd + bwd)
-        return np.where(np.isfinite(central), central, np.where(np.isfinite(fwd), fwd, bwd))
-
-    kx = 2.0 * derivative(sx, 1)
-    ky = 2.0 * derivative(sy, 0)
+    kx = 2.0 * _difference(sx, cell_m, 1)
+    ky = 2.0 * _difference(sy, cell_m, 0)
     return {"kappa_x": kx, "kappa_y": ky, "mean": 0.5 * (kx + ky)}
 
 

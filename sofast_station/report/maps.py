@@ -29,7 +29,7 @@ import numpy as np
 from .. import __version__
 from ..errors import ReportError
 from ..measure.fit import monomials
-from ..measure.heights import centred_slopes, curvature_map, grid_slopes, integrate_slopes, slope_differences
+from ..measure.heights import curvature_map, grid_slopes, integrate_slopes, slope_differences
 from ..result.formatting import figure_text
 from ._common import savefig_atomic
 from .summary import MODELS, figure_lines
@@ -343,13 +343,13 @@ def detail_maps(x_m, y_m, slopes, residuals_mrad: dict, model: str = "parabola",
     g = grid_slopes(x, y, ex, ey, cell)
     extent = g["extent_m"]
     dsx, dsy = slope_differences(slopes, (ex, ey))
-    # each cell's mean moved from its points' centroid to its centre (heights.centred_slopes): the height and
-    # the curvature are differences between cells, and uncentred means beat with the pixel lattice
-    d = grid_slopes(x, y, dsx, dsy, cell, extent_m=extent)
-    h = integrate_slopes(*centred_slopes(d["s_x"], d["s_y"], d["offset_x_m"], d["offset_y_m"], cell), cell)
+    # each cell's mean at its centre, not its points' centroid (heights.centred_slopes): the height and the
+    # curvature are differences between cells, and uncentred means beat with the pixel lattice
+    d = grid_slopes(x, y, dsx, dsy, cell, extent_m=extent, centred=True)
+    h = integrate_slopes(d["s_x"], d["s_y"], cell)
     s = np.asarray(slopes, float)
-    m = grid_slopes(x, y, s[0], s[1], cell, extent_m=extent)
-    k = curvature_map(*centred_slopes(m["s_x"], m["s_y"], m["offset_x_m"], m["offset_y_m"], cell), cell)["mean"]
+    m = grid_slopes(x, y, s[0], s[1], cell, extent_m=extent, centred=True)
+    k = curvature_map(m["s_x"], m["s_y"], cell)["mean"]
     k_design = 0.0 if not design_focal_length_m else 1.0 / float(design_focal_length_m)
     return DetailMaps(model, extent, cell, g["s_x"], g["s_y"], np.hypot(g["s_x"], g["s_y"]), 1e6 * h,
                       k - k_design, (x, y, ex, ey))
