@@ -9,6 +9,7 @@ dump reprocesses to the same bits.
 
 from __future__ import annotations
 
+import math
 import time
 
 import numpy as np
@@ -16,6 +17,8 @@ import numpy as np
 from ..facet import FacetDesign
 from ..fringes import FringeSet
 from ..geometry import StationGeometry
+from .budget_rows import add_budget_row
+from .deblur import ROUGHNESS_LEFT
 from .pipeline import Analysis, AnalysisSettings, Reduction, reduce_stages, thread_pool, to_analysis
 from .screen import ScreenModel
 from .sensitivity_record import to_record
@@ -90,6 +93,7 @@ def finish_analysis(reduction: Reduction, timings: dict, *, fringes: FringeSet, 
         sensitivity_s = extra.pop("_sensitivity_seconds")
         frame_pool = extra.pop("_frame_pool")
         reduction.figures.update(extra)
+        add_sharpening_row(reduction.figures)
         timings["uncertainty"] = time.perf_counter() - t0
         if sensitivity_s:
             timings["uncertainty_sensitivities"] = sensitivity_s
@@ -98,3 +102,40 @@ def finish_analysis(reduction: Reduction, timings: dict, *, fringes: FringeSet, 
             analysis.sensitivities = to_record(key, sensitivity_cache[key], frame_pool)
             return analysis
     return to_analysis(reduction, timings)
+
+
+#: The budget's row for what the figures' sharpening leaves (:data:`~.deblur.ROUGHNESS_LEFT`).
+SHARPENING_GROUP = "lens blur on the facet's roughness"
+
+
+def add_sharpening_row(figures: dict) -> dict:
+    """Carry what a blurring lens's sharpening of the fitted figures leaves (``figures["lens_blur_sharpening"]``,
+    :func:`~.pipeline.sharpened_fit`) as a systematic row of the budget; nothing for a sharp lens. Its standard
+    uncertainty is :data:`~.deblur.ROUGHNESS_LEFT` times the correction pooled over the two axes (root mean
+    square): of the curvatures for the curvatures and focal lengths (a focal length's as f^2 times its
+    curvature's), and of the two twists e1, e2 for the twists. Returns what was added to each expanded
+    uncertainty (:func:`~.budget_rows.add_budget_row`)."""
+    correction = figures.get("lens_blur_sharpening") or {}
+
+    def pooled(*paths):
+        values = [correction.get(p) for p in paths]
+        return ROUGHNESS_LEFT * math.sqrt(sum(v * v for v in values) / len(values)) \
+            if all(isinstance(v, float) and math.isfinite(v) for v in values) else 0.0
+
+    curvature = pooled("curvature_x_per_m", "curvature_y_per_m")
+    twist = pooled("twist_e1_mrad_per_m", "twist_e2_mrad_per_m")
+    if not (curvature or twist):
+        return {}
+    contributions = {"curvature_x_per_m": curvature, "curvature_y_per_m": curvature,
+                     "principal_curvatures_per_m.0": curvature, "principal_curvatures_per_m.1": curvature,
+                     "twist_mrad_per_m": twist, "twist_e1_mrad_per_m": twist, "twist_e2_mrad_per_m": twist}
+    for path in ("focal_length_x_m", "focal_length_y_m", "principal_focal_lengths_m.0", "principal_focal_lengths_m.1"):
+        head, *index = path.split(".")
+        f = figures.get(head)
+        f = f[int(index[0])] if index and isinstance(f, list) else f
+        if isinstance(f, (int, float)) and math.isfinite(f):
+            contributions[path] = curvature * f * f
+    blur = figures.get("edge_blur_px") or 0.0
+    return add_budget_row(figures, SHARPENING_GROUP,
+                          [f"edge blur {blur:.2f} px on the facet's fine slope structure: "
+                           f"{ROUGHNESS_LEFT:g} x the fitted figures' sharpening"], contributions)

@@ -59,6 +59,7 @@ from .pipeline import (
     pose_from_corners,
     reduce_stages,
     rerun,
+    sharpened_fit,
     thread_pool,
 )
 from .pose import fix_range, solve_corner_pose
@@ -1002,6 +1003,8 @@ def finish_facets(reductions: dict, fringes: FringeSet, geometries: dict, ensemb
                 again = rerun(red, "shape", fringes=fringes, geometry=g, design=f.design,
                               measured_distance_m=distances[i], settings=settings, screen=screen, pose=p,
                               pool=pool)
+                again = sharpened_fit(again, geometry=g, design=f.design, measured_distance_m=distances[i],
+                                      settings=settings, screen=screen, pool=pool)
             tim = dict(tim, rerun=time.perf_counter() - t)
             done_ = finish_analysis(again, tim, fringes=fringes, geometry=g, design=f.design,
                                     measured_distance_m=distances[i], settings=settings, screen=screen,

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
 
-from sofast_station.measure.deblur import blur_shift_m
+from sofast_station.measure.deblur import blur_shift_m, roughness_shift_m
 
 
 def _case(rng):
@@ -68,3 +68,70 @@ def test_no_blur_or_too_few_pixels_move_nothing():
     assert np.all(blur_shift_m(u, v, np.zeros(u.size, bool), s, a, 0.8) == 0)
     with pytest.raises(ValueError, match="one shape"):
         blur_shift_m(u, v, ok, s[:-1], a, 0.8)
+
+
+def _rough_case(rng):
+    """A position field with a smooth part and a rough one (white noise smoothed to a correlation of 2.5-6 px:
+    a facet's slope errors of 2-6 cm seen by pixels of 5-10 mm), its fringes blurred as in :func:`_case`."""
+    h, w = 150, 200
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    x, y = (u - w / 2) / w, (v - h / 2) / w
+    sigma = rng.uniform(0.5, 1.0)
+    period_m = 0.3
+    slope = rng.uniform(0.15, 0.45) * period_m / (2 * np.pi) * w
+    smooth = slope * (x + rng.uniform(-0.05, 0.05) * x * x + rng.uniform(-0.03, 0.03) * x * y)
+    length = rng.uniform(2.5, 6.0)
+    rough = gaussian_filter(rng.standard_normal((h, w)), length)
+    rough *= 0.05 * period_m / (2 * np.pi) / np.std(np.gradient(rough)[1])      # 0.05 rad/px of phase gradient
+    s = smooth + rough
+    amplitude = 100.0 * np.exp(-rng.uniform(0.5, 2.0) * (x ** 2 + y ** 2))
+    z = amplitude * np.exp(2j * np.pi * s / period_m)
+    blurred = gaussian_filter(z.real, sigma, mode="nearest") + 1j * gaussian_filter(z.imag, sigma, mode="nearest")
+    seen = s + np.angle(blurred * np.exp(-2j * np.pi * s / period_m)) * period_m / (2 * np.pi)
+    inner = np.zeros((h, w), bool)
+    inner[8:-8, 8:-8] = True
+    k = np.arange(-int(4.0 * sigma + 0.5), int(4.0 * sigma + 0.5) + 1)
+    weights = np.exp(-0.5 * (k / sigma) ** 2)
+    spread = float(np.sqrt(np.sum(k * k * weights) / np.sum(weights)))
+    return u, v, inner, s, seen, np.abs(blurred), spread
+
+
+def test_the_roughness_shift_takes_most_of_the_blurs_smoothing_off_what_a_fit_sees():
+    """24 drawn rough fields (blur 0.5-1.0 px, roughness correlated over 2.5-6 px, an independent image model).
+    What a fit reads of the error the smooth shift leaves (its linear part across the image, what a nearly flat
+    facet reads as focal power) falls to at most 0.35 of its RMS over the cases and its largest to at most half,
+    and each field's whole error to at most half its RMS (measured 2026-12-07: RMS 0.206 -> 0.047 um per px,
+    largest 0.501 -> 0.129; the whole error to at most 0.20). Without the roughness shift the test fails."""
+    ratios, fine = [], []
+    for seed in range(24):
+        rng = np.random.default_rng(100 + seed)
+        u, v, inner, s, seen, amplitude, sigma = _rough_case(rng)
+        uu, vv, ok = u[inner], v[inner], np.ones(int(inner.sum()), bool)
+        smooth_off = seen[inner] - blur_shift_m(uu, vv, ok, seen[inner], amplitude[inner], sigma)
+        sharpened = smooth_off - roughness_shift_m(uu, vv, ok, smooth_off, sigma)
+        before, after = smooth_off - s[inner], sharpened - s[inner]
+        ratios.append((_linear_part(before, uu, vv), _linear_part(after, uu, vv)))
+        fine.append(np.sqrt(np.mean(after ** 2) / np.mean(before ** 2)))
+        assert fine[-1] <= 0.5, seed
+    before, after = np.array(ratios).T
+    print(f"linear part: RMS {1e6 * np.sqrt(np.mean(before ** 2)):.3f} -> {1e6 * np.sqrt(np.mean(after ** 2)):.3f}, "
+          f"largest {1e6 * before.max():.3f} -> {1e6 * after.max():.3f} um per px; "
+          f"fine RMS at most {max(fine):.2f} of it")
+    assert np.sqrt(np.mean(after ** 2)) <= 0.35 * np.sqrt(np.mean(before ** 2))
+    assert after.max() <= 0.5 * before.max()
+
+
+def test_the_roughness_shift_leaves_the_rim_and_a_smooth_field_alone():
+    u, v = np.meshgrid(np.arange(30.0), np.arange(20.0))
+    u, v = u.ravel(), v.ravel()
+    ok = np.ones(u.size, bool)
+    cubic = 1e-3 * u + 2e-6 * u * v - 1e-7 * u ** 3
+    assert np.max(np.abs(roughness_shift_m(u, v, ok, cubic, 0.8))) < 1e-15
+    bump = cubic + 1e-5 * ((u == 10) & (v == 10))
+    shift = roughness_shift_m(u, v, ok, bump, 0.8)
+    rim = (u == 0) | (u == 29) | (v == 0) | (v == 19)
+    assert np.all(shift[rim] == 0)
+    assert shift[(u == 10) & (v == 10)][0] < 0 < shift[(u == 11) & (v == 10)][0]
+    assert np.all(roughness_shift_m(u, v, ok, bump, 0.0) == 0)
+    with pytest.raises(ValueError, match="one shape"):
+        roughness_shift_m(u, v, ok, bump[:-1], 0.8)

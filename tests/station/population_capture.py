@@ -11,13 +11,16 @@ from sofast_station.station.population import PopulationStation, draw_station
 from sofast_station.twin.truth import ground_truth
 
 
-def noise_free_capture(index: int, kind: str, images: dict, data_dir) -> tuple:
+def noise_free_capture(index: int, kind: str, images: dict, data_dir, surface_seed: int | None = None) -> tuple:
     """Station *index* of the population of seed 0 (of facet *kind*), its facet at the fixture's nominal pose,
-    a noise-free capture (the rng draws only the flicker phase) analysed without uncertainty.
+    a noise-free capture (the rng draws only the flicker phase) analysed without uncertainty. *surface_seed*:
+    another draw of the facet's slope errors (the station's own when None).
 
     Returns (station, twin, reduction, args): ``args`` the keyword arguments :func:`~pipeline.rerun` takes."""
     spec = draw_station(index, 0)
     assert spec["kind"] == kind
+    if surface_seed is not None:
+        spec["facet"]["surface_seed"] = surface_seed
     st = PopulationStation(spec, data_dir, images)
     cfg = st.config
     twin = st.twin(cfg.geometry, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), optics=st.optics.noise_free())
