@@ -974,8 +974,8 @@ def sharpened_fit(reduction: Reduction, *, geometry: StationGeometry, design: Fa
 
     On seed 0's blurred heliostat stations (34: Gaussian, 0.65 px; 42: defocused, 0.79 px; f 100 m at 4 m, seven
     drawn facets each, noise-free unrounded frames) f was 45 and 83 ppm RMS from the like-for-like truth
-    without it and 20 and 33 with it; what is left is about half the correction's size (RMS over those 28
-    values), the budget's row for it (:func:`~.analysis.finish_analysis`; docs/method.md)."""
+    without it and 21 and 33 with it. What it leaves, about half the correction's size (RMS over those 28 values),
+    the budget carries as a row (:func:`~.analysis.add_sharpening_row`; docs/method.md)."""
     shift = getattr(reduction.phases, "roughness_shift_m", None)
     shape = reduction.shape
     if shift is None or settings.surface != "parabolic" or shape is None or shape.points_m is None \
