@@ -227,6 +227,10 @@ LONG_TESTS = {
     "tests/station/test_heliostat_near.py::test_focal_length_against_truth_stage_by_stage[2]": "its stations 6 and 10",
     "tests/station/test_heliostat_blurred.py::test_a_blurred_heliostats_focal_length_with_and_without_the_blurs_shift"
     "[42]": "its station 34",
+    "tests/station/test_heliostat_blurred.py::"
+    "test_the_sharpened_fit_takes_most_of_the_blurs_smoothing_off_f_and_the_budget_carries_the_rest":
+        "test_deblur.py (the sharpening on an independent image model), test_sharpening_row.py (the row), and "
+        "the first test's station 34 (the pipeline's path through it)",
     "tests/station/test_dark_rim.py::test_a_dark_rim_declared_dark_puts_the_corners_on_the_outline[heliostat-2]":
         "its dish",
     "tests/station/test_dark_rim.py::test_a_rim_declared_dark_that_shows_the_screen_is_named_and_put_midway"

@@ -70,7 +70,6 @@ def test_a_blurred_heliostats_focal_length_with_and_without_the_blurs_shift(inde
 SURFACE_SEEDS = (None, 11, 22, 33, 44, 55, 66)
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("index", sorted(LIMITS))
 def test_the_sharpened_fit_takes_most_of_the_blurs_smoothing_off_f_and_the_budget_carries_the_rest(index, tmp_path):
     """Over seven drawn facets of the station (f x and y: 14 values): with the sharpening f's RMS error from the
