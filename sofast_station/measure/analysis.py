@@ -19,7 +19,8 @@ from ..fringes import FringeSet
 from ..geometry import StationGeometry
 from .budget_rows import add_budget_row
 from .deblur import ROUGHNESS_LEFT
-from .pipeline import Analysis, AnalysisSettings, Reduction, reduce_stages, thread_pool, to_analysis
+from .pipeline import (Analysis, AnalysisSettings, Reduction, figure_at, reduce_stages, thread_pool,
+                       to_analysis)
 from .screen import ScreenModel
 from .sensitivity_record import to_record
 from .uncertainty import InputUncertainties, sensitivity_key, uncertainty_figures
@@ -130,9 +131,7 @@ def add_sharpening_row(figures: dict) -> dict:
                      "principal_curvatures_per_m.0": curvature, "principal_curvatures_per_m.1": curvature,
                      "twist_mrad_per_m": twist, "twist_e1_mrad_per_m": twist, "twist_e2_mrad_per_m": twist}
     for path in ("focal_length_x_m", "focal_length_y_m", "principal_focal_lengths_m.0", "principal_focal_lengths_m.1"):
-        head, *index = path.split(".")
-        f = figures.get(head)
-        f = f[int(index[0])] if index and isinstance(f, list) else f
+        f = figure_at(figures, path)
         if isinstance(f, (int, float)) and math.isfinite(f):
             contributions[path] = curvature * f * f
     blur = figures.get("edge_blur_px") or 0.0

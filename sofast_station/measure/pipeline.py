@@ -953,7 +953,9 @@ SHARPENED_PATHS = ("focal_length_x_m", "focal_length_y_m", "curvature_x_per_m", 
                    "principal_focal_lengths_m.1", "principal_curvatures_per_m.0", "principal_curvatures_per_m.1")
 
 
-def _dotted(figures: dict, path: str):
+def figure_at(figures: dict, path: str):
+    """The figure at dotted *path* of :data:`SHARPENED_PATHS`' form (``"principal_focal_lengths_m.0"``: a list's
+    element), or None."""
     head, *rest = path.split(".")
     v = figures.get(head)
     return v[int(rest[0])] if rest and isinstance(v, (list, tuple)) else v
@@ -989,14 +991,11 @@ def sharpened_fit(reduction: Reduction, *, geometry: StationGeometry, design: Fa
     moved = np.where(np.isfinite(moved), moved, rays.screen_cam_m)
     sharp = shape_and_boresight(dataclasses.replace(rays, screen_cam_m=moved), reduction.pose, design,
                                 measured_distance_m, settings, pool, start=shape.solution)
-    figures = dict(reduction.figures)
-    plain = parabola_figures(shape.fit)
-    figures.update(parabola_figures(sharp.fit))
-    coeffs = model_coefficients(sharp.fit, design)
-    figures["coefficients"] = dict(zip("ABCDEF", coeffs))
-    figures["lens_blur_sharpening"] = {
-        path: (None if _dotted(plain, path) is None or _dotted(figures, path) is None
-               else float(_dotted(figures, path) - _dotted(plain, path))) for path in SHARPENED_PATHS}
+    plain, sharpened = reduction.figures, parabola_figures(sharp.fit)     # plain: report_figures' parabola_figures
+    moved = {path: (figure_at(sharpened, path), figure_at(plain, path)) for path in SHARPENED_PATHS}
+    figures = {**plain, **sharpened, "coefficients": dict(zip("ABCDEF", model_coefficients(sharp.fit, design))),
+               "lens_blur_sharpening": {path: None if a is None or b is None else float(a - b)
+                                        for path, (a, b) in moved.items()}}
     return dataclasses.replace(reduction, figures=figures)
 
 
