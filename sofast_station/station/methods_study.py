@@ -35,7 +35,8 @@ from ..measure.analysis import analyse
 from ..measure.fixed import analyse_fixed
 from ..recipes import fixed_capture
 from ..twin.truth import ground_truth
-from .population import EDGE_MODELS, PopulationStation, coverage_band, coverage_rows, draw_station
+from .population import (EDGE_MODELS, PopulationStation, coverage_band, coverage_rows, draw_station,
+                         judged_count)
 from .study import Placement, capture_record, perturbed_geometry
 
 #: The population's kinds whose stations the fixed method can measure (their layout indexes the dot grid).
@@ -144,7 +145,7 @@ def summarise_methods(cases: list[dict]) -> dict:
         steady = [c for c in done if c["capture"] > 0] or done
         rows = coverage_rows(done)
         for r in rows:
-            r["band"] = list(coverage_band(r["n"]))
+            r["band"] = list(coverage_band(judged_count(r)))
         out[method] = {
             "n": len(mine), "refused": [c.get("error") for c in mine if c["outcome"] == "refused"],
             "coverage": rows,

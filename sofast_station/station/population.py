@@ -709,10 +709,15 @@ def rms_band(n: int, claim=CLAIM_RMS, false_alarm: float = 1e-3) -> tuple[float,
 COVERAGE_ONLY = ("axis_angle_rad",)
 
 
+def judged_count(r: dict) -> int:
+    """The count a coverage row (:func:`coverage_rows`) is judged at: what its captures are worth (``n_eff``,
+    :func:`effective_count`) where the row says, else its captures."""
+    return r.get("n_eff", r["n"])
+
+
 def _count(r: dict) -> str:
     """A row's count as the tables name it: its captures, and what they are worth where that is fewer."""
-    n_eff = r.get("n_eff", r["n"])
-    return f"{r['n']}" if n_eff == r["n"] else f"{r['n']} (worth {n_eff})"
+    return f"{r['n']}" if judged_count(r) == r["n"] else f"{r['n']} (worth {judged_count(r)})"
 
 
 def outside(rows: list[dict], false_alarm: float = 1e-3, rms_exempt=COVERAGE_ONLY) -> list[str]:
@@ -724,7 +729,7 @@ def outside(rows: list[dict], false_alarm: float = 1e-3, rms_exempt=COVERAGE_ONL
     RMS magnitude covered 99.8 % of 500 captures, outside 87.8-99.6 %; its captures were worth 74)."""
     out = []
     for r in rows:
-        n = r.get("n_eff", r["n"])
+        n = judged_count(r)
         lo, hi = coverage_band(n, false_alarm=false_alarm)
         if not lo <= r["coverage"] <= hi:
             out.append(f"{r['figure']}: coverage {100 * r['coverage']:.1f} % of {_count(r)} outside "
@@ -752,8 +757,8 @@ def coverage_text(summary: dict) -> list[str]:
     def cell(r):
         if r is None:
             return f"{'-':>15}"
-        c_lo, c_hi = coverage_band(r.get("n_eff", r["n"]))
-        z_lo, z_hi = rms_band(r.get("n_eff", r["n"]))
+        c_lo, c_hi = coverage_band(judged_count(r))
+        z_lo, z_hi = rms_band(judged_count(r))
         mark = ("<" if r["coverage"] < c_lo else ">" if r["coverage"] > c_hi else " ") + \
             ("<" if r["z_rms"] < z_lo else ">" if r["z_rms"] > z_hi else " ")
         return f"{100 * r['coverage']:6.1f}% {r['z_rms']:5.2f}{mark}"
@@ -846,14 +851,18 @@ def population_png(cases: list[dict], summary: dict, path) -> None:
     if rows:
         names = [r["figure"] for r in rows]
         cov = [100 * r["coverage"] for r in rows]
+        # each bar judged in its own band, for what its captures are worth (as outside() judges it)
+        bands = [coverage_band(judged_count(r)) for r in rows]
+        ax.barh(names, cov, color=["tab:blue" if 100 * lo <= c <= 100 * hi else "tab:red"
+                                   for c, (lo, hi) in zip(cov, bands)])
         lo, hi = coverage_band(min(r["n"] for r in rows))
-        ax.barh(names, cov, color=["tab:blue" if 100 * lo <= c <= 100 * hi else "tab:red" for c in cov])
         ax.axvspan(100 * lo, 100 * hi, color="tab:green", alpha=0.15, zorder=0,
-                   label=f"a right 95 % claim (n = {rows[0]['n']})")
+                   label=f"a right 95 % claim (n = {rows[0]['n']}); red: outside the band for what its "
+                         "captures are worth")
         ax.axvline(95, color="tab:green")
         ax.set_xlim(min(80, min(cov) - 2), 100)
         ax.invert_yaxis()
-        ax.legend(loc="lower left")
+        ax.legend(loc="lower left", bbox_to_anchor=(0.0, 1.04), fontsize="small", frameon=False)
     ax.set_xlabel("|error against truth| <= U (k = 2), % of good captures")
     ax.set_title("coverage of the stated uncertainty")
     ax = axes[1]
