@@ -38,6 +38,7 @@ from __future__ import annotations
 import numpy as np
 
 from .fit import monomial_powers, monomials
+from .metrics import neighbour_pairs
 
 #: The measured edge blur (pixels, ``Outline.edge_blur_px``: beyond the pixel's own square) below which the
 #: positions are left as they are: on the population (seed 0, 500 captures) sharp edges measured up to 0.29 px
@@ -151,22 +152,20 @@ def roughness_shift_m(columns_px: np.ndarray, rows_px: np.ndarray, ok: np.ndarra
                              s_all[use], rcond=None)
     u, v = u_all[trusted], v_all[trusted]
     fine = s_all[trusted] - monomials((u - u0) / scale, (v - v0) / scale, POSITION_DEGREE) @ cs
-    # each trusted pixel's four neighbours among the trusted ones, by their keys in raster order
-    width = int(u.max() - min(int(u.min()), 0)) + 2
-    key = (v - int(v.min())) * width + (u - min(int(u.min()), 0))
+    # each trusted pixel's four neighbours among the trusted ones (metrics.neighbour_pairs), on a raster of the
+    # pixels' box one column wider than it, so that no pair runs across a row's end
+    width = int(u.max() - u.min()) + 2
+    key = (v - int(v.min())) * width + (u - int(u.min()))
     order = np.argsort(key, kind="stable")
-    sorted_key = key[order]
-
-    def neighbour(step):
-        at = np.clip(np.searchsorted(sorted_key, key + step), 0, key.size - 1)
-        return np.where(sorted_key[at] == key + step, fine[order[at]], np.nan)
-
+    fine_sorted = fine[order]
     laplacian = np.zeros(trusted.size)
     complete = np.ones(trusted.size, bool)
-    for step in (1, width):
-        second = neighbour(step) - 2.0 * fine + neighbour(-step)
-        complete &= np.isfinite(second)
-        laplacian += np.nan_to_num(second)
+    for first, second in neighbour_pairs(key[order], width):
+        ahead, behind = np.full(trusted.size, np.nan), np.full(trusted.size, np.nan)
+        ahead[first], behind[second] = fine_sorted[second], fine_sorted[first]
+        difference = ahead - 2.0 * fine_sorted + behind
+        complete[order] &= np.isfinite(difference)
+        laplacian[order] += np.nan_to_num(difference)
     shift[trusted[complete]] = 0.5 * float(sigma_px) ** 2 * laplacian[complete]
     return shift
 
